@@ -1,0 +1,160 @@
+"""Acceleration-level robot dynamics, vectorised over a team (SPEC section 1).
+
+State per robot: axle pose ``(x, y, theta)`` and "wheel speeds" ``u``; input:
+``du``, the wheel angular accelerations, bounded per robot.  The controlled
+point ``p = (x + l cos(theta), y + l sin(theta))`` obeys
+
+    p_dot = A(theta) u,      p_ddot = A(theta) du + A_dot u        (eqn.kinematic)
+
+with ``A = rho/2 [[c - k s, c + k s], [s + k c, s - k c]]``, ``k = l / b``.
+
+For the holonomic double integrator ``A = I``, ``A_dot = 0``, ``u`` is the
+point velocity, ``du`` its acceleration and ``(x, y)`` is the point itself; its
+"heading" follows the velocity direction (kept while the robot is at rest).
+
+Integration: the wheel speeds change linearly over a step (``du`` is held), and
+the pose follows the exact arc of the step-mean wheel speeds, so the heading is
+exact and constant wheel speeds give the exact circle.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from aasoatt_env.params import Team
+
+__all__ = [
+    "Kinematics",
+    "control_point",
+    "input_bounds",
+    "integrate",
+    "jacobian",
+    "kinematics",
+    "pose_from_point",
+]
+
+_SMALL_OMEGA = 1e-9
+
+
+class Kinematics(NamedTuple):
+    """Control-point quantities of a team, all with leading dimension N."""
+
+    p: np.ndarray
+    """Control-point positions, ``(N, 2)``."""
+    v: np.ndarray
+    """Control-point velocities ``A u``, ``(N, 2)``."""
+    A: np.ndarray
+    """Input matrices ``A_i``, ``(N, 2, 2)``."""
+    adot_u: np.ndarray
+    """Drift acceleration ``A_dot_i u_i``, ``(N, 2)``."""
+
+
+def control_point(team: Team, pose: np.ndarray) -> np.ndarray:
+    """Control-point positions ``(N, 2)`` from axle poses ``(N, 3)``."""
+    if not team.is_diff_drive:
+        return pose[:, :2].copy()
+    c, s = np.cos(pose[:, 2]), np.sin(pose[:, 2])
+    return pose[:, :2] + team.offset[:, None] * np.stack((c, s), axis=1)
+
+
+def pose_from_point(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Axle poses ``(N, 3)`` whose control points are ``p`` at headings ``theta``."""
+    theta = np.asarray(theta, dtype=np.float64)
+    pose = np.empty((p.shape[0], 3))
+    pose[:, 2] = theta
+    if team.is_diff_drive:
+        pose[:, 0] = p[:, 0] - team.offset * np.cos(theta)
+        pose[:, 1] = p[:, 1] - team.offset * np.sin(theta)
+    else:
+        pose[:, :2] = p
+    return pose
+
+
+def jacobian(team: Team, theta: np.ndarray) -> np.ndarray:
+    """Input matrices ``A(theta)``, shape ``(N, 2, 2)``."""
+    n = theta.shape[0]
+    if not team.is_diff_drive:
+        return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
+    c, s = np.cos(theta), np.sin(theta)
+    k = team.offset / team.half_track
+    h = 0.5 * team.wheel_radius
+    A = np.empty((n, 2, 2))
+    A[:, 0, 0] = h * (c - k * s)
+    A[:, 0, 1] = h * (c + k * s)
+    A[:, 1, 0] = h * (s + k * c)
+    A[:, 1, 1] = h * (s - k * c)
+    return A
+
+
+def kinematics(team: Team, pose: np.ndarray, u: np.ndarray) -> Kinematics:
+    """Control point, its velocity, ``A`` and ``A_dot u`` for the whole team."""
+    if not team.is_diff_drive:
+        n = pose.shape[0]
+        return Kinematics(pose[:, :2].copy(), u.copy(), jacobian(team, pose[:, 2]), np.zeros((n, 2)))
+    theta = pose[:, 2]
+    c, s = np.cos(theta), np.sin(theta)
+    k = team.offset / team.half_track
+    h = 0.5 * team.wheel_radius
+    A = np.empty((theta.shape[0], 2, 2))
+    A[:, 0, 0] = h * (c - k * s)
+    A[:, 0, 1] = h * (c + k * s)
+    A[:, 1, 0] = h * (s + k * c)
+    A[:, 1, 1] = h * (s - k * c)
+    v = np.einsum("nij,nj->ni", A, u)
+    omega = team.wheel_radius * (u[:, 0] - u[:, 1]) / (2.0 * team.half_track)
+    # A_dot u = dA/dtheta * omega * u, with dA/dtheta = h [[-s - kc, -s + kc], [c - ks, c + ks]]
+    adot_u = np.empty_like(v)
+    adot_u[:, 0] = h * omega * ((-s - k * c) * u[:, 0] + (-s + k * c) * u[:, 1])
+    adot_u[:, 1] = h * omega * ((c - k * s) * u[:, 0] + (c + k * s) * u[:, 1])
+    p = pose[:, :2] + team.offset[:, None] * np.stack((c, s), axis=1)
+    return Kinematics(p, v, A, adot_u)
+
+
+def input_bounds(team: Team, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper bounds ``(N, 2)`` on ``du`` for the next step.
+
+    The box ``|du| <= max_wheel_accel`` is intersected with the set that keeps
+    ``|u + du dt| <= max_wheel_speed``.  If a wheel already exceeds its speed
+    limit, the bound lets it brake at full acceleration (the box is never empty).
+    """
+    a = team.du_max
+    hi, lo = a.copy(), -a
+    finite = np.isfinite(team.max_wheel_speed)
+    if np.any(finite):
+        w = team.max_wheel_speed[:, None]
+        hi = np.where(finite[:, None], np.maximum(np.minimum(a, (w - u) / dt), -a), hi)
+        lo = np.where(finite[:, None], np.minimum(np.maximum(-a, (-w - u) / dt), a), lo)
+    return lo, hi
+
+
+def integrate(
+    team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Advance poses and wheel speeds by ``dt`` holding ``du``; returns new arrays."""
+    u_new = u + du * dt
+    if not team.is_diff_drive:
+        pose_new = pose.copy()
+        pose_new[:, :2] += u * dt + 0.5 * du * dt * dt
+        speed = np.hypot(u_new[:, 0], u_new[:, 1])
+        moving = speed > 1e-9
+        pose_new[:, 2] = np.where(moving, np.arctan2(u_new[:, 1], u_new[:, 0]), pose[:, 2])
+        return pose_new, u_new
+    um = u + 0.5 * dt * du  # mean wheel speeds over the step
+    rho, b = team.wheel_radius, team.half_track
+    v = 0.5 * rho * (um[:, 0] + um[:, 1])
+    omega = rho * (um[:, 0] - um[:, 1]) / (2.0 * b)
+    theta = pose[:, 2]
+    dtheta = omega * dt
+    # sin(x)/x-type factors, stable for small dtheta
+    half = 0.5 * dtheta
+    small = np.abs(half) < _SMALL_OMEGA
+    safe = np.where(small, 1.0, half)
+    sinc = np.where(small, 1.0 - half * half / 6.0, np.sin(safe) / safe)
+    mid = theta + half
+    pose_new = np.empty_like(pose)
+    pose_new[:, 0] = pose[:, 0] + v * dt * sinc * np.cos(mid)
+    pose_new[:, 1] = pose[:, 1] + v * dt * sinc * np.sin(mid)
+    pose_new[:, 2] = theta + dtheta
+    return pose_new, u_new

@@ -1,0 +1,208 @@
+"""Robot parameters: one validated dataclass per robot, vectorised per team.
+
+:class:`RobotParams` describes one robot (disc radius, wheel geometry, control
+point offset, input bounds).  :class:`Team` stacks N of them into arrays of
+shape ``(N,)`` so the dynamics, the barriers and the QP never loop over robots.
+
+Presets
+-------
+``"paper"``
+    The defaults of ``SPEC.md`` section 7: disc radius 0.48 m (so ``d_s = 0.96``),
+    wheel radius 0.1 m, half track 0.2 m, control-point offset 0.2 m,
+    ``|du| <= 60 rad/s^2`` and no wheel-speed limit.  The paper does not state
+    its wheel geometry or bounds; these values reproduce its N = 10 results.
+``"turtlebot3_burger"``
+    ROBOTIS TurtleBot3 Burger: wheel radius 0.033 m, track 0.160 m (half track
+    0.08 m), top speed 0.22 m/s, i.e. a wheel-speed limit of 0.22 / 0.033 =
+    6.67 rad/s; enclosing radius 0.105 m; offset 0.05 m; wheel-acceleration
+    bound 20 rad/s^2 (about 0.66 m/s^2 at the rim; our choice, not ROBOTIS').
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields, replace
+from typing import Literal, Sequence
+
+import numpy as np
+
+from aasoatt_env.errors import ConfigError
+
+__all__ = ["PRESETS", "RobotParams", "Team", "make_team"]
+
+Model = Literal["diff_drive", "double_integrator"]
+MODELS: tuple[str, ...] = ("diff_drive", "double_integrator")
+
+
+def check_positive(name: str, value: float, *, allow_inf: bool = False) -> float:
+    """Return ``float(value)`` or raise :class:`ConfigError` naming ``name``."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ConfigError(f"{name}: got {value!r}, expected a positive number") from None
+    if math.isnan(v) or v <= 0 or (math.isinf(v) and not allow_inf):
+        expected = "a positive number (inf allowed)" if allow_inf else "a finite positive number"
+        raise ConfigError(f"{name}: got {value!r}, expected {expected}")
+    return v
+
+
+@dataclass(frozen=True)
+class RobotParams:
+    """Physical parameters of one robot.
+
+    Parameters
+    ----------
+    radius : float
+        Radius of the robot's enclosing disc [m]; the safety distance of a pair
+        is the sum of their radii.
+    wheel_radius : float
+        Wheel radius ``rho`` [m].
+    half_track : float
+        Half the distance between the wheels ``b`` [m].
+    offset : float
+        Distance ``l`` of the controlled point ahead of the axle centre [m];
+        must be positive (``l = 0`` makes ``A`` singular).
+    max_wheel_accel : float
+        Bound on each wheel's angular acceleration, ``|du| <= max_wheel_accel``
+        [rad/s^2].  For the double integrator: bound on each acceleration
+        component [m/s^2].
+    max_wheel_speed : float
+        Bound on each wheel's angular speed [rad/s] (``inf`` for none).  It is
+        enforced by tightening the acceleration bounds of the step, never by
+        clipping the state.  For the double integrator: bound on each velocity
+        component [m/s].
+    model : {"diff_drive", "double_integrator"}
+        Differential drive (feedback-linearised control point) or holonomic
+        double integrator (``A = I``, ``A_dot = 0``).
+    """
+
+    radius: float = 0.48
+    wheel_radius: float = 0.1
+    half_track: float = 0.2
+    offset: float = 0.2
+    max_wheel_accel: float = 60.0
+    max_wheel_speed: float = math.inf
+    model: Model = "diff_drive"
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            if f.name == "model":
+                continue
+            value = check_positive(
+                f"RobotParams.{f.name}", getattr(self, f.name), allow_inf=f.name == "max_wheel_speed"
+            )
+            object.__setattr__(self, f.name, value)
+        if self.model not in MODELS:
+            raise ConfigError(f"RobotParams.model: got {self.model!r}, expected one of {list(MODELS)}")
+
+    @classmethod
+    def preset(cls, name: str, **overrides: float | str) -> "RobotParams":
+        """Return a preset (see module docstring), optionally with fields overridden."""
+        if name not in PRESETS:
+            raise ConfigError(f"unknown robot preset {name!r}; known presets: {sorted(PRESETS)}")
+        return replace(PRESETS[name], **overrides)
+
+    @property
+    def max_point_accel(self) -> float:
+        """Largest control-point acceleration guaranteed in every direction at rest.
+
+        The reachable set ``{A du : |du|_inf <= a}`` is a parallelogram whose
+        two columns both have length ``rho/2 sqrt(1 + k^2)`` (``k = l / b``) and
+        whose determinant is ``-rho^2 k / 2``; its inscribed-circle radius is
+        ``a |det A| / |column| = a rho k / sqrt(1 + k^2)``.  The braking SBC
+        (eqn.n4) uses this as ``a_i^+``.
+        """
+        if self.model == "double_integrator":
+            return self.max_wheel_accel
+        k = self.offset / self.half_track
+        return self.max_wheel_accel * self.wheel_radius * k / math.sqrt(1.0 + k * k)
+
+
+PRESETS: dict[str, RobotParams] = {
+    "paper": RobotParams(),
+    "turtlebot3_burger": RobotParams(
+        radius=0.105,
+        wheel_radius=0.033,
+        half_track=0.08,
+        offset=0.05,
+        max_wheel_accel=20.0,
+        max_wheel_speed=0.22 / 0.033,
+    ),
+    "double_integrator": RobotParams(max_wheel_accel=6.0, model="double_integrator"),
+}
+
+
+@dataclass(frozen=True)
+class Team:
+    """Parameters of N robots as arrays of shape ``(N,)`` (see :class:`RobotParams`).
+
+    All robots share one dynamics ``model``.  Build with :func:`make_team`.
+    """
+
+    radius: np.ndarray
+    wheel_radius: np.ndarray
+    half_track: np.ndarray
+    offset: np.ndarray
+    max_wheel_accel: np.ndarray
+    max_wheel_speed: np.ndarray
+    max_point_accel: np.ndarray
+    model: Model
+
+    @property
+    def n(self) -> int:
+        """Number of robots."""
+        return int(self.radius.shape[0])
+
+    @property
+    def is_diff_drive(self) -> bool:
+        """True for differential-drive robots, False for double integrators."""
+        return self.model == "diff_drive"
+
+    @property
+    def du_max(self) -> np.ndarray:
+        """Symmetric input bound per robot and input, shape ``(N, 2)``."""
+        return np.repeat(self.max_wheel_accel[:, None], 2, axis=1)
+
+
+def make_team(
+    robots: RobotParams | str | Sequence[RobotParams | str] | None, n: int
+) -> Team:
+    """Build a :class:`Team` of ``n`` robots.
+
+    Parameters
+    ----------
+    robots : RobotParams, str, sequence of those, or None
+        One spec (preset name or :class:`RobotParams`) shared by all robots, or
+        one per robot (heterogeneous team).  ``None`` means the ``"paper"`` preset.
+    n : int
+        Number of robots.
+    """
+    if robots is None:
+        robots = "paper"
+    if isinstance(robots, (str, RobotParams)):
+        specs: list[RobotParams | str] = [robots] * n
+    else:
+        specs = list(robots)
+        if len(specs) != n:
+            raise ConfigError(f"robots: got {len(specs)} robot specs, expected one or {n} (one per robot)")
+    params = [RobotParams.preset(s) if isinstance(s, str) else s for s in specs]
+    for i, p in enumerate(params):
+        if not isinstance(p, RobotParams):
+            raise ConfigError(f"robots[{i}]: got {type(p).__name__}, expected RobotParams or a preset name")
+    models = {p.model for p in params}
+    if len(models) > 1:
+        raise ConfigError(f"robots: got mixed dynamics models {sorted(models)}, expected one model per team")
+
+    def col(name: str) -> np.ndarray:
+        return np.array([getattr(p, name) for p in params], dtype=np.float64)
+
+    return Team(
+        radius=col("radius"),
+        wheel_radius=col("wheel_radius"),
+        half_track=col("half_track"),
+        offset=col("offset"),
+        max_wheel_accel=col("max_wheel_accel"),
+        max_wheel_speed=col("max_wheel_speed"),
+        max_point_accel=col("max_point_accel"),
+        model=params[0].model if params else "diff_drive",
+    )
