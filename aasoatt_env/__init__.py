@@ -1,16 +1,38 @@
-"""aasoatt_env: acceleration-actuated multi-robot environment and CBF-QP safety filter."""
+"""aasoatt_env: acceleration-actuated multi-robot environment and CBF-QP safety filter.
 
+Importing the package registers the environment ids of
+:mod:`aasoatt_env.registration` with PettingZoo and Gymnasium.
+"""
+
+from aasoatt_env.env import AASOATTParallelEnv, RewardConfig, SimState
 from aasoatt_env.errors import AASOATTError, ActionError, ConfigError, ScenarioError, SolverError
+from aasoatt_env.gym_env import AASOATTGymEnv
 from aasoatt_env.params import PRESETS, RobotParams, Team, make_team
+from aasoatt_env.registration import ENV_IDS, env, parallel_env, register_all
+from aasoatt_env.scenarios import SCENARIOS, Scenario, get_scenario
+
+__version__ = "0.1.0"
+
+register_all()
 
 __all__ = [
+    "ENV_IDS",
     "PRESETS",
+    "SCENARIOS",
     "AASOATTError",
+    "AASOATTGymEnv",
+    "AASOATTParallelEnv",
     "ActionError",
     "ConfigError",
+    "RewardConfig",
     "RobotParams",
+    "Scenario",
     "ScenarioError",
+    "SimState",
     "SolverError",
     "Team",
+    "env",
+    "get_scenario",
     "make_team",
+    "parallel_env",
 ]

@@ -1,0 +1,91 @@
+"""Centralised single-agent Gymnasium view of the multi-robot environment.
+
+One agent controls the whole team: the action is the joint action
+``Box(-1, 1, (2 N,))`` (robot ``i`` owns entries ``2i:2i+2``), the observation
+is the concatenation of all robots' observations ``Box(-100, 100, (N D,))``, and
+the reward is the mean of the robots' rewards.  The episode terminates when any
+robot terminates (``terminate_on_collision``) and is truncated at the horizon.
+``info`` holds ``agents``: the per-robot info dicts, and the team-level
+``min_clearance``, ``collision`` and ``mean_tracking_error``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from aasoatt_env.env import AASOATTParallelEnv
+from aasoatt_env.errors import ActionError
+
+__all__ = ["AASOATTGymEnv"]
+
+
+class AASOATTGymEnv(gym.Env):
+    """Joint-action view of :class:`~aasoatt_env.env.AASOATTParallelEnv`.
+
+    Parameters
+    ----------
+    scenario : str
+        Scenario name.
+    parallel_env : AASOATTParallelEnv, optional
+        Wrap this (possibly filtered) parallel env instead of creating one.
+    **kwargs
+        Passed to :class:`~aasoatt_env.env.AASOATTParallelEnv`.
+    """
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 20}
+
+    def __init__(self, scenario: str = "circle_swap", parallel_env: Any = None, **kwargs: Any) -> None:
+        self.par = parallel_env if parallel_env is not None else AASOATTParallelEnv(scenario, **kwargs)
+        self.render_mode = self.par.unwrapped.render_mode
+        agents = self.par.possible_agents
+        self._agents = list(agents)
+        obs_dim = self.par.observation_space(agents[0]).shape[0]
+        self.observation_space = spaces.Box(-100.0, 100.0, (obs_dim * len(agents),), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (2 * len(agents),), np.float32)
+        self._obs_dim = obs_dim
+
+    def _flat(self, obs: dict[str, np.ndarray]) -> np.ndarray:
+        out = np.zeros((len(self._agents), self._obs_dim), dtype=np.float32)
+        for i, a in enumerate(self._agents):
+            if a in obs:
+                out[i] = obs[a]
+        return out.ravel()
+
+    @staticmethod
+    def _team_info(infos: dict[str, dict]) -> dict[str, Any]:
+        vals = list(infos.values())
+        return {
+            "agents": infos,
+            "min_clearance": min((v["clearance"] for v in vals), default=float("inf")),
+            "collision": any(v["collision"] for v in vals),
+            "mean_tracking_error": float(np.mean([v["tracking_error"] for v in vals])) if vals else 0.0,
+        }
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        """Reset the team; ``seed`` seeds the scenario."""
+        super().reset(seed=seed)
+        obs, infos = self.par.reset(seed=seed, options=options)
+        return self._flat(obs), self._team_info(infos)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
+        """Apply the joint action."""
+        a = np.asarray(action, dtype=np.float64)
+        if a.shape != self.action_space.shape:
+            raise ActionError(f"action: got shape {a.shape}, expected {self.action_space.shape}")
+        live = self.par.agents
+        acts = {ag: a[2 * self._agents.index(ag) : 2 * self._agents.index(ag) + 2] for ag in live}
+        obs, rew, term, trunc, infos = self.par.step(acts)
+        reward = float(np.mean(list(rew.values()))) if rew else 0.0
+        return self._flat(obs), reward, any(term.values()), any(trunc.values()), self._team_info(infos)
+
+    def render(self) -> np.ndarray | None:
+        """Render through the parallel env."""
+        return self.par.render()
+
+    def close(self) -> None:
+        """Close the parallel env."""
+        self.par.close()

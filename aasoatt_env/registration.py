@@ -1,0 +1,68 @@
+"""Environment ids registered with PettingZoo and Gymnasium on ``import aasoatt_env``.
+
+=====================================  ====================
+id                                     scenario
+=====================================  ====================
+``aasoatt/CircleSwap-v0``              ``circle_swap``
+``aasoatt/CircleSwapObstacles-v0``     ``circle_obstacles``
+``aasoatt/Tracking-v0``                ``tracking``
+``aasoatt/PositionSwap-v0``            ``position_swap``
+``aasoatt/RandomGoals-v0``             ``random_goals``
+=====================================  ====================
+
+``pettingzoo.make("parallel", id, **kwargs)`` gives the parallel env,
+``gymnasium.make(id, **kwargs)`` the centralised view
+(:class:`aasoatt_env.gym_env.AASOATTGymEnv`); ``gymnasium.make("aasoatt_env:" + id)``
+works without importing the package first.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+__all__ = ["ENV_IDS", "env", "parallel_env", "register_all"]
+
+ENV_IDS: dict[str, str] = {
+    "aasoatt/CircleSwap-v0": "circle_swap",
+    "aasoatt/CircleSwapObstacles-v0": "circle_obstacles",
+    "aasoatt/Tracking-v0": "tracking",
+    "aasoatt/PositionSwap-v0": "position_swap",
+    "aasoatt/RandomGoals-v0": "random_goals",
+}
+
+
+def parallel_env(scenario: str = "circle_swap", **kwargs: Any) -> Any:
+    """Create the PettingZoo parallel env of ``scenario`` (see :class:`~aasoatt_env.env.AASOATTParallelEnv`)."""
+    from aasoatt_env.env import AASOATTParallelEnv
+
+    return AASOATTParallelEnv(scenario, **kwargs)
+
+
+def env(scenario: str = "circle_swap", **kwargs: Any) -> Any:
+    """Create the AEC version of :func:`parallel_env` (PettingZoo's ``parallel_to_aec``)."""
+    from pettingzoo.utils.conversions import parallel_to_aec
+
+    return parallel_to_aec(parallel_env(scenario, **kwargs))
+
+
+def register_all() -> None:
+    """Register every id with PettingZoo (parallel and AEC) and Gymnasium (idempotent)."""
+    import warnings
+
+    import gymnasium
+    import pettingzoo
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        for env_id, scenario in ENV_IDS.items():
+            if env_id not in pettingzoo.parallel_registry:
+                pettingzoo.register("parallel", env_id, entry_point=parallel_env, kwargs={"scenario": scenario})
+            if env_id not in pettingzoo.aec_registry:
+                pettingzoo.register("aec", env_id, entry_point=env, kwargs={"scenario": scenario})
+            if env_id not in gymnasium.registry:
+                gymnasium.register(
+                    id=env_id,
+                    entry_point="aasoatt_env.gym_env:AASOATTGymEnv",
+                    kwargs={"scenario": scenario},
+                    disable_env_checker=False,
+                )
