@@ -16,8 +16,9 @@ Obstacles are given either as a pair ``(centers (M, 2), radii (M,))`` or as one
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -36,7 +37,7 @@ Obstacles = tuple[Any, Any] | np.ndarray | None
 
 
 def _new_figure(figsize: tuple[float, float]) -> Any:
-    """A Figure on an Agg canvas, without pyplot."""
+    """Create a Figure on an Agg canvas, without pyplot."""
     figure_mod = _require("matplotlib.figure", "aasoatt_env.plotting")
     agg = _require("matplotlib.backends.backend_agg", "aasoatt_env.plotting")
     fig = figure_mod.Figure(figsize=figsize, layout="constrained")
@@ -171,8 +172,9 @@ def plot_trajectories(
         ax.plot(pos[0, i, 0], pos[0, i, 1], marker="o", ms=5, mfc="white", mec=c, mew=1.4, zorder=4)
         if r[i] > 0:
             ax.add_patch(
-                patches.Circle(tuple(pos[-1, i]), r[i], facecolor=c, edgecolor="black", lw=0.6,
-                               alpha=0.85, zorder=5)
+                patches.Circle(
+                    tuple(pos[-1, i]), r[i], facecolor=c, edgecolor="black", lw=0.6, alpha=0.85, zorder=5
+                )
             )
         else:
             ax.plot(pos[-1, i, 0], pos[-1, i, 1], marker="o", ms=6, color=c, zorder=5)
@@ -340,7 +342,7 @@ def plot_snapshots(
     panel_size: float = 3.0,
     dpi: int = 150,
 ) -> Any:
-    """A row of panels showing the team at chosen time steps (paper Fig. 5 style).
+    """Plot a row of panels showing the team at chosen time steps (paper Fig. 5 style).
 
     Parameters
     ----------
@@ -404,13 +406,23 @@ def plot_snapshots(
             c = colors[i]
             if trails and k > 0:
                 ax.plot(pos[: k + 1, i, 0], pos[: k + 1, i, 1], lw=0.9, color=c, alpha=0.7, zorder=2)
-            ax.add_patch(patches.Circle(tuple(pos[k, i]), r[i] if r[i] > 0 else 0.05, facecolor=c,
-                                        edgecolor="black", lw=0.5, alpha=0.9, zorder=4))
+            ax.add_patch(
+                patches.Circle(
+                    tuple(pos[k, i]),
+                    r[i] if r[i] > 0 else 0.05,
+                    facecolor=c,
+                    edgecolor="black",
+                    lw=0.5,
+                    alpha=0.9,
+                    zorder=4,
+                )
+            )
             if ref is not None:
                 ax.plot(ref[k, i, 0], ref[k, i, 1], marker="+", ms=6, color=c, mew=1.3, zorder=5)
         if goals is not None:
-            ax.scatter(g[:, 0], g[:, 1], marker="s", s=20, facecolors="none", edgecolors=colors, lw=1.0,
-                       zorder=3)
+            ax.scatter(
+                g[:, 0], g[:, 1], marker="s", s=20, facecolors="none", edgecolors=colors, lw=1.0, zorder=3
+            )
         ax.set_title(f"t = {t[k]:.2f} s", fontsize="medium")
         ax.grid(True, lw=0.3, alpha=0.5)
         ax.set_xlabel("x [m]")

@@ -26,10 +26,11 @@ import math
 import os
 import sys
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -118,7 +119,7 @@ def _require(module: str, feature: str) -> ModuleType:
         package = module.split(".")[0]
         raise ImportError(
             f"{feature} needs the optional dependency {package!r}, which is not installed; "
-            f'install the rendering extras with: {RENDER_EXTRA_HINT}'
+            f"install the rendering extras with: {RENDER_EXTRA_HINT}"
         ) from exc
 
 
@@ -275,7 +276,7 @@ class _Transform:
         return out
 
     def ipoints(self, p: np.ndarray) -> np.ndarray:
-        """Rounded, clipped integer pixel coordinates of world points ``(..., 2)``."""
+        """Return rounded, clipped integer pixel coordinates of world points ``(..., 2)``."""
         return np.clip(np.rint(self.points(p)), -self.limit, self.limit).astype(np.int64)
 
 
@@ -397,7 +398,9 @@ class Renderer:
             pg.draw.line(self._surface, GRID_COLOR, (0, py), (self.width - 1, py))
         corners = tf.ipoints(np.array([[xmin, ymax], [xmax, ymin]]))
         rect = pg.Rect(
-            int(corners[0, 0]), int(corners[0, 1]), int(corners[1, 0] - corners[0, 0]),
+            int(corners[0, 0]),
+            int(corners[0, 1]),
+            int(corners[1, 0] - corners[0, 0]),
             int(corners[1, 1] - corners[0, 1]),
         )
         pg.draw.rect(self._surface, BOUNDS_COLOR, rect, 1)
@@ -486,11 +489,21 @@ class Renderer:
             th = frame.headings[i]
             if math.isfinite(th):
                 tip = (pos[i, 0] + rpix[i] * math.cos(th), pos[i, 1] - rpix[i] * math.sin(th))
-                pg.draw.line(surf, dark, (int(c[0]), int(c[1])), (round(tip[0]), round(tip[1])),
-                             max(1, int(rpix[i]) // 8))
+                pg.draw.line(
+                    surf,
+                    dark,
+                    (int(c[0]), int(c[1])),
+                    (round(tip[0]), round(tip[1])),
+                    max(1, int(rpix[i]) // 8),
+                )
             if avoiding[i]:
-                pg.draw.circle(surf, AVOID_COLOR, (int(c[0]), int(c[1])), int(rpix[i]) + 1,
-                               max(2, min(4, int(rpix[i]) // 5)))
+                pg.draw.circle(
+                    surf,
+                    AVOID_COLOR,
+                    (int(c[0]), int(c[1])),
+                    int(rpix[i]) + 1,
+                    max(2, min(4, int(rpix[i]) // 5)),
+                )
 
         # References: small dots with a dark outline, on top of everything.
         if frame.references is not None:
@@ -641,7 +654,7 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
     shape = images[0].shape
     for k, img in enumerate(images):
         if img.shape != shape:
-            raise ConfigError(f"save_animation: frame {k} has shape {img.shape}, expected {shape} like frame 0")
+            raise ConfigError(f"save_animation: frame {k} has shape {img.shape}, expected {shape} (frame 0)")
     iio = _require("imageio.v3", "save_animation")
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".gif":

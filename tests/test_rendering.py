@@ -104,8 +104,13 @@ def test_all_features_draw_without_error():
 def test_rendering_is_fast():
     import time
 
-    frame = ring_frame(20, trails=np.linspace(1.0, 1.2, 100)[:, None, None] * ring_frame(20).positions,
-                       references=np.zeros((20, 2)), goals=np.zeros((20, 2)), avoiding=np.ones(20, bool))
+    frame = ring_frame(
+        20,
+        trails=np.linspace(1.0, 1.2, 100)[:, None, None] * ring_frame(20).positions,
+        references=np.zeros((20, 2)),
+        goals=np.zeros((20, 2)),
+        avoiding=np.ones(20, bool),
+    )
     r = Renderer()
     r.rgb_array(frame)
     t0 = time.perf_counter()
