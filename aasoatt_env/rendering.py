@@ -573,6 +573,12 @@ class Renderer:
                 return
             try:
                 pg.display.init()
+                driver = pg.display.get_driver()
+                if driver in ("offscreen", "dummy"):
+                    # SDL fell back to an invisible driver: there is no real display.
+                    pg.display.quit()
+                    self._warn_headless(f"SDL video driver {driver!r}")
+                    return
                 self._window = pg.display.set_mode((self.width, self.height))
                 pg.display.set_caption("aasoatt")
                 self._clock = pg.time.Clock()

@@ -149,6 +149,17 @@ def test_human_mode_headless_warns_once_and_never_raises(monkeypatch):
         r2.show(ring_frame(1))
 
 
+def test_human_mode_unreachable_display_warns(monkeypatch):
+    # A DISPLAY that cannot be reached: SDL either fails or falls back to an invisible driver.
+    monkeypatch.setenv("DISPLAY", ":987")
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    monkeypatch.delenv("SDL_VIDEODRIVER", raising=False)
+    r = Renderer(40, 40)
+    with pytest.warns(RuntimeWarning, match="no display"):
+        r.show(ring_frame(2))
+    r.close()
+
+
 # ----------------------------------------------------------------------------- animations
 
 
