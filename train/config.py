@@ -1,0 +1,349 @@
+"""``TrainConfig``: every knob of a PPO run, from a TOML/JSON file and the command line.
+
+Precedence: dataclass defaults < config file (``--config run.toml`` or
+``.json``) < command-line flags.  The configuration is validated once, in
+``__post_init__``; every error is a :class:`~aasoatt_env.errors.ConfigError`
+of the form ``"TrainConfig.<field>: got X, expected Y"``.
+
+Example ``run.toml``::
+
+    scenario = "random_goals"
+    num_robots = 6
+    total_timesteps = 1_500_000
+    filter = false
+    [reward]
+    collision = 10.0
+    correction = 0.0
+    [filter_kwargs]
+    barrier = "aasoatt"
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import tomllib
+from collections.abc import Sequence
+from dataclasses import MISSING, asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from aasoatt_env.env import RewardConfig
+from aasoatt_env.errors import ConfigError
+
+__all__ = ["TrainConfig", "add_config_arguments", "config_from_args", "load_config_file"]
+
+_ACTION_MODES = ("wheel", "point")
+
+
+@dataclass
+class TrainConfig:
+    """Configuration of one PPO training run (see the module docstring).
+
+    Attributes
+    ----------
+    scenario : str
+        Scenario name (``aasoatt_env.scenarios.SCENARIOS``).
+    num_robots : int
+        Robots per env (one policy slot each).
+    scenario_kwargs : dict
+        Extra scenario parameters (``arena_size``, ``speed``, ...).
+    dt : float
+        Physics step [s] (0.005: the 200 Hz of the filter).
+    decision_interval : int
+        Physics steps per policy decision (20: the policy acts at 10 Hz).
+    action_mode : {"point", "wheel"}
+        ``"point"``: actions are normalised control-point accelerations
+        (easier to learn); ``"wheel"``: normalised wheel accelerations.
+    num_neighbors, num_obstacles : int
+        Observation slots.
+    terminate_on_collision : bool
+        End a robot's episode when it collides (see :mod:`train.vec_env`).
+    max_steps : int or None
+        Override of the episode horizon in env steps.
+    reward : dict
+        :class:`~aasoatt_env.env.RewardConfig` fields.
+    filter : bool
+        Train behind :class:`~aasoatt_env.safety.wrapper.AASOATTFilter`.
+    filter_kwargs : dict
+        Arguments of the filter (``barrier``, ``deadlock``, ``solver``, gains).
+    total_timesteps : int
+        Agent-steps (one per robot per decision) to train for.
+    n_envs : int
+        Envs per process (``n_envs * num_robots`` slots).
+    seed : int
+        Seed of PPO, torch and the envs.
+    learning_rate, gamma, gae_lambda, clip_range, ent_coef, vf_coef, max_grad_norm : float
+        PPO hyper-parameters.
+    n_steps : int
+        Rollout length per slot (buffer = ``n_steps * n_envs * num_robots``).
+    batch_size, n_epochs : int
+        PPO minibatch size and epochs per update.
+    net_arch : list of int
+        Hidden layers of the policy and value MLPs.
+    log_std_init : float
+        Initial log standard deviation of the Gaussian policy.
+    normalize_obs : bool
+        Normalise observations with ``VecNormalize`` (running statistics are
+        saved with the model and used by :class:`agents.learned.LearnedAgent`).
+    normalize_reward : bool
+        Scale rewards by ``VecNormalize``'s running return std (training only).
+    out_dir : str
+        Parent folder of runs.
+    run_name : str or None
+        Run folder name (default: a name from scenario, filter and seed).
+    checkpoint_freq : int
+        Agent-steps between checkpoints (0: none).
+    tensorboard : bool
+        Write tensorboard logs under ``<run>/tb``.
+    progress_bar : bool
+        Show a tqdm progress bar.
+    device : str
+        Torch device.
+    torch_threads : int
+        ``torch.set_num_threads`` (1 is fastest for small MLPs on few cores).
+    verbose : int
+        SB3 verbosity.
+    """
+
+    scenario: str = "random_goals"
+    num_robots: int = 6
+    scenario_kwargs: dict[str, Any] = field(default_factory=dict)
+    dt: float = 0.005
+    decision_interval: int = 20
+    action_mode: str = "point"
+    num_neighbors: int = 4
+    num_obstacles: int = 2
+    terminate_on_collision: bool = False
+    max_steps: int | None = None
+    reward: dict[str, float] = field(default_factory=dict)
+    filter: bool = False
+    filter_kwargs: dict[str, Any] = field(default_factory=dict)
+    total_timesteps: int = 1_000_000
+    n_envs: int = 4
+    seed: int = 0
+    learning_rate: float = 3e-4
+    n_steps: int = 128
+    batch_size: int = 1024
+    n_epochs: int = 10
+    gamma: float = 0.98
+    gae_lambda: float = 0.95
+    clip_range: float = 0.2
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    max_grad_norm: float = 0.5
+    net_arch: list[int] = field(default_factory=lambda: [64, 64])
+    log_std_init: float = -0.5
+    normalize_obs: bool = True
+    normalize_reward: bool = True
+    out_dir: str = "runs"
+    run_name: str | None = None
+    checkpoint_freq: int = 250_000
+    tensorboard: bool = True
+    progress_bar: bool = True
+    device: str = "cpu"
+    torch_threads: int = 1
+    verbose: int = 0
+
+    def __post_init__(self) -> None:
+        self._validate()
+
+    # ------------------------------------------------------------------ validation
+    def _err(self, name: str, expected: str) -> ConfigError:
+        return ConfigError(f"TrainConfig.{name}: got {getattr(self, name)!r}, expected {expected}")
+
+    def _int(self, name: str, lo: int) -> None:
+        v = getattr(self, name)
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise self._err(name, f"an integer >= {lo}")
+
+    def _float(self, name: str, lo: float, hi: float = math.inf, lo_open: bool = False) -> None:
+        v = getattr(self, name)
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        ok = ok and (v > lo if lo_open else v >= lo) and v <= hi
+        if not ok:
+            lb = "(" if lo_open else "["
+            raise self._err(name, f"a number in {lb}{lo:g}, {hi:g}]")
+        setattr(self, name, float(v))
+
+    def _validate(self) -> None:
+        from aasoatt_env.scenarios import SCENARIOS
+
+        if self.scenario not in SCENARIOS:
+            raise self._err("scenario", f"one of {sorted(SCENARIOS)}")
+        for name in ("num_robots", "decision_interval", "total_timesteps", "n_envs", "n_steps", "n_epochs", "torch_threads"):
+            self._int(name, 1)
+        for name in ("num_neighbors", "num_obstacles", "checkpoint_freq", "seed", "verbose"):
+            self._int(name, 0)
+        if self.batch_size is None or isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 2:
+            raise self._err("batch_size", "an integer >= 2")
+        if self.max_steps is not None:
+            self._int("max_steps", 1)
+        self._float("dt", 0.0, 1.0, lo_open=True)
+        self._float("learning_rate", 0.0, 1.0, lo_open=True)
+        self._float("gamma", 0.0, 1.0)
+        self._float("gae_lambda", 0.0, 1.0)
+        self._float("clip_range", 0.0, 10.0, lo_open=True)
+        self._float("ent_coef", 0.0)
+        self._float("vf_coef", 0.0)
+        self._float("max_grad_norm", 0.0, lo_open=True)
+        self._float("log_std_init", -20.0, 5.0)
+        if self.action_mode not in _ACTION_MODES:
+            raise self._err("action_mode", f"one of {list(_ACTION_MODES)}")
+        for name in ("terminate_on_collision", "filter", "normalize_obs", "normalize_reward", "tensorboard", "progress_bar"):
+            if not isinstance(getattr(self, name), bool):
+                raise self._err(name, "true or false")
+        for name in ("scenario_kwargs", "reward", "filter_kwargs"):
+            if not isinstance(getattr(self, name), dict):
+                raise self._err(name, "a table/dict")
+        if not (isinstance(self.net_arch, (list, tuple)) and self.net_arch
+                and all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in self.net_arch)):
+            raise self._err("net_arch", "a non-empty list of positive integers")
+        self.net_arch = list(self.net_arch)
+        try:
+            RewardConfig(**self.reward)
+        except TypeError:
+            known = [f.name for f in fields(RewardConfig)]
+            raise self._err("reward", f"keys among {known}") from None
+        if self.reward.get("correction", 0.0) and not self.filter:
+            raise ConfigError(
+                f"TrainConfig.reward: got correction={self.reward['correction']!r} with filter=False, "
+                "expected filter=True (the correction penalty needs the filter)"
+            )
+        rollout = self.n_steps * self.n_envs * self.num_robots
+        if self.batch_size > rollout:
+            raise self._err("batch_size", f"at most n_steps * n_envs * num_robots = {rollout}")
+        if not isinstance(self.out_dir, str) or not self.out_dir:
+            raise self._err("out_dir", "a non-empty folder path")
+        if self.run_name is not None and (not isinstance(self.run_name, str) or not self.run_name or os.sep in self.run_name):
+            raise self._err("run_name", "a non-empty folder name or None")
+
+    # ------------------------------------------------------------------ helpers
+    def env_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of :class:`~aasoatt_env.env.AASOATTParallelEnv` for this run."""
+        kw: dict[str, Any] = dict(
+            scenario=self.scenario, dt=self.dt, decision_interval=self.decision_interval,
+            action_mode=self.action_mode, num_neighbors=self.num_neighbors, num_obstacles=self.num_obstacles,
+            reward=dict(self.reward), terminate_on_collision=self.terminate_on_collision,
+            max_steps=self.max_steps, num_robots=self.num_robots, **self.scenario_kwargs,
+        )
+        return kw
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON dict of every field."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
+        """Build from a dict, rejecting unknown keys."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"TrainConfig: got unknown key(s) {unknown}, expected keys among {sorted(known)}")
+        return cls(**data)
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike[str], **overrides: Any) -> TrainConfig:
+        """Load a ``.toml`` or ``.json`` file; ``overrides`` win over the file."""
+        return cls.from_dict({**load_config_file(path), **overrides})
+
+
+def load_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:
+    """Read a TOML (``.toml``) or JSON (``.json``) config file into a dict."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"config file: got {str(p)!r}, expected an existing .toml or .json file")
+    if p.suffix == ".toml":
+        try:
+            return tomllib.loads(p.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"config file {str(p)!r}: invalid TOML ({exc})") from None
+    if p.suffix == ".json":
+        try:
+            data = json.loads(p.read_text())
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"config file {str(p)!r}: invalid JSON ({exc})") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"config file {str(p)!r}: got a JSON {type(data).__name__}, expected an object")
+        return data
+    raise ConfigError(f"config file: got suffix {p.suffix!r}, expected '.toml' or '.json'")
+
+
+# ---------------------------------------------------------------------- command line
+_DICT_FIELDS = {"scenario_kwargs": "scenario-arg", "reward": "reward", "filter_kwargs": "filter-arg"}
+
+
+def _parse_value(text: str) -> Any:
+    """``KEY=VALUE`` values: JSON when it parses (numbers, true/false, lists), else the string."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def _bool(text: str) -> bool:
+    low = text.lower()
+    if low in ("1", "true", "yes", "on"):
+        return True
+    if low in ("0", "false", "no", "off"):
+        return False
+    raise argparse.ArgumentTypeError(f"got {text!r}, expected true or false")
+
+
+def add_config_arguments(parser: argparse.ArgumentParser) -> None:
+    """Add ``--config`` and one ``--field-name`` flag per :class:`TrainConfig` field.
+
+    Dict fields take repeated ``KEY=VALUE``: ``--reward collision=20``,
+    ``--filter-arg solver=proxsuite``, ``--scenario-arg speed=1.0``;
+    ``--net-arch 64 64``.  Unset flags leave the file/default value.
+    """
+    parser.add_argument("--config", default=None, help="TOML or JSON file of TrainConfig fields")
+    for f in fields(TrainConfig):
+        default = f.default if f.default is not MISSING else f.default_factory()  # type: ignore[misc]
+        if f.name in _DICT_FIELDS:
+            parser.add_argument(f"--{_DICT_FIELDS[f.name]}", dest=f.name, action="append", default=None,
+                                metavar="KEY=VALUE", help=f"{f.name} entry (repeatable)")
+            continue
+        flag = "--" + f.name.replace("_", "-")
+        if f.name == "net_arch":
+            parser.add_argument(flag, dest=f.name, type=int, nargs="+", default=None, help=f"default {default}")
+        elif isinstance(default, bool):
+            parser.add_argument(flag, dest=f.name, type=_bool, default=None, metavar="BOOL", help=f"default {default}")
+        elif isinstance(default, int):
+            parser.add_argument(flag, dest=f.name, type=lambda s: int(float(s)) if float(s).is_integer() else s,
+                                default=None, help=f"default {default}")
+        elif isinstance(default, float):
+            parser.add_argument(flag, dest=f.name, type=float, default=None, help=f"default {default}")
+        elif f.name == "max_steps":
+            parser.add_argument(flag, dest=f.name, type=int, default=None, help="default: scenario horizon")
+        else:
+            parser.add_argument(flag, dest=f.name, default=None, help=f"default {default}")
+
+
+def config_from_args(args: argparse.Namespace) -> TrainConfig:
+    """Merge defaults, ``args.config`` and the flags set in ``args`` into a validated config."""
+    data: dict[str, Any] = load_config_file(args.config) if getattr(args, "config", None) else {}
+    for f in fields(TrainConfig):
+        val = getattr(args, f.name, None)
+        if val is None:
+            continue
+        if f.name in _DICT_FIELDS:
+            merged = dict(data.get(f.name, {}))
+            for item in val:
+                if "=" not in item:
+                    raise ConfigError(f"--{_DICT_FIELDS[f.name]}: got {item!r}, expected KEY=VALUE")
+                k, v = item.split("=", 1)
+                merged[k.strip()] = _parse_value(v.strip())
+            data[f.name] = merged
+        else:
+            data[f.name] = val
+    return TrainConfig.from_dict(data)
+
+
+def parse_config(argv: Sequence[str] | None = None, prog: str = "train") -> TrainConfig:
+    """Parse a command line into a :class:`TrainConfig` (for tests and scripts)."""
+    parser = argparse.ArgumentParser(prog=prog)
+    add_config_arguments(parser)
+    return config_from_args(parser.parse_args(argv))

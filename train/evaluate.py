@@ -1,0 +1,340 @@
+"""Evaluate baselines and learned policies over K seeded episodes; one Markdown table.
+
+Usage::
+
+    python -m train.evaluate --bare runs/ppo_bare/model.zip --filtered runs/ppo_filter/model.zip \\
+        --episodes 100 --out results.md
+    aasoatt evaluate ...          # the same flags
+
+Rows (a row is skipped when its model is not given):
+
+=======================================  ==========================================
+row                                      agent / env
+=======================================  ==========================================
+``random``                               uniform random actions, bare env
+``tracking``                             the paper's tracking law, bare env
+``tracking + filter``                    tracking law behind ``AASOATTFilter``
+``learned (bare)``                       policy trained bare, bare env
+``learned (bare) + filter``              the same policy behind the filter
+``learned (filter) + filter``            policy trained behind the filter, behind it
+=======================================  ==========================================
+
+Every row runs the same episodes: episode ``j`` is reset with ``seed + j``, on
+the env of the (first) learned policy's ``config.json`` (scenario, robots,
+``dt``, ``decision_interval``, action mode), or of the given
+:class:`~train.config.TrainConfig`; ``terminate_on_collision`` is off.
+
+Columns (means over episodes; per episode from :func:`aasoatt_env.metrics.summarize`
+on the rollout recorded at the decision rate, and from ``infos[agent]["filter"]``):
+
+* **safe rate**: fraction of robots that never collide (robot or obstacle);
+* **success**: fraction of robots within ``goal_tolerance`` of their goal at the end;
+* **RMSE**: tracking error ``|p - p_d|`` [m], pooled over robots and steps;
+* **intervention**: fraction of robot-decisions where the filter changed the
+  nominal at some physics step;
+* **correction**: mean over robot-decisions of the largest
+  ``|du_safe - du_nominal|`` in the decision [rad/s^2];
+* **collisions**: total colliding robot pairs plus robot-obstacle hits over
+  all episodes, and the number of episodes with any.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from aasoatt_env.errors import ConfigError
+from train.config import TrainConfig
+
+__all__ = ["EvalRow", "evaluate", "evaluate_agent", "main", "to_markdown"]
+
+
+@dataclass
+class EvalRow:
+    """Aggregated metrics of one agent/env combination over the episodes."""
+
+    name: str
+    episodes: int
+    safe_rate: float
+    success_rate: float
+    rmse: float
+    intervention_rate: float | None
+    mean_correction: float | None
+    collisions: int
+    collision_episodes: int
+    wall_time_s: float
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-friendly dict."""
+        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+
+
+class _PointModeAdapter:
+    """Run an analytic controller (``point_accel(env)``) on a ``action_mode="point"`` env.
+
+    ``action = a / max_point_accel``, clipped to ``[-1, 1]`` on a bare env,
+    unclipped (the nominal) behind the filter.
+    """
+
+    def __init__(self, controller: Any, saturate: bool) -> None:
+        self.controller = controller
+        self.saturate = saturate
+
+    def reset(self, env: Any) -> None:
+        self.controller.reset(env)
+
+    def act(self, observations: dict[str, np.ndarray], env: Any) -> dict[str, np.ndarray]:
+        base = env.unwrapped
+        act = self.controller.point_accel(env) / base.team.max_point_accel[:, None]
+        if self.saturate:
+            act = np.clip(act, -1.0, 1.0)
+        act = act.astype(np.float32)
+        return {a: act[base._index[a]] for a in env.agents}
+
+
+def _tracking(config: TrainConfig, filtered: bool) -> Any:
+    from agents import TrackingController
+
+    if config.action_mode == "wheel":
+        return TrackingController(saturate=not filtered)
+    return _PointModeAdapter(TrackingController(), saturate=not filtered)
+
+
+def evaluate_agent(
+    name: str,
+    agent: Any,
+    env_fn: Callable[[], Any],
+    episodes: int,
+    seed: int = 10_000,
+    goal_tolerance: float = 0.1,
+    progress: bool = False,
+) -> EvalRow:
+    """Run ``agent`` for ``episodes`` seeded episodes of ``env_fn()`` and aggregate the metrics.
+
+    Parameters
+    ----------
+    name : str
+        Row label.
+    agent : Agent
+        ``reset(env)`` / ``act(observations, env)``.
+    env_fn : callable
+        Builds the (bare or filtered) parallel env (called once).
+    episodes : int
+        Number of episodes; episode ``j`` is reset with ``seed + j``.
+    seed : int
+        First episode seed.
+    goal_tolerance : float
+        Success radius [m].
+    progress : bool
+        Show a tqdm bar.
+    """
+    from aasoatt_env.metrics import summarize
+    from aasoatt_env.recording import RecordEpisode
+
+    if episodes < 1:
+        raise ConfigError(f"episodes: got {episodes!r}, expected an integer >= 1")
+    env = RecordEpisode(env_fn())
+    safe, succ, rmse, n_col, col_eps = [], [], [], 0, 0
+    interv: list[float] = []
+    corr: list[float] = []
+    statuses: dict[str, int] = {}
+    has_filter = False
+    it = range(episodes)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc=name, unit="episode")
+    t0 = time.perf_counter()
+    for j in it:
+        obs, _ = env.reset(seed=seed + j)
+        agent.reset(env)
+        while env.agents:
+            obs, _, _, _, infos = env.step(agent.act(obs, env))
+            for info in infos.values():
+                f = info.get("filter")
+                if f is not None:
+                    has_filter = True
+                    interv.append(float(f["intervened"]))
+                    corr.append(float(f["correction"]))
+                    statuses[f["status"]] = statuses.get(f["status"], 0) + 1
+        s = summarize(env.rollout, goal_tolerance=goal_tolerance)
+        safe.append(s["safe_rate"])
+        succ.append(s["reach_rate"])
+        rmse.append(s["rmse"])
+        c = int(s["n_collision_pairs"]) + int(s["n_obstacle_collisions"])
+        n_col += c
+        col_eps += c > 0
+    env.close()
+    return EvalRow(
+        name=name, episodes=episodes, safe_rate=float(np.mean(safe)), success_rate=float(np.mean(succ)),
+        rmse=float(np.mean(rmse)),
+        intervention_rate=float(np.mean(interv)) if has_filter else None,
+        mean_correction=float(np.mean(corr)) if has_filter else None,
+        collisions=n_col, collision_episodes=int(col_eps), wall_time_s=time.perf_counter() - t0,
+        extra={"filter_status": statuses} if has_filter else {},
+    )
+
+
+ROWS = ("random", "tracking", "tracking + filter", "learned (bare)", "learned (bare) + filter",
+        "learned (filter) + filter")
+
+
+def evaluate(
+    bare_model: str | Path | None = None,
+    filtered_model: str | Path | None = None,
+    *,
+    episodes: int = 100,
+    seed: int = 10_000,
+    config: TrainConfig | None = None,
+    filter_kwargs: dict[str, Any] | None = None,
+    rows: Sequence[str] | None = None,
+    goal_tolerance: float = 0.1,
+    progress: bool = False,
+) -> list[EvalRow]:
+    """Evaluate the table's rows (see the module docstring) and return them.
+
+    Parameters
+    ----------
+    bare_model, filtered_model : path, optional
+        Policies trained bare and behind the filter (``model.zip`` or run folder).
+    episodes : int
+        Episodes per row (``K``).
+    seed : int
+        Seed of the first episode (``seed + j`` for episode ``j``).
+    config : TrainConfig, optional
+        Env settings; default: the first given model's ``config.json``, else
+        :class:`TrainConfig` defaults.
+    filter_kwargs : dict, optional
+        Filter arguments for the ``+ filter`` rows (default: the config's).
+    rows : sequence of str, optional
+        Subset of :data:`ROWS` (default all whose model is given).
+    goal_tolerance : float
+        Success radius [m].
+    progress : bool
+        Progress bars.
+
+    Returns
+    -------
+    list of EvalRow
+        Format with :func:`to_markdown`.
+    """
+    from agents import RandomAgent
+    from agents.learned import LearnedAgent
+    from train.train import make_env
+
+    wanted = list(rows) if rows is not None else list(ROWS)
+    bad = [r for r in wanted if r not in ROWS]
+    if bad:
+        raise ConfigError(f"rows: got {bad}, expected names among {list(ROWS)}")
+    learned = {
+        "bare": LearnedAgent.load(bare_model) if bare_model is not None else None,
+        "filter": LearnedAgent.load(filtered_model) if filtered_model is not None else None,
+    }
+    if config is None:
+        first = learned["bare"] or learned["filter"]
+        config = first.train_config() if first is not None and first.config else TrainConfig(progress_bar=False)
+    fk = dict(config.filter_kwargs if filter_kwargs is None else filter_kwargs)
+    env_cfg = TrainConfig.from_dict({**config.to_dict(), "terminate_on_collision": False, "filter": False,
+                                     "filter_kwargs": fk, "reward": {}})
+
+    def env_fn(filtered: bool) -> Callable[[], Any]:
+        return lambda: make_env(env_cfg, filter=filtered)
+
+    plan: list[tuple[str, Callable[[], Any], bool]] = [
+        ("random", lambda: RandomAgent(seed=seed), False),
+        ("tracking", lambda: _tracking(env_cfg, False), False),
+        ("tracking + filter", lambda: _tracking(env_cfg, True), True),
+    ]
+    if learned["bare"] is not None:
+        plan += [("learned (bare)", lambda: learned["bare"], False),
+                 ("learned (bare) + filter", lambda: learned["bare"], True)]
+    if learned["filter"] is not None:
+        plan += [("learned (filter) + filter", lambda: learned["filter"], True)]
+    out = []
+    for name, agent_fn, filtered in plan:
+        if name in wanted:
+            out.append(evaluate_agent(name, agent_fn(), env_fn(filtered), episodes, seed, goal_tolerance, progress))
+    return out
+
+
+def _fmt(x: float | None, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
+def to_markdown(rows: Sequence[EvalRow], title: str | None = None) -> str:
+    """One Markdown table of the rows (rates in percent)."""
+    lines = []
+    if title:
+        lines += [f"### {title}", ""]
+    lines += [
+        "| agent | episodes | safe rate | success | RMSE [m] | intervention | correction [rad/s^2] | collisions (episodes) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        iv = None if r.intervention_rate is None else 100 * r.intervention_rate
+        lines.append(
+            f"| {r.name} | {r.episodes} | {100 * r.safe_rate:.1f}% | {100 * r.success_rate:.1f}% | {r.rmse:.3f} "
+            f"| {_fmt(iv, '.1f')}{'%' if iv is not None else ''} | {_fmt(r.mean_correction, '.3f')} "
+            f"| {r.collisions} ({r.collision_episodes}) |"
+        )
+    return "\n".join(lines)
+
+
+def build_parser(prog: str = "python -m train.evaluate") -> argparse.ArgumentParser:
+    """Command-line parser."""
+    p = argparse.ArgumentParser(prog=prog, description="Evaluate baselines and learned policies (Markdown table).")
+    p.add_argument("--bare", default=None, help="model trained bare (model.zip or run folder)")
+    p.add_argument("--filtered", default=None, help="model trained behind the filter")
+    p.add_argument("--episodes", type=int, default=100)
+    p.add_argument("--seed", type=int, default=10_000)
+    p.add_argument("--config", default=None, help="TOML/JSON TrainConfig for the env (default: the model's)")
+    p.add_argument("--rows", nargs="+", default=None, help=f"subset of {list(ROWS)}")
+    p.add_argument("--filter-arg", action="append", default=None, metavar="KEY=VALUE", help="filter argument")
+    p.add_argument("--goal-tolerance", type=float, default=0.1)
+    p.add_argument("--out", default=None, help="write the Markdown table (and a .json beside it)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command-line entry point; prints the Markdown table."""
+    from train.config import _parse_value
+
+    args = build_parser().parse_args(argv)
+    try:
+        config = TrainConfig.from_file(args.config) if args.config else None
+        fk = None
+        if args.filter_arg:
+            fk = {}
+            for item in args.filter_arg:
+                if "=" not in item:
+                    raise ConfigError(f"--filter-arg: got {item!r}, expected KEY=VALUE")
+                k, v = item.split("=", 1)
+                fk[k.strip()] = _parse_value(v.strip())
+        rows = evaluate(args.bare, args.filtered, episodes=args.episodes, seed=args.seed, config=config,
+                        filter_kwargs=fk, rows=args.rows, goal_tolerance=args.goal_tolerance,
+                        progress=not args.quiet)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    table = to_markdown(rows)
+    print(table)
+    if args.out:
+        out = Path(args.out)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(table + "\n")
+        out.with_suffix(".json").write_text(json.dumps([r.as_dict() for r in rows], indent=2))
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

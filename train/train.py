@@ -1,0 +1,220 @@
+"""PPO with parameter sharing on the AA-SOATT parallel env (bare or behind the filter).
+
+Usage::
+
+    python -m train.train --config run.toml --total-timesteps 200000
+    python -m train.train --filter true --reward correction=0.5 --run-name ppo_filtered
+    aasoatt train ...            # the same flags
+
+Every robot of every env is one slot of :class:`train.vec_env.ParallelVecEnv`
+(one shared policy).  The policy acts every ``decision_interval`` physics steps
+(default 20, i.e. 10 Hz against the 200 Hz physics/filter); behind
+:class:`~aasoatt_env.safety.wrapper.AASOATTFilter` its action is the nominal
+that the CBF-QP filters at *every* physics step in between.
+
+Reward design (per robot and decision, :class:`~aasoatt_env.env.RewardConfig`)
+------------------------------------------------------------------------------
+``r_i = -tracking |p_i - p_d_i| - collision [clearance_i < -tol]
+- effort |a_i|^2 / 2 - correction c_i + goal_bonus [|p_i - goal_i| < goal_tol]``
+
+* **Goal reaching** is rewarded through *tracking*: the reference ``p_d_i(t)``
+  moves along the straight line to the goal and then stays there, so the
+  dense tracking term pulls the robot along the line and holds it at the
+  goal (a robot that follows it reaches its goal when the reference ends).
+  An optional sparse ``goal_bonus`` pays for being within ``goal_tolerance``.
+* **Collision**: a penalty (default 10, i.e. ten decisions' worth of 1 m
+  tracking error) for every decision in overlap.  With the default
+  ``terminate_on_collision=False`` a colliding robot keeps going and keeps
+  paying while it overlaps; with ``True`` its episode ends (see
+  :mod:`train.vec_env` for the slot's padding).
+* **Effort**: ``effort |a|^2 / 2`` with the normalised action (small, 0.01:
+  it only breaks ties towards smooth, low-acceleration control).
+* **Filter correction** (``correction``, only with ``filter=True``): penalises
+  ``|du_safe - du_nominal| / max_wheel_accel``, the largest per-physics-step
+  change the filter made to the robot's nominal in the decision.  It teaches
+  the policy to propose actions the filter accepts, so the filter intervenes
+  less and the learned behaviour does not rely on it.
+
+Outputs in the run folder ``<out_dir>/<run_name>``: ``model.zip`` (SB3 PPO),
+``vecnormalize.pkl`` (observation statistics), ``config.json`` (the
+:class:`~train.config.TrainConfig`), ``checkpoints/`` and ``tb/`` (tensorboard).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from train.config import TrainConfig, add_config_arguments, config_from_args
+
+__all__ = ["main", "make_env", "make_vec_env", "train"]
+
+
+def make_env(config: TrainConfig, filter: bool | None = None, **env_overrides: Any) -> Any:
+    """One parallel env of ``config``, behind the filter if ``filter`` (default ``config.filter``).
+
+    Parameters
+    ----------
+    config : TrainConfig
+        Run configuration (env fields and ``filter_kwargs``).
+    filter : bool, optional
+        Override ``config.filter``.
+    **env_overrides
+        Override :meth:`TrainConfig.env_kwargs` entries (e.g. ``render_mode``).
+
+    Returns
+    -------
+    ParallelEnv
+        :class:`~aasoatt_env.env.AASOATTParallelEnv`, possibly wrapped in
+        :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` (imported lazily).
+    """
+    from aasoatt_env.env import AASOATTParallelEnv
+
+    env = AASOATTParallelEnv(**{**config.env_kwargs(), **env_overrides})
+    use_filter = config.filter if filter is None else filter
+    if use_filter:
+        from aasoatt_env.safety.wrapper import AASOATTFilter
+
+        env = AASOATTFilter(env, **config.filter_kwargs)
+    return env
+
+
+def make_vec_env(config: TrainConfig, training: bool = True) -> Any:
+    """``VecNormalize?(VecMonitor(ParallelVecEnv))`` with ``config.n_envs`` envs."""
+    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+
+    from train.vec_env import ParallelVecEnv
+
+    venv: Any = VecMonitor(ParallelVecEnv([lambda: make_env(config) for _ in range(config.n_envs)]))
+    if config.normalize_obs or config.normalize_reward:
+        venv = VecNormalize(
+            venv, training=training, norm_obs=config.normalize_obs, norm_reward=config.normalize_reward,
+            gamma=config.gamma, clip_obs=10.0,
+        )
+    return venv
+
+
+def _run_dir(config: TrainConfig) -> Path:
+    name = config.run_name or (
+        f"ppo_{config.scenario}_{config.num_robots}r_{'filter' if config.filter else 'bare'}_s{config.seed}"
+    )
+    base = Path(config.out_dir) / name
+    path, k = base, 1
+    while path.exists() and any(path.iterdir()):
+        k += 1
+        path = base.with_name(f"{base.name}_{k}")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = None) -> Any:
+    """The SB3 PPO of ``config`` on ``venv`` (seeded: PPO seeds torch, numpy and the env)."""
+    import torch
+    from stable_baselines3 import PPO
+
+    torch.set_num_threads(config.torch_threads)
+    return PPO(
+        "MlpPolicy", venv,
+        learning_rate=config.learning_rate, n_steps=config.n_steps, batch_size=config.batch_size,
+        n_epochs=config.n_epochs, gamma=config.gamma, gae_lambda=config.gae_lambda,
+        clip_range=config.clip_range, ent_coef=config.ent_coef, vf_coef=config.vf_coef,
+        max_grad_norm=config.max_grad_norm,
+        policy_kwargs=dict(net_arch=list(config.net_arch), log_std_init=config.log_std_init),
+        tensorboard_log=tensorboard_log, seed=config.seed, device=config.device, verbose=config.verbose,
+    )
+
+
+def _progress_callback(total: int) -> Any:
+    """A tqdm progress bar over agent-steps (SB3's own needs ``rich``)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class TqdmCallback(BaseCallback):
+        def _on_training_start(self) -> None:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=total, unit="agent-step", dynamic_ncols=True, desc="PPO")
+
+        def _on_step(self) -> bool:
+            self.bar.update(self.training_env.num_envs)
+            return True
+
+        def _on_training_end(self) -> None:
+            self.bar.close()
+
+    return TqdmCallback()
+
+
+def train(config: TrainConfig) -> Path:
+    """Train PPO as configured and return the path of the saved ``model.zip``.
+
+    Parameters
+    ----------
+    config : TrainConfig
+        Validated configuration.
+
+    Returns
+    -------
+    Path
+        ``<run>/model.zip``; the run folder also holds ``vecnormalize.pkl``
+        (when normalising), ``config.json``, ``checkpoints/`` and ``tb/``.
+    """
+    from stable_baselines3.common.callbacks import CheckpointCallback
+
+    run = _run_dir(config)
+    (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    venv = make_vec_env(config)
+    model = build_model(config, venv, str(run / "tb") if config.tensorboard else None)
+    callbacks: list[Any] = []
+    if config.checkpoint_freq:
+        callbacks.append(CheckpointCallback(
+            save_freq=max(1, config.checkpoint_freq // venv.num_envs), save_path=str(run / "checkpoints"),
+            name_prefix="ppo", save_vecnormalize=config.normalize_obs or config.normalize_reward,
+        ))
+    if config.progress_bar:
+        callbacks.append(_progress_callback(config.total_timesteps))
+    t0 = time.perf_counter()
+    model.learn(total_timesteps=config.total_timesteps, callback=callbacks or None, tb_log_name="ppo")
+    elapsed = time.perf_counter() - t0
+    model.save(run / "model.zip")
+    if config.normalize_obs or config.normalize_reward:
+        venv.save(str(run / "vecnormalize.pkl"))
+    (run / "train_stats.json").write_text(json.dumps(
+        {"wall_time_s": elapsed, "agent_steps": int(model.num_timesteps),
+         "agent_steps_per_s": model.num_timesteps / max(elapsed, 1e-9)}, indent=2))
+    venv.close()
+    return run / "model.zip"
+
+
+def build_parser(prog: str = "python -m train.train") -> argparse.ArgumentParser:
+    """Command-line parser (every :class:`TrainConfig` field is a flag)."""
+    parser = argparse.ArgumentParser(prog=prog, description="Train PPO (parameter sharing) on the AA-SOATT env.")
+    add_config_arguments(parser)
+    parser.add_argument("--print-config", action="store_true", help="print the merged config and exit")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command-line entry point; returns the exit status."""
+    from aasoatt_env.errors import ConfigError
+
+    args = build_parser().parse_args(argv)
+    try:
+        config = config_from_args(args)
+    except ConfigError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if args.print_config:
+        print(json.dumps(config.to_dict(), indent=2))
+        return 0
+    path = train(config)
+    print(f"saved {path}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
