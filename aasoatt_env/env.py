@@ -175,6 +175,9 @@ class AASOATTParallelEnv(ParallelEnv):
             raise ConfigError(f"max_steps: got {max_steps!r}, expected an integer >= 1")
         self._max_steps_override = None if max_steps is None else int(max_steps)
         self.clip_actions = bool(clip_actions)
+        self.action_range = "clip" if clip_actions else "strict"
+        """``"strict"``: out-of-range actions raise; ``"clip"``: clipped; ``"nominal"``: taken as is
+        (set by :class:`~aasoatt_env.safety.wrapper.AASOATTFilter`, whose QP keeps the bounds)."""
 
         n = self.scenario.num_robots
         self.possible_agents = [f"robot_{i}" for i in range(n)]
@@ -248,10 +251,10 @@ class AASOATTParallelEnv(ParallelEnv):
             except (TypeError, ValueError):
                 arr = None
             if arr is not None and arr.shape == (len(live), 2) and np.isfinite(arr).all() and (
-                self.clip_actions or np.abs(arr).max(initial=0.0) <= 1.0 + 1e-6
+                self.action_range != "strict" or np.abs(arr).max(initial=0.0) <= 1.0 + 1e-6
             ):
                 act[self._live_idx] = arr
-                return np.clip(act, -1.0, 1.0, out=act)
+                return act if self.action_range == "nominal" else np.clip(act, -1.0, 1.0, out=act)
         unknown = [a for a in actions if a not in self._index]
         if unknown:
             raise ActionError(
@@ -275,12 +278,12 @@ class AASOATTParallelEnv(ParallelEnv):
                 raise ActionError(
                     f"actions[{agent!r}]: got non-finite values {arr.tolist()}, expected finite numbers"
                 )
-            if not self.clip_actions and np.any(np.abs(arr) > 1.0 + 1e-6):
+            if self.action_range == "strict" and np.any(np.abs(arr) > 1.0 + 1e-6):
                 raise ActionError(
                     f"actions[{agent!r}]: got {arr.tolist()}, expected values in [-1, 1] (or clip_actions=True)"
                 )
             act[self._index[agent]] = arr
-        return np.clip(act, -1.0, 1.0, out=act)
+        return act if self.action_range == "nominal" else np.clip(act, -1.0, 1.0, out=act)
 
     def _nominal_du(self, act: np.ndarray, kin: Kinematics) -> np.ndarray:
         if self.action_mode == "wheel":

@@ -1,0 +1,204 @@
+"""The ``aasoatt`` command line.
+
+=====================  =========================================================
+command                what it does
+=====================  =========================================================
+``aasoatt list``       scenarios, their parameters and defaults; controllers;
+                       barriers, deadlock strategies, triggers and solvers
+``aasoatt run``        run a controller (optionally behind the safety filter) on
+                       a scenario; print metrics; write GIF / PNG / JSON / NPZ
+``aasoatt reproduce``  the paper's experiments (see :mod:`aasoatt_env.reproduce`)
+``aasoatt train``      PPO training (see :mod:`train.train`)
+``aasoatt evaluate``   evaluation table over seeded episodes (:mod:`train.evaluate`)
+=====================  =========================================================
+"""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+import sys
+from pathlib import Path
+from typing import Any, Sequence
+
+__all__ = ["main"]
+
+
+def _parse_value(text: str) -> Any:
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def _kv(items: Sequence[str], flag: str) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in items:
+        if "=" not in item:
+            raise SystemExit(f"{flag}: got {item!r}, expected KEY=VALUE")
+        k, v = item.split("=", 1)
+        out[k.replace("-", "_")] = _parse_value(v)
+    return out
+
+
+def cmd_list(args: argparse.Namespace) -> int:
+    """Print scenarios, controllers and filter options."""
+    from agents.base import _REGISTRY
+    from aasoatt_env.registration import ENV_IDS
+    from aasoatt_env.scenarios import SCENARIOS
+
+    ids = {v: k for k, v in ENV_IDS.items()}
+    print("Scenarios (--scenario NAME, parameters with -p KEY=VALUE):")
+    for name, cls in SCENARIOS.items():
+        print(f"  {name:18s} id {ids.get(name, '-')}")
+        doc = (cls.__doc__ or "").strip().splitlines()[0]
+        print(f"      {doc}")
+        for pname, p in inspect.signature(cls.__init__).parameters.items():
+            if pname in ("self", "kwargs"):
+                continue
+            default = "" if p.default is inspect.Parameter.empty else f" = {p.default!r}"
+            print(f"      {pname}{default}")
+    print("\nControllers (--controller NAME):", ", ".join(sorted(_REGISTRY)))
+    try:
+        from aasoatt_env.safety import BARRIERS, DEADLOCKS, TRIGGERS, available_solvers
+
+        print("Barriers (--filter NAME):", ", ".join(BARRIERS))
+        print("Deadlock strategies (--deadlock):", ", ".join(DEADLOCKS))
+        print("Deadlock triggers (--trigger):", ", ".join(TRIGGERS))
+        print("QP solvers (--solver):", ", ".join(available_solvers()))
+    except ImportError:  # pragma: no cover
+        pass
+    return 0
+
+
+def _make_env(args: argparse.Namespace, render: bool) -> Any:
+    from aasoatt_env.env import AASOATTParallelEnv
+
+    kwargs = _kv(args.param or [], "-p/--param")
+    if args.robots is not None:
+        kwargs["num_robots"] = args.robots
+    env = AASOATTParallelEnv(
+        args.scenario,
+        render_mode="rgb_array" if render else None,
+        decision_interval=args.decision_interval,
+        **kwargs,
+    )
+    if args.filter and args.filter != "none":
+        from aasoatt_env.safety.wrapper import AASOATTFilter
+
+        gains = _kv(args.gain or [], "-g/--gain")
+        env = AASOATTFilter(
+            env, barrier=args.filter, deadlock=args.deadlock, trigger=args.trigger, solver=args.solver, **gains
+        )
+    return env
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    """Run one episode and report its metrics."""
+    from agents.base import get_agent
+    from aasoatt_env.metrics import format_summary, summarize
+    from aasoatt_env.recording import run_episode
+
+    render = bool(args.gif)
+    env = _make_env(args, render)
+    ctrl_kwargs: dict[str, Any] = {}
+    if args.controller in ("tracking", "pd"):
+        ctrl_kwargs["saturate"] = not (args.filter and args.filter != "none")
+    if args.controller == "random":
+        ctrl_kwargs["seed"] = args.seed
+    if args.controller == "learned":
+        ctrl_kwargs["path"] = args.model
+    agent = get_agent(args.controller, **ctrl_kwargs)
+    meta = {"controller": args.controller, "filter": args.filter, "seed": args.seed}
+    rollout, frames = run_episode(
+        env, agent, seed=args.seed, render_every=args.frame_every if render else None,
+        progress=not args.quiet, metadata=meta,
+    )
+    summary = summarize(rollout, goal_tolerance=args.goal_tolerance)
+    print(format_summary(summary))
+    out = Path(args.out) if args.out else None
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "metrics.json").write_text(json.dumps(summary, indent=2))
+        rollout.save(out / "rollout.npz")
+        try:
+            from aasoatt_env.plotting import plot_trajectories
+
+            plot_trajectories(
+                rollout.positions, radii=rollout.radii, references=rollout.references, goals=rollout.goals,
+                obstacles=(rollout.obstacle_centers, rollout.obstacle_radii),
+                path=out / "trajectories.png", title=f"{args.scenario}: {args.controller} / {args.filter}",
+            )
+        except ImportError as exc:
+            print(f"(no trajectory plot: {exc})", file=sys.stderr)
+        print(f"wrote {out}/metrics.json, rollout.npz, trajectories.png")
+    if args.gif:
+        from aasoatt_env.rendering import save_animation
+
+        save_animation(frames, args.gif, fps=args.fps)
+        print(f"wrote {args.gif} ({len(frames)} frames)")
+    env.close()
+    if args.fail_on_collision and summary.get("n_collision_pairs"):
+        return 1
+    return 0
+
+
+def _forward(module: str, func: str) -> Any:
+    def run(args: argparse.Namespace) -> int:
+        import importlib
+
+        mod = importlib.import_module(module)
+        return int(getattr(mod, func)(args.rest) or 0)
+
+    return run
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The argument parser of ``aasoatt``."""
+    parser = argparse.ArgumentParser(prog="aasoatt", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_list = sub.add_parser("list", help="scenarios, controllers, filter options")
+    p_list.set_defaults(func=cmd_list)
+
+    p_run = sub.add_parser("run", help="run a controller on a scenario")
+    p_run.add_argument("--scenario", default="circle_swap")
+    p_run.add_argument("--robots", type=int, default=None, help="number of robots (num_robots)")
+    p_run.add_argument("-p", "--param", action="append", help="scenario/env parameter KEY=VALUE")
+    p_run.add_argument("--controller", default="tracking", help="tracking | pd | random | learned")
+    p_run.add_argument("--model", default=None, help="saved model for --controller learned")
+    p_run.add_argument("--filter", default="aasoatt", help="barrier name, or 'none' for the bare env")
+    p_run.add_argument("--deadlock", default="auxiliary_velocity")
+    p_run.add_argument("--trigger", default="multiplier")
+    p_run.add_argument("--solver", default="proxsuite")
+    p_run.add_argument("-g", "--gain", action="append", help="filter gain KEY=VALUE (k1, k2, zeta, ...)")
+    p_run.add_argument("--decision-interval", type=int, default=1)
+    p_run.add_argument("--seed", type=int, default=0)
+    p_run.add_argument("--gif", default=None, help="write an animation (.gif or .mp4)")
+    p_run.add_argument("--frame-every", type=int, default=20, help="env steps between GIF frames")
+    p_run.add_argument("--fps", type=int, default=20)
+    p_run.add_argument("--out", default=None, help="folder for metrics.json, rollout.npz, trajectories.png")
+    p_run.add_argument("--goal-tolerance", type=float, default=0.05)
+    p_run.add_argument("--fail-on-collision", action="store_true", help="exit 1 if any pair collided")
+    p_run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    p_run.set_defaults(func=cmd_run)
+
+    for name, module, func, helptext in (
+        ("reproduce", "aasoatt_env.reproduce", "main", "reproduce the paper's experiments"),
+        ("train", "train.train", "main", "train PPO"),
+        ("evaluate", "train.evaluate", "main", "evaluate controllers"),
+    ):
+        p = sub.add_parser(name, help=helptext, add_help=False)
+        p.add_argument("rest", nargs=argparse.REMAINDER)
+        p.set_defaults(func=_forward(module, func))
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``aasoatt`` console script."""
+    args = build_parser().parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
