@@ -19,8 +19,9 @@ import argparse
 import inspect
 import json
 import sys
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 __all__ = ["main"]
 
@@ -44,9 +45,9 @@ def _kv(items: Sequence[str], flag: str) -> dict[str, Any]:
 
 def cmd_list(args: argparse.Namespace) -> int:
     """Print scenarios, controllers and filter options."""
-    from agents.base import _REGISTRY
     from aasoatt_env.registration import ENV_IDS
     from aasoatt_env.scenarios import SCENARIOS
+    from agents.base import _REGISTRY
 
     ids = {v: k for k, v in ENV_IDS.items()}
     print("Scenarios (--scenario NAME, parameters with -p KEY=VALUE):")
@@ -89,16 +90,21 @@ def _make_env(args: argparse.Namespace, render: bool) -> Any:
 
         gains = _kv(args.gain or [], "-g/--gain")
         env = AASOATTFilter(
-            env, barrier=args.filter, deadlock=args.deadlock, trigger=args.trigger, solver=args.solver, **gains
+            env,
+            barrier=args.filter,
+            deadlock=args.deadlock,
+            trigger=args.trigger,
+            solver=args.solver,
+            **gains,
         )
     return env
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run one episode and report its metrics."""
-    from agents.base import get_agent
     from aasoatt_env.metrics import format_summary, summarize
     from aasoatt_env.recording import run_episode
+    from agents.base import get_agent
 
     render = bool(args.gif)
     env = _make_env(args, render)
@@ -112,8 +118,12 @@ def cmd_run(args: argparse.Namespace) -> int:
     agent = get_agent(args.controller, **ctrl_kwargs)
     meta = {"controller": args.controller, "filter": args.filter, "seed": args.seed}
     rollout, frames = run_episode(
-        env, agent, seed=args.seed, render_every=args.frame_every if render else None,
-        progress=not args.quiet, metadata=meta,
+        env,
+        agent,
+        seed=args.seed,
+        render_every=args.frame_every if render else None,
+        progress=not args.quiet,
+        metadata=meta,
     )
     summary = summarize(rollout, goal_tolerance=args.goal_tolerance)
     print(format_summary(summary))
@@ -126,9 +136,13 @@ def cmd_run(args: argparse.Namespace) -> int:
             from aasoatt_env.plotting import plot_trajectories
 
             plot_trajectories(
-                rollout.positions, radii=rollout.radii, references=rollout.references, goals=rollout.goals,
+                rollout.positions,
+                radii=rollout.radii,
+                references=rollout.references,
+                goals=rollout.goals,
                 obstacles=(rollout.obstacle_centers, rollout.obstacle_radii),
-                path=out / "trajectories.png", title=f"{args.scenario}: {args.controller} / {args.filter}",
+                path=out / "trajectories.png",
+                title=f"{args.scenario}: {args.controller} / {args.filter}",
             )
         except ImportError as exc:
             print(f"(no trajectory plot: {exc})", file=sys.stderr)

@@ -37,8 +37,9 @@ the applied ``du`` to the speed-admissible range of the step; ``infos`` reports
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Any, Callable, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from gymnasium import spaces
@@ -152,7 +153,9 @@ class AASOATTParallelEnv(ParallelEnv):
     ) -> None:
         self.scenario = get_scenario(scenario, **scenario_kwargs)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ConfigError(f"render_mode: got {render_mode!r}, expected None or one of {self.metadata['render_modes']}")
+            raise ConfigError(
+                f"render_mode: got {render_mode!r}, expected None or one of {self.metadata['render_modes']}"
+            )
         self.render_mode = render_mode
         self.dt = check_positive("dt", dt)
         if int(decision_interval) != decision_interval or decision_interval < 1:
@@ -166,7 +169,9 @@ class AASOATTParallelEnv(ParallelEnv):
             if int(val) != val or val < 0:
                 raise ConfigError(f"{name}: got {val!r}, expected an integer >= 0")
         self.num_neighbors, self.num_obstacles = int(num_neighbors), int(num_obstacles)
-        self.reward_config = RewardConfig(**reward) if isinstance(reward, dict) else (reward or RewardConfig())
+        self.reward_config = (
+            RewardConfig(**reward) if isinstance(reward, dict) else (reward or RewardConfig())
+        )
         self.terminate_on_collision = bool(terminate_on_collision)
         if collision_tolerance < 0:
             raise ConfigError(f"collision_tolerance: got {collision_tolerance!r}, expected >= 0")
@@ -250,8 +255,11 @@ class AASOATTParallelEnv(ParallelEnv):
                 arr = np.array([actions[a] for a in live], dtype=np.float64)
             except (TypeError, ValueError):
                 arr = None
-            if arr is not None and arr.shape == (len(live), 2) and np.isfinite(arr).all() and (
-                self.action_range != "strict" or np.abs(arr).max(initial=0.0) <= 1.0 + 1e-6
+            if (
+                arr is not None
+                and arr.shape == (len(live), 2)
+                and np.isfinite(arr).all()
+                and (self.action_range != "strict" or np.abs(arr).max(initial=0.0) <= 1.0 + 1e-6)
             ):
                 act[self._live_idx] = arr
                 return act if self.action_range == "nominal" else np.clip(act, -1.0, 1.0, out=act)
@@ -313,12 +321,23 @@ class AASOATTParallelEnv(ParallelEnv):
                 du_nom[frozen] = 0.0
             if self._control_filter is not None:
                 sim = SimState(
-                    self._time, dt, team, kin, self._u, self._pose[:, 2], lo, hi,
-                    self._layout.reference(self._time), self._obstacles, self._active,  # type: ignore[union-attr]
+                    self._time,
+                    dt,
+                    team,
+                    kin,
+                    self._u,
+                    self._pose[:, 2],
+                    lo,
+                    hi,
+                    self._layout.reference(self._time),
+                    self._obstacles,
+                    self._active,  # type: ignore[union-attr]
                 )
                 du = np.asarray(self._control_filter(sim, du_nom), dtype=np.float64)
                 if du.shape != du_nom.shape or not np.all(np.isfinite(du)):
-                    raise ActionError(f"control filter returned shape {du.shape} or non-finite values, expected finite {du_nom.shape}")
+                    raise ActionError(
+                        f"control filter returned shape {du.shape} or non-finite values, expected finite {du_nom.shape}"
+                    )
             else:
                 du = du_nom
             clipped = np.minimum(np.maximum(du, lo), hi)
@@ -368,10 +387,20 @@ class AASOATTParallelEnv(ParallelEnv):
         p_d, v_d, a_d = self._ref_now
         kin = self._kin
         obs = build_observations(
-            p=kin.p, v=kin.v, theta=self._pose[:, 2], u=self._u, p_d=p_d, v_d=v_d, a_d=a_d,
-            goals=self._layout.reference.goals, radii=self.team.radius,  # type: ignore[union-attr]
-            obstacle_centers=self._obstacles[0], obstacle_radii=self._obstacles[1],
-            sensing_range=self.sensing_range, k_robots=self.num_neighbors, k_obstacles=self.num_obstacles,
+            p=kin.p,
+            v=kin.v,
+            theta=self._pose[:, 2],
+            u=self._u,
+            p_d=p_d,
+            v_d=v_d,
+            a_d=a_d,
+            goals=self._layout.reference.goals,
+            radii=self.team.radius,  # type: ignore[union-attr]
+            obstacle_centers=self._obstacles[0],
+            obstacle_radii=self._obstacles[1],
+            sensing_range=self.sensing_range,
+            k_robots=self.num_neighbors,
+            k_obstacles=self.num_obstacles,
             prox=self._prox,
         )
         idx = self._index
@@ -398,7 +427,13 @@ class AASOATTParallelEnv(ParallelEnv):
         out = {}
         for a in self.agents:
             i = idx[a]
-            out[a] = {"tracking_error": err[i], "clearance": clr[i], "collision": col[i], "saturated": sat[i], "time": t}
+            out[a] = {
+                "tracking_error": err[i],
+                "clearance": clr[i],
+                "collision": col[i],
+                "saturated": sat[i],
+                "time": t,
+            }
         return out
 
     def state(self) -> np.ndarray:
@@ -481,11 +516,19 @@ class AASOATTParallelEnv(ParallelEnv):
             self._renderer = Renderer()
         avoiding = getattr(self._control_filter, "last_avoiding", None)
         frame = Frame(
-            positions=self._kin.p, headings=self._pose[:, 2], radii=self.team.radius,
-            references=self.reference[0], goals=self.goals,
-            obstacle_centers=self._obstacles[0], obstacle_radii=self._obstacles[1],
-            trails=np.asarray(self._trail[-400:]), avoiding=avoiding, sensing_range=None,
-            time=self._time, title=self.scenario.name, world_bounds=self.layout.bounds,
+            positions=self._kin.p,
+            headings=self._pose[:, 2],
+            radii=self.team.radius,
+            references=self.reference[0],
+            goals=self.goals,
+            obstacle_centers=self._obstacles[0],
+            obstacle_radii=self._obstacles[1],
+            trails=np.asarray(self._trail[-400:]),
+            avoiding=avoiding,
+            sensing_range=None,
+            time=self._time,
+            title=self.scenario.name,
+            world_bounds=self.layout.bounds,
         )
         if self.render_mode == "human":
             self._renderer.show(frame)

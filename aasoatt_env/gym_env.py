@@ -32,14 +32,28 @@ class AASOATTGymEnv(gym.Env):
         Scenario name.
     parallel_env : AASOATTParallelEnv, optional
         Wrap this (possibly filtered) parallel env instead of creating one.
+    safety_filter : dict, optional
+        Put :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` with these options
+        (e.g. ``{"barrier": "aasoatt"}``; ``{}`` for the defaults) between the
+        joint action and the robots.
     **kwargs
         Passed to :class:`~aasoatt_env.env.AASOATTParallelEnv`.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 20}
 
-    def __init__(self, scenario: str = "circle_swap", parallel_env: Any = None, **kwargs: Any) -> None:
+    def __init__(
+        self,
+        scenario: str = "circle_swap",
+        parallel_env: Any = None,
+        safety_filter: dict[str, Any] | None = None,
+        **kwargs: Any,
+    ) -> None:
         self.par = parallel_env if parallel_env is not None else AASOATTParallelEnv(scenario, **kwargs)
+        if safety_filter is not None:
+            from aasoatt_env.safety.wrapper import AASOATTFilter
+
+            self.par = AASOATTFilter(self.par, **safety_filter)
         self.render_mode = self.par.unwrapped.render_mode
         agents = self.par.possible_agents
         self._agents = list(agents)

@@ -21,8 +21,9 @@ Presets
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 
@@ -164,9 +165,7 @@ class Team:
         return np.repeat(self.max_wheel_accel[:, None], 2, axis=1)
 
 
-def make_team(
-    robots: RobotParams | str | Sequence[RobotParams | str] | None, n: int
-) -> Team:
+def make_team(robots: RobotParams | str | Sequence[RobotParams | str] | None, n: int) -> Team:
     """Build a :class:`Team` of ``n`` robots.
 
     Parameters

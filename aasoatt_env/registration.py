@@ -56,7 +56,9 @@ def register_all() -> None:
         warnings.simplefilter("ignore")
         for env_id, scenario in ENV_IDS.items():
             if env_id not in pettingzoo.parallel_registry:
-                pettingzoo.register("parallel", env_id, entry_point=parallel_env, kwargs={"scenario": scenario})
+                pettingzoo.register(
+                    "parallel", env_id, entry_point=parallel_env, kwargs={"scenario": scenario}
+                )
             if env_id not in pettingzoo.aec_registry:
                 pettingzoo.register("aec", env_id, entry_point=env, kwargs={"scenario": scenario})
             if env_id not in gymnasium.registry:

@@ -6,6 +6,7 @@ agent                      what it does
 :class:`TrackingController`  the paper's tracking law eqn.11-12 (``k3 = 1``, ``k4 = 4``)
 :class:`PDController`        SBC's PD nominal ``a = -k3 (p - p_d) - k4 v`` (Table I)
 :class:`RandomAgent`         uniform random actions from the action spaces
+:class:`HostileAgent`        every robot accelerates at its nearest neighbour
 =========================  ====================================================
 
 Every agent has ``reset(env)`` and ``act(observations, env) -> actions`` where
@@ -14,6 +15,6 @@ implement the same two methods.
 """
 
 from agents.base import Agent, get_agent
-from agents.baselines import PDController, RandomAgent, TrackingController
+from agents.baselines import HostileAgent, PDController, RandomAgent, TrackingController
 
-__all__ = ["Agent", "PDController", "RandomAgent", "TrackingController", "get_agent"]
+__all__ = ["Agent", "HostileAgent", "PDController", "RandomAgent", "TrackingController", "get_agent"]

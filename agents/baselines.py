@@ -6,10 +6,10 @@ from typing import Any
 
 import numpy as np
 
-from agents.base import register_agent
 from aasoatt_env.params import check_positive
+from agents.base import register_agent
 
-__all__ = ["PDController", "RandomAgent", "TrackingController", "point_accel_to_action"]
+__all__ = ["HostileAgent", "PDController", "RandomAgent", "TrackingController", "point_accel_to_action"]
 
 
 def point_accel_to_action(env: Any, accel: np.ndarray, saturate: bool) -> dict[str, np.ndarray]:
@@ -99,6 +99,29 @@ class RandomAgent:
         return out
 
 
+class HostileAgent:
+    """Adversarial policy: every robot accelerates at full rate toward its nearest neighbour.
+
+    Used to stress the safety filter; the action is in ``[-1, 1]`` (saturated).
+    """
+
+    def reset(self, env: Any) -> None:
+        """Nothing to reset."""
+
+    def act(self, observations: dict[str, np.ndarray], env: Any) -> dict[str, np.ndarray]:
+        """Point accelerations of magnitude ``max_point_accel`` toward the nearest robot."""
+        base = env.unwrapped
+        p = base.positions
+        d = np.linalg.norm(p[:, None] - p[None], axis=2)
+        np.fill_diagonal(d, np.inf)
+        j = np.argmin(d, axis=1)
+        direction = p[j] - p
+        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
+        accel = base.team.max_point_accel[:, None] * direction
+        return point_accel_to_action(env, accel, saturate=True)
+
+
 register_agent("tracking", TrackingController)
+register_agent("hostile", HostileAgent)
 register_agent("pd", PDController)
 register_agent("random", RandomAgent)

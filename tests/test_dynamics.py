@@ -61,9 +61,9 @@ def test_A_matches_closed_form_and_determinant():
     team = make_team("paper", 3)
     theta = np.array([0.0, 0.7, -2.0])
     A = dyn.jacobian(team, theta)
-    rho, b, l = 0.1, 0.2, 0.2
-    np.testing.assert_allclose(np.linalg.det(A), -rho**2 * l / (2 * b))
-    k = l / b
+    rho, b, offset = 0.1, 0.2, 0.2
+    np.testing.assert_allclose(np.linalg.det(A), -(rho**2) * offset / (2 * b))
+    k = offset / b
     c, s = math.cos(0.7), math.sin(0.7)
     np.testing.assert_allclose(A[1], rho / 2 * np.array([[c - k * s, c + k * s], [s + k * c, s - k * c]]))
 
@@ -118,7 +118,9 @@ def test_robot_params_validation(kwargs, match):
 
 
 def test_unknown_preset_lists_known():
-    with pytest.raises(ConfigError, match=r"known presets: \['double_integrator', 'paper', 'turtlebot3_burger'\]"):
+    with pytest.raises(
+        ConfigError, match=r"known presets: \['double_integrator', 'paper', 'turtlebot3_burger'\]"
+    ):
         RobotParams.preset("roomba")
 
 

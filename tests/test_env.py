@@ -178,7 +178,9 @@ def test_truncation_at_horizon_and_agents_leave():
 
 
 def test_terminate_on_collision_removes_robots_and_freezes_them():
-    env = AASOATTParallelEnv("circle_swap", num_robots=4, radius=2.0, duration=2.0, terminate_on_collision=True)
+    env = AASOATTParallelEnv(
+        "circle_swap", num_robots=4, radius=2.0, duration=2.0, terminate_on_collision=True
+    )
     obs, _ = env.reset(seed=0)
     ctrl = TrackingController(saturate=True)
     terminated = set()
