@@ -1,0 +1,219 @@
+"""Training stack: config validation, VecEnv adapter contract, determinism, smoke train/load/evaluate."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("stable_baselines3")
+torch = pytest.importorskip("torch")
+torch.set_num_threads(1)
+
+from aasoatt_env.env import AASOATTParallelEnv  # noqa: E402
+from aasoatt_env.errors import ConfigError  # noqa: E402
+from train.config import TrainConfig, parse_config  # noqa: E402
+from train.vec_env import ParallelVecEnv  # noqa: E402
+
+HAS_FILTER = importlib.util.find_spec("aasoatt_env.safety.wrapper") is not None
+needs_filter = pytest.mark.skipif(not HAS_FILTER, reason="aasoatt_env.safety.wrapper not available yet")
+
+
+def tiny(tmp_path, **kw) -> TrainConfig:
+    base = dict(
+        num_robots=3, n_envs=2, n_steps=16, batch_size=48, n_epochs=2, total_timesteps=2000,
+        net_arch=[16, 16], out_dir=str(tmp_path), progress_bar=False, tensorboard=False,
+        checkpoint_freq=0, max_steps=30,
+    )
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+# --------------------------------------------------------------------------- config
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"num_robots": 0}, r"TrainConfig.num_robots: got 0, expected an integer >= 1"),
+        ({"decision_interval": 2.5}, r"decision_interval: got 2.5, expected an integer >= 1"),
+        ({"gamma": 1.5}, r"TrainConfig.gamma: got 1.5, expected a number in \[0, 1\]"),
+        ({"action_mode": "torque"}, r"action_mode: got 'torque', expected one of \['wheel', 'point'\]"),
+        ({"scenario": "nowhere"}, r"scenario: got 'nowhere', expected one of"),
+        ({"reward": {"colision": 1.0}}, r"TrainConfig.reward: got \{'colision': 1.0\}, expected keys among"),
+        ({"reward": {"correction": 1.0}}, r"correction=1.0 with filter=False, expected filter=True"),
+        ({"net_arch": []}, r"net_arch: got \[\], expected a non-empty list"),
+        ({"batch_size": 10_000, "n_steps": 8, "n_envs": 1, "num_robots": 2},
+         r"batch_size: got 10000, expected at most n_steps \* n_envs \* num_robots = 16"),
+        ({"filter": "yes"}, r"TrainConfig.filter: got 'yes', expected true or false"),
+    ],
+)
+def test_config_errors(kwargs, match):
+    with pytest.raises(ConfigError, match=match):
+        TrainConfig(**kwargs)
+
+
+def test_config_file_and_cli(tmp_path):
+    toml = tmp_path / "run.toml"
+    toml.write_text('num_robots = 4\nseed = 3\n[reward]\ncollision = 20.0\n')
+    cfg = parse_config(["--config", str(toml), "--seed", "7", "--reward", "effort=0.1", "--net-arch", "32", "32"])
+    assert (cfg.num_robots, cfg.seed, cfg.net_arch) == (4, 7, [32, 32])
+    assert cfg.reward == {"collision": 20.0, "effort": 0.1}
+    js = tmp_path / "run.json"
+    js.write_text(json.dumps({"n_envs": 2, "bogus": 1}))
+    with pytest.raises(ConfigError, match=r"got unknown key\(s\) \['bogus'\], expected keys among"):
+        TrainConfig.from_file(js)
+    with pytest.raises(ConfigError, match=r"config file: got suffix '.yml', expected '.toml' or '.json'"):
+        TrainConfig.from_file(tmp_path / "x.yml") if (tmp_path / "x.yml").write_text("a: 1") else None
+    with pytest.raises(ConfigError, match=r"--reward: got 'collision', expected KEY=VALUE"):
+        parse_config(["--reward", "collision"])
+
+
+# --------------------------------------------------------------------------- VecEnv adapter
+def _venv(n_envs=2, **kw):
+    kw = {"num_robots": 3, "decision_interval": 20, "max_steps": 5, **kw}
+    return ParallelVecEnv([lambda: AASOATTParallelEnv("random_goals", **kw) for _ in range(n_envs)])
+
+
+def test_vec_env_truncation_and_autoreset():
+    venv = _venv()
+    assert venv.num_envs == 6
+    venv.seed(123)
+    obs = venv.reset()
+    assert obs.shape == (6, venv.observation_space.shape[0])
+    acts = np.zeros((6, 2), dtype=np.float32)
+    for t in range(5):
+        venv.step_async(acts)
+        obs2, rew, dones, infos = venv.step_wait()
+        if t < 4:
+            assert not dones.any()
+            assert all("terminal_observation" not in i for i in infos)
+    assert dones.all()
+    assert all(i["TimeLimit.truncated"] is True for i in infos)
+    assert all(i["terminal_observation"].shape == obs.shape[1:] for i in infos)
+    # auto-reset: the returned observation is a fresh episode's first one
+    assert not np.allclose(obs2, np.stack([i["terminal_observation"] for i in infos]))
+    venv.close()
+
+
+def test_vec_env_seeding_reproducible():
+    a, b = _venv(), _venv()
+    a.seed(5)
+    b.seed(5)
+    oa, ob = a.reset(), b.reset()
+    np.testing.assert_array_equal(oa, ob)
+    # env k is seeded with seed + k * n_agents: the two envs differ
+    assert not np.allclose(oa[:3], oa[3:])
+    a.seed(6)
+    assert not np.allclose(a.reset(), ob)
+
+
+def test_vec_env_dead_slots_terminate_on_collision():
+    # two robots driven into each other terminate; the other two keep going until the horizon
+    venv = ParallelVecEnv([lambda: AASOATTParallelEnv(
+        "position_swap", decision_interval=20, terminate_on_collision=True, max_steps=80, action_mode="point")])
+    venv.seed(0)
+    obs = venv.reset()
+    n = venv.num_envs
+    env = venv.envs[0]
+    done_count = np.zeros(n, dtype=int)
+    dead_steps = 0
+    for _ in range(200):
+        p = env.unwrapped.positions
+        act = np.zeros((n, 2), dtype=np.float32)
+        d = p[1] - p[0]
+        act[0], act[1] = d / np.linalg.norm(d), -d / np.linalg.norm(d)  # robots 0 and 1 ram each other
+        live_before = venv.live_slots
+        venv.step_async(act)
+        obs, rew, dones, infos = venv.step_wait()
+        done_count += dones
+        for s in range(n):
+            if not live_before[s]:
+                dead_steps += 1
+                assert infos[s] == {"dead": True} and rew[s] == 0 and not dones[s]
+                if not venv.live_slots[s]:  # (after an auto-reset the slot holds the new episode's obs)
+                    assert not obs[s].any()
+            elif dones[s] and not infos[s]["TimeLimit.truncated"]:
+                assert infos[s]["collision"] is True
+        if (done_count > 0).all():  # the episode is over (auto-reset happened)
+            break
+    assert (done_count == 1).all(), "each slot is done exactly once per episode"
+    assert dead_steps > 0, "some slot was dead while others kept going"
+    assert infos[2]["TimeLimit.truncated"] and infos[3]["TimeLimit.truncated"]
+
+
+# --------------------------------------------------------------------------- determinism
+def _two_updates_checksum(tmp_path, seed: int) -> float:
+    from train.train import build_model, make_vec_env
+
+    cfg = tiny(tmp_path, seed=seed)
+    venv = make_vec_env(cfg)
+    model = build_model(cfg, venv)
+    model.learn(total_timesteps=2 * cfg.n_steps * venv.num_envs)
+    assert model._n_updates == 2 * cfg.n_epochs
+    venv.close()
+    return float(sum(p.detach().double().sum().item() * (k + 1) for k, p in enumerate(model.policy.parameters())))
+
+
+def test_same_seed_identical_first_two_updates(tmp_path):
+    a = _two_updates_checksum(tmp_path, seed=11)
+    b = _two_updates_checksum(tmp_path, seed=11)
+    c = _two_updates_checksum(tmp_path, seed=12)
+    assert a == b
+    assert a != c
+
+
+# --------------------------------------------------------------------------- smoke: train, save, load, evaluate
+def _smoke(tmp_path, filtered: bool):
+    from agents.learned import LearnedAgent
+    from train.evaluate import evaluate, to_markdown
+    from train.train import train
+
+    kw = dict(filter=True, filter_kwargs={"solver": "quadprog"}, reward={"correction": 0.1}) if filtered else {}
+    cfg = tiny(tmp_path, run_name="filter" if filtered else "bare", **kw)
+    path = train(cfg)
+    assert path.is_file() and (path.parent / "vecnormalize.pkl").is_file()
+    agent = LearnedAgent.load(path)
+    env = agent.make_env()
+    obs, _ = env.reset(seed=1)
+    agent.reset(env)
+    acts = agent.act(obs, env)
+    assert set(acts) == set(env.agents) and all(a.shape == (2,) for a in acts.values())
+    # deterministic: same observations, same actions
+    again = agent.act(obs, env)
+    assert all(np.array_equal(acts[a], again[a]) for a in acts)
+    rows = ["random", "learned (filter) + filter"] if filtered else ["random", "tracking", "learned (bare)"]
+    table = evaluate(
+        None if filtered else path, path if filtered else None, episodes=1, rows=rows,
+        filter_kwargs={"solver": "quadprog"},
+    )
+    assert [r.name for r in table] == rows
+    md = to_markdown(table)
+    assert md.count("\n") == len(rows) + 1
+    for r in table:
+        assert 0.0 <= r.safe_rate <= 1.0 and 0.0 <= r.success_rate <= 1.0 and r.rmse >= 0
+    if filtered:
+        assert table[-1].intervention_rate is not None and table[-1].collisions == 0
+
+
+def test_smoke_train_load_evaluate_bare(tmp_path):
+    _smoke(tmp_path, filtered=False)
+
+
+@needs_filter
+def test_smoke_train_load_evaluate_filtered(tmp_path):
+    _smoke(tmp_path, filtered=True)
+
+
+def test_learned_agent_rejects_mismatched_env(tmp_path):
+    from agents.learned import LearnedAgent
+    from train.train import train
+
+    path = train(tiny(tmp_path, total_timesteps=200, run_name="m"))
+    agent = LearnedAgent.load(path.parent)
+    env = AASOATTParallelEnv("random_goals", num_robots=3, num_neighbors=2)
+    env.reset(seed=0)
+    with pytest.raises(ConfigError, match=r"observation shape \(38,\), expected \(50,\)"):
+        agent.reset(env)
+    with pytest.raises(ConfigError, match=r"expected a model .zip or a run folder"):
+        LearnedAgent.load(tmp_path / "nope.zip")
