@@ -1,0 +1,189 @@
+"""Pairwise barrier functions, each turned into rows linear in the wheel accelerations.
+
+Every barrier produces, for all pairs at once, rows of the form
+
+    -p_ij^T (A_i du_i - A_j du_j) <= rhs_ij                              (eqn.8)
+
+written here as ``c^T (w_i - w_j) <= rhs`` with ``w = A du`` the commanded
+control-point acceleration and ``c = -p_ij``.  Obstacle pairs are pairs whose
+second member has zero velocity and acceleration: the robot carries the whole
+row (``j = -1`` in :class:`PairGeometry`).
+
+Registry (:data:`BARRIERS`, look-up with :func:`get_barrier`):
+
+``aasoatt`` (eqn.7, eqn.7a, eqn.8; default)
+    ``h = r_dot + k1 (r - d_s)`` with ``h_dot + k2 h >= 0``.  The typo of
+    eqn.7c is corrected (``- A_dot_j u_j``).
+``braking`` (eqn.n4, Wang-Ames-Egerstedt 2017)
+    ``h = sqrt(2 (a_i+ + a_j+)(r - d_s)) + r_dot`` with ``h_dot >= -gamma h^3``;
+    ``a+`` is :attr:`aasoatt_env.params.Team.max_point_accel` (an obstacle
+    contributes 0).  ``r - d_s`` is clamped at ``1e-6`` so the row stays finite
+    once a pair is inside the safety distance.
+``distance`` (eqn.nn5)
+    ``-2 p_ij^T v_ij <= varsigma (r^2 - d_s^2)``.
+``gated_distance`` (eqn.n5, eqn.n6)
+    eqn.nn5 kept only while the pair approaches (``p^T v < 0``) inside the gate
+    distance.  eqn.n6 prints ``d_safe`` as the gate, which would switch the row on
+    only after a collision; the gate is ``gate_range`` (default: the sensing
+    range ``D``).
+``adaptive_distance`` (eqn.n7, Rodriguez-Seda 2019)
+    eqn.nn5 with ``d = (D + r)/2 + (D - r)/pi atan(-rho_v p^T v + sigma)``,
+    ``r = r_i + r_j``.
+
+The velocity-level barriers constrain velocity; they are applied to the
+next-step velocity ``v + (A du + A_dot u) dt``, which is linear in ``du``:
+``-2 p^T (v + (w_i - w_j + A_dot u_ij) dt) <= varsigma (r^2 - d^2)``, divided by
+``2 dt`` to the common form.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from aasoatt_env.errors import ConfigError
+
+__all__ = [
+    "BARRIERS",
+    "BarrierParams",
+    "PairGeometry",
+    "barrier_rows",
+    "get_barrier",
+]
+
+
+class PairGeometry(NamedTuple):
+    """Relative quantities of P pairs (robot-robot and robot-obstacle) as arrays."""
+
+    i: np.ndarray
+    """First robot of each pair, ``(P,)``."""
+    j: np.ndarray
+    """Second robot, or ``-1`` for an obstacle, ``(P,)``."""
+    p: np.ndarray
+    """Relative position ``p_i - p_j`` (obstacle: ``p_i - c_k``), ``(P, 2)``."""
+    v: np.ndarray
+    """Relative velocity, ``(P, 2)``."""
+    adot: np.ndarray
+    """Relative drift acceleration ``A_dot_i u_i - A_dot_j u_j``, ``(P, 2)``."""
+    d_s: np.ndarray
+    """Safety distance of the pair (margin included), ``(P,)``."""
+    r_sum: np.ndarray
+    """Sum of radii ``r_i + r_j`` without margin (eqn.n7's ``r``), ``(P,)``."""
+    a_plus: np.ndarray
+    """Sum of the maximum point accelerations ``a_i+ + a_j+``, ``(P,)``."""
+
+
+@dataclass(frozen=True)
+class BarrierParams:
+    """Gains of the barriers (validated by :class:`aasoatt_env.safety.config.FilterConfig`)."""
+
+    k1: float = 2.0
+    k2: float = 2.0
+    gamma: float = 1.0
+    varsigma: float = 2.0
+    rho_v: float = 1.0
+    sigma: float = 0.0
+    sensing_range: float = 3.0
+    gate_range: float | None = None
+    dt: float = 0.005
+
+
+BarrierFn = Callable[[PairGeometry, BarrierParams], "tuple[np.ndarray, np.ndarray | None]"]
+"""``f(geometry, params) -> (rhs, keep)``; ``keep`` is a boolean mask or None (all rows)."""
+
+
+def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    r = np.sqrt(np.einsum("ij,ij->i", g.p, g.p))
+    r = np.maximum(r, 1e-9)
+    pv = np.einsum("ij,ij->i", g.p, g.v)
+    vv = np.einsum("ij,ij->i", g.v, g.v)
+    pa = np.einsum("ij,ij->i", g.p, g.adot)
+    return r, pv, vv, pa
+
+
+def _aasoatt(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, None]:
+    r, pv, vv, pa = _common(g)
+    rhs = vv - pv * pv / (r * r) + (q.k1 + q.k2) * pv + q.k1 * q.k2 * r * (r - g.d_s) + pa
+    return rhs, None
+
+
+def _braking(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, None]:
+    r, pv, vv, pa = _common(g)
+    root = np.sqrt(2.0 * g.a_plus * np.maximum(r - g.d_s, 1e-6))
+    h = root + pv / r
+    rhs = q.gamma * h**3 * r + vv - pv * pv / (r * r) + g.a_plus * pv / root + pa
+    return rhs, None
+
+
+def _velocity_rhs(g: PairGeometry, q: BarrierParams, d: np.ndarray) -> np.ndarray:
+    r, pv, _, pa = _common(g)
+    return (q.varsigma * (r * r - d * d) + 2.0 * pv) / (2.0 * q.dt) + pa
+
+
+def _distance(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, None]:
+    return _velocity_rhs(g, q, g.d_s), None
+
+
+def _gated_distance(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, np.ndarray]:
+    gate = q.sensing_range if q.gate_range is None else q.gate_range
+    r, pv, _, _ = _common(g)
+    keep = (pv < 0.0) & (r < gate)
+    return _velocity_rhs(g, q, g.d_s), keep
+
+
+def _adaptive_distance(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, None]:
+    pv = np.einsum("ij,ij->i", g.p, g.v)
+    D = q.sensing_range
+    margin = g.d_s - g.r_sum
+    d = 0.5 * (D + g.r_sum) + (D - g.r_sum) / math.pi * np.arctan(-q.rho_v * pv + q.sigma) + margin
+    return _velocity_rhs(g, q, d), None
+
+
+BARRIERS: dict[str, BarrierFn] = {
+    "aasoatt": _aasoatt,
+    "braking": _braking,
+    "distance": _distance,
+    "gated_distance": _gated_distance,
+    "adaptive_distance": _adaptive_distance,
+}
+"""Barrier registry: name -> row builder (see module docstring)."""
+
+
+def get_barrier(name: str) -> BarrierFn:
+    """Return the row builder registered as ``name`` or raise :class:`ConfigError`."""
+    try:
+        return BARRIERS[name]
+    except (KeyError, TypeError):
+        raise ConfigError(f"barrier: got {name!r}, expected one of {sorted(BARRIERS)}") from None
+
+
+def barrier_rows(name: str, g: PairGeometry, params: BarrierParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Rows ``c^T (w_i - w_j) <= rhs`` of barrier ``name`` for all pairs of ``g``.
+
+    Parameters
+    ----------
+    name : str
+        Registered barrier name.
+    g : PairGeometry
+        Pair geometry (already rotated where a deadlock strategy asks for it).
+    params : BarrierParams
+        Gains.
+
+    Returns
+    -------
+    c : numpy.ndarray
+        Row normals ``(P', 2)`` (``c = -p_ij``).
+    rhs : numpy.ndarray
+        Right-hand sides ``(P',)``.
+    keep : numpy.ndarray
+        Indices of the kept pairs into ``g`` (all for ungated barriers).
+    """
+    rhs, keep = get_barrier(name)(g, params)
+    if keep is None:
+        idx = np.arange(rhs.shape[0])
+        return -g.p, rhs, idx
+    idx = np.flatnonzero(keep)
+    return -g.p[idx], rhs[idx], idx

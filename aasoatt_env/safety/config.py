@@ -1,0 +1,156 @@
+"""Validated configuration of the safety filter.
+
+Defaults follow SPEC section 7 (``k1 = k2 = 2``, ``k3 = 1``, ``k4 = 4``,
+``zeta = 2``, ``q = -60 deg``, ``D = 3``, ``dt = 0.005``).  Values the paper does
+not give are our choices: ``gamma = 1`` (braking SBC), ``varsigma = 2``,
+``rho_v = 1``, ``sigma = 0`` (velocity barriers).
+
+Discrete-time safety margin
+---------------------------
+The CBF guarantee holds in continuous time; with ``du`` held over a step of
+``dt`` pairs dip slightly below ``d_s``.  ``safety_margin=None`` (default) adds
+``auto_margin(dt) = 2 * dt * 1 m/s`` (1 cm at ``dt = 0.005``) to every safety
+distance: the distance a pair closing at 2 m/s covers in one step, several times
+the observed dip (5 mm with 35 robots).  Set ``safety_margin=0`` for the
+paper's exact barrier.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+from typing import Callable
+
+from aasoatt_env.errors import ConfigError
+from aasoatt_env.safety.barriers import BARRIERS
+from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
+
+__all__ = ["FilterConfig", "auto_margin"]
+
+
+def auto_margin(dt: float) -> float:
+    """Default discrete-time margin on ``d_s`` [m] for a step ``dt`` [s]."""
+    return 2.0 * dt
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Parameters of :class:`aasoatt_env.safety.core.SafetyFilter`.
+
+    Parameters
+    ----------
+    barrier : str
+        Barrier name, see :data:`aasoatt_env.safety.barriers.BARRIERS`.
+    deadlock : str
+        Deadlock strategy, see :data:`aasoatt_env.safety.deadlock.STRATEGIES`.
+    trigger : str
+        What switches the deadlock strategy on, see :data:`~aasoatt_env.safety.deadlock.TRIGGERS`.
+    solver : str
+        QP solver, see :data:`aasoatt_env.safety.qp.SOLVERS`.
+    k1, k2 : float
+        Barrier gains of eqn.7 / eqn.7a.
+    k3, k4 : float
+        Tracking gains of eqn.11 (used by the deadlock corrections).
+    zeta : float
+        Deadlock gain ``zeta`` of eqn.12b / eqn.13 (``k4 > zeta``, Theorem 2).
+    rotation_deg : float
+        Rotation angle ``q`` of ``Q`` [deg], in ``[-180, 180]``.
+    sensing_range : float
+        ``D`` [m]: pairs farther apart get no row.
+    gamma : float
+        Braking SBC gain (eqn.n4).
+    varsigma, rho_v, sigma : float
+        Velocity-barrier parameters (eqn.nn5, eqn.n5, eqn.n7).
+    gate_range : float or None
+        Gate distance of ``gated_distance`` (None: ``sensing_range``).
+    safety_margin : float or None
+        Added to every safety distance [m]; None: :func:`auto_margin` of ``dt``.
+    dt : float
+        Control step [s].
+    neural_iterations : int
+        Projected primal-dual updates per step of the ``neural`` solver.
+    eta_tol : float
+        A (normalised) multiplier above this marks a row active.
+    low_speed : float
+        Speed [m/s] below which the ``low_speed`` trigger considers a robot stopped.
+    goal_tol : float
+        Tracking error [m] above which a stopped robot counts as stuck.
+    stall_time : float
+        Dwell time [s] of the ``stalled`` trigger.
+    stall_distance : float
+        Displacement [m] over ``stall_time`` below which a robot is stalled.
+    heading_deg : float
+        Half-angle [deg] of the ``heading`` trigger's cone.
+    """
+
+    barrier: str = "aasoatt"
+    deadlock: str = "auxiliary_velocity"
+    trigger: str = "multiplier"
+    solver: str = "proxsuite"
+    k1: float = 2.0
+    k2: float = 2.0
+    k3: float = 1.0
+    k4: float = 4.0
+    zeta: float = 2.0
+    rotation_deg: float = -60.0
+    sensing_range: float = 3.0
+    gamma: float = 1.0
+    varsigma: float = 2.0
+    rho_v: float = 1.0
+    sigma: float = 0.0
+    gate_range: float | None = None
+    safety_margin: float | None = None
+    dt: float = 0.005
+    neural_iterations: int = 1
+    eta_tol: float = 1e-6
+    low_speed: float = 0.05
+    goal_tol: float = 0.1
+    stall_time: float = 0.5
+    stall_distance: float = 0.02
+    heading_deg: float = 30.0
+
+    def __post_init__(self) -> None:
+        from aasoatt_env.safety.qp import SOLVERS, get_solver
+
+        for name, registry in (("barrier", BARRIERS), ("deadlock", STRATEGIES), ("trigger", TRIGGERS)):
+            value = getattr(self, name)
+            if value not in registry:
+                raise ConfigError(f"{name}: got {value!r}, expected one of {sorted(registry)}")
+        if self.solver not in SOLVERS:
+            get_solver(self.solver)  # raises SolverError listing what is available
+        positive = ("k1", "k2", "k3", "k4", "sensing_range", "gamma", "varsigma", "rho_v", "dt",
+                    "eta_tol", "low_speed", "goal_tol", "stall_time", "stall_distance", "heading_deg")
+        for f in fields(self):
+            v = getattr(self, f.name)
+            if f.name in positive:
+                _check(f.name, v, lambda x: x > 0, "a finite positive number")
+        _check("zeta", self.zeta, lambda x: x >= 0, "a finite number >= 0")
+        _check("sigma", self.sigma, lambda x: True, "a finite number")
+        _check("rotation_deg", self.rotation_deg, lambda x: -180 <= x <= 180,
+               "an angle in [-180, 180] degrees")
+        if self.gate_range is not None:
+            _check("gate_range", self.gate_range, lambda x: x > 0, "a finite positive number or None")
+        if self.safety_margin is not None:
+            _check("safety_margin", self.safety_margin, lambda x: x >= 0, "a finite number >= 0 or None")
+        if not isinstance(self.neural_iterations, int) or self.neural_iterations < 1:
+            raise ConfigError(f"neural_iterations: got {self.neural_iterations!r}, expected an integer >= 1")
+        if self.deadlock != "none" and not self.k4 > self.zeta:
+            raise ConfigError(
+                f"k4 must exceed zeta (Theorem 2's convergence condition k4 > zeta): "
+                f"got k4={self.k4}, zeta={self.zeta}, expected k4 > {self.zeta}"
+            )
+
+    @property
+    def margin(self) -> float:
+        """Margin added to the safety distance [m]."""
+        return auto_margin(self.dt) if self.safety_margin is None else float(self.safety_margin)
+
+
+def _check(name: str, value: object, ok: Callable[[float], bool], expected: str) -> None:
+    try:
+        v = float(value)  # type: ignore[arg-type]
+        good = math.isfinite(v) and ok(v) and not isinstance(value, bool)
+    except (TypeError, ValueError):
+        good = False
+    if not good:
+        raise ConfigError(f"{name}: got {value!r}, expected {expected}")

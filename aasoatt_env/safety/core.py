@@ -1,0 +1,287 @@
+"""The safety filter: nominal wheel accelerations in, safe ones out.
+
+:class:`SafetyFilter` needs no environment: it takes the team's kinematics
+(:class:`aasoatt_env.dynamics.Kinematics`), wheel speeds, headings, the nominal
+``du`` and its bounds, builds one barrier row per pair inside the sensing range
+(:mod:`~aasoatt_env.safety.barriers`), applies the deadlock strategy
+(:mod:`~aasoatt_env.safety.deadlock`) and solves the QP
+(:mod:`~aasoatt_env.safety.qp`), warm-started from the previous step.
+
+Discrete-time safety: the barrier is continuous-time; the default
+``FilterConfig.safety_margin=None`` adds ``2 dt * 1 m/s`` to every ``d_s`` (see
+:mod:`aasoatt_env.safety.config`), which keeps ``|p_ij| >= d_s - 1e-3`` in the
+closed loop at ``dt = 0.005`` (tested on the circle swap).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from aasoatt_env.dynamics import Kinematics, input_bounds, kinematics
+from aasoatt_env.errors import ActionError, ConfigError
+from aasoatt_env.params import Team
+from aasoatt_env.safety.barriers import BarrierParams, PairGeometry, barrier_rows
+from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.deadlock import NEEDS_REFERENCE, DeadlockState, rotation, target_correction, trigger
+from aasoatt_env.safety.neighbors import obstacle_pairs, robot_pairs
+from aasoatt_env.safety.qp import build_problem, solve_qp
+
+__all__ = ["FilterResult", "SafetyFilter"]
+
+
+@dataclass(frozen=True)
+class FilterResult:
+    """What one :meth:`SafetyFilter.step` did.
+
+    Attributes
+    ----------
+    status : str
+        ``"solved"``, ``"relaxed"`` (rows loosened by ``slack``; bounds kept) or ``"failed"``.
+    message : str
+        Solver detail.
+    eta : numpy.ndarray
+        Multiplier of each row ``(n_rows,)`` in the units of eqn.8 (``>= 0``).
+    pairs : numpy.ndarray
+        Row pairs ``(n_rows, 2)``: ``(i, j)`` robots, or ``(i, -1 - k)`` for obstacle ``k``.
+    avoiding : numpy.ndarray
+        ``(N,)``: robot has a row with a positive multiplier (in collision avoidance).
+    triggered : numpy.ndarray
+        ``(N,)``: deadlock strategy active this step.
+    slack : float
+        Largest violation of a row by the returned ``du`` (eqn.8 units; 0 when solved).
+    correction : numpy.ndarray
+        ``|du_safe - du_nominal|`` per robot ``(N,)``.
+    intervened : numpy.ndarray
+        ``(N,)``: the filter changed the robot's nominal.
+    iterations : int
+        Solver iterations.
+    solve_time : float
+        Wall time of the whole step [s].
+    n_rows : int
+        Number of barrier rows.
+    """
+
+    status: str
+    message: str
+    eta: np.ndarray
+    pairs: np.ndarray
+    avoiding: np.ndarray
+    triggered: np.ndarray
+    slack: float
+    correction: np.ndarray
+    intervened: np.ndarray
+    iterations: int
+    solve_time: float
+    n_rows: int
+
+    @property
+    def obstacle_rows(self) -> np.ndarray:
+        """Boolean ``(n_rows,)``: row is a robot-obstacle row."""
+        return self.pairs[:, 1] < 0
+
+
+class SafetyFilter:
+    """CBF-QP safety filter for a team (see module docstring).
+
+    Parameters
+    ----------
+    team : aasoatt_env.params.Team
+        Robot parameters.
+    config : FilterConfig, optional
+        Configuration (defaults: :class:`FilterConfig`).
+    **overrides
+        Fields of :class:`FilterConfig` to override.
+    """
+
+    def __init__(self, team: Team, config: FilterConfig | None = None, **overrides: Any) -> None:
+        cfg = config if config is not None else FilterConfig()
+        if overrides:
+            try:
+                cfg = replace(cfg, **overrides)
+            except TypeError as exc:
+                raise ConfigError(f"SafetyFilter: {exc}") from None
+        self.team = team
+        self.config = cfg
+        self._bp = BarrierParams(
+            k1=cfg.k1, k2=cfg.k2, gamma=cfg.gamma, varsigma=cfg.varsigma, rho_v=cfg.rho_v,
+            sigma=cfg.sigma, sensing_range=cfg.sensing_range, gate_range=cfg.gate_range, dt=cfg.dt,
+        )
+        self._Q = rotation(cfg.rotation_deg)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the warm start and the deadlock memory."""
+        self._dl = DeadlockState()
+        self._x: np.ndarray | None = None
+        self._keys = np.empty(0, dtype=np.int64)
+        self._z = np.empty(0)
+
+    # ------------------------------------------------------------------ API
+    def from_state(
+        self,
+        pose: np.ndarray,
+        u: np.ndarray,
+        nominal_du: np.ndarray,
+        **kwargs: Any,
+    ) -> tuple[np.ndarray, FilterResult]:
+        """:meth:`step` from axle poses ``(N, 3)`` and wheel speeds; bounds from :func:`input_bounds`."""
+        kin = kinematics(self.team, pose, u)
+        lo, hi = input_bounds(self.team, u, self.config.dt)
+        return self.step(kin, u, pose[:, 2], nominal_du, lo, hi, **kwargs)
+
+    def step(
+        self,
+        kin: Kinematics,
+        u: np.ndarray,
+        theta: np.ndarray,
+        nominal_du: np.ndarray,
+        lo: np.ndarray,
+        hi: np.ndarray,
+        *,
+        reference: tuple[np.ndarray, np.ndarray] | None = None,
+        obstacles: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, FilterResult]:
+        """Safe wheel accelerations ``(N, 2)`` and a :class:`FilterResult`.
+
+        Parameters
+        ----------
+        kin : Kinematics
+            ``p, v, A, adot_u`` of the team.
+        u : numpy.ndarray
+            Wheel speeds ``(N, 2)``.
+        theta : numpy.ndarray
+            Headings ``(N,)``.
+        nominal_du : numpy.ndarray
+            Nominal wheel accelerations ``(N, 2)``; NaN/inf raise :class:`ActionError`.
+        lo, hi : numpy.ndarray
+            Bounds on ``du`` ``(N, 2)``, kept hard.
+        reference : tuple of numpy.ndarray, optional
+            ``(p_d, v_d)``, each ``(N, 2)``; needed by ``auxiliary_velocity`` and
+            ``rotate_reference_velocity``.
+        obstacles : tuple of numpy.ndarray, optional
+            ``(centers (M, 2), radii (M,))`` of static disc obstacles.
+        """
+        t0 = time.perf_counter()
+        cfg, team = self.config, self.team
+        n = team.n
+        nominal_du, lo, hi = self._check_inputs(kin, u, theta, nominal_du, lo, hi)
+        if cfg.deadlock in NEEDS_REFERENCE and reference is None:
+            raise ConfigError(f"deadlock strategy {cfg.deadlock!r} needs reference=(p_d, v_d); got None")
+        if reference is not None:
+            reference = (np.asarray(reference[0], float).reshape(n, 2), np.asarray(reference[1], float).reshape(n, 2))
+        p, v, A, adot = kin.p, kin.v, kin.A, kin.adot_u
+
+        # neighbours and pair geometry -------------------------------------------------
+        pr = robot_pairs(p, cfg.sensing_range)
+        ri, rj = pr[:, 0], pr[:, 1]
+        rad, amax, margin = team.radius, team.max_point_accel, cfg.margin
+        geo_p, geo_v, geo_a = p[ri] - p[rj], v[ri] - v[rj], adot[ri] - adot[rj]
+        ds, rsum, ap = rad[ri] + rad[rj], rad[ri] + rad[rj], amax[ri] + amax[rj]
+        pairs_out = pr
+        if obstacles is not None:
+            oc = np.asarray(obstacles[0], float).reshape(-1, 2)
+            orad = np.asarray(obstacles[1], float).reshape(-1)
+            po = obstacle_pairs(p, oc, orad, cfg.sensing_range)
+            oi, ok = po[:, 0], po[:, 1]
+            geo_p = np.concatenate((geo_p, p[oi] - oc[ok]))
+            geo_v = np.concatenate((geo_v, v[oi]))
+            geo_a = np.concatenate((geo_a, adot[oi]))
+            rs = rad[oi] + orad[ok]
+            ds, rsum, ap = np.concatenate((ds, rs)), np.concatenate((rsum, rs)), np.concatenate((ap, amax[oi]))
+            ri = np.concatenate((ri, oi))
+            rj = np.concatenate((rj, np.full(oi.shape[0], -1, dtype=np.intp)))
+            pairs_out = np.concatenate((pr, np.stack((oi, -1 - ok), axis=1)))
+
+        # deadlock trigger and strategy -----------------------------------------------
+        triggered = trigger(cfg.trigger, self._dl, p=p, v=v, theta=theta, reference=reference,
+                            pair_idx=np.stack((ri, rj), axis=1), pair_vec=-geo_p, cfg=cfg)
+        if cfg.deadlock == "none":
+            triggered = np.zeros(n, dtype=bool)
+        zeta = np.where(triggered, cfg.zeta, 0.0)
+        if cfg.deadlock == "rotate_relative_position" and np.any(triggered):
+            rot = triggered[ri] | ((rj >= 0) & triggered[np.maximum(rj, 0)])
+            geo_p = np.where(rot[:, None], geo_p @ (np.eye(2) - self._Q).T, geo_p)
+        target = np.einsum("nij,nj->ni", A, nominal_du)
+        target = target_correction(cfg.deadlock, target, zeta, self._Q, v=v, reference=reference,
+                                   p=p, k3=cfg.k3, k4=cfg.k4)
+
+        # rows --------------------------------------------------------------------------
+        g = PairGeometry(ri, rj, geo_p, geo_v, geo_a, ds + margin, rsum, ap)
+        c, rhs, keep = barrier_rows(cfg.barrier, g, self._bp)
+        ri, rj, pairs_out = ri[keep], rj[keep], pairs_out[keep]
+        Gi = np.einsum("pki,pk->pi", A[ri], c)
+        Gj = -np.einsum("pki,pk->pi", A[np.maximum(rj, 0)], c)
+
+        # QP ----------------------------------------------------------------------------
+        scale = np.maximum(team.max_wheel_accel, np.max(np.maximum(np.abs(lo), np.abs(hi)), axis=1))
+        scale = np.where(scale > 0, scale, 1.0)
+        prob = build_problem(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs)
+        m_obs = n + (0 if obstacles is None else int(np.asarray(obstacles[1]).size))
+        keys = ri.astype(np.int64) * (m_obs + 1) + np.where(rj >= 0, rj, n - 1 - pairs_out[:, 1])
+        z0 = self._map_warm(keys)
+        opts: dict[str, float] = {"iterations": cfg.neural_iterations} if cfg.solver == "neural" else {}
+        sol = solve_qp(prob, cfg.solver, self._x, z0, **opts)
+        x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
+        du = np.clip((x * prob.scale).reshape(n, 2), lo, hi)
+        z = np.where(np.isfinite(sol.z), sol.z, 0.0) if sol.z is not None else np.zeros(prob.m)
+        self._x, self._keys, self._z = x, keys, z
+        eta = prob.obj_scale * z / prob.row_norm
+        active = z > cfg.eta_tol
+        avoiding = np.zeros(n, dtype=bool)
+        avoiding[ri[active]] = True
+        avoiding[rj[active & (rj >= 0)]] = True
+        self._dl.avoiding = avoiding
+        viol = np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)]), 0.0) - rhs
+        slack = float(max(0.0, np.max(viol, initial=0.0))) if sol.status != "solved" or cfg.solver == "neural" else 0.0
+        correction = np.linalg.norm(du - nominal_du, axis=1)
+        result = FilterResult(
+            status=sol.status, message=sol.message, eta=eta, pairs=pairs_out, avoiding=avoiding,
+            triggered=triggered, slack=slack, correction=correction,
+            intervened=correction > 1e-9 * scale, iterations=sol.iterations,
+            solve_time=time.perf_counter() - t0, n_rows=int(prob.m),
+        )
+        return du, result
+
+    # ------------------------------------------------------------------ helpers
+    def _map_warm(self, keys: np.ndarray) -> np.ndarray | None:
+        if self._x is None:
+            return None
+        z0 = np.zeros(keys.shape[0])
+        if self._keys.shape[0] and keys.shape[0]:
+            order = np.argsort(self._keys, kind="stable")
+            sk = self._keys[order]
+            pos = np.clip(np.searchsorted(sk, keys), 0, sk.shape[0] - 1)
+            hit = sk[pos] == keys
+            z0[hit] = self._z[order[pos[hit]]]
+        return z0
+
+    def _check_inputs(
+        self, kin: Kinematics, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
+        lo: np.ndarray, hi: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n = self.team.n
+        nominal_du = np.asarray(nominal_du, dtype=np.float64)
+        if nominal_du.shape != (n, 2):
+            raise ActionError(f"nominal_du: got shape {nominal_du.shape}, expected ({n}, 2)")
+        bad = ~np.all(np.isfinite(nominal_du), axis=1)
+        if np.any(bad):
+            idx = np.flatnonzero(bad)
+            raise ActionError(f"nominal_du: non-finite value for robot(s) {idx.tolist()} (robot index {idx[0]})")
+        for name, arr, shape in (("kin.p", kin.p, (n, 2)), ("kin.v", kin.v, (n, 2)), ("kin.A", kin.A, (n, 2, 2)),
+                                 ("kin.adot_u", kin.adot_u, (n, 2)), ("u", u, (n, 2)), ("theta", theta, (n,))):
+            a = np.asarray(arr)
+            if a.shape != shape:
+                raise ActionError(f"{name}: got shape {a.shape}, expected {shape}")
+            if not np.all(np.isfinite(a)):
+                raise ActionError(f"{name}: non-finite value for robot index {int(np.flatnonzero(~np.isfinite(a).reshape(n, -1).all(axis=1))[0])}")
+        lo = np.asarray(lo, dtype=np.float64)
+        hi = np.asarray(hi, dtype=np.float64)
+        if lo.shape != (n, 2) or hi.shape != (n, 2):
+            raise ActionError(f"lo/hi: got shapes {lo.shape}/{hi.shape}, expected ({n}, 2)")
+        if np.any(lo > hi) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+            raise ActionError("lo/hi: bounds must be finite with lo <= hi")
+        return nominal_du, lo, hi

@@ -1,0 +1,438 @@
+"""The safety QP and its solver registry.
+
+Problem (eqn.finalAA-SOATT), in wheel accelerations ``du``::
+
+    min  sum_i |A_i du_i - target_i|^2   s.t.  lo <= du <= hi,   G du <= rhs
+
+It is solved in scaled coordinates ``x = du / s`` (``s`` the per-robot
+acceleration bound, so the box is inside ``[-1, 1]``), with the objective divided
+by its largest Hessian entry and every row normalised to unit norm.  The Hessian
+is the constant 2x2 block diagonal ``A_i^T A_i = (rho/2)^2 [[1+k^2, 1-k^2],
+[1-k^2, 1+k^2]]`` (heading independent), diagonal when ``l = b``; the proxsuite
+back-end uses ``HessianType.Diagonal`` then.  :class:`QPProblem` holds that
+canonical form ``min 0.5 x'Hx + g'x  s.t. lb <= x <= ub, C x <= u``.
+
+Solvers (:data:`SOLVERS`, by name):
+
+``proxsuite`` (default)
+    Dense ``PrimalDualLDLT`` with native box constraints up to
+    :data:`DENSE_MAX_VARS` variables, sparse ``SparseCholesky`` (box as rows)
+    above.  Settings from SPEC section 4: tight ``eps_primal_inf`` /
+    ``eps_dual_inf``, ``check_duality_gap`` with a tight gap.
+``neural``
+    The paper's projection neural network (eqn.22), explicit Euler with
+    ``eps = dt``: ``iterations`` projected primal-dual updates per call,
+    warm-started; never fails, only approximates the optimum.
+``quadprog``, ``clarabel``, ``osqp``, ``daqp``
+    Optional, used when installed.
+
+Infeasibility verdicts are never trusted: :func:`solve_qp` confirms them with a
+phase-1 problem ``min t^2 s.t. box, C x - t <= u`` (always feasible; bounds
+stay hard).  If the least uniform violation ``t*`` is ~0 the problem is
+re-solved with rows loosened by a hair (status ``"solved"``), otherwise by
+``t*`` (status ``"relaxed"``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+import scipy.sparse as sp
+
+from aasoatt_env.errors import SolverError
+
+__all__ = [
+    "DENSE_MAX_VARS",
+    "QPProblem",
+    "QPSolution",
+    "SOLVERS",
+    "available_solvers",
+    "build_problem",
+    "solve_qp",
+]
+
+DENSE_MAX_VARS: int = 300
+"""Largest number of variables solved with proxsuite's dense class."""
+
+_INF = 1e20
+_FEAS_TOL = 1e-7
+
+
+@dataclass
+class QPProblem:
+    """Canonical scaled QP ``min 0.5 x'Hx + g'x  s.t. lb <= x <= ub, C x <= u``."""
+
+    H_blocks: np.ndarray
+    """Hessian blocks ``(N, 2, 2)`` (block diagonal)."""
+    g: np.ndarray
+    """Linear term ``(n,)``."""
+    C: sp.csr_matrix
+    """Rows ``(m, n)``, unit norm."""
+    u: np.ndarray
+    """Row bounds ``(m,)``."""
+    lb: np.ndarray
+    """Lower bounds ``(n,)``."""
+    ub: np.ndarray
+    """Upper bounds ``(n,)``."""
+    scale: np.ndarray
+    """``du = scale * x``, ``(n,)``."""
+    obj_scale: float
+    """Objective divisor ``sigma``."""
+    row_norm: np.ndarray
+    """Row divisors ``nu`` (``eta_du = sigma * z / nu``), ``(m,)``."""
+    diagonal: bool
+    """True where every block of ``H`` is diagonal."""
+
+    @property
+    def n(self) -> int:
+        """Number of variables."""
+        return int(self.g.shape[0])
+
+    @property
+    def m(self) -> int:
+        """Number of rows."""
+        return int(self.u.shape[0])
+
+    def H_dense(self) -> np.ndarray:
+        """Dense Hessian ``(n, n)``."""
+        return np.asarray(self.H_sparse().todense())
+
+    def H_sparse(self) -> sp.csc_matrix:
+        """Sparse block-diagonal Hessian."""
+        return sp.block_diag(list(self.H_blocks), format="csc") if self.n else sp.csc_matrix((0, 0))
+
+    def objective(self, x: np.ndarray) -> float:
+        """Scaled objective ``0.5 x'Hx + g'x`` of ``x``."""
+        xb = x.reshape(-1, 2)
+        return float(0.5 * np.einsum("ni,nij,nj->", xb, self.H_blocks, xb) + self.g @ x)
+
+
+@dataclass
+class QPSolution:
+    """Outcome of :func:`solve_qp` in scaled coordinates."""
+
+    x: np.ndarray
+    z: np.ndarray
+    status: str
+    slack: float
+    iterations: int
+    message: str
+    solve_time: float
+
+
+@dataclass
+class _Raw:
+    x: np.ndarray | None
+    z: np.ndarray | None
+    ok: bool
+    iterations: int
+    message: str
+
+
+def build_problem(
+    A: np.ndarray,
+    target: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    scale: np.ndarray,
+    ri: np.ndarray,
+    rj: np.ndarray,
+    Gi: np.ndarray,
+    Gj: np.ndarray,
+    rhs: np.ndarray,
+) -> QPProblem:
+    """Assemble the scaled canonical problem.
+
+    Parameters
+    ----------
+    A : numpy.ndarray
+        Input matrices ``(N, 2, 2)``.
+    target : numpy.ndarray
+        Desired control-point accelerations ``(N, 2)``.
+    lo, hi : numpy.ndarray
+        Bounds on ``du``, ``(N, 2)``.
+    scale : numpy.ndarray
+        Positive per-robot scale of ``du`` ``(N,)``.
+    ri, rj : numpy.ndarray
+        Robots of each row ``(m,)``; ``rj = -1`` for obstacle rows.
+    Gi, Gj : numpy.ndarray
+        Row coefficients on ``du_i`` and ``du_j`` ``(m, 2)`` (``Gj`` ignored where ``rj < 0``).
+    rhs : numpy.ndarray
+        Row right-hand sides ``(m,)``.
+    """
+    n_rob = A.shape[0]
+    s = scale[:, None]
+    AtA = np.einsum("nki,nkj->nij", A, A)
+    H = 2.0 * AtA * (s[:, :, None] * s[:, None, :])
+    sigma = float(np.max(np.abs(H))) if n_rob else 1.0
+    H = H / sigma
+    g = (-2.0 * np.einsum("nki,nk->ni", A, target) * s / sigma).ravel()
+    m = rhs.shape[0]
+    Gi_s = Gi * s[ri]
+    obs = rj < 0
+    rjc = np.where(obs, 0, rj)
+    Gj_s = np.where(obs[:, None], 0.0, Gj * s[rjc])
+    nu = np.sqrt(np.sum(Gi_s**2, axis=1) + np.sum(Gj_s**2, axis=1))
+    nu = np.where(nu > 1e-12, nu, 1.0)
+    Gi_s /= nu[:, None]
+    Gj_s /= nu[:, None]
+    cols = np.stack((2 * ri, 2 * ri + 1, 2 * rjc, 2 * rjc + 1), axis=1)
+    data = np.concatenate((Gi_s, Gj_s), axis=1)
+    rows = np.repeat(np.arange(m), 4)
+    C = sp.csr_matrix((data.ravel(), (rows, cols.ravel())), shape=(m, 2 * n_rob))
+    diag = bool(np.all(np.abs(H[:, 0, 1]) <= 1e-12 * np.maximum(np.abs(H[:, 0, 0]), 1e-300)))
+    return QPProblem(
+        H_blocks=H,
+        g=g,
+        C=C,
+        u=rhs / nu,
+        lb=(lo / s).ravel(),
+        ub=(hi / s).ravel(),
+        scale=np.repeat(scale, 2),
+        obj_scale=sigma,
+        row_norm=nu,
+        diagonal=diag,
+    )
+
+
+# ---------------------------------------------------------------- back-ends
+def _prox_settings(settings: object, eps: float) -> None:
+    settings.eps_abs = eps
+    settings.eps_rel = 0.0
+    settings.eps_primal_inf = 1e-14
+    settings.eps_dual_inf = 1e-14
+    settings.check_duality_gap = True
+    settings.eps_duality_gap_abs = eps
+    settings.eps_duality_gap_rel = 0.0
+    settings.max_iter = 1_000
+    settings.verbose = False
+
+
+def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import proxsuite
+
+    px = proxsuite.proxqp
+    eps = float(opts.get("eps", 1e-9))
+    n, m = prob.n, prob.m
+    dense = opts.get("dense")
+    if dense is None:
+        dense = n <= DENSE_MAX_VARS
+    if dense:
+        d = px.dense
+        htype = d.HessianType.Diagonal if prob.diagonal else d.HessianType.Dense
+        qp = d.QP(n, 0, m, True, htype, d.DenseBackend.PrimalDualLDLT)
+        _prox_settings(qp.settings, eps)
+        Cd = prob.C.toarray() if m else np.zeros((0, n))
+        qp.init(prob.H_dense(), prob.g, None, None, Cd, np.full(m, -_INF), prob.u, prob.lb, prob.ub)
+    else:
+        qp = px.sparse.QP(n, 0, m + n)
+        _prox_settings(qp.settings, eps)
+        qp.settings.sparse_backend = px.SparseBackend.SparseCholesky
+        C = sp.vstack((prob.C, sp.identity(n, format="csr")), format="csc")
+        qp.init(
+            prob.H_sparse(), prob.g, None, None, C,
+            np.concatenate((np.full(m, -_INF), prob.lb)), np.concatenate((prob.u, prob.ub)),
+        )
+    # Warm start is not used: with box constraints proxsuite 0.8 returned NaN
+    # iterates from a warm start on circle-swap instances (and SPEC section 4
+    # measured 0-30 % gain at best); the cold solve takes a handful of iterations.
+    qp.solve()
+    r = qp.results
+    st = r.info.status
+    ok = st == px.PROXQP_SOLVED
+    x = np.array(r.x)
+    if ok and not np.all(np.isfinite(x)):
+        ok = False
+    return _Raw(x, np.array(r.z)[:m], ok, int(r.info.iter), str(st).rsplit(".", 1)[-1])
+
+
+def _neural(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    iters = int(opts.get("iterations", 1))
+    step = float(opts.get("step", 1.0))
+    x = np.zeros(prob.n) if x0 is None else np.clip(x0, prob.lb, prob.ub)
+    z = np.zeros(prob.m) if z0 is None else np.maximum(z0, 0.0)
+    Hb = prob.H_blocks
+    C, CT = prob.C, prob.C.T.tocsr()
+    for _ in range(iters):
+        grad = np.einsum("nij,nj->ni", Hb, x.reshape(-1, 2)).ravel() + prob.g + CT @ z
+        x = np.clip(x - step * grad, prob.lb, prob.ub)
+        z = np.maximum(0.0, z + step * (C @ x - prob.u))
+    return _Raw(x, z, True, iters, f"neural ({iters} iterations)")
+
+
+def _quadprog(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import quadprog
+
+    n, m = prob.n, prob.m
+    Ct = np.vstack((-prob.C.toarray(), np.eye(n), -np.eye(n))).T if n else np.zeros((0, 0))
+    b = np.concatenate((-prob.u, prob.lb, -prob.ub))
+    try:
+        x, _, _, it, lagr, _ = quadprog.solve_qp(prob.H_dense(), -prob.g, Ct, b, 0)
+    except ValueError as exc:
+        return _Raw(None, None, False, 0, str(exc))
+    return _Raw(np.asarray(x), np.asarray(lagr)[:m], True, int(it[0]), "solved")
+
+
+def _clarabel(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import clarabel
+
+    n, m = prob.n, prob.m
+    Aq = sp.vstack((prob.C, sp.identity(n), -sp.identity(n)), format="csc")
+    b = np.concatenate((prob.u, prob.ub, -prob.lb))
+    s = clarabel.DefaultSettings()
+    s.verbose = False
+    s.tol_gap_abs = s.tol_gap_rel = s.tol_feas = 1e-10
+    solver = clarabel.DefaultSolver(sp.triu(prob.H_sparse(), format="csc"), prob.g, Aq, b,
+                                    [clarabel.NonnegativeConeT(m + 2 * n)], s)
+    sol = solver.solve()
+    ok = str(sol.status) in ("Solved", "AlmostSolved")
+    return _Raw(np.asarray(sol.x), np.asarray(sol.z)[:m], ok, int(sol.iterations), str(sol.status))
+
+
+def _osqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import osqp
+
+    n, m = prob.n, prob.m
+    Aq = sp.vstack((prob.C, sp.identity(n)), format="csc")
+    l = np.concatenate((np.full(m, -np.inf), prob.lb))
+    u = np.concatenate((prob.u, prob.ub))
+    solver = osqp.OSQP()
+    eps = float(opts.get("eps", 1e-7))
+    solver.setup(sp.triu(prob.H_sparse(), format="csc"), prob.g, Aq, l, u, verbose=False,
+                 eps_abs=eps, eps_rel=eps, polishing=True, max_iter=20000)
+    if x0 is not None:
+        solver.warm_start(x=np.clip(x0, prob.lb, prob.ub))
+    res = solver.solve()
+    status = str(res.info.status)
+    ok = status.lower().startswith("solved") and res.x is not None and np.all(np.isfinite(res.x))
+    return _Raw(np.asarray(res.x), np.asarray(res.y)[:m] if res.y is not None else None,
+                ok, int(res.info.iter), status)
+
+
+def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import ctypes
+
+    import daqp
+
+    n, m = prob.n, prob.m
+    A = np.vstack((np.eye(n), prob.C.toarray()))
+    bu = np.concatenate((prob.ub, prob.u))
+    bl = np.concatenate((prob.lb, np.full(m, -1e30)))
+    sense = np.zeros(n + m, dtype=ctypes.c_int)
+    x, _, exitflag, info = daqp.solve(prob.H_dense(), prob.g, A, bu, bl, sense)
+    ok = exitflag >= 1
+    lam = np.asarray(info.get("lam", np.zeros(n + m)))[n:]
+    return _Raw(np.asarray(x), np.maximum(lam, 0.0), ok, int(info.get("iter", 0)), f"exitflag {exitflag}")
+
+
+Backend = Callable[[QPProblem, "np.ndarray | None", "np.ndarray | None", dict], _Raw]
+
+SOLVERS: dict[str, tuple[Backend, str]] = {
+    "proxsuite": (_proxsuite, "proxsuite"),
+    "neural": (_neural, ""),
+    "quadprog": (_quadprog, "quadprog"),
+    "clarabel": (_clarabel, "clarabel"),
+    "osqp": (_osqp, "osqp"),
+    "daqp": (_daqp, "daqp"),
+}
+"""Solver registry: name -> (back-end, module it needs)."""
+
+
+def available_solvers() -> list[str]:
+    """Names of the registered solvers whose module is importable."""
+    return [k for k, (_, mod) in SOLVERS.items() if not mod or importlib.util.find_spec(mod) is not None]
+
+
+def get_solver(name: str) -> Backend:
+    """Back-end ``name``, or :class:`SolverError` listing the available ones."""
+    if name not in SOLVERS:
+        raise SolverError(f"solver: got {name!r}, expected one of {available_solvers()}")
+    fn, mod = SOLVERS[name]
+    if mod and importlib.util.find_spec(mod) is None:
+        raise SolverError(f"solver {name!r} is not installed (pip install {mod}); available: {available_solvers()}")
+    return fn
+
+
+def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, float] | None:
+    """Least uniform row violation ``t*`` (bounds hard); None if even this fails."""
+    n, m = prob.n, prob.m
+    reg = 1e-8
+    Hb = np.concatenate((prob.H_blocks * reg, np.zeros((1, 2, 2))))
+    Hb[-1] = np.diag([1.0, 1.0])
+    C = sp.hstack((prob.C, -np.ones((m, 1)), sp.csr_matrix((m, 1))), format="csr")
+    big = 1e6
+    p1 = QPProblem(
+        H_blocks=Hb, g=np.zeros(n + 2), C=C, u=prob.u,
+        lb=np.concatenate((prob.lb, [0.0, 0.0])), ub=np.concatenate((prob.ub, [big, 0.0])),
+        scale=np.ones(n + 2), obj_scale=1.0, row_norm=np.ones(m), diagonal=prob.diagonal,
+    )
+    raw = backend(p1, None, None, opts)
+    if not raw.ok or raw.x is None:
+        if backend is not _clarabel and importlib.util.find_spec("clarabel") is not None:
+            raw = _clarabel(p1, None, None, opts)
+        if not raw.ok or raw.x is None:
+            return None
+    x = np.clip(raw.x[:n], prob.lb, prob.ub)
+    viol = float(np.max(prob.C @ x - prob.u, initial=0.0))
+    return x, max(viol, 0.0)
+
+
+def solve_qp(
+    prob: QPProblem,
+    solver: str = "proxsuite",
+    x0: np.ndarray | None = None,
+    z0: np.ndarray | None = None,
+    **opts: float,
+) -> QPSolution:
+    """Solve ``prob``; never raises on numerical trouble, never returns NaN.
+
+    Returns status ``"solved"``, ``"relaxed"`` (rows loosened by ``slack``,
+    in normalised row units) or ``"failed"`` (``x`` is then the clipped unconstrained optimum).
+    """
+    backend = get_solver(solver)
+    t0 = time.perf_counter()
+    if prob.m == 0 and prob.diagonal and solver != "neural":
+        x = np.clip(_unconstrained(prob), prob.lb, prob.ub)
+        return QPSolution(x, np.zeros(0), "solved", 0.0, 0, "no rows", time.perf_counter() - t0)
+    if solver == "neural":
+        raw = backend(prob, x0, z0, opts)
+        return QPSolution(raw.x, raw.z, "solved", 0.0, raw.iterations, raw.message, time.perf_counter() - t0)
+    raw = backend(prob, x0, z0, opts)
+    if raw.ok:
+        return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message,
+                          time.perf_counter() - t0)
+    first = raw.message
+    p1 = _phase1(prob, backend, opts)
+    if p1 is None:
+        x = np.clip(_unconstrained(prob), prob.lb, prob.ub)
+        return QPSolution(x, np.zeros(prob.m), "failed", 0.0, raw.iterations,
+                          f"{solver}: {first}; phase-1 failed too", time.perf_counter() - t0)
+    x1, tstar = p1
+    relaxed = tstar > _FEAS_TOL
+    loosen = tstar * (1.0 + 1e-6) + _FEAS_TOL
+    p2 = QPProblem(prob.H_blocks, prob.g, prob.C, prob.u + loosen, prob.lb, prob.ub, prob.scale,
+                   prob.obj_scale, prob.row_norm, prob.diagonal)
+    raw2 = backend(p2, x1, None, opts)
+    status = "relaxed" if relaxed else "solved"
+    msg = f"{solver}: {first}; phase-1 violation {tstar:.3g}"
+    if raw2.ok:
+        return QPSolution(raw2.x, _nonneg(raw2.z, prob.m), status, tstar if relaxed else 0.0,
+                          raw.iterations + raw2.iterations, msg, time.perf_counter() - t0)
+    return QPSolution(x1, np.zeros(prob.m), "relaxed", tstar, raw.iterations + raw2.iterations,
+                      msg + "; phase-2 failed, returning the phase-1 point", time.perf_counter() - t0)
+
+
+def _nonneg(z: np.ndarray | None, m: int) -> np.ndarray:
+    if z is None or z.shape[0] != m or not np.all(np.isfinite(z)):
+        return np.zeros(m)
+    return np.maximum(z, 0.0)
+
+
+def _unconstrained(prob: QPProblem) -> np.ndarray:
+    gb = prob.g.reshape(-1, 2)
+    return -np.linalg.solve(prob.H_blocks, gb[..., None])[..., 0].ravel()
+
