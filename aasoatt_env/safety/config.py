@@ -110,14 +110,13 @@ class FilterConfig:
     heading_deg: float = 30.0
 
     def __post_init__(self) -> None:
-        from aasoatt_env.safety.qp import SOLVERS, get_solver
+        from aasoatt_env.safety.qp import get_solver
 
         for name, registry in (("barrier", BARRIERS), ("deadlock", STRATEGIES), ("trigger", TRIGGERS)):
             value = getattr(self, name)
             if value not in registry:
                 raise ConfigError(f"{name}: got {value!r}, expected one of {sorted(registry)}")
-        if self.solver not in SOLVERS:
-            get_solver(self.solver)  # raises SolverError listing what is available
+        get_solver(self.solver)  # raises SolverError listing what is available
         positive = ("k1", "k2", "k3", "k4", "sensing_range", "gamma", "varsigma", "rho_v", "dt",
                     "eta_tol", "low_speed", "goal_tol", "stall_time", "stall_distance", "heading_deg")
         for f in fields(self):

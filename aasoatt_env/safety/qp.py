@@ -35,6 +35,7 @@ re-solved with rows loosened by a hair (status ``"solved"``), otherwise by
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 import time
 from dataclasses import dataclass
@@ -342,9 +343,14 @@ SOLVERS: dict[str, tuple[Backend, str]] = {
 """Solver registry: name -> (back-end, module it needs)."""
 
 
+@functools.lru_cache(maxsize=None)
+def _installed(module: str) -> bool:
+    return not module or importlib.util.find_spec(module) is not None
+
+
 def available_solvers() -> list[str]:
     """Names of the registered solvers whose module is importable."""
-    return [k for k, (_, mod) in SOLVERS.items() if not mod or importlib.util.find_spec(mod) is not None]
+    return [k for k, (_, mod) in SOLVERS.items() if _installed(mod)]
 
 
 def get_solver(name: str) -> Backend:
@@ -352,7 +358,7 @@ def get_solver(name: str) -> Backend:
     if name not in SOLVERS:
         raise SolverError(f"solver: got {name!r}, expected one of {available_solvers()}")
     fn, mod = SOLVERS[name]
-    if mod and importlib.util.find_spec(mod) is None:
+    if not _installed(mod):
         raise SolverError(f"solver {name!r} is not installed (pip install {mod}); available: {available_solvers()}")
     return fn
 
@@ -372,7 +378,7 @@ def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, 
     )
     raw = backend(p1, None, None, opts)
     if not raw.ok or raw.x is None:
-        if backend is not _clarabel and importlib.util.find_spec("clarabel") is not None:
+        if backend is not _clarabel and _installed("clarabel"):
             raw = _clarabel(p1, None, None, opts)
         if not raw.ok or raw.x is None:
             return None

@@ -1,0 +1,100 @@
+"""Closed-loop circle swap with the safety filter, plus a cross-check of the QP solver."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import aasoatt_env.safety.core as core
+from aasoatt_env.dynamics import jacobian
+from aasoatt_env.params import make_team
+from aasoatt_env.safety import SafetyFilter, build_problem, solve_qp
+from aasoatt_env.safety.scenario import CircleSwap, rollout
+
+D_S = 0.96
+
+
+def _full_objective(prob, x):
+    """Objective shifted so the unconstrained optimum is 0 (>= 0, scale-free comparison)."""
+    gb = prob.g.reshape(-1, 2)
+    c = 0.5 * np.einsum("ni,ni->", gb, np.linalg.solve(prob.H_blocks, gb[..., None])[..., 0])
+    return prob.objective(x) + c
+
+
+@pytest.fixture(scope="module")
+def swap10(request):
+    recorded = []
+    real = core.solve_qp
+
+    def spy(prob, *a, **k):
+        sol = real(prob, *a, **k)
+        if prob.m > 0 and len(recorded) < 400:
+            recorded.append(prob)
+        return sol
+
+    core.solve_qp = spy
+    try:
+        scen = CircleSwap(10, radius=6.0, duration=12.0)
+        out = rollout(scen, SafetyFilter(scen.team), 15.0)
+    finally:
+        core.solve_qp = real
+    return out, recorded
+
+
+@pytest.mark.slow
+def test_circle_swap_safe_and_converges(swap10):
+    out, _ = swap10
+    assert out.min_distance >= D_S - 1e-3
+    assert out.statuses.get("failed", 0) == 0
+    assert np.all(out.final_error < 0.05), out.final_error
+
+
+@pytest.mark.slow
+def test_without_deadlock_resolution_robots_get_stuck():
+    scen = CircleSwap(10)
+    out = rollout(scen, SafetyFilter(scen.team, deadlock="none"), 15.0)
+    assert out.min_distance >= D_S - 1e-3
+    assert np.max(out.final_error) > 0.5
+
+
+def _random_problems(rng, count):
+    probs = []
+    team = make_team("paper", 8)
+    for _ in range(count):
+        n = int(rng.integers(2, 9))
+        A = jacobian(team, rng.uniform(-np.pi, np.pi, 8))[:n]
+        target = rng.normal(0, 3, (n, 2))
+        lo, hi = -np.full((n, 2), 60.0), np.full((n, 2), 60.0)
+        m = int(rng.integers(1, 3 * n))
+        ri = rng.integers(0, n, m)
+        rj = (ri + rng.integers(1, n, m)) % n
+        rj = np.where(rng.random(m) < 0.2, -1, rj)
+        c = rng.normal(0, 1, (m, 2))
+        Gi = np.einsum("pki,pk->pi", A[ri], c)
+        Gj = -np.einsum("pki,pk->pi", A[np.maximum(rj, 0)], c)
+        rhs = rng.normal(0, 2, m)
+        probs.append(build_problem(A, target, lo, hi, np.full(n, 60.0), ri, rj, Gi, Gj, rhs))
+    return probs
+
+
+@pytest.mark.parametrize("other", ["quadprog", "clarabel"])
+def test_cross_check_against_independent_solver(swap10, other):
+    _, recorded = swap10
+    rng = np.random.default_rng(0)
+    step = max(1, len(recorded) // 80)
+    probs = recorded[::step][:80] + _random_problems(rng, 60)
+    assert len(probs) >= 100
+    compared = 0
+    for prob in probs:
+        ours = solve_qp(prob, "proxsuite")
+        ref = solve_qp(prob, other)
+        assert ours.status != "failed"
+        assert np.all(np.isfinite(ours.x))
+        assert np.all(ours.x >= prob.lb - 1e-9) and np.all(ours.x <= prob.ub + 1e-9)
+        if ref.status == "solved":
+            # the independent solver solves it: we must not call it infeasible
+            assert ours.status == "solved", ours.message
+            f1, f2 = _full_objective(prob, ours.x), _full_objective(prob, ref.x)
+            assert abs(f1 - f2) <= 1e-6 * max(1.0, abs(f2)), (f1, f2)
+            compared += 1
+    assert compared >= 90

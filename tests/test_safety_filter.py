@@ -1,0 +1,222 @@
+"""Unit tests of the safety filter: inputs, relaxation, registries, triggers, neighbours."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aasoatt_env.dynamics import input_bounds, kinematics, pose_from_point
+from aasoatt_env.errors import ActionError, ConfigError, SolverError
+from aasoatt_env.params import make_team
+from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, FilterConfig, SafetyFilter, robot_pairs
+from aasoatt_env.safety.scenario import CircleSwap, rollout, tracking_nominal
+
+
+def _state(n=4, spacing=1.2, seed=0, speed=0.5):
+    rng = np.random.default_rng(seed)
+    team = make_team("paper", n)
+    p = np.stack((np.arange(n) * spacing, np.zeros(n)), axis=1)
+    theta = rng.uniform(-np.pi, np.pi, n)
+    pose = pose_from_point(team, p, theta)
+    u = rng.normal(0, speed, (n, 2))
+    return team, pose, u
+
+
+def _inputs(team, pose, u, dt=0.005):
+    kin = kinematics(team, pose, u)
+    lo, hi = input_bounds(team, u, dt)
+    return kin, lo, hi
+
+
+def test_nan_nominal_names_robot():
+    team, pose, u = _state()
+    kin, lo, hi = _inputs(team, pose, u)
+    nom = np.zeros((4, 2))
+    nom[2, 1] = np.nan
+    with pytest.raises(ActionError, match="robot index 2"):
+        SafetyFilter(team, deadlock="none").step(kin, u, pose[:, 2], nom, lo, hi)
+
+
+def test_bad_shape_nominal():
+    team, pose, u = _state()
+    kin, lo, hi = _inputs(team, pose, u)
+    with pytest.raises(ActionError, match=r"expected \(4, 2\)"):
+        SafetyFilter(team, deadlock="none").step(kin, u, pose[:, 2], np.zeros((3, 2)), lo, hi)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "exc", "match"),
+    [
+        ({"barrier": "nope"}, ConfigError, "aasoatt"),
+        ({"deadlock": "nope"}, ConfigError, "auxiliary_velocity"),
+        ({"trigger": "nope"}, ConfigError, "multiplier"),
+        ({"solver": "nope"}, SolverError, "proxsuite"),
+        ({"k4": 2.0, "zeta": 2.0}, ConfigError, "Theorem 2"),
+        ({"k1": -1.0}, ConfigError, r"k1: got -1.0, expected"),
+        ({"zeta": -0.5}, ConfigError, r"zeta: got -0.5"),
+        ({"rotation_deg": 270}, ConfigError, "rotation_deg"),
+        ({"safety_margin": -0.1}, ConfigError, "safety_margin"),
+        ({"nonexistent": 1}, ConfigError, "nonexistent"),
+    ],
+)
+def test_config_errors(kwargs, exc, match):
+    team = make_team("paper", 2)
+    with pytest.raises(exc, match=match):
+        SafetyFilter(team, **kwargs)
+
+
+def test_uninstalled_solver_lists_available(monkeypatch):
+    import aasoatt_env.safety.qp as qp
+
+    monkeypatch.setitem(qp.SOLVERS, "ghost", (qp._osqp, "ghost_module_xyz"))
+    with pytest.raises(SolverError, match="not installed.*available"):
+        FilterConfig(solver="ghost")
+
+
+def test_missing_reference_is_explained():
+    team, pose, u = _state()
+    kin, lo, hi = _inputs(team, pose, u)
+    with pytest.raises(ConfigError, match="needs reference"):
+        SafetyFilter(team).step(kin, u, pose[:, 2], np.zeros((4, 2)), lo, hi)
+
+
+def test_packed_team_with_tiny_bounds_is_relaxed():
+    n = 6
+    team = make_team("paper", n)
+    ang = 2 * np.pi * np.arange(n) / n
+    p = 0.6 * np.stack((np.cos(ang), np.sin(ang)), axis=1)  # neighbours 0.6 apart < d_s
+    theta = ang + np.pi
+    pose = pose_from_point(team, p, theta)
+    u = np.full((n, 2), 8.0)  # all driving towards the centre
+    kin = kinematics(team, pose, u)
+    lo, hi = -np.full((n, 2), 0.1), np.full((n, 2), 0.1)
+    f = SafetyFilter(team, deadlock="none")
+    du, res = f.step(kin, u, theta, np.zeros((n, 2)), lo, hi)
+    assert res.status == "relaxed"
+    assert res.slack > 0
+    assert np.all(np.isfinite(du)) and np.all(np.isfinite(res.eta))
+    assert np.all(du >= lo) and np.all(du <= hi)
+
+
+def test_far_apart_robots_pass_nominal_through():
+    team, pose, u = _state(spacing=5.0)
+    kin, lo, hi = _inputs(team, pose, u)
+    nom = np.random.default_rng(1).uniform(-10, 10, (4, 2))
+    du, res = SafetyFilter(team, deadlock="none").step(kin, u, pose[:, 2], nom, lo, hi)
+    assert res.n_rows == 0 and res.status == "solved"
+    np.testing.assert_allclose(du, nom, atol=1e-9)
+    assert not res.intervened.any() and not res.avoiding.any()
+
+
+@pytest.mark.parametrize("barrier", sorted(BARRIERS))
+def test_every_barrier_gives_finite_rows_and_a_solution(barrier):
+    team, pose, u = _state(n=5, spacing=1.1, speed=3.0)
+    kin, lo, hi = _inputs(team, pose, u)
+    nom = np.zeros((5, 2))
+    obstacles = (np.array([[2.0, 1.2]]), np.array([0.3]))
+    f = SafetyFilter(team, barrier=barrier, deadlock="none")
+    du, res = f.step(kin, u, pose[:, 2], nom, lo, hi, obstacles=obstacles)
+    assert res.status in ("solved", "relaxed")
+    assert np.all(np.isfinite(du)) and np.all(np.isfinite(res.eta))
+    assert res.eta.shape == (res.n_rows,) and res.pairs.shape == (res.n_rows, 2)
+    if barrier != "gated_distance":
+        assert res.obstacle_rows.any()
+        assert np.all(res.pairs[res.obstacle_rows, 1] == -1)
+
+
+def test_obstacle_row_keeps_robot_off_the_obstacle():
+    team = make_team("paper", 1)
+    theta = np.array([0.0])
+    pose = pose_from_point(team, np.array([[0.0, 0.0]]), theta)
+    u = np.full((1, 2), 10.0)  # 1 m/s towards +x
+    obstacles = (np.array([[1.5, 0.0]]), np.array([0.3]))
+    f = SafetyFilter(team, deadlock="none")
+    dmin = np.inf
+    for _ in range(600):
+        kin, lo, hi = _inputs(team, pose, u)
+        nom = np.linalg.solve(kin.A, (np.array([[1.0, 0.0]]) * 2 - kin.v * 2 - kin.adot_u)[..., None])[..., 0]
+        du, res = f.step(kin, u, pose[:, 2], np.clip(nom, lo, hi), lo, hi, obstacles=obstacles)
+        from aasoatt_env.dynamics import integrate
+
+        pose, u = integrate(team, pose, u, du, 0.005)
+        dmin = min(dmin, float(np.linalg.norm(kinematics(team, pose, u).p[0] - obstacles[0][0])))
+    assert dmin >= 0.48 + 0.3 - 1e-3
+
+
+_COMBOS = [(s, "multiplier") for s in STRATEGIES if s != "none"] + [
+    ("auxiliary_velocity", t) for t in TRIGGERS if t != "multiplier"
+]
+
+
+@pytest.mark.parametrize(("strategy", "trig"), _COMBOS)
+def test_strategies_and_triggers_run(strategy, trig):
+    # on a symmetric 6-robot circle the nearest neighbour is never ahead: use a head-on pair
+    scen = CircleSwap(2 if trig == "heading" else 6, radius=2.5, duration=4.0)
+    extra = {"stall_time": 0.2, "stall_distance": 0.05} if trig == "stalled" else {}
+    f = SafetyFilter(scen.team, deadlock=strategy, trigger=trig, **extra)
+    triggered = []
+    orig = f.step
+
+    def step(*a, **k):
+        du, res = orig(*a, **k)
+        triggered.append(res.triggered.any())
+        assert np.all(np.isfinite(du))
+        return du, res
+
+    f.step = step  # type: ignore[method-assign]
+    out = rollout(scen, f, 3.0)
+    assert out.statuses.get("failed", 0) == 0
+    assert any(triggered), "trigger never fired in a head-on swap"
+    if strategy != "rotate_relative_position":
+        # eqn.12c rotates p_ij inside the barrier itself and gives up the guarantee (documented)
+        assert out.min_distance >= 0.96 - 1e-3
+
+
+def test_multiplier_trigger_follows_previous_avoidance():
+    scen = CircleSwap(6, radius=3.0, duration=6.0)
+    f = SafetyFilter(scen.team)
+    seen = []
+    orig = f.step
+
+    def step(*a, **k):
+        du, res = orig(*a, **k)
+        seen.append((res.avoiding.copy(), res.triggered.copy()))
+        return du, res
+
+    f.step = step  # type: ignore[method-assign]
+    rollout(scen, f, 3.0)
+    assert any(a.any() for a, _ in seen)
+    for (a_prev, _), (_, t_now) in zip(seen[:-1], seen[1:]):
+        np.testing.assert_array_equal(a_prev, t_now)
+
+
+def test_neural_solver_never_fails_and_approaches_optimum():
+    scen = CircleSwap(6, radius=3.0, duration=6.0)
+    out = rollout(scen, SafetyFilter(scen.team, solver="neural", neural_iterations=5), 3.0)
+    assert out.statuses == {"solved": 600}
+    team, pose, u = _state(n=3, spacing=1.0, speed=4.0)
+    kin, lo, hi = _inputs(team, pose, u)
+    exact, _ = SafetyFilter(team, deadlock="none").step(kin, u, pose[:, 2], np.zeros((3, 2)), lo, hi)
+    approx, res = SafetyFilter(team, deadlock="none", solver="neural", neural_iterations=20000).step(
+        kin, u, pose[:, 2], np.zeros((3, 2)), lo, hi
+    )
+    assert np.all(np.isfinite(approx))
+    np.testing.assert_allclose(approx, exact, atol=0.5)
+
+
+@pytest.mark.parametrize("n", [5, 40, 200, 400])
+def test_kdtree_and_brute_pairs_agree(n):
+    rng = np.random.default_rng(n)
+    p = rng.uniform(0, np.sqrt(n) * 1.5, (n, 2))
+    a = robot_pairs(p, 3.0, method="brute")
+    b = robot_pairs(p, 3.0, method="kdtree")
+    np.testing.assert_array_equal(a, b)
+    assert np.all(a[:, 0] < a[:, 1])
+
+
+def test_reset_clears_memory():
+    scen = CircleSwap(4, radius=2.0, duration=4.0)
+    f = SafetyFilter(scen.team, trigger="stalled")
+    rollout(scen, f, 0.5)
+    f.reset()
+    assert f._x is None and f._dl.history == []
