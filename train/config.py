@@ -24,11 +24,12 @@ import argparse
 import json
 import math
 import os
-import tomllib
 from collections.abc import Sequence
 from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
+
+import tomllib
 
 from aasoatt_env.env import RewardConfig
 from aasoatt_env.errors import ConfigError
@@ -121,21 +122,21 @@ class TrainConfig:
     reward: dict[str, float] = field(default_factory=dict)
     filter: bool = False
     filter_kwargs: dict[str, Any] = field(default_factory=dict)
-    total_timesteps: int = 1_000_000
+    total_timesteps: int = 1_200_000
     n_envs: int = 4
     seed: int = 0
-    learning_rate: float = 3e-4
+    learning_rate: float = 1e-3
     n_steps: int = 128
-    batch_size: int = 1024
+    batch_size: int = 512
     n_epochs: int = 10
-    gamma: float = 0.98
+    gamma: float = 0.95
     gae_lambda: float = 0.95
     clip_range: float = 0.2
     ent_coef: float = 0.0
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
     net_arch: list[int] = field(default_factory=lambda: [64, 64])
-    log_std_init: float = -0.5
+    log_std_init: float = -1.0
     normalize_obs: bool = True
     normalize_reward: bool = True
     out_dir: str = "runs"
@@ -173,12 +174,12 @@ class TrainConfig:
 
         if self.scenario not in SCENARIOS:
             raise self._err("scenario", f"one of {sorted(SCENARIOS)}")
-        for name in ("num_robots", "decision_interval", "total_timesteps", "n_envs", "n_steps", "n_epochs", "torch_threads"):
+        for name in ("num_robots", "decision_interval", "total_timesteps", "n_envs", "n_steps", "n_epochs",
+                     "torch_threads"):
             self._int(name, 1)
         for name in ("num_neighbors", "num_obstacles", "checkpoint_freq", "seed", "verbose"):
             self._int(name, 0)
-        if self.batch_size is None or isinstance(self.batch_size, bool) or not isinstance(self.batch_size, int) or self.batch_size < 2:
-            raise self._err("batch_size", "an integer >= 2")
+        self._int("batch_size", 2)
         if self.max_steps is not None:
             self._int("max_steps", 1)
         self._float("dt", 0.0, 1.0, lo_open=True)
@@ -192,7 +193,8 @@ class TrainConfig:
         self._float("log_std_init", -20.0, 5.0)
         if self.action_mode not in _ACTION_MODES:
             raise self._err("action_mode", f"one of {list(_ACTION_MODES)}")
-        for name in ("terminate_on_collision", "filter", "normalize_obs", "normalize_reward", "tensorboard", "progress_bar"):
+        for name in ("terminate_on_collision", "filter", "normalize_obs", "normalize_reward", "tensorboard",
+                     "progress_bar"):
             if not isinstance(getattr(self, name), bool):
                 raise self._err(name, "true or false")
         for name in ("scenario_kwargs", "reward", "filter_kwargs"):
@@ -217,7 +219,8 @@ class TrainConfig:
             raise self._err("batch_size", f"at most n_steps * n_envs * num_robots = {rollout}")
         if not isinstance(self.out_dir, str) or not self.out_dir:
             raise self._err("out_dir", "a non-empty folder path")
-        if self.run_name is not None and (not isinstance(self.run_name, str) or not self.run_name or os.sep in self.run_name):
+        name = self.run_name
+        if name is not None and (not isinstance(name, str) or not name or os.sep in name):
             raise self._err("run_name", "a non-empty folder name or None")
 
     # ------------------------------------------------------------------ helpers

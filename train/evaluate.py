@@ -1,4 +1,4 @@
-"""Evaluate baselines and learned policies over K seeded episodes; one Markdown table.
+r"""Evaluate baselines and learned policies over K seeded episodes; one Markdown table.
 
 Usage::
 
@@ -276,7 +276,8 @@ def to_markdown(rows: Sequence[EvalRow], title: str | None = None) -> str:
     if title:
         lines += [f"### {title}", ""]
     lines += [
-        "| agent | episodes | safe rate | success | RMSE [m] | intervention | correction [rad/s^2] | collisions (episodes) |",
+        "| agent | episodes | safe rate | success | RMSE [m] | intervention "
+        "| correction [rad/s^2] | collisions (episodes) |",
         "|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:

@@ -172,7 +172,9 @@ class ParallelVecEnv(VecEnv):
         for env in {id(e): e for e in self._env_of_slots(indices)}.values():
             setattr(env, attr_name, value)
 
-    def env_method(self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any) -> list[Any]:
+    def env_method(
+        self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any
+    ) -> list[Any]:
         """Call a method of the env behind each slot."""
         return [getattr(env, method_name)(*method_args, **method_kwargs) for env in self._env_of_slots(indices)]
 
