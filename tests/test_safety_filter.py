@@ -9,7 +9,7 @@ from aasoatt_env.dynamics import input_bounds, kinematics, pose_from_point
 from aasoatt_env.errors import ActionError, ConfigError, SolverError
 from aasoatt_env.params import make_team
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, FilterConfig, SafetyFilter, robot_pairs
-from aasoatt_env.safety.scenario import CircleSwap, rollout, tracking_nominal
+from aasoatt_env.safety.scenario import CircleSwap, rollout
 
 
 def _state(n=4, spacing=1.2, seed=0, speed=0.5):

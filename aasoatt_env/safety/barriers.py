@@ -39,8 +39,9 @@ next-step velocity ``v + (A du + A_dot u) dt``, which is linear in ``du``:
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 

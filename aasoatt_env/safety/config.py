@@ -18,8 +18,8 @@ paper's exact barrier.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, fields
-from typing import Callable
 
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.barriers import BARRIERS

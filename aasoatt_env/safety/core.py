@@ -235,7 +235,8 @@ class SafetyFilter:
         avoiding[ri[active]] = True
         avoiding[rj[active & (rj >= 0)]] = True
         self._dl.avoiding = avoiding
-        viol = np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)]), 0.0) - rhs
+        du_j = np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)])
+        viol = np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0) - rhs
         slack = float(max(0.0, np.max(viol, initial=0.0))) if sol.status != "solved" or cfg.solver == "neural" else 0.0
         correction = np.linalg.norm(du - nominal_du, axis=1)
         result = FilterResult(
@@ -277,7 +278,8 @@ class SafetyFilter:
             if a.shape != shape:
                 raise ActionError(f"{name}: got shape {a.shape}, expected {shape}")
             if not np.all(np.isfinite(a)):
-                raise ActionError(f"{name}: non-finite value for robot index {int(np.flatnonzero(~np.isfinite(a).reshape(n, -1).all(axis=1))[0])}")
+                bad_i = int(np.flatnonzero(~np.isfinite(a).reshape(n, -1).all(axis=1))[0])
+                raise ActionError(f"{name}: non-finite value for robot index {bad_i}")
         lo = np.asarray(lo, dtype=np.float64)
         hi = np.asarray(hi, dtype=np.float64)
         if lo.shape != (n, 2) or hi.shape != (n, 2):

@@ -16,7 +16,7 @@ Solvers (:data:`SOLVERS`, by name):
 
 ``proxsuite`` (default)
     Dense ``PrimalDualLDLT`` with native box constraints up to
-    :data:`DENSE_MAX_VARS` variables, sparse ``SparseCholesky`` (box as rows)
+    :data:`DENSE_MAX_SIZE` variables + rows, sparse ``SparseCholesky`` (box as rows)
     above.  Settings from SPEC section 4: tight ``eps_primal_inf`` /
     ``eps_dual_inf``, ``check_duality_gap`` with a tight gap.
 ``neural``
@@ -38,8 +38,8 @@ from __future__ import annotations
 import functools
 import importlib.util
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -47,7 +47,7 @@ import scipy.sparse as sp
 from aasoatt_env.errors import SolverError
 
 __all__ = [
-    "DENSE_MAX_VARS",
+    "DENSE_MAX_SIZE",
     "QPProblem",
     "QPSolution",
     "SOLVERS",
@@ -56,8 +56,11 @@ __all__ = [
     "solve_qp",
 ]
 
-DENSE_MAX_VARS: int = 300
-"""Largest number of variables solved with proxsuite's dense class."""
+DENSE_MAX_SIZE: int = 600
+"""Largest ``n + m`` (variables + rows) solved with proxsuite's dense class.
+
+Measured on packed layouts: dense PrimalDualLDLT 2.7 ms vs sparse 4.2 ms at
+n + m = 340 (N = 39), but 16.5 ms vs 9.5 ms at n + m = 990 (N = 100)."""
 
 _INF = 1e20
 _FEAS_TOL = 1e-7
@@ -221,7 +224,7 @@ def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, op
     n, m = prob.n, prob.m
     dense = opts.get("dense")
     if dense is None:
-        dense = n <= DENSE_MAX_VARS
+        dense = n + m <= DENSE_MAX_SIZE
     if dense:
         d = px.dense
         htype = d.HessianType.Diagonal if prob.diagonal else d.HessianType.Dense
@@ -299,11 +302,11 @@ def _osqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
 
     n, m = prob.n, prob.m
     Aq = sp.vstack((prob.C, sp.identity(n)), format="csc")
-    l = np.concatenate((np.full(m, -np.inf), prob.lb))
-    u = np.concatenate((prob.u, prob.ub))
+    lower = np.concatenate((np.full(m, -np.inf), prob.lb))
+    upper = np.concatenate((prob.u, prob.ub))
     solver = osqp.OSQP()
     eps = float(opts.get("eps", 1e-7))
-    solver.setup(sp.triu(prob.H_sparse(), format="csc"), prob.g, Aq, l, u, verbose=False,
+    solver.setup(sp.triu(prob.H_sparse(), format="csc"), prob.g, Aq, lower, upper, verbose=False,
                  eps_abs=eps, eps_rel=eps, polishing=True, max_iter=20000)
     if x0 is not None:
         solver.warm_start(x=np.clip(x0, prob.lb, prob.ub))
@@ -343,7 +346,7 @@ SOLVERS: dict[str, tuple[Backend, str]] = {
 """Solver registry: name -> (back-end, module it needs)."""
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _installed(module: str) -> bool:
     return not module or importlib.util.find_spec(module) is not None
 

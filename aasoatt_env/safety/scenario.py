@@ -8,8 +8,8 @@ This is not the environment, only enough of it to exercise the filter.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
