@@ -1,0 +1,127 @@
+"""The AASOATTFilter wrapper on the PettingZoo env: contract, infos, bounds, safety under bad policies."""
+
+import gymnasium
+import numpy as np
+import pettingzoo
+import pytest
+from pettingzoo.test import parallel_api_test
+
+import aasoatt_env  # noqa: F401
+from aasoatt_env import AASOATTGymEnv, AASOATTParallelEnv, ConfigError, SolverError
+from aasoatt_env.recording import run_episode
+from aasoatt_env.safety.wrapper import AASOATTFilter
+from agents import HostileAgent, RandomAgent, TrackingController
+
+FILTER_KEYS = {
+    "intervened",
+    "avoiding",
+    "triggered",
+    "correction",
+    "status",
+    "slack",
+    "solve_time",
+    "iterations",
+    "n_rows",
+}
+
+
+@pytest.mark.parametrize(
+    "env_id", ["aasoatt/CircleSwap-v0", "aasoatt/CircleSwapObstacles-v0", "aasoatt/RandomGoals-v0"]
+)
+def test_wrapped_env_keeps_the_pettingzoo_contract(env_id):
+    env = AASOATTFilter(pettingzoo.make("parallel", env_id, max_steps=40, decision_interval=2))
+    parallel_api_test(env, num_cycles=60)
+
+
+def test_infos_carry_filter_report_and_bounds_hold_for_unbounded_nominal():
+    env = AASOATTFilter(AASOATTParallelEnv("circle_swap", num_robots=6, radius=2.0, duration=3.0))
+    obs, infos = env.reset(seed=0)
+    assert FILTER_KEYS <= set(infos["robot_0"]["filter"])
+    team = env.unwrapped.team
+    for _ in range(200):
+        u0 = env.unwrapped.wheel_speeds
+        obs, _, _, _, infos = env.step({a: np.array([7.0, -9.0], np.float32) for a in env.agents})
+        du = (env.unwrapped.wheel_speeds - u0) / env.unwrapped.dt
+        assert np.all(np.abs(du) <= team.max_wheel_accel[:, None] + 1e-6)
+    f = infos["robot_0"]["filter"]
+    assert f["status"] in ("solved", "relaxed") and f["intervened"]
+    assert f["correction"] > 0
+
+
+def test_filter_is_applied_at_every_physics_step_of_a_decision_interval():
+    env = AASOATTFilter(
+        AASOATTParallelEnv("circle_swap", num_robots=4, radius=1.5, duration=2.0, decision_interval=10)
+    )
+    obs, _ = env.reset(seed=0)
+    ctrl = TrackingController()
+    clearance = np.inf
+    while env.agents:
+        obs, _, _, _, infos = env.step(ctrl.act(obs, env))
+        clearance = min(clearance, min(i["clearance"] for i in infos.values()))
+        assert infos["robot_0"]["filter"]["iterations"] >= 0
+    assert clearance >= -1e-3
+
+
+def test_paper_method_circle_swap_10_robots_safe_and_home():
+    env = AASOATTFilter(
+        AASOATTParallelEnv("circle_swap", num_robots=10, radius=6.0, duration=12.0, settle_time=3.0)
+    )
+    rollout, _ = run_episode(env, TrackingController(), seed=0)
+    d = np.linalg.norm(rollout.positions[:, :, None] - rollout.positions[:, None], axis=-1)
+    d[:, np.arange(10), np.arange(10)] = np.inf
+    assert d.min() >= 0.96 - 1e-3
+    assert not np.any(rollout.solver_status == "failed")
+    assert np.linalg.norm(rollout.positions[-1] - rollout.goals, axis=1).max() <= 0.05
+    assert rollout.avoiding.any()
+
+
+@pytest.mark.parametrize("agent", [RandomAgent(seed=0), HostileAgent()], ids=["random", "hostile"])
+def test_bad_policies_behind_the_filter_never_collide(agent):
+    env = AASOATTFilter(AASOATTParallelEnv("random_goals", num_robots=20, max_steps=600))
+    for seed in (0, 1):
+        obs, infos = env.reset(seed=seed)
+        agent.reset(env)
+        worst = np.inf
+        while env.agents:
+            obs, _, _, _, infos = env.step(agent.act(obs, env))
+            worst = min(worst, min(i["clearance"] for i in infos.values()))
+            assert not any(i["collision"] for i in infos.values())
+            assert all(i["filter"]["status"] != "failed" for i in infos.values())
+        assert worst >= -1e-3
+
+
+def test_bare_hostile_policy_does_collide():
+    env = AASOATTParallelEnv("random_goals", num_robots=20, max_steps=600)
+    obs, _ = env.reset(seed=0)
+    agent = HostileAgent()
+    collided = False
+    while env.agents:
+        obs, _, _, _, infos = env.step(agent.act(obs, env))
+        collided |= any(i["collision"] for i in infos.values())
+    assert collided
+
+
+def test_gymnasium_view_with_filter():
+    env = gymnasium.make(
+        "aasoatt/CircleSwap-v0", num_robots=4, radius=2.0, safety_filter={"deadlock": "none"}
+    )
+    obs, info = env.reset(seed=0)
+    obs, r, term, trunc, info = env.step(env.action_space.sample())
+    assert "filter" in info["agents"]["robot_0"]
+    assert isinstance(env.unwrapped, AASOATTGymEnv)
+
+
+@pytest.mark.parametrize(
+    "kwargs,match",
+    [
+        ({"barrier": "magic"}, r"barrier.*'magic'.*aasoatt"),
+        ({"deadlock": "wiggle"}, r"deadlock.*'wiggle'"),
+        ({"solver": "gurobi"}, r"solver: got 'gurobi', expected one of \['proxsuite', 'neural'"),
+        ({"trigger": "vibes"}, r"trigger.*'vibes'"),
+        ({"zeta": 5.0}, r"k4 > zeta"),
+        ({"k1": -1.0}, r"k1"),
+    ],
+)
+def test_wrapper_rejects_bad_options_at_construction(kwargs, match):
+    with pytest.raises((ConfigError, SolverError), match=match):
+        AASOATTFilter(AASOATTParallelEnv("circle_swap", num_robots=4, radius=2.0), **kwargs)
