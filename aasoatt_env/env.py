@@ -48,7 +48,15 @@ from pettingzoo import ParallelEnv
 from aasoatt_env import dynamics
 from aasoatt_env.dynamics import Kinematics
 from aasoatt_env.errors import ActionError, ConfigError
-from aasoatt_env.observations import OBS_BOUND, SELF_DIM, SLOT_DIM, Proximity, build_observations, proximity
+from aasoatt_env.observations import (
+    OBS_BOUND,
+    SELF_DIM,
+    SLOT_DIM,
+    Proximity,
+    build_observations,
+    min_gaps,
+    proximity,
+)
 from aasoatt_env.params import Team, check_positive
 from aasoatt_env.scenarios import Layout, Scenario, get_scenario
 
@@ -313,7 +321,8 @@ class AASOATTParallelEnv(ParallelEnv):
         team, dt = self.team, self.dt
         saturated = np.zeros(team.n, dtype=bool)
         frozen = ~self._active
-        for _ in range(self.decision_interval):
+        between = np.full(team.n, np.inf)  # clearance at the physics steps between decisions
+        for sub in range(self.decision_interval):
             kin = self._kin
             lo, hi = dynamics.input_bounds(team, self._u, dt)
             du_nom = self._nominal_du(act, kin)
@@ -348,12 +357,14 @@ class AASOATTParallelEnv(ParallelEnv):
             self._pose, self._u = pose, u
             self._time += dt
             self._kin = dynamics.kinematics(team, pose, u)
+            if sub < self.decision_interval - 1:
+                np.minimum(between, min_gaps(self._kin.p, team.radius, *self._obstacles), out=between)
         self._steps += 1
         self._saturated = saturated
         self._trail.append(self._kin.p.copy())
-        self._refresh()
+        self._refresh(between)
 
-        collided = self._prox.clearance < -self.collision_tolerance
+        collided = self._clearance < -self.collision_tolerance
         rewards_arr = self._rewards(act, collided).tolist()
         truncated = self._steps >= self._max_steps
         live = self.agents
@@ -375,13 +386,18 @@ class AASOATTParallelEnv(ParallelEnv):
         return obs, rewards, terminations, truncations, infos
 
     # ------------------------------------------------------------------ outputs
-    def _refresh(self) -> None:
-        """Recompute what observations, rewards and infos share at the current instant."""
+    def _refresh(self, between: np.ndarray | None = None) -> None:
+        """Recompute what observations, rewards and infos share at the current instant.
+
+        ``between``: clearance over the physics steps since the last decision; the
+        reported clearance (and so collisions) is the minimum over the whole env step.
+        """
         self._ref_now = self._layout.reference(self._time)  # type: ignore[union-attr]
         self._prox: Proximity = proximity(
             self._kin.p, self.team.radius, *self._obstacles, k=max(self.num_neighbors, 1)
         )
         self._err = np.linalg.norm(self._kin.p - self._ref_now[0], axis=1)
+        self._clearance = self._prox.clearance if between is None else np.minimum(self._prox.clearance, between)
 
     def _observations(self) -> dict[str, np.ndarray]:
         p_d, v_d, a_d = self._ref_now
@@ -417,7 +433,7 @@ class AASOATTParallelEnv(ParallelEnv):
         return r
 
     def _infos(self) -> dict[str, dict[str, Any]]:
-        clearance = self._prox.clearance
+        clearance = self._clearance
         err = self._err.tolist()
         clr = clearance.tolist()
         col = (clearance < -self.collision_tolerance).tolist()

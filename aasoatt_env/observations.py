@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["OBS_BOUND", "SELF_DIM", "SLOT_DIM", "Proximity", "build_observations", "k_nearest", "proximity"]
+__all__ = ["OBS_BOUND", "SELF_DIM", "SLOT_DIM", "Proximity", "build_observations", "k_nearest", "min_gaps", "proximity"]
 
 OBS_BOUND = 100.0
 SELF_DIM = 14
@@ -107,6 +107,25 @@ def proximity(
     else:
         og = np.zeros((n, 0))
     return Proximity(idx, dist, og, gap)
+
+
+def min_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, orad: np.ndarray) -> np.ndarray:
+    """Clearance ``(N,)`` only (cheaper than :func:`proximity`; used between decisions)."""
+    n = p.shape[0]
+    if n > _BRUTE_FORCE_MAX:
+        return proximity(p, radii, centers, orad, k=6).clearance
+    gap = np.full(n, np.inf)
+    if n > 1:
+        dx = p[:, 0:1] - p[:, 0]
+        dy = p[:, 1:2] - p[:, 1]
+        g = np.sqrt(dx * dx + dy * dy) - radii[:, None] - radii[None, :]
+        g.flat[:: n + 1] = np.inf
+        gap = g.min(axis=1)
+    if centers.shape[0]:
+        dx = p[:, 0:1] - centers[:, 0]
+        dy = p[:, 1:2] - centers[:, 1]
+        gap = np.minimum(gap, (np.sqrt(dx * dx + dy * dy) - radii[:, None] - orad[None, :]).min(axis=1))
+    return gap
 
 
 def build_observations(
