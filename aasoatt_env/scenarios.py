@@ -15,6 +15,8 @@ name                     paper            layout
 ``tracking``             Tab. I           one robot on a straight / sine / circle reference
 ``position_swap``        Fig. 6           4 TurtleBot3 Burgers swap corners, 2.24 m at 0.1 m/s
 ``random_goals``         (learning)       random starts and goals, spacing guaranteed
+``custom``               (yours)          your starts, reference (callable / waypoints)
+                                          and obstacles
 =======================  ===============  ==================================================
 """
 
@@ -34,6 +36,7 @@ __all__ = [
     "SCENARIOS",
     "CircleSwap",
     "CircleSwapObstacles",
+    "Custom",
     "Layout",
     "PositionSwap",
     "RandomGoals",
@@ -457,8 +460,89 @@ class RandomGoals(Scenario):
         )
 
 
+class Custom(Scenario):
+    """Your own team: start points, a reference (object, callable or waypoints) and obstacles.
+
+    Parameters
+    ----------
+    starts : array_like, shape (N, 2)
+        Initial control-point positions.
+    reference : Reference, callable or dict
+        A :class:`~aasoatt_env.references.Reference`, a callable ``t -> (N, 2)``
+        (with ``duration``) or ``{"waypoints": (N, K, 2), "times": (K,)}``.
+    duration : float, optional
+        Reference duration (needed for a callable).
+    headings : array_like, shape (N,), optional
+        Initial headings; default: along the reference velocity at ``t = 0``
+        (or toward the goal when it is zero).
+    obstacles : tuple (centres (M, 2), radii (M,)), optional
+        Static disc obstacles.
+    robots : str, RobotParams or sequence
+        Robot preset(s).
+    settle_time : float
+        Extra time after the reference ends [s].
+    """
+
+    name = "custom"
+
+    def __init__(
+        self,
+        starts: Any,
+        reference: Any,
+        duration: float | None = None,
+        headings: Any = None,
+        obstacles: tuple[Any, Any] | None = None,
+        robots: str | RobotParams | list = "paper",
+        settle_time: float = 3.0,
+    ) -> None:
+        st = np.asarray(starts, dtype=np.float64)
+        if st.ndim != 2 or st.shape[1] != 2 or not np.all(np.isfinite(st)):
+            raise ConfigError(f"starts: got shape {st.shape}, expected finite (N, 2)")
+        self.num_robots_ = st.shape[0]
+        self._starts = st
+        self._reference = as_reference(reference, self.num_robots_, duration)
+        self._team = make_team(robots, self.num_robots_)
+        self._obstacles = _check_obstacles(*(obstacles if obstacles is not None else ((), ())))
+        if headings is not None:
+            h = np.asarray(headings, dtype=np.float64).reshape(-1)
+            if h.shape != (self.num_robots_,) or not np.all(np.isfinite(h)):
+                raise ConfigError(f"headings: got shape {h.shape}, expected finite ({self.num_robots_},)")
+            self._headings = h
+        else:
+            self._headings = None
+        if settle_time < 0:
+            raise ConfigError(f"settle_time: got {settle_time!r}, expected >= 0")
+        self.settle_time = float(settle_time)
+        d = np.hypot(*(st[:, None] - st[None]).transpose(2, 0, 1)) + np.diag(np.full(self.num_robots_, np.inf))
+        rs = self._team.radius[:, None] + self._team.radius[None, :]
+        if np.any(d < rs):
+            i, j = np.argwhere(d < rs)[0]
+            raise ScenarioError(f"starts: robots {i} and {j} overlap ({d[i, j]:.3f} < {rs[i, j]:.3f})")
+
+    def build(self, rng: np.random.Generator) -> Layout:
+        """Return the user's layout."""
+        ref = self._reference
+        _, v0, _ = ref(0.0)
+        toward = np.arctan2(*(ref.goals - self._starts).T[::-1])
+        headings = self._headings if self._headings is not None else _heading_of(v0, toward)
+        pts = np.concatenate([self._starts, ref.goals, *(ref(t)[0] for t in np.linspace(0, ref.duration, 16))])
+        if self._obstacles[0].shape[0]:
+            pts = np.concatenate([pts, self._obstacles[0]])
+        lo, hi = pts.min(axis=0) - 1.5, pts.max(axis=0) + 1.5
+        return Layout(
+            team=self._team,
+            starts=self._starts.copy(),
+            headings=headings,
+            reference=ref,
+            horizon=ref.duration + self.settle_time,
+            obstacle_centers=self._obstacles[0],
+            obstacle_radii=self._obstacles[1],
+            bounds=(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])),
+        )
+
+
 SCENARIOS: dict[str, type[Scenario]] = {
-    cls.name: cls for cls in (CircleSwap, CircleSwapObstacles, Tracking, PositionSwap, RandomGoals)
+    cls.name: cls for cls in (CircleSwap, CircleSwapObstacles, Tracking, PositionSwap, RandomGoals, Custom)
 }
 
 

@@ -121,7 +121,19 @@ class HostileAgent:
         return point_accel_to_action(env, accel, saturate=True)
 
 
+def _load_learned(path: str | None = None, **kwargs: Any) -> Any:
+    """Factory for ``--controller learned`` (imports Stable-Baselines3 lazily)."""
+    from aasoatt_env.errors import ConfigError
+
+    if path is None:
+        raise ConfigError("controller 'learned': got no model path, expected --model PATH (a run folder or .zip)")
+    from agents.learned import LearnedAgent
+
+    return LearnedAgent.load(path, **kwargs)
+
+
 register_agent("tracking", TrackingController)
+register_agent("learned", _load_learned)  # type: ignore[arg-type]
 register_agent("hostile", HostileAgent)
 register_agent("pd", PDController)
 register_agent("random", RandomAgent)

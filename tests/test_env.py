@@ -178,9 +178,7 @@ def test_truncation_at_horizon_and_agents_leave():
 
 
 def test_terminate_on_collision_removes_robots_and_freezes_them():
-    env = AASOATTParallelEnv(
-        "circle_swap", num_robots=4, radius=2.0, duration=2.0, terminate_on_collision=True
-    )
+    env = AASOATTParallelEnv("circle_swap", num_robots=4, radius=2.0, duration=2.0, terminate_on_collision=True)
     obs, _ = env.reset(seed=0)
     ctrl = TrackingController(saturate=True)
     terminated = set()
@@ -265,3 +263,30 @@ def test_tracking_controller_tracks_a_circle():
         errs.append(infos["robot_0"]["tracking_error"])
     assert max(errs[-200:]) < 1e-3  # converged
     assert np.sqrt(np.mean(np.square(errs))) < 0.05
+
+
+def test_custom_scenario_with_waypoints_callable_and_obstacles():
+    from aasoatt_env.references import LinearReference
+
+    starts = np.array([[0.0, 0.0], [3.0, 0.0]])
+    wp = {"waypoints": np.array([[[0, 0], [1, 1], [2, 0]], [[3, 0], [3, 2], [3, 4]]], float), "times": [0, 2, 4]}
+    env = AASOATTParallelEnv("custom", starts=starts, reference=wp, obstacles=([[1.5, -2.0]], [0.3]))
+    env.reset(seed=0)
+    np.testing.assert_allclose(env.goals, [[2, 0], [3, 4]])
+    p_d, v_d, _ = env.reference
+    np.testing.assert_allclose(v_d, [[0.5, 0.5], [0.0, 1.0]])
+    assert env.headings == pytest.approx([np.pi / 4, np.pi / 2])
+    assert env.obstacles[1].tolist() == [0.3]
+
+    def circle(t):
+        return np.array([[np.cos(t), np.sin(t)], [3 + np.cos(t), np.sin(t)]])
+
+    env = AASOATTParallelEnv("custom", starts=circle(0.0), reference=circle, duration=2.0)
+    env.reset()
+    np.testing.assert_allclose(env.reference[1], [[0, 1], [0, 1]], atol=1e-6)  # finite differences
+    env = AASOATTParallelEnv("custom", starts=starts, reference=LinearReference(starts, starts + 1, 1.0))
+    env.reset()
+    with pytest.raises(ScenarioError, match="robots 0 and 1 overlap"):
+        AASOATTParallelEnv("custom", starts=[[0, 0], [0.5, 0]], reference=wp)
+    with pytest.raises(ConfigError, match="callable reference needs duration"):
+        AASOATTParallelEnv("custom", starts=starts, reference=circle)
