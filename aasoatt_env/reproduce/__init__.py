@@ -1,0 +1,133 @@
+"""Reproduce the paper's Sec. V: ``aasoatt reproduce EXPERIMENT [--quick] [--out DIR] [--jobs N]``.
+
+Experiments (see :mod:`aasoatt_env.reproduce.experiments`): ``table1``,
+``compare-ca``, ``table2``, ``deadlock-triggers``, ``table3``, ``swarm100``,
+``obstacles`` and ``all``.  Each writes ``<out>/<experiment>/`` with a CSV, a
+Markdown ``README.md`` putting the paper's numbers beside ours (relative
+difference), PNG figures and the experiment's wall time; ``all`` also writes
+``<out>/SUMMARY.md`` with the wall time of each experiment and the total.
+
+Every run is deterministic: the same command gives the same numbers whatever
+``--jobs`` is.  ``--quick`` runs small variants (seconds, for CI) whose numbers
+are *not* comparable to the paper.
+
+Python use::
+
+    from aasoatt_env.reproduce import run_experiment, Settings
+    report = run_experiment("compare-ca", Settings(out=Path("results")))
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from aasoatt_env.reproduce.experiments import EXPERIMENTS, Settings
+from aasoatt_env.reproduce.report import Report
+
+__all__ = ["EXPERIMENTS", "Settings", "main", "run_experiment"]
+
+
+def run_experiment(name: str, settings: Settings) -> tuple[Report, float]:
+    """Run experiment ``name`` and write its files.
+
+    Parameters
+    ----------
+    name : str
+        A key of :data:`EXPERIMENTS`.
+    settings : Settings
+        Shared options.
+
+    Returns
+    -------
+    report : Report
+        The written report (``report.dir`` holds the files).
+    wall_time : float
+        Seconds spent, recorded in the Markdown.
+    """
+    if name not in EXPERIMENTS:
+        raise ValueError(f"experiment: got {name!r}, expected one of {sorted(EXPERIMENTS)} or 'all'")
+    t0 = time.perf_counter()
+    report = EXPERIMENTS[name](settings)
+    wall = time.perf_counter() - t0
+    report.write(wall, f"{settings.command}")
+    return report, wall
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="aasoatt reproduce",
+        description="Reproduce the paper's Sec. V experiments; writes CSV, Markdown and PNG per experiment.",
+    )
+    p.add_argument("experiment", choices=[*EXPERIMENTS, "all"], help="experiment to run")
+    p.add_argument("--quick", action="store_true", help="small, fast variants (CI); not comparable to the paper")
+    p.add_argument("--out", default="results", help="results root directory (default: results)")
+    p.add_argument("--jobs", type=int, default=1, help="worker processes for independent runs (default: 1)")
+    p.add_argument(
+        "--solver", default="daqp", help="QP solver of the safety filter (default: daqp; the paper's is 'neural')"
+    )
+    p.add_argument(
+        "--safety-margin",
+        type=float,
+        default=0.0,
+        help="margin added to d_s [m] in the paper-comparison runs (default 0: the paper's barrier)",
+    )
+    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command-line entry point (``aasoatt reproduce ...``); returns the exit status."""
+    args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
+    if args.jobs < 1:
+        print(f"--jobs: got {args.jobs}, expected an integer >= 1", file=sys.stderr)
+        return 2
+    from aasoatt_env.safety import available_solvers
+
+    if args.solver not in available_solvers():
+        print(f"--solver: got {args.solver!r}, expected one of {available_solvers()}", file=sys.stderr)
+        return 2
+    names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
+    cmd = "aasoatt reproduce {name}" + (" --quick" if args.quick else "")
+    if args.solver != "daqp":
+        cmd += f" --solver {args.solver}"
+    if args.safety_margin:
+        cmd += f" --safety-margin {args.safety_margin:g}"
+    out = Path(args.out)
+    walls: dict[str, float] = {}
+    t0 = time.perf_counter()
+    for name in names:
+        settings = Settings(
+            quick=args.quick,
+            out=out,
+            jobs=args.jobs,
+            solver=args.solver,
+            safety_margin=args.safety_margin,
+            progress=not args.no_progress,
+            command=cmd.format(name=name),
+        )
+        report, wall = run_experiment(name, settings)
+        walls[name] = wall
+        print(f"{name}: {wall:.1f} s -> {report.dir / 'README.md'}", flush=True)
+    total = time.perf_counter() - t0
+    if len(names) > 1:
+        lines = [
+            "# Reproduction summary",
+            "",
+            f"Command: `{cmd.format(name=args.experiment)}`{f' --jobs {args.jobs}' if args.jobs > 1 else ''}",
+            "",
+            "| experiment | wall time [s] | report |",
+            "|---|---|---|",
+        ]
+        lines += [f"| {n} | {w:.1f} | [{n}/README.md]({n}/README.md) |" for n, w in walls.items()]
+        lines += ["", f"Total wall time: {total:.1f} s ({total / 60:.1f} min).", ""]
+        (out / "SUMMARY.md").write_text("\n".join(lines))
+        print(f"all: {total:.1f} s -> {out / 'SUMMARY.md'}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    raise SystemExit(main())
