@@ -64,7 +64,9 @@ class LearnedAgent:
         self._obs_shape = tuple(model.observation_space.shape)
 
     @classmethod
-    def load(cls, path: str | os.PathLike[str], device: str = "cpu", deterministic: bool = True) -> LearnedAgent:
+    def load(
+        cls, path: str | os.PathLike[str], device: str = "cpu", deterministic: bool = True
+    ) -> LearnedAgent:
         """Load ``model.zip`` (or a run folder holding it) with its normalisation and config.
 
         Parameters
@@ -87,7 +89,9 @@ class LearnedAgent:
         if p.is_dir():
             p = p / "model.zip"
         if not p.is_file():
-            raise ConfigError(f"LearnedAgent.load: got {str(path)!r}, expected a model .zip or a run folder holding model.zip")
+            raise ConfigError(
+                f"LearnedAgent.load: got {str(path)!r}, expected a model .zip or a run folder holding model.zip"
+            )
         model = PPO.load(p, device=device)
         stats = p.with_name("vecnormalize.pkl")
         if p.stem.startswith("ppo_") and p.stem.endswith("_steps"):
@@ -131,7 +135,9 @@ class LearnedAgent:
             )
         mode = self.config.get("action_mode")
         if mode is not None and mode != base.action_mode:
-            raise ConfigError(f"LearnedAgent: got an env with action_mode={base.action_mode!r}, expected {mode!r} (as trained)")
+            raise ConfigError(
+                f"LearnedAgent: got an env with action_mode={base.action_mode!r}, expected {mode!r} (as trained)"
+            )
 
     def normalize(self, obs: np.ndarray) -> np.ndarray:
         """Apply the training observation normalisation to a batch ``(n, obs_dim)``."""

@@ -107,3 +107,14 @@ def test_cross_check_against_independent_solver(swap10, other):
             assert abs(f1 - f2) <= 1e-6 * max(1.0, abs(f2)), (f1, f2)
             compared += 1
     assert compared >= 450
+
+
+@pytest.mark.slow
+def test_full_circle_of_39_robots_is_safe_and_reaches_the_packed_goals():
+    # the goals are only 6 mm further apart than d_s: a constant discrete-time
+    # margin would make them unreachable; the velocity-faded margin does not
+    scen = CircleSwap(39, radius=6.0, duration=12.0)
+    out = rollout(scen, SafetyFilter(scen.team), 15.0)
+    assert out.min_distance >= D_S - 1e-3
+    assert out.statuses.get("failed", 0) == 0
+    assert np.all(out.final_error < 0.05), out.final_error.max()
