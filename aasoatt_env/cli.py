@@ -62,10 +62,10 @@ def cmd_list(args: argparse.Namespace) -> int:
             print(f"      {pname}{default}")
     print("\nControllers (--controller NAME):", ", ".join(sorted(_REGISTRY)))
     try:
-        from aasoatt_env.safety import BARRIERS, DEADLOCKS, TRIGGERS, available_solvers
+        from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, available_solvers
 
         print("Barriers (--filter NAME):", ", ".join(BARRIERS))
-        print("Deadlock strategies (--deadlock):", ", ".join(DEADLOCKS))
+        print("Deadlock strategies (--deadlock):", ", ".join(STRATEGIES))
         print("Deadlock triggers (--trigger):", ", ".join(TRIGGERS))
         print("QP solvers (--solver):", ", ".join(available_solvers()))
     except ImportError:  # pragma: no cover
@@ -158,16 +158,6 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _forward(module: str, func: str) -> Any:
-    def run(args: argparse.Namespace) -> int:
-        import importlib
-
-        mod = importlib.import_module(module)
-        return int(getattr(mod, func)(args.rest) or 0)
-
-    return run
-
-
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``aasoatt``."""
     parser = argparse.ArgumentParser(prog="aasoatt", description=__doc__.splitlines()[0])
@@ -197,19 +187,27 @@ def build_parser() -> argparse.ArgumentParser:
     p_run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p_run.set_defaults(func=cmd_run)
 
-    for name, module, func, helptext in (
-        ("reproduce", "aasoatt_env.reproduce", "main", "reproduce the paper's experiments"),
-        ("train", "train.train", "main", "train PPO"),
-        ("evaluate", "train.evaluate", "main", "evaluate controllers"),
-    ):
-        p = sub.add_parser(name, help=helptext, add_help=False)
+    for name, (module, _) in _FORWARDED.items():
+        p = sub.add_parser(name, help=f"see {module} (aasoatt {name} --help)", add_help=False)
         p.add_argument("rest", nargs=argparse.REMAINDER)
-        p.set_defaults(func=_forward(module, func))
     return parser
+
+
+_FORWARDED = {
+    "reproduce": ("aasoatt_env.reproduce", "main"),
+    "train": ("train.train", "main"),
+    "evaluate": ("train.evaluate", "main"),
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``aasoatt`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] in _FORWARDED:  # these parse their own options (incl. --help)
+        import importlib
+
+        module, func = _FORWARDED[argv[0]]
+        return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
     args = build_parser().parse_args(argv)
     return int(args.func(args))
 
