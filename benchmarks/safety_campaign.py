@@ -45,7 +45,8 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="N = 10, 39 and 2 seeds only")
     parser.add_argument("--solver", default="proxsuite")
     args = parser.parse_args()
-    print(f"{'run':34s} {'min gap':>10s} {'relaxed':>8s} {'failed':>7s} {'final err':>10s} {'coll.':>6s} {'time s':>8s}")
+    head = ("run", "min gap", "relaxed", "failed", "final err", "coll.", "time s")
+    print(f"{head[0]:34s} " + " ".join(f"{h:>{w}s}" for h, w in zip(head[1:], (10, 8, 7, 10, 6, 8))))
     circles = [(6.0, 12.0, n) for n in ((10, 39) if args.quick else (10, 20, 30, 35, 39))]
     if not args.quick:
         circles += [(10.0, 20.0, 60), (10.0, 20.0, 100)]
