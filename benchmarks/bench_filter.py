@@ -6,7 +6,11 @@ every robot has many neighbours inside D = 3 m.  For N <= 39 the circle swap
 (R = 6) snapshot near the centre crossing is timed as well.
 
 Columns (medians, one core):
-  step      SafetyFilter.step with proxsuite (neighbours + rows + QP + bookkeeping)
+  step      SafetyFilter.step, default solver, repeated on the same state: the warm
+            active-set path (qp.solve_active_set) is taken, as in a closed loop where
+            the active set changes little between steps
+  no-AS     the same step with the active-set path disabled (cold proxsuite each step,
+            the behaviour before it was added)
   prox      proxsuite solve only (same canonical QP)
   cvxopt    Robotarium-style cvxopt.solvers.qp on the same QP (solve only)
   osqp      OSQP on the same QP (solve only, polished, eps 1e-7)
@@ -27,6 +31,7 @@ import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 
 import aasoatt_env.safety.core as core  # noqa: E402
+import aasoatt_env.safety.qp as qpmod  # noqa: E402
 from aasoatt_env.dynamics import input_bounds, kinematics, pose_from_point  # noqa: E402
 from aasoatt_env.params import make_team  # noqa: E402
 from aasoatt_env.safety import SafetyFilter, solve_qp  # noqa: E402
@@ -91,10 +96,16 @@ def bench(label, team, snap, reps, with_cvxopt):
     core.solve_qp = real
     prob = probs[-1]
     t_step = timed(lambda: f.step(kin, u, theta, nom, lo, hi, reference=ref), reps)
+    real_as = qpmod.solve_active_set
+    qpmod.solve_active_set = lambda *a, **k: None
+    try:
+        t_old = timed(lambda: f.step(kin, u, theta, nom, lo, hi, reference=ref), max(1, reps // 3))
+    finally:
+        qpmod.solve_active_set = real_as
     t_prox = timed(lambda: solve_qp(prob, "proxsuite"), reps)
     t_cvx = timed(lambda: cvxopt_solve(prob), max(1, reps // 3)) if with_cvxopt else float("nan")
     t_osqp = timed(lambda: solve_qp(prob, "osqp"), max(1, reps // 3))
-    return label, team.n, res.n_rows, res.status, t_step, t_prox, t_cvx, t_osqp
+    return label, team.n, res.n_rows, res.status, t_step, t_old, t_prox, t_cvx, t_osqp
 
 
 def main() -> None:
@@ -109,11 +120,11 @@ def main() -> None:
     for n in sizes:
         rows.append(bench("packed", *packed(n), reps if n <= 300 else max(3, reps // 4), n <= 300 or not args.quick))
     ms = 1e3
-    print(f"{'scene':7s} {'N':>5s} {'rows':>6s} {'status':>8s} {'step ms':>9s} {'prox ms':>9s} "
-          f"{'cvxopt ms':>10s} {'osqp ms':>9s} {'cvx/step':>9s} {'osqp/step':>10s}")
-    for lab, n, m, st, a, b, c, d in rows:
-        print(f"{lab:7s} {n:5d} {m:6d} {st:>8s} {a * ms:9.2f} {b * ms:9.2f} {c * ms:10.2f} {d * ms:9.2f} "
-              f"{c / a:9.1f} {d / a:10.1f}")
+    print(f"{'scene':7s} {'N':>5s} {'rows':>6s} {'status':>8s} {'step ms':>9s} {'no-AS ms':>9s} {'noAS/step':>9s} "
+          f"{'prox ms':>9s} {'cvxopt ms':>10s} {'osqp ms':>9s} {'cvx/step':>9s} {'osqp/step':>10s}")
+    for lab, n, m, st, a, o, b, c, d in rows:
+        print(f"{lab:7s} {n:5d} {m:6d} {st:>8s} {a * ms:9.2f} {o * ms:9.2f} {o / a:9.1f} {b * ms:9.2f} {c * ms:10.2f} "
+              f"{d * ms:9.2f} {c / a:9.1f} {d / a:10.1f}")
 
 
 if __name__ == "__main__":

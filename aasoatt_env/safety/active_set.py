@@ -1,0 +1,130 @@
+"""Exact structured active-set solver for the safety QP (used first by the default back-end).
+
+The scaled problem (:class:`aasoatt_env.safety.qp.QPProblem`) has a 2x2
+block-diagonal Hessian ``H = L L^T``.  In ``y = L^T x`` the objective is
+``0.5 |y|^2 + gt'y`` and every constraint (rows and box, written as
+``M x <= b``) becomes ``Mt y <= b`` with ``Mt = M L^-T`` (each row still touches
+at most two robots).  For a working set ``W`` the equality-constrained problem is
+solved through the Schur complement ``S = Mt_W Mt_W^T`` (dense below
+:data:`DENSE_MAX_ROWS` working rows, sparse LU above), and the working set is
+updated by the primal-dual active-set rule (Hintermueller, Ito, Kunisch 2002):
+``W = {k: lambda_k + (Mt y - b)_k > 0}``.  A result is returned only when the
+full KKT conditions hold (primal feasibility of every row and bound within
+:data:`TOL`, ``lambda >= -TOL``), so the point is the exact optimum; otherwise
+(no convergence in ``max_iter``, singular working set, infeasible problem) the
+caller falls back to a general solver.  The working set is seeded
+from the previous step (positive multipliers, active bounds); the method is
+only tried with such a warm start and for a few iterations, because the
+PDAS rule alone can cycle or meet inconsistent working sets on these rows
+(seen on cold starts of packed layouts): then ``None`` and the general solver.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+__all__ = ["DENSE_MAX_ROWS", "TOL", "solve_active_set"]
+
+DENSE_MAX_VARS: int = 80
+"""Problems up to this many variables use dense algebra."""
+DENSE_MAX_ROWS: int = 500
+"""Working sets up to this size use a dense Cholesky of the Schur complement."""
+TOL: float = 1e-10
+"""Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
+
+
+def solve_active_set(prob, x0, z0, max_iter: int = 6):
+    """``(x, z, iterations)`` at the verified optimum, or ``None`` (fall back)."""
+    n, m = prob.n, prob.m
+    nb = n // 2
+    if n == 0 or n % 2:
+        return None
+    Hb = prob.H_blocks
+    # L^{-T} per block: x = Linv_T y
+    try:
+        L = np.linalg.cholesky(Hb)
+    except np.linalg.LinAlgError:
+        return None
+    Linv = np.linalg.inv(L)  # (nb, 2, 2)
+    LinvT = np.transpose(Linv, (0, 2, 1))
+    gt = np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel()
+    # constraint matrix in y: rows of C, +bounds (x <= ub), -bounds (-x <= lb)
+    Tm = sp.csr_matrix((LinvT.reshape(-1), np.repeat(np.arange(n).reshape(nb, 2), 2, axis=0).reshape(-1),
+                        np.arange(0, 2 * n + 1, 2)), shape=(n, n))
+    Ct = (prob.C @ Tm).tocsr() if m else sp.csr_matrix((0, n))
+    # bound rows: +-e_k^T Linv_T = +-row k of Linv_T
+    Lrows = sp.csr_matrix(Tm)
+    Mt = sp.vstack((Ct, Lrows, -Lrows), format="csr")
+    b = np.concatenate((prob.u, prob.ub, -prob.lb))
+    mt = m + 2 * n
+    dense = n <= DENSE_MAX_VARS
+    Md = Mt.toarray() if dense else None
+    # initial working set
+    if z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
+        return None
+    W = np.zeros(mt, dtype=bool)
+    # rows with a positive multiplier that are (nearly) tight at x0: proxsuite leaves
+    # ~1e-10 multipliers on slack rows, which would crowd the working set
+    W[:m] = (z0 > 0) & ((prob.C @ x0 - prob.u) > -1e-6) if m else False
+    W[m:m + n] = x0 >= prob.ub - 1e-9
+    W[m + n:] = x0 <= prob.lb + 1e-9
+    lam = np.zeros(mt)
+    for it in range(1, max_iter + 1):
+        idx = np.flatnonzero(W)
+        k = idx.shape[0]
+        if k:
+            if dense:
+                Mw = Md[idx]
+                S = Mw @ Mw.T
+                rhs = -(Mw @ gt) - b[idx]
+                delta = 1e-9 * max(float(np.max(np.diag(S))), 1e-300)
+                Sr = S + delta * np.eye(k)
+                try:
+                    if k <= DENSE_MAX_ROWS:
+                        cf = np.linalg.cholesky(Sr)
+                        solve = lambda v: np.linalg.solve(cf.T, np.linalg.solve(cf, v))  # noqa: E731
+                    else:
+                        lu = spla.splu(sp.csc_matrix(Sr))
+                        solve = lu.solve
+                except (np.linalg.LinAlgError, RuntimeError):
+                    return None
+                lw = _refine(solve, S, rhs)
+                y = -gt - Mw.T @ lw
+            else:
+                Mw = Mt[idx]
+                S = (Mw @ Mw.T).tocsc()
+                rhs = -(Mw @ gt) - b[idx]
+                delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
+                try:
+                    lu = spla.splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
+                except RuntimeError:
+                    return None
+                lw = _refine(lu.solve, S, rhs)
+                y = -gt - Mw.T @ lw
+            if not np.all(np.isfinite(lw)):
+                return None
+        else:
+            lw = np.zeros(0)
+            y = -gt
+        lam[:] = 0.0
+        lam[idx] = lw
+        r = ((Md @ y) if dense else (Mt @ y)) - b
+        if r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL:
+            x = np.einsum("nij,nj->ni", LinvT, y.reshape(nb, 2)).ravel()
+            return x, np.maximum(lam[:m], 0.0), it
+        Wn = (lam + r) > 0
+        if np.array_equal(Wn, W):
+            return None
+        W = Wn
+    return None
+
+
+def _refine(solve, S, rhs, steps: int = 4):
+    """Proximal iterative refinement: solves consistent (possibly singular) ``S l = rhs``."""
+    lw = solve(rhs)
+    for _ in range(steps):
+        res = rhs - S @ lw
+        lw = lw + solve(res)
+    return lw
