@@ -1,4 +1,7 @@
-"""Tests of ``aasoatt reproduce``: the quick suite runs end to end and writes sane files."""
+"""Tests of ``aasoatt reproduce``: the quick suite runs end to end and writes sane files.
+
+The end-to-end tests (``all --quick``, about a minute) are marked ``slow``.
+"""
 
 from __future__ import annotations
 
@@ -36,6 +39,7 @@ def _rows(path: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(fh))
 
 
+@pytest.mark.slow
 def test_all_quick_writes_files(quick_results: Path) -> None:
     assert set(QUICK_FILES) == set(EXPERIMENTS)
     for name, figs in QUICK_FILES.items():
@@ -52,6 +56,7 @@ def test_all_quick_writes_files(quick_results: Path) -> None:
     assert "Total wall time" in summary
 
 
+@pytest.mark.slow
 def test_csv_numbers_finite(quick_results: Path) -> None:
     for name in EXPERIMENTS:
         rows = _rows(quick_results / name / f"{name}.csv")
@@ -67,6 +72,7 @@ def test_csv_numbers_finite(quick_results: Path) -> None:
                 assert math.isfinite(float(row["intervention_time"]))
 
 
+@pytest.mark.slow
 def test_markdown_has_paper_columns(quick_results: Path) -> None:
     md = (quick_results / "compare-ca" / "README.md").read_text()
     for col in ("IT [s] paper", "IT [s] ours", "RMSE paper", "RMSE ours", "MAE paper", "std paper", "rel."):
@@ -78,6 +84,7 @@ def test_markdown_has_paper_columns(quick_results: Path) -> None:
     assert "eqn.12a" in md3 and "eqn.13" in md3
 
 
+@pytest.mark.slow
 def test_table1_ours_beats_sbc_k3_10(quick_results: Path) -> None:
     rows = {(r["trajectory"], r["controller"]): r for r in _rows(quick_results / "table1" / "table1.csv")}
     for traj in ("straight", "sine", "circle"):
@@ -86,6 +93,7 @@ def test_table1_ours_beats_sbc_k3_10(quick_results: Path) -> None:
         assert float(rows[(traj, "SBC k3=80")]["rmse"]) < float(rows[(traj, "SBC k3=10")]["rmse"])
 
 
+@pytest.mark.slow
 def test_quick_runs_are_safe_and_solved(quick_results: Path) -> None:
     rows = _rows(quick_results / "compare-ca" / "compare-ca.csv")
     for row in rows:
@@ -95,6 +103,7 @@ def test_quick_runs_are_safe_and_solved(quick_results: Path) -> None:
     assert it["eqn.n7"] == max(it.values())
 
 
+@pytest.mark.slow
 def test_table1_deterministic_across_jobs(tmp_path: Path) -> None:
     a, b = tmp_path / "a", tmp_path / "b"
     assert main(["table1", "--quick", "--out", str(a), "--no-progress"]) == 0
