@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -84,7 +84,6 @@ class Settings:
     safety_margin: float = 0.0
     progress: bool = True
     command: str = "aasoatt reproduce"
-    extra: dict[str, Any] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------------- helpers
@@ -258,8 +257,6 @@ def table1(s: Settings) -> Report:
         "specify, hence larger relative differences on MAE/std."
     )
     fig, axes = new_figure(1, 3, (12, 3.4))
-    from aasoatt_env.env import AASOATTParallelEnv  # noqa: F401 - keeps figure code import-light
-
     for ax, traj in zip(axes[0], TABLE1_TRAJECTORIES):
         for ctrl in TABLE1_CONTROLLERS:
             tr = res[f"{traj}/{ctrl}"].traces
