@@ -66,6 +66,9 @@ class TrainConfig:
         Override of the episode horizon in env steps.
     reward : dict
         :class:`~aasoatt_env.env.RewardConfig` fields.
+    velocity_tracking : float
+        Weight of the training-only shaping term ``-|v_i - v_d_i|``
+        (:class:`train.vec_env.VelocityTrackingShaping`; 0: off).
     filter : bool
         Train behind :class:`~aasoatt_env.safety.wrapper.AASOATTFilter`.
     filter_kwargs : dict
@@ -86,6 +89,13 @@ class TrainConfig:
         Hidden layers of the policy and value MLPs.
     log_std_init : float
         Initial log standard deviation of the Gaussian policy.
+    policy_prior : {"none", "tracking"}
+        ``"tracking"``: :class:`train.policy.TrackingPriorPolicy`, whose action
+        mean is a trainable linear layer on the raw observation initialised to
+        the tracking law plus the MLP (needs ``action_mode="point"`` and
+        ``normalize_obs=False``); ``"none"``: SB3's ``MlpPolicy``.
+    prior_gains : list of two floats
+        ``[k3, k4]`` of the tracking-law prior.
     normalize_obs : bool
         Normalise observations with ``VecNormalize`` (running statistics are
         saved with the model and used by :class:`agents.learned.LearnedAgent`).
@@ -120,6 +130,7 @@ class TrainConfig:
     terminate_on_collision: bool = False
     max_steps: int | None = None
     reward: dict[str, float] = field(default_factory=dict)
+    velocity_tracking: float = 0.0
     filter: bool = False
     filter_kwargs: dict[str, Any] = field(default_factory=dict)
     total_timesteps: int = 1_200_000
@@ -137,6 +148,8 @@ class TrainConfig:
     max_grad_norm: float = 0.5
     net_arch: list[int] = field(default_factory=lambda: [64, 64])
     log_std_init: float = -1.0
+    policy_prior: str = "none"
+    prior_gains: list[float] = field(default_factory=lambda: [1.0, 4.0])
     normalize_obs: bool = True
     normalize_reward: bool = True
     out_dir: str = "runs"
@@ -189,8 +202,21 @@ class TrainConfig:
         self._float("clip_range", 0.0, 10.0, lo_open=True)
         self._float("ent_coef", 0.0)
         self._float("vf_coef", 0.0)
+        self._float("velocity_tracking", 0.0)
         self._float("max_grad_norm", 0.0, lo_open=True)
         self._float("log_std_init", -20.0, 5.0)
+        if self.policy_prior not in ("none", "tracking"):
+            raise self._err("policy_prior", "one of ['none', 'tracking']")
+        if not (isinstance(self.prior_gains, (list, tuple)) and len(self.prior_gains) == 2
+                and all(isinstance(g, (int, float)) and not isinstance(g, bool) and math.isfinite(g) and g > 0
+                        for g in self.prior_gains)):
+            raise self._err("prior_gains", "two positive numbers [k3, k4]")
+        self.prior_gains = [float(g) for g in self.prior_gains]
+        if self.policy_prior == "tracking" and (self.action_mode != "point" or self.normalize_obs):
+            raise ConfigError(
+                f"TrainConfig.policy_prior: got 'tracking' with action_mode={self.action_mode!r}, "
+                f"normalize_obs={self.normalize_obs!r}, expected action_mode='point' and normalize_obs=false"
+            )
         if self.action_mode not in _ACTION_MODES:
             raise self._err("action_mode", f"one of {list(_ACTION_MODES)}")
         for name in ("terminate_on_collision", "filter", "normalize_obs", "normalize_reward", "tensorboard",
@@ -312,6 +338,8 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
         flag = "--" + f.name.replace("_", "-")
         if f.name == "net_arch":
             parser.add_argument(flag, dest=f.name, type=int, nargs="+", default=None, help=f"default {default}")
+        elif f.name == "prior_gains":
+            parser.add_argument(flag, dest=f.name, type=float, nargs=2, default=None, help=f"default {default}")
         elif isinstance(default, bool):
             parser.add_argument(flag, dest=f.name, type=_bool, default=None, metavar="BOOL", help=f"default {default}")
         elif isinstance(default, int):

@@ -88,9 +88,12 @@ def make_vec_env(config: TrainConfig, training: bool = True) -> Any:
     """``VecNormalize?(VecMonitor(ParallelVecEnv))`` with ``config.n_envs`` envs."""
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
-    from train.vec_env import ParallelVecEnv
+    from train.vec_env import ParallelVecEnv, VelocityTrackingShaping
 
-    venv: Any = VecMonitor(ParallelVecEnv([lambda: make_env(config) for _ in range(config.n_envs)]))
+    venv: Any = ParallelVecEnv([lambda: make_env(config) for _ in range(config.n_envs)])
+    if config.velocity_tracking:
+        venv = VelocityTrackingShaping(venv, config.velocity_tracking)
+    venv = VecMonitor(venv)
     if config.normalize_obs or config.normalize_reward:
         venv = VecNormalize(
             venv, training=training, norm_obs=config.normalize_obs, norm_reward=config.normalize_reward,
@@ -117,14 +120,34 @@ def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = No
     import torch
     from stable_baselines3 import PPO
 
+    from aasoatt_env.errors import ConfigError
+
     torch.set_num_threads(config.torch_threads)
+    policy: Any = "MlpPolicy"
+    policy_kwargs: dict[str, Any] = dict(net_arch=list(config.net_arch), log_std_init=config.log_std_init)
+    if config.policy_prior == "tracking":
+        import numpy as np
+
+        from train.policy import TrackingPriorPolicy, tracking_prior_matrix
+
+        probe = make_env(config, filter=False)
+        probe.reset(seed=0)
+        amax = np.asarray(probe.unwrapped.team.max_point_accel, dtype=float)
+        probe.close()
+        if not np.allclose(amax, amax[0]):
+            raise ConfigError("TrainConfig.policy_prior: got robots with different max_point_accel, "
+                              "expected one team-wide value for the shared tracking prior")
+        k3, k4 = config.prior_gains
+        policy = TrackingPriorPolicy
+        policy_kwargs["prior_matrix"] = tracking_prior_matrix(
+            int(np.prod(venv.observation_space.shape)), k3, k4, float(amax[0])).tolist()
     return PPO(
-        "MlpPolicy", venv,
+        policy, venv,
         learning_rate=config.learning_rate, n_steps=config.n_steps, batch_size=config.batch_size,
         n_epochs=config.n_epochs, gamma=config.gamma, gae_lambda=config.gae_lambda,
         clip_range=config.clip_range, ent_coef=config.ent_coef, vf_coef=config.vf_coef,
         max_grad_norm=config.max_grad_norm,
-        policy_kwargs=dict(net_arch=list(config.net_arch), log_std_init=config.log_std_init),
+        policy_kwargs=policy_kwargs,
         tensorboard_log=tensorboard_log, seed=config.seed, device=config.device, verbose=config.verbose,
     )
 

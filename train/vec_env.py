@@ -41,7 +41,13 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
-from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices, VecEnvObs, VecEnvStepReturn
+from stable_baselines3.common.vec_env.base_vec_env import (
+    VecEnv,
+    VecEnvIndices,
+    VecEnvObs,
+    VecEnvStepReturn,
+    VecEnvWrapper,
+)
 
 __all__ = ["ParallelVecEnv"]
 
@@ -199,3 +205,36 @@ class ParallelVecEnv(VecEnv):
     def live_slots(self) -> np.ndarray:
         """Boolean mask of slots whose robot is alive (a copy)."""
         return self._live.copy()
+
+
+class VelocityTrackingShaping(VecEnvWrapper):
+    """Add ``-weight * |v_i - v_d_i|`` to each slot's reward (velocity-tracking error).
+
+    The env's tracking reward ``-|p_i - p_d_i|`` reacts to an acceleration
+    only after several decisions (position is its double integral), so its
+    credit assignment is slow and noisy; the velocity error ``v_i - v_d_i``
+    (observation entries 4:6 and 10:12, see :mod:`aasoatt_env.observations`)
+    responds within one decision.  Penalising both is the reward counterpart of
+    the tracking law's PD feedback on ``(p - p_d, v - v_d)``.  The error is read
+    from the observation *after* the step (``terminal_observation`` for slots
+    whose episode ended); dead slots (``infos[slot]["dead"]``) get nothing.
+    """
+
+    def __init__(self, venv: VecEnv, weight: float) -> None:
+        super().__init__(venv)
+        self.weight = float(weight)
+
+    def reset(self) -> VecEnvObs:
+        return self.venv.reset()
+
+    def step_wait(self) -> VecEnvStepReturn:
+        obs, rewards, dones, infos = self.venv.step_wait()
+        o = np.array(obs, dtype=np.float64, copy=True)
+        for s in np.flatnonzero(dones):
+            term = infos[s].get("terminal_observation")
+            if term is not None:
+                o[s] = term
+        err = np.linalg.norm(o[:, 4:6] - o[:, 10:12], axis=1)
+        dead = np.array([bool(info.get("dead", False)) for info in infos])
+        rewards = rewards - (self.weight * err * ~dead).astype(rewards.dtype)
+        return obs, rewards, dones, infos
