@@ -59,7 +59,7 @@ def test_without_deadlock_resolution_robots_get_stuck():
 
 @pytest.mark.parametrize("other", ["quadprog", "clarabel"])
 def test_warm_started_active_set_path_matches_independent_solver(swap10, other):
-    # the default solver first tries a warm-started active-set method (KKT-verified);
+    # FilterConfig(active_set=True) first tries a warm-started active-set method (KKT-verified);
     # warm-start each recorded problem from the optimum of a perturbed copy, as the
     # previous control step would, and compare with an independent solver
     import dataclasses
@@ -69,8 +69,8 @@ def test_warm_started_active_set_path_matches_independent_solver(swap10, other):
     took_fast = 0
     for prob in recorded[:250]:
         prev = dataclasses.replace(prob, g=prob.g + rng.normal(0, 0.02, prob.n))
-        warm = solve_qp(prev, "proxsuite", no_active_set=True)
-        ours = solve_qp(prob, "proxsuite", warm.x, warm.z)
+        warm = solve_qp(prev, "proxsuite")
+        ours = solve_qp(prob, "proxsuite", warm.x, warm.z, active_set=True)
         ref = solve_qp(prob, other)
         took_fast += ours.message.startswith("active set")
         assert ours.status == ref.status == "solved"

@@ -87,18 +87,22 @@ class TrackingPriorPolicy(ActorCriticPolicy):
 
     # the raw observation feeds the prior, the scaled one the MLPs
     def forward(self, obs: th.Tensor, deterministic: bool = False) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """Actions, values and log-probabilities (the prior reads the unscaled observation)."""
         self._raw_obs = obs.float()
         return super().forward(obs * self.input_scale, deterministic)
 
     def evaluate_actions(self, obs: Any, actions: th.Tensor) -> tuple[th.Tensor, th.Tensor, th.Tensor | None]:
+        """Values, log-probabilities and entropy of ``actions`` (prior on the raw observation)."""
         self._raw_obs = obs.float()
         return super().evaluate_actions(obs * self.input_scale, actions)
 
     def get_distribution(self, obs: Any) -> Distribution:
+        """Action distribution (prior on the raw observation)."""
         self._raw_obs = obs.float()
         return super().get_distribution(obs * self.input_scale)
 
     def predict_values(self, obs: Any) -> th.Tensor:
+        """State values of the scaled observation."""
         return super().predict_values(obs * self.input_scale)
 
     def _get_action_dist_from_latent(self, latent_pi: th.Tensor) -> Distribution:

@@ -21,6 +21,8 @@ PDAS rule alone can cycle or meet inconsistent working sets on these rows
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -33,6 +35,10 @@ DENSE_MAX_ROWS: int = 500
 """Working sets up to this size use a dense Cholesky of the Schur complement."""
 TOL: float = 1e-10
 """Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
+
+
+def _cholesky_solve(cf: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return np.linalg.solve(cf.T, np.linalg.solve(cf, v))
 
 
 def solve_active_set(prob, x0, z0, max_iter: int = 6):
@@ -84,7 +90,7 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
                 try:
                     if k <= DENSE_MAX_ROWS:
                         cf = np.linalg.cholesky(Sr)
-                        solve = lambda v: np.linalg.solve(cf.T, np.linalg.solve(cf, v))  # noqa: E731
+                        solve = functools.partial(_cholesky_solve, cf)
                     else:
                         lu = spla.splu(sp.csc_matrix(Sr))
                         solve = lu.solve

@@ -225,6 +225,8 @@ class SafetyFilter:
         keys = ri.astype(np.int64) * (m_obs + 1) + np.where(rj >= 0, rj, n - 1 - pairs_out[:, 1])
         z0 = self._map_warm(keys)
         opts: dict[str, float] = {"iterations": cfg.neural_iterations} if cfg.solver == "neural" else {}
+        if cfg.active_set:
+            opts["active_set"] = True
         sol = solve_qp(prob, cfg.solver, self._x, z0, **opts)
         x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
         du = np.clip((x * prob.scale).reshape(n, 2), lo, hi)

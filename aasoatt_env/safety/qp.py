@@ -30,10 +30,11 @@ Solvers (:data:`SOLVERS`, by name):
     Optional, used when installed.
 
 Infeasibility verdicts are never trusted: :func:`solve_qp` confirms them with a
-phase-1 problem ``min t^2 s.t. box, C x - t <= u`` (always feasible; bounds
-stay hard).  If the least uniform violation ``t*`` is ~0 the problem is
-re-solved with rows loosened by a hair (status ``"solved"``), otherwise by
-``t*`` (status ``"relaxed"``).
+phase-1 problem ``min |s|^2 s.t. box, C x - s <= u, s >= 0`` (always feasible;
+bounds stay hard; one slack per row, so only the rows that cannot be met are
+loosened).  If every least violation ``s*_k`` is ~0 the problem is re-solved
+with rows loosened by a hair (status ``"solved"``), otherwise each row by its
+own ``s*_k`` (status ``"relaxed"``, ``slack = max_k s*_k``).
 """
 
 from __future__ import annotations
@@ -370,18 +371,33 @@ def get_solver(name: str) -> Backend:
     return fn
 
 
-def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, float] | None:
-    """Least uniform row violation ``t*`` (bounds hard); None if even this fails."""
+def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, np.ndarray] | None:
+    """Least row violations ``s* >= 0`` (one slack per row, bounds hard); None if even this fails.
+
+    Solves ``min 0.5 |s|^2 (+ a 1e-8 regulariser on x)  s.t.  C x - s <= u, lb <= x <= ub``.
+    A slack per row means one hopeless row (say a pair already inside ``d_s``) is
+    loosened alone: every row that can still be met keeps (numerically) zero slack.
+    """
     n, m = prob.n, prob.m
     reg = 1e-8
-    Hb = np.concatenate((prob.H_blocks * reg, np.zeros((1, 2, 2))))
-    Hb[-1] = np.diag([1.0, 1.0])
-    C = sp.hstack((prob.C, -np.ones((m, 1)), sp.csr_matrix((m, 1))), format="csr")
+    pad = m % 2  # keep 2x2 Hessian blocks
+    ns = m + pad
+    Hb = np.concatenate((prob.H_blocks * reg, np.broadcast_to(np.eye(2), (ns // 2, 2, 2))))
+    if pad:
+        Hb = Hb.copy()
+        Hb[-1, 1, 1] = 1.0  # the padding variable is fixed to 0 by its bounds
+    blocks = [prob.C, -sp.identity(m, format="csr")]
+    if pad:
+        blocks.append(sp.csr_matrix((m, 1)))
+    C = sp.hstack(blocks, format="csr")
     big = 1e6
+    ub_s = np.full(ns, big)
+    if pad:
+        ub_s[-1] = 0.0
     p1 = QPProblem(
-        H_blocks=Hb, g=np.zeros(n + 2), C=C, u=prob.u,
-        lb=np.concatenate((prob.lb, [0.0, 0.0])), ub=np.concatenate((prob.ub, [big, 0.0])),
-        scale=np.ones(n + 2), obj_scale=1.0, row_norm=np.ones(m), diagonal=prob.diagonal,
+        H_blocks=Hb, g=np.zeros(n + ns), C=C, u=prob.u,
+        lb=np.concatenate((prob.lb, np.zeros(ns))), ub=np.concatenate((prob.ub, ub_s)),
+        scale=np.ones(n + ns), obj_scale=1.0, row_norm=np.ones(m), diagonal=prob.diagonal,
     )
     raw = backend(p1, None, None, opts)
     if not raw.ok or raw.x is None:
@@ -390,8 +406,8 @@ def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, 
         if not raw.ok or raw.x is None:
             return None
     x = np.clip(raw.x[:n], prob.lb, prob.ub)
-    viol = float(np.max(prob.C @ x - prob.u, initial=0.0))
-    return x, max(viol, 0.0)
+    viol = np.maximum(prob.C @ x - prob.u, 0.0)
+    return x, viol
 
 
 def solve_qp(
@@ -414,7 +430,7 @@ def solve_qp(
     if solver == "neural":
         raw = backend(prob, x0, z0, opts)
         return QPSolution(raw.x, raw.z, "solved", 0.0, raw.iterations, raw.message, time.perf_counter() - t0)
-    if solver == "proxsuite" and x0 is not None and z0 is not None and not opts.get("no_active_set"):
+    if solver == "proxsuite" and x0 is not None and z0 is not None and opts.get("active_set"):
         fast = solve_active_set(prob, x0, z0)
         if fast is not None:
             return QPSolution(fast[0], fast[1], "solved", 0.0, fast[2], "active set (warm, KKT verified)",
@@ -429,14 +445,15 @@ def solve_qp(
         x = np.clip(_unconstrained(prob), prob.lb, prob.ub)
         return QPSolution(x, np.zeros(prob.m), "failed", 0.0, raw.iterations,
                           f"{solver}: {first}; phase-1 failed too", time.perf_counter() - t0)
-    x1, tstar = p1
+    x1, viol = p1
+    tstar = float(np.max(viol, initial=0.0))
     relaxed = tstar > _FEAS_TOL
-    loosen = tstar * (1.0 + 1e-6) + _FEAS_TOL
+    loosen = viol * (1.0 + 1e-6) + _FEAS_TOL
     p2 = QPProblem(prob.H_blocks, prob.g, prob.C, prob.u + loosen, prob.lb, prob.ub, prob.scale,
                    prob.obj_scale, prob.row_norm, prob.diagonal)
     raw2 = backend(p2, x1, None, opts)
     status = "relaxed" if relaxed else "solved"
-    msg = f"{solver}: {first}; phase-1 violation {tstar:.3g}"
+    msg = f"{solver}: {first}; phase-1 largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
     if raw2.ok:
         return QPSolution(raw2.x, _nonneg(raw2.z, prob.m), status, tstar if relaxed else 0.0,
                           raw.iterations + raw2.iterations, msg, time.perf_counter() - t0)
