@@ -67,7 +67,9 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="results", help="results root directory (default: results)")
     p.add_argument("--jobs", type=int, default=1, help="worker processes for independent runs (default: 1)")
     p.add_argument(
-        "--solver", default="daqp", help="QP solver of the safety filter (default: daqp; the paper's is 'neural')"
+        "--solver",
+        default=None,
+        help="QP solver of the safety filter (default: daqp if installed, else proxsuite; the paper's is 'neural')",
     )
     p.add_argument(
         "--safety-margin",
@@ -87,6 +89,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
     from aasoatt_env.safety import available_solvers
 
+    if args.solver is None:
+        args.solver = "daqp" if "daqp" in available_solvers() else "proxsuite"
+        if args.solver != "daqp":
+            print(
+                'note: DAQP is not installed (pip install "aasoatt[repro]"); using proxsuite (same '
+                "results, about 5x slower)",
+                file=sys.stderr,
+            )
     if args.solver not in available_solvers():
         print(f"--solver: got {args.solver!r}, expected one of {available_solvers()}", file=sys.stderr)
         return 2
