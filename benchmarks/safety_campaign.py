@@ -3,7 +3,9 @@
 Runs, with the paper's method (TrackingController behind AASOATTFilter, defaults):
 
 * circle swap radius 6, 12 s (+3 s settling), N = 10, 20, 30, 35, 39;
-* circle swap radius 10, 20 s (+3 s settling), N = 60, 100;
+* circle swap radius 10, 20 s (+3 s settling), N = 60 (paper robots) and N = 100
+  (robots of radius 0.3, as in ``aasoatt reproduce swarm100``: 100 robots of the
+  paper's radius 0.48 do not fit on a radius-10 circle);
 
 and, behind the filter, uniform random actions and a hostile policy (every
 robot accelerates at its nearest neighbour) on RandomGoals with 20 robots,
@@ -23,7 +25,9 @@ import numpy as np
 
 from aasoatt_env import AASOATTParallelEnv
 from aasoatt_env.metrics import collisions, pairwise_min_distance
+from aasoatt_env.params import RobotParams
 from aasoatt_env.recording import run_episode
+from aasoatt_env.reproduce.experiments import SWARM_ROBOT_RADIUS
 from aasoatt_env.safety.wrapper import AASOATTFilter
 from agents import HostileAgent, RandomAgent, TrackingController
 
@@ -44,21 +48,27 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="N = 10, 39 and 2 seeds only")
     parser.add_argument("--solver", default="proxsuite")
+    parser.add_argument("--only", choices=("circle", "random"), help="run only the circle swaps or only RandomGoals")
     args = parser.parse_args()
     head = ("run", "min gap", "relaxed", "failed", "final err", "coll.", "time s")
     print(f"{head[0]:34s} " + " ".join(f"{h:>{w}s}" for h, w in zip(head[1:], (10, 8, 7, 10, 6, 8))))
-    circles = [(6.0, 12.0, n) for n in ((10, 39) if args.quick else (10, 20, 30, 35, 39))]
+    circles = [(6.0, 12.0, n, None) for n in ((10, 39) if args.quick else (10, 20, 30, 35, 39))]
     if not args.quick:
-        circles += [(10.0, 20.0, 60), (10.0, 20.0, 100)]
-    for radius, duration, n in circles:
+        circles += [(10.0, 20.0, 60, None), (10.0, 20.0, 100, RobotParams(radius=SWARM_ROBOT_RADIUS))]
+    if args.only == "random":
+        circles = []
+    for radius, duration, n, robots in circles:
+        kwargs = {} if robots is None else {"robots": robots}
         env = AASOATTFilter(
-            AASOATTParallelEnv("circle_swap", num_robots=n, radius=radius, duration=duration, settle_time=3.0),
+            AASOATTParallelEnv(
+                "circle_swap", num_robots=n, radius=radius, duration=duration, settle_time=3.0, **kwargs
+            ),
             solver=args.solver,
         )
         t = time.perf_counter()
         rollout, _ = run_episode(env, TrackingController(), seed=0)
         print(_row(f"circle R={radius:g} N={n}", rollout, time.perf_counter() - t, True), flush=True)
-    seeds = range(2 if args.quick else 10)
+    seeds = range(0 if args.only == "circle" else 2 if args.quick else 10)
     for name, agent in (("random", RandomAgent(seed=0)), ("hostile", HostileAgent())):
         for seed in seeds:
             env = AASOATTFilter(AASOATTParallelEnv("random_goals", num_robots=20, max_steps=2000), solver=args.solver)
