@@ -29,7 +29,7 @@ from aasoatt_env.safety.barriers import BarrierParams, PairGeometry, barrier_row
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import NEEDS_REFERENCE, DeadlockState, rotation, target_correction, trigger
 from aasoatt_env.safety.neighbors import obstacle_pairs, robot_pairs
-from aasoatt_env.safety.qp import build_problem, solve_qp
+from aasoatt_env.safety.qp import box_least_squares, build_problem, solve_qp
 
 __all__ = ["FilterResult", "SafetyFilter"]
 
@@ -64,6 +64,9 @@ class FilterResult:
         Wall time of the whole step [s].
     n_rows : int
         Number of barrier rows.
+    n_qp_rows : int
+        Rows passed to the QP solver (with ``decompose``: those of the components
+        with a row the closed-form answer violates; 0 when no QP was needed).
     """
 
     status: str
@@ -78,11 +81,35 @@ class FilterResult:
     iterations: int
     solve_time: float
     n_rows: int
+    n_qp_rows: int = 0
 
     @property
     def obstacle_rows(self) -> np.ndarray:
         """Boolean ``(n_rows,)``: row is a robot-obstacle row."""
         return self.pairs[:, 1] < 0
+
+
+def _components(n: int, ri: np.ndarray, rj: np.ndarray) -> np.ndarray:
+    """Connected-component label ``(n,)`` of the robots, edges = robot-robot rows.
+
+    Min-label propagation with pointer jumping (vectorised; a handful of passes
+    for the contact graphs met here).  Robots of one component share the label of
+    its smallest index.
+    """
+    rr = rj >= 0
+    a, b = ri[rr], rj[rr]
+    lab = np.arange(n)
+    while True:
+        low = np.minimum(lab[a], lab[b])
+        new = lab.copy()
+        np.minimum.at(new, a, low)
+        np.minimum.at(new, b, low)
+        np.minimum.at(new, lab[a], low)  # hook the old roots too
+        np.minimum.at(new, lab[b], low)
+        new = new[new]
+        if np.array_equal(new, lab):
+            return lab
+        lab = new
 
 
 class SafetyFilter:
@@ -220,37 +247,76 @@ class SafetyFilter:
         # QP ----------------------------------------------------------------------------
         scale = np.maximum(team.max_wheel_accel, np.max(np.maximum(np.abs(lo), np.abs(hi)), axis=1))
         scale = np.where(scale > 0, scale, 1.0)
-        prob = build_problem(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs)
         m_obs = n + (0 if obstacles is None else int(np.asarray(obstacles[1]).size))
         keys = ri.astype(np.int64) * (m_obs + 1) + np.where(rj >= 0, rj, n - 1 - pairs_out[:, 1])
-        z0 = self._map_warm(keys)
-        opts: dict[str, float] = {"iterations": cfg.neural_iterations} if cfg.solver == "neural" else {}
-        if cfg.active_set:
-            opts["active_set"] = True
-        sol = solve_qp(prob, cfg.solver, self._x, z0, **opts)
-        x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
-        du = np.clip((x * prob.scale).reshape(n, 2), lo, hi)
-        z = np.where(np.isfinite(sol.z), sol.z, 0.0) if sol.z is not None else np.zeros(prob.m)
-        self._x, self._keys, self._z = x, keys, z
-        eta = prob.obj_scale * z / prob.row_norm
+        m = rhs.shape[0]
+        du = np.empty((n, 2))
+        if cfg.decompose and cfg.solver != "neural":
+            # Exact decomposition.  Without rows every robot's QP is a 2-variable box
+            # least squares (closed form).  The rows split the team into independent
+            # components; a component whose closed-form answers already satisfy all its
+            # rows is solved by them (optimal for the relaxation and feasible).  The QP
+            # couples only the components with a violated row.
+            du[:] = box_least_squares(A, target, lo, hi)
+            viol = self._row_values(Gi, Gj, ri, rj, du) - rhs
+            bad = viol > 0.0
+            coupled = np.zeros(n, dtype=bool)
+            if np.any(bad):
+                label = _components(n, ri, rj)
+                coupled = np.isin(label, label[ri[bad]])
+            rows = coupled[ri]
+        else:
+            coupled, rows = np.ones(n, dtype=bool), np.ones(m, dtype=bool)
+        sub = np.flatnonzero(coupled)
+        x_full = du / scale[:, None]
+        z = np.zeros(m)
+        eta = np.zeros(m)
+        if sub.size:
+            remap = np.full(n, -1, dtype=np.intp)
+            remap[sub] = np.arange(sub.size)
+            qri, qrj = ri[rows], rj[rows]
+            sri, srj = remap[qri], np.where(qrj >= 0, remap[np.maximum(qrj, 0)], -1)
+            prob = build_problem(A[sub], target[sub], lo[sub], hi[sub], scale[sub], sri, srj,
+                                 Gi[rows], Gj[rows], rhs[rows])
+            z0 = self._map_warm(keys)
+            x0 = None if self._x is None else self._x.reshape(n, 2)[sub].ravel()
+            opts: dict[str, float] = {"iterations": cfg.neural_iterations} if cfg.solver == "neural" else {}
+            if cfg.active_set:
+                opts["active_set"] = True
+            sol = solve_qp(prob, cfg.solver, x0, None if z0 is None else z0[rows], **opts)
+            x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
+            du[sub] = np.clip((x * prob.scale).reshape(-1, 2), lo[sub], hi[sub])
+            x_full[sub] = x.reshape(-1, 2)
+            zs = np.where(np.isfinite(sol.z), sol.z, 0.0) if sol.z is not None else np.zeros(prob.m)
+            z[rows] = zs
+            eta[rows] = prob.obj_scale * zs / prob.row_norm
+            status, message, iterations, n_qp = sol.status, sol.message, sol.iterations, prob.m
+        else:
+            status, message, iterations, n_qp = "solved", "closed form: no row binds", 0, 0
+        self._x, self._keys, self._z = x_full.ravel(), keys, z
         active = z > cfg.eta_tol
         avoiding = np.zeros(n, dtype=bool)
         avoiding[ri[active]] = True
         avoiding[rj[active & (rj >= 0)]] = True
         self._dl.avoiding = avoiding
-        du_j = np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)])
-        viol = np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0) - rhs
-        slack = float(max(0.0, np.max(viol, initial=0.0))) if sol.status != "solved" or cfg.solver == "neural" else 0.0
+        viol = self._row_values(Gi, Gj, ri, rj, du) - rhs
+        slack = float(max(0.0, np.max(viol, initial=0.0))) if status != "solved" or cfg.solver == "neural" else 0.0
         correction = np.linalg.norm(du - nominal_du, axis=1)
         result = FilterResult(
-            status=sol.status, message=sol.message, eta=eta, pairs=pairs_out, avoiding=avoiding,
+            status=status, message=message, eta=eta, pairs=pairs_out, avoiding=avoiding,
             triggered=triggered, slack=slack, correction=correction,
-            intervened=correction > 1e-9 * scale, iterations=sol.iterations,
-            solve_time=time.perf_counter() - t0, n_rows=int(prob.m),
+            intervened=correction > 1e-9 * scale, iterations=iterations,
+            solve_time=time.perf_counter() - t0, n_rows=int(m), n_qp_rows=int(n_qp),
         )
         return du, result
 
     # ------------------------------------------------------------------ helpers
+    @staticmethod
+    def _row_values(Gi: np.ndarray, Gj: np.ndarray, ri: np.ndarray, rj: np.ndarray, du: np.ndarray) -> np.ndarray:
+        """``G du`` row by row (``Gj`` ignored on obstacle rows)."""
+        du_j = np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)])
+        return np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0)
+
     def _map_warm(self, keys: np.ndarray) -> np.ndarray | None:
         if self._x is None:
             return None
@@ -271,22 +337,32 @@ class SafetyFilter:
         nominal_du = np.asarray(nominal_du, dtype=np.float64)
         if nominal_du.shape != (n, 2):
             raise ActionError(f"nominal_du: got shape {nominal_du.shape}, expected ({n}, 2)")
-        bad = ~np.all(np.isfinite(nominal_du), axis=1)
-        if np.any(bad):
-            idx = np.flatnonzero(bad)
-            raise ActionError(f"nominal_du: non-finite value for robot(s) {idx.tolist()} (robot index {idx[0]})")
-        for name, arr, shape in (("kin.p", kin.p, (n, 2)), ("kin.v", kin.v, (n, 2)), ("kin.A", kin.A, (n, 2, 2)),
-                                 ("kin.adot_u", kin.adot_u, (n, 2)), ("u", u, (n, 2)), ("theta", theta, (n,))):
-            a = np.asarray(arr)
-            if a.shape != shape:
-                raise ActionError(f"{name}: got shape {a.shape}, expected {shape}")
-            if not np.all(np.isfinite(a)):
-                bad_i = int(np.flatnonzero(~np.isfinite(a).reshape(n, -1).all(axis=1))[0])
-                raise ActionError(f"{name}: non-finite value for robot index {bad_i}")
         lo = np.asarray(lo, dtype=np.float64)
         hi = np.asarray(hi, dtype=np.float64)
         if lo.shape != (n, 2) or hi.shape != (n, 2):
             raise ActionError(f"lo/hi: got shapes {lo.shape}/{hi.shape}, expected ({n}, 2)")
-        if np.any(lo > hi) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        arrays = (("kin.p", kin.p, (n, 2)), ("kin.v", kin.v, (n, 2)), ("kin.A", kin.A, (n, 2, 2)),
+                  ("kin.adot_u", kin.adot_u, (n, 2)), ("u", u, (n, 2)), ("theta", theta, (n,)))
+        total = float(nominal_du.sum()) + float(lo.sum()) + float(hi.sum())
+        for name, arr, shape in arrays:
+            a = np.asarray(arr)
+            if a.shape != shape:
+                raise ActionError(f"{name}: got shape {a.shape}, expected {shape}")
+            total += float(a.sum())
+        if not np.isfinite(total):  # one NaN/inf anywhere makes the sum non-finite: find it
+            bad = ~np.all(np.isfinite(nominal_du), axis=1)
+            if np.any(bad):
+                idx = np.flatnonzero(bad)
+                raise ActionError(
+                    f"nominal_du: non-finite value for robot(s) {idx.tolist()} (robot index {idx[0]})"
+                )
+            for name, arr, _ in arrays:
+                a = np.asarray(arr)
+                if not np.all(np.isfinite(a)):
+                    bad_i = int(np.flatnonzero(~np.isfinite(a).reshape(n, -1).all(axis=1))[0])
+                    raise ActionError(f"{name}: non-finite value for robot index {bad_i}")
+            if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+                raise ActionError("lo/hi: bounds must be finite with lo <= hi")
+        if np.any(lo > hi):
             raise ActionError("lo/hi: bounds must be finite with lo <= hi")
         return nominal_du, lo, hi

@@ -15,6 +15,8 @@ order is deterministic and independent of the back-end.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -22,6 +24,14 @@ __all__ = ["KDTREE_THRESHOLD", "obstacle_pairs", "robot_pairs"]
 
 KDTREE_THRESHOLD: int = 150
 """Team size from which :func:`robot_pairs` uses a k-d tree."""
+
+
+@functools.lru_cache(maxsize=16)
+def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    iu, ju = np.triu_indices(n, k=1)
+    iu, ju = iu.astype(np.intp), ju.astype(np.intp)
+    iu.flags.writeable = ju.flags.writeable = False
+    return iu, ju
 
 
 def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto") -> np.ndarray:
@@ -47,10 +57,10 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto") -> np.nda
     if method == "auto":
         method = "kdtree" if n >= KDTREE_THRESHOLD else "brute"
     if method == "brute":
-        d2 = np.sum((p[:, None, :] - p[None, :, :]) ** 2, axis=-1)
-        iu, ju = np.triu_indices(n, k=1)
-        keep = d2[iu, ju] <= radius * radius
-        return np.stack((iu[keep], ju[keep]), axis=1).astype(np.intp)
+        iu, ju = _upper_pairs(n)
+        d = p[iu] - p[ju]
+        keep = np.flatnonzero(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= radius * radius)
+        return np.stack((iu[keep], ju[keep]), axis=1)
     if method != "kdtree":
         raise ValueError(f"method: got {method!r}, expected 'auto', 'brute' or 'kdtree'")
     pairs = cKDTree(p).query_pairs(radius, output_type="ndarray").astype(np.intp)

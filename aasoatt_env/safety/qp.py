@@ -15,12 +15,12 @@ canonical form ``min 0.5 x'Hx + g'x  s.t. lb <= x <= ub, C x <= u``.
 Solvers (:data:`SOLVERS`, by name):
 
 ``proxsuite`` (default)
-    With a warm start (``x0``, ``z0`` from the previous step) first a few
-    iterations of the exact structured active-set method of
-    :mod:`aasoatt_env.safety.active_set`, accepted only when the full KKT
-    conditions hold; otherwise dense ``PrimalDualLDLT`` with native box constraints up to
-    :data:`DENSE_MAX_SIZE` variables + rows, sparse ``SparseCholesky`` (box as rows)
-    above.  Settings from SPEC section 4: tight ``eps_primal_inf`` /
+    Dense ``PrimalDualLDLT`` with native box constraints up to
+    :data:`DENSE_MAX_SIZE` variables + rows, sparse ``SparseCholesky`` (box as
+    rows) above.  With ``active_set=True`` and a warm start (``x0``, ``z0`` from
+    the previous step) first a few iterations of the exact structured
+    active-set method of :mod:`aasoatt_env.safety.active_set`, accepted only
+    when the full KKT conditions hold.  Settings from SPEC section 4: tight ``eps_primal_inf`` /
     ``eps_dual_inf``, ``check_duality_gap`` with a tight gap.
 ``neural``
     The paper's projection neural network (eqn.22), explicit Euler with
@@ -57,6 +57,7 @@ __all__ = [
     "QPSolution",
     "SOLVERS",
     "available_solvers",
+    "box_least_squares",
     "build_problem",
     "solve_qp",
 ]
@@ -108,11 +109,23 @@ class QPProblem:
 
     def H_dense(self) -> np.ndarray:
         """Dense Hessian ``(n, n)``."""
-        return np.asarray(self.H_sparse().todense())
+        n = self.n
+        H = np.zeros((n, n))
+        if n:
+            k = np.arange(0, n, 2)
+            H[k, k], H[k, k + 1] = self.H_blocks[:, 0, 0], self.H_blocks[:, 0, 1]
+            H[k + 1, k], H[k + 1, k + 1] = self.H_blocks[:, 1, 0], self.H_blocks[:, 1, 1]
+        return H
 
     def H_sparse(self) -> sp.csc_matrix:
-        """Sparse block-diagonal Hessian."""
-        return sp.block_diag(list(self.H_blocks), format="csc") if self.n else sp.csc_matrix((0, 0))
+        """Sparse block-diagonal Hessian (both entries of every block stored)."""
+        n = self.n
+        if not n:
+            return sp.csc_matrix((0, 0))
+        # column 2k holds rows 2k, 2k+1 of block k's first column; column 2k+1 its second
+        data = self.H_blocks.transpose(0, 2, 1).reshape(-1)
+        indices = (np.arange(0, n, 2)[:, None, None] + np.array([[0, 1], [0, 1]])).reshape(-1)
+        return sp.csc_matrix((data, indices, np.arange(0, 2 * n + 1, 2)), shape=(n, n))
 
     def objective(self, x: np.ndarray) -> float:
         """Scaled objective ``0.5 x'Hx + g'x`` of ``x``."""
@@ -189,10 +202,14 @@ def build_problem(
     nu = np.where(nu > 1e-12, nu, 1.0)
     Gi_s /= nu[:, None]
     Gj_s /= nu[:, None]
+    # CSR directly: 4 entries per robot-robot row, 2 per obstacle row
     cols = np.stack((2 * ri, 2 * ri + 1, 2 * rjc, 2 * rjc + 1), axis=1)
     data = np.concatenate((Gi_s, Gj_s), axis=1)
-    rows = np.repeat(np.arange(m), 4)
-    C = sp.csr_matrix((data.ravel(), (rows, cols.ravel())), shape=(m, 2 * n_rob))
+    keep = np.ones((m, 4), dtype=bool)
+    keep[:, 2:] = ~obs[:, None]
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(np.where(obs, 2, 4), out=indptr[1:])
+    C = sp.csr_matrix((data[keep], cols[keep], indptr), shape=(m, 2 * n_rob))
     diag = bool(np.all(np.abs(H[:, 0, 1]) <= 1e-12 * np.maximum(np.abs(H[:, 0, 0]), 1e-300)))
     return QPProblem(
         H_blocks=H,
@@ -206,6 +223,56 @@ def build_problem(
         row_norm=nu,
         diagonal=diag,
     )
+
+
+def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Per robot ``argmin |A_i du_i - target_i|^2  s.t.  lo_i <= du_i <= hi_i``, in closed form.
+
+    The QP of a robot in no row: two variables, a box.  If the unconstrained
+    minimiser ``A_i^{-1} target_i`` is inside the box it is the answer; otherwise
+    the optimum lies on an edge, and on each of the four edges the objective is
+    a convex parabola minimised by clipping; the best edge point wins.
+
+    Parameters
+    ----------
+    A : numpy.ndarray
+        Invertible input matrices ``(K, 2, 2)``.
+    target : numpy.ndarray
+        Desired control-point accelerations ``(K, 2)``.
+    lo, hi : numpy.ndarray
+        Bounds ``(K, 2)`` with ``lo <= hi``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``du`` ``(K, 2)``, inside the bounds.
+    """
+    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+    t0, t1 = target[:, 0], target[:, 1]
+    det = a * d - b * c
+    x = np.stack(((d * t0 - b * t1) / det, (a * t1 - c * t0) / det), axis=1)
+    out = (x < lo) | (x > hi)
+    bad = np.flatnonzero(out[:, 0] | out[:, 1])
+    if bad.size == 0:
+        return x
+    Ab, tb, lb, ub = A[bad], target[bad], lo[bad], hi[bad]
+    H = np.einsum("kai,kaj->kij", Ab, Ab)
+    g = -np.einsum("kai,ka->ki", Ab, tb)
+    best = np.full(bad.size, np.inf)
+    sol = np.empty((bad.size, 2))
+    for fix in (0, 1):
+        free = 1 - fix
+        for bound in (lb, ub):
+            c = np.empty((bad.size, 2))
+            c[:, fix] = bound[:, fix]
+            c[:, free] = np.clip(-(g[:, free] + H[:, free, fix] * c[:, fix]) / H[:, free, free],
+                                 lb[:, free], ub[:, free])
+            f = 0.5 * np.einsum("ki,kij,kj->k", c, H, c) + np.einsum("ki,ki->k", g, c)
+            better = f < best
+            best = np.where(better, f, best)
+            sol[better] = c[better]
+    x[bad] = sol
+    return x
 
 
 # ---------------------------------------------------------------- back-ends
