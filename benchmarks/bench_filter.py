@@ -1,19 +1,25 @@
-"""Benchmark the safety-filter step (rows + solve) against cvxopt and OSQP on the same rows.
+"""Benchmark the safety-filter step (rows + solve) against Robotarium-style cvxopt and OSQP filters.
 
 Congested moment: a random packed layout (jittered grid, spacing 1.1 m, robots
-moving at ~0.5-1 m/s in random directions, nominal = random accelerations), so
-every robot has many neighbours inside D = 3 m.  For N <= 39 the circle swap
-(R = 6) snapshot near the centre crossing is timed as well.
+moving at ~0.5-1 m/s in random directions, nominal = random accelerations of up
+to 30 rad/s^2), so every robot has many neighbours inside D = 3 m and most
+nominals violate a row.  For N <= 39 the circle swap (R = 6) snapshot near the
+centre crossing is timed as well.
 
-Columns (medians, one core):
-  step      SafetyFilter.step with FilterConfig(active_set=True), repeated on the same
-            state: the warm active-set path (qp.solve_active_set) is taken; this is its
-            best case (in the 39-robot closed loop it was 2.3x *slower* than no-AS,
-            which is why it is off by default)
-  no-AS     the default SafetyFilter.step (proxsuite, cold each step)
-  prox      proxsuite solve only (same canonical QP)
-  cvxopt    Robotarium-style cvxopt.solvers.qp on the same QP (solve only)
-  osqp      OSQP on the same QP (solve only, polished, eps 1e-7)
+Every column is a whole ``SafetyFilter.step`` (neighbour search, rows, QP
+assembly, solve, result) on the same state and the same rows; medians over
+repeated calls, one core:
+
+  ours        the default filter (exact decomposition + proxsuite)
+  whole QP    the same without decomposition (``decompose=False``): one QP for the team
+  cvxopt      Robotarium-style: the whole team in one ``cvxopt.solvers.qp`` call
+              (``solver="cvxopt", decompose=False``)
+  osqp        OSQP, whole team, eps 1e-7 with polishing (``solver="osqp", decompose=False``)
+  active set  ``active_set=True`` repeated on the same state: the warm active-set
+              path's best case (opt-in; slower than the default in the 39-robot closed loop)
+  qp rows     rows the QP saw after decomposition / all rows
+
+Ratios are against ``ours`` in the same run.
 
 Usage: python benchmarks/bench_filter.py [--quick]
 """
@@ -28,12 +34,11 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-import scipy.sparse as sp  # noqa: E402
 
-import aasoatt_env.safety.core as core  # noqa: E402
 from aasoatt_env.dynamics import input_bounds, kinematics, pose_from_point  # noqa: E402
 from aasoatt_env.params import make_team  # noqa: E402
-from aasoatt_env.safety import SafetyFilter, solve_qp  # noqa: E402
+from aasoatt_env.safety import SafetyFilter  # noqa: E402
+from aasoatt_env.safety.qp import available_solvers  # noqa: E402
 from aasoatt_env.safety.scenario import CircleSwap, rollout  # noqa: E402
 
 
@@ -58,20 +63,7 @@ def circle_snapshot(n: int):
     return scen.team, out.snapshots[0]
 
 
-def cvxopt_solve(prob):
-    import cvxopt
-
-    cvxopt.solvers.options["show_progress"] = False
-    n = prob.n
-    H = prob.H_sparse().tocoo()
-    P = cvxopt.spmatrix(H.data, H.row.astype(int), H.col.astype(int), (n, n))
-    G = sp.vstack((prob.C, sp.identity(n), -sp.identity(n))).tocoo()
-    Gm = cvxopt.spmatrix(G.data, G.row.astype(int), G.col.astype(int), G.shape)
-    h = cvxopt.matrix(np.concatenate((prob.u, prob.ub, -prob.lb)))
-    return cvxopt.solvers.qp(P, cvxopt.matrix(prob.g), Gm, h)
-
-
-def timed(fn, reps):
+def timed(fn, reps: int) -> float:
     ts = []
     for _ in range(reps):
         t = time.perf_counter()
@@ -80,48 +72,55 @@ def timed(fn, reps):
     return float(np.median(ts))
 
 
-def bench(label, team, snap, reps, with_cvxopt):
+VARIANTS = {
+    "ours": {},
+    "whole QP": {"decompose": False},
+    "cvxopt": {"solver": "cvxopt", "decompose": False},
+    "osqp": {"solver": "osqp", "decompose": False},
+    "active set": {"active_set": True},
+}
+
+
+def bench(label: str, team, snap, reps: int, slow_reps: int) -> dict:
     kin, u, theta, nom, lo, hi, ref = snap
-    f = SafetyFilter(team, deadlock="none" if ref is None else "auxiliary_velocity")
-    probs = []
-    real = core.solve_qp
-
-    def spy(prob, *a, **k):
-        probs.append(prob)
-        return real(prob, *a, **k)
-
-    core.solve_qp = spy
-    _, res = f.step(kin, u, theta, nom, lo, hi, reference=ref)
-    core.solve_qp = real
-    prob = probs[-1]
-    f_as = SafetyFilter(team, deadlock=f.config.deadlock, active_set=True)
-    f_as.step(kin, u, theta, nom, lo, hi, reference=ref)
-    t_step = timed(lambda: f_as.step(kin, u, theta, nom, lo, hi, reference=ref), reps)
-    t_old = timed(lambda: f.step(kin, u, theta, nom, lo, hi, reference=ref), max(1, reps // 3))
-    t_prox = timed(lambda: solve_qp(prob, "proxsuite"), reps)
-    t_cvx = timed(lambda: cvxopt_solve(prob), max(1, reps // 3)) if with_cvxopt else float("nan")
-    t_osqp = timed(lambda: solve_qp(prob, "osqp"), max(1, reps // 3))
-    return label, team.n, res.n_rows, res.status, t_step, t_old, t_prox, t_cvx, t_osqp
+    deadlock = "none" if ref is None else "auxiliary_velocity"
+    out = {"scene": label, "N": team.n}
+    for name, kw in VARIANTS.items():
+        if kw.get("solver", "proxsuite") not in available_solvers():
+            out[name] = float("nan")
+            continue
+        f = SafetyFilter(team, deadlock=deadlock, **kw)
+        du, res = f.step(kin, u, theta, nom, lo, hi, reference=ref)  # warm-up (and warm start)
+        if name == "ours":
+            out["rows"], out["qp rows"], out["status"], du_ref = res.n_rows, res.n_qp_rows, res.status, du
+        else:
+            out[name + " err"] = float(np.max(np.abs(du - du_ref), initial=0.0))
+        r = reps if name in ("ours", "active set", "whole QP") else slow_reps
+        out[name] = timed(lambda f=f: f.step(kin, u, theta, nom, lo, hi, reference=ref), r)
+    return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="fewer sizes and repetitions")
+    ap.add_argument("--quick", action="store_true", help="N <= 300 and fewer repetitions")
     args = ap.parse_args()
     sizes = [10, 39, 100, 300] if args.quick else [10, 39, 100, 300, 1000]
     reps = 5 if args.quick else 21
-    rows = []
-    for n in (10, 39):
-        rows.append(bench("circle", *circle_snapshot(n), reps, True))
+    rows = [bench("circle", *circle_snapshot(n), reps, max(3, reps // 3)) for n in (10, 39)]
     for n in sizes:
-        rows.append(bench("packed", *packed(n), reps if n <= 300 else max(3, reps // 4), n <= 300 or not args.quick))
-    ms = 1e3
-    print(f"{'scene':7s} {'N':>5s} {'rows':>6s} {'status':>8s} {'step ms':>9s} {'no-AS ms':>9s} {'noAS/step':>9s} "
-          f"{'prox ms':>9s} {'cvxopt ms':>10s} {'osqp ms':>9s} {'cvx/step':>9s} {'osqp/step':>10s}")
-    for lab, n, m, st, a, o, b, c, d in rows:
-        print(f"{lab:7s} {n:5d} {m:6d} {st:>8s} {a * ms:9.2f} {o * ms:9.2f} {o / a:9.1f} {b * ms:9.2f} {c * ms:10.2f} "
-              f"{d * ms:9.2f} {c / a:9.1f} {d / a:10.1f}")
-
+        rows.append(bench("packed", *packed(n), reps if n <= 300 else 5, max(3, reps // 3) if n <= 300 else 3))
+    names = list(VARIANTS)
+    print("median ms per filter step (rows + solve); ratio = variant / ours\n")
+    print(f"{'scene':7s} {'N':>5s} {'rows':>6s} {'qp rows':>8s} {'status':>8s} "
+          + " ".join(f"{k:>10s}" for k in names) + " " + " ".join(f"{k + '/ours':>12s}" for k in names[1:]))
+    for r in rows:
+        print(f"{r['scene']:7s} {r['N']:5d} {r['rows']:6d} {r['qp rows']:8d} {r['status']:>8s} "
+              + " ".join(f"{r[k] * 1e3:10.2f}" for k in names) + " "
+              + " ".join(f"{r[k] / r['ours']:12.1f}" for k in names[1:]))
+    errs = ", ".join(
+        f"{k} {max((r.get(k + ' err', 0.0) for r in rows if np.isfinite(r[k])), default=0.0):.1e}" for k in names[1:]
+    )
+    print(f"\nlargest |du - du_ours| [rad/s^2] (same QP; cvxopt and OSQP at their own tolerances): {errs}")
 
 if __name__ == "__main__":
     main()

@@ -22,6 +22,7 @@ FILTER_KEYS = {
     "solve_time",
     "iterations",
     "n_rows",
+    "n_qp_rows",
 }
 
 

@@ -26,8 +26,9 @@ Solvers (:data:`SOLVERS`, by name):
     The paper's projection neural network (eqn.22), explicit Euler with
     ``eps = dt``: ``iterations`` projected primal-dual updates per call,
     warm-started; never fails, only approximates the optimum.
-``quadprog``, ``clarabel``, ``osqp``, ``daqp``
-    Optional, used when installed.
+``quadprog``, ``clarabel``, ``osqp``, ``daqp``, ``cvxopt``
+    Optional, used when installed (``cvxopt`` is what Robotarium's barrier
+    certificates call: ``cvxopt.solvers.qp``, interior point, default tolerances).
 
 Infeasibility verdicts are never trusted: :func:`solve_qp` confirms them with a
 phase-1 problem ``min |s|^2 s.t. box, C x - s <= u, s >= 0`` (always feasible;
@@ -405,6 +406,25 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
     return _Raw(np.asarray(x), np.maximum(lam, 0.0), ok, int(info.get("iter", 0)), f"exitflag {exitflag}")
 
 
+def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import cvxopt
+
+    cvxopt.solvers.options["show_progress"] = False
+    n, m = prob.n, prob.m
+    H = prob.H_sparse().tocoo()
+    P = cvxopt.spmatrix(H.data, H.row.astype(int), H.col.astype(int), (n, n))
+    G = sp.vstack((prob.C, sp.identity(n), -sp.identity(n))).tocoo()
+    Gm = cvxopt.spmatrix(G.data, G.row.astype(int), G.col.astype(int), G.shape)
+    h = cvxopt.matrix(np.concatenate((prob.u, prob.ub, -prob.lb)))
+    try:
+        sol = cvxopt.solvers.qp(P, cvxopt.matrix(prob.g), Gm, h)
+    except (ValueError, ArithmeticError) as exc:
+        return _Raw(None, None, False, 0, str(exc))
+    ok = sol["status"] == "optimal"
+    return _Raw(np.asarray(sol["x"]).ravel(), np.asarray(sol["z"]).ravel()[:m], ok, int(sol["iterations"]),
+                str(sol["status"]))
+
+
 Backend = Callable[[QPProblem, "np.ndarray | None", "np.ndarray | None", dict], _Raw]
 
 SOLVERS: dict[str, tuple[Backend, str]] = {
@@ -414,6 +434,7 @@ SOLVERS: dict[str, tuple[Backend, str]] = {
     "clarabel": (_clarabel, "clarabel"),
     "osqp": (_osqp, "osqp"),
     "daqp": (_daqp, "daqp"),
+    "cvxopt": (_cvxopt, "cvxopt"),
 }
 """Solver registry: name -> (back-end, module it needs)."""
 

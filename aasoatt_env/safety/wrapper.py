@@ -22,6 +22,7 @@ key                 meaning
 ``solve_time``      total filter wall time [s] of the env step
 ``iterations``      total solver iterations
 ``n_rows``          barrier rows at the last physics step
+``n_qp_rows``       of those, rows the QP solver saw (0: closed form sufficed)
 ==================  =====================================================
 
 The centralised Gymnasium view takes the same options:
@@ -140,6 +141,7 @@ class FilterHook:
             "solve_time": float(self.solve_time),
             "iterations": int(self.iterations),
             "n_rows": int(self.last_result.n_rows) if self.last_result is not None else 0,
+            "n_qp_rows": int(self.last_result.n_qp_rows) if self.last_result is not None else 0,
         }
 
 
