@@ -194,6 +194,11 @@ def _smoke(tmp_path, filtered: bool):
         assert 0.0 <= r.safe_rate <= 1.0 and 0.0 <= r.success_rate <= 1.0 and r.rmse >= 0
     if filtered:
         assert table[-1].intervention_rate is not None and table[-1].collisions == 0
+    else:  # rows in parallel processes: the same numbers
+        par = evaluate(path, None, episodes=1, rows=rows, jobs=2)
+        assert [(r.name, r.rmse, r.safe_rate, r.collisions) for r in par] == [
+            (r.name, r.rmse, r.safe_rate, r.collisions) for r in table
+        ]
 
 
 def test_smoke_train_load_evaluate_bare(tmp_path):

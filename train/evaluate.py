@@ -16,6 +16,7 @@ row                                      agent / env
 ``tracking + filter``                    tracking law behind ``AASOATTFilter``
 ``learned (bare)``                       policy trained bare, bare env
 ``learned (bare) + filter``              the same policy behind the filter
+``learned (filter)``                     policy trained behind the filter, bare env
 ``learned (filter) + filter``            policy trained behind the filter, behind it
 =======================================  ==========================================
 
@@ -185,7 +186,8 @@ def evaluate_agent(
 
 
 ROWS = ("random", "tracking", "tracking + filter", "learned (bare)", "learned (bare) + filter",
-        "learned (filter) + filter")
+        "learned (filter)", "learned (filter) + filter")
+"""Row names, in table order (``learned (filter)``: the policy trained behind the filter, run bare)."""
 
 
 def evaluate(
@@ -199,6 +201,7 @@ def evaluate(
     rows: Sequence[str] | None = None,
     goal_tolerance: float = 0.1,
     progress: bool = False,
+    jobs: int = 1,
 ) -> list[EvalRow]:
     """Evaluate the table's rows (see the module docstring) and return them.
 
@@ -221,6 +224,9 @@ def evaluate(
         Success radius [m].
     progress : bool
         Progress bars.
+    jobs : int
+        Rows evaluated in parallel processes (same numbers as ``jobs=1``: every
+        row runs its own seeded episodes).
 
     Returns
     -------
@@ -235,6 +241,11 @@ def evaluate(
     bad = [r for r in wanted if r not in ROWS]
     if bad:
         raise ConfigError(f"rows: got {bad}, expected names among {list(ROWS)}")
+    if not isinstance(jobs, int) or jobs < 1:
+        raise ConfigError(f"jobs: got {jobs!r}, expected an integer >= 1")
+    if jobs > 1:
+        return _evaluate_parallel(bare_model, filtered_model, wanted, jobs, episodes=episodes, seed=seed,
+                                  config=config, filter_kwargs=filter_kwargs, goal_tolerance=goal_tolerance)
     learned = {
         "bare": LearnedAgent.load(bare_model) if bare_model is not None else None,
         "filter": LearnedAgent.load(filtered_model) if filtered_model is not None else None,
@@ -258,12 +269,27 @@ def evaluate(
         plan += [("learned (bare)", lambda: learned["bare"], False),
                  ("learned (bare) + filter", lambda: learned["bare"], True)]
     if learned["filter"] is not None:
-        plan += [("learned (filter) + filter", lambda: learned["filter"], True)]
+        plan += [("learned (filter)", lambda: learned["filter"], False),
+                 ("learned (filter) + filter", lambda: learned["filter"], True)]
     out = []
     for name, agent_fn, filtered in plan:
         if name in wanted:
             out.append(evaluate_agent(name, agent_fn(), env_fn(filtered), episodes, seed, goal_tolerance, progress))
     return out
+
+
+def _evaluate_parallel(
+    bare_model: str | Path | None, filtered_model: str | Path | None, wanted: list[str], jobs: int, **kw: Any
+) -> list[EvalRow]:
+    import multiprocessing as mp
+    from concurrent.futures import ProcessPoolExecutor
+
+    given = {"learned (bare)": bare_model, "learned (bare) + filter": bare_model,
+             "learned (filter)": filtered_model, "learned (filter) + filter": filtered_model}
+    todo = [r for r in ROWS if r in wanted and given.get(r, True) is not None]
+    with ProcessPoolExecutor(max_workers=min(jobs, max(len(todo), 1)), mp_context=mp.get_context("spawn")) as ex:
+        futures = [ex.submit(evaluate, bare_model, filtered_model, rows=[r], **kw) for r in todo]
+        return [row for f in futures for row in f.result()]
 
 
 def _fmt(x: float | None, spec: str) -> str:
@@ -302,6 +328,7 @@ def build_parser(prog: str = "python -m train.evaluate") -> argparse.ArgumentPar
     p.add_argument("--filter-arg", action="append", default=None, metavar="KEY=VALUE", help="filter argument")
     p.add_argument("--goal-tolerance", type=float, default=0.1)
     p.add_argument("--out", default=None, help="write the Markdown table (and a .json beside it)")
+    p.add_argument("--jobs", type=int, default=1, help="rows evaluated in parallel processes")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     return p
 
@@ -323,7 +350,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 fk[k.strip()] = _parse_value(v.strip())
         rows = evaluate(args.bare, args.filtered, episodes=args.episodes, seed=args.seed, config=config,
                         filter_kwargs=fk, rows=args.rows, goal_tolerance=args.goal_tolerance,
-                        progress=not args.quiet)
+                        progress=not args.quiet and args.jobs == 1, jobs=args.jobs)
     except ConfigError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
