@@ -13,7 +13,7 @@ robot accelerates at its nearest neighbour) on RandomGoals with 20 robots,
 ``d_s`` (must be >= -1e-3), steps relaxed / failed, largest final distance to
 the goal (circle runs: must be <= 0.05), collisions, wall time.
 
-Usage: ``python benchmarks/safety_campaign.py [--quick] [--solver proxsuite]``
+Usage: ``python benchmarks/safety_campaign.py [--quick] [--solver proxsuite] [--only r6|r10|random]``
 """
 
 from __future__ import annotations
@@ -48,15 +48,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="N = 10, 39 and 2 seeds only")
     parser.add_argument("--solver", default="proxsuite")
-    parser.add_argument("--only", choices=("circle", "random"), help="run only the circle swaps or only RandomGoals")
+    parser.add_argument("--only", choices=("r6", "r10", "random"),
+                        help="run only the radius-6 circles, the radius-10 circles or RandomGoals")
     args = parser.parse_args()
     head = ("run", "min gap", "relaxed", "failed", "final err", "coll.", "time s")
     print(f"{head[0]:34s} " + " ".join(f"{h:>{w}s}" for h, w in zip(head[1:], (10, 8, 7, 10, 6, 8))))
     circles = [(6.0, 12.0, n, None) for n in ((10, 39) if args.quick else (10, 20, 30, 35, 39))]
     if not args.quick:
         circles += [(10.0, 20.0, 60, None), (10.0, 20.0, 100, RobotParams(radius=SWARM_ROBOT_RADIUS))]
-    if args.only == "random":
-        circles = []
+    if args.only is not None:
+        circles = [c for c in circles if args.only == f"r{c[0]:g}"]
     for radius, duration, n, robots in circles:
         kwargs = {} if robots is None else {"robots": robots}
         env = AASOATTFilter(
@@ -68,7 +69,7 @@ def main() -> None:
         t = time.perf_counter()
         rollout, _ = run_episode(env, TrackingController(), seed=0)
         print(_row(f"circle R={radius:g} N={n}", rollout, time.perf_counter() - t, True), flush=True)
-    seeds = range(0 if args.only == "circle" else 2 if args.quick else 10)
+    seeds = range(2 if args.quick else 10) if args.only in (None, "random") else range(0)
     for name, agent in (("random", RandomAgent(seed=0)), ("hostile", HostileAgent())):
         for seed in seeds:
             env = AASOATTFilter(AASOATTParallelEnv("random_goals", num_robots=20, max_steps=2000), solver=args.solver)
