@@ -48,6 +48,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="N = 10, 39 and 2 seeds only")
     parser.add_argument("--solver", default="proxsuite")
+    parser.add_argument("--wheel-speed-limit", type=float, default=None,
+                        help="RandomGoals robots: paper robots with this wheel-speed limit [rad/s] (default: none)")
     parser.add_argument("--only", choices=("r6", "r10", "random"),
                         help="run only the radius-6 circles, the radius-10 circles or RandomGoals")
     args = parser.parse_args()
@@ -72,10 +74,14 @@ def main() -> None:
     seeds = range(2 if args.quick else 10) if args.only in (None, "random") else range(0)
     for name, agent in (("random", RandomAgent(seed=0)), ("hostile", HostileAgent())):
         for seed in seeds:
-            env = AASOATTFilter(AASOATTParallelEnv("random_goals", num_robots=20, max_steps=2000), solver=args.solver)
+            limit = args.wheel_speed_limit
+            robots = {} if limit is None else {"robots": RobotParams(max_wheel_speed=limit)}
+            env = AASOATTFilter(AASOATTParallelEnv("random_goals", num_robots=20, max_steps=2000, **robots),
+                                solver=args.solver)
             t = time.perf_counter()
             rollout, _ = run_episode(env, agent, seed=seed)
-            print(_row(f"random_goals N=20 {name} seed={seed}", rollout, time.perf_counter() - t, False), flush=True)
+            tag = "" if args.wheel_speed_limit is None else f" |w|<={args.wheel_speed_limit:g}"
+            print(_row(f"random_goals N=20 {name}{tag} s={seed}", rollout, time.perf_counter() - t, False), flush=True)
 
 
 if __name__ == "__main__":

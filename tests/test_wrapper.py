@@ -91,6 +91,23 @@ def test_bad_policies_behind_the_filter_never_collide(agent):
         assert worst >= -1e-3
 
 
+@pytest.mark.slow
+def test_hostile_policy_wheel_speed_limited_robots_full_length():
+    """The two seeds where unlimited paper robots spin up and collide (README: known limits)."""
+    from aasoatt_env.params import RobotParams
+
+    robots = RobotParams(max_wheel_speed=20.0)
+    env = AASOATTFilter(AASOATTParallelEnv("random_goals", num_robots=20, max_steps=2000, robots=robots))
+    agent = HostileAgent()
+    for seed in (2, 6):
+        obs, infos = env.reset(seed=seed)
+        worst = np.inf
+        while env.agents:
+            obs, _, _, _, infos = env.step(agent.act(obs, env))
+            worst = min(worst, min(i["clearance"] for i in infos.values()))
+        assert worst >= -1e-3, (seed, worst)
+
+
 def test_bare_hostile_policy_does_collide():
     env = AASOATTParallelEnv("random_goals", num_robots=20, max_steps=600)
     obs, _ = env.reset(seed=0)
