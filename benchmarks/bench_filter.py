@@ -3,8 +3,10 @@
 Congested moment: a random packed layout (jittered grid, spacing 1.1 m, robots
 moving at ~0.5-1 m/s in random directions, nominal = random accelerations of up
 to 30 rad/s^2), so every robot has many neighbours inside D = 3 m and most
-nominals violate a row.  For N <= 39 the circle swap (R = 6) snapshot near the
-centre crossing is timed as well.
+nominals violate a row.  "sparse": the same grid 2 m apart with gentle
+nominals (rows present, few bind: the typical step of a spread-out team).
+For N <= 39 the circle swap (R = 6) snapshot near the centre crossing is
+timed as well.
 
 Every column is a whole ``SafetyFilter.step`` (neighbour search, rows, QP
 assembly, solve, result) on the same state and the same rows; medians over
@@ -15,6 +17,7 @@ repeated calls, one core:
   cvxopt      Robotarium-style: the whole team in one ``cvxopt.solvers.qp`` call
               (``solver="cvxopt", decompose=False``)
   osqp        OSQP, whole team, eps 1e-7 with polishing (``solver="osqp", decompose=False``)
+  daqp        the default filter with DAQP instead of proxsuite (``solver="daqp"``)
   active set  ``active_set=True`` repeated on the same state: the warm active-set
               path's best case (opt-in; slower than the default in the 39-robot closed loop)
   qp rows     rows the QP saw after decomposition / all rows
@@ -42,18 +45,18 @@ from aasoatt_env.safety.qp import available_solvers  # noqa: E402
 from aasoatt_env.safety.scenario import CircleSwap, rollout  # noqa: E402
 
 
-def packed(n: int, seed: int = 0):
+def packed(n: int, seed: int = 0, spacing: float = 1.1, nominal: float = 30.0):
     rng = np.random.default_rng(seed)
     team = make_team("paper", n)
     side = int(np.ceil(np.sqrt(n)))
-    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n] * 1.1
+    g = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n] * spacing
     p = g + rng.uniform(-0.02, 0.02, g.shape)
     theta = rng.uniform(-np.pi, np.pi, n)
     pose = pose_from_point(team, p, theta)
     u = rng.uniform(2, 8, (n, 1)) * np.ones((1, 2)) + rng.normal(0, 0.5, (n, 2))
     kin = kinematics(team, pose, u)
     lo, hi = input_bounds(team, u, 0.005)
-    nom = rng.uniform(-30, 30, (n, 2))
+    nom = rng.uniform(-nominal, nominal, (n, 2))
     return team, (kin, u, theta, nom, lo, hi, None)
 
 
@@ -77,6 +80,7 @@ VARIANTS = {
     "whole QP": {"decompose": False},
     "cvxopt": {"solver": "cvxopt", "decompose": False},
     "osqp": {"solver": "osqp", "decompose": False},
+    "daqp": {"solver": "daqp"},
     "active set": {"active_set": True},
 }
 
@@ -95,7 +99,7 @@ def bench(label: str, team, snap, reps: int, slow_reps: int) -> dict:
             out["rows"], out["qp rows"], out["status"], du_ref = res.n_rows, res.n_qp_rows, res.status, du
         else:
             out[name + " err"] = float(np.max(np.abs(du - du_ref), initial=0.0))
-        r = reps if name in ("ours", "active set", "whole QP") else slow_reps
+        r = reps if name in ("ours", "active set", "whole QP", "daqp") else slow_reps
         out[name] = timed(lambda f=f: f.step(kin, u, theta, nom, lo, hi, reference=ref), r)
     return out
 
@@ -109,6 +113,9 @@ def main() -> None:
     rows = [bench("circle", *circle_snapshot(n), reps, max(3, reps // 3)) for n in (10, 39)]
     for n in sizes:
         rows.append(bench("packed", *packed(n), reps if n <= 300 else 5, max(3, reps // 3) if n <= 300 else 3))
+    for n in sizes:  # the same grid, 2 m apart, gentle nominals: rows present, few bind
+        rows.append(bench("sparse", *packed(n, spacing=2.0, nominal=3.0), reps if n <= 300 else 5,
+                          max(3, reps // 3) if n <= 300 else 3))
     names = list(VARIANTS)
     print("median ms per filter step (rows + solve); ratio = variant / ours\n")
     print(f"{'scene':7s} {'N':>5s} {'rows':>6s} {'qp rows':>8s} {'status':>8s} "
