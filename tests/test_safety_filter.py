@@ -296,3 +296,44 @@ def test_component_labels_match_scipy(seed):
     # same partition: labels map one-to-one
     pairs = set(zip(ours.tolist(), ref.tolist()))
     assert len(pairs) == len(set(ours.tolist())) == len(set(ref.tolist()))
+
+
+def test_proxsuite_max_iter_retries_with_the_other_backend(monkeypatch):
+    import aasoatt_env.safety.qp as qp
+
+    scen = CircleSwap(10, radius=6.0, duration=12.0)
+    out = rollout(scen, SafetyFilter(scen.team, decompose=False), 5.6, record=lambda k: k == 1100)
+    kin, u, theta, nom, lo, hi, ref = out.snapshots[0]
+    probs = []
+    real_solve, real_settings = qp.solve_qp, qp._prox_settings
+    calls = []
+
+    def starved(settings, eps):  # the first proxsuite call stalls (max_iter = 2)
+        real_settings(settings, eps)
+        if not calls:
+            settings.max_iter = 2
+        calls.append(1)
+
+    monkeypatch.setattr(qp, "_prox_settings", starved)
+    monkeypatch.setattr(qp, "DENSE_MAX_SIZE", 0)  # first attempt sparse, retry dense
+    sol = qp.solve_qp(_problem_from(scen.team, kin, u, theta, nom, lo, hi, ref, probs, real_solve), "proxsuite")
+    assert sol.status == "solved" and "MAX_ITER" in sol.message and "then" in sol.message
+    ref_sol = qp.solve_qp(probs[0], "quadprog")
+    assert abs(probs[0].objective(sol.x) - probs[0].objective(ref_sol.x)) <= 1e-6 * max(
+        1.0, abs(probs[0].objective(ref_sol.x))
+    )
+
+
+def _problem_from(team, kin, u, theta, nom, lo, hi, ref, probs, real_solve):
+    import aasoatt_env.safety.core as core
+
+    def spy(prob, *a, **k):
+        probs.append(prob)
+        return real_solve(prob, "quadprog")
+
+    core.solve_qp = spy
+    try:
+        SafetyFilter(team, decompose=False).step(kin, u, theta, nom, lo, hi, reference=ref)
+    finally:
+        core.solve_qp = real_solve
+    return probs[0]

@@ -324,7 +324,15 @@ def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, op
     x = np.array(r.x)
     if ok and not np.all(np.isfinite(x)):
         ok = False
-    return _Raw(x, np.array(r.z)[:m], ok, int(r.info.iter), str(st).rsplit(".", 1)[-1])
+    raw = _Raw(x, np.array(r.z)[:m], ok, int(r.info.iter), str(st).rsplit(".", 1)[-1])
+    if not ok and st == px.PROXQP_MAX_ITER_REACHED and opts.get("dense") is None:
+        # the two back-ends stall on different problems (measured: sparse on a 60-robot
+        # circle at n + m = 795): retry with the other before calling anything infeasible
+        other = _proxsuite(prob, x0, z0, {**opts, "dense": not dense})
+        other.iterations += raw.iterations
+        other.message = f"{raw.message} ({'dense' if dense else 'sparse'}), then {other.message}"
+        return other
+    return raw
 
 
 def _neural(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
