@@ -72,44 +72,42 @@ def pose_from_point(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return pose
 
 
+def _columns(team: Team, theta: np.ndarray) -> np.ndarray:
+    """Columns of ``A(theta)`` as complex numbers ``(N, 2)`` (real: row 0, imaginary: row 1)."""
+    return np.exp(1j * theta)[:, None] * team.input_columns
+
+
+def _as_matrix(z: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` complex columns -> contiguous ``(N, 2, 2)`` real matrices."""
+    return np.ascontiguousarray(z.view(np.float64).reshape(-1, 2, 2).transpose(0, 2, 1))
+
+
 def jacobian(team: Team, theta: np.ndarray) -> np.ndarray:
     """Input matrices ``A(theta)``, shape ``(N, 2, 2)``."""
     n = theta.shape[0]
     if not team.is_diff_drive:
         return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
-    c, s = np.cos(theta), np.sin(theta)
-    k = team.offset / team.half_track
-    h = 0.5 * team.wheel_radius
-    A = np.empty((n, 2, 2))
-    A[:, 0, 0] = h * (c - k * s)
-    A[:, 0, 1] = h * (c + k * s)
-    A[:, 1, 0] = h * (s + k * c)
-    A[:, 1, 1] = h * (s - k * c)
-    return A
+    return _as_matrix(_columns(team, theta))
 
 
 def kinematics(team: Team, pose: np.ndarray, u: np.ndarray) -> Kinematics:
-    """Control point, its velocity, ``A`` and ``A_dot u`` for the whole team."""
+    """Control point, its velocity, ``A`` and ``A_dot u`` for the whole team.
+
+    With ``e = exp(i theta)`` and the heading-0 columns ``c_j`` of ``A``
+    (:attr:`Team.input_columns`), ``A u = e (c_0 u_R + c_1 u_L)`` and, since
+    ``dA/dtheta = i A``, ``A_dot u = i omega A u``: one complex rotation gives
+    everything.
+    """
     if not team.is_diff_drive:
         n = pose.shape[0]
         return Kinematics(pose[:, :2].copy(), u.copy(), jacobian(team, pose[:, 2]), np.zeros((n, 2)))
-    theta = pose[:, 2]
-    c, s = np.cos(theta), np.sin(theta)
-    k = team.offset / team.half_track
-    h = 0.5 * team.wheel_radius
-    A = np.empty((theta.shape[0], 2, 2))
-    A[:, 0, 0] = h * (c - k * s)
-    A[:, 0, 1] = h * (c + k * s)
-    A[:, 1, 0] = h * (s + k * c)
-    A[:, 1, 1] = h * (s - k * c)
-    v = np.einsum("nij,nj->ni", A, u)
-    omega = team.wheel_radius * (u[:, 0] - u[:, 1]) / (2.0 * team.half_track)
-    # A_dot u = dA/dtheta * omega * u, with dA/dtheta = h [[-s - kc, -s + kc], [c - ks, c + ks]]
-    adot_u = np.empty_like(v)
-    adot_u[:, 0] = h * omega * ((-s - k * c) * u[:, 0] + (-s + k * c) * u[:, 1])
-    adot_u[:, 1] = h * omega * ((c - k * s) * u[:, 0] + (c + k * s) * u[:, 1])
-    p = pose[:, :2] + team.offset[:, None] * np.stack((c, s), axis=1)
-    return Kinematics(p, v, A, adot_u)
+    e = np.exp(1j * pose[:, 2])
+    z = e[:, None] * team.input_columns
+    vz = z[:, 0] * u[:, 0] + z[:, 1] * u[:, 1]
+    omega = team.turn_gain * (u[:, 0] - u[:, 1])
+    adot = (1j * omega) * vz
+    p = pose[:, :2] + (team.offset * e).view(np.float64).reshape(-1, 2)
+    return Kinematics(p, vz.view(np.float64).reshape(-1, 2), _as_matrix(z), adot.view(np.float64).reshape(-1, 2))
 
 
 def input_bounds(team: Team, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
@@ -120,12 +118,13 @@ def input_bounds(team: Team, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.n
     limit, the bound lets it brake at full acceleration (the box is never empty).
     """
     a = team.du_max
+    if not team.speed_limited:
+        return -a, a.copy()
     hi, lo = a.copy(), -a
     finite = np.isfinite(team.max_wheel_speed)
-    if np.any(finite):
-        w = team.max_wheel_speed[:, None]
-        hi = np.where(finite[:, None], np.maximum(np.minimum(a, (w - u) / dt), -a), hi)
-        lo = np.where(finite[:, None], np.minimum(np.maximum(-a, (-w - u) / dt), a), lo)
+    w = team.max_wheel_speed[:, None]
+    hi = np.where(finite[:, None], np.maximum(np.minimum(a, (w - u) / dt), -a), hi)
+    lo = np.where(finite[:, None], np.minimum(np.maximum(-a, (-w - u) / dt), a), lo)
     return lo, hi
 
 
@@ -141,20 +140,19 @@ def integrate(
         moving = speed > 1e-9
         pose_new[:, 2] = np.where(moving, np.arctan2(u_new[:, 1], u_new[:, 0]), pose[:, 2])
         return pose_new, u_new
-    um = u + 0.5 * dt * du  # mean wheel speeds over the step
-    rho, b = team.wheel_radius, team.half_track
-    v = 0.5 * rho * (um[:, 0] + um[:, 1])
-    omega = rho * (um[:, 0] - um[:, 1]) / (2.0 * b)
+    um = 0.5 * (u + u_new)  # mean wheel speeds over the step
+    vw = np.matmul(team.wheel_map, um[:, :, None])[:, :, 0]  # forward speed, yaw rate
+    half = (0.5 * dt) * vw[:, 1]  # half the heading change
+    # chord of the arc = path length * sin(x)/x with x = half, stable for small x
+    if np.abs(half).min(initial=np.inf) < _SMALL_OMEGA:
+        small = np.abs(half) < _SMALL_OMEGA
+        safe = np.where(small, 1.0, half)
+        sinc = np.where(small, 1.0 - half * half / 6.0, np.sin(safe) / safe)
+    else:
+        sinc = np.sin(half) / half
     theta = pose[:, 2]
-    dtheta = omega * dt
-    # sin(x)/x-type factors, stable for small dtheta
-    half = 0.5 * dtheta
-    small = np.abs(half) < _SMALL_OMEGA
-    safe = np.where(small, 1.0, half)
-    sinc = np.where(small, 1.0 - half * half / 6.0, np.sin(safe) / safe)
-    mid = theta + half
+    chord = (dt * vw[:, 0] * sinc) * np.exp(1j * (theta + half))
     pose_new = np.empty_like(pose)
-    pose_new[:, 0] = pose[:, 0] + v * dt * sinc * np.cos(mid)
-    pose_new[:, 1] = pose[:, 1] + v * dt * sinc * np.sin(mid)
-    pose_new[:, 2] = theta + dtheta
+    pose_new[:, :2] = pose[:, :2] + chord.view(np.float64).reshape(-1, 2)
+    pose_new[:, 2] = theta + 2.0 * half
     return pose_new, u_new

@@ -62,6 +62,13 @@ from aasoatt_env.scenarios import Layout, Scenario, get_scenario
 
 __all__ = ["AASOATTParallelEnv", "RewardConfig", "SimState"]
 
+_FLOAT_MAX = float(np.finfo(np.float64).max)
+
+
+def _row_norms(x: np.ndarray) -> np.ndarray:
+    """Euclidean norms of the rows of an ``(N, 2)`` array."""
+    return np.hypot(x[:, 0], x[:, 1])
+
 
 @dataclass(frozen=True)
 class RewardConfig:
@@ -257,20 +264,24 @@ class AASOATTParallelEnv(ParallelEnv):
         if not isinstance(actions, dict):
             raise ActionError(f"actions: got {type(actions).__name__}, expected a dict agent -> action")
         live = self.agents
-        act = np.zeros((len(self.possible_agents), 2))
-        if len(actions) == len(live) and all(a in actions for a in live):  # fast path
+        n_all = len(self.possible_agents)
+        if actions.keys() == set(live):  # fast path: one array, one finiteness/range check
             try:
                 arr = np.array([actions[a] for a in live], dtype=np.float64)
             except (TypeError, ValueError):
                 arr = None
-            if (
-                arr is not None
-                and arr.shape == (len(live), 2)
-                and np.isfinite(arr).all()
-                and (self.action_range != "strict" or np.abs(arr).max(initial=0.0) <= 1.0 + 1e-6)
-            ):
-                act[self._live_idx] = arr
-                return act if self.action_range == "nominal" else np.clip(act, -1.0, 1.0, out=act)
+            if arr is not None and arr.shape == (len(live), 2):
+                peak = np.abs(arr).max(initial=0.0)  # NaN propagates, so this also checks finiteness
+                if peak <= (1.0 + 1e-6 if self.action_range == "strict" else _FLOAT_MAX):
+                    if len(live) == n_all:
+                        act = arr
+                    else:
+                        act = np.zeros((n_all, 2))
+                        act[self._live_idx] = arr
+                    if self.action_range != "nominal" and peak > 1.0:
+                        np.minimum(np.maximum(act, -1.0, out=act), 1.0, out=act)
+                    return act
+        act = np.zeros((n_all, 2))
         unknown = [a for a in actions if a not in self._index]
         if unknown:
             raise ActionError(
@@ -299,7 +310,7 @@ class AASOATTParallelEnv(ParallelEnv):
                     f"actions[{agent!r}]: got {arr.tolist()}, expected values in [-1, 1] (or clip_actions=True)"
                 )
             act[self._index[agent]] = arr
-        return act if self.action_range == "nominal" else np.clip(act, -1.0, 1.0, out=act)
+        return act if self.action_range == "nominal" else np.minimum(np.maximum(act, -1.0, out=act), 1.0, out=act)
 
     def _nominal_du(self, act: np.ndarray, kin: Kinematics) -> np.ndarray:
         if self.action_mode == "wheel":
@@ -321,12 +332,13 @@ class AASOATTParallelEnv(ParallelEnv):
         team, dt = self.team, self.dt
         saturated = np.zeros(team.n, dtype=bool)
         frozen = ~self._active
+        any_frozen = bool(frozen.any())
         between = np.full(team.n, np.inf)  # clearance at the physics steps between decisions
         for sub in range(self.decision_interval):
             kin = self._kin
             lo, hi = dynamics.input_bounds(team, self._u, dt)
             du_nom = self._nominal_du(act, kin)
-            if frozen.any():
+            if any_frozen:
                 du_nom[frozen] = 0.0
             if self._control_filter is not None:
                 sim = SimState(
@@ -352,7 +364,7 @@ class AASOATTParallelEnv(ParallelEnv):
             clipped = np.minimum(np.maximum(du, lo), hi)
             saturated |= np.any(np.abs(clipped - du) > 1e-9, axis=1)
             pose, u = dynamics.integrate(team, self._pose, self._u, clipped, dt)
-            if frozen.any():
+            if any_frozen:
                 pose[frozen], u[frozen] = self._pose[frozen], 0.0
             self._pose, self._u = pose, u
             self._time += dt
@@ -396,7 +408,7 @@ class AASOATTParallelEnv(ParallelEnv):
         self._prox: Proximity = proximity(
             self._kin.p, self.team.radius, *self._obstacles, k=max(self.num_neighbors, 1)
         )
-        self._err = np.linalg.norm(self._kin.p - self._ref_now[0], axis=1)
+        self._err = _row_norms(self._kin.p - self._ref_now[0])
         self._clearance = self._prox.clearance if between is None else np.minimum(self._prox.clearance, between)
 
     def _observations(self) -> dict[str, np.ndarray]:
@@ -424,9 +436,9 @@ class AASOATTParallelEnv(ParallelEnv):
 
     def _rewards(self, act: np.ndarray, collided: np.ndarray) -> np.ndarray:
         rc = self.reward_config
-        r = -rc.tracking * self._err - rc.collision * collided - rc.effort * 0.5 * np.sum(act * act, axis=1)
+        r = -rc.tracking * self._err - rc.collision * collided - rc.effort * 0.5 * np.add.reduce(act * act, axis=1)
         if rc.goal_bonus:
-            r = r + rc.goal_bonus * (np.linalg.norm(self._kin.p - self.goals, axis=1) < rc.goal_tolerance)
+            r = r + rc.goal_bonus * (_row_norms(self._kin.p - self.goals) < rc.goal_tolerance)
         corr = getattr(self._control_filter, "last_correction", None)
         if rc.correction and corr is not None:
             r = r - rc.correction * np.asarray(corr) / self.team.max_wheel_accel

@@ -35,6 +35,14 @@ OBS_BOUND = 100.0
 SELF_DIM = 14
 SLOT_DIM = 6
 _BRUTE_FORCE_MAX = 256
+_FULL_SORT_MAX = 64
+_NEG_RADIUS = np.array([1.0, 1.0, 1.0, 1.0, -1.0])  # up to this many points a full row sort beats argpartition + sort
+
+
+def pairwise_distances(p: np.ndarray) -> np.ndarray:
+    """Centre distances ``(N, N)`` of points ``(N, 2)`` (one complex subtraction)."""
+    z = np.ascontiguousarray(p, dtype=np.float64).view(np.complex128)[:, 0]
+    return np.abs(z[:, None] - z[None, :])
 
 
 class Proximity(NamedTuple):
@@ -59,22 +67,26 @@ def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
     """
     n = p.shape[0]
     kk = min(k, n - 1)
+    if kk <= 0:
+        return np.full((n, k), -1, dtype=np.intp), np.full((n, k), np.inf), None
+    if n <= _BRUTE_FORCE_MAX:
+        d = pairwise_distances(p)
+        d.flat[:: n + 1] = np.inf
+        rows = np.arange(n)[:, None]
+        if n <= _FULL_SORT_MAX or kk >= n - 1:
+            order = np.argsort(d, axis=1)[:, :kk]
+        else:
+            part = np.argpartition(d, kk - 1, axis=1)[:, :kk]
+            order = part[rows, np.argsort(d[rows, part], axis=1)]
+        dk = d[rows, order]
+        if kk == k:
+            return order, dk, d
+        idx = np.full((n, k), -1, dtype=np.intp)
+        dist = np.full((n, k), np.inf)
+        idx[:, :kk], dist[:, :kk] = order, dk
+        return idx, dist, d
     idx = np.full((n, k), -1, dtype=np.intp)
     dist = np.full((n, k), np.inf)
-    if kk <= 0:
-        return idx, dist, None
-    if n <= _BRUTE_FORCE_MAX:
-        dx = p[:, 0:1] - p[:, 0]
-        dy = p[:, 1:2] - p[:, 1]
-        d = np.sqrt(dx * dx + dy * dy)
-        d.flat[:: n + 1] = np.inf
-        part = np.argpartition(d, kk - 1, axis=1)[:, :kk] if kk < n - 1 else np.argsort(d, axis=1)[:, :kk]
-        rows = np.arange(n)[:, None]
-        pd = d[rows, part]
-        order = np.argsort(pd, axis=1)
-        idx[:, :kk] = part[rows, order]
-        dist[:, :kk] = pd[rows, order]
-        return idx, dist, d
     from scipy.spatial import cKDTree
 
     dd, ii = cKDTree(p).query(p, k=kk + 1)
@@ -93,7 +105,12 @@ def proximity(
     n = p.shape[0]
     idx, dist, full = k_nearest(p, max(k, 6) if n > _BRUTE_FORCE_MAX else k)
     if full is not None:
-        gap = (full - radii[:, None] - radii[None, :]).min(axis=1) if n > 1 else np.full(n, np.inf)
+        if n <= 1:
+            gap = np.full(n, np.inf)
+        elif radii.min() == radii.max():  # equal radii: the nearest centre gives the clearance
+            gap = np.minimum.reduce(full, axis=1) - 2.0 * radii
+        else:
+            gap = (full - radii[:, None] - radii[None, :]).min(axis=1)
         idx, dist = idx[:, :k], dist[:, :k]
     else:
         valid = idx >= 0
@@ -116,9 +133,7 @@ def min_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, orad: np.nda
         return proximity(p, radii, centers, orad, k=6).clearance
     gap = np.full(n, np.inf)
     if n > 1:
-        dx = p[:, 0:1] - p[:, 0]
-        dy = p[:, 1:2] - p[:, 1]
-        g = np.sqrt(dx * dx + dy * dy) - radii[:, None] - radii[None, :]
+        g = pairwise_distances(p) - radii[:, None] - radii[None, :]
         g.flat[:: n + 1] = np.inf
         gap = g.min(axis=1)
     if centers.shape[0]:
@@ -148,39 +163,38 @@ def build_observations(
 ) -> np.ndarray:
     """Observations of all robots as one ``(N, 14 + 6 (K + K_obs))`` float32 array."""
     n = p.shape[0]
-    obs = np.zeros((n, SELF_DIM + SLOT_DIM * (k_robots + k_obstacles)))
-    obs[:, 0:2] = p - p_d
-    obs[:, 2:4] = goals - p
-    obs[:, 4:6] = v
-    obs[:, 6] = np.cos(theta)
-    obs[:, 7] = np.sin(theta)
-    obs[:, 8:10] = u
-    obs[:, 10:12] = v_d
-    obs[:, 12:14] = a_d
-    if k_robots and n > 1:
-        idx, dist = prox.idx[:, :k_robots], prox.dist[:, :k_robots]
-        ok = dist <= sensing_range
-        j = np.where(ok, idx, 0)
-        slots = obs[:, SELF_DIM : SELF_DIM + SLOT_DIM * k_robots].reshape(n, k_robots, SLOT_DIM)
-        slots[..., 0:2] = p[j] - p[:, None, :]
-        slots[..., 2:4] = v[j] - v[:, None, :]
-        slots[..., 4] = dist - radii[:, None] - radii[j]
-        slots[..., 5] = 1.0
-        slots[~ok] = 0.0
-    m = obstacle_centers.shape[0]
-    if k_obstacles and m:
-        gaps = prox.obstacle_gaps
-        kk = min(k_obstacles, m)
-        order = np.argsort(gaps, axis=1)[:, :kk]
-        rows = np.arange(n)[:, None]
-        g = gaps[rows, order]
-        ok = g + radii[:, None] + obstacle_radii[order] <= sensing_range
-        start = SELF_DIM + SLOT_DIM * k_robots
-        slots = obs[:, start : start + SLOT_DIM * kk].reshape(n, kk, SLOT_DIM)
-        slots[..., 0:2] = obstacle_centers[order] - p[:, None, :]
-        slots[..., 2:4] = -v[:, None, :]
-        slots[..., 4] = g
-        slots[..., 5] = 1.0
-        slots[~ok] = 0.0
-    np.clip(obs, -OBS_BOUND, OBS_BOUND, out=obs)
-    return obs.astype(np.float32)
+    heading = np.exp(1j * theta).view(np.float64).reshape(n, 2)
+    parts = [p - p_d, goals - p, v, heading, u, v_d, a_d]
+    if k_robots:
+        slots = np.zeros((n, k_robots, SLOT_DIM))
+        if n > 1:
+            idx, dist = prox.idx[:, :k_robots], prox.dist[:, :k_robots]
+            ok = dist <= sensing_range
+            j = np.where(ok, idx, 0)
+            # gather (p, v, -r) of the neighbours, subtract (p, v, r) of the robot
+            mine = np.concatenate((p, v, radii[:, None]), axis=1)
+            theirs = mine * _NEG_RADIUS
+            rel = theirs[j] - mine[:, None, :]
+            rel[..., 4] += dist
+            slots[..., :5] = rel
+            slots[..., 5] = 1.0
+            slots[~ok] = 0.0
+        parts.append(slots.reshape(n, -1))
+    if k_obstacles:
+        m = obstacle_centers.shape[0]
+        slots = np.zeros((n, k_obstacles, SLOT_DIM))
+        if m:
+            gaps = prox.obstacle_gaps
+            kk = min(k_obstacles, m)
+            order = np.argsort(gaps, axis=1)[:, :kk]
+            g = gaps[np.arange(n)[:, None], order]
+            ok = g + radii[:, None] + obstacle_radii[order] <= sensing_range
+            part = slots[:, :kk]
+            part[..., 0:2] = obstacle_centers[order] - p[:, None, :]
+            part[..., 2:4] = -v[:, None, :]
+            part[..., 4] = g
+            part[..., 5] = 1.0
+            part[~ok] = 0.0
+        parts.append(slots.reshape(n, -1))
+    obs = np.concatenate(parts, axis=1, dtype=np.float32)
+    return np.minimum(np.maximum(obs, -OBS_BOUND, out=obs), OBS_BOUND, out=obs)

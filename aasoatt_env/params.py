@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -159,10 +160,43 @@ class Team:
         """True for differential-drive robots, False for double integrators."""
         return self.model == "diff_drive"
 
-    @property
+    @cached_property
     def du_max(self) -> np.ndarray:
-        """Symmetric input bound per robot and input, shape ``(N, 2)``."""
-        return np.repeat(self.max_wheel_accel[:, None], 2, axis=1)
+        """Symmetric input bound per robot and input, shape ``(N, 2)`` (read-only)."""
+        out = np.repeat(self.max_wheel_accel[:, None], 2, axis=1)
+        out.flags.writeable = False
+        return out
+
+    @cached_property
+    def speed_limited(self) -> bool:
+        """True when some robot has a finite wheel-speed limit."""
+        return bool(np.isfinite(self.max_wheel_speed).any())
+
+    @cached_property
+    def input_columns(self) -> np.ndarray:
+        """Columns of ``A`` at heading 0 as complex numbers, shape ``(N, 2)``.
+
+        ``A(theta)[:, j] = e^{i theta} * input_columns[:, j]`` (real part: row 0,
+        imaginary part: row 1), i.e. ``rho/2 (1 + i k)`` and ``rho/2 (1 - i k)``
+        with ``k = l / b`` for differential drive, ``1`` and ``i`` for the double
+        integrator.  Cached; the dynamics use it to build ``A`` with one rotation.
+        """
+        if not self.is_diff_drive:
+            return np.tile(np.array([1.0 + 0.0j, 1.0j]), (self.n, 1))
+        h = 0.5 * self.wheel_radius
+        k = self.offset / self.half_track
+        return np.stack((h * (1.0 + 1j * k), h * (1.0 - 1j * k)), axis=1)
+
+    @cached_property
+    def wheel_map(self) -> np.ndarray:
+        """Wheel speeds -> (forward speed, yaw rate) of the axle, shape ``(N, 2, 2)``."""
+        h, g = 0.5 * self.wheel_radius, self.turn_gain
+        return np.stack((np.stack((h, h), axis=1), np.stack((g, -g), axis=1)), axis=1)
+
+    @cached_property
+    def turn_gain(self) -> np.ndarray:
+        """``rho / (2 b)``: yaw rate per unit wheel-speed difference, shape ``(N,)``."""
+        return self.wheel_radius / (2.0 * self.half_track)
 
 
 def make_team(robots: RobotParams | str | Sequence[RobotParams | str] | None, n: int) -> Team:
