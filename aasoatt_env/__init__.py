@@ -9,6 +9,8 @@ from aasoatt_env.errors import AASOATTError, ActionError, ConfigError, ScenarioE
 from aasoatt_env.gym_env import AASOATTGymEnv
 from aasoatt_env.params import PRESETS, RobotParams, Team, make_team
 from aasoatt_env.registration import ENV_IDS, env, parallel_env, register_all
+from aasoatt_env.safety import FilterConfig, FilterResult, SafetyFilter
+from aasoatt_env.safety.wrapper import AASOATTFilter
 from aasoatt_env.scenarios import SCENARIOS, Scenario, get_scenario
 
 __version__ = "0.1.0"
@@ -20,13 +22,17 @@ __all__ = [
     "PRESETS",
     "SCENARIOS",
     "AASOATTError",
+    "AASOATTFilter",
     "AASOATTGymEnv",
     "AASOATTParallelEnv",
     "ActionError",
     "ConfigError",
+    "FilterConfig",
+    "FilterResult",
     "RewardConfig",
     "RobotParams",
     "Scenario",
+    "SafetyFilter",
     "ScenarioError",
     "SimState",
     "SolverError",

@@ -33,6 +33,7 @@ __all__ = [
     "jacobian",
     "kinematics",
     "pose_from_point",
+    "speed_box",
 ]
 
 _SMALL_OMEGA = 1e-9
@@ -114,18 +115,25 @@ def input_bounds(team: Team, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.n
     """Lower and upper bounds ``(N, 2)`` on ``du`` for the next step.
 
     The box ``|du| <= max_wheel_accel`` is intersected with the set that keeps
-    ``|u + du dt| <= max_wheel_speed``.  If a wheel already exceeds its speed
-    limit, the bound lets it brake at full acceleration (the box is never empty).
+    ``|u + du dt| <= max_wheel_speed`` (:func:`speed_box`).
     """
     a = team.du_max
     if not team.speed_limited:
         return -a, a.copy()
-    hi, lo = a.copy(), -a
-    finite = np.isfinite(team.max_wheel_speed)
-    w = team.max_wheel_speed[:, None]
-    hi = np.where(finite[:, None], np.maximum(np.minimum(a, (w - u) / dt), -a), hi)
-    lo = np.where(finite[:, None], np.minimum(np.maximum(-a, (-w - u) / dt), a), lo)
-    return lo, hi
+    return speed_box(-a, a, u, team.max_wheel_speed[:, None], dt)
+
+
+def speed_box(
+    lo: np.ndarray, hi: np.ndarray, u: np.ndarray, max_speed: float | np.ndarray, dt: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Intersect the box ``[lo, hi]`` on ``du`` with ``|u + du dt| <= max_speed``.
+
+    Never empty: a wheel already beyond the limit gets the box's full braking
+    acceleration only.  ``max_speed`` may be ``inf`` (no limit) per robot.
+    """
+    new_hi = np.maximum(np.minimum(hi, (max_speed - u) / dt), lo)
+    new_lo = np.minimum(np.maximum(lo, (-max_speed - u) / dt), new_hi)
+    return new_lo, new_hi
 
 
 def integrate(

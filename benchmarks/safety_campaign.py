@@ -50,6 +50,8 @@ def main() -> None:
     parser.add_argument("--solver", default="proxsuite")
     parser.add_argument("--wheel-speed-limit", type=float, default=None,
                         help="RandomGoals robots: paper robots with this wheel-speed limit [rad/s] (default: none)")
+    parser.add_argument("--filter-speed-limit", type=float, default=None,
+                        help="RandomGoals: the filter's max_wheel_speed [rad/s] on the robots (default: none)")
     parser.add_argument("--only", choices=("r6", "r10", "random"),
                         help="run only the radius-6 circles, the radius-10 circles or RandomGoals")
     args = parser.parse_args()
@@ -77,10 +79,11 @@ def main() -> None:
             limit = args.wheel_speed_limit
             robots = {} if limit is None else {"robots": RobotParams(max_wheel_speed=limit)}
             env = AASOATTFilter(AASOATTParallelEnv("random_goals", num_robots=20, max_steps=2000, **robots),
-                                solver=args.solver)
+                                solver=args.solver, max_wheel_speed=args.filter_speed_limit)
             t = time.perf_counter()
             rollout, _ = run_episode(env, agent, seed=seed)
             tag = "" if args.wheel_speed_limit is None else f" |w|<={args.wheel_speed_limit:g}"
+            tag += "" if args.filter_speed_limit is None else f" filter |w|<={args.filter_speed_limit:g}"
             print(_row(f"random_goals N=20 {name}{tag} s={seed}", rollout, time.perf_counter() - t, False), flush=True)
 
 

@@ -96,6 +96,21 @@ def test_input_bounds_respect_speed_limit_and_never_empty():
     assert lo[0, 0] == pytest.approx(-10.0)
 
 
+def test_speed_box_matches_input_bounds_and_is_never_empty():
+    rng = np.random.default_rng(3)
+    team = make_team(RobotParams(max_wheel_accel=10.0, max_wheel_speed=5.0), 50)
+    u = rng.uniform(-8.0, 8.0, (50, 2))
+    lo, hi = dyn.input_bounds(team, u, 0.01)
+    lo2, hi2 = dyn.speed_box(-team.du_max, team.du_max, u, 5.0, 0.01)
+    np.testing.assert_array_equal(lo, lo2)
+    np.testing.assert_array_equal(hi, hi2)
+    assert np.all(lo <= hi)
+    assert np.all(np.abs(lo) <= 10.0) and np.all(np.abs(hi) <= 10.0)
+    inside = np.abs(u) <= 5.0
+    assert np.all(np.abs(u + lo * 0.01)[inside] <= 5.0 + 1e-12)
+    assert np.all(np.abs(u + hi * 0.01)[inside] <= 5.0 + 1e-12)
+
+
 def test_heterogeneous_team_arrays():
     team = make_team(["paper", RobotParams(radius=0.3, max_wheel_accel=20.0), "paper"], 3)
     np.testing.assert_allclose(team.radius, [0.48, 0.3, 0.48])

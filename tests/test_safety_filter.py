@@ -56,6 +56,7 @@ def test_bad_shape_nominal():
         ({"zeta": -0.5}, ConfigError, r"zeta: got -0.5"),
         ({"rotation_deg": 270}, ConfigError, "rotation_deg"),
         ({"safety_margin": -0.1}, ConfigError, "safety_margin"),
+        ({"max_wheel_speed": 0.0}, ConfigError, r"max_wheel_speed: got 0.0, expected a finite positive"),
         ({"nonexistent": 1}, ConfigError, "nonexistent"),
     ],
 )
@@ -63,6 +64,23 @@ def test_config_errors(kwargs, exc, match):
     team = make_team("paper", 2)
     with pytest.raises(exc, match=match):
         SafetyFilter(team, **kwargs)
+
+
+def test_filter_side_wheel_speed_bound():
+    """``max_wheel_speed`` keeps |u + du dt| <= w; a wheel beyond it is braked at full rate."""
+    team, pose, u = _state()
+    u = np.array([[0.0, 19.99], [25.0, -25.0], [3.0, 3.0], [-19.0, 0.0]])
+    kin, lo, hi = _inputs(team, pose, u)
+    nominal = np.stack((team.max_wheel_accel, -team.max_wheel_accel), axis=1)  # push the wheels apart
+    du, res = SafetyFilter(team, deadlock="none", max_wheel_speed=20.0).step(kin, u, pose[:, 2], nominal, lo, hi)
+    after = u + du * 0.005
+    a = team.max_wheel_accel[:, None]
+    assert res.status in ("solved", "relaxed")
+    assert np.all(np.abs(du) <= a + 1e-9)
+    assert np.all(np.abs(after[[0, 2, 3]]) <= 20.0 + 1e-9)
+    np.testing.assert_allclose(du[1], [-a[1, 0], a[1, 0]])  # over the limit: full braking both wheels
+    free, _ = SafetyFilter(team, deadlock="none").step(kin, u, pose[:, 2], nominal, lo, hi)
+    assert np.abs(u + free * 0.005).max() > 20.0  # without the option the nominal is allowed
 
 
 def test_uninstalled_solver_lists_available(monkeypatch):

@@ -96,6 +96,16 @@ class FilterConfig:
         closed form (a 2-variable box-constrained least squares each) and the QP
         is built over the robots that share a row only.  The optimum is the same
         (the problem is separable); the QP is smaller.  True by default.
+    max_wheel_speed : float or None
+        Filter-side wheel-speed bound [rad/s] (None: none beyond the robots' own).
+        The filter keeps ``|u + du dt| <= max_wheel_speed`` by tightening the box
+        on ``du`` (a wheel already beyond it may brake at full acceleration, so the
+        box is never empty).  The paper's barrier assumes the rows stay feasible;
+        on robots without a wheel-speed limit an adversarial nominal can spin a
+        robot up until the drift ``A_dot u`` exceeds what the bounded wheel
+        accelerations can cancel, and from there no input keeps the barrier
+        (README: known limits).  Set this for such policies; off by default
+        because the paper's experiments do not have it.
     eta_tol : float
         A (normalised) multiplier above this marks a row active.
     low_speed : float
@@ -131,6 +141,7 @@ class FilterConfig:
     neural_iterations: int = 1
     active_set: bool = False
     decompose: bool = True
+    max_wheel_speed: float | None = None
     eta_tol: float = 1e-6
     low_speed: float = 0.05
     goal_tol: float = 0.1
@@ -158,6 +169,8 @@ class FilterConfig:
                "an angle in [-180, 180] degrees")
         if self.gate_range is not None:
             _check("gate_range", self.gate_range, lambda x: x > 0, "a finite positive number or None")
+        if self.max_wheel_speed is not None:
+            _check("max_wheel_speed", self.max_wheel_speed, lambda x: x > 0, "a finite positive number or None")
         if self.safety_margin is not None:
             _check("safety_margin", self.safety_margin, lambda x: x >= 0, "a finite number >= 0 or None")
         for flag in ("active_set", "decompose"):

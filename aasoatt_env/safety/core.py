@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.dynamics import Kinematics, input_bounds, kinematics
+from aasoatt_env.dynamics import Kinematics, input_bounds, kinematics, speed_box
 from aasoatt_env.errors import ActionError, ConfigError
 from aasoatt_env.params import Team
 from aasoatt_env.safety.barriers import BarrierParams, PairGeometry, barrier_rows
@@ -197,6 +197,8 @@ class SafetyFilter:
         cfg, team = self.config, self.team
         n = team.n
         nominal_du, lo, hi = self._check_inputs(kin, u, theta, nominal_du, lo, hi)
+        if cfg.max_wheel_speed is not None:
+            lo, hi = speed_box(lo, hi, u, cfg.max_wheel_speed, cfg.dt)
         if cfg.deadlock in NEEDS_REFERENCE and reference is None:
             raise ConfigError(f"deadlock strategy {cfg.deadlock!r} needs reference=(p_d, v_d); got None")
         if reference is not None:
