@@ -362,7 +362,8 @@ class AASOATTParallelEnv(ParallelEnv):
             else:
                 du = du_nom
             clipped = np.minimum(np.maximum(du, lo), hi)
-            saturated |= np.any(np.abs(clipped - du) > 1e-9, axis=1)
+            if (clipped != du).any():
+                saturated |= np.abs(clipped - du).max(axis=1) > 1e-9
             pose, u = dynamics.integrate(team, self._pose, self._u, clipped, dt)
             if any_frozen:
                 pose[frozen], u[frozen] = self._pose[frozen], 0.0
@@ -374,7 +375,7 @@ class AASOATTParallelEnv(ParallelEnv):
         self._steps += 1
         self._saturated = saturated
         self._trail.append(self._kin.p.copy())
-        self._refresh(between)
+        self._refresh(between if self.decision_interval > 1 else None)
 
         collided = self._clearance < -self.collision_tolerance
         rewards_arr = self._rewards(act, collided).tolist()
@@ -383,7 +384,8 @@ class AASOATTParallelEnv(ParallelEnv):
         obs = self._observations()
         infos = self._infos()
         idx = self._index
-        rewards = {a: rewards_arr[idx[a]] for a in live}
+        all_live = len(live) == len(self.possible_agents)
+        rewards = dict(zip(live, rewards_arr)) if all_live else {a: rewards_arr[idx[a]] for a in live}
         if self.terminate_on_collision:
             terminated_mask = collided & self._active
             terminations = {a: bool(terminated_mask[idx[a]]) for a in live}
@@ -392,7 +394,8 @@ class AASOATTParallelEnv(ParallelEnv):
             terminations = dict.fromkeys(live, False)
         truncations = dict.fromkeys(live, truncated)
         self.agents = [] if truncated else [a for a in live if not terminations[a]]
-        self._live_idx = np.array([idx[a] for a in self.agents], dtype=np.intp)
+        if len(self.agents) != len(live):
+            self._live_idx = np.array([idx[a] for a in self.agents], dtype=np.intp)
         if self.render_mode == "human":
             self.render()
         return obs, rewards, terminations, truncations, infos
@@ -431,6 +434,8 @@ class AASOATTParallelEnv(ParallelEnv):
             k_obstacles=self.num_obstacles,
             prox=self._prox,
         )
+        if len(self.agents) == len(self.possible_agents):
+            return dict(zip(self.agents, obs))
         idx = self._index
         return {a: obs[idx[a]] for a in self.agents}
 
