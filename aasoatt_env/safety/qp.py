@@ -40,8 +40,11 @@ own ``s*_k`` (status ``"relaxed"``, ``slack = max_k s*_k``).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib.util
+import os
+import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -378,6 +381,25 @@ def _clarabel(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opt
     return _Raw(np.asarray(sol.x), np.asarray(sol.z)[:m], ok, int(sol.iterations), str(sol.status))
 
 
+@contextlib.contextmanager
+def _c_stdout_silenced():
+    """Silence C-level stdout (OSQP 1.x prints "Polishing not needed" even with verbose=False)."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # no real file descriptor (e.g. captured)
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), fd)
+            yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
 def _osqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
     import osqp
 
@@ -391,7 +413,8 @@ def _osqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
                  eps_abs=eps, eps_rel=eps, polishing=True, max_iter=20000)
     if x0 is not None:
         solver.warm_start(x=np.clip(x0, prob.lb, prob.ub))
-    res = solver.solve()
+    with _c_stdout_silenced():
+        res = solver.solve()
     status = str(res.info.status)
     ok = status.lower().startswith("solved") and res.x is not None and np.all(np.isfinite(res.x))
     return _Raw(np.asarray(res.x), np.asarray(res.y)[:m] if res.y is not None else None,
