@@ -110,15 +110,16 @@ def _random_problems(rng, count):
     return probs
 
 
-@pytest.mark.parametrize("other", ["quadprog", "clarabel"])
-def test_cross_check_against_independent_solver(swap10, other):
+@pytest.mark.parametrize(("solver", "other"), [("proxsuite", "quadprog"), ("proxsuite", "clarabel"),
+                                               ("ldp", "quadprog")])
+def test_cross_check_against_independent_solver(swap10, solver, other):
     _, recorded = swap10
     rng = np.random.default_rng(0)
     probs = recorded[:300] + _random_problems(rng, 250)
     assert len(probs) >= 500
     compared = 0
     for prob in probs:
-        ours = solve_qp(prob, "proxsuite")
+        ours = solve_qp(prob, solver)
         ref = solve_qp(prob, other)
         assert ours.status != "failed"
         assert np.all(np.isfinite(ours.x))

@@ -316,30 +316,86 @@ def test_component_labels_match_scipy(seed):
     assert len(pairs) == len(set(ours.tolist())) == len(set(ref.tolist()))
 
 
-def test_proxsuite_max_iter_retries_with_the_other_backend(monkeypatch):
-    import aasoatt_env.safety.qp as qp
-
+def _starved_snapshot():
     scen = CircleSwap(10, radius=6.0, duration=12.0)
     out = rollout(scen, SafetyFilter(scen.team, decompose=False), 5.6, record=lambda k: k == 1100)
-    kin, u, theta, nom, lo, hi, ref = out.snapshots[0]
-    probs = []
-    real_solve, real_settings = qp.solve_qp, qp._prox_settings
-    calls = []
+    return scen, out.snapshots[0]
 
-    def starved(settings, eps):  # the first proxsuite call stalls (max_iter = 2)
+
+def _starve(monkeypatch, qp, calls, first_only):
+    real_settings = qp._prox_settings
+
+    def starved(settings, eps):  # proxsuite runs out of iterations (max_iter = 2)
         real_settings(settings, eps)
-        if not calls:
+        if not first_only or not calls:
             settings.max_iter = 2
         calls.append(1)
 
     monkeypatch.setattr(qp, "_prox_settings", starved)
+
+
+def test_proxsuite_out_of_iterations_is_answered_by_exact_ldp(monkeypatch):
+    import aasoatt_env.safety.qp as qp
+
+    scen, (kin, u, theta, nom, lo, hi, ref) = _starved_snapshot()
+    probs, calls = [], []
+    prob = _problem_from(scen.team, kin, u, theta, nom, lo, hi, ref, probs, qp.solve_qp)
+    _starve(monkeypatch, qp, calls, first_only=False)
+    sol = qp.solve_qp(prob, "proxsuite")
+    assert sol.status == "solved" and sol.fallback
+    assert "MAX_ITER" in sol.message and "then ldp (KKT verified)" in sol.message
+    ref_sol = qp.solve_qp(prob, "quadprog")
+    f, f_ref = prob.objective(sol.x), prob.objective(ref_sol.x)
+    assert abs(f - f_ref) <= 1e-6 * max(1.0, abs(f_ref))
+    assert np.all(prob.C @ sol.x <= prob.u + 1e-9)
+
+
+def test_too_large_for_ldp_retries_the_other_proxsuite_backend(monkeypatch):
+    import aasoatt_env.safety.qp as qp
+
+    scen, (kin, u, theta, nom, lo, hi, ref) = _starved_snapshot()
+    probs, calls = [], []
+    prob = _problem_from(scen.team, kin, u, theta, nom, lo, hi, ref, probs, qp.solve_qp)
+    _starve(monkeypatch, qp, calls, first_only=True)
     monkeypatch.setattr(qp, "DENSE_MAX_SIZE", 0)  # first attempt sparse, retry dense
-    sol = qp.solve_qp(_problem_from(scen.team, kin, u, theta, nom, lo, hi, ref, probs, real_solve), "proxsuite")
-    assert sol.status == "solved" and "MAX_ITER" in sol.message and "then" in sol.message
-    ref_sol = qp.solve_qp(probs[0], "quadprog")
-    assert abs(probs[0].objective(sol.x) - probs[0].objective(ref_sol.x)) <= 1e-6 * max(
-        1.0, abs(probs[0].objective(ref_sol.x))
-    )
+    monkeypatch.setattr(qp, "LDP_MAX_VARS", 0)
+    sol = qp.solve_qp(prob, "proxsuite")
+    assert sol.status == "solved" and not sol.fallback
+    assert sol.message == "PROXQP_MAX_ITER_REACHED (sparse), then PROXQP_SOLVED"
+    ref_sol = qp.solve_qp(prob, "quadprog")
+    assert abs(prob.objective(sol.x) - prob.objective(ref_sol.x)) <= 1e-6 * max(1.0, abs(prob.objective(ref_sol.x)))
+
+
+def test_filter_goes_straight_to_the_exact_path_after_a_stall(monkeypatch):
+    import aasoatt_env.safety.core as core
+    import aasoatt_env.safety.qp as qp
+
+    calls = []
+    _starve(monkeypatch, qp, calls, first_only=False)  # proxsuite never converges
+    monkeypatch.setattr(core, "EXACT_STEPS", 40)
+    scen = CircleSwap(10, radius=6.0, duration=12.0)
+    messages = []
+    real_step = SafetyFilter.step
+
+    def spy(self, *a, **k):
+        n_calls = len(calls)
+        du, res = real_step(self, *a, **k)
+        messages.append((res.n_qp_rows, len(calls) - n_calls, res.message, res.status))
+        return du, res
+
+    monkeypatch.setattr(SafetyFilter, "step", spy)
+    out = rollout(scen, SafetyFilter(scen.team), 6.0)
+    qp_steps = [m for m in messages if m[0] > 0]
+    assert len(qp_steps) > 100
+    assert out.statuses.get("failed", 0) == 0 and out.min_distance >= 0.96 - 1e-3
+    first = next(i for i, m in enumerate(qp_steps) if m[1] > 0)
+    assert "then ldp" in qp_steps[first][2]
+    # the next QP steps do not call proxsuite: warm active set or ldp answers
+    following = qp_steps[first + 1:first + 31]
+    assert all(m[1] == 0 for m in following), following
+    assert all(m[2].startswith(("active set", "ldp")) for m in following if m[3] == "solved")
+    # after EXACT_STEPS proxsuite is tried again (and, starved, stalls again)
+    assert sum(m[1] > 0 for m in qp_steps) >= 2
 
 
 def _problem_from(team, kin, u, theta, nom, lo, hi, ref, probs, real_solve):

@@ -12,6 +12,12 @@ Discrete-time safety: the barrier is continuous-time; the default
 pairs in relative motion (see :mod:`aasoatt_env.safety.config`), which keeps
 ``|p_ij| >= d_s - 1e-3`` in the closed loop at ``dt = 0.005`` (tested on the
 circle swap up to 39 robots).
+
+Solver fallback: with the default ``proxsuite``, a step where proxsuite runs
+out of its iteration budget or calls a problem infeasible is answered by the
+exact ``ldp`` solver (:mod:`~aasoatt_env.safety.ldp`); the next
+:data:`EXACT_STEPS` steps then try the warm-started active set and ``ldp``
+before proxsuite.  ``FilterResult.message`` says which solver answered.
 """
 
 from __future__ import annotations
@@ -31,7 +37,13 @@ from aasoatt_env.safety.deadlock import NEEDS_REFERENCE, DeadlockState, rotation
 from aasoatt_env.safety.neighbors import obstacle_pairs, robot_pairs
 from aasoatt_env.safety.qp import box_least_squares, build_problem, solve_qp
 
-__all__ = ["FilterResult", "SafetyFilter"]
+__all__ = ["EXACT_STEPS", "FilterResult", "SafetyFilter"]
+
+EXACT_STEPS: int = 200
+"""Steps for which the default solver goes straight to the exact path (warm active
+set, then ``ldp``; proxsuite only if both fail) after proxsuite needed the exact
+fallback: proxsuite stalls on the same congested problems step after step (a
+60-robot circle swap), and each stall costs its whole iteration budget."""
 
 
 @dataclass(frozen=True)
@@ -147,6 +159,7 @@ class SafetyFilter:
         self._x: np.ndarray | None = None
         self._keys = np.empty(0, dtype=np.int64)
         self._z = np.empty(0)
+        self._exact_steps = 0
 
     # ------------------------------------------------------------------ API
     def from_state(
@@ -285,7 +298,12 @@ class SafetyFilter:
             opts: dict[str, float] = {"iterations": cfg.neural_iterations} if cfg.solver == "neural" else {}
             if cfg.active_set:
                 opts["active_set"] = True
+            if self._exact_steps > 0:  # proxsuite needed the exact fallback a moment ago
+                opts["prefer_exact"] = True
+                self._exact_steps -= 1
             sol = solve_qp(prob, cfg.solver, x0, None if z0 is None else z0[rows], **opts)
+            if sol.fallback:
+                self._exact_steps = EXACT_STEPS
             x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
             du[sub] = np.clip((x * prob.scale).reshape(-1, 2), lo[sub], hi[sub])
             x_full[sub] = x.reshape(-1, 2)

@@ -21,7 +21,16 @@ Solvers (:data:`SOLVERS`, by name):
     the previous step) first a few iterations of the exact structured
     active-set method of :mod:`aasoatt_env.safety.active_set`, accepted only
     when the full KKT conditions hold.  Settings from SPEC section 4: tight ``eps_primal_inf`` /
-    ``eps_dual_inf``, ``check_duality_gap`` with a tight gap.
+    ``eps_dual_inf``, ``check_duality_gap`` with a tight gap; a bounded iteration
+    budget (:data:`PROX_MAX_ITER`, :data:`PROX_MAX_ITER_IN`).  When proxsuite
+    runs out of iterations or calls the problem infeasible, the exact ``ldp``
+    solver below answers instead (up to :data:`~aasoatt_env.safety.ldp.MAX_VARS`
+    variables; above, the other proxsuite back-end is tried).  The result's
+    message says which solver answered.
+``ldp``
+    Exact least-distance programming by NNLS (Lawson-Hanson, scipy), KKT-verified
+    (:mod:`aasoatt_env.safety.ldp`); needs only the core dependencies; dense, for
+    teams of up to a few hundred robots in one QP.
 ``neural``
     The paper's projection neural network (eqn.22), explicit Euler with
     ``eps = dt``: ``iterations`` projected primal-dual updates per call,
@@ -54,6 +63,8 @@ import scipy.sparse as sp
 
 from aasoatt_env.errors import SolverError
 from aasoatt_env.safety.active_set import solve_active_set
+from aasoatt_env.safety.ldp import MAX_VARS as LDP_MAX_VARS
+from aasoatt_env.safety.ldp import solve_ldp
 
 __all__ = [
     "DENSE_MAX_SIZE",
@@ -71,6 +82,15 @@ DENSE_MAX_SIZE: int = 600
 
 Measured on packed layouts: dense PrimalDualLDLT 2.7 ms vs sparse 4.2 ms at
 n + m = 340 (N = 39), but 16.5 ms vs 9.5 ms at n + m = 990 (N = 100)."""
+
+PROX_MAX_ITER: int = 200
+"""proxsuite's outer (``max_iter``) iteration budget before the exact fallback is asked."""
+PROX_MAX_ITER_IN: int = 100
+"""proxsuite's inner (``max_iter_in``) iteration budget per outer iteration.
+
+The closed loops of the test suite and the radius-6 campaign need at most ~260
+iterations in all; with proxsuite's default (1,500) a degenerate 60-robot
+problem ran 1.45 million iterations (140 s) before giving up."""
 
 _INF = 1e20
 _FEAS_TOL = 1e-7
@@ -148,6 +168,8 @@ class QPSolution:
     iterations: int
     message: str
     solve_time: float
+    fallback: bool = False
+    """True when proxsuite gave no answer and the exact ``ldp`` solver did."""
 
 
 @dataclass
@@ -157,6 +179,7 @@ class _Raw:
     ok: bool
     iterations: int
     message: str
+    fallback: bool = False
 
 
 def build_problem(
@@ -288,7 +311,8 @@ def _prox_settings(settings: object, eps: float) -> None:
     settings.check_duality_gap = True
     settings.eps_duality_gap_abs = eps
     settings.eps_duality_gap_rel = 0.0
-    settings.max_iter = 1_000
+    settings.max_iter = PROX_MAX_ITER
+    settings.max_iter_in = PROX_MAX_ITER_IN
     settings.verbose = False
 
 
@@ -328,14 +352,28 @@ def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, op
     if ok and not np.all(np.isfinite(x)):
         ok = False
     raw = _Raw(x, np.array(r.z)[:m], ok, int(r.info.iter), str(st).rsplit(".", 1)[-1])
-    if not ok and st == px.PROXQP_MAX_ITER_REACHED and opts.get("dense") is None:
-        # the two back-ends stall on different problems (measured: sparse on a 60-robot
-        # circle at n + m = 795): retry with the other before calling anything infeasible
-        other = _proxsuite(prob, x0, z0, {**opts, "dense": not dense})
+    if ok or not opts.get("fallback", True):
+        return raw
+    # proxsuite ran out of iterations or called the problem infeasible: ask the exact
+    # least-distance solver (finite active-set method, KKT-verified) before anything else
+    if prob.n <= LDP_MAX_VARS:
+        fb = _ldp(prob, x0, z0, opts)
+        fb.iterations += raw.iterations
+        fb.message = f"{raw.message} ({'dense' if dense else 'sparse'}), then {fb.message}"
+        fb.fallback = True
+        return fb
+    if st == px.PROXQP_MAX_ITER_REACHED and opts.get("dense") is None:
+        # too large for the dense fallback: the two back-ends stall on different problems
+        other = _proxsuite(prob, x0, z0, {**opts, "dense": not dense, "fallback": False})
         other.iterations += raw.iterations
         other.message = f"{raw.message} ({'dense' if dense else 'sparse'}), then {other.message}"
         return other
     return raw
+
+
+def _ldp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    x, z, message = solve_ldp(prob)
+    return _Raw(x, z, x is not None, 0, message)
 
 
 def _neural(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
@@ -461,6 +499,7 @@ Backend = Callable[[QPProblem, "np.ndarray | None", "np.ndarray | None", dict], 
 SOLVERS: dict[str, tuple[Backend, str]] = {
     "proxsuite": (_proxsuite, "proxsuite"),
     "neural": (_neural, ""),
+    "ldp": (_ldp, ""),
     "quadprog": (_quadprog, "quadprog"),
     "clarabel": (_clarabel, "clarabel"),
     "osqp": (_osqp, "osqp"),
@@ -540,6 +579,13 @@ def solve_qp(
 
     Returns status ``"solved"``, ``"relaxed"`` (rows loosened by ``slack``,
     in normalised row units) or ``"failed"`` (``x`` is then the clipped unconstrained optimum).
+
+    Options (``**opts``): ``eps`` (proxsuite/OSQP tolerance), ``iterations`` and
+    ``step`` (``neural``), ``dense`` (force a proxsuite back-end), ``active_set``
+    (proxsuite: first the warm-started exact active-set method), ``prefer_exact``
+    (proxsuite: first the warm active set, then ``ldp``, proxsuite only if both
+    fail; what :class:`~aasoatt_env.safety.core.SafetyFilter` asks for in the
+    steps after proxsuite needed the fallback).
     """
     backend = get_solver(solver)
     t0 = time.perf_counter()
@@ -549,15 +595,21 @@ def solve_qp(
     if solver == "neural":
         raw = backend(prob, x0, z0, opts)
         return QPSolution(raw.x, raw.z, "solved", 0.0, raw.iterations, raw.message, time.perf_counter() - t0)
-    if solver == "proxsuite" and x0 is not None and z0 is not None and opts.get("active_set"):
+    exact_first = solver == "proxsuite" and bool(opts.get("prefer_exact")) and prob.n <= LDP_MAX_VARS
+    if solver == "proxsuite" and x0 is not None and z0 is not None and (opts.get("active_set") or exact_first):
         fast = solve_active_set(prob, x0, z0)
         if fast is not None:
             return QPSolution(fast[0], fast[1], "solved", 0.0, fast[2], "active set (warm, KKT verified)",
                               time.perf_counter() - t0)
+    if exact_first:
+        raw = _ldp(prob, x0, z0, opts)
+        if raw.ok:
+            return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, 0,
+                              f"{raw.message}; proxsuite skipped (prefer_exact)", time.perf_counter() - t0)
     raw = backend(prob, x0, z0, opts)
     if raw.ok:
         return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message,
-                          time.perf_counter() - t0)
+                          time.perf_counter() - t0, raw.fallback)
     first = raw.message
     p1 = _phase1(prob, backend, opts)
     if p1 is None:
@@ -575,7 +627,8 @@ def solve_qp(
     msg = f"{solver}: {first}; phase-1 largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
     if raw2.ok:
         return QPSolution(raw2.x, _nonneg(raw2.z, prob.m), status, tstar if relaxed else 0.0,
-                          raw.iterations + raw2.iterations, msg, time.perf_counter() - t0)
+                          raw.iterations + raw2.iterations, msg, time.perf_counter() - t0,
+                          raw.fallback or raw2.fallback)
     return QPSolution(x1, np.zeros(prob.m), "relaxed", tstar, raw.iterations + raw2.iterations,
                       msg + "; phase-2 failed, returning the phase-1 point", time.perf_counter() - t0)
 
