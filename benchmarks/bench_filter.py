@@ -18,6 +18,8 @@ repeated calls, one core:
               (``solver="cvxopt", decompose=False``)
   osqp        OSQP, whole team, eps 1e-7 with polishing (``solver="osqp", decompose=False``)
   daqp        the default filter with DAQP instead of proxsuite (``solver="daqp"``)
+  ldp         the default filter with the exact NNLS solver (``solver="ldp"``, proxsuite's
+              fallback; dense, so only up to ``ldp.MAX_VARS`` variables: N <= 250)
   active set  ``active_set=True`` repeated on the same state: the warm active-set
               path's best case (opt-in; slower than the default in the 39-robot closed loop)
   qp rows     rows the QP saw after decomposition / all rows
@@ -41,6 +43,7 @@ import numpy as np  # noqa: E402
 from aasoatt_env.dynamics import input_bounds, kinematics, pose_from_point  # noqa: E402
 from aasoatt_env.params import make_team  # noqa: E402
 from aasoatt_env.safety import SafetyFilter  # noqa: E402
+from aasoatt_env.safety.ldp import MAX_VARS as LDP_MAX_VARS  # noqa: E402
 from aasoatt_env.safety.qp import available_solvers  # noqa: E402
 from aasoatt_env.safety.scenario import CircleSwap, rollout  # noqa: E402
 
@@ -81,6 +84,7 @@ VARIANTS = {
     "cvxopt": {"solver": "cvxopt", "decompose": False},
     "osqp": {"solver": "osqp", "decompose": False},
     "daqp": {"solver": "daqp"},
+    "ldp": {"solver": "ldp"},
     "active set": {"active_set": True},
 }
 
@@ -90,7 +94,8 @@ def bench(label: str, team, snap, reps: int, slow_reps: int) -> dict:
     deadlock = "none" if ref is None else "auxiliary_velocity"
     out = {"scene": label, "N": team.n}
     for name, kw in VARIANTS.items():
-        if kw.get("solver", "proxsuite") not in available_solvers():
+        too_big = kw.get("solver") == "ldp" and 2 * team.n > LDP_MAX_VARS
+        if kw.get("solver", "proxsuite") not in available_solvers() or too_big:
             out[name] = float("nan")
             continue
         f = SafetyFilter(team, deadlock=deadlock, **kw)
@@ -99,9 +104,13 @@ def bench(label: str, team, snap, reps: int, slow_reps: int) -> dict:
             out["rows"], out["qp rows"], out["status"], du_ref = res.n_rows, res.n_qp_rows, res.status, du
         else:
             out[name + " err"] = float(np.max(np.abs(du - du_ref), initial=0.0))
-        r = reps if name in ("ours", "active set", "whole QP", "daqp") else slow_reps
+        r = reps if name in ("ours", "active set", "whole QP", "daqp", "ldp") else slow_reps
         out[name] = timed(lambda f=f: f.step(kin, u, theta, nom, lo, hi, reference=ref), r)
     return out
+
+
+def _fmt(v: float, width: int, digits: int) -> str:
+    return f"{v:{width}.{digits}f}" if np.isfinite(v) else f"{'-':>{width}s}"  # '-': not run
 
 
 def main() -> None:
@@ -122,8 +131,8 @@ def main() -> None:
           + " ".join(f"{k:>10s}" for k in names) + " " + " ".join(f"{k + '/ours':>12s}" for k in names[1:]))
     for r in rows:
         print(f"{r['scene']:7s} {r['N']:5d} {r['rows']:6d} {r['qp rows']:8d} {r['status']:>8s} "
-              + " ".join(f"{r[k] * 1e3:10.2f}" for k in names) + " "
-              + " ".join(f"{r[k] / r['ours']:12.1f}" for k in names[1:]))
+              + " ".join(_fmt(r[k] * 1e3, 10, 2) for k in names) + " "
+              + " ".join(_fmt(r[k] / r['ours'], 12, 1) for k in names[1:]))
     errs = ", ".join(
         f"{k} {max((r.get(k + ' err', 0.0) for r in rows if np.isfinite(r[k])), default=0.0):.1e}" for k in names[1:]
     )

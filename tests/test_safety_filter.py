@@ -411,3 +411,34 @@ def _problem_from(team, kin, u, theta, nom, lo, hi, ref, probs, real_solve):
     finally:
         core.solve_qp = real_solve
     return probs[0]
+
+
+@pytest.mark.parametrize(("ldp_time", "switches"), [(0.01, True), (0.9, False)])
+def test_slow_proxsuite_switches_to_ldp_only_when_ldp_is_faster(monkeypatch, ldp_time, switches):
+    import dataclasses
+
+    import aasoatt_env.safety.core as core
+
+    real = core.solve_qp
+    log = []
+
+    def timed(prob, solver, *a, **k):  # proxsuite "takes" 1 s, the ldp probe ldp_time
+        sol = real(prob, solver, *a, **k)
+        path = "exact" if k.get("prefer_exact") else solver
+        log.append(path)
+        fake = {"proxsuite": 1.0, "ldp": ldp_time}.get(path, sol.solve_time)
+        return dataclasses.replace(sol, solve_time=fake)
+
+    monkeypatch.setattr(core, "solve_qp", timed)
+    scen = CircleSwap(10, radius=6.0, duration=12.0)
+    out = rollout(scen, SafetyFilter(scen.team), 6.0)
+    assert out.statuses.get("failed", 0) == 0
+    first = log.index("proxsuite")
+    assert log[first + 1] == "ldp"  # the timing probe on the same problem
+    if switches:
+        # EXACT_STEPS steps of the exact path, then proxsuite again (and the probe), then 2x as long
+        assert log[first + 2:first + 2 + core.EXACT_STEPS] == ["exact"] * core.EXACT_STEPS
+        assert log[first + 2 + core.EXACT_STEPS:first + 4 + core.EXACT_STEPS] == ["proxsuite", "ldp"]
+        assert "proxsuite" not in log[first + 4 + core.EXACT_STEPS:first + 4 + 2 * core.EXACT_STEPS]
+    else:
+        assert "exact" not in log

@@ -15,9 +15,10 @@ circle swap up to 39 robots).
 
 Solver fallback: with the default ``proxsuite``, a step where proxsuite runs
 out of its iteration budget or calls a problem infeasible is answered by the
-exact ``ldp`` solver (:mod:`~aasoatt_env.safety.ldp`); the next
-:data:`EXACT_STEPS` steps then try the warm-started active set and ``ldp``
-before proxsuite.  ``FilterResult.message`` says which solver answered.
+exact ``ldp`` solver (:mod:`~aasoatt_env.safety.ldp`); after such a stall, or
+a solve slower than :data:`SLOW_SOLVE_S` that ``ldp`` beats by 2x on the same
+problem, the next :data:`EXACT_STEPS` steps try the warm-started active set
+and ``ldp`` before proxsuite.  ``FilterResult.message`` says which solver answered.
 """
 
 from __future__ import annotations
@@ -34,16 +35,22 @@ from aasoatt_env.params import Team
 from aasoatt_env.safety.barriers import BarrierParams, PairGeometry, barrier_rows
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import NEEDS_REFERENCE, DeadlockState, rotation, target_correction, trigger
+from aasoatt_env.safety.ldp import MAX_VARS as LDP_MAX_VARS
 from aasoatt_env.safety.neighbors import obstacle_pairs, robot_pairs
-from aasoatt_env.safety.qp import box_least_squares, build_problem, solve_qp
+from aasoatt_env.safety.qp import QPProblem, QPSolution, box_least_squares, build_problem, solve_qp
 
-__all__ = ["EXACT_STEPS", "FilterResult", "SafetyFilter"]
+__all__ = ["EXACT_STEPS", "FilterResult", "SLOW_SOLVE_S", "SafetyFilter"]
 
 EXACT_STEPS: int = 200
 """Steps for which the default solver goes straight to the exact path (warm active
-set, then ``ldp``; proxsuite only if both fail) after proxsuite needed the exact
-fallback: proxsuite stalls on the same congested problems step after step (a
-60-robot circle swap), and each stall costs its whole iteration budget."""
+set, then ``ldp``; proxsuite only if both fail) after proxsuite stalled or was
+slow (:meth:`SafetyFilter._adapt`): proxsuite stalls on the same congested problems
+step after step (a 60-robot circle swap), and each stall costs its whole
+iteration budget.  Doubled on each repeated switch (up to 16x)."""
+SLOW_SOLVE_S: float = 0.05
+"""A proxsuite solve slower than this [s] triggers the ``ldp`` timing probe
+(measured: 0.3-5 s per solve, sparse back-end, with 100 robots of radius 0.3
+packed on the radius-10 circle, ``n = 200, m = 1,600-2,300``; ``ldp`` 0.09-0.16 s)."""
 
 
 @dataclass(frozen=True)
@@ -160,6 +167,7 @@ class SafetyFilter:
         self._keys = np.empty(0, dtype=np.int64)
         self._z = np.empty(0)
         self._exact_steps = 0
+        self._stalls = 0
 
     # ------------------------------------------------------------------ API
     def from_state(
@@ -298,12 +306,13 @@ class SafetyFilter:
             opts: dict[str, float] = {"iterations": cfg.neural_iterations} if cfg.solver == "neural" else {}
             if cfg.active_set:
                 opts["active_set"] = True
-            if self._exact_steps > 0:  # proxsuite needed the exact fallback a moment ago
+            exact_first = cfg.solver == "proxsuite" and self._exact_steps > 0
+            if exact_first:  # proxsuite stalled or was slow a moment ago
                 opts["prefer_exact"] = True
                 self._exact_steps -= 1
             sol = solve_qp(prob, cfg.solver, x0, None if z0 is None else z0[rows], **opts)
-            if sol.fallback:
-                self._exact_steps = EXACT_STEPS
+            if cfg.solver == "proxsuite" and not exact_first:
+                self._adapt(prob, sol)
             x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
             du[sub] = np.clip((x * prob.scale).reshape(-1, 2), lo[sub], hi[sub])
             x_full[sub] = x.reshape(-1, 2)
@@ -331,6 +340,25 @@ class SafetyFilter:
         return du, result
 
     # ------------------------------------------------------------------ helpers
+    def _adapt(self, prob: QPProblem, sol: QPSolution) -> None:
+        """After a proxsuite solve: switch to the exact path for a while if proxsuite stalled or was slow.
+
+        A stall (``sol.fallback``) switches at once; a solve slower than
+        :data:`SLOW_SOLVE_S` switches only if ``ldp`` solves the same problem in
+        less than half the time (a timing probe; its answer, exact too, is
+        discarded).  The switch lasts ``EXACT_STEPS * 2**k`` steps, ``k`` the
+        number of switches since proxsuite last ran fast and converged.
+        """
+        switch = sol.fallback
+        if not switch and sol.solve_time > SLOW_SOLVE_S and prob.n <= LDP_MAX_VARS:
+            probe = solve_qp(prob, "ldp")
+            switch = probe.status == "solved" and probe.solve_time < 0.5 * sol.solve_time
+        if switch:
+            self._exact_steps = EXACT_STEPS * 2 ** min(self._stalls, 4)
+            self._stalls += 1
+        elif sol.solve_time <= SLOW_SOLVE_S:
+            self._stalls = 0
+
     @staticmethod
     def _row_values(Gi: np.ndarray, Gj: np.ndarray, ri: np.ndarray, rj: np.ndarray, du: np.ndarray) -> np.ndarray:
         """``G du`` row by row (``Gj`` ignored on obstacle rows)."""
