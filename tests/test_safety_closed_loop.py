@@ -142,3 +142,23 @@ def test_full_circle_of_39_robots_is_safe_and_reaches_the_packed_goals():
     assert out.min_distance >= D_S - 1e-3
     assert out.statuses.get("failed", 0) == 0
     assert np.all(out.final_error < 0.05), out.final_error.max()
+
+
+def test_ldp_alone_relaxes_infeasible_problems_like_quadprog(monkeypatch):
+    # core dependencies only (no Clarabel to fall back on): ldp answers the phase-1
+    # problem too, so an infeasible QP is relaxed, never "failed"
+    import aasoatt_env.safety.qp as qp
+
+    real = qp._installed
+    monkeypatch.setattr(qp, "_installed", lambda mod: mod != "clarabel" and real(mod))
+    relaxed = 0
+    for prob in _random_problems(np.random.default_rng(0), 250):
+        ours, ref = solve_qp(prob, "ldp"), solve_qp(prob, "quadprog")
+        assert ours.status == ref.status, ours.message
+        assert np.all(ours.x >= prob.lb - 1e-9) and np.all(ours.x <= prob.ub + 1e-9)
+        if ref.status == "relaxed":
+            relaxed += 1
+            assert abs(ours.slack - ref.slack) <= 1e-6 * max(1.0, ref.slack)
+            # rows were loosened by their least violation (1 + 1e-6) + 1e-7 (qp.solve_qp)
+            assert np.all(prob.C @ ours.x - prob.u <= ours.slack * (1 + 2e-6) + 2e-7)
+    assert relaxed >= 30

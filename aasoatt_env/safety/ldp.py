@@ -41,8 +41,16 @@ FEAS_TOL: float = 1e-9
 """Largest violation of a normalised row or bound accepted for an unpolished point."""
 
 
-def solve_ldp(prob) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.ndarray | None, str]:
     """Solve ``prob`` (a :class:`~aasoatt_env.safety.qp.QPProblem`) exactly.
+
+    Parameters
+    ----------
+    prob : QPProblem
+        The scaled problem; rows or bounds at ``+-inf`` (``|b| >= 1e19``) are dropped.
+    feas_tol : float
+        Largest row violation accepted for a point the KKT polish did not verify
+        (the phase-1 problem, whose violations are recomputed, passes a looser one).
 
     Returns
     -------
@@ -73,6 +81,9 @@ def solve_ldp(prob) -> tuple[np.ndarray | None, np.ndarray | None, str]:
     Td = T.toarray()
     Mt = np.vstack(((prob.C @ T).toarray() if m else np.zeros((0, n)), Td, -Td))
     b = np.concatenate((prob.u, prob.ub, -prob.lb))
+    finite = np.abs(b) < 1e19
+    if not np.all(finite):
+        Mt, b = Mt[finite], b[finite]
     hb = b + Mt @ gt
     E = -np.vstack((Mt.T, hb[None, :]))
     norms = np.linalg.norm(E, axis=0)
@@ -88,7 +99,8 @@ def solve_ldp(prob) -> tuple[np.ndarray | None, np.ndarray | None, str]:
     if not np.all(np.isfinite(r)) or -r[-1] <= 1e-14:
         return None, None, "ldp: rows inconsistent (NNLS residual zero)"
     w = -r[:n] / r[-1]
-    lam = u / (-r[-1])
+    lam = np.zeros(finite.shape[0])
+    lam[finite] = u / (-r[-1])
     x = np.einsum("nij,nj->ni", LinvT, (w - gt).reshape(nb, 2)).ravel()
     z = lam[:m]
     polished = solve_active_set(prob, x, z)
@@ -96,6 +108,6 @@ def solve_ldp(prob) -> tuple[np.ndarray | None, np.ndarray | None, str]:
         return polished[0], polished[1], "ldp (KKT verified)"
     x = np.clip(x, prob.lb, prob.ub)
     viol = float(np.max(prob.C @ x - prob.u, initial=0.0))
-    if viol > FEAS_TOL or not np.all(np.isfinite(x)):
+    if viol > feas_tol or not np.all(np.isfinite(x)):
         return None, None, f"ldp: point violates a row by {viol:.2g}"
     return x, np.maximum(z, 0.0), "ldp (feasible, KKT polish did not converge)"

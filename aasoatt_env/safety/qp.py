@@ -63,6 +63,7 @@ import scipy.sparse as sp
 
 from aasoatt_env.errors import SolverError
 from aasoatt_env.safety.active_set import solve_active_set
+from aasoatt_env.safety.ldp import FEAS_TOL as LDP_FEAS_TOL
 from aasoatt_env.safety.ldp import MAX_VARS as LDP_MAX_VARS
 from aasoatt_env.safety.ldp import solve_ldp
 
@@ -372,7 +373,7 @@ def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, op
 
 
 def _ldp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
-    x, z, message = solve_ldp(prob)
+    x, z, message = solve_ldp(prob, float(opts.get("ldp_feas_tol", LDP_FEAS_TOL)))
     return _Raw(x, z, x is not None, 0, message)
 
 
@@ -557,7 +558,9 @@ def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, 
         lb=np.concatenate((prob.lb, np.zeros(ns))), ub=np.concatenate((prob.ub, ub_s)),
         scale=np.ones(n + ns), obj_scale=1.0, row_norm=np.ones(m), diagonal=prob.diagonal,
     )
-    raw = backend(p1, None, None, opts)
+    # the phase-1 point is only used through its recomputed violations: an exact solver's
+    # point is accepted at a looser feasibility (the 1e-8 regulariser conditions it badly)
+    raw = backend(p1, None, None, {**opts, "ldp_feas_tol": 1e-6})
     if not raw.ok or raw.x is None:
         if backend is not _clarabel and _installed("clarabel"):
             raw = _clarabel(p1, None, None, opts)
