@@ -147,10 +147,10 @@ def test_full_circle_of_39_robots_is_safe_and_reaches_the_packed_goals():
 def test_ldp_alone_relaxes_infeasible_problems_like_quadprog(monkeypatch):
     # core dependencies only (no Clarabel to fall back on): ldp answers the phase-1
     # problem too, so an infeasible QP is relaxed, never "failed"
-    import aasoatt_env.safety.qp as qp
+    import aasoatt_env.safety.backends as backends
 
-    real = qp._installed
-    monkeypatch.setattr(qp, "_installed", lambda mod: mod != "clarabel" and real(mod))
+    real = backends._installed
+    monkeypatch.setattr(backends, "_installed", lambda mod: mod != "clarabel" and real(mod))
     relaxed = 0
     for prob in _random_problems(np.random.default_rng(0), 250):
         ours, ref = solve_qp(prob, "ldp"), solve_qp(prob, "quadprog")

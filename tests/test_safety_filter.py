@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+import aasoatt_env.safety.backends as backends
 from aasoatt_env.dynamics import input_bounds, kinematics, pose_from_point
 from aasoatt_env.errors import ActionError, ConfigError, SolverError
 from aasoatt_env.params import make_team
@@ -84,9 +85,7 @@ def test_filter_side_wheel_speed_bound():
 
 
 def test_uninstalled_solver_lists_available(monkeypatch):
-    import aasoatt_env.safety.qp as qp
-
-    monkeypatch.setitem(qp.SOLVERS, "ghost", (qp._osqp, "ghost_module_xyz"))
+    monkeypatch.setitem(backends.SOLVERS, "ghost", (backends._osqp, "ghost_module_xyz"))
     with pytest.raises(SolverError, match="not installed.*available"):
         FilterConfig(solver="ghost")
 
@@ -322,8 +321,8 @@ def _starved_snapshot():
     return scen, out.snapshots[0]
 
 
-def _starve(monkeypatch, qp, calls, first_only):
-    real_settings = qp._prox_settings
+def _starve(monkeypatch, calls, first_only):
+    real_settings = backends._prox_settings
 
     def starved(settings, eps):  # proxsuite runs out of iterations (max_iter = 2)
         real_settings(settings, eps)
@@ -331,7 +330,7 @@ def _starve(monkeypatch, qp, calls, first_only):
             settings.max_iter = 2
         calls.append(1)
 
-    monkeypatch.setattr(qp, "_prox_settings", starved)
+    monkeypatch.setattr(backends, "_prox_settings", starved)
 
 
 def test_proxsuite_out_of_iterations_is_answered_by_exact_ldp(monkeypatch):
@@ -340,7 +339,7 @@ def test_proxsuite_out_of_iterations_is_answered_by_exact_ldp(monkeypatch):
     scen, (kin, u, theta, nom, lo, hi, ref) = _starved_snapshot()
     probs, calls = [], []
     prob = _problem_from(scen.team, kin, u, theta, nom, lo, hi, ref, probs, qp.solve_qp)
-    _starve(monkeypatch, qp, calls, first_only=False)
+    _starve(monkeypatch, calls, first_only=False)
     sol = qp.solve_qp(prob, "proxsuite")
     assert sol.status == "solved" and sol.fallback
     assert "MAX_ITER" in sol.message and "then ldp (KKT verified)" in sol.message
@@ -356,9 +355,9 @@ def test_too_large_for_ldp_retries_the_other_proxsuite_backend(monkeypatch):
     scen, (kin, u, theta, nom, lo, hi, ref) = _starved_snapshot()
     probs, calls = [], []
     prob = _problem_from(scen.team, kin, u, theta, nom, lo, hi, ref, probs, qp.solve_qp)
-    _starve(monkeypatch, qp, calls, first_only=True)
-    monkeypatch.setattr(qp, "DENSE_MAX_SIZE", 0)  # first attempt sparse, retry dense
-    monkeypatch.setattr(qp, "LDP_MAX_VARS", 0)
+    _starve(monkeypatch, calls, first_only=True)
+    monkeypatch.setattr(backends, "DENSE_MAX_SIZE", 0)  # first attempt sparse, retry dense
+    monkeypatch.setattr(backends, "LDP_MAX_VARS", 0)
     sol = qp.solve_qp(prob, "proxsuite")
     assert sol.status == "solved" and not sol.fallback
     assert sol.message == "PROXQP_MAX_ITER_REACHED (sparse), then PROXQP_SOLVED"
@@ -368,10 +367,9 @@ def test_too_large_for_ldp_retries_the_other_proxsuite_backend(monkeypatch):
 
 def test_filter_goes_straight_to_the_exact_path_after_a_stall(monkeypatch):
     import aasoatt_env.safety.core as core
-    import aasoatt_env.safety.qp as qp
 
     calls = []
-    _starve(monkeypatch, qp, calls, first_only=False)  # proxsuite never converges
+    _starve(monkeypatch, calls, first_only=False)  # proxsuite never converges
     monkeypatch.setattr(core, "EXACT_STEPS", 40)
     scen = CircleSwap(10, radius=6.0, duration=12.0)
     messages = []

@@ -1,6 +1,6 @@
 """Exact structured active-set solver for the safety QP (used first by the default back-end).
 
-The scaled problem (:class:`aasoatt_env.safety.qp.QPProblem`) has a 2x2
+The scaled problem (:class:`aasoatt_env.safety.problem.QPProblem`) has a 2x2
 block-diagonal Hessian ``H = L L^T``.  In ``y = L^T x`` the objective is
 ``0.5 |y|^2 + gt'y`` and every constraint (rows and box, written as
 ``M x <= b``) becomes ``Mt y <= b`` with ``Mt = M L^-T`` (each row still touches
@@ -22,12 +22,13 @@ PDAS rule alone can cycle or meet inconsistent working sets on these rows
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-__all__ = ["DENSE_MAX_ROWS", "TOL", "solve_active_set"]
+__all__ = ["DENSE_MAX_ROWS", "TOL", "LeastDistanceForm", "least_distance_form", "solve_active_set"]
 
 DENSE_MAX_VARS: int = 80
 """Problems up to this many variables use dense algebra."""
@@ -37,6 +38,42 @@ TOL: float = 1e-10
 """Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
 
 
+class LeastDistanceForm(NamedTuple):
+    """The problem in ``y = L^T x`` (``H = L L^T`` block by block): ``min 0.5|y|^2 + gt'y  s.t.  Mt y <= b``."""
+
+    LinvT: np.ndarray
+    """Blocks ``L^{-T}`` ``(N, 2, 2)``: ``x = L^{-T} y``."""
+    gt: np.ndarray
+    """Linear term ``L^{-1} g`` ``(n,)``."""
+    Mt: sp.csr_matrix
+    """Rows, then upper bounds, then lower bounds, in ``y`` ``(m + 2n, n)``."""
+    b: np.ndarray
+    """Their right-hand sides ``(u, ub, -lb)`` ``(m + 2n,)``."""
+
+    def to_x(self, y: np.ndarray) -> np.ndarray:
+        """``x = L^{-T} y``."""
+        return np.einsum("nij,nj->ni", self.LinvT, y.reshape(-1, 2)).ravel()
+
+
+def least_distance_form(prob) -> LeastDistanceForm | None:
+    """:class:`LeastDistanceForm` of ``prob``; ``None`` if a Hessian block is not positive definite."""
+    n = prob.n
+    nb = n // 2
+    try:
+        L = np.linalg.cholesky(prob.H_blocks)
+    except np.linalg.LinAlgError:
+        return None
+    Linv = np.linalg.inv(L)  # (nb, 2, 2)
+    LinvT = np.transpose(Linv, (0, 2, 1))
+    gt = np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel()
+    # x = T y with T = blockdiag(L^-T): rows C x <= u become (C T) y <= u; bounds +-e_k' T y
+    T = sp.csr_matrix((LinvT.reshape(-1), np.repeat(np.arange(n).reshape(nb, 2), 2, axis=0).reshape(-1),
+                       np.arange(0, 2 * n + 1, 2)), shape=(n, n))
+    Ct = (prob.C @ T).tocsr() if prob.m else sp.csr_matrix((0, n))
+    Mt = sp.vstack((Ct, T, -T), format="csr")
+    return LeastDistanceForm(LinvT, gt, Mt, np.concatenate((prob.u, prob.ub, -prob.lb)))
+
+
 def _cholesky_solve(cf: np.ndarray, v: np.ndarray) -> np.ndarray:
     return np.linalg.solve(cf.T, np.linalg.solve(cf, v))
 
@@ -44,26 +81,12 @@ def _cholesky_solve(cf: np.ndarray, v: np.ndarray) -> np.ndarray:
 def solve_active_set(prob, x0, z0, max_iter: int = 6):
     """``(x, z, iterations)`` at the verified optimum, or ``None`` (fall back)."""
     n, m = prob.n, prob.m
-    nb = n // 2
     if n == 0 or n % 2:
         return None
-    Hb = prob.H_blocks
-    # L^{-T} per block: x = Linv_T y
-    try:
-        L = np.linalg.cholesky(Hb)
-    except np.linalg.LinAlgError:
+    form = least_distance_form(prob)
+    if form is None:
         return None
-    Linv = np.linalg.inv(L)  # (nb, 2, 2)
-    LinvT = np.transpose(Linv, (0, 2, 1))
-    gt = np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel()
-    # constraint matrix in y: rows of C, +bounds (x <= ub), -bounds (-x <= lb)
-    Tm = sp.csr_matrix((LinvT.reshape(-1), np.repeat(np.arange(n).reshape(nb, 2), 2, axis=0).reshape(-1),
-                        np.arange(0, 2 * n + 1, 2)), shape=(n, n))
-    Ct = (prob.C @ Tm).tocsr() if m else sp.csr_matrix((0, n))
-    # bound rows: +-e_k^T Linv_T = +-row k of Linv_T
-    Lrows = sp.csr_matrix(Tm)
-    Mt = sp.vstack((Ct, Lrows, -Lrows), format="csr")
-    b = np.concatenate((prob.u, prob.ub, -prob.lb))
+    gt, Mt, b = form.gt, form.Mt, form.b
     mt = m + 2 * n
     dense = n <= DENSE_MAX_VARS
     Md = Mt.toarray() if dense else None
@@ -118,8 +141,7 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
         lam[idx] = lw
         r = ((Md @ y) if dense else (Mt @ y)) - b
         if r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL:
-            x = np.einsum("nij,nj->ni", LinvT, y.reshape(nb, 2)).ravel()
-            return x, np.maximum(lam[:m], 0.0), it
+            return form.to_x(y), np.maximum(lam[:m], 0.0), it
         Wn = (lam + r) > 0
         if np.array_equal(Wn, W):
             return None

@@ -61,7 +61,7 @@ class FilterConfig:
     trigger : str
         What switches the deadlock strategy on, see :data:`~aasoatt_env.safety.deadlock.TRIGGERS`.
     solver : str
-        QP solver, see :data:`aasoatt_env.safety.qp.SOLVERS`.
+        QP solver, see :data:`aasoatt_env.safety.backends.SOLVERS`.
     k1, k2 : float
         Barrier gains of eqn.7 / eqn.7a.
     k3, k4 : float
@@ -150,7 +150,7 @@ class FilterConfig:
     heading_deg: float = 30.0
 
     def __post_init__(self) -> None:
-        from aasoatt_env.safety.qp import get_solver
+        from aasoatt_env.safety.backends import get_solver
 
         for name, registry in (("barrier", BARRIERS), ("deadlock", STRATEGIES), ("trigger", TRIGGERS)):
             value = getattr(self, name)

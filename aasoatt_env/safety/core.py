@@ -37,7 +37,8 @@ from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import NEEDS_REFERENCE, DeadlockState, rotation, target_correction, trigger
 from aasoatt_env.safety.ldp import MAX_VARS as LDP_MAX_VARS
 from aasoatt_env.safety.neighbors import obstacle_pairs, robot_pairs
-from aasoatt_env.safety.qp import QPProblem, QPSolution, box_least_squares, build_problem, solve_qp
+from aasoatt_env.safety.problem import QPProblem, box_least_squares, build_problem
+from aasoatt_env.safety.qp import QPSolution, solve_qp
 
 __all__ = ["EXACT_STEPS", "FilterResult", "SLOW_SOLVE_S", "SafetyFilter"]
 

@@ -1,6 +1,6 @@
 """Exact fallback solver for the safety QP: least-distance programming by NNLS.
 
-The scaled problem (:class:`aasoatt_env.safety.qp.QPProblem`) has a 2x2
+The scaled problem (:class:`aasoatt_env.safety.problem.QPProblem`) has a 2x2
 block-diagonal Hessian ``H = L L^T``.  With ``y = L^T x`` and ``w = y + L^{-1} g``
 it is the *least-distance problem*
 
@@ -28,10 +28,9 @@ Dense algebra: used for problems up to :data:`MAX_VARS` variables.
 from __future__ import annotations
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.optimize import nnls
 
-from aasoatt_env.safety.active_set import solve_active_set
+from aasoatt_env.safety.active_set import least_distance_form, solve_active_set
 
 __all__ = ["FEAS_TOL", "MAX_VARS", "solve_ldp"]
 
@@ -42,7 +41,7 @@ FEAS_TOL: float = 1e-9
 
 
 def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.ndarray | None, str]:
-    """Solve ``prob`` (a :class:`~aasoatt_env.safety.qp.QPProblem`) exactly.
+    """Solve ``prob`` (a :class:`~aasoatt_env.safety.problem.QPProblem`) exactly.
 
     Parameters
     ----------
@@ -67,20 +66,10 @@ def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.n
         return None, None, "ldp: needs 2x2 blocks"
     if n > MAX_VARS:
         return None, None, f"ldp: {n} variables > MAX_VARS = {MAX_VARS}"
-    nb = n // 2
-    try:
-        L = np.linalg.cholesky(prob.H_blocks)
-    except np.linalg.LinAlgError:
+    form = least_distance_form(prob)
+    if form is None:
         return None, None, "ldp: Hessian block not positive definite"
-    Linv = np.linalg.inv(L)
-    LinvT = np.transpose(Linv, (0, 2, 1))
-    gt = np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel()
-    # x = T y with T = blockdiag(L^-T): rows C x <= u become (C T) y <= u, bounds +-T y
-    T = sp.csr_matrix((LinvT.reshape(-1), np.repeat(np.arange(n).reshape(nb, 2), 2, axis=0).reshape(-1),
-                       np.arange(0, 2 * n + 1, 2)), shape=(n, n))
-    Td = T.toarray()
-    Mt = np.vstack(((prob.C @ T).toarray() if m else np.zeros((0, n)), Td, -Td))
-    b = np.concatenate((prob.u, prob.ub, -prob.lb))
+    gt, Mt, b = form.gt, form.Mt.toarray(), form.b
     finite = np.abs(b) < 1e19
     if not np.all(finite):
         Mt, b = Mt[finite], b[finite]
@@ -101,7 +90,7 @@ def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.n
     w = -r[:n] / r[-1]
     lam = np.zeros(finite.shape[0])
     lam[finite] = u / (-r[-1])
-    x = np.einsum("nij,nj->ni", LinvT, (w - gt).reshape(nb, 2)).ravel()
+    x = form.to_x(w - gt)
     z = lam[:m]
     polished = solve_active_set(prob, x, z)
     if polished is not None:

@@ -1,0 +1,300 @@
+"""Back-ends of the safety QP and their registry (:data:`SOLVERS`, by name).
+
+Each back-end takes a :class:`~aasoatt_env.safety.problem.QPProblem`, an optional
+warm start and options, and returns a raw answer; :func:`aasoatt_env.safety.qp.solve_qp`
+turns it into a result (confirming infeasibility verdicts, relaxing rows).
+
+``proxsuite`` (default)
+    Dense ``PrimalDualLDLT`` with native box constraints up to
+    :data:`DENSE_MAX_SIZE` variables + rows, sparse ``SparseCholesky`` (box as
+    rows) above.  Settings from SPEC section 4: tight ``eps_primal_inf`` /
+    ``eps_dual_inf``, ``check_duality_gap`` with a tight gap; a bounded iteration
+    budget (:data:`PROX_MAX_ITER`, :data:`PROX_MAX_ITER_IN`).  When proxsuite
+    runs out of iterations or calls the problem infeasible, the exact ``ldp``
+    solver answers instead (up to :data:`~aasoatt_env.safety.ldp.MAX_VARS`
+    variables; above, the other proxsuite back-end is tried).  The message says
+    which solver answered.
+``ldp``
+    Exact least-distance programming by NNLS (Lawson-Hanson, scipy), KKT-verified
+    (:mod:`aasoatt_env.safety.ldp`); needs only the core dependencies; dense, for
+    teams of up to a few hundred robots in one QP.
+``neural``
+    The paper's projection neural network (eqn.22), explicit Euler with
+    ``eps = dt``: ``iterations`` projected primal-dual updates per call,
+    warm-started; never fails, only approximates the optimum.
+``quadprog``, ``clarabel``, ``osqp``, ``daqp``, ``cvxopt``
+    Optional, used when installed (``cvxopt`` is what Robotarium's barrier
+    certificates call: ``cvxopt.solvers.qp``, interior point, default tolerances).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import functools
+import importlib.util
+import os
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+from aasoatt_env.errors import SolverError
+from aasoatt_env.safety.ldp import FEAS_TOL as LDP_FEAS_TOL
+from aasoatt_env.safety.ldp import MAX_VARS as LDP_MAX_VARS
+from aasoatt_env.safety.ldp import solve_ldp
+from aasoatt_env.safety.problem import QPProblem
+
+__all__ = ["DENSE_MAX_SIZE", "PROX_MAX_ITER", "PROX_MAX_ITER_IN", "SOLVERS", "available_solvers", "get_solver"]
+
+DENSE_MAX_SIZE: int = 600
+"""Largest ``n + m`` (variables + rows) solved with proxsuite's dense class.
+
+Measured on packed layouts: dense PrimalDualLDLT 2.7 ms vs sparse 4.2 ms at
+n + m = 340 (N = 39), but 16.5 ms vs 9.5 ms at n + m = 990 (N = 100)."""
+
+PROX_MAX_ITER: int = 200
+"""proxsuite's outer (``max_iter``) iteration budget before the exact fallback is asked."""
+PROX_MAX_ITER_IN: int = 100
+"""proxsuite's inner (``max_iter_in``) iteration budget per outer iteration.
+
+The closed loops of the test suite and the radius-6 campaign need at most ~260
+iterations in all; with proxsuite's default (1,500) a degenerate 60-robot
+problem ran 1.45 million iterations (140 s) before giving up."""
+
+_INF = 1e20
+
+
+@dataclass
+class _Raw:
+    x: np.ndarray | None
+    z: np.ndarray | None
+    ok: bool
+    iterations: int
+    message: str
+    fallback: bool = False
+
+
+def _prox_settings(settings: object, eps: float) -> None:
+    settings.eps_abs = eps
+    settings.eps_rel = 0.0
+    settings.eps_primal_inf = 1e-14
+    settings.eps_dual_inf = 1e-14
+    settings.check_duality_gap = True
+    settings.eps_duality_gap_abs = eps
+    settings.eps_duality_gap_rel = 0.0
+    settings.max_iter = PROX_MAX_ITER
+    settings.max_iter_in = PROX_MAX_ITER_IN
+    settings.verbose = False
+
+
+def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import proxsuite
+
+    px = proxsuite.proxqp
+    eps = float(opts.get("eps", 1e-9))
+    n, m = prob.n, prob.m
+    dense = opts.get("dense")
+    if dense is None:
+        dense = n + m <= DENSE_MAX_SIZE
+    if dense:
+        d = px.dense
+        htype = d.HessianType.Diagonal if prob.diagonal else d.HessianType.Dense
+        qp = d.QP(n, 0, m, True, htype, d.DenseBackend.PrimalDualLDLT)
+        _prox_settings(qp.settings, eps)
+        Cd = prob.C.toarray() if m else np.zeros((0, n))
+        qp.init(prob.H_dense(), prob.g, None, None, Cd, np.full(m, -_INF), prob.u, prob.lb, prob.ub)
+    else:
+        qp = px.sparse.QP(n, 0, m + n)
+        _prox_settings(qp.settings, eps)
+        qp.settings.sparse_backend = px.SparseBackend.SparseCholesky
+        C = sp.vstack((prob.C, sp.identity(n, format="csr")), format="csc")
+        qp.init(
+            prob.H_sparse(), prob.g, None, None, C,
+            np.concatenate((np.full(m, -_INF), prob.lb)), np.concatenate((prob.u, prob.ub)),
+        )
+    # Warm start is not used: with box constraints proxsuite 0.8 returned NaN
+    # iterates from a warm start on circle-swap instances (and SPEC section 4
+    # measured 0-30 % gain at best); the cold solve takes a handful of iterations.
+    qp.solve()
+    r = qp.results
+    st = r.info.status
+    ok = st == px.PROXQP_SOLVED
+    x = np.array(r.x)
+    if ok and not np.all(np.isfinite(x)):
+        ok = False
+    raw = _Raw(x, np.array(r.z)[:m], ok, int(r.info.iter), str(st).rsplit(".", 1)[-1])
+    if ok or not opts.get("fallback", True):
+        return raw
+    # proxsuite ran out of iterations or called the problem infeasible: ask the exact
+    # least-distance solver (finite active-set method, KKT-verified) before anything else
+    if prob.n <= LDP_MAX_VARS:
+        nxt = _ldp(prob, x0, z0, opts)
+        nxt.fallback = True
+    elif st == px.PROXQP_MAX_ITER_REACHED and opts.get("dense") is None:
+        # too large for ldp: the two back-ends stall on different problems, try the other
+        nxt = _proxsuite(prob, x0, z0, {**opts, "dense": not dense, "fallback": False})
+    else:
+        return raw
+    nxt.iterations += raw.iterations
+    nxt.message = f"{raw.message} ({'dense' if dense else 'sparse'}), then {nxt.message}"
+    return nxt
+
+
+def _ldp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    x, z, message = solve_ldp(prob, float(opts.get("ldp_feas_tol", LDP_FEAS_TOL)))
+    return _Raw(x, z, x is not None, 0, message)
+
+
+def _neural(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    iters = int(opts.get("iterations", 1))
+    step = float(opts.get("step", 1.0))
+    x = np.zeros(prob.n) if x0 is None else np.clip(x0, prob.lb, prob.ub)
+    z = np.zeros(prob.m) if z0 is None else np.maximum(z0, 0.0)
+    Hb = prob.H_blocks
+    C, CT = prob.C, prob.C.T.tocsr()
+    for _ in range(iters):
+        grad = np.einsum("nij,nj->ni", Hb, x.reshape(-1, 2)).ravel() + prob.g + CT @ z
+        x = np.clip(x - step * grad, prob.lb, prob.ub)
+        z = np.maximum(0.0, z + step * (C @ x - prob.u))
+    return _Raw(x, z, True, iters, f"neural ({iters} iterations)")
+
+
+def _quadprog(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import quadprog
+
+    n, m = prob.n, prob.m
+    Ct = np.vstack((-prob.C.toarray(), np.eye(n), -np.eye(n))).T if n else np.zeros((0, 0))
+    b = np.concatenate((-prob.u, prob.lb, -prob.ub))
+    try:
+        x, _, _, it, lagr, _ = quadprog.solve_qp(prob.H_dense(), -prob.g, Ct, b, 0)
+    except ValueError as exc:
+        return _Raw(None, None, False, 0, str(exc))
+    return _Raw(np.asarray(x), np.asarray(lagr)[:m], True, int(it[0]), "solved")
+
+
+def _clarabel(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import clarabel
+
+    n, m = prob.n, prob.m
+    Aq = sp.vstack((prob.C, sp.identity(n), -sp.identity(n)), format="csc")
+    b = np.concatenate((prob.u, prob.ub, -prob.lb))
+    s = clarabel.DefaultSettings()
+    s.verbose = False
+    s.tol_gap_abs = s.tol_gap_rel = s.tol_feas = 1e-10
+    solver = clarabel.DefaultSolver(sp.triu(prob.H_sparse(), format="csc"), prob.g, Aq, b,
+                                    [clarabel.NonnegativeConeT(m + 2 * n)], s)
+    sol = solver.solve()
+    ok = str(sol.status) in ("Solved", "AlmostSolved")
+    return _Raw(np.asarray(sol.x), np.asarray(sol.z)[:m], ok, int(sol.iterations), str(sol.status))
+
+
+@contextlib.contextmanager
+def _c_stdout_silenced():
+    """Silence C-level stdout (OSQP 1.x prints "Polishing not needed" even with verbose=False)."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, OSError, ValueError):  # no real file descriptor (e.g. captured)
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(fd)
+    try:
+        with open(os.devnull, "w") as null:
+            os.dup2(null.fileno(), fd)
+            yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+
+
+def _osqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import osqp
+
+    n, m = prob.n, prob.m
+    Aq = sp.vstack((prob.C, sp.identity(n)), format="csc")
+    lower = np.concatenate((np.full(m, -np.inf), prob.lb))
+    upper = np.concatenate((prob.u, prob.ub))
+    solver = osqp.OSQP()
+    eps = float(opts.get("eps", 1e-7))
+    solver.setup(sp.triu(prob.H_sparse(), format="csc"), prob.g, Aq, lower, upper, verbose=False,
+                 eps_abs=eps, eps_rel=eps, polishing=True, max_iter=20000)
+    if x0 is not None:
+        solver.warm_start(x=np.clip(x0, prob.lb, prob.ub))
+    with _c_stdout_silenced():
+        res = solver.solve()
+    status = str(res.info.status)
+    ok = status.lower().startswith("solved") and res.x is not None and np.all(np.isfinite(res.x))
+    return _Raw(np.asarray(res.x), np.asarray(res.y)[:m] if res.y is not None else None,
+                ok, int(res.info.iter), status)
+
+
+def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import ctypes
+
+    import daqp
+
+    n, m = prob.n, prob.m
+    A = np.vstack((np.eye(n), prob.C.toarray()))
+    bu = np.concatenate((prob.ub, prob.u))
+    bl = np.concatenate((prob.lb, np.full(m, -1e30)))
+    sense = np.zeros(n + m, dtype=ctypes.c_int)
+    x, _, exitflag, info = daqp.solve(prob.H_dense(), prob.g, A, bu, bl, sense)
+    ok = exitflag >= 1
+    lam = np.asarray(info.get("lam", np.zeros(n + m)))[n:]
+    return _Raw(np.asarray(x), np.maximum(lam, 0.0), ok, int(info.get("iter", 0)), f"exitflag {exitflag}")
+
+
+def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+    import cvxopt
+
+    cvxopt.solvers.options["show_progress"] = False
+    n, m = prob.n, prob.m
+    H = prob.H_sparse().tocoo()
+    P = cvxopt.spmatrix(H.data, H.row.astype(int), H.col.astype(int), (n, n))
+    G = sp.vstack((prob.C, sp.identity(n), -sp.identity(n))).tocoo()
+    Gm = cvxopt.spmatrix(G.data, G.row.astype(int), G.col.astype(int), G.shape)
+    h = cvxopt.matrix(np.concatenate((prob.u, prob.ub, -prob.lb)))
+    try:
+        sol = cvxopt.solvers.qp(P, cvxopt.matrix(prob.g), Gm, h)
+    except (ValueError, ArithmeticError) as exc:
+        return _Raw(None, None, False, 0, str(exc))
+    ok = sol["status"] == "optimal"
+    return _Raw(np.asarray(sol["x"]).ravel(), np.asarray(sol["z"]).ravel()[:m], ok, int(sol["iterations"]),
+                str(sol["status"]))
+
+
+Backend = Callable[[QPProblem, "np.ndarray | None", "np.ndarray | None", dict], _Raw]
+
+SOLVERS: dict[str, tuple[Backend, str]] = {
+    "proxsuite": (_proxsuite, "proxsuite"),
+    "neural": (_neural, ""),
+    "ldp": (_ldp, ""),
+    "quadprog": (_quadprog, "quadprog"),
+    "clarabel": (_clarabel, "clarabel"),
+    "osqp": (_osqp, "osqp"),
+    "daqp": (_daqp, "daqp"),
+    "cvxopt": (_cvxopt, "cvxopt"),
+}
+"""Solver registry: name -> (back-end, module it needs)."""
+
+
+@functools.cache
+def _installed(module: str) -> bool:
+    return not module or importlib.util.find_spec(module) is not None
+
+
+def available_solvers() -> list[str]:
+    """Names of the registered solvers whose module is importable."""
+    return [k for k, (_, mod) in SOLVERS.items() if _installed(mod)]
+
+
+def get_solver(name: str) -> Backend:
+    """Back-end ``name``, or :class:`SolverError` listing the available ones."""
+    if name not in SOLVERS:
+        raise SolverError(f"solver: got {name!r}, expected one of {available_solvers()}")
+    fn, mod = SOLVERS[name]
+    if not _installed(mod):
+        raise SolverError(f"solver {name!r} is not installed (pip install {mod}); available: {available_solvers()}")
+    return fn

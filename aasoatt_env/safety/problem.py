@@ -1,0 +1,205 @@
+"""The safety QP in canonical scaled form, and the closed-form answer without rows.
+
+Problem (eqn.finalAA-SOATT), in wheel accelerations ``du``::
+
+    min  sum_i |A_i du_i - target_i|^2   s.t.  lo <= du <= hi,   G du <= rhs
+
+It is solved in scaled coordinates ``x = du / s`` (``s`` the per-robot
+acceleration bound, so the box is inside ``[-1, 1]``), with the objective divided
+by its largest Hessian entry and every row normalised to unit norm.  The Hessian
+is the constant 2x2 block diagonal ``A_i^T A_i = (rho/2)^2 [[1+k^2, 1-k^2],
+[1-k^2, 1+k^2]]`` (heading independent), diagonal when ``l = b``; the proxsuite
+back-end uses ``HessianType.Diagonal`` then.  :class:`QPProblem` holds that
+canonical form ``min 0.5 x'Hx + g'x  s.t. lb <= x <= ub, C x <= u``
+(:func:`build_problem`); :func:`box_least_squares` answers a robot in no row.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+__all__ = ["QPProblem", "box_least_squares", "build_problem"]
+
+
+@dataclass
+class QPProblem:
+    """Canonical scaled QP ``min 0.5 x'Hx + g'x  s.t. lb <= x <= ub, C x <= u``."""
+
+    H_blocks: np.ndarray
+    """Hessian blocks ``(N, 2, 2)`` (block diagonal)."""
+    g: np.ndarray
+    """Linear term ``(n,)``."""
+    C: sp.csr_matrix
+    """Rows ``(m, n)``, unit norm."""
+    u: np.ndarray
+    """Row bounds ``(m,)``."""
+    lb: np.ndarray
+    """Lower bounds ``(n,)``."""
+    ub: np.ndarray
+    """Upper bounds ``(n,)``."""
+    scale: np.ndarray
+    """``du = scale * x``, ``(n,)``."""
+    obj_scale: float
+    """Objective divisor ``sigma``."""
+    row_norm: np.ndarray
+    """Row divisors ``nu`` (``eta_du = sigma * z / nu``), ``(m,)``."""
+    diagonal: bool
+    """True where every block of ``H`` is diagonal."""
+
+    @property
+    def n(self) -> int:
+        """Number of variables."""
+        return int(self.g.shape[0])
+
+    @property
+    def m(self) -> int:
+        """Number of rows."""
+        return int(self.u.shape[0])
+
+    def H_dense(self) -> np.ndarray:
+        """Dense Hessian ``(n, n)``."""
+        n = self.n
+        H = np.zeros((n, n))
+        if n:
+            k = np.arange(0, n, 2)
+            H[k, k], H[k, k + 1] = self.H_blocks[:, 0, 0], self.H_blocks[:, 0, 1]
+            H[k + 1, k], H[k + 1, k + 1] = self.H_blocks[:, 1, 0], self.H_blocks[:, 1, 1]
+        return H
+
+    def H_sparse(self) -> sp.csc_matrix:
+        """Sparse block-diagonal Hessian (both entries of every block stored)."""
+        n = self.n
+        if not n:
+            return sp.csc_matrix((0, 0))
+        # column 2k holds rows 2k, 2k+1 of block k's first column; column 2k+1 its second
+        data = self.H_blocks.transpose(0, 2, 1).reshape(-1)
+        indices = (np.arange(0, n, 2)[:, None, None] + np.array([[0, 1], [0, 1]])).reshape(-1)
+        return sp.csc_matrix((data, indices, np.arange(0, 2 * n + 1, 2)), shape=(n, n))
+
+    def objective(self, x: np.ndarray) -> float:
+        """Scaled objective ``0.5 x'Hx + g'x`` of ``x``."""
+        xb = x.reshape(-1, 2)
+        return float(0.5 * np.einsum("ni,nij,nj->", xb, self.H_blocks, xb) + self.g @ x)
+
+
+def build_problem(
+    A: np.ndarray,
+    target: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    scale: np.ndarray,
+    ri: np.ndarray,
+    rj: np.ndarray,
+    Gi: np.ndarray,
+    Gj: np.ndarray,
+    rhs: np.ndarray,
+) -> QPProblem:
+    """Assemble the scaled canonical problem.
+
+    Parameters
+    ----------
+    A : numpy.ndarray
+        Input matrices ``(N, 2, 2)``.
+    target : numpy.ndarray
+        Desired control-point accelerations ``(N, 2)``.
+    lo, hi : numpy.ndarray
+        Bounds on ``du``, ``(N, 2)``.
+    scale : numpy.ndarray
+        Positive per-robot scale of ``du`` ``(N,)``.
+    ri, rj : numpy.ndarray
+        Robots of each row ``(m,)``; ``rj = -1`` for obstacle rows.
+    Gi, Gj : numpy.ndarray
+        Row coefficients on ``du_i`` and ``du_j`` ``(m, 2)`` (``Gj`` ignored where ``rj < 0``).
+    rhs : numpy.ndarray
+        Row right-hand sides ``(m,)``.
+    """
+    n_rob = A.shape[0]
+    s = scale[:, None]
+    AtA = np.einsum("nki,nkj->nij", A, A)
+    H = 2.0 * AtA * (s[:, :, None] * s[:, None, :])
+    sigma = float(np.max(np.abs(H))) if n_rob else 1.0
+    H = H / sigma
+    g = (-2.0 * np.einsum("nki,nk->ni", A, target) * s / sigma).ravel()
+    m = rhs.shape[0]
+    Gi_s = Gi * s[ri]
+    obs = rj < 0
+    rjc = np.where(obs, 0, rj)
+    Gj_s = np.where(obs[:, None], 0.0, Gj * s[rjc])
+    nu = np.sqrt(np.sum(Gi_s**2, axis=1) + np.sum(Gj_s**2, axis=1))
+    nu = np.where(nu > 1e-12, nu, 1.0)
+    Gi_s /= nu[:, None]
+    Gj_s /= nu[:, None]
+    # CSR directly: 4 entries per robot-robot row, 2 per obstacle row
+    cols = np.stack((2 * ri, 2 * ri + 1, 2 * rjc, 2 * rjc + 1), axis=1)
+    data = np.concatenate((Gi_s, Gj_s), axis=1)
+    keep = np.ones((m, 4), dtype=bool)
+    keep[:, 2:] = ~obs[:, None]
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(np.where(obs, 2, 4), out=indptr[1:])
+    C = sp.csr_matrix((data[keep], cols[keep], indptr), shape=(m, 2 * n_rob))
+    diag = bool(np.all(np.abs(H[:, 0, 1]) <= 1e-12 * np.maximum(np.abs(H[:, 0, 0]), 1e-300)))
+    return QPProblem(
+        H_blocks=H,
+        g=g,
+        C=C,
+        u=rhs / nu,
+        lb=(lo / s).ravel(),
+        ub=(hi / s).ravel(),
+        scale=np.repeat(scale, 2),
+        obj_scale=sigma,
+        row_norm=nu,
+        diagonal=diag,
+    )
+
+
+def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Per robot ``argmin |A_i du_i - target_i|^2  s.t.  lo_i <= du_i <= hi_i``, in closed form.
+
+    The QP of a robot in no row: two variables, a box.  If the unconstrained
+    minimiser ``A_i^{-1} target_i`` is inside the box it is the answer; otherwise
+    the optimum lies on an edge, and on each of the four edges the objective is
+    a convex parabola minimised by clipping; the best edge point wins.
+
+    Parameters
+    ----------
+    A : numpy.ndarray
+        Invertible input matrices ``(K, 2, 2)``.
+    target : numpy.ndarray
+        Desired control-point accelerations ``(K, 2)``.
+    lo, hi : numpy.ndarray
+        Bounds ``(K, 2)`` with ``lo <= hi``.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``du`` ``(K, 2)``, inside the bounds.
+    """
+    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+    t0, t1 = target[:, 0], target[:, 1]
+    det = a * d - b * c
+    x = np.stack(((d * t0 - b * t1) / det, (a * t1 - c * t0) / det), axis=1)
+    out = (x < lo) | (x > hi)
+    bad = np.flatnonzero(out[:, 0] | out[:, 1])
+    if bad.size == 0:
+        return x
+    Ab, tb, lb, ub = A[bad], target[bad], lo[bad], hi[bad]
+    H = np.einsum("kai,kaj->kij", Ab, Ab)
+    g = -np.einsum("kai,ka->ki", Ab, tb)
+    best = np.full(bad.size, np.inf)
+    sol = np.empty((bad.size, 2))
+    for fix in (0, 1):
+        free = 1 - fix
+        for bound in (lb, ub):
+            c = np.empty((bad.size, 2))
+            c[:, fix] = bound[:, fix]
+            c[:, free] = np.clip(-(g[:, free] + H[:, free, fix] * c[:, fix]) / H[:, free, free],
+                                 lb[:, free], ub[:, free])
+            f = 0.5 * np.einsum("ki,kij,kj->k", c, H, c) + np.einsum("ki,ki->k", g, c)
+            better = f < best
+            best = np.where(better, f, best)
+            sol[better] = c[better]
+    x[bad] = sol
+    return x
