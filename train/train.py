@@ -43,7 +43,7 @@ Recipe: RandomGoals, 6 robots, evaluated behind the filter
     nice -n 19 python -m train.evaluate --bare runs/ppo_random_goals_6r_prior --episodes 100 \
         --rows "learned (bare)" "learned (bare) + filter" --out results/random_goals_6r_prior.md
 
-400k agent-steps: 182 s of training (2,200 agent-steps/s) on 2 shared cores, one
+400k agent-steps: 86 s of training (4,650 agent-steps/s) on 2 shared cores, one
 torch thread.  Measured (seed 0; 100 episodes, seeds 10000-10099, default arena):
 
 =========================  =========  =======  =========  =============  ========================
