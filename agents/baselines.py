@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.params import check_positive
+from aasoatt_env.model.params import check_positive
 from agents.base import register_agent
 
 __all__ = ["HostileAgent", "PDController", "RandomAgent", "TrackingController", "point_accel_to_action"]

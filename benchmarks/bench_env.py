@@ -20,7 +20,8 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from aasoatt_env import AASOATTParallelEnv, dynamics  # noqa: E402
+from aasoatt_env import AASOATTParallelEnv
+from aasoatt_env.model import dynamics  # noqa: E402
 
 
 def _env_rate(n: int, steps: int) -> float:

@@ -40,11 +40,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from aasoatt_env.dynamics import input_bounds, kinematics, pose_from_point  # noqa: E402
-from aasoatt_env.params import make_team  # noqa: E402
+from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point  # noqa: E402
+from aasoatt_env.model.params import make_team  # noqa: E402
 from aasoatt_env.safety import SafetyFilter  # noqa: E402
-from aasoatt_env.safety.ldp import MAX_VARS as LDP_MAX_VARS  # noqa: E402
-from aasoatt_env.safety.qp import available_solvers  # noqa: E402
+from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS  # noqa: E402
+from aasoatt_env.safety.solvers.policy import available_solvers  # noqa: E402
 from aasoatt_env.safety.scenario import CircleSwap, rollout  # noqa: E402
 
 

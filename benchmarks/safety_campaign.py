@@ -24,10 +24,10 @@ import time
 import numpy as np
 
 from aasoatt_env import AASOATTParallelEnv
-from aasoatt_env.metrics import collisions, pairwise_min_distance
-from aasoatt_env.params import RobotParams
-from aasoatt_env.recording import run_episode
-from aasoatt_env.reproduce.experiments import SWARM_ROBOT_RADIUS
+from aasoatt_env.analysis.metrics import collisions, pairwise_min_distance
+from aasoatt_env.model.params import RobotParams
+from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.apps.reproduce.experiments import SWARM_ROBOT_RADIUS
 from aasoatt_env.safety.wrapper import AASOATTFilter
 from agents import HostileAgent, RandomAgent, TrackingController
 

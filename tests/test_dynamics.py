@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from aasoatt_env import ConfigError, RobotParams, make_team
-from aasoatt_env import dynamics as dyn
+from aasoatt_env.model import dynamics as dyn
 
 
 def test_constant_wheel_speeds_trace_the_closed_form_circle():

@@ -6,7 +6,7 @@ from pettingzoo.test import parallel_api_test
 
 import aasoatt_env
 from aasoatt_env import ENV_IDS, AASOATTParallelEnv, ActionError, ConfigError, ScenarioError
-from aasoatt_env.observations import SELF_DIM, SLOT_DIM
+from aasoatt_env.sim.observations import SELF_DIM, SLOT_DIM
 from agents import RandomAgent, TrackingController
 
 
@@ -266,7 +266,7 @@ def test_tracking_controller_tracks_a_circle():
 
 
 def test_custom_scenario_with_waypoints_callable_and_obstacles():
-    from aasoatt_env.references import LinearReference
+    from aasoatt_env.sim.references import LinearReference
 
     starts = np.array([[0.0, 0.0], [3.0, 0.0]])
     wp = {"waypoints": np.array([[[0, 0], [1, 1], [2, 0]], [[3, 0], [3, 2], [3, 4]]], float), "times": [0, 2, 4]}

@@ -1,4 +1,4 @@
-"""Unit tests of aasoatt_env.rollout and aasoatt_env.metrics on tiny hand-computed rollouts."""
+"""Unit tests of aasoatt_env.analysis.rollout and aasoatt_env.analysis.metrics on tiny hand-computed rollouts."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.metrics import (
+from aasoatt_env.analysis.metrics import (
     collisions,
     deadlocked_robots,
     final_errors,
@@ -24,7 +24,7 @@ from aasoatt_env.metrics import (
     tracking_errors,
     tracking_stats,
 )
-from aasoatt_env.rollout import Rollout, RolloutBuilder
+from aasoatt_env.analysis.rollout import Rollout, RolloutBuilder
 
 
 def make_rollout(positions, *, dt=0.1, references=None, velocities=None, goals=None, radii=None, **kw):
@@ -165,7 +165,7 @@ def test_obstacle_collision_and_gap():
 
 
 def test_collisions_chunked_matches_bruteforce(monkeypatch):
-    import aasoatt_env.metrics as m
+    import aasoatt_env.analysis.metrics as m
 
     monkeypatch.setattr(m, "_CHUNK_ELEMENTS", 50)  # forces 1-step chunks for N = 6
     rng = np.random.default_rng(1)

@@ -1,4 +1,4 @@
-"""Tests of aasoatt_env.rendering and aasoatt_env.plotting (headless)."""
+"""Tests of aasoatt_env.sim.rendering and aasoatt_env.analysis.plotting (headless)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from aasoatt_env.errors import ConfigError
 
 pytest.importorskip("pygame")
 
-from aasoatt_env.rendering import BACKGROUND, Frame, Renderer, robot_colors, save_animation  # noqa: E402
+from aasoatt_env.sim.rendering import BACKGROUND, Frame, Renderer, robot_colors, save_animation  # noqa: E402
 
 BOUNDS = (-5.0, 5.0, -5.0, 5.0)
 
@@ -213,7 +213,7 @@ def test_save_animation_missing_imageio_message(monkeypatch, tmp_path):
 
 
 def test_plotting_missing_matplotlib_message(monkeypatch):
-    from aasoatt_env import plotting
+    from aasoatt_env.analysis import plotting
 
     for name in ("matplotlib", "matplotlib.figure", "matplotlib.backends.backend_agg"):
         monkeypatch.setitem(sys.modules, name, None)
@@ -225,7 +225,7 @@ def test_modules_import_without_optional_dependencies():
     code = (
         "import sys\n"
         "for m in ('pygame', 'matplotlib', 'imageio', 'PIL'): sys.modules[m] = None\n"
-        "import aasoatt_env.rendering, aasoatt_env.plotting\n"
+        "import aasoatt_env.sim.rendering, aasoatt_env.analysis.plotting\n"
         "print('ok')\n"
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
@@ -250,7 +250,7 @@ def run_data():
 
 def test_png_plots_written(tmp_path, run_data):
     pytest.importorskip("matplotlib")
-    from aasoatt_env.plotting import (
+    from aasoatt_env.analysis.plotting import (
         plot_distance_profile,
         plot_snapshots,
         plot_trajectories,
@@ -284,7 +284,7 @@ def test_png_plots_written(tmp_path, run_data):
 
 def test_plot_validation(run_data):
     pytest.importorskip("matplotlib")
-    from aasoatt_env.plotting import plot_distance_profile, plot_snapshots, plot_trajectories
+    from aasoatt_env.analysis.plotting import plot_distance_profile, plot_snapshots, plot_trajectories
 
     times, pos, refs, _ = run_data
     with pytest.raises(ConfigError, match="positions"):
@@ -299,7 +299,7 @@ def test_plot_validation(run_data):
 
 def test_plotting_leaves_pyplot_alone(run_data):
     plt = pytest.importorskip("matplotlib.pyplot")
-    from aasoatt_env.plotting import plot_trajectories
+    from aasoatt_env.analysis.plotting import plot_trajectories
 
     before = plt.get_fignums()
     plot_trajectories(run_data[1])

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from aasoatt_env.reproduce import EXPERIMENTS, main, paper
-from aasoatt_env.reproduce.report import md_table, rel_diff
-from aasoatt_env.reproduce.runner import RunSpec, run_spec, window
+from aasoatt_env.apps.reproduce import EXPERIMENTS, main, paper
+from aasoatt_env.apps.reproduce.report import md_table, rel_diff
+from aasoatt_env.apps.reproduce.runner import RunSpec, run_spec, window
 
 QUICK_FILES = {
     "table1": ["table1_errors.png"],
@@ -136,8 +136,8 @@ def test_window_cuts_rollout() -> None:
     spec = RunSpec("w", "tracking", dict(trajectory="straight", duration=1.0), "tracking", 1.0, 4.0)
     res = run_spec(spec)
     assert res.metrics["rmse"] >= 0 and np.isfinite(res.traces["positions"]).all()
-    from aasoatt_env.env import AASOATTParallelEnv
-    from aasoatt_env.recording import run_episode
+    from aasoatt_env.sim.env import AASOATTParallelEnv
+    from aasoatt_env.analysis.recording import run_episode
     from agents.baselines import TrackingController
 
     ro, _ = run_episode(

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import aasoatt_env.safety.core as core
-from aasoatt_env.dynamics import jacobian
-from aasoatt_env.params import make_team
+from aasoatt_env.model.dynamics import jacobian
+from aasoatt_env.model.params import make_team
 from aasoatt_env.safety import SafetyFilter, build_problem, solve_qp
 from aasoatt_env.safety.scenario import CircleSwap, rollout
 
@@ -147,7 +147,7 @@ def test_full_circle_of_39_robots_is_safe_and_reaches_the_packed_goals():
 def test_ldp_alone_relaxes_infeasible_problems_like_quadprog(monkeypatch):
     # core dependencies only (no Clarabel to fall back on): ldp answers the phase-1
     # problem too, so an infeasible QP is relaxed, never "failed"
-    import aasoatt_env.safety.backends as backends
+    import aasoatt_env.safety.solvers.backends as backends
 
     real = backends._installed
     monkeypatch.setattr(backends, "_installed", lambda mod: mod != "clarabel" and real(mod))

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import aasoatt_env.safety.backends as backends
-from aasoatt_env.dynamics import input_bounds, kinematics, pose_from_point
+import aasoatt_env.safety.solvers.backends as backends
+from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point
 from aasoatt_env.errors import ActionError, ConfigError, SolverError
-from aasoatt_env.params import make_team
+from aasoatt_env.model.params import make_team
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, FilterConfig, SafetyFilter, robot_pairs
 from aasoatt_env.safety.scenario import CircleSwap, rollout
 
@@ -153,7 +153,7 @@ def test_obstacle_row_keeps_robot_off_the_obstacle():
         kin, lo, hi = _inputs(team, pose, u)
         nom = np.linalg.solve(kin.A, (np.array([[1.0, 0.0]]) * 2 - kin.v * 2 - kin.adot_u)[..., None])[..., 0]
         du, res = f.step(kin, u, pose[:, 2], np.clip(nom, lo, hi), lo, hi, obstacles=obstacles)
-        from aasoatt_env.dynamics import integrate
+        from aasoatt_env.model.dynamics import integrate
 
         pose, u = integrate(team, pose, u, du, 0.005)
         dmin = min(dmin, float(np.linalg.norm(kinematics(team, pose, u).p[0] - obstacles[0][0])))
@@ -241,8 +241,8 @@ def test_reset_clears_memory():
 
 def test_box_least_squares_matches_quadprog():
     quadprog = pytest.importorskip("quadprog")
-    from aasoatt_env.dynamics import jacobian
-    from aasoatt_env.safety.qp import box_least_squares
+    from aasoatt_env.model.dynamics import jacobian
+    from aasoatt_env.safety.solvers.policy import box_least_squares
 
     rng = np.random.default_rng(3)
     k = 400
@@ -334,7 +334,7 @@ def _starve(monkeypatch, calls, first_only):
 
 
 def test_proxsuite_out_of_iterations_is_answered_by_exact_ldp(monkeypatch):
-    import aasoatt_env.safety.qp as qp
+    import aasoatt_env.safety.solvers.policy as qp
 
     scen, (kin, u, theta, nom, lo, hi, ref) = _starved_snapshot()
     probs, calls = [], []
@@ -350,7 +350,7 @@ def test_proxsuite_out_of_iterations_is_answered_by_exact_ldp(monkeypatch):
 
 
 def test_too_large_for_ldp_retries_the_other_proxsuite_backend(monkeypatch):
-    import aasoatt_env.safety.qp as qp
+    import aasoatt_env.safety.solvers.policy as qp
 
     scen, (kin, u, theta, nom, lo, hi, ref) = _starved_snapshot()
     probs, calls = [], []

@@ -12,7 +12,7 @@ pytest.importorskip("stable_baselines3")
 torch = pytest.importorskip("torch")
 torch.set_num_threads(1)
 
-from aasoatt_env.env import AASOATTParallelEnv  # noqa: E402
+from aasoatt_env.sim.env import AASOATTParallelEnv  # noqa: E402
 from aasoatt_env.errors import ConfigError  # noqa: E402
 from train.config import TrainConfig, parse_config  # noqa: E402
 from train.vec_env import ParallelVecEnv  # noqa: E402

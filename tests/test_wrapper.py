@@ -8,7 +8,7 @@ from pettingzoo.test import parallel_api_test
 
 import aasoatt_env  # noqa: F401
 from aasoatt_env import AASOATTGymEnv, AASOATTParallelEnv, ConfigError, SolverError
-from aasoatt_env.recording import run_episode
+from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.safety.wrapper import AASOATTFilter
 from agents import HostileAgent, RandomAgent, TrackingController
 
@@ -108,7 +108,7 @@ def test_hostile_policy_with_a_wheel_speed_bound_full_length(bound):
     With a 20 rad/s wheel-speed bound, either the robots' own or the filter's
     ``max_wheel_speed`` on unlimited robots, the hostile policy never collides.
     """
-    from aasoatt_env.params import RobotParams
+    from aasoatt_env.model.params import RobotParams
 
     if bound == "robots":
         robots = RobotParams(max_wheel_speed=20.0)

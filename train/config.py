@@ -31,7 +31,7 @@ from typing import Any
 
 import tomllib
 
-from aasoatt_env.env import RewardConfig
+from aasoatt_env.sim.env import RewardConfig
 from aasoatt_env.errors import ConfigError
 
 __all__ = ["TrainConfig", "add_config_arguments", "config_from_args", "load_config_file"]
@@ -46,7 +46,7 @@ class TrainConfig:
     Attributes
     ----------
     scenario : str
-        Scenario name (``aasoatt_env.scenarios.SCENARIOS``).
+        Scenario name (``aasoatt_env.sim.scenarios.SCENARIOS``).
     num_robots : int
         Robots per env (one policy slot each).
     scenario_kwargs : dict
@@ -65,7 +65,7 @@ class TrainConfig:
     max_steps : int or None
         Override of the episode horizon in env steps.
     reward : dict
-        :class:`~aasoatt_env.env.RewardConfig` fields.
+        :class:`~aasoatt_env.sim.env.RewardConfig` fields.
     velocity_tracking : float
         Weight of the training-only shaping term ``-|v_i - v_d_i|``
         (:class:`train.vec_env.VelocityTrackingShaping`; 0: off).
@@ -183,7 +183,7 @@ class TrainConfig:
         setattr(self, name, float(v))
 
     def _validate(self) -> None:
-        from aasoatt_env.scenarios import SCENARIOS
+        from aasoatt_env.sim.scenarios import SCENARIOS
 
         if self.scenario not in SCENARIOS:
             raise self._err("scenario", f"one of {sorted(SCENARIOS)}")
@@ -251,7 +251,7 @@ class TrainConfig:
 
     # ------------------------------------------------------------------ helpers
     def env_kwargs(self) -> dict[str, Any]:
-        """Keyword arguments of :class:`~aasoatt_env.env.AASOATTParallelEnv` for this run."""
+        """Keyword arguments of :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` for this run."""
         kw: dict[str, Any] = dict(
             scenario=self.scenario, dt=self.dt, decision_interval=self.decision_interval,
             action_mode=self.action_mode, num_neighbors=self.num_neighbors, num_obstacles=self.num_obstacles,

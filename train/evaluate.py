@@ -25,7 +25,7 @@ the env of the (first) learned policy's ``config.json`` (scenario, robots,
 ``dt``, ``decision_interval``, action mode), or of the given
 :class:`~train.config.TrainConfig`; ``terminate_on_collision`` is off.
 
-Columns (means over episodes; per episode from :func:`aasoatt_env.metrics.summarize`
+Columns (means over episodes; per episode from :func:`aasoatt_env.analysis.metrics.summarize`
 on the rollout recorded at the decision rate, and from ``infos[agent]["filter"]``):
 
 * **safe rate**: fraction of robots that never collide (robot or obstacle);
@@ -138,8 +138,8 @@ def evaluate_agent(
     progress : bool
         Show a tqdm bar.
     """
-    from aasoatt_env.metrics import summarize
-    from aasoatt_env.recording import RecordEpisode
+    from aasoatt_env.analysis.metrics import summarize
+    from aasoatt_env.analysis.recording import RecordEpisode
 
     if episodes < 1:
         raise ConfigError(f"episodes: got {episodes!r}, expected an integer >= 1")

@@ -5,7 +5,7 @@ Why
 The paper's tracking law (:class:`agents.baselines.TrackingController`)
 ``a = a_d - (k3 + k4)(v - v_d) - k3 k4 (p - p_d)`` is *linear* in the
 observation (entries 0:2 ``p - p_d``, 4:6 ``v``, 10:12 ``v_d``, 12:14 ``a_d``,
-see :mod:`aasoatt_env.observations`).  A plain MLP policy has to discover this
+see :mod:`aasoatt_env.sim.observations`).  A plain MLP policy has to discover this
 fine feedback through PPO's noisy advantage estimates: the accelerations that
 good tracking needs are ~0.1 of ``max_point_accel`` while the exploration noise
 is ~0.4, and the tracking reward reacts to an acceleration only through its

@@ -12,7 +12,7 @@ Every robot of every env is one slot of :class:`train.vec_env.ParallelVecEnv`
 :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` its action is the nominal
 that the CBF-QP filters at *every* physics step in between.
 
-Reward design (per robot and decision, :class:`~aasoatt_env.env.RewardConfig`)
+Reward design (per robot and decision, :class:`~aasoatt_env.sim.env.RewardConfig`)
 ------------------------------------------------------------------------------
 ``r_i = -tracking |p_i - p_d_i| - collision [clearance_i < -tol]
 - effort |a_i|^2 / 2 - correction c_i + goal_bonus [|p_i - goal_i| < goal_tol]``
@@ -118,10 +118,10 @@ def make_env(config: TrainConfig, filter: bool | None = None, **env_overrides: A
     Returns
     -------
     ParallelEnv
-        :class:`~aasoatt_env.env.AASOATTParallelEnv`, possibly wrapped in
+        :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`, possibly wrapped in
         :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` (imported lazily).
     """
-    from aasoatt_env.env import AASOATTParallelEnv
+    from aasoatt_env.sim.env import AASOATTParallelEnv
 
     env = AASOATTParallelEnv(**{**config.env_kwargs(), **env_overrides})
     use_filter = config.filter if filter is None else filter

@@ -213,7 +213,7 @@ class VelocityTrackingShaping(VecEnvWrapper):
     The env's tracking reward ``-|p_i - p_d_i|`` reacts to an acceleration
     only after several decisions (position is its double integral), so its
     credit assignment is slow and noisy; the velocity error ``v_i - v_d_i``
-    (observation entries 4:6 and 10:12, see :mod:`aasoatt_env.observations`)
+    (observation entries 4:6 and 10:12, see :mod:`aasoatt_env.sim.observations`)
     responds within one decision.  Penalising both is the reward counterpart of
     the tracking law's PD feedback on ``(p - p_d, v - v_d)``.  The error is read
     from the observation *after* the step (``terminal_observation`` for slots

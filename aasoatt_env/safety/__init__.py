@@ -11,8 +11,8 @@ from aasoatt_env.safety.barriers import BARRIERS, get_barrier
 from aasoatt_env.safety.config import FilterConfig, auto_margin
 from aasoatt_env.safety.core import FilterResult, SafetyFilter
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
-from aasoatt_env.safety.neighbors import obstacle_pairs, robot_pairs
-from aasoatt_env.safety.qp import SOLVERS, available_solvers, build_problem, solve_qp
+from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
+from aasoatt_env.safety.solvers.policy import SOLVERS, available_solvers, build_problem, solve_qp
 
 __all__ = [
     "BARRIERS",

@@ -16,7 +16,7 @@ Registry (:data:`BARRIERS`, look-up with :func:`get_barrier`):
     eqn.7c is corrected (``- A_dot_j u_j``).
 ``braking`` (eqn.n4, Wang-Ames-Egerstedt 2017)
     ``h = sqrt(2 (a_i+ + a_j+)(r - d_s)) + r_dot`` with ``h_dot >= -gamma h^3``;
-    ``a+`` is :attr:`aasoatt_env.params.Team.max_point_accel` (an obstacle
+    ``a+`` is :attr:`aasoatt_env.model.params.Team.max_point_accel` (an obstacle
     contributes 0).  ``r - d_s`` is clamped at ``1e-6`` so the row stays finite
     once a pair is inside the safety distance.
 ``distance`` (eqn.nn5)

@@ -61,7 +61,7 @@ class FilterConfig:
     trigger : str
         What switches the deadlock strategy on, see :data:`~aasoatt_env.safety.deadlock.TRIGGERS`.
     solver : str
-        QP solver, see :data:`aasoatt_env.safety.backends.SOLVERS`.
+        QP solver, see :data:`aasoatt_env.safety.solvers.backends.SOLVERS`.
     k1, k2 : float
         Barrier gains of eqn.7 / eqn.7a.
     k3, k4 : float
@@ -86,7 +86,7 @@ class FilterConfig:
         Projected primal-dual updates per step of the ``neural`` solver.
     active_set : bool
         With ``solver="proxsuite"``: first try the warm-started exact active-set
-        method (:mod:`~aasoatt_env.safety.active_set`, accepted only when the KKT
+        method (:mod:`~aasoatt_env.safety.solvers.active_set`, accepted only when the KKT
         conditions check out; proxsuite otherwise).  Much faster when consecutive
         QPs share their active set (3-40x on repeated states, N = 39-1000), but
         slower when it changes every step: 22 s vs 9.7 s for 7 s of the 39-robot
@@ -150,7 +150,7 @@ class FilterConfig:
     heading_deg: float = 30.0
 
     def __post_init__(self) -> None:
-        from aasoatt_env.safety.backends import get_solver
+        from aasoatt_env.safety.solvers.backends import get_solver
 
         for name, registry in (("barrier", BARRIERS), ("deadlock", STRATEGIES), ("trigger", TRIGGERS)):
             value = getattr(self, name)

@@ -1,11 +1,11 @@
 """The safety filter: nominal wheel accelerations in, safe ones out.
 
 :class:`SafetyFilter` needs no environment: it takes the team's kinematics
-(:class:`aasoatt_env.dynamics.Kinematics`), wheel speeds, headings, the nominal
+(:class:`aasoatt_env.model.dynamics.Kinematics`), wheel speeds, headings, the nominal
 ``du`` and its bounds, builds one barrier row per pair inside the sensing range
 (:mod:`~aasoatt_env.safety.barriers`), applies the deadlock strategy
 (:mod:`~aasoatt_env.safety.deadlock`) and solves the QP
-(:mod:`~aasoatt_env.safety.qp`), warm-started from the previous step.
+(:mod:`~aasoatt_env.safety.solvers.policy`), warm-started from the previous step.
 
 Discrete-time safety: the barrier is continuous-time; the default
 ``FilterConfig.safety_margin=None`` adds up to ``2 dt * 1 m/s`` to ``d_s`` for
@@ -15,7 +15,7 @@ circle swap up to 39 robots).
 
 Solver fallback: with the default ``proxsuite``, a step where proxsuite runs
 out of its iteration budget or calls a problem infeasible is answered by the
-exact ``ldp`` solver (:mod:`~aasoatt_env.safety.ldp`); after such a stall, or
+exact ``ldp`` solver (:mod:`~aasoatt_env.safety.solvers.ldp`); after such a stall, or
 a solve slower than :data:`SLOW_SOLVE_S` that ``ldp`` beats by 2x on the same
 problem, the next :data:`EXACT_STEPS` steps try the warm-started active set
 and ``ldp`` before proxsuite.  ``FilterResult.message`` says which solver answered.
@@ -29,16 +29,16 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.dynamics import Kinematics, input_bounds, kinematics, speed_box
+from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
 from aasoatt_env.errors import ActionError, ConfigError
-from aasoatt_env.params import Team
+from aasoatt_env.model.params import Team
 from aasoatt_env.safety.barriers import BarrierParams, PairGeometry, barrier_rows
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import NEEDS_REFERENCE, DeadlockState, rotation, target_correction, trigger
-from aasoatt_env.safety.ldp import MAX_VARS as LDP_MAX_VARS
-from aasoatt_env.safety.neighbors import obstacle_pairs, robot_pairs
+from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
+from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
 from aasoatt_env.safety.problem import QPProblem, box_least_squares, build_problem
-from aasoatt_env.safety.qp import QPSolution, solve_qp
+from aasoatt_env.safety.solvers.policy import QPSolution, solve_qp
 
 __all__ = ["EXACT_STEPS", "FilterResult", "SLOW_SOLVE_S", "SafetyFilter"]
 
@@ -137,7 +137,7 @@ class SafetyFilter:
 
     Parameters
     ----------
-    team : aasoatt_env.params.Team
+    team : aasoatt_env.model.params.Team
         Robot parameters.
     config : FilterConfig, optional
         Configuration (defaults: :class:`FilterConfig`).

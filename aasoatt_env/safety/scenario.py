@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from aasoatt_env.dynamics import input_bounds, integrate, kinematics, pose_from_point
-from aasoatt_env.params import Team, make_team
+from aasoatt_env.model.dynamics import input_bounds, integrate, kinematics, pose_from_point
+from aasoatt_env.model.params import Team, make_team
 
 __all__ = ["CircleSwap", "Rollout", "rollout", "tracking_nominal"]
 

@@ -119,7 +119,7 @@ class FilterHook:
         return self.avoiding
 
     def record(self) -> dict[str, Any]:
-        """Fields for :class:`~aasoatt_env.recording.RecordEpisode`."""
+        """Fields for :class:`~aasoatt_env.analysis.recording.RecordEpisode`."""
         return {
             "avoiding": self.avoiding.copy(),
             "triggered": self.triggered.copy(),

@@ -1,4 +1,4 @@
-"""Record episodes of a (possibly filtered) parallel env into :class:`~aasoatt_env.rollout.Rollout`.
+"""Record episodes of a (possibly filtered) parallel env into :class:`~aasoatt_env.analysis.rollout.Rollout`.
 
 :class:`RecordEpisode` is a PettingZoo parallel wrapper that records, after
 ``reset`` and after every ``step``, the team's positions, velocities, headings,
@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
-from aasoatt_env.rollout import Rollout, RolloutBuilder
+from aasoatt_env.analysis.rollout import Rollout, RolloutBuilder
 
 __all__ = ["RecordEpisode", "run_episode"]
 
@@ -27,7 +27,7 @@ class RecordEpisode(BaseParallelWrapper):
     Parameters
     ----------
     env : ParallelEnv
-        An :class:`~aasoatt_env.env.AASOATTParallelEnv`, possibly wrapped.
+        An :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`, possibly wrapped.
     metadata : dict, optional
         JSON-serialisable metadata stored in the rollout.
     """

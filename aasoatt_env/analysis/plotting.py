@@ -7,7 +7,7 @@ left alone.  Pass ``path`` to also save a PNG (or any format matplotlib knows by
 suffix).  matplotlib is imported lazily; without it these functions raise an
 :class:`ImportError` that says to ``pip install "aasoatt[render]"``.
 
-Robot colours match :func:`aasoatt_env.rendering.robot_colors`.
+Robot colours match :func:`aasoatt_env.sim.rendering.robot_colors`.
 
 Obstacles are given either as a pair ``(centers (M, 2), radii (M,))`` or as one
 ``(M, 3)`` array of rows ``(x, y, r)``.
@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.rendering import _require, robot_colors
+from aasoatt_env.sim.rendering import _require, robot_colors
 
 __all__ = [
     "plot_distance_profile",
@@ -38,8 +38,8 @@ Obstacles = tuple[Any, Any] | np.ndarray | None
 
 def _new_figure(figsize: tuple[float, float]) -> Any:
     """Create a Figure on an Agg canvas, without pyplot."""
-    figure_mod = _require("matplotlib.figure", "aasoatt_env.plotting")
-    agg = _require("matplotlib.backends.backend_agg", "aasoatt_env.plotting")
+    figure_mod = _require("matplotlib.figure", "aasoatt_env.analysis.plotting")
+    agg = _require("matplotlib.backends.backend_agg", "aasoatt_env.analysis.plotting")
     fig = figure_mod.Figure(figsize=figsize, layout="constrained")
     agg.FigureCanvasAgg(fig)
     return fig
@@ -92,7 +92,7 @@ def _obstacles(obstacles: Obstacles) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _draw_obstacles(ax: Any, obstacles: Obstacles) -> None:
-    patches = _require("matplotlib.patches", "aasoatt_env.plotting")
+    patches = _require("matplotlib.patches", "aasoatt_env.analysis.plotting")
     centers, radii = _obstacles(obstacles)
     for c, r in zip(centers, radii):
         ax.add_patch(patches.Circle(tuple(c), r, facecolor="0.55", edgecolor="0.35", lw=0.8, zorder=1))
@@ -153,7 +153,7 @@ def plot_trajectories(
     _, n, _ = pos.shape
     r = _radii(radii, n)
     colors = _colors(n)
-    patches = _require("matplotlib.patches", "aasoatt_env.plotting")
+    patches = _require("matplotlib.patches", "aasoatt_env.analysis.plotting")
     fig = _new_figure(figsize)
     ax = fig.add_subplot()
     _draw_obstacles(ax, obstacles)
@@ -388,7 +388,7 @@ def plot_snapshots(
     r = _radii(radii, n)
     ref = None if references is None else _positions("references", references)
     colors = _colors(n)
-    patches = _require("matplotlib.patches", "aasoatt_env.plotting")
+    patches = _require("matplotlib.patches", "aasoatt_env.analysis.plotting")
     fig = _new_figure((panel_size * len(idx), panel_size + 0.3))
     axes = fig.subplots(1, len(idx), squeeze=False, sharex=True, sharey=True)[0]
     pts = [pos.reshape(-1, 2)]

@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.rollout import Rollout
+from aasoatt_env.analysis.rollout import Rollout
 
 __all__ = [
     "CollisionReport",

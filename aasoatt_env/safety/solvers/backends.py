@@ -1,7 +1,7 @@
 """Back-ends of the safety QP and their registry (:data:`SOLVERS`, by name).
 
 Each back-end takes a :class:`~aasoatt_env.safety.problem.QPProblem`, an optional
-warm start and options, and returns a raw answer; :func:`aasoatt_env.safety.qp.solve_qp`
+warm start and options, and returns a raw answer; :func:`aasoatt_env.safety.solvers.policy.solve_qp`
 turns it into a result (confirming infeasibility verdicts, relaxing rows).
 
 ``proxsuite`` (default)
@@ -11,12 +11,12 @@ turns it into a result (confirming infeasibility verdicts, relaxing rows).
     ``eps_dual_inf``, ``check_duality_gap`` with a tight gap; a bounded iteration
     budget (:data:`PROX_MAX_ITER`, :data:`PROX_MAX_ITER_IN`).  When proxsuite
     runs out of iterations or calls the problem infeasible, the exact ``ldp``
-    solver answers instead (up to :data:`~aasoatt_env.safety.ldp.MAX_VARS`
+    solver answers instead (up to :data:`~aasoatt_env.safety.solvers.ldp.MAX_VARS`
     variables; above, the other proxsuite back-end is tried).  The message says
     which solver answered.
 ``ldp``
     Exact least-distance programming by NNLS (Lawson-Hanson, scipy), KKT-verified
-    (:mod:`aasoatt_env.safety.ldp`); needs only the core dependencies; dense, for
+    (:mod:`aasoatt_env.safety.solvers.ldp`); needs only the core dependencies; dense, for
     teams of up to a few hundred robots in one QP.
 ``neural``
     The paper's projection neural network (eqn.22), explicit Euler with
@@ -41,9 +41,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from aasoatt_env.errors import SolverError
-from aasoatt_env.safety.ldp import FEAS_TOL as LDP_FEAS_TOL
-from aasoatt_env.safety.ldp import MAX_VARS as LDP_MAX_VARS
-from aasoatt_env.safety.ldp import solve_ldp
+from aasoatt_env.safety.solvers.ldp import FEAS_TOL as LDP_FEAS_TOL
+from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
+from aasoatt_env.safety.solvers.ldp import solve_ldp
 from aasoatt_env.safety.problem import QPProblem
 
 __all__ = ["DENSE_MAX_SIZE", "PROX_MAX_ITER", "PROX_MAX_ITER_IN", "SOLVERS", "available_solvers", "get_solver"]

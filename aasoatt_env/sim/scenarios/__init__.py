@@ -1,7 +1,7 @@
 """Scenarios: who starts where, which reference each robot tracks, which obstacles.
 
-A scenario is the middle layer between the physics (:mod:`aasoatt_env.dynamics`)
-and the environment plumbing (:mod:`aasoatt_env.env`): it validates its own
+A scenario is the middle layer between the physics (:mod:`aasoatt_env.model.dynamics`)
+and the environment plumbing (:mod:`aasoatt_env.sim.env`): it validates its own
 parameters once, then :meth:`Scenario.build` returns a :class:`Layout` for a
 given random generator.
 
@@ -29,8 +29,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from aasoatt_env.errors import ConfigError, ScenarioError
-from aasoatt_env.params import RobotParams, Team, check_positive, make_team
-from aasoatt_env.references import FunctionReference, LinearReference, Reference, as_reference
+from aasoatt_env.model.params import RobotParams, Team, check_positive, make_team
+from aasoatt_env.sim.references import FunctionReference, LinearReference, Reference, as_reference
 
 __all__ = [
     "SCENARIOS",
@@ -123,7 +123,7 @@ class CircleSwap(Scenario):
     settle_time : float
         Extra time after the reference ends [s] (episode horizon = duration + settle_time).
     robots : str, RobotParams or sequence
-        Robot preset(s), see :func:`aasoatt_env.params.make_team`.
+        Robot preset(s), see :func:`aasoatt_env.model.params.make_team`.
     profile : {"linear", "smooth"}
         Timing of the straight-line reference.
     obstacles : tuple (centres (M, 2), radii (M,)), optional
@@ -468,7 +468,7 @@ class Custom(Scenario):
     starts : array_like, shape (N, 2)
         Initial control-point positions.
     reference : Reference, callable or dict
-        A :class:`~aasoatt_env.references.Reference`, a callable ``t -> (N, 2)``
+        A :class:`~aasoatt_env.sim.references.Reference`, a callable ``t -> (N, 2)``
         (with ``duration``) or ``{"waypoints": (N, K, 2), "times": (K,)}``.
     duration : float, optional
         Reference duration (needed for a callable).

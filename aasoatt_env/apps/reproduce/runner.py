@@ -35,7 +35,7 @@ class RunSpec:
     key : str
         Unique label of the run inside its experiment (e.g. ``"ours/N=20"``).
     scenario : str
-        Scenario name (see :data:`aasoatt_env.scenarios.SCENARIOS`).
+        Scenario name (see :data:`aasoatt_env.sim.scenarios.SCENARIOS`).
     scenario_kwargs : dict
         Scenario parameters (``num_robots``, ``radius``, ``duration``, ...).
     controller : {"tracking", "pd"}
@@ -74,7 +74,7 @@ class RunResult:
     spec : RunSpec
         What was run.
     metrics : dict
-        :func:`aasoatt_env.metrics.summarize` over the metric window, plus
+        :func:`aasoatt_env.analysis.metrics.summarize` over the metric window, plus
         ``min_center_distance_full`` (whole episode), ``safety_distance`` and
         ``wall_time`` [s].
     traces : dict of numpy.ndarray
@@ -144,9 +144,9 @@ def _make_agent(spec: RunSpec) -> Any:
 
 def run_spec(spec: RunSpec) -> RunResult:
     """Simulate one :class:`RunSpec` (see module docstring)."""
-    from aasoatt_env.env import AASOATTParallelEnv
-    from aasoatt_env.metrics import pairwise_min_distance, summarize
-    from aasoatt_env.recording import run_episode
+    from aasoatt_env.sim.env import AASOATTParallelEnv
+    from aasoatt_env.analysis.metrics import pairwise_min_distance, summarize
+    from aasoatt_env.analysis.recording import run_episode
 
     t0 = time.perf_counter()
     env: Any = AASOATTParallelEnv(spec.scenario, **spec.scenario_kwargs)

@@ -1,7 +1,7 @@
 """Recorded episodes: the :class:`Rollout` container and its incremental :class:`RolloutBuilder`.
 
 A :class:`Rollout` holds the per-step arrays of one episode (``T`` recorded steps,
-``N`` robots, ``M`` static obstacles) in the form :mod:`aasoatt_env.metrics`
+``N`` robots, ``M`` static obstacles) in the form :mod:`aasoatt_env.analysis.metrics`
 consumes.  Shapes are validated once, in ``__post_init__``, and every array is
 stored as a fresh ``numpy`` array with a fixed dtype (``float64``, ``bool`` or
 ``str``), so downstream code never has to re-check them.

@@ -12,7 +12,7 @@ id                                     scenario
 
 ``pettingzoo.make("parallel", id, **kwargs)`` gives the parallel env,
 ``gymnasium.make(id, **kwargs)`` the centralised view
-(:class:`aasoatt_env.gym_env.AASOATTGymEnv`); ``gymnasium.make("aasoatt_env:" + id)``
+(:class:`aasoatt_env.api.gym_env.AASOATTGymEnv`); ``gymnasium.make("aasoatt_env:" + id)``
 works without importing the package first.
 """
 
@@ -32,8 +32,8 @@ ENV_IDS: dict[str, str] = {
 
 
 def parallel_env(scenario: str = "circle_swap", **kwargs: Any) -> Any:
-    """Create the PettingZoo parallel env of ``scenario`` (see :class:`~aasoatt_env.env.AASOATTParallelEnv`)."""
-    from aasoatt_env.env import AASOATTParallelEnv
+    """Create the PettingZoo parallel env of ``scenario`` (see :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`)."""
+    from aasoatt_env.sim.env import AASOATTParallelEnv
 
     return AASOATTParallelEnv(scenario, **kwargs)
 
@@ -64,7 +64,7 @@ def register_all() -> None:
             if env_id not in gymnasium.registry:
                 gymnasium.register(
                     id=env_id,
-                    entry_point="aasoatt_env.gym_env:AASOATTGymEnv",
+                    entry_point="aasoatt_env.api.gym_env:AASOATTGymEnv",
                     kwargs={"scenario": scenario},
                     disable_env_checker=False,
                 )

@@ -19,7 +19,7 @@ a 60-robot circle swap, ``n = 120, m = 690``, 18-35 ms here where proxsuite ran
 out of iterations or did not return for minutes).
 
 The point is then handed, with its multipliers, to the structured active-set
-method (:func:`aasoatt_env.safety.active_set.solve_active_set`), which accepts
+method (:func:`aasoatt_env.safety.solvers.active_set.solve_active_set`), which accepts
 it only where the full KKT conditions hold to ``1e-10``; where that polish does
 not converge the NNLS point is returned if it is feasible to :data:`FEAS_TOL`.
 Dense algebra: used for problems up to :data:`MAX_VARS` variables.
@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import nnls
 
-from aasoatt_env.safety.active_set import least_distance_form, solve_active_set
+from aasoatt_env.safety.solvers.active_set import least_distance_form, solve_active_set
 
 __all__ = ["FEAS_TOL", "MAX_VARS", "solve_ldp"]
 

@@ -1,10 +1,10 @@
 """The safety QP: :func:`solve_qp`, which never raises on numerical trouble and never returns NaN.
 
 The problem and its scaled canonical form are in :mod:`aasoatt_env.safety.problem`,
-the solvers (by name, :data:`SOLVERS`) in :mod:`aasoatt_env.safety.backends`.
+the solvers (by name, :data:`SOLVERS`) in :mod:`aasoatt_env.safety.solvers.backends`.
 With ``solver="proxsuite"``, ``active_set=True`` and a warm start (``x0``, ``z0``
 from the previous step) :func:`solve_qp` first tries a few iterations of the
-exact structured active-set method of :mod:`aasoatt_env.safety.active_set`,
+exact structured active-set method of :mod:`aasoatt_env.safety.solvers.active_set`,
 accepted only when the full KKT conditions hold.
 
 Infeasibility verdicts are never trusted: :func:`solve_qp` confirms them with a
@@ -23,10 +23,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from aasoatt_env.safety import backends as _backends
-from aasoatt_env.safety.active_set import solve_active_set
-from aasoatt_env.safety.backends import DENSE_MAX_SIZE, SOLVERS, Backend, _clarabel, _ldp, available_solvers, get_solver
-from aasoatt_env.safety.ldp import MAX_VARS as LDP_MAX_VARS
+from aasoatt_env.safety.solvers import backends as _backends
+from aasoatt_env.safety.solvers.active_set import solve_active_set
+from aasoatt_env.safety.solvers.backends import DENSE_MAX_SIZE, SOLVERS, Backend, _clarabel, _ldp, available_solvers, get_solver
+from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
 from aasoatt_env.safety.problem import QPProblem, box_least_squares, build_problem
 
 __all__ = [

@@ -7,7 +7,7 @@ command                what it does
                        barriers, deadlock strategies, triggers and solvers
 ``aasoatt run``        run a controller (optionally behind the safety filter) on
                        a scenario; print metrics; write GIF / PNG / JSON / NPZ
-``aasoatt reproduce``  the paper's experiments (see :mod:`aasoatt_env.reproduce`)
+``aasoatt reproduce``  the paper's experiments (see :mod:`aasoatt_env.apps.reproduce`)
 ``aasoatt train``      PPO training (see :mod:`train.train`)
 ``aasoatt evaluate``   evaluation table over seeded episodes (:mod:`train.evaluate`)
 =====================  =========================================================
@@ -45,8 +45,8 @@ def _kv(items: Sequence[str], flag: str) -> dict[str, Any]:
 
 def cmd_list(args: argparse.Namespace) -> int:
     """Print scenarios, controllers and filter options."""
-    from aasoatt_env.registration import ENV_IDS
-    from aasoatt_env.scenarios import SCENARIOS
+    from aasoatt_env.api.registration import ENV_IDS
+    from aasoatt_env.sim.scenarios import SCENARIOS
     from agents.base import _REGISTRY
 
     ids = {v: k for k, v in ENV_IDS.items()}
@@ -74,7 +74,7 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 
 def _make_env(args: argparse.Namespace, render: bool) -> Any:
-    from aasoatt_env.env import AASOATTParallelEnv
+    from aasoatt_env.sim.env import AASOATTParallelEnv
 
     kwargs = _kv(args.param or [], "-p/--param")
     if args.robots is not None:
@@ -102,8 +102,8 @@ def _make_env(args: argparse.Namespace, render: bool) -> Any:
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run one episode and report its metrics."""
-    from aasoatt_env.metrics import format_summary, summarize
-    from aasoatt_env.recording import run_episode
+    from aasoatt_env.analysis.metrics import format_summary, summarize
+    from aasoatt_env.analysis.recording import run_episode
     from agents.base import get_agent
 
     render = bool(args.gif)
@@ -133,7 +133,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         (out / "metrics.json").write_text(json.dumps(summary, indent=2))
         rollout.save(out / "rollout.npz")
         try:
-            from aasoatt_env.plotting import plot_trajectories
+            from aasoatt_env.analysis.plotting import plot_trajectories
 
             plot_trajectories(
                 rollout.positions,
@@ -148,7 +148,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"(no trajectory plot: {exc})", file=sys.stderr)
         print(f"wrote {out}/metrics.json, rollout.npz, trajectories.png")
     if args.gif:
-        from aasoatt_env.rendering import save_animation
+        from aasoatt_env.sim.rendering import save_animation
 
         save_animation(frames, args.gif, fps=args.fps)
         print(f"wrote {args.gif} ({len(frames)} frames)")
@@ -194,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 _FORWARDED = {
-    "reproduce": ("aasoatt_env.reproduce", "main"),
+    "reproduce": ("aasoatt_env.apps.reproduce", "main"),
     "train": ("train.train", "main"),
     "evaluate": ("train.evaluate", "main"),
 }

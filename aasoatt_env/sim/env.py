@@ -10,7 +10,7 @@ action space           ``Box(-1, 1, (2,), float32)`` per agent
                        ``du = A^{-1} (a - A_dot u)`` and then *saturated* to the
                        input bounds (documented clipping; ``infos["saturated"]``)
 observation space      ``Box(-100, 100, (14 + 6 (K + K_obs),), float32)``, see
-                       :mod:`aasoatt_env.observations`
+                       :mod:`aasoatt_env.sim.observations`
 state space            ``Box(-inf, inf, (9 N + 1,), float64)``: poses, wheel speeds,
                        reference points and velocities, time
 reward                 :class:`RewardConfig` (tracking, collision, effort, filter
@@ -45,10 +45,10 @@ import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from aasoatt_env import dynamics
-from aasoatt_env.dynamics import Kinematics
+from aasoatt_env.model import dynamics
+from aasoatt_env.model.dynamics import Kinematics
 from aasoatt_env.errors import ActionError, ConfigError
-from aasoatt_env.observations import (
+from aasoatt_env.sim.observations import (
     OBS_BOUND,
     SELF_DIM,
     SLOT_DIM,
@@ -57,8 +57,8 @@ from aasoatt_env.observations import (
     min_gaps,
     proximity,
 )
-from aasoatt_env.params import Team, check_positive
-from aasoatt_env.scenarios import Layout, Scenario, get_scenario
+from aasoatt_env.model.params import Team, check_positive
+from aasoatt_env.sim.scenarios import Layout, Scenario, get_scenario
 
 __all__ = ["AASOATTParallelEnv", "RewardConfig", "SimState"]
 
@@ -120,7 +120,7 @@ class AASOATTParallelEnv(ParallelEnv):
     Parameters
     ----------
     scenario : str or Scenario
-        Scenario name (see :data:`aasoatt_env.scenarios.SCENARIOS`) or instance.
+        Scenario name (see :data:`aasoatt_env.sim.scenarios.SCENARIOS`) or instance.
     render_mode : {None, "rgb_array", "human"}
         Rendering mode.
     dt : float
@@ -543,7 +543,7 @@ class AASOATTParallelEnv(ParallelEnv):
         """Render the current frame (``rgb_array``: an ``(H, W, 3)`` uint8 array)."""
         if self.render_mode is None:
             return None
-        from aasoatt_env.rendering import Frame, Renderer
+        from aasoatt_env.sim.rendering import Frame, Renderer
 
         if self._renderer is None:
             self._renderer = Renderer()

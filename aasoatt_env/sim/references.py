@@ -23,7 +23,7 @@ from typing import Literal, Protocol
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.params import check_positive
+from aasoatt_env.model.params import check_positive
 
 __all__ = [
     "FunctionReference",

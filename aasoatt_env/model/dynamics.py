@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from aasoatt_env.params import Team
+from aasoatt_env.model.params import Team
 
 __all__ = [
     "Kinematics",

@@ -34,9 +34,9 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.reproduce import paper
-from aasoatt_env.reproduce.report import Report, fmt, fmt_rel, md_table, new_figure, rel_diff
-from aasoatt_env.reproduce.runner import RunResult, RunSpec, run_many
+from aasoatt_env.apps.reproduce import paper
+from aasoatt_env.apps.reproduce.report import Report, fmt, fmt_rel, md_table, new_figure, rel_diff
+from aasoatt_env.apps.reproduce.runner import RunResult, RunSpec, run_many
 
 __all__ = ["EXPERIMENTS", "Settings", "VELOCITY_LEVEL_ACCEL"]
 
@@ -49,7 +49,7 @@ VELOCITY_LEVEL_ACCEL: float = 1.0e4
 #: Relative-difference tolerance of the acceptance check on eqn.n4 and ours (compare-ca).
 ACCEPT_REL: float = 0.10
 
-#: Collision tolerance [m] when declaring a safety violation (as :mod:`aasoatt_env.metrics`).
+#: Collision tolerance [m] when declaring a safety violation (as :mod:`aasoatt_env.analysis.metrics`).
 VIOLATION_TOL: float = 1e-3
 
 
@@ -289,7 +289,7 @@ def _ca_size(s: Settings) -> tuple[int, float, float]:
 
 def compare_ca(s: Settings) -> Report:
     """The N = 10 comparison of the five CA methods against the paper's 4-tuples."""
-    from aasoatt_env.params import RobotParams
+    from aasoatt_env.model.params import RobotParams
 
     rep = Report("compare-ca", "Comparison of CA strategies (N = 10, radius 6, 12 s)", s.out)
     n, radius, duration = _ca_size(s)
@@ -737,7 +737,7 @@ SWARM_ROBOT_RADIUS: float = 0.3
 
 def swarm100(s: Settings) -> Report:
     """Fig. '100': 100 robots on the radius-10 circle, the three deadlock strategies."""
-    from aasoatt_env.params import RobotParams
+    from aasoatt_env.model.params import RobotParams
 
     rep = Report("swarm100", "100 robots, deadlock strategies (Fig. '100')", s.out)
     n, radius, duration, settle = (12, 5.0, 10.0, 2.0) if s.quick else (100, 10.0, 20.0, 5.0)
@@ -872,7 +872,7 @@ def obstacles(s: Settings) -> Report:
     tr = r.traces
     t = tr["times"]
     idx = [0, int(np.searchsorted(t, 0.45 * duration)), int(np.searchsorted(t, 0.75 * duration)), len(t) - 1]
-    from aasoatt_env.plotting import plot_snapshots
+    from aasoatt_env.analysis.plotting import plot_snapshots
 
     fig = plot_snapshots(
         tr["positions"],

@@ -17,14 +17,14 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from aasoatt_env.env import AASOATTParallelEnv
+from aasoatt_env.sim.env import AASOATTParallelEnv
 from aasoatt_env.errors import ActionError
 
 __all__ = ["AASOATTGymEnv"]
 
 
 class AASOATTGymEnv(gym.Env):
-    """Joint-action view of :class:`~aasoatt_env.env.AASOATTParallelEnv`.
+    """Joint-action view of :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`.
 
     Parameters
     ----------
@@ -37,7 +37,7 @@ class AASOATTGymEnv(gym.Env):
         (e.g. ``{"barrier": "aasoatt"}``; ``{}`` for the defaults) between the
         joint action and the robots.
     **kwargs
-        Passed to :class:`~aasoatt_env.env.AASOATTParallelEnv`.
+        Passed to :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 20}

@@ -1,6 +1,6 @@
 """Reproduce the paper's Sec. V: ``aasoatt reproduce EXPERIMENT [--quick] [--out DIR] [--jobs N]``.
 
-Experiments (see :mod:`aasoatt_env.reproduce.experiments`): ``table1``,
+Experiments (see :mod:`aasoatt_env.apps.reproduce.experiments`): ``table1``,
 ``compare-ca``, ``table2``, ``deadlock-triggers``, ``table3``, ``swarm100``,
 ``obstacles`` and ``all``.  Each writes ``<out>/<experiment>/`` with a CSV, a
 Markdown ``README.md`` putting the paper's numbers beside ours (relative
@@ -13,7 +13,7 @@ are *not* comparable to the paper.
 
 Python use::
 
-    from aasoatt_env.reproduce import run_experiment, Settings
+    from aasoatt_env.apps.reproduce import run_experiment, Settings
     report = run_experiment("compare-ca", Settings(out=Path("results")))
 """
 
@@ -25,8 +25,8 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from aasoatt_env.reproduce.experiments import EXPERIMENTS, Settings
-from aasoatt_env.reproduce.report import Report
+from aasoatt_env.apps.reproduce.experiments import EXPERIMENTS, Settings
+from aasoatt_env.apps.reproduce.report import Report
 
 __all__ = ["EXPERIMENTS", "Settings", "main", "run_experiment"]
 
