@@ -1,17 +1,34 @@
 """aasoatt_env: acceleration-actuated multi-robot environment and CBF-QP safety filter.
 
+Layers (each imports only those above it in this list):
+
+1. :mod:`aasoatt_env.errors`, :mod:`aasoatt_env.validation`: errors and the one validation layer;
+2. :mod:`aasoatt_env.model`: robot parameters, dynamics, neighbour geometry, the tracking law;
+3. :mod:`aasoatt_env.sim`: the PettingZoo env, observations, rewards, scenarios, references, rendering;
+4. :mod:`aasoatt_env.safety`: barriers, deadlock strategies, solvers, the filter core and wrapper;
+5. :mod:`aasoatt_env.api`: :func:`make_env`, the Gymnasium view, the registered ids;
+6. :mod:`aasoatt_env.analysis`: rollouts, recording, metrics, plots;
+7. :mod:`aasoatt_env.apps`: the command line and the paper's reproduction (with :mod:`agents`, :mod:`train`).
+
 Importing the package registers the environment ids of
 :mod:`aasoatt_env.api.registration` with PettingZoo and Gymnasium.
 """
 
-from aasoatt_env.sim.env import AASOATTParallelEnv, RewardConfig, SimState
-from aasoatt_env.errors import AASOATTError, ActionError, ConfigError, ScenarioError, SolverError
-from aasoatt_env.api.gym_env import AASOATTGymEnv
-from aasoatt_env.model.params import PRESETS, RobotParams, Team, make_team
-from aasoatt_env.api.registration import ENV_IDS, env, parallel_env, register_all
-from aasoatt_env.safety import FilterConfig, FilterResult, SafetyFilter
-from aasoatt_env.safety.wrapper import AASOATTFilter
-from aasoatt_env.sim.scenarios import SCENARIOS, Scenario, get_scenario
+from aasoatt_env.api import ENV_IDS, AASOATTGymEnv, env, make_env, parallel_env, register_all
+from aasoatt_env.errors import (
+    AASOATTError,
+    ActionError,
+    ConfigError,
+    DataFileError,
+    ResetNeeded,
+    ScenarioError,
+    SolverError,
+    StateError,
+    UsageError,
+)
+from aasoatt_env.model import PRESETS, RobotParams, Team, make_team
+from aasoatt_env.safety import AASOATTFilter, FilterConfig, FilterReport, FilterResult, SafetyFilter
+from aasoatt_env.sim import SCENARIOS, AASOATTParallelEnv, RewardConfig, Scenario, get_scenario
 
 __version__ = "0.1.0"
 
@@ -27,18 +44,23 @@ __all__ = [
     "AASOATTParallelEnv",
     "ActionError",
     "ConfigError",
+    "DataFileError",
     "FilterConfig",
+    "FilterReport",
     "FilterResult",
+    "ResetNeeded",
     "RewardConfig",
     "RobotParams",
-    "Scenario",
     "SafetyFilter",
+    "Scenario",
     "ScenarioError",
-    "SimState",
     "SolverError",
+    "StateError",
     "Team",
+    "UsageError",
     "env",
     "get_scenario",
+    "make_env",
     "make_team",
     "parallel_env",
 ]

@@ -8,7 +8,7 @@ import numpy as np
 
 from aasoatt_env.errors import ConfigError
 
-__all__ = ["Agent", "get_agent", "register_agent"]
+__all__ = ["Agent", "agent_names", "get_agent", "register_agent"]
 
 
 @runtime_checkable
@@ -30,6 +30,11 @@ _REGISTRY: dict[str, type] = {}
 def register_agent(name: str, cls: type) -> None:
     """Make ``cls`` constructible by name with :func:`get_agent`."""
     _REGISTRY[name] = cls
+
+
+def agent_names() -> list[str]:
+    """Registered agent names (sorted)."""
+    return sorted(_REGISTRY)
 
 
 def get_agent(name: str, **kwargs: Any) -> Agent:

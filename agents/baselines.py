@@ -6,7 +6,10 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.model.params import check_positive
+from aasoatt_env import validation as check
+from aasoatt_env.errors import ConfigError
+from aasoatt_env.model.geometry import k_nearest
+from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4, point_accel_to_du, tracking_accel
 from agents.base import register_agent
 
 __all__ = ["HostileAgent", "PDController", "RandomAgent", "TrackingController", "point_accel_to_action"]
@@ -22,13 +25,11 @@ def point_accel_to_action(env: Any, accel: np.ndarray, saturate: bool) -> dict[s
     which clips each wheel to its bound.
     """
     base = env.unwrapped
-    kin = base.kinematics
-    du = np.linalg.solve(kin.A, (accel - kin.adot_u)[..., None])[..., 0]
-    act = du / base.team.max_wheel_accel[:, None]
+    act = point_accel_to_du(base.kinematics, accel) / base.team.max_wheel_accel[:, None]
     if saturate:
         act = np.clip(act, -1.0, 1.0)
     act = act.astype(np.float32)
-    idx = {a: i for i, a in enumerate(base.possible_agents)}
+    idx = base.agent_index
     return {a: act[idx[a]] for a in env.agents}
 
 
@@ -48,10 +49,10 @@ class TrackingController:
         leave False so the QP sees the unclipped target).
     """
 
-    def __init__(self, k3: float = 1.0, k4: float = 4.0, saturate: bool = False) -> None:
-        self.k3 = check_positive("k3", k3)
-        self.k4 = check_positive("k4", k4)
-        self.saturate = saturate
+    def __init__(self, k3: float = PAPER_K3, k4: float = PAPER_K4, saturate: bool = False) -> None:
+        self.k3 = check.positive("k3", k3, hi=1e3)
+        self.k4 = check.positive("k4", k4, hi=1e3)
+        self.saturate = check.boolean("saturate", saturate)
 
     def reset(self, env: Any) -> None:
         """Nothing to reset (stateless)."""
@@ -61,7 +62,7 @@ class TrackingController:
         base = env.unwrapped
         kin = base.kinematics
         p_d, v_d, a_d = base.reference
-        return a_d - (self.k3 + self.k4) * (kin.v - v_d) - self.k3 * self.k4 * (kin.p - p_d)
+        return tracking_accel(kin.p, kin.v, p_d, v_d, a_d, self.k3, self.k4)
 
     def act(self, observations: dict[str, np.ndarray], env: Any) -> dict[str, np.ndarray]:
         """Actions for every live agent."""
@@ -112,9 +113,8 @@ class HostileAgent:
         """Point accelerations of magnitude ``max_point_accel`` toward the nearest robot."""
         base = env.unwrapped
         p = base.positions
-        d = np.linalg.norm(p[:, None] - p[None], axis=2)
-        np.fill_diagonal(d, np.inf)
-        j = np.argmin(d, axis=1)
+        idx, _, _ = k_nearest(p, 1)
+        j = np.where(idx[:, 0] >= 0, idx[:, 0], np.arange(p.shape[0]))
         direction = p[j] - p
         direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
         accel = base.team.max_point_accel[:, None] * direction
@@ -122,9 +122,7 @@ class HostileAgent:
 
 
 def _load_learned(path: str | None = None, **kwargs: Any) -> Any:
-    """Factory for ``--controller learned`` (imports Stable-Baselines3 lazily)."""
-    from aasoatt_env.errors import ConfigError
-
+    """Factory for ``--controller learned`` (imports Stable-Baselines3 lazily: the ``train`` extra)."""
     if path is None:
         raise ConfigError("controller 'learned': got no model path, expected --model PATH (a run folder or .zip)")
     from agents.learned import LearnedAgent

@@ -40,12 +40,13 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from aasoatt_env import make_env  # noqa: E402
 from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point  # noqa: E402
 from aasoatt_env.model.params import make_team  # noqa: E402
 from aasoatt_env.safety import SafetyFilter  # noqa: E402
+from aasoatt_env.safety.solvers import available_solvers  # noqa: E402
 from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS  # noqa: E402
-from aasoatt_env.safety.solvers.policy import available_solvers  # noqa: E402
-from aasoatt_env.safety.scenario import CircleSwap, rollout  # noqa: E402
+from agents import TrackingController  # noqa: E402
 
 
 def packed(n: int, seed: int = 0, spacing: float = 1.1, nominal: float = 30.0):
@@ -63,10 +64,35 @@ def packed(n: int, seed: int = 0, spacing: float = 1.1, nominal: float = 30.0):
     return team, (kin, u, theta, nom, lo, hi, None)
 
 
+class _Capture:
+    """A control filter that runs the default ``SafetyFilter`` and keeps its inputs at one physics step."""
+
+    keeps_input_bounds = True
+
+    def __init__(self, at_step: int) -> None:
+        self.inner, self.at, self.k, self.snapshot = SafetyFilter(), at_step, 0, None
+
+    def reset(self, team) -> None:
+        self.inner.reset(team)
+
+    def __call__(self, inp, du_nominal):
+        if self.k == self.at:
+            p_d, v_d, _ = inp.reference
+            self.snapshot = (inp.kin, inp.u.copy(), inp.theta.copy(), du_nominal.copy(), inp.lo, inp.hi, (p_d, v_d))
+        self.k += 1
+        return self.inner(inp, du_nominal)
+
+
 def circle_snapshot(n: int):
-    scen = CircleSwap(n)
-    out = rollout(scen, SafetyFilter(scen.team), 5.6, record=lambda k: k == 1100)
-    return scen.team, out.snapshots[0]
+    """The filter's inputs at physics step 1100 (5.5 s, the centre crossing) of the circle swap (R = 6, 12 s)."""
+    env = make_env("circle_swap", num_robots=n, settle_time=0.0)
+    cap = _Capture(1100)
+    env.set_control_filter(cap)
+    obs, _ = env.reset(seed=0)
+    agent = TrackingController()
+    while cap.snapshot is None:
+        obs, *_ = env.step(agent.act(obs, env))
+    return env.team, cap.snapshot
 
 
 def timed(fn, reps: int) -> float:

@@ -11,7 +11,6 @@ what a training run sees.  Single torch thread.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import time
 
 import torch
@@ -44,9 +43,7 @@ def main() -> None:
     p.add_argument("--solver", default=None, help="filter QP solver (default: the filter's default)")
     args = p.parse_args()
     torch.set_num_threads(1)
-    rows = [("bare", False)]
-    if importlib.util.find_spec("aasoatt_env.safety.wrapper") is not None:
-        rows.append((f"filter ({args.solver or 'default solver'})", True))
+    rows = [("bare", False), (f"filter ({args.solver or 'default solver'})", True)]
     print(f"PPO throughput, {args.robots} robots x {args.n_envs} envs, decision_interval 20 (dt 0.005)\n")
     print("| loop | agent-steps | agent-steps/s | physics steps/s |")
     print("|---|---:|---:|---:|")

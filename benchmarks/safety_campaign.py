@@ -23,12 +23,10 @@ import time
 
 import numpy as np
 
-from aasoatt_env import AASOATTParallelEnv
+from aasoatt_env import FilterConfig, make_env
 from aasoatt_env.analysis.metrics import collisions, pairwise_min_distance
-from aasoatt_env.model.params import RobotParams
 from aasoatt_env.analysis.recording import run_episode
-from aasoatt_env.apps.reproduce.experiments import SWARM_ROBOT_RADIUS
-from aasoatt_env.safety.wrapper import AASOATTFilter
+from aasoatt_env.model.params import RobotParams
 from agents import HostileAgent, RandomAgent, TrackingController
 
 
@@ -60,17 +58,13 @@ def main() -> None:
     print(f"{head[0]:34s} " + " ".join(f"{h:>{w}s}" for h, w in zip(head[1:], (10, 8, 7, 10, 6, 8))))
     circles = [(6.0, 12.0, n, None) for n in ((10, 39) if args.quick else (10, 20, 30, 35, 39))]
     if not args.quick:
-        circles += [(10.0, 20.0, 60, None), (10.0, 20.0, 100, RobotParams(radius=SWARM_ROBOT_RADIUS))]
+        circles += [(10.0, 20.0, 60, None), (10.0, 20.0, 100, "paper_small")]
     if args.only is not None:
         circles = [c for c in circles if args.only == f"r{c[0]:g}"]
     for radius, duration, n, robots in circles:
         kwargs = {} if robots is None else {"robots": robots}
-        env = AASOATTFilter(
-            AASOATTParallelEnv(
-                "circle_swap", num_robots=n, radius=radius, duration=duration, settle_time=3.0, **kwargs
-            ),
-            solver=args.solver,
-        )
+        env = make_env("circle_swap", filter=FilterConfig(solver=args.solver), num_robots=n, radius=radius,
+                       duration=duration, settle_time=3.0, **kwargs)
         t = time.perf_counter()
         rollout, _ = run_episode(env, TrackingController(), seed=0)
         print(_row(f"circle R={radius:g} N={n}", rollout, time.perf_counter() - t, True), flush=True)
@@ -79,8 +73,8 @@ def main() -> None:
         for seed in seeds:
             limit = args.wheel_speed_limit
             robots = {} if limit is None else {"robots": RobotParams(max_wheel_speed=limit)}
-            env = AASOATTFilter(AASOATTParallelEnv("random_goals", num_robots=20, max_steps=2000, **robots),
-                                solver=args.solver, max_wheel_speed=args.filter_speed_limit)
+            fc = FilterConfig(solver=args.solver, max_wheel_speed=args.filter_speed_limit)
+            env = make_env("random_goals", filter=fc, num_robots=20, max_steps=2000, **robots)
             t = time.perf_counter()
             rollout, _ = run_episode(env, agent, seed=seed)
             tag = "" if args.wheel_speed_limit is None else f" |w|<={args.wheel_speed_limit:g}"

@@ -2,8 +2,8 @@ import json
 
 import pytest
 
-from aasoatt_env.apps.cli import main
 from aasoatt_env.analysis.rollout import Rollout
+from aasoatt_env.apps.cli import main
 
 
 def test_list_shows_scenarios_controllers_and_filter_options(capsys):

@@ -7,7 +7,6 @@ import json
 import numpy as np
 import pytest
 
-from aasoatt_env.errors import ConfigError
 from aasoatt_env.analysis.metrics import (
     collisions,
     deadlocked_robots,
@@ -25,6 +24,7 @@ from aasoatt_env.analysis.metrics import (
     tracking_stats,
 )
 from aasoatt_env.analysis.rollout import Rollout, RolloutBuilder
+from aasoatt_env.errors import ConfigError
 
 
 def make_rollout(positions, *, dt=0.1, references=None, velocities=None, goals=None, radii=None, **kw):

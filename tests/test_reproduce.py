@@ -14,7 +14,7 @@ import pytest
 
 from aasoatt_env.apps.reproduce import EXPERIMENTS, main, paper
 from aasoatt_env.apps.reproduce.report import md_table, rel_diff
-from aasoatt_env.apps.reproduce.runner import RunSpec, run_spec, window
+from aasoatt_env.apps.reproduce.runner import RunSpec, run_spec
 
 QUICK_FILES = {
     "table1": ["table1_errors.png"],
@@ -133,16 +133,19 @@ def test_helpers() -> None:
 
 
 def test_window_cuts_rollout() -> None:
-    spec = RunSpec("w", "tracking", dict(trajectory="straight", duration=1.0), "tracking", 1.0, 4.0)
-    res = run_spec(spec)
-    assert res.metrics["rmse"] >= 0 and np.isfinite(res.traces["positions"]).all()
-    from aasoatt_env.sim.env import AASOATTParallelEnv
     from aasoatt_env.analysis.recording import run_episode
+    from aasoatt_env.sim.env import AASOATTParallelEnv
     from agents.baselines import TrackingController
 
     ro, _ = run_episode(
         AASOATTParallelEnv("tracking", trajectory="straight", duration=1.0), TrackingController(saturate=True), seed=0
     )
-    cut = window(ro, 0.5)
-    assert cut.times[-1] <= 0.5 + 1e-9 and cut.n_steps < ro.n_steps
-    assert window(ro, None) is ro
+    cut = ro.window(0.5)
+    assert cut.times[-1] <= 0.5 + 1e-9 and cut.n_steps == int(np.sum(ro.times <= 0.5 + 1e-9)) < ro.n_steps
+    np.testing.assert_array_equal(cut.positions, ro.positions[: cut.n_steps])
+    assert ro.window(None) is ro and ro.window(10.0) is ro
+    # the runner's paper metrics are over the window: a 0.5 s window of the same run
+    spec = RunSpec("w", "tracking", dict(trajectory="straight", duration=1.0), "tracking", 1.0, 4.0, window=0.5)
+    res = run_spec(spec)
+    errs = np.linalg.norm(cut.positions - cut.references, axis=-1)
+    assert res.metrics["rmse"] == pytest.approx(float(np.sqrt(np.mean(errs**2))), rel=1e-12)

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import circle_layout, closed_loop
 
-import aasoatt_env.safety.core as core
+import aasoatt_env.safety.solvers.policy as core
 from aasoatt_env.model.dynamics import jacobian
 from aasoatt_env.model.params import make_team
 from aasoatt_env.safety import SafetyFilter, build_problem, solve_qp
-from aasoatt_env.safety.scenario import CircleSwap, rollout
 
 D_S = 0.96
 
@@ -34,8 +34,8 @@ def swap10(request):
 
     core.solve_qp = spy
     try:
-        scen = CircleSwap(10, radius=6.0, duration=12.0)
-        out = rollout(scen, SafetyFilter(scen.team), 15.0)
+        scen = circle_layout(10, radius=6.0, duration=12.0)
+        out = closed_loop(scen, SafetyFilter(scen.team), 15.0)
     finally:
         core.solve_qp = real
     return out, recorded
@@ -51,8 +51,8 @@ def test_circle_swap_safe_and_converges(swap10):
 
 @pytest.mark.slow
 def test_without_deadlock_resolution_robots_get_stuck():
-    scen = CircleSwap(10)
-    out = rollout(scen, SafetyFilter(scen.team, deadlock="none"), 15.0)
+    scen = circle_layout(10)
+    out = closed_loop(scen, SafetyFilter(scen.team, deadlock="none"), 15.0)
     assert out.min_distance >= D_S - 1e-3
     assert np.max(out.final_error) > 0.5
 
@@ -83,8 +83,8 @@ def test_warm_started_active_set_path_matches_independent_solver(swap10, other):
 @pytest.mark.slow
 @pytest.mark.parametrize("strategy", ["rotate_nominal", "rotate_reference_velocity", "auxiliary_velocity"])
 def test_deadlock_strategies_bring_every_robot_home(strategy):
-    scen = CircleSwap(10, radius=6.0, duration=12.0)
-    out = rollout(scen, SafetyFilter(scen.team, deadlock=strategy), 15.0)
+    scen = circle_layout(10, radius=6.0, duration=12.0)
+    out = closed_loop(scen, SafetyFilter(scen.team, deadlock=strategy), 15.0)
     assert out.min_distance >= D_S - 1e-3
     assert out.statuses.get("failed", 0) == 0
     assert np.all(out.final_error < 0.05), out.final_error
@@ -137,8 +137,8 @@ def test_cross_check_against_independent_solver(swap10, solver, other):
 def test_full_circle_of_39_robots_is_safe_and_reaches_the_packed_goals():
     # the goals are only 6 mm further apart than d_s: a constant discrete-time
     # margin would make them unreachable; the velocity-faded margin does not
-    scen = CircleSwap(39, radius=6.0, duration=12.0)
-    out = rollout(scen, SafetyFilter(scen.team), 15.0)
+    scen = circle_layout(39, radius=6.0, duration=12.0)
+    out = closed_loop(scen, SafetyFilter(scen.team), 15.0)
     assert out.min_distance >= D_S - 1e-3
     assert out.statuses.get("failed", 0) == 0
     assert np.all(out.final_error < 0.05), out.final_error.max()

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import circle_layout, closed_loop
 
 import aasoatt_env.safety.solvers.backends as backends
+import aasoatt_env.safety.solvers.ldp as ldp
+from aasoatt_env.errors import ConfigError, SolverError, StateError
 from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point
-from aasoatt_env.errors import ActionError, ConfigError, SolverError
+from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import make_team
-from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, FilterConfig, SafetyFilter, robot_pairs
-from aasoatt_env.safety.scenario import CircleSwap, rollout
+from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, FilterConfig, SafetyFilter
 
 
 def _state(n=4, spacing=1.2, seed=0, speed=0.5):
@@ -34,14 +36,14 @@ def test_nan_nominal_names_robot():
     kin, lo, hi = _inputs(team, pose, u)
     nom = np.zeros((4, 2))
     nom[2, 1] = np.nan
-    with pytest.raises(ActionError, match="robot index 2"):
+    with pytest.raises(StateError, match="robot index 2"):
         SafetyFilter(team, deadlock="none").step(kin, u, pose[:, 2], nom, lo, hi)
 
 
 def test_bad_shape_nominal():
     team, pose, u = _state()
     kin, lo, hi = _inputs(team, pose, u)
-    with pytest.raises(ActionError, match=r"expected \(4, 2\)"):
+    with pytest.raises(StateError, match=r"expected \(4, 2\)"):
         SafetyFilter(team, deadlock="none").step(kin, u, pose[:, 2], np.zeros((3, 2)), lo, hi)
 
 
@@ -58,7 +60,7 @@ def test_bad_shape_nominal():
         ({"rotation_deg": 270}, ConfigError, "rotation_deg"),
         ({"safety_margin": -0.1}, ConfigError, "safety_margin"),
         ({"max_wheel_speed": 0.0}, ConfigError, r"max_wheel_speed: got 0.0, expected a finite positive"),
-        ({"nonexistent": 1}, ConfigError, "nonexistent"),
+        ({"nonexistent": 1}, TypeError, "nonexistent"),
     ],
 )
 def test_config_errors(kwargs, exc, match):
@@ -85,7 +87,7 @@ def test_filter_side_wheel_speed_bound():
 
 
 def test_uninstalled_solver_lists_available(monkeypatch):
-    monkeypatch.setitem(backends.SOLVERS, "ghost", (backends._osqp, "ghost_module_xyz"))
+    monkeypatch.setitem(backends.SOLVERS, "ghost", backends.Backend(backends._osqp, "ghost_module_xyz"))
     with pytest.raises(SolverError, match="not installed.*available"):
         FilterConfig(solver="ghost")
 
@@ -168,7 +170,7 @@ _COMBOS = [(s, "multiplier") for s in STRATEGIES if s != "none"] + [
 @pytest.mark.parametrize(("strategy", "trig"), _COMBOS)
 def test_strategies_and_triggers_run(strategy, trig):
     # on a symmetric 6-robot circle the nearest neighbour is never ahead: use a head-on pair
-    scen = CircleSwap(2 if trig == "heading" else 6, radius=2.5, duration=4.0)
+    scen = circle_layout(2 if trig == "heading" else 6, radius=2.5, duration=4.0)
     extra = {"stall_time": 0.2, "stall_distance": 0.05} if trig == "stalled" else {}
     f = SafetyFilter(scen.team, deadlock=strategy, trigger=trig, **extra)
     triggered = []
@@ -181,7 +183,7 @@ def test_strategies_and_triggers_run(strategy, trig):
         return du, res
 
     f.step = step  # type: ignore[method-assign]
-    out = rollout(scen, f, 3.0)
+    out = closed_loop(scen, f, 3.0)
     assert out.statuses.get("failed", 0) == 0
     assert any(triggered), "trigger never fired in a head-on swap"
     if strategy != "rotate_relative_position":
@@ -190,7 +192,7 @@ def test_strategies_and_triggers_run(strategy, trig):
 
 
 def test_multiplier_trigger_follows_previous_avoidance():
-    scen = CircleSwap(6, radius=3.0, duration=6.0)
+    scen = circle_layout(6, radius=3.0, duration=6.0)
     f = SafetyFilter(scen.team)
     seen = []
     orig = f.step
@@ -201,15 +203,15 @@ def test_multiplier_trigger_follows_previous_avoidance():
         return du, res
 
     f.step = step  # type: ignore[method-assign]
-    rollout(scen, f, 3.0)
+    closed_loop(scen, f, 3.0)
     assert any(a.any() for a, _ in seen)
     for (a_prev, _), (_, t_now) in zip(seen[:-1], seen[1:]):
         np.testing.assert_array_equal(a_prev, t_now)
 
 
 def test_neural_solver_never_fails_and_approaches_optimum():
-    scen = CircleSwap(6, radius=3.0, duration=6.0)
-    out = rollout(scen, SafetyFilter(scen.team, solver="neural", neural_iterations=5), 3.0)
+    scen = circle_layout(6, radius=3.0, duration=6.0)
+    out = closed_loop(scen, SafetyFilter(scen.team, solver="neural", neural_iterations=5), 3.0)
     assert out.statuses == {"solved": 600}
     team, pose, u = _state(n=3, spacing=1.0, speed=4.0)
     kin, lo, hi = _inputs(team, pose, u)
@@ -232,9 +234,9 @@ def test_kdtree_and_brute_pairs_agree(n):
 
 
 def test_reset_clears_memory():
-    scen = CircleSwap(4, radius=2.0, duration=4.0)
+    scen = circle_layout(4, radius=2.0, duration=4.0)
     f = SafetyFilter(scen.team, trigger="stalled")
-    rollout(scen, f, 0.5)
+    closed_loop(scen, f, 0.5)
     f.reset()
     assert f._x is None and f._dl.history == []
 
@@ -242,7 +244,7 @@ def test_reset_clears_memory():
 def test_box_least_squares_matches_quadprog():
     quadprog = pytest.importorskip("quadprog")
     from aasoatt_env.model.dynamics import jacobian
-    from aasoatt_env.safety.solvers.policy import box_least_squares
+    from aasoatt_env.safety.problem import box_least_squares
 
     rng = np.random.default_rng(3)
     k = 400
@@ -284,9 +286,9 @@ class _Twin(SafetyFilter):
 
 
 def test_decomposition_gives_the_full_qp_answer():
-    scen = CircleSwap(10, radius=6.0, duration=12.0)
+    scen = circle_layout(10, radius=6.0, duration=12.0)
     filt = _Twin(scen.team)
-    out = rollout(scen, filt, 9.0)
+    out = closed_loop(scen, filt, 9.0)
     rows, qp_rows = np.array(filt.rows), np.array(filt.qp_rows)
     # both paths were exercised: rows present but no QP needed, and real QPs
     assert np.sum((rows > 0) & (qp_rows == 0)) > 50
@@ -316,8 +318,8 @@ def test_component_labels_match_scipy(seed):
 
 
 def _starved_snapshot():
-    scen = CircleSwap(10, radius=6.0, duration=12.0)
-    out = rollout(scen, SafetyFilter(scen.team, decompose=False), 5.6, record=lambda k: k == 1100)
+    scen = circle_layout(10, radius=6.0, duration=12.0)
+    out = closed_loop(scen, SafetyFilter(scen.team, decompose=False), 5.6, record=lambda k: k == 1100)
     return scen, out.snapshots[0]
 
 
@@ -357,21 +359,22 @@ def test_too_large_for_ldp_retries_the_other_proxsuite_backend(monkeypatch):
     prob = _problem_from(scen.team, kin, u, theta, nom, lo, hi, ref, probs, qp.solve_qp)
     _starve(monkeypatch, calls, first_only=True)
     monkeypatch.setattr(backends, "DENSE_MAX_SIZE", 0)  # first attempt sparse, retry dense
-    monkeypatch.setattr(backends, "LDP_MAX_VARS", 0)
+    monkeypatch.setattr(ldp, "MAX_VARS", 0)
     sol = qp.solve_qp(prob, "proxsuite")
-    assert sol.status == "solved" and not sol.fallback
-    assert sol.message == "PROXQP_MAX_ITER_REACHED (sparse), then PROXQP_SOLVED"
+    assert sol.status == "solved" and sol.fallback
+    assert sol.message.startswith("PROXQP_MAX_ITER_REACHED (sparse), then ldp: 20 variables > MAX_VARS = 0")
+    assert sol.message.endswith("then PROXQP_SOLVED (dense)")
     ref_sol = qp.solve_qp(prob, "quadprog")
     assert abs(prob.objective(sol.x) - prob.objective(ref_sol.x)) <= 1e-6 * max(1.0, abs(prob.objective(ref_sol.x)))
 
 
 def test_filter_goes_straight_to_the_exact_path_after_a_stall(monkeypatch):
-    import aasoatt_env.safety.core as core
+    import aasoatt_env.safety.solvers.policy as core
 
     calls = []
     _starve(monkeypatch, calls, first_only=False)  # proxsuite never converges
     monkeypatch.setattr(core, "EXACT_STEPS", 40)
-    scen = CircleSwap(10, radius=6.0, duration=12.0)
+    scen = circle_layout(10, radius=6.0, duration=12.0)
     messages = []
     real_step = SafetyFilter.step
 
@@ -382,7 +385,7 @@ def test_filter_goes_straight_to_the_exact_path_after_a_stall(monkeypatch):
         return du, res
 
     monkeypatch.setattr(SafetyFilter, "step", spy)
-    out = rollout(scen, SafetyFilter(scen.team), 6.0)
+    out = closed_loop(scen, SafetyFilter(scen.team), 6.0)
     qp_steps = [m for m in messages if m[0] > 0]
     assert len(qp_steps) > 100
     assert out.statuses.get("failed", 0) == 0 and out.min_distance >= 0.96 - 1e-3
@@ -397,7 +400,7 @@ def test_filter_goes_straight_to_the_exact_path_after_a_stall(monkeypatch):
 
 
 def _problem_from(team, kin, u, theta, nom, lo, hi, ref, probs, real_solve):
-    import aasoatt_env.safety.core as core
+    import aasoatt_env.safety.solvers.policy as core
 
     def spy(prob, *a, **k):
         probs.append(prob)
@@ -415,7 +418,7 @@ def _problem_from(team, kin, u, theta, nom, lo, hi, ref, probs, real_solve):
 def test_slow_proxsuite_switches_to_ldp_only_when_ldp_is_faster(monkeypatch, ldp_time, switches):
     import dataclasses
 
-    import aasoatt_env.safety.core as core
+    import aasoatt_env.safety.solvers.policy as core
 
     real = core.solve_qp
     log = []
@@ -428,8 +431,8 @@ def test_slow_proxsuite_switches_to_ldp_only_when_ldp_is_faster(monkeypatch, ldp
         return dataclasses.replace(sol, solve_time=fake)
 
     monkeypatch.setattr(core, "solve_qp", timed)
-    scen = CircleSwap(10, radius=6.0, duration=12.0)
-    out = rollout(scen, SafetyFilter(scen.team), 6.0)
+    scen = circle_layout(10, radius=6.0, duration=12.0)
+    out = closed_loop(scen, SafetyFilter(scen.team), 6.0)
     assert out.statuses.get("failed", 0) == 0
     first = log.index("proxsuite")
     assert log[first + 1] == "ldp"  # the timing probe on the same problem

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 
 import numpy as np
@@ -12,13 +11,10 @@ pytest.importorskip("stable_baselines3")
 torch = pytest.importorskip("torch")
 torch.set_num_threads(1)
 
+from aasoatt_env.errors import ConfigError, DataFileError  # noqa: E402
 from aasoatt_env.sim.env import AASOATTParallelEnv  # noqa: E402
-from aasoatt_env.errors import ConfigError  # noqa: E402
 from train.config import TrainConfig, parse_config  # noqa: E402
 from train.vec_env import ParallelVecEnv  # noqa: E402
-
-HAS_FILTER = importlib.util.find_spec("aasoatt_env.safety.wrapper") is not None
-needs_filter = pytest.mark.skipif(not HAS_FILTER, reason="aasoatt_env.safety.wrapper not available yet")
 
 
 def tiny(tmp_path, **kw) -> TrainConfig:
@@ -172,7 +168,8 @@ def _smoke(tmp_path, filtered: bool):
     kw = dict(filter=True, filter_kwargs={"solver": "quadprog"}, reward={"correction": 0.1}) if filtered else {}
     cfg = tiny(tmp_path, run_name="filter" if filtered else "bare", **kw)
     path = train(cfg)
-    assert path.is_file() and (path.parent / "vecnormalize.pkl").is_file()
+    assert path.is_file() and (path.parent / "normalization.npz").is_file() and (path.parent / "policy.json").is_file()
+    assert not list(path.parent.rglob("*.pkl"))  # nothing pickled
     agent = LearnedAgent.load(path)
     env = agent.make_env()
     obs, _ = env.reset(seed=1)
@@ -205,7 +202,6 @@ def test_smoke_train_load_evaluate_bare(tmp_path):
     _smoke(tmp_path, filtered=False)
 
 
-@needs_filter
 def test_smoke_train_load_evaluate_filtered(tmp_path):
     _smoke(tmp_path, filtered=True)
 
@@ -220,14 +216,14 @@ def test_learned_agent_rejects_mismatched_env(tmp_path):
     env.reset(seed=0)
     with pytest.raises(ConfigError, match=r"observation shape \(38,\), expected \(50,\)"):
         agent.reset(env)
-    with pytest.raises(ConfigError, match=r"expected a model .zip or a run folder"):
+    with pytest.raises(DataFileError, match=r"nope.zip: no model here"):
         LearnedAgent.load(tmp_path / "nope.zip")
 
 
 # --------------------------------------------------------------------------- tracking prior / shaping
 def test_tracking_prior_matches_tracking_law():
     from agents import TrackingController
-    from train.policy import tracking_prior_matrix
+    from agents.prior import tracking_prior_matrix
 
     env = AASOATTParallelEnv("random_goals", num_robots=3, decision_interval=20, action_mode="point")
     obs, _ = env.reset(seed=1)

@@ -31,8 +31,11 @@ from typing import Any
 
 import tomllib
 
-from aasoatt_env.sim.env import RewardConfig
 from aasoatt_env.errors import ConfigError
+from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.sim.rewards import RewardConfig
+from aasoatt_env.sim.scenarios import SCENARIOS
+from aasoatt_env.validation import parse_value
 
 __all__ = ["TrainConfig", "add_config_arguments", "config_from_args", "load_config_file"]
 
@@ -183,8 +186,6 @@ class TrainConfig:
         setattr(self, name, float(v))
 
     def _validate(self) -> None:
-        from aasoatt_env.sim.scenarios import SCENARIOS
-
         if self.scenario not in SCENARIOS:
             raise self._err("scenario", f"one of {sorted(SCENARIOS)}")
         for name in ("num_robots", "decision_interval", "total_timesteps", "n_envs", "n_steps", "n_epochs",
@@ -231,10 +232,16 @@ class TrainConfig:
             raise self._err("net_arch", "a non-empty list of positive integers")
         self.net_arch = list(self.net_arch)
         try:
-            RewardConfig(**self.reward)
+            RewardConfig.coerce(self.reward)
         except TypeError:
             known = [f.name for f in fields(RewardConfig)]
             raise self._err("reward", f"keys among {known}") from None
+        try:
+            self.filter_config()
+        except TypeError as exc:
+            raise ConfigError(f"TrainConfig.filter_kwargs: {exc}") from None
+        except ConfigError as exc:
+            raise ConfigError(f"TrainConfig.filter_kwargs: {exc}") from None
         if self.reward.get("correction", 0.0) and not self.filter:
             raise ConfigError(
                 f"TrainConfig.reward: got correction={self.reward['correction']!r} with filter=False, "
@@ -259,6 +266,10 @@ class TrainConfig:
             max_steps=self.max_steps, num_robots=self.num_robots, **self.scenario_kwargs,
         )
         return kw
+
+    def filter_config(self) -> FilterConfig:
+        """The safety filter's configuration (``filter_kwargs`` converted at this edge)."""
+        return FilterConfig.merged(self.filter_kwargs, dt=self.dt)
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON dict of every field."""
@@ -302,14 +313,6 @@ def load_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------- command line
 _DICT_FIELDS = {"scenario_kwargs": "scenario-arg", "reward": "reward", "filter_kwargs": "filter-arg"}
-
-
-def _parse_value(text: str) -> Any:
-    """``KEY=VALUE`` values: JSON when it parses (numbers, true/false, lists), else the string."""
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
 
 
 def _bool(text: str) -> bool:
@@ -366,7 +369,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
                 if "=" not in item:
                     raise ConfigError(f"--{_DICT_FIELDS[f.name]}: got {item!r}, expected KEY=VALUE")
                 k, v = item.split("=", 1)
-                merged[k.strip()] = _parse_value(v.strip())
+                merged[k.strip()] = parse_value(v.strip())
             data[f.name] = merged
         else:
             data[f.name] = val

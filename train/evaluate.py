@@ -52,7 +52,14 @@ from typing import Any
 
 import numpy as np
 
+from aasoatt_env.analysis.metrics import summarize
+from aasoatt_env.analysis.recording import RecordEpisode
+from aasoatt_env.api.factory import make_env
 from aasoatt_env.errors import ConfigError
+from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.validation import parse_assignments
+from agents import RandomAgent, TrackingController
+from agents.learned import LearnedAgent
 from train.config import TrainConfig
 
 __all__ = ["EvalRow", "evaluate", "evaluate_agent", "main", "to_markdown"]
@@ -99,13 +106,12 @@ class _PointModeAdapter:
         if self.saturate:
             act = np.clip(act, -1.0, 1.0)
         act = act.astype(np.float32)
-        return {a: act[base._index[a]] for a in env.agents}
+        idx = base.agent_index
+        return {a: act[idx[a]] for a in env.agents}
 
 
-def _tracking(config: TrainConfig, filtered: bool) -> Any:
-    from agents import TrackingController
-
-    if config.action_mode == "wheel":
+def _tracking(action_mode: str, filtered: bool) -> Any:
+    if action_mode == "wheel":
         return TrackingController(saturate=not filtered)
     return _PointModeAdapter(TrackingController(), saturate=not filtered)
 
@@ -138,9 +144,6 @@ def evaluate_agent(
     progress : bool
         Show a tqdm bar.
     """
-    from aasoatt_env.analysis.metrics import summarize
-    from aasoatt_env.analysis.recording import RecordEpisode
-
     if episodes < 1:
         raise ConfigError(f"episodes: got {episodes!r}, expected an integer >= 1")
     env = RecordEpisode(env_fn())
@@ -233,10 +236,6 @@ def evaluate(
     list of EvalRow
         Format with :func:`to_markdown`.
     """
-    from agents import RandomAgent
-    from agents.learned import LearnedAgent
-    from train.train import make_env
-
     wanted = list(rows) if rows is not None else list(ROWS)
     bad = [r for r in wanted if r not in ROWS]
     if bad:
@@ -250,20 +249,26 @@ def evaluate(
         "bare": LearnedAgent.load(bare_model) if bare_model is not None else None,
         "filter": LearnedAgent.load(filtered_model) if filtered_model is not None else None,
     }
-    if config is None:
-        first = learned["bare"] or learned["filter"]
-        config = first.train_config() if first is not None and first.config else TrainConfig(progress_bar=False)
-    fk = dict(config.filter_kwargs if filter_kwargs is None else filter_kwargs)
-    env_cfg = TrainConfig.from_dict({**config.to_dict(), "terminate_on_collision": False, "filter": False,
-                                     "filter_kwargs": fk, "reward": {}})
+    first = learned["bare"] or learned["filter"]
+    if config is not None:
+        env_kwargs, fc = config.env_kwargs(), config.filter_config()
+    elif first is not None:
+        env_kwargs, fc = dict(first.spec["env"]), FilterConfig.merged(first.spec.get("filter") or {})
+    else:
+        default = TrainConfig(progress_bar=False)
+        env_kwargs, fc = default.env_kwargs(), default.filter_config()
+    if filter_kwargs is not None:
+        fc = FilterConfig.merged(fc, **filter_kwargs)
+    env_kwargs.update(terminate_on_collision=False, reward={})
 
     def env_fn(filtered: bool) -> Callable[[], Any]:
-        return lambda: make_env(env_cfg, filter=filtered)
+        return lambda: make_env(**env_kwargs, filter=fc if filtered else None)
 
+    mode = env_kwargs.get("action_mode", "wheel")
     plan: list[tuple[str, Callable[[], Any], bool]] = [
         ("random", lambda: RandomAgent(seed=seed), False),
-        ("tracking", lambda: _tracking(env_cfg, False), False),
-        ("tracking + filter", lambda: _tracking(env_cfg, True), True),
+        ("tracking", lambda: _tracking(mode, False), False),
+        ("tracking + filter", lambda: _tracking(mode, True), True),
     ]
     if learned["bare"] is not None:
         plan += [("learned (bare)", lambda: learned["bare"], False),
@@ -335,23 +340,14 @@ def build_parser(prog: str = "python -m train.evaluate") -> argparse.ArgumentPar
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point; prints the Markdown table."""
-    from train.config import _parse_value
-
     args = build_parser().parse_args(argv)
     try:
         config = TrainConfig.from_file(args.config) if args.config else None
-        fk = None
-        if args.filter_arg:
-            fk = {}
-            for item in args.filter_arg:
-                if "=" not in item:
-                    raise ConfigError(f"--filter-arg: got {item!r}, expected KEY=VALUE")
-                k, v = item.split("=", 1)
-                fk[k.strip()] = _parse_value(v.strip())
+        fk = parse_assignments(args.filter_arg, "--filter-arg") if args.filter_arg else None
         rows = evaluate(args.bare, args.filtered, episodes=args.episodes, seed=args.seed, config=config,
                         filter_kwargs=fk, rows=args.rows, goal_tolerance=args.goal_tolerance,
                         progress=not args.quiet and args.jobs == 1, jobs=args.jobs)
-    except ConfigError as exc:
+    except (ConfigError, TypeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     table = to_markdown(rows)

@@ -84,13 +84,16 @@ scales the collision penalty to 1 (the filter provides safety), (iii) adds a
 -1.5, ``gamma`` 0.98 for ~100-decision episodes).
 
 Outputs in the run folder ``<out_dir>/<run_name>``: ``model.zip`` (SB3 PPO),
-``vecnormalize.pkl`` (observation statistics), ``config.json`` (the
+``policy.json`` (env keywords, filter configuration, policy class: what
+:class:`agents.learned.LearnedAgent` needs), ``normalization.npz`` (observation
+statistics as plain arrays; nothing is pickled), ``config.json`` (the
 :class:`~train.config.TrainConfig`), ``checkpoints/`` and ``tb/`` (tensorboard).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -98,6 +101,10 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from aasoatt_env.api.factory import make_env as make_aasoatt_env
+from agents.learned import POLICY_FILE, stats_path
 from train.config import TrainConfig, add_config_arguments, config_from_args
 
 __all__ = ["main", "make_env", "make_vec_env", "train"]
@@ -109,27 +116,35 @@ def make_env(config: TrainConfig, filter: bool | None = None, **env_overrides: A
     Parameters
     ----------
     config : TrainConfig
-        Run configuration (env fields and ``filter_kwargs``).
+        Run configuration (env fields and the filter configuration).
     filter : bool, optional
         Override ``config.filter``.
     **env_overrides
         Override :meth:`TrainConfig.env_kwargs` entries (e.g. ``render_mode``).
-
-    Returns
-    -------
-    ParallelEnv
-        :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`, possibly wrapped in
-        :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` (imported lazily).
     """
-    from aasoatt_env.sim.env import AASOATTParallelEnv
-
-    env = AASOATTParallelEnv(**{**config.env_kwargs(), **env_overrides})
     use_filter = config.filter if filter is None else filter
-    if use_filter:
-        from aasoatt_env.safety.wrapper import AASOATTFilter
+    return make_aasoatt_env(**{**config.env_kwargs(), **env_overrides},
+                            filter=config.filter_config() if use_filter else None)
 
-        env = AASOATTFilter(env, **config.filter_kwargs)
-    return env
+
+def run_spec(config: TrainConfig) -> dict[str, Any]:
+    """The ``policy.json`` of a run: what :class:`agents.learned.LearnedAgent` needs to rebuild the policy's env."""
+    fc = config.filter_config()
+    return {
+        "format": 1,
+        "env": config.env_kwargs(),
+        "filter": dataclasses.asdict(fc) if config.filter else None,
+        "policy": "TrackingPriorPolicy" if config.policy_prior == "tracking" else "MlpPolicy",
+        "normalize_obs": bool(config.normalize_obs),
+    }
+
+
+def save_stats(venv: Any, path: Path) -> None:
+    """Observation statistics of ``VecNormalize`` as plain arrays (``normalization.npz``)."""
+    rms = venv.obs_rms
+    np.savez(path, mean=np.asarray(rms.mean, np.float64), var=np.asarray(rms.var, np.float64),
+             count=np.asarray(rms.count, np.float64), clip_obs=np.asarray(venv.clip_obs, np.float64),
+             epsilon=np.asarray(venv.epsilon, np.float64))
 
 
 def make_vec_env(config: TrainConfig, training: bool = True) -> Any:
@@ -176,7 +191,7 @@ def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = No
     if config.policy_prior == "tracking":
         import numpy as np
 
-        from train.policy import TrackingPriorPolicy, tracking_prior_matrix
+        from agents.prior import TrackingPriorPolicy, tracking_prior_matrix
 
         probe = make_env(config, filter=False)
         probe.reset(seed=0)
@@ -220,6 +235,23 @@ def _progress_callback(total: int) -> Any:
     return TqdmCallback()
 
 
+def _checkpoint_callback(folder: Path, every: int, with_stats: bool) -> Any:
+    """Save ``ppo_<n>_steps.zip`` (and its ``.normalization.npz``) every ``every`` vectorised steps."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Checkpoint(BaseCallback):
+        def _on_step(self) -> bool:
+            if self.n_calls % every == 0:
+                folder.mkdir(parents=True, exist_ok=True)
+                path = folder / f"ppo_{self.num_timesteps}_steps.zip"
+                self.model.save(path)
+                if with_stats:
+                    save_stats(self.model.get_vec_normalize_env(), stats_path(path))
+            return True
+
+    return Checkpoint()
+
+
 def train(config: TrainConfig) -> Path:
     """Train PPO as configured and return the path of the saved ``model.zip``.
 
@@ -231,29 +263,27 @@ def train(config: TrainConfig) -> Path:
     Returns
     -------
     Path
-        ``<run>/model.zip``; the run folder also holds ``vecnormalize.pkl``
-        (when normalising), ``config.json``, ``checkpoints/`` and ``tb/``.
+        ``<run>/model.zip``; the run folder also holds ``policy.json``,
+        ``normalization.npz`` (when normalising observations), ``config.json``,
+        ``checkpoints/`` and ``tb/``.
     """
-    from stable_baselines3.common.callbacks import CheckpointCallback
-
     run = _run_dir(config)
     (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+    (run / POLICY_FILE).write_text(json.dumps(run_spec(config), indent=2))
     venv = make_vec_env(config)
     model = build_model(config, venv, str(run / "tb") if config.tensorboard else None)
     callbacks: list[Any] = []
     if config.checkpoint_freq:
-        callbacks.append(CheckpointCallback(
-            save_freq=max(1, config.checkpoint_freq // venv.num_envs), save_path=str(run / "checkpoints"),
-            name_prefix="ppo", save_vecnormalize=config.normalize_obs or config.normalize_reward,
-        ))
+        callbacks.append(_checkpoint_callback(run / "checkpoints", max(1, config.checkpoint_freq // venv.num_envs),
+                                              config.normalize_obs))
     if config.progress_bar:
         callbacks.append(_progress_callback(config.total_timesteps))
     t0 = time.perf_counter()
     model.learn(total_timesteps=config.total_timesteps, callback=callbacks or None, tb_log_name="ppo")
     elapsed = time.perf_counter() - t0
     model.save(run / "model.zip")
-    if config.normalize_obs or config.normalize_reward:
-        venv.save(str(run / "vecnormalize.pkl"))
+    if config.normalize_obs:
+        save_stats(venv, stats_path(run / "model.zip"))
     (run / "train_stats.json").write_text(json.dumps(
         {"wall_time_s": elapsed, "agent_steps": int(model.num_timesteps),
          "agent_steps_per_s": model.num_timesteps / max(elapsed, 1e-9)}, indent=2))

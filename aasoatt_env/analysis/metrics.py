@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.errors import ConfigError
 from aasoatt_env.analysis.rollout import Rollout
+from aasoatt_env.errors import ConfigError
 
 __all__ = [
     "CollisionReport",

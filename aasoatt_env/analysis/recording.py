@@ -2,9 +2,10 @@
 
 :class:`RecordEpisode` is a PettingZoo parallel wrapper that records, after
 ``reset`` and after every ``step``, the team's positions, velocities, headings,
-reference, the actions given, and, behind
-:class:`~aasoatt_env.safety.wrapper.AASOATTFilter`, the filter's avoidance
-flags, deadlock triggers, solver status, slack and solve time.
+reference, the actions given, and, behind a control filter, what the env's
+public ``filter_outputs`` say: the applied actions and avoidance flags, plus,
+for the :class:`~aasoatt_env.safety.core.SafetyFilter`, deadlock triggers,
+solver status, slack and solve time.
 :func:`run_episode` drives an agent through one episode and returns the
 rollout (and optional rendered frames).
 """
@@ -17,6 +18,9 @@ import numpy as np
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from aasoatt_env.analysis.rollout import Rollout, RolloutBuilder
+from aasoatt_env.errors import UsageError
+from aasoatt_env.safety.core import SafetyFilter
+from aasoatt_env.safety.wrapper import FilterReport
 
 __all__ = ["RecordEpisode", "run_episode"]
 
@@ -36,17 +40,14 @@ class RecordEpisode(BaseParallelWrapper):
         super().__init__(env)
         self._meta = dict(metadata or {})
         self._builder: RolloutBuilder | None = None
-        self._has_filter = False
 
     def _record(self, actions: np.ndarray | None, infos: dict[str, dict]) -> None:
         base = self.env.unwrapped
-        assert self._builder is not None
+        if self._builder is None:
+            raise UsageError("RecordEpisode: call reset() first")
         p_d, v_d, _ = base.reference
         n = len(base.possible_agents)
-        extra: dict[str, Any] = {}
-        filt = getattr(base, "_control_filter", None)
-        if filt is not None and hasattr(filt, "record"):
-            extra.update(filt.record())
+        extra = _filter_fields(base, n)
         self._builder.append(
             time=base.time,
             positions=base.positions,
@@ -80,8 +81,10 @@ class RecordEpisode(BaseParallelWrapper):
         """Step and record."""
         base = self.env.unwrapped
         act = np.zeros((len(base.possible_agents), 2))
+        idx = base.agent_index
         for a, v in actions.items():
-            act[base.possible_agents.index(a)] = v
+            if a in idx:
+                act[idx[a]] = v
         out = self.env.step(actions)
         self._record(act, out[4])
         return out
@@ -90,8 +93,27 @@ class RecordEpisode(BaseParallelWrapper):
     def rollout(self) -> Rollout:
         """The episode recorded so far."""
         if self._builder is None:
-            raise RuntimeError("RecordEpisode.rollout: nothing recorded yet, call reset() first")
+            raise UsageError("RecordEpisode.rollout: nothing recorded yet, call reset() first")
         return self._builder.build()
+
+
+def _filter_fields(base: Any, n: int) -> dict[str, Any]:
+    """Rollout fields from the env's public filter outputs of the last step (zeros right after reset)."""
+    f = base.control_filter
+    if f is None:
+        return {}
+    outputs = base.filter_outputs
+    amax = base.team.max_wheel_accel[:, None]
+    if isinstance(f, SafetyFilter):
+        if outputs:
+            rep = FilterReport.of(outputs)
+            return {"avoiding": rep.avoiding, "triggered": rep.triggered, "solver_status": rep.status,
+                    "slack": rep.slack, "solve_time": rep.solve_time, "actions": rep.applied / amax}
+        return {"avoiding": np.zeros(n, dtype=bool), "triggered": np.zeros(n, dtype=bool), "solver_status": "solved",
+                "slack": 0.0, "solve_time": 0.0, "actions": np.zeros((n, 2))}
+    if outputs:  # any other control filter: what the protocol guarantees
+        return {"avoiding": np.any([o.avoiding for o in outputs], axis=0), "actions": np.asarray(outputs[-1].du) / amax}
+    return {"avoiding": np.zeros(n, dtype=bool), "actions": np.zeros((n, 2))}
 
 
 def run_episode(
@@ -131,7 +153,7 @@ def run_episode(
         try:
             from tqdm import tqdm
 
-            bar = tqdm(total=base._max_steps, unit="step", desc=base.scenario.name)
+            bar = tqdm(total=base.max_steps, unit="step", desc=base.scenario.name)
         except ImportError:  # pragma: no cover - tqdm is in the render/train extras
             bar = None
     step = 0

@@ -37,15 +37,17 @@ string, strings as fixed-width unicode, so loading never needs pickle) and
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
+import zipfile
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
 
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.errors import ConfigError, DataFileError
 
 __all__ = ["Rollout", "RolloutBuilder"]
 
@@ -185,6 +187,10 @@ class Rollout:
         name for name, _, _ in (("times", ("T",), "f"), *_PER_STEP, *_STATIC, *_OPTIONAL)
     )
     OPTIONAL_FIELDS: ClassVar[tuple[str, ...]] = tuple(name for name, _, _ in _OPTIONAL)
+    PER_STEP_FIELDS: ClassVar[tuple[str, ...]] = ("times",) + tuple(
+        name for name, template, _ in (*_PER_STEP, *_OPTIONAL) if template[0] == "T"
+    )
+    """Fields with one entry per recorded step (cut by :meth:`window`)."""
 
     def __post_init__(self) -> None:
         try:
@@ -211,16 +217,15 @@ class Rollout:
         if self.obstacle_radii is None:
             self.obstacle_radii = np.zeros(0)
 
-        for name, template, kind in (*_PER_STEP, *_STATIC):
-            arr = _as_array(name, getattr(self, name), kind)
-            _check_shape(name, arr, template, sizes)
-            setattr(self, name, arr)
-        for name, template, kind in _OPTIONAL:
+        for name, template, kind in (*_PER_STEP, *_STATIC, *_OPTIONAL):
             value = getattr(self, name)
             if value is None:
                 continue
             arr = _as_array(name, value, kind)
             _check_shape(name, arr, template, sizes)
+            if kind == "f" and not np.isfinite(arr).all():
+                bad = np.argwhere(~np.isfinite(arr))[0].tolist()
+                raise ConfigError(f"{name}: got a non-finite value at index {bad}, expected finite numbers")
             setattr(self, name, arr)
 
         if not np.all(self.radii > 0):
@@ -257,6 +262,16 @@ class Rollout:
     def duration(self) -> float:
         """Time between the first and the last recorded step [s]."""
         return float(self.times[-1] - self.times[0])
+
+    def window(self, t_end: float | None) -> Rollout:
+        """The part recorded at times ``<= t_end`` (the rollout itself if None or if it ends earlier)."""
+        if t_end is None:
+            return self
+        k = int(np.searchsorted(self.times, t_end + 1e-9, side="right"))
+        if k >= self.n_steps:
+            return self
+        cut = {name: getattr(self, name)[:k] for name in self.PER_STEP_FIELDS if getattr(self, name) is not None}
+        return dataclasses.replace(self, **cut)
 
     # ------------------------------------------------------------------- I/O
     def save(self, path: str | os.PathLike[str]) -> None:
@@ -297,23 +312,36 @@ class Rollout:
 
         Raises
         ------
-        ConfigError
-            If a required field is missing or has the wrong shape.
+        DataFileError
+            Naming the file: it is missing, not a readable ``.npz`` (truncated,
+            corrupted, empty), or a field is missing, of the wrong shape or not finite.
         """
-        with np.load(path, allow_pickle=False) as data:
-            files = set(data.files)
-            version = int(data["format_version"]) if "format_version" in files else FORMAT_VERSION
-            if version > FORMAT_VERSION:
-                raise ConfigError(f"{path}: format_version {version}, expected <= {FORMAT_VERSION}")
-            kwargs: dict[str, Any] = {}
-            for name in ("dt", *cls.ARRAY_FIELDS):
-                if name in files:
-                    kwargs[name] = data[name]
-                elif name not in cls.OPTIONAL_FIELDS and name not in ("obstacle_centers", "obstacle_radii"):
-                    raise ConfigError(f"{path}: missing field {name!r}")
-            kwargs["dt"] = float(kwargs["dt"])
-            kwargs["metadata"] = json.loads(str(data["metadata"])) if "metadata" in files else {}
-        return cls(**kwargs)
+        name = str(path)
+        if not os.path.isfile(path):
+            raise DataFileError(f"{name}: no such rollout file")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                files = set(data.files)
+                version = int(data["format_version"]) if "format_version" in files else FORMAT_VERSION
+                if version > FORMAT_VERSION:
+                    raise DataFileError(f"{name}: format_version {version}, expected <= {FORMAT_VERSION}")
+                kwargs: dict[str, Any] = {}
+                for field_name in ("dt", *cls.ARRAY_FIELDS):
+                    if field_name in files:
+                        kwargs[field_name] = data[field_name]
+                    elif field_name not in cls.OPTIONAL_FIELDS and field_name not in ("obstacle_centers",
+                                                                                     "obstacle_radii"):
+                        raise DataFileError(f"{name}: missing field {field_name!r}; not a rollout file")
+                kwargs["dt"] = float(kwargs["dt"])
+                kwargs["metadata"] = json.loads(str(data["metadata"])) if "metadata" in files else {}
+        except DataFileError:
+            raise
+        except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile) as exc:
+            raise DataFileError(f"{name}: not a readable rollout file ({type(exc).__name__}: {exc})") from None
+        try:
+            return cls(**kwargs)
+        except ConfigError as exc:
+            raise DataFileError(f"{name}: invalid rollout ({exc})") from None
 
 
 class RolloutBuilder:

@@ -17,8 +17,9 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from aasoatt_env.sim.env import AASOATTParallelEnv
-from aasoatt_env.errors import ActionError
+from aasoatt_env.api.factory import make_env
+from aasoatt_env.errors import ActionError, ConfigError
+from aasoatt_env.safety.config import FilterConfig
 
 __all__ = ["AASOATTGymEnv"]
 
@@ -32,10 +33,10 @@ class AASOATTGymEnv(gym.Env):
         Scenario name.
     parallel_env : AASOATTParallelEnv, optional
         Wrap this (possibly filtered) parallel env instead of creating one.
-    safety_filter : dict, optional
-        Put :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` with these options
+    safety_filter : FilterConfig or dict, optional
+        Put :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` so configured
         (e.g. ``{"barrier": "aasoatt"}``; ``{}`` for the defaults) between the
-        joint action and the robots.
+        joint action and the robots; the filter's infos are flat (numeric).
     **kwargs
         Passed to :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`.
     """
@@ -46,14 +47,19 @@ class AASOATTGymEnv(gym.Env):
         self,
         scenario: str = "circle_swap",
         parallel_env: Any = None,
-        safety_filter: dict[str, Any] | None = None,
+        safety_filter: FilterConfig | dict[str, Any] | None = None,
         **kwargs: Any,
     ) -> None:
-        self.par = parallel_env if parallel_env is not None else AASOATTParallelEnv(scenario, **kwargs)
-        if safety_filter is not None:
-            from aasoatt_env.safety.wrapper import AASOATTFilter
-
-            self.par = AASOATTFilter(self.par, **safety_filter)
+        if parallel_env is not None:
+            if safety_filter is not None or kwargs:
+                raise ConfigError("parallel_env: given together with safety_filter/env keywords; "
+                                  "build the parallel env with them instead (aasoatt_env.make_env)")
+            self.par = parallel_env
+        else:
+            if safety_filter is not None and not isinstance(safety_filter, (FilterConfig, dict)):
+                raise ConfigError(f"safety_filter: got {safety_filter!r}, expected a FilterConfig, a dict of its "
+                                  "fields ({} for the defaults) or None")
+            self.par = make_env(scenario, filter=safety_filter, infos="flat", **kwargs)
         self.render_mode = self.par.unwrapped.render_mode
         agents = self.par.possible_agents
         self._agents = list(agents)
@@ -91,7 +97,8 @@ class AASOATTGymEnv(gym.Env):
         if a.shape != self.action_space.shape:
             raise ActionError(f"action: got shape {a.shape}, expected {self.action_space.shape}")
         live = self.par.agents
-        acts = {ag: a[2 * self._agents.index(ag) : 2 * self._agents.index(ag) + 2] for ag in live}
+        idx = self.par.unwrapped.agent_index
+        acts = {ag: a[2 * idx[ag] : 2 * idx[ag] + 2] for ag in live}
         obs, rew, term, trunc, infos = self.par.step(acts)
         reward = float(np.mean(list(rew.values()))) if rew else 0.0
         return self._flat(obs), reward, any(term.values()), any(trunc.values()), self._team_info(infos)

@@ -18,7 +18,14 @@ works without importing the package first.
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
+
+import gymnasium
+import pettingzoo
+from pettingzoo.utils.conversions import parallel_to_aec
+
+from aasoatt_env.api.factory import make_env
 
 __all__ = ["ENV_IDS", "env", "parallel_env", "register_all"]
 
@@ -32,26 +39,20 @@ ENV_IDS: dict[str, str] = {
 
 
 def parallel_env(scenario: str = "circle_swap", **kwargs: Any) -> Any:
-    """Create the PettingZoo parallel env of ``scenario`` (see :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`)."""
-    from aasoatt_env.sim.env import AASOATTParallelEnv
+    """Create the PettingZoo parallel env of ``scenario`` (:func:`aasoatt_env.make_env`).
 
-    return AASOATTParallelEnv(scenario, **kwargs)
+    ``filter=`` puts it behind the safety filter.
+    """
+    return make_env(scenario, **kwargs)
 
 
 def env(scenario: str = "circle_swap", **kwargs: Any) -> Any:
     """Create the AEC version of :func:`parallel_env` (PettingZoo's ``parallel_to_aec``)."""
-    from pettingzoo.utils.conversions import parallel_to_aec
-
     return parallel_to_aec(parallel_env(scenario, **kwargs))
 
 
 def register_all() -> None:
     """Register every id with PettingZoo (parallel and AEC) and Gymnasium (idempotent)."""
-    import warnings
-
-    import gymnasium
-    import pettingzoo
-
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         for env_id, scenario in ENV_IDS.items():

@@ -23,32 +23,21 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from aasoatt_env.analysis.metrics import format_summary, summarize
+from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.api.factory import make_env
+from aasoatt_env.api.registration import ENV_IDS
+from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, available_solvers
+from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.sim.scenarios import SCENARIOS
+from aasoatt_env.validation import parse_assignments
+from agents.base import agent_names, get_agent
+
 __all__ = ["main"]
-
-
-def _parse_value(text: str) -> Any:
-    try:
-        return json.loads(text)
-    except json.JSONDecodeError:
-        return text
-
-
-def _kv(items: Sequence[str], flag: str) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for item in items:
-        if "=" not in item:
-            raise SystemExit(f"{flag}: got {item!r}, expected KEY=VALUE")
-        k, v = item.split("=", 1)
-        out[k.replace("-", "_")] = _parse_value(v)
-    return out
 
 
 def cmd_list(args: argparse.Namespace) -> int:
     """Print scenarios, controllers and filter options."""
-    from aasoatt_env.api.registration import ENV_IDS
-    from aasoatt_env.sim.scenarios import SCENARIOS
-    from agents.base import _REGISTRY
-
     ids = {v: k for k, v in ENV_IDS.items()}
     print("Scenarios (--scenario NAME, parameters with -p KEY=VALUE):")
     for name, cls in SCENARIOS.items():
@@ -60,52 +49,33 @@ def cmd_list(args: argparse.Namespace) -> int:
                 continue
             default = "" if p.default is inspect.Parameter.empty else f" = {p.default!r}"
             print(f"      {pname}{default}")
-    print("\nControllers (--controller NAME):", ", ".join(sorted(_REGISTRY)))
-    try:
-        from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, available_solvers
-
-        print("Barriers (--filter NAME):", ", ".join(BARRIERS))
-        print("Deadlock strategies (--deadlock):", ", ".join(STRATEGIES))
-        print("Deadlock triggers (--trigger):", ", ".join(TRIGGERS))
-        print("QP solvers (--solver):", ", ".join(available_solvers()))
-    except ImportError:  # pragma: no cover
-        pass
+    print("\nControllers (--controller NAME):", ", ".join(agent_names()))
+    print("Barriers (--filter NAME):", ", ".join(BARRIERS))
+    print("Deadlock strategies (--deadlock):", ", ".join(STRATEGIES))
+    print("Deadlock triggers (--trigger):", ", ".join(TRIGGERS))
+    print("QP solvers (--solver):", ", ".join(available_solvers()))
     return 0
 
 
-def _make_env(args: argparse.Namespace, render: bool) -> Any:
-    from aasoatt_env.sim.env import AASOATTParallelEnv
+def _filter_config(args: argparse.Namespace) -> FilterConfig | None:
+    """The filter options of the command line as a :class:`FilterConfig` (None for ``--filter none``)."""
+    if not args.filter or args.filter == "none":
+        return None
+    gains = parse_assignments(args.gain, "-g/--gain")
+    return FilterConfig.merged(gains, barrier=args.filter, deadlock=args.deadlock, trigger=args.trigger,
+                               solver=args.solver)
 
-    kwargs = _kv(args.param or [], "-p/--param")
+
+def _make_env(args: argparse.Namespace, render: bool) -> Any:
+    kwargs = parse_assignments(args.param, "-p/--param")
     if args.robots is not None:
         kwargs["num_robots"] = args.robots
-    env = AASOATTParallelEnv(
-        args.scenario,
-        render_mode="rgb_array" if render else None,
-        decision_interval=args.decision_interval,
-        **kwargs,
-    )
-    if args.filter and args.filter != "none":
-        from aasoatt_env.safety.wrapper import AASOATTFilter
-
-        gains = _kv(args.gain or [], "-g/--gain")
-        env = AASOATTFilter(
-            env,
-            barrier=args.filter,
-            deadlock=args.deadlock,
-            trigger=args.trigger,
-            solver=args.solver,
-            **gains,
-        )
-    return env
+    return make_env(args.scenario, filter=_filter_config(args), render_mode="rgb_array" if render else None,
+                    decision_interval=args.decision_interval, **kwargs)
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run one episode and report its metrics."""
-    from aasoatt_env.analysis.metrics import format_summary, summarize
-    from aasoatt_env.analysis.recording import run_episode
-    from agents.base import get_agent
-
     render = bool(args.gif)
     env = _make_env(args, render)
     ctrl_kwargs: dict[str, Any] = {}

@@ -26,6 +26,7 @@ import numpy as np
 from aasoatt_env.model.params import Team
 
 __all__ = [
+    "DT",
     "Kinematics",
     "control_point",
     "input_bounds",
@@ -35,6 +36,9 @@ __all__ = [
     "pose_from_point",
     "speed_box",
 ]
+
+DT: float = 0.005
+"""The paper's physics and control step [s] (every experiment of Sec. V); the one default of ``dt``."""
 
 _SMALL_OMEGA = 1e-9
 

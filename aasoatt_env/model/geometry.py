@@ -1,16 +1,18 @@
-"""Neighbour search: robot pairs and robot-obstacle pairs within the sensing range.
+"""Neighbour search on disc robots: the one home of every distance query in the library.
 
-Only pairs with ``|p_i - p_j| <= D`` get a barrier row (SPEC section 3).  Two
-back-ends return the same set of pairs:
+The observations (k nearest robots), the safety filter (pairs within the
+sensing range), the metrics (smallest gap at every recorded step) and the
+adversarial agents (nearest neighbour) all call these functions.
 
-* brute force broadcasting of the ``N x N`` distance matrix for small teams
-  (fast below about 150 robots, ``O(N^2)`` memory);
-* :meth:`scipy.spatial.cKDTree.query_pairs` with ``output_type="ndarray"``
-  above :data:`KDTREE_THRESHOLD` robots (``O(N + pairs)`` memory, so
-  N = 1000+ is cheap).
+Two back-ends give identical answers:
 
-Pairs are returned sorted lexicographically with ``i < j`` so that the row
-order is deterministic and independent of the back-end.
+* brute force over the ``N x N`` distance matrix (one complex subtraction) for
+  teams below :data:`KDTREE_MIN_ROBOTS`;
+* :class:`scipy.spatial.cKDTree` from :data:`KDTREE_MIN_ROBOTS` robots on
+  (``O(N + pairs)`` memory, so 10,000 robots are cheap).
+
+Pairs are returned sorted lexicographically with ``i < j`` so that the order
+of barrier rows is deterministic and independent of the back-end.
 """
 
 from __future__ import annotations
@@ -20,10 +22,22 @@ import functools
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["KDTREE_THRESHOLD", "obstacle_pairs", "robot_pairs"]
+__all__ = [
+    "KDTREE_MIN_ROBOTS",
+    "k_nearest",
+    "min_gaps",
+    "obstacle_gaps",
+    "obstacle_pairs",
+    "pairwise_distances",
+    "robot_pairs",
+]
 
-KDTREE_THRESHOLD: int = 150
-"""Team size from which :func:`robot_pairs` uses a k-d tree."""
+KDTREE_MIN_ROBOTS: int = 200
+"""Team size from which a k-d tree answers instead of the full distance matrix
+(SPEC section 4: the tree beats ``N x N`` broadcasting from about 200 robots)."""
+
+_FULL_SORT_MAX = 64
+"""Up to this many points a full row sort beats ``argpartition`` + a partial sort."""
 
 
 @functools.lru_cache(maxsize=16)
@@ -34,6 +48,12 @@ def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     return iu, ju
 
 
+def pairwise_distances(p: np.ndarray) -> np.ndarray:
+    """Centre distances ``(N, N)`` of points ``(N, 2)`` (one complex subtraction)."""
+    z = np.ascontiguousarray(p, dtype=np.float64).view(np.complex128)[:, 0]
+    return np.abs(z[:, None] - z[None, :])
+
+
 def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto") -> np.ndarray:
     """Index pairs ``(i, j)``, ``i < j``, with ``|p_i - p_j| <= radius``.
 
@@ -42,9 +62,9 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto") -> np.nda
     p : numpy.ndarray
         Positions, shape ``(N, 2)``.
     radius : float
-        Sensing range ``D``.
+        Search radius (the sensing range ``D``).
     method : {"auto", "brute", "kdtree"}
-        Back-end; ``"auto"`` picks brute force below :data:`KDTREE_THRESHOLD`.
+        Back-end; ``"auto"`` picks brute force below :data:`KDTREE_MIN_ROBOTS`.
 
     Returns
     -------
@@ -55,7 +75,7 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto") -> np.nda
     if n < 2:
         return np.empty((0, 2), dtype=np.intp)
     if method == "auto":
-        method = "kdtree" if n >= KDTREE_THRESHOLD else "brute"
+        method = "kdtree" if n >= KDTREE_MIN_ROBOTS else "brute"
     if method == "brute":
         iu, ju = _upper_pairs(n)
         d = p[iu] - p[ju]
@@ -69,6 +89,13 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto") -> np.nda
     pairs.sort(axis=1)
     order = np.lexsort((pairs[:, 1], pairs[:, 0]))
     return pairs[order]
+
+
+def obstacle_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray) -> np.ndarray:
+    """Surface gaps robot-obstacle ``(N, M)``: ``|p_i - c_k| - r_i - R_k``."""
+    dx = p[:, 0:1] - centers[:, 0]
+    dy = p[:, 1:2] - centers[:, 1]
+    return np.sqrt(dx * dx + dy * dy) - radii[:, None] - obstacle_radii[None, :]
 
 
 def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius: float) -> np.ndarray:
@@ -86,7 +113,7 @@ def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius
     radii : numpy.ndarray
         Obstacle radii, ``(M,)``.
     radius : float
-        Sensing range ``D``.
+        Search radius.
 
     Returns
     -------
@@ -95,6 +122,69 @@ def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius
     """
     if centers.shape[0] == 0 or p.shape[0] == 0:
         return np.empty((0, 2), dtype=np.intp)
-    d = np.sqrt(np.sum((p[:, None, :] - centers[None, :, :]) ** 2, axis=-1)) - radii[None, :]
+    d = obstacle_gaps(p, np.zeros(p.shape[0]), centers, radii)
     i, k = np.nonzero(d <= radius)
     return np.stack((i, k), axis=1).astype(np.intp)
+
+
+def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Indices ``(N, k)`` and distances ``(N, k)`` of each point's ``k`` nearest other points.
+
+    Brute force below :data:`KDTREE_MIN_ROBOTS` points (then the full distance
+    matrix is returned too, else None); a k-d tree above.  Missing neighbours
+    (fewer than ``k`` others) get index -1 and distance inf.
+    """
+    n = p.shape[0]
+    kk = min(k, n - 1)
+    if kk <= 0:
+        return np.full((n, k), -1, dtype=np.intp), np.full((n, k), np.inf), None
+    if n < KDTREE_MIN_ROBOTS:
+        d = pairwise_distances(p)
+        d.flat[:: n + 1] = np.inf
+        rows = np.arange(n)[:, None]
+        if n <= _FULL_SORT_MAX or kk >= n - 1:
+            order = np.argsort(d, axis=1)[:, :kk]
+        else:
+            part = np.argpartition(d, kk - 1, axis=1)[:, :kk]
+            order = part[rows, np.argsort(d[rows, part], axis=1)]
+        dk = d[rows, order]
+        if kk == k:
+            return order, dk, d
+        idx = np.full((n, k), -1, dtype=np.intp)
+        dist = np.full((n, k), np.inf)
+        idx[:, :kk], dist[:, :kk] = order, dk
+        return idx, dist, d
+    idx = np.full((n, k), -1, dtype=np.intp)
+    dist = np.full((n, k), np.inf)
+    dd, ii = cKDTree(p).query(p, k=kk + 1)
+    idx[:, :kk], dist[:, :kk] = ii[:, 1:], dd[:, 1:]
+    return idx, dist, None
+
+
+def min_gaps(
+    p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, *, k: int = 6
+) -> np.ndarray:
+    """Clearance ``(N,)``: each robot's surface gap to the nearest robot or obstacle.
+
+    Exact below :data:`KDTREE_MIN_ROBOTS` robots (all pairs); above, taken over
+    the ``k`` nearest centres (exact for equal radii).  ``inf`` for a lone robot.
+    """
+    n = p.shape[0]
+    gap = np.full(n, np.inf)
+    if n > 1:
+        if n < KDTREE_MIN_ROBOTS:
+            if radii.min() == radii.max():  # equal radii: the nearest centre gives the clearance
+                d = pairwise_distances(p)
+                d.flat[:: n + 1] = np.inf
+                gap = np.minimum.reduce(d, axis=1) - 2.0 * radii
+            else:
+                g = pairwise_distances(p) - radii[:, None] - radii[None, :]
+                g.flat[:: n + 1] = np.inf
+                gap = g.min(axis=1)
+        else:
+            idx, dist, _ = k_nearest(p, k)
+            valid = idx >= 0
+            gap = np.where(valid, dist - radii[:, None] - radii[np.where(valid, idx, 0)], np.inf).min(axis=1)
+    if centers.shape[0]:
+        gap = np.minimum(gap, obstacle_gaps(p, radii, centers, obstacle_radii).min(axis=1))
+    return gap

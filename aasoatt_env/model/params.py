@@ -11,6 +11,11 @@ Presets
     wheel radius 0.1 m, half track 0.2 m, control-point offset 0.2 m,
     ``|du| <= 60 rad/s^2`` and no wheel-speed limit.  The paper does not state
     its wheel geometry or bounds; these values reproduce its N = 10 results.
+``"paper_small"``
+    The paper robot with a disc radius of 0.3 m: 100 robots of radius 0.48 do not
+    fit on the radius-10 circle of the paper's 100-robot experiment, these do.
+``"double_integrator"``
+    A holonomic point robot (``A = I``) of radius 0.48 with ``|a| <= 6 m/s^2`` per axis.
 ``"turtlebot3_burger"``
     ROBOTIS TurtleBot3 Burger: wheel radius 0.033 m, track 0.160 m (half track
     0.08 m), top speed 0.22 m/s, i.e. a wheel-speed limit of 0.22 / 0.033 =
@@ -29,23 +34,12 @@ from typing import Literal
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
+from aasoatt_env.validation import choice, positive
 
 __all__ = ["PRESETS", "RobotParams", "Team", "make_team"]
 
 Model = Literal["diff_drive", "double_integrator"]
 MODELS: tuple[str, ...] = ("diff_drive", "double_integrator")
-
-
-def check_positive(name: str, value: float, *, allow_inf: bool = False) -> float:
-    """Return ``float(value)`` or raise :class:`ConfigError` naming ``name``."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{name}: got {value!r}, expected a positive number") from None
-    if math.isnan(v) or v <= 0 or (math.isinf(v) and not allow_inf):
-        expected = "a positive number (inf allowed)" if allow_inf else "a finite positive number"
-        raise ConfigError(f"{name}: got {value!r}, expected {expected}")
-    return v
 
 
 @dataclass(frozen=True)
@@ -90,12 +84,9 @@ class RobotParams:
         for f in fields(self):
             if f.name == "model":
                 continue
-            value = check_positive(
-                f"RobotParams.{f.name}", getattr(self, f.name), allow_inf=f.name == "max_wheel_speed"
-            )
+            value = positive(f"RobotParams.{f.name}", getattr(self, f.name), allow_inf=f.name == "max_wheel_speed")
             object.__setattr__(self, f.name, value)
-        if self.model not in MODELS:
-            raise ConfigError(f"RobotParams.model: got {self.model!r}, expected one of {list(MODELS)}")
+        choice("RobotParams.model", self.model, MODELS)
 
     @classmethod
     def preset(cls, name: str, **overrides: float | str) -> "RobotParams":
@@ -130,6 +121,7 @@ PRESETS: dict[str, RobotParams] = {
         max_wheel_accel=20.0,
         max_wheel_speed=0.22 / 0.033,
     ),
+    "paper_small": RobotParams(radius=0.3),
     "double_integrator": RobotParams(max_wheel_accel=6.0, model="double_integrator"),
 }
 

@@ -1,8 +1,12 @@
-"""Safety-filter core: CBF rows, QP solvers and deadlock resolution, independent of any environment.
+"""The safety layer: CBF rows, deadlock strategies, QP solvers, the filter core and its env wrapper.
 
 >>> from aasoatt_env.safety import SafetyFilter
 >>> f = SafetyFilter(team)                    # doctest: +SKIP
 >>> du, info = f.step(kin, u, theta, du_nom, lo, hi, reference=(p_d, v_d))  # doctest: +SKIP
+
+The core (:mod:`~aasoatt_env.safety.core`) needs no environment; the wrapper
+(:mod:`~aasoatt_env.safety.wrapper`) installs it into one through
+:mod:`aasoatt_env.sim.protocol`.
 """
 
 from __future__ import annotations
@@ -11,22 +15,23 @@ from aasoatt_env.safety.barriers import BARRIERS, get_barrier
 from aasoatt_env.safety.config import FilterConfig, auto_margin
 from aasoatt_env.safety.core import FilterResult, SafetyFilter
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
-from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
-from aasoatt_env.safety.solvers.policy import SOLVERS, available_solvers, build_problem, solve_qp
+from aasoatt_env.safety.problem import build_problem
+from aasoatt_env.safety.solvers import SOLVERS, available_solvers, solve_qp
+from aasoatt_env.safety.wrapper import AASOATTFilter, FilterReport
 
 __all__ = [
     "BARRIERS",
     "SOLVERS",
     "STRATEGIES",
     "TRIGGERS",
+    "AASOATTFilter",
     "FilterConfig",
+    "FilterReport",
     "FilterResult",
     "SafetyFilter",
     "auto_margin",
     "available_solvers",
     "build_problem",
     "get_barrier",
-    "obstacle_pairs",
-    "robot_pairs",
     "solve_qp",
 ]

@@ -9,7 +9,8 @@ control-point acceleration and ``c = -p_ij``.  Obstacle pairs are pairs whose
 second member has zero velocity and acceleration: the robot carries the whole
 row (``j = -1`` in :class:`PairGeometry`).
 
-Registry (:data:`BARRIERS`, look-up with :func:`get_barrier`):
+Registry (:data:`BARRIERS`, look-up with :func:`get_barrier`; adding a barrier is one
+function ``f(geometry, config) -> (rhs, keep)`` and one registry line):
 
 ``aasoatt`` (eqn.7, eqn.7a, eqn.8; default)
     ``h = r_dot + k1 (r - d_s)`` with ``h_dot + k2 h >= 0``.  The typo of
@@ -40,16 +41,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
 
+if TYPE_CHECKING:  # pragma: no cover
+    from aasoatt_env.safety.config import FilterConfig
+
 __all__ = [
     "BARRIERS",
-    "BarrierParams",
     "PairGeometry",
     "barrier_rows",
     "get_barrier",
@@ -77,23 +79,9 @@ class PairGeometry(NamedTuple):
     """Sum of the maximum point accelerations ``a_i+ + a_j+``, ``(P,)``."""
 
 
-@dataclass(frozen=True)
-class BarrierParams:
-    """Gains of the barriers (validated by :class:`aasoatt_env.safety.config.FilterConfig`)."""
-
-    k1: float = 2.0
-    k2: float = 2.0
-    gamma: float = 1.0
-    varsigma: float = 2.0
-    rho_v: float = 1.0
-    sigma: float = 0.0
-    sensing_range: float = 3.0
-    gate_range: float | None = None
-    dt: float = 0.005
-
-
-BarrierFn = Callable[[PairGeometry, BarrierParams], "tuple[np.ndarray, np.ndarray | None]"]
-"""``f(geometry, params) -> (rhs, keep)``; ``keep`` is a boolean mask or None (all rows)."""
+BarrierFn = Callable[[PairGeometry, "FilterConfig"], "tuple[np.ndarray, np.ndarray | None]"]
+"""``f(geometry, config) -> (rhs, keep)``; ``keep`` is a boolean mask or None (all rows).
+The gains come from :class:`~aasoatt_env.safety.config.FilterConfig`."""
 
 
 def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -105,13 +93,13 @@ def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     return r, pv, vv, pa
 
 
-def _aasoatt(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, None]:
+def _aasoatt(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     r, pv, vv, pa = _common(g)
     rhs = vv - pv * pv / (r * r) + (q.k1 + q.k2) * pv + q.k1 * q.k2 * r * (r - g.d_s) + pa
     return rhs, None
 
 
-def _braking(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, None]:
+def _braking(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     r, pv, vv, pa = _common(g)
     root = np.sqrt(2.0 * g.a_plus * np.maximum(r - g.d_s, 1e-6))
     h = root + pv / r
@@ -119,23 +107,23 @@ def _braking(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, None]:
     return rhs, None
 
 
-def _velocity_rhs(g: PairGeometry, q: BarrierParams, d: np.ndarray) -> np.ndarray:
+def _velocity_rhs(g: PairGeometry, q: FilterConfig, d: np.ndarray) -> np.ndarray:
     r, pv, _, pa = _common(g)
     return (q.varsigma * (r * r - d * d) + 2.0 * pv) / (2.0 * q.dt) + pa
 
 
-def _distance(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, None]:
+def _distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     return _velocity_rhs(g, q, g.d_s), None
 
 
-def _gated_distance(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, np.ndarray]:
+def _gated_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, np.ndarray]:
     gate = q.sensing_range if q.gate_range is None else q.gate_range
     r, pv, _, _ = _common(g)
     keep = (pv < 0.0) & (r < gate)
     return _velocity_rhs(g, q, g.d_s), keep
 
 
-def _adaptive_distance(g: PairGeometry, q: BarrierParams) -> tuple[np.ndarray, None]:
+def _adaptive_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     pv = np.einsum("ij,ij->i", g.p, g.v)
     D = q.sensing_range
     margin = g.d_s - g.r_sum
@@ -161,7 +149,7 @@ def get_barrier(name: str) -> BarrierFn:
         raise ConfigError(f"barrier: got {name!r}, expected one of {sorted(BARRIERS)}") from None
 
 
-def barrier_rows(name: str, g: PairGeometry, params: BarrierParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def barrier_rows(name: str, g: PairGeometry, params: FilterConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows ``c^T (w_i - w_j) <= rhs`` of barrier ``name`` for all pairs of ``g``.
 
     Parameters
@@ -170,7 +158,7 @@ def barrier_rows(name: str, g: PairGeometry, params: BarrierParams) -> tuple[np.
         Registered barrier name.
     g : PairGeometry
         Pair geometry (already rotated where a deadlock strategy asks for it).
-    params : BarrierParams
+    params : FilterConfig
         Gains.
 
     Returns

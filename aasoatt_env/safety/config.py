@@ -26,17 +26,27 @@ paper's exact barrier.
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
-from dataclasses import dataclass, fields
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 
+from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError
+from aasoatt_env.model.dynamics import DT
+from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4
 from aasoatt_env.safety.barriers import BARRIERS
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
+from aasoatt_env.safety.solvers import get_solver
 
-__all__ = ["FilterConfig", "auto_margin"]
+__all__ = ["GAIN_MAX", "FilterConfig", "auto_margin"]
+
+GAIN_MAX: float = 1e3
+"""Largest accepted barrier/tracking gain (``k1``, ``k2``, ``k3``, ``k4``, ``gamma``,
+``varsigma``, ``rho_v``).  Larger gains make the rows so stiff that the QP is
+infeasible on most steps (``k1 = 1e10`` left 627 of 2,000 steps without an
+answer), so they are rejected rather than silently degraded."""
 
 
 MARGIN_FADE_SPEED = 0.2
@@ -65,7 +75,9 @@ class FilterConfig:
     k1, k2 : float
         Barrier gains of eqn.7 / eqn.7a.
     k3, k4 : float
-        Tracking gains of eqn.11 (used by the deadlock corrections).
+        Gains of the nominal tracking law eqn.12 that the deadlock corrections
+        (eqn.12b, eqn.13) assume; keep them equal to the nominal controller's
+        (defaults: the paper's, :data:`aasoatt_env.model.tracking.PAPER_K3` and ``PAPER_K4``).
     zeta : float
         Deadlock gain ``zeta`` of eqn.12b / eqn.13 (``k4 > zeta``, Theorem 2).
     rotation_deg : float
@@ -126,8 +138,8 @@ class FilterConfig:
     solver: str = "proxsuite"
     k1: float = 2.0
     k2: float = 2.0
-    k3: float = 1.0
-    k4: float = 4.0
+    k3: float = PAPER_K3
+    k4: float = PAPER_K4
     zeta: float = 2.0
     rotation_deg: float = -60.0
     sensing_range: float = 3.0
@@ -137,7 +149,7 @@ class FilterConfig:
     sigma: float = 0.0
     gate_range: float | None = None
     safety_margin: float | None = None
-    dt: float = 0.005
+    dt: float = DT
     neural_iterations: int = 1
     active_set: bool = False
     decompose: bool = True
@@ -150,39 +162,60 @@ class FilterConfig:
     heading_deg: float = 30.0
 
     def __post_init__(self) -> None:
-        from aasoatt_env.safety.solvers.backends import get_solver
-
         for name, registry in (("barrier", BARRIERS), ("deadlock", STRATEGIES), ("trigger", TRIGGERS)):
-            value = getattr(self, name)
-            if value not in registry:
-                raise ConfigError(f"{name}: got {value!r}, expected one of {sorted(registry)}")
+            check.choice(name, getattr(self, name), registry)
+        if not isinstance(self.solver, str):
+            raise ConfigError(f"solver: got {self.solver!r}, expected a solver name")
         get_solver(self.solver)  # raises SolverError listing what is available
-        positive = ("k1", "k2", "k3", "k4", "sensing_range", "gamma", "varsigma", "rho_v", "dt",
-                    "eta_tol", "low_speed", "goal_tol", "stall_time", "stall_distance", "heading_deg")
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if f.name in positive:
-                _check(f.name, v, lambda x: x > 0, "a finite positive number")
-        _check("zeta", self.zeta, lambda x: x >= 0, "a finite number >= 0")
-        _check("sigma", self.sigma, lambda x: True, "a finite number")
-        _check("rotation_deg", self.rotation_deg, lambda x: -180 <= x <= 180,
-               "an angle in [-180, 180] degrees")
-        if self.gate_range is not None:
-            _check("gate_range", self.gate_range, lambda x: x > 0, "a finite positive number or None")
-        if self.max_wheel_speed is not None:
-            _check("max_wheel_speed", self.max_wheel_speed, lambda x: x > 0, "a finite positive number or None")
+        gains = ("k1", "k2", "k3", "k4", "gamma", "varsigma", "rho_v")
+        for name in gains:
+            object.__setattr__(self, name, check.positive(name, getattr(self, name), hi=GAIN_MAX))
+        for name in ("sensing_range", "dt", "eta_tol", "low_speed", "goal_tol", "stall_time", "stall_distance"):
+            object.__setattr__(self, name, check.positive(name, getattr(self, name)))
+        object.__setattr__(self, "dt", check.real("dt", self.dt, lo=1e-6, hi=0.1))
+        object.__setattr__(self, "heading_deg", check.real("heading_deg", self.heading_deg, lo=0.0, hi=180.0,
+                                                           lo_open=True))
+        object.__setattr__(self, "zeta", check.real("zeta", self.zeta, lo=0.0, hi=GAIN_MAX))
+        object.__setattr__(self, "sigma", check.real("sigma", self.sigma, lo=-GAIN_MAX, hi=GAIN_MAX))
+        object.__setattr__(self, "rotation_deg", check.real("rotation_deg", self.rotation_deg, lo=-180.0, hi=180.0))
+        for name in ("gate_range", "max_wheel_speed"):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, check.positive(name, getattr(self, name)))
         if self.safety_margin is not None:
-            _check("safety_margin", self.safety_margin, lambda x: x >= 0, "a finite number >= 0 or None")
+            object.__setattr__(self, "safety_margin", check.real("safety_margin", self.safety_margin, lo=0.0, hi=1.0))
         for flag in ("active_set", "decompose"):
-            if not isinstance(getattr(self, flag), bool):
-                raise ConfigError(f"{flag}: got {getattr(self, flag)!r}, expected True or False")
-        if not isinstance(self.neural_iterations, int) or self.neural_iterations < 1:
-            raise ConfigError(f"neural_iterations: got {self.neural_iterations!r}, expected an integer >= 1")
-        if self.deadlock != "none" and not self.k4 > self.zeta:
+            check.boolean(flag, getattr(self, flag))
+        object.__setattr__(self, "neural_iterations",
+                           check.integer("neural_iterations", self.neural_iterations, lo=1, hi=1_000_000))
+        if STRATEGIES[self.deadlock].active and not self.k4 > self.zeta:
             raise ConfigError(
                 f"k4 must exceed zeta (Theorem 2's convergence condition k4 > zeta): "
                 f"got k4={self.k4}, zeta={self.zeta}, expected k4 > {self.zeta}"
             )
+
+    @classmethod
+    def merged(cls, config: FilterConfig | Mapping[str, Any] | None = None, /, **options: Any) -> FilterConfig:
+        """The one rule for combining a configuration with explicit options.
+
+        Start from ``config`` (a :class:`FilterConfig`, a mapping of its fields
+        as read from TOML/JSON/the command line, or None for the defaults); every
+        explicit keyword in ``options`` replaces that field.  Unknown names raise
+        ``TypeError`` listing the fields; values are validated once.
+        """
+        known = [f.name for f in fields(cls)]
+        if config is None:
+            base = cls()
+        elif isinstance(config, FilterConfig):
+            base = config
+        elif isinstance(config, Mapping):
+            check.reject_unknown("FilterConfig", config, known)
+            base = cls(**dict(config))
+        else:
+            raise ConfigError(
+                f"config: got {type(config).__name__}, expected a FilterConfig, a mapping of its fields or None"
+            )
+        check.reject_unknown("FilterConfig", options, known)
+        return replace(base, **options) if options else base
 
     @property
     def margin(self) -> float:
@@ -195,13 +228,3 @@ class FilterConfig:
             return float(self.safety_margin)
         speed = np.sqrt(np.einsum("ij,ij->i", v_rel, v_rel))
         return auto_margin(self.dt) * np.minimum(1.0, speed / MARGIN_FADE_SPEED)
-
-
-def _check(name: str, value: object, ok: Callable[[float], bool], expected: str) -> None:
-    try:
-        v = float(value)  # type: ignore[arg-type]
-        good = math.isfinite(v) and ok(v) and not isinstance(value, bool)
-    except (TypeError, ValueError):
-        good = False
-    if not good:
-        raise ConfigError(f"{name}: got {value!r}, expected {expected}")

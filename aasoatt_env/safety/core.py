@@ -1,57 +1,45 @@
 """The safety filter: nominal wheel accelerations in, safe ones out.
 
-:class:`SafetyFilter` needs no environment: it takes the team's kinematics
-(:class:`aasoatt_env.model.dynamics.Kinematics`), wheel speeds, headings, the nominal
-``du`` and its bounds, builds one barrier row per pair inside the sensing range
-(:mod:`~aasoatt_env.safety.barriers`), applies the deadlock strategy
-(:mod:`~aasoatt_env.safety.deadlock`) and solves the QP
-(:mod:`~aasoatt_env.safety.solvers.policy`), warm-started from the previous step.
+:class:`SafetyFilter` needs no environment: :meth:`SafetyFilter.step` takes the
+team's kinematics (:class:`aasoatt_env.model.dynamics.Kinematics`), wheel
+speeds, headings, the nominal ``du`` and its bounds, builds one barrier row per
+pair inside the sensing range (:mod:`~aasoatt_env.safety.barriers`), applies the
+deadlock strategy (:mod:`~aasoatt_env.safety.deadlock`) and solves the QP
+(:mod:`~aasoatt_env.safety.solvers`), warm-started from the previous step.  It
+also implements the env's control-filter protocol
+(:class:`aasoatt_env.sim.protocol.ControlFilter`): ``reset(team)`` and
+``filter(FilterInput, du_nominal) -> FilterResult``.
 
 Discrete-time safety: the barrier is continuous-time; the default
 ``FilterConfig.safety_margin=None`` adds up to ``2 dt * 1 m/s`` to ``d_s`` for
-pairs in relative motion (see :mod:`aasoatt_env.safety.config`), which keeps
-``|p_ij| >= d_s - 1e-3`` in the closed loop at ``dt = 0.005`` (tested on the
-circle swap up to 39 robots).
+pairs in relative motion (see :mod:`aasoatt_env.safety.config`).
 
-Solver fallback: with the default ``proxsuite``, a step where proxsuite runs
-out of its iteration budget or calls a problem infeasible is answered by the
-exact ``ldp`` solver (:mod:`~aasoatt_env.safety.solvers.ldp`); after such a stall, or
-a solve slower than :data:`SLOW_SOLVE_S` that ``ldp`` beats by 2x on the same
-problem, the next :data:`EXACT_STEPS` steps try the warm-started active set
-and ``ldp`` before proxsuite.  ``FilterResult.message`` says which solver answered.
+Which solver answers which QP (fallbacks, relaxation of infeasible rows, the
+exact path after a stall) is decided in one place,
+:class:`aasoatt_env.safety.solvers.SolverPolicy`; ``FilterResult.message``
+says which solver answered.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
-from aasoatt_env.errors import ActionError, ConfigError
-from aasoatt_env.model.params import Team
-from aasoatt_env.safety.barriers import BarrierParams, PairGeometry, barrier_rows
-from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.safety.deadlock import NEEDS_REFERENCE, DeadlockState, rotation, target_correction, trigger
-from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
 from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
-from aasoatt_env.safety.problem import QPProblem, box_least_squares, build_problem
-from aasoatt_env.safety.solvers.policy import QPSolution, solve_qp
+from aasoatt_env.model.params import Team
+from aasoatt_env.safety.barriers import PairGeometry, barrier_rows
+from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
+from aasoatt_env.safety.problem import box_least_squares, build_problem
+from aasoatt_env.safety.solvers import SolverPolicy
+from aasoatt_env.sim.protocol import FilterInput
 
-__all__ = ["EXACT_STEPS", "FilterResult", "SLOW_SOLVE_S", "SafetyFilter"]
-
-EXACT_STEPS: int = 200
-"""Steps for which the default solver goes straight to the exact path (warm active
-set, then ``ldp``; proxsuite only if both fail) after proxsuite stalled or was
-slow (:meth:`SafetyFilter._adapt`): proxsuite stalls on the same congested problems
-step after step (a 60-robot circle swap), and each stall costs its whole
-iteration budget.  Doubled on each repeated switch (up to 16x)."""
-SLOW_SOLVE_S: float = 0.05
-"""A proxsuite solve slower than this [s] triggers the ``ldp`` timing probe
-(measured: 0.3-5 s per solve, sparse back-end, with 100 robots of radius 0.3
-packed on the radius-10 circle, ``n = 200, m = 1,600-2,300``; ``ldp`` 0.09-0.16 s)."""
+__all__ = ["FilterResult", "SafetyFilter"]
 
 
 @dataclass(frozen=True)
@@ -60,6 +48,8 @@ class FilterResult:
 
     Attributes
     ----------
+    du : numpy.ndarray
+        The safe wheel accelerations ``(N, 2)`` (within the bounds).
     status : str
         ``"solved"``, ``"relaxed"`` (rows loosened by ``slack``; bounds kept) or ``"failed"``.
     message : str
@@ -89,6 +79,7 @@ class FilterResult:
         with a row the closed-form answer violates; 0 when no QP was needed).
     """
 
+    du: np.ndarray
     status: str
     message: str
     eta: np.ndarray
@@ -137,40 +128,52 @@ class SafetyFilter:
 
     Parameters
     ----------
-    team : aasoatt_env.model.params.Team
-        Robot parameters.
-    config : FilterConfig, optional
-        Configuration (defaults: :class:`FilterConfig`).
-    **overrides
-        Fields of :class:`FilterConfig` to override.
+    team : Team, optional
+        Robot parameters; may be given later with :meth:`reset` (the env does).
+    config : FilterConfig or mapping, optional
+        Configuration (default :class:`FilterConfig`).
+    **options
+        Fields of :class:`FilterConfig`; they replace those of ``config``
+        (:meth:`FilterConfig.merged`, the one rule).
     """
 
-    def __init__(self, team: Team, config: FilterConfig | None = None, **overrides: Any) -> None:
-        cfg = config if config is not None else FilterConfig()
-        if overrides:
-            try:
-                cfg = replace(cfg, **overrides)
-            except TypeError as exc:
-                raise ConfigError(f"SafetyFilter: {exc}") from None
-        self.team = team
-        self.config = cfg
-        self._bp = BarrierParams(
-            k1=cfg.k1, k2=cfg.k2, gamma=cfg.gamma, varsigma=cfg.varsigma, rho_v=cfg.rho_v,
-            sigma=cfg.sigma, sensing_range=cfg.sensing_range, gate_range=cfg.gate_range, dt=cfg.dt,
-        )
-        self._Q = rotation(cfg.rotation_deg)
-        self.reset()
+    keeps_input_bounds: bool = True
+    """Every ``du`` returned lies within the given bounds (protocol attribute)."""
 
-    def reset(self) -> None:
-        """Forget the warm start and the deadlock memory."""
+    def __init__(self, team: Team | None = None, config: FilterConfig | None = None, **options: Any) -> None:
+        cfg = FilterConfig.merged(config, **options)
+        self.config = cfg
+        self.team: Team | None = None
+        self._Q = rotation(cfg.rotation_deg)
+        self._strategy = STRATEGIES[cfg.deadlock]
+        self._trigger = TRIGGERS[cfg.trigger]
+        self._solver = SolverPolicy(cfg.solver, active_set=cfg.active_set,
+                                    options={"iterations": cfg.neural_iterations})
+        self.reset(team)
+
+    def reset(self, team: Team | None = None) -> None:
+        """Forget the warm start, the deadlock memory and the solver's path state; bind ``team`` if given."""
+        if team is not None:
+            if not isinstance(team, Team):
+                raise ConfigError(f"team: got {type(team).__name__}, expected aasoatt_env.model.params.Team")
+            self.team = team
         self._dl = DeadlockState()
         self._x: np.ndarray | None = None
         self._keys = np.empty(0, dtype=np.int64)
         self._z = np.empty(0)
-        self._exact_steps = 0
-        self._stalls = 0
+        self._solver.reset()
 
     # ------------------------------------------------------------------ API
+    def __call__(self, inp: FilterInput, nominal_du: np.ndarray) -> FilterResult:
+        """The control-filter protocol (:mod:`aasoatt_env.sim.protocol`): one physics step."""
+        if abs(inp.dt - self.config.dt) > 1e-12 * self.config.dt:
+            raise ConfigError(f"dt: the env steps {inp.dt:g} s but the filter was configured for {self.config.dt:g} s")
+        p_d, v_d, _ = inp.reference
+        obstacles = (inp.obstacle_centers, inp.obstacle_radii) if inp.obstacle_radii.size else None
+        _, result = self.step(inp.kin, inp.u, inp.theta, nominal_du, inp.lo, inp.hi, reference=(p_d, v_d),
+                              obstacles=obstacles)
+        return result
+
     def from_state(
         self,
         pose: np.ndarray,
@@ -179,8 +182,9 @@ class SafetyFilter:
         **kwargs: Any,
     ) -> tuple[np.ndarray, FilterResult]:
         """:meth:`step` from axle poses ``(N, 3)`` and wheel speeds; bounds from :func:`input_bounds`."""
-        kin = kinematics(self.team, pose, u)
-        lo, hi = input_bounds(self.team, u, self.config.dt)
+        team = self._bound_team()
+        kin = kinematics(team, pose, u)
+        lo, hi = input_bounds(team, u, self.config.dt)
         return self.step(kin, u, pose[:, 2], nominal_du, lo, hi, **kwargs)
 
     def step(
@@ -206,7 +210,7 @@ class SafetyFilter:
         theta : numpy.ndarray
             Headings ``(N,)``.
         nominal_du : numpy.ndarray
-            Nominal wheel accelerations ``(N, 2)``; NaN/inf raise :class:`ActionError`.
+            Nominal wheel accelerations ``(N, 2)``; NaN/inf raise :class:`~aasoatt_env.errors.StateError`.
         lo, hi : numpy.ndarray
             Bounds on ``du`` ``(N, 2)``, kept hard.
         reference : tuple of numpy.ndarray, optional
@@ -216,12 +220,13 @@ class SafetyFilter:
             ``(centers (M, 2), radii (M,))`` of static disc obstacles.
         """
         t0 = time.perf_counter()
-        cfg, team = self.config, self.team
+        cfg, team = self.config, self._bound_team()
         n = team.n
         nominal_du, lo, hi = self._check_inputs(kin, u, theta, nominal_du, lo, hi)
         if cfg.max_wheel_speed is not None:
             lo, hi = speed_box(lo, hi, u, cfg.max_wheel_speed, cfg.dt)
-        if cfg.deadlock in NEEDS_REFERENCE and reference is None:
+        strategy = self._strategy
+        if strategy.needs_reference and reference is None:
             raise ConfigError(f"deadlock strategy {cfg.deadlock!r} needs reference=(p_d, v_d); got None")
         if reference is not None:
             reference = (np.asarray(reference[0], float).reshape(n, 2), np.asarray(reference[1], float).reshape(n, 2))
@@ -249,21 +254,19 @@ class SafetyFilter:
             pairs_out = np.concatenate((pr, np.stack((oi, -1 - ok), axis=1)))
 
         # deadlock trigger and strategy -----------------------------------------------
-        triggered = trigger(cfg.trigger, self._dl, p=p, v=v, theta=theta, reference=reference,
-                            pair_idx=np.stack((ri, rj), axis=1), pair_vec=-geo_p, cfg=cfg)
-        if cfg.deadlock == "none":
+        if strategy.active:
+            triggered = self._trigger(self._dl, TriggerContext(p, v, theta, reference, np.stack((ri, rj), axis=1),
+                                                               -geo_p, cfg))
+        else:
             triggered = np.zeros(n, dtype=bool)
         zeta = np.where(triggered, cfg.zeta, 0.0)
-        if cfg.deadlock == "rotate_relative_position" and np.any(triggered):
-            rot = triggered[ri] | ((rj >= 0) & triggered[np.maximum(rj, 0)])
-            geo_p = np.where(rot[:, None], geo_p @ (np.eye(2) - self._Q).T, geo_p)
-        target = np.einsum("nij,nj->ni", A, nominal_du)
-        target = target_correction(cfg.deadlock, target, zeta, self._Q, v=v, reference=reference,
-                                   p=p, k3=cfg.k3, k4=cfg.k4)
+        geo_p = strategy.rotate_rows(geo_p, triggered[ri] | ((rj >= 0) & triggered[np.maximum(rj, 0)]), self._Q)
+        target = strategy.correct_target(np.einsum("nij,nj->ni", A, nominal_du), zeta, self._Q,
+                                         TargetContext(v, p, reference, cfg.k3, cfg.k4))
 
         # rows --------------------------------------------------------------------------
         g = PairGeometry(ri, rj, geo_p, geo_v, geo_a, ds + cfg.pair_margin(geo_v), rsum, ap)
-        c, rhs, keep = barrier_rows(cfg.barrier, g, self._bp)
+        c, rhs, keep = barrier_rows(cfg.barrier, g, cfg)
         ri, rj, pairs_out = ri[keep], rj[keep], pairs_out[keep]
         Gi = np.einsum("pki,pk->pi", A[ri], c)
         Gj = -np.einsum("pki,pk->pi", A[np.maximum(rj, 0)], c)
@@ -275,7 +278,7 @@ class SafetyFilter:
         keys = ri.astype(np.int64) * (m_obs + 1) + np.where(rj >= 0, rj, n - 1 - pairs_out[:, 1])
         m = rhs.shape[0]
         du = np.empty((n, 2))
-        if cfg.decompose and cfg.solver != "neural":
+        if cfg.decompose and self._solver.exact:
             # Exact decomposition.  Without rows every robot's QP is a 2-variable box
             # least squares (closed form).  The rows split the team into independent
             # components; a component whose closed-form answers already satisfy all its
@@ -304,16 +307,7 @@ class SafetyFilter:
                                  Gi[rows], Gj[rows], rhs[rows])
             z0 = self._map_warm(keys)
             x0 = None if self._x is None else self._x.reshape(n, 2)[sub].ravel()
-            opts: dict[str, float] = {"iterations": cfg.neural_iterations} if cfg.solver == "neural" else {}
-            if cfg.active_set:
-                opts["active_set"] = True
-            exact_first = cfg.solver == "proxsuite" and self._exact_steps > 0
-            if exact_first:  # proxsuite stalled or was slow a moment ago
-                opts["prefer_exact"] = True
-                self._exact_steps -= 1
-            sol = solve_qp(prob, cfg.solver, x0, None if z0 is None else z0[rows], **opts)
-            if cfg.solver == "proxsuite" and not exact_first:
-                self._adapt(prob, sol)
+            sol = self._solver.solve(prob, x0, None if z0 is None else z0[rows])
             x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
             du[sub] = np.clip((x * prob.scale).reshape(-1, 2), lo[sub], hi[sub])
             x_full[sub] = x.reshape(-1, 2)
@@ -330,10 +324,10 @@ class SafetyFilter:
         avoiding[rj[active & (rj >= 0)]] = True
         self._dl.avoiding = avoiding
         viol = self._row_values(Gi, Gj, ri, rj, du) - rhs
-        slack = float(max(0.0, np.max(viol, initial=0.0))) if status != "solved" or cfg.solver == "neural" else 0.0
+        slack = float(max(0.0, np.max(viol, initial=0.0))) if status != "solved" or not self._solver.exact else 0.0
         correction = np.linalg.norm(du - nominal_du, axis=1)
         result = FilterResult(
-            status=status, message=message, eta=eta, pairs=pairs_out, avoiding=avoiding,
+            du=du, status=status, message=message, eta=eta, pairs=pairs_out, avoiding=avoiding,
             triggered=triggered, slack=slack, correction=correction,
             intervened=correction > 1e-9 * scale, iterations=iterations,
             solve_time=time.perf_counter() - t0, n_rows=int(m), n_qp_rows=int(n_qp),
@@ -341,30 +335,16 @@ class SafetyFilter:
         return du, result
 
     # ------------------------------------------------------------------ helpers
-    def _adapt(self, prob: QPProblem, sol: QPSolution) -> None:
-        """After a proxsuite solve: switch to the exact path for a while if proxsuite stalled or was slow.
-
-        A stall (``sol.fallback``) switches at once; a solve slower than
-        :data:`SLOW_SOLVE_S` switches only if ``ldp`` solves the same problem in
-        less than half the time (a timing probe; its answer, exact too, is
-        discarded).  The switch lasts ``EXACT_STEPS * 2**k`` steps, ``k`` the
-        number of switches since proxsuite last ran fast and converged.
-        """
-        switch = sol.fallback
-        if not switch and sol.solve_time > SLOW_SOLVE_S and prob.n <= LDP_MAX_VARS:
-            probe = solve_qp(prob, "ldp")
-            switch = probe.status == "solved" and probe.solve_time < 0.5 * sol.solve_time
-        if switch:
-            self._exact_steps = EXACT_STEPS * 2 ** min(self._stalls, 4)
-            self._stalls += 1
-        elif sol.solve_time <= SLOW_SOLVE_S:
-            self._stalls = 0
-
     @staticmethod
     def _row_values(Gi: np.ndarray, Gj: np.ndarray, ri: np.ndarray, rj: np.ndarray, du: np.ndarray) -> np.ndarray:
         """``G du`` row by row (``Gj`` ignored on obstacle rows)."""
         du_j = np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)])
         return np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0)
+
+    def _bound_team(self) -> Team:
+        if self.team is None:
+            raise UsageError("SafetyFilter: no team yet; pass team= or call reset(team) first")
+        return self.team
 
     def _map_warm(self, keys: np.ndarray) -> np.ndarray | None:
         if self._x is None:
@@ -382,36 +362,36 @@ class SafetyFilter:
         self, kin: Kinematics, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
         lo: np.ndarray, hi: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        n = self.team.n
+        n = self._bound_team().n
         nominal_du = np.asarray(nominal_du, dtype=np.float64)
         if nominal_du.shape != (n, 2):
-            raise ActionError(f"nominal_du: got shape {nominal_du.shape}, expected ({n}, 2)")
+            raise StateError(f"nominal_du: got shape {nominal_du.shape}, expected ({n}, 2)")
         lo = np.asarray(lo, dtype=np.float64)
         hi = np.asarray(hi, dtype=np.float64)
         if lo.shape != (n, 2) or hi.shape != (n, 2):
-            raise ActionError(f"lo/hi: got shapes {lo.shape}/{hi.shape}, expected ({n}, 2)")
+            raise StateError(f"lo/hi: got shapes {lo.shape}/{hi.shape}, expected ({n}, 2)")
         arrays = (("kin.p", kin.p, (n, 2)), ("kin.v", kin.v, (n, 2)), ("kin.A", kin.A, (n, 2, 2)),
                   ("kin.adot_u", kin.adot_u, (n, 2)), ("u", u, (n, 2)), ("theta", theta, (n,)))
         total = float(nominal_du.sum()) + float(lo.sum()) + float(hi.sum())
         for name, arr, shape in arrays:
             a = np.asarray(arr)
             if a.shape != shape:
-                raise ActionError(f"{name}: got shape {a.shape}, expected {shape}")
+                raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
             total += float(a.sum())
         if not np.isfinite(total):  # one NaN/inf anywhere makes the sum non-finite: find it
             bad = ~np.all(np.isfinite(nominal_du), axis=1)
             if np.any(bad):
                 idx = np.flatnonzero(bad)
-                raise ActionError(
+                raise StateError(
                     f"nominal_du: non-finite value for robot(s) {idx.tolist()} (robot index {idx[0]})"
                 )
             for name, arr, _ in arrays:
                 a = np.asarray(arr)
                 if not np.all(np.isfinite(a)):
                     bad_i = int(np.flatnonzero(~np.isfinite(a).reshape(n, -1).all(axis=1))[0])
-                    raise ActionError(f"{name}: non-finite value for robot index {bad_i}")
+                    raise StateError(f"{name}: non-finite value for robot index {bad_i}")
             if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-                raise ActionError("lo/hi: bounds must be finite with lo <= hi")
+                raise StateError("lo/hi: bounds must be finite with lo <= hi")
         if np.any(lo > hi):
-            raise ActionError("lo/hi: bounds must be finite with lo <= hi")
+            raise StateError("lo/hi: bounds must be finite with lo <= hi")
         return nominal_du, lo, hi

@@ -1,8 +1,9 @@
-"""Deadlock resolution: strategies (what changes) and triggers (when).
+"""Deadlock resolution: strategies (what changes) and triggers (when), both registries.
 
 ``Q(q)`` is the rotation by ``q``; ``zeta_i`` is ``zeta`` while robot ``i`` is
-triggered, else 0.  Strategies (:data:`STRATEGIES`), acting on the target
-control-point acceleration ``target`` (the nominal ``A du_nom``) or on the rows:
+triggered, else 0.  Strategies (:data:`STRATEGIES`, :class:`Strategy`) act on
+the target control-point acceleration ``target`` (the nominal ``A du_nom``) or
+on the barrier rows:
 
 ``none``
     nothing.
@@ -16,9 +17,11 @@ control-point acceleration ``target`` (the nominal ``A du_nom``) or on the rows:
 ``rotate_relative_position`` (eqn.12c, He 2024)
     ``p_ij <- (I - Q) p_ij`` in the rows of pairs with a triggered member
     (everywhere in the row: normal and right-hand side).  This changes the
-    barrier itself, so the safety guarantee is lost while it is active: in a
-    6-robot swap pairs came as close as 0.23 m for ``d_s = 0.96`` (the paper
-    reports Zeno behaviour with it).  Provided for comparison only.
+    barrier itself, so the paper's barrier no longer protects the pair while it
+    is active (the paper reports Zeno behaviour with it; in a 2-robot head-on
+    swap the pair overlapped by 0.8 m without the backup layer).  The filter
+    warns at construction; with the braking backup layer on (the default) the
+    team stays collision-free anyway.
 
 Triggers (:data:`TRIGGERS`), evaluated at the start of a step:
 
@@ -33,33 +36,23 @@ Triggers (:data:`TRIGGERS`), evaluated at the start of a step:
 ``heading`` (He 2024)
     the heading points, within ``heading_deg``, at the nearest neighbour or
     obstacle inside the sensing range.
+
+Adding a strategy or a trigger is one function and one registry line.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 
-from aasoatt_env.errors import ConfigError
+if TYPE_CHECKING:  # pragma: no cover
+    from aasoatt_env.safety.config import FilterConfig
 
-__all__ = ["STRATEGIES", "TRIGGERS", "DeadlockState", "rotation", "target_correction", "trigger"]
-
-STRATEGIES: tuple[str, ...] = (
-    "none",
-    "rotate_nominal",
-    "rotate_reference_velocity",
-    "auxiliary_velocity",
-    "rotate_relative_position",
-)
-"""Registered deadlock strategies."""
-
-TRIGGERS: tuple[str, ...] = ("multiplier", "low_speed", "stalled", "heading")
-"""Registered deadlock triggers."""
-
-NEEDS_REFERENCE: frozenset[str] = frozenset({"rotate_reference_velocity", "auxiliary_velocity"})
-"""Strategies that need ``reference=(p_d, v_d)``."""
+__all__ = ["STRATEGIES", "TRIGGERS", "DeadlockState", "Strategy", "TriggerContext", "rotation"]
 
 
 def rotation(q_deg: float) -> np.ndarray:
@@ -76,115 +69,146 @@ class DeadlockState:
     history: list[np.ndarray] = field(default_factory=list)
 
 
-def trigger(
-    name: str,
-    state: DeadlockState,
-    *,
-    p: np.ndarray,
-    v: np.ndarray,
-    theta: np.ndarray,
-    reference: tuple[np.ndarray, np.ndarray] | None,
-    pair_idx: np.ndarray,
-    pair_vec: np.ndarray,
-    cfg: object,
-) -> np.ndarray:
-    """Boolean ``(N,)``: robots whose deadlock strategy is on this step.
+class TriggerContext(NamedTuple):
+    """What a trigger sees at the start of a step."""
 
-    Parameters
-    ----------
-    name : str
-        Trigger name (see module docstring).
-    state : DeadlockState
-        Memory, updated in place (position history).
-    p, v : numpy.ndarray
-        Control-point positions and velocities ``(N, 2)``.
-    theta : numpy.ndarray
-        Headings ``(N,)``.
-    reference : tuple of numpy.ndarray or None
-        ``(p_d, v_d)``.
-    pair_idx : numpy.ndarray
-        ``(P, 2)`` pairs inside the sensing range; second column ``-1`` for obstacles.
-    pair_vec : numpy.ndarray
-        ``(P, 2)``: ``p_j - p_i`` (the vector from robot ``i`` towards the other member).
-    cfg : FilterConfig
-        Thresholds.
-    """
-    n = p.shape[0]
-    prev = state.avoiding if state.avoiding is not None else np.zeros(n, dtype=bool)
-    if name == "multiplier":
-        return prev.copy()
-    if reference is not None:
-        ell = p - reference[0]
-        not_done = (np.linalg.norm(reference[1], axis=1) >= cfg.low_speed) | (
-            np.linalg.norm(ell, axis=1) > cfg.goal_tol
-        )
-    else:
-        not_done = prev
-    if name == "low_speed":
-        return (np.linalg.norm(v, axis=1) < cfg.low_speed) & not_done
-    if name == "stalled":
-        dwell = max(1, int(round(cfg.stall_time / cfg.dt)))
-        state.history.append(p.copy())
-        if len(state.history) > dwell + 1:
-            del state.history[0]
-        if len(state.history) <= dwell:
-            return np.zeros(n, dtype=bool)
-        moved = np.linalg.norm(p - state.history[0], axis=1)
-        return (moved < cfg.stall_distance) & not_done
-    if name == "heading":
-        return _heading(n, theta, pair_idx, pair_vec, cfg.heading_deg)
-    raise ConfigError(f"trigger: got {name!r}, expected one of {sorted(TRIGGERS)}")
+    p: np.ndarray
+    """Control-point positions ``(N, 2)``."""
+    v: np.ndarray
+    """Control-point velocities ``(N, 2)``."""
+    theta: np.ndarray
+    """Headings ``(N,)``."""
+    reference: tuple[np.ndarray, np.ndarray] | None
+    """``(p_d, v_d)`` or None."""
+    pair_idx: np.ndarray
+    """``(P, 2)`` pairs inside the sensing range; second column ``-1`` for obstacles."""
+    pair_vec: np.ndarray
+    """``(P, 2)``: ``p_j - p_i`` (from robot ``i`` towards the other member)."""
+    cfg: FilterConfig
+    """Thresholds."""
 
 
-def _heading(n: int, theta: np.ndarray, pair_idx: np.ndarray, pair_vec: np.ndarray, half_deg: float) -> np.ndarray:
+TriggerFn = Callable[[DeadlockState, TriggerContext], np.ndarray]
+"""``trigger(memory, context) -> (N,) bool``; may update the memory."""
+
+
+def _not_done(state: DeadlockState, c: TriggerContext) -> np.ndarray:
+    prev = state.avoiding if state.avoiding is not None else np.zeros(c.p.shape[0], dtype=bool)
+    if c.reference is None:
+        return prev
+    ell = c.p - c.reference[0]
+    return (np.linalg.norm(c.reference[1], axis=1) >= c.cfg.low_speed) | (np.linalg.norm(ell, axis=1) > c.cfg.goal_tol)
+
+
+def _multiplier(state: DeadlockState, c: TriggerContext) -> np.ndarray:
+    return state.avoiding.copy() if state.avoiding is not None else np.zeros(c.p.shape[0], dtype=bool)
+
+
+def _low_speed(state: DeadlockState, c: TriggerContext) -> np.ndarray:
+    return (np.linalg.norm(c.v, axis=1) < c.cfg.low_speed) & _not_done(state, c)
+
+
+def _stalled(state: DeadlockState, c: TriggerContext) -> np.ndarray:
+    dwell = max(1, int(round(c.cfg.stall_time / c.cfg.dt)))
+    state.history.append(c.p.copy())
+    if len(state.history) > dwell + 1:
+        del state.history[0]
+    if len(state.history) <= dwell:
+        return np.zeros(c.p.shape[0], dtype=bool)
+    moved = np.linalg.norm(c.p - state.history[0], axis=1)
+    return (moved < c.cfg.stall_distance) & _not_done(state, c)
+
+
+def _heading(state: DeadlockState, c: TriggerContext) -> np.ndarray:
+    n = c.p.shape[0]
     out = np.zeros(n, dtype=bool)
-    if pair_idx.shape[0] == 0:
+    if c.pair_idx.shape[0] == 0:
         return out
-    i, j = pair_idx[:, 0], pair_idx[:, 1]
+    i, j = c.pair_idx[:, 0], c.pair_idx[:, 1]
     rob = j >= 0
     # each robot-robot pair is seen from both ends; obstacles only from the robot
     who = np.concatenate((i, j[rob]))
-    vec = np.concatenate((pair_vec, -pair_vec[rob]))
+    vec = np.concatenate((c.pair_vec, -c.pair_vec[rob]))
     dist = np.linalg.norm(vec, axis=1)
     nearest = np.full(n, np.inf)
     np.minimum.at(nearest, who, dist)
     is_nearest = dist <= nearest[who]
-    head = np.stack((np.cos(theta), np.sin(theta)), axis=1)[who]
+    head = np.stack((np.cos(c.theta), np.sin(c.theta)), axis=1)[who]
     cosang = np.einsum("ij,ij->i", head, vec) / np.maximum(dist, 1e-12)
-    hit = is_nearest & (cosang >= math.cos(math.radians(half_deg)))
+    hit = is_nearest & (cosang >= math.cos(math.radians(c.cfg.heading_deg)))
     out[who[hit]] = True
     return out
 
 
-def target_correction(
-    name: str,
-    target: np.ndarray,
-    zeta: np.ndarray,
-    Q: np.ndarray,
-    *,
-    v: np.ndarray,
-    reference: tuple[np.ndarray, np.ndarray] | None,
-    p: np.ndarray,
-    k3: float,
-    k4: float,
-) -> np.ndarray:
-    """Target control-point accelerations after the strategy ``name`` (new array).
+TRIGGERS: dict[str, TriggerFn] = {
+    "multiplier": _multiplier,
+    "low_speed": _low_speed,
+    "stalled": _stalled,
+    "heading": _heading,
+}
+"""Trigger registry: name -> ``trigger(memory, context)``."""
 
-    ``zeta`` is ``(N,)``, zero for robots not triggered.  Row-level strategies
-    (``rotate_relative_position``) and ``none`` return ``target`` unchanged.
-    """
-    on = zeta > 0
-    if name in ("none", "rotate_relative_position") or not np.any(on):
-        return target.copy()
-    if name == "rotate_nominal":
-        rotated = target @ (np.eye(2) - Q).T
-        return np.where(on[:, None], rotated, target)
-    if reference is None:
-        raise ConfigError(f"deadlock strategy {name!r} needs reference=(p_d, v_d); got None")
-    p_d, v_d = reference
-    if name == "rotate_reference_velocity":
-        return target - (k3 + k4) * zeta[:, None] * (v_d @ Q.T)
-    if name == "auxiliary_velocity":
-        e = v - v_d + k3 * (p - p_d)
-        return target - zeta[:, None] * (e @ Q.T)
-    raise ConfigError(f"deadlock: got {name!r}, expected one of {sorted(STRATEGIES)}")
+
+class TargetContext(NamedTuple):
+    """What a target correction sees."""
+
+    v: np.ndarray
+    p: np.ndarray
+    reference: tuple[np.ndarray, np.ndarray] | None
+    k3: float
+    k4: float
+
+
+def _rotate_nominal(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetContext) -> np.ndarray:
+    return np.where((zeta > 0)[:, None], target @ (np.eye(2) - Q).T, target)
+
+
+def _rotate_reference_velocity(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetContext) -> np.ndarray:
+    return target - (c.k3 + c.k4) * zeta[:, None] * (c.reference[1] @ Q.T)  # type: ignore[index]
+
+
+def _auxiliary_velocity(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetContext) -> np.ndarray:
+    p_d, v_d = c.reference  # type: ignore[misc]
+    e = c.v - v_d + c.k3 * (c.p - p_d)
+    return target - zeta[:, None] * (e @ Q.T)
+
+
+@dataclass(frozen=True)
+class Strategy:
+    """A deadlock strategy: how it changes the target acceleration and/or the rows."""
+
+    equation: str
+    """The paper's label."""
+    target: Callable[[np.ndarray, np.ndarray, np.ndarray, TargetContext], np.ndarray] | None = None
+    """``target(target, zeta, Q, context) -> new target`` for the triggered robots (None: unchanged)."""
+    rotates_rows: bool = False
+    """True when the strategy rotates ``p_ij`` in the rows of triggered pairs (eqn.12c)."""
+    needs_reference: bool = False
+    """True when ``reference=(p_d, v_d)`` is required."""
+
+    @property
+    def active(self) -> bool:
+        """False for the ``none`` strategy (no trigger is evaluated)."""
+        return self.target is not None or self.rotates_rows
+
+    def correct_target(self, target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, ctx: TargetContext) -> np.ndarray:
+        """The target control-point accelerations after the strategy (a new array)."""
+        if self.target is None or not np.any(zeta > 0):
+            return target.copy()
+        return self.target(target, zeta, Q, ctx)
+
+    def rotate_rows(self, geo_p: np.ndarray, on: np.ndarray, Q: np.ndarray) -> np.ndarray:
+        """Relative positions of the rows after the strategy (``on``: rows with a triggered member)."""
+        if not self.rotates_rows or not np.any(on):
+            return geo_p
+        return np.where(on[:, None], geo_p @ (np.eye(2) - Q).T, geo_p)
+
+
+STRATEGIES: dict[str, Strategy] = {
+    "none": Strategy("-"),
+    "rotate_nominal": Strategy("eqn.12a", _rotate_nominal),
+    "rotate_reference_velocity": Strategy("eqn.12b", _rotate_reference_velocity, needs_reference=True),
+    "auxiliary_velocity": Strategy("eqn.13", _auxiliary_velocity, needs_reference=True),
+    "rotate_relative_position": Strategy("eqn.12c", rotates_rows=True),
+}
+"""Strategy registry: name -> :class:`Strategy`."""

@@ -1,14 +1,18 @@
 """``AASOATTFilter``: the CBF-QP safety filter as a drop-in PettingZoo wrapper.
 
-Any policy's actions become the *nominal*; at every physics step (also inside
-a ``decision_interval``) the wrapper's :class:`FilterHook` projects the nominal
-wheel accelerations through :class:`~aasoatt_env.safety.core.SafetyFilter`
-before the env integrates them.  Behind the filter, actions outside
-``[-1, 1]`` are accepted as the (unclipped) nominal: the QP keeps the input
-bounds hard, so the applied ``du`` always satisfies them.
+Any policy's actions become the *nominal*; the wrapper installs a
+:class:`~aasoatt_env.safety.core.SafetyFilter` into the env through the env's
+control-filter protocol (:mod:`aasoatt_env.sim.protocol`), so at every physics
+step (also inside a ``decision_interval``) the nominal wheel accelerations are
+projected through the QP before the env integrates them.  Behind the filter,
+actions outside ``[-1, 1]`` are accepted as the (unclipped) nominal: the QP
+keeps the input bounds hard, so the applied ``du`` always satisfies them.
 
-``infos[agent]["filter"]`` after every step, aggregated over the physics steps
-of the env step:
+The wrapper only calls the env's public API: ``set_control_filter`` at
+construction, and after each ``step`` the env's ``filter_outputs`` (one
+:class:`~aasoatt_env.safety.core.FilterResult` per physics step), which it
+aggregates into a :class:`FilterReport` (:attr:`AASOATTFilter.report`) and into
+``infos[agent]["filter"]``:
 
 ==================  =====================================================
 key                 meaning
@@ -19,118 +23,106 @@ key                 meaning
 ``correction``      largest ``|du_safe - du_nominal|`` [rad/s^2]
 ``status``          worst QP status of the team: solved < relaxed < failed
 ``slack``           largest row relaxation (0 unless ``relaxed``)
-``solve_time``      total filter wall time [s] of the env step
 ``iterations``      total solver iterations
 ``n_rows``          barrier rows at the last physics step
 ``n_qp_rows``       of those, rows the QP solver saw (0: closed form sufficed)
 ==================  =====================================================
 
-The centralised Gymnasium view takes the same options:
-``AASOATTGymEnv(scenario, safety_filter={"barrier": "aasoatt", ...})``.
+Per-step infos are deterministic (same seed, same infos), as PettingZoo's and
+Gymnasium's checkers require; wall-clock times are kept out of them and are
+available from :attr:`AASOATTFilter.timing`.  ``infos="flat"`` gives numeric,
+top-level keys instead (``filter_intervened``, ``filter_avoiding``,
+``filter_triggered``, ``filter_correction``, ``filter_status_code`` = 0 / 1 / 2
+for solved / relaxed / failed, ``filter_slack``), which tensor-based clients
+such as TorchRL can batch.
+
+Options: ``AASOATTFilter(env, config=None, infos="nested", **options)`` where
+``options`` are :class:`~aasoatt_env.safety.config.FilterConfig` fields; the one
+rule (:meth:`FilterConfig.merged`): explicit options replace the fields of
+``config``.  ``dt`` is the env's.  An env takes one filter: wrapping a filtered
+env again raises :class:`~aasoatt_env.errors.UsageError`.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
+from aasoatt_env import validation as check
+from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.core import FilterResult, SafetyFilter
+from aasoatt_env.sim.env import AASOATTParallelEnv
 
-__all__ = ["AASOATTFilter", "FilterHook"]
+__all__ = ["STATUS_CODES", "AASOATTFilter", "FilterReport"]
 
-_SEVERITY = {"solved": 0, "relaxed": 1, "failed": 2}
+STATUS_CODES: dict[str, int] = {"solved": 0, "relaxed": 1, "failed": 2}
+"""Numeric status of ``infos="flat"``; the larger, the worse."""
 
 
-class FilterHook:
-    """Per-physics-step control filter installed into the env (see module docstring)."""
+@dataclass(frozen=True)
+class FilterReport:
+    """The filter over the physics steps of one env step.
 
-    def __init__(self, base_env: Any, config: FilterConfig) -> None:
-        self.base = base_env
-        self.config = config
-        self.filter: SafetyFilter | None = None
-        self.last_result: FilterResult | None = None
-        self._clear()
+    Attributes
+    ----------
+    intervened, avoiding, triggered : numpy.ndarray
+        ``(N,)`` bool, true if true at some physics step.
+    correction : numpy.ndarray
+        Largest ``|du_safe - du_nominal|`` per robot ``(N,)``.
+    status : str
+        Worst status of the physics steps (solved < relaxed < failed).
+    message : str
+        Solver message of the worst step.
+    slack : float
+        Largest row relaxation.
+    iterations : int
+        Total solver iterations.
+    n_rows, n_qp_rows : int
+        Rows at the last physics step, and those the QP solver saw.
+    applied : numpy.ndarray
+        Wheel accelerations applied at the last physics step ``(N, 2)``.
+    solve_time : float
+        Filter wall time of the env step [s] (not in the infos: it is not deterministic).
+    """
 
-    def _clear(self) -> None:
-        n = len(self.base.possible_agents)
-        self.intervened = np.zeros(n, dtype=bool)
-        self.avoiding = np.zeros(n, dtype=bool)
-        self.triggered = np.zeros(n, dtype=bool)
-        self.correction = np.zeros(n)
-        self.status = "solved"
-        self.message = ""
-        self.slack = 0.0
-        self.solve_time = 0.0
-        self.iterations = 0
-        self.applied = np.zeros((n, 2))
+    intervened: np.ndarray
+    avoiding: np.ndarray
+    triggered: np.ndarray
+    correction: np.ndarray
+    status: str
+    message: str
+    slack: float
+    iterations: int
+    n_rows: int
+    n_qp_rows: int
+    applied: np.ndarray
+    solve_time: float
 
-    def reset(self) -> None:
-        """Build the filter for the episode's team and forget warm starts."""
-        team = self.base.team
-        if self.filter is None or self.filter.team is not team:
-            self.filter = SafetyFilter(team, self.config)
-        self.filter.reset()
-        self.last_result = None
-        self._clear()
-
-    def begin_step(self) -> None:
-        """Start aggregating a new env step."""
-        self._clear()
-
-    def __call__(self, sim: Any, nominal_du: np.ndarray) -> np.ndarray:
-        """Filter one physics step."""
-        assert self.filter is not None, "FilterHook.reset() was not called"
-        centers, radii = sim.obstacles
-        du, res = self.filter.step(
-            sim.kin,
-            sim.u,
-            sim.theta,
-            nominal_du,
-            sim.lo,
-            sim.hi,
-            reference=(sim.reference[0], sim.reference[1]),
-            obstacles=(centers, radii) if radii.size else None,
+    @classmethod
+    def of(cls, results: tuple[FilterResult, ...]) -> FilterReport:
+        """Aggregate the results of the physics steps of one env step."""
+        worst = max(results, key=lambda r: STATUS_CODES.get(r.status, 2))
+        last = results[-1]
+        if len(results) == 1:
+            return cls(last.intervened, last.avoiding, last.triggered, last.correction, last.status, last.message,
+                       last.slack, last.iterations, last.n_rows, last.n_qp_rows, last.du, last.solve_time)
+        return cls(
+            intervened=np.any([r.intervened for r in results], axis=0),
+            avoiding=np.any([r.avoiding for r in results], axis=0),
+            triggered=np.any([r.triggered for r in results], axis=0),
+            correction=np.max([r.correction for r in results], axis=0),
+            status=worst.status, message=worst.message,
+            slack=max(r.slack for r in results), iterations=sum(r.iterations for r in results),
+            n_rows=last.n_rows, n_qp_rows=last.n_qp_rows, applied=last.du,
+            solve_time=sum(r.solve_time for r in results),
         )
-        self.last_result = res
-        self.intervened |= res.intervened
-        self.avoiding |= res.avoiding
-        self.triggered |= res.triggered
-        np.maximum(self.correction, res.correction, out=self.correction)
-        if _SEVERITY.get(res.status, 2) > _SEVERITY.get(self.status, 2):
-            self.status, self.message = res.status, res.message
-        self.slack = max(self.slack, res.slack)
-        self.solve_time += res.solve_time
-        self.iterations += res.iterations
-        self.applied = du
-        return du
-
-    # what the env and the recorder read ------------------------------------------
-    @property
-    def last_correction(self) -> np.ndarray:
-        """Per-robot correction of the last env step (used by ``RewardConfig.correction``)."""
-        return self.correction
-
-    @property
-    def last_avoiding(self) -> np.ndarray:
-        """Robots in collision avoidance during the last env step (highlighted when rendering)."""
-        return self.avoiding
-
-    def record(self) -> dict[str, Any]:
-        """Fields for :class:`~aasoatt_env.analysis.recording.RecordEpisode`."""
-        return {
-            "avoiding": self.avoiding.copy(),
-            "triggered": self.triggered.copy(),
-            "solver_status": self.status,
-            "slack": self.slack,
-            "solve_time": self.solve_time,
-            "actions": self.applied / self.base.team.max_wheel_accel[:, None],
-        }
 
     def info(self, index: int) -> dict[str, Any]:
-        """The ``infos[agent]["filter"]`` dict of robot ``index``."""
+        """The nested ``infos[agent]["filter"]`` dict of robot ``index``."""
         return {
             "intervened": bool(self.intervened[index]),
             "avoiding": bool(self.avoiding[index]),
@@ -138,80 +130,115 @@ class FilterHook:
             "correction": float(self.correction[index]),
             "status": self.status,
             "slack": float(self.slack),
-            "solve_time": float(self.solve_time),
             "iterations": int(self.iterations),
-            "n_rows": int(self.last_result.n_rows) if self.last_result is not None else 0,
-            "n_qp_rows": int(self.last_result.n_qp_rows) if self.last_result is not None else 0,
+            "n_rows": int(self.n_rows),
+            "n_qp_rows": int(self.n_qp_rows),
+        }
+
+    def flat_info(self, index: int) -> dict[str, float]:
+        """The numeric top-level keys of ``infos="flat"`` for robot ``index``."""
+        return {
+            "filter_intervened": float(self.intervened[index]),
+            "filter_avoiding": float(self.avoiding[index]),
+            "filter_triggered": float(self.triggered[index]),
+            "filter_correction": float(self.correction[index]),
+            "filter_status_code": float(STATUS_CODES.get(self.status, 2)),
+            "filter_slack": float(self.slack),
         }
 
 
 class AASOATTFilter(BaseParallelWrapper):
-    """Filter every physics step of a parallel env through the AA-SOATT CBF-QP.
+    """Filter every physics step of a parallel env through the AA-SOATT CBF-QP (module docstring).
 
     Parameters
     ----------
-    env : AASOATTParallelEnv or a wrapper of it
-        The env to protect.
-    barrier : str
-        ``"aasoatt"`` (eqn.7-8, default), ``"braking"``, ``"distance"``,
-        ``"gated_distance"``, ``"adaptive_distance"``.
-    deadlock : str
-        ``"auxiliary_velocity"`` (eqn.13, default), ``"none"``,
-        ``"rotate_nominal"``, ``"rotate_reference_velocity"``,
-        ``"rotate_relative_position"``.
-    trigger : str
-        ``"multiplier"`` (default), ``"low_speed"``, ``"stalled"``, ``"heading"``.
-    solver : str
-        ``"proxsuite"`` (default), ``"neural"``, or another installed solver.
-    config : FilterConfig, optional
-        A ready configuration; ``**gains`` override its fields.
-    **gains
-        Any other :class:`~aasoatt_env.safety.config.FilterConfig` field
-        (``k1``, ``k2``, ``k3``, ``k4``, ``zeta``, ``rotation_deg``,
-        ``sensing_range``, ``safety_margin``, ...).  ``dt`` is taken from the env.
+    env : AASOATTParallelEnv or a PettingZoo wrapper of it
+        The env to protect (not yet behind a filter).
+    config : FilterConfig or mapping, optional
+        A configuration to start from.
+    infos : {"nested", "flat"}
+        ``infos[agent]["filter"]`` dicts, or numeric top-level ``filter_*`` keys.
+    **options
+        :class:`~aasoatt_env.safety.config.FilterConfig` fields (``barrier``,
+        ``deadlock``, ``trigger``, ``solver``, ``k1``, ``k2``, ``k3``, ``k4``,
+        ``zeta``, ``rotation_deg``, ``sensing_range``, ``safety_margin``, ...);
+        they replace those of ``config``.  ``dt`` is taken from the env.
     """
 
     def __init__(
-        self,
-        env: Any,
-        barrier: str = "aasoatt",
-        deadlock: str = "auxiliary_velocity",
-        trigger: str = "multiplier",
-        solver: str = "proxsuite",
-        config: FilterConfig | None = None,
-        **gains: Any,
+        self, env: Any, config: FilterConfig | dict[str, Any] | None = None, *, infos: str = "nested",
+        **options: Any,
     ) -> None:
+        base = getattr(env, "unwrapped", None)
+        if not isinstance(base, AASOATTParallelEnv):
+            raise ConfigError(
+                f"env: got {type(env).__name__}, expected an aasoatt_env parallel env (AASOATTParallelEnv or a "
+                "PettingZoo wrapper of it)"
+            )
+        if "dt" in options:
+            raise ConfigError(f"dt: got {options['dt']!r}; the filter runs at the env's physics step ({base.dt:g} s)")
+        self._infos_mode = check.choice("infos", infos, ("nested", "flat"))
+        cfg = FilterConfig.merged(config, **options)
+        if cfg.dt != base.dt:
+            cfg = FilterConfig.merged(cfg, dt=base.dt)
         super().__init__(env)
-        base = env.unwrapped
-        fields = dict(barrier=barrier, deadlock=deadlock, trigger=trigger, solver=solver, dt=base.dt, **gains)
-        if config is not None:
-            from dataclasses import asdict
-
-            fields = {**asdict(config), **gains, "dt": base.dt}
-        self.config = FilterConfig(**fields)  # validated once, errors name the field
-        self.hook = FilterHook(base, self.config)
-        base.set_control_filter(self.hook)
-        if not base.clip_actions:
-            base.action_range = "nominal"
+        self.config = cfg
+        self.filter = SafetyFilter(config=cfg)
+        base.set_control_filter(self.filter)  # raises UsageError if the env already has a filter
+        self._report: FilterReport | None = None
+        self._time = 0.0
+        self._steps = 0
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Reset the env (and the filter's warm start and deadlock memory)."""
         obs, infos = self.env.reset(seed=seed, options=options)
+        self._report = None
         return obs, self._add(infos)
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Step with ``actions`` as the nominal; the applied ones are filtered."""
-        self.hook.begin_step()
         obs, rew, term, trunc, infos = self.env.step(actions)
+        outputs = self.unwrapped.filter_outputs
+        self._report = FilterReport.of(outputs) if outputs else None
+        if self._report is not None:
+            self._time += self._report.solve_time
+            self._steps += len(outputs)
         return obs, rew, term, trunc, self._add(infos)
 
     def _add(self, infos: dict[str, dict]) -> dict[str, dict]:
-        idx = self.env.unwrapped._index
+        rep = self._report
+        idx = self.unwrapped.agent_index
         for agent, info in infos.items():
-            info["filter"] = self.hook.info(idx[agent])
+            i = idx[agent]
+            if self._infos_mode == "flat":
+                info.update(rep.flat_info(i) if rep is not None else _FLAT_IDLE)
+            else:
+                info["filter"] = rep.info(i) if rep is not None else dict(_NESTED_IDLE)
         return infos
 
     @property
+    def report(self) -> FilterReport | None:
+        """The :class:`FilterReport` of the last env step (None after ``reset``)."""
+        return self._report
+
+    @property
     def last_result(self) -> FilterResult | None:
-        """The :class:`FilterResult` of the last physics step."""
-        return self.hook.last_result
+        """The :class:`~aasoatt_env.safety.core.FilterResult` of the last physics step."""
+        outputs = self.unwrapped.filter_outputs
+        return outputs[-1] if outputs else None
+
+    @property
+    def timing(self) -> dict[str, float]:
+        """Filter wall time since construction: ``total_s``, ``physics_steps``, ``mean_ms`` (not deterministic)."""
+        return {"total_s": self._time, "physics_steps": float(self._steps),
+                "mean_ms": 1e3 * self._time / self._steps if self._steps else 0.0}
+
+
+_NESTED_IDLE: dict[str, Any] = {
+    "intervened": False, "avoiding": False, "triggered": False, "correction": 0.0, "status": "solved",
+    "slack": 0.0, "iterations": 0, "n_rows": 0, "n_qp_rows": 0,
+}
+_FLAT_IDLE: dict[str, float] = {
+    "filter_intervened": 0.0, "filter_avoiding": 0.0, "filter_triggered": 0.0, "filter_correction": 0.0,
+    "filter_status_code": 0.0, "filter_slack": 0.0,
+}

@@ -1,1 +1,23 @@
-"""TODO."""
+"""The simulation layer: the PettingZoo environment, its observations, rewards, scenarios and references.
+
+It builds on :mod:`aasoatt_env.model` only.  A control filter plugs in through
+the protocol of :mod:`aasoatt_env.sim.protocol`; the simulation does not know
+what a filter does.
+"""
+
+from aasoatt_env.sim.env import AASOATTParallelEnv
+from aasoatt_env.sim.protocol import ControlFilter, FilterInput, FilterOutput
+from aasoatt_env.sim.rewards import RewardConfig
+from aasoatt_env.sim.scenarios import SCENARIOS, Layout, Scenario, get_scenario
+
+__all__ = [
+    "SCENARIOS",
+    "AASOATTParallelEnv",
+    "ControlFilter",
+    "FilterInput",
+    "FilterOutput",
+    "Layout",
+    "RewardConfig",
+    "Scenario",
+    "get_scenario",
+]

@@ -13,20 +13,24 @@ observation space      ``Box(-100, 100, (14 + 6 (K + K_obs),), float32)``, see
                        :mod:`aasoatt_env.sim.observations`
 state space            ``Box(-inf, inf, (9 N + 1,), float64)``: poses, wheel speeds,
                        reference points and velocities, time
-reward                 :class:`RewardConfig` (tracking, collision, effort, filter
-                       correction)
+reward                 :class:`~aasoatt_env.sim.rewards.RewardConfig` (tracking,
+                       collision, effort, filter correction, goal bonus)
 =====================  =========================================================
 
 One ``step`` holds each agent's action for ``decision_interval`` physics steps of
-``dt`` seconds (default 0.005 s, the paper's step).  A control filter (see
-:class:`aasoatt_env.safety.wrapper.AASOATTFilter`) may be installed with
-:meth:`AASOATTParallelEnv.set_control_filter`; it then maps the nominal wheel
-accelerations to applied ones at *every* physics step.
+``dt`` seconds (default :data:`~aasoatt_env.model.dynamics.DT`, the paper's
+5 ms).  A control filter (:class:`~aasoatt_env.sim.protocol.ControlFilter`, e.g.
+the one :class:`aasoatt_env.safety.wrapper.AASOATTFilter` installs) may be set
+with :meth:`AASOATTParallelEnv.set_control_filter`; it then maps the nominal
+wheel accelerations to applied ones at *every* physics step (the protocol is
+documented in :mod:`aasoatt_env.sim.protocol`).
 
 Episodes are truncated at the scenario's horizon.  With
 ``terminate_on_collision=True`` a robot whose clearance falls below
 ``-collision_tolerance`` terminates: it leaves ``env.agents`` and stays in the
-world as a static disc (it stops in place).
+world as a static disc (it stops in place).  Actions given for agents that are
+already done are ignored (clients such as TorchRL send an action for every
+agent of a group); a ``UserWarning`` says so once per env.
 
 Wheel-speed limits (``RobotParams.max_wheel_speed``) are enforced by saturating
 the applied ``du`` to the speed-admissible range of the step; ``infos`` reports
@@ -37,81 +41,36 @@ the applied ``du`` to the speed-admissible range of the step; ``infos`` reports
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, fields
-from typing import Any, NamedTuple
+import warnings
+from collections import deque
+from collections.abc import Mapping
+from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
+from aasoatt_env import validation as check
+from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded, UsageError
 from aasoatt_env.model import dynamics
-from aasoatt_env.model.dynamics import Kinematics
-from aasoatt_env.errors import ActionError, ConfigError
-from aasoatt_env.sim.observations import (
-    OBS_BOUND,
-    SELF_DIM,
-    SLOT_DIM,
-    Proximity,
-    build_observations,
-    min_gaps,
-    proximity,
-)
-from aasoatt_env.model.params import Team, check_positive
+from aasoatt_env.model.dynamics import DT, Kinematics
+from aasoatt_env.model.geometry import min_gaps
+from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM, Proximity, build_observations, proximity
+from aasoatt_env.sim.protocol import ControlFilter, FilterInput, FilterOutput
+from aasoatt_env.sim.rewards import RewardConfig, rewards
 from aasoatt_env.sim.scenarios import Layout, Scenario, get_scenario
 
-__all__ = ["AASOATTParallelEnv", "RewardConfig", "SimState"]
+__all__ = ["MAX_NEIGHBOR_SLOTS", "TRAIL_LENGTH", "AASOATTParallelEnv"]
+
+MAX_NEIGHBOR_SLOTS: int = 256
+"""Largest ``num_neighbors`` / ``num_obstacles`` (observation slots) accepted."""
+TRAIL_LENGTH: int = 400
+"""Control-point positions kept for rendering trails (memory stays flat over long episodes)."""
 
 _FLOAT_MAX = float(np.finfo(np.float64).max)
-
-
-def _row_norms(x: np.ndarray) -> np.ndarray:
-    """Euclidean norms of the rows of an ``(N, 2)`` array."""
-    return np.hypot(x[:, 0], x[:, 1])
-
-
-@dataclass(frozen=True)
-class RewardConfig:
-    """Per-agent reward of one env step (all weights >= 0).
-
-    ``r_i = -tracking * |p_i - p_d_i| - collision * [clearance_i < -tol]
-    - effort * |action_i|^2 / 2 - correction * c_i + goal_bonus * [|p_i - goal_i| < goal_tolerance]``
-
-    where ``c_i`` is the filter's correction ``|du_safe - du_nominal|`` divided by
-    the robot's ``max_wheel_accel`` (0 without a filter).
-    """
-
-    tracking: float = 1.0
-    collision: float = 10.0
-    effort: float = 0.01
-    correction: float = 0.0
-    goal_bonus: float = 0.0
-    goal_tolerance: float = 0.05
-
-    def __post_init__(self) -> None:
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
-                raise ConfigError(f"RewardConfig.{f.name}: got {v!r}, expected a finite number >= 0")
-
-
-class SimState(NamedTuple):
-    """What a control filter sees at one physics step."""
-
-    time: float
-    dt: float
-    team: Team
-    kin: Kinematics
-    u: np.ndarray
-    theta: np.ndarray
-    lo: np.ndarray
-    hi: np.ndarray
-    reference: tuple[np.ndarray, np.ndarray, np.ndarray]
-    obstacles: tuple[np.ndarray, np.ndarray]
-    active: np.ndarray
-
-
-ControlFilter = Callable[[SimState, np.ndarray], np.ndarray]
+_NOMINAL_MAX = 1e6
+"""Largest nominal action accepted behind a filter (in units of the bound): larger ones are a bug upstream."""
 
 
 class AASOATTParallelEnv(ParallelEnv):
@@ -124,27 +83,27 @@ class AASOATTParallelEnv(ParallelEnv):
     render_mode : {None, "rgb_array", "human"}
         Rendering mode.
     dt : float
-        Physics step [s].
+        Physics step [s], in ``[1e-6, 0.1]``.
     decision_interval : int
-        Physics steps per env step (the action is held).
+        Physics steps per env step (the action is held), ``1..10000``.
     action_mode : {"wheel", "point"}
         Meaning of actions (module docstring).
     sensing_range : float
         Neighbours farther than this are not observed [m].
     num_neighbors, num_obstacles : int
-        Observation slots ``K`` and ``K_obs``.
-    reward : RewardConfig or dict, optional
+        Observation slots ``K`` and ``K_obs``, ``0..256``.
+    reward : RewardConfig or mapping, optional
         Reward weights.
     terminate_on_collision : bool
         Terminate robots that collide.
     collision_tolerance : float
-        Overlap [m] below which contact does not count as a collision.
+        Overlap [m] below which contact does not count as a collision, in ``[0, 1]``.
     max_steps : int, optional
         Override the horizon in env steps.
     clip_actions : bool
         Clip actions to ``[-1, 1]`` instead of raising.
     **scenario_kwargs
-        Passed to the scenario (e.g. ``num_robots=20``).
+        Passed to the scenario (e.g. ``num_robots=20``); unknown names raise ``TypeError``.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "name": "aasoatt_v0", "render_fps": 20}
@@ -153,51 +112,35 @@ class AASOATTParallelEnv(ParallelEnv):
         self,
         scenario: str | Scenario = "circle_swap",
         render_mode: str | None = None,
-        dt: float = 0.005,
+        dt: float = DT,
         decision_interval: int = 1,
         action_mode: str = "wheel",
         sensing_range: float = 3.0,
         num_neighbors: int = 4,
         num_obstacles: int = 2,
-        reward: RewardConfig | dict[str, float] | None = None,
+        reward: RewardConfig | Mapping[str, float] | None = None,
         terminate_on_collision: bool = False,
         collision_tolerance: float = 1e-3,
         max_steps: int | None = None,
         clip_actions: bool = False,
         **scenario_kwargs: Any,
     ) -> None:
+        if render_mode is not None:
+            check.choice("render_mode", render_mode, self.metadata["render_modes"])
+        self.dt = check.real("dt", dt, lo=1e-6, hi=0.1)
+        self.decision_interval = check.integer("decision_interval", decision_interval, lo=1, hi=10_000)
+        self.action_mode = check.choice("action_mode", action_mode, ("wheel", "point"))
+        self.sensing_range = check.positive("sensing_range", sensing_range, hi=1e6)
+        self.num_neighbors = check.integer("num_neighbors", num_neighbors, lo=0, hi=MAX_NEIGHBOR_SLOTS)
+        self.num_obstacles = check.integer("num_obstacles", num_obstacles, lo=0, hi=MAX_NEIGHBOR_SLOTS)
+        self.reward_config = RewardConfig.coerce(reward)
+        self.terminate_on_collision = check.boolean("terminate_on_collision", terminate_on_collision)
+        self.collision_tolerance = check.real("collision_tolerance", collision_tolerance, lo=0.0, hi=1.0)
+        self._max_steps_override = None if max_steps is None else check.integer(
+            "max_steps", max_steps, lo=1, hi=10**12)
+        self.clip_actions = check.boolean("clip_actions", clip_actions)
         self.scenario = get_scenario(scenario, **scenario_kwargs)
-        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ConfigError(
-                f"render_mode: got {render_mode!r}, expected None or one of {self.metadata['render_modes']}"
-            )
         self.render_mode = render_mode
-        self.dt = check_positive("dt", dt)
-        if int(decision_interval) != decision_interval or decision_interval < 1:
-            raise ConfigError(f"decision_interval: got {decision_interval!r}, expected an integer >= 1")
-        self.decision_interval = int(decision_interval)
-        if action_mode not in ("wheel", "point"):
-            raise ConfigError(f"action_mode: got {action_mode!r}, expected 'wheel' or 'point'")
-        self.action_mode = action_mode
-        self.sensing_range = check_positive("sensing_range", sensing_range)
-        for name, val in (("num_neighbors", num_neighbors), ("num_obstacles", num_obstacles)):
-            if int(val) != val or val < 0:
-                raise ConfigError(f"{name}: got {val!r}, expected an integer >= 0")
-        self.num_neighbors, self.num_obstacles = int(num_neighbors), int(num_obstacles)
-        self.reward_config = (
-            RewardConfig(**reward) if isinstance(reward, dict) else (reward or RewardConfig())
-        )
-        self.terminate_on_collision = bool(terminate_on_collision)
-        if collision_tolerance < 0:
-            raise ConfigError(f"collision_tolerance: got {collision_tolerance!r}, expected >= 0")
-        self.collision_tolerance = float(collision_tolerance)
-        if max_steps is not None and (int(max_steps) != max_steps or max_steps < 1):
-            raise ConfigError(f"max_steps: got {max_steps!r}, expected an integer >= 1")
-        self._max_steps_override = None if max_steps is None else int(max_steps)
-        self.clip_actions = bool(clip_actions)
-        self.action_range = "clip" if clip_actions else "strict"
-        """``"strict"``: out-of-range actions raise; ``"clip"``: clipped; ``"nominal"``: taken as is
-        (set by :class:`~aasoatt_env.safety.wrapper.AASOATTFilter`, whose QP keeps the bounds)."""
 
         n = self.scenario.num_robots
         self.possible_agents = [f"robot_{i}" for i in range(n)]
@@ -210,10 +153,12 @@ class AASOATTParallelEnv(ParallelEnv):
         self.action_spaces = {a: self._act_space for a in self.possible_agents}
         self.state_space = spaces.Box(-np.inf, np.inf, (9 * n + 1,), np.float64)
         self._control_filter: ControlFilter | None = None
+        self._filter_outputs: tuple[FilterOutput, ...] = ()
         self._rng = np.random.default_rng()
         self._renderer: Any = None
-        self._trail: list[np.ndarray] = []
+        self._trail: deque[np.ndarray] = deque(maxlen=TRAIL_LENGTH)
         self._layout: Layout | None = None
+        self._warned_dead = False
 
     # ------------------------------------------------------------------ spaces
     def observation_space(self, agent: str) -> spaces.Box:
@@ -224,16 +169,61 @@ class AASOATTParallelEnv(ParallelEnv):
         """Action space of ``agent`` (the same object on every call)."""
         return self.action_spaces[agent]
 
-    # ------------------------------------------------------------------ filter hook
+    @property
+    def agent_index(self) -> Mapping[str, int]:
+        """Read-only map agent name -> robot index (row of every ``(N, ...)`` array)."""
+        return MappingProxyType(self._index)
+
+    # ------------------------------------------------------------------ control filter
     def set_control_filter(self, control_filter: ControlFilter | None) -> None:
-        """Install (or remove with None) a per-physics-step map ``(SimState, du_nominal) -> du``."""
+        """Install a per-physics-step control filter (:mod:`aasoatt_env.sim.protocol`), or remove it with None.
+
+        An env has at most one control filter: installing a second one raises
+        :class:`~aasoatt_env.errors.UsageError` (wrapping an env in two filters
+        would silently disable the inner one); remove the first with
+        ``set_control_filter(None)``.  A filter installed after ``reset`` is
+        reset with the current team at once.
+        """
+        if control_filter is None:
+            self._control_filter = None
+            self._filter_outputs = ()
+            return
+        if not isinstance(control_filter, ControlFilter):
+            raise ConfigError(
+                f"control_filter: got {type(control_filter).__name__}, expected an object with "
+                "reset(team), __call__(FilterInput, nominal_du) and keeps_input_bounds "
+                "(aasoatt_env.sim.protocol.ControlFilter)"
+            )
+        if self._control_filter is not None and self._control_filter is not control_filter:
+            raise UsageError(
+                f"this env already has a control filter ({type(self._control_filter).__name__}); an env takes "
+                "one filter: wrap it once, or remove the first with set_control_filter(None)"
+            )
         self._control_filter = control_filter
+        if self._layout is not None:
+            control_filter.reset(self.team)
+
+    @property
+    def control_filter(self) -> ControlFilter | None:
+        """The installed control filter (None: actions are applied as they are)."""
+        return self._control_filter
+
+    @property
+    def filter_outputs(self) -> tuple[FilterOutput, ...]:
+        """The control filter's outputs at the physics steps of the last ``step`` (empty without a filter)."""
+        return self._filter_outputs
+
+    @property
+    def _nominal_actions(self) -> bool:
+        """Actions are a nominal the filter projects (may leave ``[-1, 1]``)."""
+        f = self._control_filter
+        return f is not None and bool(f.keeps_input_bounds) and not self.clip_actions
 
     # ------------------------------------------------------------------ reset/step
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
-        """Start an episode; ``seed`` seeds the scenario's random layout."""
+        """Start an episode; ``seed`` (an integer >= 0) seeds the scenario's random layout."""
         if seed is not None:
-            self._rng = np.random.default_rng(seed)
+            self._rng = np.random.default_rng(check.integer("seed", seed, lo=0))
         layout = self.scenario.build(self._rng)
         self._layout = layout
         self.team = layout.team
@@ -249,36 +239,45 @@ class AASOATTParallelEnv(ParallelEnv):
         self._saturated = np.zeros(layout.team.n, dtype=bool)
         self.agents = list(self.possible_agents)
         self._kin = dynamics.kinematics(self.team, self._pose, self._u)
-        self._trail = [self._kin.p.copy()]
+        self._trail.clear()
+        self._trail.append(self._kin.p.copy())
         self._live_idx = np.arange(layout.team.n)
+        self._filter_outputs = ()
         self._refresh()
-        if self._control_filter is not None and hasattr(self._control_filter, "reset"):
-            self._control_filter.reset()  # type: ignore[attr-defined]
+        if self._control_filter is not None:
+            self._control_filter.reset(self.team)
         obs = self._observations()
         infos = self._infos()
         if self.render_mode == "human":
             self.render()
         return obs, infos
 
+    def _require_reset(self, what: str) -> None:
+        if self._layout is None:
+            raise ResetNeeded(f"{what}: call reset() first")
+
     def _parse_actions(self, actions: dict[str, Any]) -> np.ndarray:
         if not isinstance(actions, dict):
             raise ActionError(f"actions: got {type(actions).__name__}, expected a dict agent -> action")
         live = self.agents
         n_all = len(self.possible_agents)
-        if actions.keys() == set(live):  # fast path: one array, one finiteness/range check
+        nominal = self._nominal_actions
+        limit = _NOMINAL_MAX if nominal else (_FLOAT_MAX if self.clip_actions else 1.0 + 1e-6)
+        if actions.keys() == set(live):  # fast path: one array, one type/finiteness/range check
             try:
-                arr = np.array([actions[a] for a in live], dtype=np.float64)
+                arr = np.asarray([actions[a] for a in live])
             except (TypeError, ValueError):
                 arr = None
-            if arr is not None and arr.shape == (len(live), 2):
+            if arr is not None and arr.shape == (len(live), 2) and arr.dtype.kind in "fiu":
+                arr = arr.astype(np.float64, copy=False)
                 peak = np.abs(arr).max(initial=0.0)  # NaN propagates, so this also checks finiteness
-                if peak <= (1.0 + 1e-6 if self.action_range == "strict" else _FLOAT_MAX):
+                if peak <= limit:
                     if len(live) == n_all:
-                        act = arr
+                        act = arr.copy()
                     else:
                         act = np.zeros((n_all, 2))
                         act[self._live_idx] = arr
-                    if self.action_range != "nominal" and peak > 1.0:
+                    if not nominal and peak > 1.0:
                         np.minimum(np.maximum(act, -1.0, out=act), 1.0, out=act)
                     return act
         act = np.zeros((n_all, 2))
@@ -292,25 +291,38 @@ class AASOATTParallelEnv(ParallelEnv):
         if missing:
             raise ActionError(f"actions: missing action for live agent(s) {missing}")
         dead = [a for a in actions if a not in live]
-        if dead:
-            raise ActionError(f"actions: agent(s) {dead} are done and must not act")
-        for agent, a in actions.items():
+        if dead and not self._warned_dead:
+            self._warned_dead = True
+            warnings.warn(
+                f"actions for agent(s) that are done are ignored ({dead}); this warning is shown once per env",
+                UserWarning, stacklevel=3,
+            )
+        for agent in live:
+            a = actions[agent]
             try:
-                arr = np.asarray(a, dtype=np.float64)
+                arr = np.asarray(a)
             except (TypeError, ValueError):
-                raise ActionError(f"actions[{agent!r}]: got {a!r}, expected an array of 2 numbers") from None
+                raise ActionError(f"actions[{agent!r}]: got {a!r}, expected an array of 2 real numbers") from None
+            if arr.dtype.kind not in "fiu":
+                raise ActionError(f"actions[{agent!r}]: got {a!r} (dtype {arr.dtype}), expected 2 real numbers")
             if arr.shape != (2,):
                 raise ActionError(f"actions[{agent!r}]: got shape {arr.shape}, expected (2,)")
+            arr = arr.astype(np.float64)
             if not np.all(np.isfinite(arr)):
                 raise ActionError(
                     f"actions[{agent!r}]: got non-finite values {arr.tolist()}, expected finite numbers"
                 )
-            if self.action_range == "strict" and np.any(np.abs(arr) > 1.0 + 1e-6):
+            if not (nominal or self.clip_actions) and np.any(np.abs(arr) > 1.0 + 1e-6):
                 raise ActionError(
                     f"actions[{agent!r}]: got {arr.tolist()}, expected values in [-1, 1] (or clip_actions=True)"
                 )
+            if nominal and np.any(np.abs(arr) > _NOMINAL_MAX):
+                raise ActionError(
+                    f"actions[{agent!r}]: got {arr.tolist()}, expected a nominal within [-{_NOMINAL_MAX:g}, "
+                    f"{_NOMINAL_MAX:g}] (in units of the wheel-acceleration bound; the filter keeps the bounds)"
+                )
             act[self._index[agent]] = arr
-        return act if self.action_range == "nominal" else np.minimum(np.maximum(act, -1.0, out=act), 1.0, out=act)
+        return act if nominal else np.minimum(np.maximum(act, -1.0, out=act), 1.0, out=act)
 
     def _nominal_du(self, act: np.ndarray, kin: Kinematics) -> np.ndarray:
         if self.action_mode == "wheel":
@@ -320,13 +332,14 @@ class AASOATTParallelEnv(ParallelEnv):
 
     @property
     def _obstacles(self) -> tuple[np.ndarray, np.ndarray]:
-        assert self._layout is not None
-        return self._layout.obstacle_centers, self._layout.obstacle_radii
+        layout = self.layout
+        return layout.obstacle_centers, layout.obstacle_radii
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Apply the actions for ``decision_interval`` physics steps."""
+        self._require_reset("step()")
         if not self.agents:
-            raise ActionError("step() called with no live agents; call reset() first")
+            raise ResetNeeded("step() called with no live agents (the episode is over); call reset() first")
         act = self._parse_actions(actions)
         self._last_action = act
         team, dt = self.team, self.dt
@@ -334,31 +347,25 @@ class AASOATTParallelEnv(ParallelEnv):
         frozen = ~self._active
         any_frozen = bool(frozen.any())
         between = np.full(team.n, np.inf)  # clearance at the physics steps between decisions
+        filt = self._control_filter
+        outputs: list[FilterOutput] = []
+        centers, orad = self._obstacles
         for sub in range(self.decision_interval):
             kin = self._kin
             lo, hi = dynamics.input_bounds(team, self._u, dt)
             du_nom = self._nominal_du(act, kin)
             if any_frozen:
                 du_nom[frozen] = 0.0
-            if self._control_filter is not None:
-                sim = SimState(
-                    self._time,
-                    dt,
-                    team,
-                    kin,
-                    self._u,
-                    self._pose[:, 2],
-                    lo,
-                    hi,
-                    self._layout.reference(self._time),
-                    self._obstacles,
-                    self._active,  # type: ignore[union-attr]
-                )
-                du = np.asarray(self._control_filter(sim, du_nom), dtype=np.float64)
+            if filt is not None:
+                inp = FilterInput(self._time, dt, team, self._pose, self._u, kin, lo, hi,
+                                  self._layout.reference(self._time), centers, orad)  # type: ignore[union-attr]
+                out = filt(inp, du_nom)
+                du = np.asarray(out.du, dtype=np.float64)
                 if du.shape != du_nom.shape or not np.all(np.isfinite(du)):
                     raise ActionError(
                         f"control filter returned shape {du.shape} or non-finite values, expected finite {du_nom.shape}"
                     )
+                outputs.append(out)
             else:
                 du = du_nom
             clipped = np.minimum(np.maximum(du, lo), hi)
@@ -371,21 +378,29 @@ class AASOATTParallelEnv(ParallelEnv):
             self._time += dt
             self._kin = dynamics.kinematics(team, pose, u)
             if sub < self.decision_interval - 1:
-                np.minimum(between, min_gaps(self._kin.p, team.radius, *self._obstacles), out=between)
+                np.minimum(between, min_gaps(self._kin.p, team.radius, centers, orad), out=between)
+        self._filter_outputs = tuple(outputs)
         self._steps += 1
         self._saturated = saturated
         self._trail.append(self._kin.p.copy())
         self._refresh(between if self.decision_interval > 1 else None)
 
         collided = self._clearance < -self.collision_tolerance
-        rewards_arr = self._rewards(act, collided).tolist()
+        correction = None
+        if outputs:
+            corr = outputs[0].correction if len(outputs) == 1 else np.max([o.correction for o in outputs], axis=0)
+            correction = np.asarray(corr) / team.max_wheel_accel
+        goal_dist = None
+        if self.reward_config.goal_bonus:
+            goal_dist = np.hypot(*(self._kin.p - self._layout.reference.goals).T)  # type: ignore[union-attr]
+        rewards_arr = rewards(self.reward_config, self._err, collided, act, goal_dist, correction).tolist()
         truncated = self._steps >= self._max_steps
         live = self.agents
         obs = self._observations()
         infos = self._infos()
         idx = self._index
         all_live = len(live) == len(self.possible_agents)
-        rewards = dict(zip(live, rewards_arr)) if all_live else {a: rewards_arr[idx[a]] for a in live}
+        rewards_d = dict(zip(live, rewards_arr)) if all_live else {a: rewards_arr[idx[a]] for a in live}
         if self.terminate_on_collision:
             terminated_mask = collided & self._active
             terminations = {a: bool(terminated_mask[idx[a]]) for a in live}
@@ -398,7 +413,7 @@ class AASOATTParallelEnv(ParallelEnv):
             self._live_idx = np.array([idx[a] for a in self.agents], dtype=np.intp)
         if self.render_mode == "human":
             self.render()
-        return obs, rewards, terminations, truncations, infos
+        return obs, rewards_d, terminations, truncations, infos
 
     # ------------------------------------------------------------------ outputs
     def _refresh(self, between: np.ndarray | None = None) -> None:
@@ -411,7 +426,7 @@ class AASOATTParallelEnv(ParallelEnv):
         self._prox: Proximity = proximity(
             self._kin.p, self.team.radius, *self._obstacles, k=max(self.num_neighbors, 1)
         )
-        self._err = _row_norms(self._kin.p - self._ref_now[0])
+        self._err = np.hypot(*(self._kin.p - self._ref_now[0]).T)
         self._clearance = self._prox.clearance if between is None else np.minimum(self._prox.clearance, between)
 
     def _observations(self) -> dict[str, np.ndarray]:
@@ -425,8 +440,8 @@ class AASOATTParallelEnv(ParallelEnv):
             p_d=p_d,
             v_d=v_d,
             a_d=a_d,
-            goals=self._layout.reference.goals,
-            radii=self.team.radius,  # type: ignore[union-attr]
+            goals=self._layout.reference.goals,  # type: ignore[union-attr]
+            radii=self.team.radius,
             obstacle_centers=self._obstacles[0],
             obstacle_radii=self._obstacles[1],
             sensing_range=self.sensing_range,
@@ -438,16 +453,6 @@ class AASOATTParallelEnv(ParallelEnv):
             return dict(zip(self.agents, obs))
         idx = self._index
         return {a: obs[idx[a]] for a in self.agents}
-
-    def _rewards(self, act: np.ndarray, collided: np.ndarray) -> np.ndarray:
-        rc = self.reward_config
-        r = -rc.tracking * self._err - rc.collision * collided - rc.effort * 0.5 * np.add.reduce(act * act, axis=1)
-        if rc.goal_bonus:
-            r = r + rc.goal_bonus * (_row_norms(self._kin.p - self.goals) < rc.goal_tolerance)
-        corr = getattr(self._control_filter, "last_correction", None)
-        if rc.correction and corr is not None:
-            r = r - rc.correction * np.asarray(corr) / self.team.max_wheel_accel
-        return r
 
     def _infos(self) -> dict[str, dict[str, Any]]:
         clearance = self._clearance
@@ -471,53 +476,68 @@ class AASOATTParallelEnv(ParallelEnv):
 
     def state(self) -> np.ndarray:
         """Global state: poses (3N), wheel speeds (2N), reference points (2N), velocities (2N), time."""
-        p_d, v_d, _ = self._layout.reference(self._time)  # type: ignore[union-attr]
+        self._require_reset("state()")
+        p_d, v_d, _ = self._ref_now
         return np.concatenate([self._pose.ravel(), self._u.ravel(), p_d.ravel(), v_d.ravel(), [self._time]])
 
     # ------------------------------------------------------------------ properties
     @property
     def positions(self) -> np.ndarray:
         """Control-point positions ``(N, 2)``."""
+        self._require_reset("positions")
         return self._kin.p.copy()
 
     @property
     def velocities(self) -> np.ndarray:
         """Control-point velocities ``(N, 2)``."""
+        self._require_reset("velocities")
         return self._kin.v.copy()
 
     @property
     def headings(self) -> np.ndarray:
         """Headings ``(N,)`` [rad]."""
+        self._require_reset("headings")
         return self._pose[:, 2].copy()
 
     @property
     def poses(self) -> np.ndarray:
         """Axle poses ``(N, 3)``."""
+        self._require_reset("poses")
         return self._pose.copy()
 
     @property
     def wheel_speeds(self) -> np.ndarray:
         """Wheel angular speeds ``(N, 2)`` (double integrator: velocity)."""
+        self._require_reset("wheel_speeds")
         return self._u.copy()
 
     @property
     def radii(self) -> np.ndarray:
         """Robot radii ``(N,)``."""
+        self._require_reset("radii")
         return self.team.radius.copy()
 
     @property
     def goals(self) -> np.ndarray:
         """Final reference points ``(N, 2)``."""
-        return np.asarray(self._layout.reference.goals).copy()  # type: ignore[union-attr]
+        return np.asarray(self.layout.reference.goals).copy()
 
     @property
     def time(self) -> float:
         """Simulated time [s]."""
+        self._require_reset("time")
         return self._time
+
+    @property
+    def max_steps(self) -> int:
+        """Episode length in env steps (the horizon, or ``max_steps``)."""
+        self._require_reset("max_steps")
+        return self._max_steps
 
     @property
     def reference(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Current reference ``(p_d, v_d, a_d)``, each ``(N, 2)``."""
+        self._require_reset("reference")
         p_d, v_d, a_d = self._ref_now
         return p_d.copy(), v_d.copy(), a_d.copy()
 
@@ -530,12 +550,14 @@ class AASOATTParallelEnv(ParallelEnv):
     @property
     def kinematics(self) -> Kinematics:
         """Current control-point kinematics (``p``, ``v``, ``A``, ``A_dot u``)."""
+        self._require_reset("kinematics")
         return self._kin
 
     @property
     def layout(self) -> Layout:
         """The episode's layout (team, starts, reference, obstacles, bounds)."""
-        assert self._layout is not None, "call reset() first"
+        if self._layout is None:
+            raise ResetNeeded("layout: call reset() first")
         return self._layout
 
     # ------------------------------------------------------------------ rendering
@@ -543,20 +565,23 @@ class AASOATTParallelEnv(ParallelEnv):
         """Render the current frame (``rgb_array``: an ``(H, W, 3)`` uint8 array)."""
         if self.render_mode is None:
             return None
+        self._require_reset("render()")
         from aasoatt_env.sim.rendering import Frame, Renderer
 
         if self._renderer is None:
             self._renderer = Renderer()
-        avoiding = getattr(self._control_filter, "last_avoiding", None)
+        avoiding = None
+        if self._filter_outputs:
+            avoiding = np.any([np.asarray(o.avoiding) for o in self._filter_outputs], axis=0)
         frame = Frame(
             positions=self._kin.p,
             headings=self._pose[:, 2],
             radii=self.team.radius,
-            references=self.reference[0],
+            references=self._ref_now[0],
             goals=self.goals,
             obstacle_centers=self._obstacles[0],
             obstacle_radii=self._obstacles[1],
-            trails=np.asarray(self._trail[-400:]),
+            trails=np.asarray(self._trail),
             avoiding=avoiding,
             sensing_range=None,
             time=self._time,

@@ -29,20 +29,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["OBS_BOUND", "SELF_DIM", "SLOT_DIM", "Proximity", "build_observations", "k_nearest", "min_gaps", "proximity"]
+from aasoatt_env.model.geometry import KDTREE_MIN_ROBOTS, k_nearest, obstacle_gaps
+
+__all__ = ["OBS_BOUND", "SELF_DIM", "SLOT_DIM", "Proximity", "build_observations", "proximity"]
 
 OBS_BOUND = 100.0
 SELF_DIM = 14
 SLOT_DIM = 6
-_BRUTE_FORCE_MAX = 256
-_FULL_SORT_MAX = 64
-_NEG_RADIUS = np.array([1.0, 1.0, 1.0, 1.0, -1.0])  # up to this many points a full row sort beats argpartition + sort
-
-
-def pairwise_distances(p: np.ndarray) -> np.ndarray:
-    """Centre distances ``(N, N)`` of points ``(N, 2)`` (one complex subtraction)."""
-    z = np.ascontiguousarray(p, dtype=np.float64).view(np.complex128)[:, 0]
-    return np.abs(z[:, None] - z[None, :])
+_NEG_RADIUS = np.array([1.0, 1.0, 1.0, 1.0, -1.0])
 
 
 class Proximity(NamedTuple):
@@ -58,52 +52,17 @@ class Proximity(NamedTuple):
     """Surface gap to the nearest robot or obstacle ``(N,)``; negative when overlapping."""
 
 
-def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Indices ``(N, k)`` and distances ``(N, k)`` of each point's k nearest other points.
-
-    Brute force up to 256 points (also returning the full distance matrix), a
-    k-d tree above (O(N log N) time, O(N k) memory, matrix None).  Missing
-    neighbours (fewer than ``k`` others) get index -1 and distance inf.
-    """
-    n = p.shape[0]
-    kk = min(k, n - 1)
-    if kk <= 0:
-        return np.full((n, k), -1, dtype=np.intp), np.full((n, k), np.inf), None
-    if n <= _BRUTE_FORCE_MAX:
-        d = pairwise_distances(p)
-        d.flat[:: n + 1] = np.inf
-        rows = np.arange(n)[:, None]
-        if n <= _FULL_SORT_MAX or kk >= n - 1:
-            order = np.argsort(d, axis=1)[:, :kk]
-        else:
-            part = np.argpartition(d, kk - 1, axis=1)[:, :kk]
-            order = part[rows, np.argsort(d[rows, part], axis=1)]
-        dk = d[rows, order]
-        if kk == k:
-            return order, dk, d
-        idx = np.full((n, k), -1, dtype=np.intp)
-        dist = np.full((n, k), np.inf)
-        idx[:, :kk], dist[:, :kk] = order, dk
-        return idx, dist, d
-    idx = np.full((n, k), -1, dtype=np.intp)
-    dist = np.full((n, k), np.inf)
-    from scipy.spatial import cKDTree
-
-    dd, ii = cKDTree(p).query(p, k=kk + 1)
-    idx[:, :kk], dist[:, :kk] = ii[:, 1:], dd[:, 1:]
-    return idx, dist, None
-
-
 def proximity(
     p: np.ndarray, radii: np.ndarray, centers: np.ndarray, orad: np.ndarray, k: int = 6
 ) -> Proximity:
-    """Nearest robots and obstacle gaps of every robot.
+    """Nearest robots and obstacle gaps of every robot (:mod:`aasoatt_env.model.geometry`).
 
-    The robot clearance is exact for teams up to 256 robots (all pairs); above,
-    it is taken over the ``max(k, 6)`` nearest centres, exact for equal radii.
+    The robot clearance is exact below ``KDTREE_MIN_ROBOTS`` robots (all pairs);
+    above, it is taken over the ``max(k, 6)`` nearest centres, exact for equal radii.
     """
     n = p.shape[0]
-    idx, dist, full = k_nearest(p, max(k, 6) if n > _BRUTE_FORCE_MAX else k)
+    big = n >= KDTREE_MIN_ROBOTS
+    idx, dist, full = k_nearest(p, max(k, 6) if big else k)
     if full is not None:
         if n <= 1:
             gap = np.full(n, np.inf)
@@ -111,36 +70,16 @@ def proximity(
             gap = np.minimum.reduce(full, axis=1) - 2.0 * radii
         else:
             gap = (full - radii[:, None] - radii[None, :]).min(axis=1)
-        idx, dist = idx[:, :k], dist[:, :k]
     else:
         valid = idx >= 0
         gap = np.where(valid, dist - radii[:, None] - radii[np.where(valid, idx, 0)], np.inf).min(axis=1)
-        idx, dist = idx[:, :k], dist[:, :k]
+    idx, dist = idx[:, :k], dist[:, :k]
     if centers.shape[0]:
-        dx = p[:, 0:1] - centers[:, 0]
-        dy = p[:, 1:2] - centers[:, 1]
-        og = np.sqrt(dx * dx + dy * dy) - radii[:, None] - orad[None, :]
+        og = obstacle_gaps(p, radii, centers, orad)
         gap = np.minimum(gap, og.min(axis=1))
     else:
         og = np.zeros((n, 0))
     return Proximity(idx, dist, og, gap)
-
-
-def min_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, orad: np.ndarray) -> np.ndarray:
-    """Clearance ``(N,)`` only (cheaper than :func:`proximity`; used between decisions)."""
-    n = p.shape[0]
-    if n > _BRUTE_FORCE_MAX:
-        return proximity(p, radii, centers, orad, k=6).clearance
-    gap = np.full(n, np.inf)
-    if n > 1:
-        g = pairwise_distances(p) - radii[:, None] - radii[None, :]
-        g.flat[:: n + 1] = np.inf
-        gap = g.min(axis=1)
-    if centers.shape[0]:
-        dx = p[:, 0:1] - centers[:, 0]
-        dy = p[:, 1:2] - centers[:, 1]
-        gap = np.minimum(gap, (np.sqrt(dx * dx + dy * dy) - radii[:, None] - orad[None, :]).min(axis=1))
-    return gap
 
 
 def build_observations(

@@ -22,8 +22,8 @@ from typing import Literal, Protocol
 
 import numpy as np
 
+from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.model.params import check_positive
 
 __all__ = [
     "FunctionReference",
@@ -82,7 +82,7 @@ class LinearReference:
     ) -> None:
         self.starts = _points("starts", starts)
         self.goals = _points("goals", goals, self.starts.shape[0])
-        self.duration = check_positive("duration", duration)
+        self.duration = check.positive("duration", duration, hi=1e6)
         if profile not in ("linear", "smooth"):
             raise ConfigError(f"profile: got {profile!r}, expected 'linear' or 'smooth'")
         self.profile = profile
@@ -115,12 +115,15 @@ class WaypointReference:
     """
 
     def __init__(self, waypoints: np.ndarray, times: np.ndarray) -> None:
-        wp = np.asarray(waypoints, dtype=np.float64)
+        try:
+            wp = np.asarray(waypoints, dtype=np.float64)
+            ts = np.asarray(times, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ConfigError("waypoints/times: expected numeric arrays (N, K, 2) and (K,)") from None
         if wp.ndim == 2:
             wp = wp[None]
         if wp.ndim != 3 or wp.shape[2] != 2 or wp.shape[1] < 2:
             raise ConfigError(f"waypoints: got shape {np.shape(waypoints)}, expected (N, K, 2) with K >= 2")
-        ts = np.asarray(times, dtype=np.float64)
         if ts.shape != (wp.shape[1],) or np.any(np.diff(ts) <= 0) or not np.all(np.isfinite(ts)):
             raise ConfigError(
                 f"times: got {ts.tolist()}, expected {wp.shape[1]} strictly increasing finite times"
@@ -171,8 +174,8 @@ class FunctionReference:
         if not callable(position):
             raise ConfigError(f"position: got {type(position).__name__}, expected a callable t -> (N, 2)")
         self._p, self._v, self._a = position, velocity, acceleration
-        self.duration = check_positive("duration", duration)
-        self.h = check_positive("h", h)
+        self.duration = check.positive("duration", duration, hi=1e6)
+        self.h = check.positive("h", h, hi=1.0)
         self.goals = _points("position(duration)", position(self.duration))
 
     def __call__(self, t: float) -> RefTriple:
@@ -202,6 +205,10 @@ def as_reference(value: object, n: int, duration: float | None = None) -> Refere
             raise ConfigError("reference: a callable reference needs duration=..., got None")
         ref = FunctionReference(value, duration)  # type: ignore[arg-type]
     elif isinstance(value, dict) and "waypoints" in value:
+        if "times" not in value:
+            raise ConfigError(
+                "reference: got waypoints without 'times', expected {'waypoints': (N, K, 2), 'times': (K,)}"
+            )
         ref = WaypointReference(value["waypoints"], value["times"])
     else:
         raise ConfigError(

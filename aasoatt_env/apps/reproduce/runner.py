@@ -12,7 +12,6 @@ deterministic).
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import time
 from dataclasses import dataclass, field
@@ -20,7 +19,13 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["RunResult", "RunSpec", "run_many", "run_spec", "window"]
+from aasoatt_env.analysis.metrics import pairwise_min_distance, summarize
+from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.api.factory import make_env
+from aasoatt_env.safety.config import FilterConfig
+from agents.baselines import PDController, TrackingController
+
+__all__ = ["RunResult", "RunSpec", "run_many", "run_spec"]
 
 #: Largest number of time samples kept for figures.
 MAX_SAMPLES: int = 800
@@ -42,9 +47,8 @@ class RunSpec:
         Nominal controller: the paper's law (eqn.11-12) or SBC's PD law.
     k3, k4 : float
         Controller gains.
-    filter : dict or None
-        :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` keyword arguments;
-        None runs the bare env with saturated actions.
+    filter : FilterConfig or None
+        The safety filter's configuration; None runs the bare env with saturated actions.
     seed : int
         Reset seed (the circle scenarios are deterministic anyway).
     window : float or None
@@ -59,7 +63,7 @@ class RunSpec:
     controller: str = "tracking"
     k3: float = 1.0
     k4: float = 4.0
-    filter: dict[str, Any] | None = None
+    filter: FilterConfig | None = None
     seed: int = 0
     window: float | None = None
     meta: dict[str, Any] = field(default_factory=dict)
@@ -89,51 +93,7 @@ class RunResult:
     traces: dict[str, np.ndarray]
 
 
-def window(rollout: Any, t_end: float | None) -> Any:
-    """The part of ``rollout`` recorded at times ``<= t_end`` (the rollout itself if None).
-
-    Parameters
-    ----------
-    rollout : Rollout
-        A recorded episode.
-    t_end : float or None
-        End of the window [s].
-
-    Returns
-    -------
-    Rollout
-        A new rollout with every per-step field cut.
-    """
-    if t_end is None:
-        return rollout
-    k = int(np.searchsorted(rollout.times, t_end + 1e-9, side="right"))
-    if k >= rollout.n_steps:
-        return rollout
-    cut: dict[str, Any] = {}
-    for name in (
-        "times",
-        "positions",
-        "velocities",
-        "headings",
-        "references",
-        "reference_velocities",
-        "nominal_actions",
-        "actions",
-        "avoiding",
-        "triggered",
-        "solver_status",
-        "slack",
-        "solve_time",
-    ):
-        value = getattr(rollout, name)
-        if value is not None:
-            cut[name] = value[:k]
-    return dataclasses.replace(rollout, **cut)
-
-
 def _make_agent(spec: RunSpec) -> Any:
-    from agents.baselines import PDController, TrackingController
-
     saturate = spec.filter is None
     if spec.controller == "tracking":
         return TrackingController(spec.k3, spec.k4, saturate=saturate)
@@ -144,20 +104,12 @@ def _make_agent(spec: RunSpec) -> Any:
 
 def run_spec(spec: RunSpec) -> RunResult:
     """Simulate one :class:`RunSpec` (see module docstring)."""
-    from aasoatt_env.sim.env import AASOATTParallelEnv
-    from aasoatt_env.analysis.metrics import pairwise_min_distance, summarize
-    from aasoatt_env.analysis.recording import run_episode
-
     t0 = time.perf_counter()
-    env: Any = AASOATTParallelEnv(spec.scenario, **spec.scenario_kwargs)
-    if spec.filter is not None:
-        from aasoatt_env.safety.wrapper import AASOATTFilter
-
-        env = AASOATTFilter(env, **spec.filter)
+    env = make_env(spec.scenario, filter=spec.filter, **spec.scenario_kwargs)
     rollout, _ = run_episode(env, _make_agent(spec), seed=spec.seed, metadata={"key": spec.key})
     wall = time.perf_counter() - t0
 
-    part = window(rollout, spec.window)
+    part = rollout.window(spec.window)
     metrics = summarize(part)
     full = metrics if part is rollout else summarize(rollout)
     for k in ("final_error_mean", "final_error_max", "reach_rate", "n_deadlocked"):

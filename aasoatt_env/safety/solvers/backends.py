@@ -1,19 +1,22 @@
 """Back-ends of the safety QP and their registry (:data:`SOLVERS`, by name).
 
 Each back-end takes a :class:`~aasoatt_env.safety.problem.QPProblem`, an optional
-warm start and options, and returns a raw answer; :func:`aasoatt_env.safety.solvers.policy.solve_qp`
-turns it into a result (confirming infeasibility verdicts, relaxing rows).
+warm start and options, and returns a raw answer (:class:`RawAnswer`); it never
+falls back to anything by itself.  What to do with an answer, or with no answer
+(fallbacks, confirming infeasibility verdicts, relaxing rows, switching paths
+after a stall), is decided in one place: :mod:`aasoatt_env.safety.solvers.policy`.
+Each registry entry (:class:`Backend`) says what the policy needs to know: the
+module it imports, whether its answer is exact, and which back-ends answer when
+it gives none.
 
 ``proxsuite`` (default)
     Dense ``PrimalDualLDLT`` with native box constraints up to
     :data:`DENSE_MAX_SIZE` variables + rows, sparse ``SparseCholesky`` (box as
     rows) above.  Settings from SPEC section 4: tight ``eps_primal_inf`` /
     ``eps_dual_inf``, ``check_duality_gap`` with a tight gap; a bounded iteration
-    budget (:data:`PROX_MAX_ITER`, :data:`PROX_MAX_ITER_IN`).  When proxsuite
-    runs out of iterations or calls the problem infeasible, the exact ``ldp``
-    solver answers instead (up to :data:`~aasoatt_env.safety.solvers.ldp.MAX_VARS`
-    variables; above, the other proxsuite back-end is tried).  The message says
-    which solver answered.
+    budget (:data:`PROX_MAX_ITER`, :data:`PROX_MAX_ITER_IN`).  Option
+    ``alternate=True`` uses the other of the two classes (proxsuite's dense and
+    sparse classes stall on different problems).
 ``ldp``
     Exact least-distance programming by NNLS (Lawson-Hanson, scipy), KKT-verified
     (:mod:`aasoatt_env.safety.solvers.ldp`); needs only the core dependencies; dense, for
@@ -41,12 +44,20 @@ import numpy as np
 import scipy.sparse as sp
 
 from aasoatt_env.errors import SolverError
-from aasoatt_env.safety.solvers.ldp import FEAS_TOL as LDP_FEAS_TOL
-from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
-from aasoatt_env.safety.solvers.ldp import solve_ldp
 from aasoatt_env.safety.problem import QPProblem
+from aasoatt_env.safety.solvers.ldp import FEAS_TOL as LDP_FEAS_TOL
+from aasoatt_env.safety.solvers.ldp import solve_ldp
 
-__all__ = ["DENSE_MAX_SIZE", "PROX_MAX_ITER", "PROX_MAX_ITER_IN", "SOLVERS", "available_solvers", "get_solver"]
+__all__ = [
+    "DENSE_MAX_SIZE",
+    "PROX_MAX_ITER",
+    "PROX_MAX_ITER_IN",
+    "SOLVERS",
+    "Backend",
+    "RawAnswer",
+    "available_solvers",
+    "get_solver",
+]
 
 DENSE_MAX_SIZE: int = 600
 """Largest ``n + m`` (variables + rows) solved with proxsuite's dense class.
@@ -67,13 +78,18 @@ _INF = 1e20
 
 
 @dataclass
-class _Raw:
+class RawAnswer:
+    """What a back-end returns: a point and multipliers in scaled coordinates, or no answer."""
+
     x: np.ndarray | None
     z: np.ndarray | None
     ok: bool
+    """True when ``x`` is the back-end's answer to the problem as posed."""
     iterations: int
     message: str
-    fallback: bool = False
+    stalled: bool = False
+    """True when the back-end ran out of its iteration budget (no verdict on the problem)."""
+
 
 
 def _prox_settings(settings: object, eps: float) -> None:
@@ -89,15 +105,15 @@ def _prox_settings(settings: object, eps: float) -> None:
     settings.verbose = False
 
 
-def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     import proxsuite
 
     px = proxsuite.proxqp
     eps = float(opts.get("eps", 1e-9))
     n, m = prob.n, prob.m
-    dense = opts.get("dense")
-    if dense is None:
-        dense = n + m <= DENSE_MAX_SIZE
+    dense = n + m <= DENSE_MAX_SIZE
+    if opts.get("alternate"):
+        dense = not dense
     if dense:
         d = px.dense
         htype = d.HessianType.Diagonal if prob.diagonal else d.HessianType.Dense
@@ -124,30 +140,16 @@ def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, op
     x = np.array(r.x)
     if ok and not np.all(np.isfinite(x)):
         ok = False
-    raw = _Raw(x, np.array(r.z)[:m], ok, int(r.info.iter), str(st).rsplit(".", 1)[-1])
-    if ok or not opts.get("fallback", True):
-        return raw
-    # proxsuite ran out of iterations or called the problem infeasible: ask the exact
-    # least-distance solver (finite active-set method, KKT-verified) before anything else
-    if prob.n <= LDP_MAX_VARS:
-        nxt = _ldp(prob, x0, z0, opts)
-        nxt.fallback = True
-    elif st == px.PROXQP_MAX_ITER_REACHED and opts.get("dense") is None:
-        # too large for ldp: the two back-ends stall on different problems, try the other
-        nxt = _proxsuite(prob, x0, z0, {**opts, "dense": not dense, "fallback": False})
-    else:
-        return raw
-    nxt.iterations += raw.iterations
-    nxt.message = f"{raw.message} ({'dense' if dense else 'sparse'}), then {nxt.message}"
-    return nxt
+    message = f"{str(st).rsplit('.', 1)[-1]} ({'dense' if dense else 'sparse'})"
+    return RawAnswer(x, np.array(r.z)[:m], ok, int(r.info.iter), message, stalled=st == px.PROXQP_MAX_ITER_REACHED)
 
 
-def _ldp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+def _ldp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     x, z, message = solve_ldp(prob, float(opts.get("ldp_feas_tol", LDP_FEAS_TOL)))
-    return _Raw(x, z, x is not None, 0, message)
+    return RawAnswer(x, z, x is not None, 0, message)
 
 
-def _neural(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+def _neural(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     iters = int(opts.get("iterations", 1))
     step = float(opts.get("step", 1.0))
     x = np.zeros(prob.n) if x0 is None else np.clip(x0, prob.lb, prob.ub)
@@ -158,10 +160,10 @@ def _neural(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts:
         grad = np.einsum("nij,nj->ni", Hb, x.reshape(-1, 2)).ravel() + prob.g + CT @ z
         x = np.clip(x - step * grad, prob.lb, prob.ub)
         z = np.maximum(0.0, z + step * (C @ x - prob.u))
-    return _Raw(x, z, True, iters, f"neural ({iters} iterations)")
+    return RawAnswer(x, z, True, iters, f"neural ({iters} iterations)")
 
 
-def _quadprog(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+def _quadprog(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     import quadprog
 
     n, m = prob.n, prob.m
@@ -170,11 +172,11 @@ def _quadprog(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opt
     try:
         x, _, _, it, lagr, _ = quadprog.solve_qp(prob.H_dense(), -prob.g, Ct, b, 0)
     except ValueError as exc:
-        return _Raw(None, None, False, 0, str(exc))
-    return _Raw(np.asarray(x), np.asarray(lagr)[:m], True, int(it[0]), "solved")
+        return RawAnswer(None, None, False, 0, str(exc))
+    return RawAnswer(np.asarray(x), np.asarray(lagr)[:m], True, int(it[0]), "solved")
 
 
-def _clarabel(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+def _clarabel(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     import clarabel
 
     n, m = prob.n, prob.m
@@ -187,7 +189,7 @@ def _clarabel(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opt
                                     [clarabel.NonnegativeConeT(m + 2 * n)], s)
     sol = solver.solve()
     ok = str(sol.status) in ("Solved", "AlmostSolved")
-    return _Raw(np.asarray(sol.x), np.asarray(sol.z)[:m], ok, int(sol.iterations), str(sol.status))
+    return RawAnswer(np.asarray(sol.x), np.asarray(sol.z)[:m], ok, int(sol.iterations), str(sol.status))
 
 
 @contextlib.contextmanager
@@ -209,7 +211,7 @@ def _c_stdout_silenced():
         os.close(saved)
 
 
-def _osqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+def _osqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     import osqp
 
     n, m = prob.n, prob.m
@@ -226,11 +228,11 @@ def _osqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
         res = solver.solve()
     status = str(res.info.status)
     ok = status.lower().startswith("solved") and res.x is not None and np.all(np.isfinite(res.x))
-    return _Raw(np.asarray(res.x), np.asarray(res.y)[:m] if res.y is not None else None,
+    return RawAnswer(np.asarray(res.x), np.asarray(res.y)[:m] if res.y is not None else None,
                 ok, int(res.info.iter), status)
 
 
-def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     import ctypes
 
     import daqp
@@ -243,10 +245,10 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
     x, _, exitflag, info = daqp.solve(prob.H_dense(), prob.g, A, bu, bl, sense)
     ok = exitflag >= 1
     lam = np.asarray(info.get("lam", np.zeros(n + m)))[n:]
-    return _Raw(np.asarray(x), np.maximum(lam, 0.0), ok, int(info.get("iter", 0)), f"exitflag {exitflag}")
+    return RawAnswer(np.asarray(x), np.maximum(lam, 0.0), ok, int(info.get("iter", 0)), f"exitflag {exitflag}")
 
 
-def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> _Raw:
+def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     import cvxopt
 
     cvxopt.solvers.options["show_progress"] = False
@@ -259,25 +261,51 @@ def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts:
     try:
         sol = cvxopt.solvers.qp(P, cvxopt.matrix(prob.g), Gm, h)
     except (ValueError, ArithmeticError) as exc:
-        return _Raw(None, None, False, 0, str(exc))
+        return RawAnswer(None, None, False, 0, str(exc))
     ok = sol["status"] == "optimal"
-    return _Raw(np.asarray(sol["x"]).ravel(), np.asarray(sol["z"]).ravel()[:m], ok, int(sol["iterations"]),
+    return RawAnswer(np.asarray(sol["x"]).ravel(), np.asarray(sol["z"]).ravel()[:m], ok, int(sol["iterations"]),
                 str(sol["status"]))
 
 
-Backend = Callable[[QPProblem, "np.ndarray | None", "np.ndarray | None", dict], _Raw]
+BackendFn = Callable[[QPProblem, "np.ndarray | None", "np.ndarray | None", dict], RawAnswer]
 
-SOLVERS: dict[str, tuple[Backend, str]] = {
-    "proxsuite": (_proxsuite, "proxsuite"),
-    "neural": (_neural, ""),
-    "ldp": (_ldp, ""),
-    "quadprog": (_quadprog, "quadprog"),
-    "clarabel": (_clarabel, "clarabel"),
-    "osqp": (_osqp, "osqp"),
-    "daqp": (_daqp, "daqp"),
-    "cvxopt": (_cvxopt, "cvxopt"),
+
+@dataclass(frozen=True)
+class Backend:
+    """A registered QP back-end and what the solver policy needs to know about it."""
+
+    solve: BackendFn
+    """``solve(problem, x0, z0, options) -> RawAnswer``."""
+    module: str = ""
+    """Module it imports (empty: core dependencies only)."""
+    exact: bool = True
+    """True when an answer is the QP's optimum (to the back-end's tolerance); False for
+    approximations (``neural``), whose answers are passed through unverified."""
+    fallbacks: tuple[tuple[str, bool, dict], ...] = ()
+    """``(back-end, only_after_a_stall, options)`` tried in order when this one gives no answer."""
+    may_stall: bool = False
+    """True when the back-end can run out of iterations on these problems (then the
+    policy takes the exact path for a while, see :class:`~aasoatt_env.safety.solvers.policy.SolverPolicy`)."""
+
+    def __call__(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
+        """Run the back-end."""
+        return self.solve(prob, x0, z0, opts)
+
+
+SOLVERS: dict[str, Backend] = {
+    "proxsuite": Backend(
+        _proxsuite, "proxsuite", may_stall=True,
+        fallbacks=(("ldp", False, {}), ("proxsuite", True, {"alternate": True})),
+    ),
+    "neural": Backend(_neural, exact=False),
+    "ldp": Backend(_ldp),
+    "quadprog": Backend(_quadprog, "quadprog"),
+    "clarabel": Backend(_clarabel, "clarabel"),
+    "osqp": Backend(_osqp, "osqp"),
+    "daqp": Backend(_daqp, "daqp"),
+    "cvxopt": Backend(_cvxopt, "cvxopt"),
 }
-"""Solver registry: name -> (back-end, module it needs)."""
+"""Solver registry: name -> :class:`Backend`.  Adding a solver is one function and one line here."""
 
 
 @functools.cache
@@ -287,14 +315,16 @@ def _installed(module: str) -> bool:
 
 def available_solvers() -> list[str]:
     """Names of the registered solvers whose module is importable."""
-    return [k for k, (_, mod) in SOLVERS.items() if _installed(mod)]
+    return [k for k, b in SOLVERS.items() if _installed(b.module)]
 
 
 def get_solver(name: str) -> Backend:
     """Back-end ``name``, or :class:`SolverError` listing the available ones."""
-    if name not in SOLVERS:
+    if not isinstance(name, str) or name not in SOLVERS:
         raise SolverError(f"solver: got {name!r}, expected one of {available_solvers()}")
-    fn, mod = SOLVERS[name]
-    if not _installed(mod):
-        raise SolverError(f"solver {name!r} is not installed (pip install {mod}); available: {available_solvers()}")
-    return fn
+    backend = SOLVERS[name]
+    if not _installed(backend.module):
+        raise SolverError(
+            f"solver {name!r} is not installed (pip install {backend.module}); available: {available_solvers()}"
+        )
+    return backend

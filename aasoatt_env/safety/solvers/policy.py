@@ -1,18 +1,30 @@
-"""The safety QP: :func:`solve_qp`, which never raises on numerical trouble and never returns NaN.
+"""The whole solver policy of the safety QP: which back-end answers which problem, and what happens without an answer.
 
-The problem and its scaled canonical form are in :mod:`aasoatt_env.safety.problem`,
-the solvers (by name, :data:`SOLVERS`) in :mod:`aasoatt_env.safety.solvers.backends`.
-With ``solver="proxsuite"``, ``active_set=True`` and a warm start (``x0``, ``z0``
-from the previous step) :func:`solve_qp` first tries a few iterations of the
-exact structured active-set method of :mod:`aasoatt_env.safety.solvers.active_set`,
-accepted only when the full KKT conditions hold.
+:func:`solve_qp` never raises on numerical trouble and never returns NaN.  In order:
 
-Infeasibility verdicts are never trusted: :func:`solve_qp` confirms them with a
-phase-1 problem ``min |s|^2 s.t. box, C x - s <= u, s >= 0`` (always feasible;
-bounds stay hard; one slack per row, so only the rows that cannot be met are
-loosened).  If every least violation ``s*_k`` is ~0 the problem is re-solved
-with rows loosened by a hair (status ``"solved"``), otherwise each row by its
-own ``s*_k`` (status ``"relaxed"``, ``slack = max_k s*_k``).
+1. a problem without rows and with diagonal Hessian blocks is solved in closed form;
+2. an approximate back-end (``Backend.exact`` False, the paper's ``neural``) is
+   run and its point passed through as it is;
+3. with ``active_set=True`` or ``prefer_exact=True`` and a warm start, the exact
+   structured active-set method (:mod:`~aasoatt_env.safety.solvers.active_set`)
+   is tried first and accepted only where the KKT conditions hold;
+   ``prefer_exact`` then also asks the exact ``ldp`` solver before the back-end;
+4. the back-end; where it gives no answer, its registered fallbacks
+   (:attr:`~aasoatt_env.safety.solvers.backends.Backend.fallbacks`; for
+   proxsuite: the exact ``ldp`` solver, then after a stall proxsuite's other class);
+5. infeasibility verdicts are never trusted: a phase-1 problem
+   ``min |s|^2 s.t. box, C x - s <= u, s >= 0`` (always feasible; bounds stay
+   hard; one slack per row, so only the rows that cannot be met are loosened)
+   finds the least violation of each row.  If every least violation is ~0 the
+   problem is re-solved with rows loosened by a hair (status ``"solved"``),
+   otherwise each row by its own violation (status ``"relaxed"``,
+   ``slack = max_k s*_k``).
+
+:class:`SolverPolicy` adds the one piece of memory: after a back-end that may
+stall (``Backend.may_stall``) needed a fallback, or was slow where ``ldp`` is
+at least twice as fast on the same problem (a timing probe), the next
+:data:`EXACT_STEPS` calls take the exact path first (step 3 with
+``prefer_exact``), doubling on repeated switches.
 """
 
 from __future__ import annotations
@@ -23,25 +35,22 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from aasoatt_env.safety.solvers import backends as _backends
+from aasoatt_env.safety.problem import QPProblem
 from aasoatt_env.safety.solvers.active_set import solve_active_set
-from aasoatt_env.safety.solvers.backends import DENSE_MAX_SIZE, SOLVERS, Backend, _clarabel, _ldp, available_solvers, get_solver
+from aasoatt_env.safety.solvers.backends import Backend, RawAnswer, available_solvers, get_solver
 from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
-from aasoatt_env.safety.problem import QPProblem, box_least_squares, build_problem
 
-__all__ = [
-    "DENSE_MAX_SIZE",
-    "QPProblem",
-    "QPSolution",
-    "SOLVERS",
-    "available_solvers",
-    "box_least_squares",
-    "build_problem",
-    "get_solver",
-    "solve_qp",
-]
+__all__ = ["EXACT_STEPS", "SLOW_SOLVE_S", "QPSolution", "SolverPolicy", "solve_qp"]
 
 _FEAS_TOL = 1e-7
+
+EXACT_STEPS: int = 200
+"""Calls for which :class:`SolverPolicy` goes straight to the exact path after a stall
+or a slow solve: a back-end that stalls on a congested problem (proxsuite on a 60-robot
+circle swap) stalls on the next ones too, and each stall costs its whole iteration
+budget.  Doubled on each repeated switch (up to 16x)."""
+SLOW_SOLVE_S: float = 0.05
+"""A solve slower than this [s] triggers the ``ldp`` timing probe."""
 
 
 @dataclass
@@ -51,12 +60,35 @@ class QPSolution:
     x: np.ndarray
     z: np.ndarray
     status: str
+    """``"solved"``, ``"relaxed"`` (rows loosened by ``slack``) or ``"failed"``."""
     slack: float
     iterations: int
     message: str
+    """Which back-end answered, and why."""
     solve_time: float
     fallback: bool = False
-    """True when proxsuite gave no answer and the exact ``ldp`` solver did."""
+    """True when the requested back-end gave no answer and a registered fallback did."""
+    exact: bool = True
+    """False when an approximate back-end answered (its point is not verified)."""
+
+
+def _answer(prob: QPProblem, backend: Backend, x0: np.ndarray | None, z0: np.ndarray | None,
+            opts: dict) -> tuple[RawAnswer, bool]:
+    """The back-end's answer, or its fallbacks' (``(raw, used_fallback)``)."""
+    raw = backend(prob, x0, z0, opts)
+    if raw.ok:
+        return raw, False
+    iterations, messages = raw.iterations, [raw.message]
+    for name, after_stall, extra in backend.fallbacks:
+        if after_stall and not raw.stalled:
+            continue
+        nxt = get_solver(name)(prob, x0, z0, {**opts, **extra})
+        iterations += nxt.iterations
+        messages.append(nxt.message)
+        if nxt.ok:
+            nxt.iterations, nxt.message = iterations, ", then ".join(messages)
+            return nxt, True
+    return RawAnswer(raw.x, raw.z, False, iterations, ", then ".join(messages), raw.stalled), False
 
 
 def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, np.ndarray] | None:
@@ -89,12 +121,11 @@ def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, 
     )
     # the phase-1 point is only used through its recomputed violations: an exact solver's
     # point is accepted at a looser feasibility (the 1e-8 regulariser conditions it badly)
-    raw = backend(p1, None, None, {**opts, "ldp_feas_tol": 1e-6})
+    raw, _ = _answer(p1, backend, None, None, {**opts, "ldp_feas_tol": 1e-6})
+    if (not raw.ok or raw.x is None) and "clarabel" in available_solvers() and backend is not get_solver("clarabel"):
+        raw = get_solver("clarabel")(p1, None, None, opts)
     if not raw.ok or raw.x is None:
-        if backend is not _clarabel and _backends._installed("clarabel"):
-            raw = _clarabel(p1, None, None, opts)
-        if not raw.ok or raw.x is None:
-            return None
+        return None
     x = np.clip(raw.x[:n], prob.lb, prob.ub)
     viol = np.maximum(prob.C @ x - prob.u, 0.0)
     return x, viol
@@ -107,41 +138,38 @@ def solve_qp(
     z0: np.ndarray | None = None,
     **opts: float,
 ) -> QPSolution:
-    """Solve ``prob``; never raises on numerical trouble, never returns NaN.
-
-    Returns status ``"solved"``, ``"relaxed"`` (rows loosened by ``slack``,
-    in normalised row units) or ``"failed"`` (``x`` is then the clipped unconstrained optimum).
+    """Solve ``prob`` (module docstring); never raises on numerical trouble, never returns NaN.
 
     Options (``**opts``): ``eps`` (proxsuite/OSQP tolerance), ``iterations`` and
-    ``step`` (``neural``), ``dense`` (force a proxsuite back-end), ``active_set``
-    (proxsuite: first the warm-started exact active-set method), ``prefer_exact``
-    (proxsuite: first the warm active set, then ``ldp``, proxsuite only if both
-    fail; what :class:`~aasoatt_env.safety.core.SafetyFilter` asks for in the
-    steps after proxsuite needed the fallback).
+    ``step`` (``neural``), ``alternate`` (proxsuite's other class),
+    ``active_set`` (first the warm-started exact active-set method),
+    ``prefer_exact`` (first the warm active set, then ``ldp``, the back-end only
+    if both fail).
     """
     backend = get_solver(solver)
     t0 = time.perf_counter()
-    if prob.m == 0 and prob.diagonal and solver != "neural":
+    if prob.m == 0 and prob.diagonal and backend.exact:
         x = np.clip(_unconstrained(prob), prob.lb, prob.ub)
         return QPSolution(x, np.zeros(0), "solved", 0.0, 0, "no rows", time.perf_counter() - t0)
-    if solver == "neural":
+    if not backend.exact:
         raw = backend(prob, x0, z0, opts)
-        return QPSolution(raw.x, raw.z, "solved", 0.0, raw.iterations, raw.message, time.perf_counter() - t0)
-    exact_first = solver == "proxsuite" and bool(opts.get("prefer_exact")) and prob.n <= LDP_MAX_VARS
-    if solver == "proxsuite" and x0 is not None and z0 is not None and (opts.get("active_set") or exact_first):
+        return QPSolution(raw.x, raw.z, "solved", 0.0, raw.iterations, raw.message, time.perf_counter() - t0,
+                          exact=False)
+    exact_first = bool(opts.get("prefer_exact")) and prob.n <= LDP_MAX_VARS
+    if x0 is not None and z0 is not None and (opts.get("active_set") or exact_first):
         fast = solve_active_set(prob, x0, z0)
         if fast is not None:
             return QPSolution(fast[0], fast[1], "solved", 0.0, fast[2], "active set (warm, KKT verified)",
                               time.perf_counter() - t0)
     if exact_first:
-        raw = _ldp(prob, x0, z0, opts)
+        raw = get_solver("ldp")(prob, x0, z0, opts)
         if raw.ok:
             return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, 0,
-                              f"{raw.message}; proxsuite skipped (prefer_exact)", time.perf_counter() - t0)
-    raw = backend(prob, x0, z0, opts)
+                              f"{raw.message}; {solver} skipped (prefer_exact)", time.perf_counter() - t0)
+    raw, used_fallback = _answer(prob, backend, x0, z0, opts)
     if raw.ok:
         return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message,
-                          time.perf_counter() - t0, raw.fallback)
+                          time.perf_counter() - t0, used_fallback)
     first = raw.message
     p1 = _phase1(prob, backend, opts)
     if p1 is None:
@@ -154,15 +182,78 @@ def solve_qp(
     loosen = viol * (1.0 + 1e-6) + _FEAS_TOL
     p2 = QPProblem(prob.H_blocks, prob.g, prob.C, prob.u + loosen, prob.lb, prob.ub, prob.scale,
                    prob.obj_scale, prob.row_norm, prob.diagonal)
-    raw2 = backend(p2, x1, None, opts)
+    raw2, fb2 = _answer(p2, backend, x1, None, opts)
     status = "relaxed" if relaxed else "solved"
     msg = f"{solver}: {first}; phase-1 largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
     if raw2.ok:
         return QPSolution(raw2.x, _nonneg(raw2.z, prob.m), status, tstar if relaxed else 0.0,
-                          raw.iterations + raw2.iterations, msg, time.perf_counter() - t0,
-                          raw.fallback or raw2.fallback)
+                          raw.iterations + raw2.iterations, msg, time.perf_counter() - t0, used_fallback or fb2)
     return QPSolution(x1, np.zeros(prob.m), "relaxed", tstar, raw.iterations + raw2.iterations,
                       msg + "; phase-2 failed, returning the phase-1 point", time.perf_counter() - t0)
+
+
+class SolverPolicy:
+    """:func:`solve_qp` with memory: the exact path for a while after a stall or a slow solve.
+
+    Parameters
+    ----------
+    solver : str
+        Registered back-end name.
+    active_set : bool
+        Always try the warm-started exact active-set method first.
+    options : dict, optional
+        Back-end options (e.g. ``iterations`` of ``neural``).
+    """
+
+    def __init__(self, solver: str, active_set: bool = False, options: dict | None = None) -> None:
+        self.solver = solver
+        self.backend = get_solver(solver)
+        self.active_set = bool(active_set)
+        self.options = dict(options or {})
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the switch state."""
+        self._exact_steps = 0
+        self._stalls = 0
+
+    @property
+    def exact(self) -> bool:
+        """Whether the back-end's answers are exact."""
+        return self.backend.exact
+
+    def solve(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None) -> QPSolution:
+        """Solve ``prob``, warm-started from ``(x0, z0)`` where the back-end uses them."""
+        opts = dict(self.options)
+        if self.active_set:
+            opts["active_set"] = True
+        if not self.backend.may_stall:
+            return solve_qp(prob, self.solver, x0, z0, **opts)
+        if self._exact_steps > 0:
+            self._exact_steps -= 1
+            return solve_qp(prob, self.solver, x0, z0, prefer_exact=True, **opts)
+        sol = solve_qp(prob, self.solver, x0, z0, **opts)
+        self._adapt(prob, sol)
+        return sol
+
+    def _adapt(self, prob: QPProblem, sol: QPSolution) -> None:
+        """Switch to the exact path if the back-end stalled, or was slow where ``ldp`` is faster.
+
+        A stall (``sol.fallback``) switches at once; a solve slower than
+        :data:`SLOW_SOLVE_S` switches only if ``ldp`` solves the same problem in
+        less than half the time (its answer, exact too, is discarded).  The
+        switch lasts ``EXACT_STEPS * 2**k`` calls, ``k`` the number of switches
+        since the back-end last ran fast.
+        """
+        switch = sol.fallback
+        if not switch and sol.solve_time > SLOW_SOLVE_S and prob.n <= LDP_MAX_VARS:
+            probe = solve_qp(prob, "ldp")
+            switch = probe.status == "solved" and probe.solve_time < 0.5 * sol.solve_time
+        if switch:
+            self._exact_steps = EXACT_STEPS * 2 ** min(self._stalls, 4)
+            self._stalls += 1
+        elif sol.solve_time <= SLOW_SOLVE_S:
+            self._stalls = 0
 
 
 def _nonneg(z: np.ndarray | None, m: int) -> np.ndarray:

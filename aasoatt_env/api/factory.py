@@ -1,0 +1,51 @@
+"""``make_env``: the one constructor of an environment, bare or behind the safety filter.
+
+The command line, the reproduction runner, training, the Gymnasium view and
+the benchmarks all build their envs here, so "env behind a filter" means the
+same thing everywhere.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from aasoatt_env.errors import ConfigError
+from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.wrapper import AASOATTFilter
+from aasoatt_env.sim.env import AASOATTParallelEnv
+from aasoatt_env.sim.scenarios import Scenario
+
+__all__ = ["make_env"]
+
+
+def make_env(
+    scenario: str | Scenario = "circle_swap",
+    *,
+    filter: FilterConfig | Mapping[str, Any] | bool | None = None,
+    infos: str = "nested",
+    **env_kwargs: Any,
+) -> AASOATTParallelEnv | AASOATTFilter:
+    """A PettingZoo parallel env of ``scenario``, behind :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` if asked.
+
+    Parameters
+    ----------
+    scenario : str or Scenario
+        Scenario name or instance.
+    filter : FilterConfig, mapping, bool or None
+        ``None``/``False``: the bare env; ``True``: the filter with its defaults;
+        a :class:`FilterConfig` or a mapping of its fields: the filter so configured.
+    infos : {"nested", "flat"}
+        The filter's info layout (see the wrapper).
+    **env_kwargs
+        :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` and scenario keywords.
+    """
+    env = AASOATTParallelEnv(scenario, **env_kwargs)
+    if filter is None or filter is False:
+        return env
+    if filter is True:
+        return AASOATTFilter(env, infos=infos)
+    if not isinstance(filter, (FilterConfig, Mapping)):
+        raise ConfigError(f"filter: got {filter!r}, expected None, True/False, a FilterConfig or a mapping of "
+                          "its fields")
+    return AASOATTFilter(env, filter, infos=infos)

@@ -1,0 +1,132 @@
+"""What every scenario shares: the :class:`Layout` of an episode, the :class:`Scenario` base and its checks."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import numpy as np
+
+from aasoatt_env import validation as check
+from aasoatt_env.errors import ConfigError, ScenarioError
+from aasoatt_env.model.params import Team
+from aasoatt_env.sim.references import Reference
+
+__all__ = [
+    "MAX_ROBOTS",
+    "Layout",
+    "Scenario",
+    "check_clear_of_obstacles",
+    "check_num_robots",
+    "check_obstacles",
+    "check_settle_time",
+    "heading_of",
+    "max_robots_on_circle",
+]
+
+MAX_ROBOTS: int = 100_000
+"""Largest team a scenario builds (the work of a step grows with the team)."""
+
+
+@dataclass
+class Layout:
+    """Everything the environment needs to start an episode."""
+
+    team: Team
+    starts: np.ndarray
+    """Initial control-point positions, ``(N, 2)``."""
+    headings: np.ndarray
+    """Initial headings, ``(N,)``."""
+    reference: Reference
+    horizon: float
+    """Episode length [s] (reference duration plus settling time)."""
+    obstacle_centers: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    obstacle_radii: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    bounds: tuple[float, float, float, float] = (-7.0, 7.0, -7.0, 7.0)
+
+
+class Scenario:
+    """Base class: subclasses set ``name``, validate in ``__init__`` and implement ``build``."""
+
+    name: ClassVar[str] = ""
+    random: ClassVar[bool] = False
+    """True when the layout depends on the seed."""
+
+    def build(self, rng: np.random.Generator) -> Layout:  # pragma: no cover - abstract
+        """Return the layout of a new episode."""
+        raise NotImplementedError
+
+    @property
+    def params(self) -> dict[str, Any]:
+        """The scenario's parameters (for ``aasoatt list`` and metadata)."""
+        return {k: v for k, v in vars(self).items() if not k.startswith("_")}
+
+    @property
+    def num_robots(self) -> int:
+        """Number of robots."""
+        return int(getattr(self, "num_robots_", 1))
+
+
+def check_num_robots(value: Any) -> int:
+    """``num_robots``: an integer in ``[1, MAX_ROBOTS]``."""
+    return check.integer("num_robots", value, lo=1, hi=MAX_ROBOTS)
+
+
+def check_settle_time(value: Any) -> float:
+    """``settle_time``: a finite number of seconds in ``[0, 1e6]``."""
+    return check.real("settle_time", value, lo=0.0, hi=1e6)
+
+
+def max_robots_on_circle(circle_radius: float, robot_radius: float) -> int:
+    """Most robots of ``robot_radius`` that fit evenly, non-overlapping, on the circle."""
+    ratio = robot_radius / circle_radius  # chord 2 R sin(pi/N) >= 2 r
+    if ratio >= 1.0:
+        return 1
+    return int(math.floor(math.pi / math.asin(ratio) + 1e-9))
+
+
+def check_obstacles(obstacles: Any) -> tuple[np.ndarray, np.ndarray]:
+    """``obstacles``: None or a pair ``(centres (M, 2), radii (M,))`` of finite values, radii > 0."""
+    if obstacles is None:
+        return np.zeros((0, 2)), np.zeros(0)
+    if not (isinstance(obstacles, (tuple, list)) and len(obstacles) == 2):
+        raise ConfigError(f"obstacles: got {obstacles!r}, expected a pair (centres (M, 2), radii (M,)) or None")
+    centers, radii = obstacles
+    try:
+        c = np.asarray(centers, dtype=np.float64)
+        r = np.asarray(radii, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise ConfigError("obstacles: expected numeric centres (M, 2) and radii (M,)") from None
+    if c.size == 0:
+        c = np.zeros((0, 2))
+    if c.ndim == 1 and c.shape[0] == 2:
+        c = c[None]
+    if c.ndim != 2 or c.shape[1] != 2:
+        raise ConfigError(f"obstacles: got centres of shape {np.shape(centers)}, expected (M, 2)")
+    if r.shape[0] != c.shape[0]:
+        raise ConfigError(f"obstacles: got {c.shape[0]} centres and {r.shape[0]} radii, expected as many")
+    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(r)) and np.all(r > 0)):
+        raise ConfigError("obstacles: expected finite centres and positive finite radii")
+    return c, r
+
+
+def check_clear_of_obstacles(name: str, points: np.ndarray, radii: np.ndarray, obstacles: tuple[np.ndarray, np.ndarray]
+                             ) -> None:
+    """Raise :class:`ScenarioError` if a robot of radius ``radii`` at ``points`` overlaps an obstacle."""
+    centers, orad = obstacles
+    if centers.shape[0] == 0:
+        return
+    gap = np.hypot(*(points[:, None, :] - centers[None, :, :]).transpose(2, 0, 1)) - radii[:, None] - orad[None, :]
+    if np.any(gap < 0):
+        i, k = np.argwhere(gap < 0)[0]
+        raise ScenarioError(
+            f"{name}: robot {i} at {points[i].round(3).tolist()} overlaps obstacle {k} "
+            f"(gap {gap[i, k]:.3f} m); move the obstacle or the robot"
+        )
+
+
+def heading_of(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Headings along ``v`` ``(N, 2)``; ``fallback`` where ``v`` is zero."""
+    speed = np.hypot(v[:, 0], v[:, 1])
+    return np.where(speed > 1e-12, np.arctan2(v[:, 1], v[:, 0]), fallback)

@@ -1,0 +1,42 @@
+"""``circle_obstacles``: the circle swap among static disc obstacles (the paper's Fig. 5).
+
+=====================  ==========================================================
+agents                 ``robot_0`` ... ``robot_{N-1}`` (default N = 20)
+start / goal           as ``circle_swap``
+obstacles              :data:`FIG5_OBSTACLES`: three discs of different sizes,
+                       one at the centre where every reference crosses
+=====================  ==========================================================
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from aasoatt_env.sim.scenarios.circle_swap import CircleSwap
+
+__all__ = ["FIG5_OBSTACLES", "CircleSwapObstacles"]
+
+FIG5_OBSTACLES: tuple[tuple[float, float, float], ...] = (
+    (0.0, 0.0, 0.6),
+    (2.8, 1.6, 0.4),
+    (-2.2, -2.6, 0.8),
+)
+"""The three obstacles of our Fig. 5 preset: ``(x, y, radius)``."""
+
+
+class CircleSwapObstacles(CircleSwap):
+    """Circle swap among static disc obstacles (the paper's Fig. 5 by default).
+
+    Same parameters as :class:`~aasoatt_env.sim.scenarios.circle_swap.CircleSwap`
+    (default 20 robots); ``obstacles`` defaults to :data:`FIG5_OBSTACLES`.
+    """
+
+    name = "circle_obstacles"
+
+    def __init__(self, num_robots: int = 20, obstacles: tuple[Any, Any] | None = None, **kwargs: Any) -> None:
+        if obstacles is None:
+            arr = np.array(FIG5_OBSTACLES)
+            obstacles = (arr[:, :2], arr[:, 2])
+        super().__init__(num_robots=num_robots, obstacles=obstacles, **kwargs)

@@ -1,0 +1,118 @@
+"""``custom``: your own team: start points, a reference (object, callable or waypoints) and obstacles.
+
+=====================  ==========================================================
+agents                 ``robot_0`` ... ``robot_{N-1}``, N = ``len(starts)``
+start                  ``starts``, headings along the reference velocity
+reference              a Reference, a callable ``t -> (N, 2)`` or waypoints
+obstacles              optional discs (none may cover a start or a goal)
+=====================  ==========================================================
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from aasoatt_env.errors import ConfigError, ScenarioError
+from aasoatt_env.model.params import RobotParams, make_team
+from aasoatt_env.sim.references import as_reference
+from aasoatt_env.sim.scenarios.base import (
+    MAX_ROBOTS,
+    Layout,
+    Scenario,
+    check_clear_of_obstacles,
+    check_obstacles,
+    check_settle_time,
+    heading_of,
+)
+
+__all__ = ["Custom"]
+
+
+class Custom(Scenario):
+    """Your own team: start points, a reference (object, callable or waypoints) and obstacles.
+
+    Parameters
+    ----------
+    starts : array_like, shape (N, 2)
+        Initial control-point positions.
+    reference : Reference, callable or dict
+        A :class:`~aasoatt_env.sim.references.Reference`, a callable ``t -> (N, 2)``
+        (with ``duration``) or ``{"waypoints": (N, K, 2), "times": (K,)}``.
+    duration : float, optional
+        Reference duration (needed for a callable).
+    headings : array_like, shape (N,), optional
+        Initial headings; default: along the reference velocity at ``t = 0``
+        (or toward the goal when it is zero).
+    obstacles : tuple (centres (M, 2), radii (M,)), optional
+        Static disc obstacles.
+    robots : str, RobotParams or sequence
+        Robot preset(s).
+    settle_time : float
+        Extra time after the reference ends [s].
+    """
+
+    name = "custom"
+
+    def __init__(
+        self,
+        starts: Any,
+        reference: Any,
+        duration: float | None = None,
+        headings: Any = None,
+        obstacles: tuple[Any, Any] | None = None,
+        robots: str | RobotParams | list = "paper",
+        settle_time: float = 3.0,
+    ) -> None:
+        try:
+            st = np.asarray(starts, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ConfigError(f"starts: got {starts!r}, expected finite numbers of shape (N, 2)") from None
+        if st.ndim != 2 or st.shape[1] != 2 or not 1 <= st.shape[0] <= MAX_ROBOTS or not np.all(np.isfinite(st)):
+            raise ConfigError(f"starts: got shape {st.shape}, expected finite (N, 2) with 1 <= N <= {MAX_ROBOTS}")
+        self.num_robots_ = st.shape[0]
+        self._starts = st
+        self._reference = as_reference(reference, self.num_robots_, duration)
+        self._team = make_team(robots, self.num_robots_)
+        self._obstacles = check_obstacles(obstacles)
+        check_clear_of_obstacles("obstacles", st, self._team.radius, self._obstacles)
+        check_clear_of_obstacles("obstacles", np.asarray(self._reference.goals, float), self._team.radius,
+                                 self._obstacles)
+        if headings is not None:
+            try:
+                h = np.asarray(headings, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):
+                raise ConfigError(f"headings: got {headings!r}, expected {self.num_robots_} finite angles") from None
+            if h.shape != (self.num_robots_,) or not np.all(np.isfinite(h)):
+                raise ConfigError(f"headings: got shape {h.shape}, expected finite ({self.num_robots_},)")
+            self._headings = h
+        else:
+            self._headings = None
+        self.settle_time = check_settle_time(settle_time)
+        d = np.hypot(*(st[:, None] - st[None]).transpose(2, 0, 1)) + np.diag(np.full(self.num_robots_, np.inf))
+        rs = self._team.radius[:, None] + self._team.radius[None, :]
+        if np.any(d < rs):
+            i, j = np.argwhere(d < rs)[0]
+            raise ScenarioError(f"starts: robots {i} and {j} overlap ({d[i, j]:.3f} < {rs[i, j]:.3f})")
+
+    def build(self, rng: np.random.Generator) -> Layout:
+        """Return the user's layout."""
+        ref = self._reference
+        _, v0, _ = ref(0.0)
+        toward = np.arctan2(*(ref.goals - self._starts).T[::-1])
+        headings = self._headings if self._headings is not None else heading_of(v0, toward)
+        pts = np.concatenate([self._starts, ref.goals, *(ref(t)[0] for t in np.linspace(0, ref.duration, 16))])
+        if self._obstacles[0].shape[0]:
+            pts = np.concatenate([pts, self._obstacles[0]])
+        lo, hi = pts.min(axis=0) - 1.5, pts.max(axis=0) + 1.5
+        return Layout(
+            team=self._team,
+            starts=self._starts.copy(),
+            headings=headings,
+            reference=ref,
+            horizon=ref.duration + self.settle_time,
+            obstacle_centers=self._obstacles[0],
+            obstacle_radii=self._obstacles[1],
+            bounds=(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])),
+        )

@@ -1,0 +1,148 @@
+"""``random_goals``: seeded random starts and goals in a square arena, spacing guaranteed (for learning).
+
+=====================  ==========================================================
+agents                 ``robot_0`` ... ``robot_{N-1}`` (default N = 6)
+start / goal           uniform in the arena, at least ``min_spacing`` apart
+reference              straight line to the goal at ``speed``, then held
+obstacles              none
+=====================  ==========================================================
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from aasoatt_env import validation as check
+from aasoatt_env.errors import ConfigError, ScenarioError
+from aasoatt_env.model.params import RobotParams, make_team
+from aasoatt_env.sim.references import FunctionReference
+from aasoatt_env.sim.scenarios.base import Layout, Scenario, check_num_robots, check_settle_time
+
+__all__ = ["RandomGoals"]
+
+_SEQUENTIAL_MAX = 2000
+"""Up to this many robots, points are placed one by one (the layouts of earlier releases, seed for seed);
+larger teams use vectorised batches."""
+
+
+class RandomGoals(Scenario):
+    """Random starts and goals in a square arena, for learning.
+
+    Starts (and, separately, goals) are at least ``min_spacing`` apart, centre
+    to centre (default: the robots' diameter plus 0.2 m), drawn by rejection
+    sampling from the episode's seeded generator.  Each robot tracks a straight
+    line to its goal at ``speed`` (so the reference durations differ; the
+    episode horizon is the longest plus ``settle_time``).
+
+    Parameters
+    ----------
+    num_robots : int
+        N >= 1.
+    arena_size : float, optional
+        Side of the square arena [m]; default grows with ``sqrt(N)``.
+    min_spacing : float, optional
+        Minimum centre distance between starts and between goals [m].
+    speed : float
+        Reference speed [m/s].
+    settle_time : float
+        Extra time after the longest reference ends [s].
+    robots : str, RobotParams or sequence
+        Robot preset(s).
+    """
+
+    name = "random_goals"
+    random = True
+
+    def __init__(
+        self,
+        num_robots: int = 6,
+        arena_size: float | None = None,
+        min_spacing: float | None = None,
+        speed: float = 0.8,
+        settle_time: float = 3.0,
+        robots: str | RobotParams | list = "paper",
+    ) -> None:
+        self.num_robots_ = check_num_robots(num_robots)
+        self._team = make_team(robots, self.num_robots_)
+        d = 2.0 * float(self._team.radius.max())
+        self.min_spacing = d + 0.2 if min_spacing is None else check.positive("min_spacing", min_spacing, hi=1e6)
+        if self.min_spacing < d:
+            raise ConfigError(f"min_spacing: got {self.min_spacing:g}, expected >= robot diameter {d:g}")
+        default_arena = max(6.0, 2.2 * self.min_spacing * math.sqrt(self.num_robots_))
+        self.arena_size = default_arena if arena_size is None else check.positive("arena_size", arena_size, hi=1e6)
+        self.speed = check.positive("speed", speed, hi=1e6)
+        self.settle_time = check_settle_time(settle_time)
+        self.robots = robots
+        # packing sanity check: fraction of the arena the spacing discs would cover
+        cover = self.num_robots_ * math.pi * (self.min_spacing / 2) ** 2 / self.arena_size**2
+        if cover > 0.45:
+            raise ScenarioError(
+                f"num_robots: {self.num_robots_} robots with spacing {self.min_spacing:g} do not fit "
+                f"reliably in an arena of size {self.arena_size:g} (cover {cover:.2f}, expected <= 0.45)"
+            )
+
+    def _sample(self, rng: np.random.Generator) -> np.ndarray:
+        if self.num_robots_ > _SEQUENTIAL_MAX:
+            return self._sample_batched(rng)
+        n, half = self.num_robots_, self.arena_size / 2.0 - self.min_spacing / 2.0
+        pts = np.empty((n, 2))
+        for i in range(n):
+            for _ in range(10_000):
+                cand = rng.uniform(-half, half, size=2)
+                if i == 0 or np.min(np.hypot(*(pts[:i] - cand).T)) >= self.min_spacing:
+                    pts[i] = cand
+                    break
+            else:  # pragma: no cover - guarded by the cover check
+                raise ScenarioError("random_goals: could not place robots with the requested spacing")
+        return pts
+
+    def _sample_batched(self, rng: np.random.Generator) -> np.ndarray:
+        """Dart throwing in vectorised batches, for large teams.
+
+        Candidates far enough from every accepted point and from the earlier
+        candidates of their batch are kept (``O(N log N)`` per round).
+        """
+        n, half, s = self.num_robots_, self.arena_size / 2.0 - self.min_spacing / 2.0, self.min_spacing
+        pts = np.empty((0, 2))
+        for _ in range(200):
+            need = n - pts.shape[0]
+            cand = rng.uniform(-half, half, size=(max(2 * need, 64), 2))
+            if pts.shape[0]:
+                d, _ = cKDTree(pts).query(cand, k=1)
+                cand = cand[d >= s]
+            clash = cKDTree(cand).query_pairs(s, output_type="ndarray")
+            if clash.shape[0]:
+                drop = np.zeros(cand.shape[0], dtype=bool)
+                for i, j in clash[np.argsort(clash.max(axis=1), kind="stable")]:  # keep the earlier of each pair
+                    if not drop[min(i, j)]:
+                        drop[max(i, j)] = True
+                cand = cand[~drop]
+            pts = np.concatenate((pts, cand[:need]))
+            if pts.shape[0] == n:
+                return pts
+        raise ScenarioError(f"random_goals: could not place {n} robots {s:g} m apart in the arena; enlarge arena_size")
+
+    def build(self, rng: np.random.Generator) -> Layout:
+        """Sample starts and goals from ``rng``."""
+        starts, goals = self._sample(rng), self._sample(rng)
+        dist = np.hypot(*(goals - starts).T)
+        durations = np.maximum(dist / self.speed, 1e-3)
+        T = float(durations.max())
+        ref = FunctionReference(
+            lambda t: starts + (goals - starts) * np.clip(t / durations, 0.0, 1.0)[:, None],
+            T,
+            velocity=lambda t: ((goals - starts) / durations[:, None]) * (t < durations)[:, None],
+            acceleration=lambda t: np.zeros_like(starts),
+        )
+        b = self.arena_size / 2.0 + 0.5
+        return Layout(
+            team=self._team,
+            starts=starts,
+            headings=np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0]),
+            reference=ref,
+            horizon=T + self.settle_time,
+            bounds=(-b, b, -b, b),
+        )

@@ -1,0 +1,126 @@
+"""``tracking``: one robot on a straight, sine or circle reference (Table I).
+
+=====================  ==========================================================
+agents                 ``robot_0``
+start                  on the reference at ``t = 0``, at rest, heading along it
+reference              ``straight``, ``sine`` or ``circle`` (or your own)
+obstacles              none
+=====================  ==========================================================
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, ClassVar
+
+import numpy as np
+
+from aasoatt_env import validation as check
+from aasoatt_env.model.params import RobotParams, make_team
+from aasoatt_env.sim.references import FunctionReference, Reference, as_reference
+from aasoatt_env.sim.scenarios.base import Layout, Scenario, heading_of
+
+__all__ = ["Tracking"]
+
+
+class Tracking(Scenario):
+    """One robot tracking a straight, sine or circle reference (Table I).
+
+    Parameters
+    ----------
+    trajectory : {"straight", "sine", "circle"}
+        ``straight``: ``p_d = (v t, v t / 2)``; ``sine``: ``p_d = (v t, A sin(w t))``;
+        ``circle``: ``p_d = R (cos(w t), sin(w t))`` with ``w = v / R``.
+    speed : float
+        Nominal speed ``v`` [m/s].
+    amplitude, frequency : float
+        Sine amplitude ``A`` [m] and angular frequency ``w`` [rad/s].
+    circle_radius : float
+        ``R`` [m] for the circle.
+    duration : float
+        Episode length [s].
+    robots : str or RobotParams
+        Robot preset.
+    reference : Reference or callable, optional
+        A user reference instead of the three built-ins.
+    """
+
+    name = "tracking"
+    TRAJECTORIES: ClassVar[tuple[str, ...]] = ("straight", "sine", "circle")
+
+    def __init__(
+        self,
+        trajectory: str = "circle",
+        speed: float = 0.5,
+        amplitude: float = 1.0,
+        frequency: float = 0.5,
+        circle_radius: float = 2.0,
+        duration: float = 12.0,
+        robots: str | RobotParams = "paper",
+        reference: Any = None,
+    ) -> None:
+        if reference is None:
+            check.choice("trajectory", trajectory, self.TRAJECTORIES)
+        self.trajectory = trajectory
+        self.speed = check.positive("speed", speed, hi=1e6)
+        self.amplitude = check.positive("amplitude", amplitude, hi=1e6)
+        self.frequency = check.positive("frequency", frequency, hi=1e6)
+        self.circle_radius = check.positive("circle_radius", circle_radius, hi=1e6)
+        self.duration = check.positive("duration", duration, hi=1e6)
+        self.robots = robots
+        self._team = make_team(robots, 1)
+        self._user_reference = reference
+        self.num_robots_ = 1
+
+    def _reference(self) -> Reference:
+        if self._user_reference is not None:
+            return as_reference(self._user_reference, 1, self.duration)
+        v, A, w, R = self.speed, self.amplitude, self.frequency, self.circle_radius
+        if self.trajectory == "straight":
+
+            def p(t: float) -> np.ndarray:
+                return np.array([[v * t, 0.5 * v * t]])
+
+            def dp(t: float) -> np.ndarray:
+                return np.array([[v, 0.5 * v]])
+
+            def ddp(t: float) -> np.ndarray:
+                return np.zeros((1, 2))
+        elif self.trajectory == "sine":
+
+            def p(t: float) -> np.ndarray:
+                return np.array([[v * t, A * math.sin(w * t)]])
+
+            def dp(t: float) -> np.ndarray:
+                return np.array([[v, A * w * math.cos(w * t)]])
+
+            def ddp(t: float) -> np.ndarray:
+                return np.array([[0.0, -A * w * w * math.sin(w * t)]])
+        else:
+            om = v / R
+
+            def p(t: float) -> np.ndarray:
+                return R * np.array([[math.cos(om * t), math.sin(om * t)]])
+
+            def dp(t: float) -> np.ndarray:
+                return R * om * np.array([[-math.sin(om * t), math.cos(om * t)]])
+
+            def ddp(t: float) -> np.ndarray:
+                return -R * om * om * np.array([[math.cos(om * t), math.sin(om * t)]])
+
+        return FunctionReference(p, self.duration, velocity=dp, acceleration=ddp)
+
+    def build(self, rng: np.random.Generator) -> Layout:
+        """Start on the reference, at rest, heading along the reference velocity."""
+        ref = self._reference()
+        p0, v0, _ = ref(0.0)
+        pts = np.concatenate([ref(t)[0] for t in np.linspace(0.0, self.duration, 64)])
+        lo, hi = pts.min(axis=0) - 1.5, pts.max(axis=0) + 1.5
+        return Layout(
+            team=self._team,
+            starts=p0,
+            headings=heading_of(v0, np.zeros(1)),
+            reference=ref,
+            horizon=self.duration,
+            bounds=(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])),
+        )
