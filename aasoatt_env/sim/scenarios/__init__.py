@@ -76,5 +76,5 @@ def get_scenario(scenario: str | Scenario, **kwargs: Any) -> Scenario:
 
     params = [p for c in cls.__mro__ if "__init__" in vars(c) and issubclass(c, Scenario) and c is not Scenario
               for p in inspect.signature(c.__init__).parameters if p not in ("self", "kwargs")]
-    reject_unknown(f"{cls.__name__} (scenario {scenario!r})", kwargs, params)
+    reject_unknown(f"scenario {scenario!r}: {cls.__name__}", kwargs, params)
     return cls(**kwargs)
