@@ -11,6 +11,7 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.geometry import k_nearest
 from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4, point_accel_to_du, tracking_accel
 from agents.base import register_agent
+from agents.learned import LearnedAgent
 
 __all__ = ["HostileAgent", "PDController", "RandomAgent", "TrackingController", "point_accel_to_action"]
 
@@ -125,8 +126,6 @@ def _load_learned(path: str | None = None, **kwargs: Any) -> Any:
     """Factory for ``--controller learned`` (imports Stable-Baselines3 lazily: the ``train`` extra)."""
     if path is None:
         raise ConfigError("controller 'learned': got no model path, expected --model PATH (a run folder or .zip)")
-    from agents.learned import LearnedAgent
-
     return LearnedAgent.load(path, **kwargs)
 
 

@@ -104,8 +104,10 @@ from typing import Any
 import numpy as np
 
 from aasoatt_env.api.factory import make_env as make_aasoatt_env
+from aasoatt_env.errors import ConfigError
 from agents.learned import POLICY_FILE, stats_path
 from train.config import TrainConfig, add_config_arguments, config_from_args
+from train.vec_env import ParallelVecEnv, VelocityTrackingShaping
 
 __all__ = ["main", "make_env", "make_vec_env", "train"]
 
@@ -151,8 +153,6 @@ def make_vec_env(config: TrainConfig, training: bool = True) -> Any:
     """``VecNormalize?(VecMonitor(ParallelVecEnv))`` with ``config.n_envs`` envs."""
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
-    from train.vec_env import ParallelVecEnv, VelocityTrackingShaping
-
     venv: Any = ParallelVecEnv([lambda: make_env(config) for _ in range(config.n_envs)])
     if config.velocity_tracking:
         venv = VelocityTrackingShaping(venv, config.velocity_tracking)
@@ -182,8 +182,6 @@ def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = No
     """The SB3 PPO of ``config`` on ``venv`` (seeded: PPO seeds torch, numpy and the env)."""
     import torch
     from stable_baselines3 import PPO
-
-    from aasoatt_env.errors import ConfigError
 
     torch.set_num_threads(config.torch_threads)
     policy: Any = "MlpPolicy"
@@ -301,8 +299,6 @@ def build_parser(prog: str = "python -m train.train") -> argparse.ArgumentParser
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
-    from aasoatt_env.errors import ConfigError
-
     args = build_parser().parse_args(argv)
     try:
         config = config_from_args(args)

@@ -24,11 +24,13 @@ from pathlib import Path
 from typing import Any
 
 from aasoatt_env.analysis.metrics import format_summary, summarize
+from aasoatt_env.analysis.plotting import plot_trajectories
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.api.registration import ENV_IDS
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, available_solvers
 from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.sim.rendering import save_animation
 from aasoatt_env.sim.scenarios import SCENARIOS
 from aasoatt_env.validation import parse_assignments
 from agents.base import agent_names, get_agent
@@ -103,8 +105,6 @@ def cmd_run(args: argparse.Namespace) -> int:
         (out / "metrics.json").write_text(json.dumps(summary, indent=2))
         rollout.save(out / "rollout.npz")
         try:
-            from aasoatt_env.analysis.plotting import plot_trajectories
-
             plot_trajectories(
                 rollout.positions,
                 radii=rollout.radii,
@@ -118,8 +118,6 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"(no trajectory plot: {exc})", file=sys.stderr)
         print(f"wrote {out}/metrics.json, rollout.npz, trajectories.png")
     if args.gif:
-        from aasoatt_env.sim.rendering import save_animation
-
         save_animation(frames, args.gif, fps=args.fps)
         print(f"wrote {args.gif} ({len(frames)} frames)")
     env.close()

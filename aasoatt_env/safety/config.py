@@ -18,10 +18,9 @@ i.e. 1 cm at ``dt = 0.005`` for pairs in relative motion, fading to 0 for pairs
 at relative rest.  The fade keeps static packings that are feasible for ``d_s``
 reachable: 39 robots of radius 0.48 at their goals on the radius-6 circle are
 only 6 mm apart, so a constant 1 cm margin would stop them 2-6 cm short of the
-goals.  Measured (``tests/test_safety_closed_loop.py``,
-``benchmarks/safety_campaign.py``): minimum distance >= d_s + 1.7 mm for N = 10
-... 39.  A float ``safety_margin`` adds that constant instead; ``0`` gives the
-paper's exact barrier.
+goals (the closed-loop tests and ``benchmarks/safety_campaign.py`` check the
+distances).  A float ``safety_margin`` adds that constant instead; ``0`` gives
+the paper's exact barrier.
 """
 
 from __future__ import annotations
@@ -97,12 +96,11 @@ class FilterConfig:
     neural_iterations : int
         Projected primal-dual updates per step of the ``neural`` solver.
     active_set : bool
-        With ``solver="proxsuite"``: first try the warm-started exact active-set
-        method (:mod:`~aasoatt_env.safety.solvers.active_set`, accepted only when the KKT
-        conditions check out; proxsuite otherwise).  Much faster when consecutive
-        QPs share their active set (3-40x on repeated states, N = 39-1000), but
-        slower when it changes every step: 22 s vs 9.7 s for 7 s of the 39-robot
-        circle swap.  Off by default.
+        First try the warm-started exact active-set method
+        (:mod:`~aasoatt_env.safety.solvers.active_set`, accepted only when the KKT
+        conditions check out; the solver otherwise).  It pays off when consecutive
+        QPs share their active set and costs time when the set changes every step
+        (``benchmarks/bench_filter.py`` measures both).  Off by default.
     decompose : bool
         With an exact solver (all but ``neural``): robots in no row are solved in
         closed form (a 2-variable box-constrained least squares each) and the QP

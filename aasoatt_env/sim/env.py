@@ -58,6 +58,7 @@ from aasoatt_env.model.dynamics import DT, Kinematics
 from aasoatt_env.model.geometry import min_gaps
 from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM, Proximity, build_observations, proximity
 from aasoatt_env.sim.protocol import ControlFilter, FilterInput, FilterOutput
+from aasoatt_env.sim.rendering import Frame, Renderer
 from aasoatt_env.sim.rewards import RewardConfig, rewards
 from aasoatt_env.sim.scenarios import Layout, Scenario, get_scenario
 
@@ -566,8 +567,6 @@ class AASOATTParallelEnv(ParallelEnv):
         if self.render_mode is None:
             return None
         self._require_reset("render()")
-        from aasoatt_env.sim.rendering import Frame, Renderer
-
         if self._renderer is None:
             self._renderer = Renderer()
         avoiding = None

@@ -27,6 +27,7 @@ from pathlib import Path
 
 from aasoatt_env.apps.reproduce.experiments import EXPERIMENTS, Settings
 from aasoatt_env.apps.reproduce.report import Report
+from aasoatt_env.safety import available_solvers
 
 __all__ = ["EXPERIMENTS", "Settings", "main", "run_experiment"]
 
@@ -87,8 +88,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.jobs < 1:
         print(f"--jobs: got {args.jobs}, expected an integer >= 1", file=sys.stderr)
         return 2
-    from aasoatt_env.safety import available_solvers
-
     if args.solver is None:
         args.solver = "daqp" if "daqp" in available_solvers() else "proxsuite"
         if args.solver != "daqp":

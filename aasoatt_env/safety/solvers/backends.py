@@ -62,8 +62,9 @@ __all__ = [
 DENSE_MAX_SIZE: int = 600
 """Largest ``n + m`` (variables + rows) solved with proxsuite's dense class.
 
-Measured on packed layouts: dense PrimalDualLDLT 2.7 ms vs sparse 4.2 ms at
-n + m = 340 (N = 39), but 16.5 ms vs 9.5 ms at n + m = 990 (N = 100)."""
+The dense class is the faster one on small problems and the sparse one on large
+ones; the cross-over was chosen by timing both on packed layouts
+(``benchmarks/bench_filter.py``)."""
 
 PROX_MAX_ITER: int = 200
 """proxsuite's outer (``max_iter``) iteration budget before the exact fallback is asked."""

@@ -14,9 +14,9 @@ with ``r = E u - f``, ``r_last = 0`` means the rows are inconsistent, otherwise
 ``w = -r[:-1] / r_last`` and ``u / (-r_last)`` are the multipliers.  NNLS is an
 active-set method with finite termination (:func:`scipy.optimize.nnls`), so
 this needs nothing beyond scipy and does not stall the way an augmented
-Lagrangian can on the degenerate, congested problems of a large team (measured:
-a 60-robot circle swap, ``n = 120, m = 690``, 18-35 ms here where proxsuite ran
-out of iterations or did not return for minutes).
+Lagrangian can on the degenerate, congested problems of a large team (the
+README's known limits record the 60-robot circle swap where proxsuite ran out of
+iterations).
 
 The point is then handed, with its multipliers, to the structured active-set
 method (:func:`aasoatt_env.safety.solvers.active_set.solve_active_set`), which accepts

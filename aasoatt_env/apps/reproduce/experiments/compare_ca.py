@@ -21,6 +21,7 @@ from aasoatt_env.apps.reproduce.experiments.common import (
 )
 from aasoatt_env.apps.reproduce.report import Report, fmt, fmt_rel, md_table, new_figure, rel_diff
 from aasoatt_env.apps.reproduce.runner import RunSpec
+from aasoatt_env.model.params import RobotParams
 
 __all__ = ["compare_ca"]
 
@@ -36,8 +37,6 @@ VELOCITY_LEVEL = ("eqn.n5", "eqn.nn5", "eqn.n7")
 
 def compare_ca(s: Settings) -> Report:
     """The N = 10 comparison of the five CA methods against the paper's 4-tuples."""
-    from aasoatt_env.model.params import RobotParams
-
     rep = Report("compare-ca", "Comparison of CA strategies (N = 10, radius 6, 12 s)", s.out)
     n, radius, duration = ca_size(s)
     specs = []
@@ -111,7 +110,7 @@ def compare_ca(s: Settings) -> Report:
         "tracking errors agree: a robot counts as 'in CA' while a multiplier of one of its rows exceeds "
         "eta_tol = 1e-6 (Sec. V defines intervention time only as 'from the start to the end of a WMR's CA "
         "action'). It is not the solver: the paper's projection neural network (`--solver neural`) gives "
-        "almost the same intervention time for ours at N = 10 (3.86 s vs 3.82 s)."
+        "almost the same intervention time for ours at N = 10 (run `--solver neural` to compare)."
     )
     lines.append(
         "- Our eqn.n7 is less conservative than the paper's (rho_v, sigma and varsigma are not given; we "

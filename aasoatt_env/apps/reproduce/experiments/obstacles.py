@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from aasoatt_env.analysis.plotting import plot_snapshots
 from aasoatt_env.apps.reproduce import paper
 from aasoatt_env.apps.reproduce.experiments.common import (
     Settings,
@@ -67,8 +68,6 @@ def obstacles(s: Settings) -> Report:
     tr = r.traces
     t = tr["times"]
     idx = [0, int(np.searchsorted(t, 0.45 * duration)), int(np.searchsorted(t, 0.75 * duration)), len(t) - 1]
-    from aasoatt_env.analysis.plotting import plot_snapshots
-
     fig = plot_snapshots(
         tr["positions"],
         t,

@@ -21,6 +21,7 @@ from aasoatt_env.apps.reproduce.experiments.common import (
 )
 from aasoatt_env.apps.reproduce.report import Report, fmt, md_table, new_figure
 from aasoatt_env.apps.reproduce.runner import RunSpec
+from aasoatt_env.safety.config import auto_margin
 
 __all__ = ["table2"]
 
@@ -112,8 +113,6 @@ def table2(s: Settings) -> Report:
             f"- {name}: violates d_s (tolerance {VIOLATION_TOL * 1e3:g} mm) at N = "
             f"{', '.join(map(str, bad)) if bad else 'none'}."
         )
-    from aasoatt_env.safety.config import auto_margin
-
     d_margin = 0.96 + auto_margin(0.005)
     tight = [n for n in ns if 2 * radius * math.sin(math.pi / n) < d_margin]
     if tight and not s.quick:
