@@ -7,6 +7,8 @@ agent                      what it does
 :class:`PDController`        SBC's PD nominal ``a = -k3 (p - p_d) - k4 v`` (Table I)
 :class:`RandomAgent`         uniform random actions from the action spaces
 :class:`HostileAgent`        every robot accelerates at its nearest neighbour
+adversaries                  :data:`agents.adversaries.ADVERSARIES`: spin-up, burst,
+                             bang-bang, chase nearest / target, uniform noise
 =========================  ====================================================
 
 Every agent has ``reset(env)`` and ``act(observations, env) -> actions`` where
@@ -14,7 +16,8 @@ Every agent has ``reset(env)`` and ``act(observations, env) -> actions`` where
 implement the same two methods.
 """
 
+from agents.adversaries import ADVERSARIES, HostileAgent
 from agents.base import Agent, get_agent
-from agents.baselines import HostileAgent, PDController, RandomAgent, TrackingController
+from agents.baselines import PDController, RandomAgent, TrackingController
 
-__all__ = ["Agent", "HostileAgent", "PDController", "RandomAgent", "TrackingController", "get_agent"]
+__all__ = ["ADVERSARIES", "Agent", "HostileAgent", "PDController", "RandomAgent", "TrackingController", "get_agent"]

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import inspect
 from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
 
-__all__ = ["Agent", "agent_names", "get_agent", "register_agent"]
+__all__ = ["Agent", "agent_accepts", "agent_names", "get_agent", "register_agent"]
 
 
 @runtime_checkable
@@ -30,6 +31,12 @@ _REGISTRY: dict[str, type] = {}
 def register_agent(name: str, cls: type) -> None:
     """Make ``cls`` constructible by name with :func:`get_agent`."""
     _REGISTRY[name] = cls
+
+
+def agent_accepts(name: str, keyword: str) -> bool:
+    """Whether the registered agent ``name`` takes the constructor keyword ``keyword``."""
+    factory = _REGISTRY.get(name)
+    return factory is not None and keyword in inspect.signature(factory).parameters
 
 
 def agent_names() -> list[str]:

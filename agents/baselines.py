@@ -8,12 +8,11 @@ import numpy as np
 
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.model.geometry import k_nearest
 from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4, point_accel_to_du, tracking_accel
 from agents.base import register_agent
 from agents.learned import LearnedAgent
 
-__all__ = ["HostileAgent", "PDController", "RandomAgent", "TrackingController", "point_accel_to_action"]
+__all__ = ["PDController", "RandomAgent", "TrackingController", "point_accel_to_action"]
 
 
 def point_accel_to_action(env: Any, accel: np.ndarray, saturate: bool) -> dict[str, np.ndarray]:
@@ -101,27 +100,6 @@ class RandomAgent:
         return out
 
 
-class HostileAgent:
-    """Adversarial policy: every robot accelerates at full rate toward its nearest neighbour.
-
-    Used to stress the safety filter; the action is in ``[-1, 1]`` (saturated).
-    """
-
-    def reset(self, env: Any) -> None:
-        """Nothing to reset."""
-
-    def act(self, observations: dict[str, np.ndarray], env: Any) -> dict[str, np.ndarray]:
-        """Point accelerations of magnitude ``max_point_accel`` toward the nearest robot."""
-        base = env.unwrapped
-        p = base.positions
-        idx, _, _ = k_nearest(p, 1)
-        j = np.where(idx[:, 0] >= 0, idx[:, 0], np.arange(p.shape[0]))
-        direction = p[j] - p
-        direction /= np.maximum(np.linalg.norm(direction, axis=1, keepdims=True), 1e-12)
-        accel = base.team.max_point_accel[:, None] * direction
-        return point_accel_to_action(env, accel, saturate=True)
-
-
 def _load_learned(path: str | None = None, **kwargs: Any) -> Any:
     """Factory for ``--controller learned`` (imports Stable-Baselines3 lazily: the ``train`` extra)."""
     if path is None:
@@ -131,6 +109,5 @@ def _load_learned(path: str | None = None, **kwargs: Any) -> Any:
 
 register_agent("tracking", TrackingController)
 register_agent("learned", _load_learned)  # type: ignore[arg-type]
-register_agent("hostile", HostileAgent)
 register_agent("pd", PDController)
 register_agent("random", RandomAgent)

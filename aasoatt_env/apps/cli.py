@@ -33,7 +33,7 @@ from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.sim.rendering import save_animation
 from aasoatt_env.sim.scenarios import SCENARIOS
 from aasoatt_env.validation import parse_assignments
-from agents.base import agent_names, get_agent
+from agents.base import agent_accepts, agent_names, get_agent
 
 __all__ = ["main"]
 
@@ -83,7 +83,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     ctrl_kwargs: dict[str, Any] = {}
     if args.controller in ("tracking", "pd"):
         ctrl_kwargs["saturate"] = not (args.filter and args.filter != "none")
-    if args.controller == "random":
+    if agent_accepts(args.controller, "seed"):
         ctrl_kwargs["seed"] = args.seed
     if args.controller == "learned":
         ctrl_kwargs["path"] = args.model
@@ -137,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_run.add_argument("--scenario", default="circle_swap")
     p_run.add_argument("--robots", type=int, default=None, help="number of robots (num_robots)")
     p_run.add_argument("-p", "--param", action="append", help="scenario/env parameter KEY=VALUE")
-    p_run.add_argument("--controller", default="tracking", help="tracking | pd | random | learned")
+    p_run.add_argument("--controller", default="tracking", help="tracking | pd | random | learned | an adversary (aasoatt list)")
     p_run.add_argument("--model", default=None, help="saved model for --controller learned")
     p_run.add_argument("--filter", default="aasoatt", help="barrier name, or 'none' for the bare env")
     p_run.add_argument("--deadlock", default="auxiliary_velocity")
