@@ -137,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_run.add_argument("--scenario", default="circle_swap")
     p_run.add_argument("--robots", type=int, default=None, help="number of robots (num_robots)")
     p_run.add_argument("-p", "--param", action="append", help="scenario/env parameter KEY=VALUE")
-    p_run.add_argument("--controller", default="tracking", 
+    p_run.add_argument("--controller", default="tracking",
                        help="tracking | pd | random | learned | an adversary (aasoatt list)")
     p_run.add_argument("--model", default=None, help="saved model for --controller learned")
     p_run.add_argument("--filter", default="aasoatt", help="barrier name, or 'none' for the bare env")
