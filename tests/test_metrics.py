@@ -285,6 +285,7 @@ def full_rollout():
         actions=rng.normal(size=(T, N, 2)),
         avoiding=rng.random((T, N)) < 0.5,
         triggered=rng.random((T, N)) < 0.5,
+        backup=rng.random((T, N)) < 0.5,
         solver_status=["optimal", "relaxed", "optimal", "failed"],
         slack=[0.0, 0.1, 0.0, 0.0],
         solve_time=[1e-4, 2e-4, 3e-4, 4e-4],

@@ -584,13 +584,19 @@ def solver_stats(rollout: Rollout) -> dict[str, Any]:
     Returns
     -------
     dict
-        ``relaxed_fraction``, ``failed_fraction``, ``status_counts`` (dict),
-        ``solve_time_median``, ``solve_time_mean``, ``solve_time_max`` [s],
-        ``slack_max``, ``slack_positive_fraction`` (steps with ``slack > 0``).
+        ``relaxed_fraction``, ``failed_fraction``, ``unsafe_fraction`` (steps
+        reported outside the safe set), ``backup_fraction`` (steps in which the
+        backup layer braked some robot), ``backup_robot_fraction`` (robot-steps
+        braked), ``status_counts`` (dict), ``solve_time_median``,
+        ``solve_time_mean``, ``solve_time_max`` [s], ``slack_max``,
+        ``slack_positive_fraction`` (steps with ``slack > 0``).
     """
     out: dict[str, Any] = {
         "relaxed_fraction": None,
         "failed_fraction": None,
+        "unsafe_fraction": None,
+        "backup_fraction": None,
+        "backup_robot_fraction": None,
         "status_counts": None,
         "solve_time_median": None,
         "solve_time_mean": None,
@@ -602,8 +608,12 @@ def solver_stats(rollout: Rollout) -> dict[str, Any]:
         relaxed, failed = _classify_status(rollout.solver_status)
         out["relaxed_fraction"] = float(relaxed.mean())
         out["failed_fraction"] = float(failed.mean())
+        out["unsafe_fraction"] = float(np.mean(np.char.lower(rollout.solver_status.astype(np.str_)) == "unsafe"))
         names, counts = np.unique(rollout.solver_status, return_counts=True)
         out["status_counts"] = {str(n): int(c) for n, c in zip(names, counts)}
+    if rollout.backup is not None:
+        out["backup_fraction"] = float(rollout.backup.any(axis=1).mean())
+        out["backup_robot_fraction"] = float(rollout.backup.mean())
     if rollout.solve_time is not None:
         st = rollout.solve_time
         out["solve_time_median"] = float(np.median(st))

@@ -107,10 +107,12 @@ def _filter_fields(base: Any, n: int) -> dict[str, Any]:
     if isinstance(f, SafetyFilter):
         if outputs:
             rep = FilterReport.of(outputs)
-            return {"avoiding": rep.avoiding, "triggered": rep.triggered, "solver_status": rep.status,
-                    "slack": rep.slack, "solve_time": rep.solve_time, "actions": rep.applied / amax}
-        return {"avoiding": np.zeros(n, dtype=bool), "triggered": np.zeros(n, dtype=bool), "solver_status": "solved",
-                "slack": 0.0, "solve_time": 0.0, "actions": np.zeros((n, 2))}
+            return {"avoiding": rep.avoiding, "triggered": rep.triggered, "backup": rep.backup,
+                    "solver_status": rep.status, "slack": rep.slack, "solve_time": rep.solve_time,
+                    "actions": rep.applied / amax}
+        return {"avoiding": np.zeros(n, dtype=bool), "triggered": np.zeros(n, dtype=bool),
+                "backup": np.zeros(n, dtype=bool), "solver_status": "solved", "slack": 0.0, "solve_time": 0.0,
+                "actions": np.zeros((n, 2))}
     if outputs:  # any other control filter: what the protocol guarantees
         return {"avoiding": np.any([o.avoiding for o in outputs], axis=0), "actions": np.asarray(outputs[-1].du) / amax}
     return {"avoiding": np.zeros(n, dtype=bool), "actions": np.zeros((n, 2))}

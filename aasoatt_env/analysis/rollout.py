@@ -24,6 +24,7 @@ field                      shape       meaning
 ``actions``                ``(T,N,2)`` optional: applied (filtered) actions
 ``avoiding``               ``(T,N)``   optional, bool: robot in collision avoidance
 ``triggered``              ``(T,N)``   optional, bool: deadlock rule active
+``backup``                 ``(T,N)``   optional, bool: braked by the backup layer
 ``solver_status``          ``(T,)``    optional, str: QP status of each step
 ``slack``                  ``(T,)``    optional: total relaxation of the step's rows
 ``solve_time``             ``(T,)``    optional: QP wall time of the step [s]
@@ -73,6 +74,7 @@ _OPTIONAL: tuple[tuple[str, tuple[str | int, ...], str], ...] = (
     ("actions", ("T", "N", 2), "f"),
     ("avoiding", ("T", "N"), "b"),
     ("triggered", ("T", "N"), "b"),
+    ("backup", ("T", "N"), "b"),
     ("solver_status", ("T",), "U"),
     ("slack", ("T",), "f"),
     ("solve_time", ("T",), "f"),
@@ -153,7 +155,7 @@ class Rollout:
         Static obstacle radii (positive).
     nominal_actions, actions : array_like, shape (T, N, 2), optional
         Nominal and applied (filtered) actions.
-    avoiding, triggered : array_like of bool, shape (T, N), optional
+    avoiding, triggered, backup : array_like of bool, shape (T, N), optional
         Robot in collision avoidance; deadlock-resolution rule active.
     solver_status : array_like of str, shape (T,), optional
         QP status string of each step.
@@ -178,6 +180,7 @@ class Rollout:
     actions: np.ndarray | None = None
     avoiding: np.ndarray | None = None
     triggered: np.ndarray | None = None
+    backup: np.ndarray | None = None
     solver_status: np.ndarray | None = None
     slack: np.ndarray | None = None
     solve_time: np.ndarray | None = None
@@ -424,7 +427,7 @@ class RolloutBuilder:
             Per-robot headings.
         **optional
             Any of ``nominal_actions``, ``actions`` (``(N, 2)``), ``avoiding``,
-            ``triggered`` (``(N,)`` bool), ``solver_status`` (str), ``slack``,
+            ``triggered``, ``backup`` (``(N,)`` bool), ``solver_status`` (str), ``slack``,
             ``solve_time`` (float).  ``None`` values are ignored.
 
         Raises
@@ -459,7 +462,7 @@ class RolloutBuilder:
                 self._data[name].append(str(value))
             elif name in ("slack", "solve_time"):
                 self._data[name].append(float(value))
-            elif name in ("avoiding", "triggered"):
+            elif name in ("avoiding", "triggered", "backup"):
                 self._data[name].append(np.array(value, dtype=np.bool_))
             else:
                 self._data[name].append(np.array(value, dtype=np.float64))

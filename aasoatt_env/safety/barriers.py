@@ -9,8 +9,9 @@ control-point acceleration and ``c = -p_ij``.  Obstacle pairs are pairs whose
 second member has zero velocity and acceleration: the robot carries the whole
 row (``j = -1`` in :class:`PairGeometry`).
 
-Registry (:data:`BARRIERS`, look-up with :func:`get_barrier`; adding a barrier is one
-function ``f(geometry, config) -> (rhs, keep)`` and one registry line):
+Registry (:data:`BARRIERS`, look-up with :func:`get_barrier`; adding a barrier is a row
+builder ``f(geometry, config) -> (rhs, keep)``, its barrier function ``h(geometry, config)``
+and one registry line):
 
 ``aasoatt`` (eqn.7, eqn.7a, eqn.8; default)
     ``h = r_dot + k1 (r - d_s)`` with ``h_dot + k2 h >= 0``.  The typo of
@@ -41,6 +42,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
@@ -52,6 +54,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "BARRIERS",
+    "Barrier",
     "PairGeometry",
     "barrier_rows",
     "get_barrier",
@@ -83,6 +86,18 @@ BarrierFn = Callable[[PairGeometry, "FilterConfig"], "tuple[np.ndarray, np.ndarr
 """``f(geometry, config) -> (rhs, keep)``; ``keep`` is a boolean mask or None (all rows).
 The gains come from :class:`~aasoatt_env.safety.config.FilterConfig`."""
 
+ValueFn = Callable[[PairGeometry, "FilterConfig"], np.ndarray]
+"""``h(geometry, config) -> (P,)``: the barrier function itself; its safe set is ``h >= 0``."""
+
+
+@dataclass(frozen=True)
+class Barrier:
+    """A registered barrier: its rows and the barrier function whose set ``h >= 0`` the rows keep invariant."""
+
+    rows: BarrierFn
+    value: ValueFn
+    equation: str
+
 
 def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     r = np.sqrt(np.einsum("ij,ij->i", g.p, g.p))
@@ -91,6 +106,22 @@ def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nda
     vv = np.einsum("ij,ij->i", g.v, g.v)
     pa = np.einsum("ij,ij->i", g.p, g.adot)
     return r, pv, vv, pa
+
+
+def _aasoatt_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
+    r, pv, _, _ = _common(g)
+    return pv / r + q.k1 * (r - g.d_s)
+
+
+def _braking_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
+    r, pv, _, _ = _common(g)
+    gap = r - g.d_s
+    return np.sign(gap) * np.sqrt(2.0 * g.a_plus * np.abs(gap)) + pv / r
+
+
+def _distance_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
+    r, pv, _, _ = _common(g)
+    return q.varsigma * (r * r - g.d_s * g.d_s) + 2.0 * pv
 
 
 def _aasoatt(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
@@ -131,18 +162,20 @@ def _adaptive_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, No
     return _velocity_rhs(g, q, d), None
 
 
-BARRIERS: dict[str, BarrierFn] = {
-    "aasoatt": _aasoatt,
-    "braking": _braking,
-    "distance": _distance,
-    "gated_distance": _gated_distance,
-    "adaptive_distance": _adaptive_distance,
+BARRIERS: dict[str, Barrier] = {
+    "aasoatt": Barrier(_aasoatt, _aasoatt_h, "eqn.7-8"),
+    "braking": Barrier(_braking, _braking_h, "eqn.n4"),
+    "distance": Barrier(_distance, _distance_h, "eqn.nn5"),
+    "gated_distance": Barrier(_gated_distance, _distance_h, "eqn.n5/n6"),
+    "adaptive_distance": Barrier(_adaptive_distance, _distance_h, "eqn.n7"),
 }
-"""Barrier registry: name -> row builder (see module docstring)."""
+"""Barrier registry: name -> :class:`Barrier` (see module docstring).  The velocity-level
+barriers share the value ``varsigma (r^2 - d_s^2) + 2 p^T v`` (eqn.nn5's set; eqn.n7's
+adaptive distance is larger, so its rows keep a subset of it)."""
 
 
-def get_barrier(name: str) -> BarrierFn:
-    """Return the row builder registered as ``name`` or raise :class:`ConfigError`."""
+def get_barrier(name: str) -> Barrier:
+    """Return the barrier registered as ``name`` or raise :class:`ConfigError`."""
     try:
         return BARRIERS[name]
     except (KeyError, TypeError):
@@ -170,7 +203,7 @@ def barrier_rows(name: str, g: PairGeometry, params: FilterConfig) -> tuple[np.n
     keep : numpy.ndarray
         Indices of the kept pairs into ``g`` (all for ungated barriers).
     """
-    rhs, keep = get_barrier(name)(g, params)
+    rhs, keep = get_barrier(name).rows(g, params)
     if keep is None:
         idx = np.arange(rhs.shape[0])
         return -g.p, rhs, idx

@@ -32,14 +32,40 @@ from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
 from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
 from aasoatt_env.model.params import Team
-from aasoatt_env.safety.barriers import PairGeometry, barrier_rows
+from aasoatt_env.safety.backup import gatekeeper
+from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
 from aasoatt_env.safety.problem import box_least_squares, build_problem
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.sim.protocol import FilterInput
 
-__all__ = ["FilterResult", "SafetyFilter"]
+__all__ = ["MIN_BRAKING_ROOM", "STATUSES", "FilterResult", "SafetyFilter"]
+
+STATUSES: tuple[str, ...] = ("solved", "relaxed", "backup", "failed", "unsafe")
+"""Filter statuses from best to worst (:attr:`FilterResult.status`)."""
+
+_BARRIER_TOL = 1e-6
+"""A barrier value below this counts as outside the barrier's safe set (backup layer off)."""
+COLLISION_TOL: float = 1e-3
+"""Overlap [m] beyond which a pair counts as colliding (the metrics' tolerance): without the backup
+layer the status is ``"unsafe"`` then, whatever the barrier's value."""
+MIN_BRAKING_ROOM: float = 0.1
+"""With the backup layer, the sensing range must exceed the largest safety distance by this much [m]:
+every robot's braking path must fit in half of the difference (:func:`~aasoatt_env.safety.backup.reach_limit`)."""
+_GATE_TOL = 1e-9
+"""Distance [m] the backup check forgives (floating-point rounding of the closed-form paths)."""
+
+
+def _axle_pose(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
+    """Axle poses ``(N, 3)`` from control points and headings."""
+    pose = np.empty((p.shape[0], 3))
+    pose[:, 2] = theta
+    if team.is_diff_drive:
+        pose[:, :2] = p - team.offset[:, None] * np.stack((np.cos(theta), np.sin(theta)), axis=1)
+    else:
+        pose[:, :2] = p
+    return pose
 
 
 @dataclass(frozen=True)
@@ -51,7 +77,26 @@ class FilterResult:
     du : numpy.ndarray
         The safe wheel accelerations ``(N, 2)`` (within the bounds).
     status : str
-        ``"solved"``, ``"relaxed"`` (rows loosened by ``slack``; bounds kept) or ``"failed"``.
+        The worst of what happened, by severity (:data:`STATUSES`): ``"solved"``
+        (the QP's optimum applied), ``"relaxed"`` (infeasible rows loosened by
+        ``slack``; bounds kept), ``"backup"`` (the backup layer braked some
+        robots), ``"failed"`` (the QP solver gave no answer) or ``"unsafe"``
+        (the team is outside the safe set: with the backup layer, the state was
+        not brake-safe; without it, some pair has a barrier value ``h < 0`` or
+        overlaps by more than :data:`COLLISION_TOL`).
+        ``"solved"``, ``"relaxed"`` and ``"backup"`` all mean: inside the safe set.
+    safe : bool
+        The team is inside the safe set after this step (``status != "unsafe"``).
+    backup : numpy.ndarray
+        ``(N,)``: robots the backup layer braked.
+    margin : float
+        With the backup layer: the smallest ``distance - d_s`` [m] of any pair
+        along the backup horizon of the applied inputs (at most the reach limit
+        ``(D - max d_s) / 2`` when no pair is near).  Without it: the smallest
+        surface gap ``|p_ij| - d_s`` of the pairs in range (``D - max d_s`` if none).
+    barrier_min : float
+        Smallest barrier value ``h`` over the rows, without the discrete-time
+        margins (``inf`` without rows).
     message : str
         Solver detail.
     eta : numpy.ndarray
@@ -81,6 +126,10 @@ class FilterResult:
 
     du: np.ndarray
     status: str
+    safe: bool
+    backup: np.ndarray
+    margin: float
+    barrier_min: float
     message: str
     eta: np.ndarray
     pairs: np.ndarray
@@ -156,6 +205,7 @@ class SafetyFilter:
         if team is not None:
             if not isinstance(team, Team):
                 raise ConfigError(f"team: got {type(team).__name__}, expected aasoatt_env.model.params.Team")
+            self._check_range(team)
             self.team = team
         self._dl = DeadlockState()
         self._x: np.ndarray | None = None
@@ -260,12 +310,22 @@ class SafetyFilter:
         else:
             triggered = np.zeros(n, dtype=bool)
         zeta = np.where(triggered, cfg.zeta, 0.0)
+        geo_p_true = geo_p
         geo_p = strategy.rotate_rows(geo_p, triggered[ri] | ((rj >= 0) & triggered[np.maximum(rj, 0)]), self._Q)
         target = strategy.correct_target(np.einsum("nij,nj->ni", A, nominal_du), zeta, self._Q,
                                          TargetContext(v, p, reference, cfg.k3, cfg.k4))
 
         # rows --------------------------------------------------------------------------
-        g = PairGeometry(ri, rj, geo_p, geo_v, geo_a, ds + cfg.pair_margin(geo_v), rsum, ap)
+        margin = cfg.pair_margin(geo_v)
+        c_speed = cfg.speed_margin_coefficient
+        if c_speed:
+            sp2 = np.einsum("ij,ij->i", v, v)
+            margin = margin + c_speed * (sp2[ri] + np.where(rj >= 0, sp2[np.maximum(rj, 0)], 0.0))
+        g = PairGeometry(ri, rj, geo_p, geo_v, geo_a, ds + margin, rsum, ap)
+        # the barrier's value with the true geometry and safety distance: what "inside the safe set" refers to
+        h = get_barrier(cfg.barrier).value(g._replace(p=geo_p_true, d_s=ds), cfg)
+        barrier_min = float(h.min(initial=np.inf))
+        gap = np.sqrt(np.einsum("ij,ij->i", geo_p_true, geo_p_true)) - ds
         c, rhs, keep = barrier_rows(cfg.barrier, g, cfg)
         ri, rj, pairs_out = ri[keep], rj[keep], pairs_out[keep]
         Gi = np.einsum("pki,pk->pi", A[ri], c)
@@ -325,9 +385,30 @@ class SafetyFilter:
         self._dl.avoiding = avoiding
         viol = self._row_values(Gi, Gj, ri, rj, du) - rhs
         slack = float(max(0.0, np.max(viol, initial=0.0))) if status != "solved" or not self._solver.exact else 0.0
+
+        # backup layer -----------------------------------------------------------------
+        braking = np.zeros(n, dtype=bool)
+        if cfg.backup:
+            gate = gatekeeper(team, _axle_pose(team, p, theta), u, du, cfg.dt, sensing_range=cfg.sensing_range,
+                              brake_fraction=cfg.brake_fraction, obstacles=obstacles, tol=_GATE_TOL)
+            # robots the backup cannot save any more (the invariant was broken before): best effort, the QP
+            du_qp, broken = du, gate.broken
+            du = np.where(broken[:, None], du_qp, gate.du)
+            braking, margin, safe = gate.braking & ~broken, gate.margin, gate.safe
+            avoiding = avoiding | braking
+            if braking.any():
+                message = f"{message}; backup braked {int(braking.sum())} robot(s)"
+        else:
+            margin = float(gap.min(initial=cfg.sensing_range - 2.0 * float(team.radius.max(initial=0.0))))
+            safe = not (barrier_min < -_BARRIER_TOL or margin < -COLLISION_TOL)
+        if not safe:
+            status = "unsafe"
+        elif braking.any() and STATUSES.index(status) < STATUSES.index("backup"):
+            status = "backup"
         correction = np.linalg.norm(du - nominal_du, axis=1)
         result = FilterResult(
-            du=du, status=status, message=message, eta=eta, pairs=pairs_out, avoiding=avoiding,
+            du=du, status=status, safe=safe, backup=braking, margin=margin, barrier_min=barrier_min,
+            message=message, eta=eta, pairs=pairs_out, avoiding=avoiding,
             triggered=triggered, slack=slack, correction=correction,
             intervened=correction > 1e-9 * scale, iterations=iterations,
             solve_time=time.perf_counter() - t0, n_rows=int(m), n_qp_rows=int(n_qp),
@@ -340,6 +421,17 @@ class SafetyFilter:
         """``G du`` row by row (``Gj`` ignored on obstacle rows)."""
         du_j = np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)])
         return np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0)
+
+    def _check_range(self, team: Team) -> None:
+        """The sensing range must cover contact and, with the backup layer, leave room to brake."""
+        ds_max = 2.0 * float(team.radius.max(initial=0.0))
+        need = ds_max + (MIN_BRAKING_ROOM if self.config.backup else 0.0)
+        if not self.config.sensing_range > need:
+            raise ConfigError(
+                f"sensing_range: got {self.config.sensing_range:g} m, expected > {need:g} m for robots of radius up "
+                f"to {ds_max / 2:g} m (safety distance {ds_max:g} m"
+                + (f" plus {MIN_BRAKING_ROOM:g} m for the backup layer's braking paths)" if self.config.backup else ")")
+            )
 
     def _bound_team(self) -> Team:
         if self.team is None:

@@ -21,7 +21,12 @@ key                 meaning
 ``avoiding``        some barrier row of this robot was active (eta > 0)
 ``triggered``       the deadlock strategy acted on this robot
 ``correction``      largest ``|du_safe - du_nominal|`` [rad/s^2]
-``status``          worst QP status of the team: solved < relaxed < failed
+``backup``          the backup layer braked this robot at some step
+``status``          worst status of the team: solved < relaxed < backup <
+                    failed < unsafe (:data:`~aasoatt_env.safety.core.STATUSES`)
+``safe``            the team stayed inside the safe set (status != unsafe)
+``margin``          smallest envelope margin of the step [m] (FilterResult.margin)
+``barrier_min``     smallest barrier value ``h`` of the step
 ``slack``           largest row relaxation (0 unless ``relaxed``)
 ``iterations``      total solver iterations
 ``n_rows``          barrier rows at the last physics step
@@ -32,9 +37,10 @@ Per-step infos are deterministic (same seed, same infos), as PettingZoo's and
 Gymnasium's checkers require; wall-clock times are kept out of them and are
 available from :attr:`AASOATTFilter.timing`.  ``infos="flat"`` gives numeric,
 top-level keys instead (``filter_intervened``, ``filter_avoiding``,
-``filter_triggered``, ``filter_correction``, ``filter_status_code`` = 0 / 1 / 2
-for solved / relaxed / failed, ``filter_slack``), which tensor-based clients
-such as TorchRL can batch.
+``filter_triggered``, ``filter_backup``, ``filter_correction``,
+``filter_status_code`` = the index in ``STATUSES`` (0 solved ... 4 unsafe),
+``filter_margin``, ``filter_slack``), which tensor-based clients such as
+TorchRL can batch.
 
 Options: ``AASOATTFilter(env, config=None, infos="nested", **options)`` where
 ``options`` are :class:`~aasoatt_env.safety.config.FilterConfig` fields; the one
@@ -54,12 +60,12 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.safety.core import FilterResult, SafetyFilter
+from aasoatt_env.safety.core import STATUSES, FilterResult, SafetyFilter
 from aasoatt_env.sim.env import AASOATTParallelEnv
 
 __all__ = ["STATUS_CODES", "AASOATTFilter", "FilterReport"]
 
-STATUS_CODES: dict[str, int] = {"solved": 0, "relaxed": 1, "failed": 2}
+STATUS_CODES: dict[str, int] = {name: code for code, name in enumerate(STATUSES)}
 """Numeric status of ``infos="flat"``; the larger, the worse."""
 
 
@@ -69,12 +75,16 @@ class FilterReport:
 
     Attributes
     ----------
-    intervened, avoiding, triggered : numpy.ndarray
+    intervened, avoiding, triggered, backup : numpy.ndarray
         ``(N,)`` bool, true if true at some physics step.
     correction : numpy.ndarray
         Largest ``|du_safe - du_nominal|`` per robot ``(N,)``.
     status : str
-        Worst status of the physics steps (solved < relaxed < failed).
+        Worst status of the physics steps (:data:`~aasoatt_env.safety.core.STATUSES`).
+    safe : bool
+        Every physics step ended inside the safe set.
+    margin, barrier_min : float
+        Smallest envelope margin [m] and barrier value of the physics steps.
     message : str
         Solver message of the worst step.
     slack : float
@@ -92,8 +102,12 @@ class FilterReport:
     intervened: np.ndarray
     avoiding: np.ndarray
     triggered: np.ndarray
+    backup: np.ndarray
     correction: np.ndarray
     status: str
+    safe: bool
+    margin: float
+    barrier_min: float
     message: str
     slack: float
     iterations: int
@@ -105,17 +119,20 @@ class FilterReport:
     @classmethod
     def of(cls, results: tuple[FilterResult, ...]) -> FilterReport:
         """Aggregate the results of the physics steps of one env step."""
-        worst = max(results, key=lambda r: STATUS_CODES.get(r.status, 2))
+        worst = max(results, key=lambda r: STATUS_CODES[r.status])
         last = results[-1]
         if len(results) == 1:
-            return cls(last.intervened, last.avoiding, last.triggered, last.correction, last.status, last.message,
-                       last.slack, last.iterations, last.n_rows, last.n_qp_rows, last.du, last.solve_time)
+            return cls(last.intervened, last.avoiding, last.triggered, last.backup, last.correction, last.status,
+                       last.safe, last.margin, last.barrier_min, last.message, last.slack, last.iterations,
+                       last.n_rows, last.n_qp_rows, last.du, last.solve_time)
         return cls(
             intervened=np.any([r.intervened for r in results], axis=0),
             avoiding=np.any([r.avoiding for r in results], axis=0),
             triggered=np.any([r.triggered for r in results], axis=0),
+            backup=np.any([r.backup for r in results], axis=0),
             correction=np.max([r.correction for r in results], axis=0),
-            status=worst.status, message=worst.message,
+            status=worst.status, safe=all(r.safe for r in results), margin=min(r.margin for r in results),
+            barrier_min=min(r.barrier_min for r in results), message=worst.message,
             slack=max(r.slack for r in results), iterations=sum(r.iterations for r in results),
             n_rows=last.n_rows, n_qp_rows=last.n_qp_rows, applied=last.du,
             solve_time=sum(r.solve_time for r in results),
@@ -127,8 +144,12 @@ class FilterReport:
             "intervened": bool(self.intervened[index]),
             "avoiding": bool(self.avoiding[index]),
             "triggered": bool(self.triggered[index]),
+            "backup": bool(self.backup[index]),
             "correction": float(self.correction[index]),
             "status": self.status,
+            "safe": bool(self.safe),
+            "margin": float(self.margin),
+            "barrier_min": float(min(self.barrier_min, _BIG)),
             "slack": float(self.slack),
             "iterations": int(self.iterations),
             "n_rows": int(self.n_rows),
@@ -141,8 +162,10 @@ class FilterReport:
             "filter_intervened": float(self.intervened[index]),
             "filter_avoiding": float(self.avoiding[index]),
             "filter_triggered": float(self.triggered[index]),
+            "filter_backup": float(self.backup[index]),
             "filter_correction": float(self.correction[index]),
-            "filter_status_code": float(STATUS_CODES.get(self.status, 2)),
+            "filter_status_code": float(STATUS_CODES[self.status]),
+            "filter_margin": float(self.margin),
             "filter_slack": float(self.slack),
         }
 
@@ -234,11 +257,15 @@ class AASOATTFilter(BaseParallelWrapper):
                 "mean_ms": 1e3 * self._time / self._steps if self._steps else 0.0}
 
 
+_BIG = 1e9
+"""Stand-in for an infinite barrier value in the infos (no rows): infos stay finite."""
+
 _NESTED_IDLE: dict[str, Any] = {
-    "intervened": False, "avoiding": False, "triggered": False, "correction": 0.0, "status": "solved",
-    "slack": 0.0, "iterations": 0, "n_rows": 0, "n_qp_rows": 0,
+    "intervened": False, "avoiding": False, "triggered": False, "backup": False, "correction": 0.0,
+    "status": "solved", "safe": True, "margin": _BIG, "barrier_min": _BIG, "slack": 0.0, "iterations": 0,
+    "n_rows": 0, "n_qp_rows": 0,
 }
 _FLAT_IDLE: dict[str, float] = {
-    "filter_intervened": 0.0, "filter_avoiding": 0.0, "filter_triggered": 0.0, "filter_correction": 0.0,
-    "filter_status_code": 0.0, "filter_slack": 0.0,
+    "filter_intervened": 0.0, "filter_avoiding": 0.0, "filter_triggered": 0.0, "filter_backup": 0.0,
+    "filter_correction": 0.0, "filter_status_code": 0.0, "filter_margin": _BIG, "filter_slack": 0.0,
 }

@@ -1,0 +1,441 @@
+"""The braking backup layer: a gatekeeper that keeps the team collision-free for any nominal.
+
+The paper's barrier rows assume control authority the wheels do not have once a
+robot is fast or spinning (the drift ``A_dot u`` grows with the wheel speeds,
+the authority is fixed by ``|du| <= a``), so its QP can become infeasible and
+then neither the least-violation point nor the nominal is safe.  This layer
+checks the QP's answer against a *backup policy* every robot can always
+execute, and applies the backup where the answer would leave the set of states
+from which the backup keeps every pair apart (a gatekeeper in the sense of
+Agrawal and Panagou; a backup-set barrier in the sense of Gurriet et al.).
+
+Backup policy (:func:`braking_du`, :func:`brake_time`)
+    Proportional braking in ``T`` seconds: ``du = -u / T`` (``-u / dt`` in the
+    last step), so both wheel speeds fall linearly to zero together and their
+    ratio, hence the curvature, stays constant: the control point moves on a
+    fixed circle (a straight line when ``omega = 0``) while its speed falls
+    linearly.  ``T = max(s / a, |p_dot| / a_b)`` with ``s = max|u_k|``: never
+    faster than the wheels allow (``|du| <= a``), and the control point never
+    decelerates faster than ``a_b = brake_fraction * rho * a`` (double
+    integrator: ``brake_fraction * a``), the same for all robots of one kind, so
+    a convoy of robots at equal speeds brakes in step and keeps its spacing.
+    Both terms scale with the speeds, so after one braking step ``T`` is
+    exactly ``T - dt``: the policy is memoryless and *time-consistent* (braking
+    from the state reached by braking continues the same trajectory).
+
+Closed form (:func:`braking_trajectory`)
+    With the speed scale ``sigma_k = max(0, 1 - k dt / T)`` and the arc
+    parameter ``tau_k = dt sum_{m<k} (sigma_m + sigma_{m+1}) / 2`` (the simulator
+    moves the pose along the exact arc of the step-mean wheel speeds, so the
+    trapezoid is exact), ``p(tau) = p0 + p_dot0 tau E(omega0 tau)`` with
+    ``E(x) = (e^{ix} - 1) / (ix)``: the sampled path equals stepping
+    :func:`aasoatt_env.model.dynamics.integrate` with :func:`braking_du`.
+
+Pair check (:func:`pair_margins`)
+    Within a step the simulated path is an arc at constant speed, which deviates
+    from the straight, linear-in-time interpolation of its end points by at most
+    its sagitta ``|p_dot| |omega| dt^2 / 8``.  The distance from the origin to a
+    segment of *relative* positions minus both robots' sagittas bounds the
+    pair's distance from below over that step; a pair is safe over a horizon
+    when that bound is ``>= d_s = r_i + r_j`` on every step.  Obstacles are
+    robots that never move.
+
+Gatekeeper (:func:`gatekeeper`) and its invariance argument: see its docstring.
+Everything is vectorised over robots and pairs; Python loops run only over the
+gatekeeper's rounds and over a few length buckets of the pair batch.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from aasoatt_env.model.geometry import robot_pairs
+from aasoatt_env.model.params import Team
+
+__all__ = [
+    "GateResult",
+    "Trajectories",
+    "brake_time",
+    "braking_du",
+    "braking_trajectory",
+    "gatekeeper",
+    "pair_margins",
+    "reach_limit",
+]
+
+
+# --------------------------------------------------------------------------- helpers
+def _E(x: np.ndarray) -> np.ndarray:
+    """``(e^{ix} - 1) / (ix) = e^{ix/2} sinc(x/2)``, stable at 0."""
+    return np.exp(0.5j * x) * np.sinc(x / (2.0 * np.pi))
+
+
+def _point(team: Team, pose: np.ndarray) -> np.ndarray:
+    """Control points ``(N,)`` complex from axle poses ``(N, 3)``."""
+    c = pose[:, 0] + 1j * pose[:, 1]
+    return c + team.offset * np.exp(1j * pose[:, 2]) if team.is_diff_drive else c
+
+
+def _velocity(team: Team, theta: np.ndarray, u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Complex control-point velocity ``(N,)`` and yaw rate ``(N,)``."""
+    if not team.is_diff_drive:
+        return u[:, 0] + 1j * u[:, 1], np.zeros(u.shape[0])
+    cols = team.input_columns
+    pdot = np.exp(1j * theta) * (cols[:, 0] * u[:, 0] + cols[:, 1] * u[:, 1])
+    return pdot, team.turn_gain * (u[:, 0] - u[:, 1])
+
+
+def brake_decel(team: Team, brake_fraction: float) -> np.ndarray:
+    """The backup's control-point deceleration ``a_b`` per robot ``(N,)`` [m/s^2]."""
+    straight = team.max_wheel_accel * team.wheel_radius if team.is_diff_drive else team.max_wheel_accel
+    return brake_fraction * straight
+
+
+def brake_time(team: Team, u: np.ndarray, brake_fraction: float) -> np.ndarray:
+    """Braking time ``T = max(s / a, |p_dot| / a_b)`` per robot ``(N,)`` (0 at rest)."""
+    s = np.abs(u).max(axis=1)
+    if team.is_diff_drive:
+        cols = team.input_columns
+        speed = np.abs(cols[:, 0] * u[:, 0] + cols[:, 1] * u[:, 1])
+    else:
+        speed = np.hypot(u[:, 0], u[:, 1])
+    return np.maximum(s / team.max_wheel_accel, speed / brake_decel(team, brake_fraction))
+
+
+def braking_du(team: Team, u: np.ndarray, dt: float, brake_fraction: float) -> np.ndarray:
+    """The backup's wheel accelerations ``(N, 2)``: ``-u / T``, or ``-u / dt`` when it stops in this step."""
+    T = brake_time(team, u, brake_fraction)
+    return -u / np.maximum(T, dt)[:, None]
+
+
+def reach_limit(team: Team, sensing_range: float) -> float:
+    """``(D - max d_s) / 2``: the farthest a robot may get from where it is along its step and braking path.
+
+    Two robots farther apart than ``D`` (not seen by each other) that both stay
+    within this of their positions keep ``>= max d_s`` apart.
+    """
+    return 0.5 * (float(sensing_range) - 2.0 * float(team.radius.max(initial=0.0)))
+
+
+class Trajectories(NamedTuple):
+    """Sampled control-point paths of a team, one sample per physics step.
+
+    Attributes
+    ----------
+    p : numpy.ndarray
+        ``(N, L)`` complex positions at steps ``0 .. L-1`` (padded with the rest position).
+    delta : numpy.ndarray
+        ``(N, L-1)``: bound on the deviation of the path within step ``k`` from
+        the linear-in-time interpolation of ``p[:, k], p[:, k+1]`` [m].
+    length : numpy.ndarray
+        ``(N,)`` int: samples that matter (``p[:, length-1:]`` is the rest position).
+    reach : numpy.ndarray
+        ``(N,)``: bound on the distance of the modelled path from ``p[:, 0]`` [m].
+    """
+
+    p: np.ndarray
+    delta: np.ndarray
+    length: np.ndarray
+    reach: np.ndarray
+
+
+class _Brake(NamedTuple):
+    pdot: np.ndarray
+    omega: np.ndarray
+    rate: np.ndarray  # dt / T (1 when at rest)
+    steps: np.ndarray  # steps to stop
+    reach: np.ndarray  # envelope of the continuous braking arc + the largest sagitta
+
+
+def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float) -> _Brake:
+    """Closed-form parameters of braking from headings ``theta`` and wheel speeds ``u``."""
+    pdot, w = _velocity(team, theta, u)
+    T = brake_time(team, u, brake_fraction)
+    moving = T > 0
+    ratio = np.where(moving, T / dt, 0.0)
+    rate = np.where(moving, 1.0 / np.where(moving, ratio, 1.0), 1.0)
+    steps = np.ceil(ratio - 1e-12).astype(np.int64)
+    speed = np.abs(pdot) * moving
+    # farthest point of the braking arc from its start: the chord of the swept angle (a diameter past pi)
+    tau_end = 0.5 * T * moving
+    aw = np.abs(w)
+    past_half = aw * tau_end > np.pi
+    tau_env = np.where(past_half, np.pi / np.where(past_half, aw, 1.0), tau_end)
+    envelope = speed * tau_env * np.sinc(aw * tau_env / (2.0 * np.pi))
+    return _Brake(pdot * moving, w, rate, steps, envelope + (dt * dt / 8.0) * speed * aw)
+
+
+def _brake_samples(p0: np.ndarray, b: _Brake, dt: float, L: int) -> tuple[np.ndarray, np.ndarray]:
+    """Positions ``(N, L)`` and sagitta bounds ``(N, L-1)`` of the braking paths from ``p0``."""
+    k = np.arange(L, dtype=np.float64)
+    sigma = np.clip(1.0 - k[None, :] * b.rate[:, None], 0.0, 1.0)
+    tau = np.empty_like(sigma)
+    tau[:, 0] = 0.0
+    np.cumsum(0.5 * dt * (sigma[:, :-1] + sigma[:, 1:]), axis=1, out=tau[:, 1:])
+    w = b.omega[:, None]
+    p = p0[:, None] + (b.pdot[:, None] * tau) * _E(w * tau)
+    s = 0.5 * (sigma[:, :-1] + sigma[:, 1:])  # step-mean speed scale
+    delta = (dt * dt / 8.0) * np.abs(b.pdot)[:, None] * (s * s) * np.abs(w)
+    return p, delta
+
+
+def braking_trajectory(team: Team, pose: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float,
+                       length: int | None = None) -> Trajectories:
+    """Closed-form backup paths of the team's control points (module docstring).
+
+    ``p[:, k]`` is the control point after ``k`` braking steps; it equals stepping
+    :func:`aasoatt_env.model.dynamics.integrate` with :func:`braking_du` (to rounding).
+    """
+    b = _brake(team, pose[:, 2], u, dt, brake_fraction)
+    L = int(b.steps.max(initial=0)) + 1 if length is None else int(length)
+    p, delta = _brake_samples(_point(team, pose), b, dt, max(L, 1))
+    return Trajectories(p, delta, b.steps + 1, b.reach)
+
+
+# --------------------------------------------------------------------------- pair check
+def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray | float, ds: np.ndarray
+                 ) -> np.ndarray:
+    """Smallest ``distance - d_s`` of each pair along sampled paths (a lower bound between samples).
+
+    Parameters
+    ----------
+    pi, pj : numpy.ndarray
+        ``(P, L)`` complex positions of the two members at the same steps
+        (``pj`` may be ``(P, 1)`` for a static obstacle).
+    di, dj : numpy.ndarray or float
+        ``(P, L-1)`` deviation bounds per step (``dj`` may be 0).
+    ds : numpy.ndarray
+        ``(P,)`` safety distances.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(P,)``: ``min_k (dist(0, [q_k, q_{k+1}]) - di_k - dj_k) - ds`` with ``q = pi - pj``.
+    """
+    q = pi - pj
+    if q.shape[1] == 1:
+        return np.abs(q[:, 0]) - ds
+    q0 = q[:, :-1]
+    dq = q[:, 1:] - q0
+    dd = dq.real * dq.real + dq.imag * dq.imag
+    dot = q0.real * dq.real + q0.imag * dq.imag
+    t = np.clip(-dot / np.where(dd > 0.0, dd, 1.0), 0.0, 1.0)
+    dist = np.abs(q0 + t * dq) - di - dj
+    return dist.min(axis=1) - ds
+
+
+def _bucketed(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndarray, jj: np.ndarray, ds: np.ndarray,
+              centers: np.ndarray | None = None) -> np.ndarray:
+    """:func:`pair_margins` of pairs ``(ii, jj)`` of rows of ``P``, in buckets of similar horizon.
+
+    ``need[r]`` is the number of samples row ``r`` needs; with ``centers`` the
+    second member is the static point ``centers[jj]``.
+    """
+    out = np.empty(ii.shape[0])
+    if ii.size == 0:
+        return out
+    lens = np.maximum(need[ii] if centers is not None else np.maximum(need[ii], need[jj]), 2)
+    bucket = np.ceil(np.log2(lens)).astype(np.int64)
+    for b in np.unique(bucket):
+        sel = np.flatnonzero(bucket == b)
+        Lb = int(lens[sel].max())
+        a, c = ii[sel], jj[sel]
+        if centers is None:
+            out[sel] = pair_margins(P[a, :Lb], P[c, :Lb], D[a, : Lb - 1], D[c, : Lb - 1], ds[sel])
+        else:
+            out[sel] = pair_margins(P[a, :Lb], centers[c][:, None], D[a, : Lb - 1], 0.0, ds[sel])
+    return out
+
+
+# --------------------------------------------------------------------------- gatekeeper
+class GateResult(NamedTuple):
+    """What :func:`gatekeeper` decided.
+
+    Attributes
+    ----------
+    du : numpy.ndarray
+        ``(N, 2)`` inputs to apply: the backup for ``braking`` robots, the candidate otherwise.
+    braking : numpy.ndarray
+        ``(N,)`` bool: robots put on the backup.
+    margin : float
+        Smallest ``distance - d_s`` over the checked pairs along the horizon of
+        the returned assignment [m] (``reach_limit`` when no pair is close
+        enough to matter).
+    safe : bool
+        The current state was brake-safe for every checked pair: the returned
+        assignment keeps the team in the safe set.  False means the invariant
+        was already broken (an earlier overlap, a start that was not brake-safe,
+        or an assumption of the guarantee violated).
+    broken : numpy.ndarray
+        ``(N,)`` bool: robots in a pair that fails even when both brake (or that
+        reach beyond the range limit when braking).  No input can promise them
+        safety; the caller decides what they do (the filter applies its QP).
+    rounds : int
+        Gatekeeper rounds.
+    n_pairs : int
+        Robot and robot-obstacle pairs checked.
+    """
+
+    du: np.ndarray
+    braking: np.ndarray
+    margin: float
+    safe: bool
+    broken: np.ndarray
+    rounds: int
+    n_pairs: int
+
+
+def gatekeeper(
+    team: Team,
+    pose: np.ndarray,
+    u: np.ndarray,
+    du_c: np.ndarray,
+    dt: float,
+    *,
+    sensing_range: float,
+    brake_fraction: float,
+    obstacles: tuple[np.ndarray, np.ndarray] | None = None,
+    tol: float = 0.0,
+) -> GateResult:
+    """Accept the candidate ``du_c`` for every robot whose pairs stay brake-safe; put the others on the backup.
+
+    Algorithm (one physics step, whole team)
+        1. ``B0``: backup paths from the current state; ``Bc``: one step with
+           ``du_c``, then the backup from there.
+        2. Range condition: a robot whose ``Bc`` reaches farther than
+           :func:`reach_limit` from where it is starts in the braking set ``S``.
+        3. Every pair that could meet (``|p_ij| < d_s + R_i + R_j``, ``R`` the
+           reach of the paths) with a member outside ``S`` is checked, a member
+           outside ``S`` on ``Bc``, a member in ``S`` on ``B0``; the check
+           covers the step itself and the whole backup horizon.  The members of
+           failing pairs that are outside ``S`` join ``S``, and their pairs are
+           checked again.  ``S`` only grows, so this ends; at worst all brake.
+
+    Invariance
+        Call a state *brake-safe* when the backup from it keeps every pair
+        ``>= d_s`` and every robot's backup reach within :func:`reach_limit`.
+        Let the current state ``x`` be brake-safe and ``x'`` the state after the
+        returned inputs.  The backup is time-consistent, so the backup paths
+        from ``x'`` are the tails of ``B0`` (robots in ``S``) and of ``Bc``
+        (the others).  Pairs with both members in ``S`` follow tails of paths
+        that passed at ``x``; pairs with a member outside ``S`` were checked now
+        on the step and the whole backup from ``x'``; pairs that cannot meet
+        within their reach, and unseen pairs beyond the sensing range ``D``
+        (every path stays within ``(D - max d_s) / 2`` of its start), stay
+        apart.  Obstacles are robots that never move.  So ``x'`` is brake-safe
+        and no pair came closer than ``d_s`` during the step.  A team at rest
+        without overlap is brake-safe, hence the team never collides, whatever
+        the candidate.  Assumptions: every robot runs this filter with the same
+        state, the bounds ``|du| <= a`` and ``dt`` are the real ones, the
+        returned inputs are applied as they are, and floating-point rounding
+        (~1e-12 m) is absorbed by ``tol``.
+
+    Parameters
+    ----------
+    team : Team
+        Robot parameters.
+    pose : numpy.ndarray
+        Axle poses ``(N, 3)``.
+    u : numpy.ndarray
+        Wheel speeds ``(N, 2)``.
+    du_c : numpy.ndarray
+        Candidate inputs ``(N, 2)`` within the bounds (the QP's answer).
+    dt : float
+        Physics step [s].
+    sensing_range : float
+        ``D`` [m].
+    brake_fraction : float
+        The backup's point deceleration as a fraction of the straight-line
+        braking capability (:func:`brake_time`).
+    obstacles : tuple of numpy.ndarray, optional
+        ``(centres (M, 2), radii (M,))`` of static discs.
+    tol : float
+        Accepted violation [m].
+    """
+    n = pose.shape[0]
+    rad = team.radius
+    theta = pose[:, 2]
+    p0 = _point(team, pose)
+
+    # B0 (backup now) and Bc (candidate step, then backup), one common length
+    b0 = _brake(team, theta, u, dt, brake_fraction)
+    u1 = u + du_c * dt
+    pdot_m, w_m = _velocity(team, theta, 0.5 * (u + u1))
+    p1 = p0 + pdot_m * dt * _E(w_m * dt)
+    b1 = _brake(team, theta + w_m * dt, u1, dt, brake_fraction)
+    L = max(int(b0.steps.max(initial=0)) + 1, int(b1.steps.max(initial=0)) + 2, 2)
+    P0, D0 = _brake_samples(p0, b0, dt, L)
+    Pc = np.empty((n, L), dtype=np.complex128)
+    Dc = np.empty((n, L - 1))
+    Pc[:, 0] = p0
+    Dc[:, 0] = (dt * dt / 8.0) * np.abs(pdot_m) * np.abs(w_m)
+    Pc[:, 1:], Dc[:, 1:] = _brake_samples(p1, b1, dt, L - 1)
+    need0, needc = b0.steps + 1, b1.steps + 2
+    reach_c = np.abs(p1 - p0) + Dc[:, 0] + b1.reach
+    R = np.maximum(b0.reach, reach_c)
+
+    limit = reach_limit(team, sensing_range)
+    S = reach_c > limit
+    broken = b0.reach > limit
+
+    # pairs that could meet within their reach (fixed for the call)
+    pts = np.stack((p0.real, p0.imag), axis=1)
+    search = min(float(sensing_range), 2.0 * float(rad.max(initial=0.0)) + 2.0 * float(R.max(initial=0.0)))
+    pr = robot_pairs(pts, search)
+    i, j = pr[:, 0], pr[:, 1]
+    ds = rad[i] + rad[j]
+    keep = np.abs(p0[i] - p0[j]) < ds + R[i] + R[j] + 1e-12
+    i, j, ds = i[keep], j[keep], ds[keep]
+    if obstacles is not None and obstacles[1].size:
+        oc = obstacles[0][:, 0] + 1j * obstacles[0][:, 1]
+        orad = obstacles[1]
+        oi, ok = np.nonzero(np.abs(p0[:, None] - oc[None, :]) < rad[:, None] + orad[None, :] + R[:, None] + 1e-12)
+        ods = rad[oi] + orad[ok]
+    else:
+        oc = np.empty(0, dtype=np.complex128)
+        oi = ok = np.empty(0, dtype=np.intp)
+        ods = np.empty(0)
+
+    cur, curd, need = Pc.copy(), Dc.copy(), needc.copy()
+    if S.any():
+        cur[S], curd[S], need[S] = P0[S], D0[S], need0[S]
+    marg = np.full(i.shape[0], np.inf)
+    omarg = np.full(oi.shape[0], np.inf)
+    todo = ~(S[i] & S[j])
+    otodo = ~S[oi]
+    rounds = 0
+    while True:
+        rounds += 1
+        idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
+        if idx.size:
+            marg[idx] = _bucketed(cur, curd, need, i[idx], j[idx], ds[idx])
+        if oidx.size:
+            omarg[oidx] = _bucketed(cur, curd, need, oi[oidx], ok[oidx], ods[oidx], centers=oc)
+        new = np.zeros(n, dtype=bool)
+        bad = idx[marg[idx] < -tol]
+        new[i[bad]] = True
+        new[j[bad]] = True
+        new[oi[oidx[omarg[oidx] < -tol]]] = True
+        new &= ~S
+        if not new.any():
+            break
+        S |= new
+        cur[new], curd[new], need[new] = P0[new], D0[new], need0[new]
+        todo = (new[i] & ~S[j]) | (new[j] & ~S[i])
+        otodo = np.zeros(oi.shape[0], dtype=bool)
+
+    # pairs in which everyone brakes follow B0: a failure there means the state was not brake-safe
+    both, ob = np.flatnonzero(S[i] & S[j]), np.flatnonzero(S[oi])
+    if both.size:
+        marg[both] = _bucketed(P0, D0, need0, i[both], j[both], ds[both])
+        fail = both[marg[both] < -tol]
+        broken[i[fail]] = True
+        broken[j[fail]] = True
+    if ob.size:
+        omarg[ob] = _bucketed(P0, D0, need0, oi[ob], ok[ob], ods[ob], centers=oc)
+        broken[oi[ob[omarg[ob] < -tol]]] = True
+    du = np.where(S[:, None], braking_du(team, u, dt, brake_fraction), du_c)
+    margin = min(float(marg.min(initial=np.inf)), float(omarg.min(initial=np.inf)), limit)
+    return GateResult(du, S, margin, not bool(broken.any()), broken, rounds, int(i.size + oi.size))

@@ -1,0 +1,230 @@
+"""The braking backup layer: closed-form paths against brute-force integration, the pair check against
+fine sub-step simulation, time consistency, invariance on random states, and closed loops it must win."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aasoatt_env import AASOATTFilter, AASOATTParallelEnv, FilterConfig, make_env
+from aasoatt_env.analysis.metrics import pairwise_min_distance
+from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point
+from aasoatt_env.model.params import RobotParams, make_team
+from aasoatt_env.safety import SafetyFilter
+from aasoatt_env.safety.backup import (
+    brake_time,
+    braking_du,
+    braking_trajectory,
+    gatekeeper,
+    pair_margins,
+    reach_limit,
+)
+from agents import HostileAgent
+
+F = 2.0 / 3.0  # the default brake fraction
+
+
+def _teams():
+    return {
+        "paper": make_team("paper", 5),
+        "turtlebot3": make_team("turtlebot3_burger", 5),
+        "mixed": make_team(["paper", "turtlebot3_burger", "paper", RobotParams(radius=0.3, offset=0.1), "paper"], 5),
+        "double_integrator": make_team("double_integrator", 5),
+    }
+
+
+def _random_state(team, rng, scale=15.0):
+    pose = np.column_stack((rng.uniform(-5, 5, (team.n, 2)), rng.uniform(-np.pi, np.pi, team.n)))
+    u = rng.normal(0, scale, (team.n, 2))
+    u[0] = [scale, -scale]  # spinning in place
+    u[1] = [1e-7, 2e-7]  # nearly at rest
+    u[2] = [0.1, 0.1]  # stops within one step
+    if not team.is_diff_drive:
+        u /= 5.0
+    return pose, u
+
+
+@pytest.mark.parametrize("kind", ["paper", "turtlebot3", "mixed", "double_integrator"])
+def test_closed_form_braking_equals_stepping_the_simulator(kind):
+    team = _teams()[kind]
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        pose, u = _random_state(team, rng)
+        tr = braking_trajectory(team, pose, u, DT, F)
+        p, uu = pose.copy(), u.copy()
+        for k in range(tr.p.shape[1]):
+            pt = kinematics(team, p, uu).p
+            np.testing.assert_allclose(pt, np.stack((tr.p[:, k].real, tr.p[:, k].imag), axis=1), atol=1e-9)
+            du = braking_du(team, uu, DT, F)
+            assert np.all(np.abs(du) <= team.max_wheel_accel[:, None] * (1 + 1e-12))  # always executable
+            p, uu = integrate(team, p, uu, du, DT)
+        np.testing.assert_array_equal(uu, 0.0)  # everyone stopped at the end of the horizon
+
+
+def test_braking_is_time_consistent():
+    team = _teams()["mixed"]
+    pose, u = _random_state(team, np.random.default_rng(2))
+    tr = braking_trajectory(team, pose, u, DT, F)
+    T = brake_time(team, u, F)
+    pose1, u1 = integrate(team, pose, u, braking_du(team, u, DT, F), DT)
+    np.testing.assert_allclose(brake_time(team, u1, F), np.maximum(T - DT, 0.0), atol=1e-12)
+    tail = braking_trajectory(team, pose1, u1, DT, F, length=tr.p.shape[1] - 1)
+    np.testing.assert_allclose(tail.p, tr.p[:, 1:], atol=1e-9)
+
+
+def test_pair_check_is_a_lower_bound_of_the_fine_simulated_distance():
+    """Sub-step the simulator's arcs 64 times per step: the check never claims more than is there."""
+    team = make_team("paper", 2)
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        pose = np.column_stack((rng.uniform(-1, 1, (2, 2)), rng.uniform(-np.pi, np.pi, 2)))
+        u = rng.normal(0, 20, (2, 2))
+        tr = braking_trajectory(team, pose, u, DT, F)
+        m = pair_margins(tr.p[:1], tr.p[1:], tr.delta[:1], tr.delta[1:], np.array([0.96]))[0]
+        # fine simulation: each step's arc at the step-mean speeds, sampled 64 times
+        fine = np.inf
+        p, uu = pose.copy(), u.copy()
+        for _k in range(tr.p.shape[1]):
+            du = braking_du(team, uu, DT, F)
+            for s in np.linspace(0, 1, 65)[1:]:
+                um = uu + 0.5 * du * DT  # the step's mean speeds, held over the sub-interval
+                q, _ = integrate(team, p, um, np.zeros_like(du), DT * s)
+                pt = kinematics(team, q, um).p
+                fine = min(fine, float(np.linalg.norm(pt[0] - pt[1])))
+            p, uu = integrate(team, p, uu, du, DT)
+        assert m <= fine - 0.96 + 1e-12
+        assert m >= fine - 0.96 - 1e-3  # and it is tight
+
+
+def _inputs(team, pose, u):
+    kin = kinematics(team, pose, u)
+    lo, hi = input_bounds(team, u, DT)
+    return kin, lo, hi
+
+
+def test_gatekeeper_keeps_random_brake_safe_states_brake_safe():
+    """Invariance: from brake-safe states, any candidate (here random, at the bounds) leads to brake-safe states."""
+    rng = np.random.default_rng(4)
+    for kind, team in _teams().items():
+        D = 3.0
+        for _ in range(30):
+            pose, u = _random_state(team, rng, scale=8.0)
+            pose[:, :2] = rng.uniform(-1.6, 1.6, (team.n, 2))
+            brake = braking_du(team, u, DT, F)
+            first = gatekeeper(team, pose, u, brake, DT, sensing_range=D, brake_fraction=F)
+            if not first.safe or first.braking.any():
+                continue  # not a brake-safe state: nothing to keep
+            for _ in range(3):
+                cand = rng.choice([-1.0, 1.0], size=(team.n, 2)) * team.max_wheel_accel[:, None]
+                g = gatekeeper(team, pose, u, cand, DT, sensing_range=D, brake_fraction=F)
+                assert g.safe
+                pose, u = integrate(team, pose, u, g.du, DT)
+                after = gatekeeper(team, pose, u, braking_du(team, u, DT, F), DT, sensing_range=D,
+                                   brake_fraction=F)
+                assert after.safe and not after.braking.any(), kind
+
+
+def _closed_loop(team, pose, u, nominal_fn, steps, **cfg):
+    f = SafetyFilter(team, deadlock="none", **cfg)
+    dmin = np.inf
+    for _ in range(steps):
+        kin, lo, hi = _inputs(team, pose, u)
+        du, res = f.step(kin, u, pose[:, 2], nominal_fn(kin, u), lo, hi)
+        assert np.all(du >= lo - 1e-9) and np.all(du <= hi + 1e-9)
+        pose, u = integrate(team, pose, u, du, DT)
+        p = kinematics(team, pose, u).p
+        dmin = min(dmin, float(np.linalg.norm(p[0] - p[1])))
+    return dmin, res
+
+
+def test_head_on_pair_at_speed_is_kept_apart():
+    """Two paper robots with a 2.3 m gap closing at 2 x 3 m/s (sensing range 6 m); full throttle nominal.
+
+    The paper's rows then ask for more deceleration than the wheels have: its filter ends 4 mm inside
+    d_s (7 mm).  Braking from that state does fit in the gap, so the backup layer keeps them apart.
+    """
+    team = make_team("paper", 2)
+    pose = pose_from_point(team, np.array([[-1.63, 0.0], [1.63, 0.0]]), np.array([0.0, np.pi]))
+    u = np.full((2, 2), 30.0)  # 3 m/s forward each
+    throttle = lambda kin, u: np.full((2, 2), 60.0)  # noqa: E731
+    lost, off = _closed_loop(team, pose, u, throttle, 500, backup=False, sensing_range=6.0)
+    kept, res = _closed_loop(team, pose, u, throttle, 500, sensing_range=6.0)
+    assert lost < 0.96 - 2e-3 and off.status == "unsafe"  # the paper's barrier alone lets them touch
+    assert kept >= 0.96 - 1e-9 and res.safe
+
+
+def test_spinning_robot_next_to_another_is_kept_apart():
+    """A robot passing a resting one at 2 m/s spins up its turn toward it at full wheel acceleration.
+
+    The turn's drift ``A_dot u = i omega p_dot`` soon exceeds what the wheels can cancel: the paper's
+    filter ends 17 cm inside d_s; the backup layer brakes in time.
+    """
+    team = make_team("paper", 2)
+    pose = pose_from_point(team, np.array([[-0.5, 1.3], [0.0, 0.0]]), np.array([0.0, 0.0]))
+    u = np.array([[20.0, 20.0], [0.0, 0.0]])
+    turn = lambda kin, u: np.array([[-60.0, 60.0], [0.0, 0.0]])  # noqa: E731
+    lost, off = _closed_loop(team, pose, u, turn, 600, backup=False)
+    kept, res = _closed_loop(team, pose, u, turn, 600)
+    assert lost < 0.96 - 0.1
+    assert kept >= 0.96 - 1e-9 and res.safe
+
+
+def test_robot_obstacle_pair_is_kept_apart():
+    team = make_team("paper", 1)
+    pose = pose_from_point(team, np.array([[-2.0, 0.0]]), np.array([0.0]))
+    u = np.full((1, 2), 30.0)
+    f = SafetyFilter(team, deadlock="none")
+    obstacles = (np.array([[0.0, 0.0]]), np.array([0.5]))
+    gap = np.inf
+    for _ in range(300):
+        kin, lo, hi = _inputs(team, pose, u)
+        du, res = f.step(kin, u, pose[:, 2], np.full((1, 2), 60.0), lo, hi, obstacles=obstacles)
+        pose, u = integrate(team, pose, u, du, DT)
+        gap = min(gap, float(np.linalg.norm(kinematics(team, pose, u).p[0])) - 0.98)
+    assert gap >= -1e-9
+
+
+def test_status_never_says_solved_outside_the_safe_set():
+    """A start that is not brake-safe (two robots 1 cm apart, closing at 2 m/s): every step says 'unsafe'."""
+    team = make_team("paper", 2)
+    pose = pose_from_point(team, np.array([[-0.485, 0.0], [0.485, 0.0]]), np.array([0.0, np.pi]))
+    u = np.full((2, 2), 10.0)
+    f = SafetyFilter(team, deadlock="none")
+    kin, lo, hi = _inputs(team, pose, u)
+    du, res = f.step(kin, u, pose[:, 2], np.zeros((2, 2)), lo, hi)
+    assert res.status == "unsafe" and not res.safe and res.margin < 0
+    # the paper's filter alone: outside its barrier's set h >= 0 -> 'unsafe' too
+    _, res_off = SafetyFilter(team, deadlock="none", backup=False).step(kin, u, pose[:, 2], np.zeros((2, 2)), lo, hi)
+    assert res_off.barrier_min < 0 and res_off.status == "unsafe"
+
+
+def test_reach_limit_and_sensing_range_configuration():
+    team = make_team("paper", 2)
+    assert reach_limit(team, 3.0) == pytest.approx((3.0 - 0.96) / 2)
+    with pytest.raises(Exception, match="sensing_range"):
+        SafetyFilter(team, sensing_range=0.9)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [6, 12, 13, 15])
+def test_hostile_seeds_that_collided_before_are_kept_apart(seed):
+    env = make_env("random_goals", filter=True, num_robots=20, max_steps=2000)
+    rollout, _ = run_episode(env, HostileAgent(), seed=seed)
+    assert pairwise_min_distance(rollout).overall_min_robot_gap >= -1e-3
+    assert not np.any(rollout.solver_status == "unsafe")
+    assert rollout.backup.any()  # the layer had to act
+
+
+def test_wrapper_reports_backup_and_margin():
+    env = AASOATTFilter(AASOATTParallelEnv("random_goals", num_robots=6, max_steps=60), FilterConfig())
+    obs, _ = env.reset(seed=0)
+    agent = HostileAgent()
+    agent.reset(env)
+    seen_backup = False
+    while env.agents:
+        obs, _, _, _, infos = env.step(agent.act(obs, env))
+        f = infos["robot_0"]["filter"]
+        assert f["safe"] and f["status"] != "unsafe" and np.isfinite(f["margin"])
+        seen_backup |= any(i["filter"]["backup"] for i in infos.values())
+    assert env.report is not None
