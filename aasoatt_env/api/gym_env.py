@@ -17,6 +17,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from aasoatt_env import validation as check
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.errors import ActionError, ConfigError
 from aasoatt_env.safety.config import FilterConfig
@@ -86,7 +87,9 @@ class AASOATTGymEnv(gym.Env):
         }
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
-        """Reset the team; ``seed`` seeds the scenario."""
+        """Reset the team; ``seed`` (an integer >= 0) seeds the scenario."""
+        if seed is not None:
+            seed = check.integer("seed", seed, lo=0)  # before Gymnasium's own check, which raises its own error type
         super().reset(seed=seed)
         obs, infos = self.par.reset(seed=seed, options=options)
         return self._flat(obs), self._team_info(infos)

@@ -30,7 +30,6 @@ import inspect
 from typing import Any
 
 from aasoatt_env.errors import ScenarioError
-from aasoatt_env.validation import reject_unknown
 from aasoatt_env.sim.scenarios.base import Layout, Scenario, max_robots_on_circle
 from aasoatt_env.sim.scenarios.circle_obstacles import FIG5_OBSTACLES, CircleSwapObstacles
 from aasoatt_env.sim.scenarios.circle_swap import CircleSwap
@@ -38,6 +37,7 @@ from aasoatt_env.sim.scenarios.custom import Custom
 from aasoatt_env.sim.scenarios.position_swap import PositionSwap
 from aasoatt_env.sim.scenarios.random_goals import RandomGoals
 from aasoatt_env.sim.scenarios.tracking import Tracking
+from aasoatt_env.validation import reject_unknown
 
 __all__ = [
     "FIG5_OBSTACLES",
