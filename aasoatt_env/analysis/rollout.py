@@ -42,6 +42,7 @@ import json
 import math
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -87,7 +88,10 @@ def _as_array(name: str, value: Any, kind: str) -> np.ndarray:
     """Convert ``value`` to a fresh array of the dtype ``kind`` ('f', 'b' or 'U')."""
     try:
         if kind == "f":
-            arr = np.array(value, dtype=np.float64)
+            raw = np.asarray(value)
+            if raw.dtype.kind in "cSUV":  # no silent loss of an imaginary part, no parsing of strings
+                raise ConfigError(f"{name}: got dtype {raw.dtype}, expected real numbers")
+            arr = np.array(raw, dtype=np.float64)
         elif kind == "b":
             arr = np.array(value)
             if arr.dtype != np.bool_:
@@ -336,8 +340,13 @@ class Rollout:
                 kwargs["metadata"] = json.loads(str(data["metadata"])) if "metadata" in files else {}
         except DataFileError:
             raise
-        except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile) as exc:
-            raise DataFileError(f"{name}: not a readable rollout file ({type(exc).__name__}: {exc})") from None
+        except MemoryError:  # a crafted header can claim any shape
+            raise DataFileError(f"{name}: an array in this file is too large to load; not a rollout file") from None
+        except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile, zlib.error, NotImplementedError,
+                RecursionError) as exc:
+            # corrupted zip/deflate data, an unsupported zip feature, JSON nested beyond the recursion limit
+            raise DataFileError(f"{name}: not a readable rollout file ({type(exc).__name__}: "
+                                f"{str(exc)[:200]})") from None
         try:
             return cls(**kwargs)
         except ConfigError as exc:
