@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.errors import ConfigError, UnknownKeywordError
 
 __all__ = [
     "MAGNITUDE_MAX",
@@ -205,7 +205,9 @@ def choice(name: str, value: Any, options: Iterable[str]) -> str:
 
 
 def reject_unknown(owner: str, given: Iterable[str], known: Iterable[str]) -> None:
-    """Raise ``TypeError`` naming the keywords of ``given`` that are not in ``known``.
+    """Raise :class:`~aasoatt_env.errors.UnknownKeywordError` (a ``TypeError``) naming unknown keywords.
+
+    The keywords of ``given`` that are not in ``known`` are named, and the known ones listed.
 
     The wording is Python's own (``f() got an unexpected keyword argument 'x'``):
     some clients (TorchRL's ``GymEnv``) probe constructors and match on it.
@@ -214,7 +216,7 @@ def reject_unknown(owner: str, given: Iterable[str], known: Iterable[str]) -> No
     unknown = sorted(str(k) for k in given if k not in known_set)
     if unknown:
         clauses = ", ".join(f"got an unexpected keyword argument {k!r}" for k in unknown)
-        raise TypeError(f"{owner}() {clauses}; expected keywords among {sorted(known_set)}")
+        raise UnknownKeywordError(f"{owner}() {clauses}; expected keywords among {sorted(known_set)}")
 
 
 def parse_value(text: str) -> Any:

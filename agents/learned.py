@@ -204,10 +204,6 @@ class LearnedAgent:
         DataFileError
             A file is missing or corrupted (the message names it).
         """
-        import torch
-        from stable_baselines3 import PPO
-
-        torch.set_num_threads(1)
         if not isinstance(path, (str, os.PathLike)):
             raise ConfigError(f"path: got {type(path).__name__}, expected a run folder or a model .zip path")
         p = Path(path)
@@ -243,6 +239,10 @@ class LearnedAgent:
                         if legacy.exists() else "")
                 raise DataFileError(f"{stats}: missing; the policy was trained on normalised observations{hint}")
             obs_stats = _read_stats(stats)
+        import torch
+        from stable_baselines3 import PPO
+
+        torch.set_num_threads(1)
         policy_class = _policy_class(spec["policy"], spec_file)
         try:
             probe = make_aasoatt_env(**spec["env"])

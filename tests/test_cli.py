@@ -47,11 +47,12 @@ def test_bare_run_collides_and_fail_flag_reports_it():
     assert main(SMALL_SWAP + ["--filter", "none", "--fail-on-collision"]) == 1
 
 
-def test_run_unknown_scenario_lists_known():
-    from aasoatt_env import ScenarioError
-
-    with pytest.raises(ScenarioError, match="known scenarios"):
+def test_run_unknown_scenario_lists_known(capsys):
+    with pytest.raises(SystemExit) as exc:
         main(["run", "--scenario", "donut", "-q"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "invalid choice: 'donut'" in err and "circle_swap" in err and len(err.strip().splitlines()) == 1
 
 
 def test_forwarded_help_exits_cleanly():
