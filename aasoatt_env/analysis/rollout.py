@@ -197,9 +197,11 @@ class Rollout:
     """Fields with one entry per recorded step (cut by :meth:`window`)."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.dt, (str, bytes, np.str_, np.bytes_, bool, np.bool_)):
+            raise ConfigError(f"dt: got {self.dt!r}, expected a finite positive number")
         try:
             dt = float(self.dt)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise ConfigError(f"dt: got {self.dt!r}, expected a finite positive number") from None
         if not math.isfinite(dt) or dt <= 0:
             raise ConfigError(f"dt: got {self.dt!r}, expected a finite positive number")
@@ -336,7 +338,7 @@ class Rollout:
                     elif field_name not in cls.OPTIONAL_FIELDS and field_name not in ("obstacle_centers",
                                                                                      "obstacle_radii"):
                         raise DataFileError(f"{name}: missing field {field_name!r}; not a rollout file")
-                kwargs["dt"] = float(kwargs["dt"])
+                kwargs["dt"] = kwargs["dt"][()]  # a 0-d array; Rollout checks it is a finite positive number
                 kwargs["metadata"] = json.loads(str(data["metadata"])) if "metadata" in files else {}
         except DataFileError:
             raise
