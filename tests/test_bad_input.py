@@ -691,3 +691,11 @@ def test_every_flipped_or_truncated_model_file_names_itself(model_run: Path, tmp
             except DataFileError as exc:
                 assert name in str(exc)
     (run / name).write_bytes(raw)
+
+
+@pytest.mark.parametrize("action", [np.zeros(4, complex), ["1"] * 4, np.full(4, np.nan), None, np.zeros(3)])
+def test_bad_joint_actions_of_the_gymnasium_view(action: object) -> None:
+    env = gymnasium.make("aasoatt/CircleSwap-v0", num_robots=2)
+    env.reset(seed=0)
+    with pytest.raises(ActionError, match="action"):
+        env.step(action)

@@ -96,7 +96,14 @@ class AASOATTGymEnv(gym.Env):
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Apply the joint action."""
-        a = np.asarray(action, dtype=np.float64)
+        try:
+            raw = np.asarray(action)
+        except (TypeError, ValueError):
+            raise ActionError(f"action: got {check.short_repr(action)}, expected {self.action_space.shape} real "
+                              "numbers") from None
+        if raw.dtype.kind not in "fiu":  # no parsing of strings, no dropping of imaginary parts
+            raise ActionError(f"action: got dtype {raw.dtype}, expected {self.action_space.shape} real numbers")
+        a = raw.astype(np.float64)
         if a.shape != self.action_space.shape:
             raise ActionError(f"action: got shape {a.shape}, expected {self.action_space.shape}")
         live = self.par.agents
