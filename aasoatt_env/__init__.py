@@ -24,6 +24,7 @@ from aasoatt_env.errors import (
     ScenarioError,
     SolverError,
     StateError,
+    UnknownKeywordError,
     UsageError,
 )
 from aasoatt_env.model import PRESETS, RobotParams, Team, make_team
@@ -57,6 +58,7 @@ __all__ = [
     "SolverError",
     "StateError",
     "Team",
+    "UnknownKeywordError",
     "UsageError",
     "env",
     "get_scenario",

@@ -4,9 +4,9 @@ Every error the library raises on purpose derives from :class:`AASOATTError`, so
 ``except aasoatt_env.AASOATTError`` catches all of them.  Errors about bad input
 also derive from :class:`ValueError` and call-order mistakes from
 :class:`RuntimeError`, so code written against the standard library's
-conventions keeps working.  Unknown keyword arguments raise Python's own
-:class:`TypeError` (some clients probe constructors with extra keywords and
-expect it).
+conventions keeps working.  Unknown keyword arguments raise
+:class:`UnknownKeywordError`, a :class:`TypeError` with Python's own wording
+(some clients probe constructors with extra keywords and expect it).
 
 ================================  =================================================
 class                             raised when
@@ -30,6 +30,8 @@ class                             raised when
                                   for it, e.g. ``step`` before ``reset``, wrapping
                                   an env twice (``RuntimeError``)
 :class:`ResetNeeded`              the env must be reset first (a :class:`UsageError`)
+:class:`UnknownKeywordError`      an unknown keyword argument or option name
+                                  (``TypeError``, Python's wording)
 ================================  =================================================
 """
 
@@ -44,6 +46,7 @@ __all__ = [
     "ScenarioError",
     "SolverError",
     "StateError",
+    "UnknownKeywordError",
     "UsageError",
 ]
 
@@ -82,3 +85,7 @@ class UsageError(AASOATTError, RuntimeError):
 
 class ResetNeeded(UsageError):
     """The environment has to be reset before this call."""
+
+
+class UnknownKeywordError(AASOATTError, TypeError):
+    """An unknown keyword argument or option name (worded like Python's own ``TypeError``)."""

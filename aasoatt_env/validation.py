@@ -20,9 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.errors import ConfigError, UnknownKeywordError
 
 __all__ = [
+    "MAGNITUDE_MAX",
     "boolean",
     "choice",
     "integer",
@@ -30,8 +31,19 @@ __all__ = [
     "parse_value",
     "positive",
     "real",
+    "real_array",
     "reject_unknown",
+    "short_repr",
 ]
+
+
+MAGNITUDE_MAX: float = 1e9
+"""Largest magnitude :func:`real` accepts when no tighter bound is given.
+
+No parameter of this library is meaningful beyond ``1e9`` in SI units, and much
+larger finite values (``1e308``) overflow to ``inf`` the first time they are
+squared, so they are rejected at the edge instead of surfacing as ``inf``/NaN
+rewards or corrections later."""
 
 
 def _is_real(value: Any) -> bool:
@@ -44,10 +56,20 @@ def _interval(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) 
     return f"{'(' if lo_open or lo is None else '['}{left}, {right}{')' if hi_open or hi is None else ']'}"
 
 
+def short_repr(value: Any, limit: int = 80) -> str:
+    """``repr(value)`` cut to ``limit`` characters (a huge int or list must not flood the message)."""
+    try:
+        text = repr(value)
+    except Exception:  # noqa: BLE001 - a broken __repr__ must not hide the real error
+        text = f"<{type(value).__name__}>"
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
 def _describe(kind: str, lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
     """``"a finite positive number"``, ``"an integer >= 1"``, ``"a finite number in [0, 1]"``, ..."""
-    if hi is None and lo == 0 and lo_open and kind != "an integer":
-        return f"{kind.replace('number', 'positive number')}"
+    if lo == 0 and lo_open and kind != "an integer":
+        positive = kind.replace("number", "positive number")
+        return positive if hi is None else f"{positive} {'<' if hi_open else '<='} {hi:g}"
     if hi is None and lo is not None:
         return f"{kind} {'>' if lo_open else '>='} {lo:g}"
     if hi is None and lo is None:
@@ -85,22 +107,35 @@ def real(
     ConfigError
         Naming ``name``, the value and the valid interval.
     """
+    if hi is None:
+        hi = MAGNITUDE_MAX
+    if lo is None:
+        lo = -MAGNITUDE_MAX
     expected = _describe(f"a {'' if allow_inf else 'finite '}number", lo, hi, lo_open, hi_open)
+    if allow_inf:
+        expected += " or inf"
     if not _is_real(value):
-        raise ConfigError(f"{name}: got {value!r} ({type(value).__name__}), expected {expected}")
-    v = float(value)
+        raise ConfigError(f"{name}: got {short_repr(value)} ({type(value).__name__}), expected {expected}")
+    try:
+        v = float(value)
+    except OverflowError:  # an int beyond the float range
+        raise ConfigError(f"{name}: got {short_repr(value)}, expected {expected}") from None
     ok = not math.isnan(v) and (math.isfinite(v) or (allow_inf and v == math.inf))
     if ok and lo is not None:
         ok = v > lo if lo_open else v >= lo
     if ok and hi is not None and math.isfinite(v):
         ok = v < hi if hi_open else v <= hi
     if not ok:
-        raise ConfigError(f"{name}: got {value!r}, expected {expected}")
+        raise ConfigError(f"{name}: got {short_repr(value)}, expected {expected}")
     return v
 
 
-def positive(name: str, value: Any, *, allow_inf: bool = False, hi: float | None = None) -> float:
-    """:func:`real` with ``value > 0`` (and ``<= hi``)."""
+def positive(
+    name: str, value: Any, *, allow_inf: bool = False, hi: float | None = None, lo: float | None = None
+) -> float:
+    """:func:`real` with ``value > 0`` (or ``>= lo`` when given) and ``<= hi``."""
+    if lo is not None:
+        return real(name, value, lo=lo, hi=hi, allow_inf=allow_inf)
     return real(name, value, lo=0.0, lo_open=True, hi=hi, allow_inf=allow_inf)
 
 
@@ -113,23 +148,51 @@ def integer(name: str, value: Any, *, lo: int | None = None, hi: int | None = No
     """
     rng = _describe("an integer", lo, hi, False, False)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
-        raise ConfigError(f"{name}: got {value!r} ({type(value).__name__}), expected {rng}")
+        raise ConfigError(f"{name}: got {short_repr(value)} ({type(value).__name__}), expected {rng}")
     if isinstance(value, numbers.Integral):
         v = int(value)
     else:
         f = float(value)
         if not (math.isfinite(f) and f.is_integer()):
-            raise ConfigError(f"{name}: got {value!r}, expected {rng}")
+            raise ConfigError(f"{name}: got {short_repr(value)}, expected {rng}")
         v = int(f)
     if (lo is not None and v < lo) or (hi is not None and v > hi):
-        raise ConfigError(f"{name}: got {value!r}, expected {rng}")
+        raise ConfigError(f"{name}: got {short_repr(value)}, expected {rng}")
     return v
+
+
+def real_array(
+    name: str, value: Any, *, lo: float = -MAGNITUDE_MAX, hi: float = MAGNITUDE_MAX, unit: str = ""
+) -> np.ndarray:
+    """Return ``value`` as a new float64 array of finite numbers in ``[lo, hi]`` (any shape; callers check it).
+
+    Types are checked before conversion: booleans, complex numbers, strings
+    (``"2"``) and other objects are refused, not coerced.
+    """
+    rng = f"finite numbers in [{lo:g}, {hi:g}]{unit}"
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError, OverflowError):  # ragged nesting, broken __array__
+        raise ConfigError(f"{name}: got {short_repr(value)}, expected an array of {rng}") from None
+    if raw.dtype.kind == "O":  # Python ints beyond int64, or a mix of objects
+        if not all(_is_real(x) for x in raw.reshape(-1).tolist()):
+            raise ConfigError(f"{name}: got {short_repr(value)}, expected an array of {rng}")
+        try:
+            raw = np.array([float(x) for x in raw.reshape(-1).tolist()]).reshape(raw.shape)
+        except OverflowError:
+            raise ConfigError(f"{name}: got {short_repr(value)}, expected an array of {rng}") from None
+    elif raw.dtype.kind not in "fiu":
+        raise ConfigError(f"{name}: got {short_repr(value)} (dtype {raw.dtype}), expected an array of {rng}")
+    arr = np.array(raw, dtype=np.float64)
+    if arr.size and not (np.isfinite(arr).all() and arr.min() >= lo and arr.max() <= hi):
+        raise ConfigError(f"{name}: got {short_repr(value)}, expected an array of {rng}")
+    return arr
 
 
 def boolean(name: str, value: Any) -> bool:
     """Return ``value`` if it is a bool (``True``/``False``, numpy bool), else raise."""
     if not isinstance(value, (bool, np.bool_)):
-        raise ConfigError(f"{name}: got {value!r} ({type(value).__name__}), expected True or False")
+        raise ConfigError(f"{name}: got {short_repr(value)} ({type(value).__name__}), expected True or False")
     return bool(value)
 
 
@@ -137,12 +200,14 @@ def choice(name: str, value: Any, options: Iterable[str]) -> str:
     """Return ``value`` if it is one of ``options`` (strings), else raise listing them."""
     opts = list(options)
     if not isinstance(value, str) or value not in opts:
-        raise ConfigError(f"{name}: got {value!r}, expected one of {sorted(opts)}")
+        raise ConfigError(f"{name}: got {short_repr(value)}, expected one of {sorted(opts)}")
     return value
 
 
 def reject_unknown(owner: str, given: Iterable[str], known: Iterable[str]) -> None:
-    """Raise ``TypeError`` naming the keywords of ``given`` that are not in ``known``.
+    """Raise :class:`~aasoatt_env.errors.UnknownKeywordError` (a ``TypeError``) naming unknown keywords.
+
+    The keywords of ``given`` that are not in ``known`` are named, and the known ones listed.
 
     The wording is Python's own (``f() got an unexpected keyword argument 'x'``):
     some clients (TorchRL's ``GymEnv``) probe constructors and match on it.
@@ -151,7 +216,7 @@ def reject_unknown(owner: str, given: Iterable[str], known: Iterable[str]) -> No
     unknown = sorted(str(k) for k in given if k not in known_set)
     if unknown:
         clauses = ", ".join(f"got an unexpected keyword argument {k!r}" for k in unknown)
-        raise TypeError(f"{owner}() {clauses}; expected keywords among {sorted(known_set)}")
+        raise UnknownKeywordError(f"{owner}() {clauses}; expected keywords among {sorted(known_set)}")
 
 
 def parse_value(text: str) -> Any:

@@ -26,16 +26,24 @@ file                       content
 
 Nothing is unpickled: the statistics are plain arrays, and the SB3 zip is read
 with every cloudpickled entry of its ``data`` replaced (``custom_objects``), its
-tensors by ``torch.load(weights_only=True)``.  A run that was trained with
+tensors by ``torch.load(weights_only=True)``; its ``policy_kwargs`` must be the
+plain ones training writes (bounded layer sizes).  A ``vecnormalize.pkl`` or any
+other pickle in the folder is never opened.  A run that was trained with
 observation normalisation but lacks ``normalization.npz`` is refused (the policy
-would act on unnormalised observations).
+would act on unnormalised observations).  Every missing or corrupted file raises
+:class:`~aasoatt_env.errors.DataFileError` naming it.
+
+Loading a Stable-Baselines3 zip with SB3's own ``PPO.load`` unpickles its
+``data`` entries: do that only with files from a trusted source.
 """
 
 from __future__ import annotations
 
 import json
+import math
 import os
 import zipfile
+import zlib
 from pathlib import Path
 from typing import Any
 
@@ -43,12 +51,26 @@ import numpy as np
 
 from aasoatt_env.api.factory import make_env as make_aasoatt_env
 from aasoatt_env.errors import ConfigError, DataFileError
+from aasoatt_env.safety.config import FilterConfig
 
 __all__ = ["POLICY_FILE", "STATS_FILE", "LearnedAgent", "stats_path"]
 
 POLICY_FILE = "policy.json"
 STATS_FILE = "normalization.npz"
 _FORMAT = 1
+_LEGACY_PICKLE = "vecnormalize.pkl"
+
+_READ_ERRORS: tuple[type[BaseException], ...] = (
+    OSError, ValueError, KeyError, TypeError, EOFError, zipfile.BadZipFile, zlib.error, NotImplementedError,
+    RecursionError, MemoryError, UnicodeDecodeError,
+)
+"""What reading a corrupted or crafted file can raise (bad zip or deflate data, an unsupported zip
+feature, JSON nested beyond the recursion limit, a header claiming a huge array)."""
+
+_MAX_LAYER = 4096
+_MAX_LAYERS = 16
+_POLICY_KWARGS = ("net_arch", "log_std_init", "prior_matrix")
+"""``policy_kwargs`` that ``aasoatt train`` writes; anything else in a model zip is refused."""
 
 
 def stats_path(model_zip: Path) -> Path:
@@ -62,11 +84,15 @@ def stats_path(model_zip: Path) -> Path:
     return model_zip.with_name(model_zip.stem + "." + STATS_FILE)
 
 
+def _why(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {str(exc)[:200]}"
+
+
 def _read_json(path: Path) -> dict[str, Any]:
     try:
         data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DataFileError(f"{path}: not a readable JSON file ({exc})") from None
+    except _READ_ERRORS as exc:
+        raise DataFileError(f"{path}: not a readable JSON file ({_why(exc)})") from None
     if not isinstance(data, dict):
         raise DataFileError(f"{path}: got a JSON {type(data).__name__}, expected an object")
     return data
@@ -75,26 +101,61 @@ def _read_json(path: Path) -> dict[str, Any]:
 def _read_stats(path: Path) -> tuple[np.ndarray, np.ndarray, float, float]:
     try:
         with np.load(path, allow_pickle=False) as z:
-            mean, var = np.asarray(z["mean"], np.float64), np.asarray(z["var"], np.float64)
-            clip_obs, eps = float(z["clip_obs"]), float(z["epsilon"])
-    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
-        raise DataFileError(f"{path}: not a readable normalisation file ({type(exc).__name__}: {exc})") from None
+            arrays = {k: z[k] for k in ("mean", "var", "clip_obs", "epsilon")}
+        for k, a in arrays.items():
+            if a.dtype.kind not in "fiu":
+                raise ValueError(f"{k} has dtype {a.dtype}, expected real numbers")
+        mean, var = np.asarray(arrays["mean"], np.float64), np.asarray(arrays["var"], np.float64)
+        clip_obs, eps = float(arrays["clip_obs"].item()), float(arrays["epsilon"].item())
+    except _READ_ERRORS as exc:
+        raise DataFileError(f"{path}: not a readable normalisation file ({_why(exc)})") from None
     if mean.shape != var.shape or mean.ndim != 1 or not (np.isfinite(mean).all() and np.isfinite(var).all()) \
-            or np.any(var < 0) or not (clip_obs > 0 and eps > 0):
+            or np.any(var < 0) or not (math.isfinite(clip_obs) and clip_obs > 0 and math.isfinite(eps) and eps > 0):
         raise DataFileError(f"{path}: expected finite mean and var of one shape, var >= 0, clip_obs > 0, epsilon > 0")
     return mean, var, clip_obs, eps
 
 
-def _serialized_keys(model_zip: Path) -> list[str]:
-    """Keys of the zip's ``data`` that SB3 would cloudpickle-load."""
+def _model_data(model_zip: Path) -> dict[str, Any]:
+    """The zip's ``data`` entry as plain JSON (nothing deserialised)."""
     try:
         with zipfile.ZipFile(model_zip) as archive:
             data = json.loads(archive.read("data").decode())
-    except (OSError, KeyError, UnicodeDecodeError, json.JSONDecodeError, zipfile.BadZipFile) as exc:
-        raise DataFileError(f"{model_zip}: not a readable Stable-Baselines3 model zip ({exc})") from None
+    except _READ_ERRORS as exc:
+        raise DataFileError(f"{model_zip}: not a readable Stable-Baselines3 model zip ({_why(exc)})") from None
     if not isinstance(data, dict):
         raise DataFileError(f"{model_zip}: its 'data' entry is not a JSON object")
+    return data
+
+
+def _serialized_keys(data: dict[str, Any]) -> list[str]:
+    """Keys of a model's ``data`` that SB3 would cloudpickle-load (all get replaced)."""
     return [k for k, v in data.items() if isinstance(v, dict) and ":serialized:" in v]
+
+
+def _check_policy_kwargs(data: dict[str, Any], model_zip: Path) -> None:
+    """Refuse ``policy_kwargs`` that training does not write, or layers too large to build (a crafted zip)."""
+    kw = data.get("policy_kwargs", {})
+    where = f"{model_zip}: policy_kwargs"
+    if not isinstance(kw, dict) or ":serialized:" in kw:
+        raise DataFileError(f"{where} are not plain JSON; this zip was not written by aasoatt train")
+    unknown = sorted(set(kw) - set(_POLICY_KWARGS))
+    if unknown:
+        raise DataFileError(f"{where}: unexpected keys {unknown}, expected some of {list(_POLICY_KWARGS)}")
+    arch = kw.get("net_arch", [])
+    layers = [arch] if isinstance(arch, list) else list(arch.values()) if isinstance(arch, dict) else None
+    ok = layers is not None and all(
+        isinstance(lay, list) and len(lay) <= _MAX_LAYERS
+        and all(isinstance(h, int) and not isinstance(h, bool) and 1 <= h <= _MAX_LAYER for h in lay)
+        for lay in layers
+    )
+    if not ok:
+        raise DataFileError(f"{where}: net_arch {str(arch)[:80]} is not a list of at most {_MAX_LAYERS} layer sizes "
+                            f"in [1, {_MAX_LAYER}]")
+    if "prior_matrix" in kw:
+        pm = kw["prior_matrix"]
+        if not (isinstance(pm, list) and len(pm) <= 2 * _MAX_LAYER and all(
+                isinstance(r, list) and len(r) <= 2 * _MAX_LAYER for r in pm)):
+            raise DataFileError(f"{where}: prior_matrix is not a list of rows of bounded size")
 
 
 class LearnedAgent:
@@ -143,16 +204,15 @@ class LearnedAgent:
         DataFileError
             A file is missing or corrupted (the message names it).
         """
-        import torch
-        from stable_baselines3 import PPO
-
-        torch.set_num_threads(1)
+        if not isinstance(path, (str, os.PathLike)):
+            raise ConfigError(f"path: got {type(path).__name__}, expected a run folder or a model .zip path")
         p = Path(path)
         if p.is_dir():
             p = p / "model.zip"
         if not p.is_file():
             raise DataFileError(f"{path}: no model here; expected a run folder holding model.zip, or a .zip file")
-        run = p.parent if (p.parent / POLICY_FILE).is_file() else p.parent.parent
+        checkpoint = p.parent.name == "checkpoints" and not (p.parent / POLICY_FILE).is_file()
+        run = p.parent.parent if checkpoint else p.parent
         spec_file = run / POLICY_FILE
         if not spec_file.is_file():
             raise DataFileError(f"{spec_file}: missing; LearnedAgent needs the run's policy.json (written by training)")
@@ -162,26 +222,43 @@ class LearnedAgent:
                 raise DataFileError(f"{spec_file}: missing key {key!r}")
         if not isinstance(spec["env"], dict):
             raise DataFileError(f"{spec_file}: 'env' must be an object of env keywords")
+        if not isinstance(spec["normalize_obs"], bool):
+            raise DataFileError(f"{spec_file}: 'normalize_obs' must be true or false, got {spec['normalize_obs']!r}")
+        if spec.get("filter") is not None:
+            try:
+                FilterConfig.merged(spec["filter"])
+            except (ConfigError, TypeError) as exc:
+                raise DataFileError(f"{spec_file}: its filter settings are invalid ({exc})") from None
         obs_stats = None
         if spec["normalize_obs"]:
             stats = stats_path(p)
             if not stats.is_file():
-                raise DataFileError(f"{stats}: missing; the policy was trained on normalised observations")
+                legacy = p.parent / _LEGACY_PICKLE
+                hint = (f" ({legacy.name} is there, but pickles are never loaded: they can run arbitrary code; "
+                        "retrain, or write normalization.npz from the statistics of a trusted run)"
+                        if legacy.exists() else "")
+                raise DataFileError(f"{stats}: missing; the policy was trained on normalised observations{hint}")
             obs_stats = _read_stats(stats)
+        import torch
+        from stable_baselines3 import PPO
+
+        torch.set_num_threads(1)
+        policy_class = _policy_class(spec["policy"], spec_file)
         try:
             probe = make_aasoatt_env(**spec["env"])
         except (ConfigError, TypeError) as exc:
             raise DataFileError(f"{spec_file}: its env settings are invalid ({exc})") from None
         agent0 = probe.possible_agents[0]
-        custom = dict.fromkeys(_serialized_keys(p))
+        data = _model_data(p)
+        _check_policy_kwargs(data, p)
+        custom: dict[str, Any] = dict.fromkeys(_serialized_keys(data))
         custom.update(observation_space=probe.observation_space(agent0), action_space=probe.action_space(agent0),
-                      policy_class=_policy_class(spec["policy"], spec_file), lr_schedule=lambda _: 0.0,
-                      clip_range=0.2, clip_range_vf=None)
+                      policy_class=policy_class, lr_schedule=lambda _: 0.0, clip_range=0.2, clip_range_vf=None)
         probe.close()
         try:
             model = PPO.load(p, device=device, custom_objects=custom)
-        except (OSError, ValueError, KeyError, RuntimeError, zipfile.BadZipFile, EOFError) as exc:
-            raise DataFileError(f"{p}: cannot load the model ({type(exc).__name__}: {exc})") from None
+        except Exception as exc:  # noqa: BLE001 - whatever a corrupted zip makes SB3/torch raise, name the file
+            raise DataFileError(f"{p}: cannot load the model ({_why(exc)})") from None
         if obs_stats is not None and obs_stats[0].shape != tuple(model.observation_space.shape):
             raise DataFileError(f"{stats_path(p)}: statistics of shape {obs_stats[0].shape}, expected "
                                 f"{tuple(model.observation_space.shape)}")

@@ -120,7 +120,7 @@ def test_heterogeneous_team_arrays():
 @pytest.mark.parametrize(
     "kwargs,match",
     [
-        ({"radius": 0.0}, r"RobotParams.radius: got 0.0, expected a finite positive number"),
+        ({"radius": 0.0}, r"RobotParams.radius: got 0.0, expected a finite number in \[1e-06, 1e\+06\]"),
         ({"radius": -1.0}, r"RobotParams.radius"),
         ({"offset": float("nan")}, r"RobotParams.offset"),
         ({"max_wheel_accel": float("inf")}, r"max_wheel_accel"),

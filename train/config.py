@@ -31,7 +31,7 @@ from typing import Any
 
 import tomllib
 
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.errors import ConfigError, DataFileError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import SCENARIOS
@@ -293,26 +293,35 @@ class TrainConfig:
 def load_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:
     """Read a TOML (``.toml``) or JSON (``.json``) config file into a dict."""
     p = Path(path)
+    if p.suffix not in (".toml", ".json"):
+        raise ConfigError(f"config file: got suffix {p.suffix!r}, expected '.toml' or '.json' (file {str(p)!r})")
     if not p.is_file():
-        raise ConfigError(f"config file: got {str(p)!r}, expected an existing .toml or .json file")
-    if p.suffix == ".toml":
-        try:
-            return tomllib.loads(p.read_text())
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"config file {str(p)!r}: invalid TOML ({exc})") from None
-    if p.suffix == ".json":
-        try:
-            data = json.loads(p.read_text())
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"config file {str(p)!r}: invalid JSON ({exc})") from None
-        if not isinstance(data, dict):
-            raise ConfigError(f"config file {str(p)!r}: got a JSON {type(data).__name__}, expected an object")
-        return data
-    raise ConfigError(f"config file: got suffix {p.suffix!r}, expected '.toml' or '.json'")
+        raise DataFileError(f"{p}: no such config file, expected an existing .toml or .json file")
+    try:
+        text = p.read_text()
+        data = tomllib.loads(text) if p.suffix == ".toml" else json.loads(text)
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        kind = "TOML" if p.suffix == ".toml" else "JSON"
+        raise DataFileError(f"{p}: not a readable {kind} file ({type(exc).__name__}: {str(exc)[:200]})") from None
+    if not isinstance(data, dict):
+        raise DataFileError(f"{p}: got a JSON {type(data).__name__}, expected an object of TrainConfig fields")
+    return data
 
 
 # ---------------------------------------------------------------------- command line
 _DICT_FIELDS = {"scenario_kwargs": "scenario-arg", "reward": "reward", "filter_kwargs": "filter-arg"}
+
+
+def _int_arg(text: str) -> int | str:
+    """``"1e6"`` -> 1000000; anything else is passed on for :class:`TrainConfig` to reject with its range."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"got {text!r}, expected an integer") from None
+    return int(value) if value.is_integer() else text
+
+
+_int_arg.__name__ = "integer"
 
 
 def _bool(text: str) -> bool:
@@ -346,8 +355,7 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
         elif isinstance(default, bool):
             parser.add_argument(flag, dest=f.name, type=_bool, default=None, metavar="BOOL", help=f"default {default}")
         elif isinstance(default, int):
-            parser.add_argument(flag, dest=f.name, type=lambda s: int(float(s)) if float(s).is_integer() else s,
-                                default=None, help=f"default {default}")
+            parser.add_argument(flag, dest=f.name, type=_int_arg, default=None, help=f"default {default}")
         elif isinstance(default, float):
             parser.add_argument(flag, dest=f.name, type=float, default=None, help=f"default {default}")
         elif f.name == "max_steps":

@@ -55,7 +55,8 @@ import numpy as np
 from aasoatt_env.analysis.metrics import summarize
 from aasoatt_env.analysis.recording import RecordEpisode
 from aasoatt_env.api.factory import make_env
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.cli_support import OutputPlan, Parser, add_common_options, int_option, real_option, run_guarded
+from aasoatt_env.errors import ConfigError, UnknownKeywordError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.validation import parse_assignments
 from agents import RandomAgent, TrackingController
@@ -321,42 +322,69 @@ def to_markdown(rows: Sequence[EvalRow], title: str | None = None) -> str:
     return "\n".join(lines)
 
 
-def build_parser(prog: str = "python -m train.evaluate") -> argparse.ArgumentParser:
+def build_parser(prog: str = "aasoatt evaluate") -> argparse.ArgumentParser:
     """Command-line parser."""
-    p = argparse.ArgumentParser(prog=prog, description="Evaluate baselines and learned policies (Markdown table).")
+    p = Parser(prog=prog, description="Evaluate baselines and learned policies (Markdown table).")
     p.add_argument("--bare", default=None, help="model trained bare (model.zip or run folder)")
     p.add_argument("--filtered", default=None, help="model trained behind the filter")
-    p.add_argument("--episodes", type=int, default=100)
-    p.add_argument("--seed", type=int, default=10_000)
+    p.add_argument("--episodes", type=int_option(1, 10**7), default=100)
+    p.add_argument("--seed", type=int_option(0), default=10_000)
     p.add_argument("--config", default=None, help="TOML/JSON TrainConfig for the env (default: the model's)")
-    p.add_argument("--rows", nargs="+", default=None, help=f"subset of {list(ROWS)}")
+    p.add_argument("--rows", nargs="+", default=None, choices=ROWS, metavar="ROW", help=f"subset of {list(ROWS)}")
     p.add_argument("--filter-arg", action="append", default=None, metavar="KEY=VALUE", help="filter argument")
-    p.add_argument("--goal-tolerance", type=float, default=0.1)
-    p.add_argument("--out", default=None, help="write the Markdown table (and a .json beside it)")
-    p.add_argument("--jobs", type=int, default=1, help="rows evaluated in parallel processes")
+    p.add_argument("--goal-tolerance", type=real_option(0.0, lo_open=True), default=0.1)
+    p.add_argument("--out", default=None,
+                   help="write the Markdown table to this file (and a .json beside it); "
+                   "existing files need --overwrite")
+    p.add_argument("--jobs", type=int_option(1, 256), default=1, help="rows evaluated in parallel processes")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    add_common_options(p)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command-line entry point; prints the Markdown table."""
+    """Command-line entry point; prints the Markdown table.
+
+    Options, the models, the config file and the output files are checked before
+    the first episode; an existing table is replaced only with ``--overwrite``.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return run_guarded("aasoatt evaluate", argv, _main)
+
+
+def _main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
+    plan = OutputPlan(args.overwrite)
+    out = json_out = None
+    if args.out:
+        if Path(args.out).suffix.lower() == ".json":
+            raise ConfigError(f"--out: got {args.out!r}; the table is Markdown and its .json goes beside it, "
+                              "expected e.g. results.md")
+        out = plan.file(args.out, "--out")
+        json_out = plan.file(out.with_suffix(".json"), "--out (its .json)")
     try:
         config = TrainConfig.from_file(args.config) if args.config else None
         fk = parse_assignments(args.filter_arg, "--filter-arg") if args.filter_arg else None
+        if fk is not None:
+            try:
+                FilterConfig.merged(fk)
+            except UnknownKeywordError as exc:
+                raise UnknownKeywordError(f"--filter-arg: {exc}") from None
+        if args.jobs > 1:  # with jobs=1, evaluate() loads the models before the first episode
+            for model in (args.bare, args.filtered):
+                if model is not None:
+                    LearnedAgent.load(model)  # every model file checked before any worker starts
         rows = evaluate(args.bare, args.filtered, episodes=args.episodes, seed=args.seed, config=config,
                         filter_kwargs=fk, rows=args.rows, goal_tolerance=args.goal_tolerance,
                         progress=not args.quiet and args.jobs == 1, jobs=args.jobs)
-    except (ConfigError, TypeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    except BaseException:
+        plan.discard()
+        raise
     table = to_markdown(rows)
     print(table)
-    if args.out:
-        out = Path(args.out)
-        out.parent.mkdir(parents=True, exist_ok=True)
+    if out is not None and json_out is not None:
         out.write_text(table + "\n")
-        out.with_suffix(".json").write_text(json.dumps([r.as_dict() for r in rows], indent=2))
+        json_out.write_text(json.dumps([r.as_dict() for r in rows], indent=2))
     return 0
 
 

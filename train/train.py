@@ -104,6 +104,7 @@ from typing import Any
 import numpy as np
 
 from aasoatt_env.api.factory import make_env as make_aasoatt_env
+from aasoatt_env.cli_support import OutputPlan, Parser, add_common_options, run_guarded
 from aasoatt_env.errors import ConfigError
 from agents.learned import POLICY_FILE, stats_path
 from train.config import TrainConfig, add_config_arguments, config_from_args
@@ -166,15 +167,21 @@ def make_vec_env(config: TrainConfig, training: bool = True) -> Any:
 
 
 def _run_dir(config: TrainConfig) -> Path:
+    """A new run folder ``<out_dir>/<name>`` (``<name>_2``, ``_3``, ... when taken): earlier runs are kept."""
     name = config.run_name or (
         f"ppo_{config.scenario}_{config.num_robots}r_{'filter' if config.filter else 'bare'}_s{config.seed}"
     )
+    OutputPlan(overwrite=True).folder(config.out_dir, "TrainConfig.out_dir")  # creatable and writable, or say why
     base = Path(config.out_dir) / name
     path, k = base, 1
-    while path.exists() and any(path.iterdir()):
-        k += 1
-        path = base.with_name(f"{base.name}_{k}")
-    path.mkdir(parents=True, exist_ok=True)
+    try:
+        while path.exists() and (not path.is_dir() or any(path.iterdir())):
+            k += 1
+            path = base.with_name(f"{base.name}_{k}")
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ConfigError(f"TrainConfig.out_dir: cannot create a run folder in {config.out_dir} "
+                          f"({exc.strerror or exc})") from None
     return path
 
 
@@ -265,6 +272,8 @@ def train(config: TrainConfig) -> Path:
         ``normalization.npz`` (when normalising observations), ``config.json``,
         ``checkpoints/`` and ``tb/``.
     """
+    probe = make_env(config)  # the env (and filter) settings are checked before any folder is made
+    probe.close()
     run = _run_dir(config)
     (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
     (run / POLICY_FILE).write_text(json.dumps(run_spec(config), indent=2))
@@ -289,22 +298,29 @@ def train(config: TrainConfig) -> Path:
     return run / "model.zip"
 
 
-def build_parser(prog: str = "python -m train.train") -> argparse.ArgumentParser:
+def build_parser(prog: str = "aasoatt train") -> argparse.ArgumentParser:
     """Command-line parser (every :class:`TrainConfig` field is a flag)."""
-    parser = argparse.ArgumentParser(prog=prog, description="Train PPO (parameter sharing) on the AA-SOATT env.")
+    parser = Parser(prog=prog, description="Train PPO (parameter sharing) on the AA-SOATT env.")
     add_config_arguments(parser)
     parser.add_argument("--print-config", action="store_true", help="print the merged config and exit")
+    add_common_options(parser, overwrite=False)  # every run gets a new folder: nothing to overwrite
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command-line entry point; returns the exit status."""
+    """Command-line entry point; returns the exit status.
+
+    The configuration, the env it describes and the output folder are checked
+    before training starts; every run gets a new folder (``<name>_2``, ... when
+    the name is taken), so earlier runs are never overwritten.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return run_guarded("aasoatt train", argv, _main)
+
+
+def _main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        config = config_from_args(args)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    config = config_from_args(args)
     if args.print_config:
         print(json.dumps(config.to_dict(), indent=2))
         return 0

@@ -43,6 +43,7 @@ import json
 import math
 import os
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -89,7 +90,10 @@ def _as_array(name: str, value: Any, kind: str) -> np.ndarray:
     """Convert ``value`` to a fresh array of the dtype ``kind`` ('f', 'b' or 'U')."""
     try:
         if kind == "f":
-            arr = np.array(value, dtype=np.float64)
+            raw = np.asarray(value)
+            if raw.dtype.kind in "cSUV":  # no silent loss of an imaginary part, no parsing of strings
+                raise ConfigError(f"{name}: got dtype {raw.dtype}, expected real numbers")
+            arr = np.array(raw, dtype=np.float64)
         elif kind == "b":
             arr = np.array(value)
             if arr.dtype != np.bool_:
@@ -196,9 +200,11 @@ class Rollout:
     """Fields with one entry per recorded step (cut by :meth:`window`)."""
 
     def __post_init__(self) -> None:
+        if isinstance(self.dt, (str, bytes, np.str_, np.bytes_, bool, np.bool_)):
+            raise ConfigError(f"dt: got {self.dt!r}, expected a finite positive number")
         try:
             dt = float(self.dt)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise ConfigError(f"dt: got {self.dt!r}, expected a finite positive number") from None
         if not math.isfinite(dt) or dt <= 0:
             raise ConfigError(f"dt: got {self.dt!r}, expected a finite positive number")
@@ -335,12 +341,17 @@ class Rollout:
                     elif field_name not in cls.OPTIONAL_FIELDS and field_name not in ("obstacle_centers",
                                                                                      "obstacle_radii"):
                         raise DataFileError(f"{name}: missing field {field_name!r}; not a rollout file")
-                kwargs["dt"] = float(kwargs["dt"])
+                kwargs["dt"] = kwargs["dt"][()]  # a 0-d array; Rollout checks it is a finite positive number
                 kwargs["metadata"] = json.loads(str(data["metadata"])) if "metadata" in files else {}
         except DataFileError:
             raise
-        except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile) as exc:
-            raise DataFileError(f"{name}: not a readable rollout file ({type(exc).__name__}: {exc})") from None
+        except MemoryError:  # a crafted header can claim any shape
+            raise DataFileError(f"{name}: an array in this file is too large to load; not a rollout file") from None
+        except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile, zlib.error, NotImplementedError,
+                RecursionError) as exc:
+            # corrupted zip/deflate data, an unsupported zip feature, JSON nested beyond the recursion limit
+            raise DataFileError(f"{name}: not a readable rollout file ({type(exc).__name__}: "
+                                f"{str(exc)[:200]})") from None
         try:
             return cls(**kwargs)
         except ConfigError as exc:

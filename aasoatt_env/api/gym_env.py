@@ -17,6 +17,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
+from aasoatt_env import validation as check
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.errors import ActionError, ConfigError
 from aasoatt_env.safety.config import FilterConfig
@@ -86,14 +87,23 @@ class AASOATTGymEnv(gym.Env):
         }
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
-        """Reset the team; ``seed`` seeds the scenario."""
+        """Reset the team; ``seed`` (an integer >= 0) seeds the scenario."""
+        if seed is not None:
+            seed = check.integer("seed", seed, lo=0)  # before Gymnasium's own check, which raises its own error type
         super().reset(seed=seed)
         obs, infos = self.par.reset(seed=seed, options=options)
         return self._flat(obs), self._team_info(infos)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Apply the joint action."""
-        a = np.asarray(action, dtype=np.float64)
+        try:
+            raw = np.asarray(action)
+        except (TypeError, ValueError):
+            raise ActionError(f"action: got {check.short_repr(action)}, expected {self.action_space.shape} real "
+                              "numbers") from None
+        if raw.dtype.kind not in "fiu":  # no parsing of strings, no dropping of imaginary parts
+            raise ActionError(f"action: got dtype {raw.dtype}, expected {self.action_space.shape} real numbers")
+        a = raw.astype(np.float64)
         if a.shape != self.action_space.shape:
             raise ActionError(f"action: got shape {a.shape}, expected {self.action_space.shape}")
         live = self.par.agents

@@ -20,7 +20,6 @@ import inspect
 import json
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 from aasoatt_env.analysis.metrics import format_summary, summarize
@@ -28,10 +27,21 @@ from aasoatt_env.analysis.plotting import plot_trajectories
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.api.registration import ENV_IDS
+from aasoatt_env.cli_support import (
+    OutputPlan,
+    Parser,
+    add_common_options,
+    guarded_outputs,
+    int_option,
+    real_option,
+    run_guarded,
+)
+from aasoatt_env.errors import ConfigError, UnknownKeywordError
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, available_solvers
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.sim.rendering import save_animation
 from aasoatt_env.sim.scenarios import SCENARIOS
+from aasoatt_env.sim.scenarios.base import MAX_ROBOTS
 from aasoatt_env.validation import parse_assignments
 from agents.base import agent_accepts, agent_names, get_agent
 
@@ -62,46 +72,85 @@ def cmd_list(args: argparse.Namespace) -> int:
 def _filter_config(args: argparse.Namespace) -> FilterConfig | None:
     """The filter options of the command line as a :class:`FilterConfig` (None for ``--filter none``)."""
     if not args.filter or args.filter == "none":
+        for flag, value, default in (("--deadlock", args.deadlock, "auxiliary_velocity"),
+                                     ("--trigger", args.trigger, "multiplier"), ("--solver", args.solver, "proxsuite")):
+            if value != default:
+                raise ConfigError(f"{flag}: got {value!r} with --filter none, expected no filter options")
+        if args.gain:
+            raise ConfigError(f"-g/--gain: got {args.gain} with --filter none, expected no filter gains")
         return None
     gains = parse_assignments(args.gain, "-g/--gain")
-    return FilterConfig.merged(gains, barrier=args.filter, deadlock=args.deadlock, trigger=args.trigger,
-                               solver=args.solver)
+    for key, flag in (("barrier", "--filter"), ("deadlock", "--deadlock"), ("trigger", "--trigger"),
+                      ("solver", "--solver")):
+        if key in gains:
+            raise ConfigError(f"-g/--gain: got {key}={gains[key]!r}, expected {flag} for that")
+    if "dt" in gains:
+        raise ConfigError(f"-g/--gain: got dt={gains['dt']!r}; the filter runs at the env's physics step "
+                          "(use -p dt=...)")
+    try:
+        return FilterConfig.merged(gains, barrier=args.filter, deadlock=args.deadlock, trigger=args.trigger,
+                                   solver=args.solver)
+    except UnknownKeywordError as exc:
+        raise UnknownKeywordError(f"-g/--gain: {exc}") from None
 
 
 def _make_env(args: argparse.Namespace, render: bool) -> Any:
     kwargs = parse_assignments(args.param, "-p/--param")
     if args.robots is not None:
+        if "num_robots" in kwargs:
+            raise ConfigError("--robots: given together with -p num_robots=..., expected one of them")
         kwargs["num_robots"] = args.robots
-    return make_env(args.scenario, filter=_filter_config(args), render_mode="rgb_array" if render else None,
-                    decision_interval=args.decision_interval, **kwargs)
+    for key in ("filter", "infos", "render_mode", "decision_interval"):
+        if key in kwargs:
+            raise ConfigError(f"-p/--param: got {key}=..., expected the command-line option for it")
+    filter_config = _filter_config(args)
+    try:
+        return make_env(args.scenario, filter=filter_config, render_mode="rgb_array" if render else None,
+                        decision_interval=args.decision_interval, **kwargs)
+    except UnknownKeywordError as exc:
+        raise UnknownKeywordError(f"-p/--param: {exc}") from None
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    """Run one episode and report its metrics."""
+    """Run one episode and report its metrics.
+
+    Every option, the output folder and the animation file are checked (and the
+    folder created) before the episode starts; earlier results are kept unless
+    ``--overwrite``.
+    """
+    if args.model is not None and args.controller != "learned":
+        raise ConfigError(f"--model: given with --controller {args.controller!r}, expected --controller learned")
     render = bool(args.gif)
-    env = _make_env(args, render)
-    ctrl_kwargs: dict[str, Any] = {}
-    if args.controller in ("tracking", "pd"):
-        ctrl_kwargs["saturate"] = not (args.filter and args.filter != "none")
-    if agent_accepts(args.controller, "seed"):
-        ctrl_kwargs["seed"] = args.seed
-    if args.controller == "learned":
-        ctrl_kwargs["path"] = args.model
-    agent = get_agent(args.controller, **ctrl_kwargs)
+    plan = OutputPlan(args.overwrite)
+    out = plan.folder(args.out, "--out", entries=RUN_OUTPUTS) if args.out else None
+    try:
+        gif = plan.file(args.gif, "--gif", suffixes=ANIMATION_SUFFIXES) if args.gif else None
+        env = _make_env(args, render)
+        ctrl_kwargs: dict[str, Any] = {}
+        if args.controller in ("tracking", "pd"):
+            ctrl_kwargs["saturate"] = not (args.filter and args.filter != "none")
+        if agent_accepts(args.controller, "seed"):
+            ctrl_kwargs["seed"] = args.seed
+        if args.controller == "learned":
+            ctrl_kwargs["path"] = args.model
+        agent = get_agent(args.controller, **ctrl_kwargs)
+        if args.controller == "learned":
+            agent.reset(env)  # observation layout and action mode checked before the episode
+    except BaseException:
+        plan.discard()
+        raise
     meta = {"controller": args.controller, "filter": args.filter, "seed": args.seed}
-    rollout, frames = run_episode(
+    rollout, frames = guarded_outputs(plan, lambda: run_episode(
         env,
         agent,
         seed=args.seed,
         render_every=args.frame_every if render else None,
         progress=not args.quiet,
         metadata=meta,
-    )
+    ))
     summary = summarize(rollout, goal_tolerance=args.goal_tolerance)
     print(format_summary(summary))
-    out = Path(args.out) if args.out else None
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
         (out / "metrics.json").write_text(json.dumps(summary, indent=2))
         rollout.save(out / "rollout.npz")
         try:
@@ -117,43 +166,54 @@ def cmd_run(args: argparse.Namespace) -> int:
         except ImportError as exc:
             print(f"(no trajectory plot: {exc})", file=sys.stderr)
         print(f"wrote {out}/metrics.json, rollout.npz, trajectories.png")
-    if args.gif:
-        save_animation(frames, args.gif, fps=args.fps)
-        print(f"wrote {args.gif} ({len(frames)} frames)")
+    if gif is not None:
+        save_animation(frames, gif, fps=args.fps)
+        print(f"wrote {gif} ({len(frames)} frames)")
     env.close()
     if args.fail_on_collision and summary.get("n_collision_pairs"):
         return 1
     return 0
 
 
+RUN_OUTPUTS = ("metrics.json", "rollout.npz", "trajectories.png")
+"""What ``aasoatt run --out DIR`` writes into ``DIR``."""
+ANIMATION_SUFFIXES = (".gif", ".mp4", ".m4v", ".mov", ".mkv", ".avi", ".webm")
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``aasoatt``."""
-    parser = argparse.ArgumentParser(prog="aasoatt", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True)
+    parser = Parser(prog="aasoatt", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
     p_list = sub.add_parser("list", help="scenarios, controllers, filter options")
+    add_common_options(p_list, overwrite=False)
     p_list.set_defaults(func=cmd_list)
 
     p_run = sub.add_parser("run", help="run a controller on a scenario")
-    p_run.add_argument("--scenario", default="circle_swap")
-    p_run.add_argument("--robots", type=int, default=None, help="number of robots (num_robots)")
+    p_run.add_argument("--scenario", default="circle_swap", choices=sorted(SCENARIOS), metavar="NAME",
+                       help=f"one of {', '.join(sorted(SCENARIOS))}")
+    p_run.add_argument("--robots", type=int_option(1, MAX_ROBOTS), default=None, help="number of robots (num_robots)")
     p_run.add_argument("-p", "--param", action="append", help="scenario/env parameter KEY=VALUE")
-    p_run.add_argument("--controller", default="tracking",
-                       help="tracking | pd | random | learned | an adversary (aasoatt list)")
+    p_run.add_argument("--controller", default="tracking", choices=agent_names(), metavar="NAME",
+                       help=f"one of {', '.join(agent_names())}")
     p_run.add_argument("--model", default=None, help="saved model for --controller learned")
-    p_run.add_argument("--filter", default="aasoatt", help="barrier name, or 'none' for the bare env")
-    p_run.add_argument("--deadlock", default="auxiliary_velocity")
-    p_run.add_argument("--trigger", default="multiplier")
-    p_run.add_argument("--solver", default="proxsuite")
+    p_run.add_argument("--filter", default="aasoatt", choices=[*BARRIERS, "none"], metavar="NAME",
+                       help=f"barrier: one of {', '.join(BARRIERS)}; or 'none' for the bare env")
+    p_run.add_argument("--deadlock", default="auxiliary_velocity", choices=list(STRATEGIES), metavar="NAME",
+                       help=f"one of {', '.join(STRATEGIES)}")
+    p_run.add_argument("--trigger", default="multiplier", choices=list(TRIGGERS), metavar="NAME",
+                       help=f"one of {', '.join(TRIGGERS)}")
+    p_run.add_argument("--solver", default="proxsuite", help="QP solver (aasoatt list shows the installed ones)")
     p_run.add_argument("-g", "--gain", action="append", help="filter gain KEY=VALUE (k1, k2, zeta, ...)")
-    p_run.add_argument("--decision-interval", type=int, default=1)
-    p_run.add_argument("--seed", type=int, default=0)
+    p_run.add_argument("--decision-interval", type=int_option(1, 10_000), default=1)
+    p_run.add_argument("--seed", type=int_option(0), default=0)
     p_run.add_argument("--gif", default=None, help="write an animation (.gif or .mp4)")
-    p_run.add_argument("--frame-every", type=int, default=20, help="env steps between GIF frames")
-    p_run.add_argument("--fps", type=int, default=20)
+    p_run.add_argument("--frame-every", type=int_option(1), default=20, help="env steps between GIF frames")
+    p_run.add_argument("--fps", type=int_option(1, 1000), default=20)
     p_run.add_argument("--out", default=None, help="folder for metrics.json, rollout.npz, trajectories.png")
-    p_run.add_argument("--goal-tolerance", type=float, default=0.05)
+    p_run.add_argument("--goal-tolerance", type=real_option(0.0, lo_open=True), default=0.05)
     p_run.add_argument("--fail-on-collision", action="store_true", help="exit 1 if any pair collided")
     p_run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_common_options(p_run)
     p_run.set_defaults(func=cmd_run)
 
     for name, (module, _) in _FORWARDED.items():
@@ -170,15 +230,20 @@ _FORWARDED = {
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``aasoatt`` console script."""
+    """Entry point of the ``aasoatt`` console script (see :mod:`aasoatt_env.cli_support` for the contract)."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in _FORWARDED:  # these parse their own options (incl. --help)
+    if argv and argv[0] in _FORWARDED:  # these parse their own options (incl. --help) and guard their own errors
         import importlib
 
         module, func = _FORWARDED[argv[0]]
         return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
-    args = build_parser().parse_args(argv)
-    return int(args.func(args))
+
+    def body(args_list: list[str]) -> int:
+        args = build_parser().parse_args(args_list)
+        return int(args.func(args))
+
+    prog = f"aasoatt {argv[0]}" if argv and not argv[0].startswith("-") else "aasoatt"
+    return run_guarded(prog, argv, body)
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -42,6 +42,18 @@ Model = Literal["diff_drive", "double_integrator"]
 MODELS: tuple[str, ...] = ("diff_drive", "double_integrator")
 
 
+_RANGES: dict[str, tuple[float, float]] = {
+    "radius": (1e-6, 1e6),
+    "wheel_radius": (1e-6, 1e6),
+    "half_track": (1e-6, 1e6),
+    "offset": (1e-6, 1e6),
+    "max_wheel_accel": (1e-6, 1e9),
+    "max_wheel_speed": (1e-6, 1e9),
+}
+"""Valid range of each :class:`RobotParams` field (SI units; ``max_wheel_speed`` may also be ``inf``).
+Beyond them the kinematics under- or overflow (a radius of 5e-324 divides by zero)."""
+
+
 @dataclass(frozen=True)
 class RobotParams:
     """Physical parameters of one robot.
@@ -84,15 +96,17 @@ class RobotParams:
         for f in fields(self):
             if f.name == "model":
                 continue
-            value = positive(f"RobotParams.{f.name}", getattr(self, f.name), allow_inf=f.name == "max_wheel_speed")
+            lo, hi = _RANGES[f.name]
+            value = positive(f"RobotParams.{f.name}", getattr(self, f.name), allow_inf=f.name == "max_wheel_speed",
+                             lo=lo, hi=hi)
             object.__setattr__(self, f.name, value)
         choice("RobotParams.model", self.model, MODELS)
 
     @classmethod
     def preset(cls, name: str, **overrides: float | str) -> "RobotParams":
         """Return a preset (see module docstring), optionally with fields overridden."""
-        if name not in PRESETS:
-            raise ConfigError(f"unknown robot preset {name!r}; known presets: {sorted(PRESETS)}")
+        if not isinstance(name, str) or name not in PRESETS:
+            raise ConfigError(f"robots: unknown robot preset {name!r}; known presets: {sorted(PRESETS)}")
         return replace(PRESETS[name], **overrides)
 
     @property
@@ -206,11 +220,18 @@ def make_team(robots: RobotParams | str | Sequence[RobotParams | str] | None, n:
         robots = "paper"
     if isinstance(robots, (str, RobotParams)):
         specs: list[RobotParams | str] = [robots] * n
-    else:
+    elif isinstance(robots, (list, tuple)):
         specs = list(robots)
         if len(specs) != n:
             raise ConfigError(f"robots: got {len(specs)} robot specs, expected one or {n} (one per robot)")
+    else:
+        raise ConfigError(
+            f"robots: got {type(robots).__name__}, expected a preset name {sorted(PRESETS)}, a RobotParams, "
+            "or a list of those (one per robot)"
+        )
     params = [RobotParams.preset(s) if isinstance(s, str) else s for s in specs]
+    if not params:
+        raise ConfigError("robots: got an empty list, expected one robot spec or one per robot")
     for i, p in enumerate(params):
         if not isinstance(p, RobotParams):
             raise ConfigError(f"robots[{i}]: got {type(p).__name__}, expected RobotParams or a preset name")

@@ -222,9 +222,16 @@ class AASOATTParallelEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ reset/step
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
-        """Start an episode; ``seed`` (an integer >= 0) seeds the scenario's random layout."""
+        """Start an episode; ``seed`` (an integer >= 0) seeds the scenario's random layout.
+
+        ``options`` (None or a dict) is accepted for API compatibility and ignored: this env has no reset options.
+        """
         if seed is not None:
-            self._rng = np.random.default_rng(check.integer("seed", seed, lo=0))
+            seed = check.integer("seed", seed, lo=0)
+        if options is not None and not isinstance(options, Mapping):
+            raise ConfigError(f"options: got {type(options).__name__}, expected a dict or None")
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
         layout = self.scenario.build(self._rng)
         self._layout = layout
         self.team = layout.team
@@ -521,6 +528,7 @@ class AASOATTParallelEnv(ParallelEnv):
     @property
     def goals(self) -> np.ndarray:
         """Final reference points ``(N, 2)``."""
+        self._require_reset("goals")
         return np.asarray(self.layout.reference.goals).copy()
 
     @property
@@ -545,6 +553,7 @@ class AASOATTParallelEnv(ParallelEnv):
     @property
     def obstacles(self) -> tuple[np.ndarray, np.ndarray]:
         """Static obstacles: centres ``(M, 2)`` and radii ``(M,)``."""
+        self._require_reset("obstacles")
         c, r = self._obstacles
         return c.copy(), r.copy()
 

@@ -47,13 +47,15 @@ class Reference(Protocol):
         ...
 
 
+COORD_MAX: float = 1e6
+"""Largest coordinate [m] of a reference point, start, waypoint or obstacle."""
+
+
 def _points(name: str, value: np.ndarray | list, n: int | None = None) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
+    arr = check.real_array(name, value, lo=-COORD_MAX, hi=COORD_MAX, unit=" m")
     if arr.ndim != 2 or arr.shape[1] != 2 or (n is not None and arr.shape[0] != n):
         expected = f"({n}, 2)" if n is not None else "(N, 2)"
         raise ConfigError(f"{name}: got shape {arr.shape}, expected {expected}")
-    if not np.all(np.isfinite(arr)):
-        raise ConfigError(f"{name}: got non-finite values, expected finite coordinates")
     return arr
 
 
@@ -115,21 +117,17 @@ class WaypointReference:
     """
 
     def __init__(self, waypoints: np.ndarray, times: np.ndarray) -> None:
-        try:
-            wp = np.asarray(waypoints, dtype=np.float64)
-            ts = np.asarray(times, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ConfigError("waypoints/times: expected numeric arrays (N, K, 2) and (K,)") from None
+        wp = check.real_array("waypoints", waypoints, lo=-COORD_MAX, hi=COORD_MAX, unit=" m")
+        ts = check.real_array("times", times, lo=0.0, hi=1e6, unit=" s")
         if wp.ndim == 2:
             wp = wp[None]
         if wp.ndim != 3 or wp.shape[2] != 2 or wp.shape[1] < 2:
             raise ConfigError(f"waypoints: got shape {np.shape(waypoints)}, expected (N, K, 2) with K >= 2")
-        if ts.shape != (wp.shape[1],) or np.any(np.diff(ts) <= 0) or not np.all(np.isfinite(ts)):
+        if ts.shape != (wp.shape[1],) or np.any(np.diff(ts) <= 0):
             raise ConfigError(
-                f"times: got {ts.tolist()}, expected {wp.shape[1]} strictly increasing finite times"
+                f"times: got {check.short_repr(ts.tolist())}, expected {wp.shape[1]} strictly increasing times "
+                "(one per waypoint)"
             )
-        if not np.all(np.isfinite(wp)):
-            raise ConfigError("waypoints: got non-finite values, expected finite coordinates")
         self.waypoints, self.times = wp, ts
         self.goals = wp[:, -1].copy()
         self.duration = float(ts[-1])

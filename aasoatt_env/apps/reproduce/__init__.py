@@ -9,7 +9,10 @@ difference), PNG figures and the experiment's wall time; ``all`` also writes
 
 Every run is deterministic: the same command gives the same numbers whatever
 ``--jobs`` is.  ``--quick`` runs small variants (seconds, for CI) whose numbers
-are *not* comparable to the paper.
+are *not* comparable to the paper; they go to ``results/quick/`` unless ``--out``
+says otherwise, so they never replace the full tables.  Existing results are
+replaced only with ``--overwrite``; every option and the output folder are
+checked before the first run.
 
 Python use::
 
@@ -27,6 +30,16 @@ from pathlib import Path
 
 from aasoatt_env.apps.reproduce.experiments import EXPERIMENTS, Settings
 from aasoatt_env.apps.reproduce.report import Report
+from aasoatt_env.cli_support import (
+    OutputPlan,
+    Parser,
+    add_common_options,
+    guarded_outputs,
+    int_option,
+    real_option,
+    run_guarded,
+)
+from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety import available_solvers
 
 __all__ = ["EXPERIMENTS", "Settings", "main", "run_experiment"]
@@ -50,7 +63,7 @@ def run_experiment(name: str, settings: Settings) -> tuple[Report, float]:
         Seconds spent, recorded in the Markdown.
     """
     if name not in EXPERIMENTS:
-        raise ValueError(f"experiment: got {name!r}, expected one of {sorted(EXPERIMENTS)} or 'all'")
+        raise ConfigError(f"experiment: got {name!r}, expected one of {sorted(EXPERIMENTS)} or 'all'")
     t0 = time.perf_counter()
     report = EXPERIMENTS[name](settings)
     wall = time.perf_counter() - t0
@@ -58,15 +71,22 @@ def run_experiment(name: str, settings: Settings) -> tuple[Report, float]:
     return report, wall
 
 
+QUICK_SUBDIR = "quick"
+"""``--quick`` results go to ``<out>/quick/`` by default, so they never replace the full tables."""
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = Parser(
         prog="aasoatt reproduce",
         description="Reproduce the paper's Sec. V experiments; writes CSV, Markdown and PNG per experiment.",
     )
     p.add_argument("experiment", choices=[*EXPERIMENTS, "all"], help="experiment to run")
-    p.add_argument("--quick", action="store_true", help="small, fast variants (CI); not comparable to the paper")
-    p.add_argument("--out", default="results", help="results root directory (default: results)")
-    p.add_argument("--jobs", type=int, default=1, help="worker processes for independent runs (default: 1)")
+    p.add_argument("--quick", action="store_true",
+                   help=f"small, fast variants (CI); not comparable to the paper; default --out results/{QUICK_SUBDIR}")
+    p.add_argument("--out", default=None,
+                   help=f"results root directory (default: results, or results/{QUICK_SUBDIR} with --quick)")
+    p.add_argument("--jobs", type=int_option(1, 256), default=1,
+                   help="worker processes for independent runs (default: 1)")
     p.add_argument(
         "--solver",
         default=None,
@@ -74,20 +94,27 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--safety-margin",
-        type=float,
+        type=real_option(0.0, 1.0),
         default=0.0,
-        help="margin added to d_s [m] in the paper-comparison runs (default 0: the paper's barrier)",
+        help="margin added to d_s [m] in the paper-comparison runs, in [0, 1] (default 0: the paper's barrier)",
     )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    add_common_options(p)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command-line entry point (``aasoatt reproduce ...``); returns the exit status."""
-    args = _parser().parse_args(list(sys.argv[1:] if argv is None else argv))
-    if args.jobs < 1:
-        print(f"--jobs: got {args.jobs}, expected an integer >= 1", file=sys.stderr)
-        return 2
+    """Command-line entry point (``aasoatt reproduce ...``); returns the exit status.
+
+    Options and output folders are checked before the first run; existing results
+    (``<out>/<experiment>/``, ``<out>/SUMMARY.md``) are replaced only with ``--overwrite``.
+    """
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return run_guarded("aasoatt reproduce", argv, _main)
+
+
+def _main(argv: list[str]) -> int:
+    args = _parser().parse_args(argv)
     if args.solver is None:
         args.solver = "daqp" if "daqp" in available_solvers() else "proxsuite"
         if args.solver != "daqp":
@@ -97,18 +124,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                 file=sys.stderr,
             )
     if args.solver not in available_solvers():
-        print(f"--solver: got {args.solver!r}, expected one of {available_solvers()}", file=sys.stderr)
-        return 2
+        raise ConfigError(f"--solver: got {args.solver!r}, expected one of {available_solvers()}")
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
     cmd = "aasoatt reproduce {name}" + (" --quick" if args.quick else "")
     if args.solver != "daqp":
         cmd += f" --solver {args.solver}"
     if args.safety_margin:
         cmd += f" --safety-margin {args.safety_margin:g}"
-    out = Path(args.out)
+    out = Path(args.out) if args.out is not None else Path("results") / (QUICK_SUBDIR if args.quick else "")
+    plan = OutputPlan(args.overwrite)
+    plan.folder(out, "--out", entries=[*names, *(["SUMMARY.md"] if len(names) > 1 else [])])
     walls: dict[str, float] = {}
     t0 = time.perf_counter()
-    for name in names:
+    for k, name in enumerate(names):
         settings = Settings(
             quick=args.quick,
             out=out,
@@ -118,7 +146,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             progress=not args.no_progress,
             command=cmd.format(name=name),
         )
-        report, wall = run_experiment(name, settings)
+        report, wall = (guarded_outputs(plan, lambda s=settings, n=name: run_experiment(n, s)) if k == 0
+                        else run_experiment(name, settings))
         walls[name] = wall
         print(f"{name}: {wall:.1f} s -> {report.dir / 'README.md'}", flush=True)
     total = time.perf_counter() - t0

@@ -29,7 +29,7 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
-from aasoatt_env.errors import ScenarioError
+from aasoatt_env.errors import ScenarioError, UnknownKeywordError
 from aasoatt_env.sim.scenarios.base import Layout, Scenario, max_robots_on_circle
 from aasoatt_env.sim.scenarios.circle_obstacles import FIG5_OBSTACLES, CircleSwapObstacles
 from aasoatt_env.sim.scenarios.circle_swap import CircleSwap
@@ -68,7 +68,8 @@ def get_scenario(scenario: str | Scenario, **kwargs: Any) -> Scenario:
     """
     if isinstance(scenario, Scenario):
         if kwargs:
-            raise TypeError(f"scenario parameters {sorted(kwargs)} given with a Scenario instance")
+            raise UnknownKeywordError(f"scenario parameters {sorted(kwargs)} given with a Scenario instance; "
+                                      "pass them to its constructor instead")
         return scenario
     if not isinstance(scenario, str) or scenario not in SCENARIOS:
         raise ScenarioError(f"unknown scenario {scenario!r}; known scenarios: {sorted(SCENARIOS)}")

@@ -20,6 +20,7 @@ __all__ = [
     "check_clear_of_obstacles",
     "check_num_robots",
     "check_obstacles",
+    "check_quantity",
     "check_settle_time",
     "heading_of",
     "max_robots_on_circle",
@@ -73,6 +74,16 @@ def check_num_robots(value: Any) -> int:
     return check.integer("num_robots", value, lo=1, hi=MAX_ROBOTS)
 
 
+QUANTITY_RANGE: tuple[float, float] = (1e-6, 1e6)
+"""Valid range of a scenario's lengths [m], durations [s] and speeds [m/s]: beyond it the
+arithmetic of a layout (a division by a speed, a reference time) under- or overflows."""
+
+
+def check_quantity(name: str, value: Any) -> float:
+    """A scenario length, duration or speed: a finite number in :data:`QUANTITY_RANGE`."""
+    return check.real(name, value, lo=QUANTITY_RANGE[0], hi=QUANTITY_RANGE[1])
+
+
 def check_settle_time(value: Any) -> float:
     """``settle_time``: a finite number of seconds in ``[0, 1e6]``."""
     return check.real("settle_time", value, lo=0.0, hi=1e6)
@@ -93,11 +104,8 @@ def check_obstacles(obstacles: Any) -> tuple[np.ndarray, np.ndarray]:
     if not (isinstance(obstacles, (tuple, list)) and len(obstacles) == 2):
         raise ConfigError(f"obstacles: got {obstacles!r}, expected a pair (centres (M, 2), radii (M,)) or None")
     centers, radii = obstacles
-    try:
-        c = np.asarray(centers, dtype=np.float64)
-        r = np.asarray(radii, dtype=np.float64).reshape(-1)
-    except (TypeError, ValueError):
-        raise ConfigError("obstacles: expected numeric centres (M, 2) and radii (M,)") from None
+    c = check.real_array("obstacles (centres)", centers, lo=-QUANTITY_RANGE[1], hi=QUANTITY_RANGE[1], unit=" m")
+    r = check.real_array("obstacles (radii)", radii, lo=QUANTITY_RANGE[0], hi=QUANTITY_RANGE[1], unit=" m").reshape(-1)
     if c.size == 0:
         c = np.zeros((0, 2))
     if c.ndim == 1 and c.shape[0] == 2:
@@ -106,8 +114,6 @@ def check_obstacles(obstacles: Any) -> tuple[np.ndarray, np.ndarray]:
         raise ConfigError(f"obstacles: got centres of shape {np.shape(centers)}, expected (M, 2)")
     if r.shape[0] != c.shape[0]:
         raise ConfigError(f"obstacles: got {c.shape[0]} centres and {r.shape[0]} radii, expected as many")
-    if not (np.all(np.isfinite(c)) and np.all(np.isfinite(r)) and np.all(r > 0)):
-        raise ConfigError("obstacles: expected finite centres and positive finite radii")
     return c, r
 
 

@@ -25,6 +25,7 @@ from aasoatt_env.sim.scenarios.base import (
     check_clear_of_obstacles,
     check_num_robots,
     check_obstacles,
+    check_quantity,
     check_settle_time,
     max_robots_on_circle,
 )
@@ -66,8 +67,8 @@ class CircleSwap(Scenario):
         obstacles: tuple[Any, Any] | None = None,
     ) -> None:
         self.num_robots_ = check_num_robots(num_robots)
-        self.radius = check.positive("radius", radius, hi=1e6)
-        self.duration = check.positive("duration", duration, hi=1e6)
+        self.radius = check_quantity("radius", radius)
+        self.duration = check_quantity("duration", duration)
         self.settle_time = check_settle_time(settle_time)
         self.robots = robots
         self.profile = check.choice("profile", profile, ("linear", "smooth"))

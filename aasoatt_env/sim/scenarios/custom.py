@@ -14,15 +14,17 @@ from typing import Any
 
 import numpy as np
 
+from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError, ScenarioError
 from aasoatt_env.model.params import RobotParams, make_team
-from aasoatt_env.sim.references import as_reference
+from aasoatt_env.sim.references import COORD_MAX, as_reference
 from aasoatt_env.sim.scenarios.base import (
     MAX_ROBOTS,
     Layout,
     Scenario,
     check_clear_of_obstacles,
     check_obstacles,
+    check_quantity,
     check_settle_time,
     heading_of,
 )
@@ -65,14 +67,18 @@ class Custom(Scenario):
         robots: str | RobotParams | list = "paper",
         settle_time: float = 3.0,
     ) -> None:
-        try:
-            st = np.asarray(starts, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ConfigError(f"starts: got {starts!r}, expected finite numbers of shape (N, 2)") from None
-        if st.ndim != 2 or st.shape[1] != 2 or not 1 <= st.shape[0] <= MAX_ROBOTS or not np.all(np.isfinite(st)):
-            raise ConfigError(f"starts: got shape {st.shape}, expected finite (N, 2) with 1 <= N <= {MAX_ROBOTS}")
+        st = check.real_array("starts", starts, lo=-COORD_MAX, hi=COORD_MAX, unit=" m")
+        if st.ndim != 2 or st.shape[1] != 2 or not 1 <= st.shape[0] <= MAX_ROBOTS:
+            raise ConfigError(f"starts: got shape {st.shape}, expected (N, 2) with 1 <= N <= {MAX_ROBOTS}")
         self.num_robots_ = st.shape[0]
         self._starts = st
+        if duration is not None:
+            duration = check_quantity("duration", duration)
+            if not callable(reference) or (hasattr(reference, "goals") and hasattr(reference, "duration")):
+                raise ConfigError(
+                    f"duration: got {duration:g} with a {type(reference).__name__} reference, which sets its own "
+                    "duration; duration is only for a callable reference t -> (N, 2)"
+                )
         self._reference = as_reference(reference, self.num_robots_, duration)
         self._team = make_team(robots, self.num_robots_)
         self._obstacles = check_obstacles(obstacles)
@@ -80,12 +86,9 @@ class Custom(Scenario):
         check_clear_of_obstacles("obstacles", np.asarray(self._reference.goals, float), self._team.radius,
                                  self._obstacles)
         if headings is not None:
-            try:
-                h = np.asarray(headings, dtype=np.float64).reshape(-1)
-            except (TypeError, ValueError):
-                raise ConfigError(f"headings: got {headings!r}, expected {self.num_robots_} finite angles") from None
-            if h.shape != (self.num_robots_,) or not np.all(np.isfinite(h)):
-                raise ConfigError(f"headings: got shape {h.shape}, expected finite ({self.num_robots_},)")
+            h = check.real_array("headings", headings, lo=-1e6, hi=1e6, unit=" rad").reshape(-1)
+            if h.shape != (self.num_robots_,):
+                raise ConfigError(f"headings: got shape {h.shape}, expected ({self.num_robots_},)")
             self._headings = h
         else:
             self._headings = None

@@ -12,10 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from aasoatt_env import validation as check
+from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import LinearReference
-from aasoatt_env.sim.scenarios.base import Layout, Scenario, check_settle_time
+from aasoatt_env.sim.scenarios.base import QUANTITY_RANGE, Layout, Scenario, check_quantity, check_settle_time
 
 __all__ = ["PositionSwap"]
 
@@ -45,9 +45,14 @@ class PositionSwap(Scenario):
         settle_time: float = 5.0,
         robots: str | RobotParams = "turtlebot3_burger",
     ) -> None:
-        self.distance = check.positive("distance", distance, hi=1e6)
-        self.speed = check.positive("speed", speed, hi=1e6)
+        self.distance = check_quantity("distance", distance)
+        self.speed = check_quantity("speed", speed)
         self.settle_time = check_settle_time(settle_time)
+        if self.distance / self.speed > QUANTITY_RANGE[1]:
+            raise ConfigError(
+                f"speed: got {self.speed:g}, which takes {self.distance / self.speed:.3g} s for distance "
+                f"{self.distance:g}; expected a travel time <= {QUANTITY_RANGE[1]:g} s"
+            )
         self.robots = robots
         self.num_robots_ = 4
         self._team = make_team(robots, 4)

@@ -15,11 +15,17 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError, ScenarioError
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import FunctionReference
-from aasoatt_env.sim.scenarios.base import Layout, Scenario, check_num_robots, check_settle_time
+from aasoatt_env.sim.scenarios.base import (
+    QUANTITY_RANGE,
+    Layout,
+    Scenario,
+    check_num_robots,
+    check_quantity,
+    check_settle_time,
+)
 
 __all__ = ["RandomGoals"]
 
@@ -68,20 +74,27 @@ class RandomGoals(Scenario):
         self.num_robots_ = check_num_robots(num_robots)
         self._team = make_team(robots, self.num_robots_)
         d = 2.0 * float(self._team.radius.max())
-        self.min_spacing = d + 0.2 if min_spacing is None else check.positive("min_spacing", min_spacing, hi=1e6)
+        self.min_spacing = d + 0.2 if min_spacing is None else check_quantity("min_spacing", min_spacing)
         if self.min_spacing < d:
             raise ConfigError(f"min_spacing: got {self.min_spacing:g}, expected >= robot diameter {d:g}")
         default_arena = max(6.0, 2.2 * self.min_spacing * math.sqrt(self.num_robots_))
-        self.arena_size = default_arena if arena_size is None else check.positive("arena_size", arena_size, hi=1e6)
-        self.speed = check.positive("speed", speed, hi=1e6)
+        self.arena_size = default_arena if arena_size is None else check_quantity("arena_size", arena_size)
+        self.speed = check_quantity("speed", speed)
         self.settle_time = check_settle_time(settle_time)
         self.robots = robots
+        longest = math.sqrt(2.0) * self.arena_size / self.speed
+        if longest > QUANTITY_RANGE[1]:
+            raise ConfigError(
+                f"speed: got {self.speed:g}, so a robot may need {longest:.3g} s to cross the arena of size "
+                f"{self.arena_size:g}; expected a travel time <= {QUANTITY_RANGE[1]:g} s"
+            )
         # packing sanity check: fraction of the arena the spacing discs would cover
         cover = self.num_robots_ * math.pi * (self.min_spacing / 2) ** 2 / self.arena_size**2
         if cover > 0.45:
             raise ScenarioError(
-                f"num_robots: {self.num_robots_} robots with spacing {self.min_spacing:g} do not fit "
-                f"reliably in an arena of size {self.arena_size:g} (cover {cover:.2f}, expected <= 0.45)"
+                f"num_robots / arena_size / min_spacing: {self.num_robots_} robots with spacing "
+                f"{self.min_spacing:g} do not fit reliably in an arena of size {self.arena_size:g} "
+                f"(cover {cover:.2f}, expected <= 0.45)"
             )
 
     def _sample(self, rng: np.random.Generator) -> np.ndarray:

@@ -18,7 +18,7 @@ import numpy as np
 from aasoatt_env import validation as check
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import FunctionReference, Reference, as_reference
-from aasoatt_env.sim.scenarios.base import Layout, Scenario, heading_of
+from aasoatt_env.sim.scenarios.base import Layout, Scenario, check_quantity, heading_of
 
 __all__ = ["Tracking"]
 
@@ -59,14 +59,13 @@ class Tracking(Scenario):
         robots: str | RobotParams = "paper",
         reference: Any = None,
     ) -> None:
-        if reference is None:
-            check.choice("trajectory", trajectory, self.TRAJECTORIES)
+        check.choice("trajectory", trajectory, self.TRAJECTORIES)  # checked even when `reference` replaces it
         self.trajectory = trajectory
-        self.speed = check.positive("speed", speed, hi=1e6)
-        self.amplitude = check.positive("amplitude", amplitude, hi=1e6)
-        self.frequency = check.positive("frequency", frequency, hi=1e6)
-        self.circle_radius = check.positive("circle_radius", circle_radius, hi=1e6)
-        self.duration = check.positive("duration", duration, hi=1e6)
+        self.speed = check_quantity("speed", speed)
+        self.amplitude = check_quantity("amplitude", amplitude)
+        self.frequency = check_quantity("frequency", frequency)
+        self.circle_radius = check_quantity("circle_radius", circle_radius)
+        self.duration = check_quantity("duration", duration)
         self.robots = robots
         self._team = make_team(robots, 1)
         self._user_reference = reference

@@ -1,0 +1,702 @@
+"""Every bad input gets a clear error (issue 15).
+
+Each case either works or raises the documented error type with the parameter's
+name in the message; no raw numpy / pickle / zip / JSON error escapes; a crafted
+pickle is never executed.  Groups (the issue's): numeric and choice keywords of the
+env, the scenarios, ``FilterConfig``, ``RewardConfig`` and ``RobotParams``;
+``reset`` seeds and calls before ``reset``; actions; obstacles and custom
+scenarios; size bounds; wrapper misuse; corrupted rollout files; model folders
+(crafted pickles, crafted SB3 zips, corrupted files).
+"""
+
+from __future__ import annotations
+
+import base64
+import io
+import json
+import math
+import os
+import pickle
+import shutil
+import time
+import warnings
+import zipfile
+from dataclasses import fields
+from pathlib import Path
+
+import gymnasium
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from pettingzoo import ParallelEnv
+
+import aasoatt_env
+from aasoatt_env import validation as check
+from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.analysis.rollout import Rollout
+from aasoatt_env.api.factory import make_env
+from aasoatt_env.errors import (
+    ActionError,
+    ConfigError,
+    DataFileError,
+    ResetNeeded,
+    ScenarioError,
+    UnknownKeywordError,
+    UsageError,
+)
+from aasoatt_env.model.params import RobotParams
+from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.wrapper import AASOATTFilter
+from aasoatt_env.sim.env import AASOATTParallelEnv
+from aasoatt_env.sim.rewards import RewardConfig
+from aasoatt_env.sim.scenarios import CircleSwap, RandomGoals
+from agents import TrackingController
+
+# --------------------------------------------------------------------------- junk for every keyword
+JUNK: dict[str, object] = {
+    "nan": float("nan"), "inf": float("inf"), "-inf": float("-inf"), "-1": -1, "1e308": 1e308, "True": True,
+    "'2'": "2", "2+0j": 2 + 0j, "None": None, "[]": [], "10**400": 10**400,
+}
+"""The issue's junk (NaN, inf, -1, 1e308, True, "2", 2+0j, None, []) plus -inf and an int beyond the float range."""
+
+# (owner, keyword) -> the junk labels that are valid values for it (documented: None = default/none,
+# True for flags, inf = no limit, -1 within a signed range); every other junk value must be rejected.
+_OPTIONAL = {"None"}
+ACCEPTS: dict[tuple[str, str], set[str]] = {
+    ("env", "max_steps"): _OPTIONAL, ("env", "render_mode"): _OPTIONAL, ("env", "reward"): _OPTIONAL,
+    ("env", "terminate_on_collision"): {"True"}, ("env", "clip_actions"): {"True"},
+    ("random_goals", "arena_size"): _OPTIONAL, ("random_goals", "min_spacing"): _OPTIONAL,
+    ("random_goals", "robots"): _OPTIONAL, ("circle_swap", "robots"): _OPTIONAL,
+    ("circle_swap", "obstacles"): _OPTIONAL, ("circle_obstacles", "obstacles"): _OPTIONAL,
+    ("tracking", "robots"): _OPTIONAL, ("tracking", "reference"): _OPTIONAL,
+    ("position_swap", "robots"): _OPTIONAL, ("custom", "headings"): _OPTIONAL, ("custom", "duration"): _OPTIONAL,
+    ("custom", "obstacles"): _OPTIONAL, ("custom", "robots"): _OPTIONAL,
+    ("filter", "sigma"): {"-1"}, ("filter", "rotation_deg"): {"-1"}, ("filter", "gate_range"): _OPTIONAL,
+    ("filter", "safety_margin"): _OPTIONAL, ("filter", "max_wheel_speed"): _OPTIONAL,
+    ("filter", "active_set"): {"True"}, ("filter", "decompose"): {"True"}, ("filter", "backup"): {"True"},
+    ("filter", "speed_margin"): _OPTIONAL,
+    ("robot", "max_wheel_speed"): {"inf"},
+}
+
+ENV_KEYWORDS = ["dt", "decision_interval", "action_mode", "sensing_range", "num_neighbors", "num_obstacles", "reward",
+                "terminate_on_collision", "collision_tolerance", "max_steps", "clip_actions", "render_mode"]
+SCENARIO_KEYWORDS = {
+    "circle_swap": ["num_robots", "radius", "duration", "settle_time", "robots", "profile", "obstacles"],
+    "circle_obstacles": ["num_robots", "radius", "duration", "settle_time", "obstacles"],
+    "tracking": ["trajectory", "speed", "amplitude", "frequency", "circle_radius", "duration", "robots", "reference"],
+    "position_swap": ["distance", "speed", "settle_time", "robots"],
+    "random_goals": ["num_robots", "arena_size", "min_spacing", "speed", "settle_time", "robots"],
+    "custom": ["starts", "reference", "duration", "headings", "obstacles", "robots", "settle_time"],
+}
+CUSTOM_BASE = {"starts": [[0.0, 0.0], [3.0, 0.0]],
+               "reference": {"waypoints": [[[0.0, 0.0], [0.0, 3.0]], [[3.0, 0.0], [3.0, 3.0]]], "times": [0.0, 5.0]}}
+
+
+def _build_and_step(**kw: object) -> None:
+    """Construct, reset and step once (an accepted value must not fail later)."""
+    env = make_env(**kw)
+    env.reset(seed=0)
+    env.step({a: np.zeros(2) for a in env.agents})
+    env.close()
+
+
+def _cases() -> list[tuple[str, str]]:
+    out = [("env", k) for k in ENV_KEYWORDS]
+    out += [(sc, k) for sc, ks in SCENARIO_KEYWORDS.items() for k in ks]
+    out += [("filter", f.name) for f in fields(FilterConfig) if f.name != "dt"]
+    out += [("reward", f.name) for f in fields(RewardConfig)]
+    out += [("robot", f.name) for f in fields(RobotParams)]
+    return out
+
+
+def _attempt(owner: str, name: str, value: object) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if owner == "env":
+            _build_and_step(scenario="circle_swap", num_robots=3, **{name: value})
+        elif owner == "custom":
+            _build_and_step(scenario="custom", **{**CUSTOM_BASE, name: value})
+        elif owner == "filter":
+            _build_and_step(scenario="circle_swap", num_robots=3, filter={"solver": "ldp", name: value})
+        elif owner == "reward":
+            _build_and_step(scenario="circle_swap", num_robots=3, reward={name: value})
+        elif owner == "robot":
+            _build_and_step(scenario="circle_swap", num_robots=3, robots=RobotParams(**{name: value}))
+        else:
+            _build_and_step(scenario=owner, **{name: value})
+
+
+@pytest.mark.parametrize(("owner", "name"), _cases(), ids=lambda x: str(x))
+def test_junk_for_every_keyword_is_rejected_with_its_name(owner: str, name: str) -> None:
+    accepted = ACCEPTS.get((owner, name), set())
+    for label, value in JUNK.items():
+        try:
+            _attempt(owner, name, value)
+        except (ConfigError, TypeError) as exc:
+            assert name in str(exc), f"{owner}.{name}={label}: message does not name it: {exc}"
+            assert label not in accepted, f"{owner}.{name}={label} is documented as valid but raised {exc}"
+        else:
+            assert label in accepted, f"{owner}.{name}={label} was accepted silently"
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(), st.booleans(), st.text(max_size=3),
+                 st.complex_numbers(), st.none(), st.lists(st.integers(), max_size=2), st.decimals()))
+def test_validation_layer_never_lets_anything_else_escape(value: object) -> None:
+    for fn, kwargs, ok in (
+        (check.real, {"lo": 0.0, "hi": 10.0}, lambda v: 0.0 <= v <= 10.0),
+        (check.positive, {}, lambda v: 0.0 < v <= check.MAGNITUDE_MAX),
+        (check.positive, {"allow_inf": True}, lambda v: v == math.inf or 0.0 < v <= check.MAGNITUDE_MAX),
+        (check.integer, {"lo": 1, "hi": 100}, lambda v: isinstance(v, int) and 1 <= v <= 100),
+        (check.real, {}, lambda v: abs(v) <= check.MAGNITUDE_MAX),
+    ):
+        try:
+            out = fn("param", value, **kwargs)
+        except ConfigError as exc:
+            assert str(exc).startswith("param: got ")
+        else:
+            assert not isinstance(value, (bool, str, complex)) and ok(out)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(name=st.sampled_from([f.name for f in fields(RobotParams) if f.name != "model"]),
+       value=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(min_value=-10**30,
+                                                                                   max_value=10**30)))
+def test_robot_params_are_in_range_or_named(name: str, value: float) -> None:
+    try:
+        p = RobotParams(**{name: value})
+    except ConfigError as exc:
+        assert f"RobotParams.{name}" in str(exc)
+    else:
+        v = getattr(p, name)
+        assert (1e-6 <= v <= 1e9) or (name == "max_wheel_speed" and v == math.inf)
+
+
+@settings(max_examples=60, deadline=None)
+@given(name=st.sampled_from([f.name for f in fields(RewardConfig)]),
+       value=st.one_of(st.floats(allow_nan=True, allow_infinity=True), st.integers(min_value=-10**30,
+                                                                                   max_value=10**30)))
+def test_reward_weights_are_finite_and_bounded(name: str, value: float) -> None:
+    try:
+        cfg = RewardConfig(**{name: value})
+    except ConfigError as exc:
+        assert name in str(exc)
+    else:
+        assert 0.0 <= getattr(cfg, name) <= check.MAGNITUDE_MAX
+
+
+def test_unknown_keywords_are_type_errors_naming_them() -> None:
+    with pytest.raises(TypeError, match="unexpected keyword argument 'frameskip'"):
+        AASOATTParallelEnv("circle_swap", frameskip=4)
+    with pytest.raises(UnknownKeywordError, match="'k9'"):
+        FilterConfig.merged({"k9": 1})
+    with pytest.raises(TypeError, match="'colision'"):
+        RewardConfig.coerce({"colision": 1.0})
+    with pytest.raises(TypeError, match="'frameskip'"):
+        gymnasium.make("aasoatt/CircleSwap-v0", frameskip=4)
+
+
+def test_issue_examples_of_silently_wrong_values() -> None:
+    with pytest.raises(ConfigError, match="collision_tolerance"):
+        AASOATTParallelEnv(collision_tolerance=float("nan"))
+    with pytest.raises(ConfigError, match="num_robots"):
+        AASOATTParallelEnv(num_robots=True)
+    for dt in (100, 1e-300):
+        with pytest.raises(ConfigError, match="dt"):
+            AASOATTParallelEnv(dt=dt)
+    with pytest.raises(ConfigError, match="settle_time"):
+        RandomGoals(settle_time=-5)
+    with pytest.raises(ConfigError, match="reward"):
+        AASOATTParallelEnv(reward="x")
+    with pytest.raises(ConfigError, match="reward"):
+        AASOATTParallelEnv(reward=5)
+    with pytest.raises(ConfigError, match="k1"):
+        FilterConfig(k1="2")
+    with pytest.raises(ConfigError, match="arena_size"):
+        RandomGoals(arena_size=1e308)
+    with pytest.raises(ConfigError, match="speed"):  # a derived duration beyond range names the input
+        aasoatt_env.get_scenario("position_swap", speed=1e-300)
+
+
+# --------------------------------------------------------------------------- reset, calls before reset
+@pytest.mark.parametrize("seed", [-1, "abc", True, float("nan"), 2.5, [1]])
+def test_bad_seeds(seed: object) -> None:
+    for env in (AASOATTParallelEnv(num_robots=2), make_env("circle_swap", num_robots=2, filter=True)):
+        with pytest.raises(ConfigError, match="seed"):
+            env.reset(seed=seed)
+    with pytest.raises(ConfigError, match="seed"):
+        gymnasium.make("aasoatt/CircleSwap-v0", num_robots=2).reset(seed=seed)
+
+
+def test_integral_seeds_work() -> None:
+    env = AASOATTParallelEnv("random_goals", num_robots=3)
+    a = env.reset(seed=3)[0]
+    b = env.reset(seed=3.0)[0]
+    c = env.reset(seed=np.int64(3))[0]
+    assert all(np.array_equal(a[k], b[k]) and np.array_equal(a[k], c[k]) for k in a)
+    with pytest.raises(ConfigError, match="options"):
+        env.reset(seed=0, options=5)
+
+
+@pytest.mark.parametrize("what", ["positions", "velocities", "headings", "wheel_speeds", "radii", "goals", "time",
+                                  "reference", "obstacles", "kinematics", "layout", "max_steps", "state", "render",
+                                  "step"])
+def test_calls_before_reset_say_reset(what: str) -> None:
+    env = AASOATTParallelEnv(render_mode="rgb_array", num_robots=2)
+    with pytest.raises(ResetNeeded, match="reset"):
+        attr = getattr(env, what)
+        if callable(attr):
+            attr({}) if what == "step" else attr()
+
+
+# --------------------------------------------------------------------------- actions
+BAD_ACTIONS = {
+    "nan": [float("nan"), 0.0], "inf": [float("inf"), 0.0], "complex": [1 + 0j, 0.0], "numeric strings": ["1", "2"],
+    "string": "ab", "None": None, "shape (1, 2)": [[1.0, 2.0]], "shape (3,)": [1.0, 2.0, 3.0], "object": {"a": 1},
+    "huge int": [10**400, 0],
+}
+
+
+@pytest.mark.parametrize("label", list(BAD_ACTIONS))
+@pytest.mark.parametrize("filtered", [False, True])
+def test_bad_actions_name_the_agent(label: str, filtered: bool) -> None:
+    env = make_env("circle_swap", num_robots=3, filter=filtered)
+    env.reset(seed=0)
+    acts = {a: np.zeros(2) for a in env.agents}
+    acts["robot_1"] = BAD_ACTIONS[label]
+    with pytest.raises(ActionError, match="robot_1"):
+        env.step(acts)
+
+
+def test_huge_nominal_behind_the_filter_is_refused_not_turned_into_inf() -> None:
+    env = make_env("circle_swap", num_robots=3, filter=True)
+    env.reset(seed=0)
+    acts = {a: np.zeros(2) for a in env.agents}
+    acts["robot_0"] = np.array([1e160, -1e160])
+    with pytest.raises(ActionError, match=r"robot_0.*1e\+06"):
+        env.step(acts)
+    acts["robot_0"] = np.array([50.0, -50.0])  # a large but sane nominal: the filter keeps the bounds
+    _, rew, _, _, infos = env.step(acts)
+    assert all(math.isfinite(r) for r in rew.values())
+    assert math.isfinite(infos["robot_0"]["filter"]["correction"]) and infos["robot_0"]["filter"]["status"] == "solved"
+
+
+@pytest.mark.parametrize("actions", [[np.zeros(2)] * 3, None, "x", {"robot_0": np.zeros(2)}, {0: np.zeros(2)}])
+def test_bad_action_dicts(actions: object) -> None:
+    env = AASOATTParallelEnv(num_robots=3)
+    env.reset(seed=0)
+    with pytest.raises(ActionError, match="actions"):
+        env.step(actions)
+
+
+# --------------------------------------------------------------------------- obstacles, custom
+@pytest.mark.parametrize(("obstacles", "match"), [
+    (([[1.0, 2.0, 3.0]], [0.5]), r"obstacles: got centres of shape \(1, 3\), expected \(M, 2\)"),
+    (([[5.0, 5.0]], [[0.5, 0.6]]), "obstacles: got 1 centres and 2 radii"),
+    (([[5.0, 5.0]], [-0.5]), r"obstacles \(radii\)"),
+    (([[5.0, float("nan")]], [0.5]), r"obstacles \(centres\)"),
+    (([["a", "b"]], [0.5]), r"obstacles \(centres\)"),
+    ("disc", "obstacles: got 'disc', expected a pair"),
+    ((1, 2, 3), "obstacles: got"),
+    (([[0.0, 6.0]], [0.5]), "obstacles: robot .* overlaps obstacle 0"),  # on a start of the circle
+])
+def test_obstacles_of_the_wrong_shape_or_place(obstacles: object, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        AASOATTParallelEnv("circle_swap", num_robots=4, obstacles=obstacles)
+
+
+def test_obstacle_on_a_goal_is_refused() -> None:
+    with pytest.raises(ScenarioError, match="overlaps obstacle"):
+        AASOATTParallelEnv("circle_obstacles", num_robots=4, obstacles=([[-6.0, 0.0]], [0.5]))  # robot 0's goal
+    with pytest.raises(ScenarioError, match="overlaps obstacle"):
+        AASOATTParallelEnv("custom", **CUSTOM_BASE, obstacles=([[0.0, 3.0]], [0.4]))
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [
+    ({"starts": []}, r"starts: got shape \(0,\)"),
+    ({"starts": [[0, 0, 0]]}, r"starts: got shape \(1, 3\)"),
+    ({"starts": [["1", "2"]]}, "starts: got"),
+    ({"starts": [[0.0, 0.0], [0.5, 0.0]]}, "starts: robots 0 and 1 overlap"),
+    ({"reference": {"waypoints": [[[0, 0], [0, 3]], [[3, 0], [3, 3]]]}}, "waypoints without 'times'"),
+    ({"reference": {"waypoints": [[[0, 0], [0, 3]], [[3, 0], [3, 3]]], "times": [1.0, 0.0]}}, "times: got"),
+    ({"reference": {"waypoints": [[[0, 0], [0, 3]], [[3, 0], [3, 3]]], "times": [0.0, 1.0, 2.0]}}, "times: got"),
+    ({"reference": 5}, "reference: got int"),
+    ({"reference": lambda t: np.zeros((2, 2))}, "callable reference needs duration"),
+    ({"duration": 5.0}, "duration: got 5 with a dict reference"),
+    ({"headings": [0.0]}, r"headings: got shape \(1,\), expected \(2,\)"),
+])
+def test_custom_scenario_inputs(kwargs: dict, match: str) -> None:
+    with pytest.raises(ConfigError, match=match):
+        AASOATTParallelEnv("custom", **{**CUSTOM_BASE, **kwargs})
+
+
+# --------------------------------------------------------------------------- size bounds
+@pytest.mark.parametrize(("build", "match"), [
+    (lambda: RandomGoals(num_robots=10**6), r"num_robots: got 1000000, expected an integer in \[1, 100000\]"),
+    (lambda: CircleSwap(num_robots=10**6), r"num_robots: got 1000000, expected an integer in \[1, 100000\]"),
+    (lambda: AASOATTParallelEnv(num_neighbors=10**6), r"num_neighbors: got 1000000, expected an integer in \[0, 256\]"),
+    (lambda: AASOATTParallelEnv(num_obstacles=10**7),
+     r"num_obstacles: got 10000000, expected an integer in \[0, 256\]"),
+    (lambda: AASOATTParallelEnv(decision_interval=10**9), r"decision_interval: .*\[1, 10000\]"),
+])
+def test_unreasonable_sizes_are_rejected_at_once(build, match: str) -> None:
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match=match):
+        build()
+    assert time.perf_counter() - t0 < 0.5
+
+
+def test_twenty_thousand_random_robots_build_quickly() -> None:
+    t0 = time.perf_counter()
+    layout = RandomGoals(num_robots=20_000).build(np.random.default_rng(0))
+    assert time.perf_counter() - t0 < 5.0
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(layout.starts).query(layout.starts, k=2)
+    assert d[:, 1].min() >= RandomGoals(num_robots=20_000).min_spacing
+
+
+# --------------------------------------------------------------------------- wrapper misuse
+class _OtherEnv(ParallelEnv):  # a PettingZoo ParallelEnv that is not ours
+    possible_agents = ["a"]
+
+
+@pytest.mark.parametrize(("make", "error", "match"), [
+    (lambda: AASOATTFilter(None), ConfigError, "env: got NoneType"),
+    (lambda: AASOATTFilter(_OtherEnv()), ConfigError, "env: got _OtherEnv"),
+    (lambda: AASOATTFilter(AASOATTParallelEnv(), config="x"), ConfigError, "config: got str"),
+    (lambda: AASOATTFilter(AASOATTParallelEnv(), dt=0.01), ConfigError, "dt: got 0.01"),
+    (lambda: AASOATTFilter(AASOATTParallelEnv(), k9=1.0), TypeError, "unexpected keyword argument 'k9'"),
+    (lambda: AASOATTFilter(AASOATTParallelEnv(), barrier=[]), ConfigError, "barrier: got"),
+    (lambda: AASOATTFilter(AASOATTParallelEnv(), barrier={}), ConfigError, "barrier: got"),
+    (lambda: AASOATTFilter(AASOATTParallelEnv(), solver=["ldp"]), ConfigError, "solver: got"),
+    (lambda: AASOATTFilter(AASOATTParallelEnv(), infos="table"), ConfigError, "infos: got 'table'"),
+    (lambda: AASOATTFilter(AASOATTFilter(AASOATTParallelEnv())), UsageError, "already has a control filter"),
+    (lambda: gymnasium.make("aasoatt/CircleSwap-v0", safety_filter="aasoatt"), ConfigError, "safety_filter"),
+    (lambda: gymnasium.make("aasoatt/CircleSwap-v0", safety_filter={"k9": 1}), TypeError, "'k9'"),
+])
+def test_wrapper_misuse(make, error: type, match: str) -> None:
+    with pytest.raises(error, match=match):
+        make()
+
+
+def test_wrapping_after_reset_works() -> None:
+    env = AASOATTParallelEnv("circle_swap", num_robots=4)
+    obs, _ = env.reset(seed=0)
+    filt = AASOATTFilter(env, solver="ldp")
+    _, _, _, _, infos = filt.step({a: np.zeros(2) for a in filt.agents})
+    assert infos["robot_0"]["filter"]["status"] == "solved"
+    with pytest.raises(UsageError, match="already has a control filter"):
+        AASOATTFilter(env)
+
+
+# --------------------------------------------------------------------------- corrupted rollout files
+@pytest.fixture(scope="module")
+def rollout_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    env = make_env("circle_swap", num_robots=3, max_steps=25)
+    rollout, _ = run_episode(env, TrackingController(), seed=0)
+    path = tmp_path_factory.mktemp("rollout") / "rollout.npz"
+    rollout.save(path)
+    return path
+
+
+def _expect_load_error(path: Path, match: str | None = None) -> None:
+    with pytest.raises(DataFileError, match=match) as exc:
+        Rollout.load(path)
+    assert str(path) in str(exc.value)
+
+
+def test_rollout_truncated_empty_garbage(rollout_file: Path, tmp_path: Path) -> None:
+    raw = rollout_file.read_bytes()
+    bad = tmp_path / "bad.npz"
+    for k in range(0, len(raw), max(1, len(raw) // 40)):
+        bad.write_bytes(raw[:k])
+        _expect_load_error(bad)
+    bad.write_bytes(b"")
+    _expect_load_error(bad)
+    bad.write_bytes(os.urandom(2000))
+    _expect_load_error(bad)
+    _expect_load_error(tmp_path / "missing.npz", "no such rollout file")
+    _expect_load_error(tmp_path)  # a folder
+    np.save(tmp_path / "plain.npy", np.zeros(3))
+    _expect_load_error(tmp_path / "plain.npy")
+
+
+def test_rollout_flipped_bytes(rollout_file: Path, tmp_path: Path) -> None:
+    raw = rollout_file.read_bytes()
+    good = Rollout.load(rollout_file)
+    bad = tmp_path / "flip.npz"
+    for k in range(0, len(raw), max(1, len(raw) // 150)):
+        b = bytearray(raw)
+        b[k] ^= 0xFF
+        bad.write_bytes(bytes(b))
+        try:
+            r = Rollout.load(bad)
+        except DataFileError as exc:
+            assert str(bad) in str(exc)
+        else:  # a flip in zip metadata that no reader uses: the data are intact (CRC-checked)
+            np.testing.assert_array_equal(r.positions, good.positions)
+
+
+@pytest.mark.parametrize(("change", "match"), [
+    ({"metadata": np.array("{not json")}, "not a readable rollout file"),
+    ({"metadata": np.array("[1, 2]")}, "metadata"),
+    ({"metadata": np.array("[" * 100_000 + "]" * 100_000)}, "not a readable rollout file"),
+    ({"metadata": np.array([{"a": 1}], dtype=object)}, "not a readable rollout file"),  # would need pickle
+    ({"dt": np.array("abc")}, "dt"),
+    ({"dt": np.array(float("nan"))}, "dt"),
+    ({"format_version": np.array(99)}, "format_version 99"),
+    ({"positions": None}, "missing field 'positions'"),
+    ({"positions": "nan"}, "positions: got a non-finite value"),
+    ({"positions": "complex"}, "positions: got dtype complex"),
+    ({"radii": np.array([-1.0, 1.0, 1.0])}, "radii"),
+])
+def test_rollout_bad_fields(rollout_file: Path, tmp_path: Path, change: dict, match: str) -> None:
+    with np.load(rollout_file) as z:
+        arrays = dict(z)
+    for k, v in change.items():
+        if v is None:
+            del arrays[k]
+        elif isinstance(v, str):
+            arrays[k] = np.full(arrays[k].shape, np.nan) if v == "nan" else arrays[k].astype(complex)
+        else:
+            arrays[k] = v
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    _expect_load_error(bad, match)
+
+
+def test_rollout_header_claiming_a_huge_array(rollout_file: Path, tmp_path: Path) -> None:
+    bad = tmp_path / "huge.npz"
+    with np.load(rollout_file) as z, zipfile.ZipFile(bad, "w") as out:
+        for k, v in z.items():
+            if k == "positions":
+                continue
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, v)
+            out.writestr(k + ".npy", buf.getvalue())
+        hdr = io.BytesIO()
+        np.lib.format.write_array_header_1_0(hdr, {"descr": "<f8", "fortran_order": False,
+                                                   "shape": (10**7, 10**6, 2)})
+        out.writestr("positions.npy", hdr.getvalue())
+    _expect_load_error(bad, "too large")
+
+
+def test_nan_positions_never_reach_the_metrics() -> None:
+    with pytest.raises(ConfigError, match="positions: got a non-finite value"):
+        Rollout(dt=0.1, times=[0.0, 0.1], positions=[[[0.0, 0.0]], [[np.nan, 0.0]]], velocities=np.zeros((2, 1, 2)),
+                headings=np.zeros((2, 1)), references=np.zeros((2, 1, 2)), reference_velocities=np.zeros((2, 1, 2)),
+                goals=[[0.0, 0.0]], radii=[0.5])
+
+
+# --------------------------------------------------------------------------- model folders: nothing is unpickled
+
+
+class _Evil:
+    """Unpickling this creates ``marker``: the proof that a pickle was executed."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):  # noqa: ANN204
+        return (Path.touch, (self.marker,))
+
+
+@pytest.fixture(scope="module")
+def model_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    pytest.importorskip("stable_baselines3")
+    torch = pytest.importorskip("torch")
+
+    from train.config import TrainConfig
+    from train.train import train
+
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("runs")
+    cfg = TrainConfig(num_robots=3, n_envs=2, n_steps=16, batch_size=48, n_epochs=1, total_timesteps=100,
+                      net_arch=[8, 8], out_dir=str(out), progress_bar=False, tensorboard=False, checkpoint_freq=0,
+                      max_steps=20, run_name="m")
+    return train(cfg).parent
+
+
+def _clone(run: Path, dest: Path) -> Path:
+    shutil.copytree(run, dest)
+    return dest
+
+
+def _rewrite_data(model_zip: Path, edit, extra: dict[str, bytes] | None = None) -> None:
+    tmp = model_zip.with_suffix(".tmp")
+    with zipfile.ZipFile(model_zip) as src, zipfile.ZipFile(tmp, "w") as dst:
+        for info in src.infolist():
+            content = src.read(info.filename)
+            if info.filename == "data" and edit is not None:
+                content = json.dumps(edit(json.loads(content))).encode()
+            if extra and info.filename in extra:
+                content = extra[info.filename]
+            dst.writestr(info.filename, content)
+    tmp.replace(model_zip)
+
+
+def _payload(marker: Path) -> str:
+    return base64.b64encode(pickle.dumps(_Evil(marker))).decode()
+
+
+def test_vecnormalize_pickle_is_never_opened(model_run: Path, tmp_path: Path) -> None:
+    from agents.learned import LearnedAgent
+
+    marker = tmp_path / "PWNED"
+    run = _clone(model_run, tmp_path / "run")
+    (run / "vecnormalize.pkl").write_bytes(pickle.dumps(_Evil(marker)))
+    LearnedAgent.load(run)
+    (run / "normalization.npz").unlink()
+    with pytest.raises(DataFileError, match=r"normalization.npz: missing.*vecnormalize.pkl is there, but pickles "
+                                            "are never loaded"):
+        LearnedAgent.load(run)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("key", ["policy_class", "_last_obs", "observation_space", "lr_schedule", "env", "new_key"])
+def test_serialized_entries_of_a_model_zip_are_never_executed(model_run: Path, tmp_path: Path, key: str) -> None:
+    from agents.learned import LearnedAgent
+
+    marker = tmp_path / "PWNED"
+    run = _clone(model_run, tmp_path / "run")
+    _rewrite_data(run / "model.zip", lambda d: {**d, key: {":type:": "x", ":serialized:": _payload(marker)}})
+    agent = LearnedAgent.load(run)
+    env = agent.make_env()
+    obs, _ = env.reset(seed=0)
+    agent.reset(env)
+    assert set(agent.act(obs, env)) == set(env.agents)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize(("edit", "match"), [
+    (lambda m: lambda d: {**d, "policy_kwargs": {":type:": "x", ":serialized:": _payload(m)}}, "not plain JSON"),
+    (lambda m: lambda d: {**d, "policy_kwargs": {**d["policy_kwargs"], "activation_fn": {":serialized:": _payload(m)}}},
+     "unexpected keys"),
+    (lambda m: lambda d: {**d, "policy_kwargs": {"net_arch": [10**8]}}, "net_arch"),
+])
+def test_crafted_policy_kwargs_are_refused(model_run: Path, tmp_path: Path, edit, match: str) -> None:
+    from agents.learned import LearnedAgent
+
+    marker = tmp_path / "PWNED"
+    run = _clone(model_run, tmp_path / "run")
+    _rewrite_data(run / "model.zip", edit(marker))
+    with pytest.raises(DataFileError, match=match):
+        LearnedAgent.load(run)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("entry", ["pytorch_variables.pth", "policy.pth"])
+def test_pickled_tensors_files_are_not_executed(model_run: Path, tmp_path: Path, entry: str) -> None:
+    import torch
+
+    from agents.learned import LearnedAgent
+
+    marker = tmp_path / "PWNED"
+    run = _clone(model_run, tmp_path / "run")
+    buf = io.BytesIO()
+    torch.save({"x": _Evil(marker)}, buf)
+    _rewrite_data(run / "model.zip", None, extra={entry: buf.getvalue()})
+    with pytest.raises(DataFileError, match="model.zip: cannot load the model"):
+        LearnedAgent.load(run)
+    assert not marker.exists()
+
+
+def test_crafted_pickles_not_executed_by_the_cli(model_run: Path, tmp_path: Path) -> None:
+    from aasoatt_env.apps.cli import main
+
+    marker = tmp_path / "PWNED"
+    run = _clone(model_run, tmp_path / "run")
+    (run / "vecnormalize.pkl").write_bytes(pickle.dumps(_Evil(marker)))
+    _rewrite_data(run / "model.zip", lambda d: {**d, "_last_obs": {":serialized:": _payload(marker)}})
+    assert main(["evaluate", "--bare", str(run), "--episodes", "1", "--rows", "learned (bare)", "-q"]) == 0
+    assert main(["run", "--scenario", "random_goals", "--robots", "3", "-p", "max_steps=5", "-p", "action_mode=point",
+                 "--controller", "learned",
+                 "--model", str(run), "--filter", "none", "-q"]) == 0
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("name", ["model.zip", "normalization.npz", "policy.json"])
+def test_missing_or_empty_model_files_name_the_file(model_run: Path, tmp_path: Path, name: str) -> None:
+    from agents.learned import LearnedAgent
+
+    run = _clone(model_run, tmp_path / "run")
+    (run / name).write_bytes(b"")
+    with pytest.raises(DataFileError, match=name):
+        LearnedAgent.load(run)
+    (run / name).unlink()
+    with pytest.raises(DataFileError, match="model here" if name == "model.zip" else name):
+        LearnedAgent.load(run)
+
+
+@pytest.mark.parametrize(("name", "content", "match"), [
+    ("policy.json", "[1, 2]", "expected an object"),
+    ("policy.json", '{"env": {"scenario": "random_goals", "num_robots": 3}, "policy": "MlpPolicy"}',
+     "missing key 'normalize_obs'"),
+    ("policy.json", '{"env": {"num_robots": -3}, "policy": "MlpPolicy", "normalize_obs": true}', "env settings"),
+    ("policy.json", '{"env": {}, "policy": "EvilPolicy", "normalize_obs": false}', "policy 'EvilPolicy' is unknown"),
+    ("policy.json", '{"env": {}, "policy": "MlpPolicy", "normalize_obs": false, "filter": {"k9": 1}}',
+     "filter settings"),
+    ("policy.json", "[" * 100_000, "not a readable JSON file"),
+])
+def test_corrupted_policy_json(model_run: Path, tmp_path: Path, name: str, content: str, match: str) -> None:
+    from agents.learned import LearnedAgent
+
+    run = _clone(model_run, tmp_path / "run")
+    (run / name).write_text(content)
+    with pytest.raises(DataFileError, match=match) as exc:
+        LearnedAgent.load(run)
+    assert name in str(exc.value)
+
+
+def test_bad_normalisation_statistics(model_run: Path, tmp_path: Path) -> None:
+    from agents.learned import LearnedAgent
+
+    run = _clone(model_run, tmp_path / "run")
+    with np.load(run / "normalization.npz") as z:
+        stats = dict(z)
+    for change in ({"mean": stats["mean"] * np.nan}, {"var": -stats["var"]}, {"clip_obs": np.array([1.0, 2.0])},
+                   {"epsilon": np.array("x")}, {"mean": stats["mean"][:-1]}, {"mean": stats["mean"].astype(complex)}):
+        np.savez(run / "normalization.npz", **{**stats, **change})
+        with pytest.raises(DataFileError, match="normalization.npz"):
+            LearnedAgent.load(run)
+
+
+def test_config_json_is_not_needed(model_run: Path, tmp_path: Path) -> None:
+    from agents.learned import LearnedAgent
+
+    run = _clone(model_run, tmp_path / "run")
+    (run / "config.json").write_text("{corrupted")
+    LearnedAgent.load(run)  # the agent reads policy.json; config.json is a record of the training run
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["model.zip", "normalization.npz", "policy.json"])
+def test_every_flipped_or_truncated_model_file_names_itself(model_run: Path, tmp_path: Path, name: str) -> None:
+    from agents.learned import LearnedAgent
+
+    raw = (model_run / name).read_bytes()
+    run = _clone(model_run, tmp_path / "run")
+    step = max(1, len(raw) // 40)
+    for mode in ("flip", "truncate"):
+        for k in range(0, len(raw), step):
+            b = bytearray(raw)
+            if mode == "flip":
+                b[k] ^= 0xFF
+            else:
+                b = b[:k]
+            (run / name).write_bytes(bytes(b))
+            try:
+                LearnedAgent.load(run)
+            except DataFileError as exc:
+                assert name in str(exc)
+    (run / name).write_bytes(raw)
+
+
+@pytest.mark.parametrize("action", [np.zeros(4, complex), ["1"] * 4, np.full(4, np.nan), None, np.zeros(3)])
+def test_bad_joint_actions_of_the_gymnasium_view(action: object) -> None:
+    env = gymnasium.make("aasoatt/CircleSwap-v0", num_robots=2)
+    env.reset(seed=0)
+    with pytest.raises(ActionError, match="action"):
+        env.step(action)
