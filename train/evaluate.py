@@ -6,6 +6,10 @@ Usage::
         --episodes 100 --out results.md
     aasoatt evaluate ...          # the same flags
 
+A learned policy is a Stable-Baselines3 run (:mod:`train.train`) or a Ray RLlib run
+(:mod:`train.rllib`, recognised by the ``"backend": "rllib"`` of its ``policy.json``; evaluated
+without starting Ray), see :func:`agents.learned.load_learned`.
+
 Rows (a row is skipped when its model is not given):
 
 =======================================  ==========================================
@@ -59,7 +63,7 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.validation import parse_assignments
 from agents import RandomAgent, TrackingController
-from agents.learned import LearnedAgent
+from agents.learned import load_learned
 from train.config import TrainConfig
 
 __all__ = ["EvalRow", "evaluate", "evaluate_agent", "main", "to_markdown"]
@@ -211,7 +215,8 @@ def evaluate(
     Parameters
     ----------
     bare_model, filtered_model : path, optional
-        Policies trained bare and behind the filter (``model.zip`` or run folder).
+        Policies trained bare and behind the filter: a Stable-Baselines3 run (folder or ``model.zip``)
+        or a Ray RLlib run of :mod:`train.rllib` (folder or checkpoint), see :func:`agents.learned.load_learned`.
     episodes : int
         Episodes per row (``K``).
     seed : int
@@ -246,8 +251,8 @@ def evaluate(
         return _evaluate_parallel(bare_model, filtered_model, wanted, jobs, episodes=episodes, seed=seed,
                                   config=config, filter_kwargs=filter_kwargs, goal_tolerance=goal_tolerance)
     learned = {
-        "bare": LearnedAgent.load(bare_model) if bare_model is not None else None,
-        "filter": LearnedAgent.load(filtered_model) if filtered_model is not None else None,
+        "bare": load_learned(bare_model) if bare_model is not None else None,
+        "filter": load_learned(filtered_model) if filtered_model is not None else None,
     }
     first = learned["bare"] or learned["filter"]
     if config is not None:
@@ -324,7 +329,7 @@ def to_markdown(rows: Sequence[EvalRow], title: str | None = None) -> str:
 def build_parser(prog: str = "python -m train.evaluate") -> argparse.ArgumentParser:
     """Command-line parser."""
     p = argparse.ArgumentParser(prog=prog, description="Evaluate baselines and learned policies (Markdown table).")
-    p.add_argument("--bare", default=None, help="model trained bare (model.zip or run folder)")
+    p.add_argument("--bare", default=None, help="model trained bare (run folder or model.zip; SB3 or RLlib run)")
     p.add_argument("--filtered", default=None, help="model trained behind the filter")
     p.add_argument("--episodes", type=int, default=100)
     p.add_argument("--seed", type=int, default=10_000)

@@ -106,7 +106,8 @@ import numpy as np
 from aasoatt_env.api.factory import make_env as make_aasoatt_env
 from aasoatt_env.errors import ConfigError
 from agents.learned import POLICY_FILE, stats_path
-from train.config import TrainConfig, add_config_arguments, config_from_args
+from train.config import BACKENDS, TrainConfig, add_config_arguments, config_from_args, split_backend, unique_run_dir
+from train.rllib import main as rllib_main
 from train.vec_env import ParallelVecEnv, VelocityTrackingShaping
 
 __all__ = ["main", "make_env", "make_vec_env", "train"]
@@ -169,13 +170,7 @@ def _run_dir(config: TrainConfig) -> Path:
     name = config.run_name or (
         f"ppo_{config.scenario}_{config.num_robots}r_{'filter' if config.filter else 'bare'}_s{config.seed}"
     )
-    base = Path(config.out_dir) / name
-    path, k = base, 1
-    while path.exists() and any(path.iterdir()):
-        k += 1
-        path = base.with_name(f"{base.name}_{k}")
-    path.mkdir(parents=True, exist_ok=True)
-    return path
+    return unique_run_dir(config.out_dir, name)
 
 
 def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = None) -> Any:
@@ -291,7 +286,11 @@ def train(config: TrainConfig) -> Path:
 
 def build_parser(prog: str = "python -m train.train") -> argparse.ArgumentParser:
     """Command-line parser (every :class:`TrainConfig` field is a flag)."""
-    parser = argparse.ArgumentParser(prog=prog, description="Train PPO (parameter sharing) on the AA-SOATT env.")
+    parser = argparse.ArgumentParser(
+        prog=prog, description="Train PPO (parameter sharing) on the AA-SOATT env.",
+        epilog="--backend rllib trains with Ray RLlib instead (its own options: --backend rllib --help)")
+    parser.add_argument("--backend", choices=BACKENDS, default="sb3",
+                        help="sb3: Stable-Baselines3 on this machine (default); rllib: Ray RLlib (train/rllib.py)")
     add_config_arguments(parser)
     parser.add_argument("--print-config", action="store_true", help="print the merged config and exit")
     return parser
@@ -299,6 +298,10 @@ def build_parser(prog: str = "python -m train.train") -> argparse.ArgumentParser
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    backend, rest = split_backend(argv)
+    if backend == "rllib":  # python -m train.train --backend rllib (this module needs SB3; train.rllib does not)
+        return rllib_main(rest, prog="python -m train.train --backend rllib")
     args = build_parser().parse_args(argv)
     try:
         config = config_from_args(args)
