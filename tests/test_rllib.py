@@ -128,6 +128,23 @@ def test_one_ppo_iteration_on_random_goals_behind_the_filter(trained_run):
     assert (ckpt / "rl_module.npz").is_file() and (ckpt / "learner_group").is_dir()
     stats = json.loads((run / "train_stats.json").read_text())
     assert stats["agent_steps"] == 1600 and stats["final_checkpoint"] == "checkpoints/iter_000001"
+    assert stats["agent_steps_this_run"] == 1600 and stats["resumed_from"] is None
+
+
+@needs_ray
+@pytest.mark.slow
+def test_resume_continues_a_run_into_a_new_folder(trained_run, capsys):
+    out = trained_run.parent
+    rc = cli.main(["train", "--backend", "rllib", "--config", str(trained_run / "config.json"), "--resume",
+                   str(trained_run), "--iterations", "1", "--verbose", "0"])
+    assert rc == 0
+    run = out / "rg4_2"  # the same run name: a new folder, the old one untouched
+    rows = [json.loads(line) for line in (run / "progress.jsonl").read_text().splitlines()]
+    assert rows[0]["iteration"] == 2 and rows[0]["env_steps"] == 800  # counters continue from the checkpoint
+    stats = json.loads((run / "train_stats.json").read_text())
+    assert stats["final_checkpoint"] == "checkpoints/iter_000002" and stats["agent_steps_this_run"] == 1600
+    assert stats["resumed_from"].endswith("iter_000001")
+    assert sorted(p.name for p in (trained_run / "checkpoints").iterdir()) == ["iter_000001"]
 
 
 @needs_ray

@@ -9,6 +9,9 @@ Usage (in the virtual environment of the ``rllib`` extra, see README "Use it fro
                                            # on every other node, all in the same virtual environment)
     aasoatt train --backend rllib --address auto --num-env-runners 16 --iterations 500
 
+    # continue a run (same settings, a new run folder):
+    aasoatt train --backend rllib --config runs/RUN/config.json --resume runs/RUN --iterations 100
+
 The same command scales from this machine to a cluster: ``--address`` joins a running Ray
 cluster (``auto``: the one started on this node with ``ray start``; or ``HOST:PORT``), and
 ``--num-env-runners`` sets how many sampling processes Ray spreads over its nodes (0: sample in
@@ -121,6 +124,11 @@ class RLlibConfig(EnvConfig):
         CPUs of the local Ray instance (default: all); not with ``address``.
     checkpoint_every : int
         Iterations between checkpoints (0: only the final one).
+    resume : str or None
+        Continue from this checkpoint (``checkpoints/iter_<n>``) or run folder (its last
+        checkpoint): the algorithm's whole state (weights, optimiser, counters) is restored and
+        ``iterations`` more are trained into a new run folder.  The env and model settings must
+        be those of the checkpoint (``--config <run>/config.json``).
     out_dir, run_name : str
         Parent folder of runs and the run folder name (default from scenario, filter and seed).
     torch_threads : int
@@ -151,6 +159,7 @@ class RLlibConfig(EnvConfig):
     address: str | None = None
     num_cpus: int | None = None
     checkpoint_every: int = 10
+    resume: str | None = None
     out_dir: str = "runs"
     run_name: str | None = None
     torch_threads: int = 1
@@ -185,6 +194,8 @@ class RLlibConfig(EnvConfig):
             if self.address is not None:
                 raise ConfigError(f"RLlibConfig.num_cpus: got {self.num_cpus!r} with address={self.address!r}, "
                                   "expected None (a running cluster has its own CPUs)")
+        if self.resume is not None and (not isinstance(self.resume, str) or not self.resume):
+            raise self._err("resume", "a checkpoint or run folder, or None")
         self._validate_run_folder()
 
     # ------------------------------------------------------------------ helpers
@@ -270,6 +281,18 @@ def _module_weights(algo: Any) -> dict[str, np.ndarray]:
     return {k: np.asarray(v) for k, v in weights.items()}
 
 
+def resume_checkpoint(path: str) -> Path:
+    """The RLlib checkpoint to resume from: ``path`` itself, or the last ``checkpoints/iter_<n>`` of a run folder."""
+    p = Path(path).expanduser()
+    if (p / "rllib_checkpoint.json").is_file():
+        return p.resolve()
+    found = sorted((p / "checkpoints").glob("iter_*/rllib_checkpoint.json"))
+    if not found:
+        raise ConfigError(f"RLlibConfig.resume: got {path!r}, expected an RLlib checkpoint folder or a run folder "
+                          "with checkpoints/iter_<n>")
+    return found[-1].parent.resolve()
+
+
 def _save(algo: Any, run: Path, iteration: int) -> Path:
     """An RLlib checkpoint ``checkpoints/iter_<n>`` with the module's weights as ``rl_module.npz`` beside it."""
     ckpt = run / "checkpoints" / f"iter_{iteration:06d}"
@@ -290,6 +313,7 @@ def _metrics(result: dict[str, Any], iteration: int, wall: float, iter_s: float)
 
     er = result.get("env_runners", {})
     agent_steps = er.get("num_agent_steps_sampled_lifetime")
+    iter_steps = er.get("num_agent_steps_sampled")
     agent_returns = er.get("agent_episode_returns_mean")
     learner = result.get("learners", {}).get(MODULE_ID, {})
     row = {
@@ -298,6 +322,7 @@ def _metrics(result: dict[str, Any], iteration: int, wall: float, iter_s: float)
         "iter_s": iter_s,
         "env_steps": num(er.get("num_env_steps_sampled_lifetime")),
         "agent_steps": num(sum(agent_steps.values()) if isinstance(agent_steps, dict) else agent_steps),
+        "iter_agent_steps": num(sum(iter_steps.values()) if isinstance(iter_steps, dict) else iter_steps),
         "episodes": num(er.get("num_episodes_lifetime")),
         "episode_return_mean": num(er.get("episode_return_mean")),  # team: sum over robots
         "robot_return_mean": num(np.mean(list(agent_returns.values()))) if isinstance(agent_returns, dict)
@@ -322,6 +347,7 @@ def train(config: RLlibConfig) -> Path:
     from ray.tune.registry import register_env
 
     torch.set_num_threads(config.torch_threads)
+    resume = resume_checkpoint(config.resume) if config.resume is not None else None
     started = not ray.is_initialized()
     if started:
         if config.address is None:
@@ -331,6 +357,8 @@ def train(config: RLlibConfig) -> Path:
     try:
         register_env(ENV_NAME, make_rllib_env)
         algo = build_algorithm_config(config).build_algo()
+        if resume is not None:
+            algo.restore_from_path(str(resume))
     except BaseException:
         if started:
             ray.shutdown()
@@ -341,28 +369,33 @@ def train(config: RLlibConfig) -> Path:
     (run / POLICY_FILE).write_text(json.dumps(config.run_spec(), indent=2))
     t0 = time.perf_counter()
     row: dict[str, Any] = {}
+    run_steps = 0.0
+    first = int(algo.iteration)  # 0, or the iterations of the resumed checkpoint
+    last = first + config.iterations
     try:
         with (run / "progress.jsonl").open("w") as log:
-            for it in range(1, config.iterations + 1):
+            for it in range(first + 1, last + 1):
                 t1 = time.perf_counter()
                 result = algo.train()
                 now = time.perf_counter()
                 row = _metrics(result, it, now - t0, now - t1)
+                run_steps += row["iter_agent_steps"] or 0.0
                 log.write(json.dumps(row) + "\n")
                 log.flush()
                 if config.verbose:
                     ret = row["robot_return_mean"]
-                    print(f"iter {it}/{config.iterations}  {row['iter_s']:.1f} s  env steps {row['env_steps']:.0f}  "
+                    print(f"iter {it}/{last}  {row['iter_s']:.1f} s  env steps {row['env_steps']:.0f}  "
                           f"return/robot {'-' if ret is None else f'{ret:.1f}'}", flush=True)
-                if config.checkpoint_every and it % config.checkpoint_every == 0 and it < config.iterations:
+                if config.checkpoint_every and it % config.checkpoint_every == 0 and it < last:
                     _save(algo, run, it)
         elapsed = time.perf_counter() - t0
-        ckpt = _save(algo, run, config.iterations)
+        ckpt = _save(algo, run, last)
         np.savez(run / WEIGHTS_FILE, **dict(np.load(ckpt / WEIGHTS_FILE, allow_pickle=False)))
-        agent_steps = row.get("agent_steps") or 0.0
         (run / "train_stats.json").write_text(json.dumps({
-            "wall_time_s": elapsed, "iterations": config.iterations, "env_steps": row.get("env_steps"),
-            "agent_steps": agent_steps, "agent_steps_per_s": agent_steps / max(elapsed, 1e-9),
+            "wall_time_s": elapsed, "iterations": config.iterations, "resumed_from": str(resume) if resume else None,
+            "env_steps": row.get("env_steps"),
+            "agent_steps": row.get("agent_steps"), "agent_steps_this_run": run_steps,
+            "agent_steps_per_s": run_steps / max(elapsed, 1e-9),
             "num_env_runners": config.num_env_runners, "ray_nodes": len(ray.nodes()),
             "final_checkpoint": str(ckpt.relative_to(run)),
         }, indent=2))
