@@ -95,6 +95,13 @@ class RLlibConfig(EnvConfig):
         Sampling processes (Ray actors, spread over the cluster's nodes); 0 samples in the driver.
     num_envs_per_env_runner : int
         Envs stepped together by each env runner.
+    rollout_fragment_length : int
+        Env steps per env and ``sample()`` call of an env runner (0: RLlib's ``"auto"``, the
+        batch split evenly over the runners' envs).
+    sample_timeout_s : float
+        How long the driver waits for a remote env runner's ``sample()``; results that come later
+        are discarded (RLlib's default of 60 s is too short for one runner sampling a whole
+        filtered batch on a loaded machine).
     num_learners : int
         Learner processes (0: the learner runs in the driver; >0 for several GPUs or nodes).
     num_gpus_per_learner : float
@@ -141,6 +148,8 @@ class RLlibConfig(EnvConfig):
     iterations: int = 100
     num_env_runners: int = 0
     num_envs_per_env_runner: int = 1
+    rollout_fragment_length: int = 0
+    sample_timeout_s: float = 600.0
     num_learners: int = 0
     num_gpus_per_learner: float = 0.0
     train_batch_size: int = 4000
@@ -169,12 +178,14 @@ class RLlibConfig(EnvConfig):
         self._validate_env()
         for name in ("iterations", "num_envs_per_env_runner", "train_batch_size", "num_epochs", "torch_threads"):
             self._int(name, 1)
-        for name in ("num_env_runners", "num_learners", "seed", "checkpoint_every", "verbose"):
+        for name in ("num_env_runners", "num_learners", "seed", "checkpoint_every", "verbose",
+                     "rollout_fragment_length"):
             self._int(name, 0)
         self._int("minibatch_size", 1)
         if self.minibatch_size > self.train_batch_size:
             raise self._err("minibatch_size", f"at most train_batch_size = {self.train_batch_size}")
         self._float("num_gpus_per_learner", 0.0)
+        self._float("sample_timeout_s", 0.0, lo_open=True)
         self._float("learning_rate", 0.0, 1.0, lo_open=True)
         self._float("gamma", 0.0, 1.0)
         self._float("gae_lambda", 0.0, 1.0)
@@ -256,7 +267,9 @@ def build_algorithm_config(config: RLlibConfig) -> Any:
         .environment(ENV_NAME, env_config=config.env_config())
         .framework("torch")
         .env_runners(num_env_runners=config.num_env_runners,
-                     num_envs_per_env_runner=config.num_envs_per_env_runner)
+                     num_envs_per_env_runner=config.num_envs_per_env_runner,
+                     rollout_fragment_length=config.rollout_fragment_length or "auto",
+                     sample_timeout_s=config.sample_timeout_s)
         .learners(num_learners=config.num_learners, num_gpus_per_learner=config.num_gpus_per_learner)
         .multi_agent(policies={MODULE_ID}, policy_mapping_fn=_to_shared)
         .rl_module(rl_module_spec=MultiRLModuleSpec(
@@ -335,6 +348,10 @@ def _metrics(result: dict[str, Any], iteration: int, wall: float, iter_s: float)
     return row
 
 
+def _fmt(x: float | None, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
+
+
 # ---------------------------------------------------------------------- training
 def train(config: RLlibConfig) -> Path:
     """Train PPO as configured; return the run folder (see the module docstring for its files).
@@ -383,9 +400,8 @@ def train(config: RLlibConfig) -> Path:
                 log.write(json.dumps(row) + "\n")
                 log.flush()
                 if config.verbose:
-                    ret = row["robot_return_mean"]
-                    print(f"iter {it}/{last}  {row['iter_s']:.1f} s  env steps {row['env_steps']:.0f}  "
-                          f"return/robot {'-' if ret is None else f'{ret:.1f}'}", flush=True)
+                    print(f"iter {it}/{last}  {row['iter_s']:.1f} s  env steps {_fmt(row['env_steps'], '.0f')}  "
+                          f"return/robot {_fmt(row['robot_return_mean'], '.1f')}", flush=True)
                 if config.checkpoint_every and it % config.checkpoint_every == 0 and it < last:
                     _save(algo, run, it)
         elapsed = time.perf_counter() - t0
