@@ -10,7 +10,7 @@ from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4, point_accel_to_du, tracking_accel
 from agents.base import register_agent
-from agents.learned import LearnedAgent
+from agents.learned import load_learned
 
 __all__ = ["PDController", "RandomAgent", "TrackingController", "point_accel_to_action"]
 
@@ -101,10 +101,10 @@ class RandomAgent:
 
 
 def _load_learned(path: str | None = None, **kwargs: Any) -> Any:
-    """Factory for ``--controller learned`` (imports Stable-Baselines3 lazily: the ``train`` extra)."""
+    """Factory for ``--controller learned``: an SB3 or RLlib run (imports SB3 or Ray lazily: their extras)."""
     if path is None:
         raise ConfigError("controller 'learned': got no model path, expected --model PATH (a run folder or .zip)")
-    return LearnedAgent.load(path, **kwargs)
+    return load_learned(path, **kwargs)
 
 
 register_agent("tracking", TrackingController)

@@ -52,8 +52,9 @@ import numpy as np
 from aasoatt_env.api.factory import make_env as make_aasoatt_env
 from aasoatt_env.errors import ConfigError, DataFileError
 from aasoatt_env.safety.config import FilterConfig
+from agents.rllib_agent import RLlibAgent, find_run_spec
 
-__all__ = ["POLICY_FILE", "STATS_FILE", "LearnedAgent", "stats_path"]
+__all__ = ["POLICY_FILE", "STATS_FILE", "LearnedAgent", "load_learned", "stats_path"]
 
 POLICY_FILE = "policy.json"
 STATS_FILE = "normalization.npz"
@@ -315,3 +316,16 @@ def _policy_class(name: Any, spec_file: Path) -> Any:
 
         return TrackingPriorPolicy
     raise DataFileError(f"{spec_file}: policy {name!r} is unknown, expected 'MlpPolicy' or 'TrackingPriorPolicy'")
+
+
+def load_learned(path: str | os.PathLike[str], device: str = "cpu", deterministic: bool = True) -> Any:
+    """Load a trained policy of either backend: Stable-Baselines3 or Ray RLlib.
+
+    :class:`LearnedAgent` for a run of :mod:`train.train`; :class:`agents.rllib_agent.RLlibAgent`
+    for a run of :mod:`train.rllib` (``"backend": "rllib"`` in its ``policy.json``).  Both act
+    through ``reset(env)`` / ``act(observations, env)`` and carry the run's ``spec``.
+    """
+    found = find_run_spec(path)
+    if found is not None and found[1].get("backend") == "rllib":
+        return RLlibAgent.load(path, device=device, deterministic=deterministic)
+    return LearnedAgent.load(path, device=device, deterministic=deterministic)

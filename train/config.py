@@ -5,6 +5,11 @@ Precedence: dataclass defaults < config file (``--config run.toml`` or
 ``__post_init__``; every error is a :class:`~aasoatt_env.errors.ConfigError`
 of the form ``"TrainConfig.<field>: got X, expected Y"``.
 
+:class:`EnvConfig` holds the env and filter fields that every training backend
+shares: :class:`TrainConfig` (Stable-Baselines3) and
+:class:`train.rllib.RLlibConfig` (Ray RLlib) extend it, and
+:func:`add_config_arguments` / :func:`config_from_args` serve either.
+
 Example ``run.toml``::
 
     scenario = "random_goals"
@@ -37,14 +42,18 @@ from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import SCENARIOS
 from aasoatt_env.validation import parse_value
 
-__all__ = ["TrainConfig", "add_config_arguments", "config_from_args", "load_config_file"]
+__all__ = ["BACKENDS", "EnvConfig", "TrainConfig", "add_config_arguments", "config_from_args", "load_config_file",
+           "split_backend", "unique_run_dir"]
 
 _ACTION_MODES = ("wheel", "point")
 
+BACKENDS = ("sb3", "rllib")
+"""``aasoatt train --backend``: ``sb3`` (:mod:`train.train`, the default) or ``rllib`` (:mod:`train.rllib`)."""
+
 
 @dataclass
-class TrainConfig:
-    """Configuration of one PPO training run (see the module docstring).
+class EnvConfig:
+    """The env and safety-filter fields of a training run (shared by every backend).
 
     Attributes
     ----------
@@ -69,13 +78,141 @@ class TrainConfig:
         Override of the episode horizon in env steps.
     reward : dict
         :class:`~aasoatt_env.sim.env.RewardConfig` fields.
-    velocity_tracking : float
-        Weight of the training-only shaping term ``-|v_i - v_d_i|``
-        (:class:`train.vec_env.VelocityTrackingShaping`; 0: off).
     filter : bool
         Train behind :class:`~aasoatt_env.safety.wrapper.AASOATTFilter`.
     filter_kwargs : dict
         Arguments of the filter (``barrier``, ``deadlock``, ``solver``, gains).
+    """
+
+    scenario: str = "random_goals"
+    num_robots: int = 6
+    scenario_kwargs: dict[str, Any] = field(default_factory=dict)
+    dt: float = 0.005
+    decision_interval: int = 20
+    action_mode: str = "point"
+    num_neighbors: int = 4
+    num_obstacles: int = 2
+    terminate_on_collision: bool = False
+    max_steps: int | None = None
+    reward: dict[str, float] = field(default_factory=dict)
+    filter: bool = False
+    filter_kwargs: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self._validate()
+
+    # ------------------------------------------------------------------ validation
+    def _err(self, name: str, expected: str) -> ConfigError:
+        return ConfigError(f"{type(self).__name__}.{name}: got {getattr(self, name)!r}, expected {expected}")
+
+    def _int(self, name: str, lo: int) -> None:
+        v = getattr(self, name)
+        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+            raise self._err(name, f"an integer >= {lo}")
+
+    def _float(self, name: str, lo: float, hi: float = math.inf, lo_open: bool = False) -> None:
+        v = getattr(self, name)
+        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+        ok = ok and (v > lo if lo_open else v >= lo) and v <= hi
+        if not ok:
+            lb = "(" if lo_open else "["
+            raise self._err(name, f"a number in {lb}{lo:g}, {hi:g}]")
+        setattr(self, name, float(v))
+
+    def _bools(self, *names: str) -> None:
+        for name in names:
+            if not isinstance(getattr(self, name), bool):
+                raise self._err(name, "true or false")
+
+    def _validate(self) -> None:
+        self._validate_env()
+
+    def _validate_env(self) -> None:
+        """Validate the env and filter fields."""
+        if self.scenario not in SCENARIOS:
+            raise self._err("scenario", f"one of {sorted(SCENARIOS)}")
+        for name in ("num_robots", "decision_interval"):
+            self._int(name, 1)
+        for name in ("num_neighbors", "num_obstacles"):
+            self._int(name, 0)
+        if self.max_steps is not None:
+            self._int("max_steps", 1)
+        self._float("dt", 0.0, 1.0, lo_open=True)
+        if self.action_mode not in _ACTION_MODES:
+            raise self._err("action_mode", f"one of {list(_ACTION_MODES)}")
+        self._bools("terminate_on_collision", "filter")
+        for name in ("scenario_kwargs", "reward", "filter_kwargs"):
+            if not isinstance(getattr(self, name), dict):
+                raise self._err(name, "a table/dict")
+        try:
+            RewardConfig.coerce(self.reward)
+        except TypeError:
+            known = [f.name for f in fields(RewardConfig)]
+            raise self._err("reward", f"keys among {known}") from None
+        try:
+            self.filter_config()
+        except TypeError as exc:
+            raise ConfigError(f"{type(self).__name__}.filter_kwargs: {exc}") from None
+        except ConfigError as exc:
+            raise ConfigError(f"{type(self).__name__}.filter_kwargs: {exc}") from None
+        if self.reward.get("correction", 0.0) and not self.filter:
+            raise ConfigError(
+                f"{type(self).__name__}.reward: got correction={self.reward['correction']!r} with filter=False, "
+                "expected filter=True (the correction penalty needs the filter)"
+            )
+
+    def _validate_run_folder(self) -> None:
+        if not isinstance(self.out_dir, str) or not self.out_dir:  # type: ignore[attr-defined]
+            raise self._err("out_dir", "a non-empty folder path")
+        name = self.run_name  # type: ignore[attr-defined]
+        if name is not None and (not isinstance(name, str) or not name or os.sep in name):
+            raise self._err("run_name", "a non-empty folder name or None")
+
+    # ------------------------------------------------------------------ helpers
+    def env_kwargs(self) -> dict[str, Any]:
+        """Keyword arguments of :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` for this run."""
+        kw: dict[str, Any] = dict(
+            scenario=self.scenario, dt=self.dt, decision_interval=self.decision_interval,
+            action_mode=self.action_mode, num_neighbors=self.num_neighbors, num_obstacles=self.num_obstacles,
+            reward=dict(self.reward), terminate_on_collision=self.terminate_on_collision,
+            max_steps=self.max_steps, num_robots=self.num_robots, **self.scenario_kwargs,
+        )
+        return kw
+
+    def filter_config(self) -> FilterConfig:
+        """The safety filter's configuration (``filter_kwargs`` converted at this edge)."""
+        return FilterConfig.merged(self.filter_kwargs, dt=self.dt)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain-JSON dict of every field."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> Any:
+        """Build from a dict, rejecting unknown keys."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(data) - known)
+        if unknown:
+            raise ConfigError(f"{cls.__name__}: got unknown key(s) {unknown}, expected keys among {sorted(known)}")
+        return cls(**data)
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike[str], **overrides: Any) -> Any:
+        """Load a ``.toml`` or ``.json`` file; ``overrides`` win over the file."""
+        return cls.from_dict({**load_config_file(path), **overrides})
+
+
+@dataclass
+class TrainConfig(EnvConfig):
+    """Configuration of one PPO training run with Stable-Baselines3 (see the module docstring).
+
+    The env and filter fields are those of :class:`EnvConfig`.
+
+    Attributes
+    ----------
+    velocity_tracking : float
+        Weight of the training-only shaping term ``-|v_i - v_d_i|``
+        (:class:`train.vec_env.VelocityTrackingShaping`; 0: off).
     total_timesteps : int
         Agent-steps (one per robot per decision) to train for.
     n_envs : int
@@ -122,20 +259,7 @@ class TrainConfig:
         SB3 verbosity.
     """
 
-    scenario: str = "random_goals"
-    num_robots: int = 6
-    scenario_kwargs: dict[str, Any] = field(default_factory=dict)
-    dt: float = 0.005
-    decision_interval: int = 20
-    action_mode: str = "point"
-    num_neighbors: int = 4
-    num_obstacles: int = 2
-    terminate_on_collision: bool = False
-    max_steps: int | None = None
-    reward: dict[str, float] = field(default_factory=dict)
     velocity_tracking: float = 0.0
-    filter: bool = False
-    filter_kwargs: dict[str, Any] = field(default_factory=dict)
     total_timesteps: int = 1_200_000
     n_envs: int = 4
     seed: int = 0
@@ -164,39 +288,13 @@ class TrainConfig:
     torch_threads: int = 1
     verbose: int = 0
 
-    def __post_init__(self) -> None:
-        self._validate()
-
-    # ------------------------------------------------------------------ validation
-    def _err(self, name: str, expected: str) -> ConfigError:
-        return ConfigError(f"TrainConfig.{name}: got {getattr(self, name)!r}, expected {expected}")
-
-    def _int(self, name: str, lo: int) -> None:
-        v = getattr(self, name)
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise self._err(name, f"an integer >= {lo}")
-
-    def _float(self, name: str, lo: float, hi: float = math.inf, lo_open: bool = False) -> None:
-        v = getattr(self, name)
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-        ok = ok and (v > lo if lo_open else v >= lo) and v <= hi
-        if not ok:
-            lb = "(" if lo_open else "["
-            raise self._err(name, f"a number in {lb}{lo:g}, {hi:g}]")
-        setattr(self, name, float(v))
-
     def _validate(self) -> None:
-        if self.scenario not in SCENARIOS:
-            raise self._err("scenario", f"one of {sorted(SCENARIOS)}")
-        for name in ("num_robots", "decision_interval", "total_timesteps", "n_envs", "n_steps", "n_epochs",
-                     "torch_threads"):
+        self._validate_env()
+        for name in ("total_timesteps", "n_envs", "n_steps", "n_epochs", "torch_threads"):
             self._int(name, 1)
-        for name in ("num_neighbors", "num_obstacles", "checkpoint_freq", "seed", "verbose"):
+        for name in ("checkpoint_freq", "seed", "verbose"):
             self._int(name, 0)
         self._int("batch_size", 2)
-        if self.max_steps is not None:
-            self._int("max_steps", 1)
-        self._float("dt", 0.0, 1.0, lo_open=True)
         self._float("learning_rate", 0.0, 1.0, lo_open=True)
         self._float("gamma", 0.0, 1.0)
         self._float("gae_lambda", 0.0, 1.0)
@@ -218,76 +316,33 @@ class TrainConfig:
                 f"TrainConfig.policy_prior: got 'tracking' with action_mode={self.action_mode!r}, "
                 f"normalize_obs={self.normalize_obs!r}, expected action_mode='point' and normalize_obs=false"
             )
-        if self.action_mode not in _ACTION_MODES:
-            raise self._err("action_mode", f"one of {list(_ACTION_MODES)}")
-        for name in ("terminate_on_collision", "filter", "normalize_obs", "normalize_reward", "tensorboard",
-                     "progress_bar"):
-            if not isinstance(getattr(self, name), bool):
-                raise self._err(name, "true or false")
-        for name in ("scenario_kwargs", "reward", "filter_kwargs"):
-            if not isinstance(getattr(self, name), dict):
-                raise self._err(name, "a table/dict")
+        self._bools("normalize_obs", "normalize_reward", "tensorboard", "progress_bar")
         if not (isinstance(self.net_arch, (list, tuple)) and self.net_arch
                 and all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in self.net_arch)):
             raise self._err("net_arch", "a non-empty list of positive integers")
         self.net_arch = list(self.net_arch)
-        try:
-            RewardConfig.coerce(self.reward)
-        except TypeError:
-            known = [f.name for f in fields(RewardConfig)]
-            raise self._err("reward", f"keys among {known}") from None
-        try:
-            self.filter_config()
-        except TypeError as exc:
-            raise ConfigError(f"TrainConfig.filter_kwargs: {exc}") from None
-        except ConfigError as exc:
-            raise ConfigError(f"TrainConfig.filter_kwargs: {exc}") from None
-        if self.reward.get("correction", 0.0) and not self.filter:
-            raise ConfigError(
-                f"TrainConfig.reward: got correction={self.reward['correction']!r} with filter=False, "
-                "expected filter=True (the correction penalty needs the filter)"
-            )
         rollout = self.n_steps * self.n_envs * self.num_robots
         if self.batch_size > rollout:
             raise self._err("batch_size", f"at most n_steps * n_envs * num_robots = {rollout}")
-        if not isinstance(self.out_dir, str) or not self.out_dir:
-            raise self._err("out_dir", "a non-empty folder path")
-        name = self.run_name
-        if name is not None and (not isinstance(name, str) or not name or os.sep in name):
-            raise self._err("run_name", "a non-empty folder name or None")
+        self._validate_run_folder()
 
-    # ------------------------------------------------------------------ helpers
-    def env_kwargs(self) -> dict[str, Any]:
-        """Keyword arguments of :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` for this run."""
-        kw: dict[str, Any] = dict(
-            scenario=self.scenario, dt=self.dt, decision_interval=self.decision_interval,
-            action_mode=self.action_mode, num_neighbors=self.num_neighbors, num_obstacles=self.num_obstacles,
-            reward=dict(self.reward), terminate_on_collision=self.terminate_on_collision,
-            max_steps=self.max_steps, num_robots=self.num_robots, **self.scenario_kwargs,
-        )
-        return kw
 
-    def filter_config(self) -> FilterConfig:
-        """The safety filter's configuration (``filter_kwargs`` converted at this edge)."""
-        return FilterConfig.merged(self.filter_kwargs, dt=self.dt)
+def unique_run_dir(out_dir: str | os.PathLike[str], name: str) -> Path:
+    """Create and return ``<out_dir>/<name>``, or ``<name>_2``, ``<name>_3``, ... if it holds files.
 
-    def to_dict(self) -> dict[str, Any]:
-        """Plain-JSON dict of every field."""
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
-        """Build from a dict, rejecting unknown keys."""
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
-        if unknown:
-            raise ConfigError(f"TrainConfig: got unknown key(s) {unknown}, expected keys among {sorted(known)}")
-        return cls(**data)
-
-    @classmethod
-    def from_file(cls, path: str | os.PathLike[str], **overrides: Any) -> TrainConfig:
-        """Load a ``.toml`` or ``.json`` file; ``overrides`` win over the file."""
-        return cls.from_dict({**load_config_file(path), **overrides})
+    A run never writes into the folder of another run; an existing empty folder is used.
+    """
+    base = Path(out_dir) / name
+    path, k = base, 1
+    while True:
+        try:
+            path.mkdir(parents=True)
+            return path
+        except FileExistsError:
+            if path.is_dir() and not any(path.iterdir()):
+                return path
+        k += 1
+        path = base.with_name(f"{base.name}_{k}")
 
 
 def load_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:
@@ -310,6 +365,7 @@ def load_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:
 
 # ---------------------------------------------------------------------- command line
 _DICT_FIELDS = {"scenario_kwargs": "scenario-arg", "reward": "reward", "filter_kwargs": "filter-arg"}
+_OPTIONAL_INTS = {"num_cpus"}  # int fields whose default is None
 
 
 def _int_arg(text: str) -> int | str:
@@ -333,15 +389,16 @@ def _bool(text: str) -> bool:
     raise argparse.ArgumentTypeError(f"got {text!r}, expected true or false")
 
 
-def add_config_arguments(parser: argparse.ArgumentParser) -> None:
-    """Add ``--config`` and one ``--field-name`` flag per :class:`TrainConfig` field.
+def add_config_arguments(parser: argparse.ArgumentParser, cls: type[EnvConfig] | None = None) -> None:
+    """Add ``--config`` and one ``--field-name`` flag per field of ``cls`` (default :class:`TrainConfig`).
 
     Dict fields take repeated ``KEY=VALUE``: ``--reward collision=20``,
     ``--filter-arg solver=proxsuite``, ``--scenario-arg speed=1.0``;
     ``--net-arch 64 64``.  Unset flags leave the file/default value.
     """
-    parser.add_argument("--config", default=None, help="TOML or JSON file of TrainConfig fields")
-    for f in fields(TrainConfig):
+    cls = TrainConfig if cls is None else cls
+    parser.add_argument("--config", default=None, help=f"TOML or JSON file of {cls.__name__} fields")
+    for f in fields(cls):
         default = f.default if f.default is not MISSING else f.default_factory()  # type: ignore[misc]
         if f.name in _DICT_FIELDS:
             parser.add_argument(f"--{_DICT_FIELDS[f.name]}", dest=f.name, action="append", default=None,
@@ -360,14 +417,17 @@ def add_config_arguments(parser: argparse.ArgumentParser) -> None:
             parser.add_argument(flag, dest=f.name, type=float, default=None, help=f"default {default}")
         elif f.name == "max_steps":
             parser.add_argument(flag, dest=f.name, type=int, default=None, help="default: scenario horizon")
+        elif f.name in _OPTIONAL_INTS:
+            parser.add_argument(flag, dest=f.name, type=int, default=None, help=f"default {default}")
         else:
             parser.add_argument(flag, dest=f.name, default=None, help=f"default {default}")
 
 
-def config_from_args(args: argparse.Namespace) -> TrainConfig:
-    """Merge defaults, ``args.config`` and the flags set in ``args`` into a validated config."""
+def config_from_args(args: argparse.Namespace, cls: type[EnvConfig] | None = None) -> Any:
+    """Merge defaults, ``args.config`` and the flags set in ``args`` into a validated ``cls`` (:class:`TrainConfig`)."""
+    cls = TrainConfig if cls is None else cls
     data: dict[str, Any] = load_config_file(args.config) if getattr(args, "config", None) else {}
-    for f in fields(TrainConfig):
+    for f in fields(cls):
         val = getattr(args, f.name, None)
         if val is None:
             continue
@@ -381,7 +441,7 @@ def config_from_args(args: argparse.Namespace) -> TrainConfig:
             data[f.name] = merged
         else:
             data[f.name] = val
-    return TrainConfig.from_dict(data)
+    return cls.from_dict(data)
 
 
 def parse_config(argv: Sequence[str] | None = None, prog: str = "train") -> TrainConfig:
@@ -389,3 +449,20 @@ def parse_config(argv: Sequence[str] | None = None, prog: str = "train") -> Trai
     parser = argparse.ArgumentParser(prog=prog)
     add_config_arguments(parser)
     return config_from_args(parser.parse_args(argv))
+
+
+def split_backend(argv: Sequence[str]) -> tuple[str, list[str]]:
+    """The ``--backend`` of a training command line (default ``"sb3"``) and the command line without it."""
+    pre = argparse.ArgumentParser(prog="aasoatt train", add_help=False)
+    pre.add_argument("--backend", choices=BACKENDS, default="sb3")
+    known, _ = pre.parse_known_args(argv)
+    rest: list[str] = []
+    skip = False
+    for a in argv:
+        if skip:
+            skip = False
+        elif a == "--backend":
+            skip = True
+        elif not a.startswith("--backend="):
+            rest.append(a)
+    return known.backend, rest

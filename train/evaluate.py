@@ -6,6 +6,10 @@ Usage::
         --episodes 100 --out results.md
     aasoatt evaluate ...          # the same flags
 
+A learned policy is a Stable-Baselines3 run (:mod:`train.train`) or a Ray RLlib run
+(:mod:`train.rllib`, recognised by the ``"backend": "rllib"`` of its ``policy.json``; evaluated
+without starting Ray), see :func:`agents.learned.load_learned`.
+
 Rows (a row is skipped when its model is not given):
 
 =======================================  ==========================================
@@ -60,7 +64,7 @@ from aasoatt_env.errors import ConfigError, UnknownKeywordError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.validation import parse_assignments
 from agents import RandomAgent, TrackingController
-from agents.learned import LearnedAgent
+from agents.learned import load_learned
 from train.config import TrainConfig
 
 __all__ = ["EvalRow", "evaluate", "evaluate_agent", "main", "to_markdown"]
@@ -212,7 +216,8 @@ def evaluate(
     Parameters
     ----------
     bare_model, filtered_model : path, optional
-        Policies trained bare and behind the filter (``model.zip`` or run folder).
+        Policies trained bare and behind the filter: a Stable-Baselines3 run (folder or ``model.zip``)
+        or a Ray RLlib run of :mod:`train.rllib` (folder or checkpoint), see :func:`agents.learned.load_learned`.
     episodes : int
         Episodes per row (``K``).
     seed : int
@@ -247,8 +252,8 @@ def evaluate(
         return _evaluate_parallel(bare_model, filtered_model, wanted, jobs, episodes=episodes, seed=seed,
                                   config=config, filter_kwargs=filter_kwargs, goal_tolerance=goal_tolerance)
     learned = {
-        "bare": LearnedAgent.load(bare_model) if bare_model is not None else None,
-        "filter": LearnedAgent.load(filtered_model) if filtered_model is not None else None,
+        "bare": load_learned(bare_model) if bare_model is not None else None,
+        "filter": load_learned(filtered_model) if filtered_model is not None else None,
     }
     first = learned["bare"] or learned["filter"]
     if config is not None:
@@ -325,7 +330,7 @@ def to_markdown(rows: Sequence[EvalRow], title: str | None = None) -> str:
 def build_parser(prog: str = "aasoatt evaluate") -> argparse.ArgumentParser:
     """Command-line parser."""
     p = Parser(prog=prog, description="Evaluate baselines and learned policies (Markdown table).")
-    p.add_argument("--bare", default=None, help="model trained bare (model.zip or run folder)")
+    p.add_argument("--bare", default=None, help="model trained bare (run folder or model.zip; SB3 or RLlib run)")
     p.add_argument("--filtered", default=None, help="model trained behind the filter")
     p.add_argument("--episodes", type=int_option(1, 10**7), default=100)
     p.add_argument("--seed", type=int_option(0), default=10_000)
@@ -373,7 +378,7 @@ def _main(argv: list[str]) -> int:
         if args.jobs > 1:  # with jobs=1, evaluate() loads the models before the first episode
             for model in (args.bare, args.filtered):
                 if model is not None:
-                    LearnedAgent.load(model)  # every model file checked before any worker starts
+                    load_learned(model)  # every model file checked before any worker starts
         rows = evaluate(args.bare, args.filtered, episodes=args.episodes, seed=args.seed, config=config,
                         filter_kwargs=fk, rows=args.rows, goal_tolerance=args.goal_tolerance,
                         progress=not args.quiet and args.jobs == 1, jobs=args.jobs)

@@ -107,7 +107,8 @@ from aasoatt_env.api.factory import make_env as make_aasoatt_env
 from aasoatt_env.cli_support import OutputPlan, Parser, add_common_options, run_guarded
 from aasoatt_env.errors import ConfigError
 from agents.learned import POLICY_FILE, stats_path
-from train.config import TrainConfig, add_config_arguments, config_from_args
+from train.config import BACKENDS, TrainConfig, add_config_arguments, config_from_args, split_backend, unique_run_dir
+from train.rllib import main as rllib_main
 from train.vec_env import ParallelVecEnv, VelocityTrackingShaping
 
 __all__ = ["main", "make_env", "make_vec_env", "train"]
@@ -172,17 +173,11 @@ def _run_dir(config: TrainConfig) -> Path:
         f"ppo_{config.scenario}_{config.num_robots}r_{'filter' if config.filter else 'bare'}_s{config.seed}"
     )
     OutputPlan(overwrite=True).folder(config.out_dir, "TrainConfig.out_dir")  # creatable and writable, or say why
-    base = Path(config.out_dir) / name
-    path, k = base, 1
     try:
-        while path.exists() and (not path.is_dir() or any(path.iterdir())):
-            k += 1
-            path = base.with_name(f"{base.name}_{k}")
-        path.mkdir(parents=True, exist_ok=True)
+        return unique_run_dir(config.out_dir, name)
     except OSError as exc:
         raise ConfigError(f"TrainConfig.out_dir: cannot create a run folder in {config.out_dir} "
                           f"({exc.strerror or exc})") from None
-    return path
 
 
 def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = None) -> Any:
@@ -300,7 +295,10 @@ def train(config: TrainConfig) -> Path:
 
 def build_parser(prog: str = "aasoatt train") -> argparse.ArgumentParser:
     """Command-line parser (every :class:`TrainConfig` field is a flag)."""
-    parser = Parser(prog=prog, description="Train PPO (parameter sharing) on the AA-SOATT env.")
+    parser = Parser(prog=prog, description="Train PPO (parameter sharing) on the AA-SOATT env.",
+                    epilog="--backend rllib trains with Ray RLlib instead (its own options: --backend rllib --help)")
+    parser.add_argument("--backend", choices=BACKENDS, default="sb3",
+                        help="sb3: Stable-Baselines3 on this machine (default); rllib: Ray RLlib (train/rllib.py)")
     add_config_arguments(parser)
     parser.add_argument("--print-config", action="store_true", help="print the merged config and exit")
     add_common_options(parser, overwrite=False)  # every run gets a new folder: nothing to overwrite
@@ -312,9 +310,13 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     The configuration, the env it describes and the output folder are checked
     before training starts; every run gets a new folder (``<name>_2``, ... when
-    the name is taken), so earlier runs are never overwritten.
+    the name is taken), so earlier runs are never overwritten.  ``--backend rllib``
+    hands the command line to :mod:`train.rllib`.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
+    backend, rest = split_backend(argv)
+    if backend == "rllib":  # python -m train.train --backend rllib (this module needs SB3; train.rllib does not)
+        return rllib_main(rest, prog="python -m train.train --backend rllib")
     return run_guarded("aasoatt train", argv, _main)
 
 

@@ -44,6 +44,8 @@ from aasoatt_env.sim.scenarios import SCENARIOS
 from aasoatt_env.sim.scenarios.base import MAX_ROBOTS
 from aasoatt_env.validation import parse_assignments
 from agents.base import agent_accepts, agent_names, get_agent
+from train.config import split_backend
+from train.rllib import main as rllib_main
 
 __all__ = ["main"]
 
@@ -236,6 +238,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         import importlib
 
         module, func = _FORWARDED[argv[0]]
+        if argv[0] == "train":  # --backend rllib: train.rllib (Ray RLlib's venv has no Stable-Baselines3)
+            backend, rest = split_backend(argv[1:])
+            if backend == "rllib":
+                return int(rllib_main(rest, prog="aasoatt train --backend rllib") or 0)
         return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
 
     def body(args_list: list[str]) -> int:

@@ -1,0 +1,45 @@
+"""The Stable-Baselines3 and TorchRL snippets of README "Use it from your RL library", run as written.
+
+Only the training budgets are shrunk (the replaced texts must be there exactly once).
+The RLlib commands are run by ``tests/test_rllib.py`` (in the virtual environment of the ``rllib`` extra).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+from readme_blocks import readme_block, shrink
+
+
+def _run(code: str) -> dict:
+    torch = pytest.importorskip("torch")
+    torch.set_num_threads(1)
+    namespace: dict = {"__name__": "readme_snippet"}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # TorchRL: "tested with PettingZoo 1.24.3"
+        exec(compile(code, "README.md", "exec"), namespace)
+    return namespace
+
+
+@pytest.mark.slow
+def test_readme_sb3_parameter_sharing_snippet():
+    pytest.importorskip("stable_baselines3", reason="stable-baselines3 is in the train extra")
+    ns = _run(shrink(readme_block("sb3-shared"), {"[make] * 4": "[make] * 1",
+                                                   "total_timesteps=100_000": "total_timesteps=1"}))
+    assert ns["model"].num_timesteps == 256 * 6  # one rollout: n_steps per robot slot
+
+
+def test_readme_sb3_centralised_snippet():
+    pytest.importorskip("stable_baselines3", reason="stable-baselines3 is in the train extra")
+    ns = _run(shrink(readme_block("sb3-centralised"), {"n_steps=512": "n_steps=64",
+                                                        "total_timesteps=100_000": "total_timesteps=1"}))
+    assert ns["model"].num_timesteps == 64
+
+
+def test_readme_torchrl_snippet():
+    pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
+    ns = _run(readme_block("torchrl"))
+    td = ns["td"]
+    assert td.batch_size[0] == 100
+    assert td["next", "robot", "info", "filter_intervened"].shape == (100, 6)
