@@ -258,7 +258,7 @@ class GateResult(NamedTuple):
     du : numpy.ndarray
         ``(N, 2)`` inputs to apply: the backup for ``braking`` robots, the candidate otherwise.
     braking : numpy.ndarray
-        ``(N,)`` bool: robots put on the backup.
+        ``(N,)`` bool: robots whose candidate was not accepted (blended toward, or put on, the backup).
     margin : float
         Smallest ``distance - d_s`` over the checked pairs along the horizon of
         the returned assignment [m] (``reach_limit`` when no pair is close
@@ -272,6 +272,9 @@ class GateResult(NamedTuple):
         ``(N,)`` bool: robots in a pair that fails even when both brake (or that
         reach beyond the range limit when braking).  No input can promise them
         safety; the caller decides what they do (the filter applies its QP).
+    share : numpy.ndarray
+        ``(N,)``: the share ``a`` of the candidate in the applied input (1: the
+        candidate, 0: the backup).
     rounds : int
         Gatekeeper rounds.
     n_pairs : int
@@ -283,6 +286,7 @@ class GateResult(NamedTuple):
     margin: float
     safe: bool
     broken: np.ndarray
+    share: np.ndarray
     rounds: int
     n_pairs: int
 
@@ -298,30 +302,33 @@ def gatekeeper(
     brake_fraction: float,
     obstacles: tuple[np.ndarray, np.ndarray] | None = None,
     tol: float = 0.0,
+    blend_levels: tuple[float, ...] = (0.5,),
 ) -> GateResult:
     """Accept the candidate ``du_c`` for every robot whose pairs stay brake-safe; put the others on the backup.
 
     Algorithm (one physics step, whole team)
-        1. ``B0``: backup paths from the current state; ``Bc``: one step with
-           ``du_c``, then the backup from there.
-        2. Range condition: a robot whose ``Bc`` reaches farther than
-           :func:`reach_limit` from where it is starts in the braking set ``S``.
+        1. Paths per level: ``B_a`` for each share ``a`` in ``1 > blend_levels > 0``
+           (one step with ``du_b + a (du_c - du_b)``, then the backup from
+           there) and ``B_0``, the backup from now.  Every robot starts at the
+           candidate (``a = 1``).
+        2. Range condition: a level whose path reaches farther than
+           :func:`reach_limit` from where the robot is, is skipped.
         3. Every pair that could meet (``|p_ij| < d_s + R_i + R_j``, ``R`` the
-           reach of the paths) with a member outside ``S`` is checked, a member
-           outside ``S`` on ``Bc``, a member in ``S`` on ``B0``; the check
-           covers the step itself and the whole backup horizon.  The members of
-           failing pairs that are outside ``S`` join ``S``, and their pairs are
-           checked again.  ``S`` only grows, so this ends; at worst all brake.
+           reach of the paths) is checked on the members' current levels; the
+           check covers the step itself and the whole backup horizon.  The
+           members of failing pairs move one level down (toward the backup),
+           and their pairs are checked again.  Levels only go down, so this
+           ends; at worst all brake.
 
     Invariance
         Call a state *brake-safe* when the backup from it keeps every pair
         ``>= d_s`` and every robot's backup reach within :func:`reach_limit`.
         Let the current state ``x`` be brake-safe and ``x'`` the state after the
         returned inputs.  The backup is time-consistent, so the backup paths
-        from ``x'`` are the tails of ``B0`` (robots in ``S``) and of ``Bc``
-        (the others).  Pairs with both members in ``S`` follow tails of paths
-        that passed at ``x``; pairs with a member outside ``S`` were checked now
-        on the step and the whole backup from ``x'``; pairs that cannot meet
+        from ``x'`` are the tails of the robots' final ``B_a``.  Pairs with both
+        members on the backup follow tails of paths that passed at ``x``; the
+        other pairs were checked now on the step and the whole backup from
+        ``x'``; pairs that cannot meet
         within their reach, and unseen pairs beyond the sensing range ``D``
         (every path stays within ``(D - max d_s) / 2`` of its start), stay
         apart.  Obstacles are robots that never move.  So ``x'`` is brake-safe
@@ -353,32 +360,52 @@ def gatekeeper(
         ``(centres (M, 2), radii (M,))`` of static discs.
     tol : float
         Accepted violation [m].
+    blend_levels : tuple of float
+        Intermediate steps between the candidate and the backup, ``du = du_b + a (du_c - du_b)``
+        for each ``a`` (tried from the largest down): a robot that fails with the candidate first
+        tries these gentler blends, and brakes only if they fail too.  ``()``: brake at once.
     """
     n = pose.shape[0]
     rad = team.radius
     theta = pose[:, 2]
     p0 = _point(team, pose)
+    levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
+    du_b = braking_du(team, u, dt, brake_fraction)
 
-    # B0 (backup now) and Bc (candidate step, then backup), one common length
+    # one path set per level: the backup now (level 0), or one step blending the candidate and the
+    # backup (du_b + a (du_c - du_b)), then the backup from there
     b0 = _brake(team, theta, u, dt, brake_fraction)
-    u1 = u + du_c * dt
-    pdot_m, w_m = _velocity(team, theta, 0.5 * (u + u1))
-    p1 = p0 + pdot_m * dt * _E(w_m * dt)
-    b1 = _brake(team, theta + w_m * dt, u1, dt, brake_fraction)
-    L = max(int(b0.steps.max(initial=0)) + 1, int(b1.steps.max(initial=0)) + 2, 2)
-    P0, D0 = _brake_samples(p0, b0, dt, L)
-    Pc = np.empty((n, L), dtype=np.complex128)
-    Dc = np.empty((n, L - 1))
-    Pc[:, 0] = p0
-    Dc[:, 0] = (dt * dt / 8.0) * np.abs(pdot_m) * np.abs(w_m)
-    Pc[:, 1:], Dc[:, 1:] = _brake_samples(p1, b1, dt, L - 1)
-    need0, needc = b0.steps + 1, b1.steps + 2
-    reach_c = np.abs(p1 - p0) + Dc[:, 0] + b1.reach
-    R = np.maximum(b0.reach, reach_c)
+    steps = [b0.steps + 1]
+    firsts = []
+    for a in levels[:-1]:
+        du_a = du_b + a * (du_c - du_b)
+        u1 = u + du_a * dt
+        pdot_m, w_m = _velocity(team, theta, 0.5 * (u + u1))
+        p1 = p0 + pdot_m * dt * _E(w_m * dt)
+        b1 = _brake(team, theta + w_m * dt, u1, dt, brake_fraction)
+        firsts.append((du_a, p1, (dt * dt / 8.0) * np.abs(pdot_m) * np.abs(w_m), b1))
+        steps.append(b1.steps + 2)
+    L = max(max(int(x.max(initial=0)) for x in steps), 2)
+    P = np.empty((len(levels), n, L), dtype=np.complex128)
+    Dv = np.empty((len(levels), n, L - 1))
+    need = np.empty((len(levels), n), dtype=np.int64)
+    reach = np.empty((len(levels), n))
+    for k, (_, p1, d1, b1) in enumerate(firsts):
+        P[k, :, 0], Dv[k, :, 0] = p0, d1
+        P[k, :, 1:], Dv[k, :, 1:] = _brake_samples(p1, b1, dt, L - 1)
+        need[k] = b1.steps + 2
+        reach[k] = np.abs(p1 - p0) + d1 + b1.reach
+    P[-1], Dv[-1] = _brake_samples(p0, b0, dt, L)
+    need[-1], reach[-1] = b0.steps + 1, b0.reach
+    R = reach.max(axis=0)
 
+    # level per robot: start at the candidate; the range condition demotes at once
     limit = reach_limit(team, sensing_range)
-    S = reach_c > limit
-    broken = b0.reach > limit
+    lev = np.zeros(n, dtype=np.int64)
+    for k in range(len(levels) - 1):
+        lev = np.where((lev == k) & (reach[k] > limit), k + 1, lev)
+    broken = reach[-1] > limit
+    last = len(levels) - 1
 
     # pairs that could meet within their reach (fixed for the call)
     pts = np.stack((p0.real, p0.imag), axis=1)
@@ -398,44 +425,40 @@ def gatekeeper(
         oi = ok = np.empty(0, dtype=np.intp)
         ods = np.empty(0)
 
-    cur, curd, need = Pc.copy(), Dc.copy(), needc.copy()
-    if S.any():
-        cur[S], curd[S], need[S] = P0[S], D0[S], need0[S]
     marg = np.full(i.shape[0], np.inf)
     omarg = np.full(oi.shape[0], np.inf)
-    todo = ~(S[i] & S[j])
-    otodo = ~S[oi]
+    todo = np.ones(i.shape[0], dtype=bool)
+    otodo = np.ones(oi.shape[0], dtype=bool)
     rounds = 0
     while True:
         rounds += 1
+        cur, curd, cneed = P[lev, np.arange(n)], Dv[lev, np.arange(n)], need[lev, np.arange(n)]
         idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
         if idx.size:
-            marg[idx] = _bucketed(cur, curd, need, i[idx], j[idx], ds[idx])
+            marg[idx] = _bucketed(cur, curd, cneed, i[idx], j[idx], ds[idx])
         if oidx.size:
-            omarg[oidx] = _bucketed(cur, curd, need, oi[oidx], ok[oidx], ods[oidx], centers=oc)
-        new = np.zeros(n, dtype=bool)
+            omarg[oidx] = _bucketed(cur, curd, cneed, oi[oidx], ok[oidx], ods[oidx], centers=oc)
+        demote = np.zeros(n, dtype=bool)
         bad = idx[marg[idx] < -tol]
-        new[i[bad]] = True
-        new[j[bad]] = True
-        new[oi[oidx[omarg[oidx] < -tol]]] = True
-        new &= ~S
-        if not new.any():
+        demote[i[bad]] = True
+        demote[j[bad]] = True
+        obad = oidx[omarg[oidx] < -tol]
+        demote[oi[obad]] = True
+        # a pair failing with both members at the backup was not brake-safe before: nothing to demote
+        at_backup = lev == last
+        broken[i[bad][at_backup[i[bad]] & at_backup[j[bad]]]] = True
+        broken[j[bad][at_backup[i[bad]] & at_backup[j[bad]]]] = True
+        broken[oi[obad][at_backup[oi[obad]]]] = True
+        demote &= ~at_backup
+        if not demote.any():
             break
-        S |= new
-        cur[new], curd[new], need[new] = P0[new], D0[new], need0[new]
-        todo = (new[i] & ~S[j]) | (new[j] & ~S[i])
-        otodo = np.zeros(oi.shape[0], dtype=bool)
+        lev = np.where(demote, lev + 1, lev)
+        todo = demote[i] | demote[j]
+        otodo = demote[oi]
 
-    # pairs in which everyone brakes follow B0: a failure there means the state was not brake-safe
-    both, ob = np.flatnonzero(S[i] & S[j]), np.flatnonzero(S[oi])
-    if both.size:
-        marg[both] = _bucketed(P0, D0, need0, i[both], j[both], ds[both])
-        fail = both[marg[both] < -tol]
-        broken[i[fail]] = True
-        broken[j[fail]] = True
-    if ob.size:
-        omarg[ob] = _bucketed(P0, D0, need0, oi[ob], ok[ob], ods[ob], centers=oc)
-        broken[oi[ob[omarg[ob] < -tol]]] = True
-    du = np.where(S[:, None], braking_du(team, u, dt, brake_fraction), du_c)
+    rows = np.arange(n)
+    du_all = np.stack([f[0] for f in firsts] + [du_b])  # (levels, N, 2)
+    du = du_all[lev, rows]
     margin = min(float(marg.min(initial=np.inf)), float(omarg.min(initial=np.inf)), limit)
-    return GateResult(du, S, margin, not bool(broken.any()), broken, rounds, int(i.size + oi.size))
+    share = np.asarray(levels)[lev]
+    return GateResult(du, lev > 0, margin, not bool(broken.any()), broken, share, rounds, int(i.size + oi.size))
