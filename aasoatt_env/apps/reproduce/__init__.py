@@ -98,6 +98,11 @@ def _parser() -> argparse.ArgumentParser:
         default=0.0,
         help="margin added to d_s [m] in the paper-comparison runs, in [0, 1] (default 0: the paper's barrier)",
     )
+    p.add_argument(
+        "--backup",
+        action="store_true",
+        help="turn the braking backup layer on (default off: the paper's method as published)",
+    )
     p.add_argument("--no-progress", action="store_true", help="hide progress bars")
     add_common_options(p)
     return p
@@ -131,6 +136,8 @@ def _main(argv: list[str]) -> int:
         cmd += f" --solver {args.solver}"
     if args.safety_margin:
         cmd += f" --safety-margin {args.safety_margin:g}"
+    if args.backup:
+        cmd += " --backup"
     out = Path(args.out) if args.out is not None else Path("results") / (QUICK_SUBDIR if args.quick else "")
     plan = OutputPlan(args.overwrite)
     plan.folder(out, "--out", entries=[*names, *(["SUMMARY.md"] if len(names) > 1 else [])])
@@ -143,6 +150,7 @@ def _main(argv: list[str]) -> int:
             jobs=args.jobs,
             solver=args.solver,
             safety_margin=args.safety_margin,
+            backup=args.backup,
             progress=not args.no_progress,
             command=cmd.format(name=name),
         )

@@ -68,6 +68,8 @@ class Settings:
     solver : str
         QP solver of the safety filter (default ``daqp``, an exact active-set
         solver; the paper used its projection neural network, ``neural``).
+    backup : bool
+        The filter's braking backup layer (off: the paper's method as published).
     safety_margin : float
         Margin added to ``d_s`` by the filter [m] (0: the paper's exact
         barrier; the product's default adds about 1 cm).
@@ -82,13 +84,14 @@ class Settings:
     jobs: int = 1
     solver: str = "daqp"
     safety_margin: float = 0.0
+    backup: bool = False
     progress: bool = True
     command: str = "aasoatt reproduce"
 
 
 def filter_config(s: Settings, **kw: Any) -> FilterConfig:
     """The filter of a paper run: the experiment's solver and margin, then ``kw``."""
-    return FilterConfig.merged({"solver": s.solver, "safety_margin": s.safety_margin}, **kw)
+    return FilterConfig.merged({"solver": s.solver, "safety_margin": s.safety_margin, "backup": s.backup}, **kw)
 
 
 def circle(n: int, radius: float, duration: float, settle: float = 0.0, **kw: Any) -> dict[str, Any]:
@@ -105,7 +108,8 @@ def common_settings(rep: Report, s: Settings) -> None:
     """Write the shared set-up lines into ``rep``."""
     rep.setting(
         f"QP solver: `{s.solver}`; filter safety margin on d_s: {s.safety_margin:g} m "
-        f"({'the paper exact barrier' if s.safety_margin == 0 else 'added to d_s'})"
+        f"({'the paper exact barrier' if s.safety_margin == 0 else 'added to d_s'}); braking backup layer: "
+        f"{'on' if s.backup else 'off (the paper method as published)'}"
     )
     rep.setting(
         "Robots (SPEC 7, our choice where the paper is silent): wheel radius 0.1 m, half track 0.2 m, "
