@@ -161,6 +161,11 @@ class Team:
         """Number of robots."""
         return int(self.radius.shape[0])
 
+    def subset(self, idx: np.ndarray) -> Team:
+        """The team of robots ``idx`` (same order)."""
+        return Team(self.radius[idx], self.wheel_radius[idx], self.half_track[idx], self.offset[idx],
+                    self.max_wheel_accel[idx], self.max_wheel_speed[idx], self.max_point_accel[idx], self.model)
+
     @property
     def is_diff_drive(self) -> bool:
         """True for differential-drive robots, False for double integrators."""

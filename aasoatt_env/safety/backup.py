@@ -57,6 +57,8 @@ from aasoatt_env.model.params import Team
 __all__ = [
     "GateResult",
     "Trajectories",
+    "candidate_paths",
+    "repair",
     "brake_time",
     "braking_du",
     "braking_trajectory",
@@ -192,6 +194,29 @@ def braking_trajectory(team: Team, pose: np.ndarray, u: np.ndarray, dt: float, b
     L = int(b.steps.max(initial=0)) + 1 if length is None else int(length)
     p, delta = _brake_samples(_point(team, pose), b, dt, max(L, 1))
     return Trajectories(p, delta, b.steps + 1, b.reach)
+
+
+def _first_step(team: Team, p0: np.ndarray, theta: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One step holding ``du`` (the simulator's arc of the step-mean speeds): point, its sagitta, heading, speeds."""
+    u1 = u + du * dt
+    pdot_m, w_m = _velocity(team, theta, 0.5 * (u + u1))
+    p1 = p0 + pdot_m * dt * _E(w_m * dt)
+    return p1, (dt * dt / 8.0) * np.abs(pdot_m) * np.abs(w_m), theta + w_m * dt, u1
+
+
+def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float, brake_fraction: float,
+                    length: int | None = None) -> Trajectories:
+    """One step with ``du``, then the backup: samples at steps ``0 .. L-1`` (``p[:, 0]`` is the current point)."""
+    p0 = _point(team, pose)
+    p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
+    b1 = _brake(team, theta1, u1, dt, brake_fraction)
+    L = max(int(b1.steps.max(initial=0)) + 2 if length is None else int(length), 2)
+    p = np.empty((p0.shape[0], L), dtype=np.complex128)
+    delta = np.empty((p0.shape[0], L - 1))
+    p[:, 0], delta[:, 0] = p0, d1
+    p[:, 1:], delta[:, 1:] = _brake_samples(p1, b1, dt, L - 1)
+    return Trajectories(p, delta, b1.steps + 2, np.abs(p1 - p0) + d1 + b1.reach)
 
 
 # --------------------------------------------------------------------------- pair check
@@ -379,11 +404,9 @@ def gatekeeper(
     firsts = []
     for a in levels[:-1]:
         du_a = du_b + a * (du_c - du_b)
-        u1 = u + du_a * dt
-        pdot_m, w_m = _velocity(team, theta, 0.5 * (u + u1))
-        p1 = p0 + pdot_m * dt * _E(w_m * dt)
-        b1 = _brake(team, theta + w_m * dt, u1, dt, brake_fraction)
-        firsts.append((du_a, p1, (dt * dt / 8.0) * np.abs(pdot_m) * np.abs(w_m), b1))
+        p1, d1, theta1, u1 = _first_step(team, p0, theta, u, du_a, dt)
+        b1 = _brake(team, theta1, u1, dt, brake_fraction)
+        firsts.append((du_a, p1, d1, b1))
         steps.append(b1.steps + 2)
     L = max(max(int(x.max(initial=0)) for x in steps), 2)
     P = np.empty((len(levels), n, L), dtype=np.complex128)
@@ -462,3 +485,111 @@ def gatekeeper(
     margin = min(float(marg.min(initial=np.inf)), float(omarg.min(initial=np.inf)), limit)
     share = np.asarray(levels)[lev]
     return GateResult(du, lev > 0, margin, not bool(broken.any()), broken, share, rounds, int(i.size + oi.size))
+
+
+def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float, slack: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robot pairs ``(i, j, d_s)`` that could come within ``d_s + slack`` while each stays within ``R`` of ``p0``."""
+    rad = team.radius
+    pts = np.stack((p0.real, p0.imag), axis=1)
+    search = min(float(sensing_range), 2.0 * float(rad.max(initial=0.0)) + 2.0 * float(R.max(initial=0.0)) + slack)
+    pr = robot_pairs(pts, search)
+    i, j = pr[:, 0], pr[:, 1]
+    ds = rad[i] + rad[j]
+    keep = np.abs(p0[i] - p0[j]) < ds + R[i] + R[j] + slack
+    return i[keep], j[keep], ds[keep]
+
+
+def repair(
+    team: Team,
+    pose: np.ndarray,
+    u: np.ndarray,
+    du_c: np.ndarray,
+    dt: float,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    *,
+    sensing_range: float,
+    brake_fraction: float,
+    obstacles: tuple[np.ndarray, np.ndarray] | None = None,
+    target: float = 2e-4,
+    rounds: int = 3,
+    eps: float = 1.0,
+) -> np.ndarray:
+    """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
+
+    For every pair whose margin along :func:`candidate_paths` is below
+    ``target`` [m], the margin's gradient with respect to both robots' inputs is
+    taken by finite differences (step ``eps`` in input units; one extra path
+    set per input direction, for the robots of such pairs only), and the two
+    inputs move by the least-norm change that lifts the linearised margin to
+    ``2 target``; changes from several pairs add up, and the result is clipped
+    to ``[lo, hi]``.  ``rounds`` rounds.  This acts like backup-barrier rows in
+    the QP (a small, local correction toward the safe set), so the gatekeeper
+    rarely has to brake; safety still comes from :func:`gatekeeper` alone.
+    """
+    du = np.minimum(np.maximum(du_c, lo), hi)
+    n = pose.shape[0]
+    rad = team.radius
+    if obstacles is not None and obstacles[1].size:
+        oc, orad = obstacles[0][:, 0] + 1j * obstacles[0][:, 1], obstacles[1]
+    else:
+        oc, orad = np.empty(0, dtype=np.complex128), np.empty(0)
+    eye = np.eye(2)
+    for _ in range(rounds):
+        base = candidate_paths(team, pose, u, du, dt, brake_fraction)
+        p0 = base.p[:, 0]
+        R = base.reach + eps * dt * dt
+        i, j, ds = _pairs_near(team, p0, R, sensing_range, 2.0 * target)
+        m = _bucketed(base.p, base.delta, base.length, i, j, ds)
+        low = m < target
+        i, j, ds = i[low], j[low], ds[low]
+        if orad.size:
+            oi, ok = np.nonzero(np.abs(p0[:, None] - oc[None, :]) < rad[:, None] + orad[None, :] + R[:, None]
+                                + 2.0 * target)
+            ods = rad[oi] + orad[ok]
+            mo = _bucketed(base.p, base.delta, base.length, oi, ok, ods, centers=oc)
+            lowo = mo < target
+            oi, ok, ods = oi[lowo], ok[lowo], ods[lowo]
+        else:
+            oi = ok = np.empty(0, dtype=np.intp)
+            ods = np.empty(0)
+        if i.size + oi.size == 0:
+            break
+        M = np.unique(np.concatenate((i, j, oi)))
+        sub = team.subset(M)
+        L = base.p.shape[1] + 1  # a perturbation of eps dt in u adds at most one backup step
+        P = np.concatenate((base.p, base.p[:, -1:]), axis=1)
+        D = np.concatenate((base.delta, np.zeros((n, 1))), axis=1)
+        need = np.full(n, L)
+        pert = []
+        for k in (0, 1):
+            t = candidate_paths(sub, pose[M], u[M], du[M] + eps * eye[k], dt, brake_fraction, L)
+            Pk, Dk = P.copy(), D.copy()
+            Pk[M], Dk[M] = t.p, t.delta
+            pert.append((Pk, Dk))
+        step = np.zeros((n, 2))
+        if i.size:
+            m0 = _bucketed(P, D, need, i, j, ds)
+            gi = np.stack([(_mixed(Pk, Dk, P, D, need, i, j, ds) - m0) / eps for Pk, Dk in pert], axis=1)
+            gj = np.stack([(_mixed(P, D, Pk, Dk, need, i, j, ds) - m0) / eps for Pk, Dk in pert], axis=1)
+            lift = (2.0 * target - m0) / np.maximum((gi * gi).sum(1) + (gj * gj).sum(1), 1e-12)
+            np.add.at(step, i, lift[:, None] * gi)
+            np.add.at(step, j, lift[:, None] * gj)
+        if oi.size:
+            m0 = _bucketed(P, D, need, oi, ok, ods, centers=oc)
+            go = np.stack([(_bucketed(Pk, Dk, need, oi, ok, ods, centers=oc) - m0) / eps for Pk, Dk in pert], axis=1)
+            lift = (2.0 * target - m0) / np.maximum((go * go).sum(1), 1e-12)
+            np.add.at(step, oi, lift[:, None] * go)
+        if not step.any():
+            break
+        du = np.minimum(np.maximum(du + step, lo), hi)
+    return du
+
+
+def _mixed(Pi: np.ndarray, Di: np.ndarray, Pj: np.ndarray, Dj: np.ndarray, need: np.ndarray, i: np.ndarray,
+           j: np.ndarray, ds: np.ndarray) -> np.ndarray:
+    """Pair margins with member ``i`` on paths ``(Pi, Di)`` and member ``j`` on ``(Pj, Dj)`` (equal lengths)."""
+    L = Pi.shape[1]
+    return pair_margins(Pi[i, :L], Pj[j, :L], Di[i, : L - 1], Dj[j, : L - 1], ds)
+

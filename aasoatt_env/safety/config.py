@@ -39,7 +39,7 @@ from aasoatt_env.safety.barriers import BARRIERS
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
 from aasoatt_env.safety.solvers import get_solver
 
-__all__ = ["DEFAULT_SPEED_MARGIN", "GAIN_MAX", "FilterConfig", "auto_margin"]
+__all__ = ["GAIN_MAX", "FilterConfig", "auto_margin"]
 
 GAIN_MAX: float = 1e3
 """Largest accepted barrier/tracking gain (``k1``, ``k2``, ``k3``, ``k4``, ``gamma``,
@@ -47,9 +47,6 @@ GAIN_MAX: float = 1e3
 infeasible on most steps (``k1 = 1e10`` left 627 of 2,000 steps without an
 answer), so they are rejected rather than silently degraded."""
 
-
-DEFAULT_SPEED_MARGIN = 0.03
-"""Default ``speed_margin`` [s^2/m] with the backup layer on."""
 
 MARGIN_FADE_SPEED = 0.2
 """Relative speed [m/s] above which the automatic margin is at full size."""
@@ -119,11 +116,14 @@ class FilterConfig:
     brake_fraction : float
         The backup's control-point deceleration as a fraction of the robot's
         straight-line braking capability ``rho * max_wheel_accel``, in ``(0, 1]``.
-    speed_margin : float or None
+    backup_repair : bool
+        Where the backup layer would brake, first nudge the QP's answer toward
+        the safe set (the least change that lifts every low backup margin,
+        :func:`aasoatt_env.safety.backup.repair`) and check again; keeps crowds
+        moving.  On by default.
+    speed_margin : float
         Added to the safety distance of a pair in the barrier rows:
-        ``speed_margin * (|v_i|^2 + |v_j|^2)`` [s^2/m].  It keeps fast pairs
-        where braking along their arcs still clears, so the backup rarely has to
-        act.  None: 0.03 with the backup layer, 0 without.
+        ``speed_margin * (|v_i|^2 + |v_j|^2)`` [s^2/m] (default 0).
     max_wheel_speed : float or None
         Filter-side wheel-speed bound [rad/s] (None: none beyond the robots' own).
         The filter keeps ``|u + du dt| <= max_wheel_speed`` by tightening the box
@@ -171,7 +171,8 @@ class FilterConfig:
     decompose: bool = True
     backup: bool = True
     brake_fraction: float = 2.0 / 3.0
-    speed_margin: float | None = None
+    backup_repair: bool = True
+    speed_margin: float = 0.0
     max_wheel_speed: float | None = None
     eta_tol: float = 1e-6
     low_speed: float = 0.05
@@ -204,9 +205,8 @@ class FilterConfig:
             object.__setattr__(self, "safety_margin", check.real("safety_margin", self.safety_margin, lo=0.0, hi=1.0))
         object.__setattr__(self, "brake_fraction", check.real("brake_fraction", self.brake_fraction, lo=0.0,
                                                               hi=1.0, lo_open=True))
-        if self.speed_margin is not None:
-            object.__setattr__(self, "speed_margin", check.real("speed_margin", self.speed_margin, lo=0.0, hi=1.0))
-        for flag in ("active_set", "decompose", "backup"):
+        object.__setattr__(self, "speed_margin", check.real("speed_margin", self.speed_margin, lo=0.0, hi=1.0))
+        for flag in ("active_set", "decompose", "backup", "backup_repair"):
             check.boolean(flag, getattr(self, flag))
         object.__setattr__(self, "neural_iterations",
                            check.integer("neural_iterations", self.neural_iterations, lo=1, hi=1_000_000))
@@ -239,13 +239,6 @@ class FilterConfig:
             )
         check.reject_unknown("FilterConfig", options, known)
         return replace(base, **options) if options else base
-
-    @property
-    def speed_margin_coefficient(self) -> float:
-        """``speed_margin`` with its default resolved (0.03 with the backup layer, 0 without)."""
-        if self.speed_margin is not None:
-            return float(self.speed_margin)
-        return DEFAULT_SPEED_MARGIN if self.backup else 0.0
 
     @property
     def margin(self) -> float:

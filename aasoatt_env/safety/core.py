@@ -32,7 +32,7 @@ from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
 from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
 from aasoatt_env.model.params import Team
-from aasoatt_env.safety.backup import gatekeeper
+from aasoatt_env.safety.backup import gatekeeper, repair
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
@@ -317,7 +317,7 @@ class SafetyFilter:
 
         # rows --------------------------------------------------------------------------
         margin = cfg.pair_margin(geo_v)
-        c_speed = cfg.speed_margin_coefficient
+        c_speed = cfg.speed_margin
         if c_speed:
             sp2 = np.einsum("ij,ij->i", v, v)
             margin = margin + c_speed * (sp2[ri] + np.where(rj >= 0, sp2[np.maximum(rj, 0)], 0.0))
@@ -389,8 +389,15 @@ class SafetyFilter:
         # backup layer -----------------------------------------------------------------
         braking = np.zeros(n, dtype=bool)
         if cfg.backup:
-            gate = gatekeeper(team, _axle_pose(team, p, theta), u, du, cfg.dt, sensing_range=cfg.sensing_range,
-                              brake_fraction=cfg.brake_fraction, obstacles=obstacles, tol=_GATE_TOL)
+            pose = _axle_pose(team, p, theta)
+            gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles)
+            gate = gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, **gate_kw)
+            if cfg.backup_repair and gate.braking.any() and gate.safe:
+                # nudge the QP's answer toward brake-safety, then check again (usually nobody brakes then)
+                repaired = repair(team, pose, u, du, cfg.dt, lo, hi, **gate_kw)
+                second = gatekeeper(team, pose, u, repaired, cfg.dt, tol=_GATE_TOL, **gate_kw)
+                if int(second.braking.sum()) <= int(gate.braking.sum()):
+                    gate = second
             # robots the backup cannot save any more (the invariant was broken before): best effort, the QP
             du_qp, broken = du, gate.broken
             du = np.where(broken[:, None], du_qp, gate.du)

@@ -34,6 +34,8 @@ DENSE_MAX_VARS: int = 80
 """Problems up to this many variables use dense algebra."""
 DENSE_MAX_ROWS: int = 500
 """Working sets up to this size use a dense Cholesky of the Schur complement."""
+WARM_REL: float = 1e-6
+"""Rows whose warm-start multiplier exceeds this fraction of the largest start in the working set."""
 TOL: float = 1e-10
 """Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
 
@@ -94,9 +96,10 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
     if z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
         return None
     W = np.zeros(mt, dtype=bool)
-    # rows with a positive multiplier that are (nearly) tight at x0: proxsuite leaves
-    # ~1e-10 multipliers on slack rows, which would crowd the working set
-    W[:m] = (z0 > 0) & ((prob.C @ x0 - prob.u) > -1e-6) if m else False
+    # rows whose multiplier was positive at the previous step (relative to the largest: solvers
+    # leave ~1e-10 multipliers on slack rows, which would crowd the working set); no tightness
+    # test, since the state has moved since and the rows with it
+    W[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), 1e-300) if m else False
     W[m:m + n] = x0 >= prob.ub - 1e-9
     W[m + n:] = x0 <= prob.lb + 1e-9
     lam = np.zeros(mt)
