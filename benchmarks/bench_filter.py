@@ -1,32 +1,32 @@
-"""Benchmark the safety-filter step (rows + solve) against Robotarium-style cvxopt and OSQP filters.
+"""Benchmark the safety-filter step along short closed-loop sequences, against Robotarium-style whole-team QPs.
 
-Congested moment: a random packed layout (jittered grid, spacing 1.1 m, robots
-moving at ~0.5-1 m/s in random directions, nominal = random accelerations of up
-to 30 rad/s^2), so every robot has many neighbours inside D = 3 m and most
-nominals violate a row.  "sparse": the same grid 2 m apart with gentle
-nominals (rows present, few bind: the typical step of a spread-out team).
-For N <= 39 the circle swap (R = 6) snapshot near the centre crossing is
-timed as well.
+Scenes (each a sequence of consecutive physics steps, so warm starts carry from
+step to step as they do in use; every variant sees the same states):
 
-Every column is a whole ``SafetyFilter.step`` (neighbour search, rows, QP
-assembly, solve, result) on the same state and the same rows; medians over
-repeated calls, one core:
+  circle   the circle swap (R = 6) around the centre crossing (steps 1100-1119 of
+           the tracking controller behind the default filter), N = 10 and 39
+  packed   a jittered grid 1.1 m apart, robots moving at 0.5-1 m/s in random
+           directions, held random nominals of up to 30 rad/s^2 (a congested
+           moment: every robot has many neighbours within D = 3 m and most
+           nominals violate a row), N = 39 ... 3,000
+  spread   the same grid 2 m apart with gentle nominals (rows present, few bind),
+           N = 39 ... 10,000
 
-  ours        the default filter (exact decomposition + proxsuite)
-  whole QP    the same without decomposition (``decompose=False``): one QP for the team
-  cvxopt      Robotarium-style: the whole team in one ``cvxopt.solvers.qp`` call
-              (``solver="cvxopt", decompose=False``)
-  osqp        OSQP, whole team, eps 1e-7 with polishing (``solver="osqp", decompose=False``)
-  daqp        the default filter with DAQP instead of proxsuite (``solver="daqp"``)
-  ldp         the default filter with the exact NNLS solver (``solver="ldp"``, proxsuite's
-              fallback; dense, so only up to ``ldp.MAX_VARS`` variables: N <= 250)
-  active set  ``active_set=True`` repeated on the same state: the warm active-set
-              path's best case (opt-in; slower than the default in the 39-robot closed loop)
-  qp rows     rows the QP saw after decomposition / all rows
+Columns (median ms per whole ``SafetyFilter.step``: neighbours, rows, QP, backup layer, result):
 
-Ratios are against ``ours`` in the same run.
+  ours          the default filter (decomposition, warm active set, proxsuite, backup layer)
+  layer off     the same without the backup layer (the paper's filter)
+  whole QP      one QP for the whole team, proxsuite (``decompose=False``, no warm start)
+  cvxopt        Robotarium-style: the whole team in one ``cvxopt.solvers.qp`` call
+  osqp          OSQP, whole team, eps 1e-7 with polishing
+  daqp          the default pipeline with DAQP instead of proxsuite (layer off)
+  decentral     ``mode="decentralized"``: every robot's own 2-variable QP (when available)
 
-Usage: python benchmarks/bench_filter.py [--quick]
+Ratios are against ``ours`` in the same run.  Exactness: the largest
+``|du - du_ref|`` of ``layer off`` over every step, ``du_ref`` from an
+independent solver (quadprog up to 300 robots, Clarabel at 1e-10 above).
+
+Usage: python benchmarks/bench_filter.py [--quick] [--sizes 39,100] [--steps 20]
 """
 
 from __future__ import annotations
@@ -41,15 +41,60 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from aasoatt_env import make_env  # noqa: E402
-from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point  # noqa: E402
+from aasoatt_env.errors import ConfigError  # noqa: E402
+from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point  # noqa: E402
 from aasoatt_env.model.params import make_team  # noqa: E402
 from aasoatt_env.safety import SafetyFilter  # noqa: E402
 from aasoatt_env.safety.solvers import available_solvers  # noqa: E402
-from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS  # noqa: E402
 from agents import TrackingController  # noqa: E402
 
+VARIANTS = {
+    "ours": {},
+    "layer off": {"backup": False},
+    "whole QP": {"decompose": False, "active_set": False, "backup": False},
+    "cvxopt": {"solver": "cvxopt", "decompose": False, "active_set": False, "backup": False},
+    "osqp": {"solver": "osqp", "decompose": False, "active_set": False, "backup": False},
+    "daqp": {"solver": "daqp", "backup": False},
+    "decentral": {"mode": "decentralized"},
+}
+SLOW = {"cvxopt": 1000, "osqp": 1000, "whole QP": 1000, "daqp": 300}
+"""Largest team a slow variant is run on."""
 
-def packed(n: int, seed: int = 0, spacing: float = 1.1, nominal: float = 30.0):
+
+class _Capture:
+    """A control filter that runs the default ``SafetyFilter`` and keeps its inputs at physics steps ``[a, b)``."""
+
+    keeps_input_bounds = True
+
+    def __init__(self, a: int, b: int) -> None:
+        self.inner, self.a, self.b, self.k, self.seq = SafetyFilter(), a, b, 0, []
+
+    def reset(self, team) -> None:
+        self.inner.reset(team)
+
+    def __call__(self, inp, du_nominal):
+        if self.a <= self.k < self.b:
+            p_d, v_d, _ = inp.reference
+            self.seq.append((inp.kin, inp.u.copy(), inp.theta.copy(), du_nominal.copy(), inp.lo, inp.hi,
+                             (p_d, v_d)))
+        self.k += 1
+        return self.inner(inp, du_nominal)
+
+
+def circle_sequence(n: int, steps: int):
+    """Filter inputs at physics steps 1100.. of the circle swap (the centre crossing)."""
+    env = make_env("circle_swap", num_robots=n, settle_time=0.0)
+    cap = _Capture(1100, 1100 + steps)
+    env.set_control_filter(cap)
+    obs, _ = env.reset(seed=0)
+    agent = TrackingController()
+    while len(cap.seq) < steps:
+        obs, *_ = env.step(agent.act(obs, env))
+    return env.team, cap.seq, "auxiliary_velocity"
+
+
+def grid_sequence(n: int, steps: int, spacing: float, nominal: float, seed: int = 0):
+    """A jittered grid moving under held random nominals, advanced by the default filter."""
     rng = np.random.default_rng(seed)
     team = make_team("paper", n)
     side = int(np.ceil(np.sqrt(n)))
@@ -58,80 +103,54 @@ def packed(n: int, seed: int = 0, spacing: float = 1.1, nominal: float = 30.0):
     theta = rng.uniform(-np.pi, np.pi, n)
     pose = pose_from_point(team, p, theta)
     u = rng.uniform(2, 8, (n, 1)) * np.ones((1, 2)) + rng.normal(0, 0.5, (n, 2))
-    kin = kinematics(team, pose, u)
-    lo, hi = input_bounds(team, u, 0.005)
     nom = rng.uniform(-nominal, nominal, (n, 2))
-    return team, (kin, u, theta, nom, lo, hi, None)
+    f = SafetyFilter(team, deadlock="none")
+    seq = []
+    for _ in range(steps):
+        kin = kinematics(team, pose, u)
+        lo, hi = input_bounds(team, u, DT)
+        seq.append((kin, u.copy(), pose[:, 2].copy(), nom, lo, hi, None))
+        du, _ = f.step(kin, u, pose[:, 2], nom, lo, hi)
+        pose, u = integrate(team, pose, u, du, DT)
+    return team, seq, "none"
 
 
-class _Capture:
-    """A control filter that runs the default ``SafetyFilter`` and keeps its inputs at one physics step."""
-
-    keeps_input_bounds = True
-
-    def __init__(self, at_step: int) -> None:
-        self.inner, self.at, self.k, self.snapshot = SafetyFilter(), at_step, 0, None
-
-    def reset(self, team) -> None:
-        self.inner.reset(team)
-
-    def __call__(self, inp, du_nominal):
-        if self.k == self.at:
-            p_d, v_d, _ = inp.reference
-            self.snapshot = (inp.kin, inp.u.copy(), inp.theta.copy(), du_nominal.copy(), inp.lo, inp.hi, (p_d, v_d))
-        self.k += 1
-        return self.inner(inp, du_nominal)
+def _reference(team, seq, deadlock):
+    """Independent solver's answers of the QP (layer off) at every step."""
+    solver = "quadprog" if team.n <= 300 and "quadprog" in available_solvers() else "clarabel"
+    if solver not in available_solvers():
+        return None
+    f = SafetyFilter(team, deadlock=deadlock, backup=False, solver=solver, decompose=False, active_set=False)
+    return [f.step(kin, u, th, nom, lo, hi, reference=ref)[0] for kin, u, th, nom, lo, hi, ref in seq]
 
 
-def circle_snapshot(n: int):
-    """The filter's inputs at physics step 1100 (5.5 s, the centre crossing) of the circle swap (R = 6, 12 s)."""
-    env = make_env("circle_swap", num_robots=n, settle_time=0.0)
-    cap = _Capture(1100)
-    env.set_control_filter(cap)
-    obs, _ = env.reset(seed=0)
-    agent = TrackingController()
-    while cap.snapshot is None:
-        obs, *_ = env.step(agent.act(obs, env))
-    return env.team, cap.snapshot
-
-
-def timed(fn, reps: int) -> float:
-    ts = []
-    for _ in range(reps):
-        t = time.perf_counter()
-        fn()
-        ts.append(time.perf_counter() - t)
-    return float(np.median(ts))
-
-
-VARIANTS = {
-    "ours": {},
-    "whole QP": {"decompose": False},
-    "cvxopt": {"solver": "cvxopt", "decompose": False},
-    "osqp": {"solver": "osqp", "decompose": False},
-    "daqp": {"solver": "daqp"},
-    "ldp": {"solver": "ldp"},
-    "active set": {"active_set": True},
-}
-
-
-def bench(label: str, team, snap, reps: int, slow_reps: int) -> dict:
-    kin, u, theta, nom, lo, hi, ref = snap
-    deadlock = "none" if ref is None else "auxiliary_velocity"
+def bench(label: str, team, seq, deadlock: str, reps: int) -> dict:
     out = {"scene": label, "N": team.n}
+    ref = _reference(team, seq, deadlock)
     for name, kw in VARIANTS.items():
-        too_big = kw.get("solver") == "ldp" and 2 * team.n > LDP_MAX_VARS
-        if kw.get("solver", "proxsuite") not in available_solvers() or too_big:
+        if kw.get("solver", "proxsuite") not in available_solvers() or team.n > SLOW.get(name, 10**9):
             out[name] = float("nan")
             continue
-        f = SafetyFilter(team, deadlock=deadlock, **kw)
-        du, res = f.step(kin, u, theta, nom, lo, hi, reference=ref)  # warm-up (and warm start)
+        try:
+            f = SafetyFilter(team, deadlock=deadlock, **kw)
+        except (ConfigError, TypeError):  # e.g. mode="decentralized" not in this version
+            out[name] = float("nan")
+            continue
+        times, err, backup_steps = [], 0.0, 0
+        for _ in range(reps):
+            f.reset()
+            for k, (kin, u, th, nom, lo, hi, r) in enumerate(seq):
+                t = time.perf_counter()
+                du, res = f.step(kin, u, th, nom, lo, hi, reference=r)
+                times.append(time.perf_counter() - t)
+                if name == "layer off" and ref is not None:
+                    err = max(err, float(np.abs(du - ref[k]).max(initial=0.0)))
+                backup_steps += bool(res.backup.any())
+        out[name] = float(np.median(times))
         if name == "ours":
-            out["rows"], out["qp rows"], out["status"], du_ref = res.n_rows, res.n_qp_rows, res.status, du
-        else:
-            out[name + " err"] = float(np.max(np.abs(du - du_ref), initial=0.0))
-        r = reps if name in ("ours", "active set", "whole QP", "daqp", "ldp") else slow_reps
-        out[name] = timed(lambda f=f: f.step(kin, u, theta, nom, lo, hi, reference=ref), r)
+            out["rows"], out["qp rows"], out["backup steps"] = res.n_rows, res.n_qp_rows, backup_steps // reps
+        if name == "layer off":
+            out["err"] = err if ref is not None else float("nan")
     return out
 
 
@@ -141,28 +160,38 @@ def _fmt(v: float, width: int, digits: int) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--quick", action="store_true", help="N <= 300 and fewer repetitions")
+    ap.add_argument("--quick", action="store_true", help="N <= 300, 8 steps per scene")
+    ap.add_argument("--steps", type=int, default=20, help="consecutive physics steps per scene")
+    ap.add_argument("--sizes", default=None, help="comma-separated grid sizes (default 39,100,300,1000,3000,10000)")
     args = ap.parse_args()
-    sizes = [10, 39, 100, 300] if args.quick else [10, 39, 100, 300, 1000]
-    reps = 5 if args.quick else 21
-    rows = [bench("circle", *circle_snapshot(n), reps, max(3, reps // 3)) for n in (10, 39)]
+    steps = 8 if args.quick else args.steps
+    sizes = [int(s) for s in args.sizes.split(",")] if args.sizes else (
+        [39, 100, 300] if args.quick else [39, 100, 300, 1000, 3000, 10000])
+    rows = []
+    for n in (10, 39):
+        rows.append(bench("circle", *circle_sequence(n, steps), reps=3))
+        print(f"  done circle N={n}", flush=True)
     for n in sizes:
-        rows.append(bench("packed", *packed(n), reps if n <= 300 else 5, max(3, reps // 3) if n <= 300 else 3))
-    for n in sizes:  # the same grid, 2 m apart, gentle nominals: rows present, few bind
-        rows.append(bench("sparse", *packed(n, spacing=2.0, nominal=3.0), reps if n <= 300 else 5,
-                          max(3, reps // 3) if n <= 300 else 3))
+        if n <= 3000:
+            k = steps if n <= 300 else max(4, steps // 4)
+            rows.append(bench("packed", *grid_sequence(n, k, 1.1, 30.0), reps=3 if n <= 300 else 1))
+            print(f"  done packed N={n}", flush=True)
+    for n in sizes:
+        k = steps if n <= 300 else max(4, steps // 4)
+        rows.append(bench("spread", *grid_sequence(n, k, 2.0, 3.0), reps=3 if n <= 300 else 1))
+        print(f"  done spread N={n}", flush=True)
     names = list(VARIANTS)
-    print("median ms per filter step (rows + solve); ratio = variant / ours\n")
-    print(f"{'scene':7s} {'N':>5s} {'rows':>6s} {'qp rows':>8s} {'status':>8s} "
-          + " ".join(f"{k:>10s}" for k in names) + " " + " ".join(f"{k + '/ours':>12s}" for k in names[1:]))
+    print("\nmedian ms per filter step along the sequence; ratio = variant / ours\n")
+    print(f"{'scene':7s} {'N':>6s} {'rows':>6s} {'qp rows':>8s} {'backup':>7s} "
+          + " ".join(f"{k:>10s}" for k in names) + " " + " ".join(f"{k + '/ours':>14s}" for k in names[1:])
+          + f" {'err':>8s}")
     for r in rows:
-        print(f"{r['scene']:7s} {r['N']:5d} {r['rows']:6d} {r['qp rows']:8d} {r['status']:>8s} "
+        print(f"{r['scene']:7s} {r['N']:6d} {r.get('rows', 0):6d} {r.get('qp rows', 0):8d} "
+              f"{r.get('backup steps', 0):7d} "
               + " ".join(_fmt(r[k] * 1e3, 10, 2) for k in names) + " "
-              + " ".join(_fmt(r[k] / r['ours'], 12, 1) for k in names[1:]))
-    errs = ", ".join(
-        f"{k} {max((r.get(k + ' err', 0.0) for r in rows if np.isfinite(r[k])), default=0.0):.1e}" for k in names[1:]
-    )
-    print(f"\nlargest |du - du_ours| [rad/s^2] (same QP; cvxopt and OSQP at their own tolerances): {errs}")
+              + " ".join(_fmt(r[k] / r['ours'], 14, 2) for k in names[1:]) + f" {r.get('err', float('nan')):8.1e}")
+    print("\nerr: largest |du - du_ref| [rad/s^2] of 'layer off' over every step against an independent solver")
+
 
 if __name__ == "__main__":
     main()

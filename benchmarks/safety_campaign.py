@@ -1,85 +1,208 @@
-"""Closed-loop safety campaign of the AA-SOATT filter (issue 3's "Must show", long form).
+"""Closed-loop safety campaign of the default filter: adversarial nominals, and the paper's scenarios.
 
-Runs, with the paper's method (TrackingController behind AASOATTFilter, defaults):
+``adversarial`` (the guarantee): every adversary of :data:`agents.ADVERSARIES`
+drives every robot of a team behind ``AASOATTFilter`` with its defaults, for
+``--steps`` physics steps (``decision_interval=1``), over
 
-* circle swap radius 6, 12 s (+3 s settling), N = 10, 20, 30, 35, 39;
-* circle swap radius 10, 20 s (+3 s settling), N = 60 (paper robots) and N = 100
-  (robots of radius 0.3, as in ``aasoatt reproduce swarm100``: 100 robots of the
-  paper's radius 0.48 do not fit on a radius-10 circle);
+* teams: N = 2, 8, 16 on RandomGoals (arena by default), and N = 39 on the
+  radius-6 circle (the paper's largest crowd);
+* presets: ``paper`` (no wheel-speed limit), ``turtlebot3`` (TurtleBot3 Burger,
+  6.67 rad/s) and ``mixed`` (the two alternating);
+* static obstacles: none, or 4 random discs (RandomGoals; the circle's Fig. 5
+  obstacles on the circle);
+* seeds 0 .. ``--seeds - 1``.
 
-and, behind the filter, uniform random actions and a hostile policy (every
-robot accelerates at its nearest neighbour) on RandomGoals with 20 robots,
-10 seeds x 2,000 steps each.  Prints one table: minimum centre distance minus
-``d_s`` (must be >= -1e-3), steps relaxed / failed, largest final distance to
-the goal (circle runs: must be <= 0.05), collisions, wall time.
+Each episode reports the smallest robot-robot and robot-obstacle surface gaps
+(``d_s`` met when ``>= -1e-3``), NaN anywhere, the steps where the backup layer
+braked and where a status said ``unsafe``, and the wall time.  Results are
+appended to a JSONL file as they finish; a run with the same ``--out`` resumes
+where it stopped.
 
-Usage: ``python benchmarks/safety_campaign.py [--quick] [--solver proxsuite] [--only r6|r10|random]``
+``paper`` (liveness): the paper's method (tracking controller) on the radius-6
+circle, N = 10, 20, 30, 35, 39 (+3 s to settle), the radius-10 circle N = 60
+(+3 s) and the 20-robot Fig. 5 obstacle scene, with the layer on and off: gaps,
+every robot's final distance to its goal (must be <= 0.05 m), tracking RMSE.
+
+Usage::
+
+    python benchmarks/safety_campaign.py adversarial --seeds 7 --steps 800 --jobs 2 --out results/campaign.jsonl
+    python benchmarks/safety_campaign.py paper --out results/paper_liveness.jsonl
+    python benchmarks/safety_campaign.py summary --out results/campaign.jsonl
 """
 
 from __future__ import annotations
 
 import argparse
+import inspect
+import itertools
+import json
+import os
 import time
+from pathlib import Path
 
-import numpy as np
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
-from aasoatt_env import FilterConfig, make_env
-from aasoatt_env.analysis.metrics import collisions, pairwise_min_distance
-from aasoatt_env.analysis.recording import run_episode
-from aasoatt_env.model.params import RobotParams
-from agents import HostileAgent, RandomAgent, TrackingController
+import numpy as np  # noqa: E402
+
+PRESETS = {"paper": "paper", "turtlebot3": "turtlebot3_burger", "mixed": None}
+TEAMS = (2, 8, 16, 39)
+TOL = 1e-3
 
 
-def _row(label: str, rollout, t: float, goal_check: bool) -> str:
+def _robots(preset: str, n: int):
+    spec = PRESETS[preset]
+    return spec if spec is not None else ["paper" if i % 2 == 0 else "turtlebot3_burger" for i in range(n)]
+
+
+def _episode(key: dict) -> dict:
+    from aasoatt_env import make_env
+    from aasoatt_env.analysis.metrics import pairwise_min_distance
+    from aasoatt_env.analysis.recording import run_episode
+    from agents import ADVERSARIES
+
+    n, preset, obst, adv, seed, steps = key["n"], key["preset"], key["obstacles"], key["adversary"], key["seed"], \
+        key["steps"]
+    robots = _robots(preset, n)
+    if n == 39:  # the radius-6 circle, with the Fig. 5 obstacles inside it or without
+        kw = dict(scenario="circle_obstacles" if obst else "circle_swap", num_robots=39, robots=robots)
+    else:
+        kw = dict(scenario="random_goals", num_robots=n, robots=robots, random_obstacles=4 if obst else 0)
+    env = make_env(filter=True, max_steps=steps, **kw)
+    cls = ADVERSARIES[adv]
+    agent = cls(seed=seed) if "seed" in inspect.signature(cls).parameters else cls()
+    t = time.perf_counter()
+    rollout, _ = run_episode(env, agent, seed=seed)
+    wall = time.perf_counter() - t
     sep = pairwise_min_distance(rollout)
-    gap = sep.overall_min_gap
-    status = rollout.solver_status
-    final = np.linalg.norm(rollout.positions[-1] - rollout.goals, axis=1).max() if goal_check else None
-    ok = gap >= -1e-3 and (final is None or final <= 0.05) and not np.any(status == "failed")
-    final_txt = "-" if final is None else f"{final:.4f}"  # no goal check for RandomGoals policies
-    return (
-        f"{label:34s} {gap:+10.5f} {int(np.sum(status == 'relaxed')):8d} {int(np.sum(status == 'failed')):7d} "
-        f"{final_txt:>10s} {collisions(rollout).n_robot_pairs:6d} {t:8.1f}  {'ok' if ok else 'FAIL'}"
-    )
+    finite = all(np.all(np.isfinite(getattr(rollout, f))) for f in ("positions", "velocities", "headings"))
+    return {**key, "min_robot_gap": float(sep.overall_min_robot_gap) if n > 1 else None,
+            "min_obstacle_gap": float(sep.overall_min_obstacle_gap) if rollout.n_obstacles else None,
+            "finite": bool(finite), "backup_steps": int(rollout.backup.any(axis=1).sum()),
+            "unsafe_steps": int(np.sum(rollout.solver_status == "unsafe")), "steps": int(rollout.n_steps - 1),
+            "wall_s": wall}
+
+
+def _key_id(k: dict) -> str:
+    return f"{k['adversary']}/N={k['n']}/{k['preset']}/obst={int(k['obstacles'])}/seed={k['seed']}"
+
+
+def _done(path: Path) -> dict[str, dict]:
+    if not path.is_file():
+        return {}
+    out = {}
+    for line in path.read_text().splitlines():
+        if line.strip():
+            rec = json.loads(line)
+            out[_key_id(rec)] = rec
+    return out
+
+
+def adversarial(args: argparse.Namespace) -> None:
+    from agents import ADVERSARIES
+
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    done = _done(out)
+    keys = [dict(adversary=a, n=n, preset=p, obstacles=o, seed=s, steps=args.steps)
+            for s, a, n, p, o in itertools.product(range(args.seeds), ADVERSARIES, TEAMS, PRESETS, (False, True))]
+    todo = [k for k in keys if _key_id(k) not in done]
+    print(f"{len(keys)} episodes, {len(keys) - len(todo)} already in {out}, {len(todo)} to run", flush=True)
+    t0 = time.perf_counter()
+    with out.open("a") as fh:
+        if args.jobs > 1:
+            import multiprocessing as mp
+
+            with mp.get_context("spawn").Pool(args.jobs) as pool:
+                for rec in pool.imap_unordered(_episode, todo):
+                    fh.write(json.dumps(rec) + "\n")
+                    fh.flush()
+                    _progress(rec)
+        else:
+            for k in todo:
+                rec = _episode(k)
+                fh.write(json.dumps(rec) + "\n")
+                fh.flush()
+                _progress(rec)
+    print(f"wall {time.perf_counter() - t0:.0f} s this run", flush=True)
+    summary(args)
+
+
+def _progress(rec: dict) -> None:
+    gap = rec["min_robot_gap"]
+    og = rec["min_obstacle_gap"]
+    print(f"{_key_id(rec):45s} gap {gap if gap is None else f'{gap:+.4f}'} obst {og if og is None else f'{og:+.4f}'} "
+          f"backup {rec['backup_steps']:4d} unsafe {rec['unsafe_steps']} {rec['wall_s']:.1f}s", flush=True)
+
+
+def summary(args: argparse.Namespace) -> None:
+    recs = list(_done(Path(args.out)).values())
+    if not recs:
+        print("no results yet")
+        return
+    def bad(r: dict) -> bool:
+        gaps = [g for g in (r["min_robot_gap"], r["min_obstacle_gap"]) if g is not None]
+        return (not r["finite"]) or any(g < -TOL for g in gaps)
+
+    print(f"\n{len(recs)} episodes x {recs[0]['steps']} physics steps; wall {sum(r['wall_s'] for r in recs):.0f} s "
+          f"(sum over episodes)\n")
+    print("| adversary | episodes | closest robot pair gap [m] | closest obstacle gap [m] | pairs closer than "
+          "d_s - 1e-3 | NaN | backup steps (share) | unsafe steps |")
+    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    for adv in sorted({r["adversary"] for r in recs}) + ["all"]:
+        rs = [r for r in recs if adv in ("all", r["adversary"])]
+        g = [r["min_robot_gap"] for r in rs if r["min_robot_gap"] is not None]
+        o = [r["min_obstacle_gap"] for r in rs if r["min_obstacle_gap"] is not None]
+        steps = sum(r["steps"] for r in rs)
+        print(f"| {adv} | {len(rs)} | {min(g):+.4f} | {min(o) if o else float('nan'):+.4f} | "
+              f"{sum(bad(r) for r in rs)} | {sum(not r['finite'] for r in rs)} | "
+              f"{sum(r['backup_steps'] for r in rs)} ({sum(r['backup_steps'] for r in rs) / max(steps, 1):.1%}) | "
+              f"{sum(r['unsafe_steps'] for r in rs)} |")
+
+
+def paper(args: argparse.Namespace) -> None:
+    from aasoatt_env import FilterConfig, make_env
+    from aasoatt_env.analysis.metrics import summarize
+    from aasoatt_env.analysis.recording import run_episode
+    from agents import TrackingController
+
+    runs = [("circle R=6", dict(scenario="circle_swap", num_robots=n, radius=6.0, duration=12.0)) for n in
+            (10, 20, 30, 35, 39)]
+    runs += [("circle R=10", dict(scenario="circle_swap", num_robots=60, radius=10.0, duration=20.0)),
+             ("Fig. 5 obstacles", dict(scenario="circle_obstacles", num_robots=20))]
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    print("| scene | N | layer | closest gap [m] | worst final error [m] | robots home | RMSE [m] | backup steps | "
+          "wall [s] |")
+    print("|---|---:|---|---:|---:|---:|---:|---:|---:|")
+    with out.open("a") as fh:
+        for label, kw in runs:
+            for layer in (True, False):
+                env = make_env(filter=FilterConfig(backup=layer), settle_time=3.0, **kw)
+                t = time.perf_counter()
+                ro, _ = run_episode(env, TrackingController(), seed=0)
+                wall = time.perf_counter() - t
+                s = summarize(ro, goal_tolerance=0.05)
+                gap = min(v for v in (s["min_robot_gap"], s["min_obstacle_gap"]) if v is not None)
+                fe = np.linalg.norm(ro.positions[-1] - ro.goals, axis=1)
+                rec = dict(scene=label, n=kw["num_robots"], layer=layer, min_gap=gap, final_max=float(fe.max()),
+                           home=int(np.sum(fe <= 0.05)), rmse=s["rmse"], backup_steps=int(ro.backup.any(axis=1).sum()),
+                           wall_s=wall)
+                fh.write(json.dumps(rec) + "\n")
+                fh.flush()
+                print(f"| {label} | {rec['n']} | {'on' if layer else 'off'} | {gap:+.4f} | {rec['final_max']:.4f} | "
+                      f"{rec['home']}/{rec['n']} | {rec['rmse']:.4f} | {rec['backup_steps']} | {wall:.0f} |", flush=True)
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="N = 10, 39 and 2 seeds only")
-    parser.add_argument("--solver", default="proxsuite")
-    parser.add_argument("--wheel-speed-limit", type=float, default=None,
-                        help="RandomGoals robots: paper robots with this wheel-speed limit [rad/s] (default: none)")
-    parser.add_argument("--filter-speed-limit", type=float, default=None,
-                        help="RandomGoals: the filter's max_wheel_speed [rad/s] on the robots (default: none)")
-    parser.add_argument("--only", choices=("r6", "r10", "random"),
-                        help="run only the radius-6 circles, the radius-10 circles or RandomGoals")
-    args = parser.parse_args()
-    head = ("run", "min gap", "relaxed", "failed", "final err", "coll.", "time s")
-    print(f"{head[0]:34s} " + " ".join(f"{h:>{w}s}" for h, w in zip(head[1:], (10, 8, 7, 10, 6, 8))))
-    circles = [(6.0, 12.0, n, None) for n in ((10, 39) if args.quick else (10, 20, 30, 35, 39))]
-    if not args.quick:
-        circles += [(10.0, 20.0, 60, None), (10.0, 20.0, 100, "paper_small")]
-    if args.only is not None:
-        circles = [c for c in circles if args.only == f"r{c[0]:g}"]
-    for radius, duration, n, robots in circles:
-        kwargs = {} if robots is None else {"robots": robots}
-        env = make_env("circle_swap", filter=FilterConfig(solver=args.solver), num_robots=n, radius=radius,
-                       duration=duration, settle_time=3.0, **kwargs)
-        t = time.perf_counter()
-        rollout, _ = run_episode(env, TrackingController(), seed=0)
-        print(_row(f"circle R={radius:g} N={n}", rollout, time.perf_counter() - t, True), flush=True)
-    seeds = range(2 if args.quick else 10) if args.only in (None, "random") else range(0)
-    for name, agent in (("random", RandomAgent(seed=0)), ("hostile", HostileAgent())):
-        for seed in seeds:
-            limit = args.wheel_speed_limit
-            robots = {} if limit is None else {"robots": RobotParams(max_wheel_speed=limit)}
-            fc = FilterConfig(solver=args.solver, max_wheel_speed=args.filter_speed_limit)
-            env = make_env("random_goals", filter=fc, num_robots=20, max_steps=2000, **robots)
-            t = time.perf_counter()
-            rollout, _ = run_episode(env, agent, seed=seed)
-            tag = "" if args.wheel_speed_limit is None else f" |w|<={args.wheel_speed_limit:g}"
-            tag += "" if args.filter_speed_limit is None else f" filter |w|<={args.filter_speed_limit:g}"
-            print(_row(f"random_goals N=20 {name}{tag} s={seed}", rollout, time.perf_counter() - t, False), flush=True)
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("what", choices=("adversarial", "paper", "summary"))
+    ap.add_argument("--seeds", type=int, default=7, help="seeds per combination (adversarial)")
+    ap.add_argument("--steps", type=int, default=800, help="physics steps per episode (adversarial)")
+    ap.add_argument("--jobs", type=int, default=1, help="episodes in parallel processes")
+    ap.add_argument("--out", default="results/safety_campaign.jsonl", help="JSONL results (appended; resumable)")
+    args = ap.parse_args()
+    {"adversarial": adversarial, "paper": paper, "summary": summary}[args.what](args)
 
 
 if __name__ == "__main__":

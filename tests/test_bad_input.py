@@ -86,7 +86,7 @@ SCENARIO_KEYWORDS = {
     "circle_obstacles": ["num_robots", "radius", "duration", "settle_time", "obstacles"],
     "tracking": ["trajectory", "speed", "amplitude", "frequency", "circle_radius", "duration", "robots", "reference"],
     "position_swap": ["distance", "speed", "settle_time", "robots"],
-    "random_goals": ["num_robots", "arena_size", "min_spacing", "speed", "settle_time", "robots"],
+    "random_goals": ["num_robots", "arena_size", "min_spacing", "speed", "settle_time", "robots", "random_obstacles"],
     "custom": ["starts", "reference", "duration", "headings", "obstacles", "robots", "settle_time"],
 }
 CUSTOM_BASE = {"starts": [[0.0, 0.0], [3.0, 0.0]],

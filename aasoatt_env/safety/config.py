@@ -100,7 +100,7 @@ class FilterConfig:
         (:mod:`~aasoatt_env.safety.solvers.active_set`, accepted only when the KKT
         conditions check out; the solver otherwise).  It pays off when consecutive
         QPs share their active set and costs time when the set changes every step
-        (``benchmarks/bench_filter.py`` measures both).  Off by default.
+        (``benchmarks/bench_filter.py`` measures both).  On by default.
     decompose : bool
         With an exact solver (all but ``neural``): robots in no row are solved in
         closed form (a 2-variable box-constrained least squares each) and the QP
@@ -167,7 +167,7 @@ class FilterConfig:
     safety_margin: float | None = None
     dt: float = DT
     neural_iterations: int = 1
-    active_set: bool = False
+    active_set: bool = True
     decompose: bool = True
     backup: bool = True
     brake_fraction: float = 2.0 / 3.0

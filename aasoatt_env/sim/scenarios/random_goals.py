@@ -15,6 +15,7 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
+from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError, ScenarioError
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import FunctionReference
@@ -27,7 +28,10 @@ from aasoatt_env.sim.scenarios.base import (
     check_settle_time,
 )
 
-__all__ = ["RandomGoals"]
+__all__ = ["MAX_OBSTACLES", "RandomGoals"]
+
+MAX_OBSTACLES: int = 1000
+"""Largest ``random_obstacles``."""
 
 _SEQUENTIAL_MAX = 2000
 """Up to this many robots, points are placed one by one (the layouts of earlier releases, seed for seed);
@@ -57,6 +61,9 @@ class RandomGoals(Scenario):
         Extra time after the longest reference ends [s].
     robots : str, RobotParams or sequence
         Robot preset(s).
+    random_obstacles : int
+        Static disc obstacles (radius 0.3-0.8 m) placed at random, clear of
+        every start and goal by at least the robots' radius plus 0.1 m (default 0).
     """
 
     name = "random_goals"
@@ -70,8 +77,10 @@ class RandomGoals(Scenario):
         speed: float = 0.8,
         settle_time: float = 3.0,
         robots: str | RobotParams | list = "paper",
+        random_obstacles: int = 0,
     ) -> None:
         self.num_robots_ = check_num_robots(num_robots)
+        self.random_obstacles = check.integer("random_obstacles", random_obstacles, lo=0, hi=MAX_OBSTACLES)
         self._team = make_team(robots, self.num_robots_)
         d = 2.0 * float(self._team.radius.max())
         self.min_spacing = d + 0.2 if min_spacing is None else check_quantity("min_spacing", min_spacing)
@@ -151,11 +160,32 @@ class RandomGoals(Scenario):
             acceleration=lambda t: np.zeros_like(starts),
         )
         b = self.arena_size / 2.0 + 0.5
+        centers, radii = self._obstacles(rng, np.concatenate((starts, goals)))
         return Layout(
             team=self._team,
             starts=starts,
             headings=np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0]),
             reference=ref,
             horizon=T + self.settle_time,
+            obstacle_centers=centers,
+            obstacle_radii=radii,
             bounds=(-b, b, -b, b),
         )
+
+    def _obstacles(self, rng: np.random.Generator, keep_clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``random_obstacles`` discs clear of the starts and goals (rejection sampling, vectorised per batch)."""
+        m = self.random_obstacles
+        if m == 0:
+            return np.zeros((0, 2)), np.zeros(0)
+        clear = float(self._team.radius.max()) + 0.1
+        half = self.arena_size / 2.0
+        centers, radii = np.empty((0, 2)), np.empty(0)
+        for _ in range(100):
+            c = rng.uniform(-half, half, size=(4 * m, 2))
+            r = rng.uniform(0.3, 0.8, size=4 * m)
+            d = np.hypot(*(c[:, None, :] - keep_clear[None, :, :]).transpose(2, 0, 1)).min(axis=1)
+            ok = d >= r + clear
+            centers, radii = np.concatenate((centers, c[ok]))[:m], np.concatenate((radii, r[ok]))[:m]
+            if radii.size == m:
+                return centers, radii
+        raise ScenarioError(f"random_obstacles: could not place {m} obstacles clear of the robots; enlarge arena_size")
