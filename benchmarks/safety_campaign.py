@@ -191,7 +191,8 @@ def paper(args: argparse.Namespace) -> None:
                 fh.write(json.dumps(rec) + "\n")
                 fh.flush()
                 print(f"| {label} | {rec['n']} | {'on' if layer else 'off'} | {gap:+.4f} | {rec['final_max']:.4f} | "
-                      f"{rec['home']}/{rec['n']} | {rec['rmse']:.4f} | {rec['backup_steps']} | {wall:.0f} |", flush=True)
+                      f"{rec['home']}/{rec['n']} | {rec['rmse']:.4f} | {rec['backup_steps']} | {wall:.0f} |",
+                      flush=True)
 
 
 def main() -> None:
