@@ -395,49 +395,32 @@ def gatekeeper(
     theta = pose[:, 2]
     p0 = _point(team, pose)
     levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
+    last = len(levels) - 1
     du_b = braking_du(team, u, dt, brake_fraction)
 
-    # one path set per level: the backup now (level 0), or one step blending the candidate and the
-    # backup (du_b + a (du_c - du_b)), then the backup from there
+    # closed-form parameters per level (cheap, O(N)): a step blending the candidate and the backup,
+    # du_b + a (du_c - du_b), then the backup from there; level `last` is the backup from now
     b0 = _brake(team, theta, u, dt, brake_fraction)
-    steps = [b0.steps + 1]
     firsts = []
-    for a in levels[:-1]:
+    reach = np.empty((len(levels), n))
+    for k, a in enumerate(levels[:-1]):
         du_a = du_b + a * (du_c - du_b)
         p1, d1, theta1, u1 = _first_step(team, p0, theta, u, du_a, dt)
         b1 = _brake(team, theta1, u1, dt, brake_fraction)
         firsts.append((du_a, p1, d1, b1))
-        steps.append(b1.steps + 2)
-    L = max(max(int(x.max(initial=0)) for x in steps), 2)
-    P = np.empty((len(levels), n, L), dtype=np.complex128)
-    Dv = np.empty((len(levels), n, L - 1))
-    need = np.empty((len(levels), n), dtype=np.int64)
-    reach = np.empty((len(levels), n))
-    for k, (_, p1, d1, b1) in enumerate(firsts):
-        P[k, :, 0], Dv[k, :, 0] = p0, d1
-        P[k, :, 1:], Dv[k, :, 1:] = _brake_samples(p1, b1, dt, L - 1)
-        need[k] = b1.steps + 2
         reach[k] = np.abs(p1 - p0) + d1 + b1.reach
-    P[-1], Dv[-1] = _brake_samples(p0, b0, dt, L)
-    need[-1], reach[-1] = b0.steps + 1, b0.reach
+    reach[last] = b0.reach
     R = reach.max(axis=0)
 
-    # level per robot: start at the candidate; the range condition demotes at once
+    # a level whose path leaves the reach limit is skipped at once
     limit = reach_limit(team, sensing_range)
     lev = np.zeros(n, dtype=np.int64)
-    for k in range(len(levels) - 1):
+    for k in range(last):
         lev = np.where((lev == k) & (reach[k] > limit), k + 1, lev)
-    broken = reach[-1] > limit
-    last = len(levels) - 1
+    broken = reach[last] > limit
 
-    # pairs that could meet within their reach (fixed for the call)
-    pts = np.stack((p0.real, p0.imag), axis=1)
-    search = min(float(sensing_range), 2.0 * float(rad.max(initial=0.0)) + 2.0 * float(R.max(initial=0.0)))
-    pr = robot_pairs(pts, search)
-    i, j = pr[:, 0], pr[:, 1]
-    ds = rad[i] + rad[j]
-    keep = np.abs(p0[i] - p0[j]) < ds + R[i] + R[j] + 1e-12
-    i, j, ds = i[keep], j[keep], ds[keep]
+    # pairs that could meet within their reach (fixed for the call); only their robots need paths
+    i, j, ds = _pairs_near(team, p0, R, sensing_range, 1e-12)
     if obstacles is not None and obstacles[1].size:
         oc = obstacles[0][:, 0] + 1j * obstacles[0][:, 1]
         orad = obstacles[1]
@@ -447,6 +430,29 @@ def gatekeeper(
         oc = np.empty(0, dtype=np.complex128)
         oi = ok = np.empty(0, dtype=np.intp)
         ods = np.empty(0)
+    du_all = np.stack([f[0] for f in firsts] + [du_b])  # (levels, N, 2)
+    limit_margin = limit
+    if i.size + oi.size == 0:
+        rows = np.arange(n)
+        share = np.asarray(levels)[lev]
+        return GateResult(du_all[lev, rows], lev > 0, limit_margin, not bool(broken.any()), broken, share, 0, 0)
+
+    M = np.unique(np.concatenate((i, j, oi)))  # robots with a pair to check
+    loc = np.full(n, -1, dtype=np.intp)
+    loc[M] = np.arange(M.size)
+    steps = [b0.steps[M] + 1] + [f[3].steps[M] + 2 for f in firsts]
+    L = max(max(int(x.max(initial=0)) for x in steps), 2)
+    P = np.empty((len(levels), M.size, L), dtype=np.complex128)
+    Dv = np.empty((len(levels), M.size, L - 1))
+    need = np.empty((len(levels), M.size), dtype=np.int64)
+    for k, (_, p1, d1, b1) in enumerate(firsts):
+        P[k, :, 0], Dv[k, :, 0] = p0[M], d1[M]
+        P[k, :, 1:], Dv[k, :, 1:] = _brake_samples(p1[M], _take(b1, M), dt, L - 1)
+        need[k] = b1.steps[M] + 2
+    P[last], Dv[last] = _brake_samples(p0[M], _take(b0, M), dt, L)
+    need[last] = b0.steps[M] + 1
+    li, lj, lo_ = loc[i], loc[j], loc[oi]
+    rows_m = np.arange(M.size)
 
     marg = np.full(i.shape[0], np.inf)
     omarg = np.full(oi.shape[0], np.inf)
@@ -455,22 +461,24 @@ def gatekeeper(
     rounds = 0
     while True:
         rounds += 1
-        cur, curd, cneed = P[lev, np.arange(n)], Dv[lev, np.arange(n)], need[lev, np.arange(n)]
+        lm = lev[M]
+        cur, curd, cneed = P[lm, rows_m], Dv[lm, rows_m], need[lm, rows_m]
         idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
         if idx.size:
-            marg[idx] = _bucketed(cur, curd, cneed, i[idx], j[idx], ds[idx])
+            marg[idx] = _bucketed(cur, curd, cneed, li[idx], lj[idx], ds[idx])
         if oidx.size:
-            omarg[oidx] = _bucketed(cur, curd, cneed, oi[oidx], ok[oidx], ods[oidx], centers=oc)
+            omarg[oidx] = _bucketed(cur, curd, cneed, lo_[oidx], ok[oidx], ods[oidx], centers=oc)
         demote = np.zeros(n, dtype=bool)
         bad = idx[marg[idx] < -tol]
+        obad = oidx[omarg[oidx] < -tol]
         demote[i[bad]] = True
         demote[j[bad]] = True
-        obad = oidx[omarg[oidx] < -tol]
         demote[oi[obad]] = True
-        # a pair failing with both members at the backup was not brake-safe before: nothing to demote
+        # a pair failing with both members on the backup was not brake-safe before: nothing to demote
         at_backup = lev == last
-        broken[i[bad][at_backup[i[bad]] & at_backup[j[bad]]]] = True
-        broken[j[bad][at_backup[i[bad]] & at_backup[j[bad]]]] = True
+        both = at_backup[i[bad]] & at_backup[j[bad]]
+        broken[i[bad][both]] = True
+        broken[j[bad][both]] = True
         broken[oi[obad][at_backup[oi[obad]]]] = True
         demote &= ~at_backup
         if not demote.any():
@@ -480,11 +488,15 @@ def gatekeeper(
         otodo = demote[oi]
 
     rows = np.arange(n)
-    du_all = np.stack([f[0] for f in firsts] + [du_b])  # (levels, N, 2)
-    du = du_all[lev, rows]
-    margin = min(float(marg.min(initial=np.inf)), float(omarg.min(initial=np.inf)), limit)
     share = np.asarray(levels)[lev]
-    return GateResult(du, lev > 0, margin, not bool(broken.any()), broken, share, rounds, int(i.size + oi.size))
+    margin = min(float(marg.min(initial=np.inf)), float(omarg.min(initial=np.inf)), limit_margin)
+    return GateResult(du_all[lev, rows], lev > 0, margin, not bool(broken.any()), broken, share, rounds,
+                      int(i.size + oi.size))
+
+
+def _take(b: _Brake, idx: np.ndarray) -> _Brake:
+    """The braking parameters of robots ``idx``."""
+    return _Brake(b.pdot[idx], b.omega[idx], b.rate[idx], b.steps[idx], b.reach[idx])
 
 
 def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float, slack: float
