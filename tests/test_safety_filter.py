@@ -374,6 +374,7 @@ def test_filter_goes_straight_to_the_exact_path_after_a_stall(monkeypatch):
     calls = []
     _starve(monkeypatch, calls, first_only=False)  # proxsuite never converges
     monkeypatch.setattr(core, "EXACT_STEPS", 40)
+    monkeypatch.setattr(core, "EXACT_FIRST_VARS", 0)  # this 10-robot team would otherwise never ask proxsuite
     scen = circle_layout(10, radius=6.0, duration=12.0)
     messages = []
     real_step = SafetyFilter.step
@@ -385,7 +386,7 @@ def test_filter_goes_straight_to_the_exact_path_after_a_stall(monkeypatch):
         return du, res
 
     monkeypatch.setattr(SafetyFilter, "step", spy)
-    out = closed_loop(scen, SafetyFilter(scen.team), 6.0)
+    out = closed_loop(scen, SafetyFilter(scen.team, active_set=False), 6.0)
     qp_steps = [m for m in messages if m[0] > 0]
     assert len(qp_steps) > 100
     assert out.statuses.get("failed", 0) == 0 and out.min_distance >= 0.96 - 1e-3
@@ -420,6 +421,7 @@ def test_slow_proxsuite_switches_to_ldp_only_when_ldp_is_faster(monkeypatch, ldp
 
     import aasoatt_env.safety.solvers.policy as core
 
+    monkeypatch.setattr(core, "EXACT_FIRST_VARS", 0)
     real = core.solve_qp
     log = []
 
@@ -443,3 +445,24 @@ def test_slow_proxsuite_switches_to_ldp_only_when_ldp_is_faster(monkeypatch, ldp
         assert "proxsuite" not in log[first + 4 + core.EXACT_STEPS:first + 4 + 2 * core.EXACT_STEPS]
     else:
         assert "exact" not in log
+
+
+def test_small_problems_take_the_exact_path_and_proofs_of_infeasibility_skip_proxsuite(monkeypatch):
+    """Up to EXACT_FIRST_VARS variables: warm active set, then ldp; an infeasible QP goes to phase 1 at once."""
+    import aasoatt_env.safety.solvers.policy as core
+
+    calls = []
+    _starve(monkeypatch, calls, first_only=False)  # any proxsuite call would be counted
+    n = 6
+    team = make_team("paper", n)
+    ang = 2 * np.pi * np.arange(n) / n
+    p = 0.6 * np.stack((np.cos(ang), np.sin(ang)), axis=1)  # overlapping: the rows cannot all be met
+    pose = pose_from_point(team, p, ang + np.pi)
+    u = np.full((n, 2), 8.0)
+    kin = kinematics(team, pose, u)
+    lo, hi = -np.full((n, 2), 0.1), np.full((n, 2), 0.1)
+    du, res = SafetyFilter(team, deadlock="none", backup=False).step(kin, u, ang + np.pi, np.zeros((n, 2)), lo, hi)
+    assert res.slack > 0 and "phase-1" in res.message
+    assert calls == []  # ldp proved the rows inconsistent and solved phase 1: proxsuite was never asked
+    assert 2 * n <= core.EXACT_FIRST_VARS
+

@@ -90,6 +90,8 @@ class RawAnswer:
     message: str
     stalled: bool = False
     """True when the back-end ran out of its iteration budget (no verdict on the problem)."""
+    infeasible: bool = False
+    """True when the back-end *proved* the rows inconsistent (an exact certificate, not a guess)."""
 
 
 
@@ -147,7 +149,7 @@ def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, op
 
 def _ldp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     x, z, message = solve_ldp(prob, float(opts.get("ldp_feas_tol", LDP_FEAS_TOL)))
-    return RawAnswer(x, z, x is not None, 0, message)
+    return RawAnswer(x, z, x is not None, 0, message, infeasible="inconsistent" in message)
 
 
 def _neural(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:

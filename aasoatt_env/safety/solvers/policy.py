@@ -40,7 +40,7 @@ from aasoatt_env.safety.solvers.active_set import solve_active_set
 from aasoatt_env.safety.solvers.backends import Backend, RawAnswer, available_solvers, get_solver
 from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
 
-__all__ = ["EXACT_STEPS", "SLOW_SOLVE_S", "QPSolution", "SolverPolicy", "solve_qp"]
+__all__ = ["EXACT_FIRST_VARS", "EXACT_STEPS", "SLOW_SOLVE_S", "QPSolution", "SolverPolicy", "solve_qp"]
 
 _FEAS_TOL = 1e-7
 
@@ -49,6 +49,10 @@ EXACT_STEPS: int = 200
 or a slow solve: a back-end that stalls on a congested problem (proxsuite on a 60-robot
 circle swap) stalls on the next ones too, and each stall costs its whole iteration
 budget.  Doubled on each repeated switch (up to 16x)."""
+EXACT_FIRST_VARS: int = 100
+"""Problems with up to this many variables (50 robots in one coupled group) take the exact path
+first (warm active set, then ``ldp``; the back-end only if both fail): ``ldp`` is exact, proves
+infeasibility (where an augmented Lagrangian only runs out of iterations) and is fast at this size."""
 SLOW_SOLVE_S: float = 0.05
 """A solve slower than this [s] triggers the ``ldp`` timing probe."""
 
@@ -121,7 +125,11 @@ def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, 
     )
     # the phase-1 point is only used through its recomputed violations: an exact solver's
     # point is accepted at a looser feasibility (the 1e-8 regulariser conditions it badly)
-    raw, _ = _answer(p1, backend, None, None, {**opts, "ldp_feas_tol": 1e-6})
+    # small phase-1 problems of a back-end that may stall go to the exact ldp solver first
+    first = get_solver("ldp") if backend.may_stall and p1.n <= LDP_MAX_VARS else backend
+    raw, _ = _answer(p1, first, None, None, {**opts, "ldp_feas_tol": 1e-6})
+    if (not raw.ok or raw.x is None) and first is not backend:
+        raw, _ = _answer(p1, backend, None, None, opts)
     if (not raw.ok or raw.x is None) and "clarabel" in available_solvers() and backend is not get_solver("clarabel"):
         raw = get_solver("clarabel")(p1, None, None, opts)
     if not raw.ok or raw.x is None:
@@ -161,12 +169,15 @@ def solve_qp(
         if fast is not None:
             return QPSolution(fast[0], fast[1], "solved", 0.0, fast[2], "active set (warm, KKT verified)",
                               time.perf_counter() - t0)
+    raw = None
     if exact_first:
         raw = get_solver("ldp")(prob, x0, z0, opts)
         if raw.ok:
             return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, 0,
                               f"{raw.message}; {solver} skipped (prefer_exact)", time.perf_counter() - t0)
-    raw, used_fallback = _answer(prob, backend, x0, z0, opts)
+        used_fallback = False
+    if raw is None or not raw.infeasible:  # an exact infeasibility certificate goes straight to phase 1
+        raw, used_fallback = _answer(prob, backend, x0, z0, opts)
     if raw.ok:
         return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message,
                           time.perf_counter() - t0, used_fallback)
@@ -182,7 +193,9 @@ def solve_qp(
     loosen = viol * (1.0 + 1e-6) + _FEAS_TOL
     p2 = QPProblem(prob.H_blocks, prob.g, prob.C, prob.u + loosen, prob.lb, prob.ub, prob.scale,
                    prob.obj_scale, prob.row_norm, prob.diagonal)
-    raw2, fb2 = _answer(p2, backend, x1, None, opts)
+    raw2, fb2 = _answer(p2, get_solver("ldp") if exact_first else backend, x1, None, opts)
+    if not raw2.ok and exact_first:
+        raw2, fb2 = _answer(p2, backend, x1, None, opts)
     status = "relaxed" if relaxed else "solved"
     msg = f"{solver}: {first}; phase-1 largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
     if raw2.ok:
@@ -229,8 +242,8 @@ class SolverPolicy:
             opts["active_set"] = True
         if not self.backend.may_stall:
             return solve_qp(prob, self.solver, x0, z0, **opts)
-        if self._exact_steps > 0:
-            self._exact_steps -= 1
+        if self._exact_steps > 0 or prob.n <= EXACT_FIRST_VARS:
+            self._exact_steps = max(self._exact_steps - 1, 0)
             return solve_qp(prob, self.solver, x0, z0, prefer_exact=True, **opts)
         sol = solve_qp(prob, self.solver, x0, z0, **opts)
         self._adapt(prob, sol)
