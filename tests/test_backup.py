@@ -228,3 +228,27 @@ def test_wrapper_reports_backup_and_margin():
         assert f["safe"] and f["status"] != "unsafe" and np.isfinite(f["margin"])
         seen_backup |= any(i["filter"]["backup"] for i in infos.values())
     assert env.report is not None
+
+
+def test_configurations_that_void_the_guarantee_are_rejected_or_warned():
+    team = make_team("paper", 2)
+    with pytest.raises(Exception, match=r"k1: got 10000000000.0, expected a finite positive number <= 1000"):
+        SafetyFilter(team, k1=1e10)
+    with pytest.raises(Exception, match="k2"):
+        SafetyFilter(team, k2=float("inf"))
+    with pytest.raises(Exception, match=r"k1: got '2'"):
+        SafetyFilter(team, k1="2")
+    with pytest.raises(Exception, match=r"sensing_range: got 0.9 m, expected > 1.06"):
+        SafetyFilter(team, sensing_range=0.9)
+    with pytest.raises(Exception, match=r"sensing_range: got 0.9 m, expected > 0.96"):
+        SafetyFilter(team, sensing_range=0.9, backup=False)
+    with pytest.warns(UserWarning, match="rotate_relative_position.*backup layer still keeps"):
+        SafetyFilter(team, deadlock="rotate_relative_position")
+
+
+def test_rotate_relative_position_head_on_swap_stays_apart_with_the_layer():
+    with pytest.warns(UserWarning, match="rotate_relative_position"):
+        env = make_env("circle_swap", filter={"deadlock": "rotate_relative_position"}, num_robots=2, radius=3.0,
+                       duration=6.0, settle_time=1.0)
+    rollout, _ = run_episode(env, __import__("agents").TrackingController(), seed=0)
+    assert pairwise_min_distance(rollout).overall_min_robot_gap >= -1e-3

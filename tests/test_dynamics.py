@@ -134,7 +134,7 @@ def test_robot_params_validation(kwargs, match):
 
 def test_unknown_preset_lists_known():
     with pytest.raises(
-        ConfigError, match=r"known presets: \['double_integrator', 'paper', 'paper_small', 'turtlebot3_burger'\]"
+        ConfigError, match=r"known presets: \['double_integrator', 'paper', 'paper_small', 'turtlebot3_burger', 'turtlebot3_waffle_pi'\]"
     ):
         RobotParams.preset("roomba")
 

@@ -11,6 +11,10 @@ Presets
     wheel radius 0.1 m, half track 0.2 m, control-point offset 0.2 m,
     ``|du| <= 60 rad/s^2`` and no wheel-speed limit.  The paper does not state
     its wheel geometry or bounds; these values reproduce its N = 10 results.
+``"turtlebot3_waffle_pi"``
+    ROBOTIS TurtleBot3 Waffle Pi: wheel radius 0.033 m, track 0.287 m, top
+    speed 0.26 m/s (a wheel-speed limit of 7.88 rad/s); enclosing radius 0.22 m;
+    offset 0.08 m; wheel-acceleration bound 20 rad/s^2 (our choice).
 ``"paper_small"``
     The paper robot with a disc radius of 0.3 m: 100 robots of radius 0.48 do not
     fit on the radius-10 circle of the paper's 100-robot experiment, these do.
@@ -134,6 +138,14 @@ PRESETS: dict[str, RobotParams] = {
         offset=0.05,
         max_wheel_accel=20.0,
         max_wheel_speed=0.22 / 0.033,
+    ),
+    "turtlebot3_waffle_pi": RobotParams(
+        radius=0.22,
+        wheel_radius=0.033,
+        half_track=0.1435,
+        offset=0.08,
+        max_wheel_accel=20.0,
+        max_wheel_speed=0.26 / 0.033,
     ),
     "paper_small": RobotParams(radius=0.3),
     "double_integrator": RobotParams(max_wheel_accel=6.0, model="double_integrator"),

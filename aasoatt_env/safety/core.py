@@ -23,6 +23,7 @@ says which solver answered.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass
 from typing import Any
 
@@ -192,6 +193,14 @@ class SafetyFilter:
     def __init__(self, team: Team | None = None, config: FilterConfig | None = None, **options: Any) -> None:
         cfg = FilterConfig.merged(config, **options)
         self.config = cfg
+        if STRATEGIES[cfg.deadlock].rotates_rows:
+            warnings.warn(
+                f"deadlock={cfg.deadlock!r} rotates the relative positions in the barrier rows (eqn.12c), so the "
+                "paper's barrier does not protect those pairs while it is active"
+                + ("; the braking backup layer still keeps the team collision-free" if cfg.backup else
+                   " and, with backup=False, nothing else does (a 2-robot head-on swap overlapped by 0.8 m)"),
+                UserWarning, stacklevel=2,
+            )
         self.team: Team | None = None
         self._Q = rotation(cfg.rotation_deg)
         self._strategy = STRATEGIES[cfg.deadlock]
