@@ -1,12 +1,16 @@
-"""Bare environment throughput: env steps per second vs team size.
+"""Environment throughput: env steps per second vs team size, bare and behind the default filter.
 
-Prints a table of median steps/s over several repeats for N = 4, 20, 100 with
-``decision_interval=1`` (one 5 ms physics step per env step), zero actions,
-single thread.  The "physics only" column times the dynamics alone (kinematics
-+ bounds + exact-arc integration) as the baseline the env overhead is measured
-against, in the same run.
+One env step is one 5 ms physics step (``decision_interval=1``); the team is
+RandomGoals (N = 4, 20, 100, 1,000; 10,000 with ``--large``) driven by the
+paper's tracking controller, so the filter sees the rows and QPs of real
+traffic.  Columns: bare env steps/s (zero actions: the env alone), the same
+with the tracking controller (env + controller), behind the default filter
+(env + controller + filter), agent-steps/s of the filtered env, and the
+"physics only" rate (kinematics + bounds + exact-arc integration) as the
+baseline the env overhead is measured against, in the same run.  Medians
+over repeats, one thread.
 
-Usage: ``python benchmarks/bench_env.py [--quick]``
+Usage: ``python benchmarks/bench_env.py [--quick] [--large]``
 """
 
 from __future__ import annotations
@@ -17,25 +21,30 @@ import statistics
 import time
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from aasoatt_env import AASOATTParallelEnv
+from aasoatt_env import make_env  # noqa: E402
 from aasoatt_env.model import dynamics  # noqa: E402
+from agents import TrackingController  # noqa: E402
 
 
-def _env_rate(n: int, steps: int) -> float:
-    env = AASOATTParallelEnv("circle_swap", num_robots=n, radius=max(6.0, 0.2 * n), max_steps=10**9)
-    env.reset(seed=0)
-    acts = {a: np.zeros(2, np.float32) for a in env.agents}
+def _rate(n: int, steps: int, filtered: bool, controller: bool) -> float:
+    env = make_env("random_goals", filter=filtered, num_robots=n, max_steps=10**9)
+    obs, _ = env.reset(seed=0)
+    agent = TrackingController()
+    zeros = {a: np.zeros(2, np.float32) for a in env.agents}
+    for _ in range(3):  # warm-up
+        obs, *_ = env.step(agent.act(obs, env) if controller else zeros)
     t = time.perf_counter()
     for _ in range(steps):
-        env.step(acts)
+        obs, *_ = env.step(agent.act(obs, env) if controller else zeros)
     return steps / (time.perf_counter() - t)
 
 
 def _physics_rate(n: int, steps: int) -> float:
-    env = AASOATTParallelEnv("circle_swap", num_robots=n, radius=max(6.0, 0.2 * n))
+    env = make_env("random_goals", num_robots=n)
     env.reset(seed=0)
     team, pose, u, du = env.team, env.poses, env.wheel_speeds, np.zeros((n, 2))
     t = time.perf_counter()
@@ -48,15 +57,22 @@ def _physics_rate(n: int, steps: int) -> float:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--quick", action="store_true", help="N <= 100, fewer steps and repeats")
+    parser.add_argument("--large", action="store_true", help="also N = 10,000")
     args = parser.parse_args()
-    repeats = 3 if args.quick else 7
-    print(f"{'N':>5} {'env steps/s':>12} {'agent-steps/s':>14} {'physics steps/s':>16} {'env/physics':>12}")
-    for n in (4, 20, 100):
-        steps = (300 if args.quick else 2000) if n < 100 else (100 if args.quick else 500)
-        env_r = statistics.median(_env_rate(n, steps) for _ in range(repeats))
-        phys_r = statistics.median(_physics_rate(n, steps) for _ in range(repeats))
-        print(f"{n:>5} {env_r:>12.0f} {env_r * n:>14.0f} {phys_r:>16.0f} {env_r / phys_r:>12.2f}")
+    repeats = 3 if args.quick else 5
+    sizes = [4, 20, 100] if args.quick else [4, 20, 100, 1000] + ([10000] if args.large else [])
+    print(f"{'N':>6} {'bare':>10} {'+control':>10} {'+filter':>10} {'agent-st/s':>11} {'physics':>10} "
+          f"{'bare/phys':>10} {'filt/bare':>10}   (env steps/s)")
+    for n in sizes:
+        steps = 400 if n <= 20 else 150 if n <= 100 else 20 if n <= 1000 else 4
+        steps = max(steps // (4 if args.quick else 1), 4)
+        bare = statistics.median(_rate(n, steps, False, False) for _ in range(repeats))
+        ctrl = statistics.median(_rate(n, steps, False, True) for _ in range(repeats))
+        filt = statistics.median(_rate(n, max(steps // 2, 4), True, True) for _ in range(repeats))
+        phys = statistics.median(_physics_rate(n, steps) for _ in range(repeats))
+        print(f"{n:>6} {bare:>10.0f} {ctrl:>10.0f} {filt:>10.1f} {filt * n:>11.0f} {phys:>10.0f} "
+              f"{bare / phys:>10.2f} {filt / bare:>10.3f}", flush=True)
 
 
 if __name__ == "__main__":
