@@ -58,7 +58,22 @@ class LeastDistanceForm(NamedTuple):
 
 
 def least_distance_form(prob) -> LeastDistanceForm | None:
-    """:class:`LeastDistanceForm` of ``prob``; ``None`` if a Hessian block is not positive definite."""
+    """:class:`LeastDistanceForm` of ``prob``; ``None`` if a Hessian block is not positive definite.
+
+    Computed once per problem object (the warm active set and ``ldp`` both need it).
+    """
+    cached = prob.__dict__.get("_least_distance_form", _UNSET)
+    if cached is not _UNSET:
+        return cached
+    form = _least_distance_form(prob)
+    prob.__dict__["_least_distance_form"] = form
+    return form
+
+
+_UNSET = object()
+
+
+def _least_distance_form(prob) -> LeastDistanceForm | None:
     n = prob.n
     nb = n // 2
     try:
