@@ -51,7 +51,7 @@ def test_two_fresh_filtered_runs_are_bit_identical(solver: str) -> None:
 @pytest.mark.xfail(
     strict=False,
     reason="proxsuite's AVX-512/AVX2 builds give heap-alignment-dependent last bits on the same QP (module "
-           "docstring); needs the active-set polish in aasoatt_env/safety/solvers (lead's change)",
+           "docstring); problems over 100 variables still reach proxsuite (the exact path runs first below that)",
 )
 def test_two_fresh_filtered_runs_are_bit_identical_default_solver() -> None:
     a, b = _positions("proxsuite"), _positions("proxsuite")

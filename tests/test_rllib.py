@@ -3,7 +3,7 @@
 Ray RLlib 2.60 pins gymnasium 1.2.2, so these tests run in the virtual environment of the
 ``rllib`` extra, which ``.ci/run`` creates with the README's set-up line::
 
-    .venv-rllib/bin/python -m pytest -q tests/test_rllib.py
+    .venv-rllib/bin/python -m pytest -q -m "slow or not slow" tests/test_rllib.py tests/test_clients.py
 
 Where Ray is not installed the tests that need it are skipped, with that reason; the
 configuration and command-line tests run everywhere.
