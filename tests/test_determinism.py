@@ -3,13 +3,12 @@
 Two fresh runs with the same seed in the same process must give identical
 positions, bit for bit.  With the exact solvers that only use numpy/scipy
 (``ldp``) or a scalar C solver (``daqp``) they do.  With the default
-``proxsuite`` they do not yet: proxsuite's AVX-512/AVX2 builds (picked
-automatically on CPUs that have those instructions) return last-bit different
-answers to the *same* QP depending on where its work buffers land on the heap;
-the closed loop amplifies those 1e-16 differences (RandomGoals, 20 robots: first
-difference after 400-500 steps, 1e-12 m by step 1000).  The fix lives in the
-solver core (polish proxsuite's answer with the exact active-set solve, see the
-README); until then the proxsuite test is an expected failure.
+``proxsuite`` they do too at this size: problems of up to 100 variables take the
+exact path first (warm active set, then ``ldp``, see ``SolverPolicy``).  Larger
+coupled groups still reach proxsuite, whose AVX-512/AVX2 builds return last-bit
+different answers to the *same* QP depending on where its work buffers land on
+the heap; the closed loop amplifies those 1e-16 differences (README,
+Bit-reproducibility).
 """
 
 from __future__ import annotations
@@ -48,11 +47,6 @@ def test_two_fresh_filtered_runs_are_bit_identical(solver: str) -> None:
     assert np.array_equal(a, b), f"first difference at step {np.flatnonzero(np.any(a != b, axis=(1, 2)))[0]}"
 
 
-@pytest.mark.xfail(
-    strict=False,
-    reason="proxsuite's AVX-512/AVX2 builds give heap-alignment-dependent last bits on the same QP (module "
-           "docstring); problems over 100 variables still reach proxsuite (the exact path runs first below that)",
-)
 def test_two_fresh_filtered_runs_are_bit_identical_default_solver() -> None:
     a, b = _positions("proxsuite"), _positions("proxsuite")
     assert np.array_equal(a, b), f"first difference at step {np.flatnonzero(np.any(a != b, axis=(1, 2)))[0]}"
