@@ -25,7 +25,10 @@ every robot's final distance to its goal (must be <= 0.05 m), tracking RMSE.
 
 Usage::
 
-    python benchmarks/safety_campaign.py adversarial --seeds 7 --steps 800 --jobs 2 --out results/campaign.jsonl
+    python benchmarks/safety_campaign.py adversarial --teams 2,8,16 --seeds 7 --steps 800 --jobs 2 \
+        --out results/campaign.jsonl
+    python benchmarks/safety_campaign.py adversarial --teams 39 --seeds 2 --steps 400 --jobs 2 \
+        --out results/campaign.jsonl
     python benchmarks/safety_campaign.py paper --out results/paper_liveness.jsonl
     python benchmarks/safety_campaign.py summary --out results/campaign.jsonl
 """
@@ -105,7 +108,7 @@ def adversarial(args: argparse.Namespace) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     done = _done(out)
     keys = [dict(adversary=a, n=n, preset=p, obstacles=o, seed=s, steps=args.steps)
-            for s, a, n, p, o in itertools.product(range(args.seeds), ADVERSARIES, TEAMS, PRESETS, (False, True))]
+            for s, a, n, p, o in itertools.product(range(args.seeds), ADVERSARIES, args.teams, PRESETS, (False, True))]
     todo = [k for k in keys if _key_id(k) not in done]
     print(f"{len(keys)} episodes, {len(keys) - len(todo)} already in {out}, {len(todo)} to run", flush=True)
     t0 = time.perf_counter()
@@ -144,9 +147,11 @@ def summary(args: argparse.Namespace) -> None:
         gaps = [g for g in (r["min_robot_gap"], r["min_obstacle_gap"]) if g is not None]
         return (not r["finite"]) or any(g < -TOL for g in gaps)
 
-    print(f"\n{len(recs)} episodes x {recs[0]['steps']} physics steps; wall {sum(r['wall_s'] for r in recs):.0f} s "
+    steps = sorted({r["steps"] for r in recs})
+    print(f"\n{len(recs)} episodes x {'/'.join(map(str, steps))} physics steps; "
+          f"wall {sum(r['wall_s'] for r in recs):.0f} s "
           f"(sum over episodes)\n")
-    print("| adversary | episodes | closest robot pair gap [m] | closest obstacle gap [m] | pairs closer than "
+    print("| adversary | episodes | closest robot pair gap [mm] | closest obstacle gap [mm] | pairs closer than "
           "d_s - 1e-3 | NaN | backup steps (share) | unsafe steps |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for adv in sorted({r["adversary"] for r in recs}) + ["all"]:
@@ -154,10 +159,20 @@ def summary(args: argparse.Namespace) -> None:
         g = [r["min_robot_gap"] for r in rs if r["min_robot_gap"] is not None]
         o = [r["min_obstacle_gap"] for r in rs if r["min_obstacle_gap"] is not None]
         steps = sum(r["steps"] for r in rs)
-        print(f"| {adv} | {len(rs)} | {min(g):+.4f} | {min(o) if o else float('nan'):+.4f} | "
+        print(f"| {adv} | {len(rs)} | {1e3 * min(g):+.4f} | {1e3 * min(o) if o else float('nan'):+.4f} | "
               f"{sum(bad(r) for r in rs)} | {sum(not r['finite'] for r in rs)} | "
               f"{sum(r['backup_steps'] for r in rs)} ({sum(r['backup_steps'] for r in rs) / max(steps, 1):.1%}) | "
               f"{sum(r['unsafe_steps'] for r in rs)} |")
+    print("\n| team | preset | episodes | closest robot pair gap [mm] | closest obstacle gap [mm] | "
+          "backup steps (share) |")
+    print("|---:|---|---:|---:|---:|---:|")
+    for n, p in sorted({(r["n"], r["preset"]) for r in recs}):
+        rs = [r for r in recs if (r["n"], r["preset"]) == (n, p)]
+        g = [r["min_robot_gap"] for r in rs if r["min_robot_gap"] is not None]
+        o = [r["min_obstacle_gap"] for r in rs if r["min_obstacle_gap"] is not None]
+        steps = sum(r["steps"] for r in rs)
+        print(f"| {n} | {p} | {len(rs)} | {1e3 * min(g):+.4f} | {1e3 * min(o) if o else float('nan'):+.4f} | "
+              f"{sum(r['backup_steps'] for r in rs)} ({sum(r['backup_steps'] for r in rs) / max(steps, 1):.1%}) |")
 
 
 def paper(args: argparse.Namespace) -> None:
@@ -200,6 +215,8 @@ def main() -> None:
     ap.add_argument("what", choices=("adversarial", "paper", "summary"))
     ap.add_argument("--seeds", type=int, default=7, help="seeds per combination (adversarial)")
     ap.add_argument("--steps", type=int, default=800, help="physics steps per episode (adversarial)")
+    ap.add_argument("--teams", type=lambda v: tuple(int(x) for x in v.split(",")), default=TEAMS,
+                    help="team sizes, comma-separated (39 = the radius-6 circle)")
     ap.add_argument("--jobs", type=int, default=1, help="episodes in parallel processes")
     ap.add_argument("--out", default="results/safety_campaign.jsonl", help="JSONL results (appended; resumable)")
     args = ap.parse_args()
