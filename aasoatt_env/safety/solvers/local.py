@@ -550,24 +550,24 @@ def solve_local_qps(
 def _relax(T, S, y0, tol_k, bad, lfac, lb, ub, Gs, rtol, ys, mus, loosened, rsel, max_iter):
     """Least-violation answers of the infeasible robots ``bad`` (table indices); fills ``ys, mus, loosened``."""
     l11, l21, l22 = (v[bad] for v in lfac)
-    nx, ny, b = T.nx[bad], T.ny[bad], T.b[bad]
+    nx, ny, b = T.nx[bad, 4:], T.ny[bad, 4:], T.b[bad, 4:]  # the rows (the bounds stay hard)
+    real = b < _PAD_B
     # the rows normalised in x: G ~ L n, so G / |G| = L n / |L n|, h / |G| = b / |L n|
     gx = l11[:, None] * nx
     gy = l21[:, None] * nx + l22[:, None] * ny
     ln = np.sqrt(gx * gx + gy * gy)
-    real = (T.row[bad] >= 0)
-    safe_ln = np.where(real, ln, 1.0)
-    gx, gy = np.where(real, gx / safe_ln, 0.0), np.where(real, gy / safe_ln, 0.0)
-    hh = np.where(real, b / safe_ln, _PAD_B)
+    inv = 1.0 / np.where(real, ln, 1.0)
+    gx, gy = gx * inv, gy * inv
+    hh = np.where(real, b * inv, _PAD_B)
     # start from the active-set point where it stopped (inside the bounds after clipping)
     i11, i22 = 1.0 / l11, 1.0 / l22
     i21 = -l21 * i11 * i22
     x0 = np.stack((i11 * S.yx[bad] + i21 * S.yy[bad], i22 * S.yy[bad]), axis=1)
     x0 = np.minimum(np.maximum(np.where(np.isfinite(x0), x0, 0.0), lb[bad]), ub[bad])
     x1, viol = _lv_core(gx, gy, hh, lb[bad], ub[bad], x0)
-    loosen_n = np.where(real, viol * (1.0 + 1e-6) + rtol[bad][:, None], 0.0)  # in normalised x units
-    T.b[bad] = b + loosen_n * ln  # in y units: (G x - h) / |L^-1 G| = |L n| * (G x - h) / |G|
-    rows = T.row[bad][real]
+    loosen_n = (viol * (1.0 + 1e-6) + rtol[bad][:, None]) * real  # in normalised x units
+    T.b[bad, 4:] = b + loosen_n * ln  # in y units: (G x - h) / |L^-1 G| = |L n| * (G x - h) / |G|
+    rows = T.row[bad, 4:][real]
     gn = np.sqrt(Gs[rows, 0] ** 2 + Gs[rows, 1] ** 2)
     loosened[rsel[rows]] = loosen_n[real] * gn
     S.reset(bad, y0)
@@ -608,6 +608,38 @@ def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
     return bx, by
 
 
+def _line_search(res: np.ndarray, delta: np.ndarray, d0: np.ndarray, d1: np.ndarray, iters: int = 4) -> np.ndarray:
+    """Per robot ``argmin_{t in [0, 1]} phi(t) = 0.5 sum_r (res_r + t delta_r)_+^2``, exactly.
+
+    Needs ``phi'(0) = d0 < 0 < d1 = phi'(1)``.  ``phi'`` is continuous, non-decreasing and
+    piecewise linear: a few steps of regula falsi with the Illinois rule land on its root
+    exactly once the bracket lies in one linear piece (most robots); the others go to
+    :func:`_line_min`.
+    """
+    one = np.ones(res.shape[1])
+    a, b = np.zeros(d0.shape), np.ones(d0.shape)
+    fa, fb = d0.copy(), d1.copy()
+    side = np.zeros(d0.shape)
+    t = b
+    tol = 1e-13 * (np.abs(d0) + np.abs(d1))
+    left = np.ones(d0.shape, dtype=bool)
+    for _ in range(iters):
+        t = (a * fb - b * fa) / (fb - fa)
+        ft = (np.maximum(res + t[:, None] * delta, 0.0) * delta) @ one
+        left = np.abs(ft) > tol
+        if not np.any(left):
+            return t
+        neg = ft < 0
+        a, fa = np.where(neg, t, a), np.where(neg, ft, fa)
+        b, fb = np.where(neg, b, t), np.where(neg, fb, ft)
+        fb = np.where(neg & (side > 0), 0.5 * fb, fb)  # the same end kept twice: halve its weight
+        fa = np.where(~neg & (side < 0), 0.5 * fa, fa)
+        side = np.where(neg, 1.0, -1.0)
+    hard = np.flatnonzero(left)
+    t[hard] = _line_min(res[hard], delta[hard])
+    return t
+
+
 def _line_min(res: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """Per robot the exact ``argmin_{t in [0, 1]} 0.5 sum_r (res_r + t delta_r)_+^2`` (``res``, ``delta`` ``(P, K)``).
 
@@ -644,35 +676,39 @@ def _line_min(res: np.ndarray, delta: np.ndarray) -> np.ndarray:
 def _lv_core(gx, gy, hh, lb, ub, x, max_iter: int = 40):
     """Phase-1 iterations on unit rows ``(P, K)`` (padding: ``hh = _PAD_B``); ``(x, violations (P, K))``."""
     x = x.copy()
+    P, K = gx.shape
+    one = np.ones(K)
     span = np.maximum(np.maximum(ub[:, 0] - lb[:, 0], ub[:, 1] - lb[:, 1]), 1e-300)
-    act = np.arange(x.shape[0])
+    act = np.arange(P)
     for _ in range(max_iter):
         if act.size == 0:
             break
-        xa = x[act]
-        gxa, gya = gx[act], gy[act]
-        res = gxa * xa[:, 0:1] + gya * xa[:, 1:2] - hh[act]
+        if act.size == P:
+            gxa, gya, hha, xa = gx, gy, hh, x.copy()
+        else:
+            gxa, gya, hha, xa = gx[act], gy[act], hh[act], x[act]
+        res = gxa * xa[:, 0:1] + gya * xa[:, 1:2] - hha
         on = res > 0
-        ra = np.where(on, res, 0.0)
-        grx, gry = (ra * gxa).sum(axis=1), (ra * gya).sum(axis=1)
-        gxo, gyo = np.where(on, gxa, 0.0), np.where(on, gya, 0.0)
-        hxx, hxy, hyy = (gxo * gxo).sum(axis=1), (gxo * gyo).sum(axis=1), (gyo * gyo).sum(axis=1)
+        ra = res * on
+        gxo, gyo = gxa * on, gya * on
+        grx, gry = (ra * gxa) @ one, (ra * gya) @ one
+        hxx, hxy, hyy = (gxo * gxa) @ one, (gxo * gya) @ one, (gyo * gya) @ one
         eps = 1e-10 * (hxx + hyy) + 1e-300
         dx, dy = _box_qp(hxx + eps, hxy, hyy + eps, grx, gry, lb[act, 0] - xa[:, 0], lb[act, 1] - xa[:, 1],
                          ub[act, 0] - xa[:, 0], ub[act, 1] - xa[:, 1])
         delta = gxa * dx[:, None] + gya * dy[:, None]
         rn = res + delta
         on1 = rn > 0
-        # the full step is the minimiser on the segment where F' >= 0 ... <= 0 at its end
-        full = np.where(on1, rn * delta, 0.0).sum(axis=1) <= 0.0
+        d1 = (rn * on1 * delta) @ one  # phi'(1): the full step is the minimiser on the segment where <= 0
+        full = d1 <= 0.0
         t = np.ones(act.size)
         part = np.flatnonzero(~full)
         if part.size:
-            t[part] = _line_min(res[part], delta[part])
+            t[part] = _line_search(res[part], delta[part], grx[part] * dx[part] + gry[part] * dy[part], d1[part])
         x[act, 0] = np.clip(xa[:, 0] + t * dx, lb[act, 0], ub[act, 0])
         x[act, 1] = np.clip(xa[:, 1] + t * dy, lb[act, 1], ub[act, 1])
         # done: a negligible step, or a full step that kept the violated set (it minimised F's own quadratic)
-        same = full & ~np.any(on1 != on, axis=1)
+        same = full & ((on1 != on) @ one == 0)
         act = act[~same & (t * np.maximum(np.abs(dx), np.abs(dy)) > 1e-11 * span[act])]
     viol = np.maximum(gx * x[:, 0:1] + gy * x[:, 1:2] - hh, 0.0)
     return x, viol
@@ -696,7 +732,7 @@ def least_violation(
     quadratic of the rows violated at the current point (a 2-variable box QP in
     closed form, with a ``1e-10`` relative proximal term where those rows do not
     span the plane) and moves to the exact minimiser of ``F`` on the segment
-    towards it (:func:`_line_min`); once the violated set is the final one a
+    towards it (:func:`_line_search`); once the violated set is the final one a
     full step lands on the minimiser.  Vectorised across robots; a robot stops
     when its step is below ``1e-11`` of its box.  The violations
     ``s_r = (G_r x - h_r)_+`` are unique even where the minimiser is not.
