@@ -14,7 +14,7 @@ from aasoatt_env.model.params import make_team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.decentralized import decentralized_step, split_rows
-from aasoatt_env.safety.problem import build_problem
+from aasoatt_env.safety.problem import box_least_squares, build_problem
 from aasoatt_env.safety.solvers.local import RELAX_TOL, least_violation, solve_local_qps
 
 quadprog = pytest.importorskip("quadprog")
@@ -234,10 +234,12 @@ def _scene(n, spacing=1.1, nominal=30.0, seed=0, obstacles=False):
     return team, A, target, lo, hi, ri, rj, Gi, Gj, rhs
 
 
-def test_split_rows_add_up_to_the_pair_rows():
+@pytest.mark.parametrize("split", ["authority", "reciprocal"])
+def test_split_rows_add_up_to_the_pair_rows(split):
     team, A, target, lo, hi, ri, rj, Gi, Gj, rhs = _scene(60, obstacles=True)
     auth = team.max_point_accel * np.linspace(0.5, 2.0, team.n)  # unequal authorities
-    sp = split_rows(ri, rj, Gi, Gj, rhs, auth)
+    du0 = box_least_squares(A, target, lo, hi) if split == "reciprocal" else None
+    sp = split_rows(ri, rj, Gi, Gj, rhs, auth, du0)
     m = rhs.size
     obs = rj < 0
     assert obs.any() and (~obs).any()
@@ -251,16 +253,26 @@ def test_split_rows_add_up_to_the_pair_rows():
     # shares follow authority; obstacle rows whole
     i_half = side == 0
     rr = i_half & ~obs[row]
-    np.testing.assert_allclose(sp.h[rr], rhs[row[rr]] * auth[ri[row[rr]]] / (auth[ri[row[rr]]] + auth[rj[row[rr]]]))
-    np.testing.assert_array_equal(sp.h[i_half & obs[row]], rhs[row[i_half & obs[row]]])
+    share = auth[ri[row[rr]]] / (auth[ri[row[rr]]] + auth[rj[row[rr]]])
+    if du0 is None:  # rhs split
+        np.testing.assert_allclose(sp.h[rr], rhs[row[rr]] * share)
+    else:  # the nominal pair's correction split: h_i = Gi du0_i - share * (Gi du0_i + Gj du0_j - rhs)
+        gi0 = np.einsum("pi,pi->p", Gi, du0[ri])
+        gj0 = np.einsum("pi,pi->p", Gj, du0[np.maximum(rj, 0)])
+        v = gi0 + gj0 - rhs
+        np.testing.assert_allclose(sp.h[rr], gi0[row[rr]] - share * v[row[rr]],
+                                   rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(sp.h[i_half & obs[row]], rhs[row[i_half & obs[row]]], rtol=1e-12, atol=1e-12)
 
 
+@pytest.mark.parametrize("split", ["authority", "reciprocal"])
 @pytest.mark.parametrize(("n", "spacing", "nominal"), [(64, 1.1, 30.0), (100, 2.0, 3.0)])
-def test_each_robot_answer_equals_dense_solver_on_its_own_qp(n, spacing, nominal):
+def test_each_robot_answer_equals_dense_solver_on_its_own_qp(n, spacing, nominal, split):
     team, A, target, lo, hi, ri, rj, Gi, Gj, rhs = _scene(n, spacing, nominal, obstacles=True)
     auth = team.max_point_accel
-    res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth)
-    sp = split_rows(ri, rj, Gi, Gj, rhs, auth)
+    res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, split=split)
+    du0 = box_least_squares(A, target, lo, hi) if split == "reciprocal" else None
+    sp = split_rows(ri, rj, Gi, Gj, rhs, auth, du0)
     scale = np.max(np.maximum(np.abs(lo), np.abs(hi)), axis=1)
     rows_k = [np.flatnonzero(sp.owner == k) for k in range(n)]
     for k in range(n):
@@ -291,7 +303,8 @@ def test_each_robot_answer_equals_dense_solver_on_its_own_qp(n, spacing, nominal
     assert np.all((res.du >= lo) & (res.du <= hi))
 
 
-def test_infeasible_robot_reported_and_relaxed():
+@pytest.mark.parametrize("split", ["authority", "reciprocal"])
+def test_infeasible_robot_reported_and_relaxed(split):
     """A robot squeezed between two neighbours that both demand it back off: its own QP is empty."""
     A = np.broadcast_to(0.05 * np.array([[1.0, 1.0], [1.0, -1.0]]), (3, 2, 2)).copy()
     lo, hi = -60 * np.ones((3, 2)), 60 * np.ones((3, 2))
@@ -301,7 +314,7 @@ def test_infeasible_robot_reported_and_relaxed():
     c = np.array([[1.0, 0.0], [1.0, 0.0]])
     Gi, Gj = np.einsum("pki,pk->pi", A[ri], c), -np.einsum("pki,pk->pi", A[rj], c)
     rhs = np.array([-8.0, -8.0])  # each pair must open at 8 m/s^2 (each robot reaches 6 m/s^2 along x)
-    res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, np.ones(3))
+    res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, np.ones(3), split=split)
     assert list(res.infeasible) == [False, True, False]
     assert res.n_relaxed == 1 and res.slack > 0
     assert np.all((res.du >= lo) & (res.du <= hi))
