@@ -197,7 +197,14 @@ class _State:
 
 
 def _active_set(T: _Table, S: _State, y0, tol_k, start, max_iter) -> int:
-    """Goldfarb-Idnani in the plane for robots ``start`` of ``T`` (module docstring step 2); iterations run."""
+    """Goldfarb-Idnani in the plane for robots ``start`` of ``T`` (module docstring step 2); iterations run.
+
+    Each iteration first gives every robot without a constraint in progress the most
+    violated one (or finishes it), then takes one step per robot, by the size of its
+    active set: none (a full step onto the new constraint), one (a full step to the
+    vertex, or a partial step that drops the old constraint), two (a partial step that
+    drops one of them, or the certificate of an empty polygon).
+    """
     K = T.nx.shape[1]
     NX, NY, B = T.nx.reshape(-1), T.ny.reshape(-1), T.b.reshape(-1)
     n = T.nx.shape[0]
@@ -221,64 +228,77 @@ def _active_set(T: _Table, S: _State, y0, tol_k, start, max_iter) -> int:
                 act = act[S.status[act] == 0]
                 if act.size == 0:
                     break
-            S.p[need[~fine]] = kmax[~fine]
-            S.lp[need[~fine]] = 0.0
-        a = act
-        base = a * K
-        pk, k, w0, w1 = S.p[a], S.nw[a], S.w0[a], S.w1[a]
-        ip, i0, i1 = base + pk, base + w0, base + w1
-        npx, npy, bp = NX[ip], NY[ip], B[ip]
-        n1x, n1y, n2x, n2y = NX[i0], NY[i0], NX[i1], NY[i1]
-        yx, yy, l1, l2 = S.yx[a], S.yy[a], S.l1[a], S.l2[a]
-        c0, c1, c2 = k == 0, k == 1, k == 2
-        # coefficients r of n_p on the active normals: W = {w0}: r1 = n1'n_p; W = {w0, w1}: [n1 n2] r = n_p
-        with np.errstate(divide="ignore", invalid="ignore"):
+                kmax, need = kmax[~fine], need[~fine]
+            S.p[need] = kmax
+            S.lp[need] = 0.0
+        k = S.nw[act]
+        dead = []
+        # ---- no active constraint: a full step onto n_p
+        a = act[k == 0]
+        if a.size:
+            pk = S.p[a]
+            ip = a * K + pk
+            npx, npy = NX[ip], NY[ip]
+            t = (npx * S.yx[a] + npy * S.yy[a] - B[ip]) / (npx * npx + npy * npy)
+            S.yx[a] -= t * npx
+            S.yy[a] -= t * npy
+            S.w0[a], S.l1[a], S.nw[a], S.p[a], S.lp[a] = pk, S.lp[a] + t, 1, -1, 0.0
+        # ---- one active constraint n1
+        a = act[k == 1]
+        if a.size:
+            pk, w0 = S.p[a], S.w0[a]
+            ip, i0 = a * K + pk, a * K + w0
+            npx, npy, n1x, n1y = NX[ip], NY[ip], NX[i0], NY[i0]
+            yx, yy, l1 = S.yx[a], S.yy[a], S.l1[a]
+            r1 = n1x * npx + n1y * npy
+            zx, zy = npx - r1 * n1x, npy - r1 * n1y
+            zz = zx * zx + zy * zy
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t1 = np.where(zz > _EPS_Z, (npx * yx + npy * yy - B[ip]) / zz, np.inf)
+                q1 = np.where(r1 > _EPS_R, l1 / r1, np.inf)
+            full = t1 <= q1
+            t = np.minimum(t1, q1)
+            bad = ~np.isfinite(t)
+            if np.any(bad):
+                dead.append((a[bad], r1[bad], np.zeros(int(bad.sum()))))
+                t[bad] = 0.0
+                full &= ~bad
+            S.yx[a], S.yy[a] = yx - t * zx, yy - t * zy
+            lpa = S.lp[a] + t
+            S.l1[a] = np.where(full, np.maximum(l1 - t * r1, 0.0), 0.0)  # a partial step drops n1
+            S.w1[a], S.l2[a] = np.where(full, pk, S.w1[a]), np.where(full, lpa, 0.0)
+            S.nw[a] = np.where(full, 2, np.where(bad, 1, 0))
+            S.p[a], S.lp[a] = np.where(full, -1, pk), np.where(full, 0.0, lpa)
+        # ---- two active constraints n1, n2 (they span the plane): partial steps only
+        a = act[k == 2]
+        if a.size:
+            pk, w0, w1 = S.p[a], S.w0[a], S.w1[a]
+            ip, i0, i1 = a * K + pk, a * K + w0, a * K + w1
+            npx, npy, n1x, n1y, n2x, n2y = NX[ip], NY[ip], NX[i0], NY[i0], NX[i1], NY[i1]
+            l1, l2 = S.l1[a], S.l2[a]
             det = n1x * n2y - n1y * n2x
-            r1 = np.where(c2, (npx * n2y - npy * n2x) / det, np.where(c1, n1x * npx + n1y * npy, 0.0))
-            r2 = np.where(c2, (n1x * npy - n1y * npx) / det, 0.0)
-        zx = np.where(c2, 0.0, npx - r1 * n1x)  # the part of n_p off the active normals
-        zy = np.where(c2, 0.0, npy - r1 * n1y)
-        zz = zx * zx + zy * zy
-        viol = npx * yx + npy * yy - bp
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t1 = np.where(zz > _EPS_Z, viol / zz, np.inf)  # full step: n_p becomes tight
-            q1 = np.where(~c0 & (r1 > _EPS_R), l1 / r1, np.inf)  # partial steps: an active multiplier hits 0
-            q2 = np.where(c2 & (r2 > _EPS_R), l2 / r2, np.inf)
-        t2 = np.minimum(q1, q2)
-        t = np.minimum(t1, t2)
-        dead = ~np.isfinite(t)
-        any_dead = bool(np.any(dead))
-        if any_dead:
-            d = a[dead]
+            r1 = (npx * n2y - npy * n2x) / det
+            r2 = (n1x * npy - n1y * npx) / det
+            with np.errstate(divide="ignore", invalid="ignore"):
+                q1 = np.where(r1 > _EPS_R, l1 / r1, np.inf)
+                q2 = np.where(r2 > _EPS_R, l2 / r2, np.inf)
+            t = np.minimum(q1, q2)
+            bad = ~np.isfinite(t)
+            if np.any(bad):
+                dead.append((a[bad], r1[bad], r2[bad]))
+                t[bad] = 0.0
+            l1, l2 = np.maximum(l1 - t * r1, 0.0), np.maximum(l2 - t * r2, 0.0)
+            drop0 = (q1 <= q2) & ~bad  # n1 leaves: n2 moves into its place
+            S.w0[a], S.l1[a] = np.where(drop0, w1, w0), np.where(drop0, l2, l1)
+            S.l2[a] = np.where(bad, l2, 0.0)
+            S.nw[a] = np.where(bad, 2, 1)
+            S.lp[a] += t
+        if dead:
+            d = np.concatenate([x[0] for x in dead])
             S.status[d] = 2
-            S.r1[d], S.r2[d] = r1[dead], r2[dead]
-            t = np.where(dead, 0.0, t)
-        S.yx[a] = yx - t * zx
-        S.yy[a] = yy - t * zy
-        l1 = l1 - t * r1
-        l2 = l2 - t * r2
-        lpa = S.lp[a] + t
-        full = (t1 <= t2) & ~dead
-        drop = ~full & ~dead
-        drop0 = drop & (q1 <= q2)
-        # full step: p joins the active set; partial step: the blocking constraint leaves
-        # (w1 shifts into w0 when w0 leaves)
-        add0, add1 = full & c0, full & c1
-        w0n = np.where(add0, pk, w0)
-        w1n = np.where(add1, pk, w1)
-        l1n = np.where(add0, lpa, l1)
-        l2n = np.where(add1, lpa, l2)
-        w0n = np.where(drop0, w1n, w0n)
-        l1n = np.where(drop0, l2n, l1n)
-        l2n = np.where(drop, 0.0, l2n)
-        l1n = np.where(drop & c1, 0.0, l1n)
-        S.w0[a], S.w1[a] = w0n, w1n
-        S.l1[a], S.l2[a] = np.maximum(l1n, 0.0), np.maximum(l2n, 0.0)
-        S.nw[a] = k + full - drop
-        S.p[a] = np.where(full, -1, pk)
-        S.lp[a] = np.where(full, 0.0, lpa)
-        if any_dead:
-            act = a[~dead]
+            S.r1[d] = np.concatenate([x[1] for x in dead])
+            S.r2[d] = np.concatenate([x[2] for x in dead])
+            act = act[S.status[act] == 0]
     S.status[act] = 3  # iteration cap
     return iterations
 
