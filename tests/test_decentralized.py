@@ -1,0 +1,345 @@
+"""The decentralised filter: the exact per-robot 2-variable QP solver and the authority split of the pair rows.
+
+Every answer is checked against an independent dense solver (quadprog) on the robot's own QP.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point
+from aasoatt_env.model.geometry import robot_pairs
+from aasoatt_env.model.params import make_team
+from aasoatt_env.safety.barriers import PairGeometry, barrier_rows
+from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.decentralized import decentralized_step, split_rows
+from aasoatt_env.safety.problem import box_least_squares, build_problem
+from aasoatt_env.safety.solvers.local import RELAX_TOL, least_violation, solve_local_qps
+
+quadprog = pytest.importorskip("quadprog")
+
+
+# ----------------------------------------------------------------------------- references
+def _qp_ref(H, g, lb, ub, G, h):
+    """quadprog on one robot: ``(x, row multipliers)`` or None when it reports the constraints inconsistent."""
+    C = np.vstack([-np.eye(2), np.eye(2), -G.reshape(-1, 2)])
+    b = np.concatenate([-ub, lb, -h])
+    try:
+        x, _, _, _, lag, _ = quadprog.solve_qp(H, -g, C.T, b, 0)
+    except ValueError:
+        return None
+    return x, lag[4:]
+
+
+def _phase1_ref(lb, ub, G, h):
+    """Least violations of the rows normalised by ``|G_r|`` (bounds hard), by quadprog on the lifted QP."""
+    nrm = np.linalg.norm(G, axis=1)
+    Gn, hn = G / nrm[:, None], h / nrm
+    m = G.shape[0]
+    Hq = np.eye(2 + m)
+    Hq[:2, :2] *= 1e-9
+    C = np.zeros((2 * m + 4, 2 + m))
+    b = np.zeros(2 * m + 4)
+    C[:m, :2], C[:m, 2:], b[:m] = -Gn, np.eye(m), -hn  # G x - s <= h
+    C[m:2 * m, 2:] = np.eye(m)  # s >= 0
+    C[2 * m:2 * m + 2, :2], b[2 * m:2 * m + 2] = np.eye(2), lb
+    C[2 * m + 2:, :2], b[2 * m + 2:] = -np.eye(2), -ub
+    xs = quadprog.solve_qp(Hq, np.zeros(2 + m), C.T, b, 0)[0]
+    return np.maximum(Gn @ xs[:2] - hn, 0.0)
+
+
+# ----------------------------------------------------------------------------- random robots
+def _random_robots(n, seed):
+    """Random 2-variable QPs with 0-12 rows; kinds: generic, parallel/duplicate rows, rows through the
+    optimum, infeasible (opposite parallel rows with a gap, an empty triangle, a row beyond the box)."""
+    rng = np.random.default_rng(seed)
+    H = np.empty((n, 2, 2))
+    g = rng.normal(0.0, 3.0, (n, 2))
+    lb = -rng.uniform(0.5, 2.0, (n, 2))
+    ub = rng.uniform(0.5, 2.0, (n, 2))
+    owners, Gs, hs = [], [], []
+    for k in range(n):
+        B = rng.normal(size=(2, 2))
+        H[k] = B @ B.T + 0.3 * np.eye(2)
+        m = int(rng.integers(0, 13))
+        G = rng.normal(size=(m, 2))
+        h = rng.normal(0.8, 0.6, m)
+        kind = int(rng.integers(0, 7))
+        if kind == 1 and m >= 2:  # parallel and duplicate rows
+            G[1] = G[0] * rng.uniform(0.5, 2.0)
+            h[1] = h[0] * G[1, 0] / G[0, 0] + rng.choice([0.0, 0.2, -0.2])
+            if m >= 3:
+                G[2], h[2] = G[0], h[0]
+        elif kind == 2 and m >= 2:  # opposite rows with a clear gap: infeasible
+            G[1] = -G[0] * rng.uniform(0.5, 2.0)
+            c = abs(G[1, 0] / G[0, 0])
+            h[1] = -h[0] * c - rng.uniform(0.3, 1.0) * c
+        elif kind == 3:  # an empty triangle: n_k' x <= -c with normals 120 degrees apart
+            ang = rng.uniform(0, 2 * np.pi) + np.array([0.0, 2 * np.pi / 3, 4 * np.pi / 3])
+            T = np.stack((np.cos(ang), np.sin(ang)), axis=1) * rng.uniform(0.5, 2.0, (3, 1))
+            G = np.vstack((G, T))
+            h = np.concatenate((h, -rng.uniform(0.05, 0.5, 3) * np.linalg.norm(T, axis=1)))
+        elif kind == 4:  # a row beyond the box
+            G = np.vstack((G, [[1.0, 0.0]]))
+            h = np.concatenate((h, [lb[k, 0] - rng.uniform(0.1, 1.0)]))
+        elif kind == 5:  # rows through the optimum of the robot's QP (degenerate vertices, polygon kept)
+            ref = _qp_ref(H[k], g[k], lb[k], ub[k], G, h)
+            if ref is not None:
+                xs = ref[0]
+                act = [G[i] for i in np.flatnonzero(np.abs(G @ xs - h) < 1e-9)]
+                act += [np.eye(2)[i] for i in range(2) if xs[i] >= ub[k, i] - 1e-9]
+                act += [-np.eye(2)[i] for i in range(2) if xs[i] <= lb[k, i] + 1e-9]
+                if act:  # normals in the normal cone at the optimum: the rows contain the polygon
+                    cone = np.array(act)
+                    extra = rng.uniform(0.1, 1.0, (3, len(act))) @ cone
+                    extra[0] = cone[0] * 2.0
+                else:  # an interior optimum: two cuts through it leave an interior
+                    extra = rng.normal(size=(2, 2))
+                G = np.vstack((G, extra))
+                h = np.concatenate((h, extra @ xs))
+        owners.append(np.full(G.shape[0], k))
+        Gs.append(G.reshape(-1, 2))
+        hs.append(h)
+    return H, g, lb, ub, np.concatenate(owners).astype(np.intp), np.vstack(Gs), np.concatenate(hs)
+
+
+def test_local_solver_matches_dense_solver_on_random_robots():
+    n = 1500
+    H, g, lb, ub, owner, G, h = _random_robots(n, seed=7)
+    sol = solve_local_qps(H, g, lb, ub, owner, G, h)
+    n_inf = 0
+    for k in range(n):
+        r = owner == k
+        ref = _qp_ref(H[k], g[k], lb[k], ub[k], G[r], h[r])
+        assert sol.feasible[k] == (ref is not None), k
+        if ref is None:
+            n_inf += 1
+            assert np.all(sol.lam[r] == 0.0)
+            assert np.all((sol.x[k] >= lb[k]) & (sol.x[k] <= ub[k]))
+            continue
+        assert np.max(np.abs(sol.x[k] - ref[0])) <= 1e-6, k
+        # KKT with the returned multipliers: stationarity, signs, complementarity
+        lam, lb_k = sol.lam[r], sol.lam_box[k]
+        grad = H[k] @ sol.x[k] + g[k] + G[r].T @ lam + lb_k[0] - lb_k[1]
+        assert np.max(np.abs(grad)) <= 1e-7 * (1 + np.abs(g[k]).max()), k
+        assert np.all(lam >= 0) and np.all(lb_k >= 0)
+        assert np.all(lam * (G[r] @ sol.x[k] - h[r]) >= -1e-8)
+    # the set holds every kind of case
+    assert 100 <= n_inf <= n - 500
+    assert int((np.bincount(owner, minlength=n) == 0).sum()) > 50
+
+
+def test_local_solver_enumeration_path_agrees():
+    """The enumeration fallback alone (no active-set iteration) gives the same answers."""
+    H, g, lb, ub, owner, G, h = _random_robots(300, seed=3)
+    fast = solve_local_qps(H, g, lb, ub, owner, G, h)
+    enum = solve_local_qps(H, g, lb, ub, owner, G, h, max_iter=0)
+    assert enum.n_enumerated > 0
+    np.testing.assert_array_equal(fast.feasible, enum.feasible)
+    assert np.max(np.abs(fast.x - enum.x)) <= 1e-8
+
+
+def test_least_violation_matches_lifted_dense_qp():
+    H, g, lb, ub, owner, G, h = _random_robots(400, seed=11)
+    sol = solve_local_qps(H, g, lb, ub, owner, G, h)
+    bad = np.flatnonzero(~sol.feasible)
+    assert bad.size > 30
+    keep = np.isin(owner, bad)
+    remap = np.full(owner.max() + 1, -1)
+    remap[bad] = np.arange(bad.size)
+    o = remap[owner[keep]]
+    x, s = least_violation(lb[bad], ub[bad], o, G[keep], h[keep])
+    nrm = np.linalg.norm(G[keep], axis=1)
+    for i, k in enumerate(bad):
+        r = o == i
+        s_ref = _phase1_ref(lb[k], ub[k], G[keep][r], h[keep][r])
+        assert np.max(np.abs(s[r] / nrm[r] - s_ref)) <= 1e-6, k
+        assert np.all((x[i] >= lb[k]) & (x[i] <= ub[k]))
+
+
+def test_relaxed_robots_get_their_least_violation_answer():
+    H, g, lb, ub, owner, G, h = _random_robots(400, seed=5)
+    sol = solve_local_qps(H, g, lb, ub, owner, G, h, relax=True)
+    bad = np.flatnonzero(~sol.feasible)
+    assert bad.size > 30
+    nrm = np.linalg.norm(G, axis=1)
+    for k in bad:
+        r = owner == k
+        s_ref = _phase1_ref(lb[k], ub[k], G[r], h[r])
+        loosen = s_ref * nrm[r] * (1 + 1e-6) + RELAX_TOL * nrm[r]
+        np.testing.assert_allclose(sol.loosened[r], loosen, atol=1e-6 * (1 + nrm[r].max()))
+        ref = _qp_ref(H[k], g[k], lb[k], ub[k], G[r], h[r] + sol.loosened[r])
+        assert ref is not None
+        assert np.max(np.abs(sol.x[k] - ref[0])) <= 1e-6, k
+    assert np.all(sol.loosened[~np.isin(owner, bad)] == 0.0)
+
+
+def test_local_solver_edge_cases():
+    H = np.broadcast_to(np.eye(2), (3, 2, 2)).copy()
+    g = np.array([[-5.0, 0.0], [0.0, 0.0], [1.0, 1.0]])
+    lb, ub = -np.ones((3, 2)), np.ones((3, 2))
+    # robot 0: no rows (box only); robot 1: a zero row 0 <= -1 (infeasible); robot 2: a zero row 0 <= 1
+    sol = solve_local_qps(H, g, lb, ub, np.array([1, 2]), np.zeros((2, 2)), np.array([-1.0, 1.0]))
+    np.testing.assert_allclose(sol.x[0], [1.0, 0.0])
+    assert sol.lam_box[0, 0, 0] == pytest.approx(4.0)
+    assert list(sol.feasible) == [True, False, True]
+    np.testing.assert_allclose(sol.x[2], [-1.0, -1.0])
+    empty = solve_local_qps(np.zeros((0, 2, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)),
+                            np.zeros(0, int), np.zeros((0, 2)), np.zeros(0))
+    assert empty.x.shape == (0, 2)
+    with pytest.raises(ValueError, match="positive definite"):
+        solve_local_qps(np.zeros((1, 2, 2)), np.zeros((1, 2)), -np.ones((1, 2)), np.ones((1, 2)),
+                        np.zeros(0, int), np.zeros((0, 2)), np.zeros(0))
+
+
+# ----------------------------------------------------------------------------- the decentralised step
+def _scene(n, spacing=1.1, nominal=30.0, seed=0, obstacles=False):
+    """A jittered grid moving in random directions (as ``benchmarks/bench_filter.py``), rows as the filter builds
+    them (no deadlock strategy); optional disc obstacles between the robots."""
+    rng = np.random.default_rng(seed)
+    team = make_team("paper", n)
+    side = int(np.ceil(np.sqrt(n)))
+    grid = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n] * spacing
+    p = grid + rng.uniform(-0.02, 0.02, grid.shape)
+    theta = rng.uniform(-np.pi, np.pi, n)
+    pose = pose_from_point(team, p, theta)
+    u = rng.uniform(2, 8, (n, 1)) * np.ones((1, 2)) + rng.normal(0, 0.5, (n, 2))
+    kin = kinematics(team, pose, u)
+    lo, hi = input_bounds(team, u, 0.005)
+    nom = rng.uniform(-nominal, nominal, (n, 2))
+    cfg = FilterConfig(deadlock="none")
+    pv, v, A, adot = kin.p, kin.v, kin.A, kin.adot_u
+    pr = robot_pairs(pv, cfg.sensing_range)
+    ri, rj = pr[:, 0], pr[:, 1]
+    rad, amax = team.radius, team.max_point_accel
+    gp, gv, ga = pv[ri] - pv[rj], v[ri] - v[rj], adot[ri] - adot[rj]
+    ds, ap = rad[ri] + rad[rj], amax[ri] + amax[rj]
+    if obstacles:
+        oc = grid[: max(1, n // 10)] + spacing / 2
+        d = np.linalg.norm(pv[:, None] - oc[None], axis=2) - 0.2
+        oi, ok = np.nonzero(d <= cfg.sensing_range)
+        gp = np.concatenate((gp, pv[oi] - oc[ok]))
+        gv, ga = np.concatenate((gv, v[oi])), np.concatenate((ga, adot[oi]))
+        ds = np.concatenate((ds, rad[oi] + 0.2))
+        ap = np.concatenate((ap, amax[oi]))
+        ri, rj = np.concatenate((ri, oi)), np.concatenate((rj, np.full(oi.size, -1)))
+    sp2 = np.einsum("ij,ij->i", v, v)
+    margin = cfg.pair_margin(gv) + cfg.speed_margin_coefficient * (sp2[ri] + np.where(rj >= 0, sp2[rj], 0.0))
+    c, rhs, keep = barrier_rows(cfg.barrier, PairGeometry(ri, rj, gp, gv, ga, ds + margin, ds, ap), cfg)
+    ri, rj = ri[keep], rj[keep]
+    Gi = np.einsum("pki,pk->pi", A[ri], c)
+    Gj = -np.einsum("pki,pk->pi", A[np.maximum(rj, 0)], c)
+    target = np.einsum("nij,nj->ni", A, nom)
+    return team, A, target, lo, hi, ri, rj, Gi, Gj, rhs
+
+
+@pytest.mark.parametrize("split", ["authority", "reciprocal"])
+def test_split_rows_add_up_to_the_pair_rows(split):
+    team, A, target, lo, hi, ri, rj, Gi, Gj, rhs = _scene(60, obstacles=True)
+    auth = team.max_point_accel * np.linspace(0.5, 2.0, team.n)  # unequal authorities
+    du0 = box_least_squares(A, target, lo, hi) if split == "reciprocal" else None
+    sp = split_rows(ri, rj, Gi, Gj, rhs, auth, du0)
+    m = rhs.size
+    obs = rj < 0
+    assert obs.any() and (~obs).any()
+    assert sp.owner.size == m + int((~obs).sum())
+    hs = np.zeros(m)
+    np.add.at(hs, sp.row_side(np.arange(sp.owner.size))[0], sp.h)
+    np.testing.assert_allclose(hs, rhs, rtol=1e-12, atol=1e-12)
+    row, side = sp.row_side(np.arange(sp.owner.size))
+    np.testing.assert_array_equal(sp.owner, np.where(side == 0, ri[row], rj[row]))
+    np.testing.assert_array_equal(sp.G, np.where(side[:, None] == 0, Gi[row], Gj[row]))
+    # shares follow authority; obstacle rows whole
+    i_half = side == 0
+    rr = i_half & ~obs[row]
+    share = auth[ri[row[rr]]] / (auth[ri[row[rr]]] + auth[rj[row[rr]]])
+    if du0 is None:  # rhs split
+        np.testing.assert_allclose(sp.h[rr], rhs[row[rr]] * share)
+    else:  # the nominal pair's correction split: h_i = Gi du0_i - share * (Gi du0_i + Gj du0_j - rhs)
+        gi0 = np.einsum("pi,pi->p", Gi, du0[ri])
+        gj0 = np.einsum("pi,pi->p", Gj, du0[np.maximum(rj, 0)])
+        v = gi0 + gj0 - rhs
+        np.testing.assert_allclose(sp.h[rr], gi0[row[rr]] - share * v[row[rr]],
+                                   rtol=1e-10, atol=1e-10)
+    np.testing.assert_allclose(sp.h[i_half & obs[row]], rhs[row[i_half & obs[row]]], rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("split", ["authority", "reciprocal"])
+@pytest.mark.parametrize(("n", "spacing", "nominal"), [(64, 1.1, 30.0), (100, 2.0, 3.0)])
+def test_each_robot_answer_equals_dense_solver_on_its_own_qp(n, spacing, nominal, split):
+    team, A, target, lo, hi, ri, rj, Gi, Gj, rhs = _scene(n, spacing, nominal, obstacles=True)
+    auth = team.max_point_accel
+    res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, split=split)
+    du0 = box_least_squares(A, target, lo, hi) if split == "reciprocal" else None
+    sp = split_rows(ri, rj, Gi, Gj, rhs, auth, du0)
+    scale = np.max(np.maximum(np.abs(lo), np.abs(hi)), axis=1)
+    rows_k = [np.flatnonzero(sp.owner == k) for k in range(n)]
+    for k in range(n):
+        r = rows_k[k]
+        Hk, gk = 2 * A[k].T @ A[k], -2 * A[k].T @ target[k]
+        ref = _qp_ref(Hk, gk, lo[k], hi[k], sp.G[r], sp.h[r])
+        assert res.infeasible[k] == (ref is None), k
+        if ref is None:  # least violation of its own rows, then its QP over the loosened rows
+            nrm = np.linalg.norm(sp.G[r], axis=1)
+            s = _phase1_ref(lo[k] / scale[k], hi[k] / scale[k], sp.G[r] * scale[k], sp.h[r])
+            ref = _qp_ref(Hk, gk, lo[k], hi[k], sp.G[r], sp.h[r] + s * nrm * scale[k] * (1 + 1e-6)
+                          + RELAX_TOL * nrm * scale[k])
+            assert ref is not None
+        assert np.max(np.abs(res.du[k] - ref[0])) <= 1e-6 * scale[k], k
+        # multipliers in the centralised filter's units (du, objective |A du - target|^2)
+        row, side = sp.row_side(r)
+        np.testing.assert_allclose(res.eta_half[row, side], ref[1], atol=1e-6 * (1 + np.abs(ref[1]).max()))
+    assert res.n_relaxed == int(res.infeasible.sum())
+    if spacing > 1.5:
+        assert res.n_relaxed == 0 and res.slack == 0.0
+        # every pair row holds: the halves add up
+        du = res.du
+        lhs = np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)]),
+                                                            0.0)
+        assert np.all(lhs <= rhs + 1e-9 * (1 + np.abs(rhs)))
+    else:
+        assert res.n_relaxed > 0 and res.slack > 0.0  # the packed grid: halving rows boxes robots in
+    assert np.all((res.du >= lo) & (res.du <= hi))
+
+
+@pytest.mark.parametrize("split", ["authority", "reciprocal"])
+def test_infeasible_robot_reported_and_relaxed(split):
+    """A robot squeezed between two neighbours that both demand it back off: its own QP is empty."""
+    A = np.broadcast_to(0.05 * np.array([[1.0, 1.0], [1.0, -1.0]]), (3, 2, 2)).copy()
+    lo, hi = -60 * np.ones((3, 2)), 60 * np.ones((3, 2))
+    target = np.zeros((3, 2))
+    # rows c'(w_i - w_j) <= rhs: robot 1 in the middle, c = -p_ij along x
+    ri, rj = np.array([0, 1]), np.array([1, 2])
+    c = np.array([[1.0, 0.0], [1.0, 0.0]])
+    Gi, Gj = np.einsum("pki,pk->pi", A[ri], c), -np.einsum("pki,pk->pi", A[rj], c)
+    rhs = np.array([-8.0, -8.0])  # each pair must open at 8 m/s^2 (each robot reaches 6 m/s^2 along x)
+    res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, np.ones(3), split=split)
+    assert list(res.infeasible) == [False, True, False]
+    assert res.n_relaxed == 1 and res.slack > 0
+    assert np.all((res.du >= lo) & (res.du <= hi))
+    assert res.eta[0] > 0 and res.eta[1] > 0
+    # the outer robots take their own halves exactly
+    w = np.einsum("nij,nj->ni", A, res.du)
+    assert w[0, 0] == pytest.approx(-4.0) and w[2, 0] == pytest.approx(4.0)
+    # robot 1 is pulled both ways: its least-violation answer splits the difference
+    assert w[1, 0] == pytest.approx(0.0, abs=1e-6)
+
+
+def test_eta_in_centralised_units_for_a_lone_robot():
+    """One robot and an obstacle row: the local QP is the centralised QP, so the multipliers agree."""
+    A = np.array([[[0.05, 0.05], [0.1, -0.1]]])
+    target = np.array([[3.0, 1.0]])
+    lo, hi = -60 * np.ones((1, 2)), 60 * np.ones((1, 2))
+    Gi = np.array([[0.05, 0.1]]) @ A[0]
+    rhs = np.array([0.2])
+    res = decentralized_step(A, target, lo, hi, np.array([0]), np.array([-1]), Gi, np.zeros((1, 2)), rhs,
+                             np.ones(1))
+    scale = np.array([60.0])
+    prob = build_problem(A, target, lo, hi, scale, np.array([0]), np.array([-1]), Gi, np.zeros((1, 2)), rhs)
+    x, _, _, _, lag, _ = quadprog.solve_qp(prob.H_dense(), -prob.g, -prob.C.toarray().T, -prob.u, 0)
+    np.testing.assert_allclose(res.du[0], x * scale, atol=1e-8)
+    eta_c = prob.obj_scale * lag / prob.row_norm
+    assert eta_c[0] > 0
+    np.testing.assert_allclose(res.eta, eta_c, rtol=1e-6)
+    np.testing.assert_allclose(res.z, lag, rtol=1e-6)  # normalised as the filter's z
