@@ -39,7 +39,10 @@ from aasoatt_env.safety.barriers import BARRIERS
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
 from aasoatt_env.safety.solvers import get_solver
 
-__all__ = ["GAIN_MAX", "FilterConfig", "auto_margin"]
+__all__ = ["GAIN_MAX", "MODES", "FilterConfig", "auto_margin"]
+
+MODES: tuple[str, ...] = ("centralized", "decentralized")
+"""Values of :attr:`FilterConfig.mode`."""
 
 GAIN_MAX: float = 1e3
 """Largest accepted barrier/tracking gain (``k1``, ``k2``, ``k3``, ``k4``, ``gamma``,
@@ -101,6 +104,16 @@ class FilterConfig:
         conditions check out; the solver otherwise).  It pays off when consecutive
         QPs share their active set and costs time when the set changes every step
         (``benchmarks/bench_filter.py`` measures both).  On by default.
+    mode : {"centralized", "decentralized"}
+        ``"centralized"`` (default): one QP for the team (the paper's filter).
+        ``"decentralized"``: every robot solves its own 2-variable QP over its
+        shares of the pair rows (in proportion to ``Team.max_point_accel``,
+        around the pair's nominal answers: the reciprocal split of
+        :mod:`aasoatt_env.safety.decentralized`), all at once and exactly;
+        ``solver``, ``active_set`` and ``decompose`` do not apply.  A robot whose own QP is infeasible gets
+        its least-violation answer (status ``"relaxed"``).  The backup layer
+        still runs after it, and it is a team-wide check: it needs every
+        neighbour's state and applied input (README: Decentralised filter).
     decompose : bool
         With an exact solver (all but ``neural``): robots in no row are solved in
         closed form (a 2-variable box-constrained least squares each) and the QP
@@ -168,6 +181,7 @@ class FilterConfig:
     dt: float = DT
     neural_iterations: int = 1
     active_set: bool = True
+    mode: str = "centralized"
     decompose: bool = True
     backup: bool = True
     brake_fraction: float = 2.0 / 3.0
@@ -182,7 +196,8 @@ class FilterConfig:
     heading_deg: float = 30.0
 
     def __post_init__(self) -> None:
-        for name, registry in (("barrier", BARRIERS), ("deadlock", STRATEGIES), ("trigger", TRIGGERS)):
+        for name, registry in (("barrier", BARRIERS), ("deadlock", STRATEGIES), ("trigger", TRIGGERS),
+                               ("mode", MODES)):
             check.choice(name, getattr(self, name), registry)
         if not isinstance(self.solver, str):
             raise ConfigError(f"solver: got {self.solver!r}, expected a solver name")

@@ -37,6 +37,7 @@ from aasoatt_env.safety.backup import gatekeeper, repair
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
+from aasoatt_env.safety.decentralized import decentralized_step
 from aasoatt_env.safety.problem import box_least_squares, build_problem
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.sim.protocol import FilterInput
@@ -321,7 +322,10 @@ class SafetyFilter:
         zeta = np.where(triggered, cfg.zeta, 0.0)
         geo_p_true = geo_p
         geo_p = strategy.rotate_rows(geo_p, triggered[ri] | ((rj >= 0) & triggered[np.maximum(rj, 0)]), self._Q)
-        target = strategy.correct_target(np.einsum("nij,nj->ni", A, nominal_du), zeta, self._Q,
+        decentral = cfg.mode == "decentralized"
+        # a robot alone saturates its own nominal: the decentralised QPs start from what each robot would do
+        nom_t = np.minimum(np.maximum(nominal_du, lo), hi) if decentral else nominal_du
+        target = strategy.correct_target(np.einsum("nij,nj->ni", A, nom_t), zeta, self._Q,
                                          TargetContext(v, p, reference, cfg.k3, cfg.k4))
 
         # rows --------------------------------------------------------------------------
@@ -347,7 +351,11 @@ class SafetyFilter:
         keys = ri.astype(np.int64) * (m_obs + 1) + np.where(rj >= 0, rj, n - 1 - pairs_out[:, 1])
         m = rhs.shape[0]
         du = np.empty((n, 2))
-        if cfg.decompose and self._solver.exact:
+        if decentral:  # every robot its own QP over its halves of the rows: no team QP below
+            dec = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, scale=scale)
+            du[:] = dec.du
+            coupled, rows = np.zeros(n, dtype=bool), np.zeros(m, dtype=bool)
+        elif cfg.decompose and self._solver.exact:
             # Exact decomposition.  Without rows every robot's QP is a 2-variable box
             # least squares (closed form).  The rows split the team into independent
             # components; a component whose closed-form answers already satisfy all its
@@ -386,14 +394,25 @@ class SafetyFilter:
             status, message, iterations, n_qp = sol.status, sol.message, sol.iterations, prob.m
         else:
             status, message, iterations, n_qp = "solved", "closed form: no row binds", 0, 0
+        if decentral:
+            z, eta, iterations, n_qp = dec.z, dec.eta, dec.iterations, m
+            status = "relaxed" if dec.n_relaxed else "solved"
+            message = f"decentralized: {n} local QPs" + (f", {dec.n_relaxed} infeasible (relaxed)" if dec.n_relaxed
+                                                         else "")
         self._x, self._keys, self._z = x_full.ravel(), keys, z
-        active = z > cfg.eta_tol
         avoiding = np.zeros(n, dtype=bool)
-        avoiding[ri[active]] = True
-        avoiding[rj[active & (rj >= 0)]] = True
+        if decentral:  # a robot avoids when its own half of a row binds
+            active_i, active_j = dec.z_half[:, 0] > cfg.eta_tol, dec.z_half[:, 1] > cfg.eta_tol
+            avoiding[ri[active_i]] = True
+            avoiding[rj[active_j & (rj >= 0)]] = True
+        else:
+            active = z > cfg.eta_tol
+            avoiding[ri[active]] = True
+            avoiding[rj[active & (rj >= 0)]] = True
         self._dl.avoiding = avoiding
         viol = self._row_values(Gi, Gj, ri, rj, du) - rhs
-        slack = float(max(0.0, np.max(viol, initial=0.0))) if status != "solved" or not self._solver.exact else 0.0
+        exact = decentral or self._solver.exact
+        slack = float(max(0.0, np.max(viol, initial=0.0))) if status != "solved" or not exact else 0.0
 
         # backup layer -----------------------------------------------------------------
         braking = np.zeros(n, dtype=bool)
