@@ -71,7 +71,7 @@ def _episode(key: dict) -> dict:
         kw = dict(scenario="circle_obstacles" if obst else "circle_swap", num_robots=39, robots=robots)
     else:
         kw = dict(scenario="random_goals", num_robots=n, robots=robots, random_obstacles=4 if obst else 0)
-    env = make_env(filter=True, max_steps=steps, **kw)
+    env = make_env(filter={"mode": key.get("mode", "centralized")}, max_steps=steps, **kw)
     cls = ADVERSARIES[adv]
     agent = cls(seed=seed) if "seed" in inspect.signature(cls).parameters else cls()
     t = time.perf_counter()
@@ -87,7 +87,8 @@ def _episode(key: dict) -> dict:
 
 
 def _key_id(k: dict) -> str:
-    return f"{k['adversary']}/N={k['n']}/{k['preset']}/obst={int(k['obstacles'])}/seed={k['seed']}"
+    mode = "" if k.get("mode", "centralized") == "centralized" else f"/{k['mode']}"
+    return f"{k['adversary']}/N={k['n']}/{k['preset']}/obst={int(k['obstacles'])}/seed={k['seed']}{mode}"
 
 
 def _done(path: Path) -> dict[str, dict]:
@@ -107,7 +108,7 @@ def adversarial(args: argparse.Namespace) -> None:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     done = _done(out)
-    keys = [dict(adversary=a, n=n, preset=p, obstacles=o, seed=s, steps=args.steps)
+    keys = [dict(adversary=a, n=n, preset=p, obstacles=o, seed=s, steps=args.steps, mode=args.mode)
             for s, a, n, p, o in itertools.product(range(args.seeds), ADVERSARIES, args.teams, PRESETS, (False, True))]
     todo = [k for k in keys if _key_id(k) not in done]
     print(f"{len(keys)} episodes, {len(keys) - len(todo)} already in {out}, {len(todo)} to run", flush=True)
@@ -139,7 +140,7 @@ def _progress(rec: dict) -> None:
 
 
 def summary(args: argparse.Namespace) -> None:
-    recs = list(_done(Path(args.out)).values())
+    recs = [r for r in _done(Path(args.out)).values() if r.get("mode", "centralized") == args.mode]
     if not recs:
         print("no results yet")
         return
@@ -148,7 +149,7 @@ def summary(args: argparse.Namespace) -> None:
         return (not r["finite"]) or any(g < -TOL for g in gaps)
 
     steps = sorted({r["steps"] for r in recs})
-    print(f"\n{len(recs)} episodes x {'/'.join(map(str, steps))} physics steps; "
+    print(f"\nmode={args.mode}: {len(recs)} episodes x {'/'.join(map(str, steps))} physics steps; "
           f"wall {sum(r['wall_s'] for r in recs):.0f} s "
           f"(sum over episodes)\n")
     print("| adversary | episodes | closest robot pair gap [mm] | closest obstacle gap [mm] | pairs closer than "
@@ -192,15 +193,16 @@ def paper(args: argparse.Namespace) -> None:
     print("|---|---:|---|---:|---:|---:|---:|---:|---:|")
     with out.open("a") as fh:
         for label, kw in runs:
-            for layer in (True, False):
-                env = make_env(filter=FilterConfig(backup=layer), settle_time=3.0, **kw)
+            for layer in (True, False) if args.mode == "centralized" else (True,):
+                env = make_env(filter=FilterConfig(backup=layer, mode=args.mode), settle_time=3.0, **kw)
                 t = time.perf_counter()
                 ro, _ = run_episode(env, TrackingController(), seed=0)
                 wall = time.perf_counter() - t
                 s = summarize(ro, goal_tolerance=0.05)
                 gap = min(v for v in (s["min_robot_gap"], s["min_obstacle_gap"]) if v is not None)
                 fe = np.linalg.norm(ro.positions[-1] - ro.goals, axis=1)
-                rec = dict(scene=label, n=kw["num_robots"], layer=layer, min_gap=gap, final_max=float(fe.max()),
+                rec = dict(scene=label, n=kw["num_robots"], layer=layer, mode=args.mode, min_gap=gap,
+                           final_max=float(fe.max()),
                            home=int(np.sum(fe <= 0.05)), rmse=s["rmse"], backup_steps=int(ro.backup.any(axis=1).sum()),
                            wall_s=wall)
                 fh.write(json.dumps(rec) + "\n")
@@ -217,6 +219,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=800, help="physics steps per episode (adversarial)")
     ap.add_argument("--teams", type=lambda v: tuple(int(x) for x in v.split(",")), default=TEAMS,
                     help="team sizes, comma-separated (39 = the radius-6 circle)")
+    ap.add_argument("--mode", choices=("centralized", "decentralized"), default="centralized",
+                    help="the filter's mode (FilterConfig.mode)")
     ap.add_argument("--jobs", type=int, default=1, help="episodes in parallel processes")
     ap.add_argument("--out", default="results/safety_campaign.jsonl", help="JSONL results (appended; resumable)")
     args = ap.parse_args()
