@@ -20,7 +20,8 @@ Columns (median ms per whole ``SafetyFilter.step``: neighbours, rows, QP, backup
   cvxopt        Robotarium-style: the whole team in one ``cvxopt.solvers.qp`` call
   osqp          OSQP, whole team, eps 1e-7 with polishing
   daqp          the default pipeline with DAQP instead of proxsuite (layer off)
-  decentral     ``mode="decentralized"``: every robot's own 2-variable QP (when available)
+  decentral     ``mode="decentralized"``: every robot's own 2-variable QP, then the backup layer
+  dec. off      the same without the backup layer
 
 Ratios are against ``ours`` in the same run.  Exactness: the largest
 ``|du - du_ref|`` of ``layer off`` over every step, ``du_ref`` from an
@@ -56,6 +57,7 @@ VARIANTS = {
     "osqp": {"solver": "osqp", "decompose": False, "active_set": False, "backup": False},
     "daqp": {"solver": "daqp", "backup": False},
     "decentral": {"mode": "decentralized"},
+    "dec. off": {"mode": "decentralized", "backup": False},
 }
 SLOW = {"cvxopt": 1000, "osqp": 1000, "whole QP": 1000, "daqp": 300}
 """Largest team a slow variant is run on."""
