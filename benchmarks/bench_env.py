@@ -5,7 +5,9 @@ RandomGoals (N = 4, 20, 100, 1,000; 10,000 with ``--large``) driven by the
 paper's tracking controller, so the filter sees the rows and QPs of real
 traffic.  Columns: bare env steps/s (zero actions: the env alone), the same
 with the tracking controller (env + controller), behind the default filter
-(env + controller + filter), agent-steps/s of the filtered env, and the
+(env + controller + filter), behind the default filter with uniform random
+actions, behind the decentralised filter (``mode="decentralized"``, tracking
+controller), agent-steps/s of the filtered env, and the
 "physics only" rate (kinematics + bounds + exact-arc integration) as the
 baseline the env overhead is measured against, in the same run.  Medians
 over repeats, one thread.
@@ -30,16 +32,26 @@ from aasoatt_env.model import dynamics  # noqa: E402
 from agents import TrackingController  # noqa: E402
 
 
-def _rate(n: int, steps: int, filtered: bool, controller: bool) -> float:
+def _rate(n: int, steps: int, filtered: bool | dict, agent: str) -> float:
+    """Env steps/s; ``agent``: ``zeros``, ``tracking`` (the paper's controller) or ``random`` (uniform actions)."""
     env = make_env("random_goals", filter=filtered, num_robots=n, max_steps=10**9)
     obs, _ = env.reset(seed=0)
-    agent = TrackingController()
+    ctrl = TrackingController()
+    rng = np.random.default_rng(0)
     zeros = {a: np.zeros(2, np.float32) for a in env.agents}
+
+    def act(obs):
+        if agent == "tracking":
+            return ctrl.act(obs, env)
+        if agent == "random":
+            return {a: rng.uniform(-1, 1, 2).astype(np.float32) for a in env.agents}
+        return zeros
+
     for _ in range(3):  # warm-up
-        obs, *_ = env.step(agent.act(obs, env) if controller else zeros)
+        obs, *_ = env.step(act(obs))
     t = time.perf_counter()
     for _ in range(steps):
-        obs, *_ = env.step(agent.act(obs, env) if controller else zeros)
+        obs, *_ = env.step(act(obs))
     return steps / (time.perf_counter() - t)
 
 
@@ -62,17 +74,21 @@ def main() -> None:
     args = parser.parse_args()
     repeats = 3 if args.quick else 5
     sizes = [4, 20, 100] if args.quick else [4, 20, 100, 1000] + ([10000] if args.large else [])
-    print(f"{'N':>6} {'bare':>10} {'+control':>10} {'+filter':>10} {'agent-st/s':>11} {'physics':>10} "
-          f"{'bare/phys':>10} {'filt/bare':>10}   (env steps/s)")
+    print(f"{'N':>6} {'bare':>10} {'+control':>10} {'+filter':>10} {'random+f':>10} {'decentral':>10} "
+          f"{'agent-st/s':>11} {'physics':>10} {'bare/phys':>10} {'filt/bare':>10}   (env steps/s)")
+    dec = {"mode": "decentralized"}
     for n in sizes:
         steps = 400 if n <= 20 else 150 if n <= 100 else 20 if n <= 1000 else 4
         steps = max(steps // (4 if args.quick else 1), 4)
-        bare = statistics.median(_rate(n, steps, False, False) for _ in range(repeats))
-        ctrl = statistics.median(_rate(n, steps, False, True) for _ in range(repeats))
-        filt = statistics.median(_rate(n, max(steps // 2, 4), True, True) for _ in range(repeats))
+        fsteps = max(steps // 2, 4)
+        bare = statistics.median(_rate(n, steps, False, "zeros") for _ in range(repeats))
+        ctrl = statistics.median(_rate(n, steps, False, "tracking") for _ in range(repeats))
+        filt = statistics.median(_rate(n, fsteps, True, "tracking") for _ in range(repeats))
+        rand = statistics.median(_rate(n, fsteps, True, "random") for _ in range(repeats))
+        dcen = statistics.median(_rate(n, fsteps, dec, "tracking") for _ in range(repeats))
         phys = statistics.median(_physics_rate(n, steps) for _ in range(repeats))
-        print(f"{n:>6} {bare:>10.0f} {ctrl:>10.0f} {filt:>10.1f} {filt * n:>11.0f} {phys:>10.0f} "
-              f"{bare / phys:>10.2f} {filt / bare:>10.3f}", flush=True)
+        print(f"{n:>6} {bare:>10.0f} {ctrl:>10.0f} {filt:>10.1f} {rand:>10.1f} {dcen:>10.1f} {filt * n:>11.0f} "
+              f"{phys:>10.0f} {bare / phys:>10.2f} {filt / bare:>10.3f}", flush=True)
 
 
 if __name__ == "__main__":
