@@ -71,7 +71,8 @@ def _episode(key: dict) -> dict:
         kw = dict(scenario="circle_obstacles" if obst else "circle_swap", num_robots=39, robots=robots)
     else:
         kw = dict(scenario="random_goals", num_robots=n, robots=robots, random_obstacles=4 if obst else 0)
-    env = make_env(filter={"mode": key.get("mode", "centralized")}, max_steps=steps, **kw)
+    env = make_env(filter={"mode": key.get("mode", "centralized"), "backup": key.get("backup", True)},
+                   max_steps=steps, **kw)
     cls = ADVERSARIES[adv]
     agent = cls(seed=seed) if "seed" in inspect.signature(cls).parameters else cls()
     t = time.perf_counter()
@@ -88,6 +89,7 @@ def _episode(key: dict) -> dict:
 
 def _key_id(k: dict) -> str:
     mode = "" if k.get("mode", "centralized") == "centralized" else f"/{k['mode']}"
+    mode += "" if k.get("backup", True) else "/layer-off"
     return f"{k['adversary']}/N={k['n']}/{k['preset']}/obst={int(k['obstacles'])}/seed={k['seed']}{mode}"
 
 
@@ -108,7 +110,8 @@ def adversarial(args: argparse.Namespace) -> None:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     done = _done(out)
-    keys = [dict(adversary=a, n=n, preset=p, obstacles=o, seed=s, steps=args.steps, mode=args.mode)
+    keys = [dict(adversary=a, n=n, preset=p, obstacles=o, seed=s, steps=args.steps, mode=args.mode,
+                 backup=not args.layer_off)
             for s, a, n, p, o in itertools.product(range(args.seeds), ADVERSARIES, args.teams, PRESETS, (False, True))]
     todo = [k for k in keys if _key_id(k) not in done]
     print(f"{len(keys)} episodes, {len(keys) - len(todo)} already in {out}, {len(todo)} to run", flush=True)
@@ -140,7 +143,8 @@ def _progress(rec: dict) -> None:
 
 
 def summary(args: argparse.Namespace) -> None:
-    recs = [r for r in _done(Path(args.out)).values() if r.get("mode", "centralized") == args.mode]
+    recs = [r for r in _done(Path(args.out)).values()
+            if r.get("mode", "centralized") == args.mode and r.get("backup", True) != args.layer_off]
     if not recs:
         print("no results yet")
         return
@@ -149,11 +153,12 @@ def summary(args: argparse.Namespace) -> None:
         return (not r["finite"]) or any(g < -TOL for g in gaps)
 
     steps = sorted({r["steps"] for r in recs})
-    print(f"\nmode={args.mode}: {len(recs)} episodes x {'/'.join(map(str, steps))} physics steps; "
+    print(f"\nmode={args.mode}, backup layer {'off' if args.layer_off else 'on'}: "
+          f"{len(recs)} episodes x {'/'.join(map(str, steps))} physics steps; "
           f"wall {sum(r['wall_s'] for r in recs):.0f} s "
           f"(sum over episodes)\n")
-    print("| adversary | episodes | closest robot pair gap [mm] | closest obstacle gap [mm] | pairs closer than "
-          "d_s - 1e-3 | NaN | backup steps (share) | unsafe steps |")
+    print("| adversary | episodes | closest robot pair gap [mm] | closest obstacle gap [mm] | "
+          "episodes with a pair closer than d_s - 1 mm | NaN | backup steps (share) | unsafe steps |")
     print("|---|---:|---:|---:|---:|---:|---:|---:|")
     for adv in sorted({r["adversary"] for r in recs}) + ["all"]:
         rs = [r for r in recs if adv in ("all", r["adversary"])]
@@ -221,6 +226,8 @@ def main() -> None:
                     help="team sizes, comma-separated (39 = the radius-6 circle)")
     ap.add_argument("--mode", choices=("centralized", "decentralized"), default="centralized",
                     help="the filter's mode (FilterConfig.mode)")
+    ap.add_argument("--layer-off", action="store_true",
+                    help="adversarial: the paper's filter alone (backup=False), for comparison")
     ap.add_argument("--jobs", type=int, default=1, help="episodes in parallel processes")
     ap.add_argument("--out", default="results/safety_campaign.jsonl", help="JSONL results (appended; resumable)")
     args = ap.parse_args()
