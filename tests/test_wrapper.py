@@ -125,10 +125,14 @@ def test_hostile_policy_with_a_wheel_speed_bound_full_length(bound):
 
 
 @pytest.mark.slow
-def test_hostile_policy_collides_on_unlimited_robots_without_a_bound():
-    """Documents the known limit: without any wheel-speed bound seed 6 ends in an overlap."""
-    env = AASOATTFilter(AASOATTParallelEnv("random_goals", num_robots=20, max_steps=2000))
-    assert _hostile_worst_clearance(env, 6) < -1e-3
+def test_hostile_policy_on_unlimited_robots_needs_the_backup_layer():
+    """Seed 6 without any wheel-speed bound: the paper's QP alone ends in an overlap,
+    the default filter (braking backup layer on) keeps every pair apart."""
+    base = dict(num_robots=20, max_steps=2000)
+    qp_only = AASOATTFilter(AASOATTParallelEnv("random_goals", **base), backup=False)
+    assert _hostile_worst_clearance(qp_only, 6) < -1e-3
+    default = AASOATTFilter(AASOATTParallelEnv("random_goals", **base))
+    assert _hostile_worst_clearance(default, 6) >= 0.0
 
 
 def test_bare_hostile_policy_does_collide():
