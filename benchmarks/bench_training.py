@@ -3,12 +3,14 @@
     python benchmarks/bench_training.py [--timesteps 24576] [--robots 6] [--n-envs 8] [--model RUN]
 
 Each row trains PPO with the default recipe (``TrainConfig`` defaults: 8 teams x N
-robots stepped by one batched physics call, decision_interval 20, n_steps 256)
-for ``--timesteps`` agent-steps after one warm-up update, and reports what a
-training run sees: rollout collection plus PPO updates, one torch thread.  The
-filter's share of the filtered row is measured by timing its calls.
+robots stepped by one batched physics call, decision_interval 20) with rollouts
+of ``--n-steps`` (64) per slot, for ``--timesteps`` agent-steps after one warm-up
+update, and reports what a training run sees: rollout collection plus PPO
+updates, one torch thread.  The filter's share of the filtered row is measured
+by timing its calls; the first row steps the same teams one by one
+(:class:`train.vec_env.ParallelVecEnv`), for comparison.
 
-``--model RUN`` starts both rows from a trained policy (``init_from``): the
+``--model RUN`` starts every row from a trained policy (``init_from``): the
 filter's cost depends on how often it has to act, which is far more often for
 the random actions of a fresh policy than for a trained one.
 """
@@ -24,19 +26,29 @@ from train.config import TrainConfig
 from train.train import build_model, init_policy, make_vec_env
 
 
+def separate_vec_env(cfg: TrainConfig):
+    """The same stack with the teams stepped one by one (``ParallelVecEnv``), for comparison."""
+    from train.train import make_env
+    from train.vec_env import ParallelVecEnv, SlotMonitor, SlotNormalize
+
+    venv = SlotMonitor(ParallelVecEnv([lambda: make_env(cfg) for _ in range(cfg.n_envs)]))
+    return SlotNormalize(venv, norm_obs=cfg.normalize_obs, norm_reward=cfg.normalize_reward, gamma=cfg.gamma,
+                         clip_obs=10.0)
+
+
 def bench(filtered: bool, timesteps: int, robots: int, n_envs: int, solver: str | None,
-          model: str | None, n_steps: int) -> dict[str, float]:
+          model: str | None, n_steps: int, batched: bool = True) -> dict[str, float]:
     kw = {"filter_kwargs": {"solver": solver}} if (filtered and solver) else {}
     cfg = TrainConfig(num_robots=robots, n_envs=n_envs, filter=filtered, progress_bar=False, tensorboard=False,
                       checkpoint_freq=0, n_steps=n_steps, batch_size=min(1024, n_steps * n_envs * robots),
                       init_from=model, **kw)
-    venv = make_vec_env(cfg)
+    venv = make_vec_env(cfg) if batched else separate_vec_env(cfg)
     ppo = build_model(cfg, venv)
     if model:
         init_policy(ppo, venv, cfg)
     filter_time = [0.0]
     if filtered:  # time every filter call (one per team and physics step)
-        for base in venv.unwrapped.batch._bases:
+        for base in venv.unwrapped.batch._bases:  # (batched only)
             f = base.control_filter
             call = f.__call__
 
@@ -88,9 +100,13 @@ def main() -> None:
     print("| loop | agent-steps | agent-steps/s | physics steps/s (per team) | filter share of wall time |")
     print("|---|---:|---:|---:|---:|")
     rates = {}
-    for name, filtered in (("bare", False), (f"behind the filter ({args.solver or 'default solver'})", True)):
-        r = bench(filtered, args.timesteps, args.robots, args.n_envs, args.solver, args.model, args.n_steps)
-        rates[filtered] = r["rate"]
+    rows = [("bare, teams stepped one by one (ParallelVecEnv)", False, False), ("bare", False, True),
+            (f"behind the filter ({args.solver or 'default solver'})", True, True)]
+    for name, filtered, batched in rows:
+        r = bench(filtered, args.timesteps, args.robots, args.n_envs, args.solver, args.model, args.n_steps,
+                  batched)
+        if batched:
+            rates[filtered] = r["rate"]
         share = f"{100 * r['filter_share']:.0f}%" if filtered else "-"
         print(f"| {name} | {r['steps']} | {r['rate']:,.0f} | {r['rate'] / args.robots * 20:,.0f} | {share} |",
               flush=True)

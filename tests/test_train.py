@@ -431,3 +431,42 @@ def test_progress_line(capsys):
                           "intervention_rate": 0.2, "mean_correction": 1.5}, total=122880)
     assert line.startswith("[ 50.0%]") and "success 50.0%" in line and "intervention 20.0%" in line
     assert "eta 1m01s" in line
+
+
+def test_init_from_starts_with_the_runs_weights_and_statistics(tmp_path):
+    from agents.learned import LearnedAgent
+    from train.train import build_model, init_policy, make_vec_env, train
+
+    src = train(tiny(tmp_path, total_timesteps=192, run_name="src"))
+    cfg = tiny(tmp_path, filter=True, filter_kwargs={"solver": "quadprog"}, reward={"correction": 1.0},
+               init_from=str(src.parent), run_name="tuned")
+    venv = make_vec_env(cfg)
+    model = build_model(cfg, venv)
+    init_policy(model, venv, cfg)
+    agent = LearnedAgent.load(src)
+    for k, v in agent.model.policy.state_dict().items():
+        assert torch.equal(v, model.policy.state_dict()[k]), k
+    np.testing.assert_array_equal(venv.obs_rms.mean, agent.obs_stats[0])
+    venv.close()
+    with pytest.raises(ConfigError, match="another network"):
+        bad = tiny(tmp_path, net_arch=[8], init_from=str(src.parent), run_name="bad")
+        venv = make_vec_env(bad)
+        init_policy(build_model(bad, venv), venv, bad)
+
+
+def test_compare_table_from_results():
+    from train.compare import to_markdown
+
+    ev = {"success_rate": 1.0, "rmse": 0.1, "collisions": 0, "collision_episodes": 0, "safe_rate": 1.0,
+          "intervention_rate": 0.4, "mean_correction": 10.0}
+    runs = [{"scene": "random_goals_6r", "variant": v, "seed": s, "total_wall_s": 100.0 + s,
+             "eval_bare": {**ev, "intervention_rate": None, "mean_correction": None},
+             "eval_filter": {**ev, "mean_correction": 10.0 if v == "bare" else 6.0 + s}}
+            for v in ("bare", "filter+correction") for s in (0, 2)]
+    md = to_markdown({"settings": {"scenes": {"random_goals_6r": {}}, "seeds": [0, 2],
+                                   "variants": ["bare", "filter+correction"], "bare_steps": 10, "filter_steps": 5,
+                                   "filter_start": "bare", "filter_n_steps": 64, "correction": 1.0, "episodes": 3,
+                                   "eval_seed": 10000}, "runs": runs})
+    assert "| (a) trained bare | behind the filter | 100.0% ± 0.0 | 0.100 ± 0.000 | 0 (0) | 100.0% ± 0.0 |" in md
+    assert "| 7.000 ± 1.000 | 101 ± 1 |" in md
+    assert "(c) vs (a): 7.000 vs 10.000 rad/s^2 (30.0% less)" in md

@@ -25,12 +25,13 @@ runs' ``metrics.csv``.
 Scenes: ``random_goals_6r`` (the default: 6 robots, 6.25 m arena) and
 ``crowded_12r`` (12 robots in a 6.5 m arena: 1.9x the density).
 
-Budget: training behind the filter costs ~100 times more per agent-step than
+Budget: training behind the filter costs ~40-60 times more per agent-step than
 bare training while the filter is called once per team and physics step
 (README, "Throughput").  By default (b) and (c) therefore *fine-tune* each
 seed's bare policy (a) behind the filter for ``--filter-steps`` agent-steps
-(``init_from``); ``--filter-start scratch`` (implied by ``--full``) trains them
-from scratch for ``--bare-steps`` like (a).  Finished runs and evaluations are
+(``init_from``; rollouts of ``--filter-n-steps`` 64 per slot, for more
+updates); ``--filter-start scratch`` (implied by ``--full``) trains them from
+scratch for ``--bare-steps`` like (a).  Finished runs and evaluations are
 reused (``--out-dir`` is a cache): rerunning after an interruption continues.
 
 Outputs in ``--out-dir``: ``runs/<scene>/<variant>_s<seed>/`` (training runs),
@@ -118,6 +119,7 @@ def run_comparison(
     bare_steps: int = 1_228_800,
     filter_steps: int = 61_440,
     filter_start: str = "bare",
+    filter_n_steps: int = 64,
     correction: float = 1.0,
     episodes: int = 20,
     eval_seed: int = 10_000,
@@ -138,6 +140,7 @@ def run_comparison(
     results: dict[str, Any] = {"settings": {
         "scenes": {s: SCENES[s] for s in scenes}, "seeds": list(seeds), "variants": list(variants),
         "bare_steps": bare_steps, "filter_steps": filter_steps, "filter_start": filter_start,
+        "filter_n_steps": filter_n_steps,
         "correction": correction, "episodes": episodes, "eval_seed": eval_seed}, "runs": []}
     for scene in scenes:
         for seed in seeds:
@@ -154,7 +157,8 @@ def run_comparison(
                 else:
                     reward = {"correction": correction} if variant == "filter+correction" else {}
                     fine = filter_start == "bare"
-                    cfg = _scene_config(scene, filter=True, reward=reward, run_name=run.name,
+                    tune = {"n_steps": filter_n_steps} if fine else {}
+                    cfg = _scene_config(scene, filter=True, reward=reward, run_name=run.name, **tune,
                                         total_timesteps=filter_steps if fine else bare_steps,
                                         init_from=str(bare_run) if fine else None, **common)
                     stats = _train(run, cfg, log)
@@ -207,8 +211,8 @@ def to_markdown(results: dict[str, Any]) -> str:
         cfg = SCENES[scene]
         lines += [f"### {scene}: {cfg['num_robots']} robots"
                   + (f", arena {cfg['scenario_kwargs']['arena_size']} m" if "scenario_kwargs" in cfg else ""), "",
-                  "| policy | deployed | success | RMSE [m] | collisions (episodes) | safe rate | intervention "
-                  "| correction [rad/s^2] | training wall [s] |",
+                  "| policy | deployed | success | RMSE [m] | collisions, all seeds (episodes) | safe rate "
+                  "| intervention | correction [rad/s^2] | training wall [s] |",
                   "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
         for variant in st["variants"]:
             rs = [r for r in runs if r["variant"] == variant]
@@ -216,8 +220,8 @@ def to_markdown(results: dict[str, Any]) -> str:
                 continue
             for mode in _EVALS:
                 ev = [r[f"eval_{mode}"] for r in rs]
-                col = _agg([e["collisions"] for e in ev], digits=1)
-                col_ep = _agg([e["collision_episodes"] for e in ev], digits=1)
+                col = sum(int(e["collisions"]) for e in ev)
+                col_ep = sum(int(e["collision_episodes"]) for e in ev)
                 wall = _agg([r["total_wall_s"] for r in rs], digits=0)
                 lines.append(
                     f"| {_LABEL[variant]} | {'behind the filter' if mode == 'filter' else 'bare'} "
@@ -229,13 +233,16 @@ def to_markdown(results: dict[str, Any]) -> str:
         base = [r["eval_filter"]["mean_correction"] for r in runs if r["variant"] == "bare"]
         pen = [r["eval_filter"]["mean_correction"] for r in runs if r["variant"] == "filter+correction"]
         if base and pen:
+            cut = 100 * (1 - np.mean(pen) / np.mean(base))
             lines += [f"Mean filter correction behind the filter, (c) vs (a): {np.mean(pen):.3f} vs "
-                      f"{np.mean(base):.3f} rad/s^2 ({100 * (1 - np.mean(pen) / np.mean(base)):+.1f}% less).", ""]
+                      f"{np.mean(base):.3f} rad/s^2 ({f'{cut:.1f}% less' if cut >= 0 else f'{-cut:.1f}% more'}).",
+                      ""]
     fine = st["filter_start"] == "bare"
     lines.append(
         f"{len(st['seeds'])} seed(s) ({', '.join(map(str, st['seeds']))}), {st['episodes']} episodes per row "
         f"(seeds {st['eval_seed']}-{st['eval_seed'] + st['episodes'] - 1}); (a) {st['bare_steps']:,} agent-steps; "
-        + (f"(b) and (c) fine-tune each seed's (a) behind the filter for {st['filter_steps']:,} agent-steps"
+        + (f"(b) and (c) fine-tune each seed's (a) behind the filter for {st['filter_steps']:,} agent-steps "
+           f"(n_steps {st['filter_n_steps']}, the recipe otherwise)"
            if fine else f"(b) and (c) trained from scratch behind the filter for {st['bare_steps']:,} agent-steps")
         + f"; correction penalty {st['correction']:g}.  Mean ± half the range over seeds; training wall time "
         + ("includes the bare run that (b)/(c) start from." if fine else "of each run."))
@@ -273,6 +280,8 @@ def build_parser(prog: str = "python -m train.compare") -> argparse.ArgumentPars
     p.add_argument("--bare-steps", type=int_option(1), default=1_228_800, help="agent-steps of (a)")
     p.add_argument("--filter-steps", type=int_option(1), default=61_440,
                    help="agent-steps of (b)/(c) fine-tuning behind the filter (with --filter-start bare)")
+    p.add_argument("--filter-n-steps", type=int_option(1), default=64,
+                   help="rollout length per slot of the fine-tuning runs (more updates for few agent-steps)")
     p.add_argument("--filter-start", choices=("bare", "scratch"), default="bare",
                    help="(b)/(c) fine-tune each seed's (a) (bare, default) or train from scratch for --bare-steps")
     p.add_argument("--correction", type=float, default=1.0, help="reward.correction of (c)")
@@ -293,6 +302,7 @@ def _main(argv: list[str]) -> int:
     start = "scratch" if args.full else args.filter_start
     results = run_comparison(args.out_dir, scenes=args.scenes, seeds=args.seeds, variants=args.variants,
                              bare_steps=args.bare_steps, filter_steps=args.filter_steps, filter_start=start,
+                             filter_n_steps=args.filter_n_steps,
                              correction=args.correction, episodes=args.episodes)
     print((Path(args.out_dir) / "compare.md").read_text())
     print(f"wall time {results['wall_time_s']:.0f} s (runs and evaluations already in {args.out_dir} are reused)")

@@ -1,14 +1,18 @@
-"""An SB3 :class:`~stable_baselines3.common.vec_env.VecEnv` over PettingZoo parallel envs.
+"""SB3 :class:`~stable_baselines3.common.vec_env.VecEnv` adapters: one slot per robot (parameter sharing).
 
-Parameter sharing: every robot of every env is one *slot* of the vectorised
-env, so one policy acts for all of them.  ``num_envs = n_envs * n_agents``
-with slot ``k * n_agents + i`` = robot ``i`` of env ``k``.  This replaces
-SuperSuit (``SPEC.md`` section 8: its ``seed=`` crashes with SB3 2.9,
-``black_death_v3`` ends episodes a step late and time-limit truncation is
-lost).
+Every robot of every env is one *slot*, so one policy acts for all of them:
+``num_envs = n_envs * n_agents`` with slot ``k * n_agents + i`` = robot ``i`` of
+env ``k``.  This replaces SuperSuit (``SPEC.md`` section 8: its ``seed=``
+crashes with SB3 2.9, ``black_death_v3`` ends episodes a step late and
+time-limit truncation is lost).
 
-Contract
---------
+* :class:`BatchedVecEnv` (what ``aasoatt train`` uses): over a
+  :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`, all teams stepped by one
+  vectorised physics call per physics step.
+* :class:`ParallelVecEnv`: over any PettingZoo parallel envs, stepped one by one.
+
+Contract (both)
+---------------
 * **Seeding** goes through SB3: ``VecEnv.seed(s)`` (PPO calls it with its
   ``seed``) makes the next ``reset`` seed env ``k`` with ``s + k * n_agents``
   (the seed of its first slot); later auto-resets pass no seed, so they draw
@@ -23,16 +27,15 @@ Contract
   reports ``done=True`` exactly once, at the step its robot terminates (with
   its ``terminal_observation``, ``TimeLimit.truncated=False``).  Until its env
   resets the slot is *dead*: its observation is zeros, its reward 0, ``done``
-  False, ``infos[slot]["dead"] = True``, and whatever action the policy gives
-  for it is ignored (not sent to the env, which would reject it).  The
-  padding transitions carry no reward; they only bias the value of the zero
-  observation slightly, so training defaults to ``terminate_on_collision=False``
-  (the collision is then a penalty, see :mod:`train.train`).
-* The per-agent ``infos`` of the env (``tracking_error``, ``collision``,
-  ``filter``, ...) are passed through in each slot's info dict.
-
-Works under :class:`~stable_baselines3.common.vec_env.VecMonitor` and
-:class:`~stable_baselines3.common.vec_env.VecNormalize`.
+  False, ``infos[slot] == {"dead": True}``, and whatever action the policy
+  gives for it is ignored.  These padding transitions belong to no episode:
+  ``acted_slots`` (slots whose robot acted at the last step) and
+  ``live_slots`` (slots whose current observation is real) say which rows are
+  real, and :class:`SlotMonitor` (episode lengths and returns),
+  :class:`SlotNormalize` (running statistics) and :class:`train.ppo.SlotPPO`
+  (the PPO loss) use only those.
+* Per-slot infos carry the env's per-agent values (``tracking_error``,
+  ``collision``, ...; see each class).
 """
 
 from __future__ import annotations
