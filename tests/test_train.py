@@ -458,8 +458,9 @@ def test_compare_table_from_results():
     from train.compare import to_markdown
 
     ev = {"success_rate": 1.0, "rmse": 0.1, "collisions": 0, "collision_episodes": 0, "safe_rate": 1.0,
-          "intervention_rate": 0.4, "mean_correction": 10.0}
-    runs = [{"scene": "random_goals_6r", "variant": v, "seed": s, "total_wall_s": 100.0 + s,
+          "intervention_rate": 0.4, "mean_correction": 10.0, "episodes": 3, "seed": 10000}
+    runs = [{"scene": "random_goals_6r", "variant": v, "seed": s, "total_wall_s": 100.0 + s, "train_agent_steps": 10,
+             "init_from": None if v == "bare" else f"bare_s{s}", "correction_weight": 0.0 if v == "bare" else 1.0,
              "eval_bare": {**ev, "intervention_rate": None, "mean_correction": None},
              "eval_filter": {**ev, "mean_correction": 10.0 if v == "bare" else 6.0 + s}}
             for v in ("bare", "filter+correction") for s in (0, 2)]
@@ -469,4 +470,5 @@ def test_compare_table_from_results():
                                    "eval_seed": 10000}, "runs": runs})
     assert "| (a) trained bare | behind the filter | 100.0% ± 0.0 | 0.100 ± 0.000 | 0 (0) | 100.0% ± 0.0 |" in md
     assert "| 7.000 ± 1.000 | 101 ± 1 |" in md
-    assert "(c) vs (a): 7.000 vs 10.000 rad/s^2 (30.0% less)" in md
+    assert "(c) vs (a) on the same seeds: 7.000 vs 10.000 rad/s^2 (30.0% less)" in md
+    assert "(c) seeds 0, 2: fine-tuned from (a) of the same seed for 10 agent-steps, correction weight 1" in md

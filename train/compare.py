@@ -123,9 +123,14 @@ def run_comparison(
     correction: float = 1.0,
     episodes: int = 20,
     eval_seed: int = 10_000,
+    table_only: bool = False,
     log: Any = None,
 ) -> dict[str, Any]:
-    """Train, evaluate and tabulate (module docstring); returns what ``compare.json`` holds."""
+    """Train, evaluate and tabulate (module docstring); returns what ``compare.json`` holds.
+
+    ``table_only``: train and evaluate nothing; tabulate the finished runs and
+    evaluations found in ``out_dir`` among those asked for (the others are left out).
+    """
     log = log or sys.stdout
     bad = [s for s in scenes if s not in SCENES]
     if bad:
@@ -148,14 +153,29 @@ def run_comparison(
             common = dict(out_dir=str(out / "runs" / scene), seed=seed, progress_bar=True, tensorboard=False,
                           checkpoint_freq=0)
             need_bare = "bare" in variants or filter_start == "bare"
-            bare_stats = _train(bare_run, _scene_config(scene, total_timesteps=bare_steps, run_name=bare_run.name,
-                                                        **common), log) if need_bare else None
+            if table_only:
+                bare_stats = json.loads((bare_run / "train_stats.json").read_text()) if _finished(bare_run) else None
+            else:
+                bare_cfg = _scene_config(scene, total_timesteps=bare_steps, run_name=bare_run.name, **common)
+                bare_stats = _train(bare_run, bare_cfg, log) if need_bare else None
             for variant in variants:
                 run = out / "runs" / scene / f"{variant.replace('+', '_')}_s{seed}"
-                if variant == "bare":
+                caches = [out / "evals" / f"{scene}_{run.name}_{mode}.json" for mode in _EVALS]
+                if table_only and not (_finished(run) and all(c.is_file() for c in caches)):
+                    continue
+                if table_only:
+                    stats = json.loads((run / "train_stats.json").read_text())
+                    cfg_file = json.loads((run / "config.json").read_text())
+                    start = Path(cfg_file["init_from"]).name if cfg_file.get("init_from") else None
+                elif variant == "bare":
                     stats, start = bare_stats, None
                 else:
                     reward = {"correction": correction} if variant == "filter+correction" else {}
+                    if variant == "filter+correction" and _finished(run):  # a cached run must match the settings
+                        done = json.loads((run / "config.json").read_text())["reward"].get("correction")
+                        if done != correction:
+                            raise ConfigError(f"{run}: trained with correction {done}, asked {correction}; use "
+                                              "another --out-dir")
                     fine = filter_start == "bare"
                     tune = {"n_steps": filter_n_steps} if fine else {}
                     cfg = _scene_config(scene, filter=True, reward=reward, run_name=run.name, **tune,
@@ -169,11 +189,15 @@ def run_comparison(
                     "train_wall_s": stats["wall_time_s"], "train_agent_steps": stats["agent_steps"],
                     "train_agent_steps_per_s": stats["agent_steps_per_s"],
                     "total_wall_s": stats["wall_time_s"] + (bare_stats["wall_time_s"] if start and bare_stats else 0),
+                    "correction_weight": json.loads((run / "config.json").read_text())["reward"].get("correction", 0.0),
                 }
                 scene_cfg = _scene_config(scene)
-                for mode in _EVALS:
-                    entry[f"eval_{mode}"] = _evaluate(run, scene_cfg, mode == "filter", episodes, eval_seed,
-                                                      out / "evals" / f"{scene}_{run.name}_{mode}.json", log)
+                for mode, cache in zip(_EVALS, caches):
+                    if table_only:
+                        entry[f"eval_{mode}"] = json.loads(cache.read_text())
+                    else:
+                        entry[f"eval_{mode}"] = _evaluate(run, scene_cfg, mode == "filter", episodes, eval_seed,
+                                                          cache, log)
                 results["runs"].append(entry)
     results["wall_time_s"] = time.perf_counter() - t_start
     out.mkdir(parents=True, exist_ok=True)
@@ -230,23 +254,40 @@ def to_markdown(results: dict[str, Any]) -> str:
                     f"| {_agg([e['intervention_rate'] for e in ev], pct=True)} "
                     f"| {_agg([e['mean_correction'] for e in ev])} | {wall} |")
         lines.append("")
-        base = [r["eval_filter"]["mean_correction"] for r in runs if r["variant"] == "bare"]
-        pen = [r["eval_filter"]["mean_correction"] for r in runs if r["variant"] == "filter+correction"]
+        both = ({r["seed"] for r in runs if r["variant"] == "filter+correction"}
+                & {r["seed"] for r in runs if r["variant"] == "bare"})
+        base = [r["eval_filter"]["mean_correction"] for r in runs if r["variant"] == "bare" and r["seed"] in both]
+        pen = [r["eval_filter"]["mean_correction"] for r in runs
+               if r["variant"] == "filter+correction" and r["seed"] in both]
         if base and pen:
             cut = 100 * (1 - np.mean(pen) / np.mean(base))
-            lines += [f"Mean filter correction behind the filter, (c) vs (a): {np.mean(pen):.3f} vs "
+            lines += [f"Mean filter correction behind the filter, (c) vs (a) on the same seeds: {np.mean(pen):.3f} vs "
                       f"{np.mean(base):.3f} rad/s^2 ({f'{cut:.1f}% less' if cut >= 0 else f'{-cut:.1f}% more'}).",
                       ""]
-    fine = st["filter_start"] == "bare"
-    lines.append(
-        f"{len(st['seeds'])} seed(s) ({', '.join(map(str, st['seeds']))}), {st['episodes']} episodes per row "
-        f"(seeds {st['eval_seed']}-{st['eval_seed'] + st['episodes'] - 1}); (a) {st['bare_steps']:,} agent-steps; "
-        + (f"(b) and (c) fine-tune each seed's (a) behind the filter for {st['filter_steps']:,} agent-steps "
-           f"(n_steps {st['filter_n_steps']}, the recipe otherwise)"
-           if fine else f"(b) and (c) trained from scratch behind the filter for {st['bare_steps']:,} agent-steps")
-        + f"; correction penalty {st['correction']:g}.  Mean ± half the range over seeds; training wall time "
-        + ("includes the bare run that (b)/(c) start from." if fine else "of each run."))
+        lines += [_settings_note(runs), ""]
     return "\n".join(lines) + "\n"
+
+
+def _settings_note(runs: list[dict[str, Any]]) -> str:
+    """What was run for one scene, read from the runs themselves."""
+    parts = []
+    for variant in VARIANTS:
+        rs = [r for r in runs if r["variant"] == variant]
+        if not rs:
+            continue
+        steps = sorted({int(r["train_agent_steps"]) for r in rs})
+        text = f"{_LABEL[variant].split(' ', 1)[0]} seeds {', '.join(str(r['seed']) for r in rs)}: " + (
+            f"fine-tuned from (a) of the same seed for {'/'.join(f'{x:,}' for x in steps)} agent-steps"
+            if rs[0].get("init_from") else f"{'/'.join(f'{x:,}' for x in steps)} agent-steps")
+        weights = sorted({float(r.get("correction_weight", 0.0)) for r in rs})
+        if variant == "filter+correction":
+            text += f", correction weight {'/'.join(f'{w:g}' for w in weights)}"
+        parts.append(text)
+    ev = runs[0]["eval_filter"]
+    first = int(ev.get("seed", 10_000))
+    return ("; ".join(parts) + f". {ev['episodes']} evaluation episodes per row (seeds {first}-"
+            f"{first + int(ev['episodes']) - 1}); mean ± half the range over seeds; collisions summed over "
+            "seeds; training wall time of (b)/(c) includes the bare run they start from.")
 
 
 def _figure(results: dict[str, Any], scene: str, path: Path) -> None:
@@ -286,6 +327,8 @@ def build_parser(prog: str = "python -m train.compare") -> argparse.ArgumentPars
                    help="(b)/(c) fine-tune each seed's (a) (bare, default) or train from scratch for --bare-steps")
     p.add_argument("--correction", type=float, default=1.0, help="reward.correction of (c)")
     p.add_argument("--episodes", type=int_option(1), default=20, help="evaluation episodes per policy and mode")
+    p.add_argument("--table-only", action="store_true",
+                   help="train and evaluate nothing: tabulate the finished runs and evaluations in --out-dir")
     p.add_argument("--full", action="store_true",
                    help="the full set: every variant from scratch (--filter-start scratch), 3 seeds, both scenes")
     return p
@@ -302,7 +345,7 @@ def _main(argv: list[str]) -> int:
     start = "scratch" if args.full else args.filter_start
     results = run_comparison(args.out_dir, scenes=args.scenes, seeds=args.seeds, variants=args.variants,
                              bare_steps=args.bare_steps, filter_steps=args.filter_steps, filter_start=start,
-                             filter_n_steps=args.filter_n_steps,
+                             filter_n_steps=args.filter_n_steps, table_only=args.table_only,
                              correction=args.correction, episodes=args.episodes)
     print((Path(args.out_dir) / "compare.md").read_text())
     print(f"wall time {results['wall_time_s']:.0f} s (runs and evaluations already in {args.out_dir} are reused)")

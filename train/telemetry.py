@@ -201,7 +201,7 @@ def plot_learning_curve(
         panels.append(("mean_correction", "filter correction (mean)", 1.0, "rad/s^2"))
     fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4), squeeze=False)
     for ax, (key, label, scale, unit) in zip(axes[0], panels):
-        for name, seeds in runs.items():
+        for color, (name, seeds) in enumerate(runs.items()):
             curves = [(np.array([r["agent_steps"] for r in rows]), np.array([r.get(key, math.nan) for r in rows]))
                       for rows in seeds if rows]
             if not curves:
@@ -213,11 +213,12 @@ def plot_learning_curve(
                 continue
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # rollouts in which no episode ended
-                mean = np.nanmean(ys, axis=0)
-            line = ax.plot(x / 1e6, mean, label=name if len(seeds) == 1 else f"{name} ({len(seeds)} seeds)")[0]
+                mean, lo, hi = np.nanmean(ys, axis=0), np.nanmin(ys, axis=0), np.nanmax(ys, axis=0)
+            ok = ~np.isnan(mean)  # join the points across rollouts without a value
+            label_ = name if len(seeds) == 1 else f"{name} ({len(seeds)} seeds)"
+            line = ax.plot(x[ok] / 1e6, mean[ok], label=label_, color=f"C{color}")[0]
             if len(curves) > 1:
-                ax.fill_between(x / 1e6, np.nanmin(ys, axis=0), np.nanmax(ys, axis=0), color=line.get_color(),
-                                alpha=0.2)
+                ax.fill_between(x[ok] / 1e6, lo[ok], hi[ok], color=line.get_color(), alpha=0.2)
         ax.set_title(label, fontsize=10)
         ax.set_xlabel("agent-steps [M]")
         ax.set_ylabel(unit)
