@@ -14,7 +14,7 @@ Importing the package registers the environment ids of
 :mod:`aasoatt_env.api.registration` with PettingZoo and Gymnasium.
 """
 
-from aasoatt_env.api import ENV_IDS, AASOATTGymEnv, env, make_env, parallel_env, register_all
+from aasoatt_env.api import ENV_IDS, AASOATTGymEnv, env, make_batched_env, make_env, parallel_env, register_all
 from aasoatt_env.errors import (
     AASOATTError,
     ActionError,
@@ -29,7 +29,7 @@ from aasoatt_env.errors import (
 )
 from aasoatt_env.model import PRESETS, RobotParams, Team, make_team
 from aasoatt_env.safety import AASOATTFilter, FilterConfig, FilterReport, FilterResult, SafetyFilter
-from aasoatt_env.sim import SCENARIOS, AASOATTParallelEnv, RewardConfig, Scenario, get_scenario
+from aasoatt_env.sim import SCENARIOS, AASOATTParallelEnv, BatchedAASOATTEnv, RewardConfig, Scenario, get_scenario
 
 __version__ = "0.1.0"
 
@@ -44,6 +44,7 @@ __all__ = [
     "AASOATTGymEnv",
     "AASOATTParallelEnv",
     "ActionError",
+    "BatchedAASOATTEnv",
     "ConfigError",
     "DataFileError",
     "FilterConfig",
@@ -62,6 +63,7 @@ __all__ = [
     "UsageError",
     "env",
     "get_scenario",
+    "make_batched_env",
     "make_env",
     "make_team",
     "parallel_env",

@@ -1,11 +1,18 @@
-"""PPO training throughput (agent-steps/s) with and without the safety filter in the loop.
+"""PPO training throughput (agent-steps/s), bare and behind the safety filter, in one run.
 
-    python benchmarks/bench_training.py [--timesteps 6144] [--robots 6] [--solver proxsuite]
+    python benchmarks/bench_training.py [--timesteps 24576] [--robots 6] [--n-envs 8] [--model RUN]
 
-Each configuration trains PPO (TrainConfig defaults: 4 envs x N robots,
-decision_interval 20, n_steps 128) for ``--timesteps`` agent-steps after one
-warm-up update and prints a table: rollout collection plus PPO updates, i.e.
-what a training run sees.  Single torch thread.
+Each row trains PPO with the default recipe (``TrainConfig`` defaults: 8 teams x N
+robots stepped by one batched physics call, decision_interval 20) with rollouts
+of ``--n-steps`` (64) per slot, for ``--timesteps`` agent-steps after one warm-up
+update, and reports what a training run sees: rollout collection plus PPO
+updates, one torch thread.  The filter's share of the filtered row is measured
+by timing its calls; the first row steps the same teams one by one
+(:class:`train.vec_env.ParallelVecEnv`), for comparison.
+
+``--model RUN`` starts every row from a trained policy (``init_from``): the
+filter's cost depends on how often it has to act, which is far more often for
+the random actions of a fresh policy than for a trained one.
 """
 
 from __future__ import annotations
@@ -16,40 +23,94 @@ import time
 import torch
 
 from train.config import TrainConfig
-from train.train import build_model, make_vec_env
+from train.train import build_model, init_policy, make_vec_env
 
 
-def bench(filtered: bool, timesteps: int, robots: int, solver: str | None, n_envs: int) -> tuple[float, int]:
+def separate_vec_env(cfg: TrainConfig):
+    """The same stack with the teams stepped one by one (``ParallelVecEnv``), for comparison."""
+    from train.train import make_env
+    from train.vec_env import ParallelVecEnv, SlotMonitor, SlotNormalize
+
+    venv = SlotMonitor(ParallelVecEnv([lambda: make_env(cfg) for _ in range(cfg.n_envs)]))
+    return SlotNormalize(venv, norm_obs=cfg.normalize_obs, norm_reward=cfg.normalize_reward, gamma=cfg.gamma,
+                         clip_obs=10.0)
+
+
+def bench(filtered: bool, timesteps: int, robots: int, n_envs: int, solver: str | None,
+          model: str | None, n_steps: int, batched: bool = True) -> dict[str, float]:
     kw = {"filter_kwargs": {"solver": solver}} if (filtered and solver) else {}
     cfg = TrainConfig(num_robots=robots, n_envs=n_envs, filter=filtered, progress_bar=False, tensorboard=False,
-                      checkpoint_freq=0, batch_size=256, **kw)
-    venv = make_vec_env(cfg)
-    model = build_model(cfg, venv)
+                      checkpoint_freq=0, n_steps=n_steps, batch_size=min(1024, n_steps * n_envs * robots),
+                      init_from=model, **kw)
+    venv = make_vec_env(cfg) if batched else separate_vec_env(cfg)
+    ppo = build_model(cfg, venv)
+    if model:
+        init_policy(ppo, venv, cfg)
+    filter_time = [0.0]
+    if filtered:  # time every filter call (one per team and physics step)
+        for base in venv.unwrapped.batch._bases:  # (batched only)
+            f = base.control_filter
+            call = f.__call__
+
+            def timed(inp, du, _call=call):
+                t = time.perf_counter()
+                out = _call(inp, du)
+                filter_time[0] += time.perf_counter() - t
+                return out
+
+            base._control_filter = _Timed(f, timed)
     per_update = cfg.n_steps * venv.num_envs
-    model.learn(per_update)  # warm-up
+    ppo.learn(per_update)  # warm-up
+    filter_time[0] = 0.0
     t0 = time.perf_counter()
-    model.learn(max(timesteps, per_update), reset_num_timesteps=False)
+    ppo.learn(max(timesteps, per_update), reset_num_timesteps=False)
     dt = time.perf_counter() - t0
-    steps = model.num_timesteps - per_update
+    steps = ppo.num_timesteps - per_update
     venv.close()
-    return steps / dt, steps
+    return {"rate": steps / dt, "steps": steps, "filter_share": filter_time[0] / dt}
+
+
+class _Timed:
+    """A control filter whose calls are timed (protocol attributes passed through)."""
+
+    def __init__(self, inner, call):
+        self._inner, self._call = inner, call
+        self.keeps_input_bounds = inner.keeps_input_bounds
+
+    def reset(self, team):
+        self._inner.reset(team)
+
+    def __call__(self, inp, du):
+        return self._call(inp, du)
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__)
-    p.add_argument("--timesteps", type=int, default=6144)
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--timesteps", type=int, default=24_576)
     p.add_argument("--robots", type=int, default=6)
-    p.add_argument("--n-envs", type=int, default=4)
+    p.add_argument("--n-envs", type=int, default=8)
+    p.add_argument("--n-steps", type=int, default=64, help="rollout length per slot (the recipe's 256 makes one "
+                   "filtered update take minutes)")
     p.add_argument("--solver", default=None, help="filter QP solver (default: the filter's default)")
+    p.add_argument("--model", default=None, help="start from this trained run (init_from)")
     args = p.parse_args()
     torch.set_num_threads(1)
-    rows = [("bare", False), (f"filter ({args.solver or 'default solver'})", True)]
-    print(f"PPO throughput, {args.robots} robots x {args.n_envs} envs, decision_interval 20 (dt 0.005)\n")
-    print("| loop | agent-steps | agent-steps/s | physics steps/s |")
-    print("|---|---:|---:|---:|")
-    for name, filtered in rows:
-        rate, steps = bench(filtered, args.timesteps, args.robots, args.solver, args.n_envs)
-        print(f"| {name} | {steps} | {rate:,.0f} | {rate / args.robots * 20:,.0f} |", flush=True)
+    print(f"PPO throughput, {args.n_envs} envs x {args.robots} robots (batched), decision_interval 20 (dt 0.005), "
+          f"policy: {args.model or 'fresh (random actions)'}\n")
+    print("| loop | agent-steps | agent-steps/s | physics steps/s (per team) | filter share of wall time |")
+    print("|---|---:|---:|---:|---:|")
+    rates = {}
+    rows = [("bare, teams stepped one by one (ParallelVecEnv)", False, False), ("bare", False, True),
+            (f"behind the filter ({args.solver or 'default solver'})", True, True)]
+    for name, filtered, batched in rows:
+        r = bench(filtered, args.timesteps, args.robots, args.n_envs, args.solver, args.model, args.n_steps,
+                  batched)
+        if batched:
+            rates[filtered] = r["rate"]
+        share = f"{100 * r['filter_share']:.0f}%" if filtered else "-"
+        print(f"| {name} | {r['steps']} | {r['rate']:,.0f} | {r['rate'] / args.robots * 20:,.0f} | {share} |",
+              flush=True)
+    print(f"\nbehind the filter / bare: {100 * rates[True] / rates[False]:.1f}%")
 
 
 if __name__ == "__main__":

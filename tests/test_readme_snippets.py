@@ -43,3 +43,10 @@ def test_readme_torchrl_snippet():
     td = ns["td"]
     assert td.batch_size[0] == 100
     assert td["next", "robot", "info", "filter_intervened"].shape == (100, 6)
+
+
+def test_readme_batched_snippet():
+    ns = _run(readme_block("batched"))
+    envs = ns["envs"]
+    assert ns["obs"].shape == (8, 6, envs.agent_observation_space.shape[0])
+    assert ns["rewards"].shape == (8, 6) and envs.live.shape == (8, 6)

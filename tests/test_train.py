@@ -13,7 +13,7 @@ torch.set_num_threads(1)
 
 from aasoatt_env.errors import ConfigError, DataFileError  # noqa: E402
 from aasoatt_env.sim.env import AASOATTParallelEnv  # noqa: E402
-from train.config import TrainConfig, parse_config  # noqa: E402
+from train.config import TRAIN_REWARD, TrainConfig, parse_config  # noqa: E402
 from train.vec_env import ParallelVecEnv  # noqa: E402
 
 
@@ -36,7 +36,8 @@ def tiny(tmp_path, **kw) -> TrainConfig:
         ({"gamma": 1.5}, r"TrainConfig.gamma: got 1.5, expected a number in \[0, 1\]"),
         ({"action_mode": "torque"}, r"action_mode: got 'torque', expected one of \['wheel', 'point'\]"),
         ({"scenario": "nowhere"}, r"scenario: got 'nowhere', expected one of"),
-        ({"reward": {"colision": 1.0}}, r"TrainConfig.reward: got \{'colision': 1.0\}, expected keys among"),
+        ({"reward": {"colision": 1.0}},
+         r"TrainConfig.reward: got unknown key\(s\) \['colision'\], expected keys among"),
         ({"reward": {"correction": 1.0}}, r"correction=1.0 with filter=False, expected filter=True"),
         ({"net_arch": []}, r"net_arch: got \[\], expected a non-empty list"),
         ({"batch_size": 10_000, "n_steps": 8, "n_envs": 1, "num_robots": 2},
@@ -54,7 +55,7 @@ def test_config_file_and_cli(tmp_path):
     toml.write_text('num_robots = 4\nseed = 3\n[reward]\ncollision = 20.0\n')
     cfg = parse_config(["--config", str(toml), "--seed", "7", "--reward", "effort=0.1", "--net-arch", "32", "32"])
     assert (cfg.num_robots, cfg.seed, cfg.net_arch) == (4, 7, [32, 32])
-    assert cfg.reward == {"collision": 20.0, "effort": 0.1}
+    assert cfg.reward == {**TRAIN_REWARD, "collision": 20.0, "effort": 0.1}  # laid over the recipe's reward
     js = tmp_path / "run.json"
     js.write_text(json.dumps({"n_envs": 2, "bogus": 1}))
     with pytest.raises(ConfigError, match=r"got unknown key\(s\) \['bogus'\], expected keys among"):
@@ -63,6 +64,18 @@ def test_config_file_and_cli(tmp_path):
         TrainConfig.from_file(tmp_path / "x.yml") if (tmp_path / "x.yml").write_text("a: 1") else None
     with pytest.raises(ConfigError, match=r"--reward: got 'collision', expected KEY=VALUE"):
         parse_config(["--reward", "collision"])
+
+
+def test_defaults_are_the_shipped_recipe():
+    from pathlib import Path
+
+    shipped = TrainConfig.from_file(Path(__file__).resolve().parents[1] / "train/configs/random_goals_6r.toml")
+    assert shipped.to_dict() == TrainConfig().to_dict()
+    cfg = TrainConfig()
+    assert (cfg.policy_prior, cfg.normalize_obs, cfg.normalize_reward, cfg.action_mode) == ("none", True, True, "point")
+    assert (cfg.n_envs, cfg.n_steps, cfg.batch_size, cfg.learning_rate, cfg.total_timesteps) == (8, 256, 1024, 3e-4,
+                                                                                               1_228_800)
+    assert cfg.reward["collision"] == 1.0 and cfg.reward["goal_bonus"] == 0.5 and cfg.reward["goal_tolerance"] == 0.1
 
 
 # --------------------------------------------------------------------------- VecEnv adapter
@@ -289,3 +302,173 @@ def test_train_with_tracking_prior_load_act(tmp_path):
     for a in env.agents:
         np.testing.assert_allclose(act[a], np.clip(w @ obs[a], -1, 1), atol=0.05)
     assert base.action_mode == "point"
+
+
+# --------------------------------------------------------------------------- batched adapter, episode boundaries
+def _crowded(tmp_path, **kw) -> TrainConfig:
+    """Robots in a small arena with terminate_on_collision: collisions, dead slots, early episode ends."""
+    return tiny(tmp_path, num_robots=5, n_envs=2, scenario_kwargs={"arena_size": 4.0}, terminate_on_collision=True,
+                action_mode="wheel", max_steps=30, **kw)
+
+
+def test_episode_lengths_never_above_horizon_with_terminate_on_collision(tmp_path):
+    from train.train import make_vec_env
+
+    cfg = _crowded(tmp_path)
+    venv = make_vec_env(cfg)
+    base = venv.unwrapped
+    venv.seed(3)
+    venv.reset()
+    rng = np.random.default_rng(0)
+    lengths, dead, terminated, normalised_rows = [], 0, 0, 0
+    for _ in range(150):
+        live_before = base.live_slots
+        _, _, dones, infos = venv.step(rng.uniform(-1, 1, (venv.num_envs, 2)).astype(np.float32))
+        dead += int((~base.acted_slots).sum())
+        assert np.array_equal(base.acted_slots, live_before)
+        normalised_rows += int(base.live_slots.sum())
+        for s in np.flatnonzero(dones):
+            lengths.append(infos[s]["episode"]["l"])
+            terminated += not infos[s]["TimeLimit.truncated"]
+            assert "dead" not in infos[s]
+        for s in np.flatnonzero(~base.acted_slots):
+            assert infos[s] == {"dead": True} and not dones[s]
+    assert dead > 0 and terminated > 0, "the crowded arena must produce collisions and dead slots"
+    assert lengths and max(lengths) <= cfg.max_steps
+    # the observation statistics saw the real observations only (not the zeros of dead slots)
+    assert venv.obs_rms.count == pytest.approx(normalised_rows + venv.num_envs + 1e-4)
+    venv.close()
+
+
+def test_masked_rollout_buffer_drops_padding_and_equals_sb3_without_it():
+    from gymnasium import spaces
+    from stable_baselines3.common.buffers import RolloutBuffer
+
+    from train.ppo import MaskedRolloutBuffer
+
+    obs_space, act_space = spaces.Box(-1, 1, (3,)), spaces.Box(-1, 1, (2,))
+    bufs = [cls(8, obs_space, act_space, n_envs=4) for cls in (MaskedRolloutBuffer, RolloutBuffer, MaskedRolloutBuffer)]
+    rng = np.random.default_rng(0)
+    for t in range(8):
+        obs = rng.normal(size=(4, 3)).astype(np.float32)
+        act = rng.normal(size=(4, 2)).astype(np.float32)
+        rew = rng.normal(size=4).astype(np.float32)
+        for b in bufs:
+            if b is bufs[2]:
+                b.next_valid = np.array([True, t < 3, True, t >= 5])
+            b.add(obs, act, rew, np.zeros(4), torch.zeros(4), torch.zeros(4))
+    for b in bufs:
+        b.compute_returns_and_advantage(torch.zeros(4), np.zeros(4))
+    np.random.seed(1)  # noqa: NPY002 - SB3 draws minibatches from the global generator
+    masked_all = [x.observations.numpy() for x in bufs[0].get(5)]
+    np.random.seed(1)  # noqa: NPY002 - SB3 draws minibatches from the global generator
+    plain = [x.observations.numpy() for x in bufs[1].get(5)]
+    assert len(masked_all) == len(plain) and all(np.array_equal(a, b) for a, b in zip(masked_all, plain))
+    assert bufs[2].n_valid == 8 + 3 + 8 + 3
+    got = np.concatenate([x.observations.numpy() for x in bufs[2].get(4)])
+    valid = bufs[2].valid.swapaxes(0, 1).reshape(-1)
+    expected = bufs[2].observations[valid]
+    assert got.shape == expected.shape
+    assert sorted(map(tuple, got.round(6))) == sorted(map(tuple, expected.round(6)))
+
+
+def test_ppo_trains_only_on_transitions_of_robots_that_acted(tmp_path):
+    from train.train import build_model, make_vec_env
+
+    cfg = _crowded(tmp_path, n_steps=64, batch_size=64)
+    venv = make_vec_env(cfg)
+    model = build_model(cfg, venv)
+    acted = []
+    orig = model._update_info_buffer
+
+    def spy(infos, dones=None):
+        acted.append(venv.unwrapped.acted_slots)
+        orig(infos, dones)
+
+    model._update_info_buffer = spy
+    model.learn(cfg.n_steps * venv.num_envs)
+    buf = model.rollout_buffer
+    np.testing.assert_array_equal(buf.valid, np.stack(acted))
+    assert 0 < buf.n_valid < buf.valid.size
+    assert sum(x.actions.shape[0] for x in buf.get(64)) == buf.n_valid
+    venv.close()
+
+
+# --------------------------------------------------------------------------- telemetry
+def test_logged_metrics_present(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    from train.telemetry import METRICS, read_metrics
+    from train.train import train
+
+    path = train(tiny(tmp_path, filter=True, filter_kwargs={"solver": "quadprog"}, total_timesteps=192,
+                      tensorboard=True, run_name="tele"))
+    run = path.parent
+    rows = read_metrics(run / "metrics.csv")
+    assert len(rows) == 2 and rows[-1]["agent_steps"] == 192
+    for key in METRICS:
+        assert key in rows[-1]
+    assert rows[-1]["episodes"] > 0 and 0.0 <= rows[-1]["success_rate"] <= 1.0  # max_steps=30 < 32 steps
+    assert rows[-1]["tracking_error"] > 0 and 0.0 <= rows[-1]["intervention_rate"] <= 1.0
+    assert rows[-1]["mean_correction"] >= 0.0
+    (tb,) = (run / "tb").iterdir()
+    acc = EventAccumulator(str(tb))
+    acc.Reload()
+    tags = set(acc.Tags()["scalars"])
+    for key in ("success_rate", "tracking_error", "collision_rate", "intervention_rate", "mean_correction"):
+        assert f"metrics/{key}" in tags
+    stats = json.loads((run / "train_stats.json").read_text())
+    assert stats["agent_steps"] == 192 and stats["agent_steps_per_s"] > 0
+    pytest.importorskip("matplotlib")
+    assert (run / "learning_curve.png").stat().st_size > 1000
+
+
+def test_progress_line(capsys):
+    from train.telemetry import progress_line
+
+    line = progress_line({"agent_steps": 61440, "agent_steps_per_s": 1000.0, "wall_time_s": 61.0,
+                          "success_rate": 0.5, "tracking_error": 0.25, "collision_rate": 0.01,
+                          "intervention_rate": 0.2, "mean_correction": 1.5}, total=122880)
+    assert line.startswith("[ 50.0%]") and "success 50.0%" in line and "intervention 20.0%" in line
+    assert "eta 1m01s" in line
+
+
+def test_init_from_starts_with_the_runs_weights_and_statistics(tmp_path):
+    from agents.learned import LearnedAgent
+    from train.train import build_model, init_policy, make_vec_env, train
+
+    src = train(tiny(tmp_path, total_timesteps=192, run_name="src"))
+    cfg = tiny(tmp_path, filter=True, filter_kwargs={"solver": "quadprog"}, reward={"correction": 1.0},
+               init_from=str(src.parent), run_name="tuned")
+    venv = make_vec_env(cfg)
+    model = build_model(cfg, venv)
+    init_policy(model, venv, cfg)
+    agent = LearnedAgent.load(src)
+    for k, v in agent.model.policy.state_dict().items():
+        assert torch.equal(v, model.policy.state_dict()[k]), k
+    np.testing.assert_array_equal(venv.obs_rms.mean, agent.obs_stats[0])
+    venv.close()
+    with pytest.raises(ConfigError, match="another network"):
+        bad = tiny(tmp_path, net_arch=[8], init_from=str(src.parent), run_name="bad")
+        venv = make_vec_env(bad)
+        init_policy(build_model(bad, venv), venv, bad)
+
+
+def test_compare_table_from_results():
+    from train.compare import to_markdown
+
+    ev = {"success_rate": 1.0, "rmse": 0.1, "collisions": 0, "collision_episodes": 0, "safe_rate": 1.0,
+          "intervention_rate": 0.4, "mean_correction": 10.0, "episodes": 3, "seed": 10000}
+    runs = [{"scene": "random_goals_6r", "variant": v, "seed": s, "total_wall_s": 100.0 + s, "train_agent_steps": 10,
+             "init_from": None if v == "bare" else f"bare_s{s}", "correction_weight": 0.0 if v == "bare" else 1.0,
+             "eval_bare": {**ev, "intervention_rate": None, "mean_correction": None},
+             "eval_filter": {**ev, "mean_correction": 10.0 if v == "bare" else 6.0 + s}}
+            for v in ("bare", "filter+correction") for s in (0, 2)]
+    md = to_markdown({"settings": {"scenes": {"random_goals_6r": {}}, "seeds": [0, 2],
+                                   "variants": ["bare", "filter+correction"], "bare_steps": 10, "filter_steps": 5,
+                                   "filter_start": "bare", "filter_n_steps": 64, "correction": 1.0, "episodes": 3,
+                                   "eval_seed": 10000}, "runs": runs})
+    assert "| (a) trained bare | behind the filter | 100.0% ± 0.0 | 0.100 ± 0.000 | 0 (0) | 100.0% ± 0.0 |" in md
+    assert "| 7.000 ± 1.000 | 101 ± 1 |" in md
+    assert "(c) vs (a) on the same seeds: 7.000 vs 10.000 rad/s^2 (30.0% less)" in md
+    assert "(c) seeds 0, 2: fine-tuned from (a) of the same seed for 10 agent-steps, correction weight 1" in md

@@ -5,6 +5,12 @@ Precedence: dataclass defaults < config file (``--config run.toml`` or
 ``__post_init__``; every error is a :class:`~aasoatt_env.errors.ConfigError`
 of the form ``"TrainConfig.<field>: got X, expected Y"``.
 
+The defaults of :class:`TrainConfig` are the recipe that learns from scratch
+(``train/configs/random_goals_6r.toml``, measured in the README): a plain MLP,
+observations and rewards normalised, point actions, 8 envs x 6 robots, 1.23M
+agent-steps.  ``reward`` entries are laid over the recipe's reward
+(:data:`TRAIN_REWARD`), key by key, wherever they come from.
+
 :class:`EnvConfig` holds the env and filter fields that every training backend
 shares: :class:`TrainConfig` (Stable-Baselines3) and
 :class:`train.rllib.RLlibConfig` (Ray RLlib) extend it, and
@@ -15,10 +21,9 @@ Example ``run.toml``::
     scenario = "random_goals"
     num_robots = 6
     total_timesteps = 1_500_000
-    filter = false
+    filter = true
     [reward]
-    collision = 10.0
-    correction = 0.0
+    correction = 0.5
     [filter_kwargs]
     barrier = "aasoatt"
 """
@@ -42,10 +47,18 @@ from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import SCENARIOS
 from aasoatt_env.validation import parse_value
 
-__all__ = ["BACKENDS", "EnvConfig", "TrainConfig", "add_config_arguments", "config_from_args", "load_config_file",
-           "split_backend", "unique_run_dir"]
+__all__ = ["BACKENDS", "TRAIN_REWARD", "EnvConfig", "TrainConfig", "add_config_arguments", "config_from_args",
+           "load_config_file", "split_backend", "unique_run_dir"]
 
 _ACTION_MODES = ("wheel", "point")
+
+TRAIN_REWARD: dict[str, float] = {"tracking": 1.0, "collision": 1.0, "effort": 0.01, "goal_bonus": 0.5,
+                                   "goal_tolerance": 0.1}
+"""The reward of the default recipe (:class:`TrainConfig`); ``reward`` entries replace these key by key.
+
+``collision`` 1 rather than the env's 10: with 10, collisions a robot cannot avoid alone (others drive
+into it) drown the tracking signal and a plain MLP does not learn (``../shared/SPEC.md`` section 10).
+``goal_tolerance`` 0.1 m is the evaluation's success radius."""
 
 BACKENDS = ("sb3", "rllib")
 """``aasoatt train --backend``: ``sb3`` (:mod:`train.train`, the default) or ``rllib`` (:mod:`train.rllib`)."""
@@ -148,7 +161,9 @@ class EnvConfig:
             RewardConfig.coerce(self.reward)
         except TypeError:
             known = [f.name for f in fields(RewardConfig)]
-            raise self._err("reward", f"keys among {known}") from None
+            unknown = sorted(set(self.reward) - set(known))
+            raise ConfigError(f"{type(self).__name__}.reward: got unknown key(s) {unknown}, expected keys among "
+                              f"{known}") from None
         try:
             self.filter_config()
         except TypeError as exc:
@@ -210,6 +225,9 @@ class TrainConfig(EnvConfig):
 
     Attributes
     ----------
+    reward : dict
+        Reward weights laid over :data:`TRAIN_REWARD` key by key (the env's
+        :class:`~aasoatt_env.sim.rewards.RewardConfig` fields).
     velocity_tracking : float
         Weight of the training-only shaping term ``-|v_i - v_d_i|``
         (:class:`train.vec_env.VelocityTrackingShaping`; 0: off).
@@ -230,10 +248,12 @@ class TrainConfig(EnvConfig):
     log_std_init : float
         Initial log standard deviation of the Gaussian policy.
     policy_prior : {"none", "tracking"}
-        ``"tracking"``: :class:`train.policy.TrackingPriorPolicy`, whose action
+        ``"none"`` (default): SB3's ``MlpPolicy``, learned from scratch.
+        ``"tracking"``: :class:`agents.prior.TrackingPriorPolicy`, whose action
         mean is a trainable linear layer on the raw observation initialised to
-        the tracking law plus the MLP (needs ``action_mode="point"`` and
-        ``normalize_obs=False``); ``"none"``: SB3's ``MlpPolicy``.
+        the paper's tracking law plus the MLP (needs ``action_mode="point"`` and
+        ``normalize_obs=False``): it starts as the tracking law and stays close
+        to it.
     prior_gains : list of two floats
         ``[k3, k4]`` of the tracking-law prior.
     normalize_obs : bool
@@ -241,6 +261,11 @@ class TrainConfig(EnvConfig):
         saved with the model and used by :class:`agents.learned.LearnedAgent`).
     normalize_reward : bool
         Scale rewards by ``VecNormalize``'s running return std (training only).
+    init_from : str or None
+        A run folder (or model ``.zip``) of ``aasoatt train`` whose policy
+        weights and observation statistics start this run (fine-tuning, e.g.
+        a policy trained bare, now behind the filter); same observation layout,
+        ``net_arch`` and ``policy_prior`` required.
     out_dir : str
         Parent folder of runs.
     run_name : str or None
@@ -250,7 +275,8 @@ class TrainConfig(EnvConfig):
     tensorboard : bool
         Write tensorboard logs under ``<run>/tb``.
     progress_bar : bool
-        Show a tqdm progress bar.
+        Print a progress line (throughput, ETA, success, tracking error,
+        collisions, filter intervention) about every 5% of the run.
     device : str
         Torch device.
     torch_threads : int
@@ -260,14 +286,14 @@ class TrainConfig(EnvConfig):
     """
 
     velocity_tracking: float = 0.0
-    total_timesteps: int = 1_200_000
-    n_envs: int = 4
+    total_timesteps: int = 1_228_800
+    n_envs: int = 8
     seed: int = 0
-    learning_rate: float = 1e-3
-    n_steps: int = 128
-    batch_size: int = 512
+    learning_rate: float = 3e-4
+    n_steps: int = 256
+    batch_size: int = 1024
     n_epochs: int = 10
-    gamma: float = 0.95
+    gamma: float = 0.99
     gae_lambda: float = 0.95
     clip_range: float = 0.2
     ent_coef: float = 0.0
@@ -279,6 +305,7 @@ class TrainConfig(EnvConfig):
     prior_gains: list[float] = field(default_factory=lambda: [1.0, 4.0])
     normalize_obs: bool = True
     normalize_reward: bool = True
+    init_from: str | None = None
     out_dir: str = "runs"
     run_name: str | None = None
     checkpoint_freq: int = 250_000
@@ -289,6 +316,8 @@ class TrainConfig(EnvConfig):
     verbose: int = 0
 
     def _validate(self) -> None:
+        if isinstance(self.reward, dict):
+            self.reward = {**TRAIN_REWARD, **self.reward}
         self._validate_env()
         for name in ("total_timesteps", "n_envs", "n_steps", "n_epochs", "torch_threads"):
             self._int(name, 1)
@@ -321,6 +350,8 @@ class TrainConfig(EnvConfig):
                 and all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in self.net_arch)):
             raise self._err("net_arch", "a non-empty list of positive integers")
         self.net_arch = list(self.net_arch)
+        if self.init_from is not None and (not isinstance(self.init_from, str) or not self.init_from):
+            raise self._err("init_from", "a run folder or model .zip path, or None")
         rollout = self.n_steps * self.n_envs * self.num_robots
         if self.batch_size > rollout:
             raise self._err("batch_size", f"at most n_steps * n_envs * num_robots = {rollout}")

@@ -1,93 +1,65 @@
-"""PPO with parameter sharing on the AA-SOATT parallel env (bare or behind the filter).
+"""PPO with parameter sharing on the AA-SOATT env (bare or behind the filter).
 
 Usage::
 
-    python -m train.train --config run.toml --total-timesteps 200000
-    python -m train.train --filter true --reward correction=0.5 --run-name ppo_filtered
-    aasoatt train ...            # the same flags
+    aasoatt train                                  # the default recipe (train/configs/random_goals_6r.toml)
+    aasoatt train --filter true --reward correction=0.5 --run-name ppo_filtered
+    aasoatt train --config run.toml --total-timesteps 200000
+    python -m train.train ...                      # the same flags
 
-Every robot of every env is one slot of :class:`train.vec_env.ParallelVecEnv`
-(one shared policy).  The policy acts every ``decision_interval`` physics steps
-(default 20, i.e. 10 Hz against the 200 Hz physics/filter); behind
-:class:`~aasoatt_env.safety.wrapper.AASOATTFilter` its action is the nominal
-that the CBF-QP filters at *every* physics step in between.
+Every robot of every env is one slot of :class:`train.vec_env.BatchedVecEnv`
+(one shared policy); the ``n_envs`` teams are stepped by one vectorised physics
+call (:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).  The policy acts
+every ``decision_interval`` physics steps (default 20, i.e. 10 Hz against the
+200 Hz physics/filter); behind :class:`~aasoatt_env.safety.wrapper.AASOATTFilter`
+its action is the nominal that the CBF-QP filters at *every* physics step in between.
 
-Reward design (per robot and decision, :class:`~aasoatt_env.sim.env.RewardConfig`)
-------------------------------------------------------------------------------
-``r_i = -tracking |p_i - p_d_i| - collision [clearance_i < -tol]
-- effort |a_i|^2 / 2 - correction c_i + goal_bonus [|p_i - goal_i| < goal_tol]``
+The default recipe (:class:`~train.config.TrainConfig` defaults)
+--------------------------------------------------------------------
+A plain MLP policy (SB3 ``MlpPolicy``, ``[64, 64]``, ``log_std_init`` -1)
+learned from scratch: ``VecNormalize`` on observations and rewards, point
+actions, PPO with 8 envs x 6 robots, ``n_steps`` 256, minibatch 1024, 10
+epochs, learning rate 3e-4, ``gamma`` 0.99, no entropy bonus, 1,228,800
+agent-steps (100 rollouts).  Short runs judge it wrongly: success rises late
+(the README's learning curve).
 
-* **Goal reaching** is rewarded through *tracking*: the reference ``p_d_i(t)``
-  moves along the straight line to the goal and then stays there, so the
-  dense tracking term pulls the robot along the line and holds it at the
-  goal (a robot that follows it reaches its goal when the reference ends).
-  An optional sparse ``goal_bonus`` pays for being within ``goal_tolerance``.
-* **Collision**: a penalty (default 10, i.e. ten decisions' worth of 1 m
-  tracking error) for every decision in overlap.  With the default
-  ``terminate_on_collision=False`` a colliding robot keeps going and keeps
-  paying while it overlaps; with ``True`` its episode ends (see
-  :mod:`train.vec_env` for the slot's padding).
-* **Effort**: ``effort |a|^2 / 2`` with the normalised action (small, 0.01:
-  it only breaks ties towards smooth, low-acceleration control).
-* **Filter correction** (``correction``, only with ``filter=True``): penalises
-  ``|du_safe - du_nominal| / max_wheel_accel``, the largest per-physics-step
-  change the filter made to the robot's nominal in the decision.  It teaches
-  the policy to propose actions the filter accepts, so the filter intervenes
-  less and the learned behaviour does not rely on it.
+Reward (per robot and decision, :class:`~aasoatt_env.sim.rewards.RewardConfig`,
+recipe weights in :data:`~train.config.TRAIN_REWARD`)::
 
-Recipe: RandomGoals, 6 robots, evaluated behind the filter
-----------------------------------------------------------
-::
+    r_i = -tracking |p_i - p_d_i| - collision [clearance_i < -tol] - effort |a_i|^2 / 2
+          - correction c_i + goal_bonus [|p_i - goal_i| < goal_tolerance]
 
-    nice -n 19 python -m train.train --config train/configs/random_goals_6r_prior.toml
-    nice -n 19 python -m train.evaluate --bare runs/ppo_random_goals_6r_prior --episodes 100 \
-        --rows "learned (bare)" "learned (bare) + filter" --out results/random_goals_6r_prior.md
+* **Tracking** (1): the reference ``p_d_i(t)`` slides along the straight line
+  to the goal and rests there, so following it brings the robot home.
+* **Goal bonus** (0.5 within ``goal_tolerance`` 0.1 m, the evaluation's success radius).
+* **Collision** (1 per decision in overlap): the env's default 10 drowns the
+  tracking signal in collisions a robot cannot avoid alone, and the MLP does
+  not learn.  Safety is the filter's job; with ``terminate_on_collision`` a
+  colliding robot's episode ends instead (its slot is padding until its team
+  resets, and :class:`train.ppo.SlotPPO` never trains on padding).
+* **Effort** (0.01): breaks ties towards smooth accelerations.
+* **Filter correction** (``correction``, only with ``filter=True``; 0 by
+  default): ``|du_safe - du_nominal| / max_wheel_accel``, the largest change
+  the filter made to the robot's nominal in the decision; it asks the policy to
+  propose what the filter accepts.
 
-400k agent-steps: 86 s of training (4,650 agent-steps/s) on 2 shared cores, one
-torch thread.  Measured (seed 0; 100 episodes, seeds 10000-10099, default arena):
+``policy_prior = "tracking"`` (:class:`agents.prior.TrackingPriorPolicy`,
+``train/configs/random_goals_6r_prior.toml``) starts from the paper's tracking
+law as a trainable linear layer plus an MLP residual: it behaves like the
+tracking law from the first step and PPO changes it little, so it is a
+baseline, not a policy learned from scratch.
 
-=========================  =========  =======  =========  =============  ========================
-row                        safe rate  success  RMSE [m]   intervention   collisions (episodes)
-=========================  =========  =======  =========  =============  ========================
-learned (bare)             27.7%      100.0%   0.060      -              411 (96)
-learned (bare) + filter    100.0%     99.5%    0.313      35.3%          0 (0)
-=========================  =========  =======  =========  =============  ========================
-
-PPO stiffened the prior's position gain from ``k3 k4 / a_max`` = 0.94 to 1.30
-(velocity gain 1.18 -> 1.24); bare, the policy still collides about as often as
-the tracking law (the collision penalty is deliberately small: safety is the
-filter's job).  Why the
-plain ``MlpPolicy`` recipe (defaults) fails here, measured on 100-150k-step runs:
-
-* the needed accelerations are small (~0.1 of ``max_point_accel`` once on
-  track) against an exploration noise of ~0.4, and ``-|p - p_d|`` reacts to an
-  acceleration only through its double integral: PPO's advantages resolve the
-  PD feedback slowly (the policy's gain on ``p - p_d`` even had the wrong sign
-  at 100k steps; ep. return plateaued; RMSE > 1 m, success < 7%; a single robot
-  alone also learns slowly; ``n_steps``/``gamma``/``velocity_tracking`` shaping
-  did not fix it within 100k steps);
-* in the default (crowded) arena the collision penalty (10 per decision in
-  overlap) is ~40x the per-decision tracking cost of a perfect tracker
-  (0.16 collision decisions per robot-decision vs 0.037 m error), so it
-  dominates the normalised reward with noise the robot cannot control bare
-  (others drive into it);
-* a prior-initialised policy that kept ``collision=10`` lost its precision in
-  100k steps (success 100% -> 7%, RMSE 0.07 -> 0.30): the residual learned to
-  trade tracking for the noisy penalty.
-
-The recipe therefore (i) uses :class:`train.policy.TrackingPriorPolicy`: the
-action mean is a *trainable* linear layer on the raw observation initialised
-to the tracking law (linear in the observation) plus the MLP residual, (ii)
-scales the collision penalty to 1 (the filter provides safety), (iii) adds a
-``goal_bonus`` with ``goal_tolerance`` equal to the success radius (0.1 m), and
-(iv) trains gently around the prior (``learning_rate`` 1e-4, ``log_std_init``
--1.5, ``gamma`` 0.98 for ~100-decision episodes).
+Telemetry (:mod:`train.telemetry`): per rollout, success rate, tracking error,
+collisions, filter intervention rate and mean correction go to TensorBoard
+(``metrics/``), to ``metrics.csv`` and to the progress line;
+``learning_curve.png`` is drawn at the end.
 
 Outputs in the run folder ``<out_dir>/<run_name>``: ``model.zip`` (SB3 PPO),
 ``policy.json`` (env keywords, filter configuration, policy class: what
 :class:`agents.learned.LearnedAgent` needs), ``normalization.npz`` (observation
 statistics as plain arrays; nothing is pickled), ``config.json`` (the
-:class:`~train.config.TrainConfig`), ``checkpoints/`` and ``tb/`` (tensorboard).
+:class:`~train.config.TrainConfig`), ``metrics.csv``, ``learning_curve.png``,
+``train_stats.json`` (wall time, throughput), ``checkpoints/`` and ``tb/``.
 """
 
 from __future__ import annotations
@@ -109,7 +81,7 @@ from aasoatt_env.errors import ConfigError
 from agents.learned import POLICY_FILE, stats_path
 from train.config import BACKENDS, TrainConfig, add_config_arguments, config_from_args, split_backend, unique_run_dir
 from train.rllib import main as rllib_main
-from train.vec_env import ParallelVecEnv, VelocityTrackingShaping
+from train.telemetry import TelemetryCallback, plot_learning_curve
 
 __all__ = ["main", "make_env", "make_vec_env", "train"]
 
@@ -152,15 +124,21 @@ def save_stats(venv: Any, path: Path) -> None:
 
 
 def make_vec_env(config: TrainConfig, training: bool = True) -> Any:
-    """``VecNormalize?(VecMonitor(ParallelVecEnv))`` with ``config.n_envs`` envs."""
-    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
+    """``SlotNormalize?(SlotMonitor(BatchedVecEnv))`` over ``config.n_envs`` teams stepped together.
 
-    venv: Any = ParallelVecEnv([lambda: make_env(config) for _ in range(config.n_envs)])
+    :class:`~train.vec_env.SlotMonitor` and :class:`~train.vec_env.SlotNormalize` are SB3's
+    ``VecMonitor`` and ``VecNormalize`` that skip dead-slot padding (``terminate_on_collision``).
+    """
+    from aasoatt_env.sim.batched import BatchedAASOATTEnv
+    from train.vec_env import BatchedVecEnv, SlotMonitor, SlotNormalize, VelocityTrackingShaping
+
+    batch = BatchedAASOATTEnv([lambda: make_env(config) for _ in range(config.n_envs)])
+    venv: Any = BatchedVecEnv(batch, success_radius=config.reward.get("goal_tolerance", 0.1))
     if config.velocity_tracking:
         venv = VelocityTrackingShaping(venv, config.velocity_tracking)
-    venv = VecMonitor(venv)
+    venv = SlotMonitor(venv)
     if config.normalize_obs or config.normalize_reward:
-        venv = VecNormalize(
+        venv = SlotNormalize(
             venv, training=training, norm_obs=config.normalize_obs, norm_reward=config.normalize_reward,
             gamma=config.gamma, clip_obs=10.0,
         )
@@ -181,9 +159,10 @@ def _run_dir(config: TrainConfig) -> Path:
 
 
 def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = None) -> Any:
-    """The SB3 PPO of ``config`` on ``venv`` (seeded: PPO seeds torch, numpy and the env)."""
+    """The PPO of ``config`` on ``venv`` (:class:`train.ppo.SlotPPO`; seeded: it seeds torch, numpy and the env)."""
     import torch
-    from stable_baselines3 import PPO
+
+    from train.ppo import SlotPPO
 
     torch.set_num_threads(config.torch_threads)
     policy: Any = "MlpPolicy"
@@ -204,7 +183,7 @@ def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = No
         policy = TrackingPriorPolicy
         policy_kwargs["prior_matrix"] = tracking_prior_matrix(
             int(np.prod(venv.observation_space.shape)), k3, k4, float(amax[0])).tolist()
-    return PPO(
+    return SlotPPO(
         policy, venv,
         learning_rate=config.learning_rate, n_steps=config.n_steps, batch_size=config.batch_size,
         n_epochs=config.n_epochs, gamma=config.gamma, gae_lambda=config.gae_lambda,
@@ -215,24 +194,47 @@ def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = No
     )
 
 
-def _progress_callback(total: int) -> Any:
-    """A tqdm progress bar over agent-steps (SB3's own needs ``rich``)."""
-    from stable_baselines3.common.callbacks import BaseCallback
+def init_policy(model: Any, venv: Any, config: TrainConfig, source: Any = None) -> None:
+    """Start ``model`` from the run ``config.init_from``: its policy weights and observation statistics.
 
-    class TqdmCallback(BaseCallback):
-        def _on_training_start(self) -> None:
-            from tqdm import tqdm
+    Loaded without unpickling (:class:`agents.learned.LearnedAgent`, or ``source`` if already loaded);
+    the reward statistics start afresh.
+    """
+    import torch
 
-            self.bar = tqdm(total=total, unit="agent-step", dynamic_ncols=True, desc="PPO")
+    from agents.learned import LearnedAgent
 
-        def _on_step(self) -> bool:
-            self.bar.update(self.training_env.num_envs)
-            return True
+    if source is None:
+        source = LearnedAgent.load(config.init_from)  # type: ignore[arg-type]
+    spec_policy = "TrackingPriorPolicy" if config.policy_prior == "tracking" else "MlpPolicy"
+    if source.spec.get("policy") != spec_policy:
+        raise ConfigError(f"TrainConfig.init_from: got a {source.spec.get('policy')} run, expected a {spec_policy} "
+                          "run (same policy_prior)")
+    state = source.model.policy.state_dict()
+    mine = model.policy.state_dict()
+    if set(state) != set(mine) or any(state[k].shape != mine[k].shape for k in mine):
+        raise ConfigError(f"TrainConfig.init_from: {config.init_from} has another network (net_arch or observation "
+                          f"layout), expected net_arch {config.net_arch} and observations of shape "
+                          f"{tuple(venv.observation_space.shape)}")
+    with torch.no_grad():
+        model.policy.load_state_dict(state)
+    if (source.obs_stats is None) != (not config.normalize_obs):
+        raise ConfigError(f"TrainConfig.init_from: {config.init_from} was trained with normalize_obs="
+                          f"{source.obs_stats is not None}, expected normalize_obs={config.normalize_obs}")
+    if source.obs_stats is not None:
+        mean, var, _, _ = source.obs_stats
+        count = _stats_count(config.init_from)
+        rms = venv.obs_rms
+        rms.mean, rms.var, rms.count = mean.copy(), var.copy(), count
 
-        def _on_training_end(self) -> None:
-            self.bar.close()
 
-    return TqdmCallback()
+def _stats_count(path: str | None) -> float:
+    from agents.learned import stats_path
+
+    p = Path(path or "")
+    p = p / "model.zip" if p.is_dir() else p
+    with np.load(stats_path(p), allow_pickle=False) as z:
+        return float(z["count"]) if "count" in z else 1e4
 
 
 def _checkpoint_callback(folder: Path, every: int, with_stats: bool) -> Any:
@@ -269,27 +271,48 @@ def train(config: TrainConfig) -> Path:
     """
     probe = make_env(config)  # the env (and filter) settings are checked before any folder is made
     probe.close()
+    source = None
+    if config.init_from is not None:  # so is the run to start from
+        from agents.learned import LearnedAgent
+
+        source = LearnedAgent.load(config.init_from)
     run = _run_dir(config)
     (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
     (run / POLICY_FILE).write_text(json.dumps(run_spec(config), indent=2))
     venv = make_vec_env(config)
     model = build_model(config, venv, str(run / "tb") if config.tensorboard else None)
-    callbacks: list[Any] = []
+    if config.init_from is not None:
+        init_policy(model, venv, config, source)
+    rollouts = max(1, -(-config.total_timesteps // (config.n_steps * venv.num_envs)))
+    telemetry = TelemetryCallback(run / "metrics.csv", config.total_timesteps,
+                                  print_every=max(1, rollouts // 20) if config.progress_bar else 0,
+                                  success_radius=config.reward.get("goal_tolerance", 0.1))
+    callbacks: list[Any] = [telemetry]
     if config.checkpoint_freq:
         callbacks.append(_checkpoint_callback(run / "checkpoints", max(1, config.checkpoint_freq // venv.num_envs),
                                               config.normalize_obs))
     if config.progress_bar:
-        callbacks.append(_progress_callback(config.total_timesteps))
+        print(f"training {run} ({config.total_timesteps:,} agent-steps, {config.n_envs} envs x "
+              f"{config.num_robots} robots, {'behind the filter' if config.filter else 'bare'})", flush=True)
     t0 = time.perf_counter()
-    model.learn(total_timesteps=config.total_timesteps, callback=callbacks or None, tb_log_name="ppo")
+    model.learn(total_timesteps=config.total_timesteps, callback=callbacks, tb_log_name="ppo")
     elapsed = time.perf_counter() - t0
     model.save(run / "model.zip")
     if config.normalize_obs:
         save_stats(venv, stats_path(run / "model.zip"))
+    last = telemetry.history[-1] if telemetry.history else {}
     (run / "train_stats.json").write_text(json.dumps(
         {"wall_time_s": elapsed, "agent_steps": int(model.num_timesteps),
-         "agent_steps_per_s": model.num_timesteps / max(elapsed, 1e-9)}, indent=2))
+         "agent_steps_per_s": model.num_timesteps / max(elapsed, 1e-9),
+         "last_rollout": {k: v for k, v in last.items() if v == v}}, indent=2))
     venv.close()
+    if telemetry.history:
+        try:
+            plot_learning_curve({config.run_name or run.name: [telemetry.history]}, run / "learning_curve.png",
+                                title=f"{config.scenario}, {config.num_robots} robots, "
+                                f"{'behind the filter' if config.filter else 'bare'}, seed {config.seed}")
+        except ImportError:  # matplotlib is an optional extra (render/repro)
+            pass
     return run / "model.zip"
 
 

@@ -1,14 +1,18 @@
-"""An SB3 :class:`~stable_baselines3.common.vec_env.VecEnv` over PettingZoo parallel envs.
+"""SB3 :class:`~stable_baselines3.common.vec_env.VecEnv` adapters: one slot per robot (parameter sharing).
 
-Parameter sharing: every robot of every env is one *slot* of the vectorised
-env, so one policy acts for all of them.  ``num_envs = n_envs * n_agents``
-with slot ``k * n_agents + i`` = robot ``i`` of env ``k``.  This replaces
-SuperSuit (``SPEC.md`` section 8: its ``seed=`` crashes with SB3 2.9,
-``black_death_v3`` ends episodes a step late and time-limit truncation is
-lost).
+Every robot of every env is one *slot*, so one policy acts for all of them:
+``num_envs = n_envs * n_agents`` with slot ``k * n_agents + i`` = robot ``i`` of
+env ``k``.  This replaces SuperSuit (``SPEC.md`` section 8: its ``seed=``
+crashes with SB3 2.9, ``black_death_v3`` ends episodes a step late and
+time-limit truncation is lost).
 
-Contract
---------
+* :class:`BatchedVecEnv` (what ``aasoatt train`` uses): over a
+  :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`, all teams stepped by one
+  vectorised physics call per physics step.
+* :class:`ParallelVecEnv`: over any PettingZoo parallel envs, stepped one by one.
+
+Contract (both)
+---------------
 * **Seeding** goes through SB3: ``VecEnv.seed(s)`` (PPO calls it with its
   ``seed``) makes the next ``reset`` seed env ``k`` with ``s + k * n_agents``
   (the seed of its first slot); later auto-resets pass no seed, so they draw
@@ -23,24 +27,25 @@ Contract
   reports ``done=True`` exactly once, at the step its robot terminates (with
   its ``terminal_observation``, ``TimeLimit.truncated=False``).  Until its env
   resets the slot is *dead*: its observation is zeros, its reward 0, ``done``
-  False, ``infos[slot]["dead"] = True``, and whatever action the policy gives
-  for it is ignored (not sent to the env, which would reject it).  The
-  padding transitions carry no reward; they only bias the value of the zero
-  observation slightly, so training defaults to ``terminate_on_collision=False``
-  (the collision is then a penalty, see :mod:`train.train`).
-* The per-agent ``infos`` of the env (``tracking_error``, ``collision``,
-  ``filter``, ...) are passed through in each slot's info dict.
-
-Works under :class:`~stable_baselines3.common.vec_env.VecMonitor` and
-:class:`~stable_baselines3.common.vec_env.VecNormalize`.
+  False, ``infos[slot] == {"dead": True}``, and whatever action the policy
+  gives for it is ignored.  These padding transitions belong to no episode:
+  ``acted_slots`` (slots whose robot acted at the last step) and
+  ``live_slots`` (slots whose current observation is real) say which rows are
+  real, and :class:`SlotMonitor` (episode lengths and returns),
+  :class:`SlotNormalize` (running statistics) and :class:`train.ppo.SlotPPO`
+  (the PPO loss) use only those.
+* Per-slot infos carry the env's per-agent values (``tracking_error``,
+  ``collision``, ...; see each class).
 """
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
+from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 from stable_baselines3.common.vec_env.base_vec_env import (
     VecEnv,
     VecEnvIndices,
@@ -49,7 +54,7 @@ from stable_baselines3.common.vec_env.base_vec_env import (
     VecEnvWrapper,
 )
 
-__all__ = ["ParallelVecEnv"]
+__all__ = ["BatchedVecEnv", "ParallelVecEnv", "SlotMonitor", "SlotNormalize", "VelocityTrackingShaping"]
 
 
 class ParallelVecEnv(VecEnv):
@@ -87,6 +92,7 @@ class ParallelVecEnv(VecEnv):
         self._obs_shape = obs_space.shape
         self._obs = np.zeros((self.num_envs, *self._obs_shape), dtype=obs_space.dtype)
         self._live = np.zeros(self.num_envs, dtype=bool)
+        self._acted = np.ones(self.num_envs, dtype=bool)
         self._actions: np.ndarray | None = None
 
     # ------------------------------------------------------------------ helpers
@@ -127,6 +133,7 @@ class ParallelVecEnv(VecEnv):
         """Step every env once and auto-reset those whose episode ended."""
         assert self._actions is not None, "step_async() must be called first"
         acts = self._actions.reshape(self.num_envs, -1)
+        self._acted = self._live.copy()
         rewards = np.zeros(self.num_envs, dtype=np.float32)
         dones = np.zeros(self.num_envs, dtype=bool)
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
@@ -203,8 +210,13 @@ class ParallelVecEnv(VecEnv):
 
     @property
     def live_slots(self) -> np.ndarray:
-        """Boolean mask of slots whose robot is alive (a copy)."""
+        """Boolean mask of slots whose robot is alive (a copy): their current observation is a real one."""
         return self._live.copy()
+
+    @property
+    def acted_slots(self) -> np.ndarray:
+        """Slots whose robot acted at the last step (a copy): the others' transitions were padding."""
+        return self._acted.copy()
 
 
 class VelocityTrackingShaping(VecEnvWrapper):
@@ -225,9 +237,11 @@ class VelocityTrackingShaping(VecEnvWrapper):
         self.weight = float(weight)
 
     def reset(self) -> VecEnvObs:
+        """Reset the wrapped VecEnv."""
         return self.venv.reset()
 
     def step_wait(self) -> VecEnvStepReturn:
+        """Step and subtract the velocity-tracking penalty."""
         obs, rewards, dones, infos = self.venv.step_wait()
         o = np.array(obs, dtype=np.float64, copy=True)
         for s in np.flatnonzero(dones):
@@ -237,4 +251,227 @@ class VelocityTrackingShaping(VecEnvWrapper):
         err = np.linalg.norm(o[:, 4:6] - o[:, 10:12], axis=1)
         dead = np.array([bool(info.get("dead", False)) for info in infos])
         rewards = rewards - (self.weight * err * ~dead).astype(rewards.dtype)
+        return obs, rewards, dones, infos
+
+
+class BatchedVecEnv(VecEnv):
+    """The SB3 adapter of :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`: one slot per robot of every team.
+
+    Same contract as :class:`ParallelVecEnv` (slots ``k * N + i``, seeding, auto-reset,
+    ``terminal_observation``, ``TimeLimit.truncated``, dead slots), but all teams are
+    stepped by one vectorised call.  Per-slot infos hold ``tracking_error``,
+    ``clearance``, ``collision``, ``goal_distance`` (and behind a filter
+    ``filter_intervened``, ``filter_correction``); a slot whose episode ends also
+    gets ``is_success``: not terminated and within ``success_radius`` of its goal
+    (SB3 logs ``rollout/success_rate`` from it).  The batch's infos arrays of the
+    last step are in :attr:`last_infos`.
+
+    Parameters
+    ----------
+    batch : BatchedAASOATTEnv
+        The teams (``autoreset=True``).
+    success_radius : float
+        Goal distance [m] that counts as success (the evaluation's 0.1 m).
+    """
+
+    def __init__(self, batch: Any, success_radius: float = 0.1) -> None:
+        if not batch.autoreset:
+            raise ValueError("batch: expected a BatchedAASOATTEnv with autoreset=True")
+        self.batch = batch
+        self.n_envs, self.n_agents = batch.num_envs, batch.num_agents
+        self.agents = list(batch.possible_agents)
+        self.success_radius = float(success_radius)
+        super().__init__(self.n_envs * self.n_agents, batch.agent_observation_space, batch.agent_action_space)
+        self._obs_dim = int(np.prod(batch.agent_observation_space.shape))
+        self._live = np.zeros(self.num_envs, dtype=bool)
+        self._acted = np.ones(self.num_envs, dtype=bool)
+        self._actions: np.ndarray | None = None
+        self.last_infos: dict[str, Any] = {}
+        """The batch's infos arrays ``(K, N)`` of the last step (see :class:`BatchedAASOATTEnv`)."""
+        self.last_dones = np.zeros(self.num_envs, dtype=bool)
+
+    @property
+    def envs(self) -> list[Any]:
+        """The teams' own envs."""
+        return self.batch.envs
+
+    def reset(self) -> VecEnvObs:
+        """Reset every team with the seeds/options set by ``seed()``/``set_options()`` (then cleared)."""
+        seeds = [self._seeds[k * self.n_agents] for k in range(self.n_envs)]
+        opts = [self._options[k * self.n_agents] for k in range(self.n_envs)]
+        if any(o for o in opts):
+            obs = np.zeros((self.n_envs, self.n_agents, self._obs_dim), dtype=np.float32)
+            for k in range(self.n_envs):  # per-team options: reset the teams one by one
+                obs[k] = self.batch._reset_team(k, seeds[k], opts[k] or None)
+            self.batch._restack()
+            self.batch._started = True
+        else:
+            obs, _ = self.batch.reset(seed=seeds)
+        for s in range(self.num_envs):
+            self.reset_infos[s] = {}
+        self._reset_seeds()
+        self._reset_options()
+        self._live = self.batch.live.ravel()
+        self._acted = np.ones(self.num_envs, dtype=bool)
+        return obs.reshape(self.num_envs, self._obs_dim).copy()
+
+    def step_async(self, actions: np.ndarray) -> None:
+        """Store the actions ``(num_envs, 2)``; dead slots' rows are ignored."""
+        self._actions = np.asarray(actions)
+
+    def step_wait(self) -> VecEnvStepReturn:
+        """Step all teams once (auto-reset inside the batch)."""
+        assert self._actions is not None, "step_async() must be called first"
+        acted = self._live
+        obs3, rew, term, trunc, binfo = self.batch.step(self._actions.reshape(self.n_envs, self.n_agents, 2))
+        self._actions = None
+        obs = obs3.reshape(self.num_envs, self._obs_dim)
+        final = binfo.get("_final_obs")
+        final_obs = binfo["final_obs"].reshape(self.num_envs, self._obs_dim) if final is not None else None
+        reset_slots = np.repeat(final, self.n_agents) if final is not None else np.zeros(self.num_envs, dtype=bool)
+        t, tr = term.ravel(), trunc.ravel()
+        dones = (t | tr) & acted
+        live_after = self.batch.live.ravel()
+        rewards = np.where(acted, rew.ravel(), 0.0).astype(np.float32)
+        out = obs.copy()
+        out[~live_after] = 0.0
+        err, clr = binfo["tracking_error"].ravel().tolist(), binfo["clearance"].ravel().tolist()
+        col, gd = binfo["collision"].ravel().tolist(), binfo["goal_distance"].ravel()
+        filtered = "filter_correction" in binfo
+        if filtered:
+            fi = binfo["filter_intervened"].ravel().tolist()
+            fc = binfo["filter_correction"].ravel().tolist()
+        infos: list[dict[str, Any]] = []
+        for s in range(self.num_envs):
+            if not acted[s]:
+                infos.append({"dead": True})
+                continue
+            info: dict[str, Any] = {"tracking_error": err[s], "clearance": clr[s], "collision": col[s],
+                                    "goal_distance": float(gd[s])}
+            if filtered:
+                info["filter_intervened"], info["filter_correction"] = fi[s], fc[s]
+            if dones[s]:
+                info["terminal_observation"] = (final_obs[s] if reset_slots[s] else obs[s]).copy()  # type: ignore
+                info["TimeLimit.truncated"] = bool(tr[s] and not t[s])
+                info["is_success"] = bool(not t[s] and gd[s] <= self.success_radius)
+            infos.append(info)
+        self._acted = acted
+        self._live = live_after
+        self.last_infos = binfo
+        self.last_dones = dones
+        return out, rewards, dones, infos
+
+    def close(self) -> None:
+        """Close the teams."""
+        self.batch.close()
+
+    def _teams_of(self, indices: VecEnvIndices) -> list[int]:
+        return [s // self.n_agents for s in self._get_indices(indices)]
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        """Attribute of the team env behind each slot."""
+        return [getattr(self.batch.envs[k], attr_name) for k in self._teams_of(indices)]
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        """Set an attribute on the team envs behind the slots (each once)."""
+        for k in sorted(set(self._teams_of(indices))):
+            setattr(self.batch.envs[k], attr_name, value)
+
+    def env_method(
+        self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any
+    ) -> list[Any]:
+        """Call a method of the team env behind each slot (after :meth:`BatchedAASOATTEnv.sync`)."""
+        self.batch.sync()
+        return [getattr(self.batch.envs[k], method_name)(*method_args, **method_kwargs)
+                for k in self._teams_of(indices)]
+
+    def env_is_wrapped(self, wrapper_class: type, indices: VecEnvIndices = None) -> list[bool]:
+        """Whether the team env behind each slot is (PettingZoo-)wrapped by ``wrapper_class``."""
+        out = []
+        for k in self._teams_of(indices):
+            e, found = self.batch.envs[k], False
+            while e is not None and not found:
+                found = isinstance(e, wrapper_class)
+                e = getattr(e, "env", None)
+            out.append(found)
+        return out
+
+    def get_images(self) -> Sequence[np.ndarray | None]:
+        """One rendered frame per team (not per slot)."""
+        return list(self.batch.render())
+
+    @property
+    def live_slots(self) -> np.ndarray:
+        """Slots whose robot is alive (a copy): their current observation is a real one."""
+        return self._live.copy()
+
+    @property
+    def acted_slots(self) -> np.ndarray:
+        """Slots whose robot acted at the last step (a copy): the others' transitions were padding."""
+        return self._acted.copy()
+
+
+def _slot_masks(venv: VecEnv) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(acted_slots, live_slots)`` of the adapter under ``venv`` (None, None for other VecEnvs)."""
+    base = venv.unwrapped
+    acted, live = getattr(base, "acted_slots", None), getattr(base, "live_slots", None)
+    return acted, live
+
+
+class SlotMonitor(VecMonitor):
+    """:class:`~stable_baselines3.common.vec_env.VecMonitor` that counts only the steps a slot's robot acted.
+
+    Dead-slot padding (``terminate_on_collision``) is not part of any episode, so
+    ``infos[slot]["episode"]["l"]`` never exceeds the horizon.
+    """
+
+    def step_wait(self) -> VecEnvStepReturn:
+        """Step; add ``infos[slot]["episode"]`` to the slots whose episode ended."""
+        obs, rewards, dones, infos = self.venv.step_wait()
+        acted, _ = _slot_masks(self.venv)
+        self.episode_returns += rewards
+        self.episode_lengths += 1 if acted is None else acted.astype(self.episode_lengths.dtype)
+        new_infos = list(infos[:])
+        for i in np.flatnonzero(dones):
+            info = infos[i].copy()
+            episode_info = {"r": self.episode_returns[i], "l": self.episode_lengths[i],
+                            "t": round(time.time() - self.t_start, 6)}
+            for key in self.info_keywords:
+                episode_info[key] = info[key]
+            info["episode"] = episode_info
+            self.episode_count += 1
+            self.episode_returns[i] = 0
+            self.episode_lengths[i] = 0
+            if self.results_writer:
+                self.results_writer.write_row(episode_info)
+            new_infos[i] = info
+        return obs, rewards, dones, new_infos
+
+
+class SlotNormalize(VecNormalize):
+    """:class:`~stable_baselines3.common.vec_env.VecNormalize` whose statistics skip dead-slot padding.
+
+    The running observation statistics are updated with real observations only
+    (not the zeros of dead slots), the return statistics with the slots whose
+    robot acted.  Without dead slots it is exactly ``VecNormalize``.
+    """
+
+    def step_wait(self) -> VecEnvStepReturn:
+        """Step, update the statistics with the real rows, normalise."""
+        obs, rewards, dones, infos = self.venv.step_wait()
+        assert isinstance(obs, np.ndarray)
+        acted, live = _slot_masks(self.venv)
+        self.old_obs = obs
+        self.old_reward = rewards
+        if self.training and self.norm_obs:
+            self.obs_rms.update(obs if live is None or live.all() else obs[live])
+        obs = self.normalize_obs(obs)
+        if self.training:
+            self.returns = self.returns * self.gamma + rewards
+            self.ret_rms.update(self.returns if acted is None or acted.all() else self.returns[acted])
+        rewards = self.normalize_reward(rewards)
+        for idx in np.flatnonzero(dones):
+            if "terminal_observation" in infos[idx]:
+                infos[idx]["terminal_observation"] = self.normalize_obs(infos[idx]["terminal_observation"])
+        self.returns[dones] = 0
         return obs, rewards, dones, infos

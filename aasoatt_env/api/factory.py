@@ -13,10 +13,11 @@ from typing import Any
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.wrapper import AASOATTFilter
+from aasoatt_env.sim.batched import BatchedAASOATTEnv
 from aasoatt_env.sim.env import AASOATTParallelEnv
 from aasoatt_env.sim.scenarios import Scenario
 
-__all__ = ["make_env"]
+__all__ = ["make_batched_env", "make_env"]
 
 
 def make_env(
@@ -49,3 +50,32 @@ def make_env(
         raise ConfigError(f"filter: got {filter!r}, expected None, True/False, a FilterConfig or a mapping of "
                           "its fields")
     return AASOATTFilter(env, filter, infos=infos)
+
+
+def make_batched_env(
+    num_envs: int,
+    scenario: str | Scenario = "circle_swap",
+    *,
+    filter: FilterConfig | Mapping[str, Any] | bool | None = None,
+    autoreset: bool = True,
+    **env_kwargs: Any,
+) -> BatchedAASOATTEnv:
+    """``num_envs`` teams of ``scenario`` stepped together (:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).
+
+    Each team is the env :func:`make_env` builds with the same arguments (behind
+    its own filter when ``filter`` asks for one); the batch is bit-identical to
+    stepping those envs one by one.
+
+    Parameters
+    ----------
+    num_envs : int
+        Number of teams, ``>= 1``.
+    scenario, filter, **env_kwargs
+        As :func:`make_env`.
+    autoreset : bool
+        Reset a team inside ``step`` when its episode ends.
+    """
+    if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
+        raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")
+    return BatchedAASOATTEnv([lambda: make_env(scenario, filter=filter, **env_kwargs) for _ in range(num_envs)],
+                             autoreset=autoreset)

@@ -5,6 +5,7 @@ the protocol of :mod:`aasoatt_env.sim.protocol`; the simulation does not know
 what a filter does.
 """
 
+from aasoatt_env.sim.batched import BatchedAASOATTEnv
 from aasoatt_env.sim.env import AASOATTParallelEnv
 from aasoatt_env.sim.protocol import ControlFilter, FilterInput, FilterOutput
 from aasoatt_env.sim.rewards import RewardConfig
@@ -13,6 +14,7 @@ from aasoatt_env.sim.scenarios import SCENARIOS, Layout, Scenario, get_scenario
 __all__ = [
     "SCENARIOS",
     "AASOATTParallelEnv",
+    "BatchedAASOATTEnv",
     "ControlFilter",
     "FilterInput",
     "FilterOutput",

@@ -423,6 +423,27 @@ class AASOATTParallelEnv(ParallelEnv):
             self.render()
         return obs, rewards_d, terminations, truncations, infos
 
+    def _load_state(
+        self, pose: np.ndarray, u: np.ndarray, time: float, steps: int, active: np.ndarray, saturated: np.ndarray,
+        last_action: np.ndarray, clearance: np.ndarray, truncated: bool,
+    ) -> None:
+        """Take the state of this episode from :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`, which steps it.
+
+        Afterwards the env reports (positions, ``state()``, ``render()``) what the batch computed.
+        """
+        self._pose, self._u = pose.copy(), u.copy()
+        self._time, self._steps = float(time), int(steps)
+        self._active = active.copy()
+        self._saturated, self._last_action = saturated.copy(), last_action.copy()
+        self._kin = dynamics.kinematics(self.team, self._pose, self._u)
+        live = [] if truncated else [a for a, on in zip(self.possible_agents, self._active) if on]
+        self.agents = live
+        self._live_idx = np.array([self._index[a] for a in live], dtype=np.intp)
+        self._refresh()
+        self._clearance = clearance.copy()
+        if not self._trail or not np.array_equal(self._trail[-1], self._kin.p):
+            self._trail.append(self._kin.p.copy())
+
     # ------------------------------------------------------------------ outputs
     def _refresh(self, between: np.ndarray | None = None) -> None:
         """Recompute what observations, rewards and infos share at the current instant.

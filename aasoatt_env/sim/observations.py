@@ -99,8 +99,15 @@ def build_observations(
     k_robots: int,
     k_obstacles: int,
     prox: Proximity,
+    obstacle_offset: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Observations of all robots as one ``(N, 14 + 6 (K + K_obs))`` float32 array."""
+    """Observations of all robots as one ``(N, 14 + 6 (K + K_obs))`` float32 array.
+
+    Several teams can be observed in one call (:mod:`aasoatt_env.sim.batched`):
+    their robots stacked, ``prox.idx`` holding indices into the stack, and each
+    robot's obstacles found at ``obstacle_offset[i] + k`` of the stacked obstacle
+    arrays (``prox.obstacle_gaps`` then has one column per obstacle of a team).
+    """
     n = p.shape[0]
     heading = np.exp(1j * theta).view(np.float64).reshape(n, 2)
     parts = [p - p_d, goals - p, v, heading, u, v_d, a_d]
@@ -120,13 +127,15 @@ def build_observations(
             slots[~ok] = 0.0
         parts.append(slots.reshape(n, -1))
     if k_obstacles:
-        m = obstacle_centers.shape[0]
+        gaps = prox.obstacle_gaps
+        m = gaps.shape[1]
         slots = np.zeros((n, k_obstacles, SLOT_DIM))
         if m:
-            gaps = prox.obstacle_gaps
             kk = min(k_obstacles, m)
             order = np.argsort(gaps, axis=1)[:, :kk]
             g = gaps[np.arange(n)[:, None], order]
+            if obstacle_offset is not None:
+                order = order + obstacle_offset[:, None]
             ok = g + radii[:, None] + obstacle_radii[order] <= sensing_range
             part = slots[:, :kk]
             part[..., 0:2] = obstacle_centers[order] - p[:, None, :]

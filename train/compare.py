@@ -1,0 +1,356 @@
+r"""The safe-RL comparison: trained bare vs trained behind the filter vs with a correction penalty.
+
+Usage::
+
+    python -m train.compare                      # what the README shows (see "Budget" below)
+    python -m train.compare --full               # the full set: every variant from scratch, 3 seeds, 2 scenes
+    python -m train.compare --scenes random_goals_6r --seeds 0 --episodes 5 --out-dir results/try
+
+Variants (one policy per seed):
+
+=====================  ====================================================================
+``bare``               (a) the default recipe, trained bare (``TrainConfig`` defaults)
+``filter``             (b) trained behind ``AASOATTFilter`` (correction penalty 0)
+``filter+correction``  (c) trained behind the filter with ``reward.correction`` (``--correction``)
+=====================  ====================================================================
+
+Each policy is evaluated bare and behind the filter on the same ``--episodes``
+seeded episodes (seeds 10000, 10001, ...; :func:`train.evaluate.evaluate_agent`):
+success (within 0.1 m of the goal at the end), RMSE, collisions, safe rate,
+filter intervention rate and mean correction; plus the training wall time.
+The table gives the mean over seeds and, after ``±``, the spread (half the
+range, lowest to highest).  A learning-curve figure per scene is drawn from the
+runs' ``metrics.csv``.
+
+Scenes: ``random_goals_6r`` (the default: 6 robots, 6.25 m arena) and
+``crowded_12r`` (12 robots in a 6.5 m arena: 1.9x the density).
+
+Budget: training behind the filter costs ~40-60 times more per agent-step than
+bare training while the filter is called once per team and physics step
+(README, "Throughput").  By default (b) and (c) therefore *fine-tune* each
+seed's bare policy (a) behind the filter for ``--filter-steps`` agent-steps
+(``init_from``; rollouts of ``--filter-n-steps`` 64 per slot, for more
+updates); ``--filter-start scratch`` (implied by ``--full``) trains them from
+scratch for ``--bare-steps`` like (a).  Finished runs and evaluations are
+reused (``--out-dir`` is a cache): rerunning after an interruption continues.
+
+Outputs in ``--out-dir``: ``runs/<scene>/<variant>_s<seed>/`` (training runs),
+``evals/*.json``, ``compare.md`` (the tables), ``compare.json`` (every number),
+``learning_curves_<scene>.png``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from aasoatt_env.api.factory import make_env
+from aasoatt_env.cli_support import Parser, int_option, run_guarded
+from aasoatt_env.errors import ConfigError
+from train.config import TrainConfig
+
+__all__ = ["SCENES", "VARIANTS", "main", "run_comparison"]
+
+SCENES: dict[str, dict[str, Any]] = {
+    "random_goals_6r": {"scenario": "random_goals", "num_robots": 6},
+    "crowded_12r": {"scenario": "random_goals", "num_robots": 12, "scenario_kwargs": {"arena_size": 6.5}},
+}
+"""Scene name -> :class:`TrainConfig` fields."""
+
+VARIANTS: tuple[str, ...] = ("bare", "filter", "filter+correction")
+_EVALS = ("bare", "filter")
+
+
+def _scene_config(scene: str, **fields: Any) -> TrainConfig:
+    return TrainConfig(**{**SCENES[scene], **fields})
+
+
+def _finished(run: Path) -> bool:
+    return (run / "model.zip").is_file() and (run / "train_stats.json").is_file()
+
+
+def _train(run: Path, cfg: TrainConfig, log: Any) -> dict[str, Any]:
+    """Train ``cfg`` into ``run`` unless a finished run is there; its ``train_stats.json``."""
+    from train.train import train
+
+    if not _finished(run):
+        if run.exists() and any(run.iterdir()):
+            raise ConfigError(f"{run}: an unfinished run is in the way (no train_stats.json); remove it first")
+        print(f"[compare] training {run}", file=log, flush=True)
+        train(cfg)
+    return json.loads((run / "train_stats.json").read_text())
+
+
+def _evaluate(run: Path, scene_cfg: TrainConfig, filtered: bool, episodes: int, seed: int, cache: Path,
+              log: Any) -> dict[str, Any]:
+    """Evaluate the policy of ``run`` on ``scene_cfg``'s env, bare or behind the filter (cached in ``cache``)."""
+    from agents.learned import LearnedAgent
+    from train.evaluate import evaluate_agent
+
+    if cache.is_file():
+        data = json.loads(cache.read_text())
+        if data.get("episodes") == episodes and data.get("seed") == seed:
+            return data
+    print(f"[compare] evaluating {run} {'behind the filter' if filtered else 'bare'} ({episodes} episodes)",
+          file=log, flush=True)
+    agent = LearnedAgent.load(run)
+    kw = {**scene_cfg.env_kwargs(), "terminate_on_collision": False, "reward": {}}
+    fc = scene_cfg.filter_config() if filtered else None
+    row = evaluate_agent(run.name, agent, lambda: make_env(**kw, filter=fc), episodes, seed)
+    data = {**row.as_dict(), "seed": seed}
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    cache.write_text(json.dumps(data, indent=2))
+    return data
+
+
+def run_comparison(
+    out_dir: str | Path = "results/compare",
+    *,
+    scenes: Sequence[str] = tuple(SCENES),
+    seeds: Sequence[int] = (0, 1, 2),
+    variants: Sequence[str] = VARIANTS,
+    bare_steps: int = 1_228_800,
+    filter_steps: int = 61_440,
+    filter_start: str = "bare",
+    filter_n_steps: int = 64,
+    correction: float = 1.0,
+    episodes: int = 20,
+    eval_seed: int = 10_000,
+    table_only: bool = False,
+    log: Any = None,
+) -> dict[str, Any]:
+    """Train, evaluate and tabulate (module docstring); returns what ``compare.json`` holds.
+
+    ``table_only``: train and evaluate nothing; tabulate the finished runs and
+    evaluations found in ``out_dir`` among those asked for (the others are left out).
+    """
+    log = log or sys.stdout
+    bad = [s for s in scenes if s not in SCENES]
+    if bad:
+        raise ConfigError(f"scenes: got {bad}, expected names among {list(SCENES)}")
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad:
+        raise ConfigError(f"variants: got {bad}, expected names among {list(VARIANTS)}")
+    if filter_start not in ("bare", "scratch"):
+        raise ConfigError(f"filter_start: got {filter_start!r}, expected 'bare' or 'scratch'")
+    out = Path(out_dir)
+    t_start = time.perf_counter()
+    results: dict[str, Any] = {"settings": {
+        "scenes": {s: SCENES[s] for s in scenes}, "seeds": list(seeds), "variants": list(variants),
+        "bare_steps": bare_steps, "filter_steps": filter_steps, "filter_start": filter_start,
+        "filter_n_steps": filter_n_steps,
+        "correction": correction, "episodes": episodes, "eval_seed": eval_seed}, "runs": []}
+    for scene in scenes:
+        for seed in seeds:
+            bare_run = out / "runs" / scene / f"bare_s{seed}"
+            common = dict(out_dir=str(out / "runs" / scene), seed=seed, progress_bar=True, tensorboard=False,
+                          checkpoint_freq=0)
+            need_bare = "bare" in variants or filter_start == "bare"
+            if table_only:
+                bare_stats = json.loads((bare_run / "train_stats.json").read_text()) if _finished(bare_run) else None
+            else:
+                bare_cfg = _scene_config(scene, total_timesteps=bare_steps, run_name=bare_run.name, **common)
+                bare_stats = _train(bare_run, bare_cfg, log) if need_bare else None
+            for variant in variants:
+                run = out / "runs" / scene / f"{variant.replace('+', '_')}_s{seed}"
+                caches = [out / "evals" / f"{scene}_{run.name}_{mode}.json" for mode in _EVALS]
+                if table_only and not (_finished(run) and all(c.is_file() for c in caches)):
+                    continue
+                if table_only:
+                    stats = json.loads((run / "train_stats.json").read_text())
+                    cfg_file = json.loads((run / "config.json").read_text())
+                    start = Path(cfg_file["init_from"]).name if cfg_file.get("init_from") else None
+                elif variant == "bare":
+                    stats, start = bare_stats, None
+                else:
+                    reward = {"correction": correction} if variant == "filter+correction" else {}
+                    if variant == "filter+correction" and _finished(run):  # a cached run must match the settings
+                        done = json.loads((run / "config.json").read_text())["reward"].get("correction")
+                        if done != correction:
+                            raise ConfigError(f"{run}: trained with correction {done}, asked {correction}; use "
+                                              "another --out-dir")
+                    fine = filter_start == "bare"
+                    tune = {"n_steps": filter_n_steps} if fine else {}
+                    cfg = _scene_config(scene, filter=True, reward=reward, run_name=run.name, **tune,
+                                        total_timesteps=filter_steps if fine else bare_steps,
+                                        init_from=str(bare_run) if fine else None, **common)
+                    stats = _train(run, cfg, log)
+                    start = bare_run.name if fine else None
+                assert stats is not None
+                entry: dict[str, Any] = {
+                    "scene": scene, "variant": variant, "seed": seed, "run": str(run), "init_from": start,
+                    "train_wall_s": stats["wall_time_s"], "train_agent_steps": stats["agent_steps"],
+                    "train_agent_steps_per_s": stats["agent_steps_per_s"],
+                    "total_wall_s": stats["wall_time_s"] + (bare_stats["wall_time_s"] if start and bare_stats else 0),
+                    "correction_weight": json.loads((run / "config.json").read_text())["reward"].get("correction", 0.0),
+                }
+                scene_cfg = _scene_config(scene)
+                for mode, cache in zip(_EVALS, caches):
+                    if table_only:
+                        entry[f"eval_{mode}"] = json.loads(cache.read_text())
+                    else:
+                        entry[f"eval_{mode}"] = _evaluate(run, scene_cfg, mode == "filter", episodes, eval_seed,
+                                                          cache, log)
+                results["runs"].append(entry)
+    results["wall_time_s"] = time.perf_counter() - t_start
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "compare.json").write_text(json.dumps(results, indent=2))
+    (out / "compare.md").write_text(to_markdown(results))
+    for scene in scenes:
+        _figure(results, scene, out / f"learning_curves_{scene}.png")
+    return results
+
+
+# ---------------------------------------------------------------------- tables and figures
+def _agg(values: list[float], pct: bool = False, digits: int = 3) -> str:
+    vals = [v for v in values if v is not None and v == v]
+    if not vals:
+        return "-"
+    scale = 100.0 if pct else 1.0
+    mean, half = scale * float(np.mean(vals)), scale * (max(vals) - min(vals)) / 2
+    d = 1 if pct else digits
+    text = f"{mean:.{d}f}" + ("%" if pct else "")
+    return text + (f" ± {half:.{d}f}" if len(vals) > 1 else "")
+
+
+_LABEL = {"bare": "(a) trained bare", "filter": "(b) trained behind the filter",
+          "filter+correction": "(c) behind the filter + correction penalty"}
+
+
+def to_markdown(results: dict[str, Any]) -> str:
+    """The comparison tables (one per scene), mean ± half-range over seeds."""
+    st = results["settings"]
+    lines = []
+    for scene in st["scenes"]:
+        runs = [r for r in results["runs"] if r["scene"] == scene]
+        if not runs:
+            continue
+        cfg = SCENES[scene]
+        lines += [f"### {scene}: {cfg['num_robots']} robots"
+                  + (f", arena {cfg['scenario_kwargs']['arena_size']} m" if "scenario_kwargs" in cfg else ""), "",
+                  "| policy | deployed | success | RMSE [m] | collisions, all seeds (episodes) | safe rate "
+                  "| intervention | correction [rad/s^2] | training wall [s] |",
+                  "|---|---|---:|---:|---:|---:|---:|---:|---:|"]
+        for variant in st["variants"]:
+            rs = [r for r in runs if r["variant"] == variant]
+            if not rs:
+                continue
+            for mode in _EVALS:
+                ev = [r[f"eval_{mode}"] for r in rs]
+                col = sum(int(e["collisions"]) for e in ev)
+                col_ep = sum(int(e["collision_episodes"]) for e in ev)
+                wall = _agg([r["total_wall_s"] for r in rs], digits=0)
+                lines.append(
+                    f"| {_LABEL[variant]} | {'behind the filter' if mode == 'filter' else 'bare'} "
+                    f"| {_agg([e['success_rate'] for e in ev], pct=True)} | {_agg([e['rmse'] for e in ev])} "
+                    f"| {col} ({col_ep}) | {_agg([e['safe_rate'] for e in ev], pct=True)} "
+                    f"| {_agg([e['intervention_rate'] for e in ev], pct=True)} "
+                    f"| {_agg([e['mean_correction'] for e in ev])} | {wall} |")
+        lines.append("")
+        both = ({r["seed"] for r in runs if r["variant"] == "filter+correction"}
+                & {r["seed"] for r in runs if r["variant"] == "bare"})
+        base = [r["eval_filter"]["mean_correction"] for r in runs if r["variant"] == "bare" and r["seed"] in both]
+        pen = [r["eval_filter"]["mean_correction"] for r in runs
+               if r["variant"] == "filter+correction" and r["seed"] in both]
+        if base and pen:
+            cut = 100 * (1 - np.mean(pen) / np.mean(base))
+            lines += [f"Mean filter correction behind the filter, (c) vs (a) on the same seeds: {np.mean(pen):.3f} vs "
+                      f"{np.mean(base):.3f} rad/s^2 ({f'{cut:.1f}% less' if cut >= 0 else f'{-cut:.1f}% more'}).",
+                      ""]
+        lines += [_settings_note(runs), ""]
+    return "\n".join(lines) + "\n"
+
+
+def _settings_note(runs: list[dict[str, Any]]) -> str:
+    """What was run for one scene, read from the runs themselves."""
+    parts = []
+    for variant in VARIANTS:
+        rs = [r for r in runs if r["variant"] == variant]
+        if not rs:
+            continue
+        steps = sorted({int(r["train_agent_steps"]) for r in rs})
+        text = f"{_LABEL[variant].split(' ', 1)[0]} seeds {', '.join(str(r['seed']) for r in rs)}: " + (
+            f"fine-tuned from (a) of the same seed for {'/'.join(f'{x:,}' for x in steps)} agent-steps"
+            if rs[0].get("init_from") else f"{'/'.join(f'{x:,}' for x in steps)} agent-steps")
+        weights = sorted({float(r.get("correction_weight", 0.0)) for r in rs})
+        if variant == "filter+correction":
+            text += f", correction weight {'/'.join(f'{w:g}' for w in weights)}"
+        parts.append(text)
+    ev = runs[0]["eval_filter"]
+    first = int(ev.get("seed", 10_000))
+    return ("; ".join(parts) + f". {ev['episodes']} evaluation episodes per row (seeds {first}-"
+            f"{first + int(ev['episodes']) - 1}); mean ± half the range over seeds; collisions summed over "
+            "seeds; training wall time of (b)/(c) includes the bare run they start from.")
+
+
+def _figure(results: dict[str, Any], scene: str, path: Path) -> None:
+    from train.telemetry import plot_learning_curve, read_metrics
+
+    curves: dict[str, list[list[dict[str, float]]]] = {}
+    for r in results["runs"]:
+        if r["scene"] != scene:
+            continue
+        rows = read_metrics(Path(r["run"]) / "metrics.csv")
+        if r["init_from"]:  # a fine-tuned run continues its bare run's curve
+            offset = read_metrics(Path(r["run"]).parent / r["init_from"] / "metrics.csv")[-1]["agent_steps"]
+            rows = [{**row, "agent_steps": row["agent_steps"] + offset} for row in rows]
+        curves.setdefault(_LABEL[r["variant"]], []).append(rows)
+    if curves:
+        try:
+            plot_learning_curve(curves, path, title=f"{scene}: training telemetry (rollouts of the training runs)")
+        except ImportError:  # matplotlib is optional
+            pass
+
+
+# ---------------------------------------------------------------------- command line
+def build_parser(prog: str = "python -m train.compare") -> argparse.ArgumentParser:
+    """Command-line parser."""
+    p = Parser(prog=prog, description="Safe-RL comparison: trained bare / behind the filter / with a correction "
+               "penalty, each evaluated bare and behind the filter.")
+    p.add_argument("--out-dir", default="results/compare", help="runs, evaluations and tables (reused when rerun)")
+    p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
+    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
+    p.add_argument("--bare-steps", type=int_option(1), default=1_228_800, help="agent-steps of (a)")
+    p.add_argument("--filter-steps", type=int_option(1), default=61_440,
+                   help="agent-steps of (b)/(c) fine-tuning behind the filter (with --filter-start bare)")
+    p.add_argument("--filter-n-steps", type=int_option(1), default=64,
+                   help="rollout length per slot of the fine-tuning runs (more updates for few agent-steps)")
+    p.add_argument("--filter-start", choices=("bare", "scratch"), default="bare",
+                   help="(b)/(c) fine-tune each seed's (a) (bare, default) or train from scratch for --bare-steps")
+    p.add_argument("--correction", type=float, default=1.0, help="reward.correction of (c)")
+    p.add_argument("--episodes", type=int_option(1), default=20, help="evaluation episodes per policy and mode")
+    p.add_argument("--table-only", action="store_true",
+                   help="train and evaluate nothing: tabulate the finished runs and evaluations in --out-dir")
+    p.add_argument("--full", action="store_true",
+                   help="the full set: every variant from scratch (--filter-start scratch), 3 seeds, both scenes")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Command-line entry point."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return run_guarded("train.compare", argv, _main)
+
+
+def _main(argv: list[str]) -> int:
+    args = build_parser().parse_args(argv)
+    start = "scratch" if args.full else args.filter_start
+    results = run_comparison(args.out_dir, scenes=args.scenes, seeds=args.seeds, variants=args.variants,
+                             bare_steps=args.bare_steps, filter_steps=args.filter_steps, filter_start=start,
+                             filter_n_steps=args.filter_n_steps, table_only=args.table_only,
+                             correction=args.correction, episodes=args.episodes)
+    print((Path(args.out_dir) / "compare.md").read_text())
+    print(f"wall time {results['wall_time_s']:.0f} s (runs and evaluations already in {args.out_dir} are reused)")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
