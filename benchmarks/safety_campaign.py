@@ -142,8 +142,37 @@ def _progress(rec: dict) -> None:
           f"backup {rec['backup_steps']:4d} unsafe {rec['unsafe_steps']} {rec['wall_s']:.1f}s", flush=True)
 
 
+_PAPER_HEADER = ("| scene | N | layer | closest gap [m] | worst final error [m] | robots home | RMSE [m] | "
+                 "backup steps | wall [s] |\n|---|---:|---|---:|---:|---:|---:|---:|---:|")
+
+
+def _paper_row(rec: dict) -> str:
+    return (f"| {rec['scene']} | {rec['n']} | {'on' if rec['layer'] else 'off'} | {rec['min_gap']:+.4f} | "
+            f"{rec['final_max']:.4f} | {rec['home']}/{rec['n']} | {rec['rmse']:.4f} | {rec['backup_steps']} | "
+            f"{rec['wall_s']:.0f} |")
+
+
+def _paper_summary(path: Path, mode: str) -> None:
+    """The liveness table of a ``paper`` results file (the last record of each scene, N and layer)."""
+    last = {}
+    for line in path.read_text().splitlines():
+        if line.strip():
+            rec = json.loads(line)
+            if rec.get("mode", "centralized") == mode:
+                last[(rec["scene"], rec["n"], rec["layer"])] = rec
+    print(f"\nmode={mode}: the paper's scenes, tracking controller, +3 s settle\n")
+    print(_PAPER_HEADER)
+    for rec in last.values():
+        print(_paper_row(rec))
+
+
 def summary(args: argparse.Namespace) -> None:
-    recs = [r for r in _done(Path(args.out)).values()
+    path = Path(args.out)
+    first = next((ln for ln in path.read_text().splitlines() if ln.strip()), "") if path.is_file() else ""
+    if first and "scene" in json.loads(first):
+        _paper_summary(path, args.mode)
+        return
+    recs = [r for r in _done(path).values()
             if r.get("mode", "centralized") == args.mode and r.get("backup", True) != args.layer_off]
     if not recs:
         print("no results yet")
@@ -193,9 +222,7 @@ def paper(args: argparse.Namespace) -> None:
              ("Fig. 5 obstacles", dict(scenario="circle_obstacles", num_robots=20))]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    print("| scene | N | layer | closest gap [m] | worst final error [m] | robots home | RMSE [m] | backup steps | "
-          "wall [s] |")
-    print("|---|---:|---|---:|---:|---:|---:|---:|---:|")
+    print(_PAPER_HEADER)
     with out.open("a") as fh:
         for label, kw in runs:
             for layer in (True, False) if args.mode == "centralized" else (True,):
@@ -212,9 +239,7 @@ def paper(args: argparse.Namespace) -> None:
                            wall_s=wall)
                 fh.write(json.dumps(rec) + "\n")
                 fh.flush()
-                print(f"| {label} | {rec['n']} | {'on' if layer else 'off'} | {gap:+.4f} | {rec['final_max']:.4f} | "
-                      f"{rec['home']}/{rec['n']} | {rec['rmse']:.4f} | {rec['backup_steps']} | {wall:.0f} |",
-                      flush=True)
+                print(_paper_row(rec), flush=True)
 
 
 def main() -> None:
