@@ -168,6 +168,7 @@ def result_row(exp: str, res: RunResult, ref: dict[str, Any] | None, metrics: tu
         "n_deadlocked",
         "triggered_fraction",
         "relaxed_fraction",
+        "unsafe_fraction",
         "failed_fraction",
         "slack_max",
         "solve_time_median",

@@ -71,6 +71,7 @@ def compare_ca(s: Settings) -> Report:
                 *metric_cells(m, ref, metrics),
                 fmt(m["min_robot_gap_full"]),
                 fmt(m["relaxed_fraction"], 3),
+                fmt(m["unsafe_fraction"], 3),
             ]
         )
     common_settings(rep, s)
@@ -89,7 +90,7 @@ def compare_ca(s: Settings) -> Report:
     )
     rep.section(
         "## Results (paper | ours | relative difference)\n\n"
-        + md_table(["method", "barrier", *metric_headers(metrics), "min gap [m]", "relaxed steps"], rows)
+        + md_table(["method", "barrier", *metric_headers(metrics), "min gap [m]", "relaxed steps", "unsafe steps"], rows)
     )
     lines = []
     for method in ("eqn.n4", "ours"):

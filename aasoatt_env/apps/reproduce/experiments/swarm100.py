@@ -56,6 +56,7 @@ def swarm100(s: Settings) -> Report:
                 m["n_deadlocked_end"],
                 fmt(m["min_robot_gap_full"]),
                 fmt(m["relaxed_fraction"], 3),
+                fmt(m["unsafe_fraction"], 3),
             ]
         )
     common_settings(rep, s)
@@ -84,6 +85,7 @@ def swarm100(s: Settings) -> Report:
                 "deadlocked",
                 "min gap",
                 "relaxed steps",
+                "unsafe steps",
             ],
             rows,
         )

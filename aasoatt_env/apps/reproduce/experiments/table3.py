@@ -45,13 +45,14 @@ def table3(s: Settings) -> Report:
         rep.add_row(result_row("table3", r, ref, metrics))
         m = r.metrics
         rows.append(
-            [n, k, *metric_cells(m, ref, metrics), fmt(m["min_robot_gap_full"]), fmt(m["relaxed_fraction"], 3)]
+            [n, k, *metric_cells(m, ref, metrics), fmt(m["min_robot_gap_full"]), fmt(m["relaxed_fraction"], 3),
+             fmt(m["unsafe_fraction"], 3)]
         )
     common_settings(rep, s)
     rep.setting(f"N = {', '.join(map(str, ns))}; radius {radius:g} m; {duration:g} s; barrier: ours (aasoatt)")
     rep.section(
         "## Results (paper | ours | relative difference)\n\n"
-        + md_table(["N", "strategy", *metric_headers(metrics), "min gap [m]", "relaxed steps"], rows)
+        + md_table(["N", "strategy", *metric_headers(metrics), "min gap [m]", "relaxed steps", "unsafe steps"], rows)
     )
     lines = []
     for n in ns:
