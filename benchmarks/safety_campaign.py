@@ -93,6 +93,11 @@ def _key_id(k: dict) -> str:
     return f"{k['adversary']}/N={k['n']}/{k['preset']}/obst={int(k['obstacles'])}/seed={k['seed']}{mode}"
 
 
+def _key_steps(k: dict) -> str:
+    """The record's identity including its length (a longer run of the same episode is another record)."""
+    return f"{_key_id(k)}/steps={k['steps']}"
+
+
 def _done(path: Path) -> dict[str, dict]:
     if not path.is_file():
         return {}
@@ -100,8 +105,18 @@ def _done(path: Path) -> dict[str, dict]:
     for line in path.read_text().splitlines():
         if line.strip():
             rec = json.loads(line)
-            out[_key_id(rec)] = rec
+            out[_key_steps(rec)] = rec
     return out
+
+
+def _longest(recs: list[dict]) -> list[dict]:
+    """One record per episode (adversary, team, preset, obstacles, seed, mode): the longest run."""
+    best: dict[str, dict] = {}
+    for r in recs:
+        k = _key_id(r)
+        if k not in best or r["steps"] > best[k]["steps"]:
+            best[k] = r
+    return list(best.values())
 
 
 def adversarial(args: argparse.Namespace) -> None:
@@ -113,7 +128,7 @@ def adversarial(args: argparse.Namespace) -> None:
     keys = [dict(adversary=a, n=n, preset=p, obstacles=o, seed=s, steps=args.steps, mode=args.mode,
                  backup=not args.layer_off)
             for s, a, n, p, o in itertools.product(range(args.seeds), ADVERSARIES, args.teams, PRESETS, (False, True))]
-    todo = [k for k in keys if _key_id(k) not in done]
+    todo = [k for k in keys if _key_steps(k) not in done]
     print(f"{len(keys)} episodes, {len(keys) - len(todo)} already in {out}, {len(todo)} to run", flush=True)
     t0 = time.perf_counter()
     with out.open("a") as fh:
@@ -172,8 +187,8 @@ def summary(args: argparse.Namespace) -> None:
     if first and "scene" in json.loads(first):
         _paper_summary(path, args.mode)
         return
-    recs = [r for r in _done(path).values()
-            if r.get("mode", "centralized") == args.mode and r.get("backup", True) != args.layer_off]
+    recs = _longest([r for r in _done(path).values()
+                     if r.get("mode", "centralized") == args.mode and r.get("backup", True) != args.layer_off])
     if not recs:
         print("no results yet")
         return
