@@ -73,22 +73,63 @@ def least_distance_form(prob) -> LeastDistanceForm | None:
 _UNSET = object()
 
 
-def _least_distance_form(prob) -> LeastDistanceForm | None:
-    n = prob.n
-    nb = n // 2
+def _factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(L^{-T} blocks (N, 2, 2), gt = L^{-1} g)`` of ``prob`` (cached on it); ``None`` if a block is not PD."""
+    cached = prob.__dict__.get("_ldf_factor", _UNSET)
+    if cached is not _UNSET:
+        return cached
+    nb = prob.n // 2
     try:
         L = np.linalg.cholesky(prob.H_blocks)
     except np.linalg.LinAlgError:
+        out = None
+    else:
+        Linv = np.linalg.inv(L)  # (nb, 2, 2)
+        out = (np.transpose(Linv, (0, 2, 1)), np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel())
+    prob.__dict__["_ldf_factor"] = out
+    return out
+
+
+def _least_distance_form(prob) -> LeastDistanceForm | None:
+    n = prob.n
+    nb = n // 2
+    factor = _factor(prob)
+    if factor is None:
         return None
-    Linv = np.linalg.inv(L)  # (nb, 2, 2)
-    LinvT = np.transpose(Linv, (0, 2, 1))
-    gt = np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel()
+    LinvT, gt = factor
     # x = T y with T = blockdiag(L^-T): rows C x <= u become (C T) y <= u; bounds +-e_k' T y
     T = sp.csr_matrix((LinvT.reshape(-1), np.repeat(np.arange(n).reshape(nb, 2), 2, axis=0).reshape(-1),
                        np.arange(0, 2 * n + 1, 2)), shape=(n, n))
     Ct = (prob.C @ T).tocsr() if prob.m else sp.csr_matrix((0, n))
     Mt = sp.vstack((Ct, T, -T), format="csr")
     return LeastDistanceForm(LinvT, gt, Mt, np.concatenate((prob.u, prob.ub, -prob.lb)))
+
+
+def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
+    """``LeastDistanceForm.Mt`` of ``prob`` as a dense array, built without scipy.sparse.
+
+    The same numbers as ``least_distance_form(prob).Mt.toarray()``: an entry of
+    ``C T`` is ``C[r, 2b] T[2b, c] + C[r, 2b+1] T[2b+1, c]`` (two products, one
+    addition, as the sparse product forms it), and every zero is ``+0.0`` (the
+    sparse product drops exact zeros and ``toarray`` adds the stored entries to
+    zeros).
+    """
+    n, m = prob.n, prob.m
+    nb = n // 2
+    Md = np.zeros((m + 2 * n, n))
+    if m:
+        C = prob.C
+        Cd = np.zeros((m, nb, 2))
+        rows = np.repeat(np.arange(m), np.diff(C.indptr))
+        Cd.reshape(m, n)[rows, C.indices] = C.data
+        Ct = Cd[:, :, 0, None] * LinvT[None, :, 0, :] + Cd[:, :, 1, None] * LinvT[None, :, 1, :]
+        Ct += 0.0  # -0.0 -> +0.0: the sparse product drops exact zeros
+        Md[:m] = Ct.reshape(m, n)
+    k = np.arange(nb)
+    # toarray() adds the stored entries to zeros, so its zeros are +0.0: the same here
+    Md[m:m + n].reshape(nb, 2, nb, 2)[k, :, k, :] = LinvT + 0.0
+    Md[m + n:].reshape(nb, 2, nb, 2)[k, :, k, :] = -LinvT + 0.0
+    return Md
 
 
 def _cholesky_solve(cf: np.ndarray, v: np.ndarray) -> np.ndarray:
@@ -100,13 +141,20 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
     n, m = prob.n, prob.m
     if n == 0 or n % 2:
         return None
-    form = least_distance_form(prob)
-    if form is None:
-        return None
-    gt, Mt, b = form.gt, form.Mt, form.b
-    mt = m + 2 * n
     dense = n <= DENSE_MAX_VARS
-    Md = Mt.toarray() if dense else None
+    if dense:  # the dense rows straight from C (no sparse products for these small problems)
+        factor = _factor(prob)
+        if factor is None:
+            return None
+        LinvT, gt = factor
+        Md, Mt, b = _dense_rows(prob, LinvT), None, np.concatenate((prob.u, prob.ub, -prob.lb))
+    else:
+        form = least_distance_form(prob)
+        if form is None:
+            return None
+        LinvT, gt, Mt, b = form.LinvT, form.gt, form.Mt, form.b
+        Md = None
+    mt = m + 2 * n
     # initial working set
     if z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
         return None
@@ -159,7 +207,7 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
         lam[idx] = lw
         r = ((Md @ y) if dense else (Mt @ y)) - b
         if r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL:
-            return form.to_x(y), np.maximum(lam[:m], 0.0), it
+            return np.einsum("nij,nj->ni", LinvT, y.reshape(-1, 2)).ravel(), np.maximum(lam[:m], 0.0), it
         Wn = (lam + r) > 0
         if np.array_equal(Wn, W):
             return None
