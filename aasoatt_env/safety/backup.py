@@ -442,15 +442,26 @@ def gatekeeper(
     loc[M] = np.arange(M.size)
     steps = [b0.steps[M] + 1] + [f[3].steps[M] + 2 for f in firsts]
     L = max(max(int(x.max(initial=0)) for x in steps), 2)
-    P = np.empty((len(levels), M.size, L), dtype=np.complex128)
-    Dv = np.empty((len(levels), M.size, L - 1))
     need = np.empty((len(levels), M.size), dtype=np.int64)
-    for k, (_, p1, d1, b1) in enumerate(firsts):
-        P[k, :, 0], Dv[k, :, 0] = p0[M], d1[M]
-        P[k, :, 1:], Dv[k, :, 1:] = _brake_samples(p1[M], _take(b1, M), dt, L - 1)
+    for k, (_, _, _, b1) in enumerate(firsts):
         need[k] = b1.steps[M] + 2
-    P[last], Dv[last] = _brake_samples(p0[M], _take(b0, M), dt, L)
     need[last] = b0.steps[M] + 1
+    paths: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def level_paths(k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Samples ``(M, L)`` and sagittas ``(M, L-1)`` of level ``k`` for all of ``M``, made when first needed."""
+        if k not in paths:
+            if k < last:
+                _, p1, d1, b1 = firsts[k]
+                Pk = np.empty((M.size, L), dtype=np.complex128)
+                Dk = np.empty((M.size, L - 1))
+                Pk[:, 0], Dk[:, 0] = p0[M], d1[M]
+                Pk[:, 1:], Dk[:, 1:] = _brake_samples(p1[M], _take(b1, M), dt, L - 1)
+                paths[k] = (Pk, Dk)
+            else:
+                paths[k] = _brake_samples(p0[M], _take(b0, M), dt, L)
+        return paths[k]
+
     li, lj, lo_ = loc[i], loc[j], loc[oi]
     rows_m = np.arange(M.size)
 
@@ -462,7 +473,17 @@ def gatekeeper(
     while True:
         rounds += 1
         lm = lev[M]
-        cur, curd, cneed = P[lm, rows_m], Dv[lm, rows_m], need[lm, rows_m]
+        cneed = need[lm, rows_m]
+        used = np.unique(lm)
+        if used.size == 1:
+            cur, curd = level_paths(int(used[0]))
+        else:
+            cur = np.empty((M.size, L), dtype=np.complex128)
+            curd = np.empty((M.size, L - 1))
+            for k in used:
+                sel = lm == k
+                Pk, Dk = level_paths(int(k))
+                cur[sel], curd[sel] = Pk[sel], Dk[sel]
         idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
         if idx.size:
             marg[idx] = _bucketed(cur, curd, cneed, li[idx], lj[idx], ds[idx])
