@@ -119,9 +119,15 @@ def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
     Md = np.zeros((m + 2 * n, n))
     if m:
         C = prob.C
+        if getattr(C, "format", None) != "csr":
+            return _least_distance_form(prob).Mt.toarray()
         Cd = np.zeros((m, nb, 2))
-        rows = np.repeat(np.arange(m), np.diff(C.indptr))
-        Cd.reshape(m, n)[rows, C.indices] = C.data
+        flat = np.repeat(np.arange(m) * n, np.diff(C.indptr)) + C.indices
+        hit = np.zeros(m * n, dtype=bool)
+        hit[flat] = True
+        if np.count_nonzero(hit) != flat.shape[0]:  # duplicate entries: the sparse product adds their products
+            return _least_distance_form(prob).Mt.toarray()
+        Cd.reshape(-1)[flat] = C.data
         Ct = Cd[:, :, 0, None] * LinvT[None, :, 0, :] + Cd[:, :, 1, None] * LinvT[None, :, 1, :]
         Ct += 0.0  # -0.0 -> +0.0: the sparse product drops exact zeros
         Md[:m] = Ct.reshape(m, n)
@@ -132,8 +138,28 @@ def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
     return Md
 
 
+try:  # the LAPACK gufunc behind numpy.linalg.solve for one right-hand side
+    from numpy.linalg import _umath_linalg
+
+    _SOLVE1 = _umath_linalg.solve1
+except (ImportError, AttributeError):  # pragma: no cover - other numpy layouts: numpy.linalg.solve
+    _SOLVE1 = None
+
+
+def _raise_singular(err: str, flag: int) -> None:
+    raise np.linalg.LinAlgError("Singular matrix")
+
+
 def _cholesky_solve(cf: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.linalg.solve(cf.T, np.linalg.solve(cf, v))
+    """``(cf cf^T)^{-1} v`` as ``numpy.linalg.solve`` twice gives it.
+
+    The gufunc behind ``numpy.linalg.solve`` is called directly: the same LAPACK
+    calls and error handling, without the per-call argument checks.
+    """
+    if _SOLVE1 is None or v.ndim != 1 or cf.dtype != np.float64 or v.dtype != np.float64:
+        return np.linalg.solve(cf.T, np.linalg.solve(cf, v))
+    with np.errstate(call=_raise_singular, invalid="call", over="ignore", divide="ignore", under="ignore"):
+        return _SOLVE1(cf.T, _SOLVE1(cf, v, signature="dd->d"), signature="dd->d")
 
 
 def solve_active_set(prob, x0, z0, max_iter: int = 6):
