@@ -121,16 +121,19 @@ def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
         C = prob.C
         if getattr(C, "format", None) != "csr":
             return _least_distance_form(prob).Mt.toarray()
-        Cd = np.zeros((m, nb, 2))
         flat = np.repeat(np.arange(m) * n, np.diff(C.indptr)) + C.indices
         hit = np.zeros(m * n, dtype=bool)
         hit[flat] = True
         if np.count_nonzero(hit) != flat.shape[0]:  # duplicate entries: the sparse product adds their products
             return _least_distance_form(prob).Mt.toarray()
-        Cd.reshape(-1)[flat] = C.data
-        Ct = Cd[:, :, 0, None] * LinvT[None, :, 0, :] + Cd[:, :, 1, None] * LinvT[None, :, 1, :]
+        Cd = np.zeros(m * n)
+        Cd[flat] = C.data
+        rb = np.unique(flat // 2)  # (row, block) pairs with an entry; the other blocks of C T are zero
+        v = Cd.reshape(-1, 2)[rb]
+        b = rb % nb
+        Ct = v[:, 0, None] * LinvT[b, 0, :] + v[:, 1, None] * LinvT[b, 1, :]
         Ct += 0.0  # -0.0 -> +0.0: the sparse product drops exact zeros
-        Md[:m] = Ct.reshape(m, n)
+        Md[:m].reshape(-1, 2)[rb] = Ct
     k = np.arange(nb)
     # toarray() adds the stored entries to zeros, so its zeros are +0.0: the same here
     Md[m:m + n].reshape(nb, 2, nb, 2)[k, :, k, :] = LinvT + 0.0
