@@ -69,9 +69,17 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------- helpers
+_EPS = float(np.finfo(np.float64).eps)
+
+
 def _E(x: np.ndarray) -> np.ndarray:
-    """``(e^{ix} - 1) / (ix) = e^{ix/2} sinc(x/2)``, stable at 0."""
-    return np.exp(0.5j * x) * np.sinc(x / (2.0 * np.pi))
+    """``(e^{ix} - 1) / (ix) = e^{ix/2} sinc(x/2)``, stable at 0.
+
+    ``numpy.sinc(x / (2 pi))`` written out (the same operations, for float arrays).
+    """
+    s = np.pi * (x / (2.0 * np.pi))
+    s = np.where(s, s, _EPS)
+    return np.exp(0.5j * x) * (np.sin(s) / s)
 
 
 def _point(team: Team, pose: np.ndarray) -> np.ndarray:
@@ -242,12 +250,25 @@ def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray 
     q = pi - pj
     if q.shape[1] == 1:
         return np.abs(q[:, 0]) - ds
+    # the operations of ``t = clip(-dot / where(dd > 0, dd, 1), 0, 1)``, ``|q0 + t dq| - di - dj``, in place
     q0 = q[:, :-1]
     dq = q[:, 1:] - q0
-    dd = dq.real * dq.real + dq.imag * dq.imag
-    dot = q0.real * dq.real + q0.imag * dq.imag
-    t = np.clip(-dot / np.where(dd > 0.0, dd, 1.0), 0.0, 1.0)
-    dist = np.abs(q0 + t * dq) - di - dj
+    dr, dm = dq.real, dq.imag
+    dd = dr * dr
+    tmp = dm * dm
+    dd += tmp
+    t = q0.real * dr
+    np.multiply(q0.imag, dm, out=tmp)
+    t += tmp
+    np.negative(t, out=t)
+    np.copyto(dd, 1.0, where=~(dd > 0.0))
+    t /= dd
+    np.clip(t, 0.0, 1.0, out=t)
+    np.multiply(t, dq, out=dq)
+    dq += q0
+    dist = np.abs(dq)
+    dist -= di
+    dist -= dj
     return dist.min(axis=1) - ds
 
 
