@@ -72,14 +72,16 @@ __all__ = [
 _EPS = float(np.finfo(np.float64).eps)
 
 
-def _E(x: np.ndarray) -> np.ndarray:
-    """``(e^{ix} - 1) / (ix) = e^{ix/2} sinc(x/2)``, stable at 0.
+def _sinc(x: np.ndarray) -> np.ndarray:
+    """``numpy.sinc`` of a float64 array, written out (the same operations, without its dtype dispatch)."""
+    y = np.pi * x
+    y = np.where(y, y, _EPS)
+    return np.sin(y) / y
 
-    ``numpy.sinc(x / (2 pi))`` written out (the same operations, for float arrays).
-    """
-    s = np.pi * (x / (2.0 * np.pi))
-    s = np.where(s, s, _EPS)
-    return np.exp(0.5j * x) * (np.sin(s) / s)
+
+def _E(x: np.ndarray) -> np.ndarray:
+    """``(e^{ix} - 1) / (ix) = e^{ix/2} sinc(x/2)``, stable at 0."""
+    return np.exp(0.5j * x) * _sinc(x / (2.0 * np.pi))
 
 
 def _point(team: Team, pose: np.ndarray) -> np.ndarray:
@@ -159,10 +161,12 @@ class _Brake(NamedTuple):
     reach: np.ndarray  # envelope of the continuous braking arc + the largest sagitta
 
 
-def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float) -> _Brake:
-    """Closed-form parameters of braking from headings ``theta`` and wheel speeds ``u``."""
+def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float,
+           T: np.ndarray | None = None) -> _Brake:
+    """Closed-form parameters of braking from headings ``theta`` and wheel speeds ``u`` (``T``: their brake_time)."""
     pdot, w = _velocity(team, theta, u)
-    T = brake_time(team, u, brake_fraction)
+    if T is None:
+        T = brake_time(team, u, brake_fraction)
     moving = T > 0
     ratio = np.where(moving, T / dt, 0.0)
     rate = np.where(moving, 1.0 / np.where(moving, ratio, 1.0), 1.0)
@@ -173,7 +177,7 @@ def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fracti
     aw = np.abs(w)
     past_half = aw * tau_end > np.pi
     tau_env = np.where(past_half, np.pi / np.where(past_half, aw, 1.0), tau_end)
-    envelope = speed * tau_env * np.sinc(aw * tau_env / (2.0 * np.pi))
+    envelope = speed * tau_env * _sinc(aw * tau_env / (2.0 * np.pi))
     return _Brake(pdot * moving, w, rate, steps, envelope + (dt * dt / 8.0) * speed * aw)
 
 
@@ -417,11 +421,12 @@ def gatekeeper(
     p0 = _point(team, pose)
     levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
     last = len(levels) - 1
-    du_b = braking_du(team, u, dt, brake_fraction)
+    T0 = brake_time(team, u, brake_fraction)
+    du_b = -u / np.maximum(T0, dt)[:, None]  # braking_du
 
     # closed-form parameters per level (cheap, O(N)): a step blending the candidate and the backup,
     # du_b + a (du_c - du_b), then the backup from there; level `last` is the backup from now
-    b0 = _brake(team, theta, u, dt, brake_fraction)
+    b0 = _brake(team, theta, u, dt, brake_fraction, T0)
     firsts = []
     reach = np.empty((len(levels), n))
     for k, a in enumerate(levels[:-1]):
