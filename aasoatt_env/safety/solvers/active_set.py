@@ -203,8 +203,9 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
                 Mw = Md[idx]
                 S = Mw @ Mw.T
                 rhs = -(Mw @ gt) - b[idx]
-                delta = 1e-9 * max(float(np.max(np.diag(S))), 1e-300)
-                Sr = S + delta * np.eye(k)
+                delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
+                Sr = S + 0.0  # S + delta * I without the identity: off the diagonal S + 0.0, on it S + delta
+                Sr.flat[:: k + 1] += delta
                 try:
                     if k <= DENSE_MAX_ROWS:
                         cf = np.linalg.cholesky(Sr)
