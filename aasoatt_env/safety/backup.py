@@ -69,9 +69,19 @@ __all__ = [
 
 
 # --------------------------------------------------------------------------- helpers
+_EPS = float(np.finfo(np.float64).eps)
+
+
+def _sinc(x: np.ndarray) -> np.ndarray:
+    """``numpy.sinc`` of a float64 array, written out (the same operations, without its dtype dispatch)."""
+    y = np.pi * x
+    y = np.where(y, y, _EPS)
+    return np.sin(y) / y
+
+
 def _E(x: np.ndarray) -> np.ndarray:
     """``(e^{ix} - 1) / (ix) = e^{ix/2} sinc(x/2)``, stable at 0."""
-    return np.exp(0.5j * x) * np.sinc(x / (2.0 * np.pi))
+    return np.exp(0.5j * x) * _sinc(x / (2.0 * np.pi))
 
 
 def _point(team: Team, pose: np.ndarray) -> np.ndarray:
@@ -151,10 +161,12 @@ class _Brake(NamedTuple):
     reach: np.ndarray  # envelope of the continuous braking arc + the largest sagitta
 
 
-def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float) -> _Brake:
-    """Closed-form parameters of braking from headings ``theta`` and wheel speeds ``u``."""
+def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float,
+           T: np.ndarray | None = None) -> _Brake:
+    """Closed-form parameters of braking from headings ``theta`` and wheel speeds ``u`` (``T``: their brake_time)."""
     pdot, w = _velocity(team, theta, u)
-    T = brake_time(team, u, brake_fraction)
+    if T is None:
+        T = brake_time(team, u, brake_fraction)
     moving = T > 0
     ratio = np.where(moving, T / dt, 0.0)
     rate = np.where(moving, 1.0 / np.where(moving, ratio, 1.0), 1.0)
@@ -165,7 +177,7 @@ def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fracti
     aw = np.abs(w)
     past_half = aw * tau_end > np.pi
     tau_env = np.where(past_half, np.pi / np.where(past_half, aw, 1.0), tau_end)
-    envelope = speed * tau_env * np.sinc(aw * tau_env / (2.0 * np.pi))
+    envelope = speed * tau_env * _sinc(aw * tau_env / (2.0 * np.pi))
     return _Brake(pdot * moving, w, rate, steps, envelope + (dt * dt / 8.0) * speed * aw)
 
 
@@ -242,12 +254,25 @@ def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray 
     q = pi - pj
     if q.shape[1] == 1:
         return np.abs(q[:, 0]) - ds
+    # the operations of ``t = clip(-dot / where(dd > 0, dd, 1), 0, 1)``, ``|q0 + t dq| - di - dj``, in place
     q0 = q[:, :-1]
     dq = q[:, 1:] - q0
-    dd = dq.real * dq.real + dq.imag * dq.imag
-    dot = q0.real * dq.real + q0.imag * dq.imag
-    t = np.clip(-dot / np.where(dd > 0.0, dd, 1.0), 0.0, 1.0)
-    dist = np.abs(q0 + t * dq) - di - dj
+    dr, dm = dq.real, dq.imag
+    dd = dr * dr
+    tmp = dm * dm
+    dd += tmp
+    t = q0.real * dr
+    np.multiply(q0.imag, dm, out=tmp)
+    t += tmp
+    np.negative(t, out=t)
+    np.copyto(dd, 1.0, where=~(dd > 0.0))
+    t /= dd
+    np.clip(t, 0.0, 1.0, out=t)
+    np.multiply(t, dq, out=dq)
+    dq += q0
+    dist = np.abs(dq)
+    dist -= di
+    dist -= dj
     return dist.min(axis=1) - ds
 
 
@@ -396,11 +421,12 @@ def gatekeeper(
     p0 = _point(team, pose)
     levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
     last = len(levels) - 1
-    du_b = braking_du(team, u, dt, brake_fraction)
+    T0 = brake_time(team, u, brake_fraction)
+    du_b = -u / np.maximum(T0, dt)[:, None]  # braking_du
 
     # closed-form parameters per level (cheap, O(N)): a step blending the candidate and the backup,
     # du_b + a (du_c - du_b), then the backup from there; level `last` is the backup from now
-    b0 = _brake(team, theta, u, dt, brake_fraction)
+    b0 = _brake(team, theta, u, dt, brake_fraction, T0)
     firsts = []
     reach = np.empty((len(levels), n))
     for k, a in enumerate(levels[:-1]):
@@ -442,15 +468,26 @@ def gatekeeper(
     loc[M] = np.arange(M.size)
     steps = [b0.steps[M] + 1] + [f[3].steps[M] + 2 for f in firsts]
     L = max(max(int(x.max(initial=0)) for x in steps), 2)
-    P = np.empty((len(levels), M.size, L), dtype=np.complex128)
-    Dv = np.empty((len(levels), M.size, L - 1))
     need = np.empty((len(levels), M.size), dtype=np.int64)
-    for k, (_, p1, d1, b1) in enumerate(firsts):
-        P[k, :, 0], Dv[k, :, 0] = p0[M], d1[M]
-        P[k, :, 1:], Dv[k, :, 1:] = _brake_samples(p1[M], _take(b1, M), dt, L - 1)
+    for k, (_, _, _, b1) in enumerate(firsts):
         need[k] = b1.steps[M] + 2
-    P[last], Dv[last] = _brake_samples(p0[M], _take(b0, M), dt, L)
     need[last] = b0.steps[M] + 1
+    paths: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def level_paths(k: int) -> tuple[np.ndarray, np.ndarray]:
+        """Samples ``(M, L)`` and sagittas ``(M, L-1)`` of level ``k`` for all of ``M``, made when first needed."""
+        if k not in paths:
+            if k < last:
+                _, p1, d1, b1 = firsts[k]
+                Pk = np.empty((M.size, L), dtype=np.complex128)
+                Dk = np.empty((M.size, L - 1))
+                Pk[:, 0], Dk[:, 0] = p0[M], d1[M]
+                Pk[:, 1:], Dk[:, 1:] = _brake_samples(p1[M], _take(b1, M), dt, L - 1)
+                paths[k] = (Pk, Dk)
+            else:
+                paths[k] = _brake_samples(p0[M], _take(b0, M), dt, L)
+        return paths[k]
+
     li, lj, lo_ = loc[i], loc[j], loc[oi]
     rows_m = np.arange(M.size)
 
@@ -462,7 +499,17 @@ def gatekeeper(
     while True:
         rounds += 1
         lm = lev[M]
-        cur, curd, cneed = P[lm, rows_m], Dv[lm, rows_m], need[lm, rows_m]
+        cneed = need[lm, rows_m]
+        used = np.unique(lm)
+        if used.size == 1:
+            cur, curd = level_paths(int(used[0]))
+        else:
+            cur = np.empty((M.size, L), dtype=np.complex128)
+            curd = np.empty((M.size, L - 1))
+            for k in used:
+                sel = lm == k
+                Pk, Dk = level_paths(int(k))
+                cur[sel], curd[sel] = Pk[sel], Dk[sel]
         idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
         if idx.size:
             marg[idx] = _bucketed(cur, curd, cneed, li[idx], lj[idx], ds[idx])

@@ -126,8 +126,13 @@ def build_problem(
     m = rhs.shape[0]
     Gi_s = Gi * s[ri]
     obs = rj < 0
-    rjc = np.where(obs, 0, rj)
-    Gj_s = np.where(obs[:, None], 0.0, Gj * s[rjc])
+    any_obs = bool(obs.any())
+    if any_obs:
+        rjc = np.where(obs, 0, rj)
+        Gj_s = np.where(obs[:, None], 0.0, Gj * s[rjc])
+    else:  # the same arrays without the masks
+        rjc = rj
+        Gj_s = Gj * s[rjc]
     nu = np.sqrt(np.sum(Gi_s**2, axis=1) + np.sum(Gj_s**2, axis=1))
     nu = np.where(nu > 1e-12, nu, 1.0)
     Gi_s /= nu[:, None]
@@ -135,11 +140,18 @@ def build_problem(
     # CSR directly: 4 entries per robot-robot row, 2 per obstacle row
     cols = np.stack((2 * ri, 2 * ri + 1, 2 * rjc, 2 * rjc + 1), axis=1)
     data = np.concatenate((Gi_s, Gj_s), axis=1)
-    keep = np.ones((m, 4), dtype=bool)
-    keep[:, 2:] = ~obs[:, None]
-    indptr = np.zeros(m + 1, dtype=np.int64)
-    np.cumsum(np.where(obs, 2, 4), out=indptr[1:])
-    C = sp.csr_matrix((data[keep], cols[keep], indptr), shape=(m, 2 * n_rob))
+    # index arrays already in the dtype scipy would convert them to (int32 while everything fits): no conversion
+    itype = np.int32 if max(4 * m, 2 * n_rob) < np.iinfo(np.int32).max else np.int64
+    if any_obs:
+        keep = np.ones((m, 4), dtype=bool)
+        keep[:, 2:] = ~obs[:, None]
+        indptr = np.zeros(m + 1, dtype=np.int64)
+        np.cumsum(np.where(obs, 2, 4), out=indptr[1:])
+        data, cols = data[keep], cols[keep]
+    else:
+        indptr = np.arange(0, 4 * m + 1, 4)
+        data, cols = data.ravel(), cols.ravel()
+    C = sp.csr_matrix((data, cols.astype(itype), indptr.astype(itype)), shape=(m, 2 * n_rob))
     diag = bool(np.all(np.abs(H[:, 0, 1]) <= 1e-12 * np.maximum(np.abs(H[:, 0, 0]), 1e-300)))
     return QPProblem(
         H_blocks=H,

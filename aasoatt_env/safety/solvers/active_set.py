@@ -73,16 +73,30 @@ def least_distance_form(prob) -> LeastDistanceForm | None:
 _UNSET = object()
 
 
-def _least_distance_form(prob) -> LeastDistanceForm | None:
-    n = prob.n
-    nb = n // 2
+def _factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(L^{-T} blocks (N, 2, 2), gt = L^{-1} g)`` of ``prob`` (cached on it); ``None`` if a block is not PD."""
+    cached = prob.__dict__.get("_ldf_factor", _UNSET)
+    if cached is not _UNSET:
+        return cached
+    nb = prob.n // 2
     try:
         L = np.linalg.cholesky(prob.H_blocks)
     except np.linalg.LinAlgError:
+        out = None
+    else:
+        Linv = np.linalg.inv(L)  # (nb, 2, 2)
+        out = (np.transpose(Linv, (0, 2, 1)), np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel())
+    prob.__dict__["_ldf_factor"] = out
+    return out
+
+
+def _least_distance_form(prob) -> LeastDistanceForm | None:
+    n = prob.n
+    nb = n // 2
+    factor = _factor(prob)
+    if factor is None:
         return None
-    Linv = np.linalg.inv(L)  # (nb, 2, 2)
-    LinvT = np.transpose(Linv, (0, 2, 1))
-    gt = np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel()
+    LinvT, gt = factor
     # x = T y with T = blockdiag(L^-T): rows C x <= u become (C T) y <= u; bounds +-e_k' T y
     T = sp.csr_matrix((LinvT.reshape(-1), np.repeat(np.arange(n).reshape(nb, 2), 2, axis=0).reshape(-1),
                        np.arange(0, 2 * n + 1, 2)), shape=(n, n))
@@ -91,8 +105,64 @@ def _least_distance_form(prob) -> LeastDistanceForm | None:
     return LeastDistanceForm(LinvT, gt, Mt, np.concatenate((prob.u, prob.ub, -prob.lb)))
 
 
+def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
+    """``LeastDistanceForm.Mt`` of ``prob`` as a dense array, built without scipy.sparse.
+
+    The same numbers as ``least_distance_form(prob).Mt.toarray()``: an entry of
+    ``C T`` is ``C[r, 2b] T[2b, c] + C[r, 2b+1] T[2b+1, c]`` (two products, one
+    addition, as the sparse product forms it), and every zero is ``+0.0`` (the
+    sparse product drops exact zeros and ``toarray`` adds the stored entries to
+    zeros).
+    """
+    n, m = prob.n, prob.m
+    nb = n // 2
+    Md = np.zeros((m + 2 * n, n))
+    if m:
+        C = prob.C
+        if getattr(C, "format", None) != "csr":
+            return _least_distance_form(prob).Mt.toarray()
+        flat = np.repeat(np.arange(m) * n, np.diff(C.indptr)) + C.indices
+        hit = np.zeros(m * n, dtype=bool)
+        hit[flat] = True
+        if np.count_nonzero(hit) != flat.shape[0]:  # duplicate entries: the sparse product adds their products
+            return _least_distance_form(prob).Mt.toarray()
+        Cd = np.zeros(m * n)
+        Cd[flat] = C.data
+        rb = np.unique(flat // 2)  # (row, block) pairs with an entry; the other blocks of C T are zero
+        v = Cd.reshape(-1, 2)[rb]
+        b = rb % nb
+        Ct = v[:, 0, None] * LinvT[b, 0, :] + v[:, 1, None] * LinvT[b, 1, :]
+        Ct += 0.0  # -0.0 -> +0.0: the sparse product drops exact zeros
+        Md[:m].reshape(-1, 2)[rb] = Ct
+    k = np.arange(nb)
+    # toarray() adds the stored entries to zeros, so its zeros are +0.0: the same here
+    Md[m:m + n].reshape(nb, 2, nb, 2)[k, :, k, :] = LinvT + 0.0
+    Md[m + n:].reshape(nb, 2, nb, 2)[k, :, k, :] = -LinvT + 0.0
+    return Md
+
+
+try:  # the LAPACK gufunc behind numpy.linalg.solve for one right-hand side
+    from numpy.linalg import _umath_linalg
+
+    _SOLVE1 = _umath_linalg.solve1
+except (ImportError, AttributeError):  # pragma: no cover - other numpy layouts: numpy.linalg.solve
+    _SOLVE1 = None
+
+
+def _raise_singular(err: str, flag: int) -> None:
+    raise np.linalg.LinAlgError("Singular matrix")
+
+
 def _cholesky_solve(cf: np.ndarray, v: np.ndarray) -> np.ndarray:
-    return np.linalg.solve(cf.T, np.linalg.solve(cf, v))
+    """``(cf cf^T)^{-1} v`` as ``numpy.linalg.solve`` twice gives it.
+
+    The gufunc behind ``numpy.linalg.solve`` is called directly: the same LAPACK
+    calls and error handling, without the per-call argument checks.
+    """
+    if _SOLVE1 is None or v.ndim != 1 or cf.dtype != np.float64 or v.dtype != np.float64:
+        return np.linalg.solve(cf.T, np.linalg.solve(cf, v))
+    with np.errstate(call=_raise_singular, invalid="call", over="ignore", divide="ignore", under="ignore"):
+        return _SOLVE1(cf.T, _SOLVE1(cf, v, signature="dd->d"), signature="dd->d")
 
 
 def solve_active_set(prob, x0, z0, max_iter: int = 6):
@@ -100,13 +170,20 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
     n, m = prob.n, prob.m
     if n == 0 or n % 2:
         return None
-    form = least_distance_form(prob)
-    if form is None:
-        return None
-    gt, Mt, b = form.gt, form.Mt, form.b
-    mt = m + 2 * n
     dense = n <= DENSE_MAX_VARS
-    Md = Mt.toarray() if dense else None
+    if dense:  # the dense rows straight from C (no sparse products for these small problems)
+        factor = _factor(prob)
+        if factor is None:
+            return None
+        LinvT, gt = factor
+        Md, Mt, b = _dense_rows(prob, LinvT), None, np.concatenate((prob.u, prob.ub, -prob.lb))
+    else:
+        form = least_distance_form(prob)
+        if form is None:
+            return None
+        LinvT, gt, Mt, b = form.LinvT, form.gt, form.Mt, form.b
+        Md = None
+    mt = m + 2 * n
     # initial working set
     if z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
         return None
@@ -126,8 +203,9 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
                 Mw = Md[idx]
                 S = Mw @ Mw.T
                 rhs = -(Mw @ gt) - b[idx]
-                delta = 1e-9 * max(float(np.max(np.diag(S))), 1e-300)
-                Sr = S + delta * np.eye(k)
+                delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
+                Sr = S + 0.0  # S + delta * I without the identity: off the diagonal S + 0.0, on it S + delta
+                Sr.flat[:: k + 1] += delta
                 try:
                     if k <= DENSE_MAX_ROWS:
                         cf = np.linalg.cholesky(Sr)
@@ -159,7 +237,7 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
         lam[idx] = lw
         r = ((Md @ y) if dense else (Mt @ y)) - b
         if r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL:
-            return form.to_x(y), np.maximum(lam[:m], 0.0), it
+            return np.einsum("nij,nj->ni", LinvT, y.reshape(-1, 2)).ravel(), np.maximum(lam[:m], 0.0), it
         Wn = (lam + r) > 0
         if np.array_equal(Wn, W):
             return None
