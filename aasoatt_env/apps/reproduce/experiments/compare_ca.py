@@ -90,7 +90,9 @@ def compare_ca(s: Settings) -> Report:
     )
     rep.section(
         "## Results (paper | ours | relative difference)\n\n"
-        + md_table(["method", "barrier", *metric_headers(metrics), "min gap [m]", "relaxed steps", "unsafe steps"], rows)
+        + md_table(
+            ["method", "barrier", *metric_headers(metrics), "min gap [m]", "relaxed steps", "unsafe steps"], rows
+        )
     )
     lines = []
     for method in ("eqn.n4", "ours"):
