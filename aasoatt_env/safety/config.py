@@ -8,8 +8,8 @@ not give are our choices: ``gamma = 1`` (braking SBC), ``varsigma = 2``,
 Discrete-time safety margin
 ---------------------------
 The CBF guarantee holds in continuous time; with ``du`` held over a step of
-``dt`` pairs dip slightly below ``d_s`` (5 mm with 35 robots on the radius-6
-circle, exact solves).  ``safety_margin=None`` (default) adds to the safety
+``dt`` pairs dip slightly below ``d_s`` (a few millimetres on the crowded
+radius-6 circle, exact solves; README, Table II).  ``safety_margin=None`` (default) adds to the safety
 distance of each pair
 
     m_ij = auto_margin(dt) * min(1, |v_ij| / 0.2 m/s),   auto_margin(dt) = 2 dt * 1 m/s
