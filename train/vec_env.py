@@ -57,7 +57,24 @@ from stable_baselines3.common.vec_env.base_vec_env import (
 __all__ = ["BatchedVecEnv", "ParallelVecEnv", "SlotMonitor", "SlotNormalize", "VelocityTrackingShaping"]
 
 
-class ParallelVecEnv(VecEnv):
+class _SlotMasks:
+    """The slot masks SlotMonitor, SlotNormalize and SlotPPO read (``_live``, ``_acted`` kept by the VecEnv)."""
+
+    _live: np.ndarray
+    _acted: np.ndarray
+
+    @property
+    def live_slots(self) -> np.ndarray:
+        """Boolean mask of slots whose robot is alive (a copy): their current observation is a real one."""
+        return self._live.copy()
+
+    @property
+    def acted_slots(self) -> np.ndarray:
+        """Slots whose robot acted at the last step (a copy): the others' transitions were padding."""
+        return self._acted.copy()
+
+
+class ParallelVecEnv(_SlotMasks, VecEnv):
     """Vectorise ``n_envs`` PettingZoo parallel envs with one slot per agent.
 
     Parameters
@@ -208,15 +225,6 @@ class ParallelVecEnv(VecEnv):
         """One rendered frame per env (not per slot)."""
         return [env.render() for env in self.envs]
 
-    @property
-    def live_slots(self) -> np.ndarray:
-        """Boolean mask of slots whose robot is alive (a copy): their current observation is a real one."""
-        return self._live.copy()
-
-    @property
-    def acted_slots(self) -> np.ndarray:
-        """Slots whose robot acted at the last step (a copy): the others' transitions were padding."""
-        return self._acted.copy()
 
 
 class VelocityTrackingShaping(VecEnvWrapper):
@@ -254,7 +262,7 @@ class VelocityTrackingShaping(VecEnvWrapper):
         return obs, rewards, dones, infos
 
 
-class BatchedVecEnv(VecEnv):
+class BatchedVecEnv(_SlotMasks, VecEnv):
     """The SB3 adapter of :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`: one slot per robot of every team.
 
     Same contract as :class:`ParallelVecEnv` (slots ``k * N + i``, seeding, auto-reset,
@@ -400,15 +408,6 @@ class BatchedVecEnv(VecEnv):
         """One rendered frame per team (not per slot)."""
         return list(self.batch.render())
 
-    @property
-    def live_slots(self) -> np.ndarray:
-        """Slots whose robot is alive (a copy): their current observation is a real one."""
-        return self._live.copy()
-
-    @property
-    def acted_slots(self) -> np.ndarray:
-        """Slots whose robot acted at the last step (a copy): the others' transitions were padding."""
-        return self._acted.copy()
 
 
 def _slot_masks(venv: VecEnv) -> tuple[np.ndarray | None, np.ndarray | None]:
