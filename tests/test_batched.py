@@ -10,9 +10,14 @@ from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded
 
 
 def _compare(k: int, steps: int, scenario: str = "random_goals", filt=None, seed: int = 7, scale: float = 1.0,
-             **kw) -> dict[str, int]:
-    """Step a batch and ``k`` separate envs with the same seeds and actions; every array must be equal."""
-    batch = make_batched_env(k, scenario, filter=filt, **kw)
+             group_filter: bool = False, **kw) -> dict[str, int]:
+    """Step a batch and ``k`` separate envs with the same seeds and actions; every array must be equal.
+
+    ``group_filter=True``: one filter call for all teams, equal to rounding (``_close``) instead.
+    """
+    batch = make_batched_env(k, scenario, filter=filt, group_filter=group_filter, **kw)
+    assert (batch.grouped_filter is not None) == (group_filter and filt is not None)
+    same = _close if group_filter else np.testing.assert_array_equal
     envs = [make_env(scenario, filter=filt, **kw) for _ in range(k)]
     obs_b, _ = batch.reset(seed=seed)
     agents = batch.possible_agents
@@ -36,14 +41,16 @@ def _compare(k: int, steps: int, scenario: str = "random_goals", filt=None, seed
                     assert not tb[j, i] and not trb[j, i]
                     continue
                 where = f"step {t}, team {j}, {a}"
-                np.testing.assert_array_equal(last[i], o[a], err_msg=where)
-                assert rb[j, i] == r[a], where
+                same(last[i], o[a], err_msg=where)
+                same(rb[j, i], r[a], err_msg=where)
                 assert (tb[j, i], trb[j, i]) == (te[a], tr[a]), where
-                for key in ("tracking_error", "clearance", "collision", "saturated"):
+                for key in ("tracking_error", "clearance"):
+                    same(ib[key][j, i], inf[a][key], err_msg=f"{where}: {key}")
+                for key in ("collision", "saturated"):
                     assert ib[key][j, i] == inf[a][key], f"{where}: {key}"
                 assert ib["time"][j] == inf[a]["time"]
                 if filt is not None:
-                    assert ib["filter_correction"][j, i] == inf[a]["filter"]["correction"], where
+                    same(ib["filter_correction"][j, i], inf[a]["filter"]["correction"], err_msg=where)
                     assert ib["filter_intervened"][j, i] == inf[a]["filter"]["intervened"], where
                     assert ib["filter_avoiding"][j, i] == inf[a]["filter"]["avoiding"], where
                     seen["interventions"] += int(inf[a]["filter"]["intervened"])
@@ -55,6 +62,10 @@ def _compare(k: int, steps: int, scenario: str = "random_goals", filt=None, seed
                 np.testing.assert_array_equal(ob[j], np.stack([o0[a] for a in agents]))
     batch.close()
     return seen
+
+
+def _close(actual, desired, err_msg: str = "") -> None:
+    np.testing.assert_allclose(actual, desired, rtol=1e-7, atol=1e-9, err_msg=err_msg)
 
 
 def test_batched_equals_separate_point_actions_with_autoreset():
@@ -78,6 +89,18 @@ def test_batched_equals_separate_behind_the_filter():
     seen = _compare(2, 14, filt={"solver": "quadprog"}, decision_interval=20, action_mode="point", num_robots=6,
                     arena_size=5.0, max_steps=10, scale=1.5)
     assert seen["interventions"] > 0 and seen["resets"] == 2
+
+
+@pytest.mark.parametrize("kw", [
+    dict(num_robots=6, arena_size=5.0, max_steps=10, scale=1.5),
+    dict(scenario="circle_obstacles", max_steps=8),
+    dict(num_robots=4, robots=["paper", "paper_small", "paper", "paper_small"], arena_size=4.0, max_steps=10,
+         scale=2.0),
+], ids=["random_goals", "obstacles", "unequal_radii"])
+def test_grouped_filter_equals_separate_filters_to_rounding(kw):
+    # one filter call for all teams: the stacked QP and backup check answer each team's own problem
+    seen = _compare(3, 14, filt={}, group_filter=True, decision_interval=20, action_mode="point", **kw)
+    assert seen["interventions"] > 0 and seen["resets"] >= 3
 
 
 def test_batched_api_errors_and_spaces():

@@ -58,13 +58,15 @@ def make_batched_env(
     *,
     filter: FilterConfig | Mapping[str, Any] | bool | None = None,
     autoreset: bool = True,
+    group_filter: bool = True,
     **env_kwargs: Any,
 ) -> BatchedAASOATTEnv:
     """``num_envs`` teams of ``scenario`` stepped together (:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).
 
     Each team is the env :func:`make_env` builds with the same arguments (behind
     its own filter when ``filter`` asks for one); the batch is bit-identical to
-    stepping those envs one by one.
+    stepping those envs one by one (behind a filter: to rounding, or bit for bit
+    with ``group_filter=False``, see :mod:`aasoatt_env.sim.batched`).
 
     Parameters
     ----------
@@ -74,8 +76,10 @@ def make_batched_env(
         As :func:`make_env`.
     autoreset : bool
         Reset a team inside ``step`` when its episode ends.
+    group_filter : bool
+        Behind a filter: one filter call for all teams (default) or one per team.
     """
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")
     return BatchedAASOATTEnv([lambda: make_env(scenario, filter=filter, **env_kwargs) for _ in range(num_envs)],
-                             autoreset=autoreset)
+                             autoreset=autoreset, group_filter=group_filter)

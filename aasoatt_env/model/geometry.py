@@ -48,14 +48,33 @@ def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     return iu, ju
 
 
+_GROUP_PAIRS: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pairs ``i < j`` of :func:`_upper_pairs` with ``groups[i] == groups[j]`` (cached per labelling)."""
+    key = np.ascontiguousarray(groups).tobytes()
+    hit = _GROUP_PAIRS.get(key)
+    if hit is None:
+        iu, ju = _upper_pairs(groups.shape[0])
+        same = groups[iu] == groups[ju]
+        iu, ju = iu[same], ju[same]
+        iu.flags.writeable = ju.flags.writeable = False
+        if len(_GROUP_PAIRS) >= 16:
+            _GROUP_PAIRS.clear()
+        hit = _GROUP_PAIRS[key] = (iu, ju)
+    return hit
+
+
 def pairwise_distances(p: np.ndarray) -> np.ndarray:
     """Centre distances ``(N, N)`` of points ``(N, 2)`` (one complex subtraction)."""
     z = np.ascontiguousarray(p, dtype=np.float64).view(np.complex128)[:, 0]
     return np.abs(z[:, None] - z[None, :])
 
 
-def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto") -> np.ndarray:
-    """Index pairs ``(i, j)``, ``i < j``, with ``|p_i - p_j| <= radius``.
+def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: np.ndarray | None = None
+                ) -> np.ndarray:
+    """Index pairs ``(i, j)``, ``i < j``, with ``|p_i - p_j| <= radius`` (and, with ``groups``, of one group).
 
     Parameters
     ----------
@@ -64,7 +83,11 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto") -> np.nda
     radius : float
         Search radius (the sensing range ``D``).
     method : {"auto", "brute", "kdtree"}
-        Back-end; ``"auto"`` picks brute force below :data:`KDTREE_MIN_ROBOTS`.
+        Back-end; ``"auto"`` picks brute force below :data:`KDTREE_MIN_ROBOTS`
+        (counted per group with ``groups``).
+    groups : numpy.ndarray, optional
+        ``(N,)`` labels (:attr:`aasoatt_env.model.params.Team.group`): only
+        pairs of one label are returned.
 
     Returns
     -------
@@ -75,15 +98,18 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto") -> np.nda
     if n < 2:
         return np.empty((0, 2), dtype=np.intp)
     if method == "auto":
-        method = "kdtree" if n >= KDTREE_MIN_ROBOTS else "brute"
+        per_group = n if groups is None else n // max(int(np.unique(groups).size), 1)
+        method = "kdtree" if per_group >= KDTREE_MIN_ROBOTS else "brute"
     if method == "brute":
-        iu, ju = _upper_pairs(n)
+        iu, ju = _upper_pairs(n) if groups is None else _group_pairs(groups)
         d = p[iu] - p[ju]
         keep = np.flatnonzero(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= radius * radius)
         return np.stack((iu[keep], ju[keep]), axis=1)
     if method != "kdtree":
         raise ValueError(f"method: got {method!r}, expected 'auto', 'brute' or 'kdtree'")
     pairs = cKDTree(p).query_pairs(radius, output_type="ndarray").astype(np.intp)
+    if groups is not None and pairs.shape[0]:
+        pairs = pairs[groups[pairs[:, 0]] == groups[pairs[:, 1]]]
     if pairs.shape[0] == 0:
         return np.empty((0, 2), dtype=np.intp)
     pairs.sort(axis=1)

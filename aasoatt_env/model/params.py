@@ -157,6 +157,11 @@ class Team:
     """Parameters of N robots as arrays of shape ``(N,)`` (see :class:`RobotParams`).
 
     All robots share one dynamics ``model``.  Build with :func:`make_team`.
+
+    ``group`` (optional, ``(N,)`` int) stacks several independent teams into one:
+    robots of different groups live in separate worlds, so the safety filter
+    forms no pair between them (one filter call for many teams, e.g.
+    :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).  ``None``: one team.
     """
 
     radius: np.ndarray
@@ -167,6 +172,7 @@ class Team:
     max_wheel_speed: np.ndarray
     max_point_accel: np.ndarray
     model: Model
+    group: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -176,7 +182,8 @@ class Team:
     def subset(self, idx: np.ndarray) -> Team:
         """The team of robots ``idx`` (same order)."""
         return Team(self.radius[idx], self.wheel_radius[idx], self.half_track[idx], self.offset[idx],
-                    self.max_wheel_accel[idx], self.max_wheel_speed[idx], self.max_point_accel[idx], self.model)
+                    self.max_wheel_accel[idx], self.max_wheel_speed[idx], self.max_point_accel[idx], self.model,
+                    None if self.group is None else self.group[idx])
 
     @property
     def is_diff_drive(self) -> bool:

@@ -407,7 +407,8 @@ def gatekeeper(
         The backup's point deceleration as a fraction of the straight-line
         braking capability (:func:`brake_time`).
     obstacles : tuple of numpy.ndarray, optional
-        ``(centres (M, 2), radii (M,))`` of static discs.
+        ``(centres (M, 2), radii (M,))`` of static discs; ``(centres, radii, groups (M,))``
+        with a grouped team (``team.group``): an obstacle acts on its group's robots only.
     tol : float
         Accepted violation [m].
     blend_levels : tuple of float
@@ -416,7 +417,6 @@ def gatekeeper(
         tries these gentler blends, and brakes only if they fail too.  ``()``: brake at once.
     """
     n = pose.shape[0]
-    rad = team.radius
     theta = pose[:, 2]
     p0 = _point(team, pose)
     levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
@@ -447,15 +447,7 @@ def gatekeeper(
 
     # pairs that could meet within their reach (fixed for the call); only their robots need paths
     i, j, ds = _pairs_near(team, p0, R, sensing_range, 1e-12)
-    if obstacles is not None and obstacles[1].size:
-        oc = obstacles[0][:, 0] + 1j * obstacles[0][:, 1]
-        orad = obstacles[1]
-        oi, ok = np.nonzero(np.abs(p0[:, None] - oc[None, :]) < rad[:, None] + orad[None, :] + R[:, None] + 1e-12)
-        ods = rad[oi] + orad[ok]
-    else:
-        oc = np.empty(0, dtype=np.complex128)
-        oi = ok = np.empty(0, dtype=np.intp)
-        ods = np.empty(0)
+    oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 1e-12)
     du_all = np.stack([f[0] for f in firsts] + [du_b])  # (levels, N, 2)
     limit_margin = limit
     if i.size + oi.size == 0:
@@ -552,11 +544,30 @@ def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float,
     rad = team.radius
     pts = np.stack((p0.real, p0.imag), axis=1)
     search = min(float(sensing_range), 2.0 * float(rad.max(initial=0.0)) + 2.0 * float(R.max(initial=0.0)) + slack)
-    pr = robot_pairs(pts, search)
+    pr = robot_pairs(pts, search, groups=team.group)
     i, j = pr[:, 0], pr[:, 1]
     ds = rad[i] + rad[j]
     keep = np.abs(p0[i] - p0[j]) < ds + R[i] + R[j] + slack
     return i[keep], j[keep], ds[keep]
+
+
+def _obstacles_near(team: Team, p0: np.ndarray, R: np.ndarray, obstacles: tuple[np.ndarray, ...] | None,
+                    slack: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Robot-obstacle pairs that could come within ``d_s + slack``: ``(centres (M,) complex, i, k, d_s)``.
+
+    ``obstacles`` is ``(centres, radii)`` or ``(centres, radii, groups)``: with
+    groups (and ``team.group``) an obstacle acts on the robots of its group only.
+    """
+    if obstacles is None or not np.asarray(obstacles[1]).size:
+        return np.empty(0, dtype=np.complex128), np.empty(0, dtype=np.intp), np.empty(0, dtype=np.intp), np.empty(0)
+    c, orad = np.asarray(obstacles[0], dtype=np.float64), np.asarray(obstacles[1], dtype=np.float64)
+    oc = c[:, 0] + 1j * c[:, 1]
+    rad = team.radius
+    near = np.abs(p0[:, None] - oc[None, :]) < rad[:, None] + orad[None, :] + R[:, None] + slack
+    if team.group is not None and len(obstacles) > 2 and obstacles[2] is not None:
+        near &= team.group[:, None] == np.asarray(obstacles[2])[None, :]
+    oi, ok = np.nonzero(near)
+    return oc, oi, ok, rad[oi] + orad[ok]
 
 
 def repair(
@@ -589,11 +600,6 @@ def repair(
     """
     du = np.minimum(np.maximum(du_c, lo), hi)
     n = pose.shape[0]
-    rad = team.radius
-    if obstacles is not None and obstacles[1].size:
-        oc, orad = obstacles[0][:, 0] + 1j * obstacles[0][:, 1], obstacles[1]
-    else:
-        oc, orad = np.empty(0, dtype=np.complex128), np.empty(0)
     eye = np.eye(2)
     for _ in range(rounds):
         base = candidate_paths(team, pose, u, du, dt, brake_fraction)
@@ -603,16 +609,11 @@ def repair(
         m = _bucketed(base.p, base.delta, base.length, i, j, ds)
         low = m < target
         i, j, ds = i[low], j[low], ds[low]
-        if orad.size:
-            oi, ok = np.nonzero(np.abs(p0[:, None] - oc[None, :]) < rad[:, None] + orad[None, :] + R[:, None]
-                                + 2.0 * target)
-            ods = rad[oi] + orad[ok]
+        oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 2.0 * target)
+        if oi.size:
             mo = _bucketed(base.p, base.delta, base.length, oi, ok, ods, centers=oc)
             lowo = mo < target
             oi, ok, ods = oi[lowo], ok[lowo], ods[lowo]
-        else:
-            oi = ok = np.empty(0, dtype=np.intp)
-            ods = np.empty(0)
         if i.size + oi.size == 0:
             break
         M = np.unique(np.concatenate((i, j, oi)))

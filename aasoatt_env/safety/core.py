@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -151,6 +152,13 @@ class FilterResult:
         return self.pairs[:, 1] < 0
 
 
+def _same_group(po: np.ndarray, group: np.ndarray | None, obstacles: tuple[np.ndarray, ...]) -> np.ndarray:
+    """Robot-obstacle pairs ``(i, k)`` of one group (obstacles without labels are every group's)."""
+    if group is None or len(obstacles) < 3 or obstacles[2] is None or po.shape[0] == 0:
+        return po
+    return po[group[po[:, 0]] == np.asarray(obstacles[2])[po[:, 1]]]
+
+
 def _components(n: int, ri: np.ndarray, rj: np.ndarray) -> np.ndarray:
     """Connected-component label ``(n,)`` of the robots, edges = robot-robot rows.
 
@@ -220,8 +228,50 @@ class SafetyFilter:
         self._dl = DeadlockState()
         self._x: np.ndarray | None = None
         self._keys = np.empty(0, dtype=np.int64)
+        self._key_robots = np.empty((0, 2), dtype=np.intp)
         self._z = np.empty(0)
         self._solver.reset()
+
+    def grouped(self, filters: Sequence[object]) -> SafetyFilter | None:
+        """One filter for the stack of several teams, each behind a filter of this configuration.
+
+        The stack's ``team.group`` keeps the teams apart (no pair between them),
+        so the answer is each team's own up to rounding; the batch calls it once
+        per physics step instead of once per team
+        (:class:`~aasoatt_env.sim.protocol.GroupableFilter`).  None when some
+        filter is not a :class:`SafetyFilter` of the same configuration.
+        """
+        if all(type(f) is type(self) and f.config == self.config for f in filters):  # type: ignore[attr-defined]
+            return type(self)(config=self.config)
+        return None
+
+    def reset_rows(self, rows: np.ndarray, team: Team) -> None:
+        """Forget the memory of robots ``rows`` (their team started an episode) and bind ``team``.
+
+        What a fresh filter of that team would have: no deadlock memory, no
+        warm start for their rows and pairs.  The solver's switch state is
+        shared by the stack (it picks between exact paths only).  A team of a
+        different size is bound with a full :meth:`reset`.
+        """
+        if self.team is None or not isinstance(team, Team) or team.n != self.team.n:
+            self.reset(team)
+            return
+        self._check_range(team)
+        self.team = team
+        rows = np.asarray(rows, dtype=np.intp)
+        if self._dl.avoiding is not None:
+            avoiding = self._dl.avoiding.copy()
+            avoiding[rows] = False
+            self._dl.avoiding = avoiding
+        for h in self._dl.history:  # a position never seen: the stall trigger waits for a full dwell
+            h[rows] = np.nan
+        if self._x is not None:
+            x = self._x.reshape(-1, 2).copy()
+            x[rows] = 0.0
+            self._x = x.ravel()
+        hit = np.isin(self._key_robots, rows).any(axis=1)
+        if hit.any():
+            self._z = np.where(hit, 0.0, self._z)
 
     # ------------------------------------------------------------------ API
     def __call__(self, inp: FilterInput, nominal_du: np.ndarray) -> FilterResult:
@@ -229,7 +279,11 @@ class SafetyFilter:
         if abs(inp.dt - self.config.dt) > 1e-12 * self.config.dt:
             raise ConfigError(f"dt: the env steps {inp.dt:g} s but the filter was configured for {self.config.dt:g} s")
         p_d, v_d, _ = inp.reference
-        obstacles = (inp.obstacle_centers, inp.obstacle_radii) if inp.obstacle_radii.size else None
+        obstacles = None
+        if inp.obstacle_radii.size:
+            obstacles = (inp.obstacle_centers, inp.obstacle_radii)
+            if inp.obstacle_groups is not None:
+                obstacles = (*obstacles, inp.obstacle_groups)
         _, result = self.step(inp.kin, inp.u, inp.theta, nominal_du, inp.lo, inp.hi, reference=(p_d, v_d),
                               obstacles=obstacles)
         return result
@@ -277,7 +331,10 @@ class SafetyFilter:
             ``(p_d, v_d)``, each ``(N, 2)``; needed by ``auxiliary_velocity`` and
             ``rotate_reference_velocity``.
         obstacles : tuple of numpy.ndarray, optional
-            ``(centers (M, 2), radii (M,))`` of static disc obstacles.
+            ``(centers (M, 2), radii (M,))`` of static disc obstacles, or
+            ``(centers, radii, groups (M,))`` for a grouped team
+            (:attr:`~aasoatt_env.model.params.Team.group`): an obstacle acts on
+            the robots of its group only.
         """
         t0 = time.perf_counter()
         cfg, team = self.config, self._bound_team()
@@ -293,7 +350,7 @@ class SafetyFilter:
         p, v, A, adot = kin.p, kin.v, kin.A, kin.adot_u
 
         # neighbours and pair geometry -------------------------------------------------
-        pr = robot_pairs(p, cfg.sensing_range)
+        pr = robot_pairs(p, cfg.sensing_range, groups=team.group)
         ri, rj = pr[:, 0], pr[:, 1]
         rad, amax = team.radius, team.max_point_accel
         geo_p, geo_v, geo_a = p[ri] - p[rj], v[ri] - v[rj], adot[ri] - adot[rj]
@@ -302,7 +359,7 @@ class SafetyFilter:
         if obstacles is not None:
             oc = np.asarray(obstacles[0], float).reshape(-1, 2)
             orad = np.asarray(obstacles[1], float).reshape(-1)
-            po = obstacle_pairs(p, oc, orad, cfg.sensing_range)
+            po = _same_group(obstacle_pairs(p, oc, orad, cfg.sensing_range), team.group, obstacles)
             oi, ok = po[:, 0], po[:, 1]
             geo_p = np.concatenate((geo_p, p[oi] - oc[ok]))
             geo_v = np.concatenate((geo_v, v[oi]))
@@ -400,6 +457,7 @@ class SafetyFilter:
             message = f"decentralized: {n} local QPs" + (f", {dec.n_relaxed} infeasible (relaxed)" if dec.n_relaxed
                                                          else "")
         self._x, self._keys, self._z = x_full.ravel(), keys, z
+        self._key_robots = np.stack((ri, rj), axis=1)
         avoiding = np.zeros(n, dtype=bool)
         if decentral:  # a robot avoids when its own half of a row binds
             active_i, active_j = dec.z_half[:, 0] > cfg.eta_tol, dec.z_half[:, 1] > cfg.eta_tol
@@ -458,7 +516,11 @@ class SafetyFilter:
         return np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0)
 
     def _check_range(self, team: Team) -> None:
-        """The sensing range must cover contact and, with the backup layer, leave room to brake."""
+        """The sensing range must cover contact and, with the backup layer, leave room to brake; groups per robot."""
+        if team.group is not None and (np.shape(team.group) != (team.n,)
+                                       or np.asarray(team.group).dtype.kind not in "iu"):
+            raise ConfigError(f"team.group: got {np.asarray(team.group).dtype} array of shape "
+                              f"{np.shape(team.group)}, expected integers of shape ({team.n},)")
         ds_max = 2.0 * float(team.radius.max(initial=0.0))
         need = ds_max + (MIN_BRAKING_ROOM if self.config.backup else 0.0)
         if not self.config.sensing_range > need:

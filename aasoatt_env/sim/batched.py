@@ -8,7 +8,8 @@ each physics step once for everyone: nominal accelerations, input bounds,
 integration, kinematics and clearances; the observations, rewards and infos of
 a decision are also computed once for all teams.
 
-It is **bit-identical** to ``n_envs`` separate :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`
+Without a filter, or behind one with ``group_filter=False``, it is
+**bit-identical** to ``n_envs`` separate :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`
 stepped with the same actions (``tests/test_batched.py`` checks every array):
 every operation is either per robot or per team (distances never cross teams),
 and each team keeps its own scenario generator, clock, horizon and control filter.
@@ -18,12 +19,19 @@ answers the same problem with differences in the last bits (~1e-15) depending
 on where its work arrays lie in memory, so batch and separate envs agree to
 rounding there, not bit for bit.
 
-Control filter: a team behind a filter (its env has one installed, e.g. by
-:class:`~aasoatt_env.safety.wrapper.AASOATTFilter`) is filtered at every physics
-step with a :class:`~aasoatt_env.sim.protocol.FilterInput` of that team alone,
-one call per team.  A filter that can take several teams in one call (block
-diagonal: no rows between teams) would be called once per physics step instead;
-the protocol has no such call yet.
+Control filter: teams behind a filter (their envs have one installed, e.g. by
+:class:`~aasoatt_env.safety.wrapper.AASOATTFilter`) are filtered at every physics
+step.  When the teams' filters can stand in for each other
+(``grouped``, :class:`~aasoatt_env.sim.protocol.GroupableFilter`; the
+:class:`~aasoatt_env.safety.core.SafetyFilter` can when all share one
+configuration) and ``group_filter=True`` (default), one filter call takes all
+teams stacked, ``team.group`` keeping them apart: one neighbour search, one QP
+of independent blocks and one backup check per physics step instead of ``K``.
+The answers are each team's own up to rounding (the stacked QP is solved in one
+piece), so trajectories agree with separate envs to rounding, not bit for bit.
+``group_filter=False`` calls each team's own filter with its own
+:class:`~aasoatt_env.sim.protocol.FilterInput` (one call per team), which is
+bit-identical to separate envs with the deterministic QP solvers below.
 
 API (the style of Gymnasium's vector envs; ``K = num_envs`` teams of ``N`` robots,
 ``D`` observation entries):
@@ -69,7 +77,7 @@ from aasoatt_env.model.geometry import KDTREE_MIN_ROBOTS, min_gaps
 from aasoatt_env.model.params import Team
 from aasoatt_env.sim.env import _NOMINAL_MAX, AASOATTParallelEnv
 from aasoatt_env.sim.observations import Proximity, build_observations, proximity
-from aasoatt_env.sim.protocol import FilterInput
+from aasoatt_env.sim.protocol import FilterInput, GroupedControlFilter
 from aasoatt_env.sim.rewards import rewards as reward_terms
 
 __all__ = ["BatchedAASOATTEnv"]
@@ -86,7 +94,9 @@ def _stack_teams(teams: Sequence[Team]) -> Team:
     models = {t.model for t in teams}
     if len(models) != 1:
         raise ConfigError(f"teams: got dynamics models {sorted(models)}, expected one model for the whole batch")
-    return Team(**{f: np.concatenate([getattr(t, f) for t in teams]) for f in _TEAM_FIELDS}, model=teams[0].model)
+    group = np.concatenate([np.full(t.n, k, dtype=np.int64) for k, t in enumerate(teams)])
+    return Team(**{f: np.concatenate([getattr(t, f) for t in teams]) for f in _TEAM_FIELDS}, model=teams[0].model,
+                group=group)
 
 
 class BatchedAASOATTEnv:
@@ -104,11 +114,15 @@ class BatchedAASOATTEnv:
         Reset a team inside ``step`` when its episode ends (default), else
         ``step`` raises :class:`~aasoatt_env.errors.ResetNeeded` for a finished
         team until ``reset`` is called.
+    group_filter : bool
+        Filter all teams in one call when their filters allow it (module
+        docstring); False: one call per team.
     """
 
     metadata = {"autoreset_mode": "same_step"}
 
-    def __init__(self, env_fns: Sequence[Callable[[], Any]], *, autoreset: bool = True) -> None:
+    def __init__(self, env_fns: Sequence[Callable[[], Any]], *, autoreset: bool = True,
+                 group_filter: bool = True) -> None:
         if len(env_fns) < 1:
             raise ConfigError(f"env_fns: got {len(env_fns)} callables, expected at least 1")
         self.envs: list[Any] = [fn() for fn in env_fns]
@@ -153,6 +167,12 @@ class BatchedAASOATTEnv:
         self.action_space = spaces.Box(-1.0, 1.0, (k, n, 2), np.float32)
         self._filtered = first.control_filter is not None
         self._nominal = self._filtered and bool(first.control_filter.keeps_input_bounds) and not first.clip_actions
+        self._grouped: GroupedControlFilter | None = None
+        """One filter for all teams (``grouped``), or None: one call per team."""
+        if self._filtered and group_filter:
+            make = getattr(first.control_filter, "grouped", None)
+            self._grouped = make([b.control_filter for b in bases]) if callable(make) else None
+        self._filter_resets: list[int] = []
         self._started = False
         self._layouts: list[Any] = [None] * k
         self._teams: list[Team | None] = [None] * k
@@ -182,6 +202,11 @@ class BatchedAASOATTEnv:
     def filtered(self) -> bool:
         """True when the teams are behind a control filter."""
         return self._filtered
+
+    @property
+    def grouped_filter(self) -> GroupedControlFilter | None:
+        """The one filter that takes all teams per physics step, or None (unfiltered, or one call per team)."""
+        return self._grouped
 
     @property
     def max_steps(self) -> np.ndarray:
@@ -226,6 +251,7 @@ class BatchedAASOATTEnv:
         self._steps[k] = 0
         self._max_steps[k] = base.max_steps
         self._done[k] = False
+        self._filter_resets.append(k)
         self._active[sl] = True
         self._saturated[sl] = False
         self._last_action[sl] = 0.0
@@ -250,6 +276,15 @@ class BatchedAASOATTEnv:
             self._ocenters = np.stack([lay.obstacle_centers for lay in layouts])
             self._oradii = np.stack([lay.obstacle_radii for lay in layouts])
         self._batched_geometry = self.num_agents < KDTREE_MIN_ROBOTS and self._m_obs is not None
+        if self._grouped is not None:
+            n = self.num_agents
+            rows = np.concatenate([np.arange(k * n, (k + 1) * n) for k in self._filter_resets])
+            self._grouped.reset_rows(rows, self._team)
+            self._obstacles = (np.concatenate([lay.obstacle_centers for lay in layouts]).reshape(-1, 2),
+                               np.concatenate([lay.obstacle_radii for lay in layouts]),
+                               np.concatenate([np.full(lay.obstacle_radii.shape[0], k, dtype=np.int64)
+                                               for k, lay in enumerate(layouts)]))
+        self._filter_resets = []
 
     # ------------------------------------------------------------------ step
     def _parse_actions(self, actions: Any) -> np.ndarray:
@@ -305,7 +340,7 @@ class BatchedAASOATTEnv:
         any_frozen = bool(frozen.any())
         saturated = np.zeros(k_all * n, dtype=bool)
         between = np.full(k_all * n, np.inf)
-        outputs: list[list[Any]] = [[] for _ in range(k_all)]
+        outputs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # per physics step, all robots
         filters = [b.control_filter for b in self._bases] if self._filtered else None
         for sub in range(self.decision_interval):
             lo, hi = dynamics.input_bounds(team, u, dt)
@@ -341,14 +376,11 @@ class BatchedAASOATTEnv:
         infos: dict[str, Any] = {}
         correction = None
         if filters is not None:
-            corr = np.concatenate([o[0].correction if len(o) == 1 else np.max([x.correction for x in o], axis=0)
-                                   for o in outputs])
+            corr = outputs[0][0] if len(outputs) == 1 else np.max([o[0] for o in outputs], axis=0)
             correction = corr / team.max_wheel_accel
             infos["filter_correction"] = corr.reshape(k_all, n)
-            infos["filter_intervened"] = np.concatenate([np.any([_intervened(x) for x in o], axis=0)
-                                                         for o in outputs]).reshape(k_all, n)
-            infos["filter_avoiding"] = np.concatenate([np.any([np.asarray(x.avoiding) for x in o], axis=0)
-                                                       for o in outputs]).reshape(k_all, n)
+            infos["filter_intervened"] = np.any([o[1] for o in outputs], axis=0).reshape(k_all, n)
+            infos["filter_avoiding"] = np.any([o[2] for o in outputs], axis=0).reshape(k_all, n)
         goal_dist = np.hypot(*(kin.p - self._goals).T)
         rew = reward_terms(self.reward_config, err, collided, act,
                            goal_dist if self.reward_config.goal_bonus else None, correction)
@@ -376,11 +408,27 @@ class BatchedAASOATTEnv:
             self._restack()
         return (obs3, rew.reshape(k_all, n), terminated.reshape(k_all, n), truncated.reshape(k_all, n), infos)
 
-    def _filter(self, filters: list[Any], outputs: list[list[Any]], pose: np.ndarray, u: np.ndarray,
-                kin: Kinematics, lo: np.ndarray, hi: np.ndarray, du_nom: np.ndarray) -> np.ndarray:
-        """One filter call per team (its own :class:`FilterInput`); the applied ``du`` of all teams."""
+    def _filter(self, filters: list[Any], outputs: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                pose: np.ndarray, u: np.ndarray, kin: Kinematics, lo: np.ndarray, hi: np.ndarray,
+                du_nom: np.ndarray) -> np.ndarray:
+        """The applied ``du`` of all teams: one grouped call, or one call per team with its own input.
+
+        Appends ``(correction, intervened, avoiding)`` of every robot to ``outputs``.
+        """
+        if self._grouped is not None:
+            refs = [lay.reference(t) for lay, t in zip(self._layouts, self._times)]
+            oc, orad, ogroup = self._obstacles
+            inp = FilterInput(self._times[0], self.dt, self._team, pose, u, kin, lo, hi,  # type: ignore[arg-type]
+                              tuple(np.concatenate([r[i] for r in refs]) for i in range(3)),  # type: ignore[arg-type]
+                              oc, orad, ogroup)
+            out = self._grouped(inp, du_nom)
+            du = self._checked(out, None, du_nom.shape[0])
+            outputs.append((np.asarray(out.correction, dtype=np.float64), _intervened(out),
+                            np.asarray(out.avoiding, dtype=bool)))
+            return du
         n = self.num_agents
         du = np.empty_like(du_nom)
+        outs = []
         for k, filt in enumerate(filters):
             sl = slice(k * n, (k + 1) * n)
             lay = self._layouts[k]
@@ -391,13 +439,21 @@ class BatchedAASOATTEnv:
                                          kin.adot_u[sl].copy()), lo[sl].copy(), hi[sl].copy(),
                               lay.reference(t), lay.obstacle_centers, lay.obstacle_radii)
             out = filt(inp, du_nom[sl].copy())
-            d = np.asarray(out.du, dtype=np.float64)
-            if d.shape != (n, 2) or not np.all(np.isfinite(d)):
-                raise ActionError(f"control filter of team {k} returned shape {d.shape} or non-finite values, "
-                                  f"expected finite ({n}, 2)")
-            du[sl] = d
-            outputs[k].append(out)
+            du[sl] = self._checked(out, k, n)
+            outs.append(out)
+        outputs.append((np.concatenate([np.asarray(o.correction, dtype=np.float64) for o in outs]),
+                        np.concatenate([_intervened(o) for o in outs]),
+                        np.concatenate([np.asarray(o.avoiding, dtype=bool) for o in outs])))
         return du
+
+    @staticmethod
+    def _checked(out: Any, k: int | None, rows: int) -> np.ndarray:
+        """A filter output's ``du``: finite, ``(rows, 2)`` (``k``: the team of a per-team call)."""
+        d = np.asarray(out.du, dtype=np.float64)
+        if d.shape != (rows, 2) or not np.all(np.isfinite(d)):
+            who = "the grouped control filter" if k is None else f"control filter of team {k}"
+            raise ActionError(f"{who} returned shape {d.shape} or non-finite values, expected finite ({rows}, 2)")
+        return d
 
     # ------------------------------------------------------------------ per-decision helpers
     def _references(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -23,10 +23,21 @@ when rendering), and a wrapper reads the rest.  Install a filter with
 :meth:`~aasoatt_env.sim.env.AASOATTParallelEnv.set_control_filter`;
 :class:`aasoatt_env.safety.wrapper.AASOATTFilter` does this for its
 :class:`~aasoatt_env.safety.core.SafetyFilter`.
+
+Several teams in one call (optional).  :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`
+steps ``K`` independent teams together.  If the teams' filters offer
+``grouped(filters)`` (:class:`GroupableFilter`) and it returns a filter
+(:class:`GroupedControlFilter`), the batch calls that one filter once per
+physics step with all teams stacked: ``inp.team.group`` labels each robot's
+team, ``inp.obstacle_groups`` each obstacle's, and no pair of robots (or robot
+and obstacle) of different teams may affect the answer.  ``inp.reference``
+holds every team's reference at its own time; ``inp.time`` is team 0's.  Else
+the batch calls each team's filter with its own input.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
@@ -35,7 +46,7 @@ import numpy as np
 from aasoatt_env.model.dynamics import Kinematics
 from aasoatt_env.model.params import Team
 
-__all__ = ["ControlFilter", "FilterInput", "FilterOutput"]
+__all__ = ["ControlFilter", "FilterInput", "FilterOutput", "GroupableFilter", "GroupedControlFilter"]
 
 
 @dataclass(frozen=True)
@@ -65,6 +76,8 @@ class FilterInput:
         Static disc obstacles: centres ``(M, 2)``.
     obstacle_radii : numpy.ndarray
         Their radii ``(M,)``.
+    obstacle_groups : numpy.ndarray or None
+        Grouped input only: the team of each obstacle ``(M,)`` (module docstring).
     """
 
     time: float
@@ -78,6 +91,7 @@ class FilterInput:
     reference: tuple[np.ndarray, np.ndarray, np.ndarray]
     obstacle_centers: np.ndarray
     obstacle_radii: np.ndarray
+    obstacle_groups: np.ndarray | None = None
 
     @property
     def theta(self) -> np.ndarray:
@@ -111,4 +125,22 @@ class ControlFilter(Protocol):
 
     def __call__(self, inp: FilterInput, nominal_du: np.ndarray) -> FilterOutput:
         """Filter one physics step."""
+        ...
+
+
+@runtime_checkable
+class GroupedControlFilter(ControlFilter, Protocol):
+    """A control filter of ``K`` independent teams stacked into one input (module docstring)."""
+
+    def reset_rows(self, rows: np.ndarray, team: Team) -> None:
+        """Forget the memory of robots ``rows`` (their team starts an episode); ``team``: the new stack."""
+        ...
+
+
+@runtime_checkable
+class GroupableFilter(ControlFilter, Protocol):
+    """A control filter that can stand in for itself and other teams' filters in one call."""
+
+    def grouped(self, filters: Sequence[ControlFilter]) -> GroupedControlFilter | None:
+        """One filter for the stack of the teams of ``filters`` (this one among them), or None if it cannot."""
         ...
