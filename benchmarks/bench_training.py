@@ -3,7 +3,8 @@
     python benchmarks/bench_training.py [--timesteps 24576] [--robots 6] [--n-envs 8] [--model RUN]
 
 Each row trains PPO with the default recipe (``TrainConfig`` defaults: 8 teams x N
-robots stepped by one batched physics call, decision_interval 20) with rollouts
+robots stepped by one batched physics call, decision_interval 20; behind the filter one
+filter call per physics step for all teams, or, for comparison, one per team) with rollouts
 of ``--n-steps`` (64) per slot, for ``--timesteps`` agent-steps after one warm-up
 update, and reports what a training run sees: rollout collection plus PPO
 updates, one torch thread.  The filter's share of the filtered row is measured
@@ -37,28 +38,35 @@ def separate_vec_env(cfg: TrainConfig):
 
 
 def bench(filtered: bool, timesteps: int, robots: int, n_envs: int, solver: str | None,
-          model: str | None, n_steps: int, batched: bool = True) -> dict[str, float]:
+          model: str | None, n_steps: int, batched: bool = True, grouped: bool = True) -> dict[str, float]:
     kw = {"filter_kwargs": {"solver": solver}} if (filtered and solver) else {}
     cfg = TrainConfig(num_robots=robots, n_envs=n_envs, filter=filtered, progress_bar=False, tensorboard=False,
                       checkpoint_freq=0, n_steps=n_steps, batch_size=min(1024, n_steps * n_envs * robots),
                       init_from=model, **kw)
-    venv = make_vec_env(cfg) if batched else separate_vec_env(cfg)
+    venv = make_vec_env(cfg, group_filter=grouped) if batched else separate_vec_env(cfg)
     ppo = build_model(cfg, venv)
     if model:
         init_policy(ppo, venv, cfg)
     filter_time = [0.0]
-    if filtered:  # time every filter call (one per team and physics step)
-        for base in venv.unwrapped.batch._bases:  # (batched only)
-            f = base.control_filter
+    if filtered:  # time every filter call (the grouped one, or one per team and physics step)
+        batch = venv.unwrapped.batch  # (batched only)
+
+        def timed(f):
             call = f.__call__
 
-            def timed(inp, du, _call=call):
+            def run(inp, du):
                 t = time.perf_counter()
-                out = _call(inp, du)
+                out = call(inp, du)
                 filter_time[0] += time.perf_counter() - t
                 return out
 
-            base._control_filter = _Timed(f, timed)
+            return _Timed(f, run)
+
+        if batch.grouped_filter is not None:
+            batch._grouped = timed(batch.grouped_filter)
+        else:
+            for base in batch._bases:
+                base._control_filter = timed(base.control_filter)
     per_update = cfg.n_steps * venv.num_envs
     ppo.learn(per_update)  # warm-up
     filter_time[0] = 0.0
@@ -80,6 +88,9 @@ class _Timed:
     def reset(self, team):
         self._inner.reset(team)
 
+    def reset_rows(self, rows, team):
+        self._inner.reset_rows(rows, team)
+
     def __call__(self, inp, du):
         return self._call(inp, du)
 
@@ -100,17 +111,21 @@ def main() -> None:
     print("| loop | agent-steps | agent-steps/s | physics steps/s (per team) | filter share of wall time |")
     print("|---|---:|---:|---:|---:|")
     rates = {}
-    rows = [("bare, teams stepped one by one (ParallelVecEnv)", False, False), ("bare", False, True),
-            (f"behind the filter ({args.solver or 'default solver'})", True, True)]
-    for name, filtered, batched in rows:
+    solver = args.solver or "default solver"
+    rows = [("bare, teams stepped one by one (ParallelVecEnv)", False, False, True), ("bare", False, True, True),
+            (f"behind the filter ({solver}), one filter call per team", True, True, False),
+            (f"behind the filter ({solver}), one filter call for all teams", True, True, True)]
+    for name, filtered, batched, grouped in rows:
         r = bench(filtered, args.timesteps, args.robots, args.n_envs, args.solver, args.model, args.n_steps,
-                  batched)
+                  batched, grouped)
         if batched:
-            rates[filtered] = r["rate"]
+            rates[filtered, grouped] = r["rate"]
         share = f"{100 * r['filter_share']:.0f}%" if filtered else "-"
         print(f"| {name} | {r['steps']} | {r['rate']:,.0f} | {r['rate'] / args.robots * 20:,.0f} | {share} |",
               flush=True)
-    print(f"\nbehind the filter / bare: {100 * rates[True] / rates[False]:.1f}%")
+    bare = rates[False, True]
+    print(f"\nbehind the filter / bare: {100 * rates[True, True] / bare:.1f}% (one call for all teams), "
+          f"{100 * rates[True, False] / bare:.1f}% (one call per team)")
 
 
 if __name__ == "__main__":

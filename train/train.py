@@ -123,16 +123,18 @@ def save_stats(venv: Any, path: Path) -> None:
              epsilon=np.asarray(venv.epsilon, np.float64))
 
 
-def make_vec_env(config: TrainConfig, training: bool = True) -> Any:
+def make_vec_env(config: TrainConfig, training: bool = True, group_filter: bool = True) -> Any:
     """``SlotNormalize?(SlotMonitor(BatchedVecEnv))`` over ``config.n_envs`` teams stepped together.
 
     :class:`~train.vec_env.SlotMonitor` and :class:`~train.vec_env.SlotNormalize` are SB3's
     ``VecMonitor`` and ``VecNormalize`` that skip dead-slot padding (``terminate_on_collision``).
+    Behind the filter all teams share one filter call per physics step unless ``group_filter=False``
+    (:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).
     """
     from aasoatt_env.sim.batched import BatchedAASOATTEnv
     from train.vec_env import BatchedVecEnv, SlotMonitor, SlotNormalize, VelocityTrackingShaping
 
-    batch = BatchedAASOATTEnv([lambda: make_env(config) for _ in range(config.n_envs)])
+    batch = BatchedAASOATTEnv([lambda: make_env(config) for _ in range(config.n_envs)], group_filter=group_filter)
     venv: Any = BatchedVecEnv(batch, success_radius=config.reward.get("goal_tolerance", 0.1))
     if config.velocity_tracking:
         venv = VelocityTrackingShaping(venv, config.velocity_tracking)
