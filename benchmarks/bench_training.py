@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import time
 
+import numpy as np
 import torch
 
 from train.config import TrainConfig
@@ -48,6 +49,7 @@ def bench(filtered: bool, timesteps: int, robots: int, n_envs: int, solver: str 
     if model:
         init_policy(ppo, venv, cfg)
     filter_time = [0.0]
+    calls: list[float] = []
     if filtered:  # time every filter call (the grouped one, or one per team and physics step)
         batch = venv.unwrapped.batch  # (batched only)
 
@@ -57,7 +59,9 @@ def bench(filtered: bool, timesteps: int, robots: int, n_envs: int, solver: str 
             def run(inp, du):
                 t = time.perf_counter()
                 out = call(inp, du)
-                filter_time[0] += time.perf_counter() - t
+                dt = time.perf_counter() - t
+                filter_time[0] += dt
+                calls.append(dt)
                 return out
 
             return _Timed(f, run)
@@ -70,12 +74,14 @@ def bench(filtered: bool, timesteps: int, robots: int, n_envs: int, solver: str 
     per_update = cfg.n_steps * venv.num_envs
     ppo.learn(per_update)  # warm-up
     filter_time[0] = 0.0
+    calls.clear()
     t0 = time.perf_counter()
     ppo.learn(max(timesteps, per_update), reset_num_timesteps=False)
     dt = time.perf_counter() - t0
     steps = ppo.num_timesteps - per_update
     venv.close()
-    return {"rate": steps / dt, "steps": steps, "filter_share": filter_time[0] / dt}
+    return {"rate": steps / dt, "steps": steps, "filter_share": filter_time[0] / dt,
+            "call_ms": 1e3 * float(np.median(calls)) if calls else float("nan")}
 
 
 class _Timed:
@@ -108,8 +114,9 @@ def main() -> None:
     torch.set_num_threads(1)
     print(f"PPO throughput, {args.n_envs} envs x {args.robots} robots (batched), decision_interval 20 (dt 0.005), "
           f"policy: {args.model or 'fresh (random actions)'}\n")
-    print("| loop | agent-steps | agent-steps/s | physics steps/s (per team) | filter share of wall time |")
-    print("|---|---:|---:|---:|---:|")
+    print("| loop | agent-steps | agent-steps/s | physics steps/s (per team) | filter share of wall time | "
+          "ms per filter call (median) |")
+    print("|---|---:|---:|---:|---:|---:|")
     rates = {}
     solver = args.solver or "default solver"
     rows = [("bare, teams stepped one by one (ParallelVecEnv)", False, False, True), ("bare", False, True, True),
@@ -121,8 +128,9 @@ def main() -> None:
         if batched:
             rates[filtered, grouped] = r["rate"]
         share = f"{100 * r['filter_share']:.0f}%" if filtered else "-"
-        print(f"| {name} | {r['steps']} | {r['rate']:,.0f} | {r['rate'] / args.robots * 20:,.0f} | {share} |",
-              flush=True)
+        call = f"{r['call_ms']:.3f}" if filtered else "-"
+        print(f"| {name} | {r['steps']} | {r['rate']:,.0f} | {r['rate'] / args.robots * 20:,.0f} | {share} | "
+              f"{call} |", flush=True)
     bare = rates[False, True]
     print(f"\nbehind the filter / bare: {100 * rates[True, True] / bare:.1f}% (one call for all teams), "
           f"{100 * rates[True, False] / bare:.1f}% (one call per team)")
