@@ -2,21 +2,15 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point
-from aasoatt_env.model.params import Team, make_team
+from aasoatt_env.model.params import Team, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter
-
-
-def _stack(teams: list[Team]) -> Team:
-    fields = ("radius", "wheel_radius", "half_track", "offset", "max_wheel_accel", "max_wheel_speed",
-              "max_point_accel")
-    group = np.concatenate([np.full(t.n, k) for k, t in enumerate(teams)])
-    return Team(**{f: np.concatenate([getattr(t, f) for t in teams]) for f in fields}, model=teams[0].model,
-                group=group)
 
 
 def _state(n: int, seed: int, spacing: float = 0.75):
@@ -42,8 +36,9 @@ def test_teams_on_top_of_each_other_do_not_see_each_other():
     nom = rng.uniform(-30, 30, (5, 2))
     alone, res_alone = _step(SafetyFilter(team, deadlock="none"), team, pose, u, nom)
     assert np.abs(alone - nom).max() > 1.0  # the filter acts on this team
-    both = _stack([team, team])
-    du, res = _step(SafetyFilter(both, deadlock="none"), both, np.vstack([pose, pose]), np.vstack([u, u]), np.vstack([nom, nom]))
+    both = stack_teams([team, team])
+    du, res = _step(SafetyFilter(both, deadlock="none"), both, np.vstack([pose, pose]), np.vstack([u, u]),
+                    np.vstack([nom, nom]))
     np.testing.assert_allclose(du[:5], alone, atol=1e-9)
     np.testing.assert_allclose(du[5:], alone, atol=1e-9)
     assert (res.status, res.safe) == (res_alone.status, res_alone.safe)
@@ -51,8 +46,7 @@ def test_teams_on_top_of_each_other_do_not_see_each_other():
     assert res.backup.reshape(2, 5).tolist() == [res_alone.backup.tolist()] * 2
     assert (res.pairs[:, 0] // 5 == res.pairs[:, 1] // 5).all()  # no row between the teams
     # the same stack without labels is one team of overlapping robots
-    mixed = Team(**{k: v for k, v in vars(both).items() if k not in ("group",) and not k.startswith("_")
-                    and k in Team.__dataclass_fields__})
+    mixed = dataclasses.replace(both, group=None)
     _, res_mixed = _step(SafetyFilter(mixed, deadlock="none"), mixed, np.vstack([pose, pose]), np.vstack([u, u]),
                          np.vstack([nom, nom]))
     assert res_mixed.status == "unsafe" and res_mixed.margin < -0.5
@@ -67,15 +61,15 @@ def test_obstacles_act_on_their_own_group_only():
     ref, _ = _step(SafetyFilter(team, deadlock="none"), team, pose, u, nom, obstacles=obstacle)
     free, _ = _step(SafetyFilter(team, deadlock="none"), team, pose, u, nom)
     assert np.abs(ref - free).max() > 1e-3
-    both = _stack([team, team])
+    both = stack_teams([team, team])
     stacked = (np.vstack([obstacle[0], obstacle[0]]), np.r_[obstacle[1], obstacle[1]], np.array([1, 0]))
     # team 0 gets team 1's obstacle and vice versa: both see the same obstacle at robot 1
-    du, _ = _step(SafetyFilter(both, deadlock="none"), both, np.vstack([pose, pose]), np.vstack([u, u]), np.vstack([nom, nom]),
-                  obstacles=stacked)
+    du, _ = _step(SafetyFilter(both, deadlock="none"), both, np.vstack([pose, pose]), np.vstack([u, u]),
+                  np.vstack([nom, nom]), obstacles=stacked)
     np.testing.assert_allclose(du[:4], ref, atol=1e-9)
     only_one = (obstacle[0], obstacle[1], np.array([1]))
-    du, _ = _step(SafetyFilter(both, deadlock="none"), both, np.vstack([pose, pose]), np.vstack([u, u]), np.vstack([nom, nom]),
-                  obstacles=only_one)
+    du, _ = _step(SafetyFilter(both, deadlock="none"), both, np.vstack([pose, pose]), np.vstack([u, u]),
+                  np.vstack([nom, nom]), obstacles=only_one)
     np.testing.assert_allclose(du[:4], free, atol=1e-9)
     np.testing.assert_allclose(du[4:], ref, atol=1e-9)
 
@@ -86,7 +80,7 @@ def test_reset_rows_equals_a_fresh_filter_for_that_team(trigger):
     kw = dict(deadlock="auxiliary_velocity", trigger=trigger, stall_time=0.05)
     team, pose_a, u_a, rng = _state(5, 2)
     _, pose_b, u_b, _ = _state(5, 3)
-    both = _stack([team, team])
+    both = stack_teams([team, team])
     grouped, sep_a, sep_b = SafetyFilter(both, **kw), SafetyFilter(team, **kw), SafetyFilter(team, **kw)
     pose, u = np.vstack([pose_a, pose_b]), np.vstack([u_a, u_b])
     goal = kinematics(both, pose, u).p[::-1].copy()
@@ -110,7 +104,7 @@ def test_reset_rows_equals_a_fresh_filter_for_that_team(trigger):
 
 def test_group_labels_are_checked():
     team = make_team("paper", 3)
-    bad = Team(**{f: getattr(team, f) for f in Team.__dataclass_fields__ if f != "group"}, group=np.zeros(2, int))
+    bad = dataclasses.replace(team, group=np.zeros(2, int))
     with pytest.raises(ConfigError, match=r"team.group: .* expected integers of shape \(3,\)"):
         SafetyFilter(bad)
 

@@ -209,6 +209,22 @@ def test_multiplier_trigger_follows_previous_avoidance():
         np.testing.assert_array_equal(a_prev, t_now)
 
 
+def test_multiplier_trigger_is_off_for_robots_that_are_done():
+    # robot 0 is at rest at its goal (reference at rest, 5 cm away): no deadlock, whatever its rows
+    from aasoatt_env.safety.deadlock import DeadlockState, TriggerContext
+
+    cfg = FilterConfig()
+    p = np.array([[0.0, 0.0], [2.0, 0.0], [4.0, 0.0]])
+    p_d = p + np.array([[0.05, 0.0], [0.5, 0.0], [0.05, 0.0]])  # robot 1 is 0.5 m from its reference
+    v_d = np.array([[0.0, 0.0], [0.0, 0.0], [1.0, 0.0]])  # robot 2's reference still moves
+    ctx = TriggerContext(p, np.zeros((3, 2)), np.zeros(3), (p_d, v_d), np.empty((0, 2), int), np.empty((0, 2)), cfg)
+    state = DeadlockState(avoiding=np.array([True, True, True]))
+    assert TRIGGERS["multiplier"](state, ctx).tolist() == [False, True, True]
+    state = DeadlockState(avoiding=np.array([False, False, True]))
+    assert TRIGGERS["multiplier"](state, ctx).tolist() == [False, False, True]
+    assert TRIGGERS["multiplier"](state, ctx._replace(reference=None)).tolist() == [False, False, True]
+
+
 def test_neural_solver_never_fails_and_approaches_optimum():
     scen = circle_layout(6, radius=3.0, duration=6.0)
     out = closed_loop(scen, SafetyFilter(scen.team, solver="neural", neural_iterations=5), 3.0)

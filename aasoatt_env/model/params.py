@@ -40,7 +40,7 @@ import numpy as np
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.validation import choice, positive
 
-__all__ = ["PRESETS", "RobotParams", "Team", "make_team"]
+__all__ = ["PRESETS", "RobotParams", "Team", "make_team", "stack_teams"]
 
 Model = Literal["diff_drive", "double_integrator"]
 MODELS: tuple[str, ...] = ("diff_drive", "double_integrator")
@@ -276,3 +276,18 @@ def make_team(robots: RobotParams | str | Sequence[RobotParams | str] | None, n:
         max_point_accel=col("max_point_accel"),
         model=params[0].model if params else "diff_drive",
     )
+
+
+def stack_teams(teams: Sequence[Team]) -> Team:
+    """One :class:`Team` of all robots of ``teams``, in order, with ``group`` = the index of each robot's team.
+
+    The teams must share one dynamics model.  The filter keeps the groups apart
+    (:attr:`Team.group`), so the stack can be filtered in one call.
+    """
+    models = {t.model for t in teams}
+    if len(models) != 1:
+        raise ConfigError(f"teams: got dynamics models {sorted(models)}, expected one model for the whole stack")
+    names = [f.name for f in fields(Team) if f.name not in ("model", "group")]
+    group = np.concatenate([np.full(t.n, k, dtype=np.int64) for k, t in enumerate(teams)])
+    return Team(**{name: np.concatenate([getattr(t, name) for t in teams]) for name in names}, model=teams[0].model,
+                group=group)

@@ -74,7 +74,7 @@ from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import Kinematics
 from aasoatt_env.model.geometry import KDTREE_MIN_ROBOTS, min_gaps
-from aasoatt_env.model.params import Team
+from aasoatt_env.model.params import Team, stack_teams
 from aasoatt_env.sim.env import _NOMINAL_MAX, AASOATTParallelEnv
 from aasoatt_env.sim.observations import Proximity, build_observations, proximity
 from aasoatt_env.sim.protocol import FilterInput, GroupedControlFilter
@@ -84,19 +84,6 @@ __all__ = ["BatchedAASOATTEnv"]
 
 _FULL_SORT_MAX = 64
 """As :data:`aasoatt_env.model.geometry._FULL_SORT_MAX`: full row sort up to this many robots."""
-
-_TEAM_FIELDS = ("radius", "wheel_radius", "half_track", "offset", "max_wheel_accel", "max_wheel_speed",
-                "max_point_accel")
-
-
-def _stack_teams(teams: Sequence[Team]) -> Team:
-    """One :class:`Team` of all robots of ``teams`` (same dynamics model)."""
-    models = {t.model for t in teams}
-    if len(models) != 1:
-        raise ConfigError(f"teams: got dynamics models {sorted(models)}, expected one model for the whole batch")
-    group = np.concatenate([np.full(t.n, k, dtype=np.int64) for k, t in enumerate(teams)])
-    return Team(**{f: np.concatenate([getattr(t, f) for t in teams]) for f in _TEAM_FIELDS}, model=teams[0].model,
-                group=group)
 
 
 class BatchedAASOATTEnv:
@@ -262,7 +249,7 @@ class BatchedAASOATTEnv:
         """Rebuild the stacked team and per-team constants after resets (the kinematics from the state)."""
         teams = self._teams
         if self._team is None or getattr(self, "_team_ids", None) != [id(t) for t in teams]:
-            self._team = _stack_teams(teams)  # type: ignore[arg-type]
+            self._team = stack_teams(teams)  # type: ignore[arg-type]
             self._team_ids = [id(t) for t in teams]
             r = self._team.radius.reshape(self.num_envs, self.num_agents)
             self._equal_radii = r.min(axis=1) == r.max(axis=1)
