@@ -25,9 +25,9 @@ runs' ``metrics.csv``.
 Scenes: ``random_goals_6r`` (the default: 6 robots, 6.25 m arena) and
 ``crowded_12r`` (12 robots in a 6.5 m arena: 1.9x the density).
 
-Budget: training behind the filter costs ~40-60 times more per agent-step than
-bare training while the filter is called once per team and physics step
-(README, "Throughput").  By default (b) and (c) therefore *fine-tune* each
+Budget: training behind the filter costs ~11 times more per agent-step than
+bare training, with one filter call per physics step for all teams (README,
+"Batched stepping").  By default (b) and (c) therefore *fine-tune* each
 seed's bare policy (a) behind the filter for ``--filter-steps`` agent-steps
 (``init_from``; rollouts of ``--filter-n-steps`` 64 per slot, for more
 updates); ``--filter-start scratch`` (implied by ``--full``) trains them from

@@ -617,39 +617,37 @@ def repair(
         if i.size + oi.size == 0:
             break
         M = np.unique(np.concatenate((i, j, oi)))
-        sub = team.subset(M)
+        m = M.size
         L = base.p.shape[1] + 1  # a perturbation of eps dt in u adds at most one backup step
+        # rows [0, n): the base paths; [n, 2n) and [2n, 3n): with input k of the robots M perturbed
+        # (both perturbations in one call, and every margin below in one call: the same numbers,
+        # row by row, as separate calls)
         P = np.concatenate((base.p, base.p[:, -1:]), axis=1)
         D = np.concatenate((base.delta, np.zeros((n, 1))), axis=1)
-        need = np.full(n, L)
-        pert = []
-        for k in (0, 1):
-            t = candidate_paths(sub, pose[M], u[M], du[M] + eps * eye[k], dt, brake_fraction, L)
-            Pk, Dk = P.copy(), D.copy()
-            Pk[M], Dk[M] = t.p, t.delta
-            pert.append((Pk, Dk))
+        P, D = np.concatenate((P, P, P)), np.concatenate((D, D, D))
+        MM = np.concatenate((M, M))
+        t = candidate_paths(team.subset(MM), pose[MM], u[MM], du[MM] + eps * np.repeat(eye, m, axis=0), dt,
+                            brake_fraction, L)
+        P[np.concatenate((n + M, 2 * n + M))], D[np.concatenate((n + M, 2 * n + M))] = t.p, t.delta
         step = np.zeros((n, 2))
         if i.size:
-            m0 = _bucketed(P, D, need, i, j, ds)
-            gi = np.stack([(_mixed(Pk, Dk, P, D, need, i, j, ds) - m0) / eps for Pk, Dk in pert], axis=1)
-            gj = np.stack([(_mixed(P, D, Pk, Dk, need, i, j, ds) - m0) / eps for Pk, Dk in pert], axis=1)
+            a = np.concatenate((i, n + i, 2 * n + i, i, i))
+            b = np.concatenate((j, j, j, n + j, 2 * n + j))
+            mg = pair_margins(P[a], P[b], D[a], D[b], np.tile(ds, 5)).reshape(5, -1)
+            m0 = mg[0]
+            gi = ((mg[1:3] - m0) / eps).T
+            gj = ((mg[3:5] - m0) / eps).T
             lift = (2.0 * target - m0) / np.maximum((gi * gi).sum(1) + (gj * gj).sum(1), 1e-12)
             np.add.at(step, i, lift[:, None] * gi)
             np.add.at(step, j, lift[:, None] * gj)
         if oi.size:
-            m0 = _bucketed(P, D, need, oi, ok, ods, centers=oc)
-            go = np.stack([(_bucketed(Pk, Dk, need, oi, ok, ods, centers=oc) - m0) / eps for Pk, Dk in pert], axis=1)
+            a = np.concatenate((oi, n + oi, 2 * n + oi))
+            mg = pair_margins(P[a], oc[np.tile(ok, 3)][:, None], D[a], 0.0, np.tile(ods, 3)).reshape(3, -1)
+            m0 = mg[0]
+            go = ((mg[1:3] - m0) / eps).T
             lift = (2.0 * target - m0) / np.maximum((go * go).sum(1), 1e-12)
             np.add.at(step, oi, lift[:, None] * go)
         if not step.any():
             break
         du = np.minimum(np.maximum(du + step, lo), hi)
     return du
-
-
-def _mixed(Pi: np.ndarray, Di: np.ndarray, Pj: np.ndarray, Dj: np.ndarray, need: np.ndarray, i: np.ndarray,
-           j: np.ndarray, ds: np.ndarray) -> np.ndarray:
-    """Pair margins with member ``i`` on paths ``(Pi, Di)`` and member ``j`` on ``(Pj, Dj)`` (equal lengths)."""
-    L = Pi.shape[1]
-    return pair_margins(Pi[i, :L], Pj[j, :L], Di[i, : L - 1], Dj[j, : L - 1], ds)
-

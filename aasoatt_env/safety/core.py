@@ -34,7 +34,7 @@ from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
 from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
 from aasoatt_env.model.params import Team
-from aasoatt_env.safety.backup import gatekeeper, repair
+from aasoatt_env.safety.backup import GateResult, gatekeeper, repair
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
@@ -157,6 +157,37 @@ def _same_group(po: np.ndarray, group: np.ndarray | None, obstacles: tuple[np.nd
     if group is None or len(obstacles) < 3 or obstacles[2] is None or po.shape[0] == 0:
         return po
     return po[group[po[:, 0]] == np.asarray(obstacles[2])[po[:, 1]]]
+
+
+def _gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                      cfg: FilterConfig, gate_kw: dict[str, Any]) -> GateResult:
+    """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair if it brakes.
+
+    Every answer comes from :func:`~aasoatt_env.safety.backup.gatekeeper`
+    (safety is its invariant).  Whether the QP's answer passes for every robot
+    is decided by the first round, which is the same with or without the blend
+    levels, so it is checked without them (``blend_levels=()``: fewer rounds).
+    If someone brakes, the answer is nudged by
+    :func:`~aasoatt_env.safety.backup.repair` and checked again with the blend
+    levels; the full check of the QP's answer is made only when the repaired
+    one still brakes someone, and of the two the one that brakes fewer robots
+    is kept.  When the invariant was already broken (``safe`` False), the full
+    check of the QP's answer decides.
+    """
+    quick = gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, blend_levels=(), **gate_kw)
+    if not quick.braking.any():
+        return quick
+    if not (cfg.backup_repair and quick.safe):
+        return gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, **gate_kw)
+    # nudge the QP's answer toward brake-safety, then check again (usually nobody brakes then)
+    repaired = repair(team, pose, u, du, cfg.dt, lo, hi, **gate_kw)
+    second = gatekeeper(team, pose, u, repaired, cfg.dt, tol=_GATE_TOL, **gate_kw)
+    if not second.braking.any():
+        return second
+    first = gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, **gate_kw)
+    if first.safe and int(second.braking.sum()) <= int(first.braking.sum()):
+        return second
+    return first
 
 
 def _components(n: int, ri: np.ndarray, rj: np.ndarray) -> np.ndarray:
@@ -477,13 +508,7 @@ class SafetyFilter:
         if cfg.backup:
             pose = _axle_pose(team, p, theta)
             gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles)
-            gate = gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, **gate_kw)
-            if cfg.backup_repair and gate.braking.any() and gate.safe:
-                # nudge the QP's answer toward brake-safety, then check again (usually nobody brakes then)
-                repaired = repair(team, pose, u, du, cfg.dt, lo, hi, **gate_kw)
-                second = gatekeeper(team, pose, u, repaired, cfg.dt, tol=_GATE_TOL, **gate_kw)
-                if int(second.braking.sum()) <= int(gate.braking.sum()):
-                    gate = second
+            gate = _gate_with_repair(team, pose, u, du, lo, hi, cfg, gate_kw)
             # robots the backup cannot save any more (the invariant was broken before): best effort, the QP
             du_qp, broken = du, gate.broken
             du = np.where(broken[:, None], du_qp, gate.du)
