@@ -127,7 +127,8 @@ def adversarial(args: argparse.Namespace) -> None:
     done = _done(out)
     keys = [dict(adversary=a, n=n, preset=p, obstacles=o, seed=s, steps=args.steps, mode=args.mode,
                  backup=not args.layer_off)
-            for s, a, n, p, o in itertools.product(range(args.seeds), ADVERSARIES, args.teams, PRESETS, (False, True))]
+            for s, a, n, p, o in itertools.product(range(args.first_seed, args.first_seed + args.seeds), ADVERSARIES,
+                                                   args.teams, PRESETS, (False, True))]
     todo = [k for k in keys if _key_steps(k) not in done]
     print(f"{len(keys)} episodes, {len(keys) - len(todo)} already in {out}, {len(todo)} to run", flush=True)
     t0 = time.perf_counter()
@@ -261,6 +262,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("what", choices=("adversarial", "paper", "summary"))
     ap.add_argument("--seeds", type=int, default=7, help="seeds per combination (adversarial)")
+    ap.add_argument("--first-seed", type=int, default=0, help="first seed (adversarial): seeds first .. first+seeds-1")
     ap.add_argument("--steps", type=int, default=800, help="physics steps per episode (adversarial)")
     ap.add_argument("--teams", type=lambda v: tuple(int(x) for x in v.split(",")), default=TEAMS,
                     help="team sizes, comma-separated (39 = the radius-6 circle)")
