@@ -265,7 +265,8 @@ class BatchedAASOATTEnv:
         self._batched_geometry = self.num_agents < KDTREE_MIN_ROBOTS and self._m_obs is not None
         if self._grouped is not None:
             n = self.num_agents
-            rows = np.concatenate([np.arange(k * n, (k + 1) * n) for k in self._filter_resets])
+            rows = np.concatenate([np.arange(k * n, (k + 1) * n) for k in self._filter_resets]
+                                  + [np.empty(0, dtype=np.intp)])
             self._grouped.reset_rows(rows, self._team)
             self._obstacles = (np.concatenate([lay.obstacle_centers for lay in layouts]).reshape(-1, 2),
                                np.concatenate([lay.obstacle_radii for lay in layouts]),
