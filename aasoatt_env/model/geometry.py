@@ -124,7 +124,8 @@ def obstacle_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacl
     return np.sqrt(dx * dx + dy * dy) - radii[:, None] - obstacle_radii[None, :]
 
 
-def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius: float) -> np.ndarray:
+def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius: float, *,
+                   groups: np.ndarray | None = None, obstacle_groups: np.ndarray | None = None) -> np.ndarray:
     """Pairs ``(i, k)`` of robot ``i`` and disc obstacle ``k`` whose surface lies within ``radius``.
 
     The distance is measured from the robot's point to the obstacle centre minus
@@ -140,6 +141,10 @@ def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius
         Obstacle radii, ``(M,)``.
     radius : float
         Search radius.
+    groups, obstacle_groups : numpy.ndarray, optional
+        Labels ``(N,)`` and ``(M,)`` (as in :func:`robot_pairs`): with both,
+        only pairs of one label are returned; unlabelled obstacles are every
+        group's.
 
     Returns
     -------
@@ -148,8 +153,10 @@ def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius
     """
     if centers.shape[0] == 0 or p.shape[0] == 0:
         return np.empty((0, 2), dtype=np.intp)
-    d = obstacle_gaps(p, np.zeros(p.shape[0]), centers, radii)
-    i, k = np.nonzero(d <= radius)
+    near = obstacle_gaps(p, np.zeros(p.shape[0]), centers, radii) <= radius
+    if groups is not None and obstacle_groups is not None:
+        near &= np.asarray(groups)[:, None] == np.asarray(obstacle_groups)[None, :]
+    i, k = np.nonzero(near)
     return np.stack((i, k), axis=1).astype(np.intp)
 
 

@@ -152,13 +152,6 @@ class FilterResult:
         return self.pairs[:, 1] < 0
 
 
-def _same_group(po: np.ndarray, group: np.ndarray | None, obstacles: tuple[np.ndarray, ...]) -> np.ndarray:
-    """Robot-obstacle pairs ``(i, k)`` of one group (obstacles without labels are every group's)."""
-    if group is None or len(obstacles) < 3 or obstacles[2] is None or po.shape[0] == 0:
-        return po
-    return po[group[po[:, 0]] == np.asarray(obstacles[2])[po[:, 1]]]
-
-
 def _gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                       cfg: FilterConfig, gate_kw: dict[str, Any]) -> GateResult:
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair if it brakes.
@@ -390,7 +383,8 @@ class SafetyFilter:
         if obstacles is not None:
             oc = np.asarray(obstacles[0], float).reshape(-1, 2)
             orad = np.asarray(obstacles[1], float).reshape(-1)
-            po = _same_group(obstacle_pairs(p, oc, orad, cfg.sensing_range), team.group, obstacles)
+            po = obstacle_pairs(p, oc, orad, cfg.sensing_range, groups=team.group,
+                                obstacle_groups=obstacles[2] if len(obstacles) > 2 else None)
             oi, ok = po[:, 0], po[:, 1]
             geo_p = np.concatenate((geo_p, p[oi] - oc[ok]))
             geo_v = np.concatenate((geo_v, v[oi]))
