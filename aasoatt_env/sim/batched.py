@@ -78,6 +78,7 @@ from aasoatt_env.model.params import Team, stack_teams
 from aasoatt_env.sim.env import _NOMINAL_MAX, AASOATTParallelEnv
 from aasoatt_env.sim.observations import Proximity, build_observations, proximity
 from aasoatt_env.sim.protocol import FilterInput, GroupedControlFilter
+from aasoatt_env.sim.references import ReferenceStack
 from aasoatt_env.sim.rewards import rewards as reward_terms
 
 __all__ = ["BatchedAASOATTEnv"]
@@ -256,6 +257,7 @@ class BatchedAASOATTEnv:
         self._kin = dynamics.kinematics(self._team, self._pose, self._u)
         layouts = self._layouts
         self._goals = np.concatenate([np.asarray(lay.reference.goals, dtype=np.float64) for lay in layouts])
+        self._ref_stack = ReferenceStack([lay.reference for lay in layouts])
         m = {lay.obstacle_radii.shape[0] for lay in layouts}
         self._m_obs = m.pop() if len(m) == 1 else None
         """Obstacles per team when every team has the same number (batched obstacle queries), else None."""
@@ -404,11 +406,9 @@ class BatchedAASOATTEnv:
         Appends ``(correction, intervened, avoiding)`` of every robot to ``outputs``.
         """
         if self._grouped is not None:
-            refs = [lay.reference(t) for lay, t in zip(self._layouts, self._times)]
             oc, orad, ogroup = self._obstacles
             inp = FilterInput(self._times[0], self.dt, self._team, pose, u, kin, lo, hi,  # type: ignore[arg-type]
-                              tuple(np.concatenate([r[i] for r in refs]) for i in range(3)),  # type: ignore[arg-type]
-                              oc, orad, ogroup)
+                              self._ref_stack(self._times), oc, orad, ogroup)
             out = self._grouped(inp, du_nom)
             du = self._checked(out, None, du_nom.shape[0])
             outputs.append((np.asarray(out.correction, dtype=np.float64), _intervened(out),
@@ -445,9 +445,8 @@ class BatchedAASOATTEnv:
 
     # ------------------------------------------------------------------ per-decision helpers
     def _references(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        refs = [lay.reference(t) for lay, t in zip(self._layouts, self._times)]
-        self._ref_now = tuple(np.concatenate([r[i] for r in refs]) for i in range(3))
-        return self._ref_now  # type: ignore[return-value]
+        self._ref_now = self._ref_stack(self._times)
+        return self._ref_now
 
     def _min_gaps(self, p: np.ndarray) -> np.ndarray:
         """Each robot's clearance to its own team and obstacles (``geometry.min_gaps`` per team)."""

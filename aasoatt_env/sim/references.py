@@ -8,16 +8,20 @@ Every reference is a callable ``ref(t) -> (p_d, v_d, a_d)`` returning three
 class                       use
 ==========================  ===============================================
 :class:`LinearReference`    straight lines start -> goal over ``duration``
-                            (constant speed, or a smooth minimum-jerk profile)
+                            (one per team or per robot; constant speed, or a
+                            smooth minimum-jerk profile)
 :class:`WaypointReference`  piecewise-linear paths through timed waypoints
 :class:`FunctionReference`  any user callable ``t -> p_d`` (and optionally
                             ``v_d``, ``a_d``; central differences otherwise)
 ==========================  ===============================================
+
+:class:`ReferenceStack` evaluates the references of several teams at once
+(the batched env's stack).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Literal, Protocol
 
 import numpy as np
@@ -29,6 +33,7 @@ __all__ = [
     "FunctionReference",
     "LinearReference",
     "Reference",
+    "ReferenceStack",
     "WaypointReference",
     "as_reference",
 ]
@@ -60,14 +65,15 @@ def _points(name: str, value: np.ndarray | list, n: int | None = None) -> np.nda
 
 
 class LinearReference:
-    """Straight lines from ``starts`` to ``goals`` travelled in ``duration`` seconds.
+    """Straight lines from ``starts`` to ``goals``, each travelled in its robot's duration.
 
     Parameters
     ----------
     starts, goals : array_like, shape (N, 2)
         Start and goal points of each robot's controlled point.
-    duration : float
-        Travel time [s]; the reference rests at ``goals`` afterwards.
+    duration : float or array_like, shape (N,)
+        Travel time [s], one for the team or one per robot; each robot's
+        reference rests at its goal afterwards (:attr:`duration`: the longest).
     profile : {"linear", "smooth"}
         ``"linear"``: constant velocity ``(goal - start) / duration`` (the
         paper's linear-in-time reference; the velocity jumps to 0 at the end).
@@ -79,30 +85,84 @@ class LinearReference:
         self,
         starts: np.ndarray,
         goals: np.ndarray,
-        duration: float,
+        duration: float | np.ndarray,
         profile: Literal["linear", "smooth"] = "linear",
     ) -> None:
         self.starts = _points("starts", starts)
-        self.goals = _points("goals", goals, self.starts.shape[0])
-        self.duration = check.positive("duration", duration, hi=1e6)
+        n = self.starts.shape[0]
+        self.goals = _points("goals", goals, n)
+        if np.ndim(duration) == 0:
+            self.durations = np.full(n, check.positive("duration", duration, hi=1e6))
+        else:
+            d = check.real_array("duration", duration, lo=0.0, hi=1e6, unit=" s")
+            if d.shape != (n,) or not np.all(d > 0):
+                raise ConfigError(f"duration: got shape {d.shape} with min {d.min(initial=np.nan):g}, expected "
+                                  f"a positive float or ({n},) positive travel times [s]")
+            self.durations = d.copy()
+        self.duration = float(self.durations.max(initial=0.0))
         if profile not in ("linear", "smooth"):
             raise ConfigError(f"profile: got {profile!r}, expected 'linear' or 'smooth'")
         self.profile = profile
         self._delta = self.goals - self.starts
-        self._zeros = np.zeros_like(self.starts)
 
     def __call__(self, t: float) -> RefTriple:
         """Return ``(p_d, v_d, a_d)`` at time ``t``."""
-        T = self.duration
-        if t >= T:
-            return self.goals.copy(), self._zeros.copy(), self._zeros.copy()
-        tau = max(t, 0.0) / T
-        if self.profile == "linear":
-            return self.starts + tau * self._delta, self._delta / T, self._zeros.copy()
+        return _linear(self.starts, self.goals, self._delta, self.durations, np.full(self.starts.shape[0], float(t)),
+                       self.profile)
+
+
+def _linear(starts: np.ndarray, goals: np.ndarray, delta: np.ndarray, T: np.ndarray, t: np.ndarray, profile: str
+            ) -> RefTriple:
+    """:class:`LinearReference` robot by robot: times ``t`` and durations ``T`` ``(N,)`` (one home for the formula)."""
+    done = (t >= T)[:, None]
+    tau = (np.maximum(t, 0.0) / T)[:, None]
+    zeros = np.zeros_like(starts)
+    if profile == "linear":
+        p, v, a = starts + tau * delta, delta / T[:, None], zeros
+    else:
         s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
-        ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / T
-        dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (T * T)
-        return self.starts + s * self._delta, ds * self._delta, dds * self._delta
+        ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / T[:, None]
+        dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (T * T)[:, None]
+        p, v, a = starts + s * delta, ds * delta, dds * delta
+    return np.where(done, goals, p), np.where(done, 0.0, v), np.where(done, 0.0, a)
+
+
+class ReferenceStack:
+    """The references of several teams, evaluated together at each team's own time.
+
+    ``stack(times)`` equals concatenating ``ref(t)`` over the teams, element for
+    element.  When every reference is a :class:`LinearReference` of one profile
+    the whole stack is evaluated by one vectorised call (a batched env does this
+    at every physics step); other references are called one by one.
+
+    Parameters
+    ----------
+    refs : sequence of Reference
+        One reference per team, in stack order.
+    """
+
+    def __init__(self, refs: Sequence[Reference]) -> None:
+        self.refs = list(refs)
+        self._sizes = np.array([np.asarray(r.goals).shape[0] for r in self.refs], dtype=np.intp)
+        profiles = {getattr(r, "profile", None) for r in self.refs}
+        self._linear = bool(self.refs) and all(type(r) is LinearReference for r in self.refs) and len(profiles) == 1
+        if self._linear:
+            lin: list[LinearReference] = self.refs  # type: ignore[assignment]
+            self._starts = np.concatenate([r.starts for r in lin])
+            self._goals = np.concatenate([r.goals for r in lin])
+            self._delta = np.concatenate([r._delta for r in lin])
+            self._T = np.concatenate([r.durations for r in lin])
+            self._profile = profiles.pop()
+
+    def __call__(self, times: Sequence[float]) -> RefTriple:
+        """``(p_d, v_d, a_d)`` of the whole stack, each ``(sum N, 2)``; ``times[k]`` is team ``k``'s time."""
+        if len(times) != len(self.refs):
+            raise ConfigError(f"times: got {len(times)} times, expected one per team ({len(self.refs)})")
+        if self._linear:
+            t = np.repeat(np.asarray(times, dtype=np.float64), self._sizes)
+            return _linear(self._starts, self._goals, self._delta, self._T, t, self._profile)
+        parts = [r(t) for r, t in zip(self.refs, times)]
+        return tuple(np.concatenate([q[i] for q in parts]) for i in range(3))  # type: ignore[return-value]
 
 
 class WaypointReference:

@@ -31,7 +31,10 @@ import scipy.sparse.linalg as spla
 __all__ = ["DENSE_MAX_ROWS", "TOL", "LeastDistanceForm", "least_distance_form", "solve_active_set"]
 
 DENSE_MAX_VARS: int = 80
-"""Problems up to this many variables use dense algebra."""
+"""Problems up to this many variables use dense algebra, whatever their rows."""
+DENSE_MAX_CELLS: int = 40_000
+"""Larger problems with at most this many entries in their dense rows ``(m + 2n) x n`` use it too
+(a stack of small teams behind one filter call: many variables, few rows each)."""
 DENSE_MAX_ROWS: int = 500
 """Working sets up to this size use a dense Cholesky of the Schur complement."""
 WARM_REL: float = 1e-6
@@ -170,7 +173,7 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
     n, m = prob.n, prob.m
     if n == 0 or n % 2:
         return None
-    dense = n <= DENSE_MAX_VARS
+    dense = n <= DENSE_MAX_VARS or n * (m + 2 * n) <= DENSE_MAX_CELLS
     if dense:  # the dense rows straight from C (no sparse products for these small problems)
         factor = _factor(prob)
         if factor is None:

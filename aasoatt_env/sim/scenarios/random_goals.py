@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError, ScenarioError
 from aasoatt_env.model.params import RobotParams, make_team
-from aasoatt_env.sim.references import FunctionReference
+from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.scenarios.base import (
     QUANTITY_RANGE,
     Layout,
@@ -152,13 +152,8 @@ class RandomGoals(Scenario):
         starts, goals = self._sample(rng), self._sample(rng)
         dist = np.hypot(*(goals - starts).T)
         durations = np.maximum(dist / self.speed, 1e-3)
-        T = float(durations.max())
-        ref = FunctionReference(
-            lambda t: starts + (goals - starts) * np.clip(t / durations, 0.0, 1.0)[:, None],
-            T,
-            velocity=lambda t: ((goals - starts) / durations[:, None]) * (t < durations)[:, None],
-            acceleration=lambda t: np.zeros_like(starts),
-        )
+        ref = LinearReference(starts, goals, durations)  # every robot at the same speed: its own duration
+        T = ref.duration
         b = self.arena_size / 2.0 + 0.5
         centers, radii = self._obstacles(rng, np.concatenate((starts, goals)))
         return Layout(
