@@ -162,3 +162,38 @@ def test_ldp_alone_relaxes_infeasible_problems_like_quadprog(monkeypatch):
             # rows were loosened by their least violation (1 + 1e-6) + 1e-7 (qp.solve_qp)
             assert np.all(prob.C @ ours.x - prob.u <= ours.slack * (1 + 2e-6) + 2e-7)
     assert relaxed >= 30
+
+
+def test_stacked_teams_take_the_dense_active_set_and_match_quadprog(swap10, monkeypatch):
+    # a stack of small teams behind one filter call (the batched env's grouped filter) gives
+    # problems with many variables and few rows each: the warm active set solves them with
+    # dense algebra (DENSE_MAX_CELLS); its answer must still be the exact optimum
+    import dataclasses
+
+    import scipy.sparse as sp
+
+    import aasoatt_env.safety.solvers.active_set as AS
+
+    _, recorded = swap10
+    dense_calls = []
+    real_rows = AS._dense_rows
+    monkeypatch.setattr(AS, "_dense_rows", lambda prob, L: dense_calls.append(prob.n) or real_rows(prob, L))
+    rng = np.random.default_rng(2)
+    groups = [recorded[k:k + 5] for k in range(0, 200, 40)]
+    for group in groups:
+        stack = dataclasses.replace(
+            group[0], H_blocks=np.concatenate([p.H_blocks for p in group]), g=np.concatenate([p.g for p in group]),
+            C=sp.block_diag([p.C for p in group], format="csr"), u=np.concatenate([p.u for p in group]),
+            lb=np.concatenate([p.lb for p in group]), ub=np.concatenate([p.ub for p in group]),
+            scale=np.concatenate([p.scale for p in group]), row_norm=np.concatenate([p.row_norm for p in group]))
+        assert stack.n > AS.DENSE_MAX_VARS and stack.n * (stack.m + 2 * stack.n) <= AS.DENSE_MAX_CELLS
+        prev = dataclasses.replace(stack, g=stack.g + rng.normal(0, 0.02, stack.n))
+        warm = solve_qp(prev, "proxsuite")
+        ours = solve_qp(stack, "proxsuite", warm.x, warm.z, active_set=True)
+        ref = solve_qp(stack, "quadprog")
+        assert ours.message.startswith("active set"), ours.message
+        f1, f2 = _full_objective(stack, ours.x), _full_objective(stack, ref.x)
+        assert abs(f1 - f2) <= 1e-6 * max(1.0, abs(f2)), (f1, f2)
+        assert np.all(stack.C @ ours.x <= stack.u + 1e-8)
+        np.testing.assert_allclose(ours.x, ref.x, atol=1e-6)
+    assert dense_calls and min(dense_calls) > AS.DENSE_MAX_VARS
