@@ -140,34 +140,37 @@ class FilterReport:
 
     def info(self, index: int) -> dict[str, Any]:
         """The nested ``infos[agent]["filter"]`` dict of robot ``index``."""
-        return {
-            "intervened": bool(self.intervened[index]),
-            "avoiding": bool(self.avoiding[index]),
-            "triggered": bool(self.triggered[index]),
-            "backup": bool(self.backup[index]),
-            "correction": float(self.correction[index]),
-            "status": self.status,
-            "safe": bool(self.safe),
-            "margin": float(self.margin),
-            "barrier_min": float(min(self.barrier_min, _BIG)),
-            "slack": float(self.slack),
-            "iterations": int(self.iterations),
-            "n_rows": int(self.n_rows),
-            "n_qp_rows": int(self.n_qp_rows),
-        }
+        return self.infos(np.array([index]))[0]
 
     def flat_info(self, index: int) -> dict[str, float]:
         """The numeric top-level keys of ``infos="flat"`` for robot ``index``."""
-        return {
-            "filter_intervened": float(self.intervened[index]),
-            "filter_avoiding": float(self.avoiding[index]),
-            "filter_triggered": float(self.triggered[index]),
-            "filter_backup": float(self.backup[index]),
-            "filter_correction": float(self.correction[index]),
-            "filter_status_code": float(STATUS_CODES[self.status]),
-            "filter_margin": float(self.margin),
-            "filter_slack": float(self.slack),
+        return self.flat_infos(np.array([index]))[0]
+
+    def infos(self, indices: np.ndarray) -> list[dict[str, Any]]:
+        """The nested ``infos[agent]["filter"]`` dicts of robots ``indices`` (one conversion per field, not per robot)."""
+        shared = {
+            "status": self.status, "safe": bool(self.safe), "margin": float(self.margin),
+            "barrier_min": float(min(self.barrier_min, _BIG)), "slack": float(self.slack),
+            "iterations": int(self.iterations), "n_rows": int(self.n_rows), "n_qp_rows": int(self.n_qp_rows),
         }
+        cols = self._columns(indices)
+        return [{"intervened": a, "avoiding": b, "triggered": c, "backup": d, "correction": e, **shared}
+                for a, b, c, d, e in zip(*cols)]
+
+    def flat_infos(self, indices: np.ndarray) -> list[dict[str, float]]:
+        """The numeric top-level keys of ``infos="flat"`` for robots ``indices``."""
+        shared = {"filter_status_code": float(STATUS_CODES[self.status]), "filter_margin": float(self.margin),
+                  "filter_slack": float(self.slack)}
+        cols = self._columns(indices)
+        return [{"filter_intervened": float(a), "filter_avoiding": float(b), "filter_triggered": float(c),
+                 "filter_backup": float(d), "filter_correction": e, **shared}
+                for a, b, c, d, e in zip(*cols)]
+
+    def _columns(self, indices: np.ndarray) -> tuple[list, ...]:
+        """The per-robot fields of robots ``indices`` as Python lists (bools and floats)."""
+        return (self.intervened[indices].tolist(), self.avoiding[indices].tolist(),
+                self.triggered[indices].tolist(), self.backup[indices].tolist(),
+                np.asarray(self.correction[indices], dtype=np.float64).tolist())
 
 
 class AASOATTFilter(BaseParallelWrapper):
@@ -230,13 +233,22 @@ class AASOATTFilter(BaseParallelWrapper):
 
     def _add(self, infos: dict[str, dict]) -> dict[str, dict]:
         rep = self._report
+        flat = self._infos_mode == "flat"
+        if rep is None:
+            for info in infos.values():
+                if flat:
+                    info.update(_FLAT_IDLE)
+                else:
+                    info["filter"] = dict(_NESTED_IDLE)
+            return infos
         idx = self.unwrapped.agent_index
-        for agent, info in infos.items():
-            i = idx[agent]
-            if self._infos_mode == "flat":
-                info.update(rep.flat_info(i) if rep is not None else _FLAT_IDLE)
+        rows = np.fromiter((idx[a] for a in infos), dtype=np.intp, count=len(infos))
+        extra = rep.flat_infos(rows) if flat else rep.infos(rows)
+        for info, add in zip(infos.values(), extra):
+            if flat:
+                info.update(add)
             else:
-                info["filter"] = rep.info(i) if rep is not None else dict(_NESTED_IDLE)
+                info["filter"] = add
         return infos
 
     @property
