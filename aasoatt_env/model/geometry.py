@@ -66,6 +66,20 @@ def _group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return hit
 
 
+_GROUP_SIZES: dict[bytes, int] = {}
+
+
+def _group_size(groups: np.ndarray) -> int:
+    """Robots per group (``N // labels``), cached per labelling (the filter asks at every physics step)."""
+    key = np.ascontiguousarray(groups).tobytes()
+    size = _GROUP_SIZES.get(key)
+    if size is None:
+        if len(_GROUP_SIZES) >= 16:
+            _GROUP_SIZES.clear()
+        size = _GROUP_SIZES[key] = groups.shape[0] // max(int(np.unique(groups).size), 1)
+    return size
+
+
 def pairwise_distances(p: np.ndarray) -> np.ndarray:
     """Centre distances ``(N, N)`` of points ``(N, 2)`` (one complex subtraction)."""
     z = np.ascontiguousarray(p, dtype=np.float64).view(np.complex128)[:, 0]
@@ -98,7 +112,7 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
     if n < 2:
         return np.empty((0, 2), dtype=np.intp)
     if method == "auto":
-        per_group = n if groups is None else n // max(int(np.unique(groups).size), 1)
+        per_group = n if groups is None else _group_size(groups)
         method = "kdtree" if per_group >= KDTREE_MIN_ROBOTS else "brute"
     if method == "brute":
         iu, ju = _upper_pairs(n) if groups is None else _group_pairs(groups)

@@ -276,6 +276,10 @@ def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray 
     return dist.min(axis=1) - ds
 
 
+_ONE_BUCKET_CELLS = 4096
+"""Pair batches with at most this many samples in all are checked in one call rather than by horizon bucket."""
+
+
 def _bucketed(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndarray, jj: np.ndarray, ds: np.ndarray,
               centers: np.ndarray | None = None) -> np.ndarray:
     """:func:`pair_margins` of pairs ``(ii, jj)`` of rows of ``P``, in buckets of similar horizon.
@@ -287,7 +291,11 @@ def _bucketed(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndarray, jj
     if ii.size == 0:
         return out
     lens = np.maximum(need[ii] if centers is not None else np.maximum(need[ii], need[jj]), 2)
-    bucket = np.ceil(np.log2(lens)).astype(np.int64)
+    top = int(lens.max())
+    if ii.size * top <= max(2 * int(lens.sum()), _ONE_BUCKET_CELLS):
+        bucket = np.zeros(ii.shape[0], dtype=np.int64)  # small or even: one call (padding samples are at rest)
+    else:
+        bucket = np.ceil(np.log2(lens)).astype(np.int64)
     for b in np.unique(bucket):
         sel = np.flatnonzero(bucket == b)
         Lb = int(lens[sel].max())
