@@ -147,7 +147,7 @@ class FilterReport:
         return self.flat_infos(np.array([index]))[0]
 
     def infos(self, indices: np.ndarray) -> list[dict[str, Any]]:
-        """The nested ``infos[agent]["filter"]`` dicts of robots ``indices`` (one conversion per field, not per robot)."""
+        """The nested ``infos[agent]["filter"]`` dicts of robots ``indices`` (one conversion per field)."""
         shared = {
             "status": self.status, "safe": bool(self.safe), "margin": float(self.margin),
             "barrier_min": float(min(self.barrier_min, _BIG)), "slack": float(self.slack),
