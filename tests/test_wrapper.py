@@ -48,6 +48,27 @@ def test_infos_carry_filter_report_and_bounds_hold_for_unbounded_nominal():
     assert f["correction"] > 0
 
 
+@pytest.mark.parametrize("mode", ["nested", "flat"])
+def test_each_agents_filter_info_is_its_own_robots_report_in_python_types(mode):
+    env = AASOATTFilter(AASOATTParallelEnv("circle_swap", num_robots=8, radius=1.6, duration=2.0), infos=mode)
+    env.reset(seed=0)
+    rng = np.random.default_rng(1)
+    seen = 0
+    for _ in range(30):
+        _, _, _, _, infos = env.step({a: rng.uniform(-1, 1, 2).astype(np.float32) for a in env.agents})
+        rep = env.report
+        for agent, info in infos.items():
+            i = env.unwrapped.agent_index[agent]
+            f = info["filter"] if mode == "nested" else {k[len("filter_"):]: v for k, v in info.items()
+                                                         if k.startswith("filter_")}
+            assert type(f["correction"]) is float and f["correction"] == float(rep.correction[i]), agent
+            want = (bool, "intervened") if mode == "nested" else (float, "intervened")
+            assert type(f[want[1]]) is want[0] and bool(f["intervened"]) == bool(rep.intervened[i]), agent
+            assert bool(f["backup"]) == bool(rep.backup[i]) and bool(f["avoiding"]) == bool(rep.avoiding[i]), agent
+            seen += int(bool(f["intervened"]))
+    assert seen > 0  # the check above saw robots the filter corrected, not only idle ones
+
+
 def test_filter_is_applied_at_every_physics_step_of_a_decision_interval():
     env = AASOATTFilter(
         AASOATTParallelEnv("circle_swap", num_robots=4, radius=1.5, duration=2.0, decision_interval=10)
