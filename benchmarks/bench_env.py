@@ -12,12 +12,13 @@ controller), agent-steps/s of the filtered env, and the
 baseline the env overhead is measured against, in the same run.  Medians
 over repeats, one thread.
 
-Usage: ``python benchmarks/bench_env.py [--quick] [--large]``
+Usage: ``python benchmarks/bench_env.py [--quick] [--large] [--sizes 20,1000]``
 """
 
 from __future__ import annotations
 
 import argparse
+import gc
 import os
 import statistics
 import time
@@ -49,6 +50,7 @@ def _rate(n: int, steps: int, filtered: bool | dict, agent: str) -> float:
 
     for _ in range(3):  # warm-up
         obs, *_ = env.step(act(obs))
+    gc.collect()  # the previous env's garbage is not this one's cost
     t = time.perf_counter()
     for _ in range(steps):
         obs, *_ = env.step(act(obs))
@@ -71,16 +73,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="N <= 100, fewer steps and repeats")
     parser.add_argument("--large", action="store_true", help="also N = 10,000")
+    parser.add_argument("--sizes", type=lambda v: [int(x) for x in v.split(",")], default=None,
+                        help="team sizes, comma-separated (replaces the defaults)")
     args = parser.parse_args()
     repeats = 3 if args.quick else 5
     sizes = [4, 20, 100] if args.quick else [4, 20, 100, 1000] + ([10000] if args.large else [])
+    sizes = args.sizes or sizes
     print(f"{'N':>6} {'bare':>10} {'+control':>10} {'+filter':>10} {'random+f':>10} {'decentral':>10} "
           f"{'agent-st/s':>11} {'physics':>10} {'bare/phys':>10} {'filt/bare':>10}   (env steps/s)")
     dec = {"mode": "decentralized"}
     for n in sizes:
-        steps = 400 if n <= 20 else 150 if n <= 100 else 20 if n <= 1000 else 4
+        steps = 400 if n <= 20 else 150 if n <= 100 else 60 if n <= 1000 else 4
         steps = max(steps // (4 if args.quick else 1), 4)
-        fsteps = max(steps // 2, 4)
+        fsteps = max(steps // 2, 4)  # windows of >= 0.2 s at N <= 1,000: short ones catch the machine's noise
         bare = statistics.median(_rate(n, steps, False, "zeros") for _ in range(repeats))
         ctrl = statistics.median(_rate(n, steps, False, "tracking") for _ in range(repeats))
         filt = statistics.median(_rate(n, fsteps, True, "tracking") for _ in range(repeats))
