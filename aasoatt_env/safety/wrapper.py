@@ -168,9 +168,9 @@ class FilterReport:
 
     def _columns(self, indices: np.ndarray) -> tuple[list, ...]:
         """The per-robot fields of robots ``indices`` as Python lists (bools and floats)."""
-        return (self.intervened[indices].tolist(), self.avoiding[indices].tolist(),
-                self.triggered[indices].tolist(), self.backup[indices].tolist(),
-                np.asarray(self.correction[indices], dtype=np.float64).tolist())
+        flags = (np.asarray(f[indices], dtype=bool).tolist()
+                 for f in (self.intervened, self.avoiding, self.triggered, self.backup))
+        return (*flags, np.asarray(self.correction[indices], dtype=np.float64).tolist())
 
 
 class AASOATTFilter(BaseParallelWrapper):
