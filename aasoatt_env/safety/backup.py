@@ -172,8 +172,12 @@ def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fracti
     rate = np.where(moving, 1.0 / np.where(moving, ratio, 1.0), 1.0)
     steps = np.ceil(ratio - 1e-12).astype(np.int64)
     speed = np.abs(pdot) * moving
+    # arc parameter at rest, of the *stepped* braking (the trapezoid of the sampled paths, whose last
+    # step stops from sigma > 0 within a whole dt): dt (1/2 + (K - 1)(1 - K / (2 r))), r = T / dt,
+    # K = ceil(r) steps; at least the continuous T / 2, more when r is not an integer
+    K = steps.astype(np.float64)
+    tau_end = np.where(moving, dt * (0.5 + (K - 1.0) * (1.0 - K / (2.0 * np.where(moving, ratio, 1.0)))), 0.0)
     # farthest point of the braking arc from its start: the chord of the swept angle (a diameter past pi)
-    tau_end = 0.5 * T * moving
     aw = np.abs(w)
     past_half = aw * tau_end > np.pi
     tau_env = np.where(past_half, np.pi / np.where(past_half, aw, 1.0), tau_end)
