@@ -21,7 +21,7 @@ from aasoatt_env.safety.backup import (
     pair_margins,
     reach_limit,
 )
-from agents import HostileAgent
+from agents import ADVERSARIES, HostileAgent
 
 F = 2.0 / 3.0  # the default brake fraction
 
@@ -247,6 +247,17 @@ def test_hostile_seeds_that_collided_before_are_kept_apart(seed):
     assert pairwise_min_distance(rollout).overall_min_robot_gap >= -1e-3
     assert not np.any(rollout.solver_status == "unsafe")
     assert rollout.backup.any()  # the layer had to act
+
+
+@pytest.mark.slow
+def test_decentralised_circle_under_chase_target_that_collided_before_is_kept_apart():
+    # the episode that found the reach bug: 39 robots on the radius-6 circle, paper preset,
+    # chase_target seed 400, decentralised; it collided by 174 mm with the continuous-braking reach
+    env = make_env(filter={"mode": "decentralized"}, max_steps=800, scenario="circle_swap", num_robots=39)
+    rollout, _ = run_episode(env, ADVERSARIES["chase_target"](seed=400), seed=400)
+    assert pairwise_min_distance(rollout).overall_min_robot_gap >= -1e-9
+    assert not np.any(rollout.solver_status == "unsafe")
+    assert rollout.backup.any()
 
 
 def test_wrapper_reports_backup_and_margin():
