@@ -613,38 +613,48 @@ def repair(
     du = np.minimum(np.maximum(du_c, lo), hi)
     n = pose.shape[0]
     eye = np.eye(2)
+    p0 = _point(team, pose)
     for _ in range(rounds):
-        base = candidate_paths(team, pose, u, du, dt, brake_fraction)
-        p0 = base.p[:, 0]
-        R = base.reach + eps * dt * dt
+        # reach first (O(N)): only robots with a pair that could come close need sampled paths
+        p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
+        R = np.abs(p1 - p0) + d1 + _brake(team, theta1, u1, dt, brake_fraction).reach + eps * dt * dt
         i, j, ds = _pairs_near(team, p0, R, sensing_range, 2.0 * target)
-        m = _bucketed(base.p, base.delta, base.length, i, j, ds)
+        oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 2.0 * target)
+        if i.size + oi.size == 0:
+            break
+        S = np.unique(np.concatenate((i, j, oi)))  # rows of `base`: these robots, in this order
+        loc = np.full(n, -1, dtype=np.intp)
+        loc[S] = np.arange(S.size)
+        base = candidate_paths(team.subset(S), pose[S], u[S], du[S], dt, brake_fraction)
+        m = _bucketed(base.p, base.delta, base.length, loc[i], loc[j], ds)
         low = m < target
         i, j, ds = i[low], j[low], ds[low]
-        oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 2.0 * target)
         if oi.size:
-            mo = _bucketed(base.p, base.delta, base.length, oi, ok, ods, centers=oc)
+            mo = _bucketed(base.p, base.delta, base.length, loc[oi], ok, ods, centers=oc)
             lowo = mo < target
             oi, ok, ods = oi[lowo], ok[lowo], ods[lowo]
         if i.size + oi.size == 0:
             break
         M = np.unique(np.concatenate((i, j, oi)))
         m = M.size
+        s_n = S.size
         L = base.p.shape[1] + 1  # a perturbation of eps dt in u adds at most one backup step
-        # rows [0, n): the base paths; [n, 2n) and [2n, 3n): with input k of the robots M perturbed
-        # (both perturbations in one call, and every margin below in one call: the same numbers,
-        # row by row, as separate calls)
+        # rows [0, s): the base paths of S; [s, 2s) and [2s, 3s): with input k of the robots M
+        # perturbed (both perturbations in one call, and every margin below in one call: the same
+        # numbers, row by row, as separate calls)
         P = np.concatenate((base.p, base.p[:, -1:]), axis=1)
-        D = np.concatenate((base.delta, np.zeros((n, 1))), axis=1)
+        D = np.concatenate((base.delta, np.zeros((s_n, 1))), axis=1)
         P, D = np.concatenate((P, P, P)), np.concatenate((D, D, D))
         MM = np.concatenate((M, M))
         t = candidate_paths(team.subset(MM), pose[MM], u[MM], du[MM] + eps * np.repeat(eye, m, axis=0), dt,
                             brake_fraction, L)
-        P[np.concatenate((n + M, 2 * n + M))], D[np.concatenate((n + M, 2 * n + M))] = t.p, t.delta
+        lM = loc[M]
+        P[np.concatenate((s_n + lM, 2 * s_n + lM))], D[np.concatenate((s_n + lM, 2 * s_n + lM))] = t.p, t.delta
         step = np.zeros((n, 2))
         if i.size:
-            a = np.concatenate((i, n + i, 2 * n + i, i, i))
-            b = np.concatenate((j, j, j, n + j, 2 * n + j))
+            li, lj = loc[i], loc[j]
+            a = np.concatenate((li, s_n + li, 2 * s_n + li, li, li))
+            b = np.concatenate((lj, lj, lj, s_n + lj, 2 * s_n + lj))
             mg = pair_margins(P[a], P[b], D[a], D[b], np.tile(ds, 5)).reshape(5, -1)
             m0 = mg[0]
             gi = ((mg[1:3] - m0) / eps).T
@@ -653,7 +663,8 @@ def repair(
             np.add.at(step, i, lift[:, None] * gi)
             np.add.at(step, j, lift[:, None] * gj)
         if oi.size:
-            a = np.concatenate((oi, n + oi, 2 * n + oi))
+            lo_ = loc[oi]
+            a = np.concatenate((lo_, s_n + lo_, 2 * s_n + lo_))
             mg = pair_margins(P[a], oc[np.tile(ok, 3)][:, None], D[a], 0.0, np.tile(ods, 3)).reshape(3, -1)
             m0 = mg[0]
             go = ((mg[1:3] - m0) / eps).T
