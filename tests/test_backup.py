@@ -232,6 +232,37 @@ def test_status_never_says_solved_outside_the_safe_set():
     assert res_off.barrier_min < 0 and res_off.status == "unsafe"
 
 
+@pytest.mark.parametrize("mode", ["centralized", "decentralized"])
+@pytest.mark.parametrize("n", [2, 3])
+def test_outside_the_safe_set_no_pair_gets_closer_than_braking_would_bring_it(mode, n):
+    """Best effort once the invariant is broken: the gate at the current violation, not the bare QP.
+
+    Two robots 1 cm apart closing at 2 m/s (a third one 0.36 m above their meeting point) must
+    overlap by about 0.24 m even when both brake at once; a nominal that keeps pushing them
+    together must not make it worse (the QP's answers for those robots, the earlier best effort,
+    let it reach 0.36 m with two robots and 0.93 m with three).
+    """
+    team = make_team("paper", n)
+    pts = np.array([[-0.485, 0.0], [0.485, 0.0], [0.0, 0.84]])[:n]
+    pose = pose_from_point(team, pts, np.array([0.0, np.pi, -np.pi / 2])[:n])
+    u = np.full((n, 2), 10.0)
+    tr = braking_trajectory(team, pose, u, DT, F)
+    i, j = np.triu_indices(n, 1)
+    floor = float(pair_margins(tr.p[i], tr.p[j], tr.delta[i], tr.delta[j], team.radius[i] + team.radius[j]).min())
+    assert floor < -0.2  # not brake-safe: no input can avoid the overlap
+    f = SafetyFilter(team, deadlock="none", mode=mode)
+    gaps, statuses = [], set()
+    for _ in range(400):
+        kin, lo, hi = _inputs(team, pose, u)
+        du, res = f.step(kin, u, pose[:, 2], np.full((n, 2), 60.0), lo, hi)
+        statuses.add(res.status)
+        pose, u = integrate(team, pose, u, du, DT)
+        p = kinematics(team, pose, u).p
+        gaps.append(float((np.linalg.norm(p[i] - p[j], axis=1) - team.radius[i] - team.radius[j]).min()))
+    assert min(gaps) >= floor - 1e-6
+    assert statuses == {"unsafe"}  # never reported as safe while overlapping
+
+
 def test_reach_limit_and_sensing_range_configuration():
     team = make_team("paper", 2)
     assert reach_limit(team, 3.0) == pytest.approx((3.0 - 0.96) / 2)

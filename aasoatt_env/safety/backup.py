@@ -365,6 +365,7 @@ def gatekeeper(
     obstacles: tuple[np.ndarray, np.ndarray] | None = None,
     tol: float = 0.0,
     blend_levels: tuple[float, ...] = (0.5,),
+    hold_violations: bool = False,
 ) -> GateResult:
     """Accept the candidate ``du_c`` for every robot whose pairs stay brake-safe; put the others on the backup.
 
@@ -427,6 +428,11 @@ def gatekeeper(
         Intermediate steps between the candidate and the backup, ``du = du_b + a (du_c - du_b)``
         for each ``a`` (tried from the largest down): a robot that fails with the candidate first
         tries these gentler blends, and brakes only if they fail too.  ``()``: brake at once.
+    hold_violations : bool
+        Best effort outside the safe set: a pair whose margin is negative even when both members
+        brake is held to that margin (its own tolerance) instead of being marked broken, so no pair
+        gets closer than braking would bring it while robots may still move apart.  ``safe`` then
+        says only whether the range condition held; the caller reports the state.
     """
     n = pose.shape[0]
     theta = pose[:, 2]
@@ -495,6 +501,13 @@ def gatekeeper(
     li, lj, lo_ = loc[i], loc[j], loc[oi]
     rows_m = np.arange(M.size)
 
+    tol_p, tol_o = np.full(i.shape[0], float(tol)), np.full(oi.shape[0], float(tol))
+    if hold_violations:  # each pair's own floor: its margin when both members brake now
+        Pb, Db = level_paths(last)
+        if i.size:
+            tol_p += np.maximum(0.0, -_bucketed(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9)
+        if oi.size:
+            tol_o += np.maximum(0.0, -_bucketed(Pb, Db, need[last], lo_, ok, ods, centers=oc)) * (1.0 + 1e-9)
     marg = np.full(i.shape[0], np.inf)
     omarg = np.full(oi.shape[0], np.inf)
     todo = np.ones(i.shape[0], dtype=bool)
@@ -520,8 +533,8 @@ def gatekeeper(
         if oidx.size:
             omarg[oidx] = _bucketed(cur, curd, cneed, lo_[oidx], ok[oidx], ods[oidx], centers=oc)
         demote = np.zeros(n, dtype=bool)
-        bad = idx[marg[idx] < -tol]
-        obad = oidx[omarg[oidx] < -tol]
+        bad = idx[marg[idx] < -tol_p[idx]]
+        obad = oidx[omarg[oidx] < -tol_o[oidx]]
         demote[i[bad]] = True
         demote[j[bad]] = True
         demote[oi[obad]] = True

@@ -170,6 +170,15 @@ def _gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarra
     quick = gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, blend_levels=(), **gate_kw)
     if not quick.braking.any():
         return quick
+    if not quick.safe and quick.margin < 0.0:
+        # the invariant is already broken (a start that was not brake-safe, an assumption violated):
+        # best effort is the same gate with every pair held to its own margin under braking, so no
+        # pair gets closer than braking would bring it while robots may still move apart (pair by
+        # pair: a stack of teams decides as each team alone); the result keeps saying unsafe, and
+        # the caller's bounds stay hard (they bind only when tighter than the robots' own, which
+        # the backup respects)
+        held = gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, hold_violations=True, **gate_kw)
+        return held._replace(safe=False, du=np.minimum(np.maximum(held.du, lo), hi))
     if not (cfg.backup_repair and quick.safe):
         return gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, **gate_kw)
     # nudge the QP's answer toward brake-safety, then check again (usually nobody brakes then)
