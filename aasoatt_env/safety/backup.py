@@ -333,7 +333,8 @@ class GateResult(NamedTuple):
     broken : numpy.ndarray
         ``(N,)`` bool: robots in a pair that fails even when both brake (or that
         reach beyond the range limit when braking).  No input can promise them
-        safety; the caller decides what they do (the filter applies its QP).
+        safety; the caller decides what they do (the filter applies its QP to robots beyond the range
+        limit, and re-runs the gate with ``hold_violations`` for pairs that fail when both brake).
     share : numpy.ndarray
         ``(N,)``: the share ``a`` of the candidate in the applied input (1: the
         candidate, 0: the backup).

@@ -512,7 +512,7 @@ class SafetyFilter:
             pose = _axle_pose(team, p, theta)
             gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles)
             gate = _gate_with_repair(team, pose, u, du, lo, hi, cfg, gate_kw)
-            # robots the backup cannot save any more (the invariant was broken before): best effort, the QP
+            # robots the gate still marks broken (beyond the range limit when braking): best effort, the QP
             du_qp, broken = du, gate.broken
             du = np.where(broken[:, None], du_qp, gate.du)
             braking, margin, safe = gate.braking & ~broken, gate.margin, gate.safe
