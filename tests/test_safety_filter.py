@@ -482,3 +482,20 @@ def test_small_problems_take_the_exact_path_and_proofs_of_infeasibility_skip_pro
     assert calls == []  # ldp proved the rows inconsistent and solved phase 1: proxsuite was never asked
     assert 2 * n <= core.EXACT_FIRST_VARS
 
+
+
+def test_proxsuite_alternate_class_is_not_tried_on_problems_the_dense_class_takes():
+    # the sparse class did not return (40 s and more) on a small infeasible problem with a huge
+    # linear term from an adversary's 1e6 nominal; the alternate fallback now only goes sparse -> dense
+    from aasoatt_env.safety.problem import build_problem
+
+    A = np.array([[[0.05, 0.05], [0.1, -0.1]]] * 2)
+    target = np.array([[3e6, 1e6], [-3e6, 2e6]])
+    lo, hi = -60 * np.ones((2, 2)), 60 * np.ones((2, 2))
+    Gi, Gj = np.array([[0.05, 0.1]]) @ A[0], -(np.array([[0.05, 0.1]]) @ A[1])
+    prob = build_problem(A, target, lo, hi, np.full(2, 60.0), np.array([0]), np.array([1]), Gi, Gj,
+                         np.array([-50.0]))
+    assert prob.n + prob.m <= backends.DENSE_MAX_SIZE
+    raw = backends.SOLVERS["proxsuite"](prob, None, None, {"alternate": True})
+    assert not raw.ok and raw.iterations == 0 and "alternate class skipped" in raw.message
+    assert backends.SOLVERS["proxsuite"](prob, None, None, {}).iterations > 0  # the dense class still runs
