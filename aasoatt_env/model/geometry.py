@@ -18,6 +18,8 @@ of barrier rows is deterministic and independent of the back-end.
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -48,36 +50,37 @@ def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     return iu, ju
 
 
-_GROUP_PAIRS: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+_LABELLING_CACHES: dict[str, dict[bytes, Any]] = {"pairs": {}, "size": {}}
+
+
+def _per_labelling(kind: str, groups: np.ndarray, make: Callable[[np.ndarray], Any]) -> Any:
+    """``make(groups)``, cached per labelling (the filter asks for the same one at every physics step)."""
+    store = _LABELLING_CACHES[kind]
+    key = np.ascontiguousarray(groups).tobytes()
+    hit = store.get(key)
+    if hit is None:
+        if len(store) >= 16:
+            store.clear()
+        hit = store[key] = make(groups)
+    return hit
+
+
+def _make_group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    iu, ju = _upper_pairs(groups.shape[0])
+    same = groups[iu] == groups[ju]
+    iu, ju = iu[same], ju[same]
+    iu.flags.writeable = ju.flags.writeable = False
+    return iu, ju
 
 
 def _group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The pairs ``i < j`` of :func:`_upper_pairs` with ``groups[i] == groups[j]`` (cached per labelling)."""
-    key = np.ascontiguousarray(groups).tobytes()
-    hit = _GROUP_PAIRS.get(key)
-    if hit is None:
-        iu, ju = _upper_pairs(groups.shape[0])
-        same = groups[iu] == groups[ju]
-        iu, ju = iu[same], ju[same]
-        iu.flags.writeable = ju.flags.writeable = False
-        if len(_GROUP_PAIRS) >= 16:
-            _GROUP_PAIRS.clear()
-        hit = _GROUP_PAIRS[key] = (iu, ju)
-    return hit
-
-
-_GROUP_SIZES: dict[bytes, int] = {}
+    return _per_labelling("pairs", groups, _make_group_pairs)
 
 
 def _group_size(groups: np.ndarray) -> int:
-    """Robots per group (``N // labels``), cached per labelling (the filter asks at every physics step)."""
-    key = np.ascontiguousarray(groups).tobytes()
-    size = _GROUP_SIZES.get(key)
-    if size is None:
-        if len(_GROUP_SIZES) >= 16:
-            _GROUP_SIZES.clear()
-        size = _GROUP_SIZES[key] = groups.shape[0] // max(int(np.unique(groups).size), 1)
-    return size
+    """Robots per group (``N // labels``), cached per labelling."""
+    return _per_labelling("size", groups, lambda g: g.shape[0] // max(int(np.unique(g).size), 1))
 
 
 def pairwise_distances(p: np.ndarray) -> np.ndarray:

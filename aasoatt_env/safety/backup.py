@@ -221,6 +221,11 @@ def _first_step(team: Team, p0: np.ndarray, theta: np.ndarray, u: np.ndarray, du
     return p1, (dt * dt / 8.0) * np.abs(pdot_m) * np.abs(w_m), theta + w_m * dt, u1
 
 
+def _candidate_reach(p0: np.ndarray, p1: np.ndarray, d1: np.ndarray, b1: _Brake) -> np.ndarray:
+    """Bound on the distance from ``p0`` of one step to ``p1`` (sagitta ``d1``) and the braking after it."""
+    return np.abs(p1 - p0) + d1 + b1.reach
+
+
 def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float, brake_fraction: float,
                     length: int | None = None) -> Trajectories:
     """One step with ``du``, then the backup: samples at steps ``0 .. L-1`` (``p[:, 0]`` is the current point)."""
@@ -232,7 +237,7 @@ def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray,
     delta = np.empty((p0.shape[0], L - 1))
     p[:, 0], delta[:, 0] = p0, d1
     p[:, 1:], delta[:, 1:] = _brake_samples(p1, b1, dt, L - 1)
-    return Trajectories(p, delta, b1.steps + 2, np.abs(p1 - p0) + d1 + b1.reach)
+    return Trajectories(p, delta, b1.steps + 2, _candidate_reach(p0, p1, d1, b1))
 
 
 # --------------------------------------------------------------------------- pair check
@@ -453,7 +458,7 @@ def gatekeeper(
         p1, d1, theta1, u1 = _first_step(team, p0, theta, u, du_a, dt)
         b1 = _brake(team, theta1, u1, dt, brake_fraction)
         firsts.append((du_a, p1, d1, b1))
-        reach[k] = np.abs(p1 - p0) + d1 + b1.reach
+        reach[k] = _candidate_reach(p0, p1, d1, b1)
     reach[last] = b0.reach
     R = reach.max(axis=0)
 
@@ -631,7 +636,7 @@ def repair(
     for _ in range(rounds):
         # reach first (O(N)): only robots with a pair that could come close need sampled paths
         p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
-        R = np.abs(p1 - p0) + d1 + _brake(team, theta1, u1, dt, brake_fraction).reach + eps * dt * dt
+        R = _candidate_reach(p0, p1, d1, _brake(team, theta1, u1, dt, brake_fraction)) + eps * dt * dt
         i, j, ds = _pairs_near(team, p0, R, sensing_range, 2.0 * target)
         oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 2.0 * target)
         if i.size + oi.size == 0:

@@ -235,15 +235,11 @@ class AASOATTFilter(BaseParallelWrapper):
         rep = self._report
         flat = self._infos_mode == "flat"
         if rep is None:
-            for info in infos.values():
-                if flat:
-                    info.update(_FLAT_IDLE)
-                else:
-                    info["filter"] = dict(_NESTED_IDLE)
-            return infos
-        idx = self.unwrapped.agent_index
-        rows = np.fromiter((idx[a] for a in infos), dtype=np.intp, count=len(infos))
-        extra = rep.flat_infos(rows) if flat else rep.infos(rows)
+            extra = [dict(_FLAT_IDLE if flat else _NESTED_IDLE) for _ in infos]
+        else:
+            idx = self.unwrapped.agent_index
+            rows = np.fromiter((idx[a] for a in infos), dtype=np.intp, count=len(infos))
+            extra = rep.flat_infos(rows) if flat else rep.infos(rows)
         for info, add in zip(infos.values(), extra):
             if flat:
                 info.update(add)

@@ -118,8 +118,8 @@ def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, op
     n, m = prob.n, prob.m
     dense = n + m <= DENSE_MAX_SIZE
     if opts.get("alternate"):
-        if dense:  # the sparse class never ran out of time budget only: on a small infeasible problem
-            # with a huge linear term (nominal 1e6) it did not return (proxsuite 0.8.0, 40 s and more)
+        if dense:  # not dense -> sparse: on a small infeasible problem with a huge linear term
+            # (nominal 1e6) the sparse class did not return (proxsuite 0.8.0, 40 s and more)
             return RawAnswer(np.zeros(n), np.zeros(m), False, 0, "alternate class skipped (small problem)")
         dense = True
     if dense:
