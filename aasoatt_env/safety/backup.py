@@ -58,7 +58,6 @@ __all__ = [
     "GateResult",
     "Trajectories",
     "candidate_paths",
-    "repair",
     "brake_time",
     "braking_du",
     "braking_trajectory",
@@ -599,97 +598,3 @@ def _obstacles_near(team: Team, p0: np.ndarray, R: np.ndarray, obstacles: tuple[
         near &= team.group[:, None] == np.asarray(obstacles[2])[None, :]
     oi, ok = np.nonzero(near)
     return oc, oi, ok, rad[oi] + orad[ok]
-
-
-def repair(
-    team: Team,
-    pose: np.ndarray,
-    u: np.ndarray,
-    du_c: np.ndarray,
-    dt: float,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    *,
-    sensing_range: float,
-    brake_fraction: float,
-    obstacles: tuple[np.ndarray, np.ndarray] | None = None,
-    target: float = 2e-4,
-    rounds: int = 3,
-    eps: float = 1.0,
-) -> np.ndarray:
-    """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
-
-    For every pair whose margin along :func:`candidate_paths` is below
-    ``target`` [m], the margin's gradient with respect to both robots' inputs is
-    taken by finite differences (step ``eps`` in input units; one extra path
-    set per input direction, for the robots of such pairs only), and the two
-    inputs move by the least-norm change that lifts the linearised margin to
-    ``2 target``; changes from several pairs add up, and the result is clipped
-    to ``[lo, hi]``.  ``rounds`` rounds.  This acts like backup-barrier rows in
-    the QP (a small, local correction toward the safe set), so the gatekeeper
-    rarely has to brake; safety still comes from :func:`gatekeeper` alone.
-    """
-    du = np.minimum(np.maximum(du_c, lo), hi)
-    n = pose.shape[0]
-    eye = np.eye(2)
-    p0 = _point(team, pose)
-    for _ in range(rounds):
-        # reach first (O(N)): only robots with a pair that could come close need sampled paths
-        p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
-        R = _candidate_reach(p0, p1, d1, _brake(team, theta1, u1, dt, brake_fraction)) + eps * dt * dt
-        i, j, ds = _pairs_near(team, p0, R, sensing_range, 2.0 * target)
-        oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 2.0 * target)
-        if i.size + oi.size == 0:
-            break
-        S = np.unique(np.concatenate((i, j, oi)))  # rows of `base`: these robots, in this order
-        loc = np.full(n, -1, dtype=np.intp)
-        loc[S] = np.arange(S.size)
-        base = candidate_paths(team.subset(S), pose[S], u[S], du[S], dt, brake_fraction)
-        m = _bucketed(base.p, base.delta, base.length, loc[i], loc[j], ds)
-        low = m < target
-        i, j, ds = i[low], j[low], ds[low]
-        if oi.size:
-            mo = _bucketed(base.p, base.delta, base.length, loc[oi], ok, ods, centers=oc)
-            lowo = mo < target
-            oi, ok, ods = oi[lowo], ok[lowo], ods[lowo]
-        if i.size + oi.size == 0:
-            break
-        M = np.unique(np.concatenate((i, j, oi)))
-        m = M.size
-        s_n = S.size
-        L = base.p.shape[1] + 1  # a perturbation of eps dt in u adds at most one backup step
-        # rows [0, s): the base paths of S; [s, 2s) and [2s, 3s): with input k of the robots M
-        # perturbed (both perturbations in one call, and every margin below in one call: the same
-        # numbers, row by row, as separate calls)
-        P = np.concatenate((base.p, base.p[:, -1:]), axis=1)
-        D = np.concatenate((base.delta, np.zeros((s_n, 1))), axis=1)
-        P, D = np.concatenate((P, P, P)), np.concatenate((D, D, D))
-        MM = np.concatenate((M, M))
-        t = candidate_paths(team.subset(MM), pose[MM], u[MM], du[MM] + eps * np.repeat(eye, m, axis=0), dt,
-                            brake_fraction, L)
-        lM = loc[M]
-        P[np.concatenate((s_n + lM, 2 * s_n + lM))], D[np.concatenate((s_n + lM, 2 * s_n + lM))] = t.p, t.delta
-        step = np.zeros((n, 2))
-        if i.size:
-            li, lj = loc[i], loc[j]
-            a = np.concatenate((li, s_n + li, 2 * s_n + li, li, li))
-            b = np.concatenate((lj, lj, lj, s_n + lj, 2 * s_n + lj))
-            mg = pair_margins(P[a], P[b], D[a], D[b], np.tile(ds, 5)).reshape(5, -1)
-            m0 = mg[0]
-            gi = ((mg[1:3] - m0) / eps).T
-            gj = ((mg[3:5] - m0) / eps).T
-            lift = (2.0 * target - m0) / np.maximum((gi * gi).sum(1) + (gj * gj).sum(1), 1e-12)
-            np.add.at(step, i, lift[:, None] * gi)
-            np.add.at(step, j, lift[:, None] * gj)
-        if oi.size:
-            lo_ = loc[oi]
-            a = np.concatenate((lo_, s_n + lo_, 2 * s_n + lo_))
-            mg = pair_margins(P[a], oc[np.tile(ok, 3)][:, None], D[a], 0.0, np.tile(ods, 3)).reshape(3, -1)
-            m0 = mg[0]
-            go = ((mg[1:3] - m0) / eps).T
-            lift = (2.0 * target - m0) / np.maximum((go * go).sum(1), 1e-12)
-            np.add.at(step, oi, lift[:, None] * go)
-        if not step.any():
-            break
-        du = np.minimum(np.maximum(du + step, lo), hi)
-    return du

@@ -132,7 +132,7 @@ class FilterConfig:
     backup_repair : bool
         Where the backup layer would brake, first nudge the QP's answer toward
         the safe set (the least change that lifts every low backup margin,
-        :func:`aasoatt_env.safety.backup.repair`) and check again; keeps crowds
+        :func:`aasoatt_env.safety.repair.repair`) and check again; keeps crowds
         moving.  On by default.
     speed_margin : float
         Added to the safety distance of a pair in the barrier rows:

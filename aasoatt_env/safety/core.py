@@ -34,12 +34,12 @@ from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
 from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
 from aasoatt_env.model.params import Team
-from aasoatt_env.safety.backup import GateResult, gatekeeper, repair
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
 from aasoatt_env.safety.decentralized import decentralized_step
 from aasoatt_env.safety.problem import box_least_squares, build_problem
+from aasoatt_env.safety.repair import gate_with_repair
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.sim.protocol import FilterInput
 
@@ -56,8 +56,6 @@ layer the status is ``"unsafe"`` then, whatever the barrier's value."""
 MIN_BRAKING_ROOM: float = 0.1
 """With the backup layer, the sensing range must exceed the largest safety distance by this much [m]:
 every robot's braking path must fit in half of the difference (:func:`~aasoatt_env.safety.backup.reach_limit`)."""
-_GATE_TOL = 1e-9
-"""Distance [m] the backup check forgives (floating-point rounding of the closed-form paths)."""
 
 
 def _axle_pose(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -150,46 +148,6 @@ class FilterResult:
     def obstacle_rows(self) -> np.ndarray:
         """Boolean ``(n_rows,)``: row is a robot-obstacle row."""
         return self.pairs[:, 1] < 0
-
-
-def _gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                      cfg: FilterConfig, gate_kw: dict[str, Any]) -> GateResult:
-    """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair if it brakes.
-
-    Every answer comes from :func:`~aasoatt_env.safety.backup.gatekeeper`
-    (safety is its invariant).  Whether the QP's answer passes for every robot
-    is decided by the first round, which is the same with or without the blend
-    levels, so it is checked without them (``blend_levels=()``: fewer rounds).
-    If someone brakes, the answer is nudged by
-    :func:`~aasoatt_env.safety.backup.repair` and checked again with the blend
-    levels; the full check of the QP's answer is made only when the repaired
-    one still brakes someone, and of the two the one that brakes fewer robots
-    is kept.  When the invariant was already broken (``safe`` False), the full
-    check of the QP's answer decides.
-    """
-    quick = gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, blend_levels=(), **gate_kw)
-    if not quick.braking.any():
-        return quick
-    if not quick.safe and quick.margin < 0.0:
-        # the invariant is already broken (a start that was not brake-safe, an assumption violated):
-        # best effort is the same gate with every pair held to its own margin under braking, so no
-        # pair gets closer than braking would bring it while robots may still move apart (pair by
-        # pair: a stack of teams decides as each team alone); the result keeps saying unsafe, and
-        # the caller's bounds stay hard (they bind only when tighter than the robots' own, which
-        # the backup respects)
-        held = gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, hold_violations=True, **gate_kw)
-        return held._replace(safe=False, du=np.minimum(np.maximum(held.du, lo), hi))
-    if not (cfg.backup_repair and quick.safe):
-        return gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, **gate_kw)
-    # nudge the QP's answer toward brake-safety, then check again (usually nobody brakes then)
-    repaired = repair(team, pose, u, du, cfg.dt, lo, hi, **gate_kw)
-    second = gatekeeper(team, pose, u, repaired, cfg.dt, tol=_GATE_TOL, **gate_kw)
-    if not second.braking.any():
-        return second
-    first = gatekeeper(team, pose, u, du, cfg.dt, tol=_GATE_TOL, **gate_kw)
-    if first.safe and int(second.braking.sum()) <= int(first.braking.sum()):
-        return second
-    return first
 
 
 def _components(n: int, ri: np.ndarray, rj: np.ndarray) -> np.ndarray:
@@ -511,7 +469,7 @@ class SafetyFilter:
         if cfg.backup:
             pose = _axle_pose(team, p, theta)
             gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles)
-            gate = _gate_with_repair(team, pose, u, du, lo, hi, cfg, gate_kw)
+            gate = gate_with_repair(team, pose, u, du, lo, hi, cfg, gate_kw)
             # robots the gate still marks broken (beyond the range limit when braking): best effort, the QP
             du_qp, broken = du, gate.broken
             du = np.where(broken[:, None], du_qp, gate.du)
