@@ -1,11 +1,11 @@
 """PPO training throughput (agent-steps/s), bare and behind the safety filter, in one run.
 
-    python benchmarks/bench_training.py [--timesteps 24576] [--robots 6] [--n-envs 8] [--model RUN]
+    python benchmarks/bench_training.py [--timesteps 24576] [--robots 6] [--n-envs 32] [--model RUN]
 
-Each row trains PPO with the default recipe (``TrainConfig`` defaults: 8 teams x N
+Each row trains PPO with the default recipe (``TrainConfig`` defaults: 32 teams x N
 robots stepped by one batched physics call, decision_interval 20; behind the filter one
 filter call per physics step for all teams, or, for comparison, one per team) with rollouts
-of ``--n-steps`` (64) per slot, for ``--timesteps`` agent-steps after one warm-up
+of ``--n-steps`` (the recipe's 64) per slot, for ``--timesteps`` agent-steps after one warm-up
 update, and reports what a training run sees: rollout collection plus PPO
 updates, one torch thread.  The filter's share of the filtered row is measured
 by timing its calls; the first row steps the same teams one by one
@@ -105,9 +105,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--timesteps", type=int, default=24_576)
     p.add_argument("--robots", type=int, default=6)
-    p.add_argument("--n-envs", type=int, default=8)
-    p.add_argument("--n-steps", type=int, default=64, help="rollout length per slot (the recipe's 256 makes one "
-                   "filtered update take minutes)")
+    p.add_argument("--n-envs", type=int, default=TrainConfig.n_envs, help="teams per process (the recipe's)")
+    p.add_argument("--n-steps", type=int, default=TrainConfig.n_steps, help="rollout length per slot (the recipe's)")
     p.add_argument("--solver", default=None, help="filter QP solver (default: the filter's default)")
     p.add_argument("--model", default=None, help="start from this trained run (init_from)")
     args = p.parse_args()

@@ -73,7 +73,7 @@ def test_defaults_are_the_shipped_recipe():
     assert shipped.to_dict() == TrainConfig().to_dict()
     cfg = TrainConfig()
     assert (cfg.policy_prior, cfg.normalize_obs, cfg.normalize_reward, cfg.action_mode) == ("none", True, True, "point")
-    assert (cfg.n_envs, cfg.n_steps, cfg.batch_size, cfg.learning_rate, cfg.total_timesteps) == (8, 256, 1024, 3e-4,
+    assert (cfg.n_envs, cfg.n_steps, cfg.batch_size, cfg.learning_rate, cfg.total_timesteps) == (32, 64, 1024, 3e-4,
                                                                                                1_228_800)
     assert cfg.reward["collision"] == 1.0 and cfg.reward["goal_bonus"] == 0.5 and cfg.reward["goal_tolerance"] == 0.1
 
@@ -472,3 +472,25 @@ def test_compare_table_from_results():
     assert "| 7.000 ± 1.000 | 101 ± 1 |" in md
     assert "(c) vs (a) on the same seeds: 7.000 vs 10.000 rad/s^2 (30.0% less)" in md
     assert "(c) seeds 0, 2: fine-tuned from (a) of the same seed for 10 agent-steps, correction weight 1" in md
+
+
+def test_compare_reuses_a_finished_run_only_if_it_was_trained_with_the_same_settings(tmp_path):
+    from train.compare import _train
+
+    run = tmp_path / "bare_s0"
+    run.mkdir()
+    cfg = tiny(tmp_path, run_name="bare_s0")
+    done = cfg.to_dict()
+    (run / "model.zip").write_bytes(b"")
+    (run / "train_stats.json").write_text(json.dumps({"wall_time_s": 1.0}))
+    # bookkeeping fields (where it was written, progress bar, threads) may differ
+    (run / "config.json").write_text(json.dumps({**done, "progress_bar": True, "torch_threads": 2}))
+    assert _train(run, cfg, None) == {"wall_time_s": 1.0}
+    # a run of another recipe (say the default n_envs changed since it was trained) is not reused silently
+    (run / "config.json").write_text(json.dumps({**done, "n_envs": 8, "n_steps": 256}))
+    with pytest.raises(ConfigError, match=r"bare_s0: a finished run with other settings is in the way: n_envs 8 "
+                                          r"\(asked 2\), n_steps 256 \(asked 16\); use another --out-dir"):
+        _train(run, cfg, None)
+    (run / "config.json").write_text(json.dumps({**done, "reward": {**done["reward"], "correction": 2.0}}))
+    with pytest.raises(ConfigError, match="reward"):
+        _train(run, cfg, None)

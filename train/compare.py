@@ -76,11 +76,34 @@ def _finished(run: Path) -> bool:
     return (run / "model.zip").is_file() and (run / "train_stats.json").is_file()
 
 
+_BOOKKEEPING = ("out_dir", "run_name", "progress_bar", "tensorboard", "checkpoint_freq", "verbose", "device",
+                "torch_threads")
+"""Config fields that do not change what a run learns: a cached run may differ in these."""
+
+
+def _check_cached(run: Path, cfg: TrainConfig) -> None:
+    """Raise :class:`ConfigError` if the finished ``run`` was trained with other settings than ``cfg``.
+
+    A finished run is reused, so it must be the run these settings would train (a
+    changed default recipe, a different ``--correction``, ...): otherwise one table
+    would mix runs of different settings without saying so.
+    """
+    done = json.loads((run / "config.json").read_text())
+    want = json.loads(json.dumps(cfg.to_dict()))  # the types config.json holds (lists, not tuples)
+    diff = sorted(k for k in want if k not in _BOOKKEEPING and done.get(k) != want[k])
+    if diff:
+        shown = ", ".join(f"{k} {done.get(k)!r} (asked {want[k]!r})" for k in diff)
+        raise ConfigError(f"{run}: a finished run with other settings is in the way: {shown}; use another "
+                          "--out-dir, or remove the run to retrain it")
+
+
 def _train(run: Path, cfg: TrainConfig, log: Any) -> dict[str, Any]:
-    """Train ``cfg`` into ``run`` unless a finished run is there; its ``train_stats.json``."""
+    """Train ``cfg`` into ``run`` unless a finished run of the same settings is there; its ``train_stats.json``."""
     from train.train import train
 
-    if not _finished(run):
+    if _finished(run):
+        _check_cached(run, cfg)
+    else:
         if run.exists() and any(run.iterdir()):
             raise ConfigError(f"{run}: an unfinished run is in the way (no train_stats.json); remove it first")
         print(f"[compare] training {run}", file=log, flush=True)
@@ -171,11 +194,6 @@ def run_comparison(
                     stats, start = bare_stats, None
                 else:
                     reward = {"correction": correction} if variant == "filter+correction" else {}
-                    if variant == "filter+correction" and _finished(run):  # a cached run must match the settings
-                        done = json.loads((run / "config.json").read_text())["reward"].get("correction")
-                        if done != correction:
-                            raise ConfigError(f"{run}: trained with correction {done}, asked {correction}; use "
-                                              "another --out-dir")
                     fine = filter_start == "bare"
                     tune = {"n_steps": filter_n_steps} if fine else {}
                     cfg = _scene_config(scene, filter=True, reward=reward, run_name=run.name, **tune,

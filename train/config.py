@@ -7,7 +7,7 @@ of the form ``"TrainConfig.<field>: got X, expected Y"``.
 
 The defaults of :class:`TrainConfig` are the recipe that learns from scratch
 (``train/configs/random_goals_6r.toml``, measured in the README): a plain MLP,
-observations and rewards normalised, point actions, 8 envs x 6 robots, 1.23M
+observations and rewards normalised, point actions, 32 envs x 6 robots, 1.23M
 agent-steps.  ``reward`` entries are laid over the recipe's reward
 (:data:`TRAIN_REWARD`), key by key, wherever they come from.
 
@@ -287,10 +287,10 @@ class TrainConfig(EnvConfig):
 
     velocity_tracking: float = 0.0
     total_timesteps: int = 1_228_800
-    n_envs: int = 8
+    n_envs: int = 32
     seed: int = 0
     learning_rate: float = 3e-4
-    n_steps: int = 256
+    n_steps: int = 64
     batch_size: int = 1024
     n_epochs: int = 10
     gamma: float = 0.99

@@ -18,7 +18,7 @@ The default recipe (:class:`~train.config.TrainConfig` defaults)
 --------------------------------------------------------------------
 A plain MLP policy (SB3 ``MlpPolicy``, ``[64, 64]``, ``log_std_init`` -1)
 learned from scratch: ``VecNormalize`` on observations and rewards, point
-actions, PPO with 8 envs x 6 robots, ``n_steps`` 256, minibatch 1024, 10
+actions, PPO with 32 envs x 6 robots, ``n_steps`` 64, minibatch 1024, 10
 epochs, learning rate 3e-4, ``gamma`` 0.99, no entropy bonus, 1,228,800
 agent-steps (100 rollouts).  Short runs judge it wrongly: success rises late
 (the README's learning curve).
