@@ -25,14 +25,16 @@ runs' ``metrics.csv``.
 Scenes: ``random_goals_6r`` (the default: 6 robots, 6.25 m arena) and
 ``crowded_12r`` (12 robots in a 6.5 m arena: 1.9x the density).
 
-Budget: training behind the filter costs ~11 times more per agent-step than
+Budget: training behind the filter costs several times more per agent-step than
 bare training, with one filter call per physics step for all teams (README,
 "Batched stepping").  By default (b) and (c) therefore *fine-tune* each
 seed's bare policy (a) behind the filter for ``--filter-steps`` agent-steps
-(``init_from``; rollouts of ``--filter-n-steps`` 64 per slot, for more
-updates); ``--filter-start scratch`` (implied by ``--full``) trains them from
+(``init_from``; rollouts of ``--filter-n-steps`` 16 per slot: with the
+recipe's 32 envs x 6 robots, 3,072 agent-steps per update, 20 updates);
+``--filter-start scratch`` (implied by ``--full``) trains them from
 scratch for ``--bare-steps`` like (a).  Finished runs and evaluations are
-reused (``--out-dir`` is a cache): rerunning after an interruption continues.
+reused (``--out-dir`` is a cache): rerunning after an interruption continues;
+a finished run trained with other settings stops the command.
 
 Outputs in ``--out-dir``: ``runs/<scene>/<variant>_s<seed>/`` (training runs),
 ``evals/*.json``, ``compare.md`` (the tables), ``compare.json`` (every number),
@@ -142,7 +144,7 @@ def run_comparison(
     bare_steps: int = 1_228_800,
     filter_steps: int = 61_440,
     filter_start: str = "bare",
-    filter_n_steps: int = 64,
+    filter_n_steps: int = 16,
     correction: float = 1.0,
     episodes: int = 20,
     eval_seed: int = 10_000,
@@ -339,7 +341,7 @@ def build_parser(prog: str = "python -m train.compare") -> argparse.ArgumentPars
     p.add_argument("--bare-steps", type=int_option(1), default=1_228_800, help="agent-steps of (a)")
     p.add_argument("--filter-steps", type=int_option(1), default=61_440,
                    help="agent-steps of (b)/(c) fine-tuning behind the filter (with --filter-start bare)")
-    p.add_argument("--filter-n-steps", type=int_option(1), default=64,
+    p.add_argument("--filter-n-steps", type=int_option(1), default=16,
                    help="rollout length per slot of the fine-tuning runs (more updates for few agent-steps)")
     p.add_argument("--filter-start", choices=("bare", "scratch"), default="bare",
                    help="(b)/(c) fine-tune each seed's (a) (bare, default) or train from scratch for --bare-steps")
