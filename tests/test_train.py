@@ -492,5 +492,43 @@ def test_compare_reuses_a_finished_run_only_if_it_was_trained_with_the_same_sett
                                           r"\(asked 2\), n_steps 256 \(asked 16\); use another --out-dir"):
         _train(run, cfg, None)
     (run / "config.json").write_text(json.dumps({**done, "reward": {**done["reward"], "correction": 2.0}}))
-    with pytest.raises(ConfigError, match="reward"):
+    with pytest.raises(ConfigError, match=r"in the way: reward.correction 2.0 \(asked None\); use another"):
         _train(run, cfg, None)
+    # the same start folder written another way is the same run
+    src = tmp_path / "src"
+    src.mkdir()
+    tuned = tiny(tmp_path, run_name="bare_s0", init_from=str(src))
+    (run / "config.json").write_text(json.dumps({**tuned.to_dict(), "init_from": str(tmp_path / "x" / ".." / "src")}))
+    assert _train(run, tuned, None) == {"wall_time_s": 1.0}
+    (run / "config.json").write_text("{not json")
+    with pytest.raises(ConfigError, match="bare_s0: a finished run without a readable config.json"):
+        _train(run, cfg, None)
+
+
+def test_compare_evaluations_belong_to_the_model_they_evaluated(tmp_path, monkeypatch):
+    import train.evaluate
+    from train.compare import _evaluate
+
+    run = tmp_path / "bare_s0"
+    run.mkdir()
+    (run / "model.zip").write_bytes(b"first model")
+    calls = []
+
+    class Row:
+        def as_dict(self):
+            return {"episodes": 2, "success_rate": float(len(calls))}
+
+    def fake(name, agent, make, episodes, seed):
+        calls.append(name)
+        return Row()
+
+    monkeypatch.setattr(train.evaluate, "evaluate_agent", fake)
+    monkeypatch.setattr("agents.learned.LearnedAgent.load", staticmethod(lambda path: None))
+    cache = tmp_path / "evals" / "bare_s0_bare.json"
+    cfg = tiny(tmp_path)
+    assert _evaluate(run, cfg, False, 2, 10_000, cache, None)["success_rate"] == 1.0
+    assert _evaluate(run, cfg, False, 2, 10_000, cache, None)["success_rate"] == 1.0  # cached
+    assert len(calls) == 1
+    (run / "model.zip").write_bytes(b"retrained model")  # removed and retrained: evaluated again
+    assert _evaluate(run, cfg, False, 2, 10_000, cache, None)["success_rate"] == 2.0
+    assert len(calls) == 2

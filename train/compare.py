@@ -29,8 +29,9 @@ Budget: training behind the filter costs several times more per agent-step than
 bare training, with one filter call per physics step for all teams (README,
 "Batched stepping").  By default (b) and (c) therefore *fine-tune* each
 seed's bare policy (a) behind the filter for ``--filter-steps`` agent-steps
-(``init_from``; rollouts of ``--filter-n-steps`` 16 per slot: with the
-recipe's 32 envs x 6 robots, 3,072 agent-steps per update, 20 updates);
+(``init_from``; rollouts of ``--filter-n-steps`` 64 per slot: with the
+recipe's 32 envs x 6 robots 12,288 agent-steps per update, so the default
+61,440 make 5 updates; the tables in the README were measured with 8 envs, 20);
 ``--filter-start scratch`` (implied by ``--full``) trains them from
 scratch for ``--bare-steps`` like (a).  Finished runs and evaluations are
 reused (``--out-dir`` is a cache): rerunning after an interruption continues;
@@ -44,6 +45,7 @@ Outputs in ``--out-dir``: ``runs/<scene>/<variant>_s<seed>/`` (training runs),
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import sys
 import time
@@ -90,13 +92,33 @@ def _check_cached(run: Path, cfg: TrainConfig) -> None:
     changed default recipe, a different ``--correction``, ...): otherwise one table
     would mix runs of different settings without saying so.
     """
-    done = json.loads((run / "config.json").read_text())
+    try:
+        done = json.loads((run / "config.json").read_text())
+    except (OSError, ValueError) as err:
+        raise ConfigError(f"{run}: a finished run without a readable config.json is in the way ({err}); remove "
+                          "it to retrain it") from None
+    if not isinstance(done, dict):
+        raise ConfigError(f"{run}/config.json: got {type(done).__name__}, expected a JSON object")
     want = json.loads(json.dumps(cfg.to_dict()))  # the types config.json holds (lists, not tuples)
-    diff = sorted(k for k in want if k not in _BOOKKEEPING and done.get(k) != want[k])
-    if diff:
-        shown = ", ".join(f"{k} {done.get(k)!r} (asked {want[k]!r})" for k in diff)
-        raise ConfigError(f"{run}: a finished run with other settings is in the way: {shown}; use another "
-                          "--out-dir, or remove the run to retrain it")
+    for key in ("init_from",):  # the same folder, however it was written
+        if done.get(key) and want.get(key):
+            done[key], want[key] = (str(Path(v).resolve()) for v in (done[key], want[key]))
+    shown = []
+    for k in sorted(k for k in want if k not in _BOOKKEEPING and done.get(k) != want[k]):
+        old, new = done.get(k), want[k]
+        if isinstance(old, dict) and isinstance(new, dict):  # name the entries: reward.correction 1.0 (asked 2.0)
+            shown += [f"{k}.{e} {old.get(e)!r} (asked {new.get(e)!r})" for e in sorted(set(old) | set(new))
+                      if old.get(e) != new.get(e)]
+        else:
+            shown.append(f"{k} {old!r} (asked {new!r})")
+    if shown:
+        raise ConfigError(f"{run}: a finished run with other settings is in the way: {', '.join(shown)}; use "
+                          "another --out-dir, or remove the run to retrain it")
+
+
+def _model_digest(run: Path) -> str:
+    """SHA-256 of the run's ``model.zip``: an evaluation cache belongs to one trained model."""
+    return hashlib.sha256((run / "model.zip").read_bytes()).hexdigest()
 
 
 def _train(run: Path, cfg: TrainConfig, log: Any) -> dict[str, Any]:
@@ -115,13 +137,18 @@ def _train(run: Path, cfg: TrainConfig, log: Any) -> dict[str, Any]:
 
 def _evaluate(run: Path, scene_cfg: TrainConfig, filtered: bool, episodes: int, seed: int, cache: Path,
               log: Any) -> dict[str, Any]:
-    """Evaluate the policy of ``run`` on ``scene_cfg``'s env, bare or behind the filter (cached in ``cache``)."""
+    """Evaluate the policy of ``run`` on ``scene_cfg``'s env, bare or behind the filter (cached in ``cache``).
+
+    The cache holds the SHA-256 of the ``model.zip`` it evaluated: after a run
+    was removed and retrained, its evaluations are made again, not reused.
+    """
     from agents.learned import LearnedAgent
     from train.evaluate import evaluate_agent
 
+    digest = _model_digest(run)
     if cache.is_file():
         data = json.loads(cache.read_text())
-        if data.get("episodes") == episodes and data.get("seed") == seed:
+        if data.get("episodes") == episodes and data.get("seed") == seed and data.get("model_sha256") == digest:
             return data
     print(f"[compare] evaluating {run} {'behind the filter' if filtered else 'bare'} ({episodes} episodes)",
           file=log, flush=True)
@@ -129,7 +156,7 @@ def _evaluate(run: Path, scene_cfg: TrainConfig, filtered: bool, episodes: int, 
     kw = {**scene_cfg.env_kwargs(), "terminate_on_collision": False, "reward": {}}
     fc = scene_cfg.filter_config() if filtered else None
     row = evaluate_agent(run.name, agent, lambda: make_env(**kw, filter=fc), episodes, seed)
-    data = {**row.as_dict(), "seed": seed}
+    data = {**row.as_dict(), "seed": seed, "model_sha256": digest}
     cache.parent.mkdir(parents=True, exist_ok=True)
     cache.write_text(json.dumps(data, indent=2))
     return data
@@ -144,7 +171,7 @@ def run_comparison(
     bare_steps: int = 1_228_800,
     filter_steps: int = 61_440,
     filter_start: str = "bare",
-    filter_n_steps: int = 16,
+    filter_n_steps: int = 64,
     correction: float = 1.0,
     episodes: int = 20,
     eval_seed: int = 10_000,
@@ -214,7 +241,11 @@ def run_comparison(
                 scene_cfg = _scene_config(scene)
                 for mode, cache in zip(_EVALS, caches):
                     if table_only:
-                        entry[f"eval_{mode}"] = json.loads(cache.read_text())
+                        ev = json.loads(cache.read_text())
+                        if ev.get("model_sha256", _model_digest(run)) != _model_digest(run):
+                            raise ConfigError(f"{cache}: the evaluation of another model than {run}/model.zip "
+                                              "(retrained since); run without --table-only to evaluate it")
+                        entry[f"eval_{mode}"] = ev
                     else:
                         entry[f"eval_{mode}"] = _evaluate(run, scene_cfg, mode == "filter", episodes, eval_seed,
                                                           cache, log)
@@ -341,7 +372,7 @@ def build_parser(prog: str = "python -m train.compare") -> argparse.ArgumentPars
     p.add_argument("--bare-steps", type=int_option(1), default=1_228_800, help="agent-steps of (a)")
     p.add_argument("--filter-steps", type=int_option(1), default=61_440,
                    help="agent-steps of (b)/(c) fine-tuning behind the filter (with --filter-start bare)")
-    p.add_argument("--filter-n-steps", type=int_option(1), default=16,
+    p.add_argument("--filter-n-steps", type=int_option(1), default=64,
                    help="rollout length per slot of the fine-tuning runs (more updates for few agent-steps)")
     p.add_argument("--filter-start", choices=("bare", "scratch"), default="bare",
                    help="(b)/(c) fine-tune each seed's (a) (bare, default) or train from scratch for --bare-steps")

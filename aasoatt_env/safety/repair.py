@@ -96,7 +96,7 @@ def repair(
 ) -> np.ndarray:
     """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
 
-    For every pair whose margin along :func:`candidate_paths` is below
+    For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below
     ``target`` [m], the margin's gradient with respect to both robots' inputs is
     taken by finite differences (step ``eps`` in input units; one extra path
     set per input direction, for the robots of such pairs only), and the two
@@ -104,7 +104,7 @@ def repair(
     ``2 target``; changes from several pairs add up, and the result is clipped
     to ``[lo, hi]``.  ``rounds`` rounds.  This acts like backup-barrier rows in
     the QP (a small, local correction toward the safe set), so the gatekeeper
-    rarely has to brake; safety still comes from :func:`gatekeeper` alone.
+    rarely has to brake; safety still comes from :func:`~aasoatt_env.safety.backup.gatekeeper` alone.
     """
     du = np.minimum(np.maximum(du_c, lo), hi)
     n = pose.shape[0]
