@@ -100,9 +100,8 @@ def _check_cached(run: Path, cfg: TrainConfig) -> None:
     if not isinstance(done, dict):
         raise ConfigError(f"{run}/config.json: got {type(done).__name__}, expected a JSON object")
     want = json.loads(json.dumps(cfg.to_dict()))  # the types config.json holds (lists, not tuples)
-    for key in ("init_from",):  # the same folder, however it was written
-        if done.get(key) and want.get(key):
-            done[key], want[key] = (str(Path(v).resolve()) for v in (done[key], want[key]))
+    if done.get("init_from") and want.get("init_from"):  # the same folder, however it was written
+        done["init_from"], want["init_from"] = (str(Path(v).resolve()) for v in (done["init_from"], want["init_from"]))
     shown = []
     for k in sorted(k for k in want if k not in _BOOKKEEPING and done.get(k) != want[k]):
         old, new = done.get(k), want[k]
@@ -239,10 +238,11 @@ def run_comparison(
                     "correction_weight": json.loads((run / "config.json").read_text())["reward"].get("correction", 0.0),
                 }
                 scene_cfg = _scene_config(scene)
+                digest = _model_digest(run) if table_only else None
                 for mode, cache in zip(_EVALS, caches):
                     if table_only:
                         ev = json.loads(cache.read_text())
-                        if ev.get("model_sha256", _model_digest(run)) != _model_digest(run):
+                        if ev.get("model_sha256", digest) != digest:
                             raise ConfigError(f"{cache}: the evaluation of another model than {run}/model.zip "
                                               "(retrained since); run without --table-only to evaluate it")
                         entry[f"eval_{mode}"] = ev

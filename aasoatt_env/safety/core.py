@@ -468,8 +468,7 @@ class SafetyFilter:
         braking = np.zeros(n, dtype=bool)
         if cfg.backup:
             pose = _axle_pose(team, p, theta)
-            gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles)
-            gate = gate_with_repair(team, pose, u, du, lo, hi, cfg, gate_kw)
+            gate = gate_with_repair(team, pose, u, du, lo, hi, cfg, obstacles)
             # robots the gate still marks broken (beyond the range limit when braking): best effort, the QP
             du_qp, broken = du, gate.broken
             du = np.where(broken[:, None], du_qp, gate.du)

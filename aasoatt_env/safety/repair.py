@@ -12,8 +12,6 @@ repaired one still brakes someone; outside the safe set, best effort.
 
 from __future__ import annotations
 
-from typing import Any
-
 import numpy as np
 
 from aasoatt_env.model.params import Team
@@ -39,7 +37,7 @@ GATE_TOL: float = 1e-9
 
 
 def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                     cfg: FilterConfig, gate_kw: dict[str, Any]) -> GateResult:
+                     cfg: FilterConfig, obstacles: tuple[np.ndarray, ...] | None) -> GateResult:
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair if it brakes.
 
     Every answer comes from :func:`~aasoatt_env.safety.backup.gatekeeper`
@@ -53,6 +51,7 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     is kept.  When the invariant was already broken (``safe`` False), the full
     check of the QP's answer decides.
     """
+    gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles)
     quick = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, blend_levels=(), **gate_kw)
     if not quick.braking.any():
         return quick
