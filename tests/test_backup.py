@@ -10,17 +10,19 @@ from aasoatt_env import AASOATTFilter, AASOATTParallelEnv, FilterConfig, make_en
 from aasoatt_env.analysis.metrics import pairwise_min_distance
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point
-from aasoatt_env.model.params import RobotParams, make_team
+from aasoatt_env.model.params import RobotParams, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter
 from aasoatt_env.safety.backup import (
     brake_time,
     braking_du,
     braking_trajectory,
     candidate_paths,
+    candidate_samples_at,
     gatekeeper,
     pair_margins,
     reach_limit,
 )
+from aasoatt_env.safety.repair import gate_with_repair
 from agents import ADVERSARIES, HostileAgent
 
 F = 2.0 / 3.0  # the default brake fraction
@@ -105,6 +107,21 @@ def test_braking_is_time_consistent():
     tail = braking_trajectory(team, pose1, u1, DT, F, length=tr.p.shape[1] - 1)
     np.testing.assert_allclose(tail.p, tr.p[:, 1:], atol=1e-9)
 
+
+@pytest.mark.parametrize("kind", ["paper", "turtlebot3", "mixed", "double_integrator"])
+def test_closed_form_samples_equal_the_sampled_candidate_paths(kind):
+    team = _teams()[kind]
+    rng = np.random.default_rng(7)
+    for _ in range(5):
+        pose, u = _random_state(team, rng)
+        du = rng.uniform(-1, 1, (team.n, 2)) * team.max_wheel_accel[:, None]
+        tr = candidate_paths(team, pose, u, du, DT, F)
+        L = tr.p.shape[1]
+        s = np.column_stack((np.zeros(team.n, int), rng.integers(1, L - 1, (team.n, 3)), np.full(team.n, L - 2)))
+        p, delta = candidate_samples_at(team, pose, u, du, DT, F, s)
+        rows = np.arange(team.n)[:, None]
+        np.testing.assert_allclose(p, tr.p[rows, s], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(delta, tr.delta[rows, s], rtol=0, atol=1e-15)
 
 def test_pair_check_is_a_lower_bound_of_the_fine_simulated_distance():
     """Sub-step the simulator's arcs 64 times per step: the check never claims more than is there."""
@@ -327,3 +344,44 @@ def test_rotate_relative_position_head_on_swap_stays_apart_with_the_layer():
                        duration=6.0, settle_time=1.0)
     rollout, _ = run_episode(env, __import__("agents").TrackingController(), seed=0)
     assert pairwise_min_distance(rollout).overall_min_robot_gap >= -1e-3
+
+
+def test_a_stack_of_teams_is_gated_as_each_team_alone():
+    """The backup layer decides per group of robots within sensing range: a stack of teams (one
+    filter call for many envs) gets, robot for robot, the answers each team gets alone, including
+    which of the QP's and the repaired answer is kept."""
+    K, n = 4, 6
+    rng = np.random.default_rng(11)
+    teams = [make_team("paper", n) for _ in range(K)]
+    grid = np.stack(np.meshgrid(np.arange(3), np.arange(2)), -1).reshape(-1, 2) * 1.1
+    poses = [pose_from_point(t, grid + rng.uniform(-0.03, 0.03, grid.shape), rng.uniform(-np.pi, np.pi, n))
+             for t in teams]
+    us = [np.zeros((n, 2)) for _ in teams]
+    filters = [SafetyFilter(t, deadlock="none") for t in teams]
+    both = stack_teams(teams)
+    cfg = filters[0].config
+    braked, repaired_kept = 0, 0
+    for step in range(300):
+        if step % 50 == 0:
+            nominal = [rng.uniform(-60, 60, (n, 2)) for _ in teams]
+        cand, lows, highs = [], [], []
+        for k, t in enumerate(teams):
+            _, lo, hi = _inputs(t, poses[k], us[k])
+            cand.append(np.clip(nominal[k], lo, hi))
+            lows.append(lo)
+            highs.append(hi)
+        alone = [gate_with_repair(t, poses[k], us[k], cand[k], lows[k], highs[k], cfg, None)
+                 for k, t in enumerate(teams)]
+        stacked = gate_with_repair(both, np.vstack(poses), np.vstack(us), np.vstack(cand), np.vstack(lows),
+                                   np.vstack(highs), cfg, None)
+        np.testing.assert_array_equal(stacked.du, np.vstack([g.du for g in alone]))
+        np.testing.assert_array_equal(stacked.braking, np.concatenate([g.braking for g in alone]))
+        assert stacked.safe == all(g.safe for g in alone)
+        assert stacked.margin == min(g.margin for g in alone)
+        braked += sum(bool(g.braking.any()) for g in alone)
+        repaired_kept += sum(bool((g.du != cand[k]).any() and (g.share == 1.0).all()) for k, g in enumerate(alone))
+        for k, t in enumerate(teams):
+            kin, lo, hi = _inputs(t, poses[k], us[k])
+            du, _ = filters[k].step(kin, us[k], poses[k][:, 2], nominal[k], lo, hi)
+            poses[k], us[k] = integrate(t, poses[k], us[k], du, DT)
+    assert braked > 20 and repaired_kept > 5  # the layer acted, in both of its ways, in some teams only

@@ -318,14 +318,14 @@ def test_component_labels_match_scipy(seed):
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from aasoatt_env.safety.core import _components
+    from aasoatt_env.model.geometry import pair_components
 
     rng = np.random.default_rng(seed)
     n = int(rng.integers(2, 200))
     m = int(rng.integers(0, 2 * n))
     ri = rng.integers(0, n, m)
     rj = np.where(rng.random(m) < 0.2, -1, rng.integers(0, n, m))  # -1: obstacle rows, no edge
-    ours = _components(n, ri, rj)
+    ours = pair_components(n, ri, rj)
     e = rj >= 0
     ref = connected_components(coo_matrix((np.ones(e.sum()), (ri[e], rj[e])), shape=(n, n)), directed=False)[1]
     # same partition: labels map one-to-one

@@ -30,6 +30,7 @@ __all__ = [
     "min_gaps",
     "obstacle_gaps",
     "obstacle_pairs",
+    "pair_components",
     "pairwise_distances",
     "robot_pairs",
 ]
@@ -238,3 +239,26 @@ def min_gaps(
     if centers.shape[0]:
         gap = np.minimum(gap, obstacle_gaps(p, radii, centers, obstacle_radii).min(axis=1))
     return gap
+
+
+def pair_components(n: int, ri: np.ndarray, rj: np.ndarray) -> np.ndarray:
+    """Connected-component label ``(n,)`` of ``n`` robots, edges ``(ri[k], rj[k])`` (none where ``rj < 0``: obstacles).
+
+    Min-label propagation with pointer jumping (vectorised; a handful of passes
+    for the contact graphs met here).  Robots of one component share the label of
+    its smallest index.
+    """
+    rr = rj >= 0
+    a, b = ri[rr], rj[rr]
+    lab = np.arange(n)
+    while True:
+        low = np.minimum(lab[a], lab[b])
+        new = lab.copy()
+        np.minimum.at(new, a, low)
+        np.minimum.at(new, b, low)
+        np.minimum.at(new, lab[a], low)  # hook the old roots too
+        np.minimum.at(new, lab[b], low)
+        new = new[new]
+        if np.array_equal(new, lab):
+            return lab
+        lab = new

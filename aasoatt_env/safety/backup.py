@@ -58,6 +58,7 @@ __all__ = [
     "GateResult",
     "Trajectories",
     "candidate_paths",
+    "candidate_samples_at",
     "brake_time",
     "braking_du",
     "braking_trajectory",
@@ -239,9 +240,43 @@ def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray,
     return Trajectories(p, delta, b1.steps + 2, _candidate_reach(p0, p1, d1, b1))
 
 
+
+def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float,
+                         brake_fraction: float, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Samples ``s`` of :func:`candidate_paths` in closed form, without the others.
+
+    Parameters
+    ----------
+    s : numpy.ndarray
+        ``(N, S)`` int sample indices per robot (0: the current point, 1: after the step with ``du``,
+        ``k + 1``: after ``k`` braking steps).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        Positions ``(N, S)`` complex and the deviation bounds ``(N, S)`` of the steps ``s -> s + 1``:
+        the same numbers as ``candidate_paths(...).p`` and ``.delta`` at those indices, to rounding
+        (the arc parameter of braking step ``k`` is the sum of the sampled trapezoids written out:
+        ``dt (k - r k^2 / 2)`` while the speed scale ``1 - k r`` is positive, ``r = dt / T``).
+    """
+    p0 = _point(team, pose)
+    p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
+    b = _brake(team, theta1, u1, dt, brake_fraction)
+    r = b.rate[:, None]
+    kf = np.floor(1.0 / r)  # the last braking step with a speed scale >= 0
+    k = np.maximum(s - 1, 0).astype(np.float64)
+    kc = np.minimum(k, kf)
+    tau = dt * (kc - 0.5 * r * kc * kc + np.where(k > kf, 0.5 * np.clip(1.0 - kf * r, 0.0, 1.0), 0.0))
+    w = b.omega[:, None]
+    p = p1[:, None] + (b.pdot[:, None] * tau) * _E(w * tau)
+    p = np.where(s == 0, p0[:, None], p)
+    sig = 0.5 * (np.clip(1.0 - k * r, 0.0, 1.0) + np.clip(1.0 - (k + 1.0) * r, 0.0, 1.0))
+    delta = (dt * dt / 8.0) * np.abs(b.pdot)[:, None] * (sig * sig) * np.abs(w)
+    return p, np.where(s == 0, d1[:, None], delta)
+
 # --------------------------------------------------------------------------- pair check
-def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray | float, ds: np.ndarray
-                 ) -> np.ndarray:
+def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray | float, ds: np.ndarray,
+                 closest: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Smallest ``distance - d_s`` of each pair along sampled paths (a lower bound between samples).
 
     Parameters
@@ -254,6 +289,9 @@ def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray 
     ds : numpy.ndarray
         ``(P,)`` safety distances.
 
+    closest : bool
+        Also return the step ``k`` of each minimum ``(P,)`` int.
+
     Returns
     -------
     numpy.ndarray
@@ -261,7 +299,8 @@ def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray 
     """
     q = pi - pj
     if q.shape[1] == 1:
-        return np.abs(q[:, 0]) - ds
+        m = np.abs(q[:, 0]) - ds
+        return (m, np.zeros(m.shape[0], dtype=np.intp)) if closest else m
     # the operations of ``t = clip(-dot / where(dd > 0, dd, 1), 0, 1)``, ``|q0 + t dq| - di - dj``, in place
     q0 = q[:, :-1]
     dq = q[:, 1:] - q0
@@ -281,6 +320,9 @@ def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray 
     dist = np.abs(dq)
     dist -= di
     dist -= dj
+    if closest:
+        k = dist.argmin(axis=1)
+        return dist[np.arange(k.shape[0]), k] - ds, k
     return dist.min(axis=1) - ds
 
 
@@ -346,6 +388,12 @@ class GateResult(NamedTuple):
         Gatekeeper rounds.
     n_pairs : int
         Robot and robot-obstacle pairs checked.
+    robot_margin : numpy.ndarray
+        ``(N,)``: the smallest such margin over each robot's checked pairs
+        (``reach_limit`` for a robot without one); ``margin`` is its minimum.
+    out_of_range : numpy.ndarray
+        ``(N,)`` bool: robots whose candidate path leaves :func:`reach_limit`
+        (too fast for the sensing range: no change of a pair's margin lets them keep it).
     """
 
     du: np.ndarray
@@ -356,6 +404,8 @@ class GateResult(NamedTuple):
     share: np.ndarray
     rounds: int
     n_pairs: int
+    robot_margin: np.ndarray
+    out_of_range: np.ndarray
 
 
 def gatekeeper(
@@ -476,7 +526,8 @@ def gatekeeper(
     if i.size + oi.size == 0:
         rows = np.arange(n)
         share = np.asarray(levels)[lev]
-        return GateResult(du_all[lev, rows], lev > 0, limit_margin, not bool(broken.any()), broken, share, 0, 0)
+        return GateResult(du_all[lev, rows], lev > 0, limit_margin, not bool(broken.any()), broken, share, 0, 0,
+                          np.full(n, limit_margin), reach[0] > limit)
 
     M = np.unique(np.concatenate((i, j, oi)))  # robots with a pair to check
     loc = np.full(n, -1, dtype=np.intp)
@@ -487,28 +538,25 @@ def gatekeeper(
     for k, (_, _, _, b1) in enumerate(firsts):
         need[k] = b1.steps[M] + 2
     need[last] = b0.steps[M] + 1
-    paths: dict[int, tuple[np.ndarray, np.ndarray]] = {}
 
-    def level_paths(k: int) -> tuple[np.ndarray, np.ndarray]:
-        """Samples ``(M, L)`` and sagittas ``(M, L-1)`` of level ``k`` for all of ``M``, made when first needed."""
-        if k not in paths:
-            if k < last:
-                _, p1, d1, b1 = firsts[k]
-                Pk = np.empty((M.size, L), dtype=np.complex128)
-                Dk = np.empty((M.size, L - 1))
-                Pk[:, 0], Dk[:, 0] = p0[M], d1[M]
-                Pk[:, 1:], Dk[:, 1:] = _brake_samples(p1[M], _take(b1, M), dt, L - 1)
-                paths[k] = (Pk, Dk)
-            else:
-                paths[k] = _brake_samples(p0[M], _take(b0, M), dt, L)
-        return paths[k]
+    def level_rows(k: int, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Samples ``(r, L)`` and sagittas ``(r, L-1)`` of level ``k`` for the rows ``r`` of ``M``."""
+        g = M[r]
+        if k == last:
+            return _brake_samples(p0[g], _take(b0, g), dt, L)
+        _, p1, d1, b1 = firsts[k]
+        Pk = np.empty((r.size, L), dtype=np.complex128)
+        Dk = np.empty((r.size, L - 1))
+        Pk[:, 0], Dk[:, 0] = p0[g], d1[g]
+        Pk[:, 1:], Dk[:, 1:] = _brake_samples(p1[g], _take(b1, g), dt, L - 1)
+        return Pk, Dk
 
     li, lj, lo_ = loc[i], loc[j], loc[oi]
     rows_m = np.arange(M.size)
 
     tol_p, tol_o = np.full(i.shape[0], float(tol)), np.full(oi.shape[0], float(tol))
     if hold_violations:  # each pair's own floor: its margin when both members brake now
-        Pb, Db = level_paths(last)
+        Pb, Db = level_rows(last, rows_m)
         if i.size:
             tol_p += np.maximum(0.0, -_bucketed(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9)
         if oi.size:
@@ -517,21 +565,20 @@ def gatekeeper(
     omarg = np.full(oi.shape[0], np.inf)
     todo = np.ones(i.shape[0], dtype=bool)
     otodo = np.ones(oi.shape[0], dtype=bool)
+    cur = np.empty((M.size, L), dtype=np.complex128)
+    curd = np.empty((M.size, L - 1))
+    filled = np.full(M.size, -1)  # the level whose paths are in a row of `cur`
     rounds = 0
     while True:
         rounds += 1
         lm = lev[M]
         cneed = need[lm, rows_m]
-        used = np.unique(lm)
-        if used.size == 1:
-            cur, curd = level_paths(int(used[0]))
-        else:
-            cur = np.empty((M.size, L), dtype=np.complex128)
-            curd = np.empty((M.size, L - 1))
-            for k in used:
-                sel = lm == k
-                Pk, Dk = level_paths(int(k))
-                cur[sel], curd[sel] = Pk[sel], Dk[sel]
+        # the paths of the robots' current levels: only rows whose level changed are (re)made
+        stale = lm != filled
+        for k in np.unique(lm[stale]):
+            r = np.flatnonzero(stale & (lm == k))
+            cur[r], curd[r] = level_rows(int(k), r)
+        filled = lm
         idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
         if idx.size:
             marg[idx] = _bucketed(cur, curd, cneed, li[idx], lj[idx], ds[idx])
@@ -558,9 +605,11 @@ def gatekeeper(
 
     rows = np.arange(n)
     share = np.asarray(levels)[lev]
-    margin = min(float(marg.min(initial=np.inf)), float(omarg.min(initial=np.inf)), limit_margin)
-    return GateResult(du_all[lev, rows], lev > 0, margin, not bool(broken.any()), broken, share, rounds,
-                      int(i.size + oi.size))
+    robot_margin = np.full(n, limit_margin)
+    np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
+    return GateResult(du_all[lev, rows], lev > 0, float(robot_margin.min(initial=limit_margin)),
+                      not bool(broken.any()), broken, share, rounds, int(i.size + oi.size), robot_margin,
+                      reach[0] > limit)
 
 
 def _take(b: _Brake, idx: np.ndarray) -> _Brake:

@@ -32,7 +32,7 @@ import numpy as np
 
 from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
-from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
+from aasoatt_env.model.geometry import obstacle_pairs, pair_components, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import FilterConfig
@@ -148,29 +148,6 @@ class FilterResult:
     def obstacle_rows(self) -> np.ndarray:
         """Boolean ``(n_rows,)``: row is a robot-obstacle row."""
         return self.pairs[:, 1] < 0
-
-
-def _components(n: int, ri: np.ndarray, rj: np.ndarray) -> np.ndarray:
-    """Connected-component label ``(n,)`` of the robots, edges = robot-robot rows.
-
-    Min-label propagation with pointer jumping (vectorised; a handful of passes
-    for the contact graphs met here).  Robots of one component share the label of
-    its smallest index.
-    """
-    rr = rj >= 0
-    a, b = ri[rr], rj[rr]
-    lab = np.arange(n)
-    while True:
-        low = np.minimum(lab[a], lab[b])
-        new = lab.copy()
-        np.minimum.at(new, a, low)
-        np.minimum.at(new, b, low)
-        np.minimum.at(new, lab[a], low)  # hook the old roots too
-        np.minimum.at(new, lab[b], low)
-        new = new[new]
-        if np.array_equal(new, lab):
-            return lab
-        lab = new
 
 
 class SafetyFilter:
@@ -415,7 +392,7 @@ class SafetyFilter:
             bad = viol > 0.0
             coupled = np.zeros(n, dtype=bool)
             if np.any(bad):
-                label = _components(n, ri, rj)
+                label = pair_components(n, ri, rj)
                 coupled = np.isin(label, label[ri[bad]])
             rows = coupled[ri]
         else:
@@ -468,7 +445,7 @@ class SafetyFilter:
         braking = np.zeros(n, dtype=bool)
         if cfg.backup:
             pose = _axle_pose(team, p, theta)
-            gate = gate_with_repair(team, pose, u, du, lo, hi, cfg, obstacles)
+            gate = gate_with_repair(team, pose, u, du, lo, hi, cfg, obstacles, pr)
             # robots the gate still marks broken (beyond the range limit when braking): best effort, the QP
             du_qp, broken = du, gate.broken
             du = np.where(broken[:, None], du_qp, gate.du)

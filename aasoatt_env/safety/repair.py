@@ -5,15 +5,16 @@ every robot whose candidate is not brake-safe on the braking backup.  Braking
 costs liveness, so before the gatekeeper decides, :func:`repair` nudges the
 QP's answer toward brake-safety (the least change that lifts every low backup
 margin, like backup-barrier rows in the QP), and :func:`gate_with_repair` is
-the order in which the filter asks: a quick check of the QP's answer, the
-repair and a check of it, the full check of the QP's answer only when the
-repaired one still brakes someone; outside the safe set, best effort.
+the order in which the filter asks: the check of the QP's answer, then, in
+each group of robots within sensing range of each other where it brakes
+someone, the repair and a check of it; outside the safe set, best effort.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.backup import (
     GateResult,
@@ -25,6 +26,7 @@ from aasoatt_env.safety.backup import (
     _pairs_near,
     _point,
     candidate_paths,
+    candidate_samples_at,
     gatekeeper,
     pair_margins,
 )
@@ -37,44 +39,88 @@ GATE_TOL: float = 1e-9
 
 
 def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                     cfg: FilterConfig, obstacles: tuple[np.ndarray, ...] | None) -> GateResult:
+                     cfg: FilterConfig, obstacles: tuple[np.ndarray, ...] | None,
+                     pairs: np.ndarray | None = None) -> GateResult:
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair if it brakes.
 
     Every answer comes from :func:`~aasoatt_env.safety.backup.gatekeeper`
-    (safety is its invariant).  Whether the QP's answer passes for every robot
-    is decided by the first round, which is the same with or without the blend
-    levels, so it is checked without them (``blend_levels=()``: fewer rounds).
-    If someone brakes, the answer is nudged by
-    :func:`repair` and checked again with the blend
-    levels; the full check of the QP's answer is made only when the repaired
-    one still brakes someone, and of the two the one that brakes fewer robots
-    is kept.  When the invariant was already broken (``safe`` False), the full
-    check of the QP's answer decides.
+    (safety is its invariant), first for the QP's answer.  When it brakes
+    someone, the rest is decided per connected component of the robots within
+    the sensing range ``D`` of each other (``pairs``: those pairs, as the filter
+    found them; found here when None), each as if it were alone: the
+    gatekeeper never couples robots farther apart than ``D``, so a stack of
+    teams decides as each team alone.
+
+    - A component where nobody brakes keeps the gate's answer, and so does one
+      where the braking robots are all too fast for the range limit (the repair
+      changes pair margins only), or one with the repair off.
+    - A component whose invariant was already broken (a pair failing when both
+      brake: a start that was not brake-safe, an assumption violated) gets the
+      best effort of ``hold_violations``, and the result says unsafe.
+    - Otherwise the answer is nudged by :func:`repair` and checked again; of the
+      two, the one that brakes fewer robots is kept (the repaired one on a tie).
     """
     gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles)
-    quick = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, blend_levels=(), **gate_kw)
-    if not quick.braking.any():
-        return quick
-    if not quick.safe and quick.margin < 0.0:
-        # the invariant is already broken (a start that was not brake-safe, an assumption violated):
-        # best effort is the same gate with every pair held to its own margin under braking, so no
-        # pair gets closer than braking would bring it while robots may still move apart (pair by
-        # pair: a stack of teams decides as each team alone); the result keeps saying unsafe, and
-        # the caller's bounds stay hard (they bind only when tighter than the robots' own, which
-        # the backup respects)
-        held = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, hold_violations=True, **gate_kw)
-        return held._replace(safe=False, du=np.minimum(np.maximum(held.du, lo), hi))
-    if not (cfg.backup_repair and quick.safe):
-        return gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, **gate_kw)
-    # nudge the QP's answer toward brake-safety, then check again (usually nobody brakes then)
-    repaired = repair(team, pose, u, du, cfg.dt, lo, hi, **gate_kw)
-    second = gatekeeper(team, pose, u, repaired, cfg.dt, tol=GATE_TOL, **gate_kw)
-    if not second.braking.any():
-        return second
     first = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, **gate_kw)
-    if first.safe and int(second.braking.sum()) <= int(first.braking.sum()):
-        return second
-    return first
+    if not first.braking.any():
+        return first
+    n = pose.shape[0]
+    if pairs is None:
+        p0 = _point(team, pose)
+        pairs = robot_pairs(np.stack((p0.real, p0.imag), axis=1), cfg.sensing_range, groups=team.group)
+    label = pair_components(n, pairs[:, 0], pairs[:, 1])
+
+    def per_component(flags: np.ndarray) -> np.ndarray:
+        """``(n,)`` bool: the robot's component has a robot with ``flags``."""
+        hit = np.zeros(n, dtype=bool)
+        hit[label[flags]] = True
+        return hit[label]
+
+    def gate_on(rows: np.ndarray, cand: np.ndarray, **kw) -> GateResult:
+        return gatekeeper(team.subset(rows), pose[rows], u[rows], cand, cfg.dt, tol=GATE_TOL, **gate_kw, **kw)
+
+    broken = per_component(first.broken)
+    held = broken & per_component(first.robot_margin < 0.0)
+    fixing = per_component(first.braking & ~first.out_of_range) & ~broken & cfg.backup_repair
+    parts: list[tuple[np.ndarray, GateResult]] = []
+    if held.any():
+        # best effort outside the safe set: every pair held to its own margin under braking, so no
+        # pair gets closer than braking would bring it while robots may still move apart; the
+        # caller's bounds stay hard (they bind only when tighter than the robots' own, which the
+        # backup respects)
+        rows = np.flatnonzero(held)
+        g = gate_on(rows, du[rows], hold_violations=True)
+        parts.append((rows, g._replace(du=np.minimum(np.maximum(g.du, lo[rows]), hi[rows]))))
+    if fixing.any():
+        # nudge the QP's answer toward brake-safety, then check again (usually nobody brakes then)
+        rows = np.flatnonzero(fixing)
+        repaired = repair(team.subset(rows), pose[rows], u[rows], du[rows], cfg.dt, lo[rows], hi[rows], **gate_kw)
+        second = gate_on(rows, repaired)
+        nb2, nb1 = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
+        np.add.at(nb2, label[rows], second.braking)
+        np.add.at(nb1, label[rows], first.braking[rows])
+        keep = (nb2 <= nb1)[label[rows]]
+        parts.append((rows[keep], _rows_of(second, np.flatnonzero(keep))))
+    return _merged(first, parts, unsafe=bool(held.any()))
+
+
+def _rows_of(g: GateResult, at: np.ndarray) -> GateResult:
+    """The per-robot entries ``at`` of a gate result (scalars kept)."""
+    return g._replace(du=g.du[at], braking=g.braking[at], broken=g.broken[at], share=g.share[at],
+                      robot_margin=g.robot_margin[at])
+
+
+def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], unsafe: bool) -> GateResult:
+    """``base`` with the robots ``rows`` of each part replaced by that part's answers (later parts win)."""
+    du, braking, broken = base.du.copy(), base.braking.copy(), base.broken.copy()
+    share, robot_margin = base.share.copy(), base.robot_margin.copy()
+    for rows, g in parts:
+        du[rows], braking[rows], broken[rows], share[rows], robot_margin[rows] = (
+            g.du, g.braking, g.broken, g.share, g.robot_margin)
+    return GateResult(du, braking, float(robot_margin.min(initial=base.margin)), not (unsafe or broken.any()), broken,
+                      share, base.rounds + sum(g.rounds for _, g in parts), base.n_pairs, robot_margin,
+                      base.out_of_range)
+
 
 
 def repair(
@@ -97,8 +143,9 @@ def repair(
 
     For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below
     ``target`` [m], the margin's gradient with respect to both robots' inputs is
-    taken by finite differences (step ``eps`` in input units; one extra path
-    set per input direction, for the robots of such pairs only), and the two
+    taken by finite differences at the pair's closest step (step ``eps`` in input
+    units; the two samples of that step in closed form,
+    :func:`~aasoatt_env.safety.backup.candidate_samples_at`), and the two
     inputs move by the least-norm change that lifts the linearised margin to
     ``2 target``; changes from several pairs add up, and the result is clipped
     to ``[lo, hi]``.  ``rounds`` rounds.  This acts like backup-barrier rows in
@@ -130,39 +177,33 @@ def repair(
             oi, ok, ods = oi[lowo], ok[lowo], ods[lowo]
         if i.size + oi.size == 0:
             break
-        M = np.unique(np.concatenate((i, j, oi)))
-        m = M.size
-        s_n = S.size
-        L = base.p.shape[1] + 1  # a perturbation of eps dt in u adds at most one backup step
-        # rows [0, s): the base paths of S; [s, 2s) and [2s, 3s): with input k of the robots M
-        # perturbed (both perturbations in one call, and every margin below in one call: the same
-        # numbers, row by row, as separate calls)
-        P = np.concatenate((base.p, base.p[:, -1:]), axis=1)
-        D = np.concatenate((base.delta, np.zeros((s_n, 1))), axis=1)
-        P, D = np.concatenate((P, P, P)), np.concatenate((D, D, D))
-        MM = np.concatenate((M, M))
-        t = candidate_paths(team.subset(MM), pose[MM], u[MM], du[MM] + eps * np.repeat(eye, m, axis=0), dt,
-                            brake_fraction, L)
-        lM = loc[M]
-        P[np.concatenate((s_n + lM, 2 * s_n + lM))], D[np.concatenate((s_n + lM, 2 * s_n + lM))] = t.p, t.delta
+        # the gradient of each low margin at its closest step (the envelope of the minimum): that
+        # step's two samples of one member's path with one input moved by eps, in closed form
         step = np.zeros((n, 2))
         if i.size:
             li, lj = loc[i], loc[j]
-            a = np.concatenate((li, s_n + li, 2 * s_n + li, li, li))
-            b = np.concatenate((lj, lj, lj, s_n + lj, 2 * s_n + lj))
-            mg = pair_margins(P[a], P[b], D[a], D[b], np.tile(ds, 5)).reshape(5, -1)
-            m0 = mg[0]
-            gi = ((mg[1:3] - m0) / eps).T
-            gj = ((mg[3:5] - m0) / eps).T
+            m0, k = pair_margins(base.p[li], base.p[lj], base.delta[li], base.delta[lj], ds, closest=True)
+            s2 = k[:, None] + np.arange(2)
+            rob, fix = np.concatenate((i, i, j, j)), np.concatenate((lj, lj, li, li))
+            moved = du[rob] + eps * np.tile(np.repeat(eye, i.size, axis=0), (2, 1))
+            s4 = np.tile(s2, (4, 1))
+            pm, dm = candidate_samples_at(team.subset(rob), pose[rob], u[rob], moved, dt, brake_fraction, s4)
+            mg = pair_margins(pm, base.p[fix[:, None], s4], dm[:, :1], base.delta[fix, s4[:, 0]][:, None],
+                              np.tile(ds, 4)).reshape(4, -1)
+            gi = ((mg[0:2] - m0) / eps).T
+            gj = ((mg[2:4] - m0) / eps).T
             lift = (2.0 * target - m0) / np.maximum((gi * gi).sum(1) + (gj * gj).sum(1), 1e-12)
             np.add.at(step, i, lift[:, None] * gi)
             np.add.at(step, j, lift[:, None] * gj)
         if oi.size:
             lo_ = loc[oi]
-            a = np.concatenate((lo_, s_n + lo_, 2 * s_n + lo_))
-            mg = pair_margins(P[a], oc[np.tile(ok, 3)][:, None], D[a], 0.0, np.tile(ods, 3)).reshape(3, -1)
-            m0 = mg[0]
-            go = ((mg[1:3] - m0) / eps).T
+            m0, k = pair_margins(base.p[lo_], oc[ok][:, None], base.delta[lo_], 0.0, ods, closest=True)
+            s2 = np.tile(k[:, None] + np.arange(2), (2, 1))
+            rob = np.concatenate((oi, oi))
+            moved = du[rob] + eps * np.repeat(eye, oi.size, axis=0)
+            pm, dm = candidate_samples_at(team.subset(rob), pose[rob], u[rob], moved, dt, brake_fraction, s2)
+            mg = pair_margins(pm, oc[np.tile(ok, 2)][:, None], dm[:, :1], 0.0, np.tile(ods, 2)).reshape(2, -1)
+            go = ((mg - m0) / eps).T
             lift = (2.0 * target - m0) / np.maximum((go * go).sum(1), 1e-12)
             np.add.at(step, oi, lift[:, None] * go)
         if not step.any():
