@@ -16,7 +16,12 @@ caller falls back to a general solver.  The working set is seeded
 from the previous step (positive multipliers, active bounds); the method is
 only tried with such a warm start and for a few iterations, because the
 PDAS rule alone can cycle or meet inconsistent working sets on these rows
-(seen on cold starts of packed layouts): then ``None`` and the general solver.
+(seen on cold starts of packed layouts, and at the circle swap's crossing,
+where it adds several rows at once and drops them again).  Then, from the same
+warm start, a rule with one change per iteration (drop the most negative
+multiplier, else add the most violated row) is tried: a working set one or two
+rows off the optimum, the usual case from one physics step to the next, needs as
+many iterations.  When both fail: ``None`` and the general solver.
 """
 
 from __future__ import annotations
@@ -41,6 +46,8 @@ WARM_REL: float = 1e-6
 """Rows whose warm-start multiplier exceeds this fraction of the largest start in the working set."""
 TOL: float = 1e-10
 """Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
+ONE_CHANGE_ITER: int = 4
+"""Iterations of the one-change rule, tried from the warm start when the primal-dual rule fails."""
 
 
 class LeastDistanceForm(NamedTuple):
@@ -197,56 +204,85 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
     W[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), 1e-300) if m else False
     W[m:m + n] = x0 >= prob.ub - 1e-9
     W[m + n:] = x0 <= prob.lb + 1e-9
-    lam = np.zeros(mt)
-    for it in range(1, max_iter + 1):
-        idx = np.flatnonzero(W)
-        k = idx.shape[0]
-        if k:
-            if dense:
-                Mw = Md[idx]
-                S = Mw @ Mw.T
-                rhs = -(Mw @ gt) - b[idx]
-                delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
-                Sr = S + 0.0  # S + delta * I without the identity: off the diagonal S + 0.0, on it S + delta
-                Sr.flat[:: k + 1] += delta
-                try:
-                    if k <= DENSE_MAX_ROWS:
-                        cf = np.linalg.cholesky(Sr)
-                        solve = functools.partial(_cholesky_solve, cf)
-                    else:
-                        lu = spla.splu(sp.csc_matrix(Sr))
-                        solve = lu.solve
-                except (np.linalg.LinAlgError, RuntimeError):
-                    return None
-                lw = _refine(solve, S, rhs)
-                y = -gt - Mw.T @ lw
-            else:
-                Mw = Mt[idx]
-                S = (Mw @ Mw.T).tocsc()
-                rhs = -(Mw @ gt) - b[idx]
-                delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
-                try:
-                    lu = spla.splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
-                except RuntimeError:
-                    return None
-                lw = _refine(lu.solve, S, rhs)
-                y = -gt - Mw.T @ lw
-            if not np.all(np.isfinite(lw)):
-                return None
-        else:
-            lw = np.zeros(0)
-            y = -gt
-        lam[:] = 0.0
-        lam[idx] = lw
-        r = ((Md @ y) if dense else (Mt @ y)) - b
-        if r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL:
+    eq = functools.partial(_equality_point, Md if dense else Mt, dense, gt, b)
+    for rule, budget in ((_pdas_rule, max_iter), (_one_change_rule, ONE_CHANGE_ITER)):
+        out = _working_set_loop(eq, W.copy(), rule, budget)
+        if out is not None:
+            y, lam, it = out
             return np.einsum("nij,nj->ni", LinvT, y.reshape(-1, 2)).ravel(), np.maximum(lam[:m], 0.0), it
-        Wn = (lam + r) > 0
+    return None
+
+
+def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray):
+    """``(y, lam, r)`` with the rows ``W`` held as equalities, or None (singular); ``r = M y - b``."""
+    idx = np.flatnonzero(W)
+    k = idx.shape[0]
+    lam = np.zeros(b.shape[0])
+    if not k:
+        return -gt, lam, (M @ -gt) - b
+    Mw = M[idx]
+    if dense:
+        S = Mw @ Mw.T
+        rhs = -(Mw @ gt) - b[idx]
+        delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
+        Sr = S + 0.0  # S + delta * I without the identity: off the diagonal S + 0.0, on it S + delta
+        Sr.flat[:: k + 1] += delta
+        try:
+            if k <= DENSE_MAX_ROWS:
+                cf = np.linalg.cholesky(Sr)
+                solve = functools.partial(_cholesky_solve, cf)
+            else:
+                lu = spla.splu(sp.csc_matrix(Sr))
+                solve = lu.solve
+        except (np.linalg.LinAlgError, RuntimeError):
+            return None
+    else:
+        S = (Mw @ Mw.T).tocsc()
+        rhs = -(Mw @ gt) - b[idx]
+        delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
+        try:
+            lu = spla.splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
+        except RuntimeError:
+            return None
+        solve = lu.solve
+    lw = _refine(solve, S, rhs)
+    if not np.all(np.isfinite(lw)):
+        return None
+    y = -gt - Mw.T @ lw
+    lam[idx] = lw
+    return y, lam, (M @ y) - b
+
+
+def _pdas_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """The primal-dual active-set update: every row with ``lambda + r > 0``."""
+    return (lam + r) > 0
+
+
+def _one_change_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """One change: drop the most negative multiplier, else add the most violated row."""
+    Wn = W.copy()
+    k = int(np.argmin(lam))
+    if lam[k] < -TOL:
+        Wn[k] = False
+    else:
+        Wn[int(np.argmax(np.where(W, -np.inf, r)))] = True
+    return Wn
+
+
+def _working_set_loop(eq, W: np.ndarray, rule, max_iter: int):
+    """Iterate ``rule`` from ``W``: ``(y, lam, iterations)`` once the KKT conditions hold, else None."""
+    for it in range(1, max_iter + 1):
+        point = eq(W)
+        if point is None:
+            return None
+        y, lam, r = point
+        if r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL:
+            return y, lam, it
+        Wn = rule(W, lam, r)
         if np.array_equal(Wn, W):
             return None
         W = Wn
     return None
-
 
 def _refine(solve, S, rhs, steps: int = 4):
     """Proximal iterative refinement: solves consistent (possibly singular) ``S l = rhs``."""
