@@ -421,6 +421,7 @@ def gatekeeper(
     tol: float = 0.0,
     blend_levels: tuple[float, ...] = (0.5,),
     hold_violations: bool = False,
+    quick: bool = False,
 ) -> GateResult:
     """Accept the candidate ``du_c`` for every robot whose pairs stay brake-safe; put the others on the backup.
 
@@ -488,31 +489,40 @@ def gatekeeper(
         brake is held to that margin (its own tolerance) instead of being marked broken, so no pair
         gets closer than braking would bring it while robots may still move apart.  ``safe`` then
         says only whether the range condition held; the caller reports the state.
+    quick : bool
+        Only the verdict on the candidate is wanted: the blend levels are used only when some
+        robot's candidate path leaves :func:`reach_limit` (without them such a robot could only
+        brake).  The first round, which robots the candidate fails, is the same either way.
+        Without such a robot, one that fails a pair goes straight to the backup; with one
+        (``out_of_range.any()``), the answer is the full check's.
     """
     n = pose.shape[0]
     theta = pose[:, 2]
     p0 = _point(team, pose)
     levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
-    last = len(levels) - 1
     T0 = brake_time(team, u, brake_fraction)
     du_b = -u / np.maximum(T0, dt)[:, None]  # braking_du
+    limit = reach_limit(team, sensing_range)
 
     # closed-form parameters per level (cheap, O(N)): a step blending the candidate and the backup,
     # du_b + a (du_c - du_b), then the backup from there; level `last` is the backup from now
     b0 = _brake(team, theta, u, dt, brake_fraction, T0)
     firsts = []
-    reach = np.empty((len(levels), n))
+    reaches = []
     for k, a in enumerate(levels[:-1]):
         du_a = du_b + a * (du_c - du_b)
         p1, d1, theta1, u1 = _first_step(team, p0, theta, u, du_a, dt)
         b1 = _brake(team, theta1, u1, dt, brake_fraction)
         firsts.append((du_a, p1, d1, b1))
-        reach[k] = _candidate_reach(p0, p1, d1, b1)
-    reach[last] = b0.reach
+        reaches.append(_candidate_reach(p0, p1, d1, b1))
+        if k == 0 and quick and not bool((reaches[0] > limit).any()):
+            levels = (1.0, 0.0)  # no candidate leaves the range: the blends would change nothing below
+            break
+    last = len(levels) - 1
+    reach = np.stack(reaches + [b0.reach])
     R = reach.max(axis=0)
 
     # a level whose path leaves the reach limit is skipped at once
-    limit = reach_limit(team, sensing_range)
     lev = np.zeros(n, dtype=np.int64)
     for k in range(last):
         lev = np.where((lev == k) & (reach[k] > limit), k + 1, lev)

@@ -5,9 +5,10 @@ every robot whose candidate is not brake-safe on the braking backup.  Braking
 costs liveness, so before the gatekeeper decides, :func:`repair` nudges the
 QP's answer toward brake-safety (the least change that lifts every low backup
 margin, like backup-barrier rows in the QP), and :func:`gate_with_repair` is
-the order in which the filter asks: the check of the QP's answer, then, in
+the order in which the filter asks: a quick check of the QP's answer, then, in
 each group of robots within sensing range of each other where it brakes
-someone, the repair and a check of it; outside the safe set, best effort.
+someone, the repair and a check of it, the full check of the QP's answer only
+where the repaired one still brakes someone; outside the safe set, best effort.
 """
 
 from __future__ import annotations
@@ -44,26 +45,34 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair if it brakes.
 
     Every answer comes from :func:`~aasoatt_env.safety.backup.gatekeeper`
-    (safety is its invariant), first for the QP's answer.  When it brakes
-    someone, the rest is decided per connected component of the robots within
-    the sensing range ``D`` of each other (``pairs``: those pairs, as the filter
-    found them; found here when None), each as if it were alone: the
-    gatekeeper never couples robots farther apart than ``D``, so a stack of
-    teams decides as each team alone.
+    (safety is its invariant).  Whether the QP's answer passes for every robot
+    is decided by the first round, which is the same with or without the blend
+    levels, so it is checked first without them (``quick=True``: fewer rounds)
+    unless a robot is too fast for the range limit (then the blends are its
+    only way short of braking, and that first check is the full one).  When it
+    brakes someone, the rest is decided per connected
+    component of the robots within the sensing range ``D`` of each other
+    (``pairs``: those pairs, as the filter found them; found here when None),
+    each as if it were alone: the gatekeeper never couples robots farther apart
+    than ``D``, so a stack of teams decides as each team alone, and a component
+    where nobody brakes keeps the QP's answer.
 
-    - A component where nobody brakes keeps the gate's answer, and so does one
-      where the braking robots are all too fast for the range limit (the repair
-      changes pair margins only), or one with the repair off.
     - A component whose invariant was already broken (a pair failing when both
       brake: a start that was not brake-safe, an assumption violated) gets the
       best effort of ``hold_violations``, and the result says unsafe.
-    - Otherwise the answer is nudged by :func:`repair` and checked again; of the
-      two, the one that brakes fewer robots is kept (the repaired one on a tie).
+    - One where a robot brakes for a pair is nudged by :func:`repair` and checked
+      again with the blend levels; the full check of the QP's answer is made
+      only where the repaired one still brakes someone, and of the two the one
+      that brakes fewer robots is kept (the repaired one on a tie).
+    - The others (the braking robots only too fast for the range limit, which no
+      nudge of a pair margin changes; a robot beyond the range limit even when
+      braking; the repair off) get the full check of the QP's answer.
     """
     gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles)
-    first = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, **gate_kw)
-    if not first.braking.any():
-        return first
+    quick = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, quick=True, **gate_kw)
+    if not quick.braking.any():
+        return quick
+    full_check = bool(quick.out_of_range.any())  # the quick check used the blend levels: it is the full one
     n = pose.shape[0]
     if pairs is None:
         p0 = _point(team, pose)
@@ -76,12 +85,17 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
         hit[label[flags]] = True
         return hit[label]
 
-    def gate_on(rows: np.ndarray, cand: np.ndarray, **kw) -> GateResult:
-        return gatekeeper(team.subset(rows), pose[rows], u[rows], cand, cfg.dt, tol=GATE_TOL, **gate_kw, **kw)
+    def sub(rows: np.ndarray) -> tuple[Team, np.ndarray, np.ndarray]:
+        """The team, poses and speeds of robots ``rows`` (the arrays themselves when that is everyone)."""
+        return (team, pose, u) if rows.size == n else (team.subset(rows), pose[rows], u[rows])
 
-    broken = per_component(first.broken)
-    held = broken & per_component(first.robot_margin < 0.0)
-    fixing = per_component(first.braking & ~first.out_of_range) & ~broken & cfg.backup_repair
+    def gate_on(rows: np.ndarray, cand: np.ndarray, **kw) -> GateResult:
+        return gatekeeper(*sub(rows), cand, cfg.dt, tol=GATE_TOL, **gate_kw, **kw)
+
+    broken = per_component(quick.broken)
+    held = broken & per_component(quick.robot_margin < 0.0)
+    fixing = per_component(quick.braking & ~quick.out_of_range) & ~broken & cfg.backup_repair
+    full = per_component(quick.braking) & ~held & ~fixing
     parts: list[tuple[np.ndarray, GateResult]] = []
     if held.any():
         # best effort outside the safe set: every pair held to its own margin under braking, so no
@@ -91,23 +105,36 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
         rows = np.flatnonzero(held)
         g = gate_on(rows, du[rows], hold_violations=True)
         parts.append((rows, g._replace(du=np.minimum(np.maximum(g.du, lo[rows]), hi[rows]))))
+    if full.any() and not full_check:
+        rows = np.flatnonzero(full)
+        parts.append((rows, gate_on(rows, du[rows])))
     if fixing.any():
         # nudge the QP's answer toward brake-safety, then check again (usually nobody brakes then)
         rows = np.flatnonzero(fixing)
-        repaired = repair(team.subset(rows), pose[rows], u[rows], du[rows], cfg.dt, lo[rows], hi[rows], **gate_kw)
+        repaired = repair(*sub(rows), du[rows], cfg.dt, lo[rows], hi[rows], **gate_kw)
         second = gate_on(rows, repaired)
-        nb2, nb1 = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
-        np.add.at(nb2, label[rows], second.braking)
-        np.add.at(nb1, label[rows], first.braking[rows])
-        keep = (nb2 <= nb1)[label[rows]]
-        parts.append((rows[keep], _rows_of(second, np.flatnonzero(keep))))
-    return _merged(first, parts, unsafe=bool(held.any()))
+        parts.append((rows, second))
+        again = np.zeros(n, dtype=bool)
+        again[rows] = second.braking
+        again = per_component(again)
+        if again.any():
+            # the full check of the QP's answer there; of the two, per component, the repaired
+            # answer unless the QP's brakes fewer robots (or the QP's check finds the state broken)
+            rows_a = np.flatnonzero(again)
+            first = _rows_of(quick, rows_a) if full_check else gate_on(rows_a, du[rows_a])
+            nb2, nb1, bad1 = (np.zeros(n, dtype=np.int64) for _ in range(3))
+            np.add.at(nb2, label[rows], second.braking)
+            np.add.at(nb1, label[rows_a], first.braking)
+            np.add.at(bad1, label[rows_a], first.broken)
+            take_first = ~((bad1 == 0) & (nb2 <= nb1))[label[rows_a]]
+            parts.append((rows_a[take_first], _rows_of(first, np.flatnonzero(take_first))))
+    return _merged(quick, parts, unsafe=bool(held.any()))
 
 
 def _rows_of(g: GateResult, at: np.ndarray) -> GateResult:
     """The per-robot entries ``at`` of a gate result (scalars kept)."""
     return g._replace(du=g.du[at], braking=g.braking[at], broken=g.broken[at], share=g.share[at],
-                      robot_margin=g.robot_margin[at])
+                      robot_margin=g.robot_margin[at], out_of_range=g.out_of_range[at])
 
 
 def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], unsafe: bool) -> GateResult:
