@@ -19,6 +19,7 @@ from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.backup import (
     GateResult,
+    Trajectories,
     _brake,
     _bucketed,
     _candidate_reach,
@@ -183,6 +184,7 @@ def repair(
     n = pose.shape[0]
     eye = np.eye(2)
     p0 = _point(team, pose)
+    paths = _PathCache(team, pose, u, dt, brake_fraction)
     for _ in range(rounds):
         # reach first (O(N)): only robots with a pair that could come close need sampled paths
         p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
@@ -194,7 +196,7 @@ def repair(
         S = np.unique(np.concatenate((i, j, oi)))  # rows of `base`: these robots, in this order
         loc = np.full(n, -1, dtype=np.intp)
         loc[S] = np.arange(S.size)
-        base = candidate_paths(team.subset(S), pose[S], u[S], du[S], dt, brake_fraction)
+        base = paths.get(S, du)
         m = _bucketed(base.p, base.delta, base.length, loc[i], loc[j], ds)
         low = m < target
         i, j, ds = i[low], j[low], ds[low]
@@ -235,5 +237,47 @@ def repair(
             np.add.at(step, oi, lift[:, None] * go)
         if not step.any():
             break
-        du = np.minimum(np.maximum(du + step, lo), hi)
+        moved_du = np.minimum(np.maximum(du + step, lo), hi)
+        paths.forget(np.flatnonzero((moved_du != du).any(axis=1)))
+        du = moved_du
     return du
+
+
+class _PathCache:
+    """Candidate paths of a team's robots, each made once and kept until the robot's input changes.
+
+    :func:`~aasoatt_env.safety.backup.candidate_paths`, row by row: a repair round moves only the
+    robots of low pairs, so the others keep their paths.  Rows are made only for robots asked
+    for; a row shorter than the others is extended with its rest position (deviation 0), which
+    is what a longer horizon gives for it, sample for sample.
+    """
+
+    def __init__(self, team: Team, pose: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float) -> None:
+        self.team, self.pose, self.u, self.dt, self.brake_fraction = team, pose, u, dt, brake_fraction
+        n = pose.shape[0]
+        self.p = np.zeros((n, 2), dtype=np.complex128)
+        self.delta = np.zeros((n, 1))
+        self.length = np.zeros(n, dtype=np.int64)
+        self.valid = np.zeros(n, dtype=bool)
+
+    def get(self, rows: np.ndarray, du: np.ndarray) -> Trajectories:
+        """The paths of robots ``rows`` (sorted) with inputs ``du[rows]``, ``L`` their longest horizon."""
+        new = rows[~self.valid[rows]]
+        if new.size:
+            t = candidate_paths(self.team.subset(new), self.pose[new], self.u[new], du[new], self.dt,
+                                self.brake_fraction)
+            width = t.p.shape[1]
+            if width > self.p.shape[1]:  # every row rests beyond its own horizon
+                grow = width - self.p.shape[1]
+                self.p = np.concatenate((self.p, np.repeat(self.p[:, -1:], grow, axis=1)), axis=1)
+                self.delta = np.concatenate((self.delta, np.zeros((self.delta.shape[0], grow))), axis=1)
+            self.p[new, :width], self.p[new, width:] = t.p, t.p[:, -1:]
+            self.delta[new, : width - 1], self.delta[new, width - 1:] = t.delta, 0.0
+            self.length[new] = t.length
+            self.valid[new] = True
+        L = max(int(self.length[rows].max(initial=0)), 2)
+        return Trajectories(self.p[rows, :L], self.delta[rows, : L - 1], self.length[rows], np.zeros(rows.size))
+
+    def forget(self, rows: np.ndarray) -> None:
+        """Robots whose input changed: their paths are made again when asked for."""
+        self.valid[rows] = False
