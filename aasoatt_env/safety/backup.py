@@ -242,19 +242,23 @@ def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray,
 
 
 def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float,
-                         brake_fraction: float, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                         brake_fraction: float, s: np.ndarray, rows: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, np.ndarray]:
     """Samples ``s`` of :func:`candidate_paths` in closed form, without the others.
 
     Parameters
     ----------
     s : numpy.ndarray
-        ``(N, S)`` int sample indices per robot (0: the current point, 1: after the step with ``du``,
-        ``k + 1``: after ``k`` braking steps).
+        ``(R, S)`` int sample indices per row (0: the current point, 1: after the step with ``du``,
+        ``k + 1``: after ``k`` braking steps); a row per robot unless ``rows`` is given.
+    rows : numpy.ndarray, optional
+        ``(R,)``: the robot of each row of ``s`` (a robot's path is made once, then sampled
+        for each of its rows).
 
     Returns
     -------
     tuple of numpy.ndarray
-        Positions ``(N, S)`` complex and the deviation bounds ``(N, S)`` of the steps ``s -> s + 1``:
+        Positions ``(R, S)`` complex and the deviation bounds ``(R, S)`` of the steps ``s -> s + 1``:
         the same numbers as ``candidate_paths(...).p`` and ``.delta`` at those indices, to rounding
         (the arc parameter of braking step ``k`` is the sum of the sampled trapezoids written out:
         ``dt (k - r k^2 / 2)`` while the speed scale ``1 - k r`` is positive, ``r = dt / T``).
@@ -262,6 +266,8 @@ def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.nda
     p0 = _point(team, pose)
     p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
     b = _brake(team, theta1, u1, dt, brake_fraction)
+    if rows is not None:
+        p0, p1, d1, b = p0[rows], p1[rows], d1[rows], _take(b, rows)
     r = b.rate[:, None]
     kf = np.floor(1.0 / r)  # the last braking step with a speed scale >= 0
     k = np.maximum(s - 1, 0).astype(np.float64)
@@ -273,6 +279,7 @@ def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.nda
     sig = 0.5 * (np.clip(1.0 - k * r, 0.0, 1.0) + np.clip(1.0 - (k + 1.0) * r, 0.0, 1.0))
     delta = (dt * dt / 8.0) * np.abs(b.pdot)[:, None] * (sig * sig) * np.abs(w)
     return p, np.where(s == 0, d1[:, None], delta)
+
 
 # --------------------------------------------------------------------------- pair check
 def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray | float, ds: np.ndarray,

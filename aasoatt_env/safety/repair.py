@@ -209,14 +209,20 @@ def repair(
         # the gradient of each low margin at its closest step (the envelope of the minimum): that
         # step's two samples of one member's path with one input moved by eps, in closed form
         step = np.zeros((n, 2))
+        # every robot of a low pair with each input moved by eps: rows 2 q + d of `moved`
+        U = np.unique(np.concatenate((i, j, oi)))
+        at = np.full(n, -1, dtype=np.intp)
+        at[U] = 2 * np.arange(U.size)
+        R2 = np.repeat(U, 2)
+        sub_team, sub_pose, sub_u = team.subset(R2), pose[R2], u[R2]
+        moved = du[R2] + eps * np.tile(eye, (U.size, 1))
         if i.size:
             li, lj = loc[i], loc[j]
             m0, k = pair_margins(base.p[li], base.p[lj], base.delta[li], base.delta[lj], ds, closest=True)
-            s2 = k[:, None] + np.arange(2)
-            rob, fix = np.concatenate((i, i, j, j)), np.concatenate((lj, lj, li, li))
-            moved = du[rob] + eps * np.tile(np.repeat(eye, i.size, axis=0), (2, 1))
-            s4 = np.tile(s2, (4, 1))
-            pm, dm = candidate_samples_at(team.subset(rob), pose[rob], u[rob], moved, dt, brake_fraction, s4)
+            s4 = np.tile(k[:, None] + np.arange(2), (4, 1))
+            fix = np.concatenate((lj, lj, li, li))
+            pm, dm = candidate_samples_at(sub_team, sub_pose, sub_u, moved, dt, brake_fraction, s4,
+                                          rows=np.concatenate((at[i], at[i] + 1, at[j], at[j] + 1)))
             mg = pair_margins(pm, base.p[fix[:, None], s4], dm[:, :1], base.delta[fix, s4[:, 0]][:, None],
                               np.tile(ds, 4)).reshape(4, -1)
             gi = ((mg[0:2] - m0) / eps).T
@@ -228,9 +234,8 @@ def repair(
             lo_ = loc[oi]
             m0, k = pair_margins(base.p[lo_], oc[ok][:, None], base.delta[lo_], 0.0, ods, closest=True)
             s2 = np.tile(k[:, None] + np.arange(2), (2, 1))
-            rob = np.concatenate((oi, oi))
-            moved = du[rob] + eps * np.repeat(eye, oi.size, axis=0)
-            pm, dm = candidate_samples_at(team.subset(rob), pose[rob], u[rob], moved, dt, brake_fraction, s2)
+            pm, dm = candidate_samples_at(sub_team, sub_pose, sub_u, moved, dt, brake_fraction, s2,
+                                          rows=np.concatenate((at[oi], at[oi] + 1)))
             mg = pair_margins(pm, oc[np.tile(ok, 2)][:, None], dm[:, :1], 0.0, np.tile(ods, 2)).reshape(2, -1)
             go = ((mg - m0) / eps).T
             lift = (2.0 * target - m0) / np.maximum((go * go).sum(1), 1e-12)
