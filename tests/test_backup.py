@@ -18,10 +18,9 @@ from aasoatt_env.safety.backup import (
     braking_trajectory,
     candidate_paths,
     candidate_samples_at,
-    gatekeeper,
-    pair_margins,
     reach_limit,
 )
+from aasoatt_env.safety.gatekeeper import gatekeeper, pair_margins
 from aasoatt_env.safety.repair import gate_with_repair
 from agents import ADVERSARIES, HostileAgent
 

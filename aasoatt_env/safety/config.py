@@ -120,7 +120,7 @@ class FilterConfig:
         is built over the robots that share a row only.  The optimum is the same
         (the problem is separable); the QP is smaller.  True by default.
     backup : bool
-        The braking backup layer (:mod:`aasoatt_env.safety.backup`, on by
+        The braking backup layer (:mod:`aasoatt_env.safety.gatekeeper`, on by
         default): the QP's answer is applied only where it keeps the team in the
         set of states from which braking keeps every pair ``>= d_s``; elsewhere
         the robots brake.  This is what makes the filter safe for any nominal

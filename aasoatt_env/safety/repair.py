@@ -1,6 +1,6 @@
 """The repair of a QP answer toward brake-safety, and the backup layer's decision for it.
 
-:func:`~aasoatt_env.safety.backup.gatekeeper` alone keeps the team safe: it puts
+:func:`~aasoatt_env.safety.gatekeeper.gatekeeper` alone keeps the team safe: it puts
 every robot whose candidate is not brake-safe on the braking backup.  Braking
 costs liveness, so before the gatekeeper decides, :func:`repair` nudges the
 QP's answer toward brake-safety (the least change that lifts every low backup
@@ -18,21 +18,16 @@ import numpy as np
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.backup import (
-    GateResult,
     Trajectories,
     _brake,
-    _bucketed,
     _candidate_reach,
     _first_step,
-    _obstacles_near,
-    _pairs_near,
     _point,
     candidate_paths,
     candidate_samples_at,
-    gatekeeper,
-    pair_margins,
 )
 from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.gatekeeper import GateResult, _bucketed, _obstacles_near, _pairs_near, gatekeeper, pair_margins
 
 __all__ = ["GATE_TOL", "gate_with_repair", "repair"]
 
@@ -45,7 +40,7 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
                      pairs: np.ndarray | None = None) -> GateResult:
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair if it brakes.
 
-    Every answer comes from :func:`~aasoatt_env.safety.backup.gatekeeper`
+    Every answer comes from :func:`~aasoatt_env.safety.gatekeeper.gatekeeper`
     (safety is its invariant).  Whether the QP's answer passes for every robot
     is decided by the first round, which is the same with or without the blend
     levels, so it is checked first without them (``quick=True``: fewer rounds)
@@ -178,7 +173,7 @@ def repair(
     ``2 target``; changes from several pairs add up, and the result is clipped
     to ``[lo, hi]``.  ``rounds`` rounds.  This acts like backup-barrier rows in
     the QP (a small, local correction toward the safe set), so the gatekeeper
-    rarely has to brake; safety still comes from :func:`~aasoatt_env.safety.backup.gatekeeper` alone.
+    rarely has to brake; safety still comes from :func:`~aasoatt_env.safety.gatekeeper.gatekeeper` alone.
     """
     du = np.minimum(np.maximum(du_c, lo), hi)
     n = pose.shape[0]

@@ -1,0 +1,423 @@
+"""The gatekeeper of the braking backup layer: keeps the team collision-free for any nominal.
+
+It checks the QP's answer against the backup policy of
+:mod:`aasoatt_env.safety.backup` (proportional braking, in closed form) every
+robot can always execute, and applies the backup where the answer would leave
+the set of states from which the backup keeps every pair apart (a gatekeeper in
+the sense of Agrawal and Panagou; a backup-set barrier in the sense of Gurriet
+et al.).
+
+Pair check (:func:`pair_margins`)
+    Within a step the simulated path is an arc at constant speed, which deviates
+    from the straight, linear-in-time interpolation of its end points by at most
+    its sagitta ``|p_dot| |omega| dt^2 / 8``.  The distance from the origin to a
+    segment of *relative* positions minus both robots' sagittas bounds the
+    pair's distance from below over that step; a pair is safe over a horizon
+    when that bound is ``>= d_s = r_i + r_j`` on every step.  Obstacles are
+    robots that never move.
+
+Gatekeeper (:func:`gatekeeper`) and its invariance argument: see its docstring.
+Everything is vectorised over robots and pairs; Python loops run only over the
+gatekeeper's rounds and over a few length buckets of the pair batch.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from aasoatt_env.model.geometry import robot_pairs
+from aasoatt_env.model.params import Team
+from aasoatt_env.safety.backup import (
+    _brake,
+    _brake_samples,
+    _candidate_reach,
+    _first_step,
+    _point,
+    _take,
+    brake_time,
+    reach_limit,
+)
+
+__all__ = ["GateResult", "gatekeeper", "pair_margins"]
+
+
+# --------------------------------------------------------------------------- pair check
+def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray | float, ds: np.ndarray,
+                 closest: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Smallest ``distance - d_s`` of each pair along sampled paths (a lower bound between samples).
+
+    Parameters
+    ----------
+    pi, pj : numpy.ndarray
+        ``(P, L)`` complex positions of the two members at the same steps
+        (``pj`` may be ``(P, 1)`` for a static obstacle).
+    di, dj : numpy.ndarray or float
+        ``(P, L-1)`` deviation bounds per step (``dj`` may be 0).
+    ds : numpy.ndarray
+        ``(P,)`` safety distances.
+
+    closest : bool
+        Also return the step ``k`` of each minimum ``(P,)`` int.
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(P,)``: ``min_k (dist(0, [q_k, q_{k+1}]) - di_k - dj_k) - ds`` with ``q = pi - pj``.
+    """
+    q = pi - pj
+    if q.shape[1] == 1:
+        m = np.abs(q[:, 0]) - ds
+        return (m, np.zeros(m.shape[0], dtype=np.intp)) if closest else m
+    # the operations of ``t = clip(-dot / where(dd > 0, dd, 1), 0, 1)``, ``|q0 + t dq| - di - dj``, in place
+    q0 = q[:, :-1]
+    dq = q[:, 1:] - q0
+    dr, dm = dq.real, dq.imag
+    dd = dr * dr
+    tmp = dm * dm
+    dd += tmp
+    t = q0.real * dr
+    np.multiply(q0.imag, dm, out=tmp)
+    t += tmp
+    np.negative(t, out=t)
+    np.copyto(dd, 1.0, where=~(dd > 0.0))
+    t /= dd
+    np.clip(t, 0.0, 1.0, out=t)
+    np.multiply(t, dq, out=dq)
+    dq += q0
+    dist = np.abs(dq)
+    dist -= di
+    dist -= dj
+    if closest:
+        k = dist.argmin(axis=1)
+        return dist[np.arange(k.shape[0]), k] - ds, k
+    return dist.min(axis=1) - ds
+
+
+_ONE_BUCKET_CELLS = 4096
+"""Pair batches with at most this many samples in all are checked in one call rather than by horizon bucket."""
+
+
+def _bucketed(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndarray, jj: np.ndarray, ds: np.ndarray,
+              centers: np.ndarray | None = None) -> np.ndarray:
+    """:func:`pair_margins` of pairs ``(ii, jj)`` of rows of ``P``, in buckets of similar horizon.
+
+    ``need[r]`` is the number of samples row ``r`` needs; with ``centers`` the
+    second member is the static point ``centers[jj]``.
+    """
+    out = np.empty(ii.shape[0])
+    if ii.size == 0:
+        return out
+    lens = np.maximum(need[ii] if centers is not None else np.maximum(need[ii], need[jj]), 2)
+    top = int(lens.max())
+    if ii.size * top <= max(2 * int(lens.sum()), _ONE_BUCKET_CELLS):
+        bucket = np.zeros(ii.shape[0], dtype=np.int64)  # small or even: one call (padding samples are at rest)
+    else:
+        bucket = np.ceil(np.log2(lens)).astype(np.int64)
+    for b in np.unique(bucket):
+        sel = np.flatnonzero(bucket == b)
+        Lb = int(lens[sel].max())
+        a, c = ii[sel], jj[sel]
+        if centers is None:
+            out[sel] = pair_margins(P[a, :Lb], P[c, :Lb], D[a, : Lb - 1], D[c, : Lb - 1], ds[sel])
+        else:
+            out[sel] = pair_margins(P[a, :Lb], centers[c][:, None], D[a, : Lb - 1], 0.0, ds[sel])
+    return out
+
+
+# --------------------------------------------------------------------------- gatekeeper
+class GateResult(NamedTuple):
+    """What :func:`gatekeeper` decided.
+
+    Attributes
+    ----------
+    du : numpy.ndarray
+        ``(N, 2)`` inputs to apply: the backup for ``braking`` robots, the candidate otherwise.
+    braking : numpy.ndarray
+        ``(N,)`` bool: robots whose candidate was not accepted (blended toward, or put on, the backup).
+    margin : float
+        Smallest ``distance - d_s`` over the checked pairs along the horizon of
+        the returned assignment [m] (``reach_limit`` when no pair is close
+        enough to matter).
+    safe : bool
+        The current state was brake-safe for every checked pair: the returned
+        assignment keeps the team in the safe set.  False means the invariant
+        was already broken (an earlier overlap, a start that was not brake-safe,
+        or an assumption of the guarantee violated).
+    broken : numpy.ndarray
+        ``(N,)`` bool: robots in a pair that fails even when both brake (or that
+        reach beyond the range limit when braking).  No input can promise them
+        safety; the caller decides what they do (the filter applies its QP to robots beyond the range
+        limit, and re-runs the gate with ``hold_violations`` for pairs that fail when both brake).
+    share : numpy.ndarray
+        ``(N,)``: the share ``a`` of the candidate in the applied input (1: the
+        candidate, 0: the backup).
+    rounds : int
+        Gatekeeper rounds.
+    n_pairs : int
+        Robot and robot-obstacle pairs checked.
+    robot_margin : numpy.ndarray
+        ``(N,)``: the smallest such margin over each robot's checked pairs
+        (``reach_limit`` for a robot without one); ``margin`` is its minimum.
+    out_of_range : numpy.ndarray
+        ``(N,)`` bool: robots whose candidate path leaves :func:`reach_limit`
+        (too fast for the sensing range: no change of a pair's margin lets them keep it).
+    """
+
+    du: np.ndarray
+    braking: np.ndarray
+    margin: float
+    safe: bool
+    broken: np.ndarray
+    share: np.ndarray
+    rounds: int
+    n_pairs: int
+    robot_margin: np.ndarray
+    out_of_range: np.ndarray
+
+
+def gatekeeper(
+    team: Team,
+    pose: np.ndarray,
+    u: np.ndarray,
+    du_c: np.ndarray,
+    dt: float,
+    *,
+    sensing_range: float,
+    brake_fraction: float,
+    obstacles: tuple[np.ndarray, np.ndarray] | None = None,
+    tol: float = 0.0,
+    blend_levels: tuple[float, ...] = (0.5,),
+    hold_violations: bool = False,
+    quick: bool = False,
+) -> GateResult:
+    """Accept the candidate ``du_c`` for every robot whose pairs stay brake-safe; put the others on the backup.
+
+    Algorithm (one physics step, whole team)
+        1. Paths per level: ``B_a`` for each share ``a`` in ``1 > blend_levels > 0``
+           (one step with ``du_b + a (du_c - du_b)``, then the backup from
+           there) and ``B_0``, the backup from now.  Every robot starts at the
+           candidate (``a = 1``).
+        2. Range condition: a level whose path reaches farther than
+           :func:`reach_limit` from where the robot is, is skipped.
+        3. Every pair that could meet (``|p_ij| < d_s + R_i + R_j``, ``R`` the
+           reach of the paths) is checked on the members' current levels; the
+           check covers the step itself and the whole backup horizon.  The
+           members of failing pairs move one level down (toward the backup),
+           and their pairs are checked again.  Levels only go down, so this
+           ends; at worst all brake.
+
+    Invariance
+        Call a state *brake-safe* when the backup from it keeps every pair
+        ``>= d_s`` and every robot's backup reach within :func:`reach_limit`.
+        Let the current state ``x`` be brake-safe and ``x'`` the state after the
+        returned inputs.  The backup is time-consistent, so the backup paths
+        from ``x'`` are the tails of the robots' final ``B_a``.  Pairs with both
+        members on the backup follow tails of paths that passed at ``x``; the
+        other pairs were checked now on the step and the whole backup from
+        ``x'``; pairs that cannot meet
+        within their reach, and unseen pairs beyond the sensing range ``D``
+        (every path stays within ``(D - max d_s) / 2`` of its start), stay
+        apart.  Obstacles are robots that never move.  So ``x'`` is brake-safe
+        and no pair came closer than ``d_s`` during the step.  A team at rest
+        without overlap is brake-safe, hence the team never collides, whatever
+        the candidate.  Assumptions: every robot runs this filter with the same
+        state, the bounds ``|du| <= a`` and ``dt`` are the real ones, the
+        returned inputs are applied as they are, and floating-point rounding
+        (~1e-12 m) is absorbed by ``tol``.
+
+    Parameters
+    ----------
+    team : Team
+        Robot parameters.
+    pose : numpy.ndarray
+        Axle poses ``(N, 3)``.
+    u : numpy.ndarray
+        Wheel speeds ``(N, 2)``.
+    du_c : numpy.ndarray
+        Candidate inputs ``(N, 2)`` within the bounds (the QP's answer).
+    dt : float
+        Physics step [s].
+    sensing_range : float
+        ``D`` [m].
+    brake_fraction : float
+        The backup's point deceleration as a fraction of the straight-line
+        braking capability (:func:`brake_time`).
+    obstacles : tuple of numpy.ndarray, optional
+        ``(centres (M, 2), radii (M,))`` of static discs; ``(centres, radii, groups (M,))``
+        with a grouped team (``team.group``): an obstacle acts on its group's robots only.
+    tol : float
+        Accepted violation [m].
+    blend_levels : tuple of float
+        Intermediate steps between the candidate and the backup, ``du = du_b + a (du_c - du_b)``
+        for each ``a`` (tried from the largest down): a robot that fails with the candidate first
+        tries these gentler blends, and brakes only if they fail too.  ``()``: brake at once.
+    hold_violations : bool
+        Best effort outside the safe set: a pair whose margin is negative even when both members
+        brake is held to that margin (its own tolerance) instead of being marked broken, so no pair
+        gets closer than braking would bring it while robots may still move apart.  ``safe`` then
+        says only whether the range condition held; the caller reports the state.
+    quick : bool
+        Only the verdict on the candidate is wanted: the blend levels are used only when some
+        robot's candidate path leaves :func:`reach_limit` (without them such a robot could only
+        brake).  The first round, which robots the candidate fails, is the same either way.
+        Without such a robot, one that fails a pair goes straight to the backup; with one
+        (``out_of_range.any()``), the answer is the full check's.
+    """
+    n = pose.shape[0]
+    theta = pose[:, 2]
+    p0 = _point(team, pose)
+    levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
+    T0 = brake_time(team, u, brake_fraction)
+    du_b = -u / np.maximum(T0, dt)[:, None]  # braking_du
+    limit = reach_limit(team, sensing_range)
+
+    # closed-form parameters per level (cheap, O(N)): a step blending the candidate and the backup,
+    # du_b + a (du_c - du_b), then the backup from there; level `last` is the backup from now
+    b0 = _brake(team, theta, u, dt, brake_fraction, T0)
+    firsts = []
+    reaches = []
+    for k, a in enumerate(levels[:-1]):
+        du_a = du_b + a * (du_c - du_b)
+        p1, d1, theta1, u1 = _first_step(team, p0, theta, u, du_a, dt)
+        b1 = _brake(team, theta1, u1, dt, brake_fraction)
+        firsts.append((du_a, p1, d1, b1))
+        reaches.append(_candidate_reach(p0, p1, d1, b1))
+        if k == 0 and quick and not bool((reaches[0] > limit).any()):
+            levels = (1.0, 0.0)  # no candidate leaves the range: the blends would change nothing below
+            break
+    last = len(levels) - 1
+    reach = np.stack(reaches + [b0.reach])
+    R = reach.max(axis=0)
+
+    # a level whose path leaves the reach limit is skipped at once
+    lev = np.zeros(n, dtype=np.int64)
+    for k in range(last):
+        lev = np.where((lev == k) & (reach[k] > limit), k + 1, lev)
+    broken = reach[last] > limit
+
+    # pairs that could meet within their reach (fixed for the call); only their robots need paths
+    i, j, ds = _pairs_near(team, p0, R, sensing_range, 1e-12)
+    oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 1e-12)
+    du_all = np.stack([f[0] for f in firsts] + [du_b])  # (levels, N, 2)
+    limit_margin = limit
+    if i.size + oi.size == 0:
+        rows = np.arange(n)
+        share = np.asarray(levels)[lev]
+        return GateResult(du_all[lev, rows], lev > 0, limit_margin, not bool(broken.any()), broken, share, 0, 0,
+                          np.full(n, limit_margin), reach[0] > limit)
+
+    M = np.unique(np.concatenate((i, j, oi)))  # robots with a pair to check
+    loc = np.full(n, -1, dtype=np.intp)
+    loc[M] = np.arange(M.size)
+    steps = [b0.steps[M] + 1] + [f[3].steps[M] + 2 for f in firsts]
+    L = max(max(int(x.max(initial=0)) for x in steps), 2)
+    need = np.empty((len(levels), M.size), dtype=np.int64)
+    for k, (_, _, _, b1) in enumerate(firsts):
+        need[k] = b1.steps[M] + 2
+    need[last] = b0.steps[M] + 1
+
+    def level_rows(k: int, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Samples ``(r, L)`` and sagittas ``(r, L-1)`` of level ``k`` for the rows ``r`` of ``M``."""
+        g = M[r]
+        if k == last:
+            return _brake_samples(p0[g], _take(b0, g), dt, L)
+        _, p1, d1, b1 = firsts[k]
+        Pk = np.empty((r.size, L), dtype=np.complex128)
+        Dk = np.empty((r.size, L - 1))
+        Pk[:, 0], Dk[:, 0] = p0[g], d1[g]
+        Pk[:, 1:], Dk[:, 1:] = _brake_samples(p1[g], _take(b1, g), dt, L - 1)
+        return Pk, Dk
+
+    li, lj, lo_ = loc[i], loc[j], loc[oi]
+    rows_m = np.arange(M.size)
+
+    tol_p, tol_o = np.full(i.shape[0], float(tol)), np.full(oi.shape[0], float(tol))
+    if hold_violations:  # each pair's own floor: its margin when both members brake now
+        Pb, Db = level_rows(last, rows_m)
+        if i.size:
+            tol_p += np.maximum(0.0, -_bucketed(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9)
+        if oi.size:
+            tol_o += np.maximum(0.0, -_bucketed(Pb, Db, need[last], lo_, ok, ods, centers=oc)) * (1.0 + 1e-9)
+    marg = np.full(i.shape[0], np.inf)
+    omarg = np.full(oi.shape[0], np.inf)
+    todo = np.ones(i.shape[0], dtype=bool)
+    otodo = np.ones(oi.shape[0], dtype=bool)
+    cur = np.empty((M.size, L), dtype=np.complex128)
+    curd = np.empty((M.size, L - 1))
+    filled = np.full(M.size, -1)  # the level whose paths are in a row of `cur`
+    rounds = 0
+    while True:
+        rounds += 1
+        lm = lev[M]
+        cneed = need[lm, rows_m]
+        # the paths of the robots' current levels: only rows whose level changed are (re)made
+        stale = lm != filled
+        for k in np.unique(lm[stale]):
+            r = np.flatnonzero(stale & (lm == k))
+            cur[r], curd[r] = level_rows(int(k), r)
+        filled = lm
+        idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
+        if idx.size:
+            marg[idx] = _bucketed(cur, curd, cneed, li[idx], lj[idx], ds[idx])
+        if oidx.size:
+            omarg[oidx] = _bucketed(cur, curd, cneed, lo_[oidx], ok[oidx], ods[oidx], centers=oc)
+        demote = np.zeros(n, dtype=bool)
+        bad = idx[marg[idx] < -tol_p[idx]]
+        obad = oidx[omarg[oidx] < -tol_o[oidx]]
+        demote[i[bad]] = True
+        demote[j[bad]] = True
+        demote[oi[obad]] = True
+        # a pair failing with both members on the backup was not brake-safe before: nothing to demote
+        at_backup = lev == last
+        both = at_backup[i[bad]] & at_backup[j[bad]]
+        broken[i[bad][both]] = True
+        broken[j[bad][both]] = True
+        broken[oi[obad][at_backup[oi[obad]]]] = True
+        demote &= ~at_backup
+        if not demote.any():
+            break
+        lev = np.where(demote, lev + 1, lev)
+        todo = demote[i] | demote[j]
+        otodo = demote[oi]
+
+    rows = np.arange(n)
+    share = np.asarray(levels)[lev]
+    robot_margin = np.full(n, limit_margin)
+    np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
+    return GateResult(du_all[lev, rows], lev > 0, float(robot_margin.min(initial=limit_margin)),
+                      not bool(broken.any()), broken, share, rounds, int(i.size + oi.size), robot_margin,
+                      reach[0] > limit)
+
+
+def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float, slack: float
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robot pairs ``(i, j, d_s)`` that could come within ``d_s + slack`` while each stays within ``R`` of ``p0``."""
+    rad = team.radius
+    pts = np.stack((p0.real, p0.imag), axis=1)
+    search = min(float(sensing_range), 2.0 * float(rad.max(initial=0.0)) + 2.0 * float(R.max(initial=0.0)) + slack)
+    pr = robot_pairs(pts, search, groups=team.group)
+    i, j = pr[:, 0], pr[:, 1]
+    ds = rad[i] + rad[j]
+    keep = np.abs(p0[i] - p0[j]) < ds + R[i] + R[j] + slack
+    return i[keep], j[keep], ds[keep]
+
+
+def _obstacles_near(team: Team, p0: np.ndarray, R: np.ndarray, obstacles: tuple[np.ndarray, ...] | None,
+                    slack: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Robot-obstacle pairs that could come within ``d_s + slack``: ``(centres (M,) complex, i, k, d_s)``.
+
+    ``obstacles`` is ``(centres, radii)`` or ``(centres, radii, groups)``: with
+    groups (and ``team.group``) an obstacle acts on the robots of its group only.
+    """
+    if obstacles is None or not np.asarray(obstacles[1]).size:
+        return np.empty(0, dtype=np.complex128), np.empty(0, dtype=np.intp), np.empty(0, dtype=np.intp), np.empty(0)
+    c, orad = np.asarray(obstacles[0], dtype=np.float64), np.asarray(obstacles[1], dtype=np.float64)
+    oc = c[:, 0] + 1j * c[:, 1]
+    rad = team.radius
+    near = np.abs(p0[:, None] - oc[None, :]) < rad[:, None] + orad[None, :] + R[:, None] + slack
+    if team.group is not None and len(obstacles) > 2 and obstacles[2] is not None:
+        near &= team.group[:, None] == np.asarray(obstacles[2])[None, :]
+    oi, ok = np.nonzero(near)
+    return oc, oi, ok, rad[oi] + orad[ok]
