@@ -10,6 +10,7 @@ from aasoatt_env import AASOATTFilter, AASOATTParallelEnv, FilterConfig, make_en
 from aasoatt_env.analysis.metrics import pairwise_min_distance
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point
+from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import RobotParams, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter
 from aasoatt_env.safety.backup import (
@@ -281,7 +282,7 @@ def test_outside_the_safe_set_no_pair_gets_closer_than_braking_would_bring_it(mo
 
 def test_reach_limit_and_sensing_range_configuration():
     team = make_team("paper", 2)
-    assert reach_limit(team, 3.0) == pytest.approx((3.0 - 0.96) / 2)
+    np.testing.assert_allclose(reach_limit(team, 3.0), (3.0 - 0.96) / 2)
     with pytest.raises(Exception, match="sensing_range"):
         SafetyFilter(team, sensing_range=0.9)
 
@@ -345,13 +346,17 @@ def test_rotate_relative_position_head_on_swap_stays_apart_with_the_layer():
     assert pairwise_min_distance(rollout).overall_min_robot_gap >= -1e-3
 
 
-def test_a_stack_of_teams_is_gated_as_each_team_alone():
+@pytest.mark.parametrize("radii", ["equal", "unequal"])
+def test_a_stack_of_teams_is_gated_as_each_team_alone(radii):
     """The backup layer decides per group of robots within sensing range: a stack of teams (one
     filter call for many envs) gets, robot for robot, the answers each team gets alone, including
-    which of the QP's and the repaired answer is kept."""
+    which of the QP's and the repaired answer is kept.  With unequal radii too (every robot's
+    range limit is its own, so a team of small robots stacked with large ones gets its own)."""
     K, n = 4, 6
     rng = np.random.default_rng(11)
-    teams = [make_team("paper", n) for _ in range(K)]
+    small = RobotParams(radius=0.3, offset=0.1)
+    kinds = ["paper"] * K if radii == "equal" else ["paper", ["paper", small] * 3, [small] * n, "turtlebot3_burger"]
+    teams = [make_team(k, n) for k in kinds]
     grid = np.stack(np.meshgrid(np.arange(3), np.arange(2)), -1).reshape(-1, 2) * 1.1
     poses = [pose_from_point(t, grid + rng.uniform(-0.03, 0.03, grid.shape), rng.uniform(-np.pi, np.pi, n))
              for t in teams]
@@ -371,8 +376,10 @@ def test_a_stack_of_teams_is_gated_as_each_team_alone():
             highs.append(hi)
         alone = [gate_with_repair(t, poses[k], us[k], cand[k], lows[k], highs[k], cfg, None)
                  for k, t in enumerate(teams)]
-        stacked = gate_with_repair(both, np.vstack(poses), np.vstack(us), np.vstack(cand), np.vstack(lows),
-                                   np.vstack(highs), cfg, None)
+        pose_b = np.vstack(poses)
+        pairs = robot_pairs(kinematics(both, pose_b, np.vstack(us)).p, cfg.sensing_range, groups=both.group)
+        stacked = gate_with_repair(both, pose_b, np.vstack(us), np.vstack(cand), np.vstack(lows),
+                                   np.vstack(highs), cfg, None, pairs)  # the filter's own pairs, as core passes them
         np.testing.assert_array_equal(stacked.du, np.vstack([g.du for g in alone]))
         np.testing.assert_array_equal(stacked.braking, np.concatenate([g.braking for g in alone]))
         assert stacked.safe == all(g.safe for g in alone)
@@ -408,3 +415,27 @@ def test_repair_path_cache_equals_the_paths_made_afresh():
         np.testing.assert_array_equal(got.p, fresh.p)
         np.testing.assert_array_equal(got.delta, fresh.delta)
         np.testing.assert_array_equal(got.length, fresh.length)
+
+
+def test_a_group_checked_alone_keeps_the_whole_teams_range_limits():
+    """A big robot far away must not change what a group of small robots may do, and what the group
+    does alone must keep the whole team brake-safe: every robot's range limit is its own,
+    ``D / 2 - r_i`` (a group's largest radius would give small robots a limit the team does not
+    have, and the next whole-team check would find them beyond it)."""
+    big = RobotParams(radius=1.0, max_wheel_accel=6.0, model="double_integrator")
+    small = RobotParams(radius=0.1, max_wheel_accel=6.0, model="double_integrator")
+    team = make_team([big, small, small, small], 4)
+    cfg = FilterConfig()
+    np.testing.assert_allclose(reach_limit(team, cfg.sensing_range), [0.5, 1.4, 1.4, 1.4])
+    v = np.sqrt(2 * cfg.brake_fraction * 6.0 * 0.49)  # robot 1's braking reach ~0.49 m, then it speeds up
+    pose = np.array([[100.0, 0, 0], [0.0, 0, 0], [2.0, 0.39, 0], [2.0, -0.39, 0]])
+    u = np.array([[0.0, 0], [v, 0], [0, -1.5], [0, 1.5]])
+    for _ in range(3):
+        lo, hi = input_bounds(team, u, DT)
+        g = gate_with_repair(team, pose, u, np.clip([[0, 0], [6, 0], [0, -6], [0, 6]], lo, hi), lo, hi, cfg, None)
+        assert g.safe and not g.broken.any()
+        pose, u = integrate(team, pose, u, g.du, DT)
+        whole = gatekeeper(team, pose, u, braking_du(team, u, DT, cfg.brake_fraction), DT,
+                           sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction)
+        assert whole.safe and not whole.braking.any() and not whole.broken.any()
+    assert candidate_paths(team, pose, u, g.du, DT, cfg.brake_fraction).reach[1] > 0.5  # beyond the big robot's limit

@@ -113,13 +113,15 @@ def braking_du(team: Team, u: np.ndarray, dt: float, brake_fraction: float) -> n
     return -u / np.maximum(T, dt)[:, None]
 
 
-def reach_limit(team: Team, sensing_range: float) -> float:
-    """``(D - max d_s) / 2``: the farthest a robot may get from where it is along its step and braking path.
+def reach_limit(team: Team, sensing_range: float) -> np.ndarray:
+    """``D / 2 - r_i`` per robot ``(N,)``: the farthest it may get from where it is along its step and braking path.
 
     Two robots farther apart than ``D`` (not seen by each other) that both stay
-    within this of their positions keep ``>= max d_s`` apart.
+    within their limits of their positions keep ``>= r_i + r_j = d_s`` apart.  The
+    limit is the robot's own, not the team's, so a group of robots checked alone
+    gets the limits it has in the whole team (for equal radii it is ``(D - d_s) / 2``).
     """
-    return 0.5 * (float(sensing_range) - 2.0 * float(team.radius.max(initial=0.0)))
+    return 0.5 * float(sensing_range) - team.radius
 
 
 class Trajectories(NamedTuple):

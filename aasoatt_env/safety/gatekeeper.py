@@ -138,8 +138,8 @@ class GateResult(NamedTuple):
         ``(N,)`` bool: robots whose candidate was not accepted (blended toward, or put on, the backup).
     margin : float
         Smallest ``distance - d_s`` over the checked pairs along the horizon of
-        the returned assignment [m] (``reach_limit`` when no pair is close
-        enough to matter).
+        the returned assignment [m] (the smallest :func:`reach_limit`, ``(D - max d_s) / 2``,
+        when no pair is close enough to matter).
     safe : bool
         The current state was brake-safe for every checked pair: the returned
         assignment keeps the team in the safe set.  False means the invariant
@@ -159,7 +159,7 @@ class GateResult(NamedTuple):
         Robot and robot-obstacle pairs checked.
     robot_margin : numpy.ndarray
         ``(N,)``: the smallest such margin over each robot's checked pairs
-        (``reach_limit`` for a robot without one); ``margin`` is its minimum.
+        (its :func:`reach_limit` for a robot without one); ``margin`` is their minimum.
     out_of_range : numpy.ndarray
         ``(N,)`` bool: robots whose candidate path leaves :func:`reach_limit`
         (too fast for the sensing range: no change of a pair's margin lets them keep it).
@@ -218,7 +218,7 @@ def gatekeeper(
         other pairs were checked now on the step and the whole backup from
         ``x'``; pairs that cannot meet
         within their reach, and unseen pairs beyond the sensing range ``D``
-        (every path stays within ``(D - max d_s) / 2`` of its start), stay
+        (robot ``i``'s paths stay within ``D / 2 - r_i`` of its start), stay
         apart.  Obstacles are robots that never move.  So ``x'`` is brake-safe
         and no pair came closer than ``d_s`` during the step.  A team at rest
         without overlap is brake-safe, hence the team never collides, whatever
@@ -301,12 +301,12 @@ def gatekeeper(
     i, j, ds = _pairs_near(team, p0, R, sensing_range, 1e-12)
     oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 1e-12)
     du_all = np.stack([f[0] for f in firsts] + [du_b])  # (levels, N, 2)
-    limit_margin = limit
+    limit_margin = float(limit.min(initial=0.5 * float(sensing_range)))
     if i.size + oi.size == 0:
         rows = np.arange(n)
         share = np.asarray(levels)[lev]
         return GateResult(du_all[lev, rows], lev > 0, limit_margin, not bool(broken.any()), broken, share, 0, 0,
-                          np.full(n, limit_margin), reach[0] > limit)
+                          limit.copy(), reach[0] > limit)
 
     M = np.unique(np.concatenate((i, j, oi)))  # robots with a pair to check
     loc = np.full(n, -1, dtype=np.intp)
@@ -384,7 +384,7 @@ def gatekeeper(
 
     rows = np.arange(n)
     share = np.asarray(levels)[lev]
-    robot_margin = np.full(n, limit_margin)
+    robot_margin = limit.copy()
     np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
     return GateResult(du_all[lev, rows], lev > 0, float(robot_margin.min(initial=limit_margin)),
                       not bool(broken.any()), broken, share, rounds, int(i.size + oi.size), robot_margin,
