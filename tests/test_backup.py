@@ -115,13 +115,15 @@ def test_closed_form_samples_equal_the_sampled_candidate_paths(kind):
     for _ in range(5):
         pose, u = _random_state(team, rng)
         du = rng.uniform(-1, 1, (team.n, 2)) * team.max_wheel_accel[:, None]
-        tr = candidate_paths(team, pose, u, du, DT, F)
-        L = tr.p.shape[1]
-        s = np.column_stack((np.zeros(team.n, int), rng.integers(1, L - 1, (team.n, 3)), np.full(team.n, L - 2)))
+        L = candidate_paths(team, pose, u, du, DT, F).p.shape[1]
+        tr = candidate_paths(team, pose, u, du, DT, F, length=L + 8)  # samples past every robot's stop too
+        s = np.column_stack((np.zeros(team.n, int), rng.integers(1, L - 1, (team.n, 3)), np.full(team.n, L - 2),
+                             rng.integers(L - 1, L + 7, (team.n, 2))))
         p, delta = candidate_samples_at(team, pose, u, du, DT, F, s)
         rows = np.arange(team.n)[:, None]
         np.testing.assert_allclose(p, tr.p[rows, s], rtol=0, atol=1e-12)
         np.testing.assert_allclose(delta, tr.delta[rows, s], rtol=0, atol=1e-15)
+
 
 def test_pair_check_is_a_lower_bound_of_the_fine_simulated_distance():
     """Sub-step the simulator's arcs 64 times per step: the check never claims more than is there."""

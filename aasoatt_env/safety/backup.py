@@ -233,7 +233,6 @@ def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray,
     return Trajectories(p, delta, b1.steps + 2, _candidate_reach(p0, p1, d1, b1))
 
 
-
 def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float,
                          brake_fraction: float, s: np.ndarray, rows: np.ndarray | None = None
                          ) -> tuple[np.ndarray, np.ndarray]:

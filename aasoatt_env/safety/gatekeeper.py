@@ -311,12 +311,11 @@ def gatekeeper(
     M = np.unique(np.concatenate((i, j, oi)))  # robots with a pair to check
     loc = np.full(n, -1, dtype=np.intp)
     loc[M] = np.arange(M.size)
-    steps = [b0.steps[M] + 1] + [f[3].steps[M] + 2 for f in firsts]
-    L = max(max(int(x.max(initial=0)) for x in steps), 2)
-    need = np.empty((len(levels), M.size), dtype=np.int64)
+    need = np.empty((len(levels), M.size), dtype=np.int64)  # samples each robot's path needs, per level
     for k, (_, _, _, b1) in enumerate(firsts):
         need[k] = b1.steps[M] + 2
     need[last] = b0.steps[M] + 1
+    L = max(int(need.max(initial=0)), 2)
 
     def level_rows(k: int, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Samples ``(r, L)`` and sagittas ``(r, L-1)`` of level ``k`` for the rows ``r`` of ``M``."""

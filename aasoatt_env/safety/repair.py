@@ -7,18 +7,21 @@ QP's answer toward brake-safety (the least change that lifts every low backup
 margin, like backup-barrier rows in the QP), and :func:`gate_with_repair` is
 the order in which the filter asks: a quick check of the QP's answer, then, in
 each group of robots within sensing range of each other where it brakes
-someone, the repair and a check of it, the full check of the QP's answer only
-where the repaired one still brakes someone; outside the safe set, best effort.
+someone for a pair, the repair and a check of it, the full check of the QP's
+answer only where the repaired one still brakes someone; where it brakes
+someone only for the range limit, the full check; outside the safe set, best
+effort.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import numpy as np
 
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.backup import (
-    Trajectories,
     _brake,
     _candidate_reach,
     _first_step,
@@ -59,7 +62,8 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     - One where a robot brakes for a pair is nudged by :func:`repair` and checked
       again with the blend levels; the full check of the QP's answer is made
       only where the repaired one still brakes someone, and of the two the one
-      that brakes fewer robots is kept (the repaired one on a tie).
+      that brakes fewer robots is kept (the repaired one on a tie, the QP's when
+      its check finds the component broken).
     - The others (the braking robots only too fast for the range limit, which no
       nudge of a pair margin changes; a robot beyond the range limit even when
       braking; the repair off) get the full check of the QP's answer.
@@ -134,7 +138,10 @@ def _rows_of(g: GateResult, at: np.ndarray) -> GateResult:
 
 
 def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], unsafe: bool) -> GateResult:
-    """``base`` with the robots ``rows`` of each part replaced by that part's answers (later parts win)."""
+    """``base`` with the robots ``rows`` of each part replaced by that part's answers (later parts win).
+
+    ``n_pairs`` and ``out_of_range`` stay the first check's (the whole team's pairs and candidate).
+    """
     du, braking, broken = base.du.copy(), base.braking.copy(), base.broken.copy()
     share, robot_margin = base.share.copy(), base.robot_margin.copy()
     for rows, g in parts:
@@ -143,7 +150,6 @@ def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], unsafe
     return GateResult(du, braking, float(robot_margin.min(initial=base.margin)), not (unsafe or broken.any()), broken,
                       share, base.rounds + sum(g.rounds for _, g in parts), base.n_pairs, robot_margin,
                       base.out_of_range)
-
 
 
 def repair(
@@ -243,6 +249,17 @@ def repair(
     return du
 
 
+class _Paths(NamedTuple):
+    """Paths as in :class:`~aasoatt_env.safety.backup.Trajectories`, without the reach bound.
+
+    Samples ``(R, L)``, deviation bounds ``(R, L-1)`` and sample counts ``(R,)``.
+    """
+
+    p: np.ndarray
+    delta: np.ndarray
+    length: np.ndarray
+
+
 class _PathCache:
     """Candidate paths of a team's robots, each made once and kept until the robot's input changes.
 
@@ -260,7 +277,7 @@ class _PathCache:
         self.length = np.zeros(n, dtype=np.int64)
         self.valid = np.zeros(n, dtype=bool)
 
-    def get(self, rows: np.ndarray, du: np.ndarray) -> Trajectories:
+    def get(self, rows: np.ndarray, du: np.ndarray) -> _Paths:
         """The paths of robots ``rows`` (sorted) with inputs ``du[rows]``, ``L`` their longest horizon."""
         new = rows[~self.valid[rows]]
         if new.size:
@@ -276,7 +293,7 @@ class _PathCache:
             self.length[new] = t.length
             self.valid[new] = True
         L = max(int(self.length[rows].max(initial=0)), 2)
-        return Trajectories(self.p[rows, :L], self.delta[rows, : L - 1], self.length[rows], np.zeros(rows.size))
+        return _Paths(self.p[rows, :L], self.delta[rows, : L - 1], self.length[rows])
 
     def forget(self, rows: np.ndarray) -> None:
         """Robots whose input changed: their paths are made again when asked for."""

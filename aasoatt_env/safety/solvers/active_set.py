@@ -205,11 +205,13 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
     W[m:m + n] = x0 >= prob.ub - 1e-9
     W[m + n:] = x0 <= prob.lb + 1e-9
     eq = functools.partial(_equality_point, Md if dense else Mt, dense, gt, b)
+    used = 0  # equality solves of both rules: the iterations reported
     for rule, budget in ((_pdas_rule, max_iter), (_one_change_rule, ONE_CHANGE_ITER)):
-        out = _working_set_loop(eq, W.copy(), rule, budget)
+        out, it = _working_set_loop(eq, W.copy(), rule, budget)
+        used += it
         if out is not None:
-            y, lam, it = out
-            return np.einsum("nij,nj->ni", LinvT, y.reshape(-1, 2)).ravel(), np.maximum(lam[:m], 0.0), it
+            y, lam = out
+            return np.einsum("nij,nj->ni", LinvT, y.reshape(-1, 2)).ravel(), np.maximum(lam[:m], 0.0), used
     return None
 
 
@@ -270,19 +272,19 @@ def _one_change_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray) -> np.ndarra
 
 
 def _working_set_loop(eq, W: np.ndarray, rule, max_iter: int):
-    """Iterate ``rule`` from ``W``: ``(y, lam, iterations)`` once the KKT conditions hold, else None."""
+    """Iterate ``rule`` from ``W``: ``((y, lam) or None, iterations)``, the point once the KKT conditions hold."""
     for it in range(1, max_iter + 1):
         point = eq(W)
         if point is None:
-            return None
+            return None, it
         y, lam, r = point
         if r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL:
-            return y, lam, it
+            return (y, lam), it
         Wn = rule(W, lam, r)
         if np.array_equal(Wn, W):
-            return None
+            return None, it
         W = Wn
-    return None
+    return None, max_iter
 
 def _refine(solve, S, rhs, steps: int = 4):
     """Proximal iterative refinement: solves consistent (possibly singular) ``S l = rhs``."""
