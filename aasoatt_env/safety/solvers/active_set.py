@@ -18,10 +18,11 @@ only tried with such a warm start and for a few iterations, because the
 PDAS rule alone can cycle or meet inconsistent working sets on these rows
 (seen on cold starts of packed layouts, and at the circle swap's crossing,
 where it adds several rows at once and drops them again).  Then, from the same
-warm start, a rule with one change per iteration (drop the most negative
-multiplier, else add the most violated row) is tried: a working set one or two
-rows off the optimum, the usual case from one physics step to the next, needs as
-many iterations.  When both fail: ``None`` and the general solver.
+warm start, a rule with one change per iteration (add the most violated row
+while every multiplier is >= 0, else drop the first row whose multiplier crossed
+zero, the ratio test of dual active-set methods) is tried: a working set one or
+two rows off the optimum, the usual case from one physics step to the next,
+needs as many iterations.  When both fail: ``None`` and the general solver.
 """
 
 from __future__ import annotations
@@ -255,24 +256,37 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
     return y, lam, (M @ y) - b
 
 
-def _pdas_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray) -> np.ndarray:
+def _pdas_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.ndarray | None) -> np.ndarray:
     """The primal-dual active-set update: every row with ``lambda + r > 0``."""
     return (lam + r) > 0
 
 
-def _one_change_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray) -> np.ndarray:
-    """One change: drop the most negative multiplier, else add the most violated row."""
+def _one_change_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.ndarray | None) -> np.ndarray:
+    """One change: add the most violated row while every multiplier is >= 0, else drop one row.
+
+    The row dropped is the first whose multiplier crosses zero on the way from the previous
+    working set's multipliers ``prev`` to these (the ratio test of dual active-set methods,
+    Goldfarb and Idnani 1983): after a row is added, a working set that became (nearly)
+    dependent has large negative multipliers on rows that need not leave, and the most
+    negative one is often the wrong one.  Without such a row, the most negative multiplier.
+    """
     Wn = W.copy()
-    k = int(np.argmin(lam))
-    if lam[k] < -TOL:
-        Wn[k] = False
-    else:
+    neg = lam < -TOL
+    if not neg.any():
         Wn[int(np.argmax(np.where(W, -np.inf, r)))] = True
+        return Wn
+    k = int(np.argmin(lam))
+    if prev is not None:
+        crossed = np.flatnonzero(neg & (prev > TOL))
+        if crossed.size:
+            k = int(crossed[np.argmin(prev[crossed] / (prev[crossed] - lam[crossed]))])
+    Wn[k] = False
     return Wn
 
 
 def _working_set_loop(eq, W: np.ndarray, rule, max_iter: int):
     """Iterate ``rule`` from ``W``: ``((y, lam) or None, iterations)``, the point once the KKT conditions hold."""
+    prev = None
     for it in range(1, max_iter + 1):
         point = eq(W)
         if point is None:
@@ -280,10 +294,10 @@ def _working_set_loop(eq, W: np.ndarray, rule, max_iter: int):
         y, lam, r = point
         if r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL:
             return (y, lam), it
-        Wn = rule(W, lam, r)
+        Wn = rule(W, lam, r, prev)
         if np.array_equal(Wn, W):
             return None, it
-        W = Wn
+        W, prev = Wn, lam
     return None, max_iter
 
 def _refine(solve, S, rhs, steps: int = 4):
