@@ -138,7 +138,7 @@ class GateResult(NamedTuple):
         ``(N,)`` bool: robots whose candidate was not accepted (blended toward, or put on, the backup).
     margin : float
         Smallest ``distance - d_s`` over the checked pairs along the horizon of
-        the returned assignment [m] (the smallest :func:`reach_limit`, ``(D - max d_s) / 2``,
+        the returned assignment [m] (the smallest :func:`reach_limit`, ``D / 2 - max r_i``,
         when no pair is close enough to matter).
     safe : bool
         The current state was brake-safe for every checked pair: the returned

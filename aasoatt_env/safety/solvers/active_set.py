@@ -10,7 +10,8 @@ solved through the Schur complement ``S = Mt_W Mt_W^T`` (dense below
 updated by the primal-dual active-set rule (Hintermueller, Ito, Kunisch 2002):
 ``W = {k: lambda_k + (Mt y - b)_k > 0}``.  A result is returned only when the
 full KKT conditions hold (primal feasibility of every row and bound within
-:data:`TOL`, ``lambda >= -TOL``), so the point is the exact optimum; otherwise
+:data:`TOL`, ``lambda >= -TOL``, the working rows met as equalities within
+:data:`TOL`), so the point is the exact optimum; otherwise
 (no convergence in ``max_iter``, singular working set, infeasible problem) the
 caller falls back to a general solver.  The working set is seeded
 from the previous step (positive multipliers, active bounds); the method is
@@ -273,7 +274,9 @@ def _one_change_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.nda
     Wn = W.copy()
     neg = lam < -TOL
     if not neg.any():
-        Wn[int(np.argmax(np.where(W, -np.inf, r)))] = True
+        k = int(np.argmax(np.where(W, -np.inf, r)))
+        if r[k] > TOL:  # nothing violated outside the working set: no change, the loop stops
+            Wn[k] = True
         return Wn
     k = int(np.argmin(lam))
     if prev is not None:
@@ -292,7 +295,10 @@ def _working_set_loop(eq, W: np.ndarray, rule, max_iter: int):
         if point is None:
             return None, it
         y, lam, r = point
-        if r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL:
+        # KKT: stationarity holds by construction; feasibility, dual signs, and the working rows
+        # met as equalities (complementarity: a dependent, inconsistent working set fails here)
+        if (r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL
+                and float(np.abs(r[W]).max(initial=0.0)) <= TOL):
             return (y, lam), it
         Wn = rule(W, lam, r, prev)
         if np.array_equal(Wn, W):
