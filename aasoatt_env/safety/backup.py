@@ -226,11 +226,18 @@ def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray,
     p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
     b1 = _brake(team, theta1, u1, dt, brake_fraction)
     L = max(int(b1.steps.max(initial=0)) + 2 if length is None else int(length), 2)
+    p, delta = _candidate_samples(p0, p1, d1, b1, dt, L)
+    return Trajectories(p, delta, b1.steps + 2, _candidate_reach(p0, p1, d1, b1))
+
+
+def _candidate_samples(p0: np.ndarray, p1: np.ndarray, d1: np.ndarray, b1: _Brake, dt: float, L: int
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Samples ``(N, L)`` and sagittas ``(N, L-1)``: the point ``p0``, the step to ``p1`` (``d1``), then braking."""
     p = np.empty((p0.shape[0], L), dtype=np.complex128)
     delta = np.empty((p0.shape[0], L - 1))
     p[:, 0], delta[:, 0] = p0, d1
     p[:, 1:], delta[:, 1:] = _brake_samples(p1, b1, dt, L - 1)
-    return Trajectories(p, delta, b1.steps + 2, _candidate_reach(p0, p1, d1, b1))
+    return p, delta
 
 
 def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float,

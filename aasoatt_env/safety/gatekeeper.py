@@ -33,6 +33,7 @@ from aasoatt_env.safety.backup import (
     _brake,
     _brake_samples,
     _candidate_reach,
+    _candidate_samples,
     _first_step,
     _point,
     _take,
@@ -323,11 +324,7 @@ def gatekeeper(
         if k == last:
             return _brake_samples(p0[g], _take(b0, g), dt, L)
         _, p1, d1, b1 = firsts[k]
-        Pk = np.empty((r.size, L), dtype=np.complex128)
-        Dk = np.empty((r.size, L - 1))
-        Pk[:, 0], Dk[:, 0] = p0[g], d1[g]
-        Pk[:, 1:], Dk[:, 1:] = _brake_samples(p1[g], _take(b1, g), dt, L - 1)
-        return Pk, Dk
+        return _candidate_samples(p0[g], p1[g], d1[g], _take(b1, g), dt, L)
 
     li, lj, lo_ = loc[i], loc[j], loc[oi]
     rows_m = np.arange(M.size)

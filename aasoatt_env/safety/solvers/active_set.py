@@ -225,10 +225,10 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
     if not k:
         return -gt, lam, (M @ -gt) - b
     Mw = M[idx]
+    S = Mw @ Mw.T if dense else (Mw @ Mw.T).tocsc()
+    rhs = -(Mw @ gt) - b[idx]
+    delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
     if dense:
-        S = Mw @ Mw.T
-        rhs = -(Mw @ gt) - b[idx]
-        delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
         Sr = S + 0.0  # S + delta * I without the identity: off the diagonal S + 0.0, on it S + delta
         Sr.flat[:: k + 1] += delta
         try:
@@ -241,9 +241,6 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
         except (np.linalg.LinAlgError, RuntimeError):
             return None
     else:
-        S = (Mw @ Mw.T).tocsc()
-        rhs = -(Mw @ gt) - b[idx]
-        delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
         try:
             lu = spla.splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
         except RuntimeError:
@@ -305,6 +302,7 @@ def _working_set_loop(eq, W: np.ndarray, rule, max_iter: int):
             return None, it
         W, prev = Wn, lam
     return None, max_iter
+
 
 def _refine(solve, S, rhs, steps: int = 4):
     """Proximal iterative refinement: solves consistent (possibly singular) ``S l = rhs``."""
