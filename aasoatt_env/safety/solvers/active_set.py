@@ -34,6 +34,8 @@ from typing import NamedTuple
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
+from scipy.linalg.lapack import dpotrf as _potrf
+from scipy.linalg.lapack import dpotrs as _potrs
 
 __all__ = ["DENSE_MAX_ROWS", "TOL", "LeastDistanceForm", "least_distance_form", "solve_active_set"]
 
@@ -153,28 +155,16 @@ def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
     return Md
 
 
-try:  # the LAPACK gufunc behind numpy.linalg.solve for one right-hand side
-    from numpy.linalg import _umath_linalg
+def _cholesky(S: np.ndarray):
+    """A solver of ``S l = v`` from LAPACK's Cholesky factor of ``S`` (``potrf``, then ``potrs`` per call), or None.
 
-    _SOLVE1 = _umath_linalg.solve1
-except (ImportError, AttributeError):  # pragma: no cover - other numpy layouts: numpy.linalg.solve
-    _SOLVE1 = None
-
-
-def _raise_singular(err: str, flag: int) -> None:
-    raise np.linalg.LinAlgError("Singular matrix")
-
-
-def _cholesky_solve(cf: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``(cf cf^T)^{-1} v`` as ``numpy.linalg.solve`` twice gives it.
-
-    The gufunc behind ``numpy.linalg.solve`` is called directly: the same LAPACK
-    calls and error handling, without the per-call argument checks.
+    Each solve is two triangular substitutions, ``O(k^2)``: the iterative refinement
+    calls it five times per working set.  None when ``S`` is not positive definite.
     """
-    if _SOLVE1 is None or v.ndim != 1 or cf.dtype != np.float64 or v.dtype != np.float64:
-        return np.linalg.solve(cf.T, np.linalg.solve(cf, v))
-    with np.errstate(call=_raise_singular, invalid="call", over="ignore", divide="ignore", under="ignore"):
-        return _SOLVE1(cf.T, _SOLVE1(cf, v, signature="dd->d"), signature="dd->d")
+    cf, info = _potrf(S, lower=1, clean=0, overwrite_a=1)
+    if info != 0:
+        return None
+    return lambda v: _potrs(cf, v, lower=1)[0]
 
 
 def solve_active_set(prob, x0, z0, max_iter: int = 6):
@@ -231,15 +221,15 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
     if dense:
         Sr = S + 0.0  # S + delta * I without the identity: off the diagonal S + 0.0, on it S + delta
         Sr.flat[:: k + 1] += delta
-        try:
-            if k <= DENSE_MAX_ROWS:
-                cf = np.linalg.cholesky(Sr)
-                solve = functools.partial(_cholesky_solve, cf)
-            else:
-                lu = spla.splu(sp.csc_matrix(Sr))
-                solve = lu.solve
-        except (np.linalg.LinAlgError, RuntimeError):
-            return None
+        if k <= DENSE_MAX_ROWS:
+            solve = _cholesky(Sr)
+            if solve is None:
+                return None
+        else:
+            try:
+                solve = spla.splu(sp.csc_matrix(Sr)).solve
+            except RuntimeError:
+                return None
     else:
         try:
             lu = spla.splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
