@@ -199,6 +199,46 @@ def test_stacked_teams_take_the_dense_active_set_and_match_quadprog(swap10, monk
     assert dense_calls and min(dense_calls) > AS.DENSE_MAX_VARS
 
 
+def test_a_stack_s_parts_are_verified_one_by_one_and_only_the_rest_goes_to_the_back_end(swap10):
+    # four independent parts in one QP (a stack of teams), one of them infeasible: the warm
+    # active set answers the three it verifies, only the infeasible one goes to the back-end and
+    # phase 1, and every part's answer is its own exact optimum
+    import dataclasses
+
+    import scipy.sparse as sp
+
+    from aasoatt_env.safety.solvers.policy import SolverPolicy
+
+    _, recorded = swap10
+    parts = [recorded[k] for k in (10, 60, 110, 160)]
+    parts[2] = dataclasses.replace(parts[2], u=parts[2].u - 5.0)  # unit rows, |x| <= 1: no point meets these
+    stack = dataclasses.replace(
+        parts[0], H_blocks=np.concatenate([p.H_blocks for p in parts]), g=np.concatenate([p.g for p in parts]),
+        C=sp.block_diag([p.C for p in parts], format="csr"), u=np.concatenate([p.u for p in parts]),
+        lb=np.concatenate([p.lb for p in parts]), ub=np.concatenate([p.ub for p in parts]),
+        scale=np.concatenate([p.scale for p in parts]), row_norm=np.concatenate([p.row_norm for p in parts]))
+    groups = np.repeat(np.arange(4), [p.n // 2 for p in parts])
+    warm = [solve_qp(recorded[k - 1], "quadprog") for k in (10, 60, 110, 160)]
+    x0, z0 = np.concatenate([w.x for w in warm]), np.concatenate([w.z for w in warm])
+    assert x0.shape == (stack.n,) and z0.shape == (stack.m,)
+    sol = SolverPolicy("proxsuite", active_set=True).solve(stack, x0, z0, groups)
+    assert "active set (warm, KKT verified) on 3 of 4 parts" in sol.message, sol.message
+    assert sol.status == "relaxed"
+    xs = np.split(sol.x, np.cumsum([p.n for p in parts])[:-1])
+    zs = np.split(sol.z, np.cumsum([p.m for p in parts])[:-1])
+    for k, p in enumerate(parts):
+        ref = solve_qp(p, "quadprog")
+        np.testing.assert_allclose(xs[k], ref.x, atol=1e-6)
+        if k == 2:
+            assert ref.status == "relaxed" and abs(sol.slack - ref.slack) <= 1e-6 * max(1.0, ref.slack)
+        else:
+            np.testing.assert_allclose(zs[k], ref.z, atol=1e-6)
+    # one group: the whole problem is one part, answered as without groups
+    policy = SolverPolicy("proxsuite", active_set=True)
+    one = policy.solve(parts[0], warm[0].x, warm[0].z, np.zeros(parts[0].n // 2, int))
+    np.testing.assert_array_equal(one.x, policy.solve(parts[0], warm[0].x, warm[0].z).x)
+
+
 def test_one_change_rule_rescues_warm_starts_the_primal_dual_rule_cannot_finish(swap10, monkeypatch):
     # warm starts a few rows off (the optimum of a perturbed copy): where the primal-dual
     # rule fails, the one-change rule finishes from the same warm start, and the answer is exact

@@ -390,13 +390,13 @@ class SafetyFilter:
             du[:] = box_least_squares(A, target, lo, hi)
             viol = self._row_values(Gi, Gj, ri, rj, du) - rhs
             bad = viol > 0.0
-            coupled = np.zeros(n, dtype=bool)
+            coupled, label = np.zeros(n, dtype=bool), None
             if np.any(bad):
                 label = pair_components(n, ri, rj)
                 coupled = np.isin(label, label[ri[bad]])
             rows = coupled[ri]
         else:
-            coupled, rows = np.ones(n, dtype=bool), np.ones(m, dtype=bool)
+            coupled, rows, label = np.ones(n, dtype=bool), np.ones(m, dtype=bool), None
         sub = np.flatnonzero(coupled)
         x_full = du / scale[:, None]
         z = np.zeros(m)
@@ -410,7 +410,9 @@ class SafetyFilter:
                                  Gi[rows], Gj[rows], rhs[rows])
             z0 = self._map_warm(keys)
             x0 = None if self._x is None else self._x.reshape(n, 2)[sub].ravel()
-            sol = self._solver.solve(prob, x0, None if z0 is None else z0[rows])
+            # the coupled components, independent parts of one QP: each verified on its own
+            groups = None if label is None else np.unique(label[sub], return_inverse=True)[1].reshape(-1)
+            sol = self._solver.solve(prob, x0, None if z0 is None else z0[rows], groups)
             x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
             du[sub] = np.clip((x * prob.scale).reshape(-1, 2), lo[sub], hi[sub])
             x_full[sub] = x.reshape(-1, 2)

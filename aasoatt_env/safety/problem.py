@@ -79,6 +79,16 @@ class QPProblem:
         indices = (np.arange(0, n, 2)[:, None, None] + np.array([[0, 1], [0, 1]])).reshape(-1)
         return sp.csc_matrix((data, indices, np.arange(0, 2 * n + 1, 2)), shape=(n, n))
 
+    def restrict(self, robots: np.ndarray, rows: np.ndarray) -> QPProblem:
+        """The problem of the robots ``robots`` ``(N,)`` bool and the rows ``rows`` ``(m,)`` bool alone.
+
+        Meant for independent parts (no kept row touches a dropped robot): the objective
+        scale is kept, so multipliers of the part equal those of the whole.
+        """
+        v = np.repeat(robots, 2)
+        return QPProblem(self.H_blocks[robots], self.g[v], self.C[rows][:, v].tocsr(), self.u[rows], self.lb[v],
+                         self.ub[v], self.scale[v], self.obj_scale, self.row_norm[rows], self.diagonal)
+
     def objective(self, x: np.ndarray) -> float:
         """Scaled objective ``0.5 x'Hx + g'x`` of ``x``."""
         xb = x.reshape(-1, 2)

@@ -24,6 +24,12 @@ while every multiplier is >= 0, else drop the first row whose multiplier crossed
 zero, the ratio test of dual active-set methods) is tried: a working set one or
 two rows off the optimum, the usual case from one physics step to the next,
 needs as many iterations.  When both fail: ``None`` and the general solver.
+
+A problem made of independent parts (the coupled components of a team, or a
+stack of teams behind one filter call) is solved part by part in one pass
+(:func:`solve_active_set_parts`): everything above is separable by part, each
+part is verified on its own, and only the parts that fail go to the general
+solver.
 """
 
 from __future__ import annotations
@@ -37,7 +43,10 @@ import scipy.sparse.linalg as spla
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dpotrs as _potrs
 
-__all__ = ["DENSE_MAX_ROWS", "TOL", "LeastDistanceForm", "least_distance_form", "solve_active_set"]
+__all__ = [
+    "DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "least_distance_form", "solve_active_set",
+    "solve_active_set_parts",
+]
 
 DENSE_MAX_VARS: int = 80
 """Problems up to this many variables use dense algebra, whatever their rows."""
@@ -167,10 +176,55 @@ def _cholesky(S: np.ndarray):
     return lambda v: _potrs(cf, v, lower=1)[0]
 
 
+class ActiveSetParts(NamedTuple):
+    """The answer of :func:`solve_active_set_parts`: the point, and where it is verified."""
+
+    x: np.ndarray
+    """Scaled point ``(n,)``; meaningful on the verified robots only."""
+    z: np.ndarray
+    """Row multipliers ``(m,)`` (``>= 0``); meaningful on the verified groups' rows only."""
+    iterations: int
+    """Equality solves of both rules."""
+    ok: np.ndarray
+    """``(K,)`` bool: the groups whose part of ``(x, z)`` meets the KKT conditions of their own rows."""
+    row_group: np.ndarray
+    """``(m,)`` group of every row (of the robot its first entry belongs to)."""
+
+
 def solve_active_set(prob, x0, z0, max_iter: int = 6):
     """``(x, z, iterations)`` at the verified optimum, or ``None`` (fall back)."""
+    out = solve_active_set_parts(prob, x0, z0, None, max_iter)
+    if out is None or not out.ok.all():
+        return None
+    return out.x, out.z, out.iterations
+
+
+def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: int = 6) -> ActiveSetParts | None:
+    """The warm active set on a problem made of independent groups, each verified on its own.
+
+    Parameters
+    ----------
+    prob : QPProblem
+        The scaled problem.
+    x0, z0 : numpy.ndarray
+        Warm start (the previous step's point and row multipliers).
+    groups : numpy.ndarray or None
+        ``(N,)`` group ``0..K-1`` of every robot (variable pair); no row may join two
+        groups (the components of the row graph, or a stack of teams).  None: one group.
+    max_iter : int
+        Iterations of the primal-dual rule.
+
+    The problem is separable by group, and so is everything the method does: the
+    Schur complement is block diagonal, the primal-dual rule acts row by row, and the
+    one-change rule makes one change per group.  A group whose part of an iterate meets
+    the KKT conditions is kept from then on (its working set frozen: the other groups'
+    changes do not touch it); the others iterate.  Returns ``None`` where the method
+    does not apply (no warm start, a Hessian block not positive definite, an odd size).
+    """
     n, m = prob.n, prob.m
     if n == 0 or n % 2:
+        return None
+    if z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
         return None
     dense = n <= DENSE_MAX_VARS or n * (m + 2 * n) <= DENSE_MAX_CELLS
     if dense:  # the dense rows straight from C (no sparse products for these small problems)
@@ -186,25 +240,34 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6):
         LinvT, gt, Mt, b = form.LinvT, form.gt, form.Mt, form.b
         Md = None
     mt = m + 2 * n
-    # initial working set
-    if z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
-        return None
-    W = np.zeros(mt, dtype=bool)
-    # rows whose multiplier was positive at the previous step (relative to the largest: solvers
-    # leave ~1e-10 multipliers on slack rows, which would crowd the working set); no tightness
-    # test, since the state has moved since and the rows with it
-    W[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), 1e-300) if m else False
-    W[m:m + n] = x0 >= prob.ub - 1e-9
-    W[m + n:] = x0 <= prob.lb + 1e-9
+    if groups is None:
+        K, rg = 1, np.zeros(mt, dtype=np.intp)
+    else:
+        groups = np.asarray(groups, dtype=np.intp)
+        K = int(groups.max(initial=-1)) + 1
+        C = prob.C.tocsr()
+        first = C.indices[np.minimum(C.indptr[:-1], max(C.indices.shape[0] - 1, 0))] // 2 if m else np.zeros(0, int)
+        vg = np.repeat(groups, 2)
+        rg = np.concatenate((groups[first] if m else np.zeros(0, np.intp), vg, vg))
+    # initial working set: rows whose multiplier was positive at the previous step (relative to
+    # the largest: solvers leave ~1e-10 multipliers on slack rows, which would crowd the working
+    # set); no tightness test, since the state has moved since and the rows with it
+    W0 = np.zeros(mt, dtype=bool)
+    W0[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), 1e-300) if m else False
+    W0[m:m + n] = x0 >= prob.ub - 1e-9
+    W0[m + n:] = x0 <= prob.lb + 1e-9
     eq = functools.partial(_equality_point, Md if dense else Mt, dense, gt, b)
-    used = 0  # equality solves of both rules: the iterations reported
+    loop = _WorkingSetLoop(eq, rg, K)
+    W = W0
     for rule, budget in ((_pdas_rule, max_iter), (_one_change_rule, ONE_CHANGE_ITER)):
-        out, it = _working_set_loop(eq, W.copy(), rule, budget)
-        used += it
-        if out is not None:
-            y, lam = out
-            return np.einsum("nij,nj->ni", LinvT, y.reshape(-1, 2)).ravel(), np.maximum(lam[:m], 0.0), used
-    return None
+        # the groups not yet verified start each rule from the warm start
+        W = loop.run(np.where(loop.done[rg], W, W0), rule, budget)
+        if loop.done.all():
+            break
+    if not loop.done.any():
+        return ActiveSetParts(np.zeros(n), np.zeros(m), loop.used, loop.done, rg[:m])
+    x = np.einsum("nij,nj->ni", LinvT, loop.y.reshape(-1, 2)).ravel()
+    return ActiveSetParts(x, np.maximum(loop.lam[:m], 0.0), loop.used, loop.done, rg[:m])
 
 
 def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray):
@@ -244,13 +307,29 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
     return y, lam, (M @ y) - b
 
 
-def _pdas_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.ndarray | None) -> np.ndarray:
-    """The primal-dual active-set update: every row with ``lambda + r > 0``."""
-    return (lam + r) > 0
+def _pdas_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.ndarray | None,
+               rg: np.ndarray, todo: np.ndarray) -> np.ndarray:
+    """The primal-dual active-set update: every row with ``lambda + r > 0`` (in the groups ``todo``)."""
+    return np.where(todo[rg], (lam + r) > 0, W)
 
 
-def _one_change_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.ndarray | None) -> np.ndarray:
-    """One change: add the most violated row while every multiplier is >= 0, else drop one row.
+def _group_argmin(val: np.ndarray, rg: np.ndarray, K: int) -> np.ndarray:
+    """Per group, the first index of its smallest finite value (``-1`` where it has none)."""
+    if K == 1:
+        k = int(np.argmin(val)) if val.shape[0] else 0
+        return np.array([k if val.shape[0] and np.isfinite(val[k]) else -1])
+    order = np.lexsort((val, rg))  # by group, then value, then index
+    sg = rg[order]
+    pos = np.minimum(np.searchsorted(sg, np.arange(K)), max(sg.shape[0] - 1, 0))
+    if not sg.shape[0]:
+        return np.full(K, -1)
+    k = order[pos]
+    return np.where((sg[pos] == np.arange(K)) & np.isfinite(val[k]), k, -1)
+
+
+def _one_change_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.ndarray | None,
+                     rg: np.ndarray, todo: np.ndarray) -> np.ndarray:
+    """One change per group of ``todo``: add its most violated row while its multipliers are >= 0, else drop one.
 
     The row dropped is the first whose multiplier crosses zero on the way from the previous
     working set's multipliers ``prev`` to these (the ratio test of dual active-set methods,
@@ -258,40 +337,77 @@ def _one_change_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.nda
     dependent has large negative multipliers on rows that need not leave, and the most
     negative one is often the wrong one.  Without such a row, the most negative multiplier.
     """
+    K = todo.shape[0]
     Wn = W.copy()
     neg = lam < -TOL
-    if not neg.any():
-        k = int(np.argmax(np.where(W, -np.inf, r)))
-        if r[k] > TOL:  # nothing violated outside the working set: no change, the loop stops
-            Wn[k] = True
-        return Wn
-    k = int(np.argmin(lam))
-    if prev is not None:
-        crossed = np.flatnonzero(neg & (prev > TOL))
-        if crossed.size:
-            k = int(crossed[np.argmin(prev[crossed] / (prev[crossed] - lam[crossed]))])
-    Wn[k] = False
+    gneg = np.zeros(K, dtype=bool)
+    gneg[rg[neg]] = True
+    add = todo & ~gneg
+    if add.any():
+        k = _group_argmin(np.where(W | ~add[rg], np.inf, -r), rg, K)[add]
+        k = k[k >= 0]
+        Wn[k[r[k] > TOL]] = True  # nothing violated outside the working set: no change there
+    drop = todo & gneg
+    if drop.any():
+        k = _group_argmin(np.where(drop[rg], lam, np.inf), rg, K)
+        if prev is not None:
+            crossed = neg & (prev > TOL) & drop[rg]
+            if crossed.any():
+                ratio = np.full(lam.shape[0], np.inf)
+                ratio[crossed] = prev[crossed] / (prev[crossed] - lam[crossed])
+                kc = _group_argmin(ratio, rg, K)
+                k = np.where(kc >= 0, kc, k)
+        k = k[drop]
+        Wn[k[k >= 0]] = False
     return Wn
 
 
-def _working_set_loop(eq, W: np.ndarray, rule, max_iter: int):
-    """Iterate ``rule`` from ``W``: ``((y, lam) or None, iterations)``, the point once the KKT conditions hold."""
-    prev = None
-    for it in range(1, max_iter + 1):
-        point = eq(W)
-        if point is None:
-            return None, it
-        y, lam, r = point
-        # KKT: stationarity holds by construction; feasibility, dual signs, and the working rows
-        # met as equalities (complementarity: a dependent, inconsistent working set fails here)
-        if (r.max(initial=-np.inf) <= TOL and lam.min(initial=0.0) >= -TOL
-                and float(np.abs(r[W]).max(initial=0.0)) <= TOL):
-            return (y, lam), it
-        Wn = rule(W, lam, r, prev)
-        if np.array_equal(Wn, W):
-            return None, it
-        W, prev = Wn, lam
-    return None, max_iter
+class _WorkingSetLoop:
+    """Iterates a working-set rule group by group, keeping each group's part of the first point that verifies it."""
+
+    def __init__(self, eq, rg: np.ndarray, K: int) -> None:
+        self.eq, self.rg, self.K = eq, rg, K
+        self.done = np.zeros(K, dtype=bool)
+        self.y: np.ndarray | None = None
+        self.lam: np.ndarray | None = None
+        self.used = 0  # equality solves of every rule: the iterations reported
+
+    def run(self, W: np.ndarray, rule, max_iter: int) -> np.ndarray:
+        """Iterate ``rule`` from ``W`` for at most ``max_iter`` equality solves; the last working set."""
+        rg, K = self.rg, self.K
+        prev = None
+        for _ in range(max_iter):
+            point = self.eq(W)
+            self.used += 1
+            if point is None:  # singular working set: the groups verified so far stand
+                break
+            y, lam, r = point
+            # KKT: stationarity holds by construction; feasibility, dual signs, and the working rows
+            # met as equalities (complementarity: a dependent, inconsistent working set fails here)
+            bad_row = (r > TOL) | (lam < -TOL) | (W & (np.abs(r) > TOL))
+            bad = np.zeros(K, dtype=bool)
+            bad[rg[bad_row]] = True
+            new = ~bad & ~self.done
+            if new.any():
+                self._keep(new, y, lam)
+            todo = ~self.done
+            if not todo.any():
+                break
+            Wn = rule(W, lam, r, prev, rg, todo)
+            if np.array_equal(Wn, W):
+                break
+            W, prev = Wn, lam
+        return W
+
+    def _keep(self, new: np.ndarray, y: np.ndarray, lam: np.ndarray) -> None:
+        if self.y is None or new.all():
+            self.y, self.lam = y.copy(), lam.copy()
+        else:
+            rows = new[self.rg]
+            vars_ = rows[rows.shape[0] - y.shape[0]:]  # the last rows are the variables' lower bounds
+            self.y[vars_] = y[vars_]
+            self.lam[rows] = lam[rows]
+        self.done |= new
 
 
 def _refine(solve, S, rhs, steps: int = 4):

@@ -9,6 +9,8 @@
    structured active-set method (:mod:`~aasoatt_env.safety.solvers.active_set`)
    is tried first and accepted only where the KKT conditions hold;
    ``prefer_exact`` then also asks the exact ``ldp`` solver before the back-end;
+   with independent parts (:meth:`SolverPolicy.solve`'s ``groups``) the parts it
+   verifies are answered and only the others go on, as one smaller problem;
 4. the back-end; where it gives no answer, its registered fallbacks
    (:attr:`~aasoatt_env.safety.solvers.backends.Backend.fallbacks`; for
    proxsuite: the exact ``ldp`` solver, then after a stall proxsuite's other class);
@@ -36,7 +38,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from aasoatt_env.safety.problem import QPProblem
-from aasoatt_env.safety.solvers.active_set import solve_active_set
+from aasoatt_env.safety.solvers.active_set import ActiveSetParts, solve_active_set, solve_active_set_parts
 from aasoatt_env.safety.solvers.backends import Backend, RawAnswer, available_solvers, get_solver
 from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
 
@@ -164,7 +166,8 @@ def solve_qp(
         return QPSolution(raw.x, raw.z, "solved", 0.0, raw.iterations, raw.message, time.perf_counter() - t0,
                           exact=False)
     exact_first = bool(opts.get("prefer_exact")) and prob.n <= LDP_MAX_VARS
-    if x0 is not None and z0 is not None and (opts.get("active_set") or exact_first):
+    tried = bool(opts.pop("active_set_tried", False))  # the caller ran it on this very warm start
+    if x0 is not None and z0 is not None and (opts.get("active_set") or exact_first) and not tried:
         fast = solve_active_set(prob, x0, z0)
         if fast is not None:
             return QPSolution(fast[0], fast[1], "solved", 0.0, fast[2], "active set (warm, KKT verified)",
@@ -235,9 +238,46 @@ class SolverPolicy:
         """Whether the back-end's answers are exact."""
         return self.backend.exact
 
-    def solve(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None) -> QPSolution:
-        """Solve ``prob``, warm-started from ``(x0, z0)`` where the back-end uses them."""
-        opts = dict(self.options)
+    def solve(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None,
+              groups: np.ndarray | None = None) -> QPSolution:
+        """Solve ``prob``, warm-started from ``(x0, z0)`` where the back-end uses them.
+
+        ``groups`` ``(N,)``: the independent parts of ``prob`` (a group ``0..K-1`` per robot,
+        no row between groups).  With the warm active set, every part it verifies is
+        answered by it and only the other parts go on to the back-end, as one smaller
+        problem: one hard or infeasible part does not send the whole stack to the
+        back-end and to phase 1.
+        """
+        if (groups is not None and self.active_set and self.backend.exact and x0 is not None and z0 is not None
+                and int(np.max(groups, initial=0)) > 0):
+            t0 = time.perf_counter()
+            part = solve_active_set_parts(prob, x0, z0, groups)
+            if part is not None:
+                return self._rest(prob, x0, z0, groups, part, t0)
+        return self._solve(prob, x0, z0)
+
+    def _rest(self, prob: QPProblem, x0: np.ndarray, z0: np.ndarray, groups: np.ndarray,
+              part: ActiveSetParts, t0: float) -> QPSolution:
+        """The parts the active set verified, and the back-end's answer on the others."""
+        msg = "active set (warm, KKT verified)"
+        if part.ok.all():
+            return QPSolution(part.x, part.z, "solved", 0.0, part.iterations, msg, time.perf_counter() - t0)
+        robots, rows = ~part.ok[groups], ~part.ok[part.row_group]
+        if not part.ok.any():
+            sol = self._solve(prob, x0, z0, active_set_tried=True)
+            sol.iterations += part.iterations
+            return sol
+        v = np.repeat(robots, 2)
+        rest = self._solve(prob.restrict(robots, rows), x0[v], z0[rows], active_set_tried=True)
+        x, z = part.x.copy(), part.z.copy()
+        x[v], z[rows] = rest.x, rest.z
+        return QPSolution(x, z, rest.status, rest.slack, part.iterations + rest.iterations,
+                          f"{msg} on {int(part.ok.sum())} of {part.ok.shape[0]} parts; the other "
+                          f"{int((~part.ok).sum())}: {rest.message}", time.perf_counter() - t0,
+                          rest.fallback, rest.exact)
+
+    def _solve(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, **extra: bool) -> QPSolution:
+        opts = {**self.options, **extra}
         if self.active_set:
             opts["active_set"] = True
         if not self.backend.may_stall:
