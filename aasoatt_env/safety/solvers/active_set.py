@@ -55,6 +55,8 @@ DENSE_MAX_CELLS: int = 150_000
 (a stack of small teams behind one filter call: many variables, few rows each)."""
 DENSE_MAX_ROWS: int = 500
 """Working sets up to this size use a dense Cholesky of the Schur complement."""
+SPARSE_DENSE_SCHUR_ROWS: int = 200
+"""With sparse rows, working sets up to this size factor their Schur complement densely (LAPACK)."""
 WARM_REL: float = 1e-6
 """Rows whose warm-start multiplier exceeds this fraction of the largest start in the working set."""
 TOL: float = 1e-10
@@ -293,6 +295,13 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
                 solve = spla.splu(sp.csc_matrix(Sr)).solve
             except RuntimeError:
                 return None
+    elif k <= SPARSE_DENSE_SCHUR_ROWS:  # a sparse product, then the small Schur complement as a dense matrix
+        S = S.toarray()
+        Sr = S + 0.0
+        Sr.flat[:: k + 1] += delta
+        solve = _cholesky(Sr)
+        if solve is None:
+            return None
     else:
         try:
             lu = spla.splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
