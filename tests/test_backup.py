@@ -441,3 +441,44 @@ def test_a_group_checked_alone_keeps_the_whole_teams_range_limits():
                            sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction)
         assert whole.safe and not whole.braking.any() and not whole.broken.any()
     assert candidate_paths(team, pose, u, g.du, DT, cfg.brake_fraction).reach[1] > 0.5  # beyond the big robot's limit
+
+
+def test_the_gate_with_the_filters_pairs_decides_as_with_its_own_searches(monkeypatch):
+    """gate_with_repair hands the filter's pairs within D to every gatekeeper and repair call
+    (one neighbour search per step): the answers equal those of each call searching itself."""
+    import aasoatt_env.safety.repair as R
+    from aasoatt_env.safety import FilterConfig as Cfg
+
+    cfg = Cfg()
+    real_gk, real_rep = R.gatekeeper, R.repair
+    handed = []
+
+    def spy(real):
+        def call(*a, near_pairs=None, **k):
+            handed.append(near_pairs is not None)
+            return real(*a, near_pairs=near_pairs, **k)
+        return call
+
+    def own_search(real):
+        return lambda *a, near_pairs=None, **k: real(*a, **k)
+
+    rng = np.random.default_rng(21)
+    braked = 0
+    for kind, team in _teams().items():
+        for _ in range(25):
+            pose, u = _random_state(team, rng, scale=10.0)
+            pose[:, :2] = rng.uniform(-1.2, 1.2, (team.n, 2))
+            cand = rng.uniform(-1, 1, (team.n, 2)) * team.max_wheel_accel[:, None]
+            kin, lo, hi = _inputs(team, pose, u)
+            pairs = robot_pairs(kin.p, cfg.sensing_range)
+            monkeypatch.setattr(R, "gatekeeper", spy(real_gk))
+            monkeypatch.setattr(R, "repair", spy(real_rep))
+            shared = gate_with_repair(team, pose, u, cand, lo, hi, cfg, None, pairs)
+            monkeypatch.setattr(R, "gatekeeper", own_search(real_gk))
+            monkeypatch.setattr(R, "repair", own_search(real_rep))
+            own = gate_with_repair(team, pose, u, cand, lo, hi, cfg, None, pairs)
+            for name in ("du", "braking", "broken", "robot_margin"):
+                np.testing.assert_array_equal(getattr(shared, name), getattr(own, name), err_msg=f"{kind} {name}")
+            braked += bool(own.braking.any())
+    # the repair and the second checks ran on many of these states, each given the pairs
+    assert braked >= 10 and sum(handed) >= 20, (braked, sum(handed))

@@ -192,6 +192,7 @@ def gatekeeper(
     blend_levels: tuple[float, ...] = (0.5,),
     hold_violations: bool = False,
     quick: bool = False,
+    near_pairs: np.ndarray | None = None,
 ) -> GateResult:
     """Accept the candidate ``du_c`` for every robot whose pairs stay brake-safe; put the others on the backup.
 
@@ -265,6 +266,10 @@ def gatekeeper(
         brake).  The first round, which robots the candidate fails, is the same either way.
         Without such a robot, one that fails a pair goes straight to the backup; with one
         (``out_of_range.any()``), the answer is the full check's.
+    near_pairs : numpy.ndarray, optional
+        ``(P, 2)`` robot pairs including every pair within ``sensing_range``: the
+        candidates of the pair search, made once for several calls on one state.
+        None: searched here.
     """
     n = pose.shape[0]
     theta = pose[:, 2]
@@ -299,7 +304,7 @@ def gatekeeper(
     broken = reach[last] > limit
 
     # pairs that could meet within their reach (fixed for the call); only their robots need paths
-    i, j, ds = _pairs_near(team, p0, R, sensing_range, 1e-12)
+    i, j, ds = _pairs_near(team, p0, R, sensing_range, 1e-12, near_pairs)
     oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 1e-12)
     du_all = np.stack([f[0] for f in firsts] + [du_b])  # (levels, N, 2)
     limit_margin = float(limit.min(initial=0.5 * float(sensing_range)))
@@ -387,13 +392,24 @@ def gatekeeper(
                       reach[0] > limit)
 
 
-def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float, slack: float
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Robot pairs ``(i, j, d_s)`` that could come within ``d_s + slack`` while each stays within ``R`` of ``p0``."""
+def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float, slack: float,
+                near_pairs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Robot pairs ``(i, j, d_s)`` that could come within ``d_s + slack`` while each stays within ``R`` of ``p0``.
+
+    Only pairs within the sensing range are considered: found here, or taken from
+    ``near_pairs`` ``(P, 2)``, a superset of them.
+    """
     rad = team.radius
-    pts = np.stack((p0.real, p0.imag), axis=1)
-    search = min(float(sensing_range), 2.0 * float(rad.max(initial=0.0)) + 2.0 * float(R.max(initial=0.0)) + slack)
-    pr = robot_pairs(pts, search, groups=team.group)
+    if near_pairs is None:
+        pts = np.stack((p0.real, p0.imag), axis=1)
+        search = min(float(sensing_range), 2.0 * float(rad.max(initial=0.0)) + 2.0 * float(R.max(initial=0.0))
+                     + slack)
+        pr = robot_pairs(pts, search, groups=team.group)
+    else:
+        pr = near_pairs
+        far = np.abs(p0[pr[:, 0]] - p0[pr[:, 1]]) > sensing_range  # as robot_pairs at the range: <= D kept
+        if far.any():
+            pr = pr[~far]
     i, j = pr[:, 0], pr[:, 1]
     ds = rad[i] + rad[j]
     keep = np.abs(p0[i] - p0[j]) < ds + R[i] + R[j] + slack

@@ -30,7 +30,14 @@ from aasoatt_env.safety.backup import (
     candidate_samples_at,
 )
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.safety.gatekeeper import GateResult, _bucketed, _obstacles_near, _pairs_near, gatekeeper, pair_margins
+from aasoatt_env.safety.gatekeeper import (
+    GateResult,
+    _bucketed,
+    _obstacles_near,
+    _pairs_near,
+    gatekeeper,
+    pair_margins,
+)
 
 __all__ = ["GATE_TOL", "gate_with_repair", "repair"]
 
@@ -85,12 +92,26 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
         hit[label[flags]] = True
         return hit[label]
 
+    # one neighbour search for every check below: the pairs within D (the filter's own where given,
+    # found from the same points up to rounding: a pair that rounding moves across D is D apart,
+    # and the paths of its robots, within D / 2 - r of their starts, keep it d_s apart)
+    near = pairs
+
     def sub(rows: np.ndarray) -> tuple[Team, np.ndarray, np.ndarray]:
         """The team, poses and speeds of robots ``rows`` (the arrays themselves when that is everyone)."""
         return (team, pose, u) if rows.size == n else (team.subset(rows), pose[rows], u[rows])
 
+    def near_of(rows: np.ndarray) -> np.ndarray:
+        """``near`` within robots ``rows`` (unions of components), in their numbering."""
+        if rows.size == n:
+            return near
+        loc = np.full(n, -1, dtype=np.intp)
+        loc[rows] = np.arange(rows.size)
+        q = loc[near]
+        return q[(q >= 0).all(axis=1)]
+
     def gate_on(rows: np.ndarray, cand: np.ndarray, **kw) -> GateResult:
-        return gatekeeper(*sub(rows), cand, cfg.dt, tol=GATE_TOL, **gate_kw, **kw)
+        return gatekeeper(*sub(rows), cand, cfg.dt, tol=GATE_TOL, near_pairs=near_of(rows), **gate_kw, **kw)
 
     broken = per_component(quick.broken)
     held = broken & per_component(quick.robot_margin < 0.0)
@@ -111,7 +132,7 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     if fixing.any():
         # nudge the QP's answer toward brake-safety, then check again (usually nobody brakes then)
         rows = np.flatnonzero(fixing)
-        repaired = repair(*sub(rows), du[rows], cfg.dt, lo[rows], hi[rows], **gate_kw)
+        repaired = repair(*sub(rows), du[rows], cfg.dt, lo[rows], hi[rows], near_pairs=near_of(rows), **gate_kw)
         second = gate_on(rows, repaired)
         parts.append((rows, second))
         again = np.zeros(n, dtype=bool)
@@ -167,6 +188,7 @@ def repair(
     target: float = 2e-4,
     rounds: int = 3,
     eps: float = 1.0,
+    near_pairs: np.ndarray | None = None,
 ) -> np.ndarray:
     """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
 
@@ -180,6 +202,7 @@ def repair(
     to ``[lo, hi]``.  ``rounds`` rounds.  This acts like backup-barrier rows in
     the QP (a small, local correction toward the safe set), so the gatekeeper
     rarely has to brake; safety still comes from :func:`~aasoatt_env.safety.gatekeeper.gatekeeper` alone.
+    ``near_pairs``: candidate pairs as in the gatekeeper (one search for every round).
     """
     du = np.minimum(np.maximum(du_c, lo), hi)
     n = pose.shape[0]
@@ -190,7 +213,7 @@ def repair(
         # reach first (O(N)): only robots with a pair that could come close need sampled paths
         p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
         R = _candidate_reach(p0, p1, d1, _brake(team, theta1, u1, dt, brake_fraction)) + eps * dt * dt
-        i, j, ds = _pairs_near(team, p0, R, sensing_range, 2.0 * target)
+        i, j, ds = _pairs_near(team, p0, R, sensing_range, 2.0 * target, near_pairs)
         oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 2.0 * target)
         if i.size + oi.size == 0:
             break
