@@ -190,7 +190,7 @@ class ActiveSetParts(NamedTuple):
     ok: np.ndarray
     """``(K,)`` bool: the groups whose part of ``(x, z)`` meets the KKT conditions of their own rows."""
     row_group: np.ndarray
-    """``(m,)`` group of every row (of the robot its first entry belongs to)."""
+    """``(m,)`` group of every row (of the robot its first entry belongs to; an empty row: 0)."""
 
 
 def solve_active_set(prob, x0, z0, max_iter: int = 6):
@@ -248,9 +248,11 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         groups = np.asarray(groups, dtype=np.intp)
         K = int(groups.max(initial=-1)) + 1
         C = prob.C.tocsr()
-        first = C.indices[np.minimum(C.indptr[:-1], max(C.indices.shape[0] - 1, 0))] // 2 if m else np.zeros(0, int)
+        nnz = C.indices.shape[0]
+        # a row's group: that of the robot of its first entry (an empty row: group 0)
+        first = C.indices[np.minimum(C.indptr[:-1], nnz - 1)] // 2 if nnz else np.zeros(m, dtype=np.intp)
         vg = np.repeat(groups, 2)
-        rg = np.concatenate((groups[first] if m else np.zeros(0, np.intp), vg, vg))
+        rg = np.concatenate((np.where(np.diff(C.indptr) > 0, groups[first], 0), vg, vg))
     # initial working set: rows whose multiplier was positive at the previous step (relative to
     # the largest: solvers leave ~1e-10 multipliers on slack rows, which would crowd the working
     # set); no tightness test, since the state has moved since and the rows with it
