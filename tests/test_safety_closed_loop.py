@@ -207,6 +207,7 @@ def test_a_stack_s_parts_are_verified_one_by_one_and_only_the_rest_goes_to_the_b
 
     import scipy.sparse as sp
 
+    import aasoatt_env.safety.solvers.active_set as AS
     from aasoatt_env.safety.solvers.policy import SolverPolicy
 
     _, recorded = swap10
@@ -234,9 +235,63 @@ def test_a_stack_s_parts_are_verified_one_by_one_and_only_the_rest_goes_to_the_b
         else:
             np.testing.assert_allclose(zs[k], ref.z, atol=1e-6)
     # one group: the whole problem is one part, answered as without groups
-    policy = SolverPolicy("proxsuite", active_set=True)
-    one = policy.solve(parts[0], warm[0].x, warm[0].z, np.zeros(parts[0].n // 2, int))
-    np.testing.assert_array_equal(one.x, policy.solve(parts[0], warm[0].x, warm[0].z).x)
+    one = AS.solve_active_set_parts(parts[0], warm[0].x, warm[0].z, np.zeros(parts[0].n // 2, int))
+    none = AS.solve_active_set_parts(parts[0], warm[0].x, warm[0].z, None)
+    assert one.ok.shape == (1,) and one.ok[0] and one.iterations == none.iterations
+    np.testing.assert_array_equal(one.x, none.x)
+    # groups that a row joins are refused (None: the caller solves the whole problem)
+    split = np.arange(stack.n // 2) % 2
+    assert AS.solve_active_set_parts(stack, x0, z0, split) is None
+    stack_ok = SolverPolicy("proxsuite", active_set=True).solve(stack, x0, z0, split)
+    np.testing.assert_allclose(stack_ok.x, sol.x, atol=1e-6)
+
+
+def test_the_active_set_never_verifies_a_nan(swap10):
+    # a NaN in the bounds or the linear term fails the KKT check of its part: no "solved" NaN
+    import dataclasses
+
+    import aasoatt_env.safety.solvers.active_set as AS
+
+    _, recorded = swap10
+    prob = recorded[40]
+    warm = solve_qp(recorded[39], "quadprog")
+    u = prob.u.copy()
+    u[0] = np.nan
+    g = prob.g.copy()
+    g[:] = np.nan
+    for bad in (dataclasses.replace(prob, u=u), dataclasses.replace(prob, g=g)):
+        assert AS.solve_active_set(bad, warm.x, warm.z) is None
+        part = AS.solve_active_set_parts(bad, warm.x, warm.z, np.zeros(prob.n // 2, int))
+        assert part is None or not part.ok.any()
+
+
+def test_group_argmin_picks_the_first_smallest_finite_value_per_group():
+    from aasoatt_env.safety.solvers.active_set import _group_argmin
+
+    val = np.array([3.0, 1.0, np.inf, 1.0, 2.0, np.inf, 5.0, 0.5])
+    rg = np.array([0, 0, 1, 0, 2, 1, 2, 3])
+    # group 0: ties at 1.0 -> the first index; group 1: only inf -> -1; group 4 has no rows -> -1
+    np.testing.assert_array_equal(_group_argmin(val, rg, 5), [1, -1, 4, 7, -1])
+    np.testing.assert_array_equal(_group_argmin(np.array([np.inf, np.inf]), np.zeros(2, int), 1), [-1])
+    np.testing.assert_array_equal(_group_argmin(np.array([2.0, 1.0, 1.0]), np.zeros(3, int), 1), [1])
+
+
+def test_a_row_without_entries_belongs_to_group_zero():
+    import scipy.sparse as sp
+
+    import aasoatt_env.safety.solvers.active_set as AS
+    from aasoatt_env.safety.problem import QPProblem
+
+    # two robots in two groups; rows: robot 1's, an empty one (0 <= 1), robot 0's
+    C = sp.csr_matrix(np.array([[0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0]]))
+    prob = QPProblem(H_blocks=np.broadcast_to(np.eye(2), (2, 2, 2)).copy(), g=np.array([-2.0, 0.0, -2.0, 0.0]),
+                     C=C, u=np.array([0.5, 1.0, 0.25]), lb=-np.ones(4), ub=np.ones(4), scale=np.ones(4),
+                     obj_scale=1.0, row_norm=np.ones(3), diagonal=True)
+    out = AS.solve_active_set_parts(prob, np.zeros(4), np.array([1.0, 0.0, 1.0]), np.array([0, 1]))
+    np.testing.assert_array_equal(out.row_group, [1, 0, 0])
+    assert out.ok.all()
+    np.testing.assert_allclose(out.x, [0.25, 0.0, 0.5, 0.0], atol=1e-12)
+    np.testing.assert_allclose(out.z, [1.5, 0.0, 1.75], atol=1e-12)
 
 
 def test_one_change_rule_rescues_warm_starts_the_primal_dual_rule_cannot_finish(swap10, monkeypatch):

@@ -267,9 +267,10 @@ def gatekeeper(
         Without such a robot, one that fails a pair goes straight to the backup; with one
         (``out_of_range.any()``), the answer is the full check's.
     near_pairs : numpy.ndarray, optional
-        ``(P, 2)`` robot pairs including every pair within ``sensing_range``: the
-        candidates of the pair search, made once for several calls on one state.
-        None: searched here.
+        ``(P, 2)`` robot pairs including every pair (of one group, with ``team.group``)
+        within ``sensing_range`` of each other's control points: the candidates of the
+        pair search, made once for several calls on one state.  A pair missing here is
+        not checked, so it is a safety input.  None: searched here.
     """
     n = pose.shape[0]
     theta = pose[:, 2]
@@ -407,9 +408,12 @@ def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float,
         pr = robot_pairs(pts, search, groups=team.group)
     else:
         pr = near_pairs
-        far = np.abs(p0[pr[:, 0]] - p0[pr[:, 1]]) > sensing_range  # as robot_pairs at the range: <= D kept
-        if far.any():
-            pr = pr[~far]
+        # as robot_pairs at the range: <= D kept, and with groups, pairs of one group only
+        drop = np.abs(p0[pr[:, 0]] - p0[pr[:, 1]]) > sensing_range
+        if team.group is not None:
+            drop |= team.group[pr[:, 0]] != team.group[pr[:, 1]]
+        if drop.any():
+            pr = pr[~drop]
     i, j = pr[:, 0], pr[:, 1]
     ds = rad[i] + rad[j]
     keep = np.abs(p0[i] - p0[j]) < ds + R[i] + R[j] + slack

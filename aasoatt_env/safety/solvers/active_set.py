@@ -182,9 +182,9 @@ class ActiveSetParts(NamedTuple):
     """The answer of :func:`solve_active_set_parts`: the point, and where it is verified."""
 
     x: np.ndarray
-    """Scaled point ``(n,)``; meaningful on the verified robots only."""
+    """Scaled point ``(n,)``; on the robots of unverified groups, an unverified iterate (or zeros)."""
     z: np.ndarray
-    """Row multipliers ``(m,)`` (``>= 0``); meaningful on the verified groups' rows only."""
+    """Row multipliers ``(m,)`` (``>= 0``); on the rows of unverified groups, as ``x``."""
     iterations: int
     """Equality solves of both rules."""
     ok: np.ndarray
@@ -221,7 +221,8 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     one-change rule makes one change per group.  A group whose part of an iterate meets
     the KKT conditions is kept from then on (its working set frozen: the other groups'
     changes do not touch it); the others iterate.  Returns ``None`` where the method
-    does not apply (no warm start, a Hessian block not positive definite, an odd size).
+    does not apply (no warm start, a Hessian block not positive definite, an odd size,
+    ``groups`` that a row joins).
     """
     n, m = prob.n, prob.m
     if n == 0 or n % 2:
@@ -253,6 +254,8 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         first = C.indices[np.minimum(C.indptr[:-1], nnz - 1)] // 2 if nnz else np.zeros(m, dtype=np.intp)
         vg = np.repeat(groups, 2)
         rg = np.concatenate((np.where(np.diff(C.indptr) > 0, groups[first], 0), vg, vg))
+        if groups.shape != (n // 2,) or not np.array_equal(vg[C.indices], np.repeat(rg[:m], np.diff(C.indptr))):
+            return None  # not independent parts: a row joins two groups
     # initial working set: rows whose multiplier was positive at the previous step (relative to
     # the largest: solvers leave ~1e-10 multipliers on slack rows, which would crowd the working
     # set); no tightness test, since the state has moved since and the rows with it
@@ -395,7 +398,9 @@ class _WorkingSetLoop:
             y, lam, r = point
             # KKT: stationarity holds by construction; feasibility, dual signs, and the working rows
             # met as equalities (complementarity: a dependent, inconsistent working set fails here)
-            bad_row = (r > TOL) | (lam < -TOL) | (W & (np.abs(r) > TOL))
+            # (written as what must hold, so a NaN anywhere fails its group)
+            ok_row = (r <= TOL) & (lam >= -TOL) & (~W | (np.abs(r) <= TOL))
+            bad_row = ~ok_row
             bad = np.zeros(K, dtype=bool)
             bad[rg[bad_row]] = True
             new = ~bad & ~self.done

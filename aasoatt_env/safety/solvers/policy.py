@@ -156,6 +156,7 @@ def solve_qp(
     ``prefer_exact`` (first the warm active set, then ``ldp``, the back-end only
     if both fail).
     """
+    tried = bool(opts.pop("active_set_tried", False))  # the caller ran it on this very warm start
     backend = get_solver(solver)
     t0 = time.perf_counter()
     if prob.m == 0 and prob.diagonal and backend.exact:
@@ -166,7 +167,6 @@ def solve_qp(
         return QPSolution(raw.x, raw.z, "solved", 0.0, raw.iterations, raw.message, time.perf_counter() - t0,
                           exact=False)
     exact_first = bool(opts.get("prefer_exact")) and prob.n <= LDP_MAX_VARS
-    tried = bool(opts.pop("active_set_tried", False))  # the caller ran it on this very warm start
     if x0 is not None and z0 is not None and (opts.get("active_set") or exact_first) and not tried:
         fast = solve_active_set(prob, x0, z0)
         if fast is not None:
@@ -261,7 +261,9 @@ class SolverPolicy:
         """The parts the active set verified, and the back-end's answer on the others."""
         msg = "active set (warm, KKT verified)"
         if part.ok.all():
-            return QPSolution(part.x, part.z, "solved", 0.0, part.iterations, msg, time.perf_counter() - t0)
+            sol = QPSolution(part.x, part.z, "solved", 0.0, part.iterations, msg, time.perf_counter() - t0)
+            self._count(prob, sol)
+            return sol
         robots, rows = ~part.ok[groups], ~part.ok[part.row_group]
         if not part.ok.any():
             sol = self._solve(prob, x0, z0, active_set_tried=True)
@@ -288,6 +290,15 @@ class SolverPolicy:
         sol = solve_qp(prob, self.solver, x0, z0, **opts)
         self._adapt(prob, sol)
         return sol
+
+    def _count(self, prob: QPProblem, sol: QPSolution) -> None:
+        """The switch state after a call the active set answered without :meth:`_solve` (as if through it)."""
+        if not self.backend.may_stall:
+            return
+        if self._exact_steps > 0 or prob.n <= EXACT_FIRST_VARS:
+            self._exact_steps = max(self._exact_steps - 1, 0)
+        else:
+            self._adapt(prob, sol)
 
     def _adapt(self, prob: QPProblem, sol: QPSolution) -> None:
         """Switch to the exact path if the back-end stalled, or was slow where ``ldp`` is faster.
