@@ -50,7 +50,7 @@ __all__ = [
 
 DENSE_MAX_VARS: int = 80
 """Problems up to this many variables use dense algebra, whatever their rows."""
-DENSE_MAX_CELLS: int = 150_000
+DENSE_MAX_CELLS: int = 400_000
 """Larger problems with at most this many entries in their dense rows ``(m + 2n) x n`` use it too
 (a stack of small teams behind one filter call: many variables, few rows each)."""
 DENSE_MAX_ROWS: int = 500
