@@ -104,12 +104,19 @@ def _factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
     if cached is not _UNSET:
         return cached
     nb = prob.n // 2
-    try:
-        L = np.linalg.cholesky(prob.H_blocks)
-    except np.linalg.LinAlgError:
-        out = None
+    # the Cholesky factor of every 2x2 block in closed form, L = [[a, 0], [c, d]], and its inverse
+    H = prob.H_blocks
+    h00, h10, h11 = H[:, 0, 0], H[:, 1, 0], H[:, 1, 1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.sqrt(h00)
+        c = h10 / a
+        d2 = h11 - c * c
+        d = np.sqrt(d2)
+    if not (np.all(h00 > 0.0) and np.all(d2 > 0.0) and np.all(H[:, 0, 1] == h10)):
+        out = None  # a block not symmetric positive definite (or not finite)
     else:
-        Linv = np.linalg.inv(L)  # (nb, 2, 2)
+        Linv = np.zeros((nb, 2, 2))
+        Linv[:, 0, 0], Linv[:, 1, 1], Linv[:, 1, 0] = 1.0 / a, 1.0 / d, -c / (a * d)
         out = (np.transpose(Linv, (0, 2, 1)), np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel())
     prob.__dict__["_ldf_factor"] = out
     return out
@@ -153,7 +160,11 @@ def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
             return _least_distance_form(prob).Mt.toarray()
         Cd = np.zeros(m * n)
         Cd[flat] = C.data
-        rb = np.unique(flat // 2)  # (row, block) pairs with an entry; the other blocks of C T are zero
+        fb = flat // 2  # (row, block) pairs with an entry; the other blocks of C T are zero
+        if C.has_sorted_indices:  # flat ascending: the distinct ones without a sort
+            rb = fb[np.concatenate(([True], fb[1:] != fb[:-1]))] if fb.size else fb
+        else:
+            rb = np.unique(fb)
         v = Cd.reshape(-1, 2)[rb]
         b = rb % nb
         Ct = v[:, 0, None] * LinvT[b, 0, :] + v[:, 1, None] * LinvT[b, 1, :]
