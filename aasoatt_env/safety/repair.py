@@ -78,7 +78,11 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
       braking; the repair off) get the full check of the QP's answer.
     """
     gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles)
-    quick = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, quick=True, **gate_kw)
+    # the filter's pairs within D, where given, are every check's candidate pairs (one neighbour
+    # search per step; found from the same points up to rounding: a pair that rounding moves
+    # across D is D apart, and the paths of its robots, within D / 2 - r of their starts, keep it
+    # d_s apart)
+    quick = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, quick=True, near_pairs=pairs, **gate_kw)
     if not quick.braking.any():
         return quick
     full_check = bool(quick.out_of_range.any())  # the quick check used the blend levels: it is the full one
@@ -94,10 +98,7 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
         hit[label[flags]] = True
         return hit[label]
 
-    # one neighbour search for every check below: the pairs within D (the filter's own where given,
-    # found from the same points up to rounding: a pair that rounding moves across D is D apart,
-    # and the paths of its robots, within D / 2 - r of their starts, keep it d_s apart)
-    near = pairs
+    near = pairs  # every check below takes its candidate pairs from these
 
     def sub(rows: np.ndarray) -> tuple[Team, np.ndarray, np.ndarray]:
         """The team, poses and speeds of robots ``rows`` (the arrays themselves when that is everyone)."""
