@@ -464,21 +464,29 @@ def test_the_gate_with_the_filters_pairs_decides_as_with_its_own_searches(monkey
 
     rng = np.random.default_rng(21)
     braked = 0
-    for kind, team in _teams().items():
-        for _ in range(25):
+    teams = _teams()
+    # two teams stacked on the same ground (one filter call for two envs): no pair between them
+    teams["stacked"] = stack_teams([make_team("paper", 3), make_team("turtlebot3_burger", 3)])
+    for kind, team in teams.items():
+        for trial in range(25):
             pose, u = _random_state(team, rng, scale=10.0)
             pose[:, :2] = rng.uniform(-1.2, 1.2, (team.n, 2))
             cand = rng.uniform(-1, 1, (team.n, 2)) * team.max_wheel_accel[:, None]
             kin, lo, hi = _inputs(team, pose, u)
-            pairs = robot_pairs(kin.p, cfg.sensing_range)
+            if trial % 5 == 4:  # one robot exactly D from another (the search's boundary)
+                kin.p[1] = kin.p[0] + [cfg.sensing_range, 0.0]
+                pose[1, :2] += kin.p[1] - _inputs(team, pose, u)[0].p[1]
+                kin, lo, hi = _inputs(team, pose, u)
+            obstacles = (rng.uniform(-2, 2, (2, 2)), np.array([0.3, 0.5])) if trial % 2 else None
+            pairs = robot_pairs(kin.p, cfg.sensing_range, groups=team.group)
             monkeypatch.setattr(R, "gatekeeper", spy(real_gk))
             monkeypatch.setattr(R, "repair", spy(real_rep))
-            shared = gate_with_repair(team, pose, u, cand, lo, hi, cfg, None, pairs)
+            shared = gate_with_repair(team, pose, u, cand, lo, hi, cfg, obstacles, pairs)
             monkeypatch.setattr(R, "gatekeeper", own_search(real_gk))
             monkeypatch.setattr(R, "repair", own_search(real_rep))
-            own = gate_with_repair(team, pose, u, cand, lo, hi, cfg, None, pairs)
+            own = gate_with_repair(team, pose, u, cand, lo, hi, cfg, obstacles, pairs)
             for name in ("du", "braking", "broken", "robot_margin"):
                 np.testing.assert_array_equal(getattr(shared, name), getattr(own, name), err_msg=f"{kind} {name}")
             braked += bool(own.braking.any())
     # the repair and the second checks ran on many of these states, each given the pairs
-    assert braked >= 10 and sum(handed) >= 20 + 100, (braked, sum(handed))  # the 100 quick checks too
+    assert braked >= 10 and sum(handed) >= 20 + 125, (braked, sum(handed))  # the 125 quick checks too

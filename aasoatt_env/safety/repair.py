@@ -59,8 +59,9 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     brakes someone, the rest is decided per connected
     component of the robots within the sensing range ``D`` of each other
     (``pairs``: those pairs, as the filter found them; found here when None;
-    a safety input: the checks after the quick one take their candidate pairs from it,
-    so it must hold every pair of one group within ``D`` at the control points),
+    a safety input: every check, the quick one included, takes its candidate pairs from
+    it, so it must hold every pair of one group within ``D`` at the control points; None:
+    each call searches itself),
     each as if it were alone: the gatekeeper never couples robots farther apart
     than ``D``, so a stack of teams decides as each team alone, and a component
     where nobody brakes keeps the QP's answer.
