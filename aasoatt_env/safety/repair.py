@@ -99,19 +99,18 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
         hit[label[flags]] = True
         return hit[label]
 
-    near = pairs  # every check below takes its candidate pairs from these
 
     def sub(rows: np.ndarray) -> tuple[Team, np.ndarray, np.ndarray]:
         """The team, poses and speeds of robots ``rows`` (the arrays themselves when that is everyone)."""
         return (team, pose, u) if rows.size == n else (team.subset(rows), pose[rows], u[rows])
 
     def near_of(rows: np.ndarray) -> np.ndarray:
-        """``near`` within robots ``rows`` (unions of components), in their numbering."""
+        """``pairs`` within robots ``rows`` (unions of components), in their numbering."""
         if rows.size == n:
-            return near
+            return pairs
         loc = np.full(n, -1, dtype=np.intp)
         loc[rows] = np.arange(rows.size)
-        q = loc[near]
+        q = loc[pairs]
         return q[(q >= 0).all(axis=1)]
 
     def gate_on(rows: np.ndarray, cand: np.ndarray, **kw) -> GateResult:

@@ -299,7 +299,9 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
     S = Mw @ Mw.T if dense else (Mw @ Mw.T).tocsc()
     rhs = -(Mw @ gt) - b[idx]
     delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
-    if dense:
+    if not dense and k <= SPARSE_DENSE_SCHUR_ROWS:  # sparse rows, a small Schur complement: dense LAPACK
+        S = S.toarray()
+    if isinstance(S, np.ndarray):
         Sr = S + 0.0  # S + delta * I without the identity: off the diagonal S + 0.0, on it S + delta
         Sr.flat[:: k + 1] += delta
         if k <= DENSE_MAX_ROWS:
@@ -311,13 +313,6 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
                 solve = spla.splu(sp.csc_matrix(Sr)).solve
             except RuntimeError:
                 return None
-    elif k <= SPARSE_DENSE_SCHUR_ROWS:  # a sparse product, then the small Schur complement as a dense matrix
-        S = S.toarray()
-        Sr = S + 0.0
-        Sr.flat[:: k + 1] += delta
-        solve = _cholesky(Sr)
-        if solve is None:
-            return None
     else:
         try:
             lu = spla.splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
@@ -343,11 +338,11 @@ def _group_argmin(val: np.ndarray, rg: np.ndarray, K: int) -> np.ndarray:
     if K == 1:
         k = int(np.argmin(val)) if val.shape[0] else 0
         return np.array([k if val.shape[0] and np.isfinite(val[k]) else -1])
+    if not val.shape[0]:
+        return np.full(K, -1)
     order = np.lexsort((val, rg))  # by group, then value, then index
     sg = rg[order]
-    pos = np.minimum(np.searchsorted(sg, np.arange(K)), max(sg.shape[0] - 1, 0))
-    if not sg.shape[0]:
-        return np.full(K, -1)
+    pos = np.minimum(np.searchsorted(sg, np.arange(K)), sg.shape[0] - 1)
     k = order[pos]
     return np.where((sg[pos] == np.arange(K)) & np.isfinite(val[k]), k, -1)
 
@@ -411,9 +406,8 @@ class _WorkingSetLoop:
             # met as equalities (complementarity: a dependent, inconsistent working set fails here)
             # (written as what must hold, so a NaN anywhere fails its group)
             ok_row = (r <= TOL) & (lam >= -TOL) & (~W | (np.abs(r) <= TOL))
-            bad_row = ~ok_row
             bad = np.zeros(K, dtype=bool)
-            bad[rg[bad_row]] = True
+            bad[rg[~ok_row]] = True
             new = ~bad & ~self.done
             if new.any():
                 self._keep(new, y, lam)

@@ -284,20 +284,22 @@ class SolverPolicy:
             opts["active_set"] = True
         if not self.backend.may_stall:
             return solve_qp(prob, self.solver, x0, z0, **opts)
-        if self._exact_steps > 0 or prob.n <= EXACT_FIRST_VARS:
-            self._exact_steps = max(self._exact_steps - 1, 0)
+        if self._exact_path(prob):
             return solve_qp(prob, self.solver, x0, z0, prefer_exact=True, **opts)
         sol = solve_qp(prob, self.solver, x0, z0, **opts)
         self._adapt(prob, sol)
         return sol
 
-    def _count(self, prob: QPProblem, sol: QPSolution) -> None:
-        """The switch state after a call the active set answered without :meth:`_solve` (as if through it)."""
-        if not self.backend.may_stall:
-            return
+    def _exact_path(self, prob: QPProblem) -> bool:
+        """Whether this call takes the exact path first (small problem, or a switch running; counted down)."""
         if self._exact_steps > 0 or prob.n <= EXACT_FIRST_VARS:
             self._exact_steps = max(self._exact_steps - 1, 0)
-        else:
+            return True
+        return False
+
+    def _count(self, prob: QPProblem, sol: QPSolution) -> None:
+        """The switch state after a call the active set answered without :meth:`_solve` (as if through it)."""
+        if self.backend.may_stall and not self._exact_path(prob):
             self._adapt(prob, sol)
 
     def _adapt(self, prob: QPProblem, sol: QPSolution) -> None:
