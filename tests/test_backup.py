@@ -177,6 +177,29 @@ def test_gatekeeper_keeps_random_brake_safe_states_brake_safe():
                 assert after.safe and not after.braking.any(), kind
 
 
+def test_a_robot_demoted_by_a_pair_never_takes_a_blend_that_leaves_its_range_limit():
+    """A blend's reach can exceed both the candidate's and the backup's (here by 1 mm).
+
+    Found by a random search: robot 0's candidate (reach 0.35778 m) and its braking path
+    (0.35483 m) stay within the range limit 0.35826 m of this sensing range; robot 1 at rest
+    makes the candidate fail, and the 0.5 blend (reach 0.35875 m) passes the pair but leaves the
+    limit, so an unseen robot just beyond ``D`` could be met.  The robot must skip that level.
+    """
+    team = make_team("paper", 2)
+    D = 1.6765237079322381
+    pose = np.array([[0.0, 0.0, 0.4186497385351884], [-0.5786638370456865, 1.1175976226484154, 0.0]])
+    u = np.array([[20.32162430706562, -16.815016625308644], [0.0, 0.0]])
+    cand = np.array([[-55.47877330026584, 59.55046859786877], [0.0, 0.0]])
+    limit = reach_limit(team, D)
+    alone = candidate_paths(team, pose[:1], u[:1], cand[:1], DT, F)
+    assert alone.reach[0] <= limit[0]  # the candidate itself is in range: a pair, not the range, demotes it
+    g = gatekeeper(team, pose, u, cand, DT, sensing_range=D, brake_fraction=F)
+    assert g.braking[0] and g.safe
+    assert g.share[0] == 0.0, "the 0.5 blend leaves the range limit: only the backup is left"
+    np.testing.assert_allclose(g.du[0], braking_du(team, u, DT, F)[0], rtol=0, atol=0)
+    assert braking_trajectory(team, pose, u, DT, F).reach[0] <= limit[0]
+
+
 def _closed_loop(team, pose, u, nominal_fn, steps, **cfg):
     f = SafetyFilter(team, deadlock="none", **cfg)
     dmin = np.inf

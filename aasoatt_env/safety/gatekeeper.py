@@ -206,8 +206,10 @@ def gatekeeper(
         3. Every pair that could meet (``|p_ij| < d_s + R_i + R_j``, ``R`` the
            reach of the paths) is checked on the members' current levels; the
            check covers the step itself and the whole backup horizon.  The
-           members of failing pairs move one level down (toward the backup),
-           and their pairs are checked again.  Levels only go down, so this
+           members of failing pairs move one level down (toward the backup;
+           past any level the range condition skips: a blend's reach is not
+           bounded by those of the levels around it), and their pairs are
+           checked again.  Levels only go down, so this
            ends; at worst all brake.
 
     Invariance
@@ -299,9 +301,13 @@ def gatekeeper(
     R = reach.max(axis=0)
 
     # a level whose path leaves the reach limit is skipped at once
-    lev = np.zeros(n, dtype=np.int64)
-    for k in range(last):
-        lev = np.where((lev == k) & (reach[k] > limit), k + 1, lev)
+    def in_range(lev: np.ndarray) -> np.ndarray:
+        """Each robot's first level from ``lev`` on whose path stays within its range limit (or the backup)."""
+        for k in range(last):
+            lev = np.where((lev == k) & (reach[k] > limit), k + 1, lev)
+        return lev
+
+    lev = in_range(np.zeros(n, dtype=np.int64))
     broken = reach[last] > limit
 
     # pairs that could meet within their reach (fixed for the call); only their robots need paths
@@ -380,7 +386,8 @@ def gatekeeper(
         demote &= ~at_backup
         if not demote.any():
             break
-        lev = np.where(demote, lev + 1, lev)
+        # a blend's reach is not bounded by those of the levels around it: the range condition again
+        lev = in_range(np.where(demote, lev + 1, lev))
         todo = demote[i] | demote[j]
         otodo = demote[oi]
 
