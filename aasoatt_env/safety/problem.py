@@ -204,24 +204,19 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
     det = a * d - b * c
     x = np.stack(((d * t0 - b * t1) / det, (a * t1 - c * t0) / det), axis=1)
     out = (x < lo) | (x > hi)
-    bad = np.flatnonzero(out[:, 0] | out[:, 1])
-    if bad.size == 0:
+    out = out[:, 0] | out[:, 1]
+    if not out.any():
         return x
-    Ab, tb, lb, ub = A[bad], target[bad], lo[bad], hi[bad]
-    H = np.einsum("kai,kaj->kij", Ab, Ab)
-    g = -np.einsum("kai,ka->ki", Ab, tb)
-    best = np.full(bad.size, np.inf)
-    sol = np.empty((bad.size, 2))
-    for fix in (0, 1):
-        free = 1 - fix
-        for bound in (lb, ub):
-            c = np.empty((bad.size, 2))
-            c[:, fix] = bound[:, fix]
-            c[:, free] = np.clip(-(g[:, free] + H[:, free, fix] * c[:, fix]) / H[:, free, free],
-                                 lb[:, free], ub[:, free])
-            f = 0.5 * np.einsum("ki,kij,kj->k", c, H, c) + np.einsum("ki,ki->k", g, c)
-            better = f < best
-            best = np.where(better, f, best)
-            sol[better] = c[better]
-    x[bad] = sol
-    return x
+    # the objective 0.5 du' H du + g' du (H = A'A, g = -A' target) along the four edges at once, rows
+    # (x0 = lo, x0 = hi, x1 = lo, x1 = hi): the fixed coordinate at its bound, the free one at the
+    # clipped minimiser of the parabola along the edge; every robot (cheaper than selecting)
+    h00, h01, h11 = a * a + c * c, a * b + c * d, b * b + d * d
+    g0, g1 = -(a * t0 + c * t1), -(b * t0 + d * t1)
+    lo0, lo1, hi0, hi1 = lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1]
+    f0, f1 = np.stack((lo0, hi0)), np.stack((lo1, hi1))
+    x0 = np.concatenate((f0, np.clip(-(g0 + h01 * f1) / h00, lo0, hi0)))
+    x1 = np.concatenate((np.clip(-(g1 + h01 * f0) / h11, lo1, hi1), f1))
+    f = 0.5 * (h00 * x0 * x0 + 2.0 * h01 * x0 * x1 + h11 * x1 * x1) + g0 * x0 + g1 * x1
+    best = np.argmin(f, axis=0)[None]  # the first of equal values, as trying the edges in that order
+    edge = np.stack((np.take_along_axis(x0, best, 0)[0], np.take_along_axis(x1, best, 0)[0]), axis=1)
+    return np.where(out[:, None], edge, x)
