@@ -306,15 +306,8 @@ class BatchedVecEnv(_SlotMasks, VecEnv):
     def reset(self) -> VecEnvObs:
         """Reset every team with the seeds/options set by ``seed()``/``set_options()`` (then cleared)."""
         seeds = [self._seeds[k * self.n_agents] for k in range(self.n_envs)]
-        opts = [self._options[k * self.n_agents] for k in range(self.n_envs)]
-        if any(o for o in opts):
-            obs = np.zeros((self.n_envs, self.n_agents, self._obs_dim), dtype=np.float32)
-            for k in range(self.n_envs):  # per-team options: reset the teams one by one
-                obs[k] = self.batch._reset_team(k, seeds[k], opts[k] or None)
-            self.batch._restack()
-            self.batch._started = True
-        else:
-            obs, _ = self.batch.reset(seed=seeds)
+        opts = [self._options[k * self.n_agents] or None for k in range(self.n_envs)]
+        obs, _ = self.batch.reset(seed=seeds, options=opts)
         for s in range(self.num_envs):
             self.reset_infos[s] = {}
         self._reset_seeds()
@@ -378,31 +371,22 @@ class BatchedVecEnv(_SlotMasks, VecEnv):
 
     def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
         """Attribute of the team env behind each slot."""
-        return [getattr(self.batch.envs[k], attr_name) for k in self._teams_of(indices)]
+        return [self.batch.env_get(k, attr_name) for k in self._teams_of(indices)]
 
     def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
         """Set an attribute on the team envs behind the slots (each once)."""
         for k in sorted(set(self._teams_of(indices))):
-            setattr(self.batch.envs[k], attr_name, value)
+            self.batch.env_set(k, attr_name, value)
 
     def env_method(
         self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **method_kwargs: Any
     ) -> list[Any]:
         """Call a method of the team env behind each slot (after :meth:`BatchedAASOATTEnv.sync`)."""
-        self.batch.sync()
-        return [getattr(self.batch.envs[k], method_name)(*method_args, **method_kwargs)
-                for k in self._teams_of(indices)]
+        return [self.batch.env_call(k, method_name, *method_args, **method_kwargs) for k in self._teams_of(indices)]
 
     def env_is_wrapped(self, wrapper_class: type, indices: VecEnvIndices = None) -> list[bool]:
         """Whether the team env behind each slot is (PettingZoo-)wrapped by ``wrapper_class``."""
-        out = []
-        for k in self._teams_of(indices):
-            e, found = self.batch.envs[k], False
-            while e is not None and not found:
-                found = isinstance(e, wrapper_class)
-                e = getattr(e, "env", None)
-            out.append(found)
-        return out
+        return [self.batch.env_is_wrapped(k, wrapper_class) for k in self._teams_of(indices)]
 
     def get_images(self) -> Sequence[np.ndarray | None]:
         """One rendered frame per team (not per slot)."""

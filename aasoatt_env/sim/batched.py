@@ -105,12 +105,15 @@ class BatchedAASOATTEnv:
     group_filter : bool
         Filter all teams in one call when their filters allow it (module
         docstring); False: one call per team.
+    team_offset : int
+        Number of the first team in error messages (a shard of a larger batch,
+        :class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`, names teams as the whole batch does).
     """
 
     metadata = {"autoreset_mode": "same_step"}
 
     def __init__(self, env_fns: Sequence[Callable[[], Any]], *, autoreset: bool = True,
-                 group_filter: bool = True) -> None:
+                 group_filter: bool = True, team_offset: int = 0) -> None:
         if len(env_fns) < 1:
             raise ConfigError(f"env_fns: got {len(env_fns)} callables, expected at least 1")
         self.envs: list[Any] = [fn() for fn in env_fns]
@@ -131,6 +134,7 @@ class BatchedAASOATTEnv:
             if (b.control_filter is None) != (first.control_filter is None):
                 raise ConfigError(f"env_fns[{k}]: behind a filter or not, unlike env 0; a batch is one or the other")
         self.autoreset = bool(autoreset)
+        self._offset = int(team_offset)
         self.num_envs = len(bases)
         self.possible_agents: list[str] = list(first.possible_agents)
         self.num_agents = len(self.possible_agents)
@@ -208,19 +212,19 @@ class BatchedAASOATTEnv:
 
     # ------------------------------------------------------------------ reset
     def reset(
-        self, seed: int | Sequence[int | None] | None = None, options: dict | None = None
+        self, seed: int | Sequence[int | None] | None = None,
+        options: dict | Sequence[dict | None] | None = None,
     ) -> tuple[np.ndarray, dict[str, Any]]:
-        """Reset every team; ``seed``: None, an int (team ``k`` gets ``seed + k``) or one int/None per team."""
+        """Reset every team.
+
+        ``seed``: None, an int (team ``k`` gets ``seed + k``) or one int/None per team;
+        ``options``: None, one dict for every team, or one dict/None per team.
+        """
+        seeds, opts = per_team_reset_args(seed, options, self.num_envs)
         k_all = self.num_envs
-        if seed is None or isinstance(seed, (int, np.integer)):
-            seeds: list[int | None] = [None if seed is None else int(seed) + k for k in range(k_all)]
-        else:
-            seeds = list(seed)
-            if len(seeds) != k_all:
-                raise ConfigError(f"seed: got {len(seeds)} seeds, expected one per team ({k_all})")
         obs = np.zeros((k_all, self.num_agents, *self.agent_observation_space.shape), dtype=np.float32)
         for k in range(k_all):
-            obs[k] = self._reset_team(k, seeds[k], options)
+            obs[k] = self._reset_team(k, seeds[k], opts[k])
         self._restack()
         self._started = True
         return obs, {}
@@ -283,6 +287,7 @@ class BatchedAASOATTEnv:
             arr = np.asarray(actions)
         except (TypeError, ValueError):
             raise ActionError(f"actions: got {type(actions).__name__}, expected an array ({k}, {n}, 2)") from None
+        off = self._offset
         if arr.dtype.kind not in "fiu" or arr.size != k * n * 2 or arr.shape not in ((k, n, 2), (k * n, 2)):
             raise ActionError(f"actions: got shape {arr.shape} (dtype {arr.dtype}), expected real numbers of "
                               f"shape ({k}, {n}, 2)")
@@ -292,13 +297,13 @@ class BatchedAASOATTEnv:
         peak = np.abs(act).max(initial=0.0)
         if not np.isfinite(peak):
             bad = np.flatnonzero(~np.isfinite(act).all(axis=1))[0]
-            raise ActionError(f"actions[{bad // n}, {bad % n}]: got non-finite values {act[bad].tolist()}, "
+            raise ActionError(f"actions[{bad // n + off}, {bad % n}]: got non-finite values {act[bad].tolist()}, "
                               "expected finite numbers")
         clip = self._bases[0].clip_actions
         limit = _NOMINAL_MAX if self._nominal else (np.inf if clip else 1.0 + 1e-6)
         if peak > limit:
             bad = int(np.flatnonzero(np.abs(act).max(axis=1) > limit)[0])
-            raise ActionError(f"actions[{bad // n}, {bad % n}]: got {act[bad].tolist()}, expected values in "
+            raise ActionError(f"actions[{bad // n + off}, {bad % n}]: got {act[bad].tolist()}, expected values in "
                               + (f"[-{_NOMINAL_MAX:g}, {_NOMINAL_MAX:g}]" if self._nominal
                                  else "[-1, 1] (or clip_actions=True)"))
         if not self._nominal and peak > 1.0:
@@ -318,7 +323,8 @@ class BatchedAASOATTEnv:
         if not self._started:
             raise ResetNeeded("step(): call reset() first")
         if self._done.any():
-            raise ResetNeeded(f"step(): team(s) {np.flatnonzero(self._done).tolist()} finished their episode "
+            done = (np.flatnonzero(self._done) + self._offset).tolist()
+            raise ResetNeeded(f"step(): team(s) {done} finished their episode "
                               "(autoreset=False); call reset() first")
         act = self._parse_actions(actions)
         k_all, n = self.num_envs, self.num_agents
@@ -584,6 +590,28 @@ class BatchedAASOATTEnv:
         self.sync()
         return tuple(env.render() for env in self.envs)
 
+    def env_get(self, k: int, name: str) -> Any:
+        """Attribute ``name`` of team ``k``'s own env."""
+        return getattr(self.envs[k], name)
+
+    def env_set(self, k: int, name: str, value: Any) -> None:
+        """Set attribute ``name`` of team ``k``'s own env."""
+        setattr(self.envs[k], name, value)
+
+    def env_call(self, k: int, name: str, *args: Any, **kwargs: Any) -> Any:
+        """Call method ``name`` of team ``k``'s own env, after :meth:`sync` (its state is the batch's)."""
+        self.sync()
+        return getattr(self.envs[k], name)(*args, **kwargs)
+
+    def env_is_wrapped(self, k: int, wrapper_class: type) -> bool:
+        """Whether team ``k``'s own env is (PettingZoo-)wrapped by ``wrapper_class``."""
+        e = self.envs[k]
+        while e is not None:
+            if isinstance(e, wrapper_class):
+                return True
+            e = getattr(e, "env", None)
+        return False
+
     def close(self) -> None:
         """Close the teams' envs."""
         for env in self.envs:
@@ -594,3 +622,22 @@ def _intervened(out: Any) -> np.ndarray:
     """A filter output's ``intervened`` flags, or ``correction > 0`` for outputs without them."""
     flag = getattr(out, "intervened", None)
     return np.asarray(flag if flag is not None else np.asarray(out.correction) > 0.0, dtype=bool)
+
+
+def per_team_reset_args(seed: int | Sequence[int | None] | None, options: dict | Sequence[dict | None] | None,
+                        k_all: int) -> tuple[list[int | None], list[dict | None]]:
+    """``reset``'s ``seed`` and ``options`` as one entry per team (validated; see :meth:`BatchedAASOATTEnv.reset`)."""
+    if seed is None or isinstance(seed, (int, np.integer)):
+        seeds: list[int | None] = [None if seed is None else int(seed) + k for k in range(k_all)]
+    else:
+        seeds = list(seed)
+        if len(seeds) != k_all:
+            raise ConfigError(f"seed: got {len(seeds)} seeds, expected one per team ({k_all})")
+    if options is None or isinstance(options, dict):
+        opts: list[dict | None] = [options] * k_all
+    else:
+        opts = list(options)
+        if len(opts) != k_all or not all(o is None or isinstance(o, dict) for o in opts):
+            raise ConfigError(f"options: got a sequence of {len(opts)} entries, expected None, one dict, or one "
+                              f"dict/None per team ({k_all})")
+    return seeds, opts
