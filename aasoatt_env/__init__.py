@@ -29,7 +29,15 @@ from aasoatt_env.errors import (
 )
 from aasoatt_env.model import PRESETS, RobotParams, Team, make_team
 from aasoatt_env.safety import AASOATTFilter, FilterConfig, FilterReport, FilterResult, SafetyFilter
-from aasoatt_env.sim import SCENARIOS, AASOATTParallelEnv, BatchedAASOATTEnv, RewardConfig, Scenario, get_scenario
+from aasoatt_env.sim import (
+    SCENARIOS,
+    AASOATTParallelEnv,
+    BatchedAASOATTEnv,
+    RewardConfig,
+    Scenario,
+    ShardedBatchedEnv,
+    get_scenario,
+)
 
 __version__ = "0.1.0"
 
@@ -56,6 +64,7 @@ __all__ = [
     "SafetyFilter",
     "Scenario",
     "ScenarioError",
+    "ShardedBatchedEnv",
     "SolverError",
     "StateError",
     "Team",

@@ -1,6 +1,6 @@
 """PPO training throughput (agent-steps/s), bare and behind the safety filter, in one run.
 
-    python benchmarks/bench_training.py [--timesteps 24576] [--robots 6] [--n-envs 32] [--model RUN]
+    python benchmarks/bench_training.py [--timesteps 24576] [--robots 6] [--n-envs 32] [--model RUN] [--workers W]
 
 Each row trains PPO with the default recipe (``TrainConfig`` defaults: 32 teams x N
 robots stepped by one batched physics call, decision_interval 20; behind the filter one
@@ -9,7 +9,10 @@ of ``--n-steps`` (the recipe's 64) per slot, for ``--timesteps`` agent-steps aft
 update, and reports what a training run sees: rollout collection plus PPO
 updates, one torch thread.  The filter's share of the filtered row is measured
 by timing its calls; the first row steps the same teams one by one
-(:class:`train.vec_env.ParallelVecEnv`), for comparison.
+(:class:`train.vec_env.ParallelVecEnv`), for comparison.  ``--workers W`` adds a bare and a
+filtered row with the teams split over ``W`` processes (``TrainConfig.num_workers``,
+:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`; the filter's calls are then not timed):
+they show what more cores buy, so compare them only with idle cores.
 
 ``--model RUN`` starts every row from a trained policy (``init_from``): the
 filter's cost depends on how often it has to act, which is far more often for
@@ -39,18 +42,19 @@ def separate_vec_env(cfg: TrainConfig):
 
 
 def bench(filtered: bool, timesteps: int, robots: int, n_envs: int, solver: str | None,
-          model: str | None, n_steps: int, batched: bool = True, grouped: bool = True) -> dict[str, float]:
+          model: str | None, n_steps: int, batched: bool = True, grouped: bool = True,
+          workers: int = 1) -> dict[str, float]:
     kw = {"filter_kwargs": {"solver": solver}} if (filtered and solver) else {}
     cfg = TrainConfig(num_robots=robots, n_envs=n_envs, filter=filtered, progress_bar=False, tensorboard=False,
                       checkpoint_freq=0, n_steps=n_steps, batch_size=min(1024, n_steps * n_envs * robots),
-                      init_from=model, **kw)
+                      init_from=model, num_workers=workers, **kw)
     venv = make_vec_env(cfg, group_filter=grouped) if batched else separate_vec_env(cfg)
     ppo = build_model(cfg, venv)
     if model:
         init_policy(ppo, venv, cfg)
     filter_time = [0.0]
     calls: list[float] = []
-    if filtered:  # time every filter call (the grouped one, or one per team and physics step)
+    if filtered and workers == 1:  # time every filter call (the grouped one, or one per team and physics step)
         batch = venv.unwrapped.batch  # (batched only)
 
         def timed(f):
@@ -109,6 +113,8 @@ def main() -> None:
     p.add_argument("--n-steps", type=int, default=TrainConfig.n_steps, help="rollout length per slot (the recipe's)")
     p.add_argument("--solver", default=None, help="filter QP solver (default: the filter's default)")
     p.add_argument("--model", default=None, help="start from this trained run (init_from)")
+    p.add_argument("--workers", type=int, default=1,
+                   help="also rows with the teams stepped in this many processes (num_workers; 1: no such rows)")
     args = p.parse_args()
     torch.set_num_threads(1)
     print(f"PPO throughput, {args.n_envs} envs x {args.robots} robots (batched), decision_interval 20 (dt 0.005), "
@@ -121,18 +127,30 @@ def main() -> None:
     rows = [("bare, teams stepped one by one (ParallelVecEnv)", False, False, True), ("bare", False, True, True),
             (f"behind the filter ({solver}), one filter call per team", True, True, False),
             (f"behind the filter ({solver}), one filter call for all teams", True, True, True)]
-    for name, filtered, batched, grouped in rows:
+    rows = [(*r, 1) for r in rows]
+    if args.workers > 1:
+        w = args.workers
+        rows += [(f"bare, {w} worker processes", False, True, True, w),
+                 (f"behind the filter ({solver}), one filter call per worker, {w} worker processes", True, True, True,
+                  w)]
+    for name, filtered, batched, grouped, workers in rows:
         r = bench(filtered, args.timesteps, args.robots, args.n_envs, args.solver, args.model, args.n_steps,
-                  batched, grouped)
+                  batched, grouped, workers)
         if batched:
-            rates[filtered, grouped] = r["rate"]
-        share = f"{100 * r['filter_share']:.0f}%" if filtered else "-"
-        call = f"{r['call_ms']:.3f}" if filtered else "-"
+            rates[filtered, grouped, workers] = r["rate"]
+        timed = filtered and workers == 1
+        share = f"{100 * r['filter_share']:.0f}%" if timed else "-"
+        call = f"{r['call_ms']:.3f}" if timed else "-"
         print(f"| {name} | {r['steps']} | {r['rate']:,.0f} | {r['rate'] / args.robots * 20:,.0f} | {share} | "
               f"{call} |", flush=True)
-    bare = rates[False, True]
-    print(f"\nbehind the filter / bare: {100 * rates[True, True] / bare:.1f}% (one call for all teams), "
-          f"{100 * rates[True, False] / bare:.1f}% (one call per team)")
+    bare = rates[False, True, 1]
+    print(f"\nbehind the filter / bare: {100 * rates[True, True, 1] / bare:.1f}% (one call for all teams), "
+          f"{100 * rates[True, False, 1] / bare:.1f}% (one call per team)")
+    if args.workers > 1:
+        w = args.workers
+        print(f"with {w} worker processes: behind the filter {100 * rates[True, True, w] / bare:.1f}% of the "
+              f"one-process bare rate, {100 * rates[True, True, w] / rates[False, True, w]:.1f}% of bare with "
+              f"{w} workers; {rates[True, True, w] / rates[True, True, 1]:.2f}x the one-process filtered rate")
 
 
 if __name__ == "__main__":

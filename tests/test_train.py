@@ -43,6 +43,8 @@ def tiny(tmp_path, **kw) -> TrainConfig:
         ({"batch_size": 10_000, "n_steps": 8, "n_envs": 1, "num_robots": 2},
          r"batch_size: got 10000, expected at most n_steps \* n_envs \* num_robots = 16"),
         ({"filter": "yes"}, r"TrainConfig.filter: got 'yes', expected true or false"),
+        ({"num_workers": 0}, r"TrainConfig.num_workers: got 0, expected an integer >= 1"),
+        ({"num_workers": 3, "n_envs": 2}, r"num_workers: got 3, expected at most n_envs = 2"),
     ],
 )
 def test_config_errors(kwargs, match):
@@ -152,10 +154,10 @@ def test_vec_env_dead_slots_terminate_on_collision():
 
 
 # --------------------------------------------------------------------------- determinism
-def _two_updates_checksum(tmp_path, seed: int) -> float:
+def _two_updates_checksum(tmp_path, seed: int, **kw) -> float:
     from train.train import build_model, make_vec_env
 
-    cfg = tiny(tmp_path, seed=seed)
+    cfg = tiny(tmp_path, seed=seed, **kw)
     venv = make_vec_env(cfg)
     model = build_model(cfg, venv)
     model.learn(total_timesteps=2 * cfg.n_steps * venv.num_envs)
@@ -170,6 +172,13 @@ def test_same_seed_identical_first_two_updates(tmp_path):
     c = _two_updates_checksum(tmp_path, seed=12)
     assert a == b
     assert a != c
+
+
+def test_worker_processes_train_the_same_first_updates(tmp_path):
+    """num_workers = 2: the teams stepped in two processes; the same updates as in one (bare: bit for bit)."""
+    one = _two_updates_checksum(tmp_path, seed=11)
+    two = _two_updates_checksum(tmp_path, seed=11, num_workers=2)
+    assert one == two
 
 
 # --------------------------------------------------------------------------- smoke: train, save, load, evaluate

@@ -81,7 +81,7 @@ def _finished(run: Path) -> bool:
 
 
 _BOOKKEEPING = ("out_dir", "run_name", "progress_bar", "tensorboard", "checkpoint_freq", "verbose", "device",
-                "torch_threads")
+                "torch_threads", "num_workers")
 """Config fields that do not change what a run learns: a cached run may differ in these."""
 
 

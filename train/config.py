@@ -234,7 +234,13 @@ class TrainConfig(EnvConfig):
     total_timesteps : int
         Agent-steps (one per robot per decision) to train for.
     n_envs : int
-        Envs per process (``n_envs * num_robots`` slots).
+        Teams (envs) stepped together (``n_envs * num_robots`` slots).
+    num_workers : int
+        Processes stepping the teams: 1 (default) steps them in the training
+        process; more split them into that many shards stepped at the same time
+        (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`), so filtered
+        training uses more cores.  The same trajectories up to the rounding of the
+        grouped filter's QP (bit for bit without a filter).
     seed : int
         Seed of PPO, torch and the envs.
     learning_rate, gamma, gae_lambda, clip_range, ent_coef, vf_coef, max_grad_norm : float
@@ -288,6 +294,7 @@ class TrainConfig(EnvConfig):
     velocity_tracking: float = 0.0
     total_timesteps: int = 1_228_800
     n_envs: int = 32
+    num_workers: int = 1
     seed: int = 0
     learning_rate: float = 3e-4
     n_steps: int = 64
@@ -319,8 +326,10 @@ class TrainConfig(EnvConfig):
         if isinstance(self.reward, dict):
             self.reward = {**TRAIN_REWARD, **self.reward}
         self._validate_env()
-        for name in ("total_timesteps", "n_envs", "n_steps", "n_epochs", "torch_threads"):
+        for name in ("total_timesteps", "n_envs", "n_steps", "n_epochs", "torch_threads", "num_workers"):
             self._int(name, 1)
+        if self.num_workers > self.n_envs:
+            raise self._err("num_workers", f"at most n_envs = {self.n_envs} (one team per worker at least)")
         for name in ("checkpoint_freq", "seed", "verbose"):
             self._int(name, 0)
         self._int("batch_size", 2)

@@ -126,6 +126,9 @@ def save_stats(venv: Any, path: Path) -> None:
 def make_vec_env(config: TrainConfig, training: bool = True, group_filter: bool = True) -> Any:
     """``SlotNormalize?(SlotMonitor(BatchedVecEnv))`` over ``config.n_envs`` teams stepped together.
 
+    With ``config.num_workers > 1`` the teams are stepped in that many processes
+    (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`); close the returned env to stop them.
+
     :class:`~train.vec_env.SlotMonitor` and :class:`~train.vec_env.SlotNormalize` are SB3's
     ``VecMonitor`` and ``VecNormalize`` that skip dead-slot padding (``terminate_on_collision``).
     Behind the filter all teams share one filter call per physics step unless ``group_filter=False``
@@ -134,7 +137,13 @@ def make_vec_env(config: TrainConfig, training: bool = True, group_filter: bool 
     from aasoatt_env.sim.batched import BatchedAASOATTEnv
     from train.vec_env import BatchedVecEnv, SlotMonitor, SlotNormalize, VelocityTrackingShaping
 
-    batch = BatchedAASOATTEnv([lambda: make_env(config) for _ in range(config.n_envs)], group_filter=group_filter)
+    fns = [lambda: make_env(config) for _ in range(config.n_envs)]
+    if config.num_workers > 1:
+        from aasoatt_env.sim.sharded import ShardedBatchedEnv
+
+        batch: Any = ShardedBatchedEnv(fns, config.num_workers, group_filter=group_filter)
+    else:
+        batch = BatchedAASOATTEnv(fns, group_filter=group_filter)
     venv: Any = BatchedVecEnv(batch, success_radius=config.reward.get("goal_tolerance", 0.1))
     if config.velocity_tracking:
         venv = VelocityTrackingShaping(venv, config.velocity_tracking)
@@ -294,20 +303,23 @@ def train(config: TrainConfig) -> Path:
         callbacks.append(_checkpoint_callback(run / "checkpoints", max(1, config.checkpoint_freq // venv.num_envs),
                                               config.normalize_obs))
     if config.progress_bar:
+        workers = f", {config.num_workers} worker processes" if config.num_workers > 1 else ""
         print(f"training {run} ({config.total_timesteps:,} agent-steps, {config.n_envs} envs x "
-              f"{config.num_robots} robots, {'behind the filter' if config.filter else 'bare'})", flush=True)
+              f"{config.num_robots} robots{workers}, {'behind the filter' if config.filter else 'bare'})", flush=True)
     t0 = time.perf_counter()
-    model.learn(total_timesteps=config.total_timesteps, callback=callbacks, tb_log_name="ppo")
-    elapsed = time.perf_counter() - t0
-    model.save(run / "model.zip")
-    if config.normalize_obs:
-        save_stats(venv, stats_path(run / "model.zip"))
+    try:
+        model.learn(total_timesteps=config.total_timesteps, callback=callbacks, tb_log_name="ppo")
+        elapsed = time.perf_counter() - t0
+        model.save(run / "model.zip")
+        if config.normalize_obs:
+            save_stats(venv, stats_path(run / "model.zip"))
+    finally:
+        venv.close()  # (stops the worker processes of num_workers > 1 on every way out)
     last = telemetry.history[-1] if telemetry.history else {}
     (run / "train_stats.json").write_text(json.dumps(
         {"wall_time_s": elapsed, "agent_steps": int(model.num_timesteps),
          "agent_steps_per_s": model.num_timesteps / max(elapsed, 1e-9),
          "last_rollout": {k: v for k, v in last.items() if v == v}}, indent=2))
-    venv.close()
     if telemetry.history:
         try:
             plot_learning_curve({config.run_name or run.name: [telemetry.history]}, run / "learning_curve.png",

@@ -10,6 +10,7 @@ from aasoatt_env.sim.env import AASOATTParallelEnv
 from aasoatt_env.sim.protocol import ControlFilter, FilterInput, FilterOutput
 from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import SCENARIOS, Layout, Scenario, get_scenario
+from aasoatt_env.sim.sharded import ShardedBatchedEnv
 
 __all__ = [
     "SCENARIOS",
@@ -21,5 +22,6 @@ __all__ = [
     "Layout",
     "RewardConfig",
     "Scenario",
+    "ShardedBatchedEnv",
     "get_scenario",
 ]

@@ -1,0 +1,118 @@
+"""``ShardedBatchedEnv``: the teams of a batch in worker processes give the batch's answers, errors name the team."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aasoatt_env import AASOATTFilter, make_env
+from aasoatt_env.errors import ActionError, ConfigError, ScenarioError, UsageError
+from aasoatt_env.sim.batched import BatchedAASOATTEnv
+from aasoatt_env.sim.sharded import ShardedBatchedEnv, shard_sizes
+
+
+def _fns(k: int, **kw):
+    kw = {"decision_interval": 5, **kw}
+    return [lambda: make_env("random_goals", num_robots=4, **kw) for _ in range(k)]
+
+
+def _same_steps(a, b, steps: int, rng, exact: bool = True) -> tuple[int, int]:
+    """Step both with the same random actions; every array of every step equal. Team resets and dead slot-steps."""
+    resets = dead = 0
+    for _ in range(steps):
+        act = rng.uniform(-1.0, 1.0, (a.num_envs, a.num_agents, 2))
+        ra, rb = a.step(act), b.step(act)
+        for x, y in zip(ra[:4], rb[:4]):
+            if exact:
+                np.testing.assert_array_equal(x, y)
+            else:
+                np.testing.assert_allclose(x, y, rtol=0, atol=1e-9)
+        assert ra[4].keys() == rb[4].keys()
+        for key in rb[4]:
+            np.testing.assert_array_equal(ra[4][key], rb[4][key]) if exact else np.testing.assert_allclose(
+                ra[4][key], rb[4][key], rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(a.live, b.live)
+        resets += int(rb[4].get("_final_obs", np.zeros(1, bool)).sum())
+        dead += int((~b.live).sum())
+    return resets, dead
+
+
+def test_shards_are_bit_identical_to_one_batch_with_resets_and_dead_slots():
+    """5 teams in 2 workers (3 + 2), short horizon (resets inside step), collisions end agents (dead slots)."""
+    kw = dict(max_steps=6, terminate_on_collision=True, arena_size=3.5, decision_interval=20)
+    sharded = ShardedBatchedEnv(_fns(5, **kw), 2)
+    try:
+        assert sharded.sizes == [3, 2]
+        one = BatchedAASOATTEnv(_fns(5, **kw))
+        oa, _ = sharded.reset(seed=7)
+        ob, _ = one.reset(seed=7)
+        np.testing.assert_array_equal(oa, ob)
+        resets, dead = _same_steps(sharded, one, 25, np.random.default_rng(0))
+        assert resets >= 10  # every team reset at least twice inside step
+        assert dead >= 1  # an agent ended by a collision, its slot dead until its team's reset
+        np.testing.assert_array_equal(sharded.elapsed_steps, one.elapsed_steps)
+        np.testing.assert_array_equal(sharded.max_steps, one.max_steps)
+    finally:
+        sharded.close()
+
+
+def test_shards_behind_the_filter_give_the_batch_answers():
+    """Behind the default (grouped) filter, and with one call per team and the exact ldp solver."""
+    for kw, group, exact in ((dict(filter=True), True, False), (dict(filter={"solver": "ldp"}), False, True)):
+        sharded = ShardedBatchedEnv(_fns(4, **kw), 2, group_filter=group)
+        try:
+            one = BatchedAASOATTEnv(_fns(4, **kw), group_filter=group)
+            np.testing.assert_array_equal(sharded.reset(seed=3)[0], one.reset(seed=3)[0])
+            _same_steps(sharded, one, 8, np.random.default_rng(1), exact=exact)
+            assert sharded.filtered and sharded.grouped_filter is None
+        finally:
+            sharded.close()
+
+
+def test_per_team_seeds_options_and_the_team_envs():
+    sharded = ShardedBatchedEnv(_fns(3), 3)
+    try:
+        one = BatchedAASOATTEnv(_fns(3))
+        seeds, opts = [5, None, 9], [None, {}, None]
+        np.testing.assert_array_equal(sharded.reset(seed=seeds, options=opts)[0][[0, 2]],
+                                      one.reset(seed=seeds, options=opts)[0][[0, 2]])
+        assert sharded.env_get(2, "num_agents") == 4
+        sharded.env_set(1, "render_mode", None)
+        assert sharded.env_get(1, "render_mode") is None
+        np.testing.assert_array_equal(sharded.env_call(2, "state"), one.env_call(2, "state"))
+        assert sharded.env_is_wrapped(0, AASOATTFilter) is False
+        with pytest.raises(UsageError, match="live in the worker processes"):
+            sharded.envs  # noqa: B018
+        with pytest.raises(ConfigError, match=r"k: got 3, expected a team number in \[0, 3\)"):
+            sharded.env_get(3, "num_agents")
+    finally:
+        sharded.close()
+
+
+def test_errors_name_the_argument_and_the_team():
+    assert shard_sizes(7, 3) == [3, 2, 2]
+    with pytest.raises(ConfigError, match=r"num_workers: got 4, expected an int in \[1, 3\]"):
+        ShardedBatchedEnv(_fns(3), 4)
+    with pytest.raises(ConfigError, match="start_method"):
+        ShardedBatchedEnv(_fns(2), 2, start_method="teleport")
+    # a team that cannot be built: the worker's error, raised here with its class
+    bad = [lambda: make_env("random_goals", num_robots=4)] + [lambda: make_env("no_such_scene", num_robots=4)]
+    with pytest.raises(ScenarioError, match="no_such_scene"):
+        ShardedBatchedEnv(bad, 2)
+    sharded = ShardedBatchedEnv(_fns(4), 2)
+    try:
+        with pytest.raises(UsageError, match=r"call reset\(\) first"):
+            sharded.step(np.zeros((4, 4, 2)))
+        sharded.reset(seed=0)
+        with pytest.raises(ActionError, match=r"expected real numbers of shape \(4, 4, 2\)"):
+            sharded.step(np.zeros((3, 4, 2)))
+        act = np.zeros((4, 4, 2))
+        act[3, 1] = np.nan  # team 3 lives in worker 1 as its team 1: the message names team 3
+        with pytest.raises(ActionError, match=r"actions\[3, 1\]: got non-finite values"):
+            sharded.step(act)
+        sharded.step(np.zeros((4, 4, 2)))  # the workers are still in step after an error
+    finally:
+        sharded.close()
+    sharded.close()  # idempotent
+    with pytest.raises(UsageError, match="closed"):
+        sharded.step(np.zeros((4, 4, 2)))
