@@ -116,3 +116,21 @@ def test_errors_name_the_argument_and_the_team():
     sharded.close()  # idempotent
     with pytest.raises(UsageError, match="closed"):
         sharded.step(np.zeros((4, 4, 2)))
+
+
+def test_make_batched_env_with_workers():
+    from aasoatt_env import make_batched_env
+
+    with pytest.raises(ConfigError, match=r"num_workers: got 0, expected an integer in \[1, num_envs = 2\]"):
+        make_batched_env(2, "random_goals", num_robots=4, num_workers=0)
+    with pytest.raises(ConfigError, match="num_robots"):  # checked here, before any worker starts
+        make_batched_env(2, "random_goals", num_robots=-1, num_workers=2)
+    envs = make_batched_env(3, "random_goals", num_robots=4, num_workers=2, filter=True)
+    try:
+        assert isinstance(envs, ShardedBatchedEnv) and envs.sizes == [2, 1]
+        obs, _ = envs.reset(seed=0)
+        assert obs.shape == (3, 4, *envs.agent_observation_space.shape)
+        obs, rew, term, trunc, infos = envs.step(np.zeros((3, 4, 2)))
+        assert rew.shape == (3, 4) and infos["filter_correction"].shape == (3, 4)
+    finally:
+        envs.close()

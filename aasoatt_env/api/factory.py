@@ -16,6 +16,7 @@ from aasoatt_env.safety.wrapper import AASOATTFilter
 from aasoatt_env.sim.batched import BatchedAASOATTEnv
 from aasoatt_env.sim.env import AASOATTParallelEnv
 from aasoatt_env.sim.scenarios import Scenario
+from aasoatt_env.sim.sharded import ShardedBatchedEnv
 
 __all__ = ["make_batched_env", "make_env"]
 
@@ -59,8 +60,9 @@ def make_batched_env(
     filter: FilterConfig | Mapping[str, Any] | bool | None = None,
     autoreset: bool = True,
     group_filter: bool = True,
+    num_workers: int = 1,
     **env_kwargs: Any,
-) -> BatchedAASOATTEnv:
+) -> BatchedAASOATTEnv | ShardedBatchedEnv:
     """``num_envs`` teams of ``scenario`` stepped together (:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).
 
     Each team is the env :func:`make_env` builds with the same arguments (behind
@@ -78,8 +80,17 @@ def make_batched_env(
         Reset a team inside ``step`` when its episode ends.
     group_filter : bool
         Behind a filter: one filter call for all teams (default) or one per team.
+    num_workers : int
+        Processes stepping the teams: 1 (default) here; more split the teams into that many
+        shards stepped at the same time (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`,
+        the same API; ``close()`` it to stop the workers).
     """
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")
-    return BatchedAASOATTEnv([lambda: make_env(scenario, filter=filter, **env_kwargs) for _ in range(num_envs)],
-                             autoreset=autoreset, group_filter=group_filter)
+    fns = [lambda: make_env(scenario, filter=filter, **env_kwargs) for _ in range(num_envs)]
+    if isinstance(num_workers, bool) or not isinstance(num_workers, int) or not 1 <= num_workers <= num_envs:
+        raise ConfigError(f"num_workers: got {num_workers!r}, expected an integer in [1, num_envs = {num_envs}]")
+    if num_workers > 1:
+        make_env(scenario, filter=filter, **env_kwargs).close()  # bad arguments fail here, not in a worker
+        return ShardedBatchedEnv(fns, num_workers, autoreset=autoreset, group_filter=group_filter)
+    return BatchedAASOATTEnv(fns, autoreset=autoreset, group_filter=group_filter)
