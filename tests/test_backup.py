@@ -149,6 +149,57 @@ def test_pair_check_is_a_lower_bound_of_the_fine_simulated_distance():
         assert m >= fine - 0.96 - 1e-3  # and it is tight
 
 
+def test_pair_check_bounds_a_point_masss_parabola_within_each_step():
+    """A double integrator holds its acceleration within a step: a parabola ``|du| dt^2 / 8`` off its chord.
+
+    The state a random search found (the check then took the chord for the path and accepted a
+    candidate whose path passed 10.9 um inside ``d_s`` between samples): now the check sees the
+    bulge, and what it accepts keeps the exact motion (sub-stepped 64 times: the simulator's
+    step is exact for a held acceleration) apart.
+    """
+    team = make_team("double_integrator", 2)
+    ds = float(team.radius.sum())
+    pose = np.array([[-0.6287575581552995, 0.7169452800226352, -1.8808410091022219],
+                     [0.4362723373194147, 0.6865872414612665, 1.8253629239832518]])
+    u = np.array([[0.23074057611557816, -1.4418886865529332], [-0.819902553145351, -0.14106824637760768]])
+    rng = np.random.default_rng(5)
+    cands = [np.array([[6.0, -6.0], [6.0, 6.0]])] + [rng.uniform(-6.0, 6.0, (2, 2)) for _ in range(15)]
+    for cand in cands:
+        g = gatekeeper(team, pose, u, cand, DT, sensing_range=3.0, brake_fraction=F)
+        p, uu, fine = pose.copy(), u.copy(), np.inf
+        for k in range(400):
+            du = g.du if k == 0 else braking_du(team, uu, DT, F)
+            for _ in range(64):
+                p, uu = integrate(team, p, uu, du, DT / 64)
+                fine = min(fine, float(np.linalg.norm(p[0, :2] - p[1, :2])))
+            if not uu.any():
+                break
+        assert fine - ds >= -1e-9, (cand, fine - ds)
+        assert np.isfinite(g.margin) and g.margin <= fine - ds + 1e-12  # the check claims no more than is there
+
+
+def test_subnormal_speeds_give_finite_paths_and_the_gate_still_brakes():
+    """Subnormal wheel speeds made ``dt / T`` overflow and the paths NaN; a NaN margin then passed the check.
+
+    Robot 0 idles on a subnormal candidate (its speeds stay subnormal), robot 1 drives at it at full
+    throttle behind the gatekeeper alone: before, robot 1 was never braked (collision, 30 cm deep).
+    """
+    team = make_team("paper", 2)
+    b = braking_trajectory(team, np.zeros((2, 3)), np.array([[5e-310, 5e-310], [1e-300, -1e-300]]), DT, F)
+    assert np.isfinite(b.p).all() and np.isfinite(b.delta).all() and np.isfinite(b.reach).all()
+    pose, u, closest = np.array([[0.0, 0.0, 0.0], [2.4, 0.0, np.pi]]), np.zeros((2, 2)), np.inf
+    for _ in range(400):
+        tiny = 1e-307 if u[0, 0] <= 5e-310 else -1e-307
+        lo, hi = input_bounds(team, u, DT)
+        g = gatekeeper(team, pose, u, np.clip([[tiny, tiny], [60.0, 60.0]], lo, hi), DT, sensing_range=3.0,
+                       brake_fraction=F)
+        assert np.isfinite(g.margin) and g.safe
+        pose, u = integrate(team, pose, u, g.du, DT)
+        p = kinematics(team, pose, u).p
+        closest = min(closest, float(np.linalg.norm(p[0] - p[1])) - 0.96)
+    assert closest >= -1e-9
+
+
 def _inputs(team, pose, u):
     kin = kinematics(team, pose, u)
     lo, hi = input_bounds(team, u, DT)

@@ -149,9 +149,10 @@ class Trajectories(NamedTuple):
 class _Brake(NamedTuple):
     pdot: np.ndarray
     omega: np.ndarray
-    rate: np.ndarray  # dt / T (1 when at rest)
+    rate: np.ndarray  # dt / T, at most 1 (1 when at rest or stopping within one step)
     steps: np.ndarray  # steps to stop
-    reach: np.ndarray  # envelope of the continuous braking arc + the largest sagitta
+    reach: np.ndarray  # envelope of the continuous braking arc + the largest deviation within a step
+    bulge: np.ndarray  # deviation within a braking step from its chord due to the deceleration itself
 
 
 def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float,
@@ -162,20 +163,26 @@ def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fracti
         T = brake_time(team, u, brake_fraction)
     moving = T > 0
     ratio = np.where(moving, T / dt, 0.0)
-    rate = np.where(moving, 1.0 / np.where(moving, ratio, 1.0), 1.0)
-    steps = np.ceil(ratio - 1e-12).astype(np.int64)
+    # at most 1: a robot that stops within one step (T < dt, e.g. subnormal speeds, where 1 / ratio
+    # would overflow to inf and the paths to NaN) has the same samples with rate 1 as with dt / T
+    rate = np.where(moving, 1.0 / np.maximum(ratio, 1.0), 1.0)
+    steps = np.where(moving, np.maximum(np.ceil(ratio - 1e-12), 1.0), 0.0).astype(np.int64)
     speed = np.abs(pdot) * moving
     # arc parameter at rest, of the *stepped* braking (the trapezoid of the sampled paths, whose last
     # step stops from sigma > 0 within a whole dt): dt (1/2 + (K - 1)(1 - K / (2 r))), r = T / dt,
     # K = ceil(r) steps; at least the continuous T / 2, more when r is not an integer
     K = steps.astype(np.float64)
-    tau_end = np.where(moving, dt * (0.5 + (K - 1.0) * (1.0 - K / (2.0 * np.where(moving, ratio, 1.0)))), 0.0)
+    tau_end = np.where(moving, dt * (0.5 + (K - 1.0) * (1.0 - K / (2.0 * np.maximum(ratio, 1.0)))), 0.0)
     # farthest point of the braking arc from its start: the chord of the swept angle (a diameter past pi)
     aw = np.abs(w)
     past_half = aw * tau_end > np.pi
     tau_env = np.where(past_half, np.pi / np.where(past_half, aw, 1.0), tau_end)
     envelope = speed * tau_env * _sinc(aw * tau_env / (2.0 * np.pi))
-    return _Brake(pdot * moving, w, rate, steps, envelope + (dt * dt / 8.0) * speed * aw)
+    # within a braking step a wheeled robot moves on an arc at the step-mean speeds (the simulator's
+    # step): it deviates from its chord by the sagitta; a point mass decelerates along a parabola,
+    # |du| dt^2 / 8 from its chord, with |du| <= speed / T = speed rate / dt in every braking step
+    bulge = np.zeros_like(speed) if team.is_diff_drive else (dt / 8.0) * speed * rate
+    return _Brake(pdot * moving, w, rate, steps, envelope + (dt * dt / 8.0) * speed * aw + bulge, bulge)
 
 
 def _brake_samples(p0: np.ndarray, b: _Brake, dt: float, L: int) -> tuple[np.ndarray, np.ndarray]:
@@ -189,6 +196,8 @@ def _brake_samples(p0: np.ndarray, b: _Brake, dt: float, L: int) -> tuple[np.nda
     p = p0[:, None] + (b.pdot[:, None] * tau) * _E(w * tau)
     s = 0.5 * (sigma[:, :-1] + sigma[:, 1:])  # step-mean speed scale
     delta = (dt * dt / 8.0) * np.abs(b.pdot)[:, None] * (s * s) * np.abs(w)
+    if b.bulge.any():  # point masses: the parabola of each step that still decelerates
+        delta = delta + np.where(sigma[:, :-1] > 0.0, b.bulge[:, None], 0.0)
     return p, delta
 
 
@@ -207,11 +216,18 @@ def braking_trajectory(team: Team, pose: np.ndarray, u: np.ndarray, dt: float, b
 
 def _first_step(team: Team, p0: np.ndarray, theta: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One step holding ``du`` (the simulator's arc of the step-mean speeds): point, its sagitta, heading, speeds."""
+    """One step holding ``du`` (the simulator's step): point, its deviation from the chord, heading, speeds.
+
+    A wheeled robot moves on the arc of the step-mean wheel speeds (deviation: the sagitta); a point
+    mass on the parabola of the held acceleration (deviation ``|du| dt^2 / 8``).
+    """
     u1 = u + du * dt
     pdot_m, w_m = _velocity(team, theta, 0.5 * (u + u1))
     p1 = p0 + pdot_m * dt * _E(w_m * dt)
-    return p1, (dt * dt / 8.0) * np.abs(pdot_m) * np.abs(w_m), theta + w_m * dt, u1
+    dev = (dt * dt / 8.0) * np.abs(pdot_m) * np.abs(w_m)
+    if not team.is_diff_drive:
+        dev = dev + (dt * dt / 8.0) * np.hypot(du[:, 0], du[:, 1])
+    return p1, dev, theta + w_m * dt, u1
 
 
 def _candidate_reach(p0: np.ndarray, p1: np.ndarray, d1: np.ndarray, b1: _Brake) -> np.ndarray:
@@ -277,9 +293,11 @@ def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.nda
     p = np.where(s == 0, p0[:, None], p)
     sig = 0.5 * (np.clip(1.0 - k * r, 0.0, 1.0) + np.clip(1.0 - (k + 1.0) * r, 0.0, 1.0))
     delta = (dt * dt / 8.0) * np.abs(b.pdot)[:, None] * (sig * sig) * np.abs(w)
+    if b.bulge.any():
+        delta = delta + np.where(np.clip(1.0 - k * r, 0.0, 1.0) > 0.0, b.bulge[:, None], 0.0)
     return p, np.where(s == 0, d1[:, None], delta)
 
 
 def _take(b: _Brake, idx: np.ndarray) -> _Brake:
     """The braking parameters of robots ``idx``."""
-    return _Brake(b.pdot[idx], b.omega[idx], b.rate[idx], b.steps[idx], b.reach[idx])
+    return _Brake(b.pdot[idx], b.omega[idx], b.rate[idx], b.steps[idx], b.reach[idx], b.bulge[idx])

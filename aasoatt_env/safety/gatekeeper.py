@@ -371,6 +371,9 @@ def gatekeeper(
             marg[idx] = _bucketed(cur, curd, cneed, li[idx], lj[idx], ds[idx])
         if oidx.size:
             omarg[oidx] = _bucketed(cur, curd, cneed, lo_[oidx], ok[oidx], ods[oidx], centers=oc)
+        # a margin that is not a number verifies nothing: it fails (and is reported as -inf, not NaN)
+        np.copyto(marg, -np.inf, where=np.isnan(marg))
+        np.copyto(omarg, -np.inf, where=np.isnan(omarg))
         demote = np.zeros(n, dtype=bool)
         bad = idx[marg[idx] < -tol_p[idx]]
         obad = oidx[omarg[oidx] < -tol_o[oidx]]
