@@ -170,14 +170,14 @@ class ShardedBatchedEnv:
                 self._procs.append(proc)
             firsts = [self._receive(w) for w in range(len(self.sizes))]
         except BaseException:
-            self._terminate()
+            self.close()
             raise
         (self.num_agents, agents, self.agent_observation_space, self.agent_action_space, self._filtered,
          self.dt, self.decision_interval) = firsts[0]
         self.possible_agents: list[str] = list(agents)
         for w, f in enumerate(firsts[1:], 1):
             if list(f[1]) != self.possible_agents or f[2] != self.agent_observation_space or f[4] != self._filtered:
-                self._terminate()
+                self.close()
                 raise ConfigError(f"env_fns: worker {w}'s teams differ from worker 0's (agents, observation "
                                   "space or filter); a batch shares one setting")
         self._live = np.zeros((k_all, self.num_agents), dtype=bool)
@@ -334,10 +334,6 @@ class ShardedBatchedEnv:
                     conn.recv()
             except (EOFError, OSError):
                 pass
-        self._terminate()
-
-    def _terminate(self) -> None:
-        self._closed = True
         for proc in self._procs:
             proc.join(timeout=5.0)
             if proc.is_alive():
