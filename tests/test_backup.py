@@ -178,6 +178,52 @@ def test_pair_check_bounds_a_point_masss_parabola_within_each_step():
         assert np.isfinite(g.margin) and g.margin <= fine - ds + 1e-12  # the check claims no more than is there
 
 
+def test_point_mass_deviation_bounds_are_the_exact_bulge_of_each_step():
+    """Double integrator: each step's deviation bound covers the exact parabola's largest distance from its chord.
+
+    Exactly that distance in the candidate's step and every braking step but the last (which stops
+    from below the braking rate, so its parabola is flatter than the bound).
+    """
+    team = make_team("double_integrator", 5)
+    rng = np.random.default_rng(11)
+    pose, u = _random_state(team, rng, scale=5.0)
+    du = rng.uniform(-1, 1, (team.n, 2)) * team.max_wheel_accel[:, None]
+    tr = candidate_paths(team, pose, u, du, DT, F)
+    p, uu = pose.copy(), u.copy()
+    for k in range(tr.p.shape[1] - 1):
+        step = du if k == 0 else braking_du(team, uu, DT, F)
+        nxt, _ = integrate(team, p, uu, step, DT)
+        worst = np.zeros(team.n)
+        for h in np.linspace(0.0, DT, 65):  # the exact motion within the step against the chord, same time
+            q, _ = integrate(team, p, uu, step, h)
+            chord = p[:, :2] + (h / DT) * (nxt[:, :2] - p[:, :2])
+            worst = np.maximum(worst, np.linalg.norm(q[:, :2] - chord, axis=1))
+        assert np.all(worst <= tr.delta[:, k] + 1e-15), k
+        exact = k < tr.length - 2  # not the last braking step
+        np.testing.assert_allclose(worst[exact], tr.delta[exact, k], rtol=1e-9, atol=1e-15)
+        p, uu = nxt, uu + step * DT
+
+
+def test_a_margin_or_reach_that_is_not_a_number_fails_the_check(monkeypatch):
+    """NaN verifies nothing: a NaN margin brakes the pair and reports -inf; a NaN reach checks every pair."""
+    import aasoatt_env.safety.gatekeeper as gk
+
+    team = make_team("paper", 2)
+    gap = 0.96 + 1e-4 + 2.0 * float(team.offset[0])  # control points 0.1 mm beyond contact
+    pose, u = np.array([[0.0, 0.0, 0.0], [gap, 0.0, np.pi]]), np.zeros((2, 2))
+    cand = np.array([[0.0, 0.0], [60.0, 60.0]])
+    monkeypatch.setattr(gk, "_bucketed", lambda *a, **kw: np.full(np.shape(a[3]), np.nan))
+    g = gk.gatekeeper(team, pose, u, cand, DT, sensing_range=3.0, brake_fraction=F)
+    assert g.n_pairs == 1 and g.braking.all() and not g.safe and g.margin == -np.inf
+    monkeypatch.undo()
+    # an absurd spin rate overflows robot 0's closed form to NaN: its pair is still checked, nothing claims safe
+    pose, u = np.array([[0.0, 0.0, 0.0], [0.97, 0.0, np.pi]]), np.array([[1e305, -1e305], [20.0, 20.0]])
+    lo, hi = input_bounds(team, u, DT)
+    with np.errstate(all="ignore"):
+        g = gatekeeper(team, pose, u, np.clip(cand, lo, hi), DT, sensing_range=3.0, brake_fraction=F)
+    assert g.n_pairs == 1 and not g.safe and not np.isnan(g.margin)
+
+
 def test_subnormal_speeds_give_finite_paths_and_the_gate_still_brakes():
     """Subnormal wheel speeds made ``dt / T`` overflow and the paths NaN; a NaN margin then passed the check.
 

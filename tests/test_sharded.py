@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import os
+import signal
+import time
+
 import numpy as np
 import pytest
 
 from aasoatt_env import AASOATTFilter, make_env
-from aasoatt_env.errors import ActionError, ConfigError, ScenarioError, UsageError
+from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded, ScenarioError, UsageError
 from aasoatt_env.sim.batched import BatchedAASOATTEnv
 from aasoatt_env.sim.sharded import ShardedBatchedEnv, shard_sizes
 
@@ -77,8 +81,10 @@ def test_per_team_seeds_options_and_the_team_envs():
         np.testing.assert_array_equal(sharded.reset(seed=seeds, options=opts)[0][[0, 2]],
                                       one.reset(seed=seeds, options=opts)[0][[0, 2]])
         assert sharded.env_get(2, "num_agents") == 4
-        sharded.env_set(1, "render_mode", None)
-        assert sharded.env_get(1, "render_mode") is None
+        sharded.env_set(1, "render_mode", "rgb_array")
+        assert sharded.env_get(1, "render_mode") == "rgb_array" and sharded.env_get(0, "render_mode") is None
+        with pytest.raises(ConfigError, match=r"options: got a sequence of 2 entries, expected None, one dict"):
+            sharded.reset(seed=0, options=[{}, {}])
         np.testing.assert_array_equal(sharded.env_call(2, "state"), one.env_call(2, "state"))
         assert sharded.env_is_wrapped(0, AASOATTFilter) is False
         with pytest.raises(UsageError, match="live in the worker processes"):
@@ -134,3 +140,98 @@ def test_make_batched_env_with_workers():
         assert rew.shape == (3, 4) and infos["filter_correction"].shape == (3, 4)
     finally:
         envs.close()
+
+
+def test_only_one_shard_resetting_gives_the_batch_final_obs():
+    """Teams with different horizons: steps where one shard resets and the other does not."""
+    fns = [lambda m=m: make_env("random_goals", num_robots=3, decision_interval=5, max_steps=m) for m in (3, 3, 5, 7)]
+    sharded, one = ShardedBatchedEnv(fns, 2), BatchedAASOATTEnv(fns)
+    try:
+        np.testing.assert_array_equal(sharded.reset(seed=1)[0], one.reset(seed=1)[0])
+        rng, mixed = np.random.default_rng(0), 0
+        for _ in range(12):
+            act = rng.uniform(-1, 1, (4, 3, 2))
+            ra, rb = sharded.step(act), one.step(act)
+            for x, y in zip(ra[:4], rb[:4]):
+                np.testing.assert_array_equal(x, y)
+            assert ra[4].keys() == rb[4].keys()
+            for key in rb[4]:
+                np.testing.assert_array_equal(ra[4][key], rb[4][key])
+            f = rb[4].get("_final_obs")
+            mixed += f is not None and f[:2].any() != f[2:].any()
+        assert mixed >= 3
+    finally:
+        sharded.close()
+
+
+def test_a_bad_action_or_an_interrupted_call_leaves_the_shards_in_step():
+    """No shard steps on a bad action; a call interrupted before its replies were read costs nothing later."""
+    sharded, one = ShardedBatchedEnv(_fns(4), 2), BatchedAASOATTEnv(_fns(4))
+    try:
+        sharded.reset(seed=2)
+        one.reset(seed=2)
+        act = np.zeros((4, 4, 2))
+        act[3, 1] = np.nan
+        with pytest.raises(ActionError, match=r"actions\[3, 1\]: got non-finite values"):
+            sharded.step(act)
+        with pytest.raises(ActionError, match=r"actions\[2, 0\]: got \[2.0, 0.0\], expected values in \[-1, 1\]"):
+            sharded.step(np.where(np.arange(4)[:, None, None] == 2, [2.0, 0.0], 0.0) * np.ones((4, 4, 2)))
+        with pytest.raises(ActionError, match=r"got shape \(4, 4, 2\) \(dtype <U1\)"):
+            sharded.step(np.full((4, 4, 2), "a"))
+        np.testing.assert_array_equal(sharded.elapsed_steps, one.elapsed_steps)  # nobody stepped
+        receive, calls = sharded._receive, []
+
+        def interrupted(w):
+            if not calls:
+                calls.append(w)
+                raise KeyboardInterrupt
+            return receive(w)
+
+        sharded._receive = interrupted  # Ctrl-C while waiting for the step's replies
+        with pytest.raises(KeyboardInterrupt):
+            sharded.step(np.zeros((4, 4, 2)))
+        sharded._receive = receive
+        one.step(np.zeros((4, 4, 2)))  # the workers did step
+        np.testing.assert_array_equal(sharded.elapsed_steps, one.elapsed_steps)
+        np.testing.assert_array_equal(sharded.reset(seed=5)[0], one.reset(seed=5)[0])
+        _same_steps(sharded, one, 3, np.random.default_rng(3))
+    finally:
+        sharded.close()
+
+
+def test_finished_teams_without_autoreset_are_all_named_and_nothing_steps():
+    sharded = ShardedBatchedEnv(_fns(4, max_steps=2), 2, autoreset=False)
+    try:
+        sharded.reset(seed=0)
+        for _ in range(2):
+            sharded.step(np.zeros((4, 4, 2)))
+        with pytest.raises(ResetNeeded, match=r"team\(s\) \[0, 1, 2, 3\] finished their episode"):
+            sharded.step(np.zeros((4, 4, 2)))
+        np.testing.assert_array_equal(sharded.elapsed_steps, [2, 2, 2, 2])
+    finally:
+        sharded.close()
+
+
+def test_the_batch_api_settings_checked_across_shards_and_worker_failures():
+    one = BatchedAASOATTEnv(_fns(3))
+    sharded = ShardedBatchedEnv(_fns(3), 2)
+    try:
+        for name in ("observation_space", "action_space", "single_observation_space", "single_action_space",
+                     "agent_observation_space", "agent_action_space", "action_mode", "reward_config",
+                     "terminate_on_collision", "collision_tolerance", "dt", "decision_interval", "possible_agents"):
+            assert getattr(sharded, name) == getattr(one, name), name
+        sharded.reset(seed=0)
+        one.reset(seed=0)
+        assert sharded.env_get(-1, "num_agents") == one.env_get(-1, "num_agents") == 4
+        os.kill(sharded._procs[1].pid, signal.SIGINT)  # Ctrl-C reaches every process of the group: ignored
+        time.sleep(0.3)
+        sharded.step(np.zeros((3, 4, 2)))
+        os.kill(sharded._procs[1].pid, signal.SIGKILL)
+        sharded._procs[1].join(5.0)
+        with pytest.raises(UsageError, match=r"worker 1 \(teams 2..2\) died with exit code -9"):
+            sharded.step(np.zeros((3, 4, 2)))
+    finally:
+        sharded.close()
+    mixed = _fns(2) + [lambda: make_env("random_goals", num_robots=4, decision_interval=7)]
+    with pytest.raises(ConfigError, match=r"env_fns\[2\]: decision_interval differs from env 0's \(7 vs 5\)"):
+        ShardedBatchedEnv(mixed, 2)

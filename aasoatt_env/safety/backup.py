@@ -186,7 +186,7 @@ def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fracti
 
 
 def _brake_samples(p0: np.ndarray, b: _Brake, dt: float, L: int) -> tuple[np.ndarray, np.ndarray]:
-    """Positions ``(N, L)`` and sagitta bounds ``(N, L-1)`` of the braking paths from ``p0``."""
+    """Positions ``(N, L)`` and deviation bounds ``(N, L-1)`` (sagitta; a point mass: its parabola) from ``p0``."""
     k = np.arange(L, dtype=np.float64)
     sigma = np.clip(1.0 - k[None, :] * b.rate[:, None], 0.0, 1.0)
     tau = np.empty_like(sigma)
@@ -231,7 +231,7 @@ def _first_step(team: Team, p0: np.ndarray, theta: np.ndarray, u: np.ndarray, du
 
 
 def _candidate_reach(p0: np.ndarray, p1: np.ndarray, d1: np.ndarray, b1: _Brake) -> np.ndarray:
-    """Bound on the distance from ``p0`` of one step to ``p1`` (sagitta ``d1``) and the braking after it."""
+    """Bound on the distance from ``p0`` of one step to ``p1`` (deviation ``d1``) and the braking after it."""
     return np.abs(p1 - p0) + d1 + b1.reach
 
 
@@ -248,7 +248,7 @@ def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray,
 
 def _candidate_samples(p0: np.ndarray, p1: np.ndarray, d1: np.ndarray, b1: _Brake, dt: float, L: int
                        ) -> tuple[np.ndarray, np.ndarray]:
-    """Samples ``(N, L)`` and sagittas ``(N, L-1)``: the point ``p0``, the step to ``p1`` (``d1``), then braking."""
+    """Samples ``(N, L)``, deviation bounds ``(N, L-1)``: the point ``p0``, the step to ``p1`` (``d1``), braking."""
     p = np.empty((p0.shape[0], L), dtype=np.complex128)
     delta = np.empty((p0.shape[0], L - 1))
     p[:, 0], delta[:, 0] = p0, d1

@@ -8,9 +8,10 @@ the sense of Agrawal and Panagou; a backup-set barrier in the sense of Gurriet
 et al.).
 
 Pair check (:func:`pair_margins`)
-    Within a step the simulated path is an arc at constant speed, which deviates
-    from the straight, linear-in-time interpolation of its end points by at most
-    its sagitta ``|p_dot| |omega| dt^2 / 8``.  The distance from the origin to a
+    Within a step a wheeled robot's simulated path is an arc at constant speed,
+    which deviates from the straight, linear-in-time interpolation of its end
+    points by at most its sagitta ``|p_dot| |omega| dt^2 / 8``; a point mass's
+    is the parabola of its held acceleration, ``|du| dt^2 / 8`` off.  The distance from the origin to a
     segment of *relative* positions minus both robots' sagittas bounds the
     pair's distance from below over that step; a pair is safe over a horizon
     when that bound is ``>= d_s = r_i + r_j`` on every step.  Obstacles are
@@ -298,6 +299,7 @@ def gatekeeper(
             break
     last = len(levels) - 1
     reach = np.stack(reaches + [b0.reach])
+    np.copyto(reach, np.inf, where=np.isnan(reach))  # a reach that is not a number bounds nothing: unbounded
     R = reach.max(axis=0)
 
     # a level whose path leaves the reach limit is skipped at once
@@ -345,9 +347,9 @@ def gatekeeper(
     if hold_violations:  # each pair's own floor: its margin when both members brake now
         Pb, Db = level_rows(last, rows_m)
         if i.size:
-            tol_p += np.maximum(0.0, -_bucketed(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9)
+            tol_p += np.fmax(0.0, -_bucketed(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9)  # NaN: no floor
         if oi.size:
-            tol_o += np.maximum(0.0, -_bucketed(Pb, Db, need[last], lo_, ok, ods, centers=oc)) * (1.0 + 1e-9)
+            tol_o += np.fmax(0.0, -_bucketed(Pb, Db, need[last], lo_, ok, ods, centers=oc)) * (1.0 + 1e-9)
     marg = np.full(i.shape[0], np.inf)
     omarg = np.full(oi.shape[0], np.inf)
     todo = np.ones(i.shape[0], dtype=bool)

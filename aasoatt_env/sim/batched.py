@@ -124,15 +124,10 @@ class BatchedAASOATTEnv:
                                   "wrapper of one)")
         self._bases: list[AASOATTParallelEnv] = bases
         first = bases[0]
-        same = ("possible_agents", "dt", "decision_interval", "action_mode", "num_neighbors", "num_obstacles",
-                "sensing_range", "reward_config", "terminate_on_collision", "collision_tolerance", "clip_actions")
+        self.shared_settings: dict[str, Any] = shared_settings(first)
+        """The settings every team of a batch has in common (:data:`SHARED_SETTINGS`, and ``filtered``)."""
         for k, b in enumerate(bases[1:], 1):
-            for name in same:
-                if getattr(b, name) != getattr(first, name):
-                    raise ConfigError(f"env_fns[{k}]: {name} differs from env 0's ({getattr(b, name)!r} vs "
-                                      f"{getattr(first, name)!r}); a batch shares one setting")
-            if (b.control_filter is None) != (first.control_filter is None):
-                raise ConfigError(f"env_fns[{k}]: behind a filter or not, unlike env 0; a batch is one or the other")
+            check_shared(shared_settings(b), self.shared_settings, int(team_offset) + k)
         self.autoreset = bool(autoreset)
         self._offset = int(team_offset)
         self.num_envs = len(bases)
@@ -159,6 +154,9 @@ class BatchedAASOATTEnv:
         self.action_space = spaces.Box(-1.0, 1.0, (k, n, 2), np.float32)
         self._filtered = first.control_filter is not None
         self._nominal = self._filtered and bool(first.control_filter.keeps_input_bounds) and not first.clip_actions
+        self.nominal_actions = self._nominal
+        """Whether actions are nominal wheel accelerations for a filter that keeps the bounds (up to 1e6) rather
+        than normalised actions in ``[-1, 1]``."""
         self._grouped: GroupedControlFilter | None = None
         """One filter for all teams (``grouped``), or None: one call per team."""
         if self._filtered and group_filter:
@@ -282,33 +280,9 @@ class BatchedAASOATTEnv:
 
     # ------------------------------------------------------------------ step
     def _parse_actions(self, actions: Any) -> np.ndarray:
-        k, n = self.num_envs, self.num_agents
-        try:
-            arr = np.asarray(actions)
-        except (TypeError, ValueError):
-            raise ActionError(f"actions: got {type(actions).__name__}, expected an array ({k}, {n}, 2)") from None
-        off = self._offset
-        if arr.dtype.kind not in "fiu" or arr.size != k * n * 2 or arr.shape not in ((k, n, 2), (k * n, 2)):
-            raise ActionError(f"actions: got shape {arr.shape} (dtype {arr.dtype}), expected real numbers of "
-                              f"shape ({k}, {n}, 2)")
-        act = arr.reshape(k * n, 2).astype(np.float64)
-        live = self._active & ~np.repeat(self._done, n)
-        act[~live] = 0.0  # the env ignores actions of agents that are done
-        peak = np.abs(act).max(initial=0.0)
-        if not np.isfinite(peak):
-            bad = np.flatnonzero(~np.isfinite(act).all(axis=1))[0]
-            raise ActionError(f"actions[{bad // n + off}, {bad % n}]: got non-finite values {act[bad].tolist()}, "
-                              "expected finite numbers")
-        clip = self._bases[0].clip_actions
-        limit = _NOMINAL_MAX if self._nominal else (np.inf if clip else 1.0 + 1e-6)
-        if peak > limit:
-            bad = int(np.flatnonzero(np.abs(act).max(axis=1) > limit)[0])
-            raise ActionError(f"actions[{bad // n + off}, {bad % n}]: got {act[bad].tolist()}, expected values in "
-                              + (f"[-{_NOMINAL_MAX:g}, {_NOMINAL_MAX:g}]" if self._nominal
-                                 else "[-1, 1] (or clip_actions=True)"))
-        if not self._nominal and peak > 1.0:
-            np.minimum(np.maximum(act, -1.0, out=act), 1.0, out=act)
-        return act
+        live = self._active & ~np.repeat(self._done, self.num_agents)
+        return parse_actions(actions, live.reshape(self.num_envs, self.num_agents), self._nominal,
+                             self.shared_settings["clip_actions"], self._offset)
 
     def _nominal_du(self, act: np.ndarray, kin: Kinematics) -> np.ndarray:
         team = self._team
@@ -323,14 +297,11 @@ class BatchedAASOATTEnv:
         if not self._started:
             raise ResetNeeded("step(): call reset() first")
         if self._done.any():
-            done = (np.flatnonzero(self._done) + self._offset).tolist()
-            raise ResetNeeded(f"step(): team(s) {done} finished their episode "
-                              "(autoreset=False); call reset() first")
+            raise finished_error(np.flatnonzero(self._done) + self._offset)
         act = self._parse_actions(actions)
         k_all, n = self.num_envs, self.num_agents
         team, dt = self._team, self.dt
         assert team is not None and self._kin is not None
-        self._last_action = act
         pose, u, kin = self._pose, self._u, self._kin
         frozen = ~self._active
         any_frozen = bool(frozen.any())
@@ -338,27 +309,33 @@ class BatchedAASOATTEnv:
         between = np.full(k_all * n, np.inf)
         outputs: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # per physics step, all robots
         filters = [b.control_filter for b in self._bases] if self._filtered else None
-        for sub in range(self.decision_interval):
-            lo, hi = dynamics.input_bounds(team, u, dt)
-            du_nom = self._nominal_du(act, kin)
-            if any_frozen:
-                du_nom[frozen] = 0.0
-            if filters is not None:
-                du = self._filter(filters, outputs, pose, u, kin, lo, hi, du_nom)
-            else:
-                du = du_nom
-            clipped = np.minimum(np.maximum(du, lo), hi)
-            if (clipped != du).any():
-                saturated |= np.abs(clipped - du).max(axis=1) > 1e-9
-            new_pose, new_u = dynamics.integrate(team, pose, u, clipped, dt)
-            if any_frozen:
-                new_pose[frozen], new_u[frozen] = pose[frozen], 0.0
-            pose, u = new_pose, new_u
-            self._times = [t + dt for t in self._times]
-            kin = dynamics.kinematics(team, pose, u)
-            if sub < self.decision_interval - 1:
-                np.minimum(between, self._min_gaps(kin.p), out=between)
+        times = list(self._times)  # restored if a physics step fails: the stack's state is untouched then
+        try:
+            for sub in range(self.decision_interval):
+                lo, hi = dynamics.input_bounds(team, u, dt)
+                du_nom = self._nominal_du(act, kin)
+                if any_frozen:
+                    du_nom[frozen] = 0.0
+                if filters is not None:
+                    du = self._filter(filters, outputs, pose, u, kin, lo, hi, du_nom)
+                else:
+                    du = du_nom
+                clipped = np.minimum(np.maximum(du, lo), hi)
+                if (clipped != du).any():
+                    saturated |= np.abs(clipped - du).max(axis=1) > 1e-9
+                new_pose, new_u = dynamics.integrate(team, pose, u, clipped, dt)
+                if any_frozen:
+                    new_pose[frozen], new_u[frozen] = pose[frozen], 0.0
+                pose, u = new_pose, new_u
+                self._times = [t + dt for t in self._times]
+                kin = dynamics.kinematics(team, pose, u)
+                if sub < self.decision_interval - 1:
+                    np.minimum(between, self._min_gaps(kin.p), out=between)
+        except BaseException:
+            self._times = times
+            raise
         self._pose, self._u, self._kin = pose, u, kin
+        self._last_action = act
         self._steps += 1
         self._saturated = saturated
 
@@ -440,12 +417,11 @@ class BatchedAASOATTEnv:
                         np.concatenate([np.asarray(o.avoiding, dtype=bool) for o in outs])))
         return du
 
-    @staticmethod
-    def _checked(out: Any, k: int | None, rows: int) -> np.ndarray:
+    def _checked(self, out: Any, k: int | None, rows: int) -> np.ndarray:
         """A filter output's ``du``: finite, ``(rows, 2)`` (``k``: the team of a per-team call)."""
         d = np.asarray(out.du, dtype=np.float64)
         if d.shape != (rows, 2) or not np.all(np.isfinite(d)):
-            who = "the grouped control filter" if k is None else f"control filter of team {k}"
+            who = "the grouped control filter" if k is None else f"control filter of team {k + self._offset}"
             raise ActionError(f"{who} returned shape {d.shape} or non-finite values, expected finite ({rows}, 2)")
         return d
 
@@ -591,21 +567,22 @@ class BatchedAASOATTEnv:
         return tuple(env.render() for env in self.envs)
 
     def env_get(self, k: int, name: str) -> Any:
-        """Attribute ``name`` of team ``k``'s own env."""
-        return getattr(self.envs[k], name)
+        """Attribute ``name`` of team ``k``'s own env (``k`` as a sequence index: ``-1`` is the last team)."""
+        return getattr(self.envs[team_index(k, self.num_envs)], name)
 
     def env_set(self, k: int, name: str, value: Any) -> None:
         """Set attribute ``name`` of team ``k``'s own env."""
-        setattr(self.envs[k], name, value)
+        setattr(self.envs[team_index(k, self.num_envs)], name, value)
 
     def env_call(self, k: int, name: str, *args: Any, **kwargs: Any) -> Any:
         """Call method ``name`` of team ``k``'s own env, after :meth:`sync` (its state is the batch's)."""
+        k = team_index(k, self.num_envs)
         self.sync()
         return getattr(self.envs[k], name)(*args, **kwargs)
 
     def env_is_wrapped(self, k: int, wrapper_class: type) -> bool:
         """Whether team ``k``'s own env is (PettingZoo-)wrapped by ``wrapper_class``."""
-        e = self.envs[k]
+        e = self.envs[team_index(k, self.num_envs)]
         while e is not None:
             if isinstance(e, wrapper_class):
                 return True
@@ -622,6 +599,71 @@ def _intervened(out: Any) -> np.ndarray:
     """A filter output's ``intervened`` flags, or ``correction > 0`` for outputs without them."""
     flag = getattr(out, "intervened", None)
     return np.asarray(flag if flag is not None else np.asarray(out.correction) > 0.0, dtype=bool)
+
+
+SHARED_SETTINGS = ("possible_agents", "dt", "decision_interval", "action_mode", "num_neighbors", "num_obstacles",
+                   "sensing_range", "reward_config", "terminate_on_collision", "collision_tolerance", "clip_actions")
+"""Settings every team of a batch shares (attributes of :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`)."""
+
+
+def shared_settings(env: AASOATTParallelEnv) -> dict[str, Any]:
+    """The :data:`SHARED_SETTINGS` of a team's env, and whether it is behind a filter (``filtered``)."""
+    return {**{name: getattr(env, name) for name in SHARED_SETTINGS}, "filtered": env.control_filter is not None}
+
+
+def check_shared(got: dict[str, Any], want: dict[str, Any], k: int) -> None:
+    """Raise :class:`ConfigError` naming ``env_fns[k]`` if its shared settings differ from env 0's."""
+    if got["filtered"] != want["filtered"]:
+        raise ConfigError(f"env_fns[{k}]: behind a filter or not, unlike env 0; a batch is one or the other")
+    for name in SHARED_SETTINGS:
+        if got[name] != want[name]:
+            raise ConfigError(f"env_fns[{k}]: {name} differs from env 0's ({got[name]!r} vs {want[name]!r}); a "
+                              "batch shares one setting")
+
+
+def parse_actions(actions: Any, live: np.ndarray, nominal: bool, clip: bool, offset: int = 0) -> np.ndarray:
+    """Validated actions ``(K N, 2)`` float64 of teams ``(K, N)`` = ``live.shape`` (done agents' rows zeroed).
+
+    ``nominal``: values up to 1e6 pass as they are (:attr:`BatchedAASOATTEnv.nominal_actions`);
+    otherwise values up to ``1 + 1e-6`` are accepted and clipped to ``[-1, 1]``, every finite
+    value with ``clip`` (``clip_actions``).  ``offset``: number of the first team in messages.
+    """
+    k, n = live.shape
+    try:
+        arr = np.asarray(actions)
+    except (TypeError, ValueError):
+        raise ActionError(f"actions: got {type(actions).__name__}, expected an array ({k}, {n}, 2)") from None
+    if arr.dtype.kind not in "fiu" or arr.size != k * n * 2 or arr.shape not in ((k, n, 2), (k * n, 2)):
+        raise ActionError(f"actions: got shape {arr.shape} (dtype {arr.dtype}), expected real numbers of "
+                          f"shape ({k}, {n}, 2)")
+    act = arr.reshape(k * n, 2).astype(np.float64)
+    act[~live.ravel()] = 0.0  # the env ignores actions of agents that are done
+    peak = np.abs(act).max(initial=0.0)
+    if not np.isfinite(peak):
+        bad = np.flatnonzero(~np.isfinite(act).all(axis=1))[0]
+        raise ActionError(f"actions[{bad // n + offset}, {bad % n}]: got non-finite values {act[bad].tolist()}, "
+                          "expected finite numbers")
+    accept = _NOMINAL_MAX if nominal else (np.inf if clip else 1.0 + 1e-6)
+    if peak > accept:
+        bad = int(np.flatnonzero(np.abs(act).max(axis=1) > accept)[0])
+        raise ActionError(f"actions[{bad // n + offset}, {bad % n}]: got {act[bad].tolist()}, expected values in "
+                          + (f"[-{_NOMINAL_MAX:g}, {_NOMINAL_MAX:g}]" if nominal else "[-1, 1] (or clip_actions=True)"))
+    if not nominal and peak > 1.0:
+        np.minimum(np.maximum(act, -1.0, out=act), 1.0, out=act)
+    return act
+
+
+def finished_error(teams: np.ndarray) -> ResetNeeded:
+    """The error of ``step`` on teams that finished their episode (``autoreset=False``)."""
+    return ResetNeeded(f"step(): team(s) {np.asarray(teams).tolist()} finished their episode (autoreset=False); "
+                       "call reset() first")
+
+
+def team_index(k: Any, num_envs: int) -> int:
+    """Team number ``k`` in ``[0, num_envs)`` (negative ``k`` counts from the end), or :class:`ConfigError`."""
+    if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not -num_envs <= k < num_envs:
+        raise ConfigError(f"k: got {k!r}, expected a team number in [0, {num_envs}) (or from -{num_envs})")
+    return int(k) % num_envs
 
 
 def per_team_reset_args(seed: int | Sequence[int | None] | None, options: dict | Sequence[dict | None] | None,

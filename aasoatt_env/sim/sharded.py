@@ -15,35 +15,53 @@ and filter, and the physics is per team, so without a filter, or with
 ``group_filter=False`` and a QP solver whose answer is a function of the
 problem alone, trajectories are bit-identical to one ``BatchedAASOATTEnv``
 (``tests/test_sharded.py``).  Behind the grouped filter each shard's stacked QP
-is solved in one piece, so answers agree with one process to rounding, as
-the grouped call agrees with separate envs.
+is solved in one piece, so answers agree with one process to rounding (as the
+grouped call agrees with separate envs).  Actions are checked here, before any
+shard steps, with the batch's checks and messages (team numbers are the whole
+batch's everywhere, also in errors raised inside a worker).
 
-Workers are started with ``multiprocessing`` (``forkserver`` where the platform
-has it, else ``spawn``: no ``fork`` of a process that may hold torch threads);
-the env constructors are sent with ``cloudpickle`` (a Gymnasium dependency), so
-lambdas and closures work.  An exception in a worker is raised again in the
-caller with the same class where it can be pickled (errors of
-:mod:`aasoatt_env.errors` can), naming the worker; the worker stays usable.
+Processes: workers are started with ``multiprocessing`` (``forkserver`` where
+the platform has it, else ``spawn``: no ``fork`` of a process that may hold
+torch threads), so a script that makes one must guard its entry point with
+``if __name__ == "__main__":`` (as for SB3's ``SubprocVecEnv``).  Messages go
+both ways with ``cloudpickle`` (a Gymnasium dependency), so env constructors
+may be lambdas and closures.  An exception in a worker is raised again here
+with its class where it can be pickled, naming the worker, and the worker
+stays usable; workers ignore Ctrl-C (the caller decides), and a call
+interrupted here leaves its replies to be read and dropped before the next
+one, so the pipes never fall out of step.  A worker that dies makes every
+later call raise :class:`~aasoatt_env.errors.UsageError`.
 
 API: that of :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` (``reset``,
-``step``, ``live``, ``max_steps``, ``elapsed_steps``, ``sync``, ``render``,
-``env_get``/``env_set``/``env_call``/``env_is_wrapped``, ``close``), without
-``envs`` (the teams' envs live in the workers: use the ``env_*`` methods) and
-with ``grouped_filter = None`` (no filter object in this process).
+``step``, ``live``, ``max_steps``, ``elapsed_steps``, the spaces, the shared
+settings, ``sync``, ``render``, ``env_get``/``env_set``/``env_call``/
+``env_is_wrapped``, ``close``), without ``envs`` (the teams' envs live in the
+workers: use the ``env_*`` methods) and with ``grouped_filter = None`` (no
+filter object in this process).
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
+import signal
+import time
 import traceback
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import cloudpickle
 import numpy as np
+from gymnasium import spaces
 
-from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded, UsageError
-from aasoatt_env.sim.batched import BatchedAASOATTEnv, per_team_reset_args
+from aasoatt_env.errors import ConfigError, ResetNeeded, UsageError
+from aasoatt_env.sim.batched import (
+    BatchedAASOATTEnv,
+    check_shared,
+    finished_error,
+    parse_actions,
+    per_team_reset_args,
+    team_index,
+)
 
 __all__ = ["ShardedBatchedEnv", "shard_sizes"]
 
@@ -54,54 +72,22 @@ def shard_sizes(num_envs: int, num_workers: int) -> list[int]:
     return [q + (w < r) for w in range(num_workers)]
 
 
-def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offset: int) -> None:
-    """A worker's loop: build its shard, then answer commands until ``close`` (or the pipe closes)."""
+def _send(conn: Any, msg: Any) -> None:
+    conn.send_bytes(cloudpickle.dumps(msg))
+
+
+def _recv(conn: Any) -> Any:
+    return cloudpickle.loads(conn.recv_bytes())
+
+
+def _reply(conn: Any, msg: Any) -> None:
+    """Send ``msg``; one that cannot be pickled goes back as an error saying so (the pipe stays in step)."""
     try:
-        fns = cloudpickle.loads(payload)
-        batch = BatchedAASOATTEnv(fns, autoreset=autoreset, group_filter=group_filter, team_offset=offset)
-        conn.send(("ok", (batch.num_agents, batch.possible_agents, batch.agent_observation_space,
-                          batch.agent_action_space, batch.filtered, batch.dt, batch.decision_interval)))
-    except BaseException as exc:  # noqa: BLE001 - every failure goes back to the caller
-        conn.send(_error(exc))
-        conn.close()
-        return
-    while True:
-        try:
-            cmd, args = conn.recv()
-        except (EOFError, OSError):
-            break
-        try:
-            if cmd == "close":
-                batch.close()
-                conn.send(("ok", None))
-                break
-            if cmd == "step":
-                out = batch.step(args)
-                conn.send(("ok", (*out, batch.live)))
-            elif cmd == "reset":
-                obs, info = batch.reset(seed=args[0], options=args[1])
-                conn.send(("ok", (obs, info, batch.live)))
-            elif cmd == "state":
-                conn.send(("ok", (batch.max_steps, batch.elapsed_steps)))
-            elif cmd == "sync":
-                batch.sync()
-                conn.send(("ok", None))
-            elif cmd == "render":
-                conn.send(("ok", batch.render()))
-            elif cmd == "get":
-                conn.send(("ok", batch.env_get(*args)))
-            elif cmd == "set":
-                conn.send(("ok", batch.env_set(*args)))
-            elif cmd == "call":
-                k, name, a, kw = args
-                conn.send(("ok", batch.env_call(k, name, *a, **kw)))
-            elif cmd == "wrapped":
-                conn.send(("ok", batch.env_is_wrapped(*args)))
-            else:
-                conn.send(("error", UsageError(f"worker: unknown command {cmd!r}"), ""))
-        except BaseException as exc:  # noqa: BLE001
-            conn.send(_error(exc))
-    conn.close()
+        data = cloudpickle.dumps(msg)
+    except Exception as exc:  # noqa: BLE001 - whatever the pickler raises
+        data = cloudpickle.dumps(("error", RuntimeError(f"the answer cannot be sent back ({type(exc).__name__}: "
+                                                        f"{exc})"), ""))
+    conn.send_bytes(data)
 
 
 def _error(exc: BaseException) -> tuple[str, BaseException, str]:
@@ -112,6 +98,57 @@ def _error(exc: BaseException) -> tuple[str, BaseException, str]:
         return "error", exc, tb
     except Exception:  # noqa: BLE001 - an exception that does not survive pickling
         return "error", RuntimeError(f"{type(exc).__name__}: {exc}"), tb
+
+
+def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offset: int) -> None:
+    """A worker's loop: build its shard, then answer commands until ``close`` (or the pipe closes)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the caller's to handle (it closes the workers)
+    try:
+        batch = BatchedAASOATTEnv(cloudpickle.loads(payload), autoreset=autoreset, group_filter=group_filter,
+                                  team_offset=offset)
+        space = (batch.agent_observation_space, batch.agent_action_space)
+        _reply(conn, ("ok", (batch.shared_settings, batch.nominal_actions, space, batch.dt, batch.decision_interval)))
+    except BaseException as exc:  # noqa: BLE001 - every failure goes back to the caller
+        _reply(conn, _error(exc))
+        conn.close()
+        return
+    while True:
+        try:
+            cmd, args = _recv(conn)
+        except (EOFError, OSError):
+            break
+        try:
+            if cmd == "close":
+                batch.close()
+                _reply(conn, ("ok", None))
+                break
+            if cmd == "step":
+                out = batch.step(args)
+                _reply(conn, ("ok", (*out, batch.live)))
+            elif cmd == "reset":
+                obs, info = batch.reset(seed=args[0], options=args[1])
+                _reply(conn, ("ok", (obs, info, batch.live)))
+            elif cmd == "state":
+                _reply(conn, ("ok", (batch.max_steps, batch.elapsed_steps)))
+            elif cmd == "sync":
+                batch.sync()
+                _reply(conn, ("ok", None))
+            elif cmd == "render":
+                _reply(conn, ("ok", batch.render()))
+            elif cmd == "get":
+                _reply(conn, ("ok", batch.env_get(*args)))
+            elif cmd == "set":
+                _reply(conn, ("ok", batch.env_set(*args)))
+            elif cmd == "call":
+                k, name, a, kw = args
+                _reply(conn, ("ok", batch.env_call(k, name, *a, **kw)))
+            elif cmd == "wrapped":
+                _reply(conn, ("ok", batch.env_is_wrapped(*args)))
+            else:
+                _reply(conn, ("error", UsageError(f"worker: unknown command {cmd!r}"), ""))
+        except Exception as exc:  # noqa: BLE001 - reported; the worker goes on
+            _reply(conn, _error(exc))
+    conn.close()
 
 
 class ShardedBatchedEnv:
@@ -136,6 +173,9 @@ class ShardedBatchedEnv:
 
     def __init__(self, env_fns: Sequence[Callable[[], Any]], num_workers: int, *, autoreset: bool = True,
                  group_filter: bool = True, start_method: str | None = None) -> None:
+        self._closed = True  # until the workers run (close() is safe on a half-made object)
+        self._conns: list[Any] = []
+        self._procs: list[Any] = []
         k_all = len(env_fns)
         if k_all < 1:
             raise ConfigError(f"env_fns: got {k_all} callables, expected at least 1")
@@ -153,9 +193,8 @@ class ShardedBatchedEnv:
         self.autoreset = bool(autoreset)
         self.sizes = shard_sizes(k_all, int(num_workers))
         """Teams per worker."""
-        self._starts = np.concatenate(([0], np.cumsum(self.sizes))).astype(int)
-        self._conns: list[Any] = []
-        self._procs: list[Any] = []
+        self._starts = [0, *np.cumsum(self.sizes).tolist()]
+        self._pending = [0] * len(self.sizes)  # replies sent for and not yet read, per worker
         self._closed = False
         try:
             for w in range(len(self.sizes)):
@@ -168,49 +207,87 @@ class ShardedBatchedEnv:
                 child.close()
                 self._conns.append(parent)
                 self._procs.append(proc)
+                self._pending[w] = 1  # its start-up report
             firsts = [self._receive(w) for w in range(len(self.sizes))]
+            for w, f in enumerate(firsts[1:], 1):  # every setting a batch shares, across the shards too
+                check_shared(f[0], firsts[0][0], self._starts[w])
         except BaseException:
             self.close()
             raise
-        (self.num_agents, agents, self.agent_observation_space, self.agent_action_space, self._filtered,
-         self.dt, self.decision_interval) = firsts[0]
-        self.possible_agents: list[str] = list(agents)
-        for w, f in enumerate(firsts[1:], 1):
-            if list(f[1]) != self.possible_agents or f[2] != self.agent_observation_space or f[4] != self._filtered:
-                self.close()
-                raise ConfigError(f"env_fns: worker {w}'s teams differ from worker 0's (agents, observation "
-                                  "space or filter); a batch shares one setting")
+        self.shared_settings, self.nominal_actions, (agent_obs, agent_act), self.dt, self.decision_interval = firsts[0]
+        self.possible_agents: list[str] = list(self.shared_settings["possible_agents"])
+        self.num_agents = len(self.possible_agents)
+        for name in ("action_mode", "reward_config", "terminate_on_collision", "collision_tolerance"):
+            setattr(self, name, self.shared_settings[name])
+        self.agent_observation_space: spaces.Box = agent_obs
+        self.agent_action_space: spaces.Box = agent_act
+        n, k = self.num_agents, k_all
+        self.single_observation_space = spaces.Box(
+            np.broadcast_to(agent_obs.low, (n, *agent_obs.shape)),
+            np.broadcast_to(agent_obs.high, (n, *agent_obs.shape)), dtype=agent_obs.dtype)
+        self.single_action_space = spaces.Box(-1.0, 1.0, (n, 2), np.float32)
+        self.observation_space = spaces.Box(
+            np.broadcast_to(agent_obs.low, (k, n, *agent_obs.shape)),
+            np.broadcast_to(agent_obs.high, (k, n, *agent_obs.shape)), dtype=agent_obs.dtype)
+        self.action_space = spaces.Box(-1.0, 1.0, (k, n, 2), np.float32)
         self._live = np.zeros((k_all, self.num_agents), dtype=bool)
         self._started = False
 
     # ------------------------------------------------------------------ plumbing
+    def _teams(self, w: int) -> str:
+        return f"worker {w} (teams {self._starts[w]}..{self._starts[w + 1] - 1})"
+
+    def _dead(self, w: int) -> UsageError:
+        self._procs[w].join(timeout=1.0)
+        code = self._procs[w].exitcode
+        return UsageError(f"{self._teams(w)} died" + (f" with exit code {code}" if code is not None else "")
+                          + "; close this env and make a new one (a script that starts workers must guard its "
+                          "entry point with `if __name__ == '__main__':`)")
+
     def _receive(self, w: int) -> Any:
+        """Worker ``w``'s reply to its oldest pending command (its answer, or its error raised here)."""
         try:
-            msg = self._conns[w].recv()
+            self._conns[w].poll(None)  # an interrupt lands here, while waiting, not inside a message
+            msg = _recv(self._conns[w])
         except (EOFError, OSError):
-            code = self._procs[w].exitcode
-            raise UsageError(f"worker {w} (teams {self._starts[w]}..{self._starts[w + 1] - 1}) died"
-                             + (f" with exit code {code}" if code is not None else "")) from None
+            self._pending[w] = 0
+            raise self._dead(w) from None
+        self._pending[w] -= 1
         if msg[0] == "ok":
             return msg[1]
         exc, tb = msg[1], msg[2]
-        if isinstance(exc, BaseException):
-            if hasattr(exc, "add_note"):  # Python >= 3.11
-                exc.add_note(f"(in worker {w}, teams {self._starts[w]}..{self._starts[w + 1] - 1}; its traceback:\n"
-                             f"{tb})")
-            raise exc
-        raise RuntimeError(f"worker {w}: {exc}")
+        if hasattr(exc, "add_note") and tb:  # Python >= 3.11
+            exc.add_note(f"(raised in {self._teams(w)}; its traceback:\n{tb})")
+        raise exc
+
+    def _drain(self, w: int) -> None:
+        """Read and drop the replies to calls interrupted before they were read."""
+        while self._pending[w] > 0:
+            try:
+                self._receive(w)
+            except UsageError:
+                raise
+            except Exception:  # noqa: BLE001 - the answer of an interrupted call: dropped
+                pass
+
+    def _post(self, w: int, msg: tuple) -> None:
+        self._drain(w)
+        try:
+            _send(self._conns[w], msg)
+        except (BrokenPipeError, OSError):
+            raise self._dead(w) from None
+        self._pending[w] += 1
 
     def _all(self, cmd: str, args: Sequence[Any]) -> list[Any]:
         """Send ``(cmd, args[w])`` to every worker, then collect the answers (raising the first error)."""
         self._check_open()
-        for w, conn in enumerate(self._conns):
-            conn.send((cmd, args[w]))
+        for w in range(len(self._conns)):
+            self._post(w, (cmd, args[w]))
         out, first = [], None
         for w in range(len(self._conns)):
             try:
                 out.append(self._receive(w))
-            except BaseException as exc:  # keep reading the others: every pipe stays in step
+            except Exception as exc:  # keep reading the others: every reply is read
                 first = first or exc
         if first is not None:
             raise first
@@ -219,10 +296,9 @@ class ShardedBatchedEnv:
     def _one(self, k: int, cmd: str, args: tuple) -> Any:
         """``cmd`` for the worker of team ``k`` (its local number first in ``args``)."""
         self._check_open()
-        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 0 <= k < self.num_envs:
-            raise ConfigError(f"k: got {k!r}, expected a team number in [0, {self.num_envs})")
+        k = team_index(k, self.num_envs)
         w = int(np.searchsorted(self._starts, k, side="right") - 1)
-        self._conns[w].send((cmd, (int(k) - int(self._starts[w]), *args)))
+        self._post(w, (cmd, (k - self._starts[w], *args)))
         return self._receive(w)
 
     def _check_open(self) -> None:
@@ -236,7 +312,7 @@ class ShardedBatchedEnv:
     @property
     def filtered(self) -> bool:
         """True when the teams are behind a control filter."""
-        return self._filtered
+        return bool(self.shared_settings["filtered"])
 
     @property
     def envs(self) -> list[Any]:
@@ -269,18 +345,21 @@ class ShardedBatchedEnv:
         return np.concatenate([o[0] for o in out]), {}
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """Step every shard at once with its teams' actions ``(K, N, 2)``; the answers in team order."""
+        """Step every shard at once with its teams' actions ``(K, N, 2)``; the answers in team order.
+
+        The actions are checked here first (the batch's checks and messages), so a bad action
+        steps no team.
+        """
+        self._check_open()
         if not self._started:
             raise ResetNeeded("step(): call reset() first")
-        k, n = self.num_envs, self.num_agents
-        try:
-            arr = np.asarray(actions)
-        except (TypeError, ValueError):
-            raise ActionError(f"actions: got {type(actions).__name__}, expected an array ({k}, {n}, 2)") from None
-        if arr.size != k * n * 2 or arr.shape not in ((k, n, 2), (k * n, 2)):
-            raise ActionError(f"actions: got shape {arr.shape} (dtype {arr.dtype}), expected real numbers of "
-                              f"shape ({k}, {n}, 2)")
-        out = self._all("step", self._split(arr.reshape(k, n, 2)))
+        if not self.autoreset:
+            finished = np.flatnonzero(~self._live.any(axis=1))
+            if finished.size:
+                raise finished_error(finished)
+        parse_actions(actions, self._live, self.nominal_actions, self.shared_settings["clip_actions"])
+        arr = np.asarray(actions).reshape(self.num_envs, self.num_agents, 2)
+        out = self._all("step", self._split(arr))
         obs, rew, term, trunc = (np.concatenate([o[i] for o in out]) for i in range(4))
         self._live = np.concatenate([o[5] for o in out])
         infos: dict[str, Any] = {}
@@ -303,11 +382,11 @@ class ShardedBatchedEnv:
         return tuple(f for frames in self._all("render", [None] * len(self._conns)) for f in frames)
 
     def env_get(self, k: int, name: str) -> Any:
-        """Attribute ``name`` of team ``k``'s own env (sent back pickled)."""
+        """Attribute ``name`` of team ``k``'s own env (``k`` as a sequence index; sent back pickled)."""
         return self._one(k, "get", (name,))
 
     def env_set(self, k: int, name: str, value: Any) -> None:
-        """Set attribute ``name`` of team ``k``'s own env."""
+        """Set attribute ``name`` of team ``k``'s own env (``value`` sent with cloudpickle)."""
         self._one(k, "set", (name, value))
 
     def env_call(self, k: int, name: str, *args: Any, **kwargs: Any) -> Any:
@@ -318,29 +397,33 @@ class ShardedBatchedEnv:
         """Whether team ``k``'s own env is (PettingZoo-)wrapped by ``wrapper_class``."""
         return bool(self._one(k, "wrapped", (wrapper_class,)))
 
-    def close(self) -> None:
-        """Close the teams' envs and stop the workers (idempotent)."""
+    def close(self, timeout: float = 5.0) -> None:
+        """Close the teams' envs and stop the workers (idempotent; any still running after ``timeout`` s is killed)."""
         if self._closed:
             return
         self._closed = True
-        for conn in self._conns:
-            try:
-                conn.send(("close", None))
-            except (BrokenPipeError, OSError):
-                pass
-        for conn in self._conns:
-            try:
-                if conn.poll(5.0):
-                    conn.recv()
-            except (EOFError, OSError):
-                pass
-        for proc in self._procs:
-            proc.join(timeout=5.0)
-            if proc.is_alive():
-                proc.terminate()
-                proc.join(timeout=1.0)
-        for conn in self._conns:
-            conn.close()
+        deadline = time.monotonic() + timeout
+        try:
+            for conn in self._conns:
+                try:
+                    _send(conn, ("close", None))
+                except (BrokenPipeError, OSError):
+                    pass
+            for conn in self._conns:  # read whatever is still coming (unread replies, the close's) up to EOF
+                try:
+                    while conn.poll(max(0.0, deadline - time.monotonic())):
+                        conn.recv_bytes()
+                except (EOFError, OSError):
+                    pass
+            for proc in self._procs:
+                proc.join(timeout=max(0.0, deadline - time.monotonic()))
+        finally:
+            for proc in self._procs:
+                if proc.is_alive():
+                    proc.terminate()
+                    proc.join(timeout=1.0)
+            for conn in self._conns:
+                conn.close()
 
     def __del__(self) -> None:
         try:
