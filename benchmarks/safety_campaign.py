@@ -7,7 +7,8 @@ drives every robot of a team behind ``AASOATTFilter`` with its defaults, for
 * teams: N = 2, 8, 16 on RandomGoals (arena by default), and N = 39 on the
   radius-6 circle (the paper's largest crowd);
 * presets: ``paper`` (no wheel-speed limit), ``turtlebot3`` (TurtleBot3 Burger,
-  6.67 rad/s) and ``mixed`` (the two alternating);
+  6.67 rad/s) and ``mixed`` (the two alternating); ``--presets`` also offers
+  ``double_integrator`` (point masses);
 * static obstacles: none, or 4 random discs (RandomGoals; the circle's Fig. 5
   obstacles on the circle);
 * seeds 0 .. ``--seeds - 1``.
@@ -48,7 +49,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-PRESETS = {"paper": "paper", "turtlebot3": "turtlebot3_burger", "mixed": None}
+PRESETS = {"paper": "paper", "turtlebot3": "turtlebot3_burger", "mixed": None, "double_integrator": "double_integrator"}
+DEFAULT_PRESETS = ("paper", "turtlebot3", "mixed")
 TEAMS = (2, 8, 16, 39)
 TOL = 1e-3
 
@@ -128,7 +130,7 @@ def adversarial(args: argparse.Namespace) -> None:
     keys = [dict(adversary=a, n=n, preset=p, obstacles=o, seed=s, steps=args.steps, mode=args.mode,
                  backup=not args.layer_off)
             for s, a, n, p, o in itertools.product(range(args.first_seed, args.first_seed + args.seeds), ADVERSARIES,
-                                                   args.teams, PRESETS, (False, True))]
+                                                   args.teams, args.presets, (False, True))]
     todo = [k for k in keys if _key_steps(k) not in done]
     print(f"{len(keys)} episodes, {len(keys) - len(todo)} already in {out}, {len(todo)} to run", flush=True)
     t0 = time.perf_counter()
@@ -266,6 +268,9 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=800, help="physics steps per episode (adversarial)")
     ap.add_argument("--teams", type=lambda v: tuple(int(x) for x in v.split(",")), default=TEAMS,
                     help="team sizes, comma-separated (39 = the radius-6 circle)")
+    ap.add_argument("--presets", type=lambda v: tuple(v.split(",")), default=DEFAULT_PRESETS,
+                    help=f"robot presets, comma-separated, among {list(PRESETS)} (default: "
+                    f"{','.join(DEFAULT_PRESETS)})")
     ap.add_argument("--mode", choices=("centralized", "decentralized"), default="centralized",
                     help="the filter's mode (FilterConfig.mode)")
     ap.add_argument("--layer-off", action="store_true",
