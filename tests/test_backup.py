@@ -224,6 +224,36 @@ def test_a_margin_or_reach_that_is_not_a_number_fails_the_check(monkeypatch):
     assert g.n_pairs == 1 and not g.safe and not np.isnan(g.margin)
 
 
+def test_a_step_whose_inputs_the_repair_changed_never_says_solved():
+    """``solved`` means the QP's optimum applied: where the repair nudged robots, the status says ``backup``.
+
+    Four robots chasing each other (the audit's closed loop, one episode): at every step the applied
+    input is compared with the QP's optimum (the same filter without the layer, from the same state).
+    """
+    from aasoatt_env.model.dynamics import pose_from_point
+
+    rng, n = np.random.default_rng(3), 4
+    team = make_team("paper", n)
+    for _ in range(2):  # the second episode of this seed nudges from its step 105 on
+        pts = np.array([[0, 0], [1.0, 0], [0, 1.0], [1.0, 1.0]]) * 1.3 + rng.normal(0, 0.05, (4, 2))
+        pose, u = pose_from_point(team, pts, rng.uniform(-np.pi, np.pi, n)), np.zeros((n, 2))
+    f, nudged = SafetyFilter(team, deadlock="none"), 0
+    for _ in range(300):
+        kin = kinematics(team, pose, u)
+        d = np.linalg.norm(kin.p[:, None] - kin.p[None], axis=2) + np.eye(n) * 9
+        nom = np.linalg.solve(kin.A, ((kin.p[d.argmin(1)] - kin.p) * 50)[:, :, None])[:, :, 0]
+        du, res = f.from_state(pose, u, nom)
+        du_qp, _ = SafetyFilter(team, deadlock="none", backup=False).from_state(pose, u, nom)
+        changed = np.abs(du - du_qp).max(axis=1) > 1e-6  # beyond rounding
+        if changed.any():
+            assert res.status != "solved", res.message
+            if not res.backup[changed].any():
+                nudged += 1
+                assert "nudged" in res.message
+        pose, u = integrate(team, pose, u, du, DT)
+    assert nudged >= 5  # the case this is about happened
+
+
 def test_subnormal_speeds_give_finite_paths_and_the_gate_still_brakes():
     """Subnormal wheel speeds made ``dt / T`` overflow and the paths NaN; a NaN margin then passed the check.
 

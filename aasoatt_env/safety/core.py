@@ -80,8 +80,9 @@ class FilterResult:
     status : str
         The worst of what happened, by severity (:data:`STATUSES`): ``"solved"``
         (the QP's optimum applied), ``"relaxed"`` (infeasible rows loosened by
-        ``slack``; bounds kept), ``"backup"`` (the backup layer braked some
-        robots), ``"failed"`` (the QP solver gave no answer) or ``"unsafe"``
+        ``slack``; bounds kept), ``"backup"`` (the backup layer changed some
+        robots' inputs: braked them, or nudged them toward brake-safety; see
+        ``backup`` and the message), ``"failed"`` (the QP solver gave no answer) or ``"unsafe"``
         (the team is outside the safe set: with the backup layer, the state was
         not brake-safe; without it, some pair has a barrier value ``h < 0`` or
         overlaps by more than :data:`COLLISION_TOL`).
@@ -89,7 +90,8 @@ class FilterResult:
     safe : bool
         The team is inside the safe set after this step (``status != "unsafe"``).
     backup : numpy.ndarray
-        ``(N,)``: robots the backup layer braked.
+        ``(N,)``: robots the backup layer braked (blended toward or put on braking; robots it
+        only nudged are not flagged, the status and the message count them).
     margin : float
         With the backup layer: the smallest ``distance - d_s`` [m] of any pair
         along the backup horizon of the applied inputs (at most the reach limit
@@ -444,7 +446,7 @@ class SafetyFilter:
         slack = float(max(0.0, np.max(viol, initial=0.0))) if status != "solved" or not exact else 0.0
 
         # backup layer -----------------------------------------------------------------
-        braking = np.zeros(n, dtype=bool)
+        braking = nudged = np.zeros(n, dtype=bool)
         if cfg.backup:
             pose = _axle_pose(team, p, theta)
             gate = gate_with_repair(team, pose, u, du, lo, hi, cfg, obstacles, pr)
@@ -453,14 +455,18 @@ class SafetyFilter:
             du = np.where(broken[:, None], du_qp, gate.du)
             braking, margin, safe = gate.braking & ~broken, gate.margin, gate.safe
             avoiding = avoiding | braking
+            # the repair moved their inputs (beyond the rounding of the gate's level arithmetic)
+            nudged = ~braking & ~broken & (np.abs(du - du_qp) > 1e-9 * scale[:, None]).any(axis=1)
             if braking.any():
                 message = f"{message}; backup braked {int(braking.sum())} robot(s)"
+            if nudged.any():
+                message = f"{message}; backup nudged {int(nudged.sum())} robot(s) toward brake-safety"
         else:
             margin = float(gap.min(initial=cfg.sensing_range - 2.0 * float(team.radius.max(initial=0.0))))
             safe = not (barrier_min < -_BARRIER_TOL or margin < -COLLISION_TOL)
         if not safe:
             status = "unsafe"
-        elif braking.any() and STATUSES.index(status) < STATUSES.index("backup"):
+        elif (braking.any() or nudged.any()) and STATUSES.index(status) < STATUSES.index("backup"):
             status = "backup"
         correction = np.linalg.norm(du - nominal_du, axis=1)
         result = FilterResult(
