@@ -336,9 +336,10 @@ def _settings_note(runs: list[dict[str, Any]]) -> str:
         parts.append(text)
     ev = runs[0]["eval_filter"]
     first = int(ev.get("seed", 10_000))
+    tuned = any(r.get("init_from") for r in runs)
     return ("; ".join(parts) + f". {ev['episodes']} evaluation episodes per row (seeds {first}-"
             f"{first + int(ev['episodes']) - 1}); mean ± half the range over seeds; collisions summed over "
-            "seeds; training wall time of (b)/(c) includes the bare run they start from.")
+            "seeds" + ("; training wall time of (b)/(c) includes the bare run they start from." if tuned else "."))
 
 
 def _figure(results: dict[str, Any], scene: str, path: Path) -> None:
