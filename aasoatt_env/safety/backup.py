@@ -152,7 +152,7 @@ class _Brake(NamedTuple):
     rate: np.ndarray  # dt / T, at most 1 (1 when at rest or stopping within one step)
     steps: np.ndarray  # steps to stop
     reach: np.ndarray  # envelope of the continuous braking arc + the largest deviation within a step
-    bulge: np.ndarray  # deviation within a braking step from its chord due to the deceleration itself
+    bulge: np.ndarray | None  # a point mass's deviation within a braking step from its chord (None: wheeled)
 
 
 def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float,
@@ -181,8 +181,11 @@ def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fracti
     # within a braking step a wheeled robot moves on an arc at the step-mean speeds (the simulator's
     # step): it deviates from its chord by the sagitta; a point mass decelerates along a parabola,
     # |du| dt^2 / 8 from its chord, with |du| <= speed / T = speed rate / dt in every braking step
-    bulge = np.zeros_like(speed) if team.is_diff_drive else (dt / 8.0) * speed * rate
-    return _Brake(pdot * moving, w, rate, steps, envelope + (dt * dt / 8.0) * speed * aw + bulge, bulge)
+    reach = envelope + (dt * dt / 8.0) * speed * aw
+    if team.is_diff_drive:
+        return _Brake(pdot * moving, w, rate, steps, reach, None)
+    bulge = (dt / 8.0) * speed * rate
+    return _Brake(pdot * moving, w, rate, steps, reach + bulge, bulge)
 
 
 def _brake_samples(p0: np.ndarray, b: _Brake, dt: float, L: int) -> tuple[np.ndarray, np.ndarray]:
@@ -196,7 +199,7 @@ def _brake_samples(p0: np.ndarray, b: _Brake, dt: float, L: int) -> tuple[np.nda
     p = p0[:, None] + (b.pdot[:, None] * tau) * _E(w * tau)
     s = 0.5 * (sigma[:, :-1] + sigma[:, 1:])  # step-mean speed scale
     delta = (dt * dt / 8.0) * np.abs(b.pdot)[:, None] * (s * s) * np.abs(w)
-    if b.bulge.any():  # point masses: the parabola of each step that still decelerates
+    if b.bulge is not None:  # point masses: the parabola of each step that still decelerates
         delta = delta + np.where(sigma[:, :-1] > 0.0, b.bulge[:, None], 0.0)
     return p, delta
 
@@ -293,11 +296,12 @@ def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.nda
     p = np.where(s == 0, p0[:, None], p)
     sig = 0.5 * (np.clip(1.0 - k * r, 0.0, 1.0) + np.clip(1.0 - (k + 1.0) * r, 0.0, 1.0))
     delta = (dt * dt / 8.0) * np.abs(b.pdot)[:, None] * (sig * sig) * np.abs(w)
-    if b.bulge.any():
+    if b.bulge is not None:
         delta = delta + np.where(np.clip(1.0 - k * r, 0.0, 1.0) > 0.0, b.bulge[:, None], 0.0)
     return p, np.where(s == 0, d1[:, None], delta)
 
 
 def _take(b: _Brake, idx: np.ndarray) -> _Brake:
     """The braking parameters of robots ``idx``."""
-    return _Brake(b.pdot[idx], b.omega[idx], b.rate[idx], b.steps[idx], b.reach[idx], b.bulge[idx])
+    return _Brake(b.pdot[idx], b.omega[idx], b.rate[idx], b.steps[idx], b.reach[idx],
+                  None if b.bulge is None else b.bulge[idx])
