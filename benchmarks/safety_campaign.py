@@ -278,6 +278,9 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=1, help="episodes in parallel processes")
     ap.add_argument("--out", default="results/safety_campaign.jsonl", help="JSONL results (appended; resumable)")
     args = ap.parse_args()
+    unknown = [p for p in args.presets if p not in PRESETS]
+    if unknown:
+        ap.error(f"--presets: got {unknown}, expected names among {list(PRESETS)}")
     {"adversarial": adversarial, "paper": paper, "summary": summary}[args.what](args)
 
 
