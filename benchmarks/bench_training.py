@@ -88,6 +88,29 @@ def bench(filtered: bool, timesteps: int, robots: int, n_envs: int, solver: str 
             "call_ms": 1e3 * float(np.median(calls)) if calls else float("nan")}
 
 
+def stepping_rate(robots: int, n_envs: int, workers: int, decisions: int = 40) -> float:
+    """Agent-steps/s of the filtered batch alone (no policy, no PPO): uniform random actions, after 5 decisions."""
+    from aasoatt_env.sim.batched import BatchedAASOATTEnv
+    from aasoatt_env.sim.sharded import ShardedBatchedEnv
+    from train.train import make_env
+
+    cfg = TrainConfig(num_robots=robots, n_envs=n_envs, filter=True, progress_bar=False, tensorboard=False,
+                      checkpoint_freq=0)
+    fns = [lambda: make_env(cfg) for _ in range(n_envs)]
+    batch = ShardedBatchedEnv(fns, workers) if workers > 1 else BatchedAASOATTEnv(fns)
+    try:
+        batch.reset(seed=0)
+        rng = np.random.default_rng(0)
+        for _ in range(5):
+            batch.step(rng.uniform(-1.0, 1.0, (n_envs, robots, 2)))
+        t = time.perf_counter()
+        for _ in range(decisions):
+            batch.step(rng.uniform(-1.0, 1.0, (n_envs, robots, 2)))
+        return decisions * n_envs * robots / (time.perf_counter() - t)
+    finally:
+        batch.close()
+
+
 class _Timed:
     """A control filter whose calls are timed (protocol attributes passed through)."""
 
@@ -109,7 +132,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--timesteps", type=int, default=24_576)
     p.add_argument("--robots", type=int, default=6)
-    p.add_argument("--n-envs", type=int, default=TrainConfig.n_envs, help="teams per process (the recipe's)")
+    p.add_argument("--n-envs", type=int, default=TrainConfig.n_envs,
+                   help="teams in all (the recipe's; split over the processes with --workers)")
     p.add_argument("--n-steps", type=int, default=TrainConfig.n_steps, help="rollout length per slot (the recipe's)")
     p.add_argument("--solver", default=None, help="filter QP solver (default: the filter's default)")
     p.add_argument("--model", default=None, help="start from this trained run (init_from)")
@@ -148,6 +172,9 @@ def main() -> None:
           f"{100 * rates[True, False, 1] / bare:.1f}% (one call per team)")
     if args.workers > 1:
         w = args.workers
+        one, many = (stepping_rate(args.robots, args.n_envs, k) for k in (1, w))
+        print(f"stepping alone behind the filter (no policy, no PPO; uniform random actions): {one:,.0f} "
+              f"agent-steps/s in one process, {many:,.0f} with {w} workers ({many / one:.2f}x)")
         print(f"with {w} worker processes: behind the filter {100 * rates[True, True, w] / bare:.1f}% of the "
               f"one-process bare rate, {100 * rates[True, True, w] / rates[False, True, w]:.1f}% of bare with "
               f"{w} workers; {rates[True, True, w] / rates[True, True, 1]:.2f}x the one-process filtered rate")

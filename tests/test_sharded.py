@@ -235,3 +235,69 @@ def test_the_batch_api_settings_checked_across_shards_and_worker_failures():
     mixed = _fns(2) + [lambda: make_env("random_goals", num_robots=4, decision_interval=7)]
     with pytest.raises(ConfigError, match=r"env_fns\[2\]: decision_interval differs from env 0's \(7 vs 5\)"):
         ShardedBatchedEnv(mixed, 2)
+
+
+def test_an_interrupted_step_still_books_live_without_autoreset():
+    """Teams of 5, 5 | 2, 2 decisions: the step that finishes teams 2 and 3 is interrupted before its replies
+    are read; the next step still knows they finished (their replies' ``live`` is read then) and steps no team."""
+    fns = [lambda m=m: make_env("random_goals", num_robots=4, decision_interval=5, max_steps=m) for m in (5, 5, 2, 2)]
+    sharded = ShardedBatchedEnv(fns, 2, autoreset=False)
+    try:
+        sharded.reset(seed=0)
+        sharded.step(np.zeros((4, 4, 2)))
+        receive, calls = sharded._receive, []
+
+        def interrupted(w):
+            if not calls:
+                calls.append(w)
+                raise KeyboardInterrupt
+            return receive(w)
+
+        sharded._receive = interrupted
+        with pytest.raises(KeyboardInterrupt):
+            sharded.step(np.zeros((4, 4, 2)))
+        sharded._receive = receive
+        with pytest.raises(ResetNeeded, match=r"team\(s\) \[2, 3\] finished"):
+            sharded.step(np.zeros((4, 4, 2)))
+        np.testing.assert_array_equal(sharded.elapsed_steps, [2, 2, 2, 2])
+        np.testing.assert_array_equal(sharded.live.any(axis=1), [True, True, False, False])
+    finally:
+        sharded.close()
+
+
+def test_an_interrupt_while_a_large_reply_is_read_is_held_back_until_it_is_read():
+    """A 16 MB reply takes several reads; SIGALRM raising KeyboardInterrupt fires during them. The interrupt
+    surfaces after the message (the pipes stay in step), and every later answer is right."""
+    sharded = ShardedBatchedEnv(_fns(2), 2)
+    previous = signal.getsignal(signal.SIGALRM)
+    try:
+        sharded.reset(seed=0)
+        big = np.arange(2_000_000, dtype=np.float64)
+        sharded.env_set(0, "big", big)
+        t = time.perf_counter()
+        sharded.env_get(0, "big")
+        dt = time.perf_counter() - t
+
+        def boom(*_):
+            raise KeyboardInterrupt
+
+        signal.signal(signal.SIGALRM, boom)
+        interrupted = 0
+        for frac in (0.2, 0.4, 0.6, 0.8):
+            signal.setitimer(signal.ITIMER_REAL, frac * dt)
+            try:
+                got = sharded.env_get(0, "big")
+                time.sleep(2 * dt)  # an interrupt after the call lands here
+            except KeyboardInterrupt:
+                interrupted += 1
+                continue
+            np.testing.assert_array_equal(got, big)
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        assert interrupted == 4
+        np.testing.assert_array_equal(sharded.env_get(0, "big"), big)  # in step, not broken
+        np.testing.assert_array_equal(sharded.max_steps, sharded.max_steps)
+        sharded.step(np.zeros((2, 4, 2)))
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+        sharded.close()

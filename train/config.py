@@ -239,8 +239,9 @@ class TrainConfig(EnvConfig):
         Processes stepping the teams: 1 (default) steps them in the training
         process; more split them into that many shards stepped at the same time
         (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`), so filtered
-        training uses more cores.  The same trajectories up to the rounding of the
-        grouped filter's QP (bit for bit without a filter).
+        training uses more cores.  Trajectories agree with one process bit for bit
+        without a filter, to rounding behind the grouped filter (its QP is
+        solved per shard).
     seed : int
         Seed of PPO, torch and the envs.
     learning_rate, gamma, gae_lambda, clip_range, ent_coef, vf_coef, max_grad_norm : float

@@ -291,6 +291,27 @@ def train(config: TrainConfig) -> Path:
     (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
     (run / POLICY_FILE).write_text(json.dumps(run_spec(config), indent=2))
     venv = make_vec_env(config)
+    try:
+        model, telemetry, elapsed = _learn(config, run, venv, source)
+    finally:
+        venv.close()  # (stops the worker processes of num_workers > 1 on every way out)
+    last = telemetry.history[-1] if telemetry.history else {}
+    (run / "train_stats.json").write_text(json.dumps(
+        {"wall_time_s": elapsed, "agent_steps": int(model.num_timesteps),
+         "agent_steps_per_s": model.num_timesteps / max(elapsed, 1e-9),
+         "last_rollout": {k: v for k, v in last.items() if v == v}}, indent=2))
+    if telemetry.history:
+        try:
+            plot_learning_curve({config.run_name or run.name: [telemetry.history]}, run / "learning_curve.png",
+                                title=f"{config.scenario}, {config.num_robots} robots, "
+                                f"{'behind the filter' if config.filter else 'bare'}, seed {config.seed}")
+        except ImportError:  # matplotlib is an optional extra (render/repro)
+            pass
+    return run / "model.zip"
+
+
+def _learn(config: TrainConfig, run: Path, venv: Any, source: Any) -> tuple[Any, Any, float]:
+    """Build the PPO on ``venv``, learn, save the model and statistics into ``run``: ``(model, telemetry, wall s)``."""
     model = build_model(config, venv, str(run / "tb") if config.tensorboard else None)
     if config.init_from is not None:
         init_policy(model, venv, config, source)
@@ -307,27 +328,12 @@ def train(config: TrainConfig) -> Path:
         print(f"training {run} ({config.total_timesteps:,} agent-steps, {config.n_envs} envs x "
               f"{config.num_robots} robots{workers}, {'behind the filter' if config.filter else 'bare'})", flush=True)
     t0 = time.perf_counter()
-    try:
-        model.learn(total_timesteps=config.total_timesteps, callback=callbacks, tb_log_name="ppo")
-        elapsed = time.perf_counter() - t0
-        model.save(run / "model.zip")
-        if config.normalize_obs:
-            save_stats(venv, stats_path(run / "model.zip"))
-    finally:
-        venv.close()  # (stops the worker processes of num_workers > 1 on every way out)
-    last = telemetry.history[-1] if telemetry.history else {}
-    (run / "train_stats.json").write_text(json.dumps(
-        {"wall_time_s": elapsed, "agent_steps": int(model.num_timesteps),
-         "agent_steps_per_s": model.num_timesteps / max(elapsed, 1e-9),
-         "last_rollout": {k: v for k, v in last.items() if v == v}}, indent=2))
-    if telemetry.history:
-        try:
-            plot_learning_curve({config.run_name or run.name: [telemetry.history]}, run / "learning_curve.png",
-                                title=f"{config.scenario}, {config.num_robots} robots, "
-                                f"{'behind the filter' if config.filter else 'bare'}, seed {config.seed}")
-        except ImportError:  # matplotlib is an optional extra (render/repro)
-            pass
-    return run / "model.zip"
+    model.learn(total_timesteps=config.total_timesteps, callback=callbacks, tb_log_name="ppo")
+    elapsed = time.perf_counter() - t0
+    model.save(run / "model.zip")
+    if config.normalize_obs:
+        save_stats(venv, stats_path(run / "model.zip"))
+    return model, telemetry, elapsed
 
 
 def build_parser(prog: str = "aasoatt train") -> argparse.ArgumentParser:

@@ -10,6 +10,8 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
+
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.wrapper import AASOATTFilter
@@ -88,7 +90,8 @@ def make_batched_env(
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")
     fns = [lambda: make_env(scenario, filter=filter, **env_kwargs) for _ in range(num_envs)]
-    if isinstance(num_workers, bool) or not isinstance(num_workers, int) or not 1 <= num_workers <= num_envs:
+    if isinstance(num_workers, bool) or not isinstance(num_workers, (int, np.integer)) or not (
+            1 <= num_workers <= num_envs):
         raise ConfigError(f"num_workers: got {num_workers!r}, expected an integer in [1, num_envs = {num_envs}]")
     if num_workers > 1:
         make_env(scenario, filter=filter, **env_kwargs).close()  # bad arguments fail here, not in a worker

@@ -27,10 +27,14 @@ torch threads), so a script that makes one must guard its entry point with
 both ways with ``cloudpickle`` (a Gymnasium dependency), so env constructors
 may be lambdas and closures.  An exception in a worker is raised again here
 with its class where it can be pickled, naming the worker, and the worker
-stays usable; workers ignore Ctrl-C (the caller decides), and a call
-interrupted here leaves its replies to be read and dropped before the next
-one, so the pipes never fall out of step.  A worker that dies makes every
-later call raise :class:`~aasoatt_env.errors.UsageError`.
+stays usable; workers ignore Ctrl-C (the caller decides).  A call interrupted
+here while it waits for the workers leaves their replies to be read and
+dropped before the next call (the teams' ``live`` is still taken from them);
+while a message is being written or read, Ctrl-C is held back until it is
+complete (POSIX, main thread), so the pipes stay in step.  Where that cannot
+be done, an interrupt inside a message leaves the pipe at an unknown place and
+every later call raises :class:`~aasoatt_env.errors.UsageError` (make a new
+env), as after a worker dies.
 
 API: that of :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` (``reset``,
 ``step``, ``live``, ``max_steps``, ``elapsed_steps``, the spaces, the shared
@@ -44,9 +48,12 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import signal
+import threading
 import time
 import traceback
-from collections.abc import Callable, Sequence
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 import cloudpickle
@@ -78,6 +85,37 @@ def _send(conn: Any, msg: Any) -> None:
 
 def _recv(conn: Any) -> Any:
     return cloudpickle.loads(conn.recv_bytes())
+
+
+@contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """Hold Ctrl-C (SIGINT, and SIGALRM) back while a message is written or read; raise it right after.
+
+    An interrupt inside a message would leave the pipe at an unknown place.  Python runs signal
+    handlers in the main thread between bytecodes, whichever thread the signal reached, so
+    swapping the Python-level handlers for ones that only take note holds them back; the
+    noted signals go to the original handlers (``KeyboardInterrupt`` for SIGINT) once the
+    message and its bookkeeping are done.  Off the main thread nothing is held back (an
+    interrupt inside a message then marks the env broken).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[tuple[int, Any]] = []
+    old = {sig: signal.getsignal(sig) for sig in _DEFERRED}
+    swapped = [sig for sig, h in old.items() if callable(h)]  # SIG_DFL / SIG_IGN stay as they are
+    for sig in swapped:
+        signal.signal(sig, lambda num, frame: held.append((num, frame)))
+    try:
+        yield
+    finally:
+        for sig in swapped:
+            signal.signal(sig, old[sig])
+        for num, frame in held:
+            old[num](num, frame)
+
+
+_DEFERRED = tuple(sig for sig in (signal.SIGINT, getattr(signal, "SIGALRM", None)) if sig is not None)
 
 
 def _reply(conn: Any, msg: Any) -> None:
@@ -194,7 +232,8 @@ class ShardedBatchedEnv:
         self.sizes = shard_sizes(k_all, int(num_workers))
         """Teams per worker."""
         self._starts = [0, *np.cumsum(self.sizes).tolist()]
-        self._pending = [0] * len(self.sizes)  # replies sent for and not yet read, per worker
+        self._pending: list[deque[str]] = [deque() for _ in self.sizes]  # commands sent, replies not yet read
+        self._broken: str | None = None  # why the pipes cannot be trusted any more
         self._closed = False
         try:
             for w in range(len(self.sizes)):
@@ -207,7 +246,7 @@ class ShardedBatchedEnv:
                 child.close()
                 self._conns.append(parent)
                 self._procs.append(proc)
-                self._pending[w] = 1  # its start-up report
+                self._pending[w].append("start")  # its start-up report
             firsts = [self._receive(w) for w in range(len(self.sizes))]
             for w, f in enumerate(firsts[1:], 1):  # every setting a batch shares, across the shards too
                 check_shared(f[0], firsts[0][0], self._starts[w])
@@ -245,14 +284,31 @@ class ShardedBatchedEnv:
                           "entry point with `if __name__ == '__main__':`)")
 
     def _receive(self, w: int) -> Any:
-        """Worker ``w``'s reply to its oldest pending command (its answer, or its error raised here)."""
+        """Worker ``w``'s reply to its oldest pending command (its answer, or its error raised here).
+
+        An interrupt while waiting for the reply (the usual place) leaves the reply to be read
+        later; one in the middle of reading it leaves the pipe at an unknown place: the env is
+        then broken (every later call says so).
+        """
+        conn = self._conns[w]
         try:
-            self._conns[w].poll(None)  # an interrupt lands here, while waiting, not inside a message
-            msg = _recv(self._conns[w])
+            conn.poll(None)
         except (EOFError, OSError):
-            self._pending[w] = 0
+            self._pending[w].clear()
             raise self._dead(w) from None
-        self._pending[w] -= 1
+        with _signals_deferred():  # a Ctrl-C while the message is read acts once it is read and booked
+            try:
+                msg = _recv(conn)
+            except (EOFError, OSError):
+                self._pending[w].clear()
+                raise self._dead(w) from None
+            except BaseException:  # interrupted where signals cannot be held back: the pipe's place is unknown
+                self._broken = f"a call was interrupted while reading {self._teams(w)}'s reply"
+                raise
+            cmd = self._pending[w].popleft()
+            if msg[0] == "ok" and cmd in ("step", "reset"):  # `live` follows every step and reset, read now
+                a, b = self._starts[w], self._starts[w + 1]  # or later
+                self._live[a:b] = msg[1][-1]
         if msg[0] == "ok":
             return msg[1]
         exc, tb = msg[1], msg[2]
@@ -261,8 +317,11 @@ class ShardedBatchedEnv:
         raise exc
 
     def _drain(self, w: int) -> None:
-        """Read and drop the replies to calls interrupted before they were read."""
-        while self._pending[w] > 0:
+        """Read and drop the replies (answers or errors) of calls interrupted before they were read.
+
+        A dropped step's or reset's ``live`` is still applied (:meth:`_receive`).
+        """
+        while self._pending[w]:
             try:
                 self._receive(w)
             except UsageError:
@@ -270,13 +329,25 @@ class ShardedBatchedEnv:
             except Exception:  # noqa: BLE001 - the answer of an interrupted call: dropped
                 pass
 
+    def _settle(self) -> None:
+        """Read the replies of interrupted calls now (so ``live`` is the workers')."""
+        self._check_open()
+        for w in range(len(self._conns)):
+            self._drain(w)
+
     def _post(self, w: int, msg: tuple) -> None:
         self._drain(w)
-        try:
-            _send(self._conns[w], msg)
-        except (BrokenPipeError, OSError):
-            raise self._dead(w) from None
-        self._pending[w] += 1
+        data = cloudpickle.dumps(msg)  # a value that cannot be pickled fails here, before anything is sent
+        with _signals_deferred():
+            self._pending[w].append(msg[0])
+            try:
+                self._conns[w].send_bytes(data)
+            except (BrokenPipeError, OSError):
+                self._pending[w].clear()
+                raise self._dead(w) from None
+            except BaseException:  # interrupted while writing: how much the worker got is unknown
+                self._broken = f"a call was interrupted while sending to {self._teams(w)}"
+                raise
 
     def _all(self, cmd: str, args: Sequence[Any]) -> list[Any]:
         """Send ``(cmd, args[w])`` to every worker, then collect the answers (raising the first error)."""
@@ -304,6 +375,9 @@ class ShardedBatchedEnv:
     def _check_open(self) -> None:
         if self._closed:
             raise UsageError("ShardedBatchedEnv: closed; make a new one")
+        if self._broken:
+            raise UsageError(f"ShardedBatchedEnv: {self._broken}, so its pipes cannot be trusted; close it and make "
+                             "a new one")
 
     def _split(self, arr: np.ndarray) -> list[np.ndarray]:
         return [arr[self._starts[w]:self._starts[w + 1]] for w in range(len(self.sizes))]
@@ -323,6 +397,8 @@ class ShardedBatchedEnv:
     @property
     def live(self) -> np.ndarray:
         """``(K, N)`` bool: agents that act at the next ``step`` (a copy)."""
+        if any(self._pending):
+            self._settle()
         return self._live.copy()
 
     @property
@@ -340,8 +416,7 @@ class ShardedBatchedEnv:
         """Reset every team (as :meth:`BatchedAASOATTEnv.reset`: team ``k`` gets ``seed + k``)."""
         seeds, opts = per_team_reset_args(seed, options, self.num_envs)
         out = self._all("reset", [(seeds[a:b], opts[a:b]) for a, b in zip(self._starts[:-1], self._starts[1:])])
-        self._live = np.concatenate([o[2] for o in out])
-        self._started = True
+        self._started = True  # (`live` was taken from the replies)
         return np.concatenate([o[0] for o in out]), {}
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
@@ -350,7 +425,7 @@ class ShardedBatchedEnv:
         The actions are checked here first (the batch's checks and messages), so a bad action
         steps no team.
         """
-        self._check_open()
+        self._settle()
         if not self._started:
             raise ResetNeeded("step(): call reset() first")
         if not self.autoreset:
@@ -361,7 +436,6 @@ class ShardedBatchedEnv:
         arr = np.asarray(actions).reshape(self.num_envs, self.num_agents, 2)
         out = self._all("step", self._split(arr))
         obs, rew, term, trunc = (np.concatenate([o[i] for o in out]) for i in range(4))
-        self._live = np.concatenate([o[5] for o in out])
         infos: dict[str, Any] = {}
         for key in out[0][4]:
             if key not in ("final_obs", "_final_obs"):
