@@ -6,6 +6,7 @@ import os
 import signal
 import time
 
+import cloudpickle
 import numpy as np
 import pytest
 
@@ -265,11 +266,12 @@ def test_an_interrupted_step_still_books_live_without_autoreset():
         sharded.close()
 
 
-def test_an_interrupt_while_a_large_reply_is_read_is_held_back_until_it_is_read():
-    """A 16 MB reply takes several reads; SIGALRM raising KeyboardInterrupt fires during them. The interrupt
-    surfaces after the message (the pipes stay in step), and every later answer is right."""
+def test_interrupts_at_any_moment_give_right_answers_or_say_the_env_is_broken():
+    """SIGALRM raising KeyboardInterrupt at 20-80% of a 16 MB reply's time, many times: an interrupted call
+    raises; every answer after it is right, or (a message cut in two) every call says the env is broken;
+    the signal handlers are the caller's throughout (never swapped)."""
     sharded = ShardedBatchedEnv(_fns(2), 2)
-    previous = signal.getsignal(signal.SIGALRM)
+    previous, before = signal.getsignal(signal.SIGALRM), signal.getsignal(signal.SIGINT)
     try:
         sharded.reset(seed=0)
         big = np.arange(2_000_000, dtype=np.float64)
@@ -282,22 +284,79 @@ def test_an_interrupt_while_a_large_reply_is_read_is_held_back_until_it_is_read(
             raise KeyboardInterrupt
 
         signal.signal(signal.SIGALRM, boom)
-        interrupted = 0
-        for frac in (0.2, 0.4, 0.6, 0.8):
+        outcomes = {"interrupted": 0, "right": 0, "broken": 0}
+        for frac in np.linspace(0.1, 0.9, 12):
             signal.setitimer(signal.ITIMER_REAL, frac * dt)
             try:
                 got = sharded.env_get(0, "big")
                 time.sleep(2 * dt)  # an interrupt after the call lands here
             except KeyboardInterrupt:
-                interrupted += 1
+                outcomes["interrupted"] += 1
                 continue
-            np.testing.assert_array_equal(got, big)
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        assert interrupted == 4
-        np.testing.assert_array_equal(sharded.env_get(0, "big"), big)  # in step, not broken
-        np.testing.assert_array_equal(sharded.max_steps, sharded.max_steps)
-        sharded.step(np.zeros((2, 4, 2)))
+            except UsageError as err:  # an earlier interrupt cut a message in two
+                assert "cannot be trusted" in str(err)
+                outcomes["broken"] += 1
+                break
+            finally:
+                signal.setitimer(signal.ITIMER_REAL, 0)
+            np.testing.assert_array_equal(got, big)  # never a wrong answer
+            outcomes["right"] += 1
+        assert outcomes["interrupted"] >= 1
+        assert signal.getsignal(signal.SIGALRM) is boom and signal.getsignal(signal.SIGINT) is before
+        try:
+            np.testing.assert_array_equal(sharded.env_get(0, "big"), big)
+            sharded.step(np.zeros((2, 4, 2)))
+        except UsageError as err:  # a message was cut in two: every call says so
+            assert "cannot be trusted" in str(err)
+            with pytest.raises(UsageError, match="cannot be trusted"):
+                sharded.max_steps  # noqa: B018
     finally:
         signal.setitimer(signal.ITIMER_REAL, 0)
         signal.signal(signal.SIGALRM, previous)
+        t = time.perf_counter()
+        sharded.close()
+        assert time.perf_counter() - t < 4.0  # a broken env is stopped at once
+
+
+def test_a_timeout_while_waiting_a_stale_error_or_an_unreadable_reply_do_not_derail_the_env(monkeypatch):
+    """A signal handler's TimeoutError while waiting is not a dead worker; the error a worker sent for an
+    interrupted call is not raised by the next, unrelated call; a whole reply that cannot be unpickled is
+    that call's error, and the env goes on."""
+    sharded = ShardedBatchedEnv(_fns(2), 2)
+    try:
+        sharded.reset(seed=0)
+        conn = sharded._conns[0]
+        real_poll, calls = conn.poll, []
+
+        def poll_times_out(*a):
+            if not calls:
+                calls.append(1)
+                raise TimeoutError("a timeout raised by the caller's alarm")
+            return real_poll(*a)
+
+        monkeypatch.setattr(conn, "poll", poll_times_out)
+        with pytest.raises(TimeoutError):
+            sharded.env_get(0, "num_agents")
+        monkeypatch.undo()
+        assert sharded.env_get(0, "dt") == 0.005 and sharded.max_steps.shape == (2,)  # in step
+        receive, seen = sharded._receive, []
+
+        def interrupted(w):
+            if not seen:
+                seen.append(w)
+                raise KeyboardInterrupt
+            return receive(w)
+
+        sharded._receive = interrupted  # a call whose reply will be an error, interrupted before reading it
+        with pytest.raises(KeyboardInterrupt):
+            sharded.env_call(0, "no_such_method")
+        sharded._receive = receive
+        obs, _ = sharded.reset(seed=1)  # not the stale AttributeError
+        assert obs.shape[0] == 2
+        monkeypatch.setattr(cloudpickle, "loads", lambda data: (_ for _ in ()).throw(ValueError("corrupt")))
+        with pytest.raises(UsageError, match=r"its reply could not be read \(ValueError: corrupt\)"):
+            sharded.env_get(1, "dt")
+        monkeypatch.undo()
+        assert sharded.env_get(1, "dt") == 0.005
+    finally:
         sharded.close()

@@ -28,13 +28,14 @@ both ways with ``cloudpickle`` (a Gymnasium dependency), so env constructors
 may be lambdas and closures.  An exception in a worker is raised again here
 with its class where it can be pickled, naming the worker, and the worker
 stays usable; workers ignore Ctrl-C (the caller decides).  A call interrupted
-here while it waits for the workers leaves their replies to be read and
-dropped before the next call (the teams' ``live`` is still taken from them);
-while a message is being written or read, Ctrl-C is held back until it is
-complete (POSIX, main thread), so the pipes stay in step.  Where that cannot
-be done, an interrupt inside a message leaves the pipe at an unknown place and
-every later call raises :class:`~aasoatt_env.errors.UsageError` (make a new
-env), as after a worker dies.
+here while it waits for the workers (where an interrupt almost always lands)
+leaves their replies to be read and dropped before the next call (the teams'
+``live`` is still taken from them), so the pipes stay in step.  An interrupt
+that cuts a message in two (while it is being written or read), or that falls
+between the sends of one command to several workers, leaves the pipes or the
+shards out of step: then every later call raises
+:class:`~aasoatt_env.errors.UsageError` saying so (make a new env), as after a
+worker dies.  Signal handlers are never touched.
 
 API: that of :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` (``reset``,
 ``step``, ``live``, ``max_steps``, ``elapsed_steps``, the spaces, the shared
@@ -48,12 +49,10 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import signal
-import threading
 import time
 import traceback
 from collections import deque
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import cloudpickle
@@ -85,37 +84,6 @@ def _send(conn: Any, msg: Any) -> None:
 
 def _recv(conn: Any) -> Any:
     return cloudpickle.loads(conn.recv_bytes())
-
-
-@contextmanager
-def _signals_deferred() -> Iterator[None]:
-    """Hold Ctrl-C (SIGINT, and SIGALRM) back while a message is written or read; raise it right after.
-
-    An interrupt inside a message would leave the pipe at an unknown place.  Python runs signal
-    handlers in the main thread between bytecodes, whichever thread the signal reached, so
-    swapping the Python-level handlers for ones that only take note holds them back; the
-    noted signals go to the original handlers (``KeyboardInterrupt`` for SIGINT) once the
-    message and its bookkeeping are done.  Off the main thread nothing is held back (an
-    interrupt inside a message then marks the env broken).
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    held: list[tuple[int, Any]] = []
-    old = {sig: signal.getsignal(sig) for sig in _DEFERRED}
-    swapped = [sig for sig, h in old.items() if callable(h)]  # SIG_DFL / SIG_IGN stay as they are
-    for sig in swapped:
-        signal.signal(sig, lambda num, frame: held.append((num, frame)))
-    try:
-        yield
-    finally:
-        for sig in swapped:
-            signal.signal(sig, old[sig])
-        for num, frame in held:
-            old[num](num, frame)
-
-
-_DEFERRED = tuple(sig for sig in (signal.SIGINT, getattr(signal, "SIGALRM", None)) if sig is not None)
 
 
 def _reply(conn: Any, msg: Any) -> None:
@@ -187,6 +155,10 @@ def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offs
         except Exception as exc:  # noqa: BLE001 - reported; the worker goes on
             _reply(conn, _error(exc))
     conn.close()
+
+
+class _LinkDown(UsageError):
+    """A worker died: every later call fails (a reply of an interrupted call is not this)."""
 
 
 class ShardedBatchedEnv:
@@ -276,40 +248,52 @@ class ShardedBatchedEnv:
     def _teams(self, w: int) -> str:
         return f"worker {w} (teams {self._starts[w]}..{self._starts[w + 1] - 1})"
 
-    def _dead(self, w: int) -> UsageError:
+    def _dead(self, w: int) -> _LinkDown:
         self._procs[w].join(timeout=1.0)
         code = self._procs[w].exitcode
-        return UsageError(f"{self._teams(w)} died" + (f" with exit code {code}" if code is not None else "")
-                          + "; close this env and make a new one (a script that starts workers must guard its "
-                          "entry point with `if __name__ == '__main__':`)")
+        return _LinkDown(f"{self._teams(w)} died" + (f" with exit code {code}" if code is not None else "")
+                         + "; close this env and make a new one (a script that starts workers must guard its "
+                         "entry point with `if __name__ == '__main__':`)")
+
+    def _torn(self, w: int, what: str) -> None:
+        """A message to or from worker ``w`` was cut by an exception: the pipe's place is unknown from now on."""
+        self._broken = f"a call was interrupted while {what} {self._teams(w)}"
 
     def _receive(self, w: int) -> Any:
         """Worker ``w``'s reply to its oldest pending command (its answer, or its error raised here).
 
-        An interrupt while waiting for the reply (the usual place) leaves the reply to be read
-        later; one in the middle of reading it leaves the pipe at an unknown place: the env is
-        then broken (every later call says so).
+        An interrupt while waiting for the reply (where it almost always lands) leaves the reply
+        to be read later; one in the middle of reading it leaves the pipe at an unknown place: the
+        env is then broken (every later call says so).
         """
         conn = self._conns[w]
         try:
             conn.poll(None)
+        except EOFError:
+            self._pending[w].clear()
+            raise self._dead(w) from None
+        except OSError:  # e.g. a timeout raised by a signal handler: nothing was read
+            if self._procs[w].is_alive():
+                raise
+            self._pending[w].clear()
+            raise self._dead(w) from None
+        try:
+            data = conn.recv_bytes()
         except (EOFError, OSError):
             self._pending[w].clear()
             raise self._dead(w) from None
-        with _signals_deferred():  # a Ctrl-C while the message is read acts once it is read and booked
-            try:
-                msg = _recv(conn)
-            except (EOFError, OSError):
-                self._pending[w].clear()
-                raise self._dead(w) from None
-            except BaseException:  # interrupted where signals cannot be held back: the pipe's place is unknown
-                self._broken = f"a call was interrupted while reading {self._teams(w)}'s reply"
-                raise
-            cmd = self._pending[w].popleft()
-            if msg[0] == "ok" and cmd in ("step", "reset"):  # `live` follows every step and reset, read now
-                a, b = self._starts[w], self._starts[w + 1]  # or later
-                self._live[a:b] = msg[1][-1]
+        except BaseException:
+            self._torn(w, "reading the reply of")
+            raise
+        cmd = self._pending[w].popleft()
+        try:
+            msg = cloudpickle.loads(data)
+        except Exception as exc:  # noqa: BLE001 - a whole reply that cannot be read is that call's error
+            raise UsageError(f"{self._teams(w)}: its reply could not be read ({type(exc).__name__}: {exc})") from None
         if msg[0] == "ok":
+            if cmd in ("step", "reset"):  # `live` follows every step and reset, read now or drained later
+                a, b = self._starts[w], self._starts[w + 1]
+                self._live[a:b] = msg[1][-1]
             return msg[1]
         exc, tb = msg[1], msg[2]
         if hasattr(exc, "add_note") and tb:  # Python >= 3.11
@@ -319,14 +303,17 @@ class ShardedBatchedEnv:
     def _drain(self, w: int) -> None:
         """Read and drop the replies (answers or errors) of calls interrupted before they were read.
 
-        A dropped step's or reset's ``live`` is still applied (:meth:`_receive`).
+        A dropped step's or reset's ``live`` is still booked (:meth:`_receive`); only a dead worker
+        or a torn message comes out of here.
         """
         while self._pending[w]:
+            if self._broken:
+                raise UsageError(self._broken_message())
             try:
                 self._receive(w)
-            except UsageError:
+            except _LinkDown:
                 raise
-            except Exception:  # noqa: BLE001 - the answer of an interrupted call: dropped
+            except Exception:  # noqa: BLE001 - the answer or error of an interrupted call: dropped
                 pass
 
     def _settle(self) -> None:
@@ -338,22 +325,31 @@ class ShardedBatchedEnv:
     def _post(self, w: int, msg: tuple) -> None:
         self._drain(w)
         data = cloudpickle.dumps(msg)  # a value that cannot be pickled fails here, before anything is sent
-        with _signals_deferred():
-            self._pending[w].append(msg[0])
-            try:
-                self._conns[w].send_bytes(data)
-            except (BrokenPipeError, OSError):
+        self._pending[w].append(msg[0])
+        try:
+            self._conns[w].send_bytes(data)
+        except (BrokenPipeError, OSError):
+            if not self._procs[w].is_alive():
                 self._pending[w].clear()
                 raise self._dead(w) from None
-            except BaseException:  # interrupted while writing: how much the worker got is unknown
-                self._broken = f"a call was interrupted while sending to {self._teams(w)}"
-                raise
+            self._torn(w, "sending to")
+            raise
+        except BaseException:  # interrupted while writing: how much the worker got is unknown
+            self._torn(w, "sending to")
+            raise
 
     def _all(self, cmd: str, args: Sequence[Any]) -> list[Any]:
         """Send ``(cmd, args[w])`` to every worker, then collect the answers (raising the first error)."""
         self._check_open()
-        for w in range(len(self._conns)):
-            self._post(w, (cmd, args[w]))
+        try:
+            for w in range(len(self._conns)):
+                self._post(w, (cmd, args[w]))
+        except _LinkDown:
+            raise
+        except BaseException:  # interrupted between the sends: some shards may have the command, others not
+            if not self._broken and len(self._conns) > 1:
+                self._broken = f"a {cmd!r} call was interrupted while it was being sent to the workers"
+            raise
         out, first = [], None
         for w in range(len(self._conns)):
             try:
@@ -372,12 +368,14 @@ class ShardedBatchedEnv:
         self._post(w, (cmd, (k - self._starts[w], *args)))
         return self._receive(w)
 
+    def _broken_message(self) -> str:
+        return f"ShardedBatchedEnv: {self._broken}, so its pipes cannot be trusted; close it and make a new one"
+
     def _check_open(self) -> None:
         if self._closed:
             raise UsageError("ShardedBatchedEnv: closed; make a new one")
         if self._broken:
-            raise UsageError(f"ShardedBatchedEnv: {self._broken}, so its pipes cannot be trusted; close it and make "
-                             "a new one")
+            raise UsageError(self._broken_message())
 
     def _split(self, arr: np.ndarray) -> list[np.ndarray]:
         return [arr[self._starts[w]:self._starts[w + 1]] for w in range(len(self.sizes))]
@@ -478,6 +476,8 @@ class ShardedBatchedEnv:
         self._closed = True
         deadline = time.monotonic() + timeout
         try:
+            if self._broken:  # the pipes cannot be read in step: stop the workers at once (finally)
+                return
             for conn in self._conns:
                 try:
                     _send(conn, ("close", None))
