@@ -21,6 +21,20 @@ def _fns(k: int, **kw):
     return [lambda: make_env("random_goals", num_robots=4, **kw) for _ in range(k)]
 
 
+def _interrupt_next_read(sharded):
+    """Make the next reply read raise KeyboardInterrupt (Ctrl-C while waiting); returns the undo."""
+    receive, calls = sharded._receive, []
+
+    def interrupted(w):
+        if not calls:
+            calls.append(w)
+            raise KeyboardInterrupt
+        return receive(w)
+
+    sharded._receive = interrupted
+    return lambda: setattr(sharded, "_receive", receive)
+
+
 def _same_steps(a, b, steps: int, rng, exact: bool = True) -> tuple[int, int]:
     """Step both with the same random actions; every array of every step equal. Team resets and dead slot-steps."""
     resets = dead = 0
@@ -180,18 +194,10 @@ def test_a_bad_action_or_an_interrupted_call_leaves_the_shards_in_step():
         with pytest.raises(ActionError, match=r"got shape \(4, 4, 2\) \(dtype <U1\)"):
             sharded.step(np.full((4, 4, 2), "a"))
         np.testing.assert_array_equal(sharded.elapsed_steps, one.elapsed_steps)  # nobody stepped
-        receive, calls = sharded._receive, []
-
-        def interrupted(w):
-            if not calls:
-                calls.append(w)
-                raise KeyboardInterrupt
-            return receive(w)
-
-        sharded._receive = interrupted  # Ctrl-C while waiting for the step's replies
+        undo = _interrupt_next_read(sharded)  # Ctrl-C while waiting for the step's replies
         with pytest.raises(KeyboardInterrupt):
             sharded.step(np.zeros((4, 4, 2)))
-        sharded._receive = receive
+        undo()
         one.step(np.zeros((4, 4, 2)))  # the workers did step
         np.testing.assert_array_equal(sharded.elapsed_steps, one.elapsed_steps)
         np.testing.assert_array_equal(sharded.reset(seed=5)[0], one.reset(seed=5)[0])
@@ -246,18 +252,10 @@ def test_an_interrupted_step_still_books_live_without_autoreset():
     try:
         sharded.reset(seed=0)
         sharded.step(np.zeros((4, 4, 2)))
-        receive, calls = sharded._receive, []
-
-        def interrupted(w):
-            if not calls:
-                calls.append(w)
-                raise KeyboardInterrupt
-            return receive(w)
-
-        sharded._receive = interrupted
+        undo = _interrupt_next_read(sharded)
         with pytest.raises(KeyboardInterrupt):
             sharded.step(np.zeros((4, 4, 2)))
-        sharded._receive = receive
+        undo()
         with pytest.raises(ResetNeeded, match=r"team\(s\) \[2, 3\] finished"):
             sharded.step(np.zeros((4, 4, 2)))
         np.testing.assert_array_equal(sharded.elapsed_steps, [2, 2, 2, 2])
@@ -339,18 +337,10 @@ def test_a_timeout_while_waiting_a_stale_error_or_an_unreadable_reply_do_not_der
             sharded.env_get(0, "num_agents")
         monkeypatch.undo()
         assert sharded.env_get(0, "dt") == 0.005 and sharded.max_steps.shape == (2,)  # in step
-        receive, seen = sharded._receive, []
-
-        def interrupted(w):
-            if not seen:
-                seen.append(w)
-                raise KeyboardInterrupt
-            return receive(w)
-
-        sharded._receive = interrupted  # a call whose reply will be an error, interrupted before reading it
+        undo = _interrupt_next_read(sharded)  # a call whose reply will be an error, interrupted before reading it
         with pytest.raises(KeyboardInterrupt):
             sharded.env_call(0, "no_such_method")
-        sharded._receive = receive
+        undo()
         obs, _ = sharded.reset(seed=1)  # not the stale AttributeError
         assert obs.shape[0] == 2
         monkeypatch.setattr(cloudpickle, "loads", lambda data: (_ for _ in ()).throw(ValueError("corrupt")))

@@ -144,14 +144,8 @@ class BatchedAASOATTEnv:
         self.agent_action_space: spaces.Box = agent_act
         """One robot's action space ``Box(-1, 1, (2,))``."""
         n, k = self.num_agents, self.num_envs
-        self.single_observation_space = spaces.Box(
-            np.broadcast_to(agent_obs.low, (n, *agent_obs.shape)),
-            np.broadcast_to(agent_obs.high, (n, *agent_obs.shape)), dtype=agent_obs.dtype)
-        self.single_action_space = spaces.Box(-1.0, 1.0, (n, 2), np.float32)
-        self.observation_space = spaces.Box(
-            np.broadcast_to(agent_obs.low, (k, n, *agent_obs.shape)),
-            np.broadcast_to(agent_obs.high, (k, n, *agent_obs.shape)), dtype=agent_obs.dtype)
-        self.action_space = spaces.Box(-1.0, 1.0, (k, n, 2), np.float32)
+        (self.single_observation_space, self.single_action_space, self.observation_space,
+         self.action_space) = batch_spaces(agent_obs, n, k)
         self._filtered = first.control_filter is not None
         self._nominal = self._filtered and bool(first.control_filter.keeps_input_bounds) and not first.clip_actions
         self.nominal_actions = self._nominal
@@ -599,6 +593,19 @@ def _intervened(out: Any) -> np.ndarray:
     """A filter output's ``intervened`` flags, or ``correction > 0`` for outputs without them."""
     flag = getattr(out, "intervened", None)
     return np.asarray(flag if flag is not None else np.asarray(out.correction) > 0.0, dtype=bool)
+
+
+def batch_spaces(agent_obs: spaces.Box, n: int, k: int) -> tuple[spaces.Box, spaces.Box, spaces.Box, spaces.Box]:
+    """A team's and the batch's spaces from one robot's observation space.
+
+    ``(N, D)`` and ``(N, 2)`` for a team, ``(K, N, D)`` and ``(K, N, 2)`` for the batch (actions in ``[-1, 1]``).
+    """
+    team_obs = spaces.Box(np.broadcast_to(agent_obs.low, (n, *agent_obs.shape)),
+                          np.broadcast_to(agent_obs.high, (n, *agent_obs.shape)), dtype=agent_obs.dtype)
+    batch_obs = spaces.Box(np.broadcast_to(agent_obs.low, (k, n, *agent_obs.shape)),
+                           np.broadcast_to(agent_obs.high, (k, n, *agent_obs.shape)), dtype=agent_obs.dtype)
+    return (team_obs, spaces.Box(-1.0, 1.0, (n, 2), np.float32), batch_obs,
+            spaces.Box(-1.0, 1.0, (k, n, 2), np.float32))
 
 
 SHARED_SETTINGS = ("possible_agents", "dt", "decision_interval", "action_mode", "num_neighbors", "num_obstacles",

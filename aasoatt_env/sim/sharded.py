@@ -62,6 +62,7 @@ from gymnasium import spaces
 from aasoatt_env.errors import ConfigError, ResetNeeded, UsageError
 from aasoatt_env.sim.batched import (
     BatchedAASOATTEnv,
+    batch_spaces,
     check_shared,
     finished_error,
     parse_actions,
@@ -232,15 +233,8 @@ class ShardedBatchedEnv:
             setattr(self, name, self.shared_settings[name])
         self.agent_observation_space: spaces.Box = agent_obs
         self.agent_action_space: spaces.Box = agent_act
-        n, k = self.num_agents, k_all
-        self.single_observation_space = spaces.Box(
-            np.broadcast_to(agent_obs.low, (n, *agent_obs.shape)),
-            np.broadcast_to(agent_obs.high, (n, *agent_obs.shape)), dtype=agent_obs.dtype)
-        self.single_action_space = spaces.Box(-1.0, 1.0, (n, 2), np.float32)
-        self.observation_space = spaces.Box(
-            np.broadcast_to(agent_obs.low, (k, n, *agent_obs.shape)),
-            np.broadcast_to(agent_obs.high, (k, n, *agent_obs.shape)), dtype=agent_obs.dtype)
-        self.action_space = spaces.Box(-1.0, 1.0, (k, n, 2), np.float32)
+        (self.single_observation_space, self.single_action_space, self.observation_space,
+         self.action_space) = batch_spaces(agent_obs, self.num_agents, k_all)
         self._live = np.zeros((k_all, self.num_agents), dtype=bool)
         self._started = False
 
