@@ -27,13 +27,22 @@ Ratios are against ``ours`` in the same run.  Exactness: the largest
 ``|du - du_ref|`` of ``layer off`` over every step, ``du_ref`` from an
 independent solver (quadprog up to 300 robots, Clarabel at 1e-10 above).
 
-Usage: python benchmarks/bench_filter.py [--quick] [--sizes 39,100] [--steps 20]
+``--calls`` adds, per scene, the Python-level function calls and the C-level
+calls (numpy and scipy functions and methods; operators such as ``a + b`` are not
+counted) of one ``ours`` and one ``layer off`` step, averaged over the sequence
+(counted in a separate pass, not in the timed one), and the timed median divided by
+them: where that is near the cost of one small numpy call (about a microsecond), the
+step's time is the overhead of its calls rather than arithmetic, and only fewer calls
+(a compiled kernel) make it faster.
+
+Usage: python benchmarks/bench_filter.py [--quick] [--sizes 39,100] [--steps 20] [--calls]
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import sys
 import time
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -126,8 +135,29 @@ def _reference(team, seq, deadlock):
     return [f.step(kin, u, th, nom, lo, hi, reference=ref)[0] for kin, u, th, nom, lo, hi, ref in seq]
 
 
-def bench(label: str, team, seq, deadlock: str, reps: int) -> dict:
+def calls_per_step(team, seq, deadlock: str, **kw) -> tuple[float, float]:
+    """Python-level and C-level calls per filter step along ``seq`` (``sys.setprofile``; operators not counted)."""
+    f = SafetyFilter(team, deadlock=deadlock, **kw)
+    f.reset()
+    count = {"call": 0, "c_call": 0}
+
+    def tally(frame, event, arg):
+        if event in count:
+            count[event] += 1
+
+    sys.setprofile(tally)
+    try:
+        for kin, u, th, nom, lo, hi, r in seq:
+            f.step(kin, u, th, nom, lo, hi, reference=r)
+    finally:
+        sys.setprofile(None)
+    return count["call"] / len(seq), count["c_call"] / len(seq)
+
+
+def bench(label: str, team, seq, deadlock: str, reps: int, calls: bool = False) -> dict:
     out = {"scene": label, "N": team.n}
+    if calls:
+        out["calls"] = (calls_per_step(team, seq, deadlock), calls_per_step(team, seq, deadlock, backup=False))
     ref = _reference(team, seq, deadlock)
     for name, kw in VARIANTS.items():
         if kw.get("solver", "proxsuite") not in available_solvers() or team.n > SLOW.get(name, 10**9):
@@ -165,22 +195,23 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="N <= 300, 8 steps per scene")
     ap.add_argument("--steps", type=int, default=20, help="consecutive physics steps per scene")
     ap.add_argument("--sizes", default=None, help="comma-separated grid sizes (default 39,100,300,1000,3000,10000)")
+    ap.add_argument("--calls", action="store_true", help="also count the Python and C calls of a step (own pass)")
     args = ap.parse_args()
     steps = 8 if args.quick else args.steps
     sizes = [int(s) for s in args.sizes.split(",")] if args.sizes else (
         [39, 100, 300] if args.quick else [39, 100, 300, 1000, 3000, 10000])
     rows = []
     for n in (10, 39):
-        rows.append(bench("circle", *circle_sequence(n, steps), reps=3))
+        rows.append(bench("circle", *circle_sequence(n, steps), reps=3, calls=args.calls))
         print(f"  done circle N={n}", flush=True)
     for n in sizes:
         if n <= 3000:
             k = steps if n <= 300 else max(4, steps // 4)
-            rows.append(bench("packed", *grid_sequence(n, k, 1.1, 30.0), reps=3 if n <= 300 else 1))
+            rows.append(bench("packed", *grid_sequence(n, k, 1.1, 30.0), reps=3 if n <= 300 else 1, calls=args.calls))
             print(f"  done packed N={n}", flush=True)
     for n in sizes:
         k = steps if n <= 300 else max(4, steps // 4)
-        rows.append(bench("spread", *grid_sequence(n, k, 2.0, 3.0), reps=3 if n <= 300 else 1))
+        rows.append(bench("spread", *grid_sequence(n, k, 2.0, 3.0), reps=3 if n <= 300 else 1, calls=args.calls))
         print(f"  done spread N={n}", flush=True)
     names = list(VARIANTS)
     print("\nmedian ms per filter step along the sequence; ratio = variant / ours\n")
@@ -193,6 +224,15 @@ def main() -> None:
               + " ".join(_fmt(r[k] * 1e3, 10, 2) for k in names) + " "
               + " ".join(_fmt(r[k] / r['ours'], 14, 2) for k in names[1:]) + f" {r.get('err', float('nan')):8.1e}")
     print("\nerr: largest |du - du_ref| [rad/s^2] of 'layer off' over every step against an independent solver")
+    if args.calls:
+        print("\ncalls per filter step (Python-level function calls + C-level calls; operators not counted), "
+              "and the timed median per call\n")
+        print(f"{'scene':7s} {'N':>6s} {'ours calls':>11s} {'us/call':>8s} {'layer off calls':>16s} {'us/call':>8s} "
+              f"{'backup layer calls':>19s}")
+        for r in rows:
+            (po, co), (pl, cl) = r["calls"]
+            print(f"{r['scene']:7s} {r['N']:6d} {po + co:11.0f} {1e6 * r['ours'] / (po + co):8.2f} {pl + cl:16.0f} "
+                  f"{1e6 * r['layer off'] / (pl + cl):8.2f} {po + co - pl - cl:19.0f}")
 
 
 if __name__ == "__main__":
