@@ -47,6 +47,48 @@ def test_bad_shape_nominal():
         SafetyFilter(team, deadlock="none").step(kin, u, pose[:, 2], np.zeros((3, 2)), lo, hi)
 
 
+def _from_state(**kw):
+    team, pose, u = _state(n=2, spacing=3.0, speed=0.0)
+    args = {"pose": pose, "u": u, "nominal_du": np.zeros((2, 2)),
+            "reference": (pose[:, :2].copy(), np.zeros((2, 2)))}
+    args.update(kw)
+    return SafetyFilter(team).from_state(args.pop("pose"), args.pop("u"), args.pop("nominal_du"), **args)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        ({"nominal_du": np.full((2, 2), 1e300)}, r"nominal_du: got a value beyond \+-1e9 .*\(robot index 0\)"),
+        ({"u": np.full((2, 2), 1e200)}, r"u: got \[1e\+200, 1e\+200\] for robot index 0"),
+        ({"pose": np.full((2, 3), np.inf)}, r"pose: got \[inf, inf, inf\] for robot index 0"),
+        ({"pose": np.zeros((2, 2))}, r"pose: got shape \(2, 2\), expected \(2, 3\)"),
+        ({"reference": (np.full((2, 2), np.nan), np.zeros((2, 2)))}, r"reference p_d: got a non-finite value"),
+        ({"reference": (np.zeros((3, 2)), np.zeros((2, 2)))}, r"reference p_d: got shape \(3, 2\), expected \(2, 2\)"),
+        ({"reference": np.zeros((2, 2))}, r"reference: got ndarray, expected a pair \(p_d, v_d\)"),
+        ({"obstacles": (np.array([[1.5, 0.0]]), np.array([np.nan]))},
+         r"obstacles radii: got a non-finite value \[nan\] for obstacle\(s\) \[0\]"),
+        ({"obstacles": (np.array([[1.5, 0.0]]), np.array([-1.0]))}, r"obstacles radii: got -1.0 for obstacle 0"),
+        ({"obstacles": (np.array([[1.5, 3.0], [5.0, 5.0]]), np.array([0.5]))},
+         r"obstacles centres: got shape \(2, 2\), expected \(1, 2\)"),
+        ({"obstacles": (np.array([[1.5, 3.0]]), np.array([0.5]), np.array([0.5]))},
+         r"obstacles groups: got float64 array of shape \(1,\), expected integers"),
+    ],
+)
+def test_env_free_core_refuses_bad_state(kwargs, match):
+    """The core refuses what the env would: NaN, |x| > 1e9, wrong shapes (a NaN radius must not drop an obstacle)."""
+    with pytest.raises(StateError, match=match):
+        _from_state(**kwargs)
+
+
+def test_env_free_core_keeps_a_valid_obstacle():
+    """Control for the NaN-radius case: the same obstacle with a real radius binds (a robot driving at it brakes)."""
+    team = make_team("paper", 1)
+    pose, u = np.array([[0.0, 0.0, 0.0]]), np.full((1, 2), 3.0 / team.wheel_radius[0])
+    du, res = SafetyFilter(team, deadlock="none").from_state(pose, u, np.full((1, 2), 60.0),
+                                            obstacles=(np.array([[1.3, 0.0]]), np.array([0.5])))
+    assert res.n_rows == 1 and (du < 0).all()
+
+
 @pytest.mark.parametrize(
     ("kwargs", "exc", "match"),
     [

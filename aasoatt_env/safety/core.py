@@ -42,6 +42,7 @@ from aasoatt_env.safety.problem import box_least_squares, build_problem
 from aasoatt_env.safety.repair import gate_with_repair
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.sim.protocol import FilterInput
+from aasoatt_env.validation import MAGNITUDE_MAX
 
 __all__ = ["MIN_BRAKING_ROOM", "STATUSES", "FilterResult", "SafetyFilter"]
 
@@ -267,6 +268,15 @@ class SafetyFilter:
     ) -> tuple[np.ndarray, FilterResult]:
         """:meth:`step` from axle poses ``(N, 3)`` and wheel speeds; bounds from :func:`input_bounds`."""
         team = self._bound_team()
+        pose, u = np.asarray(pose, dtype=np.float64), np.asarray(u, dtype=np.float64)
+        for name, a, shape in (("pose", pose, (team.n, 3)), ("u", u, (team.n, 2))):
+            if a.shape != shape:
+                raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
+            bad = ~(np.abs(a) <= MAGNITUDE_MAX).all(axis=1)
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                raise StateError(f"{name}: got {a[k].tolist()} for robot index {k}, expected finite values within "
+                                 f"+-{MAGNITUDE_MAX:g}")
         kin = kinematics(team, pose, u)
         lo, hi = input_bounds(team, u, self.config.dt)
         return self.step(kin, u, pose[:, 2], nominal_du, lo, hi, **kwargs)
@@ -309,14 +319,13 @@ class SafetyFilter:
         t0 = time.perf_counter()
         cfg, team = self.config, self._bound_team()
         n = team.n
-        nominal_du, lo, hi = self._check_inputs(kin, u, theta, nominal_du, lo, hi)
+        nominal_du, lo, hi, reference, obstacles = self._check_inputs(kin, u, theta, nominal_du, lo, hi, reference,
+                                                                      obstacles)
         if cfg.max_wheel_speed is not None:
             lo, hi = speed_box(lo, hi, u, cfg.max_wheel_speed, cfg.dt)
         strategy = self._strategy
         if strategy.needs_reference and reference is None:
             raise ConfigError(f"deadlock strategy {cfg.deadlock!r} needs reference=(p_d, v_d); got None")
-        if reference is not None:
-            reference = (np.asarray(reference[0], float).reshape(n, 2), np.asarray(reference[1], float).reshape(n, 2))
         p, v, A, adot = kin.p, kin.v, kin.A, kin.adot_u
 
         # neighbours and pair geometry -------------------------------------------------
@@ -519,8 +528,13 @@ class SafetyFilter:
 
     def _check_inputs(
         self, kin: Kinematics, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
-        lo: np.ndarray, hi: np.ndarray,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        lo: np.ndarray, hi: np.ndarray, reference: Any = None, obstacles: Any = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Any, Any]:
+        """Shapes, finiteness and magnitudes (``<= MAGNITUDE_MAX``) of every state array; errors name the robot.
+
+        One pass over all the numbers (a concatenation and one ``max |x|``) when
+        they are fine; the culprit is looked for only when they are not.
+        """
         n = self._bound_team().n
         nominal_du = np.asarray(nominal_du, dtype=np.float64)
         if nominal_du.shape != (n, 2):
@@ -529,28 +543,54 @@ class SafetyFilter:
         hi = np.asarray(hi, dtype=np.float64)
         if lo.shape != (n, 2) or hi.shape != (n, 2):
             raise StateError(f"lo/hi: got shapes {lo.shape}/{hi.shape}, expected ({n}, 2)")
-        arrays = (("kin.p", kin.p, (n, 2)), ("kin.v", kin.v, (n, 2)), ("kin.A", kin.A, (n, 2, 2)),
-                  ("kin.adot_u", kin.adot_u, (n, 2)), ("u", u, (n, 2)), ("theta", theta, (n,)))
-        total = float(nominal_du.sum()) + float(lo.sum()) + float(hi.sum())
+        arrays = [("nominal_du", nominal_du, (n, 2)), ("lo", lo, (n, 2)), ("hi", hi, (n, 2)), ("u", u, (n, 2)),
+                  ("theta", theta, (n,)), ("kin.p", kin.p, (n, 2)), ("kin.v", kin.v, (n, 2)),
+                  ("kin.A", kin.A, (n, 2, 2)), ("kin.adot_u", kin.adot_u, (n, 2))]
+        if reference is not None:
+            if not isinstance(reference, (tuple, list)) or len(reference) != 2:
+                raise StateError(f"reference: got {type(reference).__name__}, expected a pair (p_d, v_d) of "
+                                 f"({n}, 2) arrays")
+            reference = (np.asarray(reference[0], dtype=np.float64), np.asarray(reference[1], dtype=np.float64))
+            arrays += [("reference p_d", reference[0], (n, 2)), ("reference v_d", reference[1], (n, 2))]
+        if obstacles is not None:
+            if not isinstance(obstacles, (tuple, list)) or len(obstacles) not in (2, 3):
+                raise StateError(f"obstacles: got {type(obstacles).__name__}, expected (centres (M, 2), radii (M,)) "
+                                 "or (centres, radii, groups (M,))")
+            radii = np.asarray(obstacles[1], dtype=np.float64)
+            m = radii.shape[0] if radii.ndim == 1 else -1
+            if m < 0:
+                raise StateError(f"obstacles radii: got shape {radii.shape}, expected (M,)")
+            centres = np.asarray(obstacles[0], dtype=np.float64)
+            if m == 0 and centres.size == 0:
+                centres = centres.reshape(0, 2)
+            arrays += [("obstacles centres", centres, (m, 2)), ("obstacles radii", radii, (m,))]
+            groups = obstacles[2] if len(obstacles) > 2 else None
+            if groups is not None:
+                groups = np.asarray(groups)
+                if groups.shape != (m,) or (m and groups.dtype.kind not in "iu"):
+                    raise StateError(f"obstacles groups: got {groups.dtype} array of shape {groups.shape}, "
+                                     f"expected integers of shape ({m},)")
+            obstacles = (centres, radii) if len(obstacles) == 2 else (centres, radii, groups)
+        flat = []
         for name, arr, shape in arrays:
             a = np.asarray(arr)
             if a.shape != shape:
                 raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
-            total += float(a.sum())
-        if not np.isfinite(total):  # one NaN/inf anywhere makes the sum non-finite: find it
-            bad = ~np.all(np.isfinite(nominal_du), axis=1)
-            if np.any(bad):
-                idx = np.flatnonzero(bad)
-                raise StateError(
-                    f"nominal_du: non-finite value for robot(s) {idx.tolist()} (robot index {idx[0]})"
-                )
-            for name, arr, _ in arrays:
-                a = np.asarray(arr)
-                if not np.all(np.isfinite(a)):
-                    bad_i = int(np.flatnonzero(~np.isfinite(a).reshape(n, -1).all(axis=1))[0])
-                    raise StateError(f"{name}: non-finite value for robot index {bad_i}")
-            if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
-                raise StateError("lo/hi: bounds must be finite with lo <= hi")
+            flat.append(a.ravel())
+        big = float(np.max(np.abs(np.concatenate(flat)), initial=0.0))
+        if not big <= MAGNITUDE_MAX:  # NaN, inf or beyond the magnitude every input is checked against
+            for name, arr, shape in arrays:
+                a = np.asarray(arr, dtype=np.float64).reshape(shape[0], -1) if shape[0] else np.zeros((0, 1))
+                bad = ~(np.abs(a) <= MAGNITUDE_MAX).all(axis=1)
+                if bad.any():
+                    idx = np.flatnonzero(bad)
+                    what = "obstacle" if name.startswith("obstacles") else "robot"
+                    kind = "a value beyond +-1e9" if np.isfinite(a[idx[0]]).all() else "a non-finite value"
+                    raise StateError(f"{name}: got {kind} {a[idx[0]].tolist()} for {what}(s) {idx[:10].tolist()} "
+                                     f"({what} index {idx[0]}), expected finite values within +-{MAGNITUDE_MAX:g}")
         if np.any(lo > hi):
             raise StateError("lo/hi: bounds must be finite with lo <= hi")
-        return nominal_du, lo, hi
+        if obstacles is not None and radii.size and not bool((radii > 0.0).all()):
+            k = int(np.flatnonzero(~(radii > 0.0))[0])
+            raise StateError(f"obstacles radii: got {float(radii[k])!r} for obstacle {k}, expected a positive radius")
+        return nominal_du, lo, hi, reference, obstacles
