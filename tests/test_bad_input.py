@@ -313,6 +313,31 @@ def test_obstacle_on_a_goal_is_refused() -> None:
         AASOATTParallelEnv("custom", **CUSTOM_BASE, obstacles=([[0.0, 3.0]], [0.4]))
 
 
+def test_position_swap_too_small_to_hold_the_robots_is_refused() -> None:
+    """Neighbouring corners are distance / sqrt(2) apart: below 2 r sqrt(2) the robots would start overlapping."""
+    with pytest.raises(ScenarioError, match=r"distance: got 0.2 m, .* 0.141 m apart; expected >= 0.297 m"):
+        AASOATTParallelEnv("position_swap", distance=0.2)
+    _, infos = AASOATTParallelEnv("position_swap", distance=0.3).reset()  # just enough room
+    assert min(info["clearance"] for info in infos.values()) == pytest.approx(0.3 / np.sqrt(2) - 0.21, abs=1e-9)
+
+
+def test_a_user_scenario_that_starts_overlapping_is_refused_at_reset() -> None:
+    """The env checks every layout, so a user's own Scenario subclass cannot start the filter inside a collision."""
+    from aasoatt_env.sim.scenarios.position_swap import PositionSwap
+
+    class Overlapping(PositionSwap):
+        name = "overlapping"
+
+        def build(self, rng):
+            layout = super().build(rng)
+            layout.starts[1] = layout.starts[0] + 0.05
+            return layout
+
+    env = AASOATTParallelEnv(Overlapping())
+    with pytest.raises(ScenarioError, match=r"scenario 'overlapping': starts: robots 0 and 1 overlap \(0.071 m apart"):
+        env.reset(seed=0)
+
+
 @pytest.mark.parametrize(("kwargs", "match"), [
     ({"starts": []}, r"starts: got shape \(0,\)"),
     ({"starts": [[0, 0, 0]]}, r"starts: got shape \(1, 3\)"),
@@ -405,6 +430,21 @@ def _expect_load_error(path: Path, match: str | None = None) -> None:
     with pytest.raises(DataFileError, match=match) as exc:
         Rollout.load(path)
     assert str(path) in str(exc.value)
+
+
+def test_rollout_text_file_is_refused_without_advice_to_unpickle(tmp_path: Path) -> None:
+    """numpy's own message suggests ``allow_pickle=True``: ours says the file is not a rollout, and never unpickles."""
+    path = tmp_path / "notes.txt"
+    path.write_text("hello\n")
+    match = r"not a readable rollout file \(not an .npz archive of plain arrays; files are never unpickled\)"
+    with pytest.raises(DataFileError, match=match) as exc:
+        Rollout.load(path)
+    assert "allow_pickle" not in str(exc.value)
+
+
+def test_make_env_checks_infos_without_a_filter() -> None:
+    with pytest.raises(ConfigError, match=r"infos: got 'garbage', expected one of \['flat', 'nested'\]"):
+        make_env("circle_swap", infos="garbage")
 
 
 def test_rollout_truncated_empty_garbage(rollout_file: Path, tmp_path: Path) -> None:

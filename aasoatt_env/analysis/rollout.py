@@ -350,6 +350,9 @@ class Rollout:
         except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile, zlib.error, NotImplementedError,
                 RecursionError) as exc:
             # corrupted zip/deflate data, an unsupported zip feature, JSON nested beyond the recursion limit
+            if "pickle" in str(exc):  # numpy's own advice here is to load it unsafely: never
+                raise DataFileError(f"{name}: not a readable rollout file (not an .npz archive of plain "
+                                    "arrays; files are never unpickled)") from None
             raise DataFileError(f"{name}: not a readable rollout file ({type(exc).__name__}: "
                                 f"{str(exc)[:200]})") from None
         try:

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.wrapper import AASOATTFilter
@@ -44,6 +45,7 @@ def make_env(
     **env_kwargs
         :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` and scenario keywords.
     """
+    check.choice("infos", infos, ("nested", "flat"))  # checked without a filter too
     env = AASOATTParallelEnv(scenario, **env_kwargs)
     if filter is None or filter is False:
         return env

@@ -61,6 +61,7 @@ from aasoatt_env.sim.protocol import ControlFilter, FilterInput, FilterOutput
 from aasoatt_env.sim.rendering import Frame, Renderer
 from aasoatt_env.sim.rewards import RewardConfig, rewards
 from aasoatt_env.sim.scenarios import Layout, Scenario, get_scenario
+from aasoatt_env.sim.scenarios.base import check_clear_of_obstacles, check_no_overlap
 
 __all__ = ["MAX_NEIGHBOR_SLOTS", "TRAIL_LENGTH", "AASOATTParallelEnv"]
 
@@ -233,6 +234,11 @@ class AASOATTParallelEnv(ParallelEnv):
         if seed is not None:
             self._rng = np.random.default_rng(seed)
         layout = self.scenario.build(self._rng)
+        # every layout starts without overlap (the filter's guarantee starts there), a user's scenario too
+        where = f"scenario {self.scenario.name or type(self.scenario).__name__!r}: starts"
+        check_no_overlap(where, layout.starts, layout.team.radius, layout.team.group)
+        check_clear_of_obstacles(where, layout.starts, layout.team.radius,
+                                 (layout.obstacle_centers, layout.obstacle_radii))
         self._layout = layout
         self.team = layout.team
         self._pose = dynamics.pose_from_point(layout.team, layout.starts, layout.headings)

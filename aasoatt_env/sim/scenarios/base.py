@@ -10,6 +10,7 @@ import numpy as np
 
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError, ScenarioError
+from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.sim.references import Reference
 
@@ -18,6 +19,7 @@ __all__ = [
     "Layout",
     "Scenario",
     "check_clear_of_obstacles",
+    "check_no_overlap",
     "check_num_robots",
     "check_obstacles",
     "check_quantity",
@@ -130,6 +132,25 @@ def check_clear_of_obstacles(name: str, points: np.ndarray, radii: np.ndarray, o
             f"{name}: robot {i} at {points[i].round(3).tolist()} overlaps obstacle {k} "
             f"(gap {gap[i, k]:.3f} m); move the obstacle or the robot"
         )
+
+
+def check_no_overlap(name: str, points: np.ndarray, radii: np.ndarray, groups: np.ndarray | None = None) -> None:
+    """Raise :class:`ScenarioError` if two robots of radii ``radii`` at ``points`` ``(N, 2)`` overlap.
+
+    Robots of different ``groups`` (stacked teams) never meet, so only pairs of one group count.
+    A neighbour search (no ``N x N`` table), so it is cheap for large teams too.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.shape[0] < 2:
+        return
+    pr = robot_pairs(points, 2.0 * float(np.max(radii)), groups=groups)
+    d = np.hypot(*(points[pr[:, 0]] - points[pr[:, 1]]).T)
+    rs = radii[pr[:, 0]] + radii[pr[:, 1]]
+    bad = np.flatnonzero(d < rs)
+    if bad.size:
+        i, j = pr[bad[0]]
+        raise ScenarioError(f"{name}: robots {i} and {j} overlap ({d[bad[0]]:.3f} m apart < {rs[bad[0]]:.3f} m, "
+                            "the sum of their radii)")
 
 
 def heading_of(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:

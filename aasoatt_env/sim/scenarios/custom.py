@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from aasoatt_env import validation as check
-from aasoatt_env.errors import ConfigError, ScenarioError
+from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import COORD_MAX, as_reference
 from aasoatt_env.sim.scenarios.base import (
@@ -23,6 +23,7 @@ from aasoatt_env.sim.scenarios.base import (
     Layout,
     Scenario,
     check_clear_of_obstacles,
+    check_no_overlap,
     check_obstacles,
     check_quantity,
     check_settle_time,
@@ -93,11 +94,7 @@ class Custom(Scenario):
         else:
             self._headings = None
         self.settle_time = check_settle_time(settle_time)
-        d = np.hypot(*(st[:, None] - st[None]).transpose(2, 0, 1)) + np.diag(np.full(self.num_robots_, np.inf))
-        rs = self._team.radius[:, None] + self._team.radius[None, :]
-        if np.any(d < rs):
-            i, j = np.argwhere(d < rs)[0]
-            raise ScenarioError(f"starts: robots {i} and {j} overlap ({d[i, j]:.3f} < {rs[i, j]:.3f})")
+        check_no_overlap("starts", st, self._team.radius)
 
     def build(self, rng: np.random.Generator) -> Layout:
         """Return the user's layout."""

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.errors import ConfigError, ScenarioError
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.scenarios.base import QUANTITY_RANGE, Layout, Scenario, check_quantity, check_settle_time
@@ -56,6 +56,11 @@ class PositionSwap(Scenario):
         self.robots = robots
         self.num_robots_ = 4
         self._team = make_team(robots, 4)
+        # neighbouring corners are distance / sqrt(2) apart: they must hold two robots side by side
+        side, need = self.distance / np.sqrt(2.0), float(np.max(self._team.radius[:, None] + self._team.radius))
+        if side < need:
+            raise ScenarioError(f"distance: got {self.distance:g} m, whose square puts neighbouring robots "
+                                f"{side:.3f} m apart; expected >= {need * np.sqrt(2.0):.4g} m (the robots overlap)")
 
     def build(self, rng: np.random.Generator) -> Layout:
         """Return the (deterministic) corner-swap layout."""
