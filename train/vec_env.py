@@ -2,7 +2,7 @@
 
 Every robot of every env is one *slot*, so one policy acts for all of them:
 ``num_envs = n_envs * n_agents`` with slot ``k * n_agents + i`` = robot ``i`` of
-env ``k``.  This replaces SuperSuit (``SPEC.md`` section 8: its ``seed=``
+env ``k``.  This replaces SuperSuit (``docs/technical_brief.md`` section 8: its ``seed=``
 crashes with SB3 2.9, ``black_death_v3`` ends episodes a step late and
 time-limit truncation is lost).
 

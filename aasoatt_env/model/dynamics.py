@@ -1,4 +1,4 @@
-"""Acceleration-level robot dynamics, vectorised over a team (SPEC section 1).
+"""Acceleration-level robot dynamics, vectorised over a team (``docs/technical_brief.md`` section 1).
 
 State per robot: axle pose ``(x, y, theta)`` and "wheel speeds" ``u``; input:
 ``du``, the wheel angular accelerations, bounded per robot.  The controlled

@@ -37,7 +37,7 @@ __all__ = [
 
 KDTREE_MIN_ROBOTS: int = 200
 """Team size from which a k-d tree answers instead of the full distance matrix
-(SPEC section 4: the tree beats ``N x N`` broadcasting from about 200 robots)."""
+(``docs/technical_brief.md`` section 4: the tree beats ``N x N`` broadcasting from about 200 robots)."""
 
 _FULL_SORT_MAX = 64
 """Up to this many points a full row sort beats ``argpartition`` + a partial sort."""

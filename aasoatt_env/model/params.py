@@ -7,7 +7,7 @@ shape ``(N,)`` so the dynamics, the barriers and the QP never loop over robots.
 Presets
 -------
 ``"paper"``
-    The defaults of ``SPEC.md`` section 7: disc radius 0.48 m (so ``d_s = 0.96``),
+    The defaults of ``docs/technical_brief.md`` section 7: disc radius 0.48 m (so ``d_s = 0.96``),
     wheel radius 0.1 m, half track 0.2 m, control-point offset 0.2 m,
     ``|du| <= 60 rad/s^2`` and no wheel-speed limit.  The paper does not state
     its wheel geometry or bounds; these values reproduce its N = 10 results.

@@ -1,6 +1,6 @@
 """Validated configuration of the safety filter.
 
-Defaults follow SPEC section 7 (``k1 = k2 = 2``, ``k3 = 1``, ``k4 = 4``,
+Defaults follow ``docs/technical_brief.md`` section 7 (``k1 = k2 = 2``, ``k3 = 1``, ``k4 = 4``,
 ``zeta = 2``, ``q = -60 deg``, ``D = 3``, ``dt = 0.005``).  Values the paper does
 not give are our choices: ``gamma = 1`` (braking SBC), ``varsigma = 2``,
 ``rho_v = 1``, ``sigma = 0`` (velocity barriers).

@@ -1,4 +1,4 @@
-"""Reference trajectories ``p_d(t), v_d(t), a_d(t)`` for a team (SPEC section 2).
+"""Reference trajectories ``p_d(t), v_d(t), a_d(t)`` for a team (``docs/technical_brief.md`` section 2).
 
 Every reference is a callable ``ref(t) -> (p_d, v_d, a_d)`` returning three
 ``(N, 2)`` arrays, plus ``goals`` (the final reference points, ``(N, 2)``) and

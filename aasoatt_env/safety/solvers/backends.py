@@ -12,7 +12,7 @@ it gives none.
 ``proxsuite`` (default)
     Dense ``PrimalDualLDLT`` with native box constraints up to
     :data:`DENSE_MAX_SIZE` variables + rows, sparse ``SparseCholesky`` (box as
-    rows) above.  Settings from SPEC section 4: tight ``eps_primal_inf`` /
+    rows) above.  Settings from ``docs/technical_brief.md`` section 4: tight ``eps_primal_inf`` /
     ``eps_dual_inf``, ``check_duality_gap`` with a tight gap; a bounded iteration
     budget (:data:`PROX_MAX_ITER`, :data:`PROX_MAX_ITER_IN`).  Option
     ``alternate=True`` uses the dense class for a problem the sparse class would take (the two
@@ -139,7 +139,7 @@ def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, op
             np.concatenate((np.full(m, -_INF), prob.lb)), np.concatenate((prob.u, prob.ub)),
         )
     # Warm start is not used: with box constraints proxsuite 0.8 returned NaN
-    # iterates from a warm start on circle-swap instances (and SPEC section 4
+    # iterates from a warm start on circle-swap instances (and ``docs/technical_brief.md`` section 4
     # measured 0-30 % gain at best); the cold solve takes a handful of iterations.
     qp.solve()
     r = qp.results
