@@ -10,7 +10,8 @@ A learned policy is a Stable-Baselines3 run (:mod:`train.train`) or a Ray RLlib 
 (:mod:`train.rllib`, recognised by the ``"backend": "rllib"`` of its ``policy.json``; evaluated
 without starting Ray), see :func:`agents.learned.load_learned`.
 
-Rows (a row is skipped when its model is not given):
+Rows (by default every row whose model is given; a row asked for with ``--rows`` whose
+model is not given is an error naming the missing option):
 
 =======================================  ==========================================
 row                                      agent / env
@@ -27,7 +28,10 @@ row                                      agent / env
 Every row runs the same episodes: episode ``j`` is reset with ``seed + j``, on
 the env of the (first) learned policy's ``config.json`` (scenario, robots,
 ``dt``, ``decision_interval``, action mode), or of the given
-:class:`~train.config.TrainConfig`; ``terminate_on_collision`` is off.
+:class:`~train.config.TrainConfig`; ``terminate_on_collision`` is off.  The settings a
+policy depends on (:data:`POLICY_ENV_KEYS`) must be those it was trained with: a config or
+a second policy that differs in one of them is refused before the first episode
+(:func:`policy_env_kwargs`, which ``aasoatt run --controller learned`` uses too).
 
 Columns (means over episodes; per episode from :func:`aasoatt_env.analysis.metrics.summarize`
 on the rollout recorded at the decision rate, and from ``infos[agent]["filter"]``):
@@ -46,10 +50,12 @@ on the rollout recorded at the decision rate, and from ``infos[agent]["filter"]`
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import os
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -60,14 +66,117 @@ from aasoatt_env.analysis.metrics import summarize
 from aasoatt_env.analysis.recording import RecordEpisode
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.cli_support import OutputPlan, Parser, add_common_options, int_option, real_option, run_guarded
-from aasoatt_env.errors import ConfigError, UnknownKeywordError
+from aasoatt_env.errors import ConfigError, DataFileError, UnknownKeywordError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.validation import parse_assignments
 from agents import RandomAgent, TrackingController
 from agents.learned import load_learned
+from agents.rllib_agent import find_run_spec
 from train.config import TrainConfig
+from train.rllib import RAY_MISSING
 
-__all__ = ["EvalRow", "evaluate", "evaluate_agent", "main", "to_markdown"]
+__all__ = ["POLICY_ENV_KEYS", "EvalRow", "evaluate", "evaluate_agent", "load_policy", "main", "policy_env_kwargs",
+           "to_markdown"]
+
+POLICY_ENV_KEYS = ("dt", "decision_interval", "action_mode", "sensing_range", "num_neighbors", "num_obstacles")
+"""Env settings a learned policy depends on: its decision period, what its actions mean and
+its observation layout.  An env for a policy takes the values of the run's ``policy.json``."""
+
+
+_EXPECTED_MODEL = ("expected a run folder of aasoatt train holding policy.json and model.zip (or of "
+                   "train.rllib: policy.json and rl_module.npz), or a model .zip / checkpoint in one")
+
+
+def load_policy(path: str | os.PathLike[str], flag: str = "model") -> Any:
+    """Load a trained policy (:func:`agents.learned.load_learned`), errors naming ``flag`` and ``path``.
+
+    The path is checked first: it must be a run folder (or a checkpoint in one) or a model
+    ``.zip`` with the run's ``policy.json`` beside it or above ``checkpoints/``; a Ray RLlib run
+    needs Ray installed (the message says how, as ``aasoatt train --backend rllib`` does).
+
+    Parameters
+    ----------
+    path : str or PathLike
+        What the user gave.
+    flag : str
+        The option it came from (``"--bare"``, ``"--model"``, ...), named in every error.
+
+    Returns
+    -------
+    LearnedAgent or RLlibAgent
+        The policy, with the run's ``spec``.
+
+    Raises
+    ------
+    DataFileError
+        The path holds no model, or a file of it is missing or corrupted.
+    ConfigError
+        A Ray RLlib run without Ray installed.
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ConfigError(f"{flag}: got {type(path).__name__}, {_EXPECTED_MODEL}")
+    p = Path(path)
+    if not p.exists():
+        raise DataFileError(f"{flag}: {str(path)!r}: no model here (no such file or folder); {_EXPECTED_MODEL}")
+    if not p.is_dir() and p.suffix.lower() != ".zip":
+        raise DataFileError(f"{flag}: got {str(path)!r}, a file that is not a model .zip; {_EXPECTED_MODEL}")
+    try:
+        found = find_run_spec(p)
+    except DataFileError as exc:
+        raise DataFileError(f"{flag}: {exc}") from None
+    if found is None:
+        raise DataFileError(f"{flag}: {str(path)!r}: no model here (no policy.json in it or in the run folder "
+                            f"above); {_EXPECTED_MODEL}")
+    if found[1].get("backend") == "rllib" and importlib.util.find_spec("ray") is None:
+        raise ConfigError(f"{flag}: {str(path)!r} is a Ray RLlib run; {RAY_MISSING}")
+    try:
+        return load_learned(p)
+    except DataFileError as exc:
+        raise DataFileError(f"{flag}: {exc}") from None
+
+
+def policy_env_kwargs(
+    policy: Any, given: Mapping[str, Any], *, model: str, options: Mapping[str, str] | None = None,
+    default_option: str = "env", hint: str = " (leave it out to take the run's)",
+) -> dict[str, Any]:
+    """``given`` env keywords completed with the settings ``policy`` was trained with (:data:`POLICY_ENV_KEYS`).
+
+    Parameters
+    ----------
+    policy : LearnedAgent or RLlibAgent
+        A loaded policy; its ``spec["env"]`` (the run's ``policy.json``) holds the settings.
+    given : mapping
+        Env keywords chosen by the user (or a config); they win for every other key.
+    model : str
+        How to name the policy in an error (e.g. ``"--model runs/x"``).
+    options : mapping, optional
+        The option each key came from (e.g. ``{"decision_interval": "--decision-interval"}``).
+    default_option : str
+        The option named for keys not in ``options``.
+    hint : str
+        Appended to the error (what to do instead).
+
+    Returns
+    -------
+    dict
+        ``given`` plus the run's settings.
+
+    Raises
+    ------
+    ConfigError
+        ``given`` sets one of them to another value (naming the option, both values and the model).
+    """
+    trained = (getattr(policy, "spec", None) or {}).get("env") or {}
+    out = dict(given)
+    for key in POLICY_ENV_KEYS:
+        if key not in trained:
+            continue
+        if key in out and out[key] != trained[key]:
+            flag = (options or {}).get(key, default_option)
+            raise ConfigError(f"{flag}: got {key}={out[key]!r}, expected {key}={trained[key]!r}, the setting the "
+                              f"policy of {model} was trained with{hint}")
+        out[key] = trained[key]
+    return out
 
 
 @dataclass
@@ -210,14 +319,16 @@ def evaluate(
     goal_tolerance: float = 0.1,
     progress: bool = False,
     jobs: int = 1,
+    option_names: Mapping[str, str] | None = None,
 ) -> list[EvalRow]:
     """Evaluate the table's rows (see the module docstring) and return them.
 
     Parameters
     ----------
-    bare_model, filtered_model : path, optional
+    bare_model, filtered_model : path or policy, optional
         Policies trained bare and behind the filter: a Stable-Baselines3 run (folder or ``model.zip``)
-        or a Ray RLlib run of :mod:`train.rllib` (folder or checkpoint), see :func:`agents.learned.load_learned`.
+        or a Ray RLlib run of :mod:`train.rllib` (folder or checkpoint), see :func:`load_policy`;
+        or such a policy already loaded (only with ``jobs=1``).
     episodes : int
         Episodes per row (``K``).
     seed : int
@@ -228,7 +339,8 @@ def evaluate(
     filter_kwargs : dict, optional
         Filter arguments for the ``+ filter`` rows (default: the config's).
     rows : sequence of str, optional
-        Subset of :data:`ROWS` (default all whose model is given).
+        Subset of :data:`ROWS` (default all whose model is given); a ``learned (...)`` row
+        needs its model.
     goal_tolerance : float
         Success radius [m].
     progress : bool
@@ -236,35 +348,65 @@ def evaluate(
     jobs : int
         Rows evaluated in parallel processes (same numbers as ``jobs=1``: every
         row runs its own seeded episodes).
+    option_names : mapping, optional
+        How errors name ``"rows"``, ``"bare"``, ``"filter"`` (the models) and ``"config"`` (the
+        command line passes its options; default the parameter names).
 
     Returns
     -------
     list of EvalRow
         Format with :func:`to_markdown`.
+
+    Raises
+    ------
+    ConfigError
+        An unknown row, a ``learned (...)`` row without its model, or a config (or second
+        policy) whose env differs from a policy's training in a :data:`POLICY_ENV_KEYS` setting.
     """
     wanted = list(rows) if rows is not None else list(ROWS)
     bad = [r for r in wanted if r not in ROWS]
     if bad:
         raise ConfigError(f"rows: got {bad}, expected names among {list(ROWS)}")
+    names = {"rows": "rows", "bare": "bare_model", "filter": "filtered_model", "config": "config",
+             **(option_names or {})}
+    if rows is not None:  # rows asked for must be made; by default the rows whose model is given
+        check_rows(wanted, bare_model is not None, filtered_model is not None, names)
     if not isinstance(jobs, int) or jobs < 1:
         raise ConfigError(f"jobs: got {jobs!r}, expected an integer >= 1")
+    models = {"bare": bare_model, "filter": filtered_model}
     if jobs > 1:
-        return _evaluate_parallel(bare_model, filtered_model, wanted, jobs, episodes=episodes, seed=seed,
-                                  config=config, filter_kwargs=filter_kwargs, goal_tolerance=goal_tolerance)
-    learned = {
-        "bare": load_learned(bare_model) if bare_model is not None else None,
-        "filter": load_learned(filtered_model) if filtered_model is not None else None,
-    }
-    first = learned["bare"] or learned["filter"]
+        loaded = [names[k] for k, m in models.items() if m is not None and not isinstance(m, (str, os.PathLike))]
+        if loaded:
+            raise ConfigError(f"jobs: got {jobs} with a loaded policy ({loaded[0]}), expected model paths "
+                              "(the worker processes load them) or jobs=1")
+    learned = {k: None if m is None else load_policy(m, names[k]) if isinstance(m, (str, os.PathLike)) else m
+               for k, m in models.items()}
+
+    def label(key: str) -> str:
+        m = models[key]
+        return f"{names[key]} {str(m)!r}" if isinstance(m, (str, os.PathLike)) else names[key]
+
+    first = "bare" if learned["bare"] is not None else "filter" if learned["filter"] is not None else None
     if config is not None:
         env_kwargs, fc = config.env_kwargs(), config.filter_config()
     elif first is not None:
-        env_kwargs, fc = dict(first.spec["env"]), FilterConfig.merged(first.spec.get("filter") or {})
+        spec = learned[first].spec
+        env_kwargs, fc = dict(spec["env"]), FilterConfig.merged(spec.get("filter") or {})
     else:
         default = TrainConfig(progress_bar=False)
         env_kwargs, fc = default.env_kwargs(), default.filter_config()
+    for key, policy in learned.items():  # each policy runs on the env it was trained for: checked now
+        if policy is not None:
+            if config is not None:
+                source, hint = names["config"], " (give a config with the run's env settings)"
+            else:
+                source, hint = f"the env of {label(first)}", " (evaluate the two policies separately)"
+            env_kwargs = policy_env_kwargs(policy, env_kwargs, model=label(key), default_option=source, hint=hint)
     if filter_kwargs is not None:
         fc = FilterConfig.merged(fc, **filter_kwargs)
+    if jobs > 1:
+        return _evaluate_parallel(bare_model, filtered_model, wanted, jobs, episodes=episodes, seed=seed,
+                                  config=config, filter_kwargs=filter_kwargs, goal_tolerance=goal_tolerance)
     env_kwargs.update(terminate_on_collision=False, reward={})
 
     def env_fn(filtered: bool) -> Callable[[], Any]:
@@ -287,6 +429,29 @@ def evaluate(
         if name in wanted:
             out.append(evaluate_agent(name, agent_fn(), env_fn(filtered), episodes, seed, goal_tolerance, progress))
     return out
+
+
+def check_rows(rows: Sequence[str], bare: bool, filtered: bool, names: Mapping[str, str] | None = None) -> None:
+    """Refuse a ``learned (...)`` row whose model is not given.
+
+    Parameters
+    ----------
+    rows : sequence of str
+        The rows asked for.
+    bare, filtered : bool
+        Whether the policy trained bare / behind the filter is given.
+    names : mapping, optional
+        How to name ``"rows"``, ``"bare"`` and ``"filter"`` in the error (default the
+        parameter names of :func:`evaluate`).
+    """
+    n = {"rows": "rows", "bare": "bare_model", "filter": "filtered_model", **(names or {})}
+    for row in rows:
+        for prefix, given, key, what in (("learned (bare)", bare, "bare", "a policy trained bare"),
+                                         ("learned (filter)", filtered, "filter", "a policy trained behind the "
+                                          "filter")):
+            if row.startswith(prefix) and not given:
+                raise ConfigError(f"{n['rows']}: got {row!r}, which needs {n[key]} ({what}); expected {n[key]} "
+                                  "or other rows")
 
 
 def _evaluate_parallel(
@@ -357,8 +522,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     return run_guarded("aasoatt evaluate", argv, _main)
 
 
+_OPTIONS = {"rows": "--rows", "bare": "--bare", "filter": "--filtered", "config": "--config"}
+
+
 def _main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
+    check_rows(args.rows or (), args.bare is not None, args.filtered is not None, _OPTIONS)
     plan = OutputPlan(args.overwrite)
     out = json_out = None
     if args.out:
@@ -375,13 +544,10 @@ def _main(argv: list[str]) -> int:
                 FilterConfig.merged(fk)
             except UnknownKeywordError as exc:
                 raise UnknownKeywordError(f"--filter-arg: {exc}") from None
-        if args.jobs > 1:  # with jobs=1, evaluate() loads the models before the first episode
-            for model in (args.bare, args.filtered):
-                if model is not None:
-                    load_learned(model)  # every model file checked before any worker starts
+        # evaluate() loads the models (every file checked, before any episode or worker starts)
         rows = evaluate(args.bare, args.filtered, episodes=args.episodes, seed=args.seed, config=config,
                         filter_kwargs=fk, rows=args.rows, goal_tolerance=args.goal_tolerance,
-                        progress=not args.quiet and args.jobs == 1, jobs=args.jobs)
+                        progress=not args.quiet and args.jobs == 1, jobs=args.jobs, option_names=_OPTIONS)
     except BaseException:
         plan.discard()
         raise

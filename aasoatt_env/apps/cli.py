@@ -20,6 +20,7 @@ import inspect
 import json
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from aasoatt_env.analysis.metrics import format_summary, summarize
@@ -36,15 +37,16 @@ from aasoatt_env.cli_support import (
     real_option,
     run_guarded,
 )
-from aasoatt_env.errors import ConfigError, UnknownKeywordError
+from aasoatt_env.errors import AASOATTError, ConfigError, UnknownKeywordError
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, available_solvers
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.sim.rendering import save_animation
+from aasoatt_env.sim.rendering import ANIMATION_SUFFIXES, animation_writer_missing, save_animation
 from aasoatt_env.sim.scenarios import SCENARIOS
 from aasoatt_env.sim.scenarios.base import MAX_ROBOTS
 from aasoatt_env.validation import parse_assignments
 from agents.base import agent_accepts, agent_names, get_agent
 from train.config import split_backend
+from train.evaluate import load_policy, policy_env_kwargs
 from train.rllib import main as rllib_main
 
 __all__ = ["main"]
@@ -96,7 +98,22 @@ def _filter_config(args: argparse.Namespace) -> FilterConfig | None:
         raise UnknownKeywordError(f"-g/--gain: {exc}") from None
 
 
-def _make_env(args: argparse.Namespace, render: bool) -> Any:
+def _required_parameters(scenario: str) -> list[str]:
+    """Parameters of ``scenario`` without a default (``custom``: ``starts`` and ``reference``)."""
+    cls = SCENARIOS[scenario]
+    return [name for name, p in inspect.signature(cls.__init__).parameters.items()
+            if name != "self" and p.default is inspect.Parameter.empty
+            and p.kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)]
+
+
+def _make_env(args: argparse.Namespace, render: bool, policy: Any = None) -> Any:
+    """The env of ``aasoatt run``; with a learned ``policy``, the settings it was trained with.
+
+    A scenario parameter without a default must be given (``-p``); with ``policy`` the
+    env takes the run's :data:`train.evaluate.POLICY_ENV_KEYS` settings (action mode,
+    decision interval, ``dt``, observation layout) unless given, and refuses a given value
+    that differs.
+    """
     kwargs = parse_assignments(args.param, "-p/--param")
     if args.robots is not None:
         if "num_robots" in kwargs:
@@ -105,20 +122,43 @@ def _make_env(args: argparse.Namespace, render: bool) -> Any:
     for key in ("filter", "infos", "render_mode", "decision_interval"):
         if key in kwargs:
             raise ConfigError(f"-p/--param: got {key}=..., expected the command-line option for it")
+    missing = [name for name in _required_parameters(args.scenario) if name not in kwargs]
+    if missing:
+        raise ConfigError(f"--scenario {args.scenario}: missing required parameter(s) {', '.join(missing)}; "
+                          f"expected {' '.join(f'-p {name}=...' for name in missing)} (aasoatt list shows them)")
+    if args.decision_interval is not None:
+        kwargs["decision_interval"] = args.decision_interval
+    if policy is not None:
+        kwargs = policy_env_kwargs(policy, kwargs, model=f"--model {args.model!r}",
+                                   options={"decision_interval": "--decision-interval"}, default_option="-p/--param")
+    kwargs.setdefault("decision_interval", 1)
     filter_config = _filter_config(args)
     try:
-        return make_env(args.scenario, filter=filter_config, render_mode="rgb_array" if render else None,
-                        decision_interval=args.decision_interval, **kwargs)
+        return make_env(args.scenario, filter=filter_config, render_mode="rgb_array" if render else None, **kwargs)
     except UnknownKeywordError as exc:
         raise UnknownKeywordError(f"-p/--param: {exc}") from None
+
+
+def _check_animation_writer(path: Path) -> None:
+    """Refuse ``--gif`` now when the writer its suffix needs is not installed (not after the episode)."""
+    absent = animation_writer_missing(path.suffix)
+    if absent:
+        extra = ", ".join(absent)
+        raise ConfigError(f"--gif: got {str(path)!r}, but writing {path.suffix!r} needs {extra}, which is not "
+                          f"installed; expected a suffix among {list(ANIMATION_SUFFIXES)} whose writer is installed "
+                          f"(or install {extra})")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run one episode and report its metrics.
 
-    Every option, the output folder and the animation file are checked (and the
-    folder created) before the episode starts; earlier results are kept unless
-    ``--overwrite``.
+    Every option, the output folder and the animation file (its suffix and that
+    its writer is installed) are checked (and the folder created) before the
+    episode starts; earlier results are kept unless ``--overwrite``, and a failed
+    animation writer leaves no partial file.  ``--controller learned --model RUN``
+    runs on an env with the run's action mode, decision interval, ``dt`` and
+    observation layout (:func:`train.evaluate.policy_env_kwargs`); a different
+    value given with ``-p`` or ``--decision-interval`` is an error.
     """
     if args.model is not None and args.controller != "learned":
         raise ConfigError(f"--model: given with --controller {args.controller!r}, expected --controller learned")
@@ -127,17 +167,23 @@ def cmd_run(args: argparse.Namespace) -> int:
     out = plan.folder(args.out, "--out", entries=RUN_OUTPUTS) if args.out else None
     try:
         gif = plan.file(args.gif, "--gif", suffixes=ANIMATION_SUFFIXES) if args.gif else None
-        env = _make_env(args, render)
-        ctrl_kwargs: dict[str, Any] = {}
-        if args.controller in ("tracking", "pd"):
-            ctrl_kwargs["saturate"] = not (args.filter and args.filter != "none")
-        if agent_accepts(args.controller, "seed"):
-            ctrl_kwargs["seed"] = args.seed
+        if gif is not None:
+            _check_animation_writer(gif)
         if args.controller == "learned":
-            ctrl_kwargs["path"] = args.model
-        agent = get_agent(args.controller, **ctrl_kwargs)
-        if args.controller == "learned":
+            if args.model is None:
+                raise ConfigError("controller 'learned': got no model path, expected --model PATH (a run folder "
+                                  "or .zip)")
+            agent = load_policy(args.model, "--model")
+            env = _make_env(args, render, policy=agent)
             agent.reset(env)  # observation layout and action mode checked before the episode
+        else:
+            env = _make_env(args, render)
+            ctrl_kwargs: dict[str, Any] = {}
+            if args.controller in ("tracking", "pd"):
+                ctrl_kwargs["saturate"] = not (args.filter and args.filter != "none")
+            if agent_accepts(args.controller, "seed"):
+                ctrl_kwargs["seed"] = args.seed
+            agent = get_agent(args.controller, **ctrl_kwargs)
     except BaseException:
         plan.discard()
         raise
@@ -169,7 +215,12 @@ def cmd_run(args: argparse.Namespace) -> int:
             print(f"(no trajectory plot: {exc})", file=sys.stderr)
         print(f"wrote {out}/metrics.json, rollout.npz, trajectories.png")
     if gif is not None:
-        save_animation(frames, gif, fps=args.fps)
+        try:
+            save_animation(frames, gif, fps=args.fps)  # a failed writer leaves no broken file at the --gif path
+        except AASOATTError:
+            raise
+        except (ValueError, RuntimeError, OSError) as exc:  # the writer failed: one line, status 1
+            raise OSError(f"--gif: could not write {gif} ({' '.join(str(exc).split())[:300]})") from exc
         print(f"wrote {gif} ({len(frames)} frames)")
     env.close()
     if args.fail_on_collision and summary.get("n_collision_pairs"):
@@ -179,7 +230,6 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 RUN_OUTPUTS = ("metrics.json", "rollout.npz", "trajectories.png")
 """What ``aasoatt run --out DIR`` writes into ``DIR``."""
-ANIMATION_SUFFIXES = (".gif", ".mp4", ".m4v", ".mov", ".mkv", ".avi", ".webm")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -206,9 +256,11 @@ def build_parser() -> argparse.ArgumentParser:
                        help=f"one of {', '.join(TRIGGERS)}")
     p_run.add_argument("--solver", default="proxsuite", help="QP solver (aasoatt list shows the installed ones)")
     p_run.add_argument("-g", "--gain", action="append", help="filter gain KEY=VALUE (k1, k2, zeta, ...)")
-    p_run.add_argument("--decision-interval", type=int_option(1, 10_000), default=1)
+    p_run.add_argument("--decision-interval", type=int_option(1, 10_000), default=None,
+                       help="physics steps per action (default 1; --controller learned: the run's)")
     p_run.add_argument("--seed", type=int_option(0), default=0)
-    p_run.add_argument("--gif", default=None, help="write an animation (.gif or .mp4)")
+    p_run.add_argument("--gif", default=None,
+                       help=f"write an animation ({', '.join(ANIMATION_SUFFIXES)}; video needs imageio-ffmpeg)")
     p_run.add_argument("--frame-every", type=int_option(1), default=20, help="env steps between GIF frames")
     p_run.add_argument("--fps", type=int_option(1, 1000), default=20)
     p_run.add_argument("--out", default=None, help="folder for metrics.json, rollout.npz, trajectories.png")

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import colorsys
 import importlib
+import importlib.util
 import math
 import os
 import sys
@@ -37,9 +38,11 @@ import numpy as np
 from aasoatt_env.errors import ConfigError
 
 __all__ = [
+    "ANIMATION_SUFFIXES",
     "BACKGROUND",
     "Frame",
     "Renderer",
+    "animation_writer_missing",
     "robot_colors",
     "save_animation",
 ]
@@ -616,7 +619,16 @@ class Renderer:
         self.close()
 
 
-_FFMPEG_SUFFIXES = (".mp4", ".m4v", ".mov", ".mkv", ".avi", ".webm")
+ANIMATION_SUFFIXES: tuple[str, ...] = (".gif", ".mp4", ".mov", ".mkv", ".avi")
+"""File suffixes :func:`save_animation` writes: ``.gif`` with imageio and Pillow, the videos (H.264)
+with imageio-ffmpeg.  ``.webm`` (no H.264 in WebM) and ``.m4v`` (no imageio backend) are not offered."""
+
+
+def animation_writer_missing(suffix: str) -> list[str]:
+    """The packages (pip names) that writing an animation with ``suffix`` needs and that are not installed."""
+    needs = ("imageio", "PIL") if suffix.lower() == ".gif" else ("imageio", "imageio_ffmpeg")
+    pip = {"PIL": "Pillow", "imageio_ffmpeg": "imageio-ffmpeg"}
+    return [pip.get(name, name) for name in needs if importlib.util.find_spec(name) is None]
 
 
 def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], fps: float = 20) -> Path:
@@ -628,8 +640,10 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
         Images of shape ``(H, W, 3)`` (or ``(H, W, 4)``), all the same size;
         ``uint8``, or floats in ``[0, 1]``.
     path : str or os.PathLike
-        Output file; ``.gif`` uses imageio with Pillow, ``.mp4`` (and ``.mov``,
-        ``.mkv``, ``.avi``, ``.webm``, ``.m4v``) needs imageio-ffmpeg.
+        Output file, one of :data:`ANIMATION_SUFFIXES`; ``.gif`` uses imageio with
+        Pillow, the videos need imageio-ffmpeg.  The file is written under a temporary
+        name beside it and moved into place when complete: a writer that fails leaves
+        no partial file (and an earlier file at ``path`` is kept).
     fps : float
         Frames per second.
 
@@ -647,10 +661,8 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
     """
     path = Path(path)
     suffix = path.suffix.lower()
-    if suffix != ".gif" and suffix not in _FFMPEG_SUFFIXES:
-        raise ConfigError(
-            f"save_animation: got suffix {path.suffix!r}, expected '.gif' or one of {list(_FFMPEG_SUFFIXES)}"
-        )
+    if suffix not in ANIMATION_SUFFIXES:
+        raise ConfigError(f"save_animation: got suffix {path.suffix!r}, expected one of {list(ANIMATION_SUFFIXES)}")
     fps = float(fps)
     if not math.isfinite(fps) or fps <= 0:
         raise ConfigError(f"save_animation: got fps={fps}, expected a positive number")
@@ -663,11 +675,24 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
             raise ConfigError(f"save_animation: frame {k} has shape {img.shape}, expected {shape} (frame 0)")
     iio = _require("imageio.v3", "save_animation")
     path.parent.mkdir(parents=True, exist_ok=True)
+    partial = path.with_name(f".{path.stem}.{os.getpid()}.partial{path.suffix}")  # same suffix: same writer
+    try:
+        _write_animation(iio, images, partial, suffix, fps)
+        os.replace(partial, path)
+    finally:
+        if partial.exists():
+            partial.unlink()
+    return path
+
+
+def _write_animation(iio: ModuleType, images: list[np.ndarray], path: Path, suffix: str, fps: float) -> None:
+    """Write the frames to ``path`` (GIF or video by ``suffix``)."""
+    shape = images[0].shape
     if suffix == ".gif":
         _require("PIL", "save_animation (GIF)")
         duration_ms = 1000.0 / fps
         iio.imwrite(path, np.stack(images), extension=".gif", duration=duration_ms, loop=0)
-        return path
+        return
     try:
         importlib.import_module("imageio_ffmpeg")
     except ImportError as exc:
@@ -684,7 +709,6 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
     with iio_v2.get_writer(path, fps=fps, macro_block_size=1) as writer:
         for img in images:
             writer.append_data(img)
-    return path
 
 
 def _to_uint8(frame: np.ndarray, k: int) -> np.ndarray:
