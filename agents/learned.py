@@ -54,7 +54,7 @@ from aasoatt_env.errors import ConfigError, DataFileError
 from aasoatt_env.safety.config import FilterConfig
 from agents.rllib_agent import RLlibAgent, find_run_spec
 
-__all__ = ["POLICY_FILE", "STATS_FILE", "LearnedAgent", "load_learned", "stats_path"]
+__all__ = ["POLICY_FILE", "STATS_FILE", "LearnedAgent", "check_layer_sizes", "load_learned", "stats_path"]
 
 POLICY_FILE = "policy.json"
 STATS_FILE = "normalization.npz"
@@ -133,6 +133,41 @@ def _serialized_keys(data: dict[str, Any]) -> list[str]:
     return [k for k, v in data.items() if isinstance(v, dict) and ":serialized:" in v]
 
 
+def check_layer_sizes(arch: Any, where: str, allow_dict: bool = True) -> None:
+    """Refuse hidden-layer sizes from a file that are not a short list of bounded sizes.
+
+    The one bound on networks rebuilt from a run's files, for both backends: the SB3 zip's
+    ``policy_kwargs["net_arch"]`` here and the RLlib ``model_config["fcnet_hiddens"]`` of
+    :class:`agents.rllib_agent.RLlibAgent` (a crafted file must not make the loader allocate
+    a huge network).
+
+    Parameters
+    ----------
+    arch : object
+        The layer sizes as read: a list of ints, or (``allow_dict``) a dict of such lists
+        (SB3's ``{"pi": [...], "vf": [...]}``).
+    where : str
+        The file and entry, for the message.
+    allow_dict : bool
+        Accept a dict of lists.
+
+    Raises
+    ------
+    DataFileError
+        ``arch`` is not at most 16 layers of sizes in ``[1, 4096]``.
+    """
+    layers = [arch] if isinstance(arch, list) else (
+        list(arch.values()) if allow_dict and isinstance(arch, dict) else None)
+    ok = layers is not None and all(
+        isinstance(lay, list) and len(lay) <= _MAX_LAYERS
+        and all(isinstance(h, int) and not isinstance(h, bool) and 1 <= h <= _MAX_LAYER for h in lay)
+        for lay in layers
+    )
+    if not ok:
+        raise DataFileError(f"{where}: got {str(arch)[:80]}, expected a list of at most {_MAX_LAYERS} layer sizes "
+                            f"in [1, {_MAX_LAYER}]")
+
+
 def _check_policy_kwargs(data: dict[str, Any], model_zip: Path) -> None:
     """Refuse ``policy_kwargs`` that training does not write, or layers too large to build (a crafted zip)."""
     kw = data.get("policy_kwargs", {})
@@ -142,16 +177,7 @@ def _check_policy_kwargs(data: dict[str, Any], model_zip: Path) -> None:
     unknown = sorted(set(kw) - set(_POLICY_KWARGS))
     if unknown:
         raise DataFileError(f"{where}: unexpected keys {unknown}, expected some of {list(_POLICY_KWARGS)}")
-    arch = kw.get("net_arch", [])
-    layers = [arch] if isinstance(arch, list) else list(arch.values()) if isinstance(arch, dict) else None
-    ok = layers is not None and all(
-        isinstance(lay, list) and len(lay) <= _MAX_LAYERS
-        and all(isinstance(h, int) and not isinstance(h, bool) and 1 <= h <= _MAX_LAYER for h in lay)
-        for lay in layers
-    )
-    if not ok:
-        raise DataFileError(f"{where}: net_arch {str(arch)[:80]} is not a list of at most {_MAX_LAYERS} layer sizes "
-                            f"in [1, {_MAX_LAYER}]")
+    check_layer_sizes(kw.get("net_arch", []), f"{where}: net_arch")
     if "prior_matrix" in kw:
         pm = kw["prior_matrix"]
         if not (isinstance(pm, list) and len(pm) <= 2 * _MAX_LAYER and all(

@@ -47,6 +47,31 @@ __all__ = ["RLlibAgent", "find_run_spec"]
 POLICY_FILE = "policy.json"
 WEIGHTS_FILE = "rl_module.npz"
 _MODULES = {"DefaultPPOTorchRLModule"}
+_MODEL_CONFIG_KEYS = ("fcnet_hiddens", "fcnet_activation", "vf_share_layers")
+"""``model_config`` entries that :mod:`train.rllib` writes; anything else in a ``policy.json`` is refused."""
+_ACTIVATIONS = ("tanh", "relu", "elu", "swish", "silu", "linear")
+
+
+def _check_model_config(model_config: Any, spec_file: Path) -> None:
+    """Refuse a ``model_config`` that training does not write, or layers too large to build (a crafted file).
+
+    Runs before Ray is imported; the layer bound is the one of the SB3 loader
+    (:func:`agents.learned.check_layer_sizes`).
+    """
+    from agents.learned import check_layer_sizes  # (agents.learned imports this module)
+
+    where = f"{spec_file}: model_config"
+    if not isinstance(model_config, dict):
+        raise DataFileError(f"{where}: got a {type(model_config).__name__}, expected an object")
+    unknown = sorted(set(model_config) - set(_MODEL_CONFIG_KEYS))
+    if unknown:
+        raise DataFileError(f"{where}: unexpected keys {unknown}, expected some of {list(_MODEL_CONFIG_KEYS)}")
+    check_layer_sizes(model_config.get("fcnet_hiddens", []), f"{where}.fcnet_hiddens", allow_dict=False)
+    act = model_config.get("fcnet_activation", "tanh")
+    if act not in _ACTIVATIONS:
+        raise DataFileError(f"{where}.fcnet_activation: got {str(act)[:40]!r}, expected one of {list(_ACTIVATIONS)}")
+    if not isinstance(model_config.get("vf_share_layers", False), bool):
+        raise DataFileError(f"{where}.vf_share_layers: got {model_config['vf_share_layers']!r}, expected true or false")
 
 
 def find_run_spec(path: str | os.PathLike[str]) -> tuple[Path, dict[str, Any]] | None:
@@ -140,7 +165,9 @@ class RLlibAgent:
         Raises
         ------
         DataFileError
-            A file is missing, corrupted, or does not fit the module (the message names it).
+            A file is missing, corrupted, or does not fit the module (the message names it); a
+            ``model_config`` with unknown entries or layer sizes beyond the SB3 loader's bounds
+            (:func:`agents.learned.check_layer_sizes`) is refused before Ray is imported.
         """
         if device != "cpu":
             raise ConfigError(f"device: got {device!r}, expected 'cpu'")
@@ -163,6 +190,7 @@ class RLlibAgent:
                 or not isinstance(spec["env"], dict):
             raise DataFileError(f"{spec_file}: expected policy among {sorted(_MODULES)}, model_config and env "
                                 "objects")
+        _check_model_config(spec["model_config"], spec_file)
         try:
             probe = make_aasoatt_env(**spec["env"])
         except (ConfigError, TypeError) as exc:

@@ -457,7 +457,7 @@ def test_init_from_starts_with_the_runs_weights_and_statistics(tmp_path):
         assert torch.equal(v, model.policy.state_dict()[k]), k
     np.testing.assert_array_equal(venv.obs_rms.mean, agent.obs_stats[0])
     venv.close()
-    with pytest.raises(ConfigError, match="another network"):
+    with pytest.raises(ConfigError, match=r"net_arch: got \[8\], the init_from run has \[16, 16\]"):
         bad = tiny(tmp_path, net_arch=[8], init_from=str(src.parent), run_name="bad")
         venv = make_vec_env(bad)
         init_policy(build_model(bad, venv), venv, bad)

@@ -47,6 +47,7 @@ from __future__ import annotations
 import argparse
 import hashlib
 import json
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -56,7 +57,7 @@ from typing import Any
 import numpy as np
 
 from aasoatt_env.api.factory import make_env
-from aasoatt_env.cli_support import Parser, int_option, run_guarded
+from aasoatt_env.cli_support import OutputPlan, Parser, int_option, real_option, run_guarded
 from aasoatt_env.errors import ConfigError
 from train.config import TrainConfig
 
@@ -115,6 +116,59 @@ def _check_cached(run: Path, cfg: TrainConfig) -> None:
                           "another --out-dir, or remove the run to retrain it")
 
 
+def _finite(obj: Any) -> Any:
+    """``obj`` with every non-finite number (NaN, inf; numpy scalars too) replaced by None."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, (bool, np.bool_)):
+        return bool(obj)
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    return obj
+
+
+def _write_json(path: Path, data: Any) -> None:
+    """Write ``data`` as strict JSON: non-finite numbers become null (never a bare NaN)."""
+    path.write_text(json.dumps(_finite(data), indent=2, allow_nan=False))
+
+
+def _check_options(scenes: Sequence[str], seeds: Sequence[int], variants: Sequence[str], bare_steps: int,
+                   filter_steps: int, filter_start: str, filter_n_steps: int, correction: float, episodes: int,
+                   eval_seed: int) -> None:
+    """Raise :class:`ConfigError` naming the first bad option of :func:`run_comparison` (before anything runs)."""
+    def is_int(v: Any) -> bool:
+        return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+
+    for name, values, known in (("scenes", scenes, list(SCENES)), ("variants", variants, list(VARIANTS))):
+        if isinstance(values, str) or not list(values):
+            raise ConfigError(f"--{name}: got {values!r}, expected one or more names among {known}")
+        bad = [v for v in values if v not in known]
+        if bad:
+            raise ConfigError(f"--{name}: got {bad}, expected names among {known}")
+    for name, values in (("scenes", scenes), ("seeds", seeds), ("variants", variants)):
+        dup = sorted({str(v) for v in values if list(values).count(v) > 1})
+        if dup:
+            raise ConfigError(f"--{name}: got {', '.join(dup)} more than once, expected each at most once")
+    if isinstance(seeds, str) or not list(seeds) or not all(is_int(s) and s >= 0 for s in seeds):
+        raise ConfigError(f"--seeds: got {list(seeds) if not isinstance(seeds, str) else seeds!r}, expected one or "
+                          "more integers >= 0")
+    for name, value in (("bare-steps", bare_steps), ("filter-steps", filter_steps),
+                        ("filter-n-steps", filter_n_steps), ("episodes", episodes)):
+        if not is_int(value) or value < 1:
+            raise ConfigError(f"--{name}: got {value!r}, expected an integer >= 1")
+    if not is_int(eval_seed) or eval_seed < 0:
+        raise ConfigError(f"eval_seed: got {eval_seed!r}, expected an integer >= 0")
+    if filter_start not in ("bare", "scratch"):
+        raise ConfigError(f"--filter-start: got {filter_start!r}, expected 'bare' or 'scratch'")
+    ok = isinstance(correction, (int, float, np.integer, np.floating)) and not isinstance(correction, bool)
+    if not (ok and math.isfinite(correction) and correction >= 0):
+        raise ConfigError(f"--correction: got {correction!r}, expected a finite number >= 0")
+
+
 def _model_digest(run: Path) -> str:
     """SHA-256 of the run's ``model.zip``: an evaluation cache belongs to one trained model."""
     return hashlib.sha256((run / "model.zip").read_bytes()).hexdigest()
@@ -157,8 +211,32 @@ def _evaluate(run: Path, scene_cfg: TrainConfig, filtered: bool, episodes: int, 
     row = evaluate_agent(run.name, agent, lambda: make_env(**kw, filter=fc), episodes, seed)
     data = {**row.as_dict(), "seed": seed, "model_sha256": digest}
     cache.parent.mkdir(parents=True, exist_ok=True)
-    cache.write_text(json.dumps(data, indent=2))
+    _write_json(cache, data)
     return data
+
+
+def _plan(out: Path, scenes: Sequence[str], seeds: Sequence[int], variants: Sequence[str], bare_steps: int,
+          filter_steps: int, filter_start: str, filter_n_steps: int, correction: float) -> dict[tuple, TrainConfig]:
+    """The :class:`TrainConfig` of every run, keyed ``(scene, seed, variant)``: all validated before any trains."""
+    plan: dict[tuple, TrainConfig] = {}
+    fine = filter_start == "bare"
+    for scene in scenes:
+        for seed in seeds:
+            bare_run = out / "runs" / scene / f"bare_s{seed}"
+            common = dict(out_dir=str(out / "runs" / scene), seed=seed, progress_bar=True, tensorboard=False,
+                          checkpoint_freq=0)
+            plan[scene, seed, "bare"] = _scene_config(scene, total_timesteps=bare_steps, run_name=bare_run.name,
+                                                      **common)
+            for variant in variants:
+                if variant == "bare":
+                    continue
+                reward = {"correction": correction} if variant == "filter+correction" else {}
+                tune = {"n_steps": filter_n_steps} if fine else {}
+                plan[scene, seed, variant] = _scene_config(
+                    scene, filter=True, reward=reward, run_name=f"{variant.replace('+', '_')}_s{seed}", **tune,
+                    total_timesteps=filter_steps if fine else bare_steps, init_from=str(bare_run) if fine else None,
+                    **common)
+    return plan
 
 
 def run_comparison(
@@ -181,17 +259,25 @@ def run_comparison(
 
     ``table_only``: train and evaluate nothing; tabulate the finished runs and
     evaluations found in ``out_dir`` among those asked for (the others are left out).
+
+    Raises
+    ------
+    ConfigError
+        A bad option (unknown or repeated scene/variant/seed, a seed < 0, a step count or
+        ``episodes`` < 1, a ``correction`` that is not a finite number >= 0) or a run whose
+        :class:`TrainConfig` is invalid: all checked before anything is trained, evaluated or
+        written; with ``table_only``, nothing to tabulate (the tables there are kept).
     """
     log = log or sys.stdout
-    bad = [s for s in scenes if s not in SCENES]
-    if bad:
-        raise ConfigError(f"scenes: got {bad}, expected names among {list(SCENES)}")
-    bad = [v for v in variants if v not in VARIANTS]
-    if bad:
-        raise ConfigError(f"variants: got {bad}, expected names among {list(VARIANTS)}")
-    if filter_start not in ("bare", "scratch"):
-        raise ConfigError(f"filter_start: got {filter_start!r}, expected 'bare' or 'scratch'")
+    _check_options(scenes, seeds, variants, bare_steps, filter_steps, filter_start, filter_n_steps, correction,
+                   episodes, eval_seed)
+    scenes, seeds, variants = list(scenes), [int(s) for s in seeds], list(variants)
+    correction = float(correction)
     out = Path(out_dir)
+    plan = {} if table_only else _plan(out, scenes, seeds, variants, bare_steps, filter_steps, filter_start,
+                                       filter_n_steps, correction)  # every run's settings checked up front
+    if not table_only:
+        OutputPlan(overwrite=True).folder(out, "--out-dir")  # a cache: reused, so existing content is fine
     t_start = time.perf_counter()
     results: dict[str, Any] = {"settings": {
         "scenes": {s: SCENES[s] for s in scenes}, "seeds": list(seeds), "variants": list(variants),
@@ -201,14 +287,11 @@ def run_comparison(
     for scene in scenes:
         for seed in seeds:
             bare_run = out / "runs" / scene / f"bare_s{seed}"
-            common = dict(out_dir=str(out / "runs" / scene), seed=seed, progress_bar=True, tensorboard=False,
-                          checkpoint_freq=0)
             need_bare = "bare" in variants or filter_start == "bare"
             if table_only:
                 bare_stats = json.loads((bare_run / "train_stats.json").read_text()) if _finished(bare_run) else None
             else:
-                bare_cfg = _scene_config(scene, total_timesteps=bare_steps, run_name=bare_run.name, **common)
-                bare_stats = _train(bare_run, bare_cfg, log) if need_bare else None
+                bare_stats = _train(bare_run, plan[scene, seed, "bare"], log) if need_bare else None
             for variant in variants:
                 run = out / "runs" / scene / f"{variant.replace('+', '_')}_s{seed}"
                 caches = [out / "evals" / f"{scene}_{run.name}_{mode}.json" for mode in _EVALS]
@@ -221,14 +304,8 @@ def run_comparison(
                 elif variant == "bare":
                     stats, start = bare_stats, None
                 else:
-                    reward = {"correction": correction} if variant == "filter+correction" else {}
-                    fine = filter_start == "bare"
-                    tune = {"n_steps": filter_n_steps} if fine else {}
-                    cfg = _scene_config(scene, filter=True, reward=reward, run_name=run.name, **tune,
-                                        total_timesteps=filter_steps if fine else bare_steps,
-                                        init_from=str(bare_run) if fine else None, **common)
-                    stats = _train(run, cfg, log)
-                    start = bare_run.name if fine else None
+                    stats = _train(run, plan[scene, seed, variant], log)
+                    start = bare_run.name if filter_start == "bare" else None
                 assert stats is not None
                 entry: dict[str, Any] = {
                     "scene": scene, "variant": variant, "seed": seed, "run": str(run), "init_from": start,
@@ -250,9 +327,12 @@ def run_comparison(
                         entry[f"eval_{mode}"] = _evaluate(run, scene_cfg, mode == "filter", episodes, eval_seed,
                                                           cache, log)
                 results["runs"].append(entry)
+    if table_only and not results["runs"]:  # an empty table would replace the one there
+        raise ConfigError(f"--table-only: {out} holds no finished, evaluated run among those asked for (scenes "
+                          f"{scenes}, seeds {seeds}, variants {variants}); run without --table-only first")
     results["wall_time_s"] = time.perf_counter() - t_start
     out.mkdir(parents=True, exist_ok=True)
-    (out / "compare.json").write_text(json.dumps(results, indent=2))
+    _write_json(out / "compare.json", results)
     (out / "compare.md").write_text(to_markdown(results))
     for scene in scenes:
         _figure(results, scene, out / f"learning_curves_{scene}.png")
@@ -310,7 +390,7 @@ def to_markdown(results: dict[str, Any]) -> str:
         base = [r["eval_filter"]["mean_correction"] for r in runs if r["variant"] == "bare" and r["seed"] in both]
         pen = [r["eval_filter"]["mean_correction"] for r in runs
                if r["variant"] == "filter+correction" and r["seed"] in both]
-        if base and pen:
+        if base and pen and None not in base + pen:  # (null: not measured, written so by _write_json)
             cut = 100 * (1 - np.mean(pen) / np.mean(base))
             lines += [f"Mean filter correction behind the filter, (c) vs (a) on the same seeds: {np.mean(pen):.3f} vs "
                       f"{np.mean(base):.3f} rad/s^2 ({f'{cut:.1f}% less' if cut >= 0 else f'{-cut:.1f}% more'}).",
@@ -368,7 +448,7 @@ def build_parser(prog: str = "python -m train.compare") -> argparse.ArgumentPars
                "penalty, each evaluated bare and behind the filter.")
     p.add_argument("--out-dir", default="results/compare", help="runs, evaluations and tables (reused when rerun)")
     p.add_argument("--scenes", nargs="+", default=list(SCENES), choices=list(SCENES))
-    p.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    p.add_argument("--seeds", nargs="+", type=int_option(0), default=[0, 1, 2], help="training seeds (>= 0)")
     p.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=list(VARIANTS))
     p.add_argument("--bare-steps", type=int_option(1), default=1_228_800, help="agent-steps of (a)")
     p.add_argument("--filter-steps", type=int_option(1), default=61_440,
@@ -377,7 +457,8 @@ def build_parser(prog: str = "python -m train.compare") -> argparse.ArgumentPars
                    help="rollout length per slot of the fine-tuning runs (more updates for few agent-steps)")
     p.add_argument("--filter-start", choices=("bare", "scratch"), default="bare",
                    help="(b)/(c) fine-tune each seed's (a) (bare, default) or train from scratch for --bare-steps")
-    p.add_argument("--correction", type=float, default=1.0, help="reward.correction of (c)")
+    p.add_argument("--correction", type=real_option(0.0), default=1.0,
+                   help="reward.correction of (c) (a finite number >= 0)")
     p.add_argument("--episodes", type=int_option(1), default=20, help="evaluation episodes per policy and mode")
     p.add_argument("--table-only", action="store_true",
                    help="train and evaluate nothing: tabulate the finished runs and evaluations in --out-dir")

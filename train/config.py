@@ -34,6 +34,7 @@ import argparse
 import json
 import math
 import os
+import shutil
 from collections.abc import Sequence
 from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
@@ -47,8 +48,8 @@ from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import SCENARIOS
 from aasoatt_env.validation import parse_value
 
-__all__ = ["BACKENDS", "TRAIN_REWARD", "EnvConfig", "TrainConfig", "add_config_arguments", "config_from_args",
-           "load_config_file", "split_backend", "unique_run_dir"]
+__all__ = ["BACKENDS", "INCOMPLETE_FILE", "TRAIN_REWARD", "EnvConfig", "TrainConfig", "abandon_run",
+           "add_config_arguments", "config_from_args", "load_config_file", "split_backend", "unique_run_dir"]
 
 _ACTION_MODES = ("wheel", "point")
 
@@ -57,7 +58,7 @@ TRAIN_REWARD: dict[str, float] = {"tracking": 1.0, "collision": 1.0, "effort": 0
 """The reward of the default recipe (:class:`TrainConfig`); ``reward`` entries replace these key by key.
 
 ``collision`` 1 rather than the env's 10: with 10, collisions a robot cannot avoid alone (others drive
-into it) drown the tracking signal and a plain MLP does not learn (``../shared/SPEC.md`` section 10).
+into it) drown the tracking signal and a plain MLP does not learn (``docs/technical_brief.md`` section 10).
 ``goal_tolerance`` 0.1 m is the evaluation's success radius."""
 
 BACKENDS = ("sb3", "rllib")
@@ -271,8 +272,11 @@ class TrainConfig(EnvConfig):
     init_from : str or None
         A run folder (or model ``.zip``) of ``aasoatt train`` whose policy
         weights and observation statistics start this run (fine-tuning, e.g.
-        a policy trained bare, now behind the filter); same observation layout,
-        ``net_arch`` and ``policy_prior`` required.
+        a policy trained bare, now behind the filter).  Every setting the loaded
+        policy depends on must be as in that run: ``action_mode``, the observation
+        layout (``num_neighbors``, ``num_obstacles``, ``sensing_range``),
+        ``decision_interval``, ``dt``, ``policy_prior``, ``net_arch`` and
+        ``normalize_obs`` (:func:`train.train.check_init_from`, before a run folder is made).
     out_dir : str
         Parent folder of runs.
     run_name : str or None
@@ -285,7 +289,9 @@ class TrainConfig(EnvConfig):
         Print a progress line (throughput, ETA, success, tracking error,
         collisions, filter intervention) about every 5% of the run.
     device : str
-        Torch device.
+        Torch device: ``"cpu"``, ``"auto"`` (the GPU if there is one), ``"cuda"``,
+        ``"cuda:<i>"`` or ``"mps"``; it must exist on this machine
+        (:func:`train.train.check_device`, before a run folder is made).
     torch_threads : int
         ``torch.set_num_threads`` (1 is fastest for small MLPs on few cores).
     verbose : int
@@ -384,6 +390,26 @@ def unique_run_dir(out_dir: str | os.PathLike[str], name: str) -> Path:
                 return path
         k += 1
         path = base.with_name(f"{base.name}_{k}")
+
+
+INCOMPLETE_FILE = "INCOMPLETE"
+"""A run folder holds this file while its training runs, and keeps it if training failed after a checkpoint."""
+
+
+def abandon_run(run: Path, keep: bool) -> None:
+    """After a failed training: remove ``run``, or, with ``keep`` (it holds a model or checkpoint), mark it incomplete.
+
+    A kept folder has an :data:`INCOMPLETE_FILE` and no ``train_stats.json`` (what marks a finished run).
+    """
+    if keep:
+        try:
+            (run / "train_stats.json").unlink(missing_ok=True)
+            (run / INCOMPLETE_FILE).write_text("training did not finish: keep the checkpoints you need, then "
+                                               "remove this folder\n")
+        except OSError:
+            pass
+    else:
+        shutil.rmtree(run, ignore_errors=True)
 
 
 def load_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -46,6 +46,10 @@ file                               content
 ``train_stats.json``               wall time, env and agent steps, throughput
 =================================  =============================================================
 
+While training, the folder also holds an ``INCOMPLETE`` file, removed at the end.  A run that
+fails or is interrupted is removed, or kept with its ``INCOMPLETE`` file (and no
+``train_stats.json``) when it already has a checkpoint (:func:`train.config.abandon_run`).
+
 ``aasoatt evaluate --bare <run>`` (or ``--filtered <run>``) evaluates the policy in the same
 table as the Stable-Baselines3 runs, without starting Ray.
 """
@@ -67,7 +71,12 @@ from typing import Any
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
-from train.config import EnvConfig, add_config_arguments, config_from_args, unique_run_dir
+from train.config import INCOMPLETE_FILE, EnvConfig, abandon_run, add_config_arguments, config_from_args, unique_run_dir
+
+RAY_MISSING = ("Ray RLlib is not installed; install the rllib extra in a virtual environment of its own "
+               "(ray[rllib] pins gymnasium 1.2), e.g. python3 -m venv .venv-rllib && "
+               ".venv-rllib/bin/pip install -e \".[rllib]\" (README: Use it from your RL library)")
+"""What the RLlib commands say without Ray (``aasoatt train --backend rllib``, a run of it given to evaluate or run)."""
 
 __all__ = ["ENV_NAME", "MODULE_ID", "RLlibConfig", "build_algorithm_config", "main", "make_rllib_env", "train"]
 
@@ -382,14 +391,15 @@ def train(config: RLlibConfig) -> Path:
         raise
     # the run folder is made once Ray and the algorithm are up: a failed start leaves no folder behind
     run = unique_run_dir(config.out_dir, config.run_name or config.default_run_name())
-    (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
-    (run / POLICY_FILE).write_text(json.dumps(config.run_spec(), indent=2))
     t0 = time.perf_counter()
     row: dict[str, Any] = {}
     run_steps = 0.0
     first = int(algo.iteration)  # 0, or the iterations of the resumed checkpoint
     last = first + config.iterations
     try:
+        (run / INCOMPLETE_FILE).write_text("training in progress or failed: this is not a finished run\n")
+        (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+        (run / POLICY_FILE).write_text(json.dumps(config.run_spec(), indent=2))
         with (run / "progress.jsonl").open("w") as log:
             for it in range(first + 1, last + 1):
                 t1 = time.perf_counter()
@@ -415,10 +425,15 @@ def train(config: RLlibConfig) -> Path:
             "num_env_runners": config.num_env_runners, "ray_nodes": len(ray.nodes()),
             "final_checkpoint": str(ckpt.relative_to(run)),
         }, indent=2))
+    except BaseException:
+        # a failed or interrupted run: removed, or kept (marked incomplete) when it has a checkpoint
+        abandon_run(run, keep=any((run / "checkpoints").glob("iter_*")))
+        raise
     finally:
         algo.stop()
         if started:
             ray.shutdown()
+    (run / INCOMPLETE_FILE).unlink()
     return run
 
 
@@ -445,9 +460,7 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m train.rllib")
         print(json.dumps(config.to_dict(), indent=2))
         return 0
     if importlib.util.find_spec("ray") is None:
-        print("error: Ray RLlib is not installed; install the rllib extra in a virtual environment of its own "
-              "(ray[rllib] pins gymnasium 1.2), e.g. python3 -m venv .venv-rllib && "
-              ".venv-rllib/bin/pip install -e \".[rllib]\" (README: Use it from your RL library)", file=sys.stderr)
+        print(f"error: {RAY_MISSING}", file=sys.stderr)
         return 2
     run = train(config)
     print(f"saved {run}")

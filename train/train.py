@@ -59,7 +59,9 @@ Outputs in the run folder ``<out_dir>/<run_name>``: ``model.zip`` (SB3 PPO),
 :class:`agents.learned.LearnedAgent` needs), ``normalization.npz`` (observation
 statistics as plain arrays; nothing is pickled), ``config.json`` (the
 :class:`~train.config.TrainConfig`), ``metrics.csv``, ``learning_curve.png``,
-``train_stats.json`` (wall time, throughput), ``checkpoints/`` and ``tb/``.
+``train_stats.json`` (wall time, throughput; written last: it marks a finished run),
+``checkpoints/`` and ``tb/``.  A run that fails is removed, or kept with an ``INCOMPLETE``
+file where it already holds a model or checkpoint (:func:`train`).
 """
 
 from __future__ import annotations
@@ -67,6 +69,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import sys
 import time
 from collections.abc import Sequence
@@ -79,11 +82,25 @@ from aasoatt_env.api.factory import make_env as make_aasoatt_env
 from aasoatt_env.cli_support import OutputPlan, Parser, add_common_options, run_guarded
 from aasoatt_env.errors import ConfigError
 from agents.learned import POLICY_FILE, stats_path
-from train.config import BACKENDS, TrainConfig, add_config_arguments, config_from_args, split_backend, unique_run_dir
+from train.config import (
+    BACKENDS,
+    INCOMPLETE_FILE,
+    TrainConfig,
+    abandon_run,
+    add_config_arguments,
+    config_from_args,
+    split_backend,
+    unique_run_dir,
+)
 from train.rllib import main as rllib_main
 from train.telemetry import TelemetryCallback, plot_learning_curve
 
-__all__ = ["main", "make_env", "make_vec_env", "train"]
+__all__ = ["INCOMPLETE_FILE", "check_device", "check_init_from", "main", "make_env", "make_vec_env", "train"]
+
+"""Marker file of a run folder whose training has not finished (removed when it finishes; see :func:`train`)."""
+
+_POLICY_ENV_KEYS = ("action_mode", "num_neighbors", "num_obstacles", "sensing_range", "decision_interval", "dt")
+"""Env settings a trained policy depends on: its action meaning, observation layout and decision period."""
 
 
 def make_env(config: TrainConfig, filter: bool | None = None, **env_overrides: Any) -> Any:
@@ -179,21 +196,12 @@ def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = No
     policy: Any = "MlpPolicy"
     policy_kwargs: dict[str, Any] = dict(net_arch=list(config.net_arch), log_std_init=config.log_std_init)
     if config.policy_prior == "tracking":
-        import numpy as np
-
         from agents.prior import TrackingPriorPolicy, tracking_prior_matrix
 
-        probe = make_env(config, filter=False)
-        probe.reset(seed=0)
-        amax = np.asarray(probe.unwrapped.team.max_point_accel, dtype=float)
-        probe.close()
-        if not np.allclose(amax, amax[0]):
-            raise ConfigError("TrainConfig.policy_prior: got robots with different max_point_accel, "
-                              "expected one team-wide value for the shared tracking prior")
         k3, k4 = config.prior_gains
         policy = TrackingPriorPolicy
         policy_kwargs["prior_matrix"] = tracking_prior_matrix(
-            int(np.prod(venv.observation_space.shape)), k3, k4, float(amax[0])).tolist()
+            int(np.prod(venv.observation_space.shape)), k3, k4, _prior_max_accel(config)).tolist()
     return SlotPPO(
         policy, venv,
         learning_rate=config.learning_rate, n_steps=config.n_steps, batch_size=config.batch_size,
@@ -205,11 +213,132 @@ def build_model(config: TrainConfig, venv: Any, tensorboard_log: str | None = No
     )
 
 
+def _prior_max_accel(config: TrainConfig) -> float:
+    """The team-wide ``max_point_accel`` the tracking prior needs (ConfigError if the robots differ)."""
+    probe = make_env(config, filter=False)
+    probe.reset(seed=0)
+    amax = np.asarray(probe.unwrapped.team.max_point_accel, dtype=float)
+    probe.close()
+    if not np.allclose(amax, amax[0]):
+        raise ConfigError("TrainConfig.policy_prior: got robots with different max_point_accel, "
+                          "expected one team-wide value for the shared tracking prior")
+    return float(amax[0])
+
+
+def _available_devices(torch: Any) -> list[str]:
+    devices = ["auto", "cpu"]
+    if torch.cuda.is_available():
+        devices += ["cuda"] + [f"cuda:{i}" for i in range(torch.cuda.device_count())]
+    mps = getattr(torch.backends, "mps", None)
+    if mps is not None and mps.is_available():
+        devices.append("mps")
+    return devices
+
+
+def check_device(device: Any) -> None:
+    """Raise :class:`ConfigError` unless ``device`` is a torch device that exists on this machine.
+
+    ``"auto"`` (Stable-Baselines3: the GPU if there is one) and ``"cpu"`` always pass; ``"cuda"``,
+    ``"cuda:<i>"`` and ``"mps"`` only where that device is present (SB3 would silently train on
+    the CPU instead of a missing GPU, and config.json would record the GPU).
+
+    Parameters
+    ----------
+    device : str
+        :attr:`TrainConfig.device` (``--device``).
+
+    Raises
+    ------
+    ConfigError
+        Naming ``--device``, the value and the devices available here.
+    """
+    if device in ("auto", "cpu"):
+        return  # (without importing torch: bad options elsewhere are reported at once)
+    import torch
+
+    available = _available_devices(torch)
+    ok = False
+    if isinstance(device, str):
+        try:
+            dev = torch.device(device)
+        except (RuntimeError, ValueError, TypeError):
+            dev = None
+        if dev is not None:
+            if dev.type == "cpu":
+                ok = dev.index in (None, 0)
+            elif dev.type == "cuda":
+                ok = torch.cuda.is_available() and (dev.index or 0) < torch.cuda.device_count()
+            elif dev.type == "mps":
+                ok = "mps" in available and dev.index in (None, 0)
+    if not ok:
+        raise ConfigError(f"TrainConfig.device (--device): got {device!r}, expected a torch device available "
+                          f"here, one of {available}")
+
+
+def _env_defaults() -> dict[str, Any]:
+    import inspect
+
+    from aasoatt_env.sim.env import AASOATTParallelEnv
+
+    params = inspect.signature(AASOATTParallelEnv.__init__).parameters
+    return {k: p.default for k, p in params.items() if p.default is not inspect.Parameter.empty}
+
+
+def check_init_from(config: TrainConfig, source: Any, obs_shape: tuple[int, ...] | None = None) -> None:
+    """Raise :class:`ConfigError` unless the policy of the run ``config.init_from`` fits ``config``.
+
+    The loaded policy depends on the action mode (what its outputs mean), the observation layout
+    (``num_neighbors``, ``num_obstacles``, ``sensing_range``), the decision period
+    (``decision_interval``, ``dt``), its class (``policy_prior``), ``net_arch`` and whether its
+    observations are normalised (``normalize_obs``): each must be as in the run it comes from.
+
+    Parameters
+    ----------
+    config : TrainConfig
+        The run to start.
+    source : agents.learned.LearnedAgent
+        The loaded ``config.init_from`` run.
+    obs_shape : tuple of int, optional
+        Observation shape of ``config``'s env (checked against the policy's when given).
+
+    Raises
+    ------
+    ConfigError
+        One line naming every differing setting, with this run's value and the init_from run's.
+    """
+    theirs_env = source.spec.get("env", {})
+    mine_env = config.env_kwargs()
+    defaults = _env_defaults()
+    diffs: list[tuple[str, Any, Any]] = []
+    for key in _POLICY_ENV_KEYS:
+        if key not in theirs_env and key not in mine_env:
+            continue
+        theirs, mine = theirs_env.get(key, defaults.get(key)), mine_env.get(key, defaults.get(key))
+        if theirs != mine:
+            diffs.append((key, mine, theirs))
+    their_prior = {"TrackingPriorPolicy": "tracking", "MlpPolicy": "none"}.get(source.spec.get("policy"),
+                                                                             source.spec.get("policy"))
+    if their_prior != config.policy_prior:
+        diffs.append(("policy_prior", config.policy_prior, their_prior))
+    their_arch = getattr(source.model, "policy_kwargs", {}).get("net_arch")
+    if their_arch is not None and list(their_arch) != list(config.net_arch):
+        diffs.append(("net_arch", list(config.net_arch), list(their_arch)))
+    if (source.obs_stats is not None) != config.normalize_obs:
+        diffs.append(("normalize_obs", config.normalize_obs, source.obs_stats is not None))
+    their_shape = tuple(source.model.observation_space.shape)
+    if obs_shape is not None and not diffs and tuple(obs_shape) != their_shape:
+        diffs.append(("observation shape", tuple(obs_shape), their_shape))
+    if diffs:
+        shown = "; ".join(f"{k}: got {mine!r}, the init_from run has {theirs!r}" for k, mine, theirs in diffs)
+        raise ConfigError(f"TrainConfig.init_from: {config.init_from} was trained with other settings that its "
+                          f"policy depends on ({shown}); expected the same settings as that run")
+
+
 def init_policy(model: Any, venv: Any, config: TrainConfig, source: Any = None) -> None:
     """Start ``model`` from the run ``config.init_from``: its policy weights and observation statistics.
 
-    Loaded without unpickling (:class:`agents.learned.LearnedAgent`, or ``source`` if already loaded);
-    the reward statistics start afresh.
+    Loaded without unpickling (:class:`agents.learned.LearnedAgent`, or ``source`` if already loaded)
+    and checked with :func:`check_init_from`; the reward statistics start afresh.
     """
     import torch
 
@@ -217,10 +346,7 @@ def init_policy(model: Any, venv: Any, config: TrainConfig, source: Any = None) 
 
     if source is None:
         source = LearnedAgent.load(config.init_from)  # type: ignore[arg-type]
-    spec_policy = "TrackingPriorPolicy" if config.policy_prior == "tracking" else "MlpPolicy"
-    if source.spec.get("policy") != spec_policy:
-        raise ConfigError(f"TrainConfig.init_from: got a {source.spec.get('policy')} run, expected a {spec_policy} "
-                          "run (same policy_prior)")
+    check_init_from(config, source, tuple(venv.observation_space.shape))
     state = source.model.policy.state_dict()
     mine = model.policy.state_dict()
     if set(state) != set(mine) or any(state[k].shape != mine[k].shape for k in mine):
@@ -229,9 +355,6 @@ def init_policy(model: Any, venv: Any, config: TrainConfig, source: Any = None) 
                           f"{tuple(venv.observation_space.shape)}")
     with torch.no_grad():
         model.policy.load_state_dict(state)
-    if (source.obs_stats is None) != (not config.normalize_obs):
-        raise ConfigError(f"TrainConfig.init_from: {config.init_from} was trained with normalize_obs="
-                          f"{source.obs_stats is not None}, expected normalize_obs={config.normalize_obs}")
     if source.obs_stats is not None:
         mean, var, _, _ = source.obs_stats
         count = _stats_count(config.init_from)
@@ -265,8 +388,42 @@ def _checkpoint_callback(folder: Path, every: int, with_stats: bool) -> Any:
     return Checkpoint()
 
 
+def _preflight(config: TrainConfig) -> Any:
+    """Check everything training needs before a run folder is made; the loaded ``init_from`` run (or None).
+
+    The device (:func:`check_device`), the env and filter settings, the tracking prior's team,
+    and the run to start from (:func:`check_init_from`).
+    """
+    check_device(config.device)
+    probe = make_env(config)
+    base = probe.unwrapped
+    obs_shape = tuple(base.observation_space(base.possible_agents[0]).shape)
+    probe.close()
+    if config.policy_prior == "tracking":
+        _prior_max_accel(config)
+    if config.init_from is None:
+        return None
+    from agents.learned import LearnedAgent
+
+    source = LearnedAgent.load(config.init_from)
+    check_init_from(config, source, obs_shape)
+    return source
+
+
+def _abandon(run: Path) -> None:
+    """After a failed training: remove ``run`` unless it holds a model (then it stays, marked incomplete)."""
+    abandon_run(run, keep=(run / "model.zip").is_file() or any((run / "checkpoints").glob("*.zip")))
+
+
 def train(config: TrainConfig) -> Path:
     """Train PPO as configured and return the path of the saved ``model.zip``.
+
+    Everything is checked before the run folder is made (:func:`check_device`, the env and
+    filter, :func:`check_init_from`).  While training, the run folder holds an
+    ``INCOMPLETE`` file (:data:`INCOMPLETE_FILE`), removed once every output is written.
+    If training fails or is interrupted, the run folder is removed, unless it already
+    holds a model or checkpoint: then it is kept, with its ``INCOMPLETE`` file, and never
+    has a ``train_stats.json`` (what marks a finished run).
 
     Parameters
     ----------
@@ -278,35 +435,43 @@ def train(config: TrainConfig) -> Path:
     Path
         ``<run>/model.zip``; the run folder also holds ``policy.json``,
         ``normalization.npz`` (when normalising observations), ``config.json``,
-        ``checkpoints/`` and ``tb/``.
-    """
-    probe = make_env(config)  # the env (and filter) settings are checked before any folder is made
-    probe.close()
-    source = None
-    if config.init_from is not None:  # so is the run to start from
-        from agents.learned import LearnedAgent
+        ``train_stats.json``, ``checkpoints/`` and ``tb/``.
 
-        source = LearnedAgent.load(config.init_from)
+    Raises
+    ------
+    ConfigError
+        A setting, the device or the ``init_from`` run does not fit (before any folder is made).
+    """
+    source = _preflight(config)
     run = _run_dir(config)
-    (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
-    (run / POLICY_FILE).write_text(json.dumps(run_spec(config), indent=2))
-    venv = make_vec_env(config)
+    marker = run / INCOMPLETE_FILE
     try:
-        model, telemetry, elapsed = _learn(config, run, venv, source)
-    finally:
-        venv.close()  # (stops the worker processes of num_workers > 1 on every way out)
-    last = telemetry.history[-1] if telemetry.history else {}
-    (run / "train_stats.json").write_text(json.dumps(
-        {"wall_time_s": elapsed, "agent_steps": int(model.num_timesteps),
-         "agent_steps_per_s": model.num_timesteps / max(elapsed, 1e-9),
-         "last_rollout": {k: v for k, v in last.items() if v == v}}, indent=2))
-    if telemetry.history:
+        marker.write_text("training in progress or failed: this is not a finished run\n")
+        (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
+        (run / POLICY_FILE).write_text(json.dumps(run_spec(config), indent=2))
+        venv = make_vec_env(config)
         try:
-            plot_learning_curve({config.run_name or run.name: [telemetry.history]}, run / "learning_curve.png",
-                                title=f"{config.scenario}, {config.num_robots} robots, "
-                                f"{'behind the filter' if config.filter else 'bare'}, seed {config.seed}")
-        except ImportError:  # matplotlib is an optional extra (render/repro)
-            pass
+            model, telemetry, elapsed = _learn(config, run, venv, source)
+        finally:
+            venv.close()  # (stops the worker processes of num_workers > 1 on every way out)
+        if telemetry.history:
+            try:
+                plot_learning_curve({config.run_name or run.name: [telemetry.history]}, run / "learning_curve.png",
+                                    title=f"{config.scenario}, {config.num_robots} robots, "
+                                    f"{'behind the filter' if config.filter else 'bare'}, seed {config.seed}")
+            except ImportError:  # matplotlib is an optional extra (render/repro)
+                pass
+        last = telemetry.history[-1] if telemetry.history else {}
+        (run / "train_stats.json").write_text(json.dumps(
+            {"wall_time_s": elapsed, "agent_steps": int(model.num_timesteps),
+             "agent_steps_per_s": model.num_timesteps / max(elapsed, 1e-9),
+             "last_rollout": {k: v for k, v in last.items()
+                              if isinstance(v, (int, float)) and math.isfinite(v)}},
+            indent=2, allow_nan=False))
+    except BaseException:
+        _abandon(run)
+        raise
+    marker.unlink()
     return run / "model.zip"
 
 
