@@ -100,15 +100,34 @@ def _key_steps(k: dict) -> str:
     return f"{_key_id(k)}/steps={k['steps']}"
 
 
-def _done(path: Path) -> dict[str, dict]:
+_EPISODE_KEYS = ("adversary", "n", "preset", "obstacles", "seed", "steps", "min_robot_gap", "min_obstacle_gap",
+                 "finite", "wall_s")
+_SCENE_KEYS = ("scene", "n", "layer")
+
+
+def _records(path: Path, keys: tuple[str, ...] | None = None) -> list[dict]:
+    """The JSON records of a results file; a line that is not one (or lacks ``keys``) is a one-line error."""
     if not path.is_file():
-        return {}
-    out = {}
-    for line in path.read_text().splitlines():
-        if line.strip():
+        return []
+    out = []
+    for k, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
             rec = json.loads(line)
-            out[_key_steps(rec)] = rec
+        except ValueError as exc:
+            raise SystemExit(f"error: --out {path}: line {k} is not JSON ({exc}); expected this script's "
+                             "results file (one JSON record per line)") from None
+        missing = [key for key in (keys or ()) if not isinstance(rec, dict) or key not in rec]
+        if not isinstance(rec, dict) or missing:
+            raise SystemExit(f"error: --out {path}: line {k} is not a record of this kind (missing {missing}); "
+                             "expected a results file this script wrote")
+        out.append(rec)
     return out
+
+
+def _done(path: Path) -> dict[str, dict]:
+    return {_key_steps(rec): rec for rec in _records(path, _EPISODE_KEYS)}
 
 
 def _longest(recs: list[dict]) -> list[dict]:
@@ -173,11 +192,9 @@ def _paper_row(rec: dict) -> str:
 def _paper_summary(path: Path, mode: str) -> None:
     """The liveness table of a ``paper`` results file (the last record of each scene, N and layer)."""
     last = {}
-    for line in path.read_text().splitlines():
-        if line.strip():
-            rec = json.loads(line)
-            if rec.get("mode", "centralized") == mode:
-                last[(rec["scene"], rec["n"], rec["layer"])] = rec
+    for rec in _records(path, _SCENE_KEYS):
+        if rec.get("mode", "centralized") == mode:
+            last[(rec["scene"], rec["n"], rec["layer"])] = rec
     print(f"\nmode={mode}: the paper's scenes, tracking controller, +3 s settle\n")
     print(_PAPER_HEADER)
     for rec in last.values():
@@ -186,8 +203,10 @@ def _paper_summary(path: Path, mode: str) -> None:
 
 def summary(args: argparse.Namespace) -> None:
     path = Path(args.out)
-    first = next((ln for ln in path.read_text().splitlines() if ln.strip()), "") if path.is_file() else ""
-    if first and "scene" in json.loads(first):
+    if not path.is_file():
+        raise SystemExit(f"error: --out {path}: no such results file")
+    recs = _records(path)
+    if recs and "scene" in recs[0]:
         _paper_summary(path, args.mode)
         return
     recs = _longest([r for r in _done(path).values()
@@ -278,6 +297,12 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=1, help="episodes in parallel processes")
     ap.add_argument("--out", default="results/safety_campaign.jsonl", help="JSONL results (appended; resumable)")
     args = ap.parse_args()
+    for name, value in (("--seeds", args.seeds), ("--steps", args.steps), ("--jobs", args.jobs)):
+        if value < 1:
+            ap.error(f"{name}: got {value}, expected an integer >= 1")
+    if args.first_seed < 0 or any(n < 1 for n in args.teams):
+        ap.error(f"--first-seed/--teams: got {args.first_seed}/{list(args.teams)}, expected a seed >= 0 and team "
+                 "sizes >= 1")
     unknown = [p for p in args.presets if p not in PRESETS]
     if unknown:
         ap.error(f"--presets: got {unknown}, expected names among {list(PRESETS)}")

@@ -11,7 +11,7 @@ pytest.importorskip("stable_baselines3")
 torch = pytest.importorskip("torch")
 torch.set_num_threads(1)
 
-from aasoatt_env.errors import ConfigError, DataFileError  # noqa: E402
+from aasoatt_env.errors import ActionError, ConfigError, DataFileError  # noqa: E402
 from aasoatt_env.sim.env import AASOATTParallelEnv  # noqa: E402
 from train.config import TRAIN_REWARD, TrainConfig, parse_config  # noqa: E402
 from train.vec_env import ParallelVecEnv  # noqa: E402
@@ -84,6 +84,19 @@ def test_defaults_are_the_shipped_recipe():
 def _venv(n_envs=2, **kw):
     kw = {"num_robots": 3, "decision_interval": 20, "max_steps": 5, **kw}
     return ParallelVecEnv([lambda: AASOATTParallelEnv("random_goals", **kw) for _ in range(n_envs)])
+
+
+def test_vec_env_actions_of_the_wrong_shape_or_nan_name_the_slots():
+    """SB3 hands one array for every slot: a wrong shape is refused as such, and a robot's NaN names its team."""
+    venv = _venv()
+    venv.reset()
+    with pytest.raises(ActionError, match=r"actions: got shape \(10,\), expected \(6, 2\) \(one row per slot: "
+                       r"2 teams x 3 robots\)"):
+        venv.step(np.zeros(10))
+    acts = np.zeros((6, 2))
+    acts[4, 0] = np.nan  # team 1, robot_1
+    with pytest.raises(ActionError, match=r"team 1 \(slots 3..5\): actions\['robot_1'\]: got non-finite"):
+        venv.step(acts)
 
 
 def test_vec_env_truncation_and_autoreset():

@@ -54,6 +54,8 @@ from stable_baselines3.common.vec_env.base_vec_env import (
     VecEnvWrapper,
 )
 
+from aasoatt_env.errors import ActionError
+
 __all__ = ["BatchedVecEnv", "ParallelVecEnv", "SlotMonitor", "SlotNormalize", "VelocityTrackingShaping"]
 
 
@@ -72,6 +74,15 @@ class _SlotMasks:
     def acted_slots(self) -> np.ndarray:
         """Slots whose robot acted at the last step (a copy): the others' transitions were padding."""
         return self._acted.copy()
+
+    def _slot_actions(self, actions: Any) -> np.ndarray:
+        """``actions`` as an array ``(num_envs, *action shape)``; any other shape is an :class:`ActionError`."""
+        arr = np.asarray(actions)
+        want = (self.num_envs, *self.action_space.shape)
+        if arr.shape != want:
+            raise ActionError(f"actions: got shape {arr.shape}, expected {want} (one row per slot: "
+                              f"{self.num_envs // self.n_agents} teams x {self.n_agents} robots)")
+        return arr
 
 
 class ParallelVecEnv(_SlotMasks, VecEnv):
@@ -144,7 +155,7 @@ class ParallelVecEnv(_SlotMasks, VecEnv):
 
     def step_async(self, actions: np.ndarray) -> None:
         """Store the actions ``(num_envs, *action_shape)``; dead slots' rows are ignored."""
-        self._actions = np.asarray(actions)
+        self._actions = self._slot_actions(actions)
 
     def step_wait(self) -> VecEnvStepReturn:
         """Step every env once and auto-reset those whose episode ended."""
@@ -158,7 +169,10 @@ class ParallelVecEnv(_SlotMasks, VecEnv):
             base = k * self.n_agents
             live = list(env.agents)
             action_dict = {a: acts[base + self.agents.index(a)] for a in live}
-            obs, rew, term, trunc, inf = env.step(action_dict)
+            try:
+                obs, rew, term, trunc, inf = env.step(action_dict)
+            except ActionError as exc:  # the env names the robot; the slots say where it is in the batch
+                raise ActionError(f"team {k} (slots {base}..{base + self.n_agents - 1}): {exc}") from None
             for i, a in enumerate(self.agents):
                 s = base + i
                 if not self._live[s]:
@@ -318,7 +332,7 @@ class BatchedVecEnv(_SlotMasks, VecEnv):
 
     def step_async(self, actions: np.ndarray) -> None:
         """Store the actions ``(num_envs, 2)``; dead slots' rows are ignored."""
-        self._actions = np.asarray(actions)
+        self._actions = self._slot_actions(actions)
 
     def step_wait(self) -> VecEnvStepReturn:
         """Step all teams once (auto-reset inside the batch)."""
