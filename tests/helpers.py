@@ -66,3 +66,12 @@ def closed_loop(
         dmin = min(dmin, float(d.min()) if d.size else np.inf)
     p = kinematics(team, pose, u).p
     return LoopResult(dmin, np.linalg.norm(p - layout.reference.goals, axis=1), statuses, p, snaps)
+
+
+def tiny_train_config(out_dir: object, **overrides: object):  # noqa: ANN201
+    """A :class:`~train.config.TrainConfig` of a run of ~100 agent-steps (seconds), for tests that need a run."""
+    from train.config import TrainConfig
+
+    base = dict(num_robots=3, n_envs=2, n_steps=16, batch_size=48, n_epochs=1, total_timesteps=100, net_arch=[8, 8],
+                out_dir=str(out_dir), progress_bar=False, tensorboard=False, checkpoint_freq=0, max_steps=20)
+    return TrainConfig(**{**base, **overrides})

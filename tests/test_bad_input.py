@@ -27,6 +27,7 @@ from pathlib import Path
 import gymnasium
 import numpy as np
 import pytest
+from helpers import tiny_train_config
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from pettingzoo import ParallelEnv
@@ -548,15 +549,10 @@ def model_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     pytest.importorskip("stable_baselines3")
     torch = pytest.importorskip("torch")
 
-    from train.config import TrainConfig
     from train.train import train
 
     torch.set_num_threads(1)
-    out = tmp_path_factory.mktemp("runs")
-    cfg = TrainConfig(num_robots=3, n_envs=2, n_steps=16, batch_size=48, n_epochs=1, total_timesteps=100,
-                      net_arch=[8, 8], out_dir=str(out), progress_bar=False, tensorboard=False, checkpoint_freq=0,
-                      max_steps=20, run_name="m")
-    return train(cfg).parent
+    return train(tiny_train_config(tmp_path_factory.mktemp("runs"), run_name="m")).parent
 
 
 def _clone(run: Path, dest: Path) -> Path:

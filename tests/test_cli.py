@@ -66,24 +66,6 @@ def test_forwarded_help_exits_cleanly():
 # --------------------------------------------------------------------------- bad options and output paths (issue 15)
 
 
-@pytest.fixture
-def no_work(monkeypatch):
-    """Any simulation, experiment, evaluation episode or training started by a command fails the test."""
-
-    def boom(*args, **kwargs):
-        raise AssertionError("the command started work before checking its options")
-
-    import aasoatt_env.apps.cli as cli
-    import aasoatt_env.apps.reproduce as reproduce
-    import train.evaluate as evaluate
-    import train.train as train
-
-    monkeypatch.setattr(cli, "run_episode", boom)
-    monkeypatch.setattr(reproduce, "run_experiment", boom)
-    monkeypatch.setattr(evaluate, "evaluate_agent", boom)
-    monkeypatch.setattr(train, "make_vec_env", boom)
-
-
 def _cli(argv, capsys):
     """``(exit status, stderr lines, seconds)`` of ``aasoatt argv`` (argparse's SystemExit included)."""
     t0 = time.perf_counter()

@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import tiny_train_config
 
 import aasoatt_env.apps.cli as cli
 from aasoatt_env.apps.cli import main
@@ -24,18 +25,6 @@ def _cli(argv, capsys):
     return code, captured.out, [line for line in captured.err.splitlines() if line.strip()]
 
 
-@pytest.fixture
-def no_work(monkeypatch):
-    """Any episode or evaluation started by a command fails the test."""
-    import train.evaluate as evaluate
-
-    def boom(*args, **kwargs):
-        raise AssertionError("the command started work before checking its options")
-
-    monkeypatch.setattr(cli, "run_episode", boom)
-    monkeypatch.setattr(evaluate, "evaluate_agent", boom)
-
-
 # --------------------------------------------------------------------------- 1: a learned run's env settings
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
@@ -43,14 +32,11 @@ def tiny_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     pytest.importorskip("stable_baselines3")
     torch = pytest.importorskip("torch")
 
-    from train.config import TrainConfig
     from train.train import train
 
     torch.set_num_threads(1)
-    cfg = TrainConfig(scenario="random_goals", num_robots=3, n_envs=2, n_steps=16, batch_size=48, n_epochs=1,
-                      total_timesteps=100, net_arch=[8, 8], out_dir=str(tmp_path_factory.mktemp("runs")),
-                      progress_bar=False, tensorboard=False, checkpoint_freq=0, max_steps=20, run_name="tiny",
-                      decision_interval=5, action_mode="point", num_neighbors=2, num_obstacles=1)
+    cfg = tiny_train_config(tmp_path_factory.mktemp("runs"), scenario="random_goals", run_name="tiny",
+                            decision_interval=5, action_mode="point", num_neighbors=2, num_obstacles=1)
     return train(cfg).parent
 
 

@@ -9,16 +9,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import tiny_train_config
 
 from aasoatt_env.errors import ConfigError, DataFileError
 
 
 def _tiny(out: Path, **kw):
-    from train.config import TrainConfig
-
-    base = dict(num_robots=3, n_envs=2, n_steps=16, batch_size=48, n_epochs=1, total_timesteps=96, net_arch=[8],
-                out_dir=str(out), progress_bar=False, tensorboard=False, checkpoint_freq=0, max_steps=20)
-    return TrainConfig(**{**base, **kw})
+    return tiny_train_config(out, **{"total_timesteps": 96, "net_arch": [8], **kw})
 
 
 _TINY_ARGS = ["--num-robots", "3", "--n-envs", "2", "--n-steps", "16", "--batch-size", "48", "--n-epochs", "1",
