@@ -54,7 +54,8 @@ from aasoatt_env.errors import ConfigError, DataFileError
 from aasoatt_env.safety.config import FilterConfig
 from agents.rllib_agent import RLlibAgent, find_run_spec
 
-__all__ = ["POLICY_FILE", "STATS_FILE", "LearnedAgent", "check_layer_sizes", "load_learned", "stats_path"]
+__all__ = ["MAX_LAYERS", "MAX_LAYER_SIZE", "POLICY_ENV_KEYS", "POLICY_FILE", "STATS_FILE", "LearnedAgent",
+           "check_layer_sizes", "load_learned", "stats_path"]
 
 POLICY_FILE = "policy.json"
 STATS_FILE = "normalization.npz"
@@ -68,8 +69,14 @@ _READ_ERRORS: tuple[type[BaseException], ...] = (
 """What reading a corrupted or crafted file can raise (bad zip or deflate data, an unsupported zip
 feature, JSON nested beyond the recursion limit, a header claiming a huge array)."""
 
-_MAX_LAYER = 4096
-_MAX_LAYERS = 16
+MAX_LAYER_SIZE: int = 4096
+"""Largest hidden layer a run may have (training refuses more; the loaders refuse a file with more)."""
+MAX_LAYERS: int = 16
+"""Most hidden layers a run may have (as :data:`MAX_LAYER_SIZE`)."""
+POLICY_ENV_KEYS: tuple[str, ...] = ("dt", "decision_interval", "action_mode", "sensing_range", "num_neighbors",
+                                    "num_obstacles")
+"""Env settings a trained policy depends on: its decision period, what its actions mean and its
+observation layout (a run's ``policy.json`` records them; an env for the policy must have them)."""
 _POLICY_KWARGS = ("net_arch", "log_std_init", "prior_matrix")
 """``policy_kwargs`` that ``aasoatt train`` writes; anything else in a model zip is refused."""
 
@@ -159,13 +166,13 @@ def check_layer_sizes(arch: Any, where: str, allow_dict: bool = True) -> None:
     layers = [arch] if isinstance(arch, list) else (
         list(arch.values()) if allow_dict and isinstance(arch, dict) else None)
     ok = layers is not None and all(
-        isinstance(lay, list) and len(lay) <= _MAX_LAYERS
-        and all(isinstance(h, int) and not isinstance(h, bool) and 1 <= h <= _MAX_LAYER for h in lay)
+        isinstance(lay, list) and len(lay) <= MAX_LAYERS
+        and all(isinstance(h, int) and not isinstance(h, bool) and 1 <= h <= MAX_LAYER_SIZE for h in lay)
         for lay in layers
     )
     if not ok:
-        raise DataFileError(f"{where}: got {str(arch)[:80]}, expected a list of at most {_MAX_LAYERS} layer sizes "
-                            f"in [1, {_MAX_LAYER}]")
+        raise DataFileError(f"{where}: got {str(arch)[:80]}, expected a list of at most {MAX_LAYERS} layer sizes "
+                            f"in [1, {MAX_LAYER_SIZE}]")
 
 
 def _check_policy_kwargs(data: dict[str, Any], model_zip: Path) -> None:
@@ -180,8 +187,8 @@ def _check_policy_kwargs(data: dict[str, Any], model_zip: Path) -> None:
     check_layer_sizes(kw.get("net_arch", []), f"{where}: net_arch")
     if "prior_matrix" in kw:
         pm = kw["prior_matrix"]
-        if not (isinstance(pm, list) and len(pm) <= 2 * _MAX_LAYER and all(
-                isinstance(r, list) and len(r) <= 2 * _MAX_LAYER for r in pm)):
+        if not (isinstance(pm, list) and len(pm) <= 2 * MAX_LAYER_SIZE and all(
+                isinstance(r, list) and len(r) <= 2 * MAX_LAYER_SIZE for r in pm)):
             raise DataFileError(f"{where}: prior_matrix is not a list of rows of bounded size")
 
 

@@ -316,8 +316,19 @@ def test_obstacle_on_a_goal_is_refused() -> None:
 
 def test_position_swap_too_small_to_hold_the_robots_is_refused() -> None:
     """Neighbouring corners are distance / sqrt(2) apart: below 2 r sqrt(2) the robots would start overlapping."""
-    with pytest.raises(ScenarioError, match=r"distance: got 0.2 m, .* 0.141 m apart; expected >= 0.297 m"):
+    with pytest.raises(ScenarioError, match=r"distance: got 0.2 m, whose start corners do not hold the robots: "
+                       r"robots 0 and 1 overlap \(0.141421 m apart < 0.21 m"):
         AASOATTParallelEnv("position_swap", distance=0.2)
+    # mixed radii: only neighbouring pairs count (0.707 m apart holds 0.48 + 0.105 m)
+    AASOATTParallelEnv("position_swap", distance=1.0, robots=["paper", "turtlebot3_burger"] * 2).reset()
+
+
+@pytest.mark.parametrize("n", [3, 6, 12, 39])
+def test_robots_that_exactly_touch_at_the_start_are_accepted(n: int) -> None:
+    """The circle holds N robots when neighbours touch (chord = d_s): the constructor and reset agree."""
+    env = AASOATTParallelEnv("circle_swap", num_robots=n, radius=0.48 / np.sin(np.pi / n))
+    _, infos = env.reset()
+    assert min(info["clearance"] for info in infos.values()) == pytest.approx(0.0, abs=1e-9)
     _, infos = AASOATTParallelEnv("position_swap", distance=0.3).reset()  # just enough room
     assert min(info["clearance"] for info in infos.values()) == pytest.approx(0.3 / np.sqrt(2) - 0.21, abs=1e-9)
 
@@ -335,7 +346,8 @@ def test_a_user_scenario_that_starts_overlapping_is_refused_at_reset() -> None:
             return layout
 
     env = AASOATTParallelEnv(Overlapping())
-    with pytest.raises(ScenarioError, match=r"scenario 'overlapping': starts: robots 0 and 1 overlap \(0.071 m apart"):
+    with pytest.raises(ScenarioError, match=r"scenario 'overlapping': starts: robots 0 and 1 overlap "
+                       r"\(0.0707107 m apart"):
         env.reset(seed=0)
 
 

@@ -58,16 +58,17 @@ def _from_state(**kw):
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"nominal_du": np.full((2, 2), 1e300)}, r"nominal_du: got a value beyond \+-1e9 .*\(robot index 0\)"),
-        ({"u": np.full((2, 2), 1e200)}, r"u: got \[1e\+200, 1e\+200\] for robot index 0"),
-        ({"pose": np.full((2, 3), np.inf)}, r"pose: got \[inf, inf, inf\] for robot index 0"),
+        ({"nominal_du": np.full((2, 2), 1e300)}, r"nominal_du: got a value beyond \+-1e\+09 .*\(robot index 0\)"),
+        ({"u": np.full((2, 2), 1e200)}, r"u: got a value beyond \+-1e\+09 \[1e\+200, 1e\+200\] .*\(robot index 0\)"),
+        ({"pose": np.full((2, 3), np.inf)}, r"pose: got a non-finite value \[inf, inf, inf\] .*\(robot index 0\)"),
         ({"pose": np.zeros((2, 2))}, r"pose: got shape \(2, 2\), expected \(2, 3\)"),
         ({"reference": (np.full((2, 2), np.nan), np.zeros((2, 2)))}, r"reference p_d: got a non-finite value"),
         ({"reference": (np.zeros((3, 2)), np.zeros((2, 2)))}, r"reference p_d: got shape \(3, 2\), expected \(2, 2\)"),
-        ({"reference": np.zeros((2, 2))}, r"reference: got ndarray, expected a pair \(p_d, v_d\)"),
+        ({"reference": 1.0}, r"reference: got float, expected \(p_d, v_d\) or \(p_d, v_d, a_d\)"),
         ({"obstacles": (np.array([[1.5, 0.0]]), np.array([np.nan]))},
          r"obstacles radii: got a non-finite value \[nan\] for obstacle\(s\) \[0\]"),
-        ({"obstacles": (np.array([[1.5, 0.0]]), np.array([-1.0]))}, r"obstacles radii: got -1.0 for obstacle 0"),
+        ({"obstacles": (np.array([[1.5, 0.0]]), np.array([-1.0]))}, r"obstacles radii: got -1.0 for obstacle 0, "
+         r"expected a radius >= 0"),
         ({"obstacles": (np.array([[1.5, 3.0], [5.0, 5.0]]), np.array([0.5]))},
          r"obstacles centres: got shape \(2, 2\), expected \(1, 2\)"),
         ({"obstacles": (np.array([[1.5, 3.0]]), np.array([0.5]), np.array([0.5]))},
@@ -78,6 +79,26 @@ def test_env_free_core_refuses_bad_state(kwargs, match):
     """The core refuses what the env would: NaN, |x| > 1e9, wrong shapes (a NaN radius must not drop an obstacle)."""
     with pytest.raises(StateError, match=match):
         _from_state(**kwargs)
+
+
+def test_env_free_core_takes_every_form_of_a_valid_input_alike():
+    """The forms the core has always taken give the same answer: references as tuple, list, 3-tuple (with a_d, as a
+    reference returns it) or flat (2N,) arrays; obstacles as lists or arrays, with or without groups, radius 0."""
+    team, pose, u = _state(n=2, spacing=1.5, speed=0.8)
+    nom = np.array([[30.0, 30.0], [-20.0, 25.0]])
+    p_d, v_d = pose[:, :2] + 0.3, np.ones((2, 2))
+    obst = (np.array([[0.7, 1.5]]), np.array([0.3]))
+
+    def du(**kw):
+        return SafetyFilter(team).from_state(pose, u, nom, **kw)[0]
+
+    ref = du(reference=(p_d, v_d), obstacles=obst)
+    for kw in ({"reference": [p_d.tolist(), v_d.tolist()], "obstacles": (obst[0].tolist(), obst[1].tolist())},
+               {"reference": (p_d, v_d, np.zeros((2, 2))), "obstacles": (*obst, None)},
+               {"reference": (p_d.ravel(), v_d.ravel()), "obstacles": (*obst, np.array([0]))}):
+        np.testing.assert_array_equal(du(**kw), ref)
+    point = du(reference=(p_d, v_d), obstacles=(obst[0], np.array([0.0])))  # a point obstacle is an obstacle
+    assert np.isfinite(point).all()
 
 
 def test_env_free_core_keeps_a_valid_obstacle():

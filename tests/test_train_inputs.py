@@ -90,6 +90,36 @@ def test_a_failed_training_leaves_no_folder_that_looks_finished(tmp_path, monkey
     assert not (run / "train_stats.json").exists()
 
 
+def test_a_failed_training_keeps_a_folder_it_was_given(tmp_path, monkeypatch):
+    """An empty folder (or a link to one) that existed before the run is emptied, not deleted."""
+    pytest.importorskip("stable_baselines3")
+    import train.train as tt
+
+    def crash(config, run, venv, source):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(tt, "_learn", crash)
+    (tmp_path / "mine").mkdir()
+    with pytest.raises(RuntimeError, match="boom"):
+        tt.train(_tiny(tmp_path, run_name="mine"))
+    assert (tmp_path / "mine").is_dir() and list((tmp_path / "mine").iterdir()) == []
+    (tmp_path / "target").mkdir()
+    (tmp_path / "link").symlink_to(tmp_path / "target")
+    with pytest.raises(RuntimeError, match="boom"):
+        tt.train(_tiny(tmp_path, run_name="link"))
+    assert (tmp_path / "link").is_symlink() and list((tmp_path / "target").iterdir()) == []
+
+
+def test_two_runs_never_claim_one_folder(tmp_path):
+    from train.config import INCOMPLETE_FILE, claim_run_dir
+
+    (tmp_path / "r").mkdir()  # an empty folder: the first claim takes it, the second moves on
+    a, made_a = claim_run_dir(tmp_path, "r")
+    b, made_b = claim_run_dir(tmp_path, "r")
+    assert (a.name, made_a, b.name, made_b) == ("r", False, "r_2", True)
+    assert (a / INCOMPLETE_FILE).is_file() and (b / INCOMPLETE_FILE).is_file()
+
+
 def test_a_finished_run_has_no_incomplete_marker(src_run):
     from train.train import INCOMPLETE_FILE
 

@@ -31,6 +31,7 @@ Example ``run.toml``::
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -47,9 +48,11 @@ from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import SCENARIOS
 from aasoatt_env.validation import parse_value
+from agents.learned import MAX_LAYER_SIZE, MAX_LAYERS
 
 __all__ = ["BACKENDS", "INCOMPLETE_FILE", "TRAIN_REWARD", "EnvConfig", "TrainConfig", "abandon_run",
-           "add_config_arguments", "config_from_args", "load_config_file", "split_backend", "unique_run_dir"]
+           "add_config_arguments", "claim_run_dir", "config_from_args", "load_config_file", "split_backend",
+           "unique_run_dir"]
 
 _ACTION_MODES = ("wheel", "point")
 
@@ -118,6 +121,15 @@ class EnvConfig:
     # ------------------------------------------------------------------ validation
     def _err(self, name: str, expected: str) -> ConfigError:
         return ConfigError(f"{type(self).__name__}.{name}: got {getattr(self, name)!r}, expected {expected}")
+
+    def _net_arch(self) -> None:
+        """``net_arch``: 1 to ``MAX_LAYERS`` sizes in ``[1, MAX_LAYER_SIZE]`` (what the loaders accept)."""
+        arch = self.net_arch
+        if not (isinstance(arch, (list, tuple)) and 1 <= len(arch) <= MAX_LAYERS
+                and all(isinstance(h, int) and not isinstance(h, bool) and 1 <= h <= MAX_LAYER_SIZE for h in arch)):
+            raise self._err("net_arch", f"a list of 1 to {MAX_LAYERS} layer sizes in [1, {MAX_LAYER_SIZE}] (a run "
+                            "must be loadable)")
+        self.net_arch = list(arch)
 
     def _int(self, name: str, lo: int) -> None:
         v = getattr(self, name)
@@ -362,10 +374,7 @@ class TrainConfig(EnvConfig):
                 f"normalize_obs={self.normalize_obs!r}, expected action_mode='point' and normalize_obs=false"
             )
         self._bools("normalize_obs", "normalize_reward", "tensorboard", "progress_bar")
-        if not (isinstance(self.net_arch, (list, tuple)) and self.net_arch
-                and all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in self.net_arch)):
-            raise self._err("net_arch", "a non-empty list of positive integers")
-        self.net_arch = list(self.net_arch)
+        self._net_arch()
         if self.init_from is not None and (not isinstance(self.init_from, str) or not self.init_from):
             raise self._err("init_from", "a run folder or model .zip path, or None")
         rollout = self.n_steps * self.n_envs * self.num_robots
@@ -374,32 +383,55 @@ class TrainConfig(EnvConfig):
         self._validate_run_folder()
 
 
-def unique_run_dir(out_dir: str | os.PathLike[str], name: str) -> Path:
-    """Create and return ``<out_dir>/<name>``, or ``<name>_2``, ``<name>_3``, ... if it holds files.
+def claim_run_dir(out_dir: str | os.PathLike[str], name: str, marker: bool = True) -> tuple[Path, bool]:
+    """Create (or take an empty) ``<out_dir>/<name>``, or ``<name>_2``, ``<name>_3``, ...; and whether it was created.
 
-    A run never writes into the folder of another run; an existing empty folder is used.
+    A run never writes into the folder of another run; an existing empty folder is used.  With
+    ``marker`` the folder is claimed by creating its :data:`INCOMPLETE_FILE` exclusively, so two
+    runs started at once never share a folder; the caller removes the marker when the run is done.
+    The flag says whether this call created the folder (:func:`abandon_run` removes only such).
     """
     base = Path(out_dir) / name
     path, k = base, 1
     while True:
+        created = False
         try:
             path.mkdir(parents=True)
-            return path
+            created = True
         except FileExistsError:
-            if path.is_dir() and not any(path.iterdir()):
-                return path
+            pass
+        if path.is_dir() and (created or not any(path.iterdir())):
+            if not marker:
+                return path, created
+            try:
+                with (path / INCOMPLETE_FILE).open("x") as fh:
+                    fh.write("training in progress or failed: this is not a finished run\n")
+                return path, created
+            except FileExistsError:  # another run claimed it first
+                pass
         k += 1
         path = base.with_name(f"{base.name}_{k}")
+
+
+def unique_run_dir(out_dir: str | os.PathLike[str], name: str) -> Path:
+    """Create and return ``<out_dir>/<name>``, or ``<name>_2``, ``<name>_3``, ... if it holds files.
+
+    A run never writes into the folder of another run; an existing empty folder is used
+    (:func:`claim_run_dir` without a marker).
+    """
+    return claim_run_dir(out_dir, name, marker=False)[0]
 
 
 INCOMPLETE_FILE = "INCOMPLETE"
 """A run folder holds this file while its training runs, and keeps it if training failed after a checkpoint."""
 
 
-def abandon_run(run: Path, keep: bool) -> None:
-    """After a failed training: remove ``run``, or, with ``keep`` (it holds a model or checkpoint), mark it incomplete.
+def abandon_run(run: Path, keep: bool, created: bool) -> None:
+    """After a failed training: empty ``run`` (removed if this run created it), or mark it incomplete.
 
-    A kept folder has an :data:`INCOMPLETE_FILE` and no ``train_stats.json`` (what marks a finished run).
+    With ``keep`` (it holds a model or checkpoint) it stays with an :data:`INCOMPLETE_FILE` and no
+    ``train_stats.json`` (what marks a finished run).  A folder that existed before the run (an empty
+    folder it was given, or a link to one) stays, emptied.
     """
     if keep:
         try:
@@ -408,8 +440,15 @@ def abandon_run(run: Path, keep: bool) -> None:
                                                "remove this folder\n")
         except OSError:
             pass
-    else:
-        shutil.rmtree(run, ignore_errors=True)
+        return
+    for child in list(run.iterdir()) if run.is_dir() else []:
+        if child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child, ignore_errors=True)
+        else:
+            child.unlink(missing_ok=True)
+    if created and not run.is_symlink():
+        with contextlib.suppress(OSError):
+            run.rmdir()
 
 
 def load_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:

@@ -70,7 +70,7 @@ from aasoatt_env.errors import ConfigError, DataFileError, UnknownKeywordError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.validation import parse_assignments
 from agents import RandomAgent, TrackingController
-from agents.learned import load_learned
+from agents.learned import POLICY_ENV_KEYS, load_learned
 from agents.rllib_agent import find_run_spec
 from train.config import TrainConfig
 from train.rllib import RAY_MISSING
@@ -78,9 +78,6 @@ from train.rllib import RAY_MISSING
 __all__ = ["POLICY_ENV_KEYS", "EvalRow", "evaluate", "evaluate_agent", "load_policy", "main", "policy_env_kwargs",
            "to_markdown"]
 
-POLICY_ENV_KEYS = ("dt", "decision_interval", "action_mode", "sensing_range", "num_neighbors", "num_obstacles")
-"""Env settings a learned policy depends on: its decision period, what its actions mean and
-its observation layout.  An env for a policy takes the values of the run's ``policy.json``."""
 
 
 _EXPECTED_MODEL = ("expected a run folder of aasoatt train holding policy.json and model.zip (or of "

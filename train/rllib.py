@@ -71,7 +71,7 @@ from typing import Any
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
-from train.config import INCOMPLETE_FILE, EnvConfig, abandon_run, add_config_arguments, config_from_args, unique_run_dir
+from train.config import INCOMPLETE_FILE, EnvConfig, abandon_run, add_config_arguments, claim_run_dir, config_from_args
 
 RAY_MISSING = ("Ray RLlib is not installed; install the rllib extra in a virtual environment of its own "
                "(ray[rllib] pins gymnasium 1.2), e.g. python3 -m venv .venv-rllib && "
@@ -203,10 +203,7 @@ class RLlibConfig(EnvConfig):
         self._float("vf_coef", 0.0)
         self._float("vf_clip", 0.0, lo_open=True)
         self._float("max_grad_norm", 0.0, lo_open=True)
-        if not (isinstance(self.net_arch, (list, tuple)) and self.net_arch
-                and all(isinstance(h, int) and not isinstance(h, bool) and h >= 1 for h in self.net_arch)):
-            raise self._err("net_arch", "a non-empty list of positive integers")
-        self.net_arch = list(self.net_arch)
+        self._net_arch()
         if self.address is not None and (not isinstance(self.address, str) or not self.address):
             raise self._err("address", "a Ray address ('auto', 'HOST:PORT', 'ray://HOST:PORT') or None")
         if self.num_cpus is not None:
@@ -390,14 +387,13 @@ def train(config: RLlibConfig) -> Path:
             ray.shutdown()
         raise
     # the run folder is made once Ray and the algorithm are up: a failed start leaves no folder behind
-    run = unique_run_dir(config.out_dir, config.run_name or config.default_run_name())
+    run, created = claim_run_dir(config.out_dir, config.run_name or config.default_run_name())
     t0 = time.perf_counter()
     row: dict[str, Any] = {}
     run_steps = 0.0
     first = int(algo.iteration)  # 0, or the iterations of the resumed checkpoint
     last = first + config.iterations
     try:
-        (run / INCOMPLETE_FILE).write_text("training in progress or failed: this is not a finished run\n")
         (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
         (run / POLICY_FILE).write_text(json.dumps(config.run_spec(), indent=2))
         with (run / "progress.jsonl").open("w") as log:
@@ -427,7 +423,7 @@ def train(config: RLlibConfig) -> Path:
         }, indent=2))
     except BaseException:
         # a failed or interrupted run: removed, or kept (marked incomplete) when it has a checkpoint
-        abandon_run(run, keep=any((run / "checkpoints").glob("iter_*")))
+        abandon_run(run, keep=any((run / "checkpoints").glob("iter_*")), created=created)
         raise
     finally:
         algo.stop()

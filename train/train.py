@@ -81,26 +81,22 @@ import numpy as np
 from aasoatt_env.api.factory import make_env as make_aasoatt_env
 from aasoatt_env.cli_support import OutputPlan, Parser, add_common_options, run_guarded
 from aasoatt_env.errors import ConfigError
-from agents.learned import POLICY_FILE, stats_path
+from agents.learned import POLICY_ENV_KEYS, POLICY_FILE, stats_path
 from train.config import (
     BACKENDS,
     INCOMPLETE_FILE,
     TrainConfig,
     abandon_run,
     add_config_arguments,
+    claim_run_dir,
     config_from_args,
     split_backend,
-    unique_run_dir,
 )
 from train.rllib import main as rllib_main
 from train.telemetry import TelemetryCallback, plot_learning_curve
 
 __all__ = ["INCOMPLETE_FILE", "check_device", "check_init_from", "main", "make_env", "make_vec_env", "train"]
 
-"""Marker file of a run folder whose training has not finished (removed when it finishes; see :func:`train`)."""
-
-_POLICY_ENV_KEYS = ("action_mode", "num_neighbors", "num_obstacles", "sensing_range", "decision_interval", "dt")
-"""Env settings a trained policy depends on: its action meaning, observation layout and decision period."""
 
 
 def make_env(config: TrainConfig, filter: bool | None = None, **env_overrides: Any) -> Any:
@@ -173,14 +169,17 @@ def make_vec_env(config: TrainConfig, training: bool = True, group_filter: bool 
     return venv
 
 
-def _run_dir(config: TrainConfig) -> Path:
-    """A new run folder ``<out_dir>/<name>`` (``<name>_2``, ``_3``, ... when taken): earlier runs are kept."""
+def _run_dir(config: TrainConfig) -> tuple[Path, bool]:
+    """A new run folder ``<out_dir>/<name>`` (``_2``, ``_3``, ... when taken) and whether it was created.
+
+    Claimed with its ``INCOMPLETE`` file (:func:`train.config.claim_run_dir`): earlier runs are kept.
+    """
     name = config.run_name or (
         f"ppo_{config.scenario}_{config.num_robots}r_{'filter' if config.filter else 'bare'}_s{config.seed}"
     )
     OutputPlan(overwrite=True).folder(config.out_dir, "TrainConfig.out_dir")  # creatable and writable, or say why
     try:
-        return unique_run_dir(config.out_dir, name)
+        return claim_run_dir(config.out_dir, name)
     except OSError as exc:
         raise ConfigError(f"TrainConfig.out_dir: cannot create a run folder in {config.out_dir} "
                           f"({exc.strerror or exc})") from None
@@ -310,7 +309,7 @@ def check_init_from(config: TrainConfig, source: Any, obs_shape: tuple[int, ...]
     mine_env = config.env_kwargs()
     defaults = _env_defaults()
     diffs: list[tuple[str, Any, Any]] = []
-    for key in _POLICY_ENV_KEYS:
+    for key in POLICY_ENV_KEYS:
         if key not in theirs_env and key not in mine_env:
             continue
         theirs, mine = theirs_env.get(key, defaults.get(key)), mine_env.get(key, defaults.get(key))
@@ -410,9 +409,9 @@ def _preflight(config: TrainConfig) -> Any:
     return source
 
 
-def _abandon(run: Path) -> None:
+def _abandon(run: Path, created: bool) -> None:
     """After a failed training: remove ``run`` unless it holds a model (then it stays, marked incomplete)."""
-    abandon_run(run, keep=(run / "model.zip").is_file() or any((run / "checkpoints").glob("*.zip")))
+    abandon_run(run, keep=(run / "model.zip").is_file() or any((run / "checkpoints").glob("*.zip")), created=created)
 
 
 def train(config: TrainConfig) -> Path:
@@ -443,10 +442,9 @@ def train(config: TrainConfig) -> Path:
         A setting, the device or the ``init_from`` run does not fit (before any folder is made).
     """
     source = _preflight(config)
-    run = _run_dir(config)
+    run, created = _run_dir(config)
     marker = run / INCOMPLETE_FILE
     try:
-        marker.write_text("training in progress or failed: this is not a finished run\n")
         (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
         (run / POLICY_FILE).write_text(json.dumps(run_spec(config), indent=2))
         venv = make_vec_env(config)
@@ -469,7 +467,7 @@ def train(config: TrainConfig) -> Path:
                               if isinstance(v, (int, float)) and math.isfinite(v)}},
             indent=2, allow_nan=False))
     except BaseException:
-        _abandon(run)
+        _abandon(run, created)
         raise
     marker.unlink()
     return run / "model.zip"

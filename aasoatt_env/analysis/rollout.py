@@ -350,7 +350,7 @@ class Rollout:
         except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile, zlib.error, NotImplementedError,
                 RecursionError) as exc:
             # corrupted zip/deflate data, an unsupported zip feature, JSON nested beyond the recursion limit
-            if "pickle" in str(exc):  # numpy's own advice here is to load it unsafely: never
+            if isinstance(exc, ValueError) and "allow_pickle" in str(exc):  # numpy's advice: load it unsafely. Never
                 raise DataFileError(f"{name}: not a readable rollout file (not an .npz archive of plain "
                                     "arrays; files are never unpickled)") from None
             raise DataFileError(f"{name}: not a readable rollout file ({type(exc).__name__}: "

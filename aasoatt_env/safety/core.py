@@ -153,6 +153,16 @@ class FilterResult:
         return self.pairs[:, 1] < 0
 
 
+def _refuse_rows_beyond(name: str, a: np.ndarray, what: str) -> None:
+    """Raise :class:`StateError` naming the first row of ``a`` ``(K, ...)`` with NaN, inf or ``|x| > MAGNITUDE_MAX``."""
+    bad = np.flatnonzero(~(np.abs(a) <= MAGNITUDE_MAX).reshape(a.shape[0], -1).all(axis=1))
+    if bad.size:
+        row = a[bad[0]]
+        kind = f"a value beyond +-{MAGNITUDE_MAX:g}" if np.isfinite(row).all() else "a non-finite value"
+        raise StateError(f"{name}: got {kind} {np.atleast_1d(row).tolist()} for {what}(s) {bad[:10].tolist()} "
+                         f"({what} index {bad[0]}), expected finite values within +-{MAGNITUDE_MAX:g}")
+
+
 class SafetyFilter:
     """CBF-QP safety filter for a team (see module docstring).
 
@@ -272,11 +282,7 @@ class SafetyFilter:
         for name, a, shape in (("pose", pose, (team.n, 3)), ("u", u, (team.n, 2))):
             if a.shape != shape:
                 raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
-            bad = ~(np.abs(a) <= MAGNITUDE_MAX).all(axis=1)
-            if bad.any():
-                k = int(np.flatnonzero(bad)[0])
-                raise StateError(f"{name}: got {a[k].tolist()} for robot index {k}, expected finite values within "
-                                 f"+-{MAGNITUDE_MAX:g}")
+            _refuse_rows_beyond(name, a, "robot")
         kin = kinematics(team, pose, u)
         lo, hi = input_bounds(team, u, self.config.dt)
         return self.step(kin, u, pose[:, 2], nominal_du, lo, hi, **kwargs)
@@ -547,10 +553,16 @@ class SafetyFilter:
                   ("theta", theta, (n,)), ("kin.p", kin.p, (n, 2)), ("kin.v", kin.v, (n, 2)),
                   ("kin.A", kin.A, (n, 2, 2)), ("kin.adot_u", kin.adot_u, (n, 2))]
         if reference is not None:
-            if not isinstance(reference, (tuple, list)) or len(reference) != 2:
-                raise StateError(f"reference: got {type(reference).__name__}, expected a pair (p_d, v_d) of "
-                                 f"({n}, 2) arrays")
-            reference = (np.asarray(reference[0], dtype=np.float64), np.asarray(reference[1], dtype=np.float64))
+            # (p_d, v_d), or (p_d, v_d, a_d) as a reference returns it; each (N, 2) or flat (2N,)
+            try:
+                ok = len(reference) in (2, 3)
+            except TypeError:
+                ok = False
+            if not ok:
+                raise StateError(f"reference: got {type(reference).__name__}, expected (p_d, v_d) or (p_d, v_d, a_d) "
+                                 f"of ({n}, 2) arrays")
+            reference = tuple(np.asarray(reference[k], dtype=np.float64) for k in (0, 1))
+            reference = tuple(r.reshape(n, 2) if r.shape == (2 * n,) else r for r in reference)
             arrays += [("reference p_d", reference[0], (n, 2)), ("reference v_d", reference[1], (n, 2))]
         if obstacles is not None:
             if not isinstance(obstacles, (tuple, list)) or len(obstacles) not in (2, 3):
@@ -567,7 +579,7 @@ class SafetyFilter:
             groups = obstacles[2] if len(obstacles) > 2 else None
             if groups is not None:
                 groups = np.asarray(groups)
-                if groups.shape != (m,) or (m and groups.dtype.kind not in "iu"):
+                if groups.shape != (m,) or (m and groups.dtype.kind not in "biu"):
                     raise StateError(f"obstacles groups: got {groups.dtype} array of shape {groups.shape}, "
                                      f"expected integers of shape ({m},)")
             obstacles = (centres, radii) if len(obstacles) == 2 else (centres, radii, groups)
@@ -581,16 +593,10 @@ class SafetyFilter:
         if not big <= MAGNITUDE_MAX:  # NaN, inf or beyond the magnitude every input is checked against
             for name, arr, shape in arrays:
                 a = np.asarray(arr, dtype=np.float64).reshape(shape[0], -1) if shape[0] else np.zeros((0, 1))
-                bad = ~(np.abs(a) <= MAGNITUDE_MAX).all(axis=1)
-                if bad.any():
-                    idx = np.flatnonzero(bad)
-                    what = "obstacle" if name.startswith("obstacles") else "robot"
-                    kind = "a value beyond +-1e9" if np.isfinite(a[idx[0]]).all() else "a non-finite value"
-                    raise StateError(f"{name}: got {kind} {a[idx[0]].tolist()} for {what}(s) {idx[:10].tolist()} "
-                                     f"({what} index {idx[0]}), expected finite values within +-{MAGNITUDE_MAX:g}")
+                _refuse_rows_beyond(name, a, "obstacle" if name.startswith("obstacles") else "robot")
         if np.any(lo > hi):
             raise StateError("lo/hi: bounds must be finite with lo <= hi")
-        if obstacles is not None and radii.size and not bool((radii > 0.0).all()):
-            k = int(np.flatnonzero(~(radii > 0.0))[0])
-            raise StateError(f"obstacles radii: got {float(radii[k])!r} for obstacle {k}, expected a positive radius")
+        if obstacles is not None and radii.size and not bool((radii >= 0.0).all()):
+            k = int(np.flatnonzero(~(radii >= 0.0))[0])
+            raise StateError(f"obstacles radii: got {float(radii[k])!r} for obstacle {k}, expected a radius >= 0")
         return nominal_du, lo, hi, reference, obstacles

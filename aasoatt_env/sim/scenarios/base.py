@@ -135,21 +135,25 @@ def check_clear_of_obstacles(name: str, points: np.ndarray, radii: np.ndarray, o
 
 
 def check_no_overlap(name: str, points: np.ndarray, radii: np.ndarray, groups: np.ndarray | None = None) -> None:
-    """Raise :class:`ScenarioError` if two robots of radii ``radii`` at ``points`` ``(N, 2)`` overlap.
+    """Raise :class:`ScenarioError` if a start is not finite or two robots of ``radii`` at ``points`` overlap.
 
-    Robots of different ``groups`` (stacked teams) never meet, so only pairs of one group count.
-    A neighbour search (no ``N x N`` table), so it is cheap for large teams too.
+    Robots that touch (up to rounding: ``1e-9`` of the distance) do not overlap; robots of
+    different ``groups`` (stacked teams) never meet, so only pairs of one group count.  A
+    neighbour search (no ``N x N`` table), so it is cheap for large teams too.
     """
     points = np.asarray(points, dtype=np.float64)
+    bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
+    if bad.size:
+        raise ScenarioError(f"{name}: robot {bad[0]} at {points[bad[0]].tolist()}, expected finite coordinates")
     if points.shape[0] < 2:
         return
     pr = robot_pairs(points, 2.0 * float(np.max(radii)), groups=groups)
     d = np.hypot(*(points[pr[:, 0]] - points[pr[:, 1]]).T)
     rs = radii[pr[:, 0]] + radii[pr[:, 1]]
-    bad = np.flatnonzero(d < rs)
-    if bad.size:
-        i, j = pr[bad[0]]
-        raise ScenarioError(f"{name}: robots {i} and {j} overlap ({d[bad[0]]:.3f} m apart < {rs[bad[0]]:.3f} m, "
+    hit = np.flatnonzero(d < rs * (1.0 - 1e-9))
+    if hit.size:
+        k = hit[0]
+        raise ScenarioError(f"{name}: robots {pr[k, 0]} and {pr[k, 1]} overlap ({d[k]:.6g} m apart < {rs[k]:.6g} m, "
                             "the sum of their radii)")
 
 

@@ -12,10 +12,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from aasoatt_env.errors import ConfigError, ScenarioError
+from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import LinearReference
-from aasoatt_env.sim.scenarios.base import QUANTITY_RANGE, Layout, Scenario, check_quantity, check_settle_time
+from aasoatt_env.sim.scenarios.base import (
+    QUANTITY_RANGE,
+    Layout,
+    Scenario,
+    check_no_overlap,
+    check_quantity,
+    check_settle_time,
+)
 
 __all__ = ["PositionSwap"]
 
@@ -56,11 +63,9 @@ class PositionSwap(Scenario):
         self.robots = robots
         self.num_robots_ = 4
         self._team = make_team(robots, 4)
-        # neighbouring corners are distance / sqrt(2) apart: they must hold two robots side by side
-        side, need = self.distance / np.sqrt(2.0), float(np.max(self._team.radius[:, None] + self._team.radius))
-        if side < need:
-            raise ScenarioError(f"distance: got {self.distance:g} m, whose square puts neighbouring robots "
-                                f"{side:.3f} m apart; expected >= {need * np.sqrt(2.0):.4g} m (the robots overlap)")
+        # the square's corners must hold the robots (neighbouring corners are distance / sqrt(2) apart)
+        check_no_overlap(f"distance: got {self.distance:g} m, whose start corners do not hold the robots",
+                         PositionSwap.build(self, np.random.default_rng(0)).starts, self._team.radius)
 
     def build(self, rng: np.random.Generator) -> Layout:
         """Return the (deterministic) corner-swap layout."""
