@@ -156,6 +156,26 @@ def test_hostile_policy_on_unlimited_robots_needs_the_backup_layer():
     assert _hostile_worst_clearance(default, 6) >= 0.0
 
 
+def test_terminate_on_collision_below_the_rounding_allowance_is_refused_behind_the_filter():
+    """At tolerance 0 a rounding overlap (1e-16 m) 'terminates' a moving robot, which the env stops in place: an
+    input the filter did not return, and the robot behind it ran into it (-0.5 mm, found by an adversarial test)."""
+    starts = np.array([[0.0, 0.0], [-0.96, 0.0], [-1.9201, 0.0]])  # a convoy: 0 and 1 touch, 2 is 0.1 mm behind
+    kw = {"starts": starts, "reference": {"waypoints": np.repeat(starts[:, None], 2, axis=1), "times": [0.0, 1.0]},
+          "headings": [0.0, 0.0, 0.0], "terminate_on_collision": True}
+    with pytest.raises(ConfigError, match=r"collision_tolerance: got 0 with terminate_on_collision=True, expected "
+                       r">= 1e-09 m behind the filter"):
+        AASOATTFilter(AASOATTParallelEnv("custom", collision_tolerance=0.0, **kw))
+    env = AASOATTFilter(AASOATTParallelEnv("custom", collision_tolerance=1e-9, max_steps=300, **kw))
+    env.reset(seed=0)
+    worst = np.inf
+    for _ in range(300):  # everyone full throttle forward
+        _, _, term, _, _ = env.step({a: np.ones(2) for a in env.agents})
+        p = env.unwrapped.kinematics.p
+        worst = min(worst, float(np.hypot(*(p[1:] - p[:-1]).T).min()) - 0.96)
+        assert not any(term.values())
+    assert worst >= -1e-9
+
+
 def test_bare_hostile_policy_does_collide():
     env = AASOATTParallelEnv("random_goals", num_robots=20, max_steps=600)
     obs, _ = env.reset(seed=0)
