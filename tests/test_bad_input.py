@@ -317,8 +317,10 @@ def test_obstacle_on_a_goal_is_refused() -> None:
 def test_position_swap_too_small_to_hold_the_robots_is_refused() -> None:
     """Neighbouring corners are distance / sqrt(2) apart: below 2 r sqrt(2) the robots would start overlapping."""
     with pytest.raises(ScenarioError, match=r"distance: got 0.2 m, whose start corners do not hold the robots: "
-                       r"robots 0 and 1 overlap \(0.141421 m apart < 0.21 m"):
+                       r"robots 0 and 1 overlap \(0.141421356 m apart < 0.21 m"):
         AASOATTParallelEnv("position_swap", distance=0.2)
+    _, infos = AASOATTParallelEnv("position_swap", distance=0.3).reset()  # just enough room
+    assert min(info["clearance"] for info in infos.values()) == pytest.approx(0.3 / np.sqrt(2) - 0.21, abs=1e-9)
     # mixed radii: only neighbouring pairs count (0.707 m apart holds 0.48 + 0.105 m)
     AASOATTParallelEnv("position_swap", distance=1.0, robots=["paper", "turtlebot3_burger"] * 2).reset()
 
@@ -347,8 +349,20 @@ def test_a_user_scenario_that_starts_overlapping_is_refused_at_reset() -> None:
 
     env = AASOATTParallelEnv(Overlapping())
     with pytest.raises(ScenarioError, match=r"scenario 'overlapping': starts: robots 0 and 1 overlap "
-                       r"\(0.0707107 m apart"):
+                       r"\(0.0707106781 m apart"):
         env.reset(seed=0)
+
+    class NotFinite(PositionSwap):
+        name = "not_finite"
+
+        def build(self, rng):
+            layout = super().build(rng)
+            layout.starts[2] = np.nan
+            return layout
+
+    with pytest.raises(ScenarioError, match=r"scenario 'not_finite': starts: robot 2 at \[nan, nan\], expected "
+                       r"finite coordinates"):
+        AASOATTParallelEnv(NotFinite()).reset(seed=0)
 
 
 @pytest.mark.parametrize(("kwargs", "match"), [

@@ -71,8 +71,10 @@ def _from_state(**kw):
          r"expected a radius >= 0"),
         ({"obstacles": (np.array([[1.5, 3.0], [5.0, 5.0]]), np.array([0.5]))},
          r"obstacles centres: got shape \(2, 2\), expected \(1, 2\)"),
-        ({"obstacles": (np.array([[1.5, 3.0]]), np.array([0.5]), np.array([0.5]))},
-         r"obstacles groups: got float64 array of shape \(1,\), expected integers"),
+        ({"obstacles": (np.array([[1.5, 3.0]]), np.array([0.5]), np.array([np.nan]))},
+         r"obstacles groups: got float64 array of shape \(1,\), expected finite group labels"),
+        ({"obstacles": (np.array([[1.5, 3.0]]), np.array([0.5]), np.array(["a"]))},
+         r"obstacles groups: got <U1 array of shape \(1,\), expected finite group labels"),
     ],
 )
 def test_env_free_core_refuses_bad_state(kwargs, match):
@@ -95,7 +97,8 @@ def test_env_free_core_takes_every_form_of_a_valid_input_alike():
     ref = du(reference=(p_d, v_d), obstacles=obst)
     for kw in ({"reference": [p_d.tolist(), v_d.tolist()], "obstacles": (obst[0].tolist(), obst[1].tolist())},
                {"reference": (p_d, v_d, np.zeros((2, 2))), "obstacles": (*obst, None)},
-               {"reference": (p_d.ravel(), v_d.ravel()), "obstacles": (*obst, np.array([0]))}):
+               {"reference": (p_d.ravel(), v_d.ravel()), "obstacles": (*obst, np.array([0]))},
+               {"reference": (p_d.reshape(1, -1), v_d), "obstacles": (*obst, np.array([0.0]))}):
         np.testing.assert_array_equal(du(**kw), ref)
     point = du(reference=(p_d, v_d), obstacles=(obst[0], np.array([0.0])))  # a point obstacle is an obstacle
     assert np.isfinite(point).all()

@@ -120,6 +120,14 @@ def test_two_runs_never_claim_one_folder(tmp_path):
     assert (a / INCOMPLETE_FILE).is_file() and (b / INCOMPLETE_FILE).is_file()
 
 
+def test_a_run_folder_under_a_dangling_link_is_an_error_not_a_hang(tmp_path):
+    from train.config import claim_run_dir
+
+    (tmp_path / "out").symlink_to(tmp_path / "nowhere")
+    with pytest.raises(FileExistsError):
+        claim_run_dir(tmp_path / "out", "r")
+
+
 def test_a_finished_run_has_no_incomplete_marker(src_run):
     from train.train import INCOMPLETE_FILE
 

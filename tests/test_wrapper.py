@@ -9,6 +9,7 @@ from pettingzoo.test import parallel_api_test
 import aasoatt_env  # noqa: F401
 from aasoatt_env import AASOATTGymEnv, AASOATTParallelEnv, ConfigError, SolverError
 from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.safety import SafetyFilter
 from aasoatt_env.safety.wrapper import AASOATTFilter
 from agents import HostileAgent, RandomAgent, TrackingController
 
@@ -162,9 +163,11 @@ def test_terminate_on_collision_below_the_rounding_allowance_is_refused_behind_t
     starts = np.array([[0.0, 0.0], [-0.96, 0.0], [-1.9201, 0.0]])  # a convoy: 0 and 1 touch, 2 is 0.1 mm behind
     kw = {"starts": starts, "reference": {"waypoints": np.repeat(starts[:, None], 2, axis=1), "times": [0.0, 1.0]},
           "headings": [0.0, 0.0, 0.0], "terminate_on_collision": True}
-    with pytest.raises(ConfigError, match=r"collision_tolerance: got 0 with terminate_on_collision=True, expected "
-                       r">= 1e-09 m behind the filter"):
+    match = r"collision_tolerance: got 0 with terminate_on_collision=True, expected >= 1e-09 m behind a control filter"
+    with pytest.raises(ConfigError, match=match):
         AASOATTFilter(AASOATTParallelEnv("custom", collision_tolerance=0.0, **kw))
+    with pytest.raises(ConfigError, match=match):  # the env-free filter installed by hand: the same check
+        AASOATTParallelEnv("custom", collision_tolerance=0.0, **kw).set_control_filter(SafetyFilter())
     env = AASOATTFilter(AASOATTParallelEnv("custom", collision_tolerance=1e-9, max_steps=300, **kw))
     env.reset(seed=0)
     worst = np.inf

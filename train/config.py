@@ -399,7 +399,8 @@ def claim_run_dir(out_dir: str | os.PathLike[str], name: str, marker: bool = Tru
             path.mkdir(parents=True)
             created = True
         except FileExistsError:
-            pass
+            if not (path.exists() or path.is_symlink()):  # a parent is a dangling link: no name will do
+                raise
         if path.is_dir() and (created or not any(path.iterdir())):
             if not marker:
                 return path, created

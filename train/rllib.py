@@ -387,13 +387,15 @@ def train(config: RLlibConfig) -> Path:
             ray.shutdown()
         raise
     # the run folder is made once Ray and the algorithm are up: a failed start leaves no folder behind
-    run, created = claim_run_dir(config.out_dir, config.run_name or config.default_run_name())
+    run: Path | None = None
+    created = False
     t0 = time.perf_counter()
     row: dict[str, Any] = {}
     run_steps = 0.0
     first = int(algo.iteration)  # 0, or the iterations of the resumed checkpoint
     last = first + config.iterations
     try:
+        run, created = claim_run_dir(config.out_dir, config.run_name or config.default_run_name())
         (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
         (run / POLICY_FILE).write_text(json.dumps(config.run_spec(), indent=2))
         with (run / "progress.jsonl").open("w") as log:
@@ -423,7 +425,8 @@ def train(config: RLlibConfig) -> Path:
         }, indent=2))
     except BaseException:
         # a failed or interrupted run: removed, or kept (marked incomplete) when it has a checkpoint
-        abandon_run(run, keep=any((run / "checkpoints").glob("iter_*")), created=created)
+        if run is not None:
+            abandon_run(run, keep=any((run / "checkpoints").glob("iter_*")), created=created)
         raise
     finally:
         algo.stop()

@@ -562,7 +562,7 @@ class SafetyFilter:
                 raise StateError(f"reference: got {type(reference).__name__}, expected (p_d, v_d) or (p_d, v_d, a_d) "
                                  f"of ({n}, 2) arrays")
             reference = tuple(np.asarray(reference[k], dtype=np.float64) for k in (0, 1))
-            reference = tuple(r.reshape(n, 2) if r.shape == (2 * n,) else r for r in reference)
+            reference = tuple(r.reshape(n, 2) if r.shape in ((2 * n,), (1, 2 * n)) else r for r in reference)
             arrays += [("reference p_d", reference[0], (n, 2)), ("reference v_d", reference[1], (n, 2))]
         if obstacles is not None:
             if not isinstance(obstacles, (tuple, list)) or len(obstacles) not in (2, 3):
@@ -579,9 +579,9 @@ class SafetyFilter:
             groups = obstacles[2] if len(obstacles) > 2 else None
             if groups is not None:
                 groups = np.asarray(groups)
-                if groups.shape != (m,) or (m and groups.dtype.kind not in "biu"):
+                if groups.shape != (m,) or (m and (groups.dtype.kind not in "biuf" or not np.isfinite(groups).all())):
                     raise StateError(f"obstacles groups: got {groups.dtype} array of shape {groups.shape}, "
-                                     f"expected integers of shape ({m},)")
+                                     f"expected finite group labels of shape ({m},)")
             obstacles = (centres, radii) if len(obstacles) == 2 else (centres, radii, groups)
         flat = []
         for name, arr, shape in arrays:

@@ -38,11 +38,14 @@ from aasoatt_env.safety.gatekeeper import (
     gatekeeper,
     pair_margins,
 )
+from aasoatt_env.sim.env import FILTERED_MIN_COLLISION_TOLERANCE
 
 __all__ = ["GATE_TOL", "gate_with_repair", "repair"]
 
-GATE_TOL: float = 1e-9
-"""Distance [m] the backup check forgives (floating-point rounding of the closed-form paths)."""
+GATE_TOL: float = FILTERED_MIN_COLLISION_TOLERANCE
+"""Distance [m] the backup check forgives (floating-point rounding of the closed-form paths); the env's
+smallest collision tolerance behind a filter is this value
+(:data:`aasoatt_env.sim.env.FILTERED_MIN_COLLISION_TOLERANCE`)."""
 
 
 def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,

@@ -61,7 +61,6 @@ from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.core import STATUSES, FilterResult, SafetyFilter
-from aasoatt_env.safety.repair import GATE_TOL
 from aasoatt_env.sim.env import AASOATTParallelEnv
 
 __all__ = ["STATUS_CODES", "AASOATTFilter", "FilterReport"]
@@ -204,13 +203,6 @@ class AASOATTFilter(BaseParallelWrapper):
             )
         if "dt" in options:
             raise ConfigError(f"dt: got {options['dt']!r}; the filter runs at the env's physics step ({base.dt:g} s)")
-        if base.terminate_on_collision and base.collision_tolerance < GATE_TOL:
-            # a terminated robot stops in place at once: an input the filter did not return, so the pairs
-            # behind it are no longer brake-safe; rounding alone (1e-16 m) would set it off at 0
-            raise ConfigError(
-                f"collision_tolerance: got {base.collision_tolerance:g} with terminate_on_collision=True, expected "
-                f">= {GATE_TOL:g} m behind the filter (its guarantee allows {GATE_TOL:g} m of rounding; a robot "
-                "terminated for less would stop in place, an input the filter cannot plan for)")
         self._infos_mode = check.choice("infos", infos, ("nested", "flat"))
         cfg = FilterConfig.merged(config, **options)
         if cfg.dt != base.dt:

@@ -75,6 +75,11 @@ _NOMINAL_MAX = 1e6
 """Largest nominal action accepted behind a filter (in units of the bound): larger ones are a bug upstream."""
 
 
+FILTERED_MIN_COLLISION_TOLERANCE: float = 1e-9
+"""Smallest ``collision_tolerance`` [m] with ``terminate_on_collision`` behind a control filter: the
+safety filter's guarantee allows this much floating-point rounding (its gatekeeper's tolerance)."""
+
+
 class AASOATTParallelEnv(ParallelEnv):
     """Multi-robot trajectory tracking at acceleration level (see module docstring).
 
@@ -196,6 +201,14 @@ class AASOATTParallelEnv(ParallelEnv):
                 "reset(team), __call__(FilterInput, nominal_du) and keeps_input_bounds "
                 "(aasoatt_env.sim.protocol.ControlFilter)"
             )
+        if self.terminate_on_collision and self.collision_tolerance < FILTERED_MIN_COLLISION_TOLERANCE:
+            # a terminated robot stops in place at once: an input the filter did not return, so the pairs
+            # behind it are no longer brake-safe; rounding alone (1e-16 m) would set it off at 0
+            raise ConfigError(
+                f"collision_tolerance: got {self.collision_tolerance:g} with terminate_on_collision=True, expected "
+                f">= {FILTERED_MIN_COLLISION_TOLERANCE:g} m behind a control filter (the safety filter's guarantee "
+                "allows that much rounding; a robot terminated for less would stop in place, an input the filter "
+                "cannot plan for)")
         if self._control_filter is not None and self._control_filter is not control_filter:
             raise UsageError(
                 f"this env already has a control filter ({type(self._control_filter).__name__}); an env takes "

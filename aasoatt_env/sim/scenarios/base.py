@@ -125,9 +125,11 @@ def check_clear_of_obstacles(name: str, points: np.ndarray, radii: np.ndarray, o
     centers, orad = obstacles
     if centers.shape[0] == 0:
         return
-    gap = np.hypot(*(points[:, None, :] - centers[None, :, :]).transpose(2, 0, 1)) - radii[:, None] - orad[None, :]
-    if np.any(gap < 0):
-        i, k = np.argwhere(gap < 0)[0]
+    reach = radii[:, None] + orad[None, :]
+    gap = np.hypot(*(points[:, None, :] - centers[None, :, :]).transpose(2, 0, 1)) - reach
+    over = gap < -np.minimum(1e-9 * reach, 1e-9)  # touching (to rounding) is not overlapping, as between robots
+    if np.any(over):
+        i, k = np.argwhere(over)[0]
         raise ScenarioError(
             f"{name}: robot {i} at {points[i].round(3).tolist()} overlaps obstacle {k} "
             f"(gap {gap[i, k]:.3f} m); move the obstacle or the robot"
@@ -137,7 +139,7 @@ def check_clear_of_obstacles(name: str, points: np.ndarray, radii: np.ndarray, o
 def check_no_overlap(name: str, points: np.ndarray, radii: np.ndarray, groups: np.ndarray | None = None) -> None:
     """Raise :class:`ScenarioError` if a start is not finite or two robots of ``radii`` at ``points`` overlap.
 
-    Robots that touch (up to rounding: ``1e-9`` of the distance) do not overlap; robots of
+    Robots that touch (up to rounding: ``1e-9`` of the distance, at most 1e-9 m) do not overlap; robots of
     different ``groups`` (stacked teams) never meet, so only pairs of one group count.  A
     neighbour search (no ``N x N`` table), so it is cheap for large teams too.
     """
@@ -150,10 +152,10 @@ def check_no_overlap(name: str, points: np.ndarray, radii: np.ndarray, groups: n
     pr = robot_pairs(points, 2.0 * float(np.max(radii)), groups=groups)
     d = np.hypot(*(points[pr[:, 0]] - points[pr[:, 1]]).T)
     rs = radii[pr[:, 0]] + radii[pr[:, 1]]
-    hit = np.flatnonzero(d < rs * (1.0 - 1e-9))
+    hit = np.flatnonzero(d < rs - np.minimum(1e-9 * rs, 1e-9))  # touching (to rounding) is not overlapping
     if hit.size:
         k = hit[0]
-        raise ScenarioError(f"{name}: robots {pr[k, 0]} and {pr[k, 1]} overlap ({d[k]:.6g} m apart < {rs[k]:.6g} m, "
+        raise ScenarioError(f"{name}: robots {pr[k, 0]} and {pr[k, 1]} overlap ({d[k]:.9g} m apart < {rs[k]:.9g} m, "
                             "the sum of their radii)")
 
 
