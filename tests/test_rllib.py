@@ -309,3 +309,22 @@ def test_ci_runs_the_readme_rllib_setup():
     setup = readme_block("rllib-local").splitlines()[0]
     ci = (Path(__file__).resolve().parents[1] / ".ci" / "run").read_text().splitlines()
     assert setup in ci
+
+
+@needs_ray
+@pytest.mark.slow
+def test_a_failed_rllib_run_leaves_no_folder(tmp_path, monkeypatch):
+    """A run that fails before any checkpoint is removed (train.config.abandon_run), and Ray is shut down."""
+    import ray
+
+    import train.rllib as tr
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("boom")
+
+    monkeypatch.setattr(tr, "_metrics", boom)  # fails right after the first iteration's algo.train()
+    config = RLlibConfig(scenario="random_goals", num_robots=4, iterations=1, train_batch_size=400, minibatch_size=128,
+                         num_epochs=2, num_cpus=2, out_dir=str(tmp_path), run_name="x", verbose=0)
+    with pytest.raises(RuntimeError, match="boom"):
+        tr.train(config)
+    assert list(tmp_path.iterdir()) == [] and not ray.is_initialized()
