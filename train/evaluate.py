@@ -78,7 +78,8 @@ from train.rllib import RAY_MISSING
 __all__ = ["POLICY_ENV_KEYS", "EvalRow", "evaluate", "evaluate_agent", "load_policy", "main", "policy_env_kwargs",
            "to_markdown"]
 
-
+_PARAM_NAMES = {"rows": "rows", "bare": "bare_model", "filter": "filtered_model", "config": "config"}
+"""How errors name evaluate()'s inputs by default (the command line passes its option names instead)."""
 
 _EXPECTED_MODEL = ("expected a run folder of aasoatt train holding policy.json and model.zip (or of "
                    "train.rllib: policy.json and rl_module.npz), or a model .zip / checkpoint in one")
@@ -364,8 +365,7 @@ def evaluate(
     bad = [r for r in wanted if r not in ROWS]
     if bad:
         raise ConfigError(f"rows: got {bad}, expected names among {list(ROWS)}")
-    names = {"rows": "rows", "bare": "bare_model", "filter": "filtered_model", "config": "config",
-             **(option_names or {})}
+    names = {**_PARAM_NAMES, **(option_names or {})}
     if rows is not None:  # rows asked for must be made; by default the rows whose model is given
         check_rows(wanted, bare_model is not None, filtered_model is not None, names)
     if not isinstance(jobs, int) or jobs < 1:
@@ -441,7 +441,7 @@ def check_rows(rows: Sequence[str], bare: bool, filtered: bool, names: Mapping[s
         How to name ``"rows"``, ``"bare"`` and ``"filter"`` in the error (default the
         parameter names of :func:`evaluate`).
     """
-    n = {"rows": "rows", "bare": "bare_model", "filter": "filtered_model", **(names or {})}
+    n = {**_PARAM_NAMES, **(names or {})}
     for row in rows:
         for prefix, given, key, what in (("learned (bare)", bare, "bare", "a policy trained bare"),
                                          ("learned (filter)", filtered, "filter", "a policy trained behind the "

@@ -98,7 +98,6 @@ from train.telemetry import TelemetryCallback, plot_learning_curve
 __all__ = ["INCOMPLETE_FILE", "check_device", "check_init_from", "main", "make_env", "make_vec_env", "train"]
 
 
-
 def make_env(config: TrainConfig, filter: bool | None = None, **env_overrides: Any) -> Any:
     """One parallel env of ``config``, behind the filter if ``filter`` (default ``config.filter``).
 

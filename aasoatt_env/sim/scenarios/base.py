@@ -127,13 +127,18 @@ def check_clear_of_obstacles(name: str, points: np.ndarray, radii: np.ndarray, o
         return
     reach = radii[:, None] + orad[None, :]
     gap = np.hypot(*(points[:, None, :] - centers[None, :, :]).transpose(2, 0, 1)) - reach
-    over = gap < -np.minimum(1e-9 * reach, 1e-9)  # touching (to rounding) is not overlapping, as between robots
+    over = gap < -_touching(reach)
     if np.any(over):
         i, k = np.argwhere(over)[0]
         raise ScenarioError(
             f"{name}: robot {i} at {points[i].round(3).tolist()} overlaps obstacle {k} "
             f"(gap {gap[i, k]:.3f} m); move the obstacle or the robot"
         )
+
+
+def _touching(contact: np.ndarray) -> np.ndarray:
+    """How far inside ``contact`` (the sum of two radii) a start still counts as touching: rounding, <= 1e-9 m."""
+    return np.minimum(1e-9 * contact, 1e-9)
 
 
 def check_no_overlap(name: str, points: np.ndarray, radii: np.ndarray, groups: np.ndarray | None = None) -> None:
@@ -152,7 +157,7 @@ def check_no_overlap(name: str, points: np.ndarray, radii: np.ndarray, groups: n
     pr = robot_pairs(points, 2.0 * float(np.max(radii)), groups=groups)
     d = np.hypot(*(points[pr[:, 0]] - points[pr[:, 1]]).T)
     rs = radii[pr[:, 0]] + radii[pr[:, 1]]
-    hit = np.flatnonzero(d < rs - np.minimum(1e-9 * rs, 1e-9))  # touching (to rounding) is not overlapping
+    hit = np.flatnonzero(d < rs - _touching(rs))
     if hit.size:
         k = hit[0]
         raise ScenarioError(f"{name}: robots {pr[k, 0]} and {pr[k, 1]} overlap ({d[k]:.9g} m apart < {rs[k]:.9g} m, "
