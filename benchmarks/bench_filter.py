@@ -14,7 +14,9 @@ step to step as they do in use; every variant sees the same states):
 
 Columns (median ms per whole ``SafetyFilter.step``: neighbours, rows, QP, backup layer, result):
 
-  ours          the default filter (decomposition, warm active set, proxsuite, backup layer)
+  ours          the default filter (decomposition, warm active set, proxsuite, backup layer;
+                the layer's check and repair compiled when numba is installed, ``kernel="auto"``)
+  numpy layer   the same with the layer's numpy reference (``kernel="numpy"``)
   layer off     the same without the backup layer (the paper's filter)
   whole QP      one QP for the whole team, proxsuite (``decompose=False``, no warm start)
   cvxopt        Robotarium-style: the whole team in one ``cvxopt.solvers.qp`` call
@@ -54,12 +56,13 @@ from aasoatt_env import make_env  # noqa: E402
 from aasoatt_env.errors import ConfigError  # noqa: E402
 from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point  # noqa: E402
 from aasoatt_env.model.params import make_team  # noqa: E402
-from aasoatt_env.safety import SafetyFilter  # noqa: E402
+from aasoatt_env.safety import SafetyFilter, compiled  # noqa: E402
 from aasoatt_env.safety.solvers import available_solvers  # noqa: E402
 from agents import TrackingController  # noqa: E402
 
 VARIANTS = {
     "ours": {},
+    "numpy layer": {"kernel": "numpy"},
     "layer off": {"backup": False},
     "whole QP": {"decompose": False, "active_set": False, "backup": False},
     "cvxopt": {"solver": "cvxopt", "decompose": False, "active_set": False, "backup": False},
@@ -214,7 +217,8 @@ def main() -> None:
         rows.append(bench("spread", *grid_sequence(n, k, 2.0, 3.0), reps=3 if n <= 300 else 1, calls=args.calls))
         print(f"  done spread N={n}", flush=True)
     names = list(VARIANTS)
-    print("\nmedian ms per filter step along the sequence; ratio = variant / ours\n")
+    kernel = "compiled (numba)" if compiled.available() else "numpy (numba not installed)"
+    print(f"\nmedian ms per filter step along the sequence; ratio = variant / ours; ours' backup layer: {kernel}\n")
     print(f"{'scene':7s} {'N':>6s} {'rows':>6s} {'qp rows':>8s} {'backup':>7s} "
           + " ".join(f"{k:>10s}" for k in names) + " " + " ".join(f"{k + '/ours':>14s}" for k in names[1:])
           + f" {'err':>8s}")

@@ -36,6 +36,7 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT
 from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4
 from aasoatt_env.safety.barriers import BARRIERS
+from aasoatt_env.safety.compiled import KERNELS, NUMBA_MISSING, available
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
 from aasoatt_env.safety.solvers import get_solver
 
@@ -159,6 +160,12 @@ class FilterConfig:
         Displacement [m] over ``stall_time`` below which a robot is stalled.
     heading_deg : float
         Half-angle [deg] of the ``heading`` trigger's cone.
+    kernel : {"auto", "numpy", "numba"}
+        Implementation of the backup layer's check (:mod:`aasoatt_env.safety.compiled`):
+        ``"auto"`` (default) the compiled kernels when numba is installed (``pip install
+        "aasoatt[fast]"``), else the numpy reference; ``"numpy"`` always the reference;
+        ``"numba"`` the kernels or an error.  Both give the same decisions up to
+        floating-point rounding.
     """
 
     barrier: str = "aasoatt"
@@ -194,10 +201,11 @@ class FilterConfig:
     stall_time: float = 0.5
     stall_distance: float = 0.02
     heading_deg: float = 30.0
+    kernel: str = "auto"
 
     def __post_init__(self) -> None:
         for name, registry in (("barrier", BARRIERS), ("deadlock", STRATEGIES), ("trigger", TRIGGERS),
-                               ("mode", MODES)):
+                               ("mode", MODES), ("kernel", KERNELS)):
             check.choice(name, getattr(self, name), registry)
         if not isinstance(self.solver, str):
             raise ConfigError(f"solver: got {self.solver!r}, expected a solver name")
@@ -225,6 +233,8 @@ class FilterConfig:
             check.boolean(flag, getattr(self, flag))
         object.__setattr__(self, "neural_iterations",
                            check.integer("neural_iterations", self.neural_iterations, lo=1, hi=1_000_000))
+        if self.kernel == "numba" and not available():
+            raise ConfigError(f"kernel: {NUMBA_MISSING}")
         if STRATEGIES[self.deadlock].active and not self.k4 > self.zeta:
             raise ConfigError(
                 f"k4 must exceed zeta (Theorem 2's convergence condition k4 > zeta): "
@@ -266,3 +276,8 @@ class FilterConfig:
             return float(self.safety_margin)
         speed = np.sqrt(np.einsum("ij,ij->i", v_rel, v_rel))
         return auto_margin(self.dt) * np.minimum(1.0, speed / MARGIN_FADE_SPEED)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the backup layer runs the compiled kernels (:attr:`kernel` resolved)."""
+        return self.kernel != "numpy" and available()

@@ -38,6 +38,7 @@ from aasoatt_env.safety.backup import (
     _first_step,
     _point,
     _take,
+    brake_decel,
     brake_time,
     reach_limit,
 )
@@ -46,6 +47,10 @@ __all__ = ["GateResult", "gatekeeper", "pair_margins"]
 
 
 # --------------------------------------------------------------------------- pair check
+CLOSEST_TIE: float = 1e-12
+"""Steps whose distance is within this [m] of a pair's smallest count as tied for its closest step."""
+
+
 def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray | float, ds: np.ndarray,
                  closest: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Smallest ``distance - d_s`` of each pair along sampled paths (a lower bound between samples).
@@ -61,7 +66,8 @@ def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray 
         ``(P,)`` safety distances.
 
     closest : bool
-        Also return the step ``k`` of each minimum ``(P,)`` int.
+        Also return the step ``k`` of each minimum ``(P,)`` int: the first step within
+        :data:`CLOSEST_TIE` of it.
 
     Returns
     -------
@@ -92,7 +98,10 @@ def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray 
     dist -= di
     dist -= dj
     if closest:
-        k = dist.argmin(axis=1)
+        low = dist.min(axis=1)
+        # the first step within rounding of the smallest (a robot at rest ties many steps: which one
+        # wins must not hang on the last bit), or the first NaN
+        k = np.where(np.isnan(low), dist.argmin(axis=1), (dist <= low[:, None] + CLOSEST_TIE).argmax(axis=1))
         return dist[np.arange(k.shape[0]), k] - ds, k
     return dist.min(axis=1) - ds
 
@@ -194,6 +203,7 @@ def gatekeeper(
     hold_violations: bool = False,
     quick: bool = False,
     near_pairs: np.ndarray | None = None,
+    compiled: bool = False,
 ) -> GateResult:
     """Accept the candidate ``du_c`` for every robot whose pairs stay brake-safe; put the others on the backup.
 
@@ -274,11 +284,17 @@ def gatekeeper(
         within ``sensing_range`` of each other's control points: the candidates of the
         pair search, made once for several calls on one state.  A pair missing here is
         not checked, so it is a safety input.  None: searched here.
+    compiled : bool
+        Run the rounds (step 3) in the compiled kernel of :mod:`aasoatt_env.safety.compiled`
+        (numba must be installed): the same decisions up to floating-point rounding.
     """
+    levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
+    if compiled:
+        return _gatekeeper_compiled(team, pose, u, du_c, dt, sensing_range, brake_fraction, obstacles, tol, levels,
+                                    hold_violations, quick, near_pairs)
     n = pose.shape[0]
     theta = pose[:, 2]
     p0 = _point(team, pose)
-    levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
     T0 = brake_time(team, u, brake_fraction)
     du_b = -u / np.maximum(T0, dt)[:, None]  # braking_du
     limit = reach_limit(team, sensing_range)
@@ -322,6 +338,20 @@ def gatekeeper(
         share = np.asarray(levels)[lev]
         return GateResult(du_all[lev, rows], lev > 0, limit_margin, not bool(broken.any()), broken, share, 0, 0,
                           limit.copy(), reach[0] > limit)
+
+    if compiled:
+        from aasoatt_env.safety.compiled import gate_rounds
+
+        bs = [f[3] for f in firsts] + [b0]
+        need_all = np.stack([b.steps + 2 for b in bs[:-1]] + [b0.steps + 1])
+        p1_all = np.stack([f[1] for f in firsts] + [p0])
+        d1_all = np.stack([f[2] for f in firsts] + [b0.reach])  # (the last row is not read)
+        bulge = np.zeros(reach.shape) if b0.bulge is None else np.stack([b.bulge for b in bs])
+        marg, omarg, rounds = gate_rounds(
+            lev, broken, reach, limit, need_all, p0, p1_all, d1_all, np.stack([b.pdot for b in bs]),
+            np.stack([b.omega for b in bs]), np.stack([b.rate for b in bs]), bulge, b0.bulge is not None,
+            float(dt), i, j, ds, oi, ok, ods, oc, float(tol), bool(hold_violations))
+        return _result(levels, lev, du_all, broken, limit, limit_margin, reach, rounds, i, j, oi, marg, omarg)
 
     M = np.unique(np.concatenate((i, j, oi)))  # robots with a pair to check
     loc = np.full(n, -1, dtype=np.intp)
@@ -396,12 +426,62 @@ def gatekeeper(
         todo = demote[i] | demote[j]
         otodo = demote[oi]
 
-    rows = np.arange(n)
+    return _result(levels, lev, du_all, broken, limit, limit_margin, reach, rounds, i, j, oi, marg, omarg)
+
+
+_EMPTY_INT = np.empty(0, dtype=np.int64)
+
+
+def _kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_range: float,
+                 obstacles: tuple[np.ndarray, ...] | None, near_pairs: np.ndarray | None) -> tuple:
+    """The team, pair and obstacle arguments of the compiled kernels (:mod:`aasoatt_env.safety.compiled`).
+
+    ``(diff, offset, cols, turn_gain, max_wheel_accel, brake_decel, radius, group, has_group, sensing_range,
+    candidate pairs, obstacle centres (complex), radii, groups, has_groups)``; the candidate pairs are
+    ``near_pairs``, or every pair within the sensing range when None.
+    """
+    if near_pairs is None:
+        p0 = _point(team, pose)
+        near_pairs = robot_pairs(np.stack((p0.real, p0.imag), axis=1), sensing_range, groups=team.group)
+    oc, orad, ogroup, has_ogroup = np.empty(0, dtype=np.complex128), np.empty(0), _EMPTY_INT, False
+    if obstacles is not None and np.asarray(obstacles[1]).size:
+        c = np.asarray(obstacles[0], dtype=np.float64)
+        oc, orad = c[:, 0] + 1j * c[:, 1], np.asarray(obstacles[1], dtype=np.float64)
+        if team.group is not None and len(obstacles) > 2 and obstacles[2] is not None:
+            ogroup, has_ogroup = np.asarray(obstacles[2]), True
+    group = team.group if team.group is not None else _EMPTY_INT
+    return (team.is_diff_drive, team.offset, team.input_columns, team.turn_gain, team.max_wheel_accel,
+            brake_decel(team, brake_fraction), team.radius, group, team.group is not None, float(sensing_range),
+            np.asarray(near_pairs, dtype=np.int64).reshape(-1, 2), oc, orad, ogroup, has_ogroup)
+
+
+def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float,
+                         sensing_range: float, brake_fraction: float, obstacles: tuple[np.ndarray, ...] | None,
+                         tol: float, levels: tuple[float, ...], hold_violations: bool, quick: bool,
+                         near_pairs: np.ndarray | None) -> GateResult:
+    """:func:`gatekeeper` by the compiled kernel (:func:`aasoatt_env.safety.compiled.gate_full`)."""
+    from aasoatt_env.safety.compiled import gate_full
+
+    diff, offset, cols, tg, amax, adec, radius, group, has_group, D, cand, oc, orad, og, has_og = _kernel_args(
+        team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
+    du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = gate_full(
+        pose, u, du_c, float(dt), np.asarray(levels), bool(quick), diff, offset, cols, tg, amax, adec, radius,
+        group, has_group, reach_limit(team, sensing_range), D, cand, oc, orad, og, has_og, float(tol),
+        bool(hold_violations))
+    return GateResult(du, braking, float(margin), not bool(broken.any()), broken, share, int(rounds), int(n_pairs),
+                      robot_margin, out_of_range)
+
+
+def _result(levels: tuple[float, ...], lev: np.ndarray, du_all: np.ndarray, broken: np.ndarray, limit: np.ndarray,
+            limit_margin: float, reach: np.ndarray, rounds: int, i: np.ndarray, j: np.ndarray, oi: np.ndarray,
+            marg: np.ndarray, omarg: np.ndarray) -> GateResult:
+    """The :class:`GateResult` of the final levels ``lev`` and the checked pairs' margins."""
+    rows = np.arange(lev.shape[0])
     share = np.asarray(levels)[lev]
     robot_margin = limit.copy()
     np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
     return GateResult(du_all[lev, rows], lev > 0, float(robot_margin.min(initial=limit_margin)),
-                      not bool(broken.any()), broken, share, rounds, int(i.size + oi.size), robot_margin,
+                      not bool(broken.any()), broken, share, int(rounds), int(i.size + oi.size), robot_margin,
                       reach[0] > limit)
 
 

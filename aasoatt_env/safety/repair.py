@@ -31,8 +31,10 @@ from aasoatt_env.safety.backup import (
 )
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.gatekeeper import (
+    CLOSEST_TIE,
     GateResult,
     _bucketed,
+    _kernel_args,
     _obstacles_near,
     _pairs_near,
     gatekeeper,
@@ -81,7 +83,8 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
       nudge of a pair margin changes; a robot beyond the range limit even when
       braking; the repair off) get the full check of the QP's answer.
     """
-    gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles)
+    gate_kw = dict(sensing_range=cfg.sensing_range, brake_fraction=cfg.brake_fraction, obstacles=obstacles,
+                   compiled=cfg.compiled)
     # the filter's pairs within D, where given, are every check's candidate pairs (one neighbour
     # search per step; found from the same points up to rounding: a pair that rounding moves
     # across D is D apart, and the paths of its robots, within D / 2 - r of their starts, keep it
@@ -195,6 +198,7 @@ def repair(
     rounds: int = 3,
     eps: float = 1.0,
     near_pairs: np.ndarray | None = None,
+    compiled: bool = False,
 ) -> np.ndarray:
     """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
 
@@ -209,7 +213,17 @@ def repair(
     the QP (a small, local correction toward the safe set), so the gatekeeper
     rarely has to brake; safety still comes from :func:`~aasoatt_env.safety.gatekeeper.gatekeeper` alone.
     ``near_pairs``: candidate pairs as in the gatekeeper (one search for every round).
+    ``compiled``: run it in the compiled kernel of :mod:`aasoatt_env.safety.compiled` (the same
+    answer up to floating-point rounding).
     """
+    if compiled:
+        from aasoatt_env.safety.compiled import repair_full
+
+        diff, offset, cols, tg, amax, adec, radius, group, has_group, D, cand, oc, orad, og, has_og = _kernel_args(
+            team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
+        return repair_full(pose, u, du_c, lo, hi, float(dt), diff, offset, cols, tg, amax, adec, radius, group,
+                           has_group, D, cand, oc, orad, og, has_og, float(target), int(rounds), float(eps),
+                           CLOSEST_TIE)
     du = np.minimum(np.maximum(du_c, lo), hi)
     n = pose.shape[0]
     eye = np.eye(2)

@@ -1,0 +1,188 @@
+"""The compiled kernels of the backup layer against the numpy reference, and their selection.
+
+The kernels (:mod:`aasoatt_env.safety.compiled`) must make the numpy code's
+decisions on every state: which robots brake, which pairs are broken, the share
+each robot takes, the rounds and the pairs checked; the inputs and margins may
+differ by floating-point rounding only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aasoatt_env import FilterConfig, make_env
+from aasoatt_env.analysis.metrics import pairwise_min_distance
+from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.errors import ConfigError
+from aasoatt_env.model.dynamics import DT, input_bounds
+from aasoatt_env.model.geometry import robot_pairs
+from aasoatt_env.model.params import RobotParams, make_team, stack_teams
+from aasoatt_env.safety import SafetyFilter, compiled
+from aasoatt_env.safety.backup import _point
+from aasoatt_env.safety.gatekeeper import gatekeeper
+from aasoatt_env.safety.repair import repair
+from agents import ADVERSARIES, HostileAgent
+
+needs_numba = pytest.mark.skipif(not compiled.available(), reason="numba not installed (aasoatt[fast])")
+
+F = 2.0 / 3.0
+D = 3.0
+
+
+def _teams() -> dict:
+    mixed = ["paper", "turtlebot3_burger", "paper", RobotParams(radius=0.3, offset=0.1)] * 3
+    return {
+        "paper": make_team("paper", 12),
+        "mixed": make_team(mixed, 12),
+        "double_integrator": make_team("double_integrator", 12),
+        "grouped": stack_teams([make_team("paper", 6), make_team("paper", 6)]),
+    }
+
+
+def _state(team, rng, side: float):
+    """A crowded random state: speeds up to spinning, candidates anywhere in the box (some at its corners)."""
+    pose = np.column_stack((rng.uniform(0, side, (team.n, 2)), rng.uniform(-np.pi, np.pi, team.n)))
+    u = rng.normal(0, 8.0 if team.is_diff_drive else 1.5, (team.n, 2))
+    u[0] = [12.0, -12.0] if team.is_diff_drive else [0.0, 0.0]
+    u[1] = [1e-7, 2e-7]
+    lo, hi = input_bounds(team, u, DT)
+    cand = rng.uniform(lo, hi)
+    cand[:3] = np.where(rng.random((3, 2)) < 0.5, lo[:3], hi[:3])
+    return pose, u, cand, lo, hi
+
+
+def _obstacles(team, rng, side: float, grouped: bool):
+    c = rng.uniform(0, side, (3, 2))
+    r = rng.uniform(0.1, 0.5, 3)
+    return (c, r, np.array([0, 1, 0])) if grouped else (c, r)
+
+
+def _assert_same_decisions(g0, g1) -> None:
+    for name in ("braking", "broken", "share", "out_of_range"):
+        np.testing.assert_array_equal(getattr(g1, name), getattr(g0, name), err_msg=name)
+    assert (g1.safe, g1.rounds, g1.n_pairs) == (g0.safe, g0.rounds, g0.n_pairs)
+    np.testing.assert_allclose(g1.du, g0.du, rtol=0, atol=1e-9)
+    finite = np.isfinite(g0.robot_margin)
+    np.testing.assert_array_equal(np.isfinite(g1.robot_margin), finite)
+    np.testing.assert_allclose(g1.robot_margin[finite], g0.robot_margin[finite], rtol=0, atol=1e-9)
+    assert g1.margin == pytest.approx(g0.margin, abs=1e-9)
+
+
+@needs_numba
+@pytest.mark.parametrize("kind", ["paper", "mixed", "double_integrator", "grouped"])
+def test_the_compiled_gatekeeper_makes_the_numpy_gatekeepers_decisions(kind):
+    """Random crowded states, every option of the check: the same decisions, inputs and margins to 1e-9."""
+    team = _teams()[kind]
+    rng = np.random.default_rng(20261201)
+    checked = braked = 0
+    for trial in range(40):
+        side = rng.uniform(2.0, 5.0)
+        pose, u, cand, _, _ = _state(team, rng, side)
+        obstacles = _obstacles(team, rng, side, kind == "grouped") if trial % 2 else None
+        p0 = _point(team, pose)
+        near = robot_pairs(np.stack((p0.real, p0.imag), axis=1), D, groups=team.group) if trial % 3 else None
+        kw = dict(sensing_range=D, brake_fraction=F, obstacles=obstacles, tol=1e-9, near_pairs=near,
+                  quick=bool(trial % 4 == 1), hold_violations=bool(trial % 5 == 2),
+                  blend_levels=((0.5,), (), (0.75, 0.25))[trial % 3])
+        g0 = gatekeeper(team, pose, u, cand, DT, **kw)
+        g1 = gatekeeper(team, pose, u, cand, DT, compiled=True, **kw)
+        _assert_same_decisions(g0, g1)
+        checked += g0.n_pairs
+        braked += int(g0.braking.sum())
+    assert checked > 100 and braked > 20  # the states were crowded enough to test the rounds
+
+
+def _spread_state(team, rng):
+    """A state without overlaps (a jittered grid, obstacles between the robots): the repair's domain.
+
+    (Where a robot already overlaps, the margin's finite-difference gradient at the first step is
+    ~1e-6 and the least-norm lift divides by its square, so rounding is amplified a million-fold.)
+    """
+    pose, u, cand, lo, hi = _state(team, rng, 1.0)
+    spacing = 2.0 * float(team.radius.max()) + rng.uniform(0.02, 0.3)
+    grid = np.stack(np.meshgrid(np.arange(4), np.arange(3)), -1).reshape(-1, 2)[: team.n] * spacing
+    pose[:, :2] = grid + rng.uniform(-0.01, 0.01, grid.shape) - _point(team, pose[:, :3] * [0, 0, 1]).view(
+        np.float64).reshape(-1, 2)  # control points on the grid
+    c = grid[:3] + 0.5 * spacing
+    r = np.full(3, 0.5 * spacing * np.sqrt(2.0) - float(team.radius.max()) - 0.01)
+    obstacles = (c, r, np.array([0, 1, 0])) if team.group is not None else (c, r)
+    return pose, u, cand, lo, hi, obstacles
+
+
+@needs_numba
+@pytest.mark.parametrize("kind", ["paper", "mixed", "double_integrator", "grouped"])
+def test_the_compiled_repair_gives_the_numpy_repairs_answer(kind):
+    team = _teams()[kind]
+    rng = np.random.default_rng(7)
+    moved = 0
+    for trial in range(30):
+        pose, u, cand, lo, hi, obstacles = _spread_state(team, rng)
+        kw = dict(sensing_range=D, brake_fraction=F, obstacles=obstacles if trial % 2 else None)
+        r0 = repair(team, pose, u, cand, DT, lo, hi, **kw)
+        r1 = repair(team, pose, u, cand, DT, lo, hi, compiled=True, **kw)
+        np.testing.assert_allclose(r1, r0, rtol=0, atol=1e-6)
+        moved += int((r0 != np.clip(cand, lo, hi)).any(axis=1).sum())
+    assert moved > 10  # the repair acted
+
+
+class _BothKernels:
+    """A control filter that runs the numpy and the compiled filter on every physics step and applies numpy's."""
+
+    keeps_input_bounds = True
+
+    def __init__(self) -> None:
+        self.f = {k: SafetyFilter(kernel=k) for k in ("numpy", "numba")}
+        self.steps = self.acted = 0
+
+    def reset(self, team) -> None:
+        for f in self.f.values():
+            f.reset(team)
+
+    def __call__(self, inp, du_nominal):
+        out = {k: f(inp, du_nominal) for k, f in self.f.items()}
+        np.testing.assert_array_equal(out["numba"].backup, out["numpy"].backup)
+        np.testing.assert_allclose(out["numba"].du, out["numpy"].du, rtol=0, atol=1e-7)
+        assert out["numba"].status == out["numpy"].status
+        self.steps += 1
+        self.acted += out["numpy"].status == "backup"  # the layer braked or repaired someone
+        return out["numpy"]
+
+
+@needs_numba
+def test_filters_with_either_kernel_give_the_same_steps_along_a_hostile_episode():
+    """Full-throttle bursts: at every physics step the same braking robots and status, inputs to rounding."""
+    env = make_env("random_goals", num_robots=12, max_steps=300)
+    both = _BothKernels()
+    env.set_control_filter(both)
+    agent = ADVERSARIES["burst"](rest_steps=20)
+    obs, _ = env.reset(seed=3)
+    for _ in range(300):
+        obs, *_ = env.step(agent.act(obs, env))
+    assert both.steps == 300 * env.decision_interval and both.acted > 20
+
+
+def test_kernel_option_is_validated():
+    with pytest.raises(ConfigError, match="kernel"):
+        FilterConfig(kernel="fortran")
+    assert FilterConfig(kernel="numpy").compiled is False
+    assert FilterConfig().compiled is compiled.available()
+
+
+def test_kernel_numba_without_numba_says_how_to_install_it(monkeypatch):
+    monkeypatch.setattr(compiled, "_numba", None)
+    with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
+        FilterConfig(kernel="numba")
+    assert FilterConfig(kernel="auto").compiled is False  # falls back to the numpy reference
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kernel", ["numpy", "numba"])
+def test_hostile_policy_behind_either_kernel_never_collides(kernel):
+    if kernel == "numba" and not compiled.available():
+        pytest.skip("numba not installed")
+    env = make_env("random_goals", filter={"kernel": kernel}, num_robots=20, max_steps=1200)
+    rollout, _ = run_episode(env, HostileAgent(), seed=6)
+    assert pairwise_min_distance(rollout).overall_min_robot_gap >= -1e-3
+    assert not np.any(rollout.solver_status == "unsafe")
+    assert rollout.backup.any()
