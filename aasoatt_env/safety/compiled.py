@@ -13,11 +13,16 @@ numpy rounds return.
 
 The numpy code stays the reference and the fallback.  The two agree to
 floating-point rounding, not bit for bit (numba's ``sin``/``cos``/``exp`` and
-numpy's vectorised ones may differ in the last bit), so a pair whose margin
-lies within ~1e-15 m of its tolerance can be decided differently; the
-gatekeeper's guarantee does not depend on which (its tolerance absorbs
-rounding).  ``tests/test_compiled.py`` checks the agreement on random and
-recorded states.
+numpy's vectorised ones, and numpy's SIMD ``abs`` of complex numbers, may differ
+in the last bit), so a pair whose margin lies within ~1e-15 m of its tolerance
+can be decided differently; the gatekeeper's guarantee does not depend on which
+(its tolerance absorbs rounding).  The check's inputs and margins agree to
+~1e-12.  The repair divides by the squared finite-difference gradient of a
+margin, which is ~1e-7 where a pair is closest at the first step, so it
+amplifies last-bit differences: its answers agree to ~1e-7 rad/s^2 (1e-6 where
+a robot already overlaps).  Non-finite numbers take numpy's path (a NaN speed
+gives a NaN reach, which counts as unbounded).  ``tests/test_compiled.py``
+checks the agreement on random states and along adversarial episodes.
 
 Selection: :attr:`~aasoatt_env.safety.config.FilterConfig.kernel` (``"auto"``
 uses these kernels when numba imports, ``"numpy"`` never, ``"numba"`` requires
@@ -36,8 +41,8 @@ KERNELS: tuple[str, ...] = ("auto", "numpy", "numba")
 """Values of :attr:`~aasoatt_env.safety.config.FilterConfig.kernel`."""
 
 NUMBA_MISSING = (
-    'kernel="numba" needs numba, which is not installed: pip install "aasoatt[fast]" '
-    '(or use kernel="auto", which falls back to the numpy reference, or kernel="numpy")'
+    'the compiled kernels (kernel="numba") need numba, which is not installed: pip install "aasoatt[fast]" '
+    '(kernel="auto" falls back to the numpy reference, kernel="numpy" always uses it)'
 )
 
 try:  # the kernels are compiled on first use and cached next to this file
@@ -100,11 +105,19 @@ def _velocity1(diff, c0, c1, tg, theta, u0, u1):
 
 
 @_jit
+def _nmax(a, b):
+    """``numpy.maximum`` of two numbers: NaN if either is."""
+    if a != a or b != b:
+        return np.nan
+    return a if a >= b else b
+
+
+@_jit
 def _brake_time1(diff, c0, c1, amax, adec, u0, u1):
     """:func:`~aasoatt_env.safety.backup.brake_time` of one robot."""
-    s = max(abs(u0), abs(u1))
+    s = _nmax(abs(u0), abs(u1))
     speed = _cabs(c0 * u0 + c1 * u1) if diff else math.hypot(u0, u1)
-    return max(s / amax, speed / adec)
+    return _nmax(s / amax, speed / adec)
 
 
 @_jit
@@ -112,8 +125,15 @@ def _brake1(diff, c0, c1, tg, amax, adec, theta, u0, u1, dt):
     """:func:`~aasoatt_env.safety.backup._brake` of one robot: ``(pdot, omega, rate, steps, reach, bulge)``."""
     T = _brake_time1(diff, c0, c1, amax, adec, u0, u1)
     pdot, w = _velocity1(diff, c0, c1, tg, theta, u0, u1)
-    if not T > 0.0:
-        return 0j, w, 1.0, 0, 0.0, 0.0
+    if not T > 0.0:  # at rest (or T NaN): numpy's arithmetic with moving = False, NaN kept as NaN
+        speed = _cabs(pdot) * 0.0
+        aw = abs(w)
+        reach = speed * 0.0 * _sinc1(aw * 0.0 / _TWO_PI) + (dt * dt / 8.0) * speed * aw
+        bulge = 0.0
+        if not diff:
+            bulge = (dt / 8.0) * speed * 1.0
+            reach = reach + bulge
+        return pdot * 0.0, w, 1.0, 0, reach, bulge
     ratio = T / dt
     r1 = max(ratio, 1.0)
     rate = 1.0 / r1
@@ -509,7 +529,7 @@ def gate_full(pose, u, du_c, dt, levels_in, quick, diff, offset, cols, tg, amax,
                                                      dt)
         PD[last_full, g], OM[last_full, g], RT[last_full, g] = pdot, w, rate
         NEED[last_full, g], RE[last_full, g], BU[last_full, g] = steps + 1, reach, bulge
-        den = max(T, dt)
+        den = _nmax(T, dt)
         du_all[last_full, g, 0] = -u[g, 0] / den
         du_all[last_full, g, 1] = -u[g, 1] / den
     nl = nl_full

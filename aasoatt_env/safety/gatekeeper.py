@@ -285,10 +285,19 @@ def gatekeeper(
         pair search, made once for several calls on one state.  A pair missing here is
         not checked, so it is a safety input.  None: searched here.
     compiled : bool
-        Run the rounds (step 3) in the compiled kernel of :mod:`aasoatt_env.safety.compiled`
-        (numba must be installed): the same decisions up to floating-point rounding.
+        Run the whole check in the compiled kernel of :mod:`aasoatt_env.safety.compiled`
+        (``ImportError`` without numba): the same decisions, inputs and margins to rounding.
     """
     levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
+    if not all(0.0 < a <= 1.0 for a in levels[:-1]):  # also refuses NaN
+        raise ValueError(f"blend_levels: got {tuple(blend_levels)!r}, expected shares in (0, 1)")
+    if near_pairs is not None:  # a safety input (the compiled kernel reads it without bounds checks)
+        near_pairs = np.asarray(near_pairs)
+        n_rob = pose.shape[0]
+        if (near_pairs.ndim != 2 or near_pairs.shape[1] != 2 or near_pairs.dtype.kind not in "iu"
+                or (near_pairs.size and not (0 <= near_pairs.min() and near_pairs.max() < n_rob))):
+            raise ValueError(f"near_pairs: got a {near_pairs.dtype} array of shape {near_pairs.shape}, expected "
+                             f"(P, 2) integer robot indices in [0, {n_rob})")
     if compiled:
         return _gatekeeper_compiled(team, pose, u, du_c, dt, sensing_range, brake_fraction, obstacles, tol, levels,
                                     hold_violations, quick, near_pairs)
@@ -338,20 +347,6 @@ def gatekeeper(
         share = np.asarray(levels)[lev]
         return GateResult(du_all[lev, rows], lev > 0, limit_margin, not bool(broken.any()), broken, share, 0, 0,
                           limit.copy(), reach[0] > limit)
-
-    if compiled:
-        from aasoatt_env.safety.compiled import gate_rounds
-
-        bs = [f[3] for f in firsts] + [b0]
-        need_all = np.stack([b.steps + 2 for b in bs[:-1]] + [b0.steps + 1])
-        p1_all = np.stack([f[1] for f in firsts] + [p0])
-        d1_all = np.stack([f[2] for f in firsts] + [b0.reach])  # (the last row is not read)
-        bulge = np.zeros(reach.shape) if b0.bulge is None else np.stack([b.bulge for b in bs])
-        marg, omarg, rounds = gate_rounds(
-            lev, broken, reach, limit, need_all, p0, p1_all, d1_all, np.stack([b.pdot for b in bs]),
-            np.stack([b.omega for b in bs]), np.stack([b.rate for b in bs]), bulge, b0.bulge is not None,
-            float(dt), i, j, ds, oi, ok, ods, oc, float(tol), bool(hold_violations))
-        return _result(levels, lev, du_all, broken, limit, limit_margin, reach, rounds, i, j, oi, marg, omarg)
 
     M = np.unique(np.concatenate((i, j, oi)))  # robots with a pair to check
     loc = np.full(n, -1, dtype=np.intp)
@@ -452,7 +447,7 @@ def _kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_ra
     group = team.group if team.group is not None else _EMPTY_INT
     return (team.is_diff_drive, team.offset, team.input_columns, team.turn_gain, team.max_wheel_accel,
             brake_decel(team, brake_fraction), team.radius, group, team.group is not None, float(sensing_range),
-            np.asarray(near_pairs, dtype=np.int64).reshape(-1, 2), oc, orad, ogroup, has_ogroup)
+            near_pairs.astype(np.int64, copy=False), oc, orad, ogroup, has_ogroup)
 
 
 def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float,
@@ -460,7 +455,10 @@ def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.n
                          tol: float, levels: tuple[float, ...], hold_violations: bool, quick: bool,
                          near_pairs: np.ndarray | None) -> GateResult:
     """:func:`gatekeeper` by the compiled kernel (:func:`aasoatt_env.safety.compiled.gate_full`)."""
-    from aasoatt_env.safety.compiled import gate_full
+    from aasoatt_env.safety.compiled import NUMBA_MISSING, available, gate_full
+
+    if not available():
+        raise ImportError(NUMBA_MISSING)
 
     diff, offset, cols, tg, amax, adec, radius, group, has_group, D, cand, oc, orad, og, has_og = _kernel_args(
         team, pose, brake_fraction, sensing_range, obstacles, near_pairs)

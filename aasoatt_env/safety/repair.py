@@ -213,11 +213,15 @@ def repair(
     the QP (a small, local correction toward the safe set), so the gatekeeper
     rarely has to brake; safety still comes from :func:`~aasoatt_env.safety.gatekeeper.gatekeeper` alone.
     ``near_pairs``: candidate pairs as in the gatekeeper (one search for every round).
-    ``compiled``: run it in the compiled kernel of :mod:`aasoatt_env.safety.compiled` (the same
-    answer up to floating-point rounding).
+    ``compiled``: run it in the compiled kernel of :mod:`aasoatt_env.safety.compiled` (``ImportError``
+    without numba; the same answer up to rounding, which the division by the squared gradient
+    amplifies: see that module).
     """
     if compiled:
-        from aasoatt_env.safety.compiled import repair_full
+        from aasoatt_env.safety.compiled import NUMBA_MISSING, available, repair_full
+
+        if not available():
+            raise ImportError(NUMBA_MISSING)
 
         diff, offset, cols, tg, amax, adec, radius, group, has_group, D, cand, oc, orad, og, has_og = _kernel_args(
             team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
