@@ -3,6 +3,8 @@ fine sub-step simulation, time consistency, invariance on random states, and clo
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -21,11 +23,14 @@ from aasoatt_env.safety.backup import (
     candidate_samples_at,
     reach_limit,
 )
+from aasoatt_env.safety.compiled import available as numba_available
 from aasoatt_env.safety.gatekeeper import gatekeeper, pair_margins
 from aasoatt_env.safety.repair import gate_with_repair
 from agents import ADVERSARIES, HostileAgent
 
 F = 2.0 / 3.0  # the default brake fraction
+NEEDS_NUMBA = pytest.mark.skipif(not numba_available(), reason="numba not installed (aasoatt[fast])")
+_gatekeeper = gatekeeper
 
 
 def _teams():
@@ -282,9 +287,11 @@ def _inputs(team, pose, u):
     return kin, lo, hi
 
 
-def test_gatekeeper_keeps_random_brake_safe_states_brake_safe():
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=NEEDS_NUMBA)], ids=["numpy", "numba"])
+def test_gatekeeper_keeps_random_brake_safe_states_brake_safe(compiled):
     """Invariance: from brake-safe states, any candidate (here random, at the bounds) leads to brake-safe states."""
     rng = np.random.default_rng(4)
+    gatekeeper = functools.partial(_gatekeeper, compiled=compiled)
     for kind, team in _teams().items():
         D = 3.0
         for _ in range(30):
@@ -304,7 +311,8 @@ def test_gatekeeper_keeps_random_brake_safe_states_brake_safe():
                 assert after.safe and not after.braking.any(), kind
 
 
-def test_a_robot_demoted_by_a_pair_never_takes_a_blend_that_leaves_its_range_limit():
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=NEEDS_NUMBA)], ids=["numpy", "numba"])
+def test_a_robot_demoted_by_a_pair_never_takes_a_blend_that_leaves_its_range_limit(compiled):
     """A blend's reach can exceed both the candidate's and the backup's (here by 1 mm).
 
     Found by a random search: robot 0's candidate (reach 0.35778 m) and its braking path
@@ -320,7 +328,7 @@ def test_a_robot_demoted_by_a_pair_never_takes_a_blend_that_leaves_its_range_lim
     limit = reach_limit(team, D)
     alone = candidate_paths(team, pose[:1], u[:1], cand[:1], DT, F)
     assert alone.reach[0] <= limit[0]  # the candidate itself is in range: a pair, not the range, demotes it
-    g = gatekeeper(team, pose, u, cand, DT, sensing_range=D, brake_fraction=F)
+    g = gatekeeper(team, pose, u, cand, DT, sensing_range=D, brake_fraction=F, compiled=compiled)
     assert g.braking[0] and g.safe
     assert g.share[0] == 0.0, "the 0.5 blend leaves the range limit: only the backup is left"
     np.testing.assert_allclose(g.du[0], braking_du(team, u, DT, F)[0], rtol=0, atol=0)

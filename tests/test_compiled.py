@@ -62,11 +62,11 @@ def _assert_same_decisions(g0, g1) -> None:
     for name in ("braking", "broken", "share", "out_of_range"):
         np.testing.assert_array_equal(getattr(g1, name), getattr(g0, name), err_msg=name)
     assert (g1.safe, g1.rounds, g1.n_pairs) == (g0.safe, g0.rounds, g0.n_pairs)
-    np.testing.assert_allclose(g1.du, g0.du, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(g1.du, g0.du, rtol=0, atol=1e-11)
     finite = np.isfinite(g0.robot_margin)
     np.testing.assert_array_equal(np.isfinite(g1.robot_margin), finite)
-    np.testing.assert_allclose(g1.robot_margin[finite], g0.robot_margin[finite], rtol=0, atol=1e-9)
-    assert g1.margin == pytest.approx(g0.margin, abs=1e-9)
+    np.testing.assert_allclose(g1.robot_margin[finite], g0.robot_margin[finite], rtol=0, atol=1e-11)
+    assert g1.margin == pytest.approx(g0.margin, abs=1e-11)
 
 
 @needs_numba
@@ -81,7 +81,8 @@ def test_the_compiled_gatekeeper_makes_the_numpy_gatekeepers_decisions(kind):
         pose, u, cand, _, _ = _state(team, rng, side)
         obstacles = _obstacles(team, rng, side, kind == "grouped") if trial % 2 else None
         p0 = _point(team, pose)
-        near = robot_pairs(np.stack((p0.real, p0.imag), axis=1), D, groups=team.group) if trial % 3 else None
+        near = (None, robot_pairs(np.stack((p0.real, p0.imag), axis=1), D, groups=team.group),
+                np.argwhere(np.triu(np.ones((team.n, team.n), dtype=bool), 1)))[trial % 3]  # a superset: all pairs
         kw = dict(sensing_range=D, brake_fraction=F, obstacles=obstacles, tol=1e-9, near_pairs=near,
                   quick=bool(trial % 4 == 1), hold_violations=bool(trial % 5 == 2),
                   blend_levels=((0.5,), (), (0.75, 0.25))[trial % 3])
@@ -170,9 +171,12 @@ def test_kernel_option_is_validated():
 
 
 def test_kernel_numba_without_numba_says_how_to_install_it(monkeypatch):
-    monkeypatch.setattr(compiled, "_numba", None)
+    monkeypatch.setattr(compiled, "_load", lambda: None)
+    cfg = FilterConfig(kernel="numba")  # a saved configuration still loads
     with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
-        FilterConfig(kernel="numba")
+        SafetyFilter(config=cfg)
+    with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
+        make_env("random_goals", num_robots=2, filter={"kernel": "numba"})
     assert FilterConfig(kernel="auto").compiled is False  # falls back to the numpy reference
 
 
@@ -211,15 +215,70 @@ def test_gatekeeper_refuses_bad_pairs_and_blend_levels(use_kernel):
         with pytest.raises(ValueError, match=r"near_pairs: .*expected \(P, 2\) integer robot indices in \[0, 2\)"):
             gatekeeper(team, pose, u, u, DT, near_pairs=bad, **kw)
     for bad in ((1.5,), (float("nan"),), (-0.5,)):
-        with pytest.raises(ValueError, match=r"blend_levels: .*expected shares in \(0, 1\)"):
+        with pytest.raises(ValueError, match=r"blend_levels: .*expected shares in \(0, 1\]"):
             gatekeeper(team, pose, u, u, DT, blend_levels=bad, **kw)
 
 
 def test_compiled_calls_without_numba_say_how_to_install_it(monkeypatch):
-    monkeypatch.setattr(compiled, "_numba", None)
+    monkeypatch.setattr(compiled, "_load", lambda: None)
     team = make_team("paper", 2)
     pose, u = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), np.zeros((2, 2))
     with pytest.raises(ImportError, match=r"pip install \"aasoatt\[fast\]\""):
         gatekeeper(team, pose, u, u, DT, sensing_range=D, brake_fraction=F, compiled=True)
     with pytest.raises(ImportError, match=r"pip install \"aasoatt\[fast\]\""):
         repair(team, pose, u, u, DT, u - 1.0, u + 1.0, sensing_range=D, brake_fraction=F, compiled=True)
+
+
+def test_a_point_mass_rests_past_its_braking_horizon():
+    """Past the last braking step a point mass is at rest: no parabola bulge on the padding steps.
+
+    Braking from exactly 1 m/s, ``T / dt`` rounds one ulp above an integer, so the speed scale of the
+    step after the horizon was 1e-16 > 0 and that step carried the full bulge (12.5 um); the kernels
+    (rows at rest past their horizon) then decided a crossing pair differently (a reviewer's state).
+    """
+    from aasoatt_env.safety.backup import braking_du, candidate_paths, candidate_samples_at
+
+    t1 = make_team("double_integrator", 1)
+    u = np.array([[np.cos(np.pi / 6), np.sin(np.pi / 6)]])
+    for _ in range(8):
+        du = braking_du(t1, u, DT, F)
+        cp = candidate_paths(t1, np.zeros((1, 3)), u, du, DT, F, length=200)
+        n = int(cp.length[0])
+        assert (cp.delta[0, n - 1:] == 0.0).all() and cp.delta[0, n - 2] > 0.0
+        s = np.arange(n - 3, n + 3)[None, :]
+        _, d = candidate_samples_at(t1, np.zeros((1, 3)), u, du, DT, F, s)
+        assert (d[0, 2:] == 0.0).all()  # steps n-1 .. : at rest
+        u = u + du * DT
+
+
+def test_absurd_wheel_speeds_are_never_called_brake_safe():
+    """A braking longer than MAX_BRAKE_STEPS is not sampled: its reach is unbounded, the robot broken."""
+    from aasoatt_env.safety import numba_kernels  # noqa: F401  (skipped below without numba)
+    from aasoatt_env.safety.backup import MAX_BRAKE_STEPS
+
+    team = make_team("paper", 2)
+    pose = np.array([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0]])
+    for speed in (1e9, 1e20):
+        u = np.array([[speed, speed], [0.0, 0.0]])
+        for use_kernel in (False, True) if compiled.available() else (False,):
+            g = gatekeeper(team, pose, u, np.zeros((2, 2)), DT, sensing_range=D, brake_fraction=F,
+                           compiled=use_kernel)
+            assert not g.safe and g.broken[0] and not g.broken[1]
+    if compiled.available():
+        assert compiled.kernels().MAX_BRAKE_STEPS == MAX_BRAKE_STEPS
+
+
+@needs_numba
+def test_the_compiled_kernels_check_every_shape():
+    team = make_team("paper", 3)
+    pose, u = np.zeros((3, 3)), np.zeros((3, 2))
+    pose[:, 0] = [0.0, 1.0, 2.0]
+    kw = dict(sensing_range=D, brake_fraction=F, compiled=True)
+    with pytest.raises(ValueError, match=r"du_c: got shape \(2, 2\), expected \(3, 2\) for a team of 3 robots"):
+        gatekeeper(team, pose, u, u[:2], DT, **kw)
+    with pytest.raises(ValueError, match=r"pose: got shape \(3, 2\), expected \(3, 3\)"):
+        gatekeeper(team, pose[:, :2], u, u, DT, **kw)
+    with pytest.raises(ValueError, match=r"obstacles: got centres \(2, 2\), radii \(1,\)"):
+        gatekeeper(team, pose, u, u, DT, obstacles=(np.zeros((2, 2)), np.ones(1)), **kw)
+    with pytest.raises(ValueError, match=r"hi: got shape \(3, 1\), expected \(3, 2\)"):
+        repair(team, pose, u, u, DT, u - 1.0, u[:, :1], **kw)

@@ -48,6 +48,7 @@ import numpy as np
 from aasoatt_env.model.params import Team
 
 __all__ = [
+    "MAX_BRAKE_STEPS",
     "Trajectories",
     "brake_decel",
     "brake_time",
@@ -61,6 +62,10 @@ __all__ = [
 
 # --------------------------------------------------------------------------- helpers
 _EPS = float(np.finfo(np.float64).eps)
+
+MAX_BRAKE_STEPS: int = 100_000
+"""Longest braking the layer samples, in physics steps (500 s at ``dt = 5 ms``); a robot that would need
+more (wheel speeds far beyond any robot's) gets an unbounded reach: it is never called brake-safe."""
 
 
 def _sinc(x: np.ndarray) -> np.ndarray:
@@ -166,7 +171,8 @@ def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fracti
     # at most 1: a robot that stops within one step (T < dt, e.g. subnormal speeds, where 1 / ratio
     # would overflow to inf and the paths to NaN) has the same samples with rate 1 as with dt / T
     rate = np.where(moving, 1.0 / np.maximum(ratio, 1.0), 1.0)
-    steps = np.where(moving, np.maximum(np.ceil(ratio - 1e-12), 1.0), 0.0).astype(np.int64)
+    # a braking too long to sample (MAX_BRAKE_STEPS; e.g. absurd wheel speeds) gets an unbounded reach below
+    steps = np.where(moving, np.clip(np.ceil(ratio - 1e-12), 1.0, MAX_BRAKE_STEPS), 0.0).astype(np.int64)
     speed = np.abs(pdot) * moving
     # arc parameter at rest, of the *stepped* braking (the trapezoid of the sampled paths, whose last
     # step stops from sigma > 0 within a whole dt): dt (1/2 + (K - 1)(1 - K / (2 r))), r = T / dt,
@@ -182,10 +188,11 @@ def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fracti
     # step): it deviates from its chord by the sagitta; a point mass decelerates along a parabola,
     # |du| dt^2 / 8 from its chord, with |du| <= speed / T = speed rate / dt in every braking step
     reach = envelope + (dt * dt / 8.0) * speed * aw
-    if team.is_diff_drive:
-        return _Brake(pdot * moving, w, rate, steps, reach, None)
-    bulge = (dt / 8.0) * speed * rate
-    return _Brake(pdot * moving, w, rate, steps, reach + bulge, bulge)
+    if not team.is_diff_drive:
+        bulge = (dt / 8.0) * speed * rate
+        reach = reach + bulge
+    reach = np.where(ratio > MAX_BRAKE_STEPS, np.inf, reach)
+    return _Brake(pdot * moving, w, rate, steps, reach, None if team.is_diff_drive else bulge)
 
 
 def _brake_samples(p0: np.ndarray, b: _Brake, dt: float, L: int) -> tuple[np.ndarray, np.ndarray]:
@@ -199,8 +206,8 @@ def _brake_samples(p0: np.ndarray, b: _Brake, dt: float, L: int) -> tuple[np.nda
     p = p0[:, None] + (b.pdot[:, None] * tau) * _E(w * tau)
     s = 0.5 * (sigma[:, :-1] + sigma[:, 1:])  # step-mean speed scale
     delta = (dt * dt / 8.0) * np.abs(b.pdot)[:, None] * (s * s) * np.abs(w)
-    if b.bulge is not None:  # point masses: the parabola of each step that still decelerates
-        delta = delta + np.where(sigma[:, :-1] > 0.0, b.bulge[:, None], 0.0)
+    if b.bulge is not None:  # point masses: the parabola of each braking step (at rest past its horizon)
+        delta = delta + np.where((sigma[:, :-1] > 0.0) & (k[None, :-1] < b.steps[:, None]), b.bulge[:, None], 0.0)
     return p, delta
 
 
@@ -297,7 +304,8 @@ def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.nda
     sig = 0.5 * (np.clip(1.0 - k * r, 0.0, 1.0) + np.clip(1.0 - (k + 1.0) * r, 0.0, 1.0))
     delta = (dt * dt / 8.0) * np.abs(b.pdot)[:, None] * (sig * sig) * np.abs(w)
     if b.bulge is not None:
-        delta = delta + np.where(np.clip(1.0 - k * r, 0.0, 1.0) > 0.0, b.bulge[:, None], 0.0)
+        delta = delta + np.where((np.clip(1.0 - k * r, 0.0, 1.0) > 0.0) & (k < b.steps[:, None]), b.bulge[:, None],
+                                 0.0)
     return p, np.where(s == 0, d1[:, None], delta)
 
 

@@ -36,7 +36,7 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT
 from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4
 from aasoatt_env.safety.barriers import BARRIERS
-from aasoatt_env.safety.compiled import KERNELS, NUMBA_MISSING, available
+from aasoatt_env.safety.compiled import KERNELS, available
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
 from aasoatt_env.safety.solvers import get_solver
 
@@ -164,8 +164,9 @@ class FilterConfig:
         Implementation of the backup layer's check (:mod:`aasoatt_env.safety.compiled`):
         ``"auto"`` (default) the compiled kernels when numba is installed (``pip install
         "aasoatt[fast]"``), else the numpy reference; ``"numpy"`` always the reference;
-        ``"numba"`` the kernels or an error.  Both give the same decisions up to
-        floating-point rounding.
+        ``"numba"`` the kernels, or a :class:`~aasoatt_env.errors.ConfigError` when the filter is
+        built without numba (a saved configuration still loads).  Both give the same decisions;
+        their numbers agree to floating-point rounding.
     """
 
     barrier: str = "aasoatt"
@@ -233,8 +234,6 @@ class FilterConfig:
             check.boolean(flag, getattr(self, flag))
         object.__setattr__(self, "neural_iterations",
                            check.integer("neural_iterations", self.neural_iterations, lo=1, hi=1_000_000))
-        if self.kernel == "numba" and not available():
-            raise ConfigError(f"kernel: {NUMBA_MISSING}")
         if STRATEGIES[self.deadlock].active and not self.k4 > self.zeta:
             raise ConfigError(
                 f"k4 must exceed zeta (Theorem 2's convergence condition k4 > zeta): "

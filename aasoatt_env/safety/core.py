@@ -35,6 +35,8 @@ from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, spe
 from aasoatt_env.model.geometry import obstacle_pairs, pair_components, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
+from aasoatt_env.safety.compiled import NUMBA_MISSING
+from aasoatt_env.safety.compiled import available as compiled_available
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
 from aasoatt_env.safety.decentralized import decentralized_step
@@ -182,6 +184,8 @@ class SafetyFilter:
 
     def __init__(self, team: Team | None = None, config: FilterConfig | None = None, **options: Any) -> None:
         cfg = FilterConfig.merged(config, **options)
+        if cfg.kernel == "numba" and cfg.backup and not compiled_available():
+            raise ConfigError(f"kernel: {NUMBA_MISSING}")
         self.config = cfg
         if STRATEGIES[cfg.deadlock].rotates_rows:
             warnings.warn(

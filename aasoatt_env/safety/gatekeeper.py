@@ -42,6 +42,7 @@ from aasoatt_env.safety.backup import (
     brake_time,
     reach_limit,
 )
+from aasoatt_env.safety.compiled import kernels
 
 __all__ = ["GateResult", "gatekeeper", "pair_margins"]
 
@@ -285,12 +286,12 @@ def gatekeeper(
         pair search, made once for several calls on one state.  A pair missing here is
         not checked, so it is a safety input.  None: searched here.
     compiled : bool
-        Run the whole check in the compiled kernel of :mod:`aasoatt_env.safety.compiled`
-        (``ImportError`` without numba): the same decisions, inputs and margins to rounding.
+        Run the whole check in the compiled kernel (:mod:`aasoatt_env.safety.compiled`;
+        ``ImportError`` without numba): the same decisions, inputs and margins to rounding.
     """
     levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
     if not all(0.0 < a <= 1.0 for a in levels[:-1]):  # also refuses NaN
-        raise ValueError(f"blend_levels: got {tuple(blend_levels)!r}, expected shares in (0, 1)")
+        raise ValueError(f"blend_levels: got {tuple(blend_levels)!r}, expected shares in (0, 1]")
     if near_pairs is not None:  # a safety input (the compiled kernel reads it without bounds checks)
         near_pairs = np.asarray(near_pairs)
         n_rob = pose.shape[0]
@@ -421,28 +422,49 @@ def gatekeeper(
         todo = demote[i] | demote[j]
         otodo = demote[oi]
 
-    return _result(levels, lev, du_all, broken, limit, limit_margin, reach, rounds, i, j, oi, marg, omarg)
+    rows = np.arange(n)
+    share = np.asarray(levels)[lev]
+    robot_margin = limit.copy()
+    np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
+    return GateResult(du_all[lev, rows], lev > 0, float(robot_margin.min(initial=limit_margin)),
+                      not bool(broken.any()), broken, share, rounds, int(i.size + oi.size), robot_margin,
+                      reach[0] > limit)
 
 
 _EMPTY_INT = np.empty(0, dtype=np.int64)
 
 
 def _kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_range: float,
-                 obstacles: tuple[np.ndarray, ...] | None, near_pairs: np.ndarray | None) -> tuple:
-    """The team, pair and obstacle arguments of the compiled kernels (:mod:`aasoatt_env.safety.compiled`).
+                 obstacles: tuple[np.ndarray, ...] | None, near_pairs: np.ndarray | None,
+                 **per_robot: np.ndarray) -> tuple:
+    """The team, pair and obstacle block of the compiled kernels (:mod:`aasoatt_env.safety.numba_kernels`).
 
-    ``(diff, offset, cols, turn_gain, max_wheel_accel, brake_decel, radius, group, has_group, sensing_range,
-    candidate pairs, obstacle centres (complex), radii, groups, has_groups)``; the candidate pairs are
-    ``near_pairs``, or every pair within the sensing range when None.
+    ``(diff, offset, cols, turn_gain, max_wheel_accel, brake_decel, radius, group, has_group,
+    sensing_range, candidate pairs, obstacle centres (complex), radii, groups, has_groups)``; the
+    candidate pairs are ``near_pairs`` (checked by the caller), or every pair within the sensing
+    range when None.  The kernels read without bounds checks, so every shape is checked here:
+    ``pose`` ``(n, 3)`` for the team's ``n`` robots, each of ``per_robot`` (by name) ``(n, 2)``, the
+    obstacles' centres ``(M, 2)`` with ``M`` radii (and groups).
     """
+    n = team.n
+    for name, a in (("pose", pose), *per_robot.items()):
+        if np.shape(a) != ((n, 3) if name == "pose" else (n, 2)):
+            raise ValueError(f"{name}: got shape {np.shape(a)}, expected ({n}, {3 if name == 'pose' else 2}) "
+                             f"for a team of {n} robots")
     if near_pairs is None:
         p0 = _point(team, pose)
         near_pairs = robot_pairs(np.stack((p0.real, p0.imag), axis=1), sensing_range, groups=team.group)
     oc, orad, ogroup, has_ogroup = np.empty(0, dtype=np.complex128), np.empty(0), _EMPTY_INT, False
     if obstacles is not None and np.asarray(obstacles[1]).size:
-        c = np.asarray(obstacles[0], dtype=np.float64)
-        oc, orad = c[:, 0] + 1j * c[:, 1], np.asarray(obstacles[1], dtype=np.float64)
-        if team.group is not None and len(obstacles) > 2 and obstacles[2] is not None:
+        c, orad = np.asarray(obstacles[0], dtype=np.float64), np.asarray(obstacles[1], dtype=np.float64)
+        grouped = team.group is not None and len(obstacles) > 2 and obstacles[2] is not None
+        m = orad.shape[0] if orad.ndim == 1 else -1
+        if c.shape != (m, 2) or (grouped and np.shape(obstacles[2]) != (m,)):
+            raise ValueError(f"obstacles: got centres {c.shape}, radii {orad.shape}"
+                             + (f", groups {np.shape(obstacles[2])}" if grouped else "")
+                             + ", expected (M, 2), (M,) and (M,)")
+        oc = c[:, 0] + 1j * c[:, 1]
+        if grouped:
             ogroup, has_ogroup = np.asarray(obstacles[2]), True
     group = team.group if team.group is not None else _EMPTY_INT
     return (team.is_diff_drive, team.offset, team.input_columns, team.turn_gain, team.max_wheel_accel,
@@ -454,33 +476,13 @@ def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.n
                          sensing_range: float, brake_fraction: float, obstacles: tuple[np.ndarray, ...] | None,
                          tol: float, levels: tuple[float, ...], hold_violations: bool, quick: bool,
                          near_pairs: np.ndarray | None) -> GateResult:
-    """:func:`gatekeeper` by the compiled kernel (:func:`aasoatt_env.safety.compiled.gate_full`)."""
-    from aasoatt_env.safety.compiled import NUMBA_MISSING, available, gate_full
-
-    if not available():
-        raise ImportError(NUMBA_MISSING)
-
-    diff, offset, cols, tg, amax, adec, radius, group, has_group, D, cand, oc, orad, og, has_og = _kernel_args(
-        team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
-    du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = gate_full(
-        pose, u, du_c, float(dt), np.asarray(levels), bool(quick), diff, offset, cols, tg, amax, adec, radius,
-        group, has_group, reach_limit(team, sensing_range), D, cand, oc, orad, og, has_og, float(tol),
-        bool(hold_violations))
+    """:func:`gatekeeper` by the compiled kernel (:func:`aasoatt_env.safety.numba_kernels.gate_full`)."""
+    block = _kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs, u=u, du_c=du_c)
+    du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = kernels().gate_full(
+        pose, u, du_c, float(dt), np.asarray(levels), bool(quick), *block, reach_limit(team, sensing_range),
+        float(tol), bool(hold_violations))
     return GateResult(du, braking, float(margin), not bool(broken.any()), broken, share, int(rounds), int(n_pairs),
                       robot_margin, out_of_range)
-
-
-def _result(levels: tuple[float, ...], lev: np.ndarray, du_all: np.ndarray, broken: np.ndarray, limit: np.ndarray,
-            limit_margin: float, reach: np.ndarray, rounds: int, i: np.ndarray, j: np.ndarray, oi: np.ndarray,
-            marg: np.ndarray, omarg: np.ndarray) -> GateResult:
-    """The :class:`GateResult` of the final levels ``lev`` and the checked pairs' margins."""
-    rows = np.arange(lev.shape[0])
-    share = np.asarray(levels)[lev]
-    robot_margin = limit.copy()
-    np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
-    return GateResult(du_all[lev, rows], lev > 0, float(robot_margin.min(initial=limit_margin)),
-                      not bool(broken.any()), broken, share, int(rounds), int(i.size + oi.size), robot_margin,
-                      reach[0] > limit)
 
 
 def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float, slack: float,

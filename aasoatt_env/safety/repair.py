@@ -29,6 +29,7 @@ from aasoatt_env.safety.backup import (
     candidate_paths,
     candidate_samples_at,
 )
+from aasoatt_env.safety.compiled import kernels
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.gatekeeper import (
     CLOSEST_TIE,
@@ -218,16 +219,10 @@ def repair(
     amplifies: see that module).
     """
     if compiled:
-        from aasoatt_env.safety.compiled import NUMBA_MISSING, available, repair_full
-
-        if not available():
-            raise ImportError(NUMBA_MISSING)
-
-        diff, offset, cols, tg, amax, adec, radius, group, has_group, D, cand, oc, orad, og, has_og = _kernel_args(
-            team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
-        return repair_full(pose, u, du_c, lo, hi, float(dt), diff, offset, cols, tg, amax, adec, radius, group,
-                           has_group, D, cand, oc, orad, og, has_og, float(target), int(rounds), float(eps),
-                           CLOSEST_TIE)
+        block = _kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs, u=u, du_c=du_c,
+                             lo=lo, hi=hi)
+        return kernels().repair_full(pose, u, du_c, lo, hi, float(dt), *block, float(target), int(rounds),
+                                     float(eps), CLOSEST_TIE)
     du = np.minimum(np.maximum(du_c, lo), hi)
     n = pose.shape[0]
     eye = np.eye(2)
