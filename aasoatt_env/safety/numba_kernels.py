@@ -64,10 +64,15 @@ def _sinc1(x):
 
 @_jit
 def _E1(x):
-    """:func:`~aasoatt_env.safety.backup._E` of one number: ``(e^{ix} - 1) / (ix)``."""
-    sc = _sinc1(x / _TWO_PI)
+    """:func:`~aasoatt_env.safety.backup._E` of one number: ``(e^{ix} - 1) / (ix) = e^{ix/2} sin(x/2) / (x/2)``.
+
+    One ``sin`` serves both factors (numpy's sinc takes the sine of ``pi (x / 2 pi)``, the same
+    angle to the last bit).
+    """
     h = 0.5 * x
-    return complex(math.cos(h) * sc, math.sin(h) * sc)
+    sh = math.sin(h)
+    sc = sh / h if h != 0.0 else 1.0
+    return complex(math.cos(h) * sc, sh * sc)
 
 
 @_jit
@@ -633,6 +638,12 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
     R = np.empty(n)
     slack = 2.0 * target
     ee = eps * dt * dt
+    # each robot's candidate path (row g), made once and kept until its input changes (numpy's _PathCache)
+    Lc = 2
+    rowp = np.empty((n, Lc), dtype=np.complex128)
+    rowd = np.empty((n, Lc - 1))
+    made = np.zeros(n, dtype=np.bool_)
+    used = np.zeros(n, dtype=np.bool_)
     for _ in range(rounds):
         for g in range(n):  # reach first: only robots with a pair that could come close need paths
             p1, dev, pdot, w, rate, steps, reach, bulge = _candidate1(
@@ -645,14 +656,26 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
         P, Q = i.shape[0], oi.shape[0]
         if P + Q == 0:
             break
-        loc, rob, M = _rows_of(n, i, j, oi)
+        used[:] = False
+        for q in range(P):
+            used[i[q]] = True
+            used[j[q]] = True
+        for q in range(Q):
+            used[oi[q]] = True
         L = 2
-        for r in range(M):
-            L = max(L, NEED[rob[r]])
-        cur = np.empty((M, L), dtype=np.complex128)
-        curd = np.empty((M, L - 1))
-        for r in range(M):
-            _fill_row(cur, curd, r, rob[r], 0, 1, p0, P1, D1, PD, OM, RT, BU, not diff, dt, NEED[rob[r]])
+        for g in range(n):
+            if used[g]:
+                L = max(L, NEED[g])
+        if L > Lc:
+            Lc = L
+            rowp = np.empty((n, Lc), dtype=np.complex128)
+            rowd = np.empty((n, Lc - 1))
+            made[:] = False
+        for g in range(n):
+            if used[g] and not made[g]:
+                _fill_row(rowp, rowd, g, g, 0, 1, p0, P1, D1, PD, OM, RT, BU, not diff, dt, NEED[g])
+                made[g] = True
+        cur, curd = rowp, rowd
         # the low pairs: margin below target; their margin and closest step over the whole rows
         low = np.zeros(P, dtype=np.bool_)
         m0 = np.empty(P)
@@ -660,20 +683,20 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
         nlow = 0
         for q in range(P):
             a, c = i[q], j[q]
-            if _pair_margin(cur, curd, NEED[a], NEED[c], loc[a], loc[c], ds[q], False, 0j) < target:
+            if _pair_margin(cur, curd, NEED[a], NEED[c], a, c, ds[q], False, 0j) < target:
                 low[q] = True
                 nlow += 1
-                best, k = _pair_closest(cur, curd, NEED[a], NEED[c], loc[a], loc[c], False, 0j, L - 1, tie)
+                best, k = _pair_closest(cur, curd, NEED[a], NEED[c], a, c, False, 0j, L - 1, tie)
                 m0[q], kk[q] = best - ds[q], k
         olow = np.zeros(Q, dtype=np.bool_)
         om0 = np.empty(Q)
         okk = np.empty(Q, dtype=np.int64)
         for q in range(Q):
             a = oi[q]
-            if _pair_margin(cur, curd, NEED[a], 0, loc[a], 0, ods[q], True, oc[ok[q]]) < target:
+            if _pair_margin(cur, curd, NEED[a], 0, a, 0, ods[q], True, oc[ok[q]]) < target:
                 olow[q] = True
                 nlow += 1
-                best, k = _pair_closest(cur, curd, NEED[a], 0, loc[a], 0, True, oc[ok[q]], L - 1, tie)
+                best, k = _pair_closest(cur, curd, NEED[a], 0, a, 0, True, oc[ok[q]], L - 1, tie)
                 om0[q], okk[q] = best - ods[q], k
         if nlow == 0:
             break
@@ -687,7 +710,7 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
             k = kk[q]
             for side in range(2):
                 mv, fx = (i[q], j[q]) if side == 0 else (j[q], i[q])
-                rf = loc[fx]
+                rf = fx
                 qf0, qf1 = cur[rf, min(k, NEED[fx] - 1)], cur[rf, min(k + 1, NEED[fx] - 1)]
                 dfx = curd[rf, k] if k < NEED[fx] - 1 else 0.0
                 for d in range(2):
@@ -745,5 +768,8 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
             break
         for g in range(n):
             for d in range(2):
-                du[g, d] = min(max(du[g, d] + step[g, d], lo[g, d]), hi[g, d])
+                v = min(max(du[g, d] + step[g, d], lo[g, d]), hi[g, d])
+                if v != du[g, d]:
+                    made[g] = False  # its path is made again when asked for
+                du[g, d] = v
     return du
