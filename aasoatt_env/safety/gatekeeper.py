@@ -469,7 +469,13 @@ def _kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_ra
     group = team.group if team.group is not None else _EMPTY_INT
     return (team.is_diff_drive, team.offset, team.input_columns, team.turn_gain, team.max_wheel_accel,
             brake_decel(team, brake_fraction), team.radius, group, team.group is not None, float(sensing_range),
-            near_pairs.astype(np.int64, copy=False), oc, orad, ogroup, has_ogroup)
+            np.ascontiguousarray(near_pairs, dtype=np.int64), oc, orad, ogroup, has_ogroup)
+
+
+def _c64(a: np.ndarray) -> np.ndarray:
+    """``a`` as a C-contiguous, writeable float64 array (one compiled specialisation for every caller's arrays)."""
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    return a if a.flags.writeable else a.copy()
 
 
 def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float,
@@ -478,6 +484,7 @@ def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.n
                          near_pairs: np.ndarray | None) -> GateResult:
     """:func:`gatekeeper` by the compiled kernel (:func:`aasoatt_env.safety.numba_kernels.gate_full`)."""
     block = _kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs, u=u, du_c=du_c)
+    pose, u, du_c = (_c64(a) for a in (pose, u, du_c))
     du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = kernels().gate_full(
         pose, u, du_c, float(dt), np.asarray(levels), bool(quick), *block, reach_limit(team, sensing_range),
         float(tol), bool(hold_violations))

@@ -35,6 +35,7 @@ from aasoatt_env.safety.gatekeeper import (
     CLOSEST_TIE,
     GateResult,
     _bucketed,
+    _c64,
     _kernel_args,
     _obstacles_near,
     _pairs_near,
@@ -221,6 +222,7 @@ def repair(
     if compiled:
         block = _kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs, u=u, du_c=du_c,
                              lo=lo, hi=hi)
+        pose, u, du_c, lo, hi = (_c64(a) for a in (pose, u, du_c, lo, hi))
         return kernels().repair_full(pose, u, du_c, lo, hi, float(dt), *block, float(target), int(rounds),
                                      float(eps), CLOSEST_TIE)
     du = np.minimum(np.maximum(du_c, lo), hi)
