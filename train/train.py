@@ -59,7 +59,8 @@ Outputs in the run folder ``<out_dir>/<run_name>``: ``model.zip`` (SB3 PPO),
 :class:`agents.learned.LearnedAgent` needs), ``normalization.npz`` (observation
 statistics as plain arrays; nothing is pickled), ``config.json`` (the
 :class:`~train.config.TrainConfig`), ``metrics.csv``, ``learning_curve.png``,
-``train_stats.json`` (wall time, throughput; written last: it marks a finished run),
+``train_stats.json`` (wall time, throughput, which backup-layer implementation the filter ran;
+written last: it marks a finished run),
 ``checkpoints/`` and ``tb/``.  A run that fails is removed, or kept with an ``INCOMPLETE``
 file where it already holds a model or checkpoint (:func:`train`).
 """
@@ -462,6 +463,7 @@ def train(config: TrainConfig) -> Path:
         (run / "train_stats.json").write_text(json.dumps(
             {"wall_time_s": elapsed, "agent_steps": int(model.num_timesteps),
              "agent_steps_per_s": model.num_timesteps / max(elapsed, 1e-9),
+             "filter_kernel": _filter_kernel(config),
              "last_rollout": {k: v for k, v in last.items()
                               if isinstance(v, (int, float)) and math.isfinite(v)}},
             indent=2, allow_nan=False))
@@ -470,6 +472,15 @@ def train(config: TrainConfig) -> Path:
         raise
     marker.unlink()
     return run / "model.zip"
+
+
+def _filter_kernel(config: TrainConfig) -> str | None:
+    """Which backup-layer implementation the training filter ran (``kernel="auto"`` resolved), or None bare."""
+    if not config.filter:
+        return None
+    from aasoatt_env.safety.config import FilterConfig
+
+    return "numba" if FilterConfig.merged(config.filter_kwargs).compiled else "numpy"
 
 
 def _learn(config: TrainConfig, run: Path, venv: Any, source: Any) -> tuple[Any, Any, float]:
