@@ -13,9 +13,8 @@ turn_gain, max_wheel_accel, brake_decel, radius, group, has_group,
 sensing_range, candidate pairs, obstacle centres (complex), radii, groups,
 has_groups``), checked there: numba does not check bounds.  Every helper
 repeats numpy's operations in numpy's order (the names say which numpy
-function), so the results differ from the reference only where numba's
-``sin``/``cos``/``exp`` or ``hypot`` round differently from numpy's vectorised
-ones.
+function; :func:`_E1` takes one sine for two, noted there), so the results
+differ from the reference only in the last bits of ``sin``/``cos``/``hypot``.
 """
 
 from __future__ import annotations
