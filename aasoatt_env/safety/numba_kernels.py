@@ -598,6 +598,21 @@ def gate_full(pose, u, du_c, dt, levels_in, quick, diff, offset, cols, tg, amax,
     return du, lev > 0, broken, share, robot_margin, out_of_range, rounds, P + Q, margin
 
 
+@_jit
+def _moved_step(diff, cols, tg, amax, adec, p0, pose, u, du, g, d, eps, dt, k):
+    """Samples ``k``, ``k + 1`` and step ``k``'s deviation of robot ``g``'s path with input ``d`` moved by ``eps``.
+
+    :func:`~aasoatt_env.safety.backup.candidate_samples_at` for the repair's finite difference.
+    """
+    e0 = du[g, 0] + (eps if d == 0 else 0.0)
+    e1 = du[g, 1] + (eps if d == 1 else 0.0)
+    p1, dev, pdot, w, rate, steps, _, bulge = _candidate1(
+        diff, cols[g, 0], cols[g, 1], tg[g], amax[g], adec[g], p0[g], pose[g, 2], u[g, 0], u[g, 1], e0, e1, dt)
+    pa0, dm0 = _sample_at(p0[g], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k)
+    pa1, _ = _sample_at(p0[g], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k + 1)
+    return pa0, pa1, dm0
+
+
 # --------------------------------------------------------------------------- repair
 @_jit
 def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, radius, group, has_group,
@@ -709,17 +724,10 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
             k = kk[q]
             for side in range(2):
                 mv, fx = (i[q], j[q]) if side == 0 else (j[q], i[q])
-                rf = fx
-                qf0, qf1 = cur[rf, min(k, NEED[fx] - 1)], cur[rf, min(k + 1, NEED[fx] - 1)]
-                dfx = curd[rf, k] if k < NEED[fx] - 1 else 0.0
+                qf0, qf1 = cur[fx, min(k, NEED[fx] - 1)], cur[fx, min(k + 1, NEED[fx] - 1)]
+                dfx = curd[fx, k] if k < NEED[fx] - 1 else 0.0
                 for d in range(2):
-                    e0 = du[mv, 0] + (eps if d == 0 else 0.0)
-                    e1 = du[mv, 1] + (eps if d == 1 else 0.0)
-                    p1, dev, pdot, w, rate, steps, reach, bulge = _candidate1(
-                        diff, cols[mv, 0], cols[mv, 1], tg[mv], amax[mv], adec[mv], p0[mv], pose[mv, 2], u[mv, 0],
-                        u[mv, 1], e0, e1, dt)
-                    pa0, dm0 = _sample_at(p0[mv], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k)
-                    pa1, _ = _sample_at(p0[mv], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k + 1)
+                    pa0, pa1, dm0 = _moved_step(diff, cols, tg, amax, adec, p0, pose, u, du, mv, d, eps, dt, k)
                     mg = _segment_margin(pa0, pa1, qf0, qf1, dm0, dfx) - ds[q]
                     if side == 0:
                         gi[q, d] = (mg - m0[q]) / eps
@@ -734,13 +742,7 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
                 continue
             k, mv = okk[q], oi[q]
             for d in range(2):
-                e0 = du[mv, 0] + (eps if d == 0 else 0.0)
-                e1 = du[mv, 1] + (eps if d == 1 else 0.0)
-                p1, dev, pdot, w, rate, steps, reach, bulge = _candidate1(
-                    diff, cols[mv, 0], cols[mv, 1], tg[mv], amax[mv], adec[mv], p0[mv], pose[mv, 2], u[mv, 0],
-                    u[mv, 1], e0, e1, dt)
-                pa0, dm0 = _sample_at(p0[mv], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k)
-                pa1, _ = _sample_at(p0[mv], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k + 1)
+                pa0, pa1, dm0 = _moved_step(diff, cols, tg, amax, adec, p0, pose, u, du, mv, d, eps, dt, k)
                 mg = _segment_margin(pa0, pa1, oc[ok[q]], oc[ok[q]], dm0, 0.0) - ods[q]
                 go[q, d] = (mg - om0[q]) / eps
             olift[q] = (2.0 * target - om0[q]) / max(go[q, 0] * go[q, 0] + go[q, 1] * go[q, 1], 1e-12)
