@@ -1,7 +1,8 @@
 """An environment-free closed loop of the safety filter, for tests that drive ``SafetyFilter`` directly.
 
 The layout and reference come from the library's own circle-swap scenario; the
-nominal is the paper's tracking law, clipped to the bounds.
+nominal is the paper's tracking law, clipped to the bounds.  Also the mark of tests
+that need the compiled kernels (``needs_numba``).
 """
 
 from __future__ import annotations
@@ -10,10 +11,15 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
+import pytest
 
 from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point
 from aasoatt_env.model.tracking import point_accel_to_du, tracking_accel
+from aasoatt_env.safety import compiled
 from aasoatt_env.sim.scenarios import CircleSwap, Layout
+
+needs_numba = pytest.mark.skipif(not compiled.available(), reason="numba not installed (aasoatt[fast])")
+"""Mark of a test (or parameter) that runs the compiled kernels."""
 
 
 def circle_layout(n: int, radius: float = 6.0, duration: float = 12.0, robots: object = "paper") -> Layout:

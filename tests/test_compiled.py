@@ -1,15 +1,17 @@
-"""The compiled kernels of the backup layer against the numpy reference, and their selection.
+"""The compiled kernels (backup layer, decentralised local solver) against the numpy reference, and their selection.
 
 The kernels (:mod:`aasoatt_env.safety.compiled`) must make the numpy code's
 decisions on every state: which robots brake, which pairs are broken, the share
 each robot takes, the rounds and the pairs checked; the inputs and margins may
-differ by floating-point rounding only.
+differ by floating-point rounding only.  The local solver's kernel against its
+reference and a dense solver: ``tests/test_decentralized.py``.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import needs_numba
 
 from aasoatt_env import FilterConfig, make_env
 from aasoatt_env.analysis.metrics import pairwise_min_distance
@@ -22,9 +24,8 @@ from aasoatt_env.safety import SafetyFilter, compiled
 from aasoatt_env.safety.backup import _point
 from aasoatt_env.safety.gatekeeper import gatekeeper
 from aasoatt_env.safety.repair import repair
+from aasoatt_env.safety.solvers.local import solve_local_qps
 from agents import ADVERSARIES, HostileAgent
-
-needs_numba = pytest.mark.skipif(not compiled.available(), reason="numba not installed (aasoatt[fast])")
 
 F = 2.0 / 3.0
 D = 3.0
@@ -132,9 +133,9 @@ class _BothKernels:
 
     keeps_input_bounds = True
 
-    def __init__(self) -> None:
-        self.f = {k: SafetyFilter(kernel=k) for k in ("numpy", "numba")}
-        self.steps = self.acted = 0
+    def __init__(self, **options) -> None:
+        self.f = {k: SafetyFilter(kernel=k, **options) for k in ("numpy", "numba")}
+        self.steps = self.acted = self.relaxed = 0
 
     def reset(self, team) -> None:
         for f in self.f.values():
@@ -147,20 +148,24 @@ class _BothKernels:
         assert out["numba"].status == out["numpy"].status
         self.steps += 1
         self.acted += out["numpy"].status == "backup"  # the layer braked or repaired someone
+        self.relaxed += "infeasible (relaxed)" in out["numpy"].message  # a robot's own QP was relaxed
         return out["numpy"]
 
 
 @needs_numba
-def test_filters_with_either_kernel_give_the_same_steps_along_a_hostile_episode():
-    """Full-throttle bursts: at every physics step the same braking robots and status, inputs to rounding."""
+@pytest.mark.parametrize("mode", ["centralized", "decentralized"])
+def test_filters_with_either_kernel_give_the_same_steps_along_a_hostile_episode(mode):
+    """Full-throttle bursts: at every physics step the same braking robots and status, inputs to rounding
+    (decentralised: the robots' own QPs, relaxed ones included, by the local solver's kernel too)."""
     env = make_env("random_goals", num_robots=12, max_steps=300)
-    both = _BothKernels()
+    both = _BothKernels(mode=mode)
     env.set_control_filter(both)
     agent = ADVERSARIES["burst"](rest_steps=20)
     obs, _ = env.reset(seed=3)
     for _ in range(300):
         obs, *_ = env.step(agent.act(obs, env))
     assert both.steps == 300 * env.decision_interval and both.acted > 20
+    assert mode == "centralized" or both.relaxed > 20
 
 
 def test_kernel_option_is_validated():
@@ -171,10 +176,13 @@ def test_kernel_option_is_validated():
 
 
 def test_kernel_numba_without_numba_says_how_to_install_it(monkeypatch):
-    monkeypatch.setattr(compiled, "_load", lambda: None)
+    monkeypatch.setattr(compiled, "_load", lambda name: None)
     cfg = FilterConfig(kernel="numba")  # a saved configuration still loads
     with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
         SafetyFilter(config=cfg)
+    with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
+        SafetyFilter(kernel="numba", mode="decentralized", backup=False)  # the local solver's kernel
+    SafetyFilter(kernel="numba", backup=False)  # the paper's filter alone runs no kernel
     with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
         make_env("random_goals", num_robots=2, filter={"kernel": "numba"})
     assert FilterConfig(kernel="auto").compiled is False  # falls back to the numpy reference
@@ -220,13 +228,16 @@ def test_gatekeeper_refuses_bad_pairs_and_blend_levels(use_kernel):
 
 
 def test_compiled_calls_without_numba_say_how_to_install_it(monkeypatch):
-    monkeypatch.setattr(compiled, "_load", lambda: None)
+    monkeypatch.setattr(compiled, "_load", lambda name: None)
     team = make_team("paper", 2)
     pose, u = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]]), np.zeros((2, 2))
     with pytest.raises(ImportError, match=r"pip install \"aasoatt\[fast\]\""):
         gatekeeper(team, pose, u, u, DT, sensing_range=D, brake_fraction=F, compiled=True)
     with pytest.raises(ImportError, match=r"pip install \"aasoatt\[fast\]\""):
         repair(team, pose, u, u, DT, u - 1.0, u + 1.0, sensing_range=D, brake_fraction=F, compiled=True)
+    with pytest.raises(ImportError, match=r"pip install \"aasoatt\[fast\]\""):
+        solve_local_qps(np.eye(2)[None], np.zeros((1, 2)), -np.ones((1, 2)), np.ones((1, 2)), np.zeros(0, int),
+                        np.zeros((0, 2)), np.zeros(0), compiled=True)
 
 
 def test_a_point_mass_rests_past_its_braking_horizon():

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import needs_numba
 
 from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point
 from aasoatt_env.model.geometry import robot_pairs
@@ -15,9 +16,13 @@ from aasoatt_env.safety.barriers import PairGeometry, barrier_rows
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.decentralized import decentralized_step, split_rows
 from aasoatt_env.safety.problem import box_least_squares, build_problem
+from aasoatt_env.safety.solvers import local
 from aasoatt_env.safety.solvers.local import RELAX_TOL, least_violation, solve_local_qps
 
 quadprog = pytest.importorskip("quadprog")
+
+both = pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=needs_numba)])
+"""Run a test on the numpy solver and on its compiled kernel."""
 
 
 # ----------------------------------------------------------------------------- references
@@ -104,10 +109,11 @@ def _random_robots(n, seed):
     return H, g, lb, ub, np.concatenate(owners).astype(np.intp), np.vstack(Gs), np.concatenate(hs)
 
 
-def test_local_solver_matches_dense_solver_on_random_robots():
+@both
+def test_local_solver_matches_dense_solver_on_random_robots(compiled):
     n = 1500
     H, g, lb, ub, owner, G, h = _random_robots(n, seed=7)
-    sol = solve_local_qps(H, g, lb, ub, owner, G, h)
+    sol = solve_local_qps(H, g, lb, ub, owner, G, h, compiled=compiled)
     n_inf = 0
     for k in range(n):
         r = owner == k
@@ -130,11 +136,12 @@ def test_local_solver_matches_dense_solver_on_random_robots():
     assert int((np.bincount(owner, minlength=n) == 0).sum()) > 50
 
 
-def test_local_solver_enumeration_path_agrees():
+@both
+def test_local_solver_enumeration_path_agrees(compiled):
     """The enumeration fallback alone (no active-set iteration) gives the same answers."""
     H, g, lb, ub, owner, G, h = _random_robots(300, seed=3)
-    fast = solve_local_qps(H, g, lb, ub, owner, G, h)
-    enum = solve_local_qps(H, g, lb, ub, owner, G, h, max_iter=0)
+    fast = solve_local_qps(H, g, lb, ub, owner, G, h, compiled=compiled)
+    enum = solve_local_qps(H, g, lb, ub, owner, G, h, max_iter=0, compiled=compiled)
     assert enum.n_enumerated > 0
     np.testing.assert_array_equal(fast.feasible, enum.feasible)
     assert np.max(np.abs(fast.x - enum.x)) <= 1e-8
@@ -158,9 +165,10 @@ def test_least_violation_matches_lifted_dense_qp():
         assert np.all((x[i] >= lb[k]) & (x[i] <= ub[k]))
 
 
-def test_relaxed_robots_get_their_least_violation_answer():
+@both
+def test_relaxed_robots_get_their_least_violation_answer(compiled):
     H, g, lb, ub, owner, G, h = _random_robots(400, seed=5)
-    sol = solve_local_qps(H, g, lb, ub, owner, G, h, relax=True)
+    sol = solve_local_qps(H, g, lb, ub, owner, G, h, relax=True, compiled=compiled)
     bad = np.flatnonzero(~sol.feasible)
     assert bad.size > 30
     nrm = np.linalg.norm(G, axis=1)
@@ -175,22 +183,55 @@ def test_relaxed_robots_get_their_least_violation_answer():
     assert np.all(sol.loosened[~np.isin(owner, bad)] == 0.0)
 
 
-def test_local_solver_edge_cases():
+@both
+def test_local_solver_edge_cases(compiled):
     H = np.broadcast_to(np.eye(2), (3, 2, 2)).copy()
     g = np.array([[-5.0, 0.0], [0.0, 0.0], [1.0, 1.0]])
     lb, ub = -np.ones((3, 2)), np.ones((3, 2))
     # robot 0: no rows (box only); robot 1: a zero row 0 <= -1 (infeasible); robot 2: a zero row 0 <= 1
-    sol = solve_local_qps(H, g, lb, ub, np.array([1, 2]), np.zeros((2, 2)), np.array([-1.0, 1.0]))
+    rows = (np.array([1, 2]), np.zeros((2, 2)), np.array([-1.0, 1.0]))
+    sol = solve_local_qps(H, g, lb, ub, *rows, compiled=compiled)
     np.testing.assert_allclose(sol.x[0], [1.0, 0.0])
     assert sol.lam_box[0, 0, 0] == pytest.approx(4.0)
     assert list(sol.feasible) == [True, False, True]
     np.testing.assert_allclose(sol.x[2], [-1.0, -1.0])
+    relaxed = solve_local_qps(H, g, lb, ub, *rows, relax=True, compiled=compiled)
+    assert relaxed.loosened.tolist() == [1.0 + 1e-6, 0.0]  # the zero row is met by loosening it to 0 <= 0
     empty = solve_local_qps(np.zeros((0, 2, 2)), np.zeros((0, 2)), np.zeros((0, 2)), np.zeros((0, 2)),
-                            np.zeros(0, int), np.zeros((0, 2)), np.zeros(0))
+                            np.zeros(0, int), np.zeros((0, 2)), np.zeros(0), compiled=compiled)
     assert empty.x.shape == (0, 2)
-    with pytest.raises(ValueError, match="positive definite"):
-        solve_local_qps(np.zeros((1, 2, 2)), np.zeros((1, 2)), -np.ones((1, 2)), np.ones((1, 2)),
-                        np.zeros(0, int), np.zeros((0, 2)), np.zeros(0))
+    for bad in (np.zeros((2, 2, 2)), np.array([[[1.0, 0.0], [0.0, 1.0]], [[1.0, 2.0], [2.0, 1.0]]]),
+                np.full((2, 2, 2), np.nan)):
+        with pytest.raises(ValueError, match=r"H: block\(s\) \[.*1\] not symmetric positive definite"):
+            solve_local_qps(bad, np.zeros((2, 2)), -np.ones((2, 2)), np.ones((2, 2)), np.zeros(0, int),
+                            np.zeros((0, 2)), np.zeros(0), compiled=compiled)
+
+
+@needs_numba
+@pytest.mark.parametrize("relax", [False, True])
+def test_the_compiled_local_solver_makes_the_numpy_solvers_decisions(relax):
+    """Same feasibility, active rows, enumerated robots and iterations; numbers to rounding (3,000 robots)."""
+    for seed in (21, 22):
+        args = _random_robots(1500, seed=seed)
+        ref = solve_local_qps(*args, relax=relax)
+        com = solve_local_qps(*args, relax=relax, compiled=True)
+        np.testing.assert_array_equal(com.feasible, ref.feasible)
+        assert (com.iterations, com.n_enumerated) == (ref.iterations, ref.n_enumerated)
+        np.testing.assert_array_equal(com.lam > 0, ref.lam > 0)
+        np.testing.assert_array_equal(com.lam_box > 0, ref.lam_box > 0)
+        np.testing.assert_array_equal(com.loosened > 0, ref.loosened > 0)
+        # without relaxation the same operations in the same order (equal to the last bit here); the phase-1
+        # sums of a relaxation may be added in another order
+        tol = 1e-9 if relax else 1e-12
+        for a, b in ((com.x, ref.x), (com.lam, ref.lam), (com.lam_box, ref.lam_box), (com.loosened, ref.loosened)):
+            np.testing.assert_allclose(a, b, rtol=0, atol=tol)
+
+
+def test_the_kernels_constants_are_the_reference_solvers():
+    kern = pytest.importorskip("aasoatt_env.safety.solvers.local_kernel")
+    assert (kern._EPS_Z, kern._EPS_R) == (local._EPS_Z, local._EPS_R)
+    assert kern._LS_ITERS == local._line_search.__defaults__[0]
+    assert kern._LV_ITERS == local._lv_core.__defaults__[0]
 
 
 # ----------------------------------------------------------------------------- the decentralised step

@@ -184,7 +184,7 @@ class SafetyFilter:
 
     def __init__(self, team: Team | None = None, config: FilterConfig | None = None, **options: Any) -> None:
         cfg = FilterConfig.merged(config, **options)
-        if cfg.kernel == "numba" and cfg.backup and not compiled_available():
+        if cfg.kernel == "numba" and (cfg.backup or cfg.mode == "decentralized") and not compiled_available():
             raise ConfigError(f"kernel: {NUMBA_MISSING}")
         self.config = cfg
         if STRATEGIES[cfg.deadlock].rotates_rows:
@@ -399,7 +399,8 @@ class SafetyFilter:
         m = rhs.shape[0]
         du = np.empty((n, 2))
         if decentral:  # every robot its own QP over its halves of the rows: no team QP below
-            dec = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, scale=scale)
+            dec = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, scale=scale,
+                                     compiled=cfg.compiled)
             du[:] = dec.du
             coupled, rows = np.zeros(n, dtype=bool), np.zeros(m, dtype=bool)
         elif cfg.decompose and self._solver.exact:

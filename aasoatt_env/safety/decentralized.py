@@ -201,6 +201,7 @@ def decentralized_step(
     *,
     split: str = "reciprocal",
     scale: np.ndarray | None = None,
+    compiled: bool = False,
 ) -> DecentralizedResult:
     """Every robot's own QP over its half-rows, solved exactly for all robots at once.
 
@@ -226,6 +227,8 @@ def decentralized_step(
         Positive per-robot scale of ``du`` ``(N,)`` used only to express ``z`` and the
         loosening tolerance in the centralised filter's scaled units (default ``max(|lo|, |hi|)``;
         the filter passes its own).
+    compiled : bool
+        Solve the robots' QPs in the compiled kernel (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`).
 
     Returns
     -------
@@ -250,7 +253,8 @@ def decentralized_step(
         raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")
     du0 = box_least_squares(A, target, lo, hi) if split == "reciprocal" else None
     sp = split_rows(ri, rj, Gi, Gj, rhs, authority, du0)
-    sol = solve_local_qps(H, g, lo, hi, sp.owner, sp.G, sp.h, relax=True, relax_tol=RELAX_TOL * scale)
+    sol = solve_local_qps(H, g, lo, hi, sp.owner, sp.G, sp.h, relax=True, relax_tol=RELAX_TOL * scale,
+                          compiled=compiled)
     du, lam = sol.x, sol.lam
     infeasible = ~sol.feasible
     n_relaxed = int(infeasible.sum())

@@ -42,7 +42,7 @@ from aasoatt_env.safety.backup import (
     brake_time,
     reach_limit,
 )
-from aasoatt_env.safety.compiled import kernels
+from aasoatt_env.safety.compiled import c64, kernels
 
 __all__ = ["GateResult", "gatekeeper", "pair_margins"]
 
@@ -472,19 +472,13 @@ def _kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_ra
             np.ascontiguousarray(near_pairs, dtype=np.int64), oc, orad, ogroup, has_ogroup)
 
 
-def _c64(a: np.ndarray) -> np.ndarray:
-    """``a`` as a C-contiguous, writeable float64 array (one compiled specialisation for every caller's arrays)."""
-    a = np.ascontiguousarray(a, dtype=np.float64)
-    return a if a.flags.writeable else a.copy()
-
-
 def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float,
                          sensing_range: float, brake_fraction: float, obstacles: tuple[np.ndarray, ...] | None,
                          tol: float, levels: tuple[float, ...], hold_violations: bool, quick: bool,
                          near_pairs: np.ndarray | None) -> GateResult:
     """:func:`gatekeeper` by the compiled kernel (:func:`aasoatt_env.safety.numba_kernels.gate_full`)."""
     block = _kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs, u=u, du_c=du_c)
-    pose, u, du_c = (_c64(a) for a in (pose, u, du_c))
+    pose, u, du_c = (c64(a) for a in (pose, u, du_c))
     du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = kernels().gate_full(
         pose, u, du_c, float(dt), np.asarray(levels), bool(quick), *block, reach_limit(team, sensing_range),
         float(tol), bool(hold_violations))

@@ -29,13 +29,12 @@ from aasoatt_env.safety.backup import (
     candidate_paths,
     candidate_samples_at,
 )
-from aasoatt_env.safety.compiled import kernels
+from aasoatt_env.safety.compiled import c64, kernels
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.gatekeeper import (
     CLOSEST_TIE,
     GateResult,
     _bucketed,
-    _c64,
     _kernel_args,
     _obstacles_near,
     _pairs_near,
@@ -222,7 +221,7 @@ def repair(
     if compiled:
         block = _kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs, u=u, du_c=du_c,
                              lo=lo, hi=hi)
-        pose, u, du_c, lo, hi = (_c64(a) for a in (pose, u, du_c, lo, hi))
+        pose, u, du_c, lo, hi = (c64(a) for a in (pose, u, du_c, lo, hi))
         return kernels().repair_full(pose, u, du_c, lo, hi, float(dt), *block, float(target), int(rounds),
                                      float(eps), CLOSEST_TIE)
     du = np.minimum(np.maximum(du_c, lo), hi)

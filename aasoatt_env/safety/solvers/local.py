@@ -44,6 +44,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from aasoatt_env.safety.compiled import c64, local_kernels
+
 __all__ = ["LocalSolution", "least_violation", "solve_local_qps"]
 
 TOL: float = 1e-10
@@ -93,9 +95,12 @@ def _cholesky(H: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         l22 = np.sqrt(d)
     good = (h00 > 0) & (d > 0) & np.isfinite(l21) & np.isfinite(d)
     if not np.all(good):
-        bad = np.flatnonzero(~good)
-        raise ValueError(f"H: block(s) {bad[:5].tolist()} not symmetric positive definite")
+        _bad_blocks(np.flatnonzero(~good))
     return l11, l21, l22
+
+
+def _bad_blocks(bad: np.ndarray) -> None:
+    raise ValueError(f"H: block(s) {bad[:5].tolist()} not symmetric positive definite")
 
 
 def _slots(owner: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -441,6 +446,7 @@ def solve_local_qps(
     relax_tol: float | np.ndarray = RELAX_TOL,
     tol: float = TOL,
     max_iter: int = MAX_ITER,
+    compiled: bool = False,
 ) -> LocalSolution:
     """Solve every robot's 2-variable QP exactly (module docstring).
 
@@ -467,6 +473,10 @@ def solve_local_qps(
         KKT tolerance on the normalised half-planes, relative to ``1 + |y0|_inf``.
     max_iter : int
         Active-set iterations before the enumeration answers the rest.
+    compiled : bool
+        Solve in the compiled kernel (:mod:`aasoatt_env.safety.solvers.local_kernel`, one loop over
+        the robots; ``ImportError`` without numba): the same decisions, numbers to rounding
+        (:mod:`aasoatt_env.safety.compiled`).
 
     Returns
     -------
@@ -495,6 +505,15 @@ def solve_local_qps(
     loosened = np.zeros(m)
     if n == 0:
         return LocalSolution(x, lam, lam_box, feasible, loosened, 0, 0)
+    if compiled:
+        bad = np.zeros(n, dtype=bool)
+        rt = np.broadcast_to(np.asarray(relax_tol, dtype=np.float64), (n,))
+        its, n_enum = local_kernels().solve_all(
+            *(c64(a) for a in (H, g, lb, ub)), np.ascontiguousarray(owner, dtype=np.int64), c64(G), c64(h),
+            bool(relax), c64(rt), float(tol), int(max_iter), x, lam, lam_box, feasible, loosened, bad)
+        if np.any(bad):
+            _bad_blocks(np.flatnonzero(bad))
+        return LocalSolution(x, lam, lam_box, feasible, loosened, int(its), int(n_enum))
     l11, l21, l22 = _cholesky(H)
     i11, i22 = 1.0 / l11, 1.0 / l22
     i21 = -l21 * i11 * i22
@@ -608,8 +627,9 @@ def _relax(T, S, y0, tol_k, bad, lfac, lb, ub, Gs, rtol, ys, mus, loosened, rsel
 def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
     """Per robot ``argmin 0.5 d'Hd + g'd  s.t.  lo <= d <= hi`` for strictly convex 2x2 ``H`` (closed form)."""
     det = hxx * hyy - hxy * hxy
-    dx = -(hyy * gx - hxy * gy) / det
-    dy = -(hxx * gy - hxy * gx) / det
+    with np.errstate(divide="ignore", invalid="ignore"):  # det 0: a robot without violated rows (an edge wins)
+        dx = -(hyy * gx - hxy * gy) / det
+        dy = -(hxx * gy - hxy * gx) / det
     inside = (dx >= lox) & (dx <= hix) & (dy >= loy) & (dy <= hiy)
     if np.all(inside):
         return dx, dy

@@ -1,0 +1,553 @@
+"""The decentralised filter's local solver compiled (numba; imported only through :mod:`aasoatt_env.safety.compiled`).
+
+:func:`solve_all` is :func:`aasoatt_env.safety.solvers.local.solve_local_qps`
+after its argument checks, written once per robot instead of once per array
+operation: a robot's rows are gathered by a counting sort of their owners
+(stable, so each robot sees its rows in the order given, as the numpy table
+does), then step 0, the half-plane table, the dual active set, the KKT check,
+the enumeration, the least-violation relaxation and the multipliers, each in
+the reference's order of operations.  The numpy code stays the reference and
+the fallback.
+
+Where the two differ (numbers, not decisions, on the states tested):
+
+- sums over a robot's rows (the phase-1 gradient and Hessian) are taken in
+  order here; numpy's matrix-vector products may add them in another order;
+- the phase-1 line search stops for a robot once its own derivative is zero
+  within tolerance; the vectorised one keeps refining a converged robot while
+  others of the batch still iterate (a last-bit move of the same root);
+- zero rows (normal below tolerance) are left out of the table here instead of
+  leaving empty slots: empty slots are never a candidate, so the answers are
+  the same.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from aasoatt_env.safety.numba_kernels import _jit
+
+__all__ = ["solve_all"]
+
+# the constants of aasoatt_env.safety.solvers.local (a test checks they agree)
+_EPS_Z = 1e-22
+_EPS_R = 1e-14
+_INF = math.inf
+_LS_ITERS = 4
+_LV_ITERS = 40
+
+
+@_jit
+def _nmin(a, b):
+    """``np.minimum`` of two numbers (NaN propagates)."""
+    if a != a or b != b:
+        return math.nan
+    return a if a <= b else b
+
+
+@_jit
+def _nmax(a, b):
+    """``np.maximum`` of two numbers (NaN propagates)."""
+    if a != a or b != b:
+        return math.nan
+    return a if a >= b else b
+
+
+@_jit
+def _clip(a, lo, hi):
+    """``np.clip`` / ``np.minimum(np.maximum(a, lo), hi)`` of one number."""
+    return _nmin(_nmax(a, lo), hi)
+
+
+# --------------------------------------------------------------------------- dual active set, one robot
+@_jit
+def _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st):
+    """``local._active_set`` for one robot's table ``[0, nk)``.
+
+    ``st`` (float64[12]) holds and returns the state: ``yx, yy, nw, w0, w1, l1, l2, p, lp, status, r1, r2``;
+    returns the iterations run.
+    """
+    yx, yy = y0x, y0y
+    nw, w0, w1, p = 0, 0, 0, -1
+    l1 = l2 = lp = r1s = r2s = 0.0
+    status = 0
+    its = 0
+    for it in range(max_iter):
+        its = it + 1
+        if p < 0:
+            kmax, vmax = _argmax(nx, ny, b, nk, yx, yy)
+            if vmax <= tk:
+                status = 1
+                break
+            p, lp = kmax, 0.0
+        npx, npy = nx[p], ny[p]
+        if nw == 0:
+            t = (npx * yx + npy * yy - b[p]) / (npx * npx + npy * npy)
+            yx -= t * npx
+            yy -= t * npy
+            w0, l1, nw, p, lp = p, lp + t, 1, -1, 0.0
+        elif nw == 1:
+            n1x, n1y = nx[w0], ny[w0]
+            r1 = n1x * npx + n1y * npy
+            zx, zy = npx - r1 * n1x, npy - r1 * n1y
+            zz = zx * zx + zy * zy
+            t1 = (npx * yx + npy * yy - b[p]) / zz if zz > _EPS_Z else _INF
+            q1 = l1 / r1 if r1 > _EPS_R else _INF
+            full = t1 <= q1
+            t = _nmin(t1, q1)
+            bad = not math.isfinite(t)
+            if bad:
+                r1s, r2s, status = r1, 0.0, 2
+                t = 0.0
+                full = False
+            yx, yy = yx - t * zx, yy - t * zy
+            lpa = lp + t
+            l1 = _nmax(l1 - t * r1, 0.0) if full else 0.0
+            if full:
+                w1, l2 = p, lpa
+                nw, p, lp = 2, -1, 0.0
+            else:
+                l2 = 0.0
+                nw = 1 if bad else 0
+                lp = lpa
+            if bad:
+                break
+        else:
+            n1x, n1y, n2x, n2y = nx[w0], ny[w0], nx[w1], ny[w1]
+            det = n1x * n2y - n1y * n2x
+            r1 = (npx * n2y - npy * n2x) / det
+            r2 = (n1x * npy - n1y * npx) / det
+            q1 = l1 / r1 if r1 > _EPS_R else _INF
+            q2 = l2 / r2 if r2 > _EPS_R else _INF
+            t = _nmin(q1, q2)
+            bad = not math.isfinite(t)
+            if bad:
+                r1s, r2s, status = r1, r2, 2
+                t = 0.0
+            nl1, nl2 = _nmax(l1 - t * r1, 0.0), _nmax(l2 - t * r2, 0.0)
+            if (q1 <= q2) and not bad:  # n1 leaves: n2 moves into its place
+                w0, l1 = w1, nl2
+            else:
+                l1 = nl1
+            l2 = nl2 if bad else 0.0
+            nw = 2 if bad else 1
+            lp += t
+            if bad:
+                break
+    if status == 0:
+        status = 3  # iteration cap
+    st[0], st[1], st[2], st[3], st[4], st[5] = yx, yy, nw, w0, w1, l1
+    st[6], st[7], st[8], st[9], st[10], st[11] = l2, p, lp, status, r1s, r2s
+    return its
+
+
+@_jit
+def _argmax(nx, ny, b, nk, px, py):
+    """Most violated slot of a table at ``(px, py)`` and its ``n' y - b`` (numpy's ``argmax``: the first NaN wins)."""
+    kmax, vmax = 0, nx[0] * px + ny[0] * py - b[0]
+    if vmax != vmax:
+        return kmax, vmax
+    for s in range(1, nk):
+        v = nx[s] * px + ny[s] * py - b[s]
+        if v != v:
+            return s, v
+        if v > vmax:
+            kmax, vmax = s, v
+    return kmax, vmax
+
+
+@_jit
+def _vmax(nx, ny, b, nk, px, py):
+    """Largest ``n' y - b`` of a table at ``(px, py)`` (NaN if any is)."""
+    return _argmax(nx, ny, b, nk, px, py)[1]
+
+
+@_jit
+def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
+    """``local._verify`` for one robot: ``out = (yx, yy, mu0, mu1)``; a failed check sets status 3."""
+    status, nw = int(st[9]), int(st[2])
+    out[0], out[1], out[2], out[3] = y0x, y0y, 0.0, 0.0
+    if status == 1 and nw > 0:
+        w0, w1 = int(st[3]), int(st[4])
+        n1x, n1y, b1 = nx[w0], ny[w0], b[w0]
+        m1 = n1x * y0x + n1y * y0y - b1
+        m2 = 0.0
+        px, py = y0x - m1 * n1x, y0y - m1 * n1y
+        if nw == 2:
+            n2x, n2y, b2 = nx[w1], ny[w1], b[w1]
+            det = n1x * n2y - n1y * n2x
+            vx = (b1 * n2y - b2 * n1y) / det
+            vy = (n1x * b2 - n2x * b1) / det
+            dx, dy = y0x - vx, y0y - vy
+            m1 = (dx * n2y - dy * n2x) / det
+            m2 = (n1x * dy - n1y * dx) / det
+            px, py = vx, vy
+        vmax = _vmax(nx, ny, b, nk, px, py)
+        ok = (vmax <= tk) and (m1 >= -tk) and (m2 >= -tk) and math.isfinite(px) and math.isfinite(py)
+        out[0], out[1], out[2], out[3] = px, py, _nmax(m1, 0.0), _nmax(m2, 0.0)
+        if not ok:
+            st[9] = 3.0
+    elif status == 2:
+        p, w0, w1 = int(st[7]), int(st[3]), int(st[4])
+        f1 = st[10] if nw >= 1 else 0.0 * st[10]
+        f2 = st[11] if nw == 2 else 0.0 * st[11]
+        resx = nx[p] - f1 * nx[w0] - f2 * nx[w1]
+        resy = ny[p] - f1 * ny[w0] - f2 * ny[w1]
+        gap = b[p] - f1 * b[w0] - f2 * b[w1]
+        conf = (gap < -tk) and (math.hypot(resx, resy) <= 1e-9) and (f1 <= _EPS_R) and (f2 <= _EPS_R)
+        if not conf:
+            st[9] = 3.0
+
+
+@_jit
+def _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out):
+    """``local._enumerate`` for one robot: sets ``out``, status (1/2) and the active slots in ``st``."""
+    best_d = _INF
+    by, bx = y0y, y0x
+    bnw, bw0, bw1 = 0, 0, 0
+    bm0, bm1 = 0.0, 0.0
+    # candidate 0: y0
+    if math.isfinite(y0x) and math.isfinite(y0y) and _vmax(nx, ny, b, nk, y0x, y0y) <= tk:
+        best_d = 0.0
+    # projections onto single lines
+    for j in range(nk):
+        mu = nx[j] * y0x + ny[j] * y0y - b[j]
+        sx, sy = y0x - mu * nx[j], y0y - mu * ny[j]
+        if not (mu >= -tk and math.isfinite(sx) and math.isfinite(sy)):
+            continue
+        if not (_vmax(nx, ny, b, nk, sx, sy) <= tk):
+            continue
+        d = (sx - y0x) * (sx - y0x) + (sy - y0y) * (sy - y0y)
+        if d < best_d:
+            best_d, bx, by, bnw, bw0, bw1, bm0, bm1 = d, sx, sy, 1, j, 0, mu, 0.0
+    # vertices of two lines, in np.triu_indices order
+    for ia in range(nk):
+        for ib in range(ia + 1, nk):
+            det = nx[ia] * ny[ib] - ny[ia] * nx[ib]
+            vx = (b[ia] * ny[ib] - b[ib] * ny[ia]) / det
+            vy = (nx[ia] * b[ib] - nx[ib] * b[ia]) / det
+            dx, dy = y0x - vx, y0y - vy
+            m1 = (dx * ny[ib] - dy * nx[ib]) / det
+            m2 = (nx[ia] * dy - ny[ia] * dx) / det
+            if not (abs(det) > 1e-12 and m1 >= -tk and m2 >= -tk and math.isfinite(vx) and math.isfinite(vy)):
+                continue
+            if not (_vmax(nx, ny, b, nk, vx, vy) <= tk):
+                continue
+            d = (vx - y0x) * (vx - y0x) + (vy - y0y) * (vy - y0y)
+            if d < best_d:
+                best_d, bx, by, bnw, bw0, bw1, bm0, bm1 = d, vx, vy, 2, ia, ib, m1, m2
+    feas = math.isfinite(best_d)
+    if not feas:
+        bx, by, bnw, bw0, bw1 = y0x, y0y, 0, 0, 0
+    out[0], out[1] = bx, by
+    out[2] = _nmax(bm0, 0.0) if (feas and bnw >= 1) else 0.0
+    out[3] = _nmax(bm1, 0.0) if (feas and bnw == 2) else 0.0
+    st[9] = 1.0 if feas else 2.0
+    st[2], st[3], st[4] = bnw, bw0, bw1
+
+
+@_jit
+def _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out):
+    """``local._solve`` for one robot: active set, check, enumeration; returns ``(iterations, enumerated)``."""
+    its = _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st)
+    _verify(nx, ny, b, nk, y0x, y0y, tk, st, out)
+    if int(st[9]) == 3:
+        _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out)
+        return its, 1
+    return its, 0
+
+
+# --------------------------------------------------------------------------- phase 1 (least violation), one robot
+@_jit
+def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
+    """``local._box_qp`` of one robot."""
+    det = hxx * hyy - hxy * hxy
+    dx = -(hyy * gx - hxy * gy) / det
+    dy = -(hxx * gy - hxy * gx) / det
+    if (dx >= lox) and (dx <= hix) and (dy >= loy) and (dy <= hiy):
+        return dx, dy
+    best = _INF
+    bx, by = dx, dy
+    for e in range(2):  # edges d_x = const
+        fx = lox if e == 0 else hix
+        cy = _clip(-(gy + hxy * fx) / hyy, loy, hiy)
+        f = 0.5 * (hxx * fx * fx + 2 * hxy * fx * cy + hyy * cy * cy) + gx * fx + gy * cy
+        if f < best:
+            best, bx, by = f, fx, cy
+    for e in range(2):  # edges d_y = const
+        fy = loy if e == 0 else hiy
+        cx = _clip(-(gx + hxy * fy) / hxx, lox, hix)
+        f = 0.5 * (hxx * cx * cx + 2 * hxy * cx * fy + hyy * fy * fy) + gx * cx + gy * fy
+        if f < best:
+            best, bx, by = f, cx, fy
+    return bx, by
+
+
+@_jit
+def _dphi(res, delta, n, t):
+    """``phi'(t) = sum_r (res_r + t delta_r)_+ delta_r``."""
+    s = 0.0
+    for r in range(n):
+        s += _nmax(res[r] + t * delta[r], 0.0) * delta[r]
+    return s
+
+
+@_jit
+def _line_min(res, delta, n, te, order):
+    """``local._line_min`` of one robot (exact minimiser on ``[0, 1]``)."""
+    a0 = 0.0
+    b0 = 0.0
+    for r in range(n):
+        te[r] = 2.0
+        if delta[r] != 0.0:
+            v = -res[r] / delta[r]
+            if v > 0.0 and v < 1.0:
+                te[r] = v
+        if res[r] > 0.0 or (res[r] == 0.0 and delta[r] > 0.0):
+            a0 += res[r] * delta[r]
+            b0 += delta[r] * delta[r]
+    order[:n] = np.argsort(te[:n])
+    # piece j = 0 .. n: [start_j, end_j] with sums A_j, B_j
+    A, B, start = a0, b0, 0.0
+    ca, cb = 0.0, 0.0
+    for j in range(n + 1):
+        end = min(te[order[j]], 1.0) if j < n else 1.0
+        if A + end * B >= 0.0 or j == n:
+            if B > 0.0:
+                t = -A / B
+            else:
+                t = start if A >= 0.0 else end
+            return _clip(t, start, end)
+        r = order[j]
+        dl = delta[r] if te[r] < 2.0 else 0.0
+        sg = 1.0 if dl > 0.0 else (-1.0 if dl < 0.0 else 0.0)
+        ca += sg * dl * res[r]
+        cb += sg * dl * dl
+        A, B, start = a0 + ca, b0 + cb, end
+    return 1.0
+
+
+@_jit
+def _line_search(res, delta, n, d0, d1, te, order):
+    """``local._line_search`` of one robot: regula falsi (Illinois), then the exact piecewise minimiser."""
+    a, bb = 0.0, 1.0
+    fa, fb = d0, d1
+    side = 0.0
+    tol = 1e-13 * (abs(d0) + abs(d1))
+    for _ in range(_LS_ITERS):
+        t = (a * fb - bb * fa) / (fb - fa)
+        ft = _dphi(res, delta, n, t)
+        if not (abs(ft) > tol):
+            return t
+        if ft < 0:
+            if side > 0:
+                fb = 0.5 * fb  # the same end kept twice: halve its weight
+            a, fa = t, ft
+            side = 1.0
+        else:
+            b_side = side < 0
+            bb, fb = t, ft
+            if b_side:
+                fa = 0.5 * fa
+            side = -1.0
+    return _line_min(res, delta, n, te, order)
+
+
+@_jit
+def _least_violation(gx, gy, hh, n, lb0, lb1, ub0, ub1, x0, x1, res, delta, on, te, order):
+    """``local._lv_core`` of one robot over its ``n`` unit rows; returns the point (violations: caller)."""
+    span = max(max(ub0 - lb0, ub1 - lb1), 1e-300)
+    for _ in range(_LV_ITERS):
+        grx = gry = hxx = hxy = hyy = 0.0
+        for r in range(n):
+            v = gx[r] * x0 + gy[r] * x1 - hh[r]
+            res[r] = v
+            on[r] = v > 0
+            if on[r]:
+                grx += v * gx[r]
+                gry += v * gy[r]
+                hxx += gx[r] * gx[r]
+                hxy += gx[r] * gy[r]
+                hyy += gy[r] * gy[r]
+        eps = 1e-10 * (hxx + hyy) + 1e-300
+        dx, dy = _box_qp(hxx + eps, hxy, hyy + eps, grx, gry, lb0 - x0, lb1 - x1, ub0 - x0, ub1 - x1)
+        d1 = 0.0
+        same = True
+        for r in range(n):
+            dl = gx[r] * dx + gy[r] * dy
+            delta[r] = dl
+            rn = res[r] + dl
+            if rn > 0:
+                d1 += rn * dl
+            if (rn > 0) != on[r]:
+                same = False
+        full = d1 <= 0.0
+        t = 1.0
+        if not full:
+            t = _line_search(res, delta, n, grx * dx + gry * dy, d1, te, order)
+        nx0, nx1 = _clip(x0 + t * dx, lb0, ub0), _clip(x1 + t * dy, lb1, ub1)
+        step = t * max(abs(dx), abs(dy))
+        x0, x1 = nx0, nx1
+        if (full and same) or not (step > 1e-11 * span):
+            break
+    return x0, x1
+
+
+# --------------------------------------------------------------------------- every robot
+@_jit
+def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter,
+              x, lam, lam_box, feasible, loosened, bad_block):
+    """Every robot's QP (module docstring); fills the outputs, returns ``(iterations, enumerated)``.
+
+    ``bad_block[k]`` marks a Hessian block that is not symmetric positive definite (the caller raises).
+    """
+    n, m = g.shape[0], owner.shape[0]
+    counts = np.zeros(n + 1, dtype=np.int64)
+    for r in range(m):
+        counts[owner[r] + 1] += 1
+    kmax = 0
+    for k in range(n):
+        kmax = max(kmax, counts[k + 1])
+        counts[k + 1] += counts[k]
+    rows = np.empty(m, dtype=np.int64)  # rows sorted by owner, stable
+    fill = counts[:n].copy()
+    for r in range(m):
+        rows[fill[owner[r]]] = r
+        fill[owner[r]] += 1
+    K = 4 + kmax
+    nx, ny, b = np.empty(K), np.empty(K), np.empty(K)
+    slot_row = np.empty(K, dtype=np.int64)
+    gx, gy, hh, ln = np.empty(K), np.empty(K), np.empty(K), np.empty(K)
+    res, delta, te = np.empty(K), np.empty(K), np.empty(K)
+    on = np.empty(K, dtype=np.bool_)
+    order = np.empty(K, dtype=np.int64)
+    st = np.zeros(12)
+    out = np.zeros(4)
+    its_all, n_enum = 0, 0
+    for k in range(n):
+        h00, h10, h11 = H[k, 0, 0], 0.5 * (H[k, 1, 0] + H[k, 0, 1]), H[k, 1, 1]
+        if not h00 > 0:
+            bad_block[k] = True
+            continue
+        l11 = math.sqrt(h00)
+        l21 = h10 / l11
+        d = h11 - l21 * l21
+        if not ((d > 0) and math.isfinite(l21) and math.isfinite(d)):
+            bad_block[k] = True
+            continue
+        l22 = math.sqrt(d)
+        i11, i22 = 1.0 / l11, 1.0 / l22
+        i21 = -l21 * i11 * i22
+        y0x = -i11 * g[k, 0]
+        y0y = -(i21 * g[k, 0] + i22 * g[k, 1])
+        xu0 = i11 * y0x + i21 * y0y
+        xu1 = i22 * y0y
+        r0, r1 = counts[k], counts[k + 1]
+        # step 0: the unconstrained minimiser meets the bounds and every row
+        cons = (xu0 < lb[k, 0]) or (xu0 > ub[k, 0]) or (xu1 < lb[k, 1]) or (xu1 > ub[k, 1])
+        if not cons:
+            for q in range(r0, r1):
+                r = rows[q]
+                if G[r, 0] * xu0 + G[r, 1] * xu1 - h[r] > 0.0:
+                    cons = True
+                    break
+        if not cons:
+            x[k, 0], x[k, 1] = xu0, xu1
+            continue
+        tk = tol * (1.0 + max(abs(y0x), abs(y0y)))
+        # the table: bounds, then the rows with a normal
+        s0 = math.sqrt(i11 * i11 + i21 * i21)
+        nx[0], ny[0], b[0] = i11 / s0, i21 / s0, ub[k, 0] / s0
+        nx[1], ny[1], b[1] = 0.0, 1.0, ub[k, 1] / i22
+        nx[2], ny[2], b[2] = -nx[0], -ny[0], -lb[k, 0] / s0
+        nx[3], ny[3], b[3] = 0.0, -1.0, -lb[k, 1] / i22
+        for s in range(4):
+            slot_row[s] = -1
+        nk = 4
+        zero_inf = False
+        zero_tol = 1e-300 + 1e-14 * min(s0, i22)
+        for q in range(r0, r1):
+            r = rows[q]
+            ax = i11 * G[r, 0]
+            ay = i21 * G[r, 0] + i22 * G[r, 1]
+            nrm = math.sqrt(ax * ax + ay * ay)
+            if nrm <= zero_tol:  # a row 0 <= h
+                if h[r] < -tk:
+                    zero_inf = True
+                    if relax:
+                        loosened[r] = -h[r] * (1.0 + 1e-6)  # met by loosening it to 0 <= 0
+                continue
+            inv = 1.0 / nrm
+            nx[nk], ny[nk], b[nk] = ax * inv, ay * inv, h[r] * inv
+            slot_row[nk] = r
+            nk += 1
+        st[:] = 0.0
+        st[0], st[1], st[7], st[9] = y0x, y0y, -1.0, 2.0
+        out[0], out[1], out[2], out[3] = y0x, y0y, 0.0, 0.0
+        if not zero_inf:
+            its, en = _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out)
+            its_all, n_enum = max(its_all, its), n_enum + en
+        status = int(st[9])
+        feasible[k] = status == 1
+        yx, yy, mu0, mu1 = out[0], out[1], out[2], out[3]
+        if status != 1 and relax:
+            # phase 1 on the rows normalised in x (G / |G| = L n / |L n|), the bounds hard
+            nr = nk - 4
+            for j in range(nr):
+                ax = l11 * nx[4 + j]
+                ay = l21 * nx[4 + j] + l22 * ny[4 + j]
+                ln[j] = math.sqrt(ax * ax + ay * ay)
+                inv = 1.0 / ln[j]
+                gx[j], gy[j], hh[j] = ax * inv, ay * inv, b[4 + j] * inv
+            sx, sy = st[0], st[1]  # the active set's last point
+            p0, p1 = i11 * sx + i21 * sy, i22 * sy
+            p0 = p0 if math.isfinite(p0) else 0.0
+            p1 = p1 if math.isfinite(p1) else 0.0
+            p0, p1 = _nmin(_nmax(p0, lb[k, 0]), ub[k, 0]), _nmin(_nmax(p1, lb[k, 1]), ub[k, 1])
+            q0, q1 = _least_violation(gx, gy, hh, nr, lb[k, 0], lb[k, 1], ub[k, 0], ub[k, 1], p0, p1,
+                                      res, delta, on, te, order)
+            for j in range(nr):
+                viol = _nmax(gx[j] * q0 + gy[j] * q1 - hh[j], 0.0)
+                loosen = viol * (1.0 + 1e-6) + relax_tol[k]
+                b[4 + j] = b[4 + j] + loosen * ln[j]
+                r = slot_row[4 + j]
+                loosened[r] = loosen * math.sqrt(G[r, 0] * G[r, 0] + G[r, 1] * G[r, 1])
+            st[:] = 0.0
+            st[0], st[1], st[7] = y0x, y0y, -1.0
+            its, en = _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out)
+            its_all, n_enum = max(its_all, its), n_enum + en
+            if int(st[9]) == 1:
+                yx, yy, mu0, mu1 = out[0], out[1], out[2], out[3]
+                status = 1
+            else:  # a failed relaxation (not seen) keeps the phase-1 point
+                yx, yy = l11 * q0 + l21 * q1, l22 * q1
+                status = 4
+        if status == 2 or status == 3:  # infeasible without relax: the minimiser over the bounds alone
+            xb0, xb1 = xu0, xu1
+            if (xu0 < lb[k, 0]) or (xu0 > ub[k, 0]) or (xu1 < lb[k, 1]) or (xu1 > ub[k, 1]):
+                st[:] = 0.0
+                st[0], st[1], st[7] = y0x, y0y, -1.0
+                _solve(nx, ny, b, 4, y0x, y0y, tk, max_iter, st, out)
+                xb0 = _clip(i11 * out[0] + i21 * out[1], lb[k, 0], ub[k, 0])
+                xb1 = _clip(i22 * out[1], lb[k, 1], ub[k, 1])
+            x[k, 0], x[k, 1] = xb0, xb1
+            continue
+        x[k, 0] = _clip(i11 * yx + i21 * yy, lb[k, 0], ub[k, 0])
+        x[k, 1] = _clip(i22 * yy, lb[k, 1], ub[k, 1])
+        if status != 1:
+            continue
+        # multipliers of the active slots, in the units of the rows as given: mu / |L^-1 G_r|
+        nw = int(st[2])
+        for s in range(nw):
+            slot = int(st[3]) if s == 0 else int(st[4])
+            mu = mu0 if s == 0 else mu1
+            r = slot_row[slot]
+            if r >= 0:
+                ax = i11 * G[r, 0]
+                ay = i21 * G[r, 0] + i22 * G[r, 1]
+                lam[r] += mu / math.sqrt(ax * ax + ay * ay)
+            else:
+                lam_box[k, slot // 2, slot % 2] += mu / (s0 if slot % 2 == 0 else i22)
+    return its_all, n_enum
