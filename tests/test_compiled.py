@@ -16,6 +16,7 @@ from helpers import needs_numba
 from aasoatt_env import FilterConfig, make_env
 from aasoatt_env.analysis.metrics import pairwise_min_distance
 from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.api.factory import make_batched_env
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT, input_bounds
 from aasoatt_env.model.geometry import robot_pairs
@@ -24,8 +25,9 @@ from aasoatt_env.safety import SafetyFilter, compiled
 from aasoatt_env.safety.backup import _point
 from aasoatt_env.safety.gatekeeper import gatekeeper
 from aasoatt_env.safety.repair import repair
+from aasoatt_env.safety.solvers import active_set, policy
 from aasoatt_env.safety.solvers.local import solve_local_qps
-from agents import ADVERSARIES, HostileAgent
+from agents import ADVERSARIES, HostileAgent, TrackingController
 
 F = 2.0 / 3.0
 D = 3.0
@@ -168,6 +170,76 @@ def test_filters_with_either_kernel_give_the_same_steps_along_a_hostile_episode(
     assert mode == "centralized" or both.relaxed > 20
 
 
+class _BothActiveSets:
+    """Runs the compiled warm active set beside the numpy one on every problem the filter gives it.
+
+    Tallies, from the filter's warm start and from a cold one (an empty working set, where parts often need
+    dependent working sets), the parts each verifies and the worst difference where both do.
+    """
+
+    def __init__(self, monkeypatch) -> None:
+        self.parts = {"warm": [0, 0, 0, 0], "cold": [0, 0, 0, 0]}  # parts, numpy verified, compiled verified, differ
+        self.problems = 0
+        self.worst = 0.0
+        ref = policy.solve_active_set_parts
+
+        def both(prob, x0, z0, groups, max_iter=6, compiled=False):
+            out = ref(prob, x0, z0, groups, max_iter)
+            self.check("warm", out, ref(prob, x0, z0, groups, max_iter, compiled=True), groups)
+            cold = (np.zeros_like(x0), np.zeros_like(z0), groups, max_iter)
+            self.check("cold", ref(prob, *cold), ref(prob, *cold, compiled=True), groups)
+            self.problems += 1
+            return out
+
+        monkeypatch.setattr(policy, "solve_active_set_parts", both)
+        monkeypatch.setattr(active_set, "solve_active_set_parts", both)  # solve_active_set's
+
+    def check(self, start, out, com, groups) -> None:
+        assert (out is None) == (com is None)
+        if out is None:
+            return
+        np.testing.assert_array_equal(com.row_group, out.row_group)
+        tally = self.parts[start]
+        tally[0] += out.ok.shape[0]
+        tally[1] += int(out.ok.sum())
+        tally[2] += int(com.ok.sum())
+        tally[3] += int((out.ok != com.ok).sum())
+        ok = out.ok & com.ok
+        v = np.repeat(ok[np.zeros(out.x.shape[0] // 2, int) if groups is None else groups], 2)
+        rows = ok[out.row_group]
+        np.testing.assert_array_equal(com.z[rows] > 0, out.z[rows] > 0)  # the same active rows
+        self.worst = max(self.worst, float(np.abs(com.x[v] - out.x[v]).max(initial=0.0)),
+                         float(np.abs(com.z[rows] - out.z[rows]).max(initial=0.0)))
+
+
+@needs_numba
+def test_the_compiled_active_set_verifies_the_numpy_ones_parts(monkeypatch):
+    """Along closed loops (a small circle swap's crossing, one team; a stack of teams under random actions, one
+    part each): where both verify a part, the same active rows and points to rounding; from the filter's warm
+    starts the same parts verified.  From cold starts the two may verify different parts: a dependent working set
+    makes the regularised Schur solve ill-conditioned (multipliers ~1e9), where the last bits of BLAS and of the
+    kernel's sums decide the next working set (the unverified part goes to the general solver, whose answer is
+    the same optimum)."""
+    both = _BothActiveSets(monkeypatch)
+    env = make_env("circle_swap", num_robots=12, radius=2.0, duration=4.0, settle_time=0.0,
+                   filter={"kernel": "numpy"}, max_steps=500)
+    for agent in (TrackingController(), ADVERSARIES["burst"](rest_steps=10)):
+        obs, _ = env.reset(seed=4)
+        for _ in range(500):
+            obs, *_ = env.step(agent.act(obs, env))
+    batch = make_batched_env(8, "random_goals", num_robots=6, filter={"kernel": "numpy"})
+    batch.reset(seed=5)
+    rng = np.random.default_rng(5)
+    for _ in range(400):
+        batch.step(rng.uniform(-1.0, 1.0, (8, 6, 2)))
+    warm, cold = both.parts["warm"], both.parts["cold"]
+    assert both.problems > 900 and warm[0] > 2 * both.problems
+    assert warm[1] > 0.9 * warm[0] and warm[3] == 0
+    # cold starts: some parts unverified in the budget; the two rarely differ, and not one-sidedly
+    assert cold[1] < cold[0] and cold[3] <= 0.05 * cold[0] and cold[2] >= cold[1] - 0.01 * cold[0]
+    assert both.worst <= 1e-8
+
+
 def test_kernel_option_is_validated():
     with pytest.raises(ConfigError, match="kernel"):
         FilterConfig(kernel="fortran")
@@ -180,9 +252,9 @@ def test_kernel_numba_without_numba_says_how_to_install_it(monkeypatch):
     cfg = FilterConfig(kernel="numba")  # a saved configuration still loads
     with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
         SafetyFilter(config=cfg)
-    with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
-        SafetyFilter(kernel="numba", mode="decentralized", backup=False)  # the local solver's kernel
-    SafetyFilter(kernel="numba", backup=False)  # the paper's filter alone runs no kernel
+    for mode in ("centralized", "decentralized"):  # the active set's, the local solver's kernel
+        with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
+            SafetyFilter(kernel="numba", mode=mode, backup=False)
     with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
         make_env("random_goals", num_robots=2, filter={"kernel": "numba"})
     assert FilterConfig(kernel="auto").compiled is False  # falls back to the numpy reference

@@ -12,13 +12,18 @@ step's time in the overhead of its calls rather than in arithmetic
 - the decentralised filter's local solver
   (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`): every robot's
   2-variable QP, its active set, checks and least-violation relaxation
-  (:mod:`aasoatt_env.safety.solvers.local_kernel`).
+  (:mod:`aasoatt_env.safety.solvers.local_kernel`);
+- the centralised filter's warm active set on small dense parts
+  (:func:`~aasoatt_env.safety.solvers.active_set.solve_active_set_parts`): each
+  independent part's working-set rules, equality points and KKT check
+  (:mod:`aasoatt_env.safety.solvers.active_set_kernel`).
 
 The kernels are the same loops compiled with numba (``pip install
 "aasoatt[fast]"``), imported only when first used.  The numpy code stays the
 reference and the fallback.  The kernels make its decisions (which robots brake,
 the blend shares, the broken pairs, the rounds, the pairs checked; each robot's
-active constraints, feasibility and loosened rows); numbers agree to
+active constraints, feasibility and loosened rows; each part's working sets
+and verification, but see the kernel's docstring); numbers agree to
 floating-point rounding, not bit for bit: numba's ``sin``/``cos``/``exp`` and
 numpy's vectorised ones may differ in the last bit, and sums may be added in
 another order.  The repair divides by a squared finite-difference gradient,
@@ -36,7 +41,7 @@ from types import ModuleType
 
 import numpy as np
 
-__all__ = ["KERNELS", "NUMBA_MISSING", "available", "c64", "kernels", "local_kernels"]
+__all__ = ["KERNELS", "NUMBA_MISSING", "PARTS", "available", "c64", "kernels"]
 
 KERNELS: tuple[str, ...] = ("auto", "numpy", "numba")
 """Values of :attr:`~aasoatt_env.safety.config.FilterConfig.kernel`."""
@@ -46,6 +51,14 @@ NUMBA_MISSING = (
     'or does not import: pip install "aasoatt[fast]" (kernel="auto" falls back to the numpy reference, '
     'kernel="numpy" always uses it)'
 )
+
+
+PARTS: dict[str, str] = {
+    "backup": "aasoatt_env.safety.numba_kernels",
+    "local": "aasoatt_env.safety.solvers.local_kernel",
+    "active_set": "aasoatt_env.safety.solvers.active_set_kernel",
+}
+"""The compiled parts and their modules."""
 
 
 @functools.cache
@@ -58,36 +71,21 @@ def _load(name: str) -> ModuleType | None:
 
 def available() -> bool:
     """Whether the compiled kernels can be used (numba imports; the first call imports it)."""
-    return _load("aasoatt_env.safety.numba_kernels") is not None
+    return _load(PARTS["backup"]) is not None
 
 
-def _module(name: str) -> ModuleType:
-    mod = _load(name)
+def kernels(part: str = "backup") -> ModuleType:
+    """The compiled kernels of ``part`` (:data:`PARTS`).
+
+    Raises
+    ------
+    ImportError
+        numba is missing (:data:`NUMBA_MISSING`).
+    """
+    mod = _load(PARTS[part])
     if mod is None:
         raise ImportError(NUMBA_MISSING)
     return mod
-
-
-def kernels() -> ModuleType:
-    """The backup layer's compiled kernels (:mod:`aasoatt_env.safety.numba_kernels`).
-
-    Raises
-    ------
-    ImportError
-        numba is missing (:data:`NUMBA_MISSING`).
-    """
-    return _module("aasoatt_env.safety.numba_kernels")
-
-
-def local_kernels() -> ModuleType:
-    """The local solver's compiled kernel (:mod:`aasoatt_env.safety.solvers.local_kernel`).
-
-    Raises
-    ------
-    ImportError
-        numba is missing (:data:`NUMBA_MISSING`).
-    """
-    return _module("aasoatt_env.safety.solvers.local_kernel")
 
 
 def c64(a: np.ndarray) -> np.ndarray:

@@ -161,8 +161,8 @@ class FilterConfig:
     heading_deg : float
         Half-angle [deg] of the ``heading`` trigger's cone.
     kernel : {"auto", "numpy", "numba"}
-        Implementation of the backup layer's check and repair and of the decentralised
-        filter's local solver (:mod:`aasoatt_env.safety.compiled`):
+        Implementation of the backup layer's check and repair, the decentralised
+        filter's local solver and the warm active set (:mod:`aasoatt_env.safety.compiled`):
         ``"auto"`` (default) the compiled kernels when numba is installed (``pip install
         "aasoatt[fast]"``), else the numpy reference; ``"numpy"`` always the reference;
         ``"numba"`` the kernels, or a :class:`~aasoatt_env.errors.ConfigError` when the filter is
@@ -279,5 +279,5 @@ class FilterConfig:
 
     @property
     def compiled(self) -> bool:
-        """Whether the backup layer and the local solver run the compiled kernels (:attr:`kernel` resolved)."""
+        """Whether the filter runs the compiled kernels (:attr:`kernel` resolved)."""
         return self.kernel != "numpy" and available()

@@ -184,7 +184,7 @@ class SafetyFilter:
 
     def __init__(self, team: Team | None = None, config: FilterConfig | None = None, **options: Any) -> None:
         cfg = FilterConfig.merged(config, **options)
-        if cfg.kernel == "numba" and (cfg.backup or cfg.mode == "decentralized") and not compiled_available():
+        if cfg.kernel == "numba" and not compiled_available():
             raise ConfigError(f"kernel: {NUMBA_MISSING}")
         self.config = cfg
         if STRATEGIES[cfg.deadlock].rotates_rows:
@@ -200,7 +200,7 @@ class SafetyFilter:
         self._strategy = STRATEGIES[cfg.deadlock]
         self._trigger = TRIGGERS[cfg.trigger]
         self._solver = SolverPolicy(cfg.solver, active_set=cfg.active_set,
-                                    options={"iterations": cfg.neural_iterations})
+                                    options={"iterations": cfg.neural_iterations}, compiled=cfg.compiled)
         self.reset(team)
 
     def reset(self, team: Team | None = None) -> None:

@@ -210,7 +210,9 @@ def decentralized_step(
     A : numpy.ndarray
         Input matrices ``(N, 2, 2)`` (``w = A du``).
     target : numpy.ndarray
-        Desired control-point accelerations ``(N, 2)``.
+        Desired control-point accelerations ``(N, 2)``, at the scale of what the bounds allow (the
+        filter passes the nominal clipped to the bounds): the local solver's tolerance is relative to
+        the unconstrained minimiser (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`, Notes).
     lo, hi : numpy.ndarray
         Bounds on ``du`` ``(N, 2)``, kept hard.
     ri, rj : numpy.ndarray

@@ -18,7 +18,11 @@ from the previous step (positive multipliers, active bounds); the method is
 only tried with such a warm start and for a few iterations, because the
 PDAS rule alone can cycle or meet inconsistent working sets on these rows
 (seen on cold starts of packed layouts, and at the circle swap's crossing,
-where it adds several rows at once and drops them again).  Then, from the same
+where it adds several rows at once and drops them again); it is left as soon as
+its working set is inconsistent (a working row not met as an equality: the set
+is dependent, and from there the rule wandered through sets of up to three times
+the part's variables at the crossing, each an expensive, ill-conditioned solve,
+before the budget ran out).  Then, from the same
 warm start, a rule with one change per iteration (add the most violated row
 while every multiplier is >= 0, else drop the first row whose multiplier crossed
 zero, the ratio test of dual active-set methods) is tried: a working set one or
@@ -42,6 +46,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dpotrs as _potrs
+
+from aasoatt_env.safety.compiled import c64, kernels
 
 __all__ = [
     "DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "least_distance_form", "solve_active_set",
@@ -204,15 +210,16 @@ class ActiveSetParts(NamedTuple):
     """``(m,)`` group of every row (of the robot its first entry belongs to; an empty row: 0)."""
 
 
-def solve_active_set(prob, x0, z0, max_iter: int = 6):
+def solve_active_set(prob, x0, z0, max_iter: int = 6, compiled: bool = False):
     """``(x, z, iterations)`` at the verified optimum, or ``None`` (fall back)."""
-    out = solve_active_set_parts(prob, x0, z0, None, max_iter)
+    out = solve_active_set_parts(prob, x0, z0, None, max_iter, compiled=compiled)
     if out is None or not out.ok.all():
         return None
     return out.x, out.z, out.iterations
 
 
-def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: int = 6) -> ActiveSetParts | None:
+def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: int = 6,
+                           compiled: bool = False) -> ActiveSetParts | None:
     """The warm active set on a problem made of independent groups, each verified on its own.
 
     Parameters
@@ -226,6 +233,10 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         groups (the components of the row graph, or a stack of teams).  None: one group.
     max_iter : int
         Iterations of the primal-dual rule.
+    compiled : bool
+        On the dense path, run the groups in the compiled kernel
+        (:mod:`aasoatt_env.safety.solvers.active_set_kernel`; ``ImportError`` without numba):
+        each group's part verified by the same check, points to rounding.
 
     The problem is separable by group, and so is everything the method does: the
     Schur complement is block diagonal, the primal-dual rule acts row by row, and the
@@ -241,12 +252,13 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     if z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
         return None
     dense = n <= DENSE_MAX_VARS or n * (m + 2 * n) <= DENSE_MAX_CELLS
+    compiled = compiled and dense and getattr(prob.C, "format", None) == "csr"
     if dense:  # the dense rows straight from C (no sparse products for these small problems)
         factor = _factor(prob)
         if factor is None:
             return None
         LinvT, gt = factor
-        Md, Mt, b = _dense_rows(prob, LinvT), None, np.concatenate((prob.u, prob.ub, -prob.lb))
+        Md, Mt, b = None if compiled else _dense_rows(prob, LinvT), None, np.concatenate((prob.u, prob.ub, -prob.lb))
     else:
         form = least_distance_form(prob)
         if form is None:
@@ -274,18 +286,44 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     W0[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), 1e-300) if m else False
     W0[m:m + n] = x0 >= prob.ub - 1e-9
     W0[m + n:] = x0 <= prob.lb + 1e-9
+    if compiled:
+        out = _solve_compiled(prob, LinvT, gt, b, W0, np.zeros(n // 2, np.int64) if groups is None else groups, K,
+                              max_iter, rg)
+        if out is not None:
+            return out
+        Md = _dense_rows(prob, LinvT)  # a row with repeated entries: the reference's dense rows
     eq = functools.partial(_equality_point, Md if dense else Mt, dense, gt, b)
     loop = _WorkingSetLoop(eq, rg, K)
     W = W0
     for rule, budget in ((_pdas_rule, max_iter), (_one_change_rule, ONE_CHANGE_ITER)):
-        # the groups not yet verified start each rule from the warm start
-        W = loop.run(np.where(loop.done[rg], W, W0), rule, budget)
+        # the groups not yet verified start each rule from the warm start; the primal-dual rule leaves a group
+        # whose working set turned inconsistent (a working row not met as an equality: a dependent set, from
+        # which it wanders through large ill-conditioned sets, seen at the circle swap's crossing)
+        W = loop.run(np.where(loop.done[rg], W, W0), rule, budget, stop_inconsistent=rule is _pdas_rule)
         if loop.done.all():
             break
     if not loop.done.any():
         return ActiveSetParts(np.zeros(n), np.zeros(m), loop.used, loop.done, rg[:m])
     x = np.einsum("nij,nj->ni", LinvT, loop.y.reshape(-1, 2)).ravel()
     return ActiveSetParts(x, np.maximum(loop.lam[:m], 0.0), loop.used, loop.done, rg[:m])
+
+
+def _solve_compiled(prob, LinvT: np.ndarray, gt: np.ndarray, b: np.ndarray, W0: np.ndarray, groups: np.ndarray,
+                    K: int, max_iter: int, rg: np.ndarray) -> ActiveSetParts | None:
+    """:func:`solve_active_set_parts` by the compiled kernel; None where ``C`` repeats an entry in a row."""
+    n, m = prob.n, prob.m
+    C = prob.C
+    y, lam, done = np.zeros(n), np.zeros(m + 2 * n), np.zeros(K, dtype=bool)
+    used = kernels("active_set").solve_parts(
+        np.ascontiguousarray(C.indptr, np.int64), np.ascontiguousarray(C.indices, np.int64), c64(C.data), m, n,
+        c64(LinvT), c64(gt), c64(b), np.ascontiguousarray(W0), np.ascontiguousarray(groups, np.int64), K, max_iter,
+        ONE_CHANGE_ITER, TOL, y, lam, done)
+    if used < 0:
+        return None
+    if not done.any():
+        return ActiveSetParts(np.zeros(n), np.zeros(m), int(used), done, rg[:m])
+    x = np.einsum("nij,nj->ni", LinvT, y.reshape(-1, 2)).ravel()
+    return ActiveSetParts(x, np.maximum(lam[:m], 0.0), int(used), done, rg[:m])
 
 
 def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray):
@@ -392,10 +430,15 @@ class _WorkingSetLoop:
         self.lam: np.ndarray | None = None
         self.used = 0  # equality solves of every rule: the iterations reported
 
-    def run(self, W: np.ndarray, rule, max_iter: int) -> np.ndarray:
-        """Iterate ``rule`` from ``W`` for at most ``max_iter`` equality solves; the last working set."""
+    def run(self, W: np.ndarray, rule, max_iter: int, stop_inconsistent: bool = False) -> np.ndarray:
+        """Iterate ``rule`` from ``W`` for at most ``max_iter`` equality solves; the last working set.
+
+        ``stop_inconsistent``: a group whose working rows are not all met as equalities (within
+        :data:`TOL`) stops iterating this rule.
+        """
         rg, K = self.rg, self.K
         prev = None
+        stopped = np.zeros(K, dtype=bool)
         for _ in range(max_iter):
             point = self.eq(W)
             self.used += 1
@@ -405,13 +448,16 @@ class _WorkingSetLoop:
             # KKT: stationarity holds by construction; feasibility, dual signs, and the working rows
             # met as equalities (complementarity: a dependent, inconsistent working set fails here)
             # (written as what must hold, so a NaN anywhere fails its group)
-            ok_row = (r <= TOL) & (lam >= -TOL) & (~W | (np.abs(r) <= TOL))
+            met = ~W | (np.abs(r) <= TOL)
+            ok_row = (r <= TOL) & (lam >= -TOL) & met
             bad = np.zeros(K, dtype=bool)
             bad[rg[~ok_row]] = True
             new = ~bad & ~self.done
             if new.any():
                 self._keep(new, y, lam)
-            todo = ~self.done
+            if stop_inconsistent:
+                stopped[rg[~met]] = True
+            todo = ~self.done & ~stopped
             if not todo.any():
                 break
             Wn = rule(W, lam, r, prev, rg, todo)

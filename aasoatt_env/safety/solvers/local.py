@@ -44,7 +44,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from aasoatt_env.safety.compiled import c64, local_kernels
+from aasoatt_env.safety.compiled import c64, kernels
 
 __all__ = ["LocalSolution", "least_violation", "solve_local_qps"]
 
@@ -481,6 +481,13 @@ def solve_local_qps(
     Returns
     -------
     LocalSolution
+
+    Notes
+    -----
+    The KKT tolerance is relative to ``1 + |y0|_inf`` (``y0`` the unconstrained minimiser in the
+    metric of the objective): an unconstrained minimiser far outside the bounds' scale (a nominal
+    of 1e10 against bounds of 1) loosens the check with it.  The filter clips each robot's nominal
+    to its bounds before it forms ``g``, which keeps ``|y0|`` at the bounds' scale.
     """
     H = np.asarray(H, dtype=np.float64)
     g = np.asarray(g, dtype=np.float64)
@@ -498,6 +505,18 @@ def solve_local_qps(
         raise ValueError("owner: row owner outside [0, N)")
     if np.any(lb > ub):
         raise ValueError("lb/ub: need lb <= ub")
+    for name, a in (("H", H), ("g", g), ("lb", lb), ("ub", ub), ("G", G)):
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{name}: expected finite values, got {a[~np.isfinite(a)][:3].tolist()}")
+    if np.any(np.isnan(h) | (h == -np.inf)):
+        raise ValueError("h: expected finite values or +inf (a row that never binds), got NaN or -inf")
+    if not (np.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol: expected a finite tolerance > 0, got {tol!r}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
+        raise ValueError(f"max_iter: expected an integer >= 0, got {max_iter!r}")
+    rt = np.asarray(relax_tol, dtype=np.float64)
+    if not (np.all(np.isfinite(rt)) and np.all(rt >= 0)):
+        raise ValueError("relax_tol: expected finite values >= 0")
     x = np.empty((n, 2))
     lam = np.zeros(m)
     lam_box = np.zeros((n, 2, 2))
@@ -508,7 +527,7 @@ def solve_local_qps(
     if compiled:
         bad = np.zeros(n, dtype=bool)
         rt = np.broadcast_to(np.asarray(relax_tol, dtype=np.float64), (n,))
-        its, n_enum = local_kernels().solve_all(
+        its, n_enum = kernels("local").solve_all(
             *(c64(a) for a in (H, g, lb, ub)), np.ascontiguousarray(owner, dtype=np.int64), c64(G), c64(h),
             bool(relax), c64(rt), float(tol), int(max_iter), x, lam, lam_box, feasible, loosened, bad)
         if np.any(bad):
@@ -688,7 +707,7 @@ def _line_min(res: np.ndarray, delta: np.ndarray) -> np.ndarray:
     active sums, and solve the linear piece where the derivative turns non-negative.
     """
     p = res.shape[0]
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # padding rows: res = -1e300
         te = -res / delta
     ev = (delta != 0) & (te > 0) & (te < 1)
     te = np.where(ev, te, 2.0)

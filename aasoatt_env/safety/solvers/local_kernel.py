@@ -16,9 +16,10 @@ Where the two differ (numbers, not decisions, on the states tested):
 - the phase-1 line search stops for a robot once its own derivative is zero
   within tolerance; the vectorised one keeps refining a converged robot while
   others of the batch still iterate (a last-bit move of the same root);
-- zero rows (normal below tolerance) are left out of the table here instead of
-  leaving empty slots: empty slots are never a candidate, so the answers are
-  the same.
+- zero rows (normal below tolerance) and rows whose normalised right-hand side
+  is ``>= 1e300`` (never violated; numpy's padding value) are left out of the
+  table here instead of leaving empty or padding slots: such slots are never a
+  candidate nor loosened, so the answers are the same.
 """
 
 from __future__ import annotations
@@ -34,6 +35,7 @@ __all__ = ["solve_all"]
 # the constants of aasoatt_env.safety.solvers.local (a test checks they agree)
 _EPS_Z = 1e-22
 _EPS_R = 1e-14
+_PAD_B = 1e300
 _INF = math.inf
 _LS_ITERS = 4
 _LV_ITERS = 40
@@ -480,6 +482,8 @@ def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter,
                         loosened[r] = -h[r] * (1.0 + 1e-6)  # met by loosening it to 0 <= 0
                 continue
             inv = 1.0 / nrm
+            if not h[r] * inv < _PAD_B:  # never violated: numpy's padding (neither enumerated nor loosened)
+                continue
             nx[nk], ny[nk], b[nk] = ax * inv, ay * inv, h[r] * inv
             slot_row[nk] = r
             nk += 1

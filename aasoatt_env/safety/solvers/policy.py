@@ -154,9 +154,11 @@ def solve_qp(
     ``step`` (``neural``), ``alternate`` (proxsuite's other class),
     ``active_set`` (first the warm-started exact active-set method),
     ``prefer_exact`` (first the warm active set, then ``ldp``, the back-end only
-    if both fail).
+    if both fail), ``compiled`` (the warm active set's compiled kernel,
+    :mod:`aasoatt_env.safety.compiled`).
     """
     tried = bool(opts.pop("active_set_tried", False))  # the caller ran it on this very warm start
+    compiled = bool(opts.pop("compiled", False))
     backend = get_solver(solver)
     t0 = time.perf_counter()
     if prob.m == 0 and prob.diagonal and backend.exact:
@@ -168,7 +170,7 @@ def solve_qp(
                           exact=False)
     exact_first = bool(opts.get("prefer_exact")) and prob.n <= LDP_MAX_VARS
     if x0 is not None and z0 is not None and (opts.get("active_set") or exact_first) and not tried:
-        fast = solve_active_set(prob, x0, z0)
+        fast = solve_active_set(prob, x0, z0, compiled=compiled)
         if fast is not None:
             return QPSolution(fast[0], fast[1], "solved", 0.0, fast[2], "active set (warm, KKT verified)",
                               time.perf_counter() - t0)
@@ -219,12 +221,16 @@ class SolverPolicy:
         Always try the warm-started exact active-set method first.
     options : dict, optional
         Back-end options (e.g. ``iterations`` of ``neural``).
+    compiled : bool
+        Run the warm active set in its compiled kernel (:mod:`aasoatt_env.safety.compiled`).
     """
 
-    def __init__(self, solver: str, active_set: bool = False, options: dict | None = None) -> None:
+    def __init__(self, solver: str, active_set: bool = False, options: dict | None = None,
+                 compiled: bool = False) -> None:
         self.solver = solver
         self.backend = get_solver(solver)
         self.active_set = bool(active_set)
+        self.compiled = bool(compiled)
         self.options = dict(options or {})
         self.reset()
 
@@ -251,7 +257,7 @@ class SolverPolicy:
         if (groups is not None and self.active_set and self.backend.exact and x0 is not None and z0 is not None
                 and int(np.max(groups, initial=0)) > 0):
             t0 = time.perf_counter()
-            part = solve_active_set_parts(prob, x0, z0, groups)
+            part = solve_active_set_parts(prob, x0, z0, groups, compiled=self.compiled)
             if part is not None:
                 return self._rest(prob, x0, z0, groups, part, t0)
         return self._solve(prob, x0, z0)
@@ -279,7 +285,7 @@ class SolverPolicy:
                           rest.fallback, rest.exact)
 
     def _solve(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, **extra: bool) -> QPSolution:
-        opts = {**self.options, **extra}
+        opts = {**self.options, **extra, "compiled": self.compiled}
         if self.active_set:
             opts["active_set"] = True
         if not self.backend.may_stall:
