@@ -52,11 +52,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
-from aasoatt_env import make_env  # noqa: E402
+from aasoatt_env import compiled, make_env  # noqa: E402
 from aasoatt_env.errors import ConfigError  # noqa: E402
 from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point  # noqa: E402
 from aasoatt_env.model.params import make_team  # noqa: E402
-from aasoatt_env.safety import SafetyFilter, compiled  # noqa: E402
+from aasoatt_env.safety import SafetyFilter  # noqa: E402
 from aasoatt_env.safety.solvers import available_solvers  # noqa: E402
 from agents import TrackingController  # noqa: E402
 

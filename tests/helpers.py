@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pytest
 
+from aasoatt_env import compiled
 from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point
 from aasoatt_env.model.tracking import point_accel_to_du, tracking_accel
-from aasoatt_env.safety import compiled
 from aasoatt_env.sim.scenarios import CircleSwap, Layout
 
 needs_numba = pytest.mark.skipif(not compiled.available(), reason="numba not installed (aasoatt[fast])")

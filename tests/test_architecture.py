@@ -13,7 +13,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 LAYERS: list[tuple[str, ...]] = [
-    ("aasoatt_env.errors", "aasoatt_env.validation", "aasoatt_env.cli_support"),
+    ("aasoatt_env.errors", "aasoatt_env.validation", "aasoatt_env.cli_support", "aasoatt_env.compiled",
+     "aasoatt_env.numba_jit"),
     ("aasoatt_env.model",),
     ("aasoatt_env.sim",),
     ("aasoatt_env.safety",),

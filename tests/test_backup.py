@@ -11,6 +11,7 @@ import pytest
 from aasoatt_env import AASOATTFilter, AASOATTParallelEnv, FilterConfig, make_env
 from aasoatt_env.analysis.metrics import pairwise_min_distance
 from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.compiled import available as numba_available
 from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import RobotParams, make_team, stack_teams
@@ -23,7 +24,6 @@ from aasoatt_env.safety.backup import (
     candidate_samples_at,
     reach_limit,
 )
-from aasoatt_env.safety.compiled import available as numba_available
 from aasoatt_env.safety.gatekeeper import gatekeeper, pair_margins
 from aasoatt_env.safety.repair import gate_with_repair
 from agents import ADVERSARIES, HostileAgent

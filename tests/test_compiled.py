@@ -1,6 +1,6 @@
 """The compiled kernels (backup layer, decentralised local solver) against the numpy reference, and their selection.
 
-The kernels (:mod:`aasoatt_env.safety.compiled`) must make the numpy code's
+The kernels (:mod:`aasoatt_env.compiled`) must make the numpy code's
 decisions on every state: which robots brake, which pairs are broken, the share
 each robot takes, the rounds and the pairs checked; the inputs and margins may
 differ by floating-point rounding only.  The local solver's kernel against its
@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from helpers import needs_numba
 
-from aasoatt_env import FilterConfig, make_env
+from aasoatt_env import FilterConfig, compiled, make_env
 from aasoatt_env.analysis.metrics import pairwise_min_distance
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.api.factory import make_batched_env
@@ -21,7 +21,7 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT, input_bounds
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import RobotParams, make_team, stack_teams
-from aasoatt_env.safety import SafetyFilter, compiled
+from aasoatt_env.safety import SafetyFilter
 from aasoatt_env.safety.backup import _point
 from aasoatt_env.safety.gatekeeper import gatekeeper
 from aasoatt_env.safety.repair import repair

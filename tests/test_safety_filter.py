@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from helpers import circle_layout, closed_loop
+from helpers import circle_layout, closed_loop, needs_numba
 
 import aasoatt_env.safety.solvers.backends as backends
 import aasoatt_env.safety.solvers.ldp as ldp
 from aasoatt_env.errors import ConfigError, SolverError, StateError
 from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point
-from aasoatt_env.model.geometry import robot_pairs
+from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import make_team
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, FilterConfig, SafetyFilter
 
@@ -313,6 +313,36 @@ def test_kdtree_and_brute_pairs_agree(n):
     b = robot_pairs(p, 3.0, method="kdtree")
     np.testing.assert_array_equal(a, b)
     assert np.all(a[:, 0] < a[:, 1])
+
+
+@needs_numba
+def test_the_compiled_cells_give_the_brute_forces_pairs_and_components():
+    """Every back-end the same pairs in the same order, and both component labellings equal: dense and sparse
+    grids, pairs at exactly the radius (a lattice of spacing 1, radius 1), groups, points without a position."""
+    rng = np.random.default_rng(3)
+    lattice = np.stack(np.meshgrid(np.arange(12.0), np.arange(12.0)), -1).reshape(-1, 2)
+    cases = [(lattice, 1.0, None), (lattice * 0.1, 0.1, None)]
+    for k in range(60):
+        n = int(rng.integers(2, 600))
+        p = rng.uniform(-1.0, 1.0, (n, 2)) * rng.choice([2.0, 30.0, 1e4])
+        if k % 4 == 0:
+            p = np.round(p, 0)  # coincident points and distances of exactly the radius
+        if k % 5 == 0:
+            p[rng.integers(0, n, 3)] = np.nan  # no position: no pair
+        cases.append((p, float(rng.choice([0.5, 3.0, 7.0])), rng.integers(0, 3, n) if k % 3 == 0 else None))
+    total = 0
+    for p, r, g in cases:
+        ref = robot_pairs(p, r, method="brute", groups=g)
+        np.testing.assert_array_equal(robot_pairs(p, r, method="cells", groups=g), ref)
+        if np.all(np.isfinite(p)) and np.abs(p).max() < 1e3:  # (scipy's tree refuses NaN, overflows at 1e4)
+            np.testing.assert_array_equal(robot_pairs(p, r, method="kdtree", groups=g), ref)
+        n = p.shape[0]
+        np.testing.assert_array_equal(pair_components(n, ref[:, 0], ref[:, 1], compiled_kernel=True),
+                                      pair_components(n, ref[:, 0], ref[:, 1], compiled_kernel=False))
+        total += ref.shape[0]
+    assert robot_pairs(lattice, 1.0, method="cells").shape[0] == 2 * 12 * 11  # exactly at the radius: in
+    assert total > 10_000
+    assert robot_pairs(np.array([[0.0, 0.0], [1e300, 0.0], [0.5, 0.0]]), 1.0, method="cells").tolist() == [[0, 2]]
 
 
 def test_reset_clears_memory():

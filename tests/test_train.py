@@ -442,7 +442,7 @@ def test_logged_metrics_present(tmp_path):
         assert f"metrics/{key}" in tags
     stats = json.loads((run / "train_stats.json").read_text())
     assert stats["agent_steps"] == 192 and stats["agent_steps_per_s"] > 0
-    from aasoatt_env.safety.compiled import available
+    from aasoatt_env.compiled import available
 
     assert stats["filter_kernel"] == ("numba" if available() else "numpy")  # "auto" resolved, recorded
     pytest.importorskip("matplotlib")

@@ -4,12 +4,14 @@ The observations (k nearest robots), the safety filter (pairs within the
 sensing range), the metrics (smallest gap at every recorded step) and the
 adversarial agents (nearest neighbour) all call these functions.
 
-Two back-ends give identical answers:
+Three back-ends of :func:`robot_pairs` give identical answers:
 
 * brute force over the ``N x N`` distance matrix (one complex subtraction) for
   teams below :data:`KDTREE_MIN_ROBOTS`;
-* :class:`scipy.spatial.cKDTree` from :data:`KDTREE_MIN_ROBOTS` robots on
-  (``O(N + pairs)`` memory, so 10,000 robots are cheap).
+* from :data:`KDTREE_MIN_ROBOTS` robots on (``O(N + pairs)`` memory, so 10,000
+  robots are cheap): a compiled grid of cells
+  (:func:`aasoatt_env.model.geometry_kernel.cell_pairs`) where numba imports,
+  else :class:`scipy.spatial.cKDTree`.
 
 Pairs are returned sorted lexicographically with ``i < j`` so that the order
 of barrier rows is deterministic and independent of the back-end.
@@ -23,6 +25,8 @@ from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from aasoatt_env import compiled
 
 __all__ = [
     "KDTREE_MIN_ROBOTS",
@@ -100,9 +104,11 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
         Positions, shape ``(N, 2)``.
     radius : float
         Search radius (the sensing range ``D``).
-    method : {"auto", "brute", "kdtree"}
+    method : {"auto", "brute", "kdtree", "cells"}
         Back-end; ``"auto"`` picks brute force below :data:`KDTREE_MIN_ROBOTS`
-        (counted per group with ``groups``).
+        (counted per group with ``groups``), above it the compiled grid of cells
+        where numba imports, else the k-d tree.  ``"cells"`` without numba:
+        ``ImportError``.
     groups : numpy.ndarray, optional
         ``(N,)`` labels (:attr:`aasoatt_env.model.params.Team.group`): only
         pairs of one label are returned.
@@ -117,14 +123,25 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
         return np.empty((0, 2), dtype=np.intp)
     if method == "auto":
         per_group = n if groups is None else _group_size(groups)
-        method = "kdtree" if per_group >= KDTREE_MIN_ROBOTS else "brute"
+        method = "brute" if per_group < KDTREE_MIN_ROBOTS else "cells" if compiled.available() else "kdtree"
+    if method == "cells":
+        if not (radius > 0 and np.isfinite(radius)):
+            method = "brute"  # no cell width: the brute force answers (only coincident points at radius 0)
+        else:
+            has = groups is not None
+            g = np.ascontiguousarray(groups, dtype=np.int64) if has else np.zeros(1, np.int64)
+            pairs, fine = compiled.kernels("geometry").cell_pairs(compiled.c64(p), float(radius), g, has)
+            if fine:
+                return pairs.astype(np.intp, copy=False)
+            method = "brute" if n <= 4000 else "kdtree"  # more cells than int64 keys hold (absurd spreads)
     if method == "brute":
         iu, ju = _upper_pairs(n) if groups is None else _group_pairs(groups)
         d = p[iu] - p[ju]
-        keep = np.flatnonzero(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= radius * radius)
+        with np.errstate(over="ignore", invalid="ignore"):  # a squared distance of inf is far; NaN pairs nothing
+            keep = np.flatnonzero(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= radius * radius)
         return np.stack((iu[keep], ju[keep]), axis=1)
     if method != "kdtree":
-        raise ValueError(f"method: got {method!r}, expected 'auto', 'brute' or 'kdtree'")
+        raise ValueError(f"method: got {method!r}, expected 'auto', 'brute', 'kdtree' or 'cells'")
     pairs = cKDTree(p).query_pairs(radius, output_type="ndarray").astype(np.intp)
     if groups is not None and pairs.shape[0]:
         pairs = pairs[groups[pairs[:, 0]] == groups[pairs[:, 1]]]
@@ -241,15 +258,21 @@ def min_gaps(
     return gap
 
 
-def pair_components(n: int, ri: np.ndarray, rj: np.ndarray) -> np.ndarray:
+def pair_components(n: int, ri: np.ndarray, rj: np.ndarray, *, compiled_kernel: bool | None = None) -> np.ndarray:
     """Connected-component label ``(n,)`` of ``n`` robots, edges ``(ri[k], rj[k])`` (none where ``rj < 0``: obstacles).
 
-    Min-label propagation with pointer jumping (vectorised; a handful of passes
-    for the contact graphs met here).  Robots of one component share the label of
-    its smallest index.
+    Robots of one component share the label of its smallest index.  Union-find in
+    the compiled kernel (:func:`aasoatt_env.model.geometry_kernel.components`;
+    ``compiled_kernel=None``: where numba imports), else min-label propagation with
+    pointer jumping (vectorised; a handful of passes for the contact graphs met
+    here): the same labels.
     """
     rr = rj >= 0
     a, b = ri[rr], rj[rr]
+    if compiled.available() if compiled_kernel is None else compiled_kernel:
+        lab = compiled.kernels("geometry").components(int(n), np.ascontiguousarray(a, np.int64),
+                                                      np.ascontiguousarray(b, np.int64))
+        return lab.astype(np.intp, copy=False)
     lab = np.arange(n)
     while True:
         low = np.minimum(lab[a], lab[b])

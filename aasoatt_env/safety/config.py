@@ -32,11 +32,11 @@ from typing import Any
 import numpy as np
 
 from aasoatt_env import validation as check
+from aasoatt_env.compiled import KERNELS, available
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT
 from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4
 from aasoatt_env.safety.barriers import BARRIERS
-from aasoatt_env.safety.compiled import KERNELS, available
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
 from aasoatt_env.safety.solvers import get_solver
 
@@ -162,7 +162,7 @@ class FilterConfig:
         Half-angle [deg] of the ``heading`` trigger's cone.
     kernel : {"auto", "numpy", "numba"}
         Implementation of the backup layer's check and repair, the decentralised
-        filter's local solver and the warm active set (:mod:`aasoatt_env.safety.compiled`):
+        filter's local solver and the warm active set (:mod:`aasoatt_env.compiled`):
         ``"auto"`` (default) the compiled kernels when numba is installed (``pip install
         "aasoatt[fast]"``), else the numpy reference; ``"numpy"`` always the reference;
         ``"numba"`` the kernels, or a :class:`~aasoatt_env.errors.ConfigError` when the filter is

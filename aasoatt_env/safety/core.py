@@ -30,13 +30,13 @@ from typing import Any
 
 import numpy as np
 
+from aasoatt_env.compiled import NUMBA_MISSING
+from aasoatt_env.compiled import available as compiled_available
 from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
 from aasoatt_env.model.geometry import obstacle_pairs, pair_components, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
-from aasoatt_env.safety.compiled import NUMBA_MISSING
-from aasoatt_env.safety.compiled import available as compiled_available
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
 from aasoatt_env.safety.decentralized import decentralized_step

@@ -28,6 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.backup import (
@@ -42,7 +43,6 @@ from aasoatt_env.safety.backup import (
     brake_time,
     reach_limit,
 )
-from aasoatt_env.safety.compiled import c64, kernels
 
 __all__ = ["GateResult", "gatekeeper", "pair_margins"]
 
@@ -286,7 +286,7 @@ def gatekeeper(
         pair search, made once for several calls on one state.  A pair missing here is
         not checked, so it is a safety input.  None: searched here.
     compiled : bool
-        Run the whole check in the compiled kernel (:mod:`aasoatt_env.safety.compiled`;
+        Run the whole check in the compiled kernel (:mod:`aasoatt_env.compiled`;
         ``ImportError`` without numba): the same decisions, inputs and margins to rounding.
     """
     levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)

@@ -1,4 +1,4 @@
-"""The backup layer's compiled kernels (numba; imported only through :mod:`aasoatt_env.safety.compiled`).
+"""The backup layer's compiled kernels (numba; imported only through :mod:`aasoatt_env.compiled`).
 
 The same loops as :func:`~aasoatt_env.safety.gatekeeper.gatekeeper` and
 :func:`~aasoatt_env.safety.repair.repair`, written once per pair and sample:
@@ -20,22 +20,12 @@ differ from the reference only in the last bits of ``sin``/``cos``/``hypot``.
 from __future__ import annotations
 
 import math
-import warnings
 
-import numba
 import numpy as np
 
+from aasoatt_env.numba_jit import jit as _jit
+
 __all__ = ["gate_full", "repair_full"]
-
-
-def _jit(fn):
-    """``numba.njit`` with an on-disk cache, or without one where no cache folder is writable."""
-    try:
-        return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
-    except RuntimeError as err:  # e.g. a read-only install without a writable user cache
-        warnings.warn(f"aasoatt: numba cannot cache the backup layer's kernels here ({err}); they are compiled "
-                      "again in every process", RuntimeWarning, stacklevel=2)
-        return numba.njit(cache=False, nogil=True, error_model="numpy")(fn)
 
 
 _EPS = float(np.finfo(np.float64).eps)

@@ -19,6 +19,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.backup import (
@@ -29,7 +30,6 @@ from aasoatt_env.safety.backup import (
     candidate_paths,
     candidate_samples_at,
 )
-from aasoatt_env.safety.compiled import c64, kernels
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.gatekeeper import (
     CLOSEST_TIE,
@@ -214,7 +214,7 @@ def repair(
     the QP (a small, local correction toward the safe set), so the gatekeeper
     rarely has to brake; safety still comes from :func:`~aasoatt_env.safety.gatekeeper.gatekeeper` alone.
     ``near_pairs``: candidate pairs as in the gatekeeper (one search for every round).
-    ``compiled``: run it in the compiled kernel of :mod:`aasoatt_env.safety.compiled` (``ImportError``
+    ``compiled``: run it in the compiled kernel of :mod:`aasoatt_env.compiled` (``ImportError``
     without numba; the same answer up to rounding, which the division by the squared gradient
     amplifies: see that module).
     """

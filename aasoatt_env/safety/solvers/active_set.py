@@ -47,7 +47,7 @@ import scipy.sparse.linalg as spla
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dpotrs as _potrs
 
-from aasoatt_env.safety.compiled import c64, kernels
+from aasoatt_env.compiled import c64, kernels
 
 __all__ = [
     "DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "least_distance_form", "solve_active_set",

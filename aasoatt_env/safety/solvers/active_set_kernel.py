@@ -1,4 +1,4 @@
-"""The warm active set compiled (numba; imported only through :mod:`aasoatt_env.safety.compiled`).
+"""The warm active set compiled (numba; imported only through :mod:`aasoatt_env.compiled`).
 
 :func:`solve_parts` is :func:`aasoatt_env.safety.solvers.active_set.solve_active_set_parts`
 on its dense path, written once per group (an independent part of the problem:
@@ -42,12 +42,13 @@ import math
 
 import numpy as np
 
-from aasoatt_env.safety.numba_kernels import _jit
+from aasoatt_env.numba_jit import jit as _jit
+from aasoatt_env.numba_jit import jit_reassoc as _jit_reassoc
 
 __all__ = ["solve_parts"]
 
 
-@_jit
+@_jit_reassoc
 def _cholesky(S, k, delta, L):
     """Lower Cholesky factor of ``S[:k, :k] + delta I`` into ``L``; False if not positive definite (as ``potrf``)."""
     for j in range(k):
@@ -66,7 +67,7 @@ def _cholesky(S, k, delta, L):
     return True
 
 
-@_jit
+@_jit_reassoc
 def _chol_solve(L, k, v, out):
     """``out = S^-1 v`` from the factor ``L`` (two triangular substitutions)."""
     for i in range(k):
@@ -133,7 +134,7 @@ def _dot_vec(rb, rc, a, x):
 
 
 @_jit
-def _equality_point(rb, rc, nl, nv, gt, b, W, idx, S, L, rhs, lw, tmp, res, y, lam, r, bstart, blist):
+def _equality_point(rb, rc, nl, nv, gt, b, W, idx, rhs, lw, tmp, res, y, lam, r, bstart, blist):
     """``(y, lam, r)`` with the rows ``W`` as equalities (``_equality_point``); False if singular."""
     k = 0
     for q in range(nl):
@@ -144,6 +145,7 @@ def _equality_point(rb, rc, nl, nv, gt, b, W, idx, S, L, rhs, lw, tmp, res, y, l
     for c in range(nv):
         y[c] = 0.0
     if k:
+        S, L = np.empty((k, k)), np.empty((k, k))  # sized to the working set (a part's rows can be many more)
         _schur(rb, rc, nv // 2, idx, k, S, bstart, blist)
         dmax = 0.0
         for a in range(k):
@@ -238,15 +240,14 @@ def _one_change(nl, W, lam, r, prev, has_prev, tol, Wn):
 
 
 @_jit
-def _run(rb, rc, nl, nv, gt, b, W0, rule, budget, tol, W, Wn, prev, idx, S, L, rhs, lw, tmp, res, y, lam, r, bstart,
-         blist):
+def _run(rb, rc, nl, nv, gt, b, W0, rule, budget, tol, W, Wn, prev, idx, rhs, lw, tmp, res, y, lam, r, bstart, blist):
     """Iterate one rule (0: primal-dual, 1: one change) from ``W0``; returns ``(verified, equality solves)``."""
     for q in range(nl):
         W[q] = W0[q]
     has_prev = False
     used = 0
     for _ in range(budget):
-        ok = _equality_point(rb, rc, nl, nv, gt, b, W, idx, S, L, rhs, lw, tmp, res, y, lam, r, bstart, blist)
+        ok = _equality_point(rb, rc, nl, nv, gt, b, W, idx, rhs, lw, tmp, res, y, lam, r, bstart, blist)
         used += 1
         if not ok:
             return False, used
@@ -322,7 +323,6 @@ def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_it
     gl, bl = np.empty(nvmax), np.empty(nlmax)
     W0l, W, Wn = np.empty(nlmax, np.bool_), np.empty(nlmax, np.bool_), np.empty(nlmax, np.bool_)
     prev, idx = np.zeros(nlmax), np.empty(nlmax, np.int64)
-    S, L = np.empty((nlmax, nlmax)), np.empty((nlmax, nlmax))
     rhs, lw, tmp, res = np.empty(nlmax), np.empty(nlmax), np.empty(nlmax), np.empty(nlmax)
     y, lam, r = np.empty(nvmax), np.empty(nlmax), np.empty(nlmax)
     bstart, blist = np.empty(nvmax // 2 + 1, np.int64), np.empty((2 * nlmax, 2), np.int64)
@@ -367,11 +367,11 @@ def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_it
                 for c in range(2):
                     rc[ju, 0, c] = LinvT[blk, half, c] + 0.0
                     rc[jl, 0, c] = -LinvT[blk, half, c] + 0.0
-        ok, used = _run(rb, rc, nl, nv, gl, bl, W0l, 0, max_iter, tol, W, Wn, prev, idx, S, L, rhs, lw, tmp, res,
-                        y, lam, r, bstart, blist)
+        ok, used = _run(rb, rc, nl, nv, gl, bl, W0l, 0, max_iter, tol, W, Wn, prev, idx, rhs, lw, tmp, res, y,
+                        lam, r, bstart, blist)
         if not ok:
-            ok, used2 = _run(rb, rc, nl, nv, gl, bl, W0l, 1, one_change_iter, tol, W, Wn, prev, idx, S, L, rhs,
-                             lw, tmp, res, y, lam, r, bstart, blist)
+            ok, used2 = _run(rb, rc, nl, nv, gl, bl, W0l, 1, one_change_iter, tol, W, Wn, prev, idx, rhs, lw, tmp,
+                             res, y, lam, r, bstart, blist)
             used += used2
         used_max = max(used_max, used)
         done[g] = ok

@@ -44,7 +44,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from aasoatt_env.safety.compiled import c64, kernels
+from aasoatt_env.compiled import c64, kernels
 
 __all__ = ["LocalSolution", "least_violation", "solve_local_qps"]
 
@@ -476,7 +476,7 @@ def solve_local_qps(
     compiled : bool
         Solve in the compiled kernel (:mod:`aasoatt_env.safety.solvers.local_kernel`, one loop over
         the robots; ``ImportError`` without numba): the same decisions, numbers to rounding
-        (:mod:`aasoatt_env.safety.compiled`).
+        (:mod:`aasoatt_env.compiled`).
 
     Returns
     -------

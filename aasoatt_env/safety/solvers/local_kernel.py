@@ -1,4 +1,4 @@
-"""The decentralised filter's local solver compiled (numba; imported only through :mod:`aasoatt_env.safety.compiled`).
+"""The decentralised filter's local solver compiled (numba; imported only through :mod:`aasoatt_env.compiled`).
 
 :func:`solve_all` is :func:`aasoatt_env.safety.solvers.local.solve_local_qps`
 after its argument checks, written once per robot instead of once per array
@@ -28,7 +28,7 @@ import math
 
 import numpy as np
 
-from aasoatt_env.safety.numba_kernels import _jit
+from aasoatt_env.numba_jit import jit as _jit
 
 __all__ = ["solve_all"]
 

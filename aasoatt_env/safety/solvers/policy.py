@@ -155,7 +155,7 @@ def solve_qp(
     ``active_set`` (first the warm-started exact active-set method),
     ``prefer_exact`` (first the warm active set, then ``ldp``, the back-end only
     if both fail), ``compiled`` (the warm active set's compiled kernel,
-    :mod:`aasoatt_env.safety.compiled`).
+    :mod:`aasoatt_env.compiled`).
     """
     tried = bool(opts.pop("active_set_tried", False))  # the caller ran it on this very warm start
     compiled = bool(opts.pop("compiled", False))
@@ -222,7 +222,7 @@ class SolverPolicy:
     options : dict, optional
         Back-end options (e.g. ``iterations`` of ``neural``).
     compiled : bool
-        Run the warm active set in its compiled kernel (:mod:`aasoatt_env.safety.compiled`).
+        Run the warm active set in its compiled kernel (:mod:`aasoatt_env.compiled`).
     """
 
     def __init__(self, solver: str, active_set: bool = False, options: dict | None = None,

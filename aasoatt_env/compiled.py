@@ -1,7 +1,7 @@
 """Which implementation runs: the numpy reference or the compiled kernels.
 
-Two parts of the filter are loops over small arrays whose numpy form spends a
-step's time in the overhead of its calls rather than in arithmetic
+These parts are loops over small arrays whose numpy form spends a step's time
+in the overhead of its calls rather than in arithmetic
 (``benchmarks/bench_filter.py --calls``):
 
 - the backup layer's check (:func:`~aasoatt_env.safety.gatekeeper.gatekeeper`)
@@ -13,6 +13,9 @@ step's time in the overhead of its calls rather than in arithmetic
   (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`): every robot's
   2-variable QP, its active set, checks and least-violation relaxation
   (:mod:`aasoatt_env.safety.solvers.local_kernel`);
+- the neighbour search and contact components of
+  :mod:`aasoatt_env.model.geometry` (:mod:`aasoatt_env.model.geometry_kernel`:
+  the same pairs and labels, exactly);
 - the centralised filter's warm active set on small dense parts
   (:func:`~aasoatt_env.safety.solvers.active_set.solve_active_set_parts`): each
   independent part's working-set rules, equality points and KKT check
@@ -30,7 +33,11 @@ another order.  The repair divides by a squared finite-difference gradient,
 which is small where a pair is closest at its first step, so its answers agree
 less closely than the check's (README: *The braking backup layer*).
 ``tests/test_compiled.py`` checks them on random states and along adversarial
-episodes.  Selection: :attr:`~aasoatt_env.safety.config.FilterConfig.kernel`.
+episodes.  Selection: :attr:`~aasoatt_env.safety.config.FilterConfig.kernel` for
+the filter's parts; the geometry's answers are the reference's exactly, so it
+uses its kernels wherever numba imports (``robot_pairs(method=...)`` and
+``pair_components(compiled=...)`` choose explicitly).  The kernel modules take
+their ``numba.njit`` settings from :mod:`aasoatt_env.numba_jit`.
 """
 
 from __future__ import annotations
@@ -57,6 +64,7 @@ PARTS: dict[str, str] = {
     "backup": "aasoatt_env.safety.numba_kernels",
     "local": "aasoatt_env.safety.solvers.local_kernel",
     "active_set": "aasoatt_env.safety.solvers.active_set_kernel",
+    "geometry": "aasoatt_env.model.geometry_kernel",
 }
 """The compiled parts and their modules."""
 

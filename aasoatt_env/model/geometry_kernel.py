@@ -1,0 +1,135 @@
+"""Compiled neighbour search and contact components (numba; loaded through :mod:`aasoatt_env.compiled`).
+
+- :func:`cell_pairs`: the pairs ``i < j`` within a radius by a uniform grid of
+  cells a little wider than the radius (every pair within it lies in one 3x3
+  block of cells), each candidate tested as the brute-force back-end tests it
+  (``dx * dx + dy * dy <= r * r``), so the pairs are those of
+  :func:`~aasoatt_env.model.geometry.robot_pairs`' other back-ends, in the same
+  lexicographic order;
+- :func:`components`: union-find labels equal to
+  :func:`~aasoatt_env.model.geometry.pair_components`' (each component labelled
+  by its smallest index).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from aasoatt_env.numba_jit import jit
+
+__all__ = ["cell_pairs", "components"]
+
+_WIDEN = 1e-6
+"""Cells are ``radius * (1 + _WIDEN)`` wide: rounding in the cell index never splits a pair two cells apart."""
+
+
+@jit
+def cell_pairs(p, radius, groups, has_groups):
+    """Pairs ``(P, 2)`` int64, ``i < j``, lexicographic, with ``|p_i - p_j|^2 <= radius^2`` (one group each).
+
+    ``radius > 0`` and finite (the caller checks); points with a non-finite coordinate pair with nothing.
+    Returns ``(pairs, True)``, or ``(empty, False)`` where the points span more than 2^31 cells on an axis
+    (the cell keys would overflow: the caller takes another back-end).
+    """
+    n = p.shape[0]
+    r2 = radius * radius
+    cell = radius * (1.0 + _WIDEN)
+    ok = np.empty(n, np.bool_)
+    x0, y0 = math.inf, math.inf
+    for i in range(n):
+        ok[i] = math.isfinite(p[i, 0]) and math.isfinite(p[i, 1])
+        if ok[i]:
+            x0, y0 = min(x0, p[i, 0]), min(y0, p[i, 1])
+    x1, y1 = -math.inf, -math.inf
+    for i in range(n):
+        if ok[i]:
+            x1, y1 = max(x1, p[i, 0]), max(y1, p[i, 1])
+    if (x1 - x0) / cell > 2.0**31 or (y1 - y0) / cell > 2.0**31:
+        return np.empty((0, 2), np.int64), False
+    cx = np.zeros(n, np.int64)
+    cy = np.zeros(n, np.int64)
+    nx, ny = 1, 1
+    for i in range(n):
+        if ok[i]:
+            cx[i] = int(math.floor((p[i, 0] - x0) / cell))
+            cy[i] = int(math.floor((p[i, 1] - y0) / cell))
+            nx, ny = max(nx, cx[i] + 3), max(ny, cy[i] + 3)  # a ring of empty cells around the grid
+    dense = nx * ny <= 8 * n + 64  # one slot per cell; else the occupied cells' keys, searched
+    key = np.empty(n, np.int64)
+    for i in range(n):
+        key[i] = (cx[i] + 1) * ny + (cy[i] + 1) if ok[i] else -1
+    order = np.argsort(key, kind="mergesort")
+    skey = key[order]
+    start = np.zeros(nx * ny + 1 if dense else 1, np.int64)
+    if dense:
+        for i in range(n):
+            if ok[i]:
+                start[key[i] + 1] += 1
+        for c in range(nx * ny):
+            start[c + 1] += start[c]
+        first = n - int(ok.sum())  # the points without a cell sort first (key -1)
+    out = np.empty((max(16, 8 * n), 2), np.int64)
+    m = 0
+    buf = np.empty(max(n, 1), np.int64)
+    for i in range(n):
+        if not ok[i]:
+            continue
+        nb = 0
+        for dx in range(-1, 2):
+            for dy in range(-1, 2):
+                k = (cx[i] + 1 + dx) * ny + (cy[i] + 1 + dy)
+                if dense:
+                    s, e = first + start[k], first + start[k + 1]
+                else:
+                    s = np.searchsorted(skey, k)
+                    e = s
+                    while e < n and skey[e] == k:
+                        e += 1
+                for t in range(s, e):
+                    j = order[t]
+                    if j <= i or (has_groups and groups[j] != groups[i]):
+                        continue
+                    ddx = p[i, 0] - p[j, 0]
+                    ddy = p[i, 1] - p[j, 1]
+                    if ddx * ddx + ddy * ddy <= r2:
+                        q = nb  # insertion: the row's pairs in ascending j
+                        while q > 0 and buf[q - 1] > j:
+                            buf[q] = buf[q - 1]
+                            q -= 1
+                        buf[q] = j
+                        nb += 1
+        if m + nb > out.shape[0]:
+            grown = np.empty((2 * (m + nb), 2), np.int64)
+            grown[:m] = out[:m]
+            out = grown
+        for q in range(nb):
+            out[m, 0], out[m, 1] = i, buf[q]
+            m += 1
+    return out[:m].copy(), True
+
+
+@jit
+def _find(parent, a):
+    while parent[a] != a:
+        parent[a] = parent[parent[a]]
+        a = parent[a]
+    return a
+
+
+@jit
+def components(n, a, b):
+    """Label ``(n,)`` of each point's component under the edges ``(a[k], b[k])``: its smallest index."""
+    parent = np.arange(n)
+    for k in range(a.shape[0]):
+        ra, rb = _find(parent, a[k]), _find(parent, b[k])
+        if ra != rb:
+            if ra < rb:
+                parent[rb] = ra
+            else:
+                parent[ra] = rb
+    lab = np.empty(n, np.int64)
+    for i in range(n):
+        lab[i] = _find(parent, i)
+    return lab
