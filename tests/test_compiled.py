@@ -24,6 +24,7 @@ from aasoatt_env.model.params import RobotParams, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter
 from aasoatt_env.safety.backup import _point
 from aasoatt_env.safety.gatekeeper import gatekeeper
+from aasoatt_env.safety.problem import build_problem
 from aasoatt_env.safety.repair import repair
 from aasoatt_env.safety.solvers import active_set, policy
 from aasoatt_env.safety.solvers.local import solve_local_qps
@@ -238,6 +239,20 @@ def test_the_compiled_active_set_verifies_the_numpy_ones_parts(monkeypatch):
     # cold starts: some parts unverified in the budget; the two rarely differ, and not one-sidedly
     assert cold[1] < cold[0] and cold[3] <= 0.05 * cold[0] and cold[2] >= cold[1] - 0.01 * cold[0]
     assert both.worst <= 1e-8
+
+
+@pytest.mark.parametrize("use_kernel", [False, pytest.param(True, marks=needs_numba)])
+def test_the_active_set_refuses_groups_that_are_not_labels(use_kernel):
+    """Negative labels (the kernel would index by them) or a wrong length: not a labelling, so None."""
+    A = np.tile(np.eye(2), (3, 1, 1))
+    target = np.array([[1.0, 0.0], [-1.0, 0.0], [0.5, 0.5]])
+    prob = build_problem(A, target, -np.ones((3, 2)), np.ones((3, 2)), np.ones(3), np.array([0]), np.array([1]),
+                         np.array([[1.0, 0.0]]), np.array([[-1.0, 0.0]]), np.array([0.1]))
+    for groups in ([-1, -1, 0], [0, 0, -1], [-1, -1], [0, 0, 1, 1]):
+        assert active_set.solve_active_set_parts(prob, np.zeros(6), np.ones(1), np.array(groups),
+                                                 compiled=use_kernel) is None
+    ok = active_set.solve_active_set_parts(prob, np.zeros(6), np.ones(1), np.array([0, 0, 1]), compiled=use_kernel)
+    assert ok.ok.all() and np.allclose(ok.x.reshape(3, 2)[2], [0.5, 0.5])
 
 
 def test_kernel_option_is_validated():

@@ -244,7 +244,7 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     the KKT conditions is kept from then on (its working set frozen: the other groups'
     changes do not touch it); the others iterate.  Returns ``None`` where the method
     does not apply (no warm start, a Hessian block not positive definite, an odd size,
-    ``groups`` that a row joins).
+    ``groups`` that a row joins, or that are not one non-negative label per robot).
     """
     n, m = prob.n, prob.m
     if n == 0 or n % 2:
@@ -270,6 +270,8 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         K, rg = 1, np.zeros(mt, dtype=np.intp)
     else:
         groups = np.asarray(groups, dtype=np.intp)
+        if groups.shape != (n // 2,) or (groups.size and groups.min() < 0):
+            return None  # not a labelling 0..K-1 of the robots (the compiled kernel indexes by it)
         K = int(groups.max(initial=-1)) + 1
         C = prob.C.tocsr()
         nnz = C.indices.shape[0]
@@ -277,7 +279,7 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         first = C.indices[np.minimum(C.indptr[:-1], nnz - 1)] // 2 if nnz else np.zeros(m, dtype=np.intp)
         vg = np.repeat(groups, 2)
         rg = np.concatenate((np.where(np.diff(C.indptr) > 0, groups[first], 0), vg, vg))
-        if groups.shape != (n // 2,) or not np.array_equal(vg[C.indices], np.repeat(rg[:m], np.diff(C.indptr))):
+        if not np.array_equal(vg[C.indices], np.repeat(rg[:m], np.diff(C.indptr))):
             return None  # not independent parts: a row joins two groups
     # initial working set: rows whose multiplier was positive at the previous step (relative to
     # the largest: solvers leave ~1e-10 multipliers on slack rows, which would crowd the working
