@@ -34,10 +34,11 @@ which is small where a pair is closest at its first step, so its answers agree
 less closely than the check's (README: *The braking backup layer*).
 ``tests/test_compiled.py`` checks them on random states and along adversarial
 episodes.  Selection: :attr:`~aasoatt_env.safety.config.FilterConfig.kernel` for
-the filter's parts; the geometry's answers are the reference's exactly, so it
-uses its kernels wherever numba imports (``robot_pairs(method=...)`` and
-``pair_components(compiled=...)`` choose explicitly).  The kernel modules take
-their ``numba.njit`` settings from :mod:`aasoatt_env.numba_jit`.
+the filter's parts, the geometry's included (the filter passes its choice);
+called directly, ``robot_pairs`` and ``pair_components`` use their kernels
+wherever numba imports (their answers are the reference's exactly), or as their
+``compiled=`` says.  The kernel modules take their ``numba.njit`` settings from
+:mod:`aasoatt_env.numba_jit`.
 """
 
 from __future__ import annotations
@@ -79,7 +80,7 @@ def _load(name: str) -> ModuleType | None:
 
 def available() -> bool:
     """Whether the compiled kernels can be used (numba imports; the first call imports it)."""
-    return _load(PARTS["backup"]) is not None
+    return _load("aasoatt_env.numba_jit") is not None
 
 
 def kernels(part: str = "backup") -> ModuleType:

@@ -1,16 +1,19 @@
-"""The one ``numba.njit`` configuration of the library's compiled kernels (imports numba).
+"""The one ``numba.njit`` configuration of the library's compiled kernels, and their shared scalar helpers.
 
-Imported only by the kernel modules, which :mod:`aasoatt_env.compiled` loads on
-first use, so ``import aasoatt_env`` never imports numba.
+Imports numba: imported only by the kernel modules, which :mod:`aasoatt_env.compiled`
+loads on first use, so ``import aasoatt_env`` never imports numba.
 """
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import numba
 
-__all__ = ["jit", "jit_reassoc"]
+__all__ = ["jit", "jit_reassoc", "nclip", "nmax", "nmin"]
+
+_WARNED = [False]
 
 
 def jit(fn, **flags):
@@ -18,8 +21,10 @@ def jit(fn, **flags):
     try:
         return numba.njit(cache=True, nogil=True, error_model="numpy", **flags)(fn)
     except RuntimeError as err:  # e.g. a read-only install without a writable user cache
-        warnings.warn(f"aasoatt: numba cannot cache the compiled kernels here ({err}); they are compiled "
-                      "again in every process", RuntimeWarning, stacklevel=2)
+        if not _WARNED[0]:  # once, not once per kernel function
+            _WARNED[0] = True
+            warnings.warn(f"aasoatt: numba cannot cache the compiled kernels here ({err}); they are compiled "
+                          "again in every process", RuntimeWarning, stacklevel=2)
         return numba.njit(cache=False, nogil=True, error_model="numpy", **flags)(fn)
 
 
@@ -29,3 +34,25 @@ def jit_reassoc(fn):
     NaN and inf keep their meaning (no ``nnan``/``ninf``); the sums' last bits depend on the order.
     """
     return jit(fn, fastmath={"reassoc", "contract"})
+
+
+@jit
+def nmin(a, b):
+    """``numpy.minimum`` of two numbers (NaN if either is)."""
+    if a != a or b != b:
+        return math.nan
+    return a if a <= b else b
+
+
+@jit
+def nmax(a, b):
+    """``numpy.maximum`` of two numbers (NaN if either is)."""
+    if a != a or b != b:
+        return math.nan
+    return a if a >= b else b
+
+
+@jit
+def nclip(a, lo, hi):
+    """``numpy.clip`` (``np.minimum(np.maximum(a, lo), hi)``) of one number."""
+    return nmin(nmax(a, lo), hi)

@@ -208,7 +208,7 @@ class _BothActiveSets:
         ok = out.ok & com.ok
         v = np.repeat(ok[np.zeros(out.x.shape[0] // 2, int) if groups is None else groups], 2)
         rows = ok[out.row_group]
-        np.testing.assert_array_equal(com.z[rows] > 0, out.z[rows] > 0)  # the same active rows
+        np.testing.assert_array_equal(com.z[rows] > 1e-9, out.z[rows] > 1e-9)  # the same active rows
         self.worst = max(self.worst, float(np.abs(com.x[v] - out.x[v]).max(initial=0.0)),
                          float(np.abs(com.z[rows] - out.z[rows]).max(initial=0.0)))
 
@@ -239,6 +239,36 @@ def test_the_compiled_active_set_verifies_the_numpy_ones_parts(monkeypatch):
     # cold starts: some parts unverified in the budget; the two rarely differ, and not one-sidedly
     assert cold[1] < cold[0] and cold[3] <= 0.05 * cold[0] and cold[2] >= cold[1] - 0.01 * cold[0]
     assert both.worst <= 1e-8
+
+
+def test_the_primal_dual_rule_leaves_an_inconsistent_working_set(monkeypatch):
+    """Warm-started with two parallel rows ``x <= 0`` and ``x <= 1`` (a dependent, inconsistent set): the primal-dual
+    rule is not applied to its point; the one-change rule starts from that point without solving it again, drops
+    the slack row and verifies: two equality solves in all."""
+    prob = build_problem(np.eye(2)[None], np.array([[2.0, 0.0]]), -3 * np.ones((1, 2)), 3 * np.ones((1, 2)),
+                         np.ones(1), np.array([0, 0]), np.array([-1, -1]), np.array([[1.0, 0.0], [1.0, 0.0]]),
+                         np.zeros((2, 2)), np.array([0.0, 1.0]))
+    last, applied = {}, []
+    eq, pdas = active_set._equality_point, active_set._pdas_rule
+
+    def spy_eq(*args):
+        out = last["point"] = eq(*args)
+        last["W"] = args[-1].copy()
+        return out
+
+    def spy_pdas(W, lam, r, *rest):
+        applied.append(bool(np.all(np.abs(r[W]) <= active_set.TOL)))  # was the point's working set consistent?
+        return pdas(W, lam, r, *rest)
+
+    monkeypatch.setattr(active_set, "_equality_point", spy_eq)
+    monkeypatch.setattr(active_set, "_pdas_rule", spy_pdas)
+    out = active_set.solve_active_set_parts(prob, np.zeros(2), np.array([1.0, 1.0]), None)
+    assert out.ok.all() and out.iterations == 2 and np.allclose(out.x, [0.0, 0.0])
+    assert all(applied)  # never applied to an inconsistent set
+    assert last["W"].tolist()[:2] == [True, False]  # verified with x <= 0 alone
+    if compiled.available():
+        com = active_set.solve_active_set_parts(prob, np.zeros(2), np.array([1.0, 1.0]), None, compiled=True)
+        assert com.ok.all() and com.iterations == 2 and np.allclose(com.x, out.x)
 
 
 @pytest.mark.parametrize("use_kernel", [False, pytest.param(True, marks=needs_numba)])

@@ -222,6 +222,7 @@ def test_local_solver_edge_cases(compiled):
     ({"tol": 0.0}, "tol: expected a finite tolerance > 0"), ({"tol": np.nan}, "tol: expected"),
     ({"max_iter": 2.7}, "max_iter: expected an integer >= 0"), ({"max_iter": -1}, "max_iter"),
     ({"relax_tol": -1.0}, "relax_tol: expected finite values >= 0"),
+    ({"relax_tol": np.ones(3)}, r"relax_tol: got shape \(3,\), expected one value or one per robot \(1,\)"),
 ])
 @both
 def test_local_solver_refuses_bad_input_naming_it(kw, match, compiled):
@@ -231,6 +232,37 @@ def test_local_solver_refuses_bad_input_naming_it(kw, match, compiled):
     args.update({k: v for k, v in kw.items() if k not in opts})
     with pytest.raises(ValueError, match=match):
         solve_local_qps(**args, **opts, relax=True, compiled=compiled)
+
+
+def test_the_phase1_line_search_keeps_a_landed_robots_root():
+    """Robot 0 lands at once (its slope at 0 is exactly 0); robot 1 needs several steps.  The vectorised search
+    went on moving robot 0's bracket after it landed, to 0/0 (NaN); each robot's answer is its own."""
+    res = np.array([[0.0, -1e300], [-1.0, 0.5]])
+    delta = np.array([[1.0, 0.0], [2.0, -1.0]])
+    d0 = (np.maximum(res, 0.0) * delta).sum(axis=1)
+    d1 = (np.maximum(res + delta, 0.0) * delta).sum(axis=1)
+    t = local._line_search(res, delta, d0, d1)
+    assert t[0] == 0.0 and np.isfinite(t[1])
+    assert t[1] == local._line_search(res[1:], delta[1:], d0[1:], d1[1:])[0] == pytest.approx(0.5)  # the kink
+
+
+@both
+def test_a_robot_answers_the_same_alone_and_in_a_batch(compiled):
+    """A robot infeasible only by a zero row (``0 <= h < 0``), relaxed beside robots whose phase 1 needs several
+    line-search steps: its answer is finite and the one it gets alone, and theirs are theirs."""
+    H, g, lb, ub, owner, G, h = _random_robots(400, seed=5)
+    n = H.shape[0]
+    one = (np.eye(2)[None] * 2.0, np.array([[1.0, -0.5]]), -np.ones((1, 2)), np.ones((1, 2)))
+    zero_row = (np.zeros((1, 2)), np.array([-1.0]))
+    batch = solve_local_qps(np.concatenate((H, one[0])), np.concatenate((g, one[1])), np.concatenate((lb, one[2])),
+                            np.concatenate((ub, one[3])), np.concatenate((owner, [n])), np.vstack((G, zero_row[0])),
+                            np.concatenate((h, zero_row[1])), relax=True, compiled=compiled)
+    alone = solve_local_qps(*one, np.zeros(1, int), *zero_row, relax=True, compiled=compiled)
+    assert np.all(np.isfinite(batch.x)) and np.all(np.isfinite(batch.loosened))
+    np.testing.assert_array_equal(batch.x[n], alone.x[0])
+    assert batch.loosened[-1] == alone.loosened[0] == pytest.approx(1.0 + 1e-6)
+    ref = solve_local_qps(H, g, lb, ub, owner, G, h, relax=True, compiled=compiled)
+    np.testing.assert_array_equal(batch.x[:n], ref.x)  # and the others their own
 
 
 @needs_numba

@@ -8,11 +8,17 @@ from helpers import circle_layout, closed_loop, needs_numba
 
 import aasoatt_env.safety.solvers.backends as backends
 import aasoatt_env.safety.solvers.ldp as ldp
+from aasoatt_env import compiled as compiled_module
+from aasoatt_env import make_env
 from aasoatt_env.errors import ConfigError, SolverError, StateError
 from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import make_team
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, FilterConfig, SafetyFilter
+from aasoatt_env.safety import gatekeeper as gatekeeper_module
+from aasoatt_env.safety import repair as repair_module
+from aasoatt_env.safety.solvers import active_set as active_set_module
+from aasoatt_env.safety.solvers import local as local_module
 
 
 def _state(n=4, spacing=1.2, seed=0, speed=0.5):
@@ -337,12 +343,48 @@ def test_the_compiled_cells_give_the_brute_forces_pairs_and_components():
         if np.all(np.isfinite(p)) and np.abs(p).max() < 1e3:  # (scipy's tree refuses NaN, overflows at 1e4)
             np.testing.assert_array_equal(robot_pairs(p, r, method="kdtree", groups=g), ref)
         n = p.shape[0]
-        np.testing.assert_array_equal(pair_components(n, ref[:, 0], ref[:, 1], compiled_kernel=True),
-                                      pair_components(n, ref[:, 0], ref[:, 1], compiled_kernel=False))
+        np.testing.assert_array_equal(pair_components(n, ref[:, 0], ref[:, 1], compiled=True),
+                                      pair_components(n, ref[:, 0], ref[:, 1], compiled=False))
         total += ref.shape[0]
     assert robot_pairs(lattice, 1.0, method="cells").shape[0] == 2 * 12 * 11  # exactly at the radius: in
     assert total > 10_000
     assert robot_pairs(np.array([[0.0, 0.0], [1e300, 0.0], [0.5, 0.0]]), 1.0, method="cells").tolist() == [[0, 2]]
+
+
+@pytest.mark.parametrize("compiled", [False, pytest.param(True, marks=needs_numba)])
+def test_geometry_refuses_indices_and_labels_that_do_not_fit(compiled):
+    """The kernels index by these without bounds checks: a wrong one is refused, naming it."""
+    with pytest.raises(ValueError, match=r"ri/rj: edge ends must be robot indices in \[0, 3\)"):
+        pair_components(3, np.array([0, 1]), np.array([5, 2]), compiled=compiled)
+    with pytest.raises(ValueError, match=r"ri/rj"):
+        pair_components(3, np.array([-2]), np.array([1]), compiled=compiled)
+    assert pair_components(3, np.array([0]), np.array([-1]), compiled=compiled).tolist() == [0, 1, 2]  # obstacle
+    p = np.random.default_rng(0).uniform(0, 20, (250, 2))
+    for method in ("brute", "kdtree", "cells" if compiled else "brute"):
+        with pytest.raises(ValueError, match=r"groups: got shape \(10,\), expected one label per point \(250,\)"):
+            robot_pairs(p, 3.0, method=method, groups=np.zeros(10, int))
+
+
+def test_a_numpy_filter_runs_no_kernel(monkeypatch):
+    """``kernel="numpy"``: the neighbour search and the components too stay numpy."""
+    def refuse(part):
+        raise AssertionError(f"the {part} kernels were asked for")
+
+    monkeypatch.setattr(compiled_module, "kernels", refuse)
+    for mod in (gatekeeper_module, repair_module, local_module, active_set_module):  # (their own names for it)
+        monkeypatch.setattr(mod, "kernels", refuse)
+    env = make_env("random_goals", num_robots=12, filter={"kernel": "numpy"}, max_steps=50)
+    obs, _ = env.reset(seed=1)
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        obs, *_ = env.step({a: rng.uniform(-1, 1, 2).astype(np.float32) for a in env.agents})
+    team = make_team("paper", 300)
+    p = np.random.default_rng(2).uniform(0, 30, (300, 2))
+    pose = pose_from_point(team, p, np.zeros(300))
+    u = np.zeros((300, 2))
+    kin = kinematics(team, pose, u)
+    lo, hi = input_bounds(team, u, 0.005)
+    SafetyFilter(team, kernel="numpy", deadlock="none").step(kin, u, pose[:, 2], np.ones((300, 2)), lo, hi)
 
 
 def test_reset_clears_memory():

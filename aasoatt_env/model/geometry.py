@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from aasoatt_env import compiled
+from aasoatt_env import compiled as _compiled
 
 __all__ = [
     "KDTREE_MIN_ROBOTS",
@@ -94,8 +94,8 @@ def pairwise_distances(p: np.ndarray) -> np.ndarray:
     return np.abs(z[:, None] - z[None, :])
 
 
-def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: np.ndarray | None = None
-                ) -> np.ndarray:
+def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: np.ndarray | None = None,
+                compiled: bool | None = None) -> np.ndarray:
     """Index pairs ``(i, j)``, ``i < j``, with ``|p_i - p_j| <= radius`` (and, with ``groups``, of one group).
 
     Parameters
@@ -109,6 +109,9 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
         (counted per group with ``groups``), above it the compiled grid of cells
         where numba imports, else the k-d tree.  ``"cells"`` without numba:
         ``ImportError``.
+    compiled : bool, optional
+        For ``"auto"``: ``False`` never picks the compiled cells (the filter's
+        ``kernel="numpy"``); None: where numba imports.
     groups : numpy.ndarray, optional
         ``(N,)`` labels (:attr:`aasoatt_env.model.params.Team.group`): only
         pairs of one label are returned.
@@ -119,18 +122,21 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
         Integer array of shape ``(P, 2)``, sorted lexicographically.
     """
     n = p.shape[0]
+    if groups is not None and np.shape(groups) != (n,):
+        raise ValueError(f"groups: got shape {np.shape(groups)}, expected one label per point ({n},)")
     if n < 2:
         return np.empty((0, 2), dtype=np.intp)
     if method == "auto":
         per_group = n if groups is None else _group_size(groups)
-        method = "brute" if per_group < KDTREE_MIN_ROBOTS else "cells" if compiled.available() else "kdtree"
+        use = _compiled.available() if compiled is None else compiled
+        method = "brute" if per_group < KDTREE_MIN_ROBOTS else "cells" if use else "kdtree"
     if method == "cells":
         if not (radius > 0 and np.isfinite(radius)):
             method = "brute"  # no cell width: the brute force answers (only coincident points at radius 0)
         else:
             has = groups is not None
             g = np.ascontiguousarray(groups, dtype=np.int64) if has else np.zeros(1, np.int64)
-            pairs, fine = compiled.kernels("geometry").cell_pairs(compiled.c64(p), float(radius), g, has)
+            pairs, fine = _compiled.kernels("geometry").cell_pairs(_compiled.c64(p), float(radius), g, has)
             if fine:
                 return pairs.astype(np.intp, copy=False)
             method = "brute" if n <= 4000 else "kdtree"  # more cells than int64 keys hold (absurd spreads)
@@ -258,19 +264,21 @@ def min_gaps(
     return gap
 
 
-def pair_components(n: int, ri: np.ndarray, rj: np.ndarray, *, compiled_kernel: bool | None = None) -> np.ndarray:
+def pair_components(n: int, ri: np.ndarray, rj: np.ndarray, *, compiled: bool | None = None) -> np.ndarray:
     """Connected-component label ``(n,)`` of ``n`` robots, edges ``(ri[k], rj[k])`` (none where ``rj < 0``: obstacles).
 
     Robots of one component share the label of its smallest index.  Union-find in
     the compiled kernel (:func:`aasoatt_env.model.geometry_kernel.components`;
-    ``compiled_kernel=None``: where numba imports), else min-label propagation with
+    ``compiled=None``: where numba imports), else min-label propagation with
     pointer jumping (vectorised; a handful of passes for the contact graphs met
-    here): the same labels.
+    here): the same labels.  Edge ends outside ``[0, n)``: ``ValueError``.
     """
     rr = rj >= 0
     a, b = ri[rr], rj[rr]
-    if compiled.available() if compiled_kernel is None else compiled_kernel:
-        lab = compiled.kernels("geometry").components(int(n), np.ascontiguousarray(a, np.int64),
+    if a.size and (min(a.min(), b.min()) < 0 or max(a.max(), b.max()) >= n):
+        raise ValueError(f"ri/rj: edge ends must be robot indices in [0, {n})")
+    if _compiled.available() if compiled is None else compiled:
+        lab = _compiled.kernels("geometry").components(int(n), np.ascontiguousarray(a, np.int64),
                                                       np.ascontiguousarray(b, np.int64))
         return lab.astype(np.intp, copy=False)
     lab = np.arange(n)

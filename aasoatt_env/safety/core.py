@@ -339,7 +339,7 @@ class SafetyFilter:
         p, v, A, adot = kin.p, kin.v, kin.A, kin.adot_u
 
         # neighbours and pair geometry -------------------------------------------------
-        pr = robot_pairs(p, cfg.sensing_range, groups=team.group)
+        pr = robot_pairs(p, cfg.sensing_range, groups=team.group, compiled=cfg.compiled)
         ri, rj = pr[:, 0], pr[:, 1]
         rad, amax = team.radius, team.max_point_accel
         geo_p, geo_v, geo_a = p[ri] - p[rj], v[ri] - v[rj], adot[ri] - adot[rj]
@@ -414,7 +414,7 @@ class SafetyFilter:
             bad = viol > 0.0
             coupled, label = np.zeros(n, dtype=bool), None
             if np.any(bad):
-                label = pair_components(n, ri, rj)
+                label = pair_components(n, ri, rj, compiled=cfg.compiled)
                 coupled = np.isin(label, label[ri[bad]])
             rows = coupled[ri]
         else:

@@ -498,7 +498,7 @@ def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float,
         pts = np.stack((p0.real, p0.imag), axis=1)
         search = min(float(sensing_range), 2.0 * float(rad.max(initial=0.0)) + 2.0 * float(R.max(initial=0.0))
                      + slack)
-        pr = robot_pairs(pts, search, groups=team.group)
+        pr = robot_pairs(pts, search, groups=team.group, compiled=False)  # (the numpy reference's path)
     else:
         pr = near_pairs
         # as robot_pairs at the range: <= D kept, and with groups, pairs of one group only

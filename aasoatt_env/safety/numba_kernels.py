@@ -24,6 +24,7 @@ import math
 import numpy as np
 
 from aasoatt_env.numba_jit import jit as _jit
+from aasoatt_env.numba_jit import nmax as _nmax
 
 __all__ = ["gate_full", "repair_full"]
 
@@ -77,14 +78,6 @@ def _velocity1(diff, c0, c1, tg, theta, u0, u1):
     if not diff:
         return complex(u0, u1), 0.0
     return complex(math.cos(theta), math.sin(theta)) * (c0 * u0 + c1 * u1), tg * (u0 - u1)
-
-
-@_jit
-def _nmax(a, b):
-    """``numpy.maximum`` of two numbers: NaN if either is."""
-    if a != a or b != b:
-        return np.nan
-    return a if a >= b else b
 
 
 @_jit

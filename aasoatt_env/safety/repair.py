@@ -97,8 +97,9 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     n = pose.shape[0]
     if pairs is None:
         p0 = _point(team, pose)
-        pairs = robot_pairs(np.stack((p0.real, p0.imag), axis=1), cfg.sensing_range, groups=team.group)
-    label = pair_components(n, pairs[:, 0], pairs[:, 1])
+        pairs = robot_pairs(np.stack((p0.real, p0.imag), axis=1), cfg.sensing_range, groups=team.group,
+                            compiled=cfg.compiled)
+    label = pair_components(n, pairs[:, 0], pairs[:, 1], compiled=cfg.compiled)
 
     def per_component(flags: np.ndarray) -> np.ndarray:
         """``(n,)`` bool: the robot's component has a robot with ``flags``."""

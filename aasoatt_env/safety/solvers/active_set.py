@@ -22,7 +22,7 @@ where it adds several rows at once and drops them again); it is left as soon as
 its working set is inconsistent (a working row not met as an equality: the set
 is dependent, and from there the rule wandered through sets of up to three times
 the part's variables at the crossing, each an expensive, ill-conditioned solve,
-before the budget ran out).  Then, from the same
+before the budget ran out).  Then, from the same (its point is not solved again)
 warm start, a rule with one change per iteration (add the most violated row
 while every multiplier is >= 0, else drop the first row whose multiplier crossed
 zero, the ratio test of dual active-set methods) is tried: a working set one or
@@ -431,6 +431,18 @@ class _WorkingSetLoop:
         self.y: np.ndarray | None = None
         self.lam: np.ndarray | None = None
         self.used = 0  # equality solves of every rule: the iterations reported
+        self._first: tuple[bytes, object] | None = None  # the first working set and its point (each rule starts there)
+
+    def _point(self, W: np.ndarray):
+        """``eq(W)``; the first working set's point is solved once (the next rule starts from it again)."""
+        key = W.tobytes()
+        if self._first is not None and self._first[0] == key:
+            return self._first[1]
+        point = self.eq(W)
+        self.used += 1
+        if self._first is None:
+            self._first = (key, point)
+        return point
 
     def run(self, W: np.ndarray, rule, max_iter: int, stop_inconsistent: bool = False) -> np.ndarray:
         """Iterate ``rule`` from ``W`` for at most ``max_iter`` equality solves; the last working set.
@@ -442,8 +454,7 @@ class _WorkingSetLoop:
         prev = None
         stopped = np.zeros(K, dtype=bool)
         for _ in range(max_iter):
-            point = self.eq(W)
-            self.used += 1
+            point = self._point(W)
             if point is None:  # singular working set: the groups verified so far stand
                 break
             y, lam, r = point

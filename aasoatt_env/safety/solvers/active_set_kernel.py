@@ -10,7 +10,7 @@ every "first index" tie is broken as the reference breaks it) are formed in
 :func:`~aasoatt_env.safety.solvers.active_set._dense_rows` forms them, and kept
 sparse (a row touches at most two robots); then the primal-dual rule from the
 warm start (left when the working set turns inconsistent), then the one-change
-rule from the warm start, each equality point
+rule from the warm start (whose point is not solved again), each equality point
 from a Cholesky factor of the regularised Schur complement with four steps of
 iterative refinement, and the same KKT check (primal feasibility, multiplier
 signs, the working rows met as equalities, all within
@@ -20,9 +20,12 @@ as with the reference.
 
 Where the two differ:
 
-- sums (the Schur complement, the products with it) are added in order here,
-  by BLAS in the reference, and the factor is this module's, not LAPACK's: the
-  points agree to rounding;
+- sums are added in another order (the Schur complement block by block, the
+  factor and its solves with reassociated, vectorised sums; BLAS in the
+  reference), the factor is this module's Cholesky also above 500 working rows
+  (the reference switches to a sparse LU there): the points agree to rounding;
+- an unverified group's part of the returned point and multipliers is zero (the
+  reference leaves its last iterate there; the caller reads neither);
 - so where a working set is dependent (more rows than the part's variables,
   met by the primal-dual rule from a poor start), the regularised solve is
   ill-conditioned (multipliers ~1e9) and the last bits decide the next working
@@ -246,15 +249,31 @@ def _one_change(nl, W, lam, r, prev, has_prev, tol, Wn):
 
 
 @_jit
-def _run(rb, rc, nl, nv, gt, b, W0, rule, budget, tol, W, Wn, prev, idx, rhs, lw, tmp, res, y, lam, r, bstart, blist):
-    """Iterate one rule (0: primal-dual, 1: one change) from ``W0``; returns ``(verified, equality solves)``."""
+def _run(rb, rc, nl, nv, gt, b, W0, rule, budget, tol, W, Wn, prev, idx, rhs, lw, tmp, res, y, lam, r, bstart, blist,
+         first, yf, lamf, rf):
+    """Iterate one rule (0: primal-dual, 1: one change) from ``W0``; returns ``(verified, equality solves)``.
+
+    ``first[0]``: the point of ``W0`` is in ``yf, lamf, rf`` (``first[1]``: it was singular), kept by the first
+    rule for the second (the reference's ``_WorkingSetLoop._point``).
+    """
     for q in range(nl):
         W[q] = W0[q]
     has_prev = False
     used = 0
-    for _ in range(budget):
-        ok = _equality_point(rb, rc, nl, nv, gt, b, W, idx, rhs, lw, tmp, res, y, lam, r, bstart, blist)
-        used += 1
+    for it in range(budget):
+        if it == 0 and first[0]:
+            ok = not first[1]
+            y[:nv] = yf[:nv]
+            lam[:nl] = lamf[:nl]
+            r[:nl] = rf[:nl]
+        else:
+            ok = _equality_point(rb, rc, nl, nv, gt, b, W, idx, rhs, lw, tmp, res, y, lam, r, bstart, blist)
+            used += 1
+            if it == 0:
+                first[0], first[1] = True, not ok
+                yf[:nv] = y[:nv]
+                lamf[:nl] = lam[:nl]
+                rf[:nl] = r[:nl]
         if not ok:
             return False, used
         if _verified(nl, W, lam, r, tol):
@@ -331,6 +350,8 @@ def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_it
     prev, idx = np.zeros(nlmax), np.empty(nlmax, np.int64)
     rhs, lw, tmp, res = np.empty(nlmax), np.empty(nlmax), np.empty(nlmax), np.empty(nlmax)
     y, lam, r = np.empty(nvmax), np.empty(nlmax), np.empty(nlmax)
+    yf, lamf, rf = np.empty(nvmax), np.empty(nlmax), np.empty(nlmax)  # the first working set's point
+    first = np.zeros(2, np.bool_)
     bstart, blist = np.empty(nvmax // 2 + 1, np.int64), np.empty((2 * nlmax, 2), np.int64)
     gidx = np.empty(nlmax, np.int64)  # global index of each local row
     loc = np.full(nb, -1, np.int64)  # local block of each robot of the group
@@ -373,11 +394,12 @@ def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_it
                 for c in range(2):
                     rc[ju, 0, c] = LinvT[blk, half, c] + 0.0
                     rc[jl, 0, c] = -LinvT[blk, half, c] + 0.0
+        first[0] = first[1] = False
         ok, used = _run(rb, rc, nl, nv, gl, bl, W0l, 0, max_iter, tol, W, Wn, prev, idx, rhs, lw, tmp, res, y,
-                        lam, r, bstart, blist)
+                        lam, r, bstart, blist, first, yf, lamf, rf)
         if not ok:
             ok, used2 = _run(rb, rc, nl, nv, gl, bl, W0l, 1, one_change_iter, tol, W, Wn, prev, idx, rhs, lw, tmp,
-                             res, y, lam, r, bstart, blist)
+                             res, y, lam, r, bstart, blist, first, yf, lamf, rf)
             used += used2
         used_max = max(used_max, used)
         done[g] = ok

@@ -515,6 +515,8 @@ def solve_local_qps(
     if isinstance(max_iter, bool) or not isinstance(max_iter, (int, np.integer)) or max_iter < 0:
         raise ValueError(f"max_iter: expected an integer >= 0, got {max_iter!r}")
     rt = np.asarray(relax_tol, dtype=np.float64)
+    if rt.ndim and rt.shape != (n,):
+        raise ValueError(f"relax_tol: got shape {rt.shape}, expected one value or one per robot ({n},)")
     if not (np.all(np.isfinite(rt)) and np.all(rt >= 0)):
         raise ValueError("relax_tol: expected finite values >= 0")
     x = np.empty((n, 2))
@@ -679,23 +681,25 @@ def _line_search(res: np.ndarray, delta: np.ndarray, d0: np.ndarray, d1: np.ndar
     a, b = np.zeros(d0.shape), np.ones(d0.shape)
     fa, fb = d0.copy(), d1.copy()
     side = np.zeros(d0.shape)
-    t = b
+    t = np.ones(d0.shape)
     tol = 1e-13 * (np.abs(d0) + np.abs(d1))
-    left = np.ones(d0.shape, dtype=bool)
+    act = np.arange(d0.shape[0])  # robots still searching: one that has landed keeps its root
     for _ in range(iters):
-        t = (a * fb - b * fa) / (fb - fa)
-        ft = (np.maximum(res + t[:, None] * delta, 0.0) * delta) @ one
-        left = np.abs(ft) > tol
-        if not np.any(left):
+        ta = (a[act] * fb[act] - b[act] * fa[act]) / (fb[act] - fa[act])
+        t[act] = ta
+        ft = (np.maximum(res[act] + ta[:, None] * delta[act], 0.0) * delta[act]) @ one
+        left = np.abs(ft) > tol[act]
+        act, ta, ft = act[left], ta[left], ft[left]
+        if act.size == 0:
             return t
         neg = ft < 0
-        a, fa = np.where(neg, t, a), np.where(neg, ft, fa)
-        b, fb = np.where(neg, b, t), np.where(neg, fb, ft)
-        fb = np.where(neg & (side > 0), 0.5 * fb, fb)  # the same end kept twice: halve its weight
-        fa = np.where(~neg & (side < 0), 0.5 * fa, fa)
-        side = np.where(neg, 1.0, -1.0)
-    hard = np.flatnonzero(left)
-    t[hard] = _line_min(res[hard], delta[hard])
+        sd = side[act]
+        a[act], fa[act] = np.where(neg, ta, a[act]), np.where(neg, ft, fa[act])
+        b[act], fb[act] = np.where(neg, b[act], ta), np.where(neg, fb[act], ft)
+        fb[act] = np.where(neg & (sd > 0), 0.5 * fb[act], fb[act])  # the same end kept twice: halve its weight
+        fa[act] = np.where(~neg & (sd < 0), 0.5 * fa[act], fa[act])
+        side[act] = np.where(neg, 1.0, -1.0)
+    t[act] = _line_min(res[act], delta[act])
     return t
 
 

@@ -13,9 +13,6 @@ Where the two differ (numbers, not decisions, on the states tested):
 
 - sums over a robot's rows (the phase-1 gradient and Hessian) are taken in
   order here; numpy's matrix-vector products may add them in another order;
-- the phase-1 line search stops for a robot once its own derivative is zero
-  within tolerance; the vectorised one keeps refining a converged robot while
-  others of the batch still iterate (a last-bit move of the same root);
 - zero rows (normal below tolerance) and rows whose normalised right-hand side
   is ``>= 1e300`` (never violated; numpy's padding value) are left out of the
   table here instead of leaving empty or padding slots: such slots are never a
@@ -29,6 +26,9 @@ import math
 import numpy as np
 
 from aasoatt_env.numba_jit import jit as _jit
+from aasoatt_env.numba_jit import nclip as _clip
+from aasoatt_env.numba_jit import nmax as _nmax
+from aasoatt_env.numba_jit import nmin as _nmin
 
 __all__ = ["solve_all"]
 
@@ -39,28 +39,6 @@ _PAD_B = 1e300
 _INF = math.inf
 _LS_ITERS = 4
 _LV_ITERS = 40
-
-
-@_jit
-def _nmin(a, b):
-    """``np.minimum`` of two numbers (NaN propagates)."""
-    if a != a or b != b:
-        return math.nan
-    return a if a <= b else b
-
-
-@_jit
-def _nmax(a, b):
-    """``np.maximum`` of two numbers (NaN propagates)."""
-    if a != a or b != b:
-        return math.nan
-    return a if a >= b else b
-
-
-@_jit
-def _clip(a, lo, hi):
-    """``np.clip`` / ``np.minimum(np.maximum(a, lo), hi)`` of one number."""
-    return _nmin(_nmax(a, lo), hi)
 
 
 # --------------------------------------------------------------------------- dual active set, one robot
