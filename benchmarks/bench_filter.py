@@ -4,7 +4,7 @@ Scenes (each a sequence of consecutive physics steps, so warm starts carry from
 step to step as they do in use; every variant sees the same states):
 
   circle   the circle swap (R = 6) around the centre crossing (steps 1100-1119 of
-           the tracking controller behind the default filter with its numpy layer), N = 10 and 39
+           the tracking controller behind the default filter with ``kernel="numpy"``), N = 10 and 39
   packed   a jittered grid 1.1 m apart, robots moving at 0.5-1 m/s in random
            directions, held random nominals of up to 30 rad/s^2 (a congested
            moment: every robot has many neighbours within D = 3 m and most
@@ -14,9 +14,10 @@ step to step as they do in use; every variant sees the same states):
 
 Columns (median ms per whole ``SafetyFilter.step``: neighbours, rows, QP, backup layer, result):
 
-  ours          the default filter (decomposition, warm active set, proxsuite, backup layer;
-                the layer's check and repair compiled when numba is installed, ``kernel="auto"``)
-  numpy layer   the same with the layer's numpy reference (``kernel="numpy"``)
+  ours          the default filter (decomposition, warm active set, proxsuite, backup layer; the
+                layer's check and repair, the warm active set, the local solver and the neighbour
+                search compiled when numba is installed, ``kernel="auto"``)
+  numpy         the same with every part's numpy reference (``kernel="numpy"``)
   layer off     the same without the backup layer (the paper's filter)
   whole QP      one QP for the whole team, proxsuite (``decompose=False``, no warm start)
   cvxopt        Robotarium-style: the whole team in one ``cvxopt.solvers.qp`` call
@@ -62,7 +63,7 @@ from agents import TrackingController  # noqa: E402
 
 VARIANTS = {
     "ours": {},
-    "numpy layer": {"kernel": "numpy"},
+    "numpy": {"kernel": "numpy"},
     "layer off": {"backup": False},
     "whole QP": {"decompose": False, "active_set": False, "backup": False},
     "cvxopt": {"solver": "cvxopt", "decompose": False, "active_set": False, "backup": False},
