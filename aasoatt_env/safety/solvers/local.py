@@ -528,7 +528,7 @@ def solve_local_qps(
         return LocalSolution(x, lam, lam_box, feasible, loosened, 0, 0)
     if compiled:
         bad = np.zeros(n, dtype=bool)
-        rt = np.broadcast_to(np.asarray(relax_tol, dtype=np.float64), (n,))
+        rt = np.broadcast_to(rt, (n,))
         its, n_enum = kernels("local").solve_all(
             *(c64(a) for a in (H, g, lb, ub)), np.ascontiguousarray(owner, dtype=np.int64), c64(G), c64(h),
             bool(relax), c64(rt), float(tol), int(max_iter), x, lam, lam_box, feasible, loosened, bad)
@@ -575,7 +575,7 @@ def solve_local_qps(
     feasible[sub] = feas
     bad = np.flatnonzero(~feas)
     if bad.size and relax:
-        rt = np.broadcast_to(np.asarray(relax_tol, dtype=np.float64), (n,))[sub]
+        rt = np.broadcast_to(rt, (n,))[sub]
         its2, n2 = _relax(T, S, sy0, tol_k, bad, (l11[sub], l21[sub], l22[sub]), slb, sub_, Gs, rt,
                           ys, mus, loosened, rsel, max_iter)
         its, n_enum = max(its, its2), n_enum + n2
