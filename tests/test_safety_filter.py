@@ -335,7 +335,8 @@ def test_the_compiled_cells_give_the_brute_forces_pairs_and_components():
             p = np.round(p, 0)  # coincident points and distances of exactly the radius
         if k % 5 == 0:
             p[rng.integers(0, n, 3)] = np.nan  # no position: no pair
-        cases.append((p, float(rng.choice([0.5, 3.0, 7.0])), rng.integers(0, 3, n) if k % 3 == 0 else None))
+        labels = rng.integers(0, 3, n) * (0.25 if k % 2 else 1)  # integer labels, or fractional ones
+        cases.append((p, float(rng.choice([0.5, 3.0, 7.0])), labels if k % 3 == 0 else None))
     total = 0
     for p, r, g in cases:
         ref = robot_pairs(p, r, method="brute", groups=g)

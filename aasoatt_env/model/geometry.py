@@ -135,6 +135,8 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
             method = "brute"  # no cell width: the brute force answers (only coincident points at radius 0)
         else:
             has = groups is not None
+            if has and not np.issubdtype(np.asarray(groups).dtype, np.integer):  # any labels: their classes
+                groups = np.unique(groups, return_inverse=True)[1].reshape(-1)
             g = np.ascontiguousarray(groups, dtype=np.int64) if has else np.zeros(1, np.int64)
             pairs, fine = _compiled.kernels("geometry").cell_pairs(_compiled.c64(p), float(radius), g, has)
             if fine:
