@@ -359,6 +359,8 @@ def test_geometry_refuses_indices_and_labels_that_do_not_fit(compiled):
         pair_components(3, np.array([0, 1]), np.array([5, 2]), compiled=compiled)
     with pytest.raises(ValueError, match=r"ri/rj"):
         pair_components(3, np.array([-2]), np.array([1]), compiled=compiled)
+    with pytest.raises(ValueError, match=r"ri/rj: edge ends must be integer robot indices"):
+        pair_components(3, np.array([0.5]), np.array([1.0]), compiled=compiled)
     assert pair_components(3, np.array([0]), np.array([-1]), compiled=compiled).tolist() == [0, 1, 2]  # obstacle
     p = np.random.default_rng(0).uniform(0, 20, (250, 2))
     for method in ("brute", "kdtree", "cells" if compiled else "brute"):

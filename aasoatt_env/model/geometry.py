@@ -275,6 +275,9 @@ def pair_components(n: int, ri: np.ndarray, rj: np.ndarray, *, compiled: bool | 
     pointer jumping (vectorised; a handful of passes for the contact graphs met
     here): the same labels.  Edge ends outside ``[0, n)``: ``ValueError``.
     """
+    ri, rj = np.asarray(ri), np.asarray(rj)
+    if not (np.issubdtype(ri.dtype, np.integer) and np.issubdtype(rj.dtype, np.integer)) and ri.size:
+        raise ValueError(f"ri/rj: edge ends must be integer robot indices, got {ri.dtype}/{rj.dtype}")
     rr = rj >= 0
     a, b = ri[rr], rj[rr]
     if a.size and (min(a.min(), b.min()) < 0 or max(a.max(), b.max()) >= n):
