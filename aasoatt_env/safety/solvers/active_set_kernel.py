@@ -24,8 +24,6 @@ Where the two differ:
   factor and its solves with reassociated, vectorised sums; BLAS in the
   reference), the factor is this module's Cholesky also above 500 working rows
   (the reference switches to a sparse LU there): the points agree to rounding;
-- an unverified group's part of the returned point and multipliers is zero (the
-  reference leaves its last iterate there; the caller reads neither);
 - so where a working set is dependent (more rows than the part's variables,
   met by the primal-dual rule from a poor start), the regularised solve is
   ill-conditioned (multipliers ~1e9) and the last bits decide the next working
@@ -41,6 +39,8 @@ Where the two differ:
 - a singular working set ends that group's rule here; in the reference it ends
   the rule for every group not yet verified (those groups then go on to the
   next rule or the general solver);
+- an unverified group's part of the returned point and multipliers is zero (the
+  reference leaves its last iterate there; the caller reads neither);
 - the iterations reported are the largest count of equality solves of any
   group (the reference counts its whole-problem solves).
 """
