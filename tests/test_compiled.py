@@ -21,7 +21,7 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT, input_bounds
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import RobotParams, make_team, stack_teams
-from aasoatt_env.safety import SafetyFilter
+from aasoatt_env.safety import SafetyFilter, warm_up
 from aasoatt_env.safety.backup import _point
 from aasoatt_env.safety.gatekeeper import gatekeeper
 from aasoatt_env.safety.problem import build_problem
@@ -283,6 +283,49 @@ def test_the_active_set_refuses_groups_that_are_not_labels(use_kernel):
                                                  compiled=use_kernel) is None
     ok = active_set.solve_active_set_parts(prob, np.zeros(6), np.ones(1), np.array([0, 0, 1]), compiled=use_kernel)
     assert ok.ok.all() and np.allclose(ok.x.reshape(3, 2)[2], [0.5, 0.5])
+
+
+def _signatures() -> dict:
+    """Compiled specialisations of every kernel entry point."""
+    entries = {"backup": ("gate_full", "repair_full"), "local": ("solve_all",), "active_set": ("solve_parts",),
+               "geometry": ("cell_pairs", "components")}
+    return {f"{p}.{n}": len(getattr(compiled.kernels(p), n).signatures) for p, names in entries.items() for n in names}
+
+
+@needs_numba
+def test_warm_up_compiles_what_the_filter_runs():
+    """After ``warm_up`` the filter compiles nothing more: hostile runs of both modes, with obstacles, in a stack
+    of teams and of 250 robots (the cells) use the specialisations it made."""
+    assert SafetyFilter(kernel="auto").warm_up() is True
+    before = _signatures()
+    assert all(v >= 1 for v in before.values())
+    runs = [("random_goals", {"num_robots": 250}), ("circle_obstacles", {"num_robots": 10})]
+    for mode in ("centralized", "decentralized"):
+        for scenario, kw in runs:
+            env = make_env(scenario, filter={"mode": mode}, max_steps=25, **kw)
+            obs, _ = env.reset(seed=2)
+            agent = HostileAgent()
+            for _ in range(25):
+                obs, *_ = env.step(agent.act(obs, env))
+    batch = make_batched_env(4, "random_goals", num_robots=6, filter=True)
+    batch.reset(seed=3)
+    for _ in range(10):
+        batch.step(np.random.default_rng(3).uniform(-1.0, 1.0, (4, 6, 2)))
+    assert _signatures() == before
+
+
+def test_warm_up_without_kernels(monkeypatch):
+    def refuse(part):
+        raise AssertionError(f"the {part} kernels were asked for")
+
+    monkeypatch.setattr(compiled, "kernels", refuse)
+    assert warm_up("numpy") is False
+    with pytest.raises(ConfigError, match=r"kernel: got 'fast', expected one of \['auto', 'numpy', 'numba'\]"):
+        warm_up("fast")
+    monkeypatch.setattr(compiled, "_load", lambda name: None)  # numba missing
+    assert warm_up("auto") is False
+    with pytest.raises(ConfigError, match=r"kernel: .*pip install \"aasoatt\[fast\]\""):
+        warm_up("numba")
 
 
 def test_kernel_option_is_validated():

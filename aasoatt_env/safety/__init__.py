@@ -17,6 +17,7 @@ from aasoatt_env.safety.core import FilterResult, SafetyFilter
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
 from aasoatt_env.safety.problem import build_problem
 from aasoatt_env.safety.solvers import SOLVERS, available_solvers, solve_qp
+from aasoatt_env.safety.warm_up import warm_up
 from aasoatt_env.safety.wrapper import AASOATTFilter, FilterReport
 
 __all__ = [
@@ -34,4 +35,5 @@ __all__ = [
     "build_problem",
     "get_barrier",
     "solve_qp",
+    "warm_up",
 ]

@@ -203,6 +203,15 @@ class SafetyFilter:
                                     options={"iterations": cfg.neural_iterations}, compiled=cfg.compiled)
         self.reset(team)
 
+    def warm_up(self) -> bool:
+        """Compile this filter's kernels now (:func:`aasoatt_env.safety.warm_up.warm_up`), before a control loop.
+
+        Returns whether kernels were run (``False`` with ``kernel="numpy"`` or without numba).
+        """
+        from aasoatt_env.safety.warm_up import warm_up  # (warm_up builds its problems with this layer's parts)
+
+        return warm_up(self.config.kernel)
+
     def reset(self, team: Team | None = None) -> None:
         """Forget the warm start, the deadlock memory and the solver's path state; bind ``team`` if given."""
         if team is not None:
