@@ -43,6 +43,7 @@ from aasoatt_env.safety.decentralized import decentralized_step
 from aasoatt_env.safety.problem import box_least_squares, build_problem
 from aasoatt_env.safety.repair import gate_with_repair
 from aasoatt_env.safety.solvers import SolverPolicy
+from aasoatt_env.safety.warm_up import warm_up
 from aasoatt_env.sim.protocol import FilterInput
 from aasoatt_env.validation import MAGNITUDE_MAX
 
@@ -208,8 +209,6 @@ class SafetyFilter:
 
         Returns whether kernels were run (``False`` with ``kernel="numpy"`` or without numba).
         """
-        from aasoatt_env.safety.warm_up import warm_up  # (warm_up builds its problems with this layer's parts)
-
         return warm_up(self.config.kernel)
 
     def reset(self, team: Team | None = None) -> None:
