@@ -250,18 +250,16 @@ def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
         return dx, dy
     best = _INF
     bx, by = dx, dy
-    for e in range(2):  # edges d_x = const
-        fx = lox if e == 0 else hix
-        cy = _clip(-(gy + hxy * fx) / hyy, loy, hiy)
-        f = 0.5 * (hxx * fx * fx + 2 * hxy * fx * cy + hyy * cy * cy) + gx * fx + gy * cy
+    for e in range(4):  # the edges d_x = lo, hi, then d_y = lo, hi: the other coordinate's minimiser
+        if e < 2:
+            x = lox if e == 0 else hix
+            y = _clip(-(gy + hxy * x) / hyy, loy, hiy)
+        else:
+            y = loy if e == 2 else hiy
+            x = _clip(-(gx + hxy * y) / hxx, lox, hix)
+        f = 0.5 * (hxx * x * x + 2 * hxy * x * y + hyy * y * y) + gx * x + gy * y
         if f < best:
-            best, bx, by = f, fx, cy
-    for e in range(2):  # edges d_y = const
-        fy = loy if e == 0 else hiy
-        cx = _clip(-(gx + hxy * fy) / hxx, lox, hix)
-        f = 0.5 * (hxx * cx * cx + 2 * hxy * cx * fy + hyy * fy * fy) + gx * cx + gy * fy
-        if f < best:
-            best, bx, by = f, cx, fy
+            best, bx, by = f, x, y
     return bx, by
 
 
