@@ -19,7 +19,11 @@ in the overhead of its calls rather than in arithmetic
 - the centralised filter's warm active set on small dense parts
   (:func:`~aasoatt_env.safety.solvers.active_set.solve_active_set_parts`): each
   independent part's working-set rules, equality points and KKT check
-  (:mod:`aasoatt_env.safety.solvers.active_set_kernel`).
+  (:mod:`aasoatt_env.safety.solvers.active_set_kernel`), and a warm-started
+  centralised step's whole decomposition around it (each robot's closed form,
+  the violated rows' components, the scaled problem, the active set:
+  :mod:`aasoatt_env.safety.decomposition_kernel`, which answers only where it
+  verifies every component, with the numpy path's numbers).
 
 The kernels are the same loops compiled with numba (``pip install
 "aasoatt[fast]"``), imported only when first used.  The numpy code stays the
@@ -66,6 +70,7 @@ PARTS: dict[str, str] = {
     "local": "aasoatt_env.safety.solvers.local_kernel",
     "active_set": "aasoatt_env.safety.solvers.active_set_kernel",
     "geometry": "aasoatt_env.model.geometry_kernel",
+    "decomposition": "aasoatt_env.safety.decomposition_kernel",
 }
 """The compiled parts and their modules."""
 

@@ -18,7 +18,7 @@ from aasoatt_env.analysis.metrics import pairwise_min_distance
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.api.factory import make_batched_env
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.model.dynamics import DT, input_bounds
+from aasoatt_env.model.dynamics import DT, input_bounds, kinematics
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import RobotParams, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter, warm_up
@@ -285,10 +285,80 @@ def test_the_active_set_refuses_groups_that_are_not_labels(use_kernel):
     assert ok.ok.all() and np.allclose(ok.x.reshape(3, 2)[2], [0.5, 0.5])
 
 
+def _central_answers(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
+    """Every centralised step's answer along a closed loop, with the compiled decomposition tried or not."""
+    from aasoatt_env.safety import core, decomposition
+
+    answers, kernel_answers = [], [0]
+    real, solve = decomposition._compiled, core.solve_centralized
+
+    def counted(*args):
+        out = real(*args)
+        kernel_answers[0] += out is not None
+        return out
+
+    def record(*args, **kw):
+        out = solve(*args, **kw)
+        answers.append(out)
+        return out
+
+    monkeypatch.setattr(decomposition, "_compiled", counted if fused else (lambda *args: None))
+    monkeypatch.setattr(core, "solve_centralized", record)
+    if scene == "stack":  # a training stack: 8 teams of 6 under uniform random actions
+        batch = make_batched_env(8, "random_goals", num_robots=6, filter=True)
+        batch.reset(seed=11)
+        rng = np.random.default_rng(11)
+        for _ in range(400):
+            batch.step(rng.uniform(-1.0, 1.0, (8, 6, 2)))
+    else:  # a small circle swap's crossing under the tracking law; circles among obstacles under bursts
+        env = (make_env("circle_swap", num_robots=12, radius=2.0, duration=4.0, settle_time=0.0, max_steps=400,
+                        filter=True)
+               if scene == "crossing" else make_env("circle_obstacles", num_robots=10, max_steps=600, filter=True))
+        agent = TrackingController() if scene == "crossing" else ADVERSARIES["burst"](rest_steps=10)
+        obs, _ = env.reset(seed=12)
+        for _ in range(env.max_steps):
+            obs, *_ = env.step(agent.act(obs, env))
+    monkeypatch.undo()
+    return answers, kernel_answers[0]
+
+
+@needs_numba
+@pytest.mark.parametrize("scene", ["stack", "crossing", "obstacles"])
+def test_the_compiled_decomposition_answers_as_the_numpy_path(monkeypatch, scene):
+    """Along closed loops, every step's answer with the compiled decomposition equals the numpy path's bit for
+    bit (inputs, scaled points, multipliers, status, message, iterations), and the kernel answers most steps."""
+    ref, _ = _central_answers(monkeypatch, False, scene)
+    out, by_kernel = _central_answers(monkeypatch, True, scene)
+    assert len(out) == len(ref) > 300
+    for a, b in zip(out, ref):
+        for field in ("du", "x", "z", "eta"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+        assert (a.status, a.message, a.iterations, a.n_qp) == (b.status, b.message, b.iterations, b.n_qp)
+    qp_steps = sum(a.n_qp > 0 for a in out)
+    assert qp_steps > 50 and by_kernel > 0.8 * len(out)
+
+
+@needs_numba
+def test_the_compiled_box_least_squares_is_the_numpy_one():
+    """Every robot's closed form, inside and outside its box, on every edge and corner: the same numbers."""
+    from aasoatt_env.safety.problem import box_least_squares
+
+    rng = np.random.default_rng(13)
+    team = make_team(["paper", "turtlebot3_burger", RobotParams(radius=0.3, offset=0.1)] * 1000, 3000)
+    u = rng.uniform(-8.0, 8.0, (team.n, 2))
+    kin = kinematics(team, np.column_stack((rng.uniform(-5, 5, (team.n, 2)), rng.uniform(-np.pi, np.pi, team.n))), u)
+    lo, hi = input_bounds(team, u, DT)
+    target = rng.normal(0.0, 3.0, (team.n, 2)) * rng.choice([0.01, 1.0, 100.0], (team.n, 1))
+    ref = box_least_squares(kin.A, target, lo, hi)
+    np.testing.assert_array_equal(box_least_squares(kin.A, target, lo, hi, compiled=True), ref)
+    inside = ((ref > lo) & (ref < hi)).all(axis=1)
+    assert 0.05 * team.n < inside.sum() < 0.95 * team.n
+
+
 def _signatures() -> dict:
     """Compiled specialisations of every kernel entry point."""
     entries = {"backup": ("gate_full", "repair_full"), "local": ("solve_all",), "active_set": ("solve_parts",),
-               "geometry": ("cell_pairs", "components")}
+               "geometry": ("cell_pairs", "components"), "decomposition": ("solve_decomposed", "box_least_squares")}
     return {f"{p}.{n}": len(getattr(compiled.kernels(p), n).signatures) for p, names in entries.items() for n in names}
 
 

@@ -572,6 +572,24 @@ def _problem_from(team, kin, u, theta, nom, lo, hi, ref, probs, real_solve):
     return probs[0]
 
 
+def test_a_verified_step_elsewhere_counts_as_one_through_the_policy():
+    """``note_fast_answer``: a running switch to the exact path counts down as for a step through ``solve``, and
+    outside one a fast answer clears the stall count (as ``_adapt`` of a fast answer does)."""
+    from aasoatt_env.safety.solvers import EXACT_STEPS, SolverPolicy
+    from aasoatt_env.safety.solvers.policy import EXACT_FIRST_VARS
+
+    pol = SolverPolicy("proxsuite", active_set=True)
+    assert pol.backend.may_stall
+    pol._exact_steps, pol._stalls = EXACT_STEPS, 2
+    for left in range(EXACT_STEPS - 1, -1, -1):
+        pol.note_fast_answer(EXACT_FIRST_VARS + 2)
+        assert pol._exact_steps == left and pol._stalls == 2
+    pol.note_fast_answer(EXACT_FIRST_VARS)  # small problems take the exact path: no count of stalls
+    assert pol._stalls == 2
+    pol.note_fast_answer(EXACT_FIRST_VARS + 2)
+    assert pol._exact_steps == 0 and pol._stalls == 0
+
+
 @pytest.mark.parametrize(("ldp_time", "switches"), [(0.01, True), (0.9, False)])
 def test_slow_proxsuite_switches_to_ldp_only_when_ldp_is_faster(monkeypatch, ldp_time, switches):
     import dataclasses
@@ -591,7 +609,9 @@ def test_slow_proxsuite_switches_to_ldp_only_when_ldp_is_faster(monkeypatch, ldp
 
     monkeypatch.setattr(core, "solve_qp", timed)
     scen = circle_layout(10, radius=6.0, duration=12.0)
-    out = closed_loop(scen, SafetyFilter(scen.team), 6.0)
+    # the numpy path: every step through the policy's solve (the compiled decomposition answers the steps it
+    # verifies itself and tells the policy, test_a_verified_step_elsewhere_counts_as_one_through_the_policy)
+    out = closed_loop(scen, SafetyFilter(scen.team, kernel="numpy"), 6.0)
     assert out.statuses.get("failed", 0) == 0
     first = log.index("proxsuite")
     assert log[first + 1] == "ldp"  # the timing probe on the same problem

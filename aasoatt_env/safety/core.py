@@ -34,13 +34,13 @@ from aasoatt_env.compiled import NUMBA_MISSING
 from aasoatt_env.compiled import available as compiled_available
 from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
-from aasoatt_env.model.geometry import obstacle_pairs, pair_components, robot_pairs
+from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
 from aasoatt_env.safety.decentralized import decentralized_step
-from aasoatt_env.safety.problem import box_least_squares, build_problem
+from aasoatt_env.safety.decomposition import row_values, solve_centralized
 from aasoatt_env.safety.repair import gate_with_repair
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.warm_up import warm_up
@@ -407,58 +407,20 @@ class SafetyFilter:
         m_obs = n + (0 if obstacles is None else int(np.asarray(obstacles[1]).size))
         keys = ri.astype(np.int64) * (m_obs + 1) + np.where(rj >= 0, rj, n - 1 - pairs_out[:, 1])
         m = rhs.shape[0]
-        du = np.empty((n, 2))
         if decentral:  # every robot its own QP over its halves of the rows: no team QP below
             dec = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, scale=scale,
                                      compiled=cfg.compiled)
-            du[:] = dec.du
-            coupled, rows = np.zeros(n, dtype=bool), np.zeros(m, dtype=bool)
-        elif cfg.decompose and self._solver.exact:
-            # Exact decomposition.  Without rows every robot's QP is a 2-variable box
-            # least squares (closed form).  The rows split the team into independent
-            # components; a component whose closed-form answers already satisfy all its
-            # rows is solved by them (optimal for the relaxation and feasible).  The QP
-            # couples only the components with a violated row.
-            du[:] = box_least_squares(A, target, lo, hi)
-            viol = self._row_values(Gi, Gj, ri, rj, du) - rhs
-            bad = viol > 0.0
-            coupled, label = np.zeros(n, dtype=bool), None
-            if np.any(bad):
-                label = pair_components(n, ri, rj, compiled=cfg.compiled)
-                coupled = np.isin(label, label[ri[bad]])
-            rows = coupled[ri]
-        else:
-            coupled, rows, label = np.ones(n, dtype=bool), np.ones(m, dtype=bool), None
-        sub = np.flatnonzero(coupled)
-        x_full = du / scale[:, None]
-        z = np.zeros(m)
-        eta = np.zeros(m)
-        if sub.size:
-            remap = np.full(n, -1, dtype=np.intp)
-            remap[sub] = np.arange(sub.size)
-            qri, qrj = ri[rows], rj[rows]
-            sri, srj = remap[qri], np.where(qrj >= 0, remap[np.maximum(qrj, 0)], -1)
-            prob = build_problem(A[sub], target[sub], lo[sub], hi[sub], scale[sub], sri, srj,
-                                 Gi[rows], Gj[rows], rhs[rows])
-            z0 = self._map_warm(keys)
-            x0 = None if self._x is None else self._x.reshape(n, 2)[sub].ravel()
-            # the coupled components, independent parts of one QP: each verified on its own
-            groups = None if label is None else np.unique(label[sub], return_inverse=True)[1].reshape(-1)
-            sol = self._solver.solve(prob, x0, None if z0 is None else z0[rows], groups)
-            x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
-            du[sub] = np.clip((x * prob.scale).reshape(-1, 2), lo[sub], hi[sub])
-            x_full[sub] = x.reshape(-1, 2)
-            zs = np.where(np.isfinite(sol.z), sol.z, 0.0) if sol.z is not None else np.zeros(prob.m)
-            z[rows] = zs
-            eta[rows] = prob.obj_scale * zs / prob.row_norm
-            status, message, iterations, n_qp = sol.status, sol.message, sol.iterations, prob.m
-        else:
-            status, message, iterations, n_qp = "solved", "closed form: no row binds", 0, 0
-        if decentral:
+            du, x_full = dec.du.copy(), dec.du / scale[:, None]
             z, eta, iterations, n_qp = dec.z, dec.eta, dec.iterations, m
             status = "relaxed" if dec.n_relaxed else "solved"
             message = f"decentralized: {n} local QPs" + (f", {dec.n_relaxed} infeasible (relaxed)" if dec.n_relaxed
                                                          else "")
+        else:
+            ans = solve_centralized(self._solver, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs,
+                                    None if self._x is None else self._x.reshape(n, 2), self._map_warm(keys),
+                                    decompose=cfg.decompose, compiled=cfg.compiled)
+            du, x_full, z, eta = ans.du, ans.x, ans.z, ans.eta
+            status, message, iterations, n_qp = ans.status, ans.message, ans.iterations, ans.n_qp
         self._x, self._keys, self._z = x_full.ravel(), keys, z
         self._key_robots = np.stack((ri, rj), axis=1)
         avoiding = np.zeros(n, dtype=bool)
@@ -474,7 +436,7 @@ class SafetyFilter:
         exact = decentral or self._solver.exact
         slack = 0.0
         if status != "solved" or not exact:  # (a solved exact answer meets every row: nothing to measure)
-            slack = float(max(0.0, np.max(self._row_values(Gi, Gj, ri, rj, du) - rhs, initial=0.0)))
+            slack = float(max(0.0, np.max(row_values(Gi, Gj, ri, rj, du) - rhs, initial=0.0)))
 
         # backup layer -----------------------------------------------------------------
         braking = nudged = np.zeros(n, dtype=bool)
@@ -510,12 +472,6 @@ class SafetyFilter:
         return du, result
 
     # ------------------------------------------------------------------ helpers
-    @staticmethod
-    def _row_values(Gi: np.ndarray, Gj: np.ndarray, ri: np.ndarray, rj: np.ndarray, du: np.ndarray) -> np.ndarray:
-        """``G du`` row by row (``Gj`` ignored on obstacle rows)."""
-        du_j = np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)])
-        return np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0)
-
     def _check_range(self, team: Team) -> None:
         """The sensing range must cover contact and, with the backup layer, leave room to brake; groups per robot."""
         if team.group is not None and (np.shape(team.group) != (team.n,)

@@ -253,7 +253,7 @@ def decentralized_step(
     g = np.stack((-2.0 * (a00 * t0 + a10 * t1), -2.0 * (a01 * t0 + a11 * t1)), axis=1)
     if split not in SPLITS:
         raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")
-    du0 = box_least_squares(A, target, lo, hi) if split == "reciprocal" else None
+    du0 = box_least_squares(A, target, lo, hi, compiled=compiled) if split == "reciprocal" else None
     sp = split_rows(ri, rj, Gi, Gj, rhs, authority, du0)
     sol = solve_local_qps(H, g, lo, hi, sp.owner, sp.G, sp.h, relax=True, relax_tol=RELAX_TOL * scale,
                           compiled=compiled)

@@ -21,6 +21,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from aasoatt_env.compiled import c64, kernels
+
 __all__ = ["QPProblem", "box_least_squares", "build_problem"]
 
 
@@ -177,7 +179,8 @@ def build_problem(
     )
 
 
-def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, *,
+                      compiled: bool = False) -> np.ndarray:
     """Per robot ``argmin |A_i du_i - target_i|^2  s.t.  lo_i <= du_i <= hi_i``, in closed form.
 
     The QP of a robot in no row: two variables, a box.  If the unconstrained
@@ -193,12 +196,17 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
         Desired control-point accelerations ``(K, 2)``.
     lo, hi : numpy.ndarray
         Bounds ``(K, 2)`` with ``lo <= hi``.
+    compiled : bool
+        Run the same operations in a compiled loop
+        (:func:`aasoatt_env.safety.decomposition_kernel.box_least_squares`: the same numbers).
 
     Returns
     -------
     numpy.ndarray
         ``du`` ``(K, 2)``, inside the bounds.
     """
+    if compiled:
+        return kernels("decomposition").box_least_squares(c64(A), c64(target), c64(lo), c64(hi))
     a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
     t0, t1 = target[:, 0], target[:, 1]
     det = a * d - b * c

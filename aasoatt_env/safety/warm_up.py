@@ -18,9 +18,11 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT, input_bounds
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import make_team
+from aasoatt_env.safety.decomposition import solve_centralized
 from aasoatt_env.safety.gatekeeper import gatekeeper
-from aasoatt_env.safety.problem import build_problem
+from aasoatt_env.safety.problem import box_least_squares, build_problem
 from aasoatt_env.safety.repair import repair
+from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers.active_set import solve_active_set_parts
 from aasoatt_env.safety.solvers.local import solve_local_qps
 
@@ -70,4 +72,11 @@ def warm_up(kernel: str = "auto") -> bool:
                          np.ones((2, 2)), np.ones(2), np.array([0]), np.array([1]), np.array([[1.0, 0.0]]),
                          np.array([[-1.0, 0.0]]), np.array([0.1]))
     solve_active_set_parts(prob, np.zeros(4), np.ones(1), None, compiled=True)
+    # the same two robots' closed forms (the decentralised split's), and through the centralised step's
+    # compiled decomposition
+    policy = SolverPolicy("proxsuite", active_set=True, compiled=True)
+    solve_centralized(policy, np.tile(np.eye(2), (2, 1, 1)), np.array([[1.0, 0.0], [-1.0, 0.0]]), -np.ones((2, 2)),
+                      np.ones((2, 2)), np.ones(2), np.array([0]), np.array([1]), np.array([[1.0, 0.0]]),
+                      np.array([[-1.0, 0.0]]), np.array([0.1]), np.zeros((2, 2)), np.ones(1), compiled=True)
+    box_least_squares(np.tile(np.eye(2), (2, 1, 1)), np.ones((2, 2)), -np.ones((2, 2)), np.ones((2, 2)), compiled=True)
     return True

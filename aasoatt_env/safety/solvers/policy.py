@@ -290,23 +290,34 @@ class SolverPolicy:
             opts["active_set"] = True
         if not self.backend.may_stall:
             return solve_qp(prob, self.solver, x0, z0, **opts)
-        if self._exact_path(prob):
+        if self._exact_path(prob.n):
             return solve_qp(prob, self.solver, x0, z0, prefer_exact=True, **opts)
         sol = solve_qp(prob, self.solver, x0, z0, **opts)
         self._adapt(prob, sol)
         return sol
 
-    def _exact_path(self, prob: QPProblem) -> bool:
-        """Whether this call takes the exact path first (small problem, or a switch running; counted down)."""
-        if self._exact_steps > 0 or prob.n <= EXACT_FIRST_VARS:
+    def _exact_path(self, n_vars: int) -> bool:
+        """Whether a call on ``n_vars`` variables takes the exact path first (small, or a switch on; counted down)."""
+        if self._exact_steps > 0 or n_vars <= EXACT_FIRST_VARS:
             self._exact_steps = max(self._exact_steps - 1, 0)
             return True
         return False
 
     def _count(self, prob: QPProblem, sol: QPSolution) -> None:
         """The switch state after a call the active set answered without :meth:`_solve` (as if through it)."""
-        if self.backend.may_stall and not self._exact_path(prob):
+        if self.backend.may_stall and not self._exact_path(prob.n):
             self._adapt(prob, sol)
+
+    def note_fast_answer(self, n_vars: int) -> None:
+        """The switch state after the warm active set answered a problem of ``n_vars`` variables elsewhere.
+
+        For a caller that runs the warm active set itself (the compiled decomposition,
+        :mod:`aasoatt_env.safety.decomposition`), within :data:`SLOW_SOLVE_S` (a slower
+        answer needs the problem for :meth:`_adapt`'s probe: such a caller calls
+        :meth:`solve`): the state :meth:`solve` would have left.
+        """
+        if self.backend.may_stall and not self._exact_path(n_vars):
+            self._stalls = 0  # (_adapt of a fast answer without a stall)
 
     def _adapt(self, prob: QPProblem, sol: QPSolution) -> None:
         """Switch to the exact path if the back-end stalled, or was slow where ``ldp`` is faster.

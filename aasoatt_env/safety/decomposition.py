@@ -1,0 +1,165 @@
+"""The centralised filter's QP, solved exactly by independent parts.
+
+Without rows every robot's QP is a 2-variable box least squares (closed form,
+:func:`~aasoatt_env.safety.problem.box_least_squares`).  The rows split the
+team into independent contact components; a component whose closed-form
+answers already meet all its rows is solved by them (optimal for the
+relaxation and feasible).  The QP couples only the components with a violated
+row, each an independent part of it (verified on its own by the warm active
+set, :class:`~aasoatt_env.safety.solvers.SolverPolicy`).
+
+:func:`solve_centralized` is that step.  With the compiled kernels
+(:mod:`aasoatt_env.compiled`, part ``"decomposition"``) a warm-started step is
+first tried in one compiled call
+(:mod:`aasoatt_env.safety.decomposition_kernel`), which answers only where it
+verifies every component and then answers as the numpy path does; the numpy
+path answers every other step.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import NamedTuple
+
+import numpy as np
+
+from aasoatt_env.compiled import c64, kernels
+from aasoatt_env.model.geometry import pair_components
+from aasoatt_env.safety.problem import box_least_squares, build_problem
+from aasoatt_env.safety.solvers import SolverPolicy
+from aasoatt_env.safety.solvers.active_set import DENSE_MAX_CELLS, DENSE_MAX_VARS, ONE_CHANGE_ITER, TOL, WARM_REL
+from aasoatt_env.safety.solvers.policy import SLOW_SOLVE_S
+
+__all__ = ["CentralAnswer", "solve_centralized"]
+
+VERIFIED_MESSAGE = "active set (warm, KKT verified)"
+
+
+class CentralAnswer(NamedTuple):
+    """The centralised QP's answer for one step."""
+
+    du: np.ndarray
+    """Wheel accelerations ``(N, 2)`` within the bounds."""
+    x: np.ndarray
+    """The scaled point ``(N, 2)`` (``du / scale`` before clipping): the next step's warm start."""
+    z: np.ndarray
+    """Multipliers of the scaled rows ``(m,)`` (0 on rows outside the QP): the next step's warm start."""
+    eta: np.ndarray
+    """Multipliers in ``du`` units ``(m,)``."""
+    status: str
+    """``"solved"``, ``"relaxed"`` or ``"failed"`` (the solver's status)."""
+    message: str
+    """Which solver answered."""
+    iterations: int
+    """The solver's iterations."""
+    n_qp: int
+    """Rows in the QP."""
+
+
+def solve_centralized(
+    policy: SolverPolicy,
+    A: np.ndarray,
+    target: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    scale: np.ndarray,
+    ri: np.ndarray,
+    rj: np.ndarray,
+    Gi: np.ndarray,
+    Gj: np.ndarray,
+    rhs: np.ndarray,
+    x_prev: np.ndarray | None,
+    z_warm: np.ndarray | None,
+    *,
+    decompose: bool = True,
+    compiled: bool = False,
+) -> CentralAnswer:
+    """``min sum |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, G du <= rhs`` for the whole team.
+
+    Parameters
+    ----------
+    policy : SolverPolicy
+        Which solver answers (its switch state is updated as by its ``solve``).
+    A, target, lo, hi : numpy.ndarray
+        Input matrices ``(N, 2, 2)``, desired control-point accelerations and bounds ``(N, 2)``.
+    scale : numpy.ndarray
+        Positive per-robot scale ``(N,)`` of the scaled variables ``x = du / scale``.
+    ri, rj, Gi, Gj, rhs : numpy.ndarray
+        The rows (:func:`~aasoatt_env.safety.problem.build_problem`): ``Gi du_ri + Gj du_rj <= rhs``,
+        ``rj = -1`` on obstacle rows.
+    x_prev : numpy.ndarray or None
+        The previous step's scaled point ``(N, 2)`` (None: no warm start).
+    z_warm : numpy.ndarray or None
+        The previous step's multipliers mapped onto these rows ``(m,)``.
+    decompose : bool
+        Split by components (only with an exact solver); False: one QP of the whole team.
+    compiled : bool
+        Try the compiled step first (:mod:`aasoatt_env.safety.decomposition_kernel`).
+    """
+    n, m = A.shape[0], rhs.shape[0]
+    decompose = decompose and policy.exact
+    if (compiled and decompose and policy.active_set and policy.compiled and x_prev is not None
+            and z_warm is not None):
+        out = _compiled(policy, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm)
+        if out is not None:
+            return out
+    if decompose:
+        du = box_least_squares(A, target, lo, hi)
+        viol = row_values(Gi, Gj, ri, rj, du) - rhs
+        bad = viol > 0.0
+        coupled, label = np.zeros(n, dtype=bool), None
+        if np.any(bad):
+            label = pair_components(n, ri, rj, compiled=compiled)
+            coupled = np.isin(label, label[ri[bad]])
+        rows = coupled[ri]
+    else:
+        du = np.empty((n, 2))
+        coupled, rows, label = np.ones(n, dtype=bool), np.ones(m, dtype=bool), None
+    sub = np.flatnonzero(coupled)
+    x_full = du / scale[:, None]
+    z, eta = np.zeros(m), np.zeros(m)
+    if not sub.size:
+        return CentralAnswer(du, x_full, z, eta, "solved", "closed form: no row binds", 0, 0)
+    remap = np.full(n, -1, dtype=np.intp)
+    remap[sub] = np.arange(sub.size)
+    qri, qrj = ri[rows], rj[rows]
+    sri, srj = remap[qri], np.where(qrj >= 0, remap[np.maximum(qrj, 0)], -1)
+    prob = build_problem(A[sub], target[sub], lo[sub], hi[sub], scale[sub], sri, srj, Gi[rows], Gj[rows], rhs[rows])
+    x0 = None if x_prev is None else x_prev[sub].ravel()
+    # the coupled components, independent parts of one QP: each verified on its own
+    groups = None if label is None else np.unique(label[sub], return_inverse=True)[1].reshape(-1)
+    sol = policy.solve(prob, x0, None if z_warm is None else z_warm[rows], groups)
+    x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
+    du[sub] = np.clip((x * prob.scale).reshape(-1, 2), lo[sub], hi[sub])
+    x_full[sub] = x.reshape(-1, 2)
+    zs = np.where(np.isfinite(sol.z), sol.z, 0.0) if sol.z is not None else np.zeros(prob.m)
+    z[rows] = zs
+    eta[rows] = prob.obj_scale * zs / prob.row_norm
+    return CentralAnswer(du, x_full, z, eta, sol.status, sol.message, sol.iterations, prob.m)
+
+
+def row_values(Gi: np.ndarray, Gj: np.ndarray, ri: np.ndarray, rj: np.ndarray, du: np.ndarray) -> np.ndarray:
+    """``G du`` row by row (``Gj`` ignored on obstacle rows)."""
+    du_j = np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)])
+    return np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0)
+
+
+def _compiled(policy: SolverPolicy, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev,
+              z_warm) -> CentralAnswer | None:
+    """The step by :func:`~aasoatt_env.safety.decomposition_kernel.solve_decomposed`; None: the numpy path's."""
+    t0 = time.perf_counter()
+    n, m = A.shape[0], rhs.shape[0]
+    du, x, z, eta = np.empty((n, 2)), np.empty((n, 2)), np.empty(m), np.empty(m)
+    k = kernels("decomposition")
+    code, used, n_qp, n_vars = k.solve_decomposed(
+        c64(A), c64(target), c64(lo), c64(hi), c64(scale), np.ascontiguousarray(ri, np.int64),
+        np.ascontiguousarray(rj, np.int64), c64(Gi), c64(Gj), c64(rhs), c64(x_prev), c64(z_warm), 6,
+        ONE_CHANGE_ITER, TOL, WARM_REL, DENSE_MAX_VARS, DENSE_MAX_CELLS, du, x, z, eta)
+    if code == k.CLOSED_FORM:
+        return CentralAnswer(du, x, z, eta, "solved", "closed form: no row binds", 0, 0)
+    if code != k.VERIFIED:
+        return None
+    if time.perf_counter() - t0 > SLOW_SOLVE_S:
+        return None  # (the policy's probe of a slow answer needs the problem: the numpy path decides)
+    policy.note_fast_answer(int(n_vars))
+    return CentralAnswer(du, x, z, eta, "solved", VERIFIED_MESSAGE, int(used), int(n_qp))
