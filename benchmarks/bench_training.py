@@ -1,13 +1,18 @@
 """PPO training throughput (agent-steps/s), bare and behind the safety filter, in one run.
 
-    python benchmarks/bench_training.py [--timesteps 24576] [--robots 6] [--n-envs 32] [--model RUN] [--workers W]
+    python benchmarks/bench_training.py [--timesteps 36864] [--rounds 3] [--robots 6] [--n-envs 32] [--model RUN]
+                                        [--workers W]
 
 Each row trains PPO with the default recipe (``TrainConfig`` defaults: 32 teams x N
 robots stepped by one batched physics call, decision_interval 20; behind the filter one
 filter call per physics step for all teams, or, for comparison, one per team) with rollouts
 of ``--n-steps`` (the recipe's 64) per slot, for ``--timesteps`` agent-steps after one warm-up
 update, and reports what a training run sees: rollout collection plus PPO
-updates, one torch thread.  The filter's share of the filtered row is measured
+updates, one torch thread.  The rows take turns: each trains ``--timesteps / --rounds``
+agent-steps per round (one PPO update by default), so a drift of the machine's speed
+(which moves by up to 2x on this shared machine within minutes) hits every row alike;
+each row's rate is its median over the rounds, and the filtered / bare ratio is also
+printed per round (the two rows run back to back).  The filter's share of the filtered row is measured
 by timing its calls; the first row steps the same teams one by one
 (:class:`train.vec_env.ParallelVecEnv`), for comparison.  ``--workers W`` adds a bare and a
 filtered row with the teams split over ``W`` processes (``TrainConfig.num_workers``,
@@ -41,51 +46,63 @@ def separate_vec_env(cfg: TrainConfig):
                          clip_obs=10.0)
 
 
-def bench(filtered: bool, timesteps: int, robots: int, n_envs: int, solver: str | None,
-          model: str | None, n_steps: int, batched: bool = True, grouped: bool = True,
-          workers: int = 1) -> dict[str, float]:
-    kw = {"filter_kwargs": {"solver": solver}} if (filtered and solver) else {}
-    cfg = TrainConfig(num_robots=robots, n_envs=n_envs, filter=filtered, progress_bar=False, tensorboard=False,
-                      checkpoint_freq=0, n_steps=n_steps, batch_size=min(1024, n_steps * n_envs * robots),
-                      init_from=model, num_workers=workers, **kw)
-    venv = make_vec_env(cfg, group_filter=grouped) if batched else separate_vec_env(cfg)
-    ppo = build_model(cfg, venv)
-    if model:
-        init_policy(ppo, venv, cfg)
-    filter_time = [0.0]
-    calls: list[float] = []
-    if filtered and workers == 1:  # time every filter call (the grouped one, or one per team and physics step)
-        batch = venv.unwrapped.batch  # (batched only)
+class Row:
+    """One loop of the table: its vec env and PPO model, built once and warmed up, then timed in chunks."""
 
-        def timed(f):
-            call = f.__call__
+    def __init__(self, filtered: bool, robots: int, n_envs: int, solver: str | None, model: str | None,
+                 n_steps: int, batched: bool = True, grouped: bool = True, workers: int = 1) -> None:
+        kw = {"filter_kwargs": {"solver": solver}} if (filtered and solver) else {}
+        cfg = TrainConfig(num_robots=robots, n_envs=n_envs, filter=filtered, progress_bar=False, tensorboard=False,
+                          checkpoint_freq=0, n_steps=n_steps, batch_size=min(1024, n_steps * n_envs * robots),
+                          init_from=model, num_workers=workers, **kw)
+        self.venv = make_vec_env(cfg, group_filter=grouped) if batched else separate_vec_env(cfg)
+        self.ppo = build_model(cfg, self.venv)
+        if model:
+            init_policy(self.ppo, self.venv, cfg)
+        self.filter_time = [0.0]
+        self.calls: list[float] = []
+        self.timed = filtered and workers == 1
+        if self.timed:  # time every filter call (the grouped one, or one per team and physics step)
+            batch = self.venv.unwrapped.batch  # (batched only)
+            filter_time, calls = self.filter_time, self.calls
 
-            def run(inp, du):
-                t = time.perf_counter()
-                out = call(inp, du)
-                dt = time.perf_counter() - t
-                filter_time[0] += dt
-                calls.append(dt)
-                return out
+            def timed(f):
+                call = f.__call__
 
-            return _Timed(f, run)
+                def run(inp, du):
+                    t = time.perf_counter()
+                    out = call(inp, du)
+                    dt = time.perf_counter() - t
+                    filter_time[0] += dt
+                    calls.append(dt)
+                    return out
 
-        if batch.grouped_filter is not None:
-            batch._grouped = timed(batch.grouped_filter)
-        else:
-            for base in batch._bases:
-                base._control_filter = timed(base.control_filter)
-    per_update = cfg.n_steps * venv.num_envs
-    ppo.learn(per_update)  # warm-up
-    filter_time[0] = 0.0
-    calls.clear()
-    t0 = time.perf_counter()
-    ppo.learn(max(timesteps, per_update), reset_num_timesteps=False)
-    dt = time.perf_counter() - t0
-    steps = ppo.num_timesteps - per_update
-    venv.close()
-    return {"rate": steps / dt, "steps": steps, "filter_share": filter_time[0] / dt,
-            "call_ms": 1e3 * float(np.median(calls)) if calls else float("nan")}
+                return _Timed(f, run)
+
+            if batch.grouped_filter is not None:
+                batch._grouped = timed(batch.grouped_filter)
+            else:
+                for base in batch._bases:
+                    base._control_filter = timed(base.control_filter)
+        self.per_update = cfg.n_steps * self.venv.num_envs
+        self.ppo.learn(self.per_update)  # warm-up
+        self.filter_time[0] = 0.0
+        self.calls.clear()
+        self.steps, self.wall, self.rates = 0, 0.0, []
+
+    def run(self, timesteps: int) -> None:
+        """Train ``timesteps`` more agent-steps (whole updates), timed."""
+        start = self.ppo.num_timesteps
+        t0 = time.perf_counter()
+        self.ppo.learn(max(timesteps, self.per_update), reset_num_timesteps=False)
+        dt = time.perf_counter() - t0
+        steps = self.ppo.num_timesteps - start
+        self.steps += steps
+        self.wall += dt
+        self.rates.append(steps / dt)
+
+    def close(self) -> None:
+        self.venv.close()
 
 
 def stepping_rate(robots: int, n_envs: int, workers: int, decisions: int = 40) -> float:
@@ -130,7 +147,9 @@ class _Timed:
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--timesteps", type=int, default=24_576)
+    p.add_argument("--timesteps", type=int, default=36_864, help="agent-steps per row, over all rounds")
+    p.add_argument("--rounds", type=int, default=3,
+                   help="each row is timed in this many chunks, the rows taking turns (rates: medians)")
     p.add_argument("--robots", type=int, default=6)
     p.add_argument("--n-envs", type=int, default=TrainConfig.n_envs,
                    help="teams in all (the recipe's; split over the processes with --workers)")
@@ -148,25 +167,36 @@ def main() -> None:
     print("|---|---:|---:|---:|---:|---:|")
     rates = {}
     solver = args.solver or "default solver"
-    rows = [("bare, teams stepped one by one (ParallelVecEnv)", False, False, True), ("bare", False, True, True),
-            (f"behind the filter ({solver}), one filter call per team", True, True, False),
-            (f"behind the filter ({solver}), one filter call for all teams", True, True, True)]
+    rows = [("bare", False, True, True),
+            (f"behind the filter ({solver}), one filter call for all teams", True, True, True),
+            ("bare, teams stepped one by one (ParallelVecEnv)", False, False, True),
+            (f"behind the filter ({solver}), one filter call per team", True, True, False)]
     rows = [(*r, 1) for r in rows]
     if args.workers > 1:
         w = args.workers
         rows += [(f"bare, {w} worker processes", False, True, True, w),
                  (f"behind the filter ({solver}), one filter call per worker, {w} worker processes", True, True, True,
                   w)]
-    for name, filtered, batched, grouped, workers in rows:
-        r = bench(filtered, args.timesteps, args.robots, args.n_envs, args.solver, args.model, args.n_steps,
-                  batched, grouped, workers)
+    built = [(name, filtered, batched, grouped, workers,
+              Row(filtered, args.robots, args.n_envs, args.solver, args.model, args.n_steps, batched, grouped,
+                  workers)) for name, filtered, batched, grouped, workers in rows]
+    chunk = max(args.timesteps // args.rounds, 1)
+    for _ in range(args.rounds):  # every row a chunk per round: the machine's drifts hit every row alike
+        for *_, row in built:
+            row.run(chunk)
+    ratios: dict[tuple, list[float]] = {}
+    for name, filtered, batched, grouped, workers, row in built:
+        rate = float(np.median(row.rates))
         if batched:
-            rates[filtered, grouped, workers] = r["rate"]
-        timed = filtered and workers == 1
-        share = f"{100 * r['filter_share']:.0f}%" if timed else "-"
-        call = f"{r['call_ms']:.3f}" if timed else "-"
-        print(f"| {name} | {r['steps']} | {r['rate']:,.0f} | {r['rate'] / args.robots * 20:,.0f} | {share} | "
-              f"{call} |", flush=True)
+            rates[filtered, grouped, workers] = rate
+            ratios[filtered, grouped, workers] = row.rates
+        share = f"{100 * row.filter_time[0] / row.wall:.0f}%" if row.timed else "-"
+        call = f"{1e3 * float(np.median(row.calls)):.3f}" if row.timed else "-"
+        print(f"| {name} | {row.steps} | {rate:,.0f} | {rate / args.robots * 20:,.0f} | {share} | {call} |", flush=True)
+        row.close()
+    rounds_pct = [100 * f / b for f, b in zip(ratios[True, True, 1], ratios[False, True, 1])]
+    print("\nper round, behind the filter (one call for all teams) / bare: "
+          + ", ".join(f"{r:.1f}%" for r in rounds_pct))
     bare = rates[False, True, 1]
     print(f"\nbehind the filter / bare: {100 * rates[True, True, 1] / bare:.1f}% (one call for all teams), "
           f"{100 * rates[True, False, 1] / bare:.1f}% (one call per team)")
