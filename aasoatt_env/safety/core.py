@@ -4,8 +4,9 @@
 team's kinematics (:class:`aasoatt_env.model.dynamics.Kinematics`), wheel
 speeds, headings, the nominal ``du`` and its bounds, builds one barrier row per
 pair inside the sensing range (:mod:`~aasoatt_env.safety.barriers`), applies the
-deadlock strategy (:mod:`~aasoatt_env.safety.deadlock`) and solves the QP
-(:mod:`~aasoatt_env.safety.solvers`), warm-started from the previous step.  It
+deadlock strategy (:mod:`~aasoatt_env.safety.deadlock`) and solves the QP by
+independent components (:mod:`~aasoatt_env.safety.decomposition`, solvers in
+:mod:`~aasoatt_env.safety.solvers`), warm-started from the previous step.  It
 also implements the env's control-filter protocol
 (:class:`aasoatt_env.sim.protocol.ControlFilter`): ``reset(team)`` and
 ``filter(FilterInput, du_nominal) -> FilterResult``.
