@@ -23,7 +23,8 @@ in the overhead of its calls rather than in arithmetic
   centralised step's whole decomposition around it (each robot's closed form,
   the violated rows' components, the scaled problem, the active set:
   :mod:`aasoatt_env.safety.decomposition_kernel`, which answers only where it
-  verifies every component, with the numpy path's numbers).
+  verifies every component, with the numbers of the numpy decomposition around
+  the compiled active set, bit for bit).
 
 The kernels are the same loops compiled with numba (``pip install
 "aasoatt[fast]"``), imported only when first used.  The numpy code stays the

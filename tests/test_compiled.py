@@ -285,25 +285,32 @@ def test_the_active_set_refuses_groups_that_are_not_labels(use_kernel):
     assert ok.ok.all() and np.allclose(ok.x.reshape(3, 2)[2], [0.5, 0.5])
 
 
-def _central_answers(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
-    """Every centralised step's answer along a closed loop, with the compiled decomposition tried or not."""
+def _central_answers(monkeypatch, fused: bool, scene: str, switch: bool = False) -> tuple[list, int]:
+    """Every centralised step's answer and the policy's switch state after it, along a closed loop, with the
+    compiled decomposition tried or not; and how many QP steps the kernel answered.  ``switch``: every problem
+    outside the exact-first size, and a switch to the exact path running from the first step."""
     from aasoatt_env.safety import core, decomposition
+    from aasoatt_env.safety.solvers import policy as policy_module
 
     answers, kernel_answers = [], [0]
     real, solve = decomposition._compiled, core.solve_centralized
 
     def counted(*args):
         out = real(*args)
-        kernel_answers[0] += out is not None
+        kernel_answers[0] += out is not None and out.n_qp > 0
         return out
 
-    def record(*args, **kw):
-        out = solve(*args, **kw)
-        answers.append(out)
+    def record(pol, *args, **kw):
+        if switch and not answers:
+            pol._exact_steps = 40
+        out = solve(pol, *args, **kw)
+        answers.append((out, pol._exact_steps, pol._stalls))
         return out
 
     monkeypatch.setattr(decomposition, "_compiled", counted if fused else (lambda *args: None))
     monkeypatch.setattr(core, "solve_centralized", record)
+    if switch:
+        monkeypatch.setattr(policy_module, "EXACT_FIRST_VARS", 0)
     if scene == "stack":  # a training stack: 8 teams of 6 under uniform random actions
         batch = make_batched_env(8, "random_goals", num_robots=6, filter=True)
         batch.reset(seed=11)
@@ -322,25 +329,94 @@ def _central_answers(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
     return answers, kernel_answers[0]
 
 
+def _bits(a: np.ndarray) -> np.ndarray:
+    """The float64 array's bit patterns (``-0.0`` and ``0.0`` differ, NaN equals only the same NaN)."""
+    return np.ascontiguousarray(a, dtype=np.float64).view(np.int64)
+
+
 @needs_numba
-@pytest.mark.parametrize("scene", ["stack", "crossing", "obstacles"])
-def test_the_compiled_decomposition_answers_as_the_numpy_path(monkeypatch, scene):
-    """Along closed loops, every step's answer with the compiled decomposition equals the numpy path's bit for
-    bit (inputs, scaled points, multipliers, status, message, iterations), and the kernel answers most steps."""
-    ref, _ = _central_answers(monkeypatch, False, scene)
-    out, by_kernel = _central_answers(monkeypatch, True, scene)
-    assert len(out) == len(ref) > 300
-    for a, b in zip(out, ref):
+@pytest.mark.parametrize(("scene", "switch"), [("stack", False), ("crossing", False), ("obstacles", False),
+                                               ("crossing", True)])
+def test_the_compiled_decomposition_answers_as_the_numpy_path(monkeypatch, scene, switch):
+    """Along closed loops, every step's answer with the compiled decomposition equals the numpy path's (with the
+    compiled active set) bit for bit: inputs, scaled points, multipliers, status, message, iterations; the
+    policy's switch state after every step is the same (also with a switch to the exact path running and
+    every problem outside the exact-first size); and the kernel answers most QP steps."""
+    ref, _ = _central_answers(monkeypatch, False, scene, switch)
+    out, by_kernel = _central_answers(monkeypatch, True, scene, switch)
+    assert len(out) == len(ref) >= 300
+    for (a, *state_a), (b, *state_b) in zip(out, ref):
         for field in ("du", "x", "z", "eta"):
-            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+            np.testing.assert_array_equal(_bits(getattr(a, field)), _bits(getattr(b, field)))
         assert (a.status, a.message, a.iterations, a.n_qp) == (b.status, b.message, b.iterations, b.n_qp)
-    qp_steps = sum(a.n_qp > 0 for a in out)
-    assert qp_steps > 50 and by_kernel > 0.8 * len(out)
+        assert state_a == state_b
+    qp_steps = sum(a.n_qp > 0 for a, *_ in out)
+    assert qp_steps > 50 and by_kernel > 0.8 * qp_steps
+    if switch:  # the switch counted down over the first steps, as through the policy's solve
+        assert out[0][1] == 39 and out[60][1] == 0
+
+
+@needs_numba
+def test_a_slow_compiled_answer_goes_to_the_policy_with_its_problem(monkeypatch):
+    """Where the policy would probe ``ldp`` on a slow answer (it needs the problem), the kernel's answer is not
+    used: the numpy path answers through the policy's ``solve``, which probes."""
+    from aasoatt_env.safety import decomposition
+    from aasoatt_env.safety.solvers import policy as policy_module
+
+    monkeypatch.setattr(policy_module, "EXACT_FIRST_VARS", 0)
+    monkeypatch.setattr(policy_module, "SLOW_SOLVE_S", -1.0)  # every answer is slow
+    probes, used = [], []
+    real_solve, real_compiled = policy_module.solve_qp, decomposition._compiled
+
+    def spy(prob, solver="proxsuite", *args, **kw):
+        probes.append(solver)
+        return real_solve(prob, solver, *args, **kw)
+
+    monkeypatch.setattr(policy_module, "solve_qp", spy)
+    monkeypatch.setattr(decomposition, "_compiled", lambda *args: used.append(real_compiled(*args)) or used[-1])
+    env = make_env("circle_swap", num_robots=12, radius=2.0, duration=4.0, settle_time=0.0, max_steps=300,
+                   filter=True)
+    obs, _ = env.reset(seed=12)
+    agent = TrackingController()
+    for _ in range(300):
+        obs, *_ = env.step(agent.act(obs, env))
+    assert not any(u is not None and u.n_qp > 0 for u in used)  # no QP step answered by the kernel
+    assert probes.count("ldp") > 50  # the policy probed the slow answers (or took its exact path after a switch)
+
+
+@pytest.mark.parametrize("use_kernel", [False, pytest.param(True, marks=needs_numba)])
+def test_the_centralised_step_refuses_bad_shapes_and_row_robots(use_kernel):
+    """Shapes and row indices are checked before either path (the kernel reads without bounds checks)."""
+    from aasoatt_env.safety.decomposition import solve_centralized
+    from aasoatt_env.safety.solvers import SolverPolicy
+
+    A, t, box = np.tile(np.eye(2), (2, 1, 1)), np.array([[1.0, 0.0], [-1.0, 0.0]]), np.ones((2, 2))
+    rows = dict(ri=np.array([0]), rj=np.array([1]), Gi=np.array([[1.0, 0.0]]), Gj=np.array([[-1.0, 0.0]]),
+                rhs=np.array([0.1]))
+
+    def call(**change):
+        kw = {**dict(A=A, target=t, lo=-box, hi=box, scale=np.ones(2), **rows, x_prev=np.zeros((2, 2)),
+                     z_warm=np.ones(1)), **change}
+        pol = SolverPolicy("proxsuite", active_set=True, compiled=use_kernel)
+        return solve_centralized(pol, **kw, compiled=use_kernel)
+
+    assert call().du.shape == (2, 2)
+    for change, match in ((dict(rj=np.array([2])), r"ri/rj: row robots must be in \[0, 2\)"),
+                          (dict(ri=np.array([-1])), r"ri/rj: row robots must be in"),
+                          (dict(ri=np.array([0.0])), r"ri/rj: row robots must be integer indices"),
+                          (dict(x_prev=np.zeros((3, 2))), r"x_prev: got shape \(3, 2\), expected \(2, 2\)"),
+                          (dict(z_warm=np.ones(2)), r"z_warm: got shape \(2,\), expected \(1,\)"),
+                          (dict(z_warm=lambda: np.ones(2)), r"z_warm: got shape \(2,\), expected \(1,\)"),
+                          (dict(Gj=np.ones((1, 3))), r"Gj: got shape \(1, 3\), expected \(1, 2\)"),
+                          (dict(scale=np.ones(3)), r"scale: got shape \(3,\), expected \(2,\)")):
+        with pytest.raises(ValueError, match=match):
+            call(**change)
 
 
 @needs_numba
 def test_the_compiled_box_least_squares_is_the_numpy_one():
-    """Every robot's closed form, inside and outside its box, on every edge and corner: the same numbers."""
+    """Every robot's closed form, inside and outside its box, on every edge and corner, and robots whose
+    numbers are not finite (a singular ``A``, a NaN or infinite target): the same bits."""
     from aasoatt_env.safety.problem import box_least_squares
 
     rng = np.random.default_rng(13)
@@ -349,10 +425,18 @@ def test_the_compiled_box_least_squares_is_the_numpy_one():
     kin = kinematics(team, np.column_stack((rng.uniform(-5, 5, (team.n, 2)), rng.uniform(-np.pi, np.pi, team.n))), u)
     lo, hi = input_bounds(team, u, DT)
     target = rng.normal(0.0, 3.0, (team.n, 2)) * rng.choice([0.01, 1.0, 100.0], (team.n, 1))
-    ref = box_least_squares(kin.A, target, lo, hi)
-    np.testing.assert_array_equal(box_least_squares(kin.A, target, lo, hi, compiled=True), ref)
+    A = kin.A.copy()
+    A[:5] = 0.0  # singular
+    target[5:10] = np.nan
+    target[10:15, 0] = np.inf
+    A[15:20, 0, 0] = np.nan
+    with np.errstate(all="ignore"):
+        ref = box_least_squares(A, target, lo, hi)
+    np.testing.assert_array_equal(_bits(box_least_squares(A, target, lo, hi, compiled=True)), _bits(ref))
     inside = ((ref > lo) & (ref < hi)).all(axis=1)
-    assert 0.05 * team.n < inside.sum() < 0.95 * team.n
+    assert 0.05 * team.n < inside.sum() < 0.95 * team.n and not np.isfinite(ref[:20]).all()
+    with pytest.raises(ValueError, match=r"lo: got shape \(3, 2\), expected \(3000, 2\)"):
+        box_least_squares(A, target, lo[:3], hi, compiled=True)
 
 
 def _signatures() -> dict:

@@ -15,7 +15,9 @@ from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import make_team
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, FilterConfig, SafetyFilter
+from aasoatt_env.safety import decomposition as decomposition_module
 from aasoatt_env.safety import gatekeeper as gatekeeper_module
+from aasoatt_env.safety import problem as problem_module
 from aasoatt_env.safety import repair as repair_module
 from aasoatt_env.safety.solvers import active_set as active_set_module
 from aasoatt_env.safety.solvers import local as local_module
@@ -374,13 +376,15 @@ def test_a_numpy_filter_runs_no_kernel(monkeypatch):
         raise AssertionError(f"the {part} kernels were asked for")
 
     monkeypatch.setattr(compiled_module, "kernels", refuse)
-    for mod in (gatekeeper_module, repair_module, local_module, active_set_module):  # (their own names for it)
+    for mod in (gatekeeper_module, repair_module, local_module, active_set_module, decomposition_module,
+                problem_module):  # (their own names for it)
         monkeypatch.setattr(mod, "kernels", refuse)
-    env = make_env("random_goals", num_robots=12, filter={"kernel": "numpy"}, max_steps=50)
-    obs, _ = env.reset(seed=1)
-    rng = np.random.default_rng(1)
-    for _ in range(50):
-        obs, *_ = env.step({a: rng.uniform(-1, 1, 2).astype(np.float32) for a in env.agents})
+    for mode in ("centralized", "decentralized"):
+        env = make_env("random_goals", num_robots=12, filter={"kernel": "numpy", "mode": mode}, max_steps=50)
+        obs, _ = env.reset(seed=1)
+        rng = np.random.default_rng(1)
+        for _ in range(50):
+            obs, *_ = env.step({a: rng.uniform(-1, 1, 2).astype(np.float32) for a in env.agents})
     team = make_team("paper", 300)
     p = np.random.default_rng(2).uniform(0, 30, (300, 2))
     pose = pose_from_point(team, p, np.zeros(300))
@@ -572,21 +576,28 @@ def _problem_from(team, kin, u, theta, nom, lo, hi, ref, probs, real_solve):
     return probs[0]
 
 
-def test_a_verified_step_elsewhere_counts_as_one_through_the_policy():
-    """``note_fast_answer``: a running switch to the exact path counts down as for a step through ``solve``, and
-    outside one a fast answer clears the stall count (as ``_adapt`` of a fast answer does)."""
-    from aasoatt_env.safety.solvers import EXACT_STEPS, SolverPolicy
+def test_a_verified_step_elsewhere_counts_as_one_through_the_policy(monkeypatch):
+    """``note_answer``: a running switch to the exact path counts down as for a step through ``solve``, outside
+    one a fast answer clears the stall count (as ``_adapt`` of a fast answer does); a slow answer that ``solve``
+    would probe ``ldp`` on needs the problem (``needs_problem``), and noting it is refused."""
+    from aasoatt_env.errors import UsageError
+    from aasoatt_env.safety.solvers import EXACT_STEPS, SLOW_SOLVE_S, SolverPolicy
     from aasoatt_env.safety.solvers.policy import EXACT_FIRST_VARS
 
     pol = SolverPolicy("proxsuite", active_set=True)
     assert pol.backend.may_stall
     pol._exact_steps, pol._stalls = EXACT_STEPS, 2
     for left in range(EXACT_STEPS - 1, -1, -1):
-        pol.note_fast_answer(EXACT_FIRST_VARS + 2)
+        assert not pol.needs_problem(EXACT_FIRST_VARS + 2, 1.0)  # (on the exact path: no probe)
+        pol.note_answer(EXACT_FIRST_VARS + 2, 1e-4)
         assert pol._exact_steps == left and pol._stalls == 2
-    pol.note_fast_answer(EXACT_FIRST_VARS)  # small problems take the exact path: no count of stalls
+    pol.note_answer(EXACT_FIRST_VARS, 1e-4)  # small problems take the exact path: no count of stalls
     assert pol._stalls == 2
-    pol.note_fast_answer(EXACT_FIRST_VARS + 2)
+    assert pol.needs_problem(EXACT_FIRST_VARS + 2, 2 * SLOW_SOLVE_S)
+    with pytest.raises(UsageError, match="needs the problem"):
+        pol.note_answer(EXACT_FIRST_VARS + 2, 2 * SLOW_SOLVE_S)
+    assert pol._stalls == 2 and pol._exact_steps == 0  # (refused before any change)
+    pol.note_answer(EXACT_FIRST_VARS + 2, 1e-4)
     assert pol._exact_steps == 0 and pol._stalls == 0
 
 
@@ -609,9 +620,10 @@ def test_slow_proxsuite_switches_to_ldp_only_when_ldp_is_faster(monkeypatch, ldp
 
     monkeypatch.setattr(core, "solve_qp", timed)
     scen = circle_layout(10, radius=6.0, duration=12.0)
-    # the numpy path: every step through the policy's solve (the compiled decomposition answers the steps it
-    # verifies itself and tells the policy, test_a_verified_step_elsewhere_counts_as_one_through_the_policy)
-    out = closed_loop(scen, SafetyFilter(scen.team, kernel="numpy"), 6.0)
+    # every step through the policy's solve (the compiled decomposition, which answers the steps it verifies
+    # itself and tells the policy, is left out: test_the_compiled_decomposition_answers_as_the_numpy_path)
+    monkeypatch.setattr(decomposition_module, "_compiled", lambda *args: None)
+    out = closed_loop(scen, SafetyFilter(scen.team), 6.0)
     assert out.statuses.get("failed", 0) == 0
     first = log.index("proxsuite")
     assert log[first + 1] == "ldp"  # the timing probe on the same problem

@@ -418,7 +418,7 @@ class SafetyFilter:
                                                          else "")
         else:
             ans = solve_centralized(self._solver, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs,
-                                    None if self._x is None else self._x.reshape(n, 2), self._map_warm(keys),
+                                    None if self._x is None else self._x.reshape(n, 2), lambda: self._map_warm(keys),
                                     decompose=cfg.decompose, compiled=cfg.compiled)
             du, x_full, z, eta = ans.du, ans.x, ans.z, ans.eta
             status, message, iterations, n_qp = ans.status, ans.message, ans.iterations, ans.n_qp

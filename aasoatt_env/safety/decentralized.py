@@ -230,7 +230,9 @@ def decentralized_step(
         loosening tolerance in the centralised filter's scaled units (default ``max(|lo|, |hi|)``;
         the filter passes its own).
     compiled : bool
-        Solve the robots' QPs in the compiled kernel (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`).
+        Solve the robots' QPs in the compiled kernel (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`),
+        and their closed forms of the reciprocal split
+        (:func:`~aasoatt_env.safety.problem.box_least_squares`, the same numbers).
 
     Returns
     -------

@@ -19,20 +19,28 @@ path answers every other step.
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
 
 from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.geometry import pair_components
-from aasoatt_env.safety.problem import box_least_squares, build_problem
+from aasoatt_env.safety.problem import ROW_NORM_MIN, box_least_squares, build_problem
 from aasoatt_env.safety.solvers import SolverPolicy
-from aasoatt_env.safety.solvers.active_set import DENSE_MAX_CELLS, DENSE_MAX_VARS, ONE_CHANGE_ITER, TOL, WARM_REL
-from aasoatt_env.safety.solvers.policy import SLOW_SOLVE_S
+from aasoatt_env.safety.solvers.active_set import (
+    BOUND_TIGHT,
+    DENSE_MAX_CELLS,
+    DENSE_MAX_VARS,
+    ONE_CHANGE_ITER,
+    PDAS_ITER,
+    TOL,
+    VERIFIED_MESSAGE,
+    WARM_FLOOR,
+    WARM_REL,
+)
 
-__all__ = ["CentralAnswer", "solve_centralized"]
-
-VERIFIED_MESSAGE = "active set (warm, KKT verified)"
+__all__ = ["CentralAnswer", "row_values", "solve_centralized"]
 
 
 class CentralAnswer(NamedTuple):
@@ -56,6 +64,10 @@ class CentralAnswer(NamedTuple):
     """Rows in the QP."""
 
 
+WarmRows = Callable[[], "np.ndarray | None"]
+"""The previous step's multipliers mapped onto this step's rows ``(m,)``, computed when asked (None: none)."""
+
+
 def solve_centralized(
     policy: SolverPolicy,
     A: np.ndarray,
@@ -69,7 +81,7 @@ def solve_centralized(
     Gj: np.ndarray,
     rhs: np.ndarray,
     x_prev: np.ndarray | None,
-    z_warm: np.ndarray | None,
+    z_warm: np.ndarray | WarmRows | None,
     *,
     decompose: bool = True,
     compiled: bool = False,
@@ -85,24 +97,41 @@ def solve_centralized(
     scale : numpy.ndarray
         Positive per-robot scale ``(N,)`` of the scaled variables ``x = du / scale``.
     ri, rj, Gi, Gj, rhs : numpy.ndarray
-        The rows (:func:`~aasoatt_env.safety.problem.build_problem`): ``Gi du_ri + Gj du_rj <= rhs``,
-        ``rj = -1`` on obstacle rows.
+        The rows (:func:`~aasoatt_env.safety.problem.build_problem`): ``Gi du_ri + Gj du_rj <= rhs``
+        for ``m`` rows, ``ri`` in ``[0, N)``, ``rj`` in ``[0, N)`` or ``-1`` on obstacle rows.
     x_prev : numpy.ndarray or None
         The previous step's scaled point ``(N, 2)`` (None: no warm start).
-    z_warm : numpy.ndarray or None
-        The previous step's multipliers mapped onto these rows ``(m,)``.
+    z_warm : numpy.ndarray, callable or None
+        The previous step's multipliers mapped onto these rows ``(m,)``, or a function
+        returning them (called only where a QP is solved).
     decompose : bool
         Split by components (only with an exact solver); False: one QP of the whole team.
     compiled : bool
         Try the compiled step first (:mod:`aasoatt_env.safety.decomposition_kernel`).
+
+    Returns
+    -------
+    CentralAnswer
+        ``du`` within the bounds, the warm start of the next step, the multipliers, and
+        what answered (``"closed form: no row binds"`` where no robot's own answer
+        violates a row).
+
+    Raises
+    ------
+    ValueError
+        An array of the wrong shape, or a row index out of range (named).
     """
-    n, m = A.shape[0], rhs.shape[0]
+    n, m = _check(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm)
+    warm = z_warm if callable(z_warm) else (lambda: z_warm)
     decompose = decompose and policy.exact
-    if (compiled and decompose and policy.active_set and policy.compiled and x_prev is not None
-            and z_warm is not None):
-        out = _compiled(policy, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm)
-        if out is not None:
-            return out
+    if compiled and decompose and policy.active_set and policy.compiled and x_prev is not None:
+        z0 = warm()
+        if z0 is not None:
+            _check_warm(z0, m)
+            out = _compiled(policy, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z0)
+            if out is not None:
+                return out
+            warm = lambda: z0  # noqa: E731  (mapped once)
     if decompose:
         du = box_least_squares(A, target, lo, hi)
         viol = row_values(Gi, Gj, ri, rj, du) - rhs
@@ -120,6 +149,9 @@ def solve_centralized(
     z, eta = np.zeros(m), np.zeros(m)
     if not sub.size:
         return CentralAnswer(du, x_full, z, eta, "solved", "closed form: no row binds", 0, 0)
+    z0 = warm()
+    if z0 is not None:
+        _check_warm(z0, m)
     remap = np.full(n, -1, dtype=np.intp)
     remap[sub] = np.arange(sub.size)
     qri, qrj = ri[rows], rj[rows]
@@ -128,7 +160,7 @@ def solve_centralized(
     x0 = None if x_prev is None else x_prev[sub].ravel()
     # the coupled components, independent parts of one QP: each verified on its own
     groups = None if label is None else np.unique(label[sub], return_inverse=True)[1].reshape(-1)
-    sol = policy.solve(prob, x0, None if z_warm is None else z_warm[rows], groups)
+    sol = policy.solve(prob, x0, None if z0 is None else z0[rows], groups)
     x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
     du[sub] = np.clip((x * prob.scale).reshape(-1, 2), lo[sub], hi[sub])
     x_full[sub] = x.reshape(-1, 2)
@@ -144,8 +176,40 @@ def row_values(Gi: np.ndarray, Gj: np.ndarray, ri: np.ndarray, rj: np.ndarray, d
     return np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0)
 
 
-def _compiled(policy: SolverPolicy, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev,
-              z_warm) -> CentralAnswer | None:
+def _check(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, ri: np.ndarray,
+           rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray, x_prev: np.ndarray | None,
+           z_warm: object) -> tuple[int, int]:
+    """``(N, m)`` after the shapes and row indices (the compiled step reads without bounds checks)."""
+    n = np.shape(A)[0] if np.ndim(A) else -1
+    m = np.shape(rhs)[0] if np.ndim(rhs) == 1 else -1
+    if np.shape(A) != (n, 2, 2) or m < 0:
+        raise ValueError(f"A/rhs: got shapes {np.shape(A)}/{np.shape(rhs)}, expected (N, 2, 2) and (m,)")
+    expect = [("target", target, (n, 2)), ("lo", lo, (n, 2)), ("hi", hi, (n, 2)), ("scale", scale, (n,)),
+              ("ri", ri, (m,)), ("rj", rj, (m,)), ("Gi", Gi, (m, 2)), ("Gj", Gj, (m, 2))]
+    if x_prev is not None:
+        expect.append(("x_prev", x_prev, (n, 2)))
+    if z_warm is not None and not callable(z_warm):
+        expect.append(("z_warm", z_warm, (m,)))
+    for name, a, shape in expect:
+        if np.shape(a) != shape:
+            raise ValueError(f"{name}: got shape {np.shape(a)}, expected {shape} for {n} robots and {m} rows")
+    if m:
+        ri, rj = np.asarray(ri), np.asarray(rj)
+        if ri.dtype.kind not in "iu" or rj.dtype.kind not in "iu":
+            raise ValueError(f"ri/rj: row robots must be integer indices, got {ri.dtype}/{rj.dtype}")
+        if int(ri.min()) < 0 or int(ri.max()) >= n or int(rj.min()) < -1 or int(rj.max()) >= n:
+            raise ValueError(f"ri/rj: row robots must be in [0, {n}) (rj: or -1 for an obstacle row)")
+    return n, m
+
+
+def _check_warm(z0: np.ndarray, m: int) -> None:
+    if np.shape(z0) != (m,):
+        raise ValueError(f"z_warm: got shape {np.shape(z0)}, expected ({m},)")
+
+
+def _compiled(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+              scale: np.ndarray, ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray,
+              x_prev: np.ndarray, z_warm: np.ndarray) -> CentralAnswer | None:
     """The step by :func:`~aasoatt_env.safety.decomposition_kernel.solve_decomposed`; None: the numpy path's."""
     t0 = time.perf_counter()
     n, m = A.shape[0], rhs.shape[0]
@@ -153,13 +217,13 @@ def _compiled(policy: SolverPolicy, A, target, lo, hi, scale, ri, rj, Gi, Gj, rh
     k = kernels("decomposition")
     code, used, n_qp, n_vars = k.solve_decomposed(
         c64(A), c64(target), c64(lo), c64(hi), c64(scale), np.ascontiguousarray(ri, np.int64),
-        np.ascontiguousarray(rj, np.int64), c64(Gi), c64(Gj), c64(rhs), c64(x_prev), c64(z_warm), 6,
-        ONE_CHANGE_ITER, TOL, WARM_REL, DENSE_MAX_VARS, DENSE_MAX_CELLS, du, x, z, eta)
+        np.ascontiguousarray(rj, np.int64), c64(Gi), c64(Gj), c64(rhs), c64(x_prev), c64(z_warm), PDAS_ITER,
+        ONE_CHANGE_ITER, TOL, WARM_REL, WARM_FLOOR, BOUND_TIGHT, ROW_NORM_MIN, DENSE_MAX_VARS, DENSE_MAX_CELLS, du, x,
+        z, eta)
     if code == k.CLOSED_FORM:
         return CentralAnswer(du, x, z, eta, "solved", "closed form: no row binds", 0, 0)
-    if code != k.VERIFIED:
-        return None
-    if time.perf_counter() - t0 > SLOW_SOLVE_S:
-        return None  # (the policy's probe of a slow answer needs the problem: the numpy path decides)
-    policy.note_fast_answer(int(n_vars))
+    elapsed = time.perf_counter() - t0
+    if code != k.VERIFIED or policy.needs_problem(int(n_vars), elapsed):
+        return None  # (a slow answer: the policy's timing probe needs the problem, which the numpy path builds)
+    policy.note_answer(int(n_vars), elapsed)
     return CentralAnswer(du, x, z, eta, "solved", VERIFIED_MESSAGE, int(used), int(n_qp))

@@ -2,8 +2,8 @@
 
 :func:`solve_decomposed` is what :func:`aasoatt_env.safety.decomposition.solve_centralized`
 does in numpy on a warm-started step, written as loops over the robots and rows
-of one call instead of some sixty array operations (a training stack of 32
-teams of 6 spends most of a numpy step in their overhead):
+of one call instead of dozens of small array operations (whose overhead, not
+their arithmetic, is a small team's or a training stack's step):
 
 1. every robot's box least squares in closed form
    (:func:`~aasoatt_env.safety.problem.box_least_squares`, the same operations
@@ -26,8 +26,11 @@ reference would not take this kernel's path: a problem beyond the dense size,
 a Hessian block not positive definite, rows the active-set kernel does not
 handle) it returns a negative code and changes nothing the caller reads, and
 the caller runs the reference path, which decides that step as before.  Where
-it answers, its numbers are the reference's (``tests/test_compiled.py``
-compares them bit for bit on random states and along filtered episodes).
+it answers, its numbers are those of the numpy decomposition running the
+compiled active set, bit for bit (``tests/test_compiled.py`` compares every
+step of filtered episodes, and the closed forms on random robots); against
+``kernel="numpy"`` (the numpy active set too) they agree to rounding, as that
+kernel's points do.
 """
 
 from __future__ import annotations
@@ -90,12 +93,16 @@ def box_least_squares(A, target, lo, hi):
 
 @jit
 def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm, max_iter, one_change_iter, tol,
-                     warm_rel, dense_max_vars, dense_max_cells, du, x_full, z, eta):
+                     warm_rel, warm_floor, bound_tight, row_norm_min, dense_max_vars, dense_max_cells, du, x_full, z,
+                     eta):
     """One centralised step's QP part (module docstring); fills ``du, x_full (N, 2)``, ``z, eta (m,)``.
 
     ``x_prev (N, 2)``: the previous step's scaled point; ``z_warm (m,)``: the previous multipliers mapped onto
-    these rows.  Returns ``(code, iterations, rows in the QP, variables in the QP)``: :data:`CLOSED_FORM`,
-    :data:`VERIFIED`, or :data:`NOT_HERE` (nothing filled is to be read).
+    these rows; the constants are those of :mod:`~aasoatt_env.safety.solvers.active_set` and
+    :data:`~aasoatt_env.safety.problem.ROW_NORM_MIN`, passed by the caller (one home each).  The caller
+    checks every shape and index (the kernel reads without bounds checks).  Returns ``(code, iterations,
+    rows in the QP, variables in the QP)``: :data:`CLOSED_FORM`, :data:`VERIFIED`, or :data:`NOT_HERE`
+    (nothing filled is to be read).
     """
     n, m = A.shape[0], rhs.shape[0]
     for i in range(n):
@@ -208,7 +215,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
             zmax = math.nan
         elif w > zmax:
             zmax = w
-    zcut = warm_rel * max(zmax, 1e-300) if zmax == zmax else math.nan
+    zcut = warm_rel * max(zmax, warm_floor) if zmax == zmax else math.nan
     e = 0
     indptr[0] = 0
     for k in range(ms):
@@ -221,7 +228,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
         else:
             sj, gj0, gj1 = -1, 0.0, 0.0
         nrm = math.sqrt((gi0 * gi0 + gi1 * gi1) + (gj0 * gj0 + gj1 * gj1))
-        nrm = nrm if nrm > 1e-12 else 1.0
+        nrm = nrm if nrm > row_norm_min else 1.0
         nu[k] = nrm
         indices[e], indices[e + 1] = 2 * si, 2 * si + 1
         data[e], data[e + 1] = gi0 / nrm, gi1 / nrm
@@ -238,8 +245,8 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
         for h in range(2):
             v = 2 * a + h
             b[ms + v], b[ms + nv + v] = ubv[v], -lbv[v]
-            W0[ms + v] = x_prev[i, h] >= ubv[v] - 1e-9
-            W0[ms + nv + v] = x_prev[i, h] <= lbv[v] + 1e-9
+            W0[ms + v] = x_prev[i, h] >= ubv[v] - bound_tight
+            W0[ms + nv + v] = x_prev[i, h] <= lbv[v] + bound_tight
     y, lam, done = np.zeros(nv), np.zeros(ms + 2 * nv), np.zeros(K, np.bool_)
     used = solve_parts(indptr, indices, data, ms, nv, LinvT, gt, b, W0, groups[:ns].copy(), K, max_iter,
                        one_change_iter, tol, y, lam, done)

@@ -23,7 +23,10 @@ import scipy.sparse as sp
 
 from aasoatt_env.compiled import c64, kernels
 
-__all__ = ["QPProblem", "box_least_squares", "build_problem"]
+__all__ = ["ROW_NORM_MIN", "QPProblem", "box_least_squares", "build_problem"]
+
+ROW_NORM_MIN: float = 1e-12
+"""A row whose scaled norm is at most this is left unnormalised (divisor 1)."""
 
 
 @dataclass
@@ -146,7 +149,7 @@ def build_problem(
         rjc = rj
         Gj_s = Gj * s[rjc]
     nu = np.sqrt(np.sum(Gi_s**2, axis=1) + np.sum(Gj_s**2, axis=1))
-    nu = np.where(nu > 1e-12, nu, 1.0)
+    nu = np.where(nu > ROW_NORM_MIN, nu, 1.0)
     Gi_s /= nu[:, None]
     Gj_s /= nu[:, None]
     # CSR directly: 4 entries per robot-robot row, 2 per obstacle row
@@ -206,6 +209,10 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
         ``du`` ``(K, 2)``, inside the bounds.
     """
     if compiled:
+        k = np.shape(A)[0] if np.ndim(A) == 3 else -1
+        for name, a, shape in (("A", A, (k, 2, 2)), ("target", target, (k, 2)), ("lo", lo, (k, 2)), ("hi", hi, (k, 2))):
+            if np.shape(a) != shape:
+                raise ValueError(f"{name}: got shape {np.shape(a)}, expected {shape} (A: (K, 2, 2), the others (K, 2))")
         return kernels("decomposition").box_least_squares(c64(A), c64(target), c64(lo), c64(hi))
     a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
     t0, t1 = target[:, 0], target[:, 1]

@@ -69,6 +69,14 @@ TOL: float = 1e-10
 """Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
 ONE_CHANGE_ITER: int = 4
 """Iterations of the one-change rule, tried from the warm start when the primal-dual rule fails."""
+PDAS_ITER: int = 6
+"""Iterations of the primal-dual rule from the warm start."""
+BOUND_TIGHT: float = 1e-9
+"""A warm start within this of a bound (scaled, ``|x| <= 1``) starts with that bound in the working set."""
+WARM_FLOOR: float = 1e-300
+"""Floor of the largest warm multiplier in the working-set cut (no cut of zero)."""
+VERIFIED_MESSAGE: str = "active set (warm, KKT verified)"
+"""The message of an answer the warm active set verified."""
 
 
 class LeastDistanceForm(NamedTuple):
@@ -210,7 +218,7 @@ class ActiveSetParts(NamedTuple):
     """``(m,)`` group of every row (of the robot its first entry belongs to; an empty row: 0)."""
 
 
-def solve_active_set(prob, x0, z0, max_iter: int = 6, compiled: bool = False):
+def solve_active_set(prob, x0, z0, max_iter: int = PDAS_ITER, compiled: bool = False):
     """``(x, z, iterations)`` at the verified optimum, or ``None`` (fall back)."""
     out = solve_active_set_parts(prob, x0, z0, None, max_iter, compiled=compiled)
     if out is None or not out.ok.all():
@@ -218,7 +226,7 @@ def solve_active_set(prob, x0, z0, max_iter: int = 6, compiled: bool = False):
     return out.x, out.z, out.iterations
 
 
-def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: int = 6,
+def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: int = PDAS_ITER,
                            compiled: bool = False) -> ActiveSetParts | None:
     """The warm active set on a problem made of independent groups, each verified on its own.
 
@@ -285,9 +293,9 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     # the largest: solvers leave ~1e-10 multipliers on slack rows, which would crowd the working
     # set); no tightness test, since the state has moved since and the rows with it
     W0 = np.zeros(mt, dtype=bool)
-    W0[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), 1e-300) if m else False
-    W0[m:m + n] = x0 >= prob.ub - 1e-9
-    W0[m + n:] = x0 <= prob.lb + 1e-9
+    W0[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), WARM_FLOOR) if m else False
+    W0[m:m + n] = x0 >= prob.ub - BOUND_TIGHT
+    W0[m + n:] = x0 <= prob.lb + BOUND_TIGHT
     if compiled:
         out = _solve_compiled(prob, LinvT, gt, b, W0, np.zeros(n // 2, np.int64) if groups is None else groups, K,
                               max_iter, rg)

@@ -37,8 +37,14 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from aasoatt_env.errors import UsageError
 from aasoatt_env.safety.problem import QPProblem
-from aasoatt_env.safety.solvers.active_set import ActiveSetParts, solve_active_set, solve_active_set_parts
+from aasoatt_env.safety.solvers.active_set import (
+    VERIFIED_MESSAGE,
+    ActiveSetParts,
+    solve_active_set,
+    solve_active_set_parts,
+)
 from aasoatt_env.safety.solvers.backends import Backend, RawAnswer, available_solvers, get_solver
 from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
 
@@ -172,7 +178,7 @@ def solve_qp(
     if x0 is not None and z0 is not None and (opts.get("active_set") or exact_first) and not tried:
         fast = solve_active_set(prob, x0, z0, compiled=compiled)
         if fast is not None:
-            return QPSolution(fast[0], fast[1], "solved", 0.0, fast[2], "active set (warm, KKT verified)",
+            return QPSolution(fast[0], fast[1], "solved", 0.0, fast[2], VERIFIED_MESSAGE,
                               time.perf_counter() - t0)
     raw = None
     if exact_first:
@@ -265,7 +271,7 @@ class SolverPolicy:
     def _rest(self, prob: QPProblem, x0: np.ndarray, z0: np.ndarray, groups: np.ndarray,
               part: ActiveSetParts, t0: float) -> QPSolution:
         """The parts the active set verified, and the back-end's answer on the others."""
-        msg = "active set (warm, KKT verified)"
+        msg = VERIFIED_MESSAGE
         if part.ok.all():
             sol = QPSolution(part.x, part.z, "solved", 0.0, part.iterations, msg, time.perf_counter() - t0)
             self._count(prob, sol)
@@ -298,26 +304,40 @@ class SolverPolicy:
 
     def _exact_path(self, n_vars: int) -> bool:
         """Whether a call on ``n_vars`` variables takes the exact path first (small, or a switch on; counted down)."""
-        if self._exact_steps > 0 or n_vars <= EXACT_FIRST_VARS:
+        if self._on_exact_path(n_vars):
             self._exact_steps = max(self._exact_steps - 1, 0)
             return True
         return False
+
+    def _on_exact_path(self, n_vars: int) -> bool:
+        return self._exact_steps > 0 or n_vars <= EXACT_FIRST_VARS
 
     def _count(self, prob: QPProblem, sol: QPSolution) -> None:
         """The switch state after a call the active set answered without :meth:`_solve` (as if through it)."""
         if self.backend.may_stall and not self._exact_path(prob.n):
             self._adapt(prob, sol)
 
-    def note_fast_answer(self, n_vars: int) -> None:
+    def needs_problem(self, n_vars: int, solve_time: float) -> bool:
+        """Whether noting a verified answer of ``n_vars`` variables taking ``solve_time`` s needs the problem.
+
+        True where :meth:`solve` would probe ``ldp`` on it (:meth:`_adapt`: a slow answer
+        outside the exact path, small enough for ``ldp``); no state changes.
+        """
+        return (self.backend.may_stall and not self._on_exact_path(n_vars) and solve_time > SLOW_SOLVE_S
+                and n_vars <= LDP_MAX_VARS)
+
+    def note_answer(self, n_vars: int, solve_time: float) -> None:
         """The switch state after the warm active set answered a problem of ``n_vars`` variables elsewhere.
 
         For a caller that runs the warm active set itself (the compiled decomposition,
-        :mod:`aasoatt_env.safety.decomposition`), within :data:`SLOW_SOLVE_S` (a slower
-        answer needs the problem for :meth:`_adapt`'s probe: such a caller calls
-        :meth:`solve`): the state :meth:`solve` would have left.
+        :mod:`aasoatt_env.safety.decomposition`, whose ``solve_time`` is its whole call):
+        the state :meth:`solve` would have left.  Where :meth:`needs_problem`, the caller
+        must call :meth:`solve` instead (``UsageError`` here).
         """
-        if self.backend.may_stall and not self._exact_path(n_vars):
-            self._stalls = 0  # (_adapt of a fast answer without a stall)
+        if self.needs_problem(n_vars, solve_time):
+            raise UsageError("note_answer: this answer needs the problem for ldp's timing probe; call solve()")
+        if self.backend.may_stall and not self._exact_path(n_vars) and solve_time <= SLOW_SOLVE_S:
+            self._stalls = 0  # (_adapt of a fast answer without a stall; a slow one beyond ldp's size changes nothing)
 
     def _adapt(self, prob: QPProblem, sol: QPSolution) -> None:
         """Switch to the exact path if the back-end stalled, or was slow where ``ldp`` is faster.
