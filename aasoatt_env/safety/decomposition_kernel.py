@@ -28,7 +28,10 @@ handle) it returns a negative code and changes nothing the caller reads, and
 the caller runs the reference path, which decides that step as before.  Where
 it answers, its numbers are those of the numpy decomposition running the
 compiled active set, bit for bit (``tests/test_compiled.py`` compares every
-step of filtered episodes, and the closed forms on random robots); against
+step of filtered episodes; the closed forms on random robots equal numpy's,
+where a tie of a number with a signed zero bound may give the other zero, as
+numpy's own clip does between its scalar and vector code, and a NaN the other
+sign); against
 ``kernel="numpy"`` (the numpy active set too) they agree to rounding, as that
 kernel's points do.
 """
