@@ -48,6 +48,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
+from aasoatt_env.model.geometry import row_dot
 
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.config import FilterConfig
@@ -100,11 +101,11 @@ class Barrier:
 
 
 def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    r = np.sqrt(np.einsum("ij,ij->i", g.p, g.p))
+    r = np.sqrt(row_dot(g.p, g.p))
     r = np.maximum(r, 1e-9)
-    pv = np.einsum("ij,ij->i", g.p, g.v)
-    vv = np.einsum("ij,ij->i", g.v, g.v)
-    pa = np.einsum("ij,ij->i", g.p, g.adot)
+    pv = row_dot(g.p, g.v)
+    vv = row_dot(g.v, g.v)
+    pa = row_dot(g.p, g.adot)
     return r, pv, vv, pa
 
 
@@ -155,7 +156,7 @@ def _gated_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, np.nd
 
 
 def _adaptive_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
-    pv = np.einsum("ij,ij->i", g.p, g.v)
+    pv = row_dot(g.p, g.v)
     D = q.sensing_range
     margin = g.d_s - g.r_sum
     d = 0.5 * (D + g.r_sum) + (D - g.r_sum) / math.pi * np.arctan(-q.rho_v * pv + q.sigma) + margin

@@ -35,6 +35,7 @@ from aasoatt_env import validation as check
 from aasoatt_env.compiled import KERNELS, available
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT
+from aasoatt_env.model.geometry import row_dot
 from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4
 from aasoatt_env.safety.barriers import BARRIERS
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
@@ -275,7 +276,7 @@ class FilterConfig:
         """Margin of each pair ``(P,)`` from the relative velocities ``(P, 2)`` (module docstring)."""
         if self.safety_margin is not None:
             return float(self.safety_margin)
-        speed = np.sqrt(np.einsum("ij,ij->i", v_rel, v_rel))
+        speed = np.sqrt(row_dot(v_rel, v_rel))
         return auto_margin(self.dt) * np.minimum(1.0, speed / MARGIN_FADE_SPEED)
 
     @property

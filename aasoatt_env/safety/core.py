@@ -35,7 +35,7 @@ from aasoatt_env.compiled import NUMBA_MISSING
 from aasoatt_env.compiled import available as compiled_available
 from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
-from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs
+from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs, row_dot
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import FilterConfig
@@ -390,13 +390,13 @@ class SafetyFilter:
         margin = cfg.pair_margin(geo_v)
         c_speed = cfg.speed_margin
         if c_speed:
-            sp2 = np.einsum("ij,ij->i", v, v)
+            sp2 = row_dot(v, v)
             margin = margin + c_speed * (sp2[ri] + np.where(rj >= 0, sp2[np.maximum(rj, 0)], 0.0))
         g = PairGeometry(ri, rj, geo_p, geo_v, geo_a, ds + margin, rsum, ap)
         # the barrier's value with the true geometry and safety distance: what "inside the safe set" refers to
         h = get_barrier(cfg.barrier).value(g._replace(p=geo_p_true, d_s=ds), cfg)
         barrier_min = float(h.min(initial=np.inf))
-        gap = np.sqrt(np.einsum("ij,ij->i", geo_p_true, geo_p_true)) - ds
+        gap = np.sqrt(row_dot(geo_p_true, geo_p_true)) - ds
         c, rhs, keep = barrier_rows(cfg.barrier, g, cfg)
         ri, rj, pairs_out = ri[keep], rj[keep], pairs_out[keep]
         Gi = np.einsum("pki,pk->pi", A[ri], c)

@@ -25,7 +25,7 @@ from typing import NamedTuple
 import numpy as np
 
 from aasoatt_env.compiled import c64, kernels
-from aasoatt_env.model.geometry import pair_components
+from aasoatt_env.model.geometry import pair_components, row_dot
 from aasoatt_env.safety.problem import ROW_NORM_MIN, box_least_squares, build_problem
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers.active_set import (
@@ -172,8 +172,8 @@ def solve_centralized(
 
 def row_values(Gi: np.ndarray, Gj: np.ndarray, ri: np.ndarray, rj: np.ndarray, du: np.ndarray) -> np.ndarray:
     """``G du`` row by row (``Gj`` ignored on obstacle rows)."""
-    du_j = np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)])
-    return np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0)
+    du_j = row_dot(Gj, du[np.maximum(rj, 0)])
+    return row_dot(Gi, du[ri]) + np.where(rj >= 0, du_j, 0.0)
 
 
 def _check(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, ri: np.ndarray,
