@@ -357,31 +357,25 @@ def test_the_compiled_decomposition_answers_as_the_numpy_path(monkeypatch, scene
 
 
 @needs_numba
-def test_a_slow_compiled_answer_goes_to_the_policy_with_its_problem(monkeypatch):
-    """Where the policy would probe ``ldp`` on a slow answer (it needs the problem), the kernel's answer is not
-    used: the numpy path answers through the policy's ``solve``, which probes."""
-    from aasoatt_env.safety import decomposition
-    from aasoatt_env.safety.solvers import policy as policy_module
+def test_a_compiled_answer_the_policy_needs_the_problem_for_goes_through_solve(monkeypatch):
+    """Where the policy needs the problem (``needs_problem``: a slow answer it would time ``ldp`` against), the
+    kernel's answer is not used: the numpy path answers through the policy's ``solve``, the same numbers."""
+    from aasoatt_env.safety.solvers import SolverPolicy
 
-    monkeypatch.setattr(policy_module, "EXACT_FIRST_VARS", 0)
-    monkeypatch.setattr(policy_module, "SLOW_SOLVE_S", -1.0)  # every answer is slow
-    probes, used = [], []
-    real_solve, real_compiled = policy_module.solve_qp, decomposition._compiled
-
-    def spy(prob, solver="proxsuite", *args, **kw):
-        probes.append(solver)
-        return real_solve(prob, solver, *args, **kw)
-
-    monkeypatch.setattr(policy_module, "solve_qp", spy)
-    monkeypatch.setattr(decomposition, "_compiled", lambda *args: used.append(real_compiled(*args)) or used[-1])
-    env = make_env("circle_swap", num_robots=12, radius=2.0, duration=4.0, settle_time=0.0, max_steps=300,
-                   filter=True)
-    obs, _ = env.reset(seed=12)
-    agent = TrackingController()
-    for _ in range(300):
-        obs, *_ = env.step(agent.act(obs, env))
-    assert not any(u is not None and u.n_qp > 0 for u in used)  # no QP step answered by the kernel
-    assert probes.count("ldp") > 50  # the policy probed the slow answers (or took its exact path after a switch)
+    asked, solved = [], []
+    real_solve = SolverPolicy.solve
+    monkeypatch.setattr(SolverPolicy, "needs_problem", lambda self, n_vars, t: asked.append(n_vars) or True)
+    monkeypatch.setattr(SolverPolicy, "solve", lambda self, *a, **k: solved.append(1) or real_solve(self, *a, **k))
+    ref, _ = _central_answers(monkeypatch, False, "crossing")
+    monkeypatch.setattr(SolverPolicy, "needs_problem", lambda self, n_vars, t: asked.append(n_vars) or True)
+    monkeypatch.setattr(SolverPolicy, "solve", lambda self, *a, **k: solved.append(1) or real_solve(self, *a, **k))
+    n_ref = len(solved)
+    out, by_kernel = _central_answers(monkeypatch, True, "crossing")
+    assert by_kernel == 0 and len(asked) > 100  # every verified kernel answer was asked about, and not used
+    assert len(solved) - n_ref == n_ref  # as many solves through the policy as on the numpy path
+    for (a, *_), (b, *_) in zip(out, ref):
+        np.testing.assert_array_equal(_bits(a.du), _bits(b.du))
+        assert a.message == b.message
 
 
 @pytest.mark.parametrize("use_kernel", [False, pytest.param(True, marks=needs_numba)])

@@ -50,8 +50,8 @@ from scipy.linalg.lapack import dpotrs as _potrs
 from aasoatt_env.compiled import c64, kernels
 
 __all__ = [
-    "DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "least_distance_form", "solve_active_set",
-    "solve_active_set_parts",
+    "DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "dense_least_distance_form", "least_distance_form",
+    "solve_active_set", "solve_active_set_parts",
 ]
 
 DENSE_MAX_VARS: int = 80
@@ -86,8 +86,9 @@ class LeastDistanceForm(NamedTuple):
     """Blocks ``L^{-T}`` ``(N, 2, 2)``: ``x = L^{-T} y``."""
     gt: np.ndarray
     """Linear term ``L^{-1} g`` ``(n,)``."""
-    Mt: sp.csr_matrix
-    """Rows, then upper bounds, then lower bounds, in ``y`` ``(m + 2n, n)``."""
+    Mt: sp.csr_matrix | np.ndarray
+    """Rows, then upper bounds, then lower bounds, in ``y`` ``(m + 2n, n)`` (dense from
+    :func:`dense_least_distance_form`)."""
     b: np.ndarray
     """Their right-hand sides ``(u, ub, -lb)`` ``(m + 2n,)``."""
 
@@ -134,6 +135,19 @@ def _factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
         out = (np.transpose(Linv, (0, 2, 1)), np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel())
     prob.__dict__["_ldf_factor"] = out
     return out
+
+
+def dense_least_distance_form(prob) -> LeastDistanceForm | None:
+    """:func:`least_distance_form` with its rows ``Mt`` as a dense array, built without scipy.sparse.
+
+    The numbers of ``least_distance_form(prob).Mt.toarray()`` (:func:`_dense_rows`), for the
+    small problems whose solvers work on dense rows (``ldp``'s NNLS); not cached.
+    """
+    factor = _factor(prob)
+    if factor is None:
+        return None
+    LinvT, gt = factor
+    return LeastDistanceForm(LinvT, gt, _dense_rows(prob, LinvT), np.concatenate((prob.u, prob.ub, -prob.lb)))
 
 
 def _least_distance_form(prob) -> LeastDistanceForm | None:

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import nnls
 
-from aasoatt_env.safety.solvers.active_set import least_distance_form, solve_active_set
+from aasoatt_env.safety.solvers.active_set import dense_least_distance_form, solve_active_set
 
 __all__ = ["FEAS_TOL", "MAX_VARS", "solve_ldp"]
 
@@ -66,10 +66,10 @@ def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.n
         return None, None, "ldp: needs 2x2 blocks"
     if n > MAX_VARS:
         return None, None, f"ldp: {n} variables > MAX_VARS = {MAX_VARS}"
-    form = least_distance_form(prob)
+    form = dense_least_distance_form(prob)
     if form is None:
         return None, None, "ldp: Hessian block not positive definite"
-    gt, Mt, b = form.gt, form.Mt.toarray(), form.b
+    gt, Mt, b = form.gt, form.Mt, form.b
     finite = np.abs(b) < 1e19
     if not np.all(finite):
         Mt, b = Mt[finite], b[finite]
