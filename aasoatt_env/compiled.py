@@ -24,7 +24,8 @@ in the overhead of its calls rather than in arithmetic
   the violated rows' components, the scaled problem, the active set:
   :mod:`aasoatt_env.safety.decomposition_kernel`, which answers only where it
   verifies every component, with the numbers of the numpy decomposition around
-  the compiled active set, bit for bit).
+  the compiled active set, bit for bit, up to a zero's or a NaN's sign in a
+  robot's closed form).
 
 The kernels are the same loops compiled with numba (``pip install
 "aasoatt[fast]"``), imported only when first used.  The numpy code stays the

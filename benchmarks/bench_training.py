@@ -10,11 +10,10 @@ of ``--n-steps`` (the recipe's 64) per slot, for ``--timesteps`` agent-steps aft
 update, and reports what a training run sees: rollout collection plus PPO
 updates, one torch thread.  The rows take turns: each trains ``--timesteps / --rounds``
 agent-steps per round (one PPO update by default), so a drift of the machine's speed
-(which moves by up to 2x on this shared machine within minutes) hits every row alike;
-each row's rate is its median over the rounds, and the filtered / bare ratio is also
-printed per round (the two rows run back to back).  The filter's share of the filtered row is measured
-by timing its calls; the first row steps the same teams one by one
-(:class:`train.vec_env.ParallelVecEnv`), for comparison.  ``--workers W`` adds a bare and a
+hits every row alike; each row's rate is its median over the rounds, and the filtered /
+bare ratio is also printed per round (the two rows run back to back).  The filter's share
+of the filtered row is measured by timing its calls; the third row steps the same teams
+one by one (:class:`train.vec_env.ParallelVecEnv`), for comparison.  ``--workers W`` adds a bare and a
 filtered row with the teams split over ``W`` processes (``TrainConfig.num_workers``,
 :class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`; the filter's calls are then not timed):
 they show what more cores buy, so compare them only with idle cores.
@@ -28,6 +27,8 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import torch
@@ -66,10 +67,10 @@ class Row:
             batch = self.venv.unwrapped.batch  # (batched only)
             filter_time, calls = self.filter_time, self.calls
 
-            def timed(f):
+            def timed(f: Any) -> _Timed:
                 call = f.__call__
 
-                def run(inp, du):
+                def run(inp: Any, du: np.ndarray) -> Any:
                     t = time.perf_counter()
                     out = call(inp, du)
                     dt = time.perf_counter() - t
@@ -131,17 +132,17 @@ def stepping_rate(robots: int, n_envs: int, workers: int, decisions: int = 40) -
 class _Timed:
     """A control filter whose calls are timed (protocol attributes passed through)."""
 
-    def __init__(self, inner, call):
+    def __init__(self, inner: Any, call: Callable[[Any, np.ndarray], Any]) -> None:
         self._inner, self._call = inner, call
         self.keeps_input_bounds = inner.keeps_input_bounds
 
-    def reset(self, team):
+    def reset(self, team: Any) -> None:
         self._inner.reset(team)
 
-    def reset_rows(self, rows, team):
+    def reset_rows(self, rows: np.ndarray, team: Any) -> None:
         self._inner.reset_rows(rows, team)
 
-    def __call__(self, inp, du):
+    def __call__(self, inp: Any, du: np.ndarray) -> Any:
         return self._call(inp, du)
 
 
@@ -159,6 +160,8 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=1,
                    help="also rows with the teams stepped in this many processes (num_workers; 1: no such rows)")
     args = p.parse_args()
+    if args.rounds < 1 or args.timesteps < 1:
+        p.error(f"--rounds and --timesteps: got {args.rounds} and {args.timesteps}, expected positive numbers")
     torch.set_num_threads(1)
     print(f"PPO throughput, {args.n_envs} envs x {args.robots} robots (batched), decision_interval 20 (dt 0.005), "
           f"policy: {args.model or 'fresh (random actions)'}\n")

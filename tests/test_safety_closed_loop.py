@@ -327,3 +327,46 @@ def test_one_change_rule_rescues_warm_starts_the_primal_dual_rule_cannot_finish(
         ref = solve_qp(prob, "quadprog")
         np.testing.assert_allclose(out[0], ref.x, atol=1e-8)
     assert rescued >= 5, (sum(pdas), rescued, len(cases))  # measured: 272 -> 282 of 300
+
+
+@pytest.mark.parametrize("kind", ["csr", "unsorted", "duplicates", "csc", "coo", "no rows", "cached"])
+def test_ldp_dense_rows_are_the_sparse_forms(kind):
+    """``dense_least_distance_form`` (``ldp``'s rows) has the bits of ``least_distance_form(...).Mt.toarray()``:
+    CSR rows in order or not, repeated entries (the sparse product adds their products), other formats, no rows,
+    signed zeros stored, and with the sparse form already cached on the problem."""
+    import scipy.sparse as sp
+
+    from aasoatt_env.safety.problem import QPProblem
+    from aasoatt_env.safety.solvers.active_set import (
+        _least_distance_form,
+        dense_least_distance_form,
+        least_distance_form,
+    )
+
+    rng = np.random.default_rng(["csr", "unsorted", "duplicates", "csc", "coo", "no rows", "cached"].index(kind))
+    for _ in range(40):
+        nb, m = int(rng.integers(1, 10)), 0 if kind == "no rows" else int(rng.integers(1, 12))
+        n = 2 * nb
+        L = rng.normal(size=(nb, 2, 2))
+        H = L @ L.transpose(0, 2, 1) + 0.1 * np.eye(2)
+        C = sp.random(m, n, density=0.4, random_state=int(rng.integers(1 << 30)), format="coo")
+        C.data = rng.normal(size=C.data.shape)
+        C.data[::4] = -0.0
+        if kind == "duplicates" and C.nnz:
+            C = sp.coo_matrix((np.concatenate((C.data, C.data[:2])), (np.concatenate((C.row, C.row[:2])),
+                               np.concatenate((C.col, C.col[:2])))), shape=(m, n))
+        C = C.asformat("csr" if kind in ("csr", "unsorted", "duplicates", "no rows", "cached") else kind)
+        if kind == "unsorted":
+            for r in range(m):
+                a, b = C.indptr[r], C.indptr[r + 1]
+                C.indices[a:b], C.data[a:b] = C.indices[a:b][::-1].copy(), C.data[a:b][::-1].copy()
+            C.has_sorted_indices = False
+        prob = QPProblem(H, rng.normal(size=n), C, rng.normal(size=m), -np.ones(n), np.ones(n), np.ones(n), 1.0,
+                         np.ones(m), False)
+        if kind == "cached":
+            least_distance_form(prob)
+        dense = dense_least_distance_form(prob)
+        ref = _least_distance_form(prob)
+        np.testing.assert_array_equal(dense.Mt.view(np.int64), ref.Mt.toarray().view(np.int64))
+        np.testing.assert_array_equal(dense.b, ref.b)
+        np.testing.assert_array_equal(dense.gt, ref.gt)

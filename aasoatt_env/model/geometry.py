@@ -93,7 +93,9 @@ def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot products ``(P,)`` of two ``(P, 2)`` arrays: ``a0 b0 + a1 b1``.
 
     The numbers of ``np.einsum("ij,ij->i", a, b)`` (the same two products added in
-    the same order), without its per-call set-up, which dominates on these short rows.
+    the same order; only a zero's sign may differ, einsum's sum starting from
+    ``+0.0``), without its per-call set-up, which dominates on these short rows.
+    Only the first two columns are read: the callers pass ``(P, 2)`` arrays.
     """
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]
 

@@ -58,7 +58,12 @@ NOT_HERE = -1
 
 @jit
 def _box1(A, t, lo, hi, i, out):
-    """Robot ``i``'s ``argmin |A_i du - t_i|^2`` in its box into ``out[i]`` (``box_least_squares``' operations)."""
+    """Robot ``i``'s ``argmin |A_i du - t_i|^2`` in its box into ``out[i]`` (``box_least_squares``' operations).
+
+    The same 2-variable box QP as the local solver's ``local_kernel._box_qp`` (``local._box_qp``), kept
+    apart on purpose: this one repeats ``problem.box_least_squares``' operations, NaN and tie rules,
+    that one the local solver's.
+    """
     a, b, c, d = A[i, 0, 0], A[i, 0, 1], A[i, 1, 0], A[i, 1, 1]
     t0, t1 = t[i, 0], t[i, 1]
     det = a * d - b * c

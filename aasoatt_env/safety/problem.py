@@ -208,11 +208,11 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
     numpy.ndarray
         ``du`` ``(K, 2)``, inside the bounds.
     """
+    k = np.shape(A)[0] if np.ndim(A) == 3 else -1
+    for name, a, shape in (("A", A, (k, 2, 2)), ("target", target, (k, 2)), ("lo", lo, (k, 2)), ("hi", hi, (k, 2))):
+        if np.shape(a) != shape:
+            raise ValueError(f"{name}: got shape {np.shape(a)}, expected {shape} (A: (K, 2, 2), the others (K, 2))")
     if compiled:
-        k = np.shape(A)[0] if np.ndim(A) == 3 else -1
-        for name, a, shape in (("A", A, (k, 2, 2)), ("target", target, (k, 2)), ("lo", lo, (k, 2)), ("hi", hi, (k, 2))):
-            if np.shape(a) != shape:
-                raise ValueError(f"{name}: got shape {np.shape(a)}, expected {shape} (A: (K, 2, 2), the others (K, 2))")
         return kernels("decomposition").box_least_squares(c64(A), c64(target), c64(lo), c64(hi))
     a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
     t0, t1 = target[:, 0], target[:, 1]

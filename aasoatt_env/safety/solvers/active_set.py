@@ -141,8 +141,12 @@ def dense_least_distance_form(prob) -> LeastDistanceForm | None:
     """:func:`least_distance_form` with its rows ``Mt`` as a dense array, built without scipy.sparse.
 
     The numbers of ``least_distance_form(prob).Mt.toarray()`` (:func:`_dense_rows`), for the
-    small problems whose solvers work on dense rows (``ldp``'s NNLS); not cached.
+    problems whose solvers work on dense rows (``ldp``'s NNLS); not cached (where the sparse
+    form is already cached on ``prob``, its ``toarray``).
     """
+    cached = prob.__dict__.get("_least_distance_form", _UNSET)
+    if cached is not _UNSET:
+        return None if cached is None else cached._replace(Mt=cached.Mt.toarray())
     factor = _factor(prob)
     if factor is None:
         return None
