@@ -31,9 +31,8 @@ compiled active set, bit for bit (``tests/test_compiled.py`` compares every
 step of filtered episodes; the closed forms on random robots equal numpy's,
 where a tie of a number with a signed zero bound may give the other zero, as
 numpy's own clip does between its scalar and vector code, and a NaN the other
-sign); against
-``kernel="numpy"`` (the numpy active set too) they agree to rounding, as that
-kernel's points do.
+sign); against ``kernel="numpy"`` (the numpy active set too) they agree to
+rounding, as that kernel's points do.
 """
 
 from __future__ import annotations
