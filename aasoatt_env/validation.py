@@ -33,6 +33,7 @@ __all__ = [
     "real",
     "real_array",
     "reject_unknown",
+    "shapes",
     "short_repr",
 ]
 
@@ -63,6 +64,17 @@ def short_repr(value: Any, limit: int = 80) -> str:
     except Exception:  # noqa: BLE001 - a broken __repr__ must not hide the real error
         text = f"<{type(value).__name__}>"
     return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def shapes(expected: Iterable[tuple[str, Any, tuple[int, ...]]], note: str = "") -> None:
+    """Raise ``ValueError`` naming the first ``(name, array, shape)`` whose array has another shape.
+
+    For arrays a compiled kernel reads without bounds checks; ``note`` ends the message
+    (what the expected shapes refer to).
+    """
+    for name, a, shape in expected:
+        if np.shape(a) != shape:
+            raise ValueError(f"{name}: got shape {np.shape(a)}, expected {shape}{note}")
 
 
 def _describe(kind: str, lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:

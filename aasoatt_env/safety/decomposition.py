@@ -24,6 +24,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from aasoatt_env import validation as check
 from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.geometry import pair_components, row_dot
 from aasoatt_env.safety.problem import ROW_NORM_MIN, box_least_squares, build_problem
@@ -122,16 +123,12 @@ def solve_centralized(
         An array of the wrong shape, or a row index out of range (named).
     """
     n, m = _check(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm)
-    warm = z_warm if callable(z_warm) else (lambda: z_warm)
+    warm = _WarmRows(z_warm, m)
     decompose = decompose and policy.exact
-    if compiled and decompose and policy.active_set and policy.compiled and x_prev is not None:
-        z0 = warm()
-        if z0 is not None:
-            _check_warm(z0, m)
-            out = _compiled(policy, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z0)
-            if out is not None:
-                return out
-            warm = lambda: z0  # noqa: E731  (mapped once)
+    if compiled and decompose and policy.active_set and policy.compiled and x_prev is not None and warm() is not None:
+        out = _compiled(policy, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, warm())
+        if out is not None:
+            return out
     if decompose:
         du = box_least_squares(A, target, lo, hi)
         viol = row_values(Gi, Gj, ri, rj, du) - rhs
@@ -150,8 +147,6 @@ def solve_centralized(
     if not sub.size:
         return CentralAnswer(du, x_full, z, eta, "solved", "closed form: no row binds", 0, 0)
     z0 = warm()
-    if z0 is not None:
-        _check_warm(z0, m)
     remap = np.full(n, -1, dtype=np.intp)
     remap[sub] = np.arange(sub.size)
     qri, qrj = ri[rows], rj[rows]
@@ -190,9 +185,7 @@ def _check(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, sc
         expect.append(("x_prev", x_prev, (n, 2)))
     if z_warm is not None and not callable(z_warm):
         expect.append(("z_warm", z_warm, (m,)))
-    for name, a, shape in expect:
-        if np.shape(a) != shape:
-            raise ValueError(f"{name}: got shape {np.shape(a)}, expected {shape} for {n} robots and {m} rows")
+    check.shapes(expect, f" for {n} robots and {m} rows")
     if m:
         ri, rj = np.asarray(ri), np.asarray(rj)
         if ri.dtype.kind not in "iu" or rj.dtype.kind not in "iu":
@@ -202,9 +195,19 @@ def _check(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, sc
     return n, m
 
 
-def _check_warm(z0: np.ndarray, m: int) -> None:
-    if np.shape(z0) != (m,):
-        raise ValueError(f"z_warm: got shape {np.shape(z0)}, expected ({m},)")
+class _WarmRows:
+    """``z_warm``'s rows, mapped (called) at most once and only when asked, their shape checked then."""
+
+    def __init__(self, z_warm: np.ndarray | WarmRows | None, m: int) -> None:
+        self._source, self._m, self._rows, self._done = z_warm, m, None, False
+
+    def __call__(self) -> np.ndarray | None:
+        if not self._done:
+            rows = self._source() if callable(self._source) else self._source
+            if rows is not None:
+                check.shapes((("z_warm", rows, (self._m,)),))
+            self._rows, self._done = rows, True
+        return self._rows
 
 
 def _compiled(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray,

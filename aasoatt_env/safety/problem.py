@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from aasoatt_env import validation as check
 from aasoatt_env.compiled import c64, kernels
 
 __all__ = ["ROW_NORM_MIN", "QPProblem", "box_least_squares", "build_problem"]
@@ -209,9 +210,8 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
         ``du`` ``(K, 2)``, inside the bounds.
     """
     k = np.shape(A)[0] if np.ndim(A) == 3 else -1
-    for name, a, shape in (("A", A, (k, 2, 2)), ("target", target, (k, 2)), ("lo", lo, (k, 2)), ("hi", hi, (k, 2))):
-        if np.shape(a) != shape:
-            raise ValueError(f"{name}: got shape {np.shape(a)}, expected {shape} (A: (K, 2, 2), the others (K, 2))")
+    check.shapes((("A", A, (k, 2, 2)), ("target", target, (k, 2)), ("lo", lo, (k, 2)), ("hi", hi, (k, 2))),
+                 " (A: (K, 2, 2), the others (K, 2))")
     if compiled:
         return kernels("decomposition").box_least_squares(c64(A), c64(target), c64(lo), c64(hi))
     a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
