@@ -25,7 +25,11 @@ in the overhead of its calls rather than in arithmetic
   :mod:`aasoatt_env.safety.decomposition_kernel`, which answers only where it
   verifies every component, with the numbers of the numpy decomposition around
   the compiled active set, bit for bit, up to a zero's or a NaN's sign in a
-  robot's closed form).
+  robot's closed form);
+- the paper's barrier rows of every robot pair
+  (:mod:`aasoatt_env.safety.rows_kernel`: the pair geometry, the discrete-time
+  margins, the barrier's value, the rows in wheel coordinates and the warm-start
+  keys, the numpy step's numbers bit for bit, up to a zero's sign).
 
 The kernels are the same loops compiled with numba (``pip install
 "aasoatt[fast]"``), imported only when first used.  The numpy code stays the
@@ -73,6 +77,7 @@ PARTS: dict[str, str] = {
     "active_set": "aasoatt_env.safety.solvers.active_set_kernel",
     "geometry": "aasoatt_env.model.geometry_kernel",
     "decomposition": "aasoatt_env.safety.decomposition_kernel",
+    "rows": "aasoatt_env.safety.rows_kernel",
 }
 """The compiled parts and their modules."""
 

@@ -357,6 +357,71 @@ def test_the_compiled_decomposition_answers_as_the_numpy_path(monkeypatch, scene
         assert out[0][1] == 39 and out[60][1] == 0 and out[0][2] == 2 and out[-1][2] == 0
 
 
+def _filter_results(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
+    """Every filter step's result and wheel accelerations along a closed loop, with the compiled rows or the numpy
+    rows (``SafetyFilter._fused``), and how many steps the rows kernel answered."""
+    from aasoatt_env.safety import core
+
+    results, calls = [], [0]
+    init, step = core.SafetyFilter.__init__, core.SafetyFilter.step
+    rows = compiled.kernels("rows")
+    real_rows = rows.aasoatt_rows
+
+    def set_up(self, *args, **kw):
+        init(self, *args, **kw)
+        self._fused = self._fused and fused
+
+    def record(self, *args, **kw):
+        du, res = step(self, *args, **kw)
+        results.append((du, res))
+        return du, res
+
+    def counted(*args):
+        calls[0] += 1
+        return real_rows(*args)
+
+    monkeypatch.setattr(core.SafetyFilter, "__init__", set_up)
+    monkeypatch.setattr(core.SafetyFilter, "step", record)
+    monkeypatch.setattr(rows, "aasoatt_rows", counted)
+    if scene == "stack":  # a training stack: 8 teams of 6 under uniform random actions
+        batch = make_batched_env(8, "random_goals", num_robots=6, filter=True)
+        batch.reset(seed=13)
+        rng = np.random.default_rng(13)
+        for _ in range(400):
+            batch.step(rng.uniform(-1.0, 1.0, (8, 6, 2)))
+    else:  # a circle swap's crossing under the tracking law; with fixed and speed margins, without the layer
+        options = {} if scene == "crossing" else {"safety_margin": 0.01, "speed_margin": 0.05, "backup": False}
+        env = make_env("circle_swap", num_robots=12, radius=2.0, duration=4.0, settle_time=0.0, max_steps=400,
+                       filter=options)
+        agent = TrackingController()
+        obs, _ = env.reset(seed=12)
+        for _ in range(env.max_steps):
+            obs, *_ = env.step(agent.act(obs, env))
+    monkeypatch.undo()
+    return results, calls[0]
+
+
+@needs_numba
+@pytest.mark.parametrize("scene", ["stack", "crossing", "margins"])
+def test_the_compiled_rows_give_the_numpy_rows_steps_bit_for_bit(monkeypatch, scene):
+    """Along closed loops every filter step with the compiled barrier rows (rows_kernel) equals the numpy rows' step
+    bit for bit: wheel accelerations, multipliers, rows, margins, the smallest barrier value, status, message, the
+    deadlock and avoidance flags (a training stack; a crossing; fixed and speed margins without the backup layer,
+    where the margin is the smallest gap)."""
+    ref, ref_calls = _filter_results(monkeypatch, False, scene)
+    out, calls = _filter_results(monkeypatch, True, scene)
+    assert ref_calls == 0 and calls == len(out) == len(ref) >= 400
+    assert sum(res.n_rows for _, res in out) > 1000 and sum(res.triggered.any() for _, res in out) > 10
+    for (du_a, a), (du_b, b) in zip(out, ref):
+        np.testing.assert_array_equal(_bits(du_a), _bits(du_b))
+        for field in ("eta", "correction", "slack", "margin", "barrier_min"):
+            np.testing.assert_array_equal(_bits(np.asarray(getattr(a, field))), _bits(np.asarray(getattr(b, field))))
+        for field in ("pairs", "avoiding", "triggered", "backup", "intervened"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+        assert (a.status, a.message, a.iterations, a.n_rows, a.n_qp_rows) == (b.status, b.message, b.iterations,
+                                                                              b.n_rows, b.n_qp_rows)
+
+
 @needs_numba
 def test_a_compiled_answer_the_policy_needs_the_problem_for_goes_through_solve(monkeypatch):
     """Where the policy needs the problem (``needs_problem``: a slow answer it would time ``ldp`` against), the
@@ -439,7 +504,7 @@ def test_the_compiled_box_least_squares_is_the_numpy_one():
 def _signatures() -> dict:
     """Compiled specialisations of every kernel entry point."""
     entries = {"backup": ("gate_full", "repair_full"), "local": ("solve_all",), "active_set": ("solve_parts",),
-               "geometry": ("cell_pairs", "components"), "decomposition": ("solve_decomposed", "box_least_squares")}
+               "geometry": ("cell_pairs", "components"), "decomposition": ("solve_decomposed", "box_least_squares"), "rows": ("aasoatt_rows",)}
     return {f"{p}.{n}": len(getattr(compiled.kernels(p), n).signatures) for p, names in entries.items() for n in names}
 
 

@@ -31,14 +31,14 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.compiled import NUMBA_MISSING
+from aasoatt_env.compiled import NUMBA_MISSING, c64, kernels
 from aasoatt_env.compiled import available as compiled_available
 from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
 from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs, row_dot
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
-from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
 from aasoatt_env.safety.decentralized import decentralized_step
 from aasoatt_env.safety.decomposition import row_values, solve_centralized
@@ -201,6 +201,8 @@ class SafetyFilter:
         self._Q = rotation(cfg.rotation_deg)
         self._strategy = STRATEGIES[cfg.deadlock]
         self._trigger = TRIGGERS[cfg.trigger]
+        # the paper's rows of robot pairs in one compiled call (aasoatt_env.safety.rows_kernel)
+        self._fused = cfg.compiled and cfg.barrier == "aasoatt" and not self._strategy.rotates_rows
         self._solver = SolverPolicy(cfg.solver, active_set=cfg.active_set,
                                     options={"iterations": cfg.neural_iterations}, compiled=cfg.compiled)
         self.reset(team)
@@ -350,36 +352,45 @@ class SafetyFilter:
         # neighbours and pair geometry -------------------------------------------------
         pr = robot_pairs(p, cfg.sensing_range, groups=team.group, compiled=cfg.compiled)
         ri, rj = pr[:, 0], pr[:, 1]
-        rad, amax = team.radius, team.max_point_accel
-        state = np.concatenate((p, v, adot), axis=1)  # one gather per side instead of three
-        rel = state[ri] - state[rj]
-        geo_p, geo_v, geo_a = rel[:, 0:2], rel[:, 2:4], rel[:, 4:6]
-        ds, rsum, ap = rad[ri] + rad[rj], rad[ri] + rad[rj], amax[ri] + amax[rj]
         pairs_out = pr
-        if obstacles is not None:
-            oc = np.asarray(obstacles[0], float).reshape(-1, 2)
-            orad = np.asarray(obstacles[1], float).reshape(-1)
-            po = obstacle_pairs(p, oc, orad, cfg.sensing_range, groups=team.group,
-                                obstacle_groups=obstacles[2] if len(obstacles) > 2 else None)
-            oi, ok = po[:, 0], po[:, 1]
-            geo_p = np.concatenate((geo_p, p[oi] - oc[ok]))
-            geo_v = np.concatenate((geo_v, v[oi]))
-            geo_a = np.concatenate((geo_a, adot[oi]))
-            rs = rad[oi] + orad[ok]
-            ds, rsum, ap = np.concatenate((ds, rs)), np.concatenate((rsum, rs)), np.concatenate((ap, amax[oi]))
-            ri = np.concatenate((ri, oi))
-            rj = np.concatenate((rj, np.full(oi.shape[0], -1, dtype=np.intp)))
-            pairs_out = np.concatenate((pr, np.stack((oi, -1 - ok), axis=1)))
+        m_obs = n + (0 if obstacles is None else int(np.asarray(obstacles[1]).size))
+        gap_initial = cfg.sensing_range - 2.0 * float(team.radius.max(initial=0.0))
+        if self._fused and obstacles is None:  # the rows in one compiled call (rows_kernel's docstring)
+            geo_p_true, Gi, Gj, rhs, keys, barrier_min, gap_min = kernels("rows").aasoatt_rows(
+                c64(p), c64(v), c64(adot), c64(A), c64(team.radius), np.ascontiguousarray(pr, dtype=np.int64),
+                cfg.k1, cfg.k2,
+                np.nan if cfg.safety_margin is None else float(cfg.safety_margin), auto_margin(cfg.dt),
+                MARGIN_FADE_SPEED, cfg.speed_margin, m_obs + 1, gap_initial)
+            barrier_min, gap_min = float(barrier_min), float(gap_min)
+        else:
+            rad, amax = team.radius, team.max_point_accel
+            state = np.concatenate((p, v, adot), axis=1)  # one gather per side instead of three
+            rel = state[ri] - state[rj]
+            geo_p, geo_v, geo_a = rel[:, 0:2], rel[:, 2:4], rel[:, 4:6]
+            ds, rsum, ap = rad[ri] + rad[rj], rad[ri] + rad[rj], amax[ri] + amax[rj]
+            if obstacles is not None:
+                oc = np.asarray(obstacles[0], float).reshape(-1, 2)
+                orad = np.asarray(obstacles[1], float).reshape(-1)
+                po = obstacle_pairs(p, oc, orad, cfg.sensing_range, groups=team.group,
+                                    obstacle_groups=obstacles[2] if len(obstacles) > 2 else None)
+                oi, ok = po[:, 0], po[:, 1]
+                geo_p = np.concatenate((geo_p, p[oi] - oc[ok]))
+                geo_v = np.concatenate((geo_v, v[oi]))
+                geo_a = np.concatenate((geo_a, adot[oi]))
+                rs = rad[oi] + orad[ok]
+                ds, rsum, ap = np.concatenate((ds, rs)), np.concatenate((rsum, rs)), np.concatenate((ap, amax[oi]))
+                ri = np.concatenate((ri, oi))
+                rj = np.concatenate((rj, np.full(oi.shape[0], -1, dtype=np.intp)))
+                pairs_out = np.concatenate((pr, np.stack((oi, -1 - ok), axis=1)))
+            geo_p_true = geo_p
 
         # deadlock trigger and strategy -----------------------------------------------
         if strategy.active:
             triggered = self._trigger(self._dl, TriggerContext(p, v, theta, reference, np.stack((ri, rj), axis=1),
-                                                               -geo_p, cfg))
+                                                               -geo_p_true, cfg))
         else:
             triggered = np.zeros(n, dtype=bool)
         zeta = np.where(triggered, cfg.zeta, 0.0)
-        geo_p_true = geo_p
-        geo_p = strategy.rotate_rows(geo_p, triggered[ri] | ((rj >= 0) & triggered[np.maximum(rj, 0)]), self._Q)
         decentral = cfg.mode == "decentralized"
         # a robot alone saturates its own nominal: the decentralised QPs start from what each robot would do
         nom_t = np.minimum(np.maximum(nominal_du, lo), hi) if decentral else nominal_du
@@ -387,26 +398,27 @@ class SafetyFilter:
                                          TargetContext(v, p, reference, cfg.k3, cfg.k4))
 
         # rows --------------------------------------------------------------------------
-        margin = cfg.pair_margin(geo_v)
-        c_speed = cfg.speed_margin
-        if c_speed:
-            sp2 = row_dot(v, v)
-            margin = margin + c_speed * (sp2[ri] + np.where(rj >= 0, sp2[np.maximum(rj, 0)], 0.0))
-        g = PairGeometry(ri, rj, geo_p, geo_v, geo_a, ds + margin, rsum, ap)
-        # the barrier's value with the true geometry and safety distance: what "inside the safe set" refers to
-        h = get_barrier(cfg.barrier).value(g._replace(p=geo_p_true, d_s=ds), cfg)
-        barrier_min = float(h.min(initial=np.inf))
-        gap = np.sqrt(row_dot(geo_p_true, geo_p_true)) - ds
-        c, rhs, keep = barrier_rows(cfg.barrier, g, cfg)
-        ri, rj, pairs_out = ri[keep], rj[keep], pairs_out[keep]
-        Gi = np.einsum("pki,pk->pi", A[ri], c)
-        Gj = -np.einsum("pki,pk->pi", A[np.maximum(rj, 0)], c)
+        if not (self._fused and obstacles is None):
+            geo_p = strategy.rotate_rows(geo_p, triggered[ri] | ((rj >= 0) & triggered[np.maximum(rj, 0)]), self._Q)
+            margin = cfg.pair_margin(geo_v)
+            c_speed = cfg.speed_margin
+            if c_speed:
+                sp2 = row_dot(v, v)
+                margin = margin + c_speed * (sp2[ri] + np.where(rj >= 0, sp2[np.maximum(rj, 0)], 0.0))
+            g = PairGeometry(ri, rj, geo_p, geo_v, geo_a, ds + margin, rsum, ap)
+            # the barrier's value with the true geometry and safety distance: what "inside the safe set" refers to
+            h = get_barrier(cfg.barrier).value(g._replace(p=geo_p_true, d_s=ds), cfg)
+            barrier_min = float(h.min(initial=np.inf))
+            gap_min = float((np.sqrt(row_dot(geo_p_true, geo_p_true)) - ds).min(initial=gap_initial))
+            c, rhs, keep = barrier_rows(cfg.barrier, g, cfg)
+            ri, rj, pairs_out = ri[keep], rj[keep], pairs_out[keep]
+            Gi = np.einsum("pki,pk->pi", A[ri], c)
+            Gj = -np.einsum("pki,pk->pi", A[np.maximum(rj, 0)], c)
+            keys = ri.astype(np.int64) * (m_obs + 1) + np.where(rj >= 0, rj, n - 1 - pairs_out[:, 1])
 
         # QP ----------------------------------------------------------------------------
         scale = np.maximum(team.max_wheel_accel, np.max(np.maximum(np.abs(lo), np.abs(hi)), axis=1))
         scale = np.where(scale > 0, scale, 1.0)
-        m_obs = n + (0 if obstacles is None else int(np.asarray(obstacles[1]).size))
-        keys = ri.astype(np.int64) * (m_obs + 1) + np.where(rj >= 0, rj, n - 1 - pairs_out[:, 1])
         m = rhs.shape[0]
         if decentral:  # every robot its own QP over its halves of the rows: no team QP below
             dec = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, scale=scale,
@@ -456,7 +468,7 @@ class SafetyFilter:
             if nudged.any():
                 message = f"{message}; backup nudged {int(nudged.sum())} robot(s) toward brake-safety"
         else:
-            margin = float(gap.min(initial=cfg.sensing_range - 2.0 * float(team.radius.max(initial=0.0))))
+            margin = gap_min
             safe = not (barrier_min < -_BARRIER_TOL or margin < -COLLISION_TOL)
         if not safe:
             status = "unsafe"

@@ -15,7 +15,7 @@ import numpy as np
 from aasoatt_env import compiled
 from aasoatt_env.compiled import KERNELS, NUMBA_MISSING
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.model.dynamics import DT, input_bounds
+from aasoatt_env.model.dynamics import DT, input_bounds, kinematics
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import make_team
 from aasoatt_env.safety.decomposition import solve_centralized
@@ -79,4 +79,10 @@ def warm_up(kernel: str = "auto") -> bool:
                       np.ones((2, 2)), np.ones(2), np.array([0]), np.array([1]), np.array([[1.0, 0.0]]),
                       np.array([[-1.0, 0.0]]), np.array([0.1]), np.zeros((2, 2)), np.ones(1), compiled=True)
     box_least_squares(np.tile(np.eye(2), (2, 1, 1)), np.ones((2, 2)), -np.ones((2, 2)), np.ones((2, 2)), compiled=True)
+    # the barrier rows of the pair (the filter's argument types: rows_kernel)
+    kin = kinematics(team, pose, u)
+    c64 = compiled.c64
+    compiled.kernels("rows").aasoatt_rows(c64(kin.p), c64(kin.v), c64(kin.adot_u), c64(kin.A), c64(team.radius),
+                                          np.ascontiguousarray(pairs, dtype=np.int64), 1.0, 1.0, np.nan, 0.01, 0.2,
+                                          0.0, 3, 3.0)
     return True
