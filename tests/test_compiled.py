@@ -504,7 +504,8 @@ def test_the_compiled_box_least_squares_is_the_numpy_one():
 def _signatures() -> dict:
     """Compiled specialisations of every kernel entry point."""
     entries = {"backup": ("gate_full", "repair_full"), "local": ("solve_all",), "active_set": ("solve_parts",),
-               "geometry": ("cell_pairs", "components"), "decomposition": ("solve_decomposed", "box_least_squares"), "rows": ("aasoatt_rows",)}
+               "geometry": ("cell_pairs", "components"), "decomposition": ("solve_decomposed", "box_least_squares"),
+               "rows": ("aasoatt_rows",)}
     return {f"{p}.{n}": len(getattr(compiled.kernels(p), n).signatures) for p, names in entries.items() for n in names}
 
 
