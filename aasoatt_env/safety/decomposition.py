@@ -39,6 +39,7 @@ from aasoatt_env.safety.solvers.active_set import (
     VERIFIED_MESSAGE,
     WARM_FLOOR,
     WARM_REL,
+    ActiveSetParts,
 )
 
 __all__ = ["CentralAnswer", "row_values", "solve_centralized"]
@@ -125,10 +126,12 @@ def solve_centralized(
     n, m = _check(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm)
     warm = _WarmRows(z_warm, m)
     decompose = decompose and policy.exact
+    kernel_parts = None
     if compiled and decompose and policy.active_set and policy.compiled and x_prev is not None and warm() is not None:
         out = _compiled(policy, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, warm())
-        if out is not None:
+        if isinstance(out, CentralAnswer):
             return out
+        kernel_parts = out
     if decompose:
         du = box_least_squares(A, target, lo, hi)
         viol = row_values(Gi, Gj, ri, rj, du) - rhs
@@ -155,7 +158,11 @@ def solve_centralized(
     x0 = None if x_prev is None else x_prev[sub].ravel()
     # the coupled components, independent parts of one QP: each verified on its own
     groups = None if label is None else np.unique(label[sub], return_inverse=True)[1].reshape(-1)
-    sol = policy.solve(prob, x0, None if z0 is None else z0[rows], groups)
+    parts = None
+    if kernel_parts is not None and groups is not None:  # the kernel's active set on this very problem
+        xs, zs, done, used = kernel_parts
+        parts = ActiveSetParts(xs, zs, used, done, groups[sri])
+    sol = policy.solve(prob, x0, None if z0 is None else z0[rows], groups, parts=parts)
     x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
     du[sub] = np.clip((x * prob.scale).reshape(-1, 2), lo[sub], hi[sub])
     x_full[sub] = x.reshape(-1, 2)
@@ -212,19 +219,26 @@ class _WarmRows:
 
 def _compiled(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray,
               scale: np.ndarray, ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray,
-              x_prev: np.ndarray, z_warm: np.ndarray) -> CentralAnswer | None:
-    """The step by :func:`~aasoatt_env.safety.decomposition_kernel.solve_decomposed`; None: the numpy path's."""
+              x_prev: np.ndarray, z_warm: np.ndarray) -> CentralAnswer | tuple | None:
+    """The step by :func:`~aasoatt_env.safety.decomposition_kernel.solve_decomposed`.
+
+    None: the numpy path's step.  ``(x, z, ok, iterations)``: the numpy path's step, from the warm
+    active set's answer on the components (the kernel's :data:`~aasoatt_env.safety.decomposition_kernel.PARTS`).
+    """
     t0 = time.perf_counter()
     n, m = A.shape[0], rhs.shape[0]
     du, x, z, eta = np.empty((n, 2)), np.empty((n, 2)), np.empty(m), np.empty(m)
+    xs, zs, done = np.empty(2 * n), np.empty(m), np.empty(n, dtype=bool)
     k = kernels("decomposition")
-    code, used, n_qp, n_vars = k.solve_decomposed(
+    code, used, n_qp, n_vars, n_parts = k.solve_decomposed(
         c64(A), c64(target), c64(lo), c64(hi), c64(scale), np.ascontiguousarray(ri, np.int64),
         np.ascontiguousarray(rj, np.int64), c64(Gi), c64(Gj), c64(rhs), c64(x_prev), c64(z_warm), PDAS_ITER,
         ONE_CHANGE_ITER, TOL, WARM_REL, WARM_FLOOR, BOUND_TIGHT, ROW_NORM_MIN, DENSE_MAX_VARS, DENSE_MAX_CELLS, du, x,
-        z, eta)
+        z, eta, xs, zs, done)
     if code == k.CLOSED_FORM:
         return CentralAnswer(du, x, z, eta, "solved", "closed form: no row binds", 0, 0)
+    if code == k.PARTS:
+        return xs[:n_vars], zs[:n_qp], done[:n_parts], int(used)
     elapsed = time.perf_counter() - t0
     if code != k.VERIFIED or policy.needs_problem(int(n_vars), elapsed):
         return None  # (a slow answer: the policy's timing probe needs the problem, which the numpy path builds)

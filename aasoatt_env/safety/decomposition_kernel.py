@@ -21,7 +21,10 @@ their arithmetic, is a small team's or a training stack's step):
    the reference calls on these problems);
 5. the answer assembled as the filter assembles it.
 
-It answers only where every component is verified; otherwise (and where the
+It answers only where every component is verified.  Where some of two or more
+components are not, it hands the warm active set's answer on all of them to the
+reference (:data:`PARTS`), which builds the same problem and goes on from there
+with the unverified ones (the policy's ``solve(..., parts=)``).  Otherwise (and where the
 reference would not take this kernel's path: a problem beyond the dense size,
 a Hessian block not positive definite, rows the active-set kernel does not
 handle) it returns a negative code and changes nothing the caller reads, and
@@ -53,6 +56,9 @@ VERIFIED = 1
 """Return code: every component's warm active set was verified."""
 NOT_HERE = -1
 """Return code: the caller takes the reference path (its outputs are not to be read)."""
+PARTS = 2
+"""Return code: some of two or more components were not verified; the warm active set's answer on every
+component is in ``xs, zs, done`` (the reference path takes it over for the problem it builds)."""
 
 
 @jit
@@ -101,15 +107,20 @@ def box_least_squares(A, target, lo, hi):
 @jit
 def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm, max_iter, one_change_iter, tol,
                      warm_rel, warm_floor, bound_tight, row_norm_min, dense_max_vars, dense_max_cells, du, x_full, z,
-                     eta):
+                     eta, xs_out, zs_out, done_out):
     """One centralised step's QP part (module docstring); fills ``du, x_full (N, 2)``, ``z, eta (m,)``.
 
     ``x_prev (N, 2)``: the previous step's scaled point; ``z_warm (m,)``: the previous multipliers mapped onto
     these rows; the constants are those of :mod:`~aasoatt_env.safety.solvers.active_set` and
     :data:`~aasoatt_env.safety.problem.ROW_NORM_MIN`, passed by the caller (one home each).  The caller
     checks every shape and index (the kernel reads without bounds checks).  Returns ``(code, iterations,
-    rows in the QP, variables in the QP)``: :data:`CLOSED_FORM`, :data:`VERIFIED`, or :data:`NOT_HERE`
-    (nothing filled is to be read).
+    rows in the QP, variables in the QP, components)``: :data:`CLOSED_FORM`, :data:`VERIFIED`,
+    :data:`NOT_HERE` (nothing filled is to be read) or :data:`PARTS`: then ``xs_out[:variables]``
+    (``(2N,)``) holds the scaled point of the coupled robots, ``zs_out[:rows]`` (``(m,)``) the
+    multipliers of their rows (``>= 0``, NaN kept) and ``done_out[:components]`` (``(N,)``) which
+    components were verified: what :func:`~aasoatt_env.safety.solvers.active_set.solve_active_set_parts`
+    answers on the problem the reference builds (its point ``x``, ``z`` and ``ok``), so the reference
+    goes on from there.
     """
     n, m = A.shape[0], rhs.shape[0]
     for i in range(n):
@@ -134,7 +145,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
     z[:] = 0.0
     eta[:] = 0.0
     if n_bad == 0:
-        return CLOSED_FORM, 0, 0, 0
+        return CLOSED_FORM, 0, 0, 0, 0
     ea, eb = np.empty(n_rr, np.int64), np.empty(n_rr, np.int64)
     k = 0
     for q in range(m):
@@ -170,7 +181,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
             nnz += 4 if rj[q] >= 0 else 2
     nv = 2 * ns
     if not (nv <= dense_max_vars or nv * (ms + 2 * nv) <= dense_max_cells):
-        return NOT_HERE, 0, ms, nv
+        return NOT_HERE, 0, ms, nv, K
     # the scaled problem (build_problem's operations)
     H = np.empty((ns, 2, 2))
     sigma = 0.0
@@ -186,7 +197,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
                 elif v > sigma:
                     sigma = v
     if not (sigma > 0.0):
-        return NOT_HERE, 0, ms, nv
+        return NOT_HERE, 0, ms, nv, K
     LinvT, gt = np.empty((ns, 2, 2)), np.empty(nv)
     lbv, ubv = np.empty(nv), np.empty(nv)
     for a in range(ns):
@@ -203,7 +214,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
         d2 = h11 - fc * fc
         fd = math.sqrt(d2) if d2 >= 0.0 else math.nan
         if not (h00 > 0.0 and d2 > 0.0 and H[a, 0, 1] == h10):
-            return NOT_HERE, 0, ms, nv  # a block not positive definite: the reference's other path
+            return NOT_HERE, 0, ms, nv, K  # a block not positive definite: the reference's other path
         l00, l10, l11 = 1.0 / fa, -fc / (fa * fd), 1.0 / fd
         LinvT[a, 0, 0], LinvT[a, 0, 1], LinvT[a, 1, 0], LinvT[a, 1, 1] = l00, l10, 0.0, l11
         gt[2 * a] = l00 * g0 + 0.0 * g1
@@ -258,17 +269,29 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
     used = solve_parts(indptr, indices, data, ms, nv, LinvT, gt, b, W0, groups[:ns].copy(), K, max_iter,
                        one_change_iter, tol, y, lam, done)
     if used < 0:
-        return NOT_HERE, 0, ms, nv
+        return NOT_HERE, 0, ms, nv, K
+    verified = 0
     for g in range(K):
-        if not done[g]:
-            return NOT_HERE, used, ms, nv
+        verified += done[g]
     xs = np.empty(nv)
     for a in range(ns):
         y0, y1 = y[2 * a], y[2 * a + 1]
         xs[2 * a] = LinvT[a, 0, 0] * y0 + LinvT[a, 0, 1] * y1
         xs[2 * a + 1] = LinvT[a, 1, 0] * y0 + LinvT[a, 1, 1] * y1
-        if not (math.isfinite(xs[2 * a]) and math.isfinite(xs[2 * a + 1])):
-            return NOT_HERE, used, ms, nv  # (the reference answers zeros then: its path decides)
+    if verified < K:
+        if K < 2:  # (the reference runs one part's active set inside the solver policy's own path)
+            return NOT_HERE, used, ms, nv, K
+        for v in range(nv):  # (no group verified: the reference's point is zeros, unread by its next step)
+            xs_out[v] = xs[v] if verified else 0.0
+        for k in range(ms):
+            zk = lam[k] if verified else 0.0
+            zs_out[k] = zk if zk >= 0.0 or zk != zk else 0.0
+        for g in range(K):
+            done_out[g] = done[g]
+        return PARTS, used, ms, nv, K
+    for v in range(nv):
+        if not math.isfinite(xs[v]):
+            return NOT_HERE, used, ms, nv, K  # (the reference answers zeros then: its path decides)
     for a in range(ns):
         i = sub[a]
         for h in range(2):
@@ -281,4 +304,4 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
         zk = zk if math.isfinite(zk) else 0.0
         z[rows[k]] = zk
         eta[rows[k]] = sigma * zk / nu[k]
-    return VERIFIED, used, ms, nv
+    return VERIFIED, used, ms, nv, K

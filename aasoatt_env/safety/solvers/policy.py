@@ -251,19 +251,22 @@ class SolverPolicy:
         return self.backend.exact
 
     def solve(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None,
-              groups: np.ndarray | None = None) -> QPSolution:
+              groups: np.ndarray | None = None, parts: ActiveSetParts | None = None) -> QPSolution:
         """Solve ``prob``, warm-started from ``(x0, z0)`` where the back-end uses them.
 
         ``groups`` ``(N,)``: the independent parts of ``prob`` (a group ``0..K-1`` per robot,
         no row between groups).  With the warm active set, every part it verifies is
         answered by it and only the other parts go on to the back-end, as one smaller
         problem: one hard or infeasible part does not send the whole stack to the
-        back-end and to phase 1.
+        back-end and to phase 1.  ``parts``: the warm active set's answer on these groups
+        from this warm start, already computed (the compiled decomposition's, on the same
+        problem): used instead of running it again.
         """
         if (groups is not None and self.active_set and self.backend.exact and x0 is not None and z0 is not None
                 and int(np.max(groups, initial=0)) > 0):
             t0 = time.perf_counter()
-            part = solve_active_set_parts(prob, x0, z0, groups, compiled=self.compiled)
+            part = parts if parts is not None else solve_active_set_parts(prob, x0, z0, groups,
+                                                                          compiled=self.compiled)
             if part is not None:
                 return self._rest(prob, x0, z0, groups, part, t0)
         return self._solve(prob, x0, z0)
