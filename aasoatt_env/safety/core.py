@@ -386,8 +386,8 @@ class SafetyFilter:
 
         # deadlock trigger and strategy -----------------------------------------------
         if strategy.active:
-            triggered = self._trigger(self._dl, TriggerContext(p, v, theta, reference, np.stack((ri, rj), axis=1),
-                                                               -geo_p_true, cfg))
+            pair_idx = pr if ri.shape[0] == pr.shape[0] else np.stack((ri, rj), axis=1)  # (robot pairs only: pr)
+            triggered = self._trigger(self._dl, TriggerContext(p, v, theta, reference, pair_idx, -geo_p_true, cfg))
         else:
             triggered = np.zeros(n, dtype=bool)
         zeta = np.where(triggered, cfg.zeta, 0.0)
@@ -435,7 +435,7 @@ class SafetyFilter:
             du, x_full, z, eta = ans.du, ans.x, ans.z, ans.eta
             status, message, iterations, n_qp = ans.status, ans.message, ans.iterations, ans.n_qp
         self._x, self._keys, self._z = x_full.ravel(), keys, z
-        self._key_robots = np.stack((ri, rj), axis=1)
+        self._key_robots = pairs_out.copy()  # (an obstacle row's (i, -1 - k) names robot i alone, as (i, -1) would)
         avoiding = np.zeros(n, dtype=bool)
         if decentral:  # a robot avoids when its own half of a row binds
             active_i, active_j = dec.z_half[:, 0] > cfg.eta_tol, dec.z_half[:, 1] > cfg.eta_tol
@@ -510,11 +510,13 @@ class SafetyFilter:
             return None
         z0 = np.zeros(keys.shape[0])
         if self._keys.shape[0] and keys.shape[0]:
-            order = np.argsort(self._keys, kind="stable")
-            sk = self._keys[order]
-            pos = np.clip(np.searchsorted(sk, keys), 0, sk.shape[0] - 1)
+            sk, zk = self._keys, self._z
+            if not bool((sk[1:] > sk[:-1]).all()):  # (robot pairs alone come sorted: no sort needed)
+                order = np.argsort(sk, kind="stable")
+                sk, zk = sk[order], zk[order]
+            pos = np.minimum(np.searchsorted(sk, keys), sk.shape[0] - 1)
             hit = sk[pos] == keys
-            z0[hit] = self._z[order[pos[hit]]]
+            z0[hit] = zk[pos[hit]]
         return z0
 
     def _check_inputs(

@@ -66,18 +66,24 @@ def _E1(x):
 
 
 @_jit
-def _point1(diff, offset, x, y, theta):
-    """:func:`~aasoatt_env.safety.backup._point` of one robot."""
-    c = complex(x, y)
-    return c + offset * complex(math.cos(theta), math.sin(theta)) if diff else c
+def _heading(diff, theta):
+    """``e^{i theta}`` of a wheeled robot (one ``cos`` and ``sin`` for each use of the heading), 0 for a point mass."""
+    return complex(math.cos(theta), math.sin(theta)) if diff else 0j
 
 
 @_jit
-def _velocity1(diff, c0, c1, tg, theta, u0, u1):
+def _point1(diff, offset, x, y, heading):
+    """:func:`~aasoatt_env.safety.backup._point` of one robot (``heading``: :func:`_heading` of its angle)."""
+    c = complex(x, y)
+    return c + offset * heading if diff else c
+
+
+@_jit
+def _velocity1(diff, c0, c1, tg, heading, u0, u1):
     """:func:`~aasoatt_env.safety.backup._velocity` of one robot: control-point velocity and yaw rate."""
     if not diff:
         return complex(u0, u1), 0.0
-    return complex(math.cos(theta), math.sin(theta)) * (c0 * u0 + c1 * u1), tg * (u0 - u1)
+    return heading * (c0 * u0 + c1 * u1), tg * (u0 - u1)
 
 
 @_jit
@@ -89,10 +95,10 @@ def _brake_time1(diff, c0, c1, amax, adec, u0, u1):
 
 
 @_jit
-def _brake1(diff, c0, c1, tg, amax, adec, theta, u0, u1, dt):
+def _brake1(diff, c0, c1, tg, amax, adec, heading, u0, u1, dt):
     """:func:`~aasoatt_env.safety.backup._brake` of one robot: ``(pdot, omega, rate, steps, reach, bulge)``."""
     T = _brake_time1(diff, c0, c1, amax, adec, u0, u1)
-    pdot, w = _velocity1(diff, c0, c1, tg, theta, u0, u1)
+    pdot, w = _velocity1(diff, c0, c1, tg, heading, u0, u1)
     if not T > 0.0:  # at rest (or T NaN): numpy's arithmetic with moving = False, NaN kept as NaN
         speed = _cabs(pdot) * 0.0
         aw = abs(w)
@@ -123,8 +129,10 @@ def _brake1(diff, c0, c1, tg, amax, adec, theta, u0, u1, dt):
 
 
 @_jit
-def _candidate1(diff, c0, c1, tg, amax, adec, p0, theta, u0, u1, du0, du1, dt):
+def _candidate1(diff, c0, c1, tg, amax, adec, p0, theta, heading, u0, u1, du0, du1, dt):
     """One step holding ``du`` then braking (:func:`~aasoatt_env.safety.backup._first_step` and ``_brake``).
+
+    ``heading``: :func:`_heading` of ``theta``.
 
     Returns ``(p1, dev, pdot, omega, rate, steps, reach, bulge)`` with ``reach`` the
     candidate's (:func:`~aasoatt_env.safety.backup._candidate_reach`).
@@ -132,12 +140,13 @@ def _candidate1(diff, c0, c1, tg, amax, adec, p0, theta, u0, u1, du0, du1, dt):
     c8 = dt * dt / 8.0
     u10 = u0 + du0 * dt
     u11 = u1 + du1 * dt
-    pm, wm = _velocity1(diff, c0, c1, tg, theta, 0.5 * (u0 + u10), 0.5 * (u1 + u11))
+    pm, wm = _velocity1(diff, c0, c1, tg, heading, 0.5 * (u0 + u10), 0.5 * (u1 + u11))
     p1 = p0 + pm * dt * _E1(wm * dt)
     dev = c8 * _cabs(pm) * abs(wm)
     if not diff:
         dev = dev + c8 * math.hypot(du0, du1)
-    pdot, w, rate, steps, reach, bulge = _brake1(diff, c0, c1, tg, amax, adec, theta + wm * dt, u10, u11, dt)
+    pdot, w, rate, steps, reach, bulge = _brake1(diff, c0, c1, tg, amax, adec, _heading(diff, theta + wm * dt), u10,
+                                                 u11, dt)
     return p1, dev, pdot, w, rate, steps, _cabs(p1 - p0) + dev + reach, bulge
 
 
@@ -507,11 +516,13 @@ def gate_full(pose, u, du_c, dt, levels_in, quick, diff, offset, cols, tg, amax,
     NEED = np.empty((nl_full, n), dtype=np.int64)
     RE = np.empty((nl_full, n))
     BU = np.zeros((nl_full, n))
+    HD = np.empty(n, dtype=np.complex128)
     for g in range(n):  # the backup from now: level `last`
-        c0, c1, th = cols[g, 0], cols[g, 1], pose[g, 2]
-        p0[g] = _point1(diff, offset[g], pose[g, 0], pose[g, 1], th)
+        c0, c1 = cols[g, 0], cols[g, 1]
+        HD[g] = _heading(diff, pose[g, 2])
+        p0[g] = _point1(diff, offset[g], pose[g, 0], pose[g, 1], HD[g])
         T = _brake_time1(diff, c0, c1, amax[g], adec[g], u[g, 0], u[g, 1])
-        pdot, w, rate, steps, reach, bulge = _brake1(diff, c0, c1, tg[g], amax[g], adec[g], th, u[g, 0], u[g, 1],
+        pdot, w, rate, steps, reach, bulge = _brake1(diff, c0, c1, tg[g], amax[g], adec[g], HD[g], u[g, 0], u[g, 1],
                                                      dt)
         PD[last_full, g], OM[last_full, g], RT[last_full, g] = pdot, w, rate
         NEED[last_full, g], RE[last_full, g], BU[last_full, g] = steps + 1, reach, bulge
@@ -528,8 +539,8 @@ def gate_full(pose, u, du_c, dt, levels_in, quick, diff, offset, cols, tg, amax,
             da1 = b1 + a * (du_c[g, 1] - b1)
             du_all[k, g, 0], du_all[k, g, 1] = da0, da1
             p1, dev, pdot, w, rate, steps, reach, bulge = _candidate1(
-                diff, cols[g, 0], cols[g, 1], tg[g], amax[g], adec[g], p0[g], pose[g, 2], u[g, 0], u[g, 1], da0,
-                da1, dt)
+                diff, cols[g, 0], cols[g, 1], tg[g], amax[g], adec[g], p0[g], pose[g, 2], HD[g], u[g, 0], u[g, 1],
+                da0, da1, dt)
             P1[k, g], D1[k, g], PD[k, g], OM[k, g], RT[k, g] = p1, dev, pdot, w, rate
             NEED[k, g], RE[k, g], BU[k, g] = steps + 2, reach, bulge
             out = out or reach > limit[g]
@@ -582,7 +593,7 @@ def gate_full(pose, u, du_c, dt, levels_in, quick, diff, offset, cols, tg, amax,
 
 
 @_jit
-def _moved_step(diff, cols, tg, amax, adec, p0, pose, u, du, g, d, eps, dt, k):
+def _moved_step(diff, cols, tg, amax, adec, p0, hd, pose, u, du, g, d, eps, dt, k):
     """Samples ``k``, ``k + 1`` and step ``k``'s deviation of robot ``g``'s path with input ``d`` moved by ``eps``.
 
     :func:`~aasoatt_env.safety.backup.candidate_samples_at` for the repair's finite difference.
@@ -590,7 +601,8 @@ def _moved_step(diff, cols, tg, amax, adec, p0, pose, u, du, g, d, eps, dt, k):
     e0 = du[g, 0] + (eps if d == 0 else 0.0)
     e1 = du[g, 1] + (eps if d == 1 else 0.0)
     p1, dev, pdot, w, rate, steps, _, bulge = _candidate1(
-        diff, cols[g, 0], cols[g, 1], tg[g], amax[g], adec[g], p0[g], pose[g, 2], u[g, 0], u[g, 1], e0, e1, dt)
+        diff, cols[g, 0], cols[g, 1], tg[g], amax[g], adec[g], p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], e0, e1,
+        dt)
     pa0, dm0 = _sample_at(p0[g], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k)
     pa1, _ = _sample_at(p0[g], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k + 1)
     return pa0, pa1, dm0
@@ -623,8 +635,10 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
         for d in range(2):
             du[g, d] = min(max(du_c[g, d], lo[g, d]), hi[g, d])
     p0 = np.empty(n, dtype=np.complex128)
+    hd = np.empty(n, dtype=np.complex128)
     for g in range(n):
-        p0[g] = _point1(diff, offset[g], pose[g, 0], pose[g, 1], pose[g, 2])
+        hd[g] = _heading(diff, pose[g, 2])
+        p0[g] = _point1(diff, offset[g], pose[g, 0], pose[g, 1], hd[g])
     P1 = np.empty((1, n), dtype=np.complex128)
     D1 = np.empty((1, n))
     PD = np.empty((1, n), dtype=np.complex128)
@@ -644,7 +658,7 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
     for _ in range(rounds):
         for g in range(n):  # reach first: only robots with a pair that could come close need paths
             p1, dev, pdot, w, rate, steps, reach, bulge = _candidate1(
-                diff, cols[g, 0], cols[g, 1], tg[g], amax[g], adec[g], p0[g], pose[g, 2], u[g, 0], u[g, 1],
+                diff, cols[g, 0], cols[g, 1], tg[g], amax[g], adec[g], p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1],
                 du[g, 0], du[g, 1], dt)
             P1[0, g], D1[0, g], PD[0, g], OM[0, g], RT[0, g], BU[0, g] = p1, dev, pdot, w, rate, bulge
             NEED[g], R[g] = steps + 2, reach + ee
@@ -710,7 +724,7 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
                 qf0, qf1 = cur[fx, min(k, NEED[fx] - 1)], cur[fx, min(k + 1, NEED[fx] - 1)]
                 dfx = curd[fx, k] if k < NEED[fx] - 1 else 0.0
                 for d in range(2):
-                    pa0, pa1, dm0 = _moved_step(diff, cols, tg, amax, adec, p0, pose, u, du, mv, d, eps, dt, k)
+                    pa0, pa1, dm0 = _moved_step(diff, cols, tg, amax, adec, p0, hd, pose, u, du, mv, d, eps, dt, k)
                     mg = _segment_margin(pa0, pa1, qf0, qf1, dm0, dfx) - ds[q]
                     if side == 0:
                         gi[q, d] = (mg - m0[q]) / eps
@@ -725,7 +739,7 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, offset, cols, tg, amax, adec, r
                 continue
             k, mv = okk[q], oi[q]
             for d in range(2):
-                pa0, pa1, dm0 = _moved_step(diff, cols, tg, amax, adec, p0, pose, u, du, mv, d, eps, dt, k)
+                pa0, pa1, dm0 = _moved_step(diff, cols, tg, amax, adec, p0, hd, pose, u, du, mv, d, eps, dt, k)
                 mg = _segment_margin(pa0, pa1, oc[ok[q]], oc[ok[q]], dm0, 0.0) - ods[q]
                 go[q, d] = (mg - om0[q]) / eps
             olift[q] = (2.0 * target - om0[q]) / max(go[q, 0] * go[q, 0] + go[q, 1] * go[q, 1], 1e-12)
