@@ -30,6 +30,7 @@ from aasoatt_env import compiled as _compiled
 
 __all__ = [
     "KDTREE_MIN_ROBOTS",
+    "brute_candidates",
     "k_nearest",
     "min_gaps",
     "obstacle_gaps",
@@ -89,6 +90,24 @@ def _group_size(groups: np.ndarray) -> int:
     return _per_labelling("size", groups, lambda g: g.shape[0] // max(int(np.unique(g).size), 1))
 
 
+def brute_candidates(n: int, groups: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate pairs ``(iu, ju)`` of :func:`robot_pairs`' brute force (cached, read-only).
+
+    Every pair ``i < j`` (of one label with ``groups``) in lexicographic order;
+    :func:`robot_pairs` keeps those with ``d0 d0 + d1 d1 <= radius * radius``
+    (``d = p_i - p_j``).
+    """
+    return _upper_pairs(n) if groups is None else _group_pairs(groups)
+
+
+def uses_brute_force(n: int, groups: np.ndarray | None = None) -> bool:
+    """Whether :func:`robot_pairs` with ``method="auto"`` answers ``n`` points by brute force.
+
+    That is, with fewer than :data:`KDTREE_MIN_ROBOTS` points per group.
+    """
+    return (n if groups is None else _group_size(groups)) < KDTREE_MIN_ROBOTS
+
+
 def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot products ``(P,)`` of two ``(P, 2)`` arrays: ``a0 b0 + a1 b1``.
 
@@ -139,9 +158,8 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
     if n < 2:
         return np.empty((0, 2), dtype=np.intp)
     if method == "auto":
-        per_group = n if groups is None else _group_size(groups)
         use = _compiled.available() if compiled is None else compiled
-        method = "brute" if per_group < KDTREE_MIN_ROBOTS else "cells" if use else "kdtree"
+        method = "brute" if uses_brute_force(n, groups) else "cells" if use else "kdtree"
     if method == "cells":
         if not (radius > 0 and np.isfinite(radius)):
             method = "brute"  # no cell width: the brute force answers (only coincident points at radius 0)
@@ -155,7 +173,7 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
                 return pairs.astype(np.intp, copy=False)
             method = "brute" if n <= 4000 else "kdtree"  # more cells than int64 keys hold (absurd spreads)
     if method == "brute":
-        iu, ju = _upper_pairs(n) if groups is None else _group_pairs(groups)
+        iu, ju = brute_candidates(n, groups)
         d = p[iu] - p[ju]
         with np.errstate(over="ignore", invalid="ignore"):  # a squared distance of inf is far; NaN pairs nothing
             keep = np.flatnonzero(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] <= radius * radius)

@@ -35,7 +35,7 @@ from aasoatt_env.compiled import NUMBA_MISSING, c64, kernels
 from aasoatt_env.compiled import available as compiled_available
 from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics, speed_box
-from aasoatt_env.model.geometry import obstacle_pairs, robot_pairs, row_dot
+from aasoatt_env.model.geometry import brute_candidates, obstacle_pairs, robot_pairs, row_dot, uses_brute_force
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
@@ -350,19 +350,26 @@ class SafetyFilter:
         p, v, A, adot = kin.p, kin.v, kin.A, kin.adot_u
 
         # neighbours and pair geometry -------------------------------------------------
-        pr = robot_pairs(p, cfg.sensing_range, groups=team.group, compiled=cfg.compiled)
-        ri, rj = pr[:, 0], pr[:, 1]
-        pairs_out = pr
         m_obs = n + (0 if obstacles is None else int(np.asarray(obstacles[1]).size))
         gap_initial = cfg.sensing_range - 2.0 * float(team.radius.max(initial=0.0))
-        if self._fused and obstacles is None:  # the rows in one compiled call (rows_kernel's docstring)
-            geo_p_true, Gi, Gj, rhs, keys, barrier_min, gap_min = kernels("rows").aasoatt_rows(
-                c64(p), c64(v), c64(adot), c64(A), c64(team.radius), np.ascontiguousarray(pr, dtype=np.int64),
-                cfg.k1, cfg.k2,
+        fused = self._fused and obstacles is None
+        if fused:  # the pairs in range and their rows in one compiled call (rows_kernel's docstring)
+            if uses_brute_force(n, team.group):  # robot_pairs' brute force, its distance test in the kernel
+                (ci, cj), range2 = brute_candidates(n, team.group), cfg.sensing_range * cfg.sensing_range
+            else:
+                found = robot_pairs(p, cfg.sensing_range, groups=team.group, compiled=cfg.compiled)
+                (ci, cj), range2 = (np.ascontiguousarray(found[:, 0]), np.ascontiguousarray(found[:, 1])), np.inf
+                ci.flags.writeable = cj.flags.writeable = False  # (the brute force's are: one compiled type)
+            pr, geo_p_true, Gi, Gj, rhs, keys, barrier_min, gap_min = kernels("rows").aasoatt_rows(
+                c64(p), c64(v), c64(adot), c64(A), c64(team.radius), ci, cj, range2, cfg.k1, cfg.k2,
                 np.nan if cfg.safety_margin is None else float(cfg.safety_margin), auto_margin(cfg.dt),
                 MARGIN_FADE_SPEED, cfg.speed_margin, m_obs + 1, gap_initial)
             barrier_min, gap_min = float(barrier_min), float(gap_min)
         else:
+            pr = robot_pairs(p, cfg.sensing_range, groups=team.group, compiled=cfg.compiled)
+        ri, rj = pr[:, 0], pr[:, 1]
+        pairs_out = pr
+        if not fused:
             rad, amax = team.radius, team.max_point_accel
             state = np.concatenate((p, v, adot), axis=1)  # one gather per side instead of three
             rel = state[ri] - state[rj]
@@ -398,7 +405,7 @@ class SafetyFilter:
                                          TargetContext(v, p, reference, cfg.k3, cfg.k4))
 
         # rows --------------------------------------------------------------------------
-        if not (self._fused and obstacles is None):
+        if not fused:
             geo_p = strategy.rotate_rows(geo_p, triggered[ri] | ((rj >= 0) & triggered[np.maximum(rj, 0)]), self._Q)
             margin = cfg.pair_margin(geo_v)
             c_speed = cfg.speed_margin

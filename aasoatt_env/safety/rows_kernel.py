@@ -1,19 +1,22 @@
 """The paper's barrier rows of every robot pair in one compiled call (numba; through :mod:`aasoatt_env.compiled`).
 
 :func:`aasoatt_rows` is what :meth:`aasoatt_env.safety.core.SafetyFilter.step`
-does in numpy between the neighbour search and the deadlock rule, for the
+does in numpy from the neighbour search to the deadlock rule, for the
 ``aasoatt`` barrier (eqn.7-8) of robot pairs, written as one loop over the pairs
 instead of some forty small array operations (whose overhead, not their
 arithmetic, is a small team's or a training stack's step):
 
-1. each pair's relative position, velocity and drift acceleration, and its
+1. the pairs within the sensing range, from candidates (the brute force's
+   pairs of :func:`~aasoatt_env.model.geometry.robot_pairs`, with its distance
+   test; or the pairs it found);
+2. each pair's relative position, velocity and drift acceleration, and its
    safety distance with the discrete-time margin
    (:meth:`~aasoatt_env.safety.config.FilterConfig.pair_margin` and
    ``speed_margin``);
-2. the barrier's value with the true safety distance (the smallest is the
+3. the barrier's value with the true safety distance (the smallest is the
    result's ``barrier_min``) and the surface gap (the smallest is the margin
    without the backup layer);
-3. the row ``rhs`` of :func:`~aasoatt_env.safety.barriers.barrier_rows`, the
+4. the row ``rhs`` of :func:`~aasoatt_env.safety.barriers.barrier_rows`, the
    row normals in wheel coordinates ``G_i = A_i^T c``, ``G_j = -A_j^T c``
    (``c = -p_ij``) and the warm-start keys.
 
@@ -40,9 +43,9 @@ __all__ = ["aasoatt_rows"]
 
 
 @_jit
-def aasoatt_rows(p, v, adot, A, radius, pairs, k1, k2, fixed_margin, auto_margin, fade_speed, speed_margin,
-                 key_base, gap_initial):
-    """The rows of the ``aasoatt`` barrier for robot pairs ``pairs`` ``(P, 2)`` (module docstring).
+def aasoatt_rows(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_margin, auto_margin, fade_speed,
+                 speed_margin, key_base, gap_initial):
+    """The robot pairs within range and their rows of the ``aasoatt`` barrier (module docstring).
 
     Parameters
     ----------
@@ -52,8 +55,13 @@ def aasoatt_rows(p, v, adot, A, radius, pairs, k1, k2, fixed_margin, auto_margin
         ``(n, 2, 2)`` input matrices.
     radius : numpy.ndarray
         ``(n,)`` radii.
-    pairs : numpy.ndarray
-        ``(P, 2)`` robot indices in ``[0, n)`` (checked by the caller: numba does not check bounds).
+    cand_i, cand_j : numpy.ndarray
+        ``(C,)`` candidate pairs, robot indices in ``[0, n)`` (checked by the caller: numba does not
+        check bounds).
+    range2 : float
+        The squared sensing range: a candidate is kept where ``d0 d0 + d1 d1 <= range2``
+        (``d = p_i - p_j``), as :func:`~aasoatt_env.model.geometry.robot_pairs`' brute force keeps it
+        (``inf``: every candidate, the pairs found already).
     k1, k2 : float
         The barrier's gains.
     fixed_margin : float
@@ -69,9 +77,19 @@ def aasoatt_rows(p, v, adot, A, radius, pairs, k1, k2, fixed_margin, auto_margin
     Returns
     -------
     tuple
-        ``(p_ij (P, 2), G_i (P, 2), G_j (P, 2), rhs (P,), keys (P,), barrier_min, gap_min)``.
+        ``(pairs (P, 2), p_ij (P, 2), G_i (P, 2), G_j (P, 2), rhs (P,), keys (P,), barrier_min, gap_min)``
+        for the ``P`` candidates kept, in their order.
     """
-    P = pairs.shape[0]
+    C = cand_i.shape[0]
+    P = 0
+    kept = np.empty(C, dtype=np.int64)
+    for c in range(C):
+        i, j = cand_i[c], cand_j[c]
+        d0, d1 = p[i, 0] - p[j, 0], p[i, 1] - p[j, 1]
+        if d0 * d0 + d1 * d1 <= range2:
+            kept[P] = c
+            P += 1
+    pairs = np.empty((P, 2), dtype=np.int64)
     rel = np.empty((P, 2))
     Gi = np.empty((P, 2))
     Gj = np.empty((P, 2))
@@ -83,7 +101,8 @@ def aasoatt_rows(p, v, adot, A, radius, pairs, k1, k2, fixed_margin, auto_margin
     kk = k1 * k2
     auto = fixed_margin != fixed_margin
     for q in range(P):
-        i, j = pairs[q, 0], pairs[q, 1]
+        i, j = cand_i[kept[q]], cand_j[kept[q]]
+        pairs[q, 0], pairs[q, 1] = i, j
         px, py = p[i, 0] - p[j, 0], p[i, 1] - p[j, 1]
         vx, vy = v[i, 0] - v[j, 0], v[i, 1] - v[j, 1]
         ax, ay = adot[i, 0] - adot[j, 0], adot[i, 1] - adot[j, 1]
@@ -110,4 +129,4 @@ def aasoatt_rows(p, v, adot, A, radius, pairs, k1, k2, fixed_margin, auto_margin
             Gj[q, col] = -(A[j, 0, col] * cx + A[j, 1, col] * cy)
         rel[q, 0], rel[q, 1] = px, py
         keys[q] = i * key_base + j
-    return rel, Gi, Gj, rhs, keys, h_min, gap_min
+    return pairs, rel, Gi, Gj, rhs, keys, h_min, gap_min

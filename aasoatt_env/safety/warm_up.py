@@ -16,7 +16,7 @@ from aasoatt_env import compiled
 from aasoatt_env.compiled import KERNELS, NUMBA_MISSING
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT, input_bounds, kinematics
-from aasoatt_env.model.geometry import pair_components, robot_pairs
+from aasoatt_env.model.geometry import brute_candidates, pair_components, robot_pairs
 from aasoatt_env.model.params import make_team
 from aasoatt_env.safety.decomposition import solve_centralized
 from aasoatt_env.safety.gatekeeper import gatekeeper
@@ -83,6 +83,5 @@ def warm_up(kernel: str = "auto") -> bool:
     kin = kinematics(team, pose, u)
     c64 = compiled.c64
     compiled.kernels("rows").aasoatt_rows(c64(kin.p), c64(kin.v), c64(kin.adot_u), c64(kin.A), c64(team.radius),
-                                          np.ascontiguousarray(pairs, dtype=np.int64), 1.0, 1.0, np.nan, 0.01, 0.2,
-                                          0.0, 3, 3.0)
+                                          *brute_candidates(2), 9.0, 1.0, 1.0, np.nan, 0.01, 0.2, 0.0, 3, 3.0)
     return True
