@@ -362,6 +362,72 @@ def test_the_compiled_decomposition_answers_as_the_numpy_path(monkeypatch, scene
         assert out[0][1] == 39 and out[60][1] == 0 and out[0][2] == 2 and out[-1][2] == 0
 
 
+@needs_numba
+@pytest.mark.parametrize("margin", [None, 0.01])
+def test_the_rows_kernel_gives_the_numpy_rows_bit_for_bit(margin):
+    """``aasoatt_rows`` against the numpy step's operations on random robots, coincident ones (``r`` clamped at
+    1e-9), singular input matrices and a speed margin: the pairs kept, relative positions, rows in wheel
+    coordinates, right-hand sides, keys and the smallest barrier value and gap, bit for bit."""
+    from aasoatt_env.model.geometry import brute_candidates, robot_pairs
+    from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
+    from aasoatt_env.safety.config import MARGIN_FADE_SPEED, auto_margin
+
+    cfg = FilterConfig(k1=1.3, k2=2.9, safety_margin=margin, speed_margin=0.07)
+    rng = np.random.default_rng(21)
+    n = 60
+    p = rng.uniform(0.0, 6.0, (n, 2))
+    p[5] = p[4]  # coincident robots
+    p[7] = p[6] + 1e-12
+    v, adot = rng.normal(0.0, 1.0, (n, 2)), rng.normal(0.0, 3.0, (n, 2))
+    v[9] = v[8]
+    A = rng.normal(0.0, 1.0, (n, 2, 2))
+    A[3] = 0.0  # singular
+    A[11, :, 1] = 0.0
+    radius = rng.uniform(0.05, 0.2, n)
+    ci, cj = brute_candidates(n)
+    pr, rel, Gi, Gj, rhs, keys, h_min, gap_min = compiled.kernels("rows").aasoatt_rows(
+        p, v, adot, A, radius, ci, cj, cfg.sensing_range ** 2, cfg.k1, cfg.k2,
+        np.nan if margin is None else margin, auto_margin(cfg.dt), MARGIN_FADE_SPEED, cfg.speed_margin, n + 1, 9.0)
+    ref = robot_pairs(p, cfg.sensing_range, method="brute")
+    ri, rj = ref[:, 0], ref[:, 1]
+    assert ref.shape[0] > 200
+    np.testing.assert_array_equal(pr, ref)
+    geo_p, geo_v, geo_a = p[ri] - p[rj], v[ri] - v[rj], adot[ri] - adot[rj]
+    ds = radius[ri] + radius[rj]
+    sp2 = v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]
+    pair_margin = cfg.pair_margin(geo_v) + cfg.speed_margin * (sp2[ri] + sp2[rj])
+    g = PairGeometry(ri, rj, geo_p, geo_v, geo_a, ds + pair_margin, ds, ds)
+    c, rhs_ref, _ = barrier_rows("aasoatt", g, cfg)
+    h = get_barrier("aasoatt").value(g._replace(d_s=ds), cfg)
+    gap = np.sqrt(geo_p[:, 0] * geo_p[:, 0] + geo_p[:, 1] * geo_p[:, 1]) - ds
+    for got, want in ((rel, geo_p), (rhs, rhs_ref), (Gi, np.einsum("pki,pk->pi", A[ri], c)),
+                      (Gj, -np.einsum("pki,pk->pi", A[rj], c)), (h_min, h.min(initial=np.inf)),
+                      (gap_min, gap.min(initial=9.0))):
+        np.testing.assert_array_equal(_bits(np.asarray(got)), _bits(np.asarray(want)))
+    np.testing.assert_array_equal(keys, ri * (n + 1) + rj)
+
+
+@pytest.mark.parametrize("kernel", ["numpy", pytest.param("numba", marks=needs_numba)])
+def test_a_float32_state_is_filtered_as_its_float64_values(kernel):
+    """The state arrays are taken as float64 on every path: a float32 or integer state gives the answer of the same
+    values in float64 (the compiled rows and the numpy rows then agree too)."""
+    team = make_team("paper", 8)
+    rng = np.random.default_rng(5)
+    pose = np.column_stack((rng.uniform(0.0, 2.0, (8, 2)), rng.uniform(-np.pi, np.pi, 8))).astype(np.float32)
+    u = rng.normal(0.0, 4.0, (8, 2)).astype(np.float32)
+    kin32 = type(kinematics(team, pose, u))(*(a.astype(np.float32) for a in kinematics(team, pose, u)))
+    kin64 = type(kin32)(*(a.astype(np.float64) for a in kin32))
+    lo, hi = input_bounds(team, u.astype(np.float64), DT)
+    nominal = rng.normal(0.0, 20.0, (8, 2))
+    answers = []
+    for kin, uu, th in ((kin64, u.astype(np.float64), pose[:, 2].astype(np.float64)), (kin32, u, pose[:, 2])):
+        f = SafetyFilter(team, kernel=kernel, deadlock="none")
+        answers.append(f.step(kin, uu, th, nominal, lo, hi)[1])
+    assert answers[0].n_rows > 5
+    np.testing.assert_array_equal(answers[0].du, answers[1].du)
+    assert answers[0].barrier_min == answers[1].barrier_min
+
+
 def _filter_results(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
     """Every filter step's result and wheel accelerations along a closed loop, with the compiled rows or the numpy
     rows (``SafetyFilter._fused``), and how many steps the rows kernel answered."""
@@ -401,7 +467,8 @@ def _filter_results(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
         for _ in range(env.max_steps):
             obs, *_ = env.step(agent.act(obs, env))
     else:  # a circle swap's crossing under the tracking law; with fixed and speed margins, without the layer
-        options = {} if scene == "crossing" else {"safety_margin": 0.01, "speed_margin": 0.05, "backup": False}
+        options = {} if scene == "crossing" else {"safety_margin": 0.01, "speed_margin": 0.05, "backup": False,
+                                                  "k1": 1.3, "k2": 2.9}  # (k1 k2 not a power of two)
         env = make_env("circle_swap", num_robots=12, radius=2.0, duration=4.0, settle_time=0.0, max_steps=400,
                        filter=options)
         agent = TrackingController()

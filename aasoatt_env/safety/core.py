@@ -340,8 +340,8 @@ class SafetyFilter:
         t0 = time.perf_counter()
         cfg, team = self.config, self._bound_team()
         n = team.n
-        nominal_du, lo, hi, reference, obstacles = self._check_inputs(kin, u, theta, nominal_du, lo, hi, reference,
-                                                                      obstacles)
+        kin, u, theta, nominal_du, lo, hi, reference, obstacles = self._check_inputs(
+            kin, u, theta, nominal_du, lo, hi, reference, obstacles)
         if cfg.max_wheel_speed is not None:
             lo, hi = speed_box(lo, hi, u, cfg.max_wheel_speed, cfg.dt)
         strategy = self._strategy
@@ -529,8 +529,10 @@ class SafetyFilter:
     def _check_inputs(
         self, kin: Kinematics, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
         lo: np.ndarray, hi: np.ndarray, reference: Any = None, obstacles: Any = None,
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, Any, Any]:
+    ) -> tuple[Kinematics, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, Any, Any]:
         """Shapes, finiteness and magnitudes (``<= MAGNITUDE_MAX``) of every state array; errors name the robot.
+
+        Returns the inputs as float64 arrays (the state, the nominal, the bounds, the reference and the obstacles).
 
         One pass over all the numbers (a concatenation and one ``max |x|``) when
         they are fine; the culprit is looked for only when they are not.
@@ -593,4 +595,8 @@ class SafetyFilter:
         if obstacles is not None and radii.size and not bool((radii >= 0.0).all()):
             k = int(np.flatnonzero(~(radii >= 0.0))[0])
             raise StateError(f"obstacles radii: got {float(radii[k])!r} for obstacle {k}, expected a radius >= 0")
-        return nominal_du, lo, hi, reference, obstacles
+        # the state in float64 (as every other input): float32 or integer arrays give every path the same numbers
+        if any(np.asarray(a).dtype != np.float64 for a in kin):
+            kin = Kinematics(*(np.asarray(a, dtype=np.float64) for a in kin))
+        u, theta = np.asarray(u, dtype=np.float64), np.asarray(theta, dtype=np.float64)
+        return kin, u, theta, nominal_du, lo, hi, reference, obstacles

@@ -161,7 +161,8 @@ def solve_centralized(
     parts = None
     if kernel_parts is not None and groups is not None:  # the kernel's active set on this very problem
         xs, zs, done, used = kernel_parts
-        parts = ActiveSetParts(xs, zs, used, done, groups[sri])
+        if xs.shape == (prob.n,) and zs.shape == (prob.m,) and done.shape == (int(groups.max(initial=-1)) + 1,):
+            parts = ActiveSetParts(xs, zs, used, done, groups[sri])
     sol = policy.solve(prob, x0, None if z0 is None else z0[rows], groups, parts=parts)
     x = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
     du[sub] = np.clip((x * prob.scale).reshape(-1, 2), lo[sub], hi[sub])

@@ -285,7 +285,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
             xs_out[v] = xs[v] if verified else 0.0
         for k in range(ms):
             zk = lam[k] if verified else 0.0
-            zs_out[k] = zk if zk >= 0.0 or zk != zk else 0.0
+            zs_out[k] = zk if zk > 0.0 or zk != zk else 0.0  # np.maximum(lam, 0.0): +0.0 for -0.0, NaN kept
         for g in range(K):
             done_out[g] = done[g]
         return PARTS, used, ms, nv, K
@@ -300,7 +300,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
             x_full[i, h] = x
     for k in range(ms):
         zk = lam[k]
-        zk = zk if zk >= 0.0 or zk != zk else 0.0
+        zk = zk if zk > 0.0 or zk != zk else 0.0
         zk = zk if math.isfinite(zk) else 0.0
         z[rows[k]] = zk
         eta[rows[k]] = sigma * zk / nu[k]

@@ -21,9 +21,10 @@ arithmetic, is a small team's or a training stack's step):
    (``c = -p_ij``) and the warm-start keys.
 
 The operations are numpy's, in numpy's order (numba compiles without
-``fastmath``, so no product is fused into a sum), so the numbers are the
-reference's bit for bit, up to a zero's sign where ``einsum`` starts its sum from
-``+0.0`` (``tests/test_compiled.py`` compares every step of filtered episodes).
+``fastmath``, so no product is fused into a sum; ``einsum``'s sums start from
+``+0.0`` here too), so the numbers are the reference's bit for bit
+(``tests/test_compiled.py`` compares them on random and coincident pairs, and
+every step of filtered episodes).
 The filter takes this path with the compiled kernels, the ``aasoatt`` barrier, a
 deadlock strategy that leaves the rows alone and no obstacles; every other
 step takes the numpy reference.
@@ -124,9 +125,9 @@ def aasoatt_rows(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_ma
         pa = px * ax + py * ay
         rhs[q] = vv - pv * pv / (r * r) + k12 * pv + kk * r * (r - (ds + margin)) + pa
         cx, cy = -px, -py
-        for col in range(2):
-            Gi[q, col] = A[i, 0, col] * cx + A[i, 1, col] * cy
-            Gj[q, col] = -(A[j, 0, col] * cx + A[j, 1, col] * cy)
+        for col in range(2):  # (einsum's sums start from +0.0)
+            Gi[q, col] = 0.0 + A[i, 0, col] * cx + A[i, 1, col] * cy
+            Gj[q, col] = -(0.0 + A[j, 0, col] * cx + A[j, 1, col] * cy)
         rel[q, 0], rel[q, 1] = px, py
         keys[q] = i * key_base + j
     return pairs, rel, Gi, Gj, rhs, keys, h_min, gap_min
