@@ -29,7 +29,7 @@ in the overhead of its calls rather than in arithmetic
 - the paper's barrier rows of every robot pair
   (:mod:`aasoatt_env.safety.rows_kernel`: the pair geometry, the discrete-time
   margins, the barrier's value, the rows in wheel coordinates and the warm-start
-  keys, the numpy step's numbers bit for bit, up to a zero's sign).
+  keys, the numpy step's numbers bit for bit).
 
 The kernels are the same loops compiled with numba (``pip install
 "aasoatt[fast]"``), imported only when first used.  The numpy code stays the
