@@ -67,8 +67,9 @@ def _axle_pose(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
     """Axle poses ``(N, 3)`` from control points and headings."""
     pose = np.empty((p.shape[0], 3))
     pose[:, 2] = theta
-    if team.is_diff_drive:
-        pose[:, :2] = p - team.offset[:, None] * np.stack((np.cos(theta), np.sin(theta)), axis=1)
+    if team.is_diff_drive:  # p - offset (cos, sin), column by column
+        pose[:, 0] = p[:, 0] - team.offset * np.cos(theta)
+        pose[:, 1] = p[:, 1] - team.offset * np.sin(theta)
     else:
         pose[:, :2] = p
     return pose
@@ -424,7 +425,8 @@ class SafetyFilter:
             keys = ri.astype(np.int64) * (m_obs + 1) + np.where(rj >= 0, rj, n - 1 - pairs_out[:, 1])
 
         # QP ----------------------------------------------------------------------------
-        scale = np.maximum(team.max_wheel_accel, np.max(np.maximum(np.abs(lo), np.abs(hi)), axis=1))
+        bound = np.maximum(np.abs(lo), np.abs(hi))
+        scale = np.maximum(team.max_wheel_accel, np.maximum(bound[:, 0], bound[:, 1]))
         scale = np.where(scale > 0, scale, 1.0)
         m = rhs.shape[0]
         if decentral:  # every robot its own QP over its halves of the rows: no team QP below
@@ -481,7 +483,8 @@ class SafetyFilter:
             status = "unsafe"
         elif (braking.any() or nudged.any()) and STATUSES.index(status) < STATUSES.index("backup"):
             status = "backup"
-        correction = np.linalg.norm(du - nominal_du, axis=1)
+        d = du - nominal_du
+        correction = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])  # (np.linalg.norm(d, axis=1)'s numbers)
         result = FilterResult(
             du=du, status=status, safe=safe, backup=braking, margin=margin, barrier_min=barrier_min,
             message=message, eta=eta, pairs=pairs_out, avoiding=avoiding,
