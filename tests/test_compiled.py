@@ -285,6 +285,15 @@ def test_the_active_set_refuses_groups_that_are_not_labels(use_kernel):
     assert ok.ok.all() and np.allclose(ok.x.reshape(3, 2)[2], [0.5, 0.5])
 
 
+def _run_stack(seed: int) -> None:
+    """400 physics steps of a training stack: 8 teams of 6 behind the filter under uniform random actions."""
+    batch = make_batched_env(8, "random_goals", num_robots=6, filter=True)
+    batch.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    for _ in range(400):
+        batch.step(rng.uniform(-1.0, 1.0, (8, 6, 2)))
+
+
 def _central_answers(monkeypatch, fused: bool, scene: str, switch: bool = False) -> tuple[list, list]:
     """Every centralised step's answer and the policy's switch state after it, along a closed loop, with the
     compiled decomposition tried or not; and how many QP steps the kernel answered, and how many it handed to
@@ -314,12 +323,8 @@ def _central_answers(monkeypatch, fused: bool, scene: str, switch: bool = False)
     if switch:  # (no answer counts as slow: whether ldp is probed then would depend on the machine's timing)
         monkeypatch.setattr(policy_module, "EXACT_FIRST_VARS", 0)
         monkeypatch.setattr(policy_module, "SLOW_SOLVE_S", np.inf)
-    if scene == "stack":  # a training stack: 8 teams of 6 under uniform random actions
-        batch = make_batched_env(8, "random_goals", num_robots=6, filter=True)
-        batch.reset(seed=11)
-        rng = np.random.default_rng(11)
-        for _ in range(400):
-            batch.step(rng.uniform(-1.0, 1.0, (8, 6, 2)))
+    if scene == "stack":
+        _run_stack(11)
     else:  # a small circle swap's crossing under the tracking law; circles among obstacles under bursts
         env = (make_env("circle_swap", num_robots=12, radius=2.0, duration=4.0, settle_time=0.0, max_steps=400,
                         filter=True)
@@ -369,8 +374,9 @@ def test_the_rows_kernel_gives_the_numpy_rows_bit_for_bit(margin):
     1e-9), singular input matrices and a speed margin: the pairs kept, relative positions, rows in wheel
     coordinates, right-hand sides, keys and the smallest barrier value and gap, bit for bit."""
     from aasoatt_env.model.geometry import brute_candidates, robot_pairs
-    from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
+    from aasoatt_env.safety.barriers import PairGeometry
     from aasoatt_env.safety.config import MARGIN_FADE_SPEED, auto_margin
+    from aasoatt_env.safety.core import _numpy_rows
 
     cfg = FilterConfig(k1=1.3, k2=2.9, safety_margin=margin, speed_margin=0.07)
     rng = np.random.default_rng(21)
@@ -384,33 +390,24 @@ def test_the_rows_kernel_gives_the_numpy_rows_bit_for_bit(margin):
     A[3] = 0.0  # singular
     A[11, :, 1] = 0.0
     radius = rng.uniform(0.05, 0.2, n)
-    ci, cj = brute_candidates(n)
-    pr, rel, Gi, Gj, rhs, keys, h_min, gap_min = compiled.kernels("rows").aasoatt_rows(
-        p, v, adot, A, radius, ci, cj, cfg.sensing_range ** 2, cfg.k1, cfg.k2,
+    out = compiled.kernels("rows").aasoatt_rows(
+        p, v, adot, A, radius, *brute_candidates(n), cfg.sensing_range ** 2, cfg.k1, cfg.k2,
         np.nan if margin is None else margin, auto_margin(cfg.dt), MARGIN_FADE_SPEED, cfg.speed_margin, n + 1, 9.0)
-    ref = robot_pairs(p, cfg.sensing_range, method="brute")
-    ri, rj = ref[:, 0], ref[:, 1]
-    assert ref.shape[0] > 200
-    np.testing.assert_array_equal(pr, ref)
-    geo_p, geo_v, geo_a = p[ri] - p[rj], v[ri] - v[rj], adot[ri] - adot[rj]
+    pairs = robot_pairs(p, cfg.sensing_range, method="brute")
+    ri, rj = pairs[:, 0], pairs[:, 1]
+    assert pairs.shape[0] > 200
     ds = radius[ri] + radius[rj]
-    sp2 = v[:, 0] * v[:, 0] + v[:, 1] * v[:, 1]
-    pair_margin = cfg.pair_margin(geo_v) + cfg.speed_margin * (sp2[ri] + sp2[rj])
-    g = PairGeometry(ri, rj, geo_p, geo_v, geo_a, ds + pair_margin, ds, ds)
-    c, rhs_ref, _ = barrier_rows("aasoatt", g, cfg)
-    h = get_barrier("aasoatt").value(g._replace(d_s=ds), cfg)
-    gap = np.sqrt(geo_p[:, 0] * geo_p[:, 0] + geo_p[:, 1] * geo_p[:, 1]) - ds
-    for got, want in ((rel, geo_p), (rhs, rhs_ref), (Gi, np.einsum("pki,pk->pi", A[ri], c)),
-                      (Gj, -np.einsum("pki,pk->pi", A[rj], c)), (h_min, h.min(initial=np.inf)),
-                      (gap_min, gap.min(initial=9.0))):
-        np.testing.assert_array_equal(_bits(np.asarray(got)), _bits(np.asarray(want)))
-    np.testing.assert_array_equal(keys, ri * (n + 1) + rj)
+    geo = PairGeometry(ri, rj, p[ri] - p[rj], v[ri] - v[rj], adot[ri] - adot[rj], ds, ds, ds)
+    _, _, ref_pairs, Gi, Gj, rhs, keys, h_min, gap_min = _numpy_rows(cfg, A, v, geo, geo.p, pairs, n + 1, 9.0)
+    np.testing.assert_array_equal(out[0], ref_pairs)
+    for got, want in zip(out[1:], (geo.p, Gi, Gj, rhs, keys, h_min, gap_min)):
+        np.testing.assert_array_equal(np.asarray(got).view(np.int64), np.asarray(want).view(np.int64))
 
 
 @pytest.mark.parametrize("kernel", ["numpy", pytest.param("numba", marks=needs_numba)])
 def test_a_float32_state_is_filtered_as_its_float64_values(kernel):
-    """The state arrays are taken as float64 on every path: a float32 or integer state gives the answer of the same
-    values in float64 (the compiled rows and the numpy rows then agree too)."""
+    """The state arrays are taken as float64 on every path: a float32 state gives the answer of the same values in
+    float64 (before, the numpy rows computed in float32 and the compiled ones in float64)."""
     team = make_team("paper", 8)
     rng = np.random.default_rng(5)
     pose = np.column_stack((rng.uniform(0.0, 2.0, (8, 2)), rng.uniform(-np.pi, np.pi, 8))).astype(np.float32)
@@ -454,12 +451,8 @@ def _filter_results(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
     monkeypatch.setattr(core.SafetyFilter, "__init__", set_up)
     monkeypatch.setattr(core.SafetyFilter, "step", record)
     monkeypatch.setattr(rows, "aasoatt_rows", counted)
-    if scene == "stack":  # a training stack: 8 teams of 6 under uniform random actions
-        batch = make_batched_env(8, "random_goals", num_robots=6, filter=True)
-        batch.reset(seed=13)
-        rng = np.random.default_rng(13)
-        for _ in range(400):
-            batch.step(rng.uniform(-1.0, 1.0, (8, 6, 2)))
+    if scene == "stack":
+        _run_stack(13)
     elif scene == "large":  # beyond the brute force's size: the pairs the grid of cells found
         env = make_env("random_goals", num_robots=250, max_steps=60, filter=True)
         agent = HostileAgent()

@@ -101,9 +101,10 @@ def brute_candidates(n: int, groups: np.ndarray | None = None) -> tuple[np.ndarr
 
 
 def uses_brute_force(n: int, groups: np.ndarray | None = None) -> bool:
-    """Whether :func:`robot_pairs` with ``method="auto"`` answers ``n`` points by brute force.
+    """Whether :func:`robot_pairs` with ``method="auto"`` picks its brute force for ``n`` points.
 
-    That is, with fewer than :data:`KDTREE_MIN_ROBOTS` points per group.
+    That is, with fewer than :data:`KDTREE_MIN_ROBOTS` points per group (the grid of cells can
+    fall back to the brute force too, and fewer than two points have no pairs).
     """
     return (n if groups is None else _group_size(groups)) < KDTREE_MIN_ROBOTS
 

@@ -164,7 +164,7 @@ class FilterConfig:
     kernel : {"auto", "numpy", "numba"}
         Implementation of the backup layer's check and repair, the decentralised
         filter's local solver, the warm active set and the centralised decomposition
-        around it, and the neighbour search (:mod:`aasoatt_env.compiled`):
+        around it, the barrier rows, and the neighbour search (:mod:`aasoatt_env.compiled`):
         ``"auto"`` (default) the compiled kernels when numba is installed (``pip install
         "aasoatt[fast]"``), else the numpy reference; ``"numpy"`` always the reference;
         ``"numba"`` the kernels, or a :class:`~aasoatt_env.errors.ConfigError` when the filter is

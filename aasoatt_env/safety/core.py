@@ -75,6 +75,34 @@ def _axle_pose(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return pose
 
 
+def _numpy_rows(cfg: FilterConfig, A: np.ndarray, v: np.ndarray, g: PairGeometry, p_true: np.ndarray,
+                pairs: np.ndarray, key_base: int, gap_initial: float) -> tuple:
+    """The step's rows in numpy (the reference of :mod:`~aasoatt_env.safety.rows_kernel`).
+
+    ``g``: the pairs' geometry with the safety distances ``r_i + r_j`` (``p`` as the deadlock
+    strategy left it, ``p_true`` as it is); ``pairs`` ``(P, 2)`` the result's pairs.  Adds the
+    discrete-time and speed margins, and returns ``(ri, rj, pairs, G_i, G_j, rhs, keys,
+    barrier_min, gap_min)`` of the kept rows: the barrier's smallest value with the true geometry
+    and safety distance (what "inside the safe set" refers to), the smallest gap ``|p_ij| - d_s``
+    (``gap_initial`` without pairs), and the warm-start key ``i * key_base + j`` of a robot pair
+    (``i * key_base + N + k`` of obstacle ``k``).
+    """
+    ri, rj, ds, n = g.i, g.j, g.d_s, v.shape[0]
+    margin = cfg.pair_margin(g.v)
+    if cfg.speed_margin:
+        sp2 = row_dot(v, v)
+        margin = margin + cfg.speed_margin * (sp2[ri] + np.where(rj >= 0, sp2[np.maximum(rj, 0)], 0.0))
+    h = get_barrier(cfg.barrier).value(g._replace(p=p_true), cfg)
+    barrier_min = float(h.min(initial=np.inf))
+    gap_min = float((np.sqrt(row_dot(p_true, p_true)) - ds).min(initial=gap_initial))
+    c, rhs, keep = barrier_rows(cfg.barrier, g._replace(d_s=ds + margin), cfg)
+    ri, rj, pairs = ri[keep], rj[keep], pairs[keep]
+    Gi = np.einsum("pki,pk->pi", A[ri], c)
+    Gj = -np.einsum("pki,pk->pi", A[np.maximum(rj, 0)], c)
+    keys = ri.astype(np.int64) * key_base + np.where(rj >= 0, rj, n - 1 - pairs[:, 1])
+    return ri, rj, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min
+
+
 @dataclass(frozen=True)
 class FilterResult:
     """What one :meth:`SafetyFilter.step` did.
@@ -407,22 +435,10 @@ class SafetyFilter:
 
         # rows --------------------------------------------------------------------------
         if not fused:
-            geo_p = strategy.rotate_rows(geo_p, triggered[ri] | ((rj >= 0) & triggered[np.maximum(rj, 0)]), self._Q)
-            margin = cfg.pair_margin(geo_v)
-            c_speed = cfg.speed_margin
-            if c_speed:
-                sp2 = row_dot(v, v)
-                margin = margin + c_speed * (sp2[ri] + np.where(rj >= 0, sp2[np.maximum(rj, 0)], 0.0))
-            g = PairGeometry(ri, rj, geo_p, geo_v, geo_a, ds + margin, rsum, ap)
-            # the barrier's value with the true geometry and safety distance: what "inside the safe set" refers to
-            h = get_barrier(cfg.barrier).value(g._replace(p=geo_p_true, d_s=ds), cfg)
-            barrier_min = float(h.min(initial=np.inf))
-            gap_min = float((np.sqrt(row_dot(geo_p_true, geo_p_true)) - ds).min(initial=gap_initial))
-            c, rhs, keep = barrier_rows(cfg.barrier, g, cfg)
-            ri, rj, pairs_out = ri[keep], rj[keep], pairs_out[keep]
-            Gi = np.einsum("pki,pk->pi", A[ri], c)
-            Gj = -np.einsum("pki,pk->pi", A[np.maximum(rj, 0)], c)
-            keys = ri.astype(np.int64) * (m_obs + 1) + np.where(rj >= 0, rj, n - 1 - pairs_out[:, 1])
+            geo = PairGeometry(ri, rj, strategy.rotate_rows(geo_p, triggered[ri] | ((rj >= 0) & triggered[np.maximum(
+                rj, 0)]), self._Q), geo_v, geo_a, ds, rsum, ap)
+            ri, rj, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min = _numpy_rows(
+                cfg, A, v, geo, geo_p_true, pairs_out, m_obs + 1, gap_initial)
 
         # QP ----------------------------------------------------------------------------
         bound = np.maximum(np.abs(lo), np.abs(hi))
@@ -535,7 +551,8 @@ class SafetyFilter:
     ) -> tuple[Kinematics, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, Any, Any]:
         """Shapes, finiteness and magnitudes (``<= MAGNITUDE_MAX``) of every state array; errors name the robot.
 
-        Returns the inputs as float64 arrays (the state, the nominal, the bounds, the reference and the obstacles).
+        Returns the state, the nominal, the bounds, the reference and the obstacles' centres and radii as
+        float64 arrays.
 
         One pass over all the numbers (a concatenation and one ``max |x|``) when
         they are fine; the culprit is looked for only when they are not.
@@ -599,7 +616,7 @@ class SafetyFilter:
             k = int(np.flatnonzero(~(radii >= 0.0))[0])
             raise StateError(f"obstacles radii: got {float(radii[k])!r} for obstacle {k}, expected a radius >= 0")
         # the state in float64 (as every other input): float32 or integer arrays give every path the same numbers
-        if any(np.asarray(a).dtype != np.float64 for a in kin):
-            kin = Kinematics(*(np.asarray(a, dtype=np.float64) for a in kin))
+        if any(np.asarray(getattr(kin, f)).dtype != np.float64 for f in Kinematics._fields):
+            kin = Kinematics(*(np.asarray(getattr(kin, f), dtype=np.float64) for f in Kinematics._fields))
         u, theta = np.asarray(u, dtype=np.float64), np.asarray(theta, dtype=np.float64)
         return kin, u, theta, nominal_du, lo, hi, reference, obstacles

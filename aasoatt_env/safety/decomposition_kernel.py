@@ -276,8 +276,8 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
     xs = np.empty(nv)
     for a in range(ns):
         y0, y1 = y[2 * a], y[2 * a + 1]
-        xs[2 * a] = LinvT[a, 0, 0] * y0 + LinvT[a, 0, 1] * y1
-        xs[2 * a + 1] = LinvT[a, 1, 0] * y0 + LinvT[a, 1, 1] * y1
+        xs[2 * a] = 0.0 + LinvT[a, 0, 0] * y0 + LinvT[a, 0, 1] * y1  # (einsum's sums start from +0.0)
+        xs[2 * a + 1] = 0.0 + LinvT[a, 1, 0] * y0 + LinvT[a, 1, 1] * y1
     if verified < K:
         if K < 2:  # (the reference runs one part's active set inside the solver policy's own path)
             return NOT_HERE, used, ms, nv, K

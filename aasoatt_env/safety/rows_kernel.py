@@ -1,8 +1,9 @@
 """The paper's barrier rows of every robot pair in one compiled call (numba; through :mod:`aasoatt_env.compiled`).
 
 :func:`aasoatt_rows` is what :meth:`aasoatt_env.safety.core.SafetyFilter.step`
-does in numpy from the neighbour search to the deadlock rule, for the
-``aasoatt`` barrier (eqn.7-8) of robot pairs, written as one loop over the pairs
+does in numpy for the neighbour search and the rows (on either side of the
+deadlock rule, which leaves these rows alone), for the ``aasoatt`` barrier
+(eqn.7-8) of robot pairs, written as one loop over the pairs
 instead of some forty small array operations (whose overhead, not their
 arithmetic, is a small team's or a training stack's step):
 
