@@ -67,10 +67,15 @@ WARM_REL: float = 1e-6
 """Rows whose warm-start multiplier exceeds this fraction of the largest start in the working set."""
 TOL: float = 1e-10
 """Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
-ONE_CHANGE_ITER: int = 4
-"""Iterations of the one-change rule, tried from the warm start when the primal-dual rule fails."""
-PDAS_ITER: int = 6
-"""Iterations of the primal-dual rule from the warm start."""
+ONE_CHANGE_ITER: int = 20
+"""Iterations of the one-change rule, tried from the warm start when the primal-dual rule fails.
+
+With random actions every physics step the warm start can be many rows off; a part the
+two rules do not verify goes on to the exact ``ldp`` solver, some hundred times slower
+(README, *Benchmarks*), so the budgets are generous: an iteration of a verified part
+costs nothing more (it is frozen), and the caps bound the work of a part that fails."""
+PDAS_ITER: int = 30
+"""Iterations of the primal-dual rule from the warm start (it also stops at an inconsistent working set)."""
 BOUND_TIGHT: float = 1e-9
 """A warm start within this of a bound (scaled, ``|x| <= 1``) starts with that bound in the working set."""
 WARM_FLOOR: float = 1e-300
