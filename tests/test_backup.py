@@ -13,7 +13,7 @@ from aasoatt_env.analysis.metrics import pairwise_min_distance
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.compiled import available as numba_available
 from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point
-from aasoatt_env.model.geometry import robot_pairs
+from aasoatt_env.model.geometry import min_gaps, robot_pairs
 from aasoatt_env.model.params import RobotParams, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter
 from aasoatt_env.safety.backup import (
@@ -648,3 +648,44 @@ def test_the_gate_with_the_filters_pairs_decides_as_with_its_own_searches(monkey
             braked += bool(own.braking.any())
     # the repair and the second checks ran on many of these states, each given the pairs
     assert braked >= 10 and sum(handed) >= 20 + 125, (braked, sum(handed))  # the 125 quick checks too
+
+
+def _implode(env) -> dict:
+    """Every robot's wheels saturated toward the team's centroid (an adversarial tester's "implode")."""
+    base = env.unwrapped
+    kin, team = base.kinematics, base.team
+    d = kin.p.mean(axis=0) - kin.p
+    d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    du = np.linalg.solve(kin.A, (team.max_point_accel[:, None] * d - kin.adot_u)[..., None])[..., 0]
+    w = np.clip(du / team.max_wheel_accel[:, None], -1.0, 1.0)
+    return {a: w[base.agent_index[a]] for a in env.agents}
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e3, 9.99e5])
+def test_a_touching_pack_pushed_together_stays_within_the_envs_smallest_tolerance_far_from_the_origin(offset):
+    """30 robots in an exactly touching hex pack, every wheel driven toward the centroid, termination at the
+    env's smallest tolerance behind a filter (1e-9 m): nobody terminates, no pair passes 1e-9 m.
+
+    Found by an adversarial tester (2026-12-02): at 1e3 m from the origin a pair slipped 4 pm beyond the
+    check's 1e-9 m tolerance (the coordinates' rounding), the env froze both robots and the pack ran into
+    them (-28 µm); once a pair was outside the safe set, its hold floor plus the tolerance let it lose
+    1e-9 m more on every step.  Now the check forgives half the env's tolerance less 64 ulps of the
+    largest coordinate, and a held pair keeps the larger of its floor and the tolerance.
+    """
+    n, d = 30, 0.96
+    cols = 6
+    k = np.arange(n)
+    r, c = k // cols, k % cols
+    starts = np.stack((c * d + np.where(r % 2, d / 2, 0.0), r * d * np.sqrt(3.0) / 2), axis=1) + [offset, -offset]
+    headings = np.random.default_rng(13).uniform(-3.0, 3.0, n)
+    env = make_env("custom", starts=starts, reference=lambda t: starts.copy(), duration=100.0, robots="paper",
+                   headings=headings, max_steps=60, terminate_on_collision=True, collision_tolerance=1e-9,
+                   filter=True)
+    env.reset(seed=0)
+    worst = np.inf
+    for step in range(60):
+        _, _, term, _, _ = env.step(_implode(env))
+        assert not any(term.values()), f"robots terminated at env step {step}"
+        worst = min(worst, float(min_gaps(env.unwrapped.kinematics.p, env.unwrapped.team.radius, np.zeros((0, 2)),
+                                          np.zeros(0)).min()))
+    assert worst >= -1e-9

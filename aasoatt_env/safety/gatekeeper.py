@@ -264,7 +264,8 @@ def gatekeeper(
         ``(centres (M, 2), radii (M,))`` of static discs; ``(centres, radii, groups (M,))``
         with a grouped team (``team.group``): an obstacle acts on its group's robots only.
     tol : float
-        Accepted violation [m].
+        Accepted violation [m] (negative: a clearance required; the filter passes
+        :func:`~aasoatt_env.safety.repair.gate_tol`).
     blend_levels : tuple of float
         Intermediate steps between the candidate and the backup, ``du = du_b + a (du_c - du_b)``
         for each ``a`` (tried from the largest down): a robot that fails with the candidate first
@@ -371,11 +372,14 @@ def gatekeeper(
 
     tol_p, tol_o = np.full(i.shape[0], float(tol)), np.full(oi.shape[0], float(tol))
     if hold_violations:  # each pair's own floor: its margin when both members brake now
+        # (the larger of the floor and tol, not their sum: a sum let a pair pushed together lose tol more
+        # on every step, found by an adversarial tester on touching packs, 2026-12-02)
         Pb, Db = level_rows(last, rows_m)
         if i.size:
-            tol_p += np.fmax(0.0, -_bucketed(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9)  # NaN: no floor
+            tol_p = np.fmax(tol_p, np.fmax(0.0, -_bucketed(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9))
         if oi.size:
-            tol_o += np.fmax(0.0, -_bucketed(Pb, Db, need[last], lo_, ok, ods, centers=oc)) * (1.0 + 1e-9)
+            floor = np.fmax(0.0, -_bucketed(Pb, Db, need[last], lo_, ok, ods, centers=oc))
+            tol_o = np.fmax(tol_o, floor * (1.0 + 1e-9))
     marg = np.full(i.shape[0], np.inf)
     omarg = np.full(oi.shape[0], np.inf)
     todo = np.ones(i.shape[0], dtype=bool)

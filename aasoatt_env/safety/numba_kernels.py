@@ -453,12 +453,12 @@ def _gate_rounds(lev, broken, reach, limit, need, p0, p1, d1, pdot, omega, rate,
                       need[last, g], True)
         for q in range(P):
             m = _pair_margin(cur, curd, need[last, i[q]], need[last, j[q]], loc[i[q]], loc[j[q]], ds[q], False, 0j)
-            if -m > 0.0:  # NaN: no floor (numpy's fmax)
-                tol_p[q] += -m * (1.0 + 1e-9)
+            if -m > 0.0:  # NaN: no floor (numpy's fmax); the larger of the floor and tol (gatekeeper)
+                tol_p[q] = max(tol_p[q], -m * (1.0 + 1e-9))
         for q in range(Q):
             m = _pair_margin(cur, curd, need[last, oi[q]], 0, loc[oi[q]], 0, ods[q], True, oc[ok[q]])
             if -m > 0.0:
-                tol_o[q] += -m * (1.0 + 1e-9)
+                tol_o[q] = max(tol_o[q], -m * (1.0 + 1e-9))
     marg = np.full(P, np.inf)
     omarg = np.full(Q, np.inf)
     todo = np.ones(P, dtype=np.bool_)
