@@ -241,7 +241,9 @@ def gatekeeper(
         the candidate.  Assumptions: every robot runs this filter with the same
         state, the bounds ``|du| <= a`` and ``dt`` are the real ones, the
         returned inputs are applied as they are, and floating-point rounding
-        (~1e-12 m) is absorbed by ``tol``.
+        is absorbed by ``tol`` (the filter passes
+        :data:`~aasoatt_env.safety.repair.GATE_TOL`, twice what a scenario's start
+        may overlap, so a touching team at rest is brake-safe).
 
     Parameters
     ----------
@@ -265,7 +267,7 @@ def gatekeeper(
         with a grouped team (``team.group``): an obstacle acts on its group's robots only.
     tol : float
         Accepted violation [m] (negative: a clearance required; the filter passes
-        :func:`~aasoatt_env.safety.repair.gate_tol`).
+        :data:`~aasoatt_env.safety.repair.GATE_TOL`).
     blend_levels : tuple of float
         Intermediate steps between the candidate and the backup, ``du = du_b + a (du_c - du_b)``
         for each ``a`` (tried from the largest down): a robot that fails with the candidate first

@@ -176,7 +176,8 @@ def _fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulg
     factor; both are taken exactly every :data:`_RESYNC` samples and where the speed reaches
     0, and the ``sin(h) / h`` factor comes from the rotation (``|h| >= 0.1``) or its series.
     The samples then differ from the exact ones by ~``1e-13`` of the path's length (the
-    rounding of ~30 products), far below the check's tolerance (``GATE_TOL``).
+    rounding of ~30 products), far below the check's tolerance
+    (:data:`~aasoatt_env.safety.repair.GATE_TOL`, 5e-10 m).
     """
     c8 = dt * dt / 8.0
     half_dt = 0.5 * dt
@@ -453,12 +454,12 @@ def _gate_rounds(lev, broken, reach, limit, need, p0, p1, d1, pdot, omega, rate,
                       need[last, g], True)
         for q in range(P):
             m = _pair_margin(cur, curd, need[last, i[q]], need[last, j[q]], loc[i[q]], loc[j[q]], ds[q], False, 0j)
-            if -m > 0.0:  # NaN: no floor (numpy's fmax); the larger of the floor and tol (gatekeeper)
-                tol_p[q] = max(tol_p[q], -m * (1.0 + 1e-9))
+            fl = -m if -m > 0.0 else 0.0  # NaN: no floor (numpy's fmax); the larger of floor and tol (gatekeeper)
+            tol_p[q] = max(tol_p[q], fl * (1.0 + 1e-9))
         for q in range(Q):
             m = _pair_margin(cur, curd, need[last, oi[q]], 0, loc[oi[q]], 0, ods[q], True, oc[ok[q]])
-            if -m > 0.0:
-                tol_o[q] = max(tol_o[q], -m * (1.0 + 1e-9))
+            fl = -m if -m > 0.0 else 0.0
+            tol_o[q] = max(tol_o[q], fl * (1.0 + 1e-9))
     marg = np.full(P, np.inf)
     omarg = np.full(Q, np.inf)
     todo = np.ones(P, dtype=np.bool_)

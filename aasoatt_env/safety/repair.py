@@ -42,29 +42,19 @@ from aasoatt_env.safety.gatekeeper import (
     pair_margins,
 )
 from aasoatt_env.sim.env import FILTERED_MIN_COLLISION_TOLERANCE
+from aasoatt_env.sim.scenarios.base import TOUCH_TOL
 
-__all__ = ["GATE_TOL", "ROUNDING_ULPS", "gate_tol", "gate_with_repair", "repair"]
+__all__ = ["GATE_TOL", "gate_with_repair", "repair"]
 
 GATE_TOL: float = 0.5 * FILTERED_MIN_COLLISION_TOLERANCE
-"""Overlap [m] the backup check forgives near the origin: half the env's smallest collision tolerance behind a
-filter (:data:`aasoatt_env.sim.env.FILTERED_MIN_COLLISION_TOLERANCE`); the other half is left for the rounding
-between the check's closed-form paths and the simulator's steps."""
-ROUNDING_ULPS: float = 64.0
-"""Ulps of the largest coordinate taken off :data:`GATE_TOL` (:func:`gate_tol`)."""
-
-
-def gate_tol(pose: np.ndarray) -> float:
-    """The check's forgiven overlap on poses ``pose`` ``(N, 3)``: :data:`GATE_TOL` less the rounding of the coordinates.
-
-    A position of magnitude ``P`` is rounded to ~``eps P`` (1e-10 m at 1e6 m), and so is every
-    path computed from it: far from the origin a fixed tolerance let an adversarial tester's
-    touching packs of 30 robots (2026-12-02) pass 4-33 pm beyond the env's 1e-9 m (and 6 pm beyond
-    this half at 1e3 m).  So :data:`ROUNDING_ULPS` ulps of the largest coordinate come off the
-    tolerance, down to 0 (from ~3.5e4 m on): never below, since a required clearance would mark a
-    touching pair at rest broken, and broken robots get the QP's answer.
-    """
-    extent = float(np.max(np.abs(pose[:, :2]), initial=0.0)) if pose.size else 0.0
-    return max(0.0, GATE_TOL - ROUNDING_ULPS * float(np.finfo(np.float64).eps) * extent)
+"""Overlap [m] the backup check forgives: half the env's smallest collision tolerance behind a filter
+(:data:`aasoatt_env.sim.env.FILTERED_MIN_COLLISION_TOLERANCE`), the other half left for the rounding between
+the check's closed-form paths and the simulator's steps, which grows with the coordinates (~``eps P``:
+1e-10 m at ``P`` = 1e6 m, the largest a scenario takes).  With the whole 1e-9 m forgiven, an adversarial
+tester's exactly touching packs pushed together 1e3-1e6 m from the origin passed 4-33 pm beyond it
+(2026-12-02).  Twice what a scenario's start may overlap (:data:`aasoatt_env.sim.scenarios.base.TOUCH_TOL`),
+so a touching team at rest, its positions rounded, is brake-safe."""
+assert GATE_TOL >= 2.0 * TOUCH_TOL
 
 
 def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,
@@ -106,8 +96,7 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     # search per step; found from the same points up to rounding: a pair that rounding moves
     # across D is D apart, and the paths of its robots, within D / 2 - r of their starts, keep it
     # d_s apart)
-    tol = gate_tol(pose)
-    quick = gatekeeper(team, pose, u, du, cfg.dt, tol=tol, quick=True, near_pairs=pairs, **gate_kw)
+    quick = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, quick=True, near_pairs=pairs, **gate_kw)
     if not quick.braking.any():
         return quick
     full_check = bool(quick.out_of_range.any())  # the quick check used the blend levels: it is the full one
@@ -139,7 +128,7 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
         return q[(q >= 0).all(axis=1)]
 
     def gate_on(rows: np.ndarray, cand: np.ndarray, **kw) -> GateResult:
-        return gatekeeper(*sub(rows), cand, cfg.dt, tol=tol, near_pairs=near_of(rows), **gate_kw, **kw)
+        return gatekeeper(*sub(rows), cand, cfg.dt, tol=GATE_TOL, near_pairs=near_of(rows), **gate_kw, **kw)
 
     broken = per_component(quick.broken)
     held = broken & per_component(quick.robot_margin < 0.0)

@@ -77,7 +77,8 @@ _NOMINAL_MAX = 1e6
 
 FILTERED_MIN_COLLISION_TOLERANCE: float = 1e-9
 """Smallest ``collision_tolerance`` [m] with ``terminate_on_collision`` behind a control filter: the
-safety filter's guarantee allows this much floating-point rounding (its gatekeeper's tolerance)."""
+safety filter's guarantee allows this much floating-point rounding (its gatekeeper forgives at most half
+of it, :data:`aasoatt_env.safety.repair.GATE_TOL`, the rest covers the rounding of the simulator's steps)."""
 
 
 class AASOATTParallelEnv(ParallelEnv):

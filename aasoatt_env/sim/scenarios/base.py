@@ -136,15 +136,23 @@ def check_clear_of_obstacles(name: str, points: np.ndarray, radii: np.ndarray, o
         )
 
 
+TOUCH_TOL: float = 2.5e-10
+"""How far inside contact [m] a start still counts as touching (rounding); the backup check forgives twice this
+(:data:`aasoatt_env.safety.repair.GATE_TOL`), so a start that passes here is brake-safe at rest."""
+
+
 def _touching(contact: np.ndarray) -> np.ndarray:
-    """How far inside ``contact`` (the sum of two radii) a start still counts as touching: rounding, <= 1e-9 m."""
-    return np.minimum(1e-9 * contact, 1e-9)
+    """How far inside ``contact`` (the sum of two radii) a start still counts as touching: rounding.
+
+    ``1e-9`` of it, at most :data:`TOUCH_TOL`.
+    """
+    return np.minimum(1e-9 * contact, TOUCH_TOL)
 
 
 def check_no_overlap(name: str, points: np.ndarray, radii: np.ndarray, groups: np.ndarray | None = None) -> None:
     """Raise :class:`ScenarioError` if a start is not finite or two robots of ``radii`` at ``points`` overlap.
 
-    Robots that touch (up to rounding: ``1e-9`` of the distance, at most 1e-9 m) do not overlap; robots of
+    Robots that touch (up to rounding: ``1e-9`` of the distance, at most :data:`TOUCH_TOL`) do not overlap; robots of
     different ``groups`` (stacked teams) never meet, so only pairs of one group count.  A
     neighbour search (no ``N x N`` table), so it is cheap for large teams too.
     """
