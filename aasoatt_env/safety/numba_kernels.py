@@ -71,9 +71,15 @@ def _E1(x):
 
 
 @_jit
+def _rot(h):
+    """``e^{i h}``."""
+    return complex(math.cos(h), math.sin(h))
+
+
+@_jit
 def _heading(diff, theta):
     """``e^{i theta}`` of a wheeled robot (one ``cos`` and ``sin`` for each use of the heading), 0 for a point mass."""
-    return complex(math.cos(theta), math.sin(theta)) if diff else 0j
+    return _rot(theta) if diff else 0j
 
 
 @_jit
@@ -155,12 +161,6 @@ def _candidate1(diff, c0, c1, tg, amax, adec, p0, theta, heading, u0, u1, du0, d
     return p1, dev, pdot, w, rate, steps, _cabs(p1 - p0) + dev + reach, bulge
 
 
-@_jit
-def _rot(h):
-    """``e^{i h}``."""
-    return complex(math.cos(h), math.sin(h))
-
-
 _RESYNC = 16
 """Samples between the exact rotations of :func:`_fill_brake`'s recurrence."""
 
@@ -187,9 +187,10 @@ def _fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulg
     sig_prev = 1.0
     row_p[start] = p_start + (pdot * tau) * _E1(omega * tau)
     qw = 0.25 * omega * dt
-    z = 1.0 + 0.0j  # e^{i omega tau / 2}
-    w = _rot(qw * (2.0 - rate))  # the rotation of step 1: dtau = dt (1 - rate / 2)
-    c = _rot(-2.0 * qw * rate)
+    z = w = c = 1.0 + 0.0j  # e^{i omega tau / 2}; a step's rotation; the factor from one step's to the next
+    if fast:
+        w = _rot(qw * (2.0 - rate))  # the rotation of step 1: dtau = dt (1 - rate / 2)
+        c = _rot(-2.0 * qw * rate)
     for k in range(1, length - start):
         raw = 1.0 - k * rate
         sig = 0.0 if raw < 0.0 else (1.0 if raw > 1.0 else raw)

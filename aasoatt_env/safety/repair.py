@@ -42,7 +42,6 @@ from aasoatt_env.safety.gatekeeper import (
     pair_margins,
 )
 from aasoatt_env.sim.env import FILTERED_MIN_COLLISION_TOLERANCE
-from aasoatt_env.sim.scenarios.base import TOUCH_TOL
 
 __all__ = ["GATE_TOL", "gate_with_repair", "repair"]
 
@@ -54,7 +53,6 @@ the check's closed-form paths and the simulator's steps, which grows with the co
 tester's exactly touching packs pushed together 1e3-1e6 m from the origin passed 4-33 pm beyond it
 (2026-12-02).  Twice what a scenario's start may overlap (:data:`aasoatt_env.sim.scenarios.base.TOUCH_TOL`),
 so a touching team at rest, its positions rounded, is brake-safe."""
-assert GATE_TOL >= 2.0 * TOUCH_TOL
 
 
 def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,

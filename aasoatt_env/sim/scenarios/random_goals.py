@@ -117,23 +117,27 @@ class RandomGoals(Scenario):
         """
         if self.num_robots_ > _SEQUENTIAL_MAX:
             return self._sample_batched(rng)
-        n, half = self.num_robots_, self.arena_size / 2.0 - self.min_spacing / 2.0
-        pts = np.empty((n, 2))
+        n = self.num_robots_
         for _ in range(_SEQUENTIAL_TRIES):
-            placed = 0
-            for i in range(n):
-                for _ in range(10_000):
-                    cand = rng.uniform(-half, half, size=2)
-                    if i == 0 or np.min(np.hypot(*(pts[:i] - cand).T)) >= self.min_spacing:
-                        pts[i] = cand
-                        placed += 1
-                        break
-                else:
-                    break
-            if placed == n:
+            pts = self._place_once(rng)
+            if pts is not None:
                 return pts
         raise ScenarioError(f"random_goals: could not place {n} robots {self.min_spacing:g} m apart in an arena of "
                             f"size {self.arena_size:g} in {_SEQUENTIAL_TRIES} tries; enlarge arena_size")
+
+    def _place_once(self, rng: np.random.Generator) -> np.ndarray | None:
+        """One try of the one-by-one sampler: None where a point finds no room in 10,000 draws."""
+        n, half = self.num_robots_, self.arena_size / 2.0 - self.min_spacing / 2.0
+        pts = np.empty((n, 2))
+        for i in range(n):
+            for _ in range(10_000):
+                cand = rng.uniform(-half, half, size=2)
+                if i == 0 or np.min(np.hypot(*(pts[:i] - cand).T)) >= self.min_spacing:
+                    pts[i] = cand
+                    break
+            else:
+                return None
+        return pts
 
     def _sample_batched(self, rng: np.random.Generator) -> np.ndarray:
         """Dart throwing in vectorised batches, for large teams.
