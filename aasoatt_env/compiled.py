@@ -29,7 +29,10 @@ in the overhead of its calls rather than in arithmetic
 - the paper's barrier rows of every robot pair
   (:mod:`aasoatt_env.safety.rows_kernel`: the pair geometry, the discrete-time
   margins, the barrier's value, the rows in wheel coordinates and the warm-start
-  keys, the numpy step's numbers bit for bit).
+  keys, the numpy step's numbers bit for bit);
+- a centralised step from the rows on (:mod:`aasoatt_env.safety.step_kernel`:
+  the kernels above and the operations between them in one call, stopping
+  where the Python step has more to decide; the parts' step bit for bit).
 
 The kernels are the same loops compiled with numba (``pip install
 "aasoatt[fast]"``), imported only when first used.  The numpy code stays the
@@ -78,6 +81,7 @@ PARTS: dict[str, str] = {
     "geometry": "aasoatt_env.model.geometry_kernel",
     "decomposition": "aasoatt_env.safety.decomposition_kernel",
     "rows": "aasoatt_env.safety.rows_kernel",
+    "step": "aasoatt_env.safety.step_kernel",
 }
 """The compiled parts and their modules."""
 

@@ -356,6 +356,7 @@ def _central_answers(monkeypatch, fused: bool, scene: str, switch: bool = False)
 
     monkeypatch.setattr(decomposition, "_compiled", counted if fused else (lambda *args: None))
     monkeypatch.setattr(core, "solve_centralized", record)
+    _parts_one_by_one(monkeypatch)  # (the compiled step would answer without solve_centralized)
     if switch:  # (no answer counts as slow: whether ldp is probed then would depend on the machine's timing)
         monkeypatch.setattr(policy_module, "EXACT_FIRST_VARS", 0)
         monkeypatch.setattr(policy_module, "SLOW_SOLVE_S", np.inf)
@@ -371,6 +372,19 @@ def _central_answers(monkeypatch, fused: bool, scene: str, switch: bool = False)
             obs, *_ = env.step(agent.act(obs, env))
     monkeypatch.undo()
     return answers, kernel_answers
+
+
+def _parts_one_by_one(monkeypatch) -> None:
+    """Filters made from now on call the compiled parts one by one (no :mod:`~aasoatt_env.safety.step_kernel`)."""
+    from aasoatt_env.safety import core
+
+    init = core.SafetyFilter.__init__
+
+    def set_up(self, *args, **kw):
+        init(self, *args, **kw)
+        self._whole_step = False
+
+    monkeypatch.setattr(core.SafetyFilter, "__init__", set_up)
 
 
 def _bits(a: np.ndarray) -> np.ndarray:
@@ -474,6 +488,7 @@ def _filter_results(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
     def set_up(self, *args, **kw):
         init(self, *args, **kw)
         self._fused = self._fused and fused
+        self._whole_step = False  # (the compiled step would call the rows kernel from compiled code)
 
     def record(self, *args, **kw):
         du, res = step(self, *args, **kw)
@@ -529,6 +544,88 @@ def test_the_compiled_rows_give_the_numpy_rows_steps_bit_for_bit(monkeypatch, sc
             np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
         assert (a.status, a.message, a.iterations, a.n_rows, a.n_qp_rows) == (b.status, b.message, b.iterations,
                                                                               b.n_rows, b.n_qp_rows)
+
+
+def _whole_step_results(monkeypatch, whole: bool, scene: str) -> tuple[list, dict]:
+    """Every filter step's result along a closed loop, with the compiled step (``step_kernel``) or the compiled
+    parts called one by one, and how many steps the compiled step stopped at each of its stages."""
+    from aasoatt_env.safety import core
+
+    results, stages = [], {}
+    step = core.SafetyFilter.step
+    kernel = compiled.kernels("step")
+    real = kernel.filter_step
+
+    def record(self, *args, **kw):
+        du, res = step(self, *args, **kw)
+        results.append((du.copy(), res))
+        return du, res
+
+    def counted(*args):
+        out = real(*args)
+        stages[int(out[0])] = stages.get(int(out[0]), 0) + 1
+        return out
+
+    if not whole:
+        _parts_one_by_one(monkeypatch)
+    monkeypatch.setattr(core.SafetyFilter, "step", record)
+    monkeypatch.setattr(kernel, "filter_step", counted)
+    if scene == "stack":
+        _run_stack(0)
+    elif scene == "random":  # uniform random actions at every physics step: robots spin up past the range limit
+        env = make_env("random_goals", num_robots=20, max_steps=700, filter=True)
+        rng = np.random.default_rng(5)
+        env.reset(seed=5)
+        for _ in range(env.max_steps):
+            env.step({a: rng.uniform(-1.0, 1.0, 2) for a in env.agents})
+    elif scene == "large":  # beyond the brute force's size: the grid of cells' pairs, keys not in order
+        env = make_env("random_goals", num_robots=250, max_steps=60, filter=True)
+        agent = HostileAgent()
+        obs, _ = env.reset(seed=14)
+        for _ in range(env.max_steps):
+            obs, *_ = env.step(agent.act(obs, env))
+    else:  # a circle swap's crossing; with fixed and speed margins, without the layer
+        options = {} if scene == "crossing" else {"safety_margin": 0.01, "speed_margin": 0.05, "backup": False}
+        env = make_env("circle_swap", num_robots=12, radius=2.0, duration=4.0, settle_time=0.0, max_steps=400,
+                       filter=options)
+        agent = TrackingController()
+        obs, _ = env.reset(seed=12)
+        for _ in range(env.max_steps):
+            obs, *_ = env.step(agent.act(obs, env))
+    monkeypatch.undo()
+    return results, stages
+
+
+@needs_numba
+@pytest.mark.parametrize("scene", ["stack", "random", "crossing", "margins", "large"])
+def test_the_compiled_step_gives_the_steps_of_its_parts_bit_for_bit(monkeypatch, scene):
+    """Along closed loops every filter step through the compiled step (step_kernel: the rows, the warm start,
+    the decomposition, the quick check and the applied inputs in one call) equals the step that calls those
+    compiled parts one by one, bit for bit, wherever the compiled step stops: after the rows (a QP it does not
+    answer: the training stack's infeasible teams), after the quick check (someone brakes: the repair follows),
+    or at the end; with and without the backup layer, and with the pairs the grid of cells finds."""
+    from aasoatt_env.safety.step_kernel import DONE, QP, ROWS
+
+    ref, none = _whole_step_results(monkeypatch, False, scene)
+    out, stages = _whole_step_results(monkeypatch, True, scene)
+    assert not none and len(out) == len(ref) >= 60
+    assert sum(stages.values()) >= len(out) - 1  # (a filter's first step has no warm start: the parts)
+    if scene == "large":  # QPs beyond the compiled decomposition's dense size: the numpy path answers
+        assert stages.get(ROWS, 0) > 0.5 * len(out)
+    else:
+        assert stages.get(DONE, 0) > 0.5 * len(out)
+    if scene == "stack":
+        assert stages.get(ROWS, 0) >= 3
+    if scene == "random":  # braking for the range limit alone, and braking that the repair nudges away
+        assert stages.get(QP, 0) >= 10 and any("nudged" in res.message for _, res in out)
+    for (du_a, a), (du_b, b) in zip(out, ref):
+        np.testing.assert_array_equal(_bits(du_a), _bits(du_b))
+        for field in ("eta", "correction", "slack", "margin", "barrier_min"):
+            np.testing.assert_array_equal(_bits(np.asarray(getattr(a, field))), _bits(np.asarray(getattr(b, field))))
+        for field in ("pairs", "avoiding", "triggered", "backup", "intervened"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+        assert (a.status, a.safe, a.message, a.iterations, a.n_rows, a.n_qp_rows) == (
+            b.status, b.safe, b.message, b.iterations, b.n_rows, b.n_qp_rows)
 
 
 @needs_numba
@@ -614,7 +711,7 @@ def _signatures() -> dict:
     """Compiled specialisations of every kernel entry point."""
     entries = {"backup": ("gate_full", "repair_full"), "local": ("solve_all",), "active_set": ("solve_parts",),
                "geometry": ("cell_pairs", "components"), "decomposition": ("solve_decomposed", "box_least_squares"),
-               "rows": ("aasoatt_rows",)}
+               "rows": ("aasoatt_rows",), "step": ("filter_step",)}
     return {f"{p}.{n}": len(getattr(compiled.kernels(p), n).signatures) for p, names in entries.items() for n in names}
 
 

@@ -623,7 +623,9 @@ def test_slow_proxsuite_switches_to_ldp_only_when_ldp_is_faster(monkeypatch, ldp
     # every step through the policy's solve (the compiled decomposition, which answers the steps it verifies
     # itself and tells the policy, is left out: test_the_compiled_decomposition_answers_as_the_numpy_path)
     monkeypatch.setattr(decomposition_module, "_compiled", lambda *args: None)
-    out = closed_loop(scen, SafetyFilter(scen.team), 6.0)
+    filt = SafetyFilter(scen.team)
+    filt._whole_step = False  # (nor the compiled step, which runs the decomposition in its own call)
+    out = closed_loop(scen, filt, 6.0)
     assert out.statuses.get("failed", 0) == 0
     first = log.index("proxsuite")
     assert log[first + 1] == "ldp"  # the timing probe on the same problem

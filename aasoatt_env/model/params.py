@@ -30,10 +30,10 @@ Presets
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass, fields, replace
 from functools import cached_property
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -222,6 +222,15 @@ class Team:
         """Wheel speeds -> (forward speed, yaw rate) of the axle, shape ``(N, 2, 2)``."""
         h, g = 0.5 * self.wheel_radius, self.turn_gain
         return np.stack((np.stack((h, h), axis=1), np.stack((g, -g), axis=1)), axis=1)
+
+    @cached_property
+    def derived(self) -> dict[Hashable, Any]:
+        """Values other modules compute from these parameters, kept for the team's life (a Team is immutable).
+
+        Keyed by their maker and its arguments, e.g. the backup layer's per-robot constants
+        for one braking fraction and sensing range (:mod:`aasoatt_env.safety.gatekeeper`).
+        """
+        return {}
 
     @cached_property
     def turn_gain(self) -> np.ndarray:

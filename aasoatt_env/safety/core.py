@@ -27,7 +27,7 @@ import time
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -39,11 +39,32 @@ from aasoatt_env.model.geometry import brute_candidates, obstacle_pairs, robot_p
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
-from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS, DeadlockState, TargetContext, TriggerContext, rotation
+from aasoatt_env.safety.deadlock import (
+    PAIRWISE_TRIGGERS,
+    STRATEGIES,
+    TRIGGERS,
+    DeadlockState,
+    TargetContext,
+    TriggerContext,
+    rotation,
+)
 from aasoatt_env.safety.decentralized import decentralized_step
-from aasoatt_env.safety.decomposition import row_values, solve_centralized
-from aasoatt_env.safety.repair import gate_with_repair
+from aasoatt_env.safety.decomposition import CentralAnswer, row_values, solve_centralized
+from aasoatt_env.safety.gatekeeper import BLEND_LEVELS, GateResult, _levels, _team_block
+from aasoatt_env.safety.problem import ROW_NORM_MIN
+from aasoatt_env.safety.repair import GATE_TOL, gate_with_repair
 from aasoatt_env.safety.solvers import SolverPolicy
+from aasoatt_env.safety.solvers.active_set import (
+    BOUND_TIGHT,
+    DENSE_MAX_CELLS,
+    DENSE_MAX_VARS,
+    ONE_CHANGE_ITER,
+    PDAS_ITER,
+    VERIFIED_MESSAGE,
+    WARM_FLOOR,
+    WARM_REL,
+)
+from aasoatt_env.safety.solvers.active_set import TOL as AS_TOL
 from aasoatt_env.safety.warm_up import warm_up
 from aasoatt_env.sim.protocol import FilterInput
 from aasoatt_env.validation import MAGNITUDE_MAX
@@ -61,6 +82,45 @@ layer the status is ``"unsafe"`` then, whatever the barrier's value."""
 MIN_BRAKING_ROOM: float = 0.1
 """With the backup layer, the sensing range must exceed the largest safety distance by this much [m]:
 every robot's braking path must fit in half of the difference (:func:`~aasoatt_env.safety.backup.reach_limit`)."""
+
+
+class _Rows(NamedTuple):
+    """A step's rows: ``Gi du_ri + Gj du_rj <= rhs``, their pairs and warm-start keys, and the barrier's minima."""
+
+    ri: np.ndarray
+    rj: np.ndarray
+    pr: np.ndarray  # the robot pairs within range
+    pairs_out: np.ndarray  # every row's pair (an obstacle row's as (i, -1 - k))
+    Gi: np.ndarray
+    Gj: np.ndarray
+    rhs: np.ndarray
+    keys: np.ndarray
+    barrier_min: float
+    gap_min: float
+
+
+class _Answer(NamedTuple):
+    """What the next step's warm start keeps of a QP answer: the scaled point and the multipliers."""
+
+    x: np.ndarray
+    z: np.ndarray
+
+
+_NO_PAIRS = np.empty((0, 2), dtype=np.intp)
+"""A trigger context's pairs where the trigger reads none (:data:`~aasoatt_env.safety.deadlock.PAIRWISE_TRIGGERS`)."""
+_QUICK_LEVELS = np.array(_levels(BLEND_LEVELS))
+"""The levels of the backup layer's quick check (the gatekeeper's default blend levels)."""
+_NO_POSE = np.empty((0, 3))
+"""The compiled step's poses without the backup layer (not read)."""
+_NO_OBSTACLES = (np.empty(0, dtype=np.complex128), np.empty(0), np.empty(0, dtype=np.int64), False)
+"""The compiled check's obstacle block without obstacles (centres, radii, groups, has groups)."""
+
+
+def _scale(team: Team, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Per-robot scale ``(N,)`` of the QP's scaled variables: the largest input bound, 1 where that is 0."""
+    bound = np.maximum(np.abs(lo), np.abs(hi))
+    scale = np.maximum(team.max_wheel_accel, np.maximum(bound[:, 0], bound[:, 1]))
+    return np.where(scale > 0, scale, 1.0)
 
 
 def _axle_pose(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
@@ -234,6 +294,11 @@ class SafetyFilter:
         self._fused = cfg.compiled and cfg.barrier == "aasoatt" and not self._strategy.rotates_rows
         self._solver = SolverPolicy(cfg.solver, active_set=cfg.active_set,
                                     options={"iterations": cfg.neural_iterations}, compiled=cfg.compiled)
+        # the step from the rows on in one compiled call (aasoatt_env.safety.step_kernel), where every part
+        # it runs is what this configuration runs: the fused rows, the centralised decomposition with the
+        # compiled warm active set, a trigger that reads no pairs
+        self._whole_step = (self._fused and cfg.mode == "centralized" and cfg.decompose and self._solver.exact
+                            and cfg.active_set and cfg.trigger not in PAIRWISE_TRIGGERS)
         self.reset(team)
 
     def warm_up(self) -> bool:
@@ -389,10 +454,16 @@ class SafetyFilter:
                 found = robot_pairs(p, cfg.sensing_range, groups=team.group, compiled=cfg.compiled)
                 (ci, cj), range2 = (np.ascontiguousarray(found[:, 0]), np.ascontiguousarray(found[:, 1])), np.inf
                 ci.flags.writeable = cj.flags.writeable = False  # (the brute force's are: one compiled type)
-            pr, geo_p_true, Gi, Gj, rhs, keys, barrier_min, gap_min = kernels("rows").aasoatt_rows(
-                c64(p), c64(v), c64(adot), c64(A), c64(team.radius), ci, cj, range2, cfg.k1, cfg.k2,
-                np.nan if cfg.safety_margin is None else float(cfg.safety_margin), auto_margin(cfg.dt),
-                MARGIN_FADE_SPEED, cfg.speed_margin, m_obs + 1, gap_initial)
+            rows_args = (c64(p), c64(v), c64(adot), c64(A), c64(team.radius), ci, cj, range2, cfg.k1, cfg.k2,
+                         np.nan if cfg.safety_margin is None else float(cfg.safety_margin), auto_margin(cfg.dt),
+                         MARGIN_FADE_SPEED, cfg.speed_margin, m_obs + 1, gap_initial)
+            if self._whole_step and self._x is not None and self._solver.compiled:
+                # the rest of the step's compiled parts in one call (step_kernel's docstring): the trigger
+                # reads no pairs here, so it and the target come first
+                triggered = self._triggered(TriggerContext(p, v, theta, reference, _NO_PAIRS, _NO_PAIRS, cfg))
+                target = self._target(A, nominal_du, lo, hi, triggered, v, p, reference)
+                return self._step_compiled(t0, rows_args, u, theta, nominal_du, lo, hi, A, p, triggered, target)
+            pr, geo_p_true, Gi, Gj, rhs, keys, barrier_min, gap_min = kernels("rows").aasoatt_rows(*rows_args)
             barrier_min, gap_min = float(barrier_min), float(gap_min)
         else:
             pr = robot_pairs(p, cfg.sensing_range, groups=team.group, compiled=cfg.compiled)
@@ -421,17 +492,9 @@ class SafetyFilter:
             geo_p_true = geo_p
 
         # deadlock trigger and strategy -----------------------------------------------
-        if strategy.active:
-            pair_idx = pr if ri.shape[0] == pr.shape[0] else np.stack((ri, rj), axis=1)  # (robot pairs only: pr)
-            triggered = self._trigger(self._dl, TriggerContext(p, v, theta, reference, pair_idx, -geo_p_true, cfg))
-        else:
-            triggered = np.zeros(n, dtype=bool)
-        zeta = np.where(triggered, cfg.zeta, 0.0)
-        decentral = cfg.mode == "decentralized"
-        # a robot alone saturates its own nominal: the decentralised QPs start from what each robot would do
-        nom_t = np.minimum(np.maximum(nominal_du, lo), hi) if decentral else nominal_du
-        target = strategy.correct_target(np.einsum("nij,nj->ni", A, nom_t), zeta, self._Q,
-                                         TargetContext(v, p, reference, cfg.k3, cfg.k4))
+        pair_idx = pr if ri.shape[0] == pr.shape[0] else np.stack((ri, rj), axis=1)  # (robot pairs only: pr)
+        triggered = self._triggered(TriggerContext(p, v, theta, reference, pair_idx, -geo_p_true, cfg))
+        target = self._target(A, nominal_du, lo, hi, triggered, v, p, reference)
 
         # rows --------------------------------------------------------------------------
         if not fused:
@@ -439,38 +502,138 @@ class SafetyFilter:
                 rj, 0)]), self._Q), geo_v, geo_a, ds, rsum, ap)
             ri, rj, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min = _numpy_rows(
                 cfg, A, v, geo, geo_p_true, pairs_out, m_obs + 1, gap_initial)
+        rows = _Rows(ri, rj, pr, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min)
+        return self._solve_and_check(t0, rows, u, theta, nominal_du, lo, hi, A, p, obstacles, triggered, target,
+                                     _scale(team, lo, hi))
 
-        # QP ----------------------------------------------------------------------------
-        bound = np.maximum(np.abs(lo), np.abs(hi))
-        scale = np.maximum(team.max_wheel_accel, np.maximum(bound[:, 0], bound[:, 1]))
-        scale = np.where(scale > 0, scale, 1.0)
+    def _triggered(self, context: TriggerContext) -> np.ndarray:
+        """``(N,)`` bool: the robots the deadlock strategy acts on at this step (none when it is off)."""
+        if self._strategy.active:
+            return self._trigger(self._dl, context)
+        return np.zeros(context.p.shape[0], dtype=bool)
+
+    def _target(self, A: np.ndarray, nominal_du: np.ndarray, lo: np.ndarray, hi: np.ndarray, triggered: np.ndarray,
+                v: np.ndarray, p: np.ndarray, reference: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+        """The QP's target control-point accelerations ``(N, 2)``: the nominal's, after the deadlock strategy."""
+        cfg = self.config
+        zeta = np.where(triggered, cfg.zeta, 0.0)
+        # a robot alone saturates its own nominal: the decentralised QPs start from what each robot would do
+        nom_t = np.minimum(np.maximum(nominal_du, lo), hi) if cfg.mode == "decentralized" else nominal_du
+        return self._strategy.correct_target(np.einsum("nij,nj->ni", A, nom_t), zeta, self._Q,
+                                             TargetContext(v, p, reference, cfg.k3, cfg.k4))
+
+    def _step_compiled(self, t0: float, rows_args: tuple, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
+                       lo: np.ndarray, hi: np.ndarray, A: np.ndarray, p: np.ndarray, triggered: np.ndarray,
+                       target: np.ndarray) -> tuple[np.ndarray, FilterResult]:
+        """The step from the rows on by :func:`~aasoatt_env.safety.step_kernel.filter_step`.
+
+        Where the kernel stops early the step goes on in :meth:`_solve_and_check` with what it made
+        (the same code as without the kernel, so the same answer).
+        """
+        cfg, team, k = self.config, self.team, kernels("step")
+        n = team.n  # type: ignore[union-attr]
+        pose = _axle_pose(team, p, theta) if cfg.backup else _NO_POSE  # type: ignore[arg-type]
+        block, limit = _team_block(team, cfg.brake_fraction, cfg.sensing_range)  # type: ignore[arg-type]
+        diff, offset, cols, tg, amax, adec, _, group, has_group, sensing_range = block
+        (stage, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, scale, qp_code, used, n_qp, n_vars, n_parts, du_qp,
+         x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs,
+         margin, du, correction, intervened, nudged) = k.filter_step(
+            *rows_args, c64(target), c64(lo), c64(hi), c64(team.max_wheel_accel), c64(nominal_du),  # type: ignore
+            c64(self._x.reshape(n, 2)), self._keys, c64(self._z), PDAS_ITER, ONE_CHANGE_ITER, AS_TOL,  # type: ignore
+            WARM_REL, WARM_FLOOR, BOUND_TIGHT, ROW_NORM_MIN, DENSE_MAX_VARS, DENSE_MAX_CELLS, cfg.eta_tol,
+            bool(cfg.backup), pose, c64(u), float(cfg.dt), _QUICK_LEVELS, diff, offset, cols, tg, amax, adec, group,
+            has_group, sensing_range, *_NO_OBSTACLES, limit, GATE_TOL)
+        barrier_min, gap_min = float(barrier_min), float(gap_min)
+        rows = _Rows(pairs[:, 0], pairs[:, 1], pairs, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min)
+        elapsed = time.perf_counter() - t0
+        if stage == k.ROWS or (qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed)):
+            # the numpy path, from what the compiled decomposition handed on (solve_centralized's _compiled)
+            parts = (xs[:n_vars], zs[:n_qp], done[:n_parts], int(used)) if qp_code == k.PARTS else None
+            return self._solve_and_check(t0, rows, u, theta, nominal_du, lo, hi, A, p, None, triggered, target, scale,
+                                         kernel_parts=parts)
+        if qp_code == k.CLOSED_FORM:
+            ans = CentralAnswer(du_qp, x, z, eta, "solved", "closed form: no row binds", 0, 0)
+        else:
+            self._solver.note_answer(int(n_vars), elapsed)
+            ans = CentralAnswer(du_qp, x, z, eta, "solved", VERIFIED_MESSAGE, int(used), int(n_qp))
+        if stage == k.QP:
+            quick = GateResult(gdu, braking, float(margin), not bool(broken.any()), broken, share, int(rounds),
+                               int(n_pairs), robot_margin, out_of_range)
+            return self._solve_and_check(t0, rows, u, theta, nominal_du, lo, hi, A, p, None, triggered, target, scale,
+                                         answer=ans, avoiding=avoiding, quick=quick)
+        # (stage DONE) nobody brakes
+        self._remember(ans, rows, avoiding)
+        if cfg.backup:
+            safe = not bool(broken.any())
+            margin = float(margin)
+        else:
+            margin = gap_min
+            safe = not (barrier_min < -_BARRIER_TOL or margin < -COLLISION_TOL)
+        message = ans.message
+        if nudged.any():
+            message = f"{message}; backup nudged {int(nudged.sum())} robot(s) toward brake-safety"
+        status = "unsafe" if not safe else ("backup" if nudged.any() else "solved")
+        result = FilterResult(
+            du=du, status=status, safe=safe, backup=np.zeros(n, dtype=bool), margin=margin, barrier_min=barrier_min,
+            message=message, eta=eta, pairs=pairs, avoiding=avoiding.copy(), triggered=triggered, slack=0.0,
+            correction=correction, intervened=intervened, iterations=ans.iterations,
+            solve_time=time.perf_counter() - t0, n_rows=int(rhs.shape[0]), n_qp_rows=int(ans.n_qp),
+        )
+        return du, result
+
+    def _remember(self, ans: CentralAnswer | Any, rows: _Rows, avoiding: np.ndarray) -> None:
+        """The next step's warm start (point, row keys and multipliers) and the deadlock memory."""
+        self._x, self._keys, self._z = ans.x.ravel(), rows.keys, ans.z
+        # (an obstacle row's (i, -1 - k) names robot i alone, as (i, -1) would)
+        self._key_robots = rows.pairs_out.copy()
+        self._dl.avoiding = avoiding
+
+    def _solve_and_check(self, t0: float, rows: _Rows, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
+                         lo: np.ndarray, hi: np.ndarray, A: np.ndarray, p: np.ndarray,
+                         obstacles: tuple[np.ndarray, ...] | None, triggered: np.ndarray, target: np.ndarray,
+                         scale: np.ndarray, *, answer: CentralAnswer | None = None, avoiding: np.ndarray | None = None,
+                         quick: GateResult | None = None, kernel_parts: tuple | None | bool = False,
+                         ) -> tuple[np.ndarray, FilterResult]:
+        """The QP (unless ``answer`` is given, with its ``avoiding``), the backup layer and the result.
+
+        ``quick``: the backup layer's first check, where the compiled step made it; ``kernel_parts``: what the
+        compiled step's decomposition handed on where it did not answer (False: it did not run).
+        """
+        cfg, team = self.config, self._bound_team()
+        n = team.n
+        ri, rj, pr, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min = rows
         m = rhs.shape[0]
-        if decentral:  # every robot its own QP over its halves of the rows: no team QP below
-            dec = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, scale=scale,
+        decentral = cfg.mode == "decentralized"
+        if answer is not None:
+            ans = answer
+        elif decentral:  # every robot its own QP over its halves of the rows: no team QP below
+            ans = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, scale=scale,
                                      compiled=cfg.compiled)
-            du, x_full = dec.du.copy(), dec.du / scale[:, None]
-            z, eta, iterations, n_qp = dec.z, dec.eta, dec.iterations, m
-            status = "relaxed" if dec.n_relaxed else "solved"
-            message = f"decentralized: {n} local QPs" + (f", {dec.n_relaxed} infeasible (relaxed)" if dec.n_relaxed
-                                                         else "")
         else:
             ans = solve_centralized(self._solver, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs,
                                     None if self._x is None else self._x.reshape(n, 2), lambda: self._map_warm(keys),
-                                    decompose=cfg.decompose, compiled=cfg.compiled)
+                                    decompose=cfg.decompose, compiled=cfg.compiled, checked=True,
+                                    tried=kernel_parts is not False, kernel_parts=kernel_parts or None)
+        if decentral:
+            du, x_full = ans.du.copy(), ans.du / scale[:, None]
+            z, eta, iterations, n_qp = ans.z, ans.eta, ans.iterations, m
+            status = "relaxed" if ans.n_relaxed else "solved"
+            message = f"decentralized: {n} local QPs" + (f", {ans.n_relaxed} infeasible (relaxed)" if ans.n_relaxed
+                                                         else "")
+        else:
             du, x_full, z, eta = ans.du, ans.x, ans.z, ans.eta
             status, message, iterations, n_qp = ans.status, ans.message, ans.iterations, ans.n_qp
-        self._x, self._keys, self._z = x_full.ravel(), keys, z
-        self._key_robots = pairs_out.copy()  # (an obstacle row's (i, -1 - k) names robot i alone, as (i, -1) would)
-        avoiding = np.zeros(n, dtype=bool)
-        if decentral:  # a robot avoids when its own half of a row binds
-            active_i, active_j = dec.z_half[:, 0] > cfg.eta_tol, dec.z_half[:, 1] > cfg.eta_tol
-            avoiding[ri[active_i]] = True
-            avoiding[rj[active_j & (rj >= 0)]] = True
-        else:
-            active = z > cfg.eta_tol
-            avoiding[ri[active]] = True
-            avoiding[rj[active & (rj >= 0)]] = True
-        self._dl.avoiding = avoiding
+        if avoiding is None:
+            avoiding = np.zeros(n, dtype=bool)
+            if decentral:  # a robot avoids when its own half of a row binds
+                active_i, active_j = ans.z_half[:, 0] > cfg.eta_tol, ans.z_half[:, 1] > cfg.eta_tol
+                avoiding[ri[active_i]] = True
+                avoiding[rj[active_j & (rj >= 0)]] = True
+            else:
+                active = z > cfg.eta_tol
+                avoiding[ri[active]] = True
+                avoiding[rj[active & (rj >= 0)]] = True
+        self._remember(_Answer(x_full, z), rows, avoiding)
         exact = decentral or self._solver.exact
         slack = 0.0
         if status != "solved" or not exact:  # (a solved exact answer meets every row: nothing to measure)
@@ -480,7 +643,7 @@ class SafetyFilter:
         braking = nudged = np.zeros(n, dtype=bool)
         if cfg.backup:
             pose = _axle_pose(team, p, theta)
-            gate = gate_with_repair(team, pose, u, du, lo, hi, cfg, obstacles, pr)
+            gate = gate_with_repair(team, pose, u, du, lo, hi, cfg, obstacles, pr, quick=quick)
             # robots the gate still marks broken (beyond the range limit when braking): best effort, the QP
             du_qp, broken = du, gate.broken
             du = np.where(broken[:, None], du_qp, gate.du)
@@ -537,6 +700,8 @@ class SafetyFilter:
         z0 = np.zeros(keys.shape[0])
         if self._keys.shape[0] and keys.shape[0]:
             sk, zk = self._keys, self._z
+            if self.config.compiled and kernels("decomposition").warm_rows(sk, zk, keys, z0):
+                return z0
             if not bool((sk[1:] > sk[:-1]).all()):  # (robot pairs alone come sorted: no sort needed)
                 order = np.argsort(sk, kind="stable")
                 sk, zk = sk[order], zk[order]
@@ -605,18 +770,21 @@ class SafetyFilter:
             if a.shape != shape:
                 raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
             flat.append(a.ravel())
-        big = float(np.max(np.abs(np.concatenate(flat)), initial=0.0))
+        allv = np.concatenate(flat)
+        # (the largest |x| as the larger of -min and max: no temporary; a NaN propagates to both)
+        big = max(-float(allv.min()), float(allv.max())) if allv.size else 0.0
         if not big <= MAGNITUDE_MAX:  # NaN, inf or beyond the magnitude every input is checked against
             for name, arr, shape in arrays:
                 a = np.asarray(arr, dtype=np.float64).reshape(shape[0], -1) if shape[0] else np.zeros((0, 1))
                 _refuse_rows_beyond(name, a, "obstacle" if name.startswith("obstacles") else "robot")
-        if np.any(lo > hi):
+        if (lo > hi).any():
             raise StateError("lo/hi: bounds must be finite with lo <= hi")
         if obstacles is not None and radii.size and not bool((radii >= 0.0).all()):
             k = int(np.flatnonzero(~(radii >= 0.0))[0])
             raise StateError(f"obstacles radii: got {float(radii[k])!r} for obstacle {k}, expected a radius >= 0")
         # the state in float64 (as every other input): float32 or integer arrays give every path the same numbers
-        if any(np.asarray(getattr(kin, f)).dtype != np.float64 for f in Kinematics._fields):
-            kin = Kinematics(*(np.asarray(getattr(kin, f), dtype=np.float64) for f in Kinematics._fields))
+        fields = (kin.p, kin.v, kin.A, kin.adot_u)
+        if not all(type(a) is np.ndarray and a.dtype == np.float64 for a in fields):
+            kin = Kinematics(*(np.asarray(a, dtype=np.float64) for a in fields))
         u, theta = np.asarray(u, dtype=np.float64), np.asarray(theta, dtype=np.float64)
         return kin, u, theta, nominal_du, lo, hi, reference, obstacles

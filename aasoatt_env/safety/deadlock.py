@@ -58,7 +58,7 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.config import FilterConfig
 
-__all__ = ["STRATEGIES", "TRIGGERS", "DeadlockState", "Strategy", "TriggerContext", "rotation"]
+__all__ = ["PAIRWISE_TRIGGERS", "STRATEGIES", "TRIGGERS", "DeadlockState", "Strategy", "TriggerContext", "rotation"]
 
 
 def rotation(q_deg: float) -> np.ndarray:
@@ -158,6 +158,10 @@ TRIGGERS: dict[str, TriggerFn] = {
     "heading": _heading,
 }
 """Trigger registry: name -> ``trigger(memory, context)``."""
+
+PAIRWISE_TRIGGERS: frozenset[str] = frozenset({"heading"})
+"""The triggers that read the pairs (``TriggerContext.pair_idx``, ``pair_vec``); the others get empty ones
+where the filter computes the trigger before its rows (:mod:`aasoatt_env.safety.step_kernel`)."""
 
 
 class TargetContext(NamedTuple):

@@ -87,6 +87,9 @@ def solve_centralized(
     *,
     decompose: bool = True,
     compiled: bool = False,
+    checked: bool = False,
+    tried: bool = False,
+    kernel_parts: tuple | None = None,
 ) -> CentralAnswer:
     """``min sum |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, G du <= rhs`` for the whole team.
 
@@ -110,6 +113,15 @@ def solve_centralized(
         Split by components (only with an exact solver); False: one QP of the whole team.
     compiled : bool
         Try the compiled step first (:mod:`aasoatt_env.safety.decomposition_kernel`).
+    checked : bool
+        The caller vouches for the shapes and row indices (the filter's own rows, built by this
+        library for ``N`` robots): their O(m) check is skipped.  The compiled step reads without
+        bounds checks, so anything else must leave this False.
+    tried, kernel_parts : bool, tuple or None
+        The caller ran the compiled step on these very arrays (the filter's compiled step,
+        :mod:`~aasoatt_env.safety.step_kernel`), which did not answer: it is not run again, and
+        ``kernel_parts`` is what it handed on (``(x, z, done, iterations)`` of
+        :data:`~aasoatt_env.safety.decomposition_kernel.PARTS`, or None).
 
     Returns
     -------
@@ -123,11 +135,12 @@ def solve_centralized(
     ValueError
         An array of the wrong shape, or a row index out of range (named).
     """
-    n, m = _check(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm)
-    warm = _WarmRows(z_warm, m)
+    n, m = (A.shape[0], rhs.shape[0]) if checked else _check(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev,
+                                                              z_warm)
+    warm = _WarmRows(z_warm, None if checked else m)
     decompose = decompose and policy.exact
-    kernel_parts = None
-    if compiled and decompose and policy.active_set and policy.compiled and x_prev is not None and warm() is not None:
+    if (not tried and compiled and decompose and policy.active_set and policy.compiled and x_prev is not None
+            and warm() is not None):
         out = _compiled(policy, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, warm())
         if isinstance(out, CentralAnswer):
             return out
@@ -204,15 +217,18 @@ def _check(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, sc
 
 
 class _WarmRows:
-    """``z_warm``'s rows, mapped (called) at most once and only when asked, their shape checked then."""
+    """``z_warm``'s rows, mapped (called) at most once and only when asked, their shape checked then.
 
-    def __init__(self, z_warm: np.ndarray | WarmRows | None, m: int) -> None:
+    ``m`` None: not checked (the caller vouches for it).
+    """
+
+    def __init__(self, z_warm: np.ndarray | WarmRows | None, m: int | None) -> None:
         self._source, self._m, self._rows, self._done = z_warm, m, None, False
 
     def __call__(self) -> np.ndarray | None:
         if not self._done:
             rows = self._source() if callable(self._source) else self._source
-            if rows is not None:
+            if rows is not None and self._m is not None:
                 check.shapes((("z_warm", rows, (self._m,)),))
             self._rows, self._done = rows, True
         return self._rows

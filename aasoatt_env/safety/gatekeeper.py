@@ -24,6 +24,7 @@ gatekeeper's rounds and over a few length buckets of the pair batch.
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import numpy as np
@@ -44,7 +45,10 @@ from aasoatt_env.safety.backup import (
     reach_limit,
 )
 
-__all__ = ["GateResult", "gatekeeper", "pair_margins"]
+__all__ = ["BLEND_LEVELS", "GateResult", "gatekeeper", "pair_margins"]
+
+BLEND_LEVELS: tuple[float, ...] = (0.5,)
+"""The check's default blend shares between the candidate and the backup (``gatekeeper``'s ``blend_levels``)."""
 
 
 # --------------------------------------------------------------------------- pair check
@@ -200,7 +204,7 @@ def gatekeeper(
     brake_fraction: float,
     obstacles: tuple[np.ndarray, np.ndarray] | None = None,
     tol: float = 0.0,
-    blend_levels: tuple[float, ...] = (0.5,),
+    blend_levels: tuple[float, ...] = BLEND_LEVELS,
     hold_violations: bool = False,
     quick: bool = False,
     near_pairs: np.ndarray | None = None,
@@ -292,9 +296,7 @@ def gatekeeper(
         Run the whole check in the compiled kernel (:mod:`aasoatt_env.compiled`;
         ``ImportError`` without numba): the same decisions, inputs and margins to rounding.
     """
-    levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
-    if not all(0.0 < a <= 1.0 for a in levels[:-1]):  # also refuses NaN
-        raise ValueError(f"blend_levels: got {tuple(blend_levels)!r}, expected shares in (0, 1]")
+    levels = _levels(tuple(blend_levels))
     if near_pairs is not None:  # a safety input (the compiled kernel reads it without bounds checks)
         near_pairs = np.asarray(near_pairs)
         n_rob = pose.shape[0]
@@ -440,6 +442,28 @@ def gatekeeper(
 _EMPTY_INT = np.empty(0, dtype=np.int64)
 
 
+@functools.lru_cache(maxsize=64)
+def _levels(blend_levels: tuple) -> tuple[float, ...]:
+    """The check's levels, highest first: 1 (the candidate), the blend shares, 0 (the backup from now)."""
+    levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
+    if not all(0.0 < a <= 1.0 for a in levels[:-1]):  # also refuses NaN
+        raise ValueError(f"blend_levels: got {blend_levels!r}, expected shares in (0, 1]")
+    return levels
+
+
+def _team_block(team: Team, brake_fraction: float, sensing_range: float) -> tuple:
+    """The per-robot constants of :func:`_kernel_args`' block and the reach limits, made once per team."""
+    key = ("gatekeeper", float(brake_fraction), float(sensing_range))
+    block = team.derived.get(key)
+    if block is None:
+        group = team.group if team.group is not None else _EMPTY_INT
+        block = team.derived[key] = (
+            (team.is_diff_drive, team.offset, team.input_columns, team.turn_gain, team.max_wheel_accel,
+             brake_decel(team, brake_fraction), team.radius, group, team.group is not None, float(sensing_range)),
+            reach_limit(team, sensing_range))
+    return block
+
+
 def _kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_range: float,
                  obstacles: tuple[np.ndarray, ...] | None, near_pairs: np.ndarray | None,
                  **per_robot: np.ndarray) -> tuple:
@@ -472,10 +496,8 @@ def _kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_ra
         oc = c[:, 0] + 1j * c[:, 1]
         if grouped:
             ogroup, has_ogroup = np.asarray(obstacles[2]), True
-    group = team.group if team.group is not None else _EMPTY_INT
-    return (team.is_diff_drive, team.offset, team.input_columns, team.turn_gain, team.max_wheel_accel,
-            brake_decel(team, brake_fraction), team.radius, group, team.group is not None, float(sensing_range),
-            np.ascontiguousarray(near_pairs, dtype=np.int64), oc, orad, ogroup, has_ogroup)
+    return (*_team_block(team, brake_fraction, sensing_range)[0], np.ascontiguousarray(near_pairs, dtype=np.int64),
+            oc, orad, ogroup, has_ogroup)
 
 
 def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float,
@@ -486,7 +508,8 @@ def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.n
     block = _kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs, u=u, du_c=du_c)
     pose, u, du_c = (c64(a) for a in (pose, u, du_c))
     du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = kernels().gate_full(
-        pose, u, du_c, float(dt), np.asarray(levels), bool(quick), *block, reach_limit(team, sensing_range),
+        pose, u, du_c, float(dt), np.asarray(levels), bool(quick), *block,
+        _team_block(team, brake_fraction, sensing_range)[1],
         float(tol), bool(hold_violations))
     return GateResult(du, braking, float(margin), not bool(broken.any()), broken, share, int(rounds), int(n_pairs),
                       robot_margin, out_of_range)

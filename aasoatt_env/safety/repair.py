@@ -57,7 +57,7 @@ so a touching team at rest, its positions rounded, is brake-safe."""
 
 def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                      cfg: FilterConfig, obstacles: tuple[np.ndarray, ...] | None,
-                     pairs: np.ndarray | None = None) -> GateResult:
+                     pairs: np.ndarray | None = None, quick: GateResult | None = None) -> GateResult:
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair if it brakes.
 
     Every answer comes from :func:`~aasoatt_env.safety.gatekeeper.gatekeeper`
@@ -74,7 +74,9 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     each call searches itself),
     each as if it were alone: the gatekeeper never couples robots farther apart
     than ``D``, so a stack of teams decides as each team alone, and a component
-    where nobody brakes keeps the QP's answer.
+    where nobody brakes keeps the QP's answer.  ``quick``: that first check's
+    result, where the caller made it (the compiled step,
+    :mod:`~aasoatt_env.safety.step_kernel`, with ``pairs``).
 
     - A component whose invariant was already broken (a pair failing when both
       brake: a start that was not brake-safe, an assumption violated) gets the
@@ -94,10 +96,15 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     # search per step; found from the same points up to rounding: a pair that rounding moves
     # across D is D apart, and the paths of its robots, within D / 2 - r of their starts, keep it
     # d_s apart)
-    quick = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, quick=True, near_pairs=pairs, **gate_kw)
+    if quick is None:
+        quick = gatekeeper(team, pose, u, du, cfg.dt, tol=GATE_TOL, quick=True, near_pairs=pairs, **gate_kw)
     if not quick.braking.any():
         return quick
     full_check = bool(quick.out_of_range.any())  # the quick check used the blend levels: it is the full one
+    if full_check and not quick.broken.any() and not (quick.braking & ~quick.out_of_range).any():
+        # every robot that brakes does so for the range limit alone, and nothing is broken: nothing is
+        # held or repaired, and the full check is the one made (what the branches below would return)
+        return _merged(quick, [], unsafe=False)
     n = pose.shape[0]
     if pairs is None:
         p0 = _point(team, pose)

@@ -84,4 +84,11 @@ def warm_up(kernel: str = "auto") -> bool:
     c64 = compiled.c64
     compiled.kernels("rows").aasoatt_rows(c64(kin.p), c64(kin.v), c64(kin.adot_u), c64(kin.A), c64(team.radius),
                                           *brute_candidates(2), 9.0, 1.0, 1.0, np.nan, 0.01, 0.2, 0.0, 3, 3.0)
+    # the whole step (step_kernel): a filter's second step, warm-started from its first, with the layer and without
+    from aasoatt_env.safety.core import SafetyFilter  # (core imports this module)
+
+    for backup in (True, False):
+        filt = SafetyFilter(team, backup=backup, kernel="numba")
+        for _ in range(2):
+            filt.from_state(pose, u, du, reference=(kin.p, np.zeros((2, 2))))
     return True

@@ -146,7 +146,7 @@ class FilterReport:
         """The numeric top-level keys of ``infos="flat"`` for robot ``index``."""
         return self.flat_infos(np.array([index]))[0]
 
-    def infos(self, indices: np.ndarray) -> list[dict[str, Any]]:
+    def infos(self, indices: np.ndarray | slice) -> list[dict[str, Any]]:
         """The nested ``infos[agent]["filter"]`` dicts of robots ``indices`` (one conversion per field)."""
         shared = {
             "status": self.status, "safe": bool(self.safe), "margin": float(self.margin),
@@ -157,7 +157,7 @@ class FilterReport:
         return [{"intervened": a, "avoiding": b, "triggered": c, "backup": d, "correction": e, **shared}
                 for a, b, c, d, e in zip(*cols)]
 
-    def flat_infos(self, indices: np.ndarray) -> list[dict[str, float]]:
+    def flat_infos(self, indices: np.ndarray | slice) -> list[dict[str, float]]:
         """The numeric top-level keys of ``infos="flat"`` for robots ``indices``."""
         shared = {"filter_status_code": float(STATUS_CODES[self.status]), "filter_margin": float(self.margin),
                   "filter_slack": float(self.slack)}
@@ -166,7 +166,7 @@ class FilterReport:
                  "filter_backup": float(d), "filter_correction": e, **shared}
                 for a, b, c, d, e in zip(*cols)]
 
-    def _columns(self, indices: np.ndarray) -> tuple[list, ...]:
+    def _columns(self, indices: np.ndarray | slice) -> tuple[list, ...]:
         """The per-robot fields of robots ``indices`` as Python lists (bools and floats)."""
         flags = (np.asarray(f[indices], dtype=bool).tolist()
                  for f in (self.intervened, self.avoiding, self.triggered, self.backup))
@@ -237,8 +237,12 @@ class AASOATTFilter(BaseParallelWrapper):
         if rep is None:
             extra = [dict(_FLAT_IDLE if flat else _NESTED_IDLE) for _ in infos]
         else:
-            idx = self.unwrapped.agent_index
-            rows = np.fromiter((idx[a] for a in infos), dtype=np.intp, count=len(infos))
+            base = self.unwrapped
+            if list(infos) == base.possible_agents:  # every agent, in order: every row
+                rows = _ALL_ROWS
+            else:
+                idx = base.agent_index
+                rows = np.fromiter((idx[a] for a in infos), dtype=np.intp, count=len(infos))
             extra = rep.flat_infos(rows) if flat else rep.infos(rows)
         for info, add in zip(infos.values(), extra):
             if flat:
@@ -264,6 +268,9 @@ class AASOATTFilter(BaseParallelWrapper):
         return {"total_s": self._time, "physics_steps": float(self._steps),
                 "mean_ms": 1e3 * self._time / self._steps if self._steps else 0.0}
 
+
+_ALL_ROWS = slice(None)
+"""``FilterReport.infos``' rows when the infos hold every agent in order (no gather)."""
 
 _BIG = 1e9
 """Stand-in for an infinite barrier value in the infos (no rows): infos stay finite."""

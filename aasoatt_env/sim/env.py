@@ -166,6 +166,7 @@ class AASOATTParallelEnv(ParallelEnv):
         self._renderer: Any = None
         self._trail: deque[np.ndarray] = deque(maxlen=TRAIL_LENGTH)
         self._layout: Layout | None = None
+        self._ref_of: tuple[Layout | None, float] = (None, math.nan)  # (layout, time) of _ref_now
         self._warned_dead = False
 
     # ------------------------------------------------------------------ spaces
@@ -386,7 +387,7 @@ class AASOATTParallelEnv(ParallelEnv):
                 du_nom[frozen] = 0.0
             if filt is not None:
                 inp = FilterInput(self._time, dt, team, self._pose, self._u, kin, lo, hi,
-                                  self._layout.reference(self._time), centers, orad)  # type: ignore[union-attr]
+                                  self._reference_at(self._time), centers, orad)
                 out = filt(inp, du_nom)
                 du = np.asarray(out.du, dtype=np.float64)
                 if du.shape != du_nom.shape or not np.all(np.isfinite(du)):
@@ -472,11 +473,21 @@ class AASOATTParallelEnv(ParallelEnv):
         reported clearance (and so collisions) is the minimum over the whole env step.
         """
         self._ref_now = self._layout.reference(self._time)  # type: ignore[union-attr]
+        for r in self._ref_now:  # shared with the next step's filter input (read-only there too)
+            r.flags.writeable = False
+        self._ref_of = (self._layout, self._time)
         self._prox: Proximity = proximity(
             self._kin.p, self.team.radius, *self._obstacles, k=max(self.num_neighbors, 1)
         )
         self._err = np.hypot(*(self._kin.p - self._ref_now[0]).T)
         self._clearance = self._prox.clearance if between is None else np.minimum(self._prox.clearance, between)
+
+    def _reference_at(self, t: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The reference at ``t``: the one :meth:`_refresh` evaluated when it was for this layout at ``t``."""
+        layout, t_now = self._ref_of
+        if layout is self._layout and t == t_now:
+            return self._ref_now
+        return self._layout.reference(t)  # type: ignore[union-attr]
 
     def _observations(self) -> dict[str, np.ndarray]:
         p_d, v_d, a_d = self._ref_now
