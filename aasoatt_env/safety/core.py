@@ -561,21 +561,29 @@ class SafetyFilter:
                                int(n_pairs), robot_margin, out_of_range)
             return self._solve_and_check(t0, rows, u, theta, nominal_du, lo, hi, A, p, None, triggered, target, scale,
                                          answer=ans, avoiding=avoiding, quick=quick)
-        # (stage DONE) nobody brakes
+        # (stage DONE) nobody brakes, or only for the range limit
         self._remember(ans, rows, avoiding)
+        message = ans.message
         if cfg.backup:
             safe = not bool(broken.any())
             margin = float(margin)
+            any_braking = bool(braking.any())
+            if any_braking:
+                avoiding = avoiding | braking
+                message = f"{message}; backup braked {int(braking.sum())} robot(s)"
+            else:
+                braking = np.zeros(n, dtype=bool)
+                avoiding = avoiding.copy()
         else:
             margin = gap_min
             safe = not (barrier_min < -_BARRIER_TOL or margin < -COLLISION_TOL)
-        message = ans.message
+            braking, avoiding, any_braking = np.zeros(n, dtype=bool), avoiding.copy(), False
         if nudged.any():
             message = f"{message}; backup nudged {int(nudged.sum())} robot(s) toward brake-safety"
-        status = "unsafe" if not safe else ("backup" if nudged.any() else "solved")
+        status = "unsafe" if not safe else ("backup" if any_braking or nudged.any() else "solved")
         result = FilterResult(
-            du=du, status=status, safe=safe, backup=np.zeros(n, dtype=bool), margin=margin, barrier_min=barrier_min,
-            message=message, eta=eta, pairs=pairs, avoiding=avoiding.copy(), triggered=triggered, slack=0.0,
+            du=du, status=status, safe=safe, backup=braking, margin=margin, barrier_min=barrier_min,
+            message=message, eta=eta, pairs=pairs, avoiding=avoiding, triggered=triggered, slack=0.0,
             correction=correction, intervened=intervened, iterations=ans.iterations,
             solve_time=time.perf_counter() - t0, n_rows=int(rhs.shape[0]), n_qp_rows=int(ans.n_qp),
         )

@@ -15,8 +15,9 @@ most of a small team's step and of a training stack's.
    (:func:`~aasoatt_env.safety.decomposition_kernel.solve_decomposed`);
 5. the robots with a binding row (``avoiding``);
 6. the backup layer's quick check (:func:`~aasoatt_env.safety.numba_kernels.gate_full`);
-7. where nobody brakes: the applied inputs, each robot's correction and
-   whether it intervened or was nudged.
+7. where nobody brakes, or only robots too fast for the range limit (the
+   check's answer is then the layer's): the applied inputs, each robot's
+   correction and whether it intervened or was nudged.
 
 It stops where the Python step has more to decide and says where
 (:data:`ROWS`: the QP was not answered here; :data:`QP`: the check braked
@@ -33,7 +34,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from aasoatt_env.numba_jit import jit
+from aasoatt_env.numba_jit import jit, nmin
 from aasoatt_env.safety.decomposition_kernel import (
     CLOSED_FORM,
     PARTS,
@@ -51,9 +52,9 @@ __all__ = ["CLOSED_FORM", "DONE", "PARTS", "QP", "ROWS", "VERIFIED", "filter_ste
 ROWS = 0
 """Stopped after the rows and the scale: the QP was not answered here (the decomposition's other codes)."""
 QP = 1
-"""Stopped after the QP and the quick check, which brakes someone (the repair and the full check follow)."""
+"""Stopped after the QP and the quick check, which brakes someone for a pair (the repair or the full check follows)."""
 DONE = 2
-"""The whole step: nobody brakes (or the backup layer is off)."""
+"""The whole step: nobody brakes, or only for the range limit (or the backup layer is off)."""
 
 
 @jit
@@ -142,11 +143,21 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         gdu, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = gate_full(
             pose, u, du_qp, dt, levels, True, diff, offset, cols, tg, amax, adec, radius, group, has_group,
             sensing_range, pairs, oc, orad, ogroup, has_ogroup, limit, gate_tol, False)
+        brakes, beyond, other, any_broken = False, False, False, False
         for g in range(n):
-            if braking[g]:
+            brakes |= braking[g]
+            beyond |= out_of_range[g]
+            other |= braking[g] and not out_of_range[g]
+            any_broken |= broken[g]
+        if brakes:
+            if not beyond or any_broken or other:  # the repair or the full check may follow
                 return (QP, pairs, Gi, Gj, rhs, keys, h_min, gap_min, scale, code, used, n_qp, n_vars, n_parts,
                         du_qp, x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin,
                         out_of_range, rounds, n_pairs, margin, e2, ei, eb, eb)
+            # every robot that brakes does so for the range limit alone, nothing broken: the quick check is
+            # the layer's answer (gate_with_repair's first return), its margin as _merged takes it
+            for g in range(n):
+                margin = nmin(margin, robot_margin[g])
     du = np.empty((n, 2))
     correction = np.empty(n)
     intervened = np.zeros(n, dtype=np.bool_)
@@ -155,7 +166,7 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         tiny = 1e-9 * scale[g]
         for k in range(2):
             du[g, k] = du_qp[g, k] if (not backup or broken[g]) else gdu[g, k]
-            if backup and not broken[g] and abs(du[g, k] - du_qp[g, k]) > tiny:
+            if backup and not broken[g] and not braking[g] and abs(du[g, k] - du_qp[g, k]) > tiny:
                 nudged[g] = True  # (the check's level arithmetic only rounds: the repair moves inputs)
         d0, d1 = du[g, 0] - nominal[g, 0], du[g, 1] - nominal[g, 1]
         correction[g] = np.sqrt(d0 * d0 + d1 * d1)
