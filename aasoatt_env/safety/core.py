@@ -97,6 +97,7 @@ class _Rows(NamedTuple):
     keys: np.ndarray
     barrier_min: float
     gap_min: float
+    increasing: bool = False  # keys known to increase (the brute force's pairs): no check before keeping them
 
 
 class _Answer(NamedTuple):
@@ -447,8 +448,10 @@ class SafetyFilter:
         m_obs = n + (0 if obstacles is None else int(np.asarray(obstacles[1]).size))
         gap_initial = cfg.sensing_range - 2.0 * float(team.radius.max(initial=0.0))
         fused = self._fused and obstacles is None
+        brute = False  # the brute force's candidates: in (i, j) order, so the rows' keys increase
         if fused:  # the pairs in range and their rows in one compiled call (rows_kernel's docstring)
-            if uses_brute_force(n, team.group):  # robot_pairs' brute force, its distance test in the kernel
+            brute = uses_brute_force(n, team.group)
+            if brute:  # robot_pairs' brute force, its distance test in the kernel
                 (ci, cj), range2 = brute_candidates(n, team.group), cfg.sensing_range * cfg.sensing_range
             else:
                 found = robot_pairs(p, cfg.sensing_range, groups=team.group, compiled=cfg.compiled)
@@ -462,7 +465,8 @@ class SafetyFilter:
                 # reads no pairs here, so it and the target come first
                 triggered = self._triggered(TriggerContext(p, v, theta, reference, _NO_PAIRS, _NO_PAIRS, cfg))
                 target = self._target(A, nominal_du, lo, hi, triggered, v, p, reference)
-                return self._step_compiled(t0, rows_args, u, theta, nominal_du, lo, hi, A, p, triggered, target)
+                return self._step_compiled(t0, rows_args, brute, u, theta, nominal_du, lo, hi, A, p, triggered,
+                                           target)
             pr, geo_p_true, Gi, Gj, rhs, keys, barrier_min, gap_min = kernels("rows").aasoatt_rows(*rows_args)
             barrier_min, gap_min = float(barrier_min), float(gap_min)
         else:
@@ -502,7 +506,7 @@ class SafetyFilter:
                 rj, 0)]), self._Q), geo_v, geo_a, ds, rsum, ap)
             ri, rj, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min = _numpy_rows(
                 cfg, A, v, geo, geo_p_true, pairs_out, m_obs + 1, gap_initial)
-        rows = _Rows(ri, rj, pr, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min)
+        rows = _Rows(ri, rj, pr, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min, brute)
         return self._solve_and_check(t0, rows, u, theta, nominal_du, lo, hi, A, p, obstacles, triggered, target,
                                      _scale(team, lo, hi))
 
@@ -522,9 +526,9 @@ class SafetyFilter:
         return self._strategy.correct_target(np.einsum("nij,nj->ni", A, nom_t), zeta, self._Q,
                                              TargetContext(v, p, reference, cfg.k3, cfg.k4))
 
-    def _step_compiled(self, t0: float, rows_args: tuple, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
-                       lo: np.ndarray, hi: np.ndarray, A: np.ndarray, p: np.ndarray, triggered: np.ndarray,
-                       target: np.ndarray) -> tuple[np.ndarray, FilterResult]:
+    def _step_compiled(self, t0: float, rows_args: tuple, increasing: bool, u: np.ndarray, theta: np.ndarray,
+                       nominal_du: np.ndarray, lo: np.ndarray, hi: np.ndarray, A: np.ndarray, p: np.ndarray,
+                       triggered: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, FilterResult]:
         """The step from the rows on by :func:`~aasoatt_env.safety.step_kernel.filter_step`.
 
         Where the kernel stops early the step goes on in :meth:`_solve_and_check` with what it made
@@ -535,22 +539,22 @@ class SafetyFilter:
         pose = _axle_pose(team, p, theta) if cfg.backup else _NO_POSE  # type: ignore[arg-type]
         block, limit = _team_block(team, cfg.brake_fraction, cfg.sensing_range)  # type: ignore[arg-type]
         diff, offset, cols, tg, amax, adec, _, group, has_group, sensing_range = block
-        (stage, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, scale, qp_code, used, n_qp, n_vars, n_parts, du_qp,
-         x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs,
-         margin, du, correction, intervened, nudged) = k.filter_step(
+        (stage, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, scale, z_warm, qp_code, used, n_qp, n_vars, n_parts,
+         du_qp, x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin, out_of_range, rounds,
+         n_pairs, margin, du, correction, intervened, nudged) = k.filter_step(
             *rows_args, c64(target), c64(lo), c64(hi), c64(team.max_wheel_accel), c64(nominal_du),  # type: ignore
             c64(self._x.reshape(n, 2)), self._keys, c64(self._z), PDAS_ITER, ONE_CHANGE_ITER, AS_TOL,  # type: ignore
             WARM_REL, WARM_FLOOR, BOUND_TIGHT, ROW_NORM_MIN, DENSE_MAX_VARS, DENSE_MAX_CELLS, cfg.eta_tol,
             bool(cfg.backup), pose, c64(u), float(cfg.dt), _QUICK_LEVELS, diff, offset, cols, tg, amax, adec, group,
             has_group, sensing_range, *_NO_OBSTACLES, limit, GATE_TOL)
         barrier_min, gap_min = float(barrier_min), float(gap_min)
-        rows = _Rows(pairs[:, 0], pairs[:, 1], pairs, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min)
+        rows = _Rows(pairs[:, 0], pairs[:, 1], pairs, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, increasing)
         elapsed = time.perf_counter() - t0
         if stage == k.ROWS or (qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed)):
             # the numpy path, from what the compiled decomposition handed on (solve_centralized's _compiled)
             parts = (xs[:n_vars], zs[:n_qp], done[:n_parts], int(used)) if qp_code == k.PARTS else None
             return self._solve_and_check(t0, rows, u, theta, nominal_du, lo, hi, A, p, None, triggered, target, scale,
-                                         kernel_parts=parts)
+                                         kernel_parts=parts, z_warm=z_warm)
         if qp_code == k.CLOSED_FORM:
             ans = CentralAnswer(du_qp, x, z, eta, "solved", "closed form: no row binds", 0, 0)
         else:
@@ -590,10 +594,18 @@ class SafetyFilter:
         return du, result
 
     def _remember(self, ans: CentralAnswer | Any, rows: _Rows, avoiding: np.ndarray) -> None:
-        """The next step's warm start (point, row keys and multipliers) and the deadlock memory."""
-        self._x, self._keys, self._z = ans.x.ravel(), rows.keys, ans.z
+        """The next step's warm start (point, row keys and multipliers) and the deadlock memory.
+
+        The rows are kept in increasing key order (sorted here where they are not), so the next step
+        maps them by binary search.
+        """
         # (an obstacle row's (i, -1 - k) names robot i alone, as (i, -1) would)
-        self._key_robots = rows.pairs_out.copy()
+        keys, z, robots = rows.keys, ans.z, rows.pairs_out
+        if not rows.increasing and keys.shape[0] > 1 and not bool((keys[1:] > keys[:-1]).all()):
+            order = np.argsort(keys, kind="stable")
+            keys, z, robots = keys[order], z[order], robots[order]
+        self._x, self._keys, self._z = ans.x.ravel(), keys, z
+        self._key_robots = robots.copy()
         self._dl.avoiding = avoiding
 
     def _solve_and_check(self, t0: float, rows: _Rows, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
@@ -601,15 +613,16 @@ class SafetyFilter:
                          obstacles: tuple[np.ndarray, ...] | None, triggered: np.ndarray, target: np.ndarray,
                          scale: np.ndarray, *, answer: CentralAnswer | None = None, avoiding: np.ndarray | None = None,
                          quick: GateResult | None = None, kernel_parts: tuple | None | bool = False,
-                         ) -> tuple[np.ndarray, FilterResult]:
+                         z_warm: np.ndarray | None = None) -> tuple[np.ndarray, FilterResult]:
         """The QP (unless ``answer`` is given, with its ``avoiding``), the backup layer and the result.
 
         ``quick``: the backup layer's first check, where the compiled step made it; ``kernel_parts``: what the
-        compiled step's decomposition handed on where it did not answer (False: it did not run).
+        compiled step's decomposition handed on where it did not answer (False: it did not run), and
+        ``z_warm`` the warm start it mapped onto these rows.
         """
         cfg, team = self.config, self._bound_team()
         n = team.n
-        ri, rj, pr, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min = rows
+        ri, rj, pr, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min, _ = rows
         m = rhs.shape[0]
         decentral = cfg.mode == "decentralized"
         if answer is not None:
@@ -619,7 +632,8 @@ class SafetyFilter:
                                      compiled=cfg.compiled)
         else:
             ans = solve_centralized(self._solver, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs,
-                                    None if self._x is None else self._x.reshape(n, 2), lambda: self._map_warm(keys),
+                                    None if self._x is None else self._x.reshape(n, 2),
+                                    (lambda: self._map_warm(keys)) if z_warm is None else z_warm,
                                     decompose=cfg.decompose, compiled=cfg.compiled, checked=True,
                                     tried=kernel_parts is not False, kernel_parts=kernel_parts or None)
         if decentral:
@@ -707,12 +721,10 @@ class SafetyFilter:
             return None
         z0 = np.zeros(keys.shape[0])
         if self._keys.shape[0] and keys.shape[0]:
-            sk, zk = self._keys, self._z
-            if self.config.compiled and kernels("decomposition").warm_rows(sk, zk, keys, z0):
+            sk, zk = self._keys, self._z  # (kept in increasing key order: _remember)
+            if self.config.compiled:
+                kernels("decomposition").search_rows(sk, zk, keys, z0)
                 return z0
-            if not bool((sk[1:] > sk[:-1]).all()):  # (robot pairs alone come sorted: no sort needed)
-                order = np.argsort(sk, kind="stable")
-                sk, zk = sk[order], zk[order]
             pos = np.minimum(np.searchsorted(sk, keys), sk.shape[0] - 1)
             hit = sk[pos] == keys
             z0[hit] = zk[pos[hit]]

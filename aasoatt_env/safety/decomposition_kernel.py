@@ -48,7 +48,7 @@ from aasoatt_env.model.geometry_kernel import components
 from aasoatt_env.numba_jit import jit, nclip
 from aasoatt_env.safety.solvers.active_set_kernel import solve_parts
 
-__all__ = ["box_least_squares", "search_rows", "solve_decomposed", "warm_rows"]
+__all__ = ["box_least_squares", "search_rows", "solve_decomposed"]
 
 CLOSED_FORM = 0
 """Return code: no row is violated by the robots' own answers (no QP)."""
@@ -99,7 +99,8 @@ def _box1(A, t, lo, hi, i, out):
 def search_rows(sorted_keys, z_of, keys, out):
     """``out[r]``: ``z_of`` at the key ``keys[r]`` of ``sorted_keys`` (non-decreasing), 0 where none.
 
-    ``numpy.searchsorted``'s leftmost position, as the filter's warm start takes it.
+    ``numpy.searchsorted``'s leftmost position, as the filter's warm start takes it
+    (:meth:`aasoatt_env.safety.core.SafetyFilter`, which keeps its rows in key order).
     """
     P = sorted_keys.shape[0]
     for r in range(keys.shape[0]):
@@ -111,20 +112,6 @@ def search_rows(sorted_keys, z_of, keys, out):
             else:
                 b = mid
         out[r] = z_of[a] if a < P and sorted_keys[a] == k else 0.0
-
-
-@jit
-def warm_rows(prev_keys, prev_z, keys, out):
-    """``out[r]``: the multiplier of the previous row with key ``keys[r]``, 0 where none.
-
-    False, ``out`` untouched, where ``prev_keys`` is not strictly increasing (the caller sorts).
-    :meth:`aasoatt_env.safety.core.SafetyFilter`'s warm start by keys, in one call.
-    """
-    for q in range(1, prev_keys.shape[0]):
-        if not prev_keys[q] > prev_keys[q - 1]:
-            return False
-    search_rows(prev_keys, prev_z, keys, out)
-    return True
 
 
 @jit

@@ -8,8 +8,7 @@ most of a small team's step and of a training stack's.
 
 1. the pairs within range and their rows (:func:`~aasoatt_env.safety.rows_kernel.aasoatt_rows`);
 2. the previous multipliers mapped onto these rows by their keys (the filter's
-   warm start; :func:`~aasoatt_env.safety.decomposition_kernel.warm_rows`, or a
-   stable sort first where the previous keys are not increasing, as numpy's);
+   warm start, kept in key order: :func:`~aasoatt_env.safety.decomposition_kernel.search_rows`);
 3. the per-robot scale of the scaled variables;
 4. the QP by the compiled decomposition
    (:func:`~aasoatt_env.safety.decomposition_kernel.solve_decomposed`);
@@ -41,7 +40,6 @@ from aasoatt_env.safety.decomposition_kernel import (
     VERIFIED,
     search_rows,
     solve_decomposed,
-    warm_rows,
 )
 from aasoatt_env.safety.numba_kernels import gate_full
 from aasoatt_env.safety.rows_kernel import aasoatt_rows
@@ -55,17 +53,6 @@ QP = 1
 """Stopped after the QP and the quick check, which brakes someone for a pair (the repair or the full check follows)."""
 DONE = 2
 """The whole step: nobody brakes, or only for the range limit (or the backup layer is off)."""
-
-
-@jit
-def _warm(prev_keys, prev_z, keys):
-    """The filter's ``_map_warm``: the previous multipliers on these rows by key, 0 where none."""
-    z0 = np.zeros(keys.shape[0])
-    if prev_keys.shape[0] and keys.shape[0]:
-        if not warm_rows(prev_keys, prev_z, keys, z0):  # not increasing: numpy's stable sort first
-            order = np.argsort(prev_keys, kind="mergesort")
-            search_rows(prev_keys[order], prev_z[order], keys, z0)
-    return z0
 
 
 @jit
@@ -87,7 +74,8 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
     nominal : numpy.ndarray
         The nominal ``du`` ``(n, 2)`` (the correction is measured from it).
     x_prev, prev_keys, prev_z : numpy.ndarray
-        The previous step's scaled point ``(n, 2)``, row keys and multipliers.
+        The previous step's scaled point ``(n, 2)``, row keys (non-decreasing: the filter keeps them
+        sorted) and multipliers.
     max_iter, ..., dense_max_cells
         :func:`~aasoatt_env.safety.decomposition_kernel.solve_decomposed`'s constants.
     eta_tol : float
@@ -101,7 +89,7 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
     Returns
     -------
     tuple
-        ``(stage, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, scale, qp_code, iterations, n_qp,
+        ``(stage, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, scale, z_warm, qp_code, iterations, n_qp,
         n_vars, n_parts, du_qp, x, z, eta, xs, zs, done, avoiding, gate_du, braking, broken, share,
         robot_margin, out_of_range, rounds, n_pairs, margin, du, correction, intervened, nudged)``;
         ``stage`` (:data:`ROWS`, :data:`QP`, :data:`DONE`) says which are made (the others are
@@ -120,7 +108,9 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         scale[g] = s if s > 0 else 1.0
     ri = pairs[:, 0].copy()
     rj = pairs[:, 1].copy()
-    z0 = _warm(prev_keys, prev_z, keys)
+    z0 = np.zeros(m)  # the filter's _map_warm: the previous multipliers on these rows by key, 0 where none
+    if prev_keys.shape[0] and m:
+        search_rows(prev_keys, prev_z, keys, z0)
     du_qp, x, z, eta = np.empty((n, 2)), np.empty((n, 2)), np.empty(m), np.empty(m)
     xs, zs, done = np.empty(2 * n), np.empty(m), np.empty(n, dtype=np.bool_)
     code, used, n_qp, n_vars, n_parts = solve_decomposed(
@@ -128,8 +118,8 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         warm_floor, bound_tight, row_norm_min, dense_max_vars, dense_max_cells, du_qp, x, z, eta, xs, zs, done)
     e2, eb, ei = np.empty((0, 2)), np.empty(0, dtype=np.bool_), np.empty(0)
     if code != CLOSED_FORM and code != VERIFIED:
-        return (ROWS, pairs, Gi, Gj, rhs, keys, h_min, gap_min, scale, code, used, n_qp, n_vars, n_parts, du_qp, x, z,
-                eta, xs, zs, done, eb, e2, eb, eb, ei, ei, eb, 0, 0, 0.0, e2, ei, eb, eb)
+        return (ROWS, pairs, Gi, Gj, rhs, keys, h_min, gap_min, scale, z0, code, used, n_qp, n_vars, n_parts, du_qp,
+                x, z, eta, xs, zs, done, eb, e2, eb, eb, ei, ei, eb, 0, 0, 0.0, e2, ei, eb, eb)
     avoiding = np.zeros(n, dtype=np.bool_)
     for q in range(m):
         if z[q] > eta_tol:
@@ -151,7 +141,7 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
             any_broken |= broken[g]
         if brakes:
             if not beyond or any_broken or other:  # the repair or the full check may follow
-                return (QP, pairs, Gi, Gj, rhs, keys, h_min, gap_min, scale, code, used, n_qp, n_vars, n_parts,
+                return (QP, pairs, Gi, Gj, rhs, keys, h_min, gap_min, scale, z0, code, used, n_qp, n_vars, n_parts,
                         du_qp, x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin,
                         out_of_range, rounds, n_pairs, margin, e2, ei, eb, eb)
             # every robot that brakes does so for the range limit alone, nothing broken: the quick check is
@@ -171,6 +161,6 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         d0, d1 = du[g, 0] - nominal[g, 0], du[g, 1] - nominal[g, 1]
         correction[g] = np.sqrt(d0 * d0 + d1 * d1)
         intervened[g] = correction[g] > tiny
-    return (DONE, pairs, Gi, Gj, rhs, keys, h_min, gap_min, scale, code, used, n_qp, n_vars, n_parts, du_qp, x, z,
-            eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs,
+    return (DONE, pairs, Gi, Gj, rhs, keys, h_min, gap_min, scale, z0, code, used, n_qp, n_vars, n_parts, du_qp,
+            x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs,
             margin, du, correction, intervened, nudged)
