@@ -674,3 +674,38 @@ def test_proxsuite_alternate_class_is_not_tried_on_problems_the_dense_class_take
     raw = backends.SOLVERS["proxsuite"](prob, None, None, {"alternate": True})
     assert not raw.ok and raw.iterations == 0 and "alternate class skipped" in raw.message
     assert backends.SOLVERS["proxsuite"](prob, None, None, {}).iterations > 0  # the dense class still runs
+
+
+def test_a_registered_strategys_target_of_the_wrong_shape_is_refused(monkeypatch):
+    """A deadlock strategy's target is checked before the QP (the compiled parts read it without bounds checks)."""
+    import dataclasses
+
+    from aasoatt_env.safety import deadlock
+
+    bad = dataclasses.replace(STRATEGIES["auxiliary_velocity"], target=lambda target, zeta, Q, c: target[:1])
+    monkeypatch.setitem(deadlock.STRATEGIES, "short", bad)
+    scen = circle_layout(6, radius=2.5, duration=4.0)
+    with pytest.raises(ConfigError, match=r"deadlock strategy 'short': its target has shape \(1, 2\).*\(6, 2\)"):
+        closed_loop(scen, SafetyFilter(scen.team, deadlock="short"), 3.0)  # (it acts once a robot is triggered)
+
+
+def test_a_team_with_a_short_parameter_array_is_refused():
+    """One value per robot for every parameter array of a Team built by hand (the kernels read without checks)."""
+    import dataclasses
+
+    team = make_team("paper", 4)
+    short = dataclasses.replace(team, max_wheel_accel=team.max_wheel_accel[:2])
+    with pytest.raises(ConfigError, match=r"team.max_wheel_accel: got ndarray of shape \(2,\), expected .*\(4,\)"):
+        SafetyFilter(short)
+
+
+def test_a_trigger_you_register_gets_the_pairs(monkeypatch):
+    """Only the triggers known to read no pairs run before the rows, with empty pairs; any other sees them."""
+    from aasoatt_env.safety import deadlock
+
+    seen = []
+    monkeypatch.setitem(deadlock.TRIGGERS, "mine", lambda memory, c: seen.append(c.pair_idx.shape[0]) or
+                        np.zeros(c.p.shape[0], dtype=bool))
+    scen = circle_layout(6, radius=2.5, duration=4.0)
+    closed_loop(scen, SafetyFilter(scen.team, trigger="mine"), 0.5)
+    assert len(seen) == 100 and min(seen[1:]) > 0

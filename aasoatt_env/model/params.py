@@ -225,7 +225,9 @@ class Team:
 
     @cached_property
     def derived(self) -> dict[Hashable, Any]:
-        """Values other modules compute from these parameters, kept for the team's life (a Team is immutable).
+        """Values other modules compute from these parameters, kept for the team's life.
+
+        As with the other cached properties, a team's arrays are not to be changed in place.
 
         Keyed by their maker and its arguments, e.g. the backup layer's per-robot constants
         for one braking fraction and sensing range (:mod:`aasoatt_env.safety.gatekeeper`).

@@ -40,9 +40,9 @@ from aasoatt_env.model.params import Team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows, get_barrier
 from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
 from aasoatt_env.safety.deadlock import (
-    PAIRWISE_TRIGGERS,
     STRATEGIES,
     TRIGGERS,
+    TRIGGERS_WITHOUT_PAIRS,
     DeadlockState,
     TargetContext,
     TriggerContext,
@@ -108,8 +108,9 @@ class _Answer(NamedTuple):
 
 
 _NO_PAIRS = np.empty((0, 2), dtype=np.intp)
-"""A trigger context's pairs where the trigger reads none (:data:`~aasoatt_env.safety.deadlock.PAIRWISE_TRIGGERS`)."""
+"""A trigger context's pairs where the trigger reads none (``deadlock.TRIGGERS_WITHOUT_PAIRS``)."""
 _QUICK_LEVELS = np.array(_levels(BLEND_LEVELS))
+_QUICK_LEVELS.flags.writeable = False
 """The levels of the backup layer's quick check (the gatekeeper's default blend levels)."""
 _NO_POSE = np.empty((0, 3))
 """The compiled step's poses without the backup layer (not read)."""
@@ -299,7 +300,7 @@ class SafetyFilter:
         # it runs is what this configuration runs: the fused rows, the centralised decomposition with the
         # compiled warm active set, a trigger that reads no pairs
         self._whole_step = (self._fused and cfg.mode == "centralized" and cfg.decompose and self._solver.exact
-                            and cfg.active_set and cfg.trigger not in PAIRWISE_TRIGGERS)
+                            and cfg.active_set and cfg.trigger in TRIGGERS_WITHOUT_PAIRS)
         self.reset(team)
 
     def warm_up(self) -> bool:
@@ -523,8 +524,14 @@ class SafetyFilter:
         zeta = np.where(triggered, cfg.zeta, 0.0)
         # a robot alone saturates its own nominal: the decentralised QPs start from what each robot would do
         nom_t = np.minimum(np.maximum(nominal_du, lo), hi) if cfg.mode == "decentralized" else nominal_du
-        return self._strategy.correct_target(np.einsum("nij,nj->ni", A, nom_t), zeta, self._Q,
-                                             TargetContext(v, p, reference, cfg.k3, cfg.k4))
+        target = self._strategy.correct_target(np.einsum("nij,nj->ni", A, nom_t), zeta, self._Q,
+                                               TargetContext(v, p, reference, cfg.k3, cfg.k4))
+        # (a registered strategy's answer: the compiled parts read it without bounds checks)
+        if not (isinstance(target, np.ndarray) and target.shape == nominal_du.shape and target.dtype == np.float64):
+            raise ConfigError(f"deadlock strategy {cfg.deadlock!r}: its target has shape {np.shape(target)} "
+                              f"(dtype {getattr(target, 'dtype', type(target).__name__)}), expected float64 of "
+                              f"shape {nominal_du.shape}")
+        return target
 
     def _step_compiled(self, t0: float, rows_args: tuple, increasing: bool, u: np.ndarray, theta: np.ndarray,
                        nominal_du: np.ndarray, lo: np.ndarray, hi: np.ndarray, A: np.ndarray, p: np.ndarray,
@@ -532,13 +539,16 @@ class SafetyFilter:
         """The step from the rows on by :func:`~aasoatt_env.safety.step_kernel.filter_step`.
 
         Where the kernel stops early the step goes on in :meth:`_solve_and_check` with what it made
-        (the same code as without the kernel, so the same answer).
+        (the same code as without the kernel, so the same answer); so does a verified answer the
+        solver policy needs the problem for (its timing probe, :meth:`SolverPolicy.needs_problem`), as
+        :func:`~aasoatt_env.safety.decomposition.solve_centralized` hands such an answer on.
         """
         cfg, team, k = self.config, self.team, kernels("step")
         n = team.n  # type: ignore[union-attr]
         pose = _axle_pose(team, p, theta) if cfg.backup else _NO_POSE  # type: ignore[arg-type]
         block, limit = _team_block(team, cfg.brake_fraction, cfg.sensing_range)  # type: ignore[arg-type]
         diff, offset, cols, tg, amax, adec, _, group, has_group, sensing_range = block
+        t_call = time.perf_counter()
         (stage, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, scale, z_warm, qp_code, used, n_qp, n_vars, n_parts,
          du_qp, x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin, out_of_range, rounds,
          n_pairs, margin, du, correction, intervened, nudged) = k.filter_step(
@@ -549,7 +559,7 @@ class SafetyFilter:
             has_group, sensing_range, *_NO_OBSTACLES, limit, GATE_TOL)
         barrier_min, gap_min = float(barrier_min), float(gap_min)
         rows = _Rows(pairs[:, 0], pairs[:, 1], pairs, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, increasing)
-        elapsed = time.perf_counter() - t0
+        elapsed = time.perf_counter() - t_call  # (the policy's timing: the call, rows and quick check included)
         if stage == k.ROWS or (qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed)):
             # the numpy path, from what the compiled decomposition handed on (solve_centralized's _compiled)
             parts = (xs[:n_vars], zs[:n_qp], done[:n_parts], int(used)) if qp_code == k.PARTS else None
@@ -670,7 +680,6 @@ class SafetyFilter:
             du_qp, broken = du, gate.broken
             du = np.where(broken[:, None], du_qp, gate.du)
             braking, margin, safe = gate.braking & ~broken, gate.margin, gate.safe
-            avoiding = avoiding | braking
             # the repair moved their inputs (beyond the rounding of the gate's level arithmetic)
             nudged = ~braking & ~broken & (np.abs(du - du_qp) > 1e-9 * scale[:, None]).any(axis=1)
             if braking.any():
@@ -680,6 +689,7 @@ class SafetyFilter:
         else:
             margin = gap_min
             safe = not (barrier_min < -_BARRIER_TOL or margin < -COLLISION_TOL)
+        avoiding = avoiding | braking  # (a new array: the deadlock memory keeps the QP's)
         if not safe:
             status = "unsafe"
         elif (braking.any() or nudged.any()) and STATUSES.index(status) < STATUSES.index("backup"):
@@ -697,7 +707,13 @@ class SafetyFilter:
 
     # ------------------------------------------------------------------ helpers
     def _check_range(self, team: Team) -> None:
-        """The sensing range must cover contact and, with the backup layer, leave room to brake; groups per robot."""
+        """The sensing range must cover contact and, with the backup layer, leave room to brake; one value per robot."""
+        for name in ("radius", "wheel_radius", "half_track", "offset", "max_wheel_accel", "max_wheel_speed",
+                     "max_point_accel"):  # (a Team built directly: the compiled parts read them without bounds checks)
+            a = getattr(team, name)
+            if not (isinstance(a, np.ndarray) and a.shape == (team.n,) and a.dtype.kind == "f"):
+                raise ConfigError(f"team.{name}: got {type(a).__name__} of shape {np.shape(a)}, expected a float "
+                                  f"array of shape ({team.n},) (one value per robot; make_team builds it)")
         if team.group is not None and (np.shape(team.group) != (team.n,)
                                        or np.asarray(team.group).dtype.kind not in "iu"):
             raise ConfigError(f"team.group: got {np.asarray(team.group).dtype} array of shape "

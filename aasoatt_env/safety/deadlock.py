@@ -58,7 +58,8 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.config import FilterConfig
 
-__all__ = ["PAIRWISE_TRIGGERS", "STRATEGIES", "TRIGGERS", "DeadlockState", "Strategy", "TriggerContext", "rotation"]
+__all__ = ["STRATEGIES", "TRIGGERS", "TRIGGERS_WITHOUT_PAIRS", "DeadlockState", "Strategy", "TriggerContext",
+           "rotation"]
 
 
 def rotation(q_deg: float) -> np.ndarray:
@@ -159,9 +160,10 @@ TRIGGERS: dict[str, TriggerFn] = {
 }
 """Trigger registry: name -> ``trigger(memory, context)``."""
 
-PAIRWISE_TRIGGERS: frozenset[str] = frozenset({"heading"})
-"""The triggers that read the pairs (``TriggerContext.pair_idx``, ``pair_vec``); the others get empty ones
-where the filter computes the trigger before its rows (:mod:`aasoatt_env.safety.step_kernel`)."""
+TRIGGERS_WITHOUT_PAIRS: frozenset[str] = frozenset({"multiplier", "low_speed", "stalled"})
+"""The triggers known to read no pairs (``TriggerContext.pair_idx``, ``pair_vec``): the filter may compute them
+before its rows, with empty pairs (:mod:`aasoatt_env.safety.step_kernel`); any other trigger, one you register
+included, gets the pairs."""
 
 
 class TargetContext(NamedTuple):

@@ -20,7 +20,7 @@ most of a small team's step and of a training stack's.
 
 It stops where the Python step has more to decide and says where
 (:data:`ROWS`: the QP was not answered here; :data:`QP`: the check braked
-someone), returning what it made so far; the Python step goes on from there
+someone for a pair), returning what it made so far; the Python step goes on from there
 with the same code it runs without this kernel.  Every number is the one the
 separate calls give, bit for bit: the same kernels on the same arrays, and the
 operations between them in numpy's order (no ``fastmath``); the deadlock
@@ -92,8 +92,9 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         ``(stage, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, scale, z_warm, qp_code, iterations, n_qp,
         n_vars, n_parts, du_qp, x, z, eta, xs, zs, done, avoiding, gate_du, braking, broken, share,
         robot_margin, out_of_range, rounds, n_pairs, margin, du, correction, intervened, nudged)``;
-        ``stage`` (:data:`ROWS`, :data:`QP`, :data:`DONE`) says which are made (the others are
-        empty); ``qp_code`` is the decomposition's.
+        ``stage`` (:data:`ROWS`, :data:`QP`, :data:`DONE`) says which are made (the others are empty,
+        or, after :data:`ROWS`, the decomposition's buffers, not to be read unless ``qp_code`` is its
+        :data:`PARTS`); ``qp_code`` is the decomposition's.
     """
     n = p.shape[0]
     pairs, _, Gi, Gj, rhs, keys, h_min, gap_min = aasoatt_rows(

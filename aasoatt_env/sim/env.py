@@ -472,8 +472,9 @@ class AASOATTParallelEnv(ParallelEnv):
         ``between``: clearance over the physics steps since the last decision; the
         reported clearance (and so collisions) is the minimum over the whole env step.
         """
-        self._ref_now = self._layout.reference(self._time)  # type: ignore[union-attr]
-        for r in self._ref_now:  # shared with the next step's filter input (read-only there too)
+        # read-only views (the reference's own arrays stay as they are): shared with the next step's filter input
+        self._ref_now = tuple(np.asarray(r).view() for r in self._layout.reference(self._time))  # type: ignore[union-attr]
+        for r in self._ref_now:
             r.flags.writeable = False
         self._ref_of = (self._layout, self._time)
         self._prox: Proximity = proximity(
