@@ -502,25 +502,50 @@ def _filter_results(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
     monkeypatch.setattr(core.SafetyFilter, "__init__", set_up)
     monkeypatch.setattr(core.SafetyFilter, "step", record)
     monkeypatch.setattr(rows, "aasoatt_rows", counted)
+    _drive(13 if scene == "stack" else 0, scene)
+    monkeypatch.undo()
+    return results, calls[0]
+
+
+def _assert_same_steps(out: list, ref: list) -> None:
+    """Every step's ``(du, FilterResult)`` equal bit for bit: inputs, multipliers, margins, flags, status, message."""
+    for (du_a, a), (du_b, b) in zip(out, ref):
+        np.testing.assert_array_equal(_bits(du_a), _bits(du_b))
+        for field in ("eta", "correction", "slack", "margin", "barrier_min"):
+            np.testing.assert_array_equal(_bits(np.asarray(getattr(a, field))), _bits(np.asarray(getattr(b, field))))
+        for field in ("pairs", "avoiding", "triggered", "backup", "intervened"):
+            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
+        assert (a.status, a.safe, a.message, a.iterations, a.n_rows, a.n_qp_rows) == (
+            b.status, b.safe, b.message, b.iterations, b.n_rows, b.n_qp_rows)
+
+
+def _drive(stack_seed: int, scene: str) -> None:
+    """A closed loop behind the filter: a training stack (``stack_seed``), 20 robots under uniform random actions,
+    250 robots under a hostile policy, or a 12-robot circle swap's crossing (``crossing``; ``margins``: with fixed
+    and speed margins, without the layer, gains whose product is not a power of two)."""
     if scene == "stack":
-        _run_stack(13)
-    elif scene == "large":  # beyond the brute force's size: the pairs the grid of cells found
+        _run_stack(stack_seed)
+    elif scene == "random":  # uniform random actions at every physics step: robots spin up past the range limit
+        env = make_env("random_goals", num_robots=20, max_steps=700, filter=True)
+        rng = np.random.default_rng(5)
+        env.reset(seed=5)
+        for _ in range(env.max_steps):
+            env.step({a: rng.uniform(-1.0, 1.0, 2) for a in env.agents})
+    elif scene == "large":  # beyond the brute force's size: the grid of cells' pairs, keys not in order
         env = make_env("random_goals", num_robots=250, max_steps=60, filter=True)
         agent = HostileAgent()
         obs, _ = env.reset(seed=14)
         for _ in range(env.max_steps):
             obs, *_ = env.step(agent.act(obs, env))
-    else:  # a circle swap's crossing under the tracking law; with fixed and speed margins, without the layer
+    else:
         options = {} if scene == "crossing" else {"safety_margin": 0.01, "speed_margin": 0.05, "backup": False,
-                                                  "k1": 1.3, "k2": 2.9}  # (k1 k2 not a power of two)
+                                                  "k1": 1.3, "k2": 2.9}
         env = make_env("circle_swap", num_robots=12, radius=2.0, duration=4.0, settle_time=0.0, max_steps=400,
                        filter=options)
         agent = TrackingController()
         obs, _ = env.reset(seed=12)
         for _ in range(env.max_steps):
             obs, *_ = env.step(agent.act(obs, env))
-    monkeypatch.undo()
-    return results, calls[0]
 
 
 @needs_numba
@@ -536,14 +561,7 @@ def test_the_compiled_rows_give_the_numpy_rows_steps_bit_for_bit(monkeypatch, sc
     assert ref_calls == 0 and calls == len(out) == len(ref) >= (60 if scene == "large" else 400)
     assert sum(res.n_rows for _, res in out) > 1000
     assert scene == "large" or sum(res.triggered.any() for _, res in out) > 10
-    for (du_a, a), (du_b, b) in zip(out, ref):
-        np.testing.assert_array_equal(_bits(du_a), _bits(du_b))
-        for field in ("eta", "correction", "slack", "margin", "barrier_min"):
-            np.testing.assert_array_equal(_bits(np.asarray(getattr(a, field))), _bits(np.asarray(getattr(b, field))))
-        for field in ("pairs", "avoiding", "triggered", "backup", "intervened"):
-            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
-        assert (a.status, a.message, a.iterations, a.n_rows, a.n_qp_rows) == (b.status, b.message, b.iterations,
-                                                                              b.n_rows, b.n_qp_rows)
+    _assert_same_steps(out, ref)
 
 
 def _whole_step_results(monkeypatch, whole: bool, scene: str) -> tuple[list, dict]:
@@ -570,28 +588,7 @@ def _whole_step_results(monkeypatch, whole: bool, scene: str) -> tuple[list, dic
         _parts_one_by_one(monkeypatch)
     monkeypatch.setattr(core.SafetyFilter, "step", record)
     monkeypatch.setattr(kernel, "filter_step", counted)
-    if scene == "stack":
-        _run_stack(0)
-    elif scene == "random":  # uniform random actions at every physics step: robots spin up past the range limit
-        env = make_env("random_goals", num_robots=20, max_steps=700, filter=True)
-        rng = np.random.default_rng(5)
-        env.reset(seed=5)
-        for _ in range(env.max_steps):
-            env.step({a: rng.uniform(-1.0, 1.0, 2) for a in env.agents})
-    elif scene == "large":  # beyond the brute force's size: the grid of cells' pairs, keys not in order
-        env = make_env("random_goals", num_robots=250, max_steps=60, filter=True)
-        agent = HostileAgent()
-        obs, _ = env.reset(seed=14)
-        for _ in range(env.max_steps):
-            obs, *_ = env.step(agent.act(obs, env))
-    else:  # a circle swap's crossing; with fixed and speed margins, without the layer
-        options = {} if scene == "crossing" else {"safety_margin": 0.01, "speed_margin": 0.05, "backup": False}
-        env = make_env("circle_swap", num_robots=12, radius=2.0, duration=4.0, settle_time=0.0, max_steps=400,
-                       filter=options)
-        agent = TrackingController()
-        obs, _ = env.reset(seed=12)
-        for _ in range(env.max_steps):
-            obs, *_ = env.step(agent.act(obs, env))
+    _drive(0, scene)
     monkeypatch.undo()
     return results, stages
 
@@ -618,14 +615,7 @@ def test_the_compiled_step_gives_the_steps_of_its_parts_bit_for_bit(monkeypatch,
         assert stages.get(ROWS, 0) >= 3
     if scene == "random":  # braking for the range limit alone, and braking that the repair nudges away
         assert stages.get(QP, 0) >= 10 and any("nudged" in res.message for _, res in out)
-    for (du_a, a), (du_b, b) in zip(out, ref):
-        np.testing.assert_array_equal(_bits(du_a), _bits(du_b))
-        for field in ("eta", "correction", "slack", "margin", "barrier_min"):
-            np.testing.assert_array_equal(_bits(np.asarray(getattr(a, field))), _bits(np.asarray(getattr(b, field))))
-        for field in ("pairs", "avoiding", "triggered", "backup", "intervened"):
-            np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
-        assert (a.status, a.safe, a.message, a.iterations, a.n_rows, a.n_qp_rows) == (
-            b.status, b.safe, b.message, b.iterations, b.n_rows, b.n_qp_rows)
+    _assert_same_steps(out, ref)
 
 
 @needs_numba
