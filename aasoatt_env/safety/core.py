@@ -51,6 +51,7 @@ from aasoatt_env.safety.deadlock import (
 from aasoatt_env.safety.decentralized import decentralized_step
 from aasoatt_env.safety.decomposition import CentralAnswer, row_values, solve_centralized
 from aasoatt_env.safety.gatekeeper import BLEND_LEVELS, GateResult, _levels, _team_block
+from aasoatt_env.safety.inputs import MIN_BRAKING_ROOM, check_inputs, check_team, refuse_rows_beyond
 from aasoatt_env.safety.problem import ROW_NORM_MIN
 from aasoatt_env.safety.repair import GATE_TOL, gate_with_repair
 from aasoatt_env.safety.solvers import SolverPolicy
@@ -67,7 +68,6 @@ from aasoatt_env.safety.solvers.active_set import (
 from aasoatt_env.safety.solvers.active_set import TOL as AS_TOL
 from aasoatt_env.safety.warm_up import warm_up
 from aasoatt_env.sim.protocol import FilterInput
-from aasoatt_env.validation import MAGNITUDE_MAX
 
 __all__ = ["MIN_BRAKING_ROOM", "STATUSES", "FilterResult", "SafetyFilter"]
 
@@ -79,9 +79,6 @@ _BARRIER_TOL = 1e-6
 COLLISION_TOL: float = 1e-3
 """Overlap [m] beyond which a pair counts as colliding (the metrics' tolerance): without the backup
 layer the status is ``"unsafe"`` then, whatever the barrier's value."""
-MIN_BRAKING_ROOM: float = 0.1
-"""With the backup layer, the sensing range must exceed the largest safety distance by this much [m]:
-every robot's braking path must fit in half of the difference (:func:`~aasoatt_env.safety.backup.reach_limit`)."""
 
 
 class _Rows(NamedTuple):
@@ -248,16 +245,6 @@ class FilterResult:
         return self.pairs[:, 1] < 0
 
 
-def _refuse_rows_beyond(name: str, a: np.ndarray, what: str) -> None:
-    """Raise :class:`StateError` naming the first row of ``a`` ``(K, ...)`` with NaN, inf or ``|x| > MAGNITUDE_MAX``."""
-    bad = np.flatnonzero(~(np.abs(a) <= MAGNITUDE_MAX).reshape(a.shape[0], -1).all(axis=1))
-    if bad.size:
-        row = a[bad[0]]
-        kind = f"a value beyond +-{MAGNITUDE_MAX:g}" if np.isfinite(row).all() else "a non-finite value"
-        raise StateError(f"{name}: got {kind} {np.atleast_1d(row).tolist()} for {what}(s) {bad[:10].tolist()} "
-                         f"({what} index {bad[0]}), expected finite values within +-{MAGNITUDE_MAX:g}")
-
-
 class SafetyFilter:
     """CBF-QP safety filter for a team (see module docstring).
 
@@ -315,7 +302,7 @@ class SafetyFilter:
         if team is not None:
             if not isinstance(team, Team):
                 raise ConfigError(f"team: got {type(team).__name__}, expected aasoatt_env.model.params.Team")
-            self._check_range(team)
+            check_team(team, self.config)
             self.team = team
         self._dl = DeadlockState()
         self._x: np.ndarray | None = None
@@ -348,7 +335,7 @@ class SafetyFilter:
         if self.team is None or not isinstance(team, Team) or team.n != self.team.n:
             self.reset(team)
             return
-        self._check_range(team)
+        check_team(team, self.config)
         self.team = team
         rows = np.asarray(rows, dtype=np.intp)
         if self._dl.avoiding is not None:
@@ -393,7 +380,7 @@ class SafetyFilter:
         for name, a, shape in (("pose", pose, (team.n, 3)), ("u", u, (team.n, 2))):
             if a.shape != shape:
                 raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
-            _refuse_rows_beyond(name, a, "robot")
+            refuse_rows_beyond(name, a, "robot")
         kin = kinematics(team, pose, u)
         lo, hi = input_bounds(team, u, self.config.dt)
         return self.step(kin, u, pose[:, 2], nominal_du, lo, hi, **kwargs)
@@ -436,8 +423,8 @@ class SafetyFilter:
         t0 = time.perf_counter()
         cfg, team = self.config, self._bound_team()
         n = team.n
-        kin, u, theta, nominal_du, lo, hi, reference, obstacles = self._check_inputs(
-            kin, u, theta, nominal_du, lo, hi, reference, obstacles)
+        kin, u, theta, nominal_du, lo, hi, reference, obstacles = check_inputs(
+            n, kin, u, theta, nominal_du, lo, hi, reference, obstacles)
         if cfg.max_wheel_speed is not None:
             lo, hi = speed_box(lo, hi, u, cfg.max_wheel_speed, cfg.dt)
         strategy = self._strategy
@@ -706,27 +693,6 @@ class SafetyFilter:
         return du, result
 
     # ------------------------------------------------------------------ helpers
-    def _check_range(self, team: Team) -> None:
-        """The sensing range must cover contact and, with the backup layer, leave room to brake; one value per robot."""
-        for name in ("radius", "wheel_radius", "half_track", "offset", "max_wheel_accel", "max_wheel_speed",
-                     "max_point_accel"):  # (a Team built directly: the compiled parts read them without bounds checks)
-            a = getattr(team, name)
-            if not (isinstance(a, np.ndarray) and a.shape == (team.n,) and a.dtype.kind == "f"):
-                raise ConfigError(f"team.{name}: got {type(a).__name__} of shape {np.shape(a)}, expected a float "
-                                  f"array of shape ({team.n},) (one value per robot; make_team builds it)")
-        if team.group is not None and (np.shape(team.group) != (team.n,)
-                                       or np.asarray(team.group).dtype.kind not in "iu"):
-            raise ConfigError(f"team.group: got {np.asarray(team.group).dtype} array of shape "
-                              f"{np.shape(team.group)}, expected integers of shape ({team.n},)")
-        ds_max = 2.0 * float(team.radius.max(initial=0.0))
-        need = ds_max + (MIN_BRAKING_ROOM if self.config.backup else 0.0)
-        if not self.config.sensing_range > need:
-            raise ConfigError(
-                f"sensing_range: got {self.config.sensing_range:g} m, expected > {need:g} m for robots of radius up "
-                f"to {ds_max / 2:g} m (safety distance {ds_max:g} m"
-                + (f" plus {MIN_BRAKING_ROOM:g} m for the backup layer's braking paths)" if self.config.backup else ")")
-            )
-
     def _bound_team(self) -> Team:
         if self.team is None:
             raise UsageError("SafetyFilter: no team yet; pass team= or call reset(team) first")
@@ -745,82 +711,3 @@ class SafetyFilter:
             hit = sk[pos] == keys
             z0[hit] = zk[pos[hit]]
         return z0
-
-    def _check_inputs(
-        self, kin: Kinematics, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
-        lo: np.ndarray, hi: np.ndarray, reference: Any = None, obstacles: Any = None,
-    ) -> tuple[Kinematics, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, Any, Any]:
-        """Shapes, finiteness and magnitudes (``<= MAGNITUDE_MAX``) of every state array; errors name the robot.
-
-        Returns the state, the nominal, the bounds, the reference and the obstacles' centres and radii as
-        float64 arrays.
-
-        One pass over all the numbers (a concatenation and one ``max |x|``) when
-        they are fine; the culprit is looked for only when they are not.
-        """
-        n = self._bound_team().n
-        nominal_du = np.asarray(nominal_du, dtype=np.float64)
-        if nominal_du.shape != (n, 2):
-            raise StateError(f"nominal_du: got shape {nominal_du.shape}, expected ({n}, 2)")
-        lo = np.asarray(lo, dtype=np.float64)
-        hi = np.asarray(hi, dtype=np.float64)
-        if lo.shape != (n, 2) or hi.shape != (n, 2):
-            raise StateError(f"lo/hi: got shapes {lo.shape}/{hi.shape}, expected ({n}, 2)")
-        arrays = [("nominal_du", nominal_du, (n, 2)), ("lo", lo, (n, 2)), ("hi", hi, (n, 2)), ("u", u, (n, 2)),
-                  ("theta", theta, (n,)), ("kin.p", kin.p, (n, 2)), ("kin.v", kin.v, (n, 2)),
-                  ("kin.A", kin.A, (n, 2, 2)), ("kin.adot_u", kin.adot_u, (n, 2))]
-        if reference is not None:
-            # (p_d, v_d), or (p_d, v_d, a_d) as a reference returns it; each (N, 2) or flat (2N,)
-            try:
-                ok = len(reference) in (2, 3)
-            except TypeError:
-                ok = False
-            if not ok:
-                raise StateError(f"reference: got {type(reference).__name__}, expected (p_d, v_d) or (p_d, v_d, a_d) "
-                                 f"of ({n}, 2) arrays")
-            reference = tuple(np.asarray(reference[k], dtype=np.float64) for k in (0, 1))
-            reference = tuple(r.reshape(n, 2) if r.shape in ((2 * n,), (1, 2 * n)) else r for r in reference)
-            arrays += [("reference p_d", reference[0], (n, 2)), ("reference v_d", reference[1], (n, 2))]
-        if obstacles is not None:
-            if not isinstance(obstacles, (tuple, list)) or len(obstacles) not in (2, 3):
-                raise StateError(f"obstacles: got {type(obstacles).__name__}, expected (centres (M, 2), radii (M,)) "
-                                 "or (centres, radii, groups (M,))")
-            radii = np.asarray(obstacles[1], dtype=np.float64)
-            m = radii.shape[0] if radii.ndim == 1 else -1
-            if m < 0:
-                raise StateError(f"obstacles radii: got shape {radii.shape}, expected (M,)")
-            centres = np.asarray(obstacles[0], dtype=np.float64)
-            if m == 0 and centres.size == 0:
-                centres = centres.reshape(0, 2)
-            arrays += [("obstacles centres", centres, (m, 2)), ("obstacles radii", radii, (m,))]
-            groups = obstacles[2] if len(obstacles) > 2 else None
-            if groups is not None:
-                groups = np.asarray(groups)
-                if groups.shape != (m,) or (m and (groups.dtype.kind not in "biuf" or not np.isfinite(groups).all())):
-                    raise StateError(f"obstacles groups: got {groups.dtype} array of shape {groups.shape}, "
-                                     f"expected finite group labels of shape ({m},)")
-            obstacles = (centres, radii) if len(obstacles) == 2 else (centres, radii, groups)
-        flat = []
-        for name, arr, shape in arrays:
-            a = np.asarray(arr)
-            if a.shape != shape:
-                raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
-            flat.append(a.ravel())
-        allv = np.concatenate(flat)
-        # (the largest |x| as the larger of -min and max: no temporary; a NaN propagates to both)
-        big = max(-float(allv.min()), float(allv.max())) if allv.size else 0.0
-        if not big <= MAGNITUDE_MAX:  # NaN, inf or beyond the magnitude every input is checked against
-            for name, arr, shape in arrays:
-                a = np.asarray(arr, dtype=np.float64).reshape(shape[0], -1) if shape[0] else np.zeros((0, 1))
-                _refuse_rows_beyond(name, a, "obstacle" if name.startswith("obstacles") else "robot")
-        if (lo > hi).any():
-            raise StateError("lo/hi: bounds must be finite with lo <= hi")
-        if obstacles is not None and radii.size and not bool((radii >= 0.0).all()):
-            k = int(np.flatnonzero(~(radii >= 0.0))[0])
-            raise StateError(f"obstacles radii: got {float(radii[k])!r} for obstacle {k}, expected a radius >= 0")
-        # the state in float64 (as every other input): float32 or integer arrays give every path the same numbers
-        fields = (kin.p, kin.v, kin.A, kin.adot_u)
-        if not all(type(a) is np.ndarray and a.dtype == np.float64 for a in fields):
-            kin = Kinematics(*(np.asarray(a, dtype=np.float64) for a in fields))
-        u, theta = np.asarray(u, dtype=np.float64), np.asarray(theta, dtype=np.float64)
-        return kin, u, theta, nominal_du, lo, hi, reference, obstacles
