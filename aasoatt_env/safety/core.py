@@ -97,13 +97,6 @@ class _Rows(NamedTuple):
     increasing: bool = False  # keys known to increase (the brute force's pairs): no check before keeping them
 
 
-class _Answer(NamedTuple):
-    """What the next step's warm start keeps of a QP answer: the scaled point and the multipliers."""
-
-    x: np.ndarray
-    z: np.ndarray
-
-
 _NO_PAIRS = np.empty((0, 2), dtype=np.intp)
 """A trigger context's pairs where the trigger reads none (``deadlock.TRIGGERS_WITHOUT_PAIRS``)."""
 _QUICK_LEVELS = np.array(_levels(BLEND_LEVELS))
@@ -113,6 +106,11 @@ _NO_POSE = np.empty((0, 3))
 """The compiled step's poses without the backup layer (not read)."""
 _NO_OBSTACLES = (np.empty(0, dtype=np.complex128), np.empty(0), np.empty(0, dtype=np.int64), False)
 """The compiled check's obstacle block without obstacles (centres, radii, groups, has groups)."""
+
+
+def _safe_without_layer(barrier_min: float, gap_min: float) -> bool:
+    """Without the backup layer: every pair inside the barrier's safe set and none overlapping beyond the tolerance."""
+    return not (barrier_min < -_BARRIER_TOL or gap_min < -COLLISION_TOL)
 
 
 def _scale(team: Team, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
@@ -495,7 +493,8 @@ class SafetyFilter:
             ri, rj, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min = _numpy_rows(
                 cfg, A, v, geo, geo_p_true, pairs_out, m_obs + 1, gap_initial)
         rows = _Rows(ri, rj, pr, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min, brute)
-        return self._solve_and_check(t0, rows, u, theta, nominal_du, lo, hi, A, p, obstacles, triggered, target,
+        pose = _axle_pose(team, p, theta) if cfg.backup else None
+        return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, obstacles, triggered, target,
                                      _scale(team, lo, hi))
 
     def _triggered(self, context: TriggerContext) -> np.ndarray:
@@ -532,7 +531,8 @@ class SafetyFilter:
         """
         cfg, team, k = self.config, self.team, kernels("step")
         n = team.n  # type: ignore[union-attr]
-        pose = _axle_pose(team, p, theta) if cfg.backup else _NO_POSE  # type: ignore[arg-type]
+        pose = _axle_pose(team, p, theta) if cfg.backup else None  # type: ignore[arg-type]
+        kernel_pose = _NO_POSE if pose is None else pose
         block, limit = _team_block(team, cfg.brake_fraction, cfg.sensing_range)  # type: ignore[arg-type]
         diff, offset, cols, tg, amax, adec, _, group, has_group, sensing_range = block
         t_call = time.perf_counter()
@@ -542,16 +542,16 @@ class SafetyFilter:
             *rows_args, c64(target), c64(lo), c64(hi), c64(team.max_wheel_accel), c64(nominal_du),  # type: ignore
             c64(self._x.reshape(n, 2)), self._keys, c64(self._z), PDAS_ITER, ONE_CHANGE_ITER, AS_TOL,  # type: ignore
             WARM_REL, WARM_FLOOR, BOUND_TIGHT, ROW_NORM_MIN, DENSE_MAX_VARS, DENSE_MAX_CELLS, cfg.eta_tol,
-            bool(cfg.backup), pose, c64(u), float(cfg.dt), _QUICK_LEVELS, diff, offset, cols, tg, amax, adec, group,
-            has_group, sensing_range, *_NO_OBSTACLES, limit, GATE_TOL)
+            bool(cfg.backup), kernel_pose, c64(u), float(cfg.dt), _QUICK_LEVELS, diff, offset, cols, tg, amax, adec,
+            group, has_group, sensing_range, *_NO_OBSTACLES, limit, GATE_TOL)
         barrier_min, gap_min = float(barrier_min), float(gap_min)
         rows = _Rows(pairs[:, 0], pairs[:, 1], pairs, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, increasing)
         elapsed = time.perf_counter() - t_call  # (the policy's timing: the call, rows and quick check included)
         if stage == k.ROWS or (qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed)):
             # the numpy path, from what the compiled decomposition handed on (solve_centralized's _compiled)
             parts = (xs[:n_vars], zs[:n_qp], done[:n_parts], int(used)) if qp_code == k.PARTS else None
-            return self._solve_and_check(t0, rows, u, theta, nominal_du, lo, hi, A, p, None, triggered, target, scale,
-                                         kernel_parts=parts, z_warm=z_warm)
+            return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, None, triggered, target, scale,
+                                         tried=True, kernel_parts=parts, z_warm=z_warm)
         if qp_code == k.CLOSED_FORM:
             ans = CentralAnswer(du_qp, x, z, eta, "solved", "closed form: no row binds", 0, 0)
         else:
@@ -560,62 +560,65 @@ class SafetyFilter:
         if stage == k.QP:
             quick = GateResult(gdu, braking, float(margin), not bool(broken.any()), broken, share, int(rounds),
                                int(n_pairs), robot_margin, out_of_range)
-            return self._solve_and_check(t0, rows, u, theta, nominal_du, lo, hi, A, p, None, triggered, target, scale,
+            return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, None, triggered, target, scale,
                                          answer=ans, avoiding=avoiding, quick=quick)
         # (stage DONE) nobody brakes, or only for the range limit
-        self._remember(ans, rows, avoiding)
-        message = ans.message
+        self._remember(x, z, rows, avoiding)
         if cfg.backup:
-            safe = not bool(broken.any())
-            margin = float(margin)
-            any_braking = bool(braking.any())
-            if any_braking:
-                avoiding = avoiding | braking
-                message = f"{message}; backup braked {int(braking.sum())} robot(s)"
-            else:
-                braking = np.zeros(n, dtype=bool)
-                avoiding = avoiding.copy()
+            safe, margin = not bool(broken.any()), float(margin)
         else:
-            margin = gap_min
-            safe = not (barrier_min < -_BARRIER_TOL or margin < -COLLISION_TOL)
-            braking, avoiding, any_braking = np.zeros(n, dtype=bool), avoiding.copy(), False
+            braking, safe, margin = np.zeros(n, dtype=bool), _safe_without_layer(barrier_min, gap_min), gap_min
+        return self._result(t0, du, "solved", ans.message, safe, braking, nudged, margin, barrier_min, eta, pairs,
+                            avoiding, triggered, 0.0, correction, intervened, ans.iterations, int(rhs.shape[0]),
+                            int(ans.n_qp))
+
+    def _result(self, t0: float, du: np.ndarray, status: str, message: str, safe: bool, braking: np.ndarray,
+                nudged: np.ndarray, margin: float, barrier_min: float, eta: np.ndarray, pairs: np.ndarray,
+                avoiding: np.ndarray, triggered: np.ndarray, slack: float, correction: np.ndarray,
+                intervened: np.ndarray, iterations: int, n_rows: int, n_qp: int) -> tuple[np.ndarray, FilterResult]:
+        """The step's :class:`FilterResult`: the backup layer's messages, the worst status, braked robots avoiding."""
+        if braking.any():
+            message = f"{message}; backup braked {int(braking.sum())} robot(s)"
         if nudged.any():
             message = f"{message}; backup nudged {int(nudged.sum())} robot(s) toward brake-safety"
-        status = "unsafe" if not safe else ("backup" if any_braking or nudged.any() else "solved")
-        result = FilterResult(
+        if not safe:
+            status = "unsafe"
+        elif (braking.any() or nudged.any()) and STATUSES.index(status) < STATUSES.index("backup"):
+            status = "backup"
+        return du, FilterResult(
             du=du, status=status, safe=safe, backup=braking, margin=margin, barrier_min=barrier_min,
-            message=message, eta=eta, pairs=pairs, avoiding=avoiding, triggered=triggered, slack=0.0,
-            correction=correction, intervened=intervened, iterations=ans.iterations,
-            solve_time=time.perf_counter() - t0, n_rows=int(rhs.shape[0]), n_qp_rows=int(ans.n_qp),
+            # (avoiding | braking: a new array, the deadlock memory keeps its own)
+            message=message, eta=eta, pairs=pairs, avoiding=avoiding | braking,
+            triggered=triggered, slack=slack, correction=correction, intervened=intervened, iterations=iterations,
+            solve_time=time.perf_counter() - t0, n_rows=n_rows, n_qp_rows=n_qp,
         )
-        return du, result
 
-    def _remember(self, ans: CentralAnswer | Any, rows: _Rows, avoiding: np.ndarray) -> None:
+    def _remember(self, x: np.ndarray, z: np.ndarray, rows: _Rows, avoiding: np.ndarray) -> None:
         """The next step's warm start (point, row keys and multipliers) and the deadlock memory.
 
         The rows are kept in increasing key order (sorted here where they are not), so the next step
         maps them by binary search.
         """
         # (an obstacle row's (i, -1 - k) names robot i alone, as (i, -1) would)
-        keys, z, robots = rows.keys, ans.z, rows.pairs_out
+        keys, robots = rows.keys, rows.pairs_out
         if not rows.increasing and keys.shape[0] > 1 and not bool((keys[1:] > keys[:-1]).all()):
             order = np.argsort(keys, kind="stable")
             keys, z, robots = keys[order], z[order], robots[order]
-        self._x, self._keys, self._z = ans.x.ravel(), keys, z
+        self._x, self._keys, self._z = x.ravel(), keys, z
         self._key_robots = robots.copy()
         self._dl.avoiding = avoiding
 
-    def _solve_and_check(self, t0: float, rows: _Rows, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
-                         lo: np.ndarray, hi: np.ndarray, A: np.ndarray, p: np.ndarray,
+    def _solve_and_check(self, t0: float, rows: _Rows, u: np.ndarray, pose: np.ndarray | None,
+                         nominal_du: np.ndarray, lo: np.ndarray, hi: np.ndarray, A: np.ndarray,
                          obstacles: tuple[np.ndarray, ...] | None, triggered: np.ndarray, target: np.ndarray,
                          scale: np.ndarray, *, answer: CentralAnswer | None = None, avoiding: np.ndarray | None = None,
-                         quick: GateResult | None = None, kernel_parts: tuple | None | bool = False,
+                         quick: GateResult | None = None, tried: bool = False, kernel_parts: tuple | None = None,
                          z_warm: np.ndarray | None = None) -> tuple[np.ndarray, FilterResult]:
         """The QP (unless ``answer`` is given, with its ``avoiding``), the backup layer and the result.
 
-        ``quick``: the backup layer's first check, where the compiled step made it; ``kernel_parts``: what the
-        compiled step's decomposition handed on where it did not answer (False: it did not run), and
-        ``z_warm`` the warm start it mapped onto these rows.
+        ``pose``: the axle poses (None without the backup layer); ``quick``: the backup layer's first check,
+        where the compiled step made it; ``tried``: the compiled step's decomposition ran on these rows and did
+        not answer, ``kernel_parts`` what it handed on, ``z_warm`` the warm start it mapped onto them.
         """
         cfg, team = self.config, self._bound_team()
         n = team.n
@@ -632,7 +635,7 @@ class SafetyFilter:
                                     None if self._x is None else self._x.reshape(n, 2),
                                     (lambda: self._map_warm(keys)) if z_warm is None else z_warm,
                                     decompose=cfg.decompose, compiled=cfg.compiled, checked=True,
-                                    tried=kernel_parts is not False, kernel_parts=kernel_parts or None)
+                                    tried=tried, kernel_parts=kernel_parts)
         if decentral:
             du, x_full = ans.du.copy(), ans.du / scale[:, None]
             z, eta, iterations, n_qp = ans.z, ans.eta, ans.iterations, m
@@ -652,7 +655,7 @@ class SafetyFilter:
                 active = z > cfg.eta_tol
                 avoiding[ri[active]] = True
                 avoiding[rj[active & (rj >= 0)]] = True
-        self._remember(_Answer(x_full, z), rows, avoiding)
+        self._remember(x_full, z, rows, avoiding)
         exact = decentral or self._solver.exact
         slack = 0.0
         if status != "solved" or not exact:  # (a solved exact answer meets every row: nothing to measure)
@@ -660,8 +663,7 @@ class SafetyFilter:
 
         # backup layer -----------------------------------------------------------------
         braking = nudged = np.zeros(n, dtype=bool)
-        if cfg.backup:
-            pose = _axle_pose(team, p, theta)
+        if pose is not None:
             gate = gate_with_repair(team, pose, u, du, lo, hi, cfg, obstacles, pr, quick=quick)
             # robots the gate still marks broken (beyond the range limit when braking): best effort, the QP
             du_qp, broken = du, gate.broken
@@ -669,28 +671,13 @@ class SafetyFilter:
             braking, margin, safe = gate.braking & ~broken, gate.margin, gate.safe
             # the repair moved their inputs (beyond the rounding of the gate's level arithmetic)
             nudged = ~braking & ~broken & (np.abs(du - du_qp) > 1e-9 * scale[:, None]).any(axis=1)
-            if braking.any():
-                message = f"{message}; backup braked {int(braking.sum())} robot(s)"
-            if nudged.any():
-                message = f"{message}; backup nudged {int(nudged.sum())} robot(s) toward brake-safety"
         else:
-            margin = gap_min
-            safe = not (barrier_min < -_BARRIER_TOL or margin < -COLLISION_TOL)
-        avoiding = avoiding | braking  # (a new array: the deadlock memory keeps the QP's)
-        if not safe:
-            status = "unsafe"
-        elif (braking.any() or nudged.any()) and STATUSES.index(status) < STATUSES.index("backup"):
-            status = "backup"
+            margin, safe = gap_min, _safe_without_layer(barrier_min, gap_min)
         d = du - nominal_du
         correction = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])  # (np.linalg.norm(d, axis=1)'s numbers)
-        result = FilterResult(
-            du=du, status=status, safe=safe, backup=braking, margin=margin, barrier_min=barrier_min,
-            message=message, eta=eta, pairs=pairs_out, avoiding=avoiding,
-            triggered=triggered, slack=slack, correction=correction,
-            intervened=correction > 1e-9 * scale, iterations=iterations,
-            solve_time=time.perf_counter() - t0, n_rows=int(m), n_qp_rows=int(n_qp),
-        )
-        return du, result
+        return self._result(t0, du, status, message, safe, braking, nudged, margin, barrier_min, eta, pairs_out,
+                            avoiding, triggered, slack, correction, correction > 1e-9 * scale, iterations, int(m),
+                            int(n_qp))
 
     # ------------------------------------------------------------------ helpers
     def _bound_team(self) -> Team:
