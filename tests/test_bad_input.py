@@ -76,7 +76,7 @@ ACCEPTS: dict[tuple[str, str], set[str]] = {
     ("filter", "sigma"): {"-1"}, ("filter", "rotation_deg"): {"-1"}, ("filter", "gate_range"): _OPTIONAL,
     ("filter", "safety_margin"): _OPTIONAL, ("filter", "max_wheel_speed"): _OPTIONAL,
     ("filter", "active_set"): {"True"}, ("filter", "decompose"): {"True"}, ("filter", "backup"): {"True"},
-    ("filter", "backup_repair"): {"True"},
+    ("filter", "backup_repair"): {"True"}, ("filter", "negotiate"): {"True"},
     ("robot", "max_wheel_speed"): {"inf"},
 }
 

@@ -14,7 +14,7 @@ from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import make_team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.safety.decentralized import decentralized_step, split_rows
+from aasoatt_env.safety.decentralized import decentralized_step, negotiators, split_rows
 from aasoatt_env.safety.problem import box_least_squares, build_problem
 from aasoatt_env.safety.solvers import local
 from aasoatt_env.safety.solvers.local import RELAX_TOL, least_violation, solve_local_qps
@@ -445,6 +445,137 @@ def test_eta_in_centralised_units_for_a_lone_robot():
     np.testing.assert_allclose(res.z, lag, rtol=1e-6)  # normalised as the filter's z
 
 
+# ----------------------------------------------------------------------------- negotiation groups
+def test_negotiators_are_the_triggered_robots_and_the_robots_they_touch():
+    # robots 0-1 touch (gap 0.05), 1-2 are 0.3 apart, 3-4 touch but neither is triggered; robot 5 triggered alone
+    p = np.array([[0.0, 0.0], [1.01, 0.0], [2.27, 0.0], [10.0, 0.0], [11.0, 0.0], [20.0, 0.0]])
+    radius = np.full(6, 0.48)
+    ri, rj = np.array([0, 1, 0, 3, 0]), np.array([1, 2, 2, 4, -1])  # (an obstacle row is not a robot)
+    triggered = np.array([True, False, False, False, False, True])
+    got = negotiators(triggered, p, radius, ri, rj, 0.1)
+    assert list(got) == [True, True, False, False, False, True]
+    # one hop only: robot 2 is 0.3 from robot 1 (not triggered); at 1.5 it touches robot 0 (gap 1.31)
+    assert list(negotiators(triggered, p, radius, ri, rj, 0.5)) == [True, True, False, False, False, True]
+    assert list(negotiators(triggered, p, radius, ri, rj, 1.5)) == [True, True, True, False, False, True]
+    assert list(negotiators(np.zeros(6, bool), p, radius, ri, rj, 0.5)) == [False] * 6
+    got = negotiators(np.array([False, True, False, False, False, False]), p, radius, ri, rj, 0.1)
+    assert list(got) == [True, True, False, False, False, False]  # a row is seen from both of its robots
+
+
+def _group_reference(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, members):
+    """The negotiation groups' answer by quadprog: the members' rows among them whole, their halves of the rest."""
+    du0 = box_least_squares(A, target, lo, hi)
+    sp = split_rows(ri, rj, Gi, Gj, rhs, auth, du0)
+    m = rhs.size
+    rob = rj >= 0
+    whole = rob & members[ri] & members[np.maximum(rj, 0)]
+    grouped = np.zeros(A.shape[0], bool)
+    grouped[ri[whole]] = grouped[rj[whole]] = True
+    sub = np.flatnonzero(grouped)
+    at = {r: k for k, r in enumerate(sub)}
+    nv = 2 * sub.size
+    H = np.zeros((nv, nv))
+    q = np.zeros(nv)
+    for k, r in enumerate(sub):
+        H[2 * k:2 * k + 2, 2 * k:2 * k + 2] = 2 * A[r].T @ A[r]
+        q[2 * k:2 * k + 2] = 2 * A[r].T @ target[r]
+    C, b = [], []
+    for r in np.flatnonzero(whole):
+        row = np.zeros(nv)
+        row[2 * at[ri[r]]:2 * at[ri[r]] + 2] -= Gi[r]
+        row[2 * at[rj[r]]:2 * at[rj[r]] + 2] -= Gj[r]
+        C.append(row)
+        b.append(-rhs[r])
+    row_of, _ = sp.row_side(np.arange(sp.owner.size))
+    for h in np.flatnonzero(grouped[sp.owner] & ~whole[row_of]):
+        row = np.zeros(nv)
+        row[2 * at[sp.owner[h]]:2 * at[sp.owner[h]] + 2] = -sp.G[h]
+        C.append(row)
+        b.append(-sp.h[h])
+    for k, r in enumerate(sub):
+        for d in range(2):
+            e = np.zeros(nv)
+            e[2 * k + d] = 1.0
+            C += [e, -e]
+            b += [lo[r, d], -hi[r, d]]
+    x = quadprog.solve_qp(H, q, np.array(C).T, np.array(b), 0)[0]
+    assert m == rhs.size
+    return grouped, sub, x.reshape(-1, 2), whole
+
+
+@both
+def test_negotiation_groups_answer_their_rows_whole_as_a_dense_solver_does(compiled):
+    from aasoatt_env.model.geometry import pair_components
+    from aasoatt_env.safety.solvers import SolverPolicy
+
+    team, A, target, lo, hi, ri, rj, Gi, Gj, rhs = _scene(100, 2.0, 3.0, obstacles=True)
+    auth = team.max_point_accel
+    # three patches of the grid negotiate (robots 0-2 and 10-12: one group; 55-56; 99 alone)
+    members = np.zeros(100, bool)
+    members[[0, 1, 2, 10, 11, 12, 55, 56, 99]] = True
+    policy = SolverPolicy("proxsuite", compiled=compiled)
+    res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, compiled=compiled, members=members,
+                             policy=policy)
+    alone = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, compiled=compiled)
+    grouped, sub, ref, whole = _group_reference(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, members)
+    assert whole.any() and grouped.sum() >= 8
+    np.testing.assert_array_equal(res.grouped, grouped)
+    scale = np.max(np.maximum(np.abs(lo), np.abs(hi)), axis=1)
+    assert np.max(np.abs(res.du[sub] - ref) / scale[sub, None]) <= 1e-6
+    # every other robot: its own QP's answer, as without groups
+    np.testing.assert_array_equal(res.du[~grouped], alone.du[~grouped])
+    # the groups: components of the whole rows
+    lab = pair_components(sub.size, np.searchsorted(sub, ri[whole]), np.searchsorted(sub, rj[whole]))
+    sizes = np.bincount(lab)
+    assert res.n_groups == int((sizes >= 2).sum()) and res.largest_group == int(sizes.max())
+    assert res.group_status == "solved" and res.n_relaxed == 0
+    # every pair row holds (whole rows by the groups, split rows by their halves)
+    du = res.du
+    lhs = np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)]),
+                                                        0.0)
+    assert np.all(lhs <= rhs + 1e-7 * (1 + np.abs(rhs)))
+    # a binding whole row marks both of its robots (the filter's deadlock memory reads z_half)
+    both_sides = whole & (res.z_half[:, 0] > 1e-6)
+    np.testing.assert_array_equal(res.z_half[both_sides, 0], res.z_half[both_sides, 1])
+
+
+def test_negotiation_needs_its_solver():
+    team, A, target, lo, hi, ri, rj, Gi, Gj, rhs = _scene(9, 2.0, 3.0)
+    with pytest.raises(ValueError, match="policy"):
+        decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, members=np.ones(9, bool))
+
+
+def test_without_triggered_robots_negotiation_changes_nothing():
+    """No robot triggered (deadlock strategy off): the step is the per-robot one, bit for bit."""
+    from aasoatt_env.safety.core import SafetyFilter
+
+    rng = np.random.default_rng(4)
+    team = make_team("paper", 30)
+    side = 6
+    p = np.stack(np.meshgrid(np.arange(side), np.arange(5)), -1).reshape(-1, 2)[:30] * 1.05
+    pose = pose_from_point(team, p + rng.uniform(-0.02, 0.02, p.shape), rng.uniform(-np.pi, np.pi, 30))
+    u = rng.uniform(2, 8, (30, 2))
+    kin = kinematics(team, pose, u)
+    lo, hi = input_bounds(team, u, 0.005)
+    nom = rng.uniform(-30, 30, (30, 2))
+    outs = []
+    for negotiate in (True, False):
+        f = SafetyFilter(team, mode="decentralized", deadlock="none", negotiate=negotiate)
+        outs.append(f.step(kin, u, pose[:, 2], nom, lo, hi))
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    assert "negotiation" not in outs[0][1].message
+
+
+@pytest.mark.parametrize(("kw", "match"), [({"negotiate_gap": -0.1}, "negotiate_gap"),
+                                           ({"negotiate_gap": 5.0}, "negotiate_gap"),
+                                           ({"negotiate": "yes"}, "negotiate")])
+def test_negotiation_options_are_validated(kw, match):
+    from aasoatt_env.errors import ConfigError
+
+    with pytest.raises(ConfigError, match=match):
+        FilterConfig(mode="decentralized", **kw)
+
+
 # ----------------------------------------------------------------------------- the filter's decentralised mode
 def test_mode_is_validated():
     from aasoatt_env.errors import ConfigError
@@ -487,6 +618,37 @@ def test_closed_loop_circle_home_without_collision():
     err = np.linalg.norm(ro.positions[-1] - ro.goals, axis=1)
     assert gap >= -1e-9
     assert err.max() <= 0.05, err.max()
+
+
+def _home(negotiate: bool, seed: int = 0, **kw):
+    """Robots home (within 5 cm) and the closest pair gap of one tracking-controller episode, decentralised."""
+    from aasoatt_env import make_env
+    from aasoatt_env.analysis.metrics import pairwise_min_distance
+    from aasoatt_env.analysis.recording import run_episode
+    from agents import TrackingController
+
+    env = make_env(filter=FilterConfig(mode="decentralized", negotiate=negotiate), **kw)
+    ro, _ = run_episode(env, TrackingController(), seed=seed)
+    err = np.linalg.norm(ro.positions[-1] - ro.goals, axis=1)
+    return int((err <= 0.05).sum()), pairwise_min_distance(ro).overall_min_robot_gap
+
+
+def test_negotiation_frees_a_crowd_the_split_rows_stop():
+    """8 robots in a 4.5 m arena with 2 obstacles: with split rows alone robots stop against each other short of
+    their goals; the negotiation groups get every robot home, and no pair comes closer than d_s either way."""
+    scene = dict(scenario="random_goals", num_robots=8, arena_size=4.5, random_obstacles=2, settle_time=6.0)
+    home, gap = _home(True, **scene)
+    alone, gap_alone = _home(False, **scene)
+    assert home == 8 and alone < 8, (home, alone)
+    assert gap >= -1e-9 and gap_alone >= -1e-9
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("n", "radius", "duration"), [(39, 6.0, 12.0), (60, 10.0, 20.0)])
+def test_the_paper_circles_get_home_decentralised(n, radius, duration):
+    """The paper's circle swaps (radius 6 m with 39 robots, radius 10 m with 60), 3 s of settling: every robot home."""
+    home, gap = _home(True, scenario="circle_swap", num_robots=n, radius=radius, duration=duration, settle_time=3.0)
+    assert home == n and gap >= -1e-9
 
 
 @pytest.mark.slow

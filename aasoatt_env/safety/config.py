@@ -112,10 +112,20 @@ class FilterConfig:
         shares of the pair rows (in proportion to ``Team.max_point_accel``,
         around the pair's nominal answers: the reciprocal split of
         :mod:`aasoatt_env.safety.decentralized`), all at once and exactly;
-        ``solver``, ``active_set`` and ``decompose`` do not apply.  A robot whose own QP is infeasible gets
+        ``decompose`` does not apply (``solver`` and ``active_set`` answer the negotiation
+        groups only, see ``negotiate``).  A robot whose own QP is infeasible gets
         its least-violation answer (status ``"relaxed"``).  The backup layer
         still runs after it, and it is a team-wide check: it needs every
         neighbour's state and applied input (README: Decentralised filter).
+    negotiate : bool
+        ``mode="decentralized"`` only: the robots the deadlock trigger flags and the robots
+        they touch (gap below ``negotiate_gap``) solve the rows among them whole, jointly, as
+        negotiation groups (:mod:`aasoatt_env.safety.decentralized`); every other robot its
+        own QP.  Without it, alike robots that block each other in a crowd can stop for good
+        (README: Decentralised filter).  On by default; ``False`` is the per-robot filter alone.
+    negotiate_gap : float
+        Gap [m] (distance less the two radii) below which a robot touches a triggered robot
+        and joins its negotiation group, in ``[0, sensing_range]`` (default 0.1).
     decompose : bool
         With an exact solver (all but ``neural``): robots in no row are solved in
         closed form (a 2-variable box-constrained least squares each) and the QP
@@ -193,6 +203,8 @@ class FilterConfig:
     neural_iterations: int = 1
     active_set: bool = True
     mode: str = "centralized"
+    negotiate: bool = True
+    negotiate_gap: float = 0.1
     decompose: bool = True
     backup: bool = True
     brake_fraction: float = 2.0 / 3.0
@@ -233,7 +245,9 @@ class FilterConfig:
         object.__setattr__(self, "brake_fraction", check.real("brake_fraction", self.brake_fraction, lo=0.0,
                                                               hi=1.0, lo_open=True))
         object.__setattr__(self, "speed_margin", check.real("speed_margin", self.speed_margin, lo=0.0, hi=1.0))
-        for flag in ("active_set", "decompose", "backup", "backup_repair"):
+        object.__setattr__(self, "negotiate_gap", check.real("negotiate_gap", self.negotiate_gap, lo=0.0,
+                                                             hi=self.sensing_range))
+        for flag in ("active_set", "negotiate", "decompose", "backup", "backup_repair"):
             check.boolean(flag, getattr(self, flag))
         object.__setattr__(self, "neural_iterations",
                            check.integer("neural_iterations", self.neural_iterations, lo=1, hi=1_000_000))

@@ -48,7 +48,7 @@ from aasoatt_env.safety.deadlock import (
     TriggerContext,
     rotation,
 )
-from aasoatt_env.safety.decentralized import decentralized_step
+from aasoatt_env.safety.decentralized import decentralized_step, negotiators
 from aasoatt_env.safety.decomposition import CentralAnswer, row_values, solve_centralized
 from aasoatt_env.safety.gatekeeper import BLEND_LEVELS, GateResult, _levels, _team_block
 from aasoatt_env.safety.inputs import MIN_BRAKING_ROOM, check_inputs, check_team, refuse_rows_beyond
@@ -494,8 +494,12 @@ class SafetyFilter:
                 cfg, A, v, geo, geo_p_true, pairs_out, m_obs + 1, gap_initial)
         rows = _Rows(ri, rj, pr, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min, brute)
         pose = _axle_pose(team, p, theta) if cfg.backup else None
+        # the decentralised mode's negotiation groups (aasoatt_env.safety.decentralized): the triggered robots and
+        # the robots they touch
+        members = (negotiators(triggered, p, team.radius, ri, rj, cfg.negotiate_gap)
+                   if cfg.mode == "decentralized" and cfg.negotiate else None)
         return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, obstacles, triggered, target,
-                                     _scale(team, lo, hi))
+                                     _scale(team, lo, hi), members=members)
 
     def _triggered(self, context: TriggerContext) -> np.ndarray:
         """``(N,)`` bool: the robots the deadlock strategy acts on at this step (none when it is off)."""
@@ -613,12 +617,14 @@ class SafetyFilter:
                          obstacles: tuple[np.ndarray, ...] | None, triggered: np.ndarray, target: np.ndarray,
                          scale: np.ndarray, *, answer: CentralAnswer | None = None, avoiding: np.ndarray | None = None,
                          quick: GateResult | None = None, tried: bool = False, kernel_parts: tuple | None = None,
-                         z_warm: np.ndarray | None = None) -> tuple[np.ndarray, FilterResult]:
+                         z_warm: np.ndarray | None = None, members: np.ndarray | None = None
+                         ) -> tuple[np.ndarray, FilterResult]:
         """The QP (unless ``answer`` is given, with its ``avoiding``), the backup layer and the result.
 
         ``pose``: the axle poses (None without the backup layer); ``quick``: the backup layer's first check,
         where the compiled step made it; ``tried``: the compiled step's decomposition ran on these rows and did
-        not answer, ``kernel_parts`` what it handed on, ``z_warm`` the warm start it mapped onto them.
+        not answer, ``kernel_parts`` what it handed on, ``z_warm`` the warm start it mapped onto them;
+        ``members``: the decentralised mode's negotiating robots.
         """
         cfg, team = self.config, self._bound_team()
         n = team.n
@@ -628,8 +634,11 @@ class SafetyFilter:
         if answer is not None:
             ans = answer
         elif decentral:  # every robot its own QP over its halves of the rows: no team QP below
+            warm = members is not None and self._x is not None and bool(members.any())
             ans = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, scale=scale,
-                                     compiled=cfg.compiled)
+                                     compiled=cfg.compiled, members=members, policy=self._solver,
+                                     x_warm=self._x.reshape(n, 2) if warm else None,  # type: ignore[union-attr]
+                                     z_warm=self._map_warm(keys) if warm else None)
         else:
             ans = solve_centralized(self._solver, A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs,
                                     None if self._x is None else self._x.reshape(n, 2),
@@ -639,9 +648,12 @@ class SafetyFilter:
         if decentral:
             du, x_full = ans.du.copy(), ans.du / scale[:, None]
             z, eta, iterations, n_qp = ans.z, ans.eta, ans.iterations, m
-            status = "relaxed" if ans.n_relaxed else "solved"
-            message = f"decentralized: {n} local QPs" + (f", {ans.n_relaxed} infeasible (relaxed)" if ans.n_relaxed
-                                                         else "")
+            status = max("relaxed" if ans.n_relaxed else "solved", ans.group_status, key=STATUSES.index)
+            message = (f"decentralized: {n - int(ans.grouped.sum())} local QPs"
+                       + (f", {ans.n_relaxed} infeasible (relaxed)" if ans.n_relaxed else "")
+                       + (f", {ans.n_groups} negotiation group(s) of {int(ans.grouped.sum())} robots (largest "
+                          f"{ans.largest_group}){'' if ans.group_status == 'solved' else ': ' + ans.group_status}"
+                          if ans.n_groups else ""))
         else:
             du, x_full, z, eta = ans.du, ans.x, ans.z, ans.eta
             status, message, iterations, n_qp = ans.status, ans.message, ans.iterations, ans.n_qp

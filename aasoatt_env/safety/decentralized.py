@@ -59,10 +59,13 @@ from typing import NamedTuple
 
 import numpy as np
 
+from aasoatt_env.model.geometry import pair_components
+from aasoatt_env.safety.decomposition import solve_centralized
 from aasoatt_env.safety.problem import box_least_squares
+from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers.local import RELAX_TOL, solve_local_qps
 
-__all__ = ["SPLITS", "DecentralizedResult", "SplitRows", "decentralized_step", "split_rows"]
+__all__ = ["SPLITS", "DecentralizedResult", "SplitRows", "decentralized_step", "negotiators", "split_rows"]
 
 SPLITS: tuple[str, ...] = ("reciprocal", "authority")
 """Ways of sharing a pair row (module docstring)."""
@@ -185,6 +188,48 @@ class DecentralizedResult(NamedTuple):
     """Active-set iterations of the local solver (largest over the robots)."""
     n_enumerated: int
     """Robots the local solver answered by exact enumeration."""
+    grouped: np.ndarray
+    """``(N,)``: the robot's answer is its negotiation group's (module docstring), not its own QP's."""
+    n_groups: int
+    """Negotiation groups of two or more robots solved (0 without ``members``)."""
+    largest_group: int
+    """Robots in the largest of them (0 without)."""
+    group_status: str
+    """The groups' QP status (``"solved"``, ``"relaxed"`` or ``"failed"``; ``"solved"`` without groups)."""
+
+
+def negotiators(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, ri: np.ndarray, rj: np.ndarray,
+                gap: float) -> np.ndarray:
+    """The robots that negotiate (module docstring): the triggered ones and every robot they touch.
+
+    Parameters
+    ----------
+    triggered : numpy.ndarray
+        ``(N,)`` bool: the robots the deadlock trigger flags at this step.
+    p : numpy.ndarray
+        Control-point positions ``(N, 2)``.
+    radius : numpy.ndarray
+        Robot radii ``(N,)`` (a pair touches at ``radius_i + radius_j``).
+    ri, rj : numpy.ndarray
+        Robots of each row ``(M,)``; ``rj = -1`` for obstacle rows (ignored).
+    gap : float
+        A robot with a row to a triggered robot joins when their gap (distance less the radii) is below this [m].
+
+    Returns
+    -------
+    numpy.ndarray
+        ``(N,)`` bool.
+    """
+    member = np.array(triggered, dtype=bool, copy=True)
+    if not member.any() or ri.shape[0] == 0:
+        return member
+    rob = np.flatnonzero(rj >= 0)
+    a, b = ri[rob], rj[rob]
+    d = p[a] - p[b]
+    close = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) - (radius[a] + radius[b]) < gap
+    member[b[close & triggered[a]]] = True
+    member[a[close & triggered[b]]] = True
+    return member
 
 
 def decentralized_step(
@@ -202,8 +247,12 @@ def decentralized_step(
     split: str = "reciprocal",
     scale: np.ndarray | None = None,
     compiled: bool = False,
+    members: np.ndarray | None = None,
+    policy: SolverPolicy | None = None,
+    x_warm: np.ndarray | None = None,
+    z_warm: np.ndarray | None = None,
 ) -> DecentralizedResult:
-    """Every robot's own QP over its half-rows, solved exactly for all robots at once.
+    """Every robot's own QP over its half-rows, solved exactly for all robots at once; negotiation groups jointly.
 
     Parameters
     ----------
@@ -233,6 +282,17 @@ def decentralized_step(
         Solve the robots' QPs in the compiled kernel (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`),
         and their closed forms of the reciprocal split
         (:func:`~aasoatt_env.safety.problem.box_least_squares`, the same numbers).
+    members : numpy.ndarray, optional
+        ``(N,)`` bool: the robots that negotiate (:func:`negotiators`); the rows between two of them are
+        solved whole, jointly (module docstring).  None or none set: every robot alone.
+    policy : SolverPolicy, optional
+        The solver of the groups' QPs (the centralised filter's); required with ``members``.
+    x_warm, z_warm : numpy.ndarray, optional
+        Where the groups' solver starts: a scaled point ``(N, 2)`` (``du / scale``; default each robot's
+        box-clipped least squares) and a multiplier of each row ``(M,)`` in the units of
+        :attr:`DecentralizedResult.z` (default none active; a half-row starts at its row's).  The
+        previous step's answer makes the warm active set answer most steps; the answer is the QP's
+        optimum either way.
 
     Returns
     -------
@@ -261,14 +321,27 @@ def decentralized_step(
                           compiled=compiled)
     du, lam = sol.x, sol.lam
     infeasible = ~sol.feasible
-    n_relaxed = int(infeasible.sum())
-    slack = 0.0
-    if n_relaxed:
-        hr = np.flatnonzero(infeasible[sp.owner])
-        o = sp.owner[hr]
-        res = sp.G[hr, 0] * du[o, 0] + sp.G[hr, 1] * du[o, 1] - sp.h[hr]
-        slack = float(max(0.0, res.max(initial=0.0)))
+    slack = _half_slack(sp, du, infeasible)
     du = np.minimum(np.maximum(du, lo), hi)
+    grouped = np.zeros(n, dtype=bool)
+    joint = None
+    if members is not None and members.any():
+        if policy is None:
+            raise ValueError("policy: the negotiation groups' solver is required with members")
+        if du0 is None:
+            du0 = box_least_squares(A, target, lo, hi, compiled=compiled)
+        x0 = du0 / scale[:, None] if x_warm is None else x_warm
+        joint, grouped, group_ans, n_groups, largest = _groups(A, target, lo, hi, scale, x0, z_warm, ri, rj, Gi, Gj,
+                                                               rhs, sp, members, policy, compiled)
+        if grouped.any():
+            lam = np.where(grouped[sp.owner], 0.0, lam)  # the members' own QPs are not what they apply
+            if (infeasible & grouped).any():
+                infeasible &= ~grouped
+                slack = _half_slack(sp, sol.x, infeasible)
+            du[grouped] = group_ans.du
+        else:
+            joint = None
+    n_relaxed = int(infeasible.sum())
     # multipliers back on the pair rows; z: scaled (x = du / s), unit-norm row, objective / sigma
     nz = np.flatnonzero(lam)
     row, side = sp.row_side(nz)
@@ -280,8 +353,82 @@ def decentralized_step(
     z_half = np.zeros((m, 2))
     eta_half[row, side] = lam[nz]
     z_half[row, side] = lam[nz] * np.sqrt(Gn[:, 0] ** 2 + Gn[:, 1] ** 2) * s_o / sigma
+    status, iterations = "solved", sol.iterations
+    if joint is None:
+        n_groups = largest = 0
+    else:  # the groups' multipliers: a whole row's on both of its sides, a kept half's on its side
+        k = joint.shape[0]
+        eta_half[joint, 0] = eta_half[joint, 1] = group_ans.eta[:k]
+        z_half[joint, 0] = z_half[joint, 1] = group_ans.z[:k]
+        kept = group_ans.kept
+        row, side = sp.row_side(kept)
+        eta_half[row, side] = group_ans.eta[k:]
+        z_half[row, side] = group_ans.z[k:]
+        status, iterations = group_ans.status, max(iterations, group_ans.iterations)
     return DecentralizedResult(
         du=du, eta=np.maximum(eta_half[:, 0], eta_half[:, 1]), eta_half=eta_half,
         z=np.maximum(z_half[:, 0], z_half[:, 1]), z_half=z_half, infeasible=infeasible, n_relaxed=n_relaxed,
-        slack=slack, iterations=sol.iterations, n_enumerated=sol.n_enumerated,
+        slack=slack, iterations=iterations, n_enumerated=sol.n_enumerated, grouped=grouped, n_groups=n_groups,
+        largest_group=largest, group_status=status,
     )
+
+
+def _half_slack(sp: SplitRows, du: np.ndarray, infeasible: np.ndarray) -> float:
+    """Largest violation of a half-row of the relaxed robots by their (unclipped) answers; 0 without any."""
+    if not infeasible.any():
+        return 0.0
+    hr = np.flatnonzero(infeasible[sp.owner])
+    o = sp.owner[hr]
+    res = sp.G[hr, 0] * du[o, 0] + sp.G[hr, 1] * du[o, 1] - sp.h[hr]
+    return float(max(0.0, res.max(initial=0.0)))
+
+
+class _GroupAnswer(NamedTuple):
+    du: np.ndarray
+    eta: np.ndarray
+    z: np.ndarray
+    kept: np.ndarray
+    status: str
+    iterations: int
+
+
+def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, x0: np.ndarray,
+            z0: np.ndarray | None, ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray,
+            sp: SplitRows, members: np.ndarray, policy: SolverPolicy,
+            compiled: bool) -> tuple[np.ndarray, np.ndarray, _GroupAnswer, int, int]:
+    """The negotiation groups' QP: the members' whole rows among them and their halves of the others.
+
+    Returns the whole rows (indices into the rows), the robots answered by a group (members in a whole
+    row), the answer (its ``du`` in the order of those robots; multipliers of the whole rows, then of
+    the kept halves ``kept``, indices into ``sp``), the number of groups and the largest one's size.
+    """
+    n, m = A.shape[0], ri.shape[0]
+    rob = rj >= 0
+    whole = rob & members[ri] & members[np.where(rob, rj, 0)]
+    joint = np.flatnonzero(whole)
+    grouped = np.zeros(n, dtype=bool)
+    grouped[ri[joint]] = True
+    grouped[rj[joint]] = True
+    # a grouped robot's halves of the rows it does not share whole (obstacle rows: whole, its own)
+    side_i = grouped[ri] & ~whole
+    side_j = grouped[sp.owner[m:]] & ~whole[sp.rr]
+    kept = np.concatenate((np.flatnonzero(side_i), m + np.flatnonzero(side_j)))
+    sub = np.flatnonzero(grouped)
+    remap = np.full(n, -1, dtype=np.intp)
+    remap[sub] = np.arange(sub.size)
+    k = kept.shape[0]
+    g_ri = np.concatenate((remap[ri[joint]], remap[sp.owner[kept]]))
+    g_rj = np.concatenate((remap[rj[joint]], np.full(k, -1, dtype=np.intp)))
+    g_Gi = np.concatenate((Gi[joint], sp.G[kept]))
+    g_Gj = np.concatenate((Gj[joint], np.zeros((k, 2))))
+    g_rhs = np.concatenate((rhs[joint], sp.h[kept]))
+    if z0 is None:
+        g_z = np.zeros(g_rhs.shape[0])
+    else:  # (a kept half starts at its row's multiplier)
+        g_z = np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
+    ans = solve_centralized(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_ri, g_rj, g_Gi, g_Gj,
+                            g_rhs, np.ascontiguousarray(x0[sub]), g_z, decompose=True, compiled=compiled, checked=True)
+    label = pair_components(sub.size, g_ri[: joint.shape[0]], g_rj[: joint.shape[0]], compiled=compiled)
+    sizes = np.bincount(label, minlength=sub.size)
+    return joint, grouped, _GroupAnswer(ans.du, ans.eta, ans.z, kept, ans.status, ans.iterations), \
+        int(np.count_nonzero(sizes >= 2)), int(sizes.max(initial=0))
