@@ -14,7 +14,7 @@ from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import make_team
 from aasoatt_env.safety.barriers import PairGeometry, barrier_rows
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.safety.decentralized import decentralized_step, negotiators, split_rows
+from aasoatt_env.safety.decentralized import decentralized_step, negotiation_rows, split_rows
 from aasoatt_env.safety.problem import box_least_squares, build_problem
 from aasoatt_env.safety.solvers import local
 from aasoatt_env.safety.solvers.local import RELAX_TOL, least_violation, solve_local_qps
@@ -446,29 +446,33 @@ def test_eta_in_centralised_units_for_a_lone_robot():
 
 
 # ----------------------------------------------------------------------------- negotiation groups
-def test_negotiators_are_the_triggered_robots_and_the_robots_they_touch():
-    # robots 0-1 touch (gap 0.05), 1-2 are 0.3 apart, 3-4 touch but neither is triggered; robot 5 triggered alone
-    p = np.array([[0.0, 0.0], [1.01, 0.0], [2.27, 0.0], [10.0, 0.0], [11.0, 0.0], [20.0, 0.0]])
-    radius = np.full(6, 0.48)
-    ri, rj = np.array([0, 1, 0, 3, 0]), np.array([1, 2, 2, 4, -1])  # (an obstacle row is not a robot)
-    triggered = np.array([True, False, False, False, False, True])
-    got = negotiators(triggered, p, radius, ri, rj, 0.1)
-    assert list(got) == [True, True, False, False, False, True]
-    # one hop only: robot 2 is 0.3 from robot 1 (not triggered); at 1.5 it touches robot 0 (gap 1.31)
-    assert list(negotiators(triggered, p, radius, ri, rj, 0.5)) == [True, True, False, False, False, True]
-    assert list(negotiators(triggered, p, radius, ri, rj, 1.5)) == [True, True, True, False, False, True]
-    assert list(negotiators(np.zeros(6, bool), p, radius, ri, rj, 0.5)) == [False] * 6
-    got = negotiators(np.array([False, True, False, False, False, False]), p, radius, ri, rj, 0.1)
-    assert list(got) == [True, True, False, False, False, False]  # a row is seen from both of its robots
+def test_negotiation_rows_are_the_rows_among_the_triggered_robots_and_those_they_touch():
+    # a row of robots 1.01 m apart (gap 0.05) but 3-4 (gap 0.3); robots 6-7 touch far away
+    x = np.array([0.0, 1.01, 2.02, 3.03, 4.34, 10.0, 20.0, 21.01])
+    p = np.stack((x, np.zeros(8)), axis=1)
+    radius = np.full(8, 0.48)
+    ri = np.array([0, 1, 0, 2, 3, 6, 1, 0, 1])
+    rj = np.array([1, 2, 2, 3, 4, 7, -1, 3, 3])  # (an obstacle row, 1 -1, is never whole)
+    triggered = np.zeros(8, bool)
+    triggered[1] = True
+    # robot 1 and the robots it touches (0, 2) negotiate: rows 0-1, 1-2 and 0-2 (not touching) whole; robot 3
+    # touches robot 2, which is not triggered: 2-3, 0-3 and 1-3 stay split; 3-4, 6-7 have no triggered robot
+    want = [True, True, True, False, False, False, False, False, False]
+    assert list(negotiation_rows(triggered, p, radius, ri, rj, 0.1)) == want
+    # with a 0.4 m touching gap robot 1 touches nobody new; with 1.2 m it touches 3 (gap 1.06): 2-3, 0-3, 1-3 too
+    assert list(negotiation_rows(triggered, p, radius, ri, rj, 0.4)) == want
+    with_3 = [True, True, True, True, False, False, False, True, True]
+    assert list(negotiation_rows(triggered, p, radius, ri, rj, 1.2)) == with_3
+    triggered[3] = True  # 3 negotiates itself; 3-4 (gap 0.35) still not
+    assert list(negotiation_rows(triggered, p, radius, ri, rj, 0.1)) == with_3
+    assert not negotiation_rows(np.zeros(8, bool), p, radius, ri, rj, 5.0).any()
 
 
-def _group_reference(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, members):
-    """The negotiation groups' answer by quadprog: the members' rows among them whole, their halves of the rest."""
+def _group_reference(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, whole):
+    """The negotiation groups' answer by quadprog: the ``whole`` rows whole, the grouped robots' halves of the rest."""
     du0 = box_least_squares(A, target, lo, hi)
     sp = split_rows(ri, rj, Gi, Gj, rhs, auth, du0)
     m = rhs.size
-    rob = rj >= 0
-    whole = rob & members[ri] & members[np.maximum(rj, 0)]
     grouped = np.zeros(A.shape[0], bool)
     grouped[ri[whole]] = grouped[rj[whole]] = True
     sub = np.flatnonzero(grouped)
@@ -510,15 +514,18 @@ def test_negotiation_groups_answer_their_rows_whole_as_a_dense_solver_does(compi
 
     team, A, target, lo, hi, ri, rj, Gi, Gj, rhs = _scene(100, 2.0, 3.0, obstacles=True)
     auth = team.max_point_accel
-    # three patches of the grid negotiate (robots 0-2 and 10-12: one group; 55-56; 99 alone)
-    members = np.zeros(100, bool)
-    members[[0, 1, 2, 10, 11, 12, 55, 56, 99]] = True
+    # three patches of the grid negotiate: every robot row among robots 0-2 and 10-12 (one group), 55-56, and
+    # an obstacle row of robot 99 (never whole)
+    patch = np.zeros(100, bool)
+    patch[[0, 1, 2, 10, 11, 12, 55, 56, 99]] = True
+    whole = patch[ri] & patch[np.maximum(rj, 0)]
+    assert (whole & (rj < 0)).any()
     policy = SolverPolicy("proxsuite", compiled=compiled)
-    res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, compiled=compiled, members=members,
+    res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, compiled=compiled, whole=whole,
                              policy=policy)
     alone = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, compiled=compiled)
-    grouped, sub, ref, whole = _group_reference(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, members)
-    assert whole.any() and grouped.sum() >= 8
+    grouped, sub, ref, whole = _group_reference(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, whole & (rj >= 0))
+    assert whole.any() and grouped.sum() == 8
     np.testing.assert_array_equal(res.grouped, grouped)
     scale = np.max(np.maximum(np.abs(lo), np.abs(hi)), axis=1)
     assert np.max(np.abs(res.du[sub] - ref) / scale[sub, None]) <= 1e-6
@@ -542,7 +549,7 @@ def test_negotiation_groups_answer_their_rows_whole_as_a_dense_solver_does(compi
 def test_negotiation_needs_its_solver():
     team, A, target, lo, hi, ri, rj, Gi, Gj, rhs = _scene(9, 2.0, 3.0)
     with pytest.raises(ValueError, match="policy"):
-        decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, members=np.ones(9, bool))
+        decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, whole=rj >= 0)
 
 
 def test_without_triggered_robots_negotiation_changes_nothing():

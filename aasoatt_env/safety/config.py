@@ -118,14 +118,15 @@ class FilterConfig:
         still runs after it, and it is a team-wide check: it needs every
         neighbour's state and applied input (README: Decentralised filter).
     negotiate : bool
-        ``mode="decentralized"`` only: the robots the deadlock trigger flags and the robots
-        they touch (gap below ``negotiate_gap``) solve the rows among them whole, jointly, as
-        negotiation groups (:mod:`aasoatt_env.safety.decentralized`); every other robot its
-        own QP.  Without it, alike robots that block each other in a crowd can stop for good
-        (README: Decentralised filter).  On by default; ``False`` is the per-robot filter alone.
+        ``mode="decentralized"`` only: a robot the deadlock trigger flags negotiates, and so
+        does every robot it touches (gap below ``negotiate_gap``); the rows between
+        negotiating robots are solved whole, jointly, by the negotiation groups they join
+        (:mod:`aasoatt_env.safety.decentralized`); every other robot solves its own QP.
+        Without it, alike robots that block each other in a crowd can stop for good (README:
+        Decentralised filter).  On by default; ``False`` is the per-robot filter alone.
     negotiate_gap : float
-        Gap [m] (distance less the two radii) below which a robot touches a triggered robot
-        and joins its negotiation group, in ``[0, sensing_range]`` (default 0.1).
+        Gap [m] (distance less the two radii) below which two robots touch, in
+        ``[0, sensing_range]`` (default 0.1).
     decompose : bool
         With an exact solver (all but ``neural``): robots in no row are solved in
         closed form (a 2-variable box-constrained least squares each) and the QP

@@ -48,7 +48,7 @@ from aasoatt_env.safety.deadlock import (
     TriggerContext,
     rotation,
 )
-from aasoatt_env.safety.decentralized import decentralized_step, negotiators
+from aasoatt_env.safety.decentralized import decentralized_step, negotiation_rows
 from aasoatt_env.safety.decomposition import CentralAnswer, row_values, solve_centralized
 from aasoatt_env.safety.gatekeeper import BLEND_LEVELS, GateResult, _levels, _team_block
 from aasoatt_env.safety.inputs import MIN_BRAKING_ROOM, check_inputs, check_team, refuse_rows_beyond
@@ -279,8 +279,10 @@ class SafetyFilter:
         self._trigger = TRIGGERS[cfg.trigger]
         # the paper's rows of robot pairs in one compiled call (aasoatt_env.safety.rows_kernel)
         self._fused = cfg.compiled and cfg.barrier == "aasoatt" and not self._strategy.rotates_rows
+        # (the decentralised mode's is for its negotiation groups: the exact path first, SolverPolicy's docstring)
         self._solver = SolverPolicy(cfg.solver, active_set=cfg.active_set,
-                                    options={"iterations": cfg.neural_iterations}, compiled=cfg.compiled)
+                                    options={"iterations": cfg.neural_iterations}, compiled=cfg.compiled,
+                                    exact_first=cfg.mode == "decentralized")
         # the step from the rows on in one compiled call (aasoatt_env.safety.step_kernel), where every part
         # it runs is what this configuration runs: the fused rows, the centralised decomposition with the
         # compiled warm active set, a trigger that reads no pairs
@@ -494,12 +496,12 @@ class SafetyFilter:
                 cfg, A, v, geo, geo_p_true, pairs_out, m_obs + 1, gap_initial)
         rows = _Rows(ri, rj, pr, pairs_out, Gi, Gj, rhs, keys, barrier_min, gap_min, brute)
         pose = _axle_pose(team, p, theta) if cfg.backup else None
-        # the decentralised mode's negotiation groups (aasoatt_env.safety.decentralized): the triggered robots and
-        # the robots they touch
-        members = (negotiators(triggered, p, team.radius, ri, rj, cfg.negotiate_gap)
-                   if cfg.mode == "decentralized" and cfg.negotiate else None)
+        # the decentralised mode's negotiation groups (aasoatt_env.safety.decentralized): the rows of touching
+        # robots around the triggered ones, solved whole
+        whole = (negotiation_rows(triggered, p, team.radius, ri, rj, cfg.negotiate_gap)
+                 if cfg.mode == "decentralized" and cfg.negotiate else None)
         return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, obstacles, triggered, target,
-                                     _scale(team, lo, hi), members=members)
+                                     _scale(team, lo, hi), whole=whole)
 
     def _triggered(self, context: TriggerContext) -> np.ndarray:
         """``(N,)`` bool: the robots the deadlock strategy acts on at this step (none when it is off)."""
@@ -617,14 +619,14 @@ class SafetyFilter:
                          obstacles: tuple[np.ndarray, ...] | None, triggered: np.ndarray, target: np.ndarray,
                          scale: np.ndarray, *, answer: CentralAnswer | None = None, avoiding: np.ndarray | None = None,
                          quick: GateResult | None = None, tried: bool = False, kernel_parts: tuple | None = None,
-                         z_warm: np.ndarray | None = None, members: np.ndarray | None = None
+                         z_warm: np.ndarray | None = None, whole: np.ndarray | None = None
                          ) -> tuple[np.ndarray, FilterResult]:
         """The QP (unless ``answer`` is given, with its ``avoiding``), the backup layer and the result.
 
         ``pose``: the axle poses (None without the backup layer); ``quick``: the backup layer's first check,
         where the compiled step made it; ``tried``: the compiled step's decomposition ran on these rows and did
         not answer, ``kernel_parts`` what it handed on, ``z_warm`` the warm start it mapped onto them;
-        ``members``: the decentralised mode's negotiating robots.
+        ``whole``: the rows the decentralised mode's negotiation groups solve whole.
         """
         cfg, team = self.config, self._bound_team()
         n = team.n
@@ -634,9 +636,9 @@ class SafetyFilter:
         if answer is not None:
             ans = answer
         elif decentral:  # every robot its own QP over its halves of the rows: no team QP below
-            warm = members is not None and self._x is not None and bool(members.any())
+            warm = whole is not None and self._x is not None and bool(whole.any())
             ans = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, team.max_point_accel, scale=scale,
-                                     compiled=cfg.compiled, members=members, policy=self._solver,
+                                     compiled=cfg.compiled, whole=whole, policy=self._solver,
                                      x_warm=self._x.reshape(n, 2) if warm else None,  # type: ignore[union-attr]
                                      z_warm=self._map_warm(keys) if warm else None)
         else:
@@ -652,7 +654,8 @@ class SafetyFilter:
             message = (f"decentralized: {n - int(ans.grouped.sum())} local QPs"
                        + (f", {ans.n_relaxed} infeasible (relaxed)" if ans.n_relaxed else "")
                        + (f", {ans.n_groups} negotiation group(s) of {int(ans.grouped.sum())} robots (largest "
-                          f"{ans.largest_group}){'' if ans.group_status == 'solved' else ': ' + ans.group_status}"
+                          f"{ans.largest_group})"
+                          f"{'' if ans.group_status == 'solved' else ': ' + ans.group_status}"
                           if ans.n_groups else ""))
         else:
             du, x_full, z, eta = ans.du, ans.x, ans.z, ans.eta

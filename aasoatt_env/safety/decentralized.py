@@ -51,6 +51,33 @@ the least violation of each of its rows with the bounds hard
 loosened by it, and the loosened QP is solved exactly.  It is reported
 (:attr:`DecentralizedResult.infeasible`); the backup layer that runs after the
 QP in the filter keeps the team safe.
+
+**Negotiation groups** (``whole``; the filter's ``FilterConfig.negotiate``, on by
+default).  Split rows keep the team safe but cannot pick which of two alike robots
+goes first: in dense crowds robots stop against each other with every half-row
+met and nobody yielding (a deadlock the rotation of the deadlock strategy does not
+free; README: Decentralised filter).  The filter therefore lets the robots around
+a jam agree on one answer (:func:`negotiation_rows`): a robot the deadlock trigger
+flags negotiates, and so does every robot it touches; the row between two
+negotiating robots is kept whole, and the robots joined by such rows (a *group*, a
+connected component of them) solve their QP jointly, the centralised filter's QP
+restricted to them (:func:`~aasoatt_env.safety.decomposition.solve_centralized`),
+with their halves of every other row as in the split.  Every robot outside a
+group solves its own QP as above.  So every pair row is still met (whole by a
+group, or by its two halves), and with no robot triggered the step is the
+per-robot one exactly.  On real robots a group's QP is solved by one of its
+members from what the members send (the nominals the reciprocal split already
+exchanges, their states and inputs), or by a distributed QP method among them.
+A group's QP can be infeasible where the team's is not (the halves it keeps of
+rows to robots outside it box it in, as a lone robot's can): it is answered as
+the centralised filter answers an infeasible team, by its least-violation point
+(status ``"relaxed"``), and the backup layer keeps the team safe.  (Widening such
+a group to its whole connected component of rows instead made the dense scenes'
+slowest steps slower, README.)  A group's size is not bounded: where a whole crowd
+is jammed (the paper's circle swaps, dense random scenes) it is the crowd, and the
+step there is the centralised one (:attr:`DecentralizedResult.largest_group`).
+Rows between touching robots only (a tighter rule) left more robots short of their
+goals, with more infeasible group QPs (README).
 """
 
 from __future__ import annotations
@@ -65,7 +92,7 @@ from aasoatt_env.safety.problem import box_least_squares
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers.local import RELAX_TOL, solve_local_qps
 
-__all__ = ["SPLITS", "DecentralizedResult", "SplitRows", "decentralized_step", "negotiators", "split_rows"]
+__all__ = ["SPLITS", "DecentralizedResult", "SplitRows", "decentralized_step", "negotiation_rows", "split_rows"]
 
 SPLITS: tuple[str, ...] = ("reciprocal", "authority")
 """Ways of sharing a pair row (module docstring)."""
@@ -191,16 +218,19 @@ class DecentralizedResult(NamedTuple):
     grouped: np.ndarray
     """``(N,)``: the robot's answer is its negotiation group's (module docstring), not its own QP's."""
     n_groups: int
-    """Negotiation groups of two or more robots solved (0 without ``members``)."""
+    """Negotiation groups solved (0 without ``whole`` rows)."""
     largest_group: int
     """Robots in the largest of them (0 without)."""
     group_status: str
     """The groups' QP status (``"solved"``, ``"relaxed"`` or ``"failed"``; ``"solved"`` without groups)."""
 
 
-def negotiators(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, ri: np.ndarray, rj: np.ndarray,
-                gap: float) -> np.ndarray:
-    """The robots that negotiate (module docstring): the triggered ones and every robot they touch.
+def negotiation_rows(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, ri: np.ndarray, rj: np.ndarray,
+                     gap: float) -> np.ndarray:
+    """The rows the negotiation groups solve whole (module docstring): every robot row between two negotiating robots.
+
+    A robot negotiates when the deadlock trigger flags it or it touches a robot the trigger flags;
+    two robots touch when their gap (distance less the two radii) is below ``gap``.
 
     Parameters
     ----------
@@ -209,27 +239,29 @@ def negotiators(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, ri: np
     p : numpy.ndarray
         Control-point positions ``(N, 2)``.
     radius : numpy.ndarray
-        Robot radii ``(N,)`` (a pair touches at ``radius_i + radius_j``).
+        Robot radii ``(N,)``.
     ri, rj : numpy.ndarray
-        Robots of each row ``(M,)``; ``rj = -1`` for obstacle rows (ignored).
+        Robots of each row ``(M,)``; ``rj = -1`` for obstacle rows (never whole: an obstacle row is its robot's).
     gap : float
-        A robot with a row to a triggered robot joins when their gap (distance less the radii) is below this [m].
+        Touching gap [m].
 
     Returns
     -------
     numpy.ndarray
-        ``(N,)`` bool.
+        ``(M,)`` bool.
     """
-    member = np.array(triggered, dtype=bool, copy=True)
-    if not member.any() or ri.shape[0] == 0:
-        return member
+    whole = np.zeros(ri.shape[0], dtype=bool)
+    if ri.shape[0] == 0 or not triggered.any():
+        return whole
     rob = np.flatnonzero(rj >= 0)
     a, b = ri[rob], rj[rob]
     d = p[a] - p[b]
-    close = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) - (radius[a] + radius[b]) < gap
-    member[b[close & triggered[a]]] = True
-    member[a[close & triggered[b]]] = True
-    return member
+    touch = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]) - (radius[a] + radius[b]) < gap
+    member = np.array(triggered, dtype=bool, copy=True)
+    member[b[touch & triggered[a]]] = True
+    member[a[touch & triggered[b]]] = True
+    whole[rob] = member[a] & member[b]
+    return whole
 
 
 def decentralized_step(
@@ -247,7 +279,7 @@ def decentralized_step(
     split: str = "reciprocal",
     scale: np.ndarray | None = None,
     compiled: bool = False,
-    members: np.ndarray | None = None,
+    whole: np.ndarray | None = None,
     policy: SolverPolicy | None = None,
     x_warm: np.ndarray | None = None,
     z_warm: np.ndarray | None = None,
@@ -282,11 +314,11 @@ def decentralized_step(
         Solve the robots' QPs in the compiled kernel (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`),
         and their closed forms of the reciprocal split
         (:func:`~aasoatt_env.safety.problem.box_least_squares`, the same numbers).
-    members : numpy.ndarray, optional
-        ``(N,)`` bool: the robots that negotiate (:func:`negotiators`); the rows between two of them are
-        solved whole, jointly (module docstring).  None or none set: every robot alone.
+    whole : numpy.ndarray, optional
+        ``(M,)`` bool: robot-robot rows the negotiation groups solve whole, jointly (:func:`negotiation_rows`;
+        module docstring).  None or none set: every robot alone.
     policy : SolverPolicy, optional
-        The solver of the groups' QPs (the centralised filter's); required with ``members``.
+        The solver of the groups' QPs (the centralised filter's); required with ``whole``.
     x_warm, z_warm : numpy.ndarray, optional
         Where the groups' solver starts: a scaled point ``(N, 2)`` (``du / scale``; default each robot's
         box-clipped least squares) and a multiplier of each row ``(M,)`` in the units of
@@ -325,16 +357,16 @@ def decentralized_step(
     du = np.minimum(np.maximum(du, lo), hi)
     grouped = np.zeros(n, dtype=bool)
     joint = None
-    if members is not None and members.any():
+    if whole is not None and whole.any():
         if policy is None:
-            raise ValueError("policy: the negotiation groups' solver is required with members")
+            raise ValueError("policy: the negotiation groups' solver is required with whole rows")
         if du0 is None:
             du0 = box_least_squares(A, target, lo, hi, compiled=compiled)
         x0 = du0 / scale[:, None] if x_warm is None else x_warm
         joint, grouped, group_ans, n_groups, largest = _groups(A, target, lo, hi, scale, x0, z_warm, ri, rj, Gi, Gj,
-                                                               rhs, sp, members, policy, compiled)
+                                                               rhs, sp, whole, policy, compiled)
         if grouped.any():
-            lam = np.where(grouped[sp.owner], 0.0, lam)  # the members' own QPs are not what they apply
+            lam = np.where(grouped[sp.owner], 0.0, lam)  # the grouped robots' own QPs are not what they apply
             if (infeasible & grouped).any():
                 infeasible &= ~grouped
                 slack = _half_slack(sp, sol.x, infeasible)
@@ -394,17 +426,16 @@ class _GroupAnswer(NamedTuple):
 
 def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, x0: np.ndarray,
             z0: np.ndarray | None, ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray,
-            sp: SplitRows, members: np.ndarray, policy: SolverPolicy,
+            sp: SplitRows, whole: np.ndarray, policy: SolverPolicy,
             compiled: bool) -> tuple[np.ndarray, np.ndarray, _GroupAnswer, int, int]:
-    """The negotiation groups' QP: the members' whole rows among them and their halves of the others.
+    """The negotiation groups' QP: the whole rows, and the grouped robots' halves of the others.
 
-    Returns the whole rows (indices into the rows), the robots answered by a group (members in a whole
+    Returns the whole rows (indices into the rows), the robots answered by a group (those in a whole
     row), the answer (its ``du`` in the order of those robots; multipliers of the whole rows, then of
     the kept halves ``kept``, indices into ``sp``), the number of groups and the largest one's size.
     """
     n, m = A.shape[0], ri.shape[0]
-    rob = rj >= 0
-    whole = rob & members[ri] & members[np.where(rob, rj, 0)]
+    whole = whole & (rj >= 0)  # (an obstacle row is its robot's)
     joint = np.flatnonzero(whole)
     grouped = np.zeros(n, dtype=bool)
     grouped[ri[joint]] = True

@@ -229,14 +229,22 @@ class SolverPolicy:
         Back-end options (e.g. ``iterations`` of ``neural``).
     compiled : bool
         Run the warm active set in its compiled kernel (:mod:`aasoatt_env.compiled`).
+    exact_first : bool
+        Always take the exact path first (the warm active set, then ``ldp``, up to its size limit;
+        the back-end only where both fail), not only on small problems or after a stall.  The
+        decentralised filter's negotiation groups use it: their QPs change shape from step to
+        step, and proxsuite 0.8's sparse class (problems with more than
+        :data:`~aasoatt_env.safety.solvers.backends.DENSE_MAX_SIZE` variables and rows) crashed
+        the process on one of them (an 81-robot group, feasible: ``ldp`` and Clarabel solve it).
     """
 
     def __init__(self, solver: str, active_set: bool = False, options: dict | None = None,
-                 compiled: bool = False) -> None:
+                 compiled: bool = False, exact_first: bool = False) -> None:
         self.solver = solver
         self.backend = get_solver(solver)
         self.active_set = bool(active_set)
         self.compiled = bool(compiled)
+        self.exact_first = bool(exact_first)
         self.options = dict(options or {})
         self.reset()
 
@@ -313,7 +321,7 @@ class SolverPolicy:
         return False
 
     def _on_exact_path(self, n_vars: int) -> bool:
-        return self._exact_steps > 0 or n_vars <= EXACT_FIRST_VARS
+        return self.exact_first or self._exact_steps > 0 or n_vars <= EXACT_FIRST_VARS
 
     def _count(self, prob: QPProblem, sol: QPSolution) -> None:
         """The switch state after a call the active set answered without :meth:`_solve` (as if through it)."""
