@@ -512,7 +512,8 @@ def test_negotiation_groups_answer_their_rows_whole_as_a_dense_solver_does(compi
     from aasoatt_env.model.geometry import pair_components
     from aasoatt_env.safety.solvers import SolverPolicy
 
-    team, A, target, lo, hi, ri, rj, Gi, Gj, rhs = _scene(100, 2.0, 3.0, obstacles=True)
+    # a grid 1.4 m apart under large nominals: rows bind, some lone robots' own QPs are infeasible
+    team, A, target, lo, hi, ri, rj, Gi, Gj, rhs = _scene(100, 1.4, 30.0, seed=1, obstacles=True)
     auth = team.max_point_accel
     # three patches of the grid negotiate: every robot row among robots 0-2 and 10-12 (one group), 55-56, and
     # an obstacle row of robot 99 (never whole)
@@ -520,30 +521,36 @@ def test_negotiation_groups_answer_their_rows_whole_as_a_dense_solver_does(compi
     patch[[0, 1, 2, 10, 11, 12, 55, 56, 99]] = True
     whole = patch[ri] & patch[np.maximum(rj, 0)]
     assert (whole & (rj < 0)).any()
-    policy = SolverPolicy("proxsuite", compiled=compiled)
+    # the filter's settings for its groups
+    policy = SolverPolicy("proxsuite", active_set=True, compiled=compiled, exact_first=True)
     res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, compiled=compiled, whole=whole,
                              policy=policy)
     alone = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, compiled=compiled)
     grouped, sub, ref, whole = _group_reference(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, whole & (rj >= 0))
     assert whole.any() and grouped.sum() == 8
     np.testing.assert_array_equal(res.grouped, grouped)
+    assert res.group_status == "solved"
+    assert (res.z_half[whole] > 1e-6).any()  # the group's rows bind: its QP is solved, not its robots' box answers
     scale = np.max(np.maximum(np.abs(lo), np.abs(hi)), axis=1)
     assert np.max(np.abs(res.du[sub] - ref) / scale[sub, None]) <= 1e-6
-    # every other robot: its own QP's answer, as without groups
+    # every other robot: its own QP's answer, as without groups (some of them relaxed)
     np.testing.assert_array_equal(res.du[~grouped], alone.du[~grouped])
+    assert res.n_relaxed == int((alone.infeasible & ~grouped).sum()) > 0
+    assert not res.infeasible[grouped].any()
     # the groups: components of the whole rows
     lab = pair_components(sub.size, np.searchsorted(sub, ri[whole]), np.searchsorted(sub, rj[whole]))
     sizes = np.bincount(lab)
     assert res.n_groups == int((sizes >= 2).sum()) and res.largest_group == int(sizes.max())
-    assert res.group_status == "solved" and res.n_relaxed == 0
-    # every pair row holds (whole rows by the groups, split rows by their halves)
+    # the whole rows hold jointly; a binding whole row marks both of its robots (the deadlock memory reads z_half)
     du = res.du
     lhs = np.einsum("pi,pi->p", Gi, du[ri]) + np.where(rj >= 0, np.einsum("pi,pi->p", Gj, du[np.maximum(rj, 0)]),
                                                         0.0)
-    assert np.all(lhs <= rhs + 1e-7 * (1 + np.abs(rhs)))
-    # a binding whole row marks both of its robots (the filter's deadlock memory reads z_half)
-    both_sides = whole & (res.z_half[:, 0] > 1e-6)
-    np.testing.assert_array_equal(res.z_half[both_sides, 0], res.z_half[both_sides, 1])
+    assert np.all(lhs[whole] <= rhs[whole] + 1e-7 * (1 + np.abs(rhs[whole])))
+    np.testing.assert_array_equal(res.z_half[whole, 0], res.z_half[whole, 1])
+    # warm-started from this answer (as the filter does at the next step): the same optimum
+    warm = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, compiled=compiled, whole=whole | (
+        patch[ri] & (rj < 0)), policy=policy, x_warm=res.du / scale[:, None], z_warm=res.z)
+    assert np.max(np.abs(warm.du[sub] - ref) / scale[sub, None]) <= 1e-6
 
 
 def test_negotiation_needs_its_solver():
@@ -553,24 +560,28 @@ def test_negotiation_needs_its_solver():
 
 
 def test_without_triggered_robots_negotiation_changes_nothing():
-    """No robot triggered (deadlock strategy off): the step is the per-robot one, bit for bit."""
+    """The default deadlock strategy, a step where nobody is triggered yet (the first): the step is the per-robot
+    one, bit for bit, every field; a later step of the same crowd with robots triggered does negotiate."""
     from aasoatt_env.safety.core import SafetyFilter
 
     rng = np.random.default_rng(4)
     team = make_team("paper", 30)
-    side = 6
-    p = np.stack(np.meshgrid(np.arange(side), np.arange(5)), -1).reshape(-1, 2)[:30] * 1.05
+    p = np.stack(np.meshgrid(np.arange(6), np.arange(5)), -1).reshape(-1, 2)[:30] * 1.05
     pose = pose_from_point(team, p + rng.uniform(-0.02, 0.02, p.shape), rng.uniform(-np.pi, np.pi, 30))
     u = rng.uniform(2, 8, (30, 2))
     kin = kinematics(team, pose, u)
     lo, hi = input_bounds(team, u, 0.005)
     nom = rng.uniform(-30, 30, (30, 2))
-    outs = []
-    for negotiate in (True, False):
-        f = SafetyFilter(team, mode="decentralized", deadlock="none", negotiate=negotiate)
-        outs.append(f.step(kin, u, pose[:, 2], nom, lo, hi))
-    np.testing.assert_array_equal(outs[0][0], outs[1][0])
-    assert "negotiation" not in outs[0][1].message
+    ref = (kin.p + rng.uniform(-3, 3, (30, 2)), rng.uniform(-1, 1, (30, 2)))
+    filters = [SafetyFilter(team, mode="decentralized", negotiate=negotiate) for negotiate in (True, False)]
+    outs = [f.step(kin, u, pose[:, 2], nom, lo, hi, reference=ref)[1] for f in filters]
+    assert not outs[0].triggered.any()
+    for name in ("du", "eta", "avoiding", "backup", "correction", "pairs"):
+        np.testing.assert_array_equal(getattr(outs[0], name), getattr(outs[1], name), err_msg=name)
+    for name in ("status", "message", "slack", "margin", "iterations", "n_rows", "n_qp_rows"):
+        assert getattr(outs[0], name) == getattr(outs[1], name), name
+    second = filters[0].step(kin, u, pose[:, 2], nom, lo, hi, reference=ref)[1]
+    assert second.triggered.any() and "negotiation group" in second.message
 
 
 @pytest.mark.parametrize(("kw", "match"), [({"negotiate_gap": -0.1}, "negotiate_gap"),

@@ -123,7 +123,8 @@ class FilterConfig:
         negotiating robots are solved whole, jointly, by the negotiation groups they join
         (:mod:`aasoatt_env.safety.decentralized`); every other robot solves its own QP.
         Without it, alike robots that block each other in a crowd can stop for good (README:
-        Decentralised filter).  On by default; ``False`` is the per-robot filter alone.
+        Decentralised filter).  On by default; ``False`` is the per-robot filter alone.  It
+        acts only through the trigger, so with ``deadlock="none"`` nobody negotiates.
     negotiate_gap : float
         Gap [m] (distance less the two radii) below which two robots touch, in
         ``[0, sensing_range]`` (default 0.1).

@@ -671,7 +671,8 @@ class SafetyFilter:
                 avoiding[ri[active]] = True
                 avoiding[rj[active & (rj >= 0)]] = True
         self._remember(x_full, z, rows, avoiding)
-        exact = decentral or self._solver.exact
+        # (the decentralised local solver is exact; a negotiation group's answer is its solver's)
+        exact = self._solver.exact or (decentral and not ans.grouped.any())  # type: ignore[union-attr]
         slack = 0.0
         if status != "solved" or not exact:  # (a solved exact answer meets every row: nothing to measure)
             slack = float(max(0.0, np.max(row_values(Gi, Gj, ri, rj, du) - rhs, initial=0.0)))

@@ -206,13 +206,16 @@ class DecentralizedResult(NamedTuple):
     z_half: np.ndarray
     """``z`` of each half ``(M, 2)``."""
     infeasible: np.ndarray
-    """``(N,)``: the robot's own QP was infeasible (answered with its least-violation point)."""
+    """``(N,)``: the robot answered alone and its own QP was infeasible (answered with its least-violation
+    point); a robot in a negotiation group is False here (the group's status is ``group_status``)."""
     n_relaxed: int
-    """Robots whose rows were loosened (``infeasible.sum()``)."""
+    """Robots answered alone whose rows were loosened (``infeasible.sum()``)."""
     slack: float
-    """Largest violation of a half-row by ``du`` [eqn.8 units]; 0 when every robot's QP was feasible."""
+    """Largest violation of a half-row of those robots by ``du`` [eqn.8 units]; 0 when every lone robot's
+    QP was feasible (a relaxed group's violation is not in it: the filter measures the pair rows then)."""
     iterations: int
-    """Active-set iterations of the local solver (largest over the robots)."""
+    """Active-set iterations: the local solver's (largest over the robots), or the groups' solver's where
+    that is larger."""
     n_enumerated: int
     """Robots the local solver answered by exact enumeration."""
     grouped: np.ndarray
