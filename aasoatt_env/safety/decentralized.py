@@ -233,7 +233,8 @@ def negotiation_rows(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, r
     """The rows the negotiation groups solve whole (module docstring): every robot row between two negotiating robots.
 
     A robot negotiates when the deadlock trigger flags it or it touches a robot the trigger flags;
-    two robots touch when their gap (distance less the two radii) is below ``gap``.
+    two robots touch when they share a row and their gap (distance less the two radii) is below
+    ``gap`` (a barrier that drops the rows of receding pairs, ``gated_distance``, drops them here too).
 
     Parameters
     ----------
