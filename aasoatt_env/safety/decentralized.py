@@ -361,6 +361,8 @@ def decentralized_step(
     du = np.minimum(np.maximum(du, lo), hi)
     grouped = np.zeros(n, dtype=bool)
     joint = None
+    if whole is not None:
+        whole = whole & (rj >= 0)  # (an obstacle row is its robot's: never whole)
     if whole is not None and whole.any():
         if policy is None:
             raise ValueError("policy: the negotiation groups' solver is required with whole rows")
@@ -369,14 +371,11 @@ def decentralized_step(
         x0 = du0 / scale[:, None] if x_warm is None else x_warm
         joint, grouped, group_ans, n_groups, largest = _groups(A, target, lo, hi, scale, x0, z_warm, ri, rj, Gi, Gj,
                                                                rhs, sp, whole, policy, compiled)
-        if grouped.any():
-            lam = np.where(grouped[sp.owner], 0.0, lam)  # the grouped robots' own QPs are not what they apply
-            if (infeasible & grouped).any():
-                infeasible &= ~grouped
-                slack = _half_slack(sp, sol.x, infeasible)
-            du[grouped] = group_ans.du
-        else:
-            joint = None
+        lam = np.where(grouped[sp.owner], 0.0, lam)  # the grouped robots' own QPs are not what they apply
+        if (infeasible & grouped).any():
+            infeasible &= ~grouped
+            slack = _half_slack(sp, sol.x, infeasible)
+        du[grouped] = group_ans.du
     n_relaxed = int(infeasible.sum())
     # multipliers back on the pair rows; z: scaled (x = du / s), unit-norm row, objective / sigma
     nz = np.flatnonzero(lam)
@@ -432,14 +431,13 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
             z0: np.ndarray | None, ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray,
             sp: SplitRows, whole: np.ndarray, policy: SolverPolicy,
             compiled: bool) -> tuple[np.ndarray, np.ndarray, _GroupAnswer, int, int]:
-    """The negotiation groups' QP: the whole rows, and the grouped robots' halves of the others.
+    """The negotiation groups' QP: the whole rows (robot rows only), and the grouped robots' halves of the others.
 
     Returns the whole rows (indices into the rows), the robots answered by a group (those in a whole
     row), the answer (its ``du`` in the order of those robots; multipliers of the whole rows, then of
     the kept halves ``kept``, indices into ``sp``), the number of groups and the largest one's size.
     """
     n, m = A.shape[0], ri.shape[0]
-    whole = whole & (rj >= 0)  # (an obstacle row is its robot's)
     joint = np.flatnonzero(whole)
     grouped = np.zeros(n, dtype=bool)
     grouped[ri[joint]] = True
