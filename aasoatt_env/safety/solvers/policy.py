@@ -45,10 +45,11 @@ from aasoatt_env.safety.solvers.active_set import (
     solve_active_set,
     solve_active_set_parts,
 )
-from aasoatt_env.safety.solvers.backends import Backend, RawAnswer, available_solvers, get_solver
+from aasoatt_env.safety.solvers.backends import SOLVERS, Backend, RawAnswer, available_solvers, get_solver
 from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
 
-__all__ = ["EXACT_FIRST_VARS", "EXACT_STEPS", "SLOW_SOLVE_S", "QPSolution", "SolverPolicy", "solve_qp"]
+__all__ = ["EXACT_FIRST_VARS", "EXACT_SOLVERS", "EXACT_STEPS", "PHASE1_LDP_MAX_VARS", "PHASE1_SOLVERS",
+           "SLOW_SOLVE_S", "QPSolution", "SolverPolicy", "solve_qp"]
 
 _FEAS_TOL = 1e-7
 
@@ -57,12 +58,23 @@ EXACT_STEPS: int = 200
 or a slow solve: a back-end that stalls on a congested problem (proxsuite on a 60-robot
 circle swap) stalls on the next ones too, and each stall costs its whole iteration
 budget.  Doubled on each repeated switch (up to 16x)."""
+EXACT_SOLVERS: tuple[str, ...] = ("ldp",)
+"""The exact path's solvers after the warm active set, in order (where installed; :class:`SolverPolicy`'s
+``exact_solvers``)."""
 EXACT_FIRST_VARS: int = 100
 """Problems with up to this many variables (50 robots in one coupled group) take the exact path
 first (warm active set, then ``ldp``; the back-end only if both fail): ``ldp`` is exact, proves
 infeasibility (where an augmented Lagrangian only runs out of iterations) and is fast at this size."""
 SLOW_SOLVE_S: float = 0.05
 """A solve slower than this [s] triggers the ``ldp`` timing probe."""
+PHASE1_LDP_MAX_VARS: int = 120
+"""Phase-1 problems (the variables and one slack per row) up to this size go to ``ldp`` first (with a
+back-end that may stall), larger ones to :data:`PHASE1_SOLVERS` first: ``ldp``'s NNLS slows down
+sharply on the phase-1 problem, whose 1e-8 regulariser conditions it badly (0.8 ms at 44 variables,
+220-311 ms at 226-254, where DAQP took 0.9 ms, Clarabel 5.7 and proxsuite 11-34 with 20-50% of them
+unanswered; infeasible negotiation groups of 30-40 robots, 2026-12-02)."""
+PHASE1_SOLVERS: tuple[str, ...] = ("daqp", "clarabel")
+"""Solvers preferred for large phase-1 problems, where installed (``pip install "aasoatt[fast]"``), in order."""
 
 
 @dataclass
@@ -103,14 +115,39 @@ def _answer(prob: QPProblem, backend: Backend, x0: np.ndarray | None, z0: np.nda
     return RawAnswer(raw.x, raw.z, False, iterations, ", then ".join(messages), raw.stalled), False
 
 
-def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, np.ndarray] | None:
+def _exact(prob: QPProblem, names: tuple[str, ...], x0: np.ndarray | None, z0: np.ndarray | None,
+           opts: dict) -> RawAnswer:
+    """The exact path's answer: the first installed of ``names`` that answers or proves the rows inconsistent.
+
+    Each is asked with ``exact_path=True``: a back-end whose answers are not verified by construction
+    then returns only a point that meets the KKT conditions (DAQP: polished by the warm active set).
+    """
+    installed = available_solvers()
+    raw, messages = RawAnswer(None, None, False, 0, f"none of {list(names)} installed"), []
+    for name in names:
+        if name not in installed:
+            continue
+        raw = get_solver(name)(prob, x0, z0, {**opts, "exact_path": True})
+        messages.append(raw.message if raw.message.startswith(name) else f"{name}: {raw.message}")
+        if raw.ok or raw.infeasible:
+            break
+    if messages:
+        raw.message = ", then ".join(messages)
+    return raw
+
+
+def _phase1(prob: QPProblem, solver: str, opts: dict) -> tuple[np.ndarray, np.ndarray] | None:
     """Least row violations ``s* >= 0`` (one slack per row, bounds hard); None if even this fails.
 
     Solves ``min 0.5 |s|^2 (+ a 1e-8 regulariser on x)  s.t.  C x - s <= u, lb <= x <= ub``.
     A slack per row means one hopeless row (say a pair already inside ``d_s``) is
     loosened alone: every row that can still be met keeps (numerically) zero slack.
+    Solved by the first of these that answers: small problems by ``ldp`` (where ``solver``
+    may stall), ``solver``, then Clarabel; large ones (:data:`PHASE1_LDP_MAX_VARS`) by the
+    installed :data:`PHASE1_SOLVERS`, ``solver``, then ``ldp``.
     """
     n, m = prob.n, prob.m
+    backend = get_solver(solver)
     reg = 1e-8
     pad = m % 2  # keep 2x2 Hessian blocks
     ns = m + pad
@@ -133,14 +170,19 @@ def _phase1(prob: QPProblem, backend: Backend, opts: dict) -> tuple[np.ndarray, 
     )
     # the phase-1 point is only used through its recomputed violations: an exact solver's
     # point is accepted at a looser feasibility (the 1e-8 regulariser conditions it badly)
-    # small phase-1 problems of a back-end that may stall go to the exact ldp solver first
-    first = get_solver("ldp") if backend.may_stall and p1.n <= LDP_MAX_VARS else backend
-    raw, _ = _answer(p1, first, None, None, {**opts, "ldp_feas_tol": 1e-6})
-    if (not raw.ok or raw.x is None) and first is not backend:
-        raw, _ = _answer(p1, backend, None, None, opts)
-    if (not raw.ok or raw.x is None) and "clarabel" in available_solvers() and backend is not get_solver("clarabel"):
-        raw = get_solver("clarabel")(p1, None, None, opts)
-    if not raw.ok or raw.x is None:
+    installed = available_solvers()
+    if p1.n <= PHASE1_LDP_MAX_VARS:  # small: the exact ldp solver first where the back-end may stall
+        order = (["ldp"] if backend.may_stall else []) + [solver, "clarabel"]
+    else:  # large: ldp's NNLS is slow on this problem (PHASE1_LDP_MAX_VARS); the preferred solvers first
+        order = [*PHASE1_SOLVERS, solver] + (["ldp"] if p1.n <= LDP_MAX_VARS else [])
+    raw = None
+    for name in dict.fromkeys(order):  # in order, each once
+        if name not in installed:
+            continue
+        raw, _ = _answer(p1, get_solver(name), None, None, {**opts, "ldp_feas_tol": 1e-6} if name == "ldp" else opts)
+        if raw.ok and raw.x is not None:
+            break
+    if raw is None or not raw.ok or raw.x is None:
         return None
     x = np.clip(raw.x[:n], prob.lb, prob.ub)
     viol = np.maximum(prob.C @ x - prob.u, 0.0)
@@ -160,11 +202,15 @@ def solve_qp(
     ``step`` (``neural``), ``alternate`` (proxsuite's other class),
     ``active_set`` (first the warm-started exact active-set method),
     ``prefer_exact`` (first the warm active set, then ``ldp``, the back-end only
-    if both fail), ``compiled`` (the warm active set's compiled kernel,
-    :mod:`aasoatt_env.compiled`).
+    if both fail), ``exact_solvers`` (the exact path's solvers after the warm active
+    set, :data:`EXACT_SOLVERS` by default), ``compiled`` (the warm active set's compiled kernel,
+    :mod:`aasoatt_env.compiled`), ``one_change_iter`` (the warm active set's
+    one-change budget, :data:`~aasoatt_env.safety.solvers.active_set.ONE_CHANGE_ITER`).
     """
     tried = bool(opts.pop("active_set_tried", False))  # the caller ran it on this very warm start
     compiled = bool(opts.pop("compiled", False))
+    budget = opts.pop("one_change_iter", None)
+    exact = tuple(opts.pop("exact_solvers", EXACT_SOLVERS))
     backend = get_solver(solver)
     t0 = time.perf_counter()
     if prob.m == 0 and prob.diagonal and backend.exact:
@@ -176,13 +222,13 @@ def solve_qp(
                           exact=False)
     exact_first = bool(opts.get("prefer_exact")) and prob.n <= LDP_MAX_VARS
     if x0 is not None and z0 is not None and (opts.get("active_set") or exact_first) and not tried:
-        fast = solve_active_set(prob, x0, z0, compiled=compiled)
+        fast = solve_active_set(prob, x0, z0, compiled=compiled, one_change_iter=budget)
         if fast is not None:
             return QPSolution(fast[0], fast[1], "solved", 0.0, fast[2], VERIFIED_MESSAGE,
                               time.perf_counter() - t0)
     raw = None
     if exact_first:
-        raw = get_solver("ldp")(prob, x0, z0, opts)
+        raw = _exact(prob, exact, x0, z0, opts)
         if raw.ok:
             return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, 0,
                               f"{raw.message}; {solver} skipped (prefer_exact)", time.perf_counter() - t0)
@@ -193,7 +239,7 @@ def solve_qp(
         return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message,
                           time.perf_counter() - t0, used_fallback)
     first = raw.message
-    p1 = _phase1(prob, backend, opts)
+    p1 = _phase1(prob, solver, opts)
     if p1 is None:
         x = np.clip(_unconstrained(prob), prob.lb, prob.ub)
         return QPSolution(x, np.zeros(prob.m), "failed", 0.0, raw.iterations,
@@ -204,7 +250,7 @@ def solve_qp(
     loosen = viol * (1.0 + 1e-6) + _FEAS_TOL
     p2 = QPProblem(prob.H_blocks, prob.g, prob.C, prob.u + loosen, prob.lb, prob.ub, prob.scale,
                    prob.obj_scale, prob.row_norm, prob.diagonal)
-    raw2, fb2 = _answer(p2, get_solver("ldp") if exact_first else backend, x1, None, opts)
+    raw2, fb2 = (_exact(p2, exact, x1, None, opts), False) if exact_first else _answer(p2, backend, x1, None, opts)
     if not raw2.ok and exact_first:
         raw2, fb2 = _answer(p2, backend, x1, None, opts)
     status = "relaxed" if relaxed else "solved"
@@ -236,15 +282,28 @@ class SolverPolicy:
         step, and proxsuite 0.8's sparse class (problems with more than
         :data:`~aasoatt_env.safety.solvers.backends.DENSE_MAX_SIZE` variables and rows) crashed
         the process on one of them (an 81-robot group, feasible: ``ldp`` and Clarabel solve it).
+    one_change_iter : int, optional
+        The warm active set's one-change budget (None:
+        :data:`~aasoatt_env.safety.solvers.active_set.ONE_CHANGE_ITER`).
+    exact_solvers : tuple of str
+        The exact path's solvers after the warm active set, in order, where installed
+        (:data:`EXACT_SOLVERS` by default; ``ldp`` is always installed).
     """
 
     def __init__(self, solver: str, active_set: bool = False, options: dict | None = None,
-                 compiled: bool = False, exact_first: bool = False) -> None:
+                 compiled: bool = False, exact_first: bool = False, one_change_iter: int | None = None,
+                 exact_solvers: tuple[str, ...] = EXACT_SOLVERS) -> None:
         self.solver = solver
         self.backend = get_solver(solver)
         self.active_set = bool(active_set)
         self.compiled = bool(compiled)
         self.exact_first = bool(exact_first)
+        self.one_change_iter = None if one_change_iter is None else int(one_change_iter)
+        for name in exact_solvers:
+            if name not in SOLVERS or not SOLVERS[name].exact:
+                raise UsageError(f"exact_solvers: {name!r} is not a registered exact solver; "
+                                 f"registered: {[k for k, b in SOLVERS.items() if b.exact]}")
+        self.exact_solvers = tuple(exact_solvers)
         self.options = dict(options or {})
         self.reset()
 
@@ -273,8 +332,8 @@ class SolverPolicy:
         if (groups is not None and self.active_set and self.backend.exact and x0 is not None and z0 is not None
                 and int(np.max(groups, initial=0)) > 0):
             t0 = time.perf_counter()
-            part = parts if parts is not None else solve_active_set_parts(prob, x0, z0, groups,
-                                                                          compiled=self.compiled)
+            part = parts if parts is not None else solve_active_set_parts(
+                prob, x0, z0, groups, compiled=self.compiled, one_change_iter=self.one_change_iter)
             if part is not None:
                 return self._rest(prob, x0, z0, groups, part, t0)
         return self._solve(prob, x0, z0)
@@ -302,7 +361,8 @@ class SolverPolicy:
                           rest.fallback, rest.exact)
 
     def _solve(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, **extra: bool) -> QPSolution:
-        opts = {**self.options, **extra, "compiled": self.compiled}
+        opts = {**self.options, **extra, "compiled": self.compiled, "one_change_iter": self.one_change_iter,
+                "exact_solvers": self.exact_solvers}
         if self.active_set:
             opts["active_set"] = True
         if not self.backend.may_stall:
