@@ -179,7 +179,8 @@ def _phase1(prob: QPProblem, solver: str, opts: dict) -> tuple[np.ndarray, np.nd
     for name in dict.fromkeys(order):  # in order, each once
         if name not in installed:
             continue
-        raw, _ = _answer(p1, get_solver(name), None, None, {**opts, "ldp_feas_tol": 1e-6} if name == "ldp" else opts)
+        extra = {"ldp_feas_tol": 1e-6} if name == "ldp" else {} if name == solver else {"simple_bounds": True}
+        raw, _ = _answer(p1, get_solver(name), None, None, {**opts, **extra})
         if raw.ok and raw.x is not None:
             break
     if raw is None or not raw.ok or raw.x is None:
