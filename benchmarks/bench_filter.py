@@ -66,7 +66,7 @@ from aasoatt_env.errors import ConfigError  # noqa: E402
 from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics, pose_from_point  # noqa: E402
 from aasoatt_env.model.params import make_team  # noqa: E402
 from aasoatt_env.safety import SafetyFilter  # noqa: E402
-from aasoatt_env.safety.solvers import available_solvers  # noqa: E402
+from aasoatt_env.safety.solvers import available_solvers, policy  # noqa: E402
 from aasoatt_env.safety.solvers.backends import SOLVERS, Backend, RawAnswer  # noqa: E402
 from agents import TrackingController  # noqa: E402
 
@@ -154,9 +154,10 @@ def _kkt_polish(prob, x: np.ndarray, z_all: np.ndarray) -> tuple[np.ndarray, np.
     working set is the constraints whose multiplier exceeds a fraction of the largest (a few
     fractions are tried); ``[[H, A_W'], [A_W, 0]]`` is solved by a sparse LU of its copy with a
     1e-12 proximal shift and ten rounds of iterative refinement on the unshifted system; the point
-    is returned only where every row and bound holds within :data:`KKT_TOL`, every working multiplier
-    is ``>= -KKT_TOL`` and the Lagrangian gradient is within :data:`KKT_STATIONARY`: the KKT
-    conditions, which make it the QP's optimum (a convex QP).  ``x`` is not used beyond that check's
+    is returned only where every row and bound holds within :data:`KKT_TOL`, the working ones as
+    equalities (complementarity: only they carry multipliers), every working multiplier is
+    ``>= -KKT_TOL`` and the Lagrangian gradient is within :data:`KKT_STATIONARY`: the KKT
+    conditions, which make it the QP's optimum (a convex QP) to those tolerances.  ``x`` is not used beyond that check's
     working set: the polished point comes from the equalities alone.
     """
     n, m = prob.n, prob.m
@@ -181,7 +182,9 @@ def _kkt_polish(prob, x: np.ndarray, z_all: np.ndarray) -> tuple[np.ndarray, np.
         xp, zw = sol[:n], sol[n:]
         z = np.zeros(A.shape[0])
         z[idx] = zw
-        if (np.all(np.isfinite(sol)) and float(np.max((A @ xp - b)[finite], initial=0.0)) <= KKT_TOL
+        r = A @ xp - b
+        if (np.all(np.isfinite(sol)) and float(np.max(r[finite], initial=0.0)) <= KKT_TOL
+                and float(np.abs(r[idx]).max(initial=0.0)) <= KKT_TOL  # the working set met as equalities
                 and float(zw.min(initial=0.0)) >= -KKT_TOL
                 and float(np.abs(H @ xp + prob.g + A.T @ z).max(initial=0.0)) <= KKT_STATIONARY):
             return xp, np.maximum(z[:m], 0.0)
@@ -226,7 +229,11 @@ def _reference(team, seq, deadlock) -> tuple[list[np.ndarray], bool] | None:
         SOLVERS[solver] = Backend(_clarabel_kkt, "clarabel")  # the registry: one function, one line
     _POLISH_FAILED.clear()
     f = SafetyFilter(team, deadlock=deadlock, backup=False, solver=solver, decompose=False, active_set=False)
-    answers = [f.step(kin, u, th, nom, lo, hi, reference=ref)[0] for kin, u, th, nom, lo, hi, ref in seq]
+    preferred, policy.PHASE1_SOLVERS = policy.PHASE1_SOLVERS, ()  # phase 1 (relaxed steps) by the reference too,
+    try:  # not by the filter's preferred solvers
+        answers = [f.step(kin, u, th, nom, lo, hi, reference=ref)[0] for kin, u, th, nom, lo, hi, ref in seq]
+    finally:
+        policy.PHASE1_SOLVERS = preferred
     return answers, not _POLISH_FAILED
 
 

@@ -661,6 +661,42 @@ def test_negotiation_frees_a_crowd_the_split_rows_stop():
     assert gap >= -1e-9 and gap_alone >= -1e-9
 
 
+def test_the_groups_solver_gets_their_budget_and_exact_path(monkeypatch):
+    """The decentralised mode's policy (its negotiation groups') has GROUP_ONE_CHANGE_ITER and GROUP_EXACT_SOLVERS,
+    the centralised mode's the defaults; along a crowded episode with groups every warm active set of a group
+    runs with that budget (compiled decomposition or policy)."""
+    from aasoatt_env import make_env
+    from aasoatt_env.safety import core, decomposition
+    from aasoatt_env.safety.decentralized import GROUP_EXACT_SOLVERS, GROUP_ONE_CHANGE_ITER
+    from aasoatt_env.safety.solvers import policy
+    from agents import TrackingController
+
+    made = []
+
+    class Spy(policy.SolverPolicy):
+        def __init__(self, *a, **k):
+            super().__init__(*a, **k)
+            made.append((self.one_change_iter, self.exact_solvers))
+
+    monkeypatch.setattr(core, "SolverPolicy", Spy)
+    budgets = []
+    real_budget, real_parts = decomposition.one_change_budget, policy.solve_active_set_parts
+    monkeypatch.setattr(decomposition, "one_change_budget", lambda v: budgets.append(v) or real_budget(v))
+    monkeypatch.setattr(policy, "solve_active_set_parts",
+                        lambda *a, **k: budgets.append(k.get("one_change_iter")) or real_parts(*a, **k))
+    env = make_env("random_goals", num_robots=8, arena_size=4.5, random_obstacles=2,
+                   filter=FilterConfig(mode="decentralized"), max_steps=600)
+    obs, _ = env.reset(seed=0)
+    agent, grouped = TrackingController(), 0
+    for _ in range(600):
+        obs, *_ = env.step(agent.act(obs, env))
+        grouped += "negotiation group" in env.unwrapped.filter_outputs[-1].message
+    assert made[-1] == (GROUP_ONE_CHANGE_ITER, GROUP_EXACT_SOLVERS)
+    assert grouped > 10 and budgets and set(budgets) == {GROUP_ONE_CHANGE_ITER}, (grouped, set(budgets))
+    make_env("random_goals", num_robots=4, filter=FilterConfig(mode="centralized"))
+    assert made[-1] == (None, policy.EXACT_SOLVERS)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize(("n", "radius", "duration"), [(39, 6.0, 12.0), (60, 10.0, 20.0)])
 def test_the_paper_circles_get_home_decentralised(n, radius, duration):

@@ -695,33 +695,66 @@ def test_phase_one_is_asked_of_ldp_when_small_and_of_the_preferred_solvers_when_
     np.testing.assert_allclose(sol.x.reshape(n, 2), [[0.0, 0.25]] * n, atol=2e-6)  # (rows loosened by 1 + 1.1e-6)
     # the solvers asked for the phase-1 problem (n + m variables), in order
     names = [asked[k - 1][0] for k, (what, size) in enumerate(asked) if what == "answer" and size == p1_vars]
-    expected = "ldp" if first == "ldp" else next(s for s in (*pol.PHASE1_SOLVERS, "proxsuite")
-                                                 if s in backends.available_solvers())
+    preferred = [k for k, cap in pol.PHASE1_SOLVERS if cap is None or p1_vars <= cap]
+    installed = backends.available_solvers()
+    expected = "ldp" if first == "ldp" else next(k for k in (*preferred, "proxsuite") if k in installed)
     assert names[0] == expected
 
 
 @pytest.mark.skipif("daqp" not in backends.available_solvers(), reason="needs daqp")
-def test_the_exact_path_takes_daqps_answers_only_verified_and_its_proofs_of_infeasibility(monkeypatch):
-    """``exact_solvers=("daqp", "ldp")`` (the negotiation groups'): DAQP's answer, polished by the warm active set
-    (DAQP's rows hold to its 1e-6 primal tolerance), or its proof that the rows are inconsistent (then phase 1,
-    no ldp); an exact solver that is not registered is refused by name."""
+def test_the_exact_path_takes_answers_only_verified_and_daqps_proofs_of_infeasibility(monkeypatch):
+    """``exact_solvers=("daqp", "ldp")`` (the negotiation groups'): DAQP's answer is taken once the warm active set
+    verifies it (DAQP's rows hold to its 1e-6 primal tolerance), else ``ldp`` answers; DAQP's proof that the rows
+    are inconsistent goes to phase 1 without ``ldp``; bad values of the options are refused by name."""
     import aasoatt_env.safety.solvers.policy as pol
     from aasoatt_env.errors import UsageError
 
-    ok = _contradiction(3)
-    ok = type(ok)(ok.H_blocks, ok.g, ok.C, ok.u + np.tile([3.0, 0.0], 3), ok.lb, ok.ub, ok.scale, ok.obj_scale,
-                  ok.row_norm, ok.diagonal)  # 1 <= du_x <= 2: feasible, the target (0.5, 0.25) -> du = (1, 0.25)
+    base = _contradiction(3)
+    ok = type(base)(base.H_blocks, base.g, base.C, base.u + np.tile([3.0, 0.0], 3), base.lb, base.ub, base.scale,
+                    base.obj_scale, base.row_norm, base.diagonal)  # 1 <= du_x <= 2: the target (0.5, 0.25) -> (1, 0.25)
     sol = pol.solve_qp(ok, "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
     assert sol.status == "solved" and sol.message.startswith("daqp: exitflag 1 (KKT verified)")
     np.testing.assert_allclose(sol.x.reshape(3, 2), [[1.0, 0.25]] * 3, atol=1e-12)
+    with monkeypatch.context() as mp:  # an answer the warm active set does not verify is not taken
+        mp.setattr(pol, "solve_active_set", lambda *a, **k: None)
+        sol = pol.solve_qp(ok, "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
+        assert sol.message.startswith("daqp: exitflag 1, KKT check failed, then ldp")
     calls = []
     real = backends.SOLVERS["ldp"]
-    monkeypatch.setitem(backends.SOLVERS, "ldp", backends.Backend(lambda *a: calls.append(1) or real(*a)))
-    sol = pol.solve_qp(_contradiction(3), "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
-    assert sol.status == "relaxed" and sol.message.startswith("proxsuite: daqp: exitflag -1; phase-1")
+    with monkeypatch.context() as mp:
+        mp.setitem(backends.SOLVERS, "ldp", backends.Backend(lambda *a: calls.append(1) or real(*a), verified=True))
+        sol = pol.solve_qp(base, "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
+    assert sol.status == "relaxed" and "daqp: exitflag -1; phase-1" in sol.message
     assert calls == [1]  # phase 1 (small: ldp); the inconsistent rows were DAQP's proof alone
-    with pytest.raises(UsageError, match=r"exact_solvers: 'neural' is not a registered exact solver"):
-        pol.SolverPolicy("proxsuite", exact_solvers=("neural",))
+    for bad, match in ((("neural",), r"exact_solvers: 'neural' is not a registered exact solver"),
+                       ("ldp", r"exact_solvers: got 'ldp', expected a tuple of solver names"),
+                       (("dqap",), r"exact_solvers: 'dqap' is not a registered exact solver")):
+        with pytest.raises(UsageError, match=match):
+            pol.SolverPolicy("proxsuite", exact_solvers=bad)
+        with pytest.raises(UsageError, match=match):
+            pol.solve_qp(ok, "proxsuite", prefer_exact=True, exact_solvers=bad)
+    for bad in (-1, 2.5, "20", True):
+        with pytest.raises(UsageError, match=r"one_change_iter: got .*, expected a non-negative int"):
+            pol.SolverPolicy("proxsuite", one_change_iter=bad)
+
+
+@pytest.mark.skipif("daqp" not in backends.available_solvers(), reason="needs daqp")
+def test_daqp_keeps_the_box_as_rows_unless_the_policy_asks_for_simple_bounds(monkeypatch):
+    """``solver="daqp"`` runs (aasoatt reproduce's) keep their numbers: the box stays rows of DAQP's matrix; the
+    policy's own calls (its helper options) pass it as DAQP's simple bounds, to the same answer."""
+    import daqp
+
+    prob = _contradiction(3)
+    prob = type(prob)(prob.H_blocks, prob.g, prob.C, prob.u + np.tile([3.0, 0.0], 3), prob.lb, prob.ub, prob.scale,
+                      prob.obj_scale, prob.row_norm, prob.diagonal)
+    rows = []
+    real = daqp.solve
+    monkeypatch.setattr(daqp, "solve", lambda H, f, A, *a: rows.append(A.shape[0]) or real(H, f, A, *a))
+    plain = backends.SOLVERS["daqp"](prob, None, None, {})
+    helped = backends.SOLVERS["daqp"](prob, None, None, dict(backends.SOLVERS["daqp"].helper_options))
+    assert rows == [prob.n + prob.m, prob.m]
+    np.testing.assert_allclose(helped.x, plain.x, atol=1e-12)
+    np.testing.assert_allclose(helped.z, plain.z, atol=1e-12)
 
 
 def test_proxsuite_alternate_class_is_not_tried_on_problems_the_dense_class_takes():

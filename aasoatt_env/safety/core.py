@@ -64,11 +64,11 @@ from aasoatt_env.safety.solvers.active_set import (
     BOUND_TIGHT,
     DENSE_MAX_CELLS,
     DENSE_MAX_VARS,
-    ONE_CHANGE_ITER,
     PDAS_ITER,
     VERIFIED_MESSAGE,
     WARM_FLOOR,
     WARM_REL,
+    one_change_budget,
 )
 from aasoatt_env.safety.solvers.active_set import TOL as AS_TOL
 from aasoatt_env.safety.solvers.policy import EXACT_SOLVERS
@@ -557,7 +557,8 @@ class SafetyFilter:
          du_qp, x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin, out_of_range, rounds,
          n_pairs, margin, du, correction, intervened, nudged) = k.filter_step(
             *rows_args, c64(target), c64(lo), c64(hi), c64(team.max_wheel_accel), c64(nominal_du),  # type: ignore
-            c64(self._x.reshape(n, 2)), self._keys, c64(self._z), PDAS_ITER, ONE_CHANGE_ITER, AS_TOL,  # type: ignore
+            c64(self._x.reshape(n, 2)), self._keys, c64(self._z), PDAS_ITER,
+            one_change_budget(self._solver.one_change_iter), AS_TOL,  # type: ignore
             WARM_REL, WARM_FLOOR, BOUND_TIGHT, ROW_NORM_MIN, DENSE_MAX_VARS, DENSE_MAX_CELLS, cfg.eta_tol,
             bool(cfg.backup), kernel_pose, c64(u), float(cfg.dt), _QUICK_LEVELS, diff, offset, cols, tg, amax, adec,
             group, has_group, sensing_range, *_NO_OBSTACLES, limit, GATE_TOL)

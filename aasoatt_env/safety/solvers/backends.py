@@ -30,6 +30,10 @@ it gives none.
 ``quadprog``, ``clarabel``, ``osqp``, ``daqp``, ``cvxopt``
     Optional, used when installed (``cvxopt`` is what Robotarium's barrier
     certificates call: ``cvxopt.solvers.qp``, interior point, default tolerances).
+    ``daqp`` takes option ``simple_bounds=True``: the box as DAQP's simple bounds
+    (2-2.5x faster on the negotiation groups' problems, answers equal to rounding);
+    without it the box stays rows, as before, so ``solver="daqp"`` runs keep their
+    numbers.  The policy passes it when it asks DAQP itself (:attr:`Backend.helper_options`).
 """
 
 from __future__ import annotations
@@ -47,7 +51,6 @@ import scipy.sparse as sp
 
 from aasoatt_env.errors import SolverError
 from aasoatt_env.safety.problem import QPProblem
-from aasoatt_env.safety.solvers.active_set import solve_active_set
 from aasoatt_env.safety.solvers.ldp import FEAS_TOL as LDP_FEAS_TOL
 from aasoatt_env.safety.solvers.ldp import solve_ldp
 
@@ -94,7 +97,9 @@ class RawAnswer:
     stalled: bool = False
     """True when the back-end ran out of its iteration budget (no verdict on the problem)."""
     infeasible: bool = False
-    """True when the back-end *proved* the rows inconsistent (an exact certificate, not a guess)."""
+    """True when the back-end reports the rows inconsistent by an exact method (``ldp``'s NNLS residual, DAQP's
+    exitflag -1, to its tolerances): the policy then skips its other back-ends and goes to phase 1, which
+    finds the least violations (all ~0 for a feasible problem: then the rows are loosened by a hair)."""
 
 
 
@@ -247,24 +252,16 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
     import daqp
 
     n, m = prob.n, prob.m
-    # with simple_bounds (the policy's own calls: the exact path, phase 1) the box is DAQP's simple bounds, the
-    # first n of the n + m bounds, 2-2.5x faster than as rows on the negotiation groups' problems (answers
-    # equal to rounding); without, the box stays rows, so solver="daqp" runs (aasoatt reproduce's) keep their bits
-    simple = bool(opts.get("simple_bounds") or opts.get("exact_path"))
-    A = prob.C.toarray() if simple else np.vstack((np.eye(n), prob.C.toarray()))
+    # simple_bounds (module docstring): the first n of the n + m bounds are then DAQP's simple bounds
+    A = prob.C.toarray() if opts.get("simple_bounds") else np.vstack((np.eye(n), prob.C.toarray()))
     bu = np.concatenate((prob.ub, prob.u))
     bl = np.concatenate((prob.lb, np.full(m, -1e30)))
     sense = np.zeros(n + m, dtype=ctypes.c_int)
     x, _, exitflag, info = daqp.solve(prob.H_dense(), prob.g, A, bu, bl, sense)
     ok = exitflag >= 1
-    x, lam = np.asarray(x), np.maximum(np.asarray(info.get("lam", np.zeros(n + m)))[n:], 0.0)
-    message = f"exitflag {exitflag}"
-    if ok and opts.get("exact_path"):  # DAQP's rows hold to its primal tolerance (1e-6): verified here
-        polished = solve_active_set(prob, x, lam)
-        if polished is None:
-            return RawAnswer(x, lam, False, int(info.get("iter", 0)), message + ", KKT polish did not converge")
-        x, lam, message = polished[0], polished[1], message + " (KKT verified)"
-    return RawAnswer(x, lam, ok, int(info.get("iter", 0)), message, infeasible=exitflag == -1)
+    lam = np.maximum(np.asarray(info.get("lam", np.zeros(n + m)))[n:], 0.0)  # (the bounds' first, then the rows')
+    return RawAnswer(np.asarray(x), lam, ok, int(info.get("iter", 0)), f"exitflag {exitflag}",
+                     infeasible=exitflag == -1)
 
 
 def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
@@ -305,6 +302,13 @@ class Backend:
     may_stall: bool = False
     """True when the back-end can run out of iterations on these problems (then the
     policy takes the exact path for a while, see :class:`~aasoatt_env.safety.solvers.policy.SolverPolicy`)."""
+    verified: bool = False
+    """True when the back-end checks its own answers (``ldp``: KKT-verified, or feasible to 1e-9): the
+    policy's exact path takes them as they are; another back-end's answer there is taken only once the
+    warm active set verifies it."""
+    helper_options: tuple[tuple[str, object], ...] = ()
+    """Options the policy adds when it asks this back-end itself (its exact path, phase-1 problems), not as
+    the configured solver."""
 
     def __call__(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
         """Run the back-end."""
@@ -317,11 +321,11 @@ SOLVERS: dict[str, Backend] = {
         fallbacks=(("ldp", False, {}), ("proxsuite", True, {"alternate": True})),
     ),
     "neural": Backend(_neural, exact=False),
-    "ldp": Backend(_ldp),
+    "ldp": Backend(_ldp, verified=True),
     "quadprog": Backend(_quadprog, "quadprog"),
     "clarabel": Backend(_clarabel, "clarabel"),
     "osqp": Backend(_osqp, "osqp"),
-    "daqp": Backend(_daqp, "daqp"),
+    "daqp": Backend(_daqp, "daqp", helper_options=(("simple_bounds", True),)),
     "cvxopt": Backend(_cvxopt, "cvxopt"),
 }
 """Solver registry: name -> :class:`Backend`.  Adding a solver is one function and one line here."""

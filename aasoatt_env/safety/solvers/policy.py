@@ -8,7 +8,10 @@
 3. with ``active_set=True`` or ``prefer_exact=True`` and a warm start, the exact
    structured active-set method (:mod:`~aasoatt_env.safety.solvers.active_set`)
    is tried first and accepted only where the KKT conditions hold;
-   ``prefer_exact`` then also asks the exact ``ldp`` solver before the back-end;
+   ``prefer_exact`` then also asks the exact path's solvers (``exact_solvers``:
+   ``ldp`` by default; the decentralised mode's negotiation groups DAQP, then ``ldp``)
+   before the back-end, taking an answer only where it is verified (by ``ldp`` itself,
+   or by the warm active set from the answer);
    with independent parts (:meth:`SolverPolicy.solve`'s ``groups``) the parts it
    verifies are answered and only the others go on, as one smaller problem;
 4. the back-end; where it gives no answer, its registered fallbacks
@@ -17,7 +20,8 @@
 5. infeasibility verdicts are never trusted: a phase-1 problem
    ``min |s|^2 s.t. box, C x - s <= u, s >= 0`` (always feasible; bounds stay
    hard; one slack per row, so only the rows that cannot be met are loosened)
-   finds the least violation of each row.  If every least violation is ~0 the
+   finds the least violation of each row (solved by ``ldp`` first when small, by
+   :data:`PHASE1_SOLVERS` first when large).  If every least violation is ~0 the
    problem is re-solved with rows loosened by a hair (status ``"solved"``),
    otherwise each row by its own violation (status ``"relaxed"``,
    ``slack = max_k s*_k``).
@@ -59,12 +63,13 @@ or a slow solve: a back-end that stalls on a congested problem (proxsuite on a 6
 circle swap) stalls on the next ones too, and each stall costs its whole iteration
 budget.  Doubled on each repeated switch (up to 16x)."""
 EXACT_SOLVERS: tuple[str, ...] = ("ldp",)
-"""The exact path's solvers after the warm active set, in order (where installed; :class:`SolverPolicy`'s
-``exact_solvers``)."""
+"""The exact path's solvers after the warm active set, in order, where installed (:class:`SolverPolicy`'s
+``exact_solvers``): each answer is taken only where verified (``Backend.verified``, or by the warm active set)."""
 EXACT_FIRST_VARS: int = 100
 """Problems with up to this many variables (50 robots in one coupled group) take the exact path
-first (warm active set, then ``ldp``; the back-end only if both fail): ``ldp`` is exact, proves
-infeasibility (where an augmented Lagrangian only runs out of iterations) and is fast at this size."""
+first (warm active set, then the exact solvers, ``ldp`` by default; the back-end only if they fail): ``ldp``
+is exact, proves infeasibility (where an augmented Lagrangian only runs out of iterations) and is fast at
+this size."""
 SLOW_SOLVE_S: float = 0.05
 """A solve slower than this [s] triggers the ``ldp`` timing probe."""
 PHASE1_LDP_MAX_VARS: int = 120
@@ -73,8 +78,11 @@ back-end that may stall), larger ones to :data:`PHASE1_SOLVERS` first: ``ldp``'s
 sharply on the phase-1 problem, whose 1e-8 regulariser conditions it badly (0.8 ms at 44 variables,
 220-311 ms at 226-254, where DAQP took 0.9 ms, Clarabel 5.7 and proxsuite 11-34 with 20-50% of them
 unanswered; infeasible negotiation groups of 30-40 robots, 2026-12-02)."""
-PHASE1_SOLVERS: tuple[str, ...] = ("daqp", "clarabel")
-"""Solvers preferred for large phase-1 problems, where installed (``pip install "aasoatt[fast]"``), in order."""
+PHASE1_SOLVERS: tuple[tuple[str, int | None], ...] = (("daqp", 400), ("clarabel", None))
+"""Solvers preferred for large phase-1 problems, in order, where installed (``pip install "aasoatt[fast]"``),
+each up to its number of phase-1 variables (None: any).  DAQP is dense, and on a phase-1 problem whose every
+row binds (robots each between two contradicting rows) it took 18 ms at 400 variables, 59 at 600 and 534
+at 1,200, where Clarabel took 5-14 ms and the configured back-end 12-23 (2026-12-02)."""
 
 
 @dataclass
@@ -115,25 +123,60 @@ def _answer(prob: QPProblem, backend: Backend, x0: np.ndarray | None, z0: np.nda
     return RawAnswer(raw.x, raw.z, False, iterations, ", then ".join(messages), raw.stalled), False
 
 
+def _helper(name: str, opts: dict) -> tuple[Backend, dict]:
+    """Back-end ``name`` as the policy asks it itself, and its options (with its ``helper_options``)."""
+    backend = get_solver(name)
+    return backend, {**opts, **dict(backend.helper_options)}
+
+
 def _exact(prob: QPProblem, names: tuple[str, ...], x0: np.ndarray | None, z0: np.ndarray | None,
            opts: dict) -> RawAnswer:
     """The exact path's answer: the first installed of ``names`` that answers or proves the rows inconsistent.
 
-    Each is asked with ``exact_path=True``: a back-end whose answers are not verified by construction
-    then returns only a point that meets the KKT conditions (DAQP: polished by the warm active set).
+    An answer is taken only where it is verified: by the back-end itself (``Backend.verified``: ``ldp``),
+    or by the warm active set started from it (the KKT conditions to its tolerance, the point polished
+    there); an answer that does not verify goes on to the next name.
     """
     installed = available_solvers()
     raw, messages = RawAnswer(None, None, False, 0, f"none of {list(names)} installed"), []
     for name in names:
         if name not in installed:
             continue
-        raw = get_solver(name)(prob, x0, z0, {**opts, "exact_path": True})
-        messages.append(raw.message if raw.message.startswith(name) else f"{name}: {raw.message}")
+        backend, kw = _helper(name, opts)
+        raw = backend(prob, x0, z0, kw)
+        note = raw.message if raw.message.startswith(name) else f"{name}: {raw.message}"
+        if raw.ok and not backend.verified:
+            polished = solve_active_set(prob, raw.x, _nonneg(raw.z, prob.m))
+            if polished is None:
+                raw.ok, note = False, note + ", KKT check failed"
+            else:
+                raw.x, raw.z, note = polished[0], polished[1], note + " (KKT verified)"
+        messages.append(note)
         if raw.ok or raw.infeasible:
             break
     if messages:
         raw.message = ", then ".join(messages)
     return raw
+
+
+def check_exact_solvers(value: object, name: str = "exact_solvers") -> tuple[str, ...]:
+    """``value`` as a tuple of registered exact solver names, or :class:`UsageError` naming ``name``."""
+    exact = [k for k, b in SOLVERS.items() if b.exact]
+    if isinstance(value, str) or not isinstance(value, (tuple, list)):
+        raise UsageError(f"{name}: got {value!r}, expected a tuple of solver names among {exact}")
+    for item in value:
+        if item not in exact:
+            raise UsageError(f"{name}: {item!r} is not a registered exact solver; registered: {exact}")
+    return tuple(value)
+
+
+def check_budget(value: object, name: str = "one_change_iter") -> int | None:
+    """``value`` as an iteration budget (a non-negative int, or None), or :class:`UsageError` naming ``name``."""
+    if value is None:
+        return None
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise UsageError(f"{name}: got {value!r}, expected a non-negative int (or None: the default)")
+    return int(value)
 
 
 def _phase1(prob: QPProblem, solver: str, opts: dict) -> tuple[np.ndarray, np.ndarray] | None:
@@ -144,7 +187,9 @@ def _phase1(prob: QPProblem, solver: str, opts: dict) -> tuple[np.ndarray, np.nd
     loosened alone: every row that can still be met keeps (numerically) zero slack.
     Solved by the first of these that answers: small problems by ``ldp`` (where ``solver``
     may stall), ``solver``, then Clarabel; large ones (:data:`PHASE1_LDP_MAX_VARS`) by the
-    installed :data:`PHASE1_SOLVERS`, ``solver``, then ``ldp``.
+    installed :data:`PHASE1_SOLVERS` within their sizes (where ``solver`` may stall), ``solver``,
+    the others, then ``ldp``.  A back-end that does not stall (``daqp``, as ``aasoatt reproduce``
+    runs) is asked first, as before.
     """
     n, m = prob.n, prob.m
     backend = get_solver(solver)
@@ -169,18 +214,21 @@ def _phase1(prob: QPProblem, solver: str, opts: dict) -> tuple[np.ndarray, np.nd
         scale=np.ones(n + ns), obj_scale=1.0, row_norm=np.ones(m), diagonal=prob.diagonal,
     )
     # the phase-1 point is only used through its recomputed violations: an exact solver's
-    # point is accepted at a looser feasibility (the 1e-8 regulariser conditions it badly)
+    # point is accepted at a looser feasibility (the 1e-8 regulariser conditions it badly): ldp_feas_tol
     installed = available_solvers()
     if p1.n <= PHASE1_LDP_MAX_VARS:  # small: the exact ldp solver first where the back-end may stall
         order = (["ldp"] if backend.may_stall else []) + [solver, "clarabel"]
     else:  # large: ldp's NNLS is slow on this problem (PHASE1_LDP_MAX_VARS); the preferred solvers first
-        order = [*PHASE1_SOLVERS, solver] + (["ldp"] if p1.n <= LDP_MAX_VARS else [])
-    raw = None
+        preferred = [k for k, cap in PHASE1_SOLVERS if cap is None or p1.n <= cap]
+        order = (preferred if backend.may_stall else []) + [solver, *preferred]
+        order += ["ldp"] if p1.n <= LDP_MAX_VARS else []
+    raw, p1_opts = None, {**opts, "ldp_feas_tol": 1e-6}
     for name in dict.fromkeys(order):  # in order, each once
         if name not in installed:
             continue
-        extra = {"ldp_feas_tol": 1e-6} if name == "ldp" else {} if name == solver else {"simple_bounds": True}
-        raw, _ = _answer(p1, get_solver(name), None, None, {**opts, **extra})
+        # the configured back-end as configured; another as the policy asks it itself (its helper options)
+        cand, kw = (backend, p1_opts) if name == solver else _helper(name, p1_opts)
+        raw, _ = _answer(p1, cand, None, None, kw)
         if raw.ok and raw.x is not None:
             break
     if raw is None or not raw.ok or raw.x is None:
@@ -210,8 +258,8 @@ def solve_qp(
     """
     tried = bool(opts.pop("active_set_tried", False))  # the caller ran it on this very warm start
     compiled = bool(opts.pop("compiled", False))
-    budget = opts.pop("one_change_iter", None)
-    exact = tuple(opts.pop("exact_solvers", EXACT_SOLVERS))
+    budget = check_budget(opts.pop("one_change_iter", None))
+    exact = check_exact_solvers(opts.pop("exact_solvers", EXACT_SOLVERS))
     backend = get_solver(solver)
     t0 = time.perf_counter()
     if prob.m == 0 and prob.diagonal and backend.exact:
@@ -277,8 +325,8 @@ class SolverPolicy:
     compiled : bool
         Run the warm active set in its compiled kernel (:mod:`aasoatt_env.compiled`).
     exact_first : bool
-        Always take the exact path first (the warm active set, then ``ldp``, up to its size limit;
-        the back-end only where both fail), not only on small problems or after a stall.  The
+        Always take the exact path first (the warm active set, then ``exact_solvers``, up to ``ldp``'s
+        size limit; the back-end only where they fail), not only on small problems or after a stall.  The
         decentralised filter's negotiation groups use it: their QPs change shape from step to
         step, and proxsuite 0.8's sparse class (problems with more than
         :data:`~aasoatt_env.safety.solvers.backends.DENSE_MAX_SIZE` variables and rows) crashed
@@ -299,12 +347,8 @@ class SolverPolicy:
         self.active_set = bool(active_set)
         self.compiled = bool(compiled)
         self.exact_first = bool(exact_first)
-        self.one_change_iter = None if one_change_iter is None else int(one_change_iter)
-        for name in exact_solvers:
-            if name not in SOLVERS or not SOLVERS[name].exact:
-                raise UsageError(f"exact_solvers: {name!r} is not a registered exact solver; "
-                                 f"registered: {[k for k, b in SOLVERS.items() if b.exact]}")
-        self.exact_solvers = tuple(exact_solvers)
+        self.one_change_iter = check_budget(one_change_iter)
+        self.exact_solvers = check_exact_solvers(exact_solvers)
         self.options = dict(options or {})
         self.reset()
 
