@@ -12,7 +12,13 @@ controller), agent-steps/s of the filtered env, and the
 baseline the env overhead is measured against, in the same run.  Medians
 over repeats, one thread.
 
-Usage: ``python benchmarks/bench_env.py [--quick] [--large] [--sizes 20,1000]``
+``--dense`` instead times every ``env.step`` of one dense scene (100 robots in a
+20 m arena with 10 obstacles, tracking controller, seed 0, the first 1,200 physics
+steps) behind the centralised and the decentralised filter, in one run: median,
+p99, slowest step and steps over 20 ms (the decentralised mode's negotiation groups
+are the whole crowd there, and their infeasible steps are its tail).
+
+Usage: ``python benchmarks/bench_env.py [--quick] [--large] [--sizes 20,1000] [--dense]``
 """
 
 from __future__ import annotations
@@ -69,13 +75,36 @@ def _physics_rate(n: int, steps: int) -> float:
     return steps / (time.perf_counter() - t)
 
 
+def dense(steps: int = 1200) -> None:
+    """Step-time distribution of the dense scene (module docstring), both modes."""
+    print(f"{'mode':>14} {'median':>8} {'p99':>8} {'slowest':>8} {'>20 ms':>7} {'first':>8}   (ms per env.step)")
+    for mode in ("centralized", "decentralized"):
+        env = make_env("random_goals", num_robots=100, arena_size=20, random_obstacles=10, filter={"mode": mode},
+                       max_steps=10**9)
+        obs, _ = env.reset(seed=0)
+        ctrl, ts = TrackingController(), []
+        for _ in range(steps):
+            act = ctrl.act(obs, env)
+            t = time.perf_counter()
+            obs, *_ = env.step(act)
+            ts.append(time.perf_counter() - t)
+        ms = np.array(ts) * 1e3
+        print(f"{mode:>14} {np.median(ms):8.2f} {np.percentile(ms, 99):8.2f} {ms[1:].max():8.1f} "
+              f"{int((ms[1:] > 20).sum()):7d} {ms[0]:8.1f}", flush=True)
+    print("(slowest and > 20 ms: without the first step, which loads the compiled kernels)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="N <= 100, fewer steps and repeats")
     parser.add_argument("--large", action="store_true", help="also N = 10,000")
     parser.add_argument("--sizes", type=lambda v: [int(x) for x in v.split(",")], default=None,
                         help="team sizes, comma-separated (replaces the defaults)")
+    parser.add_argument("--dense", action="store_true", help="only the dense scene's step times, both modes")
     args = parser.parse_args()
+    if args.dense:
+        dense()
+        return
     repeats = 3 if args.quick else 5
     sizes = [4, 20, 100] if args.quick else [4, 20, 100, 1000] + ([10000] if args.large else [])
     sizes = args.sizes or sizes
