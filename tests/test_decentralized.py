@@ -661,13 +661,13 @@ def test_negotiation_frees_a_crowd_the_split_rows_stop():
     assert gap >= -1e-9 and gap_alone >= -1e-9
 
 
-def test_the_groups_solver_gets_their_budget_and_exact_path(monkeypatch):
-    """The decentralised mode's policy (its negotiation groups') has GROUP_ONE_CHANGE_ITER and GROUP_EXACT_SOLVERS,
-    the centralised mode's the defaults; along a crowded episode with groups every warm active set of a group
-    runs with that budget (compiled decomposition or policy)."""
+def test_the_groups_solver_gets_their_budget(monkeypatch):
+    """The decentralised mode's policy (its negotiation groups') has GROUP_ONE_CHANGE_ITER, the centralised mode's
+    the default; along a crowded episode with groups every warm active set of a group runs with that budget
+    (compiled decomposition or policy)."""
     from aasoatt_env import make_env
     from aasoatt_env.safety import core, decomposition
-    from aasoatt_env.safety.decentralized import GROUP_EXACT_SOLVERS, GROUP_ONE_CHANGE_ITER
+    from aasoatt_env.safety.decentralized import GROUP_ONE_CHANGE_ITER
     from aasoatt_env.safety.solvers import policy
     from agents import TrackingController
 
@@ -691,7 +691,7 @@ def test_the_groups_solver_gets_their_budget_and_exact_path(monkeypatch):
     for _ in range(600):
         obs, *_ = env.step(agent.act(obs, env))
         grouped += "negotiation group" in env.unwrapped.filter_outputs[-1].message
-    assert made[-1] == (GROUP_ONE_CHANGE_ITER, GROUP_EXACT_SOLVERS)
+    assert made[-1] == (GROUP_ONE_CHANGE_ITER, policy.EXACT_SOLVERS)
     assert grouped > 10 and budgets and set(budgets) == {GROUP_ONE_CHANGE_ITER}, (grouped, set(budgets))
     make_env("random_goals", num_robots=4, filter=FilterConfig(mode="centralized"))
     assert made[-1] == (None, policy.EXACT_SOLVERS)

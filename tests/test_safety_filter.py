@@ -670,11 +670,12 @@ def _contradiction(n: int):
                          -np.ones(2 * n))
 
 
-@pytest.mark.parametrize("n, first", [(5, "ldp"), (40, "large")])
-def test_phase_one_is_asked_of_ldp_when_small_and_of_the_preferred_solvers_when_large(monkeypatch, n, first):
-    """``ldp``'s NNLS is slow on large phase-1 problems (its 1e-8 regulariser): beyond PHASE1_LDP_MAX_VARS the
-    phase-1 problem goes to the first installed of PHASE1_SOLVERS; either way every row's least violation is
-    found exactly (1 here) and the answer meets the loosened rows (the box's centre in x, the target in y)."""
+@pytest.mark.parametrize("n, first", [(5, "small"), (40, "large")])
+def test_phase_one_is_asked_of_the_preferred_solvers_then_ldp_or_the_back_end(monkeypatch, n, first):
+    """The phase-1 problem goes to the first installed of PHASE1_SOLVERS for its size, else to ``ldp`` when small
+    (its NNLS is slow on large phase-1 problems, the 1e-8 regulariser) or to the back-end; either way every
+    row's least violation is found exactly (1 here) and the answer meets the loosened rows (the box's centre in
+    x, the target in y)."""
     import aasoatt_env.safety.solvers.policy as pol
 
     prob = _contradiction(n)
@@ -695,17 +696,17 @@ def test_phase_one_is_asked_of_ldp_when_small_and_of_the_preferred_solvers_when_
     np.testing.assert_allclose(sol.x.reshape(n, 2), [[0.0, 0.25]] * n, atol=2e-6)  # (rows loosened by 1 + 1.1e-6)
     # the solvers asked for the phase-1 problem (n + m variables), in order
     names = [asked[k - 1][0] for k, (what, size) in enumerate(asked) if what == "answer" and size == p1_vars]
-    preferred = [k for k, cap in pol.PHASE1_SOLVERS if cap is None or p1_vars <= cap]
+    preferred = [k for k, lo, hi in pol.PHASE1_SOLVERS if lo <= p1_vars and (hi is None or p1_vars <= hi)]
     installed = backends.available_solvers()
-    expected = "ldp" if first == "ldp" else next(k for k in (*preferred, "proxsuite") if k in installed)
+    expected = next(k for k in (*preferred, "ldp" if first == "small" else "proxsuite") if k in installed)
     assert names[0] == expected
 
 
 @pytest.mark.skipif("daqp" not in backends.available_solvers(), reason="needs daqp")
 def test_the_exact_path_takes_answers_only_verified_and_daqps_proofs_of_infeasibility(monkeypatch):
-    """``exact_solvers=("daqp", "ldp")`` (the negotiation groups'): DAQP's answer is taken once the warm active set
-    verifies it (DAQP's rows hold to its 1e-6 primal tolerance), else ``ldp`` answers; DAQP's proof that the rows
-    are inconsistent goes to phase 1 without ``ldp``; bad values of the options are refused by name."""
+    """``exact_solvers=("daqp", "ldp")`` (the default where DAQP is installed): DAQP's answer is taken once the warm
+    active set verifies it (DAQP's rows hold to its 1e-6 primal tolerance), else ``ldp`` answers; DAQP's proof that
+    the rows are inconsistent goes to phase 1 without ``ldp``; bad values of the options are refused by name."""
     import aasoatt_env.safety.solvers.policy as pol
     from aasoatt_env.errors import UsageError
 
@@ -725,7 +726,7 @@ def test_the_exact_path_takes_answers_only_verified_and_daqps_proofs_of_infeasib
         mp.setitem(backends.SOLVERS, "ldp", backends.Backend(lambda *a: calls.append(1) or real(*a), verified=True))
         sol = pol.solve_qp(base, "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
     assert sol.status == "relaxed" and "daqp: exitflag -1; phase-1" in sol.message
-    assert calls == [1]  # phase 1 (small: ldp); the inconsistent rows were DAQP's proof alone
+    assert calls == []  # DAQP proved the rows inconsistent and answered phase 1 (PHASE1_SOLVERS): no ldp
     for bad, match in ((("neural",), r"exact_solvers: 'neural' is not a registered exact solver"),
                        ("ldp", r"exact_solvers: got 'ldp', expected a tuple of solver names"),
                        (("dqap",), r"exact_solvers: 'dqap' is not a registered exact solver")):

@@ -48,12 +48,7 @@ from aasoatt_env.safety.deadlock import (
     TriggerContext,
     rotation,
 )
-from aasoatt_env.safety.decentralized import (
-    GROUP_EXACT_SOLVERS,
-    GROUP_ONE_CHANGE_ITER,
-    decentralized_step,
-    negotiation_rows,
-)
+from aasoatt_env.safety.decentralized import GROUP_ONE_CHANGE_ITER, decentralized_step, negotiation_rows
 from aasoatt_env.safety.decomposition import CentralAnswer, row_values, solve_centralized
 from aasoatt_env.safety.gatekeeper import BLEND_LEVELS, GateResult, _levels, _team_block
 from aasoatt_env.safety.inputs import MIN_BRAKING_ROOM, check_inputs, check_team, refuse_rows_beyond
@@ -71,7 +66,6 @@ from aasoatt_env.safety.solvers.active_set import (
     one_change_budget,
 )
 from aasoatt_env.safety.solvers.active_set import TOL as AS_TOL
-from aasoatt_env.safety.solvers.policy import EXACT_SOLVERS
 from aasoatt_env.safety.warm_up import warm_up
 from aasoatt_env.sim.protocol import FilterInput
 
@@ -286,14 +280,11 @@ class SafetyFilter:
         # the paper's rows of robot pairs in one compiled call (aasoatt_env.safety.rows_kernel)
         self._fused = cfg.compiled and cfg.barrier == "aasoatt" and not self._strategy.rotates_rows
         # (the decentralised mode's is for its negotiation groups: the exact path first, SolverPolicy's docstring,
-        # with a larger budget for the warm active set and DAQP before ldp: GROUP_ONE_CHANGE_ITER's and
-        # GROUP_EXACT_SOLVERS' docstrings)
+        # with a larger budget for the warm active set, GROUP_ONE_CHANGE_ITER's docstring)
         decentral = cfg.mode == "decentralized"
         self._solver = SolverPolicy(cfg.solver, active_set=cfg.active_set,
                                     options={"iterations": cfg.neural_iterations}, compiled=cfg.compiled,
-                                    exact_first=decentral,
-                                    one_change_iter=GROUP_ONE_CHANGE_ITER if decentral else None,
-                                    exact_solvers=GROUP_EXACT_SOLVERS if decentral else EXACT_SOLVERS)
+                                    exact_first=decentral, one_change_iter=GROUP_ONE_CHANGE_ITER if decentral else None)
         # the step from the rows on in one compiled call (aasoatt_env.safety.step_kernel), where every part
         # it runs is what this configuration runs: the fused rows, the centralised decomposition with the
         # compiled warm active set, a trigger that reads no pairs

@@ -92,16 +92,11 @@ from aasoatt_env.safety.problem import box_least_squares
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers.local import RELAX_TOL, solve_local_qps
 
-__all__ = ["GROUP_EXACT_SOLVERS", "GROUP_ONE_CHANGE_ITER", "SPLITS", "DecentralizedResult", "SplitRows",
+__all__ = ["GROUP_ONE_CHANGE_ITER", "SPLITS", "DecentralizedResult", "SplitRows",
            "decentralized_step", "negotiation_rows", "split_rows"]
 
 SPLITS: tuple[str, ...] = ("reciprocal", "authority")
 """Ways of sharing a pair row (module docstring)."""
-GROUP_EXACT_SOLVERS: tuple[str, ...] = ("daqp", "ldp")
-"""The exact path of the negotiation groups' QPs after the warm active set (where installed:
-``pip install "aasoatt[fast]"`` adds DAQP; its answers are verified by the warm active set): on groups of
-80-90 robots the warm active set missed, DAQP answered in 2.4 ms where ``ldp`` took 11-16 ms, and proved
-an infeasible 54-robot group's rows inconsistent in 1.3 ms where ``ldp`` took 8."""
 GROUP_ONE_CHANGE_ITER: int = 200
 """The warm active set's one-change budget on the negotiation groups' QPs (the centralised filter's is
 :data:`~aasoatt_env.safety.solvers.active_set.ONE_CHANGE_ITER`).  A group's rows and members change from

@@ -9,7 +9,7 @@
    structured active-set method (:mod:`~aasoatt_env.safety.solvers.active_set`)
    is tried first and accepted only where the KKT conditions hold;
    ``prefer_exact`` then also asks the exact path's solvers (``exact_solvers``:
-   ``ldp`` by default; the decentralised mode's negotiation groups DAQP, then ``ldp``)
+   DAQP where installed, then ``ldp``)
    before the back-end, taking an answer only where it is verified (by ``ldp`` itself,
    or by the warm active set from the answer);
    with independent parts (:meth:`SolverPolicy.solve`'s ``groups``) the parts it
@@ -20,8 +20,8 @@
 5. infeasibility verdicts are never trusted: a phase-1 problem
    ``min |s|^2 s.t. box, C x - s <= u, s >= 0`` (always feasible; bounds stay
    hard; one slack per row, so only the rows that cannot be met are loosened)
-   finds the least violation of each row (solved by ``ldp`` first when small, by
-   :data:`PHASE1_SOLVERS` first when large).  If every least violation is ~0 the
+   finds the least violation of each row (by :data:`PHASE1_SOLVERS`, ``ldp``, the back-end:
+   :func:`_phase1`).  If every least violation is ~0 the
    problem is re-solved with rows loosened by a hair (status ``"solved"``),
    otherwise each row by its own violation (status ``"relaxed"``,
    ``slack = max_k s*_k``).
@@ -62,27 +62,35 @@ EXACT_STEPS: int = 200
 or a slow solve: a back-end that stalls on a congested problem (proxsuite on a 60-robot
 circle swap) stalls on the next ones too, and each stall costs its whole iteration
 budget.  Doubled on each repeated switch (up to 16x)."""
-EXACT_SOLVERS: tuple[str, ...] = ("ldp",)
+EXACT_SOLVERS: tuple[str, ...] = ("daqp", "ldp")
 """The exact path's solvers after the warm active set, in order, where installed (:class:`SolverPolicy`'s
-``exact_solvers``): each answer is taken only where verified (``Backend.verified``, or by the warm active set)."""
+``exact_solvers``; ``pip install "aasoatt[fast]"`` adds DAQP): each answer is taken only where verified
+(``Backend.verified``: ``ldp``; DAQP's by the warm active set started from it), and DAQP's proof of
+infeasibility goes straight to phase 1.  Measured (2026-12-02): on 21 negotiation groups of 80-90 robots
+that the warm active set missed DAQP answered in 2.4 ms where ``ldp`` took 11-16, and proved an infeasible
+54-robot group's rows inconsistent in 1.3 ms where ``ldp`` took 8; a relaxed 13-robot part of a 20-robot
+team under random actions (proof, phase 1, relaxed QP) took 0.63 ms where ``ldp``'s path took 2.1."""
 EXACT_FIRST_VARS: int = 100
 """Problems with up to this many variables (50 robots in one coupled group) take the exact path
-first (warm active set, then the exact solvers, ``ldp`` by default; the back-end only if they fail): ``ldp``
+first (warm active set, then the exact solvers, :data:`EXACT_SOLVERS`; the back-end only if they fail): ``ldp``
 is exact, proves infeasibility (where an augmented Lagrangian only runs out of iterations) and is fast at
 this size."""
 SLOW_SOLVE_S: float = 0.05
 """A solve slower than this [s] triggers the ``ldp`` timing probe."""
 PHASE1_LDP_MAX_VARS: int = 120
-"""Phase-1 problems (the variables and one slack per row) up to this size go to ``ldp`` first (with a
-back-end that may stall), larger ones to :data:`PHASE1_SOLVERS` first: ``ldp``'s NNLS slows down
-sharply on the phase-1 problem, whose 1e-8 regulariser conditions it badly (0.8 ms at 44 variables,
-220-311 ms at 226-254, where DAQP took 0.9 ms, Clarabel 5.7 and proxsuite 11-34 with 20-50% of them
+"""Phase-1 problems (the variables and one slack per row) up to this size go to ``ldp`` before the
+back-end (after :data:`PHASE1_SOLVERS`, with a back-end that may stall), larger ones after it: ``ldp``'s
+NNLS slows down sharply on the phase-1 problem, whose 1e-8 regulariser conditions it badly (0.8 ms at 44
+variables, 220-311 ms at 226-254, where Clarabel took 5.7 and proxsuite 11-34 with 20-50% of them
 unanswered; infeasible negotiation groups of 30-40 robots, 2026-12-02)."""
-PHASE1_SOLVERS: tuple[tuple[str, int | None], ...] = (("daqp", 400), ("clarabel", None))
-"""Solvers preferred for large phase-1 problems, in order, where installed (``pip install "aasoatt[fast]"``),
-each up to its number of phase-1 variables (None: any).  DAQP is dense, and on a phase-1 problem whose every
-row binds (robots each between two contradicting rows) it took 18 ms at 400 variables, 59 at 600 and 534
-at 1,200, where Clarabel took 5-14 ms and the configured back-end 12-23 (2026-12-02)."""
+PHASE1_SOLVERS: tuple[tuple[str, int, int | None], ...] = (("daqp", 0, 400), ("clarabel", 121, None))
+"""Solvers preferred for phase-1 problems where the back-end may stall, in order, where installed, each for
+phase-1 problems of ``lo`` to ``hi`` variables (None: any).  DAQP took 0.05 ms on the 44-variable phase 1 of
+a 13-robot part (``ldp`` 0.8) and 0.9 ms at 226-254 variables (``ldp`` 220-311); it is dense, and on a
+phase-1 problem whose every row binds (robots each between two contradicting rows) it took 18 ms at 400
+variables, 59 at 600 and 534 at 1,200, where Clarabel took 5-14 ms and the configured back-end 12-23
+(2026-12-02); Clarabel (an interior-point method, ~5 ms at any of these sizes) only beyond
+:data:`PHASE1_LDP_MAX_VARS`."""
 
 
 @dataclass
@@ -185,11 +193,10 @@ def _phase1(prob: QPProblem, solver: str, opts: dict) -> tuple[np.ndarray, np.nd
     Solves ``min 0.5 |s|^2 (+ a 1e-8 regulariser on x)  s.t.  C x - s <= u, lb <= x <= ub``.
     A slack per row means one hopeless row (say a pair already inside ``d_s``) is
     loosened alone: every row that can still be met keeps (numerically) zero slack.
-    Solved by the first of these that answers: small problems by ``ldp`` (where ``solver``
-    may stall), ``solver``, then Clarabel; large ones (:data:`PHASE1_LDP_MAX_VARS`) by the
-    installed :data:`PHASE1_SOLVERS` within their sizes (where ``solver`` may stall), ``solver``,
-    the others, then ``ldp``.  A back-end that does not stall (``daqp``, as ``aasoatt reproduce``
-    runs) is asked first, as before.
+    Solved by the first of these that answers: where ``solver`` may stall, the installed
+    :data:`PHASE1_SOLVERS` for this size, then ``ldp`` if small (:data:`PHASE1_LDP_MAX_VARS`),
+    ``solver``, then ``ldp`` if larger; a back-end that does not stall (``daqp``, as
+    ``aasoatt reproduce`` runs) is asked first, as before, then the others.
     """
     n, m = prob.n, prob.m
     backend = get_solver(solver)
@@ -216,10 +223,10 @@ def _phase1(prob: QPProblem, solver: str, opts: dict) -> tuple[np.ndarray, np.nd
     # the phase-1 point is only used through its recomputed violations: an exact solver's
     # point is accepted at a looser feasibility (the 1e-8 regulariser conditions it badly): ldp_feas_tol
     installed = available_solvers()
+    preferred = [k for k, lo, hi in PHASE1_SOLVERS if lo <= p1.n and (hi is None or p1.n <= hi)]
     if p1.n <= PHASE1_LDP_MAX_VARS:  # small: the exact ldp solver first where the back-end may stall
-        order = (["ldp"] if backend.may_stall else []) + [solver, "clarabel"]
+        order = (preferred + ["ldp"] if backend.may_stall else []) + [solver, *preferred, "clarabel"]
     else:  # large: ldp's NNLS is slow on this problem (PHASE1_LDP_MAX_VARS); the preferred solvers first
-        preferred = [k for k, cap in PHASE1_SOLVERS if cap is None or p1.n <= cap]
         order = (preferred if backend.may_stall else []) + [solver, *preferred]
         order += ["ldp"] if p1.n <= LDP_MAX_VARS else []
     raw, p1_opts = None, {**opts, "ldp_feas_tol": 1e-6}
