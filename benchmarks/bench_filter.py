@@ -147,27 +147,27 @@ KKT_STATIONARY = 1e-9
 """Largest entry of the polished reference's Lagrangian gradient ``H x + g + A' z``."""
 
 
-def _kkt_polish(prob, x: np.ndarray, z_all: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
-    """An interior-point answer of ``prob`` made exact on its active set, or None where it does not verify.
+def _kkt_polish(prob, x: np.ndarray, z: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """An interior-point answer ``(x, z)`` of ``prob`` made exact on its active set, or None where it does not verify.
 
-    ``z_all``: the multipliers of the rows, the upper and the lower bounds (Clarabel's order).  The
-    working set is the constraints whose multiplier exceeds a fraction of the largest (a few
-    fractions are tried); ``[[H, A_W'], [A_W, 0]]`` is solved by a sparse LU of its copy with a
-    1e-12 proximal shift and ten rounds of iterative refinement on the unshifted system; the point
-    is returned only where every row and bound holds within :data:`KKT_TOL`, the working ones as
-    equalities (complementarity: only they carry multipliers), every working multiplier is
-    ``>= -KKT_TOL`` and the Lagrangian gradient is within :data:`KKT_STATIONARY`: the KKT
-    conditions, which make it the QP's optimum (a convex QP) to those tolerances.  ``x`` is not used beyond that check's
-    working set: the polished point comes from the equalities alone.
+    The working set is the rows whose multiplier ``z`` exceeds a fraction of the largest and the bounds ``x``
+    lies within a distance of (a few of each are tried); ``[[H, A_W'], [A_W, 0]]`` is solved by a sparse LU of
+    its copy with a 1e-12 proximal shift and ten rounds of iterative refinement on the unshifted system; the
+    point is returned only where every row and bound holds within :data:`KKT_TOL`, the working ones as
+    equalities (complementarity: only they carry multipliers), every working multiplier is ``>= -KKT_TOL``
+    and the Lagrangian gradient is within :data:`KKT_STATIONARY`: the KKT conditions, which make it the QP's
+    optimum (a convex QP) to those tolerances.  ``x`` is not used beyond choosing the working set: the
+    polished point comes from the equalities alone.
     """
     n, m = prob.n, prob.m
     H = prob.H_sparse().tocsc()
     A = sp.vstack((prob.C, sp.identity(n), -sp.identity(n)), format="csr")
     b = np.concatenate((prob.u, prob.ub, -prob.lb))
     finite = np.abs(b) < 1e19
-    top = max(float(z_all.max(initial=0.0)), 1e-300)
-    for frac in (1e-7, 1e-9, 1e-5, 1e-11):
-        idx = np.flatnonzero(finite & (z_all > frac * top))
+    top = max(float(z.max(initial=0.0)), 1e-300)
+    for frac, near in ((1e-7, 1e-8), (1e-9, 1e-10), (1e-5, 1e-6), (1e-11, 1e-12)):
+        on = np.concatenate((z > frac * top, x >= prob.ub - near, x <= prob.lb + near)) & finite
+        idx = np.flatnonzero(on)
         k = idx.size
         K = sp.bmat([[H, A[idx].T], [A[idx], None]], format="csc") if k else H
         shift = sp.diags(np.concatenate((np.full(n, 1e-12), np.full(k, -1e-12))))
@@ -180,14 +180,14 @@ def _kkt_polish(prob, x: np.ndarray, z_all: np.ndarray) -> tuple[np.ndarray, np.
         for _ in range(10):
             sol = sol + lu.solve(rhs - K @ sol)
         xp, zw = sol[:n], sol[n:]
-        z = np.zeros(A.shape[0])
-        z[idx] = zw
+        zall = np.zeros(A.shape[0])
+        zall[idx] = zw
         r = A @ xp - b
         if (np.all(np.isfinite(sol)) and float(np.max(r[finite], initial=0.0)) <= KKT_TOL
                 and float(np.abs(r[idx]).max(initial=0.0)) <= KKT_TOL  # the working set met as equalities
                 and float(zw.min(initial=0.0)) >= -KKT_TOL
-                and float(np.abs(H @ xp + prob.g + A.T @ z).max(initial=0.0)) <= KKT_STATIONARY):
-            return xp, np.maximum(z[:m], 0.0)
+                and float(np.abs(H @ xp + prob.g + A.T @ zall).max(initial=0.0)) <= KKT_STATIONARY):
+            return xp, np.maximum(zall[:m], 0.0)
     return None
 
 
@@ -195,24 +195,13 @@ _POLISH_FAILED: list[int] = []  # steps whose reference is Clarabel's raw answer
 
 
 def _clarabel_kkt(prob, x0, z0, opts: dict) -> RawAnswer:
-    """Clarabel's answer, polished by :func:`_kkt_polish` where that verifies (the reference above 300 robots)."""
-    import clarabel
-
-    n, m = prob.n, prob.m
-    A = sp.vstack((prob.C, sp.identity(n), -sp.identity(n)), format="csc")
-    b = np.concatenate((prob.u, prob.ub, -prob.lb))
-    s = clarabel.DefaultSettings()
-    s.verbose = False
-    s.tol_gap_abs = s.tol_gap_rel = s.tol_feas = 1e-10
-    sol = clarabel.DefaultSolver(sp.triu(prob.H_sparse(), format="csc"), prob.g, A, b,
-                                 [clarabel.NonnegativeConeT(m + 2 * n)], s).solve()
-    ok = str(sol.status) in ("Solved", "AlmostSolved")
-    x, z = np.asarray(sol.x), np.asarray(sol.z)
-    polished = _kkt_polish(prob, x, z) if ok else None
+    """The registered Clarabel back-end's answer, polished by :func:`_kkt_polish` where that verifies."""
+    raw = SOLVERS["clarabel"](prob, x0, z0, opts)
+    polished = _kkt_polish(prob, raw.x, raw.z) if raw.ok else None
     if polished is None:
         _POLISH_FAILED.append(1)
-        return RawAnswer(x, z[:m], ok, int(sol.iterations), str(sol.status))
-    return RawAnswer(polished[0], polished[1], True, int(sol.iterations), "clarabel, KKT-polished")
+        return raw
+    return RawAnswer(polished[0], polished[1], True, raw.iterations, "clarabel, KKT-polished")
 
 
 def _reference(team, seq, deadlock) -> tuple[list[np.ndarray], bool] | None:
