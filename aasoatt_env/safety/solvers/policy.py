@@ -257,9 +257,9 @@ def solve_qp(
     Options (``**opts``): ``eps`` (proxsuite/OSQP tolerance), ``iterations`` and
     ``step`` (``neural``), ``alternate`` (proxsuite's other class),
     ``active_set`` (first the warm-started exact active-set method),
-    ``prefer_exact`` (first the warm active set, then ``ldp``, the back-end only
-    if both fail), ``exact_solvers`` (the exact path's solvers after the warm active
-    set, :data:`EXACT_SOLVERS` by default), ``compiled`` (the warm active set's compiled kernel,
+    ``prefer_exact`` (first the warm active set, then the exact path's solvers, the
+    back-end only if they fail), ``exact_solvers`` (those solvers, in order,
+    :data:`EXACT_SOLVERS` by default), ``compiled`` (the warm active set's compiled kernel,
     :mod:`aasoatt_env.compiled`), ``one_change_iter`` (the warm active set's
     one-change budget, :data:`~aasoatt_env.safety.solvers.active_set.ONE_CHANGE_ITER`).
     """
