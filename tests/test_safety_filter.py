@@ -659,15 +659,16 @@ def test_small_problems_take_the_exact_path_and_proofs_of_infeasibility_skip_pro
 
 
 
-def _contradiction(n: int):
-    """``n`` robots, each with the rows ``du_x <= -1`` and ``du_x >= 1``: infeasible, every row's least violation 1."""
+def _contradiction(n: int, upper: float = -1.0):
+    """``n`` robots, each with the rows ``du_x <= upper`` and ``du_x >= 1``: with the default ``upper`` infeasible,
+    every row's least violation 1; with ``upper = 2`` feasible, the target (0.5, 0.25) -> du = (1, 0.25)."""
     from aasoatt_env.safety.problem import build_problem
 
     idx = np.repeat(np.arange(n), 2)
     Gi = np.tile([[1.0, 0.0], [-1.0, 0.0]], (n, 1))
     return build_problem(np.tile(np.eye(2), (n, 1, 1)), np.tile([0.5, 0.25], (n, 1)), -3 * np.ones((n, 2)),
                          3 * np.ones((n, 2)), np.ones(n), idx, -np.ones(2 * n, int), Gi, np.zeros((2 * n, 2)),
-                         -np.ones(2 * n))
+                         np.tile([upper, -1.0], n))
 
 
 @pytest.mark.parametrize("n, first", [(5, "small"), (40, "large")])
@@ -710,9 +711,7 @@ def test_the_exact_path_takes_answers_only_verified_and_daqps_proofs_of_infeasib
     import aasoatt_env.safety.solvers.policy as pol
     from aasoatt_env.errors import UsageError
 
-    base = _contradiction(3)
-    ok = type(base)(base.H_blocks, base.g, base.C, base.u + np.tile([3.0, 0.0], 3), base.lb, base.ub, base.scale,
-                    base.obj_scale, base.row_norm, base.diagonal)  # 1 <= du_x <= 2: the target (0.5, 0.25) -> (1, 0.25)
+    base, ok = _contradiction(3), _contradiction(3, upper=2.0)
     sol = pol.solve_qp(ok, "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
     assert sol.status == "solved" and sol.message.startswith("daqp: exitflag 1 (KKT verified)")
     np.testing.assert_allclose(sol.x.reshape(3, 2), [[1.0, 0.25]] * 3, atol=1e-12)
@@ -745,9 +744,7 @@ def test_daqp_keeps_the_box_as_rows_unless_the_policy_asks_for_simple_bounds(mon
     policy's own calls (its helper options) pass it as DAQP's simple bounds, to the same answer."""
     import daqp
 
-    prob = _contradiction(3)
-    prob = type(prob)(prob.H_blocks, prob.g, prob.C, prob.u + np.tile([3.0, 0.0], 3), prob.lb, prob.ub, prob.scale,
-                      prob.obj_scale, prob.row_norm, prob.diagonal)
+    prob = _contradiction(3, upper=2.0)
     rows = []
     real = daqp.solve
     monkeypatch.setattr(daqp, "solve", lambda H, f, A, *a: rows.append(A.shape[0]) or real(H, f, A, *a))

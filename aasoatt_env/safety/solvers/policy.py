@@ -224,11 +224,10 @@ def _phase1(prob: QPProblem, solver: str, opts: dict) -> tuple[np.ndarray, np.nd
     # point is accepted at a looser feasibility (the 1e-8 regulariser conditions it badly): ldp_feas_tol
     installed = available_solvers()
     preferred = [k for k, lo, hi in PHASE1_SOLVERS if lo <= p1.n and (hi is None or p1.n <= hi)]
-    if p1.n <= PHASE1_LDP_MAX_VARS:  # small: the exact ldp solver first where the back-end may stall
-        order = (preferred + ["ldp"] if backend.may_stall else []) + [solver, *preferred, "clarabel"]
-    else:  # large: ldp's NNLS is slow on this problem (PHASE1_LDP_MAX_VARS); the preferred solvers first
-        order = (preferred if backend.may_stall else []) + [solver, *preferred]
-        order += ["ldp"] if p1.n <= LDP_MAX_VARS else []
+    small = p1.n <= PHASE1_LDP_MAX_VARS  # ldp before the back-end (its NNLS is slow on large phase-1 problems)
+    first = preferred + (["ldp"] if small else []) if backend.may_stall else []
+    last = ["clarabel"] if small else ["ldp"] if p1.n <= LDP_MAX_VARS else []
+    order = [*first, solver, *preferred, *last]
     raw, p1_opts = None, {**opts, "ldp_feas_tol": 1e-6}
     for name in dict.fromkeys(order):  # in order, each once
         if name not in installed:
