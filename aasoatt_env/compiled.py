@@ -32,7 +32,11 @@ in the overhead of its calls rather than in arithmetic
   keys, the numpy step's numbers bit for bit);
 - a centralised step from the rows on (:mod:`aasoatt_env.safety.step_kernel`:
   the kernels above and the operations between them in one call, stopping
-  where the Python step has more to decide; the parts' step bit for bit).
+  where the Python step has more to decide; the parts' step bit for bit);
+- the test of a step's input numbers (:mod:`aasoatt_env.safety.inputs_kernel`:
+  finite, within the magnitude bound, ``lo <= hi``; the errors stay numpy's);
+- the default deadlock trigger and the nominal's target
+  (:mod:`aasoatt_env.safety.deadlock_kernel`: the numpy step's numbers bit for bit).
 
 The kernels are the same loops compiled with numba (``pip install
 "aasoatt[fast]"``), imported only when first used.  The numpy code stays the
@@ -82,6 +86,8 @@ PARTS: dict[str, str] = {
     "decomposition": "aasoatt_env.safety.decomposition_kernel",
     "rows": "aasoatt_env.safety.rows_kernel",
     "step": "aasoatt_env.safety.step_kernel",
+    "inputs": "aasoatt_env.safety.inputs_kernel",
+    "deadlock": "aasoatt_env.safety.deadlock_kernel",
 }
 """The compiled parts and their modules."""
 

@@ -706,6 +706,95 @@ def test_the_centralised_step_refuses_bad_shapes_and_row_robots(use_kernel):
             call(**change)
 
 
+def _step_inputs(n: int, seed: int) -> tuple:
+    """A random team's step inputs as the centralised step checks them: ``(kin, u, theta, nominal, lo, hi,
+    (p_d, v_d))``, every array float64 (``theta`` a strided view of the poses, the reference read-only, as the
+    env hands them)."""
+    rng = np.random.default_rng(seed)
+    team = make_team(["paper", "turtlebot3_burger"] * (n // 2) + ["paper"] * (n % 2), n)
+    pose = np.column_stack((rng.uniform(-5, 5, (n, 2)), rng.uniform(-np.pi, np.pi, n)))
+    u = rng.uniform(-8.0, 8.0, (n, 2))
+    lo, hi = input_bounds(team, u, DT)
+    reference = (rng.uniform(-5, 5, (n, 2)), rng.normal(0.0, 0.5, (n, 2)) * rng.choice([0.0, 1.0], (n, 1)))
+    for r in reference:
+        r.flags.writeable = False
+    return kinematics(team, pose, u), u, pose[:, 2], rng.normal(0.0, 20.0, (n, 2)), lo, hi, reference
+
+
+@needs_numba
+def test_the_compiled_input_check_passes_and_refuses_what_the_numpy_one_does(monkeypatch):
+    """The centralised step's input check with its compiled test of the numbers (``compiled=True``) returns the
+    arrays the numpy check returns, and refuses every NaN, inf, value beyond +-1e9 and ``lo > hi`` the numpy
+    check refuses, with the same error naming the argument and the robot."""
+    from aasoatt_env.errors import StateError
+    from aasoatt_env.safety.inputs import check_inputs
+
+    kernel, calls = compiled.kernels("inputs"), []
+    real = kernel.numbers_ok
+    monkeypatch.setattr(kernel, "numbers_ok", lambda *a: calls.append(1) or real(*a))
+    kin, u, theta, nom, lo, hi, ref = _step_inputs(9, 4)
+    for reference in (ref, None, list(ref) + [np.zeros((9, 2))]):
+        fast = check_inputs(9, kin, u, theta, nom, lo, hi, reference, compiled=True)
+        slow = check_inputs(9, kin, u, theta, nom, lo, hi, reference)
+        for a, b in zip((*fast[0], *fast[1:6], *(fast[6] or ())), (*slow[0], *slow[1:6], *(slow[6] or ()))):
+            assert a.dtype == b.dtype == np.float64
+            np.testing.assert_array_equal(a, b)
+        assert (fast[6] is None) == (reference is None) and fast[7] is slow[7] is None
+    assert len(calls) == 3  # (every valid form above answered by the kernel)
+    names = ("nominal_du", "lo", "hi", "u", "theta", "kin.p", "kin.v", "kin.A", "kin.adot_u", "reference p_d",
+             "reference v_d")
+    refused = 0
+    for k, name in enumerate(names):
+        for bad in (np.nan, np.inf, -np.inf, 2e9, -2e9):
+            arrays = [nom, lo, hi, u, theta, kin.p, kin.v, kin.A, kin.adot_u, *ref]
+            arrays = [a.copy() for a in arrays]
+            arrays[k][(6,) + (0,) * (arrays[k].ndim - 1)] = bad  # robot 6, first component
+            if name == "lo" and bad > 0:
+                arrays[2][6, 0] = 3e9
+            args = (9, type(kin)(*arrays[5:9]), arrays[3], arrays[4], *arrays[:3], tuple(arrays[9:]))
+            with pytest.raises(StateError) as slow_err:
+                check_inputs(*args)
+            with pytest.raises(StateError) as fast_err:
+                check_inputs(*args, compiled=True)
+            assert str(fast_err.value) == str(slow_err.value) and "robot index 6" in str(slow_err.value)
+            refused += 1
+    crossed = hi.copy()
+    crossed[3, 1] = lo[3, 1] - 1.0
+    with pytest.raises(StateError, match="lo/hi: bounds must be finite with lo <= hi"):
+        check_inputs(9, kin, u, theta, nom, lo, crossed, ref, compiled=True)
+    assert refused == len(names) * 5
+
+
+@needs_numba
+@pytest.mark.parametrize("seed", range(4))
+def test_the_compiled_multiplier_trigger_and_target_are_numpys(seed):
+    """The ``multiplier`` trigger and the nominal's target ``A du_nom`` by one compiled call equal the numpy
+    trigger's and ``einsum``'s bit for bit (a zero's sign included): with and without a deadlock memory and a
+    reference, robots at rest at their goals (not triggered), nominals with signed zeros."""
+    from aasoatt_env.safety.config import FilterConfig
+    from aasoatt_env.safety.deadlock import TRIGGERS, DeadlockState, TriggerContext
+
+    kin, u, theta, nom, lo, hi, ref = _step_inputs(40, seed)
+    rng = np.random.default_rng(seed)
+    nom[:4] = [[0.0, -0.0], [-0.0, -0.0], [0.0, 0.0], [-0.0, 0.0]]
+    p_d, v_d = ref[0].copy(), ref[1].copy()
+    p_d[::3] = kin.p[::3] + 0.05  # within goal_tol of their goals and, where v_d = 0, done
+    cfg = FilterConfig()
+    kernel = compiled.kernels("deadlock").multiplier_target
+    for avoiding in (None, rng.uniform(size=40) < 0.6, np.ones(40, dtype=bool)):
+        for reference in ((p_d, v_d), None):
+            ctx = TriggerContext(kin.p, kin.v, theta, reference, np.empty((0, 2), np.intp), np.empty((0, 2)), cfg)
+            want = TRIGGERS["multiplier"](DeadlockState(avoiding=avoiding), ctx)
+            memory = np.zeros(40, dtype=bool) if avoiding is None else avoiding
+            pd, vd = (kin.p, kin.v) if reference is None else reference
+            trig, zeta, target, anyone = kernel(memory, kin.p, kin.v, pd, vd, reference is not None, kin.A, nom,
+                                                cfg.zeta, cfg.low_speed, cfg.goal_tol)
+            np.testing.assert_array_equal(trig, want)
+            assert anyone == want.any() and (avoiding is None or 0 < want.sum() < 40 or reference is None)
+            np.testing.assert_array_equal(_bits(zeta), _bits(np.where(want, cfg.zeta, 0.0)))
+            np.testing.assert_array_equal(_bits(target), _bits(np.einsum("nij,nj->ni", kin.A, nom)))
+
+
 @needs_numba
 def test_the_compiled_box_least_squares_is_the_numpy_one():
     """Every robot's closed form, inside and outside its box, on every edge and corner, and robots whose
@@ -738,7 +827,8 @@ def _signatures() -> dict:
     """Compiled specialisations of every kernel entry point."""
     entries = {"backup": ("gate_full", "repair_full"), "local": ("solve_all",), "active_set": ("solve_parts",),
                "geometry": ("cell_pairs", "components"), "decomposition": ("solve_decomposed", "box_least_squares"),
-               "rows": ("aasoatt_rows",), "step": ("filter_step",)}
+               "rows": ("aasoatt_rows",), "step": ("filter_step",), "inputs": ("numbers_ok",),
+               "deadlock": ("multiplier_target",)}
     return {f"{p}.{n}": len(getattr(compiled.kernels(p), n).signatures) for p, names in entries.items() for n in names}
 
 

@@ -290,6 +290,9 @@ class SafetyFilter:
         # compiled warm active set, a trigger that reads no pairs
         self._whole_step = (self._fused and cfg.mode == "centralized" and cfg.decompose and self._solver.exact
                             and cfg.active_set and cfg.trigger in TRIGGERS_WITHOUT_PAIRS)
+        # there, the default trigger and the target by one compiled call (deadlock_kernel), where the strategy
+        # acts (a strategy that leaves the target alone has no trigger to evaluate)
+        self._compiled_trigger = self._whole_step and cfg.trigger == "multiplier" and self._strategy.active
         self.reset(team)
 
     def warm_up(self) -> bool:
@@ -426,7 +429,7 @@ class SafetyFilter:
         cfg, team = self.config, self._bound_team()
         n = team.n
         kin, u, theta, nominal_du, lo, hi, reference, obstacles = check_inputs(
-            n, kin, u, theta, nominal_du, lo, hi, reference, obstacles)
+            n, kin, u, theta, nominal_du, lo, hi, reference, obstacles, compiled=cfg.compiled)
         if cfg.max_wheel_speed is not None:
             lo, hi = speed_box(lo, hi, u, cfg.max_wheel_speed, cfg.dt)
         strategy = self._strategy
@@ -453,8 +456,11 @@ class SafetyFilter:
             if self._whole_step and self._x is not None and self._solver.compiled:
                 # the rest of the step's compiled parts in one call (step_kernel's docstring): the trigger
                 # reads no pairs here, so it and the target come first
-                triggered = self._triggered(TriggerContext(p, v, theta, reference, _NO_PAIRS, _NO_PAIRS, cfg))
-                target = self._target(A, nominal_du, lo, hi, triggered, v, p, reference)
+                if self._compiled_trigger:
+                    triggered, target = self._triggered_target(A, nominal_du, v, p, reference)
+                else:
+                    triggered = self._triggered(TriggerContext(p, v, theta, reference, _NO_PAIRS, _NO_PAIRS, cfg))
+                    target = self._target(A, nominal_du, lo, hi, triggered, v, p, reference)
                 return self._step_compiled(t0, rows_args, brute, u, theta, nominal_du, lo, hi, A, p, triggered,
                                            target)
             pr, geo_p_true, Gi, Gj, rhs, keys, barrier_min, gap_min = kernels("rows").aasoatt_rows(*rows_args)
@@ -518,14 +524,39 @@ class SafetyFilter:
         zeta = np.where(triggered, cfg.zeta, 0.0)
         # a robot alone saturates its own nominal: the decentralised QPs start from what each robot would do
         nom_t = np.minimum(np.maximum(nominal_du, lo), hi) if cfg.mode == "decentralized" else nominal_du
-        target = self._strategy.correct_target(np.einsum("nij,nj->ni", A, nom_t), zeta, self._Q,
-                                               TargetContext(v, p, reference, cfg.k3, cfg.k4))
-        # (a registered strategy's answer: the compiled parts read it without bounds checks)
+        return self._checked_target(self._strategy.correct_target(np.einsum("nij,nj->ni", A, nom_t), zeta, self._Q,
+                                                                  TargetContext(v, p, reference, cfg.k3, cfg.k4)),
+                                    nominal_du)
+
+    def _checked_target(self, target: Any, nominal_du: np.ndarray) -> np.ndarray:
+        """A strategy's target, refused unless float64 of the nominal's shape.
+
+        (A registered strategy's answer: the compiled parts read it without bounds checks.)
+        """
         if not (isinstance(target, np.ndarray) and target.shape == nominal_du.shape and target.dtype == np.float64):
-            raise ConfigError(f"deadlock strategy {cfg.deadlock!r}: its target has shape {np.shape(target)} "
-                              f"(dtype {getattr(target, 'dtype', type(target).__name__)}), expected float64 of "
-                              f"shape {nominal_du.shape}")
+            raise ConfigError(f"deadlock strategy {self.config.deadlock!r}: its target has shape "
+                              f"{np.shape(target)} (dtype {getattr(target, 'dtype', type(target).__name__)}), "
+                              f"expected float64 of shape {nominal_du.shape}")
         return target
+
+    def _triggered_target(self, A: np.ndarray, nominal_du: np.ndarray, v: np.ndarray, p: np.ndarray,
+                          reference: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`_triggered` and :meth:`_target` of the ``multiplier`` trigger in the centralised mode.
+
+        The trigger and ``A du_nom`` by one compiled call (:mod:`~aasoatt_env.safety.deadlock_kernel`, the
+        same numbers); the strategy's correction of the triggered robots as in :meth:`_target`.
+        """
+        cfg = self.config
+        avoiding = self._dl.avoiding
+        if avoiding is None:
+            avoiding = np.zeros(p.shape[0], dtype=bool)
+        p_d, v_d = (p, v) if reference is None else reference
+        triggered, zeta, target, anyone = kernels("deadlock").multiplier_target(
+            avoiding, p, v, p_d, v_d, reference is not None, A, nominal_du, cfg.zeta, cfg.low_speed, cfg.goal_tol)
+        if anyone:
+            target = self._checked_target(self._strategy.correct_target(
+                target, zeta, self._Q, TargetContext(v, p, reference, cfg.k3, cfg.k4)), nominal_du)
+        return triggered, target
 
     def _step_compiled(self, t0: float, rows_args: tuple, increasing: bool, u: np.ndarray, theta: np.ndarray,
                        nominal_du: np.ndarray, lo: np.ndarray, hi: np.ndarray, A: np.ndarray, p: np.ndarray,

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from aasoatt_env.compiled import kernels
 from aasoatt_env.errors import ConfigError, StateError
 from aasoatt_env.model.dynamics import Kinematics
 from aasoatt_env.model.params import Team
@@ -62,7 +63,7 @@ def check_team(team: Team, config: FilterConfig) -> None:
 
 def check_inputs(
     n: int, kin: Kinematics, u: np.ndarray, theta: np.ndarray, nominal_du: np.ndarray,
-    lo: np.ndarray, hi: np.ndarray, reference: Any = None, obstacles: Any = None,
+    lo: np.ndarray, hi: np.ndarray, reference: Any = None, obstacles: Any = None, *, compiled: bool = False,
 ) -> tuple[Kinematics, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, Any, Any]:
     """Shapes, finiteness and magnitudes (``<= MAGNITUDE_MAX``) of every state array of ``n`` robots.
 
@@ -72,8 +73,16 @@ def check_inputs(
     float64 arrays.
 
     One pass over all the numbers (a concatenation and one ``max |x|``) when
-    they are fine; the culprit is looked for only when they are not.
+    they are fine; the culprit is looked for only when they are not.  With
+    ``compiled`` (the filter's kernels), a step whose arrays are already float64 of
+    the right shapes, without obstacles, has its numbers tested by one compiled
+    call (:mod:`~aasoatt_env.safety.inputs_kernel`); any other input, or numbers
+    that fail, take the path above (the same errors).
     """
+    if compiled and obstacles is None:
+        fast = _fast_path(n, kin, u, theta, nominal_du, lo, hi, reference)
+        if fast is not None:
+            return fast
     nominal_du = np.asarray(nominal_du, dtype=np.float64)
     if nominal_du.shape != (n, 2):
         raise StateError(f"nominal_du: got shape {nominal_du.shape}, expected ({n}, 2)")
@@ -139,3 +148,29 @@ def check_inputs(
         kin = Kinematics(*(np.asarray(a, dtype=np.float64) for a in fields))
     u, theta = np.asarray(u, dtype=np.float64), np.asarray(theta, dtype=np.float64)
     return kin, u, theta, nominal_du, lo, hi, reference, obstacles
+
+
+def _fast_path(n: int, kin: Kinematics, u: Any, theta: Any, nominal_du: Any, lo: Any, hi: Any,
+               reference: Any) -> tuple | None:
+    """:func:`check_inputs`' answer by the compiled test, or None where that path must decide (its docstring)."""
+    if reference is not None:
+        if type(reference) not in (tuple, list) or len(reference) not in (2, 3):
+            return None
+        p_d, v_d = reference[0], reference[1]
+    else:
+        p_d, v_d = kin.p, kin.v  # (checked twice: no reference to check)
+    pair = (n, 2)
+    for a in (nominal_du, lo, hi, u, kin.p, kin.v, kin.adot_u, p_d, v_d):
+        if not (type(a) is np.ndarray and a.dtype == _F64 and a.shape == pair):
+            return None
+    A = kin.A
+    if not (type(theta) is np.ndarray and theta.dtype == _F64 and theta.shape == (n,)
+            and type(A) is np.ndarray and A.dtype == _F64 and A.shape == (n, 2, 2)):
+        return None
+    if not kernels("inputs").numbers_ok(MAGNITUDE_MAX, nominal_du, lo, hi, u, theta, kin.p, kin.v, A, kin.adot_u,
+                                        p_d, v_d):
+        return None
+    return kin, u, theta, nominal_du, lo, hi, (None if reference is None else (p_d, v_d)), None
+
+
+_F64 = np.dtype(np.float64)
