@@ -617,13 +617,14 @@ class SafetyFilter:
                 avoiding: np.ndarray, triggered: np.ndarray, slack: float, correction: np.ndarray,
                 intervened: np.ndarray, iterations: int, n_rows: int, n_qp: int) -> tuple[np.ndarray, FilterResult]:
         """The step's :class:`FilterResult`: the backup layer's messages, the worst status, braked robots avoiding."""
-        if braking.any():
-            message = f"{message}; backup braked {int(braking.sum())} robot(s)"
-        if nudged.any():
-            message = f"{message}; backup nudged {int(nudged.sum())} robot(s) toward brake-safety"
+        n_braked, n_nudged = np.count_nonzero(braking), np.count_nonzero(nudged)
+        if n_braked:
+            message = f"{message}; backup braked {n_braked} robot(s)"
+        if n_nudged:
+            message = f"{message}; backup nudged {n_nudged} robot(s) toward brake-safety"
         if not safe:
             status = "unsafe"
-        elif (braking.any() or nudged.any()) and STATUSES.index(status) < STATUSES.index("backup"):
+        elif (n_braked or n_nudged) and STATUSES.index(status) < STATUSES.index("backup"):
             status = "backup"
         return du, FilterResult(
             du=du, status=status, safe=safe, backup=braking, margin=margin, barrier_min=barrier_min,
