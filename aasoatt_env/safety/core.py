@@ -575,9 +575,8 @@ class SafetyFilter:
         block, limit = _team_block(team, cfg.brake_fraction, cfg.sensing_range)  # type: ignore[arg-type]
         diff, offset, cols, tg, amax, adec, _, group, has_group, sensing_range = block
         t_call = time.perf_counter()
-        (stage, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, scale, z_warm, qp_code, used, n_qp, n_vars, n_parts,
-         du_qp, x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin, out_of_range, rounds,
-         n_pairs, margin, du, correction, intervened, nudged) = k.filter_step(
+        (stage, pairs, keys, barrier_min, gap_min, qp_code, used, n_qp, n_vars, n_parts, x, z, eta, avoiding, braking,
+         broken, rounds, n_pairs, margin, du, correction, intervened, nudged, floats, flags) = k.filter_step(
             *rows_args, c64(target), c64(lo), c64(hi), c64(team.max_wheel_accel), c64(nominal_du),  # type: ignore
             c64(self._x.reshape(n, 2)), self._keys, c64(self._z), PDAS_ITER,
             one_change_budget(self._solver.one_change_iter), AS_TOL,  # type: ignore
@@ -585,9 +584,27 @@ class SafetyFilter:
             bool(cfg.backup), kernel_pose, c64(u), float(cfg.dt), _QUICK_LEVELS, diff, offset, cols, tg, amax, adec,
             group, has_group, sensing_range, *_NO_OBSTACLES, limit, GATE_TOL)
         barrier_min, gap_min = float(barrier_min), float(gap_min)
-        rows = _Rows(pairs[:, 0], pairs[:, 1], pairs, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, increasing)
         elapsed = time.perf_counter() - t_call  # (the policy's timing: the call, rows and quick check included)
-        if stage == k.ROWS or (qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed)):
+        m = keys.shape[0]
+        if stage == k.DONE and not (qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed)):
+            # nobody brakes, or only for the range limit
+            if qp_code == k.CLOSED_FORM:
+                message, iterations, n_qp = "closed form: no row binds", 0, 0
+            else:
+                self._solver.note_answer(int(n_vars), elapsed)
+                message, iterations, n_qp = VERIFIED_MESSAGE, int(used), int(n_qp)
+            self._remember(x, z, keys, pairs, increasing, avoiding)
+            if cfg.backup:
+                safe, margin = not bool(broken.any()), float(margin)
+            else:
+                braking, safe, margin = np.zeros(n, dtype=bool), _safe_without_layer(barrier_min, gap_min), gap_min
+            return self._result(t0, du, "solved", message, safe, braking, nudged, margin, barrier_min, eta, pairs,
+                                avoiding, triggered, 0.0, correction, intervened, iterations, m, n_qp)
+        # the stages the Python step goes on from (step_kernel.unpack: the packed arrays as views)
+        Gi, Gj, rhs, scale, z_warm, du_qp, xs, zs, gdu, share, robot_margin, done, out_of_range = k.unpack(
+            floats, flags, n, m)
+        rows = _Rows(pairs[:, 0], pairs[:, 1], pairs, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, increasing)
+        if stage == k.ROWS or qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed):
             # the numpy path, from what the compiled decomposition handed on (solve_centralized's _compiled)
             parts = (xs[:n_vars], zs[:n_qp], done[:n_parts], int(used)) if qp_code == k.PARTS else None
             return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, None, triggered, target, scale,
@@ -597,20 +614,11 @@ class SafetyFilter:
         else:
             self._solver.note_answer(int(n_vars), elapsed)
             ans = CentralAnswer(du_qp, x, z, eta, "solved", VERIFIED_MESSAGE, int(used), int(n_qp))
-        if stage == k.QP:
-            quick = GateResult(gdu, braking, float(margin), not bool(broken.any()), broken, share, int(rounds),
-                               int(n_pairs), robot_margin, out_of_range)
-            return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, None, triggered, target, scale,
-                                         answer=ans, avoiding=avoiding, quick=quick)
-        # (stage DONE) nobody brakes, or only for the range limit
-        self._remember(x, z, rows, avoiding)
-        if cfg.backup:
-            safe, margin = not bool(broken.any()), float(margin)
-        else:
-            braking, safe, margin = np.zeros(n, dtype=bool), _safe_without_layer(barrier_min, gap_min), gap_min
-        return self._result(t0, du, "solved", ans.message, safe, braking, nudged, margin, barrier_min, eta, pairs,
-                            avoiding, triggered, 0.0, correction, intervened, ans.iterations, int(rhs.shape[0]),
-                            int(ans.n_qp))
+        # (stage QP) the quick check brakes someone for a pair: the repair or the full check follows
+        quick = GateResult(gdu, braking, float(margin), not bool(broken.any()), broken, share, int(rounds),
+                           int(n_pairs), robot_margin, out_of_range)
+        return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, None, triggered, target, scale,
+                                     answer=ans, avoiding=avoiding, quick=quick)
 
     def _result(self, t0: float, du: np.ndarray, status: str, message: str, safe: bool, braking: np.ndarray,
                 nudged: np.ndarray, margin: float, barrier_min: float, eta: np.ndarray, pairs: np.ndarray,
@@ -634,15 +642,15 @@ class SafetyFilter:
             solve_time=time.perf_counter() - t0, n_rows=n_rows, n_qp_rows=n_qp,
         )
 
-    def _remember(self, x: np.ndarray, z: np.ndarray, rows: _Rows, avoiding: np.ndarray) -> None:
-        """The next step's warm start (point, row keys and multipliers) and the deadlock memory.
+    def _remember(self, x: np.ndarray, z: np.ndarray, keys: np.ndarray, robots: np.ndarray, increasing: bool,
+                  avoiding: np.ndarray) -> None:
+        """The next step's warm start (point, row keys, their robots and multipliers) and the deadlock memory.
 
-        The rows are kept in increasing key order (sorted here where they are not), so the next step
-        maps them by binary search.
+        The rows are kept in increasing key order (sorted here where they are not: ``increasing`` says
+        they are known to be), so the next step maps them by binary search.
         """
         # (an obstacle row's (i, -1 - k) names robot i alone, as (i, -1) would)
-        keys, robots = rows.keys, rows.pairs_out
-        if not rows.increasing and keys.shape[0] > 1 and not bool((keys[1:] > keys[:-1]).all()):
+        if not increasing and keys.shape[0] > 1 and not bool((keys[1:] > keys[:-1]).all()):
             order = np.argsort(keys, kind="stable")
             keys, z, robots = keys[order], z[order], robots[order]
         self._x, self._keys, self._z = x.ravel(), keys, z
@@ -705,7 +713,7 @@ class SafetyFilter:
                 active = z > cfg.eta_tol
                 avoiding[ri[active]] = True
                 avoiding[rj[active & (rj >= 0)]] = True
-        self._remember(x_full, z, rows, avoiding)
+        self._remember(x_full, z, rows.keys, rows.pairs_out, rows.increasing, avoiding)
         # (the decentralised local solver is exact; a negotiation group's answer is its solver's)
         exact = self._solver.exact or (decentral and not ans.grouped.any())  # type: ignore[union-attr]
         slack = 0.0

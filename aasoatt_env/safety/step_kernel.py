@@ -45,7 +45,7 @@ from aasoatt_env.safety.numba_kernels import gate_full
 from aasoatt_env.safety.rows_kernel import aasoatt_rows
 
 # (the decomposition's codes too: the caller reads them here, where numba is already imported)
-__all__ = ["CLOSED_FORM", "DONE", "PARTS", "QP", "ROWS", "VERIFIED", "filter_step"]
+__all__ = ["CLOSED_FORM", "DONE", "PARTS", "QP", "ROWS", "VERIFIED", "filter_step", "unpack"]
 
 ROWS = 0
 """Stopped after the rows and the scale: the QP was not answered here (the decomposition's other codes)."""
@@ -89,12 +89,15 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
     Returns
     -------
     tuple
-        ``(stage, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, scale, z_warm, qp_code, iterations, n_qp,
-        n_vars, n_parts, du_qp, x, z, eta, xs, zs, done, avoiding, gate_du, braking, broken, share,
-        robot_margin, out_of_range, rounds, n_pairs, margin, du, correction, intervened, nudged)``;
-        ``stage`` (:data:`ROWS`, :data:`QP`, :data:`DONE`) says which are made (the others are empty,
-        or, after :data:`ROWS`, the decomposition's buffers, not to be read unless ``qp_code`` is its
-        :data:`PARTS`); ``qp_code`` is the decomposition's.
+        ``(stage, pairs, keys, barrier_min, gap_min, qp_code, iterations, n_qp, n_vars, n_parts, x, z, eta,
+        avoiding, braking, broken, rounds, n_pairs, margin, du, correction, intervened, nudged, floats,
+        flags)``; ``stage`` (:data:`ROWS`, :data:`QP`, :data:`DONE`) says which are made (the others are
+        empty, or, after :data:`ROWS`, the decomposition's buffers, not to be read unless ``qp_code`` is its
+        :data:`PARTS`); ``qp_code`` is the decomposition's.  What only the stages before :data:`DONE` read
+        is packed into two arrays (each array returned costs the call a Python object):
+        ``floats`` holds ``Gi, Gj (m, 2), rhs (m,), scale (n,), z_warm (m,), du_qp (n, 2), xs (2n,),
+        zs (m,), gate_du (n, 2), share (n,), robot_margin (n,)`` one after the other (:func:`unpack`),
+        ``flags`` ``done (n,)`` and ``out_of_range (n,)`` (the gate's entries only where it ran).
     """
     n = p.shape[0]
     pairs, _, Gi, Gj, rhs, keys, h_min, gap_min = aasoatt_rows(
@@ -118,9 +121,20 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z0, max_iter, one_change_iter, tol, warm_rel,
         warm_floor, bound_tight, row_norm_min, dense_max_vars, dense_max_cells, du_qp, x, z, eta, xs, zs, done)
     e2, eb, ei = np.empty((0, 2)), np.empty(0, dtype=np.bool_), np.empty(0)
+    floats = np.empty(7 * m + 11 * n)  # (unpack's layout)
+    flags = np.zeros(2 * n, dtype=np.bool_)
+    floats[0:2 * m] = Gi.ravel()
+    floats[2 * m:4 * m] = Gj.ravel()
+    floats[4 * m:5 * m] = rhs
+    floats[5 * m:5 * m + n] = scale
+    floats[5 * m + n:6 * m + n] = z0
+    floats[6 * m + n:6 * m + 3 * n] = du_qp.ravel()
+    floats[6 * m + 3 * n:6 * m + 5 * n] = xs
+    floats[6 * m + 5 * n:7 * m + 5 * n] = zs
+    flags[0:n] = done
     if code != CLOSED_FORM and code != VERIFIED:
-        return (ROWS, pairs, Gi, Gj, rhs, keys, h_min, gap_min, scale, z0, code, used, n_qp, n_vars, n_parts, du_qp,
-                x, z, eta, xs, zs, done, eb, e2, eb, eb, ei, ei, eb, 0, 0, 0.0, e2, ei, eb, eb)
+        return (ROWS, pairs, keys, h_min, gap_min, code, used, n_qp, n_vars, n_parts, x, z, eta, eb, eb, eb, 0, 0,
+                0.0, e2, ei, eb, eb, floats, flags)
     avoiding = np.zeros(n, dtype=np.bool_)
     for q in range(m):
         if z[q] > eta_tol:
@@ -140,11 +154,14 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
             beyond |= out_of_range[g]
             other |= braking[g] and not out_of_range[g]
             any_broken |= broken[g]
+        floats[7 * m + 5 * n:7 * m + 7 * n] = gdu.ravel()
+        floats[7 * m + 7 * n:7 * m + 8 * n] = share
+        floats[7 * m + 8 * n:7 * m + 9 * n] = robot_margin
+        flags[n:2 * n] = out_of_range
         if brakes:
             if not beyond or any_broken or other:  # the repair or the full check may follow
-                return (QP, pairs, Gi, Gj, rhs, keys, h_min, gap_min, scale, z0, code, used, n_qp, n_vars, n_parts,
-                        du_qp, x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin,
-                        out_of_range, rounds, n_pairs, margin, e2, ei, eb, eb)
+                return (QP, pairs, keys, h_min, gap_min, code, used, n_qp, n_vars, n_parts, x, z, eta, avoiding,
+                        braking, broken, rounds, n_pairs, margin, e2, ei, eb, eb, floats, flags)
             # every robot that brakes does so for the range limit alone, nothing broken: the quick check is
             # the layer's answer (gate_with_repair's first return), its margin as _merged takes it
             for g in range(n):
@@ -162,6 +179,17 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         d0, d1 = du[g, 0] - nominal[g, 0], du[g, 1] - nominal[g, 1]
         correction[g] = np.sqrt(d0 * d0 + d1 * d1)
         intervened[g] = correction[g] > tiny
-    return (DONE, pairs, Gi, Gj, rhs, keys, h_min, gap_min, scale, z0, code, used, n_qp, n_vars, n_parts, du_qp,
-            x, z, eta, xs, zs, done, avoiding, gdu, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs,
-            margin, du, correction, intervened, nudged)
+    return (DONE, pairs, keys, h_min, gap_min, code, used, n_qp, n_vars, n_parts, x, z, eta, avoiding, braking,
+            broken, rounds, n_pairs, margin, du, correction, intervened, nudged, floats, flags)
+
+
+def unpack(floats: np.ndarray, flags: np.ndarray, n: int, m: int) -> tuple:
+    """:func:`filter_step`'s packed arrays as views, for ``n`` robots and ``m`` rows.
+
+    ``(Gi, Gj, rhs, scale, z_warm, du_qp, xs, zs, gate_du, share, robot_margin, done, out_of_range)``.
+    """
+    f = floats
+    return (f[0:2 * m].reshape(m, 2), f[2 * m:4 * m].reshape(m, 2), f[4 * m:5 * m], f[5 * m:5 * m + n],
+            f[5 * m + n:6 * m + n], f[6 * m + n:6 * m + 3 * n].reshape(n, 2), f[6 * m + 3 * n:6 * m + 5 * n],
+            f[6 * m + 5 * n:7 * m + 5 * n], f[7 * m + 5 * n:7 * m + 7 * n].reshape(n, 2),
+            f[7 * m + 7 * n:7 * m + 8 * n], f[7 * m + 8 * n:7 * m + 9 * n], flags[0:n], flags[n:2 * n])
