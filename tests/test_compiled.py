@@ -20,7 +20,7 @@ from aasoatt_env.api.factory import make_batched_env
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT, input_bounds, kinematics
 from aasoatt_env.model.geometry import robot_pairs
-from aasoatt_env.model.params import RobotParams, make_team, stack_teams
+from aasoatt_env.model.params import RobotParams, Team, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter, warm_up
 from aasoatt_env.safety.backup import _point
 from aasoatt_env.safety.gatekeeper import gatekeeper
@@ -793,6 +793,36 @@ def test_the_compiled_multiplier_trigger_and_target_are_numpys(seed):
             assert anyone == want.any() and (avoiding is None or 0 < want.sum() < 40 or reference is None)
             np.testing.assert_array_equal(_bits(zeta), _bits(np.where(want, cfg.zeta, 0.0)))
             np.testing.assert_array_equal(_bits(target), _bits(np.einsum("nij,nj->ni", kin.A, nom)))
+
+
+@pytest.mark.parametrize("grouped", [False, True])
+def test_a_subsets_backup_constants_are_the_whole_teams_indexed(grouped):
+    """The backup layer's per-robot constants of a team's subset (its checks of a group of robots) are taken
+    from the whole team's by indexing: the same numbers as made for that subset alone, for mixed robots, in
+    stacks of teams, for index arrays and masks, and for a subset of a subset."""
+    from aasoatt_env.model.params import SUBSET_OF
+    from aasoatt_env.safety.gatekeeper import _team_block
+
+    team = make_team(["paper", "turtlebot3_burger", RobotParams(radius=0.3, offset=0.1), "paper_small"] * 6, 24)
+    if grouped:
+        team = stack_teams([team.subset(np.arange(12)), team.subset(np.arange(12, 24))])
+    rng = np.random.default_rng(2)
+    picks = [rng.choice(24, 7, replace=False), rng.uniform(size=24) < 0.4, np.arange(24)[::-1]]
+    for idx in picks:
+        sub = team.subset(idx)
+        assert sub.derived[SUBSET_OF][0] is team
+        nested = sub.subset(np.array([0, 2]))
+        for t in (sub, nested):
+            alone = Team(t.radius, t.wheel_radius, t.half_track, t.offset, t.max_wheel_accel, t.max_wheel_speed,
+                         t.max_point_accel, t.model, t.group)
+            got, want = _team_block(t, 2.0 / 3.0, 3.0), _team_block(alone, 2.0 / 3.0, 3.0)
+            assert SUBSET_OF not in alone.derived
+            for a, b in zip((*got[0], got[1]), (*want[0], want[1])):
+                if isinstance(a, np.ndarray):
+                    assert a.dtype == b.dtype and a.flags.c_contiguous
+                    np.testing.assert_array_equal(a, b)
+                else:
+                    assert a == b
 
 
 @needs_numba

@@ -40,7 +40,10 @@ import numpy as np
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.validation import choice, positive
 
-__all__ = ["PRESETS", "RobotParams", "Team", "make_team", "stack_teams"]
+__all__ = ["PRESETS", "SUBSET_OF", "RobotParams", "Team", "make_team", "stack_teams"]
+
+SUBSET_OF = "subset_of"
+"""The :attr:`Team.derived` key of a :meth:`Team.subset`'s ``(whole team, idx)``."""
 
 Model = Literal["diff_drive", "double_integrator"]
 MODELS: tuple[str, ...] = ("diff_drive", "double_integrator")
@@ -180,10 +183,17 @@ class Team:
         return int(self.radius.shape[0])
 
     def subset(self, idx: np.ndarray) -> Team:
-        """The team of robots ``idx`` (same order)."""
-        return Team(self.radius[idx], self.wheel_radius[idx], self.half_track[idx], self.offset[idx],
-                    self.max_wheel_accel[idx], self.max_wheel_speed[idx], self.max_point_accel[idx], self.model,
-                    None if self.group is None else self.group[idx])
+        """The team of robots ``idx`` (same order).
+
+        It keeps ``(self, idx)`` in its :attr:`derived` under :data:`SUBSET_OF`: per-robot values
+        made for this team can be indexed for it instead of made again (the backup layer's checks
+        of a group of robots, several times per step).
+        """
+        sub = Team(self.radius[idx], self.wheel_radius[idx], self.half_track[idx], self.offset[idx],
+                   self.max_wheel_accel[idx], self.max_wheel_speed[idx], self.max_point_accel[idx], self.model,
+                   None if self.group is None else self.group[idx])
+        sub.derived[SUBSET_OF] = (self, idx)
+        return sub
 
     @property
     def is_diff_drive(self) -> bool:

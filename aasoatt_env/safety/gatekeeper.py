@@ -31,7 +31,7 @@ import numpy as np
 
 from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.geometry import robot_pairs
-from aasoatt_env.model.params import Team
+from aasoatt_env.model.params import SUBSET_OF, Team
 from aasoatt_env.safety.backup import (
     _brake,
     _brake_samples,
@@ -455,6 +455,13 @@ def _team_block(team: Team, brake_fraction: float, sensing_range: float) -> tupl
     """The per-robot constants of :func:`_kernel_args`' block and the reach limits, made once per team."""
     key = ("gatekeeper", float(brake_fraction), float(sensing_range))
     block = team.derived.get(key)
+    if block is None and SUBSET_OF in team.derived:  # a subset's: the whole team's indexed (every entry is
+        whole, idx = team.derived[SUBSET_OF]  # the robot's own, so the same numbers)
+        (diff, offset, cols, tg, amax, adec, radius, group, has_group, rng), limit = _team_block(
+            whole, brake_fraction, sensing_range)
+        block = team.derived[key] = (
+            (diff, offset[idx], cols[idx], tg[idx], amax[idx], adec[idx], radius[idx],
+             group[idx] if has_group else group, has_group, rng), limit[idx])
     if block is None:
         group = team.group if team.group is not None else _EMPTY_INT
         block = team.derived[key] = (
