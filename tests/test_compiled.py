@@ -724,45 +724,61 @@ def _step_inputs(n: int, seed: int) -> tuple:
 @needs_numba
 def test_the_compiled_input_check_passes_and_refuses_what_the_numpy_one_does(monkeypatch):
     """The centralised step's input check with its compiled test of the numbers (``compiled=True``) returns the
-    arrays the numpy check returns, and refuses every NaN, inf, value beyond +-1e9 and ``lo > hi`` the numpy
-    check refuses, with the same error naming the argument and the robot."""
+    arrays the numpy check returns (the caller's own), and refuses every NaN, inf, value beyond +-1e9 and
+    ``lo > hi`` the numpy check refuses, at every entry of every array, with the same error naming the argument
+    and the robot; forms the kernel does not take (float32, a flat reference, obstacles) go to the numpy check."""
     from aasoatt_env.errors import StateError
     from aasoatt_env.safety.inputs import check_inputs
 
     kernel, calls = compiled.kernels("inputs"), []
     real = kernel.numbers_ok
     monkeypatch.setattr(kernel, "numbers_ok", lambda *a: calls.append(1) or real(*a))
-    kin, u, theta, nom, lo, hi, ref = _step_inputs(9, 4)
-    for reference in (ref, None, list(ref) + [np.zeros((9, 2))]):
-        fast = check_inputs(9, kin, u, theta, nom, lo, hi, reference, compiled=True)
-        slow = check_inputs(9, kin, u, theta, nom, lo, hi, reference)
+    n = 5
+    kin, u, theta, nom, lo, hi, ref = _step_inputs(n, 4)
+    fortran = np.asfortranarray(u)
+    for reference, u_in in ((ref, u), (None, u), (list(ref) + [np.zeros((n, 2))], u), (ref, fortran)):
+        fast = check_inputs(n, kin, u_in, theta, nom, lo, hi, reference, compiled=True)
+        slow = check_inputs(n, kin, u_in, theta, nom, lo, hi, reference)
         for a, b in zip((*fast[0], *fast[1:6], *(fast[6] or ())), (*slow[0], *slow[1:6], *(slow[6] or ()))):
-            assert a.dtype == b.dtype == np.float64
-            np.testing.assert_array_equal(a, b)
+            assert a is b
         assert (fast[6] is None) == (reference is None) and fast[7] is slow[7] is None
-    assert len(calls) == 3  # (every valid form above answered by the kernel)
+    assert len(calls) == 4  # (every valid form above answered by the kernel)
+    others = [dict(u=u.astype(np.float32)), dict(reference=(ref[0].ravel(), ref[1])),
+              dict(obstacles=(np.array([[40.0, 40.0]]), np.array([0.5])))]
+    for change in others:
+        kw = dict(u=u, reference=ref, obstacles=None) | change
+        fast = check_inputs(n, kin, kw["u"], theta, nom, lo, hi, kw["reference"], kw["obstacles"], compiled=True)
+        slow = check_inputs(n, kin, kw["u"], theta, nom, lo, hi, kw["reference"], kw["obstacles"])
+        np.testing.assert_array_equal(fast[1], slow[1])
+        assert fast[1].dtype == np.float64 and np.shape(fast[6][0]) == (n, 2)
+    assert len(calls) == 4  # (those went to the numpy check)
     names = ("nominal_du", "lo", "hi", "u", "theta", "kin.p", "kin.v", "kin.A", "kin.adot_u", "reference p_d",
              "reference v_d")
     refused = 0
     for k, name in enumerate(names):
-        for bad in (np.nan, np.inf, -np.inf, 2e9, -2e9):
-            arrays = [nom, lo, hi, u, theta, kin.p, kin.v, kin.A, kin.adot_u, *ref]
-            arrays = [a.copy() for a in arrays]
-            arrays[k][(6,) + (0,) * (arrays[k].ndim - 1)] = bad  # robot 6, first component
-            if name == "lo" and bad > 0:
-                arrays[2][6, 0] = 3e9
-            args = (9, type(kin)(*arrays[5:9]), arrays[3], arrays[4], *arrays[:3], tuple(arrays[9:]))
-            with pytest.raises(StateError) as slow_err:
-                check_inputs(*args)
-            with pytest.raises(StateError) as fast_err:
-                check_inputs(*args, compiled=True)
-            assert str(fast_err.value) == str(slow_err.value) and "robot index 6" in str(slow_err.value)
-            refused += 1
-    crossed = hi.copy()
-    crossed[3, 1] = lo[3, 1] - 1.0
-    with pytest.raises(StateError, match="lo/hi: bounds must be finite with lo <= hi"):
-        check_inputs(9, kin, u, theta, nom, lo, crossed, ref, compiled=True)
-    assert refused == len(names) * 5
+        size = (nom, lo, hi, u, theta, kin.p, kin.v, kin.A, kin.adot_u, *ref)[k].size
+        for flat in range(size):
+            for bad in (np.nan, np.inf, -np.inf, 2e9, -2e9):
+                arrays = [a.copy() for a in (nom, lo, hi, u, theta, kin.p, kin.v, kin.A, kin.adot_u, *ref)]
+                arrays[k].flat[flat] = bad
+                if name == "lo" and bad > 0:  # (beyond its upper bound too: the magnitude is what is refused)
+                    arrays[2].flat[flat] = 3e9
+                args = (n, type(kin)(*arrays[5:9]), arrays[3], arrays[4], *arrays[:3], tuple(arrays[9:]))
+                with pytest.raises(StateError) as slow_err:
+                    check_inputs(*args)
+                with pytest.raises(StateError) as fast_err:
+                    check_inputs(*args, compiled=True)
+                robot = flat // (size // n)
+                assert str(fast_err.value) == str(slow_err.value)
+                assert str(slow_err.value).startswith(name) and f"robot index {robot})" in str(slow_err.value)
+                refused += 1
+    assert refused == 5 * sum(a.size for a in (nom, lo, hi, u, theta, kin.p, kin.v, kin.A, kin.adot_u, *ref))
+    for robot in range(n):
+        for col in range(2):
+            crossed = hi.copy()
+            crossed[robot, col] = lo[robot, col] - 1.0
+            with pytest.raises(StateError, match="lo/hi: bounds must be finite with lo <= hi"):
+                check_inputs(n, kin, u, theta, nom, lo, crossed, ref, compiled=True)
 
 
 @needs_numba
@@ -795,11 +811,48 @@ def test_the_compiled_multiplier_trigger_and_target_are_numpys(seed):
             np.testing.assert_array_equal(_bits(target), _bits(np.einsum("nij,nj->ni", kin.A, nom)))
 
 
+@needs_numba
+def test_a_trigger_or_strategy_registered_in_place_of_the_defaults_is_the_one_called(monkeypatch):
+    """The compiled trigger stands in for the registry's own ``multiplier`` trigger and :class:`Strategy` only: a
+    function registered under that name, or a strategy of a subclass, is called as registered."""
+    from aasoatt_env.safety import core, deadlock
+
+    assert SafetyFilter(kernel="numba")._compiled_trigger
+    seen = []
+
+    def mine(state, context):
+        seen.append(context.p.shape[0])
+        return np.ones(context.p.shape[0], dtype=bool)
+
+    class Loud(deadlock.Strategy):
+        def correct_target(self, target, zeta, Q, ctx):
+            seen.append("strategy")
+            return super().correct_target(target, zeta, Q, ctx)
+
+    monkeypatch.setitem(deadlock.TRIGGERS, "multiplier", mine)
+    monkeypatch.setitem(core.TRIGGERS, "multiplier", mine)
+    env = make_env("random_goals", num_robots=6, filter={"kernel": "numba"}, max_steps=5)
+    env.reset(seed=1)
+    assert not env.unwrapped.control_filter._compiled_trigger
+    for _ in range(3):
+        env.step({a: np.zeros(2) for a in env.agents})
+    assert seen.count(6) >= 3
+    monkeypatch.undo()
+    loud = Loud("eqn.13", deadlock.STRATEGIES["auxiliary_velocity"].target, needs_reference=True)
+    monkeypatch.setitem(deadlock.STRATEGIES, "auxiliary_velocity", loud)
+    monkeypatch.setitem(core.STRATEGIES, "auxiliary_velocity", loud)
+    filt = SafetyFilter(kernel="numba")
+    assert filt._strategy is loud and not filt._compiled_trigger
+
+
 @pytest.mark.parametrize("grouped", [False, True])
 def test_a_subsets_backup_constants_are_the_whole_teams_indexed(grouped):
     """The backup layer's per-robot constants of a team's subset (its checks of a group of robots) are taken
     from the whole team's by indexing: the same numbers as made for that subset alone, for mixed robots, in
-    stacks of teams, for index arrays and masks, and for a subset of a subset."""
+    stacks of teams, for index arrays and masks (the caller's array changed afterwards), and for a subset of a
+    subset; a pickled subset leaves its whole team behind."""
+    import pickle
+
     from aasoatt_env.model.params import SUBSET_OF
     from aasoatt_env.safety.gatekeeper import _team_block
 
@@ -811,6 +864,8 @@ def test_a_subsets_backup_constants_are_the_whole_teams_indexed(grouped):
     for idx in picks:
         sub = team.subset(idx)
         assert sub.derived[SUBSET_OF][0] is team
+        if idx.dtype != bool:
+            idx[:] = idx[::-1].copy()  # the caller's index array reused: the subset keeps its own robots
         nested = sub.subset(np.array([0, 2]))
         for t in (sub, nested):
             alone = Team(t.radius, t.wheel_radius, t.half_track, t.offset, t.max_wheel_accel, t.max_wheel_speed,
@@ -823,6 +878,9 @@ def test_a_subsets_backup_constants_are_the_whole_teams_indexed(grouped):
                     np.testing.assert_array_equal(a, b)
                 else:
                     assert a == b
+        copy = pickle.loads(pickle.dumps(sub))
+        assert SUBSET_OF not in copy.derived and len(pickle.dumps(sub)) < len(pickle.dumps(team))
+        np.testing.assert_array_equal(_team_block(copy, 2.0 / 3.0, 3.0)[1], _team_block(sub, 2.0 / 3.0, 3.0)[1])
 
 
 @needs_numba
@@ -881,6 +939,15 @@ def test_warm_up_compiles_what_the_filter_runs():
     batch.reset(seed=3)
     for _ in range(10):
         batch.step(np.random.default_rng(3).uniform(-1.0, 1.0, (4, 6, 2)))
+    # the core called directly, with the layouts callers have: contiguous or strided headings, read-only,
+    # writeable or Fortran-ordered arrays, with and without a reference
+    kin, u, theta, nom, lo, hi, ref = _step_inputs(8, 6)
+    for theta_in, u_in, reference in ((theta, u, ref), (theta.copy(), np.asfortranarray(u), None),
+                                      (theta.copy(), u, (ref[0].copy(), ref[1].copy()))):
+        filt = SafetyFilter(make_team(["paper", "turtlebot3_burger"] * 4, 8),  # (eqn.12a needs no reference)
+                            deadlock="auxiliary_velocity" if reference else "rotate_nominal")
+        for _ in range(2):
+            filt.step(kin, u_in, theta_in, nom, lo, hi, reference=reference)
     assert _signatures() == before
 
 

@@ -189,10 +189,11 @@ class Team:
         made for this team can be indexed for it instead of made again (the backup layer's checks
         of a group of robots, several times per step).
         """
-        sub = Team(self.radius[idx], self.wheel_radius[idx], self.half_track[idx], self.offset[idx],
-                   self.max_wheel_accel[idx], self.max_wheel_speed[idx], self.max_point_accel[idx], self.model,
-                   None if self.group is None else self.group[idx])
-        sub.derived[SUBSET_OF] = (self, idx)
+        rows = np.arange(self.n)[idx]  # (the caller's index as robot numbers, a copy: masks and slices too)
+        sub = Team(self.radius[rows], self.wheel_radius[rows], self.half_track[rows], self.offset[rows],
+                   self.max_wheel_accel[rows], self.max_wheel_speed[rows], self.max_point_accel[rows], self.model,
+                   None if self.group is None else self.group[rows])
+        sub.derived[SUBSET_OF] = (self, rows)
         return sub
 
     @property
@@ -240,9 +241,15 @@ class Team:
         As with the other cached properties, a team's arrays are not to be changed in place.
 
         Keyed by their maker and its arguments, e.g. the backup layer's per-robot constants
-        for one braking fraction and sensing range (:mod:`aasoatt_env.safety.gatekeeper`).
+        for one braking fraction and sensing range (:mod:`aasoatt_env.safety.gatekeeper`);
+        a :meth:`subset` holds its whole team and robot numbers under :data:`SUBSET_OF`.
+        Not pickled (a copy makes them again on first use).
         """
         return {}
+
+    def __getstate__(self) -> dict[str, Any]:
+        """The parameters and cached arrays, without :attr:`derived` (a subset's whole team stays behind)."""
+        return {k: v for k, v in self.__dict__.items() if k != "derived"}
 
     @cached_property
     def turn_gain(self) -> np.ndarray:

@@ -44,6 +44,7 @@ from aasoatt_env.safety.deadlock import (
     TRIGGERS,
     TRIGGERS_WITHOUT_PAIRS,
     DeadlockState,
+    Strategy,
     TargetContext,
     TriggerContext,
     rotation,
@@ -98,6 +99,9 @@ class _Rows(NamedTuple):
 
 
 _NO_PAIRS = np.empty((0, 2), dtype=np.intp)
+
+_MULTIPLIER = TRIGGERS["multiplier"]
+"""The registry's own ``multiplier`` trigger, which the compiled step computes (``deadlock_kernel``)."""
 """A trigger context's pairs where the trigger reads none (``deadlock.TRIGGERS_WITHOUT_PAIRS``)."""
 _QUICK_LEVELS = np.array(_levels(BLEND_LEVELS))
 _QUICK_LEVELS.flags.writeable = False
@@ -292,7 +296,9 @@ class SafetyFilter:
                             and cfg.active_set and cfg.trigger in TRIGGERS_WITHOUT_PAIRS)
         # there, the default trigger and the target by one compiled call (deadlock_kernel), where the strategy
         # acts (a strategy that leaves the target alone has no trigger to evaluate)
-        self._compiled_trigger = self._whole_step and cfg.trigger == "multiplier" and self._strategy.active
+        # (the registry's own entries: a trigger registered under that name, or a Strategy subclass, is theirs)
+        self._compiled_trigger = (self._whole_step and self._trigger is _MULTIPLIER and self._strategy.active
+                                  and type(self._strategy) is Strategy)
         self.reset(team)
 
     def warm_up(self) -> bool:
@@ -457,7 +463,8 @@ class SafetyFilter:
                 # the rest of the step's compiled parts in one call (step_kernel's docstring): the trigger
                 # reads no pairs here, so it and the target come first
                 if self._compiled_trigger:
-                    triggered, target = self._triggered_target(A, nominal_du, v, p, reference)
+                    triggered, target = self._triggered_target(rows_args[3], nominal_du, rows_args[1], rows_args[0],
+                                                               reference)
                 else:
                     triggered = self._triggered(TriggerContext(p, v, theta, reference, _NO_PAIRS, _NO_PAIRS, cfg))
                     target = self._target(A, nominal_du, lo, hi, triggered, v, p, reference)
@@ -544,15 +551,17 @@ class SafetyFilter:
         """:meth:`_triggered` and :meth:`_target` of the ``multiplier`` trigger in the centralised mode.
 
         The trigger and ``A du_nom`` by one compiled call (:mod:`~aasoatt_env.safety.deadlock_kernel`, the
-        same numbers); the strategy's correction of the triggered robots as in :meth:`_target`.
+        same numbers); the strategy's correction of the triggered robots as in :meth:`_target`.  ``A``,
+        ``v``, ``p`` as :func:`~aasoatt_env.compiled.c64` gives them (the rows' arguments); the others
+        are given to the kernel so too (one compiled specialisation whatever the caller's layouts).
         """
         cfg = self.config
         avoiding = self._dl.avoiding
-        if avoiding is None:
-            avoiding = np.zeros(p.shape[0], dtype=bool)
-        p_d, v_d = (p, v) if reference is None else reference
+        avoiding = np.zeros(p.shape[0], dtype=bool) if avoiding is None else np.ascontiguousarray(avoiding, bool)
+        p_d, v_d = (p, v) if reference is None else (c64(reference[0]), c64(reference[1]))
         triggered, zeta, target, anyone = kernels("deadlock").multiplier_target(
-            avoiding, p, v, p_d, v_d, reference is not None, A, nominal_du, cfg.zeta, cfg.low_speed, cfg.goal_tol)
+            avoiding, p, v, p_d, v_d, reference is not None, A, c64(nominal_du), cfg.zeta, cfg.low_speed,
+            cfg.goal_tol)
         if anyone:
             target = self._checked_target(self._strategy.correct_target(
                 target, zeta, self._Q, TargetContext(v, p, reference, cfg.k3, cfg.k4)), nominal_du)
@@ -586,7 +595,8 @@ class SafetyFilter:
         barrier_min, gap_min = float(barrier_min), float(gap_min)
         elapsed = time.perf_counter() - t_call  # (the policy's timing: the call, rows and quick check included)
         m = keys.shape[0]
-        if stage == k.DONE and not (qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed)):
+        probe = qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed)
+        if stage == k.DONE and not probe:
             # nobody brakes, or only for the range limit
             if qp_code == k.CLOSED_FORM:
                 message, iterations, n_qp = "closed form: no row binds", 0, 0
@@ -604,7 +614,7 @@ class SafetyFilter:
         Gi, Gj, rhs, scale, z_warm, du_qp, xs, zs, gdu, share, robot_margin, done, out_of_range = k.unpack(
             floats, flags, n, m)
         rows = _Rows(pairs[:, 0], pairs[:, 1], pairs, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, increasing)
-        if stage == k.ROWS or qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed):
+        if stage == k.ROWS or probe:
             # the numpy path, from what the compiled decomposition handed on (solve_centralized's _compiled)
             parts = (xs[:n_vars], zs[:n_qp], done[:n_parts], int(used)) if qp_code == k.PARTS else None
             return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, None, triggered, target, scale,

@@ -23,11 +23,30 @@ __all__ = ["multiplier_target"]
 
 @jit
 def multiplier_target(avoiding, p, v, p_d, v_d, has_reference, A, nominal, zeta, low_speed, goal_tol):
-    """``(triggered (n,), zeta_i (n,), A du_nom (n, 2), any triggered)`` of the ``multiplier`` trigger.
+    """The ``multiplier`` trigger, each robot's ``zeta_i`` and the nominal's target.
 
-    ``avoiding (n,)``: the deadlock memory (all False where there is none); ``p_d, v_d``: the reference,
-    read only with ``has_reference`` (without one a robot is not done while it was avoiding).  The caller
-    has checked every shape (read without bounds checks).
+    Parameters
+    ----------
+    avoiding : numpy.ndarray
+        ``(n,)`` bool: the deadlock memory (a robot had a binding row at the previous step; all
+        False where there is none).
+    p, v : numpy.ndarray
+        Control points and their velocities ``(n, 2)``.
+    p_d, v_d : numpy.ndarray
+        The reference ``(n, 2)``, read only with ``has_reference`` (without one a robot is not done
+        while it was avoiding).
+    has_reference : bool
+        Whether ``p_d, v_d`` are the reference.
+    A, nominal : numpy.ndarray
+        Input matrices ``(n, 2, 2)`` and the nominal ``du`` ``(n, 2)``.
+    zeta, low_speed, goal_tol : float
+        :class:`~aasoatt_env.safety.config.FilterConfig`'s deadlock gain and "done" thresholds.
+
+    Returns
+    -------
+    tuple
+        ``(triggered (n,) bool, zeta_i (n,), A du_nom (n, 2), any triggered)``.  Every array is
+        float64 (bool) and C-contiguous, of the shapes the caller checked (read without bounds checks).
     """
     n = p.shape[0]
     triggered = np.empty(n, dtype=np.bool_)

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.compiled import kernels
+from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.errors import ConfigError, StateError
 from aasoatt_env.model.dynamics import Kinematics
 from aasoatt_env.model.params import Team
@@ -20,6 +20,8 @@ from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.validation import MAGNITUDE_MAX
 
 __all__ = ["MIN_BRAKING_ROOM", "check_inputs", "check_team", "refuse_rows_beyond"]
+
+_F64 = np.dtype(np.float64)
 
 MIN_BRAKING_ROOM: float = 0.1
 """With the backup layer, the sensing range must exceed the largest safety distance by this much [m]:
@@ -152,7 +154,22 @@ def check_inputs(
 
 def _fast_path(n: int, kin: Kinematics, u: Any, theta: Any, nominal_du: Any, lo: Any, hi: Any,
                reference: Any) -> tuple | None:
-    """:func:`check_inputs`' answer by the compiled test, or None where that path must decide (its docstring)."""
+    """:func:`check_inputs`' answer by the compiled test, or None where the numpy check must decide.
+
+    Parameters
+    ----------
+    n, kin, u, theta, nominal_du, lo, hi, reference
+        :func:`check_inputs`' arguments (no obstacles).
+
+    Returns
+    -------
+    tuple or None
+        :func:`check_inputs`' return (the caller's own arrays) where every array is a float64
+        ``numpy.ndarray`` of its shape, the reference a tuple or list of ``(N, 2)`` arrays (or
+        None) and the numbers pass; None otherwise (any other form, or a number that fails).
+        The kernel gets the arrays as :func:`~aasoatt_env.compiled.c64` gives them (a copy of a
+        read-only or strided one): one compiled specialisation whatever the caller's layouts.
+    """
     if reference is not None:
         if type(reference) not in (tuple, list) or len(reference) not in (2, 3):
             return None
@@ -167,10 +184,9 @@ def _fast_path(n: int, kin: Kinematics, u: Any, theta: Any, nominal_du: Any, lo:
     if not (type(theta) is np.ndarray and theta.dtype == _F64 and theta.shape == (n,)
             and type(A) is np.ndarray and A.dtype == _F64 and A.shape == (n, 2, 2)):
         return None
-    if not kernels("inputs").numbers_ok(MAGNITUDE_MAX, nominal_du, lo, hi, u, theta, kin.p, kin.v, A, kin.adot_u,
-                                        p_d, v_d):
+    if not kernels("inputs").numbers_ok(MAGNITUDE_MAX, *(c64(a) for a in (nominal_du, lo, hi, u, theta, kin.p, kin.v,
+                                                                          A, kin.adot_u, p_d, v_d))):
         return None
     return kin, u, theta, nominal_du, lo, hi, (None if reference is None else (p_d, v_d)), None
 
 
-_F64 = np.dtype(np.float64)

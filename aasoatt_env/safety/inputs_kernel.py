@@ -20,8 +20,22 @@ __all__ = ["numbers_ok"]
 def numbers_ok(bound, nominal, lo, hi, u, theta, p, v, A, adot, p_d, v_d):
     """Whether every value of the arrays lies within ``+-bound`` (NaN does not) and ``lo <= hi``.
 
-    The arrays are ``(n, 2)``, ``theta (n,)`` and ``A (n, 2, 2)``; the caller has checked the shapes (they are
-    read without bounds checks).
+    Parameters
+    ----------
+    bound : float
+        The magnitude bound (:data:`~aasoatt_env.validation.MAGNITUDE_MAX`).
+    nominal, lo, hi, u, p, v, adot, p_d, v_d : numpy.ndarray
+        ``(n, 2)`` float64, C-contiguous.
+    theta : numpy.ndarray
+        ``(n,)``.
+    A : numpy.ndarray
+        ``(n, 2, 2)``.
+
+    Returns
+    -------
+    bool
+        True where every number passes.  The caller has checked every shape (the arrays are read
+        without bounds checks).
     """
     for i in range(theta.shape[0]):
         if not abs(theta[i]) <= bound:

@@ -121,7 +121,8 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z0, max_iter, one_change_iter, tol, warm_rel,
         warm_floor, bound_tight, row_norm_min, dense_max_vars, dense_max_cells, du_qp, x, z, eta, xs, zs, done)
     e2, eb, ei = np.empty((0, 2)), np.empty(0, dtype=np.bool_), np.empty(0)
-    floats = np.empty(7 * m + 11 * n)  # (unpack's layout)
+    floats = np.empty(7 * m + 9 * n)  # (unpack's layout)
+    floats[7 * m + 5 * n:] = np.nan  # the gate's entries, until the quick check fills them
     flags = np.zeros(2 * n, dtype=np.bool_)
     floats[0:2 * m] = Gi.ravel()
     floats[2 * m:4 * m] = Gj.ravel()
@@ -184,9 +185,21 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
 
 
 def unpack(floats: np.ndarray, flags: np.ndarray, n: int, m: int) -> tuple:
-    """:func:`filter_step`'s packed arrays as views, for ``n`` robots and ``m`` rows.
+    """:func:`filter_step`'s packed arrays as views.
 
-    ``(Gi, Gj, rhs, scale, z_warm, du_qp, xs, zs, gate_du, share, robot_margin, done, out_of_range)``.
+    Parameters
+    ----------
+    floats, flags : numpy.ndarray
+        :func:`filter_step`'s last two returns.
+    n, m : int
+        Its robots and rows.
+
+    Returns
+    -------
+    tuple
+        ``(Gi, Gj, rhs, scale, z_warm, du_qp, xs, zs, gate_du, share, robot_margin, done,
+        out_of_range)``, views into ``floats`` and ``flags``; the gate's entries (``gate_du`` to
+        ``robot_margin``, ``out_of_range``) are NaN and False unless the quick check ran.
     """
     f = floats
     return (f[0:2 * m].reshape(m, 2), f[2 * m:4 * m].reshape(m, 2), f[4 * m:5 * m], f[5 * m:5 * m + n],

@@ -87,13 +87,8 @@ def warm_up(kernel: str = "auto") -> bool:
     # the whole step (step_kernel): a filter's second step, warm-started from its first, with the layer and without
     from aasoatt_env.safety.core import SafetyFilter  # (core imports this module)
 
-    # (the third step with a read-only reference, as the env hands it: the input check's and the trigger's
-    # kernels take its arrays as they come)
-    frozen = (kin.p.copy(), np.zeros((2, 2)))
-    for r in frozen:
-        r.flags.writeable = False
     for backup in (True, False):
         filt = SafetyFilter(team, backup=backup, kernel="numba")
-        for reference in ((kin.p, np.zeros((2, 2))),) * 2 + (frozen,):
-            filt.from_state(pose, u, du, reference=reference)
+        for _ in range(2):
+            filt.from_state(pose, u, du, reference=(kin.p, np.zeros((2, 2))))
     return True
