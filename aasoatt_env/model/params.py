@@ -43,7 +43,7 @@ from aasoatt_env.validation import choice, positive
 __all__ = ["PRESETS", "SUBSET_OF", "RobotParams", "Team", "make_team", "stack_teams"]
 
 SUBSET_OF = "subset_of"
-"""The :attr:`Team.derived` key of a :meth:`Team.subset`'s ``(whole team, idx)``."""
+"""The :attr:`Team.derived` key of a :meth:`Team.subset`'s ``(whole team, robot numbers)``."""
 
 Model = Literal["diff_drive", "double_integrator"]
 MODELS: tuple[str, ...] = ("diff_drive", "double_integrator")
@@ -185,7 +185,7 @@ class Team:
     def subset(self, idx: np.ndarray) -> Team:
         """The team of robots ``idx`` (same order).
 
-        It keeps ``(self, idx)`` in its :attr:`derived` under :data:`SUBSET_OF`: per-robot values
+        It keeps ``(self, its robot numbers)`` in its :attr:`derived` under :data:`SUBSET_OF`: per-robot values
         made for this team can be indexed for it instead of made again (the backup layer's checks
         of a group of robots, several times per step).
         """

@@ -99,10 +99,9 @@ class _Rows(NamedTuple):
 
 
 _NO_PAIRS = np.empty((0, 2), dtype=np.intp)
-
+"""A trigger context's pairs where the trigger reads none (``deadlock.TRIGGERS_WITHOUT_PAIRS``)."""
 _MULTIPLIER = TRIGGERS["multiplier"]
 """The registry's own ``multiplier`` trigger, which the compiled step computes (``deadlock_kernel``)."""
-"""A trigger context's pairs where the trigger reads none (``deadlock.TRIGGERS_WITHOUT_PAIRS``)."""
 _QUICK_LEVELS = np.array(_levels(BLEND_LEVELS))
 _QUICK_LEVELS.flags.writeable = False
 """The levels of the backup layer's quick check (the gatekeeper's default blend levels)."""
@@ -295,8 +294,8 @@ class SafetyFilter:
         self._whole_step = (self._fused and cfg.mode == "centralized" and cfg.decompose and self._solver.exact
                             and cfg.active_set and cfg.trigger in TRIGGERS_WITHOUT_PAIRS)
         # there, the default trigger and the target by one compiled call (deadlock_kernel), where the strategy
-        # acts (a strategy that leaves the target alone has no trigger to evaluate)
-        # (the registry's own entries: a trigger registered under that name, or a Strategy subclass, is theirs)
+        # acts (a strategy that leaves the target alone has no trigger to evaluate); the registry's own entries
+        # only (a trigger registered under that name, or a Strategy subclass, is called as registered)
         self._compiled_trigger = (self._whole_step and self._trigger is _MULTIPLIER and self._strategy.active
                                   and type(self._strategy) is Strategy)
         self.reset(team)
