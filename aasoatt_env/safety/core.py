@@ -530,15 +530,16 @@ class SafetyFilter:
         zeta = np.where(triggered, cfg.zeta, 0.0)
         # a robot alone saturates its own nominal: the decentralised QPs start from what each robot would do
         nom_t = np.minimum(np.maximum(nominal_du, lo), hi) if cfg.mode == "decentralized" else nominal_du
-        return self._checked_target(self._strategy.correct_target(np.einsum("nij,nj->ni", A, nom_t), zeta, self._Q,
-                                                                  TargetContext(v, p, reference, cfg.k3, cfg.k4)),
-                                    nominal_du)
+        return self._corrected_target(np.einsum("nij,nj->ni", A, nom_t), zeta, v, p, reference, nominal_du)
 
-    def _checked_target(self, target: Any, nominal_du: np.ndarray) -> np.ndarray:
-        """A strategy's target, refused unless float64 of the nominal's shape.
+    def _corrected_target(self, target: np.ndarray, zeta: np.ndarray, v: np.ndarray, p: np.ndarray,
+                          reference: tuple[np.ndarray, np.ndarray] | None, nominal_du: np.ndarray) -> np.ndarray:
+        """The strategy's target from ``A du_nom``, refused unless float64 of the nominal's shape.
 
         (A registered strategy's answer: the compiled parts read it without bounds checks.)
         """
+        cfg = self.config
+        target = self._strategy.correct_target(target, zeta, self._Q, TargetContext(v, p, reference, cfg.k3, cfg.k4))
         if not (isinstance(target, np.ndarray) and target.shape == nominal_du.shape and target.dtype == np.float64):
             raise ConfigError(f"deadlock strategy {self.config.deadlock!r}: its target has shape "
                               f"{np.shape(target)} (dtype {getattr(target, 'dtype', type(target).__name__)}), "
@@ -562,8 +563,7 @@ class SafetyFilter:
             avoiding, p, v, p_d, v_d, reference is not None, A, c64(nominal_du), cfg.zeta, cfg.low_speed,
             cfg.goal_tol)
         if anyone:
-            target = self._checked_target(self._strategy.correct_target(
-                target, zeta, self._Q, TargetContext(v, p, reference, cfg.k3, cfg.k4)), nominal_du)
+            target = self._corrected_target(target, zeta, v, p, reference, nominal_du)
         return triggered, target
 
     def _step_compiled(self, t0: float, rows_args: tuple, increasing: bool, u: np.ndarray, theta: np.ndarray,
@@ -593,41 +593,46 @@ class SafetyFilter:
             group, has_group, sensing_range, *_NO_OBSTACLES, limit, GATE_TOL)
         barrier_min, gap_min = float(barrier_min), float(gap_min)
         elapsed = time.perf_counter() - t_call  # (the policy's timing: the call, rows and quick check included)
-        m = keys.shape[0]
         probe = qp_code == k.VERIFIED and self._solver.needs_problem(int(n_vars), elapsed)
-        if stage == k.DONE and not probe:
-            # nobody brakes, or only for the range limit
-            if qp_code == k.CLOSED_FORM:
-                message, iterations, n_qp = "closed form: no row binds", 0, 0
-            else:
-                self._solver.note_answer(int(n_vars), elapsed)
-                message, iterations, n_qp = VERIFIED_MESSAGE, int(used), int(n_qp)
+        if stage == k.ROWS or probe:
+            # the numpy path, from what the compiled decomposition handed on (solve_centralized's _compiled)
+            rows, scale, z_warm, _, xs, zs, _, _, _, done, _ = self._unpacked(
+                k, floats, flags, pairs, keys, barrier_min, gap_min, increasing)
+            parts = (xs[:n_vars], zs[:n_qp], done[:n_parts], int(used)) if qp_code == k.PARTS else None
+            return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, None, triggered, target, scale,
+                                         tried=True, kernel_parts=parts, z_warm=z_warm)
+        if qp_code == k.CLOSED_FORM:
+            message, iterations, n_qp = "closed form: no row binds", 0, 0
+        else:
+            self._solver.note_answer(int(n_vars), elapsed)
+            message, iterations, n_qp = VERIFIED_MESSAGE, int(used), int(n_qp)
+        if stage == k.DONE:  # nobody brakes, or only for the range limit
             self._remember(x, z, keys, pairs, increasing, avoiding)
             if cfg.backup:
                 safe, margin = not bool(broken.any()), float(margin)
             else:
                 braking, safe, margin = np.zeros(n, dtype=bool), _safe_without_layer(barrier_min, gap_min), gap_min
             return self._result(t0, du, "solved", message, safe, braking, nudged, margin, barrier_min, eta, pairs,
-                                avoiding, triggered, 0.0, correction, intervened, iterations, m, n_qp)
-        # the stages the Python step goes on from (step_kernel.unpack: the packed arrays as views)
-        Gi, Gj, rhs, scale, z_warm, du_qp, xs, zs, gdu, share, robot_margin, done, out_of_range = k.unpack(
-            floats, flags, n, m)
-        rows = _Rows(pairs[:, 0], pairs[:, 1], pairs, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, increasing)
-        if stage == k.ROWS or probe:
-            # the numpy path, from what the compiled decomposition handed on (solve_centralized's _compiled)
-            parts = (xs[:n_vars], zs[:n_qp], done[:n_parts], int(used)) if qp_code == k.PARTS else None
-            return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, None, triggered, target, scale,
-                                         tried=True, kernel_parts=parts, z_warm=z_warm)
-        if qp_code == k.CLOSED_FORM:
-            ans = CentralAnswer(du_qp, x, z, eta, "solved", "closed form: no row binds", 0, 0)
-        else:
-            self._solver.note_answer(int(n_vars), elapsed)
-            ans = CentralAnswer(du_qp, x, z, eta, "solved", VERIFIED_MESSAGE, int(used), int(n_qp))
+                                avoiding, triggered, 0.0, correction, intervened, iterations, keys.shape[0], n_qp)
         # (stage QP) the quick check brakes someone for a pair: the repair or the full check follows
+        rows, scale, _, du_qp, _, _, gdu, share, robot_margin, _, out_of_range = self._unpacked(
+            k, floats, flags, pairs, keys, barrier_min, gap_min, increasing)
+        ans = CentralAnswer(du_qp, x, z, eta, "solved", message, iterations, n_qp)
         quick = GateResult(gdu, braking, float(margin), not bool(broken.any()), broken, share, int(rounds),
                            int(n_pairs), robot_margin, out_of_range)
         return self._solve_and_check(t0, rows, u, pose, nominal_du, lo, hi, A, None, triggered, target, scale,
                                      answer=ans, avoiding=avoiding, quick=quick)
+
+    @staticmethod
+    def _unpacked(k: Any, floats: np.ndarray, flags: np.ndarray, pairs: np.ndarray, keys: np.ndarray,
+                  barrier_min: float, gap_min: float, increasing: bool) -> tuple:
+        """Where the compiled step stops early: its rows, and what it packed (``step_kernel.unpack``), as views.
+
+        ``(rows, scale, z_warm, du_qp, xs, zs, gate_du, share, robot_margin, done, out_of_range)``.
+        """
+        Gi, Gj, rhs, *rest = k.unpack(floats, flags, flags.shape[0] // 2, keys.shape[0])  # (n robots, m rows)
+        return (_Rows(pairs[:, 0], pairs[:, 1], pairs, pairs, Gi, Gj, rhs, keys, barrier_min, gap_min, increasing),
+                *rest)
 
     def _result(self, t0: float, du: np.ndarray, status: str, message: str, safe: bool, braking: np.ndarray,
                 nudged: np.ndarray, margin: float, barrier_min: float, eta: np.ndarray, pairs: np.ndarray,

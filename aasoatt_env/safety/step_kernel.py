@@ -94,7 +94,8 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         flags)``; ``stage`` (:data:`ROWS`, :data:`QP`, :data:`DONE`) says which are made (the others are
         empty, or, after :data:`ROWS`, the decomposition's buffers, not to be read unless ``qp_code`` is its
         :data:`PARTS`); ``qp_code`` is the decomposition's.  What only the stages before :data:`DONE` read
-        is packed into two arrays (each array returned costs the call a Python object):
+        is packed into two arrays where it stops early (empty after :data:`DONE`; each array returned
+        costs the call a Python object):
         ``floats`` holds ``Gi, Gj (m, 2), rhs (m,), scale (n,), z_warm (m,), du_qp (n, 2), xs (2n,),
         zs (m,), gate_du (n, 2), share (n,), robot_margin (n,)`` one after the other (:func:`unpack`),
         ``flags`` ``done (n,)`` and ``out_of_range (n,)`` (the gate's entries only where it ran).
@@ -121,19 +122,8 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z0, max_iter, one_change_iter, tol, warm_rel,
         warm_floor, bound_tight, row_norm_min, dense_max_vars, dense_max_cells, du_qp, x, z, eta, xs, zs, done)
     e2, eb, ei = np.empty((0, 2)), np.empty(0, dtype=np.bool_), np.empty(0)
-    floats = np.empty(7 * m + 9 * n)  # (unpack's layout)
-    floats[7 * m + 5 * n:] = np.nan  # the gate's entries, until the quick check fills them
-    flags = np.zeros(2 * n, dtype=np.bool_)
-    floats[0:2 * m] = Gi.ravel()
-    floats[2 * m:4 * m] = Gj.ravel()
-    floats[4 * m:5 * m] = rhs
-    floats[5 * m:5 * m + n] = scale
-    floats[5 * m + n:6 * m + n] = z0
-    floats[6 * m + n:6 * m + 3 * n] = du_qp.ravel()
-    floats[6 * m + 3 * n:6 * m + 5 * n] = xs
-    floats[6 * m + 5 * n:7 * m + 5 * n] = zs
-    flags[0:n] = done
     if code != CLOSED_FORM and code != VERIFIED:
+        floats, flags = _packed(Gi, Gj, rhs, scale, z0, du_qp, xs, zs, done)
         return (ROWS, pairs, keys, h_min, gap_min, code, used, n_qp, n_vars, n_parts, x, z, eta, eb, eb, eb, 0, 0,
                 0.0, e2, ei, eb, eb, floats, flags)
     avoiding = np.zeros(n, dtype=np.bool_)
@@ -155,12 +145,13 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
             beyond |= out_of_range[g]
             other |= braking[g] and not out_of_range[g]
             any_broken |= broken[g]
-        floats[7 * m + 5 * n:7 * m + 7 * n] = gdu.ravel()
-        floats[7 * m + 7 * n:7 * m + 8 * n] = share
-        floats[7 * m + 8 * n:7 * m + 9 * n] = robot_margin
-        flags[n:2 * n] = out_of_range
         if brakes:
             if not beyond or any_broken or other:  # the repair or the full check may follow
+                floats, flags = _packed(Gi, Gj, rhs, scale, z0, du_qp, xs, zs, done)
+                floats[7 * m + 5 * n:7 * m + 7 * n] = gdu.ravel()
+                floats[7 * m + 7 * n:7 * m + 8 * n] = share
+                floats[7 * m + 8 * n:7 * m + 9 * n] = robot_margin
+                flags[n:2 * n] = out_of_range
                 return (QP, pairs, keys, h_min, gap_min, code, used, n_qp, n_vars, n_parts, x, z, eta, avoiding,
                         braking, broken, rounds, n_pairs, margin, e2, ei, eb, eb, floats, flags)
             # every robot that brakes does so for the range limit alone, nothing broken: the quick check is
@@ -181,7 +172,26 @@ def filter_step(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_mar
         correction[g] = np.sqrt(d0 * d0 + d1 * d1)
         intervened[g] = correction[g] > tiny
     return (DONE, pairs, keys, h_min, gap_min, code, used, n_qp, n_vars, n_parts, x, z, eta, avoiding, braking,
-            broken, rounds, n_pairs, margin, du, correction, intervened, nudged, floats, flags)
+            broken, rounds, n_pairs, margin, du, correction, intervened, nudged, ei, eb)
+
+
+@jit
+def _packed(Gi, Gj, rhs, scale, z0, du_qp, xs, zs, done):
+    """What the early stops read, in :func:`unpack`'s layout; the gate's entries NaN and False, to be filled."""
+    n, m = scale.shape[0], rhs.shape[0]
+    floats = np.empty(7 * m + 9 * n)
+    floats[7 * m + 5 * n:] = np.nan
+    flags = np.zeros(2 * n, dtype=np.bool_)
+    floats[0:2 * m] = Gi.ravel()
+    floats[2 * m:4 * m] = Gj.ravel()
+    floats[4 * m:5 * m] = rhs
+    floats[5 * m:5 * m + n] = scale
+    floats[5 * m + n:6 * m + n] = z0
+    floats[6 * m + n:6 * m + 3 * n] = du_qp.ravel()
+    floats[6 * m + 3 * n:6 * m + 5 * n] = xs
+    floats[6 * m + 5 * n:7 * m + 5 * n] = zs
+    flags[0:n] = done
+    return floats, flags
 
 
 def unpack(floats: np.ndarray, flags: np.ndarray, n: int, m: int) -> tuple:
