@@ -17,15 +17,16 @@ from aasoatt_env.model.geometry import min_gaps, robot_pairs
 from aasoatt_env.model.params import RobotParams, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter
 from aasoatt_env.safety.backup import (
+    GATE_TOL,
     brake_time,
     braking_du,
     braking_trajectory,
     candidate_paths,
     candidate_samples_at,
+    gate_with_repair,
     reach_limit,
 )
-from aasoatt_env.safety.gatekeeper import gatekeeper, pair_margins
-from aasoatt_env.safety.repair import GATE_TOL, gate_with_repair
+from aasoatt_env.safety.backup.gate import gatekeeper, pair_margins
 from aasoatt_env.sim.scenarios.base import TOUCH_TOL
 from agents import ADVERSARIES, HostileAgent
 from agents.adversaries import _point_toward
@@ -213,13 +214,13 @@ def test_point_mass_deviation_bounds_are_the_exact_bulge_of_each_step():
 
 def test_a_margin_or_reach_that_is_not_a_number_fails_the_check(monkeypatch):
     """NaN verifies nothing: a NaN margin brakes the pair and reports -inf; a NaN reach checks every pair."""
-    import aasoatt_env.safety.gatekeeper as gk
+    import aasoatt_env.safety.backup.gate as gk
 
     team = make_team("paper", 2)
     gap = 0.96 + 1e-4 + 2.0 * float(team.offset[0])  # control points 0.1 mm beyond contact
     pose, u = np.array([[0.0, 0.0, 0.0], [gap, 0.0, np.pi]]), np.zeros((2, 2))
     cand = np.array([[0.0, 0.0], [60.0, 60.0]])
-    monkeypatch.setattr(gk, "_bucketed", lambda *a, **kw: np.full(np.shape(a[3]), np.nan))
+    monkeypatch.setattr(gk, "bucketed_margins", lambda *a, **kw: np.full(np.shape(a[3]), np.nan))
     g = gk.gatekeeper(team, pose, u, cand, DT, sensing_range=3.0, brake_fraction=F)
     assert g.n_pairs == 1 and g.braking.all() and not g.safe and g.margin == -np.inf
     monkeypatch.undo()
@@ -561,7 +562,7 @@ def test_a_stack_of_teams_is_gated_as_each_team_alone(radii):
 def test_repair_path_cache_equals_the_paths_made_afresh():
     """The repair keeps each robot's candidate path until its input changes: what it hands out is,
     sample for sample, what candidate_paths gives for those robots and inputs."""
-    from aasoatt_env.safety.repair import _PathCache
+    from aasoatt_env.safety.backup.repair import _PathCache
 
     team = _teams()["mixed"]
     rng = np.random.default_rng(12)
@@ -606,7 +607,7 @@ def test_a_group_checked_alone_keeps_the_whole_teams_range_limits():
 def test_the_gate_with_the_filters_pairs_decides_as_with_its_own_searches(monkeypatch):
     """gate_with_repair hands the filter's pairs within D to every gatekeeper and repair call
     (one neighbour search per step): the answers equal those of each call searching itself."""
-    import aasoatt_env.safety.repair as R
+    import aasoatt_env.safety.backup.layer as R
     from aasoatt_env.safety import FilterConfig as Cfg
 
     cfg = Cfg()

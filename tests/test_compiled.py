@@ -22,10 +22,10 @@ from aasoatt_env.model.dynamics import DT, input_bounds, kinematics
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import RobotParams, Team, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter, warm_up
-from aasoatt_env.safety.backup import _point
-from aasoatt_env.safety.gatekeeper import gatekeeper
+from aasoatt_env.safety.backup.gate import gatekeeper
+from aasoatt_env.safety.backup.paths import point as _point
+from aasoatt_env.safety.backup.repair import repair
 from aasoatt_env.safety.problem import build_problem
-from aasoatt_env.safety.repair import repair
 from aasoatt_env.safety.solvers import active_set, policy
 from aasoatt_env.safety.solvers.local import solve_local_qps
 from agents import ADVERSARIES, HostileAgent, TrackingController
@@ -106,7 +106,8 @@ def test_the_gatekeepers_braking_samples_by_recurrence_match_the_sines_and_cosin
     Short and long brakes (1 to 5,000 steps, several resynchronisations), turns from none
     (omega 0 and 1e-12) to spinning, both row starts, point masses (bulge) too.
     """
-    k = compiled.kernels("backup")
+    from aasoatt_env.safety.backup import kernel_paths as k
+
     rng = np.random.default_rng(11)
     worst = 0.0
     for trial in range(300):
@@ -121,7 +122,7 @@ def test_the_gatekeepers_braking_samples_by_recurrence_match_the_sines_and_cosin
         rows = []
         for fast in (False, True):
             p, d = np.full(length, np.nan, dtype=complex), np.full(length - 1, np.nan)
-            k._fill_brake(p, d, start, p_start, pdot, omega, rate, bulge, has_bulge, DT, length, fast)
+            k.fill_brake(p, d, start, p_start, pdot, omega, rate, bulge, has_bulge, DT, length, fast)
             rows.append((p, d))
         (p0, d0), (p1, d1) = rows
         np.testing.assert_array_equal(d1[start:], d0[start:])
@@ -367,36 +368,34 @@ def _run_stack(seed: int) -> None:
         batch.step(rng.normal(0.0, 0.37, (8, 6, 2)).clip(-1.0, 1.0))
 
 
-def _central_answers(monkeypatch, fused: bool, scene: str, switch: bool = False) -> tuple[list, list]:
-    """Every centralised step's answer and the policy's switch state after it, along a closed loop, with the
-    compiled decomposition tried or not; and how many QP steps the kernel answered, and how many it handed to
-    the numpy path with its active set's answer on the components.  ``switch``: every problem
-    outside the exact-first size, and a switch to the exact path running from the first step."""
-    from aasoatt_env.safety import core, decomposition
-    from aasoatt_env.safety.solvers import policy as policy_module
+def _central_answers(monkeypatch, compiled_stage: bool, scene: str) -> tuple[list, int]:
+    """Every centralised QP stage's answer along a closed loop, with the compiled stage tried or not (the numpy
+    stage, with the compiled active set), and how many QP steps the compiled stage answered."""
+    from aasoatt_env.safety import centralized
 
-    answers, kernel_answers = [], [0, 0]
-    real, solve = decomposition._compiled, core.solve_centralized
+    answers, by_kernel = [], [0]
+    call, post = centralized.Centralized.__call__, centralized.Centralized.__post_init__
+    k = compiled.kernels("centralized")
+    real = k.solve_decomposed
 
     def counted(*args):
         out = real(*args)
-        kernel_answers[0] += isinstance(out, decomposition.CentralAnswer) and out.n_qp > 0
-        kernel_answers[1] += isinstance(out, tuple) and not isinstance(out, decomposition.CentralAnswer)
+        by_kernel[0] += out[0] == k.VERIFIED
         return out
 
-    def record(pol, *args, **kw):
-        if switch and not answers:
-            pol._exact_steps, pol._stalls = 40, 2
-        out = solve(pol, *args, **kw)
-        answers.append((out, pol._exact_steps, pol._stalls))
+    def record(self, *args):
+        out = call(self, *args)
+        answers.append(out)
         return out
 
-    monkeypatch.setattr(decomposition, "_compiled", counted if fused else (lambda *args: None))
-    monkeypatch.setattr(core, "solve_centralized", record)
-    _parts_one_by_one(monkeypatch)  # (the compiled step would answer without solve_centralized)
-    if switch:  # (no answer counts as slow: whether ldp is probed then would depend on the machine's timing)
-        monkeypatch.setattr(policy_module, "EXACT_FIRST_VARS", 0)
-        monkeypatch.setattr(policy_module, "SLOW_SOLVE_S", np.inf)
+    def set_up(self):
+        post(self)
+        if not compiled_stage:
+            object.__setattr__(self, "settings", None)
+
+    monkeypatch.setattr(k, "solve_decomposed", counted)
+    monkeypatch.setattr(centralized.Centralized, "__call__", record)
+    monkeypatch.setattr(centralized.Centralized, "__post_init__", set_up)
     if scene == "stack":
         _run_stack(0)
     else:  # a small circle swap's crossing under the tracking law; circles among obstacles under bursts
@@ -408,20 +407,7 @@ def _central_answers(monkeypatch, fused: bool, scene: str, switch: bool = False)
         for _ in range(env.max_steps):
             obs, *_ = env.step(agent.act(obs, env))
     monkeypatch.undo()
-    return answers, kernel_answers
-
-
-def _parts_one_by_one(monkeypatch) -> None:
-    """Filters made from now on call the compiled parts one by one (no :mod:`~aasoatt_env.safety.step_kernel`)."""
-    from aasoatt_env.safety import core
-
-    init = core.SafetyFilter.__init__
-
-    def set_up(self, *args, **kw):
-        init(self, *args, **kw)
-        self._whole_step = False
-
-    monkeypatch.setattr(core.SafetyFilter, "__init__", set_up)
+    return answers, by_kernel[0]
 
 
 def _bits(a: np.ndarray) -> np.ndarray:
@@ -430,40 +416,37 @@ def _bits(a: np.ndarray) -> np.ndarray:
 
 
 @needs_numba
-@pytest.mark.parametrize(("scene", "switch"), [("stack", False), ("crossing", False), ("obstacles", False),
-                                               ("crossing", True)])
-def test_the_compiled_decomposition_answers_as_the_numpy_path(monkeypatch, scene, switch):
-    """Along closed loops, every step's answer with the compiled decomposition equals the numpy path's (with the
-    compiled active set) bit for bit: wheel accelerations, scaled points, multipliers, status, message, iterations; the
-    policy's switch state after every step is the same (also with a switch to the exact path running, a stall
-    count to clear, and every problem outside the exact-first size); and the kernel answers most QP steps.  Where
-    some components are not verified (the training stack's infeasible teams), the numpy path goes on from the
-    kernel's active set on the components, with the same numbers as from its own."""
-    ref, _ = _central_answers(monkeypatch, False, scene, switch)
-    out, (by_kernel, by_parts) = _central_answers(monkeypatch, True, scene, switch)
-    assert scene != "stack" or by_parts >= 3
-    assert len(out) == len(ref) >= 300
-    for (a, *state_a), (b, *state_b) in zip(out, ref):
+@pytest.mark.parametrize("scene", ["stack", "crossing", "obstacles"])
+def test_the_compiled_centralised_stage_answers_as_the_numpy_stage(monkeypatch, scene):
+    """Along closed loops every step's answer with the compiled centralised stage equals the numpy stage's (with
+    the compiled active set) bit for bit: wheel accelerations, scaled points, multipliers, avoidance, status,
+    message, iterations; the compiled stage answers most QP steps, the numpy stage the others (the training
+    stack's infeasible teams)."""
+    ref, ref_kernel = _central_answers(monkeypatch, False, scene)
+    out, by_kernel = _central_answers(monkeypatch, True, scene)
+    assert ref_kernel == 0 and len(out) == len(ref) >= 300
+    for a, b in zip(out, ref):
         for field in ("du", "x", "z", "eta"):
             np.testing.assert_array_equal(_bits(getattr(a, field)), _bits(getattr(b, field)))
-        assert (a.status, a.message, a.iterations, a.n_qp) == (b.status, b.message, b.iterations, b.n_qp)
-        assert state_a == state_b
-    qp_steps = sum(a.n_qp > 0 for a, *_ in out)
+        np.testing.assert_array_equal(a.avoiding, b.avoiding)
+        assert (a.status, a.message, a.iterations, a.n_qp, a.slack) == (b.status, b.message, b.iterations, b.n_qp,
+                                                                        b.slack)
+    qp_steps = sum(a.n_qp > 0 for a in out)
     assert qp_steps > 50 and by_kernel > 0.8 * qp_steps
-    if switch:  # the switch counted down over the first steps, then a fast answer cleared the stalls, as in solve
-        assert out[0][1] == 39 and out[60][1] == 0 and out[0][2] == 2 and out[-1][2] == 0
+    assert scene != "stack" or by_kernel < qp_steps  # (some steps the numpy stage answered)
 
 
 @needs_numba
 @pytest.mark.parametrize("margin", [None, 0.01])
 def test_the_rows_kernel_gives_the_numpy_rows_bit_for_bit(margin):
-    """``aasoatt_rows`` against the numpy step's operations on random robots, coincident ones (``r`` clamped at
-    1e-9), singular input matrices and a speed margin: the pairs kept, relative positions, rows in wheel
-    coordinates, right-hand sides, keys and the smallest barrier value and gap, bit for bit."""
-    from aasoatt_env.model.geometry import brute_candidates, robot_pairs
-    from aasoatt_env.safety.barriers import PairGeometry
-    from aasoatt_env.safety.config import MARGIN_FADE_SPEED, auto_margin
-    from aasoatt_env.safety.core import _numpy_rows
+    """The compiled pairs and rows against the numpy stage on random robots, coincident ones (``r`` clamped at
+    1e-9), singular input matrices, obstacles and a speed margin: the pairs, rows in wheel coordinates,
+    right-hand sides, keys and the smallest barrier value and gap, bit for bit."""
+    import dataclasses
+
+    from aasoatt_env.model.dynamics import Kinematics
+    from aasoatt_env.safety.inputs import check_step
+    from aasoatt_env.safety.rows import CompiledRows, find_pairs, numpy_rows
 
     cfg = FilterConfig(k1=1.3, k2=2.9, safety_margin=margin, speed_margin=0.07)
     rng = np.random.default_rng(21)
@@ -476,19 +459,21 @@ def test_the_rows_kernel_gives_the_numpy_rows_bit_for_bit(margin):
     A = rng.normal(0.0, 1.0, (n, 2, 2))
     A[3] = 0.0  # singular
     A[11, :, 1] = 0.0
-    radius = rng.uniform(0.05, 0.2, n)
-    out = compiled.kernels("rows").aasoatt_rows(
-        p, v, adot, A, radius, *brute_candidates(n), cfg.sensing_range ** 2, cfg.k1, cfg.k2,
-        np.nan if margin is None else margin, auto_margin(cfg.dt), MARGIN_FADE_SPEED, cfg.speed_margin, n + 1, 9.0)
-    pairs = robot_pairs(p, cfg.sensing_range, method="brute")
-    ri, rj = pairs[:, 0], pairs[:, 1]
-    assert pairs.shape[0] > 200
-    ds = radius[ri] + radius[rj]
-    geo = PairGeometry(ri, rj, p[ri] - p[rj], v[ri] - v[rj], adot[ri] - adot[rj], ds, ds, ds)
-    _, _, ref_pairs, Gi, Gj, rhs, keys, h_min, gap_min = _numpy_rows(cfg, A, v, geo, geo.p, pairs, n + 1, 9.0)
-    np.testing.assert_array_equal(out[0], ref_pairs)
-    for got, want in zip(out[1:], (geo.p, Gi, Gj, rhs, keys, h_min, gap_min)):
-        np.testing.assert_array_equal(np.asarray(got).view(np.int64), np.asarray(want).view(np.int64))
+    team = dataclasses.replace(make_team("paper", n), radius=rng.uniform(0.05, 0.2, n))
+    obstacles = (rng.uniform(0.0, 6.0, (4, 2)), rng.uniform(0.1, 0.5, 4))
+    zeros = np.zeros((n, 2))
+    s = check_step(team, cfg, Kinematics(p, v, A, adot), zeros, np.zeros(n), zeros, -np.ones((n, 2)),
+                   np.ones((n, 2)), obstacles=obstacles)
+    pairs = find_pairs(team, s.p, cfg.sensing_range, s.obstacles, compiled=False)
+    assert pairs.robots.shape[0] > 200 and pairs.obstacles.shape[0] > 10
+    np.testing.assert_array_equal(find_pairs(team, s.p, cfg.sensing_range, s.obstacles, compiled=True).robots,
+                                  pairs.robots)
+    want = numpy_rows(cfg, s, pairs, np.zeros(n, dtype=bool))
+    got = CompiledRows(cfg)(cfg, s, pairs, np.zeros(n, dtype=bool))
+    for field in ("ri", "rj", "pairs", "keys"):
+        np.testing.assert_array_equal(getattr(got, field), getattr(want, field))
+    for field in ("Gi", "Gj", "rhs", "barrier_min", "gap_min"):
+        np.testing.assert_array_equal(_bits(np.asarray(getattr(got, field))), _bits(np.asarray(getattr(want, field))))
 
 
 @pytest.mark.parametrize("kernel", ["numpy", pytest.param("numba", marks=needs_numba)])
@@ -514,8 +499,9 @@ def test_a_float32_state_is_filtered_as_its_float64_values(kernel):
 
 def _filter_results(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
     """Every filter step's result and wheel accelerations along a closed loop, with the compiled rows or the numpy
-    rows (``SafetyFilter._fused``), and how many steps the rows kernel answered."""
+    rows, and how many steps the rows kernel answered."""
     from aasoatt_env.safety import core
+    from aasoatt_env.safety.rows import numpy_rows
 
     results, calls = [], [0]
     init, step = core.SafetyFilter.__init__, core.SafetyFilter.step
@@ -524,8 +510,8 @@ def _filter_results(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
 
     def set_up(self, *args, **kw):
         init(self, *args, **kw)
-        self._fused = self._fused and fused
-        self._whole_step = False  # (the compiled step would call the rows kernel from compiled code)
+        if not fused:
+            self._rows = numpy_rows
 
     def record(self, *args, **kw):
         du, res = step(self, *args, **kw)
@@ -601,223 +587,10 @@ def test_the_compiled_rows_give_the_numpy_rows_steps_bit_for_bit(monkeypatch, sc
     _assert_same_steps(out, ref)
 
 
-def _whole_step_results(monkeypatch, whole: bool, scene: str) -> tuple[list, dict]:
-    """Every filter step's result along a closed loop, with the compiled step (``step_kernel``) or the compiled
-    parts called one by one, and how many steps the compiled step stopped at each of its stages."""
-    from aasoatt_env.safety import core
-
-    results, stages = [], {}
-    step = core.SafetyFilter.step
-    kernel = compiled.kernels("step")
-    real = kernel.filter_step
-
-    def record(self, *args, **kw):
-        du, res = step(self, *args, **kw)
-        results.append((du.copy(), res))
-        return du, res
-
-    def counted(*args):
-        out = real(*args)
-        stages[int(out[0])] = stages.get(int(out[0]), 0) + 1
-        return out
-
-    if not whole:
-        _parts_one_by_one(monkeypatch)
-    monkeypatch.setattr(core.SafetyFilter, "step", record)
-    monkeypatch.setattr(kernel, "filter_step", counted)
-    _drive(0, scene)
-    monkeypatch.undo()
-    return results, stages
-
-
-@needs_numba
-@pytest.mark.parametrize("scene", ["stack", "random", "crossing", "margins", "large"])
-def test_the_compiled_step_gives_the_steps_of_its_parts_bit_for_bit(monkeypatch, scene):
-    """Along closed loops every filter step through the compiled step (step_kernel: the rows, the warm start,
-    the decomposition, the quick check and the applied inputs in one call) equals the step that calls those
-    compiled parts one by one, bit for bit, wherever the compiled step stops: after the rows (a QP it does not
-    answer: the training stack's infeasible teams), after the quick check (someone brakes: the repair follows),
-    or at the end; with and without the backup layer, and with the pairs the grid of cells finds."""
-    from aasoatt_env.safety.step_kernel import DONE, QP, ROWS
-
-    ref, none = _whole_step_results(monkeypatch, False, scene)
-    out, stages = _whole_step_results(monkeypatch, True, scene)
-    assert not none and len(out) == len(ref) >= 60
-    assert sum(stages.values()) >= len(out) - 1  # (a filter's first step has no warm start: the parts)
-    if scene == "large":  # QPs beyond the compiled decomposition's dense size: the numpy path answers
-        assert stages.get(ROWS, 0) > 0.5 * len(out)
-    else:
-        assert stages.get(DONE, 0) > 0.5 * len(out)
-    if scene == "stack":
-        assert stages.get(ROWS, 0) >= 3
-    if scene == "random":  # braking for the range limit alone, and braking that the repair nudges away
-        assert stages.get(QP, 0) >= 10 and any("nudged" in res.message for _, res in out)
-    _assert_same_steps(out, ref)
-
-
-@needs_numba
-def test_a_compiled_answer_the_policy_needs_the_problem_for_goes_through_solve(monkeypatch):
-    """Where the policy needs the problem (``needs_problem``: a slow answer it would time ``ldp`` against), the
-    kernel's answer is not used: the numpy path answers through the policy's ``solve``, the same numbers."""
-    from aasoatt_env.safety.solvers import SolverPolicy
-
-    asked, solved = [], []
-    real_solve = SolverPolicy.solve
-    monkeypatch.setattr(SolverPolicy, "needs_problem", lambda self, n_vars, t: asked.append(n_vars) or True)
-    monkeypatch.setattr(SolverPolicy, "solve", lambda self, *a, **k: solved.append(1) or real_solve(self, *a, **k))
-    ref, _ = _central_answers(monkeypatch, False, "crossing")
-    monkeypatch.setattr(SolverPolicy, "needs_problem", lambda self, n_vars, t: asked.append(n_vars) or True)
-    monkeypatch.setattr(SolverPolicy, "solve", lambda self, *a, **k: solved.append(1) or real_solve(self, *a, **k))
-    n_ref = len(solved)
-    out, (by_kernel, _) = _central_answers(monkeypatch, True, "crossing")
-    assert by_kernel == 0 and len(asked) > 100  # every verified kernel answer was asked about, and not used
-    assert len(solved) - n_ref == n_ref  # as many solves through the policy as on the numpy path
-    for (a, *_), (b, *_) in zip(out, ref):
-        np.testing.assert_array_equal(_bits(a.du), _bits(b.du))
-        assert a.message == b.message
-
-
-@pytest.mark.parametrize("use_kernel", [False, pytest.param(True, marks=needs_numba)])
-def test_the_centralised_step_refuses_bad_shapes_and_row_robots(use_kernel):
-    """Shapes and row indices are checked before either path (the kernel reads without bounds checks)."""
-    from aasoatt_env.safety.decomposition import solve_centralized
-    from aasoatt_env.safety.solvers import SolverPolicy
-
-    A, t, box = np.tile(np.eye(2), (2, 1, 1)), np.array([[1.0, 0.0], [-1.0, 0.0]]), np.ones((2, 2))
-    rows = dict(ri=np.array([0]), rj=np.array([1]), Gi=np.array([[1.0, 0.0]]), Gj=np.array([[-1.0, 0.0]]),
-                rhs=np.array([0.1]))
-
-    def call(**change):
-        kw = {**dict(A=A, target=t, lo=-box, hi=box, scale=np.ones(2), **rows, x_prev=np.zeros((2, 2)),
-                     z_warm=np.ones(1)), **change}
-        pol = SolverPolicy("proxsuite", active_set=True, compiled=use_kernel)
-        return solve_centralized(pol, **kw, compiled=use_kernel)
-
-    assert call().du.shape == (2, 2)
-    for change, match in ((dict(rj=np.array([2])), r"ri/rj: row robots must be in \[0, 2\)"),
-                          (dict(ri=np.array([-1])), r"ri/rj: row robots must be in"),
-                          (dict(ri=np.array([0.0])), r"ri/rj: row robots must be integer indices"),
-                          (dict(x_prev=np.zeros((3, 2))), r"x_prev: got shape \(3, 2\), expected \(2, 2\)"),
-                          (dict(z_warm=np.ones(2)), r"z_warm: got shape \(2,\), expected \(1,\)"),
-                          (dict(z_warm=lambda: np.ones(2)), r"z_warm: got shape \(2,\), expected \(1,\)"),
-                          (dict(Gj=np.ones((1, 3))), r"Gj: got shape \(1, 3\), expected \(1, 2\)"),
-                          (dict(scale=np.ones(3)), r"scale: got shape \(3,\), expected \(2,\)")):
-        with pytest.raises(ValueError, match=match):
-            call(**change)
-
-
-def _step_inputs(n: int, seed: int) -> tuple:
-    """A random team's step inputs as the centralised step checks them: ``(kin, u, theta, nominal, lo, hi,
-    (p_d, v_d))``, every array float64 (``theta`` a strided view of the poses, the reference read-only, as the
-    env hands them)."""
-    rng = np.random.default_rng(seed)
-    team = make_team(["paper", "turtlebot3_burger"] * (n // 2) + ["paper"] * (n % 2), n)
-    pose = np.column_stack((rng.uniform(-5, 5, (n, 2)), rng.uniform(-np.pi, np.pi, n)))
-    u = rng.uniform(-8.0, 8.0, (n, 2))
-    lo, hi = input_bounds(team, u, DT)
-    reference = (rng.uniform(-5, 5, (n, 2)), rng.normal(0.0, 0.5, (n, 2)) * rng.choice([0.0, 1.0], (n, 1)))
-    for r in reference:
-        r.flags.writeable = False
-    return kinematics(team, pose, u), u, pose[:, 2], rng.normal(0.0, 20.0, (n, 2)), lo, hi, reference
-
-
-@needs_numba
-def test_the_compiled_input_check_passes_and_refuses_what_the_numpy_one_does(monkeypatch):
-    """The centralised step's input check with its compiled test of the numbers (``compiled=True``) returns the
-    arrays the numpy check returns (the caller's own), and refuses every NaN, inf, value beyond +-1e9 and
-    ``lo > hi`` the numpy check refuses, at every entry of every array, with the same error naming the argument
-    and the robot; forms the kernel does not take (float32, a flat reference, obstacles) go to the numpy check."""
-    from aasoatt_env.errors import StateError
-    from aasoatt_env.safety.inputs import check_inputs
-
-    kernel, calls = compiled.kernels("inputs"), []
-    real = kernel.numbers_ok
-    monkeypatch.setattr(kernel, "numbers_ok", lambda *a: calls.append(1) or real(*a))
-    n = 5
-    kin, u, theta, nom, lo, hi, ref = _step_inputs(n, 4)
-    fortran = np.asfortranarray(u)
-    for reference, u_in in ((ref, u), (None, u), (list(ref) + [np.zeros((n, 2))], u), (ref, fortran)):
-        fast = check_inputs(n, kin, u_in, theta, nom, lo, hi, reference, compiled=True)
-        slow = check_inputs(n, kin, u_in, theta, nom, lo, hi, reference)
-        for a, b in zip((*fast[0], *fast[1:6], *(fast[6] or ())), (*slow[0], *slow[1:6], *(slow[6] or ()))):
-            assert a is b
-        assert (fast[6] is None) == (reference is None) and fast[7] is slow[7] is None
-    assert len(calls) == 4  # (every valid form above answered by the kernel)
-    others = [dict(u=u.astype(np.float32)), dict(reference=(ref[0].ravel(), ref[1])),
-              dict(obstacles=(np.array([[40.0, 40.0]]), np.array([0.5])))]
-    for change in others:
-        kw = dict(u=u, reference=ref, obstacles=None) | change
-        fast = check_inputs(n, kin, kw["u"], theta, nom, lo, hi, kw["reference"], kw["obstacles"], compiled=True)
-        slow = check_inputs(n, kin, kw["u"], theta, nom, lo, hi, kw["reference"], kw["obstacles"])
-        np.testing.assert_array_equal(fast[1], slow[1])
-        assert fast[1].dtype == np.float64 and np.shape(fast[6][0]) == (n, 2)
-    assert len(calls) == 4  # (those went to the numpy check)
-    names = ("nominal_du", "lo", "hi", "u", "theta", "kin.p", "kin.v", "kin.A", "kin.adot_u", "reference p_d",
-             "reference v_d")
-    refused = 0
-    for k, name in enumerate(names):
-        size = (nom, lo, hi, u, theta, kin.p, kin.v, kin.A, kin.adot_u, *ref)[k].size
-        for flat in range(size):
-            for bad in (np.nan, np.inf, -np.inf, 2e9, -2e9):
-                arrays = [a.copy() for a in (nom, lo, hi, u, theta, kin.p, kin.v, kin.A, kin.adot_u, *ref)]
-                arrays[k].flat[flat] = bad
-                if name == "lo" and bad > 0:  # (beyond its upper bound too: the magnitude is what is refused)
-                    arrays[2].flat[flat] = 3e9
-                args = (n, type(kin)(*arrays[5:9]), arrays[3], arrays[4], *arrays[:3], tuple(arrays[9:]))
-                with pytest.raises(StateError) as slow_err:
-                    check_inputs(*args)
-                with pytest.raises(StateError) as fast_err:
-                    check_inputs(*args, compiled=True)
-                robot = flat // (size // n)
-                assert str(fast_err.value) == str(slow_err.value)
-                assert str(slow_err.value).startswith(name) and f"robot index {robot})" in str(slow_err.value)
-                refused += 1
-    assert refused == 5 * sum(a.size for a in (nom, lo, hi, u, theta, kin.p, kin.v, kin.A, kin.adot_u, *ref))
-    for robot in range(n):
-        for col in range(2):
-            crossed = hi.copy()
-            crossed[robot, col] = lo[robot, col] - 1.0
-            with pytest.raises(StateError, match="lo/hi: bounds must be finite with lo <= hi"):
-                check_inputs(n, kin, u, theta, nom, lo, crossed, ref, compiled=True)
-
-
-@needs_numba
-@pytest.mark.parametrize("seed", range(4))
-def test_the_compiled_multiplier_trigger_and_target_are_numpys(seed):
-    """The ``multiplier`` trigger and the nominal's target ``A du_nom`` by one compiled call equal the numpy
-    trigger's and ``einsum``'s bit for bit (a zero's sign included): with and without a deadlock memory and a
-    reference, robots at rest at their goals (not triggered), nominals with signed zeros."""
-    from aasoatt_env.safety.config import FilterConfig
-    from aasoatt_env.safety.deadlock import TRIGGERS, DeadlockState, TriggerContext
-
-    kin, u, theta, nom, lo, hi, ref = _step_inputs(40, seed)
-    rng = np.random.default_rng(seed)
-    nom[:4] = [[0.0, -0.0], [-0.0, -0.0], [0.0, 0.0], [-0.0, 0.0]]
-    p_d, v_d = ref[0].copy(), ref[1].copy()
-    p_d[::3] = kin.p[::3] + 0.05  # within goal_tol of their goals and, where v_d = 0, done
-    cfg = FilterConfig()
-    kernel = compiled.kernels("deadlock").multiplier_target
-    for avoiding in (None, rng.uniform(size=40) < 0.6, np.ones(40, dtype=bool)):
-        for reference in ((p_d, v_d), None):
-            ctx = TriggerContext(kin.p, kin.v, theta, reference, np.empty((0, 2), np.intp), np.empty((0, 2)), cfg)
-            want = TRIGGERS["multiplier"](DeadlockState(avoiding=avoiding), ctx)
-            memory = np.zeros(40, dtype=bool) if avoiding is None else avoiding
-            pd, vd = (kin.p, kin.v) if reference is None else reference
-            trig, zeta, target, anyone = kernel(memory, kin.p, kin.v, pd, vd, reference is not None, kin.A, nom,
-                                                cfg.zeta, cfg.low_speed, cfg.goal_tol)
-            np.testing.assert_array_equal(trig, want)
-            assert anyone == want.any() and (avoiding is None or 0 < want.sum() < 40 or reference is None)
-            np.testing.assert_array_equal(_bits(zeta), _bits(np.where(want, cfg.zeta, 0.0)))
-            np.testing.assert_array_equal(_bits(target), _bits(np.einsum("nij,nj->ni", kin.A, nom)))
-
-
-@needs_numba
 def test_a_trigger_or_strategy_registered_in_place_of_the_defaults_is_the_one_called(monkeypatch):
-    """The compiled trigger stands in for the registry's own ``multiplier`` trigger and :class:`Strategy` only: a
-    function registered under that name, or a strategy of a subclass, is called as registered."""
+    """A function registered under the default trigger's name, or a strategy of a subclass, is called as registered."""
     from aasoatt_env.safety import core, deadlock
 
-    assert SafetyFilter(kernel="numba")._compiled_trigger
     seen = []
 
     def mine(state, context):
@@ -829,20 +602,14 @@ def test_a_trigger_or_strategy_registered_in_place_of_the_defaults_is_the_one_ca
             seen.append("strategy")
             return super().correct_target(target, zeta, Q, ctx)
 
-    monkeypatch.setitem(deadlock.TRIGGERS, "multiplier", mine)
+    loud = Loud("eqn.13", deadlock.STRATEGIES["auxiliary_velocity"].target, needs_reference=True)
     monkeypatch.setitem(core.TRIGGERS, "multiplier", mine)
-    env = make_env("random_goals", num_robots=6, filter={"kernel": "numba"}, max_steps=5)
+    monkeypatch.setitem(core.STRATEGIES, "auxiliary_velocity", loud)
+    env = make_env("random_goals", num_robots=6, filter=True, max_steps=5)
     env.reset(seed=1)
-    assert not env.unwrapped.control_filter._compiled_trigger
     for _ in range(3):
         env.step({a: np.zeros(2) for a in env.agents})
-    assert seen.count(6) >= 3
-    monkeypatch.undo()
-    loud = Loud("eqn.13", deadlock.STRATEGIES["auxiliary_velocity"].target, needs_reference=True)
-    monkeypatch.setitem(deadlock.STRATEGIES, "auxiliary_velocity", loud)
-    monkeypatch.setitem(core.STRATEGIES, "auxiliary_velocity", loud)
-    filt = SafetyFilter(kernel="numba")
-    assert filt._strategy is loud and not filt._compiled_trigger
+    assert seen.count(6) >= 3 and seen.count("strategy") >= 3
 
 
 @pytest.mark.parametrize("grouped", [False, True])
@@ -854,7 +621,7 @@ def test_a_subsets_backup_constants_are_the_whole_teams_indexed(grouped):
     import pickle
 
     from aasoatt_env.model.params import SUBSET_OF
-    from aasoatt_env.safety.gatekeeper import _team_block
+    from aasoatt_env.safety.backup.gate import team_block as _team_block
 
     team = make_team(["paper", "turtlebot3_burger", RobotParams(radius=0.3, offset=0.1), "paper_small"] * 6, 24)
     if grouped:
@@ -914,19 +681,19 @@ def test_the_compiled_box_least_squares_is_the_numpy_one():
 def _signatures() -> dict:
     """Compiled specialisations of every kernel entry point."""
     entries = {"backup": ("gate_full", "repair_full"), "local": ("solve_all",), "active_set": ("solve_parts",),
-               "geometry": ("cell_pairs", "components"), "decomposition": ("solve_decomposed", "box_least_squares"),
-               "rows": ("aasoatt_rows",), "step": ("filter_step",), "inputs": ("numbers_ok",),
-               "deadlock": ("multiplier_target",)}
+               "geometry": ("cell_pairs", "components"), "centralized": ("solve_decomposed", "box_least_squares"),
+               "rows": ("aasoatt_rows", "pairs_within")}
     return {f"{p}.{n}": len(getattr(compiled.kernels(p), n).signatures) for p, names in entries.items() for n in names}
 
 
 @needs_numba
 def test_warm_up_compiles_what_the_filter_runs():
     """After ``warm_up`` the filter compiles nothing more: hostile runs of both modes, with obstacles, in a stack
-    of teams and of 250 robots (the cells) use the specialisations it made."""
-    assert SafetyFilter(kernel="auto").warm_up() is True
+    of teams and of 250 robots (the cells), and the core called directly with other layouts."""
+    names = []
+    assert warm_up("auto", progress=names.append) is True and names
     before = _signatures()
-    assert all(v >= 1 for v in before.values())
+    assert all(v >= 1 for v in before.values()), before
     runs = [("random_goals", {"num_robots": 250}), ("circle_obstacles", {"num_robots": 10})]
     for mode in ("centralized", "decentralized"):
         for scenario, kw in runs:
@@ -939,15 +706,18 @@ def test_warm_up_compiles_what_the_filter_runs():
     batch.reset(seed=3)
     for _ in range(10):
         batch.step(np.random.default_rng(3).uniform(-1.0, 1.0, (4, 6, 2)))
-    # the core called directly, with the layouts callers have: contiguous or strided headings, read-only,
-    # writeable or Fortran-ordered arrays, with and without a reference
-    kin, u, theta, nom, lo, hi, ref = _step_inputs(8, 6)
-    for theta_in, u_in, reference in ((theta, u, ref), (theta.copy(), np.asfortranarray(u), None),
-                                      (theta.copy(), u, (ref[0].copy(), ref[1].copy()))):
-        filt = SafetyFilter(make_team(["paper", "turtlebot3_burger"] * 4, 8),  # (eqn.12a needs no reference)
-                            deadlock="auxiliary_velocity" if reference else "rotate_nominal")
+    # the core called directly: strided, Fortran-ordered or read-only arrays, with and without a reference
+    team = make_team(["paper", "turtlebot3_burger"] * 4, 8)
+    rng = np.random.default_rng(6)
+    pose = np.column_stack((rng.uniform(0.0, 3.0, (8, 2)), rng.uniform(-np.pi, np.pi, 8)))
+    u = rng.normal(0.0, 5.0, (8, 2))
+    kin, (lo, hi) = kinematics(team, pose, u), input_bounds(team, u, DT)
+    ref = (kin.p.copy(), np.zeros((8, 2)))
+    ref[0].flags.writeable = False
+    for u_in, reference in ((u, ref), (np.asfortranarray(u), None), (u, (ref[0].copy(), ref[1]))):
+        filt = SafetyFilter(team, deadlock="auxiliary_velocity" if reference else "rotate_nominal")
         for _ in range(2):
-            filt.step(kin, u_in, theta_in, nom, lo, hi, reference=reference)
+            filt.step(kin, u_in, pose[:, 2], rng.normal(0.0, 30.0, (8, 2)), lo, hi, reference=reference)
     assert _signatures() == before
 
 
@@ -1061,7 +831,6 @@ def test_a_point_mass_rests_past_its_braking_horizon():
 
 def test_absurd_wheel_speeds_are_never_called_brake_safe():
     """A braking longer than MAX_BRAKE_STEPS is not sampled: its reach is unbounded, the robot broken."""
-    from aasoatt_env.safety import numba_kernels  # noqa: F401  (skipped below without numba)
     from aasoatt_env.safety.backup import MAX_BRAKE_STEPS
 
     team = make_team("paper", 2)
@@ -1072,8 +841,7 @@ def test_absurd_wheel_speeds_are_never_called_brake_safe():
             g = gatekeeper(team, pose, u, np.zeros((2, 2)), DT, sensing_range=D, brake_fraction=F,
                            compiled=use_kernel)
             assert not g.safe and g.broken[0] and not g.broken[1]
-    if compiled.available():
-        assert compiled.kernels().MAX_BRAKE_STEPS == MAX_BRAKE_STEPS
+    assert MAX_BRAKE_STEPS * DT > 100.0  # (the kernels read the same constant)
 
 
 @needs_numba

@@ -522,7 +522,7 @@ def test_negotiation_groups_answer_their_rows_whole_as_a_dense_solver_does(compi
     whole = patch[ri] & patch[np.maximum(rj, 0)]
     assert (whole & (rj < 0)).any()
     # the filter's settings for its groups
-    policy = SolverPolicy("proxsuite", active_set=True, compiled=compiled, exact_first=True)
+    policy = SolverPolicy("proxsuite", active_set=True, compiled=compiled)
     res = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, compiled=compiled, whole=whole,
                              policy=policy)
     alone = decentralized_step(A, target, lo, hi, ri, rj, Gi, Gj, rhs, auth, compiled=compiled)
@@ -666,9 +666,9 @@ def test_the_groups_solver_gets_their_budget(monkeypatch):
     the default; along a crowded episode with groups every warm active set of a group runs with that budget
     (compiled decomposition or policy)."""
     from aasoatt_env import make_env
-    from aasoatt_env.safety import core, decomposition
+    from aasoatt_env.safety import centralized, core
     from aasoatt_env.safety.decentralized import GROUP_ONE_CHANGE_ITER
-    from aasoatt_env.safety.solvers import policy
+    from aasoatt_env.safety.solvers import active_set, policy
     from agents import TrackingController
 
     made = []
@@ -676,12 +676,12 @@ def test_the_groups_solver_gets_their_budget(monkeypatch):
     class Spy(policy.SolverPolicy):
         def __init__(self, *a, **k):
             super().__init__(*a, **k)
-            made.append((self.one_change_iter, self.exact_solvers))
+            made.append(self.one_change_iter)
 
     monkeypatch.setattr(core, "SolverPolicy", Spy)
     budgets = []
-    real_budget, real_parts = decomposition.one_change_budget, policy.solve_active_set_parts
-    monkeypatch.setattr(decomposition, "one_change_budget", lambda v: budgets.append(v) or real_budget(v))
+    real_budget, real_parts = active_set.one_change_budget, policy.solve_active_set_parts
+    monkeypatch.setattr(centralized.aset, "one_change_budget", lambda v: budgets.append(v) or real_budget(v))
     monkeypatch.setattr(policy, "solve_active_set_parts",
                         lambda *a, **k: budgets.append(k.get("one_change_iter")) or real_parts(*a, **k))
     env = make_env("random_goals", num_robots=8, arena_size=4.5, random_obstacles=2,
@@ -691,10 +691,10 @@ def test_the_groups_solver_gets_their_budget(monkeypatch):
     for _ in range(600):
         obs, *_ = env.step(agent.act(obs, env))
         grouped += "negotiation group" in env.unwrapped.filter_outputs[-1].message
-    assert made[-1] == (GROUP_ONE_CHANGE_ITER, policy.EXACT_SOLVERS)
+    assert made[-1] == GROUP_ONE_CHANGE_ITER
     assert grouped > 10 and budgets and set(budgets) == {GROUP_ONE_CHANGE_ITER}, (grouped, set(budgets))
     make_env("random_goals", num_robots=4, filter=FilterConfig(mode="centralized"))
-    assert made[-1] == (None, policy.EXACT_SOLVERS)
+    assert made[-1] is None
 
 
 @pytest.mark.slow

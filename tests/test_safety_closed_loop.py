@@ -9,7 +9,7 @@ from helpers import circle_layout, closed_loop
 import aasoatt_env.safety.solvers.policy as core
 from aasoatt_env.model.dynamics import jacobian
 from aasoatt_env.model.params import make_team
-from aasoatt_env.safety import SafetyFilter, build_problem, decomposition, solve_qp
+from aasoatt_env.safety import SafetyFilter, build_problem, solve_qp
 
 D_S = 0.96
 
@@ -24,27 +24,20 @@ def _full_objective(prob, x):
 @pytest.fixture(scope="module")
 def swap10(request):
     recorded = []
-    real = core.solve_qp
+    real = core.SolverPolicy.solve
 
-    def spy(prob, *a, **k):
-        sol = real(prob, *a, **k)
+    def spy(self, prob, *a, **k):
+        sol = real(self, prob, *a, **k)
         if prob.m > 0 and len(recorded) < 400:
             recorded.append(prob)
         return sol
 
-    core.solve_qp = spy
-    # every QP through solve_qp: the compiled decomposition (which answers the steps it verifies itself, with the
-    # same numbers: tests/test_compiled.py) left out
-    compiled_step = decomposition._compiled
-    decomposition._compiled = lambda *args: None
-    try:
+    core.SolverPolicy.solve = spy
+    try:  # (the numpy stages: every QP through the policy, none answered by the compiled centralised stage)
         scen = circle_layout(10, radius=6.0, duration=12.0)
-        filt = SafetyFilter(scen.team)
-        filt._whole_step = False  # (nor the compiled step, which runs the decomposition in its own call)
-        out = closed_loop(scen, filt, 15.0)
+        out = closed_loop(scen, SafetyFilter(scen.team, kernel="numpy"), 15.0)
     finally:
-        core.solve_qp = real
-        decomposition._compiled = compiled_step
+        core.SolverPolicy.solve = real
     return out, recorded
 
 

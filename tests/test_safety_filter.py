@@ -7,7 +7,6 @@ import pytest
 from helpers import circle_layout, closed_loop, needs_numba
 
 import aasoatt_env.safety.solvers.backends as backends
-import aasoatt_env.safety.solvers.ldp as ldp
 from aasoatt_env import compiled as compiled_module
 from aasoatt_env import make_env
 from aasoatt_env.errors import ConfigError, SolverError, StateError
@@ -15,10 +14,11 @@ from aasoatt_env.model.dynamics import input_bounds, kinematics, pose_from_point
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import make_team
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, FilterConfig, SafetyFilter
-from aasoatt_env.safety import decomposition as decomposition_module
-from aasoatt_env.safety import gatekeeper as gatekeeper_module
+from aasoatt_env.safety import centralized as centralized_module
 from aasoatt_env.safety import problem as problem_module
-from aasoatt_env.safety import repair as repair_module
+from aasoatt_env.safety import rows as rows_module
+from aasoatt_env.safety.backup import gate as gatekeeper_module
+from aasoatt_env.safety.backup import repair as repair_module
 from aasoatt_env.safety.solvers import active_set as active_set_module
 from aasoatt_env.safety.solvers import local as local_module
 
@@ -186,7 +186,7 @@ def test_packed_team_with_tiny_bounds_is_relaxed():
     f = SafetyFilter(team, deadlock="none")
     du, res = f.step(kin, u, theta, np.zeros((n, 2)), lo, hi)
     assert res.status == "unsafe" and not res.safe  # the start overlaps: no status may say otherwise
-    assert res.slack > 0 and "phase-1" in res.message  # the rows it cannot meet were relaxed
+    assert res.slack > 0 and "phase 1" in res.message  # the rows it cannot meet were relaxed
     assert np.all(np.isfinite(du)) and np.all(np.isfinite(res.eta))
     assert np.all(du >= lo) and np.all(du <= hi)
 
@@ -376,7 +376,7 @@ def test_a_numpy_filter_runs_no_kernel(monkeypatch):
         raise AssertionError(f"the {part} kernels were asked for")
 
     monkeypatch.setattr(compiled_module, "kernels", refuse)
-    for mod in (gatekeeper_module, repair_module, local_module, active_set_module, decomposition_module,
+    for mod in (gatekeeper_module, repair_module, local_module, active_set_module, rows_module, centralized_module,
                 problem_module):  # (their own names for it)
         monkeypatch.setattr(mod, "kernels", refuse)
     for mode in ("centralized", "decentralized"):
@@ -476,300 +476,6 @@ def test_component_labels_match_scipy(seed):
     # same partition: labels map one-to-one
     pairs = set(zip(ours.tolist(), ref.tolist()))
     assert len(pairs) == len(set(ours.tolist())) == len(set(ref.tolist()))
-
-
-def _starved_snapshot():
-    scen = circle_layout(10, radius=6.0, duration=12.0)
-    out = closed_loop(scen, SafetyFilter(scen.team, decompose=False), 5.6, record=lambda k: k == 1100)
-    return scen, out.snapshots[0]
-
-
-def _starve(monkeypatch, calls, first_only):
-    real_settings = backends._prox_settings
-
-    def starved(settings, eps):  # proxsuite runs out of iterations (max_iter = 2)
-        real_settings(settings, eps)
-        if not first_only or not calls:
-            settings.max_iter = 2
-        calls.append(1)
-
-    monkeypatch.setattr(backends, "_prox_settings", starved)
-
-
-def test_proxsuite_out_of_iterations_is_answered_by_exact_ldp(monkeypatch):
-    import aasoatt_env.safety.solvers.policy as qp
-
-    scen, (kin, u, theta, nom, lo, hi, ref) = _starved_snapshot()
-    probs, calls = [], []
-    prob = _problem_from(scen.team, kin, u, theta, nom, lo, hi, ref, probs, qp.solve_qp)
-    _starve(monkeypatch, calls, first_only=False)
-    sol = qp.solve_qp(prob, "proxsuite")
-    assert sol.status == "solved" and sol.fallback
-    assert "MAX_ITER" in sol.message and "then ldp (KKT verified)" in sol.message
-    ref_sol = qp.solve_qp(prob, "quadprog")
-    f, f_ref = prob.objective(sol.x), prob.objective(ref_sol.x)
-    assert abs(f - f_ref) <= 1e-6 * max(1.0, abs(f_ref))
-    assert np.all(prob.C @ sol.x <= prob.u + 1e-9)
-
-
-def test_too_large_for_ldp_retries_the_other_proxsuite_backend(monkeypatch):
-    import aasoatt_env.safety.solvers.policy as qp
-
-    scen, (kin, u, theta, nom, lo, hi, ref) = _starved_snapshot()
-    probs, calls = [], []
-    prob = _problem_from(scen.team, kin, u, theta, nom, lo, hi, ref, probs, qp.solve_qp)
-    _starve(monkeypatch, calls, first_only=True)
-    monkeypatch.setattr(backends, "DENSE_MAX_SIZE", 0)  # first attempt sparse, retry dense
-    monkeypatch.setattr(ldp, "MAX_VARS", 0)
-    sol = qp.solve_qp(prob, "proxsuite")
-    assert sol.status == "solved" and sol.fallback
-    assert sol.message.startswith("PROXQP_MAX_ITER_REACHED (sparse), then ldp: 20 variables > MAX_VARS = 0")
-    assert sol.message.endswith("then PROXQP_SOLVED (dense)")
-    ref_sol = qp.solve_qp(prob, "quadprog")
-    assert abs(prob.objective(sol.x) - prob.objective(ref_sol.x)) <= 1e-6 * max(1.0, abs(prob.objective(ref_sol.x)))
-
-
-def test_filter_goes_straight_to_the_exact_path_after_a_stall(monkeypatch):
-    import aasoatt_env.safety.solvers.policy as core
-
-    calls = []
-    _starve(monkeypatch, calls, first_only=False)  # proxsuite never converges
-    monkeypatch.setattr(core, "EXACT_STEPS", 40)
-    monkeypatch.setattr(core, "EXACT_FIRST_VARS", 0)  # this 10-robot team would otherwise never ask proxsuite
-    scen = circle_layout(10, radius=6.0, duration=12.0)
-    messages = []
-    real_step = SafetyFilter.step
-
-    def spy(self, *a, **k):
-        n_calls = len(calls)
-        du, res = real_step(self, *a, **k)
-        messages.append((res.n_qp_rows, len(calls) - n_calls, res.message, res.status))
-        return du, res
-
-    monkeypatch.setattr(SafetyFilter, "step", spy)
-    out = closed_loop(scen, SafetyFilter(scen.team, active_set=False), 6.0)
-    qp_steps = [m for m in messages if m[0] > 0]
-    assert len(qp_steps) > 100
-    assert out.statuses.get("failed", 0) == 0 and out.min_distance >= 0.96 - 1e-3
-    first = next(i for i, m in enumerate(qp_steps) if m[1] > 0)
-    assert "then ldp" in qp_steps[first][2]
-    # the next QP steps do not call proxsuite: warm active set or ldp answers
-    following = qp_steps[first + 1:first + 31]
-    assert all(m[1] == 0 for m in following), following
-    assert all(m[2].startswith(("active set", "ldp")) for m in following if m[3] == "solved")
-    # after EXACT_STEPS proxsuite is tried again (and, starved, stalls again)
-    assert sum(m[1] > 0 for m in qp_steps) >= 2
-
-
-def _problem_from(team, kin, u, theta, nom, lo, hi, ref, probs, real_solve):
-    import aasoatt_env.safety.solvers.policy as core
-
-    def spy(prob, *a, **k):
-        probs.append(prob)
-        return real_solve(prob, "quadprog")
-
-    core.solve_qp = spy
-    try:
-        SafetyFilter(team, decompose=False).step(kin, u, theta, nom, lo, hi, reference=ref)
-    finally:
-        core.solve_qp = real_solve
-    return probs[0]
-
-
-def test_a_verified_step_elsewhere_counts_as_one_through_the_policy(monkeypatch):
-    """``note_answer``: a running switch to the exact path counts down as for a step through ``solve``, outside
-    one a fast answer clears the stall count (as ``_adapt`` of a fast answer does); a slow answer that ``solve``
-    would probe ``ldp`` on needs the problem (``needs_problem``), and noting it is refused."""
-    from aasoatt_env.errors import UsageError
-    from aasoatt_env.safety.solvers import EXACT_STEPS, SLOW_SOLVE_S, SolverPolicy
-    from aasoatt_env.safety.solvers.policy import EXACT_FIRST_VARS
-
-    pol = SolverPolicy("proxsuite", active_set=True)
-    assert pol.backend.may_stall
-    pol._exact_steps, pol._stalls = EXACT_STEPS, 2
-    for left in range(EXACT_STEPS - 1, -1, -1):
-        assert not pol.needs_problem(EXACT_FIRST_VARS + 2, 1.0)  # (on the exact path: no probe)
-        pol.note_answer(EXACT_FIRST_VARS + 2, 1e-4)
-        assert pol._exact_steps == left and pol._stalls == 2
-    pol.note_answer(EXACT_FIRST_VARS, 1e-4)  # small problems take the exact path: no count of stalls
-    assert pol._stalls == 2
-    assert pol.needs_problem(EXACT_FIRST_VARS + 2, 2 * SLOW_SOLVE_S)
-    with pytest.raises(UsageError, match="needs the problem"):
-        pol.note_answer(EXACT_FIRST_VARS + 2, 2 * SLOW_SOLVE_S)
-    assert pol._stalls == 2 and pol._exact_steps == 0  # (refused before any change)
-    pol.note_answer(EXACT_FIRST_VARS + 2, 1e-4)
-    assert pol._exact_steps == 0 and pol._stalls == 0
-
-
-@pytest.mark.parametrize(("ldp_time", "switches"), [(0.01, True), (0.9, False)])
-def test_slow_proxsuite_switches_to_ldp_only_when_ldp_is_faster(monkeypatch, ldp_time, switches):
-    import dataclasses
-
-    import aasoatt_env.safety.solvers.policy as core
-
-    monkeypatch.setattr(core, "EXACT_FIRST_VARS", 0)
-    real = core.solve_qp
-    log = []
-
-    def timed(prob, solver, *a, **k):  # proxsuite "takes" 1 s, the ldp probe ldp_time
-        sol = real(prob, solver, *a, **k)
-        path = "exact" if k.get("prefer_exact") else solver
-        log.append(path)
-        fake = {"proxsuite": 1.0, "ldp": ldp_time}.get(path, sol.solve_time)
-        return dataclasses.replace(sol, solve_time=fake)
-
-    monkeypatch.setattr(core, "solve_qp", timed)
-    scen = circle_layout(10, radius=6.0, duration=12.0)
-    # every step through the policy's solve (the compiled decomposition, which answers the steps it verifies
-    # itself and tells the policy, is left out: test_the_compiled_decomposition_answers_as_the_numpy_path)
-    monkeypatch.setattr(decomposition_module, "_compiled", lambda *args: None)
-    filt = SafetyFilter(scen.team)
-    filt._whole_step = False  # (nor the compiled step, which runs the decomposition in its own call)
-    out = closed_loop(scen, filt, 6.0)
-    assert out.statuses.get("failed", 0) == 0
-    first = log.index("proxsuite")
-    assert log[first + 1] == "ldp"  # the timing probe on the same problem
-    if switches:
-        # EXACT_STEPS steps of the exact path, then proxsuite again (and the probe), then 2x as long
-        assert log[first + 2:first + 2 + core.EXACT_STEPS] == ["exact"] * core.EXACT_STEPS
-        assert log[first + 2 + core.EXACT_STEPS:first + 4 + core.EXACT_STEPS] == ["proxsuite", "ldp"]
-        assert "proxsuite" not in log[first + 4 + core.EXACT_STEPS:first + 4 + 2 * core.EXACT_STEPS]
-    else:
-        assert "exact" not in log
-
-
-def test_small_problems_take_the_exact_path_and_proofs_of_infeasibility_skip_proxsuite(monkeypatch):
-    """Up to EXACT_FIRST_VARS variables: warm active set, then ldp; an infeasible QP goes to phase 1 at once."""
-    import aasoatt_env.safety.solvers.policy as core
-
-    calls = []
-    _starve(monkeypatch, calls, first_only=False)  # any proxsuite call would be counted
-    n = 6
-    team = make_team("paper", n)
-    ang = 2 * np.pi * np.arange(n) / n
-    p = 0.6 * np.stack((np.cos(ang), np.sin(ang)), axis=1)  # overlapping: the rows cannot all be met
-    pose = pose_from_point(team, p, ang + np.pi)
-    u = np.full((n, 2), 8.0)
-    kin = kinematics(team, pose, u)
-    lo, hi = -np.full((n, 2), 0.1), np.full((n, 2), 0.1)
-    du, res = SafetyFilter(team, deadlock="none", backup=False).step(kin, u, ang + np.pi, np.zeros((n, 2)), lo, hi)
-    assert res.slack > 0 and "phase-1" in res.message
-    assert calls == []  # ldp proved the rows inconsistent and solved phase 1: proxsuite was never asked
-    assert 2 * n <= core.EXACT_FIRST_VARS
-
-
-
-def _contradiction(n: int, upper: float = -1.0):
-    """``n`` robots, each with the rows ``du_x <= upper`` and ``du_x >= 1``: with the default ``upper`` infeasible,
-    every row's least violation 1; with ``upper = 2`` feasible, the target (0.5, 0.25) -> du = (1, 0.25)."""
-    from aasoatt_env.safety.problem import build_problem
-
-    idx = np.repeat(np.arange(n), 2)
-    Gi = np.tile([[1.0, 0.0], [-1.0, 0.0]], (n, 1))
-    return build_problem(np.tile(np.eye(2), (n, 1, 1)), np.tile([0.5, 0.25], (n, 1)), -3 * np.ones((n, 2)),
-                         3 * np.ones((n, 2)), np.ones(n), idx, -np.ones(2 * n, int), Gi, np.zeros((2 * n, 2)),
-                         np.tile([upper, -1.0], n))
-
-
-@pytest.mark.parametrize("n, first", [(5, "small"), (40, "large")])
-def test_phase_one_is_asked_of_the_preferred_solvers_then_ldp_or_the_back_end(monkeypatch, n, first):
-    """The phase-1 problem goes to the first installed of PHASE1_SOLVERS for its size, else to ``ldp`` when small
-    (its NNLS is slow on large phase-1 problems, the 1e-8 regulariser) or to the back-end; either way every
-    row's least violation is found exactly (1 here) and the answer meets the loosened rows (the box's centre in
-    x, the target in y)."""
-    import aasoatt_env.safety.solvers.policy as pol
-
-    prob = _contradiction(n)
-    p1_vars = prob.n + prob.m
-    assert (p1_vars > pol.PHASE1_LDP_MAX_VARS) == (first == "large")
-    asked = []
-    real = pol.get_solver
-    monkeypatch.setattr(pol, "get_solver", lambda name: asked.append((name, None)) or real(name))
-    real_answer = pol._answer
-
-    def spy(prob_, backend, *a):
-        asked.append(("answer", prob_.n))
-        return real_answer(prob_, backend, *a)
-
-    monkeypatch.setattr(pol, "_answer", spy)
-    sol = pol.solve_qp(prob, "proxsuite", prefer_exact=True)
-    assert sol.status == "relaxed" and sol.slack == pytest.approx(1.0, abs=1e-6)
-    np.testing.assert_allclose(sol.x.reshape(n, 2), [[0.0, 0.25]] * n, atol=2e-6)  # (rows loosened by 1 + 1.1e-6)
-    # the solvers asked for the phase-1 problem (n + m variables), in order
-    names = [asked[k - 1][0] for k, (what, size) in enumerate(asked) if what == "answer" and size == p1_vars]
-    preferred = [k for k, lo, hi in pol.PHASE1_SOLVERS if lo <= p1_vars and (hi is None or p1_vars <= hi)]
-    installed = backends.available_solvers()
-    expected = next(k for k in (*preferred, "ldp" if first == "small" else "proxsuite") if k in installed)
-    assert names[0] == expected
-
-
-@pytest.mark.skipif("daqp" not in backends.available_solvers(), reason="needs daqp")
-def test_the_exact_path_takes_answers_only_verified_and_daqps_proofs_of_infeasibility(monkeypatch):
-    """``exact_solvers=("daqp", "ldp")`` (the default where DAQP is installed): DAQP's answer is taken once the warm
-    active set verifies it (DAQP's rows hold to its 1e-6 primal tolerance), else ``ldp`` answers; DAQP's proof that
-    the rows are inconsistent goes to phase 1 without ``ldp``; bad values of the options are refused by name."""
-    import aasoatt_env.safety.solvers.policy as pol
-    from aasoatt_env.errors import UsageError
-
-    base, ok = _contradiction(3), _contradiction(3, upper=2.0)
-    sol = pol.solve_qp(ok, "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
-    assert sol.status == "solved" and sol.message.startswith("daqp: exitflag 1 (KKT verified)")
-    np.testing.assert_allclose(sol.x.reshape(3, 2), [[1.0, 0.25]] * 3, atol=1e-12)
-    with monkeypatch.context() as mp:  # an answer the warm active set does not verify is not taken
-        mp.setattr(pol, "solve_active_set", lambda *a, **k: None)
-        sol = pol.solve_qp(ok, "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
-        assert sol.message.startswith("daqp: exitflag 1, KKT check failed, then ldp")
-    calls = []
-    real = backends.SOLVERS["ldp"]
-    with monkeypatch.context() as mp:
-        mp.setitem(backends.SOLVERS, "ldp", backends.Backend(lambda *a: calls.append(1) or real(*a), verified=True))
-        sol = pol.solve_qp(base, "proxsuite", prefer_exact=True, exact_solvers=("daqp", "ldp"))
-    assert sol.status == "relaxed" and "daqp: exitflag -1; phase-1" in sol.message
-    assert calls == []  # DAQP proved the rows inconsistent and answered phase 1 (PHASE1_SOLVERS): no ldp
-    for bad, match in ((("neural",), r"exact_solvers: 'neural' is not a registered exact solver"),
-                       ("ldp", r"exact_solvers: got 'ldp', expected a tuple of solver names"),
-                       (("dqap",), r"exact_solvers: 'dqap' is not a registered exact solver")):
-        with pytest.raises(UsageError, match=match):
-            pol.SolverPolicy("proxsuite", exact_solvers=bad)
-        with pytest.raises(UsageError, match=match):
-            pol.solve_qp(ok, "proxsuite", prefer_exact=True, exact_solvers=bad)
-    for bad in (-1, 2.5, "20", True):
-        with pytest.raises(UsageError, match=r"one_change_iter: got .*, expected a non-negative int"):
-            pol.SolverPolicy("proxsuite", one_change_iter=bad)
-
-
-@pytest.mark.skipif("daqp" not in backends.available_solvers(), reason="needs daqp")
-def test_daqp_keeps_the_box_as_rows_unless_the_policy_asks_for_simple_bounds(monkeypatch):
-    """``solver="daqp"`` runs (aasoatt reproduce's) keep their numbers: the box stays rows of DAQP's matrix; the
-    policy's own calls (its helper options) pass it as DAQP's simple bounds, to the same answer."""
-    import daqp
-
-    prob = _contradiction(3, upper=2.0)
-    rows = []
-    real = daqp.solve
-    monkeypatch.setattr(daqp, "solve", lambda H, f, A, *a: rows.append(A.shape[0]) or real(H, f, A, *a))
-    plain = backends.SOLVERS["daqp"](prob, None, None, {})
-    helped = backends.SOLVERS["daqp"](prob, None, None, dict(backends.SOLVERS["daqp"].helper_options))
-    assert rows == [prob.n + prob.m, prob.m]
-    np.testing.assert_allclose(helped.x, plain.x, atol=1e-12)
-    np.testing.assert_allclose(helped.z, plain.z, atol=1e-12)
-
-
-def test_proxsuite_alternate_class_is_not_tried_on_problems_the_dense_class_takes():
-    # the sparse class did not return (40 s and more) on a small infeasible problem with a huge
-    # linear term from an adversary's 1e6 nominal; the alternate fallback now only goes sparse -> dense
-    from aasoatt_env.safety.problem import build_problem
-
-    A = np.array([[[0.05, 0.05], [0.1, -0.1]]] * 2)
-    target = np.array([[3e6, 1e6], [-3e6, 2e6]])
-    lo, hi = -60 * np.ones((2, 2)), 60 * np.ones((2, 2))
-    Gi, Gj = np.array([[0.05, 0.1]]) @ A[0], -(np.array([[0.05, 0.1]]) @ A[1])
-    prob = build_problem(A, target, lo, hi, np.full(2, 60.0), np.array([0]), np.array([1]), Gi, Gj,
-                         np.array([-50.0]))
-    assert prob.n + prob.m <= backends.DENSE_MAX_SIZE
-    raw = backends.SOLVERS["proxsuite"](prob, None, None, {"alternate": True})
-    assert not raw.ok and raw.iterations == 0 and "alternate class skipped" in raw.message
-    assert backends.SOLVERS["proxsuite"](prob, None, None, {}).iterations > 0  # the dense class still runs
 
 
 def test_a_registered_strategys_target_of_the_wrong_shape_is_refused(monkeypatch):

@@ -98,6 +98,8 @@ class Barrier:
     rows: BarrierFn
     value: ValueFn
     equation: str
+    kernel: str = ""
+    """Its compiled rows (a function of :mod:`~aasoatt_env.safety.rows_kernel`; empty: numpy only)."""
 
 
 def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -164,7 +166,7 @@ def _adaptive_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, No
 
 
 BARRIERS: dict[str, Barrier] = {
-    "aasoatt": Barrier(_aasoatt, _aasoatt_h, "eqn.7-8"),
+    "aasoatt": Barrier(_aasoatt, _aasoatt_h, "eqn.7-8", kernel="aasoatt_rows"),
     "braking": Barrier(_braking, _braking_h, "eqn.n4"),
     "distance": Barrier(_distance, _distance_h, "eqn.nn5"),
     "gated_distance": Barrier(_gated_distance, _distance_h, "eqn.n5/n6"),

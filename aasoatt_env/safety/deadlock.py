@@ -210,7 +210,7 @@ class Strategy:
 
     def correct_target(self, target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, ctx: TargetContext) -> np.ndarray:
         """The target control-point accelerations after the strategy (a new array)."""
-        if self.target is None or not np.any(zeta > 0):
+        if self.target is None or not (zeta > 0).any():
             return target.copy()
         return self.target(target, zeta, Q, ctx)
 

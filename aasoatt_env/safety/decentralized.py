@@ -82,17 +82,20 @@ goals, with more infeasible group QPs (README).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
 
 from aasoatt_env.model.geometry import pair_components
-from aasoatt_env.safety.decomposition import solve_centralized
+from aasoatt_env.safety.centralized import solve_rows
 from aasoatt_env.safety.problem import box_least_squares
+from aasoatt_env.safety.rows import Rows
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers.local import RELAX_TOL, solve_local_qps
+from aasoatt_env.safety.stages import Answer, StepInput, Warm
 
-__all__ = ["GROUP_ONE_CHANGE_ITER", "SPLITS", "DecentralizedResult", "SplitRows",
+__all__ = ["GROUP_ONE_CHANGE_ITER", "SPLITS", "Decentralized", "DecentralizedResult", "SplitRows",
            "decentralized_step", "negotiation_rows", "split_rows"]
 
 SPLITS: tuple[str, ...] = ("reciprocal", "authority")
@@ -465,9 +468,59 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
         g_z = np.zeros(g_rhs.shape[0])
     else:  # (a kept half starts at its row's multiplier)
         g_z = np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
-    ans = solve_centralized(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_ri, g_rj, g_Gi, g_Gj,
-                            g_rhs, np.ascontiguousarray(x0[sub]), g_z, decompose=True, compiled=compiled, checked=True)
+    g_rows = Rows(g_ri, g_rj, g_Gi, g_Gj, g_rhs, _NO_PAIRS, _NO_KEYS, np.inf, np.inf)
+    du, _, z, eta, sol, _ = solve_rows(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_rows,
+                                       Warm(np.ascontiguousarray(x0[sub]), g_z), compiled=compiled)
+    status, iterations = ("solved", 0) if sol is None else (sol.status, sol.iterations)
     label = pair_components(sub.size, g_ri[: joint.shape[0]], g_rj[: joint.shape[0]], compiled=compiled)
     sizes = np.bincount(label, minlength=sub.size)
-    return joint, grouped, _GroupAnswer(ans.du, ans.eta, ans.z, kept, ans.status, ans.iterations), \
+    return joint, grouped, _GroupAnswer(du, eta, z, kept, status, iterations), \
         int(np.count_nonzero(sizes >= 2)), int(sizes.max(initial=0))
+
+
+_NO_PAIRS = np.empty((0, 2), dtype=np.intp)
+_NO_KEYS = np.empty(0, dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Decentralized:
+    """The decentralised QP stage: ``stage(step, rows, target, triggered, warm) -> Answer`` (module docstring).
+
+    ``target`` is each robot's own: the filter saturates the nominal to the bounds before it.
+    """
+
+    policy: SolverPolicy
+    negotiate: bool
+    negotiate_gap: float
+    eta_tol: float
+    compiled: bool
+
+    def __call__(self, s: StepInput, rows: Rows, target: np.ndarray, triggered: np.ndarray, warm: Warm) -> Answer:
+        """Every robot's own QP, and the negotiation groups' joint ones."""
+        n = target.shape[0]
+        whole = (negotiation_rows(triggered, s.p, s.team.radius, rows.ri, rows.rj, self.negotiate_gap)
+                 if self.negotiate else None)
+        grouping = whole is not None and warm.x is not None and bool(whole.any())
+        ans = decentralized_step(s.A, target, s.lo, s.hi, rows.ri, rows.rj, rows.Gi, rows.Gj, rows.rhs,
+                                 s.team.max_point_accel, scale=s.scale, compiled=self.compiled, whole=whole,
+                                 policy=self.policy, x_warm=warm.x if grouping else None,
+                                 z_warm=warm.z if grouping else None)
+        status = max("relaxed" if ans.n_relaxed else "solved", ans.group_status, key=_SEVERITY.index)
+        n_grouped = int(ans.grouped.sum())
+        message = f"decentralized: {n - n_grouped} local QPs"
+        if ans.n_relaxed:
+            message += f", {ans.n_relaxed} infeasible (relaxed)"
+        if ans.n_groups:
+            message += (f", {ans.n_groups} negotiation group(s) of {n_grouped} robots (largest {ans.largest_group})"
+                        + ("" if ans.group_status == "solved" else f": {ans.group_status}"))
+        avoiding = np.zeros(n, dtype=bool)  # a robot avoids where its own half of a row binds
+        avoiding[rows.ri[ans.z_half[:, 0] > self.eta_tol]] = True
+        avoiding[rows.rj[(ans.z_half[:, 1] > self.eta_tol) & (rows.rj >= 0)]] = True
+        slack = 0.0
+        if status != "solved" or (ans.grouped.any() and not self.policy.exact):
+            slack = float(max(0.0, np.max(rows.values(ans.du) - rows.rhs, initial=0.0)))
+        return Answer(ans.du.copy(), ans.du / s.scale[:, None], ans.z, ans.eta, avoiding, status, message,
+                      ans.iterations, rows.m, slack)
+
+
+_SEVERITY = ("solved", "relaxed", "failed")

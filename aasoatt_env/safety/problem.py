@@ -202,7 +202,7 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
         Bounds ``(K, 2)`` with ``lo <= hi``.
     compiled : bool
         Run the same operations in a compiled loop
-        (:func:`aasoatt_env.safety.decomposition_kernel.box_least_squares`: the same numbers).
+        (:func:`aasoatt_env.safety.centralized_kernel.box_least_squares`: the same numbers).
 
     Returns
     -------
@@ -213,7 +213,7 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
     check.shapes((("A", A, (k, 2, 2)), ("target", target, (k, 2)), ("lo", lo, (k, 2)), ("hi", hi, (k, 2))),
                  " (A: (K, 2, 2), the others (K, 2))")
     if compiled:
-        return kernels("decomposition").box_least_squares(c64(A), c64(target), c64(lo), c64(hi))
+        return kernels("centralized").box_least_squares(c64(A), c64(target), c64(lo), c64(hi))
     a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
     t0, t1 = target[:, 0], target[:, 1]
     det = a * d - b * c

@@ -1,34 +1,10 @@
-"""The paper's barrier rows of every robot pair in one compiled call (numba; through :mod:`aasoatt_env.compiled`).
+"""Compiled barrier rows (numba; loaded through :mod:`aasoatt_env.compiled`).
 
-:func:`aasoatt_rows` is what :meth:`aasoatt_env.safety.core.SafetyFilter.step`
-does in numpy for the neighbour search and the rows (on either side of the
-deadlock rule, which leaves these rows alone), for the ``aasoatt`` barrier
-(eqn.7-8) of robot pairs, written as one loop over the pairs
-instead of some forty small array operations (whose overhead, not their
-arithmetic, is a small team's or a training stack's step):
-
-1. the pairs within the sensing range, from candidates (the brute force's
-   pairs of :func:`~aasoatt_env.model.geometry.robot_pairs`, with its distance
-   test; or the pairs it found);
-2. each pair's relative position, velocity and drift acceleration, and its
-   safety distance with the discrete-time margin
-   (:meth:`~aasoatt_env.safety.config.FilterConfig.pair_margin` and
-   ``speed_margin``);
-3. the barrier's value with the true safety distance (the smallest is the
-   result's ``barrier_min``) and the surface gap (the smallest is the margin
-   without the backup layer);
-4. the row ``rhs`` of :func:`~aasoatt_env.safety.barriers.barrier_rows`, the
-   row normals in wheel coordinates ``G_i = A_i^T c``, ``G_j = -A_j^T c``
-   (``c = -p_ij``) and the warm-start keys.
-
-The operations are numpy's, in numpy's order (numba compiles without
-``fastmath``, so no product is fused into a sum; ``einsum``'s sums start from
-``+0.0`` here too), so the numbers are the reference's bit for bit
-(``tests/test_compiled.py`` compares them on random and coincident pairs, and
-every step of filtered episodes).
-The filter takes this path with the compiled kernels, the ``aasoatt`` barrier, a
-deadlock strategy that leaves the rows alone and no obstacles; every other
-step takes the numpy reference.
+:func:`aasoatt_rows` is :func:`aasoatt_env.safety.rows.numpy_rows` for the ``aasoatt`` barrier
+(eqn.7-8) as one loop over the pairs instead of some forty small array operations;
+:func:`pairs_within` is :func:`~aasoatt_env.model.geometry.robot_pairs`' brute force.  The
+operations are numpy's in numpy's order (no ``fastmath``; ``einsum``'s sums start from
+``+0.0``), so the numbers are the reference's bit for bit (``tests/test_compiled.py``).
 """
 
 from __future__ import annotations
@@ -37,98 +13,76 @@ import math
 
 import numpy as np
 
-from aasoatt_env.numba_jit import jit as _jit
-from aasoatt_env.numba_jit import nmax as _nmax
-from aasoatt_env.numba_jit import nmin as _nmin
+from aasoatt_env.numba_jit import jit, nmax, nmin
 
-__all__ = ["aasoatt_rows"]
+__all__ = ["aasoatt_rows", "pairs_within"]
 
 
-@_jit
-def aasoatt_rows(p, v, adot, A, radius, cand_i, cand_j, range2, k1, k2, fixed_margin, auto_margin, fade_speed,
-                 speed_margin, key_base, gap_initial):
-    """The robot pairs within range and their rows of the ``aasoatt`` barrier (module docstring).
+@jit
+def _row(q, i, j, px, py, vx, vy, ax, ay, ds, vi2, vj2, A, k1, k2, fixed, auto, fade, speed_margin, Gi, Gj, rhs):
+    """Fill row ``q`` of pair ``(i, j)`` (``j < 0``: an obstacle); returns ``(h, gap)`` with the true distance."""
+    if fixed != fixed:  # FilterConfig.pair_margin: auto * min(1, |v_ij| / fade)
+        s = math.sqrt(vx * vx + vy * vy) / fade
+        margin = auto * (s if (s < 1.0 or s != s) else 1.0)
+    else:
+        margin = fixed
+    if speed_margin != 0.0:
+        margin = margin + speed_margin * (vi2 + vj2)
+    rt = math.sqrt(px * px + py * py)
+    r = nmax(rt, 1e-9)
+    pv = px * vx + py * vy
+    pa = px * ax + py * ay
+    rhs[q] = (vx * vx + vy * vy) - pv * pv / (r * r) + (k1 + k2) * pv + k1 * k2 * r * (r - (ds + margin)) + pa
+    for col in range(2):
+        Gi[q, col] = 0.0 + A[i, 0, col] * -px + A[i, 1, col] * -py
+        Gj[q, col] = -(0.0 + A[j, 0, col] * -px + A[j, 1, col] * -py) if j >= 0 else 0.0
+    return pv / r + k1 * (r - ds), rt - ds
 
-    Parameters
-    ----------
-    p, v, adot : numpy.ndarray
-        ``(n, 2)`` control-point positions, velocities and drift accelerations ``A_dot u``.
-    A : numpy.ndarray
-        ``(n, 2, 2)`` input matrices.
-    radius : numpy.ndarray
-        ``(n,)`` radii.
-    cand_i, cand_j : numpy.ndarray
-        ``(C,)`` candidate pairs, robot indices in ``[0, n)`` (checked by the caller: numba does not
-        check bounds).
-    range2 : float
-        The squared sensing range: a candidate is kept where ``d0 d0 + d1 d1 <= range2``
-        (``d = p_i - p_j``), as :func:`~aasoatt_env.model.geometry.robot_pairs`' brute force keeps it
-        (``inf``: every candidate, the pairs found already).
-    k1, k2 : float
-        The barrier's gains.
-    fixed_margin : float
-        ``FilterConfig.safety_margin``, or NaN for the speed-dependent default
-        ``auto_margin * min(1, |v_ij| / fade_speed)``.
-    speed_margin : float
-        ``FilterConfig.speed_margin``: ``speed_margin (|v_i|^2 + |v_j|^2)`` is added to the margin.
-    key_base : int
-        The warm-start key of pair ``(i, j)`` is ``i * key_base + j``.
-    gap_initial : float
-        The smallest gap without pairs.
 
-    Returns
-    -------
-    tuple
-        ``(pairs (P, 2), p_ij (P, 2), G_i (P, 2), G_j (P, 2), rhs (P,), keys (P,), barrier_min, gap_min)``
-        for the ``P`` candidates kept, in their order.
+@jit
+def aasoatt_rows(p, v, adot, A, radius, robots, obstacles, centers, oradius, k1, k2, fixed, auto, fade, speed_margin,
+                 gap_initial):
+    """Rows of the ``aasoatt`` barrier for robot pairs ``robots (P, 2)`` and robot-obstacle pairs ``(Q, 2)``.
+
+    ``fixed``: ``FilterConfig.safety_margin`` or NaN for the speed-dependent default.  The caller
+    checks every index (numba does not).  Returns ``(ri, rj, Gi, Gj, rhs, pairs, keys, h_min, gap_min)``
+    as :func:`aasoatt_env.safety.rows.numpy_rows`.
     """
+    n, P, Q = p.shape[0], robots.shape[0], obstacles.shape[0]
+    m, base = P + Q, n + oradius.shape[0] + 1
+    ri, rj, out = np.empty(m, np.intp), np.empty(m, np.intp), np.empty((m, 2), np.intp)
+    Gi, Gj, rhs, keys = np.empty((m, 2)), np.empty((m, 2)), np.empty(m), np.empty(m, np.int64)
+    h_min, gap_min = np.inf, gap_initial
+    for q in range(P):
+        i, j = robots[q, 0], robots[q, 1]
+        h, gap = _row(q, i, j, p[i, 0] - p[j, 0], p[i, 1] - p[j, 1], v[i, 0] - v[j, 0], v[i, 1] - v[j, 1],
+                      adot[i, 0] - adot[j, 0], adot[i, 1] - adot[j, 1], radius[i] + radius[j],
+                      v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1], v[j, 0] * v[j, 0] + v[j, 1] * v[j, 1], A, k1, k2,
+                      fixed, auto, fade, speed_margin, Gi, Gj, rhs)
+        h_min, gap_min = nmin(h_min, h), nmin(gap_min, gap)
+        ri[q], rj[q], out[q, 0], out[q, 1], keys[q] = i, j, i, j, i * base + j
+    for o in range(Q):
+        q, i, k = P + o, obstacles[o, 0], obstacles[o, 1]
+        h, gap = _row(q, i, -1, p[i, 0] - centers[k, 0], p[i, 1] - centers[k, 1], v[i, 0], v[i, 1], adot[i, 0],
+                      adot[i, 1], radius[i] + oradius[k], v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1], 0.0, A, k1, k2,
+                      fixed, auto, fade, speed_margin, Gi, Gj, rhs)
+        h_min, gap_min = nmin(h_min, h), nmin(gap_min, gap)
+        ri[q], rj[q], out[q, 0], out[q, 1], keys[q] = i, -1, i, -1 - k, i * base + n + k
+    return ri, rj, Gi, Gj, rhs, out, keys, h_min, gap_min
+
+
+@jit
+def pairs_within(p, cand_i, cand_j, range2):
+    """``(P, 2)``: the candidate pairs with ``d0 d0 + d1 d1 <= range2`` (``d = p_i - p_j``), in order."""
     C = cand_i.shape[0]
+    kept = np.empty(C, np.intp)
     P = 0
-    kept = np.empty(C, dtype=np.int64)
     for c in range(C):
-        i, j = cand_i[c], cand_j[c]
-        d0, d1 = p[i, 0] - p[j, 0], p[i, 1] - p[j, 1]
+        d0, d1 = p[cand_i[c], 0] - p[cand_j[c], 0], p[cand_i[c], 1] - p[cand_j[c], 1]
         if d0 * d0 + d1 * d1 <= range2:
             kept[P] = c
             P += 1
-    pairs = np.empty((P, 2), dtype=np.int64)
-    rel = np.empty((P, 2))
-    Gi = np.empty((P, 2))
-    Gj = np.empty((P, 2))
-    rhs = np.empty(P)
-    keys = np.empty(P, dtype=np.int64)
-    h_min = np.inf
-    gap_min = gap_initial
-    k12 = k1 + k2
-    kk = k1 * k2
-    auto = fixed_margin != fixed_margin
+    out = np.empty((P, 2), np.intp)
     for q in range(P):
-        i, j = cand_i[kept[q]], cand_j[kept[q]]
-        pairs[q, 0], pairs[q, 1] = i, j
-        px, py = p[i, 0] - p[j, 0], p[i, 1] - p[j, 1]
-        vx, vy = v[i, 0] - v[j, 0], v[i, 1] - v[j, 1]
-        ax, ay = adot[i, 0] - adot[j, 0], adot[i, 1] - adot[j, 1]
-        ds = radius[i] + radius[j]
-        if auto:  # pair_margin: auto_margin * np.minimum(1.0, speed / fade_speed)
-            s = math.sqrt(vx * vx + vy * vy) / fade_speed
-            margin = auto_margin * (s if (s < 1.0 or s != s) else 1.0)
-        else:
-            margin = fixed_margin
-        if speed_margin != 0.0:
-            margin = margin + speed_margin * ((v[i, 0] * v[i, 0] + v[i, 1] * v[i, 1])
-                                              + (v[j, 0] * v[j, 0] + v[j, 1] * v[j, 1]))
-        rt = math.sqrt(px * px + py * py)
-        r = _nmax(rt, 1e-9)
-        pv = px * vx + py * vy
-        h_min = _nmin(h_min, pv / r + k1 * (r - ds))
-        gap_min = _nmin(gap_min, rt - ds)
-        vv = vx * vx + vy * vy
-        pa = px * ax + py * ay
-        rhs[q] = vv - pv * pv / (r * r) + k12 * pv + kk * r * (r - (ds + margin)) + pa
-        cx, cy = -px, -py
-        for col in range(2):  # (einsum's sums start from +0.0)
-            Gi[q, col] = 0.0 + A[i, 0, col] * cx + A[i, 1, col] * cy
-            Gj[q, col] = -(0.0 + A[j, 0, col] * cx + A[j, 1, col] * cy)
-        rel[q, 0], rel[q, 1] = px, py
-        keys[q] = i * key_base + j
-    return pairs, rel, Gi, Gj, rhs, keys, h_min, gap_min
+        out[q, 0], out[q, 1] = cand_i[kept[q]], cand_j[kept[q]]
+    return out

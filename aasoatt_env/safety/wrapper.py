@@ -60,7 +60,8 @@ from pettingzoo.utils.wrappers import BaseParallelWrapper
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.safety.core import STATUSES, FilterResult, SafetyFilter
+from aasoatt_env.safety.core import SafetyFilter
+from aasoatt_env.safety.result import STATUSES, FilterResult
 from aasoatt_env.sim.env import AASOATTParallelEnv
 
 __all__ = ["STATUS_CODES", "AASOATTFilter", "FilterReport"]
@@ -119,12 +120,12 @@ class FilterReport:
     @classmethod
     def of(cls, results: tuple[FilterResult, ...]) -> FilterReport:
         """Aggregate the results of the physics steps of one env step."""
-        worst = max(results, key=lambda r: STATUS_CODES[r.status])
         last = results[-1]
         if len(results) == 1:
             return cls(last.intervened, last.avoiding, last.triggered, last.backup, last.correction, last.status,
                        last.safe, last.margin, last.barrier_min, last.message, last.slack, last.iterations,
                        last.n_rows, last.n_qp_rows, last.du, last.solve_time)
+        worst = max(results, key=lambda r: STATUS_CODES[r.status])
         return cls(
             intervened=np.any([r.intervened for r in results], axis=0),
             avoiding=np.any([r.avoiding for r in results], axis=0),
@@ -154,7 +155,7 @@ class FilterReport:
             "iterations": int(self.iterations), "n_rows": int(self.n_rows), "n_qp_rows": int(self.n_qp_rows),
         }
         cols = self._columns(indices)
-        return [{"intervened": a, "avoiding": b, "triggered": c, "backup": d, "correction": e, **shared}
+        return [dict(shared, intervened=a, avoiding=b, triggered=c, backup=d, correction=e)
                 for a, b, c, d, e in zip(*cols)]
 
     def flat_infos(self, indices: np.ndarray | slice) -> list[dict[str, float]]:

@@ -1,44 +1,24 @@
-"""Back-ends of the safety QP and their registry (:data:`SOLVERS`, by name).
+"""QP back-ends of the safety filter and their registry (:data:`SOLVERS`).
 
-Each back-end takes a :class:`~aasoatt_env.safety.problem.QPProblem`, an optional
-warm start and options, and returns a raw answer (:class:`RawAnswer`); it never
-falls back to anything by itself.  What to do with an answer, or with no answer
-(fallbacks, confirming infeasibility verdicts, relaxing rows, switching paths
-after a stall), is decided in one place: :mod:`aasoatt_env.safety.solvers.policy`.
-Each registry entry (:class:`Backend`) says what the policy needs to know: the
-module it imports, whether its answer is exact, and which back-ends answer when
-it gives none.
+Each back-end takes a :class:`~aasoatt_env.safety.problem.QPProblem`, an optional warm
+start and options, and returns a :class:`RawAnswer`; it never falls back to anything
+by itself.  Which back-end answers which problem, and what happens without an answer,
+is decided in one place: :mod:`aasoatt_env.safety.solvers.policy`.  Every call's work is
+bounded by an iteration count (never by the clock).
 
-``proxsuite`` (default)
-    Dense ``PrimalDualLDLT`` with native box constraints up to
-    :data:`DENSE_MAX_SIZE` variables + rows, sparse ``SparseCholesky`` (box as
-    rows) above.  Settings from ``docs/technical_brief.md`` section 4: tight ``eps_primal_inf`` /
-    ``eps_dual_inf``, ``check_duality_gap`` with a tight gap; a bounded iteration
-    budget (:data:`PROX_MAX_ITER`, :data:`PROX_MAX_ITER_IN`).  Option
-    ``alternate=True`` uses the dense class for a problem the sparse class would take (the two
-    stall on different problems); for a problem small enough for the dense class it gives no
-    answer, because the sparse class did not return on some small infeasible problems with huge
-    linear terms (an adversary's nominal of 1e6).
-``ldp``
-    Exact least-distance programming by NNLS (Lawson-Hanson, scipy), KKT-verified
-    (:mod:`aasoatt_env.safety.solvers.ldp`); needs only the core dependencies; dense, for
-    teams of up to a few hundred robots in one QP.
-``neural``
-    The paper's projection neural network (eqn.22), explicit Euler with
-    ``eps = dt``: ``iterations`` projected primal-dual updates per call,
-    warm-started; never fails, only approximates the optimum.
-``quadprog``, ``clarabel``, ``osqp``, ``daqp``, ``cvxopt``
-    Optional, used when installed (``cvxopt`` is what Robotarium's barrier
-    certificates call: ``cvxopt.solvers.qp``, interior point, default tolerances).
-    ``daqp`` takes option ``simple_bounds=True``: the box as DAQP's simple bounds
-    (2-2.5x faster on the negotiation groups' problems, answers equal to rounding);
-    without it the box stays rows, as before, so ``solver="daqp"`` runs keep their
-    numbers.  The policy passes it when it asks DAQP itself (:attr:`Backend.helper_options`).
+``proxsuite`` (default back-end): dense ``PrimalDualLDLT`` with native box constraints up
+to :data:`DENSE_MAX_SIZE` variables + rows, sparse ``SparseCholesky`` above; tight
+infeasibility tolerances and a duality-gap check (``docs/technical_brief.md`` section 4).
+``ldp``: exact least-distance programming by NNLS, core dependencies only
+(:mod:`~aasoatt_env.safety.solvers.ldp`).  ``neural``: the paper's projection neural
+network (eqn.22), an approximation.  ``daqp``, ``clarabel``, ``osqp``, ``quadprog``,
+``cvxopt`` (what Robotarium's barrier certificates call) where installed.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import functools
 import importlib.util
 import os
@@ -54,39 +34,19 @@ from aasoatt_env.safety.problem import QPProblem
 from aasoatt_env.safety.solvers.ldp import FEAS_TOL as LDP_FEAS_TOL
 from aasoatt_env.safety.solvers.ldp import solve_ldp
 
-__all__ = [
-    "DENSE_MAX_SIZE",
-    "PROX_MAX_ITER",
-    "PROX_MAX_ITER_IN",
-    "SOLVERS",
-    "Backend",
-    "RawAnswer",
-    "available_solvers",
-    "get_solver",
-]
+__all__ = ["DENSE_MAX_SIZE", "ITER_LIMIT", "SOLVERS", "Backend", "RawAnswer", "available_solvers", "get_solver"]
 
 DENSE_MAX_SIZE: int = 600
-"""Largest ``n + m`` (variables + rows) solved with proxsuite's dense class.
-
-The dense class is the faster one on small problems and the sparse one on large
-ones; the cross-over was chosen by timing both on packed layouts
-(``benchmarks/bench_filter.py``)."""
-
-PROX_MAX_ITER: int = 200
-"""proxsuite's outer (``max_iter``) iteration budget before the exact fallback is asked."""
-PROX_MAX_ITER_IN: int = 100
-"""proxsuite's inner (``max_iter_in``) iteration budget per outer iteration.
-
-The closed loops of the test suite and the radius-6 campaign need at most ~260
-iterations in all; with proxsuite's default (1,500) a degenerate 60-robot
-problem ran 1.45 million iterations (140 s) before giving up."""
-
+"""Largest ``n + m`` solved with proxsuite's dense class (the faster one on small problems)."""
+ITER_LIMIT: dict[str, int] = {"proxsuite": 200, "proxsuite_inner": 100, "daqp": 2000, "osqp": 20000,
+                              "clarabel": 200}
+"""Iteration budgets of the iterative back-ends: the worst case of a call is a property of its size."""
 _INF = 1e20
 
 
 @dataclass
 class RawAnswer:
-    """What a back-end returns: a point and multipliers in scaled coordinates, or no answer."""
+    """What a back-end returns: a point and row multipliers in scaled coordinates, or no answer."""
 
     x: np.ndarray | None
     z: np.ndarray | None
@@ -94,68 +54,40 @@ class RawAnswer:
     """True when ``x`` is the back-end's answer to the problem as posed."""
     iterations: int
     message: str
-    stalled: bool = False
-    """True when the back-end ran out of its iteration budget (no verdict on the problem)."""
     infeasible: bool = False
-    """True when the back-end reports the rows inconsistent by an exact method (``ldp``'s NNLS residual, DAQP's
-    exitflag -1, to its tolerances): the policy then skips its other back-ends and goes to phase 1, which
-    finds the least violations (all ~0 for a feasible problem: then the rows are loosened by a hair)."""
-
-
-
-def _prox_settings(settings: object, eps: float) -> None:
-    settings.eps_abs = eps
-    settings.eps_rel = 0.0
-    settings.eps_primal_inf = 1e-14
-    settings.eps_dual_inf = 1e-14
-    settings.check_duality_gap = True
-    settings.eps_duality_gap_abs = eps
-    settings.eps_duality_gap_rel = 0.0
-    settings.max_iter = PROX_MAX_ITER
-    settings.max_iter_in = PROX_MAX_ITER_IN
-    settings.verbose = False
+    """The back-end proved the rows inconsistent by an exact method (``ldp``'s NNLS, DAQP's exitflag -1)."""
 
 
 def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     import proxsuite
 
     px = proxsuite.proxqp
-    eps = float(opts.get("eps", 1e-9))
     n, m = prob.n, prob.m
     dense = n + m <= DENSE_MAX_SIZE
-    if opts.get("alternate"):
-        if dense:  # not dense -> sparse: on a small infeasible problem with a huge linear term
-            # (nominal 1e6) the sparse class did not return (proxsuite 0.8.0, 40 s and more)
-            return RawAnswer(np.zeros(n), np.zeros(m), False, 0, "alternate class skipped (small problem)")
-        dense = True
     if dense:
         d = px.dense
         htype = d.HessianType.Diagonal if prob.diagonal else d.HessianType.Dense
         qp = d.QP(n, 0, m, True, htype, d.DenseBackend.PrimalDualLDLT)
-        _prox_settings(qp.settings, eps)
+    else:
+        qp = px.sparse.QP(n, 0, m + n)
+        qp.settings.sparse_backend = px.SparseBackend.SparseCholesky
+    s, eps = qp.settings, float(opts.get("eps", 1e-9))
+    s.eps_abs, s.eps_rel, s.eps_primal_inf, s.eps_dual_inf = eps, 0.0, 1e-14, 1e-14
+    s.check_duality_gap, s.eps_duality_gap_abs, s.eps_duality_gap_rel = True, eps, 0.0
+    s.max_iter, s.max_iter_in, s.verbose = ITER_LIMIT["proxsuite"], ITER_LIMIT["proxsuite_inner"], False
+    if dense:
         Cd = prob.C.toarray() if m else np.zeros((0, n))
         qp.init(prob.H_dense(), prob.g, None, None, Cd, np.full(m, -_INF), prob.u, prob.lb, prob.ub)
     else:
-        qp = px.sparse.QP(n, 0, m + n)
-        _prox_settings(qp.settings, eps)
-        qp.settings.sparse_backend = px.SparseBackend.SparseCholesky
         C = sp.vstack((prob.C, sp.identity(n, format="csr")), format="csc")
-        qp.init(
-            prob.H_sparse(), prob.g, None, None, C,
-            np.concatenate((np.full(m, -_INF), prob.lb)), np.concatenate((prob.u, prob.ub)),
-        )
-    # Warm start is not used: with box constraints proxsuite 0.8 returned NaN
-    # iterates from a warm start on circle-swap instances (and ``docs/technical_brief.md`` section 4
-    # measured 0-30 % gain at best); the cold solve takes a handful of iterations.
-    qp.solve()
+        qp.init(prob.H_sparse(), prob.g, None, None, C, np.concatenate((np.full(m, -_INF), prob.lb)),
+                np.concatenate((prob.u, prob.ub)))
+    qp.solve()  # (cold: its warm start returned NaN iterates with box constraints on circle-swap instances)
     r = qp.results
-    st = r.info.status
-    ok = st == px.PROXQP_SOLVED
     x = np.array(r.x)
-    if ok and not np.all(np.isfinite(x)):
-        ok = False
-    message = f"{str(st).rsplit('.', 1)[-1]} ({'dense' if dense else 'sparse'})"
-    return RawAnswer(x, np.array(r.z)[:m], ok, int(r.info.iter), message, stalled=st == px.PROXQP_MAX_ITER_REACHED)
+    ok = r.info.status == px.PROXQP_SOLVED and bool(np.all(np.isfinite(x)))
+    message = f"proxsuite {str(r.info.status).rsplit('.', 1)[-1]} ({'dense' if dense else 'sparse'})"
+    return RawAnswer(x, np.array(r.z)[:m], ok, int(r.info.iter), message)
 
 
 def _ldp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
@@ -164,54 +96,66 @@ def _ldp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: di
 
 
 def _neural(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
-    iters = int(opts.get("iterations", 1))
-    step = float(opts.get("step", 1.0))
+    iters, step = int(opts.get("iterations", 1)), float(opts.get("step", 1.0))
     x = np.zeros(prob.n) if x0 is None else np.clip(x0, prob.lb, prob.ub)
     z = np.zeros(prob.m) if z0 is None else np.maximum(z0, 0.0)
-    Hb = prob.H_blocks
     C, CT = prob.C, prob.C.T.tocsr()
     for _ in range(iters):
-        grad = np.einsum("nij,nj->ni", Hb, x.reshape(-1, 2)).ravel() + prob.g + CT @ z
+        grad = np.einsum("nij,nj->ni", prob.H_blocks, x.reshape(-1, 2)).ravel() + prob.g + CT @ z
         x = np.clip(x - step * grad, prob.lb, prob.ub)
         z = np.maximum(0.0, z + step * (C @ x - prob.u))
     return RawAnswer(x, z, True, iters, f"neural ({iters} iterations)")
 
 
-def _quadprog(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
-    import quadprog
+def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
+    import daqp
 
     n, m = prob.n, prob.m
-    Ct = np.vstack((-prob.C.toarray(), np.eye(n), -np.eye(n))).T if n else np.zeros((0, 0))
-    b = np.concatenate((-prob.u, prob.lb, -prob.ub))
-    try:
-        x, _, _, it, lagr, _ = quadprog.solve_qp(prob.H_dense(), -prob.g, Ct, b, 0)
-    except ValueError as exc:
-        return RawAnswer(None, None, False, 0, str(exc))
-    return RawAnswer(np.asarray(x), np.asarray(lagr)[:m], True, int(it[0]), "solved")
+    # simple_bounds: the box as DAQP's simple bounds (faster); else as rows
+    A = prob.C.toarray() if opts.get("simple_bounds") else np.vstack((np.eye(n), prob.C.toarray()))
+    x, _, flag, info = daqp.solve(prob.H_dense(), prob.g, A, np.concatenate((prob.ub, prob.u)),
+                                  np.concatenate((prob.lb, np.full(m, -1e30))), np.zeros(n + m, dtype=ctypes.c_int),
+                                  iter_limit=ITER_LIMIT["daqp"])
+    lam = np.maximum(np.asarray(info.get("lam", np.zeros(n + m)))[n:], 0.0)  # (bounds first, then the rows)
+    return RawAnswer(np.asarray(x), lam, flag >= 1, int(info.get("iter", 0)), f"daqp exitflag {flag}",
+                     infeasible=flag == -1)
 
 
 def _clarabel(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
     import clarabel
 
     n, m = prob.n, prob.m
-    Aq = sp.vstack((prob.C, sp.identity(n), -sp.identity(n)), format="csc")
-    b = np.concatenate((prob.u, prob.ub, -prob.lb))
     s = clarabel.DefaultSettings()
-    s.verbose = False
+    s.verbose, s.max_iter = False, ITER_LIMIT["clarabel"]
     s.tol_gap_abs = s.tol_gap_rel = s.tol_feas = 1e-10
-    solver = clarabel.DefaultSolver(sp.triu(prob.H_sparse(), format="csc"), prob.g, Aq, b,
-                                    [clarabel.NonnegativeConeT(m + 2 * n)], s)
+    solver = clarabel.DefaultSolver(sp.triu(prob.H_sparse(), format="csc"), prob.g,
+                                    sp.vstack((prob.C, sp.identity(n), -sp.identity(n)), format="csc"),
+                                    np.concatenate((prob.u, prob.ub, -prob.lb)), [clarabel.NonnegativeConeT(m + 2 * n)],
+                                    s)
     sol = solver.solve()
     ok = str(sol.status) in ("Solved", "AlmostSolved")
-    return RawAnswer(np.asarray(sol.x), np.asarray(sol.z)[:m], ok, int(sol.iterations), str(sol.status))
+    return RawAnswer(np.asarray(sol.x), np.asarray(sol.z)[:m], ok, int(sol.iterations), f"clarabel {sol.status}")
+
+
+def _quadprog(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
+    import quadprog
+
+    n, m = prob.n, prob.m
+    Ct = np.vstack((-prob.C.toarray(), np.eye(n), -np.eye(n))).T
+    try:
+        x, _, _, it, lagr, _ = quadprog.solve_qp(prob.H_dense(), -prob.g, Ct, np.concatenate((-prob.u, prob.lb,
+                                                                                               -prob.ub)), 0)
+    except ValueError as exc:
+        return RawAnswer(None, None, False, 0, f"quadprog: {exc}")
+    return RawAnswer(np.asarray(x), np.asarray(lagr)[:m], True, int(it[0]), "quadprog solved")
 
 
 @contextlib.contextmanager
 def _c_stdout_silenced():
-    """Silence C-level stdout (OSQP 1.x prints "Polishing not needed" even with verbose=False)."""
+    """Silence C-level stdout (OSQP prints "Polishing not needed" even with ``verbose=False``)."""
     try:
         fd = sys.stdout.fileno()
-    except (AttributeError, OSError, ValueError):  # no real file descriptor (e.g. captured)
+    except (AttributeError, OSError, ValueError):  # no real file descriptor (captured)
         yield
         return
     sys.stdout.flush()
@@ -229,39 +173,19 @@ def _osqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
     import osqp
 
     n, m = prob.n, prob.m
-    Aq = sp.vstack((prob.C, sp.identity(n)), format="csc")
-    lower = np.concatenate((np.full(m, -np.inf), prob.lb))
-    upper = np.concatenate((prob.u, prob.ub))
     solver = osqp.OSQP()
     eps = float(opts.get("eps", 1e-7))
-    solver.setup(sp.triu(prob.H_sparse(), format="csc"), prob.g, Aq, lower, upper, verbose=False,
-                 eps_abs=eps, eps_rel=eps, polishing=True, max_iter=20000)
+    solver.setup(sp.triu(prob.H_sparse(), format="csc"), prob.g, sp.vstack((prob.C, sp.identity(n)), format="csc"),
+                 np.concatenate((np.full(m, -np.inf), prob.lb)), np.concatenate((prob.u, prob.ub)), verbose=False,
+                 eps_abs=eps, eps_rel=eps, polishing=True, max_iter=ITER_LIMIT["osqp"])
     if x0 is not None:
         solver.warm_start(x=np.clip(x0, prob.lb, prob.ub))
     with _c_stdout_silenced():
         res = solver.solve()
     status = str(res.info.status)
-    ok = status.lower().startswith("solved") and res.x is not None and np.all(np.isfinite(res.x))
-    return RawAnswer(np.asarray(res.x), np.asarray(res.y)[:m] if res.y is not None else None,
-                ok, int(res.info.iter), status)
-
-
-def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
-    import ctypes
-
-    import daqp
-
-    n, m = prob.n, prob.m
-    # simple_bounds (module docstring): the first n of the n + m bounds are then DAQP's simple bounds
-    A = prob.C.toarray() if opts.get("simple_bounds") else np.vstack((np.eye(n), prob.C.toarray()))
-    bu = np.concatenate((prob.ub, prob.u))
-    bl = np.concatenate((prob.lb, np.full(m, -1e30)))
-    sense = np.zeros(n + m, dtype=ctypes.c_int)
-    x, _, exitflag, info = daqp.solve(prob.H_dense(), prob.g, A, bu, bl, sense)
-    ok = exitflag >= 1
-    lam = np.maximum(np.asarray(info.get("lam", np.zeros(n + m)))[n:], 0.0)  # (the bounds' first, then the rows')
-    return RawAnswer(np.asarray(x), lam, ok, int(info.get("iter", 0)), f"exitflag {exitflag}",
-                     infeasible=exitflag == -1)
+    ok = status.lower().startswith("solved") and res.x is not None and bool(np.all(np.isfinite(res.x)))
+    return RawAnswer(np.asarray(res.x), None if res.y is None else np.asarray(res.y)[:m], ok, int(res.info.iter),
+                     f"osqp {status}")
 
 
 def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
@@ -270,17 +194,16 @@ def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts:
     cvxopt.solvers.options["show_progress"] = False
     n, m = prob.n, prob.m
     H = prob.H_sparse().tocoo()
-    P = cvxopt.spmatrix(H.data, H.row.astype(int), H.col.astype(int), (n, n))
     G = sp.vstack((prob.C, sp.identity(n), -sp.identity(n))).tocoo()
-    Gm = cvxopt.spmatrix(G.data, G.row.astype(int), G.col.astype(int), G.shape)
-    h = cvxopt.matrix(np.concatenate((prob.u, prob.ub, -prob.lb)))
     try:
-        sol = cvxopt.solvers.qp(P, cvxopt.matrix(prob.g), Gm, h)
+        sol = cvxopt.solvers.qp(cvxopt.spmatrix(H.data, H.row.astype(int), H.col.astype(int), (n, n)),
+                                cvxopt.matrix(prob.g),
+                                cvxopt.spmatrix(G.data, G.row.astype(int), G.col.astype(int), G.shape),
+                                cvxopt.matrix(np.concatenate((prob.u, prob.ub, -prob.lb))))
     except (ValueError, ArithmeticError) as exc:
-        return RawAnswer(None, None, False, 0, str(exc))
-    ok = sol["status"] == "optimal"
-    return RawAnswer(np.asarray(sol["x"]).ravel(), np.asarray(sol["z"]).ravel()[:m], ok, int(sol["iterations"]),
-                str(sol["status"]))
+        return RawAnswer(None, None, False, 0, f"cvxopt: {exc}")
+    return RawAnswer(np.asarray(sol["x"]).ravel(), np.asarray(sol["z"]).ravel()[:m], sol["status"] == "optimal",
+                     int(sol["iterations"]), f"cvxopt {sol['status']}")
 
 
 BackendFn = Callable[[QPProblem, "np.ndarray | None", "np.ndarray | None", dict], RawAnswer]
@@ -295,20 +218,16 @@ class Backend:
     module: str = ""
     """Module it imports (empty: core dependencies only)."""
     exact: bool = True
-    """True when an answer is the QP's optimum (to the back-end's tolerance); False for
-    approximations (``neural``), whose answers are passed through unverified."""
-    fallbacks: tuple[tuple[str, bool, dict], ...] = ()
-    """``(back-end, only_after_a_stall, options)`` tried in order when this one gives no answer."""
-    may_stall: bool = False
-    """True when the back-end can run out of iterations on these problems (then the
-    policy takes the exact path for a while, see :class:`~aasoatt_env.safety.solvers.policy.SolverPolicy`)."""
+    """An answer is the QP's optimum to the back-end's tolerance (False: ``neural``, passed through unverified)."""
     verified: bool = False
-    """True when the back-end checks its own answers (``ldp``: KKT-verified, or feasible to 1e-9): the
-    policy's exact path takes them as they are; another back-end's answer there is taken only once the
-    warm active set verifies it."""
-    helper_options: tuple[tuple[str, object], ...] = ()
-    """Options the policy adds when it asks this back-end itself (its exact path, phase-1 problems), not as
-    the configured solver."""
+    """The back-end checks its own answers (``ldp``); another exact back-end's answer is polished and verified
+    by the warm active set started from it (which also makes its last bits a function of the problem)."""
+    deterministic: bool = True
+    """Its answer's last bits are a function of the problem (proxsuite's depend on where its work arrays lie)."""
+    may_stall: bool = False
+    """It can run out of iterations on these problems (an augmented Lagrangian): the exact solvers go first."""
+    route_options: tuple[tuple[str, object], ...] = ()
+    """Options the policy adds when it asks this back-end on its own route (not as the configured solver)."""
 
     def __call__(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
         """Run the back-end."""
@@ -316,16 +235,13 @@ class Backend:
 
 
 SOLVERS: dict[str, Backend] = {
-    "proxsuite": Backend(
-        _proxsuite, "proxsuite", may_stall=True,
-        fallbacks=(("ldp", False, {}), ("proxsuite", True, {"alternate": True})),
-    ),
+    "proxsuite": Backend(_proxsuite, "proxsuite", deterministic=False, may_stall=True),
     "neural": Backend(_neural, exact=False),
     "ldp": Backend(_ldp, verified=True),
     "quadprog": Backend(_quadprog, "quadprog"),
     "clarabel": Backend(_clarabel, "clarabel"),
     "osqp": Backend(_osqp, "osqp"),
-    "daqp": Backend(_daqp, "daqp", helper_options=(("simple_bounds", True),)),
+    "daqp": Backend(_daqp, "daqp", route_options=(("simple_bounds", True),)),
     "cvxopt": Backend(_cvxopt, "cvxopt"),
 }
 """Solver registry: name -> :class:`Backend`.  Adding a solver is one function and one line here."""
@@ -347,7 +263,6 @@ def get_solver(name: str) -> Backend:
         raise SolverError(f"solver: got {name!r}, expected one of {available_solvers()}")
     backend = SOLVERS[name]
     if not _installed(backend.module):
-        raise SolverError(
-            f"solver {name!r} is not installed (pip install {backend.module}); available: {available_solvers()}"
-        )
+        raise SolverError(f"solver {name!r} is not installed (pip install {backend.module}); "
+                          f"available: {available_solvers()}")
     return backend

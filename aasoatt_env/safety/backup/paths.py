@@ -80,7 +80,7 @@ def _E(x: np.ndarray) -> np.ndarray:
     return np.exp(0.5j * x) * _sinc(x / (2.0 * np.pi))
 
 
-def _point(team: Team, pose: np.ndarray) -> np.ndarray:
+def point(team: Team, pose: np.ndarray) -> np.ndarray:
     """Control points ``(N,)`` complex from axle poses ``(N, 3)``."""
     c = pose[:, 0] + 1j * pose[:, 1]
     return c + team.offset * np.exp(1j * pose[:, 2]) if team.is_diff_drive else c
@@ -160,7 +160,7 @@ class _Brake(NamedTuple):
     bulge: np.ndarray | None  # a point mass's deviation within a braking step from its chord (None: wheeled)
 
 
-def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float,
+def brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float,
            T: np.ndarray | None = None) -> _Brake:
     """Closed-form parameters of braking from headings ``theta`` and wheel speeds ``u`` (``T``: their brake_time)."""
     pdot, w = _velocity(team, theta, u)
@@ -195,7 +195,7 @@ def _brake(team: Team, theta: np.ndarray, u: np.ndarray, dt: float, brake_fracti
     return _Brake(pdot * moving, w, rate, steps, reach, None if team.is_diff_drive else bulge)
 
 
-def _brake_samples(p0: np.ndarray, b: _Brake, dt: float, L: int) -> tuple[np.ndarray, np.ndarray]:
+def brake_samples(p0: np.ndarray, b: _Brake, dt: float, L: int) -> tuple[np.ndarray, np.ndarray]:
     """Positions ``(N, L)`` and deviation bounds ``(N, L-1)`` (sagitta; a point mass: its parabola) from ``p0``."""
     k = np.arange(L, dtype=np.float64)
     sigma = np.clip(1.0 - k[None, :] * b.rate[:, None], 0.0, 1.0)
@@ -218,13 +218,13 @@ def braking_trajectory(team: Team, pose: np.ndarray, u: np.ndarray, dt: float, b
     ``p[:, k]`` is the control point after ``k`` braking steps; it equals stepping
     :func:`aasoatt_env.model.dynamics.integrate` with :func:`braking_du` (to rounding).
     """
-    b = _brake(team, pose[:, 2], u, dt, brake_fraction)
+    b = brake(team, pose[:, 2], u, dt, brake_fraction)
     L = int(b.steps.max(initial=0)) + 1 if length is None else int(length)
-    p, delta = _brake_samples(_point(team, pose), b, dt, max(L, 1))
+    p, delta = brake_samples(point(team, pose), b, dt, max(L, 1))
     return Trajectories(p, delta, b.steps + 1, b.reach)
 
 
-def _first_step(team: Team, p0: np.ndarray, theta: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float
+def first_step(team: Team, p0: np.ndarray, theta: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One step holding ``du`` (the simulator's step): point, its deviation from the chord, heading, speeds.
 
@@ -240,7 +240,7 @@ def _first_step(team: Team, p0: np.ndarray, theta: np.ndarray, u: np.ndarray, du
     return p1, dev, theta + w_m * dt, u1
 
 
-def _candidate_reach(p0: np.ndarray, p1: np.ndarray, d1: np.ndarray, b1: _Brake) -> np.ndarray:
+def candidate_reach(p0: np.ndarray, p1: np.ndarray, d1: np.ndarray, b1: _Brake) -> np.ndarray:
     """Bound on the distance from ``p0`` of one step to ``p1`` (deviation ``d1``) and the braking after it."""
     return np.abs(p1 - p0) + d1 + b1.reach
 
@@ -248,21 +248,21 @@ def _candidate_reach(p0: np.ndarray, p1: np.ndarray, d1: np.ndarray, b1: _Brake)
 def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float, brake_fraction: float,
                     length: int | None = None) -> Trajectories:
     """One step with ``du``, then the backup: samples at steps ``0 .. L-1`` (``p[:, 0]`` is the current point)."""
-    p0 = _point(team, pose)
-    p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
-    b1 = _brake(team, theta1, u1, dt, brake_fraction)
+    p0 = point(team, pose)
+    p1, d1, theta1, u1 = first_step(team, p0, pose[:, 2], u, du, dt)
+    b1 = brake(team, theta1, u1, dt, brake_fraction)
     L = max(int(b1.steps.max(initial=0)) + 2 if length is None else int(length), 2)
-    p, delta = _candidate_samples(p0, p1, d1, b1, dt, L)
-    return Trajectories(p, delta, b1.steps + 2, _candidate_reach(p0, p1, d1, b1))
+    p, delta = candidate_samples(p0, p1, d1, b1, dt, L)
+    return Trajectories(p, delta, b1.steps + 2, candidate_reach(p0, p1, d1, b1))
 
 
-def _candidate_samples(p0: np.ndarray, p1: np.ndarray, d1: np.ndarray, b1: _Brake, dt: float, L: int
+def candidate_samples(p0: np.ndarray, p1: np.ndarray, d1: np.ndarray, b1: _Brake, dt: float, L: int
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Samples ``(N, L)``, deviation bounds ``(N, L-1)``: the point ``p0``, the step to ``p1`` (``d1``), braking."""
     p = np.empty((p0.shape[0], L), dtype=np.complex128)
     delta = np.empty((p0.shape[0], L - 1))
     p[:, 0], delta[:, 0] = p0, d1
-    p[:, 1:], delta[:, 1:] = _brake_samples(p1, b1, dt, L - 1)
+    p[:, 1:], delta[:, 1:] = brake_samples(p1, b1, dt, L - 1)
     return p, delta
 
 
@@ -288,11 +288,11 @@ def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.nda
         (the arc parameter of braking step ``k`` is the sum of the sampled trapezoids written out:
         ``dt (k - r k^2 / 2)`` while the speed scale ``1 - k r`` is positive, ``r = dt / T``).
     """
-    p0 = _point(team, pose)
-    p1, d1, theta1, u1 = _first_step(team, p0, pose[:, 2], u, du, dt)
-    b = _brake(team, theta1, u1, dt, brake_fraction)
+    p0 = point(team, pose)
+    p1, d1, theta1, u1 = first_step(team, p0, pose[:, 2], u, du, dt)
+    b = brake(team, theta1, u1, dt, brake_fraction)
     if rows is not None:
-        p0, p1, d1, b = p0[rows], p1[rows], d1[rows], _take(b, rows)
+        p0, p1, d1, b = p0[rows], p1[rows], d1[rows], take_robots(b, rows)
     r = b.rate[:, None]
     kf = np.floor(1.0 / r)  # the last braking step with a speed scale >= 0
     k = np.maximum(s - 1, 0).astype(np.float64)
@@ -309,7 +309,7 @@ def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.nda
     return p, np.where(s == 0, d1[:, None], delta)
 
 
-def _take(b: _Brake, idx: np.ndarray) -> _Brake:
+def take_robots(b: _Brake, idx: np.ndarray) -> _Brake:
     """The braking parameters of robots ``idx``."""
     return _Brake(b.pdot[idx], b.omega[idx], b.rate[idx], b.steps[idx], b.reach[idx],
                   None if b.bulge is None else b.bulge[idx])

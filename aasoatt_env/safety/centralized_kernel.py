@@ -1,41 +1,12 @@
-"""The centralised filter's exact decomposition in one compiled call (numba; through :mod:`aasoatt_env.compiled`).
+"""The centralised QP stage in one compiled call (numba; loaded through :mod:`aasoatt_env.compiled`).
 
-:func:`solve_decomposed` is what :func:`aasoatt_env.safety.decomposition.solve_centralized`
-does in numpy on a warm-started step, written as loops over the robots and rows
-of one call instead of dozens of small array operations (whose overhead, not
-their arithmetic, is a small team's or a training stack's step):
-
-1. every robot's box least squares in closed form
-   (:func:`~aasoatt_env.safety.problem.box_least_squares`, the same operations
-   in the same order);
-2. the rows those answers violate, the contact components
-   (:func:`~aasoatt_env.model.geometry_kernel.components`) and the robots of the
-   components with a violated row;
-3. the scaled problem of those robots
-   (:func:`~aasoatt_env.safety.problem.build_problem`), its block Cholesky
-   factor and the warm working set
-   (:func:`~aasoatt_env.safety.solvers.active_set.solve_active_set_parts`),
-   the same operations in the same order;
-4. the warm active set on every component
-   (:func:`aasoatt_env.safety.solvers.active_set_kernel.solve_parts`, the kernel
-   the reference calls on these problems);
-5. the answer assembled as the filter assembles it.
-
-It answers only where every component is verified.  Where some of two or more
-components are not, it hands the warm active set's answer on all of them to the
-reference (:data:`PARTS`), which builds the same problem and goes on from there
-with the unverified ones (the policy's ``solve(..., parts=)``).  Otherwise (and where the
-reference would not take this kernel's path: a problem beyond the dense size,
-a Hessian block not positive definite, rows the active-set kernel does not
-handle) it returns a negative code and changes nothing the caller reads, and
-the caller runs the reference path, which decides that step as before.  Where
-it answers, its numbers are those of the numpy decomposition running the
-compiled active set, bit for bit (``tests/test_compiled.py`` compares every
-step of filtered episodes; the closed forms on random robots equal numpy's,
-where a tie of a number with a signed zero bound may give the other zero, as
-numpy's own clip does between its scalar and vector code, and a NaN the other
-sign); against ``kernel="numpy"`` (the numpy active set too) they agree to
-rounding, as that kernel's points do.
+:func:`solve_decomposed` is :func:`aasoatt_env.safety.centralized.solve_rows` on a warm-started
+step, as loops instead of dozens of small array operations: each robot's box least squares, the
+rows they violate and their contact components, the scaled problem of the coupled robots, and the
+warm active set on every component (:func:`~aasoatt_env.safety.solvers.active_set_kernel.solve_parts`),
+the same operations in the same order.  It answers only where it verifies every component, and then
+with the numbers of the numpy stage running the compiled active set, bit for bit
+(``tests/test_compiled.py``); otherwise the numpy stage answers the step from its start.
 """
 
 from __future__ import annotations
@@ -48,17 +19,14 @@ from aasoatt_env.model.geometry_kernel import components
 from aasoatt_env.numba_jit import jit, nclip
 from aasoatt_env.safety.solvers.active_set_kernel import solve_parts
 
-__all__ = ["box_least_squares", "search_rows", "solve_decomposed"]
+__all__ = ["CLOSED_FORM", "NOT_HERE", "VERIFIED", "box_least_squares", "solve_decomposed"]
 
 CLOSED_FORM = 0
-"""Return code: no row is violated by the robots' own answers (no QP)."""
+"""No row is violated by the robots' own answers: no QP."""
 VERIFIED = 1
-"""Return code: every component's warm active set was verified."""
+"""Every component's warm active set was verified."""
 NOT_HERE = -1
-"""Return code: the caller takes the reference path (its outputs are not to be read)."""
-PARTS = 2
-"""Return code: some of two or more components were not verified; the warm active set's answer on every
-component is in ``xs, zs, done`` (the reference path takes it over for the problem it builds)."""
+"""Not answered here (a component not verified, beyond the dense size, a block not positive definite)."""
 
 
 @jit
@@ -96,25 +64,6 @@ def _box1(A, t, lo, hi, i, out):
 
 
 @jit
-def search_rows(sorted_keys, z_of, keys, out):
-    """``out[r]``: ``z_of`` at the key ``keys[r]`` of ``sorted_keys`` (non-decreasing), 0 where none.
-
-    ``numpy.searchsorted``'s leftmost position, as the filter's warm start takes it
-    (:meth:`aasoatt_env.safety.core.SafetyFilter`, which keeps its rows in key order).
-    """
-    P = sorted_keys.shape[0]
-    for r in range(keys.shape[0]):
-        k, a, b = keys[r], 0, P
-        while a < b:
-            mid = (a + b) // 2
-            if sorted_keys[mid] < k:
-                a = mid + 1
-            else:
-                b = mid
-        out[r] = z_of[a] if a < P and sorted_keys[a] == k else 0.0
-
-
-@jit
 def box_least_squares(A, target, lo, hi):
     """:func:`aasoatt_env.safety.problem.box_least_squares` of every robot, ``(K, 2)``."""
     out = np.empty((A.shape[0], 2))
@@ -124,24 +73,19 @@ def box_least_squares(A, target, lo, hi):
 
 
 @jit
-def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm, max_iter, one_change_iter, tol,
-                     warm_rel, warm_floor, bound_tight, row_norm_min, dense_max_vars, dense_max_cells, du, x_full, z,
-                     eta, xs_out, zs_out, done_out):
-    """One centralised step's QP part (module docstring); fills ``du, x_full (N, 2)``, ``z, eta (m,)``.
+def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm, settings):
+    """One step's centralised QP (module docstring): ``(code, iterations, rows in the QP, du, x, z, eta)``.
 
-    ``x_prev (N, 2)``: the previous step's scaled point; ``z_warm (m,)``: the previous multipliers mapped onto
-    these rows; the constants are those of :mod:`~aasoatt_env.safety.solvers.active_set` and
-    :data:`~aasoatt_env.safety.problem.ROW_NORM_MIN`, passed by the caller (one home each).  The caller
-    checks every shape and index (the kernel reads without bounds checks).  Returns ``(code, iterations,
-    rows in the QP, variables in the QP, components)``: :data:`CLOSED_FORM`, :data:`VERIFIED`,
-    :data:`NOT_HERE` (nothing filled is to be read) or :data:`PARTS`: then ``xs_out[:variables]``
-    (``(2N,)``) holds the scaled point of the coupled robots, ``zs_out[:rows]`` (``(m,)``) the
-    multipliers of their rows (``>= 0``, NaN kept) and ``done_out[:components]`` (``(N,)``) which
-    components were verified: what :func:`~aasoatt_env.safety.solvers.active_set.solve_active_set_parts`
-    answers on the problem the reference builds (its point ``x``, ``z`` and ``ok``), so the reference
-    goes on from there.
+    ``x_prev (N, 2)``: the previous scaled point; ``z_warm (m,)``: the previous multipliers on these rows;
+    ``settings``: the warm active set's constants (:func:`aasoatt_env.safety.centralized.kernel_settings`).
+    The caller checks every shape and index (numba does not).  Only :data:`CLOSED_FORM` and
+    :data:`VERIFIED` answers are to be read.
     """
+    max_iter, one_change_iter, tol = int(settings[0]), int(settings[1]), settings[2]
+    warm_rel, warm_floor, bound_tight, row_norm_min = settings[3], settings[4], settings[5], settings[6]
+    dense_max_vars, dense_max_cells = int(settings[7]), int(settings[8])
     n, m = A.shape[0], rhs.shape[0]
+    du, x_full, z, eta = np.empty((n, 2)), np.empty((n, 2)), np.zeros(m), np.zeros(m)
     for i in range(n):
         _box1(A, target, lo, hi, i, du)
     # the rows the robots' own answers violate, and the robots of their components
@@ -161,10 +105,8 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
             n_bad += 1
     for i in range(n):
         x_full[i, 0], x_full[i, 1] = du[i, 0] / scale[i], du[i, 1] / scale[i]
-    z[:] = 0.0
-    eta[:] = 0.0
     if n_bad == 0:
-        return CLOSED_FORM, 0, 0, 0, 0
+        return CLOSED_FORM, 0, 0, du, x_full, z, eta
     ea, eb = np.empty(n_rr, np.int64), np.empty(n_rr, np.int64)
     k = 0
     for q in range(m):
@@ -200,7 +142,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
             nnz += 4 if rj[q] >= 0 else 2
     nv = 2 * ns
     if not (nv <= dense_max_vars or nv * (ms + 2 * nv) <= dense_max_cells):
-        return NOT_HERE, 0, ms, nv, K
+        return NOT_HERE, 0, ms, du, x_full, z, eta
     # the scaled problem (build_problem's operations)
     H = np.empty((ns, 2, 2))
     sigma = 0.0
@@ -216,7 +158,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
                 elif v > sigma:
                     sigma = v
     if not (sigma > 0.0):
-        return NOT_HERE, 0, ms, nv, K
+        return NOT_HERE, 0, ms, du, x_full, z, eta
     LinvT, gt = np.empty((ns, 2, 2)), np.empty(nv)
     lbv, ubv = np.empty(nv), np.empty(nv)
     for a in range(ns):
@@ -233,7 +175,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
         d2 = h11 - fc * fc
         fd = math.sqrt(d2) if d2 >= 0.0 else math.nan
         if not (h00 > 0.0 and d2 > 0.0 and H[a, 0, 1] == h10):
-            return NOT_HERE, 0, ms, nv, K  # a block not positive definite: the reference's other path
+            return NOT_HERE, 0, ms, du, x_full, z, eta  # a block not positive definite: the reference's other path
         l00, l10, l11 = 1.0 / fa, -fc / (fa * fd), 1.0 / fd
         LinvT[a, 0, 0], LinvT[a, 0, 1], LinvT[a, 1, 0], LinvT[a, 1, 1] = l00, l10, 0.0, l11
         gt[2 * a] = l00 * g0 + 0.0 * g1
@@ -288,7 +230,7 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
     used = solve_parts(indptr, indices, data, ms, nv, LinvT, gt, b, W0, groups[:ns].copy(), K, max_iter,
                        one_change_iter, tol, y, lam, done)
     if used < 0:
-        return NOT_HERE, 0, ms, nv, K
+        return NOT_HERE, 0, ms, du, x_full, z, eta
     verified = 0
     for g in range(K):
         verified += done[g]
@@ -298,19 +240,10 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
         xs[2 * a] = 0.0 + LinvT[a, 0, 0] * y0 + LinvT[a, 0, 1] * y1  # (einsum's sums start from +0.0)
         xs[2 * a + 1] = 0.0 + LinvT[a, 1, 0] * y0 + LinvT[a, 1, 1] * y1
     if verified < K:
-        if K < 2:  # (the reference runs one part's active set inside the solver policy's own path)
-            return NOT_HERE, used, ms, nv, K
-        for v in range(nv):  # (no group verified: the reference's point is zeros, unread by its next step)
-            xs_out[v] = xs[v] if verified else 0.0
-        for k in range(ms):
-            zk = lam[k] if verified else 0.0
-            zs_out[k] = zk if zk > 0.0 or zk != zk else 0.0  # np.maximum(lam, 0.0): +0.0 for -0.0, NaN kept
-        for g in range(K):
-            done_out[g] = done[g]
-        return PARTS, used, ms, nv, K
+        return NOT_HERE, used, ms, du, x_full, z, eta
     for v in range(nv):
         if not math.isfinite(xs[v]):
-            return NOT_HERE, used, ms, nv, K  # (the reference answers zeros then: its path decides)
+            return NOT_HERE, used, ms, du, x_full, z, eta  # (the reference answers zeros then: its path decides)
     for a in range(ns):
         i = sub[a]
         for h in range(2):
@@ -323,4 +256,4 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
         zk = zk if math.isfinite(zk) else 0.0
         z[rows[k]] = zk
         eta[rows[k]] = sigma * zk / nu[k]
-    return VERIFIED, used, ms, nv, K
+    return VERIFIED, used, ms, du, x_full, z, eta

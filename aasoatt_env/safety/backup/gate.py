@@ -32,17 +32,17 @@ import numpy as np
 from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import SUBSET_OF, Team
-from aasoatt_env.safety.backup import (
-    _brake,
-    _brake_samples,
-    _candidate_reach,
-    _candidate_samples,
-    _first_step,
-    _point,
-    _take,
+from aasoatt_env.safety.backup.paths import (
+    brake,
     brake_decel,
+    brake_samples,
     brake_time,
+    candidate_reach,
+    candidate_samples,
+    first_step,
+    point,
     reach_limit,
+    take_robots,
 )
 
 __all__ = ["BLEND_LEVELS", "GateResult", "gatekeeper", "pair_margins"]
@@ -115,7 +115,7 @@ _ONE_BUCKET_CELLS = 4096
 """Pair batches with at most this many samples in all are checked in one call rather than by horizon bucket."""
 
 
-def _bucketed(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndarray, jj: np.ndarray, ds: np.ndarray,
+def bucketed_margins(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndarray, jj: np.ndarray, ds: np.ndarray,
               centers: np.ndarray | None = None) -> np.ndarray:
     """:func:`pair_margins` of pairs ``(ii, jj)`` of rows of ``P``, in buckets of similar horizon.
 
@@ -209,6 +209,7 @@ def gatekeeper(
     quick: bool = False,
     near_pairs: np.ndarray | None = None,
     compiled: bool = False,
+    checked: bool = False,
 ) -> GateResult:
     """Accept the candidate ``du_c`` for every robot whose pairs stay brake-safe; put the others on the backup.
 
@@ -295,36 +296,34 @@ def gatekeeper(
     compiled : bool
         Run the whole check in the compiled kernel (:mod:`aasoatt_env.compiled`;
         ``ImportError`` without numba): the same decisions, inputs and margins to rounding.
+    checked : bool
+        The caller vouches for every shape and pair index (the filter's own arrays): their checks
+        are skipped.  The compiled kernel reads without bounds checks, so anything else must leave it False.
     """
-    levels = _levels(tuple(blend_levels))
-    if near_pairs is not None:  # a safety input (the compiled kernel reads it without bounds checks)
-        near_pairs = np.asarray(near_pairs)
-        n_rob = pose.shape[0]
-        if (near_pairs.ndim != 2 or near_pairs.shape[1] != 2 or near_pairs.dtype.kind not in "iu"
-                or (near_pairs.size and not (0 <= near_pairs.min() and near_pairs.max() < n_rob))):
-            raise ValueError(f"near_pairs: got a {near_pairs.dtype} array of shape {near_pairs.shape}, expected "
-                             f"(P, 2) integer robot indices in [0, {n_rob})")
+    levels = levels_of(tuple(blend_levels))
+    if not checked:
+        near_pairs = validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c)
     if compiled:
         return _gatekeeper_compiled(team, pose, u, du_c, dt, sensing_range, brake_fraction, obstacles, tol, levels,
                                     hold_violations, quick, near_pairs)
     n = pose.shape[0]
     theta = pose[:, 2]
-    p0 = _point(team, pose)
+    p0 = point(team, pose)
     T0 = brake_time(team, u, brake_fraction)
     du_b = -u / np.maximum(T0, dt)[:, None]  # braking_du
     limit = reach_limit(team, sensing_range)
 
     # closed-form parameters per level (cheap, O(N)): a step blending the candidate and the backup,
     # du_b + a (du_c - du_b), then the backup from there; level `last` is the backup from now
-    b0 = _brake(team, theta, u, dt, brake_fraction, T0)
+    b0 = brake(team, theta, u, dt, brake_fraction, T0)
     firsts = []
     reaches = []
     for k, a in enumerate(levels[:-1]):
         du_a = du_b + a * (du_c - du_b)
-        p1, d1, theta1, u1 = _first_step(team, p0, theta, u, du_a, dt)
-        b1 = _brake(team, theta1, u1, dt, brake_fraction)
+        p1, d1, theta1, u1 = first_step(team, p0, theta, u, du_a, dt)
+        b1 = brake(team, theta1, u1, dt, brake_fraction)
         firsts.append((du_a, p1, d1, b1))
-        reaches.append(_candidate_reach(p0, p1, d1, b1))
+        reaches.append(candidate_reach(p0, p1, d1, b1))
         if k == 0 and quick and not bool((reaches[0] > limit).any()):
             levels = (1.0, 0.0)  # no candidate leaves the range: the blends would change nothing below
             break
@@ -344,8 +343,8 @@ def gatekeeper(
     broken = reach[last] > limit
 
     # pairs that could meet within their reach (fixed for the call); only their robots need paths
-    i, j, ds = _pairs_near(team, p0, R, sensing_range, 1e-12, near_pairs)
-    oc, oi, ok, ods = _obstacles_near(team, p0, R, obstacles, 1e-12)
+    i, j, ds = pairs_near(team, p0, R, sensing_range, 1e-12, near_pairs)
+    oc, oi, ok, ods = obstacles_near(team, p0, R, obstacles, 1e-12)
     du_all = np.stack([f[0] for f in firsts] + [du_b])  # (levels, N, 2)
     limit_margin = float(limit.min(initial=0.5 * float(sensing_range)))
     if i.size + oi.size == 0:
@@ -367,9 +366,9 @@ def gatekeeper(
         """Samples ``(r, L)`` and sagittas ``(r, L-1)`` of level ``k`` for the rows ``r`` of ``M``."""
         g = M[r]
         if k == last:
-            return _brake_samples(p0[g], _take(b0, g), dt, L)
+            return brake_samples(p0[g], take_robots(b0, g), dt, L)
         _, p1, d1, b1 = firsts[k]
-        return _candidate_samples(p0[g], p1[g], d1[g], _take(b1, g), dt, L)
+        return candidate_samples(p0[g], p1[g], d1[g], take_robots(b1, g), dt, L)
 
     li, lj, lo_ = loc[i], loc[j], loc[oi]
     rows_m = np.arange(M.size)
@@ -380,9 +379,9 @@ def gatekeeper(
         # on every step, found by an adversarial tester on touching packs, 2026-12-02)
         Pb, Db = level_rows(last, rows_m)
         if i.size:
-            tol_p = np.fmax(tol_p, np.fmax(0.0, -_bucketed(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9))
+            tol_p = np.fmax(tol_p, np.fmax(0.0, -bucketed_margins(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9))
         if oi.size:
-            floor = np.fmax(0.0, -_bucketed(Pb, Db, need[last], lo_, ok, ods, centers=oc))
+            floor = np.fmax(0.0, -bucketed_margins(Pb, Db, need[last], lo_, ok, ods, centers=oc))
             tol_o = np.fmax(tol_o, floor * (1.0 + 1e-9))
     marg = np.full(i.shape[0], np.inf)
     omarg = np.full(oi.shape[0], np.inf)
@@ -404,9 +403,9 @@ def gatekeeper(
         filled = lm
         idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
         if idx.size:
-            marg[idx] = _bucketed(cur, curd, cneed, li[idx], lj[idx], ds[idx])
+            marg[idx] = bucketed_margins(cur, curd, cneed, li[idx], lj[idx], ds[idx])
         if oidx.size:
-            omarg[oidx] = _bucketed(cur, curd, cneed, lo_[oidx], ok[oidx], ods[oidx], centers=oc)
+            omarg[oidx] = bucketed_margins(cur, curd, cneed, lo_[oidx], ok[oidx], ods[oidx], centers=oc)
         # a margin that is not a number verifies nothing: it fails (and is reported as -inf, not NaN)
         np.copyto(marg, -np.inf, where=np.isnan(marg))
         np.copyto(omarg, -np.inf, where=np.isnan(omarg))
@@ -443,7 +442,14 @@ _EMPTY_INT = np.empty(0, dtype=np.int64)
 
 
 @functools.lru_cache(maxsize=64)
-def _levels(blend_levels: tuple) -> tuple[float, ...]:
+def _levels_array(levels: tuple[float, ...]) -> np.ndarray:
+    a = np.array(levels)
+    a.flags.writeable = False
+    return a
+
+
+@functools.lru_cache(maxsize=64)
+def levels_of(blend_levels: tuple) -> tuple[float, ...]:
     """The check's levels, highest first: 1 (the candidate), the blend shares, 0 (the backup from now)."""
     levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
     if not all(0.0 < a <= 1.0 for a in levels[:-1]):  # also refuses NaN
@@ -451,13 +457,13 @@ def _levels(blend_levels: tuple) -> tuple[float, ...]:
     return levels
 
 
-def _team_block(team: Team, brake_fraction: float, sensing_range: float) -> tuple:
-    """The per-robot constants of :func:`_kernel_args`' block and the reach limits, made once per team."""
+def team_block(team: Team, brake_fraction: float, sensing_range: float) -> tuple:
+    """The per-robot constants of :func:`kernel_args`' block and the reach limits, made once per team."""
     key = ("gatekeeper", float(brake_fraction), float(sensing_range))
     block = team.derived.get(key)
     if block is None and SUBSET_OF in team.derived:  # a subset's: the whole team's indexed (every entry is
         whole, idx = team.derived[SUBSET_OF]  # the robot's own, so the same numbers)
-        (diff, offset, cols, tg, amax, adec, radius, group, has_group, rng), limit = _team_block(
+        (diff, offset, cols, tg, amax, adec, radius, group, has_group, rng), limit = team_block(
             whole, brake_fraction, sensing_range)
         block = team.derived[key] = (
             (diff, offset[idx], cols[idx], tg[idx], amax[idx], adec[idx], radius[idx],
@@ -471,40 +477,59 @@ def _team_block(team: Team, brake_fraction: float, sensing_range: float) -> tupl
     return block
 
 
-def _kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_range: float,
-                 obstacles: tuple[np.ndarray, ...] | None, near_pairs: np.ndarray | None,
-                 **per_robot: np.ndarray) -> tuple:
-    """The team, pair and obstacle block of the compiled kernels (:mod:`aasoatt_env.safety.numba_kernels`).
+def validate(team: Team, pose: np.ndarray, obstacles: tuple[np.ndarray, ...] | None, near_pairs: np.ndarray | None,
+             **per_robot: np.ndarray) -> np.ndarray | None:
+    """Refuse (``ValueError``) what the compiled kernels would read out of bounds; ``near_pairs`` as an array.
 
-    ``(diff, offset, cols, turn_gain, max_wheel_accel, brake_decel, radius, group, has_group,
-    sensing_range, candidate pairs, obstacle centres (complex), radii, groups, has_groups)``; the
-    candidate pairs are ``near_pairs`` (checked by the caller), or every pair within the sensing
-    range when None.  The kernels read without bounds checks, so every shape is checked here:
     ``pose`` ``(n, 3)`` for the team's ``n`` robots, each of ``per_robot`` (by name) ``(n, 2)``, the
-    obstacles' centres ``(M, 2)`` with ``M`` radii (and groups).
+    obstacles' centres ``(M, 2)`` with ``M`` radii (and groups), ``near_pairs`` ``(P, 2)`` robot indices.
     """
     n = team.n
     for name, a in (("pose", pose), *per_robot.items()):
         if np.shape(a) != ((n, 3) if name == "pose" else (n, 2)):
             raise ValueError(f"{name}: got shape {np.shape(a)}, expected ({n}, {3 if name == 'pose' else 2}) "
                              f"for a team of {n} robots")
-    if near_pairs is None:
-        p0 = _point(team, pose)
-        near_pairs = robot_pairs(np.stack((p0.real, p0.imag), axis=1), sensing_range, groups=team.group)
-    oc, orad, ogroup, has_ogroup = np.empty(0, dtype=np.complex128), np.empty(0), _EMPTY_INT, False
     if obstacles is not None and np.asarray(obstacles[1]).size:
-        c, orad = np.asarray(obstacles[0], dtype=np.float64), np.asarray(obstacles[1], dtype=np.float64)
+        c, orad = np.asarray(obstacles[0]), np.asarray(obstacles[1])
         grouped = team.group is not None and len(obstacles) > 2 and obstacles[2] is not None
         m = orad.shape[0] if orad.ndim == 1 else -1
         if c.shape != (m, 2) or (grouped and np.shape(obstacles[2]) != (m,)):
             raise ValueError(f"obstacles: got centres {c.shape}, radii {orad.shape}"
                              + (f", groups {np.shape(obstacles[2])}" if grouped else "")
                              + ", expected (M, 2), (M,) and (M,)")
+    if near_pairs is not None:
+        near_pairs = np.asarray(near_pairs)
+        if (near_pairs.ndim != 2 or near_pairs.shape[1] != 2 or near_pairs.dtype.kind not in "iu"
+                or (near_pairs.size and not (0 <= near_pairs.min() and near_pairs.max() < n))):
+            raise ValueError(f"near_pairs: got a {near_pairs.dtype} array of shape {near_pairs.shape}, expected "
+                             f"(P, 2) integer robot indices in [0, {n})")
+    return near_pairs
+
+
+def kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_range: float,
+                obstacles: tuple[np.ndarray, ...] | None, near_pairs: np.ndarray | None) -> tuple:
+    """The team, pair and obstacle block of the compiled kernels (:mod:`aasoatt_env.safety.backup.kernels`).
+
+    ``(diff, offset, cols, turn_gain, max_wheel_accel, brake_decel, radius, group, has_group,
+    sensing_range, candidate pairs, obstacle centres (complex), radii, groups, has_groups)``; the
+    candidate pairs are ``near_pairs``, or every pair within the sensing range when None.  Shapes
+    are the caller's to check (:func:`validate`).
+    """
+    if near_pairs is None:
+        p0 = point(team, pose)
+        near_pairs = robot_pairs(np.stack((p0.real, p0.imag), axis=1), sensing_range, groups=team.group)
+    oc, orad, ogroup, has_ogroup = _NO_OC, _NO_R, _EMPTY_INT, False
+    if obstacles is not None and np.asarray(obstacles[1]).size:
+        c, orad = np.asarray(obstacles[0], dtype=np.float64), np.asarray(obstacles[1], dtype=np.float64)
         oc = c[:, 0] + 1j * c[:, 1]
-        if grouped:
+        if team.group is not None and len(obstacles) > 2 and obstacles[2] is not None:
             ogroup, has_ogroup = np.asarray(obstacles[2]), True
-    return (*_team_block(team, brake_fraction, sensing_range)[0], np.ascontiguousarray(near_pairs, dtype=np.int64),
+    return (*team_block(team, brake_fraction, sensing_range)[0], np.ascontiguousarray(near_pairs, dtype=np.int64),
             oc, orad, ogroup, has_ogroup)
+
+
+_NO_OC = np.empty(0, dtype=np.complex128)
+_NO_R = np.empty(0)
 
 
 def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float,
@@ -512,17 +537,16 @@ def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.n
                          tol: float, levels: tuple[float, ...], hold_violations: bool, quick: bool,
                          near_pairs: np.ndarray | None) -> GateResult:
     """:func:`gatekeeper` by the compiled kernel (:func:`aasoatt_env.safety.numba_kernels.gate_full`)."""
-    block = _kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs, u=u, du_c=du_c)
-    pose, u, du_c = (c64(a) for a in (pose, u, du_c))
+    block = kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
     du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = kernels().gate_full(
-        pose, u, du_c, float(dt), np.asarray(levels), bool(quick), *block,
-        _team_block(team, brake_fraction, sensing_range)[1],
+        c64(pose), c64(u), c64(du_c), float(dt), _levels_array(levels), bool(quick), *block,
+        team_block(team, brake_fraction, sensing_range)[1],
         float(tol), bool(hold_violations))
     return GateResult(du, braking, float(margin), not bool(broken.any()), broken, share, int(rounds), int(n_pairs),
                       robot_margin, out_of_range)
 
 
-def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float, slack: float,
+def pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float, slack: float,
                 near_pairs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Robot pairs ``(i, j, d_s)`` that could come within ``d_s + slack`` while each stays within ``R`` of ``p0``.
 
@@ -549,7 +573,7 @@ def _pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float,
     return i[keep], j[keep], ds[keep]
 
 
-def _obstacles_near(team: Team, p0: np.ndarray, R: np.ndarray, obstacles: tuple[np.ndarray, ...] | None,
+def obstacles_near(team: Team, p0: np.ndarray, R: np.ndarray, obstacles: tuple[np.ndarray, ...] | None,
                     slack: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Robot-obstacle pairs that could come within ``d_s + slack``: ``(centres (M,) complex, i, k, d_s)``.
 
