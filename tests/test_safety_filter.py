@@ -511,3 +511,33 @@ def test_a_trigger_you_register_gets_the_pairs(monkeypatch):
     scen = circle_layout(6, radius=2.5, duration=4.0)
     closed_loop(scen, SafetyFilter(scen.team, trigger="mine"), 0.5)
     assert len(seen) == 100 and min(seen[1:]) > 0
+
+
+def test_a_far_nominal_is_pulled_in_radially_and_filtered_as_its_projection():
+    """A nominal of 1e6 (an untrained network, a units mistake) is filtered as the nominal pulled in to
+    NOMINAL_RANGE times the wheel bound from the box's centre, in the same direction; nearer nominals are
+    the QP's own (the array itself is passed on)."""
+    from aasoatt_env.safety.inputs import NOMINAL_RANGE, bound_nominal
+
+    n = 6
+    team = make_team("paper", n)
+    ang = 2 * np.pi * np.arange(n) / n
+    pose = pose_from_point(team, 1.7 * np.stack((np.cos(ang), np.sin(ang)), axis=1), ang + np.pi)
+    u = np.full((n, 2), 2.0)
+    kin, lo, hi = _inputs(team, pose, u)
+    rng = np.random.default_rng(4)
+    far = rng.normal(0.0, 1e6, (n, 2))
+    near = rng.uniform(-100.0, 100.0, (n, 2))
+    scale = np.full(n, 60.0)
+    assert bound_nominal(near, lo, hi, scale, team.max_wheel_accel) is near
+    pulled = bound_nominal(far, lo, hi, scale, team.max_wheel_accel)
+    centre = 0.5 * (lo + hi)
+    np.testing.assert_allclose(np.linalg.norm(pulled - centre, axis=1), NOMINAL_RANGE * 60.0, rtol=1e-12)
+    cos = np.sum((pulled - centre) * (far - centre), axis=1) / (
+        np.linalg.norm(pulled - centre, axis=1) * np.linalg.norm(far - centre, axis=1))
+    np.testing.assert_allclose(cos, 1.0, atol=1e-12)
+    for backup in (False, True):
+        du_far, res = SafetyFilter(team, deadlock="none", backup=backup).step(kin, u, pose[:, 2], far, lo, hi)
+        du_pulled, _ = SafetyFilter(team, deadlock="none", backup=backup).step(kin, u, pose[:, 2], pulled, lo, hi)
+        np.testing.assert_array_equal(du_far, du_pulled)
+        assert res.n_qp_rows > 0 and res.status in ("solved", "backup") and res.iterations <= 100

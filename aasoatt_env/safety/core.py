@@ -50,7 +50,7 @@ from aasoatt_env.safety.deadlock import (
     rotation,
 )
 from aasoatt_env.safety.decentralized import GROUP_ONE_CHANGE_ITER, Decentralized
-from aasoatt_env.safety.inputs import MIN_BRAKING_ROOM, check_step, check_team, refuse_rows_beyond
+from aasoatt_env.safety.inputs import MIN_BRAKING_ROOM, bound_nominal, check_step, check_team, refuse_rows_beyond
 from aasoatt_env.safety.result import STATUSES, FilterResult, result
 from aasoatt_env.safety.rows import CompiledRows, Pairs, Rows, find_pairs, numpy_rows
 from aasoatt_env.safety.solvers import SolverPolicy
@@ -246,10 +246,14 @@ class SafetyFilter:
     def _target(self, s: StepInput, triggered: np.ndarray) -> np.ndarray:
         """The QP's target control-point accelerations ``(N, 2)``: ``A du_nom``, after the deadlock strategy.
 
-        In the decentralised mode each robot first saturates its own nominal to its bounds.
+        A nominal far outside the bounds is first pulled in (:func:`~aasoatt_env.safety.inputs.bound_nominal`);
+        in the decentralised mode each robot saturates its own nominal to its bounds.
         """
         cfg = self.config
-        nominal = np.minimum(np.maximum(s.nominal, s.lo), s.hi) if cfg.mode == "decentralized" else s.nominal
+        if cfg.mode == "decentralized":
+            nominal = np.minimum(np.maximum(s.nominal, s.lo), s.hi)
+        else:
+            nominal = bound_nominal(s.nominal, s.lo, s.hi, s.scale, s.team.max_wheel_accel)
         target = np.einsum("nij,nj->ni", s.A, nominal)
         if not triggered.any():  # (a strategy corrects the triggered robots only)
             return target

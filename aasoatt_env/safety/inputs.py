@@ -17,11 +17,38 @@ from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.stages import StepInput
 from aasoatt_env.validation import MAGNITUDE_MAX
 
-__all__ = ["MIN_BRAKING_ROOM", "check_step", "check_team", "refuse_rows_beyond"]
+__all__ = ["MIN_BRAKING_ROOM", "NOMINAL_RANGE", "bound_nominal", "check_step", "check_team", "refuse_rows_beyond"]
 
 MIN_BRAKING_ROOM: float = 0.1
 """With the backup layer the sensing range must exceed the largest safety distance by this much [m]:
 every robot's braking path must fit in half the difference (:func:`~aasoatt_env.safety.backup.reach_limit`)."""
+
+
+NOMINAL_RANGE: float = 100.0
+"""A nominal farther than this many times the robot's wheel-acceleration bound from the centre of its box is
+pulled in radially to that distance before the QP (:func:`bound_nominal`)."""
+
+
+def bound_nominal(nominal: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray,
+                  max_wheel_accel: np.ndarray) -> np.ndarray:
+    """The nominal the QP is given: pulled radially to at most ``NOMINAL_RANGE * max_wheel_accel`` from the box.
+
+    The same array where no robot's nominal is that far from its box's centre: those answers are the QP's
+    for the nominal itself, bit for bit.  A farther nominal keeps its direction and is scaled back, so the
+    solvers work on a well-scaled problem (a target of 1e6 defeats any tolerance at the rows' scale); the
+    answer then differs from the unscaled QP's by about the box's size over ``NOMINAL_RANGE`` at most (the
+    farther the nominal, the closer both come to the feasible set's support point in its direction).
+    """
+    reach = NOMINAL_RANGE * max_wheel_accel
+    if float(np.abs(nominal).max(initial=0.0)) + 1.5 * float(scale.max(initial=0.0)) <= float(reach.min(initial=0.0)):
+        return nominal  # (|nominal - centre| <= |nominal| + |centre| <= reach for every robot)
+    centre = 0.5 * (lo + hi)
+    d = nominal - centre
+    dist = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
+    far = dist > reach * (1.0 + 1e-12)  # (a pulled-in nominal stays as it is: the projection is idempotent)
+    if not far.any():
+        return nominal
+    return np.where(far[:, None], centre + d * (reach / np.where(far, dist, 1.0))[:, None], nominal)
 
 
 def refuse_rows_beyond(name: str, a: np.ndarray, what: str) -> None:
