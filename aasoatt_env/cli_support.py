@@ -23,8 +23,8 @@ from typing import Any, NoReturn
 from aasoatt_env.errors import AASOATTError, ConfigError
 from aasoatt_env.validation import short_repr
 
-__all__ = ["OutputPlan", "Parser", "add_common_options", "atomic_write", "guarded_outputs", "int_option",
-           "path_option", "progress", "real_option", "run_guarded", "staged"]
+__all__ = ["OutputPlan", "Parser", "add_common_options", "atomic_write", "int_option", "path_option", "progress",
+           "real_option", "run_guarded", "staged"]
 
 #: Marks the temporary files of :func:`staged` (and of ``save_animation``): never taken for results.
 PARTIAL = ".partial"
@@ -108,9 +108,10 @@ def path_option(text: str) -> str:
 class OutputPlan:
     """Output paths of one command, checked and prepared before the work starts.
 
-    :meth:`folder` and :meth:`file` raise :class:`~aasoatt_env.errors.ConfigError` naming the option
-    when a path cannot be written or would replace earlier results without ``overwrite``; :meth:`discard`
-    removes the folders they created (the command failed before writing into them).
+    :meth:`folder` and :meth:`file` raise :class:`~aasoatt_env.errors.ConfigError` naming the option when a
+    path cannot be written or would replace earlier results without ``overwrite``.  Used as a context
+    manager, the plan removes the folders it made that are still empty when the block fails (Ctrl-C
+    included), so a failed command leaves no folder behind.
     """
 
     def __init__(self, overwrite: bool) -> None:
@@ -183,14 +184,12 @@ class OutputPlan:
                 folder.rmdir()
         self._created.clear()
 
+    def __enter__(self) -> OutputPlan:
+        return self
 
-def guarded_outputs(plan: OutputPlan, work: Callable[[], Any]) -> Any:
-    """Run ``work()``; on any failure (Ctrl-C included) remove the empty folders ``plan`` created, then re-raise."""
-    try:
-        return work()
-    except BaseException:
-        plan.discard()
-        raise
+    def __exit__(self, kind: type[BaseException] | None, *_: object) -> None:
+        if kind is not None:
+            self.discard()
 
 
 @contextlib.contextmanager

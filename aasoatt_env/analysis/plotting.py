@@ -22,19 +22,25 @@ from aasoatt_env.cli_support import atomic_write
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.sim.rendering import _require, robot_colors
 
-__all__ = ["plot_distance_profile", "plot_snapshots", "plot_trajectories", "plot_velocity_profile"]
+__all__ = ["new_figure", "plot_distance_profile", "plot_snapshots", "plot_trajectories", "plot_velocity_profile",
+           "team_colors"]
 
 PathLike = str | os.PathLike[str]
 Obstacles = tuple[Any, Any] | np.ndarray | None
 
 
-def _new_figure(figsize: tuple[float, float]) -> Any:
-    """A Figure on an Agg canvas, without pyplot."""
+def new_figure(nrows: int = 1, ncols: int = 1, figsize: tuple[float, float] = (6.0, 4.0), **kw: Any) -> tuple[Any, Any]:
+    """A figure on an Agg canvas (no pyplot) and its ``(nrows, ncols)`` array of axes (``kw``: to ``subplots``)."""
     figure_mod = _require("matplotlib.figure", "aasoatt_env.analysis.plotting")
     agg = _require("matplotlib.backends.backend_agg", "aasoatt_env.analysis.plotting")
     fig = figure_mod.Figure(figsize=figsize, layout="constrained")
     agg.FigureCanvasAgg(fig)
-    return fig
+    return fig, fig.subplots(nrows, ncols, squeeze=False, **kw)
+
+
+def team_colors(n: int) -> np.ndarray:
+    """One RGB colour in ``[0, 1]`` per robot, as the renderer draws them."""
+    return robot_colors(n).astype(np.float64) / 255.0
 
 
 def _label(ax: Any, title: str | None, xlabel: str, ylabel: str) -> None:
@@ -116,7 +122,7 @@ def _goals(ax: Any, goals: np.ndarray | None, colors: np.ndarray, size: float, l
 
 def plot_trajectories(positions: Any, radii: Any = None, references: Any = None, goals: Any = None,
                       obstacles: Obstacles = None, path: PathLike | None = None, title: str | None = None, *,
-                      figsize: tuple[float, float] = (6.0, 6.0), dpi: int = 150) -> Any:
+                      figsize: tuple[float, float] = (6.0, 6.0), dpi: int = 150, ax: Any = None) -> Any:
     """Plot the paths of a team in the plane.
 
     Parameters
@@ -127,11 +133,13 @@ def plot_trajectories(positions: Any, radii: Any = None, references: Any = None,
     references : array_like, shape (T, N, 2), optional
         Reference trajectories, drawn dashed; ``goals`` ``(N, 2)`` as hollow squares; ``obstacles`` as grey
         discs.
+    ax : matplotlib.axes.Axes, optional
+        Draw into these axes (a panel of a larger figure) instead of a new figure.
     """
     pos, ref, g, r = _team(positions, references, goals, radii)
-    n, colors = pos.shape[1], robot_colors(pos.shape[1]).astype(np.float64) / 255.0
-    fig = _new_figure(figsize)
-    ax = fig.add_subplot()
+    n, colors = pos.shape[1], team_colors(pos.shape[1])
+    if ax is None:
+        _, ((ax,),) = new_figure(1, 1, figsize)
     for i in range(n):
         if ref is not None:
             ax.plot(ref[:, i, 0], ref[:, i, 1], ls="--", lw=0.9, color=colors[i], alpha=0.7, zorder=2)
@@ -148,7 +156,7 @@ def plot_trajectories(positions: Any, radii: Any = None, references: Any = None,
     span = float(np.max(finite.max(axis=0) - finite.min(axis=0))) if finite.shape[0] else 1.0
     _scene(ax, obstacles, points, max((float(r.max()) if n else 0.0) + 0.05 * span, 0.1))
     _label(ax, title, "x [m]", "y [m]")
-    return _save(fig, path, dpi)
+    return _save(ax.figure, path, dpi)
 
 
 def plot_distance_profile(times: Any, min_distance: Any, safety_distance: float | Sequence[float] | None,
@@ -164,8 +172,7 @@ def plot_distance_profile(times: Any, min_distance: Any, safety_distance: float 
     d = d[:, None] if d.ndim == 1 else d
     if d.ndim != 2 or d.shape[0] != t.shape[0]:
         raise ConfigError(f"min_distance: got shape {d.shape}, expected ({t.shape[0]},) or ({t.shape[0]}, P)")
-    fig = _new_figure(figsize)
-    ax = fig.add_subplot()
+    fig, ((ax,),) = new_figure(1, 1, figsize)
     if d.shape[1] == 1:
         ax.plot(t, d[:, 0], lw=1.5, color="C0", label=labels[0] if labels else "min distance")
     else:
@@ -193,9 +200,8 @@ def plot_velocity_profile(times: Any, speeds: Any, path: PathLike | None = None,
     v = v[:, None] if v.ndim == 1 else v
     if v.ndim != 2 or v.shape[0] != t.shape[0]:
         raise ConfigError(f"speeds: got shape {v.shape}, expected ({t.shape[0]}, N)")
-    colors = robot_colors(v.shape[1]).astype(np.float64) / 255.0
-    fig = _new_figure(figsize)
-    ax = fig.add_subplot()
+    colors = team_colors(v.shape[1])
+    fig, ((ax,),) = new_figure(1, 1, figsize)
     for i in range(v.shape[1]):
         ax.plot(t, v[:, i], lw=1.1, color=colors[i], label=f"robot {i}" if v.shape[1] <= 10 else None)
     if max_speed is not None and np.isfinite(max_speed):
@@ -225,9 +231,8 @@ def plot_snapshots(positions: Any, times: Any, indices: Sequence[int], radii: An
     for k in idx:
         if not -t_len <= k < t_len:
             raise ConfigError(f"indices: got {k}, expected an index in [-{t_len}, {t_len})")
-    colors = robot_colors(n).astype(np.float64) / 255.0
-    fig = _new_figure((panel_size * len(idx), panel_size + 0.3))
-    axes = fig.subplots(1, len(idx), squeeze=False, sharex=True, sharey=True)[0]
+    colors = team_colors(n)
+    fig, (axes,) = new_figure(1, len(idx), (panel_size * len(idx), panel_size + 0.3), sharex=True, sharey=True)
     points = [pos.reshape(-1, 2)] + ([] if g is None else [g])
     for ax, k in zip(axes, (k % t_len for k in idx)):
         for i in range(n):
