@@ -8,7 +8,6 @@ relative difference ``(ours - paper) / |paper|``, and returns a :class:`Report` 
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import math
 from collections.abc import Callable, Sequence
@@ -19,7 +18,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from aasoatt_env.apps.reproduce.runner import RunResult, RunSpec, run_many
-from aasoatt_env.cli_support import staged
+from aasoatt_env.cli_support import OutputPlan, staged
 
 __all__ = ["Experiment", "Report", "Settings", "fmt", "fmt_rel", "md_table", "rel_diff", "run"]
 
@@ -40,12 +39,10 @@ _SHORT = {"intervention_time": "IT [s]", "rmse": "RMSE", "mae": "MAE", "std": "s
 
 @dataclass(frozen=True)
 class Settings:
-    """Options shared by all experiments.
+    """Options shared by all experiments (those of ``aasoatt reproduce``; ``command`` heads the Markdown).
 
-    ``quick``: small variants (CI) whose numbers are not comparable to the paper's; ``solver``: the
-    filter's QP solver (``daqp``, exact; the paper's is its projection neural network, ``neural``);
-    ``safety_margin``: added to ``d_s`` [m] (0: the paper's exact barrier); ``backup``: the braking backup
-    layer (off: the paper's method as published); ``command``: recorded in the Markdown.
+    ``quick``: small variants whose numbers are not comparable to the paper's; ``solver``: the filter's
+    (``daqp``: exact; the paper's: ``neural``); ``safety_margin`` [m] (0: the paper's exact barrier).
     """
 
     quick: bool = False
@@ -100,7 +97,13 @@ def compared(metrics: Sequence[str]) -> list[Column]:
 
 
 class Experiment:
-    """One experiment of the paper, declared; override what applies."""
+    """One experiment of the paper, declared by overriding the hooks that apply.
+
+    ``_specs(s)``: the runs in table order; ``_paper(spec)``: the paper's numbers of a run (None: not in the
+    paper); ``_extra(s, spec, result)``: more CSV fields of a run; ``_columns(s)``: the results table;
+    ``_notes(s)``: the settings list; ``_sections(s, res)``: Markdown after the table; ``_findings(s, res)``:
+    one bullet each; ``_figures(s, res)``: ``(figure, file name, caption)`` of each figure.
+    """
 
     name: ClassVar[str]
     title: ClassVar[str]
@@ -109,35 +112,27 @@ class Experiment:
     heading: ClassVar[str] = "## Results (paper | ours | relative difference)"
 
     def _specs(self, s: Settings) -> list[RunSpec]:
-        """The runs, in table order."""
         raise NotImplementedError
 
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
-        """The paper's numbers for a run (None: not in the paper)."""
         return None
 
     def _extra(self, s: Settings, spec: RunSpec, result: RunResult) -> dict[str, Any]:
-        """More CSV fields of a run."""
         return {}
 
     def _columns(self, s: Settings) -> list[Column]:
-        """The results table's columns."""
         raise NotImplementedError
 
     def _notes(self, s: Settings) -> list[str]:
-        """The settings list."""
         return []
 
     def _sections(self, s: Settings, res: Results) -> list[str]:
-        """Markdown sections after the results table."""
         return []
 
     def _findings(self, s: Settings, res: Results) -> list[str]:
-        """The findings, one bullet each."""
         return []
 
     def _figures(self, s: Settings, res: Results) -> list[tuple[Any, str, str]]:
-        """``(figure, file name, caption)`` of each figure."""
         return []
 
 
@@ -194,19 +189,13 @@ class Report:
         if self.figures:
             md += ["## Figures", "", *(f"- `{name}`: {caption}" for _, name, caption in self.figures), ""]
         md += [f"CSV: `{csv_path.name}`.", "", f"Wall time of this experiment: {wall_time:.1f} s.", ""]
-        created = not self.dir.exists()
-        self.dir.mkdir(parents=True, exist_ok=True)
-        try:
+        with OutputPlan(overwrite=True) as plan:  # a failure leaves no empty folder to be taken for results
+            plan.folder(self.dir, self.name)
             with staged(csv_path, md_path, *(self.dir / name for _, name, _ in self.figures)) as temps:
                 self._write_csv(temps[0])
                 temps[1].write_text("\n".join(md))
                 for (fig, _, _), temp in zip(self.figures, temps[2:]):
                     fig.savefig(temp, dpi=110, format="png")
-        except BaseException:
-            if created:  # leave no empty folder that a later run would take for results
-                with contextlib.suppress(OSError):
-                    self.dir.rmdir()
-            raise
         return csv_path, md_path
 
     def _write_csv(self, path: Path) -> None:
