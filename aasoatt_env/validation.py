@@ -30,12 +30,6 @@ def _is_real(value: Any) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
 
 
-def _interval(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
-    left = "-inf" if lo is None else f"{lo:g}"
-    right = "inf" if hi is None else f"{hi:g}"
-    return f"{'(' if lo_open or lo is None else '['}{left}, {right}{')' if hi_open or hi is None else ']'}"
-
-
 def short_repr(value: Any, limit: int = 80) -> str:
     """``repr(value)`` cut to ``limit`` characters (a huge int or list must not flood the message)."""
     try:
@@ -65,7 +59,8 @@ def _describe(kind: str, lo: float | None, hi: float | None, lo_open: bool, hi_o
         return f"{kind} {'>' if lo_open else '>='} {lo:g}"
     if hi is None and lo is None:
         return kind
-    return f"{kind} in {_interval(lo, hi, lo_open, hi_open)}"
+    left, right = ("(-inf" if lo is None else f"{'(' if lo_open else '['}{lo:g}"), f"{hi:g}{')' if hi_open else ']'}"
+    return f"{kind} in {left}, {right}"
 
 
 def real(name: str, value: Any, *, lo: float | None = None, hi: float | None = None, lo_open: bool = False,

@@ -1,19 +1,10 @@
 """The ``aasoatt`` command line.
 
-=====================  =========================================================
-command                what it does
-=====================  =========================================================
-``aasoatt list``       scenarios, their parameters and defaults; controllers;
-                       barriers, deadlock strategies, triggers and solvers
-``aasoatt run``        run a controller (optionally behind the safety filter) on
-                       a scenario; print metrics; write GIF / PNG / JSON / NPZ
-``aasoatt reproduce``  the paper's experiments (see :mod:`aasoatt_env.apps.reproduce`)
-``aasoatt train``      PPO training (see :mod:`train.train`)
-``aasoatt evaluate``   evaluation table over seeded episodes (:mod:`train.evaluate`)
-=====================  =========================================================
-
-Heavy libraries (torch, Stable-Baselines3, Ray, matplotlib) are imported only by the commands that use
-them, so ``aasoatt --help`` answers at once.
+``aasoatt list``: scenarios and their parameters, controllers, barriers, deadlock strategies, triggers and
+solvers; ``aasoatt run``: a controller (behind the safety filter or not) on a scenario, its metrics, a
+GIF / PNG / JSON / NPZ; ``aasoatt reproduce``: the paper's experiments (:mod:`aasoatt_env.apps.reproduce`);
+``aasoatt train`` and ``aasoatt evaluate``: :mod:`train.train`, :mod:`train.evaluate`.  Heavy libraries
+(torch, Stable-Baselines3, Ray, matplotlib) are imported only by the commands that use them.
 """
 
 from __future__ import annotations

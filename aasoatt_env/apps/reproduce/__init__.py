@@ -3,14 +3,9 @@
 Each experiment (:mod:`~aasoatt_env.apps.reproduce.experiments`, or ``all``) writes ``<out>/<experiment>/``:
 a CSV, a ``README.md`` with the paper's numbers beside ours, figures and its wall time; ``all`` also writes
 ``<out>/SUMMARY.md``.  ``--page`` writes every result table on one Markdown page headed by the command that
-made it, so pages in ``docs/`` are regenerated, never hand-edited.  Runs are deterministic: the numbers do
-not depend on ``--jobs``.  ``--quick`` runs small variants whose numbers are not comparable to the paper's,
-into ``results/quick`` unless ``--out`` says otherwise.
-
-Python use::
-
-    from aasoatt_env.apps.reproduce import run_experiment, Settings
-    report, wall_time = run_experiment("compare-ca", Settings(out=Path("results")))
+made it, so pages in ``docs/`` are regenerated, never hand-edited.  Runs are deterministic whatever
+``--jobs``.  ``--quick`` runs small variants, not comparable to the paper, into ``results/quick``.  From
+Python: ``report, seconds = run_experiment("compare-ca", Settings(out=Path("results")))``.
 """
 
 from __future__ import annotations

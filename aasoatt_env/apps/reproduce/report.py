@@ -110,6 +110,12 @@ class Experiment:
     metrics: ClassVar[tuple[str, ...]] = ()
     """Metrics compared with the paper (``paper_<m>`` and ``rel_<m>`` CSV columns)."""
     heading: ClassVar[str] = "## Results (paper | ours | relative difference)"
+    sizes: ClassVar[dict[bool, Any]] = {}
+    """The scenario sizes of the full experiment (``False``) and of ``--quick`` (``True``)."""
+
+    def size(self, s: Settings) -> Any:
+        """The scenario sizes for ``s``."""
+        return self.sizes[s.quick]
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         raise NotImplementedError

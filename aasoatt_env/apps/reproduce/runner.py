@@ -57,8 +57,8 @@ class RunResult:
     ``metrics``: :func:`~aasoatt_env.analysis.metrics.summarize` over the window, the ``*_end`` goal metrics
     of the whole episode, ``min_center_distance_full``, ``min_robot_gap_full``, ``safety_distance`` and
     ``wall_time`` [s].  ``traces``: ``times``, ``positions``, ``references``, ``speeds``,
-    ``min_center_distance`` (the minimum over the steps each sample stands for), ``triggered`` if recorded,
-    and the static ``goals``, ``radii``, ``obstacle_centers``, ``obstacle_radii``.
+    ``min_center_distance`` (the minimum over the steps each sample stands for), and the static ``goals``,
+    ``radii``, ``obstacle_centers``, ``obstacle_radii``.
     """
 
     spec: RunSpec
@@ -103,8 +103,6 @@ def run_spec(spec: RunSpec) -> RunResult:
         "goals": rollout.goals, "radii": rollout.radii, "obstacle_centers": rollout.obstacle_centers,
         "obstacle_radii": rollout.obstacle_radii,
     }
-    if rollout.triggered is not None:
-        traces["triggered"] = rollout.triggered[idx]
     return RunResult(spec, metrics, traces)
 
 

@@ -39,9 +39,8 @@ def circle(n: int, radius: float, duration: float, settle: float = 0.0, **kw: An
     return dict(num_robots=n, radius=radius, duration=duration, settle_time=settle, **kw)
 
 
-def ca_size(s: Settings) -> tuple[int, float, float]:
-    """``(N, radius, duration)`` of the N = 10 comparison (smaller with ``quick``)."""
-    return (6, 4.0, 8.0) if s.quick else (10, 6.0, 12.0)
+#: ``(N, radius, duration)`` of the N = 10 comparison (full, ``--quick``).
+CA_SIZES: dict[bool, tuple[int, float, float]] = {False: (10, 6.0, 12.0), True: (6, 4.0, 8.0)}
 
 
 def violated(res: RunResult) -> bool:

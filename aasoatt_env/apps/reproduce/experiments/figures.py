@@ -27,14 +27,15 @@ class DeadlockTriggers(Experiment):
     """Fig. 3a: velocity profiles under the four deadlock triggers."""
 
     name, title, heading = "deadlock-triggers", "Fig. 3a - deadlock triggers (velocity profiles)", FIGURE_ONLY
+    sizes = common.CA_SIZES
 
     def _specs(self, s: Settings) -> list[RunSpec]:
-        n, radius, duration = common.ca_size(s)
+        n, radius, duration = self.size(s)
         return [RunSpec(t, "circle_swap", common.circle(n, radius, duration, settle=0.0),
                         filter=common.filter_config(s, trigger=t), meta={"trigger": t, "N": n}) for t in TRIGGERS]
 
     def _extra(self, s: Settings, spec: RunSpec, result: RunResult) -> dict[str, Any]:
-        duration, sp, t = common.ca_size(s)[2], result.traces["speeds"], result.traces["times"]
+        duration, sp, t = self.size(s)[2], result.traces["speeds"], result.traces["times"]
         mid = (t > 0.2 * duration) & (t < 0.8 * duration)
         return {"min_mean_speed_mid": float(sp[mid].mean(axis=1).min()),
                 "slow_fraction_mid": float((sp[mid] < 0.05).mean())}
@@ -45,7 +46,7 @@ class DeadlockTriggers(Experiment):
                 col("final goal error", "final_error_mean"), col("min gap", "min_robot_gap_full")]
 
     def _notes(self, s: Settings) -> list[str]:
-        n, radius, duration = common.ca_size(s)
+        n, radius, duration = self.size(s)
         return [*common.common_notes(s),
                 f"N = {n}, radius {radius:g} m, {duration:g} s; barrier: ours (aasoatt); deadlock strategy eqn.13; "
                 "only the trigger differs",
@@ -77,10 +78,7 @@ class Swarm100(Experiment):
     name, title, heading = "swarm100", "100 robots, deadlock strategies (Fig. '100')", FIGURE_ONLY
     metrics = paper.METRICS
 
-    @staticmethod
-    def size(s: Settings) -> tuple[int, float, float, float]:
-        """``(N, radius, duration, settle time)``."""
-        return (12, 5.0, 10.0, 2.0) if s.quick else (100, 10.0, 20.0, 5.0)
+    sizes = {False: (100, 10.0, 20.0, 5.0), True: (12, 5.0, 10.0, 2.0)}  # N, radius, duration, settle time
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         n, radius, duration, settle = self.size(s)
@@ -128,10 +126,7 @@ class Obstacles(Experiment):
     name, title, heading = "obstacles", "Fig. 5 - 20 robots and 3 static obstacles", FIGURE_ONLY
     metrics = paper.METRICS
 
-    @staticmethod
-    def size(s: Settings) -> tuple[int, float, float]:
-        """``(N, duration, settle time)``."""
-        return (8, 8.0, 2.0) if s.quick else (20, 12.0, 3.0)
+    sizes = {False: (20, 12.0, 3.0), True: (8, 8.0, 2.0)}  # N, duration, settle time
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         n, duration, settle = self.size(s)

@@ -10,7 +10,7 @@ import numpy as np
 from aasoatt_env.analysis.plotting import new_figure, plot_trajectories
 from aasoatt_env.apps.reproduce import paper, report
 from aasoatt_env.apps.reproduce.experiments import common
-from aasoatt_env.apps.reproduce.report import Experiment, Results, Settings, col, compared, fmt
+from aasoatt_env.apps.reproduce.report import Column, Experiment, Results, Settings, col, compared, fmt
 from aasoatt_env.apps.reproduce.runner import RunResult, RunSpec
 from aasoatt_env.model.params import RobotParams
 from aasoatt_env.safety.config import auto_margin
@@ -43,7 +43,7 @@ class Table1(Experiment):
     def _paper(self, spec: RunSpec) -> dict[str, Any]:
         return paper.TABLE1[spec.meta["trajectory"]][spec.meta["controller"]]
 
-    def _columns(self, s: Settings) -> list:
+    def _columns(self, s: Settings) -> list[Column]:
         return [col("trajectory", "trajectory"), col("controller", "controller"), *compared(self.metrics)]
 
     def _notes(self, s: Settings) -> list[str]:
@@ -90,9 +90,10 @@ class CompareCA(Experiment):
     """The N = 10 comparison of five collision-avoidance methods (the inline 4-tuples of Sec. V)."""
 
     name, title, metrics = "compare-ca", "Comparison of CA strategies (N = 10, radius 6, 12 s)", paper.METRICS
+    sizes = common.CA_SIZES
 
     def _specs(self, s: Settings) -> list[RunSpec]:
-        n, radius, duration = common.ca_size(s)
+        n, radius, duration = self.size(s)
         specs = []
         for method, kw in CA_METHODS.items():
             scen = common.circle(n, radius, duration)
@@ -109,13 +110,13 @@ class CompareCA(Experiment):
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
         return paper.COMPARE_CA.get(spec.key)
 
-    def _columns(self, s: Settings) -> list:
+    def _columns(self, s: Settings) -> list[Column]:
         barrier = col("barrier", lambda row: CA_METHODS.get(row["key"], CA_METHODS["eqn.n7"])["barrier"])
         return [col("method", "method"), barrier, *compared(self.metrics), col("min gap [m]", "min_robot_gap_full"),
                 col("relaxed steps", "relaxed_fraction", 3), col("unsafe steps", "unsafe_fraction", 3)]
 
     def _notes(self, s: Settings) -> list[str]:
-        n, radius, duration = common.ca_size(s)
+        n, radius, duration = self.size(s)
         return [*common.common_notes(s),
                 f"N = {n}, radius {radius:g} m, {duration:g} s; deadlock strategy eqn.13 for every method (the paper "
                 "does not say which one the baselines used)",
@@ -169,11 +170,7 @@ class Table2(Experiment):
     """Table II and Fig. 2: eqn.n4 vs ours, N = 20..39 on the radius-6 circle."""
 
     name, title, metrics = "table2", "Table II - eqn.n4 vs ours in a crowd (radius 6, 12 s)", paper.METRICS
-
-    @staticmethod
-    def size(s: Settings) -> tuple[tuple[int, ...], float, float]:
-        """``(Ns, radius, duration)``."""
-        return ((8, 12), 4.0, 8.0) if s.quick else ((20, 25, 30, 35, 39), 6.0, 12.0)
+    sizes = {False: ((20, 25, 30, 35, 39), 6.0, 12.0), True: ((8, 12), 4.0, 8.0)}  # Ns, radius, duration
 
     @staticmethod
     def variants(s: Settings) -> dict[str, tuple[str, float | None, str]]:
@@ -204,7 +201,7 @@ class Table2(Experiment):
         return {"violated": common.violated(result),
                 "paper_violated": n in paper.TABLE2_VIOLATED[method] if listed else None}
 
-    def _columns(self, s: Settings) -> list:
+    def _columns(self, s: Settings) -> list[Column]:
         return [col("method", "method"), col("N", "N"), *compared(self.metrics),
                 col("min dist [m]", "min_center_distance_full"), col("violated", "violated"),
                 col("paper: violated", "paper_violated")]
@@ -275,11 +272,7 @@ class Table3(Experiment):
     """Table III: deadlock strategies eqn.12a / 12b / 13, N = 20..60, radius 10, 20 s."""
 
     name, title, metrics = "table3", "Table III - deadlock strategies (radius 10, 20 s)", paper.METRICS
-
-    @staticmethod
-    def size(s: Settings) -> tuple[tuple[int, ...], float, float]:
-        """``(Ns, radius, duration)``."""
-        return ((8,), 5.0, 10.0) if s.quick else ((20, 30, 40, 50, 60), 10.0, 20.0)
+    sizes = {False: ((20, 30, 40, 50, 60), 10.0, 20.0), True: ((8,), 5.0, 10.0)}  # Ns, radius, duration
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         ns, radius, duration = self.size(s)
@@ -290,7 +283,7 @@ class Table3(Experiment):
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
         return paper.TABLE3.get(spec.meta["N"], {}).get(spec.meta["method"])
 
-    def _columns(self, s: Settings) -> list:
+    def _columns(self, s: Settings) -> list[Column]:
         return [col("N", "N"), col("strategy", "method"), *compared(self.metrics),
                 col("min gap [m]", "min_robot_gap_full"), col("relaxed steps", "relaxed_fraction", 3),
                 col("unsafe steps", "unsafe_fraction", 3)]
