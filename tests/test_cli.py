@@ -63,7 +63,7 @@ def test_forwarded_help_exits_cleanly():
     assert exc.value.code == 0
 
 
-# --------------------------------------------------------------------------- bad options and output paths (issue 15)
+# --------------------------------------------------------------------------- bad options and output paths
 
 
 def _cli(argv, capsys):
