@@ -137,8 +137,6 @@ def _env_and_agent(args: argparse.Namespace, kwargs: dict[str, Any], filter_conf
     if args.controller == "learned":
         from train.evaluate import load_policy, policy_env_kwargs
 
-        if args.model is None:
-            raise ConfigError("controller 'learned': got no model path, expected --model PATH (a run folder or .zip)")
         agent = load_policy(args.model, "--model")
         kwargs = policy_env_kwargs(agent, kwargs, model=f"--model {args.model!r}",
                                    options={"decision_interval": "--decision-interval"}, default_option="-p/--param")
@@ -195,6 +193,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     """
     if args.model is not None and args.controller != "learned":
         raise ConfigError(f"--model: given with --controller {args.controller!r}, expected --controller learned")
+    if args.model is None and args.controller == "learned":
+        raise ConfigError("controller 'learned': got no model path, expected --model PATH (a run folder or .zip)")
     kwargs, filter_config = _env_kwargs(args), _filter_config(args)
     with OutputPlan(args.overwrite) as plan:
         out = plan.folder(args.out, "--out", entries=RUN_OUTPUTS) if args.out is not None else None
