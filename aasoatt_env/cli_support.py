@@ -1,39 +1,33 @@
-"""What every ``aasoatt`` command shares: one-line errors, ``--debug``, option types and output checks.
+"""What every ``aasoatt`` command shares: one-line errors, option types, output paths, atomic writes, progress.
 
-Contract of every command (``run``, ``list``, ``reproduce``, ``train``, ``evaluate``):
-
-* options and output paths are checked **before** any simulation or training
-  starts, so a typo never costs a run;
-* a user error (a bad option, a bad or unwritable output path, a corrupted input
-  file: any :class:`~aasoatt_env.errors.AASOATTError`) prints **one line**,
-  ``aasoatt <command>: error: <what is wrong>``, and exits with status 2;
-  ``--debug`` shows the full traceback instead;
-* earlier results are never overwritten unless ``--overwrite`` is given
-  (``train`` makes a new numbered run folder instead).
+Options and output paths are checked before any work starts; a user error (any
+:class:`~aasoatt_env.errors.AASOATTError`) prints one line ``aasoatt <command>: error: ...`` and exits 2
+(``--debug``: the traceback); every file is written under a temporary name, then renamed into place, so
+an interrupted command leaves the earlier state or the whole new file; results are replaced only with
+``--overwrite``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import math
 import os
 import sys
 import tempfile
-from collections.abc import Callable, Sequence
+import time
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
 from aasoatt_env.errors import AASOATTError, ConfigError
+from aasoatt_env.validation import short_repr
 
-__all__ = [
-    "OutputPlan",
-    "guarded_outputs",
-    "Parser",
-    "add_common_options",
-    "int_option",
-    "real_option",
-    "run_guarded",
-]
+__all__ = ["OutputPlan", "Parser", "add_common_options", "atomic_write", "int_option", "path_option", "progress",
+           "real_option", "run_guarded", "staged"]
+
+#: Marks the temporary files of :func:`staged` (and of ``save_animation``): never taken for results.
+PARTIAL = ".partial"
 
 
 class Parser(argparse.ArgumentParser):
@@ -41,7 +35,7 @@ class Parser(argparse.ArgumentParser):
 
     def error(self, message: str) -> NoReturn:
         """Print ``prog: error: message (see prog --help)`` and exit with status 2."""
-        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+        self.exit(2, f"{self.prog}: error: {_one_line(message)} (see {self.prog} --help)\n")
 
 
 def add_common_options(parser: argparse.ArgumentParser, overwrite: bool = True) -> None:
@@ -52,166 +46,201 @@ def add_common_options(parser: argparse.ArgumentParser, overwrite: bool = True) 
                             help="replace results already at the output path (refused otherwise)")
 
 
-def _one_line(exc: BaseException) -> str:
+def _one_line(exc: BaseException | str) -> str:
     return " ".join(str(exc).split()) or type(exc).__name__
 
 
 def run_guarded(prog: str, argv: Sequence[str], body: Callable[[list[str]], int]) -> int:
-    """Run ``body(argv)``; a user error becomes one line on stderr and status 2 (``--debug``: re-raise).
-
-    :class:`~aasoatt_env.errors.AASOATTError` (bad options, bad files, unknown
-    keywords) is a user error (status 2); an :class:`OSError` while writing
-    (disk full, a path that vanished) prints one line with status 1; Ctrl-C
-    status 130.
-    """
+    """Run ``body(argv)``: a user error prints one line and returns 2, an OSError 1, Ctrl-C 130 (``--debug``: raise)."""
     argv = list(argv)
-    debug = "--debug" in argv
     try:
         return int(body(argv) or 0)
-    except AASOATTError as exc:
-        if debug:
+    except (AASOATTError, OSError, KeyboardInterrupt) as exc:
+        if "--debug" in argv:
             raise
+        if isinstance(exc, KeyboardInterrupt):
+            print(f"{prog}: interrupted", file=sys.stderr)
+            return 130
         print(f"{prog}: error: {_one_line(exc)}", file=sys.stderr)
-        return 2
-    except OSError as exc:
-        if debug:
-            raise
-        print(f"{prog}: error: {_one_line(exc)}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        if debug:
-            raise
-        print(f"{prog}: interrupted", file=sys.stderr)
-        return 130
+        return 2 if isinstance(exc, AASOATTError) else 1
 
 
 # ---------------------------------------------------------------------------------------- option types
+def _number_option(kind: type, expected: str, ok: Callable[[Any], bool]) -> Callable[[str], Any]:
+    def parse(text: str) -> Any:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"got {short_repr(text)}, expected {expected}") from None
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"got {short_repr(value, 40)}, expected {expected}")
+        return value
+
+    parse.__name__ = "integer" if kind is int else "number"  # argparse's word when it cannot say more
+    return parse
+
+
 def int_option(lo: int, hi: int | None = None) -> Callable[[str], int]:
     """An argparse ``type=`` for integers in ``[lo, hi]`` (the message states the range)."""
     expected = f"an integer >= {lo}" if hi is None else f"an integer in [{lo}, {hi}]"
-
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"got {text!r}, expected {expected}") from None
-        if value < lo or (hi is not None and value > hi):
-            raise argparse.ArgumentTypeError(f"got {value}, expected {expected}")
-        return value
-
-    parse.__name__ = "integer"
-    return parse
+    return _number_option(int, expected, lambda v: lo <= v and (hi is None or v <= hi))
 
 
 def real_option(lo: float, hi: float | None = None, lo_open: bool = False) -> Callable[[str], float]:
     """An argparse ``type=`` for finite numbers ``> lo`` (``lo_open``) or ``>= lo``, and ``<= hi``."""
-    bound = f"{'>' if lo_open else '>='} {lo:g}"
-    expected = f"a finite number {bound}" + ("" if hi is None else f" and <= {hi:g}")
+    expected = f"a finite number {'>' if lo_open else '>='} {lo:g}" + ("" if hi is None else f" and <= {hi:g}")
+    return _number_option(float, expected, lambda v: math.isfinite(v) and (v > lo if lo_open else v >= lo)
+                          and (hi is None or v <= hi))
 
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"got {text!r}, expected {expected}") from None
-        ok = math.isfinite(value) and (value > lo if lo_open else value >= lo) and (hi is None or value <= hi)
-        if not ok:
-            raise argparse.ArgumentTypeError(f"got {text}, expected {expected}")
-        return value
 
-    parse.__name__ = "number"
-    return parse
+def path_option(text: str) -> str:
+    """An argparse ``type=`` for output paths: not empty, no NUL, within the system's name-length limits."""
+    raw = os.fsencode(text)
+    if not raw or b"\0" in raw:
+        raise argparse.ArgumentTypeError(f"got {short_repr(text)}, expected a path")
+    if len(raw) >= 4096 or any(len(part) > 255 for part in raw.split(b"/")):
+        raise argparse.ArgumentTypeError(f"got a path of {len(raw)} bytes, expected at most 4095 bytes and names of "
+                                         "at most 255 bytes")
+    return text
 
 
 # ---------------------------------------------------------------------------------------- output paths
 class OutputPlan:
     """Output paths of one command, checked and prepared before the work starts.
 
-    :meth:`folder` and :meth:`file` raise :class:`~aasoatt_env.errors.ConfigError`
-    naming the option when a path cannot be written or would replace earlier
-    results without ``overwrite``; folders they had to create are removed again
-    by :meth:`discard` if the command fails before writing anything into them.
-
-    Parameters
-    ----------
-    overwrite : bool
-        The command's ``--overwrite``.
+    :meth:`folder` and :meth:`file` raise :class:`~aasoatt_env.errors.ConfigError` naming the option when a
+    path cannot be written or would replace earlier results without ``overwrite``.  Used as a context
+    manager, the plan removes the folders it made that are still empty when the block fails (Ctrl-C
+    included), so a failed command leaves no folder behind.
     """
 
     def __init__(self, overwrite: bool) -> None:
         self.overwrite = bool(overwrite)
         self._created: list[Path] = []
 
+    def _checked(self, path: str | os.PathLike[str], flag: str, check: Callable[[Path], None]) -> Path:
+        try:
+            target = Path(path_option(os.fspath(path)))
+            check(target)
+        except argparse.ArgumentTypeError as exc:
+            raise ConfigError(f"{flag}: {exc}") from None
+        except OSError as exc:
+            raise ConfigError(f"{flag}: cannot write to {path} ({exc.strerror or exc})") from None
+        return target
+
     def _make_writable_dir(self, folder: Path, flag: str) -> None:
-        missing = []
-        probe = folder
-        while not probe.exists():
+        missing, probe = [], folder
+        while not probe.exists() and probe.parent != probe:
             missing.append(probe)
-            if probe.parent == probe:
-                break
             probe = probe.parent
         if probe.exists() and not probe.is_dir():
             raise ConfigError(f"{flag}: {probe} is a file, not a folder; cannot write {folder}")
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-            self._created += reversed(missing)
-            with tempfile.TemporaryFile(dir=folder):
-                pass
-        except OSError as exc:
-            raise ConfigError(f"{flag}: cannot write to {folder} ({exc.strerror or exc})") from None
+        folder.mkdir(parents=True, exist_ok=True)
+        self._created += reversed(missing)
+        with tempfile.TemporaryFile(dir=folder):
+            pass
 
     def folder(self, path: str | os.PathLike[str], flag: str, *, entries: Sequence[str] | None = None) -> Path:
-        """A results folder: created (with its parents) and test-written now.
+        """A results folder, created (with its parents) and test-written now.
 
-        ``entries``: the names the command will write into it; ``None`` means the
-        whole folder is the result, so any existing content counts as earlier
-        results.  Existing results are refused unless ``overwrite``.
+        ``entries``: the names the command writes into it (``None``: any content counts as earlier results).
         """
-        folder = Path(path)
-        if folder.exists() and not folder.is_dir():
-            raise ConfigError(f"{flag}: {folder} exists and is not a folder")
-        if folder.is_dir() and not self.overwrite:
-            try:
-                present = sorted(p.name for p in folder.iterdir())
-            except OSError as exc:
-                raise ConfigError(f"{flag}: cannot read {folder} ({exc.strerror or exc})") from None
-            clash = present if entries is None else [e for e in entries if e in present]
-            if clash:
-                shown = ", ".join(clash[:4]) + (", ..." if len(clash) > 4 else "")
-                raise ConfigError(
-                    f"{flag}: {folder} already holds results ({shown}); pass --overwrite to replace them, "
-                    "or choose another path"
-                )
-        self._make_writable_dir(folder, flag)
-        return folder
+
+        def check(folder: Path) -> None:
+            if folder.exists() and not folder.is_dir():
+                raise ConfigError(f"{flag}: {folder} exists and is not a folder")
+            if folder.is_dir() and not self.overwrite:
+                present = sorted(p.name for p in folder.iterdir() if PARTIAL not in p.name)
+                clash = present if entries is None else [e for e in entries if e in present]
+                if clash:
+                    shown = ", ".join(clash[:4]) + (", ..." if len(clash) > 4 else "")
+                    raise ConfigError(f"{flag}: {folder} already holds results ({shown}); pass --overwrite to "
+                                      "replace them, or choose another path")
+            self._make_writable_dir(folder, flag)
+
+        return self._checked(path, flag, check)
 
     def file(self, path: str | os.PathLike[str], flag: str, *, suffixes: Sequence[str] | None = None) -> Path:
         """An output file: its folder is created and test-written now; an existing file needs ``overwrite``."""
-        target = Path(path)
-        if suffixes is not None and target.suffix.lower() not in suffixes:
-            raise ConfigError(f"{flag}: got {str(target)!r}, expected a file name ending in one of {list(suffixes)}")
-        if target.exists() or target.is_symlink():
-            if not target.is_file():
-                raise ConfigError(f"{flag}: {target} exists and is not a regular file")
-            if not self.overwrite:
-                raise ConfigError(f"{flag}: {target} already exists; pass --overwrite to replace it, "
-                                  "or choose another path")
-        self._make_writable_dir(target.parent if str(target.parent) else Path("."), flag)
-        return target
+
+        def check(target: Path) -> None:
+            if suffixes is not None and target.suffix.lower() not in suffixes:
+                raise ConfigError(f"{flag}: got {str(target)!r}, expected a file name ending in one of "
+                                  f"{list(suffixes)}")
+            if target.exists() or target.is_symlink():
+                if not target.is_file():
+                    raise ConfigError(f"{flag}: {target} exists and is not a regular file")
+                if not self.overwrite:
+                    raise ConfigError(f"{flag}: {target} already exists; pass --overwrite to replace it, "
+                                      "or choose another path")
+            self._make_writable_dir(target.parent, flag)
+
+        return self._checked(path, flag, check)
 
     def discard(self) -> None:
-        """Remove the folders this plan created that are still empty (the command failed)."""
+        """Remove the folders this plan created that are still empty."""
         for folder in reversed(self._created):
-            try:
+            with contextlib.suppress(OSError):
                 folder.rmdir()
-            except OSError:
-                pass
         self._created.clear()
 
+    def __enter__(self) -> OutputPlan:
+        return self
 
-def guarded_outputs(plan: OutputPlan, work: Callable[[], Any]) -> Any:
-    """Run ``work()``; on any failure remove the empty folders ``plan`` created, then re-raise."""
+    def __exit__(self, kind: type[BaseException] | None, *_: object) -> None:
+        if kind is not None:
+            self.discard()
+
+
+@contextlib.contextmanager
+def staged(*paths: str | os.PathLike[str]) -> Iterator[list[Path]]:
+    """Temporary paths beside ``paths`` (same suffix) to write; all renamed into place if the block succeeds.
+
+    On any exception (Ctrl-C included) the temporary files are removed and ``paths`` keep what they held.
+    """
+    targets = [Path(p) for p in paths]
+    temps = [t.with_name(f".{t.stem}.{os.getpid()}{PARTIAL}{t.suffix}") for t in targets]
     try:
-        return work()
-    except BaseException:
-        plan.discard()
-        raise
+        yield temps
+        for temp, target in zip(temps, targets):
+            os.replace(temp, target)
+    finally:
+        for temp in temps:
+            with contextlib.suppress(FileNotFoundError):
+                temp.unlink()
+
+
+def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], Any]) -> Path:
+    """Call ``write(temporary_path)``, then rename the complete file to ``path`` (see :func:`staged`)."""
+    with staged(path) as (temp,):
+        write(temp)
+    return Path(path)
+
+
+# ---------------------------------------------------------------------------------------- progress
+def progress(total: int, desc: str, unit: str = "step", enabled: bool = True, leave: bool = True) -> Any:
+    """A progress bar on stderr with rate and time left: tqdm's if installed, else a line per tenth of the work.
+
+    The object has tqdm's ``update(n)``, ``set_postfix_str(s)`` and ``close()``.
+    """
+    try:
+        from tqdm import tqdm
+    except ImportError:
+        return _Lines(total, desc, unit, enabled)
+    return tqdm(total=total, desc=desc, unit=unit, disable=not enabled, leave=leave)
+
+
+class _Lines:
+    """The plain fallback of :func:`progress` (``set_postfix_str`` and ``close`` do nothing)."""
+
+    def __init__(self, total: int, desc: str, unit: str, enabled: bool) -> None:
+        self.total, self.desc, self.unit, self.enabled = max(int(total), 1), desc, unit, enabled
+        self.n, self.shown, self.t0 = 0, 0, time.perf_counter()
+        self.set_postfix_str = self.close = lambda *_: None
+
+    def update(self, n: int = 1) -> None:
+        self.n += n
+        if self.enabled and 10 * self.n // self.total > self.shown:
+            self.shown, rate = 10 * self.n // self.total, self.n / max(time.perf_counter() - self.t0, 1e-9)
+            print(f"{self.desc}: {self.n}/{self.total} {self.unit}s, {rate:.1f} {self.unit}/s, "
+                  f"{(self.total - self.n) / rate:.0f} s left", file=sys.stderr, flush=True)

@@ -1,54 +1,15 @@
 """Exception hierarchy of :mod:`aasoatt_env`, one class per meaning.
 
-Every error the library raises on purpose derives from :class:`AASOATTError`, so
-``except aasoatt_env.AASOATTError`` catches all of them.  Errors about bad input
-also derive from :class:`ValueError` and call-order mistakes from
-:class:`RuntimeError`, so code written against the standard library's
-conventions keeps working.  Unknown keyword arguments raise
-:class:`UnknownKeywordError`, a :class:`TypeError` with Python's own wording
-(some clients probe constructors with extra keywords and expect it).
-
-================================  =================================================
-class                             raised when
-================================  =================================================
-:class:`AASOATTError`             root of the hierarchy
-:class:`ConfigError`              a parameter, gain, preset or option is invalid
-                                  (``ValueError``)
-:class:`ScenarioError`            a scenario is unknown or cannot be realised, e.g.
-                                  more robots than fit on the circle
-                                  (a :class:`ConfigError`)
-:class:`SolverError`              a QP back-end is unknown or not installed
-                                  (a :class:`ConfigError`)
-:class:`ActionError`              an action passed to ``step`` is malformed (shape,
-                                  NaN, unknown or missing agent) (``ValueError``)
-:class:`StateError`               a state array handed to the env-free filter core
-                                  is malformed (shape, NaN) (``ValueError``)
-:class:`DataFileError`            a file to load is missing, corrupted or not what
-                                  it claims; the message names the file
-                                  (``ValueError``)
-:class:`UsageError`               a method is called when the object is not ready
-                                  for it, e.g. ``step`` before ``reset``, wrapping
-                                  an env twice (``RuntimeError``)
-:class:`ResetNeeded`              the env must be reset first (a :class:`UsageError`)
-:class:`UnknownKeywordError`      an unknown keyword argument or option name
-                                  (``TypeError``, Python's wording)
-================================  =================================================
+Every error raised on purpose derives from :class:`AASOATTError`. Bad input is also a :class:`ValueError`,
+a call at the wrong time a :class:`RuntimeError`, and an unknown keyword a :class:`TypeError` worded as
+Python's own (some clients probe constructors with extra keywords and expect it), so code written
+against the standard library's conventions keeps working.
 """
 
 from __future__ import annotations
 
-__all__ = [
-    "AASOATTError",
-    "ActionError",
-    "ConfigError",
-    "DataFileError",
-    "ResetNeeded",
-    "ScenarioError",
-    "SolverError",
-    "StateError",
-    "UnknownKeywordError",
-    "UsageError",
-]
+__all__ = ["AASOATTError", "ActionError", "ConfigError", "DataFileError", "ResetNeeded", "ScenarioError",
+           "SolverError", "StateError", "UnknownKeywordError", "UsageError"]
 
 
 class AASOATTError(Exception):
@@ -60,7 +21,7 @@ class ConfigError(AASOATTError, ValueError):
 
 
 class ScenarioError(ConfigError):
-    """A scenario is unknown or its parameters cannot be realised."""
+    """A scenario is unknown or its parameters cannot be realised (e.g. more robots than fit on the circle)."""
 
 
 class SolverError(ConfigError):
@@ -68,7 +29,7 @@ class SolverError(ConfigError):
 
 
 class ActionError(AASOATTError, ValueError):
-    """An action passed to ``step`` is malformed."""
+    """An action passed to ``step`` is malformed (shape, dtype, NaN, unknown or missing agent)."""
 
 
 class StateError(AASOATTError, ValueError):
@@ -80,7 +41,7 @@ class DataFileError(AASOATTError, ValueError):
 
 
 class UsageError(AASOATTError, RuntimeError):
-    """A method was called when the object is not in a state that allows it."""
+    """A method was called when the object is not ready for it (``step`` before ``reset``, wrapping twice)."""
 
 
 class ResetNeeded(UsageError):

@@ -1,13 +1,8 @@
-"""The one validation layer: typed checks with the valid range in the message.
+"""The one validation layer: typed checks whose errors read ``"<name>: got <value>, expected <what>"``.
 
-Every entry point (env and scenario keywords, :class:`~aasoatt_env.safety.config.FilterConfig`,
-:class:`~aasoatt_env.sim.rewards.RewardConfig`, the command line, the loaders)
-checks its inputs with these functions, so a bad value always gets the same kind
-of error: a :class:`~aasoatt_env.errors.ConfigError` (a ``ValueError``) of the
-form ``"<name>: got <value>, expected <what>"``.  Types are checked *before*
-any conversion: ``True`` is not the integer 1, ``"2"`` is not the number 2 and
-a complex number is not a real one.  Unknown keyword arguments are a
-``TypeError`` (Python's convention), see :func:`reject_unknown`.
+Every entry point (env, scenario, filter and reward keywords, the command line, the loaders) checks
+its inputs here, so a bad value always raises a :class:`~aasoatt_env.errors.ConfigError`. Types are
+checked before any conversion: ``True`` is not 1, ``"2"`` is not 2, a complex number is not real.
 """
 
 from __future__ import annotations
@@ -15,46 +10,24 @@ from __future__ import annotations
 import json
 import math
 import numbers
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
 
 from aasoatt_env.errors import ConfigError, UnknownKeywordError
 
-__all__ = [
-    "MAGNITUDE_MAX",
-    "boolean",
-    "choice",
-    "integer",
-    "parse_assignments",
-    "parse_value",
-    "positive",
-    "real",
-    "real_array",
-    "reject_unknown",
-    "shapes",
-    "short_repr",
-]
+__all__ = ["MAGNITUDE_MAX", "boolean", "choice", "integer", "parse_assignments", "parse_value", "positive", "real",
+           "real_array", "reject_unknown", "shapes", "short_repr"]
 
 
 MAGNITUDE_MAX: float = 1e9
-"""Largest magnitude :func:`real` accepts when no tighter bound is given.
-
-No parameter of this library is meaningful beyond ``1e9`` in SI units, and much
-larger finite values (``1e308``) overflow to ``inf`` the first time they are
-squared, so they are rejected at the edge instead of surfacing as ``inf``/NaN
-rewards or corrections later."""
+"""Largest magnitude :func:`real` accepts by default: no parameter means anything beyond it in SI units, and
+far larger values (``1e308``) overflow to ``inf`` when squared, so they are refused at the edge."""
 
 
 def _is_real(value: Any) -> bool:
     return isinstance(value, numbers.Real) and not isinstance(value, (bool, np.bool_))
-
-
-def _interval(lo: float | None, hi: float | None, lo_open: bool, hi_open: bool) -> str:
-    left = "-inf" if lo is None else f"{lo:g}"
-    right = "inf" if hi is None else f"{hi:g}"
-    return f"{'(' if lo_open or lo is None else '['}{left}, {right}{')' if hi_open or hi is None else ']'}"
 
 
 def short_repr(value: Any, limit: int = 80) -> str:
@@ -86,65 +59,35 @@ def _describe(kind: str, lo: float | None, hi: float | None, lo_open: bool, hi_o
         return f"{kind} {'>' if lo_open else '>='} {lo:g}"
     if hi is None and lo is None:
         return kind
-    return f"{kind} in {_interval(lo, hi, lo_open, hi_open)}"
+    left, right = ("(-inf" if lo is None else f"{'(' if lo_open else '['}{lo:g}"), f"{hi:g}{')' if hi_open else ']'}"
+    return f"{kind} in {left}, {right}"
 
 
-def real(
-    name: str,
-    value: Any,
-    *,
-    lo: float | None = None,
-    hi: float | None = None,
-    lo_open: bool = False,
-    hi_open: bool = False,
-    allow_inf: bool = False,
-) -> float:
-    """Return ``value`` as a float after checking its type, finiteness and range.
+def real(name: str, value: Any, *, lo: float | None = None, hi: float | None = None, lo_open: bool = False,
+         hi_open: bool = False, allow_inf: bool = False) -> float:
+    """Return ``value`` (a real number: not a bool, not a string) as a float in ``[lo, hi]``.
 
-    Parameters
-    ----------
-    name : str
-        Name used in the error message (e.g. ``"RobotParams.radius"``).
-    value : object
-        A real number (``int``, ``float`` or numpy scalar; not ``bool``, not a string).
-    lo, hi : float, optional
-        Bounds of the valid interval.
-    lo_open, hi_open : bool
-        Whether the bounds are excluded.
-    allow_inf : bool
-        Accept ``+inf`` (e.g. "no limit").
-
-    Raises
-    ------
-    ConfigError
-        Naming ``name``, the value and the valid interval.
+    ``lo_open``/``hi_open`` exclude the bounds (default ``+-MAGNITUDE_MAX``); ``allow_inf`` accepts ``+inf``
+    ("no limit").  The :class:`ConfigError` names ``name``, the value and the valid interval.
     """
-    if hi is None:
-        hi = MAGNITUDE_MAX
-    if lo is None:
-        lo = -MAGNITUDE_MAX
+    lo = -MAGNITUDE_MAX if lo is None else lo
+    hi = MAGNITUDE_MAX if hi is None else hi
     expected = _describe(f"a {'' if allow_inf else 'finite '}number", lo, hi, lo_open, hi_open)
-    if allow_inf:
-        expected += " or inf"
+    expected += " or inf" if allow_inf else ""
     if not _is_real(value):
         raise ConfigError(f"{name}: got {short_repr(value)} ({type(value).__name__}), expected {expected}")
     try:
         v = float(value)
     except OverflowError:  # an int beyond the float range
-        raise ConfigError(f"{name}: got {short_repr(value)}, expected {expected}") from None
-    ok = not math.isnan(v) and (math.isfinite(v) or (allow_inf and v == math.inf))
-    if ok and lo is not None:
-        ok = v > lo if lo_open else v >= lo
-    if ok and hi is not None and math.isfinite(v):
-        ok = v < hi if hi_open else v <= hi
-    if not ok:
+        v = math.nan
+    inside = (v > lo if lo_open else v >= lo) and (v < hi if hi_open else v <= hi)
+    if not ((math.isfinite(v) and inside) or (allow_inf and v == math.inf)):
         raise ConfigError(f"{name}: got {short_repr(value)}, expected {expected}")
     return v
 
 
-def positive(
-    name: str, value: Any, *, allow_inf: bool = False, hi: float | None = None, lo: float | None = None
-) -> float:
+def positive(name: str, value: Any, *, allow_inf: bool = False, hi: float | None = None,
+             lo: float | None = None) -> float:
     """:func:`real` with ``value > 0`` (or ``>= lo`` when given) and ``<= hi``."""
     if lo is not None:
         return real(name, value, lo=lo, hi=hi, allow_inf=allow_inf)
@@ -152,52 +95,40 @@ def positive(
 
 
 def integer(name: str, value: Any, *, lo: int | None = None, hi: int | None = None) -> int:
-    """Return ``value`` as an int after checking it is an integer (not a bool) in ``[lo, hi]``.
-
-    An integral float (``20.0``) is accepted; ``True``, ``"3"``, ``2.5``, NaN and
-    infinities are not.  ``hi`` bounds sizes whose work would be unreasonable
-    (the message says so).
-    """
+    """Return ``value`` as an int in ``[lo, hi]``: ``20.0`` is one; ``True``, ``"3"`` and ``2.5`` are not."""
     rng = _describe("an integer", lo, hi, False, False)
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, numbers.Real):
         raise ConfigError(f"{name}: got {short_repr(value)} ({type(value).__name__}), expected {rng}")
-    if isinstance(value, numbers.Integral):
-        v = int(value)
-    else:
-        f = float(value)
-        if not (math.isfinite(f) and f.is_integer()):
-            raise ConfigError(f"{name}: got {short_repr(value)}, expected {rng}")
-        v = int(f)
-    if (lo is not None and v < lo) or (hi is not None and v > hi):
+    integral = isinstance(value, numbers.Integral) or (math.isfinite(float(value)) and float(value).is_integer())
+    v = int(value) if integral else 0
+    if not integral or (lo is not None and v < lo) or (hi is not None and v > hi):
         raise ConfigError(f"{name}: got {short_repr(value)}, expected {rng}")
     return v
 
 
-def real_array(
-    name: str, value: Any, *, lo: float = -MAGNITUDE_MAX, hi: float = MAGNITUDE_MAX, unit: str = ""
-) -> np.ndarray:
+def real_array(name: str, value: Any, *, lo: float = -MAGNITUDE_MAX, hi: float = MAGNITUDE_MAX,
+               unit: str = "") -> np.ndarray:
     """Return ``value`` as a new float64 array of finite numbers in ``[lo, hi]`` (any shape; callers check it).
 
-    Types are checked before conversion: booleans, complex numbers, strings
-    (``"2"``) and other objects are refused, not coerced.
+    Booleans, complex numbers, strings and other objects are refused, not coerced.
     """
-    rng = f"finite numbers in [{lo:g}, {hi:g}]{unit}"
+    def bad(detail: str = "") -> ConfigError:
+        return ConfigError(f"{name}: got {short_repr(value)}{detail}, expected an array of finite numbers in "
+                           f"[{lo:g}, {hi:g}]{unit}")
+
     try:
         raw = np.asarray(value)
-    except (TypeError, ValueError, OverflowError):  # ragged nesting, broken __array__
-        raise ConfigError(f"{name}: got {short_repr(value)}, expected an array of {rng}") from None
-    if raw.dtype.kind == "O":  # Python ints beyond int64, or a mix of objects
-        if not all(_is_real(x) for x in raw.reshape(-1).tolist()):
-            raise ConfigError(f"{name}: got {short_repr(value)}, expected an array of {rng}")
-        try:
+        if raw.dtype.kind == "O" and all(_is_real(x) for x in raw.reshape(-1).tolist()):  # ints beyond int64
             raw = np.array([float(x) for x in raw.reshape(-1).tolist()]).reshape(raw.shape)
-        except OverflowError:
-            raise ConfigError(f"{name}: got {short_repr(value)}, expected an array of {rng}") from None
-    elif raw.dtype.kind not in "fiu":
-        raise ConfigError(f"{name}: got {short_repr(value)} (dtype {raw.dtype}), expected an array of {rng}")
+    except (TypeError, ValueError, OverflowError):  # ragged nesting, a broken __array__, ints beyond floats
+        raise bad() from None
+    if raw.dtype.kind == "O":
+        raise bad()
+    if raw.dtype.kind not in "fiu":
+        raise bad(f" (dtype {raw.dtype})")
     arr = np.array(raw, dtype=np.float64)
     if arr.size and not (np.isfinite(arr).all() and arr.min() >= lo and arr.max() <= hi):
-        raise ConfigError(f"{name}: got {short_repr(value)}, expected an array of {rng}")
+        raise bad()
     return arr
 
 
@@ -217,12 +148,10 @@ def choice(name: str, value: Any, options: Iterable[str]) -> str:
 
 
 def reject_unknown(owner: str, given: Iterable[str], known: Iterable[str]) -> None:
-    """Raise :class:`~aasoatt_env.errors.UnknownKeywordError` (a ``TypeError``) naming unknown keywords.
+    """Raise :class:`~aasoatt_env.errors.UnknownKeywordError` naming the keywords of ``given`` not in ``known``.
 
-    The keywords of ``given`` that are not in ``known`` are named, and the known ones listed.
-
-    The wording is Python's own (``f() got an unexpected keyword argument 'x'``):
-    some clients (TorchRL's ``GymEnv``) probe constructors and match on it.
+    The wording is Python's own (``f() got an unexpected keyword argument 'x'``): some clients (TorchRL's
+    ``GymEnv``) probe constructors and match on it.
     """
     known_set = set(known)
     unknown = sorted(str(k) for k in given if k not in known_set)
@@ -235,7 +164,7 @@ def parse_value(text: str) -> Any:
     """A command-line ``KEY=VALUE`` value: JSON when it parses (numbers, true/false, lists), else the string."""
     try:
         return json.loads(text)
-    except json.JSONDecodeError:
+    except (json.JSONDecodeError, RecursionError):  # not JSON, or nested beyond the parser's depth
         return text
 
 
@@ -249,9 +178,3 @@ def parse_assignments(items: Iterable[str] | None, flag: str) -> dict[str, Any]:
         out[key.strip().replace("-", "_")] = parse_value(val.strip())
     return out
 
-
-def mapping(name: str, value: Any) -> Mapping[str, Any]:
-    """Return ``value`` if it is a mapping with string keys, else raise."""
-    if not isinstance(value, Mapping) or not all(isinstance(k, str) for k in value):
-        raise ConfigError(f"{name}: got {type(value).__name__}, expected a mapping of option names to values")
-    return value

@@ -63,7 +63,7 @@ def test_forwarded_help_exits_cleanly():
     assert exc.value.code == 0
 
 
-# --------------------------------------------------------------------------- bad options and output paths (issue 15)
+# --------------------------------------------------------------------------- bad options and output paths
 
 
 def _cli(argv, capsys):
@@ -223,3 +223,44 @@ def test_evaluate_keeps_an_existing_table(tmp_path, capsys):
     (tmp_path / "u.json").write_text("earlier")  # the .json beside the table counts too
     code, err, _ = _cli(["evaluate", "--rows", "random", "--episodes", "1", "--out", str(tmp_path / "u.md")], capsys)
     assert code == 2 and "u.json already exists" in err[0] and not (tmp_path / "u.md").exists()
+
+
+# --------------------------------------------------------------------------- option errors name the option, exit 2
+LONG = "x" * 300
+
+
+def _refused(tmp: Path) -> list[tuple[list[str], str]]:
+    (tmp / "page.md").write_text("earlier page")
+    return [
+        (["run", "--out", ""], "argument --out: got '', expected a path"),
+        (["run", "--out", LONG], "argument --out: got a path of 300 bytes"),
+        (["run", "--out", f"new/{LONG}/x"], "argument --out: got a path of 306 bytes"),
+        (["run", "--out", "new/a\0b"], "argument --out: got 'new/a\\x00b', expected a path"),
+        (["run", "--gif", ""], "argument --gif: got '', expected a path"),
+        (["run", "--gif", f"new/{LONG}.gif"], "argument --gif: got a path of 308 bytes"),
+        (["run", "--out", "new/run", "--gif", "new2/a.txt"], "--gif: got 'new2/a.txt', expected a file name ending"),
+        (["run", "--out", "new/run", "-p", "radius=-1"], "radius: got -1"),
+        (["run", "--out", "new/run", "--solver", "nope"], "--solver: got 'nope', expected one of"),
+        (["run", "--out", "new/run", "--robots", "0"], "argument --robots: got 0, expected an integer in [1,"),
+        (["run", "--out", "new/run", "--fps", "1e3"], "argument --fps: got '1e3', expected an integer in [1, 1000]"),
+        (["run", "--out", "new/run", "--seed", "9" * 5000], "argument --seed: got '99999"),
+        (["run", "--out", "new/run", "--goal-tolerance", "inf"], "argument --goal-tolerance: got inf"),
+        (["list", "--out", "new"], "unrecognized arguments: --out new"),
+        (["reproduce", "table1", "--out", ""], "argument --out: got '', expected a path"),
+        (["reproduce", "table1", "--out", LONG], "argument --out: got a path of 300 bytes"),
+        (["reproduce", "table1", "--page", ""], "argument --page: got '', expected a path"),
+        (["reproduce", "table1", "--out", "new", "--page", "new2/t.txt"], "--page: got 'new2/t.txt', expected a "
+         "file name ending in one of ['.md']"),
+        (["reproduce", "table1", "--out", "new", "--page", "page.md"], "--page: page.md already exists; pass "
+         "--overwrite"),
+        (["reproduce", "table1", "--out", "new", "--jobs", "-1"], "argument --jobs: got -1"),
+    ]
+
+
+def test_refused_options_name_the_option_exit_2_and_leave_no_folder(tmp_path, capsys, no_work, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for argv, expected in _refused(tmp_path):
+        code, err, _ = _cli(argv, capsys)
+        assert code == 2, (argv, code, err)
+        assert len(err) == 1 and expected in err[0] and len(err[0]) < 400, (argv, err)
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["page.md"], argv  # no folder made, none left

@@ -30,7 +30,7 @@ QUICK_FILES = {
 @pytest.fixture(scope="module")
 def quick_results(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("results")
-    assert main(["all", "--quick", "--out", str(out), "--no-progress"]) == 0
+    assert main(["all", "--quick", "--out", str(out), "--no-progress", "--page", str(out / "page.md")]) == 0
     return out
 
 
@@ -54,6 +54,12 @@ def test_all_quick_writes_files(quick_results: Path) -> None:
             assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     summary = (quick_results / "SUMMARY.md").read_text()
     assert "Total wall time" in summary
+    page = (quick_results / "page.md").read_text()
+    assert f"aasoatt reproduce all --quick --out {quick_results} --no-progress --page" in page.splitlines()[5]
+    for name in EXPERIMENTS:  # every experiment's results table, as in its README
+        readme = (quick_results / name / "README.md").read_text()
+        table = readme[readme.index("## Results"):].split("\n\n")[1]
+        assert table in page, name
 
 
 @pytest.mark.slow
@@ -151,3 +157,56 @@ def test_window_cuts_rollout() -> None:
     res = run_spec(spec)
     errs = np.linalg.norm(cut.positions - cut.references, axis=-1)
     assert res.metrics["rmse"] == pytest.approx(float(np.sqrt(np.mean(errs**2))), rel=1e-12)
+
+
+def test_page_is_headed_by_the_command_and_never_overwritten_silently(tmp_path, monkeypatch, capsys) -> None:
+    import aasoatt_env.apps.reproduce as reproduce
+    from aasoatt_env.apps.reproduce.report import Report
+
+    def fake(exp, s):
+        return Report(exp.name, exp.title, s.out, [{"key": "k", "rmse": 0.5}], ["one setting"],
+                      ["## Results\n\n| a |\n|---|\n| 1 |", "## Findings\n\n- f"], [])
+
+    monkeypatch.setattr(reproduce, "run", fake)
+    monkeypatch.chdir(tmp_path)
+    argv = ["table1", "--quick", "--out", "res", "--page", "docs/results.md", "--no-progress"]
+    assert main(argv) == 0
+    page = (tmp_path / "docs/results.md").read_text().splitlines()
+    assert page[0].startswith("# ") and page[4:7] == ["```", "aasoatt reproduce " + " ".join(argv), "```"]
+    assert "## Table I - single-robot trajectory tracking" in page and "### Results" in page and "- one setting" in page
+    assert (tmp_path / "res/table1/table1.csv").read_text().splitlines() == ["key,rmse", "k,0.5"]
+    assert main([*argv[:2], "--out", "res2", *argv[4:]]) == 2  # an existing page needs --overwrite
+    assert "--page: docs/results.md already exists; pass --overwrite" in capsys.readouterr().err
+    assert not (tmp_path / "res2").exists()
+
+
+def test_an_experiment_declares_runs_and_columns_and_the_runner_tabulates_them(tmp_path) -> None:
+    from aasoatt_env.apps.reproduce.report import Experiment, Settings, col, compared, run
+
+    class Tiny(Experiment):
+        name, title, metrics = "tiny", "Tiny", ("rmse",)
+
+        def _specs(self, s):
+            return [RunSpec(f"k3={k3}", "tracking", dict(trajectory="straight", duration=0.5), "tracking", k3, 4.0,
+                            meta={"k3": k3}) for k3 in (1.0, 2.0)]
+
+        def _paper(self, spec):
+            return {"rmse": 0.01} if spec.meta["k3"] == 1.0 else None
+
+        def _columns(self, s):
+            return [col("k3", "k3", 1), *compared(self.metrics)]
+
+        def _findings(self, s, res):
+            return [f"{len(res)} runs"]
+
+    report = run(Tiny(), Settings(out=tmp_path, progress=False))
+    first, second = report.rows
+    assert first["paper_rmse"] == 0.01 and first["rel_rmse"] == pytest.approx(first["rmse"] / 0.01 - 1)
+    assert second["paper_rmse"] is None and second["rel_rmse"] is None
+    table = report.sections[0].splitlines()
+    assert table[2] == "| k3 | RMSE paper | RMSE ours | rel. |"
+    assert table[4] == f"| 1.0 | 0.0100 | {first['rmse']:.4f} | {100 * first['rel_rmse']:+.1f}% |"
+    assert table[5] == f"| 2.0 | - | {second['rmse']:.4f} | - |" and report.sections[-1] == "## Findings\n\n- 2 runs"
+    csv_path, md_path = report.write(1.0, "cmd")
+    assert _rows(csv_path)[1]["paper_rmse"] == "" and "Command: `cmd`" in md_path.read_text()
+    assert sorted(p.name for p in report.dir.iterdir()) == ["README.md", "tiny.csv"]

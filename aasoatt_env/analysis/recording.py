@@ -1,13 +1,9 @@
-"""Record episodes of a (possibly filtered) parallel env into :class:`~aasoatt_env.analysis.rollout.Rollout`.
+"""Record episodes of a (possibly filtered) parallel env into a :class:`~aasoatt_env.analysis.rollout.Rollout`.
 
-:class:`RecordEpisode` is a PettingZoo parallel wrapper that records, after
-``reset`` and after every ``step``, the team's positions, velocities, headings,
-reference, the actions given, and, behind a control filter, what the env's
-public ``filter_outputs`` say: the applied actions and avoidance flags, plus,
-for the :class:`~aasoatt_env.safety.core.SafetyFilter`, deadlock triggers,
-solver status, slack and solve time.
-:func:`run_episode` drives an agent through one episode and returns the
-rollout (and optional rendered frames).
+:class:`RecordEpisode` records after ``reset`` and every ``step`` the team's state, reference and the
+actions given and, behind a control filter, what its public ``filter_outputs`` say (applied actions and
+avoidance flags; for the :class:`~aasoatt_env.safety.core.SafetyFilter` also deadlock triggers, backup
+braking, solver status, slack and solve time).  :func:`run_episode` drives an agent through one episode.
 """
 
 from __future__ import annotations
@@ -18,6 +14,7 @@ import numpy as np
 from pettingzoo.utils.wrappers import BaseParallelWrapper
 
 from aasoatt_env.analysis.rollout import Rollout, RolloutBuilder
+from aasoatt_env.cli_support import progress as progress_bar
 from aasoatt_env.errors import UsageError
 from aasoatt_env.safety.core import SafetyFilter
 from aasoatt_env.safety.wrapper import FilterReport
@@ -26,15 +23,7 @@ __all__ = ["RecordEpisode", "run_episode"]
 
 
 class RecordEpisode(BaseParallelWrapper):
-    """Record every env step of the wrapped parallel env.
-
-    Parameters
-    ----------
-    env : ParallelEnv
-        An :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`, possibly wrapped.
-    metadata : dict, optional
-        JSON-serialisable metadata stored in the rollout.
-    """
+    """Record every step of the wrapped :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` (``metadata``: stored)."""
 
     def __init__(self, env: Any, metadata: dict[str, Any] | None = None) -> None:
         super().__init__(env)
@@ -47,17 +36,10 @@ class RecordEpisode(BaseParallelWrapper):
             raise UsageError("RecordEpisode: call reset() first")
         p_d, v_d, _ = base.reference
         n = len(base.possible_agents)
-        extra = _filter_fields(base, n)
-        self._builder.append(
-            time=base.time,
-            positions=base.positions,
-            velocities=base.velocities,
-            headings=base.headings,
-            references=p_d,
-            reference_velocities=v_d,
-            nominal_actions=actions if actions is not None else np.zeros((n, 2)),
-            **extra,
-        )
+        self._builder.append(time=base.time, positions=base.positions, velocities=base.velocities,
+                             headings=base.headings, references=p_d, reference_velocities=v_d,
+                             nominal_actions=actions if actions is not None else np.zeros((n, 2)),
+                             **_filter_fields(base, n))
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Reset and start a new recording."""
@@ -66,14 +48,8 @@ class RecordEpisode(BaseParallelWrapper):
         c, r = base.obstacles
         meta = {"scenario": base.scenario.name, "dt": base.dt, "decision_interval": base.decision_interval}
         meta.update(self._meta)
-        self._builder = RolloutBuilder(
-            dt=base.dt * base.decision_interval,
-            goals=base.goals,
-            radii=base.radii,
-            obstacle_centers=c,
-            obstacle_radii=r,
-            metadata=meta,
-        )
+        self._builder = RolloutBuilder(dt=base.dt * base.decision_interval, goals=base.goals, radii=base.radii,
+                                       obstacle_centers=c, obstacle_radii=r, metadata=meta)
         self._record(None, infos)
         return obs, infos
 
@@ -127,47 +103,24 @@ def run_episode(
     progress: bool = False,
     metadata: dict[str, Any] | None = None,
 ) -> tuple[Rollout, list[np.ndarray]]:
-    """Run ``agent`` on ``env`` for one episode and return ``(rollout, frames)``.
+    """Run ``agent`` (``reset(env)``, ``act(observations, env)``) on ``env`` for one episode: ``(rollout, frames)``.
 
-    Parameters
-    ----------
-    env : ParallelEnv
-        The (possibly filtered) parallel env; ``render_mode="rgb_array"`` is
-        needed for frames.
-    agent : Agent
-        Anything with ``reset(env)`` and ``act(observations, env)``.
-    seed : int, optional
-        Reset seed.
-    render_every : int, optional
-        Keep a rendered frame every this many env steps.
-    progress : bool
-        Show a tqdm progress bar (if tqdm is installed).
-    metadata : dict, optional
-        Stored in the rollout.
+    ``render_every``: keep a rendered frame every this many env steps (needs ``render_mode="rgb_array"``);
+    ``progress``: a progress bar with rate and time left on stderr.
     """
     rec = RecordEpisode(env, metadata)
     obs, _ = rec.reset(seed=seed)
     agent.reset(rec)
     frames: list[np.ndarray] = []
-    base = env.unwrapped
-    bar = None
-    if progress:
-        try:
-            from tqdm import tqdm
-
-            bar = tqdm(total=base.max_steps, unit="step", desc=base.scenario.name)
-        except ImportError:  # pragma: no cover - tqdm is in the render/train extras
-            bar = None
+    bar = progress_bar(env.unwrapped.max_steps, env.unwrapped.scenario.name, enabled=progress)
     step = 0
     while rec.agents:
         if render_every and step % render_every == 0:
             frames.append(rec.render())
         obs, *_ = rec.step(agent.act(obs, rec))
         step += 1
-        if bar is not None:
-            bar.update(1)
+        bar.update(1)
     if render_every:
         frames.append(rec.render())
-    if bar is not None:
-        bar.close()
+    bar.close()
     return rec.rollout, frames

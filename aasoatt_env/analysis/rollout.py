@@ -1,10 +1,7 @@
 """Recorded episodes: the :class:`Rollout` container and its incremental :class:`RolloutBuilder`.
 
-A :class:`Rollout` holds the per-step arrays of one episode (``T`` recorded steps,
-``N`` robots, ``M`` static obstacles) in the form :mod:`aasoatt_env.analysis.metrics`
-consumes.  Shapes are validated once, in ``__post_init__``, and every array is
-stored as a fresh ``numpy`` array with a fixed dtype (``float64``, ``bool`` or
-``str``), so downstream code never has to re-check them.
+A rollout holds the arrays of one episode of ``T`` recorded steps, ``N`` robots and ``M`` static obstacles,
+checked once on construction (shapes, dtypes, finite values) so the metrics never check them again:
 
 =========================  ==========  ==================================================
 field                      shape       meaning
@@ -18,7 +15,7 @@ field                      shape       meaning
 ``reference_velocities``   ``(T,N,2)`` reference velocities ``v_d_i``
 ``goals``                  ``(N,2)``   final goals
 ``radii``                  ``(N,)``    robot disc radii
-``obstacle_centers``       ``(M,2)``   static obstacle centres (``M`` may be 0)
+``obstacle_centers``       ``(M,2)``   static obstacle centres (default: none)
 ``obstacle_radii``         ``(M,)``    static obstacle radii
 ``nominal_actions``        ``(T,N,2)`` optional: nominal (unfiltered) actions
 ``actions``                ``(T,N,2)`` optional: applied (filtered) actions
@@ -31,9 +28,8 @@ field                      shape       meaning
 ``metadata``               dict        JSON-serialisable: scenario, method, parameters
 =========================  ==========  ==================================================
 
-:meth:`Rollout.save` writes a single ``.npz`` file (the metadata as a JSON
-string, strings as fixed-width unicode, so loading never needs pickle) and
-:meth:`Rollout.load` reads it back.
+:meth:`Rollout.save` writes one ``.npz`` file (metadata as a JSON string, strings as fixed-width
+unicode), so :meth:`Rollout.load` never needs pickle.
 """
 
 from __future__ import annotations
@@ -49,124 +45,92 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from aasoatt_env.cli_support import atomic_write
 from aasoatt_env.errors import ConfigError, DataFileError
 
-__all__ = ["Rollout", "RolloutBuilder"]
+__all__ = ["Rollout", "RolloutBuilder", "checked_array"]
 
 #: Version tag written into saved files.
 FORMAT_VERSION = 1
 
-# (name, shape template, dtype kind); "T", "N", "M" are the symbolic sizes.
-_PER_STEP: tuple[tuple[str, tuple[str | int, ...], str], ...] = (
-    ("positions", ("T", "N", 2), "f"),
-    ("velocities", ("T", "N", 2), "f"),
-    ("headings", ("T", "N"), "f"),
-    ("references", ("T", "N", 2), "f"),
-    ("reference_velocities", ("T", "N", 2), "f"),
-)
-_STATIC: tuple[tuple[str, tuple[str | int, ...], str], ...] = (
-    ("goals", ("N", 2), "f"),
-    ("radii", ("N",), "f"),
-    ("obstacle_centers", ("M", 2), "f"),
-    ("obstacle_radii", ("M",), "f"),
-)
-_OPTIONAL: tuple[tuple[str, tuple[str | int, ...], str], ...] = (
-    ("nominal_actions", ("T", "N", 2), "f"),
-    ("actions", ("T", "N", 2), "f"),
-    ("avoiding", ("T", "N"), "b"),
-    ("triggered", ("T", "N"), "b"),
-    ("backup", ("T", "N"), "b"),
-    ("solver_status", ("T",), "U"),
-    ("slack", ("T",), "f"),
-    ("solve_time", ("T",), "f"),
-)
+Template = tuple[str | int, ...]
+"""A shape whose strings are sizes bound by the first array that has them (``("T", "N", 2)``)."""
+
+# (name, shape template, dtype kind: "f" float, "b" bool, "U" str)
+_PER_STEP: tuple[tuple[str, Template, str], ...] = (
+    ("positions", ("T", "N", 2), "f"), ("velocities", ("T", "N", 2), "f"), ("headings", ("T", "N"), "f"),
+    ("references", ("T", "N", 2), "f"), ("reference_velocities", ("T", "N", 2), "f"))
+_STATIC: tuple[tuple[str, Template, str], ...] = (
+    ("goals", ("N", 2), "f"), ("radii", ("N",), "f"), ("obstacle_centers", ("M", 2), "f"),
+    ("obstacle_radii", ("M",), "f"))
+_OPTIONAL: tuple[tuple[str, Template, str], ...] = (
+    ("nominal_actions", ("T", "N", 2), "f"), ("actions", ("T", "N", 2), "f"), ("avoiding", ("T", "N"), "b"),
+    ("triggered", ("T", "N"), "b"), ("backup", ("T", "N"), "b"), ("solver_status", ("T",), "U"),
+    ("slack", ("T",), "f"), ("solve_time", ("T",), "f"))
 
 
-def _fmt_shape(shape: tuple[str | int, ...]) -> str:
-    return "(" + ", ".join(str(s) for s in shape) + ("," if len(shape) == 1 else "") + ")"
+def _fmt_shape(template: Template, sizes: dict[str, int] | None = None) -> str:
+    dims = [str(sizes.get(s, s) if sizes is not None and isinstance(s, str) else s) for s in template]
+    return "(" + ", ".join(dims) + ("," if len(dims) == 1 else "") + ")"
 
 
-def _as_array(name: str, value: Any, kind: str) -> np.ndarray:
-    """Convert ``value`` to a fresh array of the dtype ``kind`` ('f', 'b' or 'U')."""
+def _convert(name: str, value: Any, kind: str) -> np.ndarray:
+    """A fresh array of the dtype ``kind``: real numbers (no strings, no complex), bool (or 0/1), or str."""
     try:
-        if kind == "f":
-            raw = np.asarray(value)
-            if raw.dtype.kind in "cSUV":  # no silent loss of an imaginary part, no parsing of strings
-                raise ConfigError(f"{name}: got dtype {raw.dtype}, expected real numbers")
-            arr = np.array(raw, dtype=np.float64)
-        elif kind == "b":
-            arr = np.array(value)
-            if arr.dtype != np.bool_:
-                if arr.size and not np.isin(arr, (0, 1)).all():
-                    raise ConfigError(f"{name}: got non-boolean values, expected bool (or 0/1) entries")
-                arr = arr.astype(np.bool_)
-        else:
-            arr = np.array(value, dtype=np.str_)
+        if kind == "U":
+            return np.array(value, dtype=np.str_)
+        raw = np.asarray(value)
+        if kind == "f" and raw.dtype.kind in "cSUV":
+            raise ConfigError(f"{name}: got dtype {raw.dtype}, expected real numbers")
+        if kind == "b" and raw.dtype != np.bool_ and raw.size and not np.isin(raw, (0, 1)).all():
+            raise ConfigError(f"{name}: got non-boolean values, expected bool (or 0/1) entries")
+        return np.array(raw, dtype=np.float64 if kind == "f" else np.bool_)
     except (TypeError, ValueError) as exc:
         if isinstance(exc, ConfigError):
             raise
-        dtype = {"f": "float", "b": "bool", "U": "str"}[kind]
+        dtype = {"f": "float", "b": "bool"}[kind]
         raise ConfigError(f"{name}: cannot be converted to a {dtype} array ({exc})") from None
+
+
+def checked_array(name: str, value: Any, template: Template, sizes: dict[str, int], kind: str = "f", *,
+                  finite: bool = True) -> np.ndarray:
+    """``value`` as a fresh array of dtype ``kind`` and shape ``template`` (float arrays finite, if ``finite``).
+
+    Symbolic sizes already in ``sizes`` must match; new ones are bound into it.  Shared by
+    :class:`Rollout` and :mod:`~aasoatt_env.analysis.plotting`, so both word a bad array the same way.
+    """
+    arr = _convert(name, value, kind)
+    ok = arr.ndim == len(template)
+    for dim, sym in zip(arr.shape, template) if ok else ():
+        ok = ok and dim == (sym if isinstance(sym, int) else sizes.setdefault(sym, dim))
+    if not ok:
+        extra = f" ({len(template)} dimensions)" if arr.ndim != len(template) else ""
+        raise ConfigError(f"{name}: got shape {arr.shape}, expected {_fmt_shape(template)} = "
+                          f"{_fmt_shape(template, sizes)}{extra}")
+    if kind == "f" and finite and not np.isfinite(arr).all():
+        bad = np.argwhere(~np.isfinite(arr))[0].tolist()
+        raise ConfigError(f"{name}: got a non-finite value at index {bad}, expected finite numbers")
     return arr
 
 
-def _check_shape(name: str, arr: np.ndarray, template: tuple[str | int, ...], sizes: dict[str, int]) -> None:
-    """Check ``arr.shape`` against ``template``; bind unknown symbols into ``sizes``."""
-    expected = _fmt_shape(template)
-    bound = _fmt_shape(tuple(sizes.get(s, s) if isinstance(s, str) else s for s in template))
-    if arr.ndim != len(template):
-        raise ConfigError(
-            f"{name}: got shape {arr.shape}, expected {expected} = {bound} ({len(template)} dimensions)"
-        )
-    for dim, sym in zip(arr.shape, template):
-        if isinstance(sym, int):
-            ok = dim == sym
-        elif sym in sizes:
-            ok = dim == sizes[sym]
-        else:
-            sizes[sym] = dim
-            ok = True
-        if not ok:
-            bound = _fmt_shape(tuple(sizes.get(s, s) if isinstance(s, str) else s for s in template))
-            raise ConfigError(f"{name}: got shape {arr.shape}, expected {expected} = {bound}")
+def _positive_dt(value: Any) -> float:
+    dt = math.nan
+    if not isinstance(value, (str, bytes, np.str_, np.bytes_, bool, np.bool_)):
+        try:
+            dt = float(value)
+        except (TypeError, ValueError, OverflowError):
+            pass
+    if not (math.isfinite(dt) and dt > 0):
+        raise ConfigError(f"dt: got {value!r}, expected a finite positive number")
+    return dt
 
 
 @dataclass
 class Rollout:
-    """One recorded episode of ``T`` steps, ``N`` robots and ``M`` static obstacles.
+    """One recorded episode (fields: see the module docstring).
 
-    See the module docstring for the field table.  All arrays are copied and
-    converted on construction; a :class:`~aasoatt_env.errors.ConfigError` names
-    the first field whose shape or value is wrong and the shape it should have.
-
-    Parameters
-    ----------
-    dt : float
-        Time between two recorded steps [s] (positive).
-    times : array_like, shape (T,)
-        Time stamps [s], non-decreasing.
-    positions, velocities, references, reference_velocities : array_like, shape (T, N, 2)
-        Control points, their velocities, reference points ``p_d`` and reference velocities.
-    headings : array_like, shape (T, N)
-        Headings [rad].
-    goals : array_like, shape (N, 2)
-        Final goal of each robot.
-    radii : array_like, shape (N,)
-        Disc radius of each robot (positive).
-    obstacle_centers : array_like, shape (M, 2), optional
-        Static obstacle centres; default: no obstacles.
-    obstacle_radii : array_like, shape (M,), optional
-        Static obstacle radii (positive).
-    nominal_actions, actions : array_like, shape (T, N, 2), optional
-        Nominal and applied (filtered) actions.
-    avoiding, triggered, backup : array_like of bool, shape (T, N), optional
-        Robot in collision avoidance; deadlock-resolution rule active.
-    solver_status : array_like of str, shape (T,), optional
-        QP status string of each step.
-    slack, solve_time : array_like, shape (T,), optional
-        Total relaxation of the step's constraint rows; solver wall time [s].
-    metadata : dict, optional
-        JSON-serialisable description (scenario, method, parameters).
+    Every array is copied and converted on construction; a :class:`~aasoatt_env.errors.ConfigError`
+    names the first field with a wrong shape or value and the shape it should have.
     """
 
     dt: float
@@ -190,60 +154,28 @@ class Rollout:
     solve_time: np.ndarray | None = None
     metadata: dict[str, Any] = field(default_factory=dict)
 
-    ARRAY_FIELDS: ClassVar[tuple[str, ...]] = tuple(
-        name for name, _, _ in (("times", ("T",), "f"), *_PER_STEP, *_STATIC, *_OPTIONAL)
-    )
-    OPTIONAL_FIELDS: ClassVar[tuple[str, ...]] = tuple(name for name, _, _ in _OPTIONAL)
-    PER_STEP_FIELDS: ClassVar[tuple[str, ...]] = ("times",) + tuple(
-        name for name, template, _ in (*_PER_STEP, *_OPTIONAL) if template[0] == "T"
-    )
+    ARRAY_FIELDS: ClassVar[tuple[str, ...]] = ("times", *(n for n, _, _ in (*_PER_STEP, *_STATIC, *_OPTIONAL)))
+    OPTIONAL_FIELDS: ClassVar[tuple[str, ...]] = tuple(n for n, _, _ in _OPTIONAL)
+    PER_STEP_FIELDS: ClassVar[tuple[str, ...]] = ("times", *(n for n, t, _ in (*_PER_STEP, *_OPTIONAL) if t[0] == "T"))
     """Fields with one entry per recorded step (cut by :meth:`window`)."""
 
     def __post_init__(self) -> None:
-        if isinstance(self.dt, (str, bytes, np.str_, np.bytes_, bool, np.bool_)):
-            raise ConfigError(f"dt: got {self.dt!r}, expected a finite positive number")
-        try:
-            dt = float(self.dt)
-        except (TypeError, ValueError, OverflowError):
-            raise ConfigError(f"dt: got {self.dt!r}, expected a finite positive number") from None
-        if not math.isfinite(dt) or dt <= 0:
-            raise ConfigError(f"dt: got {self.dt!r}, expected a finite positive number")
-        self.dt = dt
-
+        self.dt = _positive_dt(self.dt)
         sizes: dict[str, int] = {}
-        times = _as_array("times", self.times, "f")
-        _check_shape("times", times, ("T",), sizes)
+        self.times = checked_array("times", self.times, ("T",), sizes)
         if sizes["T"] < 1:
             raise ConfigError("times: got shape (0,), expected at least one recorded step")
-        if not np.isfinite(times).all():
-            raise ConfigError("times: got non-finite values, expected finite time stamps")
-        if np.any(np.diff(times) < 0):
+        if np.any(np.diff(self.times) < 0):
             raise ConfigError("times: got decreasing time stamps, expected non-decreasing")
-        self.times = times
-
-        if self.obstacle_centers is None:
-            self.obstacle_centers = np.zeros((0, 2))
-        if self.obstacle_radii is None:
-            self.obstacle_radii = np.zeros(0)
-
+        self.obstacle_centers = np.zeros((0, 2)) if self.obstacle_centers is None else self.obstacle_centers
+        self.obstacle_radii = np.zeros(0) if self.obstacle_radii is None else self.obstacle_radii
         for name, template, kind in (*_PER_STEP, *_STATIC, *_OPTIONAL):
-            value = getattr(self, name)
-            if value is None:
-                continue
-            arr = _as_array(name, value, kind)
-            _check_shape(name, arr, template, sizes)
-            if kind == "f" and not np.isfinite(arr).all():
-                bad = np.argwhere(~np.isfinite(arr))[0].tolist()
-                raise ConfigError(f"{name}: got a non-finite value at index {bad}, expected finite numbers")
-            setattr(self, name, arr)
-
-        if not np.all(self.radii > 0):
-            raise ConfigError(f"radii: got {self.radii.tolist()}, expected positive radii")
-        if not np.all(self.obstacle_radii > 0):
-            raise ConfigError(f"obstacle_radii: got {self.obstacle_radii.tolist()}, expected positive radii")
-
-        if self.metadata is None:
-            self.metadata = {}
+            if getattr(self, name) is not None:
+                setattr(self, name, checked_array(name, getattr(self, name), template, sizes, kind))
+        for name in ("radii", "obstacle_radii"):
+            if not np.all(getattr(self, name) > 0):
+                raise ConfigError(f"{name}: got {getattr(self, name).tolist()}, expected positive radii")
+        self.metadata = {} if self.metadata is None else self.metadata
         if not isinstance(self.metadata, dict):
             raise ConfigError(f"metadata: got {type(self.metadata).__name__}, expected a dict")
         try:
@@ -251,7 +183,6 @@ class Rollout:
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"metadata: not JSON-serialisable ({exc})") from None
 
-    # ------------------------------------------------------------------ sizes
     @property
     def n_steps(self) -> int:
         """Number of recorded steps ``T``."""
@@ -282,75 +213,37 @@ class Rollout:
         cut = {name: getattr(self, name)[:k] for name in self.PER_STEP_FIELDS if getattr(self, name) is not None}
         return dataclasses.replace(self, **cut)
 
-    # ------------------------------------------------------------------- I/O
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the rollout to a compressed ``.npz`` file.
-
-        Optional fields that are ``None`` are left out; ``metadata`` is stored as
-        a JSON string.  NumPy appends ``.npz`` to ``path`` if it lacks it.
-
-        Parameters
-        ----------
-        path : str or path-like
-            Destination file.
-        """
-        arrays: dict[str, np.ndarray] = {
-            "format_version": np.array(FORMAT_VERSION),
-            "dt": np.array(self.dt),
-            "metadata": np.array(json.dumps(self.metadata)),
-        }
-        for name in self.ARRAY_FIELDS:
-            value = getattr(self, name)
-            if value is not None:
-                arrays[name] = value
-        np.savez_compressed(path, **arrays)
+        """Write the rollout to a compressed ``.npz`` file, atomically (``.npz`` is appended if missing)."""
+        arrays = {"format_version": np.array(FORMAT_VERSION), "dt": np.array(self.dt),
+                  "metadata": np.array(json.dumps(self.metadata))}
+        arrays.update({n: getattr(self, n) for n in self.ARRAY_FIELDS if getattr(self, n) is not None})
+        target = os.fspath(path)
+        atomic_write(target if target.endswith(".npz") else target + ".npz",
+                     lambda tmp: np.savez_compressed(tmp, **arrays))
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Rollout:
         """Read a rollout written by :meth:`save`.
 
-        Parameters
-        ----------
-        path : str or path-like
-            A ``.npz`` file.
-
-        Returns
-        -------
-        Rollout
-            The validated rollout.
-
         Raises
         ------
         DataFileError
-            Naming the file: it is missing, not a readable ``.npz`` (truncated,
-            corrupted, empty), or a field is missing, of the wrong shape or not finite.
+            Naming the file: it is missing, not a readable ``.npz`` of plain arrays (truncated, corrupted,
+            pickled), or a field is missing, of the wrong shape or not finite.
         """
         name = str(path)
         if not os.path.isfile(path):
             raise DataFileError(f"{name}: no such rollout file")
         try:
-            with np.load(path, allow_pickle=False) as data:
-                files = set(data.files)
-                version = int(data["format_version"]) if "format_version" in files else FORMAT_VERSION
-                if version > FORMAT_VERSION:
-                    raise DataFileError(f"{name}: format_version {version}, expected <= {FORMAT_VERSION}")
-                kwargs: dict[str, Any] = {}
-                for field_name in ("dt", *cls.ARRAY_FIELDS):
-                    if field_name in files:
-                        kwargs[field_name] = data[field_name]
-                    elif field_name not in cls.OPTIONAL_FIELDS and field_name not in ("obstacle_centers",
-                                                                                     "obstacle_radii"):
-                        raise DataFileError(f"{name}: missing field {field_name!r}; not a rollout file")
-                kwargs["dt"] = kwargs["dt"][()]  # a 0-d array; Rollout checks it is a finite positive number
-                kwargs["metadata"] = json.loads(str(data["metadata"])) if "metadata" in files else {}
+            kwargs = _read_fields(path, name)
         except DataFileError:
             raise
         except MemoryError:  # a crafted header can claim any shape
             raise DataFileError(f"{name}: an array in this file is too large to load; not a rollout file") from None
         except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile, zlib.error, NotImplementedError,
-                RecursionError) as exc:
-            # corrupted zip/deflate data, an unsupported zip feature, JSON nested beyond the recursion limit
-            if isinstance(exc, ValueError) and "allow_pickle" in str(exc):  # numpy's advice: load it unsafely. Never
+                RecursionError) as exc:  # corrupted zip or deflate data, JSON nested beyond the recursion limit
+            if isinstance(exc, ValueError) and "allow_pickle" in str(exc):  # numpy's advice to unpickle: never
                 raise DataFileError(f"{name}: not a readable rollout file (not an .npz archive of plain "
                                     "arrays; files are never unpickled)") from None
             raise DataFileError(f"{name}: not a readable rollout file ({type(exc).__name__}: "
@@ -361,21 +254,29 @@ class Rollout:
             raise DataFileError(f"{name}: invalid rollout ({exc})") from None
 
 
+def _read_fields(path: str | os.PathLike[str], name: str) -> dict[str, Any]:
+    """The constructor keywords stored in a rollout file (unchecked: :class:`Rollout` checks them)."""
+    with np.load(path, allow_pickle=False) as data:
+        files = set(data.files)
+        version = int(data["format_version"]) if "format_version" in files else FORMAT_VERSION
+        if version > FORMAT_VERSION:
+            raise DataFileError(f"{name}: format_version {version}, expected <= {FORMAT_VERSION}")
+        optional = {*Rollout.OPTIONAL_FIELDS, "obstacle_centers", "obstacle_radii"}
+        missing = [f for f in ("dt", *Rollout.ARRAY_FIELDS) if f not in files and f not in optional]
+        if missing:
+            raise DataFileError(f"{name}: missing field {missing[0]!r}; not a rollout file")
+        kwargs: dict[str, Any] = {f: data[f] for f in ("dt", *Rollout.ARRAY_FIELDS) if f in files}
+        kwargs["dt"] = kwargs["dt"][()]  # a 0-d array; Rollout checks it is a finite positive number
+        kwargs["metadata"] = json.loads(str(data["metadata"])) if "metadata" in files else {}
+    return kwargs
+
+
 class RolloutBuilder:
     """Accumulate an episode step by step, then :meth:`build` a :class:`Rollout`.
 
-    Each :meth:`append` copies its arrays into per-field lists (so callers may
-    reuse their buffers); :meth:`build` stacks them once.  An optional field must
-    be given at every step or at none.
-
-    Parameters
-    ----------
-    dt : float
-        Time between recorded steps [s].
-    goals, radii, obstacle_centers, obstacle_radii : array_like, optional
-        Static fields; may also be passed (or overridden) in :meth:`build`.
-    metadata : dict, optional
-        JSON-serialisable metadata; :meth:`build` merges its own on top.
+    :meth:`append` copies its arrays (callers may reuse their buffers); an optional field must be given
+    at every step or at none.  The static fields (``goals``, ``radii``, ``obstacle_centers``,
+    ``obstacle_radii``) may be given here or to :meth:`build`.
 
     Examples
     --------
@@ -387,127 +288,59 @@ class RolloutBuilder:
     (3, 1, 2)
     """
 
-    _STEP_FIELDS: ClassVar[tuple[str, ...]] = (
-        "times",
-        *(n for n, _, _ in _PER_STEP),
-        *(n for n, _, _ in _OPTIONAL),
-    )
-    _REQUIRED_STEP: ClassVar[frozenset[str]] = frozenset(("times", *(n for n, _, _ in _PER_STEP)))
+    _KINDS: ClassVar[dict[str, str]] = {"times": "f", **{n: k for n, _, k in (*_PER_STEP, *_OPTIONAL)}}
+    _SCALARS: ClassVar[frozenset[str]] = frozenset(("times", "solver_status", "slack", "solve_time"))
 
-    def __init__(
-        self,
-        dt: float,
-        *,
-        goals: Any = None,
-        radii: Any = None,
-        obstacle_centers: Any = None,
-        obstacle_radii: Any = None,
-        metadata: dict[str, Any] | None = None,
-    ) -> None:
+    def __init__(self, dt: float, *, goals: Any = None, radii: Any = None, obstacle_centers: Any = None,
+                 obstacle_radii: Any = None, metadata: dict[str, Any] | None = None) -> None:
         self.dt = dt
-        self.static: dict[str, Any] = {
-            "goals": goals,
-            "radii": radii,
-            "obstacle_centers": obstacle_centers,
-            "obstacle_radii": obstacle_radii,
-        }
+        self.static: dict[str, Any] = {"goals": goals, "radii": radii, "obstacle_centers": obstacle_centers,
+                                       "obstacle_radii": obstacle_radii}
         self.metadata: dict[str, Any] = dict(metadata or {})
-        self._data: dict[str, list[Any]] = {name: [] for name in self._STEP_FIELDS}
+        self._data: dict[str, list[Any]] = {name: [] for name in self._KINDS}
         self._n = 0
 
     def __len__(self) -> int:
         return self._n
 
-    def append(
-        self,
-        *,
-        time: float,
-        positions: Any,
-        velocities: Any,
-        headings: Any,
-        references: Any,
-        reference_velocities: Any,
-        **optional: Any,
-    ) -> None:
-        """Record one step.
+    def append(self, *, time: float, positions: Any, velocities: Any, headings: Any, references: Any,
+               reference_velocities: Any, **optional: Any) -> None:
+        """Record one step: per-robot arrays ``(N, 2)`` (``headings`` ``(N,)``) and any optional fields.
 
-        Parameters
-        ----------
-        time : float
-            Time stamp of the step [s].
-        positions, velocities, references, reference_velocities : array_like, shape (N, 2)
-            Per-robot values at this step.
-        headings : array_like, shape (N,)
-            Per-robot headings.
-        **optional
-            Any of ``nominal_actions``, ``actions`` (``(N, 2)``), ``avoiding``,
-            ``triggered``, ``backup`` (``(N,)`` bool), ``solver_status`` (str), ``slack``,
-            ``solve_time`` (float).  ``None`` values are ignored.
-
-        Raises
-        ------
-        ConfigError
-            On an unknown keyword, or an optional field given at some steps only.
+        ``optional``: ``nominal_actions``, ``actions`` ``(N, 2)``; ``avoiding``, ``triggered``, ``backup``
+        ``(N,)`` bool; ``solver_status`` (str), ``slack``, ``solve_time`` (float); ``None`` values are ignored.
+        An unknown keyword, or an optional field given at some steps only, raises ConfigError.
         """
         unknown = set(optional) - set(Rollout.OPTIONAL_FIELDS)
         if unknown:
-            raise ConfigError(
-                f"append: unknown field(s) {sorted(unknown)}, "
-                f"expected some of {list(Rollout.OPTIONAL_FIELDS)}"
-            )
-        given = {k for k, v in optional.items() if v is not None}
+            raise ConfigError(f"append: unknown field(s) {sorted(unknown)}, expected some of "
+                              f"{list(Rollout.OPTIONAL_FIELDS)}")
+        given = {k: v for k, v in optional.items() if v is not None}
         for name in Rollout.OPTIONAL_FIELDS:
             have = len(self._data[name])
             if self._n > 0 and (name in given) != (have == self._n):
-                raise ConfigError(
-                    f"{name}: given at {have} of the {self._n} previous steps "
-                    f"and {'' if name in given else 'not '}at step {self._n}; "
-                    "expected at every step or at none"
-                )
-        self._data["times"].append(float(time))
-        self._data["positions"].append(np.array(positions, dtype=np.float64))
-        self._data["velocities"].append(np.array(velocities, dtype=np.float64))
-        self._data["headings"].append(np.array(headings, dtype=np.float64))
-        self._data["references"].append(np.array(references, dtype=np.float64))
-        self._data["reference_velocities"].append(np.array(reference_velocities, dtype=np.float64))
-        for name in given:
-            value = optional[name]
-            if name == "solver_status":
-                self._data[name].append(str(value))
-            elif name in ("slack", "solve_time"):
-                self._data[name].append(float(value))
-            elif name in ("avoiding", "triggered", "backup"):
-                self._data[name].append(np.array(value, dtype=np.bool_))
+                raise ConfigError(f"{name}: given at {have} of the {self._n} previous steps and "
+                                  f"{'' if name in given else 'not '}at step {self._n}; expected at every step or "
+                                  "at none")
+        given.update(times=time, positions=positions, velocities=velocities, headings=headings, references=references,
+                     reference_velocities=reference_velocities)
+        for name, value in given.items():
+            kind = self._KINDS[name]
+            if name in self._SCALARS:
+                self._data[name].append(str(value) if kind == "U" else float(value))
             else:
-                self._data[name].append(np.array(value, dtype=np.float64))
+                self._data[name].append(np.array(value, dtype=np.float64 if kind == "f" else np.bool_))
         self._n += 1
 
     def build(self, **overrides: Any) -> Rollout:
-        """Stack the recorded steps into a validated :class:`Rollout`.
+        """Stack the recorded steps into a :class:`Rollout`.
 
-        Parameters
-        ----------
-        **overrides
-            ``goals``, ``radii``, ``obstacle_centers``, ``obstacle_radii`` or
-            ``dt`` replace the constructor's values; ``metadata`` is merged into
-            the constructor's metadata.
-
-        Returns
-        -------
-        Rollout
-
-        Raises
-        ------
-        ConfigError
-            If nothing was recorded, a static field is missing, the per-step arrays
-            have inconsistent shapes, or an override is unknown.
+        ``overrides``: ``dt`` or static fields replacing the constructor's; ``metadata`` merged into its.
         """
         allowed = {"dt", "metadata", *self.static}
         unknown = set(overrides) - allowed
         if unknown:
-            raise ConfigError(
-                f"build: unknown argument(s) {sorted(unknown)}, expected some of {sorted(allowed)}"
-            )
+            raise ConfigError(f"build: unknown argument(s) {sorted(unknown)}, expected some of {sorted(allowed)}")
         if self._n == 0:
             raise ConfigError("build: no step recorded, expected at least one append()")
         static = {**self.static, **{k: v for k, v in overrides.items() if k in self.static}}
@@ -516,16 +349,13 @@ class RolloutBuilder:
                 raise ConfigError(f"{name}: missing, pass it to RolloutBuilder(...) or build(...)")
         metadata = {**self.metadata, **(overrides.get("metadata") or {})}
         kwargs: dict[str, Any] = {"dt": overrides.get("dt", self.dt), "metadata": metadata, **static}
-        for name in self._STEP_FIELDS:
-            values = self._data[name]
-            if not values:
-                continue
-            if name in ("times", "solver_status", "slack", "solve_time"):
+        for name, values in self._data.items():
+            if values and name in self._SCALARS:
                 kwargs[name] = values
-                continue
-            try:
-                kwargs[name] = np.stack(values)
-            except ValueError:
-                shapes = sorted({np.shape(v) for v in values})
-                raise ConfigError(f"{name}: per-step shapes differ {shapes}, expected one shape") from None
+            elif values:
+                try:
+                    kwargs[name] = np.stack(values)
+                except ValueError:
+                    shapes = sorted({np.shape(v) for v in values})
+                    raise ConfigError(f"{name}: per-step shapes differ {shapes}, expected one shape") from None
         return Rollout(**kwargs)

@@ -1,21 +1,16 @@
 """The ``aasoatt`` command line.
 
-=====================  =========================================================
-command                what it does
-=====================  =========================================================
-``aasoatt list``       scenarios, their parameters and defaults; controllers;
-                       barriers, deadlock strategies, triggers and solvers
-``aasoatt run``        run a controller (optionally behind the safety filter) on
-                       a scenario; print metrics; write GIF / PNG / JSON / NPZ
-``aasoatt reproduce``  the paper's experiments (see :mod:`aasoatt_env.apps.reproduce`)
-``aasoatt train``      PPO training (see :mod:`train.train`)
-``aasoatt evaluate``   evaluation table over seeded episodes (:mod:`train.evaluate`)
-=====================  =========================================================
+``aasoatt list``: scenarios and their parameters, controllers, barriers, deadlock strategies, triggers and
+solvers; ``aasoatt run``: a controller (behind the safety filter or not) on a scenario, its metrics, a
+GIF / PNG / JSON / NPZ; ``aasoatt reproduce``: the paper's experiments (:mod:`aasoatt_env.apps.reproduce`);
+``aasoatt train`` and ``aasoatt evaluate``: :mod:`train.train`, :mod:`train.evaluate`.  Heavy libraries
+(torch, Stable-Baselines3, Ray, matplotlib) are imported only by the commands that use them.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib
 import inspect
 import json
 import sys
@@ -26,16 +21,19 @@ from typing import Any
 from aasoatt_env.analysis.metrics import format_summary, summarize
 from aasoatt_env.analysis.plotting import plot_trajectories
 from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.analysis.rollout import Rollout
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.api.registration import ENV_IDS
 from aasoatt_env.cli_support import (
     OutputPlan,
     Parser,
     add_common_options,
-    guarded_outputs,
+    atomic_write,
     int_option,
+    path_option,
     real_option,
     run_guarded,
+    staged,
 )
 from aasoatt_env.errors import AASOATTError, ConfigError, UnknownKeywordError
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, available_solvers
@@ -45,11 +43,24 @@ from aasoatt_env.sim.scenarios import SCENARIOS
 from aasoatt_env.sim.scenarios.base import MAX_ROBOTS
 from aasoatt_env.validation import parse_assignments
 from agents.base import agent_accepts, agent_names, get_agent
-from train.config import split_backend
-from train.evaluate import load_policy, policy_env_kwargs
-from train.rllib import main as rllib_main
 
 __all__ = ["main"]
+
+RUN_OUTPUTS = ("metrics.json", "rollout.npz", "trajectories.png")
+"""What ``aasoatt run --out DIR`` writes into ``DIR``."""
+
+_FORWARDED = {"reproduce": ("aasoatt_env.apps.reproduce", "main"), "train": ("train.train", "main"),
+              "evaluate": ("train.evaluate", "main")}
+
+
+def _parameters(scenario: str) -> dict[str, inspect.Parameter]:
+    return {name: p for name, p in inspect.signature(SCENARIOS[scenario].__init__).parameters.items()
+            if name != "self" and p.kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)}
+
+
+def _required_parameters(scenario: str) -> list[str]:
+    """Parameters of ``scenario`` without a default (``custom``: ``starts`` and ``reference``)."""
+    return [name for name, p in _parameters(scenario).items() if p.default is inspect.Parameter.empty]
 
 
 def cmd_list(args: argparse.Namespace) -> int:
@@ -57,14 +68,9 @@ def cmd_list(args: argparse.Namespace) -> int:
     ids = {v: k for k, v in ENV_IDS.items()}
     print("Scenarios (--scenario NAME, parameters with -p KEY=VALUE):")
     for name, cls in SCENARIOS.items():
-        print(f"  {name:18s} id {ids.get(name, '-')}")
-        doc = (cls.__doc__ or "").strip().splitlines()[0]
-        print(f"      {doc}")
-        for pname, p in inspect.signature(cls.__init__).parameters.items():
-            if pname in ("self", "kwargs"):
-                continue
-            default = "" if p.default is inspect.Parameter.empty else f" = {p.default!r}"
-            print(f"      {pname}{default}")
+        print(f"  {name:18s} id {ids.get(name, '-')}\n      {(cls.__doc__ or '').strip().splitlines()[0]}")
+        for pname, p in _parameters(name).items():
+            print(f"      {pname}{'' if p.default is inspect.Parameter.empty else f' = {p.default!r}'}")
     print("\nControllers (--controller NAME):", ", ".join(agent_names()))
     print("Barriers (--filter NAME):", ", ".join(BARRIERS))
     print("Deadlock strategies (--deadlock):", ", ".join(STRATEGIES))
@@ -75,7 +81,7 @@ def cmd_list(args: argparse.Namespace) -> int:
 
 def _filter_config(args: argparse.Namespace) -> FilterConfig | None:
     """The filter options of the command line as a :class:`FilterConfig` (None for ``--filter none``)."""
-    if not args.filter or args.filter == "none":
+    if args.filter == "none":
         for flag, value, default in (("--deadlock", args.deadlock, "auxiliary_velocity"),
                                      ("--trigger", args.trigger, "multiplier"), ("--solver", args.solver, "proxsuite")):
             if value != default:
@@ -83,6 +89,8 @@ def _filter_config(args: argparse.Namespace) -> FilterConfig | None:
         if args.gain:
             raise ConfigError(f"-g/--gain: got {args.gain} with --filter none, expected no filter gains")
         return None
+    if args.solver not in available_solvers():
+        raise ConfigError(f"--solver: got {args.solver!r}, expected one of {available_solvers()}")
     gains = parse_assignments(args.gain, "-g/--gain")
     for key, flag in (("barrier", "--filter"), ("deadlock", "--deadlock"), ("trigger", "--trigger"),
                       ("solver", "--solver")):
@@ -98,22 +106,8 @@ def _filter_config(args: argparse.Namespace) -> FilterConfig | None:
         raise UnknownKeywordError(f"-g/--gain: {exc}") from None
 
 
-def _required_parameters(scenario: str) -> list[str]:
-    """Parameters of ``scenario`` without a default (``custom``: ``starts`` and ``reference``)."""
-    cls = SCENARIOS[scenario]
-    return [name for name, p in inspect.signature(cls.__init__).parameters.items()
-            if name != "self" and p.default is inspect.Parameter.empty
-            and p.kind not in (inspect.Parameter.VAR_POSITIONAL, inspect.Parameter.VAR_KEYWORD)]
-
-
-def _make_env(args: argparse.Namespace, render: bool, policy: Any = None) -> Any:
-    """The env of ``aasoatt run``; with a learned ``policy``, the settings it was trained with.
-
-    A scenario parameter without a default must be given (``-p``); with ``policy`` the
-    env takes the run's :data:`train.evaluate.POLICY_ENV_KEYS` settings (action mode,
-    decision interval, ``dt``, observation layout) unless given, and refuses a given value
-    that differs.
-    """
+def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
+    """The env keywords of ``-p``, ``--robots`` and ``--decision-interval``; required parameters must be given."""
     kwargs = parse_assignments(args.param, "-p/--param")
     if args.robots is not None:
         if "num_robots" in kwargs:
@@ -128,108 +122,134 @@ def _make_env(args: argparse.Namespace, render: bool, policy: Any = None) -> Any
                           f"expected {' '.join(f'-p {name}=...' for name in missing)} (aasoatt list shows them)")
     if args.decision_interval is not None:
         kwargs["decision_interval"] = args.decision_interval
-    if policy is not None:
-        kwargs = policy_env_kwargs(policy, kwargs, model=f"--model {args.model!r}",
+    return kwargs
+
+
+def _env_and_agent(args: argparse.Namespace, kwargs: dict[str, Any], filter_config: FilterConfig | None
+                   ) -> tuple[Any, Any]:
+    """The env and the controller of ``aasoatt run``.
+
+    ``--controller learned --model RUN`` runs on an env with the run's action mode, decision interval, ``dt``
+    and observation layout (:func:`train.evaluate.policy_env_kwargs`); a different value given with ``-p``
+    or ``--decision-interval`` is an error.
+    """
+    agent = None
+    if args.controller == "learned":
+        from train.evaluate import load_policy, policy_env_kwargs
+
+        agent = load_policy(args.model, "--model")
+        kwargs = policy_env_kwargs(agent, kwargs, model=f"--model {args.model!r}",
                                    options={"decision_interval": "--decision-interval"}, default_option="-p/--param")
     kwargs.setdefault("decision_interval", 1)
-    filter_config = _filter_config(args)
     try:
-        return make_env(args.scenario, filter=filter_config, render_mode="rgb_array" if render else None, **kwargs)
+        env = make_env(args.scenario, filter=filter_config, render_mode="rgb_array" if args.gif else None, **kwargs)
     except UnknownKeywordError as exc:
         raise UnknownKeywordError(f"-p/--param: {exc}") from None
+    if agent is not None:
+        agent.reset(env)  # observation layout and action mode checked before the episode
+        return env, agent
+    ctrl_kwargs: dict[str, Any] = {}
+    if args.controller in ("tracking", "pd"):
+        ctrl_kwargs["saturate"] = filter_config is None
+    if agent_accepts(args.controller, "seed"):
+        ctrl_kwargs["seed"] = args.seed
+    return env, get_agent(args.controller, **ctrl_kwargs)
 
 
-def _check_animation_writer(path: Path) -> None:
-    """Refuse ``--gif`` now when the writer its suffix needs is not installed (not after the episode)."""
-    absent = animation_writer_missing(path.suffix)
-    if absent:
-        extra = ", ".join(absent)
-        raise ConfigError(f"--gif: got {str(path)!r}, but writing {path.suffix!r} needs {extra}, which is not "
-                          f"installed; expected a suffix among {list(ANIMATION_SUFFIXES)} whose writer is installed "
-                          f"(or install {extra})")
+def _write_results(out: Path, summary: dict[str, Any], rollout: Rollout, title: str) -> None:
+    """``metrics.json``, ``rollout.npz`` and ``trajectories.png`` (without matplotlib: no plot), all or none."""
+    try:
+        fig = plot_trajectories(rollout.positions, radii=rollout.radii, references=rollout.references,
+                                goals=rollout.goals, obstacles=(rollout.obstacle_centers, rollout.obstacle_radii),
+                                title=title)
+    except ImportError as exc:
+        fig = None
+        print(f"(no trajectory plot: {exc})", file=sys.stderr)
+    with staged(*(out / name for name in RUN_OUTPUTS[: 3 if fig is not None else 2])) as temps:
+        temps[0].write_text(json.dumps(summary, indent=2))
+        rollout.save(temps[1])
+        if fig is not None:
+            fig.savefig(temps[2], dpi=150, format="png")
+    print(f"wrote {out}/{', '.join(RUN_OUTPUTS[: 3 if fig is not None else 2])}")
+
+
+def _write_animation(gif: Path, frames: list[Any], fps: int) -> None:
+    try:  # save_animation and atomic_write: a failed writer leaves no partial file at the --gif path
+        atomic_write(gif, lambda tmp: save_animation(frames, tmp, fps=fps))
+    except AASOATTError:
+        raise
+    except (ValueError, RuntimeError, OSError) as exc:  # the writer failed: one line, status 1
+        raise OSError(f"--gif: could not write {gif} ({' '.join(str(exc).split())[:300]})") from exc
+    print(f"wrote {gif} ({len(frames)} frames)")
 
 
 def cmd_run(args: argparse.Namespace) -> int:
     """Run one episode and report its metrics.
 
-    Every option, the output folder and the animation file (its suffix and that
-    its writer is installed) are checked (and the folder created) before the
-    episode starts; earlier results are kept unless ``--overwrite``, and a failed
-    animation writer leaves no partial file.  ``--controller learned --model RUN``
-    runs on an env with the run's action mode, decision interval, ``dt`` and
-    observation layout (:func:`train.evaluate.policy_env_kwargs`); a different
-    value given with ``-p`` or ``--decision-interval`` is an error.
+    Options are checked first, then the output paths (folders made; earlier results kept unless
+    ``--overwrite``; the animation's suffix and writer), then the env and controller are built: a failure on
+    the way leaves no folder.  Results are written atomically: an interrupted run leaves the earlier files
+    or the complete new ones.
     """
     if args.model is not None and args.controller != "learned":
         raise ConfigError(f"--model: given with --controller {args.controller!r}, expected --controller learned")
-    render = bool(args.gif)
-    plan = OutputPlan(args.overwrite)
-    out = plan.folder(args.out, "--out", entries=RUN_OUTPUTS) if args.out else None
-    try:
-        gif = plan.file(args.gif, "--gif", suffixes=ANIMATION_SUFFIXES) if args.gif else None
+    if args.model is None and args.controller == "learned":
+        raise ConfigError("controller 'learned': got no model path, expected --model PATH (a run folder or .zip)")
+    kwargs, filter_config = _env_kwargs(args), _filter_config(args)
+    with OutputPlan(args.overwrite) as plan:
+        out = plan.folder(args.out, "--out", entries=RUN_OUTPUTS) if args.out is not None else None
+        gif = plan.file(args.gif, "--gif", suffixes=ANIMATION_SUFFIXES) if args.gif is not None else None
+        if gif is not None and animation_writer_missing(gif.suffix):
+            extra = ", ".join(animation_writer_missing(gif.suffix))
+            raise ConfigError(f"--gif: got {str(gif)!r}, but writing {gif.suffix!r} needs {extra}, which is not "
+                              f"installed; expected a suffix among {list(ANIMATION_SUFFIXES)} whose writer is "
+                              f"installed (or install {extra})")
+        env, agent = _env_and_agent(args, kwargs, filter_config)
+        rollout, frames = run_episode(env, agent, seed=args.seed, render_every=args.frame_every if gif else None,
+                                      progress=not args.quiet,
+                                      metadata={"controller": args.controller, "filter": args.filter,
+                                                "seed": args.seed})
+        summary = summarize(rollout, goal_tolerance=args.goal_tolerance)
+        print(format_summary(summary))
+        if out is not None:
+            _write_results(out, summary, rollout, f"{args.scenario}: {args.controller} / {args.filter}")
         if gif is not None:
-            _check_animation_writer(gif)
-        if args.controller == "learned":
-            if args.model is None:
-                raise ConfigError("controller 'learned': got no model path, expected --model PATH (a run folder "
-                                  "or .zip)")
-            agent = load_policy(args.model, "--model")
-            env = _make_env(args, render, policy=agent)
-            agent.reset(env)  # observation layout and action mode checked before the episode
-        else:
-            env = _make_env(args, render)
-            ctrl_kwargs: dict[str, Any] = {}
-            if args.controller in ("tracking", "pd"):
-                ctrl_kwargs["saturate"] = not (args.filter and args.filter != "none")
-            if agent_accepts(args.controller, "seed"):
-                ctrl_kwargs["seed"] = args.seed
-            agent = get_agent(args.controller, **ctrl_kwargs)
-    except BaseException:
-        plan.discard()
-        raise
-    meta = {"controller": args.controller, "filter": args.filter, "seed": args.seed}
-    rollout, frames = guarded_outputs(plan, lambda: run_episode(
-        env,
-        agent,
-        seed=args.seed,
-        render_every=args.frame_every if render else None,
-        progress=not args.quiet,
-        metadata=meta,
-    ))
-    summary = summarize(rollout, goal_tolerance=args.goal_tolerance)
-    print(format_summary(summary))
-    if out is not None:
-        (out / "metrics.json").write_text(json.dumps(summary, indent=2))
-        rollout.save(out / "rollout.npz")
-        try:
-            plot_trajectories(
-                rollout.positions,
-                radii=rollout.radii,
-                references=rollout.references,
-                goals=rollout.goals,
-                obstacles=(rollout.obstacle_centers, rollout.obstacle_radii),
-                path=out / "trajectories.png",
-                title=f"{args.scenario}: {args.controller} / {args.filter}",
-            )
-        except ImportError as exc:
-            print(f"(no trajectory plot: {exc})", file=sys.stderr)
-        print(f"wrote {out}/metrics.json, rollout.npz, trajectories.png")
-    if gif is not None:
-        try:
-            save_animation(frames, gif, fps=args.fps)  # a failed writer leaves no broken file at the --gif path
-        except AASOATTError:
-            raise
-        except (ValueError, RuntimeError, OSError) as exc:  # the writer failed: one line, status 1
-            raise OSError(f"--gif: could not write {gif} ({' '.join(str(exc).split())[:300]})") from exc
-        print(f"wrote {gif} ({len(frames)} frames)")
+            _write_animation(gif, frames, args.fps)
     env.close()
-    if args.fail_on_collision and summary.get("n_collision_pairs"):
-        return 1
-    return 0
+    return 1 if args.fail_on_collision and summary.get("n_collision_pairs") else 0
 
 
-RUN_OUTPUTS = ("metrics.json", "rollout.npz", "trajectories.png")
-"""What ``aasoatt run --out DIR`` writes into ``DIR``."""
+def _run_parser(sub: Any) -> None:
+    p = sub.add_parser("run", help="run a controller on a scenario")
+    names = ", ".join(sorted(SCENARIOS))
+    p.add_argument("--scenario", default="circle_swap", choices=sorted(SCENARIOS), metavar="NAME",
+                   help=f"one of {names}")
+    p.add_argument("--robots", type=int_option(1, MAX_ROBOTS), default=None, help="number of robots (num_robots)")
+    p.add_argument("-p", "--param", action="append", help="scenario/env parameter KEY=VALUE")
+    p.add_argument("--controller", default="tracking", choices=agent_names(), metavar="NAME",
+                   help=f"one of {', '.join(agent_names())}")
+    p.add_argument("--model", default=None, help="saved model for --controller learned")
+    p.add_argument("--filter", default="aasoatt", choices=[*BARRIERS, "none"], metavar="NAME",
+                   help=f"barrier: one of {', '.join(BARRIERS)}; or 'none' for the bare env")
+    p.add_argument("--deadlock", default="auxiliary_velocity", choices=list(STRATEGIES), metavar="NAME",
+                   help=f"one of {', '.join(STRATEGIES)}")
+    p.add_argument("--trigger", default="multiplier", choices=list(TRIGGERS), metavar="NAME",
+                   help=f"one of {', '.join(TRIGGERS)}")
+    p.add_argument("--solver", default="proxsuite", help="QP solver (aasoatt list shows the installed ones)")
+    p.add_argument("-g", "--gain", action="append", help="filter gain KEY=VALUE (k1, k2, zeta, ...)")
+    p.add_argument("--decision-interval", type=int_option(1, 10_000), default=None,
+                   help="physics steps per action (default 1; --controller learned: the run's)")
+    p.add_argument("--seed", type=int_option(0), default=0)
+    p.add_argument("--gif", type=path_option, default=None,
+                   help=f"write an animation ({', '.join(ANIMATION_SUFFIXES)}; video needs imageio-ffmpeg)")
+    p.add_argument("--frame-every", type=int_option(1), default=20, help="env steps between GIF frames")
+    p.add_argument("--fps", type=int_option(1, 1000), default=20)
+    p.add_argument("--out", type=path_option, default=None, help=f"folder for {', '.join(RUN_OUTPUTS)}")
+    p.add_argument("--goal-tolerance", type=real_option(0.0, lo_open=True), default=0.05)
+    p.add_argument("--fail-on-collision", action="store_true", help="exit 1 if any pair collided")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    add_common_options(p)
+    p.set_defaults(func=cmd_run)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -239,60 +259,25 @@ def build_parser() -> argparse.ArgumentParser:
     p_list = sub.add_parser("list", help="scenarios, controllers, filter options")
     add_common_options(p_list, overwrite=False)
     p_list.set_defaults(func=cmd_list)
-
-    p_run = sub.add_parser("run", help="run a controller on a scenario")
-    p_run.add_argument("--scenario", default="circle_swap", choices=sorted(SCENARIOS), metavar="NAME",
-                       help=f"one of {', '.join(sorted(SCENARIOS))}")
-    p_run.add_argument("--robots", type=int_option(1, MAX_ROBOTS), default=None, help="number of robots (num_robots)")
-    p_run.add_argument("-p", "--param", action="append", help="scenario/env parameter KEY=VALUE")
-    p_run.add_argument("--controller", default="tracking", choices=agent_names(), metavar="NAME",
-                       help=f"one of {', '.join(agent_names())}")
-    p_run.add_argument("--model", default=None, help="saved model for --controller learned")
-    p_run.add_argument("--filter", default="aasoatt", choices=[*BARRIERS, "none"], metavar="NAME",
-                       help=f"barrier: one of {', '.join(BARRIERS)}; or 'none' for the bare env")
-    p_run.add_argument("--deadlock", default="auxiliary_velocity", choices=list(STRATEGIES), metavar="NAME",
-                       help=f"one of {', '.join(STRATEGIES)}")
-    p_run.add_argument("--trigger", default="multiplier", choices=list(TRIGGERS), metavar="NAME",
-                       help=f"one of {', '.join(TRIGGERS)}")
-    p_run.add_argument("--solver", default="proxsuite", help="QP solver (aasoatt list shows the installed ones)")
-    p_run.add_argument("-g", "--gain", action="append", help="filter gain KEY=VALUE (k1, k2, zeta, ...)")
-    p_run.add_argument("--decision-interval", type=int_option(1, 10_000), default=None,
-                       help="physics steps per action (default 1; --controller learned: the run's)")
-    p_run.add_argument("--seed", type=int_option(0), default=0)
-    p_run.add_argument("--gif", default=None,
-                       help=f"write an animation ({', '.join(ANIMATION_SUFFIXES)}; video needs imageio-ffmpeg)")
-    p_run.add_argument("--frame-every", type=int_option(1), default=20, help="env steps between GIF frames")
-    p_run.add_argument("--fps", type=int_option(1, 1000), default=20)
-    p_run.add_argument("--out", default=None, help="folder for metrics.json, rollout.npz, trajectories.png")
-    p_run.add_argument("--goal-tolerance", type=real_option(0.0, lo_open=True), default=0.05)
-    p_run.add_argument("--fail-on-collision", action="store_true", help="exit 1 if any pair collided")
-    p_run.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    add_common_options(p_run)
-    p_run.set_defaults(func=cmd_run)
-
+    _run_parser(sub)
     for name, (module, _) in _FORWARDED.items():
         p = sub.add_parser(name, help=f"see {module} (aasoatt {name} --help)", add_help=False)
         p.add_argument("rest", nargs=argparse.REMAINDER)
     return parser
 
 
-_FORWARDED = {
-    "reproduce": ("aasoatt_env.apps.reproduce", "main"),
-    "train": ("train.train", "main"),
-    "evaluate": ("train.evaluate", "main"),
-}
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``aasoatt`` console script (see :mod:`aasoatt_env.cli_support` for the contract)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] in _FORWARDED:  # these parse their own options (incl. --help) and guard their own errors
-        import importlib
-
         module, func = _FORWARDED[argv[0]]
         if argv[0] == "train":  # --backend rllib: train.rllib (Ray RLlib's venv has no Stable-Baselines3)
+            from train.config import split_backend
+
             backend, rest = split_backend(argv[1:])
             if backend == "rllib":
+                from train.rllib import main as rllib_main
+
                 return int(rllib_main(rest, prog="aasoatt train --backend rllib") or 0)
         return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
 

@@ -1,41 +1,31 @@
-"""Reproduce the paper's Sec. V: ``aasoatt reproduce EXPERIMENT [--quick] [--out DIR] [--jobs N]``.
+"""Reproduce the paper's Sec. V: ``aasoatt reproduce EXPERIMENT [--quick] [--out DIR] [--jobs N] [--page FILE]``.
 
-Experiments (see :mod:`aasoatt_env.apps.reproduce.experiments`): ``table1``,
-``compare-ca``, ``table2``, ``deadlock-triggers``, ``table3``, ``swarm100``,
-``obstacles`` and ``all``.  Each writes ``<out>/<experiment>/`` with a CSV, a
-Markdown ``README.md`` putting the paper's numbers beside ours (relative
-difference), PNG figures and the experiment's wall time; ``all`` also writes
-``<out>/SUMMARY.md`` with the wall time of each experiment and the total.
-
-Every run is deterministic: the same command gives the same numbers whatever
-``--jobs`` is.  ``--quick`` runs small variants (seconds, for CI) whose numbers
-are *not* comparable to the paper; they go to ``results/quick/`` unless ``--out``
-says otherwise, so they never replace the full tables.  Existing results are
-replaced only with ``--overwrite``; every option and the output folder are
-checked before the first run.
-
-Python use::
-
-    from aasoatt_env.apps.reproduce import run_experiment, Settings
-    report = run_experiment("compare-ca", Settings(out=Path("results")))
+Each experiment (:mod:`~aasoatt_env.apps.reproduce.experiments`, or ``all``) writes ``<out>/<experiment>/``:
+a CSV, a ``README.md`` with the paper's numbers beside ours, figures and its wall time; ``all`` also writes
+``<out>/SUMMARY.md``.  ``--page`` writes every result table on one Markdown page headed by the command that
+made it, so pages in ``docs/`` are regenerated, never hand-edited.  Runs are deterministic whatever
+``--jobs``.  ``--quick`` runs small variants, not comparable to the paper, into ``results/quick``.  From
+Python: ``report, seconds = run_experiment("compare-ca", Settings(out=Path("results")))``.
 """
 
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
-from aasoatt_env.apps.reproduce.experiments import EXPERIMENTS, Settings
-from aasoatt_env.apps.reproduce.report import Report
+from aasoatt_env.apps.reproduce.experiments import EXPERIMENTS
+from aasoatt_env.apps.reproduce.report import Report, Settings, run
 from aasoatt_env.cli_support import (
     OutputPlan,
     Parser,
     add_common_options,
-    guarded_outputs,
+    atomic_write,
     int_option,
+    path_option,
     real_option,
     run_guarded,
 )
@@ -44,66 +34,40 @@ from aasoatt_env.safety import available_solvers
 
 __all__ = ["EXPERIMENTS", "Settings", "main", "run_experiment"]
 
-
-def run_experiment(name: str, settings: Settings) -> tuple[Report, float]:
-    """Run experiment ``name`` and write its files.
-
-    Parameters
-    ----------
-    name : str
-        A key of :data:`EXPERIMENTS`.
-    settings : Settings
-        Shared options.
-
-    Returns
-    -------
-    report : Report
-        The written report (``report.dir`` holds the files).
-    wall_time : float
-        Seconds spent, recorded in the Markdown.
-    """
-    if name not in EXPERIMENTS:
-        raise ConfigError(f"experiment: got {name!r}, expected one of {sorted(EXPERIMENTS)} or 'all'")
-    t0 = time.perf_counter()
-    report = EXPERIMENTS[name](settings)
-    wall = time.perf_counter() - t0
-    report.write(wall, f"{settings.command}")
-    return report, wall
-
-
 QUICK_SUBDIR = "quick"
 """``--quick`` results go to ``<out>/quick/`` by default, so they never replace the full tables."""
 
 
+def run_experiment(name: str, settings: Settings) -> tuple[Report, float]:
+    """Run experiment ``name`` and write its files; return the report and the seconds it took."""
+    if name not in EXPERIMENTS:
+        raise ConfigError(f"experiment: got {name!r}, expected one of {sorted(EXPERIMENTS)} or 'all'")
+    t0 = time.perf_counter()
+    report = run(EXPERIMENTS[name], settings)
+    wall = time.perf_counter() - t0
+    report.write(wall, settings.command)
+    return report, wall
+
+
 def _parser() -> argparse.ArgumentParser:
-    p = Parser(
-        prog="aasoatt reproduce",
-        description="Reproduce the paper's Sec. V experiments; writes CSV, Markdown and PNG per experiment.",
-    )
+    p = Parser(prog="aasoatt reproduce",
+               description="Reproduce the paper's Sec. V experiments; writes CSV, Markdown and PNG per experiment.")
     p.add_argument("experiment", choices=[*EXPERIMENTS, "all"], help="experiment to run")
     p.add_argument("--quick", action="store_true",
                    help=f"small, fast variants (CI); not comparable to the paper; default --out results/{QUICK_SUBDIR}")
-    p.add_argument("--out", default=None,
+    p.add_argument("--out", type=path_option, default=None,
                    help=f"results root directory (default: results, or results/{QUICK_SUBDIR} with --quick)")
-    p.add_argument("--jobs", type=int_option(1, 256), default=1,
-                   help="worker processes for independent runs (default: 1)")
-    p.add_argument(
-        "--solver",
-        default=None,
-        help="QP solver of the safety filter (default: daqp if installed, else proxsuite; the paper's is 'neural')",
-    )
-    p.add_argument(
-        "--safety-margin",
-        type=real_option(0.0, 1.0),
-        default=0.0,
-        help="margin added to d_s [m] in the paper-comparison runs, in [0, 1] (default 0: the paper's barrier)",
-    )
-    p.add_argument(
-        "--backup",
-        action="store_true",
-        help="turn the braking backup layer on (default off: the paper's method as published)",
-    )
-    p.add_argument("--no-progress", action="store_true", help="hide progress bars")
+    p.add_argument("--page", type=path_option, default=None,
+                   help="also write every result table to this Markdown page, headed by the command (e.g. "
+                        "docs/paper_results.md)")
+    p.add_argument("--jobs", type=int_option(1, 256), default=1, help="worker processes for independent runs")
+    p.add_argument("--solver", default=None, help="QP solver of the safety filter (default: daqp if installed, "
+                                                  "else proxsuite; the paper's is 'neural')")
+    p.add_argument("--safety-margin", type=real_option(0.0, 1.0), default=0.0,
+                   help="margin added to d_s [m] in the paper-comparison runs, in [0, 1] (default 0: the paper's)")
+    p.add_argument("--backup", action="store_true",
+                   help="turn the braking backup layer on (default off: the paper's method as published)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_common_options(p)
     return p
 
@@ -111,68 +75,66 @@ def _parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point (``aasoatt reproduce ...``); returns the exit status.
 
-    Options and output folders are checked before the first run; existing results
-    (``<out>/<experiment>/``, ``<out>/SUMMARY.md``) are replaced only with ``--overwrite``.
+    Options and output paths are checked before the first run; existing results (``<out>/<experiment>/``,
+    ``<out>/SUMMARY.md``, the ``--page``) are replaced only with ``--overwrite``.
     """
     argv = list(sys.argv[1:] if argv is None else argv)
     return run_guarded("aasoatt reproduce", argv, _main)
 
 
+def _solver(args: argparse.Namespace) -> str:
+    if args.solver is None and "daqp" not in available_solvers():
+        print('note: DAQP is not installed (pip install "aasoatt[repro]"); using proxsuite (same results, '
+              "about 5x slower)", file=sys.stderr)
+    solver = args.solver or ("daqp" if "daqp" in available_solvers() else "proxsuite")
+    if solver not in available_solvers():
+        raise ConfigError(f"--solver: got {solver!r}, expected one of {available_solvers()}")
+    return solver
+
+
 def _main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
-    if args.solver is None:
-        args.solver = "daqp" if "daqp" in available_solvers() else "proxsuite"
-        if args.solver != "daqp":
-            print(
-                'note: DAQP is not installed (pip install "aasoatt[repro]"); using proxsuite (same '
-                "results, about 5x slower)",
-                file=sys.stderr,
-            )
-    if args.solver not in available_solvers():
-        raise ConfigError(f"--solver: got {args.solver!r}, expected one of {available_solvers()}")
+    solver = _solver(args)
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
-    cmd = "aasoatt reproduce {name}" + (" --quick" if args.quick else "")
-    if args.solver != "daqp":
-        cmd += f" --solver {args.solver}"
-    if args.safety_margin:
-        cmd += f" --safety-margin {args.safety_margin:g}"
-    if args.backup:
-        cmd += " --backup"
+    cmd = "aasoatt reproduce {name}" + " --quick" * args.quick + f" --solver {solver}" * (solver != "daqp")
+    cmd += f" --safety-margin {args.safety_margin:g}" * bool(args.safety_margin) + " --backup" * args.backup
     out = Path(args.out) if args.out is not None else Path("results") / (QUICK_SUBDIR if args.quick else "")
-    plan = OutputPlan(args.overwrite)
-    plan.folder(out, "--out", entries=[*names, *(["SUMMARY.md"] if len(names) > 1 else [])])
     walls: dict[str, float] = {}
-    t0 = time.perf_counter()
-    for k, name in enumerate(names):
-        settings = Settings(
-            quick=args.quick,
-            out=out,
-            jobs=args.jobs,
-            solver=args.solver,
-            safety_margin=args.safety_margin,
-            backup=args.backup,
-            progress=not args.no_progress,
-            command=cmd.format(name=name),
-        )
-        report, wall = (guarded_outputs(plan, lambda s=settings, n=name: run_experiment(n, s)) if k == 0
-                        else run_experiment(name, settings))
-        walls[name] = wall
-        print(f"{name}: {wall:.1f} s -> {report.dir / 'README.md'}", flush=True)
-    total = time.perf_counter() - t0
-    if len(names) > 1:
-        lines = [
-            "# Reproduction summary",
-            "",
-            f"Command: `{cmd.format(name=args.experiment)}`{f' --jobs {args.jobs}' if args.jobs > 1 else ''}",
-            "",
-            "| experiment | wall time [s] | report |",
-            "|---|---|---|",
-        ]
-        lines += [f"| {n} | {w:.1f} | [{n}/README.md]({n}/README.md) |" for n, w in walls.items()]
-        lines += ["", f"Total wall time: {total:.1f} s ({total / 60:.1f} min).", ""]
-        (out / "SUMMARY.md").write_text("\n".join(lines))
-        print(f"all: {total:.1f} s -> {out / 'SUMMARY.md'}")
+    reports = []
+    with OutputPlan(args.overwrite) as plan:  # a refusal or a failure before the first results leaves no folder
+        plan.folder(out, "--out", entries=[*names, *(["SUMMARY.md"] if len(names) > 1 else [])])
+        page = plan.file(args.page, "--page", suffixes=(".md",)) if args.page is not None else None
+        for name in names:
+            s = Settings(quick=args.quick, out=out, jobs=args.jobs, solver=solver, safety_margin=args.safety_margin,
+                         backup=args.backup, progress=not args.no_progress, command=cmd.format(name=name))
+            report, walls[name] = run_experiment(name, s)
+            reports.append(report)
+            print(f"{name}: {walls[name]:.1f} s -> {report.dir / 'README.md'}", flush=True)
+        if len(names) > 1:
+            _write_summary(out, cmd.format(name=args.experiment) + f" --jobs {args.jobs}" * (args.jobs > 1), walls)
+        if page is not None:
+            _write_page(page, ["aasoatt", "reproduce", *argv], reports)
+            print(f"page -> {page}")
     return 0
+
+
+def _write_summary(out: Path, command: str, walls: dict[str, float]) -> None:
+    """``<out>/SUMMARY.md``: the wall time of each experiment and their total."""
+    total = sum(walls.values())
+    lines = ["# Reproduction summary", "", f"Command: `{command}`", "", "| experiment | wall time [s] | report |",
+             "|---|---|---|", *(f"| {n} | {w:.1f} | [{n}/README.md]({n}/README.md) |" for n, w in walls.items()), "",
+             f"Total wall time: {total:.1f} s ({total / 60:.1f} min).", ""]
+    atomic_write(out / "SUMMARY.md", lambda tmp: tmp.write_text("\n".join(lines)))
+    print(f"all: {total:.1f} s -> {out / 'SUMMARY.md'}")
+
+
+def _write_page(path: Path, argv: list[str], reports: list[Report]) -> None:
+    """One Markdown page of every report's settings and tables, headed by the command line that made it."""
+    lines = ["# Reproduction of the paper's experiments", "", "Written by this command (run it again to regenerate "
+             "this page; do not edit it by hand):", "", "```", shlex.join(argv), "```", ""]
+    for report in reports:
+        lines += [f"## {report.title}", "", *("#" + line if line.startswith("#") else line for line in report.body())]
+    atomic_write(path, lambda tmp: tmp.write_text("\n".join(lines)))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,26 +1,58 @@
-"""CSV, Markdown and figure output of the reproduction experiments.
+"""The shared scaffolding of the paper's experiments: declare an :class:`Experiment`, :func:`run` does the rest.
 
-Every experiment writes ``<out>/<experiment>/``:
-
-* ``<experiment>.csv`` - one row per run (labels, our metrics, the paper's
-  numbers ``paper_<metric>`` and relative differences ``rel_<metric>``);
-* ``README.md`` - the settings, Markdown tables with the paper's numbers beside
-  ours and the relative difference ``(ours - paper) / |paper|``, findings and
-  the wall time;
-* ``*.png`` - figures.
+An experiment declares its runs, the paper's numbers for each, its table columns, notes, findings and
+figures; :func:`run` executes the runs, puts one CSV row per run beside the paper's numbers and the
+relative difference ``(ours - paper) / |paper|``, and returns a :class:`Report` that writes
+``<out>/<name>/``: ``<name>.csv``, ``README.md`` and the figures, all in one atomic step.
 """
 
 from __future__ import annotations
 
 import csv
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
-__all__ = ["Report", "fmt", "md_table", "rel_diff", "fmt_rel", "new_figure", "save_figure"]
+from aasoatt_env.apps.reproduce.runner import RunResult, RunSpec, run_many
+from aasoatt_env.cli_support import OutputPlan, staged
+
+__all__ = ["Experiment", "Report", "Settings", "fmt", "fmt_rel", "md_table", "rel_diff", "run"]
+
+Column = tuple[str, Callable[[dict[str, Any]], str]]
+"""A table column: its header and the cell of a CSV row."""
+
+Results = dict[str, RunResult]
+"""The runs of an experiment by key."""
+
+#: The CSV columns of a run's metrics, in this order (then the ``*_end`` goal metrics).
+CSV_METRICS = ("intervention_time", "rmse", "mae", "std", "max_tracking_error", "min_center_distance_full",
+               "min_robot_gap_full", "min_obstacle_gap", "n_collision_pairs", "n_obstacle_collisions",
+               "final_error_mean", "final_error_max", "reach_rate", "n_deadlocked", "triggered_fraction",
+               "relaxed_fraction", "unsafe_fraction", "failed_fraction", "slack_max", "solve_time_median", "wall_time")
+
+_SHORT = {"intervention_time": "IT [s]", "rmse": "RMSE", "mae": "MAE", "std": "std"}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Options shared by all experiments (those of ``aasoatt reproduce``; ``command`` heads the Markdown).
+
+    ``quick``: small variants whose numbers are not comparable to the paper's; ``solver``: the filter's
+    (``daqp``: exact; the paper's: ``neural``); ``safety_margin`` [m] (0: the paper's exact barrier).
+    """
+
+    quick: bool = False
+    out: Path = Path("results")
+    jobs: int = 1
+    solver: str = "daqp"
+    safety_margin: float = 0.0
+    backup: bool = False
+    progress: bool = True
+    command: str = "aasoatt reproduce"
 
 
 def rel_diff(ours: float | None, paper: float | None) -> float | None:
@@ -31,113 +63,154 @@ def rel_diff(ours: float | None, paper: float | None) -> float | None:
 
 
 def fmt(x: Any, digits: int = 4) -> str:
-    """Format a number for a table (``-`` for None)."""
+    """A table cell: ``-`` for None, yes/no for bools, ``digits`` decimals for floats."""
     if x is None:
         return "-"
     if isinstance(x, (bool, np.bool_)):
         return "yes" if x else "no"
-    if isinstance(x, (int, np.integer)):
-        return str(int(x))
-    if isinstance(x, (float, np.floating)):
-        if not math.isfinite(x):
-            return str(x)
+    if isinstance(x, (float, np.floating)) and math.isfinite(x):
         return f"{x:.{digits}f}"
-    return str(x)
+    return str(int(x)) if isinstance(x, np.integer) else str(x)
 
 
 def fmt_rel(x: float | None) -> str:
-    """Format a relative difference as a signed percentage."""
+    """A relative difference as a signed percentage."""
     return "-" if x is None else f"{100 * x:+.1f}%"
 
 
 def md_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
     """A GitHub Markdown table; cells are formatted with :func:`fmt` unless already strings."""
     out = ["| " + " | ".join(headers) + " |", "|" + "|".join("---" for _ in headers) + "|"]
-    for row in rows:
-        out.append("| " + " | ".join(c if isinstance(c, str) else fmt(c) for c in row) + " |")
+    out += ["| " + " | ".join(c if isinstance(c, str) else fmt(c) for c in row) + " |" for row in rows]
     return "\n".join(out)
 
 
-def new_figure(nrows: int = 1, ncols: int = 1, size: tuple[float, float] = (6.0, 4.0)) -> tuple[Any, Any]:
-    """A matplotlib figure (Agg, no pyplot state) and its axes array."""
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=size, layout="constrained")
-    axes = fig.subplots(nrows, ncols, squeeze=False)
-    return fig, axes
+def col(header: str, key: str | Callable[[dict[str, Any]], Any], digits: int = 4) -> Column:
+    """A column showing the CSV row's ``key`` (or ``key(row)``) with ``digits`` decimals."""
+    return header, lambda row: fmt(key(row) if callable(key) else row.get(key), digits)
 
 
-def save_figure(fig: Any, path: Path, dpi: int = 110) -> None:
-    """Save ``fig`` as PNG."""
-    fig.savefig(path, dpi=dpi)
+def compared(metrics: Sequence[str]) -> list[Column]:
+    """The paper | ours | relative-difference columns of ``metrics``."""
+    return [c for k in metrics for c in (col(f"{_SHORT[k]} paper", f"paper_{k}"), col(f"{_SHORT[k]} ours", k),
+                                         ("rel.", lambda row, k=k: fmt_rel(row[f"rel_{k}"])))]
 
 
-class Report:
-    """Collects one experiment's rows, tables and notes and writes them out.
+class Experiment:
+    """One experiment of the paper, declared by overriding the hooks that apply.
 
-    Parameters
-    ----------
-    name : str
-        Experiment name (directory and file stem).
-    title : str
-        Markdown title.
-    out : Path
-        Results root; files go to ``out / name``.
+    ``_specs(s)``: the runs in table order; ``_paper(spec)``: the paper's numbers of a run (None: not in the
+    paper); ``_extra(s, spec, result)``: more CSV fields of a run; ``_columns(s)``: the results table;
+    ``_notes(s)``: the settings list; ``_sections(s, res)``: Markdown after the table; ``_findings(s, res)``:
+    one bullet each; ``_figures(s, res)``: ``(figure, file name, caption)`` of each figure.
     """
 
-    def __init__(self, name: str, title: str, out: Path) -> None:
-        self.name = name
-        self.title = title
-        self.dir = Path(out) / name
-        self.dir.mkdir(parents=True, exist_ok=True)
-        self.rows: list[dict[str, Any]] = []
-        self.sections: list[str] = []
-        self.figures: list[str] = []
-        self.settings: list[str] = []
+    name: ClassVar[str]
+    title: ClassVar[str]
+    metrics: ClassVar[tuple[str, ...]] = ()
+    """Metrics compared with the paper (``paper_<m>`` and ``rel_<m>`` CSV columns)."""
+    heading: ClassVar[str] = "## Results (paper | ours | relative difference)"
+    sizes: ClassVar[dict[bool, Any]] = {}
+    """The scenario sizes of the full experiment (``False``) and of ``--quick`` (``True``)."""
 
-    def add_row(self, row: dict[str, Any]) -> None:
-        """Append a CSV row (a flat dict)."""
-        self.rows.append(row)
+    def size(self, s: Settings) -> Any:
+        """The scenario sizes for ``s``."""
+        return self.sizes[s.quick]
 
-    def section(self, text: str) -> None:
-        """Append a Markdown block (tables, findings)."""
-        self.sections.append(text.strip())
+    def _specs(self, s: Settings) -> list[RunSpec]:
+        raise NotImplementedError
 
-    def setting(self, text: str) -> None:
-        """Append a bullet to the settings list."""
-        self.settings.append(text)
+    def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
+        return None
 
-    def figure(self, fig: Any, filename: str, caption: str) -> Path:
-        """Save a figure into the experiment directory and reference it from the Markdown."""
-        path = self.dir / filename
-        save_figure(fig, path)
-        self.figures.append(f"- `{filename}`: {caption}")
-        return path
+    def _extra(self, s: Settings, spec: RunSpec, result: RunResult) -> dict[str, Any]:
+        return {}
+
+    def _columns(self, s: Settings) -> list[Column]:
+        raise NotImplementedError
+
+    def _notes(self, s: Settings) -> list[str]:
+        return []
+
+    def _sections(self, s: Settings, res: Results) -> list[str]:
+        return []
+
+    def _findings(self, s: Settings, res: Results) -> list[str]:
+        return []
+
+    def _figures(self, s: Settings, res: Results) -> list[tuple[Any, str, str]]:
+        return []
+
+
+def result_row(exp: str, res: RunResult, ref: dict[str, Any] | None, metrics: Sequence[str]) -> dict[str, Any]:
+    """One CSV row: the run's labels, metrics, the paper's numbers and the relative differences."""
+    row: dict[str, Any] = {"experiment": exp, "key": res.spec.key, **res.spec.meta}
+    row.update({k: res.metrics[k] for k in CSV_METRICS if k in res.metrics})
+    row.update({k: v for k, v in res.metrics.items() if k.endswith("_end")})
+    for k in metrics:
+        p = None if ref is None else ref.get(k)
+        row[f"paper_{k}"], row[f"rel_{k}"] = p, rel_diff(res.metrics.get(k), p)
+    return row
+
+
+def run(exp: Experiment, s: Settings) -> Report:
+    """Run ``exp`` and tabulate its results."""
+    specs = exp._specs(s)
+    res = {r.spec.key: r for r in run_many(specs, jobs=s.jobs, desc=exp.name, show=s.progress)}
+    rows = [{**result_row(exp.name, res[sp.key], exp._paper(sp), exp.metrics), **exp._extra(s, sp, res[sp.key])}
+            for sp in specs]
+    cols = exp._columns(s)
+    table = md_table([h for h, _ in cols], [[cell(row) for _, cell in cols] for row in rows])
+    findings = "\n".join(f"- {line}" for line in exp._findings(s, res))
+    sections = [f"{exp.heading}\n\n{table}", *exp._sections(s, res), *([f"## Findings\n\n{findings}"] * bool(findings))]
+    return Report(exp.name, exp.title, s.out, rows, exp._notes(s), sections, exp._figures(s, res))
+
+
+@dataclass
+class Report:
+    """One experiment's rows, settings, Markdown sections and figures, ready to write."""
+
+    name: str
+    title: str
+    out: Path
+    rows: list[dict[str, Any]]
+    settings: list[str]
+    sections: list[str]
+    figures: list[tuple[Any, str, str]]
+
+    @property
+    def dir(self) -> Path:
+        """The experiment's folder, ``<out>/<name>``."""
+        return Path(self.out) / self.name
+
+    def body(self) -> list[str]:
+        """The Markdown of the settings and sections (what a results page shows of this experiment)."""
+        return (["## Settings", "", *(f"- {s}" for s in self.settings), ""] if self.settings else []) + [
+            line for s in self.sections for line in (s.strip(), "")]
 
     def write(self, wall_time: float, command: str) -> tuple[Path, Path]:
-        """Write ``<name>.csv`` and ``README.md``; return their paths."""
-        csv_path = self.dir / f"{self.name}.csv"
-        keys: list[str] = []
-        for row in self.rows:
-            for k in row:
-                if k not in keys:
-                    keys.append(k)
-        with csv_path.open("w", newline="") as fh:
+        """Write ``<name>.csv``, ``README.md`` and the figures (all or none); return the CSV and README paths."""
+        csv_path, md_path = self.dir / f"{self.name}.csv", self.dir / "README.md"
+        md = [f"# {self.title}", "", f"Command: `{command}`", "", *self.body()]
+        if self.figures:
+            md += ["## Figures", "", *(f"- `{name}`: {caption}" for _, name, caption in self.figures), ""]
+        md += [f"CSV: `{csv_path.name}`.", "", f"Wall time of this experiment: {wall_time:.1f} s.", ""]
+        with OutputPlan(overwrite=True) as plan:  # a failure leaves no empty folder to be taken for results
+            plan.folder(self.dir, self.name)
+            with staged(csv_path, md_path, *(self.dir / name for _, name, _ in self.figures)) as temps:
+                self._write_csv(temps[0])
+                temps[1].write_text("\n".join(md))
+                for (fig, _, _), temp in zip(self.figures, temps[2:]):
+                    fig.savefig(temp, dpi=110, format="png")
+        return csv_path, md_path
+
+    def _write_csv(self, path: Path) -> None:
+        keys = list(dict.fromkeys(k for row in self.rows for k in row))
+        with path.open("w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=keys)
             w.writeheader()
             for row in self.rows:
                 w.writerow({k: _csv_cell(row.get(k)) for k in keys})
-        md = [f"# {self.title}", "", f"Command: `{command}`", ""]
-        if self.settings:
-            md += ["## Settings", ""] + [f"- {s}" for s in self.settings] + [""]
-        for s in self.sections:
-            md += [s, ""]
-        if self.figures:
-            md += ["## Figures", ""] + self.figures + [""]
-        md += [f"CSV: `{csv_path.name}`.", "", f"Wall time of this experiment: {wall_time:.1f} s.", ""]
-        md_path = self.dir / "README.md"
-        md_path.write_text("\n".join(md))
-        return csv_path, md_path
 
 
 def _csv_cell(v: Any) -> Any:
@@ -145,6 +218,4 @@ def _csv_cell(v: Any) -> Any:
         return ""
     if isinstance(v, (float, np.floating)):
         return repr(float(v))
-    if isinstance(v, (np.integer, np.bool_)):
-        return v.item()
-    return v
+    return v.item() if isinstance(v, (np.integer, np.bool_)) else v
