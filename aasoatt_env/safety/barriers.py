@@ -1,41 +1,20 @@
 """Pairwise barrier functions, each turned into rows linear in the wheel accelerations.
 
-Every barrier produces, for all pairs at once, rows of the form
+Every barrier gives, for all pairs at once, rows ``-p_ij^T (A_i du_i - A_j du_j) <= rhs_ij`` (eqn.8),
+written ``c^T (w_i - w_j) <= rhs`` with ``w = A du`` and ``c = -p_ij``.  An obstacle is a pair whose
+second member has zero velocity and acceleration (``j = -1``); its robot carries the whole row.
 
-    -p_ij^T (A_i du_i - A_j du_j) <= rhs_ij                              (eqn.8)
+Registry (:data:`BARRIERS`; adding a barrier is its row builder, its function ``h`` and one line):
 
-written here as ``c^T (w_i - w_j) <= rhs`` with ``w = A du`` the commanded
-control-point acceleration and ``c = -p_ij``.  Obstacle pairs are pairs whose
-second member has zero velocity and acceleration: the robot carries the whole
-row (``j = -1`` in :class:`PairGeometry`).
-
-Registry (:data:`BARRIERS`, look-up with :func:`get_barrier`; adding a barrier is a row
-builder ``f(geometry, config) -> (rhs, keep)``, its barrier function ``h(geometry, config)``
-and one registry line):
-
-``aasoatt`` (eqn.7, eqn.7a, eqn.8; default)
-    ``h = r_dot + k1 (r - d_s)`` with ``h_dot + k2 h >= 0``.  The typo of
-    eqn.7c is corrected (``- A_dot_j u_j``).
-``braking`` (eqn.n4, Wang-Ames-Egerstedt 2017)
-    ``h = sqrt(2 (a_i+ + a_j+)(r - d_s)) + r_dot`` with ``h_dot >= -gamma h^3``;
-    ``a+`` is :attr:`aasoatt_env.model.params.Team.max_point_accel` (an obstacle
-    contributes 0).  ``r - d_s`` is clamped at ``1e-6`` so the row stays finite
-    once a pair is inside the safety distance.
-``distance`` (eqn.nn5)
-    ``-2 p_ij^T v_ij <= varsigma (r^2 - d_s^2)``.
-``gated_distance`` (eqn.n5, eqn.n6)
-    eqn.nn5 kept only while the pair approaches (``p^T v < 0``) inside the gate
-    distance.  eqn.n6 prints ``d_safe`` as the gate, which would switch the row on
-    only after a collision; the gate is ``gate_range`` (default: the sensing
-    range ``D``).
-``adaptive_distance`` (eqn.n7, Rodriguez-Seda 2019)
-    eqn.nn5 with ``d = (D + r)/2 + (D - r)/pi atan(-rho_v p^T v + sigma)``,
-    ``r = r_i + r_j``.
-
-The velocity-level barriers constrain velocity; they are applied to the
-next-step velocity ``v + (A du + A_dot u) dt``, which is linear in ``du``:
-``-2 p^T (v + (w_i - w_j + A_dot u_ij) dt) <= varsigma (r^2 - d^2)``, divided by
-``2 dt`` to the common form.
+``aasoatt`` (eqn.7-8, default): ``h = r_dot + k1 (r - d_s)``, ``h_dot + k2 h >= 0`` (eqn.7c's typo
+corrected: ``- A_dot_j u_j``).  ``braking`` (eqn.n4, Wang-Ames-Egerstedt 2017):
+``h = sqrt(2 (a_i+ + a_j+)(r - d_s)) + r_dot``, ``h_dot >= -gamma h^3`` (``r - d_s`` clamped at 1e-6 so the
+row stays finite inside ``d_s``).  ``distance`` (eqn.nn5): ``-2 p^T v <= varsigma (r^2 - d_s^2)``.
+``gated_distance`` (eqn.n5/n6): eqn.nn5 only while the pair approaches within ``gate_range`` (eqn.n6
+prints ``d_safe`` as the gate, which would switch the row on only after a collision).
+``adaptive_distance`` (eqn.n7, Rodriguez-Seda 2019): eqn.nn5 with
+``d = (D + r)/2 + (D - r)/pi atan(-rho_v p^T v + sigma)``.  The velocity barriers apply to the
+next-step velocity ``v + (A du + A_dot u) dt`` (linear in ``du``), divided by ``2 dt``.
 """
 
 from __future__ import annotations

@@ -1,26 +1,14 @@
-"""Validated configuration of the safety filter.
+"""Validated configuration of the safety filter (:class:`FilterConfig`).
 
-Defaults follow ``docs/technical_brief.md`` section 7 (``k1 = k2 = 2``, ``k3 = 1``, ``k4 = 4``,
-``zeta = 2``, ``q = -60 deg``, ``D = 3``, ``dt = 0.005``).  Values the paper does
-not give are our choices: ``gamma = 1`` (braking SBC), ``varsigma = 2``,
-``rho_v = 1``, ``sigma = 0`` (velocity barriers).
+Defaults follow ``docs/technical_brief.md`` section 7 (``k1 = k2 = 2``, ``k3 = 1``, ``k4 = 4``, ``zeta = 2``,
+``q = -60 deg``, ``D = 3 m``, ``dt = 5 ms``); where the paper gives no value these are our choices
+(``gamma = 1``, ``varsigma = 2``, ``rho_v = 1``, ``sigma = 0``).
 
-Discrete-time safety margin
----------------------------
-The CBF guarantee holds in continuous time; with ``du`` held over a step of
-``dt`` pairs dip slightly below ``d_s`` (a few millimetres on the crowded
-radius-6 circle, exact solves; README, Table II).  ``safety_margin=None`` (default) adds to the safety
-distance of each pair
-
-    m_ij = auto_margin(dt) * min(1, |v_ij| / 0.2 m/s),   auto_margin(dt) = 2 dt * 1 m/s
-
-i.e. 1 cm at ``dt = 0.005`` for pairs in relative motion, fading to 0 for pairs
-at relative rest.  The fade keeps static packings that are feasible for ``d_s``
-reachable: 39 robots of radius 0.48 at their goals on the radius-6 circle are
-only 6 mm apart, so a constant 1 cm margin would stop them 2-6 cm short of the
-goals (the closed-loop tests and ``benchmarks/safety_campaign.py`` check the
-distances).  A float ``safety_margin`` adds that constant instead; ``0`` gives
-the paper's exact barrier.
+Discrete-time margin: the barrier's guarantee is for continuous time; with ``du`` held over ``dt``
+pairs dip a few millimetres below ``d_s``.  ``safety_margin=None`` adds to each pair's safety distance
+``auto_margin(dt) * min(1, |v_ij| / 0.2 m/s)`` (1 cm at 5 ms for pairs in relative motion, fading to 0 at
+relative rest, so packings feasible for ``d_s``, such as 39 robots at their goals on the radius-6 circle,
+stay reachable); a float adds that constant instead, ``0`` the paper's exact barrier.
 """
 
 from __future__ import annotations
@@ -41,16 +29,16 @@ from aasoatt_env.safety.barriers import BARRIERS
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
 from aasoatt_env.safety.solvers import get_solver
 
-__all__ = ["GAIN_MAX", "MODES", "FilterConfig", "auto_margin"]
+__all__ = ["GAIN_MAX", "MODES", "NEURAL_ITERATIONS_MAX", "FilterConfig", "auto_margin"]
 
 MODES: tuple[str, ...] = ("centralized", "decentralized")
 """Values of :attr:`FilterConfig.mode`."""
 
 GAIN_MAX: float = 1e3
-"""Largest accepted barrier/tracking gain (``k1``, ``k2``, ``k3``, ``k4``, ``gamma``,
-``varsigma``, ``rho_v``).  Larger gains make the rows so stiff that the QP is
-infeasible on most steps (``k1 = 1e10`` left 627 of 2,000 steps without an
-answer), so they are rejected rather than silently degraded."""
+"""Largest accepted gain (``k1``, ``k2``, ``k3``, ``k4``, ``gamma``, ``varsigma``, ``rho_v``): stiffer rows make
+the QP infeasible on most steps, so such gains are refused rather than silently degraded."""
+NEURAL_ITERATIONS_MAX: int = 20_000
+"""Largest ``neural_iterations``: a step's work is bounded by a number the user sees."""
 
 
 MARGIN_FADE_SPEED = 0.2
@@ -64,124 +52,62 @@ def auto_margin(dt: float) -> float:
 
 @dataclass(frozen=True)
 class FilterConfig:
-    """Parameters of :class:`aasoatt_env.safety.core.SafetyFilter`.
+    """Parameters of :class:`~aasoatt_env.safety.core.SafetyFilter` (every field validated when made).
 
     Parameters
     ----------
-    barrier : str
-        Barrier name, see :data:`aasoatt_env.safety.barriers.BARRIERS`.
-    deadlock : str
-        Deadlock strategy, see :data:`aasoatt_env.safety.deadlock.STRATEGIES`.
-    trigger : str
-        What switches the deadlock strategy on, see :data:`~aasoatt_env.safety.deadlock.TRIGGERS`.
-    solver : str
-        QP solver, see :data:`aasoatt_env.safety.solvers.backends.SOLVERS`.
+    barrier, deadlock, trigger, solver : str
+        Registered names: :data:`~aasoatt_env.safety.barriers.BARRIERS`,
+        :data:`~aasoatt_env.safety.deadlock.STRATEGIES`, :data:`~aasoatt_env.safety.deadlock.TRIGGERS`,
+        :data:`~aasoatt_env.safety.solvers.SOLVERS` (the back-end; :mod:`~aasoatt_env.safety.solvers.policy`
+        decides which solver answers each problem).
     k1, k2 : float
-        Barrier gains of eqn.7 / eqn.7a.
+        Barrier gains (eqn.7, eqn.7a).
     k3, k4 : float
-        Gains of the nominal tracking law eqn.12 that the deadlock corrections
-        (eqn.12b, eqn.13) assume; keep them equal to the nominal controller's
-        (defaults: the paper's, :data:`aasoatt_env.model.tracking.PAPER_K3` and ``PAPER_K4``).
-    zeta : float
-        Deadlock gain ``zeta`` of eqn.12b / eqn.13 (``k4 > zeta``, Theorem 2).
-    rotation_deg : float
-        Rotation angle ``q`` of ``Q`` [deg], in ``[-180, 180]``.
+        The nominal tracking law's gains that eqn.12b and eqn.13 assume (the paper's); ``k4 > zeta`` (Theorem 2).
+    zeta, rotation_deg : float
+        Deadlock gain and the rotation ``q`` of ``Q`` [deg] (eqn.12-14).
     sensing_range : float
         ``D`` [m]: pairs farther apart get no row.
-    gamma : float
-        Braking SBC gain (eqn.n4).
-    varsigma, rho_v, sigma : float
-        Velocity-barrier parameters (eqn.nn5, eqn.n5, eqn.n7).
-    gate_range : float or None
-        Gate distance of ``gated_distance`` (None: ``sensing_range``).
+    gamma, varsigma, rho_v, sigma, gate_range : float
+        Braking SBC gain (eqn.n4); velocity barriers (eqn.nn5, eqn.n5/n6 with ``gate_range``, None: ``D``; eqn.n7).
     safety_margin : float or None
-        Added to every safety distance [m]; None: :func:`auto_margin` of ``dt``.
+        Added to every safety distance [m]; None: the speed-dependent discrete-time margin (module docstring).
     dt : float
         Control step [s].
     neural_iterations : int
-        Projected primal-dual updates per step of the ``neural`` solver.
+        Projected primal-dual updates per step of the ``neural`` solver (at most :data:`NEURAL_ITERATIONS_MAX`).
     active_set : bool
-        First try the warm-started exact active-set method
-        (:mod:`~aasoatt_env.safety.solvers.active_set`, accepted only when the KKT
-        conditions check out; the solver otherwise).  It pays off when consecutive
-        QPs share their active set and costs time when the set changes every step
-        (``benchmarks/bench_filter.py`` measures both).  On by default.
+        Try the warm-started exact active set first (accepted only where the KKT conditions hold).
     mode : {"centralized", "decentralized"}
-        ``"centralized"`` (default): one QP for the team (the paper's filter).
-        ``"decentralized"``: every robot solves its own 2-variable QP over its
-        shares of the pair rows (in proportion to ``Team.max_point_accel``,
-        around the pair's nominal answers: the reciprocal split of
-        :mod:`aasoatt_env.safety.decentralized`), all at once and exactly;
-        ``decompose`` does not apply (``solver`` and ``active_set`` answer the negotiation
-        groups only, see ``negotiate``).  A robot whose own QP is infeasible gets
-        its least-violation answer (status ``"relaxed"``).  The backup layer
-        still runs after it, and it is a team-wide check: it needs every
-        neighbour's state and applied input (README: Decentralised filter).
-    negotiate : bool
-        ``mode="decentralized"`` only: a robot the deadlock trigger flags negotiates, and so
-        does every robot it touches (gap below ``negotiate_gap``); the rows between
-        negotiating robots are solved whole, jointly, by the negotiation groups they join
-        (:mod:`aasoatt_env.safety.decentralized`); every other robot solves its own QP.
-        Without it, alike robots that block each other in a crowd can stop for good (README:
-        Decentralised filter).  On by default; ``False`` is the per-robot filter alone.  It
-        acts only through the trigger, so with ``deadlock="none"`` nobody negotiates.
-    negotiate_gap : float
-        Gap [m] (distance less the two radii) below which two robots touch, in
-        ``[0, sensing_range]`` (default 0.1).
+        One QP for the team (the paper's), or every robot's own 2-variable QP over its share of each pair row
+        (:mod:`~aasoatt_env.safety.decentralized`); ``decompose`` does not apply to the latter.
+    negotiate, negotiate_gap : bool, float
+        Decentralised only: robots the deadlock trigger flags, and those touching them (gap below
+        ``negotiate_gap`` [m]), solve the rows among them jointly; without it alike robots can block each other
+        for good.
     decompose : bool
-        With an exact solver (all but ``neural``): robots in no row are solved in
-        closed form (a 2-variable box-constrained least squares each) and the QP
-        is built over the robots that share a row only.  The optimum is the same
-        (the problem is separable); the QP is smaller.  True by default.
+        Robots in no violated row are answered in closed form, the QP built over the others (the same optimum).
     backup : bool
-        The braking backup layer (:mod:`aasoatt_env.safety.gatekeeper`, on by
-        default): the QP's answer is applied only where it keeps the team in the
-        set of states from which braking keeps every pair ``>= d_s``; elsewhere
-        the robots brake.  This is what makes the filter safe for any nominal
-        under the robots' real input bounds.  ``False`` gives the paper's filter
-        alone (``aasoatt reproduce`` runs it so).
+        The braking backup layer (:mod:`~aasoatt_env.safety.backup`): the QP's answer is applied only where braking
+        from the state it leads to keeps every pair apart; this makes the filter safe for any nominal under the
+        real input bounds.  ``False``: the paper's filter alone (``aasoatt reproduce`` runs it so).
     brake_fraction : float
-        The backup's control-point deceleration as a fraction of the robot's
-        straight-line braking capability ``rho * max_wheel_accel``, in ``(0, 1]``.
+        The backup's deceleration as a fraction of the robot's straight-line braking capability, in ``(0, 1]``.
     backup_repair : bool
-        Where the backup layer would brake, first nudge the QP's answer toward
-        the safe set (the least change that lifts every low backup margin,
-        :func:`aasoatt_env.safety.repair.repair`) and check again; keeps crowds
-        moving.  On by default.
+        Where the layer would brake, first nudge the QP's answer toward brake-safety and check again.
     speed_margin : float
-        Added to the safety distance of a pair in the barrier rows:
-        ``speed_margin * (|v_i|^2 + |v_j|^2)`` [s^2/m] (default 0).
+        ``speed_margin * (|v_i|^2 + |v_j|^2)`` [s^2/m] added to a pair's safety distance in the rows.
     max_wheel_speed : float or None
-        Filter-side wheel-speed bound [rad/s] (None: none beyond the robots' own).
-        The filter keeps ``|u + du dt| <= max_wheel_speed`` by tightening the box
-        on ``du`` (a wheel already beyond it may brake at full acceleration, so the
-        box is never empty).  The paper's barrier assumes the rows stay feasible;
-        on robots without a wheel-speed limit an adversarial nominal can spin a
-        robot up until the drift ``A_dot u`` exceeds what the bounded wheel
-        accelerations can cancel, and from there no input keeps the barrier
-        (README: known limits).  Set this for such policies; off by default
-        because the paper's experiments do not have it.
+        Filter-side wheel-speed bound [rad/s]: the box on ``du`` is tightened so ``|u + du dt|`` stays within it
+        (a policy that spins robots up beyond what the wheels can cancel makes the rows infeasible).
     eta_tol : float
-        A (normalised) multiplier above this marks a row active.
-    low_speed : float
-        Speed [m/s] below which the ``low_speed`` trigger considers a robot stopped.
-    goal_tol : float
-        Tracking error [m] above which a stopped robot counts as stuck.
-    stall_time : float
-        Dwell time [s] of the ``stalled`` trigger.
-    stall_distance : float
-        Displacement [m] over ``stall_time`` below which a robot is stalled.
-    heading_deg : float
-        Half-angle [deg] of the ``heading`` trigger's cone.
+        A normalised multiplier above this marks a row active (the ``multiplier`` trigger).
+    low_speed, goal_tol, stall_time, stall_distance, heading_deg : float
+        Thresholds of the triggers (:mod:`~aasoatt_env.safety.deadlock`).
     kernel : {"auto", "numpy", "numba"}
-        Implementation of the backup layer's check and repair, the decentralised
-        filter's local solver, the warm active set and the centralised decomposition
-        around it, the barrier rows, and the neighbour search (:mod:`aasoatt_env.compiled`):
-        ``"auto"`` (default) the compiled kernels when numba is installed (``pip install
-        "aasoatt[fast]"``), else the numpy reference; ``"numpy"`` always the reference;
-        ``"numba"`` the kernels, or a :class:`~aasoatt_env.errors.ConfigError` when the filter is
-        built without numba (a saved configuration still loads).  Both give the same decisions;
-        their numbers agree to floating-point rounding.
+        The stages' implementation (:mod:`aasoatt_env.compiled`): compiled where numba is installed
+        (``"auto"``), the numpy reference (``"numpy"``), or compiled or an error (``"numba"``).
     """
 
     barrier: str = "aasoatt"
@@ -252,7 +178,7 @@ class FilterConfig:
         for flag in ("active_set", "negotiate", "decompose", "backup", "backup_repair"):
             check.boolean(flag, getattr(self, flag))
         object.__setattr__(self, "neural_iterations",
-                           check.integer("neural_iterations", self.neural_iterations, lo=1, hi=1_000_000))
+                           check.integer("neural_iterations", self.neural_iterations, lo=1, hi=NEURAL_ITERATIONS_MAX))
         if STRATEGIES[self.deadlock].active and not self.k4 > self.zeta:
             raise ConfigError(
                 f"k4 must exceed zeta (Theorem 2's convergence condition k4 > zeta): "
@@ -261,12 +187,10 @@ class FilterConfig:
 
     @classmethod
     def merged(cls, config: FilterConfig | Mapping[str, Any] | None = None, /, **options: Any) -> FilterConfig:
-        """The one rule for combining a configuration with explicit options.
+        """``config`` (a FilterConfig, a mapping of its fields, None: defaults) with ``options`` replacing fields.
 
-        Start from ``config`` (a :class:`FilterConfig`, a mapping of its fields
-        as read from TOML/JSON/the command line, or None for the defaults); every
-        explicit keyword in ``options`` replaces that field.  Unknown names raise
-        ``TypeError`` listing the fields; values are validated once.
+        The one rule for combining a configuration with explicit options; unknown names raise ``TypeError``
+        listing the fields.
         """
         known = [f.name for f in fields(cls)]
         if config is None:

@@ -1,47 +1,21 @@
 """Deadlock resolution: strategies (what changes) and triggers (when), both registries.
 
-``Q(q)`` is the rotation by ``q``; ``zeta_i`` is ``zeta`` while robot ``i`` is
-triggered, else 0.  Strategies (:data:`STRATEGIES`, :class:`Strategy`) act on
-the target control-point acceleration ``target`` (the nominal ``A du_nom``) or
-on the barrier rows:
+``Q(q)`` is the rotation by ``q``; ``zeta_i`` is ``zeta`` while robot ``i`` is triggered, else 0.
+Strategies (:data:`STRATEGIES`) change the QP's target ``A du_nom`` or the barrier rows:
 
-``none``
-    nothing.
-``rotate_nominal`` (eqn.12a, Wang 2017)
-    ``target <- (I - Q) target`` while triggered.
-``rotate_reference_velocity`` (eqn.12b)
-    ``v_d <- (I - zeta Q) v_d``; for an arbitrary nominal this is the target
-    correction ``-(k3 + k4) zeta Q v_d`` (exact for the tracking law eqn.12).
-``auxiliary_velocity`` (eqn.13, default)
-    ``target += -zeta Q (A u - v_d + k3 ell)``, ``ell = p - p_d``.
-``rotate_relative_position`` (eqn.12c, He 2024)
-    ``p_ij <- (I - Q) p_ij`` in the rows of pairs with a triggered member
-    (everywhere in the row: normal and right-hand side).  This changes the
-    barrier itself, so the paper's barrier no longer protects the pair while it
-    is active (the paper reports Zeno behaviour with it; in a 2-robot head-on
-    swap the pair overlapped by 0.8 m without the backup layer).  The filter
-    warns at construction; with the braking backup layer on (the default) the
-    team stays collision-free anyway.
+``none``; ``rotate_nominal`` (eqn.12a, Wang 2017): ``target <- (I - Q) target``;
+``rotate_reference_velocity`` (eqn.12b): ``v_d <- (I - zeta Q) v_d``, for any nominal the correction
+``-(k3 + k4) zeta Q v_d`` (exact for the tracking law eqn.12); ``auxiliary_velocity`` (eqn.13, default):
+``target -= zeta Q (A u - v_d + k3 ell)``; ``rotate_relative_position`` (eqn.12c, He 2024):
+``p_ij <- (I - Q) p_ij`` in the rows of triggered pairs, which changes the barrier itself (the paper
+reports Zeno behaviour), so the filter warns; the backup layer still keeps the team apart.
 
-Triggers (:data:`TRIGGERS`), evaluated at the start of a step:
-
-``multiplier`` (Algorithm 1)
-    some multiplier of a row involving robot ``i`` was positive at the previous
-    step, and the robot is not done (as for ``low_speed`` below).  The "not done"
-    part is ours: a robot at rest at its goal is not in a deadlock, and with the
-    bare rule robots that end next to each other (a 39-robot circle whose goals
-    are 7 mm beyond contact) keep rotating around their goals; in the
-    decentralised filter, where a robot's half-row binds more often, 12 of 39
-    stayed 6-13 cm from their goals.
-``low_speed`` (Wang 2017)
-    ``|v_i| < low_speed`` while the robot is not done (``|v_d_i| >= low_speed``
-    or ``|ell_i| > goal_tol``; without a reference: while it was avoiding).
-``stalled``
-    the robot moved less than ``stall_distance`` over ``stall_time`` and is not
-    done (as above).
-``heading`` (He 2024)
-    the heading points, within ``heading_deg``, at the nearest neighbour or
-    obstacle inside the sensing range.
+Triggers (:data:`TRIGGERS`), evaluated at the start of a step: ``multiplier`` (Algorithm 1): a row of
+the robot was active at the previous step; ``low_speed`` (Wang 2017): ``|v_i| < low_speed``;
+``stalled``: moved less than ``stall_distance`` over ``stall_time``; ``heading`` (He 2024): the heading
+points within ``heading_deg`` at the nearest neighbour or obstacle.  All but ``heading`` act only on a
+robot that is not done (its reference still moving or its tracking error above ``goal_tol``): a robot at
+rest at its goal is not deadlocked, and robots whose goals touch would otherwise keep turning there.
 
 Adding a strategy or a trigger is one function and one registry line.
 """
@@ -161,9 +135,8 @@ TRIGGERS: dict[str, TriggerFn] = {
 """Trigger registry: name -> ``trigger(memory, context)``."""
 
 TRIGGERS_WITHOUT_PAIRS: frozenset[str] = frozenset({"multiplier", "low_speed", "stalled"})
-"""The triggers known to read no pairs (``TriggerContext.pair_idx``, ``pair_vec``): the filter may compute them
-before its rows, with empty pairs (:mod:`aasoatt_env.safety.step_kernel`); any other trigger, one you register
-included, gets the pairs."""
+"""The triggers known to read no pairs: the filter hands them empty ``pair_idx``/``pair_vec``; any other
+trigger, one you register included, gets the pairs."""
 
 
 class TargetContext(NamedTuple):

@@ -1,83 +1,28 @@
-"""The decentralised safety filter step: every robot solves its own 2-variable QP.
+"""The decentralised QP stage: every robot solves its own 2-variable QP over its share of each pair row.
 
-In the spirit of Wang, Ames and Egerstedt's decentralised safety barrier
-certificates, each pair row of the centralised filter (:mod:`~aasoatt_env.safety.core`)
+In the spirit of Wang, Ames and Egerstedt's decentralised barrier certificates, each pair row
+``Gi du_i + Gj du_j <= rhs`` is shared between its robots in proportion to their authority
+``a`` (``Team.max_point_accel``), ``s_i = a_i / (a_i + a_j)`` (``split``):
 
-    c^T (w_i - w_j) <= rhs,      w = A du,   i.e.   Gi du_i + Gj du_j <= rhs
+* ``"reciprocal"`` (default, as in ORCA): the correction ``v = Gi du0_i + Gj du0_j - rhs`` that the
+  pair's own closed-form answers ``du0`` need is split, ``Gi du_i <= Gi du0_i - s_i v``: a pair that
+  must change moves each robot by its share from where it wants to go (with ``"authority"``, which
+  splits ``rhs`` itself, a robot at rest beside a neighbour can never move toward it, and a
+  10-robot circle swap froze in a ring);
+* ``"authority"``: ``Gi du_i <= s_i rhs``.
 
-is shared between its two robots in proportion to their authority ``a``
-(:attr:`aasoatt_env.model.params.Team.max_point_accel`), ``s_i = a_i / (a_i + a_j)``.
-Two ways (``split``):
+The halves add up to the pair row, so answers that meet their halves meet the row; an obstacle row is
+its robot's.  Every robot's QP (the centralised objective restricted to it) is solved exactly, all at
+once (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`).  Halving can make a robot's QP
+infeasible where the joint one is not: that robot gets its least-violation answer (status
+``"relaxed"``), as the centralised policy gives it; the backup layer keeps the team safe.
 
-``"authority"`` (Wang-Ames-Egerstedt): the right-hand side is split::
-
-    robot i:   Gi du_i <= s_i rhs          robot j:   Gj du_j <= s_j rhs
-
-``"reciprocal"`` (default; the reciprocal split of ORCA-style collision
-avoidance): the correction that the pair's own nominal answers ``du0`` (each
-robot's box-clipped least squares, :func:`~aasoatt_env.safety.problem.box_least_squares`)
-need, ``v = Gi du0_i + Gj du0_j - rhs``, is split::
-
-    robot i:   Gi du_i <= Gi du0_i - s_i v      robot j:   Gj du_j <= Gj du0_j - s_j v
-
-so a pair whose nominals already keep the row keeps its slack, and a pair
-that must change moves each robot by its share from where it wants to go.
-It needs the neighbours' nominal accelerations (broadcast in a real team).
-With the rhs split a robot at rest next to a neighbour can never accelerate
-towards it, whatever the neighbour does: in closed loop on the radius-6 circle
-swap (10 robots, tracking nominal, default deadlock strategy and backup layer)
-the team froze in a ring around the centre (robots 7.5 m from their goals);
-with the reciprocal split all ten reached their goals (within 0.02 m).
-
-The two halves add up to the pair row, so any pair of answers that meet their
-halves meets the pair row.  An obstacle row goes wholly to its robot.  Robot
-``i`` then solves, with its own data only::
-
-    min |A_i du_i - target_i|^2   s.t.   lo_i <= du_i <= hi_i,   its half-rows
-
-(the centralised objective restricted to the robot), all robots at once with
-the exact vectorised solver :func:`aasoatt_env.safety.solvers.local.solve_local_qps`
-(it works in the metric of the objective, so ``du`` needs no rescaling).  The
-multipliers come back in the units of the centralised filter's ``eta`` and, for
-its ``eta_tol`` test, in its scaled normalised units ``z``
-(:func:`aasoatt_env.safety.problem.build_problem`).
-
-Halving rows can make a robot's QP infeasible where the joint QP is not (a robot
-boxed in by halves it cannot meet with its bounded inputs).  Such a robot gets
-the least-violation answer of its own QP, exactly as the centralised policy does
-it (:func:`aasoatt_env.safety.solvers.policy.solve_qp`): a phase-1 problem finds
-the least violation of each of its rows with the bounds hard
-(:func:`~aasoatt_env.safety.solvers.local.least_violation`), the rows are
-loosened by it, and the loosened QP is solved exactly.  It is reported
-(:attr:`DecentralizedResult.infeasible`); the backup layer that runs after the
-QP in the filter keeps the team safe.
-
-**Negotiation groups** (``whole``; the filter's ``FilterConfig.negotiate``, on by
-default).  Split rows keep the team safe but cannot pick which of two alike robots
-goes first: in dense crowds robots stop against each other with every half-row
-met and nobody yielding (a deadlock the rotation of the deadlock strategy does not
-free; README: Decentralised filter).  The filter therefore lets the robots around
-a jam agree on one answer (:func:`negotiation_rows`): a robot the deadlock trigger
-flags negotiates, and so does every robot it touches; the row between two
-negotiating robots is kept whole, and the robots joined by such rows (a *group*, a
-connected component of them) solve their QP jointly, the centralised filter's QP
-restricted to them (:func:`~aasoatt_env.safety.decomposition.solve_centralized`),
-with their halves of every other row as in the split.  Every robot outside a
-group solves its own QP as above.  So every pair row is still met (whole by a
-group, or by its two halves), and with no robot triggered the step is the
-per-robot one exactly.  On real robots a group's QP is solved by one of its
-members from what the members send (the nominals the reciprocal split already
-exchanges, their states and inputs), or by a distributed QP method among them.
-A group's QP can be infeasible where the team's is not (the halves it keeps of
-rows to robots outside it box it in, as a lone robot's can): it is answered as
-the centralised filter answers an infeasible team, by its least-violation point
-(status ``"relaxed"``), and the backup layer keeps the team safe.  (Widening such
-a group to its whole connected component of rows instead made the dense scenes'
-slowest steps slower, README.)  A group's size is not bounded: where a whole crowd
-is jammed (the paper's circle swaps, dense random scenes) it is the crowd, and the
-step there is the centralised one (:attr:`DecentralizedResult.largest_group`).
-Rows between touching robots only (a tighter rule) left more robots short of their
-goals, with more infeasible group QPs (README).
+Negotiation groups (``whole``, :attr:`~aasoatt_env.safety.config.FilterConfig.negotiate`): split rows
+cannot choose which of two alike robots goes first, so in crowds robots can stop against each other
+with every half met.  A robot the deadlock trigger flags negotiates, and so does every robot it
+touches; the rows among negotiating robots are solved whole by the groups they join (the centralised
+QP restricted to them, with their halves of the other rows).  Every pair row is still met; without a
+triggered robot the step is the per-robot one exactly.
 """
 
 from __future__ import annotations
@@ -101,10 +46,8 @@ __all__ = ["GROUP_ONE_CHANGE_ITER", "SPLITS", "Decentralized", "DecentralizedRes
 SPLITS: tuple[str, ...] = ("reciprocal", "authority")
 """Ways of sharing a pair row (module docstring)."""
 GROUP_ONE_CHANGE_ITER: int = 200
-"""The warm active set's one-change budget on the negotiation groups' QPs (the centralised filter's is
-:data:`~aasoatt_env.safety.solvers.active_set.ONE_CHANGE_ITER`).  A group's rows and members change from
-step to step, so its warm start is often a dozen or more rows off the optimum, one change per iteration;
-with the smaller budget such a step went on to ``ldp``, several times slower on a group of 80 robots."""
+"""The warm active set's one-change budget on the negotiation groups' QPs: their rows and members change
+from step to step, so their warm starts are often many rows off the optimum."""
 
 
 class SplitRows(NamedTuple):
@@ -198,70 +141,44 @@ def split_rows(
 
 
 class DecentralizedResult(NamedTuple):
-    """What :func:`decentralized_step` did."""
+    """What :func:`decentralized_step` did (multipliers in the centralised filter's units)."""
 
     du: np.ndarray
-    """Wheel accelerations ``(N, 2)``, within the bounds."""
+    """``(N, 2)`` wheel accelerations within the bounds."""
     eta: np.ndarray
-    """Multiplier of each pair row ``(M,)``: the larger of its two halves' (du units of the objective
-    ``|A du - target|^2``, as the centralised filter's ``eta``; equal to it where both robots' optima
-    coincide with the centralised optimum)."""
+    """``(M,)`` the larger multiplier of each pair row's two halves (eqn.8 units)."""
     eta_half: np.ndarray
-    """Multipliers of the two halves ``(M, 2)`` (column 1 is 0 on obstacle rows)."""
+    """``(M, 2)`` the halves' multipliers (column 1 is 0 on obstacle rows)."""
     z: np.ndarray
-    """The larger half multiplier in the centralised filter's normalised units ``(M,)`` (scaled
-    coordinates ``x = du / scale``, unit-norm rows, each robot's objective divided by its largest
-    scaled Hessian entry): compare with ``FilterConfig.eta_tol``."""
+    """``(M,)`` the larger half multiplier in the centralised filter's scaled, normalised units (``eta_tol``)."""
     z_half: np.ndarray
-    """``z`` of each half ``(M, 2)``."""
+    """``(M, 2)`` ``z`` of each half."""
     infeasible: np.ndarray
-    """``(N,)``: the robot answered alone and its own QP was infeasible (answered with its least-violation
-    point); a robot in a negotiation group is False here (the group's status is ``group_status``)."""
+    """``(N,)`` the robot's own QP was infeasible (its least-violation answer; False in a negotiation group)."""
     n_relaxed: int
-    """Robots answered alone whose rows were loosened (``infeasible.sum()``)."""
+    """``infeasible.sum()``."""
     slack: float
-    """Largest violation of a half-row of those robots by ``du`` [eqn.8 units]; 0 when every lone robot's
-    QP was feasible (a relaxed group's violation is not in it: the filter measures the pair rows then)."""
+    """Largest violation of a half-row of the relaxed robots (eqn.8 units)."""
     iterations: int
-    """Active-set iterations: the local solver's (largest over the robots), or the groups' solver's where
-    that is larger."""
+    """The local solver's (largest over the robots), or the groups' solver's where larger."""
     n_enumerated: int
-    """Robots the local solver answered by exact enumeration."""
+    """Robots the local solver answered by enumeration."""
     grouped: np.ndarray
-    """``(N,)``: the robot's answer is its negotiation group's (module docstring), not its own QP's."""
+    """``(N,)`` the robot's answer is its negotiation group's."""
     n_groups: int
-    """Negotiation groups solved (0 without ``whole`` rows)."""
+    """Negotiation groups solved."""
     largest_group: int
-    """Robots in the largest of them (0 without)."""
+    """Robots in the largest of them."""
     group_status: str
-    """The groups' QP status (``"solved"``, ``"relaxed"`` or ``"failed"``; ``"solved"`` without groups)."""
+    """The groups' QP status (``"solved"`` without groups)."""
 
 
 def negotiation_rows(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, ri: np.ndarray, rj: np.ndarray,
                      gap: float) -> np.ndarray:
-    """The rows the negotiation groups solve whole (module docstring): every robot row between two negotiating robots.
+    """``(M,)`` bool: the robot rows between two negotiating robots, solved whole (module docstring).
 
-    A robot negotiates when the deadlock trigger flags it or it touches a robot the trigger flags;
-    two robots touch when they share a row and their gap (distance less the two radii) is below
-    ``gap`` (a barrier that drops the rows of receding pairs, ``gated_distance``, drops them here too).
-
-    Parameters
-    ----------
-    triggered : numpy.ndarray
-        ``(N,)`` bool: the robots the deadlock trigger flags at this step.
-    p : numpy.ndarray
-        Control-point positions ``(N, 2)``.
-    radius : numpy.ndarray
-        Robot radii ``(N,)``.
-    ri, rj : numpy.ndarray
-        Robots of each row ``(M,)``; ``rj = -1`` for obstacle rows (never whole: an obstacle row is its robot's).
-    gap : float
-        Touching gap [m].
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(M,)`` bool.
+    A robot negotiates when the trigger flags it (``triggered``) or it shares a row with a flagged robot at a
+    surface gap below ``gap`` [m]; obstacle rows (``rj = -1``) are never whole.
     """
     whole = np.zeros(ri.shape[0], dtype=bool)
     if ri.shape[0] == 0 or not triggered.any():
@@ -277,99 +194,48 @@ def negotiation_rows(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, r
     return whole
 
 
-def decentralized_step(
-    A: np.ndarray,
-    target: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    ri: np.ndarray,
-    rj: np.ndarray,
-    Gi: np.ndarray,
-    Gj: np.ndarray,
-    rhs: np.ndarray,
-    authority: np.ndarray,
-    *,
-    split: str = "reciprocal",
-    scale: np.ndarray | None = None,
-    compiled: bool = False,
-    whole: np.ndarray | None = None,
-    policy: SolverPolicy | None = None,
-    x_warm: np.ndarray | None = None,
-    z_warm: np.ndarray | None = None,
-) -> DecentralizedResult:
-    """Every robot's own QP over its half-rows, solved exactly for all robots at once; negotiation groups jointly.
+def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, ri: np.ndarray,
+                       rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray, authority: np.ndarray, *,
+                       split: str = "reciprocal", scale: np.ndarray | None = None, compiled: bool = False,
+                       whole: np.ndarray | None = None, policy: SolverPolicy | None = None,
+                       x_warm: np.ndarray | None = None, z_warm: np.ndarray | None = None) -> DecentralizedResult:
+    """Every robot's own QP over its half-rows, exactly and all at once; negotiation groups jointly.
 
     Parameters
     ----------
-    A : numpy.ndarray
-        Input matrices ``(N, 2, 2)`` (``w = A du``).
-    target : numpy.ndarray
-        Desired control-point accelerations ``(N, 2)``, at the scale of what the bounds allow (the
-        filter passes the nominal clipped to the bounds): the local solver's tolerance is relative to
-        the unconstrained minimiser (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`, Notes).
-    lo, hi : numpy.ndarray
-        Bounds on ``du`` ``(N, 2)``, kept hard.
-    ri, rj : numpy.ndarray
-        Robots of each row ``(M,)``; ``rj = -1`` for obstacle rows.
-    Gi, Gj : numpy.ndarray
-        Row coefficients on ``du_i`` and ``du_j`` ``(M, 2)``.
-    rhs : numpy.ndarray
-        Right-hand sides ``(M,)``.
+    A, target, lo, hi : numpy.ndarray
+        Input matrices ``(N, 2, 2)``, each robot's target ``A du_nom`` (its nominal within its bounds: the local
+        solver's tolerance is relative to it) and bounds ``(N, 2)``, kept hard.
+    ri, rj, Gi, Gj, rhs : numpy.ndarray
+        The pair rows ``Gi du_ri + Gj du_rj <= rhs`` (``rj = -1``: an obstacle row).
     authority : numpy.ndarray
-        Authority of each robot ``(N,)`` (``Team.max_point_accel``).
+        ``(N,)`` each robot's share weight (``Team.max_point_accel``).
     split : {"reciprocal", "authority"}
         How a pair row is shared (module docstring).
     scale : numpy.ndarray, optional
-        Positive per-robot scale of ``du`` ``(N,)`` used only to express ``z`` and the
-        loosening tolerance in the centralised filter's scaled units (default ``max(|lo|, |hi|)``;
-        the filter passes its own).
+        ``(N,)`` scale of ``du`` for ``z`` and the loosening tolerance (default the largest bound).
     compiled : bool
-        Solve the robots' QPs in the compiled kernel (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`),
-        and their closed forms of the reciprocal split
-        (:func:`~aasoatt_env.safety.problem.box_least_squares`, the same numbers).
+        The local QPs and the closed forms in their compiled kernels (the same decisions).
     whole : numpy.ndarray, optional
-        ``(M,)`` bool: robot-robot rows the negotiation groups solve whole, jointly (:func:`negotiation_rows`;
-        module docstring).  None or none set: every robot alone.
-    policy : SolverPolicy, optional
-        The solver of the groups' QPs (the centralised filter's); required with ``whole``.
+        ``(M,)`` rows the negotiation groups solve whole (:func:`negotiation_rows`); needs ``policy``.
     x_warm, z_warm : numpy.ndarray, optional
-        Where the groups' solver starts: a scaled point ``(N, 2)`` (``du / scale``; default each robot's
-        box-clipped least squares) and a multiplier of each row ``(M,)`` in the units of
-        :attr:`DecentralizedResult.z` (default none active; a half-row starts at its row's).  The
-        previous step's answer makes the warm active set answer most steps; the answer is the QP's
-        optimum either way.
-
-    Returns
-    -------
-    DecentralizedResult
+        The groups' warm start: a scaled point ``(N, 2)`` and a multiplier per row ``(M,)`` in ``z``'s units.
     """
-    n = A.shape[0]
-    m = rhs.shape[0]
+    if split not in SPLITS:
+        raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")
     if scale is None:
         big = np.maximum(np.abs(lo), np.abs(hi))
         scale = np.maximum(big[:, 0], big[:, 1])
         scale = np.where(scale > 0, scale, 1.0)
-    # robot k: |A du - t|^2 = 0.5 du' H du + g' du + const, H = 2 A'A, g = -2 A't (the solver's
-    # half-plane geometry is that of the objective, so du needs no rescaling)
-    a00, a01, a10, a11 = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
-    H = np.empty((n, 2, 2))
-    H[:, 0, 0] = 2.0 * (a00 * a00 + a10 * a10)
-    H[:, 0, 1] = H[:, 1, 0] = 2.0 * (a00 * a01 + a10 * a11)
-    H[:, 1, 1] = 2.0 * (a01 * a01 + a11 * a11)
-    t0, t1 = target[:, 0], target[:, 1]
-    g = np.stack((-2.0 * (a00 * t0 + a10 * t1), -2.0 * (a01 * t0 + a11 * t1)), axis=1)
-    if split not in SPLITS:
-        raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")
+    H, g = _objective(A, target)
     du0 = box_least_squares(A, target, lo, hi, compiled=compiled) if split == "reciprocal" else None
     sp = split_rows(ri, rj, Gi, Gj, rhs, authority, du0)
     sol = solve_local_qps(H, g, lo, hi, sp.owner, sp.G, sp.h, relax=True, relax_tol=RELAX_TOL * scale,
                           compiled=compiled)
-    du, lam = sol.x, sol.lam
-    infeasible = ~sol.feasible
-    slack = _half_slack(sp, du, infeasible)
-    du = np.minimum(np.maximum(du, lo), hi)
-    grouped = np.zeros(n, dtype=bool)
-    joint = None
+    lam, infeasible = sol.lam, ~sol.feasible
+    slack = _half_slack(sp, sol.x, infeasible)
+    du = np.minimum(np.maximum(sol.x, lo), hi)
+    grouped, joint, group_ans, n_groups, largest = np.zeros(A.shape[0], dtype=bool), None, None, 0, 0
     if whole is not None:
         whole = whole & (rj >= 0)  # (an obstacle row is its robot's: never whole)
     if whole is not None and whole.any():
@@ -385,36 +251,50 @@ def decentralized_step(
             infeasible &= ~grouped
             slack = _half_slack(sp, sol.x, infeasible)
         du[grouped] = group_ans.du
-    n_relaxed = int(infeasible.sum())
-    # multipliers back on the pair rows; z: scaled (x = du / s), unit-norm row, objective / sigma
+    eta_half, z_half = _half_multipliers(sp, lam, H, scale, rhs.shape[0])
+    status, iterations = "solved", sol.iterations
+    if joint is not None:  # the groups' multipliers: a whole row's on both of its sides, a kept half's on its side
+        k = joint.shape[0]
+        eta_half[joint, 0] = eta_half[joint, 1] = group_ans.eta[:k]
+        z_half[joint, 0] = z_half[joint, 1] = group_ans.z[:k]
+        row, side = sp.row_side(group_ans.kept)
+        eta_half[row, side] = group_ans.eta[k:]
+        z_half[row, side] = group_ans.z[k:]
+        status, iterations = group_ans.status, max(iterations, group_ans.iterations)
+    return DecentralizedResult(
+        du=du, eta=np.maximum(eta_half[:, 0], eta_half[:, 1]), eta_half=eta_half,
+        z=np.maximum(z_half[:, 0], z_half[:, 1]), z_half=z_half, infeasible=infeasible,
+        n_relaxed=int(infeasible.sum()), slack=slack, iterations=iterations, n_enumerated=sol.n_enumerated,
+        grouped=grouped, n_groups=n_groups, largest_group=largest, group_status=status)
+
+
+def _objective(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each robot's ``|A du - t|^2 = 0.5 du' H du + g' du + const``: ``H = 2 A'A`` ``(N, 2, 2)``, ``g = -2 A't``."""
+    a00, a01, a10, a11 = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+    H = np.empty((A.shape[0], 2, 2))
+    H[:, 0, 0] = 2.0 * (a00 * a00 + a10 * a10)
+    H[:, 0, 1] = H[:, 1, 0] = 2.0 * (a00 * a01 + a10 * a11)
+    H[:, 1, 1] = 2.0 * (a01 * a01 + a11 * a11)
+    t0, t1 = target[:, 0], target[:, 1]
+    return H, np.stack((-2.0 * (a00 * t0 + a10 * t1), -2.0 * (a01 * t0 + a11 * t1)), axis=1)
+
+
+def _half_multipliers(sp: SplitRows, lam: np.ndarray, H: np.ndarray, scale: np.ndarray,
+                      m: int) -> tuple[np.ndarray, np.ndarray]:
+    """The half-rows' multipliers on the pair rows ``(M, 2)``: ``eta`` as given, ``z`` in the centralised units.
+
+    ``z``: scaled variables ``x = du / s``, unit-norm rows, each robot's objective over its largest scaled entry.
+    """
     nz = np.flatnonzero(lam)
     row, side = sp.row_side(nz)
     o = sp.owner[nz]
     s_o = scale[o]
     sigma = s_o * s_o * np.maximum(np.maximum(np.abs(H[o, 0, 0]), np.abs(H[o, 1, 1])), np.abs(H[o, 0, 1]))
     Gn = sp.G[nz]
-    eta_half = np.zeros((m, 2))
-    z_half = np.zeros((m, 2))
+    eta_half, z_half = np.zeros((m, 2)), np.zeros((m, 2))
     eta_half[row, side] = lam[nz]
     z_half[row, side] = lam[nz] * np.sqrt(Gn[:, 0] ** 2 + Gn[:, 1] ** 2) * s_o / sigma
-    status, iterations = "solved", sol.iterations
-    if joint is None:
-        n_groups = largest = 0
-    else:  # the groups' multipliers: a whole row's on both of its sides, a kept half's on its side
-        k = joint.shape[0]
-        eta_half[joint, 0] = eta_half[joint, 1] = group_ans.eta[:k]
-        z_half[joint, 0] = z_half[joint, 1] = group_ans.z[:k]
-        kept = group_ans.kept
-        row, side = sp.row_side(kept)
-        eta_half[row, side] = group_ans.eta[k:]
-        z_half[row, side] = group_ans.z[k:]
-        status, iterations = group_ans.status, max(iterations, group_ans.iterations)
-    return DecentralizedResult(
-        du=du, eta=np.maximum(eta_half[:, 0], eta_half[:, 1]), eta_half=eta_half,
-        z=np.maximum(z_half[:, 0], z_half[:, 1]), z_half=z_half, infeasible=infeasible, n_relaxed=n_relaxed,
-        slack=slack, iterations=iterations, n_enumerated=sol.n_enumerated, grouped=grouped, n_groups=n_groups,
-        largest_group=largest, group_status=status,
-    )
+    return eta_half, z_half
 
 
 def _half_slack(sp: SplitRows, du: np.ndarray, infeasible: np.ndarray) -> float:

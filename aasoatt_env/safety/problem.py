@@ -113,24 +113,10 @@ def build_problem(
     Gj: np.ndarray,
     rhs: np.ndarray,
 ) -> QPProblem:
-    """Assemble the scaled canonical problem.
+    """The scaled canonical problem of ``min sum |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, rows``.
 
-    Parameters
-    ----------
-    A : numpy.ndarray
-        Input matrices ``(N, 2, 2)``.
-    target : numpy.ndarray
-        Desired control-point accelerations ``(N, 2)``.
-    lo, hi : numpy.ndarray
-        Bounds on ``du``, ``(N, 2)``.
-    scale : numpy.ndarray
-        Positive per-robot scale of ``du`` ``(N,)``.
-    ri, rj : numpy.ndarray
-        Robots of each row ``(m,)``; ``rj = -1`` for obstacle rows.
-    Gi, Gj : numpy.ndarray
-        Row coefficients on ``du_i`` and ``du_j`` ``(m, 2)`` (``Gj`` ignored where ``rj < 0``).
-    rhs : numpy.ndarray
-        Row right-hand sides ``(m,)``.
+    ``A`` ``(N, 2, 2)``, ``target``, ``lo``, ``hi`` ``(N, 2)``, ``scale`` ``(N,)`` positive; the rows
+    ``Gi du_ri + Gj du_rj <= rhs`` (``m`` of them; ``rj = -1``: an obstacle row, ``Gj`` ignored).
     """
     n_rob = A.shape[0]
     s = scale[:, None]
@@ -185,29 +171,11 @@ def build_problem(
 
 def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, *,
                       compiled: bool = False) -> np.ndarray:
-    """Per robot ``argmin |A_i du_i - target_i|^2  s.t.  lo_i <= du_i <= hi_i``, in closed form.
+    """Per robot ``argmin |A_i du_i - target_i|^2  s.t.  lo_i <= du_i <= hi_i`` ``(K, 2)``, in closed form.
 
-    The QP of a robot in no row: two variables, a box.  If the unconstrained
-    minimiser ``A_i^{-1} target_i`` is inside the box it is the answer; otherwise
-    the optimum lies on an edge, and on each of the four edges the objective is
-    a convex parabola minimised by clipping; the best edge point wins.
-
-    Parameters
-    ----------
-    A : numpy.ndarray
-        Invertible input matrices ``(K, 2, 2)``.
-    target : numpy.ndarray
-        Desired control-point accelerations ``(K, 2)``.
-    lo, hi : numpy.ndarray
-        Bounds ``(K, 2)`` with ``lo <= hi``.
-    compiled : bool
-        Run the same operations in a compiled loop
-        (:func:`aasoatt_env.safety.centralized_kernel.box_least_squares`: the same numbers).
-
-    Returns
-    -------
-    numpy.ndarray
-        ``du`` ``(K, 2)``, inside the bounds.
+    The QP of a robot in no row: the unconstrained minimiser ``A_i^-1 target_i`` where it is inside the
+    box, else the best of the four edges' clipped parabola minima.  ``compiled``: the same operations in
+    one compiled loop (:func:`~aasoatt_env.safety.centralized_kernel.box_least_squares`, the same numbers).
     """
     k = np.shape(A)[0] if np.ndim(A) == 3 else -1
     check.shapes((("A", A, (k, 2, 2)), ("target", target, (k, 2)), ("lo", lo, (k, 2)), ("hi", hi, (k, 2))),

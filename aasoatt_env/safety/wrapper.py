@@ -1,17 +1,11 @@
 """``AASOATTFilter``: the CBF-QP safety filter as a drop-in PettingZoo wrapper.
 
 Any policy's actions become the *nominal*; the wrapper installs a
-:class:`~aasoatt_env.safety.core.SafetyFilter` into the env through the env's
-control-filter protocol (:mod:`aasoatt_env.sim.protocol`), so at every physics
-step (also inside a ``decision_interval``) the nominal wheel accelerations are
-projected through the QP before the env integrates them.  Behind the filter,
-actions outside ``[-1, 1]`` are accepted as the (unclipped) nominal: the QP
-keeps the input bounds hard, so the applied ``du`` always satisfies them.
-
-The wrapper only calls the env's public API: ``set_control_filter`` at
-construction, and after each ``step`` the env's ``filter_outputs`` (one
-:class:`~aasoatt_env.safety.core.FilterResult` per physics step), which it
-aggregates into a :class:`FilterReport` (:attr:`AASOATTFilter.report`) and into
+:class:`~aasoatt_env.safety.core.SafetyFilter` into the env through its control-filter protocol
+(:mod:`aasoatt_env.sim.protocol`), so every physics step (also inside a ``decision_interval``) is
+filtered before the env integrates it.  Behind the filter, actions outside ``[-1, 1]`` are taken as
+the (unclipped) nominal: the filter keeps the input bounds hard.  After each ``step`` it aggregates
+the env's ``filter_outputs`` into a :class:`FilterReport` (:attr:`AASOATTFilter.report`) and into
 ``infos[agent]["filter"]``:
 
 ==================  =====================================================
@@ -22,31 +16,21 @@ key                 meaning
 ``triggered``       the deadlock strategy acted on this robot
 ``correction``      largest ``|du_safe - du_nominal|`` [rad/s^2]
 ``backup``          the backup layer braked this robot at some step
-``status``          worst status of the team: solved < relaxed < backup <
-                    failed < unsafe (:data:`~aasoatt_env.safety.core.STATUSES`)
+``status``          worst status of the team: solved < relaxed < backup < failed < unsafe
 ``safe``            the team stayed inside the safe set (status != unsafe)
-``margin``          smallest envelope margin of the step [m] (FilterResult.margin)
+``margin``          smallest backup margin of the step [m] (``FilterResult.margin``)
 ``barrier_min``     smallest barrier value ``h`` of the step
 ``slack``           largest row relaxation (0 unless ``relaxed``)
 ``iterations``      total solver iterations
 ``n_rows``          barrier rows at the last physics step
-``n_qp_rows``       of those, rows the QP solver saw (0: closed form sufficed)
+``n_qp_rows``       of those, rows the QP solver saw (0: closed form)
 ==================  =====================================================
 
-Per-step infos are deterministic (same seed, same infos), as PettingZoo's and
-Gymnasium's checkers require; wall-clock times are kept out of them and are
-available from :attr:`AASOATTFilter.timing`.  ``infos="flat"`` gives numeric,
-top-level keys instead (``filter_intervened``, ``filter_avoiding``,
-``filter_triggered``, ``filter_backup``, ``filter_correction``,
-``filter_status_code`` = the index in ``STATUSES`` (0 solved ... 4 unsafe),
-``filter_margin``, ``filter_slack``), which tensor-based clients such as
-TorchRL can batch.
-
-Options: ``AASOATTFilter(env, config=None, infos="nested", **options)`` where
-``options`` are :class:`~aasoatt_env.safety.config.FilterConfig` fields; the one
-rule (:meth:`FilterConfig.merged`): explicit options replace the fields of
-``config``.  ``dt`` is the env's.  An env takes one filter: wrapping a filtered
-env again raises :class:`~aasoatt_env.errors.UsageError`.
+Infos are deterministic (wall times are in :attr:`AASOATTFilter.timing`, not in them), as PettingZoo's
+and Gymnasium's checkers require.  ``infos="flat"`` gives numeric top-level keys instead
+(``filter_intervened``, ``filter_avoiding``, ``filter_triggered``, ``filter_backup``,
+``filter_correction``, ``filter_status_code`` = the index in ``STATUSES``, ``filter_margin``,
+``filter_slack``) for tensor-based clients such as TorchRL.  An env takes one filter.
 """
 
 from __future__ import annotations
@@ -79,23 +63,15 @@ class FilterReport:
     intervened, avoiding, triggered, backup : numpy.ndarray
         ``(N,)`` bool, true if true at some physics step.
     correction : numpy.ndarray
-        Largest ``|du_safe - du_nominal|`` per robot ``(N,)``.
-    status : str
-        Worst status of the physics steps (:data:`~aasoatt_env.safety.core.STATUSES`).
-    safe : bool
-        Every physics step ended inside the safe set.
-    margin, barrier_min : float
-        Smallest envelope margin [m] and barrier value of the physics steps.
-    message : str
-        Solver message of the worst step.
-    slack : float
-        Largest row relaxation.
-    iterations : int
-        Total solver iterations.
-    n_rows, n_qp_rows : int
-        Rows at the last physics step, and those the QP solver saw.
+        ``(N,)`` largest ``|du_safe - du_nominal|``.
+    status, safe, message : str, bool, str
+        Worst status of the physics steps, whether every step ended in the safe set, the worst step's message.
+    margin, barrier_min, slack : float
+        Smallest backup margin [m] and barrier value, largest row relaxation.
+    iterations, n_rows, n_qp_rows : int
+        Total solver iterations; rows at the last physics step, and those the QP solver saw.
     applied : numpy.ndarray
-        Wheel accelerations applied at the last physics step ``(N, 2)``.
+        ``(N, 2)`` wheel accelerations applied at the last physics step.
     solve_time : float
         Filter wall time of the env step [s] (not in the infos: it is not deterministic).
     """
@@ -186,10 +162,8 @@ class AASOATTFilter(BaseParallelWrapper):
     infos : {"nested", "flat"}
         ``infos[agent]["filter"]`` dicts, or numeric top-level ``filter_*`` keys.
     **options
-        :class:`~aasoatt_env.safety.config.FilterConfig` fields (``barrier``,
-        ``deadlock``, ``trigger``, ``solver``, ``k1``, ``k2``, ``k3``, ``k4``,
-        ``zeta``, ``rotation_deg``, ``sensing_range``, ``safety_margin``, ...);
-        they replace those of ``config``.  ``dt`` is taken from the env.
+        :class:`~aasoatt_env.safety.config.FilterConfig` fields; they replace those of ``config``.  ``dt`` is
+        the env's.
     """
 
     def __init__(
