@@ -18,7 +18,7 @@ steps) behind the centralised and the decentralised filter, in one run: median,
 p99, slowest step and steps over 20 ms (the decentralised mode's negotiation groups
 are the whole crowd there, and their infeasible steps are its tail).
 
-Usage: ``python benchmarks/bench_env.py [--quick] [--large] [--sizes 20,1000] [--dense]``
+Usage: ``python benchmarks/bench_env.py [--quick] [--large] [--sizes 20,1000] [--dense] [--page docs/...]``
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+from page import add_page_options, check_page, write_page  # noqa: E402
 
 from aasoatt_env import make_env  # noqa: E402
 from aasoatt_env.model import dynamics  # noqa: E402
@@ -75,9 +76,10 @@ def _physics_rate(n: int, steps: int) -> float:
     return steps / (time.perf_counter() - t)
 
 
-def dense(steps: int = 1200) -> None:
+def dense(steps: int = 1200) -> list[str]:
     """Step-time distribution of the dense scene (module docstring), both modes."""
-    print(f"{'mode':>14} {'median':>8} {'p99':>8} {'slowest':>8} {'>20 ms':>7} {'first':>8}   (ms per env.step)")
+    lines = [f"{'mode':>14} {'median':>8} {'p99':>8} {'slowest':>8} {'>20 ms':>7} {'first':>8}   (ms per env.step)"]
+    print(lines[0])
     for mode in ("centralized", "decentralized"):
         env = make_env("random_goals", num_robots=100, arena_size=20, random_obstacles=10, filter={"mode": mode},
                        max_steps=10**9)
@@ -89,9 +91,12 @@ def dense(steps: int = 1200) -> None:
             obs, *_ = env.step(act)
             ts.append(time.perf_counter() - t)
         ms = np.array(ts) * 1e3
-        print(f"{mode:>14} {np.median(ms):8.2f} {np.percentile(ms, 99):8.2f} {ms[1:].max():8.1f} "
-              f"{int((ms[1:] > 20).sum()):7d} {ms[0]:8.1f}", flush=True)
-    print("(slowest and > 20 ms: without the first step, which loads the compiled kernels)")
+        lines.append(f"{mode:>14} {np.median(ms):8.2f} {np.percentile(ms, 99):8.2f} {ms[1:].max():8.1f} "
+                     f"{int((ms[1:] > 20).sum()):7d} {ms[0]:8.1f}")
+        print(lines[-1], flush=True)
+    lines.append("(slowest and > 20 ms: without the first step, which loads the compiled kernels)")
+    print(lines[-1])
+    return lines
 
 
 def main() -> None:
@@ -101,15 +106,19 @@ def main() -> None:
     parser.add_argument("--sizes", type=lambda v: [int(x) for x in v.split(",")], default=None,
                         help="team sizes, comma-separated (replaces the defaults)")
     parser.add_argument("--dense", action="store_true", help="only the dense scene's step times, both modes")
+    add_page_options(parser)
     args = parser.parse_args()
+    check_page(args)
     if args.dense:
-        dense()
+        lines = dense()
+        write_page(args, "Dense scene step times", "```\n" + "\n".join(lines) + "\n```\n\n" + __doc__)
         return
     repeats = 3 if args.quick else 5
     sizes = [4, 20, 100] if args.quick else [4, 20, 100, 1000] + ([10000] if args.large else [])
     sizes = args.sizes or sizes
-    print(f"{'N':>6} {'bare':>10} {'+control':>10} {'+filter':>10} {'random+f':>10} {'decentral':>10} "
-          f"{'agent-st/s':>11} {'physics':>10} {'bare/phys':>10} {'filt/bare':>10}   (env steps/s)")
+    lines = [f"{'N':>6} {'bare':>10} {'+control':>10} {'+filter':>10} {'random+f':>10} {'decentral':>10} "
+             f"{'agent-st/s':>11} {'physics':>10} {'bare/phys':>10} {'filt/bare':>10}   (env steps/s)"]
+    print(lines[0])
     dec = {"mode": "decentralized"}
     for n in sizes:
         steps = 400 if n <= 20 else 150 if n <= 100 else 60 if n <= 1000 else 4
@@ -121,8 +130,10 @@ def main() -> None:
         rand = statistics.median(_rate(n, fsteps, True, "random") for _ in range(repeats))
         dcen = statistics.median(_rate(n, fsteps, dec, "tracking") for _ in range(repeats))
         phys = statistics.median(_physics_rate(n, steps) for _ in range(repeats))
-        print(f"{n:>6} {bare:>10.0f} {ctrl:>10.0f} {filt:>10.1f} {rand:>10.1f} {dcen:>10.1f} {filt * n:>11.0f} "
-              f"{phys:>10.0f} {bare / phys:>10.2f} {filt / bare:>10.3f}", flush=True)
+        lines.append(f"{n:>6} {bare:>10.0f} {ctrl:>10.0f} {filt:>10.1f} {rand:>10.1f} {dcen:>10.1f} "
+                     f"{filt * n:>11.0f} {phys:>10.0f} {bare / phys:>10.2f} {filt / bare:>10.3f}")
+        print(lines[-1], flush=True)
+    write_page(args, "Environment throughput", "```\n" + "\n".join(lines) + "\n```\n\n" + __doc__)
 
 
 if __name__ == "__main__":

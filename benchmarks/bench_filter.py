@@ -14,9 +14,8 @@ step to step as they do in use; every variant sees the same states):
 
 Columns (median ms per whole ``SafetyFilter.step``: neighbours, rows, QP, backup layer, result):
 
-  ours          the default filter (decomposition, warm active set, proxsuite, backup layer; the
-                layer's check and repair, the warm active set, the local solver and the neighbour
-                search compiled when numba is installed, ``kernel="auto"``)
+  ours          the default filter (decomposition, warm active set, the solver route, backup layer;
+                the stages' compiled forms where numba is installed, ``kernel="auto"``)
   numpy         the same with every part's numpy reference (``kernel="numpy"``)
   layer off     the same without the backup layer (the paper's filter)
   whole QP      one QP for the whole team, proxsuite (``decompose=False``, no warm start)
@@ -44,7 +43,7 @@ them: where that is near the cost of one small numpy call (about a microsecond),
 step's time is the overhead of its calls rather than arithmetic, and only fewer calls
 (a compiled kernel) make it faster.
 
-Usage: python benchmarks/bench_filter.py [--quick] [--sizes 39,100] [--steps 20] [--calls]
+Usage: python benchmarks/bench_filter.py [--quick] [--sizes 39,100] [--steps 20] [--calls] [--page docs/...]
 """
 
 from __future__ import annotations
@@ -60,6 +59,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 import scipy.sparse as sp  # noqa: E402
 import scipy.sparse.linalg as spla  # noqa: E402
+from page import add_page_options, check_page, write_page  # noqa: E402
 
 from aasoatt_env import compiled, make_env  # noqa: E402
 from aasoatt_env.errors import ConfigError  # noqa: E402
@@ -218,11 +218,11 @@ def _reference(team, seq, deadlock) -> tuple[list[np.ndarray], bool] | None:
         SOLVERS[solver] = Backend(_clarabel_kkt, "clarabel")  # the registry: one function, one line
     _POLISH_FAILED.clear()
     f = SafetyFilter(team, deadlock=deadlock, backup=False, solver=solver, decompose=False, active_set=False)
-    preferred, policy.PHASE1_SOLVERS = policy.PHASE1_SOLVERS, ()  # phase 1 (relaxed steps) by the reference too,
-    try:  # not by the filter's preferred solvers
+    preferred, policy.PHASE1_ROUTE = policy.PHASE1_ROUTE, ()  # phase 1 (relaxed steps) by the reference too,
+    try:  # not by the filter's route
         answers = [f.step(kin, u, th, nom, lo, hi, reference=ref)[0] for kin, u, th, nom, lo, hi, ref in seq]
     finally:
-        policy.PHASE1_SOLVERS = preferred
+        policy.PHASE1_ROUTE = preferred
     return answers, not _POLISH_FAILED
 
 
@@ -289,7 +289,9 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=20, help="consecutive physics steps per scene")
     ap.add_argument("--sizes", default=None, help="comma-separated grid sizes (default 39,100,300,1000,3000,10000)")
     ap.add_argument("--calls", action="store_true", help="also count the Python and C calls of a step (own pass)")
+    add_page_options(ap)
     args = ap.parse_args()
+    check_page(args)
     steps = 8 if args.quick else args.steps
     sizes = [int(s) for s in args.sizes.split(",")] if args.sizes else (
         [39, 100, 300] if args.quick else [39, 100, 300, 1000, 3000, 10000])
@@ -306,30 +308,38 @@ def main() -> None:
         k = steps if n <= 300 else max(4, steps // 4)
         rows.append(bench("spread", *grid_sequence(n, k, 2.0, 3.0), reps=3 if n <= 300 else 1, calls=args.calls))
         print(f"  done spread N={n}", flush=True)
+    lines = _table(rows, args.calls)
+    print("\n".join(lines))
+    write_page(args, "Filter step times", "```\n" + "\n".join(lines) + "\n```\n\n" + (__doc__ or "").split("Usage")[0])
+
+
+def _table(rows: list[dict], calls: bool) -> list[str]:
+    """The results as text lines (printed, and the page's body)."""
     names = list(VARIANTS)
     kernel = "compiled (numba)" if compiled.available() else "numpy (numba not installed)"
-    print(f"\nmedian ms per filter step along the sequence; ratio = variant / ours; ours' backup layer: {kernel}\n")
-    print(f"{'scene':7s} {'N':>6s} {'rows':>6s} {'qp rows':>8s} {'backup':>7s} "
-          + " ".join(f"{k:>10s}" for k in names) + " " + " ".join(f"{k + '/ours':>14s}" for k in names[1:])
-          + f" {'err':>8s}")
+    out = [f"median ms per filter step along the sequence; ratio = variant / ours; ours' kernels: {kernel}", "",
+           f"{'scene':7s} {'N':>6s} {'rows':>6s} {'qp rows':>8s} {'backup':>7s} "
+           + " ".join(f"{k:>10s}" for k in names) + " " + " ".join(f"{k + '/ours':>14s}" for k in names[1:])
+           + f" {'err':>8s}"]
     for r in rows:
-        print(f"{r['scene']:7s} {r['N']:6d} {r.get('rows', 0):6d} {r.get('qp rows', 0):8d} "
-              f"{r.get('backup steps', 0):7d} "
-              + " ".join(_fmt(r[k] * 1e3, 10, 2) for k in names) + " "
-              + " ".join(_fmt(r[k] / r['ours'], 14, 2) for k in names[1:]) + f" {r.get('err', float('nan')):8.1e}"
-              + ("" if r.get("exact ref", True) else "*"))
-    print("\nerr: largest |du - du_ref| [rad/s^2] of 'layer off' over every step against an independent solver "
-          "(quadprog up to 300 robots, above Clarabel polished on its active set and KKT-verified; *: some step's "
-          "polish failed, Clarabel's raw answer there)")
-    if args.calls:
-        print("\ncalls per filter step (Python-level function calls + C-level calls; operators not counted), "
-              "and the timed median per call\n")
-        print(f"{'scene':7s} {'N':>6s} {'ours calls':>11s} {'us/call':>8s} {'layer off calls':>16s} {'us/call':>8s} "
-              f"{'backup layer calls':>19s}")
+        out.append(f"{r['scene']:7s} {r['N']:6d} {r.get('rows', 0):6d} {r.get('qp rows', 0):8d} "
+                   f"{r.get('backup steps', 0):7d} "
+                   + " ".join(_fmt(r[k] * 1e3, 10, 2) for k in names) + " "
+                   + " ".join(_fmt(r[k] / r['ours'], 14, 2) for k in names[1:])
+                   + f" {r.get('err', float('nan')):8.1e}" + ("" if r.get("exact ref", True) else "*"))
+    out += ["", "err: largest |du - du_ref| [rad/s^2] of 'layer off' over every step against an independent solver "
+            "(quadprog up to 300 robots, above Clarabel polished on its active set and KKT-verified; *: some step's "
+            "polish failed, Clarabel's raw answer there)"]
+    if calls:
+        out += ["", "calls per filter step (Python-level function calls + C-level calls; operators not counted), "
+                "and the timed median per call", "",
+                f"{'scene':7s} {'N':>6s} {'ours calls':>11s} {'us/call':>8s} {'layer off calls':>16s} "
+                f"{'us/call':>8s} {'backup layer calls':>19s}"]
         for r in rows:
             (po, co), (pl, cl) = r["calls"]
-            print(f"{r['scene']:7s} {r['N']:6d} {po + co:11.0f} {1e6 * r['ours'] / (po + co):8.2f} {pl + cl:16.0f} "
-                  f"{1e6 * r['layer off'] / (pl + cl):8.2f} {po + co - pl - cl:19.0f}")
+            out.append(f"{r['scene']:7s} {r['N']:6d} {po + co:11.0f} {1e6 * r['ours'] / (po + co):8.2f} "
+                       f"{pl + cl:16.0f} {1e6 * r['layer off'] / (pl + cl):8.2f} {po + co - pl - cl:19.0f}")
+    return out
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ Usage::
     python benchmarks/safety_campaign.py adversarial --teams 39 --seeds 2 --steps 400 --jobs 2 \
         --out results/campaign.jsonl
     python benchmarks/safety_campaign.py paper --out results/paper_liveness.jsonl
-    python benchmarks/safety_campaign.py summary --out results/campaign.jsonl
+    python benchmarks/safety_campaign.py summary --out results/campaign.jsonl --page docs/safety_campaign.md
 """
 
 from __future__ import annotations
@@ -48,6 +48,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
+from page import add_page_options, check_page, write_page  # noqa: E402
 
 PRESETS = {"paper": "paper", "turtlebot3": "turtlebot3_burger", "mixed": None, "double_integrator": "double_integrator"}
 DEFAULT_PRESETS = ("paper", "turtlebot3", "mixed")
@@ -189,61 +190,69 @@ def _paper_row(rec: dict) -> str:
             f"{rec['wall_s']:.0f} |")
 
 
-def _paper_summary(path: Path, mode: str) -> None:
+def _paper_summary(path: Path, mode: str, out: list[str]) -> None:
     """The liveness table of a ``paper`` results file (the last record of each scene, N and layer)."""
     last = {}
     for rec in _records(path, _SCENE_KEYS):
         if rec.get("mode", "centralized") == mode:
             last[(rec["scene"], rec["n"], rec["layer"])] = rec
-    print(f"\nmode={mode}: the paper's scenes, tracking controller, +3 s settle\n")
-    print(_PAPER_HEADER)
+    out.append(f"\nmode={mode}: the paper's scenes, tracking controller, +3 s settle\n")
+    out.append(_PAPER_HEADER)
     for rec in last.values():
-        print(_paper_row(rec))
+        out.append(_paper_row(rec))
 
 
 def summary(args: argparse.Namespace) -> None:
+    out: list[str] = []
+    _summary(args, out)
+    print("\n".join(out))
+    kind = "Safety campaign" if "episodes" in "\n".join(out) else "Liveness of the paper's scenes"
+    write_page(args, f"{kind} ({args.mode})", "\n".join(out) + "\n\n" + __doc__.split("Usage")[0])
+
+
+def _summary(args: argparse.Namespace, out: list[str]) -> None:
     path = Path(args.out)
     if not path.is_file():
         raise SystemExit(f"error: --out {path}: no such results file")
     recs = _records(path)
     if recs and "scene" in recs[0]:
-        _paper_summary(path, args.mode)
+        _paper_summary(path, args.mode, out)
         return
     recs = _longest([r for r in _done(path).values()
                      if r.get("mode", "centralized") == args.mode and r.get("backup", True) != args.layer_off])
     if not recs:
-        print("no results yet")
+        out.append("no results yet")
         return
     def bad(r: dict) -> bool:
         gaps = [g for g in (r["min_robot_gap"], r["min_obstacle_gap"]) if g is not None]
         return (not r["finite"]) or any(g < -TOL for g in gaps)
 
     steps = sorted({r["steps"] for r in recs})
-    print(f"\nmode={args.mode}, backup layer {'off' if args.layer_off else 'on'}: "
+    out.append(f"\nmode={args.mode}, backup layer {'off' if args.layer_off else 'on'}: "
           f"{len(recs)} episodes x {'/'.join(map(str, steps))} physics steps; "
           f"wall {sum(r['wall_s'] for r in recs):.0f} s "
           f"(sum over episodes)\n")
-    print("| adversary | episodes | closest robot pair gap [mm] | closest obstacle gap [mm] | "
+    out.append("| adversary | episodes | closest robot pair gap [mm] | closest obstacle gap [mm] | "
           "episodes with a pair closer than d_s - 1 mm | NaN | backup steps (share) | unsafe steps |")
-    print("|---|---:|---:|---:|---:|---:|---:|---:|")
+    out.append("|---|---:|---:|---:|---:|---:|---:|---:|")
     for adv in sorted({r["adversary"] for r in recs}) + ["all"]:
         rs = [r for r in recs if adv in ("all", r["adversary"])]
         g = [r["min_robot_gap"] for r in rs if r["min_robot_gap"] is not None]
         o = [r["min_obstacle_gap"] for r in rs if r["min_obstacle_gap"] is not None]
         steps = sum(r["steps"] for r in rs)
-        print(f"| {adv} | {len(rs)} | {1e3 * min(g):+.4f} | {1e3 * min(o) if o else float('nan'):+.4f} | "
+        out.append(f"| {adv} | {len(rs)} | {1e3 * min(g):+.4f} | {1e3 * min(o) if o else float('nan'):+.4f} | "
               f"{sum(bad(r) for r in rs)} | {sum(not r['finite'] for r in rs)} | "
               f"{sum(r['backup_steps'] for r in rs)} ({sum(r['backup_steps'] for r in rs) / max(steps, 1):.1%}) | "
               f"{sum(r['unsafe_steps'] for r in rs)} |")
-    print("\n| team | preset | episodes | closest robot pair gap [mm] | closest obstacle gap [mm] | "
+    out.append("\n| team | preset | episodes | closest robot pair gap [mm] | closest obstacle gap [mm] | "
           "backup steps (share) |")
-    print("|---:|---|---:|---:|---:|---:|")
+    out.append("|---:|---|---:|---:|---:|---:|")
     for n, p in sorted({(r["n"], r["preset"]) for r in recs}):
         rs = [r for r in recs if (r["n"], r["preset"]) == (n, p)]
         g = [r["min_robot_gap"] for r in rs if r["min_robot_gap"] is not None]
         o = [r["min_obstacle_gap"] for r in rs if r["min_obstacle_gap"] is not None]
         steps = sum(r["steps"] for r in rs)
-        print(f"| {n} | {p} | {len(rs)} | {1e3 * min(g):+.4f} | {1e3 * min(o) if o else float('nan'):+.4f} | "
+        out.append(f"| {n} | {p} | {len(rs)} | {1e3 * min(g):+.4f} | {1e3 * min(o) if o else float('nan'):+.4f} | "
               f"{sum(r['backup_steps'] for r in rs)} ({sum(r['backup_steps'] for r in rs) / max(steps, 1):.1%}) |")
 
 
@@ -296,7 +305,9 @@ def main() -> None:
                     help="adversarial: the paper's filter alone (backup=False), for comparison")
     ap.add_argument("--jobs", type=int, default=1, help="episodes in parallel processes")
     ap.add_argument("--out", default="results/safety_campaign.jsonl", help="JSONL results (appended; resumable)")
+    add_page_options(ap)
     args = ap.parse_args()
+    check_page(args)
     for name, value in (("--seeds", args.seeds), ("--steps", args.steps), ("--jobs", args.jobs)):
         if value < 1:
             ap.error(f"{name}: got {value}, expected an integer >= 1")
