@@ -11,6 +11,7 @@ parts of one problem.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
@@ -22,7 +23,8 @@ from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers import active_set as aset
 from aasoatt_env.safety.stages import Answer, StepInput, Warm
 
-__all__ = ["Centralized", "avoiding_robots", "kernel_settings", "solve_rows"]
+__all__ = ["Centralized", "TeamAnswer", "avoiding_robots", "compiled_settings", "kernel_settings", "solve_rows",
+           "solve_team"]
 
 
 def kernel_settings(policy: SolverPolicy) -> np.ndarray:
@@ -78,15 +80,50 @@ def solve_rows(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.n
     return du, x, z, eta, sol, prob.m
 
 
+class TeamAnswer(NamedTuple):
+    """:func:`solve_team`'s answer (multipliers 0 on rows outside the QP)."""
+
+    du: np.ndarray
+    x: np.ndarray
+    z: np.ndarray
+    eta: np.ndarray
+    status: str
+    message: str
+    iterations: int
+    n_qp: int
+    exact: bool
+
+
+def solve_team(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+               scale: np.ndarray, rows: Rows, warm: Warm, *, decompose: bool, compiled: bool,
+               settings: np.ndarray | None) -> TeamAnswer:
+    """The QP of the robots and rows given: the compiled call first, else :func:`solve_rows`.
+
+    With ``settings`` and a warm start, :func:`~aasoatt_env.safety.centralized_kernel.solve_decomposed` answers
+    where it verifies every component, with :func:`solve_rows`' numbers; every other step is :func:`solve_rows`'.
+    """
+    if settings is not None and warm.x is not None and warm.z is not None:
+        k = kernels("centralized")
+        code, used, n_qp, du, x, z, eta = k.solve_decomposed(A, c64(target), lo, hi, scale, rows.ri, rows.rj,
+                                                             rows.Gi, rows.Gj, rows.rhs, c64(warm.x), warm.z,
+                                                             settings)
+        if code == k.CLOSED_FORM:
+            return TeamAnswer(du, x, z, eta, "solved", CLOSED_FORM_MESSAGE, 0, 0, True)
+        if code == k.VERIFIED:
+            return TeamAnswer(du, x, z, eta, "solved", aset.VERIFIED_MESSAGE, int(used), int(n_qp), True)
+    du, x, z, eta, sol, n_qp = solve_rows(policy, A, target, lo, hi, scale, rows, warm, decompose=decompose,
+                                          compiled=compiled)
+    if sol is None:
+        return TeamAnswer(du, x, z, eta, "solved", CLOSED_FORM_MESSAGE, 0, 0, True)
+    return TeamAnswer(du, x, z, eta, sol.status, sol.message, sol.iterations, n_qp, sol.exact)
+
+
+CLOSED_FORM_MESSAGE = "closed form: no row binds"
+
+
 @dataclass(frozen=True)
 class Centralized:
-    """The centralised QP stage: ``stage(step, rows, target, triggered, warm) -> Answer``.
-
-    With ``compiled`` (and an exact back-end, the decomposition and the warm active set on), a
-    warm-started step is first tried in one compiled call
-    (:func:`~aasoatt_env.safety.centralized_kernel.solve_decomposed`), which answers it only where
-    it verifies every component, with this stage's numbers; else the numpy stage answers it.
-    """
+    """The centralised QP stage: ``stage(step, rows, target, triggered, warm) -> Answer`` (:func:`solve_team`)."""
 
     policy: SolverPolicy
     decompose: bool
@@ -96,28 +133,21 @@ class Centralized:
     """The compiled call's constants (None: that call is not made)."""
 
     def __post_init__(self) -> None:
-        if self.compiled and self.decompose and self.policy.active_set and self.policy.exact:
-            object.__setattr__(self, "settings", kernel_settings(self.policy))
+        object.__setattr__(self, "settings", compiled_settings(self.policy, self.compiled, self.decompose))
 
     def __call__(self, s: StepInput, rows: Rows, target: np.ndarray, triggered: np.ndarray, warm: Warm) -> Answer:
         """Solve the step's QP (module docstring)."""
-        if self.settings is not None and warm.x is not None and warm.z is not None:
-            k = kernels("centralized")
-            code, used, n_qp, du, x, z, eta = k.solve_decomposed(
-                s.A, c64(target), s.lo, s.hi, s.scale, rows.ri, rows.rj, rows.Gi, rows.Gj, rows.rhs, c64(warm.x),
-                warm.z, self.settings)
-            if code == k.CLOSED_FORM:
-                return Answer(du, x, z, eta, np.zeros(du.shape[0], dtype=bool), "solved", "closed form: no row binds",
-                              0, 0, 0.0)
-            if code == k.VERIFIED:
-                return Answer(du, x, z, eta, avoiding_robots(du.shape[0], rows, z > self.eta_tol), "solved",
-                              aset.VERIFIED_MESSAGE, int(used), int(n_qp), 0.0)
-        du, x, z, eta, sol, n_qp = solve_rows(self.policy, s.A, target, s.lo, s.hi, s.scale, rows, warm,
-                                        decompose=self.decompose, compiled=self.compiled)
-        avoiding = avoiding_robots(du.shape[0], rows, z > self.eta_tol)
-        if sol is None:
-            return Answer(du, x, z, eta, avoiding, "solved", "closed form: no row binds", 0, 0, 0.0)
+        a = solve_team(self.policy, s.A, target, s.lo, s.hi, s.scale, rows, warm, decompose=self.decompose,
+                       compiled=self.compiled, settings=self.settings)
         slack = 0.0
-        if sol.status != "solved" or not sol.exact:
-            slack = float(max(0.0, np.max(rows.values(du) - rows.rhs, initial=0.0)))
-        return Answer(du, x, z, eta, avoiding, sol.status, sol.message, sol.iterations, n_qp, slack)
+        if a.status != "solved" or not a.exact:
+            slack = float(max(0.0, np.max(rows.values(a.du) - rows.rhs, initial=0.0)))
+        return Answer(a.du, a.x, a.z, a.eta, avoiding_robots(a.du.shape[0], rows, a.z > self.eta_tol), a.status,
+                      a.message, a.iterations, a.n_qp, slack)
+
+
+def compiled_settings(policy: SolverPolicy, compiled: bool, decompose: bool = True) -> np.ndarray | None:
+    """:func:`kernel_settings` where :func:`solve_team` makes its compiled call (None: it does not)."""
+    if compiled and decompose and policy.active_set and policy.exact:
+        return kernel_settings(policy)
+    return None

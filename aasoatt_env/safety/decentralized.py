@@ -33,7 +33,7 @@ from typing import NamedTuple
 import numpy as np
 
 from aasoatt_env.model.geometry import pair_components
-from aasoatt_env.safety.centralized import solve_rows
+from aasoatt_env.safety.centralized import compiled_settings, solve_team
 from aasoatt_env.safety.problem import box_least_squares
 from aasoatt_env.safety.rows import Rows
 from aasoatt_env.safety.solvers import SolverPolicy
@@ -349,9 +349,10 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
     else:  # (a kept half starts at its row's multiplier)
         g_z = np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
     g_rows = Rows(g_ri, g_rj, g_Gi, g_Gj, g_rhs, _NO_PAIRS, _NO_KEYS, np.inf, np.inf)
-    du, _, z, eta, sol, _ = solve_rows(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_rows,
-                                       Warm(np.ascontiguousarray(x0[sub]), g_z), compiled=compiled)
-    status, iterations = ("solved", 0) if sol is None else (sol.status, sol.iterations)
+    ans = solve_team(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_rows,
+                     Warm(np.ascontiguousarray(x0[sub]), g_z), decompose=True, compiled=compiled,
+                     settings=compiled_settings(policy, compiled))
+    du, z, eta, status, iterations = ans.du, ans.z, ans.eta, ans.status, ans.iterations
     label = pair_components(sub.size, g_ri[: joint.shape[0]], g_rj[: joint.shape[0]], compiled=compiled)
     sizes = np.bincount(label, minlength=sub.size)
     return joint, grouped, _GroupAnswer(du, eta, z, kept, status, iterations), \
