@@ -264,3 +264,15 @@ def test_refused_options_name_the_option_exit_2_and_leave_no_folder(tmp_path, ca
         assert code == 2, (argv, code, err)
         assert len(err) == 1 and expected in err[0] and len(err[0]) < 400, (argv, err)
         assert sorted(p.name for p in tmp_path.iterdir()) == ["page.md"], argv  # no folder made, none left
+
+
+def test_warm_up_prepares_every_part_with_a_line_each(capsys):
+    from aasoatt_env import compiled
+    from aasoatt_env.apps.cli import main
+
+    assert main(["warm-up"]) == 0
+    out = capsys.readouterr().out
+    if compiled.available():
+        assert "backup layer" in out and "decentralized filter" in out and "kernels ready" in out
+    else:
+        assert "numpy reference" in out

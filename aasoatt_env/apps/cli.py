@@ -3,7 +3,8 @@
 ``aasoatt list``: scenarios and their parameters, controllers, barriers, deadlock strategies, triggers and
 solvers; ``aasoatt run``: a controller (behind the safety filter or not) on a scenario, its metrics, a
 GIF / PNG / JSON / NPZ; ``aasoatt reproduce``: the paper's experiments (:mod:`aasoatt_env.apps.reproduce`);
-``aasoatt train`` and ``aasoatt evaluate``: :mod:`train.train`, :mod:`train.evaluate`.  Heavy libraries
+``aasoatt train`` and ``aasoatt evaluate``: :mod:`train.train`, :mod:`train.evaluate`; ``aasoatt warm-up``:
+compile (or load from numba's cache) the filter's kernels once, with a line per part.  Heavy libraries
 (torch, Stable-Baselines3, Ray, matplotlib) are imported only by the commands that use them.
 """
 
@@ -252,6 +253,24 @@ def _run_parser(sub: Any) -> None:
     p.set_defaults(func=cmd_run)
 
 
+def cmd_warm_up(args: argparse.Namespace) -> int:
+    """Compile the safety filter's kernels now (:func:`aasoatt_env.safety.warm_up`), one line per part."""
+    import time
+
+    from aasoatt_env.safety import warm_up
+
+    t0 = time.perf_counter()
+
+    def show(part: str) -> None:
+        print(f"[{time.perf_counter() - t0:5.1f} s] {part} (compiled once, then loaded from the cache) ...", flush=True)
+
+    if warm_up(args.kernel, progress=show):
+        print(f"[{time.perf_counter() - t0:5.1f} s] compiled kernels ready (cached for later runs)")
+    else:
+        print("no compiled kernels to prepare: the numpy reference runs (pip install \"aasoatt[fast]\" for them)")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``aasoatt``."""
     parser = Parser(prog="aasoatt", description=__doc__.splitlines()[0])
@@ -260,6 +279,10 @@ def build_parser() -> argparse.ArgumentParser:
     add_common_options(p_list, overwrite=False)
     p_list.set_defaults(func=cmd_list)
     _run_parser(sub)
+    p_warm = sub.add_parser("warm-up", help="compile the filter's kernels once (numba caches them)")
+    p_warm.add_argument("--kernel", choices=("auto", "numba"), default="auto",
+                        help="auto: where numba is installed; numba: or an error")
+    p_warm.set_defaults(func=cmd_warm_up)
     for name, (module, _) in _FORWARDED.items():
         p = sub.add_parser(name, help=f"see {module} (aasoatt {name} --help)", add_help=False)
         p.add_argument("rest", nargs=argparse.REMAINDER)

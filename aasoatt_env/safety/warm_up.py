@@ -20,30 +20,48 @@ __all__ = ["warm_up"]
 
 
 def _scenes() -> list[tuple[str, Callable[[], None]]]:
-    """``(name, run)`` of the tiny problems that reach every compiled part."""
+    """``(name, run)`` of the tiny problems that reach every compiled part, with the filter's argument types."""
+    from aasoatt_env.model.dynamics import DT, input_bounds
     from aasoatt_env.model.geometry import pair_components, robot_pairs
     from aasoatt_env.model.params import make_team
+    from aasoatt_env.safety.backup import gatekeeper
+    from aasoatt_env.safety.backup.repair import repair
     from aasoatt_env.safety.core import SafetyFilter  # (core imports this module)
+    from aasoatt_env.safety.solvers.local import solve_local_qps
 
-    def team_steps(mode: str, backup: bool) -> None:
-        # two robots driving at each other, then past each other, with obstacles: rows, QP, check, repair
-        team = make_team("paper", 2)
+    team = make_team("paper", 2)
+    pose, u = np.array([[0.0, 0.0, 0.0], [1.2, 0.05, np.pi]]), np.full((2, 2), 8.0)
+    lo, hi = input_bounds(team, u, DT)
+    obstacles = (np.array([[0.6, 1.5]]), np.array([0.3]))
+
+    def team_steps(mode: str, backup: bool) -> None:  # rows, the QP stages, the check, with and without obstacles
         f = SafetyFilter(team, mode=mode, backup=backup, kernel="numba")
-        pose, u = np.array([[0.0, 0.0, 0.0], [1.2, 0.05, np.pi]]), np.full((2, 2), 8.0)
         ref = (pose[:, :2], np.zeros((2, 2)))
-        obstacles = (np.array([[0.6, 1.5]]), np.array([0.3]))
         for k in range(3):
             f.from_state(pose, u, np.full((2, 2), 60.0 * (1 - 2 * (k % 2))), reference=ref,
                          obstacles=obstacles if k else None)
+
+    def backup_layer() -> None:  # the check (quick, full, held) and the repair, as the layer calls them
+        layer = dict(sensing_range=3.0, brake_fraction=2.0 / 3.0, compiled=True, checked=True,
+                     near_pairs=np.array([[0, 1]]))
+        for obs in (None, obstacles):
+            for quick, hold in ((True, False), (False, False), (False, True)):
+                gatekeeper(team, pose, u, hi, DT, quick=quick, hold_violations=hold, obstacles=obs, **layer)
+            repair(team, pose, u, hi, DT, lo, hi, obstacles=obs, **layer)
+
+    def local_qps() -> None:  # one robot's infeasible QP (its relaxation too), and a feasible one
+        solve_local_qps(np.tile(np.eye(2), (2, 1, 1)), np.zeros((2, 2)), -np.ones((2, 2)), np.ones((2, 2)),
+                        np.array([0, 0, 1]), np.array([[1.0, 0.0], [-1.0, 0.0], [1.0, 1.0]]),
+                        np.array([-2.0, -2.0, 0.5]), relax=True, relax_tol=np.full(2, 1e-7), compiled=True)
 
     def geometry() -> None:
         p = np.random.default_rng(0).uniform(0, 5, (8, 2))
         pairs = robot_pairs(p, 3.0, method="cells")
         pair_components(8, pairs[:, 0], pairs[:, 1], compiled=True)
 
-    return [("geometry", geometry)] + [(f"{mode} filter{' + backup' if backup else ''}",
-                                        lambda mode=mode, backup=backup: team_steps(mode, backup))
-                                       for mode in ("centralized", "decentralized") for backup in (True, False)]
+    return [("geometry", geometry), ("backup layer", backup_layer), ("local QPs", local_qps)] + [
+        (f"{mode} filter{' + backup' if backup else ''}", lambda mode=mode, backup=backup: team_steps(mode, backup))
+        for mode in ("centralized", "decentralized") for backup in (True, False)]
 
 
 def warm_up(kernel: str = "auto", progress: Callable[[str], None] | None = None) -> bool:
