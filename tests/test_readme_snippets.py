@@ -26,14 +26,14 @@ def _run(code: str) -> dict:
 def test_readme_sb3_parameter_sharing_snippet():
     pytest.importorskip("stable_baselines3", reason="stable-baselines3 is in the train extra")
     ns = _run(shrink(readme_block("sb3-shared"), {"[make] * 4": "[make] * 1",
-                                                   "total_timesteps=100_000": "total_timesteps=1"}))
+                                                   "total_timesteps=6_144": "total_timesteps=1"}))
     assert ns["model"].num_timesteps == 256 * 6  # one rollout: n_steps per robot slot
 
 
 def test_readme_sb3_centralised_snippet():
     pytest.importorskip("stable_baselines3", reason="stable-baselines3 is in the train extra")
     ns = _run(shrink(readme_block("sb3-centralised"), {"n_steps=512": "n_steps=64",
-                                                        "total_timesteps=100_000": "total_timesteps=1"}))
+                                                        "total_timesteps=1_024": "total_timesteps=1"}))
     assert ns["model"].num_timesteps == 64
 
 
@@ -50,3 +50,14 @@ def test_readme_batched_snippet():
     envs = ns["envs"]
     assert ns["obs"].shape == (8, 6, envs.agent_observation_space.shape[0])
     assert ns["rewards"].shape == (8, 6) and envs.live.shape == (8, 6)
+
+
+@pytest.mark.slow
+def test_readme_minimal_example():
+    code = readme_block("minimal")
+    namespace: dict = {"__name__": "readme_snippet"}
+    exec(compile(code, "README.md", "exec"), namespace)
+    env = namespace["env"]
+    assert not env.agents  # the episode ran to its end
+    gaps = [i["clearance"] for i in namespace["infos"].values()]
+    assert min(gaps) > -1e-3 and "SafetyFilter(mode=centralized" in repr(env.filter)
