@@ -40,7 +40,8 @@ def bound_nominal(nominal: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np
     farther the nominal, the closer both come to the feasible set's support point in its direction).
     """
     reach = NOMINAL_RANGE * max_wheel_accel
-    if float(np.abs(nominal).max(initial=0.0)) + 1.5 * float(scale.max(initial=0.0)) <= float(reach.min(initial=0.0)):
+    if max(-float(nominal.min(initial=0.0)), float(nominal.max(initial=0.0))) + 1.5 * float(scale.max(initial=0.0)) \
+            <= NOMINAL_RANGE * float(max_wheel_accel.min(initial=0.0)):
         return nominal  # (|nominal - centre| <= |nominal| + |centre| <= reach for every robot)
     centre = 0.5 * (lo + hi)
     d = nominal - centre
