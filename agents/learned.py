@@ -44,7 +44,7 @@ import numpy as np
 from aasoatt_env.api.factory import make_env as make_aasoatt_env
 from aasoatt_env.errors import ConfigError, DataFileError
 from agents.rllib_agent import RLlibAgent
-from agents.run_files import read_npz
+from agents.run_files import read_json, read_npz
 from agents.run_spec import POLICY_ENV_KEYS, POLICY_FILE, check_record, check_spec, find_run_spec
 from agents.sb3_model import MAX_LAYER_SIZE, MAX_LAYERS, check_layer_sizes, read_model
 
@@ -168,7 +168,7 @@ class LearnedAgent:
             A file is missing, oversized, crafted or non-finite (the message names it).
         """
         p, spec_file = _run_files(path)
-        spec = find_run_spec(spec_file)[1]  # type: ignore[index]
+        spec = read_json(spec_file)
         probe = check_spec(spec, spec_file, keys=_SPEC_KEYS, policies=_POLICIES)
         if spec.get("backend", "sb3") != "sb3":
             raise DataFileError(f"{spec_file}: backend: got {str(spec['backend'])[:40]!r}, expected 'sb3'")

@@ -210,7 +210,7 @@ def test_rllib_agent_rejects_broken_files(trained_run, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(trained_run, run, ignore=shutil.ignore_patterns("checkpoints"))
     weights = dict(np.load(run / "rl_module.npz"))
-    weights.pop(sorted(weights)[0])
+    weights.pop(next(k for k in sorted(weights) if k.endswith("weight")))
     np.savez(run / "rl_module.npz", **weights)
     with pytest.raises(DataFileError, match=r"got arrays .*, expected"):
         RLlibAgent.load(run)
@@ -279,9 +279,9 @@ def test_readme_rllib_local_commands(tmp_path):
     assert setup[:3] == ["python3", "-m", "venv"]  # run verbatim by .ci/run (test_ci_runs_the_readme_rllib_setup)
     assert train[1:4] == ["train", "--backend", "rllib"]
     _run(train + TINY + ["--num-cpus", "2"], cwd=tmp_path)
-    run = tmp_path / "runs" / "rllib_ppo_random_goals_4r_filter_s0"
+    (run,) = (tmp_path / "runs").iterdir()
     assert (run / "rl_module.npz").is_file()
-    assert evaluate[3] == "runs/rllib_ppo_random_goals_4r_filter_s0"
+    assert evaluate[1:3] == ["evaluate", "--filtered"] and evaluate[3] == f"runs/{run.name}"  # the run it made
     table = _run(evaluate + ["--episodes", "1", "-q"], cwd=tmp_path)
     assert "| learned (filter) + filter | 1 |" in table
 
@@ -320,7 +320,7 @@ def test_readme_rllib_cluster_commands(tmp_path):
         _run(train + TINY + ["--num-env-runners", "1"], cwd=tmp_path, env=env)
         (run,) = (tmp_path / "runs").iterdir()
         stats = json.loads((run / "train_stats.json").read_text())
-        assert stats["ray_nodes"] == 1 and stats["num_env_runners"] == 1 and stats["agent_steps"] == 1600
+        assert stats["ray_nodes"] == 1 and stats["num_env_runners"] == 1 and stats["agent_steps"] >= 1600
     finally:
         _stop_group(head)
         log.close()

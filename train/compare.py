@@ -31,7 +31,7 @@ bare training, with one filter call per physics step for all teams (README,
 seed's bare policy (a) behind the filter for ``--filter-steps`` agent-steps
 (``init_from``; rollouts of ``--filter-n-steps`` 64 per slot: with the
 recipe's 32 envs x 6 robots 12,288 agent-steps per update, so the default
-61,440 make 5 updates; the tables in the README were measured with 8 envs, 20);
+61,440 make 5 updates);
 ``--filter-start scratch`` (implied by ``--full``) trains them from
 scratch for ``--bare-steps`` like (a).  Finished runs and evaluations are
 reused (``--out-dir`` is a cache): rerunning after an interruption continues;

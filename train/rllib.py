@@ -13,9 +13,9 @@ Usage (in the virtual environment of the ``rllib`` extra, see README "Use it fro
     aasoatt train --backend rllib --resume runs/RUN --iterations 100  # continue a run (a new run folder)
 
 The same command scales from this machine to a cluster: ``--address`` joins a running Ray
-cluster (``auto``: the one started on this node with ``ray start``; or ``HOST:PORT``), and
-``--num-env-runners`` sets how many sampling processes Ray spreads over its nodes (0: sample in
-the driver).  Every node needs this package and the ``rllib`` extra installed.
+cluster (``auto``: the one started on this node; or ``HOST:PORT``), ``--num-env-runners`` sets
+how many sampling processes Ray spreads over its nodes (0: sample in the driver).  Every node
+needs this package and the ``rllib`` extra installed.
 
 What is trained
 ---------------
@@ -50,12 +50,9 @@ file                               content
 ``train_stats.json``               wall time, env and agent steps, throughput
 =================================  =============================================================
 
-While training, the folder also holds an ``INCOMPLETE`` file, removed at the end.  A run that
-fails or is interrupted is removed, or kept with its ``INCOMPLETE`` file (and no
-``train_stats.json``) when it already has a checkpoint (:func:`train.config.abandon_run`).
-
-``aasoatt evaluate --filtered <run>`` evaluates the policy in the same table as the
-Stable-Baselines3 runs, without starting Ray.
+While training, the folder also holds an ``INCOMPLETE`` file, removed at the end; a run that
+fails is removed, or kept with it when it has a checkpoint (:func:`train.runs.abandon_run`).
+``aasoatt evaluate --filtered <run>`` evaluates the policy without starting Ray.
 """
 
 from __future__ import annotations
@@ -65,8 +62,6 @@ import dataclasses
 import importlib.util
 import json
 import math
-import os
-import shutil
 import sys
 import time
 from collections.abc import Sequence
@@ -74,14 +69,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from aasoatt_env.errors import ConfigError
-from agents.run_spec import RECORD_ENTRY, record_bytes
 from train.config import LIMITS, TRAIN_REWARD, EnvConfig
 from train.options import add_config_arguments, config_from_args
 from train.policies import RAY_MISSING
 from train.rllib_env import log_success, make_rllib_env, slots_per_team
+from train.rllib_files import MODULE_ID, WEIGHTS_FILE, resume_checkpoint, save_checkpoint, weights_with_record
 from train.runs import INCOMPLETE_FILE, abandon_run, check_path, claim_run_dir, save_npz, write_json, write_text
 
 __all__ = ["ENV_NAME", "MODULE_ID", "RAY_MISSING", "RLlibConfig", "build_algorithm_config", "main", "make_rllib_env",
@@ -89,9 +82,6 @@ __all__ = ["ENV_NAME", "MODULE_ID", "RAY_MISSING", "RLlibConfig", "build_algorit
 
 ENV_NAME = "aasoatt"
 """The name the env creator is registered under with ``ray.tune.registry.register_env``."""
-MODULE_ID = "default_policy"
-"""The one RLModule every robot acts with."""
-WEIGHTS_FILE = "rl_module.npz"
 POLICY_FILE = "policy.json"
 
 
@@ -299,50 +289,6 @@ def build_algorithm_config(config: RLlibConfig) -> Any:
     )
 
 
-def _module_weights(algo: Any) -> dict[str, np.ndarray]:
-    """The shared RLModule's weights from the learner (local or remote) as numpy arrays."""
-    from ray.rllib.core import COMPONENT_LEARNER, COMPONENT_LEARNER_GROUP, COMPONENT_RL_MODULE
-
-    state = algo.get_state(components=f"{COMPONENT_LEARNER_GROUP}/{COMPONENT_LEARNER}/{COMPONENT_RL_MODULE}/"
-                                      f"{MODULE_ID}")
-    weights = state[COMPONENT_LEARNER_GROUP][COMPONENT_LEARNER][COMPONENT_RL_MODULE][MODULE_ID]
-    return {k: np.asarray(v) for k, v in weights.items()}
-
-
-def resume_checkpoint(path: str) -> Path:
-    """The RLlib checkpoint to resume from: ``path`` itself, or the last ``checkpoints/iter_<n>`` of a run folder."""
-    p = Path(path).expanduser()
-    if (p / "rllib_checkpoint.json").is_file():
-        return p.resolve()
-    found = sorted((p / "checkpoints").glob("iter_*/rllib_checkpoint.json"))
-    if not found:
-        raise ConfigError(f"RLlibConfig.resume: got {path!r}, expected an RLlib checkpoint folder or a run folder "
-                          "with checkpoints/iter_<n>")
-    return found[-1].parent.resolve()
-
-
-def _save(algo: Any, run: Path, iteration: int, spec: dict[str, Any]) -> Path:
-    """An RLlib checkpoint ``checkpoints/iter_<n>`` (with the module's weights as ``rl_module.npz``), atomically.
-
-    Written into a temporary folder beside it and renamed once complete.
-    """
-    ckpt = run / "checkpoints" / f"iter_{iteration:06d}"
-    tmp = ckpt.with_name(f".{ckpt.name}.tmp")
-    ckpt.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        algo.save_to_path(str(tmp.resolve()))  # RLlib wants an absolute path (a relative one is read as a URI)
-        save_npz(tmp / WEIGHTS_FILE, **_weights_with_record(algo, spec))
-        os.replace(tmp, ckpt)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return ckpt
-
-
-def _weights_with_record(algo: Any, spec: dict[str, Any]) -> dict[str, np.ndarray]:
-    return {**_module_weights(algo), RECORD_ENTRY: np.frombuffer(record_bytes(spec), dtype=np.uint8)}
-
-
 def _metrics(result: dict[str, Any], iteration: int, wall: float, iter_s: float) -> dict[str, Any]:
     """One ``progress.jsonl`` row from ``Algorithm.train()``'s result."""
 
@@ -419,7 +365,7 @@ def _iterate(config: RLlibConfig, algo: Any, run: Path, spec: dict[str, Any]) ->
                   f"return/robot {_fmt(r['robot_return_mean'], '.1f')}  success {_fmt(r['success'], '.1%')}",
                   flush=True)
         if config.checkpoint_every and it % config.checkpoint_every == 0 and it < last:
-            _save(algo, run, it, spec)
+            save_checkpoint(algo, run, it, spec)
     return rows, time.perf_counter() - t0
 
 
@@ -441,8 +387,8 @@ def train(config: RLlibConfig) -> Path:
         write_json(run / "config.json", config.to_dict())
         write_json(run / POLICY_FILE, spec)
         rows, elapsed = _iterate(config, algo, run, spec)
-        ckpt = _save(algo, run, int(algo.iteration), spec)
-        save_npz(run / WEIGHTS_FILE, **_weights_with_record(algo, spec))
+        ckpt = save_checkpoint(algo, run, int(algo.iteration), spec)
+        save_npz(run / WEIGHTS_FILE, **weights_with_record(algo, spec))
         run_steps = sum(r["iter_agent_steps"] or 0.0 for r in rows)
         write_json(run / "train_stats.json", {
             "wall_time_s": elapsed, "iterations": config.iterations, "resumed_from": str(resume) if resume else None,

@@ -106,8 +106,10 @@ class SlotVectorEnv(gym.vector.VectorEnv):
         return obs.reshape(self.num_envs, self._dim), rew.ravel(), term.ravel(), trunc.ravel(), infos
 
     def close_extras(self, **kwargs: Any) -> None:
-        """Close the teams."""
-        self.batch.close()
+        """Close the teams (if they were built)."""
+        batch = getattr(self, "batch", None)
+        if batch is not None:
+            batch.close()
 
 
 def make_rllib_env(env_config: dict[str, Any]) -> SlotVectorEnv:
