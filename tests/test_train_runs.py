@@ -296,3 +296,14 @@ def test_no_temporary_files_are_left_in_a_run(tmp_path):
     run = train(_tiny(tmp_path, run_name="r", checkpoint_freq=ROLLOUT)).parent
     leftovers = [p for p in run.rglob("*") if ".tmp" in p.name]
     assert leftovers == [] and os.listdir(run)
+
+
+def test_training_that_diverges_names_the_hyper_parameters(tmp_path, capsys):
+    from train.train import main
+
+    out = tmp_path / "runs"
+    assert main(["--out-dir", str(out), *TINY, "--n-epochs", "10", "--total-timesteps", "2000", "--learning-rate",
+                 "1.0", "--max-grad-norm", "1000", "--vf-coef", "100", "--ent-coef", "10", "--eval-every", "0"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "TrainConfig: training diverged at" in err and "learning_rate=1," in err
+    assert list(out.iterdir()) == []  # nothing of value: the run folder is removed

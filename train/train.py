@@ -239,12 +239,29 @@ def _learn(config: TrainConfig, run: Path, venv: Any, source: Any, resumed: Any)
         print(f"{what}: {run} ({config.total_timesteps:,} agent-steps, {config.n_envs} envs x "
               f"{config.num_robots} robots{workers}, {'behind the filter' if config.filter else 'bare'})", flush=True)
     t0 = time.perf_counter()
-    model.learn(total_timesteps=todo, callback=callbacks, tb_log_name="ppo", reset_num_timesteps=resumed is None)
+    try:
+        model.learn(total_timesteps=todo, callback=callbacks, tb_log_name="ppo", reset_num_timesteps=resumed is None)
+    except ValueError:
+        _check_diverged(config, model)
+        raise
     elapsed = time.perf_counter() - t0
     if config.normalize_obs or config.normalize_reward:
         save_stats(venv, stats_path(run / "model.zip"))
     save_model(model, run / "model.zip", spec)
     return model, telemetry, heldout, elapsed
+
+
+def _check_diverged(config: TrainConfig, model: Any) -> None:
+    """Name the hyper-parameters when training failed because the policy's weights became non-finite."""
+    import torch
+
+    if all(bool(torch.isfinite(p).all()) for p in model.policy.parameters()):
+        return
+    raise ConfigError(
+        f"TrainConfig: training diverged at {model.num_timesteps:,} agent-steps (the policy's weights became "
+        f"non-finite) with learning_rate={config.learning_rate:g}, ent_coef={config.ent_coef:g}, "
+        f"vf_coef={config.vf_coef:g}, max_grad_norm={config.max_grad_norm:g}; expected settings that keep PPO "
+        "stable (lower learning_rate first)") from None
 
 
 def build_parser(prog: str = "aasoatt train") -> argparse.ArgumentParser:
