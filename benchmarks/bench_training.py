@@ -22,8 +22,8 @@ they show what more cores buy, so compare them only with idle cores.
 RLlib (:mod:`train.rllib`, the same batch of ``--n-envs`` teams x ``--robots`` robots x
 ``--n-steps`` decisions per iteration, minibatch and epochs), bare and behind the filter, sampled
 in the driver (``num_env_runners=0``: one process, like ``aasoatt train``), taking turns with the
-Stable-Baselines3 rows; it reports each row's agent-steps/s end to end (sampling and updates) and
-of the env runner's sampling alone, and the ratio to ``aasoatt train``'s per core.
+Stable-Baselines3 rows; it reports each row's agent-steps/s end to end (sampling and updates, one
+env runner: the driver) and the ratio to ``aasoatt train``'s (one process, one core) in the same rounds.
 
 ``--model RUN`` starts every row from a trained policy (``init_from``): the
 filter's cost depends on how often it has to act, which is far more often for
@@ -150,21 +150,19 @@ class RLlibRow:
         register_env(ENV_NAME, make_rllib_env)
         self.algo = build_algorithm_config(cfg).build_algo()
         self.algo.train()  # warm-up
-        self.steps, self.wall, self.rates, self.sample_rates = 0, 0.0, [], []
+        self.steps, self.wall, self.rates = 0, 0.0, []
 
     def run(self, timesteps: int) -> None:
         """Train whole iterations until ``timesteps`` more agent-steps are done."""
-        done, wall, sampling = 0, 0.0, 0.0
+        done, wall = 0, 0.0
         while done < timesteps:
             t0 = time.perf_counter()
             result = self.algo.train()
             wall += time.perf_counter() - t0
             done += int(result["env_runners"]["num_env_steps_sampled"])
-            sampling += float(result["timers"]["env_runner_sampling_timer"])
         self.steps += done
         self.wall += wall
         self.rates.append(done / wall)
-        self.sample_rates.append(done / sampling)
 
     def close(self) -> None:
         self.algo.stop()
@@ -182,15 +180,16 @@ def rllib_rows(args: argparse.Namespace, sb3: dict[bool, Row]) -> None:
             for f in (False, True):
                 sb3[f].run(chunk)
                 rows[f].run(chunk)
-        print("\n| loop | agent-steps | agent-steps/s, end to end | agent-steps/s, env runner sampling | "
-              "aasoatt train, agent-steps/s (same rounds) | RLlib / aasoatt train (end to end, sampling) |")
-        print("|---|---:|---:|---:|---:|---:|")
+        print("\n| loop | agent-steps | RLlib agent-steps/s per env runner | aasoatt train agent-steps/s per core "
+              "(same rounds) | RLlib / aasoatt train | per round |")
+        print("|---|---:|---:|---:|---:|---|")
         for f, row in rows.items():
-            rate, sample = float(np.median(row.rates)), float(np.median(row.sample_rates))
-            mine = float(np.median(sb3[f].rates[-args.rounds:]))
+            mine = sb3[f].rates[-args.rounds:]
+            rate, theirs = float(np.median(row.rates)), float(np.median(mine))
+            rounds = ", ".join(f"{100 * a / b:.0f}%" for a, b in zip(row.rates, mine))
             name = "RLlib, behind the filter" if f else "RLlib, bare"
-            print(f"| {name} | {row.steps} | {rate:,.0f} | {sample:,.0f} | {mine:,.0f} | "
-                  f"{100 * rate / mine:.0f}%, {100 * sample / mine:.0f}% |", flush=True)
+            print(f"| {name} | {row.steps} | {rate:,.0f} | {theirs:,.0f} | {100 * rate / theirs:.0f}% | {rounds} |",
+                  flush=True)
             row.close()
     finally:
         ray.shutdown()
