@@ -7,10 +7,8 @@ The paper's tracking law (:class:`agents.baselines.TrackingController`)
 observation (entries 0:2 ``p - p_d``, 4:6 ``v``, 10:12 ``v_d``, 12:14 ``a_d``,
 see :mod:`aasoatt_env.sim.observations`).  This policy starts as that law, so
 it tracks from the first step.  Be clear about what that buys: PPO changes it
-little, and in closed loop it behaves like its prior (issue 14 measured the
-trained ``policy_prior = "tracking"`` run and the untrained prior: the same
-success, RMSE 0.053 vs 0.056 bare).  It is a baseline and a starting point for
-fine-tuning, not a policy learned from scratch; the default recipe
+little, and in closed loop it behaves like its prior.  It is a baseline and a
+starting point for fine-tuning, not a policy learned from scratch; the default recipe
 (:class:`train.config.TrainConfig` defaults: a plain MLP, normalised
 observations and rewards, 1.23M agent-steps) learns to reach the goals without it.
 

@@ -15,12 +15,14 @@ module's inference action distribution made deterministic (the Gaussian mean; ``
 with ``deterministic=False``), then RLlib's default action normalisation, which for our
 ``Box(-1, 1)`` actions is a clip to ``[-1, 1]``.
 
-Loading without unpickling: :meth:`RLlibAgent.load` rebuilds the module from the run's
-``policy.json`` (PPO's default RLModule, the saved ``model_config``, the spaces of the env it
-describes) and loads ``rl_module.npz`` (plain arrays) into it strictly: every weight must be
-there with its shape.  RLlib's own checkpoints pickle their classes and states;
-:meth:`RLlibAgent.from_checkpoint` reads one (``RLModule.from_checkpoint``) for checkpoints
-made elsewhere, and unpickles: use it only on files you trust.
+Loading without unpickling: :meth:`RLlibAgent.load` checks every field of the run's
+``policy.json`` (:mod:`agents.run_spec`), rebuilds the module from it (PPO's default RLModule,
+the saved ``model_config`` with bounded layer sizes, the spaces of the env it describes) and reads
+``rl_module.npz`` (plain arrays) by the module's own parameter names and shapes, checked from
+the archive's headers before any data is read, finite (:func:`agents.run_files.read_npz`).
+RLlib's own checkpoints pickle their classes and states; :meth:`RLlibAgent.from_checkpoint`
+reads one (``RLModule.from_checkpoint``) for checkpoints made elsewhere, and unpickles: use it
+only on files you trust.
 
 Ray is imported only when a policy is loaded (``ray[rllib]``: the ``rllib`` extra); no Ray
 instance is started.
@@ -29,10 +31,8 @@ instance is started.
 from __future__ import annotations
 
 import contextlib
-import json
 import logging
 import os
-import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -41,32 +41,36 @@ import numpy as np
 
 from aasoatt_env.api.factory import make_env as make_aasoatt_env
 from aasoatt_env.errors import ConfigError, DataFileError
+from agents.run_files import read_npz
+from agents.run_spec import RECORD_ENTRY, check_record, check_spec, find_run_spec, record_bytes
+from agents.sb3_model import check_layer_sizes, check_parameter_count, parameter_count
 
 __all__ = ["RLlibAgent", "find_run_spec"]
 
-POLICY_FILE = "policy.json"
 WEIGHTS_FILE = "rl_module.npz"
-_MODULES = {"DefaultPPOTorchRLModule"}
+_MODULES = ("DefaultPPOTorchRLModule",)
+_SPEC_KEYS = ("format", "backend", "env", "filter", "policy", "module_id", "model_config", "normalize_obs",
+              "ray_version")
+_MODULE_IDS = ("default_policy", "shared")
 _MODEL_CONFIG_KEYS = ("fcnet_hiddens", "fcnet_activation", "vf_share_layers")
 """``model_config`` entries that :mod:`train.rllib` writes; anything else in a ``policy.json`` is refused."""
 _ACTIVATIONS = ("tanh", "relu", "elu", "swish", "silu", "linear")
 
 
-def _check_model_config(model_config: Any, spec_file: Path) -> None:
-    """Refuse a ``model_config`` that training does not write, or layers too large to build (a crafted file).
+def _check_model_config(model_config: Any, spec_file: Path, obs_dim: int, act_dim: int) -> None:
+    """Refuse a ``model_config`` that training does not write, or a network too large to build (a crafted file).
 
-    Runs before Ray is imported; the layer bound is the one of the SB3 loader
-    (:func:`agents.learned.check_layer_sizes`).
+    Runs before Ray is imported; the bounds are the SB3 loader's (:mod:`agents.sb3_model`).
     """
-    from agents.learned import check_layer_sizes  # (agents.learned imports this module)
-
     where = f"{spec_file}: model_config"
     if not isinstance(model_config, dict):
         raise DataFileError(f"{where}: got a {type(model_config).__name__}, expected an object")
     unknown = sorted(set(model_config) - set(_MODEL_CONFIG_KEYS))
     if unknown:
         raise DataFileError(f"{where}: unexpected keys {unknown}, expected some of {list(_MODEL_CONFIG_KEYS)}")
-    check_layer_sizes(model_config.get("fcnet_hiddens", []), f"{where}.fcnet_hiddens", allow_dict=False)
+    hidden = model_config.get("fcnet_hiddens", [256, 256])
+    check_layer_sizes(hidden, f"{where}.fcnet_hiddens", allow_dict=False)
+    check_parameter_count(parameter_count(obs_dim, 2 * act_dim, hidden), f"{where}.fcnet_hiddens")
     act = model_config.get("fcnet_activation", "tanh")
     if act not in _ACTIVATIONS:
         raise DataFileError(f"{where}.fcnet_activation: got {str(act)[:40]!r}, expected one of {list(_ACTIVATIONS)}")
@@ -74,24 +78,42 @@ def _check_model_config(model_config: Any, spec_file: Path) -> None:
         raise DataFileError(f"{where}.vf_share_layers: got {model_config['vf_share_layers']!r}, expected true or false")
 
 
-def find_run_spec(path: str | os.PathLike[str]) -> tuple[Path, dict[str, Any]] | None:
-    """The ``policy.json`` that describes ``path`` (a run folder, a file in it, or a checkpoint under ``checkpoints/``).
+def _check_rllib_spec(spec: dict[str, Any], spec_file: Path) -> tuple[Any, Any]:
+    """Every field of an RLlib run's ``policy.json``; the spaces of one robot."""
+    if spec.get("backend") != "rllib":
+        raise DataFileError(f"{spec_file}: got backend {str(spec.get('backend'))[:40]!r}, expected 'rllib' "
+                            "(Stable-Baselines3 runs load with agents.learned.LearnedAgent)")
+    for key in ("model_config",):
+        if key not in spec:
+            raise DataFileError(f"{spec_file}: missing key {key!r}")
+    probe = check_spec(spec, spec_file, keys=_SPEC_KEYS, policies=_MODULES)
+    agent0 = probe.possible_agents[0]
+    obs_space, act_space = probe.observation_space(agent0), probe.action_space(agent0)
+    probe.close()
+    if spec["normalize_obs"]:
+        raise DataFileError(f"{spec_file}: normalize_obs: got true, expected false (RLlib runs are not normalised)")
+    if spec.get("module_id", "shared") not in _MODULE_IDS:
+        raise DataFileError(f"{spec_file}: module_id: got {str(spec['module_id'])[:40]!r}, expected one of "
+                            f"{list(_MODULE_IDS)}")
+    if not isinstance(spec.get("ray_version", ""), str) or len(spec.get("ray_version", "")) > 40:
+        raise DataFileError(f"{spec_file}: ray_version: expected a version string")
+    _check_model_config(spec["model_config"], spec_file, int(np.prod(obs_space.shape)),
+                        int(np.prod(act_space.shape)))
+    return obs_space, act_space
 
-    Returns ``(spec_file, spec)``, or None where there is none.
-    """
-    p = Path(path)
-    base = p if p.is_dir() else p.parent
-    for folder in (base, base.parent, base.parent.parent):
-        spec_file = folder / POLICY_FILE
-        if spec_file.is_file():
-            try:
-                spec = json.loads(spec_file.read_text())
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise DataFileError(f"{spec_file}: not a readable JSON file ({exc})") from None
-            if not isinstance(spec, dict):
-                raise DataFileError(f"{spec_file}: got a JSON {type(spec).__name__}, expected an object")
-            return spec_file, spec
-    return None
+
+def _load_weights(module: Any, weights_file: Path, spec: dict[str, Any], spec_file: Path) -> None:
+    """Copy ``rl_module.npz`` into ``module``: its own parameter names and shapes, finite, and the policy record."""
+    import torch
+
+    expected = {k: tuple(v.shape) for k, v in module.state_dict().items()}
+    record = record_bytes(spec)
+    arrays = read_npz(weights_file, expected, optional={RECORD_ENTRY: (len(record),)})
+    stored = arrays.pop(RECORD_ENTRY, None)
+    check_record(None if stored is None else stored.astype(np.uint8).tobytes(), spec, spec_file, weights_file)
+    state = {k: torch.from_numpy(v.astype(np.float32)) for k, v in arrays.items()}
+    with torch.no_grad():
+        module.load_state_dict(state, strict=True)
 
 
 @contextlib.contextmanager
@@ -106,18 +128,6 @@ def _quiet_rllib() -> Iterator[None]:
     finally:
         for log, level in zip(logs, levels):
             log.setLevel(level)
-
-
-def _read_weights(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            weights = {k: np.asarray(z[k]) for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise DataFileError(f"{path}: not a readable weights file ({type(exc).__name__}: {exc})") from None
-    bad = [k for k, v in weights.items() if not np.isfinite(v).all()]
-    if bad:
-        raise DataFileError(f"{path}: non-finite weights in {bad}")
-    return weights
 
 
 class RLlibAgent:
@@ -166,8 +176,8 @@ class RLlibAgent:
         ------
         DataFileError
             A file is missing, corrupted, or does not fit the module (the message names it); a
-            ``model_config`` with unknown entries or layer sizes beyond the SB3 loader's bounds
-            (:func:`agents.learned.check_layer_sizes`) is refused before Ray is imported.
+            ``policy.json`` with unknown entries or layer sizes beyond the SB3 loader's bounds
+            (:mod:`agents.sb3_model`) is refused before Ray is imported.
         """
         if device != "cpu":
             raise ConfigError(f"device: got {device!r}, expected 'cpu'")
@@ -177,27 +187,10 @@ class RLlibAgent:
             raise DataFileError(f"{path}: no policy.json here or two levels up; expected a run folder of "
                                 "train.rllib or one of its checkpoints/iter_<n>")
         spec_file, spec = found
-        if spec.get("backend") != "rllib":
-            raise DataFileError(f"{spec_file}: got backend {spec.get('backend')!r}, expected 'rllib' "
-                                "(Stable-Baselines3 runs load with agents.learned.LearnedAgent)")
+        obs_space, act_space = _check_rllib_spec(spec, spec_file)
         weights_file = (p if p.is_dir() else p.parent) / WEIGHTS_FILE
         if not weights_file.is_file():
             raise DataFileError(f"{weights_file}: missing; an RLlib run keeps its weights in {WEIGHTS_FILE}")
-        for key in ("env", "policy", "model_config"):
-            if key not in spec:
-                raise DataFileError(f"{spec_file}: missing key {key!r}")
-        if spec["policy"] not in _MODULES or not isinstance(spec["model_config"], dict) \
-                or not isinstance(spec["env"], dict):
-            raise DataFileError(f"{spec_file}: expected policy among {sorted(_MODULES)}, model_config and env "
-                                "objects")
-        _check_model_config(spec["model_config"], spec_file)
-        try:
-            probe = make_aasoatt_env(**spec["env"])
-        except (ConfigError, TypeError) as exc:
-            raise DataFileError(f"{spec_file}: its env settings are invalid ({exc})") from None
-        agent0 = probe.possible_agents[0]
-        obs_space, act_space = probe.observation_space(agent0), probe.action_space(agent0)
-        probe.close()
 
         import torch
         from ray.rllib.algorithms.ppo import PPOConfig
@@ -208,16 +201,12 @@ class RLlibAgent:
         module_spec.model_config = dict(spec["model_config"])
         with _quiet_rllib():  # RLlib's own builder logs a DeprecationWarning about itself
             module = module_spec.build()
-        weights = _read_weights(weights_file)
-        try:
-            module.load_state_dict({k: torch.from_numpy(v) for k, v in weights.items()}, strict=True)
-        except RuntimeError as exc:
-            raise DataFileError(f"{weights_file}: does not fit the module of {spec_file} ({exc})") from None
+        _load_weights(module, weights_file, spec, spec_file)
         return cls(module, spec, deterministic)
 
     @classmethod
     def from_checkpoint(
-        cls, checkpoint: str | os.PathLike[str], module_id: str = "shared", deterministic: bool = True
+        cls, checkpoint: str | os.PathLike[str], module_id: str | None = None, deterministic: bool = True
     ) -> RLlibAgent:
         """Load the RLModule ``module_id`` of any RLlib ``Algorithm`` checkpoint (this unpickles: trusted files only).
 
@@ -230,12 +219,13 @@ class RLlibAgent:
         from ray.rllib.core.rl_module.rl_module import RLModule
 
         torch.set_num_threads(1)
+        found = find_run_spec(Path(checkpoint))
+        module_id = module_id or (found[1].get("module_id") if found else None) or "default_policy"
         p = Path(checkpoint).expanduser().resolve()  # RLlib reads a relative path as a URI
         if not any(p.glob("module_state*")):
             p = p / COMPONENT_LEARNER_GROUP / COMPONENT_LEARNER / COMPONENT_RL_MODULE / module_id
         if not p.is_dir():
             raise DataFileError(f"{checkpoint}: no RLModule {module_id!r}; expected {p}")
-        found = find_run_spec(Path(checkpoint))
         with _quiet_rllib():
             module = RLModule.from_checkpoint(str(p))
         return cls(module, found[1] if found else None, deterministic)

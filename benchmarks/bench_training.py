@@ -1,7 +1,7 @@
 """PPO training throughput (agent-steps/s), bare and behind the safety filter, in one run.
 
     python benchmarks/bench_training.py [--timesteps 36864] [--rounds 3] [--robots 6] [--n-envs 32] [--model RUN]
-                                        [--workers W]
+                                        [--workers W] [--rllib]
 
 Each row trains PPO with the default recipe (``TrainConfig`` defaults: 32 teams x N
 robots stepped by one batched physics call, decision_interval 20; behind the filter one
@@ -17,6 +17,13 @@ one by one (:class:`train.vec_env.ParallelVecEnv`), for comparison.  ``--workers
 filtered row with the teams split over ``W`` processes (``TrainConfig.num_workers``,
 :class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`; the filter's calls are then not timed):
 they show what more cores buy, so compare them only with idle cores.
+
+``--rllib`` (in the virtual environment of the ``rllib`` extra) adds the same training with Ray
+RLlib (:mod:`train.rllib`, the same batch of ``--n-envs`` teams x ``--robots`` robots x
+``--n-steps`` decisions per iteration, minibatch and epochs), bare and behind the filter, sampled
+in the driver (``num_env_runners=0``: one process, like ``aasoatt train``), taking turns with the
+Stable-Baselines3 rows; it reports each row's agent-steps/s end to end (sampling and updates, one
+env runner: the driver) and the ratio to ``aasoatt train``'s (one process, one core) in the same rounds.
 
 ``--model RUN`` starts every row from a trained policy (``init_from``): the
 filter's cost depends on how often it has to act, which is far more often for
@@ -129,6 +136,65 @@ def stepping_rate(robots: int, n_envs: int, workers: int, decisions: int = 40) -
         batch.close()
 
 
+class RLlibRow:
+    """RLlib PPO on the same teams and batch, sampled in the driver; timed per ``Algorithm.train()`` call."""
+
+    def __init__(self, filtered: bool, robots: int, n_envs: int, n_steps: int) -> None:
+        from ray.tune.registry import register_env
+
+        from train.rllib import ENV_NAME, RLlibConfig, build_algorithm_config
+        from train.rllib_env import make_rllib_env
+
+        cfg = RLlibConfig(num_robots=robots, filter=filtered, num_envs_per_env_runner=n_envs,
+                          train_batch_size=n_steps * n_envs * robots, verbose=0)
+        register_env(ENV_NAME, make_rllib_env)
+        self.algo = build_algorithm_config(cfg).build_algo()
+        self.algo.train()  # warm-up
+        self.steps, self.wall, self.rates = 0, 0.0, []
+
+    def run(self, timesteps: int) -> None:
+        """Train whole iterations until ``timesteps`` more agent-steps are done."""
+        done, wall = 0, 0.0
+        while done < timesteps:
+            t0 = time.perf_counter()
+            result = self.algo.train()
+            wall += time.perf_counter() - t0
+            done += int(result["env_runners"]["num_env_steps_sampled"])
+        self.steps += done
+        self.wall += wall
+        self.rates.append(done / wall)
+
+    def close(self) -> None:
+        self.algo.stop()
+
+
+def rllib_rows(args: argparse.Namespace, sb3: dict[bool, Row]) -> None:
+    """Time RLlib bare and behind the filter, taking turns with the Stable-Baselines3 rows ``sb3``."""
+    import ray
+
+    ray.init(num_cpus=2, include_dashboard=False, logging_level="ERROR")
+    try:
+        rows = {f: RLlibRow(f, args.robots, args.n_envs, args.n_steps) for f in (False, True)}
+        chunk = max(args.timesteps // args.rounds, 1)
+        for _ in range(args.rounds):
+            for f in (False, True):
+                sb3[f].run(chunk)
+                rows[f].run(chunk)
+        print("\n| loop | agent-steps | RLlib agent-steps/s per env runner | aasoatt train agent-steps/s per core "
+              "(same rounds) | RLlib / aasoatt train | per round |")
+        print("|---|---:|---:|---:|---:|---|")
+        for f, row in rows.items():
+            mine = sb3[f].rates[-args.rounds:]
+            rate, theirs = float(np.median(row.rates)), float(np.median(mine))
+            rounds = ", ".join(f"{100 * a / b:.0f}%" for a, b in zip(row.rates, mine))
+            name = "RLlib, behind the filter" if f else "RLlib, bare"
+            print(f"| {name} | {row.steps} | {rate:,.0f} | {theirs:,.0f} | {100 * rate / theirs:.0f}% | {rounds} |",
+                  flush=True)
+            row.close()
+    finally:
+        ray.shutdown()
+
+
 class _Timed:
     """A control filter whose calls are timed (protocol attributes passed through)."""
 
@@ -159,6 +225,7 @@ def main() -> None:
     p.add_argument("--model", default=None, help="start from this trained run (init_from)")
     p.add_argument("--workers", type=int, default=1,
                    help="also rows with the teams stepped in this many processes (num_workers; 1: no such rows)")
+    p.add_argument("--rllib", action="store_true", help="also Ray RLlib rows (needs the rllib extra)")
     args = p.parse_args()
     if args.rounds < 1 or args.timesteps < 1:
         p.error(f"--rounds and --timesteps: got {args.rounds} and {args.timesteps}, expected positive numbers")
@@ -187,6 +254,9 @@ def main() -> None:
     for _ in range(args.rounds):  # every row a chunk per round: the machine's drifts hit every row alike
         for *_, row in built:
             row.run(chunk)
+    if args.rllib:
+        rllib_rows(args, {f: row for _, f, batched, grouped, workers, row in built if batched and grouped
+                          and workers == 1})
     ratios: dict[tuple, list[float]] = {}
     for name, filtered, batched, grouped, workers, row in built:
         rate = float(np.median(row.rates))

@@ -17,6 +17,7 @@ import json
 import math
 import os
 import pickle
+import re
 import shutil
 import time
 import warnings
@@ -773,3 +774,108 @@ def test_bad_joint_actions_of_the_gymnasium_view(action: object) -> None:
     env.reset(seed=0)
     with pytest.raises(ActionError, match="action"):
         env.step(action)
+
+
+# --------------------------------------------------------------------------- training and evaluation options
+TRAIN_CONFIGS = {
+    "seed 2**32": ({"seed": 2**32}, r"TrainConfig.seed: got 4294967296, expected an integer in \[0, 2147483647\]"),
+    "seed 2**63-1": ({"seed": 2**63 - 1}, r"TrainConfig.seed: got 9223372036854775807"),
+    "NUL in run_name": ({"run_name": "a\x00b"}, r"TrainConfig.run_name: got 'a\\x00b', expected a path without NUL"),
+    "NUL in out_dir": ({"out_dir": "o\x00d"}, r"TrainConfig.out_dir: got 'o\\x00d', expected a path without NUL"),
+    "n_steps 1e9": ({"n_steps": 10**9}, r"TrainConfig.n_steps: got 1000000000, expected an integer in \[1, 65536\]"),
+    "n_steps * slots": ({"n_steps": 60_000}, r"TrainConfig.n_steps: got 60000, expected at most 10922 with 192 slots"),
+    "ent_coef 1e300": ({"ent_coef": 1e300}, r"TrainConfig.ent_coef: got 1e\+300, expected a finite number in \[0, 10"),
+    "vf_coef 1e300": ({"vf_coef": 1e300}, r"TrainConfig.vf_coef: got 1e\+300, expected a finite number in \[0, 100\]"),
+    "velocity_tracking 1e300": ({"velocity_tracking": 1e300}, r"TrainConfig.velocity_tracking: got 1e\+300"),
+    "max_grad_norm inf": ({"max_grad_norm": 1e300}, r"TrainConfig.max_grad_norm: got 1e\+300"),
+    "run_name '.'": ({"run_name": "."}, r"TrainConfig.run_name: got '.', expected a folder name \(no path separators"),
+    "run_name '..'": ({"run_name": ".."}, r"TrainConfig.run_name: got '..', expected a folder name"),
+    "run_name a/b": ({"run_name": "a/b"}, r"TrainConfig.run_name: got 'a/b', expected a folder name"),
+    "filter dt replaced": ({"filter": True, "filter_kwargs": {"dt": 0.01}},
+                           r"TrainConfig.filter_kwargs.dt: got 0.01, expected the env's dt = 0.005"),
+    "300-character out_dir": ({"out_dir": "x" * 300}, r"TrainConfig.out_dir: got a path whose part 'x+'... has 300 "
+                                                       r"bytes, expected names of at most 200"),
+    "300-character run_name": ({"run_name": "y" * 300}, r"TrainConfig.run_name: got a path whose part"),
+    "empty out_dir": ({"out_dir": ""}, r"TrainConfig.out_dir: got '', expected a non-empty path"),
+    "n_envs 1e6": ({"n_envs": 10**6}, r"TrainConfig.n_envs: got 1000000, expected an integer in \[1, 4096\]"),
+    "n_envs x robots": ({"n_envs": 4096, "num_robots": 20}, r"TrainConfig.n_envs: got 4096, expected at most 3276 "
+                                                             r"with 20 robots"),
+    "total_timesteps 1e15": ({"total_timesteps": 10**15}, r"TrainConfig.total_timesteps: got 1000000000000000"),
+    "n_epochs 1e6": ({"n_epochs": 10**6}, r"TrainConfig.n_epochs: got 1000000, expected an integer in \[1, 1000\]"),
+    "neural_iterations": ({"filter": True, "filter_kwargs": {"solver": "neural", "neural_iterations": 10**6}},
+                          r"TrainConfig.filter_kwargs.neural_iterations: got 1000000, expected at most 1000"),
+    "eval_episodes 1e9": ({"eval_episodes": 10**9}, r"TrainConfig.eval_episodes: got 1000000000"),
+    "resume with init_from": ({"resume": "a", "init_from": "b"}, r"TrainConfig.init_from: got 'b' with resume='a'"),
+    "NUL in resume": ({"resume": "r\x00"}, r"TrainConfig.resume: got 'r\\x00', expected a path without NUL"),
+}
+
+
+@pytest.mark.parametrize("case", list(TRAIN_CONFIGS))
+def test_training_configs_are_refused_with_status_2_before_any_folder(tmp_path: Path, capsys, case: str) -> None:
+    """Each bad config (from a JSON file: NUL and huge integers pass through it) is one line, exit 2, no folder."""
+    pytest.importorskip("stable_baselines3")
+    from train.train import main
+
+    change, match = TRAIN_CONFIGS[case]
+    out = tmp_path / "runs"
+    data = {"out_dir": str(out), **change}
+    (tmp_path / "run.json").write_text(json.dumps(data))
+    t0 = time.perf_counter()
+    assert main(["--config", str(tmp_path / "run.json")]) == 2
+    assert time.perf_counter() - t0 < 2.0
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and re.search(match, err), err
+    assert "Traceback" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.json"]  # no folder made
+
+
+@pytest.mark.parametrize("value", [np.int64(2), 2.0, np.int32(2)])
+def test_integral_sizes_are_integers_whatever_their_type(tmp_path: Path, value: object) -> None:
+    from train.config import TrainConfig
+    from train.rllib import RLlibConfig
+
+    cfg = tiny_train_config(tmp_path, n_envs=value, seed=value, n_steps=value * 8)
+    assert (cfg.n_envs, cfg.seed, cfg.n_steps) == (2, 2, 16) and type(cfg.n_envs) is int
+    assert RLlibConfig(num_envs_per_env_runner=value, iterations=value).num_envs_per_env_runner == 2
+    assert TrainConfig(out_dir=str(tmp_path), n_envs=value, batch_size=value * 64).n_envs == 2
+    with pytest.raises(ConfigError, match=r"TrainConfig.n_envs: got 2.5"):
+        TrainConfig(n_envs=2.5)
+
+
+RLLIB_CONFIGS = {
+    "iterations 1e9": ({"iterations": 10**9}, r"RLlibConfig.iterations: got 1000000000, expected an integer in"),
+    "teams 1e6": ({"num_envs_per_env_runner": 10**6}, r"RLlibConfig.num_envs_per_env_runner: got 1000000"),
+    "batch 1e9": ({"train_batch_size": 10**9}, r"RLlibConfig.train_batch_size: got 1000000000"),
+    "seed 2**32": ({"seed": 2**32}, r"RLlibConfig.seed: got 4294967296"),
+    "runners 1e5": ({"num_env_runners": 10**5}, r"RLlibConfig.num_env_runners: got 100000"),
+    "timeout 1e300": ({"sample_timeout_s": 1e300}, r"RLlibConfig.sample_timeout_s: got 1e\+300"),
+    "terminate_on_collision": ({"terminate_on_collision": True}, r"RLlibConfig.terminate_on_collision: got True"),
+    "NUL in run_name": ({"run_name": "x\x00"}, r"RLlibConfig.run_name: got 'x\\x00'"),
+    "filter dt": ({"filter_kwargs": {"dt": 0.01}}, r"RLlibConfig.filter_kwargs.dt: got 0.01"),
+}
+
+
+@pytest.mark.parametrize("case", list(RLLIB_CONFIGS))
+def test_rllib_configs_are_refused_with_status_2(tmp_path: Path, capsys, case: str) -> None:
+    from aasoatt_env.apps.cli import main
+
+    change, match = RLLIB_CONFIGS[case]
+    (tmp_path / "run.json").write_text(json.dumps({"out_dir": str(tmp_path / "runs"), **change}))
+    assert main(["train", "--backend", "rllib", "--config", str(tmp_path / "run.json")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and re.search(match, err), err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run.json"]
+
+
+@pytest.mark.parametrize(("out", "match"), [
+    ("", r"--out: got '', expected a non-empty path"),
+    ("z" * 300 + ".md", r"--out: got a path whose part 'z+'... has 303 bytes, expected names of at most 200"),
+    ("dir/", r"--out: got '.*dir/', expected a file path such as results.md"),
+])
+def test_evaluate_out_is_checked_before_any_episode(tmp_path: Path, capsys, no_work, out: str, match: str) -> None:
+    from aasoatt_env.apps.cli import main
+
+    assert main(["evaluate", "--rows", "random", "--episodes", "1", "--out", f"{tmp_path}/{out}" if out else ""]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and re.search(match, err), err
+    assert list(tmp_path.iterdir()) == []

@@ -30,14 +30,15 @@ from readme_blocks import readme_block
 
 from aasoatt_env.apps import cli
 from aasoatt_env.errors import ConfigError, DataFileError
-from train.config import unique_run_dir
+from train.config import TRAIN_REWARD, unique_run_dir
 from train.rllib import RLlibConfig, build_parser, main
 
 HAS_RAY = importlib.util.find_spec("ray") is not None
 needs_ray = pytest.mark.skipif(not HAS_RAY, reason="Ray RLlib is not installed: it has its own venv from the rllib "
                                                    "extra (README: Use it from your RL library; .ci/run makes it)")
-# one PPO iteration of 400 env steps (1,600 agent-steps with 4 robots), 2 epochs
-TINY = ["--iterations", "1", "--train-batch-size", "400", "--minibatch-size", "128", "--num-epochs", "2"]
+# one PPO iteration of 1,600 agent-steps (4 teams of 4 robots, 100 decisions each), 2 epochs
+TINY = ["--iterations", "1", "--num-envs-per-env-runner", "4", "--train-batch-size", "1600", "--minibatch-size", "128",
+        "--num-epochs", "2"]
 BIN = Path(sys.executable).parent  # the venv's console scripts (aasoatt, ray)
 
 
@@ -52,7 +53,7 @@ def test_config_defaults_file_and_command_line(tmp_path):
 
     cfg = config_from_args(args, RLlibConfig)
     assert (cfg.num_robots, cfg.iterations, cfg.num_env_runners, cfg.address) == (4, 5, 2, "auto")
-    assert cfg.filter_kwargs == {"solver": "ldp"} and cfg.reward == {"collision": 2.0}
+    assert cfg.filter_kwargs == {"solver": "ldp"} and cfg.reward == {**TRAIN_REWARD, "collision": 2.0}
     ec = cfg.env_config()
     assert ec["env"]["num_robots"] == 4 and ec["filter"]["solver"] == "ldp"
     assert RLlibConfig(filter=False).env_config()["filter"] is None
@@ -62,7 +63,7 @@ def test_config_defaults_file_and_command_line(tmp_path):
     ("kwargs", "match"),
     [
         ({"minibatch_size": 500, "train_batch_size": 400}, r"RLlibConfig.minibatch_size: got 500, expected at most"),
-        ({"num_env_runners": -1}, r"RLlibConfig.num_env_runners: got -1, expected an integer >= 0"),
+        ({"num_env_runners": -1}, r"RLlibConfig.num_env_runners: got -1, expected an integer in \[0, 256\]"),
         ({"address": "auto", "num_cpus": 2}, r"RLlibConfig.num_cpus: got 2 with address='auto'"),
         ({"scenario": "nowhere"}, r"RLlibConfig.scenario: got 'nowhere'"),
         ({"filter_kwargs": {"barier": "aasoatt"}}, r"RLlibConfig.filter_kwargs: .*barier"),
@@ -88,6 +89,35 @@ def test_aasoatt_train_backend_rllib_forwards(capsys):
 def test_without_ray_the_command_says_how_to_install_it(capsys):
     assert cli.main(["train", "--backend", "rllib", "--iterations", "1"]) == 2
     assert "rllib extra" in capsys.readouterr().err
+
+
+def test_slot_vector_env_is_the_batch_with_next_step_restarts():
+    """Every robot a sub-env; the batch's own steps; an episode's end, then its restart after one decision at rest."""
+    from aasoatt_env import make_batched_env
+    from train.rllib_env import SlotVectorEnv
+
+    env_config = RLlibConfig(num_robots=3, max_steps=5, filter=False).env_config()
+    env, ref = SlotVectorEnv(env_config, 6), make_batched_env(2, **env_config["env"])
+    assert (env.num_envs, env.teams, env.robots) == (6, 2, 3)
+    obs, _ = env.reset(seed=7)
+    robs, _ = ref.reset(seed=7)
+    assert np.array_equal(obs, robs.reshape(6, -1))
+    rng = np.random.default_rng(0)
+    for t in range(5):
+        a = rng.uniform(-1.5, 1.5, (6, 2)).astype(np.float32)  # (RLlib's actions are float32)
+        obs, rew, term, trunc, infos = env.step(a)
+        robs, rrew, _, _, rinfo = ref.step(np.clip(a, -1, 1).reshape(2, 3, 2))  # actions clipped as RLlib would
+        if t < 4:
+            assert np.array_equal(obs, robs.reshape(6, -1)) and np.array_equal(rew, rrew.ravel().astype(np.float32))
+            assert not (term | trunc).any() and infos == {}
+    assert trunc.all() and not term.any() and np.array_equal(obs, rinfo["final_obs"].reshape(6, -1))
+    assert infos["_is_success"].all()
+    np.testing.assert_array_equal(infos["is_success"], rinfo["goal_distance"].ravel() <= 0.1)
+    obs, rew, term, trunc, infos = env.step(np.full((6, 2), 0.9))  # ignored: the new episodes start at rest
+    robs, *_ = ref.step(np.zeros((2, 3, 2)))
+    assert np.array_equal(obs, robs.reshape(6, -1)) and not rew.any() and not (term | trunc).any() and infos == {}
+    with pytest.raises(ValueError, match="num_envs: got 7, expected a multiple of the team size 3"):
+        SlotVectorEnv(env_config, 7)
 
 
 def test_run_folders_never_overwrite(tmp_path):
@@ -120,7 +150,7 @@ def test_one_ppo_iteration_on_random_goals_behind_the_filter(trained_run):
     assert {p.name for p in run.iterdir()} == {"config.json", "policy.json", "progress.jsonl", "train_stats.json",
                                                "rl_module.npz", "checkpoints"}
     rows = [json.loads(line) for line in (run / "progress.jsonl").read_text().splitlines()]
-    assert len(rows) == 1 and rows[0]["env_steps"] == 400 and rows[0]["agent_steps"] == 1600
+    assert len(rows) == 1 and rows[0]["agent_steps"] == 1600 and rows[0]["iter_agent_steps"] == 1600
     assert np.isfinite(rows[0]["robot_return_mean"]) and np.isfinite(rows[0]["policy_loss"])
     spec = json.loads((run / "policy.json").read_text())
     assert spec["backend"] == "rllib" and spec["env"]["num_robots"] == 4 and spec["filter"] is not None
@@ -140,7 +170,7 @@ def test_resume_continues_a_run_into_a_new_folder(trained_run, capsys):
     assert rc == 0
     run = out / "rg4_2"  # the same run name: a new folder, the old one untouched
     rows = [json.loads(line) for line in (run / "progress.jsonl").read_text().splitlines()]
-    assert rows[0]["iteration"] == 2 and rows[0]["env_steps"] == 800  # counters continue from the checkpoint
+    assert rows[0]["iteration"] == 2 and rows[0]["agent_steps"] == 3200  # counters continue from the checkpoint
     stats = json.loads((run / "train_stats.json").read_text())
     assert stats["final_checkpoint"] == "checkpoints/iter_000002" and stats["agent_steps_this_run"] == 1600
     assert stats["resumed_from"].endswith("iter_000001")
@@ -180,12 +210,26 @@ def test_rllib_agent_rejects_broken_files(trained_run, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(trained_run, run, ignore=shutil.ignore_patterns("checkpoints"))
     weights = dict(np.load(run / "rl_module.npz"))
-    weights.pop(sorted(weights)[0])
+    weights.pop(next(k for k in sorted(weights) if k.endswith("weight")))
     np.savez(run / "rl_module.npz", **weights)
-    with pytest.raises(DataFileError, match="does not fit the module"):
+    with pytest.raises(DataFileError, match=r"got arrays .*, expected"):
         RLlibAgent.load(run)
+    good = dict(np.load(trained_run / "rl_module.npz"))
+    key = next(k for k in good if k.endswith("weight"))
+    for change, match in (({key: np.full_like(good[key], np.nan)}, f"'{key}' holds non-finite values"),
+                          ({key: good[key].T}, f"'{key}' has shape"),
+                          ({"__class__": np.zeros(1)}, r"got arrays .*'__class__'")):
+        np.savez(run / "rl_module.npz", **{**good, **change})
+        with pytest.raises(DataFileError, match=match):
+            RLlibAgent.load(run)
+    np.savez(run / "rl_module.npz", **good)
+    spec = json.loads((run / "policy.json").read_text())
+    (run / "policy.json").write_text(json.dumps({**spec, "env": {**spec["env"], "action_mode": "wheel"}}))
+    with pytest.raises(DataFileError, match=r"differs from the settings its weights were trained with"):
+        RLlibAgent.load(run)
+    (run / "policy.json").write_text(json.dumps(spec))
     (run / "rl_module.npz").write_bytes(b"not a zip")
-    with pytest.raises(DataFileError, match="not a readable weights file"):
+    with pytest.raises(DataFileError, match="not a readable .npz file"):
         RLlibAgent.load(run)
     (run / "rl_module.npz").unlink()
     with pytest.raises(DataFileError, match="missing"):
@@ -235,9 +279,9 @@ def test_readme_rllib_local_commands(tmp_path):
     assert setup[:3] == ["python3", "-m", "venv"]  # run verbatim by .ci/run (test_ci_runs_the_readme_rllib_setup)
     assert train[1:4] == ["train", "--backend", "rllib"]
     _run(train + TINY + ["--num-cpus", "2"], cwd=tmp_path)
-    run = tmp_path / "runs" / "rllib_ppo_random_goals_4r_filter_s0"
+    (run,) = (tmp_path / "runs").iterdir()
     assert (run / "rl_module.npz").is_file()
-    assert evaluate[3] == "runs/rllib_ppo_random_goals_4r_filter_s0"
+    assert evaluate[1:3] == ["evaluate", "--filtered"] and evaluate[3] == f"runs/{run.name}"  # the run it made
     table = _run(evaluate + ["--episodes", "1", "-q"], cwd=tmp_path)
     assert "| learned (filter) + filter | 1 |" in table
 
@@ -276,7 +320,7 @@ def test_readme_rllib_cluster_commands(tmp_path):
         _run(train + TINY + ["--num-env-runners", "1"], cwd=tmp_path, env=env)
         (run,) = (tmp_path / "runs").iterdir()
         stats = json.loads((run / "train_stats.json").read_text())
-        assert stats["ray_nodes"] == 1 and stats["num_env_runners"] == 1 and stats["env_steps"] == 400
+        assert stats["ray_nodes"] == 1 and stats["num_env_runners"] == 1 and stats["agent_steps"] >= 1600
     finally:
         _stop_group(head)
         log.close()

@@ -69,7 +69,7 @@ def test_a_failed_training_leaves_no_folder_that_looks_finished(tmp_path, monkey
     pytest.importorskip("stable_baselines3")
     import train.train as tt
 
-    def crash(config, run, venv, source):
+    def crash(*args):
         raise RuntimeError("boom")
 
     monkeypatch.setattr(tt, "_learn", crash)
@@ -77,7 +77,7 @@ def test_a_failed_training_leaves_no_folder_that_looks_finished(tmp_path, monkey
         tt.train(_tiny(tmp_path, run_name="r"))
     assert _folders(tmp_path) == []  # nothing of value: removed
 
-    def crash_after_a_checkpoint(config, run, venv, source):
+    def crash_after_a_checkpoint(config, run, *args):
         (run / "checkpoints").mkdir()
         (run / "checkpoints" / "ppo_96_steps.zip").write_bytes(b"weights")
         raise KeyboardInterrupt
@@ -95,7 +95,7 @@ def test_a_failed_training_keeps_a_folder_it_was_given(tmp_path, monkeypatch):
     pytest.importorskip("stable_baselines3")
     import train.train as tt
 
-    def crash(config, run, venv, source):
+    def crash(*args):
         raise RuntimeError("boom")
 
     monkeypatch.setattr(tt, "_learn", crash)
@@ -225,7 +225,7 @@ def test_run_comparison_checks_its_arguments_before_training(tmp_path, monkeypat
 
 
 def test_compare_json_never_holds_a_bare_nan(tmp_path):
-    from train.compare import _write_json
+    from train.runs import write_json as _write_json
 
     path = tmp_path / "x.json"
     _write_json(path, {"a": math.nan, "b": [np.float32("inf"), 1.5, np.int64(3)], "c": {"d": -math.inf}})
@@ -241,7 +241,7 @@ def _rllib_run(tmp_path: Path, model_config: dict) -> Path:
     run = tmp_path / "rllib_run"
     run.mkdir()
     spec = {"format": 1, "backend": "rllib", "env": {"scenario": "random_goals", "num_robots": 3},
-            "filter": None, "policy": "DefaultPPOTorchRLModule", "model_config": model_config}
+            "filter": None, "policy": "DefaultPPOTorchRLModule", "model_config": model_config, "normalize_obs": False}
     (run / "policy.json").write_text(json.dumps(spec))
     np.savez(run / "rl_module.npz", w=np.zeros(1))
     return run

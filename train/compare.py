@@ -31,7 +31,7 @@ bare training, with one filter call per physics step for all teams (README,
 seed's bare policy (a) behind the filter for ``--filter-steps`` agent-steps
 (``init_from``; rollouts of ``--filter-n-steps`` 64 per slot: with the
 recipe's 32 envs x 6 robots 12,288 agent-steps per update, so the default
-61,440 make 5 updates; the tables in the README were measured with 8 envs, 20);
+61,440 make 5 updates);
 ``--filter-start scratch`` (implied by ``--full``) trains them from
 scratch for ``--bare-steps`` like (a).  Finished runs and evaluations are
 reused (``--out-dir`` is a cache): rerunning after an interruption continues;
@@ -58,8 +58,10 @@ import numpy as np
 
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.cli_support import OutputPlan, Parser, int_option, real_option, run_guarded
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.errors import ConfigError, DataFileError
+from agents.run_files import read_json
 from train.config import TrainConfig
+from train.runs import write_json, write_text
 
 __all__ = ["SCENES", "VARIANTS", "main", "run_comparison"]
 
@@ -94,12 +96,10 @@ def _check_cached(run: Path, cfg: TrainConfig) -> None:
     would mix runs of different settings without saying so.
     """
     try:
-        done = json.loads((run / "config.json").read_text())
-    except (OSError, ValueError) as err:
+        done = read_json(run / "config.json")
+    except DataFileError as err:
         raise ConfigError(f"{run}: a finished run without a readable config.json is in the way ({err}); remove "
                           "it to retrain it") from None
-    if not isinstance(done, dict):
-        raise ConfigError(f"{run}/config.json: got {type(done).__name__}, expected a JSON object")
     want = json.loads(json.dumps(cfg.to_dict()))  # the types config.json holds (lists, not tuples)
     if done.get("init_from") and want.get("init_from"):  # the same folder, however it was written
         done["init_from"], want["init_from"] = (str(Path(v).resolve()) for v in (done["init_from"], want["init_from"]))
@@ -114,26 +114,6 @@ def _check_cached(run: Path, cfg: TrainConfig) -> None:
     if shown:
         raise ConfigError(f"{run}: a finished run with other settings is in the way: {', '.join(shown)}; use "
                           "another --out-dir, or remove the run to retrain it")
-
-
-def _finite(obj: Any) -> Any:
-    """``obj`` with every non-finite number (NaN, inf; numpy scalars too) replaced by None."""
-    if isinstance(obj, dict):
-        return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_finite(v) for v in obj]
-    if isinstance(obj, (bool, np.bool_)):
-        return bool(obj)
-    if isinstance(obj, (int, np.integer)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    return obj
-
-
-def _write_json(path: Path, data: Any) -> None:
-    """Write ``data`` as strict JSON: non-finite numbers become null (never a bare NaN)."""
-    path.write_text(json.dumps(_finite(data), indent=2, allow_nan=False))
 
 
 def _check_options(scenes: Sequence[str], seeds: Sequence[int], variants: Sequence[str], bare_steps: int,
@@ -185,7 +165,7 @@ def _train(run: Path, cfg: TrainConfig, log: Any) -> dict[str, Any]:
             raise ConfigError(f"{run}: an unfinished run is in the way (no train_stats.json); remove it first")
         print(f"[compare] training {run}", file=log, flush=True)
         train(cfg)
-    return json.loads((run / "train_stats.json").read_text())
+    return read_json(run / "train_stats.json")
 
 
 def _evaluate(run: Path, scene_cfg: TrainConfig, filtered: bool, episodes: int, seed: int, cache: Path,
@@ -200,7 +180,7 @@ def _evaluate(run: Path, scene_cfg: TrainConfig, filtered: bool, episodes: int, 
 
     digest = _model_digest(run)
     if cache.is_file():
-        data = json.loads(cache.read_text())
+        data = read_json(cache)
         if data.get("episodes") == episodes and data.get("seed") == seed and data.get("model_sha256") == digest:
             return data
     print(f"[compare] evaluating {run} {'behind the filter' if filtered else 'bare'} ({episodes} episodes)",
@@ -211,7 +191,7 @@ def _evaluate(run: Path, scene_cfg: TrainConfig, filtered: bool, episodes: int, 
     row = evaluate_agent(run.name, agent, lambda: make_env(**kw, filter=fc), episodes, seed)
     data = {**row.as_dict(), "seed": seed, "model_sha256": digest}
     cache.parent.mkdir(parents=True, exist_ok=True)
-    _write_json(cache, data)
+    write_json(cache, data)
     return data
 
 
@@ -239,6 +219,49 @@ def _plan(out: Path, scenes: Sequence[str], seeds: Sequence[int], variants: Sequ
     return plan
 
 
+def _entry(out: Path, scene: str, seed: int, variant: str, plan: dict[tuple, TrainConfig], bare_stats: Any,
+           settings: dict[str, Any], log: Any) -> dict[str, Any] | None:
+    """One run's row of ``compare.json``: trained (or reused) and evaluated bare and behind the filter.
+
+    With ``settings["table_only"]`` nothing is trained or evaluated: None where the run or an
+    evaluation is missing.
+    """
+    table_only, filter_start = settings["table_only"], settings["filter_start"]
+    run = out / "runs" / scene / f"{variant.replace('+', '_')}_s{seed}"
+    caches = [out / "evals" / f"{scene}_{run.name}_{mode}.json" for mode in _EVALS]
+    if table_only and not (_finished(run) and all(c.is_file() for c in caches)):
+        return None
+    config = read_json(run / "config.json") if table_only else None
+    if table_only:
+        stats = read_json(run / "train_stats.json")
+        start = Path(config["init_from"]).name if config and config.get("init_from") else None
+    elif variant == "bare":
+        stats, start = bare_stats, None
+    else:
+        stats = _train(run, plan[scene, seed, variant], log)
+        start = (out / "runs" / scene / f"bare_s{seed}").name if filter_start == "bare" else None
+    config = config or read_json(run / "config.json")
+    entry: dict[str, Any] = {
+        "scene": scene, "variant": variant, "seed": seed, "run": str(run), "init_from": start,
+        "train_wall_s": stats["wall_time_s"], "train_agent_steps": stats["agent_steps"],
+        "train_agent_steps_per_s": stats["agent_steps_per_s"],
+        "total_wall_s": stats["wall_time_s"] + (bare_stats["wall_time_s"] if start and bare_stats else 0),
+        "correction_weight": config["reward"].get("correction", 0.0),
+    }
+    digest = _model_digest(run) if table_only else None
+    for mode, cache in zip(_EVALS, caches):
+        if table_only:
+            ev = read_json(cache)
+            if ev.get("model_sha256", digest) != digest:
+                raise ConfigError(f"{cache}: the evaluation of another model than {run}/model.zip "
+                                  "(retrained since); run without --table-only to evaluate it")
+            entry[f"eval_{mode}"] = ev
+        else:
+            entry[f"eval_{mode}"] = _evaluate(run, _scene_config(scene), mode == "filter", settings["episodes"],
+                                              settings["eval_seed"], cache, log)
+    return entry
+
+
 def run_comparison(
     out_dir: str | Path = "results/compare",
     *,
@@ -257,83 +280,51 @@ def run_comparison(
 ) -> dict[str, Any]:
     """Train, evaluate and tabulate (module docstring); returns what ``compare.json`` holds.
 
-    ``table_only``: train and evaluate nothing; tabulate the finished runs and
-    evaluations found in ``out_dir`` among those asked for (the others are left out).
+    ``table_only``: train and evaluate nothing; tabulate the finished runs and evaluations found
+    in ``out_dir`` among those asked for (the others are left out).
 
     Raises
     ------
     ConfigError
-        A bad option (unknown or repeated scene/variant/seed, a seed < 0, a step count or
-        ``episodes`` < 1, a ``correction`` that is not a finite number >= 0) or a run whose
-        :class:`TrainConfig` is invalid: all checked before anything is trained, evaluated or
-        written; with ``table_only``, nothing to tabulate (the tables there are kept).
+        A bad option or a run whose :class:`TrainConfig` is invalid: all checked before anything
+        is trained, evaluated or written; with ``table_only``, nothing to tabulate.
     """
     log = log or sys.stdout
     _check_options(scenes, seeds, variants, bare_steps, filter_steps, filter_start, filter_n_steps, correction,
                    episodes, eval_seed)
     scenes, seeds, variants = list(scenes), [int(s) for s in seeds], list(variants)
-    correction = float(correction)
     out = Path(out_dir)
     plan = {} if table_only else _plan(out, scenes, seeds, variants, bare_steps, filter_steps, filter_start,
-                                       filter_n_steps, correction)  # every run's settings checked up front
+                                       filter_n_steps, float(correction))  # every run's settings checked up front
     if not table_only:
         OutputPlan(overwrite=True).folder(out, "--out-dir")  # a cache: reused, so existing content is fine
     t_start = time.perf_counter()
-    results: dict[str, Any] = {"settings": {
-        "scenes": {s: SCENES[s] for s in scenes}, "seeds": list(seeds), "variants": list(variants),
-        "bare_steps": bare_steps, "filter_steps": filter_steps, "filter_start": filter_start,
-        "filter_n_steps": filter_n_steps,
-        "correction": correction, "episodes": episodes, "eval_seed": eval_seed}, "runs": []}
+    settings = {"scenes": {s: SCENES[s] for s in scenes}, "seeds": list(seeds), "variants": list(variants),
+                "bare_steps": bare_steps, "filter_steps": filter_steps, "filter_start": filter_start,
+                "filter_n_steps": filter_n_steps, "correction": float(correction), "episodes": episodes,
+                "eval_seed": eval_seed}
+    results: dict[str, Any] = {"settings": settings, "runs": []}
     for scene in scenes:
         for seed in seeds:
             bare_run = out / "runs" / scene / f"bare_s{seed}"
-            need_bare = "bare" in variants or filter_start == "bare"
             if table_only:
-                bare_stats = json.loads((bare_run / "train_stats.json").read_text()) if _finished(bare_run) else None
+                bare_stats = read_json(bare_run / "train_stats.json") if _finished(bare_run) else None
+            elif "bare" in variants or filter_start == "bare":
+                bare_stats = _train(bare_run, plan[scene, seed, "bare"], log)
             else:
-                bare_stats = _train(bare_run, plan[scene, seed, "bare"], log) if need_bare else None
+                bare_stats = None
             for variant in variants:
-                run = out / "runs" / scene / f"{variant.replace('+', '_')}_s{seed}"
-                caches = [out / "evals" / f"{scene}_{run.name}_{mode}.json" for mode in _EVALS]
-                if table_only and not (_finished(run) and all(c.is_file() for c in caches)):
-                    continue
-                if table_only:
-                    stats = json.loads((run / "train_stats.json").read_text())
-                    cfg_file = json.loads((run / "config.json").read_text())
-                    start = Path(cfg_file["init_from"]).name if cfg_file.get("init_from") else None
-                elif variant == "bare":
-                    stats, start = bare_stats, None
-                else:
-                    stats = _train(run, plan[scene, seed, variant], log)
-                    start = bare_run.name if filter_start == "bare" else None
-                assert stats is not None
-                entry: dict[str, Any] = {
-                    "scene": scene, "variant": variant, "seed": seed, "run": str(run), "init_from": start,
-                    "train_wall_s": stats["wall_time_s"], "train_agent_steps": stats["agent_steps"],
-                    "train_agent_steps_per_s": stats["agent_steps_per_s"],
-                    "total_wall_s": stats["wall_time_s"] + (bare_stats["wall_time_s"] if start and bare_stats else 0),
-                    "correction_weight": json.loads((run / "config.json").read_text())["reward"].get("correction", 0.0),
-                }
-                scene_cfg = _scene_config(scene)
-                digest = _model_digest(run) if table_only else None
-                for mode, cache in zip(_EVALS, caches):
-                    if table_only:
-                        ev = json.loads(cache.read_text())
-                        if ev.get("model_sha256", digest) != digest:
-                            raise ConfigError(f"{cache}: the evaluation of another model than {run}/model.zip "
-                                              "(retrained since); run without --table-only to evaluate it")
-                        entry[f"eval_{mode}"] = ev
-                    else:
-                        entry[f"eval_{mode}"] = _evaluate(run, scene_cfg, mode == "filter", episodes, eval_seed,
-                                                          cache, log)
-                results["runs"].append(entry)
+                entry = _entry(out, scene, seed, variant, plan, bare_stats, {**settings, "table_only": table_only},
+                               log)
+                if entry is not None:
+                    results["runs"].append(entry)
     if table_only and not results["runs"]:  # an empty table would replace the one there
         raise ConfigError(f"--table-only: {out} holds no finished, evaluated run among those asked for (scenes "
                           f"{scenes}, seeds {seeds}, variants {variants}); run without --table-only first")
     results["wall_time_s"] = time.perf_counter() - t_start
     out.mkdir(parents=True, exist_ok=True)
-    _write_json(out / "compare.json", results)
-    (out / "compare.md").write_text(to_markdown(results))
+    write_json(out / "compare.json", results)
+    write_text(out / "compare.md", to_markdown(results))
     for scene in scenes:
         _figure(results, scene, out / f"learning_curves_{scene}.png")
     return results
@@ -390,7 +381,7 @@ def to_markdown(results: dict[str, Any]) -> str:
         base = [r["eval_filter"]["mean_correction"] for r in runs if r["variant"] == "bare" and r["seed"] in both]
         pen = [r["eval_filter"]["mean_correction"] for r in runs
                if r["variant"] == "filter+correction" and r["seed"] in both]
-        if base and pen and None not in base + pen:  # (null: not measured, written so by _write_json)
+        if base and pen and None not in base + pen:  # (null: not measured, written so by write_json)
             cut = 100 * (1 - np.mean(pen) / np.mean(base))
             lines += [f"Mean filter correction behind the filter, (c) vs (a) on the same seeds: {np.mean(pen):.3f} vs "
                       f"{np.mean(base):.3f} rad/s^2 ({f'{cut:.1f}% less' if cut >= 0 else f'{-cut:.1f}% more'}).",

@@ -1,20 +1,21 @@
 """``TrainConfig``: every knob of a PPO run, from a TOML/JSON file and the command line.
 
-Precedence: dataclass defaults < config file (``--config run.toml`` or
-``.json``) < command-line flags.  The configuration is validated once, in
-``__post_init__``; every error is a :class:`~aasoatt_env.errors.ConfigError`
-of the form ``"TrainConfig.<field>: got X, expected Y"``.
+Precedence: dataclass defaults < the resumed run's ``config.json`` (``--resume``) < config file
+(``--config run.toml`` or ``.json``) < command-line flags (:mod:`train.options`).  The configuration
+is validated once, in ``__post_init__``, before anything is built or written; every error is a
+:class:`~aasoatt_env.errors.ConfigError` of the form ``"TrainConfig.<field>: got X, expected Y"``.
+
+Every size a user chooses has an upper bound (:data:`LIMITS`), so a typo cannot start a run
+that exhausts memory or never ends: teams, robots per batch, agent-steps, rollout length and
+buffer, epochs, workers, held-out episodes, and the filter's ``neural_iterations``.
 
 The defaults of :class:`TrainConfig` are the recipe that learns from scratch
-(``train/configs/random_goals_6r.toml``, measured in the README): a plain MLP,
-observations and rewards normalised, point actions, 32 envs x 6 robots, 1.23M
-agent-steps.  ``reward`` entries are laid over the recipe's reward
-(:data:`TRAIN_REWARD`), key by key, wherever they come from.
+(``train/configs/random_goals_6r.toml``): a plain MLP, observations and rewards normalised, point
+actions, 32 envs x 6 robots, 1.23M agent-steps.  ``reward`` entries are laid over the recipe's
+reward (:data:`TRAIN_REWARD`), key by key, wherever they come from.
 
-:class:`EnvConfig` holds the env and filter fields that every training backend
-shares: :class:`TrainConfig` (Stable-Baselines3) and
-:class:`train.rllib.RLlibConfig` (Ray RLlib) extend it, and
-:func:`add_config_arguments` / :func:`config_from_args` serve either.
+:class:`EnvConfig` holds the env and filter fields that every training backend shares:
+:class:`TrainConfig` (Stable-Baselines3) and :class:`train.rllib.RLlibConfig` (Ray RLlib) extend it.
 
 Example ``run.toml``::
 
@@ -30,29 +31,21 @@ Example ``run.toml``::
 
 from __future__ import annotations
 
-import argparse
-import contextlib
-import json
-import math
 import os
-import shutil
-from collections.abc import Sequence
-from dataclasses import MISSING, asdict, dataclass, field, fields
-from pathlib import Path
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
-import tomllib
-
-from aasoatt_env.errors import ConfigError, DataFileError
+from aasoatt_env import validation as check
+from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import SCENARIOS
-from aasoatt_env.validation import parse_value
-from agents.learned import MAX_LAYER_SIZE, MAX_LAYERS
+from agents.sb3_model import MAX_LAYER_SIZE, MAX_LAYERS
+from train.runs import INCOMPLETE_FILE, abandon_run, check_name, check_path, claim_run_dir, unique_run_dir
 
-__all__ = ["BACKENDS", "INCOMPLETE_FILE", "TRAIN_REWARD", "EnvConfig", "TrainConfig", "abandon_run",
-           "add_config_arguments", "claim_run_dir", "config_from_args", "load_config_file", "split_backend",
-           "unique_run_dir"]
+__all__ = ["BACKENDS", "HELDOUT_SEED", "INCOMPLETE_FILE", "LIMITS", "TRAIN_REWARD", "EnvConfig", "TrainConfig",
+           "abandon_run", "add_config_arguments", "claim_run_dir", "config_from_args", "load_config_file",
+           "parse_config", "split_backend", "unique_run_dir"]
 
 _ACTION_MODES = ("wheel", "point")
 
@@ -66,6 +59,25 @@ into it) drown the tracking signal and a plain MLP does not learn (``docs/techni
 
 BACKENDS = ("sb3", "rllib")
 """``aasoatt train --backend``: ``sb3`` (:mod:`train.train`, the default) or ``rllib`` (:mod:`train.rllib`)."""
+
+LIMITS: dict[str, int] = {
+    "seed": 2**31 - 1,              # training reset seeds stay below 2**32 (HELDOUT_SEED)
+    "teams": 4096,                  # n_envs, RLlib's teams per env runner
+    "slots": 1 << 16,               # robots stepped together: n_envs * num_robots
+    "agent_steps": 10**10,          # total_timesteps, checkpoint_freq, eval_every
+    "n_steps": 1 << 16,             # rollout length per slot
+    "rollout": 1 << 21,             # rollout buffer (n_steps * slots; RLlib's train_batch_size)
+    "epochs": 1000,                 # n_epochs, num_epochs
+    "workers": 256,                 # num_workers, torch_threads, RLlib's runners and learners
+    "episodes": 10_000,             # eval_episodes
+    "neural_iterations": 1000,      # filter_kwargs.neural_iterations while training
+    "iterations": 100_000,          # RLlib's iterations, checkpoint_every
+}
+"""Upper bounds of every size a user chooses (checked before anything is built)."""
+
+HELDOUT_SEED = 2**32
+"""First seed of the held-out evaluation episodes during training (episode ``j``: ``HELDOUT_SEED + j``).
+Training resets draw from seeds below ``2**32`` (``seed`` <= ``LIMITS["seed"]``), so the two never meet."""
 
 
 @dataclass
@@ -81,7 +93,7 @@ class EnvConfig:
     scenario_kwargs : dict
         Extra scenario parameters (``arena_size``, ``speed``, ...).
     dt : float
-        Physics step [s] (0.005: the 200 Hz of the filter).
+        Physics step [s] (0.005: the 200 Hz of the filter); the filter runs at this step.
     decision_interval : int
         Physics steps per policy decision (20: the policy acts at 10 Hz).
     action_mode : {"point", "wheel"}
@@ -98,7 +110,9 @@ class EnvConfig:
     filter : bool
         Train behind :class:`~aasoatt_env.safety.wrapper.AASOATTFilter`.
     filter_kwargs : dict
-        Arguments of the filter (``barrier``, ``deadlock``, ``solver``, gains).
+        Arguments of the filter (``barrier``, ``deadlock``, ``solver``, gains); its ``dt`` is
+        ``dt`` (a different one is refused), ``neural_iterations`` at most
+        ``LIMITS["neural_iterations"]``.
     """
 
     scenario: str = "random_goals"
@@ -119,31 +133,33 @@ class EnvConfig:
         self._validate()
 
     # ------------------------------------------------------------------ validation
+    def _name(self, name: str) -> str:
+        return f"{type(self).__name__}.{name}"
+
     def _err(self, name: str, expected: str) -> ConfigError:
-        return ConfigError(f"{type(self).__name__}.{name}: got {getattr(self, name)!r}, expected {expected}")
+        return ConfigError(f"{self._name(name)}: got {check.short_repr(getattr(self, name))}, expected {expected}")
 
     def _net_arch(self) -> None:
         """``net_arch``: 1 to ``MAX_LAYERS`` sizes in ``[1, MAX_LAYER_SIZE]`` (what the loaders accept)."""
-        arch = self.net_arch
+        arch = self.net_arch  # type: ignore[attr-defined]
         if not (isinstance(arch, (list, tuple)) and 1 <= len(arch) <= MAX_LAYERS
                 and all(isinstance(h, int) and not isinstance(h, bool) and 1 <= h <= MAX_LAYER_SIZE for h in arch)):
             raise self._err("net_arch", f"a list of 1 to {MAX_LAYERS} layer sizes in [1, {MAX_LAYER_SIZE}] (a run "
                             "must be loadable)")
-        self.net_arch = list(arch)
+        self.net_arch = list(arch)  # type: ignore[attr-defined]
 
-    def _int(self, name: str, lo: int) -> None:
-        v = getattr(self, name)
-        if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-            raise self._err(name, f"an integer >= {lo}")
+    def _int(self, name: str, lo: int, hi: int) -> None:
+        """An integer in ``[lo, hi]`` (integral floats and numpy integers as every other integer)."""
+        try:
+            value = check.integer(self._name(name), getattr(self, name))
+        except ConfigError:
+            value = None
+        if value is None or not lo <= value <= hi:
+            raise self._err(name, f"an integer in [{lo}, {hi}]")
+        setattr(self, name, value)
 
-    def _float(self, name: str, lo: float, hi: float = math.inf, lo_open: bool = False) -> None:
-        v = getattr(self, name)
-        ok = isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-        ok = ok and (v > lo if lo_open else v >= lo) and v <= hi
-        if not ok:
-            lb = "(" if lo_open else "["
-            raise self._err(name, f"a number in {lb}{lo:g}, {hi:g}]")
-        setattr(self, name, float(v))
+    def _float(self, name: str, lo: float, hi: float, lo_open: bool = False) -> None:
+        setattr(self, name, check.real(self._name(name), getattr(self, name), lo=lo, hi=hi, lo_open=lo_open))
 
     def _bools(self, *names: str) -> None:
         for name in names:
@@ -155,14 +171,14 @@ class EnvConfig:
 
     def _validate_env(self) -> None:
         """Validate the env and filter fields."""
-        if self.scenario not in SCENARIOS:
+        if not isinstance(self.scenario, str) or self.scenario not in SCENARIOS:
             raise self._err("scenario", f"one of {sorted(SCENARIOS)}")
-        for name in ("num_robots", "decision_interval"):
-            self._int(name, 1)
+        self._int("num_robots", 1, LIMITS["slots"])
+        self._int("decision_interval", 1, 10_000)
         for name in ("num_neighbors", "num_obstacles"):
-            self._int(name, 0)
+            self._int(name, 0, 256)
         if self.max_steps is not None:
-            self._int("max_steps", 1)
+            self._int("max_steps", 1, 10**7)
         self._float("dt", 0.0, 1.0, lo_open=True)
         if self.action_mode not in _ACTION_MODES:
             raise self._err("action_mode", f"one of {list(_ACTION_MODES)}")
@@ -175,26 +191,33 @@ class EnvConfig:
         except TypeError:
             known = [f.name for f in fields(RewardConfig)]
             unknown = sorted(set(self.reward) - set(known))
-            raise ConfigError(f"{type(self).__name__}.reward: got unknown key(s) {unknown}, expected keys among "
+            raise ConfigError(f"{self._name('reward')}: got unknown key(s) {unknown}, expected keys among "
                               f"{known}") from None
-        try:
-            self.filter_config()
-        except TypeError as exc:
-            raise ConfigError(f"{type(self).__name__}.filter_kwargs: {exc}") from None
-        except ConfigError as exc:
-            raise ConfigError(f"{type(self).__name__}.filter_kwargs: {exc}") from None
+        self._validate_filter()
         if self.reward.get("correction", 0.0) and not self.filter:
-            raise ConfigError(
-                f"{type(self).__name__}.reward: got correction={self.reward['correction']!r} with filter=False, "
-                "expected filter=True (the correction penalty needs the filter)"
-            )
+            raise ConfigError(f"{self._name('reward')}: got correction={self.reward['correction']!r} with "
+                              "filter=False, expected filter=True (the correction penalty needs the filter)")
+
+    def _validate_filter(self) -> None:
+        """``filter_kwargs``: a valid filter at the env's ``dt``, ``neural_iterations`` bounded for training."""
+        where = self._name("filter_kwargs")
+        fk = self.filter_kwargs
+        if "dt" in fk and fk["dt"] != self.dt:
+            raise ConfigError(f"{where}.dt: got {check.short_repr(fk['dt'])}, expected the env's dt = {self.dt!r} (the "
+                              "filter runs at every physics step; set dt instead)")
+        try:
+            fc = self.filter_config()
+        except (TypeError, ConfigError) as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+        if fc.neural_iterations > LIMITS["neural_iterations"]:
+            raise ConfigError(f"{where}.neural_iterations: got {fc.neural_iterations}, expected at most "
+                              f"{LIMITS['neural_iterations']} while training (each iteration is paid at every "
+                              "physics step)")
 
     def _validate_run_folder(self) -> None:
-        if not isinstance(self.out_dir, str) or not self.out_dir:  # type: ignore[attr-defined]
-            raise self._err("out_dir", "a non-empty folder path")
-        name = self.run_name  # type: ignore[attr-defined]
-        if name is not None and (not isinstance(name, str) or not name or os.sep in name):
-            raise self._err("run_name", "a non-empty folder name or None")
+        self.out_dir = check_path(self.out_dir, self._name("out_dir"))  # type: ignore[attr-defined]
+        if self.run_name is not None:  # type: ignore[attr-defined]
+            check_name(self.run_name, self._name("run_name"))  # type: ignore[attr-defined]
 
     # ------------------------------------------------------------------ helpers
     def env_kwargs(self) -> dict[str, Any]:
@@ -208,8 +231,8 @@ class EnvConfig:
         return kw
 
     def filter_config(self) -> FilterConfig:
-        """The safety filter's configuration (``filter_kwargs`` converted at this edge)."""
-        return FilterConfig.merged(self.filter_kwargs, dt=self.dt)
+        """The safety filter's configuration (``filter_kwargs`` at this run's ``dt``)."""
+        return FilterConfig.merged({**self.filter_kwargs, "dt": self.dt})
 
     def to_dict(self) -> dict[str, Any]:
         """Plain-JSON dict of every field."""
@@ -219,7 +242,7 @@ class EnvConfig:
     def from_dict(cls, data: dict[str, Any]) -> Any:
         """Build from a dict, rejecting unknown keys."""
         known = {f.name for f in fields(cls)}
-        unknown = sorted(set(data) - known)
+        unknown = sorted(str(k) for k in set(data) - known)
         if unknown:
             raise ConfigError(f"{cls.__name__}: got unknown key(s) {unknown}, expected keys among {sorted(known)}")
         return cls(**data)
@@ -234,7 +257,7 @@ class EnvConfig:
 class TrainConfig(EnvConfig):
     """Configuration of one PPO training run with Stable-Baselines3 (see the module docstring).
 
-    The env and filter fields are those of :class:`EnvConfig`.
+    The env and filter fields are those of :class:`EnvConfig`.  Bounds: :data:`LIMITS`.
 
     Attributes
     ----------
@@ -242,23 +265,20 @@ class TrainConfig(EnvConfig):
         Reward weights laid over :data:`TRAIN_REWARD` key by key (the env's
         :class:`~aasoatt_env.sim.rewards.RewardConfig` fields).
     velocity_tracking : float
-        Weight of the training-only shaping term ``-|v_i - v_d_i|``
+        Weight in ``[0, 100]`` of the training-only shaping term ``-|v_i - v_d_i|``
         (:class:`train.vec_env.VelocityTrackingShaping`; 0: off).
     total_timesteps : int
-        Agent-steps (one per robot per decision) to train for.
+        Agent-steps (one per robot per decision) of the whole run; a resumed run continues to it.
     n_envs : int
         Teams (envs) stepped together (``n_envs * num_robots`` slots).
     num_workers : int
-        Processes stepping the teams: 1 (default) steps them in the training
-        process; more split them into that many shards stepped at the same time
-        (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`), so filtered
-        training uses more cores.  Trajectories agree with one process bit for bit
-        without a filter, to rounding behind the grouped filter (its QP is
-        solved per shard).
+        Processes stepping the teams: 1 (default) steps them in the training process; more split
+        them into shards stepped at the same time (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`).
     seed : int
-        Seed of PPO, torch and the envs.
+        Seed of PPO, torch and the envs, in ``[0, 2**31 - 1]``.
     learning_rate, gamma, gae_lambda, clip_range, ent_coef, vf_coef, max_grad_norm : float
-        PPO hyper-parameters.
+        PPO hyper-parameters (``ent_coef`` in ``[0, 10]``, ``vf_coef`` in ``[0, 100]``,
+        ``max_grad_norm`` in ``(0, 1000]``).
     n_steps : int
         Rollout length per slot (buffer = ``n_steps * n_envs * num_robots``).
     batch_size, n_epochs : int
@@ -268,27 +288,27 @@ class TrainConfig(EnvConfig):
     log_std_init : float
         Initial log standard deviation of the Gaussian policy.
     policy_prior : {"none", "tracking"}
-        ``"none"`` (default): SB3's ``MlpPolicy``, learned from scratch.
-        ``"tracking"``: :class:`agents.prior.TrackingPriorPolicy`, whose action
-        mean is a trainable linear layer on the raw observation initialised to
-        the paper's tracking law plus the MLP (needs ``action_mode="point"`` and
-        ``normalize_obs=False``): it starts as the tracking law and stays close
-        to it.
+        ``"none"`` (default): SB3's ``MlpPolicy``, learned from scratch.  ``"tracking"``:
+        :class:`agents.prior.TrackingPriorPolicy` (needs ``action_mode="point"`` and
+        ``normalize_obs=False``): it starts as the paper's tracking law and stays close to it.
     prior_gains : list of two floats
         ``[k3, k4]`` of the tracking-law prior.
     normalize_obs : bool
-        Normalise observations with ``VecNormalize`` (running statistics are
-        saved with the model and used by :class:`agents.learned.LearnedAgent`).
+        Normalise observations with ``VecNormalize`` (statistics saved with the model).
     normalize_reward : bool
         Scale rewards by ``VecNormalize``'s running return std (training only).
     init_from : str or None
-        A run folder (or model ``.zip``) of ``aasoatt train`` whose policy
-        weights and observation statistics start this run (fine-tuning, e.g.
-        a policy trained bare, now behind the filter).  Every setting the loaded
-        policy depends on must be as in that run: ``action_mode``, the observation
-        layout (``num_neighbors``, ``num_obstacles``, ``sensing_range``),
-        ``decision_interval``, ``dt``, ``policy_prior``, ``net_arch`` and
-        ``normalize_obs`` (:func:`train.train.check_init_from`, before a run folder is made).
+        A run folder (or model ``.zip``) whose policy weights and observation statistics start
+        this run (fine-tuning); the settings its policy depends on must be as in that run
+        (:func:`train.setup.check_init_from`, before a run folder is made).
+    resume : str or None
+        A run folder or checkpoint to continue (``aasoatt train --resume RUN``): its weights,
+        optimiser state, step counter and normalisation statistics; the new run folder holds
+        the whole curve (:mod:`train.resume`).
+    eval_every : int
+        Agent-steps between held-out evaluations during training (0: none); one more at the end.
+    eval_episodes : int
+        Episodes per held-out evaluation (seeds ``HELDOUT_SEED + j``, never used for training).
     out_dir : str
         Parent folder of runs.
     run_name : str or None
@@ -298,16 +318,14 @@ class TrainConfig(EnvConfig):
     tensorboard : bool
         Write tensorboard logs under ``<run>/tb``.
     progress_bar : bool
-        Print a progress line (throughput, ETA, success, tracking error,
-        collisions, filter intervention) about every 5% of the run.
+        Print a progress line about every 5% of the run.
     device : str
-        Torch device: ``"cpu"``, ``"auto"`` (the GPU if there is one), ``"cuda"``,
-        ``"cuda:<i>"`` or ``"mps"``; it must exist on this machine
-        (:func:`train.train.check_device`, before a run folder is made).
+        Torch device: ``"cpu"``, ``"auto"``, ``"cuda"``, ``"cuda:<i>"`` or ``"mps"``; it must exist
+        here (:func:`train.setup.check_device`).
     torch_threads : int
         ``torch.set_num_threads`` (1 is fastest for small MLPs on few cores).
     verbose : int
-        SB3 verbosity.
+        SB3 verbosity (0-2).
     """
 
     velocity_tracking: float = 0.0
@@ -332,6 +350,9 @@ class TrainConfig(EnvConfig):
     normalize_obs: bool = True
     normalize_reward: bool = True
     init_from: str | None = None
+    resume: str | None = None
+    eval_every: int = 122_880
+    eval_episodes: int = 10
     out_dir: str = "runs"
     run_name: str | None = None
     checkpoint_freq: int = 250_000
@@ -345,29 +366,22 @@ class TrainConfig(EnvConfig):
         if isinstance(self.reward, dict):
             self.reward = {**TRAIN_REWARD, **self.reward}
         self._validate_env()
-        for name in ("total_timesteps", "n_envs", "n_steps", "n_epochs", "torch_threads", "num_workers"):
-            self._int(name, 1)
-        if self.num_workers > self.n_envs:
-            raise self._err("num_workers", f"at most n_envs = {self.n_envs} (one team per worker at least)")
-        for name in ("checkpoint_freq", "seed", "verbose"):
-            self._int(name, 0)
-        self._int("batch_size", 2)
+        self._validate_sizes()
         self._float("learning_rate", 0.0, 1.0, lo_open=True)
-        self._float("gamma", 0.0, 1.0)
-        self._float("gae_lambda", 0.0, 1.0)
+        for name in ("gamma", "gae_lambda"):
+            self._float(name, 0.0, 1.0)
         self._float("clip_range", 0.0, 10.0, lo_open=True)
-        self._float("ent_coef", 0.0)
-        self._float("vf_coef", 0.0)
-        self._float("velocity_tracking", 0.0)
-        self._float("max_grad_norm", 0.0, lo_open=True)
+        self._float("ent_coef", 0.0, 10.0)
+        self._float("vf_coef", 0.0, 100.0)
+        self._float("velocity_tracking", 0.0, 100.0)
+        self._float("max_grad_norm", 0.0, 1000.0, lo_open=True)
         self._float("log_std_init", -20.0, 5.0)
         if self.policy_prior not in ("none", "tracking"):
             raise self._err("policy_prior", "one of ['none', 'tracking']")
-        if not (isinstance(self.prior_gains, (list, tuple)) and len(self.prior_gains) == 2
-                and all(isinstance(g, (int, float)) and not isinstance(g, bool) and math.isfinite(g) and g > 0
-                        for g in self.prior_gains)):
+        if not (isinstance(self.prior_gains, (list, tuple)) and len(self.prior_gains) == 2):
             raise self._err("prior_gains", "two positive numbers [k3, k4]")
-        self.prior_gains = [float(g) for g in self.prior_gains]
+        self.prior_gains = [check.positive(f"{self._name('prior_gains')}[{i}]", g, hi=1e4)
+                            for i, g in enumerate(self.prior_gains)]
         if self.policy_prior == "tracking" and (self.action_mode != "point" or self.normalize_obs):
             raise ConfigError(
                 f"TrainConfig.policy_prior: got 'tracking' with action_mode={self.action_mode!r}, "
@@ -375,201 +389,49 @@ class TrainConfig(EnvConfig):
             )
         self._bools("normalize_obs", "normalize_reward", "tensorboard", "progress_bar")
         self._net_arch()
-        if self.init_from is not None and (not isinstance(self.init_from, str) or not self.init_from):
-            raise self._err("init_from", "a run folder or model .zip path, or None")
-        rollout = self.n_steps * self.n_envs * self.num_robots
-        if self.batch_size > rollout:
-            raise self._err("batch_size", f"at most n_steps * n_envs * num_robots = {rollout}")
+        for name in ("init_from", "resume"):
+            if getattr(self, name) is not None:
+                setattr(self, name, check_path(getattr(self, name), self._name(name)))
+        if self.init_from is not None and self.resume is not None:
+            raise ConfigError(f"TrainConfig.init_from: got {self.init_from!r} with resume={self.resume!r}, expected "
+                              "one of them (resume continues a run; init_from starts a new one from its weights)")
+        if not isinstance(self.device, str):
+            raise self._err("device", "a torch device name")
         self._validate_run_folder()
 
-
-def claim_run_dir(out_dir: str | os.PathLike[str], name: str, marker: bool = True) -> tuple[Path, bool]:
-    """Create (or take an empty) ``<out_dir>/<name>``, or ``<name>_2``, ``<name>_3``, ...; and whether it was created.
-
-    A run never writes into the folder of another run; an existing empty folder is used.  With
-    ``marker`` the folder is claimed by creating its :data:`INCOMPLETE_FILE` exclusively, so two
-    runs started at once never share a folder; the caller removes the marker when the run is done.
-    The flag says whether this call created the folder (:func:`abandon_run` removes only such).
-    """
-    base = Path(out_dir) / name
-    path, k = base, 1
-    while True:
-        created = False
-        try:
-            path.mkdir(parents=True)
-            created = True
-        except FileExistsError:
-            if not (path.exists() or path.is_symlink()):  # a parent is a dangling link: no name will do
-                raise
-        if path.is_dir() and (created or not any(path.iterdir())):
-            if not marker:
-                return path, created
-            try:
-                with (path / INCOMPLETE_FILE).open("x") as fh:
-                    fh.write("training in progress or failed: this is not a finished run\n")
-                return path, created
-            except FileExistsError:  # another run claimed it first
-                pass
-        k += 1
-        path = base.with_name(f"{base.name}_{k}")
+    def _validate_sizes(self) -> None:
+        """Every size against :data:`LIMITS` (the products too), before anything is allocated."""
+        lim = LIMITS
+        self._int("seed", 0, lim["seed"])
+        self._int("n_envs", 1, lim["teams"])
+        slots = self.n_envs * self.num_robots
+        if slots > lim["slots"]:
+            raise self._err("n_envs", f"at most {lim['slots'] // self.num_robots} with {self.num_robots} robots "
+                            f"(n_envs * num_robots <= {lim['slots']} robots stepped together)")
+        self._int("num_workers", 1, lim["workers"])
+        if self.num_workers > self.n_envs:
+            raise self._err("num_workers", f"at most n_envs = {self.n_envs} (one team per worker at least)")
+        self._int("total_timesteps", 1, lim["agent_steps"])
+        self._int("n_steps", 1, lim["n_steps"])
+        if self.n_steps * slots > lim["rollout"]:
+            raise self._err("n_steps", f"at most {lim['rollout'] // slots} with {slots} slots (the rollout buffer "
+                            f"n_steps * n_envs * num_robots holds at most {lim['rollout']:,} transitions)")
+        self._int("batch_size", 2, lim["rollout"])
+        if self.batch_size > self.n_steps * slots:
+            raise self._err("batch_size", f"at most n_steps * n_envs * num_robots = {self.n_steps * slots}")
+        self._int("n_epochs", 1, lim["epochs"])
+        self._int("torch_threads", 1, lim["workers"])
+        for name in ("checkpoint_freq", "eval_every"):
+            self._int(name, 0, lim["agent_steps"])
+        self._int("eval_episodes", 1, lim["episodes"])
+        self._int("verbose", 0, 2)
 
 
-def unique_run_dir(out_dir: str | os.PathLike[str], name: str) -> Path:
-    """Create and return ``<out_dir>/<name>``, or ``<name>_2``, ``<name>_3``, ... if it holds files.
-
-    A run never writes into the folder of another run; an existing empty folder is used
-    (:func:`claim_run_dir` without a marker).
-    """
-    return claim_run_dir(out_dir, name, marker=False)[0]
-
-
-INCOMPLETE_FILE = "INCOMPLETE"
-"""A run folder holds this file while its training runs, and keeps it if training failed after a checkpoint."""
-
-
-def abandon_run(run: Path, keep: bool, created: bool) -> None:
-    """After a failed training: empty ``run`` (removed if this run created it), or mark it incomplete.
-
-    With ``keep`` (it holds a model or checkpoint) it stays with an :data:`INCOMPLETE_FILE` and no
-    ``train_stats.json`` (what marks a finished run).  A folder that existed before the run (an empty
-    folder it was given, or a link to one) stays, emptied.
-    """
-    if keep:
-        try:
-            (run / "train_stats.json").unlink(missing_ok=True)
-            (run / INCOMPLETE_FILE).write_text("training did not finish: keep the checkpoints you need, then "
-                                               "remove this folder\n")
-        except OSError:
-            pass
-        return
-    for child in list(run.iterdir()) if run.is_dir() else []:
-        if child.is_dir() and not child.is_symlink():
-            shutil.rmtree(child, ignore_errors=True)
-        else:
-            child.unlink(missing_ok=True)
-    if created and not run.is_symlink():
-        with contextlib.suppress(OSError):
-            run.rmdir()
-
-
-def load_config_file(path: str | os.PathLike[str]) -> dict[str, Any]:
-    """Read a TOML (``.toml``) or JSON (``.json``) config file into a dict."""
-    p = Path(path)
-    if p.suffix not in (".toml", ".json"):
-        raise ConfigError(f"config file: got suffix {p.suffix!r}, expected '.toml' or '.json' (file {str(p)!r})")
-    if not p.is_file():
-        raise DataFileError(f"{p}: no such config file, expected an existing .toml or .json file")
-    try:
-        text = p.read_text()
-        data = tomllib.loads(text) if p.suffix == ".toml" else json.loads(text)
-    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        kind = "TOML" if p.suffix == ".toml" else "JSON"
-        raise DataFileError(f"{p}: not a readable {kind} file ({type(exc).__name__}: {str(exc)[:200]})") from None
-    if not isinstance(data, dict):
-        raise DataFileError(f"{p}: got a JSON {type(data).__name__}, expected an object of TrainConfig fields")
-    return data
-
-
-# ---------------------------------------------------------------------- command line
-_DICT_FIELDS = {"scenario_kwargs": "scenario-arg", "reward": "reward", "filter_kwargs": "filter-arg"}
-_OPTIONAL_INTS = {"num_cpus"}  # int fields whose default is None
-
-
-def _int_arg(text: str) -> int | str:
-    """``"1e6"`` -> 1000000; anything else is passed on for :class:`TrainConfig` to reject with its range."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"got {text!r}, expected an integer") from None
-    return int(value) if value.is_integer() else text
-
-
-_int_arg.__name__ = "integer"
-
-
-def _bool(text: str) -> bool:
-    low = text.lower()
-    if low in ("1", "true", "yes", "on"):
-        return True
-    if low in ("0", "false", "no", "off"):
-        return False
-    raise argparse.ArgumentTypeError(f"got {text!r}, expected true or false")
-
-
-def add_config_arguments(parser: argparse.ArgumentParser, cls: type[EnvConfig] | None = None) -> None:
-    """Add ``--config`` and one ``--field-name`` flag per field of ``cls`` (default :class:`TrainConfig`).
-
-    Dict fields take repeated ``KEY=VALUE``: ``--reward collision=20``,
-    ``--filter-arg solver=proxsuite``, ``--scenario-arg speed=1.0``;
-    ``--net-arch 64 64``.  Unset flags leave the file/default value.
-    """
-    cls = TrainConfig if cls is None else cls
-    parser.add_argument("--config", default=None, help=f"TOML or JSON file of {cls.__name__} fields")
-    for f in fields(cls):
-        default = f.default if f.default is not MISSING else f.default_factory()  # type: ignore[misc]
-        if f.name in _DICT_FIELDS:
-            parser.add_argument(f"--{_DICT_FIELDS[f.name]}", dest=f.name, action="append", default=None,
-                                metavar="KEY=VALUE", help=f"{f.name} entry (repeatable)")
-            continue
-        flag = "--" + f.name.replace("_", "-")
-        if f.name == "net_arch":
-            parser.add_argument(flag, dest=f.name, type=int, nargs="+", default=None, help=f"default {default}")
-        elif f.name == "prior_gains":
-            parser.add_argument(flag, dest=f.name, type=float, nargs=2, default=None, help=f"default {default}")
-        elif isinstance(default, bool):
-            parser.add_argument(flag, dest=f.name, type=_bool, default=None, metavar="BOOL", help=f"default {default}")
-        elif isinstance(default, int):
-            parser.add_argument(flag, dest=f.name, type=_int_arg, default=None, help=f"default {default}")
-        elif isinstance(default, float):
-            parser.add_argument(flag, dest=f.name, type=float, default=None, help=f"default {default}")
-        elif f.name == "max_steps":
-            parser.add_argument(flag, dest=f.name, type=int, default=None, help="default: scenario horizon")
-        elif f.name in _OPTIONAL_INTS:
-            parser.add_argument(flag, dest=f.name, type=int, default=None, help=f"default {default}")
-        else:
-            parser.add_argument(flag, dest=f.name, default=None, help=f"default {default}")
-
-
-def config_from_args(args: argparse.Namespace, cls: type[EnvConfig] | None = None) -> Any:
-    """Merge defaults, ``args.config`` and the flags set in ``args`` into a validated ``cls`` (:class:`TrainConfig`)."""
-    cls = TrainConfig if cls is None else cls
-    data: dict[str, Any] = load_config_file(args.config) if getattr(args, "config", None) else {}
-    for f in fields(cls):
-        val = getattr(args, f.name, None)
-        if val is None:
-            continue
-        if f.name in _DICT_FIELDS:
-            merged = dict(data.get(f.name, {}))
-            for item in val:
-                if "=" not in item:
-                    raise ConfigError(f"--{_DICT_FIELDS[f.name]}: got {item!r}, expected KEY=VALUE")
-                k, v = item.split("=", 1)
-                merged[k.strip()] = parse_value(v.strip())
-            data[f.name] = merged
-        else:
-            data[f.name] = val
-    return cls.from_dict(data)
-
-
-def parse_config(argv: Sequence[str] | None = None, prog: str = "train") -> TrainConfig:
-    """Parse a command line into a :class:`TrainConfig` (for tests and scripts)."""
-    parser = argparse.ArgumentParser(prog=prog)
-    add_config_arguments(parser)
-    return config_from_args(parser.parse_args(argv))
-
-
-def split_backend(argv: Sequence[str]) -> tuple[str, list[str]]:
-    """The ``--backend`` of a training command line (default ``"sb3"``) and the command line without it."""
-    pre = argparse.ArgumentParser(prog="aasoatt train", add_help=False)
-    pre.add_argument("--backend", choices=BACKENDS, default="sb3")
-    known, _ = pre.parse_known_args(argv)
-    rest: list[str] = []
-    skip = False
-    for a in argv:
-        if skip:
-            skip = False
-        elif a == "--backend":
-            skip = True
-        elif not a.startswith("--backend="):
-            rest.append(a)
-    return known.backend, rest
+# the command line and config files (train.options) and the run folders (train.runs), from here as before
+from train.options import (  # noqa: E402
+    add_config_arguments,
+    config_from_args,
+    load_config_file,
+    parse_config,
+    split_backend,
+)

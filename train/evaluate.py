@@ -45,13 +45,16 @@ on the rollout recorded at the decision rate, and from ``infos[agent]["filter"]`
   ``|du_safe - du_nominal|`` in the decision [rad/s^2];
 * **collisions**: total colliding robot pairs plus robot-obstacle hits over
   all episodes, and the number of episodes with any.
+
+Each rate comes with its 95% Wilson score interval (:func:`train.intervals.wilson`): success over
+robot-episodes (each robot of each episode one trial), and the share of episodes with a collision
+over episodes.  Intervals assume independent trials; robots of one episode interact, so the
+success interval is a lower bound on the uncertainty.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
-import json
 import os
 import sys
 import time
@@ -66,14 +69,14 @@ from aasoatt_env.analysis.metrics import summarize
 from aasoatt_env.analysis.recording import RecordEpisode
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.cli_support import OutputPlan, Parser, add_common_options, int_option, real_option, run_guarded
-from aasoatt_env.errors import ConfigError, DataFileError, UnknownKeywordError
+from aasoatt_env.errors import ConfigError, UnknownKeywordError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.validation import parse_assignments
 from agents import RandomAgent, TrackingController
-from agents.learned import POLICY_ENV_KEYS, load_learned
-from agents.rllib_agent import find_run_spec
 from train.config import TrainConfig
-from train.rllib import RAY_MISSING
+from train.intervals import wilson
+from train.policies import POLICY_ENV_KEYS, load_policy, policy_env_kwargs
+from train.runs import check_path, write_json, write_text
 
 __all__ = ["POLICY_ENV_KEYS", "EvalRow", "evaluate", "evaluate_agent", "load_policy", "main", "policy_env_kwargs",
            "to_markdown"]
@@ -81,105 +84,10 @@ __all__ = ["POLICY_ENV_KEYS", "EvalRow", "evaluate", "evaluate_agent", "load_pol
 _PARAM_NAMES = {"rows": "rows", "bare": "bare_model", "filter": "filtered_model", "config": "config"}
 """How errors name evaluate()'s inputs by default (the command line passes its option names instead)."""
 
-_EXPECTED_MODEL = ("expected a run folder of aasoatt train holding policy.json and model.zip (or of "
-                   "train.rllib: policy.json and rl_module.npz), or a model .zip / checkpoint in one")
-
-
-def load_policy(path: str | os.PathLike[str], flag: str = "model") -> Any:
-    """Load a trained policy (:func:`agents.learned.load_learned`), errors naming ``flag`` and ``path``.
-
-    The path is checked first: it must be a run folder (or a checkpoint in one) or a model
-    ``.zip`` with the run's ``policy.json`` beside it or above ``checkpoints/``; a Ray RLlib run
-    needs Ray installed (the message says how, as ``aasoatt train --backend rllib`` does).
-
-    Parameters
-    ----------
-    path : str or PathLike
-        What the user gave.
-    flag : str
-        The option it came from (``"--bare"``, ``"--model"``, ...), named in every error.
-
-    Returns
-    -------
-    LearnedAgent or RLlibAgent
-        The policy, with the run's ``spec``.
-
-    Raises
-    ------
-    DataFileError
-        The path holds no model, or a file of it is missing or corrupted.
-    ConfigError
-        A Ray RLlib run without Ray installed.
-    """
-    if not isinstance(path, (str, os.PathLike)):
-        raise ConfigError(f"{flag}: got {type(path).__name__}, {_EXPECTED_MODEL}")
-    p = Path(path)
-    if not p.exists():
-        raise DataFileError(f"{flag}: {str(path)!r}: no model here (no such file or folder); {_EXPECTED_MODEL}")
-    if not p.is_dir() and p.suffix.lower() != ".zip":
-        raise DataFileError(f"{flag}: got {str(path)!r}, a file that is not a model .zip; {_EXPECTED_MODEL}")
-    try:
-        found = find_run_spec(p)
-    except DataFileError as exc:
-        raise DataFileError(f"{flag}: {exc}") from None
-    if found is None:
-        raise DataFileError(f"{flag}: {str(path)!r}: no model here (no policy.json in it or in the run folder "
-                            f"above); {_EXPECTED_MODEL}")
-    if found[1].get("backend") == "rllib" and importlib.util.find_spec("ray") is None:
-        raise ConfigError(f"{flag}: {str(path)!r} is a Ray RLlib run; {RAY_MISSING}")
-    try:
-        return load_learned(p)
-    except DataFileError as exc:
-        raise DataFileError(f"{flag}: {exc}") from None
-
-
-def policy_env_kwargs(
-    policy: Any, given: Mapping[str, Any], *, model: str, options: Mapping[str, str] | None = None,
-    default_option: str = "env", hint: str = " (leave it out to take the run's)",
-) -> dict[str, Any]:
-    """``given`` env keywords completed with the settings ``policy`` was trained with (:data:`POLICY_ENV_KEYS`).
-
-    Parameters
-    ----------
-    policy : LearnedAgent or RLlibAgent
-        A loaded policy; its ``spec["env"]`` (the run's ``policy.json``) holds the settings.
-    given : mapping
-        Env keywords chosen by the user (or a config); they win for every other key.
-    model : str
-        How to name the policy in an error (e.g. ``"--model runs/x"``).
-    options : mapping, optional
-        The option each key came from (e.g. ``{"decision_interval": "--decision-interval"}``).
-    default_option : str
-        The option named for keys not in ``options``.
-    hint : str
-        Appended to the error (what to do instead).
-
-    Returns
-    -------
-    dict
-        ``given`` plus the run's settings.
-
-    Raises
-    ------
-    ConfigError
-        ``given`` sets one of them to another value (naming the option, both values and the model).
-    """
-    trained = (getattr(policy, "spec", None) or {}).get("env") or {}
-    out = dict(given)
-    for key in POLICY_ENV_KEYS:
-        if key not in trained:
-            continue
-        if key in out and out[key] != trained[key]:
-            flag = (options or {}).get(key, default_option)
-            raise ConfigError(f"{flag}: got {key}={out[key]!r}, expected {key}={trained[key]!r}, the setting the "
-                              f"policy of {model} was trained with{hint}")
-        out[key] = trained[key]
-    return out
-
 
 @dataclass
 class EvalRow:
-    """Aggregated metrics of one agent/env combination over the episodes."""
+    """Aggregated metrics of one agent/env combination over the episodes (rates with 95% Wilson intervals)."""
 
     name: str
     episodes: int
@@ -191,11 +99,15 @@ class EvalRow:
     collisions: int
     collision_episodes: int
     wall_time_s: float
+    robot_episodes: int = 0
+    success_ci: tuple[float, float] = (float("nan"), float("nan"))
+    collision_episode_ci: tuple[float, float] = (float("nan"), float("nan"))
     extra: dict[str, Any] = field(default_factory=dict)
 
     def as_dict(self) -> dict[str, Any]:
         """JSON-friendly dict."""
-        return {k: getattr(self, k) for k in self.__dataclass_fields__}
+        return {k: list(v) if isinstance(v, tuple) else v
+                for k, v in ((k, getattr(self, k)) for k in self.__dataclass_fields__)}
 
 
 class _PointModeAdapter:
@@ -259,12 +171,9 @@ def evaluate_agent(
     if episodes < 1:
         raise ConfigError(f"episodes: got {episodes!r}, expected an integer >= 1")
     env = RecordEpisode(env_fn())
-    safe, succ, rmse, n_col, col_eps = [], [], [], 0, 0
-    interv: list[float] = []
-    corr: list[float] = []
-    statuses: dict[str, int] = {}
-    has_filter = False
-    it = range(episodes)
+    per_episode: list[dict[str, Any]] = []
+    filter_infos: list[dict[str, Any]] = []
+    it: Any = range(episodes)
     if progress:
         from tqdm import tqdm
 
@@ -275,27 +184,30 @@ def evaluate_agent(
         agent.reset(env)
         while env.agents:
             obs, _, _, _, infos = env.step(agent.act(obs, env))
-            for info in infos.values():
-                f = info.get("filter")
-                if f is not None:
-                    has_filter = True
-                    interv.append(float(f["intervened"]))
-                    corr.append(float(f["correction"]))
-                    statuses[f["status"]] = statuses.get(f["status"], 0) + 1
-        s = summarize(env.rollout, goal_tolerance=goal_tolerance)
-        safe.append(s["safe_rate"])
-        succ.append(s["reach_rate"])
-        rmse.append(s["rmse"])
-        c = int(s["n_collision_pairs"]) + int(s["n_obstacle_collisions"])
-        n_col += c
-        col_eps += c > 0
+            filter_infos += [info["filter"] for info in infos.values() if info.get("filter") is not None]
+        per_episode.append(summarize(env.rollout, goal_tolerance=goal_tolerance))
     env.close()
+    return _row(name, per_episode, filter_infos, time.perf_counter() - t0)
+
+
+def _row(name: str, per_episode: list[dict[str, Any]], filter_infos: list[dict[str, Any]], wall: float) -> EvalRow:
+    """Aggregate the episodes' :func:`summarize` dicts and the filter's per-decision infos into a row."""
+    hits = [int(s["n_collision_pairs"]) + int(s["n_obstacle_collisions"]) for s in per_episode]
+    robot_episodes = sum(int(s["n_robots"]) for s in per_episode)
+    reached = sum(s["reach_rate"] * s["n_robots"] for s in per_episode)
+    collided = sum(h > 0 for h in hits)
+    statuses: dict[str, int] = {}
+    for f in filter_infos:
+        statuses[f["status"]] = statuses.get(f["status"], 0) + 1
+    has_filter = bool(filter_infos)
     return EvalRow(
-        name=name, episodes=episodes, safe_rate=float(np.mean(safe)), success_rate=float(np.mean(succ)),
-        rmse=float(np.mean(rmse)),
-        intervention_rate=float(np.mean(interv)) if has_filter else None,
-        mean_correction=float(np.mean(corr)) if has_filter else None,
-        collisions=n_col, collision_episodes=int(col_eps), wall_time_s=time.perf_counter() - t0,
+        name=name, episodes=len(per_episode), safe_rate=float(np.mean([s["safe_rate"] for s in per_episode])),
+        success_rate=float(np.mean([s["reach_rate"] for s in per_episode])),
+        rmse=float(np.mean([s["rmse"] for s in per_episode])),
+        intervention_rate=float(np.mean([float(f["intervened"]) for f in filter_infos])) if has_filter else None,
+        mean_correction=float(np.mean([float(f["correction"]) for f in filter_infos])) if has_filter else None,
+        collisions=sum(hits), collision_episodes=int(collided), wall_time_s=wall, robot_episodes=robot_episodes,
+        success_ci=wilson(round(reached), robot_episodes), collision_episode_ci=wilson(collided, len(per_episode)),
         extra={"filter_status": statuses} if has_filter else {},
     )
 
@@ -303,6 +215,43 @@ def evaluate_agent(
 ROWS = ("random", "tracking", "tracking + filter", "learned (bare)", "learned (bare) + filter",
         "learned (filter)", "learned (filter) + filter")
 """Row names, in table order (``learned (filter)``: the policy trained behind the filter, run bare)."""
+
+
+def _env_of(learned: dict[str, Any], labels: dict[str, str], config: TrainConfig | None,
+            names: Mapping[str, str]) -> tuple[dict[str, Any], FilterConfig]:
+    """The env keywords and filter of the table: the config's, else the first policy's; every policy's settings."""
+    first = "bare" if learned["bare"] is not None else "filter" if learned["filter"] is not None else None
+    if config is not None:
+        env_kwargs, fc = config.env_kwargs(), config.filter_config()
+    elif first is not None:
+        spec = learned[first].spec
+        env_kwargs, fc = dict(spec["env"]), FilterConfig.merged(spec.get("filter") or {})
+    else:
+        default = TrainConfig(progress_bar=False)
+        env_kwargs, fc = default.env_kwargs(), default.filter_config()
+    for key, policy in learned.items():  # each policy runs on the env it was trained for: checked now
+        if policy is not None:
+            if config is not None:
+                source, hint = names["config"], " (give a config with the run's env settings)"
+            else:
+                source, hint = f"the env of {labels[first]}", " (evaluate the two policies separately)"
+            env_kwargs = policy_env_kwargs(policy, env_kwargs, model=labels[key], default_option=source, hint=hint)
+    return env_kwargs, fc
+
+
+def _load_models(models: dict[str, Any], names: Mapping[str, str], jobs: int) -> tuple[dict[str, Any], dict[str, str]]:
+    """The policies (loaded from paths, or given loaded) and how errors name each."""
+    if not isinstance(jobs, int) or not 1 <= jobs <= 256:
+        raise ConfigError(f"jobs: got {jobs!r}, expected an integer in [1, 256]")
+    is_path = {k: isinstance(m, (str, os.PathLike)) for k, m in models.items()}
+    if jobs > 1:
+        loaded = [names[k] for k, m in models.items() if m is not None and not is_path[k]]
+        if loaded:
+            raise ConfigError(f"jobs: got {jobs} with a loaded policy ({loaded[0]}), expected model paths "
+                              "(the worker processes load them) or jobs=1")
+    learned = {k: None if m is None else load_policy(m, names[k]) if is_path[k] else m for k, m in models.items()}
+    labels = {k: f"{names[k]} {str(m)!r}" if is_path[k] else names[k] for k, m in models.items()}
+    return learned, labels
 
 
 def evaluate(
@@ -324,36 +273,26 @@ def evaluate(
     Parameters
     ----------
     bare_model, filtered_model : path or policy, optional
-        Policies trained bare and behind the filter: a Stable-Baselines3 run (folder or ``model.zip``)
-        or a Ray RLlib run of :mod:`train.rllib` (folder or checkpoint), see :func:`load_policy`;
-        or such a policy already loaded (only with ``jobs=1``).
+        Policies trained bare and behind the filter: a run folder, model ``.zip`` or checkpoint of
+        either backend (:func:`train.policies.load_policy`), or a loaded policy (only with ``jobs=1``).
     episodes : int
-        Episodes per row (``K``).
+        Episodes per row (``K``); episode ``j`` is reset with ``seed + j``.
     seed : int
-        Seed of the first episode (``seed + j`` for episode ``j``).
+        Seed of the first episode.
     config : TrainConfig, optional
-        Env settings; default: the first given model's ``config.json``, else
-        :class:`TrainConfig` defaults.
+        Env settings; default: the first given model's, else :class:`TrainConfig` defaults.
     filter_kwargs : dict, optional
         Filter arguments for the ``+ filter`` rows (default: the config's).
     rows : sequence of str, optional
-        Subset of :data:`ROWS` (default all whose model is given); a ``learned (...)`` row
-        needs its model.
+        Subset of :data:`ROWS` (default all whose model is given); a ``learned (...)`` row needs its model.
     goal_tolerance : float
         Success radius [m].
     progress : bool
         Progress bars.
     jobs : int
-        Rows evaluated in parallel processes (same numbers as ``jobs=1``: every
-        row runs its own seeded episodes).
+        Rows evaluated in parallel processes (the same numbers as ``jobs=1``).
     option_names : mapping, optional
-        How errors name ``"rows"``, ``"bare"``, ``"filter"`` (the models) and ``"config"`` (the
-        command line passes its options; default the parameter names).
-
-    Returns
-    -------
-    list of EvalRow
-        Format with :func:`to_markdown`.
+        How errors name ``"rows"``, ``"bare"``, ``"filter"`` and ``"config"`` (default the parameter names).
 
     Raises
     ------
@@ -368,79 +307,30 @@ def evaluate(
     names = {**_PARAM_NAMES, **(option_names or {})}
     if rows is not None:  # rows asked for must be made; by default the rows whose model is given
         check_rows(wanted, bare_model is not None, filtered_model is not None, names)
-    if not isinstance(jobs, int) or jobs < 1:
-        raise ConfigError(f"jobs: got {jobs!r}, expected an integer >= 1")
-    models = {"bare": bare_model, "filter": filtered_model}
-    if jobs > 1:
-        loaded = [names[k] for k, m in models.items() if m is not None and not isinstance(m, (str, os.PathLike))]
-        if loaded:
-            raise ConfigError(f"jobs: got {jobs} with a loaded policy ({loaded[0]}), expected model paths "
-                              "(the worker processes load them) or jobs=1")
-    learned = {k: None if m is None else load_policy(m, names[k]) if isinstance(m, (str, os.PathLike)) else m
-               for k, m in models.items()}
-
-    def label(key: str) -> str:
-        m = models[key]
-        return f"{names[key]} {str(m)!r}" if isinstance(m, (str, os.PathLike)) else names[key]
-
-    first = "bare" if learned["bare"] is not None else "filter" if learned["filter"] is not None else None
-    if config is not None:
-        env_kwargs, fc = config.env_kwargs(), config.filter_config()
-    elif first is not None:
-        spec = learned[first].spec
-        env_kwargs, fc = dict(spec["env"]), FilterConfig.merged(spec.get("filter") or {})
-    else:
-        default = TrainConfig(progress_bar=False)
-        env_kwargs, fc = default.env_kwargs(), default.filter_config()
-    for key, policy in learned.items():  # each policy runs on the env it was trained for: checked now
-        if policy is not None:
-            if config is not None:
-                source, hint = names["config"], " (give a config with the run's env settings)"
-            else:
-                source, hint = f"the env of {label(first)}", " (evaluate the two policies separately)"
-            env_kwargs = policy_env_kwargs(policy, env_kwargs, model=label(key), default_option=source, hint=hint)
+    learned, labels = _load_models({"bare": bare_model, "filter": filtered_model}, names, jobs)
+    env_kwargs, fc = _env_of(learned, labels, config, names)
     if filter_kwargs is not None:
         fc = FilterConfig.merged(fc, **filter_kwargs)
     if jobs > 1:
         return _evaluate_parallel(bare_model, filtered_model, wanted, jobs, episodes=episodes, seed=seed,
                                   config=config, filter_kwargs=filter_kwargs, goal_tolerance=goal_tolerance)
     env_kwargs.update(terminate_on_collision=False, reward={})
-
-    def env_fn(filtered: bool) -> Callable[[], Any]:
-        return lambda: make_env(**env_kwargs, filter=fc if filtered else None)
-
     mode = env_kwargs.get("action_mode", "wheel")
     plan: list[tuple[str, Callable[[], Any], bool]] = [
         ("random", lambda: RandomAgent(seed=seed), False),
         ("tracking", lambda: _tracking(mode, False), False),
         ("tracking + filter", lambda: _tracking(mode, True), True),
     ]
-    if learned["bare"] is not None:
-        plan += [("learned (bare)", lambda: learned["bare"], False),
-                 ("learned (bare) + filter", lambda: learned["bare"], True)]
-    if learned["filter"] is not None:
-        plan += [("learned (filter)", lambda: learned["filter"], False),
-                 ("learned (filter) + filter", lambda: learned["filter"], True)]
-    out = []
-    for name, agent_fn, filtered in plan:
-        if name in wanted:
-            out.append(evaluate_agent(name, agent_fn(), env_fn(filtered), episodes, seed, goal_tolerance, progress))
-    return out
+    for key, label in (("bare", "learned (bare)"), ("filter", "learned (filter)")):
+        if learned[key] is not None:
+            plan += [(label, lambda k=key: learned[k], False), (f"{label} + filter", lambda k=key: learned[k], True)]
+    return [evaluate_agent(name, agent_fn(), lambda f=filtered: make_env(**env_kwargs, filter=fc if f else None),
+                           episodes, seed, goal_tolerance, progress)
+            for name, agent_fn, filtered in plan if name in wanted]
 
 
 def check_rows(rows: Sequence[str], bare: bool, filtered: bool, names: Mapping[str, str] | None = None) -> None:
-    """Refuse a ``learned (...)`` row whose model is not given.
-
-    Parameters
-    ----------
-    rows : sequence of str
-        The rows asked for.
-    bare, filtered : bool
-        Whether the policy trained bare / behind the filter is given.
-    names : mapping, optional
-        How to name ``"rows"``, ``"bare"`` and ``"filter"`` in the error (default the
-        parameter names of :func:`evaluate`).
-    """
+    """Refuse a ``learned (...)`` row whose model is not given (errors name ``names``' options)."""
     n = {**_PARAM_NAMES, **(names or {})}
     for row in rows:
         for prefix, given, key, what in (("learned (bare)", bare, "bare", "a policy trained bare"),
@@ -465,37 +355,40 @@ def _evaluate_parallel(
         return [row for f in futures for row in f.result()]
 
 
-def _fmt(x: float | None, spec: str) -> str:
-    return "-" if x is None else format(x, spec)
+def _pct(x: float | None, ci: tuple[float, float] | None = None) -> str:
+    if x is None:
+        return "-"
+    out = f"{100 * x:.1f}%"
+    if ci is not None and all(np.isfinite(ci)):
+        out += f" [{100 * ci[0]:.1f}, {100 * ci[1]:.1f}]"
+    return out
 
 
 def to_markdown(rows: Sequence[EvalRow], title: str | None = None) -> str:
-    """One Markdown table of the rows (rates in percent)."""
-    lines = []
-    if title:
-        lines += [f"### {title}", ""]
+    """One Markdown table of the rows (rates in percent, 95% Wilson intervals in brackets)."""
+    lines = [f"### {title}", ""] if title else []
     lines += [
-        "| agent | episodes | safe rate | success | RMSE [m] | intervention "
-        "| correction [rad/s^2] | collisions (episodes) |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| agent | episodes | safe rate | success [95% CI] | RMSE [m] | intervention "
+        "| correction [rad/s^2] | collisions (episodes) | episodes with a collision [95% CI] |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
-        iv = None if r.intervention_rate is None else 100 * r.intervention_rate
+        corr = "-" if r.mean_correction is None else f"{r.mean_correction:.3f}"
         lines.append(
-            f"| {r.name} | {r.episodes} | {100 * r.safe_rate:.1f}% | {100 * r.success_rate:.1f}% | {r.rmse:.3f} "
-            f"| {_fmt(iv, '.1f')}{'%' if iv is not None else ''} | {_fmt(r.mean_correction, '.3f')} "
-            f"| {r.collisions} ({r.collision_episodes}) |"
+            f"| {r.name} | {r.episodes} | {_pct(r.safe_rate)} | {_pct(r.success_rate, r.success_ci)} | {r.rmse:.3f} "
+            f"| {_pct(r.intervention_rate)} | {corr} | {r.collisions} ({r.collision_episodes}) "
+            f"| {_pct(r.collision_episodes / max(r.episodes, 1), r.collision_episode_ci)} |"
         )
     return "\n".join(lines)
 
 
 def build_parser(prog: str = "aasoatt evaluate") -> argparse.ArgumentParser:
     """Command-line parser."""
-    p = Parser(prog=prog, description="Evaluate baselines and learned policies (Markdown table).")
+    p = Parser(prog=prog, description="Evaluate baselines and learned policies (Markdown table, 95% intervals).")
     p.add_argument("--bare", default=None, help="model trained bare (run folder or model.zip; SB3 or RLlib run)")
     p.add_argument("--filtered", default=None, help="model trained behind the filter")
-    p.add_argument("--episodes", type=int_option(1, 10**7), default=100)
-    p.add_argument("--seed", type=int_option(0), default=10_000)
+    p.add_argument("--episodes", type=int_option(1, 10**6), default=100)
+    p.add_argument("--seed", type=int_option(0, 2**62), default=10_000)
     p.add_argument("--config", default=None, help="TOML/JSON TrainConfig for the env (default: the model's)")
     p.add_argument("--rows", nargs="+", default=None, choices=ROWS, metavar="ROW", help=f"subset of {list(ROWS)}")
     p.add_argument("--filter-arg", action="append", default=None, metavar="KEY=VALUE", help="filter argument")
@@ -522,17 +415,24 @@ def main(argv: Sequence[str] | None = None) -> int:
 _OPTIONS = {"rows": "--rows", "bare": "--bare", "filter": "--filtered", "config": "--config"}
 
 
+def _outputs(args: argparse.Namespace, plan: OutputPlan) -> tuple[Path | None, Path | None]:
+    """The table and its ``.json`` (``--out``), checked and their folder made writable before any episode."""
+    if args.out is None:
+        return None, None
+    out = Path(check_path(args.out, "--out"))
+    if out.suffix.lower() == ".json":
+        raise ConfigError(f"--out: got {args.out!r}; the table is Markdown and its .json goes beside it, "
+                          "expected e.g. results.md")
+    if out.name in ("", ".", "..") or args.out.endswith(os.sep):
+        raise ConfigError(f"--out: got {args.out!r}, expected a file path such as results.md")
+    return plan.file(out, "--out"), plan.file(out.with_suffix(".json"), "--out (its .json)")
+
+
 def _main(argv: list[str]) -> int:
     args = build_parser().parse_args(argv)
     check_rows(args.rows or (), args.bare is not None, args.filtered is not None, _OPTIONS)
     plan = OutputPlan(args.overwrite)
-    out = json_out = None
-    if args.out:
-        if Path(args.out).suffix.lower() == ".json":
-            raise ConfigError(f"--out: got {args.out!r}; the table is Markdown and its .json goes beside it, "
-                              "expected e.g. results.md")
-        out = plan.file(args.out, "--out")
-        json_out = plan.file(out.with_suffix(".json"), "--out (its .json)")
+    out, json_out = _outputs(args, plan)
     try:
         config = TrainConfig.from_file(args.config) if args.config else None
         fk = parse_assignments(args.filter_arg, "--filter-arg") if args.filter_arg else None
@@ -551,8 +451,8 @@ def _main(argv: list[str]) -> int:
     table = to_markdown(rows)
     print(table)
     if out is not None and json_out is not None:
-        out.write_text(table + "\n")
-        json_out.write_text(json.dumps([r.as_dict() for r in rows], indent=2))
+        write_text(out, table + "\n")
+        write_json(json_out, [r.as_dict() for r in rows])
     return 0
 
 

@@ -2,35 +2,37 @@
 
 Usage (in the virtual environment of the ``rllib`` extra, see README "Use it from your RL library")::
 
-    aasoatt train --backend rllib --num-robots 4 --num-env-runners 2 --iterations 50    # local Ray
-    python -m train.rllib --config run.toml                                               # the same
+    aasoatt train --backend rllib                                    # the default task, behind the filter
+    aasoatt train --backend rllib --num-env-runners 2 --iterations 50
+    python -m train.rllib --config run.toml                           # the same
 
     ray start --head --num-cpus 8          # a cluster: on the head node (``ray start --address HEAD:6379``
                                            # on every other node, all in the same virtual environment)
-    aasoatt train --backend rllib --address auto --num-env-runners 16 --iterations 500
+    aasoatt train --backend rllib --address auto --num-env-runners 16
 
-    # continue a run (same settings, a new run folder):
-    aasoatt train --backend rllib --config runs/RUN/config.json --resume runs/RUN --iterations 100
+    aasoatt train --backend rllib --resume runs/RUN --iterations 100  # continue a run (a new run folder)
 
 The same command scales from this machine to a cluster: ``--address`` joins a running Ray
-cluster (``auto``: the one started on this node with ``ray start``; or ``HOST:PORT``), and
-``--num-env-runners`` sets how many sampling processes Ray spreads over its nodes (0: sample in
-the driver).  Every node needs this package and the ``rllib`` extra installed (the env runners
-build the env themselves).
+cluster (``auto``: the one started on this node; or ``HOST:PORT``), ``--num-env-runners`` sets
+how many sampling processes Ray spreads over its nodes (0: sample in the driver).  Every node
+needs this package and the ``rllib`` extra installed.
 
 What is trained
 ---------------
-Every robot is an agent of RLlib's ``ParallelPettingZooEnv`` around
-:func:`aasoatt_env.make_env` (behind :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` unless
-``--filter false``), and all of them map to one RLModule, ``"shared"`` (parameter sharing, as
-the Stable-Baselines3 backend does).  PPO is RLlib's ``DefaultPPOTorchRLModule``: separate
-actor and critic MLPs of ``net_arch`` (tanh), a diagonal Gaussian policy.  Observations are not
-normalised (no connector with state: the checkpoint's RLModule is the whole policy).  The
-env, reward and filter fields, and the TOML/JSON/command-line handling, are those of
-:class:`train.config.TrainConfig`; the PPO fields follow RLlib's names where they differ.
+Each env runner steps ``num_envs_per_env_runner`` teams of the task together
+(:class:`train.rllib_env.SlotVectorEnv`: one batched physics step, one policy forward pass and,
+behind :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` (unless ``--filter false``), one
+filter call per decision for all its robots); every robot is one sub-env of RLlib's vector env
+and all share one RLModule (parameter sharing, as the Stable-Baselines3 backend does).  PPO is
+RLlib's ``DefaultPPOTorchRLModule``: separate actor and critic MLPs of ``net_arch`` (tanh), a
+diagonal Gaussian policy, observations not normalised (the saved module is the whole policy).
+The env, reward (:data:`train.config.TRAIN_REWARD` laid under ``reward``) and filter fields
+and the TOML/JSON/command-line handling are those of :class:`train.config.TrainConfig`; the
+default batch (32 teams x robots x 64 decisions per iteration, minibatch 1024, 10 epochs) is the
+Stable-Baselines3 recipe's.
 
 Outputs in the run folder ``<out_dir>/<run_name>`` (a new folder, ``_2``, ``_3``, ... if the name
-is taken: a run never overwrites another):
+is taken), every file written atomically:
 
 =================================  =============================================================
 file                               content
@@ -39,19 +41,18 @@ file                               content
 ``policy.json``                    env keywords, filter configuration, the RLModule's model
                                    config, ``"backend": "rllib"`` (what
                                    :class:`agents.rllib_agent.RLlibAgent` needs)
-``rl_module.npz``                  the final weights of the shared RLModule (plain arrays)
-``checkpoints/iter_<n>/``          RLlib checkpoints (``Algorithm.from_checkpoint`` resumes
-                                   one), each with its own ``rl_module.npz``
-``progress.jsonl``                 one line of metrics per iteration
+``rl_module.npz``                  the final weights of the shared RLModule (plain arrays, with
+                                   the policy record)
+``checkpoints/iter_<n>/``          RLlib checkpoints (``--resume`` continues one), each with its
+                                   own ``rl_module.npz``
+``progress.jsonl``                 one line of metrics per iteration (``success``: robots that
+                                   ended their episode within the goal tolerance)
 ``train_stats.json``               wall time, env and agent steps, throughput
 =================================  =============================================================
 
-While training, the folder also holds an ``INCOMPLETE`` file, removed at the end.  A run that
-fails or is interrupted is removed, or kept with its ``INCOMPLETE`` file (and no
-``train_stats.json``) when it already has a checkpoint (:func:`train.config.abandon_run`).
-
-``aasoatt evaluate --bare <run>`` (or ``--filtered <run>``) evaluates the policy in the same
-table as the Stable-Baselines3 runs, without starting Ray.
+While training, the folder also holds an ``INCOMPLETE`` file, removed at the end; a run that
+fails is removed, or kept with it when it has a checkpoint (:func:`train.runs.abandon_run`).
+``aasoatt evaluate --filtered <run>`` evaluates the policy without starting Ray.
 """
 
 from __future__ import annotations
@@ -68,23 +69,19 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from aasoatt_env.errors import ConfigError
-from train.config import INCOMPLETE_FILE, EnvConfig, abandon_run, add_config_arguments, claim_run_dir, config_from_args
+from train.config import LIMITS, TRAIN_REWARD, EnvConfig
+from train.options import add_config_arguments, config_from_args
+from train.policies import RAY_MISSING
+from train.rllib_env import log_success, make_rllib_env, slots_per_team
+from train.rllib_files import MODULE_ID, WEIGHTS_FILE, resume_checkpoint, save_checkpoint, weights_with_record
+from train.runs import INCOMPLETE_FILE, abandon_run, check_path, claim_run_dir, save_npz, write_json, write_text
 
-RAY_MISSING = ("Ray RLlib is not installed; install the rllib extra in a virtual environment of its own "
-               "(ray[rllib] pins gymnasium 1.2), e.g. python3 -m venv .venv-rllib && "
-               ".venv-rllib/bin/pip install -e \".[rllib]\" (README: Use it from your RL library)")
-"""What the RLlib commands say without Ray (``aasoatt train --backend rllib``, a run of it given to evaluate or run)."""
-
-__all__ = ["ENV_NAME", "MODULE_ID", "RLlibConfig", "build_algorithm_config", "main", "make_rllib_env", "train"]
+__all__ = ["ENV_NAME", "MODULE_ID", "RAY_MISSING", "RLlibConfig", "build_algorithm_config", "main", "make_rllib_env",
+           "train"]
 
 ENV_NAME = "aasoatt"
 """The name the env creator is registered under with ``ray.tune.registry.register_env``."""
-MODULE_ID = "shared"
-"""The one RLModule every robot maps to."""
-WEIGHTS_FILE = "rl_module.npz"
 POLICY_FILE = "policy.json"
 
 
@@ -92,41 +89,39 @@ POLICY_FILE = "policy.json"
 class RLlibConfig(EnvConfig):
     """Configuration of one RLlib PPO run (see the module docstring).
 
-    The env and filter fields are those of :class:`train.config.EnvConfig`; ``filter`` defaults
-    to true here.
+    The env and filter fields are those of :class:`train.config.EnvConfig` (``filter`` defaults to
+    true here; ``terminate_on_collision`` is not supported: teams end their episodes together).
+    Bounds: :data:`train.config.LIMITS`.
 
     Attributes
     ----------
     iterations : int
-        ``Algorithm.train()`` calls; each samples ``train_batch_size`` env steps (times the
-        robots: agent-steps) and runs ``num_epochs`` of minibatch updates.
+        ``Algorithm.train()`` calls of this run; each samples ``train_batch_size`` agent-steps and
+        runs ``num_epochs`` of minibatch updates.
     num_env_runners : int
         Sampling processes (Ray actors, spread over the cluster's nodes); 0 samples in the driver.
     num_envs_per_env_runner : int
-        Envs stepped together by each env runner.
+        Teams each env runner steps together (its robots are the vector env's sub-envs).
     rollout_fragment_length : int
-        Env steps per env and ``sample()`` call of an env runner (0: RLlib's ``"auto"``, the
-        batch split evenly over the runners' envs).
+        Decisions per robot and ``sample()`` call (0: RLlib's ``"auto"``, the batch split evenly).
     sample_timeout_s : float
-        How long the driver waits for a remote env runner's ``sample()``; results that come later
-        are discarded (RLlib's default of 60 s is too short for one runner sampling a whole
-        filtered batch on a loaded machine).
+        How long the driver waits for a remote env runner's ``sample()`` (at most a day).
     num_learners : int
         Learner processes (0: the learner runs in the driver; >0 for several GPUs or nodes).
     num_gpus_per_learner : float
         GPUs per learner (0: CPU).
     train_batch_size : int
-        Env steps per iteration and learner (RLlib's ``train_batch_size_per_learner``).
+        Agent-steps per iteration and learner (0: 64 decisions of every robot of every runner,
+        the Stable-Baselines3 recipe's rollout).
     minibatch_size : int
-        PPO minibatch size (at most ``train_batch_size``).
+        PPO minibatch size (at most ``train_batch_size``; with the automatic batch, at most the batch).
     num_epochs : int
         Passes over each batch.
     learning_rate, gamma, gae_lambda, clip_range, ent_coef, vf_coef : float
         PPO hyper-parameters (RLlib: ``lr``, ``gamma``, ``lambda_``, ``clip_param``,
         ``entropy_coeff``, ``vf_loss_coeff``).
     vf_clip : float
-        RLlib's ``vf_clip_param``: value-loss clipping in return units (RLlib's default of 10 is
-        far below our returns of several hundred per robot, so it is large by default).
+        RLlib's ``vf_clip_param`` in return units (large by default: returns are in the hundreds).
     max_grad_norm : float
         RLlib's ``grad_clip`` (global norm).
     net_arch : list of int
@@ -142,13 +137,13 @@ class RLlibConfig(EnvConfig):
         Iterations between checkpoints (0: only the final one).
     resume : str or None
         Continue from this checkpoint (``checkpoints/iter_<n>``) or run folder (its last
-        checkpoint): the algorithm's whole state (weights, optimiser, counters) is restored and
-        ``iterations`` more are trained into a new run folder.  The env and model settings must
-        be those of the checkpoint (``--config <run>/config.json``).
+        checkpoint; its ``config.json`` is the base of this run's): the algorithm's whole state
+        is restored (RLlib unpickles it: your own runs only) and ``iterations`` more are trained
+        into a new run folder.
     out_dir, run_name : str
         Parent folder of runs and the run folder name (default from scenario, filter and seed).
     torch_threads : int
-        ``torch.set_num_threads`` in the driver (1 is fastest for small MLPs on few cores).
+        ``torch.set_num_threads`` in the driver.
     verbose : int
         0: quiet; 1: one line per iteration.
     """
@@ -156,13 +151,13 @@ class RLlibConfig(EnvConfig):
     filter: bool = True
     iterations: int = 100
     num_env_runners: int = 0
-    num_envs_per_env_runner: int = 1
+    num_envs_per_env_runner: int = 32
     rollout_fragment_length: int = 0
     sample_timeout_s: float = 600.0
     num_learners: int = 0
     num_gpus_per_learner: float = 0.0
-    train_batch_size: int = 4000
-    minibatch_size: int = 512
+    train_batch_size: int = 0
+    minibatch_size: int = 1024
     num_epochs: int = 10
     learning_rate: float = 3e-4
     gamma: float = 0.99
@@ -184,41 +179,67 @@ class RLlibConfig(EnvConfig):
     verbose: int = 1
 
     def _validate(self) -> None:
+        if isinstance(self.reward, dict):
+            self.reward = {**TRAIN_REWARD, **self.reward}
         self._validate_env()
-        for name in ("iterations", "num_envs_per_env_runner", "train_batch_size", "num_epochs", "torch_threads"):
-            self._int(name, 1)
-        for name in ("num_env_runners", "num_learners", "seed", "checkpoint_every", "verbose",
-                     "rollout_fragment_length"):
-            self._int(name, 0)
-        self._int("minibatch_size", 1)
-        if self.minibatch_size > self.train_batch_size:
-            raise self._err("minibatch_size", f"at most train_batch_size = {self.train_batch_size}")
-        self._float("num_gpus_per_learner", 0.0)
-        self._float("sample_timeout_s", 0.0, lo_open=True)
+        if self.terminate_on_collision:
+            raise self._err("terminate_on_collision", "false (the RLlib backend's teams end their episodes together)")
+        if self.max_steps is not None and self.max_steps < 2:
+            raise self._err("max_steps", "None or at least 2 (an RLlib episode starts after one decision at rest)")
+        self._validate_sizes()
+        self._float("num_gpus_per_learner", 0.0, 64.0)
+        self._float("sample_timeout_s", 0.0, 86_400.0, lo_open=True)
         self._float("learning_rate", 0.0, 1.0, lo_open=True)
-        self._float("gamma", 0.0, 1.0)
-        self._float("gae_lambda", 0.0, 1.0)
+        for name in ("gamma", "gae_lambda"):
+            self._float(name, 0.0, 1.0)
         self._float("clip_range", 0.0, 10.0, lo_open=True)
-        self._float("ent_coef", 0.0)
-        self._float("vf_coef", 0.0)
-        self._float("vf_clip", 0.0, lo_open=True)
-        self._float("max_grad_norm", 0.0, lo_open=True)
+        self._float("ent_coef", 0.0, 10.0)
+        self._float("vf_coef", 0.0, 100.0)
+        self._float("vf_clip", 0.0, 1e9, lo_open=True)
+        self._float("max_grad_norm", 0.0, 1000.0, lo_open=True)
         self._net_arch()
-        if self.address is not None and (not isinstance(self.address, str) or not self.address):
-            raise self._err("address", "a Ray address ('auto', 'HOST:PORT', 'ray://HOST:PORT') or None")
+        if self.address is not None:
+            check_path(self.address, self._name("address"))
         if self.num_cpus is not None:
-            self._int("num_cpus", 1)
+            self._int("num_cpus", 1, 4096)
             if self.address is not None:
                 raise ConfigError(f"RLlibConfig.num_cpus: got {self.num_cpus!r} with address={self.address!r}, "
                                   "expected None (a running cluster has its own CPUs)")
-        if self.resume is not None and (not isinstance(self.resume, str) or not self.resume):
-            raise self._err("resume", "a checkpoint or run folder, or None")
+        if self.resume is not None:
+            self.resume = check_path(self.resume, self._name("resume"))
         self._validate_run_folder()
+
+    def _validate_sizes(self) -> None:
+        lim = LIMITS
+        self._int("seed", 0, lim["seed"])
+        self._int("iterations", 1, lim["iterations"])
+        self._int("checkpoint_every", 0, lim["iterations"])
+        self._int("num_env_runners", 0, lim["workers"])
+        self._int("num_learners", 0, lim["workers"])
+        self._int("torch_threads", 1, lim["workers"])
+        self._int("num_envs_per_env_runner", 1, lim["teams"])
+        if self.num_envs_per_env_runner * self.num_robots > lim["slots"]:
+            raise self._err("num_envs_per_env_runner", f"at most {lim['slots'] // self.num_robots} teams of "
+                            f"{self.num_robots} robots (at most {lim['slots']} robots per env runner)")
+        self._int("rollout_fragment_length", 0, lim["n_steps"])
+        self._int("train_batch_size", 0, lim["rollout"])
+        self._int("minibatch_size", 1, lim["rollout"])
+        if self.train_batch_size and self.minibatch_size > self.train_batch_size:
+            raise self._err("minibatch_size", f"at most train_batch_size = {self.train_batch_size}")
+        self._int("num_epochs", 1, lim["epochs"])
+        self._int("verbose", 0, 2)
 
     # ------------------------------------------------------------------ helpers
     def default_run_name(self) -> str:
         """``rllib_ppo_<scenario>_<N>r_<filter|bare>_s<seed>``."""
         return f"rllib_ppo_{self.scenario}_{self.num_robots}r_{'filter' if self.filter else 'bare'}_s{self.seed}"
+
+    def batch_size(self) -> int:
+        """Agent-steps per iteration: ``train_batch_size``, or 64 decisions of every runner's every robot."""
+        if self.train_batch_size:
+            return self.train_batch_size
+        return min(64 * max(1, self.num_env_runners) * self.num_envs_per_env_runner * self.num_robots,
+                   LIMITS["rollout"])
 
     def model_config(self) -> dict[str, Any]:
         """The RLModule's ``model_config`` (complete, so the module rebuilds identically from ``policy.json``)."""
@@ -233,91 +254,39 @@ class RLlibConfig(EnvConfig):
         import ray
 
         ec = self.env_config()
-        return {
-            "format": 1,
-            "backend": "rllib",
-            "env": ec["env"],
-            "filter": ec["filter"],
-            "policy": "DefaultPPOTorchRLModule",
-            "module_id": MODULE_ID,
-            "model_config": self.model_config(),
-            "normalize_obs": False,
-            "ray_version": ray.__version__,
-        }
+        return {"format": 1, "backend": "rllib", "env": ec["env"], "filter": ec["filter"],
+                "policy": "DefaultPPOTorchRLModule", "module_id": MODULE_ID, "model_config": self.model_config(),
+                "normalize_obs": False, "ray_version": ray.__version__}
 
 
-# ---------------------------------------------------------------------- env and algorithm
-def make_rllib_env(env_config: dict[str, Any]) -> Any:
-    """RLlib env creator: ``ParallelPettingZooEnv(make_env(**env, filter=filter))`` (runs in every env runner)."""
-    from ray.rllib.env.wrappers.pettingzoo_env import ParallelPettingZooEnv
-
-    from aasoatt_env.api.factory import make_env
-
-    return ParallelPettingZooEnv(make_env(**env_config["env"], filter=env_config.get("filter")))
-
-
-def _to_shared(agent_id: Any, episode: Any, **kwargs: Any) -> str:
-    """Policy mapping: every robot acts with the shared module."""
-    return MODULE_ID
-
-
+# ---------------------------------------------------------------------- algorithm
 def build_algorithm_config(config: RLlibConfig) -> Any:
     """The ``PPOConfig`` (new API stack) of ``config``; ``.build_algo()`` gives the algorithm."""
     from ray.rllib.algorithms.ppo import PPOConfig
-    from ray.rllib.core.rl_module.multi_rl_module import MultiRLModuleSpec
     from ray.rllib.core.rl_module.rl_module import RLModuleSpec
 
+    slots = config.num_envs_per_env_runner * slots_per_team(config.env_kwargs())
     return (
         PPOConfig()
         .api_stack(enable_rl_module_and_learner=True, enable_env_runner_and_connector_v2=True)
-        .environment(ENV_NAME, env_config=config.env_config())
+        .environment(ENV_NAME, env_config=config.env_config(), normalize_actions=False, clip_actions=False)
         .framework("torch")
-        .env_runners(num_env_runners=config.num_env_runners,
-                     num_envs_per_env_runner=config.num_envs_per_env_runner,
+        .env_runners(num_env_runners=config.num_env_runners, num_envs_per_env_runner=slots,
+                     gym_env_vectorize_mode="vector_entry_point",
                      rollout_fragment_length=config.rollout_fragment_length or "auto",
                      sample_timeout_s=config.sample_timeout_s)
         .learners(num_learners=config.num_learners, num_gpus_per_learner=config.num_gpus_per_learner)
-        .multi_agent(policies={MODULE_ID}, policy_mapping_fn=_to_shared)
-        .rl_module(rl_module_spec=MultiRLModuleSpec(
-            rl_module_specs={MODULE_ID: RLModuleSpec(model_config=config.model_config())}))
+        .rl_module(rl_module_spec=RLModuleSpec(model_config=config.model_config()))
         .training(
-            train_batch_size_per_learner=config.train_batch_size, minibatch_size=config.minibatch_size,
+            train_batch_size_per_learner=config.batch_size(),
+            minibatch_size=min(config.minibatch_size, config.batch_size()),
             num_epochs=config.num_epochs, lr=config.learning_rate, gamma=config.gamma,
             lambda_=config.gae_lambda, clip_param=config.clip_range, entropy_coeff=config.ent_coef,
             vf_loss_coeff=config.vf_coef, vf_clip_param=config.vf_clip, grad_clip=config.max_grad_norm,
         )
+        .callbacks(on_episode_end=log_success)
         .debugging(seed=config.seed)
     )
-
-
-def _module_weights(algo: Any) -> dict[str, np.ndarray]:
-    """The shared RLModule's weights from the learner (local or remote) as numpy arrays."""
-    from ray.rllib.core import COMPONENT_LEARNER, COMPONENT_LEARNER_GROUP, COMPONENT_RL_MODULE
-
-    state = algo.get_state(components=f"{COMPONENT_LEARNER_GROUP}/{COMPONENT_LEARNER}/{COMPONENT_RL_MODULE}/"
-                                      f"{MODULE_ID}")
-    weights = state[COMPONENT_LEARNER_GROUP][COMPONENT_LEARNER][COMPONENT_RL_MODULE][MODULE_ID]
-    return {k: np.asarray(v) for k, v in weights.items()}
-
-
-def resume_checkpoint(path: str) -> Path:
-    """The RLlib checkpoint to resume from: ``path`` itself, or the last ``checkpoints/iter_<n>`` of a run folder."""
-    p = Path(path).expanduser()
-    if (p / "rllib_checkpoint.json").is_file():
-        return p.resolve()
-    found = sorted((p / "checkpoints").glob("iter_*/rllib_checkpoint.json"))
-    if not found:
-        raise ConfigError(f"RLlibConfig.resume: got {path!r}, expected an RLlib checkpoint folder or a run folder "
-                          "with checkpoints/iter_<n>")
-    return found[-1].parent.resolve()
-
-
-def _save(algo: Any, run: Path, iteration: int) -> Path:
-    """An RLlib checkpoint ``checkpoints/iter_<n>`` with the module's weights as ``rl_module.npz`` beside it."""
-    ckpt = run / "checkpoints" / f"iter_{iteration:06d}"
-    algo.save_to_path(str(ckpt.resolve()))  # RLlib wants an absolute path (a relative one is read as a URI)
-    np.savez(ckpt / WEIGHTS_FILE, **_module_weights(algo))
-    return ckpt
 
 
 def _metrics(result: dict[str, Any], iteration: int, wall: float, iter_s: float) -> dict[str, Any]:
@@ -325,28 +294,21 @@ def _metrics(result: dict[str, Any], iteration: int, wall: float, iter_s: float)
 
     def num(x: Any) -> float | None:
         try:
-            v = float(x)
+            v = float(sum(x.values()) if isinstance(x, dict) else x)
         except (TypeError, ValueError):
             return None
         return v if math.isfinite(v) else None
 
     er = result.get("env_runners", {})
-    agent_steps = er.get("num_agent_steps_sampled_lifetime")
-    iter_steps = er.get("num_agent_steps_sampled")
-    agent_returns = er.get("agent_episode_returns_mean")
     learner = result.get("learners", {}).get(MODULE_ID, {})
     row = {
-        "iteration": iteration,
-        "wall_s": wall,
-        "iter_s": iter_s,
-        "env_steps": num(er.get("num_env_steps_sampled_lifetime")),
-        "agent_steps": num(sum(agent_steps.values()) if isinstance(agent_steps, dict) else agent_steps),
-        "iter_agent_steps": num(sum(iter_steps.values()) if isinstance(iter_steps, dict) else iter_steps),
+        "iteration": iteration, "wall_s": wall, "iter_s": iter_s,
+        "agent_steps": num(er.get("num_env_steps_sampled_lifetime")),  # one sub-env step is one robot's decision
+        "iter_agent_steps": num(er.get("num_env_steps_sampled")),
         "episodes": num(er.get("num_episodes_lifetime")),
-        "episode_return_mean": num(er.get("episode_return_mean")),  # team: sum over robots
-        "robot_return_mean": num(np.mean(list(agent_returns.values()))) if isinstance(agent_returns, dict)
-        and agent_returns else None,
+        "robot_return_mean": num(er.get("episode_return_mean")),
         "episode_len_mean": num(er.get("episode_len_mean")),
+        "success": num(er.get("success")),
     }
     for key in ("policy_loss", "vf_loss", "entropy", "mean_kl_loss", "vf_explained_var"):
         if key in learner:
@@ -359,12 +321,8 @@ def _fmt(x: float | None, spec: str) -> str:
 
 
 # ---------------------------------------------------------------------- training
-def train(config: RLlibConfig) -> Path:
-    """Train PPO as configured; return the run folder (see the module docstring for its files).
-
-    Starts a local Ray instance (or joins ``config.address``) unless this process already
-    has one, and shuts down only the instance it started.
-    """
+def _start(config: RLlibConfig) -> tuple[Any, bool, Path | None]:
+    """Ray (started or joined unless this process has one) and the algorithm: ``(algo, started, resumed from)``."""
     import ray
     import torch
     from ray.tune.registry import register_env
@@ -386,43 +344,58 @@ def train(config: RLlibConfig) -> Path:
         if started:
             ray.shutdown()
         raise
-    # the run folder is made once Ray and the algorithm are up: a failed start leaves no folder behind
-    run: Path | None = None
-    created = False
+    return algo, started, resume
+
+
+def _iterate(config: RLlibConfig, algo: Any, run: Path, spec: dict[str, Any]) -> tuple[list[dict], float]:
+    """The iterations of this run, one ``progress.jsonl`` row each (the file rewritten atomically)."""
+    rows: list[dict[str, Any]] = []
     t0 = time.perf_counter()
-    row: dict[str, Any] = {}
-    run_steps = 0.0
     first = int(algo.iteration)  # 0, or the iterations of the resumed checkpoint
     last = first + config.iterations
+    for it in range(first + 1, last + 1):
+        t1 = time.perf_counter()
+        result = algo.train()
+        now = time.perf_counter()
+        rows.append(_metrics(result, it, now - t0, now - t1))
+        write_text(run / "progress.jsonl", "".join(json.dumps(r) + "\n" for r in rows))
+        if config.verbose:
+            r = rows[-1]
+            print(f"iter {it}/{last}  {r['iter_s']:.1f} s  agent-steps {_fmt(r['agent_steps'], ',.0f')}  "
+                  f"return/robot {_fmt(r['robot_return_mean'], '.1f')}  success {_fmt(r['success'], '.1%')}",
+                  flush=True)
+        if config.checkpoint_every and it % config.checkpoint_every == 0 and it < last:
+            save_checkpoint(algo, run, it, spec)
+    return rows, time.perf_counter() - t0
+
+
+def train(config: RLlibConfig) -> Path:
+    """Train PPO as configured; return the run folder (see the module docstring for its files).
+
+    Starts a local Ray instance (or joins ``config.address``) unless this process already
+    has one, and shuts down only the instance it started.  The run folder is made once Ray
+    and the algorithm are up: a failed start leaves no folder behind.
+    """
+    import ray
+
+    algo, started, resume = _start(config)
+    run: Path | None = None
+    created = False
     try:
         run, created = claim_run_dir(config.out_dir, config.run_name or config.default_run_name())
-        (run / "config.json").write_text(json.dumps(config.to_dict(), indent=2))
-        (run / POLICY_FILE).write_text(json.dumps(config.run_spec(), indent=2))
-        with (run / "progress.jsonl").open("w") as log:
-            for it in range(first + 1, last + 1):
-                t1 = time.perf_counter()
-                result = algo.train()
-                now = time.perf_counter()
-                row = _metrics(result, it, now - t0, now - t1)
-                run_steps += row["iter_agent_steps"] or 0.0
-                log.write(json.dumps(row) + "\n")
-                log.flush()
-                if config.verbose:
-                    print(f"iter {it}/{last}  {row['iter_s']:.1f} s  env steps {_fmt(row['env_steps'], '.0f')}  "
-                          f"return/robot {_fmt(row['robot_return_mean'], '.1f')}", flush=True)
-                if config.checkpoint_every and it % config.checkpoint_every == 0 and it < last:
-                    _save(algo, run, it)
-        elapsed = time.perf_counter() - t0
-        ckpt = _save(algo, run, last)
-        np.savez(run / WEIGHTS_FILE, **dict(np.load(ckpt / WEIGHTS_FILE, allow_pickle=False)))
-        (run / "train_stats.json").write_text(json.dumps({
+        spec = config.run_spec()
+        write_json(run / "config.json", config.to_dict())
+        write_json(run / POLICY_FILE, spec)
+        rows, elapsed = _iterate(config, algo, run, spec)
+        ckpt = save_checkpoint(algo, run, int(algo.iteration), spec)
+        save_npz(run / WEIGHTS_FILE, **weights_with_record(algo, spec))
+        run_steps = sum(r["iter_agent_steps"] or 0.0 for r in rows)
+        write_json(run / "train_stats.json", {
             "wall_time_s": elapsed, "iterations": config.iterations, "resumed_from": str(resume) if resume else None,
-            "env_steps": row.get("env_steps"),
-            "agent_steps": row.get("agent_steps"), "agent_steps_this_run": run_steps,
-            "agent_steps_per_s": run_steps / max(elapsed, 1e-9),
+            "agent_steps": rows[-1].get("agent_steps"), "agent_steps_this_run": run_steps,
+            "agent_steps_per_s": run_steps / max(elapsed, 1e-9), "success_last_iteration": rows[-1].get("success"),
             "num_env_runners": config.num_env_runners, "ray_nodes": len(ray.nodes()),
-            "final_checkpoint": str(ckpt.relative_to(run)),
-        }, indent=2))
+            "final_checkpoint": str(ckpt.relative_to(run))})
     except BaseException:
         # a failed or interrupted run: removed, or kept (marked incomplete) when it has a checkpoint
         if run is not None:
@@ -448,12 +421,14 @@ def build_parser(prog: str = "python -m train.rllib") -> argparse.ArgumentParser
 
 
 def main(argv: Sequence[str] | None = None, prog: str = "python -m train.rllib") -> int:
-    """Command-line entry point; returns the exit status."""
+    """Command-line entry point; returns the exit status (2 for a bad option or file, before anything starts)."""
+    from aasoatt_env.errors import AASOATTError
+
     args = build_parser(prog).parse_args(argv)
     try:
         config = config_from_args(args, RLlibConfig)
-    except ConfigError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+    except AASOATTError as exc:
+        print(f"error: {' '.join(str(exc).split())}", file=sys.stderr)
         return 2
     if args.print_config:
         print(json.dumps(config.to_dict(), indent=2))
