@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from page import add_page_options, check_page, printed_page
 
 from train.config import TrainConfig
 from train.train import build_model, init_policy, make_vec_env
@@ -226,9 +227,16 @@ def main() -> None:
     p.add_argument("--workers", type=int, default=1,
                    help="also rows with the teams stepped in this many processes (num_workers; 1: no such rows)")
     p.add_argument("--rllib", action="store_true", help="also Ray RLlib rows (needs the rllib extra)")
+    add_page_options(p)
     args = p.parse_args()
+    check_page(args)
     if args.rounds < 1 or args.timesteps < 1:
         p.error(f"--rounds and --timesteps: got {args.rounds} and {args.timesteps}, expected positive numbers")
+    with printed_page(args, "Training throughput", __doc__.split("Usage")[0] if __doc__ else ""):
+        _run(args)
+
+
+def _run(args: argparse.Namespace) -> None:
     torch.set_num_threads(1)
     print(f"PPO throughput, {args.n_envs} envs x {args.robots} robots (batched), decision_interval 20 (dt 0.005), "
           f"policy: {args.model or 'fresh (random actions)'}\n")

@@ -8,10 +8,13 @@ an existing page is replaced only with ``--overwrite``, and every page is writte
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import os
 import platform
 import shlex
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 
 from aasoatt_env.cli_support import atomic_write
@@ -58,3 +61,24 @@ def write_page(args: argparse.Namespace, title: str, body: str) -> None:
     Path(args.page).parent.mkdir(parents=True, exist_ok=True)
     atomic_write(args.page, lambda p: p.write_text(text))
     print(f"wrote {args.page}")
+
+
+class _Tee(io.TextIOBase):
+    def __init__(self, out: io.TextIOBase) -> None:
+        self.out, self.kept = out, io.StringIO()
+
+    def write(self, text: str) -> int:
+        self.kept.write(text)
+        return self.out.write(text)
+
+    def flush(self) -> None:
+        self.out.flush()
+
+
+@contextlib.contextmanager
+def printed_page(args: argparse.Namespace, title: str, notes: str = "") -> Iterator[None]:
+    """Everything printed inside the block also becomes the page's body (when ``--page`` is given)."""
+    tee = _Tee(sys.stdout)
+    with contextlib.redirect_stdout(tee):
+        yield
+    write_page(args, title, tee.kept.getvalue() + ("\n" + notes if notes else ""))
