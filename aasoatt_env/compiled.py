@@ -10,6 +10,8 @@ with numba, chosen when the filter is built (:attr:`~aasoatt_env.safety.config.F
   (:mod:`aasoatt_env.safety.solvers.active_set_kernel`);
 - the decentralised local QPs (:mod:`aasoatt_env.safety.solvers.local_kernel`);
 - the backup layer's check and repair (:mod:`aasoatt_env.safety.backup.kernels`);
+- a warm centralised step's rows, QP and quick backup check in one call, where all three answer
+  (:mod:`aasoatt_env.safety.fused_kernel`: those kernels called in turn, the pipeline's numbers);
 - the neighbour grid and contact components (:mod:`aasoatt_env.model.geometry_kernel`: the same pairs
   and labels, exactly).
 
@@ -44,6 +46,7 @@ PARTS: dict[str, str] = {
     "geometry": "aasoatt_env.model.geometry_kernel",
     "rows": "aasoatt_env.safety.rows_kernel",
     "centralized": "aasoatt_env.safety.centralized_kernel",
+    "fused": "aasoatt_env.safety.fused_kernel",
 }
 """The compiled parts and their modules."""
 

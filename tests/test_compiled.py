@@ -371,7 +371,7 @@ def _run_stack(seed: int) -> None:
 def _central_answers(monkeypatch, compiled_stage: bool, scene: str) -> tuple[list, int]:
     """Every centralised QP stage's answer along a closed loop, with the compiled stage tried or not (the numpy
     stage, with the compiled active set), and how many QP steps the compiled stage answered."""
-    from aasoatt_env.safety import centralized
+    from aasoatt_env.safety import centralized, core
 
     answers, by_kernel = [], [0]
     call, post = centralized.Centralized.__call__, centralized.Centralized.__post_init__
@@ -394,6 +394,7 @@ def _central_answers(monkeypatch, compiled_stage: bool, scene: str) -> tuple[lis
             object.__setattr__(self, "settings", None)
 
     monkeypatch.setattr(k, "solve_decomposed", counted)
+    monkeypatch.setattr(core, "fusable", lambda *args: False)  # (the centralised stage itself, every step)
     monkeypatch.setattr(centralized.Centralized, "__call__", record)
     monkeypatch.setattr(centralized.Centralized, "__post_init__", set_up)
     if scene == "stack":
@@ -497,37 +498,45 @@ def test_a_float32_state_is_filtered_as_its_float64_values(kernel):
     assert answers[0].barrier_min == answers[1].barrier_min
 
 
-def _filter_results(monkeypatch, fused: bool, scene: str) -> tuple[list, int]:
+def _filter_results(monkeypatch, scene: str, rows_kernel: bool, fused: bool = False) -> tuple[list, list]:
     """Every filter step's result and wheel accelerations along a closed loop, with the compiled rows or the numpy
-    rows, and how many steps the rows kernel answered."""
+    rows, the fused step or not, and per step ``(rows kernel called from Python, fused step's answer or None)``."""
     from aasoatt_env.safety import core
     from aasoatt_env.safety.rows import numpy_rows
 
-    results, calls = [], [0]
+    results, calls, seen = [], [0], []
     init, step = core.SafetyFilter.__init__, core.SafetyFilter.step
     rows = compiled.kernels("rows")
     real_rows = rows.aasoatt_rows
 
     def set_up(self, *args, **kw):
         init(self, *args, **kw)
-        if not fused:
+        if not rows_kernel:
             self._rows = numpy_rows
+        if not fused:
+            self._fused = None
+        elif self._fused is not None:
+            real = self._fused
+            self._fused = lambda *a: seen.append(real(*a)) or seen[-1]
 
     def record(self, *args, **kw):
+        calls[0], seen[:] = 0, []
         du, res = step(self, *args, **kw)
         results.append((du, res))
+        steps.append((calls[0], seen[0] if seen else "not tried"))
         return du, res
 
     def counted(*args):
         calls[0] += 1
         return real_rows(*args)
 
+    steps: list = []
     monkeypatch.setattr(core.SafetyFilter, "__init__", set_up)
     monkeypatch.setattr(core.SafetyFilter, "step", record)
     monkeypatch.setattr(rows, "aasoatt_rows", counted)
     _drive(13 if scene == "stack" else 0, scene)
     monkeypatch.undo()
-    return results, calls[0]
+    return results, steps
 
 
 def _assert_same_steps(out: list, ref: list) -> None:
@@ -546,8 +555,8 @@ def _drive(stack_seed: int, scene: str) -> None:
     """A closed loop behind the filter: a training stack (``stack_seed``), 20 robots under uniform random actions,
     250 robots under a hostile policy, or a 12-robot circle swap's crossing (``crossing``; ``margins``: with fixed
     and speed margins, without the layer, gains whose product is not a power of two)."""
-    if scene == "stack":
-        _run_stack(stack_seed)
+    if scene in ("stack", "infeasible"):
+        _run_stack(0 if scene == "infeasible" else stack_seed)
     elif scene == "random":  # uniform random actions at every physics step: robots spin up past the range limit
         env = make_env("random_goals", num_robots=20, max_steps=700, filter=True)
         rng = np.random.default_rng(5)
@@ -579,12 +588,35 @@ def test_the_compiled_rows_give_the_numpy_rows_steps_bit_for_bit(monkeypatch, sc
     the deadlock and avoidance flags (a training stack and a crossing, whose pairs the brute force's candidates
     give; fixed and speed margins without the backup layer, where the margin is the smallest gap; 250 robots under
     a hostile policy, whose pairs the grid of cells finds)."""
-    ref, ref_calls = _filter_results(monkeypatch, False, scene)
-    out, calls = _filter_results(monkeypatch, True, scene)
-    assert ref_calls == 0 and calls == len(out) == len(ref) >= (60 if scene == "large" else 400)
+    ref, ref_steps = _filter_results(monkeypatch, scene, rows_kernel=False)
+    out, steps = _filter_results(monkeypatch, scene, rows_kernel=True)
+    assert all(k == 0 for k, _ in ref_steps) and all(k == 1 for k, _ in steps)
+    assert len(out) == len(ref) >= (60 if scene == "large" else 400)
     assert sum(res.n_rows for _, res in out) > 1000
     assert scene == "large" or sum(res.triggered.any() for _, res in out) > 10
     _assert_same_steps(out, ref)
+
+
+@needs_numba
+@pytest.mark.parametrize("scene", ["infeasible", "crossing", "random", "large"])
+def test_the_fused_step_gives_the_pipelines_steps_bit_for_bit(monkeypatch, scene):
+    """Along closed loops every filter step with the fused step equals the pipeline's bit for bit; the fused step
+    answers most steps whole, and on some only the rows and the QP (the backup stage then runs: robots braked or
+    nudged), or nothing (the QP not verified: a training stack's infeasible teams)."""
+    ref, _ = _filter_results(monkeypatch, scene, rows_kernel=True)
+    out, steps = _filter_results(monkeypatch, scene, rows_kernel=True, fused=True)
+    assert len(out) == len(ref) >= (60 if scene == "large" else 400)
+    _assert_same_steps(out, ref)
+    answers = [a for _, a in steps if not isinstance(a, str)]
+    assert len(answers) == len(out) - 1  # (every step but the first, which has no warm start)
+    whole = sum(a is not None and a[2] is not None for a in answers)
+    rows_and_qp = sum(a is not None and a[2] is None for a in answers)
+    if scene != "large":  # (250 robots under a hostile policy: the pipeline answers every step)
+        assert whole > len(answers) // 2
+    if scene in ("infeasible", "random"):
+        assert rows_and_qp > 10
+    if scene == "infeasible":
+        assert sum(a is None for a in answers) > 5
 
 
 def test_a_trigger_or_strategy_registered_in_place_of_the_defaults_is_the_one_called(monkeypatch):
@@ -880,3 +912,19 @@ def test_the_compiled_kernels_check_every_shape():
         gatekeeper(team, pose, u, u, DT, obstacles=(np.zeros((2, 2)), np.ones(1)), **kw)
     with pytest.raises(ValueError, match=r"hi: got shape \(3, 1\), expected \(3, 2\)"):
         repair(team, pose, u, u, DT, u - 1.0, u[:, :1], **kw)
+
+
+@needs_numba
+def test_describe_says_which_form_runs_each_stage():
+    """The default filter names its compiled stages and the fused step; a barrier without a kernel, a strategy
+    that rotates the rows, the decentralised mode and the numpy kernel say where the numpy reference runs."""
+    team = make_team("paper", 4)
+    lines = SafetyFilter(team).describe().splitlines()
+    assert "  rows      compiled (aasoatt)" in lines and lines[-1].startswith("  fused ")
+    assert "  rows      numpy (distance: no compiled form)" in SafetyFilter(team, barrier="distance").describe()
+    with pytest.warns(UserWarning, match="rotates the relative positions"):
+        rotating = SafetyFilter(team, deadlock="rotate_relative_position").describe()
+    assert "  rows      numpy (aasoatt: the strategy rotates the rows)" in rotating and "fused" not in rotating
+    assert "fused" not in SafetyFilter(team, mode="decentralized").describe()
+    plain = SafetyFilter(team, kernel="numpy")
+    assert "compiled" not in repr(plain) and "fused" not in repr(plain) and "  backup    numpy" in repr(plain)

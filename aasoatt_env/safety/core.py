@@ -50,6 +50,7 @@ from aasoatt_env.safety.deadlock import (
     rotation,
 )
 from aasoatt_env.safety.decentralized import GROUP_ONE_CHANGE_ITER, Decentralized
+from aasoatt_env.safety.fused import FusedStep, fusable
 from aasoatt_env.safety.inputs import MIN_BRAKING_ROOM, bound_nominal, check_step, check_team, refuse_rows_beyond
 from aasoatt_env.safety.result import STATUSES, FilterResult, result
 from aasoatt_env.safety.rows import CompiledRows, Pairs, Rows, find_pairs, numpy_rows
@@ -102,6 +103,8 @@ class SafetyFilter:
         self._solve = (Decentralized(policy, cfg.negotiate, cfg.negotiate_gap, cfg.eta_tol, compiled) if decentral
                        else Centralized(policy, cfg.decompose, cfg.eta_tol, compiled))
         self._backup = BackupLayer(cfg) if cfg.backup else None
+        self._fused = (FusedStep(cfg, policy, self._rows) if fusable(cfg, self._strategy.rotates_rows, policy.exact)
+                       else None)
         self.reset(team)
 
     def describe(self) -> str:
@@ -114,11 +117,15 @@ class SafetyFilter:
                  f"{'compiled grid of cells' if cfg.compiled else 'k-d tree'} above",
                  f"  deadlock  numpy ({cfg.trigger}, {cfg.deadlock})",
                  f"  rows      {'compiled' if self._rows_compiled else 'numpy'} ({cfg.barrier}"
-                 + ("" if self._rows_compiled or not cfg.compiled else ": no compiled form") + ")",
+                 + ("" if self._rows_compiled or not cfg.compiled else ": the strategy rotates the rows"
+                    if self._strategy.rotates_rows else ": no compiled form") + ")",
                  f"  solve     {cfg.mode}: " + (f"local QPs {kernel}, " if cfg.mode == "decentralized" else "")
                  + (f"warm active set {kernel}, " if cfg.active_set else "") + f"then {cfg.solver} (solvers.route)",
                  f"  backup    {kernel if cfg.backup else 'off'}",
                  "  result    numpy"]
+        if self._fused is not None:
+            lines.append("  fused     a warm step's rows, solve and backup check in one compiled call; a stage it "
+                         "does not answer runs as above")
         return "\n".join(lines)
 
     def __repr__(self) -> str:
@@ -225,10 +232,17 @@ class SafetyFilter:
         pairs = find_pairs(team, s.p, cfg.sensing_range, s.obstacles, cfg.compiled)
         triggered = self._triggered(s, pairs)
         target = self._target(s, triggered)
-        rows = self._rows(cfg, s, pairs, triggered)
-        ans = self._solve(s, rows, target, triggered, self._warm(rows))
+        fused = None
+        if self._fused is not None and self._x is not None:
+            fused = self._fused(s, pairs, target, self._x, self._keys, self._z)
+        if fused is None:
+            rows = self._rows(cfg, s, pairs, triggered)
+            ans, backup = self._solve(s, rows, target, triggered, self._warm(rows)), None
+        else:
+            rows, ans, backup = fused
         self._remember(rows, ans)
-        backup = None if self._backup is None else self._backup(s, ans.du, pairs.robots)
+        if backup is None and self._backup is not None:
+            backup = self._backup(s, ans.du, pairs.robots)
         res = result(s.nominal, s.scale, rows, ans, backup, triggered, time.perf_counter() - t0)
         return res.du, res
 

@@ -39,10 +39,10 @@ def bound_nominal(nominal: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np
     answer then differs from the unscaled QP's by about the box's size over ``NOMINAL_RANGE`` at most (the
     farther the nominal, the closer both come to the feasible set's support point in its direction).
     """
+    if nominal.size == 0 or (1.5 * (float(np.abs(nominal).max()) + float(scale.max()))
+                             <= NOMINAL_RANGE * float(max_wheel_accel.min())):
+        return nominal  # (|nominal - centre| <= |nominal| + |centre| <= sqrt(2) (max|nominal| + max scale))
     reach = NOMINAL_RANGE * max_wheel_accel
-    if max(-float(nominal.min(initial=0.0)), float(nominal.max(initial=0.0))) + 1.5 * float(scale.max(initial=0.0)) \
-            <= NOMINAL_RANGE * float(max_wheel_accel.min(initial=0.0)):
-        return nominal  # (|nominal - centre| <= |nominal| + |centre| <= reach for every robot)
     centre = 0.5 * (lo + hi)
     d = nominal - centre
     dist = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
@@ -70,6 +70,10 @@ def check_team(team: Team, config: FilterConfig) -> None:
         if not (isinstance(a, np.ndarray) and a.shape == (team.n,) and a.dtype.kind == "f"):
             raise ConfigError(f"team.{name}: got {type(a).__name__} of shape {np.shape(a)}, expected a float "
                               f"array of shape ({team.n},) (one value per robot; make_team builds it)")
+    if not bool((team.max_wheel_accel > 0.0).all() and np.isfinite(team.max_wheel_accel).all()):
+        k = int(np.flatnonzero(~((team.max_wheel_accel > 0.0) & np.isfinite(team.max_wheel_accel)))[0])
+        raise ConfigError(f"team.max_wheel_accel: got {float(team.max_wheel_accel[k])!r} for robot {k}, expected a "
+                          "finite bound > 0")
     if team.group is not None and (np.shape(team.group) != (team.n,)
                                    or np.asarray(team.group).dtype.kind not in "iu"):
         raise ConfigError(f"team.group: got {np.asarray(team.group).dtype} array of shape "
@@ -123,16 +127,8 @@ def _obstacles(obstacles: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray | Non
     return np.ascontiguousarray(centres), np.ascontiguousarray(radii), groups
 
 
-def _arrays(named: tuple[tuple[str, Any, tuple[int, ...]], ...]) -> list[np.ndarray]:
-    """The arrays as C-contiguous float64 of their shapes (errors name them); the arrays themselves where they are."""
-    out = [a if type(a) is np.ndarray and a.dtype is _F64 and a.flags.c_contiguous
-           else np.ascontiguousarray(a, dtype=np.float64) for _, a, _ in named]
-    shapes = [x[2] for x in named]
-    if [a.shape for a in out] != shapes:
-        for (name, _, shape), a in zip(named, out):
-            if a.shape != shape:
-                raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
-    return out
+_NAMES = ("nominal_du", "lo", "hi", "u", "theta", "kin.p", "kin.v", "kin.A", "kin.adot_u", "reference p_d",
+          "reference v_d", "obstacles centres", "obstacles radii")
 
 
 def check_step(team: Team, cfg: FilterConfig, kin: Kinematics, u: Any, theta: Any, nominal_du: Any, lo: Any,
@@ -143,20 +139,26 @@ def check_step(team: Team, cfg: FilterConfig, kin: Kinematics, u: Any, theta: An
     """
     n = team.n
     pair = (n, 2)
-    named = (("nominal_du", nominal_du, pair), ("lo", lo, pair), ("hi", hi, pair), ("u", u, pair),
-             ("theta", theta, (n,)), ("kin.p", kin.p, pair), ("kin.v", kin.v, pair), ("kin.A", kin.A, (n, 2, 2)),
-             ("kin.adot_u", kin.adot_u, pair))
+    given = [nominal_du, lo, hi, u, theta, kin.p, kin.v, kin.A, kin.adot_u]
+    shapes = [pair, pair, pair, pair, (n,), pair, pair, (n, 2, 2), pair]
     if reference is not None:
-        reference = _reference(reference, n)
-        named += (("reference p_d", reference[0], pair), ("reference v_d", reference[1], pair))
+        given += _reference(reference, n)
+        shapes += [pair, pair]
     if obstacles is not None:
         obstacles = _obstacles(obstacles)
-        named += (("obstacles centres", obstacles[0], obstacles[0].shape),
-                  ("obstacles radii", obstacles[1], obstacles[1].shape))
-    arrays = _arrays(named)
-    flat = np.concatenate([a.ravel() for a in arrays])
+        given += obstacles[:2]
+        shapes += [obstacles[0].shape, obstacles[1].shape]
+    arrays = [a if type(a) is np.ndarray and a.dtype is _F64 and a.flags.c_contiguous
+              else np.ascontiguousarray(a, dtype=np.float64) for a in given]
+    if [a.shape for a in arrays] != shapes:
+        names = _NAMES if reference is not None else _NAMES[:9] + _NAMES[11:]
+        for name, a, shape in zip(names, arrays, shapes):
+            if a.shape != shape:
+                raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
+    flat = np.concatenate(arrays, axis=None)
     if not max(-float(flat.min()), float(flat.max())) <= MAGNITUDE_MAX:  # (NaN fails too)
-        for (name, _, _), a in zip(named, arrays):
+        names = _NAMES if reference is not None else _NAMES[:9] + _NAMES[11:]
+        for name, a in zip(names, arrays):
             refuse_rows_beyond(name, a.reshape(a.shape[0], -1) if a.shape[0] else np.zeros((0, 1)),
                                "obstacle" if name.startswith("obstacles") else "robot")
     if obstacles is not None and not bool((obstacles[1] >= 0.0).all()):
@@ -168,9 +170,7 @@ def check_step(team: Team, cfg: FilterConfig, kin: Kinematics, u: Any, theta: An
         raise StateError(f"lo/hi: got lo {lo[k].tolist()} > hi {hi[k].tolist()} for robot {k}, expected lo <= hi")
     if cfg.max_wheel_speed is not None:
         lo, hi = speed_box(lo, hi, u, cfg.max_wheel_speed, cfg.dt)
-    bound = np.maximum(np.abs(lo), np.abs(hi))
-    scale = np.maximum(team.max_wheel_accel, np.maximum(bound[:, 0], bound[:, 1]))
-    scale[scale <= 0.0] = 1.0
+    scale = np.maximum(team.max_wheel_accel, np.maximum(np.abs(lo), np.abs(hi)).max(axis=1))  # (> 0: check_team)
     return StepInput(team, p, v, A, adot, u, theta, nominal, lo, hi,
                      None if reference is None else (arrays[9], arrays[10]), obstacles, scale)
 

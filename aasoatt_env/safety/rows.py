@@ -25,7 +25,7 @@ from aasoatt_env.safety.deadlock import STRATEGIES, rotation
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.stages import StepInput
 
-__all__ = ["CompiledRows", "Pairs", "Rows", "find_pairs", "numpy_rows"]
+__all__ = ["CompiledRows", "Pairs", "Rows", "find_pairs", "gap_initial", "kernel_rows", "numpy_rows"]
 
 
 class Pairs(NamedTuple):
@@ -104,7 +104,8 @@ def find_pairs(team: Team, p: np.ndarray, sensing_range: float, obstacles: tuple
 _NO_PAIRS = np.empty((0, 2), dtype=np.intp)
 
 
-def _gap_initial(cfg: FilterConfig, team: Team) -> float:
+def gap_initial(cfg: FilterConfig, team: Team) -> float:
+    """The smallest gap reported without pairs: ``D - max d_s``."""
     return cfg.sensing_range - 2.0 * float(team.radius.max(initial=0.0))
 
 
@@ -153,7 +154,7 @@ def numpy_rows(cfg: FilterConfig, s: StepInput, pairs: Pairs, triggered: np.ndar
         Gj[obs] = 0.0
     keys = ri.astype(np.int64) * (n + n_obs + 1) + np.where(obs, n - 1 - out[:, 1], rj)
     return Rows(ri, rj, Gi, Gj, rhs, out, keys, float(h.min(initial=np.inf)),
-                float(gap.min(initial=_gap_initial(cfg, team))))
+                float(gap.min(initial=gap_initial(cfg, team))))
 
 
 class CompiledRows:
@@ -167,12 +168,20 @@ class CompiledRows:
 
     def __call__(self, cfg: FilterConfig, s: StepInput, pairs: Pairs, triggered: np.ndarray) -> Rows:
         """The step's rows (``triggered`` is not read: the strategy keeps the rows)."""
+        return kernel_rows(self._kernel(*self.args(cfg, s, pairs)))
+
+    def args(self, cfg: FilterConfig, s: StepInput, pairs: Pairs) -> tuple:
+        """The kernel's arguments for this step."""
         if s.team is not self._team:
-            self._team, self._gap = s.team, _gap_initial(cfg, s.team)
+            self._team, self._gap = s.team, gap_initial(cfg, s.team)
         oc, orad = (_NO_CENTERS, _NO_RADII) if s.obstacles is None else s.obstacles[:2]
-        ri, rj, Gi, Gj, rhs, out, keys, h_min, gap_min = self._kernel(
-            s.p, s.v, s.adot, s.A, s.team.radius, pairs.robots, pairs.obstacles, oc, orad, *self._gains, self._gap)
-        return Rows(ri, rj, Gi, Gj, rhs, out, keys, float(h_min), float(gap_min))
+        return (s.p, s.v, s.adot, s.A, s.team.radius, pairs.robots, pairs.obstacles, oc, orad, *self._gains,
+                self._gap)
+
+
+def kernel_rows(out: tuple) -> Rows:
+    """:class:`Rows` of a rows kernel's ``(ri, rj, Gi, Gj, rhs, pairs, keys, h_min, gap_min)``."""
+    return Rows(*out[:7], float(out[7]), float(out[8]))
 
 
 _NO_CENTERS = np.empty((0, 2))

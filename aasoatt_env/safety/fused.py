@@ -1,0 +1,65 @@
+"""The fused step: a warm centralised step's rows, QP and backup check in one compiled call.
+
+An alternative to the pipeline's rows, solve and backup stages, chosen when the filter is built where
+each of them runs compiled (the ``aasoatt`` barrier, a strategy that keeps the rows, the centralised
+mode with the decomposition, the warm active set and an exact back-end, the backup layer).
+:func:`~aasoatt_env.safety.fused_kernel.fused_step` calls those stages' own kernels, so where it answers,
+the step is the pipeline's bit for bit (``tests/test_compiled.py``).  It answers the rows and the solve
+where the QP is verified, and the backup stage too where its quick check brakes nobody; a stage it
+does not answer runs in the pipeline from that stage's start (the rows, or the backup).  At a few tens
+of robots a step's cost is mostly the calls between the stages, which this saves.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from aasoatt_env.compiled import c64, kernels
+from aasoatt_env.model.params import Team
+from aasoatt_env.safety.backup import GATE_TOL, BackupAnswer, axle_pose
+from aasoatt_env.safety.backup.gate import BLEND_LEVELS, kernel_args, levels_of, team_block
+from aasoatt_env.safety.centralized import CLOSED_FORM_MESSAGE, kernel_settings
+from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.rows import CompiledRows, Pairs, Rows, kernel_rows
+from aasoatt_env.safety.solvers import SolverPolicy
+from aasoatt_env.safety.solvers.active_set import VERIFIED_MESSAGE
+from aasoatt_env.safety.stages import Answer, StepInput
+
+__all__ = ["FusedStep", "fusable"]
+
+
+def fusable(cfg: FilterConfig, rotates_rows: bool, exact: bool) -> bool:
+    """Whether every stage the fused step replaces runs compiled in this configuration."""
+    return (cfg.compiled and cfg.barrier == "aasoatt" and not rotates_rows and cfg.mode == "centralized"
+            and cfg.decompose and cfg.active_set and exact and cfg.backup)
+
+
+class FusedStep:
+    """``step(s, pairs, target, x, keys, z) -> (rows, answer, backup or None)`` or None (module docstring)."""
+
+    def __init__(self, cfg: FilterConfig, policy: SolverPolicy, rows: CompiledRows) -> None:
+        self.cfg, self._rows = cfg, rows
+        self._kernel = kernels("fused").fused_step
+        self._settings = kernel_settings(policy)
+        self._levels = np.array(levels_of(BLEND_LEVELS))
+        self._team: Team | None = None
+        self._limit = np.empty(0)
+
+    def __call__(self, s: StepInput, pairs: Pairs, target: np.ndarray, x: np.ndarray, keys: np.ndarray,
+                 z: np.ndarray) -> tuple[Rows, Answer, BackupAnswer | None] | None:
+        """The step's rows, QP answer and backup answer (None: the backup stage runs), or None (module docstring)."""
+        cfg, team = self.cfg, s.team
+        if team is not self._team:
+            self._team, self._limit = team, team_block(team, cfg.brake_fraction, cfg.sensing_range)[1]
+        pose = axle_pose(team, s.p, s.theta)
+        solved, passed, r, qp, avoiding, (gdu, nudged, margin) = self._kernel(
+            self._rows.args(cfg, s, pairs), (c64(target), s.lo, s.hi, s.scale), (c64(x), keys, z), self._settings,
+            cfg.eta_tol, (pose, s.u, cfg.dt, self._levels, self._limit, GATE_TOL),
+            kernel_args(team, pose, cfg.brake_fraction, cfg.sensing_range, s.obstacles, pairs.robots))
+        if not solved:
+            return None
+        used, n_qp, du, x_new, z_new, eta = qp
+        ans = Answer(du, x_new, z_new, eta, avoiding, "solved", VERIFIED_MESSAGE if n_qp else CLOSED_FORM_MESSAGE,
+                     int(used), int(n_qp), 0.0)
+        backup = BackupAnswer(gdu, np.zeros(du.shape[0], dtype=bool), nudged, float(margin), True) if passed else None
+        return kernel_rows(r), ans, backup
