@@ -27,7 +27,7 @@ from typing import Literal, Protocol
 import numpy as np
 
 from aasoatt_env import validation as check
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.errors import ConfigError, ScenarioError
 
 __all__ = [
     "FunctionReference",
@@ -159,10 +159,33 @@ class ReferenceStack:
         if len(times) != len(self.refs):
             raise ConfigError(f"times: got {len(times)} times, expected one per team ({len(self.refs)})")
         if self._linear:
-            t = np.repeat(np.asarray(times, dtype=np.float64), self._sizes)
+            t = (np.full(self._starts.shape[0], float(times[0])) if len(self.refs) == 1
+                 else np.repeat(np.asarray(times, dtype=np.float64), self._sizes))
             return _linear(self._starts, self._goals, self._delta, self._T, t, self._profile)
-        parts = [r(t) for r, t in zip(self.refs, times)]
+        parts = [self._checked(k, float(t)) for k, t in enumerate(times)]
+        if len(parts) == 1:
+            return parts[0]
         return tuple(np.concatenate([q[i] for q in parts]) for i in range(3))  # type: ignore[return-value]
+
+    def _checked(self, k: int, t: float) -> RefTriple:
+        """Team ``k``'s reference at ``t`` as new float64 arrays, refused unless finite and ``(N, 2)``.
+
+        A :class:`LinearReference` is finite by construction; other references (a user's callable,
+        finite differences at ``t - h``) may not be.
+        """
+        ref, n = self.refs[k], int(self._sizes[k])
+        out = tuple(np.array(x, dtype=np.float64) for x in ref(t))
+        for name, x in zip(("p_d", "v_d", "a_d"), out):
+            if x.shape != (n, 2) or not np.isfinite(x).all():
+                team = f" of team {k}" if len(self.refs) > 1 else ""
+                if x.shape != (n, 2):
+                    raise ScenarioError(f"reference ({type(ref).__name__}) {name} at t = {t:g} s{team}: got shape "
+                                        f"{x.shape}, expected ({n}, 2)")
+                i = int(np.flatnonzero(~np.isfinite(x).all(axis=1))[0])
+                raise ScenarioError(f"reference ({type(ref).__name__}) {name} at t = {t:g} s: got a non-finite value "
+                                    f"{x[i].tolist()} for robot {i}{team}, expected finite values (a reference "
+                                    "must be defined at every time of the episode)")
+        return out  # type: ignore[return-value]
 
 
 class WaypointReference:

@@ -1,48 +1,29 @@
 """``ShardedBatchedEnv``: the teams of a batch stepped in several worker processes.
 
-:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` steps all teams in one
-process, with one filter call per physics step for all of them.  That call is
-bound by numpy's per-call overhead, not by the number of robots, so a second
-core does not help it; splitting the teams over ``W`` processes does: each
-worker steps its own shard (contiguous teams, sizes as equal as possible) as a
-``BatchedAASOATTEnv`` with its own grouped filter call, and the shards run at
-the same time.  This class has the batch's API and concatenates the shards'
-answers in team order, so a trainer sees one batch of ``K`` teams.
+One :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` call is bound by numpy's
+per-call overhead, not by the number of robots, so a second core does not help it;
+splitting the teams over ``W`` processes does.  Each worker steps its shard
+(contiguous teams, sizes as equal as possible) as a ``BatchedAASOATTEnv``; this class
+has the batch's API and concatenates the shards' answers in team order.  Each team
+keeps its generator, seed (team ``k`` gets ``seed + k`` wherever it lives), clock and
+filter, so trajectories equal one process's: bit for bit without a filter or with
+``group_filter=False`` and a deterministic QP solver, to rounding behind the grouped
+filter.  Actions are checked here before any shard steps, and errors name teams by
+their number in the whole batch.
 
-What is the same as one process: each team has its own scenario generator,
-seed (``reset(seed=s)``: team ``k`` gets ``s + k`` wherever it lives), clock
-and filter, and the physics is per team, so without a filter, or with
-``group_filter=False`` and a QP solver whose answer is a function of the
-problem alone, trajectories are bit-identical to one ``BatchedAASOATTEnv``
-(``tests/test_sharded.py``).  Behind the grouped filter each shard's stacked QP
-is solved in one piece, so answers agree with one process to rounding (as the
-grouped call agrees with separate envs).  Actions are checked here, before any
-shard steps, with the batch's checks and messages (team numbers are the whole
-batch's everywhere, also in errors raised inside a worker).
+Workers start with ``forkserver`` where the platform has it, else ``spawn`` (no
+``fork`` of a process that may hold torch threads), so a script that makes one must
+guard its entry point with ``if __name__ == "__main__":``.  Messages travel with
+``cloudpickle``, so env constructors may be lambdas.  A worker's exception is raised
+here again with its class where it pickles, naming the worker; workers ignore Ctrl-C.
+A call interrupted while it waits for the workers leaves their replies to be read
+and dropped before the next call (``live`` is still taken from them); an interrupt
+that cuts a message in two, or falls between the sends of one command, leaves the
+pipes out of step: every later call then raises
+:class:`~aasoatt_env.errors.UsageError` (make a new env), as after a worker dies.
 
-Processes: workers are started with ``multiprocessing`` (``forkserver`` where
-the platform has it, else ``spawn``: no ``fork`` of a process that may hold
-torch threads), so a script that makes one must guard its entry point with
-``if __name__ == "__main__":`` (as for SB3's ``SubprocVecEnv``).  Messages go
-both ways with ``cloudpickle`` (a Gymnasium dependency), so env constructors
-may be lambdas and closures.  An exception in a worker is raised again here
-with its class where it can be pickled, naming the worker, and the worker
-stays usable; workers ignore Ctrl-C (the caller decides).  A call interrupted
-here while it waits for the workers (where an interrupt almost always lands)
-leaves their replies to be read and dropped before the next call (the teams'
-``live`` is still taken from them), so the pipes stay in step.  An interrupt
-that cuts a message in two (while it is being written or read), or that falls
-between the sends of one command to several workers, leaves the pipes or the
-shards out of step: then every later call raises
-:class:`~aasoatt_env.errors.UsageError` saying so (make a new env), as after a
-worker dies.  Signal handlers are never touched.
-
-API: that of :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` (``reset``,
-``step``, ``live``, ``max_steps``, ``elapsed_steps``, the spaces, the shared
-settings, ``sync``, ``render``, ``env_get``/``env_set``/``env_call``/
-``env_is_wrapped``, ``close``), without ``envs`` (the teams' envs live in the
-workers: use the ``env_*`` methods) and with ``grouped_filter = None`` (no
-filter object in this process).
+API: that of :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`, without ``envs``
+(use the ``env_*`` methods) and with ``grouped_filter = None``.
 """
 
 from __future__ import annotations
@@ -119,6 +100,17 @@ def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offs
         _reply(conn, _error(exc))
         conn.close()
         return
+    handlers: dict[str, Callable[[Any], Any]] = {
+        "step": lambda a: (*batch.step(a), batch.live),
+        "reset": lambda a: (*batch.reset(seed=a[0], options=a[1]), batch.live),
+        "state": lambda a: (batch.max_steps, batch.elapsed_steps),
+        "sync": lambda a: batch.sync(),
+        "render": lambda a: batch.render(),
+        "get": lambda a: batch.env_get(*a),
+        "set": lambda a: batch.env_set(*a),
+        "call": lambda a: batch.env_call(a[0], a[1], *a[2], **a[3]),
+        "wrapped": lambda a: batch.env_is_wrapped(*a),
+    }
     while True:
         try:
             cmd, args = _recv(conn)
@@ -129,30 +121,9 @@ def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offs
                 batch.close()
                 _reply(conn, ("ok", None))
                 break
-            if cmd == "step":
-                out = batch.step(args)
-                _reply(conn, ("ok", (*out, batch.live)))
-            elif cmd == "reset":
-                obs, info = batch.reset(seed=args[0], options=args[1])
-                _reply(conn, ("ok", (obs, info, batch.live)))
-            elif cmd == "state":
-                _reply(conn, ("ok", (batch.max_steps, batch.elapsed_steps)))
-            elif cmd == "sync":
-                batch.sync()
-                _reply(conn, ("ok", None))
-            elif cmd == "render":
-                _reply(conn, ("ok", batch.render()))
-            elif cmd == "get":
-                _reply(conn, ("ok", batch.env_get(*args)))
-            elif cmd == "set":
-                _reply(conn, ("ok", batch.env_set(*args)))
-            elif cmd == "call":
-                k, name, a, kw = args
-                _reply(conn, ("ok", batch.env_call(k, name, *a, **kw)))
-            elif cmd == "wrapped":
-                _reply(conn, ("ok", batch.env_is_wrapped(*args)))
-            else:
-                _reply(conn, ("error", UsageError(f"worker: unknown command {cmd!r}"), ""))
+            if cmd not in handlers:
+                raise UsageError(f"worker: unknown command {cmd!r}")
+            _reply(conn, ("ok", handlers[cmd](args)))
         except Exception as exc:  # noqa: BLE001 - reported; the worker goes on
             _reply(conn, _error(exc))
     conn.close()
@@ -424,9 +395,8 @@ class ShardedBatchedEnv:
             finished = np.flatnonzero(~self._live.any(axis=1))
             if finished.size:
                 raise finished_error(finished)
-        parse_actions(actions, self._live, self.nominal_actions, self.shared_settings["clip_actions"])
-        arr = np.asarray(actions).reshape(self.num_envs, self.num_agents, 2)
-        out = self._all("step", self._split(arr))
+        act = parse_actions(actions, self._live, self.nominal_actions, self.shared_settings["clip_actions"])
+        out = self._all("step", self._split(act.reshape(self.num_envs, self.num_agents, 2)))
         obs, rew, term, trunc = (np.concatenate([o[i] for o in out]) for i in range(4))
         infos: dict[str, Any] = {}
         for key in out[0][4]:
