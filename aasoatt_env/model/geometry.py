@@ -1,40 +1,24 @@
 """Neighbour search on disc robots: the one home of every distance query in the library.
 
-The observations (k nearest robots), the safety filter (pairs within the sensing
-range), the metrics and the adversarial agents all call these functions.
-:func:`robot_pairs` has three back-ends with identical answers: brute force over
-the ``N x N`` distances below :data:`KDTREE_MIN_ROBOTS` robots, above it a
-compiled grid of cells (:mod:`aasoatt_env.model.geometry_kernel`) where numba
-imports, else :class:`scipy.spatial.cKDTree`.  Pairs come sorted
-lexicographically with ``i < j``, so the filter's row order does not depend on
-the back-end.  :func:`neighbourhood` answers for several equal teams stacked
-(the batched env), each team apart from the others.
+The observations, the safety filter, the metrics and the adversarial agents all call these
+functions.  :func:`robot_pairs` has three back-ends with identical answers: brute force
+below :data:`KDTREE_MIN_ROBOTS` robots, above it a compiled grid of cells
+(:mod:`aasoatt_env.model.geometry_kernel`) where numba imports, else a k-d tree; pairs come
+sorted with ``i < j``, so the filter's rows do not depend on the back-end.
+:func:`neighbourhood` answers for several equal teams stacked (the batched env).
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from aasoatt_env import compiled as _compiled
 
-__all__ = [
-    "KDTREE_MIN_ROBOTS",
-    "brute_candidates",
-    "k_nearest",
-    "min_gaps",
-    "neighbourhood",
-    "obstacle_gaps",
-    "obstacle_pairs",
-    "pair_components",
-    "pairwise_distances",
-    "robot_pairs",
-    "row_dot",
-]
+__all__ = ["KDTREE_MIN_ROBOTS", "brute_candidates", "k_nearest", "min_gaps", "neighbourhood", "obstacle_gaps",
+           "obstacle_pairs", "pair_components", "pairwise_distances", "robot_pairs", "row_dot", "uses_brute_force"]
 
 KDTREE_MIN_ROBOTS: int = 200
 """Team size from which a tree (or grid) answers instead of the full distance matrix."""
@@ -51,27 +35,28 @@ def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     return iu, ju
 
 
-_LABELLING_CACHES: dict[str, dict[bytes, Any]] = {"pairs": {}, "size": {}}
+def _key(groups: np.ndarray) -> tuple[bytes, str]:
+    """A labelling as a cache key (the filter asks about the same one at every physics step)."""
+    groups = np.asarray(groups)
+    if groups.dtype.kind == "O":  # labels of any kind: their classes
+        groups = np.unique(groups, return_inverse=True)[1].reshape(-1)
+    return np.ascontiguousarray(groups).tobytes(), groups.dtype.str
 
 
-def _per_labelling(kind: str, groups: np.ndarray, make: Callable[[np.ndarray], Any]) -> Any:
-    """``make(groups)``, cached per labelling (the filter asks for the same one at every physics step)."""
-    store = _LABELLING_CACHES[kind]
-    key = np.ascontiguousarray(groups).tobytes()
-    hit = store.get(key)
-    if hit is None:
-        if len(store) >= 16:
-            store.clear()
-        hit = store[key] = make(groups)
-    return hit
-
-
-def _make_group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@functools.lru_cache(maxsize=16)
+def _group_pairs(key: bytes, dtype: str) -> tuple[np.ndarray, np.ndarray]:
+    groups = np.frombuffer(key, dtype=dtype)
     iu, ju = _upper_pairs(groups.shape[0])
     same = groups[iu] == groups[ju]
     iu, ju = iu[same], ju[same]
     iu.flags.writeable = ju.flags.writeable = False
     return iu, ju
+
+
+@functools.lru_cache(maxsize=16)
+def _group_size(key: bytes, dtype: str) -> int:
+    groups = np.frombuffer(key, dtype=dtype)
+    return groups.shape[0] // max(int(np.unique(groups).size), 1)
 
 
 def brute_candidates(n: int, groups: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -80,7 +65,7 @@ def brute_candidates(n: int, groups: np.ndarray | None = None) -> tuple[np.ndarr
     Every pair ``i < j`` (of one label with ``groups``) in lexicographic order; :func:`robot_pairs`
     keeps those with ``d0 d0 + d1 d1 <= radius * radius`` (``d = p_i - p_j``).
     """
-    return _upper_pairs(n) if groups is None else _per_labelling("pairs", groups, _make_group_pairs)
+    return _upper_pairs(n) if groups is None else _group_pairs(*_key(groups))
 
 
 def uses_brute_force(n: int, groups: np.ndarray | None = None) -> bool:
@@ -88,9 +73,7 @@ def uses_brute_force(n: int, groups: np.ndarray | None = None) -> bool:
 
     That is, with fewer than :data:`KDTREE_MIN_ROBOTS` points per group.
     """
-    per_group = n if groups is None else _per_labelling(
-        "size", groups, lambda g: g.shape[0] // max(int(np.unique(g).size), 1))
-    return per_group < KDTREE_MIN_ROBOTS
+    return (n if groups is None else _group_size(*_key(groups))) < KDTREE_MIN_ROBOTS
 
 
 def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -110,27 +93,12 @@ def pairwise_distances(p: np.ndarray) -> np.ndarray:
 
 def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: np.ndarray | None = None,
                 compiled: bool | None = None) -> np.ndarray:
-    """Index pairs ``(i, j)``, ``i < j``, with ``|p_i - p_j| <= radius`` (and, with ``groups``, of one group).
+    """Index pairs ``(P, 2)``, ``i < j``, sorted, with ``|p_i - p_j| <= radius`` (with ``groups``: of one label).
 
-    Parameters
-    ----------
-    p : numpy.ndarray
-        Positions, shape ``(N, 2)``.
-    radius : float
-        Search radius (the sensing range ``D``).
-    method : {"auto", "brute", "kdtree", "cells"}
-        Back-end; ``"auto"`` picks brute force below :data:`KDTREE_MIN_ROBOTS` (per group),
-        above it the compiled grid of cells where numba imports, else the k-d tree.
-        ``"cells"`` without numba: ``ImportError``.
-    groups : numpy.ndarray, optional
-        ``(N,)`` labels (:attr:`aasoatt_env.model.params.Team.group`): only pairs of one label.
-    compiled : bool, optional
-        For ``"auto"``: ``False`` never picks the compiled cells; None: where numba imports.
-
-    Returns
-    -------
-    numpy.ndarray
-        Integer array of shape ``(P, 2)``, sorted lexicographically.
+    ``method``: ``"brute"``, ``"kdtree"``, ``"cells"`` (numba's grid; ``ImportError`` without
+    numba) or ``"auto"``: brute force below :data:`KDTREE_MIN_ROBOTS` per group, above it the
+    cells where numba imports (``compiled=False``: never), else the k-d tree.  ``groups``:
+    ``(N,)`` labels (:attr:`~aasoatt_env.model.params.Team.group`).
     """
     n = p.shape[0]
     if groups is not None and np.shape(groups) != (n,):
@@ -215,9 +183,9 @@ def _distances(p: np.ndarray, teams: int) -> np.ndarray:
 
 
 def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's ``k`` nearest of the distance stack ``d`` ``(K, N, N)``: indices into the stack and distances.
+    """Each row's ``k`` nearest in the distance stack ``d (K, N, N)``: stack indices and distances ``(K N, k)``.
 
-    ``(K N, k)`` each, nearest first; -1 and inf where a team has fewer than ``k`` others.
+    Nearest first; -1 and inf where a team has fewer than ``k`` others.
     """
     teams, n = d.shape[0], d.shape[1]
     kk = min(k, n - 1)
@@ -243,8 +211,7 @@ def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
 def _robot_gaps(d: np.ndarray, radii: np.ndarray, equal: np.ndarray | None = None) -> np.ndarray:
     """Surface gap ``(K N,)`` of each robot to the nearest of its team, from the distance stack ``d``.
 
-    ``equal``: whether each team's radii are all equal ``(K,)`` (None: found here); then the
-    nearest centre gives the clearance.
+    ``equal (K,)``: whether each team's radii are all equal, when the nearest centre gives it.
     """
     teams, n = d.shape[0], d.shape[1]
     if n <= 1:
@@ -269,11 +236,10 @@ def _listed_gaps(idx: np.ndarray, dist: np.ndarray, radii: np.ndarray) -> np.nda
 
 
 def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Indices ``(N, k)`` and distances ``(N, k)`` of each point's ``k`` nearest other points.
+    """Indices and distances ``(N, k)`` of each point's ``k`` nearest other points (-1 and inf: none).
 
-    Brute force below :data:`KDTREE_MIN_ROBOTS` points (then the full distance matrix,
-    inf on its diagonal, is returned too, else None); a k-d tree above.  Missing
-    neighbours (fewer than ``k`` others) get index -1 and distance inf.
+    Brute force below :data:`KDTREE_MIN_ROBOTS` points, which also returns the distance
+    matrix (inf diagonal; else None); a k-d tree above.
     """
     n = p.shape[0]
     kk = min(k, n - 1)
@@ -310,16 +276,13 @@ def min_gaps(
 def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, k: int,
                   teams: int = 1, equal_radii: np.ndarray | None = None
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Nearest robots, obstacle gaps and clearance of ``teams`` equal teams stacked in ``p`` ``(K N, 2)``.
+    """Nearest robots, obstacle gaps and clearance of ``teams`` equal teams stacked in ``p (K N, 2)``.
 
-    Returns the indices into the stack ``(K N, k)`` of each robot's ``k`` nearest robots of its
-    own team (-1: none) and their centre distances (inf: none), the surface gaps to its team's
-    obstacles ``(K N, M)`` (``centers (K, M, 2)`` and ``obstacle_radii (K, M)``; ``(M, 2)`` and
-    ``(M,)`` for one team), and the clearance ``(K N,)`` to the nearest robot or obstacle.  The
-    clearance is exact below :data:`KDTREE_MIN_ROBOTS` robots per team; a larger team (one
-    only) takes it over its ``max(k, 6)`` nearest centres (exact for equal radii), as
-    :func:`min_gaps` over its 6 nearest.  ``equal_radii`` ``(K,)``: whether each team's radii
-    are all equal, if known.
+    Returns each robot's ``k`` nearest robots of its team (stack indices and centre distances,
+    ``(K N, k)``, -1/inf: none), its surface gaps ``(K N, M)`` to its team's obstacles
+    (``centers (K, M, 2)``, ``obstacle_radii (K, M)``) and its clearance ``(K N,)``: exact below
+    :data:`KDTREE_MIN_ROBOTS` robots per team, over the ``max(k, 6)`` nearest for one larger team
+    (as :func:`min_gaps`).  ``equal_radii (K,)``: whether each team's radii are equal, if known.
     """
     if p.shape[0] // teams < KDTREE_MIN_ROBOTS:
         d = _distances(p, teams)
@@ -338,9 +301,8 @@ def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacl
 def pair_components(n: int, ri: np.ndarray, rj: np.ndarray, *, compiled: bool | None = None) -> np.ndarray:
     """Connected-component label ``(n,)`` of ``n`` robots, edges ``(ri[k], rj[k])`` (none where ``rj < 0``: obstacles).
 
-    Robots of one component share the label of its smallest index.  Union-find in the
-    compiled kernel (``compiled=None``: where numba imports), else min-label propagation
-    with pointer jumping: the same labels.  Edge ends outside ``[0, n)``: ``ValueError``.
+    A component is labelled by its smallest index: union-find in the compiled kernel
+    (``compiled=None``: where numba imports), else min-label propagation, the same labels.
     """
     ri, rj = np.asarray(ri), np.asarray(rj)
     if not (np.issubdtype(ri.dtype, np.integer) and np.issubdtype(rj.dtype, np.integer)) and ri.size:

@@ -29,14 +29,7 @@ import numpy as np
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError, ScenarioError
 
-__all__ = [
-    "FunctionReference",
-    "LinearReference",
-    "Reference",
-    "ReferenceStack",
-    "WaypointReference",
-    "as_reference",
-]
+__all__ = ["FunctionReference", "LinearReference", "Reference", "ReferenceStack", "WaypointReference", "as_reference"]
 
 RefTriple = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -65,20 +58,12 @@ def _points(name: str, value: np.ndarray | list, n: int | None = None) -> np.nda
 
 
 class LinearReference:
-    """Straight lines from ``starts`` to ``goals``, each travelled in its robot's duration.
+    """Straight lines from ``starts`` to ``goals`` ``(N, 2)``, each travelled in its robot's duration.
 
-    Parameters
-    ----------
-    starts, goals : array_like, shape (N, 2)
-        Start and goal points of each robot's controlled point.
-    duration : float or array_like, shape (N,)
-        Travel time [s], one for the team or one per robot; each robot's
-        reference rests at its goal afterwards (:attr:`duration`: the longest).
-    profile : {"linear", "smooth"}
-        ``"linear"``: constant velocity ``(goal - start) / duration`` (the
-        paper's linear-in-time reference; the velocity jumps to 0 at the end).
-        ``"smooth"``: minimum-jerk timing ``s = 10 tau^3 - 15 tau^4 + 6 tau^5``
-        (zero velocity and acceleration at both ends).
+    ``duration`` [s]: one for the team or one per robot ``(N,)``; a reference rests at its goal
+    afterwards (:attr:`duration`: the longest).  ``profile``: ``"linear"``, constant velocity
+    (the paper's; it jumps to 0 at the end), or ``"smooth"``, minimum-jerk timing
+    ``s = 10 tau^3 - 15 tau^4 + 6 tau^5`` (zero velocity and acceleration at both ends).
     """
 
     def __init__(
@@ -128,17 +113,10 @@ def _linear(starts: np.ndarray, goals: np.ndarray, delta: np.ndarray, T: np.ndar
 
 
 class ReferenceStack:
-    """The references of several teams, evaluated together at each team's own time.
+    """The references ``refs`` of several teams (stack order), evaluated together at each team's own time.
 
-    ``stack(times)`` equals concatenating ``ref(t)`` over the teams, element for
-    element.  When every reference is a :class:`LinearReference` of one profile
-    the whole stack is evaluated by one vectorised call (a batched env does this
-    at every physics step); other references are called one by one.
-
-    Parameters
-    ----------
-    refs : sequence of Reference
-        One reference per team, in stack order.
+    ``stack(times)`` equals concatenating ``ref(t)`` over the teams, element for element:
+    :class:`LinearReference` s of one profile in one vectorised call, others one by one.
     """
 
     def __init__(self, refs: Sequence[Reference]) -> None:
@@ -189,14 +167,9 @@ class ReferenceStack:
 
 
 class WaypointReference:
-    """Piecewise-linear paths through waypoints reached at given times.
+    """Piecewise-linear paths through ``K >= 2`` waypoints ``(N, K, 2)`` (``(K, 2)``: one robot) at ``times (K,)``.
 
-    Parameters
-    ----------
-    waypoints : array_like, shape (N, K, 2) or (K, 2)
-        ``K >= 2`` waypoints per robot (a ``(K, 2)`` array is one robot).
-    times : array_like, shape (K,)
-        Strictly increasing arrival times, ``times[0]`` usually 0.
+    ``times`` strictly increasing, ``times[0]`` usually 0.
     """
 
     def __init__(self, waypoints: np.ndarray, times: np.ndarray) -> None:
@@ -229,19 +202,10 @@ class WaypointReference:
 
 
 class FunctionReference:
-    """A reference from user callables.
+    """A reference from user callables ``position(t) -> (N, 2)`` and optionally its derivatives.
 
-    Parameters
-    ----------
-    position : callable
-        ``position(t) -> (N, 2)`` array.
-    velocity, acceleration : callable, optional
-        Their derivatives; when omitted, central differences with step ``h``.
-    duration : float
-        Time after which the reference is considered finished (used for the
-        episode horizon); ``goals`` is ``position(duration)``.
-    h : float
-        Finite-difference step [s].
+    Without ``velocity``/``acceleration``: central differences with step ``h`` [s].  ``duration``:
+    when the reference is finished (the episode horizon); ``goals`` is ``position(duration)``.
     """
 
     def __init__(

@@ -139,8 +139,7 @@ class ShardedBatchedEnv:
     Parameters
     ----------
     env_fns : sequence of callables
-        As :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`'s; they are called in the
-        workers (sent with ``cloudpickle``).
+        As :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`'s; called in the workers.
     num_workers : int
         Worker processes, ``1 <= num_workers <= len(env_fns)``.
     autoreset, group_filter : bool
@@ -214,6 +213,8 @@ class ShardedBatchedEnv:
         return f"worker {w} (teams {self._starts[w]}..{self._starts[w + 1] - 1})"
 
     def _dead(self, w: int) -> _LinkDown:
+        """Worker ``w`` died: its pending replies are gone, and every later call says so."""
+        self._pending[w].clear()
         self._procs[w].join(timeout=1.0)
         code = self._procs[w].exitcode
         return _LinkDown(f"{self._teams(w)} died" + (f" with exit code {code}" if code is not None else "")
@@ -227,25 +228,19 @@ class ShardedBatchedEnv:
     def _receive(self, w: int) -> Any:
         """Worker ``w``'s reply to its oldest pending command (its answer, or its error raised here).
 
-        An interrupt while waiting for the reply (where it almost always lands) leaves the reply
-        to be read later; one in the middle of reading it leaves the pipe at an unknown place: the
-        env is then broken (every later call says so).
+        An interrupt while waiting leaves the reply to be read later; one in the middle of
+        reading it leaves the pipe at an unknown place: the env is then broken.
         """
         conn = self._conns[w]
         try:
             conn.poll(None)
-        except EOFError:
-            self._pending[w].clear()
-            raise self._dead(w) from None
-        except OSError:  # e.g. a timeout raised by a signal handler: nothing was read
-            if self._procs[w].is_alive():
+        except (EOFError, OSError) as exc:  # the pipe closed, or e.g. a signal handler's timeout
+            if not isinstance(exc, EOFError) and self._procs[w].is_alive():  # nothing was read
                 raise
-            self._pending[w].clear()
             raise self._dead(w) from None
         try:
             data = conn.recv_bytes()
         except (EOFError, OSError):
-            self._pending[w].clear()
             raise self._dead(w) from None
         except BaseException:
             self._torn(w, "reading the reply of")
@@ -266,11 +261,7 @@ class ShardedBatchedEnv:
         raise exc
 
     def _drain(self, w: int) -> None:
-        """Read and drop the replies (answers or errors) of calls interrupted before they were read.
-
-        A dropped step's or reset's ``live`` is still booked (:meth:`_receive`); only a dead worker
-        or a torn message comes out of here.
-        """
+        """Read and drop the replies of calls interrupted before they were read (their ``live`` still booked)."""
         while self._pending[w]:
             if self._broken:
                 raise UsageError(self._broken_message())
@@ -295,7 +286,6 @@ class ShardedBatchedEnv:
             self._conns[w].send_bytes(data)
         except (BrokenPipeError, OSError):
             if not self._procs[w].is_alive():
-                self._pending[w].clear()
                 raise self._dead(w) from None
             self._torn(w, "sending to")
             raise
@@ -342,6 +332,10 @@ class ShardedBatchedEnv:
         if self._broken:
             raise UsageError(self._broken_message())
 
+    def _every(self, cmd: str) -> list[Any]:
+        """``cmd`` without arguments for every worker; their answers."""
+        return self._all(cmd, [None] * len(self._conns))
+
     def _split(self, arr: np.ndarray) -> list[np.ndarray]:
         return [arr[self._starts[w]:self._starts[w + 1]] for w in range(len(self.sizes))]
 
@@ -367,12 +361,12 @@ class ShardedBatchedEnv:
     @property
     def max_steps(self) -> np.ndarray:
         """Horizon of each team's current episode in env steps ``(K,)``."""
-        return np.concatenate([s[0] for s in self._all("state", [None] * len(self._conns))])
+        return np.concatenate([s[0] for s in self._every("state")])
 
     @property
     def elapsed_steps(self) -> np.ndarray:
         """Env steps taken in each team's current episode ``(K,)``."""
-        return np.concatenate([s[1] for s in self._all("state", [None] * len(self._conns))])
+        return np.concatenate([s[1] for s in self._every("state")])
 
     def reset(self, seed: int | Sequence[int | None] | None = None,
               options: dict | Sequence[dict | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -411,11 +405,11 @@ class ShardedBatchedEnv:
 
     def sync(self) -> None:
         """Write each shard's state into its teams' own envs (in the workers)."""
-        self._all("sync", [None] * len(self._conns))
+        self._every("sync")
 
     def render(self) -> tuple[Any, ...]:
         """One frame per team, in team order."""
-        return tuple(f for frames in self._all("render", [None] * len(self._conns)) for f in frames)
+        return tuple(f for frames in self._every("render") for f in frames)
 
     def env_get(self, k: int, name: str) -> Any:
         """Attribute ``name`` of team ``k``'s own env (``k`` as a sequence index; sent back pickled)."""

@@ -14,19 +14,8 @@ from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.sim.references import Reference
 
-__all__ = [
-    "MAX_ROBOTS",
-    "Layout",
-    "Scenario",
-    "check_clear_of_obstacles",
-    "check_no_overlap",
-    "check_num_robots",
-    "check_obstacles",
-    "check_quantity",
-    "check_settle_time",
-    "heading_of",
-    "max_robots_on_circle",
-]
+__all__ = ["MAX_ROBOTS", "Layout", "Scenario", "check_clear_of_obstacles", "check_no_overlap", "check_num_robots",
+           "check_obstacles", "check_quantity", "check_settle_time", "heading_of", "max_robots_on_circle"]
 
 MAX_ROBOTS: int = 100_000
 """Largest team a scenario builds (the work of a step grows with the team)."""

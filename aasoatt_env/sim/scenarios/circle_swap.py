@@ -1,13 +1,4 @@
-"""``circle_swap``: N robots evenly on a circle, each tracks the straight line to its antipode (Tables II, III).
-
-=====================  ==========================================================
-agents                 ``robot_0`` ... ``robot_{N-1}`` (default N = 10)
-start / goal           ``R (cos a_i, sin a_i)`` -> its antipode, ``a_i = 2 pi i / N``
-reference              straight line, linear in time over ``duration`` (paper:
-                       ``R = 6``, 12 s; ``R = 10``, 20 s), then held
-obstacles              none (optional ``obstacles``)
-=====================  ==========================================================
-"""
+"""``circle_swap``: N robots evenly on a circle, each tracks the straight line to its antipode (Tables II, III)."""
 
 from __future__ import annotations
 

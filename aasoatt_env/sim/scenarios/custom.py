@@ -1,12 +1,4 @@
-"""``custom``: your own team: start points, a reference (object, callable or waypoints) and obstacles.
-
-=====================  ==========================================================
-agents                 ``robot_0`` ... ``robot_{N-1}``, N = ``len(starts)``
-start                  ``starts``, headings along the reference velocity
-reference              a Reference, a callable ``t -> (N, 2)`` or waypoints
-obstacles              optional discs (none may cover a start or a goal)
-=====================  ==========================================================
-"""
+"""``custom``: your own team: start points, a reference (object, callable or waypoints) and obstacles."""
 
 from __future__ import annotations
 

@@ -1,12 +1,4 @@
-"""``position_swap``: 4 TurtleBot3 Burgers swap corners, 2.24 m at 0.1 m/s (the paper's Fig. 6 experiment).
-
-=====================  ==========================================================
-agents                 ``robot_0`` ... ``robot_3``
-start / goal           corners of a square -> the opposite corner
-reference              straight line at ``speed``
-obstacles              none
-=====================  ==========================================================
-"""
+"""``position_swap``: 4 TurtleBot3 Burgers swap corners, 2.24 m at 0.1 m/s (the paper's Fig. 6 experiment)."""
 
 from __future__ import annotations
 

@@ -1,12 +1,4 @@
-"""``tracking``: one robot on a straight, sine or circle reference (Table I).
-
-=====================  ==========================================================
-agents                 ``robot_0``
-start                  on the reference at ``t = 0``, at rest, heading along it
-reference              ``straight``, ``sine`` or ``circle`` (or your own)
-obstacles              none
-=====================  ==========================================================
-"""
+"""``tracking``: one robot on a straight, sine or circle reference (Table I)."""
 
 from __future__ import annotations
 
