@@ -173,6 +173,14 @@ def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius
     return np.stack((i, k), axis=1).astype(np.intp)
 
 
+@functools.lru_cache(maxsize=16)
+def _rows(n: int) -> np.ndarray:
+    """``arange(n)[:, None]`` (read-only), to index row by row."""
+    rows = np.arange(n)[:, None]
+    rows.flags.writeable = False
+    return rows
+
+
 def _distances(p: np.ndarray, teams: int) -> np.ndarray:
     """Centre distances within each of ``teams`` equal consecutive blocks of ``p``: ``(K, N, N)``, inf diagonal."""
     n = p.shape[0] // teams
@@ -192,7 +200,7 @@ def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     if kk <= 0:
         return np.full((teams * n, k), -1, dtype=np.intp), np.full((teams * n, k), np.inf)
     d2 = d.reshape(teams * n, n)
-    rows = np.arange(teams * n)[:, None]
+    rows = _rows(teams * n)
     if n <= _FULL_SORT_MAX or kk >= n - 1:
         order = np.argsort(d2, axis=1)[:, :kk]
     else:

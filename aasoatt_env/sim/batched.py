@@ -182,27 +182,27 @@ class BatchedAASOATTEnv(TeamStack):
         act = parse_actions(actions, self.live, self.nominal_actions, self.clip_actions, self._offset)
         live_before = self._active
         saturated, between, outputs = self._physics(act)
-        out = self._decide(act, saturated, between, outputs)
+        obs, rew, collided, terminated, finished, corr, goal = self._decide(act, saturated, between, outputs)
         shape = (self.num_envs, self.num_agents)
         infos: dict[str, Any] = {}
         if outputs:
             intervened, avoiding = self._filter_flags(outputs)
-            infos.update(filter_correction=out["correction"].reshape(shape),
-                         filter_intervened=intervened.reshape(shape), filter_avoiding=avoiding.reshape(shape))
-        goal = out["goal_distance"]
+            infos.update(filter_correction=corr.reshape(shape), filter_intervened=intervened.reshape(shape),
+                         filter_avoiding=avoiding.reshape(shape))
         goal = np.hypot(*(self._kin.p - self._goals).T) if goal is None else goal  # type: ignore[union-attr]
         infos.update(tracking_error=self._err.reshape(shape), clearance=self._clearance.reshape(shape).copy(),
-                     collision=out["collided"].reshape(shape), saturated=saturated.reshape(shape).copy(),
+                     collision=collided.reshape(shape), saturated=saturated.reshape(shape).copy(),
                      goal_distance=goal.reshape(shape), time=self._times.copy())
-        truncated = np.repeat(out["truncated"], self.num_agents) & live_before
-        self._done = out["truncated"] | ~self._active.reshape(shape).any(axis=1)
-        obs = out["obs"].reshape(*shape, -1)
+        truncated = np.repeat(finished, self.num_agents) & live_before
+        terminated = np.zeros(shape, dtype=bool) if terminated is None else terminated.reshape(shape)
+        self._done = finished | ~self._active.reshape(shape).any(axis=1)
+        obs = obs.reshape(*shape, -1)
         if self.autoreset and self._done.any():
             infos["final_obs"], infos["_final_obs"] = obs.copy(), self._done.copy()
             for k in np.flatnonzero(self._done):
                 obs[k] = self._reset_team(int(k), None, None)
             self._restack()
-        return obs, out["rewards"].reshape(shape), out["terminated"].reshape(shape), truncated.reshape(shape), infos
+        return obs, rew.reshape(shape), terminated, truncated.reshape(shape), infos
 
     # ------------------------------------------------------------------ the teams' own envs
     def sync(self) -> None:

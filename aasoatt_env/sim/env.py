@@ -336,19 +336,15 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         saturated, between, outputs = self._physics(act)
         self._filter_outputs = tuple(outs[0] for outs in outputs) if outputs else ()
         self._trail.append(self._kin.p.copy())  # type: ignore[union-attr]
-        out = self._decide(act, saturated, between, outputs)
+        obs, rew, _, term, finished, _, _ = self._decide(act, saturated, between, outputs)
         live, idx = self.agents, self._index
-        rew = out["rewards"].tolist()
-        obs, infos = self._agent_observations(out["obs"]), self._infos()
+        rew = rew.tolist()
+        obs, infos = self._agent_observations(obs), self._infos()
         rewards = dict(zip(live, rew)) if len(live) == self._n else {a: rew[idx[a]] for a in live}
-        if self.terminate_on_collision:
-            term = out["terminated"]
-            terminations = {a: bool(term[idx[a]]) for a in live}
-        else:
-            terminations = dict.fromkeys(live, False)
-        truncated = bool(out["truncated"][0])
+        terminations = dict.fromkeys(live, False) if term is None else {a: bool(term[idx[a]]) for a in live}
+        truncated = bool(finished[0])
         truncations = dict.fromkeys(live, truncated)
-        self.agents = [] if truncated else [a for a in live if not terminations[a]]
+        self.agents = [] if truncated else list(live) if term is None else [a for a in live if not terminations[a]]
         if len(self.agents) != len(live):
             self._live_idx = np.array([idx[a] for a in self.agents], dtype=np.intp)
         if self.render_mode == "human":
@@ -363,7 +359,7 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         self._live_idx = np.array([self._index[a] for a in self.agents], dtype=np.intp)
         clearance = self._clearance.copy()
         self._refresh()
-        self._clearance = clearance
+        self._clearance, self._collided = clearance, clearance < -self.collision_tolerance
         if not self._trail or not np.array_equal(self._trail[-1], self._kin.p):
             self._trail.append(self._kin.p.copy())
 
@@ -375,13 +371,15 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         return {a: obs[self._index[a]] for a in self.agents}
 
     def _infos(self) -> dict[str, dict[str, Any]]:
-        rows = (self._err.tolist(), self._clearance.tolist(), (self._clearance < -self.collision_tolerance).tolist(),
-                self._saturated.tolist())
-        if len(self.agents) < self._n:
-            rows = tuple([r[self._index[a]] for a in self.agents] for r in rows)
-        t = float(self._times[0])
-        return {a: {"tracking_error": e, "clearance": c, "collision": col, "saturated": s, "time": t}
-                for a, e, c, col, s in zip(self.agents, *rows)}
+        err, clr, sat = self._err.tolist(), self._clearance.tolist(), self._saturated.tolist()
+        col = self._collided.tolist()
+        t, idx = float(self._times[0]), self._index
+        out = {}
+        for a in self.agents:
+            i = idx[a]
+            out[a] = {"tracking_error": err[i], "clearance": clr[i], "collision": col[i], "saturated": sat[i],
+                      "time": t}
+        return out
 
     def state(self) -> np.ndarray:
         """Global state: poses (3N), wheel speeds (2N), reference points (2N), velocities (2N), time."""

@@ -92,24 +92,21 @@ class LinearReference:
 
     def __call__(self, t: float) -> RefTriple:
         """Return ``(p_d, v_d, a_d)`` at time ``t``."""
-        return _linear(self.starts, self.goals, self._delta, self.durations, np.full(self.starts.shape[0], float(t)),
-                       self.profile)
+        return _linear(self.starts, self.goals, self._delta, self.durations, float(t), self.profile)
 
 
-def _linear(starts: np.ndarray, goals: np.ndarray, delta: np.ndarray, T: np.ndarray, t: np.ndarray, profile: str
-            ) -> RefTriple:
-    """:class:`LinearReference` robot by robot: times ``t`` and durations ``T`` ``(N,)`` (one home for the formula)."""
+def _linear(starts: np.ndarray, goals: np.ndarray, delta: np.ndarray, T: np.ndarray, t: float | np.ndarray,
+            profile: str) -> RefTriple:
+    """:class:`LinearReference` robot by robot: time ``t`` (one, or one per robot) and durations ``T`` ``(N,)``."""
     done = (t >= T)[:, None]
     tau = (np.maximum(t, 0.0) / T)[:, None]
-    zeros = np.zeros_like(starts)
     if profile == "linear":
-        p, v, a = starts + tau * delta, delta / T[:, None], zeros
-    else:
-        s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
-        ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / T[:, None]
-        dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (T * T)[:, None]
-        p, v, a = starts + s * delta, ds * delta, dds * delta
-    return np.where(done, goals, p), np.where(done, 0.0, v), np.where(done, 0.0, a)
+        v = np.where(done, 0.0, delta / T[:, None])
+        return np.where(done, goals, starts + tau * delta), v, np.zeros_like(starts)
+    s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
+    ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / T[:, None]
+    dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (T * T)[:, None]
+    return np.where(done, goals, starts + s * delta), np.where(done, 0.0, ds * delta), np.where(done, 0.0, dds * delta)
 
 
 class ReferenceStack:
@@ -137,8 +134,7 @@ class ReferenceStack:
         if len(times) != len(self.refs):
             raise ConfigError(f"times: got {len(times)} times, expected one per team ({len(self.refs)})")
         if self._linear:
-            t = (np.full(self._starts.shape[0], float(times[0])) if len(self.refs) == 1
-                 else np.repeat(np.asarray(times, dtype=np.float64), self._sizes))
+            t = float(times[0]) if len(self.refs) == 1 else np.repeat(np.asarray(times, dtype=np.float64), self._sizes)
             return _linear(self._starts, self._goals, self._delta, self._T, t, self._profile)
         parts = [self._checked(k, float(t)) for k, t in enumerate(times)]
         if len(parts) == 1:

@@ -11,6 +11,7 @@ live here too, one set for both kinds of env.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -31,6 +32,7 @@ __all__ = ["TeamStack", "checked_actions", "real_actions"]
 _NOMINAL_MAX = 1e6
 """Largest nominal action accepted behind a filter (in units of the bound): larger ones are a bug upstream."""
 
+_FLOAT_MAX = float(np.finfo(np.float64).max)
 _REAL = "(a float or integer dtype)"
 
 
@@ -76,12 +78,12 @@ def checked_actions(act: np.ndarray, nominal: bool, clip: bool, name: Callable[[
     projects them); otherwise up to ``1 + 1e-6`` (any finite value with ``clip``).  ``name(row)``
     names a row in errors.
     """
-    peak = np.abs(act).max(initial=0.0)
-    if not np.isfinite(peak):
-        bad = int(np.flatnonzero(~np.isfinite(act).all(axis=1))[0])
-        raise ActionError(f"{name(bad)}: got non-finite values {act[bad].tolist()}, expected finite numbers")
-    accept = _NOMINAL_MAX if nominal else (np.inf if clip else 1.0 + 1e-6)
-    if peak > accept:
+    peak = float(np.abs(act).max(initial=0.0))
+    accept = _NOMINAL_MAX if nominal else (_FLOAT_MAX if clip else 1.0 + 1e-6)
+    if not peak <= accept:  # also NaN and inf
+        if not math.isfinite(peak):
+            bad = int(np.flatnonzero(~np.isfinite(act).all(axis=1))[0])
+            raise ActionError(f"{name(bad)}: got non-finite values {act[bad].tolist()}, expected finite numbers")
         bad = int(np.flatnonzero(np.abs(act).max(axis=1) > accept)[0])
         raise ActionError(f"{name(bad)}: got {act[bad].tolist()}, expected " + (
             f"a nominal within [-{_NOMINAL_MAX:g}, {_NOMINAL_MAX:g}] (in units of the wheel-acceleration bound; "
@@ -160,6 +162,11 @@ class TeamStack:
         self._oradii = np.stack([lay.obstacle_radii for lay in layouts]) if uniform else None
         self._stackable = uniform and (self._k == 1 or self._n < KDTREE_MIN_ROBOTS)
         """One neighbour query for all teams (else one per team)."""
+        m = self._ocenters.shape[1] if uniform else 0  # type: ignore[union-attr]
+        self._obs_obstacles = (self._ocenters.reshape(-1, 2), self._oradii.ravel(),  # type: ignore[union-attr]
+                               np.repeat(np.arange(self._k) * m, self._n) if m and self._k > 1 else None
+                               ) if uniform else None
+        """The obstacles as :func:`~aasoatt_env.sim.observations.build_observations` reads them (None: ragged)."""
         if self._grouped is not None:
             n = self._n
             rows = np.concatenate([np.arange(k * n, (k + 1) * n) for k in self._filter_resets]
@@ -196,8 +203,8 @@ class TeamStack:
         """
         team, dt, steps = self._team, self.dt, self.decision_interval
         pose, u, kin = self._pose, self._u, self._kin
-        frozen = ~self._active
-        any_frozen = bool(frozen.any())
+        any_frozen = not self._active.all()
+        frozen = ~self._active if any_frozen else None
         saturated = np.zeros(pose.shape[0], dtype=bool)
         between = None
         filters = [b._control_filter for b in self._bases]
@@ -302,39 +309,43 @@ class TeamStack:
         self._err = np.hypot(*(self._kin.p - self._ref_now[0]).T)  # type: ignore[union-attr]
         clearance = self._prox.clearance
         self._clearance = clearance if between is None else np.minimum(clearance, between)
+        self._collided = self._clearance < -self.collision_tolerance
 
     def _observations(self) -> np.ndarray:
         """Observations ``(K N, D)`` float32 of every robot (:mod:`aasoatt_env.sim.observations`)."""
-        kin, (p_d, v_d, a_d), n = self._kin, self._ref_now, self._n
-        slots = {"sensing_range": self.sensing_range, "k_robots": self.num_neighbors,
-                 "k_obstacles": self.num_obstacles}
-        if self._ocenters is None:  # teams with different numbers of obstacles: one call per team
-            return np.concatenate([build_observations(
-                p=kin.p[sl], v=kin.v[sl], theta=self._pose[sl, 2], u=self._u[sl], p_d=p_d[sl], v_d=v_d[sl],
-                a_d=a_d[sl], goals=self._goals[sl], radii=t.radius, obstacle_centers=lay.obstacle_centers,
-                obstacle_radii=lay.obstacle_radii, prox=proximity(kin.p[sl], t.radius, lay.obstacle_centers,
-                                                                  lay.obstacle_radii, max(self.num_neighbors, 1)),
-                **slots) for sl, t, lay in zip((slice(j * n, (j + 1) * n) for j in range(self._k)), self._teams,
-                                               self._layouts)])
-        m = self._ocenters.shape[1]
+        if self._obs_obstacles is None:  # teams with different numbers of obstacles: one call per team
+            return np.concatenate([self._team_observations(j) for j in range(self._k)])
+        (p_d, v_d, a_d), centers, radii, offset = self._ref_now, *self._obs_obstacles
         return build_observations(
-            p=kin.p, v=kin.v, theta=self._pose[:, 2], u=self._u, p_d=p_d, v_d=v_d, a_d=a_d, goals=self._goals,
-            radii=self._team.radius, obstacle_centers=self._ocenters.reshape(-1, 2),  # type: ignore[union-attr]
-            obstacle_radii=self._oradii.ravel(), prox=self._prox,  # type: ignore[union-attr]
-            obstacle_offset=np.repeat(np.arange(self._k) * m, n) if m and self._k > 1 else None, **slots)
+            p=self._kin.p, v=self._kin.v, theta=self._pose[:, 2], u=self._u, p_d=p_d, v_d=v_d, a_d=a_d,  # type: ignore
+            goals=self._goals, radii=self._team.radius, obstacle_centers=centers, obstacle_radii=radii,  # type: ignore
+            sensing_range=self.sensing_range, k_robots=self.num_neighbors, k_obstacles=self.num_obstacles,
+            prox=self._prox, obstacle_offset=offset)
+
+    def _team_observations(self, j: int) -> np.ndarray:
+        """Team ``j``'s observations on their own."""
+        sl, kin, (p_d, v_d, a_d) = slice(j * self._n, (j + 1) * self._n), self._kin, self._ref_now
+        r, lay = self._teams[j].radius, self._layouts[j]  # type: ignore[union-attr]
+        prox = proximity(kin.p[sl], r, lay.obstacle_centers, lay.obstacle_radii, max(self.num_neighbors, 1))
+        return build_observations(
+            p=kin.p[sl], v=kin.v[sl], theta=self._pose[sl, 2], u=self._u[sl], p_d=p_d[sl], v_d=v_d[sl],  # type: ignore
+            a_d=a_d[sl], goals=self._goals[sl], radii=r, obstacle_centers=lay.obstacle_centers,
+            obstacle_radii=lay.obstacle_radii, sensing_range=self.sensing_range, k_robots=self.num_neighbors,
+            k_obstacles=self.num_obstacles, prox=prox)
 
     def _decide(self, act: np.ndarray, saturated: np.ndarray, between: np.ndarray | None,
-                outputs: list[list[FilterOutput]]) -> dict[str, Any]:
-        """The outputs of the decision just stepped: observations, rewards, collisions, terminations.
+                outputs: list[list[FilterOutput]]) -> tuple:
+        """The outputs of the decision just stepped.
 
-        Returns a dict of ``(K N, ...)`` arrays (``obs``, ``rewards``, ``collided``,
-        ``terminated``), ``truncated`` per team, the filter's largest ``correction`` over the
-        physics steps (None without a filter) and ``goal_distance`` (None unless rewarded).
+        Returns ``(obs, rewards, collided, terminated, truncated, correction, goal_distance)``:
+        ``(K N, ...)`` arrays, ``terminated`` None without ``terminate_on_collision``,
+        ``truncated`` per team, the filter's largest correction over the physics steps (None
+        without a filter) and the distances to the goals (None unless rewarded).
         """
         self._last_action, self._saturated = act, saturated
-        self._steps = self._steps + 1
+        self._steps += 1
         self._refresh(between, reference=False)
-        collided = self._clearance < -self.collision_tolerance
+        collided = self._collided
         corr = None
         if outputs:
             per_step = [np.asarray(outs[0].correction, dtype=np.float64) if len(outs) == 1 else
@@ -344,13 +355,11 @@ class TeamStack:
         rew = rewards(self.reward_config, self._err, collided, act, goal,
                       None if corr is None else corr / self._team.max_wheel_accel)  # type: ignore[union-attr]
         obs = self._observations()
+        terminated = None
         if self.terminate_on_collision:
             terminated = collided & self._active
             self._active = self._active & ~terminated
-        else:
-            terminated = np.zeros(collided.shape[0], dtype=bool)
-        return {"obs": obs, "rewards": rew, "collided": collided, "terminated": terminated,
-                "truncated": self._steps >= self._max_steps, "correction": corr, "goal_distance": goal}
+        return obs, rew, collided, terminated, self._steps >= self._max_steps, corr, goal
 
     @staticmethod
     def _filter_flags(outputs: list[list[FilterOutput]]) -> tuple[np.ndarray, np.ndarray]:
