@@ -26,20 +26,12 @@ __all__ = ["AASOATTGymEnv"]
 
 
 class AASOATTGymEnv(gym.Env):
-    """Joint-action view of :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`.
+    """Joint-action view of :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` (``**kwargs``: its keywords).
 
-    Parameters
-    ----------
-    scenario : str
-        Scenario name.
-    parallel_env : AASOATTParallelEnv, optional
-        Wrap this (possibly filtered) parallel env instead of creating one.
-    safety_filter : FilterConfig or dict, optional
-        Put :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` so configured
-        (e.g. ``{"barrier": "aasoatt"}``; ``{}`` for the defaults) between the
-        joint action and the robots; the filter's infos are flat (numeric).
-    **kwargs
-        Passed to :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`.
+    ``parallel_env``: wrap this (possibly filtered) parallel env instead of making one.
+    ``safety_filter``: a :class:`FilterConfig` or a dict of its fields (``{}``: the defaults)
+    puts :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` between the joint action and the
+    robots, with flat (numeric) infos.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 20}

@@ -56,15 +56,58 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 
-from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded
+from aasoatt_env.errors import ConfigError, ResetNeeded
+from aasoatt_env.sim.actions import parse_actions
 from aasoatt_env.sim.env import AASOATTParallelEnv
 from aasoatt_env.sim.protocol import GroupedControlFilter
-from aasoatt_env.sim.stack import TeamStack, checked_actions, real_actions
+from aasoatt_env.sim.stack import TeamStack
 
 __all__ = ["BatchedAASOATTEnv"]
 
 
-class BatchedAASOATTEnv(TeamStack):
+class TeamsAPI:
+    """What :class:`BatchedAASOATTEnv` and :class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv` share."""
+
+    metadata = {"autoreset_mode": "same_step"}
+    shared_settings: dict[str, Any]
+    """The settings every team of a batch has in common (:data:`SHARED_SETTINGS`, and ``filtered``)."""
+    num_envs: int
+
+    def _set_spaces(self, agent_obs: spaces.Box, agent_act: spaces.Box, n: int) -> None:
+        self.agent_observation_space = agent_obs
+        """One robot's observation space ``Box(D,)``."""
+        self.agent_action_space = agent_act
+        """One robot's action space ``Box(-1, 1, (2,))``."""
+        (self.single_observation_space, self.single_action_space, self.observation_space,
+         self.action_space) = batch_spaces(agent_obs, n, self.num_envs)
+
+    @property
+    def filtered(self) -> bool:
+        """True when the teams are behind a control filter."""
+        return bool(self.shared_settings["filtered"])
+
+    def _on_team(self, k: int, what: str, args: tuple) -> Any:
+        """``what`` (``get``, ``set``, ``call``, ``wrapped``) with ``args`` on team ``k``'s own env."""
+        raise NotImplementedError
+
+    def env_get(self, k: int, name: str) -> Any:
+        """Attribute ``name`` of team ``k``'s own env (``k`` as a sequence index: ``-1`` is the last team)."""
+        return self._on_team(k, "get", (name,))
+
+    def env_set(self, k: int, name: str, value: Any) -> None:
+        """Set attribute ``name`` of team ``k``'s own env."""
+        self._on_team(k, "set", (name, value))
+
+    def env_call(self, k: int, name: str, *args: Any, **kwargs: Any) -> Any:
+        """Call method ``name`` of team ``k``'s own env, after a ``sync`` (its state is the batch's)."""
+        return self._on_team(k, "call", (name, args, kwargs))
+
+    def env_is_wrapped(self, k: int, wrapper_class: type) -> bool:
+        """Whether team ``k``'s own env is (PettingZoo-)wrapped by ``wrapper_class``."""
+        return bool(self._on_team(k, "wrapped", (wrapper_class,)))
+
+
+class BatchedAASOATTEnv(TeamsAPI, TeamStack):
     """``K`` teams of one scenario stepped together (see the module docstring).
 
     Parameters
@@ -83,8 +126,6 @@ class BatchedAASOATTEnv(TeamStack):
         as the whole batch does).
     """
 
-    metadata = {"autoreset_mode": "same_step"}
-
     def __init__(self, env_fns: Sequence[Callable[[], Any]], *, autoreset: bool = True,
                  group_filter: bool = True, team_offset: int = 0) -> None:
         if len(env_fns) < 1:
@@ -97,8 +138,7 @@ class BatchedAASOATTEnv(TeamStack):
                                   "wrapper of one)")
         self._bases: list[AASOATTParallelEnv] = bases
         first = bases[0]
-        self.shared_settings: dict[str, Any] = shared_settings(first)
-        """The settings every team of a batch has in common (:data:`SHARED_SETTINGS`, and ``filtered``)."""
+        self.shared_settings = shared_settings(first)
         for k, b in enumerate(bases[1:], 1):
             check_shared(shared_settings(b), self.shared_settings, int(team_offset) + k)
         self.autoreset = bool(autoreset)
@@ -108,19 +148,14 @@ class BatchedAASOATTEnv(TeamStack):
         self.num_agents = len(self.possible_agents)
         for name in SHARED_SETTINGS[1:]:
             setattr(self, name, getattr(first, name))
-        self.agent_observation_space: spaces.Box = first.observation_space(self.possible_agents[0])
-        """One robot's observation space ``Box(D,)``."""
-        self.agent_action_space: spaces.Box = first.action_space(self.possible_agents[0])
-        """One robot's action space ``Box(-1, 1, (2,))``."""
-        (self.single_observation_space, self.single_action_space, self.observation_space,
-         self.action_space) = batch_spaces(self.agent_observation_space, self.num_agents, self.num_envs)
-        self._filtered = first.control_filter is not None
+        self._set_spaces(first.observation_space(self.possible_agents[0]),
+                         first.action_space(self.possible_agents[0]), self.num_agents)
         self.nominal_actions = first._nominal_actions
         """Whether actions are nominal wheel accelerations for a filter that keeps the bounds (up to 1e6) rather
         than normalised actions in ``[-1, 1]``."""
         self._grouped: GroupedControlFilter | None = None
         """One filter for all teams (``grouped``), or None: one call per team."""
-        if self._filtered and group_filter:
+        if self.filtered and group_filter:
             make = getattr(first.control_filter, "grouped", None)
             self._grouped = make([b.control_filter for b in bases]) if callable(make) else None
         self._started = False
@@ -131,11 +166,6 @@ class BatchedAASOATTEnv(TeamStack):
     def live(self) -> np.ndarray:
         """``(K, N)`` bool: agents that act at the next ``step`` (a copy)."""
         return (self._active & ~np.repeat(self._done, self.num_agents)).reshape(self.num_envs, self.num_agents)
-
-    @property
-    def filtered(self) -> bool:
-        """True when the teams are behind a control filter."""
-        return self._filtered
 
     @property
     def grouped_filter(self) -> GroupedControlFilter | None:
@@ -217,28 +247,18 @@ class BatchedAASOATTEnv(TeamStack):
         self.sync()
         return tuple(env.render() for env in self.envs)
 
-    def env_get(self, k: int, name: str) -> Any:
-        """Attribute ``name`` of team ``k``'s own env (``k`` as a sequence index: ``-1`` is the last team)."""
-        return getattr(self.envs[team_index(k, self.num_envs)], name)
-
-    def env_set(self, k: int, name: str, value: Any) -> None:
-        """Set attribute ``name`` of team ``k``'s own env."""
-        setattr(self.envs[team_index(k, self.num_envs)], name, value)
-
-    def env_call(self, k: int, name: str, *args: Any, **kwargs: Any) -> Any:
-        """Call method ``name`` of team ``k``'s own env, after :meth:`sync` (its state is the batch's)."""
-        k = team_index(k, self.num_envs)
-        self.sync()
-        return getattr(self.envs[k], name)(*args, **kwargs)
-
-    def env_is_wrapped(self, k: int, wrapper_class: type) -> bool:
-        """Whether team ``k``'s own env is (PettingZoo-)wrapped by ``wrapper_class``."""
-        e = self.envs[team_index(k, self.num_envs)]
-        while e is not None:
-            if isinstance(e, wrapper_class):
-                return True
-            e = getattr(e, "env", None)
-        return False
+    def _on_team(self, k: int, what: str, args: tuple) -> Any:
+        env = self.envs[team_index(k, self.num_envs)]
+        if what == "get":
+            return getattr(env, args[0])
+        if what == "set":
+            return setattr(env, *args)
+        if what == "call":
+            self.sync()
+            return getattr(env, args[0])(*args[1], **args[2])
+        while env is not None and not isinstance(env, args[0]):  # "wrapped"
+            env = getattr(env, "env", None)
+        return env is not None
 
     def close(self) -> None:
         """Close the teams' envs."""
@@ -273,30 +293,6 @@ def check_shared(got: dict[str, Any], want: dict[str, Any], k: int) -> None:
         if got[name] != want[name]:
             raise ConfigError(f"env_fns[{k}]: {name} differs from env 0's ({got[name]!r} vs {want[name]!r}); a "
                               "batch shares one setting")
-
-
-def parse_actions(actions: Any, live: np.ndarray, nominal: bool, clip: bool, offset: int = 0) -> np.ndarray:
-    """Validated actions ``(K N, 2)`` float64 of teams ``(K, N)`` = ``live.shape`` (done agents' rows zeroed).
-
-    The checks of :func:`~aasoatt_env.sim.stack.checked_actions`; ``offset``: number of the
-    first team in messages.
-    """
-    k, n = live.shape
-    expected = f"real numbers of shape ({k}, {n}, 2)"
-
-    def robot(at: tuple[int, ...]) -> str:  # an entry of nested (K, N, 2) or (K N, 2) sequences
-        if not at:
-            return "actions"
-        if np.ndim(actions) == 3:
-            return f"actions[{at[0] + offset}" + (f", {at[1]}]" if len(at) > 1 else "]")
-        return f"actions[{at[0] // n + offset}, {at[0] % n}]"
-
-    arr = real_actions(actions, robot, expected)
-    if arr.size != k * n * 2 or arr.shape not in ((k, n, 2), (k * n, 2)):
-        raise ActionError(f"actions: got shape {arr.shape} (dtype {arr.dtype}), expected {expected}")
-    act = arr.reshape(k * n, 2).astype(np.float64)
-    act[~live.ravel()] = 0.0  # the env ignores actions of agents that are done
-    return checked_actions(act, nominal, clip, lambda row: f"actions[{row // n + offset}, {row % n}]")
 
 
 def finished_error(teams: np.ndarray) -> ResetNeeded:

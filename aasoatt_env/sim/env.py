@@ -50,14 +50,15 @@ from aasoatt_env import validation as check
 from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded, UsageError
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import DT, Kinematics
+from aasoatt_env.sim.actions import _NOMINAL_MAX as _NOMINAL_MAX  # (a name of this module too)
+from aasoatt_env.sim.actions import checked_actions, real_actions
 from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
 from aasoatt_env.sim.protocol import ControlFilter, FilterOutput
 from aasoatt_env.sim.rendering import Frame, Renderer
 from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import Layout, Scenario, get_scenario
 from aasoatt_env.sim.scenarios.base import check_clear_of_obstacles, check_no_overlap
-from aasoatt_env.sim.stack import _NOMINAL_MAX as _NOMINAL_MAX  # (a name of this module too)
-from aasoatt_env.sim.stack import TeamStack, checked_actions, real_actions
+from aasoatt_env.sim.stack import TeamStack
 
 __all__ = ["MAX_NEIGHBOR_SLOTS", "TRAIL_LENGTH", "AASOATTParallelEnv"]
 

@@ -38,12 +38,11 @@ from typing import Any
 
 import cloudpickle
 import numpy as np
-from gymnasium import spaces
 
 from aasoatt_env.errors import ConfigError, ResetNeeded, UsageError
 from aasoatt_env.sim.batched import (
     BatchedAASOATTEnv,
-    batch_spaces,
+    TeamsAPI,
     check_shared,
     finished_error,
     parse_actions,
@@ -106,10 +105,7 @@ def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offs
         "state": lambda a: (batch.max_steps, batch.elapsed_steps),
         "sync": lambda a: batch.sync(),
         "render": lambda a: batch.render(),
-        "get": lambda a: batch.env_get(*a),
-        "set": lambda a: batch.env_set(*a),
-        "call": lambda a: batch.env_call(a[0], a[1], *a[2], **a[3]),
-        "wrapped": lambda a: batch.env_is_wrapped(*a),
+        "team": lambda a: batch._on_team(*a),
     }
     while True:
         try:
@@ -133,7 +129,7 @@ class _LinkDown(UsageError):
     """A worker died: every later call fails (a reply of an interrupted call is not this)."""
 
 
-class ShardedBatchedEnv:
+class ShardedBatchedEnv(TeamsAPI):
     """``K`` teams of one scenario stepped in ``num_workers`` processes (see the module docstring).
 
     Parameters
@@ -148,7 +144,6 @@ class ShardedBatchedEnv:
         ``multiprocessing`` start method; default ``forkserver`` where available, else ``spawn``.
     """
 
-    metadata = {"autoreset_mode": "same_step"}
     grouped_filter = None
     """No filter object lives in this process (each worker has its shard's)."""
 
@@ -201,10 +196,7 @@ class ShardedBatchedEnv:
         self.num_agents = len(self.possible_agents)
         for name in ("action_mode", "reward_config", "terminate_on_collision", "collision_tolerance"):
             setattr(self, name, self.shared_settings[name])
-        self.agent_observation_space: spaces.Box = agent_obs
-        self.agent_action_space: spaces.Box = agent_act
-        (self.single_observation_space, self.single_action_space, self.observation_space,
-         self.action_space) = batch_spaces(agent_obs, self.num_agents, k_all)
+        self._set_spaces(agent_obs, agent_act, self.num_agents)
         self._live = np.zeros((k_all, self.num_agents), dtype=bool)
         self._started = False
 
@@ -315,12 +307,11 @@ class ShardedBatchedEnv:
             raise first
         return out
 
-    def _one(self, k: int, cmd: str, args: tuple) -> Any:
-        """``cmd`` for the worker of team ``k`` (its local number first in ``args``)."""
+    def _on_team(self, k: int, what: str, args: tuple) -> Any:
         self._check_open()
         k = team_index(k, self.num_envs)
         w = int(np.searchsorted(self._starts, k, side="right") - 1)
-        self._post(w, (cmd, (k - self._starts[w], *args)))
+        self._post(w, ("team", (k - self._starts[w], what, args)))
         return self._receive(w)
 
     def _broken_message(self) -> str:
@@ -340,11 +331,6 @@ class ShardedBatchedEnv:
         return [arr[self._starts[w]:self._starts[w + 1]] for w in range(len(self.sizes))]
 
     # ------------------------------------------------------------------ the batch's API
-    @property
-    def filtered(self) -> bool:
-        """True when the teams are behind a control filter."""
-        return bool(self.shared_settings["filtered"])
-
     @property
     def envs(self) -> list[Any]:
         """Not available here: the teams' envs live in the workers (raises :class:`UsageError`)."""
@@ -410,22 +396,6 @@ class ShardedBatchedEnv:
     def render(self) -> tuple[Any, ...]:
         """One frame per team, in team order."""
         return tuple(f for frames in self._every("render") for f in frames)
-
-    def env_get(self, k: int, name: str) -> Any:
-        """Attribute ``name`` of team ``k``'s own env (``k`` as a sequence index; sent back pickled)."""
-        return self._one(k, "get", (name,))
-
-    def env_set(self, k: int, name: str, value: Any) -> None:
-        """Set attribute ``name`` of team ``k``'s own env (``value`` sent with cloudpickle)."""
-        self._one(k, "set", (name, value))
-
-    def env_call(self, k: int, name: str, *args: Any, **kwargs: Any) -> Any:
-        """Call method ``name`` of team ``k``'s own env after its shard's ``sync``; its answer."""
-        return self._one(k, "call", (name, args, kwargs))
-
-    def env_is_wrapped(self, k: int, wrapper_class: type) -> bool:
-        """Whether team ``k``'s own env is (PettingZoo-)wrapped by ``wrapper_class``."""
-        return bool(self._one(k, "wrapped", (wrapper_class,)))
 
     def close(self, timeout: float = 5.0) -> None:
         """Close the teams' envs and stop the workers (idempotent; any still running after ``timeout`` s is killed)."""

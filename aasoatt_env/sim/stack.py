@@ -5,14 +5,11 @@ holds the actions for ``decision_interval`` physics steps (nominal wheel acceler
 input bounds, the control filter, saturation, exact-arc integration) and then computes
 the decision's outputs: reference, neighbour table, clearance, rewards, observations.
 Every operation is per robot or per team, so a team's numbers do not depend on ``K``:
-a batch is bit-identical to its teams stepped as separate envs.  The actions' checks
-live here too, one set for both kinds of env.
+a batch is bit-identical to its teams stepped as separate envs.
 """
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable
 from typing import Any, ClassVar
 
 import numpy as np
@@ -27,71 +24,7 @@ from aasoatt_env.sim.protocol import FilterInput, FilterOutput
 from aasoatt_env.sim.references import ReferenceStack
 from aasoatt_env.sim.rewards import rewards
 
-__all__ = ["TeamStack", "checked_actions", "real_actions"]
-
-_NOMINAL_MAX = 1e6
-"""Largest nominal action accepted behind a filter (in units of the bound): larger ones are a bug upstream."""
-
-_FLOAT_MAX = float(np.finfo(np.float64).max)
-_REAL = "(a float or integer dtype)"
-
-
-def _bool_at(value: Any) -> tuple[int, ...] | None:
-    """Index of the first boolean inside nested lists/tuples (a bool, or a boolean array or tensor), or None."""
-    if isinstance(value, np.ndarray):
-        return () if value.dtype.kind == "b" else None
-    dtype = getattr(value, "dtype", None)
-    if dtype is not None:
-        return () if "bool" in str(dtype) else None
-    if isinstance(value, (bool, np.bool_)):
-        return ()
-    if isinstance(value, (list, tuple)):
-        for i, v in enumerate(value):
-            at = _bool_at(v)
-            if at is not None:
-                return (i, *at)
-    return None
-
-
-def real_actions(value: Any, name: Callable[[tuple[int, ...]], str], expected: str) -> np.ndarray:
-    """``value`` as an array of real numbers, else :class:`ActionError` naming the entry.
-
-    Booleans are refused, also one robot's among numbers (numpy would read them as 0 and 1);
-    so are strings, complex numbers and objects.  ``name(index)`` names an entry.
-    """
-    try:
-        arr = np.asarray(value)
-    except (TypeError, ValueError):
-        raise ActionError(f"{name(())}: got {type(value).__name__}, expected {expected} {_REAL}") from None
-    if arr.dtype.kind not in "fiu":
-        raise ActionError(f"{name(())}: got shape {arr.shape} (dtype {arr.dtype}), expected {expected} {_REAL}")
-    at = None if isinstance(value, np.ndarray) else _bool_at(value)
-    if at is not None:
-        raise ActionError(f"{name(at)}: got booleans, expected {expected} {_REAL}")
-    return arr
-
-
-def checked_actions(act: np.ndarray, nominal: bool, clip: bool, name: Callable[[int], str]) -> np.ndarray:
-    """Finite actions ``(R, 2)`` float64 within their bound, clipped to ``[-1, 1]`` unless ``nominal`` (in place).
-
-    ``nominal``: values up to :data:`_NOMINAL_MAX` pass as they are (a filter that keeps the bounds
-    projects them); otherwise up to ``1 + 1e-6`` (any finite value with ``clip``).  ``name(row)``
-    names a row in errors.
-    """
-    peak = float(np.abs(act).max(initial=0.0))
-    accept = _NOMINAL_MAX if nominal else (_FLOAT_MAX if clip else 1.0 + 1e-6)
-    if not peak <= accept:  # also NaN and inf
-        if not math.isfinite(peak):
-            bad = int(np.flatnonzero(~np.isfinite(act).all(axis=1))[0])
-            raise ActionError(f"{name(bad)}: got non-finite values {act[bad].tolist()}, expected finite numbers")
-        bad = int(np.flatnonzero(np.abs(act).max(axis=1) > accept)[0])
-        raise ActionError(f"{name(bad)}: got {act[bad].tolist()}, expected " + (
-            f"a nominal within [-{_NOMINAL_MAX:g}, {_NOMINAL_MAX:g}] (in units of the wheel-acceleration bound; "
-            "the filter keeps the bounds)" if nominal else "values in [-1, 1] (or clip_actions=True)"))
-    if not nominal and peak > 1.0:
-        np.minimum(np.maximum(act, -1.0, out=act), 1.0, out=act)
-    return act
-
+__all__ = ["TeamStack"]
 
 def _part(x: np.ndarray, sl: slice | None) -> np.ndarray:
     """Rows ``sl`` of a stacked array as a fresh array, as a team's own env hands its filter (None: all of it)."""

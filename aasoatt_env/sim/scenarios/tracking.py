@@ -67,38 +67,17 @@ class Tracking(Scenario):
         if self._user_reference is not None:
             return as_reference(self._user_reference, 1, self.duration)
         v, A, w, R = self.speed, self.amplitude, self.frequency, self.circle_radius
-        if self.trajectory == "straight":
-
-            def p(t: float) -> np.ndarray:
-                return np.array([[v * t, 0.5 * v * t]])
-
-            def dp(t: float) -> np.ndarray:
-                return np.array([[v, 0.5 * v]])
-
-            def ddp(t: float) -> np.ndarray:
-                return np.zeros((1, 2))
-        elif self.trajectory == "sine":
-
-            def p(t: float) -> np.ndarray:
-                return np.array([[v * t, A * math.sin(w * t)]])
-
-            def dp(t: float) -> np.ndarray:
-                return np.array([[v, A * w * math.cos(w * t)]])
-
-            def ddp(t: float) -> np.ndarray:
-                return np.array([[0.0, -A * w * w * math.sin(w * t)]])
-        else:
-            om = v / R
-
-            def p(t: float) -> np.ndarray:
-                return R * np.array([[math.cos(om * t), math.sin(om * t)]])
-
-            def dp(t: float) -> np.ndarray:
-                return R * om * np.array([[-math.sin(om * t), math.cos(om * t)]])
-
-            def ddp(t: float) -> np.ndarray:
-                return -R * om * om * np.array([[math.cos(om * t), math.sin(om * t)]])
-
+        om = v / R
+        p, dp, ddp = {  # position, velocity and acceleration of each trajectory
+            "straight": (lambda t: np.array([[v * t, 0.5 * v * t]]), lambda t: np.array([[v, 0.5 * v]]),
+                         lambda t: np.zeros((1, 2))),
+            "sine": (lambda t: np.array([[v * t, A * math.sin(w * t)]]),
+                     lambda t: np.array([[v, A * w * math.cos(w * t)]]),
+                     lambda t: np.array([[0.0, -A * w * w * math.sin(w * t)]])),
+            "circle": (lambda t: R * np.array([[math.cos(om * t), math.sin(om * t)]]),
+                       lambda t: R * om * np.array([[-math.sin(om * t), math.cos(om * t)]]),
+                       lambda t: -R * om * om * np.array([[math.cos(om * t), math.sin(om * t)]])),
+        }[self.trajectory]
         return FunctionReference(p, self.duration, velocity=dp, acceleration=ddp)
 
     def build(self, rng: np.random.Generator) -> Layout:
