@@ -266,38 +266,31 @@ def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
 def min_gaps(
     p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, *, k: int = 6
 ) -> np.ndarray:
-    """Clearance ``(N,)``: each robot's surface gap to the nearest robot or obstacle.
+    """Clearance ``(N,)``: each robot's surface gap to the nearest robot or obstacle (``inf``: a lone robot).
 
-    Exact below :data:`KDTREE_MIN_ROBOTS` robots (all pairs); above, taken over the ``k``
-    nearest centres (exact for equal radii).  ``inf`` for a lone robot.
+    Exact below :data:`KDTREE_MIN_ROBOTS` robots (all pairs); above, over the ``k`` nearest
+    centres (exact for equal radii).
     """
-    if p.shape[0] < KDTREE_MIN_ROBOTS:
-        gap = _robot_gaps(_distances(p, 1), radii)
-    else:
-        idx, dist, _ = k_nearest(p, k)
-        gap = _listed_gaps(idx, dist, radii)
-    if centers.shape[0]:
-        gap = np.minimum(gap, obstacle_gaps(p, radii, centers, obstacle_radii).min(axis=1))
-    return gap
+    return neighbourhood(p, radii, centers, obstacle_radii, 0, clear_k=k)[3]
 
 
 def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, k: int,
-                  teams: int = 1, equal_radii: np.ndarray | None = None
+                  teams: int = 1, equal_radii: np.ndarray | None = None, clear_k: int = 6
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Nearest robots, obstacle gaps and clearance of ``teams`` equal teams stacked in ``p (K N, 2)``.
 
     Returns each robot's ``k`` nearest robots of its team (stack indices and centre distances,
     ``(K N, k)``, -1/inf: none), its surface gaps ``(K N, M)`` to its team's obstacles
     (``centers (K, M, 2)``, ``obstacle_radii (K, M)``) and its clearance ``(K N,)``: exact below
-    :data:`KDTREE_MIN_ROBOTS` robots per team, over the ``max(k, 6)`` nearest for one larger team
-    (as :func:`min_gaps`).  ``equal_radii (K,)``: whether each team's radii are equal, if known.
+    :data:`KDTREE_MIN_ROBOTS` robots per team, over the ``max(k, clear_k)`` nearest for one larger
+    team.  ``equal_radii (K,)``: whether each team's radii are equal, if known.
     """
     if p.shape[0] // teams < KDTREE_MIN_ROBOTS:
         d = _distances(p, teams)
         idx, dist = _nearest(d, k) if k else (np.empty((p.shape[0], 0), np.intp), np.empty((p.shape[0], 0)))
         gap = _robot_gaps(d, radii, equal_radii)
     else:
-        idx, dist, _ = k_nearest(p, max(k, 6))
+        idx, dist, _ = k_nearest(p, max(k, clear_k))
         gap = _listed_gaps(idx, dist, radii)
         idx, dist = idx[:, :k], dist[:, :k]
     og = _obstacle_gaps(p, radii, centers, obstacle_radii, teams)
