@@ -82,11 +82,11 @@ class TeamStack:
         """Rebuild the team, kinematics, goals, references and obstacles after (some teams') resets."""
         ids = [id(t) for t in self._teams]
         if ids != self._team_ids:
-            self._team = stack_teams(self._teams) if self._stack_teams else self._teams[0]  # type: ignore[arg-type]
+            self._team = stack_teams(self._teams) if self._stack_teams else self._teams[0]
             self._team_ids = ids
-            r = self._team.radius.reshape(self._k, self._n)  # type: ignore[union-attr]
+            r = self._team.radius.reshape(self._k, self._n)
             self._equal_radii = r.min(axis=1) == r.max(axis=1)
-        self._kin = dynamics.kinematics(self._team, self._pose, self._u)  # type: ignore[arg-type]
+        self._kin = dynamics.kinematics(self._team, self._pose, self._u)
         layouts = self._layouts
         self._goals = np.concatenate([np.asarray(lay.reference.goals, dtype=np.float64) for lay in layouts])
         self._ref_stack = ReferenceStack([lay.reference for lay in layouts])
@@ -95,8 +95,8 @@ class TeamStack:
         self._oradii = np.stack([lay.obstacle_radii for lay in layouts]) if uniform else None
         self._stackable = uniform and (self._k == 1 or self._n < KDTREE_MIN_ROBOTS)
         """One neighbour query for all teams (else one per team)."""
-        m = self._ocenters.shape[1] if uniform else 0  # type: ignore[union-attr]
-        self._obs_obstacles = (self._ocenters.reshape(-1, 2), self._oradii.ravel(),  # type: ignore[union-attr]
+        m = self._ocenters.shape[1] if uniform else 0
+        self._obs_obstacles = (self._ocenters.reshape(-1, 2), self._oradii.ravel(),
                                np.repeat(np.arange(self._k) * m, self._n) if m and self._k > 1 else None
                                ) if uniform else None
         """The obstacles as :func:`~aasoatt_env.sim.observations.build_observations` reads them (None: ragged)."""
@@ -123,8 +123,8 @@ class TeamStack:
     def _nominal_du(self, act: np.ndarray, kin: Kinematics) -> np.ndarray:
         team = self._team
         if self.action_mode == "wheel":
-            return act * team.max_wheel_accel[:, None]  # type: ignore[union-attr]
-        a = act * team.max_point_accel[:, None] - kin.adot_u  # type: ignore[union-attr]
+            return act * team.max_wheel_accel[:, None]
+        a = act * team.max_point_accel[:, None] - kin.adot_u
         return np.linalg.solve(kin.A, a[..., None])[..., 0]
 
     def _physics(self, act: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, list[list[FilterOutput]]]:
@@ -145,23 +145,23 @@ class TeamStack:
         times = self._times
         try:
             for sub in range(steps):
-                lo, hi = dynamics.input_bounds(team, u, dt)  # type: ignore[arg-type]
-                du_nom = self._nominal_du(act, kin)  # type: ignore[arg-type]
+                lo, hi = dynamics.input_bounds(team, u, dt)
+                du_nom = self._nominal_du(act, kin)
                 if any_frozen:
                     du_nom[frozen] = 0.0
                 du = du_nom
                 if filters[0] is not None:
-                    du, outs = self._filter(filters, sub, pose, u, kin, lo, hi, du_nom)  # type: ignore[arg-type]
+                    du, outs = self._filter(filters, sub, pose, u, kin, lo, hi, du_nom)
                     outputs.append(outs)
                 clipped = np.minimum(np.maximum(du, lo), hi)
                 if (clipped != du).any():
                     saturated |= np.abs(clipped - du).max(axis=1) > 1e-9
-                new_pose, new_u = dynamics.integrate(team, pose, u, clipped, dt)  # type: ignore[arg-type]
+                new_pose, new_u = dynamics.integrate(team, pose, u, clipped, dt)
                 if any_frozen:
                     new_pose[frozen], new_u[frozen] = pose[frozen], 0.0
                 pose, u = new_pose, new_u
                 self._times = self._times + dt
-                kin = dynamics.kinematics(team, pose, u)  # type: ignore[arg-type]
+                kin = dynamics.kinematics(team, pose, u)
                 if sub < steps - 1:
                     gaps = self._gaps(kin.p)
                     between = gaps if between is None else np.minimum(between, gaps)
@@ -177,7 +177,7 @@ class TeamStack:
         """The applied ``du`` of all teams and the filter outputs: one grouped call, or one call per team."""
         ref = self._ref_now if sub == 0 else self._references()
         if self._grouped is not None:
-            inp = FilterInput(float(self._times[0]), self.dt, self._team, pose, u, kin, lo, hi,  # type: ignore
+            inp = FilterInput(float(self._times[0]), self.dt, self._team, pose, u, kin, lo, hi,
                               ref, *self._group_obstacles)
             out = self._grouped(inp, du_nom)
             return self._checked(out, None, du_nom.shape[0]), [out]
@@ -187,7 +187,7 @@ class TeamStack:
         for k, filt in enumerate(filters):
             sl = None if one else slice(k * n, (k + 1) * n)
             lay = self._layouts[k]
-            inp = FilterInput(float(self._times[k]), self.dt, self._teams[k], _part(pose, sl), _part(u, sl),  # type: ignore
+            inp = FilterInput(float(self._times[k]), self.dt, self._teams[k], _part(pose, sl), _part(u, sl),
                               kin if one else Kinematics(*(_part(x, sl) for x in kin)), _part(lo, sl), _part(hi, sl),
                               tuple(_part(r, sl) for r in ref), lay.obstacle_centers, lay.obstacle_radii)
             out = filt(inp, _part(du_nom, sl))
@@ -211,24 +211,24 @@ class TeamStack:
     def _neighbours(self, p: np.ndarray, k: int) -> Proximity:
         """:func:`~aasoatt_env.sim.observations.proximity` of every team (indices into the stack)."""
         if self._stackable:
-            return proximity(p, self._team.radius, self._ocenters, self._oradii, k, self._k,  # type: ignore
+            return proximity(p, self._team.radius, self._ocenters, self._oradii, k, self._k,
                              self._equal_radii)
         n = self._n
-        parts = [proximity(p[j * n:(j + 1) * n], t.radius, lay.obstacle_centers, lay.obstacle_radii, k)  # type: ignore
+        parts = [proximity(p[j * n:(j + 1) * n], t.radius, lay.obstacle_centers, lay.obstacle_radii, k)
                  for j, (t, lay) in enumerate(zip(self._teams, self._layouts))]
         return Proximity(np.concatenate([np.where(q.idx >= 0, q.idx + j * n, -1) for j, q in enumerate(parts)]),
                          np.concatenate([q.dist for q in parts]),
                          np.concatenate([q.obstacle_gaps for q in parts]) if self._ocenters is not None else None,
-                         np.concatenate([q.clearance for q in parts]))  # type: ignore[arg-type]
+                         np.concatenate([q.clearance for q in parts]))
 
     def _gaps(self, p: np.ndarray) -> np.ndarray:
         """Clearance ``(K N,)`` of every robot to its team and obstacles (as ``geometry.min_gaps``)."""
         if self._stackable:
-            return neighbourhood(p, self._team.radius, self._ocenters, self._oradii, 0, self._k,  # type: ignore
+            return neighbourhood(p, self._team.radius, self._ocenters, self._oradii, 0, self._k,
                                  self._equal_radii)[3]
         n = self._n
         return np.concatenate([min_gaps(p[j * n:(j + 1) * n], t.radius, lay.obstacle_centers, lay.obstacle_radii)
-                               for j, (t, lay) in enumerate(zip(self._teams, self._layouts))])  # type: ignore
+                               for j, (t, lay) in enumerate(zip(self._teams, self._layouts))])
 
     def _refresh(self, between: np.ndarray | None = None, reference: bool = True) -> None:
         """Reference (unless ``reference`` is False), neighbour table, tracking error and clearance now.
@@ -238,8 +238,8 @@ class TeamStack:
         """
         if reference:
             self._ref_now = self._references()
-        self._prox = self._neighbours(self._kin.p, max(self.num_neighbors, 1))  # type: ignore[union-attr]
-        self._err = np.hypot(*(self._kin.p - self._ref_now[0]).T)  # type: ignore[union-attr]
+        self._prox = self._neighbours(self._kin.p, max(self.num_neighbors, 1))
+        self._err = np.hypot(*(self._kin.p - self._ref_now[0]).T)
         clearance = self._prox.clearance
         self._clearance = clearance if between is None else np.minimum(clearance, between)
         self._collided = self._clearance < -self.collision_tolerance
@@ -250,18 +250,18 @@ class TeamStack:
             return np.concatenate([self._team_observations(j) for j in range(self._k)])
         (p_d, v_d, a_d), centers, radii, offset = self._ref_now, *self._obs_obstacles
         return build_observations(
-            p=self._kin.p, v=self._kin.v, theta=self._pose[:, 2], u=self._u, p_d=p_d, v_d=v_d, a_d=a_d,  # type: ignore
-            goals=self._goals, radii=self._team.radius, obstacle_centers=centers, obstacle_radii=radii,  # type: ignore
+            p=self._kin.p, v=self._kin.v, theta=self._pose[:, 2], u=self._u, p_d=p_d, v_d=v_d, a_d=a_d,
+            goals=self._goals, radii=self._team.radius, obstacle_centers=centers, obstacle_radii=radii,
             sensing_range=self.sensing_range, k_robots=self.num_neighbors, k_obstacles=self.num_obstacles,
             prox=self._prox, obstacle_offset=offset)
 
     def _team_observations(self, j: int) -> np.ndarray:
         """Team ``j``'s observations on their own."""
         sl, kin, (p_d, v_d, a_d) = slice(j * self._n, (j + 1) * self._n), self._kin, self._ref_now
-        r, lay = self._teams[j].radius, self._layouts[j]  # type: ignore[union-attr]
+        r, lay = self._teams[j].radius, self._layouts[j]
         prox = proximity(kin.p[sl], r, lay.obstacle_centers, lay.obstacle_radii, max(self.num_neighbors, 1))
         return build_observations(
-            p=kin.p[sl], v=kin.v[sl], theta=self._pose[sl, 2], u=self._u[sl], p_d=p_d[sl], v_d=v_d[sl],  # type: ignore
+            p=kin.p[sl], v=kin.v[sl], theta=self._pose[sl, 2], u=self._u[sl], p_d=p_d[sl], v_d=v_d[sl],
             a_d=a_d[sl], goals=self._goals[sl], radii=r, obstacle_centers=lay.obstacle_centers,
             obstacle_radii=lay.obstacle_radii, sensing_range=self.sensing_range, k_robots=self.num_neighbors,
             k_obstacles=self.num_obstacles, prox=prox)
@@ -284,9 +284,9 @@ class TeamStack:
             per_step = [np.asarray(outs[0].correction, dtype=np.float64) if len(outs) == 1 else
                         np.concatenate([np.asarray(o.correction, dtype=np.float64) for o in outs]) for outs in outputs]
             corr = per_step[0] if len(per_step) == 1 else np.max(per_step, axis=0)
-        goal = np.hypot(*(self._kin.p - self._goals).T) if self.reward_config.goal_bonus else None  # type: ignore
+        goal = np.hypot(*(self._kin.p - self._goals).T) if self.reward_config.goal_bonus else None
         rew = rewards(self.reward_config, self._err, collided, act, goal,
-                      None if corr is None else corr / self._team.max_wheel_accel)  # type: ignore[union-attr]
+                      None if corr is None else corr / self._team.max_wheel_accel)
         obs = self._observations()
         terminated = None
         if self.terminate_on_collision:
