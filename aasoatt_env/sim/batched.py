@@ -73,7 +73,13 @@ class TeamsAPI:
     """The settings every team of a batch has in common (:data:`SHARED_SETTINGS`, and ``filtered``)."""
     num_envs: int
 
-    def _set_spaces(self, agent_obs: spaces.Box, agent_act: spaces.Box, n: int) -> None:
+    def _take_settings(self, settings: dict[str, Any], agent_obs: spaces.Box, agent_act: spaces.Box) -> None:
+        """The teams' shared settings (also as attributes) and one robot's spaces; the batch's spaces from them."""
+        self.shared_settings = settings
+        self.possible_agents: list[str] = list(settings["possible_agents"])
+        self.num_agents = n = len(self.possible_agents)
+        for name in SHARED_SETTINGS[1:]:
+            setattr(self, name, settings[name])
         self.agent_observation_space = agent_obs
         """One robot's observation space ``Box(D,)``."""
         self.agent_action_space = agent_act
@@ -138,18 +144,14 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
                                   "wrapper of one)")
         self._bases: list[AASOATTParallelEnv] = bases
         first = bases[0]
-        self.shared_settings = shared_settings(first)
+        settings = shared_settings(first)
         for k, b in enumerate(bases[1:], 1):
-            check_shared(shared_settings(b), self.shared_settings, int(team_offset) + k)
+            check_shared(shared_settings(b), settings, int(team_offset) + k)
         self.autoreset = bool(autoreset)
         self._offset = int(team_offset)
         self.num_envs = len(bases)
-        self.possible_agents: list[str] = list(first.possible_agents)
-        self.num_agents = len(self.possible_agents)
-        for name in SHARED_SETTINGS[1:]:
-            setattr(self, name, getattr(first, name))
-        self._set_spaces(first.observation_space(self.possible_agents[0]),
-                         first.action_space(self.possible_agents[0]), self.num_agents)
+        agent = first.possible_agents[0]
+        self._take_settings(settings, first.observation_space(agent), first.action_space(agent))
         self.nominal_actions = first._nominal_actions
         """Whether actions are nominal wheel accelerations for a filter that keeps the bounds (up to 1e6) rather
         than normalised actions in ``[-1, 1]``."""

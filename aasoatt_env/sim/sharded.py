@@ -94,7 +94,7 @@ def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offs
         batch = BatchedAASOATTEnv(cloudpickle.loads(payload), autoreset=autoreset, group_filter=group_filter,
                                   team_offset=offset)
         space = (batch.agent_observation_space, batch.agent_action_space)
-        _reply(conn, ("ok", (batch.shared_settings, batch.nominal_actions, space, batch.dt, batch.decision_interval)))
+        _reply(conn, ("ok", (batch.shared_settings, batch.nominal_actions, space)))
     except BaseException as exc:  # noqa: BLE001 - every failure goes back to the caller
         _reply(conn, _error(exc))
         conn.close()
@@ -191,12 +191,8 @@ class ShardedBatchedEnv(TeamsAPI):
         except BaseException:
             self.close()
             raise
-        self.shared_settings, self.nominal_actions, (agent_obs, agent_act), self.dt, self.decision_interval = firsts[0]
-        self.possible_agents: list[str] = list(self.shared_settings["possible_agents"])
-        self.num_agents = len(self.possible_agents)
-        for name in ("action_mode", "reward_config", "terminate_on_collision", "collision_tolerance"):
-            setattr(self, name, self.shared_settings[name])
-        self._set_spaces(agent_obs, agent_act, self.num_agents)
+        settings, self.nominal_actions, (agent_obs, agent_act) = firsts[0]
+        self._take_settings(settings, agent_obs, agent_act)
         self._live = np.zeros((k_all, self.num_agents), dtype=bool)
         self._started = False
 
