@@ -157,8 +157,9 @@ class Team:
         values made for the whole team can be indexed for it instead of made again.
         """
         rows = np.arange(self.n)[idx]  # (the caller's index as robot numbers, a copy: masks and slices too)
-        sub = Team(**{name: getattr(self, name)[rows] for name in _PER_ROBOT}, model=self.model,
-                   group=None if self.group is None else self.group[rows])
+        sub = Team(self.radius[rows], self.wheel_radius[rows], self.half_track[rows], self.offset[rows],
+                   self.max_wheel_accel[rows], self.max_wheel_speed[rows], self.max_point_accel[rows], self.model,
+                   None if self.group is None else self.group[rows])
         sub.derived[SUBSET_OF] = (self, rows)
         return sub
 
