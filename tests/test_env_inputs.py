@@ -115,3 +115,13 @@ def test_the_batched_env_names_the_team_of_a_nan_reference() -> None:
                                             r"of team 0"):
         batch.step(np.zeros((2, 2, 2)))
     assert (batch.elapsed_steps == 0).all()
+
+
+def test_the_gymnasium_view_refuses_a_boolean_entry_of_the_joint_action() -> None:
+    import gymnasium
+
+    env = gymnasium.make("aasoatt/CircleSwap-v0", num_robots=2)
+    env.reset(seed=0)
+    with pytest.raises(ActionError, match=r"action\[1\]: got booleans, expected \(4,\) real numbers " + _BOOL):
+        env.step([0.1, True, 0.0, 0.0])
+    env.step(np.zeros(4))

@@ -21,6 +21,7 @@ from aasoatt_env import validation as check
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.errors import ActionError, ConfigError
 from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.sim.actions import real_actions
 
 __all__ = ["AASOATTGymEnv"]
 
@@ -88,13 +89,8 @@ class AASOATTGymEnv(gym.Env):
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Apply the joint action."""
-        try:
-            raw = np.asarray(action)
-        except (TypeError, ValueError):
-            raise ActionError(f"action: got {check.short_repr(action)}, expected {self.action_space.shape} real "
-                              "numbers") from None
-        if raw.dtype.kind not in "fiu":  # no parsing of strings, no dropping of imaginary parts
-            raise ActionError(f"action: got dtype {raw.dtype}, expected {self.action_space.shape} real numbers")
+        raw = real_actions(action, lambda at: "action" + (f"[{at[0]}]" if at else ""),
+                           f"{self.action_space.shape} real numbers")  # (no strings, imaginary parts, booleans)
         a = raw.astype(np.float64)
         if a.shape != self.action_space.shape:
             raise ActionError(f"action: got shape {a.shape}, expected {self.action_space.shape}")
