@@ -88,14 +88,7 @@ class CircleSwap(Scenario):
         ref = LinearReference(starts, goals, self.duration, profile=self.profile)  # type: ignore[arg-type]
         headings = np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0])
         b = self.radius + 1.0
-        return Layout(
-            team=self._team,
-            starts=starts,
-            headings=headings,
-            reference=ref,
-            horizon=self.duration + self.settle_time,
-            obstacle_centers=self._obstacles[0],
-            obstacle_radii=self._obstacles[1],
-            bounds=(-b, b, -b, b),
-        )
+        return Layout(team=self._team, starts=starts, headings=headings, reference=ref,
+                      horizon=self.duration + self.settle_time, obstacle_centers=self._obstacles[0],
+                      obstacle_radii=self._obstacles[1], bounds=(-b, b, -b, b))
 

@@ -67,11 +67,5 @@ class PositionSwap(Scenario):
         goals = -starts
         duration = self.distance / self.speed
         b = h + 0.5
-        return Layout(
-            team=self._team,
-            starts=starts,
-            headings=ang + np.pi,
-            reference=LinearReference(starts, goals, duration),
-            horizon=duration + self.settle_time,
-            bounds=(-b, b, -b, b),
-        )
+        return Layout(team=self._team, starts=starts, headings=ang + np.pi, horizon=duration + self.settle_time,
+                      reference=LinearReference(starts, goals, duration), bounds=(-b, b, -b, b))

@@ -163,16 +163,9 @@ class RandomGoals(Scenario):
         T = ref.duration
         b = self.arena_size / 2.0 + 0.5
         centers, radii = self._obstacles(rng, np.concatenate((starts, goals)))
-        return Layout(
-            team=self._team,
-            starts=starts,
-            headings=np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0]),
-            reference=ref,
-            horizon=T + self.settle_time,
-            obstacle_centers=centers,
-            obstacle_radii=radii,
-            bounds=(-b, b, -b, b),
-        )
+        return Layout(team=self._team, starts=starts, reference=ref, horizon=T + self.settle_time,
+                      headings=np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0]),
+                      obstacle_centers=centers, obstacle_radii=radii, bounds=(-b, b, -b, b))
 
     def _obstacles(self, rng: np.random.Generator, keep_clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``random_obstacles`` discs clear of the starts and goals (rejection sampling, vectorised per batch)."""

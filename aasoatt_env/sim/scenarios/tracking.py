@@ -10,7 +10,7 @@ import numpy as np
 from aasoatt_env import validation as check
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import FunctionReference, Reference, as_reference
-from aasoatt_env.sim.scenarios.base import Layout, Scenario, check_quantity, heading_of
+from aasoatt_env.sim.scenarios.base import Layout, Scenario, bounds_around, check_quantity, heading_of
 
 __all__ = ["Tracking"]
 
@@ -85,12 +85,5 @@ class Tracking(Scenario):
         ref = self._reference()
         p0, v0, _ = ref(0.0)
         pts = np.concatenate([ref(t)[0] for t in np.linspace(0.0, self.duration, 64)])
-        lo, hi = pts.min(axis=0) - 1.5, pts.max(axis=0) + 1.5
-        return Layout(
-            team=self._team,
-            starts=p0,
-            headings=heading_of(v0, np.zeros(1)),
-            reference=ref,
-            horizon=self.duration,
-            bounds=(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])),
-        )
+        return Layout(team=self._team, starts=p0, headings=heading_of(v0, np.zeros(1)), reference=ref,
+                      horizon=self.duration, bounds=bounds_around(pts))
