@@ -59,11 +59,6 @@ def pose_from_point(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return pose
 
 
-def _columns(team: Team, theta: np.ndarray) -> np.ndarray:
-    """Columns of ``A(theta)`` as complex numbers ``(N, 2)`` (real: row 0, imaginary: row 1)."""
-    return np.exp(1j * theta)[:, None] * team.input_columns
-
-
 def _as_matrix(z: np.ndarray) -> np.ndarray:
     """``(N, 2)`` complex columns -> contiguous ``(N, 2, 2)`` real matrices."""
     return np.ascontiguousarray(z.view(np.float64).reshape(-1, 2, 2).transpose(0, 2, 1))
@@ -74,7 +69,7 @@ def jacobian(team: Team, theta: np.ndarray) -> np.ndarray:
     n = theta.shape[0]
     if not team.is_diff_drive:
         return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
-    return _as_matrix(_columns(team, theta))
+    return _as_matrix(np.exp(1j * theta)[:, None] * team.input_columns)
 
 
 def kinematics(team: Team, pose: np.ndarray, u: np.ndarray) -> Kinematics:
