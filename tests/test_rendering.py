@@ -101,9 +101,7 @@ def test_all_features_draw_without_error():
     r.rgb_array(ring_frame(3, world_bounds=None, obstacle_centers=[[9.0, 9.0]], obstacle_radii=[1.0]))
 
 
-def test_rendering_is_fast():
-    import time
-
+def test_a_busy_frame_renders_the_same_picture_every_time():
     frame = ring_frame(
         20,
         trails=np.linspace(1.0, 1.2, 100)[:, None, None] * ring_frame(20).positions,
@@ -112,11 +110,10 @@ def test_rendering_is_fast():
         avoiding=np.ones(20, bool),
     )
     r = Renderer()
-    r.rgb_array(frame)
-    t0 = time.perf_counter()
-    for _ in range(5):
-        r.rgb_array(frame)
-    assert (time.perf_counter() - t0) / 5 < 0.1  # typically ~4 ms; generous for shared CI machines
+    first = r.rgb_array(frame)
+    assert first.shape == (600, 600, 3)
+    np.testing.assert_array_equal(r.rgb_array(frame), first)  # the surface is cleared between frames
+    np.testing.assert_array_equal(Renderer().rgb_array(frame), first)
 
 
 def test_frame_validation():

@@ -1,8 +1,7 @@
-"""``make_env``: the one constructor of an environment, bare or behind the safety filter.
+"""``make_env`` and ``make_batched_env``: the one constructor of an environment, bare or behind the safety filter.
 
-The command line, the reproduction runner, training, the Gymnasium view and
-the benchmarks all build their envs here, so "env behind a filter" means the
-same thing everywhere.
+The command line, the reproduction runner, training, the Gymnasium view and the benchmarks all
+build their envs here, so "env behind a filter" means the same thing everywhere.
 """
 
 from __future__ import annotations
@@ -67,27 +66,14 @@ def make_batched_env(
     num_workers: int = 1,
     **env_kwargs: Any,
 ) -> BatchedAASOATTEnv | ShardedBatchedEnv:
-    """``num_envs`` teams of ``scenario`` stepped together (:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).
+    """``num_envs >= 1`` teams of ``scenario`` stepped together (:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).
 
-    Each team is the env :func:`make_env` builds with the same arguments (behind
-    its own filter when ``filter`` asks for one); the batch is bit-identical to
-    stepping those envs one by one (behind a filter: to rounding, or bit for bit
-    with ``group_filter=False``, see :mod:`aasoatt_env.sim.batched`).
-
-    Parameters
-    ----------
-    num_envs : int
-        Number of teams, ``>= 1``.
-    scenario, filter, **env_kwargs
-        As :func:`make_env`.
-    autoreset : bool
-        Reset a team inside ``step`` when its episode ends.
-    group_filter : bool
-        Behind a filter: one filter call for all teams (default) or one per team.
-    num_workers : int
-        Processes stepping the teams: 1 (default) here; more split the teams into that many
-        shards stepped at the same time (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`,
-        the same API; ``close()`` it to stop the workers).
+    Each team is the env :func:`make_env` builds with the same arguments (``scenario``,
+    ``filter``, ``**env_kwargs``); the batch is bit-identical to stepping them one by one
+    (behind a filter: to rounding, or bit for bit with ``group_filter=False``, one filter call
+    per team).  ``autoreset``: reset a team inside ``step`` when its episode ends.
+    ``num_workers > 1`` splits the teams into that many shards stepped in worker processes
+    (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`, the same API; ``close()`` it).
     """
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")

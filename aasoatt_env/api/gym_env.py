@@ -21,25 +21,18 @@ from aasoatt_env import validation as check
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.errors import ActionError, ConfigError
 from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.sim.actions import real_actions
 
 __all__ = ["AASOATTGymEnv"]
 
 
 class AASOATTGymEnv(gym.Env):
-    """Joint-action view of :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`.
+    """Joint-action view of :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` (``**kwargs``: its keywords).
 
-    Parameters
-    ----------
-    scenario : str
-        Scenario name.
-    parallel_env : AASOATTParallelEnv, optional
-        Wrap this (possibly filtered) parallel env instead of creating one.
-    safety_filter : FilterConfig or dict, optional
-        Put :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` so configured
-        (e.g. ``{"barrier": "aasoatt"}``; ``{}`` for the defaults) between the
-        joint action and the robots; the filter's infos are flat (numeric).
-    **kwargs
-        Passed to :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`.
+    ``parallel_env``: wrap this (possibly filtered) parallel env instead of making one.
+    ``safety_filter``: a :class:`FilterConfig` or a dict of its fields (``{}``: the defaults)
+    puts :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` between the joint action and the
+    robots, with flat (numeric) infos.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 20}
@@ -96,13 +89,8 @@ class AASOATTGymEnv(gym.Env):
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Apply the joint action."""
-        try:
-            raw = np.asarray(action)
-        except (TypeError, ValueError):
-            raise ActionError(f"action: got {check.short_repr(action)}, expected {self.action_space.shape} real "
-                              "numbers") from None
-        if raw.dtype.kind not in "fiu":  # no parsing of strings, no dropping of imaginary parts
-            raise ActionError(f"action: got dtype {raw.dtype}, expected {self.action_space.shape} real numbers")
+        raw = real_actions(action, lambda at: "action" + (f"[{at[0]}]" if at else ""),
+                           f"{self.action_space.shape} real numbers")  # (no strings, imaginary parts, booleans)
         a = raw.astype(np.float64)
         if a.shape != self.action_space.shape:
             raise ActionError(f"action: got shape {a.shape}, expected {self.action_space.shape}")

@@ -39,10 +39,7 @@ ENV_IDS: dict[str, str] = {
 
 
 def parallel_env(scenario: str = "circle_swap", **kwargs: Any) -> Any:
-    """Create the PettingZoo parallel env of ``scenario`` (:func:`aasoatt_env.make_env`).
-
-    ``filter=`` puts it behind the safety filter.
-    """
+    """The PettingZoo parallel env of ``scenario`` (:func:`aasoatt_env.make_env`; ``filter=``: behind the filter)."""
     return make_env(scenario, **kwargs)
 
 

@@ -1,20 +1,15 @@
 """Acceleration-level robot dynamics, vectorised over a team (``docs/technical_brief.md`` section 1).
 
-State per robot: axle pose ``(x, y, theta)`` and "wheel speeds" ``u``; input:
-``du``, the wheel angular accelerations, bounded per robot.  The controlled
-point ``p = (x + l cos(theta), y + l sin(theta))`` obeys
+State per robot: axle pose ``(x, y, theta)`` and wheel speeds ``u``; input: the wheel
+angular accelerations ``du``, bounded per robot.  The controlled point
+``p = (x + l cos(theta), y + l sin(theta))`` obeys
 
     p_dot = A(theta) u,      p_ddot = A(theta) du + A_dot u        (eqn.kinematic)
 
-with ``A = rho/2 [[c - k s, c + k s], [s + k c, s - k c]]``, ``k = l / b``.
-
-For the holonomic double integrator ``A = I``, ``A_dot = 0``, ``u`` is the
-point velocity, ``du`` its acceleration and ``(x, y)`` is the point itself; its
-"heading" follows the velocity direction (kept while the robot is at rest).
-
-Integration: the wheel speeds change linearly over a step (``du`` is held), and
-the pose follows the exact arc of the step-mean wheel speeds, so the heading is
-exact and constant wheel speeds give the exact circle.
+with ``A = rho/2 [[c - k s, c + k s], [s + k c, s - k c]]``, ``k = l / b``.  For the
+holonomic double integrator ``A = I``, ``A_dot = 0``, ``u`` is the point's velocity and
+its heading follows the velocity (kept at rest).  Integration holds ``du`` over a step
+and moves the pose along the exact arc of the step-mean wheel speeds.
 """
 
 from __future__ import annotations
@@ -25,17 +20,8 @@ import numpy as np
 
 from aasoatt_env.model.params import Team
 
-__all__ = [
-    "DT",
-    "Kinematics",
-    "control_point",
-    "input_bounds",
-    "integrate",
-    "jacobian",
-    "kinematics",
-    "pose_from_point",
-    "speed_box",
-]
+__all__ = ["DT", "Kinematics", "control_point", "input_bounds", "integrate", "jacobian", "kinematics",
+           "pose_from_point", "speed_box"]
 
 DT: float = 0.005
 """The paper's physics and control step [s] (every experiment of Sec. V); the one default of ``dt``."""
@@ -44,16 +30,12 @@ _SMALL_OMEGA = 1e-9
 
 
 class Kinematics(NamedTuple):
-    """Control-point quantities of a team, all with leading dimension N."""
+    """Control-point positions ``p`` and velocities ``v = A u`` ``(N, 2)``, ``A (N, 2, 2)``, ``A_dot u (N, 2)``."""
 
     p: np.ndarray
-    """Control-point positions, ``(N, 2)``."""
     v: np.ndarray
-    """Control-point velocities ``A u``, ``(N, 2)``."""
     A: np.ndarray
-    """Input matrices ``A_i``, ``(N, 2, 2)``."""
     adot_u: np.ndarray
-    """Drift acceleration ``A_dot_i u_i``, ``(N, 2)``."""
 
 
 def control_point(team: Team, pose: np.ndarray) -> np.ndarray:
@@ -77,11 +59,6 @@ def pose_from_point(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
     return pose
 
 
-def _columns(team: Team, theta: np.ndarray) -> np.ndarray:
-    """Columns of ``A(theta)`` as complex numbers ``(N, 2)`` (real: row 0, imaginary: row 1)."""
-    return np.exp(1j * theta)[:, None] * team.input_columns
-
-
 def _as_matrix(z: np.ndarray) -> np.ndarray:
     """``(N, 2)`` complex columns -> contiguous ``(N, 2, 2)`` real matrices."""
     return np.ascontiguousarray(z.view(np.float64).reshape(-1, 2, 2).transpose(0, 2, 1))
@@ -92,16 +69,14 @@ def jacobian(team: Team, theta: np.ndarray) -> np.ndarray:
     n = theta.shape[0]
     if not team.is_diff_drive:
         return np.broadcast_to(np.eye(2), (n, 2, 2)).copy()
-    return _as_matrix(_columns(team, theta))
+    return _as_matrix(np.exp(1j * theta)[:, None] * team.input_columns)
 
 
 def kinematics(team: Team, pose: np.ndarray, u: np.ndarray) -> Kinematics:
     """Control point, its velocity, ``A`` and ``A_dot u`` for the whole team.
 
-    With ``e = exp(i theta)`` and the heading-0 columns ``c_j`` of ``A``
-    (:attr:`Team.input_columns`), ``A u = e (c_0 u_R + c_1 u_L)`` and, since
-    ``dA/dtheta = i A``, ``A_dot u = i omega A u``: one complex rotation gives
-    everything.
+    With ``e = exp(i theta)`` and the heading-0 columns ``c_j`` of ``A`` (:attr:`Team.input_columns`),
+    ``A u = e (c_0 u_R + c_1 u_L)`` and ``A_dot u = i omega A u``: one complex rotation gives everything.
     """
     if not team.is_diff_drive:
         n = pose.shape[0]
@@ -116,11 +91,7 @@ def kinematics(team: Team, pose: np.ndarray, u: np.ndarray) -> Kinematics:
 
 
 def input_bounds(team: Team, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Lower and upper bounds ``(N, 2)`` on ``du`` for the next step.
-
-    The box ``|du| <= max_wheel_accel`` is intersected with the set that keeps
-    ``|u + du dt| <= max_wheel_speed`` (:func:`speed_box`).
-    """
+    """Bounds ``(N, 2)`` on ``du`` for the next step: ``|du| <= max_wheel_accel`` and :func:`speed_box`."""
     a = team.du_max
     if not team.speed_limited:
         return -a, a.copy()
@@ -130,10 +101,9 @@ def input_bounds(team: Team, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.n
 def speed_box(
     lo: np.ndarray, hi: np.ndarray, u: np.ndarray, max_speed: float | np.ndarray, dt: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Intersect the box ``[lo, hi]`` on ``du`` with ``|u + du dt| <= max_speed``.
+    """Intersect the box ``[lo, hi]`` on ``du`` with ``|u + du dt| <= max_speed`` (``inf``: no limit).
 
-    Never empty: a wheel already beyond the limit gets the box's full braking
-    acceleration only.  ``max_speed`` may be ``inf`` (no limit) per robot.
+    Never empty: a wheel already beyond the limit gets the box's full braking acceleration only.
     """
     new_hi = np.maximum(np.minimum(hi, (max_speed - u) / dt), lo)
     new_lo = np.minimum(np.maximum(lo, (-max_speed - u) / dt), new_hi)

@@ -1,49 +1,27 @@
 """Neighbour search on disc robots: the one home of every distance query in the library.
 
-The observations (k nearest robots), the safety filter (pairs within the
-sensing range), the metrics (smallest gap at every recorded step) and the
-adversarial agents (nearest neighbour) all call these functions.
-
-Three back-ends of :func:`robot_pairs` give identical answers:
-
-* brute force over the ``N x N`` distance matrix (one complex subtraction) for
-  teams below :data:`KDTREE_MIN_ROBOTS`;
-* from :data:`KDTREE_MIN_ROBOTS` robots on (``O(N + pairs)`` memory, so 10,000
-  robots are cheap): a compiled grid of cells
-  (:func:`aasoatt_env.model.geometry_kernel.cell_pairs`) where numba imports,
-  else :class:`scipy.spatial.cKDTree`.
-
-Pairs are returned sorted lexicographically with ``i < j`` so that the order
-of barrier rows is deterministic and independent of the back-end.
+The observations, the safety filter, the metrics and the adversarial agents all call these
+functions.  :func:`robot_pairs` has three back-ends with identical answers: brute force
+below :data:`KDTREE_MIN_ROBOTS` robots, above it a compiled grid of cells
+(:mod:`aasoatt_env.model.geometry_kernel`) where numba imports, else a k-d tree; pairs come
+sorted with ``i < j``, so the filter's rows do not depend on the back-end.
+:func:`neighbourhood` answers for several equal teams stacked (the batched env).
 """
 
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
-from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from aasoatt_env import compiled as _compiled
 
-__all__ = [
-    "KDTREE_MIN_ROBOTS",
-    "brute_candidates",
-    "k_nearest",
-    "min_gaps",
-    "obstacle_gaps",
-    "obstacle_pairs",
-    "pair_components",
-    "pairwise_distances",
-    "robot_pairs",
-    "row_dot",
-]
+__all__ = ["KDTREE_MIN_ROBOTS", "brute_candidates", "k_nearest", "min_gaps", "neighbourhood", "obstacle_gaps",
+           "obstacle_pairs", "pair_components", "pairwise_distances", "robot_pairs", "row_dot", "uses_brute_force"]
 
 KDTREE_MIN_ROBOTS: int = 200
-"""Team size from which a k-d tree answers instead of the full distance matrix
-(``docs/technical_brief.md`` section 4: the tree beats ``N x N`` broadcasting from about 200 robots)."""
+"""Team size from which a tree (or grid) answers instead of the full distance matrix."""
 
 _FULL_SORT_MAX = 64
 """Up to this many points a full row sort beats ``argpartition`` + a partial sort."""
@@ -57,22 +35,17 @@ def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
     return iu, ju
 
 
-_LABELLING_CACHES: dict[str, dict[bytes, Any]] = {"pairs": {}, "size": {}}
+def _key(groups: np.ndarray) -> tuple[bytes, str]:
+    """A labelling as a cache key (the filter asks about the same one at every physics step)."""
+    groups = np.asarray(groups)
+    if groups.dtype.kind == "O":  # labels of any kind: their classes
+        groups = np.unique(groups, return_inverse=True)[1].reshape(-1)
+    return np.ascontiguousarray(groups).tobytes(), groups.dtype.str
 
 
-def _per_labelling(kind: str, groups: np.ndarray, make: Callable[[np.ndarray], Any]) -> Any:
-    """``make(groups)``, cached per labelling (the filter asks for the same one at every physics step)."""
-    store = _LABELLING_CACHES[kind]
-    key = np.ascontiguousarray(groups).tobytes()
-    hit = store.get(key)
-    if hit is None:
-        if len(store) >= 16:
-            store.clear()
-        hit = store[key] = make(groups)
-    return hit
-
-
-def _make_group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@functools.lru_cache(maxsize=16)
+def _group_pairs(key: bytes, dtype: str) -> tuple[np.ndarray, np.ndarray]:
+    groups = np.frombuffer(key, dtype=dtype)
     iu, ju = _upper_pairs(groups.shape[0])
     same = groups[iu] == groups[ju]
     iu, ju = iu[same], ju[same]
@@ -80,42 +53,34 @@ def _make_group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return iu, ju
 
 
-def _group_pairs(groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The pairs ``i < j`` of :func:`_upper_pairs` with ``groups[i] == groups[j]`` (cached per labelling)."""
-    return _per_labelling("pairs", groups, _make_group_pairs)
-
-
-def _group_size(groups: np.ndarray) -> int:
-    """Robots per group (``N // labels``), cached per labelling."""
-    return _per_labelling("size", groups, lambda g: g.shape[0] // max(int(np.unique(g).size), 1))
+@functools.lru_cache(maxsize=16)
+def _group_size(key: bytes, dtype: str) -> int:
+    groups = np.frombuffer(key, dtype=dtype)
+    return groups.shape[0] // max(int(np.unique(groups).size), 1)
 
 
 def brute_candidates(n: int, groups: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The candidate pairs ``(iu, ju)`` of :func:`robot_pairs`' brute force (cached, read-only).
 
-    Every pair ``i < j`` (of one label with ``groups``) in lexicographic order;
-    :func:`robot_pairs` keeps those with ``d0 d0 + d1 d1 <= radius * radius``
-    (``d = p_i - p_j``).
+    Every pair ``i < j`` (of one label with ``groups``) in lexicographic order; :func:`robot_pairs`
+    keeps those with ``d0 d0 + d1 d1 <= radius * radius`` (``d = p_i - p_j``).
     """
-    return _upper_pairs(n) if groups is None else _group_pairs(groups)
+    return _upper_pairs(n) if groups is None else _group_pairs(*_key(groups))
 
 
 def uses_brute_force(n: int, groups: np.ndarray | None = None) -> bool:
     """Whether :func:`robot_pairs` with ``method="auto"`` picks its brute force for ``n`` points.
 
-    That is, with fewer than :data:`KDTREE_MIN_ROBOTS` points per group (the grid of cells can
-    fall back to the brute force too, and fewer than two points have no pairs).
+    That is, with fewer than :data:`KDTREE_MIN_ROBOTS` points per group.
     """
-    return (n if groups is None else _group_size(groups)) < KDTREE_MIN_ROBOTS
+    return (n if groups is None else _group_size(*_key(groups))) < KDTREE_MIN_ROBOTS
 
 
 def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot products ``(P,)`` of two ``(P, 2)`` arrays: ``a0 b0 + a1 b1``.
 
-    The numbers of ``np.einsum("ij,ij->i", a, b)`` (the same two products added in
-    the same order; only a zero's sign may differ, einsum's sum starting from
-    ``+0.0``), without its per-call set-up, which dominates on these short rows.
-    Only the first two columns are read: the callers pass ``(P, 2)`` arrays.
+    The numbers of ``np.einsum("ij,ij->i", a, b)`` (up to a zero's sign) without its
+    per-call set-up, which dominates on short rows.  Only the first two columns are read.
     """
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]
 
@@ -128,30 +93,12 @@ def pairwise_distances(p: np.ndarray) -> np.ndarray:
 
 def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: np.ndarray | None = None,
                 compiled: bool | None = None) -> np.ndarray:
-    """Index pairs ``(i, j)``, ``i < j``, with ``|p_i - p_j| <= radius`` (and, with ``groups``, of one group).
+    """Index pairs ``(P, 2)``, ``i < j``, sorted, with ``|p_i - p_j| <= radius`` (with ``groups``: of one label).
 
-    Parameters
-    ----------
-    p : numpy.ndarray
-        Positions, shape ``(N, 2)``.
-    radius : float
-        Search radius (the sensing range ``D``).
-    method : {"auto", "brute", "kdtree", "cells"}
-        Back-end; ``"auto"`` picks brute force below :data:`KDTREE_MIN_ROBOTS`
-        (counted per group with ``groups``), above it the compiled grid of cells
-        where numba imports, else the k-d tree.  ``"cells"`` without numba:
-        ``ImportError``.
-    compiled : bool, optional
-        For ``"auto"``: ``False`` never picks the compiled cells (the filter's
-        ``kernel="numpy"``); None: where numba imports.
-    groups : numpy.ndarray, optional
-        ``(N,)`` labels (:attr:`aasoatt_env.model.params.Team.group`): only
-        pairs of one label are returned.
-
-    Returns
-    -------
-    numpy.ndarray
-        Integer array of shape ``(P, 2)``, sorted lexicographically.
+    ``method``: ``"brute"``, ``"kdtree"``, ``"cells"`` (numba's grid; ``ImportError`` without
+    numba) or ``"auto"``: brute force below :data:`KDTREE_MIN_ROBOTS` per group, above it the
+    cells where numba imports (``compiled=False``: never), else the k-d tree.  ``groups``:
+    ``(N,)`` labels (:attr:`~aasoatt_env.model.params.Team.group`).
     """
     n = p.shape[0]
     if groups is not None and np.shape(groups) != (n,):
@@ -187,43 +134,35 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
     if pairs.shape[0] == 0:
         return np.empty((0, 2), dtype=np.intp)
     pairs.sort(axis=1)
-    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
-    return pairs[order]
+    return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+
+
+def _obstacle_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray,
+                   teams: int) -> np.ndarray:
+    """Robot-obstacle surface gaps ``(K N, M)`` of ``teams`` stacked teams, each with its ``M`` obstacles."""
+    m = centers.shape[-2]
+    if m == 0:
+        return np.zeros((p.shape[0], 0))
+    n = p.shape[0] // teams
+    c, r = centers.reshape(teams, 1, m, 2), radii.reshape(teams, n, 1)
+    p3 = p.reshape(teams, n, 1, 2)
+    dx = p3[..., 0] - c[..., 0]
+    dy = p3[..., 1] - c[..., 1]
+    return (np.sqrt(dx * dx + dy * dy) - r - obstacle_radii.reshape(teams, 1, m)).reshape(teams * n, m)
 
 
 def obstacle_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray) -> np.ndarray:
     """Surface gaps robot-obstacle ``(N, M)``: ``|p_i - c_k| - r_i - R_k``."""
-    dx = p[:, 0:1] - centers[:, 0]
-    dy = p[:, 1:2] - centers[:, 1]
-    return np.sqrt(dx * dx + dy * dy) - radii[:, None] - obstacle_radii[None, :]
+    return _obstacle_gaps(p, radii, centers, obstacle_radii, 1)
 
 
 def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius: float, *,
                    groups: np.ndarray | None = None, obstacle_groups: np.ndarray | None = None) -> np.ndarray:
     """Pairs ``(i, k)`` of robot ``i`` and disc obstacle ``k`` whose surface lies within ``radius``.
 
-    The distance is measured from the robot's point to the obstacle centre minus
-    the obstacle radius, so large obstacles are sensed from their rim.
-
-    Parameters
-    ----------
-    p : numpy.ndarray
-        Robot positions, ``(N, 2)``.
-    centers : numpy.ndarray
-        Obstacle centres, ``(M, 2)``.
-    radii : numpy.ndarray
-        Obstacle radii, ``(M,)``.
-    radius : float
-        Search radius.
-    groups, obstacle_groups : numpy.ndarray, optional
-        Labels ``(N,)`` and ``(M,)`` (as in :func:`robot_pairs`): with both,
-        only pairs of one label are returned; unlabelled obstacles are every
-        group's.
-
-    Returns
-    -------
-    numpy.ndarray
-        Integer array ``(P, 2)`` of (robot, obstacle) indices, sorted.
+    The distance runs from the robot's point to the obstacle's rim.  With both ``groups``
+    ``(N,)`` and ``obstacle_groups`` ``(M,)`` only pairs of one label count.  Returns an
+    integer array ``(P, 2)`` of (robot, obstacle) indices, sorted.
     """
     if centers.shape[0] == 0 or p.shape[0] == 0:
         return np.empty((0, 2), dtype=np.intp)
@@ -234,33 +173,89 @@ def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius
     return np.stack((i, k), axis=1).astype(np.intp)
 
 
-def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Indices ``(N, k)`` and distances ``(N, k)`` of each point's ``k`` nearest other points.
+@functools.lru_cache(maxsize=16)
+def _rows(n: int) -> np.ndarray:
+    """``arange(n)[:, None]`` (read-only), to index row by row."""
+    rows = np.arange(n)[:, None]
+    rows.flags.writeable = False
+    return rows
 
-    Brute force below :data:`KDTREE_MIN_ROBOTS` points (then the full distance
-    matrix is returned too, else None); a k-d tree above.  Missing neighbours
-    (fewer than ``k`` others) get index -1 and distance inf.
+
+def _distances(p: np.ndarray, teams: int) -> np.ndarray:
+    """Centre distances within each of ``teams`` equal consecutive blocks of ``p``: ``(K, N, N)``, inf diagonal."""
+    n = p.shape[0] // teams
+    z = np.ascontiguousarray(p, dtype=np.float64).view(np.complex128)[:, 0].reshape(teams, n)
+    d = np.abs(z[:, :, None] - z[:, None, :])
+    d.reshape(teams, -1)[:, :: n + 1] = np.inf
+    return d
+
+
+def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each row's ``k`` nearest in the distance stack ``d (K, N, N)``: stack indices and distances ``(K N, k)``.
+
+    Nearest first; -1 and inf where a team has fewer than ``k`` others.
+    """
+    teams, n = d.shape[0], d.shape[1]
+    kk = min(k, n - 1)
+    if kk <= 0:
+        return np.full((teams * n, k), -1, dtype=np.intp), np.full((teams * n, k), np.inf)
+    d2 = d.reshape(teams * n, n)
+    rows = _rows(teams * n)
+    if n <= _FULL_SORT_MAX or kk >= n - 1:
+        order = np.argsort(d2, axis=1)[:, :kk]
+    else:
+        part = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
+        order = part[rows, np.argsort(d2[rows, part], axis=1)]
+    dk = d2[rows, order]
+    if teams > 1:
+        order = order + np.repeat(np.arange(teams) * n, n)[:, None]
+    if kk == k:
+        return order, dk
+    idx, dist = np.full((teams * n, k), -1, dtype=np.intp), np.full((teams * n, k), np.inf)
+    idx[:, :kk], dist[:, :kk] = order, dk
+    return idx, dist
+
+
+def _robot_gaps(d: np.ndarray, radii: np.ndarray, equal: np.ndarray | None = None) -> np.ndarray:
+    """Surface gap ``(K N,)`` of each robot to the nearest of its team, from the distance stack ``d``.
+
+    ``equal (K,)``: whether each team's radii are all equal, when the nearest centre gives it.
+    """
+    teams, n = d.shape[0], d.shape[1]
+    if n <= 1:
+        return np.full(teams * n, np.inf)
+    r = radii.reshape(teams, n)
+    if equal is None:
+        equal = np.array([radii.min() == radii.max()]) if teams == 1 else r.min(axis=1) == r.max(axis=1)
+    if teams == 1 and equal[0]:
+        return np.minimum.reduce(d[0], axis=1) - 2.0 * radii
+    if equal.all():
+        return (np.minimum.reduce(d, axis=2) - 2.0 * r).ravel()
+    gap = (d - r[:, :, None] - r[:, None, :]).min(axis=2)
+    if equal.any():
+        gap = np.where(equal[:, None], np.minimum.reduce(d, axis=2) - 2.0 * r, gap)
+    return gap.ravel()
+
+
+def _listed_gaps(idx: np.ndarray, dist: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Surface gap ``(N,)`` to the nearest of the listed neighbours ``idx`` (-1: none) at centre distances ``dist``."""
+    valid = idx >= 0
+    return np.where(valid, dist - radii[:, None] - radii[np.where(valid, idx, 0)], np.inf).min(axis=1)
+
+
+def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """Indices and distances ``(N, k)`` of each point's ``k`` nearest other points (-1 and inf: none).
+
+    Brute force below :data:`KDTREE_MIN_ROBOTS` points, which also returns the distance
+    matrix (inf diagonal; else None); a k-d tree above.
     """
     n = p.shape[0]
     kk = min(k, n - 1)
     if kk <= 0:
         return np.full((n, k), -1, dtype=np.intp), np.full((n, k), np.inf), None
     if n < KDTREE_MIN_ROBOTS:
-        d = pairwise_distances(p)
-        d.flat[:: n + 1] = np.inf
-        rows = np.arange(n)[:, None]
-        if n <= _FULL_SORT_MAX or kk >= n - 1:
-            order = np.argsort(d, axis=1)[:, :kk]
-        else:
-            part = np.argpartition(d, kk - 1, axis=1)[:, :kk]
-            order = part[rows, np.argsort(d[rows, part], axis=1)]
-        dk = d[rows, order]
-        if kk == k:
-            return order, dk, d
-        idx = np.full((n, k), -1, dtype=np.intp)
-        dist = np.full((n, k), np.inf)
-        idx[:, :kk], dist[:, :kk] = order, dk
-        return idx, dist, d
+        d = _distances(p, 1)
+        return (*_nearest(d, k), d[0])
     idx = np.full((n, k), -1, dtype=np.intp)
     dist = np.full((n, k), np.inf)
     dd, ii = cKDTree(p).query(p, k=kk + 1)
@@ -271,40 +266,44 @@ def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
 def min_gaps(
     p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, *, k: int = 6
 ) -> np.ndarray:
-    """Clearance ``(N,)``: each robot's surface gap to the nearest robot or obstacle.
+    """Clearance ``(N,)``: each robot's surface gap to the nearest robot or obstacle (``inf``: a lone robot).
 
-    Exact below :data:`KDTREE_MIN_ROBOTS` robots (all pairs); above, taken over
-    the ``k`` nearest centres (exact for equal radii).  ``inf`` for a lone robot.
+    Exact below :data:`KDTREE_MIN_ROBOTS` robots (all pairs); above, over the ``k`` nearest
+    centres (exact for equal radii).
     """
-    n = p.shape[0]
-    gap = np.full(n, np.inf)
-    if n > 1:
-        if n < KDTREE_MIN_ROBOTS:
-            if radii.min() == radii.max():  # equal radii: the nearest centre gives the clearance
-                d = pairwise_distances(p)
-                d.flat[:: n + 1] = np.inf
-                gap = np.minimum.reduce(d, axis=1) - 2.0 * radii
-            else:
-                g = pairwise_distances(p) - radii[:, None] - radii[None, :]
-                g.flat[:: n + 1] = np.inf
-                gap = g.min(axis=1)
-        else:
-            idx, dist, _ = k_nearest(p, k)
-            valid = idx >= 0
-            gap = np.where(valid, dist - radii[:, None] - radii[np.where(valid, idx, 0)], np.inf).min(axis=1)
-    if centers.shape[0]:
-        gap = np.minimum(gap, obstacle_gaps(p, radii, centers, obstacle_radii).min(axis=1))
-    return gap
+    return neighbourhood(p, radii, centers, obstacle_radii, 0, clear_k=k)[3]
+
+
+def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, k: int,
+                  teams: int = 1, equal_radii: np.ndarray | None = None, clear_k: int = 6
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Nearest robots, obstacle gaps and clearance of ``teams`` equal teams stacked in ``p (K N, 2)``.
+
+    Returns each robot's ``k`` nearest robots of its team (stack indices and centre distances,
+    ``(K N, k)``, -1/inf: none), its surface gaps ``(K N, M)`` to its team's obstacles
+    (``centers (K, M, 2)``, ``obstacle_radii (K, M)``) and its clearance ``(K N,)``: exact below
+    :data:`KDTREE_MIN_ROBOTS` robots per team, over the ``max(k, clear_k)`` nearest for one larger
+    team.  ``equal_radii (K,)``: whether each team's radii are equal, if known.
+    """
+    if p.shape[0] // teams < KDTREE_MIN_ROBOTS:
+        d = _distances(p, teams)
+        idx, dist = _nearest(d, k) if k else (np.empty((p.shape[0], 0), np.intp), np.empty((p.shape[0], 0)))
+        gap = _robot_gaps(d, radii, equal_radii)
+    else:
+        idx, dist, _ = k_nearest(p, max(k, clear_k))
+        gap = _listed_gaps(idx, dist, radii)
+        idx, dist = idx[:, :k], dist[:, :k]
+    og = _obstacle_gaps(p, radii, centers, obstacle_radii, teams)
+    if og.shape[1]:
+        gap = np.minimum(gap, og.min(axis=1))
+    return idx, dist, og, gap
 
 
 def pair_components(n: int, ri: np.ndarray, rj: np.ndarray, *, compiled: bool | None = None) -> np.ndarray:
     """Connected-component label ``(n,)`` of ``n`` robots, edges ``(ri[k], rj[k])`` (none where ``rj < 0``: obstacles).
 
-    Robots of one component share the label of its smallest index.  Union-find in
-    the compiled kernel (:func:`aasoatt_env.model.geometry_kernel.components`;
-    ``compiled=None``: where numba imports), else min-label propagation with
-    pointer jumping (vectorised; a handful of passes for the contact graphs met
-    here): the same labels.  Edge ends outside ``[0, n)``: ``ValueError``.
+    A component is labelled by its smallest index: union-find in the compiled kernel
+    (``compiled=None``: where numba imports), else min-label propagation, the same labels.
     """
     ri, rj = np.asarray(ri), np.asarray(rj)
     if not (np.issubdtype(ri.dtype, np.integer) and np.issubdtype(rj.dtype, np.integer)) and ri.size:

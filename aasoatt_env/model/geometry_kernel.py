@@ -1,14 +1,10 @@
 """Compiled neighbour search and contact components (numba; loaded through :mod:`aasoatt_env.compiled`).
 
-- :func:`cell_pairs`: the pairs ``i < j`` within a radius by a uniform grid of
-  cells a little wider than the radius (every pair within it lies in one 3x3
-  block of cells), each candidate tested as the brute-force back-end tests it
-  (``dx * dx + dy * dy <= r * r``), so the pairs are those of
-  :func:`~aasoatt_env.model.geometry.robot_pairs`' other back-ends, in the same
-  lexicographic order;
-- :func:`components`: union-find labels equal to
-  :func:`~aasoatt_env.model.geometry.pair_components`' (each component labelled
-  by its smallest index).
+:func:`cell_pairs` finds the pairs ``i < j`` within a radius on a grid of cells a little
+wider than it (every such pair lies in one 3x3 block), each candidate tested as the brute
+force tests it, so its pairs and order are those of
+:func:`~aasoatt_env.model.geometry.robot_pairs`' other back-ends; :func:`components` gives
+:func:`~aasoatt_env.model.geometry.pair_components`' labels (a component's smallest index).
 """
 
 from __future__ import annotations
@@ -26,36 +22,45 @@ _WIDEN = 1e-6
 
 
 @jit
-def cell_pairs(p, radius, groups, has_groups):
-    """Pairs ``(P, 2)`` int64, ``i < j``, lexicographic, with ``|p_i - p_j|^2 <= radius^2`` (one group each).
+def _grid(p, cell):
+    """Each point's cell ``(cx, cy)``, whether it is finite, and the grid's size ``(nx, ny)``.
 
-    ``radius > 0`` and finite (the caller checks); points with a non-finite coordinate pair with nothing.
-    Returns ``(pairs, True)``, or ``(empty, False)`` where the points span more than 2^31 cells on an axis
-    (the cell keys would overflow: the caller takes another back-end).
+    The grid has a ring of empty cells around it; ``nx = 0`` where the points span more than
+    2^31 cells on an axis.
     """
     n = p.shape[0]
-    r2 = radius * radius
-    cell = radius * (1.0 + _WIDEN)
     ok = np.empty(n, np.bool_)
-    x0, y0 = math.inf, math.inf
+    x0, y0, x1, y1 = math.inf, math.inf, -math.inf, -math.inf
     for i in range(n):
         ok[i] = math.isfinite(p[i, 0]) and math.isfinite(p[i, 1])
         if ok[i]:
-            x0, y0 = min(x0, p[i, 0]), min(y0, p[i, 1])
-    x1, y1 = -math.inf, -math.inf
-    for i in range(n):
-        if ok[i]:
-            x1, y1 = max(x1, p[i, 0]), max(y1, p[i, 1])
-    if (x1 - x0) / cell > 2.0**31 or (y1 - y0) / cell > 2.0**31:
-        return np.empty((0, 2), np.int64), False
+            x0, y0, x1, y1 = min(x0, p[i, 0]), min(y0, p[i, 1]), max(x1, p[i, 0]), max(y1, p[i, 1])
     cx = np.zeros(n, np.int64)
     cy = np.zeros(n, np.int64)
+    if (x1 - x0) / cell > 2.0**31 or (y1 - y0) / cell > 2.0**31:
+        return ok, cx, cy, 0, 0
     nx, ny = 1, 1
     for i in range(n):
         if ok[i]:
             cx[i] = int(math.floor((p[i, 0] - x0) / cell))
             cy[i] = int(math.floor((p[i, 1] - y0) / cell))
-            nx, ny = max(nx, cx[i] + 3), max(ny, cy[i] + 3)  # a ring of empty cells around the grid
+            nx, ny = max(nx, cx[i] + 3), max(ny, cy[i] + 3)
+    return ok, cx, cy, nx, ny
+
+
+@jit
+def cell_pairs(p, radius, groups, has_groups):
+    """Pairs ``(P, 2)`` int64, ``i < j``, lexicographic, with ``|p_i - p_j|^2 <= radius^2`` (one group each).
+
+    ``radius > 0`` and finite (the caller checks); points with a non-finite coordinate pair with nothing.
+    Returns ``(pairs, True)``, or ``(empty, False)`` where the cell keys would overflow (the caller
+    takes another back-end).
+    """
+    n = p.shape[0]
+    r2 = radius * radius
+    ok, cx, cy, nx, ny = _grid(p, radius * (1.0 + _WIDEN))
+    if nx == 0:
+        return np.empty((0, 2), np.int64), False
     dense = nx * ny <= 8 * n + 64  # one slot per cell; else the occupied cells' keys, searched
     key = np.empty(n, np.int64)
     for i in range(n):
@@ -69,7 +74,7 @@ def cell_pairs(p, radius, groups, has_groups):
                 start[key[i] + 1] += 1
         for c in range(nx * ny):
             start[c + 1] += start[c]
-        first = n - int(ok.sum())  # the points without a cell sort first (key -1)
+    first = n - int(ok.sum())  # the points without a cell sort first (key -1)
     out = np.empty((max(16, 8 * n), 2), np.int64)
     m = 0
     buf = np.empty(max(n, 1), np.int64)

@@ -1,30 +1,18 @@
 """Robot parameters: one validated dataclass per robot, vectorised per team.
 
-:class:`RobotParams` describes one robot (disc radius, wheel geometry, control
-point offset, input bounds).  :class:`Team` stacks N of them into arrays of
-shape ``(N,)`` so the dynamics, the barriers and the QP never loop over robots.
+:class:`RobotParams` describes one robot (disc radius, wheel geometry, control-point
+offset, input bounds); :class:`Team` stacks N of them into ``(N,)`` arrays so the
+dynamics, the barriers and the QP never loop over robots.
 
-Presets
--------
-``"paper"``
-    The defaults of ``docs/technical_brief.md`` section 7: disc radius 0.48 m (so ``d_s = 0.96``),
-    wheel radius 0.1 m, half track 0.2 m, control-point offset 0.2 m,
-    ``|du| <= 60 rad/s^2`` and no wheel-speed limit.  The paper does not state
-    its wheel geometry or bounds; these values reproduce its N = 10 results.
-``"turtlebot3_waffle_pi"``
-    ROBOTIS TurtleBot3 Waffle Pi: wheel radius 0.033 m, track 0.287 m, top
-    speed 0.26 m/s (a wheel-speed limit of 7.88 rad/s); enclosing radius 0.22 m;
-    offset 0.08 m; wheel-acceleration bound 20 rad/s^2 (our choice).
-``"paper_small"``
-    The paper robot with a disc radius of 0.3 m: 100 robots of radius 0.48 do not
-    fit on the radius-10 circle of the paper's 100-robot experiment, these do.
-``"double_integrator"``
-    A holonomic point robot (``A = I``) of radius 0.48 with ``|a| <= 6 m/s^2`` per axis.
-``"turtlebot3_burger"``
-    ROBOTIS TurtleBot3 Burger: wheel radius 0.033 m, track 0.160 m (half track
-    0.08 m), top speed 0.22 m/s, i.e. a wheel-speed limit of 0.22 / 0.033 =
-    6.67 rad/s; enclosing radius 0.105 m; offset 0.05 m; wheel-acceleration
-    bound 20 rad/s^2 (about 0.66 m/s^2 at the rim; our choice, not ROBOTIS').
+Presets (:data:`PRESETS`): ``"paper"``, the defaults of ``docs/technical_brief.md``
+section 7 (disc radius 0.48 m, wheel radius 0.1 m, half track 0.2 m, offset 0.2 m,
+``|du| <= 60 rad/s^2``, no speed limit: the paper states neither geometry nor bounds,
+these reproduce its N = 10 results); ``"paper_small"``, the same with radius 0.3 m (100
+robots fit on the radius-10 circle); ``"double_integrator"``, a holonomic point robot
+(``A = I``) with ``|a| <= 6 m/s^2`` per axis; ``"turtlebot3_burger"`` and
+``"turtlebot3_waffle_pi"``, ROBOTIS' wheel radius, track and top speed (0.22 and 0.26
+m/s, i.e. wheel-speed limits), enclosing radius and offset, with a wheel-acceleration
+bound of 20 rad/s^2 (our choice).
 """
 
 from __future__ import annotations
@@ -50,15 +38,11 @@ MODELS: tuple[str, ...] = ("diff_drive", "double_integrator")
 
 
 _RANGES: dict[str, tuple[float, float]] = {
-    "radius": (1e-6, 1e6),
-    "wheel_radius": (1e-6, 1e6),
-    "half_track": (1e-6, 1e6),
-    "offset": (1e-6, 1e6),
-    "max_wheel_accel": (1e-6, 1e9),
-    "max_wheel_speed": (1e-6, 1e9),
+    "radius": (1e-6, 1e6), "wheel_radius": (1e-6, 1e6), "half_track": (1e-6, 1e6), "offset": (1e-6, 1e6),
+    "max_wheel_accel": (1e-6, 1e9), "max_wheel_speed": (1e-6, 1e9),
 }
-"""Valid range of each :class:`RobotParams` field (SI units; ``max_wheel_speed`` may also be ``inf``).
-Beyond them the kinematics under- or overflow (a radius of 5e-324 divides by zero)."""
+"""Valid range of each :class:`RobotParams` field (SI units; ``max_wheel_speed`` may also be ``inf``):
+beyond them the kinematics under- or overflow."""
 
 
 @dataclass(frozen=True)
@@ -68,27 +52,21 @@ class RobotParams:
     Parameters
     ----------
     radius : float
-        Radius of the robot's enclosing disc [m]; the safety distance of a pair
-        is the sum of their radii.
-    wheel_radius : float
-        Wheel radius ``rho`` [m].
-    half_track : float
-        Half the distance between the wheels ``b`` [m].
+        Radius of the robot's enclosing disc [m]; a pair's safety distance is the sum of radii.
+    wheel_radius, half_track : float
+        Wheel radius ``rho`` and half the distance between the wheels ``b`` [m].
     offset : float
-        Distance ``l`` of the controlled point ahead of the axle centre [m];
-        must be positive (``l = 0`` makes ``A`` singular).
+        Distance ``l > 0`` of the controlled point ahead of the axle centre [m] (``l = 0``
+        makes ``A`` singular).
     max_wheel_accel : float
-        Bound on each wheel's angular acceleration, ``|du| <= max_wheel_accel``
-        [rad/s^2].  For the double integrator: bound on each acceleration
-        component [m/s^2].
+        Bound on each wheel's angular acceleration ``|du|`` [rad/s^2] (double integrator:
+        on each acceleration component [m/s^2]).
     max_wheel_speed : float
-        Bound on each wheel's angular speed [rad/s] (``inf`` for none).  It is
-        enforced by tightening the acceleration bounds of the step, never by
-        clipping the state.  For the double integrator: bound on each velocity
-        component [m/s].
+        Bound on each wheel's angular speed [rad/s] (``inf``: none; double integrator: each
+        velocity component [m/s]), enforced by tightening a step's acceleration bounds.
     model : {"diff_drive", "double_integrator"}
-        Differential drive (feedback-linearised control point) or holonomic
-        double integrator (``A = I``, ``A_dot = 0``).
+        Differential drive (feedback-linearised control point) or holonomic double
+        integrator (``A = I``, ``A_dot = 0``).
     """
 
     radius: float = 0.48
@@ -118,13 +96,11 @@ class RobotParams:
 
     @property
     def max_point_accel(self) -> float:
-        """Largest control-point acceleration guaranteed in every direction at rest.
+        """Largest control-point acceleration guaranteed in every direction at rest (eqn.n4's ``a_i^+``).
 
-        The reachable set ``{A du : |du|_inf <= a}`` is a parallelogram whose
-        two columns both have length ``rho/2 sqrt(1 + k^2)`` (``k = l / b``) and
-        whose determinant is ``-rho^2 k / 2``; its inscribed-circle radius is
-        ``a |det A| / |column| = a rho k / sqrt(1 + k^2)``.  The braking SBC
-        (eqn.n4) uses this as ``a_i^+``.
+        The inscribed-circle radius ``a rho k / sqrt(1 + k^2)`` (``k = l / b``) of the
+        parallelogram ``{A du : |du|_inf <= a}``: columns of length ``rho/2 sqrt(1 + k^2)``,
+        determinant ``-rho^2 k / 2``.
         """
         if self.model == "double_integrator":
             return self.max_wheel_accel
@@ -134,37 +110,29 @@ class RobotParams:
 
 PRESETS: dict[str, RobotParams] = {
     "paper": RobotParams(),
-    "turtlebot3_burger": RobotParams(
-        radius=0.105,
-        wheel_radius=0.033,
-        half_track=0.08,
-        offset=0.05,
-        max_wheel_accel=20.0,
-        max_wheel_speed=0.22 / 0.033,
-    ),
-    "turtlebot3_waffle_pi": RobotParams(
-        radius=0.22,
-        wheel_radius=0.033,
-        half_track=0.1435,
-        offset=0.08,
-        max_wheel_accel=20.0,
-        max_wheel_speed=0.26 / 0.033,
-    ),
+    "turtlebot3_burger": RobotParams(radius=0.105, wheel_radius=0.033, half_track=0.08, offset=0.05,
+                                     max_wheel_accel=20.0, max_wheel_speed=0.22 / 0.033),
+    "turtlebot3_waffle_pi": RobotParams(radius=0.22, wheel_radius=0.033, half_track=0.1435, offset=0.08,
+                                        max_wheel_accel=20.0, max_wheel_speed=0.26 / 0.033),
     "paper_small": RobotParams(radius=0.3),
     "double_integrator": RobotParams(max_wheel_accel=6.0, model="double_integrator"),
 }
+"""The robot presets (module docstring)."""
+
+
+_PER_ROBOT = ("radius", "wheel_radius", "half_track", "offset", "max_wheel_accel", "max_wheel_speed",
+              "max_point_accel")
+"""The :class:`Team` fields with one value per robot."""
 
 
 @dataclass(frozen=True)
 class Team:
-    """Parameters of N robots as arrays of shape ``(N,)`` (see :class:`RobotParams`).
+    """Parameters of N robots as ``(N,)`` arrays (see :class:`RobotParams`), one dynamics ``model``.
 
-    All robots share one dynamics ``model``.  Build with :func:`make_team`.
-
-    ``group`` (optional, ``(N,)`` int) stacks several independent teams into one:
-    robots of different groups live in separate worlds, so the safety filter
-    forms no pair between them (one filter call for many teams, e.g.
-    :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).  ``None``: one team.
+    Build with :func:`make_team`.  ``group`` (optional, ``(N,)`` int) stacks independent
+    teams into one (:func:`stack_teams`): robots of different groups live in separate
+    worlds, so the safety filter forms no pair between them.  A team's arrays are not to be
+    changed in place (its cached properties are made from them).
     """
 
     radius: np.ndarray
@@ -185,9 +153,8 @@ class Team:
     def subset(self, idx: np.ndarray) -> Team:
         """The team of robots ``idx`` (same order).
 
-        It keeps ``(self, its robot numbers)`` in its :attr:`derived` under :data:`SUBSET_OF`: per-robot values
-        made for this team can be indexed for it instead of made again (the backup layer's checks
-        of a group of robots, several times per step).
+        Its :attr:`derived` holds ``(self, its robot numbers)`` under :data:`SUBSET_OF`, so per-robot
+        values made for the whole team can be indexed for it instead of made again.
         """
         rows = np.arange(self.n)[idx]  # (the caller's index as robot numbers, a copy: masks and slices too)
         sub = Team(self.radius[rows], self.wheel_radius[rows], self.half_track[rows], self.offset[rows],
@@ -215,12 +182,11 @@ class Team:
 
     @cached_property
     def input_columns(self) -> np.ndarray:
-        """Columns of ``A`` at heading 0 as complex numbers, shape ``(N, 2)``.
+        """Columns of ``A`` at heading 0 as complex numbers ``(N, 2)`` (real part: row 0).
 
-        ``A(theta)[:, j] = e^{i theta} * input_columns[:, j]`` (real part: row 0,
-        imaginary part: row 1), i.e. ``rho/2 (1 + i k)`` and ``rho/2 (1 - i k)``
-        with ``k = l / b`` for differential drive, ``1`` and ``i`` for the double
-        integrator.  Cached; the dynamics use it to build ``A`` with one rotation.
+        ``A(theta)[:, j] = e^{i theta} input_columns[:, j]``: ``rho/2 (1 + i k)`` and
+        ``rho/2 (1 - i k)`` (``k = l / b``) for differential drive, ``1`` and ``i`` for the
+        double integrator, so the dynamics build ``A`` with one rotation.
         """
         if not self.is_diff_drive:
             return np.tile(np.array([1.0 + 0.0j, 1.0j]), (self.n, 1))
@@ -238,12 +204,8 @@ class Team:
     def derived(self) -> dict[Hashable, Any]:
         """Values other modules compute from these parameters, kept for the team's life.
 
-        As with the other cached properties, a team's arrays are not to be changed in place.
-
-        Keyed by their maker and its arguments, e.g. the backup layer's per-robot constants
-        for one braking fraction and sensing range (:mod:`aasoatt_env.safety.gatekeeper`);
-        a :meth:`subset` holds its whole team and robot numbers under :data:`SUBSET_OF`.
-        Not pickled (a copy makes them again on first use).
+        Keyed by their maker and its arguments (e.g. the backup layer's per-robot constants);
+        a :meth:`subset` holds its whole team under :data:`SUBSET_OF`.  Not pickled.
         """
         return {}
 
@@ -258,15 +220,9 @@ class Team:
 
 
 def make_team(robots: RobotParams | str | Sequence[RobotParams | str] | None, n: int) -> Team:
-    """Build a :class:`Team` of ``n`` robots.
+    """A :class:`Team` of ``n`` robots from one spec (preset name or :class:`RobotParams`) or one per robot.
 
-    Parameters
-    ----------
-    robots : RobotParams, str, sequence of those, or None
-        One spec (preset name or :class:`RobotParams`) shared by all robots, or
-        one per robot (heterogeneous team).  ``None`` means the ``"paper"`` preset.
-    n : int
-        Number of robots.
+    ``robots=None`` means the ``"paper"`` preset.
     """
     if robots is None:
         robots = "paper"
@@ -291,31 +247,15 @@ def make_team(robots: RobotParams | str | Sequence[RobotParams | str] | None, n:
     if len(models) > 1:
         raise ConfigError(f"robots: got mixed dynamics models {sorted(models)}, expected one model per team")
 
-    def col(name: str) -> np.ndarray:
-        return np.array([getattr(p, name) for p in params], dtype=np.float64)
-
-    return Team(
-        radius=col("radius"),
-        wheel_radius=col("wheel_radius"),
-        half_track=col("half_track"),
-        offset=col("offset"),
-        max_wheel_accel=col("max_wheel_accel"),
-        max_wheel_speed=col("max_wheel_speed"),
-        max_point_accel=col("max_point_accel"),
-        model=params[0].model if params else "diff_drive",
-    )
+    return Team(**{name: np.array([getattr(p, name) for p in params], dtype=np.float64) for name in _PER_ROBOT},
+                model=params[0].model)
 
 
 def stack_teams(teams: Sequence[Team]) -> Team:
-    """One :class:`Team` of all robots of ``teams``, in order, with ``group`` = the index of each robot's team.
-
-    The teams must share one dynamics model.  The filter keeps the groups apart
-    (:attr:`Team.group`), so the stack can be filtered in one call.
-    """
+    """One :class:`Team` of all robots of ``teams`` (one dynamics model), ``group`` = each robot's team."""
     models = {t.model for t in teams}
     if len(models) != 1:
         raise ConfigError(f"teams: got dynamics models {sorted(models)}, expected one model for the whole stack")
-    names = [f.name for f in fields(Team) if f.name not in ("model", "group")]
     group = np.concatenate([np.full(t.n, k, dtype=np.int64) for k, t in enumerate(teams)])
-    return Team(**{name: np.concatenate([getattr(t, name) for t in teams]) for name in names}, model=teams[0].model,
-                group=group)
+    return Team(**{name: np.concatenate([getattr(t, name) for t in teams]) for name in _PER_ROBOT},
+                model=teams[0].model, group=group)

@@ -1,15 +1,10 @@
 """The paper's trajectory-tracking law (eqn.11-12), the one home of the nominal controller's algebra.
 
-With the tracking error ``ell = p - p_d``, the law asks for the control-point acceleration
-
-    a = a_d - (k3 + k4)(v - v_d) - k3 k4 ell                       (eqn.12)
-
-i.e. wheel accelerations ``du = A^{-1} (a - A_dot u)``.  Theorem 2 keeps the
-error converging under the deadlock correction eqn.13 while ``k4 > zeta``.
-The baseline agent (:class:`agents.TrackingController`), the safety filter's
-deadlock strategies (:class:`aasoatt_env.safety.config.FilterConfig` ``k3``,
-``k4``: the gains of the nominal they correct) and the learned policy's
-tracking prior all use this module.
+With the tracking error ``ell = p - p_d`` the law asks for the control-point acceleration
+``a = a_d - (k3 + k4)(v - v_d) - k3 k4 ell`` (eqn.12), i.e. ``du = A^{-1} (a - A_dot u)``;
+Theorem 2 keeps the error converging under the deadlock correction eqn.13 while
+``k4 > zeta``.  The baseline agent, the filter's deadlock strategies and the learned
+policy's tracking prior all use it.
 """
 
 from __future__ import annotations

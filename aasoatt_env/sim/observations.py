@@ -29,7 +29,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from aasoatt_env.model.geometry import KDTREE_MIN_ROBOTS, k_nearest, obstacle_gaps
+from aasoatt_env.model.geometry import neighbourhood
 
 __all__ = ["OBS_BOUND", "SELF_DIM", "SLOT_DIM", "Proximity", "build_observations", "proximity"]
 
@@ -53,33 +53,14 @@ class Proximity(NamedTuple):
 
 
 def proximity(
-    p: np.ndarray, radii: np.ndarray, centers: np.ndarray, orad: np.ndarray, k: int = 6
+    p: np.ndarray, radii: np.ndarray, centers: np.ndarray, orad: np.ndarray, k: int = 6, teams: int = 1,
+    equal_radii: np.ndarray | None = None,
 ) -> Proximity:
-    """Nearest robots and obstacle gaps of every robot (:mod:`aasoatt_env.model.geometry`).
+    """Nearest robots and obstacle gaps of every robot (:func:`aasoatt_env.model.geometry.neighbourhood`).
 
-    The robot clearance is exact below ``KDTREE_MIN_ROBOTS`` robots (all pairs);
-    above, it is taken over the ``max(k, 6)`` nearest centres, exact for equal radii.
+    ``teams`` equal teams may be stacked in ``p``; the indices then point into the stack.
     """
-    n = p.shape[0]
-    big = n >= KDTREE_MIN_ROBOTS
-    idx, dist, full = k_nearest(p, max(k, 6) if big else k)
-    if full is not None:
-        if n <= 1:
-            gap = np.full(n, np.inf)
-        elif radii.min() == radii.max():  # equal radii: the nearest centre gives the clearance
-            gap = np.minimum.reduce(full, axis=1) - 2.0 * radii
-        else:
-            gap = (full - radii[:, None] - radii[None, :]).min(axis=1)
-    else:
-        valid = idx >= 0
-        gap = np.where(valid, dist - radii[:, None] - radii[np.where(valid, idx, 0)], np.inf).min(axis=1)
-    idx, dist = idx[:, :k], dist[:, :k]
-    if centers.shape[0]:
-        og = obstacle_gaps(p, radii, centers, orad)
-        gap = np.minimum(gap, og.min(axis=1))
-    else:
-        og = np.zeros((n, 0))
-    return Proximity(idx, dist, og, gap)
+    return Proximity(*neighbourhood(p, radii, centers, orad, k, teams, equal_radii))
 
 
 def build_observations(

@@ -1,38 +1,22 @@
 """The contract between the environment and a per-physics-step control filter.
 
-The environment never needs to know what a filter does (as in Robotarium, where
-a barrier certificate is a function of the state and the nominal input).  At
-every physics step of ``dt`` seconds, also between two decisions of the
-policy, :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`:
+The environment never needs to know what a filter does (as in Robotarium, where a barrier
+certificate is a function of the state and the nominal input).  At every physics step
+(also between two decisions of the policy) the env computes the nominal wheel
+accelerations ``du_nominal (N, 2)`` from the held actions, hands the filter a
+:class:`FilterInput` and ``du_nominal``, receives a :class:`FilterOutput`, clips the applied
+``du`` to the step's input bounds (a filter with ``keeps_input_bounds = True`` never needs
+it) and integrates.  It calls :meth:`ControlFilter.reset` with the episode's team in
+``reset`` (and when a filter is installed into an env that has one), keeps the outputs of
+the last env step (``filter_outputs``) and reads only their ``correction`` (the reward)
+and ``avoiding`` (rendering).
 
-1. computes the nominal wheel accelerations ``du_nominal (N, 2)`` from the
-   held actions;
-2. hands the filter a :class:`FilterInput` (the state of this physics step) and
-   ``du_nominal``;
-3. receives a :class:`FilterOutput`: the wheel accelerations to apply, and per
-   robot the size of the change and whether the robot is avoiding a collision;
-4. clips the applied ``du`` to the step's input bounds (a filter that keeps
-   them, ``keeps_input_bounds = True``, never needs it) and integrates.
-
-The env calls :meth:`ControlFilter.reset` with the episode's team in ``reset``
-(and once when the filter is installed into an env that already has one).
-It keeps the outputs of the physics steps of the last env step
-(:attr:`~aasoatt_env.sim.env.AASOATTParallelEnv.filter_outputs`); it uses only
-``correction`` (the reward's correction term) and ``avoiding`` (highlighting
-when rendering), and a wrapper reads the rest.  Install a filter with
-:meth:`~aasoatt_env.sim.env.AASOATTParallelEnv.set_control_filter`;
-:class:`aasoatt_env.safety.wrapper.AASOATTFilter` does this for its
-:class:`~aasoatt_env.safety.core.SafetyFilter`.
-
-Several teams in one call (optional).  :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`
-steps ``K`` independent teams together.  If the teams' filters offer
-``grouped(filters)`` (:class:`GroupableFilter`) and it returns a filter
-(:class:`GroupedControlFilter`), the batch calls that one filter once per
-physics step with all teams stacked: ``inp.team.group`` labels each robot's
-team, ``inp.obstacle_groups`` each obstacle's, and no pair of robots (or robot
-and obstacle) of different teams may affect the answer.  ``inp.reference``
-holds every team's reference at its own time; ``inp.time`` is team 0's.  Else
-the batch calls each team's filter with its own input.
+Several teams in one call (optional): :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`
+asks the teams' filters for ``grouped(filters)`` (:class:`GroupableFilter`); a filter it
+returns (:class:`GroupedControlFilter`) is called once per physics step with all teams
+stacked: ``inp.team.group`` labels each robot's team and ``inp.obstacle_groups`` each
+obstacle's, and no pair across teams may affect the answer.  ``inp.reference`` holds every
+team's reference at its own time; ``inp.time`` is team 0's.
 """
 
 from __future__ import annotations
@@ -51,33 +35,26 @@ __all__ = ["ControlFilter", "FilterInput", "FilterOutput", "GroupableFilter", "G
 
 @dataclass(frozen=True)
 class FilterInput:
-    """The state the env hands a control filter at one physics step (arrays are read-only views).
+    """The state the env hands a control filter at one physics step (arrays not to be changed).
 
     Attributes
     ----------
-    time : float
-        Simulated time at the start of the step [s].
-    dt : float
-        Physics step [s].
+    time, dt : float
+        Simulated time at the start of the step and the physics step [s].
     team : Team
         Robot parameters.
-    pose : numpy.ndarray
-        Axle poses ``(N, 3)``: ``x, y, theta``.
-    u : numpy.ndarray
-        Wheel speeds ``(N, 2)`` (double integrator: velocity).
+    pose, u : numpy.ndarray
+        Axle poses ``(N, 3)`` (``x, y, theta``) and wheel speeds ``(N, 2)``.
     kin : Kinematics
         Control points, velocities, ``A`` and ``A_dot u`` of the team.
     lo, hi : numpy.ndarray
-        Bounds ``(N, 2)`` on the wheel accelerations of this step (the robots'
-        acceleration bound, tightened by their wheel-speed limit).
+        Bounds ``(N, 2)`` on this step's wheel accelerations (acceleration and speed limits).
     reference : tuple of numpy.ndarray
-        ``(p_d, v_d, a_d)``, each ``(N, 2)``: the reference at ``time``.
-    obstacle_centers : numpy.ndarray
-        Static disc obstacles: centres ``(M, 2)``.
-    obstacle_radii : numpy.ndarray
-        Their radii ``(M,)``.
+        ``(p_d, v_d, a_d)``, each ``(N, 2)``, at ``time``.
+    obstacle_centers, obstacle_radii : numpy.ndarray
+        Static disc obstacles ``(M, 2)`` and ``(M,)``.
     obstacle_groups : numpy.ndarray or None
-        Grouped input only: the team of each obstacle ``(M,)`` (module docstring).
+        Grouped input only: the team of each obstacle ``(M,)``.
     """
 
     time: float

@@ -27,16 +27,9 @@ from typing import Literal, Protocol
 import numpy as np
 
 from aasoatt_env import validation as check
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.errors import ConfigError, ScenarioError
 
-__all__ = [
-    "FunctionReference",
-    "LinearReference",
-    "Reference",
-    "ReferenceStack",
-    "WaypointReference",
-    "as_reference",
-]
+__all__ = ["FunctionReference", "LinearReference", "Reference", "ReferenceStack", "WaypointReference", "as_reference"]
 
 RefTriple = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -65,20 +58,12 @@ def _points(name: str, value: np.ndarray | list, n: int | None = None) -> np.nda
 
 
 class LinearReference:
-    """Straight lines from ``starts`` to ``goals``, each travelled in its robot's duration.
+    """Straight lines from ``starts`` to ``goals`` ``(N, 2)``, each travelled in its robot's duration.
 
-    Parameters
-    ----------
-    starts, goals : array_like, shape (N, 2)
-        Start and goal points of each robot's controlled point.
-    duration : float or array_like, shape (N,)
-        Travel time [s], one for the team or one per robot; each robot's
-        reference rests at its goal afterwards (:attr:`duration`: the longest).
-    profile : {"linear", "smooth"}
-        ``"linear"``: constant velocity ``(goal - start) / duration`` (the
-        paper's linear-in-time reference; the velocity jumps to 0 at the end).
-        ``"smooth"``: minimum-jerk timing ``s = 10 tau^3 - 15 tau^4 + 6 tau^5``
-        (zero velocity and acceleration at both ends).
+    ``duration`` [s]: one for the team or one per robot ``(N,)``; a reference rests at its goal
+    afterwards (:attr:`duration`: the longest).  ``profile``: ``"linear"``, constant velocity
+    (the paper's; it jumps to 0 at the end), or ``"smooth"``, minimum-jerk timing
+    ``s = 10 tau^3 - 15 tau^4 + 6 tau^5`` (zero velocity and acceleration at both ends).
     """
 
     def __init__(
@@ -107,38 +92,28 @@ class LinearReference:
 
     def __call__(self, t: float) -> RefTriple:
         """Return ``(p_d, v_d, a_d)`` at time ``t``."""
-        return _linear(self.starts, self.goals, self._delta, self.durations, np.full(self.starts.shape[0], float(t)),
-                       self.profile)
+        return _linear(self.starts, self.goals, self._delta, self.durations, float(t), self.profile)
 
 
-def _linear(starts: np.ndarray, goals: np.ndarray, delta: np.ndarray, T: np.ndarray, t: np.ndarray, profile: str
-            ) -> RefTriple:
-    """:class:`LinearReference` robot by robot: times ``t`` and durations ``T`` ``(N,)`` (one home for the formula)."""
+def _linear(starts: np.ndarray, goals: np.ndarray, delta: np.ndarray, T: np.ndarray, t: float | np.ndarray,
+            profile: str) -> RefTriple:
+    """:class:`LinearReference` robot by robot: time ``t`` (one, or one per robot) and durations ``T`` ``(N,)``."""
     done = (t >= T)[:, None]
     tau = (np.maximum(t, 0.0) / T)[:, None]
-    zeros = np.zeros_like(starts)
     if profile == "linear":
-        p, v, a = starts + tau * delta, delta / T[:, None], zeros
-    else:
-        s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
-        ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / T[:, None]
-        dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (T * T)[:, None]
-        p, v, a = starts + s * delta, ds * delta, dds * delta
-    return np.where(done, goals, p), np.where(done, 0.0, v), np.where(done, 0.0, a)
+        v = np.where(done, 0.0, delta / T[:, None])
+        return np.where(done, goals, starts + tau * delta), v, np.zeros_like(starts)
+    s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
+    ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / T[:, None]
+    dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (T * T)[:, None]
+    return np.where(done, goals, starts + s * delta), np.where(done, 0.0, ds * delta), np.where(done, 0.0, dds * delta)
 
 
 class ReferenceStack:
-    """The references of several teams, evaluated together at each team's own time.
+    """The references ``refs`` of several teams (stack order), evaluated together at each team's own time.
 
-    ``stack(times)`` equals concatenating ``ref(t)`` over the teams, element for
-    element.  When every reference is a :class:`LinearReference` of one profile
-    the whole stack is evaluated by one vectorised call (a batched env does this
-    at every physics step); other references are called one by one.
-
-    Parameters
-    ----------
-    refs : sequence of Reference
-        One reference per team, in stack order.
+    ``stack(times)`` equals concatenating ``ref(t)`` over the teams, element for element:
+    :class:`LinearReference` s of one profile in one vectorised call, others one by one.
     """
 
     def __init__(self, refs: Sequence[Reference]) -> None:
@@ -159,21 +134,38 @@ class ReferenceStack:
         if len(times) != len(self.refs):
             raise ConfigError(f"times: got {len(times)} times, expected one per team ({len(self.refs)})")
         if self._linear:
-            t = np.repeat(np.asarray(times, dtype=np.float64), self._sizes)
+            t = float(times[0]) if len(self.refs) == 1 else np.repeat(np.asarray(times, dtype=np.float64), self._sizes)
             return _linear(self._starts, self._goals, self._delta, self._T, t, self._profile)
-        parts = [r(t) for r, t in zip(self.refs, times)]
+        parts = [self._checked(k, float(t)) for k, t in enumerate(times)]
+        if len(parts) == 1:
+            return parts[0]
         return tuple(np.concatenate([q[i] for q in parts]) for i in range(3))  # type: ignore[return-value]
+
+    def _checked(self, k: int, t: float) -> RefTriple:
+        """Team ``k``'s reference at ``t`` as new float64 arrays, refused unless finite and ``(N, 2)``.
+
+        A :class:`LinearReference` is finite by construction; other references (a user's callable,
+        finite differences at ``t - h``) may not be.
+        """
+        ref, n = self.refs[k], int(self._sizes[k])
+        out = tuple(np.array(x, dtype=np.float64) for x in ref(t))
+        for name, x in zip(("p_d", "v_d", "a_d"), out):
+            if x.shape != (n, 2) or not np.isfinite(x).all():
+                team = f" of team {k}" if len(self.refs) > 1 else ""
+                if x.shape != (n, 2):
+                    raise ScenarioError(f"reference ({type(ref).__name__}) {name} at t = {t:g} s{team}: got shape "
+                                        f"{x.shape}, expected ({n}, 2)")
+                i = int(np.flatnonzero(~np.isfinite(x).all(axis=1))[0])
+                raise ScenarioError(f"reference ({type(ref).__name__}) {name} at t = {t:g} s: got a non-finite value "
+                                    f"{x[i].tolist()} for robot {i}{team}, expected finite values (a reference "
+                                    "must be defined at every time of the episode)")
+        return out  # type: ignore[return-value]
 
 
 class WaypointReference:
-    """Piecewise-linear paths through waypoints reached at given times.
+    """Piecewise-linear paths through ``K >= 2`` waypoints ``(N, K, 2)`` (``(K, 2)``: one robot) at ``times (K,)``.
 
-    Parameters
-    ----------
-    waypoints : array_like, shape (N, K, 2) or (K, 2)
-        ``K >= 2`` waypoints per robot (a ``(K, 2)`` array is one robot).
-    times : array_like, shape (K,)
-        Strictly increasing arrival times, ``times[0]`` usually 0.
+    ``times`` strictly increasing, ``times[0]`` usually 0.
     """
 
     def __init__(self, waypoints: np.ndarray, times: np.ndarray) -> None:
@@ -206,19 +198,10 @@ class WaypointReference:
 
 
 class FunctionReference:
-    """A reference from user callables.
+    """A reference from user callables ``position(t) -> (N, 2)`` and optionally its derivatives.
 
-    Parameters
-    ----------
-    position : callable
-        ``position(t) -> (N, 2)`` array.
-    velocity, acceleration : callable, optional
-        Their derivatives; when omitted, central differences with step ``h``.
-    duration : float
-        Time after which the reference is considered finished (used for the
-        episode horizon); ``goals`` is ``position(duration)``.
-    h : float
-        Finite-difference step [s].
+    Without ``velocity``/``acceleration``: central differences with step ``h`` [s].  ``duration``:
+    when the reference is finished (the episode horizon); ``goals`` is ``position(duration)``.
     """
 
     def __init__(

@@ -1,21 +1,15 @@
 """Headless-safe rendering of team snapshots to RGB arrays, windows and animations.
 
-A :class:`Frame` holds everything one picture shows (robots, references, goals,
-obstacles, trails, which robots are avoiding).  :class:`Renderer` rasterises it
-with pygame surfaces (no display needed) into an ``(H, W, 3)`` ``uint8`` array,
-or shows it in a window for ``render_mode="human"``; :func:`save_animation`
-writes a list of such arrays as a GIF or MP4.
-
-The optional dependencies (pygame, imageio) are imported lazily, so the core
-library imports this module without them; using a feature whose dependency is
-missing raises an :class:`ImportError` that says to
+A :class:`Frame` holds what one picture shows (robots, references, goals, obstacles,
+trails, which robots are avoiding).  :class:`Renderer` rasterises it with pygame
+surfaces (no display needed) into an ``(H, W, 3)`` ``uint8`` array, or shows it in a
+window for ``render_mode="human"`` (:mod:`aasoatt_env.sim.window`); :func:`save_animation`
+writes such arrays as a GIF or video.  pygame and imageio are imported lazily: the
+library imports without them, and a feature that needs one says to
 ``pip install "aasoatt[render]"``.
 
-Conventions
------------
-World coordinates are metres with ``y`` pointing up; the picture keeps the
-aspect ratio (one scale for both axes) and centres ``world_bounds`` in it.
-Robot discs are drawn at their true radius around the control point.
+World coordinates are metres with ``y`` up; the picture keeps the aspect ratio and centres
+``world_bounds``; robot discs are drawn at their true radius around the control point.
 """
 
 from __future__ import annotations
@@ -25,8 +19,6 @@ import importlib
 import importlib.util
 import math
 import os
-import sys
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,16 +28,10 @@ from typing import Any
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
+from aasoatt_env.sim.window import Window
 
-__all__ = [
-    "ANIMATION_SUFFIXES",
-    "BACKGROUND",
-    "Frame",
-    "Renderer",
-    "animation_writer_missing",
-    "robot_colors",
-    "save_animation",
-]
+__all__ = ["ANIMATION_SUFFIXES", "BACKGROUND", "Frame", "Renderer", "animation_writer_missing", "robot_colors",
+           "save_animation"]
 
 RENDER_EXTRA_HINT = 'pip install "aasoatt[render]"'
 
@@ -59,87 +45,52 @@ OBSTACLE_EDGE = (90, 90, 90)
 AVOID_COLOR = (220, 20, 20)
 TEXT_COLOR = (30, 30, 30)
 
-# Tableau-like palette without pure red (red marks robots in collision avoidance).
 _PALETTE: tuple[tuple[int, int, int], ...] = (
-    (31, 119, 180),
-    (255, 127, 14),
-    (44, 160, 44),
-    (148, 103, 189),
-    (140, 86, 75),
-    (227, 119, 194),
-    (127, 127, 127),
-    (188, 189, 34),
-    (23, 190, 207),
-    (0, 0, 128),
-    (0, 128, 128),
-    (128, 128, 0),
-    (255, 187, 120),
-    (152, 223, 138),
-    (174, 199, 232),
-    (197, 176, 213),
-    (196, 156, 148),
-    (247, 182, 210),
-    (219, 219, 141),
-    (158, 218, 229),
+    (31, 119, 180), (255, 127, 14), (44, 160, 44), (148, 103, 189), (140, 86, 75), (227, 119, 194),
+    (127, 127, 127), (188, 189, 34), (23, 190, 207), (0, 0, 128), (0, 128, 128), (128, 128, 0),
+    (255, 187, 120), (152, 223, 138), (174, 199, 232), (197, 176, 213), (196, 156, 148), (247, 182, 210),
+    (219, 219, 141), (158, 218, 229),
 )
+"""Tableau-like palette without pure red (red marks robots in collision avoidance)."""
 
 
 def robot_colors(n: int) -> np.ndarray:
-    """Distinct, deterministic RGB colours for ``n`` robots.
+    """Distinct, deterministic RGB colours ``(n, 3)`` ``uint8`` for ``n`` robots.
 
-    The first 20 come from a fixed palette (no pure red, which marks robots in
-    collision avoidance); more are spread over the hue circle by the golden angle.
-
-    Parameters
-    ----------
-    n : int
-        Number of robots.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(n, 3)`` array of ``uint8`` RGB colours.
+    The first 20 from a fixed palette without pure red; more spread over the hue circle
+    by the golden angle, away from red.
     """
     out = np.empty((max(n, 0), 3), dtype=np.uint8)
     for i in range(max(n, 0)):
         if i < len(_PALETTE):
             out[i] = _PALETTE[i]
         else:
-            hue = (0.1 + 0.618033988749895 * i) % 1.0
-            # Keep away from red hues (roughly +-0.04 around 0).
-            hue = 0.04 + 0.92 * hue
-            value = 0.85 if i % 2 else 0.65
-            r, g, b = colorsys.hsv_to_rgb(hue, 0.75, value)
+            hue = 0.04 + 0.92 * ((0.1 + 0.618033988749895 * i) % 1.0)  # away from red hues (+-0.04 around 0)
+            r, g, b = colorsys.hsv_to_rgb(hue, 0.75, 0.85 if i % 2 else 0.65)
             out[i] = (int(r * 255), int(g * 255), int(b * 255))
     return out
 
 
 def _require(module: str, feature: str) -> ModuleType:
     """Import ``module`` or raise an ImportError telling how to install it."""
+    if module == "pygame":
+        os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
     try:
         return importlib.import_module(module)
     except ImportError as exc:
-        package = module.split(".")[0]
         raise ImportError(
-            f"{feature} needs the optional dependency {package!r}, which is not installed; "
+            f"{feature} needs the optional dependency {module.split('.')[0]!r}, which is not installed; "
             f"install the rendering extras with: {RENDER_EXTRA_HINT}"
         ) from exc
 
 
-def _import_pygame(feature: str) -> ModuleType:
-    os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
-    return _require("pygame", feature)
-
-
 def _as_array(name: str, value: Any, shape_tail: tuple[int, ...], n: int | None) -> np.ndarray:
-    """Convert ``value`` to a float array of shape ``(n, *shape_tail)`` or raise ConfigError."""
+    """``value`` as a float array ``(n, *shape_tail)``, or :class:`ConfigError`."""
     arr = np.asarray(value, dtype=np.float64)
     if arr.size == 0 and n in (None, 0):
         return arr.reshape((0, *shape_tail))
-    ok = arr.ndim == 1 + len(shape_tail) and arr.shape[1:] == shape_tail and (n is None or arr.shape[0] == n)
-    if not ok:
-        lead = "N" if n is None else str(n)
-        exp = "(" + ", ".join([lead, *map(str, shape_tail)]) + (",)" if not shape_tail else ")")
+    if not (arr.ndim == 1 + len(shape_tail) and arr.shape[1:] == shape_tail and (n is None or arr.shape[0] == n)):
+        exp = "(" + ", ".join(["N" if n is None else str(n), *map(str, shape_tail)]) + (",)" if not shape_tail else ")")
         raise ConfigError(f"Frame.{name}: got shape {arr.shape}, expected {exp}")
     return arr
 
@@ -150,34 +101,25 @@ class Frame:
 
     Parameters
     ----------
-    positions : array_like, shape (N, 2)
-        Control-point positions [m]; robot discs are centred here.
-    headings : array_like, shape (N,)
-        Headings [rad], drawn as a line from the disc centre to its rim.
-    radii : array_like, shape (N,)
-        Disc radii [m].
-    references : array_like, shape (N, 2), optional
-        Current reference points, drawn as small dots in each robot's colour.
-    goals : array_like, shape (N, 2), optional
-        Goals, drawn as small hollow squares in each robot's colour.
-    obstacle_centers : array_like, shape (M, 2)
-        Static obstacle centres (``M`` may be 0).
-    obstacle_radii : array_like, shape (M,)
-        Static obstacle radii.
+    positions, headings, radii : array_like
+        Control points ``(N, 2)`` [m] (disc centres), headings ``(N,)`` [rad] (a line from
+        the centre to the rim) and disc radii ``(N,)`` [m].
+    references, goals : array_like, shape (N, 2), optional
+        Current reference points (small dots) and goals (hollow squares), in each robot's colour.
+    obstacle_centers, obstacle_radii : array_like
+        Static obstacles ``(M, 2)`` and ``(M,)`` (``M`` may be 0).
     trails : array_like, shape (T, N, 2), optional
-        Past positions, oldest first, drawn as thin polylines; non-finite points
-        break a polyline.
+        Past positions, oldest first (thin polylines; non-finite points break them).
     avoiding : array_like of bool, shape (N,), optional
-        Robots currently in collision avoidance; they get a red outline.
+        Robots in collision avoidance (a red outline).
     sensing_range : float, optional
-        If given, a faint circle of this radius is drawn around each robot.
+        A faint circle of this radius around each robot.
     time : float
-        Simulation time [s], printed in the top-left corner.
+        Simulation time [s], printed top left.
     title : str, optional
-        Printed at the top centre.
+        Printed top centre.
     world_bounds : tuple of float, optional
-        ``(xmin, xmax, ymin, ymax)`` of the visible region.  ``None`` fits
-        everything in the frame with a margin.
+        ``(xmin, xmax, ymin, ymax)`` shown; ``None`` fits everything with a margin.
     """
 
     positions: np.ndarray
@@ -199,10 +141,9 @@ class Frame:
         n = self.positions.shape[0]
         self.headings = _as_array("headings", np.broadcast_to(self.headings, (n,)), (), n)
         self.radii = _as_array("radii", np.broadcast_to(self.radii, (n,)), (), n)
-        if self.references is not None:
-            self.references = _as_array("references", self.references, (2,), n)
-        if self.goals is not None:
-            self.goals = _as_array("goals", self.goals, (2,), n)
+        for name in ("references", "goals"):
+            if getattr(self, name) is not None:
+                setattr(self, name, _as_array(name, getattr(self, name), (2,), n))
         centers = np.zeros((0, 2)) if self.obstacle_centers is None else self.obstacle_centers
         self.obstacle_centers = _as_array("obstacle_centers", centers, (2,), None)
         m = self.obstacle_centers.shape[0]
@@ -210,26 +151,21 @@ class Frame:
         self.obstacle_radii = _as_array("obstacle_radii", radii, (), m)
         if self.trails is not None:
             trails = np.asarray(self.trails, dtype=np.float64)
-            if trails.size == 0:
-                trails = trails.reshape(0, n, 2)
+            trails = trails.reshape(0, n, 2) if trails.size == 0 else trails
             if trails.ndim != 3 or trails.shape[1:] != (n, 2):
                 raise ConfigError(f"Frame.trails: got shape {trails.shape}, expected (T, {n}, 2)")
             self.trails = trails
         if self.avoiding is not None:
-            avoiding = np.asarray(self.avoiding, dtype=bool)
-            if avoiding.shape != (n,):
-                raise ConfigError(f"Frame.avoiding: got shape {avoiding.shape}, expected ({n},)")
-            self.avoiding = avoiding
-        if self.sensing_range is not None:
-            self.sensing_range = float(self.sensing_range)
+            self.avoiding = np.asarray(self.avoiding, dtype=bool)
+            if self.avoiding.shape != (n,):
+                raise ConfigError(f"Frame.avoiding: got shape {self.avoiding.shape}, expected ({n},)")
+        self.sensing_range = None if self.sensing_range is None else float(self.sensing_range)
         self.time = float(self.time)
         if self.world_bounds is not None:
             b = tuple(float(v) for v in self.world_bounds)
             if len(b) != 4 or not all(math.isfinite(v) for v in b) or b[1] <= b[0] or b[3] <= b[2]:
-                raise ConfigError(
-                    f"Frame.world_bounds: got {self.world_bounds!r}, expected finite "
-                    "(xmin, xmax, ymin, ymax) with xmin < xmax and ymin < ymax"
-                )
+                raise ConfigError(f"Frame.world_bounds: got {self.world_bounds!r}, expected finite "
+                                  "(xmin, xmax, ymin, ymax) with xmin < xmax and ymin < ymax")
             self.world_bounds = b  # type: ignore[assignment]
 
     @property
@@ -242,21 +178,18 @@ class Frame:
         if self.world_bounds is not None:
             return self.world_bounds  # type: ignore[return-value]
         pts = [self.positions - self.radii[:, None], self.positions + self.radii[:, None]]
-        for extra in (self.references, self.goals):
-            if extra is not None:
-                pts.append(extra)
+        pts += [extra for extra in (self.references, self.goals) if extra is not None]
         if self.obstacle_centers.shape[0]:
             r = self.obstacle_radii[:, None]
             pts += [self.obstacle_centers - r, self.obstacle_centers + r]
         if self.trails is not None:
             pts.append(np.asarray(self.trails).reshape(-1, 2))
-        allp = np.concatenate(pts, axis=0) if pts else np.zeros((0, 2))
+        allp = np.concatenate(pts, axis=0)
         allp = allp[np.all(np.isfinite(allp), axis=1)]
         if allp.shape[0] == 0:
             return (-1.0, 1.0, -1.0, 1.0)
         lo, hi = allp.min(axis=0), allp.max(axis=0)
-        size = max(float(np.max(hi - lo)), 1.0)
-        pad = margin * size
+        pad = margin * max(float(np.max(hi - lo)), 1.0)
         return (lo[0] - pad, hi[0] + pad, lo[1] - pad, hi[1] + pad)
 
 
@@ -273,13 +206,10 @@ class _Transform:
     def points(self, p: np.ndarray) -> np.ndarray:
         """Pixel coordinates (float) of world points ``(..., 2)``."""
         p = np.asarray(p, dtype=np.float64)
-        out = np.empty_like(p)
-        out[..., 0] = self.ox + p[..., 0] * self.scale
-        out[..., 1] = self.oy - p[..., 1] * self.scale
-        return out
+        return np.stack((self.ox + p[..., 0] * self.scale, self.oy - p[..., 1] * self.scale), axis=-1)
 
     def ipoints(self, p: np.ndarray) -> np.ndarray:
-        """Return rounded, clipped integer pixel coordinates of world points ``(..., 2)``."""
+        """Rounded, clipped integer pixel coordinates of world points ``(..., 2)``."""
         return np.clip(np.rint(self.points(p)), -self.limit, self.limit).astype(np.int64)
 
 
@@ -291,20 +221,7 @@ def _mix(color: Sequence[int], other: Sequence[int], t: float) -> tuple[int, int
 def _nice_step(span: float, target_lines: int = 10) -> float:
     raw = span / max(target_lines, 1)
     mag = 10.0 ** math.floor(math.log10(raw))
-    for m in (1.0, 2.0, 5.0, 10.0):
-        if raw <= m * mag:
-            return m * mag
-    return 10.0 * mag
-
-
-def _display_available() -> bool:
-    """Best guess whether a window can be opened (no display server -> False)."""
-    driver = os.environ.get("SDL_VIDEODRIVER", "").lower()
-    if driver in ("dummy", "offscreen"):
-        return False
-    if sys.platform.startswith("linux") or "bsd" in sys.platform:
-        return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
-    return True
+    return next((m * mag for m in (1.0, 2.0, 5.0, 10.0) if raw <= m * mag), 10.0 * mag)
 
 
 class Renderer:
@@ -317,14 +234,9 @@ class Renderer:
     grid : bool
         Draw a faint metric grid and the outline of ``world_bounds``.
     show_text : bool
-        Print the time and title (needs ``pygame.font``; silently skipped if absent).
+        Print the time and title (skipped where ``pygame.font`` is missing).
     fps : float, optional
-        In :meth:`show`, wait so that windows update at most ``fps`` times a second.
-
-    Raises
-    ------
-    ImportError
-        If pygame is not installed (``pip install "aasoatt[render]"``).
+        In :meth:`show`, update the window at most ``fps`` times a second.
 
     Examples
     --------
@@ -334,23 +246,13 @@ class Renderer:
     ((200, 200, 3), dtype('uint8'))
     """
 
-    def __init__(
-        self,
-        width: int = 600,
-        height: int = 600,
-        *,
-        grid: bool = True,
-        show_text: bool = True,
-        fps: float | None = None,
-    ) -> None:
+    def __init__(self, width: int = 600, height: int = 600, *, grid: bool = True, show_text: bool = True,
+                 fps: float | None = None) -> None:
         if int(width) <= 0 or int(height) <= 0:
             raise ConfigError(f"Renderer: got size {width}x{height}, expected positive width and height")
-        self.width = int(width)
-        self.height = int(height)
-        self.grid = bool(grid)
-        self.show_text = bool(show_text)
-        self.fps = fps
-        self._pg = _import_pygame("Renderer")
+        self.width, self.height = int(width), int(height)
+        self.grid, self.show_text, self.fps = bool(grid), bool(show_text), fps
+        self._pg = _require("pygame", "Renderer")
         try:
             self._gfx: ModuleType | None = importlib.import_module("pygame.gfxdraw")
         except ImportError:  # pragma: no cover - gfxdraw ships with pygame
@@ -358,13 +260,8 @@ class Renderer:
         self._surface = self._pg.Surface((self.width, self.height))
         self._font: Any = None
         self._font_failed = False
-        self._window: Any = None
-        self._clock: Any = None
-        self._headless = False
-        self._warned = False
-        self._closed_by_user = False
+        self._window = Window(self._pg, self.width, self.height)
 
-    # ------------------------------------------------------------------ drawing
     def _get_font(self) -> Any:
         if self._font is None and not self._font_failed:
             try:
@@ -375,244 +272,150 @@ class Renderer:
                 self._font_failed = True
         return self._font
 
-    def _disc(self, center: np.ndarray, r: int, color: Sequence[int], edge: Sequence[int] | None) -> None:
-        x, y = int(center[0]), int(center[1])
+    def _circle(self, c: np.ndarray, r: int, color: Sequence[int], edge: Sequence[int] | None = None, *,
+                fill: bool = True) -> None:
+        """A disc (anti-aliased rim ``edge``) or, with ``fill=False``, a thin anti-aliased circle."""
+        x, y = int(c[0]), int(c[1])
         gfx = self._gfx
         if gfx is not None and r >= 1 and abs(x) + r < 32000 and abs(y) + r < 32000:
-            gfx.filled_circle(self._surface, x, y, r, color)
+            if fill:
+                gfx.filled_circle(self._surface, x, y, r, color)
             gfx.aacircle(self._surface, x, y, r, edge if edge is not None else color)
-        else:
+        elif fill:
             self._pg.draw.circle(self._surface, color, (x, y), max(r, 1))
             if edge is not None:
                 self._pg.draw.circle(self._surface, edge, (x, y), max(r, 1), 1)
+        else:
+            self._pg.draw.circle(self._surface, color, (x, y), r, 1)
 
     def _visible(self, c: np.ndarray, r: float) -> bool:
         return -r <= c[0] <= self.width + r and -r <= c[1] <= self.height + r
 
     def _draw_grid(self, tf: _Transform, bounds: tuple[float, float, float, float]) -> None:
-        pg = self._pg
+        pg, surf = self._pg, self._surface
         xmin, xmax, ymin, ymax = bounds
         step = _nice_step(max(xmax - xmin, ymax - ymin))
         for gx in np.arange(math.ceil(xmin / step) * step, xmax + 1e-9, step):
             px = int(round(tf.ox + gx * tf.scale))
-            pg.draw.line(self._surface, GRID_COLOR, (px, 0), (px, self.height - 1))
+            pg.draw.line(surf, GRID_COLOR, (px, 0), (px, self.height - 1))
         for gy in np.arange(math.ceil(ymin / step) * step, ymax + 1e-9, step):
             py = int(round(tf.oy - gy * tf.scale))
-            pg.draw.line(self._surface, GRID_COLOR, (0, py), (self.width - 1, py))
-        corners = tf.ipoints(np.array([[xmin, ymax], [xmax, ymin]]))
-        rect = pg.Rect(
-            int(corners[0, 0]),
-            int(corners[0, 1]),
-            int(corners[1, 0] - corners[0, 0]),
-            int(corners[1, 1] - corners[0, 1]),
-        )
-        pg.draw.rect(self._surface, BOUNDS_COLOR, rect, 1)
+            pg.draw.line(surf, GRID_COLOR, (0, py), (self.width - 1, py))
+        c = tf.ipoints(np.array([[xmin, ymax], [xmax, ymin]]))
+        pg.draw.rect(surf, BOUNDS_COLOR, pg.Rect(int(c[0, 0]), int(c[0, 1]), int(c[1, 0] - c[0, 0]),
+                                                 int(c[1, 1] - c[0, 1])), 1)
 
     def _draw_trails(self, tf: _Transform, trails: np.ndarray, colors: np.ndarray) -> None:
-        pg = self._pg
         if trails.shape[0] < 2:
             return
         pix = tf.points(trails)  # (T, N, 2)
         finite = np.all(np.isfinite(pix), axis=2)
         pix = np.clip(np.nan_to_num(pix), -tf.limit, tf.limit)
         for i in range(trails.shape[1]):
-            color = _mix(colors[i], BACKGROUND, 0.35)
             ok = finite[:, i]
             if ok.all():
                 runs = [pix[:, i]]
             else:
                 idx = np.flatnonzero(ok)
-                if idx.size < 2:
-                    continue
-                breaks = np.flatnonzero(np.diff(idx) > 1) + 1
-                runs = [pix[seg, i] for seg in np.split(idx, breaks)]
+                runs = [pix[seg, i] for seg in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)]
             for run in runs:
                 if run.shape[0] >= 2:
-                    pg.draw.aalines(self._surface, color, False, run.tolist())
+                    self._pg.draw.aalines(self._surface, _mix(colors[i], BACKGROUND, 0.35), False, run.tolist())
 
-    def draw(self, frame: Frame) -> Any:
-        """Draw ``frame`` on the internal surface and return it (a ``pygame.Surface``)."""
-        if not isinstance(frame, Frame):
-            raise ConfigError(f"Renderer: got {type(frame).__name__}, expected a Frame")
+    def _draw_marks(self, frame: Frame, tf: _Transform, pos: np.ndarray, finite: np.ndarray, rpix: np.ndarray,
+                    colors: np.ndarray) -> None:
+        """Sensing ranges (faint circles) and goals (hollow squares), under the robots."""
         pg = self._pg
-        surf = self._surface
-        surf.fill(BACKGROUND)
-        bounds = frame.bounds()
-        tf = _Transform(bounds, self.width, self.height)
-        n = frame.n
-        colors = robot_colors(n)
-        if self.grid:
-            self._draw_grid(tf, bounds)
-
-        # Obstacles.
-        oc = tf.points(frame.obstacle_centers)
-        for c, r in zip(oc, frame.obstacle_radii):
-            rp = max(1, int(round(r * tf.scale)))
-            if np.all(np.isfinite(c)) and self._visible(c, rp):
-                self._disc(np.rint(c), rp, OBSTACLE_FILL, OBSTACLE_EDGE)
-
-        # Trails.
-        if frame.trails is not None and n:
-            self._draw_trails(tf, np.asarray(frame.trails), colors)
-
-        pos = tf.points(frame.positions)
-        finite = np.all(np.isfinite(pos), axis=1)
-        rpix = np.maximum(2, np.rint(frame.radii * tf.scale)).astype(int)
-
-        # Sensing ranges.
         if frame.sensing_range is not None and frame.sensing_range > 0:
             rs = max(1, int(round(frame.sensing_range * tf.scale)))
-            for i in range(n):
+            for i in range(frame.n):
                 if finite[i] and self._visible(pos[i], rs) and rs < 32000:
-                    c = np.rint(pos[i]).astype(int)
-                    color = _mix(colors[i], BACKGROUND, 0.7)
-                    if self._gfx is not None and abs(c[0]) + rs < 32000 and abs(c[1]) + rs < 32000:
-                        self._gfx.aacircle(surf, int(c[0]), int(c[1]), rs, color)
-                    else:
-                        pg.draw.circle(surf, color, (int(c[0]), int(c[1])), rs, 1)
-
-        # Goals: hollow squares.
+                    self._circle(np.rint(pos[i]).astype(int), rs, _mix(colors[i], BACKGROUND, 0.7), fill=False)
         if frame.goals is not None:
             gp = tf.points(frame.goals)
-            for i in range(n):
+            for i in range(frame.n):
                 if np.all(np.isfinite(gp[i])):
                     h = max(4, int(round(0.35 * rpix[i])))
                     rect = pg.Rect(int(round(gp[i, 0])) - h, int(round(gp[i, 1])) - h, 2 * h + 1, 2 * h + 1)
-                    pg.draw.rect(surf, tuple(int(v) for v in colors[i]), rect, 2)
+                    pg.draw.rect(self._surface, tuple(int(v) for v in colors[i]), rect, 2)
 
-        # Robots.
-        avoiding = frame.avoiding if frame.avoiding is not None else np.zeros(n, dtype=bool)
-        for i in range(n):
+    def _draw_robots(self, frame: Frame, pos: np.ndarray, finite: np.ndarray, rpix: np.ndarray,
+                     colors: np.ndarray) -> None:
+        """Discs with a heading line, a red outline on robots in avoidance."""
+        pg, surf = self._pg, self._surface
+        avoiding = frame.avoiding if frame.avoiding is not None else np.zeros(frame.n, dtype=bool)
+        for i in range(frame.n):
             if not finite[i] or not self._visible(pos[i], rpix[i]):
                 continue
             color = tuple(int(v) for v in colors[i])
             dark = _mix(color, (0, 0, 0), 0.55)
             c = np.rint(pos[i])
-            self._disc(c, int(rpix[i]), color, dark)
+            r = int(rpix[i])
+            self._circle(c, r, color, dark)
             th = frame.headings[i]
             if math.isfinite(th):
-                tip = (pos[i, 0] + rpix[i] * math.cos(th), pos[i, 1] - rpix[i] * math.sin(th))
-                pg.draw.line(
-                    surf,
-                    dark,
-                    (int(c[0]), int(c[1])),
-                    (round(tip[0]), round(tip[1])),
-                    max(1, int(rpix[i]) // 8),
-                )
+                tip = (round(pos[i, 0] + rpix[i] * math.cos(th)), round(pos[i, 1] - rpix[i] * math.sin(th)))
+                pg.draw.line(surf, dark, (int(c[0]), int(c[1])), tip, max(1, r // 8))
             if avoiding[i]:
-                pg.draw.circle(
-                    surf,
-                    AVOID_COLOR,
-                    (int(c[0]), int(c[1])),
-                    int(rpix[i]) + 1,
-                    max(2, min(4, int(rpix[i]) // 5)),
-                )
+                pg.draw.circle(surf, AVOID_COLOR, (int(c[0]), int(c[1])), r + 1, max(2, min(4, r // 5)))
 
-        # References: small dots with a dark outline, on top of everything.
-        if frame.references is not None:
-            rp = tf.points(frame.references)
-            for i in range(n):
-                if np.all(np.isfinite(rp[i])):
-                    c = (int(round(rp[i, 0])), int(round(rp[i, 1])))
-                    color = tuple(int(v) for v in colors[i])
-                    s = max(3, int(round(0.15 * rpix[i])))
-                    pg.draw.circle(surf, _mix(color, (0, 0, 0), 0.6), c, s + 1)
-                    pg.draw.circle(surf, color, c, s)
+    def _draw_references(self, frame: Frame, tf: _Transform, rpix: np.ndarray, colors: np.ndarray) -> None:
+        """Small dots with a dark outline, on top of everything."""
+        if frame.references is None:
+            return
+        rp = tf.points(frame.references)
+        for i in range(frame.n):
+            if np.all(np.isfinite(rp[i])):
+                c = (int(round(rp[i, 0])), int(round(rp[i, 1])))
+                color = tuple(int(v) for v in colors[i])
+                s = max(3, int(round(0.15 * rpix[i])))
+                self._pg.draw.circle(self._surface, _mix(color, (0, 0, 0), 0.6), c, s + 1)
+                self._pg.draw.circle(self._surface, color, c, s)
 
-        # Text.
-        if self.show_text:
-            font = self._get_font()
-            if font is not None:
-                label = font.render(f"t = {frame.time:.2f} s", True, TEXT_COLOR)
-                surf.blit(label, (6, 4))
-                if frame.title:
-                    label = font.render(str(frame.title), True, TEXT_COLOR)
-                    surf.blit(label, ((self.width - label.get_width()) // 2, 4))
-        return surf
+    def draw(self, frame: Frame) -> Any:
+        """Draw ``frame`` on the internal surface and return it (a ``pygame.Surface``)."""
+        if not isinstance(frame, Frame):
+            raise ConfigError(f"Renderer: got {type(frame).__name__}, expected a Frame")
+        self._surface.fill(BACKGROUND)
+        bounds = frame.bounds()
+        tf = _Transform(bounds, self.width, self.height)
+        colors = robot_colors(frame.n)
+        if self.grid:
+            self._draw_grid(tf, bounds)
+        for c, r in zip(tf.points(frame.obstacle_centers), frame.obstacle_radii):
+            rp = max(1, int(round(r * tf.scale)))
+            if np.all(np.isfinite(c)) and self._visible(c, rp):
+                self._circle(np.rint(c), rp, OBSTACLE_FILL, OBSTACLE_EDGE)
+        if frame.trails is not None and frame.n:
+            self._draw_trails(tf, np.asarray(frame.trails), colors)
+        pos = tf.points(frame.positions)
+        finite = np.all(np.isfinite(pos), axis=1)
+        rpix = np.maximum(2, np.rint(frame.radii * tf.scale)).astype(int)
+        self._draw_marks(frame, tf, pos, finite, rpix, colors)
+        self._draw_robots(frame, pos, finite, rpix, colors)
+        self._draw_references(frame, tf, rpix, colors)
+        font = self._get_font() if self.show_text else None
+        if font is not None:
+            self._surface.blit(font.render(f"t = {frame.time:.2f} s", True, TEXT_COLOR), (6, 4))
+            if frame.title:
+                label = font.render(str(frame.title), True, TEXT_COLOR)
+                self._surface.blit(label, ((self.width - label.get_width()) // 2, 4))
+        return self._surface
 
     def rgb_array(self, frame: Frame) -> np.ndarray:
-        """Render ``frame`` to an RGB image.
-
-        Parameters
-        ----------
-        frame : Frame
-            What to draw.
-
-        Returns
-        -------
-        numpy.ndarray
-            ``(height, width, 3)`` array of ``uint8``.
-        """
-        surf = self.draw(frame)
-        raw = self._pg.image.tobytes(surf, "RGB")
+        """Render ``frame`` to an ``(height, width, 3)`` ``uint8`` RGB image."""
+        raw = self._pg.image.tobytes(self.draw(frame), "RGB")
         return np.frombuffer(raw, dtype=np.uint8).reshape(self.height, self.width, 3).copy()
 
-    # ------------------------------------------------------------------ window
-    def _warn_headless(self, reason: str) -> None:
-        self._headless = True
-        if not self._warned:
-            self._warned = True
-            warnings.warn(
-                f"Renderer.show: no display available ({reason}); render_mode='human' does nothing. "
-                "Use render_mode='rgb_array' to get images.",
-                RuntimeWarning,
-                stacklevel=3,
-            )
-
     def show(self, frame: Frame) -> None:
-        """Show ``frame`` in a pygame window (``render_mode="human"``).
-
-        Without a display (headless machine, ``SDL_VIDEODRIVER=dummy``) this
-        warns once and otherwise does nothing; it never raises for lack of a
-        display.  Closing the window stops further updates.
-        """
-        surf = self.draw(frame)
-        if self._headless or self._closed_by_user:
-            return
-        pg = self._pg
-        if self._window is None:
-            if not _display_available():
-                self._warn_headless("no DISPLAY/WAYLAND_DISPLAY, or a dummy SDL video driver")
-                return
-            try:
-                pg.display.init()
-                driver = pg.display.get_driver()
-                if driver in ("offscreen", "dummy"):
-                    # SDL fell back to an invisible driver: there is no real display.
-                    pg.display.quit()
-                    self._warn_headless(f"SDL video driver {driver!r}")
-                    return
-                self._window = pg.display.set_mode((self.width, self.height))
-                pg.display.set_caption("aasoatt")
-                self._clock = pg.time.Clock()
-            except Exception as exc:  # noqa: BLE001 - any failure means: no window
-                self._window = None
-                self._warn_headless(str(exc) or type(exc).__name__)
-                return
-        try:
-            for event in pg.event.get():
-                if event.type == pg.QUIT:
-                    self._closed_by_user = True
-                    self.close()
-                    return
-            self._window.blit(surf, (0, 0))
-            pg.display.flip()
-            if self.fps and self._clock is not None:
-                self._clock.tick(self.fps)
-        except Exception as exc:  # noqa: BLE001
-            self.close()
-            self._warn_headless(str(exc) or type(exc).__name__)
+        """Show ``frame`` in a window (``render_mode="human"``); without a display: a warning, once."""
+        self._window.show(self.draw(frame), self.fps)
 
     def close(self) -> None:
         """Close the window, if one is open.  Safe to call more than once."""
-        if self._window is not None:
-            self._window = None
-            try:
-                self._pg.display.quit()
-            except Exception:  # noqa: BLE001  # pragma: no cover
-                pass
+        self._window.close()
 
-    def __enter__(self) -> "Renderer":
+    def __enter__(self) -> Renderer:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -620,8 +423,8 @@ class Renderer:
 
 
 ANIMATION_SUFFIXES: tuple[str, ...] = (".gif", ".mp4", ".mov", ".mkv", ".avi")
-"""File suffixes :func:`save_animation` writes: ``.gif`` with imageio and Pillow, the videos (H.264)
-with imageio-ffmpeg.  ``.webm`` (no H.264 in WebM) and ``.m4v`` (no imageio backend) are not offered."""
+"""Suffixes :func:`save_animation` writes: ``.gif`` with imageio and Pillow, the videos (H.264) with
+imageio-ffmpeg (``.webm`` has no H.264, ``.m4v`` no imageio backend)."""
 
 
 def animation_writer_missing(suffix: str) -> list[str]:
@@ -632,32 +435,14 @@ def animation_writer_missing(suffix: str) -> list[str]:
 
 
 def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], fps: float = 20) -> Path:
-    """Write RGB frames as an animation, GIF or video chosen by the file suffix.
+    """Write RGB frames as an animation, GIF or video chosen by the file suffix; returns the path.
 
-    Parameters
-    ----------
-    frames : sequence of numpy.ndarray
-        Images of shape ``(H, W, 3)`` (or ``(H, W, 4)``), all the same size;
-        ``uint8``, or floats in ``[0, 1]``.
-    path : str or os.PathLike
-        Output file, one of :data:`ANIMATION_SUFFIXES`; ``.gif`` uses imageio with
-        Pillow, the videos need imageio-ffmpeg.  The file is written under a temporary
-        name beside it and moved into place when complete: a writer that fails leaves
-        no partial file (and an earlier file at ``path`` is kept).
-    fps : float
-        Frames per second.
-
-    Returns
-    -------
-    pathlib.Path
-        The path written.
-
-    Raises
-    ------
-    ImportError
-        If imageio (or, for videos, imageio-ffmpeg) is missing.
-    ConfigError
-        For an unsupported suffix, no frames, mismatched sizes or ``fps <= 0``.
+    ``frames``: images ``(H, W, 3)`` (or ``(H, W, 4)``) of one size, ``uint8`` or floats in
+    ``[0, 1]``; ``path``: one of :data:`ANIMATION_SUFFIXES` (GIF needs imageio and Pillow, videos
+    imageio-ffmpeg: ``ImportError`` otherwise).  The file is written under a temporary name beside
+    it and moved into place when complete: a writer that fails leaves no partial file (and an
+    earlier file at ``path`` is kept).  An unsupported suffix, no frames, mismatched sizes or
+    ``fps <= 0``: :class:`ConfigError`.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -669,10 +454,9 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
     images = [_to_uint8(f, k) for k, f in enumerate(frames)]
     if not images:
         raise ConfigError("save_animation: got no frames, expected at least one")
-    shape = images[0].shape
     for k, img in enumerate(images):
-        if img.shape != shape:
-            raise ConfigError(f"save_animation: frame {k} has shape {img.shape}, expected {shape} (frame 0)")
+        if img.shape != images[0].shape:
+            raise ConfigError(f"save_animation: frame {k} has shape {img.shape}, expected {images[0].shape} (frame 0)")
     iio = _require("imageio.v3", "save_animation")
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f".{path.stem}.{os.getpid()}.partial{path.suffix}")  # same suffix: same writer
@@ -687,26 +471,19 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
 
 def _write_animation(iio: ModuleType, images: list[np.ndarray], path: Path, suffix: str, fps: float) -> None:
     """Write the frames to ``path`` (GIF or video by ``suffix``)."""
-    shape = images[0].shape
     if suffix == ".gif":
         _require("PIL", "save_animation (GIF)")
-        duration_ms = 1000.0 / fps
-        iio.imwrite(path, np.stack(images), extension=".gif", duration=duration_ms, loop=0)
+        iio.imwrite(path, np.stack(images), extension=".gif", duration=1000.0 / fps, loop=0)
         return
     try:
         importlib.import_module("imageio_ffmpeg")
     except ImportError as exc:
-        raise ImportError(
-            f"save_animation: writing {suffix!r} video needs 'imageio-ffmpeg' "
-            "(pip install imageio-ffmpeg); or save as '.gif' instead, which only needs imageio and Pillow"
-        ) from exc
-    # H.264/yuv420p needs even sizes: pad with background by at most one pixel.
-    h, w = shape[:2]
-    ph, pw = h % 2, w % 2
-    if ph or pw:
-        images = [np.pad(img, ((0, ph), (0, pw), (0, 0)), mode="edge") for img in images]
-    iio_v2 = _require("imageio.v2", "save_animation")
-    with iio_v2.get_writer(path, fps=fps, macro_block_size=1) as writer:
+        raise ImportError(f"save_animation: writing {suffix!r} video needs 'imageio-ffmpeg' (pip install "
+                          "imageio-ffmpeg); or save as '.gif' instead, which only needs imageio and Pillow") from exc
+    h, w = images[0].shape[:2]  # H.264/yuv420p needs even sizes: pad by at most one pixel
+    if h % 2 or w % 2:
+        images = [np.pad(img, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge") for img in images]
+    with _require("imageio.v2", "save_animation").get_writer(path, fps=fps, macro_block_size=1) as writer:
         for img in images:
             writer.append_data(img)
 

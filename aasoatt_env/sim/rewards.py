@@ -58,22 +58,11 @@ def rewards(
     goal_distance: np.ndarray | None,
     correction: np.ndarray | None,
 ) -> np.ndarray:
-    """Rewards ``(N,)`` of one env step.
+    """Rewards ``(N,)`` of one env step (module docstring).
 
-    Parameters
-    ----------
-    cfg : RewardConfig
-        Weights.
-    tracking_error : numpy.ndarray
-        ``|p_i - p_d_i|`` ``(N,)``.
-    collided : numpy.ndarray
-        ``(N,)`` bool: clearance below ``-collision_tolerance`` during the step.
-    action : numpy.ndarray
-        The actions ``(N, 2)`` (normalised).
-    goal_distance : numpy.ndarray or None
-        ``|p_i - goal_i|`` ``(N,)`` (needed only with a goal bonus).
-    correction : numpy.ndarray or None
-        The filter's normalised correction ``(N,)``, None without a filter.
+    From the tracking errors ``|p_i - p_d_i|``, whether each robot collided during the step,
+    the normalised actions ``(N, 2)``, the distances to the goals (needed only with a goal
+    bonus) and the filter's normalised correction (None without a filter).
     """
     r = -cfg.tracking * tracking_error - cfg.collision * collided - cfg.effort * 0.5 * np.add.reduce(action * action,
                                                                                                    axis=1)

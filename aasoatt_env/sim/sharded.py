@@ -1,48 +1,29 @@
 """``ShardedBatchedEnv``: the teams of a batch stepped in several worker processes.
 
-:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` steps all teams in one
-process, with one filter call per physics step for all of them.  That call is
-bound by numpy's per-call overhead, not by the number of robots, so a second
-core does not help it; splitting the teams over ``W`` processes does: each
-worker steps its own shard (contiguous teams, sizes as equal as possible) as a
-``BatchedAASOATTEnv`` with its own grouped filter call, and the shards run at
-the same time.  This class has the batch's API and concatenates the shards'
-answers in team order, so a trainer sees one batch of ``K`` teams.
+One :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` call is bound by numpy's
+per-call overhead, not by the number of robots, so a second core does not help it;
+splitting the teams over ``W`` processes does.  Each worker steps its shard
+(contiguous teams, sizes as equal as possible) as a ``BatchedAASOATTEnv``; this class
+has the batch's API and concatenates the shards' answers in team order.  Each team
+keeps its generator, seed (team ``k`` gets ``seed + k`` wherever it lives), clock and
+filter, so trajectories equal one process's: bit for bit without a filter or with
+``group_filter=False`` and a deterministic QP solver, to rounding behind the grouped
+filter.  Actions are checked here before any shard steps, and errors name teams by
+their number in the whole batch.
 
-What is the same as one process: each team has its own scenario generator,
-seed (``reset(seed=s)``: team ``k`` gets ``s + k`` wherever it lives), clock
-and filter, and the physics is per team, so without a filter, or with
-``group_filter=False`` and a QP solver whose answer is a function of the
-problem alone, trajectories are bit-identical to one ``BatchedAASOATTEnv``
-(``tests/test_sharded.py``).  Behind the grouped filter each shard's stacked QP
-is solved in one piece, so answers agree with one process to rounding (as the
-grouped call agrees with separate envs).  Actions are checked here, before any
-shard steps, with the batch's checks and messages (team numbers are the whole
-batch's everywhere, also in errors raised inside a worker).
+Workers start with ``forkserver`` where the platform has it, else ``spawn`` (no
+``fork`` of a process that may hold torch threads), so a script that makes one must
+guard its entry point with ``if __name__ == "__main__":``.  Messages travel with
+``cloudpickle``, so env constructors may be lambdas.  A worker's exception is raised
+here again with its class where it pickles, naming the worker; workers ignore Ctrl-C.
+A call interrupted while it waits for the workers leaves their replies to be read
+and dropped before the next call (``live`` is still taken from them); an interrupt
+that cuts a message in two, or falls between the sends of one command, leaves the
+pipes out of step: every later call then raises
+:class:`~aasoatt_env.errors.UsageError` (make a new env), as after a worker dies.
 
-Processes: workers are started with ``multiprocessing`` (``forkserver`` where
-the platform has it, else ``spawn``: no ``fork`` of a process that may hold
-torch threads), so a script that makes one must guard its entry point with
-``if __name__ == "__main__":`` (as for SB3's ``SubprocVecEnv``).  Messages go
-both ways with ``cloudpickle`` (a Gymnasium dependency), so env constructors
-may be lambdas and closures.  An exception in a worker is raised again here
-with its class where it can be pickled, naming the worker, and the worker
-stays usable; workers ignore Ctrl-C (the caller decides).  A call interrupted
-here while it waits for the workers (where an interrupt almost always lands)
-leaves their replies to be read and dropped before the next call (the teams'
-``live`` is still taken from them), so the pipes stay in step.  An interrupt
-that cuts a message in two (while it is being written or read), or that falls
-between the sends of one command to several workers, leaves the pipes or the
-shards out of step: then every later call raises
-:class:`~aasoatt_env.errors.UsageError` saying so (make a new env), as after a
-worker dies.  Signal handlers are never touched.
-
-API: that of :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` (``reset``,
-``step``, ``live``, ``max_steps``, ``elapsed_steps``, the spaces, the shared
-settings, ``sync``, ``render``, ``env_get``/``env_set``/``env_call``/
-``env_is_wrapped``, ``close``), without ``envs`` (the teams' envs live in the
-workers: use the ``env_*`` methods) and with ``grouped_filter = None`` (no
-filter object in this process).
+API: that of :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`, without ``envs``
+(use the ``env_*`` methods) and with ``grouped_filter = None``.
 """
 
 from __future__ import annotations
@@ -57,12 +38,11 @@ from typing import Any
 
 import cloudpickle
 import numpy as np
-from gymnasium import spaces
 
 from aasoatt_env.errors import ConfigError, ResetNeeded, UsageError
 from aasoatt_env.sim.batched import (
     BatchedAASOATTEnv,
-    batch_spaces,
+    TeamsAPI,
     check_shared,
     finished_error,
     parse_actions,
@@ -114,11 +94,19 @@ def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offs
         batch = BatchedAASOATTEnv(cloudpickle.loads(payload), autoreset=autoreset, group_filter=group_filter,
                                   team_offset=offset)
         space = (batch.agent_observation_space, batch.agent_action_space)
-        _reply(conn, ("ok", (batch.shared_settings, batch.nominal_actions, space, batch.dt, batch.decision_interval)))
+        _reply(conn, ("ok", (batch.shared_settings, batch.nominal_actions, space)))
     except BaseException as exc:  # noqa: BLE001 - every failure goes back to the caller
         _reply(conn, _error(exc))
         conn.close()
         return
+    handlers: dict[str, Callable[[Any], Any]] = {
+        "step": lambda a: (*batch.step(a), batch.live),
+        "reset": lambda a: (*batch.reset(seed=a[0], options=a[1]), batch.live),
+        "state": lambda a: (batch.max_steps, batch.elapsed_steps),
+        "sync": lambda a: batch.sync(),
+        "render": lambda a: batch.render(),
+        "team": lambda a: batch._on_team(*a),
+    }
     while True:
         try:
             cmd, args = _recv(conn)
@@ -129,30 +117,9 @@ def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offs
                 batch.close()
                 _reply(conn, ("ok", None))
                 break
-            if cmd == "step":
-                out = batch.step(args)
-                _reply(conn, ("ok", (*out, batch.live)))
-            elif cmd == "reset":
-                obs, info = batch.reset(seed=args[0], options=args[1])
-                _reply(conn, ("ok", (obs, info, batch.live)))
-            elif cmd == "state":
-                _reply(conn, ("ok", (batch.max_steps, batch.elapsed_steps)))
-            elif cmd == "sync":
-                batch.sync()
-                _reply(conn, ("ok", None))
-            elif cmd == "render":
-                _reply(conn, ("ok", batch.render()))
-            elif cmd == "get":
-                _reply(conn, ("ok", batch.env_get(*args)))
-            elif cmd == "set":
-                _reply(conn, ("ok", batch.env_set(*args)))
-            elif cmd == "call":
-                k, name, a, kw = args
-                _reply(conn, ("ok", batch.env_call(k, name, *a, **kw)))
-            elif cmd == "wrapped":
-                _reply(conn, ("ok", batch.env_is_wrapped(*args)))
-            else:
-                _reply(conn, ("error", UsageError(f"worker: unknown command {cmd!r}"), ""))
+            if cmd not in handlers:
+                raise UsageError(f"worker: unknown command {cmd!r}")
+            _reply(conn, ("ok", handlers[cmd](args)))
         except Exception as exc:  # noqa: BLE001 - reported; the worker goes on
             _reply(conn, _error(exc))
     conn.close()
@@ -162,14 +129,13 @@ class _LinkDown(UsageError):
     """A worker died: every later call fails (a reply of an interrupted call is not this)."""
 
 
-class ShardedBatchedEnv:
+class ShardedBatchedEnv(TeamsAPI):
     """``K`` teams of one scenario stepped in ``num_workers`` processes (see the module docstring).
 
     Parameters
     ----------
     env_fns : sequence of callables
-        As :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`'s; they are called in the
-        workers (sent with ``cloudpickle``).
+        As :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`'s; called in the workers.
     num_workers : int
         Worker processes, ``1 <= num_workers <= len(env_fns)``.
     autoreset, group_filter : bool
@@ -178,7 +144,6 @@ class ShardedBatchedEnv:
         ``multiprocessing`` start method; default ``forkserver`` where available, else ``spawn``.
     """
 
-    metadata = {"autoreset_mode": "same_step"}
     grouped_filter = None
     """No filter object lives in this process (each worker has its shard's)."""
 
@@ -226,15 +191,8 @@ class ShardedBatchedEnv:
         except BaseException:
             self.close()
             raise
-        self.shared_settings, self.nominal_actions, (agent_obs, agent_act), self.dt, self.decision_interval = firsts[0]
-        self.possible_agents: list[str] = list(self.shared_settings["possible_agents"])
-        self.num_agents = len(self.possible_agents)
-        for name in ("action_mode", "reward_config", "terminate_on_collision", "collision_tolerance"):
-            setattr(self, name, self.shared_settings[name])
-        self.agent_observation_space: spaces.Box = agent_obs
-        self.agent_action_space: spaces.Box = agent_act
-        (self.single_observation_space, self.single_action_space, self.observation_space,
-         self.action_space) = batch_spaces(agent_obs, self.num_agents, k_all)
+        settings, self.nominal_actions, (agent_obs, agent_act) = firsts[0]
+        self._take_settings(settings, agent_obs, agent_act)
         self._live = np.zeros((k_all, self.num_agents), dtype=bool)
         self._started = False
 
@@ -243,6 +201,8 @@ class ShardedBatchedEnv:
         return f"worker {w} (teams {self._starts[w]}..{self._starts[w + 1] - 1})"
 
     def _dead(self, w: int) -> _LinkDown:
+        """Worker ``w`` died: its pending replies are gone, and every later call says so."""
+        self._pending[w].clear()
         self._procs[w].join(timeout=1.0)
         code = self._procs[w].exitcode
         return _LinkDown(f"{self._teams(w)} died" + (f" with exit code {code}" if code is not None else "")
@@ -256,25 +216,19 @@ class ShardedBatchedEnv:
     def _receive(self, w: int) -> Any:
         """Worker ``w``'s reply to its oldest pending command (its answer, or its error raised here).
 
-        An interrupt while waiting for the reply (where it almost always lands) leaves the reply
-        to be read later; one in the middle of reading it leaves the pipe at an unknown place: the
-        env is then broken (every later call says so).
+        An interrupt while waiting leaves the reply to be read later; one in the middle of
+        reading it leaves the pipe at an unknown place: the env is then broken.
         """
         conn = self._conns[w]
         try:
             conn.poll(None)
-        except EOFError:
-            self._pending[w].clear()
-            raise self._dead(w) from None
-        except OSError:  # e.g. a timeout raised by a signal handler: nothing was read
-            if self._procs[w].is_alive():
+        except (EOFError, OSError) as exc:  # the pipe closed, or e.g. a signal handler's timeout
+            if not isinstance(exc, EOFError) and self._procs[w].is_alive():  # nothing was read
                 raise
-            self._pending[w].clear()
             raise self._dead(w) from None
         try:
             data = conn.recv_bytes()
         except (EOFError, OSError):
-            self._pending[w].clear()
             raise self._dead(w) from None
         except BaseException:
             self._torn(w, "reading the reply of")
@@ -295,11 +249,7 @@ class ShardedBatchedEnv:
         raise exc
 
     def _drain(self, w: int) -> None:
-        """Read and drop the replies (answers or errors) of calls interrupted before they were read.
-
-        A dropped step's or reset's ``live`` is still booked (:meth:`_receive`); only a dead worker
-        or a torn message comes out of here.
-        """
+        """Read and drop the replies of calls interrupted before they were read (their ``live`` still booked)."""
         while self._pending[w]:
             if self._broken:
                 raise UsageError(self._broken_message())
@@ -324,7 +274,6 @@ class ShardedBatchedEnv:
             self._conns[w].send_bytes(data)
         except (BrokenPipeError, OSError):
             if not self._procs[w].is_alive():
-                self._pending[w].clear()
                 raise self._dead(w) from None
             self._torn(w, "sending to")
             raise
@@ -354,12 +303,11 @@ class ShardedBatchedEnv:
             raise first
         return out
 
-    def _one(self, k: int, cmd: str, args: tuple) -> Any:
-        """``cmd`` for the worker of team ``k`` (its local number first in ``args``)."""
+    def _on_team(self, k: int, what: str, args: tuple) -> Any:
         self._check_open()
         k = team_index(k, self.num_envs)
         w = int(np.searchsorted(self._starts, k, side="right") - 1)
-        self._post(w, (cmd, (k - self._starts[w], *args)))
+        self._post(w, ("team", (k - self._starts[w], what, args)))
         return self._receive(w)
 
     def _broken_message(self) -> str:
@@ -371,15 +319,14 @@ class ShardedBatchedEnv:
         if self._broken:
             raise UsageError(self._broken_message())
 
+    def _every(self, cmd: str) -> list[Any]:
+        """``cmd`` without arguments for every worker; their answers."""
+        return self._all(cmd, [None] * len(self._conns))
+
     def _split(self, arr: np.ndarray) -> list[np.ndarray]:
         return [arr[self._starts[w]:self._starts[w + 1]] for w in range(len(self.sizes))]
 
     # ------------------------------------------------------------------ the batch's API
-    @property
-    def filtered(self) -> bool:
-        """True when the teams are behind a control filter."""
-        return bool(self.shared_settings["filtered"])
-
     @property
     def envs(self) -> list[Any]:
         """Not available here: the teams' envs live in the workers (raises :class:`UsageError`)."""
@@ -396,12 +343,12 @@ class ShardedBatchedEnv:
     @property
     def max_steps(self) -> np.ndarray:
         """Horizon of each team's current episode in env steps ``(K,)``."""
-        return np.concatenate([s[0] for s in self._all("state", [None] * len(self._conns))])
+        return np.concatenate([s[0] for s in self._every("state")])
 
     @property
     def elapsed_steps(self) -> np.ndarray:
         """Env steps taken in each team's current episode ``(K,)``."""
-        return np.concatenate([s[1] for s in self._all("state", [None] * len(self._conns))])
+        return np.concatenate([s[1] for s in self._every("state")])
 
     def reset(self, seed: int | Sequence[int | None] | None = None,
               options: dict | Sequence[dict | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -424,9 +371,8 @@ class ShardedBatchedEnv:
             finished = np.flatnonzero(~self._live.any(axis=1))
             if finished.size:
                 raise finished_error(finished)
-        parse_actions(actions, self._live, self.nominal_actions, self.shared_settings["clip_actions"])
-        arr = np.asarray(actions).reshape(self.num_envs, self.num_agents, 2)
-        out = self._all("step", self._split(arr))
+        act = parse_actions(actions, self._live, self.nominal_actions, self.shared_settings["clip_actions"])
+        out = self._all("step", self._split(act.reshape(self.num_envs, self.num_agents, 2)))
         obs, rew, term, trunc = (np.concatenate([o[i] for o in out]) for i in range(4))
         infos: dict[str, Any] = {}
         for key in out[0][4]:
@@ -441,27 +387,11 @@ class ShardedBatchedEnv:
 
     def sync(self) -> None:
         """Write each shard's state into its teams' own envs (in the workers)."""
-        self._all("sync", [None] * len(self._conns))
+        self._every("sync")
 
     def render(self) -> tuple[Any, ...]:
         """One frame per team, in team order."""
-        return tuple(f for frames in self._all("render", [None] * len(self._conns)) for f in frames)
-
-    def env_get(self, k: int, name: str) -> Any:
-        """Attribute ``name`` of team ``k``'s own env (``k`` as a sequence index; sent back pickled)."""
-        return self._one(k, "get", (name,))
-
-    def env_set(self, k: int, name: str, value: Any) -> None:
-        """Set attribute ``name`` of team ``k``'s own env (``value`` sent with cloudpickle)."""
-        self._one(k, "set", (name, value))
-
-    def env_call(self, k: int, name: str, *args: Any, **kwargs: Any) -> Any:
-        """Call method ``name`` of team ``k``'s own env after its shard's ``sync``; its answer."""
-        return self._one(k, "call", (name, args, kwargs))
-
-    def env_is_wrapped(self, k: int, wrapper_class: type) -> bool:
-        """Whether team ``k``'s own env is (PettingZoo-)wrapped by ``wrapper_class``."""
-        return bool(self._one(k, "wrapped", (wrapper_class,)))
+        return tuple(f for frames in self._every("render") for f in frames)
 
     def close(self, timeout: float = 5.0) -> None:
         """Close the teams' envs and stop the workers (idempotent; any still running after ``timeout`` s is killed)."""

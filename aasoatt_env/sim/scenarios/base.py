@@ -14,19 +14,9 @@ from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.sim.references import Reference
 
-__all__ = [
-    "MAX_ROBOTS",
-    "Layout",
-    "Scenario",
-    "check_clear_of_obstacles",
-    "check_no_overlap",
-    "check_num_robots",
-    "check_obstacles",
-    "check_quantity",
-    "check_settle_time",
-    "heading_of",
-    "max_robots_on_circle",
-]
+__all__ = ["MAX_ROBOTS", "Layout", "Scenario", "bounds_around", "check_clear_of_obstacles", "check_no_overlap",
+           "check_num_robots", "check_obstacles", "check_quantity", "check_settle_time", "heading_of",
+           "max_robots_on_circle"]
 
 MAX_ROBOTS: int = 100_000
 """Largest team a scenario builds (the work of a step grows with the team)."""
@@ -170,6 +160,12 @@ def check_no_overlap(name: str, points: np.ndarray, radii: np.ndarray, groups: n
         k = hit[0]
         raise ScenarioError(f"{name}: robots {pr[k, 0]} and {pr[k, 1]} overlap ({d[k]:.9g} m apart < {rs[k]:.9g} m, "
                             "the sum of their radii)")
+
+
+def bounds_around(points: np.ndarray, margin: float = 1.5) -> tuple[float, float, float, float]:
+    """``(xmin, xmax, ymin, ymax)`` of ``points`` ``(P, 2)``, widened by ``margin`` [m] (a layout's view)."""
+    lo, hi = points.min(axis=0) - margin, points.max(axis=0) + margin
+    return float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])
 
 
 def heading_of(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:

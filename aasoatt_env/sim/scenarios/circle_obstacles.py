@@ -1,12 +1,4 @@
-"""``circle_obstacles``: the circle swap among static disc obstacles (the paper's Fig. 5).
-
-=====================  ==========================================================
-agents                 ``robot_0`` ... ``robot_{N-1}`` (default N = 20)
-start / goal           as ``circle_swap``
-obstacles              :data:`FIG5_OBSTACLES`: three discs of different sizes,
-                       one at the centre where every reference crosses
-=====================  ==========================================================
-"""
+"""``circle_obstacles``: the circle swap among static disc obstacles (the paper's Fig. 5)."""
 
 from __future__ import annotations
 

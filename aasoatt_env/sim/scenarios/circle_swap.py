@@ -1,13 +1,4 @@
-"""``circle_swap``: N robots evenly on a circle, each tracks the straight line to its antipode (Tables II, III).
-
-=====================  ==========================================================
-agents                 ``robot_0`` ... ``robot_{N-1}`` (default N = 10)
-start / goal           ``R (cos a_i, sin a_i)`` -> its antipode, ``a_i = 2 pi i / N``
-reference              straight line, linear in time over ``duration`` (paper:
-                       ``R = 6``, 12 s; ``R = 10``, 20 s), then held
-obstacles              none (optional ``obstacles``)
-=====================  ==========================================================
-"""
+"""``circle_swap``: N robots evenly on a circle, each tracks the straight line to its antipode (Tables II, III)."""
 
 from __future__ import annotations
 
@@ -97,14 +88,7 @@ class CircleSwap(Scenario):
         ref = LinearReference(starts, goals, self.duration, profile=self.profile)  # type: ignore[arg-type]
         headings = np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0])
         b = self.radius + 1.0
-        return Layout(
-            team=self._team,
-            starts=starts,
-            headings=headings,
-            reference=ref,
-            horizon=self.duration + self.settle_time,
-            obstacle_centers=self._obstacles[0],
-            obstacle_radii=self._obstacles[1],
-            bounds=(-b, b, -b, b),
-        )
+        return Layout(team=self._team, starts=starts, headings=headings, reference=ref,
+                      horizon=self.duration + self.settle_time, obstacle_centers=self._obstacles[0],
+                      obstacle_radii=self._obstacles[1], bounds=(-b, b, -b, b))
 

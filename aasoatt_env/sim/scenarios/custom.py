@@ -1,12 +1,4 @@
-"""``custom``: your own team: start points, a reference (object, callable or waypoints) and obstacles.
-
-=====================  ==========================================================
-agents                 ``robot_0`` ... ``robot_{N-1}``, N = ``len(starts)``
-start                  ``starts``, headings along the reference velocity
-reference              a Reference, a callable ``t -> (N, 2)`` or waypoints
-obstacles              optional discs (none may cover a start or a goal)
-=====================  ==========================================================
-"""
+"""``custom``: your own team: start points, a reference (object, callable or waypoints) and obstacles."""
 
 from __future__ import annotations
 
@@ -22,6 +14,7 @@ from aasoatt_env.sim.scenarios.base import (
     MAX_ROBOTS,
     Layout,
     Scenario,
+    bounds_around,
     check_clear_of_obstacles,
     check_no_overlap,
     check_obstacles,
@@ -105,14 +98,6 @@ class Custom(Scenario):
         pts = np.concatenate([self._starts, ref.goals, *(ref(t)[0] for t in np.linspace(0, ref.duration, 16))])
         if self._obstacles[0].shape[0]:
             pts = np.concatenate([pts, self._obstacles[0]])
-        lo, hi = pts.min(axis=0) - 1.5, pts.max(axis=0) + 1.5
-        return Layout(
-            team=self._team,
-            starts=self._starts.copy(),
-            headings=headings,
-            reference=ref,
-            horizon=ref.duration + self.settle_time,
-            obstacle_centers=self._obstacles[0],
-            obstacle_radii=self._obstacles[1],
-            bounds=(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])),
-        )
+        return Layout(team=self._team, starts=self._starts.copy(), headings=headings, reference=ref,
+                      horizon=ref.duration + self.settle_time, obstacle_centers=self._obstacles[0],
+                      obstacle_radii=self._obstacles[1], bounds=bounds_around(pts))

@@ -1,12 +1,4 @@
-"""``position_swap``: 4 TurtleBot3 Burgers swap corners, 2.24 m at 0.1 m/s (the paper's Fig. 6 experiment).
-
-=====================  ==========================================================
-agents                 ``robot_0`` ... ``robot_3``
-start / goal           corners of a square -> the opposite corner
-reference              straight line at ``speed``
-obstacles              none
-=====================  ==========================================================
-"""
+"""``position_swap``: 4 TurtleBot3 Burgers swap corners, 2.24 m at 0.1 m/s (the paper's Fig. 6 experiment)."""
 
 from __future__ import annotations
 
@@ -75,11 +67,5 @@ class PositionSwap(Scenario):
         goals = -starts
         duration = self.distance / self.speed
         b = h + 0.5
-        return Layout(
-            team=self._team,
-            starts=starts,
-            headings=ang + np.pi,
-            reference=LinearReference(starts, goals, duration),
-            horizon=duration + self.settle_time,
-            bounds=(-b, b, -b, b),
-        )
+        return Layout(team=self._team, starts=starts, headings=ang + np.pi, horizon=duration + self.settle_time,
+                      reference=LinearReference(starts, goals, duration), bounds=(-b, b, -b, b))

@@ -1,12 +1,4 @@
-"""``random_goals``: seeded random starts and goals in a square arena, spacing guaranteed (for learning).
-
-=====================  ==========================================================
-agents                 ``robot_0`` ... ``robot_{N-1}`` (default N = 6)
-start / goal           uniform in the arena, at least ``min_spacing`` apart
-reference              straight line to the goal at ``speed``, then held
-obstacles              none
-=====================  ==========================================================
-"""
+"""``random_goals``: seeded random starts and goals in a square arena, spacing guaranteed (for learning)."""
 
 from __future__ import annotations
 
@@ -34,10 +26,9 @@ MAX_OBSTACLES: int = 1000
 """Largest ``random_obstacles``."""
 
 _SEQUENTIAL_MAX = 2000
-"""Up to this many robots, points are placed one by one (the layouts of earlier releases, seed for seed);
-larger teams use vectorised batches."""
+"""Up to this many robots, points are placed one by one; larger teams use vectorised batches."""
 _SEQUENTIAL_TRIES = 50
-"""Whole-set tries of the sequential sampler (a first try that succeeds is the earlier releases' layout)."""
+"""Whole-set tries of the sequential sampler."""
 
 
 class RandomGoals(Scenario):
@@ -111,9 +102,7 @@ class RandomGoals(Scenario):
     def _sample(self, rng: np.random.Generator) -> np.ndarray:
         """Points at least ``min_spacing`` apart: one at a time, the whole set again where one finds no room.
 
-        A first try that succeeds draws what it always drew.  Near the cover check's limit the
-        first points can leave no room for the last (an adversarial tester, 2026-12-02: 12 robots
-        0.96 m apart in a 4.4 m arena, cover 0.449, failed on 5 of 10 seeds with one try).
+        Near the cover check's limit the first points can leave no room for the last.
         """
         if self.num_robots_ > _SEQUENTIAL_MAX:
             return self._sample_batched(rng)
@@ -174,16 +163,9 @@ class RandomGoals(Scenario):
         T = ref.duration
         b = self.arena_size / 2.0 + 0.5
         centers, radii = self._obstacles(rng, np.concatenate((starts, goals)))
-        return Layout(
-            team=self._team,
-            starts=starts,
-            headings=np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0]),
-            reference=ref,
-            horizon=T + self.settle_time,
-            obstacle_centers=centers,
-            obstacle_radii=radii,
-            bounds=(-b, b, -b, b),
-        )
+        return Layout(team=self._team, starts=starts, reference=ref, horizon=T + self.settle_time,
+                      headings=np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0]),
+                      obstacle_centers=centers, obstacle_radii=radii, bounds=(-b, b, -b, b))
 
     def _obstacles(self, rng: np.random.Generator, keep_clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``random_obstacles`` discs clear of the starts and goals (rejection sampling, vectorised per batch)."""

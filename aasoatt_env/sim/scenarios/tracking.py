@@ -1,12 +1,4 @@
-"""``tracking``: one robot on a straight, sine or circle reference (Table I).
-
-=====================  ==========================================================
-agents                 ``robot_0``
-start                  on the reference at ``t = 0``, at rest, heading along it
-reference              ``straight``, ``sine`` or ``circle`` (or your own)
-obstacles              none
-=====================  ==========================================================
-"""
+"""``tracking``: one robot on a straight, sine or circle reference (Table I)."""
 
 from __future__ import annotations
 
@@ -18,7 +10,7 @@ import numpy as np
 from aasoatt_env import validation as check
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import FunctionReference, Reference, as_reference
-from aasoatt_env.sim.scenarios.base import Layout, Scenario, check_quantity, heading_of
+from aasoatt_env.sim.scenarios.base import Layout, Scenario, bounds_around, check_quantity, heading_of
 
 __all__ = ["Tracking"]
 
@@ -75,38 +67,17 @@ class Tracking(Scenario):
         if self._user_reference is not None:
             return as_reference(self._user_reference, 1, self.duration)
         v, A, w, R = self.speed, self.amplitude, self.frequency, self.circle_radius
-        if self.trajectory == "straight":
-
-            def p(t: float) -> np.ndarray:
-                return np.array([[v * t, 0.5 * v * t]])
-
-            def dp(t: float) -> np.ndarray:
-                return np.array([[v, 0.5 * v]])
-
-            def ddp(t: float) -> np.ndarray:
-                return np.zeros((1, 2))
-        elif self.trajectory == "sine":
-
-            def p(t: float) -> np.ndarray:
-                return np.array([[v * t, A * math.sin(w * t)]])
-
-            def dp(t: float) -> np.ndarray:
-                return np.array([[v, A * w * math.cos(w * t)]])
-
-            def ddp(t: float) -> np.ndarray:
-                return np.array([[0.0, -A * w * w * math.sin(w * t)]])
-        else:
-            om = v / R
-
-            def p(t: float) -> np.ndarray:
-                return R * np.array([[math.cos(om * t), math.sin(om * t)]])
-
-            def dp(t: float) -> np.ndarray:
-                return R * om * np.array([[-math.sin(om * t), math.cos(om * t)]])
-
-            def ddp(t: float) -> np.ndarray:
-                return -R * om * om * np.array([[math.cos(om * t), math.sin(om * t)]])
-
+        om = v / R
+        p, dp, ddp = {  # position, velocity and acceleration of each trajectory
+            "straight": (lambda t: np.array([[v * t, 0.5 * v * t]]), lambda t: np.array([[v, 0.5 * v]]),
+                         lambda t: np.zeros((1, 2))),
+            "sine": (lambda t: np.array([[v * t, A * math.sin(w * t)]]),
+                     lambda t: np.array([[v, A * w * math.cos(w * t)]]),
+                     lambda t: np.array([[0.0, -A * w * w * math.sin(w * t)]])),
+            "circle": (lambda t: R * np.array([[math.cos(om * t), math.sin(om * t)]]),
+                       lambda t: R * om * np.array([[-math.sin(om * t), math.cos(om * t)]]),
+                       lambda t: -R * om * om * np.array([[math.cos(om * t), math.sin(om * t)]])),
+        }[self.trajectory]
         return FunctionReference(p, self.duration, velocity=dp, acceleration=ddp)
 
     def build(self, rng: np.random.Generator) -> Layout:
@@ -114,12 +85,5 @@ class Tracking(Scenario):
         ref = self._reference()
         p0, v0, _ = ref(0.0)
         pts = np.concatenate([ref(t)[0] for t in np.linspace(0.0, self.duration, 64)])
-        lo, hi = pts.min(axis=0) - 1.5, pts.max(axis=0) + 1.5
-        return Layout(
-            team=self._team,
-            starts=p0,
-            headings=heading_of(v0, np.zeros(1)),
-            reference=ref,
-            horizon=self.duration,
-            bounds=(float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1])),
-        )
+        return Layout(team=self._team, starts=p0, headings=heading_of(v0, np.zeros(1)), reference=ref,
+                      horizon=self.duration, bounds=bounds_around(pts))
