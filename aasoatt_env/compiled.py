@@ -4,6 +4,8 @@ The filter's stages are loops over small arrays whose numpy form spends its time
 overhead of many small calls; each such stage has one compiled form, the same loop compiled
 with numba, chosen when the filter is built (:attr:`~aasoatt_env.safety.config.FilterConfig.kernel`):
 
+- the inputs' number checks (:mod:`aasoatt_env.safety.inputs_kernel`);
+- the default deadlock trigger and the target (:mod:`aasoatt_env.safety.deadlock_kernel`);
 - the barrier rows (:mod:`aasoatt_env.safety.rows_kernel`: the numpy reference's numbers, bit for bit);
 - the centralised QP stage on a warm-started step (:mod:`aasoatt_env.safety.centralized_kernel`: the
   numpy stage's numbers, bit for bit, where it answers) and its warm active set
@@ -47,6 +49,8 @@ PARTS: dict[str, str] = {
     "rows": "aasoatt_env.safety.rows_kernel",
     "centralized": "aasoatt_env.safety.centralized_kernel",
     "fused": "aasoatt_env.safety.fused_kernel",
+    "inputs": "aasoatt_env.safety.inputs_kernel",
+    "deadlock": "aasoatt_env.safety.deadlock_kernel",
 }
 """The compiled parts and their modules."""
 

@@ -18,7 +18,7 @@ from aasoatt_env.analysis.metrics import pairwise_min_distance
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.api.factory import make_batched_env
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.model.dynamics import DT, input_bounds, kinematics
+from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import RobotParams, Team, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter, warm_up
@@ -498,9 +498,11 @@ def test_a_float32_state_is_filtered_as_its_float64_values(kernel):
     assert answers[0].barrier_min == answers[1].barrier_min
 
 
-def _filter_results(monkeypatch, scene: str, rows_kernel: bool, fused: bool = False) -> tuple[list, list]:
+def _filter_results(monkeypatch, scene: str, rows_kernel: bool, fused: bool = False,
+                    deadlock_kernel: bool = True) -> tuple[list, list]:
     """Every filter step's result and wheel accelerations along a closed loop, with the compiled rows or the numpy
-    rows, the fused step or not, and per step ``(rows kernel called from Python, fused step's answer or None)``."""
+    rows, the fused step or not, the compiled deadlock stage or not, and per step ``(rows kernel called from
+    Python, fused step's answer or None)``."""
     from aasoatt_env.safety import core
     from aasoatt_env.safety.rows import numpy_rows
 
@@ -513,6 +515,9 @@ def _filter_results(monkeypatch, scene: str, rows_kernel: bool, fused: bool = Fa
         init(self, *args, **kw)
         if not rows_kernel:
             self._rows = numpy_rows
+        if not deadlock_kernel:
+            assert self._multiplier is not None
+            self._multiplier = None
         if not fused:
             self._fused = None
         elif self._fused is not None:
@@ -619,6 +624,38 @@ def test_the_fused_step_gives_the_pipelines_steps_bit_for_bit(monkeypatch, scene
         assert sum(a is None for a in answers) > 5
 
 
+@needs_numba
+@pytest.mark.parametrize("scene", ["stack", "crossing", "random"])
+def test_the_compiled_deadlock_stage_gives_the_numpy_stages_steps_bit_for_bit(monkeypatch, scene):
+    """The ``multiplier`` trigger and ``A du_nom`` compiled (deadlock_kernel) give the numpy stage's steps bit for
+    bit along closed loops where robots are triggered."""
+    ref, _ = _filter_results(monkeypatch, scene, rows_kernel=True, deadlock_kernel=False)
+    out, _ = _filter_results(monkeypatch, scene, rows_kernel=True)
+    assert len(out) == len(ref) >= 400 and sum(res.triggered.sum() for _, res in out) > 100
+    _assert_same_steps(out, ref)
+
+
+@needs_numba
+def test_the_compiled_deadlock_stage_without_a_reference_keeps_the_avoiding_robots_triggered():
+    """Without a reference no robot is done: the compiled trigger flags exactly the robots that were avoiding, as
+    the numpy trigger does, along a crowded team's steps."""
+    team = make_team("paper", 12)
+    rng = np.random.default_rng(4)
+    pose = np.column_stack((rng.uniform(0.0, 2.5, (12, 2)), rng.uniform(-np.pi, np.pi, 12)))
+    u = rng.normal(0.0, 4.0, (12, 2))
+    filters = [SafetyFilter(team, deadlock="rotate_nominal") for _ in range(2)]
+    filters[1]._multiplier = None
+    triggered = 0
+    for _ in range(30):
+        nominal = rng.normal(0.0, 40.0, (12, 2))
+        (du, res), (du_ref, res_ref) = (f.from_state(pose, u, nominal) for f in filters)
+        np.testing.assert_array_equal(_bits(du), _bits(du_ref))
+        np.testing.assert_array_equal(res.triggered, res_ref.triggered)
+        triggered += int(res.triggered.sum())
+        pose, u = integrate(team, pose, u, du, DT)
+    assert triggered > 10
+
+
 def test_a_trigger_or_strategy_registered_in_place_of_the_defaults_is_the_one_called(monkeypatch):
     """A function registered under the default trigger's name, or a strategy of a subclass, is called as registered."""
     from aasoatt_env.safety import core, deadlock
@@ -720,7 +757,8 @@ from agents import HostileAgent, TrackingController
 
 ENTRIES = {"backup": ("gate_full", "repair_full"), "local": ("solve_all",), "active_set": ("solve_parts",),
            "geometry": ("cell_pairs", "components"), "centralized": ("solve_decomposed", "box_least_squares"),
-           "rows": ("aasoatt_rows", "pairs_within")}
+           "rows": ("aasoatt_rows", "pairs_within"), "fused": ("fused_step",), "inputs": ("numbers",),
+           "deadlock": ("multiplier_target",)}
 
 
 def signatures():

@@ -2,24 +2,27 @@
 
 One :meth:`SafetyFilter.step` runs, in order:
 
-=============  ======================================================  ===============================
-stage          what                                                    compiled form (chosen at build)
-=============  ======================================================  ===============================
-inputs         shapes, finite numbers, bounds (:mod:`.inputs`)         -
-pairs          pairs within the sensing range (:func:`.rows.find_pairs`)  the grid of cells (>= 200 robots)
-deadlock       the trigger and the QP's target (:mod:`.deadlock`)      -
-rows           one barrier row per pair (:mod:`.rows`)                 the barrier's kernel, if it has one
-solve          the QP, centralised (:mod:`.centralized`) or             the warm active set and the local
-               decentralised (:mod:`.decentralized`)                    QPs' kernels
-backup         brake-safety check and repair (:mod:`.backup`)          the check's and repair's kernels
-result         :class:`~aasoatt_env.safety.result.FilterResult`        -
-=============  ======================================================  ===============================
+========  ==================================================  =====================================
+stage     what                                                compiled form (chosen at build)
+========  ==================================================  =====================================
+inputs    shapes, finite numbers, bounds (:mod:`.inputs`)     the number checks
+pairs     pairs in sensing range (:func:`.rows.find_pairs`)   brute force; grid of cells >= 200
+deadlock  trigger and the QP's target (:mod:`.deadlock`)      ``multiplier`` trigger and ``A du_nom``
+rows      one barrier row per pair (:mod:`.rows`)             the barrier's kernel, if it has one
+solve     centralised (:mod:`.centralized`) or                warm active set; local QPs
+          decentralised (:mod:`.decentralized`) QP
+backup    brake-safety check and repair (:mod:`.backup`)      check and repair
+result    :class:`~aasoatt_env.safety.result.FilterResult`    -
+========  ==================================================  =====================================
 
 Each stage has one numpy reference and at most one compiled implementation, chosen when the
 filter is built (``FilterConfig.kernel``) and never changed during a step; :meth:`describe`
-says which runs.  No decision reads the clock: the same inputs give the same answer.  A filter
-is a function of the team's state and the nominal (as a Robotarium barrier certificate), plus
-its memory of the previous step (the warm start and the deadlock trigger's state).
+says which runs.  Where rows, solve and backup all run compiled (the default centralised
+filter), :mod:`.fused` runs them in one call on a warm step; a stage it does not answer runs
+as above, from its start.  No decision reads the clock: the same inputs give the same answer.
+A filter is a function of the team's state and the nominal (as a Robotarium barrier
+certificate), plus its memory of the previous step (the warm start and the deadlock trigger's
+state).
 """
 
 from __future__ import annotations
@@ -31,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.compiled import NUMBA_MISSING
+from aasoatt_env.compiled import NUMBA_MISSING, kernels
 from aasoatt_env.compiled import available as compiled_available
 from aasoatt_env.errors import ConfigError, StateError, UsageError
 from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics
@@ -62,6 +65,8 @@ from aasoatt_env.sim.protocol import FilterInput
 __all__ = ["MIN_BRAKING_ROOM", "STATUSES", "FilterResult", "SafetyFilter", "StepInput"]
 
 _NO_PAIRS = np.empty((0, 2), dtype=np.intp)
+_MULTIPLIER = TRIGGERS["multiplier"]
+"""The registry's own ``multiplier`` trigger, whose compiled form the deadlock stage runs (``deadlock_kernel``)."""
 
 
 class SafetyFilter:
@@ -94,6 +99,8 @@ class SafetyFilter:
                 + ("; the braking backup layer still keeps the team collision-free" if cfg.backup else
                    " and, with backup=False, nothing else does"), UserWarning, stacklevel=2)
         compiled = cfg.compiled
+        self._multiplier = (kernels("deadlock").multiplier_target if compiled and self._strategy.active
+                            and self._trigger is _MULTIPLIER else None)
         self._rows_compiled = compiled and bool(get_barrier(cfg.barrier).kernel) and not self._strategy.rotates_rows
         self._rows = CompiledRows(cfg) if self._rows_compiled else numpy_rows
         decentral = cfg.mode == "decentralized"
@@ -112,10 +119,11 @@ class SafetyFilter:
         cfg, kernel = self.config, "compiled" if self.config.compiled else "numpy"
         lines = [f"SafetyFilter(mode={cfg.mode}, barrier={cfg.barrier}, deadlock={cfg.deadlock}, "
                  f"trigger={cfg.trigger}, solver={cfg.solver}, backup={cfg.backup})",
-                 "  inputs    numpy",
+                 f"  inputs    {'numpy shapes, compiled number checks' if cfg.compiled else 'numpy'}",
                  f"  pairs     numpy brute force (< 200 robots a group), "
                  f"{'compiled grid of cells' if cfg.compiled else 'k-d tree'} above",
-                 f"  deadlock  numpy ({cfg.trigger}, {cfg.deadlock})",
+                 f"  deadlock  {'compiled' if self._multiplier is not None else 'numpy'} ({cfg.trigger}, "
+                 f"{cfg.deadlock}; the strategy's correction numpy)",
                  f"  rows      {'compiled' if self._rows_compiled else 'numpy'} ({cfg.barrier}"
                  + ("" if self._rows_compiled or not cfg.compiled else ": the strategy rotates the rows"
                     if self._strategy.rotates_rows else ": no compiled form") + ")",
@@ -230,8 +238,7 @@ class SafetyFilter:
         if self._strategy.needs_reference and s.reference is None:
             raise ConfigError(f"deadlock strategy {cfg.deadlock!r} needs reference=(p_d, v_d); got None")
         pairs = find_pairs(team, s.p, cfg.sensing_range, s.obstacles, cfg.compiled)
-        triggered = self._triggered(s, pairs)
-        target = self._target(s, triggered)
+        triggered, target = self._deadlock(s, pairs)
         fused = None
         if self._fused is not None and self._x is not None:
             fused = self._fused(s, pairs, target, self._x, self._keys, self._z)
@@ -248,7 +255,7 @@ class SafetyFilter:
 
     # ------------------------------------------------------------------ stages
     def _triggered(self, s: StepInput, pairs: Pairs) -> np.ndarray:
-        """``(N,)`` bool: the robots the deadlock strategy acts on at this step (none when it is off)."""
+        """``(N,)`` bool: the robots the deadlock trigger flags at this step (none when the strategy is off)."""
         if not self._strategy.active:
             return np.zeros(s.p.shape[0], dtype=bool)
         if self.config.trigger in TRIGGERS_WITHOUT_PAIRS:
@@ -257,8 +264,8 @@ class SafetyFilter:
             idx, vec = pairs.index(), pairs.vectors(s.p, None if s.obstacles is None else s.obstacles[0])
         return self._trigger(self._dl, TriggerContext(s.p, s.v, s.theta, s.reference, idx, vec, self.config))
 
-    def _target(self, s: StepInput, triggered: np.ndarray) -> np.ndarray:
-        """The QP's target control-point accelerations ``(N, 2)``: ``A du_nom``, after the deadlock strategy.
+    def _deadlock(self, s: StepInput, pairs: Pairs) -> tuple[np.ndarray, np.ndarray]:
+        """The robots the deadlock strategy acts on ``(N,)`` and the QP's target ``(N, 2)``: ``A du_nom`` after it.
 
         A nominal far outside the bounds is first pulled in (:func:`~aasoatt_env.safety.inputs.bound_nominal`);
         in the decentralised mode each robot saturates its own nominal to its bounds.
@@ -268,17 +275,26 @@ class SafetyFilter:
             nominal = np.minimum(np.maximum(s.nominal, s.lo), s.hi)
         else:
             nominal = bound_nominal(s.nominal, s.lo, s.hi, s.scale, s.team.max_wheel_accel)
-        target = np.einsum("nij,nj->ni", s.A, nominal)
-        if not triggered.any():  # (a strategy corrects the triggered robots only)
-            return target
-        target = self._strategy.correct_target(target, np.where(triggered, cfg.zeta, 0.0), self._Q,
+        if self._multiplier is not None:  # the registry's multiplier trigger and A du_nom, compiled
+            avoiding = self._dl.avoiding if self._dl.avoiding is not None else np.zeros(s.p.shape[0], dtype=bool)
+            ref = s.reference if s.reference is not None else (s.p, s.v)  # (not read without a reference)
+            triggered, zeta, target, anyone = self._multiplier(avoiding, s.p, s.v, *ref, s.reference is not None, s.A,
+                                                               nominal, cfg.zeta, cfg.low_speed, cfg.goal_tol)
+        else:
+            triggered = self._triggered(s, pairs)
+            target = np.einsum("nij,nj->ni", s.A, nominal)
+            anyone = bool(triggered.any())
+            zeta = np.where(triggered, cfg.zeta, 0.0) if anyone else None
+        if not anyone:  # (a strategy corrects the triggered robots only)
+            return triggered, target
+        target = self._strategy.correct_target(target, zeta, self._Q,
                                                TargetContext(s.v, s.p, s.reference, cfg.k3, cfg.k4))
         if not (isinstance(target, np.ndarray) and target.shape == s.nominal.shape and target.dtype == np.float64
                 and np.isfinite(target).all()):
             raise ConfigError(f"deadlock strategy {cfg.deadlock!r}: its target has shape {np.shape(target)} "
                               f"(dtype {getattr(target, 'dtype', type(target).__name__)}), expected finite float64 "
                               f"of shape {s.nominal.shape}")
-        return target
+        return triggered, target
 
     def _warm(self, rows: Rows) -> Warm:
         """The previous answer on this step's rows (a row new at this step starts at 0)."""

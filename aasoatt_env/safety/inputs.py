@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from aasoatt_env.compiled import kernels
 from aasoatt_env.errors import ConfigError, StateError
 from aasoatt_env.model.dynamics import Kinematics, speed_box
 from aasoatt_env.model.params import Team
@@ -135,7 +136,8 @@ def check_step(team: Team, cfg: FilterConfig, kin: Kinematics, u: Any, theta: An
                hi: Any, reference: Any = None, obstacles: Any = None) -> StepInput:
     """One step's inputs as float64 arrays of the team's shapes, every number finite within ``MAGNITUDE_MAX``.
 
-    The bounds are tightened by ``cfg.max_wheel_speed`` where set.  Errors name the array and the robot.
+    The arrays given where they are C-contiguous, writeable float64, copies otherwise (one array type for the
+    kernels).  The bounds are tightened by ``cfg.max_wheel_speed`` where set.  Errors name the array and the robot.
     """
     n = team.n
     pair = (n, 2)
@@ -148,31 +150,43 @@ def check_step(team: Team, cfg: FilterConfig, kin: Kinematics, u: Any, theta: An
         obstacles = _obstacles(obstacles)
         given += obstacles[:2]
         shapes += [obstacles[0].shape, obstacles[1].shape]
-    arrays = [a if type(a) is np.ndarray and a.dtype is _F64 and a.flags.c_contiguous
-              else np.ascontiguousarray(a, dtype=np.float64) for a in given]
+    arrays = [a if type(a) is np.ndarray and a.dtype is _F64 and a.flags.c_contiguous and a.flags.writeable
+              else np.array(a, dtype=np.float64, order="C") for a in given]  # (one array type for the kernels)
     if [a.shape for a in arrays] != shapes:
         names = _NAMES if reference is not None else _NAMES[:9] + _NAMES[11:]
         for name, a, shape in zip(names, arrays, shapes):
             if a.shape != shape:
                 raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
-    flat = np.concatenate(arrays, axis=None)
-    if not max(-float(flat.min()), float(flat.max())) <= MAGNITUDE_MAX:  # (NaN fails too)
-        names = _NAMES if reference is not None else _NAMES[:9] + _NAMES[11:]
-        for name, a in zip(names, arrays):
-            refuse_rows_beyond(name, a.reshape(a.shape[0], -1) if a.shape[0] else np.zeros((0, 1)),
-                               "obstacle" if name.startswith("obstacles") else "robot")
+    nominal, lo, hi, u, theta, p, v, A, adot = arrays[:9]
+    ok, scale = kernels("inputs").numbers(np.concatenate(arrays, axis=None), n, MAGNITUDE_MAX,
+                                          team.max_wheel_accel) if cfg.compiled else (False, None)
+    if not ok:  # the numpy reference: raises where a number is refused
+        _check_numbers(arrays, _NAMES if reference is not None else _NAMES[:9] + _NAMES[11:])
     if obstacles is not None and not bool((obstacles[1] >= 0.0).all()):
         k = int(np.flatnonzero(~(obstacles[1] >= 0.0))[0])
         raise StateError(f"obstacles radii: got {float(obstacles[1][k])!r} for obstacle {k}, expected a radius >= 0")
-    nominal, lo, hi, u, theta, p, v, A, adot = arrays[:9]
+    if scale is None or cfg.max_wheel_speed is not None:
+        if cfg.max_wheel_speed is not None:
+            lo, hi = speed_box(lo, hi, u, cfg.max_wheel_speed, cfg.dt)
+        scale = np.maximum(team.max_wheel_accel, np.maximum(np.abs(lo), np.abs(hi)).max(axis=1))  # (> 0: check_team)
+    return StepInput(team, p, v, A, adot, u, theta, nominal, lo, hi,
+                     None if reference is None else (arrays[9], arrays[10]), obstacles, scale)
+
+
+def _check_numbers(arrays: list[np.ndarray], names: tuple[str, ...]) -> None:
+    """Raise :class:`StateError` naming the array and row of a number beyond ``MAGNITUDE_MAX``, or ``lo > hi``.
+
+    ``arrays`` start with ``nominal_du, lo, hi``.
+    """
+    flat = np.concatenate(arrays, axis=None)
+    if not max(-float(flat.min()), float(flat.max())) <= MAGNITUDE_MAX:  # (NaN fails too)
+        for name, a in zip(names, arrays):
+            refuse_rows_beyond(name, a.reshape(a.shape[0], -1) if a.shape[0] else np.zeros((0, 1)),
+                               "obstacle" if name.startswith("obstacles") else "robot")
+    lo, hi = arrays[1], arrays[2]
     if (lo > hi).any():
         k = int(np.flatnonzero((lo > hi).any(axis=1))[0])
         raise StateError(f"lo/hi: got lo {lo[k].tolist()} > hi {hi[k].tolist()} for robot {k}, expected lo <= hi")
-    if cfg.max_wheel_speed is not None:
-        lo, hi = speed_box(lo, hi, u, cfg.max_wheel_speed, cfg.dt)
-    scale = np.maximum(team.max_wheel_accel, np.maximum(np.abs(lo), np.abs(hi)).max(axis=1))  # (> 0: check_team)
-    return StepInput(team, p, v, A, adot, u, theta, nominal, lo, hi,
-                     None if reference is None else (arrays[9], arrays[10]), obstacles, scale)
 
 
 _F64 = np.dtype(np.float64)

@@ -35,11 +35,11 @@ def _scenes() -> list[tuple[str, Callable[[], None]]]:
     obstacles = (np.array([[0.6, 1.5]]), np.array([0.3]))
 
     def team_steps(mode: str, backup: bool) -> None:  # rows, the QP stages, the check, with and without obstacles
-        f = SafetyFilter(team, mode=mode, backup=backup, kernel="numba")
-        ref = (pose[:, :2], np.zeros((2, 2)))
-        for k in range(3):
-            f.from_state(pose, u, np.full((2, 2), 60.0 * (1 - 2 * (k % 2))), reference=ref,
-                         obstacles=obstacles if k else None)
+        for deadlock, ref in (("auxiliary_velocity", (pose[:, :2], np.zeros((2, 2)))), ("rotate_nominal", None)):
+            f = SafetyFilter(team, mode=mode, backup=backup, kernel="numba", deadlock=deadlock)
+            for k in range(3):
+                f.from_state(pose, u, np.full((2, 2), 60.0 * (1 - 2 * (k % 2))), reference=ref,
+                             obstacles=obstacles if k else None)
 
     def backup_layer() -> None:  # the check (quick, full, held) and the repair, as the layer calls them
         layer = dict(sensing_range=3.0, brake_fraction=2.0 / 3.0, compiled=True, checked=True,
