@@ -13,6 +13,8 @@ stay reachable); a float adds that constant instead, ``0`` the paper's exact bar
 
 from __future__ import annotations
 
+import functools
+
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
 from typing import Any
@@ -219,7 +221,7 @@ class FilterConfig:
         speed = np.sqrt(row_dot(v_rel, v_rel))
         return auto_margin(self.dt) * np.minimum(1.0, speed / MARGIN_FADE_SPEED)
 
-    @property
+    @functools.cached_property
     def compiled(self) -> bool:
         """Whether the filter runs the compiled kernels (:attr:`kernel` resolved)."""
         return self.kernel != "numpy" and available()
