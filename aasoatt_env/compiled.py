@@ -35,8 +35,7 @@ PARTS: dict[str, str] = {
     "centralized": "aasoatt_env.safety.centralized_kernel",
     "fused": "aasoatt_env.safety.fused_kernel",
 }
-"""The compiled parts and their modules: barrier rows, the warm centralised QP stage and its active set, the
-decentralised local QPs, the backup layer, the fused warm step, the neighbour grid and contact components."""
+"""The compiled parts (each a stage's loop, the same numbers or the same decisions) and their modules."""
 
 
 @functools.cache

@@ -46,4 +46,4 @@ class ResetNeeded(UsageError):
 
 
 class UnknownKeywordError(AASOATTError, TypeError):
-    """An unknown keyword argument or option name (worded like Python's own ``TypeError``)."""
+    """An unknown keyword argument or option name, worded as Python's ``TypeError`` (TorchRL's ``GymEnv`` probes it)."""

@@ -137,10 +137,7 @@ def choice(name: str, value: Any, options: Iterable[str]) -> str:
 
 
 def reject_unknown(owner: str, given: Iterable[str], known: Iterable[str]) -> None:
-    """Raise :class:`~aasoatt_env.errors.UnknownKeywordError` naming the ``given`` keywords not ``known``.
-
-    Worded as Python's own: some clients (TorchRL's ``GymEnv``) probe constructors and match on it.
-    """
+    """Raise :class:`~aasoatt_env.errors.UnknownKeywordError` naming the ``given`` keywords not ``known``."""
     known_set = set(known)
     unknown = sorted(str(k) for k in given if k not in known_set)
     if unknown:
