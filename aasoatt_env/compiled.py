@@ -1,24 +1,9 @@
 """Which implementation runs: the numpy reference or a compiled kernel (numba, ``pip install "aasoatt[fast]"``).
 
-The filter's stages are loops over small arrays whose numpy form spends its time in the
-overhead of many small calls; each such stage has one compiled form, the same loop compiled
-with numba, chosen when the filter is built (:attr:`~aasoatt_env.safety.config.FilterConfig.kernel`):
-
-- the inputs' number checks (:mod:`aasoatt_env.safety.inputs_kernel`);
-- the default deadlock trigger and the target (:mod:`aasoatt_env.safety.deadlock_kernel`);
-- the barrier rows (:mod:`aasoatt_env.safety.rows_kernel`: the numpy reference's numbers, bit for bit);
-- the centralised QP stage on a warm-started step (:mod:`aasoatt_env.safety.centralized_kernel`: the
-  numpy stage's numbers, bit for bit, where it answers) and its warm active set
-  (:mod:`aasoatt_env.safety.solvers.active_set_kernel`);
-- the decentralised local QPs (:mod:`aasoatt_env.safety.solvers.local_kernel`);
-- the backup layer's check and repair (:mod:`aasoatt_env.safety.backup.kernels`);
-- a warm centralised step's rows, QP and quick backup check in one call, where all three answer
-  (:mod:`aasoatt_env.safety.fused_kernel`: those kernels called in turn, the pipeline's numbers);
-- the neighbour grid and contact components (:mod:`aasoatt_env.model.geometry_kernel`: the same pairs
-  and labels, exactly).
-
-The kernels make the reference's decisions; where their sums run in another order their numbers
-agree to rounding (``tests/test_compiled.py``).  numba is imported only when a kernel is first used.
+The filter's stages are loops over small arrays, dominated in numpy by call overhead; each has one numba form
+(:data:`PARTS`), chosen when the filter is built (:attr:`~aasoatt_env.safety.config.FilterConfig.kernel`).
+The kernels make the reference's decisions, with its numbers where their sums run in the same order and to
+rounding elsewhere (``tests/test_compiled.py``).  numba is imported only when a kernel is first used.
 """
 
 from __future__ import annotations
@@ -34,7 +19,7 @@ __all__ = ["KERNELS", "NUMBA_MISSING", "PARTS", "available", "c64", "kernels"]
 KERNELS: tuple[str, ...] = ("auto", "numpy", "numba")
 """Values of :attr:`~aasoatt_env.safety.config.FilterConfig.kernel`."""
 
-NUMBA_MISSING = (
+NUMBA_MISSING = (  # the ImportError of kernels() without numba
     'the compiled kernels (kernel="numba", compiled=True) need numba, which is not installed '
     'or does not import: pip install "aasoatt[fast]" (kernel="auto" falls back to the numpy reference, '
     'kernel="numpy" always uses it)'
@@ -52,7 +37,7 @@ PARTS: dict[str, str] = {
     "inputs": "aasoatt_env.safety.inputs_kernel",
     "deadlock": "aasoatt_env.safety.deadlock_kernel",
 }
-"""The compiled parts and their modules."""
+"""The compiled parts (each a stage's loop, the same numbers or the same decisions) and their modules."""
 
 
 @functools.cache
@@ -69,13 +54,7 @@ def available() -> bool:
 
 
 def kernels(part: str = "backup") -> ModuleType:
-    """The compiled kernels of ``part`` (:data:`PARTS`).
-
-    Raises
-    ------
-    ImportError
-        numba is missing (:data:`NUMBA_MISSING`).
-    """
+    """The compiled kernels of ``part`` (:data:`PARTS`); ``ImportError`` (:data:`NUMBA_MISSING`) without numba."""
     mod = _load(PARTS[part])
     if mod is None:
         raise ImportError(NUMBA_MISSING)
@@ -83,6 +62,6 @@ def kernels(part: str = "backup") -> ModuleType:
 
 
 def c64(a: np.ndarray) -> np.ndarray:
-    """``a`` as a C-contiguous, writeable float64 array (one compiled specialisation for every caller's arrays)."""
+    """``a`` as a C-contiguous, writeable float64 array (one compiled specialisation for every caller)."""
     a = np.ascontiguousarray(a, dtype=np.float64)
     return a if a.flags.writeable else a.copy()

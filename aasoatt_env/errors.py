@@ -1,9 +1,6 @@
-"""Exception hierarchy of :mod:`aasoatt_env`, one class per meaning.
+"""Exception hierarchy of :mod:`aasoatt_env`, one class per meaning, all :class:`AASOATTError`.
 
-Every error raised on purpose derives from :class:`AASOATTError`. Bad input is also a :class:`ValueError`,
-a call at the wrong time a :class:`RuntimeError`, and an unknown keyword a :class:`TypeError` worded as
-Python's own (some clients probe constructors with extra keywords and expect it), so code written
-against the standard library's conventions keeps working.
+Bad input is also a ``ValueError``, a call at the wrong time a ``RuntimeError``, an unknown keyword a ``TypeError``.
 """
 
 from __future__ import annotations
@@ -49,4 +46,4 @@ class ResetNeeded(UsageError):
 
 
 class UnknownKeywordError(AASOATTError, TypeError):
-    """An unknown keyword argument or option name (worded like Python's own ``TypeError``)."""
+    """An unknown keyword argument or option name, worded as Python's ``TypeError`` (TorchRL's ``GymEnv`` probes it)."""

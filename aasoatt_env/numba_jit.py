@@ -1,8 +1,4 @@
-"""The one ``numba.njit`` configuration of the library's compiled kernels, and their shared scalar helpers.
-
-Imports numba: imported only by the kernel modules, which :mod:`aasoatt_env.compiled`
-loads on first use, so ``import aasoatt_env`` never imports numba.
-"""
+"""The one ``numba.njit`` configuration of the compiled kernels and their scalar helpers (imports numba)."""
 
 from __future__ import annotations
 
@@ -29,10 +25,7 @@ def jit(fn, **flags):
 
 
 def jit_reassoc(fn):
-    """:func:`jit` letting LLVM reorder sums (``fastmath`` ``reassoc``, ``contract``: vectorised reductions).
-
-    NaN and inf keep their meaning (no ``nnan``/``ninf``); the sums' last bits depend on the order.
-    """
+    """:func:`jit` letting LLVM reorder sums (``reassoc``, ``contract``); NaN and inf keep their meaning."""
     return jit(fn, fastmath={"reassoc", "contract"})
 
 

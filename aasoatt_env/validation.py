@@ -1,8 +1,7 @@
 """The one validation layer: typed checks whose errors read ``"<name>: got <value>, expected <what>"``.
 
-Every entry point (env, scenario, filter and reward keywords, the command line, the loaders) checks
-its inputs here, so a bad value always raises a :class:`~aasoatt_env.errors.ConfigError`. Types are
-checked before any conversion: ``True`` is not 1, ``"2"`` is not 2, a complex number is not real.
+Every entry point checks its inputs here, so a bad value raises :class:`~aasoatt_env.errors.ConfigError`.
+Types are checked before any conversion: ``True`` is not 1, ``"2"`` is not 2, a complex number is not real.
 """
 
 from __future__ import annotations
@@ -22,8 +21,7 @@ __all__ = ["MAGNITUDE_MAX", "boolean", "choice", "integer", "parse_assignments",
 
 
 MAGNITUDE_MAX: float = 1e9
-"""Largest magnitude :func:`real` accepts by default: no parameter means anything beyond it in SI units, and
-far larger values (``1e308``) overflow to ``inf`` when squared, so they are refused at the edge."""
+"""Largest magnitude :func:`real` accepts by default (SI units; far larger values overflow when squared)."""
 
 
 def _is_real(value: Any) -> bool:
@@ -31,7 +29,7 @@ def _is_real(value: Any) -> bool:
 
 
 def short_repr(value: Any, limit: int = 80) -> str:
-    """``repr(value)`` cut to ``limit`` characters (a huge int or list must not flood the message)."""
+    """``repr(value)`` cut to ``limit`` characters."""
     try:
         text = repr(value)
     except Exception:  # noqa: BLE001 - a broken __repr__ must not hide the real error
@@ -40,11 +38,7 @@ def short_repr(value: Any, limit: int = 80) -> str:
 
 
 def shapes(expected: Iterable[tuple[str, Any, tuple[int, ...]]], note: str = "") -> None:
-    """Raise ``ValueError`` naming the first ``(name, array, shape)`` whose array has another shape.
-
-    For arrays a compiled kernel reads without bounds checks; ``note`` ends the message
-    (what the expected shapes refer to).
-    """
+    """Raise ``ValueError`` naming the first ``(name, array, shape)`` of another shape (``note`` ends the message)."""
     for name, a, shape in expected:
         if np.shape(a) != shape:
             raise ValueError(f"{name}: got shape {np.shape(a)}, expected {shape}{note}")
@@ -67,11 +61,9 @@ def real(name: str, value: Any, *, lo: float | None = None, hi: float | None = N
          hi_open: bool = False, allow_inf: bool = False) -> float:
     """Return ``value`` (a real number: not a bool, not a string) as a float in ``[lo, hi]``.
 
-    ``lo_open``/``hi_open`` exclude the bounds (default ``+-MAGNITUDE_MAX``); ``allow_inf`` accepts ``+inf``
-    ("no limit").  The :class:`ConfigError` names ``name``, the value and the valid interval.
+    ``lo_open``/``hi_open`` exclude a bound; ``allow_inf`` accepts ``+inf`` ("no limit").
     """
-    lo = -MAGNITUDE_MAX if lo is None else lo
-    hi = MAGNITUDE_MAX if hi is None else hi
+    lo, hi = (-MAGNITUDE_MAX if lo is None else lo), (MAGNITUDE_MAX if hi is None else hi)
     expected = _describe(f"a {'' if allow_inf else 'finite '}number", lo, hi, lo_open, hi_open)
     expected += " or inf" if allow_inf else ""
     if not _is_real(value):
@@ -108,10 +100,7 @@ def integer(name: str, value: Any, *, lo: int | None = None, hi: int | None = No
 
 def real_array(name: str, value: Any, *, lo: float = -MAGNITUDE_MAX, hi: float = MAGNITUDE_MAX,
                unit: str = "") -> np.ndarray:
-    """Return ``value`` as a new float64 array of finite numbers in ``[lo, hi]`` (any shape; callers check it).
-
-    Booleans, complex numbers, strings and other objects are refused, not coerced.
-    """
+    """Return ``value`` as a new float64 array of finite numbers in ``[lo, hi]`` (any shape; no bools, complex, str)."""
     def bad(detail: str = "") -> ConfigError:
         return ConfigError(f"{name}: got {short_repr(value)}{detail}, expected an array of finite numbers in "
                            f"[{lo:g}, {hi:g}]{unit}")
@@ -148,11 +137,7 @@ def choice(name: str, value: Any, options: Iterable[str]) -> str:
 
 
 def reject_unknown(owner: str, given: Iterable[str], known: Iterable[str]) -> None:
-    """Raise :class:`~aasoatt_env.errors.UnknownKeywordError` naming the keywords of ``given`` not in ``known``.
-
-    The wording is Python's own (``f() got an unexpected keyword argument 'x'``): some clients (TorchRL's
-    ``GymEnv``) probe constructors and match on it.
-    """
+    """Raise :class:`~aasoatt_env.errors.UnknownKeywordError` naming the ``given`` keywords not ``known``."""
     known_set = set(known)
     unknown = sorted(str(k) for k in given if k not in known_set)
     if unknown:

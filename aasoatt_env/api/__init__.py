@@ -1,7 +1,4 @@
-"""Entry points: :func:`make_env` (env behind a filter or not), the Gymnasium view and the registered ids.
-
-This layer sits on top of the simulation and the safety filter.
-"""
+"""Entry points: :func:`make_env` (bare or behind the safety filter), the Gymnasium view, the registered ids."""
 
 from aasoatt_env.api.factory import make_batched_env, make_env
 from aasoatt_env.api.gym_env import AASOATTGymEnv

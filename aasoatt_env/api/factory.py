@@ -1,7 +1,6 @@
-"""``make_env`` and ``make_batched_env``: the one constructor of an environment, bare or behind the safety filter.
+"""``make_env`` and ``make_batched_env``: the one constructor of an env, bare or behind the safety filter.
 
-The command line, the reproduction runner, training, the Gymnasium view and the benchmarks all
-build their envs here, so "env behind a filter" means the same thing everywhere.
+Every client (command line, reproduction, training, the Gymnasium view, benchmarks) builds its envs here.
 """
 
 from __future__ import annotations
@@ -23,26 +22,13 @@ from aasoatt_env.sim.sharded import ShardedBatchedEnv
 __all__ = ["make_batched_env", "make_env"]
 
 
-def make_env(
-    scenario: str | Scenario = "circle_swap",
-    *,
-    filter: FilterConfig | Mapping[str, Any] | bool | None = None,
-    infos: str = "nested",
-    **env_kwargs: Any,
-) -> AASOATTParallelEnv | AASOATTFilter:
+def make_env(scenario: str | Scenario = "circle_swap", *, filter: FilterConfig | Mapping[str, Any] | bool | None = None,
+             infos: str = "nested", **env_kwargs: Any) -> AASOATTParallelEnv | AASOATTFilter:
     """A PettingZoo parallel env of ``scenario``, behind :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` if asked.
 
-    Parameters
-    ----------
-    scenario : str or Scenario
-        Scenario name or instance.
-    filter : FilterConfig, mapping, bool or None
-        ``None``/``False``: the bare env; ``True``: the filter with its defaults;
-        a :class:`FilterConfig` or a mapping of its fields: the filter so configured.
-    infos : {"nested", "flat"}
-        The filter's info layout (see the wrapper).
-    **env_kwargs
-        :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` and scenario keywords.
+    ``filter``: None/False (the bare env), True (the filter's defaults), a :class:`FilterConfig` or a mapping of
+    its fields; ``infos``: the filter's info layout, ``"nested"`` or ``"flat"``; ``**env_kwargs``:
+    :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`'s and the scenario's keywords.
     """
     check.choice("infos", infos, ("nested", "flat"))  # checked without a filter too
     env = AASOATTParallelEnv(scenario, **env_kwargs)
@@ -56,23 +42,14 @@ def make_env(
     return AASOATTFilter(env, filter, infos=infos)
 
 
-def make_batched_env(
-    num_envs: int,
-    scenario: str | Scenario = "circle_swap",
-    *,
-    filter: FilterConfig | Mapping[str, Any] | bool | None = None,
-    autoreset: bool = True,
-    group_filter: bool = True,
-    num_workers: int = 1,
-    **env_kwargs: Any,
-) -> BatchedAASOATTEnv | ShardedBatchedEnv:
+def make_batched_env(num_envs: int, scenario: str | Scenario = "circle_swap", *,
+                     filter: FilterConfig | Mapping[str, Any] | bool | None = None, autoreset: bool = True,
+                     group_filter: bool = True, num_workers: int = 1,
+                     **env_kwargs: Any) -> BatchedAASOATTEnv | ShardedBatchedEnv:
     """``num_envs >= 1`` teams of ``scenario`` stepped together (:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).
 
-    Each team is the env :func:`make_env` builds with the same arguments (``scenario``,
-    ``filter``, ``**env_kwargs``); the batch is bit-identical to stepping them one by one
-    (behind a filter: to rounding, or bit for bit with ``group_filter=False``, one filter call
-    per team).  ``autoreset``: reset a team inside ``step`` when its episode ends.
-    ``num_workers > 1`` splits the teams into that many shards stepped in worker processes
+    Each team is :func:`make_env`'s env of the same arguments; the batch equals stepping them one by one (behind
+    the grouped filter: to rounding).  ``num_workers > 1`` steps that many shards in worker processes
     (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`, the same API; ``close()`` it).
     """
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:

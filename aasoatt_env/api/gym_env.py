@@ -1,12 +1,9 @@
-"""Centralised single-agent Gymnasium view of the multi-robot environment.
+"""Centralised single-agent Gymnasium view of the multi-robot env.
 
-One agent controls the whole team: the action is the joint action
-``Box(-1, 1, (2 N,))`` (robot ``i`` owns entries ``2i:2i+2``), the observation
-is the concatenation of all robots' observations ``Box(-100, 100, (N D,))``, and
-the reward is the mean of the robots' rewards.  The episode terminates when any
-robot terminates (``terminate_on_collision``) and is truncated at the horizon.
-``info`` holds ``agents``: the per-robot info dicts, and the team-level
-``min_clearance``, ``collision`` and ``mean_tracking_error``.
+The action is the joint ``Box(-1, 1, (2 N,))`` (robot ``i``: entries ``2i:2i+2``), the observation all robots'
+``Box(-100, 100, (N D,))``, the reward their mean.  The episode terminates when any robot does and is truncated at
+the horizon; ``info`` holds the per-robot infos (``agents``), ``min_clearance``, ``collision`` and
+``mean_tracking_error``.
 """
 
 from __future__ import annotations
@@ -29,21 +26,14 @@ __all__ = ["AASOATTGymEnv"]
 class AASOATTGymEnv(gym.Env):
     """Joint-action view of :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` (``**kwargs``: its keywords).
 
-    ``parallel_env``: wrap this (possibly filtered) parallel env instead of making one.
-    ``safety_filter``: a :class:`FilterConfig` or a dict of its fields (``{}``: the defaults)
-    puts :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` between the joint action and the
-    robots, with flat (numeric) infos.
+    ``parallel_env``: wrap this (possibly filtered) env instead; ``safety_filter``: a :class:`FilterConfig` or a
+    dict of its fields (``{}``: the defaults) puts the safety filter between the joint action and the robots.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 20}
 
-    def __init__(
-        self,
-        scenario: str = "circle_swap",
-        parallel_env: Any = None,
-        safety_filter: FilterConfig | dict[str, Any] | None = None,
-        **kwargs: Any,
-    ) -> None:
+    def __init__(self, scenario: str = "circle_swap", parallel_env: Any = None,
+                 safety_filter: FilterConfig | dict[str, Any] | None = None, **kwargs: Any) -> None:
         if parallel_env is not None:
             if safety_filter is not None or kwargs:
                 raise ConfigError("parallel_env: given together with safety_filter/env keywords; "

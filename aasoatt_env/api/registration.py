@@ -1,18 +1,7 @@
-"""Environment ids registered with PettingZoo and Gymnasium on ``import aasoatt_env``.
+"""Environment ids registered with PettingZoo and Gymnasium on ``import aasoatt_env`` (:data:`ENV_IDS`).
 
-=====================================  ====================
-id                                     scenario
-=====================================  ====================
-``aasoatt/CircleSwap-v0``              ``circle_swap``
-``aasoatt/CircleSwapObstacles-v0``     ``circle_obstacles``
-``aasoatt/Tracking-v0``                ``tracking``
-``aasoatt/PositionSwap-v0``            ``position_swap``
-``aasoatt/RandomGoals-v0``             ``random_goals``
-=====================================  ====================
-
-``pettingzoo.make("parallel", id, **kwargs)`` gives the parallel env,
-``gymnasium.make(id, **kwargs)`` the centralised view
-(:class:`aasoatt_env.api.gym_env.AASOATTGymEnv`); ``gymnasium.make("aasoatt_env:" + id)``
+``pettingzoo.make("parallel", id, **kwargs)`` gives the parallel env, ``gymnasium.make(id, **kwargs)`` the
+centralised view (:class:`~aasoatt_env.api.gym_env.AASOATTGymEnv`); ``gymnasium.make("aasoatt_env:" + id)``
 works without importing the package first.
 """
 
@@ -36,6 +25,7 @@ ENV_IDS: dict[str, str] = {
     "aasoatt/PositionSwap-v0": "position_swap",
     "aasoatt/RandomGoals-v0": "random_goals",
 }
+"""Registered id -> scenario."""
 
 
 def parallel_env(scenario: str = "circle_swap", **kwargs: Any) -> Any:
@@ -54,15 +44,9 @@ def register_all() -> None:
         warnings.simplefilter("ignore")
         for env_id, scenario in ENV_IDS.items():
             if env_id not in pettingzoo.parallel_registry:
-                pettingzoo.register(
-                    "parallel", env_id, entry_point=parallel_env, kwargs={"scenario": scenario}
-                )
+                pettingzoo.register("parallel", env_id, entry_point=parallel_env, kwargs={"scenario": scenario})
             if env_id not in pettingzoo.aec_registry:
                 pettingzoo.register("aec", env_id, entry_point=env, kwargs={"scenario": scenario})
             if env_id not in gymnasium.registry:
-                gymnasium.register(
-                    id=env_id,
-                    entry_point="aasoatt_env.api.gym_env:AASOATTGymEnv",
-                    kwargs={"scenario": scenario},
-                    disable_env_checker=False,
-                )
+                gymnasium.register(id=env_id, entry_point="aasoatt_env.api.gym_env:AASOATTGymEnv",
+                                   kwargs={"scenario": scenario}, disable_env_checker=False)

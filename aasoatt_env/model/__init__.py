@@ -1,7 +1,4 @@
-"""The model layer: robot parameters, acceleration-level dynamics, neighbour geometry and the tracking law.
-
-Nothing here knows about environments, filters or learning; every other layer builds on it.
-"""
+"""The model layer: robot parameters, dynamics, neighbour geometry and the tracking law (no envs, filters, learning)."""
 
 from aasoatt_env.model.dynamics import DT, Kinematics, input_bounds, integrate, kinematics, pose_from_point
 from aasoatt_env.model.params import PRESETS, RobotParams, Team, make_team

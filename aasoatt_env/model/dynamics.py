@@ -1,15 +1,9 @@
 """Acceleration-level robot dynamics, vectorised over a team (``docs/technical_brief.md`` section 1).
 
-State per robot: axle pose ``(x, y, theta)`` and wheel speeds ``u``; input: the wheel
-angular accelerations ``du``, bounded per robot.  The controlled point
-``p = (x + l cos(theta), y + l sin(theta))`` obeys
-
-    p_dot = A(theta) u,      p_ddot = A(theta) du + A_dot u        (eqn.kinematic)
-
-with ``A = rho/2 [[c - k s, c + k s], [s + k c, s - k c]]``, ``k = l / b``.  For the
-holonomic double integrator ``A = I``, ``A_dot = 0``, ``u`` is the point's velocity and
-its heading follows the velocity (kept at rest).  Integration holds ``du`` over a step
-and moves the pose along the exact arc of the step-mean wheel speeds.
+State per robot: axle pose ``(x, y, theta)`` and wheel speeds ``u``; input: wheel accelerations ``du``.
+The control point ``p = (x, y) + l (cos theta, sin theta)`` obeys ``p_ddot = A(theta) du + A_dot u`` with
+``A = rho/2 [[c - k s, c + k s], [s + k c, s - k c]]``, ``k = l / b`` (double integrator: ``A = I``, heading
+along the velocity).  A step holds ``du`` and moves the pose along the exact arc of the mean wheel speeds.
 """
 
 from __future__ import annotations
@@ -25,12 +19,11 @@ __all__ = ["DT", "Kinematics", "control_point", "input_bounds", "integrate", "ja
 
 DT: float = 0.005
 """The paper's physics and control step [s] (every experiment of Sec. V); the one default of ``dt``."""
-
 _SMALL_OMEGA = 1e-9
 
 
 class Kinematics(NamedTuple):
-    """Control-point positions ``p`` and velocities ``v = A u`` ``(N, 2)``, ``A (N, 2, 2)``, ``A_dot u (N, 2)``."""
+    """Control-point positions ``p`` and velocities ``v = A u`` ``(N, 2)``, ``A (N, 2, 2)``, ``adot_u (N, 2)``."""
 
     p: np.ndarray
     v: np.ndarray
@@ -73,10 +66,9 @@ def jacobian(team: Team, theta: np.ndarray) -> np.ndarray:
 
 
 def kinematics(team: Team, pose: np.ndarray, u: np.ndarray) -> Kinematics:
-    """Control point, its velocity, ``A`` and ``A_dot u`` for the whole team.
+    """Control point, velocity, ``A`` and ``A_dot u`` of the team, all from one complex rotation.
 
-    With ``e = exp(i theta)`` and the heading-0 columns ``c_j`` of ``A`` (:attr:`Team.input_columns`),
-    ``A u = e (c_0 u_R + c_1 u_L)`` and ``A_dot u = i omega A u``: one complex rotation gives everything.
+    ``A u = e^{i theta} (c_0 u_R + c_1 u_L)`` (:attr:`Team.input_columns`), ``A_dot u = i omega A u``.
     """
     if not team.is_diff_drive:
         n = pose.shape[0]
@@ -98,21 +90,15 @@ def input_bounds(team: Team, u: np.ndarray, dt: float) -> tuple[np.ndarray, np.n
     return speed_box(-a, a, u, team.max_wheel_speed[:, None], dt)
 
 
-def speed_box(
-    lo: np.ndarray, hi: np.ndarray, u: np.ndarray, max_speed: float | np.ndarray, dt: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Intersect the box ``[lo, hi]`` on ``du`` with ``|u + du dt| <= max_speed`` (``inf``: no limit).
-
-    Never empty: a wheel already beyond the limit gets the box's full braking acceleration only.
-    """
+def speed_box(lo: np.ndarray, hi: np.ndarray, u: np.ndarray, max_speed: float | np.ndarray, dt: float
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """Intersect ``[lo, hi]`` on ``du`` with ``|u + du dt| <= max_speed`` (never empty: beyond it, full braking)."""
     new_hi = np.maximum(np.minimum(hi, (max_speed - u) / dt), lo)
     new_lo = np.minimum(np.maximum(lo, (-max_speed - u) / dt), new_hi)
     return new_lo, new_hi
 
 
-def integrate(
-    team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float
-) -> tuple[np.ndarray, np.ndarray]:
+def integrate(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
     """Advance poses and wheel speeds by ``dt`` holding ``du``; returns new arrays."""
     u_new = u + du * dt
     if not team.is_diff_drive:

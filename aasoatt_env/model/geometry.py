@@ -1,11 +1,8 @@
 """Neighbour search on disc robots: the one home of every distance query in the library.
 
-The observations, the safety filter, the metrics and the adversarial agents all call these
-functions.  :func:`robot_pairs` has three back-ends with identical answers: brute force
-below :data:`KDTREE_MIN_ROBOTS` robots, above it a compiled grid of cells
-(:mod:`aasoatt_env.model.geometry_kernel`) where numba imports, else a k-d tree; pairs come
-sorted with ``i < j``, so the filter's rows do not depend on the back-end.
-:func:`neighbourhood` answers for several equal teams stacked (the batched env).
+:func:`robot_pairs` answers by brute force below :data:`KDTREE_MIN_ROBOTS` robots, above it with a compiled
+grid of cells (:mod:`aasoatt_env.model.geometry_kernel`) where numba imports, else a k-d tree: the same
+pairs, sorted with ``i < j``.  :func:`neighbourhood` answers for several equal teams stacked.
 """
 
 from __future__ import annotations
@@ -22,9 +19,7 @@ __all__ = ["KDTREE_MIN_ROBOTS", "brute_candidates", "k_nearest", "min_gaps", "ne
 
 KDTREE_MIN_ROBOTS: int = 200
 """Team size from which a tree (or grid) answers instead of the full distance matrix."""
-
-_FULL_SORT_MAX = 64
-"""Up to this many points a full row sort beats ``argpartition`` + a partial sort."""
+_FULL_SORT_MAX = 64  # up to this many points a full row sort beats argpartition + a partial sort
 
 
 @functools.lru_cache(maxsize=16)
@@ -36,7 +31,6 @@ def _upper_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _key(groups: np.ndarray) -> tuple[bytes, str]:
-    """A labelling as a cache key (the filter asks about the same one at every physics step)."""
     groups = np.asarray(groups)
     if groups.dtype.kind == "O":  # labels of any kind: their classes
         groups = np.unique(groups, return_inverse=True)[1].reshape(-1)
@@ -60,28 +54,17 @@ def _group_size(key: bytes, dtype: str) -> int:
 
 
 def brute_candidates(n: int, groups: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The candidate pairs ``(iu, ju)`` of :func:`robot_pairs`' brute force (cached, read-only).
-
-    Every pair ``i < j`` (of one label with ``groups``) in lexicographic order; :func:`robot_pairs`
-    keeps those with ``d0 d0 + d1 d1 <= radius * radius`` (``d = p_i - p_j``).
-    """
+    """The candidate pairs ``(iu, ju)`` of :func:`robot_pairs`' brute force: every ``i < j`` (of one label), sorted."""
     return _upper_pairs(n) if groups is None else _group_pairs(*_key(groups))
 
 
 def uses_brute_force(n: int, groups: np.ndarray | None = None) -> bool:
-    """Whether :func:`robot_pairs` with ``method="auto"`` picks its brute force for ``n`` points.
-
-    That is, with fewer than :data:`KDTREE_MIN_ROBOTS` points per group.
-    """
+    """Whether :func:`robot_pairs` picks its brute force: fewer than :data:`KDTREE_MIN_ROBOTS` points per group."""
     return (n if groups is None else _group_size(*_key(groups))) < KDTREE_MIN_ROBOTS
 
 
 def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise dot products ``(P,)`` of two ``(P, 2)`` arrays: ``a0 b0 + a1 b1``.
-
-    The numbers of ``np.einsum("ij,ij->i", a, b)`` (up to a zero's sign) without its
-    per-call set-up, which dominates on short rows.  Only the first two columns are read.
-    """
+    """Row-wise dot products ``(P,)`` of two ``(P, 2)`` arrays: ``a0 b0 + a1 b1`` (``einsum``'s, without its set-up)."""
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]
 
 
@@ -93,12 +76,10 @@ def pairwise_distances(p: np.ndarray) -> np.ndarray:
 
 def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: np.ndarray | None = None,
                 compiled: bool | None = None) -> np.ndarray:
-    """Index pairs ``(P, 2)``, ``i < j``, sorted, with ``|p_i - p_j| <= radius`` (with ``groups``: of one label).
+    """Index pairs ``(P, 2)``, ``i < j``, sorted, with ``|p_i - p_j| <= radius`` (of one of the ``(N,)`` ``groups``).
 
-    ``method``: ``"brute"``, ``"kdtree"``, ``"cells"`` (numba's grid; ``ImportError`` without
-    numba) or ``"auto"``: brute force below :data:`KDTREE_MIN_ROBOTS` per group, above it the
-    cells where numba imports (``compiled=False``: never), else the k-d tree.  ``groups``:
-    ``(N,)`` labels (:attr:`~aasoatt_env.model.params.Team.group`).
+    ``method``: ``"brute"``, ``"kdtree"``, ``"cells"`` (numba's grid; ``ImportError`` without numba) or ``"auto"``
+    (module docstring; ``compiled=False``: never the cells).
     """
     n = p.shape[0]
     if groups is not None and np.shape(groups) != (n,):
@@ -158,12 +139,7 @@ def obstacle_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacl
 
 def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius: float, *,
                    groups: np.ndarray | None = None, obstacle_groups: np.ndarray | None = None) -> np.ndarray:
-    """Pairs ``(i, k)`` of robot ``i`` and disc obstacle ``k`` whose surface lies within ``radius``.
-
-    The distance runs from the robot's point to the obstacle's rim.  With both ``groups``
-    ``(N,)`` and ``obstacle_groups`` ``(M,)`` only pairs of one label count.  Returns an
-    integer array ``(P, 2)`` of (robot, obstacle) indices, sorted.
-    """
+    """Sorted pairs ``(P, 2)`` of robot ``i`` and obstacle ``k`` (of one label) whose rim is within ``radius``."""
     if centers.shape[0] == 0 or p.shape[0] == 0:
         return np.empty((0, 2), dtype=np.intp)
     near = obstacle_gaps(p, np.zeros(p.shape[0]), centers, radii) <= radius
@@ -174,8 +150,7 @@ def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius
 
 
 @functools.lru_cache(maxsize=16)
-def _rows(n: int) -> np.ndarray:
-    """``arange(n)[:, None]`` (read-only), to index row by row."""
+def _rows(n: int) -> np.ndarray:  # arange(n)[:, None], read-only
     rows = np.arange(n)[:, None]
     rows.flags.writeable = False
     return rows
@@ -191,10 +166,7 @@ def _distances(p: np.ndarray, teams: int) -> np.ndarray:
 
 
 def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's ``k`` nearest in the distance stack ``d (K, N, N)``: stack indices and distances ``(K N, k)``.
-
-    Nearest first; -1 and inf where a team has fewer than ``k`` others.
-    """
+    """Each row's ``k`` nearest in ``d (K, N, N)``: stack indices, distances ``(K N, k)``, nearest first (-1, inf)."""
     teams, n = d.shape[0], d.shape[1]
     kk = min(k, n - 1)
     if kk <= 0:
@@ -217,10 +189,7 @@ def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _robot_gaps(d: np.ndarray, radii: np.ndarray, equal: np.ndarray | None = None) -> np.ndarray:
-    """Surface gap ``(K N,)`` of each robot to the nearest of its team, from the distance stack ``d``.
-
-    ``equal (K,)``: whether each team's radii are all equal, when the nearest centre gives it.
-    """
+    """Surface gap ``(K N,)`` of each robot to the nearest of its team (``equal (K,)``: a team's radii are equal)."""
     teams, n = d.shape[0], d.shape[1]
     if n <= 1:
         return np.full(teams * n, np.inf)
@@ -238,17 +207,13 @@ def _robot_gaps(d: np.ndarray, radii: np.ndarray, equal: np.ndarray | None = Non
 
 
 def _listed_gaps(idx: np.ndarray, dist: np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """Surface gap ``(N,)`` to the nearest of the listed neighbours ``idx`` (-1: none) at centre distances ``dist``."""
+    """Surface gap ``(N,)`` to the nearest of the neighbours ``idx`` (-1: none) at centre distances ``dist``."""
     valid = idx >= 0
     return np.where(valid, dist - radii[:, None] - radii[np.where(valid, idx, 0)], np.inf).min(axis=1)
 
 
 def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Indices and distances ``(N, k)`` of each point's ``k`` nearest other points (-1 and inf: none).
-
-    Brute force below :data:`KDTREE_MIN_ROBOTS` points, which also returns the distance
-    matrix (inf diagonal; else None); a k-d tree above.
-    """
+    """Indices, distances ``(N, k)`` of each point's ``k`` nearest (-1, inf: none), the matrix (brute force) or None."""
     n = p.shape[0]
     kk = min(k, n - 1)
     if kk <= 0:
@@ -256,20 +221,17 @@ def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
     if n < KDTREE_MIN_ROBOTS:
         d = _distances(p, 1)
         return (*_nearest(d, k), d[0])
-    idx = np.full((n, k), -1, dtype=np.intp)
-    dist = np.full((n, k), np.inf)
+    idx, dist = np.full((n, k), -1, dtype=np.intp), np.full((n, k), np.inf)
     dd, ii = cKDTree(p).query(p, k=kk + 1)
     idx[:, :kk], dist[:, :kk] = ii[:, 1:], dd[:, 1:]
     return idx, dist, None
 
 
-def min_gaps(
-    p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, *, k: int = 6
-) -> np.ndarray:
-    """Clearance ``(N,)``: each robot's surface gap to the nearest robot or obstacle (``inf``: a lone robot).
+def min_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, *, k: int = 6
+             ) -> np.ndarray:
+    """Clearance ``(N,)``: each robot's surface gap to the nearest robot or obstacle (``inf``: none).
 
-    Exact below :data:`KDTREE_MIN_ROBOTS` robots (all pairs); above, over the ``k`` nearest
-    centres (exact for equal radii).
+    Exact below :data:`KDTREE_MIN_ROBOTS` robots; above, over the ``k`` nearest centres (exact for equal radii).
     """
     return neighbourhood(p, radii, centers, obstacle_radii, 0, clear_k=k)[3]
 
@@ -279,11 +241,9 @@ def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacl
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Nearest robots, obstacle gaps and clearance of ``teams`` equal teams stacked in ``p (K N, 2)``.
 
-    Returns each robot's ``k`` nearest robots of its team (stack indices and centre distances,
-    ``(K N, k)``, -1/inf: none), its surface gaps ``(K N, M)`` to its team's obstacles
-    (``centers (K, M, 2)``, ``obstacle_radii (K, M)``) and its clearance ``(K N,)``: exact below
-    :data:`KDTREE_MIN_ROBOTS` robots per team, over the ``max(k, clear_k)`` nearest for one larger
-    team.  ``equal_radii (K,)``: whether each team's radii are equal, if known.
+    Returns each robot's ``k`` nearest of its team (stack indices, centre distances ``(K N, k)``; -1/inf:
+    none), its surface gaps ``(K N, M)`` to its team's obstacles (``centers (K, M, 2)``, ``obstacle_radii
+    (K, M)``) and its clearance ``(K N,)`` (as :func:`min_gaps`, over ``max(k, clear_k)``).
     """
     if p.shape[0] // teams < KDTREE_MIN_ROBOTS:
         d = _distances(p, teams)
@@ -300,10 +260,9 @@ def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacl
 
 
 def pair_components(n: int, ri: np.ndarray, rj: np.ndarray, *, compiled: bool | None = None) -> np.ndarray:
-    """Connected-component label ``(n,)`` of ``n`` robots, edges ``(ri[k], rj[k])`` (none where ``rj < 0``: obstacles).
+    """Connected-component label ``(n,)`` (its smallest index) of robots under edges ``(ri[k], rj[k])`` (``rj >= 0``).
 
-    A component is labelled by its smallest index: union-find in the compiled kernel
-    (``compiled=None``: where numba imports), else min-label propagation, the same labels.
+    Union-find in the compiled kernel (``compiled=None``: where numba imports), else min-label propagation.
     """
     ri, rj = np.asarray(ri), np.asarray(rj)
     if not (np.issubdtype(ri.dtype, np.integer) and np.issubdtype(rj.dtype, np.integer)) and ri.size:

@@ -1,10 +1,7 @@
 """Compiled neighbour search and contact components (numba; loaded through :mod:`aasoatt_env.compiled`).
 
-:func:`cell_pairs` finds the pairs ``i < j`` within a radius on a grid of cells a little
-wider than it (every such pair lies in one 3x3 block), each candidate tested as the brute
-force tests it, so its pairs and order are those of
-:func:`~aasoatt_env.model.geometry.robot_pairs`' other back-ends; :func:`components` gives
-:func:`~aasoatt_env.model.geometry.pair_components`' labels (a component's smallest index).
+:func:`cell_pairs` tests the candidates of a grid of cells a little wider than the radius (every pair lies
+in one 3x3 block) as the brute force does: the pairs and order of :func:`~aasoatt_env.model.geometry.robot_pairs`.
 """
 
 from __future__ import annotations
@@ -17,17 +14,12 @@ from aasoatt_env.numba_jit import jit
 
 __all__ = ["cell_pairs", "components"]
 
-_WIDEN = 1e-6
-"""Cells are ``radius * (1 + _WIDEN)`` wide: rounding in the cell index never splits a pair two cells apart."""
+_WIDEN = 1e-6  # cells are radius * (1 + _WIDEN) wide: rounding never splits a pair two cells apart
 
 
 @jit
 def _grid(p, cell):
-    """Each point's cell ``(cx, cy)``, whether it is finite, and the grid's size ``(nx, ny)``.
-
-    The grid has a ring of empty cells around it; ``nx = 0`` where the points span more than
-    2^31 cells on an axis.
-    """
+    """Whether each point is finite, its cell ``(cx, cy)`` and the grid's size ``(nx, ny)`` (0: over 2^31 cells)."""
     n = p.shape[0]
     ok = np.empty(n, np.bool_)
     x0, y0, x1, y1 = math.inf, math.inf, -math.inf, -math.inf
@@ -35,8 +27,7 @@ def _grid(p, cell):
         ok[i] = math.isfinite(p[i, 0]) and math.isfinite(p[i, 1])
         if ok[i]:
             x0, y0, x1, y1 = min(x0, p[i, 0]), min(y0, p[i, 1]), max(x1, p[i, 0]), max(y1, p[i, 1])
-    cx = np.zeros(n, np.int64)
-    cy = np.zeros(n, np.int64)
+    cx, cy = np.zeros(n, np.int64), np.zeros(n, np.int64)
     if (x1 - x0) / cell > 2.0**31 or (y1 - y0) / cell > 2.0**31:
         return ok, cx, cy, 0, 0
     nx, ny = 1, 1
@@ -50,11 +41,9 @@ def _grid(p, cell):
 
 @jit
 def cell_pairs(p, radius, groups, has_groups):
-    """Pairs ``(P, 2)`` int64, ``i < j``, lexicographic, with ``|p_i - p_j|^2 <= radius^2`` (one group each).
+    """``(pairs, True)``: ``(P, 2)`` int64, ``i < j``, sorted, ``|p_i - p_j|^2 <= radius^2``, of one group each.
 
-    ``radius > 0`` and finite (the caller checks); points with a non-finite coordinate pair with nothing.
-    Returns ``(pairs, True)``, or ``(empty, False)`` where the cell keys would overflow (the caller
-    takes another back-end).
+    ``radius`` is finite and > 0; non-finite points pair with nothing; ``(empty, False)`` where cell keys overflow.
     """
     n = p.shape[0]
     r2 = radius * radius

@@ -1,25 +1,10 @@
-"""Robot parameters: one validated dataclass per robot, vectorised per team.
-
-:class:`RobotParams` describes one robot (disc radius, wheel geometry, control-point
-offset, input bounds); :class:`Team` stacks N of them into ``(N,)`` arrays so the
-dynamics, the barriers and the QP never loop over robots.
-
-Presets (:data:`PRESETS`): ``"paper"``, the defaults of ``docs/technical_brief.md``
-section 7 (disc radius 0.48 m, wheel radius 0.1 m, half track 0.2 m, offset 0.2 m,
-``|du| <= 60 rad/s^2``, no speed limit: the paper states neither geometry nor bounds,
-these reproduce its N = 10 results); ``"paper_small"``, the same with radius 0.3 m (100
-robots fit on the radius-10 circle); ``"double_integrator"``, a holonomic point robot
-(``A = I``) with ``|a| <= 6 m/s^2`` per axis; ``"turtlebot3_burger"`` and
-``"turtlebot3_waffle_pi"``, ROBOTIS' wheel radius, track and top speed (0.22 and 0.26
-m/s, i.e. wheel-speed limits), enclosing radius and offset, with a wheel-acceleration
-bound of 20 rad/s^2 (our choice).
-"""
+"""Robot parameters: one validated :class:`RobotParams` per robot, stacked into ``(N,)`` arrays per :class:`Team`."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Hashable, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 from functools import cached_property
 from typing import Any, Literal
 
@@ -32,41 +17,22 @@ __all__ = ["PRESETS", "SUBSET_OF", "RobotParams", "Team", "make_team", "stack_te
 
 SUBSET_OF = "subset_of"
 """The :attr:`Team.derived` key of a :meth:`Team.subset`'s ``(whole team, robot numbers)``."""
-
 Model = Literal["diff_drive", "double_integrator"]
 MODELS: tuple[str, ...] = ("diff_drive", "double_integrator")
-
-
-_RANGES: dict[str, tuple[float, float]] = {
+_RANGES: dict[str, tuple[float, float]] = {  # SI units; beyond them the kinematics under- or overflow
     "radius": (1e-6, 1e6), "wheel_radius": (1e-6, 1e6), "half_track": (1e-6, 1e6), "offset": (1e-6, 1e6),
     "max_wheel_accel": (1e-6, 1e9), "max_wheel_speed": (1e-6, 1e9),
 }
-"""Valid range of each :class:`RobotParams` field (SI units; ``max_wheel_speed`` may also be ``inf``):
-beyond them the kinematics under- or overflow."""
 
 
 @dataclass(frozen=True)
 class RobotParams:
     """Physical parameters of one robot.
 
-    Parameters
-    ----------
-    radius : float
-        Radius of the robot's enclosing disc [m]; a pair's safety distance is the sum of radii.
-    wheel_radius, half_track : float
-        Wheel radius ``rho`` and half the distance between the wheels ``b`` [m].
-    offset : float
-        Distance ``l > 0`` of the controlled point ahead of the axle centre [m] (``l = 0``
-        makes ``A`` singular).
-    max_wheel_accel : float
-        Bound on each wheel's angular acceleration ``|du|`` [rad/s^2] (double integrator:
-        on each acceleration component [m/s^2]).
-    max_wheel_speed : float
-        Bound on each wheel's angular speed [rad/s] (``inf``: none; double integrator: each
-        velocity component [m/s]), enforced by tightening a step's acceleration bounds.
-    model : {"diff_drive", "double_integrator"}
-        Differential drive (feedback-linearised control point) or holonomic double
-        integrator (``A = I``, ``A_dot = 0``).
+    ``radius`` of the enclosing disc (a pair's safety distance is the sum), wheel radius ``rho``, half the wheel
+    distance ``b`` and the control point's distance ``offset`` ``l > 0`` ahead of the axle centre [m]; bounds on
+    each wheel's ``|du|`` [rad/s^2] and ``|u|`` [rad/s] (``inf``: none; double integrator: per component, SI);
+    ``model``: ``"diff_drive"`` (feedback-linearised control point) or ``"double_integrator"`` (``A = I``).
     """
 
     radius: float = 0.48
@@ -78,18 +44,14 @@ class RobotParams:
     model: Model = "diff_drive"
 
     def __post_init__(self) -> None:
-        for f in fields(self):
-            if f.name == "model":
-                continue
-            lo, hi = _RANGES[f.name]
-            value = positive(f"RobotParams.{f.name}", getattr(self, f.name), allow_inf=f.name == "max_wheel_speed",
-                             lo=lo, hi=hi)
-            object.__setattr__(self, f.name, value)
+        for name, (lo, hi) in _RANGES.items():
+            object.__setattr__(self, name, positive(f"RobotParams.{name}", getattr(self, name), lo=lo, hi=hi,
+                                                    allow_inf=name == "max_wheel_speed"))
         choice("RobotParams.model", self.model, MODELS)
 
     @classmethod
     def preset(cls, name: str, **overrides: float | str) -> "RobotParams":
-        """Return a preset (see module docstring), optionally with fields overridden."""
+        """Return a preset of :data:`PRESETS`, optionally with fields overridden."""
         if not isinstance(name, str) or name not in PRESETS:
             raise ConfigError(f"robots: unknown robot preset {name!r}; known presets: {sorted(PRESETS)}")
         return replace(PRESETS[name], **overrides)
@@ -98,9 +60,7 @@ class RobotParams:
     def max_point_accel(self) -> float:
         """Largest control-point acceleration guaranteed in every direction at rest (eqn.n4's ``a_i^+``).
 
-        The inscribed-circle radius ``a rho k / sqrt(1 + k^2)`` (``k = l / b``) of the
-        parallelogram ``{A du : |du|_inf <= a}``: columns of length ``rho/2 sqrt(1 + k^2)``,
-        determinant ``-rho^2 k / 2``.
+        The inscribed radius ``a rho k / sqrt(1 + k^2)`` (``k = l / b``) of ``{A du : |du|_inf <= a}``.
         """
         if self.model == "double_integrator":
             return self.max_wheel_accel
@@ -117,22 +77,21 @@ PRESETS: dict[str, RobotParams] = {
     "paper_small": RobotParams(radius=0.3),
     "double_integrator": RobotParams(max_wheel_accel=6.0, model="double_integrator"),
 }
-"""The robot presets (module docstring)."""
+"""``paper``: the defaults of ``docs/technical_brief.md`` section 7 (the paper states neither geometry nor
+bounds; these reproduce its N = 10 results); ``paper_small``: radius 0.3 m (100 robots fit the radius-10
+circle); ``double_integrator``: ``|a| <= 6 m/s^2`` per axis; ``turtlebot3_*``: ROBOTIS' geometry and top
+speed, with our wheel-acceleration bound of 20 rad/s^2."""
 
 
-_PER_ROBOT = ("radius", "wheel_radius", "half_track", "offset", "max_wheel_accel", "max_wheel_speed",
-              "max_point_accel")
-"""The :class:`Team` fields with one value per robot."""
+_PER_ROBOT = (*_RANGES, "max_point_accel")  # the Team fields with one value per robot
 
 
 @dataclass(frozen=True)
 class Team:
-    """Parameters of N robots as ``(N,)`` arrays (see :class:`RobotParams`), one dynamics ``model``.
+    """Parameters of N robots as ``(N,)`` arrays (:class:`RobotParams`) of one ``model``; not to be changed in place.
 
-    Build with :func:`make_team`.  ``group`` (optional, ``(N,)`` int) stacks independent
-    teams into one (:func:`stack_teams`): robots of different groups live in separate
-    worlds, so the safety filter forms no pair between them.  A team's arrays are not to be
-    changed in place (its cached properties are made from them).
+    Build with :func:`make_team`.  ``group`` ``(N,)`` labels stacked independent teams (:func:`stack_teams`):
+    robots of different groups live in separate worlds, so the safety filter forms no pair between them.
     """
 
     radius: np.ndarray
@@ -151,14 +110,9 @@ class Team:
         return int(self.radius.shape[0])
 
     def subset(self, idx: np.ndarray) -> Team:
-        """The team of robots ``idx`` (same order).
-
-        Its :attr:`derived` holds ``(self, its robot numbers)`` under :data:`SUBSET_OF`, so per-robot
-        values made for the whole team can be indexed for it instead of made again.
-        """
+        """The team of robots ``idx``; its :attr:`derived` holds ``(self, robot numbers)`` under :data:`SUBSET_OF`."""
         rows = np.arange(self.n)[idx]  # (the caller's index as robot numbers, a copy: masks and slices too)
-        sub = Team(self.radius[rows], self.wheel_radius[rows], self.half_track[rows], self.offset[rows],
-                   self.max_wheel_accel[rows], self.max_wheel_speed[rows], self.max_point_accel[rows], self.model,
+        sub = Team(*(getattr(self, name)[rows] for name in _PER_ROBOT), self.model,
                    None if self.group is None else self.group[rows])
         sub.derived[SUBSET_OF] = (self, rows)
         return sub
@@ -182,11 +136,9 @@ class Team:
 
     @cached_property
     def input_columns(self) -> np.ndarray:
-        """Columns of ``A`` at heading 0 as complex numbers ``(N, 2)`` (real part: row 0).
+        """Columns of ``A`` at heading 0 as complex numbers ``(N, 2)``: ``A(theta)[:, j] = e^{i theta} columns[:, j]``.
 
-        ``A(theta)[:, j] = e^{i theta} input_columns[:, j]``: ``rho/2 (1 + i k)`` and
-        ``rho/2 (1 - i k)`` (``k = l / b``) for differential drive, ``1`` and ``i`` for the
-        double integrator, so the dynamics build ``A`` with one rotation.
+        ``rho/2 (1 +- i k)`` (``k = l / b``) for differential drive, ``1`` and ``i`` for the double integrator.
         """
         if not self.is_diff_drive:
             return np.tile(np.array([1.0 + 0.0j, 1.0j]), (self.n, 1))
@@ -202,11 +154,7 @@ class Team:
 
     @cached_property
     def derived(self) -> dict[Hashable, Any]:
-        """Values other modules compute from these parameters, kept for the team's life.
-
-        Keyed by their maker and its arguments (e.g. the backup layer's per-robot constants);
-        a :meth:`subset` holds its whole team under :data:`SUBSET_OF`.  Not pickled.
-        """
+        """Values other modules compute from these parameters, keyed by their maker and its arguments (not pickled)."""
         return {}
 
     def __getstate__(self) -> dict[str, Any]:
@@ -220,10 +168,7 @@ class Team:
 
 
 def make_team(robots: RobotParams | str | Sequence[RobotParams | str] | None, n: int) -> Team:
-    """A :class:`Team` of ``n`` robots from one spec (preset name or :class:`RobotParams`) or one per robot.
-
-    ``robots=None`` means the ``"paper"`` preset.
-    """
+    """A :class:`Team` of ``n`` robots from one spec (preset name, :class:`RobotParams`, None: ``"paper"``) or ``n``."""
     if robots is None:
         robots = "paper"
     if isinstance(robots, (str, RobotParams)):
@@ -233,10 +178,8 @@ def make_team(robots: RobotParams | str | Sequence[RobotParams | str] | None, n:
         if len(specs) != n:
             raise ConfigError(f"robots: got {len(specs)} robot specs, expected one or {n} (one per robot)")
     else:
-        raise ConfigError(
-            f"robots: got {type(robots).__name__}, expected a preset name {sorted(PRESETS)}, a RobotParams, "
-            "or a list of those (one per robot)"
-        )
+        raise ConfigError(f"robots: got {type(robots).__name__}, expected a preset name {sorted(PRESETS)}, a "
+                          "RobotParams, or a list of those (one per robot)")
     params = [RobotParams.preset(s) if isinstance(s, str) else s for s in specs]
     if not params:
         raise ConfigError("robots: got an empty list, expected one robot spec or one per robot")
@@ -246,7 +189,6 @@ def make_team(robots: RobotParams | str | Sequence[RobotParams | str] | None, n:
     models = {p.model for p in params}
     if len(models) > 1:
         raise ConfigError(f"robots: got mixed dynamics models {sorted(models)}, expected one model per team")
-
     return Team(**{name: np.array([getattr(p, name) for p in params], dtype=np.float64) for name in _PER_ROBOT},
                 model=params[0].model)
 

@@ -1,10 +1,7 @@
 """The paper's trajectory-tracking law (eqn.11-12), the one home of the nominal controller's algebra.
 
-With the tracking error ``ell = p - p_d`` the law asks for the control-point acceleration
-``a = a_d - (k3 + k4)(v - v_d) - k3 k4 ell`` (eqn.12), i.e. ``du = A^{-1} (a - A_dot u)``;
-Theorem 2 keeps the error converging under the deadlock correction eqn.13 while
-``k4 > zeta``.  The baseline agent, the filter's deadlock strategies and the learned
-policy's tracking prior all use it.
+With ``ell = p - p_d`` it asks for ``a = a_d - (k3 + k4)(v - v_d) - k3 k4 ell`` (eqn.12), i.e.
+``du = A^{-1} (a - A_dot u)``; Theorem 2 keeps the error converging under eqn.13 while ``k4 > zeta``.
 """
 
 from __future__ import annotations
@@ -21,15 +18,8 @@ PAPER_K4: float = 4.0
 """The paper's velocity gain ``k4`` of eqn.12."""
 
 
-def tracking_accel(
-    p: np.ndarray,
-    v: np.ndarray,
-    p_d: np.ndarray,
-    v_d: np.ndarray,
-    a_d: np.ndarray,
-    k3: float = PAPER_K3,
-    k4: float = PAPER_K4,
-) -> np.ndarray:
+def tracking_accel(p: np.ndarray, v: np.ndarray, p_d: np.ndarray, v_d: np.ndarray, a_d: np.ndarray,
+                   k3: float = PAPER_K3, k4: float = PAPER_K4) -> np.ndarray:
     """Control-point accelerations ``(N, 2)`` of eqn.12 (all arrays ``(N, 2)``)."""
     return a_d - (k3 + k4) * (v - v_d) - (k3 * k4) * (p - p_d)
 

@@ -1,8 +1,6 @@
-"""The simulation layer: the PettingZoo environment, its observations, rewards, scenarios and references.
+"""The simulation layer: the PettingZoo env, observations, rewards, scenarios, references, rendering.
 
-It builds on :mod:`aasoatt_env.model` only.  A control filter plugs in through
-the protocol of :mod:`aasoatt_env.sim.protocol`; the simulation does not know
-what a filter does.
+It builds on :mod:`aasoatt_env.model` only; a control filter plugs in through :mod:`aasoatt_env.sim.protocol`.
 """
 
 from aasoatt_env.sim.batched import BatchedAASOATTEnv
@@ -12,16 +10,5 @@ from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import SCENARIOS, Layout, Scenario, get_scenario
 from aasoatt_env.sim.sharded import ShardedBatchedEnv
 
-__all__ = [
-    "SCENARIOS",
-    "AASOATTParallelEnv",
-    "BatchedAASOATTEnv",
-    "ControlFilter",
-    "FilterInput",
-    "FilterOutput",
-    "Layout",
-    "RewardConfig",
-    "Scenario",
-    "ShardedBatchedEnv",
-    "get_scenario",
-]
+__all__ = ["SCENARIOS", "AASOATTParallelEnv", "BatchedAASOATTEnv", "ControlFilter", "FilterInput", "FilterOutput",
+           "Layout", "RewardConfig", "Scenario", "ShardedBatchedEnv", "get_scenario"]

@@ -1,8 +1,4 @@
-"""What the envs accept as actions: real numbers of the right shape, finite, within their bound.
-
-One set of checks for the env (a dict of per-agent actions), the batched and the sharded env
-(an array of every team's); errors name the agent or the ``[team, robot]`` entry.
-"""
+"""The envs' one set of action checks; errors name the agent (env) or the ``[team, robot]`` entry (batches)."""
 
 from __future__ import annotations
 
@@ -16,8 +12,7 @@ from aasoatt_env.errors import ActionError
 
 __all__ = ["checked_actions", "parse_actions", "real_actions"]
 
-_NOMINAL_MAX = 1e6
-"""Largest nominal action accepted behind a filter (in units of the bound): larger ones are a bug upstream."""
+_NOMINAL_MAX = 1e6  # largest nominal action behind a filter (in units of the bound): larger ones are a bug
 
 _FLOAT_MAX = float(np.finfo(np.float64).max)
 _REAL = "(a float or integer dtype)"
@@ -41,11 +36,7 @@ def _bool_at(value: Any) -> tuple[int, ...] | None:
 
 
 def real_actions(value: Any, name: Callable[[tuple[int, ...]], str], expected: str) -> np.ndarray:
-    """``value`` as an array of real numbers, else :class:`ActionError` naming the entry.
-
-    Booleans are refused, also one robot's among numbers (numpy would read them as 0 and 1);
-    so are strings, complex numbers and objects.  ``name(index)`` names an entry.
-    """
+    """``value`` as an array of real numbers (no booleans, even one among numbers), else :class:`ActionError`."""
     try:
         arr = np.asarray(value)
     except (TypeError, ValueError):
@@ -59,11 +50,9 @@ def real_actions(value: Any, name: Callable[[tuple[int, ...]], str], expected: s
 
 
 def checked_actions(act: np.ndarray, nominal: bool, clip: bool, name: Callable[[int], str]) -> np.ndarray:
-    """Finite actions ``(R, 2)`` float64 within their bound, clipped to ``[-1, 1]`` unless ``nominal`` (in place).
+    """Finite actions ``(R, 2)`` within their bound, clipped (in place) to ``[-1, 1]`` unless ``nominal``.
 
-    ``nominal``: values up to :data:`_NOMINAL_MAX` pass as they are (a filter that keeps the bounds
-    projects them); otherwise up to ``1 + 1e-6`` (any finite value with ``clip``).  ``name(row)``
-    names a row in errors.
+    The bound is ``_NOMINAL_MAX`` for a ``nominal``, else ``1 + 1e-6`` (any finite value with ``clip``).
     """
     peak = float(np.abs(act).max(initial=0.0))
     accept = _NOMINAL_MAX if nominal else (_FLOAT_MAX if clip else 1.0 + 1e-6)
@@ -81,11 +70,7 @@ def checked_actions(act: np.ndarray, nominal: bool, clip: bool, name: Callable[[
 
 
 def parse_actions(actions: Any, live: np.ndarray, nominal: bool, clip: bool, offset: int = 0) -> np.ndarray:
-    """Validated actions ``(K N, 2)`` float64 of teams ``(K, N)`` = ``live.shape`` (done agents' rows zeroed).
-
-    The checks of :func:`checked_actions`; ``offset``: number of the
-    first team in messages.
-    """
+    """Checked actions ``(K N, 2)`` of teams ``(K, N) = live.shape`` (done agents' rows 0, first team ``offset``)."""
     k, n = live.shape
     expected = f"real numbers of shape ({k}, {n}, 2)"
 

@@ -1,51 +1,9 @@
-"""``BatchedAASOATTEnv``: several independent teams stepped by one vectorised physics call.
+"""``BatchedAASOATTEnv``: ``K`` independent teams stepped by one vectorised physics call (Gymnasium vector style).
 
-RL trainers run ``n_envs`` copies of an env in one process; stepping them one by one
-pays numpy's per-call overhead ``n_envs`` times at every physics step.  This class
-keeps all teams in stacked arrays and steps them with the env's own code
-(:class:`~aasoatt_env.sim.stack.TeamStack`) once for everyone.
-
-Without a filter, or behind one with ``group_filter=False``, it is **bit-identical** to
-``n_envs`` separate :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` stepped with the
-same actions (``tests/test_batched.py``): every operation is per robot or per team,
-and each team keeps its own scenario generator, clock, horizon and control filter.
-Behind the filter this holds with QP solvers whose answer is a function of the
-problem alone (``quadprog``, ``daqp``, ``ldp``); ``proxsuite``'s last bits depend on
-where its work arrays lie in memory, so there batch and separate envs agree to rounding.
-
-Control filter: when the teams' filters can stand in for each other (``grouped``,
-:class:`~aasoatt_env.sim.protocol.GroupableFilter`) and ``group_filter=True``
-(default), one filter call per physics step takes all teams stacked, ``team.group``
-keeping them apart; its stacked QP is solved in one piece, so trajectories agree
-with separate envs to rounding.  ``group_filter=False`` calls each team's own filter
-with its own input.
-
-API (Gymnasium's vector-env style; ``K = num_envs`` teams of ``N`` robots, ``D``
-observation entries):
-
-===============================  ==========================================================
-``reset(seed, options)``         ``obs (K, N, D) float32, infos``; ``seed``: None, an int
-                                 (team ``k`` gets ``seed + k``) or one int/None per team
-``step(actions (K, N, 2))``      ``obs, rewards (K, N), terminations (K, N), truncations
-                                 (K, N), infos`` (arrays); actions of done agents are ignored
-``live``                         ``(K, N)`` bool: agents that act at the next ``step``
-``autoreset=True``               a team whose episode ended is reset inside ``step`` (its
-                                 generator continues, no seed): ``obs`` holds the new
-                                 episode's first observation, ``infos["final_obs"]`` the last
-                                 one and ``infos["_final_obs"] (K,)`` which teams were reset
-``infos``                        arrays of the step just taken: ``tracking_error``,
-                                 ``clearance``, ``collision``, ``saturated``,
-                                 ``goal_distance`` ``(K, N)``, ``time (K,)``; behind a filter
-                                 ``filter_intervened``, ``filter_avoiding``,
-                                 ``filter_correction`` [rad/s^2] ``(K, N)`` (over the physics
-                                 steps of the decision: any / any / largest)
-``envs``                         the teams' own envs (layouts, filters, generators); call
-                                 ``sync()`` before reading their state or rendering them
-===============================  ==========================================================
-
-An agent that terminates (``terminate_on_collision``) stays in the world as a frozen
-disc until its team's episode ends; its rows of ``obs``/``rewards`` are still computed
-(``live`` says which rows count).
+``reset`` gives ``obs (K, N, D)``; ``step(actions (K, N, 2))`` gives ``obs`` and ``(K, N)`` rewards,
+terminations, truncations, and ``infos`` of arrays (with ``autoreset``: ``final_obs``, ``_final_obs`` of the
+teams reset).  Each team keeps its generator, clock, horizon and filter: the batch is bit-identical to ``K``
+separate envs (the grouped filter: to rounding).  The API and the ``infos`` keys: ``docs/env.md``.
 """
 
 from __future__ import annotations
@@ -69,21 +27,16 @@ class TeamsAPI:
     """What :class:`BatchedAASOATTEnv` and :class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv` share."""
 
     metadata = {"autoreset_mode": "same_step"}
-    shared_settings: dict[str, Any]
-    """The settings every team of a batch has in common (:data:`SHARED_SETTINGS`, and ``filtered``)."""
+    shared_settings: dict[str, Any]  # the teams' SHARED_SETTINGS and `filtered`
     num_envs: int
 
     def _take_settings(self, settings: dict[str, Any], agent_obs: spaces.Box, agent_act: spaces.Box) -> None:
-        """The teams' shared settings (also as attributes) and one robot's spaces; the batch's spaces from them."""
         self.shared_settings = settings
         self.possible_agents: list[str] = list(settings["possible_agents"])
         self.num_agents = n = len(self.possible_agents)
         for name in SHARED_SETTINGS[1:]:
             setattr(self, name, settings[name])
-        self.agent_observation_space = agent_obs
-        """One robot's observation space ``Box(D,)``."""
-        self.agent_action_space = agent_act
-        """One robot's action space ``Box(-1, 1, (2,))``."""
+        self.agent_observation_space, self.agent_action_space = agent_obs, agent_act  # one robot's
         (self.single_observation_space, self.single_action_space, self.observation_space,
          self.action_space) = batch_spaces(agent_obs, n, self.num_envs)
 
@@ -114,22 +67,13 @@ class TeamsAPI:
 
 
 class BatchedAASOATTEnv(TeamsAPI, TeamStack):
-    """``K`` teams of one scenario stepped together (see the module docstring).
+    """``K`` teams of one scenario stepped together (module docstring).
 
-    Parameters
-    ----------
-    env_fns : sequence of callables
-        Each returns an :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`, or a wrapper of
-        one (e.g. :class:`~aasoatt_env.safety.wrapper.AASOATTFilter`: the filter it installs
-        is used, its own ``step`` is not), all with the same :data:`SHARED_SETTINGS`.
-    autoreset : bool
-        Reset a team inside ``step`` when its episode ends (default), else ``step`` raises
-        :class:`~aasoatt_env.errors.ResetNeeded` for a finished team until ``reset``.
-    group_filter : bool
-        Filter all teams in one call when their filters allow it; False: one call per team.
-    team_offset : int
-        Number of the first team in error messages (a shard of a larger batch names teams
-        as the whole batch does).
+    ``env_fns`` each return an :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` or a wrapper of one (the
+    filter it installs is used, its ``step`` is not), all with the same :data:`SHARED_SETTINGS`.  Without
+    ``autoreset``, ``step`` on a finished team raises :class:`~aasoatt_env.errors.ResetNeeded`.
+    ``group_filter``: one filter call for all teams where their filters allow it.  ``team_offset``: number
+    of the first team in error messages (a shard of a larger batch).
     """
 
     def __init__(self, env_fns: Sequence[Callable[[], Any]], *, autoreset: bool = True,
@@ -152,11 +96,8 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
         self.num_envs = len(bases)
         agent = first.possible_agents[0]
         self._take_settings(settings, first.observation_space(agent), first.action_space(agent))
-        self.nominal_actions = first._nominal_actions
-        """Whether actions are nominal wheel accelerations for a filter that keeps the bounds (up to 1e6) rather
-        than normalised actions in ``[-1, 1]``."""
+        self.nominal_actions = first._nominal_actions  # a nominal for a filter that keeps the bounds (up to 1e6)
         self._grouped: GroupedControlFilter | None = None
-        """One filter for all teams (``grouped``), or None: one call per team."""
         if self.filtered and group_filter:
             make = getattr(first.control_filter, "grouped", None)
             self._grouped = make([b.control_filter for b in bases]) if callable(make) else None
@@ -186,11 +127,7 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
 
     def reset(self, seed: int | Sequence[int | None] | None = None,
               options: dict | Sequence[dict | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
-        """Reset every team.
-
-        ``seed``: None, an int (team ``k`` gets ``seed + k``) or one int/None per team;
-        ``options``: None, one dict for every team, or one dict/None per team.
-        """
+        """Reset every team; ``seed``/``options``: None, one (team ``k`` gets ``seed + k``) or one per team."""
         seeds, opts = per_team_reset_args(seed, options, self.num_envs)
         obs = np.stack([self._reset_team(k, seeds[k], opts[k]) for k in range(self.num_envs)])
         self._restack()
@@ -198,7 +135,6 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
         return obs, {}
 
     def _reset_team(self, k: int, seed: int | None, options: dict | None) -> np.ndarray:
-        """Reset team ``k`` through its own env; take its state into the stack and return its observations."""
         obs, _ = self.envs[k].reset(seed=seed, options=options)
         self._take_team(k, self._bases[k], 0)
         self._done[k] = False
@@ -206,7 +142,7 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
         return np.stack([obs[a] for a in self.possible_agents])
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """Hold each team's actions for ``decision_interval`` physics steps (see the module docstring)."""
+        """Hold each team's actions ``(K, N, 2)`` for ``decision_interval`` physics steps."""
         if not self._started:
             raise ResetNeeded("step(): call reset() first")
         if self._done.any():
@@ -236,7 +172,6 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
             self._restack()
         return obs, rew.reshape(shape), terminated, truncated.reshape(shape), infos
 
-    # ------------------------------------------------------------------ the teams' own envs
     def sync(self) -> None:
         """Write the batch's state into the teams' own envs (``envs``), e.g. before rendering them."""
         if not self._started:

@@ -1,36 +1,9 @@
-"""PettingZoo parallel environment of acceleration-actuated differential-drive robots.
+"""PettingZoo parallel env of acceleration-actuated differential-drive robots ``robot_0 .. robot_{N-1}``.
 
-=====================  =========================================================
-agents                 ``robot_0`` ... ``robot_{N-1}``
-action space           ``Box(-1, 1, (2,), float32)`` per agent
-                       ``action_mode="wheel"`` (default): normalised wheel angular
-                       accelerations, ``du = action * max_wheel_accel``;
-                       ``action_mode="point"``: normalised control-point
-                       acceleration ``a = action * a_max`` mapped to wheels by
-                       ``du = A^{-1} (a - A_dot u)`` and then *saturated* to the
-                       input bounds (documented clipping; ``infos["saturated"]``)
-observation space      ``Box(-100, 100, (14 + 6 (K + K_obs),), float32)``, see
-                       :mod:`aasoatt_env.sim.observations`
-state space            ``Box(-inf, inf, (9 N + 1,), float64)``: poses, wheel speeds,
-                       reference points and velocities, time
-reward                 :class:`~aasoatt_env.sim.rewards.RewardConfig` (tracking,
-                       collision, effort, filter correction, goal bonus)
-=====================  =========================================================
-
-One ``step`` holds each agent's action for ``decision_interval`` physics steps of
-``dt`` seconds (default :data:`~aasoatt_env.model.dynamics.DT`, the paper's 5 ms).
-A control filter (:class:`~aasoatt_env.sim.protocol.ControlFilter`, e.g. the one
-:class:`aasoatt_env.safety.wrapper.AASOATTFilter` installs) maps the nominal wheel
-accelerations to applied ones at *every* physics step.  The step itself is
-:class:`~aasoatt_env.sim.stack.TeamStack`'s, shared with the batched env.
-
-Episodes are truncated at the scenario's horizon.  With ``terminate_on_collision=True``
-a robot whose clearance falls below ``-collision_tolerance`` terminates: it leaves
-``env.agents`` and stays in the world as a static disc.  Actions given for agents
-that are already done are ignored (a ``UserWarning`` says so once per env).
-Wheel-speed limits are enforced by saturating the applied ``du`` to the step's
-admissible range (``infos["saturated"]``).  Actions outside ``[-1, 1]`` raise
-:class:`~aasoatt_env.errors.ActionError` unless ``clip_actions=True``.
+Actions ``Box(-1, 1, (2,))``: normalised wheel accelerations (``action_mode="wheel"``) or control-point
+accelerations (``"point"``, ``du = A^{-1} (action * a_max - A_dot u)``), held for ``decision_interval`` physics
+steps of ``dt`` s, each filtered by the control filter (:mod:`aasoatt_env.sim.protocol`) and saturated to the
+input bounds (``infos["saturated"]``).  Observations, rewards: their modules; the whole picture: ``docs/env.md``.
 """
 
 from __future__ import annotations
@@ -50,7 +23,6 @@ from aasoatt_env import validation as check
 from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded, UsageError
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import DT, Kinematics
-from aasoatt_env.sim.actions import _NOMINAL_MAX as _NOMINAL_MAX  # (a name of this module too)
 from aasoatt_env.sim.actions import checked_actions, real_actions
 from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
 from aasoatt_env.sim.protocol import ControlFilter, FilterOutput
@@ -65,12 +37,10 @@ __all__ = ["MAX_NEIGHBOR_SLOTS", "TRAIL_LENGTH", "AASOATTParallelEnv"]
 MAX_NEIGHBOR_SLOTS: int = 256
 """Largest ``num_neighbors`` / ``num_obstacles`` (observation slots) accepted."""
 TRAIL_LENGTH: int = 400
-"""Control-point positions kept for rendering trails (memory stays flat over long episodes)."""
-
+"""Control-point positions kept for rendering trails."""
 FILTERED_MIN_COLLISION_TOLERANCE: float = 1e-9
-"""Smallest ``collision_tolerance`` [m] with ``terminate_on_collision`` behind a control filter: the
-safety filter's guarantee allows this much floating-point rounding (its gatekeeper forgives at most half
-of it, :data:`aasoatt_env.safety.repair.GATE_TOL`, the rest covers the rounding of the simulator's steps)."""
+"""Smallest ``collision_tolerance`` [m] with ``terminate_on_collision`` behind a control filter: the rounding
+the filter's guarantee allows (half of it for its gatekeeper, half for the simulator's steps)."""
 
 
 def _after_reset(name: str, get: Callable[[AASOATTParallelEnv], Any], doc: str) -> property:
@@ -84,58 +54,26 @@ def _after_reset(name: str, get: Callable[[AASOATTParallelEnv], Any], doc: str) 
 
 
 class AASOATTParallelEnv(ParallelEnv, TeamStack):
-    """Multi-robot trajectory tracking at acceleration level (see module docstring).
+    """Multi-robot trajectory tracking at acceleration level (module docstring).
 
-    Parameters
-    ----------
-    scenario : str or Scenario
-        Scenario name (see :data:`aasoatt_env.sim.scenarios.SCENARIOS`) or instance.
-    render_mode : {None, "rgb_array", "human"}
-        Rendering mode.
-    dt : float
-        Physics step [s], in ``[1e-6, 0.1]``.
-    decision_interval : int
-        Physics steps per env step (the action is held), ``1..10000``.
-    action_mode : {"wheel", "point"}
-        Meaning of actions (module docstring).
-    sensing_range : float
-        Neighbours farther than this are not observed [m].
-    num_neighbors, num_obstacles : int
-        Observation slots ``K`` and ``K_obs``, ``0..256``.
-    reward : RewardConfig or mapping, optional
-        Reward weights.
-    terminate_on_collision : bool
-        Terminate robots that collide.
-    collision_tolerance : float
-        Overlap [m] below which contact does not count as a collision, in ``[0, 1]``.
-    max_steps : int, optional
-        Override the horizon in env steps.
-    clip_actions : bool
-        Clip actions to ``[-1, 1]`` instead of raising.
-    **scenario_kwargs
-        Passed to the scenario (e.g. ``num_robots=20``); unknown names raise ``TypeError``.
+    ``scenario``: a name of :data:`~aasoatt_env.sim.scenarios.SCENARIOS` (``**scenario_kwargs``: its
+    parameters, unknown ones raise ``TypeError``) or a :class:`Scenario`.  ``dt`` [s] in ``[1e-6, 0.1]``;
+    ``decision_interval`` in ``1..10000``; ``num_neighbors``, ``num_obstacles``: observation slots
+    ``0..256`` for neighbours within ``sensing_range`` [m].  ``terminate_on_collision``: a robot whose
+    clearance falls below ``-collision_tolerance`` [m] leaves ``agents`` and stays as a static disc (later
+    actions for it are ignored, warned once).  ``max_steps`` overrides the scenario's horizon; actions
+    outside ``[-1, 1]`` raise :class:`~aasoatt_env.errors.ActionError` unless ``clip_actions``.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "name": "aasoatt_v0", "render_fps": 20}
     _stack_teams = False
 
-    def __init__(
-        self,
-        scenario: str | Scenario = "circle_swap",
-        render_mode: str | None = None,
-        dt: float = DT,
-        decision_interval: int = 1,
-        action_mode: str = "wheel",
-        sensing_range: float = 3.0,
-        num_neighbors: int = 4,
-        num_obstacles: int = 2,
-        reward: RewardConfig | Mapping[str, float] | None = None,
-        terminate_on_collision: bool = False,
-        collision_tolerance: float = 1e-3,
-        max_steps: int | None = None,
-        clip_actions: bool = False,
-        **scenario_kwargs: Any,
-    ) -> None:
+    def __init__(self, scenario: str | Scenario = "circle_swap", render_mode: str | None = None, dt: float = DT,
+                 decision_interval: int = 1, action_mode: str = "wheel", sensing_range: float = 3.0,
+                 num_neighbors: int = 4, num_obstacles: int = 2,
+                 reward: RewardConfig | Mapping[str, float] | None = None, terminate_on_collision: bool = False,
+                 collision_tolerance: float = 1e-3, max_steps: int | None = None, clip_actions: bool = False,
+                 **scenario_kwargs: Any) -> None:
         if render_mode is not None:
             check.choice("render_mode", render_mode, self.metadata["render_modes"])
         self.dt = check.real("dt", dt, lo=1e-6, hi=0.1)
@@ -152,7 +90,6 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         self.clip_actions = check.boolean("clip_actions", clip_actions)
         self.scenario = get_scenario(scenario, **scenario_kwargs)
         self.render_mode = render_mode
-
         n = self.scenario.num_robots
         self.possible_agents = [f"robot_{i}" for i in range(n)]
         self.agents: list[str] = []
@@ -173,11 +110,11 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         self._init_stack(1, n)
 
     def observation_space(self, agent: str) -> spaces.Box:
-        """Observation space of ``agent`` (the same object on every call)."""
+        """Observation space of ``agent`` (one object for all)."""
         return self.observation_spaces[agent]
 
     def action_space(self, agent: str) -> spaces.Box:
-        """Action space of ``agent`` (the same object on every call)."""
+        """Action space of ``agent`` (one object for all)."""
         return self.action_spaces[agent]
 
     @property
@@ -185,24 +122,16 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         """Read-only map agent name -> robot index (row of every ``(N, ...)`` array)."""
         return MappingProxyType(self._index)
 
-    # ------------------------------------------------------------------ control filter
     def set_control_filter(self, control_filter: ControlFilter | None) -> None:
-        """Install a per-physics-step control filter (:mod:`aasoatt_env.sim.protocol`), or remove it with None.
-
-        An env takes at most one filter: a second one raises :class:`~aasoatt_env.errors.UsageError`
-        (two would silently disable the inner one).  A filter installed after ``reset`` is reset
-        with the current team at once.
-        """
+        """Install the control filter (:mod:`aasoatt_env.sim.protocol`; one per env), or remove it with None."""
         if control_filter is None:
             self._control_filter = None
             self._filter_outputs = ()
             return
         if not isinstance(control_filter, ControlFilter):
-            raise ConfigError(
-                f"control_filter: got {type(control_filter).__name__}, expected an object with "
-                "reset(team), __call__(FilterInput, nominal_du) and keeps_input_bounds "
-                "(aasoatt_env.sim.protocol.ControlFilter)"
-            )
+            raise ConfigError(f"control_filter: got {type(control_filter).__name__}, expected an object with "
+                              "reset(team), __call__(FilterInput, nominal_du) and keeps_input_bounds "
+                              "(aasoatt_env.sim.protocol.ControlFilter)")
         if self.terminate_on_collision and self.collision_tolerance < FILTERED_MIN_COLLISION_TOLERANCE:
             # a terminated robot stops in place at once: an input the filter did not return
             raise ConfigError(
@@ -211,10 +140,8 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
                 "allows that much rounding; a robot terminated for less would stop in place, an input the filter "
                 "cannot plan for)")
         if self._control_filter is not None and self._control_filter is not control_filter:
-            raise UsageError(
-                f"this env already has a control filter ({type(self._control_filter).__name__}); an env takes "
-                "one filter: wrap it once, or remove the first with set_control_filter(None)"
-            )
+            raise UsageError(f"this env already has a control filter ({type(self._control_filter).__name__}); an env "
+                             "takes one filter: wrap it once, or remove the first with set_control_filter(None)")
         self._control_filter = control_filter
         if self._layouts[0] is not None:
             control_filter.reset(self.team)
@@ -235,12 +162,8 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         f = self._control_filter
         return f is not None and bool(f.keeps_input_bounds) and not self.clip_actions
 
-    # ------------------------------------------------------------------ reset/step
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
-        """Start an episode; ``seed`` (an integer >= 0) seeds the scenario's random layout.
-
-        ``options`` (None or a dict) is accepted for API compatibility and ignored.
-        """
+        """Start an episode; ``seed`` (an integer >= 0) seeds the layout; ``options`` (a dict) is ignored."""
         if seed is not None:
             seed = check.integer("seed", seed, lo=0)
         if options is not None and not isinstance(options, Mapping):
@@ -285,7 +208,6 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
             raise ResetNeeded(f"{what}: call reset() first")
 
     def _check_agents(self, actions: dict[str, Any]) -> None:
-        """Unknown or missing agents raise; actions of agents that are done are ignored (warned once)."""
         unknown = [a for a in actions if a not in self._index]
         if unknown:
             raise ActionError(f"actions: unknown agent(s) {unknown}; agents are "
@@ -364,7 +286,6 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         if not self._trail or not np.array_equal(self._trail[-1], self._kin.p):
             self._trail.append(self._kin.p.copy())
 
-    # ------------------------------------------------------------------ outputs
     def _agent_observations(self, obs: np.ndarray | None = None) -> dict[str, np.ndarray]:
         obs = self._observations() if obs is None else obs
         if len(self.agents) == self._n:
@@ -372,15 +293,10 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         return {a: obs[self._index[a]] for a in self.agents}
 
     def _infos(self) -> dict[str, dict[str, Any]]:
-        err, clr, sat = self._err.tolist(), self._clearance.tolist(), self._saturated.tolist()
-        col = self._collided.tolist()
-        t, idx = float(self._times[0]), self._index
-        out = {}
-        for a in self.agents:
-            i = idx[a]
-            out[a] = {"tracking_error": err[i], "clearance": clr[i], "collision": col[i], "saturated": sat[i],
-                      "time": t}
-        return out
+        err, clr, sat, col = (x.tolist() for x in (self._err, self._clearance, self._saturated, self._collided))
+        t = float(self._times[0])
+        return {a: {"tracking_error": err[i], "clearance": clr[i], "collision": col[i], "saturated": sat[i], "time": t}
+                for a, i in ((a, self._index[a]) for a in self.agents)}
 
     def state(self) -> np.ndarray:
         """Global state: poses (3N), wheel speeds (2N), reference points (2N), velocities (2N), time."""
@@ -392,22 +308,15 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
     velocities = _after_reset("velocities", lambda e: e._kin.v.copy(), "Control-point velocities ``(N, 2)``.")
     headings = _after_reset("headings", lambda e: e._pose[:, 2].copy(), "Headings ``(N,)`` [rad].")
     poses = _after_reset("poses", lambda e: e._pose.copy(), "Axle poses ``(N, 3)``.")
-    wheel_speeds = _after_reset("wheel_speeds", lambda e: e._u.copy(),
-                                "Wheel angular speeds ``(N, 2)`` (double integrator: velocity).")
+    wheel_speeds = _after_reset("wheel_speeds", lambda e: e._u.copy(), "Wheel speeds ``(N, 2)`` [rad/s].")
     radii = _after_reset("radii", lambda e: e.team.radius.copy(), "Robot radii ``(N,)``.")
-    goals = _after_reset("goals", lambda e: np.asarray(e.layout.reference.goals).copy(),
-                         "Final reference points ``(N, 2)``.")
+    goals = _after_reset("goals", lambda e: np.asarray(e.layout.reference.goals).copy(), "Goals ``(N, 2)``.")
     time = _after_reset("time", lambda e: float(e._times[0]), "Simulated time [s].")
-    max_steps = _after_reset("max_steps", lambda e: int(e._max_steps[0]),
-                             "Episode length in env steps (the horizon, or ``max_steps``).")
-    reference = _after_reset("reference", lambda e: tuple(r.copy() for r in e._ref_now),
-                             "Current reference ``(p_d, v_d, a_d)``, each ``(N, 2)``.")
-    obstacles = _after_reset("obstacles", lambda e: (e.layout.obstacle_centers.copy(),
-                                                     e.layout.obstacle_radii.copy()),
+    max_steps = _after_reset("max_steps", lambda e: int(e._max_steps[0]), "Episode length in env steps.")
+    reference = _after_reset("reference", lambda e: tuple(r.copy() for r in e._ref_now), "``(p_d, v_d, a_d)`` now.")
+    obstacles = _after_reset("obstacles", lambda e: (e.layout.obstacle_centers.copy(), e.layout.obstacle_radii.copy()),
                              "Static obstacles: centres ``(M, 2)`` and radii ``(M,)``.")
-    layout = _after_reset("layout", lambda e: e._layouts[0],
-                          "The episode's :class:`~aasoatt_env.sim.scenarios.Layout` (team, starts, reference, "
-                          "obstacles, bounds).")
+    layout = _after_reset("layout", lambda e: e._layouts[0], "The episode's :class:`.Layout`.")
 
     @property
     def kinematics(self) -> Kinematics:
@@ -415,7 +324,6 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         self._require_reset("kinematics")
         return self._kin  # type: ignore[return-value]
 
-    # ------------------------------------------------------------------ rendering
     def render(self) -> np.ndarray | None:
         """Render the current frame (``rgb_array``: an ``(H, W, 3)`` uint8 array)."""
         if self.render_mode is None:

@@ -1,26 +1,11 @@
 """Per-agent observations and neighbour queries, vectorised over the team.
 
-Observation of robot ``i`` (``float32``, length ``14 + 6 (K + K_obs)``):
-
-=========  ==========================================================
-index      content
-=========  ==========================================================
-0:2        tracking error ``p_i - p_d_i`` [m]
-2:4        goal relative position ``goal_i - p_i`` [m]
-4:6        control-point velocity ``v_i`` [m/s]
-6:8        heading ``(cos theta_i, sin theta_i)``
-8:10       wheel speeds ``u_i`` [rad/s] (double integrator: velocity)
-10:12      reference velocity ``v_d_i`` [m/s]
-12:14      reference acceleration ``a_d_i`` [m/s^2]
-then K     nearest robots within the sensing range, nearest first, each
-slots      ``(dx, dy, dvx, dvy, gap, mask)``: position and velocity of the
-           neighbour relative to robot ``i``, surface gap
-           ``|p_ij| - r_i - r_j``, and ``mask = 1``; empty slots are zeros
-then K_obs nearest static obstacles in range, same layout (velocity 0)
-=========  ==========================================================
-
-Every entry is clipped to ``[-OBS_BOUND, OBS_BOUND]`` (``OBS_BOUND = 100``),
-which only matters for robots more than 100 m off their reference.
+Observation of robot ``i`` (``float32``, ``14 + 6 (K + K_obs)`` entries clipped to ``[-100, 100]``): tracking
+error ``p_i - p_d_i`` [m], goal offset ``goal_i - p_i`` [m], velocity ``v_i`` [m/s], heading ``(cos, sin)``,
+wheel speeds ``u_i`` [rad/s] (double integrator: velocity), reference velocity ``v_d_i`` [m/s] and
+acceleration ``a_d_i`` [m/s^2]; then ``K`` slots for the nearest robots in sensing range, nearest first, each
+``(dx, dy, dvx, dvy, gap, 1)`` (relative position and velocity, surface gap ``|p_ij| - r_i - r_j``; empty
+slots are zeros), and ``K_obs`` slots for the nearest obstacles in range (velocity 0).  Table: ``docs/env.md``.
 """
 
 from __future__ import annotations
@@ -40,54 +25,32 @@ _NEG_RADIUS = np.array([1.0, 1.0, 1.0, 1.0, -1.0])
 
 
 class Proximity(NamedTuple):
-    """Neighbour table of one instant, shared by observations, rewards and infos."""
+    """Neighbour table of one instant: each robot's ``k`` nearest robots ``idx (N, k)`` (-1: none), nearest first.
+
+    Also their centre distances ``dist (N, k)`` (inf: none), the robot-obstacle surface gaps
+    ``obstacle_gaps (N, M)`` and the ``clearance (N,)`` to the nearest of either (negative: overlap).
+    """
 
     idx: np.ndarray
-    """Indices of each robot's ``k`` nearest robots, nearest first, ``(N, k)`` (-1: none)."""
     dist: np.ndarray
-    """Their centre distances ``(N, k)`` (inf: none)."""
     obstacle_gaps: np.ndarray
-    """Surface gaps robot-obstacle ``(N, M)``."""
     clearance: np.ndarray
-    """Surface gap to the nearest robot or obstacle ``(N,)``; negative when overlapping."""
 
 
-def proximity(
-    p: np.ndarray, radii: np.ndarray, centers: np.ndarray, orad: np.ndarray, k: int = 6, teams: int = 1,
-    equal_radii: np.ndarray | None = None,
-) -> Proximity:
-    """Nearest robots and obstacle gaps of every robot (:func:`aasoatt_env.model.geometry.neighbourhood`).
-
-    ``teams`` equal teams may be stacked in ``p``; the indices then point into the stack.
-    """
+def proximity(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, orad: np.ndarray, k: int = 6, teams: int = 1,
+              equal_radii: np.ndarray | None = None) -> Proximity:
+    """:func:`~aasoatt_env.model.geometry.neighbourhood` as a :class:`Proximity` (``teams`` stacked: stack indices)."""
     return Proximity(*neighbourhood(p, radii, centers, orad, k, teams, equal_radii))
 
 
-def build_observations(
-    *,
-    p: np.ndarray,
-    v: np.ndarray,
-    theta: np.ndarray,
-    u: np.ndarray,
-    p_d: np.ndarray,
-    v_d: np.ndarray,
-    a_d: np.ndarray,
-    goals: np.ndarray,
-    radii: np.ndarray,
-    obstacle_centers: np.ndarray,
-    obstacle_radii: np.ndarray,
-    sensing_range: float,
-    k_robots: int,
-    k_obstacles: int,
-    prox: Proximity,
-    obstacle_offset: np.ndarray | None = None,
-) -> np.ndarray:
+def build_observations(*, p: np.ndarray, v: np.ndarray, theta: np.ndarray, u: np.ndarray, p_d: np.ndarray,
+                       v_d: np.ndarray, a_d: np.ndarray, goals: np.ndarray, radii: np.ndarray,
+                       obstacle_centers: np.ndarray, obstacle_radii: np.ndarray, sensing_range: float, k_robots: int,
+                       k_obstacles: int, prox: Proximity, obstacle_offset: np.ndarray | None = None) -> np.ndarray:
     """Observations of all robots as one ``(N, 14 + 6 (K + K_obs))`` float32 array.
 
-    Several teams can be observed in one call (:mod:`aasoatt_env.sim.batched`):
-    their robots stacked, ``prox.idx`` holding indices into the stack, and each
-    robot's obstacles found at ``obstacle_offset[i] + k`` of the stacked obstacle
-    arrays (``prox.obstacle_gaps`` then has one column per obstacle of a team).
+    Stacked teams: ``prox.idx`` holds stack indices, and robot ``i``'s obstacle ``k`` is entry
+    ``obstacle_offset[i] + k`` of the stacked obstacle arrays.
     """
     n = p.shape[0]
     heading = np.exp(1j * theta).view(np.float64).reshape(n, 2)

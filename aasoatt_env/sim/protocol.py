@@ -1,22 +1,8 @@
-"""The contract between the environment and a per-physics-step control filter.
+"""The contract between the env and a per-physics-step control filter (the env never knows what it does).
 
-The environment never needs to know what a filter does (as in Robotarium, where a barrier
-certificate is a function of the state and the nominal input).  At every physics step
-(also between two decisions of the policy) the env computes the nominal wheel
-accelerations ``du_nominal (N, 2)`` from the held actions, hands the filter a
-:class:`FilterInput` and ``du_nominal``, receives a :class:`FilterOutput`, clips the applied
-``du`` to the step's input bounds (a filter with ``keeps_input_bounds = True`` never needs
-it) and integrates.  It calls :meth:`ControlFilter.reset` with the episode's team in
-``reset`` (and when a filter is installed into an env that has one), keeps the outputs of
-the last env step (``filter_outputs``) and reads only their ``correction`` (the reward)
-and ``avoiding`` (rendering).
-
-Several teams in one call (optional): :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`
-asks the teams' filters for ``grouped(filters)`` (:class:`GroupableFilter`); a filter it
-returns (:class:`GroupedControlFilter`) is called once per physics step with all teams
-stacked: ``inp.team.group`` labels each robot's team and ``inp.obstacle_groups`` each
-obstacle's, and no pair across teams may affect the answer.  ``inp.reference`` holds every
-team's reference at its own time; ``inp.time`` is team 0's.
+At every physics step the env hands the filter a :class:`FilterInput` and the held actions' nominal
+``du (N, 2)``, clips the returned ``du`` to the input bounds and integrates; it reads only the outputs'
+``correction`` (reward) and ``avoiding`` (rendering).
 """
 
 from __future__ import annotations
@@ -37,24 +23,9 @@ __all__ = ["ControlFilter", "FilterInput", "FilterOutput", "GroupableFilter", "G
 class FilterInput:
     """The state the env hands a control filter at one physics step (arrays not to be changed).
 
-    Attributes
-    ----------
-    time, dt : float
-        Simulated time at the start of the step and the physics step [s].
-    team : Team
-        Robot parameters.
-    pose, u : numpy.ndarray
-        Axle poses ``(N, 3)`` (``x, y, theta``) and wheel speeds ``(N, 2)``.
-    kin : Kinematics
-        Control points, velocities, ``A`` and ``A_dot u`` of the team.
-    lo, hi : numpy.ndarray
-        Bounds ``(N, 2)`` on this step's wheel accelerations (acceleration and speed limits).
-    reference : tuple of numpy.ndarray
-        ``(p_d, v_d, a_d)``, each ``(N, 2)``, at ``time``.
-    obstacle_centers, obstacle_radii : numpy.ndarray
-        Static disc obstacles ``(M, 2)`` and ``(M,)``.
-    obstacle_groups : numpy.ndarray or None
-        Grouped input only: the team of each obstacle ``(M,)``.
+    ``time`` [s] at the start of the step of ``dt`` [s]; axle ``pose (N, 3)`` (``x, y, theta``), wheel speeds
+    ``u (N, 2)`` and their ``kin``; bounds ``lo``, ``hi`` ``(N, 2)`` on this step's wheel accelerations;
+    ``reference`` ``(p_d, v_d, a_d)`` at ``time``; static discs ``(M, 2)``, ``(M,)`` (and, grouped, their teams).
     """
 
     time: float
@@ -78,23 +49,18 @@ class FilterInput:
 
 @runtime_checkable
 class FilterOutput(Protocol):
-    """What a control filter returns for one physics step (any object with these attributes)."""
+    """A filter's answer: finite ``du (N, 2)``, ``correction = |du - du_nominal| (N,)``, ``avoiding (N,)`` bool."""
 
     du: np.ndarray
-    """Wheel accelerations to apply ``(N, 2)``, finite."""
     correction: np.ndarray
-    """``|du - du_nominal|`` per robot ``(N,)``."""
     avoiding: np.ndarray
-    """``(N,)`` bool: the robot is in collision avoidance at this step."""
 
 
 @runtime_checkable
 class ControlFilter(Protocol):
-    """A per-physics-step map from the nominal wheel accelerations to applied ones."""
+    """A per-physics-step map from nominal to applied wheel accelerations (``keeps_input_bounds``: in ``[lo, hi]``)."""
 
     keeps_input_bounds: bool
-    """True when every ``du`` it returns lies within ``[lo, hi]`` whatever the nominal;
-    the env then accepts actions outside ``[-1, 1]`` as the (unclipped) nominal."""
 
     def reset(self, team: Team) -> None:
         """Start an episode of ``team`` (forget warm starts and memory)."""
@@ -107,7 +73,12 @@ class ControlFilter(Protocol):
 
 @runtime_checkable
 class GroupedControlFilter(ControlFilter, Protocol):
-    """A control filter of ``K`` independent teams stacked into one input (module docstring)."""
+    """A control filter of ``K`` independent teams stacked into one input.
+
+    Each robot's team is in ``inp.team.group``, each obstacle's in ``inp.obstacle_groups``; no pair across
+    teams may affect the answer.  ``inp.reference`` holds every team's reference at its own time, ``inp.time``
+    is team 0's.
+    """
 
     def reset_rows(self, rows: np.ndarray, team: Team) -> None:
         """Forget the memory of robots ``rows`` (their team starts an episode); ``team``: the new stack."""

@@ -1,22 +1,6 @@
-"""Reference trajectories ``p_d(t), v_d(t), a_d(t)`` for a team (``docs/technical_brief.md`` section 2).
+"""Reference trajectories: callables ``ref(t) -> (p_d, v_d, a_d)``, three ``(N, 2)`` arrays.
 
-Every reference is a callable ``ref(t) -> (p_d, v_d, a_d)`` returning three
-``(N, 2)`` arrays, plus ``goals`` (the final reference points, ``(N, 2)``) and
-``duration`` (time after which the reference rests at the goals).
-
-==========================  ===============================================
-class                       use
-==========================  ===============================================
-:class:`LinearReference`    straight lines start -> goal over ``duration``
-                            (one per team or per robot; constant speed, or a
-                            smooth minimum-jerk profile)
-:class:`WaypointReference`  piecewise-linear paths through timed waypoints
-:class:`FunctionReference`  any user callable ``t -> p_d`` (and optionally
-                            ``v_d``, ``a_d``; central differences otherwise)
-==========================  ===============================================
-
-:class:`ReferenceStack` evaluates the references of several teams at once
-(the batched env's stack).
+A reference also has its final points ``goals (N, 2)`` and a ``duration`` [s] after which it rests there.
 """
 
 from __future__ import annotations
@@ -35,7 +19,7 @@ RefTriple = tuple[np.ndarray, np.ndarray, np.ndarray]
 
 
 class Reference(Protocol):
-    """What the environment needs from a reference."""
+    """What the environment needs from a reference (module docstring)."""
 
     goals: np.ndarray
     duration: float
@@ -58,21 +42,13 @@ def _points(name: str, value: np.ndarray | list, n: int | None = None) -> np.nda
 
 
 class LinearReference:
-    """Straight lines from ``starts`` to ``goals`` ``(N, 2)``, each travelled in its robot's duration.
+    """Straight lines from ``starts`` to ``goals`` ``(N, 2)`` in ``duration`` [s] (one, or one per robot).
 
-    ``duration`` [s]: one for the team or one per robot ``(N,)``; a reference rests at its goal
-    afterwards (:attr:`duration`: the longest).  ``profile``: ``"linear"``, constant velocity
-    (the paper's; it jumps to 0 at the end), or ``"smooth"``, minimum-jerk timing
-    ``s = 10 tau^3 - 15 tau^4 + 6 tau^5`` (zero velocity and acceleration at both ends).
+    ``profile``: ``"linear"`` (the paper's constant velocity) or ``"smooth"`` (minimum jerk, at rest at both ends).
     """
 
-    def __init__(
-        self,
-        starts: np.ndarray,
-        goals: np.ndarray,
-        duration: float | np.ndarray,
-        profile: Literal["linear", "smooth"] = "linear",
-    ) -> None:
+    def __init__(self, starts: np.ndarray, goals: np.ndarray, duration: float | np.ndarray,
+                 profile: Literal["linear", "smooth"] = "linear") -> None:
         self.starts = _points("starts", starts)
         n = self.starts.shape[0]
         self.goals = _points("goals", goals, n)
@@ -110,11 +86,7 @@ def _linear(starts: np.ndarray, goals: np.ndarray, delta: np.ndarray, T: np.ndar
 
 
 class ReferenceStack:
-    """The references ``refs`` of several teams (stack order), evaluated together at each team's own time.
-
-    ``stack(times)`` equals concatenating ``ref(t)`` over the teams, element for element:
-    :class:`LinearReference` s of one profile in one vectorised call, others one by one.
-    """
+    """Several teams' references at each team's own time: ``ref(t)`` of each, concatenated, element for element."""
 
     def __init__(self, refs: Sequence[Reference]) -> None:
         self.refs = list(refs)
@@ -123,10 +95,8 @@ class ReferenceStack:
         self._linear = bool(self.refs) and all(type(r) is LinearReference for r in self.refs) and len(profiles) == 1
         if self._linear:
             lin: list[LinearReference] = self.refs  # type: ignore[assignment]
-            self._starts = np.concatenate([r.starts for r in lin])
-            self._goals = np.concatenate([r.goals for r in lin])
-            self._delta = np.concatenate([r._delta for r in lin])
-            self._T = np.concatenate([r.durations for r in lin])
+            self._starts, self._goals, self._delta, self._T = (np.concatenate([getattr(r, a) for r in lin])
+                                                               for a in ("starts", "goals", "_delta", "durations"))
             self._profile = profiles.pop()
 
     def __call__(self, times: Sequence[float]) -> RefTriple:
@@ -142,11 +112,7 @@ class ReferenceStack:
         return tuple(np.concatenate([q[i] for q in parts]) for i in range(3))  # type: ignore[return-value]
 
     def _checked(self, k: int, t: float) -> RefTriple:
-        """Team ``k``'s reference at ``t`` as new float64 arrays, refused unless finite and ``(N, 2)``.
-
-        A :class:`LinearReference` is finite by construction; other references (a user's callable,
-        finite differences at ``t - h``) may not be.
-        """
+        """Team ``k``'s reference at ``t`` as new float64 arrays, refused unless finite and ``(N, 2)``."""
         ref, n = self.refs[k], int(self._sizes[k])
         out = tuple(np.array(x, dtype=np.float64) for x in ref(t))
         for name, x in zip(("p_d", "v_d", "a_d"), out):
@@ -163,10 +129,7 @@ class ReferenceStack:
 
 
 class WaypointReference:
-    """Piecewise-linear paths through ``K >= 2`` waypoints ``(N, K, 2)`` (``(K, 2)``: one robot) at ``times (K,)``.
-
-    ``times`` strictly increasing, ``times[0]`` usually 0.
-    """
+    """Piecewise-linear paths through ``K >= 2`` waypoints ``(N, K, 2)`` (or ``(K, 2)``) at rising ``times (K,)``."""
 
     def __init__(self, waypoints: np.ndarray, times: np.ndarray) -> None:
         wp = check.real_array("waypoints", waypoints, lo=-COORD_MAX, hi=COORD_MAX, unit=" m")
@@ -176,10 +139,8 @@ class WaypointReference:
         if wp.ndim != 3 or wp.shape[2] != 2 or wp.shape[1] < 2:
             raise ConfigError(f"waypoints: got shape {np.shape(waypoints)}, expected (N, K, 2) with K >= 2")
         if ts.shape != (wp.shape[1],) or np.any(np.diff(ts) <= 0):
-            raise ConfigError(
-                f"times: got {check.short_repr(ts.tolist())}, expected {wp.shape[1]} strictly increasing times "
-                "(one per waypoint)"
-            )
+            raise ConfigError(f"times: got {check.short_repr(ts.tolist())}, expected {wp.shape[1]} strictly increasing "
+                              "times (one per waypoint)")
         self.waypoints, self.times = wp, ts
         self.goals = wp[:, -1].copy()
         self.duration = float(ts[-1])
@@ -198,20 +159,14 @@ class WaypointReference:
 
 
 class FunctionReference:
-    """A reference from user callables ``position(t) -> (N, 2)`` and optionally its derivatives.
+    """A reference from ``position(t) -> (N, 2)``, finished at ``duration`` [s] (``goals = position(duration)``).
 
-    Without ``velocity``/``acceleration``: central differences with step ``h`` [s].  ``duration``:
-    when the reference is finished (the episode horizon); ``goals`` is ``position(duration)``.
+    Without ``velocity``/``acceleration`` callables: central differences with step ``h`` [s].
     """
 
-    def __init__(
-        self,
-        position: Callable[[float], np.ndarray],
-        duration: float,
-        velocity: Callable[[float], np.ndarray] | None = None,
-        acceleration: Callable[[float], np.ndarray] | None = None,
-        h: float = 1e-4,
-    ) -> None:
+    def __init__(self, position: Callable[[float], np.ndarray], duration: float,
+                 velocity: Callable[[float], np.ndarray] | None = None,
+                 acceleration: Callable[[float], np.ndarray] | None = None, h: float = 1e-4) -> None:
         if not callable(position):
             raise ConfigError(f"position: got {type(position).__name__}, expected a callable t -> (N, 2)")
         self._p, self._v, self._a = position, velocity, acceleration
@@ -247,15 +202,12 @@ def as_reference(value: object, n: int, duration: float | None = None) -> Refere
         ref = FunctionReference(value, duration)  # type: ignore[arg-type]
     elif isinstance(value, dict) and "waypoints" in value:
         if "times" not in value:
-            raise ConfigError(
-                "reference: got waypoints without 'times', expected {'waypoints': (N, K, 2), 'times': (K,)}"
-            )
+            raise ConfigError("reference: got waypoints without 'times', expected "
+                              "{'waypoints': (N, K, 2), 'times': (K,)}")
         ref = WaypointReference(value["waypoints"], value["times"])
     else:
-        raise ConfigError(
-            f"reference: got {type(value).__name__}, expected a Reference, a callable t -> (N, 2) "
-            "or a dict with 'waypoints' and 'times'"
-        )
+        raise ConfigError(f"reference: got {type(value).__name__}, expected a Reference, a callable t -> (N, 2) "
+                          "or a dict with 'waypoints' and 'times'")
     goals = np.asarray(ref.goals)  # type: ignore[union-attr]
     if goals.shape != (n, 2):
         raise ConfigError(f"reference: goals have shape {goals.shape}, expected ({n}, 2) for {n} robots")

@@ -1,15 +1,7 @@
-"""Headless-safe rendering of team snapshots to RGB arrays, windows and animations.
+"""Headless-safe rendering: :class:`Renderer` draws a :class:`Frame` (metres, ``y`` up) to an RGB array or window.
 
-A :class:`Frame` holds what one picture shows (robots, references, goals, obstacles,
-trails, which robots are avoiding).  :class:`Renderer` rasterises it with pygame
-surfaces (no display needed) into an ``(H, W, 3)`` ``uint8`` array, or shows it in a
-window for ``render_mode="human"`` (:mod:`aasoatt_env.sim.window`); :func:`save_animation`
-writes such arrays as a GIF or video.  pygame and imageio are imported lazily: the
-library imports without them, and a feature that needs one says to
-``pip install "aasoatt[render]"``.
-
-World coordinates are metres with ``y`` up; the picture keeps the aspect ratio and centres
-``world_bounds``; robot discs are drawn at their true radius around the control point.
+:func:`save_animation` writes frames as a GIF or video.  pygame and imageio are imported when first needed
+(``pip install "aasoatt[render]"``).
 """
 
 from __future__ import annotations
@@ -34,32 +26,20 @@ __all__ = ["ANIMATION_SUFFIXES", "BACKGROUND", "Frame", "Renderer", "animation_w
            "save_animation"]
 
 RENDER_EXTRA_HINT = 'pip install "aasoatt[render]"'
-
 BACKGROUND: tuple[int, int, int] = (255, 255, 255)
 """Background colour of rendered frames (RGB)."""
-
-GRID_COLOR = (232, 232, 232)
-BOUNDS_COLOR = (190, 190, 190)
-OBSTACLE_FILL = (140, 140, 140)
-OBSTACLE_EDGE = (90, 90, 90)
-AVOID_COLOR = (220, 20, 20)
-TEXT_COLOR = (30, 30, 30)
-
+GRID_COLOR, BOUNDS_COLOR, TEXT_COLOR, AVOID_COLOR = (232, 232, 232), (190, 190, 190), (30, 30, 30), (220, 20, 20)
+OBSTACLE_FILL, OBSTACLE_EDGE = (140, 140, 140), (90, 90, 90)
 _PALETTE: tuple[tuple[int, int, int], ...] = (
     (31, 119, 180), (255, 127, 14), (44, 160, 44), (148, 103, 189), (140, 86, 75), (227, 119, 194),
     (127, 127, 127), (188, 189, 34), (23, 190, 207), (0, 0, 128), (0, 128, 128), (128, 128, 0),
     (255, 187, 120), (152, 223, 138), (174, 199, 232), (197, 176, 213), (196, 156, 148), (247, 182, 210),
     (219, 219, 141), (158, 218, 229),
-)
-"""Tableau-like palette without pure red (red marks robots in collision avoidance)."""
+)  # Tableau-like, without the red that marks robots in collision avoidance
 
 
 def robot_colors(n: int) -> np.ndarray:
-    """Distinct, deterministic RGB colours ``(n, 3)`` ``uint8`` for ``n`` robots.
-
-    The first 20 from a fixed palette without pure red; more spread over the hue circle
-    by the golden angle, away from red.
-    """
+    """Distinct, deterministic RGB colours ``(n, 3)`` ``uint8``: a fixed palette, then golden-angle hues (no red)."""
     out = np.empty((max(n, 0), 3), dtype=np.uint8)
     for i in range(max(n, 0)):
         if i < len(_PALETTE):
@@ -72,20 +52,16 @@ def robot_colors(n: int) -> np.ndarray:
 
 
 def _require(module: str, feature: str) -> ModuleType:
-    """Import ``module`` or raise an ImportError telling how to install it."""
     if module == "pygame":
         os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
     try:
         return importlib.import_module(module)
     except ImportError as exc:
-        raise ImportError(
-            f"{feature} needs the optional dependency {module.split('.')[0]!r}, which is not installed; "
-            f"install the rendering extras with: {RENDER_EXTRA_HINT}"
-        ) from exc
+        raise ImportError(f"{feature} needs the optional dependency {module.split('.')[0]!r}, which is not installed; "
+                          f"install the rendering extras with: {RENDER_EXTRA_HINT}") from exc
 
 
 def _as_array(name: str, value: Any, shape_tail: tuple[int, ...], n: int | None) -> np.ndarray:
-    """``value`` as a float array ``(n, *shape_tail)``, or :class:`ConfigError`."""
     arr = np.asarray(value, dtype=np.float64)
     if arr.size == 0 and n in (None, 0):
         return arr.reshape((0, *shape_tail))
@@ -97,29 +73,11 @@ def _as_array(name: str, value: Any, shape_tail: tuple[int, ...], n: int | None)
 
 @dataclass
 class Frame:
-    """Everything one rendered picture shows.
+    """Everything one picture shows: discs at ``positions (N, 2)`` [m] with ``headings (N,)`` and ``radii (N,)``.
 
-    Parameters
-    ----------
-    positions, headings, radii : array_like
-        Control points ``(N, 2)`` [m] (disc centres), headings ``(N,)`` [rad] (a line from
-        the centre to the rim) and disc radii ``(N,)`` [m].
-    references, goals : array_like, shape (N, 2), optional
-        Current reference points (small dots) and goals (hollow squares), in each robot's colour.
-    obstacle_centers, obstacle_radii : array_like
-        Static obstacles ``(M, 2)`` and ``(M,)`` (``M`` may be 0).
-    trails : array_like, shape (T, N, 2), optional
-        Past positions, oldest first (thin polylines; non-finite points break them).
-    avoiding : array_like of bool, shape (N,), optional
-        Robots in collision avoidance (a red outline).
-    sensing_range : float, optional
-        A faint circle of this radius around each robot.
-    time : float
-        Simulation time [s], printed top left.
-    title : str, optional
-        Printed top centre.
-    world_bounds : tuple of float, optional
-        ``(xmin, xmax, ymin, ymax)`` shown; ``None`` fits everything with a margin.
+    Optional: ``references`` (dots) and ``goals`` (squares) ``(N, 2)``; obstacles ``(M, 2)``, ``(M,)``;
+    ``trails (T, N, 2)``, oldest first; ``avoiding (N,)`` bool (a red outline); ``sensing_range`` [m] (a faint
+    circle); ``time`` [s] and ``title`` (printed); ``world_bounds`` ``(xmin, xmax, ymin, ymax)`` (None: fit all).
     """
 
     positions: np.ndarray
@@ -225,25 +183,10 @@ def _nice_step(span: float, target_lines: int = 10) -> float:
 
 
 class Renderer:
-    """Rasterise :class:`Frame` objects with pygame surfaces (no display needed).
+    """Rasterise :class:`Frame` s to ``width x height`` pixels with pygame surfaces (no display needed).
 
-    Parameters
-    ----------
-    width, height : int
-        Picture size in pixels.
-    grid : bool
-        Draw a faint metric grid and the outline of ``world_bounds``.
-    show_text : bool
-        Print the time and title (skipped where ``pygame.font`` is missing).
-    fps : float, optional
-        In :meth:`show`, update the window at most ``fps`` times a second.
-
-    Examples
-    --------
-    >>> r = Renderer(200, 200)
-    >>> img = r.rgb_array(Frame(positions=[[0.0, 0.0]], headings=[0.0], radii=[0.5]))
-    >>> img.shape, img.dtype
-    ((200, 200, 3), dtype('uint8'))
+    ``grid``: a metric grid and the outline of ``world_bounds``; ``show_text``: the time and title;
+    ``fps``: the most window updates a second in :meth:`show`.
     """
 
     def __init__(self, width: int = 600, height: int = 600, *, grid: bool = True, show_text: bool = True,
@@ -341,7 +284,6 @@ class Renderer:
 
     def _draw_robots(self, frame: Frame, pos: np.ndarray, finite: np.ndarray, rpix: np.ndarray,
                      colors: np.ndarray) -> None:
-        """Discs with a heading line, a red outline on robots in avoidance."""
         pg, surf = self._pg, self._surface
         avoiding = frame.avoiding if frame.avoiding is not None else np.zeros(frame.n, dtype=bool)
         for i in range(frame.n):
@@ -360,7 +302,6 @@ class Renderer:
                 pg.draw.circle(surf, AVOID_COLOR, (int(c[0]), int(c[1])), r + 1, max(2, min(4, r // 5)))
 
     def _draw_references(self, frame: Frame, tf: _Transform, rpix: np.ndarray, colors: np.ndarray) -> None:
-        """Small dots with a dark outline, on top of everything."""
         if frame.references is None:
             return
         rp = tf.points(frame.references)
@@ -423,8 +364,7 @@ class Renderer:
 
 
 ANIMATION_SUFFIXES: tuple[str, ...] = (".gif", ".mp4", ".mov", ".mkv", ".avi")
-"""Suffixes :func:`save_animation` writes: ``.gif`` with imageio and Pillow, the videos (H.264) with
-imageio-ffmpeg (``.webm`` has no H.264, ``.m4v`` no imageio backend)."""
+"""Suffixes :func:`save_animation` writes: ``.gif`` (imageio and Pillow), H.264 videos (imageio-ffmpeg)."""
 
 
 def animation_writer_missing(suffix: str) -> list[str]:
@@ -435,14 +375,11 @@ def animation_writer_missing(suffix: str) -> list[str]:
 
 
 def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], fps: float = 20) -> Path:
-    """Write RGB frames as an animation, GIF or video chosen by the file suffix; returns the path.
+    """Write RGB frames ``(H, W, 3 or 4)`` (``uint8``, or floats in ``[0, 1]``) as a GIF or video; returns the path.
 
-    ``frames``: images ``(H, W, 3)`` (or ``(H, W, 4)``) of one size, ``uint8`` or floats in
-    ``[0, 1]``; ``path``: one of :data:`ANIMATION_SUFFIXES` (GIF needs imageio and Pillow, videos
-    imageio-ffmpeg: ``ImportError`` otherwise).  The file is written under a temporary name beside
-    it and moved into place when complete: a writer that fails leaves no partial file (and an
-    earlier file at ``path`` is kept).  An unsupported suffix, no frames, mismatched sizes or
-    ``fps <= 0``: :class:`ConfigError`.
+    The suffix (:data:`ANIMATION_SUFFIXES`) picks the format; a missing writer raises ``ImportError``.
+    The file is written beside ``path`` and moved into place when complete (a failure leaves no partial
+    file).  A bad suffix, no frames, mismatched sizes or ``fps <= 0``: :class:`ConfigError`.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -470,7 +407,6 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
 
 
 def _write_animation(iio: ModuleType, images: list[np.ndarray], path: Path, suffix: str, fps: float) -> None:
-    """Write the frames to ``path`` (GIF or video by ``suffix``)."""
     if suffix == ".gif":
         _require("PIL", "save_animation (GIF)")
         iio.imwrite(path, np.stack(images), extension=".gif", duration=1000.0 / fps, loop=0)

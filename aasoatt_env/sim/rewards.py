@@ -1,11 +1,8 @@
 """The per-agent reward of one env step.
 
 ``r_i = -tracking |p_i - p_d_i| - collision [clearance_i < -tol] - effort |action_i|^2 / 2
-- correction c_i + goal_bonus [|p_i - goal_i| < goal_tolerance]``
-
-where ``c_i`` is the largest change a control filter made to robot ``i``'s
-nominal wheel accelerations during the env step, ``|du_safe - du_nominal|``,
-divided by the robot's ``max_wheel_accel`` (0 without a filter).
+- correction c_i + goal_bonus [|p_i - goal_i| < goal_tolerance]``, where ``c_i`` is the largest
+``|du_safe - du_nominal| / max_wheel_accel`` of the step's control filter (0 without one).
 """
 
 from __future__ import annotations
@@ -50,20 +47,9 @@ class RewardConfig:
         raise ConfigError(f"reward: got {value!r}, expected a RewardConfig, a mapping of its weights or None")
 
 
-def rewards(
-    cfg: RewardConfig,
-    tracking_error: np.ndarray,
-    collided: np.ndarray,
-    action: np.ndarray,
-    goal_distance: np.ndarray | None,
-    correction: np.ndarray | None,
-) -> np.ndarray:
-    """Rewards ``(N,)`` of one env step (module docstring).
-
-    From the tracking errors ``|p_i - p_d_i|``, whether each robot collided during the step,
-    the normalised actions ``(N, 2)``, the distances to the goals (needed only with a goal
-    bonus) and the filter's normalised correction (None without a filter).
-    """
+def rewards(cfg: RewardConfig, tracking_error: np.ndarray, collided: np.ndarray, action: np.ndarray,
+            goal_distance: np.ndarray | None, correction: np.ndarray | None) -> np.ndarray:
+    """Rewards ``(N,)`` of one env step (module docstring); ``correction`` ``c_i`` (None without a filter)."""
     r = -cfg.tracking * tracking_error - cfg.collision * collided - cfg.effort * 0.5 * np.add.reduce(action * action,
                                                                                                    axis=1)
     if cfg.goal_bonus and goal_distance is not None:

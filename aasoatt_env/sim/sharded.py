@@ -1,33 +1,13 @@
-"""``ShardedBatchedEnv``: the teams of a batch stepped in several worker processes.
+"""``ShardedBatchedEnv``: the teams of a batch stepped in worker processes, with the batch's API (no ``envs``).
 
-One :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` call is bound by numpy's
-per-call overhead, not by the number of robots, so a second core does not help it;
-splitting the teams over ``W`` processes does.  Each worker steps its shard
-(contiguous teams, sizes as equal as possible) as a ``BatchedAASOATTEnv``; this class
-has the batch's API and concatenates the shards' answers in team order.  Each team
-keeps its generator, seed (team ``k`` gets ``seed + k`` wherever it lives), clock and
-filter, so trajectories equal one process's: bit for bit without a filter or with
-``group_filter=False`` and a deterministic QP solver, to rounding behind the grouped
-filter.  Actions are checked here before any shard steps, and errors name teams by
-their number in the whole batch.
-
-Workers start with ``forkserver`` where the platform has it, else ``spawn`` (no
-``fork`` of a process that may hold torch threads), so a script that makes one must
-guard its entry point with ``if __name__ == "__main__":``.  Messages travel with
-``cloudpickle``, so env constructors may be lambdas.  A worker's exception is raised
-here again with its class where it pickles, naming the worker; workers ignore Ctrl-C.
-A call interrupted while it waits for the workers leaves their replies to be read
-and dropped before the next call (``live`` is still taken from them); an interrupt
-that cuts a message in two, or falls between the sends of one command, leaves the
-pipes out of step: every later call then raises
-:class:`~aasoatt_env.errors.UsageError` (make a new env), as after a worker dies.
-
-API: that of :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`, without ``envs``
-(use the ``env_*`` methods) and with ``grouped_filter = None``.
+Trajectories equal one process's.  Workers start with ``forkserver`` (else ``spawn``): guard a script's entry
+point with ``if __name__ == "__main__":``.  After a dead worker or a cut message every call raises
+:class:`~aasoatt_env.errors.UsageError`.  More in ``docs/env.md``.
 """
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
 import signal
 import time
@@ -57,14 +37,6 @@ def shard_sizes(num_envs: int, num_workers: int) -> list[int]:
     """Teams per worker: contiguous shards, sizes differing by at most one (the first ones larger)."""
     q, r = divmod(num_envs, num_workers)
     return [q + (w < r) for w in range(num_workers)]
-
-
-def _send(conn: Any, msg: Any) -> None:
-    conn.send_bytes(cloudpickle.dumps(msg))
-
-
-def _recv(conn: Any) -> Any:
-    return cloudpickle.loads(conn.recv_bytes())
 
 
 def _reply(conn: Any, msg: Any) -> None:
@@ -109,7 +81,7 @@ def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offs
     }
     while True:
         try:
-            cmd, args = _recv(conn)
+            cmd, args = cloudpickle.loads(conn.recv_bytes())
         except (EOFError, OSError):
             break
         try:
@@ -130,22 +102,12 @@ class _LinkDown(UsageError):
 
 
 class ShardedBatchedEnv(TeamsAPI):
-    """``K`` teams of one scenario stepped in ``num_workers`` processes (see the module docstring).
+    """``K`` teams stepped in ``1 <= num_workers <= K`` processes (``start_method``: ``multiprocessing``'s).
 
-    Parameters
-    ----------
-    env_fns : sequence of callables
-        As :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`'s; called in the workers.
-    num_workers : int
-        Worker processes, ``1 <= num_workers <= len(env_fns)``.
-    autoreset, group_filter : bool
-        As :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`'s, for every shard.
-    start_method : str, optional
-        ``multiprocessing`` start method; default ``forkserver`` where available, else ``spawn``.
+    ``env_fns``, ``autoreset`` and ``group_filter`` are :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`'s.
     """
 
-    grouped_filter = None
-    """No filter object lives in this process (each worker has its shard's)."""
+    grouped_filter = None  # each worker has its shard's
 
     def __init__(self, env_fns: Sequence[Callable[[], Any]], num_workers: int, *, autoreset: bool = True,
                  group_filter: bool = True, start_method: str | None = None) -> None:
@@ -167,8 +129,7 @@ class ShardedBatchedEnv(TeamsAPI):
         ctx = mp.get_context(start_method)
         self.num_envs = k_all
         self.autoreset = bool(autoreset)
-        self.sizes = shard_sizes(k_all, int(num_workers))
-        """Teams per worker."""
+        self.sizes = shard_sizes(k_all, int(num_workers))  # teams per worker
         self._starts = [0, *np.cumsum(self.sizes).tolist()]
         self._pending: list[deque[str]] = [deque() for _ in self.sizes]  # commands sent, replies not yet read
         self._broken: str | None = None  # why the pipes cannot be trusted any more
@@ -196,7 +157,6 @@ class ShardedBatchedEnv(TeamsAPI):
         self._live = np.zeros((k_all, self.num_agents), dtype=bool)
         self._started = False
 
-    # ------------------------------------------------------------------ plumbing
     def _teams(self, w: int) -> str:
         return f"worker {w} (teams {self._starts[w]}..{self._starts[w + 1] - 1})"
 
@@ -216,8 +176,7 @@ class ShardedBatchedEnv(TeamsAPI):
     def _receive(self, w: int) -> Any:
         """Worker ``w``'s reply to its oldest pending command (its answer, or its error raised here).
 
-        An interrupt while waiting leaves the reply to be read later; one in the middle of
-        reading it leaves the pipe at an unknown place: the env is then broken.
+        An interrupt while waiting leaves the reply to be read later; one while reading breaks the env.
         """
         conn = self._conns[w]
         try:
@@ -249,7 +208,7 @@ class ShardedBatchedEnv(TeamsAPI):
         raise exc
 
     def _drain(self, w: int) -> None:
-        """Read and drop the replies of calls interrupted before they were read (their ``live`` still booked)."""
+        """Read and drop the replies of interrupted calls (their ``live`` still booked)."""
         while self._pending[w]:
             if self._broken:
                 raise UsageError(self._broken_message())
@@ -261,7 +220,6 @@ class ShardedBatchedEnv(TeamsAPI):
                 pass
 
     def _settle(self) -> None:
-        """Read the replies of interrupted calls now (so ``live`` is the workers')."""
         self._check_open()
         for w in range(len(self._conns)):
             self._drain(w)
@@ -272,12 +230,9 @@ class ShardedBatchedEnv(TeamsAPI):
         self._pending[w].append(msg[0])
         try:
             self._conns[w].send_bytes(data)
-        except (BrokenPipeError, OSError):
-            if not self._procs[w].is_alive():
+        except BaseException as exc:  # a dead worker, or interrupted while writing: how much it got is unknown
+            if isinstance(exc, OSError) and not self._procs[w].is_alive():
                 raise self._dead(w) from None
-            self._torn(w, "sending to")
-            raise
-        except BaseException:  # interrupted while writing: how much the worker got is unknown
             self._torn(w, "sending to")
             raise
 
@@ -320,13 +275,8 @@ class ShardedBatchedEnv(TeamsAPI):
             raise UsageError(self._broken_message())
 
     def _every(self, cmd: str) -> list[Any]:
-        """``cmd`` without arguments for every worker; their answers."""
         return self._all(cmd, [None] * len(self._conns))
 
-    def _split(self, arr: np.ndarray) -> list[np.ndarray]:
-        return [arr[self._starts[w]:self._starts[w + 1]] for w in range(len(self.sizes))]
-
-    # ------------------------------------------------------------------ the batch's API
     @property
     def envs(self) -> list[Any]:
         """Not available here: the teams' envs live in the workers (raises :class:`UsageError`)."""
@@ -359,11 +309,7 @@ class ShardedBatchedEnv(TeamsAPI):
         return np.concatenate([o[0] for o in out]), {}
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
-        """Step every shard at once with its teams' actions ``(K, N, 2)``; the answers in team order.
-
-        The actions are checked here first (the batch's checks and messages), so a bad action
-        steps no team.
-        """
+        """Step every shard with its teams' actions ``(K, N, 2)`` (checked here first: a bad one steps no team)."""
         self._settle()
         if not self._started:
             raise ResetNeeded("step(): call reset() first")
@@ -372,7 +318,8 @@ class ShardedBatchedEnv(TeamsAPI):
             if finished.size:
                 raise finished_error(finished)
         act = parse_actions(actions, self._live, self.nominal_actions, self.shared_settings["clip_actions"])
-        out = self._all("step", self._split(act.reshape(self.num_envs, self.num_agents, 2)))
+        act = act.reshape(self.num_envs, self.num_agents, 2)
+        out = self._all("step", [act[a:b] for a, b in zip(self._starts[:-1], self._starts[1:])])
         obs, rew, term, trunc = (np.concatenate([o[i] for o in out]) for i in range(4))
         infos: dict[str, Any] = {}
         for key in out[0][4]:
@@ -403,16 +350,12 @@ class ShardedBatchedEnv(TeamsAPI):
             if self._broken:  # the pipes cannot be read in step: stop the workers at once (finally)
                 return
             for conn in self._conns:
-                try:
-                    _send(conn, ("close", None))
-                except (BrokenPipeError, OSError):
-                    pass
+                with contextlib.suppress(OSError):
+                    conn.send_bytes(cloudpickle.dumps(("close", None)))
             for conn in self._conns:  # read whatever is still coming (unread replies, the close's) up to EOF
-                try:
+                with contextlib.suppress(EOFError, OSError):
                     while conn.poll(max(0.0, deadline - time.monotonic())):
                         conn.recv_bytes()
-                except (EOFError, OSError):
-                    pass
             for proc in self._procs:
                 proc.join(timeout=max(0.0, deadline - time.monotonic()))
         finally:
@@ -424,7 +367,5 @@ class ShardedBatchedEnv(TeamsAPI):
                 conn.close()
 
     def __del__(self) -> None:
-        try:
+        with contextlib.suppress(Exception):  # interpreter shutdown
             self.close()
-        except Exception:  # noqa: BLE001 - interpreter shutdown
-            pass

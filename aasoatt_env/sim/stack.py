@@ -1,11 +1,7 @@
-"""The stepping core shared by the env (one team) and the batched env (``K`` teams stacked).
+"""The stepping core of the env (one team) and the batched env (``K`` teams in stacked ``(K N, ...)`` arrays).
 
-The state of ``K`` teams of ``N`` robots lives in stacked arrays ``(K N, ...)``.  A step
-holds the actions for ``decision_interval`` physics steps (nominal wheel accelerations,
-input bounds, the control filter, saturation, exact-arc integration) and then computes
-the decision's outputs: reference, neighbour table, clearance, rewards, observations.
-Every operation is per robot or per team, so a team's numbers do not depend on ``K``:
-a batch is bit-identical to its teams stepped as separate envs.
+Every operation is per robot or per team, so a team's numbers do not depend on ``K``: a batch is
+bit-identical to its teams stepped as separate envs.
 """
 
 from __future__ import annotations
@@ -17,14 +13,16 @@ import numpy as np
 from aasoatt_env.errors import ActionError
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import Kinematics
-from aasoatt_env.model.geometry import KDTREE_MIN_ROBOTS, min_gaps, neighbourhood
+from aasoatt_env.model.geometry import KDTREE_MIN_ROBOTS
 from aasoatt_env.model.params import Team, stack_teams
+from aasoatt_env.model.tracking import point_accel_to_du
 from aasoatt_env.sim.observations import Proximity, build_observations, proximity
 from aasoatt_env.sim.protocol import FilterInput, FilterOutput
 from aasoatt_env.sim.references import ReferenceStack
 from aasoatt_env.sim.rewards import rewards
 
 __all__ = ["TeamStack"]
+
 
 def _part(x: np.ndarray, sl: slice | None) -> np.ndarray:
     """Rows ``sl`` of a stacked array as a fresh array, as a team's own env hands its filter (None: all of it)."""
@@ -38,17 +36,13 @@ def _intervened(out: Any) -> np.ndarray:
 
 
 class TeamStack:
-    """The state and the step of ``K`` teams of ``N`` robots (module docstring).
+    """The state and the step of ``K`` teams of ``N`` robots.
 
-    A subclass sets the settings (``dt``, ``decision_interval``, ``action_mode``, the
-    observation slots, ``sensing_range``, ``reward_config``, ``terminate_on_collision``,
-    ``collision_tolerance``), ``_bases`` (the teams' envs, whose ``_control_filter`` is
-    read at every step), ``_grouped`` (one filter for all teams, or None) and
-    ``_offset`` (number of the first team in messages), and calls :meth:`_init_stack`.
+    A subclass sets the env's settings, ``_bases`` (the teams' envs, whose ``_control_filter`` is read at every
+    step), ``_grouped`` (one filter for all teams, or None), ``_offset`` (first team's number in messages).
     """
 
-    _stack_teams: ClassVar[bool] = True
-    """Stack the teams into one :class:`Team` with ``group`` labels (False: the one team as it is)."""
+    _stack_teams: ClassVar[bool] = True  # one Team with `group` labels (False: the one team as it is)
 
     def _init_stack(self, k: int, n: int) -> None:
         self._k, self._n = k, n
@@ -56,20 +50,14 @@ class TeamStack:
         self._teams: list[Team | None] = [None] * k
         self._team: Team | None = None
         self._team_ids: list[int] | None = None
-        self._times = np.zeros(k)
-        self._steps = np.zeros(k, dtype=np.int64)
-        self._max_steps = np.zeros(k, dtype=np.int64)
-        self._pose = np.zeros((k * n, 3))
-        self._u = np.zeros((k * n, 2))
-        self._active = np.zeros(k * n, dtype=bool)
-        self._saturated = np.zeros(k * n, dtype=bool)
-        self._last_action = np.zeros((k * n, 2))
+        self._times, self._steps, self._max_steps = np.zeros(k), np.zeros(k, np.int64), np.zeros(k, np.int64)
+        self._pose, self._u, self._last_action = np.zeros((k * n, 3)), np.zeros((k * n, 2)), np.zeros((k * n, 2))
+        self._active, self._saturated = np.zeros(k * n, dtype=bool), np.zeros(k * n, dtype=bool)
         self._clearance = np.full(k * n, np.inf)
         self._kin: Kinematics | None = None
         self._filter_resets: list[int] = []
 
     def _take_team(self, k: int, src: TeamStack, j: int) -> None:
-        """Copy the state of team ``j`` of ``src`` into team ``k`` of this stack (then :meth:`_restack`)."""
         n = self._n
         a, b = slice(k * n, (k + 1) * n), slice(j * n, (j + 1) * n)
         self._layouts[k], self._teams[k] = src._layouts[j], src._teams[j]
@@ -93,13 +81,11 @@ class TeamStack:
         uniform = len({lay.obstacle_radii.shape[0] for lay in layouts}) == 1
         self._ocenters = np.stack([lay.obstacle_centers for lay in layouts]) if uniform else None
         self._oradii = np.stack([lay.obstacle_radii for lay in layouts]) if uniform else None
-        self._stackable = uniform and (self._k == 1 or self._n < KDTREE_MIN_ROBOTS)
-        """One neighbour query for all teams (else one per team)."""
+        self._stackable = uniform and (self._k == 1 or self._n < KDTREE_MIN_ROBOTS)  # one neighbour query for all
         m = self._ocenters.shape[1] if uniform else 0
         self._obs_obstacles = (self._ocenters.reshape(-1, 2), self._oradii.ravel(),
                                np.repeat(np.arange(self._k) * m, self._n) if m and self._k > 1 else None
-                               ) if uniform else None
-        """The obstacles as :func:`~aasoatt_env.sim.observations.build_observations` reads them (None: ragged)."""
+                               ) if uniform else None  # as build_observations reads them (None: ragged)
         if self._grouped is not None:
             n = self._n
             rows = np.concatenate([np.arange(k * n, (k + 1) * n) for k in self._filter_resets]
@@ -112,7 +98,6 @@ class TeamStack:
         self._filter_resets = []
         self._ref_now = self._references()
 
-    # ------------------------------------------------------------------ one step
     def _references(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Every team's reference at its own time (read-only: shared with the filter's input)."""
         ref = self._ref_stack(self._times)
@@ -121,19 +106,12 @@ class TeamStack:
         return ref
 
     def _nominal_du(self, act: np.ndarray, kin: Kinematics) -> np.ndarray:
-        team = self._team
         if self.action_mode == "wheel":
-            return act * team.max_wheel_accel[:, None]
-        a = act * team.max_point_accel[:, None] - kin.adot_u
-        return np.linalg.solve(kin.A, a[..., None])[..., 0]
+            return act * self._team.max_wheel_accel[:, None]
+        return point_accel_to_du(kin, act * self._team.max_point_accel[:, None])
 
     def _physics(self, act: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, list[list[FilterOutput]]]:
-        """Hold ``act`` for ``decision_interval`` physics steps (the state is untouched if one fails).
-
-        Returns which robots were saturated, their clearance at the physics steps between the
-        decisions (None for one physics step) and the filter's outputs of each physics step.
-        The reference is evaluated at the new time too.
-        """
+        """Hold ``act`` for ``decision_interval`` physics steps (all or none): saturated, clearance between, outputs."""
         team, dt, steps = self._team, self.dt, self.decision_interval
         pose, u, kin = self._pose, self._u, self._kin
         any_frozen = not self._active.all()
@@ -163,7 +141,7 @@ class TeamStack:
                 self._times = self._times + dt
                 kin = dynamics.kinematics(team, pose, u)
                 if sub < steps - 1:
-                    gaps = self._gaps(kin.p)
+                    gaps = self._neighbours(kin.p, 0).clearance
                     between = gaps if between is None else np.minimum(between, gaps)
             ref = self._references()  # (a reference that fails here leaves the state as it was)
         except BaseException:
@@ -211,8 +189,7 @@ class TeamStack:
     def _neighbours(self, p: np.ndarray, k: int) -> Proximity:
         """:func:`~aasoatt_env.sim.observations.proximity` of every team (indices into the stack)."""
         if self._stackable:
-            return proximity(p, self._team.radius, self._ocenters, self._oradii, k, self._k,
-                             self._equal_radii)
+            return proximity(p, self._team.radius, self._ocenters, self._oradii, k, self._k, self._equal_radii)
         n = self._n
         parts = [proximity(p[j * n:(j + 1) * n], t.radius, lay.obstacle_centers, lay.obstacle_radii, k)
                  for j, (t, lay) in enumerate(zip(self._teams, self._layouts))]
@@ -221,21 +198,8 @@ class TeamStack:
                          np.concatenate([q.obstacle_gaps for q in parts]) if self._ocenters is not None else None,
                          np.concatenate([q.clearance for q in parts]))
 
-    def _gaps(self, p: np.ndarray) -> np.ndarray:
-        """Clearance ``(K N,)`` of every robot to its team and obstacles (as ``geometry.min_gaps``)."""
-        if self._stackable:
-            return neighbourhood(p, self._team.radius, self._ocenters, self._oradii, 0, self._k,
-                                 self._equal_radii)[3]
-        n = self._n
-        return np.concatenate([min_gaps(p[j * n:(j + 1) * n], t.radius, lay.obstacle_centers, lay.obstacle_radii)
-                               for j, (t, lay) in enumerate(zip(self._teams, self._layouts))])
-
     def _refresh(self, between: np.ndarray | None = None, reference: bool = True) -> None:
-        """Reference (unless ``reference`` is False), neighbour table, tracking error and clearance now.
-
-        ``between``: clearance at the physics steps since the last decision; the reported
-        clearance (and so a collision) is the smallest over the whole env step.
-        """
+        """Reference, neighbour table, tracking error and clearance now (the smallest with ``between``'s)."""
         if reference:
             self._ref_now = self._references()
         self._prox = self._neighbours(self._kin.p, max(self.num_neighbors, 1))
@@ -245,7 +209,6 @@ class TeamStack:
         self._collided = self._clearance < -self.collision_tolerance
 
     def _observations(self) -> np.ndarray:
-        """Observations ``(K N, D)`` float32 of every robot (:mod:`aasoatt_env.sim.observations`)."""
         if self._obs_obstacles is None:  # teams with different numbers of obstacles: one call per team
             return np.concatenate([self._team_observations(j) for j in range(self._k)])
         (p_d, v_d, a_d), centers, radii, offset = self._ref_now, *self._obs_obstacles
@@ -256,7 +219,6 @@ class TeamStack:
             prox=self._prox, obstacle_offset=offset)
 
     def _team_observations(self, j: int) -> np.ndarray:
-        """Team ``j``'s observations on their own."""
         sl, kin, (p_d, v_d, a_d) = slice(j * self._n, (j + 1) * self._n), self._kin, self._ref_now
         r, lay = self._teams[j].radius, self._layouts[j]
         prox = proximity(kin.p[sl], r, lay.obstacle_centers, lay.obstacle_radii, max(self.num_neighbors, 1))
@@ -268,12 +230,9 @@ class TeamStack:
 
     def _decide(self, act: np.ndarray, saturated: np.ndarray, between: np.ndarray | None,
                 outputs: list[list[FilterOutput]]) -> tuple:
-        """The outputs of the decision just stepped.
+        """``(obs, rewards, collided, terminated, truncated, correction, goal_distance)`` of the decision just stepped.
 
-        Returns ``(obs, rewards, collided, terminated, truncated, correction, goal_distance)``:
-        ``(K N, ...)`` arrays, ``terminated`` None without ``terminate_on_collision``,
-        ``truncated`` per team, the filter's largest correction over the physics steps (None
-        without a filter) and the distances to the goals (None unless rewarded).
+        ``terminated``, ``correction`` (the largest) and ``goal_distance`` are None where not needed.
         """
         self._last_action, self._saturated = act, saturated
         self._steps += 1

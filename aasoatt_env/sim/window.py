@@ -21,11 +21,7 @@ def _display_available() -> bool:
 
 
 class Window:
-    """A pygame window of ``width x height`` pixels, opened at the first :meth:`show`.
-
-    Without a display it warns once (``RuntimeWarning``) and does nothing; it never raises
-    for lack of a display.  Closing the window stops further updates.
-    """
+    """A pygame window opened at the first :meth:`show`; without a display: one ``RuntimeWarning``, nothing else."""
 
     def __init__(self, pg: ModuleType, width: int, height: int) -> None:
         self._pg, self.width, self.height = pg, width, height

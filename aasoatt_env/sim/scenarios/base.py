@@ -19,21 +19,22 @@ __all__ = ["MAX_ROBOTS", "Layout", "Scenario", "bounds_around", "check_clear_of_
            "max_robots_on_circle"]
 
 MAX_ROBOTS: int = 100_000
-"""Largest team a scenario builds (the work of a step grows with the team)."""
+"""Largest team a scenario builds."""
+QUANTITY_RANGE: tuple[float, float] = (1e-6, 1e6)
+"""Valid range of a scenario's lengths [m], durations [s] and speeds [m/s] (beyond it a layout under- or overflows)."""
+TOUCH_TOL: float = 2.5e-10
+"""How far inside contact [m] a start still counts as touching (rounding); half the backup check's tolerance."""
 
 
 @dataclass
 class Layout:
-    """Everything the environment needs to start an episode."""
+    """What the env needs to start an episode: control-point ``starts (N, 2)``, ``headings (N,)``, ``horizon`` [s]."""
 
     team: Team
     starts: np.ndarray
-    """Initial control-point positions, ``(N, 2)``."""
     headings: np.ndarray
-    """Initial headings, ``(N,)``."""
     reference: Reference
     horizon: float
-    """Episode length [s] (reference duration plus settling time)."""
     obstacle_centers: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     obstacle_radii: np.ndarray = field(default_factory=lambda: np.zeros(0))
     bounds: tuple[float, float, float, float] = (-7.0, 7.0, -7.0, 7.0)
@@ -43,8 +44,7 @@ class Scenario:
     """Base class: subclasses set ``name``, validate in ``__init__`` and implement ``build``."""
 
     name: ClassVar[str] = ""
-    random: ClassVar[bool] = False
-    """True when the layout depends on the seed."""
+    random: ClassVar[bool] = False  # the layout depends on the seed
 
     def build(self, rng: np.random.Generator) -> Layout:  # pragma: no cover - abstract
         """Return the layout of a new episode."""
@@ -66,11 +66,6 @@ def check_num_robots(value: Any) -> int:
     return check.integer("num_robots", value, lo=1, hi=MAX_ROBOTS)
 
 
-QUANTITY_RANGE: tuple[float, float] = (1e-6, 1e6)
-"""Valid range of a scenario's lengths [m], durations [s] and speeds [m/s]: beyond it the
-arithmetic of a layout (a division by a speed, a reference time) under- or overflows."""
-
-
 def check_quantity(name: str, value: Any) -> float:
     """A scenario length, duration or speed: a finite number in :data:`QUANTITY_RANGE`."""
     return check.real(name, value, lo=QUANTITY_RANGE[0], hi=QUANTITY_RANGE[1])
@@ -82,8 +77,8 @@ def check_settle_time(value: Any) -> float:
 
 
 def max_robots_on_circle(circle_radius: float, robot_radius: float) -> int:
-    """Most robots of ``robot_radius`` that fit evenly, non-overlapping, on the circle."""
-    ratio = robot_radius / circle_radius  # chord 2 R sin(pi/N) >= 2 r
+    """Most robots of ``robot_radius`` that fit evenly on the circle without overlap (``R sin(pi/N) >= r``)."""
+    ratio = robot_radius / circle_radius
     if ratio >= 1.0:
         return 1
     return int(math.floor(math.pi / math.asin(ratio) + 1e-9))
@@ -120,32 +115,17 @@ def check_clear_of_obstacles(name: str, points: np.ndarray, radii: np.ndarray, o
     over = gap < -_touching(reach)
     if np.any(over):
         i, k = np.argwhere(over)[0]
-        raise ScenarioError(
-            f"{name}: robot {i} at {points[i].round(3).tolist()} overlaps obstacle {k} "
-            f"(gap {gap[i, k]:.3f} m); move the obstacle or the robot"
-        )
-
-
-TOUCH_TOL: float = 2.5e-10
-"""How far inside contact [m] a start still counts as touching (rounding); the backup check forgives twice this
-(:data:`aasoatt_env.safety.repair.GATE_TOL`), so a start that passes here is brake-safe at rest."""
+        raise ScenarioError(f"{name}: robot {i} at {points[i].round(3).tolist()} overlaps obstacle {k} "
+                            f"(gap {gap[i, k]:.3f} m); move the obstacle or the robot")
 
 
 def _touching(contact: np.ndarray) -> np.ndarray:
-    """How far inside ``contact`` (the sum of two radii) a start still counts as touching: rounding.
-
-    ``1e-9`` of it, at most :data:`TOUCH_TOL`.
-    """
+    """How far inside ``contact`` (the sum of two radii) a start still counts as touching: ``1e-9`` of it at most."""
     return np.minimum(1e-9 * contact, TOUCH_TOL)
 
 
 def check_no_overlap(name: str, points: np.ndarray, radii: np.ndarray, groups: np.ndarray | None = None) -> None:
-    """Raise :class:`ScenarioError` if a start is not finite or two robots of ``radii`` at ``points`` overlap.
-
-    Robots that touch (up to rounding: ``1e-9`` of the distance, at most :data:`TOUCH_TOL`) do not overlap; robots of
-    different ``groups`` (stacked teams) never meet, so only pairs of one group count.  A
-    neighbour search (no ``N x N`` table), so it is cheap for large teams too.
-    """
+    """Raise :class:`ScenarioError` if a start is not finite or two robots of one of ``groups`` overlap (not touch)."""
     points = np.asarray(points, dtype=np.float64)
     bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
     if bad.size:

@@ -10,20 +10,12 @@ from aasoatt_env.sim.scenarios.circle_swap import CircleSwap
 
 __all__ = ["FIG5_OBSTACLES", "CircleSwapObstacles"]
 
-FIG5_OBSTACLES: tuple[tuple[float, float, float], ...] = (
-    (0.0, 0.0, 0.6),
-    (2.8, 1.6, 0.4),
-    (-2.2, -2.6, 0.8),
-)
+FIG5_OBSTACLES: tuple[tuple[float, float, float], ...] = ((0.0, 0.0, 0.6), (2.8, 1.6, 0.4), (-2.2, -2.6, 0.8))
 """The three obstacles of our Fig. 5 preset: ``(x, y, radius)``."""
 
 
 class CircleSwapObstacles(CircleSwap):
-    """Circle swap among static disc obstacles (the paper's Fig. 5 by default).
-
-    Same parameters as :class:`~aasoatt_env.sim.scenarios.circle_swap.CircleSwap`
-    (default 20 robots); ``obstacles`` defaults to :data:`FIG5_OBSTACLES`.
-    """
+    """Circle swap among static disc obstacles (default: 20 robots, :data:`FIG5_OBSTACLES`), as :class:`.CircleSwap`."""
 
     name = "circle_obstacles"
 

@@ -10,16 +10,8 @@ from aasoatt_env import validation as check
 from aasoatt_env.errors import ScenarioError
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import LinearReference
-from aasoatt_env.sim.scenarios.base import (
-    Layout,
-    Scenario,
-    check_clear_of_obstacles,
-    check_num_robots,
-    check_obstacles,
-    check_quantity,
-    check_settle_time,
-    max_robots_on_circle,
-)
+from aasoatt_env.sim.scenarios import base
+from aasoatt_env.sim.scenarios.base import Layout, Scenario
 
 __all__ = ["CircleSwap"]
 
@@ -27,54 +19,32 @@ __all__ = ["CircleSwap"]
 class CircleSwap(Scenario):
     """N robots evenly on a circle; each tracks the straight line to its antipode.
 
-    Parameters
-    ----------
-    num_robots : int
-        N >= 1; at most as many as fit on the circle without overlap.
-    radius : float
-        Circle radius [m] (paper: 6 with 12 s, 10 with 20 s).
-    duration : float
-        Travel time of the reference [s].
-    settle_time : float
-        Extra time after the reference ends [s] (episode horizon = duration + settle_time).
-    robots : str, RobotParams or sequence
-        Robot preset(s), see :func:`aasoatt_env.model.params.make_team`.
-    profile : {"linear", "smooth"}
-        Timing of the straight-line reference.
-    obstacles : tuple (centres (M, 2), radii (M,)), optional
-        Static disc obstacles (none may cover a start or a goal).
+    ``radius`` [m] and travel time ``duration`` [s] (paper: 6 m in 12 s, 10 m in 20 s); the horizon adds
+    ``settle_time`` [s].  ``robots``: :func:`~aasoatt_env.model.params.make_team`'s; ``profile``:
+    :class:`~aasoatt_env.sim.references.LinearReference`'s; ``obstacles``: ``(centres (M, 2), radii (M,))``.
     """
 
     name = "circle_swap"
 
-    def __init__(
-        self,
-        num_robots: int = 10,
-        radius: float = 6.0,
-        duration: float = 12.0,
-        settle_time: float = 3.0,
-        robots: str | RobotParams | list = "paper",
-        profile: str = "linear",
-        obstacles: tuple[Any, Any] | None = None,
-    ) -> None:
-        self.num_robots_ = check_num_robots(num_robots)
-        self.radius = check_quantity("radius", radius)
-        self.duration = check_quantity("duration", duration)
-        self.settle_time = check_settle_time(settle_time)
+    def __init__(self, num_robots: int = 10, radius: float = 6.0, duration: float = 12.0, settle_time: float = 3.0,
+                 robots: str | RobotParams | list = "paper", profile: str = "linear",
+                 obstacles: tuple[Any, Any] | None = None) -> None:
+        self.num_robots_ = base.check_num_robots(num_robots)
+        self.radius = base.check_quantity("radius", radius)
+        self.duration = base.check_quantity("duration", duration)
+        self.settle_time = base.check_settle_time(settle_time)
         self.robots = robots
         self.profile = check.choice("profile", profile, ("linear", "smooth"))
         self._team = make_team(robots, self.num_robots_)
         rmax = float(self._team.radius.max())
-        fit = max_robots_on_circle(self.radius, rmax) if self.num_robots_ > 1 else 1
+        fit = base.max_robots_on_circle(self.radius, rmax) if self.num_robots_ > 1 else 1
         if self.num_robots_ > fit:
-            raise ScenarioError(
-                f"num_robots: got {self.num_robots_}, but at most {fit} robots of radius {rmax:g} "
-                f"fit on a circle of radius {self.radius:g}"
-            )
-        self._obstacles = check_obstacles(obstacles)
+            raise ScenarioError(f"num_robots: got {self.num_robots_}, but at most {fit} robots of radius {rmax:g} "
+                                f"fit on a circle of radius {self.radius:g}")
+        self._obstacles = base.check_obstacles(obstacles)
         starts, goals = self._starts_goals()
-        check_clear_of_obstacles("obstacles", starts, self._team.radius, self._obstacles)
-        check_clear_of_obstacles("obstacles", goals, self._team.radius, self._obstacles)
+        base.check_clear_of_obstacles("obstacles", starts, self._team.radius, self._obstacles)
+        base.check_clear_of_obstacles("obstacles", goals, self._team.radius, self._obstacles)
 
     def _starts_goals(self) -> tuple[np.ndarray, np.ndarray]:
         n = self.num_robots_

@@ -7,14 +7,8 @@ import numpy as np
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import LinearReference
-from aasoatt_env.sim.scenarios.base import (
-    QUANTITY_RANGE,
-    Layout,
-    Scenario,
-    check_no_overlap,
-    check_quantity,
-    check_settle_time,
-)
+from aasoatt_env.sim.scenarios import base
+from aasoatt_env.sim.scenarios.base import Layout, Scenario
 
 __all__ = ["PositionSwap"]
 
@@ -22,42 +16,26 @@ __all__ = ["PositionSwap"]
 class PositionSwap(Scenario):
     """Four robots on the corners of a square swap with the opposite corner.
 
-    The paper's TurtleBot3 experiment: each robot travels ``distance`` = 2.24 m
-    at ``speed`` = 0.1 m/s (22.4 s), so the square's diagonal is 2.24 m.
-
-    Parameters
-    ----------
-    distance, speed : float
-        Travel distance [m] and reference speed [m/s].
-    settle_time : float
-        Extra time after the reference ends [s].
-    robots : str or RobotParams
-        Robot preset (default ``"turtlebot3_burger"``).
+    Each travels the diagonal ``distance`` [m] at ``speed`` [m/s] (the paper's TurtleBot3 experiment:
+    2.24 m at 0.1 m/s); the horizon is the travel time plus ``settle_time`` [s].
     """
 
     name = "position_swap"
 
-    def __init__(
-        self,
-        distance: float = 2.24,
-        speed: float = 0.1,
-        settle_time: float = 5.0,
-        robots: str | RobotParams = "turtlebot3_burger",
-    ) -> None:
-        self.distance = check_quantity("distance", distance)
-        self.speed = check_quantity("speed", speed)
-        self.settle_time = check_settle_time(settle_time)
-        if self.distance / self.speed > QUANTITY_RANGE[1]:
-            raise ConfigError(
-                f"speed: got {self.speed:g}, which takes {self.distance / self.speed:.3g} s for distance "
-                f"{self.distance:g}; expected a travel time <= {QUANTITY_RANGE[1]:g} s"
-            )
+    def __init__(self, distance: float = 2.24, speed: float = 0.1, settle_time: float = 5.0,
+                 robots: str | RobotParams = "turtlebot3_burger") -> None:
+        self.distance = base.check_quantity("distance", distance)
+        self.speed = base.check_quantity("speed", speed)
+        self.settle_time = base.check_settle_time(settle_time)
+        if self.distance / self.speed > base.QUANTITY_RANGE[1]:
+            raise ConfigError(f"speed: got {self.speed:g}, which takes {self.distance / self.speed:.3g} s for distance "
+                              f"{self.distance:g}; expected a travel time <= {base.QUANTITY_RANGE[1]:g} s")
         self.robots = robots
         self.num_robots_ = 4
         self._team = make_team(robots, 4)
         # the square's corners must hold the robots (neighbouring corners are distance / sqrt(2) apart)
-        check_no_overlap(f"distance: got {self.distance:g} m, whose start corners do not hold the robots",
-                         PositionSwap.build(self, np.random.default_rng(0)).starts, self._team.radius)
+        base.check_no_overlap(f"distance: got {self.distance:g} m, whose start corners do not hold the robots",
+                              PositionSwap.build(self, np.random.default_rng(0)).starts, self._team.radius)
 
     def build(self, rng: np.random.Generator) -> Layout:
         """Return the (deterministic) corner-swap layout."""

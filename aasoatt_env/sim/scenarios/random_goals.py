@@ -11,99 +11,57 @@ from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError, ScenarioError
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import LinearReference
-from aasoatt_env.sim.scenarios.base import (
-    QUANTITY_RANGE,
-    Layout,
-    Scenario,
-    check_num_robots,
-    check_quantity,
-    check_settle_time,
-)
+from aasoatt_env.sim.scenarios import base
+from aasoatt_env.sim.scenarios.base import Layout, Scenario
 
 __all__ = ["MAX_OBSTACLES", "RandomGoals"]
 
 MAX_OBSTACLES: int = 1000
 """Largest ``random_obstacles``."""
-
-_SEQUENTIAL_MAX = 2000
-"""Up to this many robots, points are placed one by one; larger teams use vectorised batches."""
-_SEQUENTIAL_TRIES = 50
-"""Whole-set tries of the sequential sampler."""
+_SEQUENTIAL_MAX = 2000  # up to this many robots points are placed one by one, else in vectorised batches
+_SEQUENTIAL_TRIES = 50  # whole-set tries of the one-by-one sampler
 
 
 class RandomGoals(Scenario):
     """Random starts and goals in a square arena, for learning.
 
-    Starts (and, separately, goals) are at least ``min_spacing`` apart, centre
-    to centre (default: the robots' diameter plus 0.2 m), drawn by rejection
-    sampling from the episode's seeded generator.  Each robot tracks a straight
-    line to its goal at ``speed`` (so the reference durations differ; the
-    episode horizon is the longest plus ``settle_time``).
-
-    Parameters
-    ----------
-    num_robots : int
-        N >= 1.
-    arena_size : float, optional
-        Side of the square arena [m]; default grows with ``sqrt(N)``.
-    min_spacing : float, optional
-        Minimum centre distance between starts and between goals [m].
-    speed : float
-        Reference speed [m/s].
-    settle_time : float
-        Extra time after the longest reference ends [s].
-    robots : str, RobotParams or sequence
-        Robot preset(s).
-    random_obstacles : int
-        Static disc obstacles (radius 0.3-0.8 m) placed at random, clear of
-        every start and goal by at least the robots' radius plus 0.1 m (default 0).
+    Starts (and goals) are at least ``min_spacing`` [m] apart, centre to centre (default: the
+    robots' diameter plus 0.2 m), in an arena of side ``arena_size`` [m] (default grows with
+    ``sqrt(N)``), drawn from the episode's seeded generator.  Each robot tracks the straight line to
+    its goal at ``speed`` [m/s]; the horizon is the longest travel plus ``settle_time`` [s].
+    ``random_obstacles`` discs (radius 0.3-0.8 m) lie clear of every start and goal by the robots'
+    radius plus 0.1 m.
     """
 
     name = "random_goals"
     random = True
 
-    def __init__(
-        self,
-        num_robots: int = 6,
-        arena_size: float | None = None,
-        min_spacing: float | None = None,
-        speed: float = 0.8,
-        settle_time: float = 3.0,
-        robots: str | RobotParams | list = "paper",
-        random_obstacles: int = 0,
-    ) -> None:
-        self.num_robots_ = check_num_robots(num_robots)
+    def __init__(self, num_robots: int = 6, arena_size: float | None = None, min_spacing: float | None = None,
+                 speed: float = 0.8, settle_time: float = 3.0, robots: str | RobotParams | list = "paper",
+                 random_obstacles: int = 0) -> None:
+        self.num_robots_ = base.check_num_robots(num_robots)
         self.random_obstacles = check.integer("random_obstacles", random_obstacles, lo=0, hi=MAX_OBSTACLES)
         self._team = make_team(robots, self.num_robots_)
         d = 2.0 * float(self._team.radius.max())
-        self.min_spacing = d + 0.2 if min_spacing is None else check_quantity("min_spacing", min_spacing)
+        self.min_spacing = d + 0.2 if min_spacing is None else base.check_quantity("min_spacing", min_spacing)
         if self.min_spacing < d:
             raise ConfigError(f"min_spacing: got {self.min_spacing:g}, expected >= robot diameter {d:g}")
         default_arena = max(6.0, 2.2 * self.min_spacing * math.sqrt(self.num_robots_))
-        self.arena_size = default_arena if arena_size is None else check_quantity("arena_size", arena_size)
-        self.speed = check_quantity("speed", speed)
-        self.settle_time = check_settle_time(settle_time)
+        self.arena_size = default_arena if arena_size is None else base.check_quantity("arena_size", arena_size)
+        self.speed = base.check_quantity("speed", speed)
+        self.settle_time = base.check_settle_time(settle_time)
         self.robots = robots
         longest = math.sqrt(2.0) * self.arena_size / self.speed
-        if longest > QUANTITY_RANGE[1]:
-            raise ConfigError(
-                f"speed: got {self.speed:g}, so a robot may need {longest:.3g} s to cross the arena of size "
-                f"{self.arena_size:g}; expected a travel time <= {QUANTITY_RANGE[1]:g} s"
-            )
-        # packing sanity check: fraction of the arena the spacing discs would cover
+        if longest > base.QUANTITY_RANGE[1]:
+            raise ConfigError(f"speed: got {self.speed:g}, so a robot may need {longest:.3g} s to cross the arena of "
+                              f"size {self.arena_size:g}; expected a travel time <= {base.QUANTITY_RANGE[1]:g} s")
         cover = self.num_robots_ * math.pi * (self.min_spacing / 2) ** 2 / self.arena_size**2
         if cover > 0.45:
-            raise ScenarioError(
-                f"num_robots / arena_size / min_spacing: {self.num_robots_} robots with spacing "
-                f"{self.min_spacing:g} do not fit reliably in an arena of size {self.arena_size:g} "
-                f"(cover {cover:.2f}, expected <= 0.45)"
-            )
+            raise ScenarioError(f"num_robots / arena_size / min_spacing: {self.num_robots_} robots with spacing "
+                                f"{self.min_spacing:g} do not fit reliably in an arena of size {self.arena_size:g} "
+                                f"(cover {cover:.2f}, expected <= 0.45)")
 
     def _sample(self, rng: np.random.Generator) -> np.ndarray:
-        """Points at least ``min_spacing`` apart: one at a time, the whole set again where one finds no room.
-
-        Near the cover check's limit the first points can leave no room for the last.
-        """
         if self.num_robots_ > _SEQUENTIAL_MAX:
             return self._sample_batched(rng)
         n = self.num_robots_
@@ -129,11 +87,7 @@ class RandomGoals(Scenario):
         return pts
 
     def _sample_batched(self, rng: np.random.Generator) -> np.ndarray:
-        """Dart throwing in vectorised batches, for large teams.
-
-        Candidates far enough from every accepted point and from the earlier
-        candidates of their batch are kept (``O(N log N)`` per round).
-        """
+        """Dart throwing in vectorised batches (large teams): candidates clear of the points and earlier candidates."""
         n, half, s = self.num_robots_, self.arena_size / 2.0 - self.min_spacing / 2.0, self.min_spacing
         pts = np.empty((0, 2))
         for _ in range(200):

@@ -18,39 +18,18 @@ __all__ = ["Tracking"]
 class Tracking(Scenario):
     """One robot tracking a straight, sine or circle reference (Table I).
 
-    Parameters
-    ----------
-    trajectory : {"straight", "sine", "circle"}
-        ``straight``: ``p_d = (v t, v t / 2)``; ``sine``: ``p_d = (v t, A sin(w t))``;
-        ``circle``: ``p_d = R (cos(w t), sin(w t))`` with ``w = v / R``.
-    speed : float
-        Nominal speed ``v`` [m/s].
-    amplitude, frequency : float
-        Sine amplitude ``A`` [m] and angular frequency ``w`` [rad/s].
-    circle_radius : float
-        ``R`` [m] for the circle.
-    duration : float
-        Episode length [s].
-    robots : str or RobotParams
-        Robot preset.
-    reference : Reference or callable, optional
-        A user reference instead of the three built-ins.
+    ``trajectory``: ``"straight"``, ``p_d = (v t, v t / 2)``; ``"sine"``, ``p_d = (v t, A sin(w t))``;
+    ``"circle"``, ``p_d = R (cos(v t / R), sin(v t / R))``, with ``speed`` ``v`` [m/s], ``amplitude``
+    ``A`` [m], ``frequency`` ``w`` [rad/s] and ``circle_radius`` ``R`` [m].  ``duration``: the episode
+    [s]; ``reference``: a user reference (object or callable) instead of the built-ins.
     """
 
     name = "tracking"
     TRAJECTORIES: ClassVar[tuple[str, ...]] = ("straight", "sine", "circle")
 
-    def __init__(
-        self,
-        trajectory: str = "circle",
-        speed: float = 0.5,
-        amplitude: float = 1.0,
-        frequency: float = 0.5,
-        circle_radius: float = 2.0,
-        duration: float = 12.0,
-        robots: str | RobotParams = "paper",
-        reference: Any = None,
-    ) -> None:
+    def __init__(self, trajectory: str = "circle", speed: float = 0.5, amplitude: float = 1.0, frequency: float = 0.5,
+                 circle_radius: float = 2.0, duration: float = 12.0, robots: str | RobotParams = "paper",
+                 reference: Any = None) -> None:
         check.choice("trajectory", trajectory, self.TRAJECTORIES)  # checked even when `reference` replaces it
         self.trajectory = trajectory
         self.speed = check_quantity("speed", speed)
