@@ -412,7 +412,7 @@ def test_twenty_thousand_random_robots_build_quickly() -> None:
 
 def test_random_goals_near_the_cover_limit_places_every_robot_and_keeps_the_spacing() -> None:
     """12 robots 0.96 m apart in a 4.4 m arena (cover 0.449, inside the check): one try of the one-by-one sampler
-    failed on 5 of 10 seeds (an adversarial tester, 2026-12-02); whole-set retries place them all."""
+    fails on some seeds; whole-set retries place them all on every seed."""
     scen = RandomGoals(num_robots=12, min_spacing=0.96, arena_size=4.4)
     for seed in range(10):
         layout = scen.build(np.random.default_rng(seed))

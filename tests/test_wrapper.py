@@ -159,7 +159,7 @@ def test_hostile_policy_on_unlimited_robots_needs_the_backup_layer():
 
 def test_terminate_on_collision_below_the_rounding_allowance_is_refused_behind_the_filter():
     """At tolerance 0 a rounding overlap (1e-16 m) 'terminates' a moving robot, which the env stops in place: an
-    input the filter did not return, and the robot behind it ran into it (-0.5 mm, found by an adversarial test)."""
+    input the filter did not return, and the robot behind it would run into it (by -0.5 mm)."""
     starts = np.array([[0.0, 0.0], [-0.96, 0.0], [-1.9201, 0.0]])  # a convoy: 0 and 1 touch, 2 is 0.1 mm behind
     kw = {"starts": starts, "reference": {"waypoints": np.repeat(starts[:, None], 2, axis=1), "times": [0.0, 1.0]},
           "headings": [0.0, 0.0, 0.0], "terminate_on_collision": True}
