@@ -613,7 +613,11 @@ def test_the_fused_step_gives_the_pipelines_steps_bit_for_bit(monkeypatch, scene
     assert len(out) == len(ref) >= (60 if scene == "large" else 400)
     _assert_same_steps(out, ref)
     answers = [a for _, a in steps if not isinstance(a, str)]
-    assert len(answers) == len(out) - 1  # (every step but the first, which has no warm start)
+    tried = [k for k, (_, a) in enumerate(steps) if not isinstance(a, str)]
+    answered_before = [out[k - 1][1].message.split(";")[0] in ("closed form: no row binds",
+                                                               "active set (warm, KKT verified)")
+                       for k in range(1, len(out))]
+    assert tried == [k for k, yes in enumerate(answered_before, start=1) if yes]  # (after a step the kernels answered)
     whole = sum(a is not None and a[2] is not None for a in answers)
     rows_and_qp = sum(a is not None and a[2] is None for a in answers)
     if scene != "large":  # (250 robots under a hostile policy: the pipeline answers every step)
@@ -621,7 +625,7 @@ def test_the_fused_step_gives_the_pipelines_steps_bit_for_bit(monkeypatch, scene
     if scene in ("infeasible", "random"):
         assert rows_and_qp > 10
     if scene == "infeasible":
-        assert sum(a is None for a in answers) > 5
+        assert sum(a is None for a in answers) > 0
 
 
 @needs_numba

@@ -14,7 +14,6 @@ stay reachable); a float adds that constant instead, ``0`` the paper's exact bar
 from __future__ import annotations
 
 import functools
-
 from collections.abc import Mapping
 from dataclasses import dataclass, fields, replace
 from typing import Any
