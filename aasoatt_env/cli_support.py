@@ -1,10 +1,9 @@
 """What every ``aasoatt`` command shares: one-line errors, option types, output paths, atomic writes, progress.
 
-Options and output paths are checked before any work starts; a user error (any
-:class:`~aasoatt_env.errors.AASOATTError`) prints one line ``aasoatt <command>: error: ...`` and exits 2
-(``--debug``: the traceback); every file is written under a temporary name, then renamed into place, so
-an interrupted command leaves the earlier state or the whole new file; results are replaced only with
-``--overwrite``.
+Options and output paths are checked before any work starts.  A user error (any
+:class:`~aasoatt_env.errors.AASOATTError`) prints ``aasoatt <command>: error: ...`` and exits 2 (``--debug``:
+the traceback).  Every file is written under a temporary name and renamed into place, so an interrupted
+command leaves the earlier file or the whole new one; results are replaced only with ``--overwrite``.
 """
 
 from __future__ import annotations
@@ -26,7 +25,7 @@ from aasoatt_env.validation import short_repr
 __all__ = ["OutputPlan", "Parser", "add_common_options", "atomic_write", "int_option", "path_option", "progress",
            "real_option", "run_guarded", "staged"]
 
-#: Marks the temporary files of :func:`staged` (and of ``save_animation``): never taken for results.
+#: Marks the temporary files of :func:`staged`: never taken for results.
 PARTIAL = ".partial"
 
 
@@ -39,7 +38,7 @@ class Parser(argparse.ArgumentParser):
 
 
 def add_common_options(parser: argparse.ArgumentParser, overwrite: bool = True) -> None:
-    """``--debug`` (and ``--overwrite`` for commands that write results)."""
+    """Add ``--debug`` (and ``--overwrite`` for commands that write results)."""
     parser.add_argument("--debug", action="store_true", help="on an error, show the full traceback")
     if overwrite:
         parser.add_argument("--overwrite", action="store_true",
@@ -65,7 +64,6 @@ def run_guarded(prog: str, argv: Sequence[str], body: Callable[[list[str]], int]
         return 2 if isinstance(exc, AASOATTError) else 1
 
 
-# ---------------------------------------------------------------------------------------- option types
 def _number_option(kind: type, expected: str, ok: Callable[[Any], bool]) -> Callable[[str], Any]:
     def parse(text: str) -> Any:
         try:
@@ -104,14 +102,12 @@ def path_option(text: str) -> str:
     return text
 
 
-# ---------------------------------------------------------------------------------------- output paths
 class OutputPlan:
     """Output paths of one command, checked and prepared before the work starts.
 
     :meth:`folder` and :meth:`file` raise :class:`~aasoatt_env.errors.ConfigError` naming the option when a
-    path cannot be written or would replace earlier results without ``overwrite``.  Used as a context
-    manager, the plan removes the folders it made that are still empty when the block fails (Ctrl-C
-    included), so a failed command leaves no folder behind.
+    path cannot be written or would replace results without ``overwrite``.  As a context manager, the plan
+    removes the folders it made that are still empty when the block fails (Ctrl-C included).
     """
 
     def __init__(self, overwrite: bool) -> None:
@@ -141,10 +137,7 @@ class OutputPlan:
             pass
 
     def folder(self, path: str | os.PathLike[str], flag: str, *, entries: Sequence[str] | None = None) -> Path:
-        """A results folder, created (with its parents) and test-written now.
-
-        ``entries``: the names the command writes into it (``None``: any content counts as earlier results).
-        """
+        """A results folder, created and test-written now; ``entries``: the names written (None: any content)."""
 
         def check(folder: Path) -> None:
             if folder.exists() and not folder.is_dir():
@@ -217,12 +210,8 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], Any]) -> 
     return Path(path)
 
 
-# ---------------------------------------------------------------------------------------- progress
 def progress(total: int, desc: str, unit: str = "step", enabled: bool = True, leave: bool = True) -> Any:
-    """A progress bar on stderr with rate and time left: tqdm's if installed, else a line per tenth of the work.
-
-    The object has tqdm's ``update(n)``, ``set_postfix_str(s)`` and ``close()``.
-    """
+    """A progress bar on stderr (tqdm's ``update``, ``set_postfix_str``, ``close``); without tqdm a line per tenth."""
     try:
         from tqdm import tqdm
     except ImportError:
@@ -231,7 +220,7 @@ def progress(total: int, desc: str, unit: str = "step", enabled: bool = True, le
 
 
 class _Lines:
-    """The plain fallback of :func:`progress` (``set_postfix_str`` and ``close`` do nothing)."""
+    """The plain fallback of :func:`progress`: done, rate and time left every tenth of the work."""
 
     def __init__(self, total: int, desc: str, unit: str, enabled: bool) -> None:
         self.total, self.desc, self.unit, self.enabled = max(int(total), 1), desc, unit, enabled

@@ -1,19 +1,12 @@
 """Episode metrics of ``SPEC.md`` section 6 (the paper's Sec. V), computed from a :class:`Rollout`.
 
-Conventions
------------
-* Tracking error ``e_i(t) = |p_i(t) - p_d_i(t)|``.  RMSE, MAE and standard deviation pool all robots
-  and recorded steps; the standard deviation is the population one, so ``std**2 = RMSE**2 - MAE**2``.
-* Intervention time of robot ``i``: ``(k_last - k_first) * dt`` over the first and last recorded steps
-  with ``avoiding[k, i]`` (0 if never); the headline number is the mean over all robots.
-* Collision: ``|p_i - p_j| < r_i + r_j - tolerance`` (robots) or ``|p_i - o_k| < r_i + R_k - tolerance``
-  (obstacles) at some recorded step; the tolerance (default 1 mm) absorbs the discretisation of the
-  barrier guarantee (``SPEC.md`` section 4).  Surface gap: centre distance minus the sum of radii.
-* Safe rate (as in GCBF+): the fraction of robots that never collide.
-* A run of steps ``a..b`` (a stall) lasts ``(b - a) * dt``, as the intervention time.
-
-Pairwise computations are vectorised and chunked over time, so the ``(chunk, N, N)`` temporaries stay
-within about 16 MB whatever the episode's length.
+Tracking error ``e_i(t) = |p_i(t) - p_d_i(t)|``; RMSE, MAE and the population std pool all robots and steps
+(``std**2 = RMSE**2 - MAE**2``).  Intervention time of a robot: ``(k_last - k_first) * dt`` over its steps with
+``avoiding`` (0 if none); the headline number is the mean over robots.  Collision: a centre distance below
+``r_i + r_j - tolerance`` (or ``r_i + R_k - tolerance`` to an obstacle) at some step; the tolerance (1 mm)
+absorbs the discretisation of the barrier guarantee.  Gap: centre distance minus the sum of radii.  Safe
+rate (GCBF+'s): the fraction of robots that never collide.  Pairwise scans are vectorised and chunked over
+time, so their ``(chunk, N, N)`` temporaries stay within about 16 MB.
 """
 
 from __future__ import annotations
@@ -29,7 +22,7 @@ from aasoatt_env.analysis.rollout import Rollout
 from aasoatt_env.errors import ConfigError
 
 __all__ = ["CollisionReport", "Separation", "collisions", "deadlocked_robots", "final_errors",
-           "final_tracking_errors", "format_summary", "intervention_time", "intervention_times", "longest_stall",
+           "format_summary", "intervention_time", "intervention_times", "longest_stall",
            "pairwise_min_distance", "reach_rate", "safe_rate", "solver_stats", "summarize", "tracking_errors",
            "tracking_stats"]
 
@@ -39,13 +32,12 @@ COLLISION_TOLERANCE = 1e-3
 #: Budget of float64 elements per temporary pairwise array (about 16 MB).
 _CHUNK_ELEMENTS = 1 << 21
 
-# Substrings (lower case) that classify a solver status string.
+# Substrings (lower case) of a failed, and of a relaxed, solver status.
 _FAILED_MARKERS = ("fail", "infeas", "error", "max_iter", "maxiter", "unsolved", "nan", "diverg")
 _RELAXED_MARKERS = ("relax", "slack")
 
 
 def _chunk_steps(n_steps: int, per_step: int) -> int:
-    """Time steps per chunk keeping ``chunk * per_step`` within the budget."""
     return max(1, min(n_steps, _CHUNK_ELEMENTS // max(per_step, 1)))
 
 
@@ -60,7 +52,6 @@ def _require(rollout: Rollout, name: str, metric: str) -> np.ndarray:
     return value
 
 
-# --------------------------------------------------------------------------- tracking
 def tracking_errors(rollout: Rollout) -> np.ndarray:
     """Tracking error ``|p_i(t) - p_d_i(t)|`` of every robot at every recorded step, shape ``(T, N)``."""
     return np.linalg.norm(rollout.positions - rollout.references, axis=-1)
@@ -73,11 +64,6 @@ def tracking_stats(rollout: Rollout) -> dict[str, float]:
             "max": float(np.max(e))}
 
 
-def final_tracking_errors(rollout: Rollout) -> np.ndarray:
-    """Tracking error ``|p_i - p_d_i|`` at the last recorded step, shape ``(N,)``."""
-    return tracking_errors(rollout)[-1]
-
-
 def final_errors(rollout: Rollout) -> np.ndarray:
     """Distance ``|p_i(T) - g_i|`` of each robot's control point to its goal at the last step, shape ``(N,)``."""
     return np.linalg.norm(rollout.positions[-1] - rollout.goals, axis=-1)
@@ -88,12 +74,8 @@ def reach_rate(rollout: Rollout, goal_tolerance: float = 0.1) -> float:
     return float(np.mean(final_errors(rollout) <= _tolerance("goal_tolerance", goal_tolerance)))
 
 
-# ---------------------------------------------------------------- intervention time
 def intervention_times(rollout: Rollout) -> np.ndarray:
-    """Per-robot time from the first to the last step in collision avoidance [s], shape ``(N,)``.
-
-    Needs the rollout's ``avoiding`` field (:class:`ConfigError` otherwise); 0 for robots that never avoided.
-    """
+    """Per-robot time from the first to the last step with ``avoiding`` [s] (0 if none), shape ``(N,)``."""
     avoiding = _require(rollout, "avoiding", "intervention_times")
     first = np.argmax(avoiding, axis=0)
     last = avoiding.shape[0] - 1 - np.argmax(avoiding[::-1], axis=0)
@@ -105,14 +87,11 @@ def intervention_time(rollout: Rollout) -> float:
     return float(np.mean(intervention_times(rollout)))
 
 
-# ---------------------------------------------------------------------- separation
 @dataclass(frozen=True)
 class Separation:
-    """Per-step separation profile of an episode, each of shape ``(T,)``.
+    """Per-step minimum centre distance and surface gaps ``(T,)`` (``inf`` when no pair), closest pair ``(T, 2)``.
 
-    ``min_center_distance`` and ``min_robot_gap`` (surface gap ``|p_ij| - (r_i + r_j)``) over robot pairs
-    (``inf`` if ``N < 2``); ``min_obstacle_gap`` over robot-obstacle pairs (``inf`` without obstacles);
-    ``closest_pair`` ``(T, 2)``: the pair ``i < j`` attaining ``min_robot_gap`` (``-1`` if ``N < 2``).
+    ``closest_pair``: the robots ``i < j`` attaining ``min_robot_gap`` (``-1`` if ``N < 2``).
     """
 
     min_center_distance: np.ndarray
@@ -147,7 +126,6 @@ class Separation:
 
 
 def _first_hits(first: np.ndarray, hit: np.ndarray, offset: int) -> None:
-    """Record in ``first`` (``-1`` = none yet) the first chunk step where ``hit`` is True."""
     new = hit.any(axis=0) & (first < 0)
     if new.any():
         first[new] = np.argmax(hit, axis=0)[new] + offset
@@ -155,12 +133,7 @@ def _first_hits(first: np.ndarray, hit: np.ndarray, offset: int) -> None:
 
 def _robot_scan(rollout: Rollout, tolerance: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
                                                                     np.ndarray | None]:
-    """One chunked pass over all robot pairs.
-
-    Returns the per-step minimum centre distance and surface gap ``(T,)``, the pair attaining the gap
-    ``(T, 2)`` and, with a ``tolerance``, the first collision step of each pair ``(N, N)`` (upper
-    triangle, ``-1`` = never).
-    """
+    """Per-step minimum distance and gap, closest pair and (``tolerance``) each pair's first collision step."""
     T, N = rollout.n_steps, rollout.n_robots
     min_dist, min_gap = np.full(T, np.inf), np.full(T, np.inf)
     pair = np.full((T, 2), -1, dtype=np.int64)
@@ -206,7 +179,6 @@ def _robot_scan(rollout: Rollout, tolerance: float | None) -> tuple[np.ndarray, 
 
 
 def _obstacle_scan(rollout: Rollout, tolerance: float | None) -> tuple[np.ndarray, np.ndarray | None]:
-    """Per-step minimum robot-obstacle gap ``(T,)`` and, with a ``tolerance``, first collision steps ``(N, M)``."""
     T, N, M = rollout.n_steps, rollout.n_robots, rollout.n_obstacles
     min_obs = np.full(T, np.inf)
     first = np.full((N, M), -1, dtype=np.int64) if tolerance is not None else None
@@ -229,14 +201,11 @@ def pairwise_min_distance(rollout: Rollout) -> Separation:
     return Separation(min_dist, min_gap, _obstacle_scan(rollout, None)[0], pair)
 
 
-# ---------------------------------------------------------------------- collisions
 @dataclass(frozen=True)
 class CollisionReport:
-    """Collisions of an episode.
+    """Overlaps deeper than ``tolerance`` [m] and the robots in one (bool ``(N,)``).
 
-    ``robot_pairs``: ``(i, j, first_step)`` with ``i < j`` for every robot pair that ever overlapped beyond
-    ``tolerance`` [m], sorted by ``(first_step, i, j)``; ``obstacle_hits``: ``(i, k, first_step)`` for robot
-    ``i`` and obstacle ``k``; ``colliding_robots``: bool ``(N,)``, robots in at least one collision.
+    ``robot_pairs``: ``(i, j, first_step)``, ``i < j``; ``obstacle_hits``: ``(i, k, first_step)``; sorted by step.
     """
 
     robot_pairs: list[tuple[int, int, int]]
@@ -266,7 +235,6 @@ class CollisionReport:
 
 
 def _scans(rollout: Rollout, tolerance: float) -> tuple[Separation, CollisionReport]:
-    """The separation profile and the collision report of one pass over the pairs."""
     tol = _tolerance("tolerance", tolerance)
     min_dist, min_gap, pair, first_r = _robot_scan(rollout, tol)
     min_obs, first_o = _obstacle_scan(rollout, tol)
@@ -289,9 +257,7 @@ def safe_rate(rollout: Rollout, tolerance: float = COLLISION_TOLERANCE) -> float
     return float(1.0 - np.mean(collisions(rollout, tolerance).colliding_robots))
 
 
-# ------------------------------------------------------------------------ deadlock
 def _longest_runs(mask: np.ndarray) -> np.ndarray:
-    """Longest run of consecutive True per column of a ``(T, N)`` bool array (in samples)."""
     T, N = mask.shape
     padded = np.zeros((N, T + 2), dtype=np.int8)
     padded[:, 1:-1] = mask.T
@@ -304,10 +270,7 @@ def _longest_runs(mask: np.ndarray) -> np.ndarray:
 
 
 def longest_stall(rollout: Rollout, speed_threshold: float = 0.05, goal_tolerance: float = 0.1) -> np.ndarray:
-    """Longest time [s] each robot is slow (speed below ``speed_threshold`` [m/s]) while away from its goal.
-
-    Away: farther than ``goal_tolerance`` [m].  Returns shape ``(N,)``; ``-dt`` marks robots never stalled.
-    """
+    """Longest time [s] each robot moves slower than ``speed_threshold`` away from its goal; ``-dt``: never."""
     v_thr = _tolerance("speed_threshold", speed_threshold)
     g_tol = _tolerance("goal_tolerance", goal_tolerance)
     speed = np.linalg.norm(rollout.velocities, axis=-1)
@@ -324,9 +287,7 @@ def deadlocked_robots(rollout: Rollout, speed_threshold: float = 0.05, dwell_tim
     return (stall >= 0) & (stall >= dwell - 0.5 * rollout.dt)
 
 
-# -------------------------------------------------------------------------- solver
 def _classify_status(status: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Boolean masks ``(relaxed, failed)`` from status strings (case-insensitive substrings)."""
     low = np.char.lower(status.astype(np.str_))
     failed = np.any([np.char.find(low, m) >= 0 for m in _FAILED_MARKERS], axis=0)
     relaxed = np.any([np.char.find(low, m) >= 0 for m in _RELAXED_MARKERS], axis=0)
@@ -334,14 +295,10 @@ def _classify_status(status: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def solver_stats(rollout: Rollout) -> dict[str, Any]:
-    """Solver health over the episode (``None`` entries where the rollout lacks the field).
+    """Fractions of relaxed, failed, ``unsafe`` and braked steps, status counts, solve times, slack (None: no field).
 
-    A status containing ``fail``, ``infeas``, ``error``, ``max_iter``, ``unsolved``, ``nan`` or ``diverg`` is
-    *failed*; otherwise one containing ``relax`` or ``slack`` is *relaxed*.  Keys: ``relaxed_fraction``,
-    ``failed_fraction``, ``unsafe_fraction`` (steps reported outside the safe set), ``backup_fraction``
-    (steps in which the backup layer braked a robot), ``backup_robot_fraction`` (robot-steps braked),
-    ``status_counts``, ``solve_time_median``/``_mean``/``_max`` [s], ``slack_max``,
-    ``slack_positive_fraction``.
+    A status naming a failure (``fail``, ``infeas``, ``error``, ``max_iter``, ...) is failed, else one with
+    ``relax`` or ``slack`` is relaxed; ``backup_robot_fraction`` counts robot-steps.
     """
     out: dict[str, Any] = dict.fromkeys(
         ("relaxed_fraction", "failed_fraction", "unsafe_fraction", "backup_fraction", "backup_robot_fraction",
@@ -365,18 +322,11 @@ def solver_stats(rollout: Rollout) -> dict[str, Any]:
     return out
 
 
-# ------------------------------------------------------------------------- summary
 def summarize(rollout: Rollout, *, collision_tolerance: float = COLLISION_TOLERANCE, goal_tolerance: float = 0.1,
               speed_threshold: float = 0.05, dwell_time: float = 1.0) -> dict[str, Any]:
-    """All headline numbers of an episode as a JSON-friendly dict of ``int``/``float``/``None``.
+    """All headline numbers of an episode (and :func:`solver_stats` but the counts) as JSON-friendly values.
 
     ``None`` where the rollout lacks the field a metric needs, and for infinite gaps (no obstacles).
-    Keys: ``n_robots``, ``n_steps``, ``duration``, ``intervention_time``, ``intervention_time_max``, ``rmse``,
-    ``mae``, ``std``, ``max_tracking_error``, ``min_center_distance``, ``min_robot_gap``, ``min_obstacle_gap``,
-    ``n_collision_pairs``, ``n_obstacle_collisions``, ``n_colliding_robots``, ``safe_rate``,
-    ``final_error_mean``, ``final_error_max``, ``final_tracking_error_mean``, ``reach_rate``, ``n_deadlocked``,
-    ``triggered_fraction`` and those of :func:`solver_stats` but ``status_counts``.  The tolerances and
-    thresholds are those of :func:`collisions`, :func:`reach_rate` and :func:`deadlocked_robots`.
     """
 
     def finite(x: float) -> float | None:
@@ -397,7 +347,7 @@ def summarize(rollout: Rollout, *, collision_tolerance: float = COLLISION_TOLERA
         "n_collision_pairs": col.n_robot_pairs, "n_obstacle_collisions": col.n_obstacle_hits,
         "n_colliding_robots": col.n_colliding_robots, "safe_rate": float(1.0 - col.colliding_robots.mean()),
         "final_error_mean": float(fe.mean()), "final_error_max": float(fe.max()),
-        "final_tracking_error_mean": float(final_tracking_errors(rollout).mean()),
+        "final_tracking_error_mean": float(tracking_errors(rollout)[-1].mean()),
         "reach_rate": reach_rate(rollout, goal_tolerance),
         "n_deadlocked": int(deadlocked_robots(rollout, speed_threshold, dwell_time, goal_tolerance).sum()),
         "triggered_fraction": None if rollout.triggered is None else float(rollout.triggered.mean()),

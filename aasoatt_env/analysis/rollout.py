@@ -1,35 +1,14 @@
 """Recorded episodes: the :class:`Rollout` container and its incremental :class:`RolloutBuilder`.
 
-A rollout holds the arrays of one episode of ``T`` recorded steps, ``N`` robots and ``M`` static obstacles,
-checked once on construction (shapes, dtypes, finite values) so the metrics never check them again:
-
-=========================  ==========  ==================================================
-field                      shape       meaning
-=========================  ==========  ==================================================
-``dt``                     scalar      time between two recorded steps [s]
-``times``                  ``(T,)``    time stamp of each recorded step [s]
-``positions``              ``(T,N,2)`` control points ``p_i``
-``velocities``             ``(T,N,2)`` control-point velocities ``dp_i``
-``headings``               ``(T,N)``   headings ``theta_i`` [rad]
-``references``             ``(T,N,2)`` reference points ``p_d_i``
-``reference_velocities``   ``(T,N,2)`` reference velocities ``v_d_i``
-``goals``                  ``(N,2)``   final goals
-``radii``                  ``(N,)``    robot disc radii
-``obstacle_centers``       ``(M,2)``   static obstacle centres (default: none)
-``obstacle_radii``         ``(M,)``    static obstacle radii
-``nominal_actions``        ``(T,N,2)`` optional: nominal (unfiltered) actions
-``actions``                ``(T,N,2)`` optional: applied (filtered) actions
-``avoiding``               ``(T,N)``   optional, bool: robot in collision avoidance
-``triggered``              ``(T,N)``   optional, bool: deadlock rule active
-``backup``                 ``(T,N)``   optional, bool: braked by the backup layer
-``solver_status``          ``(T,)``    optional, str: QP status of each step
-``slack``                  ``(T,)``    optional: total relaxation of the step's rows
-``solve_time``             ``(T,)``    optional: QP wall time of the step [s]
-``metadata``               dict        JSON-serialisable: scenario, method, parameters
-=========================  ==========  ==================================================
-
-:meth:`Rollout.save` writes one ``.npz`` file (metadata as a JSON string, strings as fixed-width
-unicode), so :meth:`Rollout.load` never needs pickle.
+A rollout holds one episode of ``T`` recorded steps, ``N`` robots and ``M`` static obstacles, checked once on
+construction (shapes, dtypes, finite values) so the metrics never check them again.  ``dt``: time between
+recorded steps [s].  Per step: ``times (T,)`` [s]; ``positions``, ``velocities``, ``references``,
+``reference_velocities`` ``(T, N, 2)`` (control points ``p_i``, ``dp_i``, ``p_d_i``, ``v_d_i``); ``headings
+(T, N)`` [rad].  Static: ``goals (N, 2)``, ``radii (N,)``, ``obstacle_centers (M, 2)``, ``obstacle_radii (M,)``
+(default: none).  Optional: ``nominal_actions`` and applied ``actions (T, N, 2)``; bool ``avoiding`` (in
+collision avoidance), ``triggered`` (deadlock rule active), ``backup`` (braked by the backup layer) ``(T, N)``;
+``solver_status`` (str), ``slack`` (total relaxation of the rows), ``solve_time`` [s] ``(T,)``.  ``metadata``:
+a JSON-serialisable dict.  :meth:`Rollout.save` writes one ``.npz`` that :meth:`Rollout.load` reads without pickle.
 """
 
 from __future__ import annotations
@@ -96,8 +75,7 @@ def checked_array(name: str, value: Any, template: Template, sizes: dict[str, in
                   finite: bool = True) -> np.ndarray:
     """``value`` as a fresh array of dtype ``kind`` and shape ``template`` (float arrays finite, if ``finite``).
 
-    Symbolic sizes already in ``sizes`` must match; new ones are bound into it.  Shared by
-    :class:`Rollout` and :mod:`~aasoatt_env.analysis.plotting`, so both word a bad array the same way.
+    Symbolic sizes already in ``sizes`` must match; new ones are bound into it.
     """
     arr = _convert(name, value, kind)
     ok = arr.ndim == len(template)
@@ -127,11 +105,7 @@ def _positive_dt(value: Any) -> float:
 
 @dataclass
 class Rollout:
-    """One recorded episode (fields: see the module docstring).
-
-    Every array is copied and converted on construction; a :class:`~aasoatt_env.errors.ConfigError`
-    names the first field with a wrong shape or value and the shape it should have.
-    """
+    """One recorded episode (fields: see the module docstring), its arrays copied and checked on construction."""
 
     dt: float
     times: np.ndarray
@@ -224,14 +198,7 @@ class Rollout:
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Rollout:
-        """Read a rollout written by :meth:`save`.
-
-        Raises
-        ------
-        DataFileError
-            Naming the file: it is missing, not a readable ``.npz`` of plain arrays (truncated, corrupted,
-            pickled), or a field is missing, of the wrong shape or not finite.
-        """
+        """Read a rollout written by :meth:`save`; a missing, unreadable, pickled or invalid file: DataFileError."""
         name = str(path)
         if not os.path.isfile(path):
             raise DataFileError(f"{name}: no such rollout file")
@@ -274,18 +241,8 @@ def _read_fields(path: str | os.PathLike[str], name: str) -> dict[str, Any]:
 class RolloutBuilder:
     """Accumulate an episode step by step, then :meth:`build` a :class:`Rollout`.
 
-    :meth:`append` copies its arrays (callers may reuse their buffers); an optional field must be given
-    at every step or at none.  The static fields (``goals``, ``radii``, ``obstacle_centers``,
-    ``obstacle_radii``) may be given here or to :meth:`build`.
-
-    Examples
-    --------
-    >>> b = RolloutBuilder(dt=0.1, goals=[[1.0, 0.0]], radii=[0.5])
-    >>> for k in range(3):
-    ...     b.append(time=0.1 * k, positions=[[0.1 * k, 0.0]], velocities=[[1.0, 0.0]],
-    ...              headings=[0.0], references=[[0.1 * k, 0.0]], reference_velocities=[[1.0, 0.0]])
-    >>> b.build().positions.shape
-    (3, 1, 2)
+    :meth:`append` copies its arrays (callers may reuse their buffers); an optional field must be given at
+    every step or at none.  The static fields may be given here or to :meth:`build`.
     """
 
     _KINDS: ClassVar[dict[str, str]] = {"times": "f", **{n: k for n, _, k in (*_PER_STEP, *_OPTIONAL)}}
@@ -305,12 +262,7 @@ class RolloutBuilder:
 
     def append(self, *, time: float, positions: Any, velocities: Any, headings: Any, references: Any,
                reference_velocities: Any, **optional: Any) -> None:
-        """Record one step: per-robot arrays ``(N, 2)`` (``headings`` ``(N,)``) and any optional fields.
-
-        ``optional``: ``nominal_actions``, ``actions`` ``(N, 2)``; ``avoiding``, ``triggered``, ``backup``
-        ``(N,)`` bool; ``solver_status`` (str), ``slack``, ``solve_time`` (float); ``None`` values are ignored.
-        An unknown keyword, or an optional field given at some steps only, raises ConfigError.
-        """
+        """Record one step: per-robot arrays ``(N, 2)`` (``headings`` ``(N,)``) and optional fields (None: absent)."""
         unknown = set(optional) - set(Rollout.OPTIONAL_FIELDS)
         if unknown:
             raise ConfigError(f"append: unknown field(s) {sorted(unknown)}, expected some of "
@@ -333,10 +285,7 @@ class RolloutBuilder:
         self._n += 1
 
     def build(self, **overrides: Any) -> Rollout:
-        """Stack the recorded steps into a :class:`Rollout`.
-
-        ``overrides``: ``dt`` or static fields replacing the constructor's; ``metadata`` merged into its.
-        """
+        """Stack the recorded steps into a :class:`Rollout` (``overrides``: ``dt``, static fields, more metadata)."""
         allowed = {"dt", "metadata", *self.static}
         unknown = set(overrides) - allowed
         if unknown:

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.analysis.plotting import new_figure, plot_trajectories
+from aasoatt_env.analysis.plotting import new_figure
 from aasoatt_env.apps.reproduce import paper, report
 from aasoatt_env.apps.reproduce.experiments import common
 from aasoatt_env.apps.reproduce.report import Column, Experiment, Results, Settings, col, compared, fmt
@@ -93,18 +93,13 @@ class CompareCA(Experiment):
     sizes = common.CA_SIZES
 
     def _specs(self, s: Settings) -> list[RunSpec]:
-        n, radius, duration = self.size(s)
-        specs = []
-        for method, kw in CA_METHODS.items():
-            scen = common.circle(n, radius, duration)
-            if method in VELOCITY_LEVEL:
-                scen["robots"] = RobotParams(max_wheel_accel=common.VELOCITY_LEVEL_ACCEL)
-            specs.append(RunSpec(method, "circle_swap", scen, filter=common.filter_config(s, **kw),
-                                 meta={"method": method, "N": n}))
-        if not s.quick:
-            specs.append(RunSpec("eqn.n7 @ 60 rad/s^2", "circle_swap", common.circle(n, radius, duration),
-                                 filter=common.filter_config(s, barrier="adaptive_distance"),
-                                 meta={"method": "eqn.n7 (paper robots, 60 rad/s^2)", "N": n}))
+        size, fast = self.size(s), {"robots": RobotParams(max_wheel_accel=common.VELOCITY_LEVEL_ACCEL)}
+        specs = [common.team_run(s, method, size, {"method": method, "N": size[0]},
+                                 scene=fast if method in VELOCITY_LEVEL else None, **kw)
+                 for method, kw in CA_METHODS.items()]
+        if not s.quick:  # the velocity-level eqn.n7 on the paper's robots
+            specs.append(common.team_run(s, "eqn.n7 @ 60 rad/s^2", size, {"method": "eqn.n7 (paper robots, 60 "
+                                         "rad/s^2)", "N": size[0]}, barrier="adaptive_distance"))
         return specs
 
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
@@ -154,10 +149,7 @@ class CompareCA(Experiment):
         return lines
 
     def _figures(self, s: Settings, res: Results) -> list[tuple[Any, str, str]]:
-        paths, axes = new_figure(1, len(CA_METHODS), (3.2 * len(CA_METHODS), 3.4))
-        for ax, method in zip(axes[0], CA_METHODS):
-            tr = res[method].traces
-            plot_trajectories(tr["positions"], tr["radii"], tr["references"], ax=ax, title=method)
+        paths = common.trajectory_panels(res, {m: m for m in CA_METHODS}, (3.2, 3.4))
         speed, axes = new_figure(1, 1, (6.5, 3.5))
         for method in CA_METHODS:
             axes[0, 0].plot(res[method].traces["times"], res[method].traces["speeds"].mean(axis=1), label=method)
@@ -185,9 +177,8 @@ class Table2(Experiment):
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         ns, radius, duration = self.size(s)
-        return [RunSpec(f"{name}/N={n}", "circle_swap", common.circle(n, radius, duration),
-                        filter=common.filter_config(s, barrier=barrier, safety_margin=sm, solver=solver),
-                        meta={"method": name, "N": n, "solver": solver})
+        return [common.team_run(s, f"{name}/N={n}", (n, radius, duration), {"method": name, "N": n, "solver": solver},
+                                barrier=barrier, safety_margin=sm, solver=solver)
                 for n in ns for name, (barrier, sm, solver) in self.variants(s).items()]
 
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
@@ -276,9 +267,8 @@ class Table3(Experiment):
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         ns, radius, duration = self.size(s)
-        return [RunSpec(f"{k}/N={n}", "circle_swap", common.circle(n, radius, duration),
-                        filter=common.filter_config(s, deadlock=v), meta={"method": k, "deadlock": v, "N": n})
-                for n in ns for k, v in common.DEADLOCK_METHODS.items()]
+        return [common.team_run(s, f"{k}/N={n}", (n, radius, duration), {"method": k, "deadlock": v, "N": n},
+                                deadlock=v) for n in ns for k, v in common.DEADLOCK_METHODS.items()]
 
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
         return paper.TABLE3.get(spec.meta["N"], {}).get(spec.meta["method"])
