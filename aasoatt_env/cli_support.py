@@ -1,9 +1,7 @@
 """What every ``aasoatt`` command shares: one-line errors, option types, output paths, atomic writes, progress.
 
-Options and output paths are checked before any work starts.  A user error (any
-:class:`~aasoatt_env.errors.AASOATTError`) prints ``aasoatt <command>: error: ...`` and exits 2 (``--debug``:
-the traceback).  Every file is written under a temporary name and renamed into place, so an interrupted
-command leaves the earlier file or the whole new one; results are replaced only with ``--overwrite``.
+Options and paths are checked before any work; a user error prints one line and exits 2.  Files are written
+under a temporary name, then renamed, so an interrupted command leaves the earlier file or the whole new one.
 """
 
 from __future__ import annotations
@@ -103,43 +101,37 @@ def path_option(text: str) -> str:
 
 
 class OutputPlan:
-    """Output paths of one command, checked and prepared before the work starts.
-
-    :meth:`folder` and :meth:`file` raise :class:`~aasoatt_env.errors.ConfigError` naming the option when a
-    path cannot be written or would replace results without ``overwrite``.  As a context manager, the plan
-    removes the folders it made that are still empty when the block fails (Ctrl-C included).
-    """
+    """Output paths of one command, checked and made before the work; on a failure its new folders go again."""
 
     def __init__(self, overwrite: bool) -> None:
         self.overwrite = bool(overwrite)
         self._created: list[Path] = []
 
-    def _checked(self, path: str | os.PathLike[str], flag: str, check: Callable[[Path], None]) -> Path:
+    def _prepare(self, path: str | os.PathLike[str], flag: str, check: Callable[[Path], Path]) -> Path:
+        """``path`` checked by ``check`` (which returns its folder); the folder made and test-written."""
         try:
             target = Path(path_option(os.fspath(path)))
-            check(target)
+            folder = probe = check(target)
+            missing = []
+            while not probe.exists() and probe.parent != probe:
+                missing.append(probe)
+                probe = probe.parent
+            if probe.exists() and not probe.is_dir():
+                raise ConfigError(f"{flag}: {probe} is a file, not a folder; cannot write {folder}")
+            folder.mkdir(parents=True, exist_ok=True)
+            self._created += reversed(missing)
+            with tempfile.TemporaryFile(dir=folder):
+                pass
         except argparse.ArgumentTypeError as exc:
             raise ConfigError(f"{flag}: {exc}") from None
         except OSError as exc:
             raise ConfigError(f"{flag}: cannot write to {path} ({exc.strerror or exc})") from None
         return target
 
-    def _make_writable_dir(self, folder: Path, flag: str) -> None:
-        missing, probe = [], folder
-        while not probe.exists() and probe.parent != probe:
-            missing.append(probe)
-            probe = probe.parent
-        if probe.exists() and not probe.is_dir():
-            raise ConfigError(f"{flag}: {probe} is a file, not a folder; cannot write {folder}")
-        folder.mkdir(parents=True, exist_ok=True)
-        self._created += reversed(missing)
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-
     def folder(self, path: str | os.PathLike[str], flag: str, *, entries: Sequence[str] | None = None) -> Path:
         """A results folder, created and test-written now; ``entries``: the names written (None: any content)."""
 
-        def check(folder: Path) -> None:
+        def check(folder: Path) -> Path:
             if folder.exists() and not folder.is_dir():
                 raise ConfigError(f"{flag}: {folder} exists and is not a folder")
             if folder.is_dir() and not self.overwrite:
@@ -149,14 +141,14 @@ class OutputPlan:
                     shown = ", ".join(clash[:4]) + (", ..." if len(clash) > 4 else "")
                     raise ConfigError(f"{flag}: {folder} already holds results ({shown}); pass --overwrite to "
                                       "replace them, or choose another path")
-            self._make_writable_dir(folder, flag)
+            return folder
 
-        return self._checked(path, flag, check)
+        return self._prepare(path, flag, check)
 
     def file(self, path: str | os.PathLike[str], flag: str, *, suffixes: Sequence[str] | None = None) -> Path:
         """An output file: its folder is created and test-written now; an existing file needs ``overwrite``."""
 
-        def check(target: Path) -> None:
+        def check(target: Path) -> Path:
             if suffixes is not None and target.suffix.lower() not in suffixes:
                 raise ConfigError(f"{flag}: got {str(target)!r}, expected a file name ending in one of "
                                   f"{list(suffixes)}")
@@ -166,9 +158,9 @@ class OutputPlan:
                 if not self.overwrite:
                     raise ConfigError(f"{flag}: {target} already exists; pass --overwrite to replace it, "
                                       "or choose another path")
-            self._make_writable_dir(target.parent, flag)
+            return target.parent
 
-        return self._checked(path, flag, check)
+        return self._prepare(path, flag, check)
 
     def discard(self) -> None:
         """Remove the folders this plan created that are still empty."""
@@ -187,10 +179,7 @@ class OutputPlan:
 
 @contextlib.contextmanager
 def staged(*paths: str | os.PathLike[str]) -> Iterator[list[Path]]:
-    """Temporary paths beside ``paths`` (same suffix) to write; all renamed into place if the block succeeds.
-
-    On any exception (Ctrl-C included) the temporary files are removed and ``paths`` keep what they held.
-    """
+    """Temporary paths beside ``paths`` (same suffix) to write: all renamed into place if the block succeeds."""
     targets = [Path(p) for p in paths]
     temps = [t.with_name(f".{t.stem}.{os.getpid()}{PARTIAL}{t.suffix}") for t in targets]
     try:

@@ -1,12 +1,8 @@
 """Episode metrics of ``SPEC.md`` section 6 (the paper's Sec. V), computed from a :class:`Rollout`.
 
-Tracking error ``e_i(t) = |p_i(t) - p_d_i(t)|``; RMSE, MAE and the population std pool all robots and steps
-(``std**2 = RMSE**2 - MAE**2``).  Intervention time of a robot: ``(k_last - k_first) * dt`` over its steps with
-``avoiding`` (0 if none); the headline number is the mean over robots.  Collision: a centre distance below
-``r_i + r_j - tolerance`` (or ``r_i + R_k - tolerance`` to an obstacle) at some step; the tolerance (1 mm)
-absorbs the discretisation of the barrier guarantee.  Gap: centre distance minus the sum of radii.  Safe
-rate (GCBF+'s): the fraction of robots that never collide.  Pairwise scans are vectorised and chunked over
-time, so their ``(chunk, N, N)`` temporaries stay within about 16 MB.
+RMSE, MAE and the population std of the tracking error ``|p_i - p_d_i|`` pool all robots and steps.  A
+collision is an overlap deeper than a tolerance (1 mm: the discretisation of the barrier guarantee); a gap
+is a centre distance minus the radii.  Pairwise scans are chunked over time (temporaries within ~16 MB).
 """
 
 from __future__ import annotations
@@ -21,16 +17,12 @@ from aasoatt_env import validation as check
 from aasoatt_env.analysis.rollout import Rollout
 from aasoatt_env.errors import ConfigError
 
-__all__ = ["CollisionReport", "Separation", "collisions", "deadlocked_robots", "final_errors",
-           "format_summary", "intervention_time", "intervention_times", "longest_stall",
-           "pairwise_min_distance", "reach_rate", "safe_rate", "solver_stats", "summarize", "tracking_errors",
-           "tracking_stats"]
+__all__ = ["CollisionReport", "Separation", "collisions", "deadlocked_robots", "final_errors", "format_summary",
+           "format_value", "intervention_time", "intervention_times", "longest_stall", "pairwise_min_distance",
+           "reach_rate", "safe_rate", "solver_stats", "summarize", "tracking_errors", "tracking_stats"]
 
-#: Default collision tolerance [m].
-COLLISION_TOLERANCE = 1e-3
-
-#: Budget of float64 elements per temporary pairwise array (about 16 MB).
-_CHUNK_ELEMENTS = 1 << 21
+COLLISION_TOLERANCE = 1e-3  # default collision tolerance [m]
+_CHUNK_ELEMENTS = 1 << 21  # float64 elements per temporary pairwise array (about 16 MB)
 
 # Substrings (lower case) of a failed, and of a relaxed, solver status.
 _FAILED_MARKERS = ("fail", "infeas", "error", "max_iter", "maxiter", "unsolved", "nan", "diverg")
@@ -43,13 +35,6 @@ def _chunk_steps(n_steps: int, per_step: int) -> int:
 
 def _tolerance(name: str, value: float) -> float:
     return check.real(name, value, lo=0.0)
-
-
-def _require(rollout: Rollout, name: str, metric: str) -> np.ndarray:
-    value = getattr(rollout, name)
-    if value is None:
-        raise ConfigError(f"{metric}: the rollout has no {name!r} field, record it to compute this metric")
-    return value
 
 
 def tracking_errors(rollout: Rollout) -> np.ndarray:
@@ -76,23 +61,22 @@ def reach_rate(rollout: Rollout, goal_tolerance: float = 0.1) -> float:
 
 def intervention_times(rollout: Rollout) -> np.ndarray:
     """Per-robot time from the first to the last step with ``avoiding`` [s] (0 if none), shape ``(N,)``."""
-    avoiding = _require(rollout, "avoiding", "intervention_times")
+    avoiding = rollout.avoiding
+    if avoiding is None:
+        raise ConfigError("intervention_times: the rollout has no 'avoiding' field, record it to compute this metric")
     first = np.argmax(avoiding, axis=0)
     last = avoiding.shape[0] - 1 - np.argmax(avoiding[::-1], axis=0)
     return np.where(avoiding.any(axis=0), (last - first) * rollout.dt, 0.0)
 
 
 def intervention_time(rollout: Rollout) -> float:
-    """Intervention time averaged over all robots, those that never avoid counting as 0 (the paper's number)."""
+    """Intervention time averaged over all robots, 0 for those that never avoid (the paper's number)."""
     return float(np.mean(intervention_times(rollout)))
 
 
 @dataclass(frozen=True)
 class Separation:
-    """Per-step minimum centre distance and surface gaps ``(T,)`` (``inf`` when no pair), closest pair ``(T, 2)``.
-
-    ``closest_pair``: the robots ``i < j`` attaining ``min_robot_gap`` (``-1`` if ``N < 2``).
-    """
+    """Per step: minimum centre distance and gaps (``inf``: no pair), robots ``i < j`` of the smallest gap."""
 
     min_center_distance: np.ndarray
     min_robot_gap: np.ndarray
@@ -203,10 +187,7 @@ def pairwise_min_distance(rollout: Rollout) -> Separation:
 
 @dataclass(frozen=True)
 class CollisionReport:
-    """Overlaps deeper than ``tolerance`` [m] and the robots in one (bool ``(N,)``).
-
-    ``robot_pairs``: ``(i, j, first_step)``, ``i < j``; ``obstacle_hits``: ``(i, k, first_step)``; sorted by step.
-    """
+    """Overlaps deeper than ``tolerance`` [m]: ``(i, j or obstacle k, first step)`` sorted by step; robots in one."""
 
     robot_pairs: list[tuple[int, int, int]]
     obstacle_hits: list[tuple[int, int, int]]
@@ -297,8 +278,7 @@ def _classify_status(status: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def solver_stats(rollout: Rollout) -> dict[str, Any]:
     """Fractions of relaxed, failed, ``unsafe`` and braked steps, status counts, solve times, slack (None: no field).
 
-    A status naming a failure (``fail``, ``infeas``, ``error``, ``max_iter``, ...) is failed, else one with
-    ``relax`` or ``slack`` is relaxed; ``backup_robot_fraction`` counts robot-steps.
+    A status naming a failure (``fail``, ``infeas``, ...) is failed, else one naming ``relax`` or ``slack`` relaxed.
     """
     out: dict[str, Any] = dict.fromkeys(
         ("relaxed_fraction", "failed_fraction", "unsafe_fraction", "backup_fraction", "backup_robot_fraction",
@@ -324,15 +304,12 @@ def solver_stats(rollout: Rollout) -> dict[str, Any]:
 
 def summarize(rollout: Rollout, *, collision_tolerance: float = COLLISION_TOLERANCE, goal_tolerance: float = 0.1,
               speed_threshold: float = 0.05, dwell_time: float = 1.0) -> dict[str, Any]:
-    """All headline numbers of an episode (and :func:`solver_stats` but the counts) as JSON-friendly values.
-
-    ``None`` where the rollout lacks the field a metric needs, and for infinite gaps (no obstacles).
-    """
+    """All headline numbers (and :func:`solver_stats` but the counts) as JSON values; None: no field, no gap."""
 
     def finite(x: float) -> float | None:
         return float(x) if math.isfinite(x) else None
 
-    check.real("collision_tolerance", collision_tolerance, lo=0.0)
+    _tolerance("collision_tolerance", collision_tolerance)
     stats = tracking_stats(rollout)
     sep, col = _scans(rollout, collision_tolerance)
     fe = final_errors(rollout)
@@ -357,19 +334,18 @@ def summarize(rollout: Rollout, *, collision_tolerance: float = COLLISION_TOLERA
     return {**out, **solver}
 
 
+def format_value(x: Any, digits: int = 4) -> str:
+    """A table cell: ``-`` for None, yes/no for bools, ``digits`` decimals for finite floats."""
+    if x is None:
+        return "-"
+    if isinstance(x, (bool, np.bool_)):
+        return "yes" if x else "no"
+    if isinstance(x, (float, np.floating)) and math.isfinite(x):
+        return f"{x:.{digits}f}"
+    return str(int(x)) if isinstance(x, np.integer) else str(x)
+
+
 def format_summary(summary: dict[str, Any], *, precision: int = 4) -> str:
-    """A :func:`summarize` dict (any flat dict) as aligned ``name  value`` lines; ``None`` shows as ``-``."""
-    if not summary:
-        return ""
-    width = max(len(str(k)) for k in summary)
-
-    def text(value: Any) -> str:
-        if value is None:
-            return "-"
-        if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
-            return str(int(value))
-        if isinstance(value, (float, np.floating)):
-            return f"{float(value):.{precision}f}"
-        return str(value)
-
-    return "\n".join(f"{str(key):<{width}}  {text(value):>12}" for key, value in summary.items())
+    """A :func:`summarize` dict (any flat dict) as aligned ``name  value`` lines (see :func:`format_value`)."""
+    width = max((len(str(k)) for k in summary), default=0)
+    return "\n".join(f"{str(k):<{width}}  {format_value(v, precision):>12}" for k, v in summary.items())

@@ -1,9 +1,7 @@
 """Static plots of recorded runs: trajectories, distance and speed profiles, snapshots.
 
-Figures are drawn on the Agg canvas, never through :mod:`matplotlib.pyplot` (no display needed, the caller's
-pyplot state untouched); ``path`` also saves one atomically (format from the suffix, PNG by default).
-Robot colours are the renderer's; obstacles are ``(centers (M, 2), radii (M,))`` or an ``(M, 3)`` array.
-matplotlib is imported when a plot is made (without it: ImportError naming ``pip install "aasoatt[render]"``).
+Figures use the Agg canvas, never pyplot (no display; the caller's pyplot state untouched); ``path`` also
+saves one atomically.  Obstacles are ``(centers (M, 2), radii (M,))`` or an ``(M, 3)`` array.
 """
 
 from __future__ import annotations
@@ -128,11 +126,7 @@ def _goals(ax: Any, goals: np.ndarray | None, colors: np.ndarray, size: float, l
 def plot_trajectories(positions: Any, radii: Any = None, references: Any = None, goals: Any = None,
                       obstacles: Obstacles = None, path: PathLike | None = None, title: str | None = None, *,
                       figsize: tuple[float, float] = (6.0, 6.0), dpi: int = 150, ax: Any = None) -> Any:
-    """Plot a team's paths ``positions (T, N, 2)`` in the plane (``ax``: into a panel of a larger figure).
-
-    The final positions are discs of ``radii`` (dots if not given), ``references (T, N, 2)`` dashed lines,
-    ``goals (N, 2)`` hollow squares, obstacles grey discs.
-    """
+    """Plot a team's paths ``(T, N, 2)``, final discs of ``radii``, references dashed, goals (``ax``: a panel)."""
     pos, ref, g, r = _team(positions, references, goals, radii)
     n, colors = pos.shape[1], team_colors(pos.shape[1])
     if ax is None:
@@ -159,11 +153,7 @@ def plot_trajectories(positions: Any, radii: Any = None, references: Any = None,
 def plot_distance_profile(times: Any, min_distance: Any, safety_distance: float | Sequence[float] | None,
                           path: PathLike | None = None, *, labels: Sequence[str] | None = None,
                           title: str | None = None, figsize: tuple[float, float] = (6.5, 3.5), dpi: int = 150) -> Any:
-    """Plot inter-robot distances over time against the safety distance.
-
-    ``min_distance`` ``(T,)`` or ``(T, P)``: the minimum over all pairs, or one column per pair (each drawn
-    thin, their minimum bold; ``labels`` name them).  ``safety_distance``: ``d_s``, one red line per value.
-    """
+    """Plot the minimum distance ``(T,)`` or one per pair ``(T, P)`` (and their minimum) against ``d_s``."""
     t, d = _series(times, min_distance, "min_distance", "({T},) or ({T}, P)")
     fig, ((ax,),) = new_figure(1, 1, figsize)
     if d.shape[1] == 1:
@@ -201,11 +191,7 @@ def plot_velocity_profile(times: Any, speeds: Any, path: PathLike | None = None,
 def plot_snapshots(positions: Any, times: Any, indices: Sequence[int], radii: Any, obstacles: Obstacles = None,
                    path: PathLike | None = None, *, references: Any = None, goals: Any = None, trails: bool = True,
                    panel_size: float = 3.0, dpi: int = 150) -> Any:
-    """Plot a row of panels of the team at the steps ``indices`` (negative allowed; paper Fig. 5 style).
-
-    Robots are discs of ``radii`` at true scale with their ``trails``, ``references`` points marked, ``goals``
-    hollow squares; ``times (T,)`` titles the panels.
-    """
+    """Plot a row of panels of the team (discs to scale, trails) at the steps ``indices`` (paper Fig. 5 style)."""
     pos, ref, g, r = _team(positions, references, goals, radii)
     t_len, n = pos.shape[:2]
     t = np.asarray(times, dtype=np.float64).reshape(-1)

@@ -1,8 +1,6 @@
 """Record episodes of a (possibly filtered) parallel env into a :class:`~aasoatt_env.analysis.rollout.Rollout`.
 
-:class:`RecordEpisode` records after ``reset`` and every ``step`` the team's state, reference, the actions
-given and what the control filter's public ``filter_outputs`` say (applied actions, avoidance; for the
-:class:`~aasoatt_env.safety.core.SafetyFilter` also triggers, braking, solver status, slack, solve time).
+Each step's state, reference, the actions given and what the control filter's public ``filter_outputs`` say.
 """
 
 from __future__ import annotations
@@ -95,10 +93,7 @@ def _filter_fields(base: Any, n: int) -> dict[str, Any]:
 
 def run_episode(env: Any, agent: Any, seed: int | None = None, *, render_every: int | None = None,
                 progress: bool = False, metadata: dict[str, Any] | None = None) -> tuple[Rollout, list[np.ndarray]]:
-    """Run ``agent`` (``reset(env)``, ``act(observations, env)``) on ``env`` for one episode: ``(rollout, frames)``.
-
-    ``render_every``: keep a frame every this many steps (``render_mode="rgb_array"``); ``progress``: a bar.
-    """
+    """Run ``agent`` on ``env`` for one episode: ``(rollout, a frame every render_every steps)``."""
     rec = RecordEpisode(env, metadata)
     obs, _ = rec.reset(seed=seed)
     agent.reset(rec)

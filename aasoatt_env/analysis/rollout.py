@@ -1,21 +1,14 @@
 """Recorded episodes: the :class:`Rollout` container and its incremental :class:`RolloutBuilder`.
 
-A rollout holds one episode of ``T`` recorded steps, ``N`` robots and ``M`` static obstacles, checked once on
-construction (shapes, dtypes, finite values) so the metrics never check them again.  ``dt``: time between
-recorded steps [s].  Per step: ``times (T,)`` [s]; ``positions``, ``velocities``, ``references``,
-``reference_velocities`` ``(T, N, 2)`` (control points ``p_i``, ``dp_i``, ``p_d_i``, ``v_d_i``); ``headings
-(T, N)`` [rad].  Static: ``goals (N, 2)``, ``radii (N,)``, ``obstacle_centers (M, 2)``, ``obstacle_radii (M,)``
-(default: none).  Optional: ``nominal_actions`` and applied ``actions (T, N, 2)``; bool ``avoiding`` (in
-collision avoidance), ``triggered`` (deadlock rule active), ``backup`` (braked by the backup layer) ``(T, N)``;
-``solver_status`` (str), ``slack`` (total relaxation of the rows), ``solve_time`` [s] ``(T,)``.  ``metadata``:
-a JSON-serialisable dict.  :meth:`Rollout.save` writes one ``.npz`` that :meth:`Rollout.load` reads without pickle.
+A rollout holds ``T`` recorded steps of ``N`` robots among ``M`` static obstacles (shapes: ``_PER_STEP``,
+``_STATIC``, ``_OPTIONAL`` below), checked once on construction so the metrics never check them again.  It
+is saved as one ``.npz`` that :meth:`Rollout.load` reads without pickle.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import zipfile
 import zlib
@@ -24,18 +17,18 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from aasoatt_env import validation as check
 from aasoatt_env.cli_support import atomic_write
 from aasoatt_env.errors import ConfigError, DataFileError
 
 __all__ = ["Rollout", "RolloutBuilder", "checked_array"]
 
-#: Version tag written into saved files.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 1  # written into saved files
+Template = tuple[str | int, ...]  # a shape; its strings are sizes bound by the first array that has them
 
-Template = tuple[str | int, ...]
-"""A shape whose strings are sizes bound by the first array that has them (``("T", "N", 2)``)."""
-
-# (name, shape template, dtype kind: "f" float, "b" bool, "U" str)
+# (name, shape, dtype kind: "f" float, "b" bool, "U" str); control points p_i, velocities dp_i, references p_d_i,
+# v_d_i, headings [rad]; optional: nominal and applied actions, flags (in collision avoidance, deadlock rule
+# active, braked by the backup layer), solver status, total slack, solve time [s].
 _PER_STEP: tuple[tuple[str, Template, str], ...] = (
     ("positions", ("T", "N", 2), "f"), ("velocities", ("T", "N", 2), "f"), ("headings", ("T", "N"), "f"),
     ("references", ("T", "N", 2), "f"), ("reference_velocities", ("T", "N", 2), "f"))
@@ -73,10 +66,7 @@ def _convert(name: str, value: Any, kind: str) -> np.ndarray:
 
 def checked_array(name: str, value: Any, template: Template, sizes: dict[str, int], kind: str = "f", *,
                   finite: bool = True) -> np.ndarray:
-    """``value`` as a fresh array of dtype ``kind`` and shape ``template`` (float arrays finite, if ``finite``).
-
-    Symbolic sizes already in ``sizes`` must match; new ones are bound into it.
-    """
+    """``value`` as a fresh array of dtype ``kind`` and shape ``template`` (bound into ``sizes``), finite floats."""
     arr = _convert(name, value, kind)
     ok = arr.ndim == len(template)
     for dim, sym in zip(arr.shape, template) if ok else ():
@@ -89,18 +79,6 @@ def checked_array(name: str, value: Any, template: Template, sizes: dict[str, in
         bad = np.argwhere(~np.isfinite(arr))[0].tolist()
         raise ConfigError(f"{name}: got a non-finite value at index {bad}, expected finite numbers")
     return arr
-
-
-def _positive_dt(value: Any) -> float:
-    dt = math.nan
-    if not isinstance(value, (str, bytes, np.str_, np.bytes_, bool, np.bool_)):
-        try:
-            dt = float(value)
-        except (TypeError, ValueError, OverflowError):
-            pass
-    if not (math.isfinite(dt) and dt > 0):
-        raise ConfigError(f"dt: got {value!r}, expected a finite positive number")
-    return dt
 
 
 @dataclass
@@ -134,7 +112,7 @@ class Rollout:
     """Fields with one entry per recorded step (cut by :meth:`window`)."""
 
     def __post_init__(self) -> None:
-        self.dt = _positive_dt(self.dt)
+        self.dt = check.positive("dt", self.dt)
         sizes: dict[str, int] = {}
         self.times = checked_array("times", self.times, ("T",), sizes)
         if sizes["T"] < 1:
@@ -239,14 +217,10 @@ def _read_fields(path: str | os.PathLike[str], name: str) -> dict[str, Any]:
 
 
 class RolloutBuilder:
-    """Accumulate an episode step by step, then :meth:`build` a :class:`Rollout`.
+    """Accumulate an episode step by step (arrays copied; optional fields at every step or none), then build it."""
 
-    :meth:`append` copies its arrays (callers may reuse their buffers); an optional field must be given at
-    every step or at none.  The static fields may be given here or to :meth:`build`.
-    """
-
-    _KINDS: ClassVar[dict[str, str]] = {"times": "f", **{n: k for n, _, k in (*_PER_STEP, *_OPTIONAL)}}
-    _SCALARS: ClassVar[frozenset[str]] = frozenset(("times", "solver_status", "slack", "solve_time"))
+    _DTYPES: ClassVar[dict[str, type]] = {"times": np.float64, **{
+        n: {"f": np.float64, "b": np.bool_, "U": np.str_}[k] for n, _, k in (*_PER_STEP, *_OPTIONAL)}}
 
     def __init__(self, dt: float, *, goals: Any = None, radii: Any = None, obstacle_centers: Any = None,
                  obstacle_radii: Any = None, metadata: dict[str, Any] | None = None) -> None:
@@ -254,7 +228,7 @@ class RolloutBuilder:
         self.static: dict[str, Any] = {"goals": goals, "radii": radii, "obstacle_centers": obstacle_centers,
                                        "obstacle_radii": obstacle_radii}
         self.metadata: dict[str, Any] = dict(metadata or {})
-        self._data: dict[str, list[Any]] = {name: [] for name in self._KINDS}
+        self._data: dict[str, list[np.ndarray]] = {name: [] for name in self._DTYPES}
         self._n = 0
 
     def __len__(self) -> int:
@@ -277,11 +251,7 @@ class RolloutBuilder:
         given.update(times=time, positions=positions, velocities=velocities, headings=headings, references=references,
                      reference_velocities=reference_velocities)
         for name, value in given.items():
-            kind = self._KINDS[name]
-            if name in self._SCALARS:
-                self._data[name].append(str(value) if kind == "U" else float(value))
-            else:
-                self._data[name].append(np.array(value, dtype=np.float64 if kind == "f" else np.bool_))
+            self._data[name].append(np.array(value, dtype=self._DTYPES[name]))
         self._n += 1
 
     def build(self, **overrides: Any) -> Rollout:
@@ -299,9 +269,7 @@ class RolloutBuilder:
         metadata = {**self.metadata, **(overrides.get("metadata") or {})}
         kwargs: dict[str, Any] = {"dt": overrides.get("dt", self.dt), "metadata": metadata, **static}
         for name, values in self._data.items():
-            if values and name in self._SCALARS:
-                kwargs[name] = values
-            elif values:
+            if values:
                 try:
                     kwargs[name] = np.stack(values)
                 except ValueError:

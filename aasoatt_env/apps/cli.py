@@ -1,10 +1,7 @@
 """The ``aasoatt`` command line.
 
-``list``: scenarios and their parameters, controllers, barriers, deadlock strategies, triggers, solvers;
-``run``: a controller (behind the safety filter or not) on a scenario, its metrics, a GIF / PNG / JSON / NPZ;
-``reproduce``: the paper's experiments; ``train``, ``evaluate``: :mod:`train.train`, :mod:`train.evaluate`;
-``warm-up``: compile (or load from numba's cache) the filter's kernels.  Heavy libraries (torch,
-Stable-Baselines3, Ray, matplotlib) are imported only by the commands that use them.
+``list``, ``run``, ``warm-up`` here; ``reproduce``, ``train``, ``evaluate`` in their modules.  Heavy libraries
+(torch, Stable-Baselines3, Ray, matplotlib) are imported only by the commands that use them.
 """
 
 from __future__ import annotations
@@ -38,8 +35,8 @@ __all__ = ["main"]
 
 RUN_OUTPUTS = ("metrics.json", "rollout.npz", "trajectories.png")  # what ``aasoatt run --out DIR`` writes
 
-_FORWARDED = {"reproduce": ("aasoatt_env.apps.reproduce", "main"), "train": ("train.train", "main"),
-              "evaluate": ("train.evaluate", "main")}
+# commands whose module's main() parses their own options (--help included) and guards their own errors
+_FORWARDED = {"reproduce": "aasoatt_env.apps.reproduce", "train": "train.train", "evaluate": "train.evaluate"}
 
 
 def _parameters(scenario: str) -> dict[str, inspect.Parameter]:
@@ -60,11 +57,10 @@ def cmd_list(args: argparse.Namespace) -> int:
         print(f"  {name:18s} id {ids.get(name, '-')}\n      {(cls.__doc__ or '').strip().splitlines()[0]}")
         for pname, p in _parameters(name).items():
             print(f"      {pname}{'' if p.default is inspect.Parameter.empty else f' = {p.default!r}'}")
-    print("\nControllers (--controller NAME):", ", ".join(agent_names()))
-    print("Barriers (--filter NAME):", ", ".join(BARRIERS))
-    print("Deadlock strategies (--deadlock):", ", ".join(STRATEGIES))
-    print("Deadlock triggers (--trigger):", ", ".join(TRIGGERS))
-    print("QP solvers (--solver):", ", ".join(available_solvers()))
+    for title, names in (("\nControllers (--controller NAME):", agent_names()), ("Barriers (--filter NAME):", BARRIERS),
+                         ("Deadlock strategies (--deadlock):", STRATEGIES),
+                         ("Deadlock triggers (--trigger):", TRIGGERS), ("QP solvers (--solver):", available_solvers())):
+        print(title, ", ".join(names))
     return 0
 
 
@@ -116,10 +112,7 @@ def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 def _env_and_agent(args: argparse.Namespace, kwargs: dict[str, Any], filter_config: FilterConfig | None
                    ) -> tuple[Any, Any]:
-    """The env and controller of ``aasoatt run``; ``--controller learned``: the env settings of its run.
-
-    A value given with ``-p`` or ``--decision-interval`` that differs from the run's is an error.
-    """
+    """The env and controller of ``aasoatt run``; ``--controller learned``: the env settings of its run."""
     agent = None
     if args.controller == "learned":
         from train.evaluate import load_policy, policy_env_kwargs
@@ -202,21 +195,20 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _run_parser(sub: Any) -> None:
     p = sub.add_parser("run", help="run a controller on a scenario")
-    names = ", ".join(sorted(SCENARIOS))
-    p.add_argument("--scenario", default="circle_swap", choices=sorted(SCENARIOS), metavar="NAME",
-                   help=f"one of {names}")
+
+    def choice(flag: str, default: str, options: Sequence[str]) -> None:
+        p.add_argument(flag, default=default, choices=options, metavar="NAME", help=f"one of {', '.join(options)}")
+
+    choice("--scenario", "circle_swap", sorted(SCENARIOS))
     p.add_argument("--robots", type=cli_support.int_option(1, MAX_ROBOTS), default=None,
                    help="number of robots (num_robots)")
     p.add_argument("-p", "--param", action="append", help="scenario/env parameter KEY=VALUE")
-    p.add_argument("--controller", default="tracking", choices=agent_names(), metavar="NAME",
-                   help=f"one of {', '.join(agent_names())}")
+    choice("--controller", "tracking", agent_names())
     p.add_argument("--model", default=None, help="saved model for --controller learned")
     p.add_argument("--filter", default="aasoatt", choices=[*BARRIERS, "none"], metavar="NAME",
                    help=f"barrier: one of {', '.join(BARRIERS)}; or 'none' for the bare env")
-    p.add_argument("--deadlock", default="auxiliary_velocity", choices=list(STRATEGIES), metavar="NAME",
-                   help=f"one of {', '.join(STRATEGIES)}")
-    p.add_argument("--trigger", default="multiplier", choices=list(TRIGGERS), metavar="NAME",
-                   help=f"one of {', '.join(TRIGGERS)}")
+    choice("--deadlock", "auxiliary_velocity", list(STRATEGIES))
+    choice("--trigger", "multiplier", list(TRIGGERS))
     p.add_argument("--solver", default="proxsuite", help="QP solver (aasoatt list shows the installed ones)")
     p.add_argument("-g", "--gain", action="append", help="filter gain KEY=VALUE (k1, k2, zeta, ...)")
     p.add_argument("--decision-interval", type=cli_support.int_option(1, 10_000), default=None,
@@ -264,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     p_warm.add_argument("--kernel", choices=("auto", "numba"), default="auto",
                         help="auto: where numba is installed; numba: or an error")
     p_warm.set_defaults(func=cmd_warm_up)
-    for name, (module, _) in _FORWARDED.items():
+    for name, module in _FORWARDED.items():
         p = sub.add_parser(name, help=f"see {module} (aasoatt {name} --help)", add_help=False)
         p.add_argument("rest", nargs=argparse.REMAINDER)
     return parser
@@ -273,8 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``aasoatt`` console script (see :mod:`aasoatt_env.cli_support` for the contract)."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in _FORWARDED:  # these parse their own options (incl. --help) and guard their own errors
-        module, func = _FORWARDED[argv[0]]
+    if argv and argv[0] in _FORWARDED:
         if argv[0] == "train":  # --backend rllib: train.rllib (Ray RLlib's venv has no Stable-Baselines3)
             from train.config import split_backend
 
@@ -283,7 +274,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 from train.rllib import main as rllib_main
 
                 return int(rllib_main(rest, prog="aasoatt train --backend rllib") or 0)
-        return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
+        return int(importlib.import_module(_FORWARDED[argv[0]]).main(argv[1:]) or 0)
 
     def body(args_list: list[str]) -> int:
         args = build_parser().parse_args(args_list)

@@ -1,9 +1,7 @@
 """Reproduce the paper's Sec. V: ``aasoatt reproduce EXPERIMENT [--quick] [--out DIR] [--jobs N] [--page FILE]``.
 
-Each experiment (or ``all``, which adds ``SUMMARY.md``) writes ``<out>/<experiment>/``: a CSV, a README with
-the paper's numbers beside ours, figures and its wall time.  ``--page`` writes every table on one Markdown
-page headed by the command that made it (pages in ``docs/`` are regenerated, never hand-edited).  Results do
-not depend on ``--jobs``; ``--quick`` runs small variants into ``results/quick``.  From Python:
+Each experiment writes ``<out>/<experiment>/`` (CSV, README with the paper's numbers beside ours, figures);
+``--page`` puts every table on one page headed by its command.  From Python:
 ``report, seconds = run_experiment("compare-ca", Settings(out=Path("results")))``.
 """
 

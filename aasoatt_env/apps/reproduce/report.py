@@ -1,8 +1,6 @@
 """The shared scaffolding of the paper's experiments: declare an :class:`Experiment`, :func:`run` does the rest.
 
-:func:`run` executes an experiment's runs, puts one CSV row per run beside the paper's numbers and the
-relative difference ``(ours - paper) / |paper|``, and returns a :class:`Report` that writes ``<out>/<name>/``
-(``<name>.csv``, ``README.md``, the figures) in one atomic step.
+One CSV row per run beside the paper's numbers and ``(ours - paper) / |paper|``; a :class:`Report` writes them.
 """
 
 from __future__ import annotations
@@ -16,6 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from aasoatt_env.analysis.metrics import format_value as fmt
 from aasoatt_env.apps.reproduce.runner import RunResult, RunSpec, run_many
 from aasoatt_env.cli_support import OutputPlan, staged
 
@@ -54,17 +53,6 @@ def rel_diff(ours: float | None, paper: float | None) -> float | None:
     return (ours - paper) / abs(paper)
 
 
-def fmt(x: Any, digits: int = 4) -> str:
-    """A table cell: ``-`` for None, yes/no for bools, ``digits`` decimals for floats."""
-    if x is None:
-        return "-"
-    if isinstance(x, (bool, np.bool_)):
-        return "yes" if x else "no"
-    if isinstance(x, (float, np.floating)) and math.isfinite(x):
-        return f"{x:.{digits}f}"
-    return str(int(x)) if isinstance(x, np.integer) else str(x)
-
-
 def fmt_rel(x: float | None) -> str:
     """A relative difference as a signed percentage."""
     return "-" if x is None else f"{100 * x:+.1f}%"
@@ -91,11 +79,8 @@ def compared(metrics: Sequence[str]) -> list[Column]:
 class Experiment:
     """One experiment of the paper, declared by overriding the hooks that apply.
 
-    ``_specs(s)``: the runs in table order; ``_paper(spec)``: the paper's numbers of a run (None: not in the
-    paper); ``_extra(s, spec, result)``: more CSV fields; ``_columns(s)``: the results table; ``_notes(s)``:
-    the settings; ``_sections(s, res)``: Markdown after the table; ``_findings(s, res)``: one bullet each;
-    ``_figures(s, res)``: ``(figure, file name, caption)`` each.  ``metrics`` are compared with the paper
-    (``paper_<m>``, ``rel_<m>`` columns); ``sizes[quick]``: the scenario sizes, full and ``--quick``.
+    ``_specs``: the runs in table order; ``_paper``: a run's numbers in the paper; ``_extra``: more CSV fields;
+    ``_columns``, ``_notes``, ``_sections``, ``_findings``: the Markdown; ``_figures``: ``(figure, file, caption)``.
     """
 
     name: ClassVar[str]

@@ -1,8 +1,6 @@
-"""One simulation run of a reproduction experiment, and a (parallel) runner over many.
+"""One simulation run of a reproduction experiment (metrics and light traces), and a parallel runner over many.
 
-:func:`run_spec` returns a run's metrics over the paper's time window and a light, down-sampled copy of its
-traces for figures (cheap to send back from worker processes).  Runs are deterministic, so :func:`run_many`
-returns the same results in spec order whatever ``jobs`` is.
+Runs are deterministic, so :func:`run_many` returns the same results whatever ``jobs`` is.
 """
 
 from __future__ import annotations
@@ -29,10 +27,9 @@ MAX_SAMPLES: int = 800  # time samples kept for figures, at most
 
 @dataclass(frozen=True)
 class RunSpec:
-    """What to simulate: ``key`` labels it in its experiment (``"ours/N=20"``), ``meta`` is copied into its row.
+    """What to simulate: ``controller`` ``tracking`` (eqn. 11-12) or SBC's ``pd``; metrics over ``[0, window]`` s.
 
-    ``controller``: the paper's law (``"tracking"``, eqn. 11-12) or SBC's (``"pd"``) with gains ``k3``, ``k4``;
-    ``filter`` None: the bare env, actions saturated; metrics over ``[0, window]`` s (None: the episode).
+    ``key`` labels the run in its experiment, ``meta`` goes into its row; ``filter`` None: actions saturated.
     """
 
     key: str
@@ -49,12 +46,7 @@ class RunSpec:
 
 @dataclass
 class RunResult:
-    """Metrics and down-sampled traces of one run.
-
-    ``metrics``: :func:`~aasoatt_env.analysis.metrics.summarize` over the window, the whole episode's ``*_end``
-    goal metrics, ``*_full`` separations, ``safety_distance`` and ``wall_time`` [s].  ``traces``: per sample
-    (``min_center_distance``: the minimum over the steps it stands for) and static arrays for figures.
-    """
+    """Metrics over the window (``*_end``, ``*_full``: the whole episode) and down-sampled traces of one run."""
 
     spec: RunSpec
     metrics: dict[str, Any]
