@@ -109,80 +109,60 @@ class Separation:
         return float(np.min(self.min_gap))
 
 
-def _first_hits(first: np.ndarray, hit: np.ndarray, offset: int) -> None:
-    new = hit.any(axis=0) & (first < 0)
-    if new.any():
-        first[new] = np.argmax(hit, axis=0)[new] + offset
+def _scan(rollout: Rollout, obstacles: bool, tolerance: float | None) -> tuple[np.ndarray, ...]:
+    """One chunked pass over the robot pairs (or robot-obstacle pairs).
 
-
-def _robot_scan(rollout: Rollout, tolerance: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                    np.ndarray | None]:
-    """Per-step minimum distance and gap, closest pair and (``tolerance``) each pair's first collision step."""
-    T, N = rollout.n_steps, rollout.n_robots
-    min_dist, min_gap = np.full(T, np.inf), np.full(T, np.inf)
-    pair = np.full((T, 2), -1, dtype=np.int64)
-    first = np.full((N, N), -1, dtype=np.int64) if tolerance is not None else None
-    if N < 2:
+    Per step: the minimum centre distance and gap, the pair ``(i, j)`` of the smallest gap (``inf``, ``-1``: no
+    pair); with a ``tolerance``, each pair's first collision step ``(N, N or M)`` (``-1``: never; robots ``i < j``).
+    """
+    p = rollout.positions
+    q, rq = (rollout.obstacle_centers[None], rollout.obstacle_radii) if obstacles else (p, rollout.radii)
+    (T, N), M = p.shape[:2], q.shape[1]
+    min_dist, min_gap, pair = np.full(T, np.inf), np.full(T, np.inf), np.full((T, 2), -1, dtype=np.int64)
+    first = np.full((N, M), -1, dtype=np.int64) if tolerance is not None else np.zeros((0, 0), dtype=np.int64)
+    if M < (1 if obstacles else 2):
         return min_dist, min_gap, pair, first
-    r = rollout.radii
-    rsum = r[:, None] + r[None, :]
-    uniform = bool(np.all(r == r[0]))
-    diag_inf = np.where(np.eye(N, dtype=np.bool_), np.inf, 0.0)
+    rsum = rollout.radii[:, None] + rq[None, :]
+    uniform = bool(np.all(rsum == rsum[0, 0]))
+    skip = np.zeros((N, M)) if obstacles else np.where(np.eye(N, dtype=np.bool_), np.inf, 0.0)
     if tolerance is not None:
         thr = rsum - tolerance
-        upper = np.triu(np.ones((N, N), dtype=np.bool_), k=1)
+        upper = np.ones((N, M), dtype=np.bool_) if obstacles else np.triu(np.ones((N, N), dtype=np.bool_), k=1)
         thr2 = np.where(upper & (thr > 0), thr * np.abs(thr), -1.0)  # d2 < -1 never holds
-    x = np.ascontiguousarray(rollout.positions[..., 0])
-    y = np.ascontiguousarray(rollout.positions[..., 1])
-    chunk = _chunk_steps(T, 4 * N * N)
+    x, y = np.ascontiguousarray(p[..., 0]), np.ascontiguousarray(p[..., 1])
+    qx, qy = (q[..., 0], q[..., 1]) if obstacles else (x, y)
+    chunk = _chunk_steps(T, 4 * N * M)
     for s in range(0, T, chunk):
         xs, ys = x[s : s + chunk], y[s : s + chunk]
+        qxs, qys = (qx, qy) if obstacles else (qx[s : s + chunk], qy[s : s + chunk])
         c = xs.shape[0]
-        dx = xs[:, :, None] - xs[:, None, :]
-        dy = ys[:, :, None] - ys[:, None, :]
+        dx, dy = xs[:, :, None] - qxs[:, None, :], ys[:, :, None] - qys[:, None, :]
         d2 = dx * dx + dy * dy
-        if first is not None:
-            _first_hits(first, d2 < thr2, s)
-        d2 += diag_inf
-        flat = d2.reshape(c, N * N)
-        if uniform:
+        if tolerance is not None:
+            hit = d2 < thr2
+            new = hit.any(axis=0) & (first < 0)
+            first[new] = np.argmax(hit, axis=0)[new] + s
+        d2 += skip
+        flat = d2.reshape(c, N * M)
+        if uniform:  # the smallest distance is the smallest gap: one square root per step
             k = np.argmin(flat, axis=1)
-            dmin = np.sqrt(flat[np.arange(c), k])
-            min_dist[s : s + c] = dmin
-            min_gap[s : s + c] = dmin - 2.0 * r[0]
+            min_dist[s : s + c] = np.sqrt(flat[np.arange(c), k])
+            min_gap[s : s + c] = min_dist[s : s + c] - rsum[0, 0]
         else:
             dist = np.sqrt(flat)
             min_dist[s : s + c] = dist.min(axis=1)
             gap = dist - rsum.ravel()
             k = np.argmin(gap, axis=1)
             min_gap[s : s + c] = gap[np.arange(c), k]
-        i, j = np.divmod(k, N)
-        pair[s : s + c, 0] = np.minimum(i, j)
-        pair[s : s + c, 1] = np.maximum(i, j)
+        i, j = np.divmod(k, M)
+        pair[s : s + c] = np.stack([i, j], axis=1) if obstacles else np.stack([np.minimum(i, j), np.maximum(i, j)], 1)
     return min_dist, min_gap, pair, first
-
-
-def _obstacle_scan(rollout: Rollout, tolerance: float | None) -> tuple[np.ndarray, np.ndarray | None]:
-    T, N, M = rollout.n_steps, rollout.n_robots, rollout.n_obstacles
-    min_obs = np.full(T, np.inf)
-    first = np.full((N, M), -1, dtype=np.int64) if tolerance is not None else None
-    if M == 0:
-        return min_obs, first
-    rsum = rollout.radii[:, None] + rollout.obstacle_radii[None, :]
-    chunk = _chunk_steps(T, 4 * N * M)
-    for s in range(0, T, chunk):
-        d = rollout.positions[s : s + chunk, :, None, :] - rollout.obstacle_centers[None, None, :, :]
-        gap = np.sqrt(np.einsum("tnmk,tnmk->tnm", d, d)) - rsum
-        min_obs[s : s + chunk] = gap.min(axis=(1, 2))
-        if first is not None:
-            _first_hits(first, gap < -tolerance, s)
-    return min_obs, first
 
 
 def pairwise_min_distance(rollout: Rollout) -> Separation:
     """Minimum robot-robot distance and surface gaps at every step (see :class:`Separation`)."""
-    min_dist, min_gap, pair, _ = _robot_scan(rollout, None)
-    return Separation(min_dist, min_gap, _obstacle_scan(rollout, None)[0], pair)
+    min_dist, min_gap, pair, _ = _scan(rollout, False, None)
+    return Separation(min_dist, min_gap, _scan(rollout, True, None)[1], pair)
 
 
 @dataclass(frozen=True)
@@ -217,8 +197,8 @@ class CollisionReport:
 
 def _scans(rollout: Rollout, tolerance: float) -> tuple[Separation, CollisionReport]:
     tol = _tolerance("tolerance", tolerance)
-    min_dist, min_gap, pair, first_r = _robot_scan(rollout, tol)
-    min_obs, first_o = _obstacle_scan(rollout, tol)
+    min_dist, min_gap, pair, first_r = _scan(rollout, False, tol)
+    _, min_obs, _, first_o = _scan(rollout, True, tol)
     colliding = np.zeros(rollout.n_robots, dtype=np.bool_)
     ii, jj = np.nonzero(first_r >= 0)
     oi, ok = np.nonzero(first_o >= 0)
