@@ -65,16 +65,6 @@ def _series(times: Any, values: Any, name: str, expected: str) -> tuple[np.ndarr
     return t, v
 
 
-def _radii(radii: Any, n: int) -> np.ndarray:
-    if radii is None:
-        return np.zeros(n)
-    r = np.asarray(radii, dtype=np.float64)
-    try:
-        return np.broadcast_to(r, (n,)).copy()
-    except ValueError:
-        raise ConfigError(f"radii: got shape {r.shape}, expected () or ({n},)") from None
-
-
 def _obstacles(obstacles: Obstacles) -> tuple[np.ndarray, np.ndarray]:
     if isinstance(obstacles, tuple) and len(obstacles) == 2:
         centers = np.asarray(obstacles[0], dtype=np.float64).reshape(-1, 2)
@@ -94,7 +84,11 @@ def _team(positions: Any, references: Any, goals: Any, radii: Any) -> tuple[np.n
         raise ConfigError(f"positions: got shape {pos.shape}, expected (T, N, 2) with T >= 1")
     ref = None if references is None else checked_array("references", references, ("T", "N", 2), sizes, finite=False)
     g = None if goals is None else checked_array("goals", goals, ("N", 2), sizes)
-    return pos, ref, g, _radii(radii, sizes["N"])
+    r = np.zeros(()) if radii is None else np.asarray(radii, dtype=np.float64)
+    try:
+        return pos, ref, g, np.broadcast_to(r, (sizes["N"],)).copy()
+    except ValueError:
+        raise ConfigError(f"radii: got shape {r.shape}, expected () or ({sizes['N']},)") from None
 
 
 def _scene(ax: Any, obstacles: Obstacles, points: list[np.ndarray], pad: float) -> None:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from aasoatt_env import cli_support
 from aasoatt_env.apps.reproduce.experiments import EXPERIMENTS
-from aasoatt_env.apps.reproduce.report import Report, Settings, run
+from aasoatt_env.apps.reproduce.report import Report, Settings, md_table, run
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety import available_solvers
 
@@ -105,8 +105,9 @@ def _main(argv: list[str]) -> int:
 def _write_summary(out: Path, command: str, walls: dict[str, float]) -> None:
     """``<out>/SUMMARY.md``: the wall time of each experiment and their total."""
     total = sum(walls.values())
-    lines = ["# Reproduction summary", "", f"Command: `{command}`", "", "| experiment | wall time [s] | report |",
-             "|---|---|---|", *(f"| {n} | {w:.1f} | [{n}/README.md]({n}/README.md) |" for n, w in walls.items()), "",
+    table = md_table(["experiment", "wall time [s]", "report"],
+                     [[n, f"{w:.1f}", f"[{n}/README.md]({n}/README.md)"] for n, w in walls.items()])
+    lines = ["# Reproduction summary", "", f"Command: `{command}`", "", table, "",
              f"Total wall time: {total:.1f} s ({total / 60:.1f} min).", ""]
     cli_support.atomic_write(out / "SUMMARY.md", lambda tmp: tmp.write_text("\n".join(lines)))
     print(f"all: {total:.1f} s -> {out / 'SUMMARY.md'}")

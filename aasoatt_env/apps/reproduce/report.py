@@ -88,6 +88,7 @@ class Experiment:
     metrics: ClassVar[tuple[str, ...]] = ()
     heading: ClassVar[str] = "## Results (paper | ours | relative difference)"
     sizes: ClassVar[dict[bool, Any]] = {}
+    columns: ClassVar[list[Column]] = []  # the results table, unless it depends on the settings (_columns)
 
     def size(self, s: Settings) -> Any:
         """The scenario sizes for ``s``."""
@@ -97,7 +98,7 @@ class Experiment:
         raise NotImplementedError
 
     def _columns(self, s: Settings) -> list[Column]:
-        raise NotImplementedError
+        return self.columns
 
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
         return None

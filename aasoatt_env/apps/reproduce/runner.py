@@ -53,18 +53,15 @@ class RunResult:
     traces: dict[str, np.ndarray]
 
 
-def _make_agent(spec: RunSpec) -> Any:
+def run_spec(spec: RunSpec) -> RunResult:
+    """Simulate one :class:`RunSpec`."""
     controllers = {"tracking": TrackingController, "pd": PDController}
     if spec.controller not in controllers:
         raise ValueError(f"controller: got {spec.controller!r}, expected 'tracking' or 'pd'")
-    return controllers[spec.controller](spec.k3, spec.k4, saturate=spec.filter is None)
-
-
-def run_spec(spec: RunSpec) -> RunResult:
-    """Simulate one :class:`RunSpec`."""
     t0 = time.perf_counter()
     env = make_env(spec.scenario, filter=spec.filter, **spec.scenario_kwargs)
-    rollout, _ = run_episode(env, _make_agent(spec), seed=spec.seed, metadata={"key": spec.key})
+    agent = controllers[spec.controller](spec.k3, spec.k4, saturate=spec.filter is None)
+    rollout, _ = run_episode(env, agent, seed=spec.seed, metadata={"key": spec.key})
     wall = time.perf_counter() - t0
     part = rollout.window(spec.window)
     metrics = summarize(part)

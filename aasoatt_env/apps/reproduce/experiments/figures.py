@@ -28,6 +28,9 @@ class DeadlockTriggers(Experiment):
 
     name, title, heading = "deadlock-triggers", "Fig. 3a - deadlock triggers (velocity profiles)", FIGURE_ONLY
     sizes = common.CA_SIZES
+    columns = [col("trigger", "trigger"), *_tracking(), col("min mean speed (20-80% of T)", "min_mean_speed_mid"),
+               col("slow fraction (20-80%)", "slow_fraction_mid"), col("triggered fraction", "triggered_fraction"),
+               col("final goal error", "final_error_mean"), col("min gap", "min_robot_gap_full")]
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         return [common.team_run(s, t, self.size(s), {"trigger": t, "N": self.size(s)[0]}, trigger=t) for t in TRIGGERS]
@@ -37,11 +40,6 @@ class DeadlockTriggers(Experiment):
         mid = (t > 0.2 * duration) & (t < 0.8 * duration)
         return {"min_mean_speed_mid": float(sp[mid].mean(axis=1).min()),
                 "slow_fraction_mid": float((sp[mid] < 0.05).mean())}
-
-    def _columns(self, s: Settings) -> list[Column]:
-        return [col("trigger", "trigger"), *_tracking(), col("min mean speed (20-80% of T)", "min_mean_speed_mid"),
-                col("slow fraction (20-80%)", "slow_fraction_mid"), col("triggered fraction", "triggered_fraction"),
-                col("final goal error", "final_error_mean"), col("min gap", "min_robot_gap_full")]
 
     def _notes(self, s: Settings) -> list[str]:
         n, radius, duration = self.size(s)

@@ -10,7 +10,7 @@ import numpy as np
 from aasoatt_env.analysis.plotting import new_figure
 from aasoatt_env.apps.reproduce import paper, report
 from aasoatt_env.apps.reproduce.experiments import common
-from aasoatt_env.apps.reproduce.report import Column, Experiment, Results, Settings, col, compared, fmt
+from aasoatt_env.apps.reproduce.report import Experiment, Results, Settings, col, compared, fmt
 from aasoatt_env.apps.reproduce.runner import RunResult, RunSpec
 from aasoatt_env.model.params import RobotParams
 from aasoatt_env.safety.config import auto_margin
@@ -33,6 +33,7 @@ class Table1(Experiment):
     """Table I: single-robot tracking, SBC's PD law (k3 = 10, 80) vs the paper's law (k3 = 1), k4 = 4."""
 
     name, title, metrics = "table1", "Table I - single-robot trajectory tracking", ("rmse", "mae", "std")
+    columns = [col("trajectory", "trajectory"), col("controller", "controller"), *compared(metrics)]
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         duration = 6.0 if s.quick else 12.0
@@ -42,9 +43,6 @@ class Table1(Experiment):
 
     def _paper(self, spec: RunSpec) -> dict[str, Any]:
         return paper.TABLE1[spec.meta["trajectory"]][spec.meta["controller"]]
-
-    def _columns(self, s: Settings) -> list[Column]:
-        return [col("trajectory", "trajectory"), col("controller", "controller"), *compared(self.metrics)]
 
     def _notes(self, s: Settings) -> list[str]:
         return [
@@ -91,6 +89,10 @@ class CompareCA(Experiment):
 
     name, title, metrics = "compare-ca", "Comparison of CA strategies (N = 10, radius 6, 12 s)", paper.METRICS
     sizes = common.CA_SIZES
+    columns = [col("method", "method"),
+               col("barrier", lambda r: CA_METHODS.get(r["key"], CA_METHODS["eqn.n7"])["barrier"]), *compared(metrics),
+               col("min gap [m]", "min_robot_gap_full"), col("relaxed steps", "relaxed_fraction", 3),
+               col("unsafe steps", "unsafe_fraction", 3)]
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         size, fast = self.size(s), {"robots": RobotParams(max_wheel_accel=common.VELOCITY_LEVEL_ACCEL)}
@@ -104,11 +106,6 @@ class CompareCA(Experiment):
 
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
         return paper.COMPARE_CA.get(spec.key)
-
-    def _columns(self, s: Settings) -> list[Column]:
-        barrier = col("barrier", lambda row: CA_METHODS.get(row["key"], CA_METHODS["eqn.n7"])["barrier"])
-        return [col("method", "method"), barrier, *compared(self.metrics), col("min gap [m]", "min_robot_gap_full"),
-                col("relaxed steps", "relaxed_fraction", 3), col("unsafe steps", "unsafe_fraction", 3)]
 
     def _notes(self, s: Settings) -> list[str]:
         n, radius, duration = self.size(s)
@@ -162,6 +159,9 @@ class Table2(Experiment):
     """Table II and Fig. 2: eqn.n4 vs ours, N = 20..39 on the radius-6 circle."""
 
     name, title, metrics = "table2", "Table II - eqn.n4 vs ours in a crowd (radius 6, 12 s)", paper.METRICS
+    columns = [col("method", "method"), col("N", "N"), *compared(metrics),
+               col("min dist [m]", "min_center_distance_full"), col("violated", "violated"),
+               col("paper: violated", "paper_violated")]
     sizes = {False: ((20, 25, 30, 35, 39), 6.0, 12.0), True: ((8, 12), 4.0, 8.0)}  # Ns, radius, duration
 
     @staticmethod
@@ -191,11 +191,6 @@ class Table2(Experiment):
         listed = self._paper(spec) is not None
         return {"violated": common.violated(result),
                 "paper_violated": n in paper.TABLE2_VIOLATED[method] if listed else None}
-
-    def _columns(self, s: Settings) -> list[Column]:
-        return [col("method", "method"), col("N", "N"), *compared(self.metrics),
-                col("min dist [m]", "min_center_distance_full"), col("violated", "violated"),
-                col("paper: violated", "paper_violated")]
 
     def _notes(self, s: Settings) -> list[str]:
         ns, radius, duration = self.size(s)
@@ -263,6 +258,8 @@ class Table3(Experiment):
     """Table III: deadlock strategies eqn.12a / 12b / 13, N = 20..60, radius 10, 20 s."""
 
     name, title, metrics = "table3", "Table III - deadlock strategies (radius 10, 20 s)", paper.METRICS
+    columns = [col("N", "N"), col("strategy", "method"), *compared(metrics), col("min gap [m]", "min_robot_gap_full"),
+               col("relaxed steps", "relaxed_fraction", 3), col("unsafe steps", "unsafe_fraction", 3)]
     sizes = {False: ((20, 30, 40, 50, 60), 10.0, 20.0), True: ((8,), 5.0, 10.0)}  # Ns, radius, duration
 
     def _specs(self, s: Settings) -> list[RunSpec]:
@@ -272,11 +269,6 @@ class Table3(Experiment):
 
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
         return paper.TABLE3.get(spec.meta["N"], {}).get(spec.meta["method"])
-
-    def _columns(self, s: Settings) -> list[Column]:
-        return [col("N", "N"), col("strategy", "method"), *compared(self.metrics),
-                col("min gap [m]", "min_robot_gap_full"), col("relaxed steps", "relaxed_fraction", 3),
-                col("unsafe steps", "unsafe_fraction", 3)]
 
     def _notes(self, s: Settings) -> list[str]:
         ns, radius, duration = self.size(s)
