@@ -182,8 +182,7 @@ class Report:
         with path.open("w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=keys)
             w.writeheader()
-            for row in self.rows:
-                w.writerow({k: _csv_cell(row.get(k)) for k in keys})
+            w.writerows({k: _csv_cell(row.get(k)) for k in keys} for row in self.rows)
 
 
 def _csv_cell(v: Any) -> Any:
