@@ -1,10 +1,7 @@
 """What every ``aasoatt`` command shares: one-line errors, option types, output paths, atomic writes, progress.
 
-Options and output paths are checked before any work starts; a user error (any
-:class:`~aasoatt_env.errors.AASOATTError`) prints one line ``aasoatt <command>: error: ...`` and exits 2
-(``--debug``: the traceback); every file is written under a temporary name, then renamed into place, so
-an interrupted command leaves the earlier state or the whole new file; results are replaced only with
-``--overwrite``.
+Options and paths are checked before any work; a user error prints one line and exits 2.  Files are written
+under a temporary name, then renamed, so an interrupted command leaves the earlier file or the whole new one.
 """
 
 from __future__ import annotations
@@ -26,7 +23,7 @@ from aasoatt_env.validation import short_repr
 __all__ = ["OutputPlan", "Parser", "add_common_options", "atomic_write", "int_option", "path_option", "progress",
            "real_option", "run_guarded", "staged"]
 
-#: Marks the temporary files of :func:`staged` (and of ``save_animation``): never taken for results.
+#: Marks the temporary files of :func:`staged`: never taken for results.
 PARTIAL = ".partial"
 
 
@@ -39,7 +36,7 @@ class Parser(argparse.ArgumentParser):
 
 
 def add_common_options(parser: argparse.ArgumentParser, overwrite: bool = True) -> None:
-    """``--debug`` (and ``--overwrite`` for commands that write results)."""
+    """Add ``--debug`` (and ``--overwrite`` for commands that write results)."""
     parser.add_argument("--debug", action="store_true", help="on an error, show the full traceback")
     if overwrite:
         parser.add_argument("--overwrite", action="store_true",
@@ -65,7 +62,6 @@ def run_guarded(prog: str, argv: Sequence[str], body: Callable[[list[str]], int]
         return 2 if isinstance(exc, AASOATTError) else 1
 
 
-# ---------------------------------------------------------------------------------------- option types
 def _number_option(kind: type, expected: str, ok: Callable[[Any], bool]) -> Callable[[str], Any]:
     def parse(text: str) -> Any:
         try:
@@ -104,49 +100,38 @@ def path_option(text: str) -> str:
     return text
 
 
-# ---------------------------------------------------------------------------------------- output paths
 class OutputPlan:
-    """Output paths of one command, checked and prepared before the work starts.
-
-    :meth:`folder` and :meth:`file` raise :class:`~aasoatt_env.errors.ConfigError` naming the option when a
-    path cannot be written or would replace earlier results without ``overwrite``.  Used as a context
-    manager, the plan removes the folders it made that are still empty when the block fails (Ctrl-C
-    included), so a failed command leaves no folder behind.
-    """
+    """Output paths of one command, checked and made before the work; on a failure its new folders go again."""
 
     def __init__(self, overwrite: bool) -> None:
         self.overwrite = bool(overwrite)
         self._created: list[Path] = []
 
-    def _checked(self, path: str | os.PathLike[str], flag: str, check: Callable[[Path], None]) -> Path:
+    def _prepare(self, path: str | os.PathLike[str], flag: str, check: Callable[[Path], Path]) -> Path:
+        """``path`` checked by ``check`` (which returns its folder); the folder made and test-written."""
         try:
             target = Path(path_option(os.fspath(path)))
-            check(target)
+            folder = probe = check(target)
+            missing = []
+            while not probe.exists() and probe.parent != probe:
+                missing.append(probe)
+                probe = probe.parent
+            if probe.exists() and not probe.is_dir():
+                raise ConfigError(f"{flag}: {probe} is a file, not a folder; cannot write {folder}")
+            folder.mkdir(parents=True, exist_ok=True)
+            self._created += reversed(missing)
+            with tempfile.TemporaryFile(dir=folder):
+                pass
         except argparse.ArgumentTypeError as exc:
             raise ConfigError(f"{flag}: {exc}") from None
         except OSError as exc:
             raise ConfigError(f"{flag}: cannot write to {path} ({exc.strerror or exc})") from None
         return target
 
-    def _make_writable_dir(self, folder: Path, flag: str) -> None:
-        missing, probe = [], folder
-        while not probe.exists() and probe.parent != probe:
-            missing.append(probe)
-            probe = probe.parent
-        if probe.exists() and not probe.is_dir():
-            raise ConfigError(f"{flag}: {probe} is a file, not a folder; cannot write {folder}")
-        folder.mkdir(parents=True, exist_ok=True)
-        self._created += reversed(missing)
-        with tempfile.TemporaryFile(dir=folder):
-            pass
-
     def folder(self, path: str | os.PathLike[str], flag: str, *, entries: Sequence[str] | None = None) -> Path:
-        """A results folder, created (with its parents) and test-written now.
+        """A results folder, created and test-written now; ``entries``: the names written (None: any content)."""
 
-        ``entries``: the names the command writes into it (``None``: any content counts as earlier results).
-        """
-
-        def check(folder: Path) -> None:
+        def check(folder: Path) -> Path:
             if folder.exists() and not folder.is_dir():
                 raise ConfigError(f"{flag}: {folder} exists and is not a folder")
             if folder.is_dir() and not self.overwrite:
@@ -156,14 +141,14 @@ class OutputPlan:
                     shown = ", ".join(clash[:4]) + (", ..." if len(clash) > 4 else "")
                     raise ConfigError(f"{flag}: {folder} already holds results ({shown}); pass --overwrite to "
                                       "replace them, or choose another path")
-            self._make_writable_dir(folder, flag)
+            return folder
 
-        return self._checked(path, flag, check)
+        return self._prepare(path, flag, check)
 
     def file(self, path: str | os.PathLike[str], flag: str, *, suffixes: Sequence[str] | None = None) -> Path:
         """An output file: its folder is created and test-written now; an existing file needs ``overwrite``."""
 
-        def check(target: Path) -> None:
+        def check(target: Path) -> Path:
             if suffixes is not None and target.suffix.lower() not in suffixes:
                 raise ConfigError(f"{flag}: got {str(target)!r}, expected a file name ending in one of "
                                   f"{list(suffixes)}")
@@ -173,9 +158,9 @@ class OutputPlan:
                 if not self.overwrite:
                     raise ConfigError(f"{flag}: {target} already exists; pass --overwrite to replace it, "
                                       "or choose another path")
-            self._make_writable_dir(target.parent, flag)
+            return target.parent
 
-        return self._checked(path, flag, check)
+        return self._prepare(path, flag, check)
 
     def discard(self) -> None:
         """Remove the folders this plan created that are still empty."""
@@ -194,10 +179,7 @@ class OutputPlan:
 
 @contextlib.contextmanager
 def staged(*paths: str | os.PathLike[str]) -> Iterator[list[Path]]:
-    """Temporary paths beside ``paths`` (same suffix) to write; all renamed into place if the block succeeds.
-
-    On any exception (Ctrl-C included) the temporary files are removed and ``paths`` keep what they held.
-    """
+    """Temporary paths beside ``paths`` (same suffix) to write: all renamed into place if the block succeeds."""
     targets = [Path(p) for p in paths]
     temps = [t.with_name(f".{t.stem}.{os.getpid()}{PARTIAL}{t.suffix}") for t in targets]
     try:
@@ -217,12 +199,8 @@ def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], Any]) -> 
     return Path(path)
 
 
-# ---------------------------------------------------------------------------------------- progress
 def progress(total: int, desc: str, unit: str = "step", enabled: bool = True, leave: bool = True) -> Any:
-    """A progress bar on stderr with rate and time left: tqdm's if installed, else a line per tenth of the work.
-
-    The object has tqdm's ``update(n)``, ``set_postfix_str(s)`` and ``close()``.
-    """
+    """A progress bar on stderr (tqdm's ``update``, ``set_postfix_str``, ``close``); without tqdm a line per tenth."""
     try:
         from tqdm import tqdm
     except ImportError:
@@ -231,7 +209,7 @@ def progress(total: int, desc: str, unit: str = "step", enabled: bool = True, le
 
 
 class _Lines:
-    """The plain fallback of :func:`progress` (``set_postfix_str`` and ``close`` do nothing)."""
+    """The plain fallback of :func:`progress`: done, rate and time left every tenth of the work."""
 
     def __init__(self, total: int, desc: str, unit: str, enabled: bool) -> None:
         self.total, self.desc, self.unit, self.enabled = max(int(total), 1), desc, unit, enabled

@@ -1,5 +1,1 @@
-"""The analysis layer: rollouts, recording, metrics and plots.
-
-:mod:`~aasoatt_env.analysis.rollout` (recorded episodes), :mod:`~aasoatt_env.analysis.recording`
-(recording an env), :mod:`~aasoatt_env.analysis.metrics` and :mod:`~aasoatt_env.analysis.plotting`.
-"""
+"""The analysis layer: recorded episodes (rollout, recording), their metrics and plots."""

@@ -1,19 +1,8 @@
 """Episode metrics of ``SPEC.md`` section 6 (the paper's Sec. V), computed from a :class:`Rollout`.
 
-Conventions
------------
-* Tracking error ``e_i(t) = |p_i(t) - p_d_i(t)|``.  RMSE, MAE and standard deviation pool all robots
-  and recorded steps; the standard deviation is the population one, so ``std**2 = RMSE**2 - MAE**2``.
-* Intervention time of robot ``i``: ``(k_last - k_first) * dt`` over the first and last recorded steps
-  with ``avoiding[k, i]`` (0 if never); the headline number is the mean over all robots.
-* Collision: ``|p_i - p_j| < r_i + r_j - tolerance`` (robots) or ``|p_i - o_k| < r_i + R_k - tolerance``
-  (obstacles) at some recorded step; the tolerance (default 1 mm) absorbs the discretisation of the
-  barrier guarantee (``SPEC.md`` section 4).  Surface gap: centre distance minus the sum of radii.
-* Safe rate (as in GCBF+): the fraction of robots that never collide.
-* A run of steps ``a..b`` (a stall) lasts ``(b - a) * dt``, as the intervention time.
-
-Pairwise computations are vectorised and chunked over time, so the ``(chunk, N, N)`` temporaries stay
-within about 16 MB whatever the episode's length.
+RMSE, MAE and the population std of the tracking error ``|p_i - p_d_i|`` pool all robots and steps.  A
+collision is an overlap deeper than a tolerance (1 mm: the discretisation of the barrier guarantee); a gap
+is a centre distance minus the radii.  Pairwise scans are chunked over time (temporaries within ~16 MB).
 """
 
 from __future__ import annotations
@@ -28,24 +17,19 @@ from aasoatt_env import validation as check
 from aasoatt_env.analysis.rollout import Rollout
 from aasoatt_env.errors import ConfigError
 
-__all__ = ["CollisionReport", "Separation", "collisions", "deadlocked_robots", "final_errors",
-           "final_tracking_errors", "format_summary", "intervention_time", "intervention_times", "longest_stall",
-           "pairwise_min_distance", "reach_rate", "safe_rate", "solver_stats", "summarize", "tracking_errors",
-           "tracking_stats"]
+__all__ = ["CollisionReport", "Separation", "collisions", "deadlocked_robots", "final_errors", "format_summary",
+           "format_value", "intervention_time", "intervention_times", "longest_stall", "pairwise_min_distance",
+           "reach_rate", "safe_rate", "solver_stats", "summarize", "tracking_errors", "tracking_stats"]
 
-#: Default collision tolerance [m].
-COLLISION_TOLERANCE = 1e-3
+COLLISION_TOLERANCE = 1e-3  # default collision tolerance [m]
+_CHUNK_ELEMENTS = 1 << 21  # float64 elements per temporary pairwise array (about 16 MB)
 
-#: Budget of float64 elements per temporary pairwise array (about 16 MB).
-_CHUNK_ELEMENTS = 1 << 21
-
-# Substrings (lower case) that classify a solver status string.
+# Substrings (lower case) of a failed, and of a relaxed, solver status.
 _FAILED_MARKERS = ("fail", "infeas", "error", "max_iter", "maxiter", "unsolved", "nan", "diverg")
 _RELAXED_MARKERS = ("relax", "slack")
 
 
 def _chunk_steps(n_steps: int, per_step: int) -> int:
-    """Time steps per chunk keeping ``chunk * per_step`` within the budget."""
     return max(1, min(n_steps, _CHUNK_ELEMENTS // max(per_step, 1)))
 
 
@@ -53,14 +37,6 @@ def _tolerance(name: str, value: float) -> float:
     return check.real(name, value, lo=0.0)
 
 
-def _require(rollout: Rollout, name: str, metric: str) -> np.ndarray:
-    value = getattr(rollout, name)
-    if value is None:
-        raise ConfigError(f"{metric}: the rollout has no {name!r} field, record it to compute this metric")
-    return value
-
-
-# --------------------------------------------------------------------------- tracking
 def tracking_errors(rollout: Rollout) -> np.ndarray:
     """Tracking error ``|p_i(t) - p_d_i(t)|`` of every robot at every recorded step, shape ``(T, N)``."""
     return np.linalg.norm(rollout.positions - rollout.references, axis=-1)
@@ -73,11 +49,6 @@ def tracking_stats(rollout: Rollout) -> dict[str, float]:
             "max": float(np.max(e))}
 
 
-def final_tracking_errors(rollout: Rollout) -> np.ndarray:
-    """Tracking error ``|p_i - p_d_i|`` at the last recorded step, shape ``(N,)``."""
-    return tracking_errors(rollout)[-1]
-
-
 def final_errors(rollout: Rollout) -> np.ndarray:
     """Distance ``|p_i(T) - g_i|`` of each robot's control point to its goal at the last step, shape ``(N,)``."""
     return np.linalg.norm(rollout.positions[-1] - rollout.goals, axis=-1)
@@ -88,32 +59,24 @@ def reach_rate(rollout: Rollout, goal_tolerance: float = 0.1) -> float:
     return float(np.mean(final_errors(rollout) <= _tolerance("goal_tolerance", goal_tolerance)))
 
 
-# ---------------------------------------------------------------- intervention time
 def intervention_times(rollout: Rollout) -> np.ndarray:
-    """Per-robot time from the first to the last step in collision avoidance [s], shape ``(N,)``.
-
-    Needs the rollout's ``avoiding`` field (:class:`ConfigError` otherwise); 0 for robots that never avoided.
-    """
-    avoiding = _require(rollout, "avoiding", "intervention_times")
+    """Per-robot time from the first to the last step with ``avoiding`` [s] (0 if none), shape ``(N,)``."""
+    avoiding = rollout.avoiding
+    if avoiding is None:
+        raise ConfigError("intervention_times: the rollout has no 'avoiding' field, record it to compute this metric")
     first = np.argmax(avoiding, axis=0)
     last = avoiding.shape[0] - 1 - np.argmax(avoiding[::-1], axis=0)
     return np.where(avoiding.any(axis=0), (last - first) * rollout.dt, 0.0)
 
 
 def intervention_time(rollout: Rollout) -> float:
-    """Intervention time averaged over all robots, those that never avoid counting as 0 (the paper's number)."""
+    """Intervention time averaged over all robots, 0 for those that never avoid (the paper's number)."""
     return float(np.mean(intervention_times(rollout)))
 
 
-# ---------------------------------------------------------------------- separation
 @dataclass(frozen=True)
 class Separation:
-    """Per-step separation profile of an episode, each of shape ``(T,)``.
-
-    ``min_center_distance`` and ``min_robot_gap`` (surface gap ``|p_ij| - (r_i + r_j)``) over robot pairs
-    (``inf`` if ``N < 2``); ``min_obstacle_gap`` over robot-obstacle pairs (``inf`` without obstacles);
-    ``closest_pair`` ``(T, 2)``: the pair ``i < j`` attaining ``min_robot_gap`` (``-1`` if ``N < 2``).
-    """
+    """Per step: minimum centre distance and gaps (``inf``: no pair), robots ``i < j`` of the smallest gap."""
 
     min_center_distance: np.ndarray
     min_robot_gap: np.ndarray
@@ -146,98 +109,65 @@ class Separation:
         return float(np.min(self.min_gap))
 
 
-def _first_hits(first: np.ndarray, hit: np.ndarray, offset: int) -> None:
-    """Record in ``first`` (``-1`` = none yet) the first chunk step where ``hit`` is True."""
-    new = hit.any(axis=0) & (first < 0)
-    if new.any():
-        first[new] = np.argmax(hit, axis=0)[new] + offset
+def _scan(rollout: Rollout, obstacles: bool, tolerance: float | None) -> tuple[np.ndarray, ...]:
+    """One chunked pass over the robot pairs (or robot-obstacle pairs).
 
-
-def _robot_scan(rollout: Rollout, tolerance: float | None) -> tuple[np.ndarray, np.ndarray, np.ndarray,
-                                                                    np.ndarray | None]:
-    """One chunked pass over all robot pairs.
-
-    Returns the per-step minimum centre distance and surface gap ``(T,)``, the pair attaining the gap
-    ``(T, 2)`` and, with a ``tolerance``, the first collision step of each pair ``(N, N)`` (upper
-    triangle, ``-1`` = never).
+    Per step: the minimum centre distance and gap, the pair ``(i, j)`` of the smallest gap (``inf``, ``-1``: no
+    pair); with a ``tolerance``, each pair's first collision step ``(N, N or M)`` (``-1``: never; robots ``i < j``).
     """
-    T, N = rollout.n_steps, rollout.n_robots
-    min_dist, min_gap = np.full(T, np.inf), np.full(T, np.inf)
-    pair = np.full((T, 2), -1, dtype=np.int64)
-    first = np.full((N, N), -1, dtype=np.int64) if tolerance is not None else None
-    if N < 2:
+    p = rollout.positions
+    q, rq = (rollout.obstacle_centers[None], rollout.obstacle_radii) if obstacles else (p, rollout.radii)
+    (T, N), M = p.shape[:2], q.shape[1]
+    min_dist, min_gap, pair = np.full(T, np.inf), np.full(T, np.inf), np.full((T, 2), -1, dtype=np.int64)
+    first = np.full((N, M), -1, dtype=np.int64) if tolerance is not None else np.zeros((0, 0), dtype=np.int64)
+    if M < (1 if obstacles else 2):
         return min_dist, min_gap, pair, first
-    r = rollout.radii
-    rsum = r[:, None] + r[None, :]
-    uniform = bool(np.all(r == r[0]))
-    diag_inf = np.where(np.eye(N, dtype=np.bool_), np.inf, 0.0)
+    rsum = rollout.radii[:, None] + rq[None, :]
+    uniform = bool(np.all(rsum == rsum[0, 0]))
+    skip = np.zeros((N, M)) if obstacles else np.where(np.eye(N, dtype=np.bool_), np.inf, 0.0)
     if tolerance is not None:
         thr = rsum - tolerance
-        upper = np.triu(np.ones((N, N), dtype=np.bool_), k=1)
+        upper = np.ones((N, M), dtype=np.bool_) if obstacles else np.triu(np.ones((N, N), dtype=np.bool_), k=1)
         thr2 = np.where(upper & (thr > 0), thr * np.abs(thr), -1.0)  # d2 < -1 never holds
-    x = np.ascontiguousarray(rollout.positions[..., 0])
-    y = np.ascontiguousarray(rollout.positions[..., 1])
-    chunk = _chunk_steps(T, 4 * N * N)
+    x, y = np.ascontiguousarray(p[..., 0]), np.ascontiguousarray(p[..., 1])
+    qx, qy = (q[..., 0], q[..., 1]) if obstacles else (x, y)
+    chunk = _chunk_steps(T, 4 * N * M)
     for s in range(0, T, chunk):
         xs, ys = x[s : s + chunk], y[s : s + chunk]
+        qxs, qys = (qx, qy) if obstacles else (qx[s : s + chunk], qy[s : s + chunk])
         c = xs.shape[0]
-        dx = xs[:, :, None] - xs[:, None, :]
-        dy = ys[:, :, None] - ys[:, None, :]
+        dx, dy = xs[:, :, None] - qxs[:, None, :], ys[:, :, None] - qys[:, None, :]
         d2 = dx * dx + dy * dy
-        if first is not None:
-            _first_hits(first, d2 < thr2, s)
-        d2 += diag_inf
-        flat = d2.reshape(c, N * N)
-        if uniform:
+        if tolerance is not None:
+            hit = d2 < thr2
+            new = hit.any(axis=0) & (first < 0)
+            first[new] = np.argmax(hit, axis=0)[new] + s
+        d2 += skip
+        flat = d2.reshape(c, N * M)
+        if uniform:  # the smallest distance is the smallest gap: one square root per step
             k = np.argmin(flat, axis=1)
-            dmin = np.sqrt(flat[np.arange(c), k])
-            min_dist[s : s + c] = dmin
-            min_gap[s : s + c] = dmin - 2.0 * r[0]
+            min_dist[s : s + c] = np.sqrt(flat[np.arange(c), k])
+            min_gap[s : s + c] = min_dist[s : s + c] - rsum[0, 0]
         else:
             dist = np.sqrt(flat)
             min_dist[s : s + c] = dist.min(axis=1)
             gap = dist - rsum.ravel()
             k = np.argmin(gap, axis=1)
             min_gap[s : s + c] = gap[np.arange(c), k]
-        i, j = np.divmod(k, N)
-        pair[s : s + c, 0] = np.minimum(i, j)
-        pair[s : s + c, 1] = np.maximum(i, j)
+        i, j = np.divmod(k, M)
+        pair[s : s + c] = np.stack([i, j], axis=1) if obstacles else np.stack([np.minimum(i, j), np.maximum(i, j)], 1)
     return min_dist, min_gap, pair, first
-
-
-def _obstacle_scan(rollout: Rollout, tolerance: float | None) -> tuple[np.ndarray, np.ndarray | None]:
-    """Per-step minimum robot-obstacle gap ``(T,)`` and, with a ``tolerance``, first collision steps ``(N, M)``."""
-    T, N, M = rollout.n_steps, rollout.n_robots, rollout.n_obstacles
-    min_obs = np.full(T, np.inf)
-    first = np.full((N, M), -1, dtype=np.int64) if tolerance is not None else None
-    if M == 0:
-        return min_obs, first
-    rsum = rollout.radii[:, None] + rollout.obstacle_radii[None, :]
-    chunk = _chunk_steps(T, 4 * N * M)
-    for s in range(0, T, chunk):
-        d = rollout.positions[s : s + chunk, :, None, :] - rollout.obstacle_centers[None, None, :, :]
-        gap = np.sqrt(np.einsum("tnmk,tnmk->tnm", d, d)) - rsum
-        min_obs[s : s + chunk] = gap.min(axis=(1, 2))
-        if first is not None:
-            _first_hits(first, gap < -tolerance, s)
-    return min_obs, first
 
 
 def pairwise_min_distance(rollout: Rollout) -> Separation:
     """Minimum robot-robot distance and surface gaps at every step (see :class:`Separation`)."""
-    min_dist, min_gap, pair, _ = _robot_scan(rollout, None)
-    return Separation(min_dist, min_gap, _obstacle_scan(rollout, None)[0], pair)
+    min_dist, min_gap, pair, _ = _scan(rollout, False, None)
+    return Separation(min_dist, min_gap, _scan(rollout, True, None)[1], pair)
 
 
-# ---------------------------------------------------------------------- collisions
 @dataclass(frozen=True)
 class CollisionReport:
-    """Collisions of an episode.
-
-    ``robot_pairs``: ``(i, j, first_step)`` with ``i < j`` for every robot pair that ever overlapped beyond
-    ``tolerance`` [m], sorted by ``(first_step, i, j)``; ``obstacle_hits``: ``(i, k, first_step)`` for robot
-    ``i`` and obstacle ``k``; ``colliding_robots``: bool ``(N,)``, robots in at least one collision.
-    """
+    """Overlaps deeper than ``tolerance`` [m]: ``(i, j or obstacle k, first step)`` sorted by step; robots in one."""
 
     robot_pairs: list[tuple[int, int, int]]
     obstacle_hits: list[tuple[int, int, int]]
@@ -266,10 +196,9 @@ class CollisionReport:
 
 
 def _scans(rollout: Rollout, tolerance: float) -> tuple[Separation, CollisionReport]:
-    """The separation profile and the collision report of one pass over the pairs."""
     tol = _tolerance("tolerance", tolerance)
-    min_dist, min_gap, pair, first_r = _robot_scan(rollout, tol)
-    min_obs, first_o = _obstacle_scan(rollout, tol)
+    min_dist, min_gap, pair, first_r = _scan(rollout, False, tol)
+    _, min_obs, _, first_o = _scan(rollout, True, tol)
     colliding = np.zeros(rollout.n_robots, dtype=np.bool_)
     ii, jj = np.nonzero(first_r >= 0)
     oi, ok = np.nonzero(first_o >= 0)
@@ -289,9 +218,7 @@ def safe_rate(rollout: Rollout, tolerance: float = COLLISION_TOLERANCE) -> float
     return float(1.0 - np.mean(collisions(rollout, tolerance).colliding_robots))
 
 
-# ------------------------------------------------------------------------ deadlock
 def _longest_runs(mask: np.ndarray) -> np.ndarray:
-    """Longest run of consecutive True per column of a ``(T, N)`` bool array (in samples)."""
     T, N = mask.shape
     padded = np.zeros((N, T + 2), dtype=np.int8)
     padded[:, 1:-1] = mask.T
@@ -304,10 +231,7 @@ def _longest_runs(mask: np.ndarray) -> np.ndarray:
 
 
 def longest_stall(rollout: Rollout, speed_threshold: float = 0.05, goal_tolerance: float = 0.1) -> np.ndarray:
-    """Longest time [s] each robot is slow (speed below ``speed_threshold`` [m/s]) while away from its goal.
-
-    Away: farther than ``goal_tolerance`` [m].  Returns shape ``(N,)``; ``-dt`` marks robots never stalled.
-    """
+    """Longest time [s] each robot moves slower than ``speed_threshold`` away from its goal; ``-dt``: never."""
     v_thr = _tolerance("speed_threshold", speed_threshold)
     g_tol = _tolerance("goal_tolerance", goal_tolerance)
     speed = np.linalg.norm(rollout.velocities, axis=-1)
@@ -324,9 +248,7 @@ def deadlocked_robots(rollout: Rollout, speed_threshold: float = 0.05, dwell_tim
     return (stall >= 0) & (stall >= dwell - 0.5 * rollout.dt)
 
 
-# -------------------------------------------------------------------------- solver
 def _classify_status(status: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Boolean masks ``(relaxed, failed)`` from status strings (case-insensitive substrings)."""
     low = np.char.lower(status.astype(np.str_))
     failed = np.any([np.char.find(low, m) >= 0 for m in _FAILED_MARKERS], axis=0)
     relaxed = np.any([np.char.find(low, m) >= 0 for m in _RELAXED_MARKERS], axis=0)
@@ -334,14 +256,9 @@ def _classify_status(status: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def solver_stats(rollout: Rollout) -> dict[str, Any]:
-    """Solver health over the episode (``None`` entries where the rollout lacks the field).
+    """Fractions of relaxed, failed, ``unsafe`` and braked steps, status counts, solve times, slack (None: no field).
 
-    A status containing ``fail``, ``infeas``, ``error``, ``max_iter``, ``unsolved``, ``nan`` or ``diverg`` is
-    *failed*; otherwise one containing ``relax`` or ``slack`` is *relaxed*.  Keys: ``relaxed_fraction``,
-    ``failed_fraction``, ``unsafe_fraction`` (steps reported outside the safe set), ``backup_fraction``
-    (steps in which the backup layer braked a robot), ``backup_robot_fraction`` (robot-steps braked),
-    ``status_counts``, ``solve_time_median``/``_mean``/``_max`` [s], ``slack_max``,
-    ``slack_positive_fraction``.
+    A status naming a failure (``fail``, ``infeas``, ...) is failed, else one naming ``relax`` or ``slack`` relaxed.
     """
     out: dict[str, Any] = dict.fromkeys(
         ("relaxed_fraction", "failed_fraction", "unsafe_fraction", "backup_fraction", "backup_robot_fraction",
@@ -365,24 +282,14 @@ def solver_stats(rollout: Rollout) -> dict[str, Any]:
     return out
 
 
-# ------------------------------------------------------------------------- summary
 def summarize(rollout: Rollout, *, collision_tolerance: float = COLLISION_TOLERANCE, goal_tolerance: float = 0.1,
               speed_threshold: float = 0.05, dwell_time: float = 1.0) -> dict[str, Any]:
-    """All headline numbers of an episode as a JSON-friendly dict of ``int``/``float``/``None``.
-
-    ``None`` where the rollout lacks the field a metric needs, and for infinite gaps (no obstacles).
-    Keys: ``n_robots``, ``n_steps``, ``duration``, ``intervention_time``, ``intervention_time_max``, ``rmse``,
-    ``mae``, ``std``, ``max_tracking_error``, ``min_center_distance``, ``min_robot_gap``, ``min_obstacle_gap``,
-    ``n_collision_pairs``, ``n_obstacle_collisions``, ``n_colliding_robots``, ``safe_rate``,
-    ``final_error_mean``, ``final_error_max``, ``final_tracking_error_mean``, ``reach_rate``, ``n_deadlocked``,
-    ``triggered_fraction`` and those of :func:`solver_stats` but ``status_counts``.  The tolerances and
-    thresholds are those of :func:`collisions`, :func:`reach_rate` and :func:`deadlocked_robots`.
-    """
+    """All headline numbers (and :func:`solver_stats` but the counts) as JSON values; None: no field, no gap."""
 
     def finite(x: float) -> float | None:
         return float(x) if math.isfinite(x) else None
 
-    check.real("collision_tolerance", collision_tolerance, lo=0.0)
+    _tolerance("collision_tolerance", collision_tolerance)
     stats = tracking_stats(rollout)
     sep, col = _scans(rollout, collision_tolerance)
     fe = final_errors(rollout)
@@ -397,7 +304,7 @@ def summarize(rollout: Rollout, *, collision_tolerance: float = COLLISION_TOLERA
         "n_collision_pairs": col.n_robot_pairs, "n_obstacle_collisions": col.n_obstacle_hits,
         "n_colliding_robots": col.n_colliding_robots, "safe_rate": float(1.0 - col.colliding_robots.mean()),
         "final_error_mean": float(fe.mean()), "final_error_max": float(fe.max()),
-        "final_tracking_error_mean": float(final_tracking_errors(rollout).mean()),
+        "final_tracking_error_mean": float(tracking_errors(rollout)[-1].mean()),
         "reach_rate": reach_rate(rollout, goal_tolerance),
         "n_deadlocked": int(deadlocked_robots(rollout, speed_threshold, dwell_time, goal_tolerance).sum()),
         "triggered_fraction": None if rollout.triggered is None else float(rollout.triggered.mean()),
@@ -407,19 +314,18 @@ def summarize(rollout: Rollout, *, collision_tolerance: float = COLLISION_TOLERA
     return {**out, **solver}
 
 
+def format_value(x: Any, digits: int = 4) -> str:
+    """A table cell: ``-`` for None, yes/no for bools, ``digits`` decimals for finite floats."""
+    if x is None:
+        return "-"
+    if isinstance(x, (bool, np.bool_)):
+        return "yes" if x else "no"
+    if isinstance(x, (float, np.floating)) and math.isfinite(x):
+        return f"{x:.{digits}f}"
+    return str(int(x)) if isinstance(x, np.integer) else str(x)
+
+
 def format_summary(summary: dict[str, Any], *, precision: int = 4) -> str:
-    """A :func:`summarize` dict (any flat dict) as aligned ``name  value`` lines; ``None`` shows as ``-``."""
-    if not summary:
-        return ""
-    width = max(len(str(k)) for k in summary)
-
-    def text(value: Any) -> str:
-        if value is None:
-            return "-"
-        if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
-            return str(int(value))
-        if isinstance(value, (float, np.floating)):
-            return f"{float(value):.{precision}f}"
-        return str(value)
-
-    return "\n".join(f"{str(key):<{width}}  {text(value):>12}" for key, value in summary.items())
+    """A :func:`summarize` dict (any flat dict) as aligned ``name  value`` lines (see :func:`format_value`)."""
+    width = max((len(str(k)) for k in summary), default=0)
+    return "\n".join(f"{str(k):<{width}}  {format_value(v, precision):>12}" for k, v in summary.items())

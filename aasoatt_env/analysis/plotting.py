@@ -1,11 +1,7 @@
 """Static plots of recorded runs: trajectories, distance and speed profiles, snapshots.
 
-Each function builds a :class:`matplotlib.figure.Figure` on the Agg canvas, never through
-:mod:`matplotlib.pyplot`: nothing needs a display and the caller's pyplot state is left alone.  ``path``
-also saves the figure (atomically; the format follows the suffix, PNG by default).  matplotlib is
-imported when a plot is made; without it an :class:`ImportError` says to ``pip install "aasoatt[render]"``.
-Robot colours match :func:`aasoatt_env.sim.rendering.robot_colors`; obstacles are ``(centers (M, 2),
-radii (M,))`` or one ``(M, 3)`` array of rows ``(x, y, r)``.
+Figures use the Agg canvas, never pyplot (no display; the caller's pyplot state untouched); ``path`` also
+saves one atomically.  Obstacles are ``(centers (M, 2), radii (M,))`` or an ``(M, 3)`` array.
 """
 
 from __future__ import annotations
@@ -52,7 +48,6 @@ def _label(ax: Any, title: str | None, xlabel: str, ylabel: str) -> None:
 
 
 def _save(fig: Any, path: PathLike | None, dpi: int) -> Any:
-    """Save ``fig`` to ``path`` (if given; atomically) and return it."""
     if path is not None:
         p = Path(path) if Path(path).suffix else Path(path).with_suffix(".png")
         p.parent.mkdir(parents=True, exist_ok=True)
@@ -60,18 +55,17 @@ def _save(fig: Any, path: PathLike | None, dpi: int) -> Any:
     return fig
 
 
-def _radii(radii: Any, n: int) -> np.ndarray:
-    if radii is None:
-        return np.zeros(n)
-    r = np.asarray(radii, dtype=np.float64)
-    try:
-        return np.broadcast_to(r, (n,)).copy()
-    except ValueError:
-        raise ConfigError(f"radii: got shape {r.shape}, expected () or ({n},)") from None
+def _series(times: Any, values: Any, name: str, expected: str) -> tuple[np.ndarray, np.ndarray]:
+    """``times`` ``(T,)`` and ``values`` ``(T, k)`` (a ``(T,)`` series as one column)."""
+    t = np.asarray(times, dtype=np.float64).reshape(-1)
+    v = np.asarray(values, dtype=np.float64)
+    v = v[:, None] if v.ndim == 1 else v
+    if v.ndim != 2 or v.shape[0] != t.shape[0]:
+        raise ConfigError(f"{name}: got shape {v.shape}, expected {expected.format(T=t.shape[0])}")
+    return t, v
 
 
 def _obstacles(obstacles: Obstacles) -> tuple[np.ndarray, np.ndarray]:
-    """Obstacles as ``(centers (M, 2), radii (M,))``."""
     if isinstance(obstacles, tuple) and len(obstacles) == 2:
         centers = np.asarray(obstacles[0], dtype=np.float64).reshape(-1, 2)
         return centers, np.broadcast_to(np.asarray(obstacles[1], dtype=np.float64), (centers.shape[0],)).copy()
@@ -84,14 +78,17 @@ def _obstacles(obstacles: Obstacles) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _team(positions: Any, references: Any, goals: Any, radii: Any) -> tuple[np.ndarray, ...]:
-    """Checked ``positions (T, N, 2)``, ``references`` (or None), ``goals`` (or None) and ``radii (N,)``."""
     sizes: dict[str, int] = {}
     pos = checked_array("positions", positions, ("T", "N", 2), sizes, finite=False)  # NaN: a gap in a path
     if sizes["T"] == 0:
         raise ConfigError(f"positions: got shape {pos.shape}, expected (T, N, 2) with T >= 1")
     ref = None if references is None else checked_array("references", references, ("T", "N", 2), sizes, finite=False)
     g = None if goals is None else checked_array("goals", goals, ("N", 2), sizes)
-    return pos, ref, g, _radii(radii, sizes["N"])
+    r = np.zeros(()) if radii is None else np.asarray(radii, dtype=np.float64)
+    try:
+        return pos, ref, g, np.broadcast_to(r, (sizes["N"],)).copy()
+    except ValueError:
+        raise ConfigError(f"radii: got shape {r.shape}, expected () or ({sizes['N']},)") from None
 
 
 def _scene(ax: Any, obstacles: Obstacles, points: list[np.ndarray], pad: float) -> None:
@@ -123,19 +120,7 @@ def _goals(ax: Any, goals: np.ndarray | None, colors: np.ndarray, size: float, l
 def plot_trajectories(positions: Any, radii: Any = None, references: Any = None, goals: Any = None,
                       obstacles: Obstacles = None, path: PathLike | None = None, title: str | None = None, *,
                       figsize: tuple[float, float] = (6.0, 6.0), dpi: int = 150, ax: Any = None) -> Any:
-    """Plot the paths of a team in the plane.
-
-    Parameters
-    ----------
-    positions : array_like, shape (T, N, 2)
-        Control-point positions [m]; the final ones drawn as discs of ``radii`` (float or ``(N,)``; dots
-        if not given).
-    references : array_like, shape (T, N, 2), optional
-        Reference trajectories, drawn dashed; ``goals`` ``(N, 2)`` as hollow squares; ``obstacles`` as grey
-        discs.
-    ax : matplotlib.axes.Axes, optional
-        Draw into these axes (a panel of a larger figure) instead of a new figure.
-    """
+    """Plot a team's paths ``(T, N, 2)``, final discs of ``radii``, references dashed, goals (``ax``: a panel)."""
     pos, ref, g, r = _team(positions, references, goals, radii)
     n, colors = pos.shape[1], team_colors(pos.shape[1])
     if ax is None:
@@ -162,16 +147,8 @@ def plot_trajectories(positions: Any, radii: Any = None, references: Any = None,
 def plot_distance_profile(times: Any, min_distance: Any, safety_distance: float | Sequence[float] | None,
                           path: PathLike | None = None, *, labels: Sequence[str] | None = None,
                           title: str | None = None, figsize: tuple[float, float] = (6.5, 3.5), dpi: int = 150) -> Any:
-    """Plot inter-robot distances over time against the safety distance.
-
-    ``min_distance`` ``(T,)`` or ``(T, P)``: the minimum over all pairs, or one column per pair (each drawn
-    thin, their minimum bold; ``labels`` name them).  ``safety_distance``: ``d_s``, one red line per value.
-    """
-    t = np.asarray(times, dtype=np.float64).reshape(-1)
-    d = np.asarray(min_distance, dtype=np.float64)
-    d = d[:, None] if d.ndim == 1 else d
-    if d.ndim != 2 or d.shape[0] != t.shape[0]:
-        raise ConfigError(f"min_distance: got shape {d.shape}, expected ({t.shape[0]},) or ({t.shape[0]}, P)")
+    """Plot the minimum distance ``(T,)`` or one per pair ``(T, P)`` (and their minimum) against ``d_s``."""
+    t, d = _series(times, min_distance, "min_distance", "({T},) or ({T}, P)")
     fig, ((ax,),) = new_figure(1, 1, figsize)
     if d.shape[1] == 1:
         ax.plot(t, d[:, 0], lw=1.5, color="C0", label=labels[0] if labels else "min distance")
@@ -191,15 +168,8 @@ def plot_distance_profile(times: Any, min_distance: Any, safety_distance: float 
 def plot_velocity_profile(times: Any, speeds: Any, path: PathLike | None = None, *, max_speed: float | None = None,
                           title: str | None = None, ylabel: str = "speed [m/s]",
                           figsize: tuple[float, float] = (6.5, 3.5), dpi: int = 150) -> Any:
-    """Plot each robot's speed ``(T, N)`` (or any per-robot signal, with ``ylabel``) over time.
-
-    ``max_speed`` is drawn as a dashed line.
-    """
-    t = np.asarray(times, dtype=np.float64).reshape(-1)
-    v = np.asarray(speeds, dtype=np.float64)
-    v = v[:, None] if v.ndim == 1 else v
-    if v.ndim != 2 or v.shape[0] != t.shape[0]:
-        raise ConfigError(f"speeds: got shape {v.shape}, expected ({t.shape[0]}, N)")
+    """Plot each robot's speed ``(T, N)`` (or any per-robot signal, with ``ylabel``) and ``max_speed`` dashed."""
+    t, v = _series(times, speeds, "speeds", "({T}, N)")
     colors = team_colors(v.shape[1])
     fig, ((ax,),) = new_figure(1, 1, figsize)
     for i in range(v.shape[1]):
@@ -215,11 +185,7 @@ def plot_velocity_profile(times: Any, speeds: Any, path: PathLike | None = None,
 def plot_snapshots(positions: Any, times: Any, indices: Sequence[int], radii: Any, obstacles: Obstacles = None,
                    path: PathLike | None = None, *, references: Any = None, goals: Any = None, trails: bool = True,
                    panel_size: float = 3.0, dpi: int = 150) -> Any:
-    """Plot a row of panels of the team at the time steps ``indices`` (negative allowed; paper Fig. 5 style).
-
-    ``times`` ``(T,)`` titles the panels; robots are discs of ``radii`` at true scale, with their ``trails``
-    up to the snapshot, the current ``references`` points marked and ``goals`` as hollow squares.
-    """
+    """Plot a row of panels of the team (discs to scale, trails) at the steps ``indices`` (paper Fig. 5 style)."""
     pos, ref, g, r = _team(positions, references, goals, radii)
     t_len, n = pos.shape[:2]
     t = np.asarray(times, dtype=np.float64).reshape(-1)

@@ -1,9 +1,6 @@
 """Record episodes of a (possibly filtered) parallel env into a :class:`~aasoatt_env.analysis.rollout.Rollout`.
 
-:class:`RecordEpisode` records after ``reset`` and every ``step`` the team's state, reference and the
-actions given and, behind a control filter, what its public ``filter_outputs`` say (applied actions and
-avoidance flags; for the :class:`~aasoatt_env.safety.core.SafetyFilter` also deadlock triggers, backup
-braking, solver status, slack and solve time).  :func:`run_episode` drives an agent through one episode.
+Each step's state, reference, the actions given and what the control filter's public ``filter_outputs`` say.
 """
 
 from __future__ import annotations
@@ -30,7 +27,7 @@ class RecordEpisode(BaseParallelWrapper):
         self._meta = dict(metadata or {})
         self._builder: RolloutBuilder | None = None
 
-    def _record(self, actions: np.ndarray | None, infos: dict[str, dict]) -> None:
+    def _record(self, actions: np.ndarray | None) -> None:
         base = self.env.unwrapped
         if self._builder is None:
             raise UsageError("RecordEpisode: call reset() first")
@@ -50,7 +47,7 @@ class RecordEpisode(BaseParallelWrapper):
         meta.update(self._meta)
         self._builder = RolloutBuilder(dt=base.dt * base.decision_interval, goals=base.goals, radii=base.radii,
                                        obstacle_centers=c, obstacle_radii=r, metadata=meta)
-        self._record(None, infos)
+        self._record(None)
         return obs, infos
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
@@ -62,7 +59,7 @@ class RecordEpisode(BaseParallelWrapper):
             if a in idx:
                 act[idx[a]] = v
         out = self.env.step(actions)
-        self._record(act, out[4])
+        self._record(act)
         return out
 
     @property
@@ -78,36 +75,25 @@ def _filter_fields(base: Any, n: int) -> dict[str, Any]:
     f = base.control_filter
     if f is None:
         return {}
-    outputs = base.filter_outputs
-    amax = base.team.max_wheel_accel[:, None]
-    if isinstance(f, SafetyFilter):
-        if outputs:
-            rep = FilterReport.of(outputs)
-            return {"avoiding": rep.avoiding, "triggered": rep.triggered, "backup": rep.backup,
-                    "solver_status": rep.status, "slack": rep.slack, "solve_time": rep.solve_time,
-                    "actions": rep.applied / amax}
-        return {"avoiding": np.zeros(n, dtype=bool), "triggered": np.zeros(n, dtype=bool),
-                "backup": np.zeros(n, dtype=bool), "solver_status": "solved", "slack": 0.0, "solve_time": 0.0,
-                "actions": np.zeros((n, 2))}
-    if outputs:  # any other control filter: what the protocol guarantees
-        return {"avoiding": np.any([o.avoiding for o in outputs], axis=0), "actions": np.asarray(outputs[-1].du) / amax}
-    return {"avoiding": np.zeros(n, dtype=bool), "actions": np.zeros((n, 2))}
+    outputs, amax, full = base.filter_outputs, base.team.max_wheel_accel[:, None], isinstance(f, SafetyFilter)
+    if not outputs:
+        out = {"avoiding": np.zeros(n, dtype=bool), "actions": np.zeros((n, 2))}
+        if full:
+            out.update(triggered=np.zeros(n, dtype=bool), backup=np.zeros(n, dtype=bool), solver_status="solved",
+                       slack=0.0, solve_time=0.0)
+        return out
+    if full:
+        rep = FilterReport.of(outputs)
+        return {"avoiding": rep.avoiding, "triggered": rep.triggered, "backup": rep.backup,
+                "solver_status": rep.status, "slack": rep.slack, "solve_time": rep.solve_time,
+                "actions": rep.applied / amax}
+    # any other control filter: what the protocol guarantees
+    return {"avoiding": np.any([o.avoiding for o in outputs], axis=0), "actions": np.asarray(outputs[-1].du) / amax}
 
 
-def run_episode(
-    env: Any,
-    agent: Any,
-    seed: int | None = None,
-    *,
-    render_every: int | None = None,
-    progress: bool = False,
-    metadata: dict[str, Any] | None = None,
-) -> tuple[Rollout, list[np.ndarray]]:
-    """Run ``agent`` (``reset(env)``, ``act(observations, env)``) on ``env`` for one episode: ``(rollout, frames)``.
-
-    ``render_every``: keep a rendered frame every this many env steps (needs ``render_mode="rgb_array"``);
-    ``progress``: a progress bar with rate and time left on stderr.
-    """
+def run_episode(env: Any, agent: Any, seed: int | None = None, *, render_every: int | None = None,
+                progress: bool = False, metadata: dict[str, Any] | None = None) -> tuple[Rollout, list[np.ndarray]]:
+    """Run ``agent`` on ``env`` for one episode: ``(rollout, a frame every render_every steps)``."""
     rec = RecordEpisode(env, metadata)
     obs, _ = rec.reset(seed=seed)
     agent.reset(rec)

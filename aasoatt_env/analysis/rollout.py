@@ -1,42 +1,14 @@
 """Recorded episodes: the :class:`Rollout` container and its incremental :class:`RolloutBuilder`.
 
-A rollout holds the arrays of one episode of ``T`` recorded steps, ``N`` robots and ``M`` static obstacles,
-checked once on construction (shapes, dtypes, finite values) so the metrics never check them again:
-
-=========================  ==========  ==================================================
-field                      shape       meaning
-=========================  ==========  ==================================================
-``dt``                     scalar      time between two recorded steps [s]
-``times``                  ``(T,)``    time stamp of each recorded step [s]
-``positions``              ``(T,N,2)`` control points ``p_i``
-``velocities``             ``(T,N,2)`` control-point velocities ``dp_i``
-``headings``               ``(T,N)``   headings ``theta_i`` [rad]
-``references``             ``(T,N,2)`` reference points ``p_d_i``
-``reference_velocities``   ``(T,N,2)`` reference velocities ``v_d_i``
-``goals``                  ``(N,2)``   final goals
-``radii``                  ``(N,)``    robot disc radii
-``obstacle_centers``       ``(M,2)``   static obstacle centres (default: none)
-``obstacle_radii``         ``(M,)``    static obstacle radii
-``nominal_actions``        ``(T,N,2)`` optional: nominal (unfiltered) actions
-``actions``                ``(T,N,2)`` optional: applied (filtered) actions
-``avoiding``               ``(T,N)``   optional, bool: robot in collision avoidance
-``triggered``              ``(T,N)``   optional, bool: deadlock rule active
-``backup``                 ``(T,N)``   optional, bool: braked by the backup layer
-``solver_status``          ``(T,)``    optional, str: QP status of each step
-``slack``                  ``(T,)``    optional: total relaxation of the step's rows
-``solve_time``             ``(T,)``    optional: QP wall time of the step [s]
-``metadata``               dict        JSON-serialisable: scenario, method, parameters
-=========================  ==========  ==================================================
-
-:meth:`Rollout.save` writes one ``.npz`` file (metadata as a JSON string, strings as fixed-width
-unicode), so :meth:`Rollout.load` never needs pickle.
+A rollout holds ``T`` recorded steps of ``N`` robots among ``M`` static obstacles (shapes: ``_PER_STEP``,
+``_STATIC``, ``_OPTIONAL`` below), checked once on construction so the metrics never check them again.  It
+is saved as one ``.npz`` that :meth:`Rollout.load` reads without pickle.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import os
 import zipfile
 import zlib
@@ -45,18 +17,18 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from aasoatt_env import validation as check
 from aasoatt_env.cli_support import atomic_write
 from aasoatt_env.errors import ConfigError, DataFileError
 
 __all__ = ["Rollout", "RolloutBuilder", "checked_array"]
 
-#: Version tag written into saved files.
-FORMAT_VERSION = 1
+FORMAT_VERSION = 1  # written into saved files
+Template = tuple[str | int, ...]  # a shape; its strings are sizes bound by the first array that has them
 
-Template = tuple[str | int, ...]
-"""A shape whose strings are sizes bound by the first array that has them (``("T", "N", 2)``)."""
-
-# (name, shape template, dtype kind: "f" float, "b" bool, "U" str)
+# (name, shape, dtype kind: "f" float, "b" bool, "U" str); control points p_i, velocities dp_i, references p_d_i,
+# v_d_i, headings [rad]; optional: nominal and applied actions, flags (in collision avoidance, deadlock rule
+# active, braked by the backup layer), solver status, total slack, solve time [s].
 _PER_STEP: tuple[tuple[str, Template, str], ...] = (
     ("positions", ("T", "N", 2), "f"), ("velocities", ("T", "N", 2), "f"), ("headings", ("T", "N"), "f"),
     ("references", ("T", "N", 2), "f"), ("reference_velocities", ("T", "N", 2), "f"))
@@ -94,11 +66,7 @@ def _convert(name: str, value: Any, kind: str) -> np.ndarray:
 
 def checked_array(name: str, value: Any, template: Template, sizes: dict[str, int], kind: str = "f", *,
                   finite: bool = True) -> np.ndarray:
-    """``value`` as a fresh array of dtype ``kind`` and shape ``template`` (float arrays finite, if ``finite``).
-
-    Symbolic sizes already in ``sizes`` must match; new ones are bound into it.  Shared by
-    :class:`Rollout` and :mod:`~aasoatt_env.analysis.plotting`, so both word a bad array the same way.
-    """
+    """``value`` as a fresh array of dtype ``kind`` and shape ``template`` (bound into ``sizes``), finite floats."""
     arr = _convert(name, value, kind)
     ok = arr.ndim == len(template)
     for dim, sym in zip(arr.shape, template) if ok else ():
@@ -113,25 +81,9 @@ def checked_array(name: str, value: Any, template: Template, sizes: dict[str, in
     return arr
 
 
-def _positive_dt(value: Any) -> float:
-    dt = math.nan
-    if not isinstance(value, (str, bytes, np.str_, np.bytes_, bool, np.bool_)):
-        try:
-            dt = float(value)
-        except (TypeError, ValueError, OverflowError):
-            pass
-    if not (math.isfinite(dt) and dt > 0):
-        raise ConfigError(f"dt: got {value!r}, expected a finite positive number")
-    return dt
-
-
 @dataclass
 class Rollout:
-    """One recorded episode (fields: see the module docstring).
-
-    Every array is copied and converted on construction; a :class:`~aasoatt_env.errors.ConfigError`
-    names the first field with a wrong shape or value and the shape it should have.
-    """
+    """One recorded episode (fields: see the module docstring), its arrays copied and checked on construction."""
 
     dt: float
     times: np.ndarray
@@ -160,7 +112,7 @@ class Rollout:
     """Fields with one entry per recorded step (cut by :meth:`window`)."""
 
     def __post_init__(self) -> None:
-        self.dt = _positive_dt(self.dt)
+        self.dt = check.positive("dt", self.dt)
         sizes: dict[str, int] = {}
         self.times = checked_array("times", self.times, ("T",), sizes)
         if sizes["T"] < 1:
@@ -224,14 +176,7 @@ class Rollout:
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Rollout:
-        """Read a rollout written by :meth:`save`.
-
-        Raises
-        ------
-        DataFileError
-            Naming the file: it is missing, not a readable ``.npz`` of plain arrays (truncated, corrupted,
-            pickled), or a field is missing, of the wrong shape or not finite.
-        """
+        """Read a rollout written by :meth:`save`; a missing, unreadable, pickled or invalid file: DataFileError."""
         name = str(path)
         if not os.path.isfile(path):
             raise DataFileError(f"{name}: no such rollout file")
@@ -272,24 +217,10 @@ def _read_fields(path: str | os.PathLike[str], name: str) -> dict[str, Any]:
 
 
 class RolloutBuilder:
-    """Accumulate an episode step by step, then :meth:`build` a :class:`Rollout`.
+    """Accumulate an episode step by step (arrays copied; optional fields at every step or none), then build it."""
 
-    :meth:`append` copies its arrays (callers may reuse their buffers); an optional field must be given
-    at every step or at none.  The static fields (``goals``, ``radii``, ``obstacle_centers``,
-    ``obstacle_radii``) may be given here or to :meth:`build`.
-
-    Examples
-    --------
-    >>> b = RolloutBuilder(dt=0.1, goals=[[1.0, 0.0]], radii=[0.5])
-    >>> for k in range(3):
-    ...     b.append(time=0.1 * k, positions=[[0.1 * k, 0.0]], velocities=[[1.0, 0.0]],
-    ...              headings=[0.0], references=[[0.1 * k, 0.0]], reference_velocities=[[1.0, 0.0]])
-    >>> b.build().positions.shape
-    (3, 1, 2)
-    """
-
-    _KINDS: ClassVar[dict[str, str]] = {"times": "f", **{n: k for n, _, k in (*_PER_STEP, *_OPTIONAL)}}
-    _SCALARS: ClassVar[frozenset[str]] = frozenset(("times", "solver_status", "slack", "solve_time"))
+    _DTYPES: ClassVar[dict[str, type]] = {"times": np.float64, **{
+        n: {"f": np.float64, "b": np.bool_, "U": np.str_}[k] for n, _, k in (*_PER_STEP, *_OPTIONAL)}}
 
     def __init__(self, dt: float, *, goals: Any = None, radii: Any = None, obstacle_centers: Any = None,
                  obstacle_radii: Any = None, metadata: dict[str, Any] | None = None) -> None:
@@ -297,7 +228,7 @@ class RolloutBuilder:
         self.static: dict[str, Any] = {"goals": goals, "radii": radii, "obstacle_centers": obstacle_centers,
                                        "obstacle_radii": obstacle_radii}
         self.metadata: dict[str, Any] = dict(metadata or {})
-        self._data: dict[str, list[Any]] = {name: [] for name in self._KINDS}
+        self._data: dict[str, list[np.ndarray]] = {name: [] for name in self._DTYPES}
         self._n = 0
 
     def __len__(self) -> int:
@@ -305,12 +236,7 @@ class RolloutBuilder:
 
     def append(self, *, time: float, positions: Any, velocities: Any, headings: Any, references: Any,
                reference_velocities: Any, **optional: Any) -> None:
-        """Record one step: per-robot arrays ``(N, 2)`` (``headings`` ``(N,)``) and any optional fields.
-
-        ``optional``: ``nominal_actions``, ``actions`` ``(N, 2)``; ``avoiding``, ``triggered``, ``backup``
-        ``(N,)`` bool; ``solver_status`` (str), ``slack``, ``solve_time`` (float); ``None`` values are ignored.
-        An unknown keyword, or an optional field given at some steps only, raises ConfigError.
-        """
+        """Record one step: per-robot arrays ``(N, 2)`` (``headings`` ``(N,)``) and optional fields (None: absent)."""
         unknown = set(optional) - set(Rollout.OPTIONAL_FIELDS)
         if unknown:
             raise ConfigError(f"append: unknown field(s) {sorted(unknown)}, expected some of "
@@ -325,18 +251,11 @@ class RolloutBuilder:
         given.update(times=time, positions=positions, velocities=velocities, headings=headings, references=references,
                      reference_velocities=reference_velocities)
         for name, value in given.items():
-            kind = self._KINDS[name]
-            if name in self._SCALARS:
-                self._data[name].append(str(value) if kind == "U" else float(value))
-            else:
-                self._data[name].append(np.array(value, dtype=np.float64 if kind == "f" else np.bool_))
+            self._data[name].append(np.array(value, dtype=self._DTYPES[name]))
         self._n += 1
 
     def build(self, **overrides: Any) -> Rollout:
-        """Stack the recorded steps into a :class:`Rollout`.
-
-        ``overrides``: ``dt`` or static fields replacing the constructor's; ``metadata`` merged into its.
-        """
+        """Stack the recorded steps into a :class:`Rollout` (``overrides``: ``dt``, static fields, more metadata)."""
         allowed = {"dt", "metadata", *self.static}
         unknown = set(overrides) - allowed
         if unknown:
@@ -350,9 +269,7 @@ class RolloutBuilder:
         metadata = {**self.metadata, **(overrides.get("metadata") or {})}
         kwargs: dict[str, Any] = {"dt": overrides.get("dt", self.dt), "metadata": metadata, **static}
         for name, values in self._data.items():
-            if values and name in self._SCALARS:
-                kwargs[name] = values
-            elif values:
+            if values:
                 try:
                     kwargs[name] = np.stack(values)
                 except ValueError:

@@ -1,10 +1,6 @@
 """The ``aasoatt`` command line.
 
-``aasoatt list``: scenarios and their parameters, controllers, barriers, deadlock strategies, triggers and
-solvers; ``aasoatt run``: a controller (behind the safety filter or not) on a scenario, its metrics, a
-GIF / PNG / JSON / NPZ; ``aasoatt reproduce``: the paper's experiments (:mod:`aasoatt_env.apps.reproduce`);
-``aasoatt train`` and ``aasoatt evaluate``: :mod:`train.train`, :mod:`train.evaluate`; ``aasoatt warm-up``:
-compile (or load from numba's cache) the filter's kernels once, with a line per part.  Heavy libraries
+``list``, ``run``, ``warm-up`` here; ``reproduce``, ``train``, ``evaluate`` in their modules.  Heavy libraries
 (torch, Stable-Baselines3, Ray, matplotlib) are imported only by the commands that use them.
 """
 
@@ -19,23 +15,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from aasoatt_env import cli_support
 from aasoatt_env.analysis.metrics import format_summary, summarize
 from aasoatt_env.analysis.plotting import plot_trajectories
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.analysis.rollout import Rollout
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.api.registration import ENV_IDS
-from aasoatt_env.cli_support import (
-    OutputPlan,
-    Parser,
-    add_common_options,
-    atomic_write,
-    int_option,
-    path_option,
-    real_option,
-    run_guarded,
-    staged,
-)
 from aasoatt_env.errors import AASOATTError, ConfigError, UnknownKeywordError
 from aasoatt_env.safety import BARRIERS, STRATEGIES, TRIGGERS, available_solvers
 from aasoatt_env.safety.config import FilterConfig
@@ -47,11 +33,10 @@ from agents.base import agent_accepts, agent_names, get_agent
 
 __all__ = ["main"]
 
-RUN_OUTPUTS = ("metrics.json", "rollout.npz", "trajectories.png")
-"""What ``aasoatt run --out DIR`` writes into ``DIR``."""
+RUN_OUTPUTS = ("metrics.json", "rollout.npz", "trajectories.png")  # what ``aasoatt run --out DIR`` writes
 
-_FORWARDED = {"reproduce": ("aasoatt_env.apps.reproduce", "main"), "train": ("train.train", "main"),
-              "evaluate": ("train.evaluate", "main")}
+# commands whose module's main() parses their own options (--help included) and guards their own errors
+_FORWARDED = {"reproduce": "aasoatt_env.apps.reproduce", "train": "train.train", "evaluate": "train.evaluate"}
 
 
 def _parameters(scenario: str) -> dict[str, inspect.Parameter]:
@@ -72,11 +57,10 @@ def cmd_list(args: argparse.Namespace) -> int:
         print(f"  {name:18s} id {ids.get(name, '-')}\n      {(cls.__doc__ or '').strip().splitlines()[0]}")
         for pname, p in _parameters(name).items():
             print(f"      {pname}{'' if p.default is inspect.Parameter.empty else f' = {p.default!r}'}")
-    print("\nControllers (--controller NAME):", ", ".join(agent_names()))
-    print("Barriers (--filter NAME):", ", ".join(BARRIERS))
-    print("Deadlock strategies (--deadlock):", ", ".join(STRATEGIES))
-    print("Deadlock triggers (--trigger):", ", ".join(TRIGGERS))
-    print("QP solvers (--solver):", ", ".join(available_solvers()))
+    for title, names in (("\nControllers (--controller NAME):", agent_names()), ("Barriers (--filter NAME):", BARRIERS),
+                         ("Deadlock strategies (--deadlock):", STRATEGIES),
+                         ("Deadlock triggers (--trigger):", TRIGGERS), ("QP solvers (--solver):", available_solvers())):
+        print(title, ", ".join(names))
     return 0
 
 
@@ -128,12 +112,7 @@ def _env_kwargs(args: argparse.Namespace) -> dict[str, Any]:
 
 def _env_and_agent(args: argparse.Namespace, kwargs: dict[str, Any], filter_config: FilterConfig | None
                    ) -> tuple[Any, Any]:
-    """The env and the controller of ``aasoatt run``.
-
-    ``--controller learned --model RUN`` runs on an env with the run's action mode, decision interval, ``dt``
-    and observation layout (:func:`train.evaluate.policy_env_kwargs`); a different value given with ``-p``
-    or ``--decision-interval`` is an error.
-    """
+    """The env and controller of ``aasoatt run``; ``--controller learned``: the env settings of its run."""
     agent = None
     if args.controller == "learned":
         from train.evaluate import load_policy, policy_env_kwargs
@@ -166,7 +145,7 @@ def _write_results(out: Path, summary: dict[str, Any], rollout: Rollout, title: 
     except ImportError as exc:
         fig = None
         print(f"(no trajectory plot: {exc})", file=sys.stderr)
-    with staged(*(out / name for name in RUN_OUTPUTS[: 3 if fig is not None else 2])) as temps:
+    with cli_support.staged(*(out / name for name in RUN_OUTPUTS[: 3 if fig is not None else 2])) as temps:
         temps[0].write_text(json.dumps(summary, indent=2))
         rollout.save(temps[1])
         if fig is not None:
@@ -176,7 +155,7 @@ def _write_results(out: Path, summary: dict[str, Any], rollout: Rollout, title: 
 
 def _write_animation(gif: Path, frames: list[Any], fps: int) -> None:
     try:  # save_animation and atomic_write: a failed writer leaves no partial file at the --gif path
-        atomic_write(gif, lambda tmp: save_animation(frames, tmp, fps=fps))
+        cli_support.atomic_write(gif, lambda tmp: save_animation(frames, tmp, fps=fps))
     except AASOATTError:
         raise
     except (ValueError, RuntimeError, OSError) as exc:  # the writer failed: one line, status 1
@@ -185,19 +164,13 @@ def _write_animation(gif: Path, frames: list[Any], fps: int) -> None:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
-    """Run one episode and report its metrics.
-
-    Options are checked first, then the output paths (folders made; earlier results kept unless
-    ``--overwrite``; the animation's suffix and writer), then the env and controller are built: a failure on
-    the way leaves no folder.  Results are written atomically: an interrupted run leaves the earlier files
-    or the complete new ones.
-    """
+    """Run one episode and report its metrics (options, then output paths, then the env are checked first)."""
     if args.model is not None and args.controller != "learned":
         raise ConfigError(f"--model: given with --controller {args.controller!r}, expected --controller learned")
     if args.model is None and args.controller == "learned":
         raise ConfigError("controller 'learned': got no model path, expected --model PATH (a run folder or .zip)")
     kwargs, filter_config = _env_kwargs(args), _filter_config(args)
-    with OutputPlan(args.overwrite) as plan:
+    with cli_support.OutputPlan(args.overwrite) as plan:
         out = plan.folder(args.out, "--out", entries=RUN_OUTPUTS) if args.out is not None else None
         gif = plan.file(args.gif, "--gif", suffixes=ANIMATION_SUFFIXES) if args.gif is not None else None
         if gif is not None and animation_writer_missing(gif.suffix):
@@ -222,34 +195,34 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _run_parser(sub: Any) -> None:
     p = sub.add_parser("run", help="run a controller on a scenario")
-    names = ", ".join(sorted(SCENARIOS))
-    p.add_argument("--scenario", default="circle_swap", choices=sorted(SCENARIOS), metavar="NAME",
-                   help=f"one of {names}")
-    p.add_argument("--robots", type=int_option(1, MAX_ROBOTS), default=None, help="number of robots (num_robots)")
+
+    def choice(flag: str, default: str, options: Sequence[str]) -> None:
+        p.add_argument(flag, default=default, choices=options, metavar="NAME", help=f"one of {', '.join(options)}")
+
+    choice("--scenario", "circle_swap", sorted(SCENARIOS))
+    p.add_argument("--robots", type=cli_support.int_option(1, MAX_ROBOTS), default=None,
+                   help="number of robots (num_robots)")
     p.add_argument("-p", "--param", action="append", help="scenario/env parameter KEY=VALUE")
-    p.add_argument("--controller", default="tracking", choices=agent_names(), metavar="NAME",
-                   help=f"one of {', '.join(agent_names())}")
+    choice("--controller", "tracking", agent_names())
     p.add_argument("--model", default=None, help="saved model for --controller learned")
     p.add_argument("--filter", default="aasoatt", choices=[*BARRIERS, "none"], metavar="NAME",
                    help=f"barrier: one of {', '.join(BARRIERS)}; or 'none' for the bare env")
-    p.add_argument("--deadlock", default="auxiliary_velocity", choices=list(STRATEGIES), metavar="NAME",
-                   help=f"one of {', '.join(STRATEGIES)}")
-    p.add_argument("--trigger", default="multiplier", choices=list(TRIGGERS), metavar="NAME",
-                   help=f"one of {', '.join(TRIGGERS)}")
+    choice("--deadlock", "auxiliary_velocity", list(STRATEGIES))
+    choice("--trigger", "multiplier", list(TRIGGERS))
     p.add_argument("--solver", default="proxsuite", help="QP solver (aasoatt list shows the installed ones)")
     p.add_argument("-g", "--gain", action="append", help="filter gain KEY=VALUE (k1, k2, zeta, ...)")
-    p.add_argument("--decision-interval", type=int_option(1, 10_000), default=None,
+    p.add_argument("--decision-interval", type=cli_support.int_option(1, 10_000), default=None,
                    help="physics steps per action (default 1; --controller learned: the run's)")
-    p.add_argument("--seed", type=int_option(0), default=0)
-    p.add_argument("--gif", type=path_option, default=None,
+    p.add_argument("--seed", type=cli_support.int_option(0), default=0)
+    p.add_argument("--gif", type=cli_support.path_option, default=None,
                    help=f"write an animation ({', '.join(ANIMATION_SUFFIXES)}; video needs imageio-ffmpeg)")
-    p.add_argument("--frame-every", type=int_option(1), default=20, help="env steps between GIF frames")
-    p.add_argument("--fps", type=int_option(1, 1000), default=20)
-    p.add_argument("--out", type=path_option, default=None, help=f"folder for {', '.join(RUN_OUTPUTS)}")
-    p.add_argument("--goal-tolerance", type=real_option(0.0, lo_open=True), default=0.05)
+    p.add_argument("--frame-every", type=cli_support.int_option(1), default=20, help="env steps between GIF frames")
+    p.add_argument("--fps", type=cli_support.int_option(1, 1000), default=20)
+    p.add_argument("--out", type=cli_support.path_option, default=None, help=f"folder for {', '.join(RUN_OUTPUTS)}")
+    p.add_argument("--goal-tolerance", type=cli_support.real_option(0.0, lo_open=True), default=0.05)
     p.add_argument("--fail-on-collision", action="store_true", help="exit 1 if any pair collided")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
-    add_common_options(p)
+    cli_support.add_common_options(p)
     p.set_defaults(func=cmd_run)
 
 
@@ -273,17 +246,17 @@ def cmd_warm_up(args: argparse.Namespace) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of ``aasoatt``."""
-    parser = Parser(prog="aasoatt", description=__doc__.splitlines()[0])
-    sub = parser.add_subparsers(dest="command", required=True, parser_class=Parser)
+    parser = cli_support.Parser(prog="aasoatt", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=cli_support.Parser)
     p_list = sub.add_parser("list", help="scenarios, controllers, filter options")
-    add_common_options(p_list, overwrite=False)
+    cli_support.add_common_options(p_list, overwrite=False)
     p_list.set_defaults(func=cmd_list)
     _run_parser(sub)
     p_warm = sub.add_parser("warm-up", help="compile the filter's kernels once (numba caches them)")
     p_warm.add_argument("--kernel", choices=("auto", "numba"), default="auto",
                         help="auto: where numba is installed; numba: or an error")
     p_warm.set_defaults(func=cmd_warm_up)
-    for name, (module, _) in _FORWARDED.items():
+    for name, module in _FORWARDED.items():
         p = sub.add_parser(name, help=f"see {module} (aasoatt {name} --help)", add_help=False)
         p.add_argument("rest", nargs=argparse.REMAINDER)
     return parser
@@ -292,8 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``aasoatt`` console script (see :mod:`aasoatt_env.cli_support` for the contract)."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    if argv and argv[0] in _FORWARDED:  # these parse their own options (incl. --help) and guard their own errors
-        module, func = _FORWARDED[argv[0]]
+    if argv and argv[0] in _FORWARDED:
         if argv[0] == "train":  # --backend rllib: train.rllib (Ray RLlib's venv has no Stable-Baselines3)
             from train.config import split_backend
 
@@ -302,14 +274,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                 from train.rllib import main as rllib_main
 
                 return int(rllib_main(rest, prog="aasoatt train --backend rllib") or 0)
-        return int(getattr(importlib.import_module(module), func)(argv[1:]) or 0)
+        return int(importlib.import_module(_FORWARDED[argv[0]]).main(argv[1:]) or 0)
 
     def body(args_list: list[str]) -> int:
         args = build_parser().parse_args(args_list)
         return int(args.func(args))
 
     prog = f"aasoatt {argv[0]}" if argv and not argv[0].startswith("-") else "aasoatt"
-    return run_guarded(prog, argv, body)
+    return cli_support.run_guarded(prog, argv, body)
 
 
 if __name__ == "__main__":  # pragma: no cover

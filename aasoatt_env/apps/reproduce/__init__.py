@@ -1,11 +1,8 @@
 """Reproduce the paper's Sec. V: ``aasoatt reproduce EXPERIMENT [--quick] [--out DIR] [--jobs N] [--page FILE]``.
 
-Each experiment (:mod:`~aasoatt_env.apps.reproduce.experiments`, or ``all``) writes ``<out>/<experiment>/``:
-a CSV, a ``README.md`` with the paper's numbers beside ours, figures and its wall time; ``all`` also writes
-``<out>/SUMMARY.md``.  ``--page`` writes every result table on one Markdown page headed by the command that
-made it, so pages in ``docs/`` are regenerated, never hand-edited.  Runs are deterministic whatever
-``--jobs``.  ``--quick`` runs small variants, not comparable to the paper, into ``results/quick``.  From
-Python: ``report, seconds = run_experiment("compare-ca", Settings(out=Path("results")))``.
+Each experiment writes ``<out>/<experiment>/`` (CSV, README with the paper's numbers beside ours, figures);
+``--page`` puts every table on one page headed by its command.  From Python:
+``report, seconds = run_experiment("compare-ca", Settings(out=Path("results")))``.
 """
 
 from __future__ import annotations
@@ -17,25 +14,15 @@ import time
 from collections.abc import Sequence
 from pathlib import Path
 
+from aasoatt_env import cli_support
 from aasoatt_env.apps.reproduce.experiments import EXPERIMENTS
-from aasoatt_env.apps.reproduce.report import Report, Settings, run
-from aasoatt_env.cli_support import (
-    OutputPlan,
-    Parser,
-    add_common_options,
-    atomic_write,
-    int_option,
-    path_option,
-    real_option,
-    run_guarded,
-)
+from aasoatt_env.apps.reproduce.report import Report, Settings, md_table, run
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety import available_solvers
 
 __all__ = ["EXPERIMENTS", "Settings", "main", "run_experiment"]
 
-QUICK_SUBDIR = "quick"
-"""``--quick`` results go to ``<out>/quick/`` by default, so they never replace the full tables."""
+QUICK_SUBDIR = "quick"  # --quick writes to results/quick by default: never over the full tables
 
 
 def run_experiment(name: str, settings: Settings) -> tuple[Report, float]:
@@ -50,36 +37,33 @@ def run_experiment(name: str, settings: Settings) -> tuple[Report, float]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = Parser(prog="aasoatt reproduce",
+    p = cli_support.Parser(prog="aasoatt reproduce",
                description="Reproduce the paper's Sec. V experiments; writes CSV, Markdown and PNG per experiment.")
     p.add_argument("experiment", choices=[*EXPERIMENTS, "all"], help="experiment to run")
     p.add_argument("--quick", action="store_true",
                    help=f"small, fast variants (CI); not comparable to the paper; default --out results/{QUICK_SUBDIR}")
-    p.add_argument("--out", type=path_option, default=None,
+    p.add_argument("--out", type=cli_support.path_option, default=None,
                    help=f"results root directory (default: results, or results/{QUICK_SUBDIR} with --quick)")
-    p.add_argument("--page", type=path_option, default=None,
+    p.add_argument("--page", type=cli_support.path_option, default=None,
                    help="also write every result table to this Markdown page, headed by the command (e.g. "
                         "docs/paper_results.md)")
-    p.add_argument("--jobs", type=int_option(1, 256), default=1, help="worker processes for independent runs")
+    p.add_argument("--jobs", type=cli_support.int_option(1, 256), default=1,
+                   help="worker processes for independent runs")
     p.add_argument("--solver", default=None, help="QP solver of the safety filter (default: daqp if installed, "
                                                   "else proxsuite; the paper's is 'neural')")
-    p.add_argument("--safety-margin", type=real_option(0.0, 1.0), default=0.0,
+    p.add_argument("--safety-margin", type=cli_support.real_option(0.0, 1.0), default=0.0,
                    help="margin added to d_s [m] in the paper-comparison runs, in [0, 1] (default 0: the paper's)")
     p.add_argument("--backup", action="store_true",
                    help="turn the braking backup layer on (default off: the paper's method as published)")
     p.add_argument("--no-progress", action="store_true", help="no progress bars")
-    add_common_options(p)
+    cli_support.add_common_options(p)
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Command-line entry point (``aasoatt reproduce ...``); returns the exit status.
-
-    Options and output paths are checked before the first run; existing results (``<out>/<experiment>/``,
-    ``<out>/SUMMARY.md``, the ``--page``) are replaced only with ``--overwrite``.
-    """
+    """Command-line entry point (``aasoatt reproduce ...``); returns the exit status."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    return run_guarded("aasoatt reproduce", argv, _main)
+    return cli_support.run_guarded("aasoatt reproduce", argv, _main)
 
 
 def _solver(args: argparse.Namespace) -> str:
@@ -101,7 +85,7 @@ def _main(argv: list[str]) -> int:
     out = Path(args.out) if args.out is not None else Path("results") / (QUICK_SUBDIR if args.quick else "")
     walls: dict[str, float] = {}
     reports = []
-    with OutputPlan(args.overwrite) as plan:  # a refusal or a failure before the first results leaves no folder
+    with cli_support.OutputPlan(args.overwrite) as plan:  # a refusal or failure before any results: no folder left
         plan.folder(out, "--out", entries=[*names, *(["SUMMARY.md"] if len(names) > 1 else [])])
         page = plan.file(args.page, "--page", suffixes=(".md",)) if args.page is not None else None
         for name in names:
@@ -121,10 +105,11 @@ def _main(argv: list[str]) -> int:
 def _write_summary(out: Path, command: str, walls: dict[str, float]) -> None:
     """``<out>/SUMMARY.md``: the wall time of each experiment and their total."""
     total = sum(walls.values())
-    lines = ["# Reproduction summary", "", f"Command: `{command}`", "", "| experiment | wall time [s] | report |",
-             "|---|---|---|", *(f"| {n} | {w:.1f} | [{n}/README.md]({n}/README.md) |" for n, w in walls.items()), "",
+    table = md_table(["experiment", "wall time [s]", "report"],
+                     [[n, f"{w:.1f}", f"[{n}/README.md]({n}/README.md)"] for n, w in walls.items()])
+    lines = ["# Reproduction summary", "", f"Command: `{command}`", "", table, "",
              f"Total wall time: {total:.1f} s ({total / 60:.1f} min).", ""]
-    atomic_write(out / "SUMMARY.md", lambda tmp: tmp.write_text("\n".join(lines)))
+    cli_support.atomic_write(out / "SUMMARY.md", lambda tmp: tmp.write_text("\n".join(lines)))
     print(f"all: {total:.1f} s -> {out / 'SUMMARY.md'}")
 
 
@@ -134,7 +119,7 @@ def _write_page(path: Path, argv: list[str], reports: list[Report]) -> None:
              "this page; do not edit it by hand):", "", "```", shlex.join(argv), "```", ""]
     for report in reports:
         lines += [f"## {report.title}", "", *("#" + line if line.startswith("#") else line for line in report.body())]
-    atomic_write(path, lambda tmp: tmp.write_text("\n".join(lines)))
+    cli_support.atomic_write(path, lambda tmp: tmp.write_text("\n".join(lines)))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,8 +1,4 @@
-"""The paper's published numbers (Sec. V), copied from its LaTeX source, keyed for comparison.
-
-Method keys are the equation labels used throughout the package: ``eqn.n4`` (braking SBC), ``ours``
-(AA-SOATT), ``eqn.n5``, ``eqn.nn5``, ``eqn.n7``; deadlock strategies ``eqn.12a``, ``eqn.12b``, ``eqn.13``.
-"""
+"""The paper's published numbers (Sec. V), from its LaTeX source, keyed by the equation labels of the methods."""
 
 from __future__ import annotations
 

@@ -1,9 +1,6 @@
 """The shared scaffolding of the paper's experiments: declare an :class:`Experiment`, :func:`run` does the rest.
 
-An experiment declares its runs, the paper's numbers for each, its table columns, notes, findings and
-figures; :func:`run` executes the runs, puts one CSV row per run beside the paper's numbers and the
-relative difference ``(ours - paper) / |paper|``, and returns a :class:`Report` that writes
-``<out>/<name>/``: ``<name>.csv``, ``README.md`` and the figures, all in one atomic step.
+One CSV row per run beside the paper's numbers and ``(ours - paper) / |paper|``; a :class:`Report` writes them.
 """
 
 from __future__ import annotations
@@ -17,16 +14,14 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from aasoatt_env.analysis.metrics import format_value as fmt
 from aasoatt_env.apps.reproduce.runner import RunResult, RunSpec, run_many
 from aasoatt_env.cli_support import OutputPlan, staged
 
 __all__ = ["Experiment", "Report", "Settings", "fmt", "fmt_rel", "md_table", "rel_diff", "run"]
 
-Column = tuple[str, Callable[[dict[str, Any]], str]]
-"""A table column: its header and the cell of a CSV row."""
-
-Results = dict[str, RunResult]
-"""The runs of an experiment by key."""
+Column = tuple[str, Callable[[dict[str, Any]], str]]  # a table column: its header and the cell of a CSV row
+Results = dict[str, RunResult]  # the runs of an experiment by key
 
 #: The CSV columns of a run's metrics, in this order (then the ``*_end`` goal metrics).
 CSV_METRICS = ("intervention_time", "rmse", "mae", "std", "max_tracking_error", "min_center_distance_full",
@@ -39,11 +34,7 @@ _SHORT = {"intervention_time": "IT [s]", "rmse": "RMSE", "mae": "MAE", "std": "s
 
 @dataclass(frozen=True)
 class Settings:
-    """Options shared by all experiments (those of ``aasoatt reproduce``; ``command`` heads the Markdown).
-
-    ``quick``: small variants whose numbers are not comparable to the paper's; ``solver``: the filter's
-    (``daqp``: exact; the paper's: ``neural``); ``safety_margin`` [m] (0: the paper's exact barrier).
-    """
+    """The options of ``aasoatt reproduce`` shared by all experiments (``command`` heads the Markdown)."""
 
     quick: bool = False
     out: Path = Path("results")
@@ -60,17 +51,6 @@ def rel_diff(ours: float | None, paper: float | None) -> float | None:
     if ours is None or paper is None or paper == 0 or not math.isfinite(ours):
         return None
     return (ours - paper) / abs(paper)
-
-
-def fmt(x: Any, digits: int = 4) -> str:
-    """A table cell: ``-`` for None, yes/no for bools, ``digits`` decimals for floats."""
-    if x is None:
-        return "-"
-    if isinstance(x, (bool, np.bool_)):
-        return "yes" if x else "no"
-    if isinstance(x, (float, np.floating)) and math.isfinite(x):
-        return f"{x:.{digits}f}"
-    return str(int(x)) if isinstance(x, np.integer) else str(x)
 
 
 def fmt_rel(x: float | None) -> str:
@@ -99,19 +79,16 @@ def compared(metrics: Sequence[str]) -> list[Column]:
 class Experiment:
     """One experiment of the paper, declared by overriding the hooks that apply.
 
-    ``_specs(s)``: the runs in table order; ``_paper(spec)``: the paper's numbers of a run (None: not in the
-    paper); ``_extra(s, spec, result)``: more CSV fields of a run; ``_columns(s)``: the results table;
-    ``_notes(s)``: the settings list; ``_sections(s, res)``: Markdown after the table; ``_findings(s, res)``:
-    one bullet each; ``_figures(s, res)``: ``(figure, file name, caption)`` of each figure.
+    ``_specs``: the runs in table order; ``_paper``: a run's numbers in the paper; ``_extra``: more CSV fields;
+    ``_columns``, ``_notes``, ``_sections``, ``_findings``: the Markdown; ``_figures``: ``(figure, file, caption)``.
     """
 
     name: ClassVar[str]
     title: ClassVar[str]
     metrics: ClassVar[tuple[str, ...]] = ()
-    """Metrics compared with the paper (``paper_<m>`` and ``rel_<m>`` CSV columns)."""
     heading: ClassVar[str] = "## Results (paper | ours | relative difference)"
     sizes: ClassVar[dict[bool, Any]] = {}
-    """The scenario sizes of the full experiment (``False``) and of ``--quick`` (``True``)."""
+    columns: ClassVar[list[Column]] = []  # the results table, unless it depends on the settings (_columns)
 
     def size(self, s: Settings) -> Any:
         """The scenario sizes for ``s``."""
@@ -120,26 +97,22 @@ class Experiment:
     def _specs(self, s: Settings) -> list[RunSpec]:
         raise NotImplementedError
 
+    def _columns(self, s: Settings) -> list[Column]:
+        return self.columns
+
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
         return None
 
     def _extra(self, s: Settings, spec: RunSpec, result: RunResult) -> dict[str, Any]:
         return {}
 
-    def _columns(self, s: Settings) -> list[Column]:
-        raise NotImplementedError
-
     def _notes(self, s: Settings) -> list[str]:
         return []
 
-    def _sections(self, s: Settings, res: Results) -> list[str]:
+    def _sections(self, s: Settings, res: Results) -> list[Any]:
         return []
 
-    def _findings(self, s: Settings, res: Results) -> list[str]:
-        return []
-
-    def _figures(self, s: Settings, res: Results) -> list[tuple[Any, str, str]]:
-        return []
+    _findings = _figures = _sections  # no findings, no figures unless overridden
 
 
 def result_row(exp: str, res: RunResult, ref: dict[str, Any] | None, metrics: Sequence[str]) -> dict[str, Any]:
@@ -209,8 +182,7 @@ class Report:
         with path.open("w", newline="") as fh:
             w = csv.DictWriter(fh, fieldnames=keys)
             w.writeheader()
-            for row in self.rows:
-                w.writerow({k: _csv_cell(row.get(k)) for k in keys})
+            w.writerows({k: _csv_cell(row.get(k)) for k in keys} for row in self.rows)
 
 
 def _csv_cell(v: Any) -> Any:

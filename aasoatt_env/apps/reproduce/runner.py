@@ -1,13 +1,11 @@
-"""One simulation run of a reproduction experiment, and a (parallel) runner over many.
+"""One simulation run of a reproduction experiment (metrics and light traces), and a parallel runner over many.
 
-:func:`run_spec` simulates a :class:`RunSpec` and returns its metrics over the paper's time window with a
-light, down-sampled copy of the trajectories for figures (cheap to send back from worker processes).
-Every run is deterministic, so :func:`run_many` returns the same results in the order of the specs
-whatever ``jobs`` is.
+Runs are deterministic, so :func:`run_many` returns the same results whatever ``jobs`` is.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 from dataclasses import dataclass, field
@@ -24,18 +22,14 @@ from agents.baselines import PDController, TrackingController
 
 __all__ = ["RunResult", "RunSpec", "run_many", "run_spec"]
 
-#: Largest number of time samples kept for figures.
-MAX_SAMPLES: int = 800
+MAX_SAMPLES: int = 800  # time samples kept for figures, at most
 
 
 @dataclass(frozen=True)
 class RunSpec:
-    """What to simulate.
+    """What to simulate: ``controller`` ``tracking`` (eqn. 11-12) or SBC's ``pd``; metrics over ``[0, window]`` s.
 
-    ``key`` labels the run inside its experiment (``"ours/N=20"``); ``controller`` is the paper's law
-    (``"tracking"``, eqn. 11-12) or SBC's PD law (``"pd"``) with gains ``k3``, ``k4``; ``filter`` None runs
-    the bare env with saturated actions; the paper's metrics are taken over ``[0, window]`` s (None: the
-    whole episode); ``meta`` labels are copied into the result row.
+    ``key`` labels the run in its experiment, ``meta`` goes into its row; ``filter`` None: actions saturated.
     """
 
     key: str
@@ -52,34 +46,23 @@ class RunSpec:
 
 @dataclass
 class RunResult:
-    """Metrics and down-sampled traces of one run.
-
-    ``metrics``: :func:`~aasoatt_env.analysis.metrics.summarize` over the window, the ``*_end`` goal metrics
-    of the whole episode, ``min_center_distance_full``, ``min_robot_gap_full``, ``safety_distance`` and
-    ``wall_time`` [s].  ``traces``: ``times``, ``positions``, ``references``, ``speeds``,
-    ``min_center_distance`` (the minimum over the steps each sample stands for), and the static ``goals``,
-    ``radii``, ``obstacle_centers``, ``obstacle_radii``.
-    """
+    """Metrics over the window (``*_end``, ``*_full``: the whole episode) and down-sampled traces of one run."""
 
     spec: RunSpec
     metrics: dict[str, Any]
     traces: dict[str, np.ndarray]
 
 
-def _make_agent(spec: RunSpec) -> Any:
+def run_spec(spec: RunSpec) -> RunResult:
+    """Simulate one :class:`RunSpec`."""
     controllers = {"tracking": TrackingController, "pd": PDController}
     if spec.controller not in controllers:
         raise ValueError(f"controller: got {spec.controller!r}, expected 'tracking' or 'pd'")
-    return controllers[spec.controller](spec.k3, spec.k4, saturate=spec.filter is None)
-
-
-def run_spec(spec: RunSpec) -> RunResult:
-    """Simulate one :class:`RunSpec`."""
     t0 = time.perf_counter()
     env = make_env(spec.scenario, filter=spec.filter, **spec.scenario_kwargs)
-    rollout, _ = run_episode(env, _make_agent(spec), seed=spec.seed, metadata={"key": spec.key})
+    agent = controllers[spec.controller](spec.k3, spec.k4, saturate=spec.filter is None)
+    rollout, _ = run_episode(env, agent, seed=spec.seed, metadata={"key": spec.key})
     wall = time.perf_counter() - t0
-
     part = rollout.window(spec.window)
     metrics = summarize(part)
     full = metrics if part is rollout else summarize(rollout)
@@ -87,11 +70,9 @@ def run_spec(spec: RunSpec) -> RunResult:
         metrics[f"{k}_end"] = full[k]
     sep = pairwise_min_distance(rollout)
     team = rollout.n_robots > 1
-    metrics["min_center_distance_full"] = float(np.min(sep.min_center_distance)) if team else None
-    metrics["min_robot_gap_full"] = float(np.min(sep.min_robot_gap)) if team else None
-    metrics["safety_distance"] = float(2 * rollout.radii.min()) if team else None
-    metrics["wall_time"] = wall
-
+    metrics.update(min_center_distance_full=sep.overall_min_center_distance if team else None,
+                   min_robot_gap_full=sep.overall_min_robot_gap if team else None,
+                   safety_distance=float(2 * rollout.radii.min()) if team else None, wall_time=wall)
     stride = max(1, int(np.ceil(rollout.n_steps / MAX_SAMPLES)))
     idx = np.arange(0, rollout.n_steps, stride)
     if idx[-1] != rollout.n_steps - 1:
@@ -107,12 +88,10 @@ def run_spec(spec: RunSpec) -> RunResult:
 
 
 def _init_worker() -> None:
-    try:
+    with contextlib.suppress(ImportError):
         from threadpoolctl import threadpool_limits
 
         threadpool_limits(1)
-    except ImportError:  # pragma: no cover
-        pass
 
 
 def run_many(specs: list[RunSpec], jobs: int = 1, desc: str = "runs", show: bool = True) -> list[RunResult]:

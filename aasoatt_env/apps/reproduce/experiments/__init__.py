@@ -1,8 +1,4 @@
-"""The paper's experiments (Sec. V), each an :class:`~aasoatt_env.apps.reproduce.report.Experiment`.
-
-Tables (:mod:`.tables`): ``table1``, ``compare-ca``, ``table2``, ``table3``; figures without a table
-(:mod:`.figures`): ``deadlock-triggers``, ``swarm100``, ``obstacles``; their shared set-up: :mod:`.common`.
-"""
+"""The paper's experiments (Sec. V): the tables (:mod:`.tables`) and the figures without a table (:mod:`.figures`)."""
 
 from __future__ import annotations
 
@@ -12,6 +8,6 @@ from aasoatt_env.apps.reproduce.report import Experiment, Settings
 
 __all__ = ["EXPERIMENTS", "Settings"]
 
+#: Name -> experiment, in the order ``all`` runs them.
 EXPERIMENTS: dict[str, Experiment] = {e.name: e for e in (Table1(), CompareCA(), Table2(), DeadlockTriggers(),
                                                           Table3(), Swarm100(), Obstacles())}
-"""Experiment registry: name -> experiment, in the order ``all`` runs them."""

@@ -1,32 +1,29 @@
-"""The set-up the experiments share (SPEC section 7; our choices where the paper is silent).
+"""The set-up the experiments share (SPEC section 7; our choices where the paper is silent), and their helpers.
 
-Wheel radius 0.1 m, half track 0.2 m, offset l = 0.2 m, |du| <= 60 rad/s^2, robot radius 0.48 m
-(d_s = 0.96), dt = 0.005 s, straight references linear in time from rest, k1 = k2 = 2, k3 = 1, k4 = 4,
-zeta = 2, q = -60 deg, D = 3, braking gamma = 1, velocity-barrier varsigma = 2, rho_v = 1, sigma = 0.  The
-episode ends with the reference (no settle time), so the metrics cover exactly the paper's 12 s / 20 s.
+The episode ends with the reference (no settle time), so the metrics cover exactly the paper's 12 s / 20 s.
 """
 
 from __future__ import annotations
 
 from typing import Any
 
-from aasoatt_env.apps.reproduce.report import Settings
-from aasoatt_env.apps.reproduce.runner import RunResult
+from aasoatt_env.analysis.plotting import new_figure, plot_trajectories
+from aasoatt_env.apps.reproduce.report import Results, Settings
+from aasoatt_env.apps.reproduce.runner import RunResult, RunSpec
 from aasoatt_env.safety.config import FilterConfig
 
 #: Wheel-acceleration bound [rad/s^2] of the velocity-level barriers (eqn.n5, eqn.nn5, eqn.n7): they command
 #: velocities and, in the paper, make velocity jumps; with 60 rad/s^2 their next-step rows are often infeasible.
 VELOCITY_LEVEL_ACCEL: float = 1.0e4
-
-#: Relative-difference tolerance of the acceptance check on eqn.n4 and ours (compare-ca).
-ACCEPT_REL: float = 0.10
-
-#: Collision tolerance [m] when declaring a safety violation (as :mod:`aasoatt_env.analysis.metrics`).
-VIOLATION_TOL: float = 1e-3
+ACCEPT_REL: float = 0.10  # relative-difference tolerance of the acceptance check on eqn.n4 and ours (compare-ca)
+VIOLATION_TOL: float = 1e-3  # collision tolerance [m] of a safety violation (as the metrics')
 
 #: The paper's deadlock strategies (Table III, Fig. "100") -> our registry names.
 DEADLOCK_METHODS: dict[str, str] = {"eqn.12a": "rotate_nominal", "eqn.12b": "rotate_reference_velocity",
                                     "eqn.13": "auxiliary_velocity"}
+
+#: ``(N, radius, duration)`` of the N = 10 comparison (full, ``--quick``).
+CA_SIZES: dict[bool, tuple[int, float, float]] = {False: (10, 6.0, 12.0), True: (6, 4.0, 8.0)}
 
 
 def filter_config(s: Settings, **kw: Any) -> FilterConfig:
@@ -34,13 +31,13 @@ def filter_config(s: Settings, **kw: Any) -> FilterConfig:
     return FilterConfig.merged({"solver": s.solver, "safety_margin": s.safety_margin, "backup": s.backup}, **kw)
 
 
-def circle(n: int, radius: float, duration: float, settle: float = 0.0, **kw: Any) -> dict[str, Any]:
-    """Circle-swap scenario keywords."""
-    return dict(num_robots=n, radius=radius, duration=duration, settle_time=settle, **kw)
-
-
-#: ``(N, radius, duration)`` of the N = 10 comparison (full, ``--quick``).
-CA_SIZES: dict[bool, tuple[int, float, float]] = {False: (10, 6.0, 12.0), True: (6, 4.0, 8.0)}
+def team_run(s: Settings, key: str, size: tuple[int, float, float], meta: dict[str, Any], *, settle: float = 0.0,
+             window: float | None = None, scenario: str = "circle_swap", scene: dict[str, Any] | None = None,
+             **filter_kw: Any) -> RunSpec:
+    """A run of ``size = (N, radius, duration)`` robots on the circle behind the paper's filter (``filter_kw``)."""
+    n, radius, duration = size
+    kwargs = dict(num_robots=n, radius=radius, duration=duration, settle_time=settle, **(scene or {}))
+    return RunSpec(key, scenario, kwargs, filter=filter_config(s, **filter_kw), window=window, meta=meta)
 
 
 def violated(res: RunResult) -> bool:
@@ -73,3 +70,12 @@ def axes_labels(ax: Any, xlabel: str, ylabel: str, legend: str | None = "small")
     ax.grid(alpha=0.3)
     if legend:
         ax.legend(fontsize=legend)
+
+
+def trajectory_panels(res: Results, titles: dict[str, str], panel: tuple[float, float]) -> Any:
+    """One figure of the runs ``titles`` (key -> panel title) side by side, each panel of size ``panel``."""
+    fig, axes = new_figure(1, len(titles), (panel[0] * len(titles), panel[1]))
+    for ax, (key, title) in zip(axes[0], titles.items()):
+        tr = res[key].traces
+        plot_trajectories(tr["positions"], tr["radii"], tr["references"], ax=ax, title=title)
+    return fig

@@ -6,7 +6,7 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.analysis.plotting import new_figure, plot_snapshots, plot_trajectories, team_colors
+from aasoatt_env.analysis.plotting import new_figure, plot_snapshots, team_colors
 from aasoatt_env.apps.reproduce import paper
 from aasoatt_env.apps.reproduce.experiments import common
 from aasoatt_env.apps.reproduce.report import Column, Experiment, Results, Settings, col, fmt
@@ -28,22 +28,18 @@ class DeadlockTriggers(Experiment):
 
     name, title, heading = "deadlock-triggers", "Fig. 3a - deadlock triggers (velocity profiles)", FIGURE_ONLY
     sizes = common.CA_SIZES
+    columns = [col("trigger", "trigger"), *_tracking(), col("min mean speed (20-80% of T)", "min_mean_speed_mid"),
+               col("slow fraction (20-80%)", "slow_fraction_mid"), col("triggered fraction", "triggered_fraction"),
+               col("final goal error", "final_error_mean"), col("min gap", "min_robot_gap_full")]
 
     def _specs(self, s: Settings) -> list[RunSpec]:
-        n, radius, duration = self.size(s)
-        return [RunSpec(t, "circle_swap", common.circle(n, radius, duration, settle=0.0),
-                        filter=common.filter_config(s, trigger=t), meta={"trigger": t, "N": n}) for t in TRIGGERS]
+        return [common.team_run(s, t, self.size(s), {"trigger": t, "N": self.size(s)[0]}, trigger=t) for t in TRIGGERS]
 
     def _extra(self, s: Settings, spec: RunSpec, result: RunResult) -> dict[str, Any]:
         duration, sp, t = self.size(s)[2], result.traces["speeds"], result.traces["times"]
         mid = (t > 0.2 * duration) & (t < 0.8 * duration)
         return {"min_mean_speed_mid": float(sp[mid].mean(axis=1).min()),
                 "slow_fraction_mid": float((sp[mid] < 0.05).mean())}
-
-    def _columns(self, s: Settings) -> list[Column]:
-        return [col("trigger", "trigger"), *_tracking(), col("min mean speed (20-80% of T)", "min_mean_speed_mid"),
-                col("slow fraction (20-80%)", "slow_fraction_mid"), col("triggered fraction", "triggered_fraction"),
-                col("final goal error", "final_error_mean"), col("min gap", "min_robot_gap_full")]
 
     def _notes(self, s: Settings) -> list[str]:
         n, radius, duration = self.size(s)
@@ -82,9 +78,8 @@ class Swarm100(Experiment):
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         n, radius, duration, settle = self.size(s)
-        return [RunSpec(k, "circle_swap", common.circle(n, radius, duration, settle, robots="paper_small"),
-                        filter=common.filter_config(s, deadlock=v), window=duration,
-                        meta={"method": k, "deadlock": v, "N": n})
+        return [common.team_run(s, k, (n, radius, duration), {"method": k, "deadlock": v, "N": n}, settle=settle,
+                                window=duration, scene={"robots": "paper_small"}, deadlock=v)
                 for k, v in common.DEADLOCK_METHODS.items()]
 
     def _columns(self, s: Settings) -> list[Column]:
@@ -113,10 +108,7 @@ class Swarm100(Experiment):
                 f"({fmt(m13['final_error_mean_end'], 3)} m)."]
 
     def _figures(self, s: Settings, res: Results) -> list[tuple[Any, str, str]]:
-        fig, axes = new_figure(1, 3, (15, 5.2))
-        for ax, (k, name) in zip(axes[0], common.DEADLOCK_METHODS.items()):
-            tr = res[k].traces
-            plot_trajectories(tr["positions"], tr["radii"], tr["references"], ax=ax, title=f"{k} ({name})")
+        fig = common.trajectory_panels(res, {k: f"{k} ({v})" for k, v in common.DEADLOCK_METHODS.items()}, (5, 5.2))
         return [(fig, "swarm100_trajectories.png", "trajectories under eqn.12a / eqn.12b / eqn.13 (paper Fig. '100')")]
 
 
@@ -130,9 +122,8 @@ class Obstacles(Experiment):
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         n, duration, settle = self.size(s)
-        return [RunSpec("obstacles", "circle_obstacles", dict(num_robots=n, radius=6.0, duration=duration,
-                                                              settle_time=settle),
-                        filter=common.filter_config(s), window=duration, meta={"method": "ours + eqn.13", "N": n})]
+        return [common.team_run(s, "obstacles", (n, 6.0, duration), {"method": "ours + eqn.13", "N": n}, settle=settle,
+                                window=duration, scenario="circle_obstacles")]
 
     def _columns(self, s: Settings) -> list[Column]:
         _, duration, settle = self.size(s)

@@ -7,10 +7,10 @@ from typing import Any
 
 import numpy as np
 
-from aasoatt_env.analysis.plotting import new_figure, plot_trajectories
+from aasoatt_env.analysis.plotting import new_figure
 from aasoatt_env.apps.reproduce import paper, report
 from aasoatt_env.apps.reproduce.experiments import common
-from aasoatt_env.apps.reproduce.report import Column, Experiment, Results, Settings, col, compared, fmt
+from aasoatt_env.apps.reproduce.report import Experiment, Results, Settings, col, compared, fmt
 from aasoatt_env.apps.reproduce.runner import RunResult, RunSpec
 from aasoatt_env.model.params import RobotParams
 from aasoatt_env.safety.config import auto_margin
@@ -33,6 +33,7 @@ class Table1(Experiment):
     """Table I: single-robot tracking, SBC's PD law (k3 = 10, 80) vs the paper's law (k3 = 1), k4 = 4."""
 
     name, title, metrics = "table1", "Table I - single-robot trajectory tracking", ("rmse", "mae", "std")
+    columns = [col("trajectory", "trajectory"), col("controller", "controller"), *compared(metrics)]
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         duration = 6.0 if s.quick else 12.0
@@ -42,9 +43,6 @@ class Table1(Experiment):
 
     def _paper(self, spec: RunSpec) -> dict[str, Any]:
         return paper.TABLE1[spec.meta["trajectory"]][spec.meta["controller"]]
-
-    def _columns(self, s: Settings) -> list[Column]:
-        return [col("trajectory", "trajectory"), col("controller", "controller"), *compared(self.metrics)]
 
     def _notes(self, s: Settings) -> list[str]:
         return [
@@ -91,29 +89,23 @@ class CompareCA(Experiment):
 
     name, title, metrics = "compare-ca", "Comparison of CA strategies (N = 10, radius 6, 12 s)", paper.METRICS
     sizes = common.CA_SIZES
+    columns = [col("method", "method"),
+               col("barrier", lambda r: CA_METHODS.get(r["key"], CA_METHODS["eqn.n7"])["barrier"]), *compared(metrics),
+               col("min gap [m]", "min_robot_gap_full"), col("relaxed steps", "relaxed_fraction", 3),
+               col("unsafe steps", "unsafe_fraction", 3)]
 
     def _specs(self, s: Settings) -> list[RunSpec]:
-        n, radius, duration = self.size(s)
-        specs = []
-        for method, kw in CA_METHODS.items():
-            scen = common.circle(n, radius, duration)
-            if method in VELOCITY_LEVEL:
-                scen["robots"] = RobotParams(max_wheel_accel=common.VELOCITY_LEVEL_ACCEL)
-            specs.append(RunSpec(method, "circle_swap", scen, filter=common.filter_config(s, **kw),
-                                 meta={"method": method, "N": n}))
-        if not s.quick:
-            specs.append(RunSpec("eqn.n7 @ 60 rad/s^2", "circle_swap", common.circle(n, radius, duration),
-                                 filter=common.filter_config(s, barrier="adaptive_distance"),
-                                 meta={"method": "eqn.n7 (paper robots, 60 rad/s^2)", "N": n}))
+        size, fast = self.size(s), {"robots": RobotParams(max_wheel_accel=common.VELOCITY_LEVEL_ACCEL)}
+        specs = [common.team_run(s, method, size, {"method": method, "N": size[0]},
+                                 scene=fast if method in VELOCITY_LEVEL else None, **kw)
+                 for method, kw in CA_METHODS.items()]
+        if not s.quick:  # the velocity-level eqn.n7 on the paper's robots
+            specs.append(common.team_run(s, "eqn.n7 @ 60 rad/s^2", size, {"method": "eqn.n7 (paper robots, 60 "
+                                         "rad/s^2)", "N": size[0]}, barrier="adaptive_distance"))
         return specs
 
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
         return paper.COMPARE_CA.get(spec.key)
-
-    def _columns(self, s: Settings) -> list[Column]:
-        barrier = col("barrier", lambda row: CA_METHODS.get(row["key"], CA_METHODS["eqn.n7"])["barrier"])
-        return [col("method", "method"), barrier, *compared(self.metrics), col("min gap [m]", "min_robot_gap_full"),
-                col("relaxed steps", "relaxed_fraction", 3), col("unsafe steps", "unsafe_fraction", 3)]
 
     def _notes(self, s: Settings) -> list[str]:
         n, radius, duration = self.size(s)
@@ -154,10 +146,7 @@ class CompareCA(Experiment):
         return lines
 
     def _figures(self, s: Settings, res: Results) -> list[tuple[Any, str, str]]:
-        paths, axes = new_figure(1, len(CA_METHODS), (3.2 * len(CA_METHODS), 3.4))
-        for ax, method in zip(axes[0], CA_METHODS):
-            tr = res[method].traces
-            plot_trajectories(tr["positions"], tr["radii"], tr["references"], ax=ax, title=method)
+        paths = common.trajectory_panels(res, {m: m for m in CA_METHODS}, (3.2, 3.4))
         speed, axes = new_figure(1, 1, (6.5, 3.5))
         for method in CA_METHODS:
             axes[0, 0].plot(res[method].traces["times"], res[method].traces["speeds"].mean(axis=1), label=method)
@@ -170,6 +159,9 @@ class Table2(Experiment):
     """Table II and Fig. 2: eqn.n4 vs ours, N = 20..39 on the radius-6 circle."""
 
     name, title, metrics = "table2", "Table II - eqn.n4 vs ours in a crowd (radius 6, 12 s)", paper.METRICS
+    columns = [col("method", "method"), col("N", "N"), *compared(metrics),
+               col("min dist [m]", "min_center_distance_full"), col("violated", "violated"),
+               col("paper: violated", "paper_violated")]
     sizes = {False: ((20, 25, 30, 35, 39), 6.0, 12.0), True: ((8, 12), 4.0, 8.0)}  # Ns, radius, duration
 
     @staticmethod
@@ -185,9 +177,8 @@ class Table2(Experiment):
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         ns, radius, duration = self.size(s)
-        return [RunSpec(f"{name}/N={n}", "circle_swap", common.circle(n, radius, duration),
-                        filter=common.filter_config(s, barrier=barrier, safety_margin=sm, solver=solver),
-                        meta={"method": name, "N": n, "solver": solver})
+        return [common.team_run(s, f"{name}/N={n}", (n, radius, duration), {"method": name, "N": n, "solver": solver},
+                                barrier=barrier, safety_margin=sm, solver=solver)
                 for n in ns for name, (barrier, sm, solver) in self.variants(s).items()]
 
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
@@ -200,11 +191,6 @@ class Table2(Experiment):
         listed = self._paper(spec) is not None
         return {"violated": common.violated(result),
                 "paper_violated": n in paper.TABLE2_VIOLATED[method] if listed else None}
-
-    def _columns(self, s: Settings) -> list[Column]:
-        return [col("method", "method"), col("N", "N"), *compared(self.metrics),
-                col("min dist [m]", "min_center_distance_full"), col("violated", "violated"),
-                col("paper: violated", "paper_violated")]
 
     def _notes(self, s: Settings) -> list[str]:
         ns, radius, duration = self.size(s)
@@ -272,21 +258,17 @@ class Table3(Experiment):
     """Table III: deadlock strategies eqn.12a / 12b / 13, N = 20..60, radius 10, 20 s."""
 
     name, title, metrics = "table3", "Table III - deadlock strategies (radius 10, 20 s)", paper.METRICS
+    columns = [col("N", "N"), col("strategy", "method"), *compared(metrics), col("min gap [m]", "min_robot_gap_full"),
+               col("relaxed steps", "relaxed_fraction", 3), col("unsafe steps", "unsafe_fraction", 3)]
     sizes = {False: ((20, 30, 40, 50, 60), 10.0, 20.0), True: ((8,), 5.0, 10.0)}  # Ns, radius, duration
 
     def _specs(self, s: Settings) -> list[RunSpec]:
         ns, radius, duration = self.size(s)
-        return [RunSpec(f"{k}/N={n}", "circle_swap", common.circle(n, radius, duration),
-                        filter=common.filter_config(s, deadlock=v), meta={"method": k, "deadlock": v, "N": n})
-                for n in ns for k, v in common.DEADLOCK_METHODS.items()]
+        return [common.team_run(s, f"{k}/N={n}", (n, radius, duration), {"method": k, "deadlock": v, "N": n},
+                                deadlock=v) for n in ns for k, v in common.DEADLOCK_METHODS.items()]
 
     def _paper(self, spec: RunSpec) -> dict[str, Any] | None:
         return paper.TABLE3.get(spec.meta["N"], {}).get(spec.meta["method"])
-
-    def _columns(self, s: Settings) -> list[Column]:
-        return [col("N", "N"), col("strategy", "method"), *compared(self.metrics),
-                col("min gap [m]", "min_robot_gap_full"), col("relaxed steps", "relaxed_fraction", 3),
-                col("unsafe steps", "unsafe_fraction", 3)]
 
     def _notes(self, s: Settings) -> list[str]:
         ns, radius, duration = self.size(s)
