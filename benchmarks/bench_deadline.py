@@ -6,8 +6,9 @@ paper robots, seed 5158), mode and magnitude, every adversary of :data:`agents.A
 for ``--steps`` physics steps with its actions multiplied by the magnitude (behind the filter the env takes
 actions beyond ``[-1, 1]`` as the unclipped nominal; an untrained network without a squashing output, a units
 mistake or another action scale produces them), plus the forward/swerve pattern (full forward for 120 steps,
-a hard swerve for 30, alternating sides).  Each ``SafetyFilter`` call is timed; the table gives the median,
-p99 and slowest step over all of them, the p99 ratio to magnitude 1, and the most solver iterations of a step.
+a hard swerve for 30, alternating sides).  After :func:`~aasoatt_env.safety.warm_up`, each ``SafetyFilter`` call
+is timed; the table gives the median, p99 and slowest step over all of them, the p99 ratio to magnitude 1, and
+the most solver iterations of a step.
 Every solver call's work is bounded by an iteration count (:data:`~aasoatt_env.safety.solvers.backends.ITER_LIMIT`,
 the warm active set's budgets), so the slowest step is a property of the problem size.
 
@@ -27,6 +28,7 @@ import numpy as np  # noqa: E402
 from page import add_page_options, check_page, write_page  # noqa: E402
 
 from aasoatt_env import make_env  # noqa: E402
+from aasoatt_env.safety import warm_up  # noqa: E402
 from agents import ADVERSARIES  # noqa: E402
 
 MAGNITUDES = (1.0, 1e3, 1e6)
@@ -106,6 +108,7 @@ def main() -> None:
     lines = [f"{'N':>4} {'mode':>14} {'magnitude':>9} {'median':>8} {'p99':>8} {'slowest':>8} {'p99/p99(1)':>10} "
              f"{'iterations':>10}   (ms per filter step, {args.steps} steps x each adversary)"]
     print(lines[0], flush=True)
+    warm_up()  # (as a control loop would before its first step: the kernels compiled or loaded from the cache)
     for n in (int(v) for v in args.sizes.split(",")):
         for mode in ("centralized", "decentralized"):
             base = None
