@@ -17,16 +17,7 @@ import numpy as np
 from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import SUBSET_OF, Team
-from aasoatt_env.safety.backup.paths import (
-    brake,
-    brake_decel,
-    brake_samples,
-    brake_time,
-    candidate,
-    candidate_samples,
-    point,
-    reach_limit,
-)
+from aasoatt_env.safety.backup import paths
 
 __all__ = ["BLEND_LEVELS", "CLOSEST_TIE", "GateResult", "gatekeeper", "pair_margins"]
 
@@ -40,23 +31,12 @@ _ONE_BUCKET_CELLS = 4096
 
 def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray | float, ds: np.ndarray,
                  closest: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
-    """Smallest ``distance - d_s`` of each pair along sampled paths (a lower bound between samples).
+    """Smallest ``distance - d_s`` of each pair along sampled paths, a lower bound between samples.
 
-    Parameters
-    ----------
-    pi, pj : numpy.ndarray
-        ``(P, L)`` complex positions of the two members at the same steps (``pj`` ``(P, 1)``: a static point).
-    di, dj : numpy.ndarray or float
-        ``(P, L-1)`` deviation bounds per step (``dj`` may be 0).
-    ds : numpy.ndarray
-        ``(P,)`` safety distances.
-    closest : bool
-        Also return each pair's closest step ``(P,)``: the first within :data:`CLOSEST_TIE` of its minimum.
-
-    Returns
-    -------
-    numpy.ndarray
-        ``(P,)``: ``min_k (dist(0, [q_k, q_{k+1}]) - di_k - dj_k) - ds`` with ``q = pi - pj``.
+    ``pi``, ``pj``: ``(P, L)`` complex positions of the two members at the same steps (``pj`` ``(P, 1)``: a
+    static point); ``di``, ``dj``: their ``(P, L-1)`` deviation bounds per step (``dj`` may be 0); ``ds``:
+    ``(P,)`` safety distances.  Returns ``min_k (dist(0, [q_k, q_{k+1}]) - di_k - dj_k) - ds``, ``q = pi - pj``,
+    and with ``closest`` each pair's closest step: the first within :data:`CLOSEST_TIE` of its minimum.
     """
     q = pi - pj
     if q.shape[1] == 1:
@@ -114,30 +94,16 @@ def bucketed_margins(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndar
 
 
 class GateResult(NamedTuple):
-    """What :func:`gatekeeper` decided.
+    """What :func:`gatekeeper` decided, per robot ``(N,)`` unless said.
 
-    Attributes
-    ----------
-    du : numpy.ndarray
-        ``(N, 2)`` inputs to apply.
-    braking : numpy.ndarray
-        ``(N,)`` bool: robots whose candidate was not accepted (blended toward, or put on, the backup).
-    margin : float
-        Smallest ``distance - d_s`` [m] over the checked pairs along the returned inputs' horizon (the
-        smallest :func:`reach_limit` when no pair is close enough to matter).
-    safe : bool
-        The current state was brake-safe, so the returned inputs keep the team in the safe set.
-    broken : numpy.ndarray
-        ``(N,)`` bool: robots in a pair that fails even when both brake, or whose braking leaves the range
-        limit: no input can promise them safety, the caller decides.
-    share : numpy.ndarray
-        ``(N,)``: the candidate's share in the applied input (1: the candidate, 0: the backup).
-    rounds, n_pairs : int
-        Gatekeeper rounds; robot and robot-obstacle pairs checked.
-    robot_margin : numpy.ndarray
-        ``(N,)``: the smallest margin over each robot's pairs (its :func:`reach_limit` without one).
-    out_of_range : numpy.ndarray
-        ``(N,)`` bool: robots whose candidate path leaves :func:`reach_limit` (too fast for the sensing range).
+    ``du`` ``(N, 2)``: the inputs to apply; ``braking``: robots whose candidate was not accepted (blended toward,
+    or put on, the backup); ``margin``: the smallest ``distance - d_s`` [m] over the checked pairs along the
+    returned inputs' horizon (the smallest :func:`reach_limit` without a pair that matters); ``safe``: the
+    state was brake-safe, so the returned inputs keep the team in the safe set; ``broken``: robots in a pair
+    failing even when both brake, or whose braking leaves the range limit (no input can promise them safety);
+    ``share``: the candidate's share in the applied input (1: the candidate, 0: the backup); ``rounds``,
+    ``n_pairs``: rounds, and robot and obstacle pairs checked; ``robot_margin``: each robot's smallest margin
+    (its range limit without a pair); ``out_of_range``: robots whose candidate path leaves their range limit.
     """
 
     du: np.ndarray
@@ -180,8 +146,7 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
     sensing_range, brake_fraction : float
         ``D`` [m]; the backup's deceleration as a fraction of the straight-line braking capability.
     obstacles : tuple of numpy.ndarray, optional
-        ``(centres (M, 2), radii (M,))``, or with ``groups (M,)`` for a grouped team (an obstacle acts on
-        its group only).
+        ``(centres (M, 2), radii (M,))``, with ``groups (M,)`` for a grouped team (an obstacle acts on its group).
     tol : float
         Accepted violation [m] (negative: a clearance required).
     blend_levels : tuple of float
@@ -190,15 +155,12 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
         Best effort outside the safe set: a pair failing even when both brake is held to that margin instead
         of being marked broken (``safe`` then says only whether the range condition held).
     quick : bool
-        Only the verdict on the candidate is wanted: the blend levels are used only when a candidate path
-        leaves :func:`reach_limit` (the first round is the same either way).
+        Only the verdict on the candidate is wanted: blend levels only where a candidate path leaves its limit.
     near_pairs : numpy.ndarray, optional
-        ``(P, 2)`` robot pairs including every pair (of one group) within ``sensing_range``: a safety input,
-        a pair missing here is not checked.  None: searched here.
-    compiled : bool
-        Run in the compiled kernel (``ImportError`` without numba): the same decisions, numbers to rounding.
-    checked : bool
-        The caller vouches for every shape and pair index (the kernel reads without bounds checks).
+        ``(P, 2)`` robot pairs including every pair (of one group) within ``sensing_range`` (a safety input);
+        None: searched here.
+    compiled, checked : bool
+        Run in the compiled kernel (numba); the caller vouches for every shape and pair index.
     """
     levels = levels_of(tuple(blend_levels))
     if not checked:
@@ -207,8 +169,8 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
         return _gatekeeper_compiled(team, pose, u, du_c, dt, sensing_range, brake_fraction, obstacles, tol, levels,
                                     hold_violations, quick, near_pairs)
     n = pose.shape[0]
-    p0 = point(team, pose)
-    limit = reach_limit(team, sensing_range)
+    p0 = paths.point(team, pose)
+    limit = paths.reach_limit(team, sensing_range)
     levels, du_all, firsts, b0, reach = _levels(team, pose, p0, u, du_c, dt, brake_fraction, levels, quick, limit)
     last = len(levels) - 1
     lev = _in_range(np.zeros(n, dtype=np.int64), reach, limit)
@@ -219,8 +181,8 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
     oc, oi, ok, ods = obstacles_near(team, p0, R, obstacles, 1e-12)
     rounds, robot_margin = 0, limit.copy()
     if i.size + oi.size:
-        paths = _LevelPaths(p0, firsts, b0, np.unique(np.concatenate((i, j, oi))), dt)
-        rounds, marg, omarg = _rounds(paths, lev, broken, reach, limit, (i, j, ds), (oi, ok, ods, oc),
+        lp = _LevelPaths(p0, firsts, b0, np.unique(np.concatenate((i, j, oi))), dt)
+        rounds, marg, omarg = _rounds(lp, lev, broken, reach, limit, (i, j, ds), (oi, ok, ods, oc),
                                       tol, hold_violations)
         np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
     margin = float(robot_margin.min(initial=float(limit.min(initial=0.5 * float(sensing_range)))))
@@ -232,16 +194,16 @@ def _levels(team: Team, pose: np.ndarray, p0: np.ndarray, u: np.ndarray, du_c: n
             brake_fraction: float, levels: tuple[float, ...], quick: bool, limit: np.ndarray) -> tuple:
     """``(levels, inputs (levels, N, 2), candidates per blend level, the backup from now, reaches (levels, N))``."""
     theta = pose[:, 2]
-    T0 = brake_time(team, u, brake_fraction)
+    T0 = paths.brake_time(team, u, brake_fraction)
     du_b = -u / np.maximum(T0, dt)[:, None]  # braking_du
     firsts, dus = [], []
     for k, a in enumerate(levels[:-1]):
         dus.append(du_b + a * (du_c - du_b))
-        firsts.append(candidate(team, p0, theta, u, dus[-1], dt, brake_fraction))
+        firsts.append(paths.candidate(team, p0, theta, u, dus[-1], dt, brake_fraction))
         if k == 0 and quick and not bool((firsts[0].reach > limit).any()):
             levels = (1.0, 0.0)  # no candidate leaves the range: the blends would change nothing
             break
-    b0 = brake(team, theta, u, dt, brake_fraction, T0)
+    b0 = paths.brake(team, theta, u, dt, brake_fraction, T0)
     reach = np.stack([c.reach for c in firsts] + [b0.reach])
     np.copyto(reach, np.inf, where=np.isnan(reach))  # a reach that is not a number bounds nothing
     return levels, np.stack(dus + [du_b]), firsts, b0, reach
@@ -266,30 +228,31 @@ class _LevelPaths:
         """Samples ``(r, L)`` and deviations ``(r, L-1)`` of level ``k`` for the rows ``r`` of ``M``."""
         g = self.M[r]
         if k == len(self.firsts):
-            return brake_samples(self.p0[g], self.b0.take(g), self.dt, self.L)
+            return paths.brake_samples(self.p0[g], self.b0.take(g), self.dt, self.L)
         c = self.firsts[k]
-        return candidate_samples(self.p0[g], c._replace(p1=c.p1[g], d1=c.d1[g], b1=c.b1.take(g)), self.dt, self.L)
+        return paths.candidate_samples(self.p0[g], c._replace(p1=c.p1[g], d1=c.d1[g], b1=c.b1.take(g)), self.dt,
+                                       self.L)
 
 
-def _rounds(paths: _LevelPaths, lev: np.ndarray, broken: np.ndarray, reach: np.ndarray, limit: np.ndarray,
+def _rounds(lp: _LevelPaths, lev: np.ndarray, broken: np.ndarray, reach: np.ndarray, limit: np.ndarray,
             pairs: tuple, obst: tuple, tol: float, hold: bool) -> tuple[int, np.ndarray, np.ndarray]:
     """The gatekeeper's rounds: ``lev`` and ``broken`` updated in place; ``(rounds, pair and obstacle margins)``."""
     (i, j, ds), (oi, ok, ods, oc) = pairs, obst
-    n, last, M = lev.shape[0], reach.shape[0] - 1, paths.M
+    n, last, M = lev.shape[0], reach.shape[0] - 1, lp.M
     loc = np.full(n, -1, dtype=np.intp)
     loc[M] = np.arange(M.size)
     li, lj, lo_ = loc[i], loc[j], loc[oi]
     rows_m = np.arange(M.size)
     tol_p, tol_o = np.full(i.shape[0], float(tol)), np.full(oi.shape[0], float(tol))
     if hold:  # each pair's own floor, the larger of it and tol: its margin when both members brake now
-        Pb, Db = paths.rows(last, rows_m)
-        tol_p = np.fmax(tol_p, np.fmax(0.0, -bucketed_margins(Pb, Db, paths.need[last], li, lj, ds)) * (1.0 + 1e-9))
-        floor = np.fmax(0.0, -bucketed_margins(Pb, Db, paths.need[last], lo_, ok, ods, centers=oc))
+        Pb, Db = lp.rows(last, rows_m)
+        tol_p = np.fmax(tol_p, np.fmax(0.0, -bucketed_margins(Pb, Db, lp.need[last], li, lj, ds)) * (1.0 + 1e-9))
+        floor = np.fmax(0.0, -bucketed_margins(Pb, Db, lp.need[last], lo_, ok, ods, centers=oc))
         tol_o = np.fmax(tol_o, floor * (1.0 + 1e-9))
     marg, omarg = np.full(i.shape[0], np.inf), np.full(oi.shape[0], np.inf)
     todo, otodo = np.ones(i.shape[0], dtype=bool), np.ones(oi.shape[0], dtype=bool)
-    cur = np.empty((M.size, paths.L), dtype=np.complex128)
-    curd = np.empty((M.size, paths.L - 1))
+    cur = np.empty((M.size, lp.L), dtype=np.complex128)
+    curd = np.empty((M.size, lp.L - 1))
     filled = np.full(M.size, -1)  # the level whose paths are in a row of `cur`
     rounds = 0
     while True:
@@ -298,9 +261,9 @@ def _rounds(paths: _LevelPaths, lev: np.ndarray, broken: np.ndarray, reach: np.n
         stale = lm != filled  # only rows whose level changed are made again
         for k in np.unique(lm[stale]):
             r = np.flatnonzero(stale & (lm == k))
-            cur[r], curd[r] = paths.rows(int(k), r)
+            cur[r], curd[r] = lp.rows(int(k), r)
         filled = lm
-        cneed = paths.need[lm, rows_m]
+        cneed = lp.need[lm, rows_m]
         idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
         if idx.size:
             marg[idx] = bucketed_margins(cur, curd, cneed, li[idx], lj[idx], ds[idx])
@@ -348,7 +311,7 @@ def team_block(team: Team, brake_fraction: float, sensing_range: float) -> tuple
     """``((diff, robots (N, 5), input columns, group, has_group, sensing_range), reach limits)``, once per team.
 
     ``robots`` holds each robot's offset, turn gain, wheel acceleration bound, backup deceleration and
-    radius (:data:`~aasoatt_env.safety.backup.kernel_paths.OFFSET` ...); a subset's block is the whole team's, indexed.
+    radius; a subset's block is the whole team's, indexed.
     """
     key = ("gatekeeper", float(brake_fraction), float(sensing_range))
     block = team.derived.get(key)
@@ -358,11 +321,11 @@ def team_block(team: Team, brake_fraction: float, sensing_range: float) -> tuple
         block = team.derived[key] = ((diff, rob[idx], cols[idx], group[idx] if has_group else group, has_group, rng),
                                      limit[idx])
     if block is None:
-        rob = np.column_stack((team.offset, team.turn_gain, team.max_wheel_accel, brake_decel(team, brake_fraction),
-                               team.radius))
+        rob = np.column_stack((team.offset, team.turn_gain, team.max_wheel_accel,
+                               paths.brake_decel(team, brake_fraction), team.radius))
         group = team.group if team.group is not None else _EMPTY_INT
         block = team.derived[key] = ((team.is_diff_drive, rob, team.input_columns, group, team.group is not None,
-                                      float(sensing_range)), reach_limit(team, sensing_range))
+                                      float(sensing_range)), paths.reach_limit(team, sensing_range))
     return block
 
 
@@ -403,7 +366,7 @@ def kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_ran
     ``(centres (complex), radii, groups, has_groups)``.  Shapes are :func:`validate`'s.
     """
     if near_pairs is None:
-        p0 = point(team, pose)
+        p0 = paths.point(team, pose)
         near_pairs = robot_pairs(np.stack((p0.real, p0.imag), axis=1), sensing_range, groups=team.group)
     oc, orad, ogroup, has_ogroup = _NO_OC, _NO_R, _EMPTY_INT, False
     if obstacles is not None and np.asarray(obstacles[1]).size:

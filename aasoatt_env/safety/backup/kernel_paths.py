@@ -17,8 +17,8 @@ from aasoatt_env.numba_jit import jit as _jit
 from aasoatt_env.numba_jit import nmax as _nmax
 from aasoatt_env.safety.backup.paths import MAX_BRAKE_STEPS
 
-__all__ = ["E1", "brake1", "candidate1", "fill_brake", "fill_row", "near", "pair_closest", "pair_margin",
-           "rows_of", "sample_at", "segment_margin", "starts"]
+__all__ = ["E1", "brake1", "candidate1", "fill_brake", "fill_row", "near", "pair_margin", "pair_min",
+           "rows_of", "sample_at", "segment_margin", "starts", "store"]
 
 OFFSET, TURN_GAIN, MAX_ACCEL, DECEL, RADIUS = 0, 1, 2, 3, 4
 """Columns of the robots' constants."""
@@ -131,6 +131,13 @@ def candidate1(diff, rob, cols, g, p0, theta, heading, u0, u1, du0, du1, dt):
     pdot, w, rate, steps, reach, bulge = brake1(diff, rob, cols, g, rot(theta + wm * dt) if diff else 0j, u10,
                                                  u11, dt)
     return p1, dev, pdot, w, rate, steps, cabs(p1 - p0) + dev + reach, bulge
+
+
+@_jit
+def store(C, F, NEED, k, g, p1, dev, pdot, w, rate, steps, reach, bulge):
+    """Robot ``g``'s path parameters on level ``k`` into ``C``, ``F`` and ``NEED`` (``steps``: the samples it needs)."""
+    C[k, g, 0], C[k, g, 1], NEED[k, g] = p1, pdot, steps
+    F[k, g, D1], F[k, g, OMEGA], F[k, g, RATE], F[k, g, BULGE], F[k, g, REACH] = dev, w, rate, bulge, reach
 
 
 @_jit
@@ -249,8 +256,11 @@ def step_margin(cur, curd, na, nc, a, c, static, oc, k):
 
 
 @_jit
-def pair_min(cur, curd, na, nc, a, c, static, oc, nseg):
-    """Smallest margin (before ``- d_s``) over ``nseg`` steps and its step; the first NaN wins."""
+def pair_min(cur, curd, na, nc, a, c, static, oc, nseg, tie):
+    """Smallest margin (before ``- d_s``) over ``nseg`` steps and its step, the first NaN winning.
+
+    ``tie >= 0``: the first step within ``tie`` of the least, as ``pair_margins(..., closest=True)`` takes it.
+    """
     best, kbest = np.inf, 0
     for k in range(nseg):
         dist = step_margin(cur, curd, na, nc, a, c, static, oc, k)
@@ -258,16 +268,7 @@ def pair_min(cur, curd, na, nc, a, c, static, oc, nseg):
             return dist, k
         if dist < best:
             best, kbest = dist, k
-    return best, kbest
-
-
-@_jit
-def pair_closest(cur, curd, na, nc, a, c, static, oc, nseg, tie):
-    """The closest step as ``pair_margins(..., closest=True)`` takes it: the first within ``tie`` of the least."""
-    best, kbest = pair_min(cur, curd, na, nc, a, c, static, oc, nseg)
-    if best != best:
-        return best, kbest
-    for k in range(kbest):
+    for k in range(kbest if tie >= 0.0 else 0):
         dist = step_margin(cur, curd, na, nc, a, c, static, oc, k)
         if dist <= best + tie:
             return dist, k
@@ -278,7 +279,7 @@ def pair_closest(cur, curd, na, nc, a, c, static, oc, nseg, tie):
 def pair_margin(cur, curd, na, nc, a, c, ds, static, oc):
     """:func:`pair_min` over the pair's own horizon, minus ``ds``."""
     L = na if static else max(na, nc)
-    return pair_min(cur, curd, na, nc, a, c, static, oc, max(L, 2) - 1)[0] - ds
+    return pair_min(cur, curd, na, nc, a, c, static, oc, max(L, 2) - 1, -1.0)[0] - ds
 
 
 @_jit

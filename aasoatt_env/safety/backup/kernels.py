@@ -12,33 +12,9 @@ import numpy as np
 
 from aasoatt_env.numba_jit import jit as _jit
 from aasoatt_env.numba_jit import nmax as _nmax
-from aasoatt_env.safety.backup.kernel_paths import (
-    BULGE,
-    D1,
-    OMEGA,
-    RATE,
-    REACH,
-    brake1,
-    brake_time1,
-    candidate1,
-    fill_row,
-    near,
-    pair_closest,
-    pair_margin,
-    rows_of,
-    sample_at,
-    segment_margin,
-    starts,
-)
+from aasoatt_env.safety.backup import kernel_paths as kp
 
 __all__ = ["gate_full", "repair_full"]
-
-
-@_jit
-def _put(C, F, NEED, k, g, p1, dev, pdot, w, rate, steps, reach, bulge):
-    """Store robot ``g``'s path parameters on level ``k`` (``steps``: the samples it needs)."""
-    C[k, g, 0], C[k, g, 1], NEED[k, g] = p1, pdot, steps
-    F[k, g, D1], F[k, g, OMEGA], F[k, g, RATE], F[k, g, BULGE], F[k, g, REACH] = dev, w, rate, bulge, reach
 
 
 @_jit
@@ -49,9 +25,9 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
     du_all, C = np.empty((nl, n, 2)), np.empty((nl, n, 2), dtype=np.complex128)
     F, NEED = np.zeros((nl, n, 5)), np.empty((nl, n), dtype=np.int64)
     for g in range(n):  # the backup from now: level `last`
-        T = brake_time1(diff, rob, cols, g, u[g, 0], u[g, 1])
-        pdot, w, rate, steps, reach, bulge = brake1(diff, rob, cols, g, hd[g], u[g, 0], u[g, 1], dt)
-        _put(C, F, NEED, last, g, 0j, 0.0, pdot, w, rate, steps + 1, reach, bulge)
+        T = kp.brake_time1(diff, rob, cols, g, u[g, 0], u[g, 1])
+        pdot, w, rate, steps, reach, bulge = kp.brake1(diff, rob, cols, g, hd[g], u[g, 0], u[g, 1], dt)
+        kp.store(C, F, NEED, last, g, 0j, 0.0, pdot, w, rate, steps + 1, reach, bulge)
         den = _nmax(T, dt)
         du_all[last, g, 0], du_all[last, g, 1] = -u[g, 0] / den, -u[g, 1] / den
     for k in range(nl - 1):  # one step blending the candidate and the backup, then the backup
@@ -61,9 +37,9 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
             b0, b1 = du_all[last, g, 0], du_all[last, g, 1]
             da0, da1 = b0 + a * (du_c[g, 0] - b0), b1 + a * (du_c[g, 1] - b1)
             du_all[k, g, 0], du_all[k, g, 1] = da0, da1
-            p1, dev, pdot, w, rate, steps, reach, bulge = candidate1(
+            p1, dev, pdot, w, rate, steps, reach, bulge = kp.candidate1(
                 diff, rob, cols, g, p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], da0, da1, dt)
-            _put(C, F, NEED, k, g, p1, dev, pdot, w, rate, steps + 2, reach, bulge)
+            kp.store(C, F, NEED, k, g, p1, dev, pdot, w, rate, steps + 2, reach, bulge)
             out = out or reach > limit[g]
         if k == 0 and quick and not out:  # no candidate leaves the range: levels (1, 0), rows 0 and last
             keep = np.array([0, last])
@@ -77,10 +53,10 @@ def _hold_floors(tol_p, cur, curd, loc, rob_rows, p0, C, F, NEED, has_bulge, dt,
     last = NEED.shape[0] - 1
     for r in range(rob_rows.shape[0]):
         g = rob_rows[r]
-        fill_row(cur, curd, r, g, last, last, p0, C, F, has_bulge, dt, NEED[last, g], True)
+        kp.fill_row(cur, curd, r, g, last, last, p0, C, F, has_bulge, dt, NEED[last, g], True)
     for q in range(a.shape[0]):
         st = c[q] < 0
-        m = pair_margin(cur, curd, NEED[last, a[q]], 0 if st else NEED[last, c[q]], loc[a[q]],
+        m = kp.pair_margin(cur, curd, NEED[last, a[q]], 0 if st else NEED[last, c[q]], loc[a[q]],
                         0 if st else loc[c[q]], ds[q], st, at[q])
         fl = -m if -m > 0.0 else 0.0  # NaN: no floor (numpy's fmax)
         tol_p[q] = max(tol_p[q], fl * (1.0 + 1e-9))
@@ -90,7 +66,7 @@ def _hold_floors(tol_p, cur, curd, loc, rob_rows, p0, C, F, NEED, has_bulge, dt,
 def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at, tol, hold):
     """The gatekeeper's rounds (``gate._rounds``): ``lev``, ``broken`` updated in place; ``(margins, rounds)``."""
     n, P, last = lev.shape[0], a.shape[0], NEED.shape[0] - 1
-    loc, rob_rows, M = rows_of(n, a, c)
+    loc, rob_rows, M = kp.rows_of(n, a, c)
     L = 2
     for r in range(M):
         for k in range(last + 1):
@@ -107,7 +83,7 @@ def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at
         for r in range(M):  # the paths of the robots' current levels: only changed rows are made again
             g = rob_rows[r]
             if lev[g] != filled[r]:
-                fill_row(cur, curd, r, g, lev[g], last, p0, C, F, has_bulge, dt, NEED[lev[g], g], True)
+                kp.fill_row(cur, curd, r, g, lev[g], last, p0, C, F, has_bulge, dt, NEED[lev[g], g], True)
                 filled[r] = lev[g]
         demote[:] = False
         any_demote = False
@@ -115,7 +91,7 @@ def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at
             if not todo[q]:
                 continue
             g, h, st = a[q], c[q], c[q] < 0
-            m = pair_margin(cur, curd, NEED[lev[g], g], 0 if st else NEED[lev[h], h], loc[g], 0 if st else loc[h],
+            m = kp.pair_margin(cur, curd, NEED[lev[g], g], 0 if st else NEED[lev[h], h], loc[g], 0 if st else loc[h],
                             ds[q], st, at[q])
             marg[q] = -np.inf if m != m else m  # a margin that is not a number fails
             if marg[q] < -tol_p[q]:
@@ -131,7 +107,7 @@ def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at
         for g in range(n):  # one level down, then past any level whose path leaves the range limit
             if demote[g]:
                 lev[g] += 1
-                while lev[g] < last and F[lev[g], g, REACH] > limit[g]:
+                while lev[g] < last and F[lev[g], g, kp.REACH] > limit[g]:
                     lev[g] += 1
         for q in range(P):
             todo[q] = demote[a[q]] or (c[q] >= 0 and demote[c[q]])
@@ -146,20 +122,20 @@ def gate_full(pose, u, du_c, dt, levels, quick, diff, rob, cols, group, has_grou
     ``quick``, ``tol``, ``hold_violations``; ``limit``: the robots' reach limits; the rest the kernel block.
     """
     n = pose.shape[0]
-    p0, hd = starts(diff, rob, pose)
+    p0, hd = kp.starts(diff, rob, pose)
     du_all, C, F, NEED = _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limit)
     last = NEED.shape[0] - 1
     R, lev = np.empty(n), np.zeros(n, dtype=np.int64)
     broken, out_of_range = np.zeros(n, dtype=np.bool_), np.zeros(n, dtype=np.bool_)
     for g in range(n):
         for k in range(last + 1):
-            if F[k, g, REACH] != F[k, g, REACH]:  # a reach that is not a number bounds nothing
-                F[k, g, REACH] = np.inf
-            R[g] = F[k, g, REACH] if k == 0 else max(R[g], F[k, g, REACH])
-        while lev[g] < last and F[lev[g], g, REACH] > limit[g]:  # a level whose path leaves the range is skipped
+            if F[k, g, kp.REACH] != F[k, g, kp.REACH]:  # a reach that is not a number bounds nothing
+                F[k, g, kp.REACH] = np.inf
+            R[g] = F[k, g, kp.REACH] if k == 0 else max(R[g], F[k, g, kp.REACH])
+        while lev[g] < last and F[lev[g], g, kp.REACH] > limit[g]:  # a level whose path leaves the range is skipped
             lev[g] += 1
-        broken[g], out_of_range[g] = F[last, g, REACH] > limit[g], F[0, g, REACH] > limit[g]
-    a, c, ds, at = near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup, 1e-12)
+        broken[g], out_of_range[g] = F[last, g, kp.REACH] > limit[g], F[0, g, kp.REACH] > limit[g]
+    a, c, ds, at = kp.near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup, 1e-12)
     margin = 0.5 * sensing_range
     for g in range(n):
         margin = min(margin, limit[g])
@@ -184,10 +160,10 @@ def _moved_step(diff, rob, cols, p0, hd, pose, u, du, g, d, eps, dt, k):
     """Samples ``k``, ``k + 1`` and step ``k``'s deviation of robot ``g``'s path with input ``d`` moved by ``eps``."""
     e0 = du[g, 0] + (eps if d == 0 else 0.0)
     e1 = du[g, 1] + (eps if d == 1 else 0.0)
-    p1, dev, pdot, w, rate, steps, _, bulge = candidate1(diff, rob, cols, g, p0[g], pose[g, 2], hd[g], u[g, 0],
+    p1, dev, pdot, w, rate, steps, _, bulge = kp.candidate1(diff, rob, cols, g, p0[g], pose[g, 2], hd[g], u[g, 0],
                                                          u[g, 1], e0, e1, dt)
-    pa0, dm0 = sample_at(p0[g], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k)
-    pa1, _ = sample_at(p0[g], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k + 1)
+    pa0, dm0 = kp.sample_at(p0[g], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k)
+    pa1, _ = kp.sample_at(p0[g], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k + 1)
     return pa0, pa1, dm0
 
 
@@ -211,7 +187,7 @@ def _repair_rows(rowp, rowd, made, a, c, p0, C, F, NEED, has_bulge, dt):
         made[:] = False
     for g in range(p0.shape[0]):
         if used[g] and not made[g]:
-            fill_row(rowp, rowd, g, g, 0, 1, p0, C, F, has_bulge, dt, NEED[0, g], False)
+            kp.fill_row(rowp, rowd, g, g, 0, 1, p0, C, F, has_bulge, dt, NEED[0, g], False)
             made[g] = True
     return rowp, rowd, L
 
@@ -225,9 +201,9 @@ def _low_pairs(cur, curd, need, a, c, ds, at, target, L, tie):
         g, st = a[q], c[q] < 0
         h = 0 if st else c[q]
         nh = 0 if st else need[h]
-        if pair_margin(cur, curd, need[g], nh, g, h, ds[q], st, at[q]) < target:
+        if kp.pair_margin(cur, curd, need[g], nh, g, h, ds[q], st, at[q]) < target:
             low[q] = True
-            best, kk[q] = pair_closest(cur, curd, need[g], nh, g, h, st, at[q], L - 1, tie)
+            best, kk[q] = kp.pair_min(cur, curd, need[g], nh, g, h, st, at[q], L - 1, tie)
             m0[q] = best - ds[q]
     return low, m0, kk
 
@@ -251,7 +227,7 @@ def _lifts(cur, curd, need, a, c, ds, at, low, m0, kk, target, eps, diff, rob, c
                 dfx = curd[fx, k] if k < need[fx] - 1 else 0.0
             for d in range(2):
                 pa0, pa1, dm0 = _moved_step(diff, rob, cols, p0, hd, pose, u, du, mv, d, eps, dt, k)
-                grad[q, side, d] = (segment_margin(pa0, pa1, qf0, qf1, dm0, dfx) - ds[q] - m0[q]) / eps
+                grad[q, side, d] = (kp.segment_margin(pa0, pa1, qf0, qf1, dm0, dfx) - ds[q] - m0[q]) / eps
         nrm = (grad[q, 0, 0] * grad[q, 0, 0] + grad[q, 0, 1] * grad[q, 0, 1]) + (
             grad[q, 1, 0] * grad[q, 1, 0] + grad[q, 1, 1] * grad[q, 1, 1])
         lift[q] = (2.0 * target - m0[q]) / max(nrm, 1e-12)
@@ -274,17 +250,17 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, rob, cols, group, has_group, se
     for g in range(n):
         for d in range(2):
             du[g, d] = min(max(du_c[g, d], lo[g, d]), hi[g, d])
-    p0, hd = starts(diff, rob, pose)
+    p0, hd = kp.starts(diff, rob, pose)
     C, F, NEED = np.empty((1, n, 2), dtype=np.complex128), np.zeros((1, n, 5)), np.empty((1, n), dtype=np.int64)
     R = np.empty(n)
     rowp, rowd, made = np.empty((n, 2), dtype=np.complex128), np.empty((n, 1)), np.zeros(n, dtype=np.bool_)
     for _ in range(rounds):
         for g in range(n):  # reach first: only robots with a pair that could come close need paths
-            p1, dev, pdot, w, rate, steps, reach, bulge = candidate1(
+            p1, dev, pdot, w, rate, steps, reach, bulge = kp.candidate1(
                 diff, rob, cols, g, p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], du[g, 0], du[g, 1], dt)
-            _put(C, F, NEED, 0, g, p1, dev, pdot, w, rate, steps + 2, reach, bulge)
+            kp.store(C, F, NEED, 0, g, p1, dev, pdot, w, rate, steps + 2, reach, bulge)
             R[g] = reach + eps * dt * dt
-        a, c, ds, at = near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup,
+        a, c, ds, at = kp.near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup,
                             2.0 * target)
         if a.shape[0] == 0:
             break

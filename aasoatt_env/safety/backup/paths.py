@@ -89,16 +89,9 @@ def reach_limit(team: Team, sensing_range: float) -> np.ndarray:
 class Trajectories(NamedTuple):
     """Sampled control-point paths of a team, one sample per physics step.
 
-    Attributes
-    ----------
-    p : numpy.ndarray
-        ``(N, L)`` complex positions at steps ``0 .. L-1`` (padded with the rest position).
-    delta : numpy.ndarray
-        ``(N, L-1)``: bound on the path's deviation within step ``k`` from the chord ``p[:, k], p[:, k+1]`` [m].
-    length : numpy.ndarray
-        ``(N,)`` int: samples that matter (``p[:, length-1:]`` is the rest position).
-    reach : numpy.ndarray
-        ``(N,)``: bound on the distance of the modelled path from ``p[:, 0]`` [m].
+    ``p`` ``(N, L)``: complex positions at steps ``0 .. L-1`` (padded with the rest position); ``delta``
+    ``(N, L-1)``: bounds on the path's deviation within each step from its chord [m]; ``length`` ``(N,)``: the
+    samples that matter; ``reach`` ``(N,)``: a bound on the path's distance from ``p[:, 0]`` [m].
     """
 
     p: np.ndarray
@@ -229,22 +222,12 @@ def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray,
 def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float,
                          brake_fraction: float, s: np.ndarray, rows: np.ndarray | None = None
                          ) -> tuple[np.ndarray, np.ndarray]:
-    """Samples ``s`` of :func:`candidate_paths` in closed form, without the others.
+    """Samples ``s`` of :func:`candidate_paths` in closed form, without the others: ``(p, delta)`` ``(R, S)``.
 
-    Parameters
-    ----------
-    s : numpy.ndarray
-        ``(R, S)`` int sample indices per row (0: the current point, 1: after the step with ``du``,
-        ``k + 1``: after ``k`` braking steps); a row per robot unless ``rows`` is given.
-    rows : numpy.ndarray, optional
-        ``(R,)``: the robot of each row of ``s`` (each robot's path is made once).
-
-    Returns
-    -------
-    tuple of numpy.ndarray
-        Positions ``(R, S)`` and the deviation bounds ``(R, S)`` of steps ``s -> s + 1``: those of
-        :func:`candidate_paths` to rounding (braking step ``k``'s arc parameter is the trapezoid sum
-        written out, ``dt (k - r k^2 / 2)`` while ``1 - k r > 0``, ``r = dt / T``).
+    ``s`` ``(R, S)``: sample indices per row (0: the current point, 1: after the step with ``du``, ``k + 1``:
+    after ``k`` braking steps), a row per robot unless ``rows`` ``(R,)`` names each row's robot; ``delta``:
+    the deviations of steps ``s -> s + 1``.  Braking step ``k``'s arc parameter is the trapezoid sum written
+    out, ``dt (k - r k^2 / 2)`` while ``1 - k r > 0``, ``r = dt / T``: the numbers of the paths to rounding.
     """
     p0 = point(team, pose)
     c = candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction)

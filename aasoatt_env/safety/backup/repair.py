@@ -8,16 +8,7 @@ import numpy as np
 
 from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.params import Team
-from aasoatt_env.safety.backup.gate import (
-    CLOSEST_TIE,
-    bucketed_margins,
-    kernel_args,
-    obstacles_near,
-    pair_margins,
-    pairs_near,
-    validate,
-)
-from aasoatt_env.safety.backup.paths import candidate, candidate_paths, candidate_samples_at, point
+from aasoatt_env.safety.backup import gate, paths
 
 __all__ = ["repair"]
 
@@ -37,31 +28,31 @@ def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: fl
     compiled answer equals this one up to rounding, which the division by the squared gradient amplifies).
     """
     if not checked:
-        near_pairs = validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c, lo=lo, hi=hi)
+        near_pairs = gate.validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c, lo=lo, hi=hi)
     if compiled:
-        block = kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
+        block = gate.kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
         pose, u, du_c, lo, hi = (c64(a) for a in (pose, u, du_c, lo, hi))
         return kernels().repair_full(pose, u, du_c, lo, hi, float(dt), *block, float(target), int(rounds),
-                                     float(eps), CLOSEST_TIE)
+                                     float(eps), gate.CLOSEST_TIE)
     du = np.minimum(np.maximum(du_c, lo), hi)
     n = pose.shape[0]
-    p0 = point(team, pose)
-    paths = _PathCache(team, pose, u, dt, brake_fraction)
+    p0 = paths.point(team, pose)
+    cache = _PathCache(team, pose, u, dt, brake_fraction)
     for _ in range(rounds):
         # reach first (O(N)): only robots with a pair that could come close need sampled paths
-        R = candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction).reach + eps * dt * dt
-        i, j, ds = pairs_near(team, p0, R, sensing_range, 2.0 * target, near_pairs)
-        oc, oi, ok, ods = obstacles_near(team, p0, R, obstacles, 2.0 * target)
+        R = paths.candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction).reach + eps * dt * dt
+        i, j, ds = gate.pairs_near(team, p0, R, sensing_range, 2.0 * target, near_pairs)
+        oc, oi, ok, ods = gate.obstacles_near(team, p0, R, obstacles, 2.0 * target)
         if i.size + oi.size == 0:
             break
         S = np.unique(np.concatenate((i, j, oi)))  # rows of `base`: these robots, in this order
         loc = np.full(n, -1, dtype=np.intp)
         loc[S] = np.arange(S.size)
-        base = paths.get(S, du)
-        low = bucketed_margins(base.p, base.delta, base.length, loc[i], loc[j], ds) < target
+        base = cache.get(S, du)
+        low = gate.bucketed_margins(base.p, base.delta, base.length, loc[i], loc[j], ds) < target
         i, j, ds = i[low], j[low], ds[low]
         if oi.size:
-            lowo = bucketed_margins(base.p, base.delta, base.length, loc[oi], ok, ods, centers=oc) < target
+            lowo = gate.bucketed_margins(base.p, base.delta, base.length, loc[oi], ok, ods, centers=oc) < target
             oi, ok, ods = oi[lowo], ok[lowo], ods[lowo]
         if i.size + oi.size == 0:
             break
@@ -69,7 +60,7 @@ def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: fl
         if not step.any():
             break
         moved_du = np.minimum(np.maximum(du + step, lo), hi)
-        paths.forget(np.flatnonzero((moved_du != du).any(axis=1)))
+        cache.forget(np.flatnonzero((moved_du != du).any(axis=1)))
         du = moved_du
     return du
 
@@ -91,11 +82,11 @@ def _lifts(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: floa
     sub = (team.subset(R2), pose[R2], u[R2], du[R2] + eps * np.tile(np.eye(2), (U.size, 1)), dt, brake_fraction)
     if i.size:
         li, lj = loc[i], loc[j]
-        m0, k = pair_margins(base.p[li], base.p[lj], base.delta[li], base.delta[lj], ds, closest=True)
+        m0, k = gate.pair_margins(base.p[li], base.p[lj], base.delta[li], base.delta[lj], ds, closest=True)
         s4 = np.tile(k[:, None] + np.arange(2), (4, 1))
         fix = np.concatenate((lj, lj, li, li))
-        pm, dm = candidate_samples_at(*sub, s4, rows=np.concatenate((at[i], at[i] + 1, at[j], at[j] + 1)))
-        mg = pair_margins(pm, base.p[fix[:, None], s4], dm[:, :1], base.delta[fix, s4[:, 0]][:, None],
+        pm, dm = paths.candidate_samples_at(*sub, s4, rows=np.concatenate((at[i], at[i] + 1, at[j], at[j] + 1)))
+        mg = gate.pair_margins(pm, base.p[fix[:, None], s4], dm[:, :1], base.delta[fix, s4[:, 0]][:, None],
                           np.tile(ds, 4)).reshape(4, -1)
         gi = ((mg[0:2] - m0) / eps).T
         gj = ((mg[2:4] - m0) / eps).T
@@ -104,10 +95,10 @@ def _lifts(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: floa
         np.add.at(step, j, lift[:, None] * gj)
     if oi.size:
         lo_ = loc[oi]
-        m0, k = pair_margins(base.p[lo_], oc[ok][:, None], base.delta[lo_], 0.0, ods, closest=True)
+        m0, k = gate.pair_margins(base.p[lo_], oc[ok][:, None], base.delta[lo_], 0.0, ods, closest=True)
         s2 = np.tile(k[:, None] + np.arange(2), (2, 1))
-        pm, dm = candidate_samples_at(*sub, s2, rows=np.concatenate((at[oi], at[oi] + 1)))
-        mg = pair_margins(pm, oc[np.tile(ok, 2)][:, None], dm[:, :1], 0.0, np.tile(ods, 2)).reshape(2, -1)
+        pm, dm = paths.candidate_samples_at(*sub, s2, rows=np.concatenate((at[oi], at[oi] + 1)))
+        mg = gate.pair_margins(pm, oc[np.tile(ok, 2)][:, None], dm[:, :1], 0.0, np.tile(ods, 2)).reshape(2, -1)
         go = ((mg - m0) / eps).T
         lift = (2.0 * target - m0) / np.maximum((go * go).sum(1), 1e-12)
         np.add.at(step, oi, lift[:, None] * go)
@@ -141,7 +132,7 @@ class _PathCache:
         """The paths of robots ``rows`` (sorted) with inputs ``du[rows]``, ``L`` their longest horizon."""
         new = rows[~self.valid[rows]]
         if new.size:
-            t = candidate_paths(self.team.subset(new), self.pose[new], self.u[new], du[new], self.dt,
+            t = paths.candidate_paths(self.team.subset(new), self.pose[new], self.u[new], du[new], self.dt,
                                 self.brake_fraction)
             width = t.p.shape[1]
             if width > self.p.shape[1]:  # every row rests beyond its own horizon
