@@ -16,7 +16,7 @@ from aasoatt_env.safety.barriers import PairGeometry, barrier_rows
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.decentralized import decentralized_step, negotiation_rows, split_rows
 from aasoatt_env.safety.problem import box_least_squares, build_problem
-from aasoatt_env.safety.solvers import local
+from aasoatt_env.safety.solvers import local, polygon
 from aasoatt_env.safety.solvers.local import RELAX_TOL, least_violation, solve_local_qps
 
 quadprog = pytest.importorskip("quadprog")
@@ -288,7 +288,7 @@ def test_the_compiled_local_solver_makes_the_numpy_solvers_decisions(relax):
 
 def test_the_kernels_constants_are_the_reference_solvers():
     kern = pytest.importorskip("aasoatt_env.safety.solvers.local_kernel")
-    assert (kern._EPS_Z, kern._EPS_R, kern._PAD_B) == (local._EPS_Z, local._EPS_R, local._PAD_B)
+    assert (kern._EPS_Z, kern._EPS_R, kern._PAD_B) == (polygon._EPS_Z, polygon._EPS_R, polygon.PAD_B)
     assert kern._LS_ITERS == local._line_search.__defaults__[0]
     assert kern._LV_ITERS == local._lv_core.__defaults__[0]
 
