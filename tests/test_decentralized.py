@@ -235,8 +235,8 @@ def test_local_solver_refuses_bad_input_naming_it(kw, match, compiled):
 
 
 def test_the_phase1_line_search_keeps_a_landed_robots_root():
-    """Robot 0 lands at once (its slope at 0 is exactly 0); robot 1 needs several steps.  The vectorised search
-    went on moving robot 0's bracket after it landed, to 0/0 (NaN); each robot's answer is its own."""
+    """Robot 0 lands at once (its slope at 0 is exactly 0); robot 1 needs several steps.  A robot that has landed
+    keeps its root while the others search (moving its bracket on would give 0/0); each answer is its own."""
     res = np.array([[0.0, -1e300], [-1.0, 0.5]])
     delta = np.array([[1.0, 0.0], [2.0, -1.0]])
     d0 = (np.maximum(res, 0.0) * delta).sum(axis=1)
