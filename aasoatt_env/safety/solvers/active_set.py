@@ -265,10 +265,7 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         W = loop.run(np.where(loop.done[rg], W, W0), rule, budget, stop_inconsistent=rule is _pdas_rule)
         if loop.done.all():
             break
-    if not loop.done.any():
-        return ActiveSetParts(np.zeros(n), np.zeros(m), loop.used, loop.done, rg[:m])
-    x = np.einsum("nij,nj->ni", LinvT, loop.y.reshape(-1, 2)).ravel()
-    return ActiveSetParts(x, np.maximum(loop.lam[:m], 0.0), loop.used, loop.done, rg[:m])
+    return _answer(LinvT, np.zeros(n) if loop.y is None else loop.y, loop.lam, loop.used, loop.done, rg, m)
 
 
 def _rows(prob, dense: bool, compiled: bool) -> tuple | None:
@@ -319,12 +316,16 @@ def _solve_compiled(prob, LinvT: np.ndarray, gt: np.ndarray, b: np.ndarray, W0: 
         np.ascontiguousarray(C.indptr, np.int64), np.ascontiguousarray(C.indices, np.int64), c64(C.data), m, n,
         c64(LinvT), c64(gt), c64(b), np.ascontiguousarray(W0), np.ascontiguousarray(groups, np.int64), K, max_iter,
         one_change_iter, TOL, y, lam, done)
-    if used < 0:
-        return None
+    return None if used < 0 else _answer(LinvT, y, lam, int(used), done, rg, m)
+
+
+def _answer(LinvT: np.ndarray, y: np.ndarray, lam: np.ndarray, used: int, done: np.ndarray, rg: np.ndarray,
+            m: int) -> ActiveSetParts:
+    """The answer from the point ``y`` and the multipliers of every row and bound (zeros where none verified)."""
     if not done.any():
-        return ActiveSetParts(np.zeros(n), np.zeros(m), int(used), done, rg[:m])
+        return ActiveSetParts(np.zeros(y.shape[0]), np.zeros(m), used, done, rg[:m])
     x = np.einsum("nij,nj->ni", LinvT, y.reshape(-1, 2)).ravel()
-    return ActiveSetParts(x, np.maximum(lam[:m], 0.0), int(used), done, rg[:m])
+    return ActiveSetParts(x, np.maximum(lam[:m], 0.0), used, done, rg[:m])
 
 
 def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray):
@@ -343,27 +344,25 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
     if isinstance(S, np.ndarray):
         Sr = S + 0.0  # S + delta * I without the identity: off the diagonal S + 0.0, on it S + delta
         Sr.flat[:: k + 1] += delta
-        if k <= DENSE_MAX_ROWS:
-            solve = _cholesky(Sr)
-            if solve is None:
-                return None
-        else:
-            try:
-                solve = spla.splu(sp.csc_matrix(Sr)).solve
-            except RuntimeError:
-                return None
+        solve = _cholesky(Sr) if k <= DENSE_MAX_ROWS else _splu(sp.csc_matrix(Sr))
     else:
-        try:
-            lu = spla.splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
-        except RuntimeError:
-            return None
-        solve = lu.solve
+        solve = _splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
+    if solve is None:
+        return None
     lw = _refine(solve, S, rhs)
     if not np.all(np.isfinite(lw)):
         return None
     y = -gt - Mw.T @ lw
     lam[idx] = lw
     return y, lam, (M @ y) - b
+
+
+def _splu(A, **options):
+    """A solver of ``A l = v`` from scipy's sparse LU of ``A``, or None where it is singular."""
+    try:
+        return spla.splu(A, **options).solve
+    except RuntimeError:
+        return None
 
 
 def _pdas_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.ndarray | None,
