@@ -18,7 +18,7 @@ from aasoatt_env.numba_jit import nmax as _nmax
 from aasoatt_env.safety.backup.paths import MAX_BRAKE_STEPS
 
 __all__ = ["E1", "brake1", "candidate1", "fill_brake", "fill_row", "near", "pair_margin", "pair_min",
-           "rows_of", "sample_at", "segment_margin", "starts", "store"]
+           "consts", "rows_of", "sample_at", "segment_margin", "starts"]
 
 OFFSET, TURN_GAIN, MAX_ACCEL, DECEL, RADIUS = 0, 1, 2, 3, 4
 """Columns of the robots' constants."""
@@ -74,26 +74,32 @@ def starts(diff, rob, pose):
 
 
 @_jit
-def velocity1(diff, rob, cols, g, heading, u0, u1):
-    """``paths._velocity`` of robot ``g``: control-point velocity and yaw rate."""
+def consts(rob, cols, g):
+    """Robot ``g``'s constants of the closed forms, by value: input columns, turn gain, acceleration, deceleration."""
+    return cols[g, 0], cols[g, 1], rob[g, TURN_GAIN], rob[g, MAX_ACCEL], rob[g, DECEL]
+
+
+@_jit
+def velocity1(diff, rc, heading, u0, u1):
+    """``paths._velocity`` of a robot (``rc``: its :func:`consts`): control-point velocity and yaw rate."""
     if not diff:
         return complex(u0, u1), 0.0
-    return heading * (cols[g, 0] * u0 + cols[g, 1] * u1), rob[g, TURN_GAIN] * (u0 - u1)
+    return heading * (rc[0] * u0 + rc[1] * u1), rc[2] * (u0 - u1)
 
 
 @_jit
-def brake_time1(diff, rob, cols, g, u0, u1):
-    """``paths.brake_time`` of robot ``g``."""
+def brake_time1(diff, rc, u0, u1):
+    """``paths.brake_time`` of a robot."""
     s = _nmax(abs(u0), abs(u1))
-    speed = cabs(cols[g, 0] * u0 + cols[g, 1] * u1) if diff else math.hypot(u0, u1)
-    return _nmax(s / rob[g, MAX_ACCEL], speed / rob[g, DECEL])
+    speed = cabs(rc[0] * u0 + rc[1] * u1) if diff else math.hypot(u0, u1)
+    return _nmax(s / rc[3], speed / rc[4])
 
 
 @_jit
-def brake1(diff, rob, cols, g, heading, u0, u1, dt):
-    """``paths.brake`` of robot ``g``: ``(pdot, omega, rate, steps, reach, bulge)`` (NaN kept as numpy keeps it)."""
-    T = brake_time1(diff, rob, cols, g, u0, u1)
-    pdot, w = velocity1(diff, rob, cols, g, heading, u0, u1)
+def brake1(diff, rc, heading, u0, u1, dt):
+    """``paths.brake`` of a robot: ``(pdot, omega, rate, steps, reach, bulge)`` (NaN kept as numpy keeps it)."""
+    T = brake_time1(diff, rc, u0, u1)
+    pdot, w = velocity1(diff, rc, heading, u0, u1)
     moving = T > 0.0
     ratio = T / dt if moving else 0.0
     r1 = max(ratio, 1.0)
@@ -115,29 +121,21 @@ def brake1(diff, rob, cols, g, heading, u0, u1, dt):
 
 
 @_jit
-def candidate1(diff, rob, cols, g, p0, theta, heading, u0, u1, du0, du1, dt):
-    """``paths.candidate`` of robot ``g`` (``heading``: ``e^{i theta}``).
+def candidate1(diff, rc, p0, theta, heading, u0, u1, du0, du1, dt):
+    """``paths.candidate`` of a robot (``heading``: ``e^{i theta}``).
 
     Returns ``(p1, dev, pdot, omega, rate, steps, reach, bulge)``, ``reach`` the candidate's.
     """
     c8 = dt * dt / 8.0
     u10 = u0 + du0 * dt
     u11 = u1 + du1 * dt
-    pm, wm = velocity1(diff, rob, cols, g, heading, 0.5 * (u0 + u10), 0.5 * (u1 + u11))
+    pm, wm = velocity1(diff, rc, heading, 0.5 * (u0 + u10), 0.5 * (u1 + u11))
     p1 = p0 + pm * dt * E1(wm * dt)
     dev = c8 * cabs(pm) * abs(wm)
     if not diff:
         dev = dev + c8 * math.hypot(du0, du1)
-    pdot, w, rate, steps, reach, bulge = brake1(diff, rob, cols, g, rot(theta + wm * dt) if diff else 0j, u10,
-                                                 u11, dt)
+    pdot, w, rate, steps, reach, bulge = brake1(diff, rc, rot(theta + wm * dt) if diff else 0j, u10, u11, dt)
     return p1, dev, pdot, w, rate, steps, cabs(p1 - p0) + dev + reach, bulge
-
-
-@_jit
-def store(C, F, NEED, k, g, p1, dev, pdot, w, rate, steps, reach, bulge):
-    """Robot ``g``'s path parameters on level ``k`` into ``C``, ``F`` and ``NEED`` (``steps``: the samples it needs)."""
-    C[k, g, 0], C[k, g, 1], NEED[k, g] = p1, pdot, steps
-    F[k, g, D1], F[k, g, OMEGA], F[k, g, RATE], F[k, g, BULGE], F[k, g, REACH] = dev, w, rate, bulge, reach
 
 
 @_jit

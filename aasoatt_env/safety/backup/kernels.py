@@ -25,9 +25,11 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
     du_all, C = np.empty((nl, n, 2)), np.empty((nl, n, 2), dtype=np.complex128)
     F, NEED = np.zeros((nl, n, 5)), np.empty((nl, n), dtype=np.int64)
     for g in range(n):  # the backup from now: level `last`
-        T = kp.brake_time1(diff, rob, cols, g, u[g, 0], u[g, 1])
-        pdot, w, rate, steps, reach, bulge = kp.brake1(diff, rob, cols, g, hd[g], u[g, 0], u[g, 1], dt)
-        kp.store(C, F, NEED, last, g, 0j, 0.0, pdot, w, rate, steps + 1, reach, bulge)
+        rc = kp.consts(rob, cols, g)
+        T = kp.brake_time1(diff, rc, u[g, 0], u[g, 1])
+        pdot, w, rate, steps, reach, bulge = kp.brake1(diff, rc, hd[g], u[g, 0], u[g, 1], dt)
+        C[last, g, 1], NEED[last, g] = pdot, steps + 1
+        F[last, g, 0], F[last, g, 1], F[last, g, 2], F[last, g, 3], F[last, g, 4] = 0.0, w, rate, bulge, reach
         den = _nmax(T, dt)
         du_all[last, g, 0], du_all[last, g, 1] = -u[g, 0] / den, -u[g, 1] / den
     for k in range(nl - 1):  # one step blending the candidate and the backup, then the backup
@@ -38,8 +40,9 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
             da0, da1 = b0 + a * (du_c[g, 0] - b0), b1 + a * (du_c[g, 1] - b1)
             du_all[k, g, 0], du_all[k, g, 1] = da0, da1
             p1, dev, pdot, w, rate, steps, reach, bulge = kp.candidate1(
-                diff, rob, cols, g, p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], da0, da1, dt)
-            kp.store(C, F, NEED, k, g, p1, dev, pdot, w, rate, steps + 2, reach, bulge)
+                diff, kp.consts(rob, cols, g), p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], da0, da1, dt)
+            C[k, g, 0], C[k, g, 1], NEED[k, g] = p1, pdot, steps + 2
+            F[k, g, 0], F[k, g, 1], F[k, g, 2], F[k, g, 3], F[k, g, 4] = dev, w, rate, bulge, reach
             out = out or reach > limit[g]
         if k == 0 and quick and not out:  # no candidate leaves the range: levels (1, 0), rows 0 and last
             keep = np.array([0, last])
@@ -160,8 +163,8 @@ def _moved_step(diff, rob, cols, p0, hd, pose, u, du, g, d, eps, dt, k):
     """Samples ``k``, ``k + 1`` and step ``k``'s deviation of robot ``g``'s path with input ``d`` moved by ``eps``."""
     e0 = du[g, 0] + (eps if d == 0 else 0.0)
     e1 = du[g, 1] + (eps if d == 1 else 0.0)
-    p1, dev, pdot, w, rate, steps, _, bulge = kp.candidate1(diff, rob, cols, g, p0[g], pose[g, 2], hd[g], u[g, 0],
-                                                         u[g, 1], e0, e1, dt)
+    p1, dev, pdot, w, rate, steps, _, bulge = kp.candidate1(diff, kp.consts(rob, cols, g), p0[g], pose[g, 2], hd[g],
+                                                            u[g, 0], u[g, 1], e0, e1, dt)
     pa0, dm0 = kp.sample_at(p0[g], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k)
     pa1, _ = kp.sample_at(p0[g], p1, dev, pdot, w, rate, steps, bulge, not diff, dt, k + 1)
     return pa0, pa1, dm0
@@ -257,8 +260,9 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, rob, cols, group, has_group, se
     for _ in range(rounds):
         for g in range(n):  # reach first: only robots with a pair that could come close need paths
             p1, dev, pdot, w, rate, steps, reach, bulge = kp.candidate1(
-                diff, rob, cols, g, p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], du[g, 0], du[g, 1], dt)
-            kp.store(C, F, NEED, 0, g, p1, dev, pdot, w, rate, steps + 2, reach, bulge)
+                diff, kp.consts(rob, cols, g), p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], du[g, 0], du[g, 1], dt)
+            C[0, g, 0], C[0, g, 1], NEED[0, g] = p1, pdot, steps + 2
+            F[0, g, 0], F[0, g, 1], F[0, g, 2], F[0, g, 3], F[0, g, 4] = dev, w, rate, bulge, reach
             R[g] = reach + eps * dt * dt
         a, c, ds, at = kp.near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup,
                             2.0 * target)

@@ -331,97 +331,97 @@ def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter, x, lam
               bad_block):
     """Every robot's QP (module docstring); fills the outputs, returns ``(iterations, enumerated)``.
 
-    ``bad_block[k]`` marks a Hessian block that is not symmetric positive definite (the caller raises).
+    ``bad_block[k]`` marks a Hessian block that is not symmetric positive definite (the caller raises).  Per
+    robot only plain loops are factored out: a helper that calls others pays its array arguments' reference
+    counts on every robot.
     """
-    n, m = g.shape[0], owner.shape[0]
-    counts = np.zeros(n + 1, dtype=np.int64)
-    for r in range(m):
-        counts[owner[r] + 1] += 1
-    kmax = counts.max()
-    for k in range(n):
-        counts[k + 1] += counts[k]
-    rows = np.empty(m, dtype=np.int64)  # rows sorted by owner, stable
-    fill = counts[:n].copy()
-    for r in range(m):
-        rows[fill[owner[r]]] = r
-        fill[owner[r]] += 1
-    K = 4 + kmax
-    tab = (np.empty(K), np.empty(K), np.empty(K), np.empty(K, dtype=np.int64))  # nx, ny, b, each slot's row
-    work = (np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K),
-            np.empty(K, dtype=np.bool_), np.empty(K, dtype=np.int64))  # gx, gy, hh, ln, res, delta, te, on, order
-    st, out = np.zeros(12), np.zeros(4)
+    rows, counts, K = _by_owner(owner, g.shape[0])
+    nx, ny, b, slot_row = np.empty(K), np.empty(K), np.empty(K), np.empty(K, dtype=np.int64)  # the table
+    gx, gy, hh, ln, res, delta, te = (np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K),
+                                      np.empty(K))  # phase 1's rows and work
+    on, order, st, out = np.empty(K, dtype=np.bool_), np.empty(K, dtype=np.int64), np.zeros(12), np.zeros(4)
     its_all, n_enum = 0, 0
-    for k in range(n):
+    for k in range(g.shape[0]):
         h00, h10, h11 = H[k, 0, 0], 0.5 * (H[k, 1, 0] + H[k, 0, 1]), H[k, 1, 1]
-        if not h00 > 0:
-            bad_block[k] = True
-            continue
-        l11 = math.sqrt(h00)
+        l11 = math.sqrt(h00) if h00 > 0 else 0.0
         l21 = h10 / l11
         d = h11 - l21 * l21
-        if not ((d > 0) and math.isfinite(l21) and math.isfinite(d)):
+        if not ((h00 > 0) and (d > 0) and math.isfinite(l21) and math.isfinite(d)):
             bad_block[k] = True
             continue
-        its, en = _robot(k, (l11, l21, math.sqrt(d)), g, lb, ub, G, h, rows[counts[k]:counts[k + 1]], relax,
-                         relax_tol[k], tol, max_iter, x, lam, lam_box, feasible, loosened, tab, work, st, out)
-        its_all, n_enum = max(its_all, its), n_enum + en
-    return its_all, n_enum
-
-
-@_jit
-def _robot(k, lf, g, lb, ub, G, h, rows, relax, rtk, tol, max_iter, x, lam, lam_box, feasible, loosened, tab, work,
-           st, out):
-    """Robot ``k``'s QP (``lf``: its Cholesky factor, ``rows``: its rows); ``(iterations, enumerated)``."""
-    l11, l21, l22 = lf
-    i11, i22 = 1.0 / l11, 1.0 / l22
-    i21 = -l21 * i11 * i22
-    y0x, y0y = -i11 * g[k, 0], -(i21 * g[k, 0] + i22 * g[k, 1])
-    xu0, xu1 = i11 * y0x + i21 * y0y, i22 * y0y
-    # step 0: the unconstrained minimiser meets the bounds and every row
-    cons = (xu0 < lb[k, 0]) or (xu0 > ub[k, 0]) or (xu1 < lb[k, 1]) or (xu1 > ub[k, 1])
-    for r in rows:
-        if cons:
-            break
-        cons = G[r, 0] * xu0 + G[r, 1] * xu1 - h[r] > 0.0
-    if not cons:
-        x[k, 0], x[k, 1] = xu0, xu1
-        return 0, 0
-    tk = tol * (1.0 + max(abs(y0x), abs(y0y)))
-    nx, ny, b, slot_row = tab
-    s0 = math.sqrt(i11 * i11 + i21 * i21)
-    nk, zero_inf = _table(k, (i11, i21, i22), s0, lb, ub, G, h, rows, tk, relax, loosened, tab)
-    _start(st, out, y0x, y0y)
-    st[9] = 2.0
-    its_all, n_enum = (0, 0) if zero_inf else _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out)
-    status = int(st[9])
-    feasible[k] = status == 1
-    yx, yy, mu0, mu1 = out[0], out[1], out[2], out[3]
-    if status != 1 and relax:
-        its, en, status, yx, yy, mu0, mu1 = _relax(lf, nk, tab, G, lb[k], ub[k], rtk, y0x, y0y, tk, max_iter,
-                                                   loosened, st, out, work)
-        its_all, n_enum = max(its_all, its), n_enum + en
-    if status == 2 or status == 3:  # infeasible without relax: the minimiser over the bounds alone
-        xb0, xb1 = xu0, xu1
-        if (xu0 < lb[k, 0]) or (xu0 > ub[k, 0]) or (xu1 < lb[k, 1]) or (xu1 > ub[k, 1]):
+        l22 = math.sqrt(d)
+        i11, i22 = 1.0 / l11, 1.0 / l22
+        i21 = -l21 * i11 * i22
+        y0x, y0y = -i11 * g[k, 0], -(i21 * g[k, 0] + i22 * g[k, 1])
+        xu0, xu1 = i11 * y0x + i21 * y0y, i22 * y0y
+        cons = (xu0 < lb[k, 0]) or (xu0 > ub[k, 0]) or (xu1 < lb[k, 1]) or (xu1 > ub[k, 1])
+        if not cons:
+            for q in range(counts[k], counts[k + 1]):
+                r = rows[q]
+                if G[r, 0] * xu0 + G[r, 1] * xu1 - h[r] > 0.0:
+                    cons = True
+                    break
+        if not cons:
+            x[k, 0], x[k, 1] = xu0, xu1
+            continue
+        tk = tol * (1.0 + max(abs(y0x), abs(y0y)))
+        s0 = math.sqrt(i11 * i11 + i21 * i21)
+        nk, zero_inf = _table(k, i11, i21, i22, s0, lb, ub, G, h, rows, counts, tk, relax, loosened, nx, ny, b,
+                              slot_row)
+        _start(st, out, y0x, y0y)
+        st[9] = 2.0
+        if not zero_inf:
+            its, en = _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out)
+            its_all, n_enum = max(its_all, its), n_enum + en
+        status = int(st[9])
+        feasible[k] = status == 1
+        yx, yy, mu0, mu1 = out[0], out[1], out[2], out[3]
+        if status != 1 and relax:  # phase 1 on the rows normalised in x, the bounds hard, from the last point
+            nr = nk - 4
+            _phase1_rows(l11, l21, l22, nr, nx, ny, b, gx, gy, hh, ln)
+            p0, p1 = i11 * st[0] + i21 * st[1], i22 * st[1]
+            p0 = _nmin(_nmax(p0 if math.isfinite(p0) else 0.0, lb[k, 0]), ub[k, 0])
+            p1 = _nmin(_nmax(p1 if math.isfinite(p1) else 0.0, lb[k, 1]), ub[k, 1])
+            q0, q1 = _least_violation(gx, gy, hh, nr, lb[k, 0], lb[k, 1], ub[k, 0], ub[k, 1], p0, p1, res, delta, on,
+                                      te, order)
+            _loosen(q0, q1, nr, relax_tol[k], gx, gy, hh, ln, b, slot_row, G, loosened)
             _start(st, out, y0x, y0y)
-            _solve(nx, ny, b, 4, y0x, y0y, tk, max_iter, st, out)
-            xb0 = _clip(i11 * out[0] + i21 * out[1], lb[k, 0], ub[k, 0])
-            xb1 = _clip(i22 * out[1], lb[k, 1], ub[k, 1])
-        x[k, 0], x[k, 1] = xb0, xb1
-        return its_all, n_enum
-    x[k, 0] = _clip(i11 * yx + i21 * yy, lb[k, 0], ub[k, 0])
-    x[k, 1] = _clip(i22 * yy, lb[k, 1], ub[k, 1])
-    if status == 1:  # the active slots' multipliers, in the units of the rows as given: mu / |L^-1 G_r|
-        for s in range(int(st[2])):
+            its, en = _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out)
+            its_all, n_enum = max(its_all, its), n_enum + en
+            status = 1 if int(st[9]) == 1 else 4  # 4: a failed relaxation keeps the phase-1 point
+            yx, yy, mu0, mu1 = (out[0], out[1], out[2], out[3]) if status == 1 else (l11 * q0 + l21 * q1, l22 * q1,
+                                                                                      mu0, mu1)
+        if status == 2 or status == 3:  # infeasible without relax: the minimiser over the bounds alone
+            _box_only(k, i11, i21, i22, y0x, y0y, xu0, xu1, lb, ub, tk, max_iter, nx, ny, b, st, out, x)
+            continue
+        x[k, 0] = _clip(i11 * yx + i21 * yy, lb[k, 0], ub[k, 0])
+        x[k, 1] = _clip(i22 * yy, lb[k, 1], ub[k, 1])
+        for s in range(int(st[2]) if status == 1 else 0):  # the active slots' multipliers: mu / |L^-1 G_r|
             slot, mu = (int(st[3]), mu0) if s == 0 else (int(st[4]), mu1)
             r = slot_row[slot]
             if r >= 0:
-                ax = i11 * G[r, 0]
-                ay = i21 * G[r, 0] + i22 * G[r, 1]
+                ax, ay = i11 * G[r, 0], i21 * G[r, 0] + i22 * G[r, 1]
                 lam[r] += mu / math.sqrt(ax * ax + ay * ay)
             else:
                 lam_box[k, slot // 2, slot % 2] += mu / (s0 if slot % 2 == 0 else i22)
     return its_all, n_enum
+
+
+@_jit
+def _by_owner(owner, n):
+    """The rows sorted by owner, stably (``rows[counts[k]:counts[k + 1]]``: robot ``k``'s), and the table size."""
+    counts = np.zeros(n + 1, dtype=np.int64)
+    for r in range(owner.shape[0]):
+        counts[owner[r] + 1] += 1
+    kmax = counts.max()
+    for k in range(n):
+        counts[k + 1] += counts[k]
+    rows = np.empty(owner.shape[0], dtype=np.int64)
+    fill = counts[:n].copy()
+    for r in range(owner.shape[0]):
+        rows[fill[owner[r]]] = r
+        fill[owner[r]] += 1
+    return rows, counts, 4 + kmax
 
 
 @_jit
@@ -433,18 +433,18 @@ def _start(st, out, y0x, y0y):
 
 
 @_jit
-def _table(k, linv, s0, lb, ub, G, h, rows, tk, relax, loosened, tab):
+def _table(k, i11, i21, i22, s0, lb, ub, G, h, rows, counts, tk, relax, loosened, nx, ny, b, slot_row):
     """Robot ``k``'s half-planes: the bounds, then its rows with a normal; ``(slots, a zero row 0 <= h < 0)``."""
-    i11, i21, i22 = linv
-    nx, ny, b, slot_row = tab
     nx[0], ny[0], b[0] = i11 / s0, i21 / s0, ub[k, 0] / s0
     nx[1], ny[1], b[1] = 0.0, 1.0, ub[k, 1] / i22
     nx[2], ny[2], b[2] = -nx[0], -ny[0], -lb[k, 0] / s0
     nx[3], ny[3], b[3] = 0.0, -1.0, -lb[k, 1] / i22
-    slot_row[:4] = -1
+    for s in range(4):
+        slot_row[s] = -1
     nk, zero_inf = 4, False
     zero_tol = 1e-300 + 1e-14 * min(s0, i22)
-    for r in rows:
+    for q in range(counts[k], counts[k + 1]):
+        r = rows[q]
         ax = i11 * G[r, 0]
         ay = i21 * G[r, 0] + i22 * G[r, 1]
         nrm = math.sqrt(ax * ax + ay * ay)
@@ -464,37 +464,32 @@ def _table(k, linv, s0, lb, ub, G, h, rows, tk, relax, loosened, tab):
 
 
 @_jit
-def _relax(lf, nk, tab, G, lbk, ubk, rtk, y0x, y0y, tk, max_iter, loosened, st, out, work):
-    """The least-violation answer of an infeasible robot: ``(iterations, enumerated, status, yx, yy, mu0, mu1)``.
-
-    Phase 1 on the rows normalised in ``x`` (``G / |G| = L n / |L n|``), the bounds hard, from the active
-    set's last point; each row loosened by its violation; the loosened table solved again.
-    """
-    l11, l21, l22 = lf
-    nx, ny, b, slot_row = tab
-    gx, gy, hh, ln, res, delta, te, on, order = work
-    i11, i22 = 1.0 / l11, 1.0 / l22
-    i21 = -l21 * i11 * i22
-    nr = nk - 4
+def _phase1_rows(l11, l21, l22, nr, nx, ny, b, gx, gy, hh, ln):
+    """The table's ``nr`` rows normalised in ``x`` (``G / |G| = L n / |L n|``) and the norms ``|L n|``."""
     for j in range(nr):
         ax = l11 * nx[4 + j]
         ay = l21 * nx[4 + j] + l22 * ny[4 + j]
         ln[j] = math.sqrt(ax * ax + ay * ay)
         inv = 1.0 / ln[j]
         gx[j], gy[j], hh[j] = ax * inv, ay * inv, b[4 + j] * inv
-    sx, sy = st[0], st[1]
-    p0, p1 = i11 * sx + i21 * sy, i22 * sy
-    p0 = p0 if math.isfinite(p0) else 0.0
-    p1 = p1 if math.isfinite(p1) else 0.0
-    p0, p1 = _nmin(_nmax(p0, lbk[0]), ubk[0]), _nmin(_nmax(p1, lbk[1]), ubk[1])
-    q0, q1 = _least_violation(gx, gy, hh, nr, lbk[0], lbk[1], ubk[0], ubk[1], p0, p1, res, delta, on, te, order)
+
+
+@_jit
+def _loosen(q0, q1, nr, rtk, gx, gy, hh, ln, b, slot_row, G, loosened):
+    """Each row loosened by its violation at the phase-1 point ``(q0, q1)`` and ``rtk``, in the table and its units."""
     for j in range(nr):
         loosen = _nmax(gx[j] * q0 + gy[j] * q1 - hh[j], 0.0) * (1.0 + 1e-6) + rtk
         b[4 + j] = b[4 + j] + loosen * ln[j]
         r = slot_row[4 + j]
         loosened[r] = loosen * math.sqrt(G[r, 0] * G[r, 0] + G[r, 1] * G[r, 1])
-    _start(st, out, y0x, y0y)
-    its, en = _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out)
-    if int(st[9]) == 1:
-        return its, en, 1, out[0], out[1], out[2], out[3]
-    return its, en, 4, l11 * q0 + l21 * q1, l22 * q1, 0.0, 0.0  # a failed relaxation keeps the phase-1 point
+
+
+@_jit
+def _box_only(k, i11, i21, i22, y0x, y0y, xu0, xu1, lb, ub, tk, max_iter, nx, ny, b, st, out, x):
+    """Robot ``k``'s minimiser over its bounds alone (an infeasible robot without relaxation)."""
+    if (xu0 < lb[k, 0]) or (xu0 > ub[k, 0]) or (xu1 < lb[k, 1]) or (xu1 > ub[k, 1]):
+        _start(st, out, y0x, y0y)
+        _solve(nx, ny, b, 4, y0x, y0y, tk, max_iter, st, out)
+        xu0 = _clip(i11 * out[0] + i21 * out[1], lb[k, 0], ub[k, 0])
+        xu1 = _clip(i22 * out[1], lb[k, 1], ub[k, 1])
+    x[k, 0], x[k, 1] = xu0, xu1
