@@ -263,10 +263,10 @@ def test_a_step_whose_inputs_the_repair_changed_never_says_solved():
 
 
 def test_subnormal_speeds_give_finite_paths_and_the_gate_still_brakes():
-    """Subnormal wheel speeds made ``dt / T`` overflow and the paths NaN; a NaN margin then passed the check.
+    """Subnormal wheel speeds (where ``dt / T`` could overflow) give finite paths, and a pair is still checked.
 
     Robot 0 idles on a subnormal candidate (its speeds stay subnormal), robot 1 drives at it at full
-    throttle behind the gatekeeper alone: before, robot 1 was never braked (collision, 30 cm deep).
+    throttle behind the gatekeeper alone: robot 1 is braked in time.
     """
     team = make_team("paper", 2)
     b = braking_trajectory(team, np.zeros((2, 3)), np.array([[5e-310, 5e-310], [1e-300, -1e-300]]), DT, F)
@@ -452,7 +452,7 @@ def test_reach_limit_and_sensing_range_configuration():
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", [6, 12, 13, 15])
-def test_hostile_seeds_that_collided_before_are_kept_apart(seed):
+def test_hostile_seeds_are_kept_apart(seed):
     env = make_env("random_goals", filter=True, num_robots=20, max_steps=2000)
     rollout, _ = run_episode(env, HostileAgent(), seed=seed)
     assert pairwise_min_distance(rollout).overall_min_robot_gap >= -1e-3
@@ -461,9 +461,9 @@ def test_hostile_seeds_that_collided_before_are_kept_apart(seed):
 
 
 @pytest.mark.slow
-def test_decentralised_circle_under_chase_target_that_collided_before_is_kept_apart():
-    # the episode that found the reach bug: 39 robots on the radius-6 circle, paper preset,
-    # chase_target seed 400, decentralised; it collided by 174 mm with the continuous-braking reach
+def test_decentralised_circle_under_chase_target_is_kept_apart():
+    # 39 robots on the radius-6 circle, chase_target seed 400, decentralised: a case where a reach bound of the
+    # continuous braking (not the stepped one) lets a pair collide
     env = make_env(filter={"mode": "decentralized"}, max_steps=800, scenario="circle_swap", num_robots=39)
     rollout, _ = run_episode(env, ADVERSARIES["chase_target"](seed=400), seed=400)
     assert pairwise_min_distance(rollout).overall_min_robot_gap >= -1e-9
@@ -654,7 +654,7 @@ def test_the_gate_with_the_filters_pairs_decides_as_with_its_own_searches(monkey
 
 
 def _implode(env) -> dict:
-    """Every robot's wheels saturated toward the team's centroid (an adversarial tester's "implode")."""
+    """Every robot's wheels saturated toward the team's centroid ("implode")."""
     p = env.unwrapped.kinematics.p
     return _point_toward(env, np.broadcast_to(p.mean(axis=0), p.shape))
 
@@ -670,11 +670,9 @@ def test_a_touching_pack_pushed_together_stays_within_the_envs_smallest_toleranc
     env's smallest tolerance behind a filter (1e-9 m): nobody terminates, no pair passes 1e-9 m, and up to
     1e3 m the filter never reports ``unsafe``.
 
-    Found by an adversarial tester (2026-12-02): at 1e3 m from the origin a pair slipped 4 pm beyond the
-    check's 1e-9 m tolerance (the coordinates' rounding), the env froze both robots and the pack ran into
-    them (-28 µm); once a pair was outside the safe set, its hold floor plus the tolerance let it lose
-    1e-9 m more on every step.  Now the check forgives half the env's tolerance (the other half is left
-    for rounding), and a held pair keeps the larger of its floor and the tolerance.
+    Far from the origin the coordinates' rounding reaches picometres: the check forgives only half the
+    env's tolerance (the other half is left for rounding), and a pair outside the safe set is held to the
+    larger of its floor and the tolerance, not their sum (which would let it lose the tolerance every step).
     """
     n, d = 30, 0.96
     cols = 6

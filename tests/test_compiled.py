@@ -906,9 +906,9 @@ def test_compiled_calls_without_numba_say_how_to_install_it(monkeypatch):
 def test_a_point_mass_rests_past_its_braking_horizon():
     """Past the last braking step a point mass is at rest: no parabola bulge on the padding steps.
 
-    Braking from exactly 1 m/s, ``T / dt`` rounds one ulp above an integer, so the speed scale of the
-    step after the horizon was 1e-16 > 0 and that step carried the full bulge (12.5 um); the kernels
-    (rows at rest past their horizon) then decided a crossing pair differently (a reviewer's state).
+    Braking from exactly 1 m/s, ``T / dt`` rounds one ulp above an integer, so the speed scale of the step after
+    the horizon is 1e-16 > 0: that step must carry no bulge (12.5 um), as the kernels' rows, at rest past their
+    horizon, carry none.
     """
     from aasoatt_env.safety.backup import braking_du, candidate_paths, candidate_samples_at
 

@@ -16,7 +16,7 @@ from aasoatt_env.safety.barriers import PairGeometry, barrier_rows
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.decentralized import decentralized_step, negotiation_rows, split_rows
 from aasoatt_env.safety.problem import box_least_squares, build_problem
-from aasoatt_env.safety.solvers import local
+from aasoatt_env.safety.solvers import local, polygon
 from aasoatt_env.safety.solvers.local import RELAX_TOL, least_violation, solve_local_qps
 
 quadprog = pytest.importorskip("quadprog")
@@ -235,8 +235,8 @@ def test_local_solver_refuses_bad_input_naming_it(kw, match, compiled):
 
 
 def test_the_phase1_line_search_keeps_a_landed_robots_root():
-    """Robot 0 lands at once (its slope at 0 is exactly 0); robot 1 needs several steps.  The vectorised search
-    went on moving robot 0's bracket after it landed, to 0/0 (NaN); each robot's answer is its own."""
+    """Robot 0 lands at once (its slope at 0 is exactly 0); robot 1 needs several steps.  A robot that has landed
+    keeps its root while the others search (moving its bracket on would give 0/0); each answer is its own."""
     res = np.array([[0.0, -1e300], [-1.0, 0.5]])
     delta = np.array([[1.0, 0.0], [2.0, -1.0]])
     d0 = (np.maximum(res, 0.0) * delta).sum(axis=1)
@@ -288,7 +288,7 @@ def test_the_compiled_local_solver_makes_the_numpy_solvers_decisions(relax):
 
 def test_the_kernels_constants_are_the_reference_solvers():
     kern = pytest.importorskip("aasoatt_env.safety.solvers.local_kernel")
-    assert (kern._EPS_Z, kern._EPS_R, kern._PAD_B) == (local._EPS_Z, local._EPS_R, local._PAD_B)
+    assert (kern._EPS_Z, kern._EPS_R, kern._PAD_B) == (polygon._EPS_Z, polygon._EPS_R, polygon.PAD_B)
     assert kern._LS_ITERS == local._line_search.__defaults__[0]
     assert kern._LV_ITERS == local._lv_core.__defaults__[0]
 

@@ -1,17 +1,10 @@
 """The braking backup layer: keeps the team collision-free for any nominal, under the real input bounds.
 
-Its public interface, by file:
-
-* :mod:`~aasoatt_env.safety.backup.paths`: the backup policy (proportional braking) and the
-  robots' braking and candidate paths in closed form (``braking_du``, ``brake_time``,
-  ``reach_limit``, ``braking_trajectory``, ``candidate_paths``, ``candidate_samples_at``);
-* :mod:`~aasoatt_env.safety.backup.gate`: the gatekeeper, which accepts a candidate input only
-  where braking from the state it leads to keeps every pair apart (``gatekeeper``, ``pair_margins``,
-  ``GateResult``);
-* :mod:`~aasoatt_env.safety.backup.repair`: ``repair``, the least nudge of a candidate toward brake-safety;
-* :mod:`~aasoatt_env.safety.backup.layer`: the filter's stage, in the order it asks the two
-  (``BackupLayer``, ``gate_with_repair``, ``GATE_TOL``);
-* :mod:`~aasoatt_env.safety.backup.kernels` and ``kernel_paths``: the compiled check and repair.
+A gatekeeper in the sense of Agrawal and Panagou, a backup-set barrier in the sense of Gurriet et al.:
+:mod:`.paths`: the backup policy (proportional braking) and its paths in closed form; :mod:`.gate`: the
+gatekeeper, which accepts a candidate input only where braking from the state it leads to keeps every pair
+apart; :mod:`.repair`: the least nudge of a candidate toward brake-safety; :mod:`.layer`: the filter's stage;
+:mod:`.kernels` and :mod:`.kernel_paths`: the compiled check and repair.
 """
 
 from aasoatt_env.safety.backup.gate import CLOSEST_TIE, GateResult, gatekeeper, pair_margins

@@ -1,25 +1,10 @@
-"""The backup layer's compiled kernels (numba; imported only through :mod:`aasoatt_env.compiled`).
+"""The backup layer's compiled closed forms, pair checks and pair search (numba; used by :mod:`.kernels`).
 
-The same loops as :func:`~aasoatt_env.safety.gatekeeper.gatekeeper` and
-:func:`~aasoatt_env.safety.repair.repair`, written once per pair and sample:
-
-- :func:`gate_full`: one gatekeeper call (closed-form set-up per robot and
-  level, the pairs that could meet, the rounds, the result);
-- :func:`repair_full`: one repair call (its rounds of finite-difference lifts).
-
-Both take the team, pair and obstacle block of
-:func:`~aasoatt_env.safety.gatekeeper._kernel_args` (``diff, offset, cols,
-turn_gain, max_wheel_accel, brake_decel, radius, group, has_group,
-sensing_range, candidate pairs, obstacle centres (complex), radii, groups,
-has_groups``), checked there: numba does not check bounds.  Every helper
-repeats numpy's operations in numpy's order (the names say which numpy
-function; :func:`E1` takes one sine for two, noted there), with two
-exceptions: a pair's distance on a step is ``sqrt(x^2 + y^2)`` (numpy's
-``abs`` takes ``hypot``: the last bit), and the gatekeeper's braking samples
-rotate by a recurrence (:func:`fill_brake`: ~1e-13 of the path's length).
-So the results differ from the reference by rounding alone; the repair's
-rows keep the sines and cosines (its finite differences compare them with
-:func:`sample_at`'s closed form).
+Each helper repeats the numpy reference's operations (:mod:`~aasoatt_env.safety.backup.paths` and
+:mod:`~aasoatt_env.safety.backup.gate`; the names say which) in its order, for one robot, sample or pair,
+with two exceptions: a pair's distance on a step is ``sqrt(x^2 + y^2)`` (numpy's ``abs`` takes ``hypot``),
+and :func:`fill_brake` may rotate by a recurrence.  So the results differ from the reference by rounding.
+Robots' constants are the columns of :func:`~aasoatt_env.safety.backup.gate.team_block`'s ``robots``.
 """
 
 from __future__ import annotations
@@ -32,19 +17,20 @@ from aasoatt_env.numba_jit import jit as _jit
 from aasoatt_env.numba_jit import nmax as _nmax
 from aasoatt_env.safety.backup.paths import MAX_BRAKE_STEPS
 
-__all__ = [
-    "E1", "brake1", "brake_time1", "cabs", "candidate1", "fill_brake", "fill_row", "heading_of", "near_obstacles",
-    "near_pairs", "pair_closest", "pair_margin", "pair_min", "point1", "rot", "rows_of", "sample_at",
-    "segment_margin", "sinc1", "step_margin", "velocity1",
-]
+__all__ = ["E1", "brake1", "candidate1", "fill_brake", "fill_row", "near", "pair_margin", "pair_min",
+           "consts", "rows_of", "sample_at", "segment_margin", "starts"]
 
-
+OFFSET, TURN_GAIN, MAX_ACCEL, DECEL, RADIUS = 0, 1, 2, 3, 4
+"""Columns of the robots' constants."""
+D1, OMEGA, RATE, BULGE, REACH = 0, 1, 2, 3, 4
+"""Columns of a level's float parameters (``F``); its complex ones (``C``) are the step's end and the velocity."""
 _EPS = float(np.finfo(np.float64).eps)
 _TWO_PI = 2.0 * np.pi
 _PI = float(np.pi)
+_RESYNC = 16
+"""Samples between the exact rotations of :func:`fill_brake`'s recurrence."""
 
 
-# --------------------------------------------------------------------------- one robot, closed form
 @_jit
 def cabs(z):
     """``|z|`` by ``hypot``, as numpy's scalar code takes it."""
@@ -53,7 +39,7 @@ def cabs(z):
 
 @_jit
 def sinc1(x):
-    """:func:`~aasoatt_env.safety.backup._sinc` of one number."""
+    """``paths._sinc`` of one number."""
     y = _PI * x
     if y == 0.0:
         y = _EPS
@@ -62,11 +48,7 @@ def sinc1(x):
 
 @_jit
 def E1(x):
-    """:func:`~aasoatt_env.safety.backup._E` of one number: ``(e^{ix} - 1) / (ix) = e^{ix/2} sin(x/2) / (x/2)``.
-
-    One ``sin`` serves both factors (numpy's sinc takes the sine of ``pi (x / 2 pi)``, the same
-    angle to the last bit).
-    """
+    """``paths._E`` of one number, one sine serving both factors (numpy's sinc takes the same angle)."""
     h = 0.5 * x
     sh = math.sin(h)
     sc = sh / h if h != 0.0 else 1.0
@@ -80,119 +62,98 @@ def rot(h):
 
 
 @_jit
-def heading_of(diff, theta):
-    """``e^{i theta}`` of a wheeled robot (one ``cos`` and ``sin`` for each use of the heading), 0 for a point mass."""
-    return rot(theta) if diff else 0j
+def starts(diff, rob, pose):
+    """Control points ``(n,)`` and headings ``e^{i theta}`` ``(n,)`` (0 for point masses) of axle poses."""
+    n = pose.shape[0]
+    p0, hd = np.empty(n, dtype=np.complex128), np.empty(n, dtype=np.complex128)
+    for g in range(n):
+        hd[g] = rot(pose[g, 2]) if diff else 0j
+        c = complex(pose[g, 0], pose[g, 1])
+        p0[g] = c + rob[g, OFFSET] * hd[g] if diff else c
+    return p0, hd
 
 
 @_jit
-def point1(diff, offset, x, y, heading):
-    """:func:`~aasoatt_env.safety.backup._point` of one robot (``heading``: :func:`heading_of` of its angle)."""
-    c = complex(x, y)
-    return c + offset * heading if diff else c
+def consts(rob, cols, g):
+    """Robot ``g``'s constants of the closed forms, by value: input columns, turn gain, acceleration, deceleration."""
+    return cols[g, 0], cols[g, 1], rob[g, TURN_GAIN], rob[g, MAX_ACCEL], rob[g, DECEL]
 
 
 @_jit
-def velocity1(diff, c0, c1, tg, heading, u0, u1):
-    """:func:`~aasoatt_env.safety.backup._velocity` of one robot: control-point velocity and yaw rate."""
+def velocity1(diff, rc, heading, u0, u1):
+    """``paths._velocity`` of a robot (``rc``: its :func:`consts`): control-point velocity and yaw rate."""
     if not diff:
         return complex(u0, u1), 0.0
-    return heading * (c0 * u0 + c1 * u1), tg * (u0 - u1)
+    return heading * (rc[0] * u0 + rc[1] * u1), rc[2] * (u0 - u1)
 
 
 @_jit
-def brake_time1(diff, c0, c1, amax, adec, u0, u1):
-    """:func:`~aasoatt_env.safety.backup.brake_time` of one robot."""
+def brake_time1(diff, rc, u0, u1):
+    """``paths.brake_time`` of a robot."""
     s = _nmax(abs(u0), abs(u1))
-    speed = cabs(c0 * u0 + c1 * u1) if diff else math.hypot(u0, u1)
-    return _nmax(s / amax, speed / adec)
+    speed = cabs(rc[0] * u0 + rc[1] * u1) if diff else math.hypot(u0, u1)
+    return _nmax(s / rc[3], speed / rc[4])
 
 
 @_jit
-def brake1(diff, c0, c1, tg, amax, adec, heading, u0, u1, dt):
-    """:func:`~aasoatt_env.safety.backup._brake` of one robot: ``(pdot, omega, rate, steps, reach, bulge)``."""
-    T = brake_time1(diff, c0, c1, amax, adec, u0, u1)
-    pdot, w = velocity1(diff, c0, c1, tg, heading, u0, u1)
-    if not T > 0.0:  # at rest (or T NaN): numpy's arithmetic with moving = False, NaN kept as NaN
-        speed = cabs(pdot) * 0.0
-        aw = abs(w)
-        reach = speed * 0.0 * sinc1(aw * 0.0 / _TWO_PI) + (dt * dt / 8.0) * speed * aw
-        bulge = 0.0
-        if not diff:
-            bulge = (dt / 8.0) * speed * 1.0
-            reach = reach + bulge
-        return pdot * 0.0, w, 1.0, 0, reach, bulge
-    ratio = T / dt
+def brake1(diff, rc, heading, u0, u1, dt):
+    """``paths.brake`` of a robot: ``(pdot, omega, rate, steps, reach, bulge)`` (NaN kept as numpy keeps it)."""
+    T = brake_time1(diff, rc, u0, u1)
+    pdot, w = velocity1(diff, rc, heading, u0, u1)
+    moving = T > 0.0
+    ratio = T / dt if moving else 0.0
     r1 = max(ratio, 1.0)
-    rate = 1.0 / r1
-    steps = int(min(max(np.ceil(ratio - 1e-12), 1.0), MAX_BRAKE_STEPS))
-    speed = cabs(pdot)
+    steps = int(min(max(np.ceil(ratio - 1e-12), 1.0), MAX_BRAKE_STEPS)) if moving else 0
+    rate = 1.0 / r1 if moving else 1.0
+    speed = cabs(pdot) if moving else cabs(pdot) * 0.0
     K = float(steps)
-    tau_end = dt * (0.5 + (K - 1.0) * (1.0 - K / (2.0 * r1)))
+    tau_end = dt * (0.5 + (K - 1.0) * (1.0 - K / (2.0 * r1))) if moving else 0.0
     aw = abs(w)
     tau_env = _PI / aw if aw * tau_end > _PI else tau_end
-    envelope = speed * tau_env * sinc1(aw * tau_env / _TWO_PI)
-    reach = envelope + (dt * dt / 8.0) * speed * aw
+    reach = speed * tau_env * sinc1(aw * tau_env / _TWO_PI) + (dt * dt / 8.0) * speed * aw
     bulge = 0.0
     if not diff:
         bulge = (dt / 8.0) * speed * rate
         reach = reach + bulge
     if ratio > MAX_BRAKE_STEPS:  # too long to sample: unbounded
         reach = np.inf
-    return pdot, w, rate, steps, reach, bulge
+    return (pdot if moving else pdot * 0.0), w, rate, steps, reach, bulge
 
 
 @_jit
-def candidate1(diff, c0, c1, tg, amax, adec, p0, theta, heading, u0, u1, du0, du1, dt):
-    """One step holding ``du`` then braking (:func:`~aasoatt_env.safety.backup._first_step` and ``_brake``).
+def candidate1(diff, rc, p0, theta, heading, u0, u1, du0, du1, dt):
+    """``paths.candidate`` of a robot (``heading``: ``e^{i theta}``).
 
-    ``heading``: :func:`heading_of` of ``theta``.
-
-    Returns ``(p1, dev, pdot, omega, rate, steps, reach, bulge)`` with ``reach`` the
-    candidate's (:func:`~aasoatt_env.safety.backup._candidate_reach`).
+    Returns ``(p1, dev, pdot, omega, rate, steps, reach, bulge)``, ``reach`` the candidate's.
     """
     c8 = dt * dt / 8.0
     u10 = u0 + du0 * dt
     u11 = u1 + du1 * dt
-    pm, wm = velocity1(diff, c0, c1, tg, heading, 0.5 * (u0 + u10), 0.5 * (u1 + u11))
+    pm, wm = velocity1(diff, rc, heading, 0.5 * (u0 + u10), 0.5 * (u1 + u11))
     p1 = p0 + pm * dt * E1(wm * dt)
     dev = c8 * cabs(pm) * abs(wm)
     if not diff:
         dev = dev + c8 * math.hypot(du0, du1)
-    pdot, w, rate, steps, reach, bulge = brake1(diff, c0, c1, tg, amax, adec, heading_of(diff, theta + wm * dt), u10,
-                                                 u11, dt)
+    pdot, w, rate, steps, reach, bulge = brake1(diff, rc, rot(theta + wm * dt) if diff else 0j, u10, u11, dt)
     return p1, dev, pdot, w, rate, steps, cabs(p1 - p0) + dev + reach, bulge
-
-
-_RESYNC = 16
-"""Samples between the exact rotations of :func:`fill_brake`'s recurrence."""
 
 
 @_jit
 def fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulge, dt, length, fast):
     """Braking samples ``row_p[start:length]`` from ``p_start`` and deviations ``row_d[start:length-1]``.
 
-    The operations of :func:`~aasoatt_env.safety.backup._brake_samples` in the same order.
-    ``fast``: the rotation ``e^{i omega tau / 2}`` of :func:`E1` by recurrence instead of a
-    sine and cosine per sample.  While the robot decelerates, the step's time ``dtau`` falls
-    by ``dt * rate`` per step, so each step's rotation is the previous one's times one fixed
-    factor; both are taken exactly every :data:`_RESYNC` samples and where the speed reaches
-    0, and the ``sin(h) / h`` factor comes from the rotation (``|h| >= 0.1``) or its series.
-    The samples then differ from the exact ones by ~``1e-13`` of the path's length (the
-    rounding of ~30 products), far below the check's tolerance
-    (:data:`~aasoatt_env.safety.repair.GATE_TOL`, 5e-10 m).
+    ``paths.brake_samples`` in its order of operations.  ``fast``: while the robot decelerates, each step's
+    rotation ``e^{i omega dtau / 2}`` is the previous one's times a fixed factor, so the rotations come by
+    recurrence, taken exactly every :data:`_RESYNC` samples and where the speed reaches 0 (samples within
+    ~1e-13 of the path's length of the exact ones, far below the check's tolerance).
     """
-    c8 = dt * dt / 8.0
-    half_dt = 0.5 * dt
-    apd = cabs(pdot)
-    aw = abs(omega)
-    tau = 0.0
-    sig_prev = 1.0
+    c8, half_dt, apd, aw = dt * dt / 8.0, 0.5 * dt, cabs(pdot), abs(omega)
+    tau, sig_prev = 0.0, 1.0
     row_p[start] = p_start + (pdot * tau) * E1(omega * tau)
     qw = 0.25 * omega * dt
     z = w = c = 1.0 + 0.0j  # e^{i omega tau / 2}; a step's rotation; the factor from one step's to the next
     if fast:
-        w = rot(qw * (2.0 - rate))  # the rotation of step 1: dtau = dt (1 - rate / 2)
+        w = rot(qw * (2.0 - rate))  # step 1's: dtau = dt (1 - rate / 2)
         c = rot(-2.0 * qw * rate)
     for k in range(1, length - start):
         raw = 1.0 - k * rate
@@ -210,7 +171,7 @@ def fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulge
             if k % _RESYNC == 0:
                 z = rot(h)
                 w = rot(qw * (2.0 - (2 * k + 1) * rate))  # step k + 1's
-            elif raw > 0.0:  # both ends of the step still decelerating: the recurrence
+            elif raw > 0.0:  # both ends of the step still decelerating
                 z = z * w
                 w = w * c
             elif sig_prev > 0.0:  # the step that ends at rest
@@ -225,27 +186,18 @@ def fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulge
 
 
 @_jit
-def fill_row(cur, curd, r, g, k, last, p0, p1, d1, pdot, omega, rate, bulge, has_bulge, dt, need, fast):
-    """Row ``r`` of ``cur``/``curd``: robot ``g``'s path on level ``k`` (``need`` samples; ``last``: braking now).
-
-    ``fast``: :func:`fill_brake`'s recurrence.
-    """
-    if k == last:
-        fill_brake(cur[r], curd[r], 0, p0[g], pdot[k, g], omega[k, g], rate[k, g], bulge[k, g], has_bulge,
-                    dt, need, fast)
-    else:
-        cur[r, 0] = p0[g]
-        curd[r, 0] = d1[k, g]
-        fill_brake(cur[r], curd[r], 1, p1[k, g], pdot[k, g], omega[k, g], rate[k, g], bulge[k, g], has_bulge,
-                    dt, need, fast)
+def fill_row(cur, curd, r, g, k, last, p0, C, F, has_bulge, dt, need, fast):
+    """Row ``r`` of ``cur``/``curd``: robot ``g``'s path on level ``k`` (``need`` samples; ``last``: braking now)."""
+    s = 0 if k == last else 1
+    if s:
+        cur[r, 0], curd[r, 0] = p0[g], F[k, g, D1]
+    fill_brake(cur[r], curd[r], s, p0[g] if k == last else C[k, g, 0], C[k, g, 1], F[k, g, OMEGA], F[k, g, RATE],
+               F[k, g, BULGE], has_bulge, dt, need, fast)
 
 
 @_jit
 def sample_at(p0, p1, d1, pdot, omega, rate, steps, bulge, has_bulge, dt, s):
-    """Sample ``s`` of a candidate path and the deviation of step ``s -> s + 1``, in closed form.
-
-    :func:`~aasoatt_env.safety.backup.candidate_samples_at` for one sample.
-    """
+    """Sample ``s`` of a candidate path and the deviation of step ``s -> s + 1`` (``paths.candidate_samples_at``)."""
     if s == 0:
         return p0, d1
     r = rate
@@ -269,10 +221,9 @@ def sample_at(p0, p1, d1, pdot, omega, rate, steps, bulge, has_bulge, dt, s):
     return p, d
 
 
-# --------------------------------------------------------------------------- pairs
 @_jit
 def segment_margin(qa0, qa1, qc0, qc1, da, dc):
-    """Smallest ``|q| - da - dc`` on the segment of relative positions ``qa - qc`` (``pair_margins``' step)."""
+    """Smallest ``|q| - da - dc`` on the segment of relative positions ``qa - qc`` (``gate.pair_margins``' step)."""
     q0 = qa0 - qc0
     q1 = qa1 - qc1
     dr = q1.real - q0.real
@@ -289,7 +240,7 @@ def segment_margin(qa0, qa1, qc0, qc1, da, dc):
 
 @_jit
 def step_margin(cur, curd, na, nc, a, c, static, oc, k):
-    """Step ``k``'s :func:`segment_margin` of rows ``a``, ``c`` (or ``a`` and the point ``oc``).
+    """Step ``k``'s :func:`segment_margin` of rows ``a``, ``c`` (``static``: ``a`` and the point ``oc``).
 
     A row rests beyond its ``n`` samples (its last sample, deviation 0), as the padded numpy rows do.
     """
@@ -303,26 +254,19 @@ def step_margin(cur, curd, na, nc, a, c, static, oc, k):
 
 
 @_jit
-def pair_min(cur, curd, na, nc, a, c, static, oc, nseg):
-    """Smallest margin (before ``- d_s``) over ``nseg`` steps and its step (``pair_margins``); NaN wins."""
-    best = np.inf
-    kbest = 0
+def pair_min(cur, curd, na, nc, a, c, static, oc, nseg, tie):
+    """Smallest margin (before ``- d_s``) over ``nseg`` steps and its step, the first NaN winning.
+
+    ``tie >= 0``: the first step within ``tie`` of the least, as ``pair_margins(..., closest=True)`` takes it.
+    """
+    best, kbest = np.inf, 0
     for k in range(nseg):
         dist = step_margin(cur, curd, na, nc, a, c, static, oc, k)
         if dist != dist:
             return dist, k
         if dist < best:
             best, kbest = dist, k
-    return best, kbest
-
-
-@_jit
-def pair_closest(cur, curd, na, nc, a, c, static, oc, nseg, tie):
-    """The closest step as ``pair_margins(..., closest=True)`` takes it: the first within ``tie`` of the least."""
-    best, kbest = pair_min(cur, curd, na, nc, a, c, static, oc, nseg)
-    if best != best:
-        return best, kbest
-    for k in range(kbest):
+    for k in range(kbest if tie >= 0.0 else 0):
         dist = step_margin(cur, curd, na, nc, a, c, static, oc, k)
         if dist <= best + tie:
             return dist, k
@@ -331,81 +275,52 @@ def pair_closest(cur, curd, na, nc, a, c, static, oc, nseg, tie):
 
 @_jit
 def pair_margin(cur, curd, na, nc, a, c, ds, static, oc):
-    """:func:`pair_min` over the pair's own horizon, minus ``ds`` (the gatekeeper's check of one pair)."""
+    """:func:`pair_min` over the pair's own horizon, minus ``ds``."""
     L = na if static else max(na, nc)
-    return pair_min(cur, curd, na, nc, a, c, static, oc, max(L, 2) - 1)[0] - ds
+    return pair_min(cur, curd, na, nc, a, c, static, oc, max(L, 2) - 1, -1.0)[0] - ds
 
 
 @_jit
-def near_pairs(cand, p0, R, radius, group, has_group, sensing_range, slack):
-    """:func:`~aasoatt_env.safety.gatekeeper._pairs_near` from candidate pairs ``cand`` ``(P, 2)``."""
-    keep = np.zeros(cand.shape[0], dtype=np.bool_)
-    P = 0
-    for q in range(cand.shape[0]):
-        a, c = cand[q, 0], cand[q, 1]
-        if has_group and group[a] != group[c]:
-            continue
-        dist = cabs(p0[a] - p0[c])
-        if dist > sensing_range:
-            continue
-        if dist < radius[a] + radius[c] + R[a] + R[c] + slack:
-            keep[q] = True
-            P += 1
-    i = np.empty(P, dtype=np.int64)
-    j = np.empty(P, dtype=np.int64)
-    ds = np.empty(P)
-    P = 0
-    for q in range(cand.shape[0]):
-        if keep[q]:
-            i[P], j[P] = cand[q, 0], cand[q, 1]
-            ds[P] = radius[cand[q, 0]] + radius[cand[q, 1]]
-            P += 1
-    return i, j, ds
+def near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup, slack):
+    """``gate.pairs_near`` from candidate pairs ``cand`` ``(P, 2)``, then ``gate.obstacles_near``.
 
-
-@_jit
-def near_obstacles(p0, R, radius, group, has_group, oc, orad, ogroup, has_ogroup, slack):
-    """:func:`~aasoatt_env.safety.gatekeeper._obstacles_near`: robot-obstacle pairs ``(i, k, d_s)``."""
+    Returns ``(a, c, d_s, centre)`` per pair: robot pairs first (``centre`` 0), then robot-obstacle pairs
+    (``c = -1``, ``centre`` the obstacle's).
+    """
     n, m = p0.shape[0], oc.shape[0]
-    keep = np.zeros((n, m), dtype=np.bool_)
-    Q = 0
+    a, c = np.empty(cand.shape[0] + n * m, np.int64), np.empty(cand.shape[0] + n * m, np.int64)
+    ds, at = np.empty(a.shape[0]), np.zeros(a.shape[0], np.complex128)
+    P = 0
+    for q in range(cand.shape[0]):
+        g, h = cand[q, 0], cand[q, 1]
+        if has_group and group[g] != group[h]:
+            continue
+        dist = cabs(p0[g] - p0[h])
+        if dist <= sensing_range and dist < rob[g, RADIUS] + rob[h, RADIUS] + R[g] + R[h] + slack:
+            a[P], c[P], ds[P] = g, h, rob[g, RADIUS] + rob[h, RADIUS]
+            P += 1
     for g in range(n):
         for o in range(m):
             if has_group and has_ogroup and group[g] != ogroup[o]:
                 continue
-            if cabs(p0[g] - oc[o]) < radius[g] + orad[o] + R[g] + slack:
-                keep[g, o] = True
-                Q += 1
-    oi = np.empty(Q, dtype=np.int64)
-    ok = np.empty(Q, dtype=np.int64)
-    ods = np.empty(Q)
-    Q = 0
-    for g in range(n):
-        for o in range(m):
-            if keep[g, o]:
-                oi[Q], ok[Q], ods[Q] = g, o, radius[g] + orad[o]
-                Q += 1
-    return oi, ok, ods
+            if cabs(p0[g] - oc[o]) < rob[g, RADIUS] + orad[o] + R[g] + slack:
+                a[P], c[P], ds[P], at[P] = g, -1, rob[g, RADIUS] + orad[o], oc[o]
+                P += 1
+    return a[:P], c[:P], ds[:P], at[:P]
 
 
 @_jit
-def rows_of(n, i, j, oi):
+def rows_of(n, a, c):
     """Buffer rows for the robots in pairs: ``loc`` ``(n,)`` (-1: none), the robots of the rows, their count."""
     loc = np.full(n, -1, dtype=np.int64)
     M = 0
-    for q in range(i.shape[0]):
-        for g in (i[q], j[q]):
-            if loc[g] < 0:
+    for q in range(a.shape[0]):
+        for g in (a[q], c[q]):
+            if g >= 0 and loc[g] < 0:
                 loc[g] = M
                 M += 1
-    for q in range(oi.shape[0]):
-        if loc[oi[q]] < 0:
-            loc[oi[q]] = M
-            M += 1
     rob = np.empty(M, dtype=np.int64)
     for g in range(n):
         if loc[g] >= 0:
             rob[loc[g]] = g
     return loc, rob, M
-
-

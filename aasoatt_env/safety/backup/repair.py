@@ -1,17 +1,4 @@
-"""The repair of a QP answer toward brake-safety, and the backup layer's decision for it.
-
-:func:`~aasoatt_env.safety.gatekeeper.gatekeeper` alone keeps the team safe: it puts
-every robot whose candidate is not brake-safe on the braking backup.  Braking
-costs liveness, so before the gatekeeper decides, :func:`repair` nudges the
-QP's answer toward brake-safety (the least change that lifts every low backup
-margin, like backup-barrier rows in the QP), and :func:`gate_with_repair` is
-the order in which the filter asks: a quick check of the QP's answer, then, in
-each group of robots within sensing range of each other where it brakes
-someone for a pair, the repair and a check of it, the full check of the QP's
-answer only where the repaired one still brakes someone; where it brakes
-someone only for the range limit, the full check; outside the safe set, best
-effort.
-"""
+"""The repair: the least nudge of a QP answer toward brake-safety, so the gatekeeper rarely has to brake."""
 
 from __future__ import annotations
 
@@ -21,143 +8,105 @@ import numpy as np
 
 from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.params import Team
-from aasoatt_env.safety.backup.gate import (
-    CLOSEST_TIE,
-    bucketed_margins,
-    kernel_args,
-    obstacles_near,
-    pair_margins,
-    pairs_near,
-    validate,
-)
-from aasoatt_env.safety.backup.paths import (
-    brake,
-    candidate_paths,
-    candidate_reach,
-    candidate_samples_at,
-    first_step,
-    point,
-)
+from aasoatt_env.safety.backup import gate, paths
 
 __all__ = ["repair"]
 
-def repair(
-    team: Team,
-    pose: np.ndarray,
-    u: np.ndarray,
-    du_c: np.ndarray,
-    dt: float,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    *,
-    sensing_range: float,
-    brake_fraction: float,
-    obstacles: tuple[np.ndarray, np.ndarray] | None = None,
-    target: float = 2e-4,
-    rounds: int = 3,
-    eps: float = 1.0,
-    near_pairs: np.ndarray | None = None,
-    compiled: bool = False,
-    checked: bool = False,
-) -> np.ndarray:
+
+def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float, lo: np.ndarray, hi: np.ndarray,
+           *, sensing_range: float, brake_fraction: float, obstacles: tuple[np.ndarray, ...] | None = None,
+           target: float = 2e-4, rounds: int = 3, eps: float = 1.0, near_pairs: np.ndarray | None = None,
+           compiled: bool = False, checked: bool = False) -> np.ndarray:
     """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
 
-    For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below
-    ``target`` [m], the margin's gradient with respect to both robots' inputs is
-    taken by finite differences at the pair's closest step (step ``eps`` in input
-    units; the two samples of that step in closed form,
-    :func:`~aasoatt_env.safety.backup.candidate_samples_at`), and the two
-    inputs move by the least-norm change that lifts the linearised margin to
-    ``2 target``; changes from several pairs add up, and the result is clipped
-    to ``[lo, hi]``.  ``rounds`` rounds.  This acts like backup-barrier rows in
-    the QP (a small, local correction toward the safe set), so the gatekeeper
-    rarely has to brake; safety still comes from :func:`~aasoatt_env.safety.gatekeeper.gatekeeper` alone.
-    ``near_pairs``: candidate pairs as in the gatekeeper (one search for every round).
-    ``checked``: the caller vouches for the shapes and pair indices (as for the gatekeeper).
-    ``compiled``: run it in the compiled kernel of :mod:`aasoatt_env.compiled` (``ImportError``
-    without numba; the same answer up to rounding, which the division by the squared gradient
-    amplifies: see that module).
+    For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below ``target``
+    [m], the margin's gradient in both robots' inputs is taken by finite differences (step ``eps``) at the
+    pair's closest step, and both inputs move by the least-norm change that lifts the linearised margin to
+    ``2 target``; the changes of several pairs add up, then are clipped to ``[lo, hi]``; ``rounds`` rounds.
+    Like backup-barrier rows in the QP, a small local correction: safety still comes from the gatekeeper.
+    ``near_pairs``, ``checked``, ``compiled``: as for :func:`~aasoatt_env.safety.backup.gatekeeper` (the
+    compiled answer equals this one up to rounding, which the division by the squared gradient amplifies).
     """
     if not checked:
-        near_pairs = validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c, lo=lo, hi=hi)
+        near_pairs = gate.validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c, lo=lo, hi=hi)
     if compiled:
-        block = kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
+        block = gate.kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
         pose, u, du_c, lo, hi = (c64(a) for a in (pose, u, du_c, lo, hi))
         return kernels().repair_full(pose, u, du_c, lo, hi, float(dt), *block, float(target), int(rounds),
-                                     float(eps), CLOSEST_TIE)
+                                     float(eps), gate.CLOSEST_TIE)
     du = np.minimum(np.maximum(du_c, lo), hi)
     n = pose.shape[0]
-    eye = np.eye(2)
-    p0 = point(team, pose)
-    paths = _PathCache(team, pose, u, dt, brake_fraction)
+    p0 = paths.point(team, pose)
+    cache = _PathCache(team, pose, u, dt, brake_fraction)
     for _ in range(rounds):
         # reach first (O(N)): only robots with a pair that could come close need sampled paths
-        p1, d1, theta1, u1 = first_step(team, p0, pose[:, 2], u, du, dt)
-        R = candidate_reach(p0, p1, d1, brake(team, theta1, u1, dt, brake_fraction)) + eps * dt * dt
-        i, j, ds = pairs_near(team, p0, R, sensing_range, 2.0 * target, near_pairs)
-        oc, oi, ok, ods = obstacles_near(team, p0, R, obstacles, 2.0 * target)
+        R = paths.candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction).reach + eps * dt * dt
+        i, j, ds = gate.pairs_near(team, p0, R, sensing_range, 2.0 * target, near_pairs)
+        oc, oi, ok, ods = gate.obstacles_near(team, p0, R, obstacles, 2.0 * target)
         if i.size + oi.size == 0:
             break
         S = np.unique(np.concatenate((i, j, oi)))  # rows of `base`: these robots, in this order
         loc = np.full(n, -1, dtype=np.intp)
         loc[S] = np.arange(S.size)
-        base = paths.get(S, du)
-        m = bucketed_margins(base.p, base.delta, base.length, loc[i], loc[j], ds)
-        low = m < target
+        base = cache.get(S, du)
+        low = gate.bucketed_margins(base.p, base.delta, base.length, loc[i], loc[j], ds) < target
         i, j, ds = i[low], j[low], ds[low]
         if oi.size:
-            mo = bucketed_margins(base.p, base.delta, base.length, loc[oi], ok, ods, centers=oc)
-            lowo = mo < target
+            lowo = gate.bucketed_margins(base.p, base.delta, base.length, loc[oi], ok, ods, centers=oc) < target
             oi, ok, ods = oi[lowo], ok[lowo], ods[lowo]
         if i.size + oi.size == 0:
             break
-        # the gradient of each low margin at its closest step (the envelope of the minimum): that
-        # step's two samples of one member's path with one input moved by eps, in closed form
-        step = np.zeros((n, 2))
-        # every robot of a low pair with each input moved by eps: rows 2 q + d of `moved`
-        U = np.unique(np.concatenate((i, j, oi)))
-        at = np.full(n, -1, dtype=np.intp)
-        at[U] = 2 * np.arange(U.size)
-        R2 = np.repeat(U, 2)
-        sub_team, sub_pose, sub_u = team.subset(R2), pose[R2], u[R2]
-        moved = du[R2] + eps * np.tile(eye, (U.size, 1))
-        if i.size:
-            li, lj = loc[i], loc[j]
-            m0, k = pair_margins(base.p[li], base.p[lj], base.delta[li], base.delta[lj], ds, closest=True)
-            s4 = np.tile(k[:, None] + np.arange(2), (4, 1))
-            fix = np.concatenate((lj, lj, li, li))
-            pm, dm = candidate_samples_at(sub_team, sub_pose, sub_u, moved, dt, brake_fraction, s4,
-                                          rows=np.concatenate((at[i], at[i] + 1, at[j], at[j] + 1)))
-            mg = pair_margins(pm, base.p[fix[:, None], s4], dm[:, :1], base.delta[fix, s4[:, 0]][:, None],
-                              np.tile(ds, 4)).reshape(4, -1)
-            gi = ((mg[0:2] - m0) / eps).T
-            gj = ((mg[2:4] - m0) / eps).T
-            lift = (2.0 * target - m0) / np.maximum((gi * gi).sum(1) + (gj * gj).sum(1), 1e-12)
-            np.add.at(step, i, lift[:, None] * gi)
-            np.add.at(step, j, lift[:, None] * gj)
-        if oi.size:
-            lo_ = loc[oi]
-            m0, k = pair_margins(base.p[lo_], oc[ok][:, None], base.delta[lo_], 0.0, ods, closest=True)
-            s2 = np.tile(k[:, None] + np.arange(2), (2, 1))
-            pm, dm = candidate_samples_at(sub_team, sub_pose, sub_u, moved, dt, brake_fraction, s2,
-                                          rows=np.concatenate((at[oi], at[oi] + 1)))
-            mg = pair_margins(pm, oc[np.tile(ok, 2)][:, None], dm[:, :1], 0.0, np.tile(ods, 2)).reshape(2, -1)
-            go = ((mg - m0) / eps).T
-            lift = (2.0 * target - m0) / np.maximum((go * go).sum(1), 1e-12)
-            np.add.at(step, oi, lift[:, None] * go)
+        step = _lifts(team, pose, u, du, dt, brake_fraction, target, eps, base, loc, (i, j, ds), (oc, oi, ok, ods))
         if not step.any():
             break
         moved_du = np.minimum(np.maximum(du + step, lo), hi)
-        paths.forget(np.flatnonzero((moved_du != du).any(axis=1)))
+        cache.forget(np.flatnonzero((moved_du != du).any(axis=1)))
         du = moved_du
     return du
 
 
-class _Paths(NamedTuple):
-    """Paths as in :class:`~aasoatt_env.safety.backup.Trajectories`, without the reach bound.
+def _lifts(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float, brake_fraction: float,
+           target: float, eps: float, base: _Paths, loc: np.ndarray, pairs: tuple, obst: tuple) -> np.ndarray:
+    """The summed least-norm lifts ``(n, 2)`` of the low pairs and obstacle pairs, from their closest steps.
 
-    Samples ``(R, L)``, deviation bounds ``(R, L-1)`` and sample counts ``(R,)``.
+    Each gradient comes from that step's two samples of one member's path with one input moved by ``eps``,
+    in closed form (the envelope of the minimum).
     """
+    (i, j, ds), (oc, oi, ok, ods) = pairs, obst
+    n = pose.shape[0]
+    step = np.zeros((n, 2))
+    U = np.unique(np.concatenate((i, j, oi)))  # every robot of a low pair with each input moved: rows 2 q + d
+    at = np.full(n, -1, dtype=np.intp)
+    at[U] = 2 * np.arange(U.size)
+    R2 = np.repeat(U, 2)
+    sub = (team.subset(R2), pose[R2], u[R2], du[R2] + eps * np.tile(np.eye(2), (U.size, 1)), dt, brake_fraction)
+    if i.size:
+        li, lj = loc[i], loc[j]
+        m0, k = gate.pair_margins(base.p[li], base.p[lj], base.delta[li], base.delta[lj], ds, closest=True)
+        s4 = np.tile(k[:, None] + np.arange(2), (4, 1))
+        fix = np.concatenate((lj, lj, li, li))
+        pm, dm = paths.candidate_samples_at(*sub, s4, rows=np.concatenate((at[i], at[i] + 1, at[j], at[j] + 1)))
+        mg = gate.pair_margins(pm, base.p[fix[:, None], s4], dm[:, :1], base.delta[fix, s4[:, 0]][:, None],
+                          np.tile(ds, 4)).reshape(4, -1)
+        gi = ((mg[0:2] - m0) / eps).T
+        gj = ((mg[2:4] - m0) / eps).T
+        lift = (2.0 * target - m0) / np.maximum((gi * gi).sum(1) + (gj * gj).sum(1), 1e-12)
+        np.add.at(step, i, lift[:, None] * gi)
+        np.add.at(step, j, lift[:, None] * gj)
+    if oi.size:
+        lo_ = loc[oi]
+        m0, k = gate.pair_margins(base.p[lo_], oc[ok][:, None], base.delta[lo_], 0.0, ods, closest=True)
+        s2 = np.tile(k[:, None] + np.arange(2), (2, 1))
+        pm, dm = paths.candidate_samples_at(*sub, s2, rows=np.concatenate((at[oi], at[oi] + 1)))
+        mg = gate.pair_margins(pm, oc[np.tile(ok, 2)][:, None], dm[:, :1], 0.0, np.tile(ods, 2)).reshape(2, -1)
+        go = ((mg - m0) / eps).T
+        lift = (2.0 * target - m0) / np.maximum((go * go).sum(1), 1e-12)
+        np.add.at(step, oi, lift[:, None] * go)
+    return step
+
+
+class _Paths(NamedTuple):
+    """Samples ``(R, L)``, deviation bounds ``(R, L-1)`` and sample counts ``(R,)`` of candidate paths."""
 
     p: np.ndarray
     delta: np.ndarray
@@ -167,10 +116,8 @@ class _Paths(NamedTuple):
 class _PathCache:
     """Candidate paths of a team's robots, each made once and kept until the robot's input changes.
 
-    :func:`~aasoatt_env.safety.backup.candidate_paths`, row by row: a repair round moves only the
-    robots of low pairs, so the others keep their paths.  Rows are made only for robots asked
-    for; a row shorter than the others is extended with its rest position (deviation 0), which
-    is what a longer horizon gives for it, sample for sample.
+    A repair round moves only the robots of low pairs, so the others keep their paths.  A row shorter
+    than the others is extended with its rest position (deviation 0): what a longer horizon gives for it.
     """
 
     def __init__(self, team: Team, pose: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float) -> None:
@@ -185,7 +132,7 @@ class _PathCache:
         """The paths of robots ``rows`` (sorted) with inputs ``du[rows]``, ``L`` their longest horizon."""
         new = rows[~self.valid[rows]]
         if new.size:
-            t = candidate_paths(self.team.subset(new), self.pose[new], self.u[new], du[new], self.dt,
+            t = paths.candidate_paths(self.team.subset(new), self.pose[new], self.u[new], du[new], self.dt,
                                 self.brake_fraction)
             width = t.p.shape[1]
             if width > self.p.shape[1]:  # every row rests beyond its own horizon

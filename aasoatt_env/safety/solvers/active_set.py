@@ -1,39 +1,18 @@
-"""Exact structured active-set solver for the safety QP (used first by the default back-end).
+"""The warm active set: an exact structured solver for the safety QP, tried first from the previous step.
 
-The scaled problem (:class:`aasoatt_env.safety.problem.QPProblem`) has a 2x2
-block-diagonal Hessian ``H = L L^T``.  In ``y = L^T x`` the objective is
-``0.5 |y|^2 + gt'y`` and every constraint (rows and box, written as
-``M x <= b``) becomes ``Mt y <= b`` with ``Mt = M L^-T`` (each row still touches
-at most two robots).  For a working set ``W`` the equality-constrained problem is
-solved through the Schur complement ``S = Mt_W Mt_W^T`` (dense below
-:data:`DENSE_MAX_ROWS` working rows, sparse LU above), and the working set is
-updated by the primal-dual active-set rule (Hintermueller, Ito, Kunisch 2002):
-``W = {k: lambda_k + (Mt y - b)_k > 0}``.  A result is returned only when the
-full KKT conditions hold (primal feasibility of every row and bound within
-:data:`TOL`, ``lambda >= -TOL``, the working rows met as equalities within
-:data:`TOL`), so the point is the exact optimum; otherwise
-(no convergence in ``max_iter``, singular working set, infeasible problem) the
-caller falls back to a general solver.  The working set is seeded
-from the previous step (positive multipliers, active bounds); the method is
-only tried with such a warm start and for a few iterations, because the
-PDAS rule alone can cycle or meet inconsistent working sets on these rows
-(seen on cold starts of packed layouts, and at the circle swap's crossing,
-where it adds several rows at once and drops them again); it is left as soon as
-its working set is inconsistent (a working row not met as an equality: the set
-is dependent, and from there the rule wandered through sets of up to three times
-the part's variables at the crossing, each an expensive, ill-conditioned solve,
-before the budget ran out).  Then, from the same (its point is not solved again)
-warm start, a rule with one change per iteration (add the most violated row
-while every multiplier is >= 0, else drop the first row whose multiplier crossed
-zero, the ratio test of dual active-set methods) is tried: a working set one or
-two rows off the optimum, the usual case from one physics step to the next,
-needs as many iterations.  When both fail: ``None`` and the general solver.
-
-A problem made of independent parts (the coupled components of a team, or a
-stack of teams behind one filter call) is solved part by part in one pass
-(:func:`solve_active_set_parts`): everything above is separable by part, each
-part is verified on its own, and only the parts that fail go to the general
-solver.
+The scaled problem (:class:`aasoatt_env.safety.problem.QPProblem`) has a 2x2 block-diagonal Hessian
+``H = L L^T``.  In ``y = L^T x`` the objective is ``0.5 |y|^2 + gt'y`` and the rows and box ``M x <= b``
+become ``Mt y <= b``, ``Mt = M L^-T`` (each row still on at most two robots).  A working set ``W`` is solved
+through the Schur complement ``S = Mt_W Mt_W^T`` (a dense Cholesky up to :data:`DENSE_MAX_ROWS` rows, a
+sparse LU above).  From the previous step's working set the primal-dual rule ``W = {k: lambda_k +
+(Mt y - b)_k > 0}`` (Hintermueller, Ito, Kunisch 2002) runs, left as soon as its working set is
+inconsistent (a working row not met: a dependent set, from which the rule wanders through large,
+ill-conditioned sets); then, from the same warm start, a rule with one change per iteration (add the most
+violated row while every multiplier is >= 0, else drop the first row whose multiplier crossed zero), which
+needs as many iterations as the warm start is rows off.  A point is returned only where the full KKT
+conditions hold within :data:`TOL`, so it is the exact optimum; otherwise the caller's general solver
+answers.  A problem of independent parts (the coupled components of a team, a stack of teams) is solved
+part by part, each part verified on its own (:func:`solve_active_set_parts`).
 """
 
 from __future__ import annotations
@@ -49,10 +28,8 @@ from scipy.linalg.lapack import dpotrs as _potrs
 
 from aasoatt_env.compiled import c64, kernels
 
-__all__ = [
-    "DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "dense_least_distance_form", "least_distance_form",
-    "one_change_budget", "solve_active_set", "solve_active_set_parts",
-]
+__all__ = ["DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "dense_least_distance_form",
+           "least_distance_form", "one_change_budget", "solve_active_set", "solve_active_set_parts"]
 
 DENSE_MAX_VARS: int = 80
 """Problems up to this many variables use dense algebra, whatever their rows."""
@@ -68,12 +45,8 @@ WARM_REL: float = 1e-6
 TOL: float = 1e-10
 """Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
 ONE_CHANGE_ITER: int = 20
-"""Iterations of the one-change rule, tried from the warm start when the primal-dual rule fails.
-
-With random actions every physics step the warm start can be many rows off; a part the
-two rules do not verify goes on to the exact ``ldp`` solver, some hundred times slower
-(README, *Benchmarks*), so the budgets are generous: an iteration of a verified part
-costs nothing more (it is frozen), and the caps bound the work of a part that fails."""
+"""Iterations of the one-change rule, tried from the warm start when the primal-dual rule fails (generous: a
+part left unverified goes to a much slower general solver, and a verified part is frozen)."""
 PDAS_ITER: int = 30
 """Iterations of the primal-dual rule from the warm start (it also stops at an inconsistent working set)."""
 BOUND_TIGHT: float = 1e-9
@@ -85,17 +58,17 @@ VERIFIED_MESSAGE: str = "active set (warm, KKT verified)"
 
 
 class LeastDistanceForm(NamedTuple):
-    """The problem in ``y = L^T x`` (``H = L L^T`` block by block): ``min 0.5|y|^2 + gt'y  s.t.  Mt y <= b``."""
+    """The problem in ``y = L^T x`` (``H = L L^T`` block by block): ``min 0.5|y|^2 + gt'y  s.t.  Mt y <= b``.
+
+    ``LinvT`` ``(N, 2, 2)``: the blocks ``L^{-T}`` (``x = L^{-T} y``); ``gt = L^{-1} g``; ``Mt`` ``(m + 2n, n)``:
+    the rows, upper bounds and lower bounds in ``y`` (dense from :func:`dense_least_distance_form`); ``b``:
+    their right-hand sides ``(u, ub, -lb)``.
+    """
 
     LinvT: np.ndarray
-    """Blocks ``L^{-T}`` ``(N, 2, 2)``: ``x = L^{-T} y``."""
     gt: np.ndarray
-    """Linear term ``L^{-1} g`` ``(n,)``."""
     Mt: sp.csr_matrix | np.ndarray
-    """Rows, then upper bounds, then lower bounds, in ``y`` ``(m + 2n, n)`` (dense from
-    :func:`dense_least_distance_form`)."""
     b: np.ndarray
-    """Their right-hand sides ``(u, ub, -lb)`` ``(m + 2n,)``."""
 
     def to_x(self, y: np.ndarray) -> np.ndarray:
         """``x = L^{-T} y``."""
@@ -143,12 +116,7 @@ def _factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def dense_least_distance_form(prob) -> LeastDistanceForm | None:
-    """:func:`least_distance_form` with its rows ``Mt`` as a dense array, built without scipy.sparse.
-
-    The numbers of ``least_distance_form(prob).Mt.toarray()`` (:func:`_dense_rows`), for the
-    problems whose solvers work on dense rows (``ldp``'s NNLS); not cached (where the sparse
-    form is already cached on ``prob``, its ``toarray``).
-    """
+    """:func:`least_distance_form` with its rows ``Mt`` dense, built without scipy.sparse (the same numbers)."""
     cached = prob.__dict__.get("_least_distance_form", _UNSET)
     if cached is not _UNSET:
         return None if cached is None else cached._replace(Mt=cached.Mt.toarray())
@@ -177,11 +145,8 @@ def _least_distance_form(prob) -> LeastDistanceForm | None:
 def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
     """``LeastDistanceForm.Mt`` of ``prob`` as a dense array, built without scipy.sparse.
 
-    The same numbers as ``least_distance_form(prob).Mt.toarray()``: an entry of
-    ``C T`` is ``C[r, 2b] T[2b, c] + C[r, 2b+1] T[2b+1, c]`` (two products, one
-    addition, as the sparse product forms it), and every zero is ``+0.0`` (the
-    sparse product drops exact zeros and ``toarray`` adds the stored entries to
-    zeros).
+    The numbers of ``least_distance_form(prob).Mt.toarray()``: an entry of ``C T`` is
+    ``C[r, 2b] T[2b, c] + C[r, 2b+1] T[2b+1, c]`` as the sparse product forms it, and every zero is ``+0.0``.
     """
     n, m = prob.n, prob.m
     nb = n // 2
@@ -215,11 +180,7 @@ def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
 
 
 def _cholesky(S: np.ndarray):
-    """A solver of ``S l = v`` from LAPACK's Cholesky factor of ``S`` (``potrf``, then ``potrs`` per call), or None.
-
-    Each solve is two triangular substitutions, ``O(k^2)``: the iterative refinement
-    calls it five times per working set.  None when ``S`` is not positive definite.
-    """
+    """A solver of ``S l = v`` from LAPACK's Cholesky factor of ``S`` (``potrf``, ``potrs``); None if not PD."""
     cf, info = _potrf(S, lower=1, clean=0, overwrite_a=1)
     if info != 0:
         return None
@@ -227,18 +188,18 @@ def _cholesky(S: np.ndarray):
 
 
 class ActiveSetParts(NamedTuple):
-    """The answer of :func:`solve_active_set_parts`: the point, and where it is verified."""
+    """The answer of :func:`solve_active_set_parts`: the point, and where it is verified.
+
+    ``x`` ``(n,)``: the scaled point and ``z`` ``(m,)`` the row multipliers (``>= 0``), an unverified iterate (or
+    zeros) on unverified groups; ``iterations``: equality solves of both rules; ``ok`` ``(K,)``: the groups whose
+    part meets the KKT conditions of their own rows; ``row_group`` ``(m,)``: every row's group.
+    """
 
     x: np.ndarray
-    """Scaled point ``(n,)``; on the robots of unverified groups, an unverified iterate (or zeros)."""
     z: np.ndarray
-    """Row multipliers ``(m,)`` (``>= 0``); on the rows of unverified groups, as ``x``."""
     iterations: int
-    """Equality solves of both rules."""
     ok: np.ndarray
-    """``(K,)`` bool: the groups whose part of ``(x, z)`` meets the KKT conditions of their own rows."""
     row_group: np.ndarray
-    """``(m,)`` group of every row (of the robot its first entry belongs to; an empty row: 0)."""
 
 
 def solve_active_set(prob, x0, z0, max_iter: int = PDAS_ITER, compiled: bool = False,
@@ -261,89 +222,83 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     x0, z0 : numpy.ndarray
         Warm start (the previous step's point and row multipliers).
     groups : numpy.ndarray or None
-        ``(N,)`` group ``0..K-1`` of every robot (variable pair); no row may join two
-        groups (the components of the row graph, or a stack of teams).  None: one group.
+        ``(N,)`` group ``0..K-1`` of every robot (variable pair); no row may join two groups.  None: one group.
     max_iter : int
         Iterations of the primal-dual rule.
     compiled : bool
-        On the dense path, run the groups in the compiled kernel
-        (:mod:`aasoatt_env.safety.solvers.active_set_kernel`; ``ImportError`` without numba):
-        each group's part verified by the same check, points to rounding.
+        On the dense path, run the groups in the compiled kernel (``ImportError`` without numba): each
+        group's part verified by the same check, points to rounding.
     one_change_iter : int, optional
-        Iterations of the one-change rule (None: :data:`ONE_CHANGE_ITER`; the decentralised filter's
-        negotiation groups give it more: their warm starts are further off).
+        Iterations of the one-change rule (None: :data:`ONE_CHANGE_ITER`).
 
-    The problem is separable by group, and so is everything the method does: the
-    Schur complement is block diagonal, the primal-dual rule acts row by row, and the
-    one-change rule makes one change per group.  A group whose part of an iterate meets
-    the KKT conditions is kept from then on (its working set frozen: the other groups'
-    changes do not touch it); the others iterate.  Returns ``None`` where the method
-    does not apply (no warm start, a Hessian block not positive definite, an odd size,
-    ``groups`` that a row joins, or that are not one non-negative label per robot).
+    Everything the method does is separable by group (the Schur complement is block diagonal, the rules
+    act row by row or once per group); a group whose part of an iterate meets the KKT conditions is kept
+    from then on, the others iterate.  Returns ``None`` where the method does not apply (no warm start, a
+    Hessian block not positive definite, an odd size, ``groups`` not one label per robot, or joined by a row).
     """
     n, m = prob.n, prob.m
-    if n == 0 or n % 2:
-        return None
-    if z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
+    if n == 0 or n % 2 or z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
         return None
     one_change_iter = one_change_budget(one_change_iter)
     dense = n <= DENSE_MAX_VARS or n * (m + 2 * n) <= DENSE_MAX_CELLS
     compiled = compiled and dense and getattr(prob.C, "format", None) == "csr"
+    rows = _rows(prob, dense, compiled)
+    labels = None if rows is None else _row_groups(prob, groups)
+    if labels is None:
+        return None
+    (LinvT, gt, M, b), (K, rg, groups) = rows, labels
+    # the warm working set: rows whose multiplier was positive at the previous step (relative to the largest:
+    # solvers leave ~1e-10 on slack rows) and the bounds the point is at
+    W0 = np.zeros(m + 2 * n, dtype=bool)
+    W0[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), WARM_FLOOR) if m else False
+    W0[m:m + n] = x0 >= prob.ub - BOUND_TIGHT
+    W0[m + n:] = x0 <= prob.lb + BOUND_TIGHT
+    if compiled:
+        out = _solve_compiled(prob, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, rg)
+        if out is not None:
+            return out
+        M = _dense_rows(prob, LinvT)  # a row with repeated entries: the reference's dense rows
+    loop = _WorkingSetLoop(functools.partial(_equality_point, M, dense, gt, b), rg, K)
+    W = W0
+    for rule, budget in ((_pdas_rule, max_iter), (_one_change_rule, one_change_iter)):
+        # the groups not yet verified start each rule from the warm start
+        W = loop.run(np.where(loop.done[rg], W, W0), rule, budget, stop_inconsistent=rule is _pdas_rule)
+        if loop.done.all():
+            break
+    return _answer(LinvT, np.zeros(n) if loop.y is None else loop.y, loop.lam, loop.used, loop.done, rg, m)
+
+
+def _rows(prob, dense: bool, compiled: bool) -> tuple | None:
+    """``(L^-T blocks, gt, rows Mt (dense, or None for the kernel), b)``; None if a block is not positive definite."""
     if dense:  # the dense rows straight from C (no sparse products for these small problems)
         factor = _factor(prob)
         if factor is None:
             return None
         LinvT, gt = factor
-        Md, Mt, b = None if compiled else _dense_rows(prob, LinvT), None, np.concatenate((prob.u, prob.ub, -prob.lb))
-    else:
-        form = least_distance_form(prob)
-        if form is None:
-            return None
-        LinvT, gt, Mt, b = form.LinvT, form.gt, form.Mt, form.b
-        Md = None
-    mt = m + 2 * n
+        return LinvT, gt, None if compiled else _dense_rows(prob, LinvT), np.concatenate((prob.u, prob.ub, -prob.lb))
+    form = least_distance_form(prob)
+    return None if form is None else (form.LinvT, form.gt, form.Mt, form.b)
+
+
+def _row_groups(prob, groups: np.ndarray | None) -> tuple[int, np.ndarray, np.ndarray] | None:
+    """``(K, the group of every row and bound, the robots' groups)``; None if ``groups`` are not independent parts.
+
+    A row's group is that of the robot of its first entry (an empty row's: 0).
+    """
+    n, m = prob.n, prob.m
     if groups is None:
-        K, rg = 1, np.zeros(mt, dtype=np.intp)
-    else:
-        groups = np.asarray(groups, dtype=np.intp)
-        if groups.shape != (n // 2,) or (groups.size and groups.min() < 0):
-            return None  # not a labelling 0..K-1 of the robots (the compiled kernel indexes by it)
-        K = int(groups.max(initial=-1)) + 1
-        C = prob.C.tocsr()
-        nnz = C.indices.shape[0]
-        # a row's group: that of the robot of its first entry (an empty row: group 0)
-        first = C.indices[np.minimum(C.indptr[:-1], nnz - 1)] // 2 if nnz else np.zeros(m, dtype=np.intp)
-        vg = np.repeat(groups, 2)
-        rg = np.concatenate((np.where(np.diff(C.indptr) > 0, groups[first], 0), vg, vg))
-        if not np.array_equal(vg[C.indices], np.repeat(rg[:m], np.diff(C.indptr))):
-            return None  # not independent parts: a row joins two groups
-    # initial working set: rows whose multiplier was positive at the previous step (relative to
-    # the largest: solvers leave ~1e-10 multipliers on slack rows, which would crowd the working
-    # set); no tightness test, since the state has moved since and the rows with it
-    W0 = np.zeros(mt, dtype=bool)
-    W0[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), WARM_FLOOR) if m else False
-    W0[m:m + n] = x0 >= prob.ub - BOUND_TIGHT
-    W0[m + n:] = x0 <= prob.lb + BOUND_TIGHT
-    if compiled:
-        out = _solve_compiled(prob, LinvT, gt, b, W0, np.zeros(n // 2, np.int64) if groups is None else groups, K,
-                              max_iter, one_change_iter, rg)
-        if out is not None:
-            return out
-        Md = _dense_rows(prob, LinvT)  # a row with repeated entries: the reference's dense rows
-    eq = functools.partial(_equality_point, Md if dense else Mt, dense, gt, b)
-    loop = _WorkingSetLoop(eq, rg, K)
-    W = W0
-    for rule, budget in ((_pdas_rule, max_iter), (_one_change_rule, one_change_iter)):
-        # the groups not yet verified start each rule from the warm start; the primal-dual rule leaves a group
-        # whose working set turned inconsistent (a working row not met as an equality: a dependent set, from
-        # which it wanders through large ill-conditioned sets, seen at the circle swap's crossing)
-        W = loop.run(np.where(loop.done[rg], W, W0), rule, budget, stop_inconsistent=rule is _pdas_rule)
-        if loop.done.all():
-            break
-    if not loop.done.any():
-        return ActiveSetParts(np.zeros(n), np.zeros(m), loop.used, loop.done, rg[:m])
-    x = np.einsum("nij,nj->ni", LinvT, loop.y.reshape(-1, 2)).ravel()
-    return ActiveSetParts(x, np.maximum(loop.lam[:m], 0.0), loop.used, loop.done, rg[:m])
+        return 1, np.zeros(m + 2 * n, dtype=np.intp), np.zeros(n // 2, np.int64)
+    groups = np.asarray(groups, dtype=np.intp)
+    if groups.shape != (n // 2,) or (groups.size and groups.min() < 0):
+        return None  # not a labelling 0..K-1 of the robots (the compiled kernel indexes by it)
+    C = prob.C.tocsr()
+    nnz = C.indices.shape[0]
+    first = C.indices[np.minimum(C.indptr[:-1], nnz - 1)] // 2 if nnz else np.zeros(m, dtype=np.intp)
+    vg = np.repeat(groups, 2)
+    rg = np.concatenate((np.where(np.diff(C.indptr) > 0, groups[first], 0), vg, vg))
+    if not np.array_equal(vg[C.indices], np.repeat(rg[:m], np.diff(C.indptr))):
+        return None  # a row joins two groups
+    return int(groups.max(initial=-1)) + 1, rg, groups
 
 
 def one_change_budget(value: int | None) -> int:
@@ -361,12 +316,16 @@ def _solve_compiled(prob, LinvT: np.ndarray, gt: np.ndarray, b: np.ndarray, W0: 
         np.ascontiguousarray(C.indptr, np.int64), np.ascontiguousarray(C.indices, np.int64), c64(C.data), m, n,
         c64(LinvT), c64(gt), c64(b), np.ascontiguousarray(W0), np.ascontiguousarray(groups, np.int64), K, max_iter,
         one_change_iter, TOL, y, lam, done)
-    if used < 0:
-        return None
+    return None if used < 0 else _answer(LinvT, y, lam, int(used), done, rg, m)
+
+
+def _answer(LinvT: np.ndarray, y: np.ndarray, lam: np.ndarray, used: int, done: np.ndarray, rg: np.ndarray,
+            m: int) -> ActiveSetParts:
+    """The answer from the point ``y`` and the multipliers of every row and bound (zeros where none verified)."""
     if not done.any():
-        return ActiveSetParts(np.zeros(n), np.zeros(m), int(used), done, rg[:m])
+        return ActiveSetParts(np.zeros(y.shape[0]), np.zeros(m), used, done, rg[:m])
     x = np.einsum("nij,nj->ni", LinvT, y.reshape(-1, 2)).ravel()
-    return ActiveSetParts(x, np.maximum(lam[:m], 0.0), int(used), done, rg[:m])
+    return ActiveSetParts(x, np.maximum(lam[:m], 0.0), used, done, rg[:m])
 
 
 def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray):
@@ -385,27 +344,25 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
     if isinstance(S, np.ndarray):
         Sr = S + 0.0  # S + delta * I without the identity: off the diagonal S + 0.0, on it S + delta
         Sr.flat[:: k + 1] += delta
-        if k <= DENSE_MAX_ROWS:
-            solve = _cholesky(Sr)
-            if solve is None:
-                return None
-        else:
-            try:
-                solve = spla.splu(sp.csc_matrix(Sr)).solve
-            except RuntimeError:
-                return None
+        solve = _cholesky(Sr) if k <= DENSE_MAX_ROWS else _splu(sp.csc_matrix(Sr))
     else:
-        try:
-            lu = spla.splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
-        except RuntimeError:
-            return None
-        solve = lu.solve
+        solve = _splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
+    if solve is None:
+        return None
     lw = _refine(solve, S, rhs)
     if not np.all(np.isfinite(lw)):
         return None
     y = -gt - Mw.T @ lw
     lam[idx] = lw
     return y, lam, (M @ y) - b
+
+
+def _splu(A, **options):
+    """A solver of ``A l = v`` from scipy's sparse LU of ``A``, or None where it is singular."""
+    try:
+        return spla.splu(A, **options).solve
+    except RuntimeError:
+        return None
 
 
 def _pdas_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.ndarray | None,
@@ -432,11 +389,9 @@ def _one_change_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.nda
                      rg: np.ndarray, todo: np.ndarray) -> np.ndarray:
     """One change per group of ``todo``: add its most violated row while its multipliers are >= 0, else drop one.
 
-    The row dropped is the first whose multiplier crosses zero on the way from the previous
-    working set's multipliers ``prev`` to these (the ratio test of dual active-set methods,
-    Goldfarb and Idnani 1983): after a row is added, a working set that became (nearly)
-    dependent has large negative multipliers on rows that need not leave, and the most
-    negative one is often the wrong one.  Without such a row, the most negative multiplier.
+    The row dropped is the first whose multiplier crosses zero on the way from the previous working set's
+    multipliers ``prev`` to these (the ratio test of dual active-set methods, Goldfarb and Idnani 1983: a
+    nearly dependent set has large negative multipliers on rows that need not leave); else the most negative.
     """
     K = todo.shape[0]
     Wn = W.copy()
@@ -488,8 +443,7 @@ class _WorkingSetLoop:
     def run(self, W: np.ndarray, rule, max_iter: int, stop_inconsistent: bool = False) -> np.ndarray:
         """Iterate ``rule`` from ``W`` for at most ``max_iter`` equality solves; the last working set.
 
-        ``stop_inconsistent``: a group whose working rows are not all met as equalities (within
-        :data:`TOL`) stops iterating this rule.
+        ``stop_inconsistent``: a group whose working rows are not all met as equalities stops this rule.
         """
         rg, K = self.rg, self.K
         prev = None
@@ -499,9 +453,8 @@ class _WorkingSetLoop:
             if point is None:  # singular working set: the groups verified so far stand
                 break
             y, lam, r = point
-            # KKT: stationarity holds by construction; feasibility, dual signs, and the working rows
-            # met as equalities (complementarity: a dependent, inconsistent working set fails here)
-            # (written as what must hold, so a NaN anywhere fails its group)
+            # KKT (stationarity holds by construction): feasibility, dual signs, the working rows met as
+            # equalities; written as what must hold, so a NaN anywhere fails its group
             met = ~W | (np.abs(r) <= TOL)
             ok_row = (r <= TOL) & (lam >= -TOL) & met
             bad = np.zeros(K, dtype=bool)

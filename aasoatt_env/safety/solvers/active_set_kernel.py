@@ -1,48 +1,16 @@
 """The warm active set compiled (numba; imported only through :mod:`aasoatt_env.compiled`).
 
-:func:`solve_parts` is :func:`aasoatt_env.safety.solvers.active_set.solve_active_set_parts`
-on its dense path, written once per group (an independent part of the problem:
-a coupled component of a team, or a team of a stack) instead of once per array
-operation on the whole problem.  Each group's rows (its own rows of ``C``, then
-the upper and then the lower bounds of its variables, in the global order, so
-every "first index" tie is broken as the reference breaks it) are formed in
-``y = L^T x`` entry by entry as
-:func:`~aasoatt_env.safety.solvers.active_set._dense_rows` forms them, and kept
-sparse (a row touches at most two robots); then the primal-dual rule from the
-warm start (left when the working set turns inconsistent), then the one-change
-rule from the warm start (whose point is not solved again), each equality point
-from a Cholesky factor of the regularised Schur complement with four steps of
-iterative refinement, and the same KKT check (primal feasibility, multiplier
-signs, the working rows met as equalities, all within
-:data:`~aasoatt_env.safety.solvers.active_set.TOL`).  A group is kept at the
-first point that passes it; the caller sends the others to the general solver,
-as with the reference.
-
-Where the two differ:
-
-- sums are added in another order (the Schur complement block by block, the
-  factor and its solves with reassociated, vectorised sums; BLAS in the
-  reference), the factor is this module's Cholesky also above 500 working rows
-  (the reference switches to a sparse LU there): the points agree to rounding;
-- so where a working set is dependent (more rows than the part's variables,
-  met by the primal-dual rule from a poor start), the regularised solve is
-  ill-conditioned (multipliers ~1e9) and the last bits decide the next working
-  set: the two may then verify different parts (tests: never from the filter's
-  warm starts seen, about 2% of parts from cold starts); an unverified part
-  goes to the general solver, whose answer is the same optimum;
-- the Schur complement's regularisation ``1e-9`` times its largest diagonal
-  entry is the group's here, the whole working set's in the reference: a group
-  whose working rows are all zero rows (``0 <= b``) is singular here (its
-  regularisation vanishes) and can be verified there; on parts scaled 1e3 apart
-  in one stack, the kernel verified ~4% more parts than the reference (an
-  adversarial tester's count; none differed on real teams);
-- a singular working set ends that group's rule here; in the reference it ends
-  the rule for every group not yet verified (those groups then go on to the
-  next rule or the general solver);
-- an unverified group's part of the returned point and multipliers is zero (the
-  reference leaves its last iterate there; the caller reads neither);
-- the iterations reported are the largest count of equality solves of any
-  group (the reference counts its whole-problem solves).
+:func:`solve_parts` is :func:`aasoatt_env.safety.solvers.active_set.solve_active_set_parts` on its dense
+path, once per group (an independent part: a component of a team, a team of a stack).  A group's rows (its
+rows of ``C``, then its upper and lower bounds, in the global order, so every first-index tie breaks as in
+the reference) are formed in ``y = L^T x`` entry by entry as ``active_set._dense_rows`` forms them and kept
+sparse; then the same rules, equality points (Cholesky of the regularised Schur complement, four refinement
+steps) and KKT check, a group kept at the first point that passes it.  Where the two differ: sums run in
+another order (points to rounding; on a dependent working set the last bits may pick another next set, so
+the two may verify different parts, whose answer the general solver then gives); the Cholesky is used above
+500 working rows too; the regularisation is the group's own (a group of zero rows only is singular here);
+a singular working set ends that group's rule only; an unverified group's part of the answer is zero; the
+iterations reported are the most of any group.
 """
 
 from __future__ import annotations
@@ -300,51 +268,99 @@ def _run(rb, rc, nl, nv, gt, b, W0, rule, budget, tol, W, Wn, prev, idx, rhs, lw
 
 
 @_jit
-def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, tol,
-                y_out, lam_out, done):
-    """Every group's warm active set (module docstring); fills ``y_out (n,)``, ``lam_out (m + 2n,)``, ``done (K,)``.
+def _by_group(indptr, indices, m, nb, groups, K):
+    """Robots and rows sorted by group (stable counting sorts): ``(robots, their starts, rows, their starts)``.
 
-    ``groups (n / 2,)`` and ``K`` as the caller checked them (no row joins two groups; a row's group is that of its
-    first entry, an empty row's 0).  Returns the largest count of equality solves of a group, or a negative
-    number where the rows are not of the form this kernel handles (a row with unsorted or repeated columns, or
-    on more than two robots): the caller takes the reference path.
+    The robots' starts are ``[-1]`` where a row's columns are unsorted or repeated (not the reference's rows).
     """
-    nb = n // 2
-    # robots and rows by group (counting sorts, stable)
-    rstart = np.zeros(K + 1, dtype=np.int64)
+    rstart, qstart = np.zeros(K + 1, dtype=np.int64), np.zeros(K + 1, dtype=np.int64)
+    row_group = np.zeros(m, dtype=np.int64)
     for i in range(nb):
         rstart[groups[i] + 1] += 1
-    row_group = np.zeros(m, dtype=np.int64)
     for q in range(m):
         if indptr[q + 1] > indptr[q]:
             row_group[q] = groups[indices[indptr[q]] // 2]
         for e in range(indptr[q] + 1, indptr[q + 1]):
             if indices[e] <= indices[e - 1]:
-                return -1  # unsorted or repeated columns: not the dense rows of the reference
-    qstart = np.zeros(K + 1, dtype=np.int64)
-    for q in range(m):
+                return rstart, np.full(1, -1, dtype=np.int64), row_group, qstart
         qstart[row_group[q] + 1] += 1
     for g in range(K):
         rstart[g + 1] += rstart[g]
         qstart[g + 1] += qstart[g]
-    robots = np.empty(nb, dtype=np.int64)
+    robots, rows = np.empty(nb, dtype=np.int64), np.empty(m, dtype=np.int64)
     fill = rstart[:K].copy()
     for i in range(nb):
         robots[fill[groups[i]]] = i
         fill[groups[i]] += 1
-    rows = np.empty(m, dtype=np.int64)
     fill = qstart[:K].copy()
     for q in range(m):
         rows[fill[row_group[q]]] = q
         fill[row_group[q]] += 1
-    # largest group, for the work arrays
-    nvmax, nlmax = 0, 0
+    return robots, rstart, rows, qstart
+
+
+@_jit
+def _group_rows(g, srt, indptr, indices, data, m, n, LinvT, gt, b, W0, loc, rb, rc, gidx, bl, W0l, gl):
+    """Group ``g``'s rows of ``C T``, entry by entry as the reference forms them, then its bounds (``+-L^-T``).
+
+    Fills the local rows' robot blocks ``rb`` (-1: none) and coefficients ``rc``, their global indices,
+    right-hand sides and warm set, and the group's ``gt``; returns ``(variables, rows)``, or ``(-1, -1)`` for
+    a row on more than two robots.
+    """
+    robots, rstart, rows, qstart = srt
+    r0, nbg, mg = rstart[g], rstart[g + 1] - rstart[g], qstart[g + 1] - qstart[g]
+    nv = 2 * nbg
+    for a in range(nbg):
+        loc[robots[r0 + a]] = a
+    rb[:mg + 2 * nv] = -1
+    rc[:mg + 2 * nv] = 0.0
+    for j in range(mg):
+        q = rows[qstart[g] + j]
+        gidx[j], bl[j], W0l[j] = q, b[q], W0[q]
+        for e in range(indptr[q], indptr[q + 1]):
+            blk, half = indices[e] // 2, indices[e] % 2
+            a = loc[blk]
+            u = 0 if (rb[j, 0] < 0 or rb[j, 0] == a) else 1
+            if rb[j, u] >= 0 and rb[j, u] != a:
+                return -1, -1
+            rb[j, u] = a
+            for c in range(2):
+                rc[j, u, c] += data[e] * LinvT[blk, half, c]
+    for a in range(nbg):
+        blk = robots[r0 + a]
+        for half in range(2):
+            vg = 2 * blk + half
+            ju, jl = mg + 2 * a + half, mg + nv + 2 * a + half
+            gidx[ju], gidx[jl] = m + vg, m + n + vg
+            bl[ju], bl[jl] = b[m + vg], b[m + n + vg]
+            W0l[ju], W0l[jl] = W0[m + vg], W0[m + n + vg]
+            gl[2 * a + half] = gt[vg]
+            rb[ju, 0] = rb[jl, 0] = a
+            for c in range(2):
+                rc[ju, 0, c] = LinvT[blk, half, c] + 0.0
+                rc[jl, 0, c] = -LinvT[blk, half, c] + 0.0
+    return nv, mg + 2 * nv
+
+
+@_jit
+def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, tol,
+                y_out, lam_out, done):
+    """Every group's warm active set (module docstring); fills ``y_out (n,)``, ``lam_out (m + 2n,)``, ``done (K,)``.
+
+    ``groups (n / 2,)`` and ``K`` as the caller checked them.  Returns the most equality solves of a group, or
+    a negative number where the rows are not of the form this kernel handles (unsorted or repeated columns,
+    a row on more than two robots): the caller takes the reference path.
+    """
+    nb = n // 2
+    srt = _by_group(indptr, indices, m, nb, groups, K)
+    robots, rstart, _, qstart = srt
+    if rstart[0] < 0:
+        return -1
+    nvmax, nlmax = 0, 0  # the largest group, for the work arrays
     for g in range(K):
         nv = 2 * (rstart[g + 1] - rstart[g])
-        nvmax = max(nvmax, nv)
-        nlmax = max(nlmax, (qstart[g + 1] - qstart[g]) + 2 * nv)
-    rb = np.empty((nlmax, 2), np.int64)  # the local robot blocks of each local row (-1: none)
-    rc = np.empty((nlmax, 2, 2))  # and the row's two coefficients on each
+        nvmax, nlmax = max(nvmax, nv), max(nlmax, (qstart[g + 1] - qstart[g]) + 2 * nv)
+    rb, rc = np.empty((nlmax, 2), np.int64), np.empty((nlmax, 2, 2))
     gl, bl = np.empty(nvmax), np.empty(nlmax)
     W0l, W, Wn = np.empty(nlmax, np.bool_), np.empty(nlmax, np.bool_), np.empty(nlmax, np.bool_)
     prev, idx = np.zeros(nlmax), np.empty(nlmax, np.int64)
@@ -353,47 +369,12 @@ def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_it
     yf, lamf, rf = np.empty(nvmax), np.empty(nlmax), np.empty(nlmax)  # the first working set's point
     first = np.zeros(2, np.bool_)
     bstart, blist = np.empty(nvmax // 2 + 1, np.int64), np.empty((2 * nlmax, 2), np.int64)
-    gidx = np.empty(nlmax, np.int64)  # global index of each local row
-    loc = np.full(nb, -1, np.int64)  # local block of each robot of the group
+    gidx, loc = np.empty(nlmax, np.int64), np.full(nb, -1, np.int64)  # each local row's index, robot's block
     used_max = 0
     for g in range(K):
-        r0, r1 = rstart[g], rstart[g + 1]
-        nbg = r1 - r0
-        nv = 2 * nbg
-        mg = qstart[g + 1] - qstart[g]
-        nl = mg + 2 * nv
-        for a in range(nbg):
-            loc[robots[r0 + a]] = a
-        rb[:nl] = -1
-        rc[:nl] = 0.0
-        for j in range(mg):  # the group's rows of C T, entry by entry as the reference forms them
-            q = rows[qstart[g] + j]
-            gidx[j] = q
-            bl[j] = b[q]
-            W0l[j] = W0[q]
-            for e in range(indptr[q], indptr[q + 1]):
-                col = indices[e]
-                blk, half = col // 2, col % 2
-                a = loc[blk]
-                u = 0 if (rb[j, 0] < 0 or rb[j, 0] == a) else 1
-                if rb[j, u] >= 0 and rb[j, u] != a:
-                    return -2  # a row on three robots: not these problems' rows
-                rb[j, u] = a
-                for c in range(2):
-                    rc[j, u, c] += data[e] * LinvT[blk, half, c]
-        for a in range(nbg):  # the bounds: +-L^-T blocks
-            blk = robots[r0 + a]
-            for half in range(2):
-                vg = 2 * blk + half
-                ju, jl = mg + 2 * a + half, mg + nv + 2 * a + half
-                gidx[ju], gidx[jl] = m + vg, m + n + vg
-                bl[ju], bl[jl] = b[m + vg], b[m + n + vg]
-                W0l[ju], W0l[jl] = W0[m + vg], W0[m + n + vg]
-                gl[2 * a + half] = gt[vg]
-                rb[ju, 0] = rb[jl, 0] = a
-                for c in range(2):
-                    rc[ju, 0, c] = LinvT[blk, half, c] + 0.0
-                    rc[jl, 0, c] = -LinvT[blk, half, c] + 0.0
+        nv, nl = _group_rows(g, srt, indptr, indices, data, m, n, LinvT, gt, b, W0, loc, rb, rc, gidx, bl, W0l, gl)
+        if nv < 0:
+            return -2
         first[0] = first[1] = False
         ok, used = _run(rb, rc, nl, nv, gl, bl, W0l, 0, max_iter, tol, W, Wn, prev, idx, rhs, lw, tmp, res, y,
                         lam, r, bstart, blist, first, yf, lamf, rf)
@@ -403,12 +384,11 @@ def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_it
             used += used2
         used_max = max(used_max, used)
         done[g] = ok
-        if ok:
-            for a in range(nbg):
-                blk = robots[r0 + a]
+        for a in range(nv // 2):
+            blk = robots[rstart[g] + a]
+            if ok:
                 y_out[2 * blk], y_out[2 * blk + 1] = y[2 * a], y[2 * a + 1]
-            for j in range(nl):
-                lam_out[gidx[j]] = lam[j]
-        for a in range(nbg):
-            loc[robots[r0 + a]] = -1
+            loc[blk] = -1
+        for j in range(nl if ok else 0):
+            lam_out[gidx[j]] = lam[j]
     return used_max

@@ -1,28 +1,16 @@
 """Exact fallback solver for the safety QP: least-distance programming by NNLS.
 
-The scaled problem (:class:`aasoatt_env.safety.problem.QPProblem`) has a 2x2
-block-diagonal Hessian ``H = L L^T``.  With ``y = L^T x`` and ``w = y + L^{-1} g``
-it is the *least-distance problem*
-
-    min 0.5 |w|^2   s.t.   Mt w <= hb,
-
-``Mt`` the rows and both box sides in ``y`` coordinates and
-``hb = b + Mt L^{-1} g``.  Lawson and Hanson (*Solving Least Squares Problems*,
-1974, ch. 23) solve it exactly with one non-negative least-squares problem
-``min |E u - f|, u >= 0``, ``E = -[Mt^T; hb^T]``, ``f = (0, ..., 0, 1)``:
-with ``r = E u - f``, ``r_last = 0`` means the rows are inconsistent, otherwise
-``w = -r[:-1] / r_last`` and ``u / (-r_last)`` are the multipliers.  NNLS is an
-active-set method with finite termination (:func:`scipy.optimize.nnls`), so
-this needs nothing beyond scipy and does not stall the way an augmented
-Lagrangian can on the degenerate, congested problems of a large team (the
-README's known limits record the 60-robot circle swap where proxsuite ran out of
-iterations).
-
-The point is then handed, with its multipliers, to the structured active-set
-method (:func:`aasoatt_env.safety.solvers.active_set.solve_active_set`), which accepts
-it only where the full KKT conditions hold to ``1e-10``; where that polish does
-not converge the NNLS point is returned if it is feasible to :data:`FEAS_TOL`.
-Dense algebra: used for problems up to :data:`MAX_VARS` variables.
+With ``H = L L^T`` block by block, ``y = L^T x`` and ``w = y + L^{-1} g``, the scaled problem
+(:class:`aasoatt_env.safety.problem.QPProblem`) is the least-distance problem ``min 0.5 |w|^2  s.t.
+Mt w <= hb`` (``Mt`` the rows and both box sides in ``y``, ``hb = b + Mt L^{-1} g``).  Lawson and Hanson
+(*Solving Least Squares Problems*, ch. 23) solve it with one non-negative least-squares problem
+``min |E u - f|, u >= 0``, ``E = -[Mt^T; hb^T]``, ``f = (0, ..., 0, 1)``: with ``r = E u - f``, ``r_last = 0``
+means the rows are inconsistent, else ``w = -r[:-1] / r_last`` and ``u / (-r_last)`` are the multipliers.
+NNLS is an active-set method with finite termination (:func:`scipy.optimize.nnls`), so it does not stall
+on the degenerate, congested problems of a large team.  The point is then polished by the warm active set
+(:func:`~aasoatt_env.safety.solvers.active_set.solve_active_set`, accepted only where the KKT conditions
+hold), or returned unpolished where it is feasible to :data:`FEAS_TOL`.  Dense: up to :data:`MAX_VARS`
+variables.
 """
 
 from __future__ import annotations
@@ -41,25 +29,12 @@ FEAS_TOL: float = 1e-9
 
 
 def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.ndarray | None, str]:
-    """Solve ``prob`` (a :class:`~aasoatt_env.safety.problem.QPProblem`) exactly.
+    """Solve ``prob`` (a :class:`~aasoatt_env.safety.problem.QPProblem`) exactly: ``(x, z, message)``.
 
-    Parameters
-    ----------
-    prob : QPProblem
-        The scaled problem; rows or bounds at ``+-inf`` (``|b| >= 1e19``) are dropped.
-    feas_tol : float
-        Largest row violation accepted for a point the KKT polish did not verify
-        (the phase-1 problem, whose violations are recomputed, passes a looser one).
-
-    Returns
-    -------
-    x : numpy.ndarray or None
-        Optimum in scaled coordinates, or ``None`` when the solver gives no
-        answer (inconsistent rows, too large, numerical failure).
-    z : numpy.ndarray or None
-        Row multipliers ``(m,)`` (``>= 0``).
-    message : str
-        What happened.
+    Rows or bounds at ``+-inf`` (``|b| >= 1e19``) are dropped; ``feas_tol``: the largest row violation accepted
+    for a point the KKT polish did not verify.  ``x`` is the optimum in scaled coordinates and ``z`` the row
+    multipliers (``>= 0``), both None where there is no answer (inconsistent rows, too large, a numerical
+    failure); ``message`` says what happened.
     """
     n, m = prob.n, prob.m
     if n == 0 or n % 2:

@@ -1,41 +1,14 @@
-"""Exact solver for many independent 2-variable QPs at once (the decentralised filter's per-robot QPs).
+"""Every robot's 2-variable QP at once, exactly: the decentralised filter's local solver.
 
-Robot ``k`` solves::
-
-    min  0.5 x' H_k x + g_k' x   s.t.  lb_k <= x <= ub_k,   G_r x <= h_r  for its rows r
-
-with ``H_k`` a 2x2 symmetric positive definite matrix.  In ``y = L_k^T x``
-(``H_k = L_k L_k^T``, closed-form 2x2 Cholesky) the objective is
-``0.5 |y - y0|^2 + const`` with ``y0 = -L^-1 g`` and every constraint, the four
-bounds included, is a half-plane ``n' y <= b`` (normalised, ``|n| = 1``): each
-QP is the projection of a point onto a convex polygon.
-
-Method, vectorised across robots with masks (no Python loop over robots or rows):
-
-0. a robot whose unconstrained minimiser meets its bounds and all its rows is
-   answered by it (exactly; most robots of a spread-out team);
-1. the constraints of the other robots are packed into an ``(N, K)`` table (four
-   bound slots, then the robot's rows, padded with slots never violated);
-2. the dual active-set method of Goldfarb and Idnani specialised to the plane:
-   add the most violated constraint, taking a partial step and dropping the
-   active constraint whose multiplier reaches zero first; at most two
-   constraints are active; a new constraint that depends on the active ones with
-   no positive coefficient proves the polygon empty (a Farkas certificate of at
-   most three constraints);
-3. a KKT check on the point recomputed from the final active set (primal
-   feasibility of every constraint and multiplier signs within
-   ``tol * (1 + |y0|_inf)``), and a check of each infeasibility certificate;
-4. robots not verified (iteration cap, a failed check) are solved by exact
-   enumeration: every candidate point (``y0``, the projection onto each single
-   constraint line, each vertex of two non-parallel lines) with its multipliers;
-   the optimum is the nearest candidate that is feasible with non-negative
-   multipliers, and the polygon is empty when there is none.
-
-With ``relax=True`` a robot whose polygon is empty gets the least-violation
-answer of its own QP, as :func:`aasoatt_env.safety.solvers.policy.solve_qp` gives
-the centralised one: phase 1 finds the least violation ``s_r`` of each of its
-rows with the bounds hard (:func:`least_violation`), every row is loosened by
-``s_r (1 + 1e-6)`` plus a tolerance, and the loosened QP is solved by steps 2-4.
+Robot ``k`` solves ``min 0.5 x' H_k x + g_k' x  s.t.  lb_k <= x <= ub_k, G_r x <= h_r`` for its rows ``r``,
+``H_k`` symmetric positive definite.  In ``y = L_k^T x`` (``H_k = L_k L_k^T``, a closed-form Cholesky) the
+objective is ``0.5 |y - y0|^2 + const``, ``y0 = -L^-1 g``, and every constraint, the bounds included, a unit
+half-plane ``n' y <= b``: each QP projects a point onto a convex polygon.  A robot whose unconstrained
+minimiser meets its bounds and rows is answered by it; the others' half-planes are packed into a table
+and projected by :mod:`~aasoatt_env.safety.solvers.polygon`.  With ``relax=True`` a robot whose polygon is
+empty gets its own least-violation answer, as :func:`aasoatt_env.safety.solvers.policy.solve_qp` gives the
+centralised one: phase 1 (:func:`least_violation`) finds each row's least violation ``s_r`` with the bounds
+hard, every row is loosened by ``s_r (1 + 1e-6)`` plus a tolerance, and the loosened polygon is projected.
 """
 
 from __future__ import annotations
@@ -45,6 +18,7 @@ from typing import NamedTuple
 import numpy as np
 
 from aasoatt_env.compiled import c64, kernels
+from aasoatt_env.safety.solvers.polygon import PAD_B, State, Table, solve
 
 __all__ = ["LocalSolution", "least_violation", "solve_local_qps"]
 
@@ -54,35 +28,26 @@ MAX_ITER: int = 50
 """Active-set iterations before the unfinished robots go to the enumeration."""
 RELAX_TOL: float = 1e-7
 """Default loosening on top of the least violation, in units of the normalised row (the policy's value)."""
-_EPS_Z = 1e-22
-"""A new constraint whose normal has less than this squared component off the active ones depends on them."""
-_EPS_R = 1e-14
-"""Coefficients of a dependent normal below this count as non-positive."""
-_PAD_B = 1e300
-"""Right-hand side of padding slots (never violated)."""
-_ENUM_CHUNK = 1 << 20
-"""Largest candidate-by-constraint table of one enumeration chunk (elements)."""
 
 
 class LocalSolution(NamedTuple):
-    """Answer of :func:`solve_local_qps`."""
+    """Answer of :func:`solve_local_qps`.
+
+    ``x`` ``(N, 2)``: the minimisers within the bounds (an infeasible robot's least-violation answer with
+    ``relax``, else its minimiser over the bounds alone); ``lam`` ``(M,)``: the rows' multipliers in their own
+    units (of the loosened row for relaxed robots; 0 on infeasible robots' rows without ``relax``); ``lam_box``
+    ``(N, 2, 2)``: the bounds' (``[:, 0]`` of ``x <= ub``, ``[:, 1]`` of ``x >= lb``); ``feasible``: the robot's
+    polygon is non-empty; ``loosened`` ``(M,)``: each row's loosening in its own units; ``iterations``:
+    active-set iterations (the most of any robot and pass); ``n_enumerated``: robots the enumeration answered.
+    """
 
     x: np.ndarray
-    """Minimisers ``(N, 2)`` (within the bounds).  Infeasible robots: their least-violation answer with
-    ``relax=True``, else the minimiser over the bounds alone."""
     lam: np.ndarray
-    """Multiplier of each row ``(M,)`` (``>= 0``) in the units of the objective and of the row as given
-    (of the loosened row for relaxed robots; 0 on rows of infeasible robots without ``relax``)."""
     lam_box: np.ndarray
-    """Multipliers of the bounds ``(N, 2, 2)``: ``[:, 0]`` of ``x <= ub``, ``[:, 1]`` of ``x >= lb``."""
     feasible: np.ndarray
-    """``(N,)``: the robot's own polygon is non-empty."""
     loosened: np.ndarray
-    """How much each row was loosened ``(M,)`` in its own units (0 except on rows of relaxed robots)."""
     iterations: int
-    """Active-set iterations run (the largest over the robots and the two passes)."""
     n_enumerated: int
-    """Robots answered by the exact enumeration."""
 
 
 def _cholesky(H: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -119,30 +84,14 @@ def _slots(owner: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return slot, counts
 
 
-class _Table(NamedTuple):
-    """Half-planes ``n' y <= b`` of every robot, padded to ``(N, K)``; slots 0-3 are the bounds."""
-
-    nx: np.ndarray
-    ny: np.ndarray
-    b: np.ndarray
-    row: np.ndarray
-    """Row of each slot ``(N, K)``, -1 for the bounds and padding."""
-
-
-def _table(linv, lb, ub, owner, G, h, tol_k, infeasible, zero_bad) -> _Table:
-    """Build the :class:`_Table`.
-
-    A zero row with a negative right-hand side (``0 <= h < 0``, left out of the table)
-    marks its robot infeasible and itself in ``zero_bad``.
-    """
+def _table(linv, lb, ub, owner, G, h, tol_k, infeasible, zero_bad) -> Table:
+    """Build the :class:`Table`; a zero row with ``h < 0`` (left out) marks its robot infeasible and itself bad."""
     n = lb.shape[0]
     i11, i21, i22 = linv  # L^-1 = [[i11, 0], [i21, i22]]
     slot, counts = _slots(owner, n)
     K = 4 + int(counts.max(initial=0))
-    nx = np.zeros((n, K))
-    ny = np.zeros((n, K))
-    b = np.full((n, K), _PAD_B)
-    row = np.full((n, K), -1, dtype=np.intp)
+    nx, ny = np.zeros((n, K)), np.zeros((n, K))
+    b, row = np.full((n, K), PAD_B), np.full((n, K), -1, dtype=np.intp)
     # bounds: x_i <= ub_i is (L^-1 e_i)' y <= ub_i; L^-1 e_0 = (i11, i21), L^-1 e_1 = (0, i22)
     s0 = np.sqrt(i11 * i11 + i21 * i21)
     nx[:, 0], ny[:, 0], b[:, 0] = i11 / s0, i21 / s0, ub[:, 0] / s0
@@ -153,8 +102,7 @@ def _table(linv, lb, ub, owner, G, h, tol_k, infeasible, zero_bad) -> _Table:
         ax = i11[owner] * G[:, 0]
         ay = i21[owner] * G[:, 0] + i22[owner] * G[:, 1]
         nrm = np.sqrt(ax * ax + ay * ay)
-        # a row whose normal vanishes (relative to the robot's bounds) reads 0 <= h
-        zero = nrm <= 1e-300 + 1e-14 * np.minimum(s0, i22)[owner]
+        zero = nrm <= 1e-300 + 1e-14 * np.minimum(s0, i22)[owner]  # a vanishing normal: the row reads 0 <= h
         if np.any(zero):
             zb = np.flatnonzero(zero & (h < -tol_k[owner]))
             infeasible[owner[zb]] = True
@@ -168,315 +116,34 @@ def _table(linv, lb, ub, owner, G, h, tol_k, infeasible, zero_bad) -> _Table:
         ny.reshape(-1)[fi] = ay * inv
         b.reshape(-1)[fi] = hh * inv
         row.reshape(-1)[fi] = ok
-    return _Table(nx, ny, b, row)
+    return Table(nx, ny, b, row)
 
 
-def _vertex(n1x, n1y, b1, n2x, n2y, b2):
-    """Intersection of two lines ``n' y = b`` (arrays; NaN/inf where parallel) and the determinant."""
-    det = n1x * n2y - n1y * n2x
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return (b1 * n2y - b2 * n1y) / det, (n1x * b2 - n2x * b1) / det, det
-
-
-class _State:
-    """Active-set state of every robot of a table (1-D arrays)."""
-
-    def __init__(self, n: int, y0: np.ndarray) -> None:
-        self.yx, self.yy = y0[:, 0].copy(), y0[:, 1].copy()
-        self.nw = np.zeros(n, dtype=np.intp)
-        self.w0 = np.zeros(n, dtype=np.intp)
-        self.w1 = np.zeros(n, dtype=np.intp)
-        self.l1 = np.zeros(n)
-        self.l2 = np.zeros(n)
-        self.p = np.full(n, -1, dtype=np.intp)
-        self.lp = np.zeros(n)
-        self.status = np.zeros(n, dtype=np.int8)  # 0 running, 1 optimal, 2 certificate, 3 enumerate
-        self.r1 = np.zeros(n)  # coefficients of a dependent new constraint (infeasibility certificate)
-        self.r2 = np.zeros(n)
-
-    def reset(self, idx: np.ndarray, y0: np.ndarray) -> None:
-        self.yx[idx], self.yy[idx] = y0[idx, 0], y0[idx, 1]
-        for arr in (self.nw, self.w0, self.w1, self.l1, self.l2, self.lp, self.status, self.r1, self.r2):
-            arr[idx] = 0
-        self.p[idx] = -1
-
-
-def _active_set(T: _Table, S: _State, y0, tol_k, start, max_iter) -> int:
-    """Goldfarb-Idnani in the plane for robots ``start`` of ``T`` (module docstring step 2); iterations run.
-
-    Each iteration first gives every robot without a constraint in progress the most
-    violated one (or finishes it), then takes one step per robot, by the size of its
-    active set: none (a full step onto the new constraint), one (a full step to the
-    vertex, or a partial step that drops the old constraint), two (a partial step that
-    drops one of them, or the certificate of an empty polygon).
-    """
-    K = T.nx.shape[1]
-    NX, NY, B = T.nx.reshape(-1), T.ny.reshape(-1), T.b.reshape(-1)
-    n = T.nx.shape[0]
-    act = start
-    iterations = 0
-    for it in range(max_iter):
-        if act.size == 0:
-            break
-        iterations = it + 1
-        need = act[S.p[act] < 0]
-        if need.size:
-            if need.size == n:
-                V = T.nx * S.yx[:, None] + T.ny * S.yy[:, None] - T.b
-            else:
-                V = T.nx[need] * S.yx[need, None] + T.ny[need] * S.yy[need, None] - T.b[need]
-            kmax = V.argmax(axis=1)
-            vmax = V.reshape(-1)[np.arange(need.size) * K + kmax]
-            fine = vmax <= tol_k[need]
-            if np.any(fine):
-                S.status[need[fine]] = 1
-                act = act[S.status[act] == 0]
-                if act.size == 0:
-                    break
-                kmax, need = kmax[~fine], need[~fine]
-            S.p[need] = kmax
-            S.lp[need] = 0.0
-        k = S.nw[act]
-        dead = []
-        # ---- no active constraint: a full step onto n_p
-        a = act[k == 0]
-        if a.size:
-            pk = S.p[a]
-            ip = a * K + pk
-            npx, npy = NX[ip], NY[ip]
-            t = (npx * S.yx[a] + npy * S.yy[a] - B[ip]) / (npx * npx + npy * npy)
-            S.yx[a] -= t * npx
-            S.yy[a] -= t * npy
-            S.w0[a], S.l1[a], S.nw[a], S.p[a], S.lp[a] = pk, S.lp[a] + t, 1, -1, 0.0
-        # ---- one active constraint n1
-        a = act[k == 1]
-        if a.size:
-            pk, w0 = S.p[a], S.w0[a]
-            ip, i0 = a * K + pk, a * K + w0
-            npx, npy, n1x, n1y = NX[ip], NY[ip], NX[i0], NY[i0]
-            yx, yy, l1 = S.yx[a], S.yy[a], S.l1[a]
-            r1 = n1x * npx + n1y * npy
-            zx, zy = npx - r1 * n1x, npy - r1 * n1y
-            zz = zx * zx + zy * zy
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t1 = np.where(zz > _EPS_Z, (npx * yx + npy * yy - B[ip]) / zz, np.inf)
-                q1 = np.where(r1 > _EPS_R, l1 / r1, np.inf)
-            full = t1 <= q1
-            t = np.minimum(t1, q1)
-            bad = ~np.isfinite(t)
-            if np.any(bad):
-                dead.append((a[bad], r1[bad], np.zeros(int(bad.sum()))))
-                t[bad] = 0.0
-                full &= ~bad
-            S.yx[a], S.yy[a] = yx - t * zx, yy - t * zy
-            lpa = S.lp[a] + t
-            S.l1[a] = np.where(full, np.maximum(l1 - t * r1, 0.0), 0.0)  # a partial step drops n1
-            S.w1[a], S.l2[a] = np.where(full, pk, S.w1[a]), np.where(full, lpa, 0.0)
-            S.nw[a] = np.where(full, 2, np.where(bad, 1, 0))
-            S.p[a], S.lp[a] = np.where(full, -1, pk), np.where(full, 0.0, lpa)
-        # ---- two active constraints n1, n2 (they span the plane): partial steps only
-        a = act[k == 2]
-        if a.size:
-            pk, w0, w1 = S.p[a], S.w0[a], S.w1[a]
-            ip, i0, i1 = a * K + pk, a * K + w0, a * K + w1
-            npx, npy, n1x, n1y, n2x, n2y = NX[ip], NY[ip], NX[i0], NY[i0], NX[i1], NY[i1]
-            l1, l2 = S.l1[a], S.l2[a]
-            det = n1x * n2y - n1y * n2x
-            r1 = (npx * n2y - npy * n2x) / det
-            r2 = (n1x * npy - n1y * npx) / det
-            with np.errstate(divide="ignore", invalid="ignore"):
-                q1 = np.where(r1 > _EPS_R, l1 / r1, np.inf)
-                q2 = np.where(r2 > _EPS_R, l2 / r2, np.inf)
-            t = np.minimum(q1, q2)
-            bad = ~np.isfinite(t)
-            if np.any(bad):
-                dead.append((a[bad], r1[bad], r2[bad]))
-                t[bad] = 0.0
-            l1, l2 = np.maximum(l1 - t * r1, 0.0), np.maximum(l2 - t * r2, 0.0)
-            drop0 = (q1 <= q2) & ~bad  # n1 leaves: n2 moves into its place
-            S.w0[a], S.l1[a] = np.where(drop0, w1, w0), np.where(drop0, l2, l1)
-            S.l2[a] = np.where(bad, l2, 0.0)
-            S.nw[a] = np.where(bad, 2, 1)
-            S.lp[a] += t
-        if dead:
-            d = np.concatenate([x[0] for x in dead])
-            S.status[d] = 2
-            S.r1[d] = np.concatenate([x[1] for x in dead])
-            S.r2[d] = np.concatenate([x[2] for x in dead])
-            act = act[S.status[act] == 0]
-    S.status[act] = 3  # iteration cap
-    return iterations
-
-
-def _verify(T: _Table, S: _State, y0, tol_k, idx) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Module docstring step 3 for robots ``idx``: recompute the optimal points, check certificates.
-
-    Returns the points ``(len(idx), 2)`` and multipliers ``(len(idx), 2)`` of the active slots; robots that
-    fail a check get status 3.
-    """
-    K = T.nx.shape[1]
-    NX, NY, B = T.nx.reshape(-1), T.ny.reshape(-1), T.b.reshape(-1)
-    y = y0[idx].copy()
-    mu = np.zeros((idx.shape[0], 2))
-    st = S.status[idx]
-    moved = np.flatnonzero((st == 1) & (S.nw[idx] > 0))
-    if moved.size:
-        r = idx[moved]
-        i0, i1 = r * K + S.w0[r], r * K + S.w1[r]
-        n1x, n1y, b1, n2x, n2y, b2 = NX[i0], NY[i0], B[i0], NX[i1], NY[i1], B[i1]
-        k = S.nw[r]
-        yx, yy = y0[r, 0], y0[r, 1]
-        m1 = n1x * yx + n1y * yy - b1
-        m2 = np.zeros(r.size)
-        px, py = yx - m1 * n1x, yy - m1 * n1y
-        two = k == 2
-        if np.any(two):
-            vx, vy, det = _vertex(n1x, n1y, b1, n2x, n2y, b2)
-            dx, dy = yx - vx, yy - vy
-            with np.errstate(divide="ignore", invalid="ignore"):
-                m1 = np.where(two, (dx * n2y - dy * n2x) / det, m1)
-                m2 = np.where(two, (n1x * dy - n1y * dx) / det, 0.0)
-            px, py = np.where(two, vx, px), np.where(two, vy, py)
-        V = T.nx[r] * px[:, None] + T.ny[r] * py[:, None] - T.b[r]
-        vmax = V.reshape(-1)[np.arange(r.size) * K + V.argmax(axis=1)]
-        tk = tol_k[r]
-        ok = (vmax <= tk) & (m1 >= -tk) & (m2 >= -tk) & np.isfinite(px) & np.isfinite(py)
-        y[moved, 0], y[moved, 1] = px, py
-        mu[moved, 0], mu[moved, 1] = np.maximum(m1, 0.0), np.maximum(m2, 0.0)
-        S.status[r[~ok]] = 3
-    dead = idx[st == 2]
-    if dead.size:
-        k = S.nw[dead]
-        ip, i0, i1 = dead * K + S.p[dead], dead * K + S.w0[dead], dead * K + S.w1[dead]
-        f1, f2 = (k >= 1) * S.r1[dead], (k == 2) * S.r2[dead]
-        # n_p = r1 n1 + r2 n2 with r <= 0: n_p'y <= b_p and -r_k n_k'y <= -r_k b_k add up to 0 <= b_p - r'b
-        resx = NX[ip] - f1 * NX[i0] - f2 * NX[i1]
-        resy = NY[ip] - f1 * NY[i0] - f2 * NY[i1]
-        gap = B[ip] - f1 * B[i0] - f2 * B[i1]
-        conf = (gap < -tol_k[dead]) & (np.hypot(resx, resy) <= 1e-9) & (f1 <= _EPS_R) & (f2 <= _EPS_R)
-        S.status[dead[~conf]] = 3
-    return y, mu
-
-
-def _enumerate(T: _Table, idx, y0, tol_k):
-    """Exact enumeration for robots ``idx`` (module docstring step 4): ``(y, w (., 2), nw, mu (., 2), feasible)``."""
-    K = T.nx.shape[1]
-    out_y = np.zeros((idx.shape[0], 2))
-    out_w = np.zeros((idx.shape[0], 2), dtype=np.intp)
-    out_nw = np.zeros(idx.shape[0], dtype=np.intp)
-    out_mu = np.zeros((idx.shape[0], 2))
-    out_ok = np.zeros(idx.shape[0], dtype=bool)
-    if idx.size == 0:
-        return out_y, out_w, out_nw, out_mu, out_ok
-    valid = T.b[idx] < _PAD_B
-    last = K - 1 - valid[:, ::-1].argmax(axis=1)  # the bounds are always valid
-    kk = int(last.max()) + 1
-    ia, ib = np.triu_indices(kk, k=1)
-    n_cand = 1 + kk + ia.size
-    chunk = max(1, _ENUM_CHUNK // (n_cand * K))
-    for s in range(0, idx.size, chunk):
-        sub = idx[s:s + chunk]
-        r = sub.shape[0]
-        nx, ny, b = T.nx[sub][:, :kk], T.ny[sub][:, :kk], T.b[sub][:, :kk]
-        yx0, yy0 = y0[sub, 0:1], y0[sub, 1:2]
-        mu_s = nx * yx0 + ny * yy0 - b  # projections onto single lines
-        sx, sy = yx0 - mu_s * nx, yy0 - mu_s * ny
-        vx, vy, det = _vertex(nx[:, ia], ny[:, ia], b[:, ia], nx[:, ib], ny[:, ib], b[:, ib])  # vertices
-        dx, dy = yx0 - vx, yy0 - vy
-        with np.errstate(divide="ignore", invalid="ignore"):
-            m1 = (dx * ny[:, ib] - dy * nx[:, ib]) / det
-            m2 = (nx[:, ia] * dy - ny[:, ia] * dx) / det
-        cx = np.concatenate((yx0, sx, vx), axis=1)
-        cy = np.concatenate((yy0, sy, vy), axis=1)
-        mua = np.concatenate((np.zeros((r, 1)), mu_s, m1), axis=1)
-        mub = np.concatenate((np.zeros((r, 1 + kk)), m2), axis=1)
-        tk = tol_k[sub][:, None]
-        good = np.concatenate((np.ones((r, 1), bool), mu_s >= -tk, (np.abs(det) > 1e-12) & (m1 >= -tk) & (m2 >= -tk)),
-                              axis=1)
-        good &= np.isfinite(cx) & np.isfinite(cy)
-        with np.errstate(invalid="ignore", over="ignore"):
-            viol = (T.nx[sub][:, None, :] * cx[:, :, None] + T.ny[sub][:, None, :] * cy[:, :, None]
-                    - T.b[sub][:, None, :]).max(axis=2)
-        good &= viol <= tk
-        dist = np.where(good, (cx - yx0) ** 2 + (cy - yy0) ** 2, np.inf)
-        best = dist.argmin(axis=1)
-        rr = np.arange(r)
-        feas = np.isfinite(dist[rr, best])
-        sl = slice(s, s + r)
-        out_ok[sl] = feas
-        out_y[sl, 0], out_y[sl, 1] = cx[rr, best], cy[rr, best]
-        single = (best >= 1) & (best <= kk)
-        pair = best > kk
-        pj = np.maximum(best - 1 - kk, 0)
-        out_nw[sl] = np.where(pair, 2, np.where(single, 1, 0))
-        out_w[sl, 0] = np.where(pair, ia[pj], np.where(single, best - 1, 0))
-        out_w[sl, 1] = np.where(pair, ib[pj], 0)
-        out_mu[sl, 0] = np.where(feas & (best >= 1), np.maximum(mua[rr, best], 0.0), 0.0)
-        out_mu[sl, 1] = np.where(feas & pair, np.maximum(mub[rr, best], 0.0), 0.0)
-    return out_y, out_w, out_nw, out_mu, out_ok
-
-
-def _solve(T: _Table, S: _State, y0, tol_k, idx, max_iter) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Steps 2-4 for robots ``idx``: points ``y``, active multipliers ``mu`` ``(len(idx), 2)``, iterations, enumerated.
-
-    Sets ``S.status`` (1 optimal, 2 infeasible) and the active slots ``S.w0, S.w1, S.nw`` of ``idx``.
-    """
-    its = _active_set(T, S, y0, tol_k, idx, max_iter)
-    y, mu = _verify(T, S, y0, tol_k, idx)
-    enum = np.flatnonzero(S.status[idx] == 3)
-    if enum.size:
-        e = idx[enum]
-        ye, we, nwe, mue, oke = _enumerate(T, e, y0, tol_k)
-        S.status[e] = np.where(oke, 1, 2)
-        y[enum], mu[enum] = ye, mue
-        S.w0[e], S.w1[e], S.nw[e] = we[:, 0], we[:, 1], nwe
-    return y, mu, its, int(enum.size)
-
-
-def solve_local_qps(
-    H: np.ndarray,
-    g: np.ndarray,
-    lb: np.ndarray,
-    ub: np.ndarray,
-    owner: np.ndarray,
-    G: np.ndarray,
-    h: np.ndarray,
-    *,
-    relax: bool = False,
-    relax_tol: float | np.ndarray = RELAX_TOL,
-    tol: float = TOL,
-    max_iter: int = MAX_ITER,
-    compiled: bool = False,
-) -> LocalSolution:
+def solve_local_qps(H: np.ndarray, g: np.ndarray, lb: np.ndarray, ub: np.ndarray, owner: np.ndarray, G: np.ndarray,
+                    h: np.ndarray, *, relax: bool = False, relax_tol: float | np.ndarray = RELAX_TOL, tol: float = TOL,
+                    max_iter: int = MAX_ITER, compiled: bool = False) -> LocalSolution:
     """Solve every robot's 2-variable QP exactly (module docstring).
 
     Parameters
     ----------
-    H : numpy.ndarray
-        Hessian blocks ``(N, 2, 2)``, symmetric positive definite.
-    g : numpy.ndarray
-        Linear terms ``(N, 2)``.
+    H, g : numpy.ndarray
+        Hessian blocks ``(N, 2, 2)``, symmetric positive definite, and linear terms ``(N, 2)``.
     lb, ub : numpy.ndarray
         Bounds ``(N, 2)`` with ``lb <= ub``.
-    owner : numpy.ndarray
-        Robot of each row ``(M,)``, in ``[0, N)``.
-    G : numpy.ndarray
-        Row coefficients ``(M, 2)``.
-    h : numpy.ndarray
-        Row right-hand sides ``(M,)``.
+    owner, G, h : numpy.ndarray
+        The rows ``G_r x <= h_r``: each row's robot ``(M,)`` in ``[0, N)``, coefficients ``(M, 2)``, right-hand
+        sides ``(M,)`` (``+inf``: a row that never binds).
     relax : bool
         Answer robots whose polygon is empty with their least-violation point (module docstring).
     relax_tol : float or numpy.ndarray
-        Loosening on top of each least violation (per robot ``(N,)`` or one value), in units of the
-        row normalised in ``x``.
+        Loosening on top of each least violation (one value or ``(N,)``), in units of the row normalised in ``x``.
     tol : float
         KKT tolerance on the normalised half-planes, relative to ``1 + |y0|_inf``.
     max_iter : int
         Active-set iterations before the enumeration answers the rest.
     compiled : bool
-        Solve in the compiled kernel (:mod:`aasoatt_env.safety.solvers.local_kernel`, one loop over
-        the robots; ``ImportError`` without numba): the same decisions, numbers to rounding
-        (:mod:`aasoatt_env.compiled`).
+        Solve in the compiled kernel (:mod:`aasoatt_env.safety.solvers.local_kernel`; ``ImportError`` without
+        numba): the same decisions, numbers to rounding.
 
     Returns
     -------
@@ -484,15 +151,30 @@ def solve_local_qps(
 
     Notes
     -----
-    The KKT tolerance is relative to ``1 + |y0|_inf`` (``y0`` the unconstrained minimiser in the
-    metric of the objective): an unconstrained minimiser far outside the bounds' scale (a nominal
-    of 1e10 against bounds of 1) loosens the check with it.  The filter clips each robot's nominal
-    to its bounds before it forms ``g``, which keeps ``|y0|`` at the bounds' scale.
+    The KKT tolerance is relative to ``1 + |y0|_inf`` (``y0`` the unconstrained minimiser in the metric of
+    the objective): an unconstrained minimiser far outside the bounds' scale loosens the check with it.  The
+    filter clips each robot's nominal to its bounds before it forms ``g``, which keeps ``|y0|`` at their scale.
     """
-    H = np.asarray(H, dtype=np.float64)
-    g = np.asarray(g, dtype=np.float64)
-    lb = np.asarray(lb, dtype=np.float64)
-    ub = np.asarray(ub, dtype=np.float64)
+    H, g, lb, ub, owner, G, h, rt = _checked(H, g, lb, ub, owner, G, h, relax_tol, tol, max_iter)
+    n, m = g.shape[0], owner.shape[0]
+    out = LocalSolution(np.empty((n, 2)), np.zeros(m), np.zeros((n, 2, 2)), np.ones(n, dtype=bool), np.zeros(m), 0, 0)
+    if n == 0:
+        return out
+    if compiled:
+        bad = np.zeros(n, dtype=bool)
+        its, n_enum = kernels("local").solve_all(
+            *(c64(a) for a in (H, g, lb, ub)), np.ascontiguousarray(owner, dtype=np.int64), c64(G), c64(h),
+            bool(relax), c64(np.broadcast_to(rt, (n,))), float(tol), int(max_iter), *out[:5], bad)
+        if np.any(bad):
+            _bad_blocks(np.flatnonzero(bad))
+        return out._replace(iterations=int(its), n_enumerated=int(n_enum))
+    its, n_enum = _solve_all(H, g, lb, ub, owner, G, h, relax, rt, tol, max_iter, out)
+    return out._replace(iterations=its, n_enumerated=n_enum)
+
+
+def _checked(H, g, lb, ub, owner, G, h, relax_tol, tol, max_iter) -> tuple:
+    """The arguments of :func:`solve_local_qps` as arrays; ``ValueError`` naming a bad one."""
+    H, g, lb, ub = (np.asarray(a, dtype=np.float64) for a in (H, g, lb, ub))
     owner = np.asarray(owner, dtype=np.intp).reshape(-1)
     G = np.asarray(G, dtype=np.float64).reshape(-1, 2)
     h = np.asarray(h, dtype=np.float64).reshape(-1)
@@ -519,128 +201,136 @@ def solve_local_qps(
         raise ValueError(f"relax_tol: got shape {rt.shape}, expected one value or one per robot ({n},)")
     if not (np.all(np.isfinite(rt)) and np.all(rt >= 0)):
         raise ValueError("relax_tol: expected finite values >= 0")
-    x = np.empty((n, 2))
-    lam = np.zeros(m)
-    lam_box = np.zeros((n, 2, 2))
-    feasible = np.ones(n, dtype=bool)
-    loosened = np.zeros(m)
-    if n == 0:
-        return LocalSolution(x, lam, lam_box, feasible, loosened, 0, 0)
-    if compiled:
-        bad = np.zeros(n, dtype=bool)
-        rt = np.broadcast_to(rt, (n,))
-        its, n_enum = kernels("local").solve_all(
-            *(c64(a) for a in (H, g, lb, ub)), np.ascontiguousarray(owner, dtype=np.int64), c64(G), c64(h),
-            bool(relax), c64(rt), float(tol), int(max_iter), x, lam, lam_box, feasible, loosened, bad)
-        if np.any(bad):
-            _bad_blocks(np.flatnonzero(bad))
-        return LocalSolution(x, lam, lam_box, feasible, loosened, int(its), int(n_enum))
+    return H, g, lb, ub, owner, G, h, rt
+
+
+class _Sub(NamedTuple):
+    """The robots ``sub`` left to solve, their rows ``rsel`` (``owner`` renumbered), ``L^-1``, ``L``, ``y0``, bounds."""
+
+    sub: np.ndarray
+    rsel: np.ndarray
+    owner: np.ndarray
+    G: np.ndarray
+    h: np.ndarray
+    linv: tuple
+    lfac: tuple
+    y0: np.ndarray
+    lb: np.ndarray
+    ub: np.ndarray
+    tol_k: np.ndarray
+
+
+def _solve_all(H, g, lb, ub, owner, G, h, relax: bool, rt, tol: float, max_iter: int,
+               out: LocalSolution) -> tuple[int, int]:
+    """The numpy path of :func:`solve_local_qps`: fills ``out``'s arrays; ``(iterations, robots enumerated)``."""
+    x, lam, lam_box, feasible, loosened = out[:5]
+    s = _unconstrained(H, g, lb, ub, owner, G, h, tol, x)
+    if s is None:
+        return 0, 0
+    ns = s.sub.size
+    zero_infeasible, zero_bad = np.zeros(ns, dtype=bool), np.zeros(s.h.shape[0], dtype=bool)
+    T = _table(s.linv, s.lb, s.ub, s.owner, s.G, s.h, s.tol_k, zero_infeasible, zero_bad)
+    S = State(ns, s.y0)
+    S.status[zero_infeasible] = 2  # a row 0 <= h < 0: infeasible as it stands
+    start = np.flatnonzero(~zero_infeasible)
+    y, mu, its, n_enum = solve(T, S, s.y0, s.tol_k, start, max_iter)
+    ys, mus = s.y0.copy(), np.zeros((ns, 2))
+    ys[start], mus[start] = y, mu
+    feasible[s.sub] = S.status == 1
+    bad = np.flatnonzero(S.status != 1)
+    if bad.size and relax:
+        its2, n2 = _relax(T, S, s, bad, np.broadcast_to(rt, (x.shape[0],))[s.sub], ys, mus, loosened, max_iter)
+        its, n_enum = max(its, its2), n_enum + n2
+        zb = np.flatnonzero(zero_bad)
+        loosened[s.rsel[zb]] = -s.h[zb] * (1.0 + 1e-6)  # a zero row is met by loosening it to 0 <= 0
+    i11, i21, i22 = s.linv
+    xs = np.stack((i11 * ys[:, 0] + i21 * ys[:, 1], i22 * ys[:, 1]), axis=1)
+    x[s.sub] = np.minimum(np.maximum(xs, s.lb), s.ub)
+    _multipliers(T, S, s, mus, lam, lam_box)
+    still = s.sub[(S.status == 2) | (S.status == 3)]
+    if still.size:  # infeasible without relax (or a failed relaxation): the minimiser over the bounds alone
+        x[still] = solve_local_qps(H[still], g[still], lb[still], ub[still], np.zeros(0, np.intp), np.zeros((0, 2)),
+                                   np.zeros(0), tol=tol, max_iter=max_iter).x
+    return its, n_enum
+
+
+def _unconstrained(H, g, lb, ub, owner, G, h, tol: float, x: np.ndarray) -> _Sub | None:
+    """Step 0: ``x`` the unconstrained minimisers; the robots that they leave (None: none)."""
+    n, m = g.shape[0], owner.shape[0]
     l11, l21, l22 = _cholesky(H)
     i11, i22 = 1.0 / l11, 1.0 / l22
     i21 = -l21 * i11 * i22
     y0 = np.stack((-i11 * g[:, 0], -(i21 * g[:, 0] + i22 * g[:, 1])), axis=1)  # -L^-1 g
-    x[:, 0] = i11 * y0[:, 0] + i21 * y0[:, 1]  # the unconstrained minimiser L^-T y0
+    x[:, 0] = i11 * y0[:, 0] + i21 * y0[:, 1]  # L^-T y0
     x[:, 1] = i22 * y0[:, 1]
-    # step 0: robots whose unconstrained minimiser meets its bounds and every row are done
     cons = (x[:, 0] < lb[:, 0]) | (x[:, 0] > ub[:, 0]) | (x[:, 1] < lb[:, 1]) | (x[:, 1] > ub[:, 1])
     if m:
         viol = G[:, 0] * x[owner, 0] + G[:, 1] * x[owner, 1] - h
         cons |= np.bincount(owner[viol > 0.0], minlength=n) > 0
     sub = np.flatnonzero(cons)
     if sub.size == 0:
-        return LocalSolution(x, lam, lam_box, feasible, loosened, 0, 0)
+        return None
     if sub.size < n:
         remap = np.full(n, -1, dtype=np.intp)
         remap[sub] = np.arange(sub.size)
         rsel = np.flatnonzero(cons[owner]) if m else np.zeros(0, dtype=np.intp)
-        s_owner = remap[owner[rsel]]
-        Gs, hs = G[rsel], h[rsel]
+        s_owner, Gs, hs = remap[owner[rsel]], G[rsel], h[rsel]
     else:
         rsel, s_owner, Gs, hs = np.arange(m), owner, G, h
-    ns = sub.size
-    si11, si21, si22 = i11[sub], i21[sub], i22[sub]
-    sy0, slb, sub_ = y0[sub], lb[sub], ub[sub]
+    sy0 = y0[sub]
     tol_k = tol * (1.0 + np.maximum(np.abs(sy0[:, 0]), np.abs(sy0[:, 1])))
-    zero_infeasible = np.zeros(ns, dtype=bool)
-    zero_bad = np.zeros(hs.shape[0], dtype=bool)
-    T = _table((si11, si21, si22), slb, sub_, s_owner, Gs, hs, tol_k, zero_infeasible, zero_bad)
-    S = _State(ns, sy0)
-    S.status[zero_infeasible] = 2  # a row 0 <= h < 0: infeasible as it stands
-    start = np.flatnonzero(~zero_infeasible)
-    y, mu, its, n_enum = _solve(T, S, sy0, tol_k, start, max_iter)
-    ys = sy0.copy()
-    mus = np.zeros((ns, 2))
-    ys[start], mus[start] = y, mu
-    feas = S.status == 1
-    feasible[sub] = feas
-    bad = np.flatnonzero(~feas)
-    if bad.size and relax:
-        rt = np.broadcast_to(rt, (n,))[sub]
-        its2, n2 = _relax(T, S, sy0, tol_k, bad, (l11[sub], l21[sub], l22[sub]), slb, sub_, Gs, rt,
-                          ys, mus, loosened, rsel, max_iter)
-        its, n_enum = max(its, its2), n_enum + n2
-        zb = np.flatnonzero(zero_bad)
-        loosened[rsel[zb]] = -hs[zb] * (1.0 + 1e-6)  # a zero row is met by loosening it to 0 <= 0
-    xs = np.stack((si11 * ys[:, 0] + si21 * ys[:, 1], si22 * ys[:, 1]), axis=1)
-    x[sub] = np.minimum(np.maximum(xs, slb), sub_)
-    # multipliers of the active slots, in the units of the rows as given: mu / |L^-1 G_r|
+    return _Sub(sub, rsel, s_owner, Gs, hs, (i11[sub], i21[sub], i22[sub]), (l11[sub], l21[sub], l22[sub]), sy0,
+                lb[sub], ub[sub], tol_k)
+
+
+def _multipliers(T: Table, S: State, s: _Sub, mus, lam, lam_box) -> None:
+    """The optimal robots' active multipliers into ``lam`` and ``lam_box``, in the units of the rows as given."""
+    i11, i21, i22 = s.linv
     done = np.flatnonzero(S.status == 1)
     K = T.nx.shape[1]
-    s0 = np.sqrt(si11 * si11 + si21 * si21)
-    for s, wk in ((0, S.w0), (1, S.w1)):
-        sel = done[S.nw[done] > s]
+    s0 = np.sqrt(i11 * i11 + i21 * i21)
+    for k, wk in ((0, S.w0), (1, S.w1)):
+        sel = done[S.nw[done] > k]
         slot = wk[sel]
         r = T.row.reshape(-1)[sel * K + slot]
         isrow = r >= 0
         rs, ss = sel[isrow], r[isrow]
-        a_x = si11[rs] * Gs[ss, 0]
-        a_y = si21[rs] * Gs[ss, 0] + si22[rs] * Gs[ss, 1]
-        np.add.at(lam, rsel[ss], mus[rs, s] / np.sqrt(a_x * a_x + a_y * a_y))
-        bs = sel[~isrow]
-        bslot = slot[~isrow]
-        np.add.at(lam_box, (sub[bs], bslot // 2, bslot % 2), mus[bs, s] / np.where(bslot % 2 == 0, s0[bs], si22[bs]))
-    still = sub[(S.status == 2) | (S.status == 3)]
-    if still.size:  # infeasible without relax (or a failed relaxation): the minimiser over the bounds alone
-        box_only = solve_local_qps(H[still], g[still], lb[still], ub[still], np.zeros(0, np.intp), np.zeros((0, 2)),
-                                   np.zeros(0), tol=tol, max_iter=max_iter)
-        x[still] = box_only.x
-    return LocalSolution(x, lam, lam_box, feasible, loosened, its, n_enum)
+        a_x = i11[rs] * s.G[ss, 0]
+        a_y = i21[rs] * s.G[ss, 0] + i22[rs] * s.G[ss, 1]
+        np.add.at(lam, s.rsel[ss], mus[rs, k] / np.sqrt(a_x * a_x + a_y * a_y))  # mu / |L^-1 G_r|
+        bs, bslot = sel[~isrow], slot[~isrow]
+        np.add.at(lam_box, (s.sub[bs], bslot // 2, bslot % 2), mus[bs, k] / np.where(bslot % 2 == 0, s0[bs], i22[bs]))
 
 
-def _relax(T, S, y0, tol_k, bad, lfac, lb, ub, Gs, rtol, ys, mus, loosened, rsel, max_iter):
+def _relax(T: Table, S: State, s: _Sub, bad, rtol, ys, mus, loosened, max_iter: int) -> tuple[int, int]:
     """Least-violation answers of the infeasible robots ``bad`` (table indices); fills ``ys, mus, loosened``."""
-    l11, l21, l22 = (v[bad] for v in lfac)
+    l11, l21, l22 = (v[bad] for v in s.lfac)
+    i11, i21, i22 = (v[bad] for v in s.linv)
     nx, ny, b = T.nx[bad, 4:], T.ny[bad, 4:], T.b[bad, 4:]  # the rows (the bounds stay hard)
-    real = b < _PAD_B
+    real = b < PAD_B
     # the rows normalised in x: G ~ L n, so G / |G| = L n / |L n|, h / |G| = b / |L n|
     gx = l11[:, None] * nx
     gy = l21[:, None] * nx + l22[:, None] * ny
     ln = np.sqrt(gx * gx + gy * gy)
     inv = 1.0 / np.where(real, ln, 1.0)
-    gx, gy = gx * inv, gy * inv
-    hh = np.where(real, b * inv, _PAD_B)
-    # start from the active-set point where it stopped (inside the bounds after clipping)
-    i11, i22 = 1.0 / l11, 1.0 / l22
-    i21 = -l21 * i11 * i22
+    gx, gy, hh = gx * inv, gy * inv, np.where(real, b * inv, PAD_B)
+    # from the active set's last point (inside the bounds after clipping)
     x0 = np.stack((i11 * S.yx[bad] + i21 * S.yy[bad], i22 * S.yy[bad]), axis=1)
-    x0 = np.minimum(np.maximum(np.where(np.isfinite(x0), x0, 0.0), lb[bad]), ub[bad])
-    x1, viol = _lv_core(gx, gy, hh, lb[bad], ub[bad], x0)
+    x0 = np.minimum(np.maximum(np.where(np.isfinite(x0), x0, 0.0), s.lb[bad]), s.ub[bad])
+    x1, viol = _lv_core(gx, gy, hh, s.lb[bad], s.ub[bad], x0)
     loosen_n = (viol * (1.0 + 1e-6) + rtol[bad][:, None]) * real  # in normalised x units
     T.b[bad, 4:] = b + loosen_n * ln  # in y units: (G x - h) / |L^-1 G| = |L n| * (G x - h) / |G|
     rows = T.row[bad, 4:][real]
-    gn = np.sqrt(Gs[rows, 0] ** 2 + Gs[rows, 1] ** 2)
-    loosened[rsel[rows]] = loosen_n[real] * gn
-    S.reset(bad, y0)
-    y, mu, its, n_enum = _solve(T, S, y0, tol_k, bad, max_iter)
+    loosened[s.rsel[rows]] = loosen_n[real] * np.sqrt(s.G[rows, 0] ** 2 + s.G[rows, 1] ** 2)
+    S.reset(bad, s.y0)
+    y, mu, its, n_enum = solve(T, S, s.y0, s.tol_k, bad, max_iter)
     ok = S.status[bad] == 1
     ys[bad] = np.where(ok[:, None], y, 0.0)
     mus[bad] = np.where(ok[:, None], mu, 0.0)
-    # a failed relaxation (not seen) keeps the phase-1 point
     fail = ~ok
-    if np.any(fail):
-        l11f, l21f, l22f = l11[fail], l21[fail], l22[fail]
-        ys[bad[fail], 0] = l11f * x1[fail, 0] + l21f * x1[fail, 1]
-        ys[bad[fail], 1] = l22f * x1[fail, 1]
+    if np.any(fail):  # a failed relaxation keeps the phase-1 point
+        ys[bad[fail], 0] = l11[fail] * x1[fail, 0] + l21[fail] * x1[fail, 1]
+        ys[bad[fail], 1] = l22[fail] * x1[fail, 1]
         S.status[bad[fail]] = 4  # relaxed by phase 1 alone (no multipliers)
     return its, n_enum
 
@@ -670,12 +360,10 @@ def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
 
 
 def _line_search(res: np.ndarray, delta: np.ndarray, d0: np.ndarray, d1: np.ndarray, iters: int = 4) -> np.ndarray:
-    """Per robot ``argmin_{t in [0, 1]} phi(t) = 0.5 sum_r (res_r + t delta_r)_+^2``, exactly.
+    """Per robot ``argmin_{t in [0, 1]} phi(t) = 0.5 sum_r (res_r + t delta_r)_+^2``, given ``phi'(0) < 0 < phi'(1)``.
 
-    Needs ``phi'(0) = d0 < 0 < d1 = phi'(1)``.  ``phi'`` is continuous, non-decreasing and
-    piecewise linear: a few steps of regula falsi with the Illinois rule land on its root
-    exactly once the bracket lies in one linear piece (most robots); the others go to
-    :func:`_line_min`.
+    ``phi'`` is continuous, non-decreasing and piecewise linear: regula falsi (Illinois) lands on its root once
+    the bracket lies in one linear piece (most robots); the others go to :func:`_line_min`.
     """
     one = np.ones(res.shape[1])
     a, b = np.zeros(d0.shape), np.ones(d0.shape)
@@ -706,9 +394,8 @@ def _line_search(res: np.ndarray, delta: np.ndarray, d0: np.ndarray, d1: np.ndar
 def _line_min(res: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """Per robot the exact ``argmin_{t in [0, 1]} 0.5 sum_r (res_r + t delta_r)_+^2`` (``res``, ``delta`` ``(P, K)``).
 
-    The derivative ``sum_active (res + t delta) delta`` is continuous, non-decreasing and
-    linear between the points where a row switches on or off: sort those, accumulate the
-    active sums, and solve the linear piece where the derivative turns non-negative.
+    The derivative is linear between the points where a row switches on or off: sort those, accumulate the
+    active sums, and solve the piece where it turns non-negative.
     """
     p = res.shape[0]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # padding rows: res = -1e300
@@ -737,7 +424,7 @@ def _line_min(res: np.ndarray, delta: np.ndarray) -> np.ndarray:
 
 
 def _lv_core(gx, gy, hh, lb, ub, x, max_iter: int = 40):
-    """Phase-1 iterations on unit rows ``(P, K)`` (padding: ``hh = _PAD_B``); ``(x, violations (P, K))``."""
+    """Phase-1 iterations on unit rows ``(P, K)`` (padding: ``hh = PAD_B``); ``(x, violations (P, K))``."""
     x = x.copy()
     P, K = gx.shape
     one = np.ones(K)
@@ -777,44 +464,19 @@ def _lv_core(gx, gy, hh, lb, ub, x, max_iter: int = 40):
     return x, viol
 
 
-def least_violation(
-    lb: np.ndarray,
-    ub: np.ndarray,
-    owner: np.ndarray,
-    G: np.ndarray,
-    h: np.ndarray,
-    *,
-    x0: np.ndarray | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Phase 1 of each robot: the least violation of each of its rows, bounds hard.
+def least_violation(lb: np.ndarray, ub: np.ndarray, owner: np.ndarray, G: np.ndarray, h: np.ndarray, *,
+                    x0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Phase 1 of each robot: the least violation of each of its rows, bounds hard: ``(x (N, 2), s (M,))``.
 
-    Per robot ``min F(x) = 0.5 sum_r ((G_r x - h_r)_+ / |G_r|)^2  s.t.  lb <= x <= ub``
-    (rows normalised, one slack per row, so a row that cannot be met is loosened
-    alone, as in :func:`aasoatt_env.safety.solvers.policy.solve_qp`).  ``F`` is
-    convex and piecewise quadratic; each iteration minimises, over the box, the
-    quadratic of the rows violated at the current point (a 2-variable box QP in
-    closed form, with a ``1e-10`` relative proximal term where those rows do not
-    span the plane) and moves to the exact minimiser of ``F`` on the segment
-    towards it (:func:`_line_search`); once the violated set is the final one a
-    full step lands on the minimiser.  Vectorised across robots; a robot stops
-    when its step is below ``1e-11`` of its box.  The violations
-    ``s_r = (G_r x - h_r)_+`` are unique even where the minimiser is not.
-
-    Parameters
-    ----------
-    lb, ub : numpy.ndarray
-        Bounds ``(N, 2)``.
-    owner, G, h : numpy.ndarray
-        Rows as in :func:`solve_local_qps`.
-    x0 : numpy.ndarray, optional
-        Starting points ``(N, 2)`` (default: the centres of the boxes).
-
-    Returns
-    -------
-    x : numpy.ndarray
-        A minimiser per robot ``(N, 2)`` (within the bounds).
-    s : numpy.ndarray
-        Violation of each row at ``x``, ``(M,)``, in the units of the row as given.
+    Per robot ``min F(x) = 0.5 sum_r ((G_r x - h_r)_+ / |G_r|)^2  s.t.  lb <= x <= ub`` (one slack per
+    normalised row, so a row that cannot be met is loosened alone, as in
+    :func:`aasoatt_env.safety.solvers.policy.solve_qp`).  ``F`` is convex and piecewise quadratic: each
+    iteration minimises over the box the quadratic of the rows violated at the current point (a closed-form
+    box QP, with a ``1e-10`` relative proximal term where those rows do not span the plane) and moves to the
+    exact minimiser of ``F`` on the segment towards it; a robot stops when its step is below ``1e-11`` of its
+    box.  The rows are ``owner, G, h`` as in :func:`solve_local_qps`; ``x0`` the starting points (default: the
+    boxes' centres).  The violations ``s_r = (G_r x - h_r)_+``, in the rows' own units, are unique even where
+    the minimiser ``x`` is not.
     """
     lb = np.asarray(lb, float)
     ub = np.asarray(ub, float)
@@ -831,7 +493,7 @@ def least_violation(
     K = max(1, int(counts.max(initial=0)))
     gx = np.zeros((n, K))
     gy = np.zeros((n, K))
-    hh = np.full((n, K), _PAD_B)
+    hh = np.full((n, K), PAD_B)
     gx[owner, slot], gy[owner, slot], hh[owner, slot] = G[:, 0] / nrm, G[:, 1] / nrm, h / nrm
     x, _ = _lv_core(gx, gy, hh, lb, ub, x)
     s = np.maximum(G[:, 0] * x[owner, 0] + G[:, 1] * x[owner, 1] - h, 0.0)

@@ -1,22 +1,8 @@
 """The decentralised filter's local solver compiled (numba; imported only through :mod:`aasoatt_env.compiled`).
 
-:func:`solve_all` is :func:`aasoatt_env.safety.solvers.local.solve_local_qps`
-after its argument checks, written once per robot instead of once per array
-operation: a robot's rows are gathered by a counting sort of their owners
-(stable, so each robot sees its rows in the order given, as the numpy table
-does), then step 0, the half-plane table, the dual active set, the KKT check,
-the enumeration, the least-violation relaxation and the multipliers, each in
-the reference's order of operations.  The numpy code stays the reference and
-the fallback.
-
-Where the two differ (numbers, not decisions, on the states tested):
-
-- sums over a robot's rows (the phase-1 gradient and Hessian) are taken in
-  order here; numpy's matrix-vector products may add them in another order;
-- zero rows (normal below tolerance) and rows whose normalised right-hand side
-  is ``>= 1e300`` (never violated; numpy's padding value) are left out of the
-  table here instead of leaving empty or padding slots: such slots are never a
-  candidate nor loosened, so the answers are the same.
+:func:`solve_all` is :func:`aasoatt_env.safety.solvers.local.solve_local_qps` after its argument checks, one
+robot at a time (its rows in the order given) in the reference's order of operations: only the phase-1 sums
+run in another order, and zero or never-violated rows are left out of the table instead of padding it.
 """
 
 from __future__ import annotations
@@ -32,7 +18,7 @@ from aasoatt_env.numba_jit import nmin as _nmin
 
 __all__ = ["solve_all"]
 
-# the constants of aasoatt_env.safety.solvers.local (a test checks they agree)
+# the constants of the numpy reference (a test checks they agree)
 _EPS_Z = 1e-22
 _EPS_R = 1e-14
 _PAD_B = 1e300
@@ -44,10 +30,9 @@ _LV_ITERS = 40
 # --------------------------------------------------------------------------- dual active set, one robot
 @_jit
 def _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st):
-    """``local._active_set`` for one robot's table ``[0, nk)``.
+    """``polygon._active_set`` for one robot's table ``[0, nk)``: the iterations run.
 
-    ``st`` (float64[12]) holds and returns the state: ``yx, yy, nw, w0, w1, l1, l2, p, lp, status, r1, r2``;
-    returns the iterations run.
+    ``st`` (float64[12]) returns the state: ``yx, yy, nw, w0, w1, l1, l2, p, lp, status, r1, r2``.
     """
     yx, yy = y0x, y0y
     nw, w0, w1, p = 0, 0, 0, -1
@@ -79,19 +64,13 @@ def _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st):
             t = _nmin(t1, q1)
             bad = not math.isfinite(t)
             if bad:
-                r1s, r2s, status = r1, 0.0, 2
-                t = 0.0
-                full = False
+                r1s, r2s, status, t, full = r1, 0.0, 2, 0.0, False
             yx, yy = yx - t * zx, yy - t * zy
-            lpa = lp + t
-            l1 = _nmax(l1 - t * r1, 0.0) if full else 0.0
+            l1 = _nmax(l1 - t * r1, 0.0) if full else 0.0  # a partial step drops n1
             if full:
-                w1, l2 = p, lpa
-                nw, p, lp = 2, -1, 0.0
+                w1, l2, nw, p, lp = p, lp + t, 2, -1, 0.0
             else:
-                l2 = 0.0
-                nw = 1 if bad else 0
-                lp = lpa
+                l2, nw, lp = 0.0, 1 if bad else 0, lp + t
             if bad:
                 break
         else:
@@ -104,16 +83,13 @@ def _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st):
             t = _nmin(q1, q2)
             bad = not math.isfinite(t)
             if bad:
-                r1s, r2s, status = r1, r2, 2
-                t = 0.0
+                r1s, r2s, status, t = r1, r2, 2, 0.0
             nl1, nl2 = _nmax(l1 - t * r1, 0.0), _nmax(l2 - t * r2, 0.0)
             if (q1 <= q2) and not bad:  # n1 leaves: n2 moves into its place
                 w0, l1 = w1, nl2
             else:
                 l1 = nl1
-            l2 = nl2 if bad else 0.0
-            nw = 2 if bad else 1
-            lp += t
+            l2, nw, lp = nl2 if bad else 0.0, 2 if bad else 1, lp + t
             if bad:
                 break
     if status == 0:
@@ -139,14 +115,8 @@ def _argmax(nx, ny, b, nk, px, py):
 
 
 @_jit
-def _vmax(nx, ny, b, nk, px, py):
-    """Largest ``n' y - b`` of a table at ``(px, py)`` (NaN if any is)."""
-    return _argmax(nx, ny, b, nk, px, py)[1]
-
-
-@_jit
 def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
-    """``local._verify`` for one robot: ``out = (yx, yy, mu0, mu1)``; a failed check sets status 3."""
+    """``polygon._verify`` for one robot: ``out = (yx, yy, mu0, mu1)``; a failed check sets status 3."""
     status, nw = int(st[9]), int(st[2])
     out[0], out[1], out[2], out[3] = y0x, y0y, 0.0, 0.0
     if status == 1 and nw > 0:
@@ -164,7 +134,7 @@ def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
             m1 = (dx * n2y - dy * n2x) / det
             m2 = (n1x * dy - n1y * dx) / det
             px, py = vx, vy
-        vmax = _vmax(nx, ny, b, nk, px, py)
+        vmax = _argmax(nx, ny, b, nk, px, py)[1]
         ok = (vmax <= tk) and (m1 >= -tk) and (m2 >= -tk) and math.isfinite(px) and math.isfinite(py)
         out[0], out[1], out[2], out[3] = px, py, _nmax(m1, 0.0), _nmax(m2, 0.0)
         if not ok:
@@ -183,21 +153,19 @@ def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
 
 @_jit
 def _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out):
-    """``local._enumerate`` for one robot: sets ``out``, status (1/2) and the active slots in ``st``."""
+    """``polygon._enumerate`` for one robot: sets ``out``, status (1/2) and the active slots in ``st``."""
     best_d = _INF
     by, bx = y0y, y0x
     bnw, bw0, bw1 = 0, 0, 0
     bm0, bm1 = 0.0, 0.0
     # candidate 0: y0
-    if math.isfinite(y0x) and math.isfinite(y0y) and _vmax(nx, ny, b, nk, y0x, y0y) <= tk:
+    if math.isfinite(y0x) and math.isfinite(y0y) and _argmax(nx, ny, b, nk, y0x, y0y)[1] <= tk:
         best_d = 0.0
     # projections onto single lines
     for j in range(nk):
         mu = nx[j] * y0x + ny[j] * y0y - b[j]
         sx, sy = y0x - mu * nx[j], y0y - mu * ny[j]
-        if not (mu >= -tk and math.isfinite(sx) and math.isfinite(sy)):
-            continue
-        if not (_vmax(nx, ny, b, nk, sx, sy) <= tk):
+        if not (mu >= -tk and math.isfinite(sx) and math.isfinite(sy) and _argmax(nx, ny, b, nk, sx, sy)[1] <= tk):
             continue
         d = (sx - y0x) * (sx - y0x) + (sy - y0y) * (sy - y0y)
         if d < best_d:
@@ -211,9 +179,8 @@ def _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out):
             dx, dy = y0x - vx, y0y - vy
             m1 = (dx * ny[ib] - dy * nx[ib]) / det
             m2 = (nx[ia] * dy - ny[ia] * dx) / det
-            if not (abs(det) > 1e-12 and m1 >= -tk and m2 >= -tk and math.isfinite(vx) and math.isfinite(vy)):
-                continue
-            if not (_vmax(nx, ny, b, nk, vx, vy) <= tk):
+            if not (abs(det) > 1e-12 and m1 >= -tk and m2 >= -tk and math.isfinite(vx) and math.isfinite(vy)
+                    and _argmax(nx, ny, b, nk, vx, vy)[1] <= tk):
                 continue
             d = (vx - y0x) * (vx - y0x) + (vy - y0y) * (vy - y0y)
             if d < best_d:
@@ -230,7 +197,7 @@ def _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out):
 
 @_jit
 def _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out):
-    """``local._solve`` for one robot: active set, check, enumeration; returns ``(iterations, enumerated)``."""
+    """``polygon.solve`` for one robot: active set, check, enumeration; returns ``(iterations, enumerated)``."""
     its = _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st)
     _verify(nx, ny, b, nk, y0x, y0y, tk, st, out)
     if int(st[9]) == 3:
@@ -248,8 +215,7 @@ def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
     dy = -(hxx * gy - hxy * gx) / det
     if (dx >= lox) and (dx <= hix) and (dy >= loy) and (dy <= hiy):
         return dx, dy
-    best = _INF
-    bx, by = dx, dy
+    best, bx, by = _INF, dx, dy
     for e in range(4):  # the edges d_x = lo, hi, then d_y = lo, hi: the other coordinate's minimiser
         if e < 2:
             x = lox if e == 0 else hix
@@ -275,8 +241,7 @@ def _dphi(res, delta, n, t):
 @_jit
 def _line_min(res, delta, n, te, order):
     """``local._line_min`` of one robot (exact minimiser on ``[0, 1]``)."""
-    a0 = 0.0
-    b0 = 0.0
+    a0 = b0 = 0.0
     for r in range(n):
         te[r] = 2.0
         if delta[r] != 0.0:
@@ -293,11 +258,7 @@ def _line_min(res, delta, n, te, order):
     for j in range(n + 1):
         end = min(te[order[j]], 1.0) if j < n else 1.0
         if A + end * B >= 0.0 or j == n:
-            if B > 0.0:
-                t = -A / B
-            else:
-                t = start if A >= 0.0 else end
-            return _clip(t, start, end)
+            return _clip(-A / B if B > 0.0 else (start if A >= 0.0 else end), start, end)
         r = order[j]
         dl = delta[r] if te[r] < 2.0 else 0.0
         sg = 1.0 if dl > 0.0 else (-1.0 if dl < 0.0 else 0.0)
@@ -310,9 +271,7 @@ def _line_min(res, delta, n, te, order):
 @_jit
 def _line_search(res, delta, n, d0, d1, te, order):
     """``local._line_search`` of one robot: regula falsi (Illinois), then the exact piecewise minimiser."""
-    a, bb = 0.0, 1.0
-    fa, fb = d0, d1
-    side = 0.0
+    a, bb, fa, fb, side = 0.0, 1.0, d0, d1, 0.0
     tol = 1e-13 * (abs(d0) + abs(d1))
     for _ in range(_LS_ITERS):
         t = (a * fb - bb * fa) / (fb - fa)
@@ -322,14 +281,11 @@ def _line_search(res, delta, n, d0, d1, te, order):
         if ft < 0:
             if side > 0:
                 fb = 0.5 * fb  # the same end kept twice: halve its weight
-            a, fa = t, ft
-            side = 1.0
+            a, fa, side = t, ft, 1.0
         else:
-            b_side = side < 0
-            bb, fb = t, ft
-            if b_side:
+            if side < 0:
                 fa = 0.5 * fa
-            side = -1.0
+            bb, fb, side = t, ft, -1.0
     return _line_min(res, delta, n, te, order)
 
 
@@ -351,8 +307,7 @@ def _least_violation(gx, gy, hh, n, lb0, lb1, ub0, ub1, x0, x1, res, delta, on, 
                 hyy += gy[r] * gy[r]
         eps = 1e-10 * (hxx + hyy) + 1e-300
         dx, dy = _box_qp(hxx + eps, hxy, hyy + eps, grx, gry, lb0 - x0, lb1 - x1, ub0 - x0, ub1 - x1)
-        d1 = 0.0
-        same = True
+        d1, same = 0.0, True
         for r in range(n):
             dl = gx[r] * dx + gy[r] * dy
             delta[r] = dl
@@ -362,12 +317,9 @@ def _least_violation(gx, gy, hh, n, lb0, lb1, ub0, ub1, x0, x1, res, delta, on, 
             if (rn > 0) != on[r]:
                 same = False
         full = d1 <= 0.0
-        t = 1.0
-        if not full:
-            t = _line_search(res, delta, n, grx * dx + gry * dy, d1, te, order)
-        nx0, nx1 = _clip(x0 + t * dx, lb0, ub0), _clip(x1 + t * dy, lb1, ub1)
+        t = 1.0 if full else _line_search(res, delta, n, grx * dx + gry * dy, d1, te, order)
         step = t * max(abs(dx), abs(dy))
-        x0, x1 = nx0, nx1
+        x0, x1 = _clip(x0 + t * dx, lb0, ub0), _clip(x1 + t * dy, lb1, ub1)
         if (full and same) or not (step > 1e-11 * span):
             break
     return x0, x1
@@ -375,58 +327,36 @@ def _least_violation(gx, gy, hh, n, lb0, lb1, ub0, ub1, x0, x1, res, delta, on, 
 
 # --------------------------------------------------------------------------- every robot
 @_jit
-def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter,
-              x, lam, lam_box, feasible, loosened, bad_block):
+def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter, x, lam, lam_box, feasible, loosened,
+              bad_block):
     """Every robot's QP (module docstring); fills the outputs, returns ``(iterations, enumerated)``.
 
-    ``bad_block[k]`` marks a Hessian block that is not symmetric positive definite (the caller raises).
+    ``bad_block[k]`` marks a Hessian block that is not symmetric positive definite (the caller raises).  Per
+    robot only plain loops are factored out: a helper that calls others pays its array arguments' reference
+    counts on every robot.
     """
-    n, m = g.shape[0], owner.shape[0]
-    counts = np.zeros(n + 1, dtype=np.int64)
-    for r in range(m):
-        counts[owner[r] + 1] += 1
-    kmax = 0
-    for k in range(n):
-        kmax = max(kmax, counts[k + 1])
-        counts[k + 1] += counts[k]
-    rows = np.empty(m, dtype=np.int64)  # rows sorted by owner, stable
-    fill = counts[:n].copy()
-    for r in range(m):
-        rows[fill[owner[r]]] = r
-        fill[owner[r]] += 1
-    K = 4 + kmax
-    nx, ny, b = np.empty(K), np.empty(K), np.empty(K)
-    slot_row = np.empty(K, dtype=np.int64)
-    gx, gy, hh, ln = np.empty(K), np.empty(K), np.empty(K), np.empty(K)
-    res, delta, te = np.empty(K), np.empty(K), np.empty(K)
-    on = np.empty(K, dtype=np.bool_)
-    order = np.empty(K, dtype=np.int64)
-    st = np.zeros(12)
-    out = np.zeros(4)
+    rows, counts, K = _by_owner(owner, g.shape[0])
+    nx, ny, b, slot_row = np.empty(K), np.empty(K), np.empty(K), np.empty(K, dtype=np.int64)  # the table
+    gx, gy, hh, ln, res, delta, te = (np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K),
+                                      np.empty(K))  # phase 1's rows and work
+    on, order, st, out = np.empty(K, dtype=np.bool_), np.empty(K, dtype=np.int64), np.zeros(12), np.zeros(4)
     its_all, n_enum = 0, 0
-    for k in range(n):
+    for k in range(g.shape[0]):
         h00, h10, h11 = H[k, 0, 0], 0.5 * (H[k, 1, 0] + H[k, 0, 1]), H[k, 1, 1]
-        if not h00 > 0:
-            bad_block[k] = True
-            continue
-        l11 = math.sqrt(h00)
+        l11 = math.sqrt(h00) if h00 > 0 else 0.0
         l21 = h10 / l11
         d = h11 - l21 * l21
-        if not ((d > 0) and math.isfinite(l21) and math.isfinite(d)):
+        if not ((h00 > 0) and (d > 0) and math.isfinite(l21) and math.isfinite(d)):
             bad_block[k] = True
             continue
         l22 = math.sqrt(d)
         i11, i22 = 1.0 / l11, 1.0 / l22
         i21 = -l21 * i11 * i22
-        y0x = -i11 * g[k, 0]
-        y0y = -(i21 * g[k, 0] + i22 * g[k, 1])
-        xu0 = i11 * y0x + i21 * y0y
-        xu1 = i22 * y0y
-        r0, r1 = counts[k], counts[k + 1]
-        # step 0: the unconstrained minimiser meets the bounds and every row
+        y0x, y0y = -i11 * g[k, 0], -(i21 * g[k, 0] + i22 * g[k, 1])
+        xu0, xu1 = i11 * y0x + i21 * y0y, i22 * y0y
         cons = (xu0 < lb[k, 0]) or (xu0 > ub[k, 0]) or (xu1 < lb[k, 1]) or (xu1 > ub[k, 1])
         if not cons:
-            for q in range(r0, r1):
+            for q in range(counts[k], counts[k + 1]):
                 r = rows[q]
                 if G[r, 0] * xu0 + G[r, 1] * xu1 - h[r] > 0.0:
                     cons = True
@@ -435,99 +365,131 @@ def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter,
             x[k, 0], x[k, 1] = xu0, xu1
             continue
         tk = tol * (1.0 + max(abs(y0x), abs(y0y)))
-        # the table: bounds, then the rows with a normal
         s0 = math.sqrt(i11 * i11 + i21 * i21)
-        nx[0], ny[0], b[0] = i11 / s0, i21 / s0, ub[k, 0] / s0
-        nx[1], ny[1], b[1] = 0.0, 1.0, ub[k, 1] / i22
-        nx[2], ny[2], b[2] = -nx[0], -ny[0], -lb[k, 0] / s0
-        nx[3], ny[3], b[3] = 0.0, -1.0, -lb[k, 1] / i22
-        for s in range(4):
-            slot_row[s] = -1
-        nk = 4
-        zero_inf = False
-        zero_tol = 1e-300 + 1e-14 * min(s0, i22)
-        for q in range(r0, r1):
-            r = rows[q]
-            ax = i11 * G[r, 0]
-            ay = i21 * G[r, 0] + i22 * G[r, 1]
-            nrm = math.sqrt(ax * ax + ay * ay)
-            if nrm <= zero_tol:  # a row 0 <= h
-                if h[r] < -tk:
-                    zero_inf = True
-                    if relax:
-                        loosened[r] = -h[r] * (1.0 + 1e-6)  # met by loosening it to 0 <= 0
-                continue
-            inv = 1.0 / nrm
-            if not h[r] * inv < _PAD_B:  # never violated: numpy's padding (neither enumerated nor loosened)
-                continue
-            nx[nk], ny[nk], b[nk] = ax * inv, ay * inv, h[r] * inv
-            slot_row[nk] = r
-            nk += 1
-        st[:] = 0.0
-        st[0], st[1], st[7], st[9] = y0x, y0y, -1.0, 2.0
-        out[0], out[1], out[2], out[3] = y0x, y0y, 0.0, 0.0
+        nk, zero_inf = _table(k, i11, i21, i22, s0, lb, ub, G, h, rows, counts, tk, relax, loosened, nx, ny, b,
+                              slot_row)
+        _start(st, out, y0x, y0y)
+        st[9] = 2.0
         if not zero_inf:
             its, en = _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out)
             its_all, n_enum = max(its_all, its), n_enum + en
         status = int(st[9])
         feasible[k] = status == 1
         yx, yy, mu0, mu1 = out[0], out[1], out[2], out[3]
-        if status != 1 and relax:
-            # phase 1 on the rows normalised in x (G / |G| = L n / |L n|), the bounds hard
+        if status != 1 and relax:  # phase 1 on the rows normalised in x, the bounds hard, from the last point
             nr = nk - 4
-            for j in range(nr):
-                ax = l11 * nx[4 + j]
-                ay = l21 * nx[4 + j] + l22 * ny[4 + j]
-                ln[j] = math.sqrt(ax * ax + ay * ay)
-                inv = 1.0 / ln[j]
-                gx[j], gy[j], hh[j] = ax * inv, ay * inv, b[4 + j] * inv
-            sx, sy = st[0], st[1]  # the active set's last point
-            p0, p1 = i11 * sx + i21 * sy, i22 * sy
-            p0 = p0 if math.isfinite(p0) else 0.0
-            p1 = p1 if math.isfinite(p1) else 0.0
-            p0, p1 = _nmin(_nmax(p0, lb[k, 0]), ub[k, 0]), _nmin(_nmax(p1, lb[k, 1]), ub[k, 1])
-            q0, q1 = _least_violation(gx, gy, hh, nr, lb[k, 0], lb[k, 1], ub[k, 0], ub[k, 1], p0, p1,
-                                      res, delta, on, te, order)
-            for j in range(nr):
-                viol = _nmax(gx[j] * q0 + gy[j] * q1 - hh[j], 0.0)
-                loosen = viol * (1.0 + 1e-6) + relax_tol[k]
-                b[4 + j] = b[4 + j] + loosen * ln[j]
-                r = slot_row[4 + j]
-                loosened[r] = loosen * math.sqrt(G[r, 0] * G[r, 0] + G[r, 1] * G[r, 1])
-            st[:] = 0.0
-            st[0], st[1], st[7] = y0x, y0y, -1.0
+            _phase1_rows(l11, l21, l22, nr, nx, ny, b, gx, gy, hh, ln)
+            p0, p1 = i11 * st[0] + i21 * st[1], i22 * st[1]
+            p0 = _nmin(_nmax(p0 if math.isfinite(p0) else 0.0, lb[k, 0]), ub[k, 0])
+            p1 = _nmin(_nmax(p1 if math.isfinite(p1) else 0.0, lb[k, 1]), ub[k, 1])
+            q0, q1 = _least_violation(gx, gy, hh, nr, lb[k, 0], lb[k, 1], ub[k, 0], ub[k, 1], p0, p1, res, delta, on,
+                                      te, order)
+            _loosen(q0, q1, nr, relax_tol[k], gx, gy, hh, ln, b, slot_row, G, loosened)
+            _start(st, out, y0x, y0y)
             its, en = _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out)
             its_all, n_enum = max(its_all, its), n_enum + en
-            if int(st[9]) == 1:
-                yx, yy, mu0, mu1 = out[0], out[1], out[2], out[3]
-                status = 1
-            else:  # a failed relaxation (not seen) keeps the phase-1 point
-                yx, yy = l11 * q0 + l21 * q1, l22 * q1
-                status = 4
+            status = 1 if int(st[9]) == 1 else 4  # 4: a failed relaxation keeps the phase-1 point
+            yx, yy, mu0, mu1 = (out[0], out[1], out[2], out[3]) if status == 1 else (l11 * q0 + l21 * q1, l22 * q1,
+                                                                                      mu0, mu1)
         if status == 2 or status == 3:  # infeasible without relax: the minimiser over the bounds alone
-            xb0, xb1 = xu0, xu1
-            if (xu0 < lb[k, 0]) or (xu0 > ub[k, 0]) or (xu1 < lb[k, 1]) or (xu1 > ub[k, 1]):
-                st[:] = 0.0
-                st[0], st[1], st[7] = y0x, y0y, -1.0
-                _solve(nx, ny, b, 4, y0x, y0y, tk, max_iter, st, out)
-                xb0 = _clip(i11 * out[0] + i21 * out[1], lb[k, 0], ub[k, 0])
-                xb1 = _clip(i22 * out[1], lb[k, 1], ub[k, 1])
-            x[k, 0], x[k, 1] = xb0, xb1
+            _box_only(k, i11, i21, i22, y0x, y0y, xu0, xu1, lb, ub, tk, max_iter, nx, ny, b, st, out, x)
             continue
         x[k, 0] = _clip(i11 * yx + i21 * yy, lb[k, 0], ub[k, 0])
         x[k, 1] = _clip(i22 * yy, lb[k, 1], ub[k, 1])
-        if status != 1:
-            continue
-        # multipliers of the active slots, in the units of the rows as given: mu / |L^-1 G_r|
-        nw = int(st[2])
-        for s in range(nw):
-            slot = int(st[3]) if s == 0 else int(st[4])
-            mu = mu0 if s == 0 else mu1
+        for s in range(int(st[2]) if status == 1 else 0):  # the active slots' multipliers: mu / |L^-1 G_r|
+            slot, mu = (int(st[3]), mu0) if s == 0 else (int(st[4]), mu1)
             r = slot_row[slot]
             if r >= 0:
-                ax = i11 * G[r, 0]
-                ay = i21 * G[r, 0] + i22 * G[r, 1]
+                ax, ay = i11 * G[r, 0], i21 * G[r, 0] + i22 * G[r, 1]
                 lam[r] += mu / math.sqrt(ax * ax + ay * ay)
             else:
                 lam_box[k, slot // 2, slot % 2] += mu / (s0 if slot % 2 == 0 else i22)
     return its_all, n_enum
+
+
+@_jit
+def _by_owner(owner, n):
+    """The rows sorted by owner, stably (``rows[counts[k]:counts[k + 1]]``: robot ``k``'s), and the table size."""
+    counts = np.zeros(n + 1, dtype=np.int64)
+    for r in range(owner.shape[0]):
+        counts[owner[r] + 1] += 1
+    kmax = counts.max()
+    for k in range(n):
+        counts[k + 1] += counts[k]
+    rows = np.empty(owner.shape[0], dtype=np.int64)
+    fill = counts[:n].copy()
+    for r in range(owner.shape[0]):
+        rows[fill[owner[r]]] = r
+        fill[owner[r]] += 1
+    return rows, counts, 4 + kmax
+
+
+@_jit
+def _start(st, out, y0x, y0y):
+    """A fresh active-set state at ``y0`` (no active slot, nothing being added)."""
+    st[:] = 0.0
+    st[0], st[1], st[7] = y0x, y0y, -1.0
+    out[0], out[1], out[2], out[3] = y0x, y0y, 0.0, 0.0
+
+
+@_jit
+def _table(k, i11, i21, i22, s0, lb, ub, G, h, rows, counts, tk, relax, loosened, nx, ny, b, slot_row):
+    """Robot ``k``'s half-planes: the bounds, then its rows with a normal; ``(slots, a zero row 0 <= h < 0)``."""
+    nx[0], ny[0], b[0] = i11 / s0, i21 / s0, ub[k, 0] / s0
+    nx[1], ny[1], b[1] = 0.0, 1.0, ub[k, 1] / i22
+    nx[2], ny[2], b[2] = -nx[0], -ny[0], -lb[k, 0] / s0
+    nx[3], ny[3], b[3] = 0.0, -1.0, -lb[k, 1] / i22
+    for s in range(4):
+        slot_row[s] = -1
+    nk, zero_inf = 4, False
+    zero_tol = 1e-300 + 1e-14 * min(s0, i22)
+    for q in range(counts[k], counts[k + 1]):
+        r = rows[q]
+        ax = i11 * G[r, 0]
+        ay = i21 * G[r, 0] + i22 * G[r, 1]
+        nrm = math.sqrt(ax * ax + ay * ay)
+        if nrm <= zero_tol:  # a row 0 <= h
+            if h[r] < -tk:
+                zero_inf = True
+                if relax:
+                    loosened[r] = -h[r] * (1.0 + 1e-6)  # met by loosening it to 0 <= 0
+            continue
+        inv = 1.0 / nrm
+        if not h[r] * inv < _PAD_B:  # never violated: the reference's padding (neither enumerated nor loosened)
+            continue
+        nx[nk], ny[nk], b[nk] = ax * inv, ay * inv, h[r] * inv
+        slot_row[nk] = r
+        nk += 1
+    return nk, zero_inf
+
+
+@_jit
+def _phase1_rows(l11, l21, l22, nr, nx, ny, b, gx, gy, hh, ln):
+    """The table's ``nr`` rows normalised in ``x`` (``G / |G| = L n / |L n|``) and the norms ``|L n|``."""
+    for j in range(nr):
+        ax = l11 * nx[4 + j]
+        ay = l21 * nx[4 + j] + l22 * ny[4 + j]
+        ln[j] = math.sqrt(ax * ax + ay * ay)
+        inv = 1.0 / ln[j]
+        gx[j], gy[j], hh[j] = ax * inv, ay * inv, b[4 + j] * inv
+
+
+@_jit
+def _loosen(q0, q1, nr, rtk, gx, gy, hh, ln, b, slot_row, G, loosened):
+    """Each row loosened by its violation at the phase-1 point ``(q0, q1)`` and ``rtk``, in the table and its units."""
+    for j in range(nr):
+        loosen = _nmax(gx[j] * q0 + gy[j] * q1 - hh[j], 0.0) * (1.0 + 1e-6) + rtk
+        b[4 + j] = b[4 + j] + loosen * ln[j]
+        r = slot_row[4 + j]
+        loosened[r] = loosen * math.sqrt(G[r, 0] * G[r, 0] + G[r, 1] * G[r, 1])
+
+
+@_jit
+def _box_only(k, i11, i21, i22, y0x, y0y, xu0, xu1, lb, ub, tk, max_iter, nx, ny, b, st, out, x):
+    """Robot ``k``'s minimiser over its bounds alone (an infeasible robot without relaxation)."""
+    if (xu0 < lb[k, 0]) or (xu0 > ub[k, 0]) or (xu1 < lb[k, 1]) or (xu1 > ub[k, 1]):
+        _start(st, out, y0x, y0y)
+        _solve(nx, ny, b, 4, y0x, y0y, tk, max_iter, st, out)
+        xu0 = _clip(i11 * out[0] + i21 * out[1], lb[k, 0], ub[k, 0])
+        xu1 = _clip(i22 * out[1], lb[k, 1], ub[k, 1])
+    x[k, 0], x[k, 1] = xu0, xu1
