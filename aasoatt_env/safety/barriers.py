@@ -32,42 +32,25 @@ from aasoatt_env.model.geometry import row_dot
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.config import FilterConfig
 
-__all__ = [
-    "BARRIERS",
-    "Barrier",
-    "PairGeometry",
-    "barrier_rows",
-    "get_barrier",
-]
+__all__ = ["BARRIERS", "Barrier", "PairGeometry", "barrier_rows", "get_barrier"]
 
 
 class PairGeometry(NamedTuple):
-    """Relative quantities of P pairs (robot-robot and robot-obstacle) as arrays."""
+    """Relative quantities of P pairs (robot-robot and robot-obstacle), each ``(P,)`` or ``(P, 2)``."""
 
     i: np.ndarray
-    """First robot of each pair, ``(P,)``."""
-    j: np.ndarray
-    """Second robot, or ``-1`` for an obstacle, ``(P,)``."""
-    p: np.ndarray
-    """Relative position ``p_i - p_j`` (obstacle: ``p_i - c_k``), ``(P, 2)``."""
+    j: np.ndarray  #: ``-1`` for an obstacle
+    p: np.ndarray  #: ``p_i - p_j`` (obstacle: ``p_i - c_k``)
     v: np.ndarray
-    """Relative velocity, ``(P, 2)``."""
-    adot: np.ndarray
-    """Relative drift acceleration ``A_dot_i u_i - A_dot_j u_j``, ``(P, 2)``."""
-    d_s: np.ndarray
-    """Safety distance of the pair (margin included), ``(P,)``."""
-    r_sum: np.ndarray
-    """Sum of radii ``r_i + r_j`` without margin (eqn.n7's ``r``), ``(P,)``."""
-    a_plus: np.ndarray
-    """Sum of the maximum point accelerations ``a_i+ + a_j+``, ``(P,)``."""
+    adot: np.ndarray  #: the drift accelerations ``A_dot_i u_i - A_dot_j u_j``
+    d_s: np.ndarray  #: the safety distance, margin included
+    r_sum: np.ndarray  #: ``r_i + r_j`` without margin (eqn.n7's ``r``)
+    a_plus: np.ndarray  #: the maximum point accelerations ``a_i+ + a_j+``
 
 
+#: ``f(geometry, config) -> (rhs, keep)``; ``keep`` is a boolean mask or None (all rows)
 BarrierFn = Callable[[PairGeometry, "FilterConfig"], "tuple[np.ndarray, np.ndarray | None]"]
-"""``f(geometry, config) -> (rhs, keep)``; ``keep`` is a boolean mask or None (all rows).
-The gains come from :class:`~aasoatt_env.safety.config.FilterConfig`."""
-
-ValueFn = Callable[[PairGeometry, "FilterConfig"], np.ndarray]
-"""``h(geometry, config) -> (P,)``: the barrier function itself; its safe set is ``h >= 0``."""
+ValueFn = Callable[[PairGeometry, "FilterConfig"], np.ndarray]  #: ``h(geometry, config) -> (P,)``; safe: ``h >= 0``
 
 
 @dataclass(frozen=True)
@@ -77,8 +60,7 @@ class Barrier:
     rows: BarrierFn
     value: ValueFn
     equation: str
-    kernel: str = ""
-    """Its compiled rows (a function of :mod:`~aasoatt_env.safety.rows_kernel`; empty: numpy only)."""
+    kernel: str = ""  #: its compiled rows, a function of :mod:`~.rows_kernel` (empty: numpy only)
 
 
 def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -165,25 +147,10 @@ def get_barrier(name: str) -> Barrier:
 
 
 def barrier_rows(name: str, g: PairGeometry, params: FilterConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rows ``c^T (w_i - w_j) <= rhs`` of barrier ``name`` for all pairs of ``g``.
+    """Rows ``c^T (w_i - w_j) <= rhs`` of barrier ``name`` for the pairs of ``g`` (rotated where a strategy asks).
 
-    Parameters
-    ----------
-    name : str
-        Registered barrier name.
-    g : PairGeometry
-        Pair geometry (already rotated where a deadlock strategy asks for it).
-    params : FilterConfig
-        Gains.
-
-    Returns
-    -------
-    c : numpy.ndarray
-        Row normals ``(P', 2)`` (``c = -p_ij``).
-    rhs : numpy.ndarray
-        Right-hand sides ``(P',)``.
-    keep : numpy.ndarray
-        Indices of the kept pairs into ``g`` (all for ungated barriers).
+    Returns ``c = -p_ij`` ``(P', 2)``, ``rhs`` ``(P',)`` and the kept pairs' indices into ``g`` (all but where a
+    gated barrier drops some).
     """
     rhs, keep = get_barrier(name).rows(g, params)
     if keep is None:

@@ -1,11 +1,8 @@
 """The centralised QP stage (the paper's filter): one QP for the team, solved exactly by independent parts.
 
-``min sum_i |A_i du_i - target_i|^2  s.t.  lo <= du <= hi,  rows``.  Without rows every robot's
-QP is a box least squares in closed form (:func:`~aasoatt_env.safety.problem.box_least_squares`).
-The rows split the team into contact components; a component whose closed-form answers meet
-all its rows keeps them (optimal without the rows, and feasible).  Only the components with a
-violated row go to the solver (:class:`~aasoatt_env.safety.solvers.SolverPolicy`), as independent
-parts of one problem.
+Without rows every robot's QP is a box least squares in closed form.  The rows split the team into contact
+components; one whose closed-form answers meet its rows keeps them (optimal and feasible), the others go to
+the solver (:class:`~aasoatt_env.safety.solvers.SolverPolicy`) as independent parts of one problem.
 """
 
 from __future__ import annotations
@@ -129,8 +126,7 @@ class Centralized:
     decompose: bool
     eta_tol: float
     compiled: bool
-    settings: np.ndarray | None = field(init=False, default=None)
-    """The compiled call's constants (None: that call is not made)."""
+    settings: np.ndarray | None = field(init=False, default=None)  #: the compiled call's (None: not made)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "settings", compiled_settings(self.policy, self.compiled, self.decompose))

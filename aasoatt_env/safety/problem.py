@@ -1,17 +1,10 @@
 """The safety QP in canonical scaled form, and the closed-form answer without rows.
 
-Problem (eqn.finalAA-SOATT), in wheel accelerations ``du``::
-
-    min  sum_i |A_i du_i - target_i|^2   s.t.  lo <= du <= hi,   G du <= rhs
-
-It is solved in scaled coordinates ``x = du / s`` (``s`` the per-robot
-acceleration bound, so the box is inside ``[-1, 1]``), with the objective divided
-by its largest Hessian entry and every row normalised to unit norm.  The Hessian
-is the constant 2x2 block diagonal ``A_i^T A_i = (rho/2)^2 [[1+k^2, 1-k^2],
-[1-k^2, 1+k^2]]`` (heading independent), diagonal when ``l = b``; the proxsuite
-back-end uses ``HessianType.Diagonal`` then.  :class:`QPProblem` holds that
-canonical form ``min 0.5 x'Hx + g'x  s.t. lb <= x <= ub, C x <= u``
-(:func:`build_problem`); :func:`box_least_squares` answers a robot in no row.
+The problem (eqn.finalAA-SOATT) ``min sum_i |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, G du <= rhs`` is
+solved in ``x = du / s`` (``s`` the per-robot bound, so the box is inside ``[-1, 1]``), the objective divided
+by its largest Hessian entry and every row of unit norm.  The Hessian is the constant block diagonal
+``A_i^T A_i = (rho/2)^2 [[1+k^2, 1-k^2], [1-k^2, 1+k^2]]`` (heading independent), diagonal when ``l = b``
+(then proxsuite gets ``HessianType.Diagonal``).
 """
 
 from __future__ import annotations
@@ -26,34 +19,23 @@ from aasoatt_env.compiled import c64, kernels
 
 __all__ = ["ROW_NORM_MIN", "QPProblem", "box_least_squares", "build_problem"]
 
-ROW_NORM_MIN: float = 1e-12
-"""A row whose scaled norm is at most this is left unnormalised (divisor 1)."""
+ROW_NORM_MIN: float = 1e-12  #: a row whose scaled norm is at most this is left unnormalised (divisor 1)
 
 
 @dataclass
 class QPProblem:
     """Canonical scaled QP ``min 0.5 x'Hx + g'x  s.t. lb <= x <= ub, C x <= u``."""
 
-    H_blocks: np.ndarray
-    """Hessian blocks ``(N, 2, 2)`` (block diagonal)."""
-    g: np.ndarray
-    """Linear term ``(n,)``."""
-    C: sp.csr_matrix
-    """Rows ``(m, n)``, unit norm."""
-    u: np.ndarray
-    """Row bounds ``(m,)``."""
-    lb: np.ndarray
-    """Lower bounds ``(n,)``."""
-    ub: np.ndarray
-    """Upper bounds ``(n,)``."""
-    scale: np.ndarray
-    """``du = scale * x``, ``(n,)``."""
-    obj_scale: float
-    """Objective divisor ``sigma``."""
-    row_norm: np.ndarray
-    """Row divisors ``nu`` (``eta_du = sigma * z / nu``), ``(m,)``."""
-    diagonal: bool
-    """True where every block of ``H`` is diagonal."""
+    H_blocks: np.ndarray  #: ``(N, 2, 2)``, the blocks of the block-diagonal ``H``
+    g: np.ndarray  #: ``(n,)``
+    C: sp.csr_matrix  #: ``(m, n)``, unit-norm rows
+    u: np.ndarray  #: ``(m,)``
+    lb: np.ndarray  #: ``(n,)``
+    ub: np.ndarray  #: ``(n,)``
+    scale: np.ndarray  #: ``(n,)``: ``du = scale * x``
+    obj_scale: float  #: the objective's divisor ``sigma``
+    row_norm: np.ndarray  #: ``(m,)`` the rows' divisors ``nu``: ``eta_du = sigma * z / nu``
+    diagonal: bool  #: every block of ``H`` is diagonal
 
     @property
     def n(self) -> int:
@@ -101,18 +83,8 @@ class QPProblem:
         return float(0.5 * np.einsum("ni,nij,nj->", xb, self.H_blocks, xb) + self.g @ x)
 
 
-def build_problem(
-    A: np.ndarray,
-    target: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    scale: np.ndarray,
-    ri: np.ndarray,
-    rj: np.ndarray,
-    Gi: np.ndarray,
-    Gj: np.ndarray,
-    rhs: np.ndarray,
-) -> QPProblem:
+def build_problem(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, ri: np.ndarray,
+                  rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray) -> QPProblem:
     """The scaled canonical problem of ``min sum |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, rows``.
 
     ``A`` ``(N, 2, 2)``, ``target``, ``lo``, ``hi`` ``(N, 2)``, ``scale`` ``(N,)`` positive; the rows
@@ -155,18 +127,8 @@ def build_problem(
         data, cols = data.ravel(), cols.ravel()
     C = sp.csr_matrix((data, cols.astype(itype), indptr.astype(itype)), shape=(m, 2 * n_rob))
     diag = bool(np.all(np.abs(H[:, 0, 1]) <= 1e-12 * np.maximum(np.abs(H[:, 0, 0]), 1e-300)))
-    return QPProblem(
-        H_blocks=H,
-        g=g,
-        C=C,
-        u=rhs / nu,
-        lb=(lo / s).ravel(),
-        ub=(hi / s).ravel(),
-        scale=np.repeat(scale, 2),
-        obj_scale=sigma,
-        row_norm=nu,
-        diagonal=diag,
-    )
+    return QPProblem(H_blocks=H, g=g, C=C, u=rhs / nu, lb=(lo / s).ravel(), ub=(hi / s).ravel(),
+                     scale=np.repeat(scale, 2), obj_scale=sigma, row_norm=nu, diagonal=diag)
 
 
 def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, *,

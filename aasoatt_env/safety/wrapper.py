@@ -1,36 +1,15 @@
 """``AASOATTFilter``: the CBF-QP safety filter as a drop-in PettingZoo wrapper.
 
 Any policy's actions become the *nominal*; the wrapper installs a
-:class:`~aasoatt_env.safety.core.SafetyFilter` into the env through its control-filter protocol
-(:mod:`aasoatt_env.sim.protocol`), so every physics step (also inside a ``decision_interval``) is
-filtered before the env integrates it.  Behind the filter, actions outside ``[-1, 1]`` are taken as
-the (unclipped) nominal: the filter keeps the input bounds hard.  After each ``step`` it aggregates
-the env's ``filter_outputs`` into a :class:`FilterReport` (:attr:`AASOATTFilter.report`) and into
-``infos[agent]["filter"]``:
-
-==================  =====================================================
-key                 meaning
-==================  =====================================================
-``intervened``      the filter changed this robot's nominal at some step
-``avoiding``        some barrier row of this robot was active (eta > 0)
-``triggered``       the deadlock strategy acted on this robot
-``correction``      largest ``|du_safe - du_nominal|`` [rad/s^2]
-``backup``          the backup layer braked this robot at some step
-``status``          worst status of the team: solved < relaxed < backup < failed < unsafe
-``safe``            the team stayed inside the safe set (status != unsafe)
-``margin``          smallest backup margin of the step [m] (``FilterResult.margin``)
-``barrier_min``     smallest barrier value ``h`` of the step
-``slack``           largest row relaxation (0 unless ``relaxed``)
-``iterations``      total solver iterations
-``n_rows``          barrier rows at the last physics step
-``n_qp_rows``       of those, rows the QP solver saw (0: closed form)
-==================  =====================================================
-
-Infos are deterministic (wall times are in :attr:`AASOATTFilter.timing`, not in them), as PettingZoo's
-and Gymnasium's checkers require.  ``infos="flat"`` gives numeric top-level keys instead
-(``filter_intervened``, ``filter_avoiding``, ``filter_triggered``, ``filter_backup``,
-``filter_correction``, ``filter_status_code`` = the index in ``STATUSES``, ``filter_margin``,
-``filter_slack``) for tensor-based clients such as TorchRL.  An env takes one filter.
+:class:`~aasoatt_env.safety.core.SafetyFilter` into the env (:mod:`aasoatt_env.sim.protocol`), so every
+physics step, also inside a ``decision_interval``, is filtered.  Actions outside ``[-1, 1]`` are taken
+as the (unclipped) nominal: the filter keeps the input bounds hard.  After each ``step`` the env's
+``filter_outputs`` become a :class:`FilterReport` (:attr:`AASOATTFilter.report`), and its fields but
+``message``, ``applied`` and ``solve_time`` become ``infos[agent]["filter"]``.  Infos are deterministic (wall
+times are in :attr:`AASOATTFilter.timing`), as PettingZoo's and Gymnasium's checkers require.
+``infos="flat"`` gives numeric top-level keys instead (``filter_intervened``, ``filter_avoiding``,
+``filter_triggered``, ``filter_backup``, ``filter_correction``, ``filter_status_code`` = the index in
+``STATUSES``, ``filter_margin``, ``filter_slack``) for tensor-based clients such as TorchRL.
 """
 
 from __future__ import annotations
@@ -50,48 +29,29 @@ from aasoatt_env.sim.env import AASOATTParallelEnv
 
 __all__ = ["STATUS_CODES", "AASOATTFilter", "FilterReport"]
 
-STATUS_CODES: dict[str, int] = {name: code for code, name in enumerate(STATUSES)}
-"""Numeric status of ``infos="flat"``; the larger, the worse."""
+STATUS_CODES: dict[str, int] = {name: code for code, name in enumerate(STATUSES)}  #: ``infos="flat"``; larger: worse
 
 
 @dataclass(frozen=True)
 class FilterReport:
-    """The filter over the physics steps of one env step.
+    """The filter over the physics steps of one env step."""
 
-    Attributes
-    ----------
-    intervened, avoiding, triggered, backup : numpy.ndarray
-        ``(N,)`` bool, true if true at some physics step.
-    correction : numpy.ndarray
-        ``(N,)`` largest ``|du_safe - du_nominal|``.
-    status, safe, message : str, bool, str
-        Worst status of the physics steps, whether every step ended in the safe set, the worst step's message.
-    margin, barrier_min, slack : float
-        Smallest backup margin [m] and barrier value, largest row relaxation.
-    iterations, n_rows, n_qp_rows : int
-        Total solver iterations; rows at the last physics step, and those the QP solver saw.
-    applied : numpy.ndarray
-        ``(N, 2)`` wheel accelerations applied at the last physics step.
-    solve_time : float
-        Filter wall time of the env step [s] (not in the infos: it is not deterministic).
-    """
-
-    intervened: np.ndarray
-    avoiding: np.ndarray
-    triggered: np.ndarray
-    backup: np.ndarray
-    correction: np.ndarray
-    status: str
-    safe: bool
-    margin: float
-    barrier_min: float
-    message: str
-    slack: float
-    iterations: int
-    n_rows: int
-    n_qp_rows: int
-    applied: np.ndarray
-    solve_time: float
+    intervened: np.ndarray  #: ``(N,)`` the filter changed the robot's nominal at some step
+    avoiding: np.ndarray  #: ``(N,)`` some barrier row of the robot was active (eta > 0)
+    triggered: np.ndarray  #: ``(N,)`` the deadlock strategy acted on the robot
+    backup: np.ndarray  #: ``(N,)`` the backup layer braked the robot at some step
+    correction: np.ndarray  #: ``(N,)`` largest ``|du_safe - du_nominal|`` [rad/s^2]
+    status: str  #: worst status of the team: solved < relaxed < backup < failed < unsafe
+    safe: bool  #: the team stayed inside the safe set (status != unsafe)
+    margin: float  #: smallest backup margin [m] (``FilterResult.margin``)
+    barrier_min: float  #: smallest barrier value ``h``
+    message: str  #: the worst step's
+    slack: float  #: largest row relaxation (0 unless ``relaxed``)
+    iterations: int  #: total solver iterations
+    n_rows: int  #: barrier rows at the last physics step
+    n_qp_rows: int  #: of those, the rows the QP solver saw (0: closed form)
+    applied: np.ndarray  #: ``(N, 2)`` wheel accelerations applied at the last physics step
+    solve_time: float  #: the filter's wall time [s] (not in the infos: it is not deterministic)
 
     @classmethod
     def of(cls, results: tuple[FilterResult, ...]) -> FilterReport:
@@ -153,17 +113,9 @@ class FilterReport:
 class AASOATTFilter(BaseParallelWrapper):
     """Filter every physics step of a parallel env through the AA-SOATT CBF-QP (module docstring).
 
-    Parameters
-    ----------
-    env : AASOATTParallelEnv or a PettingZoo wrapper of it
-        The env to protect (not yet behind a filter).
-    config : FilterConfig or mapping, optional
-        A configuration to start from.
-    infos : {"nested", "flat"}
-        ``infos[agent]["filter"]`` dicts, or numeric top-level ``filter_*`` keys.
-    **options
-        :class:`~aasoatt_env.safety.config.FilterConfig` fields; they replace those of ``config``.  ``dt`` is
-        the env's.
+    ``env``: an :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` or a PettingZoo wrapper of one, not yet behind
+    a filter.  ``options`` (:class:`~aasoatt_env.safety.config.FilterConfig` fields) replace those of ``config``;
+    ``dt`` is the env's.  ``infos``: ``"nested"`` (``infos[agent]["filter"]``) or ``"flat"`` (``filter_*`` keys).
     """
 
     def __init__(
@@ -244,11 +196,8 @@ class AASOATTFilter(BaseParallelWrapper):
                 "mean_ms": 1e3 * self._time / self._steps if self._steps else 0.0}
 
 
-_ALL_ROWS = slice(None)
-"""``FilterReport.infos``' rows when the infos hold every agent in order (no gather)."""
-
-_BIG = 1e9
-"""Stand-in for an infinite barrier value in the infos (no rows): infos stay finite."""
+_ALL_ROWS = slice(None)  # FilterReport.infos' rows when the infos hold every agent in order (no gather)
+_BIG = 1e9  # stands in for an infinite barrier value (no rows): infos stay finite
 
 _NESTED_IDLE: dict[str, Any] = {
     "intervened": False, "avoiding": False, "triggered": False, "backup": False, "correction": 0.0,

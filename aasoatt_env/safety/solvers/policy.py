@@ -1,24 +1,16 @@
 """Which solver answers a safety QP: a pure function of the problem's size and the configuration.
 
-:meth:`SolverPolicy.solve` never raises on numerical trouble and never returns NaN.  In order:
-
-1. no rows and diagonal Hessian blocks: the closed form;
-2. an approximate back-end (``neural``): its point as it is;
-3. the warm active set from the previous step's working set
-   (:mod:`~aasoatt_env.safety.solvers.active_set`), part by part: every part it verifies
-   (KKT conditions) is answered, the others go on as one smaller problem;
-4. the route (:func:`route`): before a back-end that may stall, the exact solvers of
-   :data:`EXACT_ROUTE` within their sizes, then the configured back-end.  An answer is
-   taken only where it is verified (``ldp`` verifies its own; any other by the warm active
-   set started from it); the configured back-end's answer is polished there too where its last
-   bits depend on more than the problem, and taken as it is where that polish fails.  A proof of
-   infeasibility ends the route;
-5. infeasibility is never taken from an iterative solver's word: a phase-1 problem finds
-   the least violation of each row with the bounds hard (:data:`PHASE1_ROUTE`), every row
-   is loosened by its own violation and the problem is solved again (status ``"relaxed"``).
-
-Nothing here reads the clock or keeps state between calls: the same problem gets the same
-answer, whatever the machine's load.
+:meth:`SolverPolicy.solve` never raises on numerical trouble and never returns NaN.  In order: (1) no rows and
+diagonal Hessian blocks: the closed form; (2) an approximate back-end (``neural``): its point as it is; (3) the
+warm active set from the previous step's working set, part by part: each part it verifies (KKT conditions) is
+answered, the others go on as one smaller problem; (4) the route (:func:`route`): before a back-end that may
+stall, the exact solvers of :data:`EXACT_ROUTE`, then the configured back-end.  An answer is taken only where
+verified (``ldp`` verifies its own, any other by the warm active set started from it); the configured
+back-end's is polished there too where its last bits depend on more than the problem, and taken as it is where
+that fails.  A proof of infeasibility ends the route; (5) infeasibility is never taken from an iterative
+solver's word: a phase-1 problem (:data:`PHASE1_ROUTE`) finds each row's least violation with the bounds hard,
+every row is loosened by its own and the problem solved again (status ``"relaxed"``).  Nothing here reads the
+clock or keeps state between calls: the same problem gets the same answer, whatever the machine's load.
 """
 
 from __future__ import annotations
@@ -60,14 +52,11 @@ class QPSolution:
 
     x: np.ndarray
     z: np.ndarray
-    status: str
-    """``"solved"``, ``"relaxed"`` (rows loosened by ``slack``) or ``"failed"``."""
+    status: str  #: ``"solved"``, ``"relaxed"`` (rows loosened by ``slack``) or ``"failed"``
     slack: float
     iterations: int
-    message: str
-    """Which solver answered, and why."""
-    exact: bool = True
-    """False when an approximate back-end answered (its point is not verified)."""
+    message: str  #: which solver answered, and why
+    exact: bool = True  #: False where an approximate back-end answered (its point is not verified)
 
 
 def route(solver: str, n: int) -> list[tuple[str, dict]]:
@@ -93,18 +82,9 @@ def _phase1_order(solver: str, n1: int) -> list[str]:
 class SolverPolicy:
     """The safety QP's solver (module docstring): a back-end and how the exact path runs.
 
-    Parameters
-    ----------
-    solver : str
-        Registered back-end name (:data:`~aasoatt_env.safety.solvers.backends.SOLVERS`).
-    active_set : bool
-        Try the warm-started active set first.
-    compiled : bool
-        Run the warm active set in its compiled kernel (:mod:`aasoatt_env.compiled`).
-    one_change_iter : int, optional
-        The warm active set's one-change budget (None: its default).
-    iterations : int
-        ``neural``'s projected primal-dual updates per call.
+    ``solver``: a name in :data:`~.backends.SOLVERS`; ``active_set``: try the warm active set first (in its
+    compiled kernel with ``compiled``, with the one-change budget ``one_change_iter``, None: its default);
+    ``iterations``: ``neural``'s projected primal-dual updates per call.
     """
 
     solver: str
