@@ -1,20 +1,13 @@
 """Pairwise barrier functions, each turned into rows linear in the wheel accelerations.
 
-Every barrier gives, for all pairs at once, rows ``-p_ij^T (A_i du_i - A_j du_j) <= rhs_ij`` (eqn.8),
-written ``c^T (w_i - w_j) <= rhs`` with ``w = A du`` and ``c = -p_ij``.  An obstacle is a pair whose
-second member has zero velocity and acceleration (``j = -1``); its robot carries the whole row.
-
-Registry (:data:`BARRIERS`; adding a barrier is its row builder, its function ``h`` and one line):
-
-``aasoatt`` (eqn.7-8, default): ``h = r_dot + k1 (r - d_s)``, ``h_dot + k2 h >= 0`` (eqn.7c's typo
-corrected: ``- A_dot_j u_j``).  ``braking`` (eqn.n4, Wang-Ames-Egerstedt 2017):
-``h = sqrt(2 (a_i+ + a_j+)(r - d_s)) + r_dot``, ``h_dot >= -gamma h^3`` (``r - d_s`` clamped at 1e-6 so the
-row stays finite inside ``d_s``).  ``distance`` (eqn.nn5): ``-2 p^T v <= varsigma (r^2 - d_s^2)``.
-``gated_distance`` (eqn.n5/n6): eqn.nn5 only while the pair approaches within ``gate_range`` (eqn.n6
-prints ``d_safe`` as the gate, which would switch the row on only after a collision).
-``adaptive_distance`` (eqn.n7, Rodriguez-Seda 2019): eqn.nn5 with
-``d = (D + r)/2 + (D - r)/pi atan(-rho_v p^T v + sigma)``.  The velocity barriers apply to the
-next-step velocity ``v + (A du + A_dot u) dt`` (linear in ``du``), divided by ``2 dt``.
+Every barrier gives, for all pairs at once, rows ``-p_ij^T (A_i du_i - A_j du_j) <= rhs_ij`` (eqn.8), written
+``c^T (w_i - w_j) <= rhs`` with ``w = A du`` and ``c = -p_ij``; an obstacle is a pair whose second member
+(``j = -1``) stands still, and its robot carries the whole row.  :data:`BARRIERS` (equations:
+``docs/technical_brief.md`` section 3): ``aasoatt`` (eqn.7-8, default; eqn.7c's typo corrected:
+``- A_dot_j u_j``); ``braking`` (eqn.n4; ``r - d_s`` clamped at 1e-6 so the row stays finite inside ``d_s``);
+``distance`` (eqn.nn5); ``gated_distance`` (eqn.n5/n6: eqn.nn5 while the pair approaches within ``gate_range``,
+as eqn.n6's printed gate ``d_safe`` would switch the row on only after a collision); ``adaptive_distance``
+(eqn.n7).  The velocity barriers apply to the next-step velocity ``v + (A du + A_dot u) dt``, divided by ``2 dt``.
 """
 
 from __future__ import annotations
@@ -64,12 +57,8 @@ class Barrier:
 
 
 def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    r = np.sqrt(row_dot(g.p, g.p))
-    r = np.maximum(r, 1e-9)
-    pv = row_dot(g.p, g.v)
-    vv = row_dot(g.v, g.v)
-    pa = row_dot(g.p, g.adot)
-    return r, pv, vv, pa
+    """``|p|`` (at least 1e-9), ``p.v``, ``v.v``, ``p.adot``."""
+    return np.maximum(np.sqrt(row_dot(g.p, g.p)), 1e-9), row_dot(g.p, g.v), row_dot(g.v, g.v), row_dot(g.p, g.adot)
 
 
 def _aasoatt_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
@@ -90,16 +79,14 @@ def _distance_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
 
 def _aasoatt(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     r, pv, vv, pa = _common(g)
-    rhs = vv - pv * pv / (r * r) + (q.k1 + q.k2) * pv + q.k1 * q.k2 * r * (r - g.d_s) + pa
-    return rhs, None
+    return vv - pv * pv / (r * r) + (q.k1 + q.k2) * pv + q.k1 * q.k2 * r * (r - g.d_s) + pa, None
 
 
 def _braking(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     r, pv, vv, pa = _common(g)
     root = np.sqrt(2.0 * g.a_plus * np.maximum(r - g.d_s, 1e-6))
     h = root + pv / r
-    rhs = q.gamma * h**3 * r + vv - pv * pv / (r * r) + g.a_plus * pv / root + pa
-    return rhs, None
+    return q.gamma * h**3 * r + vv - pv * pv / (r * r) + g.a_plus * pv / root + pa, None
 
 
 def _velocity_rhs(g: PairGeometry, q: FilterConfig, d: np.ndarray) -> np.ndarray:
@@ -114,8 +101,7 @@ def _distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
 def _gated_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, np.ndarray]:
     gate = q.sensing_range if q.gate_range is None else q.gate_range
     r, pv, _, _ = _common(g)
-    keep = (pv < 0.0) & (r < gate)
-    return _velocity_rhs(g, q, g.d_s), keep
+    return _velocity_rhs(g, q, g.d_s), (pv < 0.0) & (r < gate)
 
 
 def _adaptive_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
@@ -154,7 +140,6 @@ def barrier_rows(name: str, g: PairGeometry, params: FilterConfig) -> tuple[np.n
     """
     rhs, keep = get_barrier(name).rows(g, params)
     if keep is None:
-        idx = np.arange(rhs.shape[0])
-        return -g.p, rhs, idx
+        return -g.p, rhs, np.arange(rhs.shape[0])
     idx = np.flatnonzero(keep)
     return -g.p[idx], rhs[idx], idx

@@ -1,12 +1,10 @@
 """Deadlock resolution: strategies (what changes) and triggers (when), both registries.
 
-``Q(q)`` is the rotation by ``q``; ``zeta_i`` is ``zeta`` while robot ``i`` is triggered, else 0.  Strategies
-(:data:`STRATEGIES`) change the QP's target ``A du_nom`` or the rows: ``none``; ``rotate_nominal`` (eqn.12a,
-Wang 2017): ``target <- (I - Q) target``; ``rotate_reference_velocity`` (eqn.12b): ``v_d <- (I - zeta Q) v_d``,
-for any nominal the correction ``-(k3 + k4) zeta Q v_d`` (exact for the tracking law eqn.12);
-``auxiliary_velocity`` (eqn.13, default): ``target -= zeta Q (A u - v_d + k3 ell)``; ``rotate_relative_position``
-(eqn.12c, He 2024): ``p_ij <- (I - Q) p_ij`` in the rows of triggered pairs, which changes the barrier itself
-(the paper reports Zeno behaviour), so the filter warns; the backup layer still keeps the team apart.
+Strategies (:data:`STRATEGIES`; equations: ``docs/technical_brief.md`` section 5) change the QP's target
+``A du_nom`` or the rows of triggered robots: ``none``, ``rotate_nominal`` (eqn.12a), ``rotate_reference_velocity``
+(eqn.12b, for any nominal the correction ``-(k3 + k4) zeta Q v_d``, exact for the tracking law eqn.12),
+``auxiliary_velocity`` (eqn.13, default) and ``rotate_relative_position`` (eqn.12c; it changes the barrier itself,
+and the paper reports Zeno behaviour, so the filter warns; the backup layer still keeps the team apart).
 
 Triggers (:data:`TRIGGERS`), at the start of a step: ``multiplier`` (Algorithm 1): a row of the robot was
 active at the previous step; ``low_speed`` (Wang 2017): ``|v_i| < low_speed``; ``stalled``: moved less than

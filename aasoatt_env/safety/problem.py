@@ -97,34 +97,22 @@ def build_problem(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndar
     sigma = float(np.max(np.abs(H))) if n_rob else 1.0
     H = H / sigma
     g = (-2.0 * np.einsum("nki,nk->ni", A, target) * s / sigma).ravel()
-    m = rhs.shape[0]
-    Gi_s = Gi * s[ri]
-    obs = rj < 0
-    any_obs = bool(obs.any())
-    if any_obs:
-        rjc = np.where(obs, 0, rj)
-        Gj_s = np.where(obs[:, None], 0.0, Gj * s[rjc])
-    else:  # the same arrays without the masks
-        rjc = rj
-        Gj_s = Gj * s[rjc]
+    m, obs = rhs.shape[0], rj < 0
+    rjc = np.where(obs, 0, rj)
+    Gi_s, Gj_s = Gi * s[ri], np.where(obs[:, None], 0.0, Gj * s[rjc])
     nu = np.sqrt(np.sum(Gi_s**2, axis=1) + np.sum(Gj_s**2, axis=1))
     nu = np.where(nu > ROW_NORM_MIN, nu, 1.0)
     Gi_s /= nu[:, None]
     Gj_s /= nu[:, None]
-    # CSR directly: 4 entries per robot-robot row, 2 per obstacle row
-    cols = np.stack((2 * ri, 2 * ri + 1, 2 * rjc, 2 * rjc + 1), axis=1)
-    data = np.concatenate((Gi_s, Gj_s), axis=1)
-    # index arrays already in the dtype scipy would convert them to (int32 while everything fits): no conversion
+    # CSR directly: 4 entries per robot-robot row, 2 per obstacle row, the index arrays in the dtype scipy would
+    # convert them to (int32 while everything fits)
+    keep = np.ones((m, 4), dtype=bool)
+    keep[:, 2:] = ~obs[:, None]
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(np.where(obs, 2, 4), out=indptr[1:])
+    cols = np.stack((2 * ri, 2 * ri + 1, 2 * rjc, 2 * rjc + 1), axis=1)[keep]
+    data = np.concatenate((Gi_s, Gj_s), axis=1)[keep]
     itype = np.int32 if max(4 * m, 2 * n_rob) < np.iinfo(np.int32).max else np.int64
-    if any_obs:
-        keep = np.ones((m, 4), dtype=bool)
-        keep[:, 2:] = ~obs[:, None]
-        indptr = np.zeros(m + 1, dtype=np.int64)
-        np.cumsum(np.where(obs, 2, 4), out=indptr[1:])
-        data, cols = data[keep], cols[keep]
-    else:
-        indptr = np.arange(0, 4 * m + 1, 4)
-        data, cols = data.ravel(), cols.ravel()
     C = sp.csr_matrix((data, cols.astype(itype), indptr.astype(itype)), shape=(m, 2 * n_rob))
     diag = bool(np.all(np.abs(H[:, 0, 1]) <= 1e-12 * np.maximum(np.abs(H[:, 0, 0]), 1e-300)))
     return QPProblem(H_blocks=H, g=g, C=C, u=rhs / nu, lb=(lo / s).ravel(), ub=(hi / s).ravel(),

@@ -56,24 +56,15 @@ class FilterReport:
     @classmethod
     def of(cls, results: tuple[FilterResult, ...]) -> FilterReport:
         """Aggregate the results of the physics steps of one env step."""
-        last = results[-1]
-        if len(results) == 1:
-            return cls(last.intervened, last.avoiding, last.triggered, last.backup, last.correction, last.status,
-                       last.safe, last.margin, last.barrier_min, last.message, last.slack, last.iterations,
-                       last.n_rows, last.n_qp_rows, last.du, last.solve_time)
-        worst = max(results, key=lambda r: STATUS_CODES[r.status])
-        return cls(
-            intervened=np.any([r.intervened for r in results], axis=0),
-            avoiding=np.any([r.avoiding for r in results], axis=0),
-            triggered=np.any([r.triggered for r in results], axis=0),
-            backup=np.any([r.backup for r in results], axis=0),
-            correction=np.max([r.correction for r in results], axis=0),
-            status=worst.status, safe=all(r.safe for r in results), margin=min(r.margin for r in results),
-            barrier_min=min(r.barrier_min for r in results), message=worst.message,
-            slack=max(r.slack for r in results), iterations=sum(r.iterations for r in results),
-            n_rows=last.n_rows, n_qp_rows=last.n_qp_rows, applied=last.du,
-            solve_time=sum(r.solve_time for r in results),
-        )
+        last, worst = results[-1], max(results, key=lambda r: STATUS_CODES[r.status])
+        flags = ("intervened", "avoiding", "triggered", "backup")
+        return cls(*(np.any([getattr(r, k) for r in results], axis=0) for k in flags),
+                   correction=np.max([r.correction for r in results], axis=0), status=worst.status,
+                   safe=all(r.safe for r in results), margin=min(r.margin for r in results),
+                   barrier_min=min(r.barrier_min for r in results), message=worst.message,
+                   slack=max(r.slack for r in results), iterations=sum(r.iterations for r in results),
+                   n_rows=last.n_rows, n_qp_rows=last.n_qp_rows, applied=last.du,
+                   solve_time=sum(r.solve_time for r in results))
 
     def info(self, index: int) -> dict[str, Any]:
         """The nested ``infos[agent]["filter"]`` dict of robot ``index``."""
@@ -85,11 +76,9 @@ class FilterReport:
 
     def infos(self, indices: np.ndarray | slice) -> list[dict[str, Any]]:
         """The nested ``infos[agent]["filter"]`` dicts of robots ``indices`` (one conversion per field)."""
-        shared = {
-            "status": self.status, "safe": bool(self.safe), "margin": float(self.margin),
-            "barrier_min": float(min(self.barrier_min, _BIG)), "slack": float(self.slack),
-            "iterations": int(self.iterations), "n_rows": int(self.n_rows), "n_qp_rows": int(self.n_qp_rows),
-        }
+        shared = {"status": self.status, "safe": bool(self.safe), "margin": float(self.margin),
+                  "barrier_min": float(min(self.barrier_min, _BIG)), "slack": float(self.slack),
+                  "iterations": int(self.iterations), "n_rows": int(self.n_rows), "n_qp_rows": int(self.n_qp_rows)}
         cols = self._columns(indices)
         return [dict(shared, intervened=a, avoiding=b, triggered=c, backup=d, correction=e)
                 for a, b, c, d, e in zip(*cols)]
@@ -118,16 +107,12 @@ class AASOATTFilter(BaseParallelWrapper):
     ``dt`` is the env's.  ``infos``: ``"nested"`` (``infos[agent]["filter"]``) or ``"flat"`` (``filter_*`` keys).
     """
 
-    def __init__(
-        self, env: Any, config: FilterConfig | dict[str, Any] | None = None, *, infos: str = "nested",
-        **options: Any,
-    ) -> None:
+    def __init__(self, env: Any, config: FilterConfig | dict[str, Any] | None = None, *, infos: str = "nested",
+                 **options: Any) -> None:
         base = getattr(env, "unwrapped", None)
         if not isinstance(base, AASOATTParallelEnv):
-            raise ConfigError(
-                f"env: got {type(env).__name__}, expected an aasoatt_env parallel env (AASOATTParallelEnv or a "
-                "PettingZoo wrapper of it)"
-            )
+            raise ConfigError(f"env: got {type(env).__name__}, expected an aasoatt_env parallel env "
+                              "(AASOATTParallelEnv or a PettingZoo wrapper of it)")
         if "dt" in options:
             raise ConfigError(f"dt: got {options['dt']!r}; the filter runs at the env's physics step ({base.dt:g} s)")
         self._infos_mode = check.choice("infos", infos, ("nested", "flat"))
@@ -139,8 +124,7 @@ class AASOATTFilter(BaseParallelWrapper):
         self.filter = SafetyFilter(config=cfg)
         base.set_control_filter(self.filter)  # raises UsageError if the env already has a filter
         self._report: FilterReport | None = None
-        self._time = 0.0
-        self._steps = 0
+        self._time, self._steps = 0.0, 0
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Reset the env (and the filter's warm start and deadlock memory)."""
@@ -159,22 +143,18 @@ class AASOATTFilter(BaseParallelWrapper):
         return obs, rew, term, trunc, self._add(infos)
 
     def _add(self, infos: dict[str, dict]) -> dict[str, dict]:
-        rep = self._report
-        flat = self._infos_mode == "flat"
+        rep, base = self._report, self.unwrapped
         if rep is None:
-            extra = [dict(_FLAT_IDLE if flat else _NESTED_IDLE) for _ in infos]
+            rep, rows = _IDLE, np.zeros(len(infos), dtype=np.intp)
+        elif list(infos) == base.possible_agents:  # every agent, in order: every row
+            rows = _ALL_ROWS
         else:
-            base = self.unwrapped
-            if list(infos) == base.possible_agents:  # every agent, in order: every row
-                rows = _ALL_ROWS
-            else:
-                idx = base.agent_index
-                rows = np.fromiter((idx[a] for a in infos), dtype=np.intp, count=len(infos))
-            extra = rep.flat_infos(rows) if flat else rep.infos(rows)
-        for info, add in zip(infos.values(), extra):
-            if flat:
+            rows = np.fromiter((base.agent_index[a] for a in infos), dtype=np.intp, count=len(infos))
+        if self._infos_mode == "flat":
+            for info, add in zip(infos.values(), rep.flat_infos(rows)):
                 info.update(add)
-            else:
+        else:
+            for info, add in zip(infos.values(), rep.infos(rows)):
                 info["filter"] = add
         return infos
 
@@ -198,13 +178,5 @@ class AASOATTFilter(BaseParallelWrapper):
 
 _ALL_ROWS = slice(None)  # FilterReport.infos' rows when the infos hold every agent in order (no gather)
 _BIG = 1e9  # stands in for an infinite barrier value (no rows): infos stay finite
-
-_NESTED_IDLE: dict[str, Any] = {
-    "intervened": False, "avoiding": False, "triggered": False, "backup": False, "correction": 0.0,
-    "status": "solved", "safe": True, "margin": _BIG, "barrier_min": _BIG, "slack": 0.0, "iterations": 0,
-    "n_rows": 0, "n_qp_rows": 0,
-}
-_FLAT_IDLE: dict[str, float] = {
-    "filter_intervened": 0.0, "filter_avoiding": 0.0, "filter_triggered": 0.0, "filter_backup": 0.0,
-    "filter_correction": 0.0, "filter_status_code": 0.0, "filter_margin": _BIG, "filter_slack": 0.0,
-}
+_IDLE = FilterReport(*(np.zeros(1, dtype=bool),) * 4, np.zeros(1), "solved", True, _BIG, _BIG, "", 0.0, 0, 0, 0,
+                     np.zeros((1, 2)), 0.0)  # the infos before a step

@@ -1,21 +1,19 @@
 """Which solver answers a safety QP: a pure function of the problem's size and the configuration.
 
-:meth:`SolverPolicy.solve` never raises on numerical trouble and never returns NaN.  In order: (1) no rows and
-diagonal Hessian blocks: the closed form; (2) an approximate back-end (``neural``): its point as it is; (3) the
-warm active set from the previous step's working set, part by part: each part it verifies (KKT conditions) is
-answered, the others go on as one smaller problem; (4) the route (:func:`route`): before a back-end that may
-stall, the exact solvers of :data:`EXACT_ROUTE`, then the configured back-end.  An answer is taken only where
-verified (``ldp`` verifies its own, any other by the warm active set started from it); the configured
-back-end's is polished there too where its last bits depend on more than the problem, and taken as it is where
-that fails.  A proof of infeasibility ends the route; (5) infeasibility is never taken from an iterative
-solver's word: a phase-1 problem (:data:`PHASE1_ROUTE`) finds each row's least violation with the bounds hard,
-every row is loosened by its own and the problem solved again (status ``"relaxed"``).  Nothing here reads the
-clock or keeps state between calls: the same problem gets the same answer, whatever the machine's load.
+:meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock and keeps no
+state between calls.  In order: without rows (diagonal blocks) the closed form; ``neural``'s point as it is;
+the warm active set from the previous step's working set, on every part it verifies (KKT conditions); the
+route (:func:`route`: the exact solvers of :data:`EXACT_ROUTE` before a back-end that may stall, then the
+configured one), each answer taken only where verified (by ``ldp`` itself, or by the warm active set started
+from it, which also fixes the last bits of a back-end whose bits depend on more than the problem).  A proof
+of infeasibility ends the route; infeasibility is never taken from an iterative solver's word: a phase-1
+problem (:data:`PHASE1_ROUTE`) finds each row's least violation with the bounds hard, the rows are loosened
+by it and the QP solved again (status ``"relaxed"``).  ``docs/design.md`` says why.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -165,11 +163,8 @@ class SolverPolicy:
         x1, viol = p1
         tstar = float(np.max(viol, initial=0.0))
         relaxed = tstar > _FEAS_TOL
-        loose = QPProblem(prob.H_blocks, prob.g, prob.C, prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL, prob.lb, prob.ub,
-                          prob.scale, prob.obj_scale, prob.row_norm, prob.diagonal)
-        raw2 = self._ask(loose, x1, None)
-        msg = (f"{raw.message}; phase 1: largest row violation {tstar:.3g} "
-               f"({int(np.sum(viol > _FEAS_TOL))} rows)")
+        raw2 = self._ask(replace(prob, u=prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL), x1, None)  # the loosened QP
+        msg = f"{raw.message}; phase 1: largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
         status = "relaxed" if relaxed else "solved"
         if raw2.ok:
             return QPSolution(raw2.x, _nonneg(raw2.z, prob.m), status, tstar if relaxed else 0.0,
