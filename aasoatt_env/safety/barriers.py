@@ -119,9 +119,8 @@ BARRIERS: dict[str, Barrier] = {
     "gated_distance": Barrier(_gated_distance, _distance_h, "eqn.n5/n6"),
     "adaptive_distance": Barrier(_adaptive_distance, _distance_h, "eqn.n7"),
 }
-"""Barrier registry: name -> :class:`Barrier` (see module docstring).  The velocity-level
-barriers share the value ``varsigma (r^2 - d_s^2) + 2 p^T v`` (eqn.nn5's set; eqn.n7's
-adaptive distance is larger, so its rows keep a subset of it)."""
+"""Barrier registry: name -> :class:`Barrier`.  The velocity-level barriers share the value ``varsigma (r^2 - d_s^2)
++ 2 p^T v`` (eqn.nn5's set; eqn.n7's adaptive distance is larger, so its rows keep a subset of it)."""
 
 
 def get_barrier(name: str) -> Barrier:
@@ -135,8 +134,7 @@ def get_barrier(name: str) -> Barrier:
 def barrier_rows(name: str, g: PairGeometry, params: FilterConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows ``c^T (w_i - w_j) <= rhs`` of barrier ``name`` for the pairs of ``g`` (rotated where a strategy asks).
 
-    Returns ``c = -p_ij`` ``(P', 2)``, ``rhs`` ``(P',)`` and the kept pairs' indices into ``g`` (all but where a
-    gated barrier drops some).
+    Returns ``c = -p_ij`` ``(P', 2)``, ``rhs`` ``(P',)`` and the kept pairs' indices into ``g`` (a gate drops some).
     """
     rhs, keep = get_barrier(name).rows(g, params)
     if keep is None:

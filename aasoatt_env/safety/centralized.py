@@ -44,8 +44,7 @@ def solve_rows(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.n
                compiled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, object, int]:
     """The QP of the robots and rows given: ``(du, x, z, eta, solution, n_qp)`` (``solution`` None: closed form).
 
-    ``du`` within the bounds, ``x = du / scale`` before clipping (the next warm start), ``z`` the scaled
-    multipliers and ``eta`` those in the units of eqn.8, 0 on rows outside the QP.
+    ``x = du / scale`` before clipping (the next warm start); ``z`` scaled, ``eta`` in eqn.8's units, 0 off the QP.
     """
     n, m = A.shape[0], rows.m
     z, eta = np.zeros(m), np.zeros(m)
@@ -96,18 +95,17 @@ def solve_team(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.n
                settings: np.ndarray | None) -> TeamAnswer:
     """The QP of the robots and rows given: the compiled call first, else :func:`solve_rows`.
 
-    With ``settings`` and a warm start, :func:`~aasoatt_env.safety.centralized_kernel.solve_decomposed` answers
-    where it verifies every component, with :func:`solve_rows`' numbers; every other step is :func:`solve_rows`'.
+    With ``settings`` and a warm start, :func:`~.centralized_kernel.solve_decomposed` answers where it verifies every
+    component, with :func:`solve_rows`' numbers.
     """
     if settings is not None and warm.x is not None and warm.z is not None:
         k = kernels("centralized")
         code, used, n_qp, du, x, z, eta = k.solve_decomposed(A, c64(target), lo, hi, scale, rows.ri, rows.rj,
                                                              rows.Gi, rows.Gj, rows.rhs, c64(warm.x), warm.z,
                                                              settings)
-        if code == k.CLOSED_FORM:
-            return TeamAnswer(du, x, z, eta, "solved", CLOSED_FORM_MESSAGE, 0, 0, True)
-        if code == k.VERIFIED:
-            return TeamAnswer(du, x, z, eta, "solved", aset.VERIFIED_MESSAGE, int(used), int(n_qp), True)
+        if code in (k.CLOSED_FORM, k.VERIFIED):  # (the closed form: used = n_qp = 0)
+            message = CLOSED_FORM_MESSAGE if code == k.CLOSED_FORM else aset.VERIFIED_MESSAGE
+            return TeamAnswer(du, x, z, eta, "solved", message, int(used), int(n_qp), True)
     du, x, z, eta, sol, n_qp = solve_rows(policy, A, target, lo, hi, scale, rows, warm, decompose=decompose,
                                           compiled=compiled)
     if sol is None:

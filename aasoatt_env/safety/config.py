@@ -129,8 +129,7 @@ class FilterConfig:
     def merged(cls, config: FilterConfig | Mapping[str, Any] | None = None, /, **options: Any) -> FilterConfig:
         """``config`` (a FilterConfig, a mapping of its fields, None: defaults) with ``options`` replacing fields.
 
-        The one rule for combining a configuration with explicit options; unknown names raise ``TypeError``
-        listing the fields.
+        The one rule for combining a configuration with options; unknown names raise ``TypeError`` listing the fields.
         """
         known = [f.name for f in fields(cls)]
         if config is None:

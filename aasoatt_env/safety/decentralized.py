@@ -1,14 +1,11 @@
 """The decentralised QP stage: every robot solves its own 2-variable QP over its share of each pair row.
 
-A pair row ``Gi du_i + Gj du_j <= rhs`` is shared by authority (``Team.max_point_accel``),
-``s_i = a_i / (a_i + a_j)``.  ``"reciprocal"`` (default, as in ORCA) splits the correction
-``v = Gi du0_i + Gj du0_j - rhs`` that the robots' closed-form answers ``du0`` need,
-``Gi du_i <= Gi du0_i - s_i v``; ``"authority"`` splits the bound, ``Gi du_i <= s_i rhs``.  The halves
-add up to the row; an obstacle row is its robot's.  A robot whose own QP is infeasible gets its
-least-violation answer (``"relaxed"``).  Robots the deadlock trigger flags, and those they touch, solve
-the rows among them whole (negotiation groups: the centralised QP restricted to them, with their halves
-of the other rows); without a flagged robot the step is the per-robot one exactly.  ``docs/design.md``
-says why.
+A pair row ``Gi du_i + Gj du_j <= rhs`` is shared by authority, ``s_i = a_i / (a_i + a_j)``: ``"reciprocal"``
+(default) splits the correction ``v = Gi du0_i + Gj du0_j - rhs`` that the closed-form answers ``du0`` need,
+``Gi du_i <= Gi du0_i - s_i v``; ``"authority"`` splits the bound, ``Gi du_i <= s_i rhs``.  An obstacle row is its
+robot's.  Robots the deadlock trigger flags, and those they touch, solve the rows among them whole (negotiation
+groups: the centralised QP restricted to them, with their halves of the other rows); without a flagged robot the
+step is the per-robot one exactly.  ``docs/design.md`` (Decentralised mode) says why.
 """
 
 from __future__ import annotations
@@ -127,17 +124,15 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
     """Every robot's own QP over its half-rows, exactly and all at once; negotiation groups jointly.
 
     ``target`` ``(N, 2)`` is each robot's ``A du_nom`` with its nominal within its bounds (the local solver's
-    tolerance is relative to it); the bounds are kept hard; ``scale`` ``(N,)`` of ``du`` for ``z`` and the
-    loosening tolerance (None: the largest bound).  ``whole`` ``(M,)``: the rows the negotiation groups solve
-    whole (:func:`negotiation_rows`; needs ``policy``), warm-started from the scaled point ``x_warm`` ``(N, 2)``
-    and ``z_warm`` ``(M,)``.  ``compiled``: the compiled kernels (the same decisions).
+    tolerance is relative to it); the bounds are kept hard; ``scale`` ``(N,)`` of ``du`` for ``z`` and the loosening
+    tolerance (None: the largest bound).  ``whole`` ``(M,)``: the rows the negotiation groups solve whole (needs
+    ``policy``), warm-started from the scaled ``x_warm`` ``(N, 2)`` and ``z_warm`` ``(M,)``.
     """
     if split not in SPLITS:
         raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")
     if scale is None:
-        big = np.maximum(np.abs(lo), np.abs(hi))
-        scale = np.maximum(big[:, 0], big[:, 1])
-        scale = np.where(scale > 0, scale, 1.0)
+        big = np.maximum(np.abs(lo), np.abs(hi)).max(axis=1)
+        scale = np.where(big > 0, big, 1.0)
     H, g = _objective(A, target)
     du0 = box_least_squares(A, target, lo, hi, compiled=compiled) if split == "reciprocal" else None
     sp = split_rows(ri, rj, Gi, Gj, rhs, authority, du0)
@@ -190,10 +185,7 @@ def _objective(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def _half_multipliers(sp: SplitRows, lam: np.ndarray, H: np.ndarray, scale: np.ndarray,
                       m: int) -> tuple[np.ndarray, np.ndarray]:
-    """The half-rows' multipliers on the pair rows ``(M, 2)``: ``eta`` as given, ``z`` in the centralised units.
-
-    ``z``: scaled variables ``x = du / s``, unit-norm rows, each robot's objective over its largest scaled entry.
-    """
+    """The half-rows' multipliers on the pair rows ``(M, 2)``: ``eta`` as given, ``z`` in the centralised units."""
     nz = np.flatnonzero(lam)
     row, side = sp.row_side(nz)
     o = sp.owner[nz]
@@ -222,9 +214,8 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
             compiled: bool) -> tuple[np.ndarray, np.ndarray, TeamAnswer, np.ndarray, int, int]:
     """The negotiation groups' QP: the whole rows (robot rows only), and the grouped robots' halves of the others.
 
-    Returns the whole rows, the robots in them, the QP's answer (``du`` of those robots; multipliers of the
-    whole rows, then of the kept halves), the kept halves (indices into ``sp``), the number of groups and the
-    largest one's size.
+    Returns the whole rows, the robots in them, the QP's answer (``du`` of those robots; multipliers of the whole
+    rows, then of the kept halves), the kept halves (indices into ``sp``), the number of groups, the largest's size.
     """
     n, m = A.shape[0], ri.shape[0]
     joint = np.flatnonzero(whole)
@@ -248,17 +239,13 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
         g_z = np.zeros(g_rhs.shape[0])
     else:  # (a kept half starts at its row's multiplier)
         g_z = np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
-    g_rows = Rows(g_ri, g_rj, g_Gi, g_Gj, g_rhs, _NO_PAIRS, _NO_KEYS, np.inf, np.inf)
+    g_rows = Rows(g_ri, g_rj, g_Gi, g_Gj, g_rhs, np.empty((0, 2), np.intp), np.empty(0, np.int64), np.inf, np.inf)
     ans = solve_team(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_rows,
                      Warm(np.ascontiguousarray(x0[sub]), g_z), decompose=True, compiled=compiled,
                      settings=compiled_settings(policy, compiled))
     label = pair_components(sub.size, g_ri[: joint.shape[0]], g_rj[: joint.shape[0]], compiled=compiled)
     sizes = np.bincount(label, minlength=sub.size)
     return joint, grouped, ans, kept, int(np.count_nonzero(sizes >= 2)), int(sizes.max(initial=0))
-
-
-_NO_PAIRS = np.empty((0, 2), dtype=np.intp)
-_NO_KEYS = np.empty(0, dtype=np.int64)
 
 
 @dataclass(frozen=True)

@@ -70,8 +70,7 @@ class QPProblem:
     def restrict(self, robots: np.ndarray, rows: np.ndarray) -> QPProblem:
         """The problem of the robots ``robots`` ``(N,)`` bool and the rows ``rows`` ``(m,)`` bool alone.
 
-        Meant for independent parts (no kept row touches a dropped robot): the objective
-        scale is kept, so multipliers of the part equal those of the whole.
+        For independent parts: the objective scale is kept, so the part's multipliers are the whole's.
         """
         v = np.repeat(robots, 2)
         return QPProblem(self.H_blocks[robots], self.g[v], self.C[rows][:, v].tocsr(), self.u[rows], self.lb[v],
@@ -123,9 +122,8 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
                       compiled: bool = False) -> np.ndarray:
     """Per robot ``argmin |A_i du_i - target_i|^2  s.t.  lo_i <= du_i <= hi_i`` ``(K, 2)``, in closed form.
 
-    The QP of a robot in no row: the unconstrained minimiser ``A_i^-1 target_i`` where it is inside the
-    box, else the best of the four edges' clipped parabola minima.  ``compiled``: the same operations in
-    one compiled loop (:func:`~aasoatt_env.safety.centralized_kernel.box_least_squares`, the same numbers).
+    The QP of a robot in no row: ``A_i^-1 target_i`` where it is inside the box, else the best of the four edges'
+    clipped parabola minima.  ``compiled``: the same operations in one compiled loop (the same numbers).
     """
     k = np.shape(A)[0] if np.ndim(A) == 3 else -1
     check.shapes((("A", A, (k, 2, 2)), ("target", target, (k, 2)), ("lo", lo, (k, 2)), ("hi", hi, (k, 2))),

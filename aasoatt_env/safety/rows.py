@@ -100,17 +100,14 @@ def numpy_rows(cfg: FilterConfig, s: StepInput, pairs: Pairs, triggered: np.ndar
     rel = state[ri] - state[rj]
     gp, gv, ga = rel[:, 0:2], rel[:, 2:4], rel[:, 4:6]
     ds, ap, out = rad[ri] + rad[rj], amax[ri] + amax[rj], pairs.robots
-    n_obs = 0
+    n_obs = 0 if s.obstacles is None else s.obstacles[1].shape[0]
     if pairs.obstacles.shape[0]:
         oi, ok = pairs.obstacles[:, 0], pairs.obstacles[:, 1]
         oc, orad = s.obstacles[0], s.obstacles[1]
-        n_obs = orad.shape[0]
         gp, gv, ga = np.concatenate((gp, p[oi] - oc[ok])), np.concatenate((gv, v[oi])), np.concatenate((ga, adot[oi]))
         ds, ap = np.concatenate((ds, rad[oi] + orad[ok])), np.concatenate((ap, amax[oi]))
         ri, rj = np.concatenate((ri, oi)), np.concatenate((rj, np.full(oi.shape[0], -1, np.intp)))
         out = np.concatenate((out, np.stack((oi, -1 - ok), axis=1)))
-    elif s.obstacles is not None:
-        n_obs = s.obstacles[1].shape[0]
     margin = cfg.pair_margin(gv)
     if cfg.speed_margin:
         sp2 = row_dot(v, v)
@@ -128,8 +125,7 @@ def numpy_rows(cfg: FilterConfig, s: StepInput, pairs: Pairs, triggered: np.ndar
     obs = rj < 0
     Gi = np.einsum("pki,pk->pi", s.A[ri], c)
     Gj = -np.einsum("pki,pk->pi", s.A[np.maximum(rj, 0)], c)
-    if obs.any():
-        Gj[obs] = 0.0
+    Gj[obs] = 0.0
     keys = ri.astype(np.int64) * (n + n_obs + 1) + np.where(obs, n - 1 - out[:, 1], rj)
     return Rows(ri, rj, Gi, Gj, rhs, out, keys, float(h.min(initial=np.inf)),
                 float(gap.min(initial=gap_initial(cfg, team))))

@@ -1,9 +1,7 @@
 """What the stages of one filter step hand each other (:mod:`aasoatt_env.safety.core`).
 
-``StepInput`` (the checked state) -> :class:`~aasoatt_env.safety.rows.Pairs` ->
-deadlock trigger and target -> :class:`~aasoatt_env.safety.rows.Rows` -> :class:`Answer`
-(the QP, centralised or decentralised, warm-started from :class:`Warm`) -> the backup check
--> :class:`~aasoatt_env.safety.result.FilterResult`.
+:class:`StepInput` -> :class:`~.rows.Pairs` -> the deadlock trigger and target -> :class:`~.rows.Rows` ->
+:class:`Answer` (the QP, warm-started from :class:`Warm`) -> the backup check -> :class:`~.result.FilterResult`.
 """
 
 from __future__ import annotations

@@ -65,8 +65,7 @@ def _scenes() -> list[tuple[str, Callable[[], None]]]:
 def warm_up(kernel: str = "auto", progress: Callable[[str], None] | None = None) -> bool:
     """Compile (or load from numba's cache) every kernel a filter with ``kernel`` (``FilterConfig.kernel``) runs.
 
-    ``progress`` is called with each part's name before it runs.  Returns whether kernels were run: False for
-    ``"numpy"``, and for ``"auto"`` without numba.
+    ``progress`` gets each part's name before it runs.  Returns False for ``"numpy"`` and for ``"auto"`` without numba.
     """
     if kernel not in KERNELS:
         raise ConfigError(f"kernel: got {kernel!r}, expected one of {list(KERNELS)}")

@@ -31,9 +31,8 @@ from aasoatt_env.safety.solvers.ldp import solve_ldp
 __all__ = ["DENSE_MAX_SIZE", "ITER_LIMIT", "SOLVERS", "Backend", "RawAnswer", "available_solvers", "get_solver"]
 
 DENSE_MAX_SIZE: int = 600  #: largest ``n + m`` solved with proxsuite's dense class (faster on small problems)
-ITER_LIMIT: dict[str, int] = {"proxsuite": 200, "proxsuite_inner": 100, "daqp": 2000, "osqp": 20000,
-                              "clarabel": 200}
-"""Iteration budgets of the iterative back-ends: the worst case of a call is a property of its size."""
+#: iteration budgets of the iterative back-ends: the worst case of a call is a property of its size
+ITER_LIMIT: dict[str, int] = {"proxsuite": 200, "proxsuite_inner": 100, "daqp": 2000, "osqp": 20000, "clarabel": 200}
 _INF = 1e20
 
 

@@ -59,11 +59,8 @@ class QPSolution:
 
 def route(solver: str, n: int) -> list[tuple[str, dict]]:
     """The solvers asked for a problem of ``n`` variables with back-end ``solver``, in order, with their options."""
-    backend = get_solver(solver)
-    installed = available_solvers()
-    steps = []
-    if backend.may_stall:
-        steps = [(k, dict(get_solver(k).route_options)) for k, most in EXACT_ROUTE if n <= most and k in installed]
+    installed, stall = available_solvers(), get_solver(solver).may_stall  # the exact solvers go before a staller
+    steps = [(k, dict(get_solver(k).route_options)) for k, top in EXACT_ROUTE if stall and n <= top and k in installed]
     return [*steps, (solver, {})]
 
 
