@@ -106,8 +106,7 @@ def _gated_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, np.nd
 
 def _adaptive_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     pv = row_dot(g.p, g.v)
-    D = q.sensing_range
-    margin = g.d_s - g.r_sum
+    D, margin = q.sensing_range, g.d_s - g.r_sum
     d = 0.5 * (D + g.r_sum) + (D - g.r_sum) / math.pi * np.arctan(-q.rho_v * pv + q.sigma) + margin
     return _velocity_rhs(g, q, d), None
 

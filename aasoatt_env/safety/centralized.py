@@ -27,8 +27,7 @@ __all__ = ["Centralized", "TeamAnswer", "avoiding_robots", "compiled_settings", 
 def kernel_settings(policy: SolverPolicy) -> np.ndarray:
     """The warm active set's constants as :func:`~.centralized_kernel.solve_decomposed` reads them."""
     return np.array([aset.PDAS_ITER, aset.one_change_budget(policy.one_change_iter), aset.TOL, aset.WARM_REL,
-                     aset.WARM_FLOOR, aset.BOUND_TIGHT, ROW_NORM_MIN, aset.DENSE_MAX_VARS, aset.DENSE_MAX_CELLS],
-                    dtype=np.float64)
+                     aset.WARM_FLOOR, aset.BOUND_TIGHT, ROW_NORM_MIN, aset.DENSE_MAX_VARS, aset.DENSE_MAX_CELLS], float)
 
 
 def avoiding_robots(n: int, rows: Rows, active: np.ndarray) -> np.ndarray:
@@ -133,9 +132,8 @@ class Centralized:
         """Solve the step's QP (module docstring)."""
         a = solve_team(self.policy, s.A, target, s.lo, s.hi, s.scale, rows, warm, decompose=self.decompose,
                        compiled=self.compiled, settings=self.settings)
-        slack = 0.0
-        if a.status != "solved" or not a.exact:
-            slack = float(max(0.0, np.max(rows.values(a.du) - rows.rhs, initial=0.0)))
+        checked = a.status != "solved" or not a.exact  # (an exact solve meets its rows)
+        slack = float(max(0.0, np.max(rows.values(a.du) - rows.rhs, initial=0.0))) if checked else 0.0
         return Answer(a.du, a.x, a.z, a.eta, avoiding_robots(a.du.shape[0], rows, a.z > self.eta_tol), a.status,
                       a.message, a.iterations, a.n_qp, slack)
 

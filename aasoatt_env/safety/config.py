@@ -104,14 +104,13 @@ class FilterConfig:
         if not isinstance(self.solver, str):
             raise ConfigError(f"solver: got {self.solver!r}, expected a solver name")
         get_solver(self.solver)  # raises SolverError listing what is available
-        ranges = [*((k, 0.0, GAIN_MAX, True) for k in ("k1", "k2", "k3", "k4", "gamma", "varsigma", "rho_v")),
-                  *((k, 0.0, None, True) for k in ("sensing_range", "dt", "eta_tol", "low_speed", "goal_tol",
-                                                   "stall_time", "stall_distance")),
-                  ("dt", 1e-6, 0.1, False), ("heading_deg", 0.0, 180.0, True), ("zeta", 0.0, GAIN_MAX, False),
-                  ("sigma", -GAIN_MAX, GAIN_MAX, False), ("rotation_deg", -180.0, 180.0, False),
-                  ("gate_range", 0.0, None, True), ("max_wheel_speed", 0.0, None, True),
-                  ("safety_margin", 0.0, 1.0, False), ("brake_fraction", 0.0, 1.0, True),
-                  ("speed_margin", 0.0, 1.0, False)]
+        ranges = [*((k, 0, GAIN_MAX, True) for k in ("k1", "k2", "k3", "k4", "gamma", "varsigma", "rho_v")),
+                  *((k, 0, None, True) for k in ("sensing_range", "dt", "eta_tol", "low_speed", "goal_tol",
+                                                 "stall_time", "stall_distance")),
+                  ("dt", 1e-6, 0.1, False), ("heading_deg", 0, 180, True), ("zeta", 0, GAIN_MAX, False),
+                  ("sigma", -GAIN_MAX, GAIN_MAX, False), ("rotation_deg", -180, 180, False),
+                  ("gate_range", 0, None, True), ("max_wheel_speed", 0, None, True), ("safety_margin", 0, 1, False),
+                  ("brake_fraction", 0, 1, True), ("speed_margin", 0, 1, False)]
         for name, lo, hi, lo_open in ranges:
             if name not in _OPTIONAL or getattr(self, name) is not None:
                 object.__setattr__(self, name, check.real(name, getattr(self, name), lo=lo, hi=hi, lo_open=lo_open))

@@ -59,18 +59,15 @@ TriggerFn = Callable[[DeadlockState, TriggerContext], np.ndarray]  #: ``(N,) boo
 
 
 def _not_done(state: DeadlockState, c: TriggerContext) -> np.ndarray:
-    prev = state.avoiding if state.avoiding is not None else np.zeros(c.p.shape[0], dtype=bool)
     if c.reference is None:
-        return prev
+        return state.avoiding if state.avoiding is not None else np.zeros(c.p.shape[0], dtype=bool)
     ell, v_d = c.p - c.reference[0], c.reference[1]
     return ((np.sqrt(v_d[:, 0] * v_d[:, 0] + v_d[:, 1] * v_d[:, 1]) >= c.cfg.low_speed)
             | (np.sqrt(ell[:, 0] * ell[:, 0] + ell[:, 1] * ell[:, 1]) > c.cfg.goal_tol))
 
 
 def _multiplier(state: DeadlockState, c: TriggerContext) -> np.ndarray:
-    if state.avoiding is None:
-        return np.zeros(c.p.shape[0], dtype=bool)
-    return state.avoiding & _not_done(state, c)
+    return np.zeros(c.p.shape[0], dtype=bool) if state.avoiding is None else state.avoiding & _not_done(state, c)
 
 
 def _low_speed(state: DeadlockState, c: TriggerContext) -> np.ndarray:
@@ -114,8 +111,7 @@ TRIGGERS: dict[str, TriggerFn] = {"multiplier": _multiplier, "low_speed": _low_s
 """Trigger registry: name -> ``trigger(memory, context)``; adding one is a function and a line here."""
 
 TRIGGERS_WITHOUT_PAIRS: frozenset[str] = frozenset({"multiplier", "low_speed", "stalled"})
-"""The triggers known to read no pairs: the filter hands them empty ``pair_idx``/``pair_vec``; any other
-trigger, one you register included, gets the pairs."""
+"""Triggers known to read no pairs (they get empty ``pair_idx``/``pair_vec``); any other, yours too, gets them."""
 
 
 class TargetContext(NamedTuple):

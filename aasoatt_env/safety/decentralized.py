@@ -165,11 +165,9 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
         eta_half[row, side] = group_ans.eta[k:]
         z_half[row, side] = group_ans.z[k:]
         status, iterations = group_ans.status, max(iterations, group_ans.iterations)
-    return DecentralizedResult(
-        du=du, eta=np.maximum(eta_half[:, 0], eta_half[:, 1]), eta_half=eta_half,
-        z=np.maximum(z_half[:, 0], z_half[:, 1]), z_half=z_half, infeasible=infeasible,
-        n_relaxed=int(infeasible.sum()), slack=slack, iterations=iterations, n_enumerated=sol.n_enumerated,
-        grouped=grouped, n_groups=n_groups, largest_group=largest, group_status=status)
+    eta, z = np.maximum(eta_half[:, 0], eta_half[:, 1]), np.maximum(z_half[:, 0], z_half[:, 1])
+    return DecentralizedResult(du, eta, eta_half, z, z_half, infeasible, int(infeasible.sum()), slack, iterations,
+                               sol.n_enumerated, grouped, n_groups, largest, status)
 
 
 def _objective(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -235,10 +233,8 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
     g_Gi = np.concatenate((Gi[joint], sp.G[kept]))
     g_Gj = np.concatenate((Gj[joint], np.zeros((k, 2))))
     g_rhs = np.concatenate((rhs[joint], sp.h[kept]))
-    if z0 is None:
-        g_z = np.zeros(g_rhs.shape[0])
-    else:  # (a kept half starts at its row's multiplier)
-        g_z = np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
+    # (a kept half starts at its row's multiplier)
+    g_z = np.zeros(g_rhs.shape[0]) if z0 is None else np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
     g_rows = Rows(g_ri, g_rj, g_Gi, g_Gj, g_rhs, np.empty((0, 2), np.intp), np.empty(0, np.int64), np.inf, np.inf)
     ans = solve_team(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_rows,
                      Warm(np.ascontiguousarray(x0[sub]), g_z), decompose=True, compiled=compiled,
@@ -282,9 +278,8 @@ class Decentralized:
         avoiding = np.zeros(n, dtype=bool)  # a robot avoids where its own half of a row binds
         avoiding[rows.ri[ans.z_half[:, 0] > self.eta_tol]] = True
         avoiding[rows.rj[(ans.z_half[:, 1] > self.eta_tol) & (rows.rj >= 0)]] = True
-        slack = 0.0
-        if status != "solved" or (ans.grouped.any() and not self.policy.exact):
-            slack = float(max(0.0, np.max(rows.values(ans.du) - rows.rhs, initial=0.0)))
+        checked = status != "solved" or (ans.grouped.any() and not self.policy.exact)
+        slack = float(max(0.0, np.max(rows.values(ans.du) - rows.rhs, initial=0.0))) if checked else 0.0
         return Answer(ans.du.copy(), ans.du / s.scale[:, None], ans.z, ans.eta, avoiding, status, message,
                       ans.iterations, rows.m, slack)
 

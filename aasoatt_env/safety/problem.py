@@ -50,18 +50,14 @@ class QPProblem:
     def H_dense(self) -> np.ndarray:
         """Dense Hessian ``(n, n)``."""
         n = self.n
-        H = np.zeros((n, n))
-        if n:
-            k = np.arange(0, n, 2)
-            H[k, k], H[k, k + 1] = self.H_blocks[:, 0, 0], self.H_blocks[:, 0, 1]
-            H[k + 1, k], H[k + 1, k + 1] = self.H_blocks[:, 1, 0], self.H_blocks[:, 1, 1]
+        H, k = np.zeros((n, n)), np.arange(0, n, 2)
+        H[k, k], H[k, k + 1] = self.H_blocks[:, 0, 0], self.H_blocks[:, 0, 1]
+        H[k + 1, k], H[k + 1, k + 1] = self.H_blocks[:, 1, 0], self.H_blocks[:, 1, 1]
         return H
 
     def H_sparse(self) -> sp.csc_matrix:
         """Sparse block-diagonal Hessian (both entries of every block stored)."""
         n = self.n
-        if not n:
-            return sp.csc_matrix((0, 0))
         # column 2k holds rows 2k, 2k+1 of block k's first column; column 2k+1 its second
         data = self.H_blocks.transpose(0, 2, 1).reshape(-1)
         indices = (np.arange(0, n, 2)[:, None, None] + np.array([[0, 1], [0, 1]])).reshape(-1)
@@ -91,8 +87,7 @@ def build_problem(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndar
     """
     n_rob = A.shape[0]
     s = scale[:, None]
-    AtA = np.einsum("nki,nkj->nij", A, A)
-    H = 2.0 * AtA * (s[:, :, None] * s[:, None, :])
+    H = 2.0 * np.einsum("nki,nkj->nij", A, A) * (s[:, :, None] * s[:, None, :])
     sigma = float(np.max(np.abs(H))) if n_rob else 1.0
     H = H / sigma
     g = (-2.0 * np.einsum("nki,nk->ni", A, target) * s / sigma).ravel()
@@ -134,8 +129,7 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
     t0, t1 = target[:, 0], target[:, 1]
     det = a * d - b * c
     x = np.stack(((d * t0 - b * t1) / det, (a * t1 - c * t0) / det), axis=1)
-    out = (x < lo) | (x > hi)
-    out = out[:, 0] | out[:, 1]
+    out = ((x < lo) | (x > hi)).any(axis=1)
     if not out.any():
         return x
     # the objective 0.5 du' H du + g' du (H = A'A, g = -A' target) along the four edges at once, rows

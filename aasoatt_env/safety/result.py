@@ -13,9 +13,8 @@ from aasoatt_env.safety.stages import Answer
 __all__ = ["COLLISION_TOL", "STATUSES", "FilterResult", "result"]
 
 STATUSES: tuple[str, ...] = ("solved", "relaxed", "backup", "failed", "unsafe")  #: from best to worst
+#: overlap [m] beyond which a pair counts as colliding (the metrics' tolerance; without the backup layer: unsafe)
 COLLISION_TOL: float = 1e-3
-"""Overlap [m] beyond which a pair counts as colliding (the metrics' tolerance): without the backup layer
-the status is ``"unsafe"`` then, whatever the barrier's value."""
 _BARRIER_TOL = 1e-6  # a barrier value below this is outside the barrier's safe set (backup layer off)
 
 
@@ -59,8 +58,7 @@ def result(nominal: np.ndarray, scale: np.ndarray, rows: Rows, ans: Answer, back
     """The step's :class:`FilterResult` from its stages' answers (``backup`` None: the layer is off)."""
     status, message = ans.status, ans.message
     if backup is None:
-        du, braking = ans.du, np.zeros(ans.du.shape[0], dtype=bool)
-        margin = rows.gap_min
+        du, braking, margin = ans.du, np.zeros(ans.du.shape[0], dtype=bool), rows.gap_min
         safe = not (rows.barrier_min < -_BARRIER_TOL or rows.gap_min < -COLLISION_TOL)
     else:
         du, braking, margin, safe = backup.du, backup.braking, backup.margin, backup.safe

@@ -32,8 +32,7 @@ class Pairs(NamedTuple):
 
     def vectors(self, p: np.ndarray, centers: np.ndarray | None) -> np.ndarray:
         """``(P + Q, 2)``: from each pair's robot ``i`` to the other member."""
-        i, j = self.robots[:, 0], self.robots[:, 1]
-        out = p[j] - p[i]
+        out = p[self.robots[:, 1]] - p[self.robots[:, 0]]
         if self.obstacles.shape[0]:
             out = np.concatenate((out, centers[self.obstacles[:, 1]] - p[self.obstacles[:, 0]]))
         return out
@@ -69,12 +68,10 @@ class Rows(NamedTuple):
         return row_dot(self.Gi, du[self.ri]) + row_dot(self.Gj, du[np.maximum(self.rj, 0)])
 
 
-def find_pairs(team: Team, p: np.ndarray, sensing_range: float, obstacles: tuple | None,
-               compiled: bool) -> Pairs:
+def find_pairs(team: Team, p: np.ndarray, sensing_range: float, obstacles: tuple | None, compiled: bool) -> Pairs:
     """The robot pairs and robot-obstacle pairs within ``sensing_range`` of the control points ``p``."""
     if compiled and uses_brute_force(team.n, team.group):
-        robots = kernels("rows").pairs_within(p, *brute_candidates(team.n, team.group),
-                                              sensing_range * sensing_range)
+        robots = kernels("rows").pairs_within(p, *brute_candidates(team.n, team.group), sensing_range * sensing_range)
     else:
         robots = robot_pairs(p, sensing_range, groups=team.group, compiled=compiled)
     if obstacles is None:
@@ -149,8 +146,7 @@ class CompiledRows:
         if s.team is not self._team:
             self._team, self._gap = s.team, gap_initial(cfg, s.team)
         oc, orad = (_NO_CENTERS, _NO_RADII) if s.obstacles is None else s.obstacles[:2]
-        return (s.p, s.v, s.adot, s.A, s.team.radius, pairs.robots, pairs.obstacles, oc, orad, *self._gains,
-                self._gap)
+        return (s.p, s.v, s.adot, s.A, s.team.radius, pairs.robots, pairs.obstacles, oc, orad, *self._gains, self._gap)
 
 
 def kernel_rows(out: tuple) -> Rows:

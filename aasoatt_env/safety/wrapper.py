@@ -1,15 +1,14 @@
 """``AASOATTFilter``: the CBF-QP safety filter as a drop-in PettingZoo wrapper.
 
-Any policy's actions become the *nominal*; the wrapper installs a
-:class:`~aasoatt_env.safety.core.SafetyFilter` into the env (:mod:`aasoatt_env.sim.protocol`), so every
-physics step, also inside a ``decision_interval``, is filtered.  Actions outside ``[-1, 1]`` are taken
-as the (unclipped) nominal: the filter keeps the input bounds hard.  After each ``step`` the env's
-``filter_outputs`` become a :class:`FilterReport` (:attr:`AASOATTFilter.report`), and its fields but
-``message``, ``applied`` and ``solve_time`` become ``infos[agent]["filter"]``.  Infos are deterministic (wall
-times are in :attr:`AASOATTFilter.timing`), as PettingZoo's and Gymnasium's checkers require.
-``infos="flat"`` gives numeric top-level keys instead (``filter_intervened``, ``filter_avoiding``,
-``filter_triggered``, ``filter_backup``, ``filter_correction``, ``filter_status_code`` = the index in
-``STATUSES``, ``filter_margin``, ``filter_slack``) for tensor-based clients such as TorchRL.
+Any policy's actions become the *nominal*; the wrapper installs a :class:`~aasoatt_env.safety.core.SafetyFilter`
+into the env (:mod:`aasoatt_env.sim.protocol`), so every physics step, also inside a ``decision_interval``, is
+filtered.  Actions outside ``[-1, 1]`` are taken as the (unclipped) nominal: the filter keeps the input bounds hard.
+After each ``step`` the env's ``filter_outputs`` become a :class:`FilterReport` (:attr:`AASOATTFilter.report`), and
+its fields but ``message``, ``applied`` and ``solve_time`` become ``infos[agent]["filter"]``.  Infos are
+deterministic (wall times are in :attr:`AASOATTFilter.timing`), as PettingZoo's and Gymnasium's checkers require.
+``infos="flat"`` gives numeric top-level keys instead, for tensor-based clients such as TorchRL:
+``filter_intervened``, ``filter_avoiding``, ``filter_triggered``, ``filter_backup``, ``filter_correction``,
+``filter_status_code`` (the index in :data:`STATUSES`), ``filter_margin``, ``filter_slack``.
 """
 
 from __future__ import annotations

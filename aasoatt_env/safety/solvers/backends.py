@@ -118,11 +118,10 @@ def _clarabel(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opt
     s = clarabel.DefaultSettings()
     s.verbose, s.max_iter = False, ITER_LIMIT["clarabel"]
     s.tol_gap_abs = s.tol_gap_rel = s.tol_feas = 1e-10
-    solver = clarabel.DefaultSolver(sp.triu(prob.H_sparse(), format="csc"), prob.g,
-                                    sp.vstack((prob.C, sp.identity(n), -sp.identity(n)), format="csc"),
-                                    np.concatenate((prob.u, prob.ub, -prob.lb)), [clarabel.NonnegativeConeT(m + 2 * n)],
-                                    s)
-    sol = solver.solve()
+    G = sp.vstack((prob.C, sp.identity(n), -sp.identity(n)), format="csc")
+    h = np.concatenate((prob.u, prob.ub, -prob.lb))
+    sol = clarabel.DefaultSolver(sp.triu(prob.H_sparse(), format="csc"), prob.g, G, h,
+                                 [clarabel.NonnegativeConeT(m + 2 * n)], s).solve()
     ok = str(sol.status) in ("Solved", "AlmostSolved")
     return RawAnswer(np.asarray(sol.x), np.asarray(sol.z)[:m], ok, int(sol.iterations), f"clarabel {sol.status}")
 
@@ -131,10 +130,9 @@ def _quadprog(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opt
     import quadprog
 
     n, m = prob.n, prob.m
-    Ct = np.vstack((-prob.C.toarray(), np.eye(n), -np.eye(n))).T
+    Ct, b = np.vstack((-prob.C.toarray(), np.eye(n), -np.eye(n))).T, np.concatenate((-prob.u, prob.lb, -prob.ub))
     try:
-        x, _, _, it, lagr, _ = quadprog.solve_qp(prob.H_dense(), -prob.g, Ct, np.concatenate((-prob.u, prob.lb,
-                                                                                               -prob.ub)), 0)
+        x, _, _, it, lagr, _ = quadprog.solve_qp(prob.H_dense(), -prob.g, Ct, b, 0)
     except ValueError as exc:
         return RawAnswer(None, None, False, 0, f"quadprog: {exc}")
     return RawAnswer(np.asarray(x), np.asarray(lagr)[:m], True, int(it[0]), "quadprog solved")

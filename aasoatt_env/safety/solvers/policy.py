@@ -1,14 +1,14 @@
 """Which solver answers a safety QP: a pure function of the problem's size and the configuration.
 
-:meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock and keeps no
-state between calls.  In order: without rows (diagonal blocks) the closed form; ``neural``'s point as it is;
-the warm active set from the previous step's working set, on every part it verifies (KKT conditions); the
-route (:func:`route`: the exact solvers of :data:`EXACT_ROUTE` before a back-end that may stall, then the
-configured one), each answer taken only where verified (by ``ldp`` itself, or by the warm active set started
-from it, which also fixes the last bits of a back-end whose bits depend on more than the problem).  A proof
-of infeasibility ends the route; infeasibility is never taken from an iterative solver's word: a phase-1
-problem (:data:`PHASE1_ROUTE`) finds each row's least violation with the bounds hard, the rows are loosened
-by it and the QP solved again (status ``"relaxed"``).  ``docs/design.md`` says why.
+:meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock and keeps no state
+between calls.  In order: without rows (diagonal blocks) the closed form; ``neural``'s point as it is; the warm
+active set from the previous step's working set, on every part it verifies (KKT conditions); the route
+(:func:`route`: the exact solvers of :data:`EXACT_ROUTE` before a back-end that may stall, then the configured
+one), each answer taken only where verified (by ``ldp`` itself, or by the warm active set started from it, which
+also fixes the last bits of a back-end whose bits depend on more than the problem).  A proof of infeasibility
+ends the route; infeasibility is never taken from an iterative solver's word: a phase-1 problem
+(:data:`PHASE1_ROUTE`) finds each row's least violation with the bounds hard, the rows are loosened by it and the
+QP solved again (status ``"relaxed"``).  ``docs/design.md`` says why.
 """
 
 from __future__ import annotations
@@ -98,8 +98,7 @@ class SolverPolicy:
         """Solve ``prob`` warm-started from ``(x0, z0)``; ``groups`` ``(N,)``: independent parts (no row joins two)."""
         backend = get_solver(self.solver)
         if prob.m == 0 and prob.diagonal and backend.exact:
-            return QPSolution(np.clip(_unconstrained(prob), prob.lb, prob.ub), np.zeros(0), "solved", 0.0, 0,
-                              "no rows")
+            return QPSolution(np.clip(_unconstrained(prob), prob.lb, prob.ub), np.zeros(0), "solved", 0.0, 0, "no rows")
         if not backend.exact:
             raw = backend(prob, x0, z0, {"iterations": self.iterations})
             return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message, exact=False)
@@ -187,18 +186,14 @@ def _phase1(prob: QPProblem, solver: str) -> tuple[np.ndarray, np.ndarray] | Non
     pad = m % 2  # keep 2x2 Hessian blocks: a padding variable fixed at 0 by its bounds
     ns = m + pad
     Hb = np.concatenate((prob.H_blocks * 1e-8, np.broadcast_to(np.eye(2), (ns // 2, 2, 2))))
-    ub_s = np.full(ns, 1e6)
     C = sp.hstack([prob.C, -sp.identity(m, format="csr")] + ([sp.csr_matrix((m, 1))] if pad else []), format="csr")
-    if pad:
-        Hb, ub_s[-1] = Hb.copy(), 0.0
-        Hb[-1, 1, 1] = 1.0
-    p1 = QPProblem(Hb, np.zeros(n + ns), C, prob.u, np.concatenate((prob.lb, np.zeros(ns))),
-                   np.concatenate((prob.ub, ub_s)), np.ones(n + ns), 1.0, np.ones(m), prob.diagonal)
+    ub = np.concatenate((prob.ub, np.full(m, 1e6), np.zeros(pad)))
+    p1 = QPProblem(Hb, np.zeros(n + ns), C, prob.u, np.concatenate((prob.lb, np.zeros(ns))), ub, np.ones(n + ns), 1.0,
+                   np.ones(m), prob.diagonal)
     for name in _phase1_order(solver, p1.n):
         backend = get_solver(name)
         # (only the point's recomputed violations are used: an unpolished exact point is accepted looser)
-        raw = backend(p1, None, None, {"ldp_feas_tol": 1e-6, **({} if name == solver else
-                                                                 dict(backend.route_options))})
+        raw = backend(p1, None, None, {"ldp_feas_tol": 1e-6, **({} if name == solver else dict(backend.route_options))})
         if raw.ok and raw.x is not None and np.all(np.isfinite(raw.x)):
             x = np.clip(raw.x[:n], prob.lb, prob.ub)
             return x, np.maximum(prob.C @ x - prob.u, 0.0)
