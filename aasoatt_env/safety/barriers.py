@@ -118,8 +118,9 @@ BARRIERS: dict[str, Barrier] = {
     "gated_distance": Barrier(_gated_distance, _distance_h, "eqn.n5/n6"),
     "adaptive_distance": Barrier(_adaptive_distance, _distance_h, "eqn.n7"),
 }
-"""Barrier registry: name -> :class:`Barrier`.  The velocity-level barriers share the value ``varsigma (r^2 - d_s^2)
-+ 2 p^T v`` (eqn.nn5's set; eqn.n7's adaptive distance is larger, so its rows keep a subset of it)."""
+"""Barrier registry: name -> :class:`Barrier` (adding one: its rows, its ``h`` and a line here).  The velocity
+barriers share the value ``varsigma (r^2 - d_s^2) + 2 p^T v`` (eqn.nn5's set; eqn.n7's adaptive distance is
+larger, so its rows keep a subset of it)."""
 
 
 def get_barrier(name: str) -> Barrier:

@@ -44,7 +44,7 @@ def auto_margin(dt: float) -> float:
 
 @dataclass(frozen=True)
 class FilterConfig:
-    """Parameters of :class:`~aasoatt_env.safety.core.SafetyFilter` (each field says what it sets), validated."""
+    """Parameters of :class:`~aasoatt_env.safety.core.SafetyFilter`, each validated when the config is made."""
 
     barrier: str = "aasoatt"  #: a name in :data:`~.barriers.BARRIERS`
     deadlock: str = "auxiliary_velocity"  #: a name in :data:`~.deadlock.STRATEGIES`
@@ -68,15 +68,12 @@ class FilterConfig:
     dt: float = DT  #: control step [s]
     neural_iterations: int = 1  #: ``neural``'s projected primal-dual updates a step (<= NEURAL_ITERATIONS_MAX)
     active_set: bool = True  #: try the warm-started exact active set first (taken where the KKT conditions hold)
-    #: one QP for the team (the paper's), or every robot's own 2-variable QP over its share of each pair row
-    #: (:mod:`~.decentralized`)
-    mode: str = "centralized"
+    mode: str = "centralized"  #: one QP for the team (the paper's), or each robot's own (:mod:`~.decentralized`)
     #: decentralised: robots the trigger flags, and those touching them (gap below ``negotiate_gap`` [m]), solve
     #: the rows among them jointly; without it alike robots can block each other for good
     negotiate: bool = True
     negotiate_gap: float = 0.1
-    #: centralised: robots in no violated row are answered in closed form, the QP built over the others (the
-    #: same optimum)
+    #: centralised: robots in no violated row are answered in closed form, the QP built over the others (same optimum)
     decompose: bool = True
     #: the braking backup layer (:mod:`~.backup`): the QP's answer is applied only where braking from the state it
     #: leads to keeps every pair apart, which makes the filter safe for any nominal under the real input bounds;
@@ -88,7 +85,7 @@ class FilterConfig:
     #: wheel-speed bound [rad/s]: the box on ``du`` is tightened so ``|u + du dt|`` stays within it (a policy that
     #: spins robots up beyond what the wheels can cancel makes the rows infeasible)
     max_wheel_speed: float | None = None
-    eta_tol: float = 1e-6  #: a normalised multiplier above this marks a row active
+    eta_tol: float = 1e-6  #: a normalised multiplier above this marks a row active (the ``multiplier`` trigger)
     low_speed: float = 0.05  #: the triggers' thresholds (:mod:`~.deadlock`) [m/s]
     goal_tol: float = 0.1  #: [m]
     stall_time: float = 0.5  #: [s]

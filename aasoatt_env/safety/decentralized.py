@@ -1,11 +1,12 @@
 """The decentralised QP stage: every robot solves its own 2-variable QP over its share of each pair row.
 
-A pair row ``Gi du_i + Gj du_j <= rhs`` is shared by authority, ``s_i = a_i / (a_i + a_j)``: ``"reciprocal"``
-(default) splits the correction ``v = Gi du0_i + Gj du0_j - rhs`` that the closed-form answers ``du0`` need,
-``Gi du_i <= Gi du0_i - s_i v``; ``"authority"`` splits the bound, ``Gi du_i <= s_i rhs``.  An obstacle row is its
-robot's.  Robots the deadlock trigger flags, and those they touch, solve the rows among them whole (negotiation
-groups: the centralised QP restricted to them, with their halves of the other rows); without a flagged robot the
-step is the per-robot one exactly.  ``docs/design.md`` (Decentralised mode) says why.
+A pair row ``Gi du_i + Gj du_j <= rhs`` is shared by authority ``a`` (``Team.max_point_accel``),
+``s_i = a_i / (a_i + a_j)``: ``"reciprocal"`` (default) splits the correction ``v = Gi du0_i + Gj du0_j - rhs`` that the
+closed-form answers ``du0`` need, ``Gi du_i <= Gi du0_i - s_i v``; ``"authority"`` splits the bound,
+``Gi du_i <= s_i rhs``.  An obstacle row is its robot's.  A robot whose own QP is infeasible gets its
+least-violation answer (status ``"relaxed"``).  Robots the deadlock trigger flags, and those they touch, solve the
+rows among them whole (negotiation groups: the centralised QP restricted to them, with their halves of the other
+rows); without a flagged robot the step is the per-robot one exactly.  ``docs/design.md`` says why.
 """
 
 from __future__ import annotations
@@ -85,7 +86,7 @@ class DecentralizedResult(NamedTuple):
     eta_half: np.ndarray  #: ``(M, 2)`` the halves' multipliers (column 1 is 0 on obstacle rows)
     z: np.ndarray  #: ``(M,)`` as ``eta``, the units that ``eta_tol`` reads
     z_half: np.ndarray  #: ``(M, 2)``
-    infeasible: np.ndarray  #: ``(N,)`` the robot's own QP was (its least-violation answer; False if grouped)
+    infeasible: np.ndarray  #: ``(N,)`` its own QP was infeasible (its least-violation answer; False if grouped)
     n_relaxed: int
     slack: float  #: largest violation of a half-row of the relaxed robots (eqn.8 units)
     iterations: int  #: the local solver's (largest over the robots), or the groups' solver's where larger
@@ -246,10 +247,7 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
 
 @dataclass(frozen=True)
 class Decentralized:
-    """The decentralised QP stage, ``stage(step, rows, target, triggered, warm) -> Answer`` (module docstring).
-
-    ``target`` is each robot's own: the filter saturates the nominal to the bounds before it.
-    """
+    """The decentralised QP stage; ``target`` is each robot's own (its nominal saturated to its bounds)."""
 
     policy: SolverPolicy
     negotiate: bool

@@ -39,7 +39,7 @@ class FilterResult:
     pairs: np.ndarray  #: ``(m, 2)`` the rows' pairs: ``(i, j)``, or ``(i, -1 - k)`` for obstacle ``k``
     avoiding: np.ndarray  #: ``(N,)`` a row of the robot binds (or it brakes)
     triggered: np.ndarray  #: ``(N,)`` the deadlock strategy acts on the robot
-    slack: float  #: the largest violation of a row by ``du`` (0 when solved)
+    slack: float  #: the largest violation of a row by ``du`` (eqn.8's units; 0 when solved)
     correction: np.ndarray  #: ``(N,)`` ``|du - du_nominal|``
     intervened: np.ndarray  #: ``(N,)`` the robot's nominal was changed
     iterations: int

@@ -4,9 +4,10 @@ A back-end takes a :class:`~aasoatt_env.safety.problem.QPProblem`, an optional w
 :class:`RawAnswer` within an iteration budget (never a time limit), and never falls back to anything by itself:
 :mod:`~aasoatt_env.safety.solvers.policy` decides which answers.  ``proxsuite`` (default): dense
 ``PrimalDualLDLT`` with native box constraints up to :data:`DENSE_MAX_SIZE` variables + rows, sparse
-``SparseCholesky`` above; tight infeasibility tolerances and a duality-gap check.  ``ldp``: exact NNLS, core
-dependencies only.  ``neural``: the paper's projection neural network (eqn.22), an approximation.  ``daqp``,
-``clarabel``, ``osqp``, ``quadprog``, ``cvxopt`` (what Robotarium's barrier certificates call) where installed.
+``SparseCholesky`` above; tight infeasibility tolerances and a duality-gap check (``docs/technical_brief.md``
+section 4).  ``ldp``: exact NNLS, core dependencies only.  ``neural``: the paper's projection neural network
+(eqn.22), an approximation.  ``daqp``, ``clarabel``, ``osqp``, ``quadprog``, ``cvxopt`` (what Robotarium's
+barrier certificates call) where installed.
 """
 
 from __future__ import annotations
@@ -209,7 +210,7 @@ class Backend:
     verified: bool = False
     deterministic: bool = True  #: its last bits are a function of the problem (proxsuite's: of its memory too)
     may_stall: bool = False  #: it can run out of iterations (an augmented Lagrangian): the exact solvers go first
-    route_options: tuple[tuple[str, object], ...] = ()  #: options the policy's route adds (not as the configured)
+    route_options: tuple[tuple[str, object], ...] = ()  #: options when the route asks it (not as the configured one)
 
     def __call__(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
         """Run the back-end."""

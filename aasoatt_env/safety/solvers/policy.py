@@ -1,14 +1,14 @@
 """Which solver answers a safety QP: a pure function of the problem's size and the configuration.
 
 :meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock and keeps no state
-between calls.  In order: without rows (diagonal blocks) the closed form; ``neural``'s point as it is; the warm
-active set from the previous step's working set, on every part it verifies (KKT conditions); the route
-(:func:`route`: the exact solvers of :data:`EXACT_ROUTE` before a back-end that may stall, then the configured
-one), each answer taken only where verified (by ``ldp`` itself, or by the warm active set started from it, which
-also fixes the last bits of a back-end whose bits depend on more than the problem).  A proof of infeasibility
-ends the route; infeasibility is never taken from an iterative solver's word: a phase-1 problem
-(:data:`PHASE1_ROUTE`) finds each row's least violation with the bounds hard, the rows are loosened by it and the
-QP solved again (status ``"relaxed"``).  ``docs/design.md`` says why.
+between calls.  In order: (1) without rows (diagonal blocks) the closed form; (2) ``neural``'s point as it is;
+(3) the warm active set from the previous step's working set, on every part it verifies (KKT conditions); (4) on
+the rest, the route (:func:`route`): the exact solvers of :data:`EXACT_ROUTE` before a back-end that may stall,
+then the configured one.  An answer is taken only where verified, by ``ldp`` itself or by the warm active set
+started from it; the configured back-end's answer is polished there too where its last bits depend on more than
+the problem, and taken as it is where that fails.  A proof of infeasibility ends the route.  (5) Infeasibility is
+never taken from an iterative solver's word: a phase-1 problem (:data:`PHASE1_ROUTE`) finds each row's least
+violation with the bounds hard, the rows are loosened by it and the QP solved again (status ``"relaxed"``).
 """
 
 from __future__ import annotations
