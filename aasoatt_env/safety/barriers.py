@@ -1,20 +1,13 @@
 """Pairwise barrier functions, each turned into rows linear in the wheel accelerations.
 
-Every barrier gives, for all pairs at once, rows ``-p_ij^T (A_i du_i - A_j du_j) <= rhs_ij`` (eqn.8),
-written ``c^T (w_i - w_j) <= rhs`` with ``w = A du`` and ``c = -p_ij``.  An obstacle is a pair whose
-second member has zero velocity and acceleration (``j = -1``); its robot carries the whole row.
-
-Registry (:data:`BARRIERS`; adding a barrier is its row builder, its function ``h`` and one line):
-
-``aasoatt`` (eqn.7-8, default): ``h = r_dot + k1 (r - d_s)``, ``h_dot + k2 h >= 0`` (eqn.7c's typo
-corrected: ``- A_dot_j u_j``).  ``braking`` (eqn.n4, Wang-Ames-Egerstedt 2017):
-``h = sqrt(2 (a_i+ + a_j+)(r - d_s)) + r_dot``, ``h_dot >= -gamma h^3`` (``r - d_s`` clamped at 1e-6 so the
-row stays finite inside ``d_s``).  ``distance`` (eqn.nn5): ``-2 p^T v <= varsigma (r^2 - d_s^2)``.
-``gated_distance`` (eqn.n5/n6): eqn.nn5 only while the pair approaches within ``gate_range`` (eqn.n6
-prints ``d_safe`` as the gate, which would switch the row on only after a collision).
-``adaptive_distance`` (eqn.n7, Rodriguez-Seda 2019): eqn.nn5 with
-``d = (D + r)/2 + (D - r)/pi atan(-rho_v p^T v + sigma)``.  The velocity barriers apply to the
-next-step velocity ``v + (A du + A_dot u) dt`` (linear in ``du``), divided by ``2 dt``.
+Every barrier gives, for all pairs at once, rows ``-p_ij^T (A_i du_i - A_j du_j) <= rhs_ij`` (eqn.8), written
+``c^T (w_i - w_j) <= rhs`` with ``w = A du`` and ``c = -p_ij``; an obstacle is a pair whose second member
+(``j = -1``) stands still, and its robot carries the whole row.  :data:`BARRIERS` (equations:
+``docs/technical_brief.md`` section 3): ``aasoatt`` (eqn.7-8, default; eqn.7c's typo corrected:
+``- A_dot_j u_j``); ``braking`` (eqn.n4; ``r - d_s`` clamped at 1e-6 so the row stays finite inside ``d_s``);
+``distance`` (eqn.nn5); ``gated_distance`` (eqn.n5/n6: eqn.nn5 while the pair approaches within ``gate_range``,
+as eqn.n6's printed gate ``d_safe`` would switch the row on only after a collision); ``adaptive_distance``
+(eqn.n7).  The velocity barriers apply to the next-step velocity ``v + (A du + A_dot u) dt``, divided by ``2 dt``.
 """
 
 from __future__ import annotations
@@ -32,42 +25,25 @@ from aasoatt_env.model.geometry import row_dot
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.config import FilterConfig
 
-__all__ = [
-    "BARRIERS",
-    "Barrier",
-    "PairGeometry",
-    "barrier_rows",
-    "get_barrier",
-]
+__all__ = ["BARRIERS", "Barrier", "PairGeometry", "barrier_rows", "get_barrier"]
 
 
 class PairGeometry(NamedTuple):
-    """Relative quantities of P pairs (robot-robot and robot-obstacle) as arrays."""
+    """Relative quantities of P pairs (robot-robot and robot-obstacle), each ``(P,)`` or ``(P, 2)``."""
 
     i: np.ndarray
-    """First robot of each pair, ``(P,)``."""
-    j: np.ndarray
-    """Second robot, or ``-1`` for an obstacle, ``(P,)``."""
-    p: np.ndarray
-    """Relative position ``p_i - p_j`` (obstacle: ``p_i - c_k``), ``(P, 2)``."""
+    j: np.ndarray  #: ``-1`` for an obstacle
+    p: np.ndarray  #: ``p_i - p_j`` (obstacle: ``p_i - c_k``)
     v: np.ndarray
-    """Relative velocity, ``(P, 2)``."""
-    adot: np.ndarray
-    """Relative drift acceleration ``A_dot_i u_i - A_dot_j u_j``, ``(P, 2)``."""
-    d_s: np.ndarray
-    """Safety distance of the pair (margin included), ``(P,)``."""
-    r_sum: np.ndarray
-    """Sum of radii ``r_i + r_j`` without margin (eqn.n7's ``r``), ``(P,)``."""
-    a_plus: np.ndarray
-    """Sum of the maximum point accelerations ``a_i+ + a_j+``, ``(P,)``."""
+    adot: np.ndarray  #: the drift accelerations ``A_dot_i u_i - A_dot_j u_j``
+    d_s: np.ndarray  #: the safety distance, margin included
+    r_sum: np.ndarray  #: ``r_i + r_j`` without margin (eqn.n7's ``r``)
+    a_plus: np.ndarray  #: the maximum point accelerations ``a_i+ + a_j+``
 
 
+#: ``f(geometry, config) -> (rhs, keep)``; ``keep`` is a boolean mask or None (all rows)
 BarrierFn = Callable[[PairGeometry, "FilterConfig"], "tuple[np.ndarray, np.ndarray | None]"]
-"""``f(geometry, config) -> (rhs, keep)``; ``keep`` is a boolean mask or None (all rows).
-The gains come from :class:`~aasoatt_env.safety.config.FilterConfig`."""
-
-ValueFn = Callable[[PairGeometry, "FilterConfig"], np.ndarray]
-"""``h(geometry, config) -> (P,)``: the barrier function itself; its safe set is ``h >= 0``."""
+ValueFn = Callable[[PairGeometry, "FilterConfig"], np.ndarray]  #: ``h(geometry, config) -> (P,)``; safe: ``h >= 0``
 
 
 @dataclass(frozen=True)
@@ -77,17 +53,12 @@ class Barrier:
     rows: BarrierFn
     value: ValueFn
     equation: str
-    kernel: str = ""
-    """Its compiled rows (a function of :mod:`~aasoatt_env.safety.rows_kernel`; empty: numpy only)."""
+    kernel: str = ""  #: its compiled rows, a function of :mod:`~.rows_kernel` (empty: numpy only)
 
 
 def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    r = np.sqrt(row_dot(g.p, g.p))
-    r = np.maximum(r, 1e-9)
-    pv = row_dot(g.p, g.v)
-    vv = row_dot(g.v, g.v)
-    pa = row_dot(g.p, g.adot)
-    return r, pv, vv, pa
+    """``|p|`` (at least 1e-9), ``p.v``, ``v.v``, ``p.adot``."""
+    return np.maximum(np.sqrt(row_dot(g.p, g.p)), 1e-9), row_dot(g.p, g.v), row_dot(g.v, g.v), row_dot(g.p, g.adot)
 
 
 def _aasoatt_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
@@ -108,16 +79,14 @@ def _distance_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
 
 def _aasoatt(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     r, pv, vv, pa = _common(g)
-    rhs = vv - pv * pv / (r * r) + (q.k1 + q.k2) * pv + q.k1 * q.k2 * r * (r - g.d_s) + pa
-    return rhs, None
+    return vv - pv * pv / (r * r) + (q.k1 + q.k2) * pv + q.k1 * q.k2 * r * (r - g.d_s) + pa, None
 
 
 def _braking(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     r, pv, vv, pa = _common(g)
     root = np.sqrt(2.0 * g.a_plus * np.maximum(r - g.d_s, 1e-6))
     h = root + pv / r
-    rhs = q.gamma * h**3 * r + vv - pv * pv / (r * r) + g.a_plus * pv / root + pa
-    return rhs, None
+    return q.gamma * h**3 * r + vv - pv * pv / (r * r) + g.a_plus * pv / root + pa, None
 
 
 def _velocity_rhs(g: PairGeometry, q: FilterConfig, d: np.ndarray) -> np.ndarray:
@@ -132,14 +101,12 @@ def _distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
 def _gated_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, np.ndarray]:
     gate = q.sensing_range if q.gate_range is None else q.gate_range
     r, pv, _, _ = _common(g)
-    keep = (pv < 0.0) & (r < gate)
-    return _velocity_rhs(g, q, g.d_s), keep
+    return _velocity_rhs(g, q, g.d_s), (pv < 0.0) & (r < gate)
 
 
 def _adaptive_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     pv = row_dot(g.p, g.v)
-    D = q.sensing_range
-    margin = g.d_s - g.r_sum
+    D, margin = q.sensing_range, g.d_s - g.r_sum
     d = 0.5 * (D + g.r_sum) + (D - g.r_sum) / math.pi * np.arctan(-q.rho_v * pv + q.sigma) + margin
     return _velocity_rhs(g, q, d), None
 
@@ -151,9 +118,9 @@ BARRIERS: dict[str, Barrier] = {
     "gated_distance": Barrier(_gated_distance, _distance_h, "eqn.n5/n6"),
     "adaptive_distance": Barrier(_adaptive_distance, _distance_h, "eqn.n7"),
 }
-"""Barrier registry: name -> :class:`Barrier` (see module docstring).  The velocity-level
-barriers share the value ``varsigma (r^2 - d_s^2) + 2 p^T v`` (eqn.nn5's set; eqn.n7's
-adaptive distance is larger, so its rows keep a subset of it)."""
+"""Barrier registry: name -> :class:`Barrier` (adding one: its rows, its ``h`` and a line here).  The velocity
+barriers share the value ``varsigma (r^2 - d_s^2) + 2 p^T v`` (eqn.nn5's set; eqn.n7's adaptive distance is
+larger, so its rows keep a subset of it)."""
 
 
 def get_barrier(name: str) -> Barrier:
@@ -165,29 +132,12 @@ def get_barrier(name: str) -> Barrier:
 
 
 def barrier_rows(name: str, g: PairGeometry, params: FilterConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rows ``c^T (w_i - w_j) <= rhs`` of barrier ``name`` for all pairs of ``g``.
+    """Rows ``c^T (w_i - w_j) <= rhs`` of barrier ``name`` for the pairs of ``g`` (rotated where a strategy asks).
 
-    Parameters
-    ----------
-    name : str
-        Registered barrier name.
-    g : PairGeometry
-        Pair geometry (already rotated where a deadlock strategy asks for it).
-    params : FilterConfig
-        Gains.
-
-    Returns
-    -------
-    c : numpy.ndarray
-        Row normals ``(P', 2)`` (``c = -p_ij``).
-    rhs : numpy.ndarray
-        Right-hand sides ``(P',)``.
-    keep : numpy.ndarray
-        Indices of the kept pairs into ``g`` (all for ungated barriers).
+    Returns ``c = -p_ij`` ``(P', 2)``, ``rhs`` ``(P',)`` and the kept pairs' indices into ``g`` (a gate drops some).
     """
     rhs, keep = get_barrier(name).rows(g, params)
     if keep is None:
-        idx = np.arange(rhs.shape[0])
-        return -g.p, rhs, idx
+        return -g.p, rhs, np.arange(rhs.shape[0])
     idx = np.flatnonzero(keep)
     return -g.p[idx], rhs[idx], idx

@@ -1,11 +1,8 @@
 """The centralised QP stage (the paper's filter): one QP for the team, solved exactly by independent parts.
 
-``min sum_i |A_i du_i - target_i|^2  s.t.  lo <= du <= hi,  rows``.  Without rows every robot's
-QP is a box least squares in closed form (:func:`~aasoatt_env.safety.problem.box_least_squares`).
-The rows split the team into contact components; a component whose closed-form answers meet
-all its rows keeps them (optimal without the rows, and feasible).  Only the components with a
-violated row go to the solver (:class:`~aasoatt_env.safety.solvers.SolverPolicy`), as independent
-parts of one problem.
+Without rows every robot's QP is a box least squares in closed form.  The rows split the team into contact
+components; one whose closed-form answers meet its rows keeps them (optimal and feasible), the others go to
+the solver (:class:`~aasoatt_env.safety.solvers.SolverPolicy`) as independent parts of one problem.
 """
 
 from __future__ import annotations
@@ -30,8 +27,7 @@ __all__ = ["Centralized", "TeamAnswer", "avoiding_robots", "compiled_settings", 
 def kernel_settings(policy: SolverPolicy) -> np.ndarray:
     """The warm active set's constants as :func:`~.centralized_kernel.solve_decomposed` reads them."""
     return np.array([aset.PDAS_ITER, aset.one_change_budget(policy.one_change_iter), aset.TOL, aset.WARM_REL,
-                     aset.WARM_FLOOR, aset.BOUND_TIGHT, ROW_NORM_MIN, aset.DENSE_MAX_VARS, aset.DENSE_MAX_CELLS],
-                    dtype=np.float64)
+                     aset.WARM_FLOOR, aset.BOUND_TIGHT, ROW_NORM_MIN, aset.DENSE_MAX_VARS, aset.DENSE_MAX_CELLS], float)
 
 
 def avoiding_robots(n: int, rows: Rows, active: np.ndarray) -> np.ndarray:
@@ -47,8 +43,7 @@ def solve_rows(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.n
                compiled: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, object, int]:
     """The QP of the robots and rows given: ``(du, x, z, eta, solution, n_qp)`` (``solution`` None: closed form).
 
-    ``du`` within the bounds, ``x = du / scale`` before clipping (the next warm start), ``z`` the scaled
-    multipliers and ``eta`` those in the units of eqn.8, 0 on rows outside the QP.
+    ``x = du / scale`` before clipping (the next warm start); ``z`` scaled, ``eta`` in eqn.8's units, 0 off the QP.
     """
     n, m = A.shape[0], rows.m
     z, eta = np.zeros(m), np.zeros(m)
@@ -99,18 +94,17 @@ def solve_team(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.n
                settings: np.ndarray | None) -> TeamAnswer:
     """The QP of the robots and rows given: the compiled call first, else :func:`solve_rows`.
 
-    With ``settings`` and a warm start, :func:`~aasoatt_env.safety.centralized_kernel.solve_decomposed` answers
-    where it verifies every component, with :func:`solve_rows`' numbers; every other step is :func:`solve_rows`'.
+    With ``settings`` and a warm start, :func:`~.centralized_kernel.solve_decomposed` answers where it verifies every
+    component, with :func:`solve_rows`' numbers.
     """
     if settings is not None and warm.x is not None and warm.z is not None:
         k = kernels("centralized")
         code, used, n_qp, du, x, z, eta = k.solve_decomposed(A, c64(target), lo, hi, scale, rows.ri, rows.rj,
                                                              rows.Gi, rows.Gj, rows.rhs, c64(warm.x), warm.z,
                                                              settings)
-        if code == k.CLOSED_FORM:
-            return TeamAnswer(du, x, z, eta, "solved", CLOSED_FORM_MESSAGE, 0, 0, True)
-        if code == k.VERIFIED:
-            return TeamAnswer(du, x, z, eta, "solved", aset.VERIFIED_MESSAGE, int(used), int(n_qp), True)
+        if code in (k.CLOSED_FORM, k.VERIFIED):  # (the closed form: used = n_qp = 0)
+            message = CLOSED_FORM_MESSAGE if code == k.CLOSED_FORM else aset.VERIFIED_MESSAGE
+            return TeamAnswer(du, x, z, eta, "solved", message, int(used), int(n_qp), True)
     du, x, z, eta, sol, n_qp = solve_rows(policy, A, target, lo, hi, scale, rows, warm, decompose=decompose,
                                           compiled=compiled)
     if sol is None:
@@ -129,8 +123,7 @@ class Centralized:
     decompose: bool
     eta_tol: float
     compiled: bool
-    settings: np.ndarray | None = field(init=False, default=None)
-    """The compiled call's constants (None: that call is not made)."""
+    settings: np.ndarray | None = field(init=False, default=None)  #: the compiled call's (None: not made)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "settings", compiled_settings(self.policy, self.compiled, self.decompose))
@@ -139,9 +132,8 @@ class Centralized:
         """Solve the step's QP (module docstring)."""
         a = solve_team(self.policy, s.A, target, s.lo, s.hi, s.scale, rows, warm, decompose=self.decompose,
                        compiled=self.compiled, settings=self.settings)
-        slack = 0.0
-        if a.status != "solved" or not a.exact:
-            slack = float(max(0.0, np.max(rows.values(a.du) - rows.rhs, initial=0.0)))
+        checked = a.status != "solved" or not a.exact  # (an exact solve meets its rows)
+        slack = float(max(0.0, np.max(rows.values(a.du) - rows.rhs, initial=0.0))) if checked else 0.0
         return Answer(a.du, a.x, a.z, a.eta, avoiding_robots(a.du.shape[0], rows, a.z > self.eta_tol), a.status,
                       a.message, a.iterations, a.n_qp, slack)
 

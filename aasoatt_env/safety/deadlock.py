@@ -1,23 +1,16 @@
 """Deadlock resolution: strategies (what changes) and triggers (when), both registries.
 
-``Q(q)`` is the rotation by ``q``; ``zeta_i`` is ``zeta`` while robot ``i`` is triggered, else 0.
-Strategies (:data:`STRATEGIES`) change the QP's target ``A du_nom`` or the barrier rows:
+Strategies (:data:`STRATEGIES`; equations: ``docs/technical_brief.md`` section 5) change the QP's target
+``A du_nom`` or the rows of triggered robots: ``none``, ``rotate_nominal`` (eqn.12a), ``rotate_reference_velocity``
+(eqn.12b, for any nominal the correction ``-(k3 + k4) zeta Q v_d``, exact for the tracking law eqn.12),
+``auxiliary_velocity`` (eqn.13, default) and ``rotate_relative_position`` (eqn.12c; it changes the barrier itself,
+and the paper reports Zeno behaviour, so the filter warns; the backup layer still keeps the team apart).
 
-``none``; ``rotate_nominal`` (eqn.12a, Wang 2017): ``target <- (I - Q) target``;
-``rotate_reference_velocity`` (eqn.12b): ``v_d <- (I - zeta Q) v_d``, for any nominal the correction
-``-(k3 + k4) zeta Q v_d`` (exact for the tracking law eqn.12); ``auxiliary_velocity`` (eqn.13, default):
-``target -= zeta Q (A u - v_d + k3 ell)``; ``rotate_relative_position`` (eqn.12c, He 2024):
-``p_ij <- (I - Q) p_ij`` in the rows of triggered pairs, which changes the barrier itself (the paper
-reports Zeno behaviour), so the filter warns; the backup layer still keeps the team apart.
-
-Triggers (:data:`TRIGGERS`), evaluated at the start of a step: ``multiplier`` (Algorithm 1): a row of
-the robot was active at the previous step; ``low_speed`` (Wang 2017): ``|v_i| < low_speed``;
-``stalled``: moved less than ``stall_distance`` over ``stall_time``; ``heading`` (He 2024): the heading
-points within ``heading_deg`` at the nearest neighbour or obstacle.  All but ``heading`` act only on a
-robot that is not done (its reference still moving or its tracking error above ``goal_tol``): a robot at
-rest at its goal is not deadlocked, and robots whose goals touch would otherwise keep turning there.
-
-Adding a strategy or a trigger is one function and one registry line.
+Triggers (:data:`TRIGGERS`), at the start of a step: ``multiplier`` (Algorithm 1): a row of the robot was
+active at the previous step; ``low_speed`` (Wang 2017): ``|v_i| < low_speed``; ``stalled``: moved less than
+``stall_distance`` over ``stall_time``; ``heading`` (He 2024): the heading points within ``heading_deg`` at
+the nearest neighbour or obstacle.  All but ``heading`` act only on a robot not done (its reference moving or
+its tracking error above ``goal_tol``): robots at rest at goals that touch would otherwise keep turning.
 """
 
 from __future__ import annotations
@@ -44,7 +37,7 @@ def rotation(q_deg: float) -> np.ndarray:
 
 @dataclass
 class DeadlockState:
-    """Memory of the triggers between steps."""
+    """The triggers' memory between steps."""
 
     avoiding: np.ndarray | None = None
     history: list[np.ndarray] = field(default_factory=list)
@@ -53,41 +46,28 @@ class DeadlockState:
 class TriggerContext(NamedTuple):
     """What a trigger sees at the start of a step."""
 
-    p: np.ndarray
-    """Control-point positions ``(N, 2)``."""
-    v: np.ndarray
-    """Control-point velocities ``(N, 2)``."""
-    theta: np.ndarray
-    """Headings ``(N,)``."""
-    reference: tuple[np.ndarray, np.ndarray] | None
-    """``(p_d, v_d)`` or None."""
-    pair_idx: np.ndarray
-    """``(P, 2)`` pairs inside the sensing range; second column ``-1`` for obstacles."""
-    pair_vec: np.ndarray
-    """``(P, 2)``: ``p_j - p_i`` (from robot ``i`` towards the other member)."""
+    p: np.ndarray  #: ``(N, 2)`` control points
+    v: np.ndarray  #: ``(N, 2)`` their velocities
+    theta: np.ndarray  #: ``(N,)`` headings
+    reference: tuple[np.ndarray, np.ndarray] | None  #: ``(p_d, v_d)`` or None
+    pair_idx: np.ndarray  #: ``(P, 2)`` pairs inside the sensing range; second column ``-1`` for obstacles
+    pair_vec: np.ndarray  #: ``(P, 2)``: ``p_j - p_i`` (from robot ``i`` towards the other member)
     cfg: FilterConfig
-    """Thresholds."""
 
 
-TriggerFn = Callable[[DeadlockState, TriggerContext], np.ndarray]
-"""``trigger(memory, context) -> (N,) bool``; may update the memory."""
+TriggerFn = Callable[[DeadlockState, TriggerContext], np.ndarray]  #: ``(N,) bool``; may update the memory
 
 
 def _not_done(state: DeadlockState, c: TriggerContext) -> np.ndarray:
-    prev = state.avoiding if state.avoiding is not None else np.zeros(c.p.shape[0], dtype=bool)
     if c.reference is None:
-        return prev
-    ell = c.p - c.reference[0]
-    v_d = c.reference[1]
-    # (|x| as np.linalg.norm(x, axis=1) takes it, without its overhead)
+        return state.avoiding if state.avoiding is not None else np.zeros(c.p.shape[0], dtype=bool)
+    ell, v_d = c.p - c.reference[0], c.reference[1]
     return ((np.sqrt(v_d[:, 0] * v_d[:, 0] + v_d[:, 1] * v_d[:, 1]) >= c.cfg.low_speed)
             | (np.sqrt(ell[:, 0] * ell[:, 0] + ell[:, 1] * ell[:, 1]) > c.cfg.goal_tol))
 
 
 def _multiplier(state: DeadlockState, c: TriggerContext) -> np.ndarray:
-    if state.avoiding is None:
-        return np.zeros(c.p.shape[0], dtype=bool)
-    return state.avoiding & _not_done(state, c)
+    return np.zeros(c.p.shape[0], dtype=bool) if state.avoiding is None else state.avoiding & _not_done(state, c)
 
 
 def _low_speed(state: DeadlockState, c: TriggerContext) -> np.ndarray:
@@ -126,21 +106,16 @@ def _heading(state: DeadlockState, c: TriggerContext) -> np.ndarray:
     return out
 
 
-TRIGGERS: dict[str, TriggerFn] = {
-    "multiplier": _multiplier,
-    "low_speed": _low_speed,
-    "stalled": _stalled,
-    "heading": _heading,
-}
-"""Trigger registry: name -> ``trigger(memory, context)``."""
+TRIGGERS: dict[str, TriggerFn] = {"multiplier": _multiplier, "low_speed": _low_speed, "stalled": _stalled,
+                                  "heading": _heading}
+"""Trigger registry: name -> ``trigger(memory, context)``; adding one is a function and a line here."""
 
 TRIGGERS_WITHOUT_PAIRS: frozenset[str] = frozenset({"multiplier", "low_speed", "stalled"})
-"""The triggers known to read no pairs: the filter hands them empty ``pair_idx``/``pair_vec``; any other
-trigger, one you register included, gets the pairs."""
+"""Triggers known to read no pairs (they get empty ``pair_idx``/``pair_vec``); any other, yours too, gets them."""
 
 
 class TargetContext(NamedTuple):
-    """What a target correction sees."""
+    """What a target correction sees (``TriggerContext``'s fields and the tracking gains)."""
 
     v: np.ndarray
     p: np.ndarray
@@ -167,14 +142,11 @@ def _auxiliary_velocity(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: 
 class Strategy:
     """A deadlock strategy: how it changes the target acceleration and/or the rows."""
 
-    equation: str
-    """The paper's label."""
+    equation: str  #: the paper's label
+    #: ``target(target, zeta, Q, context) -> new target`` for the triggered robots (None: unchanged)
     target: Callable[[np.ndarray, np.ndarray, np.ndarray, TargetContext], np.ndarray] | None = None
-    """``target(target, zeta, Q, context) -> new target`` for the triggered robots (None: unchanged)."""
-    rotates_rows: bool = False
-    """True when the strategy rotates ``p_ij`` in the rows of triggered pairs (eqn.12c)."""
-    needs_reference: bool = False
-    """True when ``reference=(p_d, v_d)`` is required."""
+    rotates_rows: bool = False  #: it rotates ``p_ij`` in the rows of triggered pairs (eqn.12c)
+    needs_reference: bool = False  #: ``reference=(p_d, v_d)`` is required
 
     @property
     def active(self) -> bool:
@@ -201,4 +173,4 @@ STRATEGIES: dict[str, Strategy] = {
     "auxiliary_velocity": Strategy("eqn.13", _auxiliary_velocity, needs_reference=True),
     "rotate_relative_position": Strategy("eqn.12c", rotates_rows=True),
 }
-"""Strategy registry: name -> :class:`Strategy`."""
+"""Strategy registry: name -> :class:`Strategy`; adding one is a function and a line here."""

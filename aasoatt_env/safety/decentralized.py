@@ -1,28 +1,12 @@
 """The decentralised QP stage: every robot solves its own 2-variable QP over its share of each pair row.
 
-In the spirit of Wang, Ames and Egerstedt's decentralised barrier certificates, each pair row
-``Gi du_i + Gj du_j <= rhs`` is shared between its robots in proportion to their authority
-``a`` (``Team.max_point_accel``), ``s_i = a_i / (a_i + a_j)`` (``split``):
-
-* ``"reciprocal"`` (default, as in ORCA): the correction ``v = Gi du0_i + Gj du0_j - rhs`` that the
-  pair's own closed-form answers ``du0`` need is split, ``Gi du_i <= Gi du0_i - s_i v``: a pair that
-  must change moves each robot by its share from where it wants to go (with ``"authority"``, which
-  splits ``rhs`` itself, a robot at rest beside a neighbour can never move toward it, and a
-  10-robot circle swap froze in a ring);
-* ``"authority"``: ``Gi du_i <= s_i rhs``.
-
-The halves add up to the pair row, so answers that meet their halves meet the row; an obstacle row is
-its robot's.  Every robot's QP (the centralised objective restricted to it) is solved exactly, all at
-once (:func:`~aasoatt_env.safety.solvers.local.solve_local_qps`).  Halving can make a robot's QP
-infeasible where the joint one is not: that robot gets its least-violation answer (status
-``"relaxed"``), as the centralised policy gives it; the backup layer keeps the team safe.
-
-Negotiation groups (``whole``, :attr:`~aasoatt_env.safety.config.FilterConfig.negotiate`): split rows
-cannot choose which of two alike robots goes first, so in crowds robots can stop against each other
-with every half met.  A robot the deadlock trigger flags negotiates, and so does every robot it
-touches; the rows among negotiating robots are solved whole by the groups they join (the centralised
-QP restricted to them, with their halves of the other rows).  Every pair row is still met; without a
-triggered robot the step is the per-robot one exactly.
+A pair row ``Gi du_i + Gj du_j <= rhs`` is shared by authority ``a`` (``Team.max_point_accel``),
+``s_i = a_i / (a_i + a_j)``: ``"reciprocal"`` (default) splits the correction ``v = Gi du0_i + Gj du0_j - rhs`` that the
+closed-form answers ``du0`` need, ``Gi du_i <= Gi du0_i - s_i v``; ``"authority"`` splits the bound,
+``Gi du_i <= s_i rhs``.  An obstacle row is its robot's.  A robot whose own QP is infeasible gets its
+least-violation answer (status ``"relaxed"``).  Robots the deadlock trigger flags, and those they touch, solve the
+rows among them whole (negotiation groups: the centralised QP restricted to them, with their halves of the other
+rows); without a flagged robot the step is the per-robot one exactly.  ``docs/design.md`` says why.
 """
 
 from __future__ import annotations
@@ -33,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from aasoatt_env.model.geometry import pair_components
-from aasoatt_env.safety.centralized import compiled_settings, solve_team
+from aasoatt_env.safety.centralized import TeamAnswer, compiled_settings, solve_team
 from aasoatt_env.safety.problem import box_least_squares
 from aasoatt_env.safety.rows import Rows
 from aasoatt_env.safety.solvers import SolverPolicy
@@ -43,28 +27,19 @@ from aasoatt_env.safety.stages import Answer, StepInput, Warm
 __all__ = ["GROUP_ONE_CHANGE_ITER", "SPLITS", "Decentralized", "DecentralizedResult", "SplitRows",
            "decentralized_step", "negotiation_rows", "split_rows"]
 
-SPLITS: tuple[str, ...] = ("reciprocal", "authority")
-"""Ways of sharing a pair row (module docstring)."""
+SPLITS: tuple[str, ...] = ("reciprocal", "authority")  #: ways of sharing a pair row (module docstring)
 GROUP_ONE_CHANGE_ITER: int = 200
 """The warm active set's one-change budget on the negotiation groups' QPs: their rows and members change
 from step to step, so their warm starts are often many rows off the optimum."""
 
 
 class SplitRows(NamedTuple):
-    """The half-rows of :func:`split_rows`.
-
-    First the ``i`` half of every row (an obstacle row whole), then the ``j`` half
-    of every robot-robot row ``rr[k]`` (``M + len(rr)`` half-rows).
-    """
+    """The half-rows ``G du_owner <= h``: every row's ``i`` half (an obstacle row whole), then the ``j`` halves."""
 
     owner: np.ndarray
-    """Robot of each half-row."""
-    G: np.ndarray
-    """Coefficients on the owner's ``du`` ``(., 2)``."""
+    G: np.ndarray  #: ``(., 2)``
     h: np.ndarray
-    """Right-hand sides."""
-    rr: np.ndarray
-    """The robot-robot rows, in the order of the ``j`` halves."""
+    rr: np.ndarray  #: the robot-robot rows, in the order of the ``j`` halves
 
     def row_side(self, half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Pair row and side (0: ``i`` half or obstacle, 1: ``j`` half) of half-rows ``half``."""
@@ -75,110 +50,58 @@ class SplitRows(NamedTuple):
         return row, jside.astype(np.intp)
 
 
-def split_rows(
-    ri: np.ndarray,
-    rj: np.ndarray,
-    Gi: np.ndarray,
-    Gj: np.ndarray,
-    rhs: np.ndarray,
-    authority: np.ndarray,
-    du_nominal: np.ndarray | None = None,
-) -> SplitRows:
-    """Split every pair row between its robots by authority (module docstring).
+def split_rows(ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray, authority: np.ndarray,
+               du_nominal: np.ndarray | None = None) -> SplitRows:
+    """Split every pair row ``(M,)`` between its robots by ``authority`` ``(N,)`` (module docstring).
 
-    Parameters
-    ----------
-    ri, rj : numpy.ndarray
-        Robots of each row ``(M,)``; ``rj = -1`` for obstacle rows.
-    Gi, Gj : numpy.ndarray
-        Row coefficients on ``du_i`` and ``du_j`` ``(M, 2)`` (``Gj`` ignored where ``rj < 0``).
-    rhs : numpy.ndarray
-        Right-hand sides ``(M,)``.
-    authority : numpy.ndarray
-        Non-negative authority of each robot ``(N,)`` (equal shares where both are 0).
-    du_nominal : numpy.ndarray, optional
-        ``(N, 2)``: split reciprocally around these accelerations (``"reciprocal"`` in the
-        module docstring) instead of splitting ``rhs`` itself (``"authority"``).
+    ``rj = -1``: an obstacle row (``Gj`` ignored); equal shares where both authorities are 0.  ``du_nominal``
+    ``(N, 2)``: split reciprocally around it; None: split ``rhs`` itself (``"authority"``).
     """
-    ri = np.asarray(ri, np.intp)
-    rj = np.asarray(rj, np.intp)
-    m = ri.shape[0]
-    if m == 0 or rj.min() >= 0:  # no obstacle rows
-        rr = np.arange(m)
-        rjr, Gjr = rj, Gj
-        a_i = authority[ri]
-    else:
-        rr = np.flatnonzero(rj >= 0)
-        rjr, Gjr = rj[rr], Gj[rr]
-        a_i = authority[ri[rr]]
-    a_j = authority[rjr]
+    ri, rj = np.asarray(ri, np.intp), np.asarray(rj, np.intp)
+    rr = np.flatnonzero(rj >= 0)
+    rjr, Gjr = rj[rr], Gj[rr]
+    a_i, a_j = authority[ri[rr]], authority[rjr]
     tot = a_i + a_j
     pos = tot > 0
     share_i = np.where(pos, a_i / np.where(pos, tot, 1.0), 0.5)
-    full = rr.shape[0] == m
     if du_nominal is None:  # rhs split
-        base_i, base_j, need = np.zeros(m), np.zeros(rr.shape[0]), -rhs
+        base_i, base_j, need = np.zeros(ri.shape[0]), np.zeros(rr.shape[0]), -rhs
     else:  # the correction of the nominal pair split: h_i = Gi du0_i - v share_i
         base_i = Gi[:, 0] * du_nominal[ri, 0] + Gi[:, 1] * du_nominal[ri, 1]
         base_j = Gjr[:, 0] * du_nominal[rjr, 0] + Gjr[:, 1] * du_nominal[rjr, 1]
         need = base_i - rhs
-        if full:
-            need += base_j
-        else:
-            need[rr] += base_j
-    need_r = need if full else need[rr]
-    if full:
-        h_i = base_i - need * share_i
-    else:
-        h_i = base_i - need  # obstacle rows whole
-        h_i[rr] = base_i[rr] - need_r * share_i
-    return SplitRows(
-        owner=np.concatenate((ri, rjr)),
-        G=np.concatenate((Gi, Gjr)),
-        h=np.concatenate((h_i, base_j - need_r * (1.0 - share_i))),
-        rr=rr,
-    )
+        need[rr] += base_j
+    need_r = need[rr]
+    h_i = base_i - need  # obstacle rows whole
+    h_i[rr] = base_i[rr] - need_r * share_i
+    return SplitRows(owner=np.concatenate((ri, rjr)), G=np.concatenate((Gi, Gjr)),
+                     h=np.concatenate((h_i, base_j - need_r * (1.0 - share_i))), rr=rr)
 
 
 class DecentralizedResult(NamedTuple):
-    """What :func:`decentralized_step` did (multipliers in the centralised filter's units)."""
+    """What :func:`decentralized_step` did; ``eta`` in eqn.8's units, ``z`` in the centralised filter's scaled ones."""
 
-    du: np.ndarray
-    """``(N, 2)`` wheel accelerations within the bounds."""
-    eta: np.ndarray
-    """``(M,)`` the larger multiplier of each pair row's two halves (eqn.8 units)."""
-    eta_half: np.ndarray
-    """``(M, 2)`` the halves' multipliers (column 1 is 0 on obstacle rows)."""
-    z: np.ndarray
-    """``(M,)`` the larger half multiplier in the centralised filter's scaled, normalised units (``eta_tol``)."""
-    z_half: np.ndarray
-    """``(M, 2)`` ``z`` of each half."""
-    infeasible: np.ndarray
-    """``(N,)`` the robot's own QP was infeasible (its least-violation answer; False in a negotiation group)."""
+    du: np.ndarray  #: ``(N, 2)`` within the bounds
+    eta: np.ndarray  #: ``(M,)`` the larger of each pair row's two halves' multipliers
+    eta_half: np.ndarray  #: ``(M, 2)`` the halves' multipliers (column 1 is 0 on obstacle rows)
+    z: np.ndarray  #: ``(M,)`` as ``eta``, the units that ``eta_tol`` reads
+    z_half: np.ndarray  #: ``(M, 2)``
+    infeasible: np.ndarray  #: ``(N,)`` its own QP was infeasible (its least-violation answer; False if grouped)
     n_relaxed: int
-    """``infeasible.sum()``."""
-    slack: float
-    """Largest violation of a half-row of the relaxed robots (eqn.8 units)."""
-    iterations: int
-    """The local solver's (largest over the robots), or the groups' solver's where larger."""
-    n_enumerated: int
-    """Robots the local solver answered by enumeration."""
-    grouped: np.ndarray
-    """``(N,)`` the robot's answer is its negotiation group's."""
+    slack: float  #: largest violation of a half-row of the relaxed robots (eqn.8 units)
+    iterations: int  #: the local solver's (largest over the robots), or the groups' solver's where larger
+    n_enumerated: int  #: robots the local solver answered by enumeration
+    grouped: np.ndarray  #: ``(N,)`` the robot's answer is its negotiation group's
     n_groups: int
-    """Negotiation groups solved."""
-    largest_group: int
-    """Robots in the largest of them."""
-    group_status: str
-    """The groups' QP status (``"solved"`` without groups)."""
+    largest_group: int  #: robots in the largest group
+    group_status: str  #: ``"solved"`` without groups
 
 
 def negotiation_rows(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, ri: np.ndarray, rj: np.ndarray,
                      gap: float) -> np.ndarray:
-    """``(M,)`` bool: the robot rows between two negotiating robots, solved whole (module docstring).
+    """``(M,)`` bool: the robot rows between two negotiating robots, solved whole (obstacle rows never are).
 
-    A robot negotiates when the trigger flags it (``triggered``) or it shares a row with a flagged robot at a
-    surface gap below ``gap`` [m]; obstacle rows (``rj = -1``) are never whole.
+    A robot negotiates when ``triggered`` or in a row with a triggered robot at a surface gap below ``gap`` [m].
     """
     whole = np.zeros(ri.shape[0], dtype=bool)
     if ri.shape[0] == 0 or not triggered.any():
@@ -201,32 +124,16 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
                        x_warm: np.ndarray | None = None, z_warm: np.ndarray | None = None) -> DecentralizedResult:
     """Every robot's own QP over its half-rows, exactly and all at once; negotiation groups jointly.
 
-    Parameters
-    ----------
-    A, target, lo, hi : numpy.ndarray
-        Input matrices ``(N, 2, 2)``, each robot's target ``A du_nom`` (its nominal within its bounds: the local
-        solver's tolerance is relative to it) and bounds ``(N, 2)``, kept hard.
-    ri, rj, Gi, Gj, rhs : numpy.ndarray
-        The pair rows ``Gi du_ri + Gj du_rj <= rhs`` (``rj = -1``: an obstacle row).
-    authority : numpy.ndarray
-        ``(N,)`` each robot's share weight (``Team.max_point_accel``).
-    split : {"reciprocal", "authority"}
-        How a pair row is shared (module docstring).
-    scale : numpy.ndarray, optional
-        ``(N,)`` scale of ``du`` for ``z`` and the loosening tolerance (default the largest bound).
-    compiled : bool
-        The local QPs and the closed forms in their compiled kernels (the same decisions).
-    whole : numpy.ndarray, optional
-        ``(M,)`` rows the negotiation groups solve whole (:func:`negotiation_rows`); needs ``policy``.
-    x_warm, z_warm : numpy.ndarray, optional
-        The groups' warm start: a scaled point ``(N, 2)`` and a multiplier per row ``(M,)`` in ``z``'s units.
+    ``target`` ``(N, 2)`` is each robot's ``A du_nom`` with its nominal within its bounds (the local solver's
+    tolerance is relative to it); the bounds are kept hard; ``scale`` ``(N,)`` of ``du`` for ``z`` and the loosening
+    tolerance (None: the largest bound).  ``whole`` ``(M,)``: the rows the negotiation groups solve whole (needs
+    ``policy``), warm-started from the scaled ``x_warm`` ``(N, 2)`` and ``z_warm`` ``(M,)``.
     """
     if split not in SPLITS:
         raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")
     if scale is None:
-        big = np.maximum(np.abs(lo), np.abs(hi))
-        scale = np.maximum(big[:, 0], big[:, 1])
-        scale = np.where(scale > 0, scale, 1.0)
+        big = np.maximum(np.abs(lo), np.abs(hi)).max(axis=1)
+        scale = np.where(big > 0, big, 1.0)
     H, g = _objective(A, target)
     du0 = box_least_squares(A, target, lo, hi, compiled=compiled) if split == "reciprocal" else None
     sp = split_rows(ri, rj, Gi, Gj, rhs, authority, du0)
@@ -235,17 +142,15 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
     lam, infeasible = sol.lam, ~sol.feasible
     slack = _half_slack(sp, sol.x, infeasible)
     du = np.minimum(np.maximum(sol.x, lo), hi)
-    grouped, joint, group_ans, n_groups, largest = np.zeros(A.shape[0], dtype=bool), None, None, 0, 0
-    if whole is not None:
-        whole = whole & (rj >= 0)  # (an obstacle row is its robot's: never whole)
-    if whole is not None and whole.any():
+    grouped, joint, group_ans, kept, n_groups, largest = np.zeros(A.shape[0], dtype=bool), None, None, None, 0, 0
+    if whole is not None and (whole := whole & (rj >= 0)).any():  # (an obstacle row is never whole)
         if policy is None:
             raise ValueError("policy: the negotiation groups' solver is required with whole rows")
         if du0 is None:
             du0 = box_least_squares(A, target, lo, hi, compiled=compiled)
         x0 = du0 / scale[:, None] if x_warm is None else x_warm
-        joint, grouped, group_ans, n_groups, largest = _groups(A, target, lo, hi, scale, x0, z_warm, ri, rj, Gi, Gj,
-                                                               rhs, sp, whole, policy, compiled)
+        joint, grouped, group_ans, kept, n_groups, largest = _groups(A, target, lo, hi, scale, x0, z_warm, ri, rj,
+                                                                     Gi, Gj, rhs, sp, whole, policy, compiled)
         lam = np.where(grouped[sp.owner], 0.0, lam)  # the grouped robots' own QPs are not what they apply
         if (infeasible & grouped).any():
             infeasible &= ~grouped
@@ -257,15 +162,13 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
         k = joint.shape[0]
         eta_half[joint, 0] = eta_half[joint, 1] = group_ans.eta[:k]
         z_half[joint, 0] = z_half[joint, 1] = group_ans.z[:k]
-        row, side = sp.row_side(group_ans.kept)
+        row, side = sp.row_side(kept)
         eta_half[row, side] = group_ans.eta[k:]
         z_half[row, side] = group_ans.z[k:]
         status, iterations = group_ans.status, max(iterations, group_ans.iterations)
-    return DecentralizedResult(
-        du=du, eta=np.maximum(eta_half[:, 0], eta_half[:, 1]), eta_half=eta_half,
-        z=np.maximum(z_half[:, 0], z_half[:, 1]), z_half=z_half, infeasible=infeasible,
-        n_relaxed=int(infeasible.sum()), slack=slack, iterations=iterations, n_enumerated=sol.n_enumerated,
-        grouped=grouped, n_groups=n_groups, largest_group=largest, group_status=status)
+    eta, z = np.maximum(eta_half[:, 0], eta_half[:, 1]), np.maximum(z_half[:, 0], z_half[:, 1])
+    return DecentralizedResult(du, eta, eta_half, z, z_half, infeasible, int(infeasible.sum()), slack, iterations,
+                               sol.n_enumerated, grouped, n_groups, largest, status)
 
 
 def _objective(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -281,10 +184,7 @@ def _objective(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def _half_multipliers(sp: SplitRows, lam: np.ndarray, H: np.ndarray, scale: np.ndarray,
                       m: int) -> tuple[np.ndarray, np.ndarray]:
-    """The half-rows' multipliers on the pair rows ``(M, 2)``: ``eta`` as given, ``z`` in the centralised units.
-
-    ``z``: scaled variables ``x = du / s``, unit-norm rows, each robot's objective over its largest scaled entry.
-    """
+    """The half-rows' multipliers on the pair rows ``(M, 2)``: ``eta`` as given, ``z`` in the centralised units."""
     nz = np.flatnonzero(lam)
     row, side = sp.row_side(nz)
     o = sp.owner[nz]
@@ -307,24 +207,14 @@ def _half_slack(sp: SplitRows, du: np.ndarray, infeasible: np.ndarray) -> float:
     return float(max(0.0, res.max(initial=0.0)))
 
 
-class _GroupAnswer(NamedTuple):
-    du: np.ndarray
-    eta: np.ndarray
-    z: np.ndarray
-    kept: np.ndarray
-    status: str
-    iterations: int
-
-
 def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, x0: np.ndarray,
             z0: np.ndarray | None, ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray,
             sp: SplitRows, whole: np.ndarray, policy: SolverPolicy,
-            compiled: bool) -> tuple[np.ndarray, np.ndarray, _GroupAnswer, int, int]:
+            compiled: bool) -> tuple[np.ndarray, np.ndarray, TeamAnswer, np.ndarray, int, int]:
     """The negotiation groups' QP: the whole rows (robot rows only), and the grouped robots' halves of the others.
 
-    Returns the whole rows (indices into the rows), the robots answered by a group (those in a whole
-    row), the answer (its ``du`` in the order of those robots; multipliers of the whole rows, then of
-    the kept halves ``kept``, indices into ``sp``), the number of groups and the largest one's size.
+    Returns the whole rows, the robots in them, the QP's answer (``du`` of those robots; multipliers of the whole
+    rows, then of the kept halves), the kept halves (indices into ``sp``), the number of groups, the largest's size.
     """
     n, m = A.shape[0], ri.shape[0]
     joint = np.flatnonzero(whole)
@@ -344,31 +234,20 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
     g_Gi = np.concatenate((Gi[joint], sp.G[kept]))
     g_Gj = np.concatenate((Gj[joint], np.zeros((k, 2))))
     g_rhs = np.concatenate((rhs[joint], sp.h[kept]))
-    if z0 is None:
-        g_z = np.zeros(g_rhs.shape[0])
-    else:  # (a kept half starts at its row's multiplier)
-        g_z = np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
-    g_rows = Rows(g_ri, g_rj, g_Gi, g_Gj, g_rhs, _NO_PAIRS, _NO_KEYS, np.inf, np.inf)
+    # (a kept half starts at its row's multiplier)
+    g_z = np.zeros(g_rhs.shape[0]) if z0 is None else np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
+    g_rows = Rows(g_ri, g_rj, g_Gi, g_Gj, g_rhs, np.empty((0, 2), np.intp), np.empty(0, np.int64), np.inf, np.inf)
     ans = solve_team(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_rows,
                      Warm(np.ascontiguousarray(x0[sub]), g_z), decompose=True, compiled=compiled,
                      settings=compiled_settings(policy, compiled))
-    du, z, eta, status, iterations = ans.du, ans.z, ans.eta, ans.status, ans.iterations
     label = pair_components(sub.size, g_ri[: joint.shape[0]], g_rj[: joint.shape[0]], compiled=compiled)
     sizes = np.bincount(label, minlength=sub.size)
-    return joint, grouped, _GroupAnswer(du, eta, z, kept, status, iterations), \
-        int(np.count_nonzero(sizes >= 2)), int(sizes.max(initial=0))
-
-
-_NO_PAIRS = np.empty((0, 2), dtype=np.intp)
-_NO_KEYS = np.empty(0, dtype=np.int64)
+    return joint, grouped, ans, kept, int(np.count_nonzero(sizes >= 2)), int(sizes.max(initial=0))
 
 
 @dataclass(frozen=True)
 class Decentralized:
-    """The decentralised QP stage: ``stage(step, rows, target, triggered, warm) -> Answer`` (module docstring).
-
-    ``target`` is each robot's own: the filter saturates the nominal to the bounds before it.
-    """
+    """The decentralised QP stage; ``target`` is each robot's own (its nominal saturated to its bounds)."""
 
     policy: SolverPolicy
     negotiate: bool
@@ -397,9 +276,8 @@ class Decentralized:
         avoiding = np.zeros(n, dtype=bool)  # a robot avoids where its own half of a row binds
         avoiding[rows.ri[ans.z_half[:, 0] > self.eta_tol]] = True
         avoiding[rows.rj[(ans.z_half[:, 1] > self.eta_tol) & (rows.rj >= 0)]] = True
-        slack = 0.0
-        if status != "solved" or (ans.grouped.any() and not self.policy.exact):
-            slack = float(max(0.0, np.max(rows.values(ans.du) - rows.rhs, initial=0.0)))
+        checked = status != "solved" or (ans.grouped.any() and not self.policy.exact)
+        slack = float(max(0.0, np.max(rows.values(ans.du) - rows.rhs, initial=0.0))) if checked else 0.0
         return Answer(ans.du.copy(), ans.du / s.scale[:, None], ans.z, ans.eta, avoiding, status, message,
                       ans.iterations, rows.m, slack)
 

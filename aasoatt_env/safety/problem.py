@@ -1,17 +1,10 @@
 """The safety QP in canonical scaled form, and the closed-form answer without rows.
 
-Problem (eqn.finalAA-SOATT), in wheel accelerations ``du``::
-
-    min  sum_i |A_i du_i - target_i|^2   s.t.  lo <= du <= hi,   G du <= rhs
-
-It is solved in scaled coordinates ``x = du / s`` (``s`` the per-robot
-acceleration bound, so the box is inside ``[-1, 1]``), with the objective divided
-by its largest Hessian entry and every row normalised to unit norm.  The Hessian
-is the constant 2x2 block diagonal ``A_i^T A_i = (rho/2)^2 [[1+k^2, 1-k^2],
-[1-k^2, 1+k^2]]`` (heading independent), diagonal when ``l = b``; the proxsuite
-back-end uses ``HessianType.Diagonal`` then.  :class:`QPProblem` holds that
-canonical form ``min 0.5 x'Hx + g'x  s.t. lb <= x <= ub, C x <= u``
-(:func:`build_problem`); :func:`box_least_squares` answers a robot in no row.
+The problem (eqn.finalAA-SOATT) ``min sum_i |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, G du <= rhs`` is
+solved in ``x = du / s`` (``s`` the per-robot bound, so the box is inside ``[-1, 1]``), the objective divided
+by its largest Hessian entry and every row of unit norm.  The Hessian is the constant block diagonal
+``A_i^T A_i = (rho/2)^2 [[1+k^2, 1-k^2], [1-k^2, 1+k^2]]`` (heading independent), diagonal when ``l = b``
+(then proxsuite gets ``HessianType.Diagonal``).
 """
 
 from __future__ import annotations
@@ -26,34 +19,23 @@ from aasoatt_env.compiled import c64, kernels
 
 __all__ = ["ROW_NORM_MIN", "QPProblem", "box_least_squares", "build_problem"]
 
-ROW_NORM_MIN: float = 1e-12
-"""A row whose scaled norm is at most this is left unnormalised (divisor 1)."""
+ROW_NORM_MIN: float = 1e-12  #: a row whose scaled norm is at most this is left unnormalised (divisor 1)
 
 
 @dataclass
 class QPProblem:
     """Canonical scaled QP ``min 0.5 x'Hx + g'x  s.t. lb <= x <= ub, C x <= u``."""
 
-    H_blocks: np.ndarray
-    """Hessian blocks ``(N, 2, 2)`` (block diagonal)."""
-    g: np.ndarray
-    """Linear term ``(n,)``."""
-    C: sp.csr_matrix
-    """Rows ``(m, n)``, unit norm."""
-    u: np.ndarray
-    """Row bounds ``(m,)``."""
-    lb: np.ndarray
-    """Lower bounds ``(n,)``."""
-    ub: np.ndarray
-    """Upper bounds ``(n,)``."""
-    scale: np.ndarray
-    """``du = scale * x``, ``(n,)``."""
-    obj_scale: float
-    """Objective divisor ``sigma``."""
-    row_norm: np.ndarray
-    """Row divisors ``nu`` (``eta_du = sigma * z / nu``), ``(m,)``."""
-    diagonal: bool
-    """True where every block of ``H`` is diagonal."""
+    H_blocks: np.ndarray  #: ``(N, 2, 2)``, the blocks of the block-diagonal ``H``
+    g: np.ndarray  #: ``(n,)``
+    C: sp.csr_matrix  #: ``(m, n)``, unit-norm rows
+    u: np.ndarray  #: ``(m,)``
+    lb: np.ndarray  #: ``(n,)``
+    ub: np.ndarray  #: ``(n,)``
+    scale: np.ndarray  #: ``(n,)``: ``du = scale * x``
+    obj_scale: float  #: the objective's divisor ``sigma``
+    row_norm: np.ndarray  #: ``(m,)`` the rows' divisors ``nu``: ``eta_du = sigma * z / nu``
+    diagonal: bool  #: every block of ``H`` is diagonal
 
     @property
     def n(self) -> int:
@@ -68,18 +50,14 @@ class QPProblem:
     def H_dense(self) -> np.ndarray:
         """Dense Hessian ``(n, n)``."""
         n = self.n
-        H = np.zeros((n, n))
-        if n:
-            k = np.arange(0, n, 2)
-            H[k, k], H[k, k + 1] = self.H_blocks[:, 0, 0], self.H_blocks[:, 0, 1]
-            H[k + 1, k], H[k + 1, k + 1] = self.H_blocks[:, 1, 0], self.H_blocks[:, 1, 1]
+        H, k = np.zeros((n, n)), np.arange(0, n, 2)
+        H[k, k], H[k, k + 1] = self.H_blocks[:, 0, 0], self.H_blocks[:, 0, 1]
+        H[k + 1, k], H[k + 1, k + 1] = self.H_blocks[:, 1, 0], self.H_blocks[:, 1, 1]
         return H
 
     def H_sparse(self) -> sp.csc_matrix:
         """Sparse block-diagonal Hessian (both entries of every block stored)."""
         n = self.n
-        if not n:
-            return sp.csc_matrix((0, 0))
         # column 2k holds rows 2k, 2k+1 of block k's first column; column 2k+1 its second
         data = self.H_blocks.transpose(0, 2, 1).reshape(-1)
         indices = (np.arange(0, n, 2)[:, None, None] + np.array([[0, 1], [0, 1]])).reshape(-1)
@@ -88,8 +66,7 @@ class QPProblem:
     def restrict(self, robots: np.ndarray, rows: np.ndarray) -> QPProblem:
         """The problem of the robots ``robots`` ``(N,)`` bool and the rows ``rows`` ``(m,)`` bool alone.
 
-        Meant for independent parts (no kept row touches a dropped robot): the objective
-        scale is kept, so multipliers of the part equal those of the whole.
+        For independent parts: the objective scale is kept, so the part's multipliers are the whole's.
         """
         v = np.repeat(robots, 2)
         return QPProblem(self.H_blocks[robots], self.g[v], self.C[rows][:, v].tocsr(), self.u[rows], self.lb[v],
@@ -101,18 +78,8 @@ class QPProblem:
         return float(0.5 * np.einsum("ni,nij,nj->", xb, self.H_blocks, xb) + self.g @ x)
 
 
-def build_problem(
-    A: np.ndarray,
-    target: np.ndarray,
-    lo: np.ndarray,
-    hi: np.ndarray,
-    scale: np.ndarray,
-    ri: np.ndarray,
-    rj: np.ndarray,
-    Gi: np.ndarray,
-    Gj: np.ndarray,
-    rhs: np.ndarray,
-) -> QPProblem:
+def build_problem(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, ri: np.ndarray,
+                  rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray) -> QPProblem:
     """The scaled canonical problem of ``min sum |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, rows``.
 
     ``A`` ``(N, 2, 2)``, ``target``, ``lo``, ``hi`` ``(N, 2)``, ``scale`` ``(N,)`` positive; the rows
@@ -120,62 +87,38 @@ def build_problem(
     """
     n_rob = A.shape[0]
     s = scale[:, None]
-    AtA = np.einsum("nki,nkj->nij", A, A)
-    H = 2.0 * AtA * (s[:, :, None] * s[:, None, :])
+    H = 2.0 * np.einsum("nki,nkj->nij", A, A) * (s[:, :, None] * s[:, None, :])
     sigma = float(np.max(np.abs(H))) if n_rob else 1.0
     H = H / sigma
     g = (-2.0 * np.einsum("nki,nk->ni", A, target) * s / sigma).ravel()
-    m = rhs.shape[0]
-    Gi_s = Gi * s[ri]
-    obs = rj < 0
-    any_obs = bool(obs.any())
-    if any_obs:
-        rjc = np.where(obs, 0, rj)
-        Gj_s = np.where(obs[:, None], 0.0, Gj * s[rjc])
-    else:  # the same arrays without the masks
-        rjc = rj
-        Gj_s = Gj * s[rjc]
+    m, obs = rhs.shape[0], rj < 0
+    rjc = np.where(obs, 0, rj)
+    Gi_s, Gj_s = Gi * s[ri], np.where(obs[:, None], 0.0, Gj * s[rjc])
     nu = np.sqrt(np.sum(Gi_s**2, axis=1) + np.sum(Gj_s**2, axis=1))
     nu = np.where(nu > ROW_NORM_MIN, nu, 1.0)
     Gi_s /= nu[:, None]
     Gj_s /= nu[:, None]
-    # CSR directly: 4 entries per robot-robot row, 2 per obstacle row
-    cols = np.stack((2 * ri, 2 * ri + 1, 2 * rjc, 2 * rjc + 1), axis=1)
-    data = np.concatenate((Gi_s, Gj_s), axis=1)
-    # index arrays already in the dtype scipy would convert them to (int32 while everything fits): no conversion
+    # CSR directly: 4 entries per robot-robot row, 2 per obstacle row, the index arrays in the dtype scipy would
+    # convert them to (int32 while everything fits)
+    keep = np.ones((m, 4), dtype=bool)
+    keep[:, 2:] = ~obs[:, None]
+    indptr = np.zeros(m + 1, dtype=np.int64)
+    np.cumsum(np.where(obs, 2, 4), out=indptr[1:])
+    cols = np.stack((2 * ri, 2 * ri + 1, 2 * rjc, 2 * rjc + 1), axis=1)[keep]
+    data = np.concatenate((Gi_s, Gj_s), axis=1)[keep]
     itype = np.int32 if max(4 * m, 2 * n_rob) < np.iinfo(np.int32).max else np.int64
-    if any_obs:
-        keep = np.ones((m, 4), dtype=bool)
-        keep[:, 2:] = ~obs[:, None]
-        indptr = np.zeros(m + 1, dtype=np.int64)
-        np.cumsum(np.where(obs, 2, 4), out=indptr[1:])
-        data, cols = data[keep], cols[keep]
-    else:
-        indptr = np.arange(0, 4 * m + 1, 4)
-        data, cols = data.ravel(), cols.ravel()
     C = sp.csr_matrix((data, cols.astype(itype), indptr.astype(itype)), shape=(m, 2 * n_rob))
     diag = bool(np.all(np.abs(H[:, 0, 1]) <= 1e-12 * np.maximum(np.abs(H[:, 0, 0]), 1e-300)))
-    return QPProblem(
-        H_blocks=H,
-        g=g,
-        C=C,
-        u=rhs / nu,
-        lb=(lo / s).ravel(),
-        ub=(hi / s).ravel(),
-        scale=np.repeat(scale, 2),
-        obj_scale=sigma,
-        row_norm=nu,
-        diagonal=diag,
-    )
+    return QPProblem(H_blocks=H, g=g, C=C, u=rhs / nu, lb=(lo / s).ravel(), ub=(hi / s).ravel(),
+                     scale=np.repeat(scale, 2), obj_scale=sigma, row_norm=nu, diagonal=diag)
 
 
 def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, *,
                       compiled: bool = False) -> np.ndarray:
     """Per robot ``argmin |A_i du_i - target_i|^2  s.t.  lo_i <= du_i <= hi_i`` ``(K, 2)``, in closed form.
 
-    The QP of a robot in no row: the unconstrained minimiser ``A_i^-1 target_i`` where it is inside the
-    box, else the best of the four edges' clipped parabola minima.  ``compiled``: the same operations in
-    one compiled loop (:func:`~aasoatt_env.safety.centralized_kernel.box_least_squares`, the same numbers).
+    The QP of a robot in no row: ``A_i^-1 target_i`` where it is inside the box, else the best of the four edges'
+    clipped parabola minima.  ``compiled``: the same operations in one compiled loop (the same numbers).
     """
     k = np.shape(A)[0] if np.ndim(A) == 3 else -1
     check.shapes((("A", A, (k, 2, 2)), ("target", target, (k, 2)), ("lo", lo, (k, 2)), ("hi", hi, (k, 2))),
@@ -186,8 +129,7 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
     t0, t1 = target[:, 0], target[:, 1]
     det = a * d - b * c
     x = np.stack(((d * t0 - b * t1) / det, (a * t1 - c * t0) / det), axis=1)
-    out = (x < lo) | (x > hi)
-    out = out[:, 0] | out[:, 1]
+    out = ((x < lo) | (x > hi)).any(axis=1)
     if not out.any():
         return x
     # the objective 0.5 du' H du + g' du (H = A'A, g = -A' target) along the four edges at once, rows

@@ -12,77 +12,40 @@ from aasoatt_env.safety.stages import Answer
 
 __all__ = ["COLLISION_TOL", "STATUSES", "FilterResult", "result"]
 
-STATUSES: tuple[str, ...] = ("solved", "relaxed", "backup", "failed", "unsafe")
-"""Filter statuses from best to worst (:attr:`FilterResult.status`)."""
+STATUSES: tuple[str, ...] = ("solved", "relaxed", "backup", "failed", "unsafe")  #: from best to worst
+#: overlap [m] beyond which a pair counts as colliding (the metrics' tolerance; without the backup layer: unsafe)
 COLLISION_TOL: float = 1e-3
-"""Overlap [m] beyond which a pair counts as colliding (the metrics' tolerance): without the backup layer
-the status is ``"unsafe"`` then, whatever the barrier's value."""
-_BARRIER_TOL = 1e-6
-"""A barrier value below this is outside the barrier's safe set (backup layer off)."""
+_BARRIER_TOL = 1e-6  # a barrier value below this is outside the barrier's safe set (backup layer off)
 
 
 @dataclass(frozen=True)
 class FilterResult:
-    """What one :meth:`~aasoatt_env.safety.core.SafetyFilter.step` did.
+    """What one :meth:`~aasoatt_env.safety.core.SafetyFilter.step` did (multipliers in eqn.8's units)."""
 
-    Attributes
-    ----------
-    du : numpy.ndarray
-        The safe wheel accelerations ``(N, 2)``, within the bounds.
-    status : str
-        The worst of what happened (:data:`STATUSES`): ``"solved"`` (the QP's optimum), ``"relaxed"``
-        (infeasible rows loosened by ``slack``, bounds kept), ``"backup"`` (the backup layer braked or
-        nudged some robots), ``"failed"`` (no solver answered) or ``"unsafe"`` (the team is outside the
-        safe set: with the backup layer, the state was not brake-safe; without it, some pair has
-        ``h < 0`` or overlaps by more than :data:`COLLISION_TOL`).
-    safe : bool
-        ``status != "unsafe"``.
-    backup : numpy.ndarray
-        ``(N,)`` robots the backup layer braked (nudged ones are counted in the message only).
-    margin : float
-        With the backup layer: the smallest ``distance - d_s`` [m] of any pair along the backup
-        horizon of the applied inputs.  Without it: the smallest surface gap of the pairs in range.
-    barrier_min : float
-        Smallest barrier value ``h`` of the rows, without the discrete-time margins (``inf`` without rows).
-    message : str
-        Which solver answered, and what the backup layer did.
-    eta : numpy.ndarray
-        ``(m,)`` multiplier of each row in the units of eqn.8.
-    pairs : numpy.ndarray
-        ``(m, 2)`` the rows' pairs: ``(i, j)``, or ``(i, -1 - k)`` for obstacle ``k``.
-    avoiding, triggered, intervened : numpy.ndarray
-        ``(N,)``: a row of the robot binds (or it brakes); the deadlock strategy acts on it; its
-        nominal was changed.
-    slack : float
-        Largest violation of a row by ``du`` (eqn.8 units; 0 when solved).
-    correction : numpy.ndarray
-        ``(N,)`` ``|du - du_nominal|``.
-    iterations : int
-        Solver iterations.
-    solve_time : float
-        Wall time of the step [s] (reported only: no decision reads it).
-    n_rows, n_qp_rows : int
-        Barrier rows, and those the QP solver saw (0 where the closed form answered).
-    """
-
-    du: np.ndarray
+    du: np.ndarray  #: ``(N, 2)`` safe wheel accelerations, within the bounds
+    #: the worst of what happened (:data:`STATUSES`): ``"solved"`` (the QP's optimum), ``"relaxed"`` (infeasible
+    #: rows loosened by ``slack``, bounds kept), ``"backup"`` (the backup layer braked or nudged robots),
+    #: ``"failed"`` (no solver answered) or ``"unsafe"`` (outside the safe set: with the backup layer, the state
+    #: was not brake-safe; without it, some pair has ``h < 0`` or overlaps by more than :data:`COLLISION_TOL`)
     status: str
-    safe: bool
-    backup: np.ndarray
+    safe: bool  #: ``status != "unsafe"``
+    backup: np.ndarray  #: ``(N,)`` the backup layer braked the robot (nudged ones are counted in the message only)
+    #: with the backup layer, the smallest ``distance - d_s`` [m] of any pair along the backup horizon of the
+    #: applied inputs; without it, the smallest surface gap of the pairs in range
     margin: float
-    barrier_min: float
-    message: str
-    eta: np.ndarray
-    pairs: np.ndarray
-    avoiding: np.ndarray
-    triggered: np.ndarray
-    slack: float
-    correction: np.ndarray
-    intervened: np.ndarray
+    barrier_min: float  #: the rows' smallest ``h`` without the discrete-time margins (``inf`` without rows)
+    message: str  #: which solver answered, and what the backup layer did
+    eta: np.ndarray  #: ``(m,)`` each row's multiplier
+    pairs: np.ndarray  #: ``(m, 2)`` the rows' pairs: ``(i, j)``, or ``(i, -1 - k)`` for obstacle ``k``
+    avoiding: np.ndarray  #: ``(N,)`` a row of the robot binds (or it brakes)
+    triggered: np.ndarray  #: ``(N,)`` the deadlock strategy acts on the robot
+    slack: float  #: the largest violation of a row by ``du`` (eqn.8's units; 0 when solved)
+    correction: np.ndarray  #: ``(N,)`` ``|du - du_nominal|``
+    intervened: np.ndarray  #: ``(N,)`` the robot's nominal was changed
     iterations: int
-    solve_time: float
+    solve_time: float  #: wall time of the step [s] (reported only: no decision reads it)
     n_rows: int
-    n_qp_rows: int = 0
+    n_qp_rows: int = 0  #: the rows the QP solver saw (0 where the closed form answered)
 
     @property
     def obstacle_rows(self) -> np.ndarray:
@@ -95,8 +58,7 @@ def result(nominal: np.ndarray, scale: np.ndarray, rows: Rows, ans: Answer, back
     """The step's :class:`FilterResult` from its stages' answers (``backup`` None: the layer is off)."""
     status, message = ans.status, ans.message
     if backup is None:
-        du, braking = ans.du, np.zeros(ans.du.shape[0], dtype=bool)
-        margin = rows.gap_min
+        du, braking, margin = ans.du, np.zeros(ans.du.shape[0], dtype=bool), rows.gap_min
         safe = not (rows.barrier_min < -_BARRIER_TOL or rows.gap_min < -COLLISION_TOL)
     else:
         du, braking, margin, safe = backup.du, backup.braking, backup.margin, backup.safe

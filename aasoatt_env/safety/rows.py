@@ -1,12 +1,8 @@
 """The filter's first stages: the pairs within the sensing range, and their barrier rows.
 
-:func:`find_pairs` gives the robot pairs and robot-obstacle pairs within ``D``;
-:func:`numpy_rows` (the reference, any registered barrier and deadlock strategy) and
-:func:`compiled_rows` (a barrier's compiled rows, :mod:`~aasoatt_env.safety.rows_kernel`)
-turn them into :class:`Rows`, one per pair, linear in the wheel accelerations.  Both add the
-discrete-time margin (:meth:`~aasoatt_env.safety.config.FilterConfig.pair_margin`) and the
-speed margin to the safety distance, and report the barrier's smallest value and the smallest
-gap with the true distance.  They give the same numbers bit for bit.
+:func:`numpy_rows` (the reference: any barrier, any deadlock strategy) and :class:`CompiledRows` (a barrier's
+compiled rows, :mod:`~aasoatt_env.safety.rows_kernel`) give the same numbers bit for bit: one row per pair,
+linear in the wheel accelerations, with the discrete-time and speed margins added to the safety distance.
 """
 
 from __future__ import annotations
@@ -31,15 +27,12 @@ __all__ = ["CompiledRows", "Pairs", "Rows", "find_pairs", "gap_initial", "kernel
 class Pairs(NamedTuple):
     """The pairs of one step within the sensing range."""
 
-    robots: np.ndarray
-    """``(P, 2)`` robot pairs ``(i, j)``, ``i < j``, sorted (of one group with ``Team.group``)."""
-    obstacles: np.ndarray
-    """``(Q, 2)`` robot-obstacle pairs ``(i, k)``."""
+    robots: np.ndarray  #: ``(P, 2)`` robot pairs ``(i, j)``, ``i < j``, sorted (of one group with ``Team.group``)
+    obstacles: np.ndarray  #: ``(Q, 2)`` robot-obstacle pairs ``(i, k)``
 
     def vectors(self, p: np.ndarray, centers: np.ndarray | None) -> np.ndarray:
         """``(P + Q, 2)``: from each pair's robot ``i`` to the other member."""
-        i, j = self.robots[:, 0], self.robots[:, 1]
-        out = p[j] - p[i]
+        out = p[self.robots[:, 1]] - p[self.robots[:, 0]]
         if self.obstacles.shape[0]:
             out = np.concatenate((out, centers[self.obstacles[:, 1]] - p[self.obstacles[:, 0]]))
         return out
@@ -55,24 +48,15 @@ class Pairs(NamedTuple):
 class Rows(NamedTuple):
     """The barrier rows of one step: ``Gi du_ri + Gj du_rj <= rhs``, one per pair, robot pairs first."""
 
-    ri: np.ndarray
-    """``(m,)`` first robot of each row."""
-    rj: np.ndarray
-    """``(m,)`` second robot, ``-1`` on an obstacle row (robot ``ri``'s alone)."""
-    Gi: np.ndarray
-    """``(m, 2)`` coefficients on ``du_ri``."""
-    Gj: np.ndarray
-    """``(m, 2)`` coefficients on ``du_rj`` (zero on obstacle rows)."""
-    rhs: np.ndarray
-    """``(m,)`` right-hand sides."""
-    pairs: np.ndarray
-    """``(m, 2)`` the rows' pairs: ``(i, j)``, or ``(i, -1 - k)`` for obstacle ``k``."""
-    keys: np.ndarray
-    """``(m,)`` warm-start keys, increasing: ``i * B + j``, ``i * B + N + k`` for obstacle ``k``."""
-    barrier_min: float
-    """Smallest barrier value ``h`` with the true safety distance (``inf`` without rows)."""
-    gap_min: float
-    """Smallest surface gap ``|p_ij| - d_s`` (``D - max d_s`` without pairs)."""
+    ri: np.ndarray  #: ``(m,)``
+    rj: np.ndarray  #: ``(m,)``, ``-1`` on an obstacle row (robot ``ri``'s alone)
+    Gi: np.ndarray  #: ``(m, 2)``
+    Gj: np.ndarray  #: ``(m, 2)``, zero on obstacle rows
+    rhs: np.ndarray  #: ``(m,)``
+    pairs: np.ndarray  #: ``(m, 2)``: ``(i, j)``, or ``(i, -1 - k)`` for obstacle ``k``
+    keys: np.ndarray  #: ``(m,)`` warm-start keys, increasing: ``i * B + j``, ``i * B + N + k`` for obstacle ``k``
+    barrier_min: float  #: smallest barrier value ``h`` with the true safety distance (``inf`` without rows)
+    gap_min: float  #: smallest surface gap ``|p_ij| - d_s`` (``D - max d_s`` without pairs)
 
     @property
     def m(self) -> int:
@@ -84,15 +68,10 @@ class Rows(NamedTuple):
         return row_dot(self.Gi, du[self.ri]) + row_dot(self.Gj, du[np.maximum(self.rj, 0)])
 
 
-def find_pairs(team: Team, p: np.ndarray, sensing_range: float, obstacles: tuple | None,
-               compiled: bool) -> Pairs:
-    """The robot pairs and robot-obstacle pairs within ``sensing_range`` of the control points ``p``.
-
-    :func:`~aasoatt_env.model.geometry.robot_pairs`; with ``compiled``, its brute force in one compiled loop.
-    """
+def find_pairs(team: Team, p: np.ndarray, sensing_range: float, obstacles: tuple | None, compiled: bool) -> Pairs:
+    """The robot pairs and robot-obstacle pairs within ``sensing_range`` of the control points ``p``."""
     if compiled and uses_brute_force(team.n, team.group):
-        robots = kernels("rows").pairs_within(p, *brute_candidates(team.n, team.group),
-                                              sensing_range * sensing_range)
+        robots = kernels("rows").pairs_within(p, *brute_candidates(team.n, team.group), sensing_range * sensing_range)
     else:
         robots = robot_pairs(p, sensing_range, groups=team.group, compiled=compiled)
     if obstacles is None:
@@ -110,11 +89,7 @@ def gap_initial(cfg: FilterConfig, team: Team) -> float:
 
 
 def numpy_rows(cfg: FilterConfig, s: StepInput, pairs: Pairs, triggered: np.ndarray) -> Rows:
-    """The rows of ``cfg.barrier`` for every pair (the reference).
-
-    ``triggered`` ``(N,)``: the robots the deadlock strategy acts on; a strategy that rotates the rows
-    (eqn.12c) rotates those of the pairs with a triggered member.
-    """
+    """The rows of ``cfg.barrier`` for every pair (eqn.12c's strategy rotates those of the ``triggered`` robots)."""
     team, p, v, adot = s.team, s.p, s.v, s.adot
     n, rad, amax = p.shape[0], team.radius, team.max_point_accel
     ri, rj = pairs.robots[:, 0], pairs.robots[:, 1]
@@ -122,17 +97,14 @@ def numpy_rows(cfg: FilterConfig, s: StepInput, pairs: Pairs, triggered: np.ndar
     rel = state[ri] - state[rj]
     gp, gv, ga = rel[:, 0:2], rel[:, 2:4], rel[:, 4:6]
     ds, ap, out = rad[ri] + rad[rj], amax[ri] + amax[rj], pairs.robots
-    n_obs = 0
+    n_obs = 0 if s.obstacles is None else s.obstacles[1].shape[0]
     if pairs.obstacles.shape[0]:
         oi, ok = pairs.obstacles[:, 0], pairs.obstacles[:, 1]
         oc, orad = s.obstacles[0], s.obstacles[1]
-        n_obs = orad.shape[0]
         gp, gv, ga = np.concatenate((gp, p[oi] - oc[ok])), np.concatenate((gv, v[oi])), np.concatenate((ga, adot[oi]))
         ds, ap = np.concatenate((ds, rad[oi] + orad[ok])), np.concatenate((ap, amax[oi]))
         ri, rj = np.concatenate((ri, oi)), np.concatenate((rj, np.full(oi.shape[0], -1, np.intp)))
         out = np.concatenate((out, np.stack((oi, -1 - ok), axis=1)))
-    elif s.obstacles is not None:
-        n_obs = s.obstacles[1].shape[0]
     margin = cfg.pair_margin(gv)
     if cfg.speed_margin:
         sp2 = row_dot(v, v)
@@ -150,8 +122,7 @@ def numpy_rows(cfg: FilterConfig, s: StepInput, pairs: Pairs, triggered: np.ndar
     obs = rj < 0
     Gi = np.einsum("pki,pk->pi", s.A[ri], c)
     Gj = -np.einsum("pki,pk->pi", s.A[np.maximum(rj, 0)], c)
-    if obs.any():
-        Gj[obs] = 0.0
+    Gj[obs] = 0.0
     keys = ri.astype(np.int64) * (n + n_obs + 1) + np.where(obs, n - 1 - out[:, 1], rj)
     return Rows(ri, rj, Gi, Gj, rhs, out, keys, float(h.min(initial=np.inf)),
                 float(gap.min(initial=gap_initial(cfg, team))))
@@ -175,8 +146,7 @@ class CompiledRows:
         if s.team is not self._team:
             self._team, self._gap = s.team, gap_initial(cfg, s.team)
         oc, orad = (_NO_CENTERS, _NO_RADII) if s.obstacles is None else s.obstacles[:2]
-        return (s.p, s.v, s.adot, s.A, s.team.radius, pairs.robots, pairs.obstacles, oc, orad, *self._gains,
-                self._gap)
+        return (s.p, s.v, s.adot, s.A, s.team.radius, pairs.robots, pairs.obstacles, oc, orad, *self._gains, self._gap)
 
 
 def kernel_rows(out: tuple) -> Rows:

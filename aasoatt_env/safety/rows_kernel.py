@@ -1,10 +1,9 @@
 """Compiled barrier rows (numba; loaded through :mod:`aasoatt_env.compiled`).
 
-:func:`aasoatt_rows` is :func:`aasoatt_env.safety.rows.numpy_rows` for the ``aasoatt`` barrier
-(eqn.7-8) as one loop over the pairs instead of some forty small array operations;
-:func:`pairs_within` is :func:`~aasoatt_env.model.geometry.robot_pairs`' brute force.  The
-operations are numpy's in numpy's order (no ``fastmath``; ``einsum``'s sums start from
-``+0.0``), so the numbers are the reference's bit for bit (``tests/test_compiled.py``).
+:func:`aasoatt_rows` is :func:`~aasoatt_env.safety.rows.numpy_rows` for the ``aasoatt`` barrier (eqn.7-8) as one
+loop over the pairs; :func:`pairs_within` is :func:`~aasoatt_env.model.geometry.robot_pairs`' brute force.  The
+operations are numpy's in numpy's order (no ``fastmath``; ``einsum``'s sums start from ``+0.0``), so the numbers
+are the reference's bit for bit (``tests/test_compiled.py``).
 """
 
 from __future__ import annotations
@@ -44,9 +43,8 @@ def aasoatt_rows(p, v, adot, A, radius, robots, obstacles, centers, oradius, k1,
                  gap_initial):
     """Rows of the ``aasoatt`` barrier for robot pairs ``robots (P, 2)`` and robot-obstacle pairs ``(Q, 2)``.
 
-    ``fixed``: ``FilterConfig.safety_margin`` or NaN for the speed-dependent default.  The caller
-    checks every index (numba does not).  Returns ``(ri, rj, Gi, Gj, rhs, pairs, keys, h_min, gap_min)``
-    as :func:`aasoatt_env.safety.rows.numpy_rows`.
+    ``fixed``: ``FilterConfig.safety_margin`` or NaN for the speed-dependent default.  The caller checks every index
+    (numba does not).  Returns ``(ri, rj, Gi, Gj, rhs, pairs, keys, h_min, gap_min)`` as ``numpy_rows``.
     """
     n, P, Q = p.shape[0], robots.shape[0], obstacles.shape[0]
     m, base = P + Q, n + oradius.shape[0] + 1

@@ -1,9 +1,7 @@
-"""Compile the filter's kernels before a control loop starts.
+"""Compile the filter's kernels before a control loop starts (``aasoatt warm-up``).
 
-numba compiles each kernel the first time it runs and caches it on disk; from an empty
-cache that takes tens of seconds.  :func:`warm_up` runs every compiled part once, on tiny
-problems with the argument types the filter passes, so a control loop's first step runs
-at speed (``aasoatt warm-up`` does it once, with a progress line).
+numba compiles each kernel the first time it runs and caches it on disk, which from an empty cache takes tens
+of seconds; :func:`warm_up` runs every compiled part once on tiny problems with the filter's argument types.
 """
 
 from __future__ import annotations
@@ -65,19 +63,9 @@ def _scenes() -> list[tuple[str, Callable[[], None]]]:
 
 
 def warm_up(kernel: str = "auto", progress: Callable[[str], None] | None = None) -> bool:
-    """Compile (or load from numba's cache) every kernel a filter with ``kernel`` runs.
+    """Compile (or load from numba's cache) every kernel a filter with ``kernel`` (``FilterConfig.kernel``) runs.
 
-    Parameters
-    ----------
-    kernel : {"auto", "numpy", "numba"}
-        :attr:`~aasoatt_env.safety.config.FilterConfig.kernel`.
-    progress : callable, optional
-        Called with the name of each part before it is compiled.
-
-    Returns
-    -------
-    bool
-        Whether kernels were run: False for ``"numpy"``, and for ``"auto"`` without numba.
+    ``progress`` gets each part's name before it runs.  Returns False for ``"numpy"`` and for ``"auto"`` without numba.
     """
     if kernel not in KERNELS:
         raise ConfigError(f"kernel: got {kernel!r}, expected one of {list(KERNELS)}")

@@ -1,36 +1,14 @@
 """``AASOATTFilter``: the CBF-QP safety filter as a drop-in PettingZoo wrapper.
 
-Any policy's actions become the *nominal*; the wrapper installs a
-:class:`~aasoatt_env.safety.core.SafetyFilter` into the env through its control-filter protocol
-(:mod:`aasoatt_env.sim.protocol`), so every physics step (also inside a ``decision_interval``) is
-filtered before the env integrates it.  Behind the filter, actions outside ``[-1, 1]`` are taken as
-the (unclipped) nominal: the filter keeps the input bounds hard.  After each ``step`` it aggregates
-the env's ``filter_outputs`` into a :class:`FilterReport` (:attr:`AASOATTFilter.report`) and into
-``infos[agent]["filter"]``:
-
-==================  =====================================================
-key                 meaning
-==================  =====================================================
-``intervened``      the filter changed this robot's nominal at some step
-``avoiding``        some barrier row of this robot was active (eta > 0)
-``triggered``       the deadlock strategy acted on this robot
-``correction``      largest ``|du_safe - du_nominal|`` [rad/s^2]
-``backup``          the backup layer braked this robot at some step
-``status``          worst status of the team: solved < relaxed < backup < failed < unsafe
-``safe``            the team stayed inside the safe set (status != unsafe)
-``margin``          smallest backup margin of the step [m] (``FilterResult.margin``)
-``barrier_min``     smallest barrier value ``h`` of the step
-``slack``           largest row relaxation (0 unless ``relaxed``)
-``iterations``      total solver iterations
-``n_rows``          barrier rows at the last physics step
-``n_qp_rows``       of those, rows the QP solver saw (0: closed form)
-==================  =====================================================
-
-Infos are deterministic (wall times are in :attr:`AASOATTFilter.timing`, not in them), as PettingZoo's
-and Gymnasium's checkers require.  ``infos="flat"`` gives numeric top-level keys instead
-(``filter_intervened``, ``filter_avoiding``, ``filter_triggered``, ``filter_backup``,
-``filter_correction``, ``filter_status_code`` = the index in ``STATUSES``, ``filter_margin``,
-``filter_slack``) for tensor-based clients such as TorchRL.  An env takes one filter.
+Any policy's actions become the *nominal*; the wrapper installs a :class:`~aasoatt_env.safety.core.SafetyFilter`
+into the env (:mod:`aasoatt_env.sim.protocol`), so every physics step, also inside a ``decision_interval``, is
+filtered.  Actions outside ``[-1, 1]`` are taken as the (unclipped) nominal: the filter keeps the input bounds hard.
+After each ``step`` the env's ``filter_outputs`` become a :class:`FilterReport` (:attr:`AASOATTFilter.report`), and
+its fields but ``message``, ``applied`` and ``solve_time`` become ``infos[agent]["filter"]``.  Infos are
+deterministic (wall times are in :attr:`AASOATTFilter.timing`), as PettingZoo's and Gymnasium's checkers require.
+``infos="flat"`` gives numeric top-level keys instead, for tensor-based clients such as TorchRL:
+``filter_intervened``, ``filter_avoiding``, ``filter_triggered``, ``filter_backup``, ``filter_correction``,
+``filter_status_code`` (the index in :data:`STATUSES`), ``filter_margin``, ``filter_slack``.
 """
 
 from __future__ import annotations
@@ -50,70 +28,42 @@ from aasoatt_env.sim.env import AASOATTParallelEnv
 
 __all__ = ["STATUS_CODES", "AASOATTFilter", "FilterReport"]
 
-STATUS_CODES: dict[str, int] = {name: code for code, name in enumerate(STATUSES)}
-"""Numeric status of ``infos="flat"``; the larger, the worse."""
+STATUS_CODES: dict[str, int] = {name: code for code, name in enumerate(STATUSES)}  #: ``infos="flat"``; larger: worse
 
 
 @dataclass(frozen=True)
 class FilterReport:
-    """The filter over the physics steps of one env step.
+    """The filter over the physics steps of one env step."""
 
-    Attributes
-    ----------
-    intervened, avoiding, triggered, backup : numpy.ndarray
-        ``(N,)`` bool, true if true at some physics step.
-    correction : numpy.ndarray
-        ``(N,)`` largest ``|du_safe - du_nominal|``.
-    status, safe, message : str, bool, str
-        Worst status of the physics steps, whether every step ended in the safe set, the worst step's message.
-    margin, barrier_min, slack : float
-        Smallest backup margin [m] and barrier value, largest row relaxation.
-    iterations, n_rows, n_qp_rows : int
-        Total solver iterations; rows at the last physics step, and those the QP solver saw.
-    applied : numpy.ndarray
-        ``(N, 2)`` wheel accelerations applied at the last physics step.
-    solve_time : float
-        Filter wall time of the env step [s] (not in the infos: it is not deterministic).
-    """
-
-    intervened: np.ndarray
-    avoiding: np.ndarray
-    triggered: np.ndarray
-    backup: np.ndarray
-    correction: np.ndarray
-    status: str
-    safe: bool
-    margin: float
-    barrier_min: float
-    message: str
-    slack: float
-    iterations: int
-    n_rows: int
-    n_qp_rows: int
-    applied: np.ndarray
-    solve_time: float
+    intervened: np.ndarray  #: ``(N,)`` the filter changed the robot's nominal at some step
+    avoiding: np.ndarray  #: ``(N,)`` some barrier row of the robot was active (eta > 0)
+    triggered: np.ndarray  #: ``(N,)`` the deadlock strategy acted on the robot
+    backup: np.ndarray  #: ``(N,)`` the backup layer braked the robot at some step
+    correction: np.ndarray  #: ``(N,)`` largest ``|du_safe - du_nominal|`` [rad/s^2]
+    status: str  #: worst status of the team: solved < relaxed < backup < failed < unsafe
+    safe: bool  #: the team stayed inside the safe set (status != unsafe)
+    margin: float  #: smallest backup margin [m] (``FilterResult.margin``)
+    barrier_min: float  #: smallest barrier value ``h``
+    message: str  #: the worst step's
+    slack: float  #: largest row relaxation (0 unless ``relaxed``)
+    iterations: int  #: total solver iterations
+    n_rows: int  #: barrier rows at the last physics step
+    n_qp_rows: int  #: of those, the rows the QP solver saw (0: closed form)
+    applied: np.ndarray  #: ``(N, 2)`` wheel accelerations applied at the last physics step
+    solve_time: float  #: the filter's wall time [s] (not in the infos: it is not deterministic)
 
     @classmethod
     def of(cls, results: tuple[FilterResult, ...]) -> FilterReport:
         """Aggregate the results of the physics steps of one env step."""
-        last = results[-1]
-        if len(results) == 1:
-            return cls(last.intervened, last.avoiding, last.triggered, last.backup, last.correction, last.status,
-                       last.safe, last.margin, last.barrier_min, last.message, last.slack, last.iterations,
-                       last.n_rows, last.n_qp_rows, last.du, last.solve_time)
-        worst = max(results, key=lambda r: STATUS_CODES[r.status])
-        return cls(
-            intervened=np.any([r.intervened for r in results], axis=0),
-            avoiding=np.any([r.avoiding for r in results], axis=0),
-            triggered=np.any([r.triggered for r in results], axis=0),
-            backup=np.any([r.backup for r in results], axis=0),
-            correction=np.max([r.correction for r in results], axis=0),
-            status=worst.status, safe=all(r.safe for r in results), margin=min(r.margin for r in results),
-            barrier_min=min(r.barrier_min for r in results), message=worst.message,
-            slack=max(r.slack for r in results), iterations=sum(r.iterations for r in results),
-            n_rows=last.n_rows, n_qp_rows=last.n_qp_rows, applied=last.du,
-            solve_time=sum(r.solve_time for r in results),
-        )
+        last, worst = results[-1], max(results, key=lambda r: STATUS_CODES[r.status])
+        flags = ("intervened", "avoiding", "triggered", "backup")
+        return cls(*(np.any([getattr(r, k) for r in results], axis=0) for k in flags),
+                   correction=np.max([r.correction for r in results], axis=0), status=worst.status,
+                   safe=all(r.safe for r in results), margin=min(r.margin for r in results),
+                   barrier_min=min(r.barrier_min for r in results), message=worst.message,
+                   slack=max(r.slack for r in results), iterations=sum(r.iterations for r in results),
+                   n_rows=last.n_rows, n_qp_rows=last.n_qp_rows, applied=last.du,
+                   solve_time=sum(r.solve_time for r in results))
 
     def info(self, index: int) -> dict[str, Any]:
         """The nested ``infos[agent]["filter"]`` dict of robot ``index``."""
@@ -125,11 +75,9 @@ class FilterReport:
 
     def infos(self, indices: np.ndarray | slice) -> list[dict[str, Any]]:
         """The nested ``infos[agent]["filter"]`` dicts of robots ``indices`` (one conversion per field)."""
-        shared = {
-            "status": self.status, "safe": bool(self.safe), "margin": float(self.margin),
-            "barrier_min": float(min(self.barrier_min, _BIG)), "slack": float(self.slack),
-            "iterations": int(self.iterations), "n_rows": int(self.n_rows), "n_qp_rows": int(self.n_qp_rows),
-        }
+        shared = {"status": self.status, "safe": bool(self.safe), "margin": float(self.margin),
+                  "barrier_min": float(min(self.barrier_min, _BIG)), "slack": float(self.slack),
+                  "iterations": int(self.iterations), "n_rows": int(self.n_rows), "n_qp_rows": int(self.n_qp_rows)}
         cols = self._columns(indices)
         return [dict(shared, intervened=a, avoiding=b, triggered=c, backup=d, correction=e)
                 for a, b, c, d, e in zip(*cols)]
@@ -153,29 +101,17 @@ class FilterReport:
 class AASOATTFilter(BaseParallelWrapper):
     """Filter every physics step of a parallel env through the AA-SOATT CBF-QP (module docstring).
 
-    Parameters
-    ----------
-    env : AASOATTParallelEnv or a PettingZoo wrapper of it
-        The env to protect (not yet behind a filter).
-    config : FilterConfig or mapping, optional
-        A configuration to start from.
-    infos : {"nested", "flat"}
-        ``infos[agent]["filter"]`` dicts, or numeric top-level ``filter_*`` keys.
-    **options
-        :class:`~aasoatt_env.safety.config.FilterConfig` fields; they replace those of ``config``.  ``dt`` is
-        the env's.
+    ``env``: an :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` or a PettingZoo wrapper of one, not yet behind
+    a filter.  ``options`` (:class:`~aasoatt_env.safety.config.FilterConfig` fields) replace those of ``config``;
+    ``dt`` is the env's.  ``infos``: ``"nested"`` (``infos[agent]["filter"]``) or ``"flat"`` (``filter_*`` keys).
     """
 
-    def __init__(
-        self, env: Any, config: FilterConfig | dict[str, Any] | None = None, *, infos: str = "nested",
-        **options: Any,
-    ) -> None:
+    def __init__(self, env: Any, config: FilterConfig | dict[str, Any] | None = None, *, infos: str = "nested",
+                 **options: Any) -> None:
         base = getattr(env, "unwrapped", None)
         if not isinstance(base, AASOATTParallelEnv):
-            raise ConfigError(
-                f"env: got {type(env).__name__}, expected an aasoatt_env parallel env (AASOATTParallelEnv or a "
-                "PettingZoo wrapper of it)"
-            )
+            raise ConfigError(f"env: got {type(env).__name__}, expected an aasoatt_env parallel env "
+                              "(AASOATTParallelEnv or a PettingZoo wrapper of it)")
         if "dt" in options:
             raise ConfigError(f"dt: got {options['dt']!r}; the filter runs at the env's physics step ({base.dt:g} s)")
         self._infos_mode = check.choice("infos", infos, ("nested", "flat"))
@@ -187,8 +123,7 @@ class AASOATTFilter(BaseParallelWrapper):
         self.filter = SafetyFilter(config=cfg)
         base.set_control_filter(self.filter)  # raises UsageError if the env already has a filter
         self._report: FilterReport | None = None
-        self._time = 0.0
-        self._steps = 0
+        self._time, self._steps = 0.0, 0
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Reset the env (and the filter's warm start and deadlock memory)."""
@@ -207,22 +142,18 @@ class AASOATTFilter(BaseParallelWrapper):
         return obs, rew, term, trunc, self._add(infos)
 
     def _add(self, infos: dict[str, dict]) -> dict[str, dict]:
-        rep = self._report
-        flat = self._infos_mode == "flat"
+        rep, base = self._report, self.unwrapped
         if rep is None:
-            extra = [dict(_FLAT_IDLE if flat else _NESTED_IDLE) for _ in infos]
+            rep, rows = _IDLE, np.zeros(len(infos), dtype=np.intp)
+        elif list(infos) == base.possible_agents:  # every agent, in order: every row
+            rows = _ALL_ROWS
         else:
-            base = self.unwrapped
-            if list(infos) == base.possible_agents:  # every agent, in order: every row
-                rows = _ALL_ROWS
-            else:
-                idx = base.agent_index
-                rows = np.fromiter((idx[a] for a in infos), dtype=np.intp, count=len(infos))
-            extra = rep.flat_infos(rows) if flat else rep.infos(rows)
-        for info, add in zip(infos.values(), extra):
-            if flat:
+            rows = np.fromiter((base.agent_index[a] for a in infos), dtype=np.intp, count=len(infos))
+        if self._infos_mode == "flat":
+            for info, add in zip(infos.values(), rep.flat_infos(rows)):
                 info.update(add)
-            else:
+        else:
+            for info, add in zip(infos.values(), rep.infos(rows)):
                 info["filter"] = add
         return infos
 
@@ -244,18 +175,7 @@ class AASOATTFilter(BaseParallelWrapper):
                 "mean_ms": 1e3 * self._time / self._steps if self._steps else 0.0}
 
 
-_ALL_ROWS = slice(None)
-"""``FilterReport.infos``' rows when the infos hold every agent in order (no gather)."""
-
-_BIG = 1e9
-"""Stand-in for an infinite barrier value in the infos (no rows): infos stay finite."""
-
-_NESTED_IDLE: dict[str, Any] = {
-    "intervened": False, "avoiding": False, "triggered": False, "backup": False, "correction": 0.0,
-    "status": "solved", "safe": True, "margin": _BIG, "barrier_min": _BIG, "slack": 0.0, "iterations": 0,
-    "n_rows": 0, "n_qp_rows": 0,
-}
-_FLAT_IDLE: dict[str, float] = {
-    "filter_intervened": 0.0, "filter_avoiding": 0.0, "filter_triggered": 0.0, "filter_backup": 0.0,
-    "filter_correction": 0.0, "filter_status_code": 0.0, "filter_margin": _BIG, "filter_slack": 0.0,
-}
+_ALL_ROWS = slice(None)  # FilterReport.infos' rows when the infos hold every agent in order (no gather)
+_BIG = 1e9  # stands in for an infinite barrier value (no rows): infos stay finite
+_IDLE = FilterReport(*(np.zeros(1, dtype=bool),) * 4, np.zeros(1), "solved", True, _BIG, _BIG, "", 0.0, 0, 0, 0,
+                     np.zeros((1, 2)), 0.0)  # the infos before a step

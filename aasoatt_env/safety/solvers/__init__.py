@@ -1,12 +1,7 @@
-"""QP solvers of the safety filter.
+"""QP solvers of the safety filter: the back-ends (:mod:`~.backends`) and which answers (:mod:`~.policy`).
 
-* :mod:`~aasoatt_env.safety.solvers.backends`: one function per back-end and the registry
-  :data:`SOLVERS` (adding a solver: one function, one registry line);
-* :mod:`~aasoatt_env.safety.solvers.policy`: :class:`SolverPolicy`, which solver answers which
-  problem (a pure function of its size and the configuration), infeasibility and relaxation;
-* :mod:`~aasoatt_env.safety.solvers.active_set`, :mod:`~aasoatt_env.safety.solvers.ldp`: the exact
-  solvers of the core dependencies; :mod:`~aasoatt_env.safety.solvers.local`: every robot's
-  2-variable QP at once (the decentralised filter).
+The exact solvers of the core dependencies are :mod:`~.active_set` and :mod:`~.ldp`; :mod:`~.local` solves every
+robot's 2-variable QP at once (the decentralised filter).
 """
 
 from aasoatt_env.safety.solvers.backends import SOLVERS, Backend, RawAnswer, available_solvers, get_solver

@@ -1,18 +1,13 @@
 """QP back-ends of the safety filter and their registry (:data:`SOLVERS`).
 
-Each back-end takes a :class:`~aasoatt_env.safety.problem.QPProblem`, an optional warm
-start and options, and returns a :class:`RawAnswer`; it never falls back to anything
-by itself.  Which back-end answers which problem, and what happens without an answer,
-is decided in one place: :mod:`aasoatt_env.safety.solvers.policy`.  Every call's work is
-bounded by an iteration count (never by the clock).
-
-``proxsuite`` (default back-end): dense ``PrimalDualLDLT`` with native box constraints up
-to :data:`DENSE_MAX_SIZE` variables + rows, sparse ``SparseCholesky`` above; tight
-infeasibility tolerances and a duality-gap check (``docs/technical_brief.md`` section 4).
-``ldp``: exact least-distance programming by NNLS, core dependencies only
-(:mod:`~aasoatt_env.safety.solvers.ldp`).  ``neural``: the paper's projection neural
-network (eqn.22), an approximation.  ``daqp``, ``clarabel``, ``osqp``, ``quadprog``,
-``cvxopt`` (what Robotarium's barrier certificates call) where installed.
+A back-end takes a :class:`~aasoatt_env.safety.problem.QPProblem`, an optional warm start and options, returns a
+:class:`RawAnswer` within an iteration budget (never a time limit), and never falls back to anything by itself:
+:mod:`~aasoatt_env.safety.solvers.policy` decides which answers.  ``proxsuite`` (default): dense
+``PrimalDualLDLT`` with native box constraints up to :data:`DENSE_MAX_SIZE` variables + rows, sparse
+``SparseCholesky`` above; tight infeasibility tolerances and a duality-gap check (``docs/technical_brief.md``
+section 4).  ``ldp``: exact NNLS, core dependencies only.  ``neural``: the paper's projection neural network
+(eqn.22), an approximation.  ``daqp``, ``clarabel``, ``osqp``, ``quadprog``, ``cvxopt`` (what Robotarium's
+barrier certificates call) where installed.
 """
 
 from __future__ import annotations
@@ -36,11 +31,9 @@ from aasoatt_env.safety.solvers.ldp import solve_ldp
 
 __all__ = ["DENSE_MAX_SIZE", "ITER_LIMIT", "SOLVERS", "Backend", "RawAnswer", "available_solvers", "get_solver"]
 
-DENSE_MAX_SIZE: int = 600
-"""Largest ``n + m`` solved with proxsuite's dense class (the faster one on small problems)."""
-ITER_LIMIT: dict[str, int] = {"proxsuite": 200, "proxsuite_inner": 100, "daqp": 2000, "osqp": 20000,
-                              "clarabel": 200}
-"""Iteration budgets of the iterative back-ends: the worst case of a call is a property of its size."""
+DENSE_MAX_SIZE: int = 600  #: largest ``n + m`` solved with proxsuite's dense class (faster on small problems)
+#: iteration budgets of the iterative back-ends: the worst case of a call is a property of its size
+ITER_LIMIT: dict[str, int] = {"proxsuite": 200, "proxsuite_inner": 100, "daqp": 2000, "osqp": 20000, "clarabel": 200}
 _INF = 1e20
 
 
@@ -50,12 +43,10 @@ class RawAnswer:
 
     x: np.ndarray | None
     z: np.ndarray | None
-    ok: bool
-    """True when ``x`` is the back-end's answer to the problem as posed."""
+    ok: bool  #: ``x`` is the back-end's answer to the problem as posed
     iterations: int
     message: str
-    infeasible: bool = False
-    """The back-end proved the rows inconsistent by an exact method (``ldp``'s NNLS, DAQP's exitflag -1)."""
+    infeasible: bool = False  #: rows proved inconsistent by an exact method (``ldp``'s NNLS, DAQP's exitflag -1)
 
 
 def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
@@ -128,11 +119,10 @@ def _clarabel(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opt
     s = clarabel.DefaultSettings()
     s.verbose, s.max_iter = False, ITER_LIMIT["clarabel"]
     s.tol_gap_abs = s.tol_gap_rel = s.tol_feas = 1e-10
-    solver = clarabel.DefaultSolver(sp.triu(prob.H_sparse(), format="csc"), prob.g,
-                                    sp.vstack((prob.C, sp.identity(n), -sp.identity(n)), format="csc"),
-                                    np.concatenate((prob.u, prob.ub, -prob.lb)), [clarabel.NonnegativeConeT(m + 2 * n)],
-                                    s)
-    sol = solver.solve()
+    G = sp.vstack((prob.C, sp.identity(n), -sp.identity(n)), format="csc")
+    h = np.concatenate((prob.u, prob.ub, -prob.lb))
+    sol = clarabel.DefaultSolver(sp.triu(prob.H_sparse(), format="csc"), prob.g, G, h,
+                                 [clarabel.NonnegativeConeT(m + 2 * n)], s).solve()
     ok = str(sol.status) in ("Solved", "AlmostSolved")
     return RawAnswer(np.asarray(sol.x), np.asarray(sol.z)[:m], ok, int(sol.iterations), f"clarabel {sol.status}")
 
@@ -141,10 +131,9 @@ def _quadprog(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opt
     import quadprog
 
     n, m = prob.n, prob.m
-    Ct = np.vstack((-prob.C.toarray(), np.eye(n), -np.eye(n))).T
+    Ct, b = np.vstack((-prob.C.toarray(), np.eye(n), -np.eye(n))).T, np.concatenate((-prob.u, prob.lb, -prob.ub))
     try:
-        x, _, _, it, lagr, _ = quadprog.solve_qp(prob.H_dense(), -prob.g, Ct, np.concatenate((-prob.u, prob.lb,
-                                                                                               -prob.ub)), 0)
+        x, _, _, it, lagr, _ = quadprog.solve_qp(prob.H_dense(), -prob.g, Ct, b, 0)
     except ValueError as exc:
         return RawAnswer(None, None, False, 0, f"quadprog: {exc}")
     return RawAnswer(np.asarray(x), np.asarray(lagr)[:m], True, int(it[0]), "quadprog solved")
@@ -213,21 +202,15 @@ BackendFn = Callable[[QPProblem, "np.ndarray | None", "np.ndarray | None", dict]
 class Backend:
     """A registered QP back-end and what the solver policy needs to know about it."""
 
-    solve: BackendFn
-    """``solve(problem, x0, z0, options) -> RawAnswer``."""
-    module: str = ""
-    """Module it imports (empty: core dependencies only)."""
-    exact: bool = True
-    """An answer is the QP's optimum to the back-end's tolerance (False: ``neural``, passed through unverified)."""
+    solve: BackendFn  #: ``solve(problem, x0, z0, options) -> RawAnswer``
+    module: str = ""  #: the module it imports (empty: core dependencies only)
+    exact: bool = True  #: answers the QP's optimum to its tolerance (False: ``neural``, passed on unverified)
+    #: it checks its own answers (``ldp``); another exact back-end's answer is polished and verified by the warm
+    #: active set started from it (which also makes its last bits a function of the problem)
     verified: bool = False
-    """The back-end checks its own answers (``ldp``); another exact back-end's answer is polished and verified
-    by the warm active set started from it (which also makes its last bits a function of the problem)."""
-    deterministic: bool = True
-    """Its answer's last bits are a function of the problem (proxsuite's depend on where its work arrays lie)."""
-    may_stall: bool = False
-    """It can run out of iterations on these problems (an augmented Lagrangian): the exact solvers go first."""
-    route_options: tuple[tuple[str, object], ...] = ()
-    """Options the policy adds when it asks this back-end on its own route (not as the configured solver)."""
+    deterministic: bool = True  #: its last bits are a function of the problem (proxsuite's: of its memory too)
+    may_stall: bool = False  #: it can run out of iterations (an augmented Lagrangian): the exact solvers go first
+    route_options: tuple[tuple[str, object], ...] = ()  #: options when the route asks it (not as the configured one)
 
     def __call__(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
         """Run the back-end."""

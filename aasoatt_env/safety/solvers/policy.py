@@ -1,29 +1,19 @@
 """Which solver answers a safety QP: a pure function of the problem's size and the configuration.
 
-:meth:`SolverPolicy.solve` never raises on numerical trouble and never returns NaN.  In order:
-
-1. no rows and diagonal Hessian blocks: the closed form;
-2. an approximate back-end (``neural``): its point as it is;
-3. the warm active set from the previous step's working set
-   (:mod:`~aasoatt_env.safety.solvers.active_set`), part by part: every part it verifies
-   (KKT conditions) is answered, the others go on as one smaller problem;
-4. the route (:func:`route`): before a back-end that may stall, the exact solvers of
-   :data:`EXACT_ROUTE` within their sizes, then the configured back-end.  An answer is
-   taken only where it is verified (``ldp`` verifies its own; any other by the warm active
-   set started from it); the configured back-end's answer is polished there too where its last
-   bits depend on more than the problem, and taken as it is where that polish fails.  A proof of
-   infeasibility ends the route;
-5. infeasibility is never taken from an iterative solver's word: a phase-1 problem finds
-   the least violation of each row with the bounds hard (:data:`PHASE1_ROUTE`), every row
-   is loosened by its own violation and the problem is solved again (status ``"relaxed"``).
-
-Nothing here reads the clock or keeps state between calls: the same problem gets the same
-answer, whatever the machine's load.
+:meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock and keeps no state
+between calls.  In order: (1) without rows (diagonal blocks) the closed form; (2) ``neural``'s point as it is;
+(3) the warm active set from the previous step's working set, on every part it verifies (KKT conditions); (4) on
+the rest, the route (:func:`route`): the exact solvers of :data:`EXACT_ROUTE` before a back-end that may stall,
+then the configured one.  An answer is taken only where verified, by ``ldp`` itself or by the warm active set
+started from it; the configured back-end's answer is polished there too where its last bits depend on more than
+the problem, and taken as it is where that fails.  A proof of infeasibility ends the route.  (5) Infeasibility is
+never taken from an iterative solver's word: a phase-1 problem (:data:`PHASE1_ROUTE`) finds each row's least
+violation with the bounds hard, the rows are loosened by it and the QP solved again (status ``"relaxed"``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -60,23 +50,17 @@ class QPSolution:
 
     x: np.ndarray
     z: np.ndarray
-    status: str
-    """``"solved"``, ``"relaxed"`` (rows loosened by ``slack``) or ``"failed"``."""
+    status: str  #: ``"solved"``, ``"relaxed"`` (rows loosened by ``slack``) or ``"failed"``
     slack: float
     iterations: int
-    message: str
-    """Which solver answered, and why."""
-    exact: bool = True
-    """False when an approximate back-end answered (its point is not verified)."""
+    message: str  #: which solver answered, and why
+    exact: bool = True  #: False where an approximate back-end answered (its point is not verified)
 
 
 def route(solver: str, n: int) -> list[tuple[str, dict]]:
     """The solvers asked for a problem of ``n`` variables with back-end ``solver``, in order, with their options."""
-    backend = get_solver(solver)
-    installed = available_solvers()
-    steps = []
-    if backend.may_stall:
-        steps = [(k, dict(get_solver(k).route_options)) for k, most in EXACT_ROUTE if n <= most and k in installed]
+    installed, stall = available_solvers(), get_solver(solver).may_stall  # the exact solvers go before a staller
+    steps = [(k, dict(get_solver(k).route_options)) for k, top in EXACT_ROUTE if stall and n <= top and k in installed]
     return [*steps, (solver, {})]
 
 
@@ -93,18 +77,9 @@ def _phase1_order(solver: str, n1: int) -> list[str]:
 class SolverPolicy:
     """The safety QP's solver (module docstring): a back-end and how the exact path runs.
 
-    Parameters
-    ----------
-    solver : str
-        Registered back-end name (:data:`~aasoatt_env.safety.solvers.backends.SOLVERS`).
-    active_set : bool
-        Try the warm-started active set first.
-    compiled : bool
-        Run the warm active set in its compiled kernel (:mod:`aasoatt_env.compiled`).
-    one_change_iter : int, optional
-        The warm active set's one-change budget (None: its default).
-    iterations : int
-        ``neural``'s projected primal-dual updates per call.
+    ``solver``: a name in :data:`~.backends.SOLVERS`; ``active_set``: try the warm active set first (in its
+    compiled kernel with ``compiled``, with the one-change budget ``one_change_iter``, None: its default);
+    ``iterations``: ``neural``'s projected primal-dual updates per call.
     """
 
     solver: str
@@ -123,8 +98,7 @@ class SolverPolicy:
         """Solve ``prob`` warm-started from ``(x0, z0)``; ``groups`` ``(N,)``: independent parts (no row joins two)."""
         backend = get_solver(self.solver)
         if prob.m == 0 and prob.diagonal and backend.exact:
-            return QPSolution(np.clip(_unconstrained(prob), prob.lb, prob.ub), np.zeros(0), "solved", 0.0, 0,
-                              "no rows")
+            return QPSolution(np.clip(_unconstrained(prob), prob.lb, prob.ub), np.zeros(0), "solved", 0.0, 0, "no rows")
         if not backend.exact:
             raw = backend(prob, x0, z0, {"iterations": self.iterations})
             return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message, exact=False)
@@ -185,11 +159,8 @@ class SolverPolicy:
         x1, viol = p1
         tstar = float(np.max(viol, initial=0.0))
         relaxed = tstar > _FEAS_TOL
-        loose = QPProblem(prob.H_blocks, prob.g, prob.C, prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL, prob.lb, prob.ub,
-                          prob.scale, prob.obj_scale, prob.row_norm, prob.diagonal)
-        raw2 = self._ask(loose, x1, None)
-        msg = (f"{raw.message}; phase 1: largest row violation {tstar:.3g} "
-               f"({int(np.sum(viol > _FEAS_TOL))} rows)")
+        raw2 = self._ask(replace(prob, u=prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL), x1, None)  # the loosened QP
+        msg = f"{raw.message}; phase 1: largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
         status = "relaxed" if relaxed else "solved"
         if raw2.ok:
             return QPSolution(raw2.x, _nonneg(raw2.z, prob.m), status, tstar if relaxed else 0.0,
@@ -215,18 +186,14 @@ def _phase1(prob: QPProblem, solver: str) -> tuple[np.ndarray, np.ndarray] | Non
     pad = m % 2  # keep 2x2 Hessian blocks: a padding variable fixed at 0 by its bounds
     ns = m + pad
     Hb = np.concatenate((prob.H_blocks * 1e-8, np.broadcast_to(np.eye(2), (ns // 2, 2, 2))))
-    ub_s = np.full(ns, 1e6)
     C = sp.hstack([prob.C, -sp.identity(m, format="csr")] + ([sp.csr_matrix((m, 1))] if pad else []), format="csr")
-    if pad:
-        Hb, ub_s[-1] = Hb.copy(), 0.0
-        Hb[-1, 1, 1] = 1.0
-    p1 = QPProblem(Hb, np.zeros(n + ns), C, prob.u, np.concatenate((prob.lb, np.zeros(ns))),
-                   np.concatenate((prob.ub, ub_s)), np.ones(n + ns), 1.0, np.ones(m), prob.diagonal)
+    ub = np.concatenate((prob.ub, np.full(m, 1e6), np.zeros(pad)))
+    p1 = QPProblem(Hb, np.zeros(n + ns), C, prob.u, np.concatenate((prob.lb, np.zeros(ns))), ub, np.ones(n + ns), 1.0,
+                   np.ones(m), prob.diagonal)
     for name in _phase1_order(solver, p1.n):
         backend = get_solver(name)
         # (only the point's recomputed violations are used: an unpolished exact point is accepted looser)
-        raw = backend(p1, None, None, {"ldp_feas_tol": 1e-6, **({} if name == solver else
-                                                                 dict(backend.route_options))})
+        raw = backend(p1, None, None, {"ldp_feas_tol": 1e-6, **({} if name == solver else dict(backend.route_options))})
         if raw.ok and raw.x is not None and np.all(np.isfinite(raw.x)):
             x = np.clip(raw.x[:n], prob.lb, prob.ub)
             return x, np.maximum(prob.C @ x - prob.u, 0.0)
