@@ -1,8 +1,7 @@
 """Recorded episodes: the :class:`Rollout` container and its incremental :class:`RolloutBuilder`.
 
-A rollout holds ``T`` recorded steps of ``N`` robots among ``M`` static obstacles (shapes: ``_PER_STEP``,
-``_STATIC``, ``_OPTIONAL`` below), checked once on construction so the metrics never check them again.  It
-is saved as one ``.npz`` that :meth:`Rollout.load` reads without pickle.
+Shapes are checked once on construction (``_PER_STEP``, ``_STATIC``, ``_OPTIONAL`` below), so the metrics never
+check them again; a rollout is saved as one ``.npz`` that :meth:`Rollout.load` reads without pickle.
 """
 
 from __future__ import annotations

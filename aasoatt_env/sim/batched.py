@@ -1,10 +1,4 @@
-"""``BatchedAASOATTEnv``: ``K`` independent teams stepped by one vectorised physics call (Gymnasium vector style).
-
-``reset`` gives ``obs (K, N, D)``; ``step(actions (K, N, 2))`` gives ``obs`` and ``(K, N)`` rewards,
-terminations, truncations, and ``infos`` of arrays (with ``autoreset``: ``final_obs``, ``_final_obs`` of the
-teams reset).  Each team keeps its generator, clock, horizon and filter: the batch is bit-identical to ``K``
-separate envs (the grouped filter: to rounding).  The API and the ``infos`` keys: ``docs/env.md``.
-"""
+"""``BatchedAASOATTEnv``: ``K`` teams in one vectorised physics call, as ``K`` separate envs (``docs/env.md``)."""
 
 from __future__ import annotations
 
@@ -67,13 +61,11 @@ class TeamsAPI:
 
 
 class BatchedAASOATTEnv(TeamsAPI, TeamStack):
-    """``K`` teams of one scenario stepped together (module docstring).
+    """``K`` teams of one scenario stepped together.
 
-    ``env_fns`` each return an :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` or a wrapper of one (the
-    filter it installs is used, its ``step`` is not), all with the same :data:`SHARED_SETTINGS`.  Without
-    ``autoreset``, ``step`` on a finished team raises :class:`~aasoatt_env.errors.ResetNeeded`.
-    ``group_filter``: one filter call for all teams where their filters allow it.  ``team_offset``: number
-    of the first team in error messages (a shard of a larger batch).
+    ``env_fns`` each return an :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` or a wrapper of one (its filter
+    is used, its ``step`` is not) with the same :data:`SHARED_SETTINGS`.  ``group_filter``: one filter call for
+    all teams where their filters allow it; ``team_offset``: the first team's number in messages (a shard).
     """
 
     def __init__(self, env_fns: Sequence[Callable[[], Any]], *, autoreset: bool = True,

@@ -1,10 +1,4 @@
-"""PettingZoo parallel env of acceleration-actuated differential-drive robots ``robot_0 .. robot_{N-1}``.
-
-Actions ``Box(-1, 1, (2,))``: normalised wheel accelerations (``action_mode="wheel"``) or control-point
-accelerations (``"point"``, ``du = A^{-1} (action * a_max - A_dot u)``), held for ``decision_interval`` physics
-steps of ``dt`` s, each filtered by the control filter (:mod:`aasoatt_env.sim.protocol`) and saturated to the
-input bounds (``infos["saturated"]``).  Observations, rewards: their modules; the whole picture: ``docs/env.md``.
-"""
+"""PettingZoo parallel env of acceleration-actuated robots ``robot_0 .. robot_{N-1}`` (``docs/env.md``)."""
 
 from __future__ import annotations
 
@@ -39,8 +33,7 @@ MAX_NEIGHBOR_SLOTS: int = 256
 TRAIL_LENGTH: int = 400
 """Control-point positions kept for rendering trails."""
 FILTERED_MIN_COLLISION_TOLERANCE: float = 1e-9
-"""Smallest ``collision_tolerance`` [m] with ``terminate_on_collision`` behind a control filter: the rounding
-the filter's guarantee allows (half of it for its gatekeeper, half for the simulator's steps)."""
+"""Smallest ``collision_tolerance`` [m] with ``terminate_on_collision`` behind a filter (its guarantee's rounding)."""
 
 
 def _after_reset(name: str, get: Callable[[AASOATTParallelEnv], Any], doc: str) -> property:
@@ -54,15 +47,11 @@ def _after_reset(name: str, get: Callable[[AASOATTParallelEnv], Any], doc: str) 
 
 
 class AASOATTParallelEnv(ParallelEnv, TeamStack):
-    """Multi-robot trajectory tracking at acceleration level (module docstring).
+    """Multi-robot trajectory tracking at acceleration level (``docs/env.md``).
 
     ``scenario``: a name of :data:`~aasoatt_env.sim.scenarios.SCENARIOS` (``**scenario_kwargs``: its
-    parameters, unknown ones raise ``TypeError``) or a :class:`Scenario`.  ``dt`` [s] in ``[1e-6, 0.1]``;
-    ``decision_interval`` in ``1..10000``; ``num_neighbors``, ``num_obstacles``: observation slots
-    ``0..256`` for neighbours within ``sensing_range`` [m].  ``terminate_on_collision``: a robot whose
-    clearance falls below ``-collision_tolerance`` [m] leaves ``agents`` and stays as a static disc (later
-    actions for it are ignored, warned once).  ``max_steps`` overrides the scenario's horizon; actions
-    outside ``[-1, 1]`` raise :class:`~aasoatt_env.errors.ActionError` unless ``clip_actions``.
+    parameters) or a :class:`Scenario`; ``num_neighbors``, ``num_obstacles``: observation slots for neighbours
+    within ``sensing_range`` [m]; ``max_steps`` overrides the scenario's horizon.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "name": "aasoatt_v0", "render_fps": 20}
@@ -164,8 +153,7 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Start an episode; ``seed`` (an integer >= 0) seeds the layout; ``options`` (a dict) is ignored."""
-        if seed is not None:
-            seed = check.integer("seed", seed, lo=0)
+        seed = None if seed is None else check.integer("seed", seed, lo=0)
         if options is not None and not isinstance(options, Mapping):
             raise ConfigError(f"options: got {type(options).__name__}, expected a dict or None")
         if seed is not None:

@@ -34,7 +34,6 @@ class RandomGoals(Scenario):
     """
 
     name = "random_goals"
-    random = True
 
     def __init__(self, num_robots: int = 6, arena_size: float | None = None, min_spacing: float | None = None,
                  speed: float = 0.8, settle_time: float = 3.0, robots: str | RobotParams | list = "paper",
