@@ -102,20 +102,9 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
         """``(K, N)`` bool: agents that act at the next ``step`` (a copy)."""
         return (self._active & ~np.repeat(self._done, self.num_agents)).reshape(self.num_envs, self.num_agents)
 
-    @property
-    def grouped_filter(self) -> GroupedControlFilter | None:
-        """The one filter that takes all teams per physics step, or None (unfiltered, or one call per team)."""
-        return self._grouped
-
-    @property
-    def max_steps(self) -> np.ndarray:
-        """Horizon of each team's current episode in env steps ``(K,)``."""
-        return self._max_steps.copy()
-
-    @property
-    def elapsed_steps(self) -> np.ndarray:
-        """Env steps taken in each team's current episode ``(K,)``."""
-        return self._steps.copy()
+    grouped_filter = property(lambda self: self._grouped, doc="The one filter of all teams, or None (one per team).")
+    max_steps = property(lambda self: self._max_steps.copy(), doc="Each team's episode horizon in env steps ``(K,)``.")
+    elapsed_steps = property(lambda self: self._steps.copy(), doc="Env steps taken in each team's episode ``(K,)``.")
 
     def reset(self, seed: int | Sequence[int | None] | None = None,
               options: dict | Sequence[dict | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:

@@ -16,7 +16,7 @@ from pettingzoo import ParallelEnv
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded, UsageError
 from aasoatt_env.model import dynamics
-from aasoatt_env.model.dynamics import DT, Kinematics
+from aasoatt_env.model.dynamics import DT
 from aasoatt_env.sim.actions import checked_actions, real_actions
 from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
 from aasoatt_env.sim.protocol import ControlFilter, FilterOutput
@@ -114,8 +114,7 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
     def set_control_filter(self, control_filter: ControlFilter | None) -> None:
         """Install the control filter (:mod:`aasoatt_env.sim.protocol`; one per env), or remove it with None."""
         if control_filter is None:
-            self._control_filter = None
-            self._filter_outputs = ()
+            self._control_filter, self._filter_outputs = None, ()
             return
         if not isinstance(control_filter, ControlFilter):
             raise ConfigError(f"control_filter: got {type(control_filter).__name__}, expected an object with "
@@ -135,15 +134,9 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         if self._layouts[0] is not None:
             control_filter.reset(self.team)
 
-    @property
-    def control_filter(self) -> ControlFilter | None:
-        """The installed control filter (None: actions are applied as they are)."""
-        return self._control_filter
-
-    @property
-    def filter_outputs(self) -> tuple[FilterOutput, ...]:
-        """The control filter's outputs at the physics steps of the last ``step`` (empty without a filter)."""
-        return self._filter_outputs
+    control_filter = property(lambda self: self._control_filter, doc="The control filter (None: actions as they are).")
+    filter_outputs = property(lambda self: self._filter_outputs,
+                              doc="The control filter's outputs at the physics steps of the last ``step`` (or empty).")
 
     @property
     def _nominal_actions(self) -> bool:
@@ -305,12 +298,7 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
     obstacles = _after_reset("obstacles", lambda e: (e.layout.obstacle_centers.copy(), e.layout.obstacle_radii.copy()),
                              "Static obstacles: centres ``(M, 2)`` and radii ``(M,)``.")
     layout = _after_reset("layout", lambda e: e._layouts[0], "The episode's :class:`.Layout`.")
-
-    @property
-    def kinematics(self) -> Kinematics:
-        """Current control-point kinematics (``p``, ``v``, ``A``, ``A_dot u``)."""
-        self._require_reset("kinematics")
-        return self._kin  # type: ignore[return-value]
+    kinematics = _after_reset("kinematics", lambda e: e._kin, "Control-point kinematics ``(p, v, A, A_dot u)``.")
 
     def render(self) -> np.ndarray | None:
         """Render the current frame (``rgb_array``: an ``(H, W, 3)`` uint8 array)."""
