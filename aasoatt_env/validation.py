@@ -1,7 +1,7 @@
 """The one validation layer: typed checks whose errors read ``"<name>: got <value>, expected <what>"``.
 
-Every entry point checks its inputs here, so a bad value raises :class:`~aasoatt_env.errors.ConfigError`.
-Types are checked before any conversion: ``True`` is not 1, ``"2"`` is not 2, a complex number is not real.
+Every entry point checks its inputs here (:class:`~aasoatt_env.errors.ConfigError`); types are checked before any
+conversion: ``True`` is not 1, ``"2"`` is not 2, a complex number is not real.
 """
 
 from __future__ import annotations

@@ -1,8 +1,7 @@
 """Episode metrics of ``SPEC.md`` section 6 (the paper's Sec. V), computed from a :class:`Rollout`.
 
-RMSE, MAE and the population std of the tracking error ``|p_i - p_d_i|`` pool all robots and steps.  A
-collision is an overlap deeper than a tolerance (1 mm: the discretisation of the barrier guarantee); a gap
-is a centre distance minus the radii.  Pairwise scans are chunked over time (temporaries within ~16 MB).
+RMSE, MAE and the population std of the tracking error pool all robots and steps; a collision is an overlap deeper
+than a tolerance (1 mm: the barrier's discretisation); a gap is a centre distance minus the radii.
 """
 
 from __future__ import annotations
