@@ -100,10 +100,7 @@ class Team:
     model: Model
     group: np.ndarray | None = None
 
-    @property
-    def n(self) -> int:
-        """Number of robots."""
-        return int(self.radius.shape[0])
+    n = property(lambda self: int(self.radius.shape[0]), doc="Number of robots.")
 
     def subset(self, idx: np.ndarray) -> Team:
         """The team of robots ``idx``; its :attr:`derived` holds ``(self, robot numbers)`` under :data:`SUBSET_OF`."""
@@ -113,10 +110,7 @@ class Team:
         sub.derived[SUBSET_OF] = (self, rows)
         return sub
 
-    @property
-    def is_diff_drive(self) -> bool:
-        """True for differential-drive robots, False for double integrators."""
-        return self.model == "diff_drive"
+    is_diff_drive = property(lambda self: self.model == "diff_drive", doc="False for double integrators.")
 
     @cached_property
     def du_max(self) -> np.ndarray:

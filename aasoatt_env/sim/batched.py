@@ -34,10 +34,7 @@ class TeamsAPI:
         (self.single_observation_space, self.single_action_space, self.observation_space,
          self.action_space) = batch_spaces(agent_obs, n, self.num_envs)
 
-    @property
-    def filtered(self) -> bool:
-        """True when the teams are behind a control filter."""
-        return bool(self.shared_settings["filtered"])
+    filtered = property(lambda self: bool(self.shared_settings["filtered"]), doc="Whether the teams are filtered.")
 
     def _on_team(self, k: int, what: str, args: tuple) -> Any:
         """``what`` (``get``, ``set``, ``call``, ``wrapped``) with ``args`` on team ``k``'s own env."""

@@ -122,10 +122,7 @@ class Frame:
                                   "(xmin, xmax, ymin, ymax) with xmin < xmax and ymin < ymax")
             self.world_bounds = b  # type: ignore[assignment]
 
-    @property
-    def n(self) -> int:
-        """Number of robots."""
-        return int(self.positions.shape[0])
+    n = property(lambda self: int(self.positions.shape[0]), doc="Number of robots.")
 
     def bounds(self, margin: float = 0.1) -> tuple[float, float, float, float]:
         """``world_bounds`` if set, else a box around all content, padded by ``margin`` of its size."""
