@@ -1,8 +1,7 @@
 """aasoatt_env: acceleration-actuated multi-robot environment and CBF-QP safety filter.
 
 Layers, each importing only those before it: ``errors``/``validation``, ``model``, ``sim``, ``safety``, ``api``,
-``analysis``, ``apps`` (with :mod:`agents`, :mod:`train`).  Importing the package registers the environment
-ids of :mod:`aasoatt_env.api.registration` with PettingZoo and Gymnasium.
+``analysis``, ``apps`` (with :mod:`agents`, :mod:`train`).  Importing it registers the env ids (``docs/env.md``).
 """
 
 from aasoatt_env.api import ENV_IDS, AASOATTGymEnv, env, make_batched_env, make_env, parallel_env, register_all

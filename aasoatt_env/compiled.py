@@ -1,9 +1,6 @@
 """Which implementation runs: the numpy reference or a compiled kernel (numba, ``pip install "aasoatt[fast]"``).
 
-The filter's stages are loops over small arrays, dominated in numpy by call overhead; each has one numba form
-(:data:`PARTS`), chosen when the filter is built (:attr:`~aasoatt_env.safety.config.FilterConfig.kernel`).
-The kernels make the reference's decisions, with its numbers where their sums run in the same order and to
-rounding elsewhere (``tests/test_compiled.py``).  numba is imported only when a kernel is first used.
+One numba form per filter stage (:data:`PARTS`, ``docs/design.md``); numba is imported when a kernel is first used.
 """
 
 from __future__ import annotations
@@ -24,7 +21,6 @@ NUMBA_MISSING = (  # the ImportError of kernels() without numba
     'or does not import: pip install "aasoatt[fast]" (kernel="auto" falls back to the numpy reference, '
     'kernel="numpy" always uses it)'
 )
-
 
 PARTS: dict[str, str] = {
     "backup": "aasoatt_env.safety.backup.kernels",

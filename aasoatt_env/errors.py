@@ -1,7 +1,4 @@
-"""Exception hierarchy of :mod:`aasoatt_env`, one class per meaning, all :class:`AASOATTError`.
-
-Bad input is also a ``ValueError``, a call at the wrong time a ``RuntimeError``, an unknown keyword a ``TypeError``.
-"""
+"""Exceptions of :mod:`aasoatt_env`: bad input is also a ``ValueError``, misuse a ``RuntimeError``."""
 
 from __future__ import annotations
 

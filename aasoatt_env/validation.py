@@ -1,7 +1,7 @@
 """The one validation layer: typed checks whose errors read ``"<name>: got <value>, expected <what>"``.
 
-Every entry point checks its inputs here, so a bad value raises :class:`~aasoatt_env.errors.ConfigError`.
-Types are checked before any conversion: ``True`` is not 1, ``"2"`` is not 2, a complex number is not real.
+Every entry point checks its inputs here (:class:`~aasoatt_env.errors.ConfigError`); types are checked before any
+conversion: ``True`` is not 1, ``"2"`` is not 2, a complex number is not real.
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from aasoatt_env.errors import ConfigError, UnknownKeywordError
 
 __all__ = ["MAGNITUDE_MAX", "boolean", "choice", "integer", "parse_assignments", "parse_value", "positive", "real",
            "real_array", "reject_unknown", "shapes", "short_repr"]
-
 
 MAGNITUDE_MAX: float = 1e9
 """Largest magnitude :func:`real` accepts by default (SI units; far larger values overflow when squared)."""
@@ -81,9 +80,7 @@ def real(name: str, value: Any, *, lo: float | None = None, hi: float | None = N
 def positive(name: str, value: Any, *, allow_inf: bool = False, hi: float | None = None,
              lo: float | None = None) -> float:
     """:func:`real` with ``value > 0`` (or ``>= lo`` when given) and ``<= hi``."""
-    if lo is not None:
-        return real(name, value, lo=lo, hi=hi, allow_inf=allow_inf)
-    return real(name, value, lo=0.0, lo_open=True, hi=hi, allow_inf=allow_inf)
+    return real(name, value, lo=0.0 if lo is None else lo, lo_open=lo is None, hi=hi, allow_inf=allow_inf)
 
 
 def integer(name: str, value: Any, *, lo: int | None = None, hi: int | None = None) -> int:

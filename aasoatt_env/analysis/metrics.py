@@ -1,8 +1,7 @@
 """Episode metrics of ``SPEC.md`` section 6 (the paper's Sec. V), computed from a :class:`Rollout`.
 
-RMSE, MAE and the population std of the tracking error ``|p_i - p_d_i|`` pool all robots and steps.  A
-collision is an overlap deeper than a tolerance (1 mm: the discretisation of the barrier guarantee); a gap
-is a centre distance minus the radii.  Pairwise scans are chunked over time (temporaries within ~16 MB).
+RMSE, MAE and the population std of the tracking error pool all robots and steps; a collision is an overlap deeper
+than a tolerance (1 mm: the barrier's discretisation); a gap is a centre distance minus the radii.
 """
 
 from __future__ import annotations
@@ -74,6 +73,10 @@ def intervention_time(rollout: Rollout) -> float:
     return float(np.mean(intervention_times(rollout)))
 
 
+def _smallest(field: str, what: str) -> property:
+    return property(lambda self: float(np.min(getattr(self, field))), doc=f"Smallest {what} over the episode.")
+
+
 @dataclass(frozen=True)
 class Separation:
     """Per step: minimum centre distance and gaps (``inf``: no pair), robots ``i < j`` of the smallest gap."""
@@ -88,25 +91,10 @@ class Separation:
         """Smallest surface gap to anything (robot or obstacle) at each step, shape ``(T,)``."""
         return np.minimum(self.min_robot_gap, self.min_obstacle_gap)
 
-    @property
-    def overall_min_center_distance(self) -> float:
-        """Smallest robot-robot centre distance over the episode."""
-        return float(np.min(self.min_center_distance))
-
-    @property
-    def overall_min_robot_gap(self) -> float:
-        """Smallest robot-robot surface gap over the episode."""
-        return float(np.min(self.min_robot_gap))
-
-    @property
-    def overall_min_obstacle_gap(self) -> float:
-        """Smallest robot-obstacle surface gap over the episode."""
-        return float(np.min(self.min_obstacle_gap))
-
-    @property
-    def overall_min_gap(self) -> float:
-        """Smallest surface gap to anything over the episode."""
-        return float(np.min(self.min_gap))
+    overall_min_center_distance = _smallest("min_center_distance", "robot-robot centre distance")
+    overall_min_robot_gap = _smallest("min_robot_gap", "robot-robot surface gap")
+    overall_min_obstacle_gap = _smallest("min_obstacle_gap", "robot-obstacle surface gap")
+    overall_min_gap = _smallest("min_gap", "surface gap to anything")
 
 
 def _scan(rollout: Rollout, obstacles: bool, tolerance: float | None) -> tuple[np.ndarray, ...]:
@@ -174,25 +162,10 @@ class CollisionReport:
     colliding_robots: np.ndarray
     tolerance: float
 
-    @property
-    def n_robot_pairs(self) -> int:
-        """Number of distinct colliding robot pairs."""
-        return len(self.robot_pairs)
-
-    @property
-    def n_obstacle_hits(self) -> int:
-        """Number of distinct colliding robot-obstacle pairs."""
-        return len(self.obstacle_hits)
-
-    @property
-    def n_colliding_robots(self) -> int:
-        """Number of robots involved in at least one collision."""
-        return int(self.colliding_robots.sum())
-
-    @property
-    def any(self) -> bool:
-        """Whether anything collided."""
-        return bool(self.robot_pairs or self.obstacle_hits)
+    n_robot_pairs = property(lambda self: len(self.robot_pairs), doc="Number of distinct colliding robot pairs.")
+    n_obstacle_hits = property(lambda self: len(self.obstacle_hits), doc="Number of colliding robot-obstacle pairs.")
+    n_colliding_robots = property(lambda self: int(self.colliding_robots.sum()), doc="Number of robots in a collision.")
+    any = property(lambda self: bool(self.robot_pairs or self.obstacle_hits), doc="Whether anything collided.")
 
 
 def _scans(rollout: Rollout, tolerance: float) -> tuple[Separation, CollisionReport]:

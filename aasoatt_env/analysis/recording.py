@@ -1,7 +1,4 @@
-"""Record episodes of a (possibly filtered) parallel env into a :class:`~aasoatt_env.analysis.rollout.Rollout`.
-
-Each step's state, reference, the actions given and what the control filter's public ``filter_outputs`` say.
-"""
+"""Record a (possibly filtered) parallel env's episodes into a :class:`~aasoatt_env.analysis.rollout.Rollout`."""
 
 from __future__ import annotations
 

@@ -1,8 +1,7 @@
 """Recorded episodes: the :class:`Rollout` container and its incremental :class:`RolloutBuilder`.
 
-A rollout holds ``T`` recorded steps of ``N`` robots among ``M`` static obstacles (shapes: ``_PER_STEP``,
-``_STATIC``, ``_OPTIONAL`` below), checked once on construction so the metrics never check them again.  It
-is saved as one ``.npz`` that :meth:`Rollout.load` reads without pickle.
+Shapes are checked once on construction (``_PER_STEP``, ``_STATIC``, ``_OPTIONAL`` below), so the metrics never
+check them again; a rollout is saved as one ``.npz`` that :meth:`Rollout.load` reads without pickle.
 """
 
 from __future__ import annotations
@@ -135,25 +134,10 @@ class Rollout:
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"metadata: not JSON-serialisable ({exc})") from None
 
-    @property
-    def n_steps(self) -> int:
-        """Number of recorded steps ``T``."""
-        return int(self.times.shape[0])
-
-    @property
-    def n_robots(self) -> int:
-        """Number of robots ``N``."""
-        return int(self.positions.shape[1])
-
-    @property
-    def n_obstacles(self) -> int:
-        """Number of static obstacles ``M``."""
-        return int(self.obstacle_centers.shape[0])
-
-    @property
-    def duration(self) -> float:
-        """Time between the first and the last recorded step [s]."""
-        return float(self.times[-1] - self.times[0])
+    n_steps = property(lambda self: int(self.times.shape[0]), doc="Number of recorded steps ``T``.")
+    n_robots = property(lambda self: int(self.positions.shape[1]), doc="Number of robots ``N``.")
+    n_obstacles = property(lambda self: int(self.obstacle_centers.shape[0]), doc="Number of static obstacles ``M``.")
+    duration = property(lambda self: float(self.times[-1] - self.times[0]), doc="Time from first to last step [s].")
 
     def window(self, t_end: float | None) -> Rollout:
         """The part recorded at times ``<= t_end`` (the rollout itself if None or if it ends earlier)."""

@@ -1,7 +1,4 @@
-"""``make_env`` and ``make_batched_env``: the one constructor of an env, bare or behind the safety filter.
-
-Every client (command line, reproduction, training, the Gymnasium view, benchmarks) builds its envs here.
-"""
+"""``make_env``, ``make_batched_env``: the one constructor of every env (CLI, reproduction, training, benchmarks)."""
 
 from __future__ import annotations
 
@@ -26,9 +23,8 @@ def make_env(scenario: str | Scenario = "circle_swap", *, filter: FilterConfig |
              infos: str = "nested", **env_kwargs: Any) -> AASOATTParallelEnv | AASOATTFilter:
     """A PettingZoo parallel env of ``scenario``, behind :class:`~aasoatt_env.safety.wrapper.AASOATTFilter` if asked.
 
-    ``filter``: None/False (the bare env), True (the filter's defaults), a :class:`FilterConfig` or a mapping of
-    its fields; ``infos``: the filter's info layout, ``"nested"`` or ``"flat"``; ``**env_kwargs``:
-    :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`'s and the scenario's keywords.
+    ``filter``: None/False (bare), True (defaults), a :class:`FilterConfig` or a mapping of its fields; ``infos``:
+    the filter's info layout; ``**env_kwargs``: :class:`~aasoatt_env.sim.env.AASOATTParallelEnv`'s and the scenario's.
     """
     check.choice("infos", infos, ("nested", "flat"))  # checked without a filter too
     env = AASOATTParallelEnv(scenario, **env_kwargs)
@@ -46,11 +42,9 @@ def make_batched_env(num_envs: int, scenario: str | Scenario = "circle_swap", *,
                      filter: FilterConfig | Mapping[str, Any] | bool | None = None, autoreset: bool = True,
                      group_filter: bool = True, num_workers: int = 1,
                      **env_kwargs: Any) -> BatchedAASOATTEnv | ShardedBatchedEnv:
-    """``num_envs >= 1`` teams of ``scenario`` stepped together (:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).
+    """``num_envs`` :func:`make_env` teams stepped together (:class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`).
 
-    Each team is :func:`make_env`'s env of the same arguments; the batch equals stepping them one by one (behind
-    the grouped filter: to rounding).  ``num_workers > 1`` steps that many shards in worker processes
-    (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`, the same API; ``close()`` it).
+    ``num_workers > 1``: that many shards in worker processes (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`).
     """
     if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
         raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")

@@ -1,10 +1,4 @@
-"""Centralised single-agent Gymnasium view of the multi-robot env.
-
-The action is the joint ``Box(-1, 1, (2 N,))`` (robot ``i``: entries ``2i:2i+2``), the observation all robots'
-``Box(-100, 100, (N D,))``, the reward their mean.  The episode terminates when any robot does and is truncated at
-the horizon; ``info`` holds the per-robot infos (``agents``), ``min_clearance``, ``collision`` and
-``mean_tracking_error``.
-"""
+"""Centralised single-agent Gymnasium view of the multi-robot env (spaces, reward, ``info``: ``docs/env.md``)."""
 
 from __future__ import annotations
 

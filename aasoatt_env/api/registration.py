@@ -1,9 +1,4 @@
-"""Environment ids registered with PettingZoo and Gymnasium on ``import aasoatt_env`` (:data:`ENV_IDS`).
-
-``pettingzoo.make("parallel", id, **kwargs)`` gives the parallel env, ``gymnasium.make(id, **kwargs)`` the
-centralised view (:class:`~aasoatt_env.api.gym_env.AASOATTGymEnv`); ``gymnasium.make("aasoatt_env:" + id)``
-works without importing the package first.
-"""
+"""Environment ids registered with PettingZoo and Gymnasium on ``import aasoatt_env`` (``docs/env.md``)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,7 @@
 """Neighbour search on disc robots: the one home of every distance query in the library.
 
-:func:`robot_pairs` answers by brute force below :data:`KDTREE_MIN_ROBOTS` robots, above it with a compiled
-grid of cells (:mod:`aasoatt_env.model.geometry_kernel`) where numba imports, else a k-d tree: the same
-pairs, sorted with ``i < j``.  :func:`neighbourhood` answers for several equal teams stacked.
+:func:`robot_pairs`: brute force below :data:`KDTREE_MIN_ROBOTS` robots, above a compiled grid of cells where numba
+imports, else a k-d tree (the same sorted pairs ``i < j``); :func:`neighbourhood`: several equal teams stacked.
 """
 
 from __future__ import annotations
@@ -241,9 +240,8 @@ def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacl
                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Nearest robots, obstacle gaps and clearance of ``teams`` equal teams stacked in ``p (K N, 2)``.
 
-    Returns each robot's ``k`` nearest of its team (stack indices, centre distances ``(K N, k)``; -1/inf:
-    none), its surface gaps ``(K N, M)`` to its team's obstacles (``centers (K, M, 2)``, ``obstacle_radii
-    (K, M)``) and its clearance ``(K N,)`` (as :func:`min_gaps`, over ``max(k, clear_k)``).
+    Each robot's ``k`` nearest of its team (stack indices, centre distances ``(K N, k)``; -1/inf: none), its gaps
+    ``(K N, M)`` to its team's obstacles ``(K, M, 2)``, ``(K, M)``, its clearance ``(K N,)`` (as :func:`min_gaps`).
     """
     if p.shape[0] // teams < KDTREE_MIN_ROBOTS:
         d = _distances(p, teams)

@@ -77,10 +77,7 @@ PRESETS: dict[str, RobotParams] = {
     "paper_small": RobotParams(radius=0.3),
     "double_integrator": RobotParams(max_wheel_accel=6.0, model="double_integrator"),
 }
-"""``paper``: the defaults of ``docs/technical_brief.md`` section 7 (the paper states neither geometry nor
-bounds; these reproduce its N = 10 results); ``paper_small``: radius 0.3 m (100 robots fit the radius-10
-circle); ``double_integrator``: ``|a| <= 6 m/s^2`` per axis; ``turtlebot3_*``: ROBOTIS' geometry and top
-speed, with our wheel-acceleration bound of 20 rad/s^2."""
+"""Robot presets by name (the table: ``docs/env.md``); ``paper``: ``docs/technical_brief.md`` section 7."""
 
 
 _PER_ROBOT = (*_RANGES, "max_point_accel")  # the Team fields with one value per robot
@@ -90,8 +87,7 @@ _PER_ROBOT = (*_RANGES, "max_point_accel")  # the Team fields with one value per
 class Team:
     """Parameters of N robots as ``(N,)`` arrays (:class:`RobotParams`) of one ``model``; not to be changed in place.
 
-    Build with :func:`make_team`.  ``group`` ``(N,)`` labels stacked independent teams (:func:`stack_teams`):
-    robots of different groups live in separate worlds, so the safety filter forms no pair between them.
+    Build with :func:`make_team`; ``group (N,)`` labels stacked independent teams (:func:`stack_teams`): no pair across.
     """
 
     radius: np.ndarray
@@ -104,10 +100,7 @@ class Team:
     model: Model
     group: np.ndarray | None = None
 
-    @property
-    def n(self) -> int:
-        """Number of robots."""
-        return int(self.radius.shape[0])
+    n = property(lambda self: int(self.radius.shape[0]), doc="Number of robots.")
 
     def subset(self, idx: np.ndarray) -> Team:
         """The team of robots ``idx``; its :attr:`derived` holds ``(self, robot numbers)`` under :data:`SUBSET_OF`."""
@@ -117,10 +110,7 @@ class Team:
         sub.derived[SUBSET_OF] = (self, rows)
         return sub
 
-    @property
-    def is_diff_drive(self) -> bool:
-        """True for differential-drive robots, False for double integrators."""
-        return self.model == "diff_drive"
+    is_diff_drive = property(lambda self: self.model == "diff_drive", doc="False for double integrators.")
 
     @cached_property
     def du_max(self) -> np.ndarray:
@@ -169,8 +159,7 @@ class Team:
 
 def make_team(robots: RobotParams | str | Sequence[RobotParams | str] | None, n: int) -> Team:
     """A :class:`Team` of ``n`` robots from one spec (preset name, :class:`RobotParams`, None: ``"paper"``) or ``n``."""
-    if robots is None:
-        robots = "paper"
+    robots = "paper" if robots is None else robots
     if isinstance(robots, (str, RobotParams)):
         specs: list[RobotParams | str] = [robots] * n
     elif isinstance(robots, (list, tuple)):

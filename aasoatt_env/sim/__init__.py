@@ -1,7 +1,4 @@
-"""The simulation layer: the PettingZoo env, observations, rewards, scenarios, references, rendering.
-
-It builds on :mod:`aasoatt_env.model` only; a control filter plugs in through :mod:`aasoatt_env.sim.protocol`.
-"""
+"""The simulation layer on :mod:`aasoatt_env.model`: env, scenarios, references, rendering, the filter protocol."""
 
 from aasoatt_env.sim.batched import BatchedAASOATTEnv
 from aasoatt_env.sim.env import AASOATTParallelEnv

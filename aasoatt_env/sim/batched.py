@@ -1,10 +1,4 @@
-"""``BatchedAASOATTEnv``: ``K`` independent teams stepped by one vectorised physics call (Gymnasium vector style).
-
-``reset`` gives ``obs (K, N, D)``; ``step(actions (K, N, 2))`` gives ``obs`` and ``(K, N)`` rewards,
-terminations, truncations, and ``infos`` of arrays (with ``autoreset``: ``final_obs``, ``_final_obs`` of the
-teams reset).  Each team keeps its generator, clock, horizon and filter: the batch is bit-identical to ``K``
-separate envs (the grouped filter: to rounding).  The API and the ``infos`` keys: ``docs/env.md``.
-"""
+"""``BatchedAASOATTEnv``: ``K`` teams in one vectorised physics call, as ``K`` separate envs (``docs/env.md``)."""
 
 from __future__ import annotations
 
@@ -40,10 +34,7 @@ class TeamsAPI:
         (self.single_observation_space, self.single_action_space, self.observation_space,
          self.action_space) = batch_spaces(agent_obs, n, self.num_envs)
 
-    @property
-    def filtered(self) -> bool:
-        """True when the teams are behind a control filter."""
-        return bool(self.shared_settings["filtered"])
+    filtered = property(lambda self: bool(self.shared_settings["filtered"]), doc="Whether the teams are filtered.")
 
     def _on_team(self, k: int, what: str, args: tuple) -> Any:
         """``what`` (``get``, ``set``, ``call``, ``wrapped``) with ``args`` on team ``k``'s own env."""
@@ -67,13 +58,11 @@ class TeamsAPI:
 
 
 class BatchedAASOATTEnv(TeamsAPI, TeamStack):
-    """``K`` teams of one scenario stepped together (module docstring).
+    """``K`` teams of one scenario stepped together.
 
-    ``env_fns`` each return an :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` or a wrapper of one (the
-    filter it installs is used, its ``step`` is not), all with the same :data:`SHARED_SETTINGS`.  Without
-    ``autoreset``, ``step`` on a finished team raises :class:`~aasoatt_env.errors.ResetNeeded`.
-    ``group_filter``: one filter call for all teams where their filters allow it.  ``team_offset``: number
-    of the first team in error messages (a shard of a larger batch).
+    ``env_fns`` each return an :class:`~aasoatt_env.sim.env.AASOATTParallelEnv` or a wrapper of one (its filter
+    is used, its ``step`` is not) with the same :data:`SHARED_SETTINGS`.  ``group_filter``: one filter call for
+    all teams where their filters allow it; ``team_offset``: the first team's number in messages (a shard).
     """
 
     def __init__(self, env_fns: Sequence[Callable[[], Any]], *, autoreset: bool = True,
@@ -110,20 +99,9 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
         """``(K, N)`` bool: agents that act at the next ``step`` (a copy)."""
         return (self._active & ~np.repeat(self._done, self.num_agents)).reshape(self.num_envs, self.num_agents)
 
-    @property
-    def grouped_filter(self) -> GroupedControlFilter | None:
-        """The one filter that takes all teams per physics step, or None (unfiltered, or one call per team)."""
-        return self._grouped
-
-    @property
-    def max_steps(self) -> np.ndarray:
-        """Horizon of each team's current episode in env steps ``(K,)``."""
-        return self._max_steps.copy()
-
-    @property
-    def elapsed_steps(self) -> np.ndarray:
-        """Env steps taken in each team's current episode ``(K,)``."""
-        return self._steps.copy()
+    grouped_filter = property(lambda self: self._grouped, doc="The one filter of all teams, or None (one per team).")
+    max_steps = property(lambda self: self._max_steps.copy(), doc="Each team's episode horizon in env steps ``(K,)``.")
+    elapsed_steps = property(lambda self: self._steps.copy(), doc="Env steps taken in each team's episode ``(K,)``.")
 
     def reset(self, seed: int | Sequence[int | None] | None = None,
               options: dict | Sequence[dict | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:

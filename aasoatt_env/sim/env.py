@@ -1,10 +1,4 @@
-"""PettingZoo parallel env of acceleration-actuated differential-drive robots ``robot_0 .. robot_{N-1}``.
-
-Actions ``Box(-1, 1, (2,))``: normalised wheel accelerations (``action_mode="wheel"``) or control-point
-accelerations (``"point"``, ``du = A^{-1} (action * a_max - A_dot u)``), held for ``decision_interval`` physics
-steps of ``dt`` s, each filtered by the control filter (:mod:`aasoatt_env.sim.protocol`) and saturated to the
-input bounds (``infos["saturated"]``).  Observations, rewards: their modules; the whole picture: ``docs/env.md``.
-"""
+"""PettingZoo parallel env of acceleration-actuated robots ``robot_0 .. robot_{N-1}`` (``docs/env.md``)."""
 
 from __future__ import annotations
 
@@ -22,7 +16,7 @@ from pettingzoo import ParallelEnv
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded, UsageError
 from aasoatt_env.model import dynamics
-from aasoatt_env.model.dynamics import DT, Kinematics
+from aasoatt_env.model.dynamics import DT
 from aasoatt_env.sim.actions import checked_actions, real_actions
 from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
 from aasoatt_env.sim.protocol import ControlFilter, FilterOutput
@@ -39,8 +33,7 @@ MAX_NEIGHBOR_SLOTS: int = 256
 TRAIL_LENGTH: int = 400
 """Control-point positions kept for rendering trails."""
 FILTERED_MIN_COLLISION_TOLERANCE: float = 1e-9
-"""Smallest ``collision_tolerance`` [m] with ``terminate_on_collision`` behind a control filter: the rounding
-the filter's guarantee allows (half of it for its gatekeeper, half for the simulator's steps)."""
+"""Smallest ``collision_tolerance`` [m] with ``terminate_on_collision`` behind a filter (its guarantee's rounding)."""
 
 
 def _after_reset(name: str, get: Callable[[AASOATTParallelEnv], Any], doc: str) -> property:
@@ -54,15 +47,11 @@ def _after_reset(name: str, get: Callable[[AASOATTParallelEnv], Any], doc: str) 
 
 
 class AASOATTParallelEnv(ParallelEnv, TeamStack):
-    """Multi-robot trajectory tracking at acceleration level (module docstring).
+    """Multi-robot trajectory tracking at acceleration level (``docs/env.md``).
 
     ``scenario``: a name of :data:`~aasoatt_env.sim.scenarios.SCENARIOS` (``**scenario_kwargs``: its
-    parameters, unknown ones raise ``TypeError``) or a :class:`Scenario`.  ``dt`` [s] in ``[1e-6, 0.1]``;
-    ``decision_interval`` in ``1..10000``; ``num_neighbors``, ``num_obstacles``: observation slots
-    ``0..256`` for neighbours within ``sensing_range`` [m].  ``terminate_on_collision``: a robot whose
-    clearance falls below ``-collision_tolerance`` [m] leaves ``agents`` and stays as a static disc (later
-    actions for it are ignored, warned once).  ``max_steps`` overrides the scenario's horizon; actions
-    outside ``[-1, 1]`` raise :class:`~aasoatt_env.errors.ActionError` unless ``clip_actions``.
+    parameters) or a :class:`Scenario`; ``num_neighbors``, ``num_obstacles``: observation slots for neighbours
+    within ``sensing_range`` [m]; ``max_steps`` overrides the scenario's horizon.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "name": "aasoatt_v0", "render_fps": 20}
@@ -125,8 +114,7 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
     def set_control_filter(self, control_filter: ControlFilter | None) -> None:
         """Install the control filter (:mod:`aasoatt_env.sim.protocol`; one per env), or remove it with None."""
         if control_filter is None:
-            self._control_filter = None
-            self._filter_outputs = ()
+            self._control_filter, self._filter_outputs = None, ()
             return
         if not isinstance(control_filter, ControlFilter):
             raise ConfigError(f"control_filter: got {type(control_filter).__name__}, expected an object with "
@@ -146,15 +134,9 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         if self._layouts[0] is not None:
             control_filter.reset(self.team)
 
-    @property
-    def control_filter(self) -> ControlFilter | None:
-        """The installed control filter (None: actions are applied as they are)."""
-        return self._control_filter
-
-    @property
-    def filter_outputs(self) -> tuple[FilterOutput, ...]:
-        """The control filter's outputs at the physics steps of the last ``step`` (empty without a filter)."""
-        return self._filter_outputs
+    control_filter = property(lambda self: self._control_filter, doc="The control filter (None: actions as they are).")
+    filter_outputs = property(lambda self: self._filter_outputs,
+                              doc="The control filter's outputs at the physics steps of the last ``step`` (or empty).")
 
     @property
     def _nominal_actions(self) -> bool:
@@ -164,8 +146,7 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Start an episode; ``seed`` (an integer >= 0) seeds the layout; ``options`` (a dict) is ignored."""
-        if seed is not None:
-            seed = check.integer("seed", seed, lo=0)
+        seed = None if seed is None else check.integer("seed", seed, lo=0)
         if options is not None and not isinstance(options, Mapping):
             raise ConfigError(f"options: got {type(options).__name__}, expected a dict or None")
         if seed is not None:
@@ -317,12 +298,7 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
     obstacles = _after_reset("obstacles", lambda e: (e.layout.obstacle_centers.copy(), e.layout.obstacle_radii.copy()),
                              "Static obstacles: centres ``(M, 2)`` and radii ``(M,)``.")
     layout = _after_reset("layout", lambda e: e._layouts[0], "The episode's :class:`.Layout`.")
-
-    @property
-    def kinematics(self) -> Kinematics:
-        """Current control-point kinematics (``p``, ``v``, ``A``, ``A_dot u``)."""
-        self._require_reset("kinematics")
-        return self._kin  # type: ignore[return-value]
+    kinematics = _after_reset("kinematics", lambda e: e._kin, "Control-point kinematics ``(p, v, A, A_dot u)``.")
 
     def render(self) -> np.ndarray | None:
         """Render the current frame (``rgb_array``: an ``(H, W, 3)`` uint8 array)."""

@@ -1,12 +1,4 @@
-"""Per-agent observations and neighbour queries, vectorised over the team.
-
-Observation of robot ``i`` (``float32``, ``14 + 6 (K + K_obs)`` entries clipped to ``[-100, 100]``): tracking
-error ``p_i - p_d_i`` [m], goal offset ``goal_i - p_i`` [m], velocity ``v_i`` [m/s], heading ``(cos, sin)``,
-wheel speeds ``u_i`` [rad/s] (double integrator: velocity), reference velocity ``v_d_i`` [m/s] and
-acceleration ``a_d_i`` [m/s^2]; then ``K`` slots for the nearest robots in sensing range, nearest first, each
-``(dx, dy, dvx, dvy, gap, 1)`` (relative position and velocity, surface gap ``|p_ij| - r_i - r_j``; empty
-slots are zeros), and ``K_obs`` slots for the nearest obstacles in range (velocity 0).  Table: ``docs/env.md``.
-"""
+"""Per-agent observations (``14 + 6 (K + K_obs)`` entries; the table: ``docs/env.md``) and neighbour queries."""
 
 from __future__ import annotations
 
@@ -25,10 +17,9 @@ _NEG_RADIUS = np.array([1.0, 1.0, 1.0, 1.0, -1.0])
 
 
 class Proximity(NamedTuple):
-    """Neighbour table of one instant: each robot's ``k`` nearest robots ``idx (N, k)`` (-1: none), nearest first.
+    """Each robot's ``k`` nearest robots ``idx``/``dist (N, k)`` (-1/inf: none), nearest first, obstacle gaps.
 
-    Also their centre distances ``dist (N, k)`` (inf: none), the robot-obstacle surface gaps
-    ``obstacle_gaps (N, M)`` and the ``clearance (N,)`` to the nearest of either (negative: overlap).
+    ``obstacle_gaps (N, M)``: surface gaps; ``clearance (N,)``: to the nearest of either (negative: overlap).
     """
 
     idx: np.ndarray

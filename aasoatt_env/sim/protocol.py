@@ -1,9 +1,4 @@
-"""The contract between the env and a per-physics-step control filter (the env never knows what it does).
-
-At every physics step the env hands the filter a :class:`FilterInput` and the held actions' nominal
-``du (N, 2)``, clips the returned ``du`` to the input bounds and integrates; it reads only the outputs'
-``correction`` (reward) and ``avoiding`` (rendering).
-"""
+"""The contract between the env and a per-physics-step control filter (``docs/env.md``)."""
 
 from __future__ import annotations
 
@@ -64,25 +59,17 @@ class ControlFilter(Protocol):
 
     def reset(self, team: Team) -> None:
         """Start an episode of ``team`` (forget warm starts and memory)."""
-        ...
 
     def __call__(self, inp: FilterInput, nominal_du: np.ndarray) -> FilterOutput:
         """Filter one physics step."""
-        ...
 
 
 @runtime_checkable
 class GroupedControlFilter(ControlFilter, Protocol):
-    """A control filter of ``K`` independent teams stacked into one input.
-
-    Each robot's team is in ``inp.team.group``, each obstacle's in ``inp.obstacle_groups``; no pair across
-    teams may affect the answer.  ``inp.reference`` holds every team's reference at its own time, ``inp.time``
-    is team 0's.
-    """
+    """A control filter of ``K`` teams stacked into one input (``team.group``, ``obstacle_groups``; ``docs/env.md``)."""
 
     def reset_rows(self, rows: np.ndarray, team: Team) -> None:
         """Forget the memory of robots ``rows`` (their team starts an episode); ``team``: the new stack."""
-        ...
 
 
 @runtime_checkable
@@ -91,4 +78,3 @@ class GroupableFilter(ControlFilter, Protocol):
 
     def grouped(self, filters: Sequence[ControlFilter]) -> GroupedControlFilter | None:
         """One filter for the stack of the teams of ``filters`` (this one among them), or None if it cannot."""
-        ...

@@ -1,7 +1,4 @@
-"""Reference trajectories: callables ``ref(t) -> (p_d, v_d, a_d)``, three ``(N, 2)`` arrays.
-
-A reference also has its final points ``goals (N, 2)`` and a ``duration`` [s] after which it rests there.
-"""
+"""Reference trajectories ``ref(t) -> (p_d, v_d, a_d)`` ``(N, 2)``, at rest on ``goals`` after ``duration`` [s]."""
 
 from __future__ import annotations
 
@@ -26,7 +23,6 @@ class Reference(Protocol):
 
     def __call__(self, t: float) -> RefTriple:
         """Return ``(p_d, v_d, a_d)``, each ``(N, 2)``, at time ``t``."""
-        ...
 
 
 COORD_MAX: float = 1e6

@@ -1,8 +1,4 @@
-"""Headless-safe rendering: :class:`Renderer` draws a :class:`Frame` (metres, ``y`` up) to an RGB array or window.
-
-:func:`save_animation` writes frames as a GIF or video.  pygame and imageio are imported when first needed
-(``pip install "aasoatt[render]"``).
-"""
+"""Headless-safe rendering of :class:`Frame` s to RGB arrays, a window or an animation (``aasoatt[render]``)."""
 
 from __future__ import annotations
 
@@ -126,10 +122,7 @@ class Frame:
                                   "(xmin, xmax, ymin, ymax) with xmin < xmax and ymin < ymax")
             self.world_bounds = b  # type: ignore[assignment]
 
-    @property
-    def n(self) -> int:
-        """Number of robots."""
-        return int(self.positions.shape[0])
+    n = property(lambda self: int(self.positions.shape[0]), doc="Number of robots.")
 
     def bounds(self, margin: float = 0.1) -> tuple[float, float, float, float]:
         """``world_bounds`` if set, else a box around all content, padded by ``margin`` of its size."""
@@ -201,19 +194,17 @@ class Renderer:
         except ImportError:  # pragma: no cover - gfxdraw ships with pygame
             self._gfx = None
         self._surface = self._pg.Surface((self.width, self.height))
-        self._font: Any = None
-        self._font_failed = False
+        self._font: Any = None  # False: no font available
         self._window = Window(self._pg, self.width, self.height)
 
     def _get_font(self) -> Any:
-        if self._font is None and not self._font_failed:
+        if self._font is None:
             try:
-                if not self._pg.font.get_init():
-                    self._pg.font.init()
+                self._pg.font.init()  # (a no-op when initialised)
                 self._font = self._pg.font.Font(None, max(12, min(self.width, self.height) // 28))
             except Exception:  # noqa: BLE001 - fonts are optional decoration
-                self._font_failed = True
-        return self._font
+                self._font = False
+        return self._font or None
 
     def _circle(self, c: np.ndarray, r: int, color: Sequence[int], edge: Sequence[int] | None = None, *,
                 fill: bool = True) -> None:
@@ -377,9 +368,8 @@ def animation_writer_missing(suffix: str) -> list[str]:
 def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], fps: float = 20) -> Path:
     """Write RGB frames ``(H, W, 3 or 4)`` (``uint8``, or floats in ``[0, 1]``) as a GIF or video; returns the path.
 
-    The suffix (:data:`ANIMATION_SUFFIXES`) picks the format; a missing writer raises ``ImportError``.
-    The file is written beside ``path`` and moved into place when complete (a failure leaves no partial
-    file).  A bad suffix, no frames, mismatched sizes or ``fps <= 0``: :class:`ConfigError`.
+    The suffix (:data:`ANIMATION_SUFFIXES`) picks the format (a missing writer: ``ImportError``); the file is
+    written beside ``path`` and moved into place when complete (a failure leaves no partial file).
     """
     path = Path(path)
     suffix = path.suffix.lower()

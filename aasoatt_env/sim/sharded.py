@@ -1,9 +1,4 @@
-"""``ShardedBatchedEnv``: the teams of a batch stepped in worker processes, with the batch's API (no ``envs``).
-
-Trajectories equal one process's.  Workers start with ``forkserver`` (else ``spawn``): guard a script's entry
-point with ``if __name__ == "__main__":``.  After a dead worker or a cut message every call raises
-:class:`~aasoatt_env.errors.UsageError`.  More in ``docs/env.md``.
-"""
+"""``ShardedBatchedEnv``: a batch's teams stepped in worker processes, with the batch's API (``docs/env.md``)."""
 
 from __future__ import annotations
 
@@ -20,15 +15,7 @@ import cloudpickle
 import numpy as np
 
 from aasoatt_env.errors import ConfigError, ResetNeeded, UsageError
-from aasoatt_env.sim.batched import (
-    BatchedAASOATTEnv,
-    TeamsAPI,
-    check_shared,
-    finished_error,
-    parse_actions,
-    per_team_reset_args,
-    team_index,
-)
+from aasoatt_env.sim import batched
 
 __all__ = ["ShardedBatchedEnv", "shard_sizes"]
 
@@ -63,7 +50,7 @@ def _worker(conn: Any, payload: bytes, autoreset: bool, group_filter: bool, offs
     """A worker's loop: build its shard, then answer commands until ``close`` (or the pipe closes)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the caller's to handle (it closes the workers)
     try:
-        batch = BatchedAASOATTEnv(cloudpickle.loads(payload), autoreset=autoreset, group_filter=group_filter,
+        batch = batched.BatchedAASOATTEnv(cloudpickle.loads(payload), autoreset=autoreset, group_filter=group_filter,
                                   team_offset=offset)
         space = (batch.agent_observation_space, batch.agent_action_space)
         _reply(conn, ("ok", (batch.shared_settings, batch.nominal_actions, space)))
@@ -101,10 +88,11 @@ class _LinkDown(UsageError):
     """A worker died: every later call fails (a reply of an interrupted call is not this)."""
 
 
-class ShardedBatchedEnv(TeamsAPI):
+class ShardedBatchedEnv(batched.TeamsAPI):
     """``K`` teams stepped in ``1 <= num_workers <= K`` processes (``start_method``: ``multiprocessing``'s).
 
-    ``env_fns``, ``autoreset`` and ``group_filter`` are :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`'s.
+    ``env_fns``, ``autoreset`` and ``group_filter`` are :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`'s.  A
+    script that makes one must guard its entry point with ``if __name__ == "__main__":`` (``forkserver``/``spawn``).
     """
 
     grouped_filter = None  # each worker has its shard's
@@ -148,7 +136,7 @@ class ShardedBatchedEnv(TeamsAPI):
                 self._pending[w].append("start")  # its start-up report
             firsts = [self._receive(w) for w in range(len(self.sizes))]
             for w, f in enumerate(firsts[1:], 1):  # every setting a batch shares, across the shards too
-                check_shared(f[0], firsts[0][0], self._starts[w])
+                batched.check_shared(f[0], firsts[0][0], self._starts[w])
         except BaseException:
             self.close()
             raise
@@ -260,7 +248,7 @@ class ShardedBatchedEnv(TeamsAPI):
 
     def _on_team(self, k: int, what: str, args: tuple) -> Any:
         self._check_open()
-        k = team_index(k, self.num_envs)
+        k = batched.team_index(k, self.num_envs)
         w = int(np.searchsorted(self._starts, k, side="right") - 1)
         self._post(w, ("team", (k - self._starts[w], what, args)))
         return self._receive(w)
@@ -290,20 +278,15 @@ class ShardedBatchedEnv(TeamsAPI):
             self._settle()
         return self._live.copy()
 
-    @property
-    def max_steps(self) -> np.ndarray:
-        """Horizon of each team's current episode in env steps ``(K,)``."""
-        return np.concatenate([s[0] for s in self._every("state")])
-
-    @property
-    def elapsed_steps(self) -> np.ndarray:
-        """Env steps taken in each team's current episode ``(K,)``."""
-        return np.concatenate([s[1] for s in self._every("state")])
+    max_steps = property(lambda self: np.concatenate([s[0] for s in self._every("state")]),
+                         doc="Each team's episode horizon in env steps ``(K,)``.")
+    elapsed_steps = property(lambda self: np.concatenate([s[1] for s in self._every("state")]),
+                             doc="Env steps taken in each team's episode ``(K,)``.")
 
     def reset(self, seed: int | Sequence[int | None] | None = None,
               options: dict | Sequence[dict | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset every team (as :meth:`BatchedAASOATTEnv.reset`: team ``k`` gets ``seed + k``)."""
-        seeds, opts = per_team_reset_args(seed, options, self.num_envs)
+        seeds, opts = batched.per_team_reset_args(seed, options, self.num_envs)
         out = self._all("reset", [(seeds[a:b], opts[a:b]) for a, b in zip(self._starts[:-1], self._starts[1:])])
         self._started = True  # (`live` was taken from the replies)
         return np.concatenate([o[0] for o in out]), {}
@@ -316,8 +299,8 @@ class ShardedBatchedEnv(TeamsAPI):
         if not self.autoreset:
             finished = np.flatnonzero(~self._live.any(axis=1))
             if finished.size:
-                raise finished_error(finished)
-        act = parse_actions(actions, self._live, self.nominal_actions, self.shared_settings["clip_actions"])
+                raise batched.finished_error(finished)
+        act = batched.parse_actions(actions, self._live, self.nominal_actions, self.shared_settings["clip_actions"])
         act = act.reshape(self.num_envs, self.num_agents, 2)
         out = self._all("step", [act[a:b] for a, b in zip(self._starts[:-1], self._starts[1:])])
         obs, rew, term, trunc = (np.concatenate([o[i] for o in out]) for i in range(4))

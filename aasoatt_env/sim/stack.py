@@ -1,8 +1,4 @@
-"""The stepping core of the env (one team) and the batched env (``K`` teams in stacked ``(K N, ...)`` arrays).
-
-Every operation is per robot or per team, so a team's numbers do not depend on ``K``: a batch is
-bit-identical to its teams stepped as separate envs.
-"""
+"""The step of the env and the batch: ``K`` teams in stacked arrays, every operation per robot or per team."""
 
 from __future__ import annotations
 
@@ -208,25 +204,22 @@ class TeamStack:
         self._clearance = clearance if between is None else np.minimum(clearance, between)
         self._collided = self._clearance < -self.collision_tolerance
 
-    def _observations(self) -> np.ndarray:
-        if self._obs_obstacles is None:  # teams with different numbers of obstacles: one call per team
-            return np.concatenate([self._team_observations(j) for j in range(self._k)])
-        (p_d, v_d, a_d), centers, radii, offset = self._ref_now, *self._obs_obstacles
+    def _observations(self, j: int | None = None) -> np.ndarray:
+        """Every robot's observation (``j``: team ``j``'s, with its own neighbour query)."""
+        if j is None and self._obs_obstacles is None:  # teams with different numbers of obstacles: one call per team
+            return np.concatenate([self._observations(j) for j in range(self._k)])
+        sl, kin, (p_d, v_d, a_d) = slice(None), self._kin, self._ref_now
+        if j is None:
+            (centers, radii, offset), prox = self._obs_obstacles, self._prox
+        else:
+            sl, lay, offset = slice(j * self._n, (j + 1) * self._n), self._layouts[j], None
+            centers, radii = lay.obstacle_centers, lay.obstacle_radii
+            prox = proximity(kin.p[sl], self._teams[j].radius, centers, radii, max(self.num_neighbors, 1))
         return build_observations(
-            p=self._kin.p, v=self._kin.v, theta=self._pose[:, 2], u=self._u, p_d=p_d, v_d=v_d, a_d=a_d,
-            goals=self._goals, radii=self._team.radius, obstacle_centers=centers, obstacle_radii=radii,
+            p=kin.p[sl], v=kin.v[sl], theta=self._pose[sl, 2], u=self._u[sl], p_d=p_d[sl], v_d=v_d[sl], a_d=a_d[sl],
+            goals=self._goals[sl], radii=self._team.radius[sl], obstacle_centers=centers, obstacle_radii=radii,
             sensing_range=self.sensing_range, k_robots=self.num_neighbors, k_obstacles=self.num_obstacles,
-            prox=self._prox, obstacle_offset=offset)
-
-    def _team_observations(self, j: int) -> np.ndarray:
-        sl, kin, (p_d, v_d, a_d) = slice(j * self._n, (j + 1) * self._n), self._kin, self._ref_now
-        r, lay = self._teams[j].radius, self._layouts[j]
-        prox = proximity(kin.p[sl], r, lay.obstacle_centers, lay.obstacle_radii, max(self.num_neighbors, 1))
-        return build_observations(
-            p=kin.p[sl], v=kin.v[sl], theta=self._pose[sl, 2], u=self._u[sl], p_d=p_d[sl], v_d=v_d[sl],
-            a_d=a_d[sl], goals=self._goals[sl], radii=r, obstacle_centers=lay.obstacle_centers,
-            obstacle_radii=lay.obstacle_radii, sensing_range=self.sensing_range, k_robots=self.num_neighbors,
-            k_obstacles=self.num_obstacles, prox=prox)
+            prox=prox, obstacle_offset=offset)
 
     def _decide(self, act: np.ndarray, saturated: np.ndarray, between: np.ndarray | None,
                 outputs: list[list[FilterOutput]]) -> tuple:

@@ -1,7 +1,4 @@
-"""The shared scaffolding of the paper's experiments: declare an :class:`Experiment`, :func:`run` does the rest.
-
-One CSV row per run beside the paper's numbers and ``(ours - paper) / |paper|``; a :class:`Report` writes them.
-"""
+"""Experiment scaffolding: declare an :class:`Experiment`; :func:`run` tabulates it beside the paper's numbers."""
 
 from __future__ import annotations
 

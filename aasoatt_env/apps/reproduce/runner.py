@@ -1,7 +1,4 @@
-"""One simulation run of a reproduction experiment (metrics and light traces), and a parallel runner over many.
-
-Runs are deterministic, so :func:`run_many` returns the same results whatever ``jobs`` is.
-"""
+"""One run of a reproduction experiment (metrics, light traces) and a runner over many (the same for any ``jobs``)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,4 @@
-"""Scenarios (one file each): who starts where, which reference each robot tracks, which obstacles.
-
-:meth:`Scenario.build` returns the episode's :class:`Layout` from the env's seeded generator.  A new
-scenario: a :class:`Scenario` subclass and one line in :data:`SCENARIOS`; the table: ``docs/env.md``.
-"""
+"""Scenarios, one file each (``docs/env.md``); a new one: a :class:`Scenario` subclass, a line in :data:`SCENARIOS`."""
 
 from __future__ import annotations
 

@@ -44,16 +44,10 @@ class Scenario:
     """Base class: subclasses set ``name``, validate in ``__init__`` and implement ``build``."""
 
     name: ClassVar[str] = ""
-    random: ClassVar[bool] = False  # the layout depends on the seed
 
     def build(self, rng: np.random.Generator) -> Layout:  # pragma: no cover - abstract
         """Return the layout of a new episode."""
         raise NotImplementedError
-
-    @property
-    def params(self) -> dict[str, Any]:
-        """The scenario's parameters (for ``aasoatt list`` and metadata)."""
-        return {k: v for k, v in vars(self).items() if not k.startswith("_")}
 
     @property
     def num_robots(self) -> int:

@@ -19,10 +19,9 @@ __all__ = ["Custom"]
 class Custom(Scenario):
     """Your own team: start points, a reference (object, callable or waypoints) and obstacles.
 
-    ``starts (N, 2)`` [m]; ``reference``: a :class:`~aasoatt_env.sim.references.Reference`, a callable
-    ``t -> (N, 2)`` with its ``duration`` [s], or ``{"waypoints": (N, K, 2), "times": (K,)}``; ``headings (N,)``
-    [rad] (default: along the reference velocity at ``t = 0``, else toward the goal); ``obstacles``:
-    ``(centres (M, 2), radii (M,))``; the horizon adds ``settle_time`` [s] to the reference's.
+    ``starts (N, 2)`` [m]; ``reference``: a :class:`~aasoatt_env.sim.references.Reference`, a callable ``t -> (N, 2)``
+    with its ``duration`` [s], or ``{"waypoints": (N, K, 2), "times": (K,)}``; ``headings (N,)`` [rad] (default: along
+    the reference velocity at ``t = 0``, else toward the goal); the horizon adds ``settle_time`` [s].
     """
 
     name = "custom"

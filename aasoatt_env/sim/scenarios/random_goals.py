@@ -25,16 +25,13 @@ _SEQUENTIAL_TRIES = 50  # whole-set tries of the one-by-one sampler
 class RandomGoals(Scenario):
     """Random starts and goals in a square arena, for learning.
 
-    Starts (and goals) are at least ``min_spacing`` [m] apart, centre to centre (default: the
-    robots' diameter plus 0.2 m), in an arena of side ``arena_size`` [m] (default grows with
-    ``sqrt(N)``), drawn from the episode's seeded generator.  Each robot tracks the straight line to
-    its goal at ``speed`` [m/s]; the horizon is the longest travel plus ``settle_time`` [s].
-    ``random_obstacles`` discs (radius 0.3-0.8 m) lie clear of every start and goal by the robots'
-    radius plus 0.1 m.
+    Starts (and goals) are ``min_spacing`` [m] apart or more (default: the robots' diameter + 0.2 m) in an arena of
+    side ``arena_size`` [m] (default grows with ``sqrt(N)``); each robot tracks the straight line to its goal at
+    ``speed`` [m/s], the horizon adds ``settle_time`` [s]; ``random_obstacles`` discs (radius 0.3-0.8 m) lie clear of
+    every start and goal by the robots' radius + 0.1 m.
     """
 
     name = "random_goals"
-    random = True
 
     def __init__(self, num_robots: int = 6, arena_size: float | None = None, min_spacing: float | None = None,
                  speed: float = 0.8, settle_time: float = 3.0, robots: str | RobotParams | list = "paper",

@@ -18,10 +18,9 @@ __all__ = ["Tracking"]
 class Tracking(Scenario):
     """One robot tracking a straight, sine or circle reference (Table I).
 
-    ``trajectory``: ``"straight"``, ``p_d = (v t, v t / 2)``; ``"sine"``, ``p_d = (v t, A sin(w t))``;
-    ``"circle"``, ``p_d = R (cos(v t / R), sin(v t / R))``, with ``speed`` ``v`` [m/s], ``amplitude``
-    ``A`` [m], ``frequency`` ``w`` [rad/s] and ``circle_radius`` ``R`` [m].  ``duration``: the episode
-    [s]; ``reference``: a user reference (object or callable) instead of the built-ins.
+    ``trajectory``: ``"straight"``, ``p_d = (v t, v t / 2)``; ``"sine"``, ``p_d = (v t, A sin(w t))``; ``"circle"``,
+    ``p_d = R (cos(v t / R), sin(v t / R))``, with ``speed`` ``v`` [m/s], ``amplitude`` ``A`` [m], ``frequency`` ``w``
+    [rad/s], ``circle_radius`` ``R`` [m]; ``reference``: a user reference (object or callable) instead.
     """
 
     name = "tracking"

@@ -1,7 +1,4 @@
-"""The set-up the experiments share (SPEC section 7; our choices where the paper is silent), and their helpers.
-
-The episode ends with the reference (no settle time), so the metrics cover exactly the paper's 12 s / 20 s.
-"""
+"""The set-up the experiments share (SPEC section 7; our choices where the paper is silent) and their helpers."""
 
 from __future__ import annotations
 
