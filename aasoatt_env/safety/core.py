@@ -280,7 +280,7 @@ class SafetyFilter:
         if cfg.mode == "decentralized":
             nominal = np.minimum(np.maximum(s.nominal, s.lo), s.hi)
         else:
-            nominal = bound_nominal(s.nominal, s.lo, s.hi, s.scale, s.team.max_wheel_accel)
+            nominal = s.nominal if s.near else bound_nominal(s.nominal, s.lo, s.hi, s.scale, s.team.max_wheel_accel)
         if self._multiplier is not None:  # the registry's multiplier trigger and A du_nom, compiled
             avoiding = self._dl.avoiding if self._dl.avoiding is not None else np.zeros(s.p.shape[0], dtype=bool)
             ref = s.reference if s.reference is not None else (s.p, s.v)  # (not read without a reference)

@@ -158,8 +158,8 @@ def check_step(team: Team, cfg: FilterConfig, kin: Kinematics, u: Any, theta: An
             if a.shape != shape:
                 raise StateError(f"{name}: got shape {a.shape}, expected {shape}")
     nominal, lo, hi, u, theta, p, v, A, adot = arrays[:9]
-    ok, scale = kernels("inputs").numbers(np.concatenate(arrays, axis=None), n, MAGNITUDE_MAX,
-                                          team.max_wheel_accel) if cfg.compiled else (False, None)
+    ok, scale, near = kernels("inputs").numbers(tuple(arrays), MAGNITUDE_MAX, team.max_wheel_accel, NOMINAL_RANGE) \
+        if cfg.compiled else (False, None, False)
     if not ok:  # the numpy reference: raises where a number is refused
         _check_numbers(arrays, _NAMES if reference is not None else _NAMES[:9] + _NAMES[11:])
     if obstacles is not None and not bool((obstacles[1] >= 0.0).all()):
@@ -170,7 +170,7 @@ def check_step(team: Team, cfg: FilterConfig, kin: Kinematics, u: Any, theta: An
             lo, hi = speed_box(lo, hi, u, cfg.max_wheel_speed, cfg.dt)
         scale = np.maximum(team.max_wheel_accel, np.maximum(np.abs(lo), np.abs(hi)).max(axis=1))  # (> 0: check_team)
     return StepInput(team, p, v, A, adot, u, theta, nominal, lo, hi,
-                     None if reference is None else (arrays[9], arrays[10]), obstacles, scale)
+                     None if reference is None else (arrays[9], arrays[10]), obstacles, scale, bool(near))
 
 
 def _check_numbers(arrays: list[np.ndarray], names: tuple[str, ...]) -> None:

@@ -31,6 +31,7 @@ class StepInput(NamedTuple):
     reference: tuple[np.ndarray, np.ndarray] | None  #: ``(p_d, v_d)`` or None
     obstacles: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None  #: ``(centres, radii, groups or None)``
     scale: np.ndarray  #: ``(N,)`` of the QP's variables ``x = du / scale`` (the largest bound)
+    near: bool = False  #: every nominal within :func:`~.inputs.bound_nominal`'s reach, known (False: not known)
 
 
 class Warm(NamedTuple):

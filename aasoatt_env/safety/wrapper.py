@@ -56,6 +56,10 @@ class FilterReport:
     def of(cls, results: tuple[FilterResult, ...]) -> FilterReport:
         """Aggregate the results of the physics steps of one env step."""
         last, worst = results[-1], max(results, key=lambda r: STATUS_CODES[r.status])
+        if len(results) == 1:  # (one physics step: its own arrays, without the reductions' cost)
+            return cls(last.intervened, last.avoiding, last.triggered, last.backup, last.correction, last.status,
+                       last.safe, last.margin, last.barrier_min, last.message, last.slack, last.iterations,
+                       last.n_rows, last.n_qp_rows, last.du, last.solve_time)
         flags = ("intervened", "avoiding", "triggered", "backup")
         return cls(*(np.any([getattr(r, k) for r in results], axis=0) for k in flags),
                    correction=np.max([r.correction for r in results], axis=0), status=worst.status,
