@@ -12,10 +12,9 @@ __all__ = ["numbers"]
 
 @jit
 def numbers(arrays, bound, amax, reach):
-    """``(ok, scale, near)``: every number finite within ``bound`` and ``lo <= hi``; per robot
-    ``max(amax, |lo|, |hi|)``; :func:`~aasoatt_env.safety.inputs.bound_nominal`'s quick test with ``reach``.
+    """``(ok, scale, near)``: numbers within ``bound``, ``lo <= hi``; ``max(amax, |lo|, |hi|)``; no pull-in needed.
 
-    ``arrays``: a step's arrays, ``nominal_du, lo, hi`` first (``(n, 2)`` each).  numpy's numbers.
+    ``near`` is :func:`~aasoatt_env.safety.inputs.bound_nominal`'s quick test with ``reach``; ``arrays``: a step's arrays, ``nominal_du, lo, hi`` first (``(n, 2)`` each).  numpy's numbers.
     """
     nominal, lo, hi = arrays[0], arrays[1], arrays[2]
     n = lo.shape[0]
