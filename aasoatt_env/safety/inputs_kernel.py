@@ -14,7 +14,8 @@ __all__ = ["numbers"]
 def numbers(arrays, bound, amax, reach):
     """``(ok, scale, near)``: numbers within ``bound``, ``lo <= hi``; ``max(amax, |lo|, |hi|)``; no pull-in needed.
 
-    ``near`` is :func:`~aasoatt_env.safety.inputs.bound_nominal`'s quick test with ``reach``; ``arrays``: a step's arrays, ``nominal_du, lo, hi`` first (``(n, 2)`` each).  numpy's numbers.
+    ``near``: :func:`~aasoatt_env.safety.inputs.bound_nominal`'s quick test with ``reach``; ``arrays``: a step's
+    arrays, ``nominal_du, lo, hi`` first (``(n, 2)`` each).  numpy's numbers.
     """
     nominal, lo, hi = arrays[0], arrays[1], arrays[2]
     n = lo.shape[0]
