@@ -29,14 +29,11 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
                      pairs: np.ndarray | None = None, *, checked: bool = False) -> GateResult:
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair where it brakes.
 
-    The first round decides whether the QP's answer passes, with or without blend levels, so it is checked
-    first without them (``quick``).  Where it brakes someone, each connected component of robots within ``D``
-    of each other is decided as if alone (the gatekeeper never couples robots farther apart): one already
-    broken (a pair failing when both brake) gets ``hold_violations``' best effort and the result says unsafe;
-    one where a robot brakes for a pair is repaired and checked again, and where that still brakes someone,
-    the answer (QP's or repaired) that brakes fewer robots is kept (the repaired on a tie, the QP's where its
-    own check finds the component broken); the others get the full check.  ``pairs``, ``checked``: as
-    :func:`~aasoatt_env.safety.backup.gatekeeper`'s ``near_pairs``, ``checked``.
+    The quick check (no blend levels) decides whether ``du`` passes.  Where it brakes someone, each component of robots
+    within ``D`` of each other is decided alone (the gatekeeper never couples robots farther apart): a broken one gets
+    ``hold_violations``' best effort (unsafe); one braking for a pair is repaired and checked again, keeping the QP's
+    answer where it brakes fewer robots (the repaired on a tie, the QP's if its check finds the component broken); the
+    others get the full check.  ``pairs``, ``checked``: the gatekeeper's ``near_pairs``, ``checked``.
     """
     if not checked:
         pairs = validate(team, pose, obstacles, pairs, u=u, du=du, lo=lo, hi=hi)

@@ -17,12 +17,11 @@ def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: fl
            compiled: bool = False, checked: bool = False) -> np.ndarray:
     """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
 
-    For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below ``target`` [m], the
-    margin's gradient in both robots' inputs is taken by finite differences (step ``eps``) at the pair's closest step
-    and both inputs move by the least-norm change that lifts the linearised margin to ``2 target``; the changes add up,
-    are clipped to ``[lo, hi]``; ``rounds`` rounds.  A small local correction: safety still comes from the gatekeeper,
-    whose ``near_pairs``, ``compiled``, ``checked`` these are (the compiled answer equals this one up to rounding,
-    amplified by the division by the squared gradient).
+    For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below ``target`` [m], both
+    inputs move by the least-norm change that lifts the margin, linearised by finite differences (step ``eps``) at its
+    closest step, to ``2 target``; the changes add up and are clipped to ``[lo, hi]``, ``rounds`` times.  Safety still
+    comes from the gatekeeper, whose ``near_pairs``, ``compiled``, ``checked`` these are (the compiled answer equals
+    this one to rounding, amplified by the division by the squared gradient).
     """
     if not checked:
         near_pairs = gate.validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c, lo=lo, hi=hi)

@@ -50,11 +50,7 @@ VERIFIED_MESSAGE: str = "active set (warm, KKT verified)"
 
 
 class LeastDistanceForm(NamedTuple):
-    """The problem in ``y = L^T x`` (``H = L L^T`` block by block): ``min 0.5|y|^2 + gt'y  s.t.  Mt y <= b``.
-
-    ``LinvT`` ``(N, 2, 2)``: the blocks of ``L^{-T}``; ``gt = L^{-1} g``; ``Mt`` ``(m + 2n, n)``: the rows, upper and
-    lower bounds in ``y``; ``b``: their right-hand sides ``(u, ub, -lb)``.
-    """
+    """``min 0.5|y|^2 + gt'y  s.t.  Mt y <= b`` in ``y = L^T x``; ``Mt`` ``(m + 2n, n)``: the rows, then both bounds."""
 
     LinvT: np.ndarray
     gt: np.ndarray

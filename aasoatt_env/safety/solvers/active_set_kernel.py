@@ -202,11 +202,7 @@ def _one_change(nl, W, lam, r, prev, has_prev, tol, Wn):
 @jit
 def _run(rb, rc, nl, nv, gt, b, W0, rule, budget, tol, W, Wn, prev, idx, rhs, lw, tmp, res, y, lam, r, bstart, blist,
          first, yf, lamf, rf):
-    """Iterate one rule (0: primal-dual, 1: one change) from ``W0``: ``(verified, equality solves)``.
-
-    ``first``: ``W0``'s point is in ``yf, lamf, rf`` (``first[1]``: singular), kept for the second rule as the
-    reference's ``_WorkingSetLoop._point`` keeps it.
-    """
+    """One rule (0: primal-dual, 1: one change) from ``W0``: ``(verified, solves)``; ``first``: ``W0``'s point, kept."""
     for q in range(nl):
         W[q] = W0[q]
     has_prev = False
@@ -282,11 +278,7 @@ def _by_group(indptr, indices, m, nb, groups, K):
 
 @jit
 def _group_rows(g, srt, indptr, indices, data, m, n, LinvT, gt, b, W0, loc, rb, rc, gidx, bl, W0l, gl):
-    """Group ``g``'s rows of ``C T`` as the reference forms them, then its bounds ``+-L^-T``: ``(variables, rows)``.
-
-    Fills each local row's robot blocks ``rb`` (-1: none), coefficients ``rc``, global index, right-hand side and warm
-    set, and the group's ``gt``; ``(-1, -1)`` for a row on more than two robots.
-    """
+    """Group ``g``'s rows ``rb``, ``rc`` (``C T``, then ``+-L^-T``) and their data: ``(variables, rows)``, -1: unfit."""
     robots, rstart, rows, qstart = srt
     r0, nbg, mg = rstart[g], rstart[g + 1] - rstart[g], qstart[g + 1] - qstart[g]
     nv = 2 * nbg
@@ -325,11 +317,7 @@ def _group_rows(g, srt, indptr, indices, data, m, n, LinvT, gt, b, W0, loc, rb, 
 @jit
 def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, tol,
                 y_out, lam_out, done):
-    """Every group's warm active set (module docstring) into ``y_out (n,)``, ``lam_out (m + 2n,)``, ``done (K,)``.
-
-    Returns the most equality solves of a group, or a negative number where a row is not of the form handled here
-    (unsorted or repeated columns, more than two robots): the caller takes the reference path.
-    """
+    """Every group's warm active set (module docstring): the most solves of a group; < 0: rows not handled here."""
     nb = n // 2
     srt = _by_group(indptr, indices, m, nb, groups, K)
     robots, rstart, _, qstart = srt

@@ -25,11 +25,7 @@ FEAS_TOL: float = 1e-9
 
 
 def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.ndarray | None, str]:
-    """Solve ``prob`` (a :class:`~aasoatt_env.safety.problem.QPProblem`) exactly: ``(x, z, message)``.
-
-    Rows or bounds at ``+-inf`` (``|b| >= 1e19``) are dropped.  ``x``: the optimum in scaled coordinates, ``z``: the
-    row multipliers (``>= 0``), both None without an answer (inconsistent rows, too large, a numerical failure).
-    """
+    """Solve ``prob`` exactly: ``(x, z, message)``, ``x``, ``z`` None without an answer (``message`` says why)."""
     n, m = prob.n, prob.m
     if n == 0 or n % 2:
         return None, None, "ldp: needs 2x2 blocks"
@@ -39,7 +35,7 @@ def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.n
     if form is None:
         return None, None, "ldp: Hessian block not positive definite"
     gt, Mt, b = form.gt, form.Mt, form.b
-    finite = np.abs(b) < 1e19
+    finite = np.abs(b) < 1e19  # rows or bounds at +-inf are dropped
     if not np.all(finite):
         Mt, b = Mt[finite], b[finite]
     hb = b + Mt @ gt

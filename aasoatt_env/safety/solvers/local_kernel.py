@@ -2,7 +2,8 @@
 
 :func:`solve_all` is :func:`aasoatt_env.safety.solvers.local.solve_local_qps` after its argument checks, one robot at a
 time (its rows in the order given) in the reference's order of operations: only the phase-1 sums run in another order,
-and zero or never-violated rows are left out of the table instead of padding it.
+and zero or never-violated rows are left out of the table instead of padding it.  Per robot only plain loops are
+factored out: a helper that calls others pays its array arguments' reference counts on every robot.
 """
 
 import math
@@ -311,11 +312,7 @@ def _least_violation(gx, gy, hh, n, lb0, lb1, ub0, ub1, x0, x1, res, delta, on, 
 @jit
 def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter, x, lam, lam_box, feasible, loosened,
               bad_block):
-    """Every robot's QP (module docstring) into the outputs (``bad_block``: raise); ``(iterations, enumerated)``.
-
-    Per robot only plain loops are factored out: a helper that calls others pays its array arguments' reference counts
-    on every robot.
-    """
+    """Every robot's QP (module docstring) into the outputs (``bad_block``: raise); ``(iterations, enumerated)``."""
     rows, counts, K = _by_owner(owner, g.shape[0])
     nx, ny, b, slot_row = np.empty(K), np.empty(K), np.empty(K), np.empty(K, dtype=np.int64)  # the table
     gx, gy, hh, ln, res, delta, te = (np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K),
