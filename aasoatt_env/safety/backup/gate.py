@@ -92,11 +92,11 @@ class GateResult(NamedTuple):
     """What :func:`gatekeeper` decided, per robot ``(N,)`` unless said.
 
     ``du`` ``(N, 2)``: the inputs to apply; ``braking``: robots blended toward, or put on, the backup; ``margin``: the
-    smallest ``distance - d_s`` [m] of the checked pairs along the returned inputs' horizon (else the smallest range
-    limit); ``safe``: the state was brake-safe, so the team stays in the safe set; ``broken``: robots in a pair failing
-    even when both brake, or whose braking leaves the range limit; ``share``: the candidate's share in the input (1:
-    the candidate, 0: the backup); ``rounds``; ``n_pairs``: robot and obstacle pairs checked; ``robot_margin``: each
-    robot's smallest margin; ``out_of_range``: robots whose candidate path leaves their range limit.
+    least ``distance - d_s`` [m] of the checked pairs along the returned inputs' horizon (else of the range limits);
+    ``safe``: the state was brake-safe; ``broken``: robots in a pair failing even when both brake, or whose braking
+    leaves the range limit; ``share``: the candidate's share in the input (1: the candidate, 0: the backup);
+    ``n_pairs``: robot and obstacle pairs checked; ``out_of_range``: robots whose candidate path leaves their range
+    limit.
     """
 
     du: np.ndarray

@@ -1,9 +1,8 @@
 """The backup layer's compiled check and repair (numba; imported only through :mod:`aasoatt_env.compiled`).
 
 :func:`gate_full` is one :func:`~aasoatt_env.safety.backup.gate.gatekeeper` call and :func:`repair_full` one
-:func:`~aasoatt_env.safety.backup.repair.repair` call, per robot, pair and sample with the helpers of
-:mod:`.kernel_paths` (the same decisions, numbers to rounding), on the block of
-:func:`~aasoatt_env.safety.backup.gate.kernel_args`, whose shapes the caller checked.
+:func:`~aasoatt_env.safety.backup.repair.repair` call, per robot, pair and sample (helpers: :mod:`.kernel_paths`), on
+the block of :func:`~aasoatt_env.safety.backup.gate.kernel_args`, whose shapes the caller checked.
 """
 
 import numpy as np

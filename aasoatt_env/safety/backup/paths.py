@@ -216,10 +216,9 @@ def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.nda
                          ) -> tuple[np.ndarray, np.ndarray]:
     """Samples ``s`` ``(R, S)`` of :func:`candidate_paths` in closed form, without the others: ``(p, delta)``.
 
-    ``s``: 0 the current point, 1 after the step with ``du``, ``k + 1`` after ``k`` braking steps; a row per robot
-    unless ``rows`` ``(R,)`` names each row's robot; ``delta``: the deviations of steps ``s -> s + 1``.  Braking step
-    ``k``'s arc parameter is the trapezoid sum written out, ``dt (k - r k^2 / 2)`` while ``1 - k r > 0``,
-    ``r = dt / T``.
+    ``s``: 0 now, 1 after the step with ``du``, ``k + 1`` after ``k`` braking steps (arc parameter
+    ``dt (k - r k^2 / 2)`` while ``1 - k r > 0``, ``r = dt / T``); ``rows`` ``(R,)``: each row's robot (default: one
+    each).
     """
     p0 = point(team, pose)
     c = candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction)
