@@ -180,7 +180,10 @@ def _csr_rows(rows, ri, rj, Gi, Gj, rhs, scale, remap, sub, lbv, ubv, x_prev, z_
 
 @jit
 def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm, settings):
-    """One step's centralised QP (module docstring): ``(code, iterations, rows in the QP, du, x, z, eta)``."""
+    """One step's centralised QP (module docstring): ``(code, iterations, rows in the QP, du, x, z, eta)``.
+
+    ``settings``: :func:`aasoatt_env.safety.centralized.kernel_settings`.  The caller checks every shape and index.
+    """
     n, m = A.shape[0], rhs.shape[0]
     du, x_full, z, eta = box_least_squares(A, target, lo, hi), np.empty((n, 2)), np.zeros(m), np.zeros(m)
     bad, n_rr = _violated(du, ri, rj, Gi, Gj, rhs)

@@ -129,11 +129,12 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
     collides, whatever the candidate, provided every robot checks the same state with the real bounds and ``dt``,
     applies the inputs as returned, and ``tol`` [m] absorbs the rounding (:data:`~aasoatt_env.safety.backup.GATE_TOL`).
 
-    ``pose``: axle poses ``(N, 3)``; ``obstacles``: ``(centres (M, 2), radii (M,)[, groups (M,)])``.
-    ``hold_violations``: outside the safe set, hold a pair failing even when both brake to that margin instead of
-    marking it broken.  ``quick``: only the candidate's verdict is wanted.  ``near_pairs`` ``(P, 2)``: a superset of
-    the pairs of one group within ``D`` (a safety input; None: searched here).  ``checked``: the caller vouches for
-    every shape and index.
+    ``pose``: axle poses ``(N, 3)``; ``obstacles``: ``(centres (M, 2), radii (M,)[, groups (M,)])``, each on its group;
+    ``blend_levels``: shares in ``(0, 1]`` (``()``: brake at once); ``tol < 0`` asks a clearance.  ``hold_violations``:
+    outside the safe set, hold a pair failing even when both brake to that margin instead of marking it broken
+    (``safe`` then says only whether the range condition held).  ``quick``: only the candidate's verdict is wanted.
+    ``near_pairs`` ``(P, 2)``: a superset of the pairs of one group within ``D`` (a safety input; None: searched here).
+    ``checked``: the caller vouches for every shape and index.
     """
     levels = levels_of(tuple(blend_levels))
     if not checked:

@@ -317,7 +317,11 @@ def _group_rows(g, srt, indptr, indices, data, m, n, LinvT, gt, b, W0, loc, rb, 
 @jit
 def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, tol,
                 y_out, lam_out, done):
-    """Every group's warm active set (module docstring): the most solves of a group; < 0: rows not handled here."""
+    """Every group's warm active set (module docstring): the most equality solves of a group.
+
+    A negative answer: rows not of the form handled here (unsorted or repeated columns, a row on more than two robots);
+    the caller takes the reference path.
+    """
     nb = n // 2
     srt = _by_group(indptr, indices, m, nb, groups, K)
     robots, rstart, _, qstart = srt

@@ -34,8 +34,9 @@ class LocalSolution(NamedTuple):
 
     ``x`` ``(N, 2)``: the minimisers (an infeasible robot's least-violation answer with ``relax``, else its minimiser
     over the bounds); ``lam`` ``(M,)``, ``lam_box`` ``(N, 2, 2)`` (``[:, 0]``: ``x <= ub``): the multipliers in the
-    rows' own units (of the loosened row if relaxed); ``feasible``: the polygon is non-empty; ``loosened`` ``(M,)``:
-    each row's loosening; ``iterations``: the most of a robot and pass; ``n_enumerated``: robots enumerated.
+    rows' own units (of the loosened row if relaxed, 0 on an infeasible robot's rows without); ``feasible``: the
+    polygon is non-empty; ``loosened`` ``(M,)``: each row's loosening; ``iterations``: the most of a robot and pass;
+    ``n_enumerated``: robots enumerated.
     """
 
     x: np.ndarray
