@@ -573,11 +573,11 @@ def test_repair_path_cache_equals_the_paths_made_afresh():
         moved = rng.choice(team.n, 2, replace=False)
         du[moved] = rng.uniform(-1, 1, (2, 2)) * team.max_wheel_accel[moved, None]
         cache.forget(moved)
-        got = cache.get(rows, du)
+        p, delta, length = cache.get(rows, du)
         fresh = candidate_paths(team.subset(rows), pose[rows], u[rows], du[rows], DT, F)
-        np.testing.assert_array_equal(got.p, fresh.p)
-        np.testing.assert_array_equal(got.delta, fresh.delta)
-        np.testing.assert_array_equal(got.length, fresh.length)
+        np.testing.assert_array_equal(p, fresh.p)
+        np.testing.assert_array_equal(delta, fresh.delta)
+        np.testing.assert_array_equal(length, fresh.length)
 
 
 def test_a_group_checked_alone_keeps_the_whole_teams_range_limits():

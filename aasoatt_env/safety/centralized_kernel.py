@@ -1,11 +1,9 @@
 """The centralised QP stage in one compiled call (numba; loaded through :mod:`aasoatt_env.compiled`).
 
-:func:`solve_decomposed` is :func:`aasoatt_env.safety.centralized.solve_rows` on a warm-started step, as
-loops in the numpy stage's order of operations: it answers only where the warm active set verifies every
-component, then bit for bit as the numpy stage would; otherwise the numpy stage answers the step.
+:func:`solve_decomposed` is :func:`aasoatt_env.safety.centralized.solve_rows` on a warm-started step, as loops in the
+numpy stage's order of operations: it answers only where the warm active set verifies every component, then bit for bit
+as the numpy stage would; otherwise the numpy stage answers the step.
 """
-
-from __future__ import annotations
 
 import math
 
@@ -77,10 +75,7 @@ def _violated(du, ri, rj, Gi, Gj, rhs):
 
 @jit
 def _coupled(n, ri, rj, bad, n_rr):
-    """The robots of the components with a violated row: ``(robots, groups, count, K, local index of each)``.
-
-    The groups are numbered by component in order of first robot (``np.unique``'s).
-    """
+    """The robots of components with a violated row: ``(robots, groups by first robot, count, K, local index)``."""
     ea, eb = np.empty(n_rr, np.int64), np.empty(n_rr, np.int64)
     k = 0
     for q in range(rj.shape[0]):
@@ -187,14 +182,10 @@ def _csr_rows(rows, ri, rj, Gi, Gj, rhs, scale, remap, sub, lbv, ubv, x_prev, z_
 def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_warm, settings):
     """One step's centralised QP (module docstring): ``(code, iterations, rows in the QP, du, x, z, eta)``.
 
-    ``x_prev (N, 2)``: the previous scaled point; ``z_warm (m,)``: the previous multipliers on these rows;
-    ``settings``: the warm active set's constants (:func:`aasoatt_env.safety.centralized.kernel_settings`).
-    The caller checks every shape and index.  Only :data:`CLOSED_FORM` and :data:`VERIFIED` answers are read.
+    ``settings``: :func:`aasoatt_env.safety.centralized.kernel_settings`.  The caller checks every shape and index.
     """
     n, m = A.shape[0], rhs.shape[0]
-    du, x_full, z, eta = np.empty((n, 2)), np.empty((n, 2)), np.zeros(m), np.zeros(m)
-    for i in range(n):
-        _box1(A, target, lo, hi, i, du)
+    du, x_full, z, eta = box_least_squares(A, target, lo, hi), np.empty((n, 2)), np.zeros(m), np.zeros(m)
     bad, n_rr = _violated(du, ri, rj, Gi, Gj, rhs)
     for i in range(n):
         x_full[i, 0], x_full[i, 1] = du[i, 0] / scale[i], du[i, 1] / scale[i]

@@ -1,10 +1,10 @@
 """The gatekeeper: accepts a candidate input only where braking from the state it leads to keeps every pair apart.
 
-Pair check (:func:`pair_margins`): within a step a wheeled robot moves on an arc that deviates from the
-chord of its end points by at most its sagitta ``|p_dot| |omega| dt^2 / 8``, a point mass on a parabola
-``|du| dt^2 / 8`` off it.  The distance from the origin to the segment of *relative* positions minus both
-deviations bounds the pair's distance over the step from below; a pair is safe over a horizon when that
-bound is ``>= d_s = r_i + r_j`` at every step.  Obstacles are robots that never move.
+Pair check (:func:`pair_margins`): within a step a wheeled robot moves on an arc that deviates from the chord of its
+end points by at most its sagitta ``|p_dot| |omega| dt^2 / 8``, a point mass on a parabola ``|du| dt^2 / 8`` off it.
+The distance from the origin to the segment of *relative* positions minus both deviations bounds the pair's distance
+over the step from below; a pair is safe over a horizon when that bound is ``>= d_s = r_i + r_j`` at every step.
+Obstacles are robots that never move.
 """
 
 from __future__ import annotations
@@ -25,18 +25,16 @@ BLEND_LEVELS: tuple[float, ...] = (0.5,)
 """The check's default blend shares between the candidate and the backup (``gatekeeper``'s ``blend_levels``)."""
 CLOSEST_TIE: float = 1e-12
 """Steps whose distance is within this [m] of a pair's smallest count as tied for its closest step."""
-_ONE_BUCKET_CELLS = 4096
-"""Pair batches with at most this many samples in all are checked in one call rather than by horizon bucket."""
+_ONE_BUCKET_CELLS = 4096  # pair batches with at most this many samples in all: one call, not one per horizon bucket
 
 
 def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray | float, ds: np.ndarray,
                  closest: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Smallest ``distance - d_s`` of each pair along sampled paths, a lower bound between samples.
 
-    ``pi``, ``pj``: ``(P, L)`` complex positions of the two members at the same steps (``pj`` ``(P, 1)``: a
-    static point); ``di``, ``dj``: their ``(P, L-1)`` deviation bounds per step (``dj`` may be 0); ``ds``:
-    ``(P,)`` safety distances.  Returns ``min_k (dist(0, [q_k, q_{k+1}]) - di_k - dj_k) - ds``, ``q = pi - pj``,
-    and with ``closest`` each pair's closest step: the first within :data:`CLOSEST_TIE` of its minimum.
+    ``pi``, ``pj`` ``(P, L)``: complex positions of the members at the same steps (``pj`` ``(P, 1)``: a static point);
+    ``di``, ``dj`` ``(P, L-1)``: their deviation bounds (``dj`` may be 0).  With ``closest``, also each pair's closest
+    step: the first within :data:`CLOSEST_TIE` of its minimum.
     """
     q = pi - pj
     if q.shape[1] == 1:
@@ -70,10 +68,7 @@ def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray 
 
 def bucketed_margins(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndarray, jj: np.ndarray, ds: np.ndarray,
                      centers: np.ndarray | None = None) -> np.ndarray:
-    """:func:`pair_margins` of pairs ``(ii, jj)`` of rows of ``P`` (``need[r]`` samples), by horizon bucket.
-
-    With ``centers`` the second member is the static point ``centers[jj]``.
-    """
+    """:func:`pair_margins` of rows ``ii``, ``jj`` of ``P`` (``centers``: static ``jj``) by horizon bucket."""
     out = np.empty(ii.shape[0])
     if ii.size == 0:
         return out
@@ -96,14 +91,12 @@ def bucketed_margins(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndar
 class GateResult(NamedTuple):
     """What :func:`gatekeeper` decided, per robot ``(N,)`` unless said.
 
-    ``du`` ``(N, 2)``: the inputs to apply; ``braking``: robots whose candidate was not accepted (blended toward,
-    or put on, the backup); ``margin``: the smallest ``distance - d_s`` [m] over the checked pairs along the
-    returned inputs' horizon (the smallest :func:`reach_limit` without a pair that matters); ``safe``: the
-    state was brake-safe, so the returned inputs keep the team in the safe set; ``broken``: robots in a pair
-    failing even when both brake, or whose braking leaves the range limit (no input can promise them safety);
-    ``share``: the candidate's share in the applied input (1: the candidate, 0: the backup); ``rounds``,
-    ``n_pairs``: rounds, and robot and obstacle pairs checked; ``robot_margin``: each robot's smallest margin
-    (its range limit without a pair); ``out_of_range``: robots whose candidate path leaves their range limit.
+    ``du`` ``(N, 2)``: the inputs to apply; ``braking``: robots blended toward, or put on, the backup; ``margin``: the
+    least ``distance - d_s`` [m] of the checked pairs along the returned inputs' horizon (else of the range limits);
+    ``safe``: the state was brake-safe; ``broken``: robots in a pair failing even when both brake, or whose braking
+    leaves the range limit; ``share``: the candidate's share in the input (1: the candidate, 0: the backup);
+    ``n_pairs``: robot and obstacle pairs checked; ``out_of_range``: robots whose candidate path leaves their range
+    limit.
     """
 
     du: np.ndarray
@@ -124,50 +117,35 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
                near_pairs: np.ndarray | None = None, compiled: bool = False, checked: bool = False) -> GateResult:
     """Accept the candidate ``du_c`` for every robot whose pairs stay brake-safe; put the others on the backup.
 
-    Each robot starts at the candidate (share 1), then the blends ``du_b + a (du_c - du_b)`` for the
-    ``blend_levels`` ``a`` (one step, then the backup), then the backup from now (share 0); a level whose
-    path leaves :func:`reach_limit` is skipped.  Every pair that could meet within the paths' reach is
-    checked over the step and the whole backup horizon; the members of failing pairs move one level down
-    and their pairs are checked again, until none fails (at worst all brake).
+    Each robot starts at the candidate (share 1), then the blends ``du_b + a (du_c - du_b)``, ``a`` in ``blend_levels``
+    (one step, then the backup), then the backup from now (share 0), skipping a level whose path leaves its
+    :func:`~aasoatt_env.safety.backup.reach_limit`.  Every pair that could meet within the paths' reach is checked over
+    the step and the backup horizon; the members of failing pairs move one level down until none fails.
 
-    Invariance: call a state brake-safe when the backup from it keeps every pair ``>= d_s`` and every
-    robot within its range limit.  The backup is time-consistent, so from a brake-safe state the
-    backup paths after the returned inputs are tails of paths checked now (or, for pairs both braking,
-    of paths that passed before); pairs beyond their reach or the sensing range stay apart.  So the next
-    state is brake-safe and a team at rest without overlap never collides, whatever the candidate,
-    provided every robot runs this check on the same state with the real bounds and ``dt``, applies the
-    inputs as returned, and ``tol`` absorbs the rounding (:data:`~aasoatt_env.safety.backup.GATE_TOL`).
+    Invariance: call a state brake-safe when the backup from it keeps every pair ``>= d_s`` and every robot within its
+    range limit.  The backup is time-consistent, so from a brake-safe state the backup paths after the returned inputs
+    are tails of paths checked now (or, for pairs both braking, of paths that passed before); pairs beyond their reach
+    or the sensing range ``D`` stay apart.  So the next state is brake-safe and a team at rest without overlap never
+    collides, whatever the candidate, provided every robot checks the same state with the real bounds and ``dt``,
+    applies the inputs as returned, and ``tol`` [m] absorbs the rounding (:data:`~aasoatt_env.safety.backup.GATE_TOL`).
 
-    Parameters
-    ----------
-    team, pose, u, du_c, dt
-        Robot parameters, axle poses ``(N, 3)``, wheel speeds and candidate inputs ``(N, 2)`` within the
-        bounds, the physics step [s].
-    sensing_range, brake_fraction : float
-        ``D`` [m]; the backup's deceleration as a fraction of the straight-line braking capability.
-    obstacles : tuple of numpy.ndarray, optional
-        ``(centres (M, 2), radii (M,))``, with ``groups (M,)`` for a grouped team (an obstacle acts on its group).
-    tol : float
-        Accepted violation [m] (negative: a clearance required).
-    blend_levels : tuple of float
-        Shares in ``(0, 1]`` tried between the candidate and the backup, largest first; ``()``: brake at once.
-    hold_violations : bool
-        Best effort outside the safe set: a pair failing even when both brake is held to that margin instead
-        of being marked broken (``safe`` then says only whether the range condition held).
-    quick : bool
-        Only the verdict on the candidate is wanted: blend levels only where a candidate path leaves its limit.
-    near_pairs : numpy.ndarray, optional
-        ``(P, 2)`` robot pairs including every pair (of one group) within ``sensing_range`` (a safety input);
-        None: searched here.
-    compiled, checked : bool
-        Run in the compiled kernel (numba); the caller vouches for every shape and pair index.
+    ``pose``: axle poses ``(N, 3)``; ``obstacles``: ``(centres (M, 2), radii (M,)[, groups (M,)])``, each on its group;
+    ``blend_levels``: shares in ``(0, 1]`` (``()``: brake at once); ``tol < 0`` asks a clearance.  ``hold_violations``:
+    outside the safe set, hold a pair failing even when both brake to that margin instead of marking it broken
+    (``safe`` then says only whether the range condition held).  ``quick``: only the candidate's verdict is wanted.
+    ``near_pairs`` ``(P, 2)``: a superset of the pairs of one group within ``D`` (a safety input; None: searched here).
+    ``checked``: the caller vouches for every shape and index.
     """
     levels = levels_of(tuple(blend_levels))
     if not checked:
         near_pairs = validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c)
     if compiled:
-        return _gatekeeper_compiled(team, pose, u, du_c, dt, sensing_range, brake_fraction, obstacles, tol, levels,
-                                    hold_violations, quick, near_pairs)
+        du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = kernels().gate_full(
+            c64(pose), c64(u), c64(du_c), float(dt), _levels_array(levels), bool(quick),
+            *kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs),
+            team_block(team, brake_fraction, sensing_range)[1], float(tol), bool(hold_violations))
+        return GateResult(du, braking, float(margin), not bool(broken.any()), broken, share, int(rounds), int(n_pairs),
+                          robot_margin, out_of_range)
     n = pose.shape[0]
     p0 = paths.point(team, pose)
     limit = paths.reach_limit(team, sensing_range)
@@ -176,7 +154,6 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
     lev = _in_range(np.zeros(n, dtype=np.int64), reach, limit)
     broken = reach[last] > limit
     R = reach.max(axis=0)
-    # pairs that could meet within their reach (fixed for the call); only their robots need paths
     i, j, ds = pairs_near(team, p0, R, sensing_range, 1e-12, near_pairs)
     oc, oi, ok, ods = obstacles_near(team, p0, R, obstacles, 1e-12)
     rounds, robot_margin = 0, limit.copy()
@@ -308,11 +285,7 @@ _NO_R = np.empty(0)
 
 
 def team_block(team: Team, brake_fraction: float, sensing_range: float) -> tuple:
-    """``((diff, robots (N, 5), input columns, group, has_group, sensing_range), reach limits)``, once per team.
-
-    ``robots`` holds each robot's offset, turn gain, wheel acceleration bound, backup deceleration and
-    radius; a subset's block is the whole team's, indexed.
-    """
+    """``((diff, robots (N, 5), input columns, group, has_group, D), reach limits)``, cached on the team."""
     key = ("gatekeeper", float(brake_fraction), float(sensing_range))
     block = team.derived.get(key)
     if block is None and SUBSET_OF in team.derived:
@@ -320,7 +293,7 @@ def team_block(team: Team, brake_fraction: float, sensing_range: float) -> tuple
         (diff, rob, cols, group, has_group, rng), limit = team_block(whole, brake_fraction, sensing_range)
         block = team.derived[key] = ((diff, rob[idx], cols[idx], group[idx] if has_group else group, has_group, rng),
                                      limit[idx])
-    if block is None:
+    if block is None:  # robots: offset, turn gain, wheel acceleration bound, backup deceleration, radius
         rob = np.column_stack((team.offset, team.turn_gain, team.max_wheel_accel,
                                paths.brake_decel(team, brake_fraction), team.radius))
         group = team.group if team.group is not None else _EMPTY_INT
@@ -331,11 +304,7 @@ def team_block(team: Team, brake_fraction: float, sensing_range: float) -> tuple
 
 def validate(team: Team, pose: np.ndarray, obstacles: tuple[np.ndarray, ...] | None, near_pairs: np.ndarray | None,
              **per_robot: np.ndarray) -> np.ndarray | None:
-    """Refuse (``ValueError``) what the compiled kernels would read out of bounds; ``near_pairs`` as an array.
-
-    ``pose`` ``(n, 3)``, each of ``per_robot`` ``(n, 2)``, obstacle centres ``(M, 2)`` with ``M`` radii (and
-    groups), ``near_pairs`` ``(P, 2)`` robot indices.
-    """
+    """Refuse (``ValueError``) any shape or pair index the kernels would misread; ``near_pairs`` as an array."""
     n = team.n
     for name, a in (("pose", pose), *per_robot.items()):
         if np.shape(a) != ((n, 3) if name == "pose" else (n, 2)):
@@ -360,43 +329,18 @@ def validate(team: Team, pose: np.ndarray, obstacles: tuple[np.ndarray, ...] | N
 
 def kernel_args(team: Team, pose: np.ndarray, brake_fraction: float, sensing_range: float,
                 obstacles: tuple[np.ndarray, ...] | None, near_pairs: np.ndarray | None) -> tuple:
-    """The kernels' team, pair and obstacle block: :func:`team_block`'s, the candidate pairs, the obstacles.
-
-    The candidate pairs are ``near_pairs``, or every pair within the sensing range; the obstacles are
-    ``(centres (complex), radii, groups, has_groups)``.  Shapes are :func:`validate`'s.
-    """
+    """The kernels' block: :func:`team_block`'s, the candidate pairs (``near_pairs`` or searched), the obstacles."""
     if near_pairs is None:
         p0 = paths.point(team, pose)
         near_pairs = robot_pairs(np.stack((p0.real, p0.imag), axis=1), sensing_range, groups=team.group)
-    oc, orad, ogroup, has_ogroup = _NO_OC, _NO_R, _EMPTY_INT, False
-    if obstacles is not None and np.asarray(obstacles[1]).size:
-        c, orad = np.asarray(obstacles[0], dtype=np.float64), np.asarray(obstacles[1], dtype=np.float64)
-        oc = c[:, 0] + 1j * c[:, 1]
-        if team.group is not None and len(obstacles) > 2 and obstacles[2] is not None:
-            ogroup, has_ogroup = np.asarray(obstacles[2]), True
+    oc, orad, ogroup = _obstacle_arrays(team, obstacles)
     return (*team_block(team, brake_fraction, sensing_range)[0], np.ascontiguousarray(near_pairs, dtype=np.int64),
-            oc, orad, ogroup, has_ogroup)
-
-
-def _gatekeeper_compiled(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float,
-                         sensing_range: float, brake_fraction: float, obstacles: tuple[np.ndarray, ...] | None,
-                         tol: float, levels: tuple[float, ...], hold_violations: bool, quick: bool,
-                         near_pairs: np.ndarray | None) -> GateResult:
-    """:func:`gatekeeper` by the compiled kernel."""
-    block = kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
-    du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = kernels().gate_full(
-        c64(pose), c64(u), c64(du_c), float(dt), _levels_array(levels), bool(quick), *block,
-        team_block(team, brake_fraction, sensing_range)[1], float(tol), bool(hold_violations))
-    return GateResult(du, braking, float(margin), not bool(broken.any()), broken, share, int(rounds), int(n_pairs),
-                      robot_margin, out_of_range)
+            oc, orad, _EMPTY_INT if ogroup is None else ogroup, ogroup is not None)
 
 
 def pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float, slack: float,
                near_pairs: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Robot pairs ``(i, j, d_s)`` within ``sensing_range`` that could come within ``d_s + slack``, ``R`` their reach.
-
-    From ``near_pairs`` ``(P, 2)``, a superset of those pairs, or searched here.
-    """
+    """Robot pairs ``(i, j, d_s)`` within ``sensing_range`` that could come within ``d_s + slack`` (``R``: reaches)."""
     rad = team.radius
     if near_pairs is None:
         search = min(float(sensing_range), 2.0 * float(rad.max(initial=0.0)) + 2.0 * float(R.max(initial=0.0))
@@ -418,13 +362,19 @@ def pairs_near(team: Team, p0: np.ndarray, R: np.ndarray, sensing_range: float, 
 def obstacles_near(team: Team, p0: np.ndarray, R: np.ndarray, obstacles: tuple[np.ndarray, ...] | None,
                    slack: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Robot-obstacle pairs that could come within ``d_s + slack``: ``(centres (M,) complex, i, k, d_s)``."""
-    if obstacles is None or not np.asarray(obstacles[1]).size:
-        return np.empty(0, dtype=np.complex128), np.empty(0, dtype=np.intp), np.empty(0, dtype=np.intp), np.empty(0)
-    c, orad = np.asarray(obstacles[0], dtype=np.float64), np.asarray(obstacles[1], dtype=np.float64)
-    oc = c[:, 0] + 1j * c[:, 1]
+    oc, orad, ogroup = _obstacle_arrays(team, obstacles)
     rad = team.radius
     near = np.abs(p0[:, None] - oc[None, :]) < rad[:, None] + orad[None, :] + R[:, None] + slack
-    if team.group is not None and len(obstacles) > 2 and obstacles[2] is not None:
-        near &= team.group[:, None] == np.asarray(obstacles[2])[None, :]
+    if ogroup is not None:
+        near &= team.group[:, None] == ogroup[None, :]
     oi, ok = np.nonzero(near)
     return oc, oi, ok, rad[oi] + orad[ok]
+
+
+def _obstacle_arrays(team: Team, obstacles: tuple[np.ndarray, ...] | None) -> tuple:
+    """``(centres (M,) complex, radii (M,), groups (M,), or None where the team or the obstacles have none)``."""
+    if obstacles is None or not np.asarray(obstacles[1]).size:
+        return _NO_OC, _NO_R, None
+    c, orad = np.asarray(obstacles[0], dtype=np.float64), np.asarray(obstacles[1], dtype=np.float64)
+    grouped = team.group is not None and len(obstacles) > 2 and obstacles[2] is not None
+    return c[:, 0] + 1j * c[:, 1], orad, np.asarray(obstacles[2]) if grouped else None

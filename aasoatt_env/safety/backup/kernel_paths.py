@@ -1,43 +1,36 @@
 """The backup layer's compiled closed forms, pair checks and pair search (numba; used by :mod:`.kernels`).
 
-Each helper repeats the numpy reference's operations (:mod:`~aasoatt_env.safety.backup.paths` and
-:mod:`~aasoatt_env.safety.backup.gate`; the names say which) in its order, for one robot, sample or pair,
-with two exceptions: a pair's distance on a step is ``sqrt(x^2 + y^2)`` (numpy's ``abs`` takes ``hypot``),
-and :func:`fill_brake` may rotate by a recurrence.  So the results differ from the reference by rounding.
-Robots' constants are the columns of :func:`~aasoatt_env.safety.backup.gate.team_block`'s ``robots``.
+Each helper repeats its numpy reference in :mod:`~aasoatt_env.safety.backup.paths` or
+:mod:`~aasoatt_env.safety.backup.gate` (the name says which) for one robot, sample or pair, in its order of operations
+except that a step's distance is ``sqrt(x^2 + y^2)`` (numpy takes ``hypot``) and :func:`fill_brake` may rotate by a
+recurrence: the results agree to rounding.  Robots' constants are the columns of
+:func:`~aasoatt_env.safety.backup.gate.team_block`'s ``robots``.
 """
-
-from __future__ import annotations
 
 import math
 
 import numpy as np
 
-from aasoatt_env.numba_jit import jit as _jit
-from aasoatt_env.numba_jit import nmax as _nmax
-from aasoatt_env.safety.backup.paths import MAX_BRAKE_STEPS
+from aasoatt_env.numba_jit import jit, nclip, nmax
+from aasoatt_env.safety.backup.paths import _EPS, MAX_BRAKE_STEPS
 
 __all__ = ["E1", "brake1", "candidate1", "fill_brake", "fill_row", "near", "pair_margin", "pair_min",
            "consts", "rows_of", "sample_at", "segment_margin", "starts"]
 
-OFFSET, TURN_GAIN, MAX_ACCEL, DECEL, RADIUS = 0, 1, 2, 3, 4
-"""Columns of the robots' constants."""
-D1, OMEGA, RATE, BULGE, REACH = 0, 1, 2, 3, 4
-"""Columns of a level's float parameters (``F``); its complex ones (``C``) are the step's end and the velocity."""
-_EPS = float(np.finfo(np.float64).eps)
+OFFSET, TURN_GAIN, MAX_ACCEL, DECEL, RADIUS = 0, 1, 2, 3, 4  # columns of the robots' constants
+D1, OMEGA, RATE, BULGE, REACH = 0, 1, 2, 3, 4  # columns of a level's floats F (its complex C: step end, velocity)
 _TWO_PI = 2.0 * np.pi
 _PI = float(np.pi)
-_RESYNC = 16
-"""Samples between the exact rotations of :func:`fill_brake`'s recurrence."""
+_RESYNC = 16  # samples between the exact rotations of fill_brake's recurrence
 
 
-@_jit
+@jit
 def cabs(z):
     """``|z|`` by ``hypot``, as numpy's scalar code takes it."""
     return math.hypot(z.real, z.imag)
 
 
-@_jit
+@jit
 def sinc1(x):
     """``paths._sinc`` of one number."""
     y = _PI * x
@@ -46,7 +39,7 @@ def sinc1(x):
     return math.sin(y) / y
 
 
-@_jit
+@jit
 def E1(x):
     """``paths._E`` of one number, one sine serving both factors (numpy's sinc takes the same angle)."""
     h = 0.5 * x
@@ -55,13 +48,13 @@ def E1(x):
     return complex(math.cos(h) * sc, sh * sc)
 
 
-@_jit
+@jit
 def rot(h):
     """``e^{i h}``."""
     return complex(math.cos(h), math.sin(h))
 
 
-@_jit
+@jit
 def starts(diff, rob, pose):
     """Control points ``(n,)`` and headings ``e^{i theta}`` ``(n,)`` (0 for point masses) of axle poses."""
     n = pose.shape[0]
@@ -73,13 +66,13 @@ def starts(diff, rob, pose):
     return p0, hd
 
 
-@_jit
+@jit
 def consts(rob, cols, g):
     """Robot ``g``'s constants of the closed forms, by value: input columns, turn gain, acceleration, deceleration."""
     return cols[g, 0], cols[g, 1], rob[g, TURN_GAIN], rob[g, MAX_ACCEL], rob[g, DECEL]
 
 
-@_jit
+@jit
 def velocity1(diff, rc, heading, u0, u1):
     """``paths._velocity`` of a robot (``rc``: its :func:`consts`): control-point velocity and yaw rate."""
     if not diff:
@@ -87,15 +80,15 @@ def velocity1(diff, rc, heading, u0, u1):
     return heading * (rc[0] * u0 + rc[1] * u1), rc[2] * (u0 - u1)
 
 
-@_jit
+@jit
 def brake_time1(diff, rc, u0, u1):
     """``paths.brake_time`` of a robot."""
-    s = _nmax(abs(u0), abs(u1))
+    s = nmax(abs(u0), abs(u1))
     speed = cabs(rc[0] * u0 + rc[1] * u1) if diff else math.hypot(u0, u1)
-    return _nmax(s / rc[3], speed / rc[4])
+    return nmax(s / rc[3], speed / rc[4])
 
 
-@_jit
+@jit
 def brake1(diff, rc, heading, u0, u1, dt):
     """``paths.brake`` of a robot: ``(pdot, omega, rate, steps, reach, bulge)`` (NaN kept as numpy keeps it)."""
     T = brake_time1(diff, rc, u0, u1)
@@ -120,12 +113,9 @@ def brake1(diff, rc, heading, u0, u1, dt):
     return (pdot if moving else pdot * 0.0), w, rate, steps, reach, bulge
 
 
-@_jit
+@jit
 def candidate1(diff, rc, p0, theta, heading, u0, u1, du0, du1, dt):
-    """``paths.candidate`` of a robot (``heading``: ``e^{i theta}``).
-
-    Returns ``(p1, dev, pdot, omega, rate, steps, reach, bulge)``, ``reach`` the candidate's.
-    """
+    """``paths.candidate`` of a robot: ``(p1, dev, pdot, omega, rate, steps, reach, bulge)`` (the candidate's reach)."""
     c8 = dt * dt / 8.0
     u10 = u0 + du0 * dt
     u11 = u1 + du1 * dt
@@ -138,14 +128,13 @@ def candidate1(diff, rc, p0, theta, heading, u0, u1, du0, du1, dt):
     return p1, dev, pdot, w, rate, steps, cabs(p1 - p0) + dev + reach, bulge
 
 
-@_jit
+@jit
 def fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulge, dt, length, fast):
-    """Braking samples ``row_p[start:length]`` from ``p_start`` and deviations ``row_d[start:length-1]``.
+    """``paths.brake_samples`` into ``row_p[start:length]`` from ``p_start``, deviations into ``row_d``.
 
-    ``paths.brake_samples`` in its order of operations.  ``fast``: while the robot decelerates, each step's
-    rotation ``e^{i omega dtau / 2}`` is the previous one's times a fixed factor, so the rotations come by
-    recurrence, taken exactly every :data:`_RESYNC` samples and where the speed reaches 0 (samples within
-    ~1e-13 of the path's length of the exact ones, far below the check's tolerance).
+    ``fast``: while the robot decelerates each step's rotation ``e^{i omega dtau / 2}`` is the previous one's times a
+    fixed factor, so the rotations come by recurrence, exact every :data:`_RESYNC` samples and at rest: samples within
+    ~1e-13 of the path's length of the exact ones, far below the check's tolerance.
     """
     c8, half_dt, apd, aw = dt * dt / 8.0, 0.5 * dt, cabs(pdot), abs(omega)
     tau, sig_prev = 0.0, 1.0
@@ -185,7 +174,7 @@ def fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulge
         sig_prev = sig
 
 
-@_jit
+@jit
 def fill_row(cur, curd, r, g, k, last, p0, C, F, has_bulge, dt, need, fast):
     """Row ``r`` of ``cur``/``curd``: robot ``g``'s path on level ``k`` (``need`` samples; ``last``: braking now)."""
     s = 0 if k == last else 1
@@ -195,7 +184,7 @@ def fill_row(cur, curd, r, g, k, last, p0, C, F, has_bulge, dt, need, fast):
                F[k, g, BULGE], has_bulge, dt, need, fast)
 
 
-@_jit
+@jit
 def sample_at(p0, p1, d1, pdot, omega, rate, steps, bulge, has_bulge, dt, s):
     """Sample ``s`` of a candidate path and the deviation of step ``s -> s + 1`` (``paths.candidate_samples_at``)."""
     if s == 0:
@@ -204,16 +193,9 @@ def sample_at(p0, p1, d1, pdot, omega, rate, steps, bulge, has_bulge, dt, s):
     kf = math.floor(1.0 / r)
     k = float(max(s - 1, 0))
     kc = min(k, kf)
-    extra = 0.0
-    if k > kf:
-        extra = 1.0 - kf * r
-        extra = 0.5 * (0.0 if extra < 0.0 else (1.0 if extra > 1.0 else extra))
-    tau = dt * (kc - 0.5 * r * kc * kc + extra)
+    tau = dt * (kc - 0.5 * r * kc * kc + (0.5 * nclip(1.0 - kf * r, 0.0, 1.0) if k > kf else 0.0))
     p = p1 + (pdot * tau) * E1(omega * tau)
-    a = 1.0 - k * r
-    a = 0.0 if a < 0.0 else (1.0 if a > 1.0 else a)
-    b = 1.0 - (k + 1.0) * r
-    b = 0.0 if b < 0.0 else (1.0 if b > 1.0 else b)
+    a, b = nclip(1.0 - k * r, 0.0, 1.0), nclip(1.0 - (k + 1.0) * r, 0.0, 1.0)
     sig = 0.5 * (a + b)
     d = (dt * dt / 8.0) * cabs(pdot) * (sig * sig) * abs(omega)
     if has_bulge:
@@ -221,7 +203,7 @@ def sample_at(p0, p1, d1, pdot, omega, rate, steps, bulge, has_bulge, dt, s):
     return p, d
 
 
-@_jit
+@jit
 def segment_margin(qa0, qa1, qc0, qc1, da, dc):
     """Smallest ``|q| - da - dc`` on the segment of relative positions ``qa - qc`` (``gate.pair_margins``' step)."""
     q0 = qa0 - qc0
@@ -238,12 +220,9 @@ def segment_margin(qa0, qa1, qc0, qc1, da, dc):
     return math.sqrt(x * x + y * y) - da - dc
 
 
-@_jit
+@jit
 def step_margin(cur, curd, na, nc, a, c, static, oc, k):
-    """Step ``k``'s :func:`segment_margin` of rows ``a``, ``c`` (``static``: ``a`` and the point ``oc``).
-
-    A row rests beyond its ``n`` samples (its last sample, deviation 0), as the padded numpy rows do.
-    """
+    """Step ``k``'s :func:`segment_margin` of rows ``a``, ``c`` (``static``: ``oc``); a row rests past its samples."""
     ka0, ka1 = min(k, na - 1), min(k + 1, na - 1)
     da = curd[a, k] if k < na - 1 else 0.0
     if static:
@@ -253,12 +232,9 @@ def step_margin(cur, curd, na, nc, a, c, static, oc, k):
     return segment_margin(cur[a, ka0], cur[a, ka1], cur[c, kc0], cur[c, kc1], da, dc)
 
 
-@_jit
+@jit
 def pair_min(cur, curd, na, nc, a, c, static, oc, nseg, tie):
-    """Smallest margin (before ``- d_s``) over ``nseg`` steps and its step, the first NaN winning.
-
-    ``tie >= 0``: the first step within ``tie`` of the least, as ``pair_margins(..., closest=True)`` takes it.
-    """
+    """Least margin (before ``- d_s``) over ``nseg`` steps and its step (a NaN first; ``tie >= 0``: ``closest``'s)."""
     best, kbest = np.inf, 0
     for k in range(nseg):
         dist = step_margin(cur, curd, na, nc, a, c, static, oc, k)
@@ -273,20 +249,16 @@ def pair_min(cur, curd, na, nc, a, c, static, oc, nseg, tie):
     return best, kbest
 
 
-@_jit
+@jit
 def pair_margin(cur, curd, na, nc, a, c, ds, static, oc):
     """:func:`pair_min` over the pair's own horizon, minus ``ds``."""
     L = na if static else max(na, nc)
     return pair_min(cur, curd, na, nc, a, c, static, oc, max(L, 2) - 1, -1.0)[0] - ds
 
 
-@_jit
+@jit
 def near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup, slack):
-    """``gate.pairs_near`` from candidate pairs ``cand`` ``(P, 2)``, then ``gate.obstacles_near``.
-
-    Returns ``(a, c, d_s, centre)`` per pair: robot pairs first (``centre`` 0), then robot-obstacle pairs
-    (``c = -1``, ``centre`` the obstacle's).
-    """
+    """``gate.pairs_near`` of ``cand``, then ``gate.obstacles_near`` (``c = -1``): ``(a, c, d_s, obstacle centre)``."""
     n, m = p0.shape[0], oc.shape[0]
     a, c = np.empty(cand.shape[0] + n * m, np.int64), np.empty(cand.shape[0] + n * m, np.int64)
     ds, at = np.empty(a.shape[0]), np.zeros(a.shape[0], np.complex128)
@@ -309,7 +281,7 @@ def near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, ha
     return a[:P], c[:P], ds[:P], at[:P]
 
 
-@_jit
+@jit
 def rows_of(n, a, c):
     """Buffer rows for the robots in pairs: ``loc`` ``(n,)`` (-1: none), the robots of the rows, their count."""
     loc = np.full(n, -1, dtype=np.int64)

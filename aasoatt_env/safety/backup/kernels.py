@@ -1,23 +1,19 @@
 """The backup layer's compiled check and repair (numba; imported only through :mod:`aasoatt_env.compiled`).
 
 :func:`gate_full` is one :func:`~aasoatt_env.safety.backup.gate.gatekeeper` call and :func:`repair_full` one
-:func:`~aasoatt_env.safety.backup.repair.repair` call, written once per robot, pair and sample with the
-helpers of :mod:`.kernel_paths` (the same decisions, numbers to rounding).  Both take the block of
-:func:`~aasoatt_env.safety.backup.gate.kernel_args`, whose shapes the caller checked: numba does not.
+:func:`~aasoatt_env.safety.backup.repair.repair` call, per robot, pair and sample (helpers: :mod:`.kernel_paths`), on
+the block of :func:`~aasoatt_env.safety.backup.gate.kernel_args`, whose shapes the caller checked.
 """
-
-from __future__ import annotations
 
 import numpy as np
 
-from aasoatt_env.numba_jit import jit as _jit
-from aasoatt_env.numba_jit import nmax as _nmax
+from aasoatt_env.numba_jit import jit, nmax
 from aasoatt_env.safety.backup import kernel_paths as kp
 
 __all__ = ["gate_full", "repair_full"]
 
 
-@_jit
+@jit
 def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limit):
     """Every level's inputs ``(nl, n, 2)`` and path parameters ``C, F, NEED`` (``gate._levels``)."""
     n, nl = pose.shape[0], levels.shape[0]
@@ -30,7 +26,7 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
         pdot, w, rate, steps, reach, bulge = kp.brake1(diff, rc, hd[g], u[g, 0], u[g, 1], dt)
         C[last, g, 1], NEED[last, g] = pdot, steps + 1
         F[last, g, 0], F[last, g, 1], F[last, g, 2], F[last, g, 3], F[last, g, 4] = 0.0, w, rate, bulge, reach
-        den = _nmax(T, dt)
+        den = nmax(T, dt)
         du_all[last, g, 0], du_all[last, g, 1] = -u[g, 0] / den, -u[g, 1] / den
     for k in range(nl - 1):  # one step blending the candidate and the backup, then the backup
         a = levels[k]
@@ -50,7 +46,7 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
     return du_all, C, F, NEED
 
 
-@_jit
+@jit
 def _hold_floors(tol_p, cur, curd, loc, rob_rows, p0, C, F, NEED, has_bulge, dt, a, c, ds, at):
     """``hold_violations``: each pair's tolerance the larger of ``tol`` and its margin when both members brake."""
     last = NEED.shape[0] - 1
@@ -65,7 +61,7 @@ def _hold_floors(tol_p, cur, curd, loc, rob_rows, p0, C, F, NEED, has_bulge, dt,
         tol_p[q] = max(tol_p[q], fl * (1.0 + 1e-9))
 
 
-@_jit
+@jit
 def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at, tol, hold):
     """The gatekeeper's rounds (``gate._rounds``): ``lev``, ``broken`` updated in place; ``(margins, rounds)``."""
     n, P, last = lev.shape[0], a.shape[0], NEED.shape[0] - 1
@@ -116,14 +112,10 @@ def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at
             todo[q] = demote[a[q]] or (c[q] >= 0 and demote[c[q]])
 
 
-@_jit
+@jit
 def gate_full(pose, u, du_c, dt, levels, quick, diff, rob, cols, group, has_group, sensing_range, cand, oc, orad,
               ogroup, has_ogroup, limit, tol, hold):
-    """One ``gatekeeper`` call: ``(du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin)``.
-
-    ``levels``: the shares tried, 1 first, 0 (the backup) last; ``quick``, ``tol``, ``hold``: the gatekeeper's
-    ``quick``, ``tol``, ``hold_violations``; ``limit``: the robots' reach limits; the rest the kernel block.
-    """
+    """``gatekeeper``: ``(du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin)``."""
     n = pose.shape[0]
     p0, hd = kp.starts(diff, rob, pose)
     du_all, C, F, NEED = _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limit)
@@ -158,7 +150,7 @@ def gate_full(pose, u, du_c, dt, levels, quick, diff, rob, cols, group, has_grou
     return du, lev > 0, broken, share, robot_margin, out_of_range, rounds, a.shape[0], margin
 
 
-@_jit
+@jit
 def _moved_step(diff, rob, cols, p0, hd, pose, u, du, g, d, eps, dt, k):
     """Samples ``k``, ``k + 1`` and step ``k``'s deviation of robot ``g``'s path with input ``d`` moved by ``eps``."""
     e0 = du[g, 0] + (eps if d == 0 else 0.0)
@@ -170,12 +162,9 @@ def _moved_step(diff, rob, cols, p0, hd, pose, u, du, g, d, eps, dt, k):
     return pa0, pa1, dm0
 
 
-@_jit
+@jit
 def _repair_rows(rowp, rowd, made, a, c, p0, C, F, NEED, has_bulge, dt):
-    """The candidate paths (row ``g``: robot ``g``) of the robots in pairs; ``(rows, deviations, longest)``.
-
-    A row is made once and kept until its robot's input changes (``made``); larger rows drop them all.
-    """
+    """Candidate paths (row ``g``: robot ``g``) of robots in pairs, each kept until ``made`` drops it: ``(p, d, L)``."""
     used = np.zeros(p0.shape[0], dtype=np.bool_)
     for q in range(a.shape[0]):
         used[a[q]] = True
@@ -195,7 +184,7 @@ def _repair_rows(rowp, rowd, made, a, c, p0, C, F, NEED, has_bulge, dt):
     return rowp, rowd, L
 
 
-@_jit
+@jit
 def _low_pairs(cur, curd, need, a, c, ds, at, target, L, tie):
     """Pairs whose margin is below ``target``: ``(low, margin at the closest step, that step)``."""
     P = a.shape[0]
@@ -211,7 +200,7 @@ def _low_pairs(cur, curd, need, a, c, ds, at, target, L, tie):
     return low, m0, kk
 
 
-@_jit
+@jit
 def _lifts(cur, curd, need, a, c, ds, at, low, m0, kk, target, eps, diff, rob, cols, p0, hd, pose, u, du, dt):
     """The summed least-norm lifts ``(n, 2)`` of the low pairs, by finite differences at their closest steps."""
     P = a.shape[0]
@@ -244,7 +233,7 @@ def _lifts(cur, curd, need, a, c, ds, at, low, m0, kk, target, eps, diff, rob, c
     return step
 
 
-@_jit
+@jit
 def repair_full(pose, u, du_c, lo, hi, dt, diff, rob, cols, group, has_group, sensing_range, cand, oc, orad,
                 ogroup, has_ogroup, target, rounds, eps, tie):
     """One ``repair`` call: the nudged candidate ``(n, 2)`` (``tie``: the closest-step tie of ``gate.CLOSEST_TIE``)."""

@@ -19,10 +19,9 @@ from aasoatt_env.sim.env import FILTERED_MIN_COLLISION_TOLERANCE
 __all__ = ["GATE_TOL", "BackupAnswer", "BackupLayer", "gate_with_repair"]
 
 GATE_TOL: float = 0.5 * FILTERED_MIN_COLLISION_TOLERANCE
-"""Overlap [m] the check forgives: half the env's smallest collision tolerance behind a filter, the other half
-left for the rounding between the closed-form paths and the simulator's steps (~``eps |p|``).  Twice what a
-scenario's start may overlap (:data:`aasoatt_env.sim.scenarios.base.TOUCH_TOL`), so a touching team at rest
-is brake-safe."""
+"""Overlap [m] the check forgives: half the env's collision tolerance behind a filter (the other half absorbs
+the rounding between closed-form paths and simulator steps), twice a scenario start's
+(:data:`~aasoatt_env.sim.scenarios.base.TOUCH_TOL`): a touching team at rest is brake-safe."""
 
 
 def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,
@@ -30,23 +29,11 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
                      pairs: np.ndarray | None = None, *, checked: bool = False) -> GateResult:
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair where it brakes.
 
-    Every answer comes from :func:`~aasoatt_env.safety.backup.gatekeeper`.  Whether the QP's answer passes
-    is decided by the first round, the same with or without blend levels, so it is checked first without
-    them (``quick``).  Where it brakes someone, the rest is decided per connected component of the robots
-    within the sensing range ``D`` of each other, each as if alone (the gatekeeper never couples robots
-    farther apart than ``D``):
-
-    - a component whose invariant was already broken (a pair failing when both brake) gets the best effort
-      of ``hold_violations``, and the result says unsafe;
-    - one where a robot brakes for a pair is nudged by :func:`~aasoatt_env.safety.backup.repair.repair` and
-      checked again; where the repaired answer still brakes someone, the full check of the QP's answer is
-      made and the one that brakes fewer robots kept (the repaired one on a tie, the QP's where its check
-      finds the component broken);
-    - the others (robots braking only for the range limit, the repair off) get the full check.
-
-    ``pairs``: every pair of one group within ``D`` at the control points, as the filter found them (a
-    safety input: every check takes its candidate pairs from it; None: searched here).  ``checked``: the
-    caller vouches for every shape and pair index.
+    The quick check (no blend levels) decides whether ``du`` passes.  Where it brakes someone, each component of robots
+    within ``D`` of each other is decided alone (the gatekeeper never couples robots farther apart): a broken one gets
+    ``hold_violations``' best effort (unsafe); one braking for a pair is repaired and checked again, keeping the QP's
+    answer where it brakes fewer robots (the repaired on a tie, the QP's if its check finds the component broken); the
+    others get the full check.  ``pairs``, ``checked``: the gatekeeper's ``near_pairs``, ``checked``.
     """
     if not checked:
         pairs = validate(team, pose, obstacles, pairs, u=u, du=du, lo=lo, hi=hi)
@@ -149,18 +136,16 @@ def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], unsafe
 
 
 class BackupAnswer(NamedTuple):
-    """What the backup layer did to the QP's answer."""
+    """What the backup layer did: :class:`GateResult`'s ``du``, ``braking``, ``margin``, ``safe``, and ``nudged``.
+
+    ``nudged``: robots the repair moved (not braking).
+    """
 
     du: np.ndarray
-    """``(N, 2)`` the inputs to apply."""
     braking: np.ndarray
-    """``(N,)`` robots blended toward, or put on, the braking backup."""
     nudged: np.ndarray
-    """``(N,)`` robots whose inputs the repair moved (and that do not brake)."""
     margin: float
-    """Smallest ``distance - d_s`` [m] along the backup horizon of the applied inputs."""
     safe: bool
-    """The state was brake-safe: the applied inputs keep the team in the safe set."""
 
 
 def axle_pose(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:

@@ -1,14 +1,13 @@
 """The backup policy, proportional braking, and the robots' braking and candidate paths in closed form.
 
-Backup policy: ``du = -u / T`` (``-u / dt`` in the last step), ``T = max(s / a, |p_dot| / a_b)`` with
-``s = max|u_k|`` and ``a_b = brake_fraction * rho * a``.  Both wheel speeds fall linearly to zero together,
-so the control point keeps a fixed circle while it slows within the wheels' bounds, and after one braking
-step ``T`` is exactly ``T - dt``: the policy is time-consistent (braking from a state reached by braking
-continues the same path).  In closed form, with the speed scale ``sigma_k = max(0, 1 - k dt / T)`` and the
-arc parameter ``tau_k`` its trapezoid sum, ``p(tau) = p0 + p_dot0 tau E(omega0 tau)``,
-``E(x) = (e^{ix} - 1) / (ix)``: the simulator moves along the arc of the step-mean wheel speeds, so these
-samples equal stepping :func:`aasoatt_env.model.dynamics.integrate` with :func:`braking_du`.  A candidate
-path is one step holding a candidate input, then the backup.
+Backup: ``du = -u / T`` (``-u / dt`` in the last step), ``T = max(s / a, |p_dot| / a_b)``, ``s = max|u_k|``,
+``a_b = brake_fraction * rho * a``.  Both wheel speeds fall linearly to zero together, so the control point keeps a
+fixed circle within the wheels' bounds, and after one braking step ``T`` is exactly ``T - dt``: the policy is
+time-consistent (braking from a state reached by braking continues the same path).  In closed form, with the speed
+scale ``sigma_k = max(0, 1 - k dt / T)`` and the arc parameter ``tau_k`` its trapezoid sum,
+``p(tau) = p0 + p_dot0 tau E(omega0 tau)``, ``E(x) = (e^{ix} - 1) / (ix)``: the simulator moves along the arc of the
+step-mean wheel speeds, so these samples equal stepping :func:`aasoatt_env.model.dynamics.integrate` with
+:func:`braking_du`.  A candidate path is one step holding a candidate input, then the backup.
 """
 
 from __future__ import annotations
@@ -79,19 +78,16 @@ def braking_du(team: Team, u: np.ndarray, dt: float, brake_fraction: float) -> n
 
 
 def reach_limit(team: Team, sensing_range: float) -> np.ndarray:
-    """``D / 2 - r_i`` per robot ``(N,)``: how far it may get from where it is along its step and braking path.
-
-    Two robots more than ``D`` apart (unseen by each other) within their limits keep ``>= r_i + r_j`` apart.
-    """
+    """``D / 2 - r_i`` per robot: how far it may get, so that robots out of sensing range stay apart."""
     return 0.5 * float(sensing_range) - team.radius
 
 
 class Trajectories(NamedTuple):
-    """Sampled control-point paths of a team, one sample per physics step.
+    """Sampled control-point paths, one sample per physics step.
 
-    ``p`` ``(N, L)``: complex positions at steps ``0 .. L-1`` (padded with the rest position); ``delta``
-    ``(N, L-1)``: bounds on the path's deviation within each step from its chord [m]; ``length`` ``(N,)``: the
-    samples that matter; ``reach`` ``(N,)``: a bound on the path's distance from ``p[:, 0]`` [m].
+    ``p`` ``(N, L)``: complex positions (padded with the rest position); ``delta`` ``(N, L-1)``: bounds on each step's
+    deviation from its chord [m]; ``length`` ``(N,)``: the samples that matter; ``reach`` ``(N,)``: a bound on the
+    distance from ``p[:, 0]`` [m].
     """
 
     p: np.ndarray
@@ -185,11 +181,7 @@ class Candidate(NamedTuple):
 
 def candidate(team: Team, p0: np.ndarray, theta: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float,
               brake_fraction: float) -> Candidate:
-    """One step holding ``du`` from control points ``p0`` (the simulator's step), then braking.
-
-    A wheeled robot moves on the arc of the step-mean wheel speeds (deviation: its sagitta), a point
-    mass on the parabola of the held acceleration (``|du| dt^2 / 8``).
-    """
+    """One step holding ``du`` from control points ``p0`` (the simulator's step), then braking."""
     u1 = u + du * dt
     pdot_m, w_m = _velocity(team, theta, 0.5 * (u + u1))
     p1 = p0 + pdot_m * dt * _E(w_m * dt)
@@ -222,12 +214,11 @@ def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray,
 def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float,
                          brake_fraction: float, s: np.ndarray, rows: np.ndarray | None = None
                          ) -> tuple[np.ndarray, np.ndarray]:
-    """Samples ``s`` of :func:`candidate_paths` in closed form, without the others: ``(p, delta)`` ``(R, S)``.
+    """Samples ``s`` ``(R, S)`` of :func:`candidate_paths` in closed form, without the others: ``(p, delta)``.
 
-    ``s`` ``(R, S)``: sample indices per row (0: the current point, 1: after the step with ``du``, ``k + 1``:
-    after ``k`` braking steps), a row per robot unless ``rows`` ``(R,)`` names each row's robot; ``delta``:
-    the deviations of steps ``s -> s + 1``.  Braking step ``k``'s arc parameter is the trapezoid sum written
-    out, ``dt (k - r k^2 / 2)`` while ``1 - k r > 0``, ``r = dt / T``: the numbers of the paths to rounding.
+    ``s``: 0 now, 1 after the step with ``du``, ``k + 1`` after ``k`` braking steps (arc parameter
+    ``dt (k - r k^2 / 2)`` while ``1 - k r > 0``, ``r = dt / T``); ``rows`` ``(R,)``: each row's robot (default: one
+    each).
     """
     p0 = point(team, pose)
     c = candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 
 from aasoatt_env.compiled import c64, kernels
@@ -19,13 +17,11 @@ def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: fl
            compiled: bool = False, checked: bool = False) -> np.ndarray:
     """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
 
-    For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below ``target``
-    [m], the margin's gradient in both robots' inputs is taken by finite differences (step ``eps``) at the
-    pair's closest step, and both inputs move by the least-norm change that lifts the linearised margin to
-    ``2 target``; the changes of several pairs add up, then are clipped to ``[lo, hi]``; ``rounds`` rounds.
-    Like backup-barrier rows in the QP, a small local correction: safety still comes from the gatekeeper.
-    ``near_pairs``, ``checked``, ``compiled``: as for :func:`~aasoatt_env.safety.backup.gatekeeper` (the
-    compiled answer equals this one up to rounding, which the division by the squared gradient amplifies).
+    For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below ``target`` [m], both
+    inputs move by the least-norm change that lifts the margin, linearised by finite differences (step ``eps``) at its
+    closest step, to ``2 target``; the changes add up and are clipped to ``[lo, hi]``, ``rounds`` times.  Safety still
+    comes from the gatekeeper, whose ``near_pairs``, ``compiled``, ``checked`` these are (the compiled answer equals
+    this one to rounding, amplified by the division by the squared gradient).
     """
     if not checked:
         near_pairs = gate.validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c, lo=lo, hi=hi)
@@ -45,18 +41,18 @@ def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: fl
         oc, oi, ok, ods = gate.obstacles_near(team, p0, R, obstacles, 2.0 * target)
         if i.size + oi.size == 0:
             break
-        S = np.unique(np.concatenate((i, j, oi)))  # rows of `base`: these robots, in this order
+        S = np.unique(np.concatenate((i, j, oi)))  # rows of the paths: these robots, in this order
         loc = np.full(n, -1, dtype=np.intp)
         loc[S] = np.arange(S.size)
-        base = cache.get(S, du)
-        low = gate.bucketed_margins(base.p, base.delta, base.length, loc[i], loc[j], ds) < target
+        P, D, need = cache.get(S, du)
+        low = gate.bucketed_margins(P, D, need, loc[i], loc[j], ds) < target
         i, j, ds = i[low], j[low], ds[low]
         if oi.size:
-            lowo = gate.bucketed_margins(base.p, base.delta, base.length, loc[oi], ok, ods, centers=oc) < target
+            lowo = gate.bucketed_margins(P, D, need, loc[oi], ok, ods, centers=oc) < target
             oi, ok, ods = oi[lowo], ok[lowo], ods[lowo]
         if i.size + oi.size == 0:
             break
-        step = _lifts(team, pose, u, du, dt, brake_fraction, target, eps, base, loc, (i, j, ds), (oc, oi, ok, ods))
+        step = _lifts(team, pose, u, du, dt, brake_fraction, target, eps, (P, D), loc, (i, j, ds), (oc, oi, ok, ods))
         if not step.any():
             break
         moved_du = np.minimum(np.maximum(du + step, lo), hi)
@@ -66,13 +62,9 @@ def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: fl
 
 
 def _lifts(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float, brake_fraction: float,
-           target: float, eps: float, base: _Paths, loc: np.ndarray, pairs: tuple, obst: tuple) -> np.ndarray:
-    """The summed least-norm lifts ``(n, 2)`` of the low pairs and obstacle pairs, from their closest steps.
-
-    Each gradient comes from that step's two samples of one member's path with one input moved by ``eps``,
-    in closed form (the envelope of the minimum).
-    """
-    (i, j, ds), (oc, oi, ok, ods) = pairs, obst
+           target: float, eps: float, base: tuple, loc: np.ndarray, pairs: tuple, obst: tuple) -> np.ndarray:
+    """The summed least-norm lifts ``(n, 2)`` of the low pairs, by finite differences at their closest steps."""
+    (P, D), (i, j, ds), (oc, oi, ok, ods) = base, pairs, obst
     n = pose.shape[0]
     step = np.zeros((n, 2))
     U = np.unique(np.concatenate((i, j, oi)))  # every robot of a low pair with each input moved: rows 2 q + d
@@ -82,12 +74,12 @@ def _lifts(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: floa
     sub = (team.subset(R2), pose[R2], u[R2], du[R2] + eps * np.tile(np.eye(2), (U.size, 1)), dt, brake_fraction)
     if i.size:
         li, lj = loc[i], loc[j]
-        m0, k = gate.pair_margins(base.p[li], base.p[lj], base.delta[li], base.delta[lj], ds, closest=True)
+        m0, k = gate.pair_margins(P[li], P[lj], D[li], D[lj], ds, closest=True)
         s4 = np.tile(k[:, None] + np.arange(2), (4, 1))
         fix = np.concatenate((lj, lj, li, li))
         pm, dm = paths.candidate_samples_at(*sub, s4, rows=np.concatenate((at[i], at[i] + 1, at[j], at[j] + 1)))
-        mg = gate.pair_margins(pm, base.p[fix[:, None], s4], dm[:, :1], base.delta[fix, s4[:, 0]][:, None],
-                          np.tile(ds, 4)).reshape(4, -1)
+        mg = gate.pair_margins(pm, P[fix[:, None], s4], dm[:, :1], D[fix, s4[:, 0]][:, None], np.tile(ds, 4))
+        mg = mg.reshape(4, -1)
         gi = ((mg[0:2] - m0) / eps).T
         gj = ((mg[2:4] - m0) / eps).T
         lift = (2.0 * target - m0) / np.maximum((gi * gi).sum(1) + (gj * gj).sum(1), 1e-12)
@@ -95,7 +87,7 @@ def _lifts(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: floa
         np.add.at(step, j, lift[:, None] * gj)
     if oi.size:
         lo_ = loc[oi]
-        m0, k = gate.pair_margins(base.p[lo_], oc[ok][:, None], base.delta[lo_], 0.0, ods, closest=True)
+        m0, k = gate.pair_margins(P[lo_], oc[ok][:, None], D[lo_], 0.0, ods, closest=True)
         s2 = np.tile(k[:, None] + np.arange(2), (2, 1))
         pm, dm = paths.candidate_samples_at(*sub, s2, rows=np.concatenate((at[oi], at[oi] + 1)))
         mg = gate.pair_margins(pm, oc[np.tile(ok, 2)][:, None], dm[:, :1], 0.0, np.tile(ods, 2)).reshape(2, -1)
@@ -105,20 +97,8 @@ def _lifts(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: floa
     return step
 
 
-class _Paths(NamedTuple):
-    """Samples ``(R, L)``, deviation bounds ``(R, L-1)`` and sample counts ``(R,)`` of candidate paths."""
-
-    p: np.ndarray
-    delta: np.ndarray
-    length: np.ndarray
-
-
 class _PathCache:
-    """Candidate paths of a team's robots, each made once and kept until the robot's input changes.
-
-    A repair round moves only the robots of low pairs, so the others keep their paths.  A row shorter
-    than the others is extended with its rest position (deviation 0): what a longer horizon gives for it.
-    """
+    """Candidate paths of a team's robots, kept until the robot's input changes (a shorter row rests at its end)."""
 
     def __init__(self, team: Team, pose: np.ndarray, u: np.ndarray, dt: float, brake_fraction: float) -> None:
         self.team, self.pose, self.u, self.dt, self.brake_fraction = team, pose, u, dt, brake_fraction
@@ -128,8 +108,8 @@ class _PathCache:
         self.length = np.zeros(n, dtype=np.int64)
         self.valid = np.zeros(n, dtype=bool)
 
-    def get(self, rows: np.ndarray, du: np.ndarray) -> _Paths:
-        """The paths of robots ``rows`` (sorted) with inputs ``du[rows]``, ``L`` their longest horizon."""
+    def get(self, rows: np.ndarray, du: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Samples ``(R, L)``, deviations ``(R, L-1)``, sample counts ``(R,)`` of robots ``rows`` (sorted) at ``du``."""
         new = rows[~self.valid[rows]]
         if new.size:
             t = paths.candidate_paths(self.team.subset(new), self.pose[new], self.u[new], du[new], self.dt,
@@ -144,7 +124,7 @@ class _PathCache:
             self.length[new] = t.length
             self.valid[new] = True
         L = max(int(self.length[rows].max(initial=0)), 2)
-        return _Paths(self.p[rows, :L], self.delta[rows, : L - 1], self.length[rows])
+        return self.p[rows, :L], self.delta[rows, : L - 1], self.length[rows]
 
     def forget(self, rows: np.ndarray) -> None:
         """Robots whose input changed: their paths are made again when asked for."""

@@ -1,18 +1,13 @@
 """The warm active set: an exact structured solver for the safety QP, tried first from the previous step.
 
-The scaled problem (:class:`aasoatt_env.safety.problem.QPProblem`) has a 2x2 block-diagonal Hessian
-``H = L L^T``.  In ``y = L^T x`` the objective is ``0.5 |y|^2 + gt'y`` and the rows and box ``M x <= b``
-become ``Mt y <= b``, ``Mt = M L^-T`` (each row still on at most two robots).  A working set ``W`` is solved
-through the Schur complement ``S = Mt_W Mt_W^T`` (a dense Cholesky up to :data:`DENSE_MAX_ROWS` rows, a
-sparse LU above).  From the previous step's working set the primal-dual rule ``W = {k: lambda_k +
-(Mt y - b)_k > 0}`` (Hintermueller, Ito, Kunisch 2002) runs, left as soon as its working set is
-inconsistent (a working row not met: a dependent set, from which the rule wanders through large,
-ill-conditioned sets); then, from the same warm start, a rule with one change per iteration (add the most
-violated row while every multiplier is >= 0, else drop the first row whose multiplier crossed zero), which
-needs as many iterations as the warm start is rows off.  A point is returned only where the full KKT
-conditions hold within :data:`TOL`, so it is the exact optimum; otherwise the caller's general solver
-answers.  A problem of independent parts (the coupled components of a team, a stack of teams) is solved
-part by part, each part verified on its own (:func:`solve_active_set_parts`).
+The scaled problem (:class:`aasoatt_env.safety.problem.QPProblem`) has a 2x2 block-diagonal Hessian ``H = L L^T``.  In
+``y = L^T x`` it reads ``min 0.5 |y|^2 + gt'y  s.t.  Mt y <= b``, ``Mt = M L^-T`` (each row still on at most two
+robots).  A working set ``W`` is solved through the Schur complement ``Mt_W Mt_W^T``.  From the previous step's working
+set the primal-dual rule ``W = {k: lambda_k + (Mt y - b)_k > 0}`` (Hintermueller, Ito, Kunisch 2002) runs until its
+working set is inconsistent (from a dependent set it wanders through large, ill-conditioned sets); then, from the same
+start, a rule with one change per iteration, which needs as many iterations as the warm start is rows off.  A point is
+returned only where the KKT conditions hold within :data:`TOL` (the exact optimum), part by part for independent parts
+(a team's components, a stack of teams); otherwise the caller's general solver answers.
 """
 
 from __future__ import annotations
@@ -34,8 +29,7 @@ __all__ = ["DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "dens
 DENSE_MAX_VARS: int = 80
 """Problems up to this many variables use dense algebra, whatever their rows."""
 DENSE_MAX_CELLS: int = 400_000
-"""Larger problems with at most this many entries in their dense rows ``(m + 2n) x n`` use it too
-(a stack of small teams behind one filter call: many variables, few rows each)."""
+"""Larger problems use it too up to this many entries of their dense rows ``(m + 2n) x n`` (a stack of small teams)."""
 DENSE_MAX_ROWS: int = 500
 """Working sets up to this size use a dense Cholesky of the Schur complement."""
 SPARSE_DENSE_SCHUR_ROWS: int = 200
@@ -45,25 +39,18 @@ WARM_REL: float = 1e-6
 TOL: float = 1e-10
 """Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
 ONE_CHANGE_ITER: int = 20
-"""Iterations of the one-change rule, tried from the warm start when the primal-dual rule fails (generous: a
-part left unverified goes to a much slower general solver, and a verified part is frozen)."""
+"""Iterations of the one-change rule after the primal-dual one (generous: an unverified part is solved slower)."""
 PDAS_ITER: int = 30
-"""Iterations of the primal-dual rule from the warm start (it also stops at an inconsistent working set)."""
+"""Iterations of the primal-dual rule from the warm start."""
 BOUND_TIGHT: float = 1e-9
 """A warm start within this of a bound (scaled, ``|x| <= 1``) starts with that bound in the working set."""
 WARM_FLOOR: float = 1e-300
 """Floor of the largest warm multiplier in the working-set cut (no cut of zero)."""
 VERIFIED_MESSAGE: str = "active set (warm, KKT verified)"
-"""The message of an answer the warm active set verified."""
 
 
 class LeastDistanceForm(NamedTuple):
-    """The problem in ``y = L^T x`` (``H = L L^T`` block by block): ``min 0.5|y|^2 + gt'y  s.t.  Mt y <= b``.
-
-    ``LinvT`` ``(N, 2, 2)``: the blocks ``L^{-T}`` (``x = L^{-T} y``); ``gt = L^{-1} g``; ``Mt`` ``(m + 2n, n)``:
-    the rows, upper bounds and lower bounds in ``y`` (dense from :func:`dense_least_distance_form`); ``b``:
-    their right-hand sides ``(u, ub, -lb)``.
-    """
+    """``min 0.5|y|^2 + gt'y  s.t.  Mt y <= b`` in ``y = L^T x``; ``Mt`` ``(m + 2n, n)``: the rows, then both bounds."""
 
     LinvT: np.ndarray
     gt: np.ndarray
@@ -76,26 +63,23 @@ class LeastDistanceForm(NamedTuple):
 
 
 def least_distance_form(prob) -> LeastDistanceForm | None:
-    """:class:`LeastDistanceForm` of ``prob``; ``None`` if a Hessian block is not positive definite.
-
-    Computed once per problem object (the warm active set and ``ldp`` both need it).
-    """
-    cached = prob.__dict__.get("_least_distance_form", _UNSET)
-    if cached is not _UNSET:
-        return cached
-    form = _least_distance_form(prob)
-    prob.__dict__["_least_distance_form"] = form
-    return form
+    """:class:`LeastDistanceForm` of ``prob``, computed once per problem; ``None`` if a Hessian block is not PD."""
+    return _once(prob, "_least_distance_form", _least_distance_form)
 
 
-_UNSET = object()
+def _once(prob, key: str, make):
+    """``make(prob)``, computed once per problem object (kept in its ``__dict__``)."""
+    if key not in prob.__dict__:
+        prob.__dict__[key] = make(prob)
+    return prob.__dict__[key]
 
 
 def _factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(L^{-T} blocks (N, 2, 2), gt = L^{-1} g)`` of ``prob`` (cached on it); ``None`` if a block is not PD."""
-    cached = prob.__dict__.get("_ldf_factor", _UNSET)
-    if cached is not _UNSET:
-        return cached
+    """``(L^{-T} blocks (N, 2, 2), gt = L^{-1} g)`` of ``prob`` (once); ``None`` if a block is not PD."""
+    return _once(prob, "_ldf_factor", _block_factor)
+
+
+def _block_factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
     nb = prob.n // 2
     # the Cholesky factor of every 2x2 block in closed form, L = [[a, 0], [c, d]], and its inverse
     H = prob.H_blocks
@@ -106,25 +90,21 @@ def _factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
         d2 = h11 - c * c
         d = np.sqrt(d2)
     if not (np.all(h00 > 0.0) and np.all(d2 > 0.0) and np.all(H[:, 0, 1] == h10)):
-        out = None  # a block not symmetric positive definite (or not finite)
-    else:
-        Linv = np.zeros((nb, 2, 2))
-        Linv[:, 0, 0], Linv[:, 1, 1], Linv[:, 1, 0] = 1.0 / a, 1.0 / d, -c / (a * d)
-        out = (np.transpose(Linv, (0, 2, 1)), np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel())
-    prob.__dict__["_ldf_factor"] = out
-    return out
+        return None  # a block not symmetric positive definite (or not finite)
+    Linv = np.zeros((nb, 2, 2))
+    Linv[:, 0, 0], Linv[:, 1, 1], Linv[:, 1, 0] = 1.0 / a, 1.0 / d, -c / (a * d)
+    return np.transpose(Linv, (0, 2, 1)), np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel()
 
 
 def dense_least_distance_form(prob) -> LeastDistanceForm | None:
     """:func:`least_distance_form` with its rows ``Mt`` dense, built without scipy.sparse (the same numbers)."""
-    cached = prob.__dict__.get("_least_distance_form", _UNSET)
-    if cached is not _UNSET:
-        return None if cached is None else cached._replace(Mt=cached.Mt.toarray())
+    if "_least_distance_form" in prob.__dict__:
+        form = prob.__dict__["_least_distance_form"]
+        return None if form is None else form._replace(Mt=form.Mt.toarray())
     factor = _factor(prob)
     if factor is None:
         return None
-    LinvT, gt = factor
-    return LeastDistanceForm(LinvT, gt, _dense_rows(prob, LinvT), np.concatenate((prob.u, prob.ub, -prob.lb)))
+    return LeastDistanceForm(*factor, _dense_rows(prob, factor[0]), np.concatenate((prob.u, prob.ub, -prob.lb)))
 
 
 def _least_distance_form(prob) -> LeastDistanceForm | None:
@@ -140,6 +120,7 @@ def _least_distance_form(prob) -> LeastDistanceForm | None:
     Ct = (prob.C @ T).tocsr() if prob.m else sp.csr_matrix((0, n))
     Mt = sp.vstack((Ct, T, -T), format="csr")
     return LeastDistanceForm(LinvT, gt, Mt, np.concatenate((prob.u, prob.ub, -prob.lb)))
+
 
 
 def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
@@ -188,11 +169,11 @@ def _cholesky(S: np.ndarray):
 
 
 class ActiveSetParts(NamedTuple):
-    """The answer of :func:`solve_active_set_parts`: the point, and where it is verified.
+    """The answer of :func:`solve_active_set_parts`.
 
-    ``x`` ``(n,)``: the scaled point and ``z`` ``(m,)`` the row multipliers (``>= 0``), an unverified iterate (or
-    zeros) on unverified groups; ``iterations``: equality solves of both rules; ``ok`` ``(K,)``: the groups whose
-    part meets the KKT conditions of their own rows; ``row_group`` ``(m,)``: every row's group.
+    ``x`` ``(n,)``, ``z`` ``(m,)``: the scaled point and row multipliers (``>= 0``; an unverified iterate or zeros on
+    unverified groups); ``iterations``: equality solves; ``ok`` ``(K,)``: the groups whose part meets the KKT
+    conditions of their own rows; ``row_group`` ``(m,)``: every row's group.
     """
 
     x: np.ndarray
@@ -213,28 +194,13 @@ def solve_active_set(prob, x0, z0, max_iter: int = PDAS_ITER, compiled: bool = F
 
 def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: int = PDAS_ITER,
                            compiled: bool = False, one_change_iter: int | None = None) -> ActiveSetParts | None:
-    """The warm active set on a problem made of independent groups, each verified on its own.
+    """The warm active set on a problem of independent groups, each verified on its own.
 
-    Parameters
-    ----------
-    prob : QPProblem
-        The scaled problem.
-    x0, z0 : numpy.ndarray
-        Warm start (the previous step's point and row multipliers).
-    groups : numpy.ndarray or None
-        ``(N,)`` group ``0..K-1`` of every robot (variable pair); no row may join two groups.  None: one group.
-    max_iter : int
-        Iterations of the primal-dual rule.
-    compiled : bool
-        On the dense path, run the groups in the compiled kernel (``ImportError`` without numba): each
-        group's part verified by the same check, points to rounding.
-    one_change_iter : int, optional
-        Iterations of the one-change rule (None: :data:`ONE_CHANGE_ITER`).
-
-    Everything the method does is separable by group (the Schur complement is block diagonal, the rules
-    act row by row or once per group); a group whose part of an iterate meets the KKT conditions is kept
-    from then on, the others iterate.  Returns ``None`` where the method does not apply (no warm start, a
-    Hessian block not positive definite, an odd size, ``groups`` not one label per robot, or joined by a row).
+    ``x0``, ``z0``: the previous point and row multipliers; ``groups`` ``(N,)``: each robot's group ``0..K-1`` (None:
+    one); ``compiled``: the dense path by the numba kernel (the same check, points to rounding).  The method is
+    separable by group (a block-diagonal Schur complement, rules row by row or per group): a group whose part of an
+    iterate passes is kept from then on.  ``None`` where the method does not apply (no warm start, a block not positive
+    definite, an odd size, ``groups`` not one label per robot or joined by a row).
     """
     n, m = prob.n, prob.m
     if n == 0 or n % 2 or z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
@@ -281,10 +247,7 @@ def _rows(prob, dense: bool, compiled: bool) -> tuple | None:
 
 
 def _row_groups(prob, groups: np.ndarray | None) -> tuple[int, np.ndarray, np.ndarray] | None:
-    """``(K, the group of every row and bound, the robots' groups)``; None if ``groups`` are not independent parts.
-
-    A row's group is that of the robot of its first entry (an empty row's: 0).
-    """
+    """``(K, each row's group (its first entry's; 0 if empty), the robots' groups)``; None if not independent parts."""
     n, m = prob.n, prob.m
     if groups is None:
         return 1, np.zeros(m + 2 * n, dtype=np.intp), np.zeros(n // 2, np.int64)
@@ -441,10 +404,7 @@ class _WorkingSetLoop:
         return point
 
     def run(self, W: np.ndarray, rule, max_iter: int, stop_inconsistent: bool = False) -> np.ndarray:
-        """Iterate ``rule`` from ``W`` for at most ``max_iter`` equality solves; the last working set.
-
-        ``stop_inconsistent``: a group whose working rows are not all met as equalities stops this rule.
-        """
+        """Iterate ``rule`` from ``W`` (at most ``max_iter`` equality solves); ``stop_inconsistent``: as primal-dual."""
         rg, K = self.rg, self.K
         prev = None
         stopped = np.zeros(K, dtype=bool)

@@ -1,31 +1,25 @@
 """The warm active set compiled (numba; imported only through :mod:`aasoatt_env.compiled`).
 
-:func:`solve_parts` is :func:`aasoatt_env.safety.solvers.active_set.solve_active_set_parts` on its dense
-path, once per group (an independent part: a component of a team, a team of a stack).  A group's rows (its
-rows of ``C``, then its upper and lower bounds, in the global order, so every first-index tie breaks as in
-the reference) are formed in ``y = L^T x`` entry by entry as ``active_set._dense_rows`` forms them and kept
-sparse; then the same rules, equality points (Cholesky of the regularised Schur complement, four refinement
-steps) and KKT check, a group kept at the first point that passes it.  Where the two differ: sums run in
-another order (points to rounding; on a dependent working set the last bits may pick another next set, so
-the two may verify different parts, whose answer the general solver then gives); the Cholesky is used above
-500 working rows too; the regularisation is the group's own (a group of zero rows only is singular here);
-a singular working set ends that group's rule only; an unverified group's part of the answer is zero; the
-iterations reported are the most of any group.
+:func:`solve_parts` is :func:`aasoatt_env.safety.solvers.active_set.solve_active_set_parts` on its dense path, group by
+group.  A group's rows (of ``C``, then its upper and lower bounds, in the global order, so every first-index tie breaks
+as in the reference) are formed in ``y`` entry by entry as ``active_set._dense_rows`` forms them and kept sparse; then
+the same rules, equality points and KKT check.  Where the two differ: sums run in another order (points to rounding; on
+a dependent working set the last bits may pick another next set, so the two may verify different parts); the Cholesky
+is used above 500 working rows too; the regularisation is the group's own (a group of zero rows only is singular here);
+a singular working set ends that group's rule only; an unverified group's part of the answer is zero; the iterations
+reported are the most of any group.
 """
-
-from __future__ import annotations
 
 import math
 
 import numpy as np
 
-from aasoatt_env.numba_jit import jit as _jit
-from aasoatt_env.numba_jit import jit_reassoc as _jit_reassoc
+from aasoatt_env.numba_jit import jit, jit_reassoc
 
 __all__ = ["solve_parts"]
 
 
-@_jit_reassoc
+@jit_reassoc
 def _cholesky(S, k, delta, L):
     """Lower Cholesky factor of ``S[:k, :k] + delta I`` into ``L``; False if not positive definite (as ``potrf``)."""
     for j in range(k):
@@ -44,7 +38,7 @@ def _cholesky(S, k, delta, L):
     return True
 
 
-@_jit_reassoc
+@jit_reassoc
 def _chol_solve(L, k, v, out):
     """``out = S^-1 v`` from the factor ``L`` (two triangular substitutions)."""
     for i in range(k):
@@ -59,12 +53,9 @@ def _chol_solve(L, k, v, out):
         out[i] = s / L[i, i]
 
 
-@_jit
+@jit
 def _schur(rb, rc, nbg, idx, k, S, bstart, blist):
-    """``S = Mw Mw'`` of the working rows ``idx[:k]``, robot block by robot block (rows meet only on shared robots).
-
-    ``bstart (nbg + 1,)`` and ``blist (2 k, 2)`` are work arrays: the working rows on each block and their slot.
-    """
+    """``S = Mw Mw'`` of the working rows ``idx[:k]``, robot block by block in the dense product's order."""
     for a in range(k):
         for c2 in range(k):
             S[a, c2] = 0.0
@@ -98,7 +89,7 @@ def _schur(rb, rc, nbg, idx, k, S, bstart, blist):
             S[c2, a] = S[a, c2]
 
 
-@_jit
+@jit
 def _dot_vec(rb, rc, a, x):
     """``M[a] . x`` of a sparse row and a dense vector ``x (nv,)``."""
     s = 0.0
@@ -110,7 +101,7 @@ def _dot_vec(rb, rc, a, x):
     return s
 
 
-@_jit
+@jit
 def _equality_point(rb, rc, nl, nv, gt, b, W, idx, rhs, lw, tmp, res, y, lam, r, bstart, blist):
     """``(y, lam, r)`` with the rows ``W`` as equalities (``_equality_point``); False if singular."""
     k = 0
@@ -160,25 +151,17 @@ def _equality_point(rb, rc, nl, nv, gt, b, W, idx, rhs, lw, tmp, res, y, lam, r,
     return True
 
 
-@_jit
-def _verified(nl, W, lam, r, tol):
-    """The KKT check of ``_WorkingSetLoop.run`` (written as what must hold: a NaN fails)."""
+@jit
+def _kkt(nl, W, lam, r, tol):
+    """``(KKT check of _WorkingSetLoop.run, every working row met)``, written as what must hold: a NaN fails."""
+    ok = met = True
     for q in range(nl):
-        if not ((r[q] <= tol) and (lam[q] >= -tol) and ((not W[q]) or (abs(r[q]) <= tol))):
-            return False
-    return True
+        m = (not W[q]) or (abs(r[q]) <= tol)
+        ok, met = ok and m and (r[q] <= tol) and (lam[q] >= -tol), met and m
+    return ok, met
 
 
-@_jit
-def _consistent(nl, W, r, tol):
-    """Every working row met as an equality within ``tol`` (a NaN is not)."""
-    for q in range(nl):
-        if W[q] and not (abs(r[q]) <= tol):
-            return False
-    return True
-
-
-@_jit
+@jit
 def _one_change(nl, W, lam, r, prev, has_prev, tol, Wn):
     """``_one_change_rule`` for one group: add the most violated row, or drop one by the ratio test."""
     for q in range(nl):
@@ -216,14 +199,10 @@ def _one_change(nl, W, lam, r, prev, has_prev, tol, Wn):
         Wn[k] = False
 
 
-@_jit
+@jit
 def _run(rb, rc, nl, nv, gt, b, W0, rule, budget, tol, W, Wn, prev, idx, rhs, lw, tmp, res, y, lam, r, bstart, blist,
          first, yf, lamf, rf):
-    """Iterate one rule (0: primal-dual, 1: one change) from ``W0``; returns ``(verified, equality solves)``.
-
-    ``first[0]``: the point of ``W0`` is in ``yf, lamf, rf`` (``first[1]``: it was singular), kept by the first
-    rule for the second (the reference's ``_WorkingSetLoop._point``).
-    """
+    """One rule (0: primal-dual, 1: one change) from ``W0``: ``(verified, solves)``; ``first``: ``W0``'s point, kept."""
     for q in range(nl):
         W[q] = W0[q]
     has_prev = False
@@ -244,9 +223,10 @@ def _run(rb, rc, nl, nv, gt, b, W0, rule, budget, tol, W, Wn, prev, idx, rhs, lw
                 rf[:nl] = r[:nl]
         if not ok:
             return False, used
-        if _verified(nl, W, lam, r, tol):
+        verified, consistent = _kkt(nl, W, lam, r, tol)
+        if verified:
             return True, used
-        if rule == 0 and not _consistent(nl, W, r, tol):
+        if rule == 0 and not consistent:
             return False, used  # the primal-dual rule leaves a group with an inconsistent working set
         if rule == 0:
             for q in range(nl):
@@ -267,12 +247,9 @@ def _run(rb, rc, nl, nv, gt, b, W0, rule, budget, tol, W, Wn, prev, idx, rhs, lw
     return False, used
 
 
-@_jit
+@jit
 def _by_group(indptr, indices, m, nb, groups, K):
-    """Robots and rows sorted by group (stable counting sorts): ``(robots, their starts, rows, their starts)``.
-
-    The robots' starts are ``[-1]`` where a row's columns are unsorted or repeated (not the reference's rows).
-    """
+    """Robots and rows by group (counting sorts): ``(robots, starts, rows, starts)``; starts ``[-1]``: bad rows."""
     rstart, qstart = np.zeros(K + 1, dtype=np.int64), np.zeros(K + 1, dtype=np.int64)
     row_group = np.zeros(m, dtype=np.int64)
     for i in range(nb):
@@ -299,14 +276,9 @@ def _by_group(indptr, indices, m, nb, groups, K):
     return robots, rstart, rows, qstart
 
 
-@_jit
+@jit
 def _group_rows(g, srt, indptr, indices, data, m, n, LinvT, gt, b, W0, loc, rb, rc, gidx, bl, W0l, gl):
-    """Group ``g``'s rows of ``C T``, entry by entry as the reference forms them, then its bounds (``+-L^-T``).
-
-    Fills the local rows' robot blocks ``rb`` (-1: none) and coefficients ``rc``, their global indices,
-    right-hand sides and warm set, and the group's ``gt``; returns ``(variables, rows)``, or ``(-1, -1)`` for
-    a row on more than two robots.
-    """
+    """Group ``g``'s rows ``rb``, ``rc`` (``C T``, then ``+-L^-T``) and their data: ``(variables, rows)``, -1: unfit."""
     robots, rstart, rows, qstart = srt
     r0, nbg, mg = rstart[g], rstart[g + 1] - rstart[g], qstart[g + 1] - qstart[g]
     nv = 2 * nbg
@@ -342,14 +314,13 @@ def _group_rows(g, srt, indptr, indices, data, m, n, LinvT, gt, b, W0, loc, rb, 
     return nv, mg + 2 * nv
 
 
-@_jit
+@jit
 def solve_parts(indptr, indices, data, m, n, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, tol,
                 y_out, lam_out, done):
-    """Every group's warm active set (module docstring); fills ``y_out (n,)``, ``lam_out (m + 2n,)``, ``done (K,)``.
+    """Every group's warm active set (module docstring): the most equality solves of a group.
 
-    ``groups (n / 2,)`` and ``K`` as the caller checked them.  Returns the most equality solves of a group, or
-    a negative number where the rows are not of the form this kernel handles (unsorted or repeated columns,
-    a row on more than two robots): the caller takes the reference path.
+    A negative answer: rows not of the form handled here (unsorted or repeated columns, a row on more than two robots);
+    the caller takes the reference path.
     """
     nb = n // 2
     srt = _by_group(indptr, indices, m, nb, groups, K)

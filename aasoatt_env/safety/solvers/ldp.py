@@ -1,16 +1,12 @@
 """Exact fallback solver for the safety QP: least-distance programming by NNLS.
 
-With ``H = L L^T`` block by block, ``y = L^T x`` and ``w = y + L^{-1} g``, the scaled problem
-(:class:`aasoatt_env.safety.problem.QPProblem`) is the least-distance problem ``min 0.5 |w|^2  s.t.
-Mt w <= hb`` (``Mt`` the rows and both box sides in ``y``, ``hb = b + Mt L^{-1} g``).  Lawson and Hanson
-(*Solving Least Squares Problems*, ch. 23) solve it with one non-negative least-squares problem
-``min |E u - f|, u >= 0``, ``E = -[Mt^T; hb^T]``, ``f = (0, ..., 0, 1)``: with ``r = E u - f``, ``r_last = 0``
-means the rows are inconsistent, else ``w = -r[:-1] / r_last`` and ``u / (-r_last)`` are the multipliers.
-NNLS is an active-set method with finite termination (:func:`scipy.optimize.nnls`), so it does not stall
-on the degenerate, congested problems of a large team.  The point is then polished by the warm active set
-(:func:`~aasoatt_env.safety.solvers.active_set.solve_active_set`, accepted only where the KKT conditions
-hold), or returned unpolished where it is feasible to :data:`FEAS_TOL`.  Dense: up to :data:`MAX_VARS`
-variables.
+In ``w = y + L^{-1} g`` (:class:`~aasoatt_env.safety.solvers.active_set.LeastDistanceForm`) the scaled problem is
+``min 0.5 |w|^2  s.t.  Mt w <= hb``, ``hb = b + Mt L^{-1} g``.  Lawson and Hanson (*Solving Least Squares Problems*,
+ch. 23) solve it by one NNLS ``min |E u - f|, u >= 0``, ``E = -[Mt^T; hb^T]``, ``f = (0, ..., 0, 1)``: with
+``r = E u - f``, ``r_last = 0`` means inconsistent rows, else ``w = -r[:-1] / r_last`` and ``u / (-r_last)`` are the
+multipliers.  NNLS terminates finitely (:func:`scipy.optimize.nnls`), so it does not stall on the degenerate, congested
+problems of a large team.  The point is polished by the warm active set (accepted only where the KKT conditions hold),
+or returned unpolished where feasible to :data:`FEAS_TOL`.  Dense: up to :data:`MAX_VARS` variables.
 """
 
 from __future__ import annotations
@@ -29,13 +25,7 @@ FEAS_TOL: float = 1e-9
 
 
 def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.ndarray | None, str]:
-    """Solve ``prob`` (a :class:`~aasoatt_env.safety.problem.QPProblem`) exactly: ``(x, z, message)``.
-
-    Rows or bounds at ``+-inf`` (``|b| >= 1e19``) are dropped; ``feas_tol``: the largest row violation accepted
-    for a point the KKT polish did not verify.  ``x`` is the optimum in scaled coordinates and ``z`` the row
-    multipliers (``>= 0``), both None where there is no answer (inconsistent rows, too large, a numerical
-    failure); ``message`` says what happened.
-    """
+    """Solve ``prob`` exactly: ``(x, z, message)``, ``x``, ``z`` None without an answer (``message`` says why)."""
     n, m = prob.n, prob.m
     if n == 0 or n % 2:
         return None, None, "ldp: needs 2x2 blocks"
@@ -45,7 +35,7 @@ def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.n
     if form is None:
         return None, None, "ldp: Hessian block not positive definite"
     gt, Mt, b = form.gt, form.Mt, form.b
-    finite = np.abs(b) < 1e19
+    finite = np.abs(b) < 1e19  # rows or bounds at +-inf are dropped
     if not np.all(finite):
         Mt, b = Mt[finite], b[finite]
     hb = b + Mt @ gt

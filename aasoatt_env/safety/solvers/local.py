@@ -1,14 +1,13 @@
 """Every robot's 2-variable QP at once, exactly: the decentralised filter's local solver.
 
-Robot ``k`` solves ``min 0.5 x' H_k x + g_k' x  s.t.  lb_k <= x <= ub_k, G_r x <= h_r`` for its rows ``r``,
-``H_k`` symmetric positive definite.  In ``y = L_k^T x`` (``H_k = L_k L_k^T``, a closed-form Cholesky) the
-objective is ``0.5 |y - y0|^2 + const``, ``y0 = -L^-1 g``, and every constraint, the bounds included, a unit
-half-plane ``n' y <= b``: each QP projects a point onto a convex polygon.  A robot whose unconstrained
-minimiser meets its bounds and rows is answered by it; the others' half-planes are packed into a table
-and projected by :mod:`~aasoatt_env.safety.solvers.polygon`.  With ``relax=True`` a robot whose polygon is
-empty gets its own least-violation answer, as :func:`aasoatt_env.safety.solvers.policy.solve_qp` gives the
-centralised one: phase 1 (:func:`least_violation`) finds each row's least violation ``s_r`` with the bounds
-hard, every row is loosened by ``s_r (1 + 1e-6)`` plus a tolerance, and the loosened polygon is projected.
+Robot ``k`` solves ``min 0.5 x' H_k x + g_k' x  s.t.  lb_k <= x <= ub_k, G_r x <= h_r`` for its rows ``r``, ``H_k``
+symmetric positive definite.  In ``y = L_k^T x`` (``H_k = L_k L_k^T``, a closed-form Cholesky) the objective is
+``0.5 |y - y0|^2 + const``, ``y0 = -L^-1 g``, and every constraint, the bounds included, a unit half-plane
+``n' y <= b``: each QP projects a point onto a convex polygon.  A robot whose unconstrained minimiser meets its bounds
+and rows is answered by it, the others by :mod:`~aasoatt_env.safety.solvers.polygon`.  With ``relax=True`` a robot
+whose polygon is empty gets its own least-violation answer, as :func:`aasoatt_env.safety.solvers.policy.solve_qp` gives
+the centralised one: phase 1 (:func:`least_violation`) finds each row's least violation ``s_r`` with the bounds hard,
+each row is loosened by ``s_r (1 + 1e-6)`` plus a tolerance, and the loosened polygon is projected.
 """
 
 from __future__ import annotations
@@ -33,12 +32,11 @@ RELAX_TOL: float = 1e-7
 class LocalSolution(NamedTuple):
     """Answer of :func:`solve_local_qps`.
 
-    ``x`` ``(N, 2)``: the minimisers within the bounds (an infeasible robot's least-violation answer with
-    ``relax``, else its minimiser over the bounds alone); ``lam`` ``(M,)``: the rows' multipliers in their own
-    units (of the loosened row for relaxed robots; 0 on infeasible robots' rows without ``relax``); ``lam_box``
-    ``(N, 2, 2)``: the bounds' (``[:, 0]`` of ``x <= ub``, ``[:, 1]`` of ``x >= lb``); ``feasible``: the robot's
-    polygon is non-empty; ``loosened`` ``(M,)``: each row's loosening in its own units; ``iterations``:
-    active-set iterations (the most of any robot and pass); ``n_enumerated``: robots the enumeration answered.
+    ``x`` ``(N, 2)``: the minimisers (an infeasible robot's least-violation answer with ``relax``, else its minimiser
+    over the bounds); ``lam`` ``(M,)``, ``lam_box`` ``(N, 2, 2)`` (``[:, 0]``: ``x <= ub``): the multipliers in the
+    rows' own units (of the loosened row if relaxed, 0 on an infeasible robot's rows without); ``feasible``: the
+    polygon is non-empty; ``loosened`` ``(M,)``: each row's loosening; ``iterations``: the most of a robot and pass;
+    ``n_enumerated``: robots enumerated.
     """
 
     x: np.ndarray
@@ -124,36 +122,12 @@ def solve_local_qps(H: np.ndarray, g: np.ndarray, lb: np.ndarray, ub: np.ndarray
                     max_iter: int = MAX_ITER, compiled: bool = False) -> LocalSolution:
     """Solve every robot's 2-variable QP exactly (module docstring).
 
-    Parameters
-    ----------
-    H, g : numpy.ndarray
-        Hessian blocks ``(N, 2, 2)``, symmetric positive definite, and linear terms ``(N, 2)``.
-    lb, ub : numpy.ndarray
-        Bounds ``(N, 2)`` with ``lb <= ub``.
-    owner, G, h : numpy.ndarray
-        The rows ``G_r x <= h_r``: each row's robot ``(M,)`` in ``[0, N)``, coefficients ``(M, 2)``, right-hand
-        sides ``(M,)`` (``+inf``: a row that never binds).
-    relax : bool
-        Answer robots whose polygon is empty with their least-violation point (module docstring).
-    relax_tol : float or numpy.ndarray
-        Loosening on top of each least violation (one value or ``(N,)``), in units of the row normalised in ``x``.
-    tol : float
-        KKT tolerance on the normalised half-planes, relative to ``1 + |y0|_inf``.
-    max_iter : int
-        Active-set iterations before the enumeration answers the rest.
-    compiled : bool
-        Solve in the compiled kernel (:mod:`aasoatt_env.safety.solvers.local_kernel`; ``ImportError`` without
-        numba): the same decisions, numbers to rounding.
-
-    Returns
-    -------
-    LocalSolution
-
-    Notes
-    -----
-    The KKT tolerance is relative to ``1 + |y0|_inf`` (``y0`` the unconstrained minimiser in the metric of
-    the objective): an unconstrained minimiser far outside the bounds' scale loosens the check with it.  The
-    filter clips each robot's nominal to its bounds before it forms ``g``, which keeps ``|y0|`` at their scale.
+    ``H`` ``(N, 2, 2)``, ``g``, ``lb <= ub`` ``(N, 2)``; rows ``G_r x <= h_r`` of robot ``owner[r]`` (``h = +inf``:
+    never binds).  ``relax``: an empty polygon's robot gets its least-violation point, each row loosened by
+    ``relax_tol`` (one or ``(N,)``, in the row's units normalised in ``x``) on top.  ``compiled``: by
+    :mod:`~aasoatt_env.safety.solvers.local_kernel` (the same decisions, numbers to rounding).  The KKT tolerance
+    ``tol`` is relative to ``1 + |y0|_inf``: a minimiser far outside the bounds' scale loosens the check with it, so
+    the filter clips each nominal to its bounds before it forms ``g``.
     """
     H, g, lb, ub, owner, G, h, rt = _checked(H, g, lb, ub, owner, G, h, relax_tol, tol, max_iter)
     n, m = g.shape[0], owner.shape[0]
@@ -346,24 +320,21 @@ def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
         return dx, dy
     best = np.full(dx.shape, np.inf)
     bx, by = dx.copy(), dy.copy()
-    for fx in (lox, hix):  # edges d_x = const
-        cy = np.clip(-(gy + hxy * fx) / hyy, loy, hiy)
-        f = 0.5 * (hxx * fx * fx + 2 * hxy * fx * cy + hyy * cy * cy) + gx * fx + gy * cy
+    for e, c in enumerate((lox, hix, loy, hiy)):  # the edges d_x = lo, hi, then d_y = lo, hi
+        ex = c if e < 2 else np.clip(-(gx + hxy * c) / hxx, lox, hix)
+        ey = np.clip(-(gy + hxy * c) / hyy, loy, hiy) if e < 2 else c
+        f = 0.5 * (hxx * ex * ex + 2 * hxy * ex * ey + hyy * ey * ey) + gx * ex + gy * ey
         take = ~inside & (f < best)
-        best, bx, by = np.where(take, f, best), np.where(take, fx, bx), np.where(take, cy, by)
-    for fy in (loy, hiy):  # edges d_y = const
-        cx = np.clip(-(gx + hxy * fy) / hxx, lox, hix)
-        f = 0.5 * (hxx * cx * cx + 2 * hxy * cx * fy + hyy * fy * fy) + gx * cx + gy * fy
-        take = ~inside & (f < best)
-        best, bx, by = np.where(take, f, best), np.where(take, cx, bx), np.where(take, fy, by)
+        best, bx, by = np.where(take, f, best), np.where(take, ex, bx), np.where(take, ey, by)
     return bx, by
 
 
 def _line_search(res: np.ndarray, delta: np.ndarray, d0: np.ndarray, d1: np.ndarray, iters: int = 4) -> np.ndarray:
     """Per robot ``argmin_{t in [0, 1]} phi(t) = 0.5 sum_r (res_r + t delta_r)_+^2``, given ``phi'(0) < 0 < phi'(1)``.
 
-    ``phi'`` is continuous, non-decreasing and piecewise linear: regula falsi (Illinois) lands on its root once
-    the bracket lies in one linear piece (most robots); the others go to :func:`_line_min`.
+    ``phi'`` is continuous, non-decreasing, piecewise linear: regula falsi (Illinois) lands on its root once the
+    bracket lies in one piece (most robots); the others go to :func:`_line_min`, which sorts the points where a row
+    switches and solves the piece where ``phi'`` turns non-negative.
     """
     one = np.ones(res.shape[1])
     a, b = np.zeros(d0.shape), np.ones(d0.shape)
@@ -392,11 +363,7 @@ def _line_search(res: np.ndarray, delta: np.ndarray, d0: np.ndarray, d1: np.ndar
 
 
 def _line_min(res: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    """Per robot the exact ``argmin_{t in [0, 1]} 0.5 sum_r (res_r + t delta_r)_+^2`` (``res``, ``delta`` ``(P, K)``).
-
-    The derivative is linear between the points where a row switches on or off: sort those, accumulate the
-    active sums, and solve the piece where it turns non-negative.
-    """
+    """Per robot the exact minimiser of :func:`_line_search`'s ``phi`` on ``[0, 1]`` (``res``, ``delta`` ``(P, K)``)."""
     p = res.shape[0]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # padding rows: res = -1e300
         te = -res / delta
@@ -468,15 +435,11 @@ def least_violation(lb: np.ndarray, ub: np.ndarray, owner: np.ndarray, G: np.nda
                     x0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Phase 1 of each robot: the least violation of each of its rows, bounds hard: ``(x (N, 2), s (M,))``.
 
-    Per robot ``min F(x) = 0.5 sum_r ((G_r x - h_r)_+ / |G_r|)^2  s.t.  lb <= x <= ub`` (one slack per
-    normalised row, so a row that cannot be met is loosened alone, as in
-    :func:`aasoatt_env.safety.solvers.policy.solve_qp`).  ``F`` is convex and piecewise quadratic: each
-    iteration minimises over the box the quadratic of the rows violated at the current point (a closed-form
-    box QP, with a ``1e-10`` relative proximal term where those rows do not span the plane) and moves to the
-    exact minimiser of ``F`` on the segment towards it; a robot stops when its step is below ``1e-11`` of its
-    box.  The rows are ``owner, G, h`` as in :func:`solve_local_qps`; ``x0`` the starting points (default: the
-    boxes' centres).  The violations ``s_r = (G_r x - h_r)_+``, in the rows' own units, are unique even where
-    the minimiser ``x`` is not.
+    Per robot ``min F(x) = 0.5 sum_r ((G_r x - h_r)_+ / |G_r|)^2  s.t.  lb <= x <= ub`` (one slack per normalised row,
+    as :func:`~aasoatt_env.safety.solvers.policy.solve_qp`).  ``F`` is convex, piecewise quadratic: each iteration
+    minimises over the box the quadratic of the rows violated now (closed form, a ``1e-10`` relative proximal term) and
+    moves to ``F``'s exact minimiser on the segment to it, until a step is below ``1e-11`` of the box.  ``x0``: the
+    start (default: the boxes' centres).  ``s_r = (G_r x - h_r)_+`` is unique even where ``x`` is not.
     """
     lb = np.asarray(lb, float)
     ub = np.asarray(ub, float)

@@ -1,20 +1,16 @@
 """The decentralised filter's local solver compiled (numba; imported only through :mod:`aasoatt_env.compiled`).
 
-:func:`solve_all` is :func:`aasoatt_env.safety.solvers.local.solve_local_qps` after its argument checks, one
-robot at a time (its rows in the order given) in the reference's order of operations: only the phase-1 sums
-run in another order, and zero or never-violated rows are left out of the table instead of padding it.
+:func:`solve_all` is :func:`aasoatt_env.safety.solvers.local.solve_local_qps` after its argument checks, one robot at a
+time (its rows in the order given) in the reference's order of operations: only the phase-1 sums run in another order,
+and zero or never-violated rows are left out of the table instead of padding it.  Per robot only plain loops are
+factored out: a helper that calls others pays its array arguments' reference counts on every robot.
 """
-
-from __future__ import annotations
 
 import math
 
 import numpy as np
 
-from aasoatt_env.numba_jit import jit as _jit
-from aasoatt_env.numba_jit import nclip as _clip
-from aasoatt_env.numba_jit import nmax as _nmax
-from aasoatt_env.numba_jit import nmin as _nmin
+from aasoatt_env.numba_jit import jit, nclip, nmax, nmin
 
 __all__ = ["solve_all"]
 
@@ -28,12 +24,9 @@ _LV_ITERS = 40
 
 
 # --------------------------------------------------------------------------- dual active set, one robot
-@_jit
+@jit
 def _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st):
-    """``polygon._active_set`` for one robot's table ``[0, nk)``: the iterations run.
-
-    ``st`` (float64[12]) returns the state: ``yx, yy, nw, w0, w1, l1, l2, p, lp, status, r1, r2``.
-    """
+    """``polygon._active_set`` of one robot's table ``[0, nk)``, the state into ``st`` (:func:`_start`); iterations."""
     yx, yy = y0x, y0y
     nw, w0, w1, p = 0, 0, 0, -1
     l1 = l2 = lp = r1s = r2s = 0.0
@@ -61,12 +54,12 @@ def _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st):
             t1 = (npx * yx + npy * yy - b[p]) / zz if zz > _EPS_Z else _INF
             q1 = l1 / r1 if r1 > _EPS_R else _INF
             full = t1 <= q1
-            t = _nmin(t1, q1)
+            t = nmin(t1, q1)
             bad = not math.isfinite(t)
             if bad:
                 r1s, r2s, status, t, full = r1, 0.0, 2, 0.0, False
             yx, yy = yx - t * zx, yy - t * zy
-            l1 = _nmax(l1 - t * r1, 0.0) if full else 0.0  # a partial step drops n1
+            l1 = nmax(l1 - t * r1, 0.0) if full else 0.0  # a partial step drops n1
             if full:
                 w1, l2, nw, p, lp = p, lp + t, 2, -1, 0.0
             else:
@@ -80,11 +73,11 @@ def _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st):
             r2 = (n1x * npy - n1y * npx) / det
             q1 = l1 / r1 if r1 > _EPS_R else _INF
             q2 = l2 / r2 if r2 > _EPS_R else _INF
-            t = _nmin(q1, q2)
+            t = nmin(q1, q2)
             bad = not math.isfinite(t)
             if bad:
                 r1s, r2s, status, t = r1, r2, 2, 0.0
-            nl1, nl2 = _nmax(l1 - t * r1, 0.0), _nmax(l2 - t * r2, 0.0)
+            nl1, nl2 = nmax(l1 - t * r1, 0.0), nmax(l2 - t * r2, 0.0)
             if (q1 <= q2) and not bad:  # n1 leaves: n2 moves into its place
                 w0, l1 = w1, nl2
             else:
@@ -99,7 +92,7 @@ def _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st):
     return its
 
 
-@_jit
+@jit
 def _argmax(nx, ny, b, nk, px, py):
     """Most violated slot of a table at ``(px, py)`` and its ``n' y - b`` (numpy's ``argmax``: the first NaN wins)."""
     kmax, vmax = 0, nx[0] * px + ny[0] * py - b[0]
@@ -114,7 +107,16 @@ def _argmax(nx, ny, b, nk, px, py):
     return kmax, vmax
 
 
-@_jit
+@jit
+def _vertex(n1x, n1y, b1, n2x, n2y, b2, yx, yy):
+    """``polygon._vertex`` of scalars."""
+    det = n1x * n2y - n1y * n2x
+    vx, vy = (b1 * n2y - b2 * n1y) / det, (n1x * b2 - n2x * b1) / det
+    dx, dy = yx - vx, yy - vy
+    return vx, vy, det, (dx * n2y - dy * n2x) / det, (n1x * dy - n1y * dx) / det
+
+
+@jit
 def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
     """``polygon._verify`` for one robot: ``out = (yx, yy, mu0, mu1)``; a failed check sets status 3."""
     status, nw = int(st[9]), int(st[2])
@@ -126,17 +128,10 @@ def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
         m2 = 0.0
         px, py = y0x - m1 * n1x, y0y - m1 * n1y
         if nw == 2:
-            n2x, n2y, b2 = nx[w1], ny[w1], b[w1]
-            det = n1x * n2y - n1y * n2x
-            vx = (b1 * n2y - b2 * n1y) / det
-            vy = (n1x * b2 - n2x * b1) / det
-            dx, dy = y0x - vx, y0y - vy
-            m1 = (dx * n2y - dy * n2x) / det
-            m2 = (n1x * dy - n1y * dx) / det
-            px, py = vx, vy
+            px, py, _, m1, m2 = _vertex(n1x, n1y, b1, nx[w1], ny[w1], b[w1], y0x, y0y)
         vmax = _argmax(nx, ny, b, nk, px, py)[1]
         ok = (vmax <= tk) and (m1 >= -tk) and (m2 >= -tk) and math.isfinite(px) and math.isfinite(py)
-        out[0], out[1], out[2], out[3] = px, py, _nmax(m1, 0.0), _nmax(m2, 0.0)
+        out[0], out[1], out[2], out[3] = px, py, nmax(m1, 0.0), nmax(m2, 0.0)
         if not ok:
             st[9] = 3.0
     elif status == 2:
@@ -151,7 +146,7 @@ def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
             st[9] = 3.0
 
 
-@_jit
+@jit
 def _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out):
     """``polygon._enumerate`` for one robot: sets ``out``, status (1/2) and the active slots in ``st``."""
     best_d = _INF
@@ -173,12 +168,7 @@ def _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out):
     # vertices of two lines, in np.triu_indices order
     for ia in range(nk):
         for ib in range(ia + 1, nk):
-            det = nx[ia] * ny[ib] - ny[ia] * nx[ib]
-            vx = (b[ia] * ny[ib] - b[ib] * ny[ia]) / det
-            vy = (nx[ia] * b[ib] - nx[ib] * b[ia]) / det
-            dx, dy = y0x - vx, y0y - vy
-            m1 = (dx * ny[ib] - dy * nx[ib]) / det
-            m2 = (nx[ia] * dy - ny[ia] * dx) / det
+            vx, vy, det, m1, m2 = _vertex(nx[ia], ny[ia], b[ia], nx[ib], ny[ib], b[ib], y0x, y0y)
             if not (abs(det) > 1e-12 and m1 >= -tk and m2 >= -tk and math.isfinite(vx) and math.isfinite(vy)
                     and _argmax(nx, ny, b, nk, vx, vy)[1] <= tk):
                 continue
@@ -189,13 +179,13 @@ def _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out):
     if not feas:
         bx, by, bnw, bw0, bw1 = y0x, y0y, 0, 0, 0
     out[0], out[1] = bx, by
-    out[2] = _nmax(bm0, 0.0) if (feas and bnw >= 1) else 0.0
-    out[3] = _nmax(bm1, 0.0) if (feas and bnw == 2) else 0.0
+    out[2] = nmax(bm0, 0.0) if (feas and bnw >= 1) else 0.0
+    out[3] = nmax(bm1, 0.0) if (feas and bnw == 2) else 0.0
     st[9] = 1.0 if feas else 2.0
     st[2], st[3], st[4] = bnw, bw0, bw1
 
 
-@_jit
+@jit
 def _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out):
     """``polygon.solve`` for one robot: active set, check, enumeration; returns ``(iterations, enumerated)``."""
     its = _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st)
@@ -207,7 +197,7 @@ def _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out):
 
 
 # --------------------------------------------------------------------------- phase 1 (least violation), one robot
-@_jit
+@jit
 def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
     """``local._box_qp`` of one robot."""
     det = hxx * hyy - hxy * hxy
@@ -219,26 +209,17 @@ def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
     for e in range(4):  # the edges d_x = lo, hi, then d_y = lo, hi: the other coordinate's minimiser
         if e < 2:
             x = lox if e == 0 else hix
-            y = _clip(-(gy + hxy * x) / hyy, loy, hiy)
+            y = nclip(-(gy + hxy * x) / hyy, loy, hiy)
         else:
             y = loy if e == 2 else hiy
-            x = _clip(-(gx + hxy * y) / hxx, lox, hix)
+            x = nclip(-(gx + hxy * y) / hxx, lox, hix)
         f = 0.5 * (hxx * x * x + 2 * hxy * x * y + hyy * y * y) + gx * x + gy * y
         if f < best:
             best, bx, by = f, x, y
     return bx, by
 
 
-@_jit
-def _dphi(res, delta, n, t):
-    """``phi'(t) = sum_r (res_r + t delta_r)_+ delta_r``."""
-    s = 0.0
-    for r in range(n):
-        s += _nmax(res[r] + t * delta[r], 0.0) * delta[r]
-    return s
-
-
-@_jit
+@jit
 def _line_min(res, delta, n, te, order):
     """``local._line_min`` of one robot (exact minimiser on ``[0, 1]``)."""
     a0 = b0 = 0.0
@@ -258,7 +239,7 @@ def _line_min(res, delta, n, te, order):
     for j in range(n + 1):
         end = min(te[order[j]], 1.0) if j < n else 1.0
         if A + end * B >= 0.0 or j == n:
-            return _clip(-A / B if B > 0.0 else (start if A >= 0.0 else end), start, end)
+            return nclip(-A / B if B > 0.0 else (start if A >= 0.0 else end), start, end)
         r = order[j]
         dl = delta[r] if te[r] < 2.0 else 0.0
         sg = 1.0 if dl > 0.0 else (-1.0 if dl < 0.0 else 0.0)
@@ -268,14 +249,16 @@ def _line_min(res, delta, n, te, order):
     return 1.0
 
 
-@_jit
+@jit
 def _line_search(res, delta, n, d0, d1, te, order):
     """``local._line_search`` of one robot: regula falsi (Illinois), then the exact piecewise minimiser."""
     a, bb, fa, fb, side = 0.0, 1.0, d0, d1, 0.0
     tol = 1e-13 * (abs(d0) + abs(d1))
     for _ in range(_LS_ITERS):
         t = (a * fb - bb * fa) / (fb - fa)
-        ft = _dphi(res, delta, n, t)
+        ft = 0.0  # phi'(t)
+        for r in range(n):
+            ft += nmax(res[r] + t * delta[r], 0.0) * delta[r]
         if not (abs(ft) > tol):
             return t
         if ft < 0:
@@ -289,7 +272,7 @@ def _line_search(res, delta, n, d0, d1, te, order):
     return _line_min(res, delta, n, te, order)
 
 
-@_jit
+@jit
 def _least_violation(gx, gy, hh, n, lb0, lb1, ub0, ub1, x0, x1, res, delta, on, te, order):
     """``local._lv_core`` of one robot over its ``n`` unit rows; returns the point (violations: caller)."""
     span = max(max(ub0 - lb0, ub1 - lb1), 1e-300)
@@ -319,22 +302,17 @@ def _least_violation(gx, gy, hh, n, lb0, lb1, ub0, ub1, x0, x1, res, delta, on, 
         full = d1 <= 0.0
         t = 1.0 if full else _line_search(res, delta, n, grx * dx + gry * dy, d1, te, order)
         step = t * max(abs(dx), abs(dy))
-        x0, x1 = _clip(x0 + t * dx, lb0, ub0), _clip(x1 + t * dy, lb1, ub1)
+        x0, x1 = nclip(x0 + t * dx, lb0, ub0), nclip(x1 + t * dy, lb1, ub1)
         if (full and same) or not (step > 1e-11 * span):
             break
     return x0, x1
 
 
 # --------------------------------------------------------------------------- every robot
-@_jit
+@jit
 def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter, x, lam, lam_box, feasible, loosened,
               bad_block):
-    """Every robot's QP (module docstring); fills the outputs, returns ``(iterations, enumerated)``.
-
-    ``bad_block[k]`` marks a Hessian block that is not symmetric positive definite (the caller raises).  Per
-    robot only plain loops are factored out: a helper that calls others pays its array arguments' reference
-    counts on every robot.
-    """
+    """Every robot's QP (module docstring) into the outputs (``bad_block``: raise); ``(iterations, enumerated)``."""
     rows, counts, K = _by_owner(owner, g.shape[0])
     nx, ny, b, slot_row = np.empty(K), np.empty(K), np.empty(K), np.empty(K, dtype=np.int64)  # the table
     gx, gy, hh, ln, res, delta, te = (np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K), np.empty(K),
@@ -380,8 +358,8 @@ def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter, x, lam
             nr = nk - 4
             _phase1_rows(l11, l21, l22, nr, nx, ny, b, gx, gy, hh, ln)
             p0, p1 = i11 * st[0] + i21 * st[1], i22 * st[1]
-            p0 = _nmin(_nmax(p0 if math.isfinite(p0) else 0.0, lb[k, 0]), ub[k, 0])
-            p1 = _nmin(_nmax(p1 if math.isfinite(p1) else 0.0, lb[k, 1]), ub[k, 1])
+            p0 = nmin(nmax(p0 if math.isfinite(p0) else 0.0, lb[k, 0]), ub[k, 0])
+            p1 = nmin(nmax(p1 if math.isfinite(p1) else 0.0, lb[k, 1]), ub[k, 1])
             q0, q1 = _least_violation(gx, gy, hh, nr, lb[k, 0], lb[k, 1], ub[k, 0], ub[k, 1], p0, p1, res, delta, on,
                                       te, order)
             _loosen(q0, q1, nr, relax_tol[k], gx, gy, hh, ln, b, slot_row, G, loosened)
@@ -394,8 +372,8 @@ def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter, x, lam
         if status == 2 or status == 3:  # infeasible without relax: the minimiser over the bounds alone
             _box_only(k, i11, i21, i22, y0x, y0y, xu0, xu1, lb, ub, tk, max_iter, nx, ny, b, st, out, x)
             continue
-        x[k, 0] = _clip(i11 * yx + i21 * yy, lb[k, 0], ub[k, 0])
-        x[k, 1] = _clip(i22 * yy, lb[k, 1], ub[k, 1])
+        x[k, 0] = nclip(i11 * yx + i21 * yy, lb[k, 0], ub[k, 0])
+        x[k, 1] = nclip(i22 * yy, lb[k, 1], ub[k, 1])
         for s in range(int(st[2]) if status == 1 else 0):  # the active slots' multipliers: mu / |L^-1 G_r|
             slot, mu = (int(st[3]), mu0) if s == 0 else (int(st[4]), mu1)
             r = slot_row[slot]
@@ -407,7 +385,7 @@ def solve_all(H, g, lb, ub, owner, G, h, relax, relax_tol, tol, max_iter, x, lam
     return its_all, n_enum
 
 
-@_jit
+@jit
 def _by_owner(owner, n):
     """The rows sorted by owner, stably (``rows[counts[k]:counts[k + 1]]``: robot ``k``'s), and the table size."""
     counts = np.zeros(n + 1, dtype=np.int64)
@@ -424,15 +402,15 @@ def _by_owner(owner, n):
     return rows, counts, 4 + kmax
 
 
-@_jit
+@jit
 def _start(st, out, y0x, y0y):
-    """A fresh active-set state at ``y0`` (no active slot, nothing being added)."""
+    """A fresh state ``st`` at ``y0``: ``yx, yy, nw, w0, w1, l1, l2, p, lp, status, r1, r2`` (``p = -1``: none)."""
     st[:] = 0.0
     st[0], st[1], st[7] = y0x, y0y, -1.0
     out[0], out[1], out[2], out[3] = y0x, y0y, 0.0, 0.0
 
 
-@_jit
+@jit
 def _table(k, i11, i21, i22, s0, lb, ub, G, h, rows, counts, tk, relax, loosened, nx, ny, b, slot_row):
     """Robot ``k``'s half-planes: the bounds, then its rows with a normal; ``(slots, a zero row 0 <= h < 0)``."""
     nx[0], ny[0], b[0] = i11 / s0, i21 / s0, ub[k, 0] / s0
@@ -463,7 +441,7 @@ def _table(k, i11, i21, i22, s0, lb, ub, G, h, rows, counts, tk, relax, loosened
     return nk, zero_inf
 
 
-@_jit
+@jit
 def _phase1_rows(l11, l21, l22, nr, nx, ny, b, gx, gy, hh, ln):
     """The table's ``nr`` rows normalised in ``x`` (``G / |G| = L n / |L n|``) and the norms ``|L n|``."""
     for j in range(nr):
@@ -474,22 +452,22 @@ def _phase1_rows(l11, l21, l22, nr, nx, ny, b, gx, gy, hh, ln):
         gx[j], gy[j], hh[j] = ax * inv, ay * inv, b[4 + j] * inv
 
 
-@_jit
+@jit
 def _loosen(q0, q1, nr, rtk, gx, gy, hh, ln, b, slot_row, G, loosened):
     """Each row loosened by its violation at the phase-1 point ``(q0, q1)`` and ``rtk``, in the table and its units."""
     for j in range(nr):
-        loosen = _nmax(gx[j] * q0 + gy[j] * q1 - hh[j], 0.0) * (1.0 + 1e-6) + rtk
+        loosen = nmax(gx[j] * q0 + gy[j] * q1 - hh[j], 0.0) * (1.0 + 1e-6) + rtk
         b[4 + j] = b[4 + j] + loosen * ln[j]
         r = slot_row[4 + j]
         loosened[r] = loosen * math.sqrt(G[r, 0] * G[r, 0] + G[r, 1] * G[r, 1])
 
 
-@_jit
+@jit
 def _box_only(k, i11, i21, i22, y0x, y0y, xu0, xu1, lb, ub, tk, max_iter, nx, ny, b, st, out, x):
     """Robot ``k``'s minimiser over its bounds alone (an infeasible robot without relaxation)."""
     if (xu0 < lb[k, 0]) or (xu0 > ub[k, 0]) or (xu1 < lb[k, 1]) or (xu1 > ub[k, 1]):
         _start(st, out, y0x, y0y)
         _solve(nx, ny, b, 4, y0x, y0y, tk, max_iter, st, out)
-        xu0 = _clip(i11 * out[0] + i21 * out[1], lb[k, 0], ub[k, 0])
-        xu1 = _clip(i22 * out[1], lb[k, 1], ub[k, 1])
+        xu0 = nclip(i11 * out[0] + i21 * out[1], lb[k, 0], ub[k, 0])
+        xu1 = nclip(i22 * out[1], lb[k, 1], ub[k, 1])
     x[k, 0], x[k, 1] = xu0, xu1

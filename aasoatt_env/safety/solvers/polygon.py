@@ -1,17 +1,14 @@
 """Projections of many points onto convex polygons at once: the local solver's steps 2-4.
 
-Each robot's polygon is a table of unit half-planes ``n' y <= b`` (:class:`Table`) and its point ``y0``;
-:func:`solve` runs, vectorised across robots with masks:
+Each robot's polygon is a table of unit half-planes ``n' y <= b`` (:class:`Table`); :func:`solve` projects its point
+``y0``, vectorised across robots with masks:
 
-2. the dual active-set method of Goldfarb and Idnani in the plane: add the most violated constraint, by a
-   partial step if an active one's multiplier reaches zero first (it is dropped); at most two are active,
-   and a new constraint that depends on them with no positive coefficient proves the polygon empty (a
-   Farkas certificate of at most three constraints);
-3. a KKT check of the point recomputed from the final active set (feasibility and multiplier signs within
-   the robot's tolerance), and of each certificate;
-4. the robots not verified (iteration cap, a failed check) are solved by enumerating every candidate point
-   (``y0``, the projections onto each line, the vertices of two lines): the nearest feasible one with
-   non-negative multipliers; the polygon is empty when there is none.
+2. the dual active set of Goldfarb and Idnani in the plane: add the most violated constraint, by a partial step if an
+   active one's multiplier reaches zero first (it is dropped); a new constraint that depends on the (at most two) active
+   ones with no positive coefficient proves the polygon empty (a Farkas certificate);
+3. a KKT check of the point recomputed from the final active set, and of each certificate;
+4. the robots not verified are solved by enumerating every candidate (``y0``, its projections onto each line, the
+   vertices of two lines): the nearest feasible one with non-negative multipliers, else the polygon is empty.
 """
 
 from __future__ import annotations
@@ -22,14 +19,11 @@ import numpy as np
 
 __all__ = ["PAD_B", "State", "Table", "solve"]
 
-_EPS_Z = 1e-22
-"""A new constraint whose normal has less than this squared component off the active ones depends on them."""
-_EPS_R = 1e-14
-"""Coefficients of a dependent normal below this count as non-positive."""
+_EPS_Z = 1e-22  # a new normal with less squared component than this off the active ones depends on them
+_EPS_R = 1e-14  # coefficients of a dependent normal below this count as non-positive
 PAD_B = 1e300
 """Right-hand side of padding slots (never violated)."""
-_ENUM_CHUNK = 1 << 20
-"""Largest candidate-by-constraint table of one enumeration chunk (elements)."""
+_ENUM_CHUNK = 1 << 20  # the largest candidate-by-constraint table (elements) of one enumeration chunk
 
 
 class Table(NamedTuple):
@@ -45,11 +39,13 @@ class Table(NamedTuple):
         return self.nx.reshape(-1), self.ny.reshape(-1), self.b.reshape(-1), self.nx.shape[1]
 
 
-def _vertex(n1x, n1y, b1, n2x, n2y, b2):
-    """Intersection of two lines ``n' y = b`` (arrays; NaN/inf where parallel) and the determinant."""
+def _vertex(n1x, n1y, b1, n2x, n2y, b2, yx, yy):
+    """Vertex ``v`` of two lines ``n' y = b``, the determinant, the multipliers of ``y``'s projection onto ``v``."""
     det = n1x * n2y - n1y * n2x
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return (b1 * n2y - b2 * n1y) / det, (n1x * b2 - n2x * b1) / det, det
+    with np.errstate(divide="ignore", invalid="ignore"):  # NaN/inf where parallel
+        vx, vy = (b1 * n2y - b2 * n1y) / det, (n1x * b2 - n2x * b1) / det
+        dx, dy = yx - vx, yy - vy
+        return vx, vy, det, (dx * n2y - dy * n2x) / det, (n1x * dy - n1y * dx) / det
 
 
 class State:
@@ -76,11 +72,7 @@ class State:
 
 
 def _active_set(T: Table, S: State, y0, tol_k, start, max_iter) -> int:
-    """Step 2 for robots ``start`` of ``T``: Goldfarb-Idnani in the plane; the iterations run.
-
-    Each iteration gives every robot without a constraint in progress the most violated one (or finishes
-    it), then takes one step per robot, by the size of its active set.
-    """
+    """Step 2 for robots ``start``: Goldfarb-Idnani in the plane, one step per robot and iteration; the iterations."""
     act = start
     iterations = 0
     for it in range(max_iter):
@@ -204,10 +196,7 @@ def _step_two(T: Table, S: State, a) -> bool:
 
 
 def _verify(T: Table, S: State, y0, tol_k, idx) -> tuple[np.ndarray, np.ndarray]:
-    """Step 3 for robots ``idx``: points and active multipliers ``(len(idx), 2)`` recomputed from the active sets.
-
-    Robots that fail the KKT check, or whose certificate fails, get status 3.
-    """
+    """Step 3 for robots ``idx``: points and multipliers ``(len(idx), 2)`` from the active sets (failed: status 3)."""
     NX, NY, B, K = T.flat()
     y = y0[idx].copy()
     mu = np.zeros((idx.shape[0], 2))
@@ -223,11 +212,8 @@ def _verify(T: Table, S: State, y0, tol_k, idx) -> tuple[np.ndarray, np.ndarray]
         px, py = yx - m1 * n1x, yy - m1 * n1y
         two = S.nw[r] == 2
         if np.any(two):
-            vx, vy, det = _vertex(n1x, n1y, b1, n2x, n2y, b2)
-            dx, dy = yx - vx, yy - vy
-            with np.errstate(divide="ignore", invalid="ignore"):
-                m1 = np.where(two, (dx * n2y - dy * n2x) / det, m1)
-                m2 = np.where(two, (n1x * dy - n1y * dx) / det, 0.0)
+            vx, vy, _, v1, v2 = _vertex(n1x, n1y, b1, n2x, n2y, b2, yx, yy)
+            m1, m2 = np.where(two, v1, m1), np.where(two, v2, 0.0)
             px, py = np.where(two, vx, px), np.where(two, vy, py)
         V = T.nx[r] * px[:, None] + T.ny[r] * py[:, None] - T.b[r]
         vmax = V.reshape(-1)[np.arange(r.size) * K + V.argmax(axis=1)]
@@ -269,11 +255,7 @@ def _enumerate(T: Table, idx, y0, tol_k):
         yx0, yy0 = y0[sub, 0:1], y0[sub, 1:2]
         mu_s = nx * yx0 + ny * yy0 - b  # projections onto single lines
         sx, sy = yx0 - mu_s * nx, yy0 - mu_s * ny
-        vx, vy, det = _vertex(nx[:, ia], ny[:, ia], b[:, ia], nx[:, ib], ny[:, ib], b[:, ib])  # vertices
-        dx, dy = yx0 - vx, yy0 - vy
-        with np.errstate(divide="ignore", invalid="ignore"):
-            m1 = (dx * ny[:, ib] - dy * nx[:, ib]) / det
-            m2 = (nx[:, ia] * dy - ny[:, ia] * dx) / det
+        vx, vy, det, m1, m2 = _vertex(nx[:, ia], ny[:, ia], b[:, ia], nx[:, ib], ny[:, ib], b[:, ib], yx0, yy0)
         cx, cy = np.concatenate((yx0, sx, vx), axis=1), np.concatenate((yy0, sy, vy), axis=1)
         mua = np.concatenate((np.zeros((r, 1)), mu_s, m1), axis=1)
         mub = np.concatenate((np.zeros((r, 1 + kk)), m2), axis=1)
@@ -303,10 +285,7 @@ def _enumerate(T: Table, idx, y0, tol_k):
 
 
 def solve(T: Table, S: State, y0, tol_k, idx, max_iter) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """Steps 2-4 for robots ``idx``: points and active multipliers ``(len(idx), 2)``, iterations, robots enumerated.
-
-    Sets their status (1 optimal, 2 infeasible) and active slots in ``S``.
-    """
+    """Steps 2-4 for robots ``idx``: ``(points, multipliers, iterations, enumerated)``; status and slots into ``S``."""
     its = _active_set(T, S, y0, tol_k, idx, max_iter)
     y, mu = _verify(T, S, y0, tol_k, idx)
     enum = np.flatnonzero(S.status[idx] == 3)
