@@ -1,8 +1,6 @@
 """The deadlock stage's ``multiplier`` trigger and ``A du_nom`` in one compiled loop (numba).
 
-:func:`multiplier_target` is :mod:`aasoatt_env.safety.deadlock`'s ``multiplier`` trigger and the target
-``A du_nom`` the strategy corrects, with numpy's operations in numpy's order (``sqrt`` of the sums of
-squares; ``einsum``'s sums from ``+0.0``): the same numbers bit for bit (``tests/test_compiled.py``).
+numpy's operations in numpy's order (``sqrt`` of sums of squares; ``einsum``'s sums from ``+0.0``): its numbers.
 """
 
 from __future__ import annotations

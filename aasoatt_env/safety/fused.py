@@ -1,13 +1,10 @@
 """The fused step: a warm centralised step's rows, QP and backup check in one compiled call.
 
-An alternative to the pipeline's rows, solve and backup stages, chosen when the filter is built where
-each of them runs compiled (the ``aasoatt`` barrier, a strategy that keeps the rows, the centralised
-mode with the decomposition, the warm active set and an exact back-end, the backup layer).
-:func:`~aasoatt_env.safety.fused_kernel.fused_step` calls those stages' own kernels, so where it answers,
-the step is the pipeline's bit for bit (``tests/test_compiled.py``).  It answers the rows and the solve
-where the QP is verified, and the backup stage too where its quick check brakes nobody; a stage it
-does not answer runs in the pipeline from that stage's start (the rows, or the backup).  At a few tens
-of robots a step's cost is mostly the calls between the stages, which this saves.
+Chosen when the filter is built where each of those stages runs compiled (:func:`fusable`); it calls their
+own kernels, so where it answers, the step is the pipeline's bit for bit (``tests/test_compiled.py``).  It
+answers the rows and the solve where the QP is verified, and the backup too where its quick check brakes
+nobody; a stage it does not answer runs in the pipeline from its start.  At a few tens of robots a step's
+cost is mostly the calls between the stages, which this saves.
 """
 
 from __future__ import annotations

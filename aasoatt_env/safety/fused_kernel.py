@@ -1,11 +1,6 @@
-"""The rows, solve and backup stages of a warm centralised step in one compiled call (numba).
+"""The rows, solve and backup stages of a warm centralised step in one compiled call (:mod:`.fused`).
 
-:func:`fused_step` calls the stages' own kernels in the pipeline's order
-(:func:`~aasoatt_env.safety.rows_kernel.aasoatt_rows`, the warm start's mapping,
-:func:`~aasoatt_env.safety.centralized_kernel.solve_decomposed`, the backup layer's quick check
-:func:`~aasoatt_env.safety.backup.kernels.gate_full`), so where it answers its numbers are the
-pipeline's bit for bit.  It answers the rows and the QP where the QP is verified (or no row binds),
-and the backup stage too where the quick check brakes nobody.
+It calls the stages' own kernels in the pipeline's order, so where it answers its numbers are the pipeline's.
 """
 
 from __future__ import annotations
