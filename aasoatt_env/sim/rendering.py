@@ -15,13 +15,13 @@ from typing import Any
 
 import numpy as np
 
+from aasoatt_env.cli_support import staged
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.sim.window import Window
 
 __all__ = ["ANIMATION_SUFFIXES", "BACKGROUND", "Frame", "Renderer", "animation_writer_missing", "robot_colors",
            "save_animation"]
 
-RENDER_EXTRA_HINT = 'pip install "aasoatt[render]"'
 BACKGROUND: tuple[int, int, int] = (255, 255, 255)
 """Background colour of rendered frames (RGB)."""
 GRID_COLOR, BOUNDS_COLOR, TEXT_COLOR, AVOID_COLOR = (232, 232, 232), (190, 190, 190), (30, 30, 30), (220, 20, 20)
@@ -54,7 +54,7 @@ def _require(module: str, feature: str) -> ModuleType:
         return importlib.import_module(module)
     except ImportError as exc:
         raise ImportError(f"{feature} needs the optional dependency {module.split('.')[0]!r}, which is not installed; "
-                          f"install the rendering extras with: {RENDER_EXTRA_HINT}") from exc
+                          'install the rendering extras with: pip install "aasoatt[render]"') from exc
 
 
 def _as_array(name: str, value: Any, shape_tail: tuple[int, ...], n: int | None) -> np.ndarray:
@@ -386,13 +386,8 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
             raise ConfigError(f"save_animation: frame {k} has shape {img.shape}, expected {images[0].shape} (frame 0)")
     iio = _require("imageio.v3", "save_animation")
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.stem}.{os.getpid()}.partial{path.suffix}")  # same suffix: same writer
-    try:
+    with staged(path) as (partial,):  # the same suffix: the same writer
         _write_animation(iio, images, partial, suffix, fps)
-        os.replace(partial, path)
-    finally:
-        if partial.exists():
-            partial.unlink()
     return path
 
 
