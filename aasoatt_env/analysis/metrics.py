@@ -299,6 +299,15 @@ def format_value(x: Any, digits: int = 4) -> str:
 
 
 def format_summary(summary: dict[str, Any], *, precision: int = 4) -> str:
-    """A :func:`summarize` dict (any flat dict) as aligned ``name  value`` lines (see :func:`format_value`)."""
+    """A :func:`summarize` dict (any flat dict) as aligned ``name  value`` lines (see :func:`format_value`).
+
+    Solve times (``solve_time_*``, stored in seconds) print in milliseconds with their unit, e.g. ``1.2500 ms``.
+    """
     width = max((len(str(k)) for k in summary), default=0)
-    return "\n".join(f"{str(k):<{width}}  {format_value(v, precision):>12}" for k, v in summary.items())
+    return "\n".join(f"{str(k):<{width}}  {_summary_cell(str(k), v, precision):>12}" for k, v in summary.items())
+
+
+def _summary_cell(key: str, value: Any, precision: int) -> str:
+    if key.startswith("solve_time") and isinstance(value, (float, np.floating)) and math.isfinite(value):
+        return f"{1e3 * value:.{precision}f} ms"
+    return format_value(value, precision)
