@@ -132,9 +132,15 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         if self._layouts[0] is not None:
             control_filter.reset(self.team)
 
-    control_filter = property(lambda self: self._control_filter, doc="The control filter (None: actions as they are).")
-    filter_outputs = property(lambda self: self._filter_outputs,
-                              doc="The control filter's outputs at the physics steps of the last ``step`` (or empty).")
+    @property
+    def control_filter(self) -> ControlFilter | None:
+        """The control filter (None: actions as they are)."""
+        return self._control_filter
+
+    @property
+    def filter_outputs(self) -> tuple[FilterOutput, ...]:
+        """The control filter's outputs at the physics steps of the last ``step`` (or empty)."""
+        return self._filter_outputs
 
     @property
     def _nominal_actions(self) -> bool:

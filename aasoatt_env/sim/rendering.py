@@ -122,7 +122,10 @@ class Frame:
                                   "(xmin, xmax, ymin, ymax) with xmin < xmax and ymin < ymax")
             self.world_bounds = b  # type: ignore[assignment]
 
-    n = property(lambda self: int(self.positions.shape[0]), doc="Number of robots.")
+    @property
+    def n(self) -> int:
+        """Number of robots."""
+        return int(self.positions.shape[0])
 
     def bounds(self, margin: float = 0.1) -> tuple[float, float, float, float]:
         """``world_bounds`` if set, else a box around all content, padded by ``margin`` of its size."""

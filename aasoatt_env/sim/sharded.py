@@ -274,10 +274,15 @@ class ShardedBatchedEnv(batched.TeamsAPI):
             self._settle()
         return self._live.copy()
 
-    max_steps = property(lambda self: np.concatenate([s[0] for s in self._every("state")]),
-                         doc="Each team's episode horizon in env steps ``(K,)``.")
-    elapsed_steps = property(lambda self: np.concatenate([s[1] for s in self._every("state")]),
-                             doc="Env steps taken in each team's episode ``(K,)``.")
+    @property
+    def max_steps(self) -> np.ndarray:
+        """Each team's episode horizon in env steps ``(K,)``."""
+        return np.concatenate([s[0] for s in self._every("state")])
+
+    @property
+    def elapsed_steps(self) -> np.ndarray:
+        """Env steps taken in each team's episode ``(K,)``."""
+        return np.concatenate([s[1] for s in self._every("state")])
 
     def reset(self, seed: int | Sequence[int | None] | None = None,
               options: dict | Sequence[dict | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
