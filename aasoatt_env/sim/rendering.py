@@ -192,10 +192,7 @@ class Renderer:
         self.width, self.height = int(width), int(height)
         self.grid, self.show_text, self.fps = bool(grid), bool(show_text), fps
         self._pg = _require("pygame", "Renderer")
-        try:
-            self._gfx: ModuleType | None = importlib.import_module("pygame.gfxdraw")
-        except ImportError:  # pragma: no cover - gfxdraw ships with pygame
-            self._gfx = None
+        self._gfx = importlib.import_module("pygame.gfxdraw")  # (part of every pygame)
         self._surface = self._pg.Surface((self.width, self.height))
         self._font: Any = None  # False: no font available
         self._window = Window(self._pg, self.width, self.height)
@@ -214,7 +211,7 @@ class Renderer:
         """A disc (anti-aliased rim ``edge``) or, with ``fill=False``, a thin anti-aliased circle."""
         x, y = int(c[0]), int(c[1])
         gfx = self._gfx
-        if gfx is not None and r >= 1 and abs(x) + r < 32000 and abs(y) + r < 32000:
+        if r >= 1 and abs(x) + r < 32000 and abs(y) + r < 32000:
             if fill:
                 gfx.filled_circle(self._surface, x, y, r, color)
             gfx.aacircle(self._surface, x, y, r, edge if edge is not None else color)
