@@ -263,6 +263,13 @@ def test_summarize_json_and_format():
     assert lines[0].split() == ["n_robots", "3"]
     assert any(line.split() == ["min_obstacle_gap", "-"] for line in lines)
     assert len({len(line) for line in lines}) == 1  # aligned
+    assert any(line.split() == ["solve_time_max", "-"] for line in lines)  # no solver: no unit either
+
+
+def test_format_summary_solve_times_carry_their_unit():
+    lines = format_summary({"solve_time_median": 1.25e-3, "solve_time_max": 0.0123, "duration": 2.0}).splitlines()
+    assert [line.split() for line in lines] == [["solve_time_median", "1.2500", "ms"],
+                                                ["solve_time_max", "12.3000", "ms"], ["duration", "2.0000"]]
 
 
 # ---------------------------------------------------------------- rollout container

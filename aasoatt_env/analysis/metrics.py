@@ -74,7 +74,12 @@ def intervention_time(rollout: Rollout) -> float:
 
 
 def _smallest(field: str, what: str) -> property:
-    return property(lambda self: float(np.min(getattr(self, field))), doc=f"Smallest {what} over the episode.")
+    """A property: the smallest value of the array ``field`` (``what``) over the episode."""
+
+    def smallest(self: Any) -> float:
+        return float(np.min(getattr(self, field)))
+
+    return property(smallest, doc=f"Smallest {what} over the episode.")
 
 
 @dataclass(frozen=True)
@@ -162,10 +167,25 @@ class CollisionReport:
     colliding_robots: np.ndarray
     tolerance: float
 
-    n_robot_pairs = property(lambda self: len(self.robot_pairs), doc="Number of distinct colliding robot pairs.")
-    n_obstacle_hits = property(lambda self: len(self.obstacle_hits), doc="Number of colliding robot-obstacle pairs.")
-    n_colliding_robots = property(lambda self: int(self.colliding_robots.sum()), doc="Number of robots in a collision.")
-    any = property(lambda self: bool(self.robot_pairs or self.obstacle_hits), doc="Whether anything collided.")
+    @property
+    def n_robot_pairs(self) -> int:
+        """Number of distinct colliding robot pairs."""
+        return len(self.robot_pairs)
+
+    @property
+    def n_obstacle_hits(self) -> int:
+        """Number of colliding robot-obstacle pairs."""
+        return len(self.obstacle_hits)
+
+    @property
+    def n_colliding_robots(self) -> int:
+        """Number of robots in a collision."""
+        return int(self.colliding_robots.sum())
+
+    @property
+    def any(self) -> bool:
+        """Whether anything collided."""
+        return bool(self.robot_pairs or self.obstacle_hits)
 
 
 def _scans(rollout: Rollout, tolerance: float) -> tuple[Separation, CollisionReport]:
@@ -299,6 +319,15 @@ def format_value(x: Any, digits: int = 4) -> str:
 
 
 def format_summary(summary: dict[str, Any], *, precision: int = 4) -> str:
-    """A :func:`summarize` dict (any flat dict) as aligned ``name  value`` lines (see :func:`format_value`)."""
+    """A :func:`summarize` dict (any flat dict) as aligned ``name  value`` lines (see :func:`format_value`).
+
+    Solve times (``solve_time_*``, stored in seconds) print in milliseconds with their unit, e.g. ``1.2500 ms``.
+    """
     width = max((len(str(k)) for k in summary), default=0)
-    return "\n".join(f"{str(k):<{width}}  {format_value(v, precision):>12}" for k, v in summary.items())
+    return "\n".join(f"{str(k):<{width}}  {_summary_cell(str(k), v, precision):>12}" for k, v in summary.items())
+
+
+def _summary_cell(key: str, value: Any, precision: int) -> str:
+    if key.startswith("solve_time") and isinstance(value, (float, np.floating)) and math.isfinite(value):
+        return f"{1e3 * value:.{precision}f} ms"
+    return format_value(value, precision)

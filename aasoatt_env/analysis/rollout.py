@@ -134,10 +134,25 @@ class Rollout:
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"metadata: not JSON-serialisable ({exc})") from None
 
-    n_steps = property(lambda self: int(self.times.shape[0]), doc="Number of recorded steps ``T``.")
-    n_robots = property(lambda self: int(self.positions.shape[1]), doc="Number of robots ``N``.")
-    n_obstacles = property(lambda self: int(self.obstacle_centers.shape[0]), doc="Number of static obstacles ``M``.")
-    duration = property(lambda self: float(self.times[-1] - self.times[0]), doc="Time from first to last step [s].")
+    @property
+    def n_steps(self) -> int:
+        """Number of recorded steps ``T``."""
+        return int(self.times.shape[0])
+
+    @property
+    def n_robots(self) -> int:
+        """Number of robots ``N``."""
+        return int(self.positions.shape[1])
+
+    @property
+    def n_obstacles(self) -> int:
+        """Number of static obstacles ``M``."""
+        return int(self.obstacle_centers.shape[0])
+
+    @property
+    def duration(self) -> float:
+        """Time from first to last step [s]."""
+        return float(self.times[-1] - self.times[0])
 
     def window(self, t_end: float | None) -> Rollout:
         """The part recorded at times ``<= t_end`` (the rollout itself if None or if it ends earlier)."""

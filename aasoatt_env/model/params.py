@@ -100,7 +100,10 @@ class Team:
     model: Model
     group: np.ndarray | None = None
 
-    n = property(lambda self: int(self.radius.shape[0]), doc="Number of robots.")
+    @property
+    def n(self) -> int:
+        """Number of robots."""
+        return int(self.radius.shape[0])
 
     def subset(self, idx: np.ndarray) -> Team:
         """The team of robots ``idx``; its :attr:`derived` holds ``(self, robot numbers)`` under :data:`SUBSET_OF`."""
@@ -110,7 +113,10 @@ class Team:
         sub.derived[SUBSET_OF] = (self, rows)
         return sub
 
-    is_diff_drive = property(lambda self: self.model == "diff_drive", doc="False for double integrators.")
+    @property
+    def is_diff_drive(self) -> bool:
+        """False for double integrators."""
+        return self.model == "diff_drive"
 
     @cached_property
     def du_max(self) -> np.ndarray:

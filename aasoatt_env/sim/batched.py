@@ -34,7 +34,10 @@ class TeamsAPI:
         (self.single_observation_space, self.single_action_space, self.observation_space,
          self.action_space) = batch_spaces(agent_obs, n, self.num_envs)
 
-    filtered = property(lambda self: bool(self.shared_settings["filtered"]), doc="Whether the teams are filtered.")
+    @property
+    def filtered(self) -> bool:
+        """Whether the teams are filtered."""
+        return bool(self.shared_settings["filtered"])
 
     def _on_team(self, k: int, what: str, args: tuple) -> Any:
         """``what`` (``get``, ``set``, ``call``, ``wrapped``) with ``args`` on team ``k``'s own env."""
@@ -99,9 +102,20 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
         """``(K, N)`` bool: agents that act at the next ``step`` (a copy)."""
         return (self._active & ~np.repeat(self._done, self.num_agents)).reshape(self.num_envs, self.num_agents)
 
-    grouped_filter = property(lambda self: self._grouped, doc="The one filter of all teams, or None (one per team).")
-    max_steps = property(lambda self: self._max_steps.copy(), doc="Each team's episode horizon in env steps ``(K,)``.")
-    elapsed_steps = property(lambda self: self._steps.copy(), doc="Env steps taken in each team's episode ``(K,)``.")
+    @property
+    def grouped_filter(self) -> GroupedControlFilter | None:
+        """The one filter of all teams, or None (one per team)."""
+        return self._grouped
+
+    @property
+    def max_steps(self) -> np.ndarray:
+        """Each team's episode horizon in env steps ``(K,)``."""
+        return self._max_steps.copy()
+
+    @property
+    def elapsed_steps(self) -> np.ndarray:
+        """Env steps taken in each team's episode ``(K,)``."""
+        return self._steps.copy()
 
     def reset(self, seed: int | Sequence[int | None] | None = None,
               options: dict | Sequence[dict | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:

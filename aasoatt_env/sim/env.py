@@ -74,8 +74,7 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         self.reward_config = RewardConfig.coerce(reward)
         self.terminate_on_collision = check.boolean("terminate_on_collision", terminate_on_collision)
         self.collision_tolerance = check.real("collision_tolerance", collision_tolerance, lo=0.0, hi=1.0)
-        self._max_steps_override = None if max_steps is None else check.integer(
-            "max_steps", max_steps, lo=1, hi=10**12)
+        self._max_steps_override = None if max_steps is None else check.integer("max_steps", max_steps, lo=1, hi=10**12)
         self.clip_actions = check.boolean("clip_actions", clip_actions)
         self.scenario = get_scenario(scenario, **scenario_kwargs)
         self.render_mode = render_mode
@@ -84,10 +83,9 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         self.agents: list[str] = []
         self._index = {a: i for i, a in enumerate(self.possible_agents)}
         obs_dim = SELF_DIM + SLOT_DIM * (self.num_neighbors + self.num_obstacles)
-        self._obs_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (obs_dim,), np.float32)
-        self._act_space = spaces.Box(-1.0, 1.0, (2,), np.float32)
-        self.observation_spaces = {a: self._obs_space for a in self.possible_agents}
-        self.action_spaces = {a: self._act_space for a in self.possible_agents}
+        obs_space = spaces.Box(-OBS_BOUND, OBS_BOUND, (obs_dim,), np.float32)
+        self.observation_spaces = dict.fromkeys(self.possible_agents, obs_space)
+        self.action_spaces = dict.fromkeys(self.possible_agents, spaces.Box(-1.0, 1.0, (2,), np.float32))
         self.state_space = spaces.Box(-np.inf, np.inf, (9 * n + 1,), np.float64)
         self._bases, self._grouped, self._offset = [self], None, 0
         self._control_filter: ControlFilter | None = None
@@ -134,9 +132,15 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         if self._layouts[0] is not None:
             control_filter.reset(self.team)
 
-    control_filter = property(lambda self: self._control_filter, doc="The control filter (None: actions as they are).")
-    filter_outputs = property(lambda self: self._filter_outputs,
-                              doc="The control filter's outputs at the physics steps of the last ``step`` (or empty).")
+    @property
+    def control_filter(self) -> ControlFilter | None:
+        """The control filter (None: actions as they are)."""
+        return self._control_filter
+
+    @property
+    def filter_outputs(self) -> tuple[FilterOutput, ...]:
+        """The control filter's outputs at the physics steps of the last ``step`` (or empty)."""
+        return self._filter_outputs
 
     @property
     def _nominal_actions(self) -> bool:

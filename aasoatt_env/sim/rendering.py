@@ -15,13 +15,13 @@ from typing import Any
 
 import numpy as np
 
+from aasoatt_env.cli_support import staged
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.sim.window import Window
 
 __all__ = ["ANIMATION_SUFFIXES", "BACKGROUND", "Frame", "Renderer", "animation_writer_missing", "robot_colors",
            "save_animation"]
 
-RENDER_EXTRA_HINT = 'pip install "aasoatt[render]"'
 BACKGROUND: tuple[int, int, int] = (255, 255, 255)
 """Background colour of rendered frames (RGB)."""
 GRID_COLOR, BOUNDS_COLOR, TEXT_COLOR, AVOID_COLOR = (232, 232, 232), (190, 190, 190), (30, 30, 30), (220, 20, 20)
@@ -54,7 +54,7 @@ def _require(module: str, feature: str) -> ModuleType:
         return importlib.import_module(module)
     except ImportError as exc:
         raise ImportError(f"{feature} needs the optional dependency {module.split('.')[0]!r}, which is not installed; "
-                          f"install the rendering extras with: {RENDER_EXTRA_HINT}") from exc
+                          'install the rendering extras with: pip install "aasoatt[render]"') from exc
 
 
 def _as_array(name: str, value: Any, shape_tail: tuple[int, ...], n: int | None) -> np.ndarray:
@@ -122,7 +122,10 @@ class Frame:
                                   "(xmin, xmax, ymin, ymax) with xmin < xmax and ymin < ymax")
             self.world_bounds = b  # type: ignore[assignment]
 
-    n = property(lambda self: int(self.positions.shape[0]), doc="Number of robots.")
+    @property
+    def n(self) -> int:
+        """Number of robots."""
+        return int(self.positions.shape[0])
 
     def bounds(self, margin: float = 0.1) -> tuple[float, float, float, float]:
         """``world_bounds`` if set, else a box around all content, padded by ``margin`` of its size."""
@@ -189,10 +192,7 @@ class Renderer:
         self.width, self.height = int(width), int(height)
         self.grid, self.show_text, self.fps = bool(grid), bool(show_text), fps
         self._pg = _require("pygame", "Renderer")
-        try:
-            self._gfx: ModuleType | None = importlib.import_module("pygame.gfxdraw")
-        except ImportError:  # pragma: no cover - gfxdraw ships with pygame
-            self._gfx = None
+        self._gfx = importlib.import_module("pygame.gfxdraw")  # (part of every pygame)
         self._surface = self._pg.Surface((self.width, self.height))
         self._font: Any = None  # False: no font available
         self._window = Window(self._pg, self.width, self.height)
@@ -211,7 +211,7 @@ class Renderer:
         """A disc (anti-aliased rim ``edge``) or, with ``fill=False``, a thin anti-aliased circle."""
         x, y = int(c[0]), int(c[1])
         gfx = self._gfx
-        if gfx is not None and r >= 1 and abs(x) + r < 32000 and abs(y) + r < 32000:
+        if r >= 1 and abs(x) + r < 32000 and abs(y) + r < 32000:
             if fill:
                 gfx.filled_circle(self._surface, x, y, r, color)
             gfx.aacircle(self._surface, x, y, r, edge if edge is not None else color)
@@ -386,13 +386,8 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
             raise ConfigError(f"save_animation: frame {k} has shape {img.shape}, expected {images[0].shape} (frame 0)")
     iio = _require("imageio.v3", "save_animation")
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.stem}.{os.getpid()}.partial{path.suffix}")  # same suffix: same writer
-    try:
+    with staged(path) as (partial,):  # the same suffix: the same writer
         _write_animation(iio, images, partial, suffix, fps)
-        os.replace(partial, path)
-    finally:
-        if partial.exists():
-            partial.unlink()
     return path
 
 

@@ -157,10 +157,6 @@ class ShardedBatchedEnv(batched.TeamsAPI):
                          + "; close this env and make a new one (a script that starts workers must guard its "
                          "entry point with `if __name__ == '__main__':`)")
 
-    def _torn(self, w: int, what: str) -> None:
-        """A message to or from worker ``w`` was cut by an exception: the pipe's place is unknown from now on."""
-        self._broken = f"a call was interrupted while {what} {self._teams(w)}"
-
     def _receive(self, w: int) -> Any:
         """Worker ``w``'s reply to its oldest pending command (its answer, or its error raised here).
 
@@ -178,7 +174,7 @@ class ShardedBatchedEnv(batched.TeamsAPI):
         except (EOFError, OSError):
             raise self._dead(w) from None
         except BaseException:
-            self._torn(w, "reading the reply of")
+            self._broken = f"a call was interrupted while reading the reply of {self._teams(w)}"
             raise
         cmd = self._pending[w].popleft()
         try:
@@ -221,7 +217,7 @@ class ShardedBatchedEnv(batched.TeamsAPI):
         except BaseException as exc:  # a dead worker, or interrupted while writing: how much it got is unknown
             if isinstance(exc, OSError) and not self._procs[w].is_alive():
                 raise self._dead(w) from None
-            self._torn(w, "sending to")
+            self._broken = f"a call was interrupted while sending to {self._teams(w)}"
             raise
 
     def _all(self, cmd: str, args: Sequence[Any]) -> list[Any]:
@@ -278,10 +274,15 @@ class ShardedBatchedEnv(batched.TeamsAPI):
             self._settle()
         return self._live.copy()
 
-    max_steps = property(lambda self: np.concatenate([s[0] for s in self._every("state")]),
-                         doc="Each team's episode horizon in env steps ``(K,)``.")
-    elapsed_steps = property(lambda self: np.concatenate([s[1] for s in self._every("state")]),
-                             doc="Env steps taken in each team's episode ``(K,)``.")
+    @property
+    def max_steps(self) -> np.ndarray:
+        """Each team's episode horizon in env steps ``(K,)``."""
+        return np.concatenate([s[0] for s in self._every("state")])
+
+    @property
+    def elapsed_steps(self) -> np.ndarray:
+        """Env steps taken in each team's episode ``(K,)``."""
+        return np.concatenate([s[1] for s in self._every("state")])
 
     def reset(self, seed: int | Sequence[int | None] | None = None,
               options: dict | Sequence[dict | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -304,10 +305,8 @@ class ShardedBatchedEnv(batched.TeamsAPI):
         act = act.reshape(self.num_envs, self.num_agents, 2)
         out = self._all("step", [act[a:b] for a, b in zip(self._starts[:-1], self._starts[1:])])
         obs, rew, term, trunc = (np.concatenate([o[i] for o in out]) for i in range(4))
-        infos: dict[str, Any] = {}
-        for key in out[0][4]:
-            if key not in ("final_obs", "_final_obs"):
-                infos[key] = np.concatenate([o[4][key] for o in out])
+        infos: dict[str, Any] = {key: np.concatenate([o[4][key] for o in out]) for key in out[0][4]
+                                 if key not in ("final_obs", "_final_obs")}
         if any("_final_obs" in o[4] for o in out):  # a shard without a reset: its obs are its final ones
             parts = [(o[4]["final_obs"], o[4]["_final_obs"]) if "_final_obs" in o[4]
                      else (o[0], np.zeros(o[0].shape[0], dtype=bool)) for o in out]
