@@ -113,6 +113,8 @@ def run_many(specs: list[RunSpec], jobs: int = 1, desc: str = "runs", show: bool
                 for res in pool.imap(run_spec, specs, chunksize=1):
                     results.append(res)
                     bar.update(1)
+                pool.close()  # let the workers exit on their own (terminating them leaks their semaphores)
+                pool.join()
     finally:
         bar.close()
     return results
