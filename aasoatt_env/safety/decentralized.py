@@ -17,7 +17,7 @@ from typing import NamedTuple
 import numpy as np
 
 from aasoatt_env.model.geometry import pair_components
-from aasoatt_env.safety.centralized import TeamAnswer, compiled_settings, solve_team
+from aasoatt_env.safety.centralized import TeamAnswer, avoiding_robots, compiled_settings, solve_team
 from aasoatt_env.safety.problem import box_least_squares
 from aasoatt_env.safety.rows import Rows
 from aasoatt_env.safety.solvers import SolverPolicy
@@ -273,9 +273,8 @@ class Decentralized:
         if ans.n_groups:
             message += (f", {ans.n_groups} negotiation group(s) of {n_grouped} robots (largest {ans.largest_group})"
                         + ("" if ans.group_status == "solved" else f": {ans.group_status}"))
-        avoiding = np.zeros(n, dtype=bool)  # a robot avoids where its own half of a row binds
-        avoiding[rows.ri[ans.z_half[:, 0] > self.eta_tol]] = True
-        avoiding[rows.rj[(ans.z_half[:, 1] > self.eta_tol) & (rows.rj >= 0)]] = True
+        binds = ans.z_half > self.eta_tol  # a robot avoids where its own half of a row binds
+        avoiding = avoiding_robots(n, rows, binds[:, 0], binds[:, 1])
         checked = status != "solved" or (ans.grouped.any() and not self.policy.exact)
         slack = float(max(0.0, np.max(rows.values(ans.du) - rows.rhs, initial=0.0))) if checked else 0.0
         return Answer(ans.du.copy(), ans.du / s.scale[:, None], ans.z, ans.eta, avoiding, status, message,
