@@ -136,14 +136,11 @@ def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], unsafe
 
 
 class BackupAnswer(NamedTuple):
-    """What the backup layer did: :class:`GateResult`'s ``du``, ``braking``, ``margin``, ``safe``, and ``nudged``.
-
-    ``nudged``: robots the repair moved (not braking).
-    """
+    """What the backup layer did: :class:`GateResult`'s ``du``, ``braking``, ``margin``, ``safe``, and ``nudged``."""
 
     du: np.ndarray
     braking: np.ndarray
-    nudged: np.ndarray
+    nudged: np.ndarray  #: robots the repair moved (not braking)
     margin: float
     safe: bool
 

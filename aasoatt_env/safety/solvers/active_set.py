@@ -26,26 +26,16 @@ from aasoatt_env.compiled import c64, kernels
 __all__ = ["DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "dense_least_distance_form",
            "least_distance_form", "one_change_budget", "solve_active_set", "solve_active_set_parts"]
 
-DENSE_MAX_VARS: int = 80
-"""Problems up to this many variables use dense algebra, whatever their rows."""
-DENSE_MAX_CELLS: int = 400_000
-"""Larger problems use it too up to this many entries of their dense rows ``(m + 2n) x n`` (a stack of small teams)."""
-DENSE_MAX_ROWS: int = 500
-"""Working sets up to this size use a dense Cholesky of the Schur complement."""
-SPARSE_DENSE_SCHUR_ROWS: int = 200
-"""With sparse rows, working sets up to this size factor their Schur complement densely (LAPACK)."""
-WARM_REL: float = 1e-6
-"""Rows whose warm-start multiplier exceeds this fraction of the largest start in the working set."""
-TOL: float = 1e-10
-"""Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
-ONE_CHANGE_ITER: int = 20
-"""Iterations of the one-change rule after the primal-dual one (generous: an unverified part is solved slower)."""
-PDAS_ITER: int = 30
-"""Iterations of the primal-dual rule from the warm start."""
-BOUND_TIGHT: float = 1e-9
-"""A warm start within this of a bound (scaled, ``|x| <= 1``) starts with that bound in the working set."""
-WARM_FLOOR: float = 1e-300
-"""Floor of the largest warm multiplier in the working-set cut (no cut of zero)."""
+DENSE_MAX_VARS: int = 80  #: problems up to this many variables use dense algebra, whatever their rows
+DENSE_MAX_CELLS: int = 400_000  #: larger ones too up to this many entries of their dense rows ``(m + 2n) x n``
+DENSE_MAX_ROWS: int = 500  #: working sets up to this size use a dense Cholesky of the Schur complement
+SPARSE_DENSE_SCHUR_ROWS: int = 200  #: sparse rows: working sets up to this size factor the Schur complement densely
+WARM_REL: float = 1e-6  #: rows whose warm multiplier exceeds this fraction of the largest start in the working set
+TOL: float = 1e-10  #: feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)
+ONE_CHANGE_ITER: int = 20  #: one-change iterations after the primal-dual ones (generous: the fallback is slower)
+PDAS_ITER: int = 30  #: iterations of the primal-dual rule from the warm start
+BOUND_TIGHT: float = 1e-9  #: a warm start within this of a bound (scaled) starts with the bound in the working set
+WARM_FLOOR: float = 1e-300  #: floor of the largest warm multiplier in the working-set cut (no cut of zero)
 VERIFIED_MESSAGE: str = "active set (warm, KKT verified)"
 
 
@@ -122,7 +112,6 @@ def _least_distance_form(prob) -> LeastDistanceForm | None:
     return LeastDistanceForm(LinvT, gt, Mt, np.concatenate((prob.u, prob.ub, -prob.lb)))
 
 
-
 def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
     """``LeastDistanceForm.Mt`` of ``prob`` as a dense array, built without scipy.sparse.
 
@@ -169,18 +158,13 @@ def _cholesky(S: np.ndarray):
 
 
 class ActiveSetParts(NamedTuple):
-    """The answer of :func:`solve_active_set_parts`.
+    """The answer of :func:`solve_active_set_parts` (on unverified groups an unverified iterate or zeros)."""
 
-    ``x`` ``(n,)``, ``z`` ``(m,)``: the scaled point and row multipliers (``>= 0``; an unverified iterate or zeros on
-    unverified groups); ``iterations``: equality solves; ``ok`` ``(K,)``: the groups whose part meets the KKT
-    conditions of their own rows; ``row_group`` ``(m,)``: every row's group.
-    """
-
-    x: np.ndarray
-    z: np.ndarray
-    iterations: int
-    ok: np.ndarray
-    row_group: np.ndarray
+    x: np.ndarray  #: ``(n,)`` the scaled point
+    z: np.ndarray  #: ``(m,)`` row multipliers ``>= 0``
+    iterations: int  #: equality solves
+    ok: np.ndarray  #: ``(K,)`` the groups whose part meets the KKT conditions of their own rows
+    row_group: np.ndarray  #: ``(m,)`` every row's group
 
 
 def solve_active_set(prob, x0, z0, max_iter: int = PDAS_ITER, compiled: bool = False,

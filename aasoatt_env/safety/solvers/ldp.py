@@ -18,10 +18,8 @@ from aasoatt_env.safety.solvers.active_set import dense_least_distance_form, sol
 
 __all__ = ["FEAS_TOL", "MAX_VARS", "solve_ldp"]
 
-MAX_VARS: int = 500
-"""Largest number of variables solved (``E`` is dense, ``(n + 1) x (m + 2n)``)."""
-FEAS_TOL: float = 1e-9
-"""Largest violation of a normalised row or bound accepted for an unpolished point."""
+MAX_VARS: int = 500  #: largest number of variables solved (``E`` is dense, ``(n + 1) x (m + 2n)``)
+FEAS_TOL: float = 1e-9  #: largest violation of a normalised row or bound accepted for an unpolished point
 
 
 def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.ndarray | None, str]:

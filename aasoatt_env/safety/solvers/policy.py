@@ -75,18 +75,13 @@ def _phase1_order(solver: str, n1: int) -> list[str]:
 
 @dataclass(frozen=True)
 class SolverPolicy:
-    """The safety QP's solver (module docstring): a back-end and how the exact path runs.
+    """The safety QP's solver (module docstring): a back-end and how the exact path runs."""
 
-    ``solver``: a name in :data:`~.backends.SOLVERS`; ``active_set``: try the warm active set first (in its
-    compiled kernel with ``compiled``, with the one-change budget ``one_change_iter``, None: its default);
-    ``iterations``: ``neural``'s projected primal-dual updates per call.
-    """
-
-    solver: str
-    active_set: bool = True
-    compiled: bool = False
-    one_change_iter: int | None = None
-    iterations: int = 1
+    solver: str  #: a name in :data:`~.backends.SOLVERS`
+    active_set: bool = True  #: try the warm active set first
+    compiled: bool = False  #: the warm active set by its compiled kernel
+    one_change_iter: int | None = None  #: the warm active set's one-change budget (None: its default)
+    iterations: int = 1  #: ``neural``'s projected primal-dual updates per call
 
     @property
     def exact(self) -> bool:

@@ -21,8 +21,7 @@ __all__ = ["PAD_B", "State", "Table", "solve"]
 
 _EPS_Z = 1e-22  # a new normal with less squared component than this off the active ones depends on them
 _EPS_R = 1e-14  # coefficients of a dependent normal below this count as non-positive
-PAD_B = 1e300
-"""Right-hand side of padding slots (never violated)."""
+PAD_B = 1e300  #: right-hand side of padding slots (never violated)
 _ENUM_CHUNK = 1 << 20  # the largest candidate-by-constraint table (elements) of one enumeration chunk
 
 
