@@ -1,12 +1,10 @@
 """The decentralised QP stage: every robot solves its own 2-variable QP over its share of each pair row.
 
-A pair row ``Gi du_i + Gj du_j <= rhs`` is shared by authority ``a`` (``Team.max_point_accel``),
-``s_i = a_i / (a_i + a_j)``: ``"reciprocal"`` (default) splits the correction ``v = Gi du0_i + Gj du0_j - rhs`` that the
-closed-form answers ``du0`` need, ``Gi du_i <= Gi du0_i - s_i v``; ``"authority"`` splits the bound,
-``Gi du_i <= s_i rhs``.  An obstacle row is its robot's.  A robot whose own QP is infeasible gets its
-least-violation answer (status ``"relaxed"``).  Robots the deadlock trigger flags, and those they touch, solve the
-rows among them whole (negotiation groups: the centralised QP restricted to them, with their halves of the other
-rows); without a flagged robot the step is the per-robot one exactly.  ``docs/design.md`` says why.
+A pair row ``Gi du_i + Gj du_j <= rhs`` is shared by authority ``a`` (``Team.max_point_accel``), ``s_i = a_i / (a_i +
+a_j)``: ``"reciprocal"`` (default) splits the correction ``v = Gi du0_i + Gj du0_j - rhs`` of the closed-form answers
+``du0``, ``"authority"`` the bound ``s_i rhs``; an obstacle row is its robot's.  An infeasible robot gets its
+least-violation answer (``"relaxed"``).  Robots the deadlock trigger flags, and those they touch, solve the rows among
+them whole (negotiation groups); without a flagged robot the step is the per-robot one.  ``docs/design.md`` says why.
 """
 
 from __future__ import annotations

@@ -1,13 +1,10 @@
 """The backup policy, proportional braking, and the robots' braking and candidate paths in closed form.
 
 Backup: ``du = -u / T`` (``-u / dt`` in the last step), ``T = max(s / a, |p_dot| / a_b)``, ``s = max|u_k|``,
-``a_b = brake_fraction * rho * a``.  Both wheel speeds fall linearly to zero together, so the control point keeps a
-fixed circle within the wheels' bounds, and after one braking step ``T`` is exactly ``T - dt``: the policy is
-time-consistent (braking from a state reached by braking continues the same path).  In closed form, with the speed
-scale ``sigma_k = max(0, 1 - k dt / T)`` and the arc parameter ``tau_k`` its trapezoid sum,
-``p(tau) = p0 + p_dot0 tau E(omega0 tau)``, ``E(x) = (e^{ix} - 1) / (ix)``: the simulator moves along the arc of the
-step-mean wheel speeds, so these samples equal stepping :func:`aasoatt_env.model.dynamics.integrate` with
-:func:`braking_du`.  A candidate path is one step holding a candidate input, then the backup.
+``a_b = brake_fraction * rho * a``: both wheel speeds fall linearly to zero together, the control point keeps a fixed
+circle, and the policy is time-consistent (braking from a braked state continues the same path).  The closed forms
+equal stepping :func:`aasoatt_env.model.dynamics.integrate` with :func:`braking_du`.  A candidate path is one step
+holding a candidate input, then the backup.
 """
 
 from __future__ import annotations

@@ -1,13 +1,10 @@
 """The warm active set: an exact structured solver for the safety QP, tried first from the previous step.
 
-The scaled problem (:class:`aasoatt_env.safety.problem.QPProblem`) has a 2x2 block-diagonal Hessian ``H = L L^T``.  In
-``y = L^T x`` it reads ``min 0.5 |y|^2 + gt'y  s.t.  Mt y <= b``, ``Mt = M L^-T`` (each row still on at most two
-robots).  A working set ``W`` is solved through the Schur complement ``Mt_W Mt_W^T``.  From the previous step's working
-set the primal-dual rule ``W = {k: lambda_k + (Mt y - b)_k > 0}`` (Hintermueller, Ito, Kunisch 2002) runs until its
-working set is inconsistent (from a dependent set it wanders through large, ill-conditioned sets); then, from the same
-start, a rule with one change per iteration, which needs as many iterations as the warm start is rows off.  A point is
-returned only where the KKT conditions hold within :data:`TOL` (the exact optimum), part by part for independent parts
-(a team's components, a stack of teams); otherwise the caller's general solver answers.
+With the 2x2 block-diagonal Hessian ``H = L L^T`` of :class:`~aasoatt_env.safety.problem.QPProblem`, in ``y = L^T x``
+the problem reads ``min 0.5 |y|^2 + gt'y  s.t.  Mt y <= b`` (rows on at most two robots); a working set is solved
+through its Schur complement.  From the previous working set the primal-dual rule (Hintermueller, Ito, Kunisch 2002)
+runs until inconsistent, then a rule with one change per iteration.  A point is returned only where the KKT conditions
+hold within :data:`TOL`, part by part for independent parts; otherwise the caller's general solver answers.
 """
 
 from __future__ import annotations

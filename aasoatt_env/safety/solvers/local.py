@@ -1,13 +1,10 @@
 """Every robot's 2-variable QP at once, exactly: the decentralised filter's local solver.
 
-Robot ``k`` solves ``min 0.5 x' H_k x + g_k' x  s.t.  lb_k <= x <= ub_k, G_r x <= h_r`` for its rows ``r``, ``H_k``
-symmetric positive definite.  In ``y = L_k^T x`` (``H_k = L_k L_k^T``, a closed-form Cholesky) the objective is
-``0.5 |y - y0|^2 + const``, ``y0 = -L^-1 g``, and every constraint, the bounds included, a unit half-plane
-``n' y <= b``: each QP projects a point onto a convex polygon.  A robot whose unconstrained minimiser meets its bounds
-and rows is answered by it, the others by :mod:`~aasoatt_env.safety.solvers.polygon`.  With ``relax=True`` a robot
-whose polygon is empty gets its own least-violation answer, as :func:`aasoatt_env.safety.solvers.policy.solve_qp` gives
-the centralised one: phase 1 finds each row's least violation ``s_r`` with the bounds hard,
-each row is loosened by ``s_r (1 + 1e-6)`` plus a tolerance, and the loosened polygon is projected.
+Robot ``k`` solves ``min 0.5 x' H_k x + g_k' x  s.t.  lb_k <= x <= ub_k, G_r x <= h_r``.  In ``y = L_k^T x`` (``H_k =
+L_k L_k^T``) each QP projects ``y0 = -L^-1 g`` onto a polygon of unit half-planes: a robot whose minimiser meets its
+constraints is answered by it, the others by :mod:`~aasoatt_env.safety.solvers.polygon`.  With ``relax=True`` an empty
+polygon's robot gets its least-violation answer, as :func:`~aasoatt_env.safety.solvers.policy.solve_qp` gives the
+centralised one: each row is loosened by its least violation (bounds hard) times ``1 + 1e-6`` plus a tolerance.
 """
 
 from __future__ import annotations

@@ -1,13 +1,9 @@
 """Which solver answers a safety QP: a pure function of the problem's size and the configuration.
 
-:meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock and keeps no state
-between calls.  In order: (1) without rows (diagonal blocks) the closed form; (2) ``neural``'s point as it is;
-(3) the warm active set from the previous step's working set, on every part it verifies (KKT conditions); (4) on
-the rest, the route (:func:`route`): the exact solvers of :data:`EXACT_ROUTE` before a back-end that may stall,
-then the configured one.  An answer is taken only where verified, by ``ldp`` itself or by the warm active set
-started from it; the configured back-end's answer is polished there too where its last bits depend on more than
-the problem, and taken as it is where that fails.  A proof of infeasibility ends the route.  (5) Infeasibility is
-never taken from an iterative solver's word: a phase-1 problem (:data:`PHASE1_ROUTE`) finds each row's least
+:meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock, keeps no state.  In
+order: without rows the closed form; ``neural``'s point as it is; the warm active set on every part it verifies; on the
+rest the route (:func:`route`, exact solvers first), an answer taken only where verified; a proof of infeasibility ends
+it.  Infeasibility is never taken from an iterative solver's word: phase 1 (:data:`PHASE1_ROUTE`) finds each row's least
 violation with the bounds hard, the rows are loosened by it and the QP solved again (status ``"relaxed"``).
 """
 

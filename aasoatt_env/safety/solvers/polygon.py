@@ -1,14 +1,9 @@
 """Projections of many points onto convex polygons at once: the local solver's steps 2-4.
 
 Each robot's polygon is a table of unit half-planes ``n' y <= b`` (:class:`Table`); :func:`solve` projects its point
-``y0``, vectorised across robots with masks:
-
-2. the dual active set of Goldfarb and Idnani in the plane: add the most violated constraint, by a partial step if an
-   active one's multiplier reaches zero first (it is dropped); a new constraint that depends on the (at most two) active
-   ones with no positive coefficient proves the polygon empty (a Farkas certificate);
-3. a KKT check of the point recomputed from the final active set, and of each certificate;
-4. the robots not verified are solved by enumerating every candidate (``y0``, its projections onto each line, the
-   vertices of two lines): the nearest feasible one with non-negative multipliers, else the polygon is empty.
+``y0``, vectorised with masks: (2) Goldfarb-Idnani's dual active set in the plane (a dependent new constraint with no
+positive coefficient is a Farkas certificate of an empty polygon); (3) a KKT check of the final active set and of each
+certificate; (4) the robots not verified by enumerating every candidate (``y0``, its projections, the vertices).
 """
 
 from __future__ import annotations
