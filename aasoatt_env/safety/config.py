@@ -29,9 +29,8 @@ from aasoatt_env.safety.solvers import get_solver
 __all__ = ["GAIN_MAX", "MODES", "NEURAL_ITERATIONS_MAX", "FilterConfig", "auto_margin"]
 
 MODES: tuple[str, ...] = ("centralized", "decentralized")  #: values of :attr:`FilterConfig.mode`
+#: largest accepted gain (``k1``-``k4``, ``gamma``, ``varsigma``, ``rho_v``): stiffer rows make most QPs infeasible
 GAIN_MAX: float = 1e3
-"""Largest accepted gain (``k1``, ``k2``, ``k3``, ``k4``, ``gamma``, ``varsigma``, ``rho_v``): stiffer rows make
-the QP infeasible on most steps, so such gains are refused rather than silently degraded."""
 NEURAL_ITERATIONS_MAX: int = 20_000  #: a step's work is bounded by a number the user sees
 MARGIN_FADE_SPEED = 0.2  #: relative speed [m/s] above which the automatic margin is at full size
 _OPTIONAL = ("gate_range", "max_wheel_speed", "safety_margin")

@@ -106,8 +106,8 @@ TRIGGERS: dict[str, TriggerFn] = {"multiplier": _multiplier, "low_speed": _low_s
                                   "heading": _heading}
 """Trigger registry: name -> ``trigger(memory, context)``; adding one is a function and a line here."""
 
+#: triggers known to read no pairs (they get empty ``pair_idx``/``pair_vec``); any other, yours too, gets them
 TRIGGERS_WITHOUT_PAIRS: frozenset[str] = frozenset({"multiplier", "low_speed", "stalled"})
-"""Triggers known to read no pairs (they get empty ``pair_idx``/``pair_vec``); any other, yours too, gets them."""
 
 
 class TargetContext(NamedTuple):

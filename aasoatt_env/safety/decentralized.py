@@ -26,9 +26,8 @@ __all__ = ["GROUP_ONE_CHANGE_ITER", "SPLITS", "Decentralized", "DecentralizedRes
            "decentralized_step", "negotiation_rows", "split_rows"]
 
 SPLITS: tuple[str, ...] = ("reciprocal", "authority")  #: ways of sharing a pair row (module docstring)
+#: the warm active set's one-change budget on the negotiation groups' QPs (their warm starts are often far off)
 GROUP_ONE_CHANGE_ITER: int = 200
-"""The warm active set's one-change budget on the negotiation groups' QPs: their rows and members change
-from step to step, so their warm starts are often many rows off the optimum."""
 
 
 class SplitRows(NamedTuple):
@@ -122,10 +121,10 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
                        x_warm: np.ndarray | None = None, z_warm: np.ndarray | None = None) -> DecentralizedResult:
     """Every robot's own QP over its half-rows, exactly and all at once; negotiation groups jointly.
 
-    ``target`` ``(N, 2)`` is each robot's ``A du_nom`` with its nominal within its bounds (the local solver's
-    tolerance is relative to it); the bounds are kept hard; ``scale`` ``(N,)`` of ``du`` for ``z`` and the loosening
-    tolerance (None: the largest bound).  ``whole`` ``(M,)``: the rows the negotiation groups solve whole (needs
-    ``policy``), warm-started from the scaled ``x_warm`` ``(N, 2)`` and ``z_warm`` ``(M,)``.
+    ``target`` ``(N, 2)``: each robot's ``A du_nom``, its nominal within its bounds (the bounds stay hard); ``scale``
+    ``(N,)`` of ``du`` for ``z`` and the loosening (None: the largest bound).  ``whole`` ``(M,)``: the rows the
+    negotiation groups solve whole (needs ``policy``), warm-started from the scaled ``x_warm`` ``(N, 2)`` and ``z_warm``
+    ``(M,)``.
     """
     if split not in SPLITS:
         raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")

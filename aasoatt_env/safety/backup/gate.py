@@ -21,8 +21,7 @@ from aasoatt_env.safety.backup import paths
 
 __all__ = ["BLEND_LEVELS", "CLOSEST_TIE", "GateResult", "gatekeeper", "pair_margins"]
 
-BLEND_LEVELS: tuple[float, ...] = (0.5,)
-"""The check's default blend shares between the candidate and the backup (``gatekeeper``'s ``blend_levels``)."""
+BLEND_LEVELS: tuple[float, ...] = (0.5,)  #: default blend shares of candidate and backup (``gatekeeper``'s)
 CLOSEST_TIE: float = 1e-12  #: steps within this [m] of a pair's smallest distance tie for its closest step
 _ONE_BUCKET_CELLS = 4096  # pair batches with at most this many samples in all: one call, not one per horizon bucket
 
@@ -110,22 +109,17 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
 
     Each robot starts at the candidate (share 1), then the blends ``du_b + a (du_c - du_b)``, ``a`` in ``blend_levels``
     (one step, then the backup), then the backup from now (share 0), skipping a level whose path leaves its
-    :func:`~aasoatt_env.safety.backup.reach_limit`.  Every pair that could meet within the paths' reach is checked over
-    the step and the backup horizon; the members of failing pairs move one level down until none fails.
-
-    Invariance: call a state brake-safe when the backup from it keeps every pair ``>= d_s`` and every robot within its
-    range limit.  The backup is time-consistent, so from a brake-safe state the backup paths after the returned inputs
-    are tails of paths checked now (or, for pairs both braking, of paths that passed before); pairs beyond their reach
-    or the sensing range ``D`` stay apart.  So the next state is brake-safe and a team at rest without overlap never
+    :func:`~aasoatt_env.safety.backup.reach_limit`; the members of failing pairs move one level down until none fails.
+    Invariance: the backup is time-consistent, so from a brake-safe state (the backup keeps every pair ``>= d_s`` and
+    every robot within its range limit) the next one is brake-safe too, and a team at rest without overlap never
     collides, whatever the candidate, provided every robot checks the same state with the real bounds and ``dt``,
     applies the inputs as returned, and ``tol`` [m] absorbs the rounding (:data:`~aasoatt_env.safety.backup.GATE_TOL`).
 
-    ``pose``: axle poses ``(N, 3)``; ``obstacles``: ``(centres (M, 2), radii (M,)[, groups (M,)])``, each on its group;
-    ``blend_levels``: shares in ``(0, 1]`` (``()``: brake at once); ``tol < 0`` asks a clearance.  ``hold_violations``:
-    outside the safe set, hold a pair failing even when both brake to that margin instead of marking it broken
-    (``safe`` then says only whether the range condition held).  ``quick``: only the candidate's verdict is wanted.
-    ``near_pairs`` ``(P, 2)``: a superset of the pairs of one group within ``D`` (a safety input; None: searched here).
-    ``checked``: the caller vouches for every shape and index.
+    ``pose``: axle poses ``(N, 3)``; ``obstacles``: ``(centres (M, 2), radii (M,)[, groups (M,)])``; ``blend_levels``:
+    shares in ``(0, 1]`` (``()``: brake at once); ``tol < 0`` asks a clearance.  ``hold_violations``: outside the safe
+    set, hold a pair failing even when both brake to that margin instead of marking it broken.  ``quick``: only the
+    candidate's verdict is wanted.  ``near_pairs`` ``(P, 2)``: a superset of the pairs of one group within ``D`` (None:
+    searched here).  ``checked``: the caller vouches for every shape and index.
     """
     levels = levels_of(tuple(blend_levels))
     if not checked:

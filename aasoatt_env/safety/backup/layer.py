@@ -30,10 +30,9 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair where it brakes.
 
     The quick check (no blend levels) decides whether ``du`` passes.  Where it brakes someone, each component of robots
-    within ``D`` of each other is decided alone (the gatekeeper never couples robots farther apart): a broken one gets
-    ``hold_violations``' best effort (unsafe); one braking for a pair is repaired and checked again, keeping the QP's
-    answer where it brakes fewer robots (the repaired on a tie, the QP's if its check finds the component broken); the
-    others get the full check.  ``pairs``, ``checked``: the gatekeeper's ``near_pairs``, ``checked``.
+    within ``D`` of each other is decided alone: a broken one gets ``hold_violations``' best effort (unsafe); one
+    braking for a pair is repaired and checked again, keeping whichever answer brakes fewer robots (the repaired on a
+    tie); the others get the full check.  ``pairs``, ``checked``: the gatekeeper's ``near_pairs``, ``checked``.
     """
     if not checked:
         pairs = validate(team, pose, obstacles, pairs, u=u, du=du, lo=lo, hi=hi)

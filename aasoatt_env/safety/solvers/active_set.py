@@ -178,10 +178,9 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     """The warm active set on a problem of independent groups, each verified on its own.
 
     ``x0``, ``z0``: the previous point and row multipliers; ``groups`` ``(N,)``: each robot's group ``0..K-1`` (None:
-    one); ``compiled``: the dense path by the numba kernel (the same check, points to rounding).  The method is
-    separable by group (a block-diagonal Schur complement, rules row by row or per group): a group whose part of an
-    iterate passes is kept from then on.  ``None`` where the method does not apply (no warm start, a block not positive
-    definite, an odd size, ``groups`` not one label per robot or joined by a row).
+    one); ``compiled``: the dense path by the numba kernel.  A group whose part of an iterate passes is kept from then
+    on.  ``None`` where the method does not apply (no warm start, a block not positive definite, an odd size, ``groups``
+    not one label per robot or joined by a row).
     """
     n, m = prob.n, prob.m
     if n == 0 or n % 2 or z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:

@@ -110,11 +110,9 @@ def solve_local_qps(H: np.ndarray, g: np.ndarray, lb: np.ndarray, ub: np.ndarray
     """Solve every robot's 2-variable QP exactly (module docstring).
 
     ``H`` ``(N, 2, 2)``, ``g``, ``lb <= ub`` ``(N, 2)``; rows ``G_r x <= h_r`` of robot ``owner[r]`` (``h = +inf``:
-    never binds).  ``relax``: an empty polygon's robot gets its least-violation point, each row loosened by
-    ``relax_tol`` (one or ``(N,)``, in the row's units normalised in ``x``) on top.  ``compiled``: by
-    :mod:`~aasoatt_env.safety.solvers.local_kernel` (the same decisions, numbers to rounding).  The KKT tolerance
-    ``tol`` is relative to ``1 + |y0|_inf``: a minimiser far outside the bounds' scale loosens the check with it, so
-    the filter clips each nominal to its bounds before it forms ``g``.
+    never binds).  ``relax_tol``: one or ``(N,)``, in the row's units normalised in ``x``.  ``compiled``: by
+    :mod:`~aasoatt_env.safety.solvers.local_kernel` (the same decisions, numbers to rounding).  ``tol`` is relative to
+    ``1 + |y0|_inf``, so the filter clips each nominal to its bounds before it forms ``g``.
     """
     H, g, lb, ub, owner, G, h, rt = _checked(H, g, lb, ub, owner, G, h, relax_tol, tol, max_iter)
     n, m = g.shape[0], owner.shape[0]
@@ -380,11 +378,9 @@ def _line_min(res: np.ndarray, delta: np.ndarray) -> np.ndarray:
 def _lv_core(gx, gy, hh, lb, ub, x, max_iter: int = 40):
     """Phase 1 on unit rows ``(P, K)`` (padding: ``hh = PAD_B``) from ``x``: ``(x, violations (P, K))``.
 
-    Per robot ``min F(x) = 0.5 sum_r (g_r x - h_r)_+^2  s.t.  lb <= x <= ub`` (one slack per normalised row, as
-    :func:`~aasoatt_env.safety.solvers.policy.solve_qp`).  ``F`` is convex, piecewise quadratic: each iteration
-    minimises over the box the quadratic of the rows violated now (closed form, a ``1e-10`` relative proximal term)
-    and moves to ``F``'s exact minimiser on the segment to it, until a step is below ``1e-11`` of the box.  The
-    violations are unique even where ``x`` is not.
+    Per robot ``min 0.5 sum_r (g_r x - h_r)_+^2  s.t.  lb <= x <= ub``, convex and piecewise quadratic: each iteration
+    minimises the violated rows' quadratic over the box (closed form, a ``1e-10`` relative proximal term) and moves to
+    the exact minimiser on the segment to it, until a step is below ``1e-11`` of the box.  The violations are unique.
     """
     x = x.copy()
     P, K = gx.shape

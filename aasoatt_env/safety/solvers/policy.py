@@ -29,15 +29,11 @@ __all__ = ["EXACT_ROUTE", "PHASE1_ROUTE", "QPSolution", "SolverPolicy", "route",
 _FEAS_TOL = 1e-7
 
 EXACT_ROUTE: tuple[tuple[str, int], ...] = (("daqp", 500), ("ldp", LDP_MAX_VARS))
-"""``(solver, most variables)`` asked in order before a back-end that may stall, where installed.
-DAQP (``pip install "aasoatt[fast]"``) is a dual active-set method, ``ldp`` an NNLS one: both finish
-exactly or prove the rows inconsistent, where an augmented Lagrangian can run out of iterations
-(``benchmarks/bench_filter.py`` measures the route on the congested scenes)."""
+"""``(solver, most variables)`` asked in order before a back-end that may stall, where installed: DAQP
+(``pip install "aasoatt[fast]"``) and ``ldp`` finish exactly or prove the rows inconsistent."""
 PHASE1_ROUTE: tuple[tuple[str, int, int], ...] = (("daqp", 0, 400), ("clarabel", 121, 10**9), ("ldp", 0, 120))
-"""``(solver, fewest, most variables)`` of a phase-1 problem (variables plus one slack per row), asked in
-order before a back-end that may stall and after any other, where installed; ``ldp`` up to
-:data:`~aasoatt_env.safety.solvers.ldp.MAX_VARS` last.  The phase-1 problem's regulariser conditions
-``ldp``'s NNLS badly beyond about a hundred variables, and dense DAQP slows down where every row binds."""
+"""``(solver, fewest, most variables)`` of a phase-1 problem (variables plus one slack per row), asked in order
+before a back-end that may stall, where installed (its regulariser conditions ``ldp``'s NNLS badly on large ones)."""
 
 
 @dataclass
