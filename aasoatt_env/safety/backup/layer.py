@@ -7,6 +7,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from aasoatt_env.model.dynamics import pose_from_point
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.backup.gate import GateResult, gatekeeper, validate
@@ -144,16 +145,7 @@ class BackupAnswer(NamedTuple):
     safe: bool
 
 
-def axle_pose(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """Axle poses ``(N, 3)`` from control points and headings."""
-    pose = np.empty((p.shape[0], 3))
-    pose[:, 2] = theta
-    if team.is_diff_drive:
-        pose[:, 0] = p[:, 0] - team.offset * np.cos(theta)
-        pose[:, 1] = p[:, 1] - team.offset * np.sin(theta)
-    else:
-        pose[:, :2] = p
-    return pose
+axle_pose = pose_from_point  #: axle poses ``(N, 3)`` from control points and headings
 
 
 @dataclass(frozen=True)
