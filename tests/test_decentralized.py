@@ -17,7 +17,7 @@ from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.decentralized import decentralized_step, negotiation_rows, split_rows
 from aasoatt_env.safety.problem import box_least_squares, build_problem
 from aasoatt_env.safety.solvers import local, polygon
-from aasoatt_env.safety.solvers.local import RELAX_TOL, least_violation, solve_local_qps
+from aasoatt_env.safety.solvers.local import RELAX_TOL, solve_local_qps
 
 quadprog = pytest.importorskip("quadprog")
 
@@ -145,24 +145,6 @@ def test_local_solver_enumeration_path_agrees(compiled):
     assert enum.n_enumerated > 0
     np.testing.assert_array_equal(fast.feasible, enum.feasible)
     assert np.max(np.abs(fast.x - enum.x)) <= 1e-8
-
-
-def test_least_violation_matches_lifted_dense_qp():
-    H, g, lb, ub, owner, G, h = _random_robots(400, seed=11)
-    sol = solve_local_qps(H, g, lb, ub, owner, G, h)
-    bad = np.flatnonzero(~sol.feasible)
-    assert bad.size > 30
-    keep = np.isin(owner, bad)
-    remap = np.full(owner.max() + 1, -1)
-    remap[bad] = np.arange(bad.size)
-    o = remap[owner[keep]]
-    x, s = least_violation(lb[bad], ub[bad], o, G[keep], h[keep])
-    nrm = np.linalg.norm(G[keep], axis=1)
-    for i, k in enumerate(bad):
-        r = o == i
-        s_ref = _phase1_ref(lb[k], ub[k], G[keep][r], h[keep][r])
-        assert np.max(np.abs(s[r] / nrm[r] - s_ref)) <= 1e-6, k
-        assert np.all((x[i] >= lb[k]) & (x[i] <= ub[k]))
 
 
 @both

@@ -1,13 +1,11 @@
 """Pairwise barrier functions, each turned into rows linear in the wheel accelerations.
 
-Every barrier gives, for all pairs at once, rows ``-p_ij^T (A_i du_i - A_j du_j) <= rhs_ij`` (eqn.8), written
-``c^T (w_i - w_j) <= rhs`` with ``w = A du`` and ``c = -p_ij``; an obstacle is a pair whose second member
-(``j = -1``) stands still, and its robot carries the whole row.  :data:`BARRIERS` (equations:
-``docs/technical_brief.md`` section 3): ``aasoatt`` (eqn.7-8, default; eqn.7c's typo corrected:
-``- A_dot_j u_j``); ``braking`` (eqn.n4; ``r - d_s`` clamped at 1e-6 so the row stays finite inside ``d_s``);
-``distance`` (eqn.nn5); ``gated_distance`` (eqn.n5/n6: eqn.nn5 while the pair approaches within ``gate_range``,
-as eqn.n6's printed gate ``d_safe`` would switch the row on only after a collision); ``adaptive_distance``
-(eqn.n7).  The velocity barriers apply to the next-step velocity ``v + (A du + A_dot u) dt``, divided by ``2 dt``.
+Every barrier gives, for all pairs at once, rows ``c^T (w_i - w_j) <= rhs`` with ``w = A du``, ``c = -p_ij`` (eqn.8); an
+obstacle (``j = -1``) stands still and its robot carries the whole row.  :data:`BARRIERS` (``docs/technical_brief.md``
+section 3): ``aasoatt`` (eqn.7-8, default; eqn.7c's typo corrected: ``- A_dot_j u_j``), ``braking`` (eqn.n4; ``r - d_s``
+clamped at 1e-6), ``distance`` (eqn.nn5), ``gated_distance`` (eqn.nn5 while the pair approaches within ``gate_range``:
+eqn.n6's printed gate would act only after a collision), ``adaptive_distance`` (eqn.n7).  The velocity barriers apply
+to the next-step velocity ``v + (A du + A_dot u) dt``, divided by ``2 dt``.
 """
 
 from __future__ import annotations

@@ -30,11 +30,11 @@ def kernel_settings(policy: SolverPolicy) -> np.ndarray:
                      aset.WARM_FLOOR, aset.BOUND_TIGHT, ROW_NORM_MIN, aset.DENSE_MAX_VARS, aset.DENSE_MAX_CELLS], float)
 
 
-def avoiding_robots(n: int, rows: Rows, active: np.ndarray) -> np.ndarray:
-    """``(N,)``: robots with an ``active`` row (an obstacle row marks its robot only)."""
+def avoiding_robots(n: int, rows: Rows, active: np.ndarray, active_j: np.ndarray | None = None) -> np.ndarray:
+    """``(N,)``: robots with an ``active`` row (``active_j``: where the ``rj`` halves are; obstacle rows: ``ri``'s)."""
     out = np.zeros(n, dtype=bool)
     out[rows.ri[active]] = True
-    out[rows.rj[active & (rows.rj >= 0)]] = True
+    out[rows.rj[(active if active_j is None else active_j) & (rows.rj >= 0)]] = True
     return out
 
 

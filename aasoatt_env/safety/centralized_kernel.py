@@ -15,12 +15,9 @@ from aasoatt_env.safety.solvers.active_set_kernel import solve_parts
 
 __all__ = ["CLOSED_FORM", "NOT_HERE", "VERIFIED", "box_least_squares", "solve_decomposed"]
 
-CLOSED_FORM = 0
-"""No row is violated by the robots' own answers: no QP."""
-VERIFIED = 1
-"""Every component's warm active set was verified."""
-NOT_HERE = -1
-"""Not answered here (a component not verified, beyond the dense size, a block not positive definite)."""
+CLOSED_FORM = 0  #: no row is violated by the robots' own answers: no QP
+VERIFIED = 1  #: every component's warm active set was verified
+NOT_HERE = -1  #: not answered here (a component not verified, beyond the dense size, a block not positive definite)
 
 
 @jit

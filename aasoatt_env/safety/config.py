@@ -1,10 +1,9 @@
 """Validated configuration of the safety filter (:class:`FilterConfig`).
 
 Defaults follow ``docs/technical_brief.md`` section 7 (``k1 = k2 = 2``, ``k3 = 1``, ``k4 = 4``, ``zeta = 2``,
-``q = -60 deg``, ``D = 3 m``, ``dt = 5 ms``); where the paper gives no value these are our choices
-(``gamma = 1``, ``varsigma = 2``, ``rho_v = 1``, ``sigma = 0``).  ``safety_margin=None`` adds the discrete-time
-margin ``auto_margin(dt) * min(1, |v_ij| / 0.2 m/s)`` to each pair's safety distance (``docs/design.md``); a
-float adds that constant instead, ``0`` the paper's exact barrier.
+``q = -60 deg``, ``D = 3 m``, ``dt = 5 ms``); ``gamma``, ``varsigma``, ``rho_v``, ``sigma`` (not in the paper) are ours.
+``safety_margin=None`` adds ``auto_margin(dt) * min(1, |v_ij| / 0.2 m/s)`` to each pair's safety distance
+(``docs/design.md``); a float adds that constant instead, ``0`` the paper's exact barrier.
 """
 
 from __future__ import annotations
@@ -29,9 +28,8 @@ from aasoatt_env.safety.solvers import get_solver
 __all__ = ["GAIN_MAX", "MODES", "NEURAL_ITERATIONS_MAX", "FilterConfig", "auto_margin"]
 
 MODES: tuple[str, ...] = ("centralized", "decentralized")  #: values of :attr:`FilterConfig.mode`
+#: largest accepted gain (``k1``-``k4``, ``gamma``, ``varsigma``, ``rho_v``): stiffer rows make most QPs infeasible
 GAIN_MAX: float = 1e3
-"""Largest accepted gain (``k1``, ``k2``, ``k3``, ``k4``, ``gamma``, ``varsigma``, ``rho_v``): stiffer rows make
-the QP infeasible on most steps, so such gains are refused rather than silently degraded."""
 NEURAL_ITERATIONS_MAX: int = 20_000  #: a step's work is bounded by a number the user sees
 MARGIN_FADE_SPEED = 0.2  #: relative speed [m/s] above which the automatic margin is at full size
 _OPTIONAL = ("gate_range", "max_wheel_speed", "safety_margin")

@@ -1,16 +1,12 @@
 """Deadlock resolution: strategies (what changes) and triggers (when), both registries.
 
-Strategies (:data:`STRATEGIES`; equations: ``docs/technical_brief.md`` section 5) change the QP's target
-``A du_nom`` or the rows of triggered robots: ``none``, ``rotate_nominal`` (eqn.12a), ``rotate_reference_velocity``
-(eqn.12b, for any nominal the correction ``-(k3 + k4) zeta Q v_d``, exact for the tracking law eqn.12),
-``auxiliary_velocity`` (eqn.13, default) and ``rotate_relative_position`` (eqn.12c; it changes the barrier itself,
-and the paper reports Zeno behaviour, so the filter warns; the backup layer still keeps the team apart).
+Strategies (:data:`STRATEGIES`, ``docs/technical_brief.md`` section 5) change the QP's target or the rows of triggered
+robots: ``none``, ``rotate_nominal`` (eqn.12a), ``rotate_reference_velocity`` (eqn.12b, for any nominal),
+``auxiliary_velocity`` (eqn.13, default), ``rotate_relative_position`` (eqn.12c; Zeno-prone, the filter warns).
 
-Triggers (:data:`TRIGGERS`), at the start of a step: ``multiplier`` (Algorithm 1): a row of the robot was
-active at the previous step; ``low_speed`` (Wang 2017): ``|v_i| < low_speed``; ``stalled``: moved less than
-``stall_distance`` over ``stall_time``; ``heading`` (He 2024): the heading points within ``heading_deg`` at
-the nearest neighbour or obstacle.  All but ``heading`` act only on a robot not done (its reference moving or
-its tracking error above ``goal_tol``): robots at rest at goals that touch would otherwise keep turning.
+Triggers (:data:`TRIGGERS`): ``multiplier`` (Algorithm 1: a row active at the previous step), ``low_speed``
+(``|v_i| < low_speed``), ``stalled`` (moved less than ``stall_distance`` over ``stall_time``), ``heading`` (pointing
+within ``heading_deg`` at the nearest neighbour or obstacle); all but ``heading`` spare robots done at their goals.
 """
 
 from __future__ import annotations
@@ -110,8 +106,8 @@ TRIGGERS: dict[str, TriggerFn] = {"multiplier": _multiplier, "low_speed": _low_s
                                   "heading": _heading}
 """Trigger registry: name -> ``trigger(memory, context)``; adding one is a function and a line here."""
 
+#: triggers known to read no pairs (they get empty ``pair_idx``/``pair_vec``); any other, yours too, gets them
 TRIGGERS_WITHOUT_PAIRS: frozenset[str] = frozenset({"multiplier", "low_speed", "stalled"})
-"""Triggers known to read no pairs (they get empty ``pair_idx``/``pair_vec``); any other, yours too, gets them."""
 
 
 class TargetContext(NamedTuple):

@@ -1,12 +1,10 @@
 """The decentralised QP stage: every robot solves its own 2-variable QP over its share of each pair row.
 
-A pair row ``Gi du_i + Gj du_j <= rhs`` is shared by authority ``a`` (``Team.max_point_accel``),
-``s_i = a_i / (a_i + a_j)``: ``"reciprocal"`` (default) splits the correction ``v = Gi du0_i + Gj du0_j - rhs`` that the
-closed-form answers ``du0`` need, ``Gi du_i <= Gi du0_i - s_i v``; ``"authority"`` splits the bound,
-``Gi du_i <= s_i rhs``.  An obstacle row is its robot's.  A robot whose own QP is infeasible gets its
-least-violation answer (status ``"relaxed"``).  Robots the deadlock trigger flags, and those they touch, solve the
-rows among them whole (negotiation groups: the centralised QP restricted to them, with their halves of the other
-rows); without a flagged robot the step is the per-robot one exactly.  ``docs/design.md`` says why.
+A pair row ``Gi du_i + Gj du_j <= rhs`` is shared by authority ``a`` (``Team.max_point_accel``), ``s_i = a_i / (a_i +
+a_j)``: ``"reciprocal"`` (default) splits the correction ``v = Gi du0_i + Gj du0_j - rhs`` of the closed-form answers
+``du0``, ``"authority"`` the bound ``s_i rhs``; an obstacle row is its robot's.  An infeasible robot gets its
+least-violation answer (``"relaxed"``).  Robots the deadlock trigger flags, and those they touch, solve the rows among
+them whole (negotiation groups); without a flagged robot the step is the per-robot one.  ``docs/design.md`` says why.
 """
 
 from __future__ import annotations
@@ -17,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from aasoatt_env.model.geometry import pair_components
-from aasoatt_env.safety.centralized import TeamAnswer, compiled_settings, solve_team
+from aasoatt_env.safety.centralized import TeamAnswer, avoiding_robots, compiled_settings, solve_team
 from aasoatt_env.safety.problem import box_least_squares
 from aasoatt_env.safety.rows import Rows
 from aasoatt_env.safety.solvers import SolverPolicy
@@ -28,9 +26,8 @@ __all__ = ["GROUP_ONE_CHANGE_ITER", "SPLITS", "Decentralized", "DecentralizedRes
            "decentralized_step", "negotiation_rows", "split_rows"]
 
 SPLITS: tuple[str, ...] = ("reciprocal", "authority")  #: ways of sharing a pair row (module docstring)
+#: the warm active set's one-change budget on the negotiation groups' QPs (their warm starts are often far off)
 GROUP_ONE_CHANGE_ITER: int = 200
-"""The warm active set's one-change budget on the negotiation groups' QPs: their rows and members change
-from step to step, so their warm starts are often many rows off the optimum."""
 
 
 class SplitRows(NamedTuple):
@@ -124,10 +121,10 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
                        x_warm: np.ndarray | None = None, z_warm: np.ndarray | None = None) -> DecentralizedResult:
     """Every robot's own QP over its half-rows, exactly and all at once; negotiation groups jointly.
 
-    ``target`` ``(N, 2)`` is each robot's ``A du_nom`` with its nominal within its bounds (the local solver's
-    tolerance is relative to it); the bounds are kept hard; ``scale`` ``(N,)`` of ``du`` for ``z`` and the loosening
-    tolerance (None: the largest bound).  ``whole`` ``(M,)``: the rows the negotiation groups solve whole (needs
-    ``policy``), warm-started from the scaled ``x_warm`` ``(N, 2)`` and ``z_warm`` ``(M,)``.
+    ``target`` ``(N, 2)``: each robot's ``A du_nom``, its nominal within its bounds (the bounds stay hard); ``scale``
+    ``(N,)`` of ``du`` for ``z`` and the loosening (None: the largest bound).  ``whole`` ``(M,)``: the rows the
+    negotiation groups solve whole (needs ``policy``), warm-started from the scaled ``x_warm`` ``(N, 2)`` and ``z_warm``
+    ``(M,)``.
     """
     if split not in SPLITS:
         raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")
@@ -273,9 +270,8 @@ class Decentralized:
         if ans.n_groups:
             message += (f", {ans.n_groups} negotiation group(s) of {n_grouped} robots (largest {ans.largest_group})"
                         + ("" if ans.group_status == "solved" else f": {ans.group_status}"))
-        avoiding = np.zeros(n, dtype=bool)  # a robot avoids where its own half of a row binds
-        avoiding[rows.ri[ans.z_half[:, 0] > self.eta_tol]] = True
-        avoiding[rows.rj[(ans.z_half[:, 1] > self.eta_tol) & (rows.rj >= 0)]] = True
+        binds = ans.z_half > self.eta_tol  # a robot avoids where its own half of a row binds
+        avoiding = avoiding_robots(n, rows, binds[:, 0], binds[:, 1])
         checked = status != "solved" or (ans.grouped.any() and not self.policy.exact)
         slack = float(max(0.0, np.max(rows.values(ans.du) - rows.rhs, initial=0.0))) if checked else 0.0
         return Answer(ans.du.copy(), ans.du / s.scale[:, None], ans.z, ans.eta, avoiding, status, message,

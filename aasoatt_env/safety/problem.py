@@ -1,10 +1,9 @@
 """The safety QP in canonical scaled form, and the closed-form answer without rows.
 
-The problem (eqn.finalAA-SOATT) ``min sum_i |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, G du <= rhs`` is
-solved in ``x = du / s`` (``s`` the per-robot bound, so the box is inside ``[-1, 1]``), the objective divided
-by its largest Hessian entry and every row of unit norm.  The Hessian is the constant block diagonal
-``A_i^T A_i = (rho/2)^2 [[1+k^2, 1-k^2], [1-k^2, 1+k^2]]`` (heading independent), diagonal when ``l = b``
-(then proxsuite gets ``HessianType.Diagonal``).
+The problem (eqn.finalAA-SOATT) ``min sum_i |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, G du <= rhs`` is solved in
+``x = du / s`` (``s`` the per-robot bound, so the box is inside ``[-1, 1]``), the objective divided by its largest
+Hessian entry and every row of unit norm.  The Hessian is the constant block diagonal
+``A_i^T A_i = (rho/2)^2 [[1+k^2, 1-k^2], [1-k^2, 1+k^2]]`` (heading independent), diagonal when ``l = b``.
 """
 
 from __future__ import annotations

@@ -1,12 +1,9 @@
 """``AASOATTFilter``: the CBF-QP safety filter as a drop-in PettingZoo wrapper.
 
-Any policy's actions become the *nominal*; the wrapper installs a :class:`~aasoatt_env.safety.core.SafetyFilter`
-into the env (:mod:`aasoatt_env.sim.protocol`), so every physics step, also inside a ``decision_interval``, is
-filtered.  Actions outside ``[-1, 1]`` are taken as the (unclipped) nominal: the filter keeps the input bounds hard.
-After each ``step`` the env's ``filter_outputs`` become a :class:`FilterReport` (:attr:`AASOATTFilter.report`), and
-its fields but ``message``, ``applied`` and ``solve_time`` become ``infos[agent]["filter"]``.  Infos are
-deterministic (wall times are in :attr:`AASOATTFilter.timing`), as PettingZoo's and Gymnasium's checkers require.
-``infos="flat"`` gives numeric top-level keys instead, for tensor-based clients such as TorchRL:
+Actions become the *nominal* (outside ``[-1, 1]`` unclipped; the input bounds stay hard); every physics step is filtered
+by a :class:`~aasoatt_env.safety.core.SafetyFilter` installed through :mod:`aasoatt_env.sim.protocol`.  Each ``step``'s
+:class:`FilterReport` (:attr:`AASOATTFilter.report`) goes into ``infos[agent]["filter"]`` (deterministic; wall times:
+:attr:`AASOATTFilter.timing`).  ``infos="flat"`` gives numeric top-level keys for tensor-based clients:
 ``filter_intervened``, ``filter_avoiding``, ``filter_triggered``, ``filter_backup``, ``filter_correction``,
 ``filter_status_code`` (the index in :data:`STATUSES`), ``filter_margin``, ``filter_slack``.
 """

@@ -21,10 +21,8 @@ from aasoatt_env.safety.backup import paths
 
 __all__ = ["BLEND_LEVELS", "CLOSEST_TIE", "GateResult", "gatekeeper", "pair_margins"]
 
-BLEND_LEVELS: tuple[float, ...] = (0.5,)
-"""The check's default blend shares between the candidate and the backup (``gatekeeper``'s ``blend_levels``)."""
-CLOSEST_TIE: float = 1e-12
-"""Steps whose distance is within this [m] of a pair's smallest count as tied for its closest step."""
+BLEND_LEVELS: tuple[float, ...] = (0.5,)  #: default blend shares of candidate and backup (``gatekeeper``'s)
+CLOSEST_TIE: float = 1e-12  #: steps within this [m] of a pair's smallest distance tie for its closest step
 _ONE_BUCKET_CELLS = 4096  # pair batches with at most this many samples in all: one call, not one per horizon bucket
 
 
@@ -89,26 +87,18 @@ def bucketed_margins(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndar
 
 
 class GateResult(NamedTuple):
-    """What :func:`gatekeeper` decided, per robot ``(N,)`` unless said.
+    """What :func:`gatekeeper` decided, per robot ``(N,)`` unless said."""
 
-    ``du`` ``(N, 2)``: the inputs to apply; ``braking``: robots blended toward, or put on, the backup; ``margin``: the
-    least ``distance - d_s`` [m] of the checked pairs along the returned inputs' horizon (else of the range limits);
-    ``safe``: the state was brake-safe; ``broken``: robots in a pair failing even when both brake, or whose braking
-    leaves the range limit; ``share``: the candidate's share in the input (1: the candidate, 0: the backup);
-    ``n_pairs``: robot and obstacle pairs checked; ``out_of_range``: robots whose candidate path leaves their range
-    limit.
-    """
-
-    du: np.ndarray
-    braking: np.ndarray
-    margin: float
-    safe: bool
-    broken: np.ndarray
-    share: np.ndarray
+    du: np.ndarray  #: ``(N, 2)`` the inputs to apply
+    braking: np.ndarray  #: blended toward, or put on, the backup
+    margin: float  #: least ``distance - d_s`` [m] of the checked pairs along the inputs' horizon (else range limits)
+    safe: bool  #: the state was brake-safe
+    broken: np.ndarray  #: in a pair failing even when both brake, or its braking leaves the range limit
+    share: np.ndarray  #: the candidate's share in the input (1: the candidate, 0: the backup)
     rounds: int
-    n_pairs: int
-    robot_margin: np.ndarray
-    out_of_range: np.ndarray
+    n_pairs: int  #: robot and obstacle pairs checked
+    robot_margin: np.ndarray  #: each robot's least pair margin, at most its range limit
+    out_of_range: np.ndarray  #: the candidate path leaves the range limit
 
 
 def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float, *, sensing_range: float,
@@ -119,22 +109,17 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
 
     Each robot starts at the candidate (share 1), then the blends ``du_b + a (du_c - du_b)``, ``a`` in ``blend_levels``
     (one step, then the backup), then the backup from now (share 0), skipping a level whose path leaves its
-    :func:`~aasoatt_env.safety.backup.reach_limit`.  Every pair that could meet within the paths' reach is checked over
-    the step and the backup horizon; the members of failing pairs move one level down until none fails.
-
-    Invariance: call a state brake-safe when the backup from it keeps every pair ``>= d_s`` and every robot within its
-    range limit.  The backup is time-consistent, so from a brake-safe state the backup paths after the returned inputs
-    are tails of paths checked now (or, for pairs both braking, of paths that passed before); pairs beyond their reach
-    or the sensing range ``D`` stay apart.  So the next state is brake-safe and a team at rest without overlap never
+    :func:`~aasoatt_env.safety.backup.reach_limit`; the members of failing pairs move one level down until none fails.
+    Invariance: the backup is time-consistent, so from a brake-safe state (the backup keeps every pair ``>= d_s`` and
+    every robot within its range limit) the next one is brake-safe too, and a team at rest without overlap never
     collides, whatever the candidate, provided every robot checks the same state with the real bounds and ``dt``,
     applies the inputs as returned, and ``tol`` [m] absorbs the rounding (:data:`~aasoatt_env.safety.backup.GATE_TOL`).
 
-    ``pose``: axle poses ``(N, 3)``; ``obstacles``: ``(centres (M, 2), radii (M,)[, groups (M,)])``, each on its group;
-    ``blend_levels``: shares in ``(0, 1]`` (``()``: brake at once); ``tol < 0`` asks a clearance.  ``hold_violations``:
-    outside the safe set, hold a pair failing even when both brake to that margin instead of marking it broken
-    (``safe`` then says only whether the range condition held).  ``quick``: only the candidate's verdict is wanted.
-    ``near_pairs`` ``(P, 2)``: a superset of the pairs of one group within ``D`` (a safety input; None: searched here).
-    ``checked``: the caller vouches for every shape and index.
+    ``pose``: axle poses ``(N, 3)``; ``obstacles``: ``(centres (M, 2), radii (M,)[, groups (M,)])``; ``blend_levels``:
+    shares in ``(0, 1]`` (``()``: brake at once); ``tol < 0`` asks a clearance.  ``hold_violations``: outside the safe
+    set, hold a pair failing even when both brake to that margin instead of marking it broken.  ``quick``: only the
+    candidate's verdict is wanted.  ``near_pairs`` ``(P, 2)``: a superset of the pairs of one group within ``D`` (None:
+    searched here).  ``checked``: the caller vouches for every shape and index.
     """
     levels = levels_of(tuple(blend_levels))
     if not checked:
@@ -159,8 +144,8 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
     rounds, robot_margin = 0, limit.copy()
     if i.size + oi.size:
         lp = _LevelPaths(p0, firsts, b0, np.unique(np.concatenate((i, j, oi))), dt)
-        rounds, marg, omarg = _rounds(lp, lev, broken, reach, limit, (i, j, ds), (oi, ok, ods, oc),
-                                      tol, hold_violations)
+        rounds, marg, omarg = _rounds(lp, lev, broken, reach, limit, (i, j, ds), (oi, ok, ods, oc), tol,
+                                      hold_violations)
         np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
     margin = float(robot_margin.min(initial=float(limit.min(initial=0.5 * float(sensing_range)))))
     return GateResult(du_all[lev, np.arange(n)], lev > 0, margin, not bool(broken.any()), broken,
@@ -242,10 +227,8 @@ def _rounds(lp: _LevelPaths, lev: np.ndarray, broken: np.ndarray, reach: np.ndar
         filled = lm
         cneed = lp.need[lm, rows_m]
         idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
-        if idx.size:
-            marg[idx] = bucketed_margins(cur, curd, cneed, li[idx], lj[idx], ds[idx])
-        if oidx.size:
-            omarg[oidx] = bucketed_margins(cur, curd, cneed, lo_[oidx], ok[oidx], ods[oidx], centers=oc)
+        marg[idx] = bucketed_margins(cur, curd, cneed, li[idx], lj[idx], ds[idx])
+        omarg[oidx] = bucketed_margins(cur, curd, cneed, lo_[oidx], ok[oidx], ods[oidx], centers=oc)
         np.copyto(marg, -np.inf, where=np.isnan(marg))  # a margin that is not a number fails
         np.copyto(omarg, -np.inf, where=np.isnan(omarg))
         bad, obad = idx[marg[idx] < -tol_p[idx]], oidx[omarg[oidx] < -tol_o[oidx]]

@@ -1,10 +1,8 @@
 """The backup layer's compiled closed forms, pair checks and pair search (numba; used by :mod:`.kernels`).
 
-Each helper repeats its numpy reference in :mod:`~aasoatt_env.safety.backup.paths` or
-:mod:`~aasoatt_env.safety.backup.gate` (the name says which) for one robot, sample or pair, in its order of operations
-except that a step's distance is ``sqrt(x^2 + y^2)`` (numpy takes ``hypot``) and :func:`fill_brake` may rotate by a
-recurrence: the results agree to rounding.  Robots' constants are the columns of
-:func:`~aasoatt_env.safety.backup.gate.team_block`'s ``robots``.
+Each helper is its numpy reference in :mod:`.paths` or :mod:`.gate` (the name says which) for one robot, sample or pair,
+in its order of operations but for ``sqrt(x^2 + y^2)`` for ``hypot`` and :func:`fill_brake`'s recurrence: the results
+agree to rounding.  Robots' constants are the columns of :func:`~.gate.team_block`'s ``robots``.
 """
 
 import math

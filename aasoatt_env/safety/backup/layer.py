@@ -7,6 +7,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from aasoatt_env.model.dynamics import pose_from_point
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.backup.gate import GateResult, gatekeeper, validate
@@ -30,10 +31,9 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair where it brakes.
 
     The quick check (no blend levels) decides whether ``du`` passes.  Where it brakes someone, each component of robots
-    within ``D`` of each other is decided alone (the gatekeeper never couples robots farther apart): a broken one gets
-    ``hold_violations``' best effort (unsafe); one braking for a pair is repaired and checked again, keeping the QP's
-    answer where it brakes fewer robots (the repaired on a tie, the QP's if its check finds the component broken); the
-    others get the full check.  ``pairs``, ``checked``: the gatekeeper's ``near_pairs``, ``checked``.
+    within ``D`` of each other is decided alone: a broken one gets ``hold_violations``' best effort (unsafe); one
+    braking for a pair is repaired and checked again, keeping whichever answer brakes fewer robots (the repaired on a
+    tie); the others get the full check.  ``pairs``, ``checked``: the gatekeeper's ``near_pairs``, ``checked``.
     """
     if not checked:
         pairs = validate(team, pose, obstacles, pairs, u=u, du=du, lo=lo, hi=hi)
@@ -136,28 +136,16 @@ def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], unsafe
 
 
 class BackupAnswer(NamedTuple):
-    """What the backup layer did: :class:`GateResult`'s ``du``, ``braking``, ``margin``, ``safe``, and ``nudged``.
-
-    ``nudged``: robots the repair moved (not braking).
-    """
+    """What the backup layer did: :class:`GateResult`'s ``du``, ``braking``, ``margin``, ``safe``, and ``nudged``."""
 
     du: np.ndarray
     braking: np.ndarray
-    nudged: np.ndarray
+    nudged: np.ndarray  #: robots the repair moved (not braking)
     margin: float
     safe: bool
 
 
-def axle_pose(team: Team, p: np.ndarray, theta: np.ndarray) -> np.ndarray:
-    """Axle poses ``(N, 3)`` from control points and headings."""
-    pose = np.empty((p.shape[0], 3))
-    pose[:, 2] = theta
-    if team.is_diff_drive:
-        pose[:, 0] = p[:, 0] - team.offset * np.cos(theta)
-        pose[:, 1] = p[:, 1] - team.offset * np.sin(theta)
-    else:
-        pose[:, :2] = p
-    return pose
+axle_pose = pose_from_point  #: axle poses ``(N, 3)`` from control points and headings
 
 
 @dataclass(frozen=True)

@@ -1,13 +1,10 @@
 """The backup policy, proportional braking, and the robots' braking and candidate paths in closed form.
 
 Backup: ``du = -u / T`` (``-u / dt`` in the last step), ``T = max(s / a, |p_dot| / a_b)``, ``s = max|u_k|``,
-``a_b = brake_fraction * rho * a``.  Both wheel speeds fall linearly to zero together, so the control point keeps a
-fixed circle within the wheels' bounds, and after one braking step ``T`` is exactly ``T - dt``: the policy is
-time-consistent (braking from a state reached by braking continues the same path).  In closed form, with the speed
-scale ``sigma_k = max(0, 1 - k dt / T)`` and the arc parameter ``tau_k`` its trapezoid sum,
-``p(tau) = p0 + p_dot0 tau E(omega0 tau)``, ``E(x) = (e^{ix} - 1) / (ix)``: the simulator moves along the arc of the
-step-mean wheel speeds, so these samples equal stepping :func:`aasoatt_env.model.dynamics.integrate` with
-:func:`braking_du`.  A candidate path is one step holding a candidate input, then the backup.
+``a_b = brake_fraction * rho * a``: both wheel speeds fall linearly to zero together, the control point keeps a fixed
+circle, and the policy is time-consistent (braking from a braked state continues the same path).  The closed forms
+equal stepping :func:`aasoatt_env.model.dynamics.integrate` with :func:`braking_du`.  A candidate path is one step
+holding a candidate input, then the backup.
 """
 
 from __future__ import annotations
@@ -23,8 +20,7 @@ __all__ = ["MAX_BRAKE_STEPS", "Trajectories", "brake_decel", "brake_time", "brak
 
 _EPS = float(np.finfo(np.float64).eps)
 
-MAX_BRAKE_STEPS: int = 100_000
-"""Longest braking sampled, in physics steps; a robot that needs more has an unbounded reach (never brake-safe)."""
+MAX_BRAKE_STEPS: int = 100_000  #: longest braking sampled [steps]; a longer one has unbounded reach (never brake-safe)
 
 
 def _sinc(x: np.ndarray) -> np.ndarray:
@@ -83,17 +79,12 @@ def reach_limit(team: Team, sensing_range: float) -> np.ndarray:
 
 
 class Trajectories(NamedTuple):
-    """Sampled control-point paths, one sample per physics step.
+    """Sampled control-point paths, one sample per physics step."""
 
-    ``p`` ``(N, L)``: complex positions (padded with the rest position); ``delta`` ``(N, L-1)``: bounds on each step's
-    deviation from its chord [m]; ``length`` ``(N,)``: the samples that matter; ``reach`` ``(N,)``: a bound on the
-    distance from ``p[:, 0]`` [m].
-    """
-
-    p: np.ndarray
-    delta: np.ndarray
-    length: np.ndarray
-    reach: np.ndarray
+    p: np.ndarray  #: ``(N, L)`` complex positions (padded with the rest position)
+    delta: np.ndarray  #: ``(N, L-1)`` bounds on each step's deviation from its chord [m]
+    length: np.ndarray  #: ``(N,)`` the samples that matter
+    reach: np.ndarray  #: ``(N,)`` a bound on the distance from ``p[:, 0]`` [m]
 
 
 class Brake(NamedTuple):
@@ -217,8 +208,7 @@ def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.nda
     """Samples ``s`` ``(R, S)`` of :func:`candidate_paths` in closed form, without the others: ``(p, delta)``.
 
     ``s``: 0 now, 1 after the step with ``du``, ``k + 1`` after ``k`` braking steps (arc parameter
-    ``dt (k - r k^2 / 2)`` while ``1 - k r > 0``, ``r = dt / T``); ``rows`` ``(R,)``: each row's robot (default: one
-    each).
+    ``dt (k - r k^2 / 2)`` while ``1 - k r > 0``, ``r = dt / T``); ``rows`` ``(R,)``: each row's robot (None: one each).
     """
     p0 = point(team, pose)
     c = candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction)

@@ -18,10 +18,9 @@ def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: fl
     """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
 
     For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below ``target`` [m], both
-    inputs move by the least-norm change that lifts the margin, linearised by finite differences (step ``eps``) at its
-    closest step, to ``2 target``; the changes add up and are clipped to ``[lo, hi]``, ``rounds`` times.  Safety still
-    comes from the gatekeeper, whose ``near_pairs``, ``compiled``, ``checked`` these are (the compiled answer equals
-    this one to rounding, amplified by the division by the squared gradient).
+    inputs move by the least-norm change that lifts the margin to ``2 target``, linearised by finite differences (step
+    ``eps``) at its closest step; the changes add up and are clipped to ``[lo, hi]``, ``rounds`` times.  Safety still
+    comes from the gatekeeper, whose ``near_pairs``, ``compiled``, ``checked`` these are.
     """
     if not checked:
         near_pairs = gate.validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c, lo=lo, hi=hi)

@@ -1,13 +1,10 @@
 """The warm active set: an exact structured solver for the safety QP, tried first from the previous step.
 
-The scaled problem (:class:`aasoatt_env.safety.problem.QPProblem`) has a 2x2 block-diagonal Hessian ``H = L L^T``.  In
-``y = L^T x`` it reads ``min 0.5 |y|^2 + gt'y  s.t.  Mt y <= b``, ``Mt = M L^-T`` (each row still on at most two
-robots).  A working set ``W`` is solved through the Schur complement ``Mt_W Mt_W^T``.  From the previous step's working
-set the primal-dual rule ``W = {k: lambda_k + (Mt y - b)_k > 0}`` (Hintermueller, Ito, Kunisch 2002) runs until its
-working set is inconsistent (from a dependent set it wanders through large, ill-conditioned sets); then, from the same
-start, a rule with one change per iteration, which needs as many iterations as the warm start is rows off.  A point is
-returned only where the KKT conditions hold within :data:`TOL` (the exact optimum), part by part for independent parts
-(a team's components, a stack of teams); otherwise the caller's general solver answers.
+With the 2x2 block-diagonal Hessian ``H = L L^T`` of :class:`~aasoatt_env.safety.problem.QPProblem`, in ``y = L^T x``
+the problem reads ``min 0.5 |y|^2 + gt'y  s.t.  Mt y <= b`` (rows on at most two robots); a working set is solved
+through its Schur complement.  From the previous working set the primal-dual rule (Hintermueller, Ito, Kunisch 2002)
+runs until inconsistent, then a rule with one change per iteration.  A point is returned only where the KKT conditions
+hold within :data:`TOL`, part by part for independent parts; otherwise the caller's general solver answers.
 """
 
 from __future__ import annotations
@@ -26,26 +23,16 @@ from aasoatt_env.compiled import c64, kernels
 __all__ = ["DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "dense_least_distance_form",
            "least_distance_form", "one_change_budget", "solve_active_set", "solve_active_set_parts"]
 
-DENSE_MAX_VARS: int = 80
-"""Problems up to this many variables use dense algebra, whatever their rows."""
-DENSE_MAX_CELLS: int = 400_000
-"""Larger problems use it too up to this many entries of their dense rows ``(m + 2n) x n`` (a stack of small teams)."""
-DENSE_MAX_ROWS: int = 500
-"""Working sets up to this size use a dense Cholesky of the Schur complement."""
-SPARSE_DENSE_SCHUR_ROWS: int = 200
-"""With sparse rows, working sets up to this size factor their Schur complement densely (LAPACK)."""
-WARM_REL: float = 1e-6
-"""Rows whose warm-start multiplier exceeds this fraction of the largest start in the working set."""
-TOL: float = 1e-10
-"""Feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)."""
-ONE_CHANGE_ITER: int = 20
-"""Iterations of the one-change rule after the primal-dual one (generous: an unverified part is solved slower)."""
-PDAS_ITER: int = 30
-"""Iterations of the primal-dual rule from the warm start."""
-BOUND_TIGHT: float = 1e-9
-"""A warm start within this of a bound (scaled, ``|x| <= 1``) starts with that bound in the working set."""
-WARM_FLOOR: float = 1e-300
-"""Floor of the largest warm multiplier in the working-set cut (no cut of zero)."""
+DENSE_MAX_VARS: int = 80  #: problems up to this many variables use dense algebra, whatever their rows
+DENSE_MAX_CELLS: int = 400_000  #: larger ones too up to this many entries of their dense rows ``(m + 2n) x n``
+DENSE_MAX_ROWS: int = 500  #: working sets up to this size use a dense Cholesky of the Schur complement
+SPARSE_DENSE_SCHUR_ROWS: int = 200  #: sparse rows: working sets up to this size factor the Schur complement densely
+WARM_REL: float = 1e-6  #: rows whose warm multiplier exceeds this fraction of the largest start in the working set
+TOL: float = 1e-10  #: feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)
+ONE_CHANGE_ITER: int = 20  #: one-change iterations after the primal-dual ones (generous: the fallback is slower)
+PDAS_ITER: int = 30  #: iterations of the primal-dual rule from the warm start
+BOUND_TIGHT: float = 1e-9  #: a warm start within this of a bound (scaled) starts with the bound in the working set
+WARM_FLOOR: float = 1e-300  #: floor of the largest warm multiplier in the working-set cut (no cut of zero)
 VERIFIED_MESSAGE: str = "active set (warm, KKT verified)"
 
 
@@ -122,7 +109,6 @@ def _least_distance_form(prob) -> LeastDistanceForm | None:
     return LeastDistanceForm(LinvT, gt, Mt, np.concatenate((prob.u, prob.ub, -prob.lb)))
 
 
-
 def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
     """``LeastDistanceForm.Mt`` of ``prob`` as a dense array, built without scipy.sparse.
 
@@ -169,18 +155,13 @@ def _cholesky(S: np.ndarray):
 
 
 class ActiveSetParts(NamedTuple):
-    """The answer of :func:`solve_active_set_parts`.
+    """The answer of :func:`solve_active_set_parts` (on unverified groups an unverified iterate or zeros)."""
 
-    ``x`` ``(n,)``, ``z`` ``(m,)``: the scaled point and row multipliers (``>= 0``; an unverified iterate or zeros on
-    unverified groups); ``iterations``: equality solves; ``ok`` ``(K,)``: the groups whose part meets the KKT
-    conditions of their own rows; ``row_group`` ``(m,)``: every row's group.
-    """
-
-    x: np.ndarray
-    z: np.ndarray
-    iterations: int
-    ok: np.ndarray
-    row_group: np.ndarray
+    x: np.ndarray  #: ``(n,)`` the scaled point
+    z: np.ndarray  #: ``(m,)`` row multipliers ``>= 0``
+    iterations: int  #: equality solves
+    ok: np.ndarray  #: ``(K,)`` the groups whose part meets the KKT conditions of their own rows
+    row_group: np.ndarray  #: ``(m,)`` every row's group
 
 
 def solve_active_set(prob, x0, z0, max_iter: int = PDAS_ITER, compiled: bool = False,
@@ -197,10 +178,9 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     """The warm active set on a problem of independent groups, each verified on its own.
 
     ``x0``, ``z0``: the previous point and row multipliers; ``groups`` ``(N,)``: each robot's group ``0..K-1`` (None:
-    one); ``compiled``: the dense path by the numba kernel (the same check, points to rounding).  The method is
-    separable by group (a block-diagonal Schur complement, rules row by row or per group): a group whose part of an
-    iterate passes is kept from then on.  ``None`` where the method does not apply (no warm start, a block not positive
-    definite, an odd size, ``groups`` not one label per robot or joined by a row).
+    one); ``compiled``: the dense path by the numba kernel.  A group whose part of an iterate passes is kept from then
+    on.  ``None`` where the method does not apply (no warm start, a block not positive definite, an odd size, ``groups``
+    not one label per robot or joined by a row).
     """
     n, m = prob.n, prob.m
     if n == 0 or n % 2 or z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:

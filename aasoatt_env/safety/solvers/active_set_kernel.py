@@ -1,13 +1,9 @@
 """The warm active set compiled (numba; imported only through :mod:`aasoatt_env.compiled`).
 
-:func:`solve_parts` is :func:`aasoatt_env.safety.solvers.active_set.solve_active_set_parts` on its dense path, group by
-group.  A group's rows (of ``C``, then its upper and lower bounds, in the global order, so every first-index tie breaks
-as in the reference) are formed in ``y`` entry by entry as ``active_set._dense_rows`` forms them and kept sparse; then
-the same rules, equality points and KKT check.  Where the two differ: sums run in another order (points to rounding; on
-a dependent working set the last bits may pick another next set, so the two may verify different parts); the Cholesky
-is used above 500 working rows too; the regularisation is the group's own (a group of zero rows only is singular here);
-a singular working set ends that group's rule only; an unverified group's part of the answer is zero; the iterations
-reported are the most of any group.
+:func:`solve_parts` is :func:`aasoatt_env.safety.solvers.active_set.solve_active_set_parts`'s dense path group by group,
+rows formed entry by entry as ``active_set._dense_rows`` forms them, in the global order (ties break alike).  It differs
+in summation order (points agree to rounding; a dependent working set may verify other parts), in using the Cholesky at
+any size, in each group's own regularisation, and in zeroing an unverified group's part.
 """
 
 import math

@@ -1,13 +1,11 @@
 """QP back-ends of the safety filter and their registry (:data:`SOLVERS`).
 
 A back-end takes a :class:`~aasoatt_env.safety.problem.QPProblem`, an optional warm start and options, returns a
-:class:`RawAnswer` within an iteration budget (never a time limit), and never falls back to anything by itself:
-:mod:`~aasoatt_env.safety.solvers.policy` decides which answers.  ``proxsuite`` (default): dense
-``PrimalDualLDLT`` with native box constraints up to :data:`DENSE_MAX_SIZE` variables + rows, sparse
-``SparseCholesky`` above; tight infeasibility tolerances and a duality-gap check (``docs/technical_brief.md``
-section 4).  ``ldp``: exact NNLS, core dependencies only.  ``neural``: the paper's projection neural network
-(eqn.22), an approximation.  ``daqp``, ``clarabel``, ``osqp``, ``quadprog``, ``cvxopt`` (what Robotarium's
-barrier certificates call) where installed.
+:class:`RawAnswer` within an iteration budget (never a time limit) and never falls back by itself
+(:mod:`~aasoatt_env.safety.solvers.policy` decides).  ``proxsuite`` (default; dense up to :data:`DENSE_MAX_SIZE`
+variables + rows, sparse above; ``docs/technical_brief.md`` section 4), ``ldp`` (exact NNLS, core dependencies only),
+``neural`` (the paper's projection network, eqn.22, approximate); ``daqp``, ``clarabel``, ``osqp``, ``quadprog``,
+``cvxopt`` (Robotarium's) where installed.
 """
 
 from __future__ import annotations

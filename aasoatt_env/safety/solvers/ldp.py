@@ -1,12 +1,9 @@
 """Exact fallback solver for the safety QP: least-distance programming by NNLS.
 
-In ``w = y + L^{-1} g`` (:class:`~aasoatt_env.safety.solvers.active_set.LeastDistanceForm`) the scaled problem is
-``min 0.5 |w|^2  s.t.  Mt w <= hb``, ``hb = b + Mt L^{-1} g``.  Lawson and Hanson (*Solving Least Squares Problems*,
-ch. 23) solve it by one NNLS ``min |E u - f|, u >= 0``, ``E = -[Mt^T; hb^T]``, ``f = (0, ..., 0, 1)``: with
-``r = E u - f``, ``r_last = 0`` means inconsistent rows, else ``w = -r[:-1] / r_last`` and ``u / (-r_last)`` are the
-multipliers.  NNLS terminates finitely (:func:`scipy.optimize.nnls`), so it does not stall on the degenerate, congested
-problems of a large team.  The point is polished by the warm active set (accepted only where the KKT conditions hold),
-or returned unpolished where feasible to :data:`FEAS_TOL`.  Dense: up to :data:`MAX_VARS` variables.
+In ``w = y + L^{-1} g`` (:class:`~aasoatt_env.safety.solvers.active_set.LeastDistanceForm`) the problem is ``min 0.5
+|w|^2  s.t.  Mt w <= hb``; Lawson and Hanson (ch. 23) solve it by one finitely terminating NNLS
+(:func:`scipy.optimize.nnls`), so it does not stall on congested problems.  The point is polished by the warm active
+set, or returned unpolished where feasible to :data:`FEAS_TOL`.  Dense: up to :data:`MAX_VARS` variables.
 """
 
 from __future__ import annotations
@@ -18,10 +15,8 @@ from aasoatt_env.safety.solvers.active_set import dense_least_distance_form, sol
 
 __all__ = ["FEAS_TOL", "MAX_VARS", "solve_ldp"]
 
-MAX_VARS: int = 500
-"""Largest number of variables solved (``E`` is dense, ``(n + 1) x (m + 2n)``)."""
-FEAS_TOL: float = 1e-9
-"""Largest violation of a normalised row or bound accepted for an unpolished point."""
+MAX_VARS: int = 500  #: largest number of variables solved (``E`` is dense, ``(n + 1) x (m + 2n)``)
+FEAS_TOL: float = 1e-9  #: largest violation of a normalised row or bound accepted for an unpolished point
 
 
 def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.ndarray | None, str]:

@@ -1,13 +1,10 @@
 """Every robot's 2-variable QP at once, exactly: the decentralised filter's local solver.
 
-Robot ``k`` solves ``min 0.5 x' H_k x + g_k' x  s.t.  lb_k <= x <= ub_k, G_r x <= h_r`` for its rows ``r``, ``H_k``
-symmetric positive definite.  In ``y = L_k^T x`` (``H_k = L_k L_k^T``, a closed-form Cholesky) the objective is
-``0.5 |y - y0|^2 + const``, ``y0 = -L^-1 g``, and every constraint, the bounds included, a unit half-plane
-``n' y <= b``: each QP projects a point onto a convex polygon.  A robot whose unconstrained minimiser meets its bounds
-and rows is answered by it, the others by :mod:`~aasoatt_env.safety.solvers.polygon`.  With ``relax=True`` a robot
-whose polygon is empty gets its own least-violation answer, as :func:`aasoatt_env.safety.solvers.policy.solve_qp` gives
-the centralised one: phase 1 (:func:`least_violation`) finds each row's least violation ``s_r`` with the bounds hard,
-each row is loosened by ``s_r (1 + 1e-6)`` plus a tolerance, and the loosened polygon is projected.
+Robot ``k`` solves ``min 0.5 x' H_k x + g_k' x  s.t.  lb_k <= x <= ub_k, G_r x <= h_r``.  In ``y = L_k^T x`` (``H_k =
+L_k L_k^T``) each QP projects ``y0 = -L^-1 g`` onto a polygon of unit half-planes: a robot whose minimiser meets its
+constraints is answered by it, the others by :mod:`~aasoatt_env.safety.solvers.polygon`.  With ``relax=True`` an empty
+polygon's robot gets its least-violation answer, as :func:`~aasoatt_env.safety.solvers.policy.solve_qp` gives the
+centralised one: each row is loosened by its least violation (bounds hard) times ``1 + 1e-6`` plus a tolerance.
 """
 
 from __future__ import annotations
@@ -19,33 +16,23 @@ import numpy as np
 from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.safety.solvers.polygon import PAD_B, State, Table, solve
 
-__all__ = ["LocalSolution", "least_violation", "solve_local_qps"]
+__all__ = ["LocalSolution", "solve_local_qps"]
 
-TOL: float = 1e-10
-"""Feasibility / multiplier-sign tolerance of the KKT check (normalised half-planes, relative to ``1 + |y0|_inf``)."""
-MAX_ITER: int = 50
-"""Active-set iterations before the unfinished robots go to the enumeration."""
-RELAX_TOL: float = 1e-7
-"""Default loosening on top of the least violation, in units of the normalised row (the policy's value)."""
+TOL: float = 1e-10  #: the KKT check's feasibility / multiplier-sign tolerance (relative to ``1 + |y0|_inf``)
+MAX_ITER: int = 50  #: active-set iterations before the unfinished robots go to the enumeration
+RELAX_TOL: float = 1e-7  #: loosening on top of the least violation, in the normalised row's units (the policy's)
 
 
 class LocalSolution(NamedTuple):
-    """Answer of :func:`solve_local_qps`.
+    """Answer of :func:`solve_local_qps`; multipliers in the rows' own units (of the loosened row if relaxed)."""
 
-    ``x`` ``(N, 2)``: the minimisers (an infeasible robot's least-violation answer with ``relax``, else its minimiser
-    over the bounds); ``lam`` ``(M,)``, ``lam_box`` ``(N, 2, 2)`` (``[:, 0]``: ``x <= ub``): the multipliers in the
-    rows' own units (of the loosened row if relaxed, 0 on an infeasible robot's rows without); ``feasible``: the
-    polygon is non-empty; ``loosened`` ``(M,)``: each row's loosening; ``iterations``: the most of a robot and pass;
-    ``n_enumerated``: robots enumerated.
-    """
-
-    x: np.ndarray
-    lam: np.ndarray
-    lam_box: np.ndarray
-    feasible: np.ndarray
-    loosened: np.ndarray
-    iterations: int
-    n_enumerated: int
+    x: np.ndarray  #: ``(N, 2)`` minimisers (``relax``: an infeasible robot's least-violation answer; else over the box)
+    lam: np.ndarray  #: ``(M,)`` row multipliers (0 on an infeasible robot's rows without ``relax``)
+    lam_box: np.ndarray  #: ``(N, 2, 2)`` bound multipliers (``[:, 0]``: ``x <= ub``)
+    feasible: np.ndarray  #: ``(N,)`` the polygon is non-empty
+    loosened: np.ndarray  #: ``(M,)`` each row's loosening
+    iterations: int  #: the most of a robot and pass
+    n_enumerated: int  #: robots enumerated
 
 
 def _cholesky(H: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -123,11 +110,9 @@ def solve_local_qps(H: np.ndarray, g: np.ndarray, lb: np.ndarray, ub: np.ndarray
     """Solve every robot's 2-variable QP exactly (module docstring).
 
     ``H`` ``(N, 2, 2)``, ``g``, ``lb <= ub`` ``(N, 2)``; rows ``G_r x <= h_r`` of robot ``owner[r]`` (``h = +inf``:
-    never binds).  ``relax``: an empty polygon's robot gets its least-violation point, each row loosened by
-    ``relax_tol`` (one or ``(N,)``, in the row's units normalised in ``x``) on top.  ``compiled``: by
-    :mod:`~aasoatt_env.safety.solvers.local_kernel` (the same decisions, numbers to rounding).  The KKT tolerance
-    ``tol`` is relative to ``1 + |y0|_inf``: a minimiser far outside the bounds' scale loosens the check with it, so
-    the filter clips each nominal to its bounds before it forms ``g``.
+    never binds).  ``relax_tol``: one or ``(N,)``, in the row's units normalised in ``x``.  ``compiled``: by
+    :mod:`~aasoatt_env.safety.solvers.local_kernel` (the same decisions, numbers to rounding).  ``tol`` is relative to
+    ``1 + |y0|_inf``, so the filter clips each nominal to its bounds before it forms ``g``.
     """
     H, g, lb, ub, owner, G, h, rt = _checked(H, g, lb, ub, owner, G, h, relax_tol, tol, max_iter)
     n, m = g.shape[0], owner.shape[0]
@@ -391,7 +376,12 @@ def _line_min(res: np.ndarray, delta: np.ndarray) -> np.ndarray:
 
 
 def _lv_core(gx, gy, hh, lb, ub, x, max_iter: int = 40):
-    """Phase-1 iterations on unit rows ``(P, K)`` (padding: ``hh = PAD_B``); ``(x, violations (P, K))``."""
+    """Phase 1 on unit rows ``(P, K)`` (padding: ``hh = PAD_B``) from ``x``: ``(x, violations (P, K))``.
+
+    Per robot ``min 0.5 sum_r (g_r x - h_r)_+^2  s.t.  lb <= x <= ub``, convex and piecewise quadratic: each iteration
+    minimises the violated rows' quadratic over the box (closed form, a ``1e-10`` relative proximal term) and moves to
+    the exact minimiser on the segment to it, until a step is below ``1e-11`` of the box.  The violations are unique.
+    """
     x = x.copy()
     P, K = gx.shape
     one = np.ones(K)
@@ -429,35 +419,3 @@ def _lv_core(gx, gy, hh, lb, ub, x, max_iter: int = 40):
         act = act[~same & (t * np.maximum(np.abs(dx), np.abs(dy)) > 1e-11 * span[act])]
     viol = np.maximum(gx * x[:, 0:1] + gy * x[:, 1:2] - hh, 0.0)
     return x, viol
-
-
-def least_violation(lb: np.ndarray, ub: np.ndarray, owner: np.ndarray, G: np.ndarray, h: np.ndarray, *,
-                    x0: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Phase 1 of each robot: the least violation of each of its rows, bounds hard: ``(x (N, 2), s (M,))``.
-
-    Per robot ``min F(x) = 0.5 sum_r ((G_r x - h_r)_+ / |G_r|)^2  s.t.  lb <= x <= ub`` (one slack per normalised row,
-    as :func:`~aasoatt_env.safety.solvers.policy.solve_qp`).  ``F`` is convex, piecewise quadratic: each iteration
-    minimises over the box the quadratic of the rows violated now (closed form, a ``1e-10`` relative proximal term) and
-    moves to ``F``'s exact minimiser on the segment to it, until a step is below ``1e-11`` of the box.  ``x0``: the
-    start (default: the boxes' centres).  ``s_r = (G_r x - h_r)_+`` is unique even where ``x`` is not.
-    """
-    lb = np.asarray(lb, float)
-    ub = np.asarray(ub, float)
-    owner = np.asarray(owner, np.intp).reshape(-1)
-    G = np.asarray(G, float).reshape(-1, 2)
-    h = np.asarray(h, float).reshape(-1)
-    n = lb.shape[0]
-    x = 0.5 * (lb + ub) if x0 is None else np.clip(np.asarray(x0, float), lb, ub)
-    if owner.size == 0 or n == 0:
-        return x, np.zeros(owner.shape[0])
-    nrm = np.sqrt(G[:, 0] * G[:, 0] + G[:, 1] * G[:, 1])
-    nrm = np.where(nrm > 1e-300, nrm, 1.0)
-    slot, counts = _slots(owner, n)
-    K = max(1, int(counts.max(initial=0)))
-    gx = np.zeros((n, K))
-    gy = np.zeros((n, K))
-    hh = np.full((n, K), PAD_B)
-    gx[owner, slot], gy[owner, slot], hh[owner, slot] = G[:, 0] / nrm, G[:, 1] / nrm, h / nrm
-    x, _ = _lv_core(gx, gy, hh, lb, ub, x)
-    s = np.maximum(G[:, 0] * x[owner, 0] + G[:, 1] * x[owner, 1] - h, 0.0)
-    return x, s

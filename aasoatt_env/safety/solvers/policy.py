@@ -1,13 +1,9 @@
 """Which solver answers a safety QP: a pure function of the problem's size and the configuration.
 
-:meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock and keeps no state
-between calls.  In order: (1) without rows (diagonal blocks) the closed form; (2) ``neural``'s point as it is;
-(3) the warm active set from the previous step's working set, on every part it verifies (KKT conditions); (4) on
-the rest, the route (:func:`route`): the exact solvers of :data:`EXACT_ROUTE` before a back-end that may stall,
-then the configured one.  An answer is taken only where verified, by ``ldp`` itself or by the warm active set
-started from it; the configured back-end's answer is polished there too where its last bits depend on more than
-the problem, and taken as it is where that fails.  A proof of infeasibility ends the route.  (5) Infeasibility is
-never taken from an iterative solver's word: a phase-1 problem (:data:`PHASE1_ROUTE`) finds each row's least
+:meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock, keeps no state.  In
+order: without rows the closed form; ``neural``'s point as it is; the warm active set on every part it verifies; on the
+rest the route (:func:`route`, exact solvers first), an answer taken only where verified; a proof of infeasibility ends
+it.  Infeasibility is never taken from an iterative solver's word: phase 1 (:data:`PHASE1_ROUTE`) finds each row's least
 violation with the bounds hard, the rows are loosened by it and the QP solved again (status ``"relaxed"``).
 """
 
@@ -33,15 +29,11 @@ __all__ = ["EXACT_ROUTE", "PHASE1_ROUTE", "QPSolution", "SolverPolicy", "route",
 _FEAS_TOL = 1e-7
 
 EXACT_ROUTE: tuple[tuple[str, int], ...] = (("daqp", 500), ("ldp", LDP_MAX_VARS))
-"""``(solver, most variables)`` asked in order before a back-end that may stall, where installed.
-DAQP (``pip install "aasoatt[fast]"``) is a dual active-set method, ``ldp`` an NNLS one: both finish
-exactly or prove the rows inconsistent, where an augmented Lagrangian can run out of iterations
-(``benchmarks/bench_filter.py`` measures the route on the congested scenes)."""
+"""``(solver, most variables)`` asked in order before a back-end that may stall, where installed: DAQP
+(``pip install "aasoatt[fast]"``) and ``ldp`` finish exactly or prove the rows inconsistent."""
 PHASE1_ROUTE: tuple[tuple[str, int, int], ...] = (("daqp", 0, 400), ("clarabel", 121, 10**9), ("ldp", 0, 120))
-"""``(solver, fewest, most variables)`` of a phase-1 problem (variables plus one slack per row), asked in
-order before a back-end that may stall and after any other, where installed; ``ldp`` up to
-:data:`~aasoatt_env.safety.solvers.ldp.MAX_VARS` last.  The phase-1 problem's regulariser conditions
-``ldp``'s NNLS badly beyond about a hundred variables, and dense DAQP slows down where every row binds."""
+"""``(solver, fewest, most variables)`` of a phase-1 problem (variables plus one slack per row), asked in order
+before a back-end that may stall, where installed (its regulariser conditions ``ldp``'s NNLS badly on large ones)."""
 
 
 @dataclass
@@ -75,18 +67,13 @@ def _phase1_order(solver: str, n1: int) -> list[str]:
 
 @dataclass(frozen=True)
 class SolverPolicy:
-    """The safety QP's solver (module docstring): a back-end and how the exact path runs.
+    """The safety QP's solver (module docstring): a back-end and how the exact path runs."""
 
-    ``solver``: a name in :data:`~.backends.SOLVERS`; ``active_set``: try the warm active set first (in its
-    compiled kernel with ``compiled``, with the one-change budget ``one_change_iter``, None: its default);
-    ``iterations``: ``neural``'s projected primal-dual updates per call.
-    """
-
-    solver: str
-    active_set: bool = True
-    compiled: bool = False
-    one_change_iter: int | None = None
-    iterations: int = 1
+    solver: str  #: a name in :data:`~.backends.SOLVERS`
+    active_set: bool = True  #: try the warm active set first
+    compiled: bool = False  #: the warm active set by its compiled kernel
+    one_change_iter: int | None = None  #: the warm active set's one-change budget (None: its default)
+    iterations: int = 1  #: ``neural``'s projected primal-dual updates per call
 
     @property
     def exact(self) -> bool:

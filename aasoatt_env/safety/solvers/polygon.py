@@ -1,14 +1,9 @@
 """Projections of many points onto convex polygons at once: the local solver's steps 2-4.
 
 Each robot's polygon is a table of unit half-planes ``n' y <= b`` (:class:`Table`); :func:`solve` projects its point
-``y0``, vectorised across robots with masks:
-
-2. the dual active set of Goldfarb and Idnani in the plane: add the most violated constraint, by a partial step if an
-   active one's multiplier reaches zero first (it is dropped); a new constraint that depends on the (at most two) active
-   ones with no positive coefficient proves the polygon empty (a Farkas certificate);
-3. a KKT check of the point recomputed from the final active set, and of each certificate;
-4. the robots not verified are solved by enumerating every candidate (``y0``, its projections onto each line, the
-   vertices of two lines): the nearest feasible one with non-negative multipliers, else the polygon is empty.
+``y0``, vectorised with masks: (2) Goldfarb-Idnani's dual active set in the plane (a dependent new constraint with no
+positive coefficient is a Farkas certificate of an empty polygon); (3) a KKT check of the final active set and of each
+certificate; (4) the robots not verified by enumerating every candidate (``y0``, its projections, the vertices).
 """
 
 from __future__ import annotations
@@ -21,8 +16,7 @@ __all__ = ["PAD_B", "State", "Table", "solve"]
 
 _EPS_Z = 1e-22  # a new normal with less squared component than this off the active ones depends on them
 _EPS_R = 1e-14  # coefficients of a dependent normal below this count as non-positive
-PAD_B = 1e300
-"""Right-hand side of padding slots (never violated)."""
+PAD_B = 1e300  #: right-hand side of padding slots (never violated)
 _ENUM_CHUNK = 1 << 20  # the largest candidate-by-constraint table (elements) of one enumeration chunk
 
 
