@@ -2,8 +2,9 @@
 
 Chosen when the filter is built where each of those stages runs compiled (:func:`fusable`); it calls their
 own kernels, so where it answers, the step is the pipeline's bit for bit (``tests/test_compiled.py``).  It
-answers the rows and the solve where the QP is verified, and the backup too where its quick check brakes
-nobody; a stage it does not answer runs in the pipeline from its start.  At a few tens of robots a step's
+answers the rows and the solve where the QP is verified, and the backup too where its quick check leaves nothing
+to hold or repair (it brakes nobody, or only robots whose path leaves their range limit); a stage it does not
+answer runs in the pipeline from its start.  At a few tens of robots a step's
 cost is mostly the calls between the stages, which this saves.
 """
 
@@ -49,7 +50,7 @@ class FusedStep:
         if team is not self._team:
             self._team, self._limit = team, team_block(team, cfg.brake_fraction, cfg.sensing_range)[1]
         pose = axle_pose(team, s.p, s.theta)
-        solved, passed, r, qp, avoiding, (gdu, nudged, margin) = self._kernel(
+        solved, passed, r, qp, avoiding, (gdu, braking, nudged, margin) = self._kernel(
             self._rows.args(cfg, s, pairs), (c64(target), s.lo, s.hi, s.scale), (c64(x), keys, z), self._settings,
             cfg.eta_tol, (pose, s.u, cfg.dt, self._levels, self._limit, GATE_TOL),
             kernel_args(team, pose, cfg.brake_fraction, cfg.sensing_range, s.obstacles, pairs.robots))
@@ -58,5 +59,5 @@ class FusedStep:
         used, n_qp, du, x_new, z_new, eta = qp
         ans = Answer(du, x_new, z_new, eta, avoiding, "solved", VERIFIED_MESSAGE if n_qp else CLOSED_FORM_MESSAGE,
                      int(used), int(n_qp), 0.0)
-        backup = BackupAnswer(gdu, np.zeros(du.shape[0], dtype=bool), nudged, float(margin), True) if passed else None
+        backup = BackupAnswer(gdu, braking, nudged, float(margin), True) if passed else None
         return kernel_rows(r), ans, backup

@@ -41,8 +41,9 @@ def fused_step(rows_in, qp_in, prev, settings, eta_tol, gate_in, gate_block):
     ``(x, keys, z)``; ``gate_in``: ``(pose, u, dt, levels, limit, tol)``; ``gate_block``: the gate's team, pair and
     obstacle block.  Returns ``(solved, passed, rows, qp, avoiding, backup)``: ``rows`` the rows kernel's
     tuple, ``qp = (iterations, n_qp, du, x, z, eta)``, ``avoiding`` the robots with a row of multiplier above
-    ``eta_tol``; ``passed``: the quick check brakes nobody and finds nothing broken, so that it is the
-    backup stage's answer ``backup = (du, nudged, margin)`` (``nudged`` as :class:`~.backup.BackupLayer` has it).
+    ``eta_tol``; ``passed``: the quick check finds nothing broken and brakes only robots whose candidate path leaves
+    their range limit, so that it is the backup stage's answer ``backup = (du, braking, nudged, margin)`` (as
+    :func:`~.backup.gate_with_repair` and :class:`~.backup.BackupLayer` give it: nothing to hold or repair).
     """
     rows = aasoatt_rows(*rows_in)
     ri, rj, Gi, Gj, rhs, pairs, keys, h_min, gap_min = rows
@@ -57,13 +58,14 @@ def fused_step(rows_in, qp_in, prev, settings, eta_tol, gate_in, gate_block):
             if rj[r] >= 0:
                 avoiding[rj[r]] = True
     solved = code == CLOSED_FORM or code == VERIFIED
-    passed, gdu, nudged, margin = False, du, np.zeros(n, np.bool_), 0.0
+    passed, gdu, braking, nudged, margin = False, du, np.zeros(n, np.bool_), np.zeros(n, np.bool_), 0.0
     if solved:
         pose, u, dt, levels, limit, tol = gate_in
-        gdu, braking, broken, _, _, _, _, _, margin = gate_full(pose, u, du, dt, levels, True, *gate_block, limit,
-                                                                tol, False)
+        gdu, braking, broken, _, _, out_of_range, _, _, margin = gate_full(pose, u, du, dt, levels, True,
+                                                                           *gate_block, limit, tol, False)
         passed = True
         for i in range(n):
-            passed = passed and not (braking[i] or broken[i])
-            nudged[i] = abs(gdu[i, 0] - du[i, 0]) > 1e-9 * scale[i] or abs(gdu[i, 1] - du[i, 1]) > 1e-9 * scale[i]
-    return solved, passed, rows, (used, n_qp, du, x, z, eta), avoiding, (gdu, nudged, margin)
+            passed = passed and not (broken[i] or (braking[i] and not out_of_range[i]))
+            nudged[i] = not braking[i] and (abs(gdu[i, 0] - du[i, 0]) > 1e-9 * scale[i]
+                                            or abs(gdu[i, 1] - du[i, 1]) > 1e-9 * scale[i])
+    return solved, passed, rows, (used, n_qp, du, x, z, eta), avoiding, (gdu, braking, nudged, margin)
