@@ -96,6 +96,25 @@ def test_daqps_answers_are_taken_only_verified_and_its_proofs_end_the_route(monk
     assert asked[0] == "daqp" and "ldp" not in asked[:2]  # the proof ended the route: phase 1 next
 
 
+def test_the_loosened_problem_is_not_sent_to_a_stalling_back_end(monkeypatch):
+    """Where the exact solvers fail on the loosened problem (feasible at the phase-1 point by construction), the
+    phase-1 point answers; proxsuite is asked only where no exact solver is on the route."""
+    failing = backends.Backend(lambda prob, x0, z0, opts: backends.RawAnswer(None, None, False, 3, "ldp: failed"))
+    monkeypatch.setitem(backends.SOLVERS, "ldp", failing)
+    monkeypatch.setattr(pol, "solve_active_set", lambda *a, **k: None)  # (no daqp answer is verified)
+    monkeypatch.setattr(pol, "PHASE1_ROUTE", (("daqp", 0, 400),) if HAS_DAQP else (("clarabel", 0, 10**9),))
+    asked = _spy(monkeypatch)
+    sol = pol.solve_qp(_contradiction(3), "proxsuite")
+    assert sol.status == "relaxed" and sol.slack == pytest.approx(1.0, abs=1e-6) and "proxsuite" not in asked
+    assert sol.message.endswith("the loosened problem failed, the phase-1 point returned")
+    np.testing.assert_allclose(sol.x.reshape(3, 2)[:, 0], 0.0, atol=1e-5)  # (each row violated by 1 at most)
+    assert np.all(np.isfinite(sol.x)) and np.all(sol.z == 0.0)
+    monkeypatch.setattr(pol, "EXACT_ROUTE", ())
+    asked.clear()
+    pol.solve_qp(_contradiction(3), "proxsuite")
+    assert asked.count("proxsuite") == 2  # (the QP and the loosened QP: proxsuite is the whole route)
+
+
 @pytest.mark.skipif(not HAS_DAQP, reason="needs daqp")
 def test_daqp_as_configured_keeps_the_box_as_rows(monkeypatch):
     """``solver="daqp"`` (aasoatt reproduce's) passes the box as rows; on the route, as DAQP's simple bounds."""

@@ -113,9 +113,15 @@ class SolverPolicy:
                           f"{VERIFIED_MESSAGE} on {int(part.ok.sum())} of {part.ok.shape[0]} parts; the other "
                           f"{int((~part.ok).sum())}: {rest.message}")
 
-    def _ask(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None) -> RawAnswer:
-        """The route's first verified answer, or the last answer (not ok) with every message."""
+    def _ask(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None,
+             exact_only: bool = False) -> RawAnswer:
+        """The route's first verified answer, or the last answer (not ok) with every message.
+
+        ``exact_only``: without the configured back-end where it may stall and an exact solver is on the route.
+        """
         steps = route(self.solver, prob.n)
+        if exact_only and len(steps) > 1 and get_solver(self.solver).may_stall:
+            steps = steps[:-1]
         raw, iterations, notes = RawAnswer(None, None, False, 0, ""), 0, []
         for k, (name, opts) in enumerate(steps):
             backend = get_solver(name)
@@ -146,7 +152,9 @@ class SolverPolicy:
         x1, viol = p1
         tstar = float(np.max(viol, initial=0.0))
         relaxed = tstar > _FEAS_TOL
-        raw2 = self._ask(replace(prob, u=prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL), x1, None)  # the loosened QP
+        # the loosened QP: feasible at the phase-1 point, which answers where the exact solvers do not (a stalling
+        # back-end spends its whole iteration budget on these nearly degenerate problems without an answer)
+        raw2 = self._ask(replace(prob, u=prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL), x1, None, exact_only=True)
         msg = f"{raw.message}; phase 1: largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
         status = "relaxed" if relaxed else "solved"
         if raw2.ok:
