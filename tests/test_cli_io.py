@@ -90,6 +90,7 @@ _INTERRUPTED_RUN = """
     import numpy as np
     from aasoatt_env.apps.cli import main
 
+    signal.signal(signal.SIGINT, signal.default_int_handler)  # (a runner started in the background ignores SIGINT)
     real = np.savez_compressed
 
     def interrupted(path, **arrays):  # Ctrl-C half way through writing rollout.npz

@@ -60,8 +60,10 @@ def test_a_writer_that_fails_half_way_leaves_the_old_file(tmp_path, monkeypatch)
 
 
 _WRITER = """
-import sys
+import signal, sys
 from train.runs import atomic_write
+
+signal.signal(signal.SIGINT, signal.default_int_handler)  # (a runner started in the background ignores SIGINT)
 
 def write(fh):
     print("writing", flush=True)
