@@ -96,17 +96,25 @@ def test_daqps_answers_are_taken_only_verified_and_its_proofs_end_the_route(monk
     assert asked[0] == "daqp" and "ldp" not in asked[:2]  # the proof ended the route: phase 1 next
 
 
-def test_the_loosened_problem_is_not_sent_to_a_stalling_back_end(monkeypatch):
-    """Where the exact solvers fail on the loosened problem (feasible at the phase-1 point by construction), the
-    phase-1 point answers; proxsuite is asked only where no exact solver is on the route."""
-    failing = backends.Backend(lambda prob, x0, z0, opts: backends.RawAnswer(None, None, False, 3, "ldp: failed"))
-    monkeypatch.setitem(backends.SOLVERS, "ldp", failing)
-    monkeypatch.setattr(pol, "solve_active_set", lambda *a, **k: None)  # (no daqp answer is verified)
-    monkeypatch.setattr(pol, "PHASE1_ROUTE", (("daqp", 0, 400),) if HAS_DAQP else (("clarabel", 0, 10**9),))
+def test_the_loosened_problem_gets_one_exact_attempt_then_the_phase_one_point(monkeypatch):
+    """The loosened problem (feasible at the phase-1 point by construction) goes to the route's first solver alone:
+    where it fails, the phase-1 point answers, and neither ldp's dense NNLS nor proxsuite is asked."""
+    first = "daqp" if HAS_DAQP else "ldp"
+    real = backends.SOLVERS[first]
+
+    def fails_when_loosened(prob, x0, z0, opts):  # (the loosened call alone is warm-started from x1 without z)
+        if x0 is not None and z0 is None:
+            return backends.RawAnswer(None, None, False, 3, f"{first}: failed")
+        return real.solve(prob, x0, z0, opts)
+
+    monkeypatch.setitem(backends.SOLVERS, first, backends.Backend(
+        fails_when_loosened, real.module, real.exact, real.verified, real.deterministic, real.may_stall,
+        real.route_options))
     asked = _spy(monkeypatch)
     sol = pol.solve_qp(_contradiction(3), "proxsuite")
-    assert sol.status == "relaxed" and sol.slack == pytest.approx(1.0, abs=1e-6) and "proxsuite" not in asked
+    assert sol.status == "relaxed" and sol.slack == pytest.approx(1.0, abs=1e-6)
     assert sol.message.endswith("the loosened problem failed, the phase-1 point returned")
+    assert asked[-1] == first and "proxsuite" not in asked and (first == "ldp" or "ldp" not in asked)
     np.testing.assert_allclose(sol.x.reshape(3, 2)[:, 0], 0.0, atol=1e-5)  # (each row violated by 1 at most)
     assert np.all(np.isfinite(sol.x)) and np.all(sol.z == 0.0)
     monkeypatch.setattr(pol, "EXACT_ROUTE", ())

@@ -113,26 +113,26 @@ class SolverPolicy:
                           f"{VERIFIED_MESSAGE} on {int(part.ok.sum())} of {part.ok.shape[0]} parts; the other "
                           f"{int((~part.ok).sum())}: {rest.message}")
 
-    def _ask(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None,
-             exact_only: bool = False) -> RawAnswer:
+    def _ask(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, first: bool = False) -> RawAnswer:
         """The route's first verified answer, or the last answer (not ok) with every message.
 
-        ``exact_only``: without the configured back-end where it may stall and an exact solver is on the route.
+        Another back-end's answer is taken verified only; the configured one's also unverified where deterministic.
+        ``first``: the route's first solver alone.
         """
         steps = route(self.solver, prob.n)
-        if exact_only and len(steps) > 1 and get_solver(self.solver).may_stall:
-            steps = steps[:-1]
+        if first:
+            steps = steps[:1]
         raw, iterations, notes = RawAnswer(None, None, False, 0, ""), 0, []
-        for k, (name, opts) in enumerate(steps):
+        for name, opts in steps:
             backend = get_solver(name)
             raw = backend(prob, x0, z0, opts)
             iterations += raw.iterations
-            last = k == len(steps) - 1
-            if raw.ok and not backend.verified and (not last or not backend.deterministic):
+            configured = name == self.solver
+            if raw.ok and not backend.verified and (not configured or not backend.deterministic):
                 polished = solve_active_set(prob, raw.x, _nonneg(raw.z, prob.m), compiled=self.compiled)
                 if polished is not None:
                     raw.x, raw.z, raw.message = polished[0], polished[1], raw.message + " (KKT verified)"
-                elif not last:
+                elif not configured:
                     raw.ok, raw.message = False, raw.message + ", KKT check failed"
             notes.append(raw.message)
             if raw.ok or raw.infeasible:
@@ -152,9 +152,10 @@ class SolverPolicy:
         x1, viol = p1
         tstar = float(np.max(viol, initial=0.0))
         relaxed = tstar > _FEAS_TOL
-        # the loosened QP: feasible at the phase-1 point, which answers where the exact solvers do not (a stalling
-        # back-end spends its whole iteration budget on these nearly degenerate problems without an answer)
-        raw2 = self._ask(replace(prob, u=prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL), x1, None, exact_only=True)
+        # the loosened QP, feasible at the phase-1 point, which answers where the route's first solver does not (the
+        # others spent their whole budgets on these nearly degenerate problems without an answer: ldp's dense NNLS,
+        # proxsuite's iterations)
+        raw2 = self._ask(replace(prob, u=prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL), x1, None, first=True)
         msg = f"{raw.message}; phase 1: largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
         status = "relaxed" if relaxed else "solved"
         if raw2.ok:
