@@ -179,6 +179,10 @@ def cmd_run(args: argparse.Namespace) -> int:
                               f"installed; expected a suffix among {list(ANIMATION_SUFFIXES)} whose writer is "
                               f"installed (or install {extra})")
         env, agent = _env_and_agent(args, kwargs, filter_config)
+        if filter_config is not None:  # (the kernels loaded before the first step: solve times are the steps')
+            from aasoatt_env.safety import warm_up
+
+            warm_up(filter_config.kernel)
         rollout, frames = run_episode(env, agent, seed=args.seed, render_every=args.frame_every if gif else None,
                                       progress=not args.quiet,
                                       metadata={"controller": args.controller, "filter": args.filter,
