@@ -97,7 +97,7 @@ def solve_team(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.n
     With ``settings`` and a warm start, :func:`~.centralized_kernel.solve_decomposed` answers where it verifies every
     component, with :func:`solve_rows`' numbers.
     """
-    if settings is not None and warm.x is not None and warm.z is not None:
+    if settings is not None and warm.x is not None and warm.z is not None and warm.compiled:
         k = kernels("centralized")
         code, used, n_qp, du, x, z, eta = k.solve_decomposed(A, c64(target), lo, hi, scale, rows.ri, rows.rj,
                                                              rows.Gi, rows.Gj, rows.rhs, c64(warm.x), warm.z,

@@ -311,7 +311,7 @@ class SafetyFilter:
             pos = np.minimum(np.searchsorted(self._keys, rows.keys), self._keys.shape[0] - 1)
             hit = self._keys[pos] == rows.keys
             z0[hit] = self._z[pos[hit]]
-        return Warm(self._x, z0)
+        return Warm(self._x, z0, self._fuse and self._fused is None)  # (the fused step's QP is the compiled solve's)
 
     def _remember(self, rows: Rows, ans: Answer) -> None:
         """The next step's warm start (rows in increasing key order) and the deadlock memory."""

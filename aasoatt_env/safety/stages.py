@@ -39,6 +39,8 @@ class Warm(NamedTuple):
 
     x: np.ndarray | None  #: ``(N, 2)`` scaled point
     z: np.ndarray | None  #: ``(m,)`` scaled row multipliers (0 on rows new at this step)
+    #: try the compiled solve first (not where it failed at this step already, nor after a step it did not answer)
+    compiled: bool = True
 
 
 class Answer(NamedTuple):
