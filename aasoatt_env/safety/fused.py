@@ -4,8 +4,8 @@ Chosen when the filter is built where each of those stages runs compiled (:func:
 own kernels, so where it answers, the step is the pipeline's bit for bit (``tests/test_compiled.py``).  It
 answers the rows and the solve where the QP is verified, and the backup too where its quick check leaves nothing
 to hold or repair (it brakes nobody, or only robots whose path leaves their range limit); a stage it does not
-answer runs in the pipeline from its start.  At a few tens of robots a step's
-cost is mostly the calls between the stages, which this saves.
+answer runs in the pipeline from its start.  At a few tens of robots a step's cost is mostly the calls between
+the stages, which this saves.
 """
 
 from __future__ import annotations
