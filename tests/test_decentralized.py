@@ -700,3 +700,50 @@ def test_adversaries_do_not_collide(adversary):
     ro, gap = _run(12, agent, steps=600, seed=3, scenario="random_goals")
     assert np.all(np.isfinite(ro.positions))
     assert gap >= -1e-9, gap
+
+
+@needs_numba
+def test_the_groups_compiled_solve_waits_for_a_warm_answer_and_changes_no_bit(monkeypatch):
+    """The negotiation groups' compiled solve is tried only after a step the warm active set answered whole (after one
+    the solvers' route answered it fails again); spin-up robots' infeasible groups give the same steps bit for bit as
+    when it is tried at every step."""
+    from aasoatt_env import make_env
+    from aasoatt_env.compiled import kernels
+    from aasoatt_env.safety import decentralized as dec
+    from agents import ADVERSARIES
+
+    kernel, step = kernels("centralized"), dec.decentralized_step
+
+    def run(always: bool) -> tuple[list, list]:
+        real, codes, out = kernel.solve_decomposed, [], []
+
+        def counted(*args):
+            codes.append((len(out), int(real(*args)[0])))
+            return real(*args)
+
+        def stepped(*args, **kw):
+            kw["try_compiled"] = kw["try_compiled"] or always
+            return step(*args, **kw)
+
+        monkeypatch.setattr(kernel, "solve_decomposed", counted)
+        monkeypatch.setattr(dec, "decentralized_step", stepped)
+        env = make_env("random_goals", num_robots=8, max_steps=300, decision_interval=1,
+                       filter={"mode": "decentralized"})
+        agent = ADVERSARIES["spin_up"]()
+        obs, _ = env.reset(seed=5158)
+        for _ in range(env.max_steps):
+            obs, *_ = env.step(agent.act(obs, env))
+            out.append((env.last_result.du.copy(), env.last_result.message, env.last_result.eta.copy()))
+        monkeypatch.undo()
+        return out, codes
+
+    ref, ref_codes = run(always=True)
+    out, codes = run(always=False)
+    for (du_a, msg_a, eta_a), (du_b, msg_b, eta_b) in zip(out, ref):
+        assert msg_a == msg_b
+        np.testing.assert_array_equal(du_a.view(np.int64), du_b.view(np.int64))
+        np.testing.assert_array_equal(eta_a.view(np.int64), eta_b.view(np.int64))
+    failed = [k for k, code in ref_codes if code < 0]
+    assert len(failed) > 100 and len(codes) < len(ref_codes) - 100
+    tried = {k for k, _ in codes}
+    assert not [k for k, code in codes if code < 0 and k + 1 in tried]  # (after a failure the route answered)

@@ -20,8 +20,8 @@ from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers import active_set as aset
 from aasoatt_env.safety.stages import Answer, StepInput, Warm
 
-__all__ = ["Centralized", "TeamAnswer", "avoiding_robots", "compiled_settings", "kernel_settings", "solve_rows",
-           "solve_team"]
+__all__ = ["WARM_MESSAGES", "Centralized", "TeamAnswer", "avoiding_robots", "compiled_settings", "kernel_settings",
+           "solve_rows", "solve_team"]
 
 
 def kernel_settings(policy: SolverPolicy) -> np.ndarray:
@@ -113,6 +113,7 @@ def solve_team(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.n
 
 
 CLOSED_FORM_MESSAGE = "closed form: no row binds"
+WARM_MESSAGES = (aset.VERIFIED_MESSAGE, CLOSED_FORM_MESSAGE)  #: the answers of the closed form or the warm active set
 
 
 @dataclass(frozen=True)
@@ -135,7 +136,7 @@ class Centralized:
         checked = a.status != "solved" or not a.exact  # (an exact solve meets its rows)
         slack = float(max(0.0, np.max(rows.values(a.du) - rows.rhs, initial=0.0))) if checked else 0.0
         return Answer(a.du, a.x, a.z, a.eta, avoiding_robots(a.du.shape[0], rows, a.z > self.eta_tol), a.status,
-                      a.message, a.iterations, a.n_qp, slack)
+                      a.message, a.iterations, a.n_qp, slack, a.message in WARM_MESSAGES)
 
 
 def compiled_settings(policy: SolverPolicy, compiled: bool, decompose: bool = True) -> np.ndarray | None:

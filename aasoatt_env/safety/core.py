@@ -41,7 +41,7 @@ from aasoatt_env.model.dynamics import Kinematics, input_bounds, kinematics
 from aasoatt_env.model.params import Team
 from aasoatt_env.safety.backup import BackupLayer
 from aasoatt_env.safety.barriers import get_barrier
-from aasoatt_env.safety.centralized import CLOSED_FORM_MESSAGE, Centralized
+from aasoatt_env.safety.centralized import Centralized
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.deadlock import (
     STRATEGIES,
@@ -58,7 +58,6 @@ from aasoatt_env.safety.inputs import MIN_BRAKING_ROOM, bound_nominal, check_ste
 from aasoatt_env.safety.result import STATUSES, FilterResult, result
 from aasoatt_env.safety.rows import CompiledRows, Pairs, Rows, find_pairs, numpy_rows
 from aasoatt_env.safety.solvers import SolverPolicy
-from aasoatt_env.safety.solvers.active_set import VERIFIED_MESSAGE
 from aasoatt_env.safety.stages import Answer, StepInput, Warm
 from aasoatt_env.safety.warm_up import warm_up
 from aasoatt_env.sim.protocol import FilterInput
@@ -66,7 +65,6 @@ from aasoatt_env.sim.protocol import FilterInput
 __all__ = ["MIN_BRAKING_ROOM", "STATUSES", "FilterResult", "SafetyFilter", "StepInput"]
 
 _NO_PAIRS = np.empty((0, 2), dtype=np.intp)
-_COMPILED_ANSWERS = (VERIFIED_MESSAGE, CLOSED_FORM_MESSAGE)
 _MULTIPLIER = TRIGGERS["multiplier"]
 """The registry's own ``multiplier`` trigger, whose compiled form the deadlock stage runs (``deadlock_kernel``)."""
 
@@ -252,7 +250,7 @@ class SafetyFilter:
             rows, ans, backup = fused
         # (the fused call is tried after a step the compiled stages answered: after one the solvers' route
         # answered, it would most likely not answer either; the answers are the same either way)
-        self._fuse = ans.message in _COMPILED_ANSWERS
+        self._fuse = ans.warm_verified
         self._remember(rows, ans)
         if backup is None and self._backup is not None:
             backup = self._backup(s, ans.du, pairs.robots)

@@ -15,7 +15,7 @@ from typing import NamedTuple
 import numpy as np
 
 from aasoatt_env.model.geometry import pair_components
-from aasoatt_env.safety.centralized import TeamAnswer, avoiding_robots, compiled_settings, solve_team
+from aasoatt_env.safety.centralized import WARM_MESSAGES, TeamAnswer, avoiding_robots, compiled_settings, solve_team
 from aasoatt_env.safety.problem import box_least_squares
 from aasoatt_env.safety.rows import Rows
 from aasoatt_env.safety.solvers import SolverPolicy
@@ -92,6 +92,8 @@ class DecentralizedResult(NamedTuple):
     n_groups: int
     largest_group: int  #: robots in the largest group
     group_status: str  #: ``"solved"`` without groups
+    #: the groups' QP was answered by the closed form or the warm active set (True without groups)
+    group_warm: bool = True
 
 
 def negotiation_rows(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, ri: np.ndarray, rj: np.ndarray,
@@ -118,13 +120,14 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
                        rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray, authority: np.ndarray, *,
                        split: str = "reciprocal", scale: np.ndarray | None = None, compiled: bool = False,
                        whole: np.ndarray | None = None, policy: SolverPolicy | None = None,
-                       x_warm: np.ndarray | None = None, z_warm: np.ndarray | None = None) -> DecentralizedResult:
+                       x_warm: np.ndarray | None = None, z_warm: np.ndarray | None = None,
+                       try_compiled: bool = True) -> DecentralizedResult:
     """Every robot's own QP over its half-rows, exactly and all at once; negotiation groups jointly.
 
     ``target`` ``(N, 2)``: each robot's ``A du_nom``, its nominal within its bounds (the bounds stay hard); ``scale``
     ``(N,)`` of ``du`` for ``z`` and the loosening (None: the largest bound).  ``whole`` ``(M,)``: the rows the
     negotiation groups solve whole (needs ``policy``), warm-started from the scaled ``x_warm`` ``(N, 2)`` and ``z_warm``
-    ``(M,)``.
+    ``(M,)``; ``try_compiled``: the groups' compiled solve first (:class:`~.stages.Warm`).
     """
     if split not in SPLITS:
         raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")
@@ -146,8 +149,9 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
         if du0 is None:
             du0 = box_least_squares(A, target, lo, hi, compiled=compiled)
         x0 = du0 / scale[:, None] if x_warm is None else x_warm
-        joint, grouped, group_ans, kept, n_groups, largest = _groups(A, target, lo, hi, scale, x0, z_warm, ri, rj,
-                                                                     Gi, Gj, rhs, sp, whole, policy, compiled)
+        joint, grouped, group_ans, kept, n_groups, largest = _groups(A, target, lo, hi, scale, Warm(x0, z_warm,
+                                                                     try_compiled), ri, rj, Gi, Gj, rhs, sp, whole,
+                                                                     policy, compiled)
         lam = np.where(grouped[sp.owner], 0.0, lam)  # the grouped robots' own QPs are not what they apply
         if (infeasible & grouped).any():
             infeasible &= ~grouped
@@ -165,7 +169,8 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
         status, iterations = group_ans.status, max(iterations, group_ans.iterations)
     eta, z = np.maximum(eta_half[:, 0], eta_half[:, 1]), np.maximum(z_half[:, 0], z_half[:, 1])
     return DecentralizedResult(du, eta, eta_half, z, z_half, infeasible, int(infeasible.sum()), slack, iterations,
-                               sol.n_enumerated, grouped, n_groups, largest, status)
+                               sol.n_enumerated, grouped, n_groups, largest, status,
+                               group_ans is None or group_ans.message in WARM_MESSAGES)
 
 
 def _objective(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -204,12 +209,13 @@ def _half_slack(sp: SplitRows, du: np.ndarray, infeasible: np.ndarray) -> float:
     return float(max(0.0, res.max(initial=0.0)))
 
 
-def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, x0: np.ndarray,
-            z0: np.ndarray | None, ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray,
+def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, warm: Warm,
+            ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray,
             sp: SplitRows, whole: np.ndarray, policy: SolverPolicy,
             compiled: bool) -> tuple[np.ndarray, np.ndarray, TeamAnswer, np.ndarray, int, int]:
     """The negotiation groups' QP: the whole rows (robot rows only), and the grouped robots' halves of the others.
 
+    ``warm``: the scaled ``(N, 2)`` point, the rows' multipliers (or None) and whether the compiled solve goes first.
     Returns the whole rows, the robots in them, the QP's answer (``du`` of those robots; multipliers of the whole
     rows, then of the kept halves), the kept halves (indices into ``sp``), the number of groups, the largest's size.
     """
@@ -232,10 +238,11 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
     g_Gj = np.concatenate((Gj[joint], np.zeros((k, 2))))
     g_rhs = np.concatenate((rhs[joint], sp.h[kept]))
     # (a kept half starts at its row's multiplier)
+    z0 = warm.z
     g_z = np.zeros(g_rhs.shape[0]) if z0 is None else np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
     g_rows = Rows(g_ri, g_rj, g_Gi, g_Gj, g_rhs, np.empty((0, 2), np.intp), np.empty(0, np.int64), np.inf, np.inf)
     ans = solve_team(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_rows,
-                     Warm(np.ascontiguousarray(x0[sub]), g_z), decompose=True, compiled=compiled,
+                     Warm(np.ascontiguousarray(warm.x[sub]), g_z, warm.compiled), decompose=True, compiled=compiled,
                      settings=compiled_settings(policy, compiled))
     label = pair_components(sub.size, g_ri[: joint.shape[0]], g_rj[: joint.shape[0]], compiled=compiled)
     sizes = np.bincount(label, minlength=sub.size)
@@ -261,7 +268,7 @@ class Decentralized:
         ans = decentralized_step(s.A, target, s.lo, s.hi, rows.ri, rows.rj, rows.Gi, rows.Gj, rows.rhs,
                                  s.team.max_point_accel, scale=s.scale, compiled=self.compiled, whole=whole,
                                  policy=self.policy, x_warm=warm.x if grouping else None,
-                                 z_warm=warm.z if grouping else None)
+                                 z_warm=warm.z if grouping else None, try_compiled=warm.compiled)
         status = max("relaxed" if ans.n_relaxed else "solved", ans.group_status, key=_SEVERITY.index)
         n_grouped = int(ans.grouped.sum())
         message = f"decentralized: {n - n_grouped} local QPs"
@@ -275,7 +282,7 @@ class Decentralized:
         checked = status != "solved" or (ans.grouped.any() and not self.policy.exact)
         slack = float(max(0.0, np.max(rows.values(ans.du) - rows.rhs, initial=0.0))) if checked else 0.0
         return Answer(ans.du.copy(), ans.du / s.scale[:, None], ans.z, ans.eta, avoiding, status, message,
-                      ans.iterations, rows.m, slack)
+                      ans.iterations, rows.m, slack, ans.group_warm)
 
 
 _SEVERITY = ("solved", "relaxed", "failed")

@@ -58,6 +58,6 @@ class FusedStep:
             return None
         used, n_qp, du, x_new, z_new, eta = qp
         ans = Answer(du, x_new, z_new, eta, avoiding, "solved", VERIFIED_MESSAGE if n_qp else CLOSED_FORM_MESSAGE,
-                     int(used), int(n_qp), 0.0)
+                     int(used), int(n_qp), 0.0, True)
         backup = BackupAnswer(gdu, braking, nudged, float(margin), True) if passed else None
         return kernel_rows(r), ans, backup

@@ -56,3 +56,5 @@ class Answer(NamedTuple):
     iterations: int
     n_qp: int  #: rows the QP solver saw (0 where the closed form answered)
     slack: float  #: largest violation of a row by ``du`` (0 where solved exactly)
+    #: the closed form or the warm active set answered every part (the next step tries the compiled solve first)
+    warm_verified: bool = False
