@@ -193,8 +193,7 @@ class ShardedBatchedEnv(batched.TeamsAPI):
     def _drain(self, w: int) -> None:
         """Read and drop the replies of interrupted calls (their ``live`` still booked)."""
         while self._pending[w]:
-            if self._broken:
-                raise UsageError(self._broken_message())
+            self._check_open()
             try:
                 self._receive(w)
             except _LinkDown:
@@ -248,14 +247,12 @@ class ShardedBatchedEnv(batched.TeamsAPI):
         self._post(w, ("team", (k - self._starts[w], what, args)))
         return self._receive(w)
 
-    def _broken_message(self) -> str:
-        return f"ShardedBatchedEnv: {self._broken}, so its pipes cannot be trusted; close it and make a new one"
-
     def _check_open(self) -> None:
         if self._closed:
             raise UsageError("ShardedBatchedEnv: closed; make a new one")
         if self._broken:
-            raise UsageError(self._broken_message())
+            raise UsageError(f"ShardedBatchedEnv: {self._broken}, so its pipes cannot be trusted; close it and make a "
+                             "new one")
 
     @property
     def envs(self) -> list[Any]:
