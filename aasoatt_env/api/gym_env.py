@@ -39,12 +39,10 @@ class AASOATTGymEnv(gym.Env):
                                   "fields ({} for the defaults) or None")
             self.par = make_env(scenario, filter=safety_filter, infos="flat", **kwargs)
         self.render_mode = self.par.unwrapped.render_mode
-        agents = self.par.possible_agents
-        self._agents = list(agents)
-        obs_dim = self.par.observation_space(agents[0]).shape[0]
-        self.observation_space = spaces.Box(-100.0, 100.0, (obs_dim * len(agents),), np.float32)
-        self.action_space = spaces.Box(-1.0, 1.0, (2 * len(agents),), np.float32)
-        self._obs_dim = obs_dim
+        self._agents = list(self.par.possible_agents)
+        self._obs_dim = self.par.observation_space(self._agents[0]).shape[0]
+        self.observation_space = spaces.Box(-100.0, 100.0, (self._obs_dim * len(self._agents),), np.float32)
+        self.action_space = spaces.Box(-1.0, 1.0, (2 * len(self._agents),), np.float32)
 
     def _flat(self, obs: dict[str, np.ndarray]) -> np.ndarray:
         out = np.zeros((len(self._agents), self._obs_dim), dtype=np.float32)
@@ -78,9 +76,8 @@ class AASOATTGymEnv(gym.Env):
         a = raw.astype(np.float64)
         if a.shape != self.action_space.shape:
             raise ActionError(f"action: got shape {a.shape}, expected {self.action_space.shape}")
-        live = self.par.agents
         idx = self.par.unwrapped.agent_index
-        acts = {ag: a[2 * idx[ag] : 2 * idx[ag] + 2] for ag in live}
+        acts = {ag: a[2 * idx[ag] : 2 * idx[ag] + 2] for ag in self.par.agents}
         obs, rew, term, trunc, infos = self.par.step(acts)
         reward = float(np.mean(list(rew.values()))) if rew else 0.0
         return self._flat(obs), reward, any(term.values()), any(trunc.values()), self._team_info(infos)

@@ -7,7 +7,7 @@ import importlib
 import importlib.util
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
@@ -22,7 +22,8 @@ from aasoatt_env.sim.window import Window
 __all__ = ["ANIMATION_SUFFIXES", "BACKGROUND", "Frame", "Renderer", "animation_writer_missing", "robot_colors",
            "save_animation"]
 
-BACKGROUND: tuple[int, int, int] = (255, 255, 255)
+Color = tuple[int, int, int]
+BACKGROUND: Color = (255, 255, 255)
 """Background colour of rendered frames (RGB)."""
 GRID_COLOR, BOUNDS_COLOR, TEXT_COLOR, AVOID_COLOR = (232, 232, 232), (190, 190, 190), (30, 30, 30), (220, 20, 20)
 OBSTACLE_FILL, OBSTACLE_EDGE = (140, 140, 140), (90, 90, 90)
@@ -57,12 +58,13 @@ def _require(module: str, feature: str) -> ModuleType:
                           'install the rendering extras with: pip install "aasoatt[render]"') from exc
 
 
-def _as_array(name: str, value: Any, shape_tail: tuple[int, ...], n: int | None) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
-    if arr.size == 0 and n in (None, 0):
-        return arr.reshape((0, *shape_tail))
-    if not (arr.ndim == 1 + len(shape_tail) and arr.shape[1:] == shape_tail and (n is None or arr.shape[0] == n)):
-        exp = "(" + ", ".join(["N" if n is None else str(n), *map(str, shape_tail)]) + (",)" if not shape_tail else ")")
+def _as_array(name: str, value: Any, shape: tuple[int | str, ...], dtype: type = np.float64) -> np.ndarray:
+    """``Frame.<name>`` as an array of ``shape`` (a letter: any size; no data at all: zero rows)."""
+    arr = np.asarray(value, dtype=dtype)
+    if arr.size == 0 and shape[0] in ("N", "T", 0):
+        return arr.reshape((0, *shape[1:]))
+    if arr.ndim != len(shape) or any(isinstance(want, int) and got != want for got, want in zip(arr.shape, shape)):
+        exp = "(" + ", ".join(map(str, shape)) + (",)" if len(shape) == 1 else ")")
         raise ConfigError(f"Frame.{name}: got shape {arr.shape}, expected {exp}")
     return arr
 
@@ -91,28 +93,19 @@ class Frame:
     world_bounds: tuple[float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
-        self.positions = _as_array("positions", self.positions, (2,), None)
+        self.positions = _as_array("positions", self.positions, ("N", 2))
         n = self.positions.shape[0]
-        self.headings = _as_array("headings", np.broadcast_to(self.headings, (n,)), (), n)
-        self.radii = _as_array("radii", np.broadcast_to(self.radii, (n,)), (), n)
-        for name in ("references", "goals"):
-            if getattr(self, name) is not None:
-                setattr(self, name, _as_array(name, getattr(self, name), (2,), n))
+        self.headings = _as_array("headings", np.broadcast_to(self.headings, (n,)), (n,))
+        self.radii = _as_array("radii", np.broadcast_to(self.radii, (n,)), (n,))
         centers = np.zeros((0, 2)) if self.obstacle_centers is None else self.obstacle_centers
-        self.obstacle_centers = _as_array("obstacle_centers", centers, (2,), None)
+        self.obstacle_centers = _as_array("obstacle_centers", centers, ("N", 2))
         m = self.obstacle_centers.shape[0]
         radii = np.zeros(0) if self.obstacle_radii is None else np.broadcast_to(self.obstacle_radii, (m,))
-        self.obstacle_radii = _as_array("obstacle_radii", radii, (), m)
-        if self.trails is not None:
-            trails = np.asarray(self.trails, dtype=np.float64)
-            trails = trails.reshape(0, n, 2) if trails.size == 0 else trails
-            if trails.ndim != 3 or trails.shape[1:] != (n, 2):
-                raise ConfigError(f"Frame.trails: got shape {trails.shape}, expected (T, {n}, 2)")
-            self.trails = trails
-        if self.avoiding is not None:
-            self.avoiding = np.asarray(self.avoiding, dtype=bool)
-            if self.avoiding.shape != (n,):
-                raise ConfigError(f"Frame.avoiding: got shape {self.avoiding.shape}, expected ({n},)")
+        self.obstacle_radii = _as_array("obstacle_radii", radii, (m,))
+        for name, shape, dtype in (("references", (n, 2), float), ("goals", (n, 2), float),
+                                   ("trails", ("T", n, 2), float), ("avoiding", (n,), bool)):
+            if getattr(self, name) is not None:
+                setattr(self, name, _as_array(name, getattr(self, name), shape, dtype))
         self.sensing_range = None if self.sensing_range is None else float(self.sensing_range)
         self.time = float(self.time)
         if self.world_bounds is not None:
@@ -170,6 +163,13 @@ class _Transform:
 def _mix(color: Sequence[int], other: Sequence[int], t: float) -> tuple[int, int, int]:
     """Blend ``t`` of ``other`` into ``color``."""
     return tuple(int(round((1.0 - t) * c + t * o)) for c, o in zip(color, other))  # type: ignore[return-value]
+
+
+def _pixels(tf: _Transform, points: np.ndarray | None) -> Iterator[tuple[int, tuple[int, int]]]:
+    """``(i, rounded pixel)`` of each finite world point ``i`` of ``points`` (None: none)."""
+    for i, c in enumerate(() if points is None else tf.points(points)):
+        if np.all(np.isfinite(c)):
+            yield i, (int(round(c[0])), int(round(c[1])))
 
 
 def _nice_step(span: float, target_lines: int = 10) -> float:
@@ -239,7 +239,7 @@ class Renderer:
         pg.draw.rect(surf, BOUNDS_COLOR, pg.Rect(int(c[0, 0]), int(c[0, 1]), int(c[1, 0] - c[0, 0]),
                                                  int(c[1, 1] - c[0, 1])), 1)
 
-    def _draw_trails(self, tf: _Transform, trails: np.ndarray, colors: np.ndarray) -> None:
+    def _draw_trails(self, tf: _Transform, trails: np.ndarray, colors: list[Color]) -> None:
         if trails.shape[0] < 2:
             return
         pix = tf.points(trails)  # (T, N, 2)
@@ -257,7 +257,7 @@ class Renderer:
                     self._pg.draw.aalines(self._surface, _mix(colors[i], BACKGROUND, 0.35), False, run.tolist())
 
     def _draw_marks(self, frame: Frame, tf: _Transform, pos: np.ndarray, finite: np.ndarray, rpix: np.ndarray,
-                    colors: np.ndarray) -> None:
+                    colors: list[Color]) -> None:
         """Sensing ranges (faint circles) and goals (hollow squares), under the robots."""
         pg = self._pg
         if frame.sensing_range is not None and frame.sensing_range > 0:
@@ -265,22 +265,18 @@ class Renderer:
             for i in range(frame.n):
                 if finite[i] and self._visible(pos[i], rs) and rs < 32000:
                     self._circle(np.rint(pos[i]).astype(int), rs, _mix(colors[i], BACKGROUND, 0.7), fill=False)
-        if frame.goals is not None:
-            gp = tf.points(frame.goals)
-            for i in range(frame.n):
-                if np.all(np.isfinite(gp[i])):
-                    h = max(4, int(round(0.35 * rpix[i])))
-                    rect = pg.Rect(int(round(gp[i, 0])) - h, int(round(gp[i, 1])) - h, 2 * h + 1, 2 * h + 1)
-                    pg.draw.rect(self._surface, tuple(int(v) for v in colors[i]), rect, 2)
+        for i, (x, y) in _pixels(tf, frame.goals):
+            h = max(4, int(round(0.35 * rpix[i])))
+            pg.draw.rect(self._surface, colors[i], pg.Rect(x - h, y - h, 2 * h + 1, 2 * h + 1), 2)
 
     def _draw_robots(self, frame: Frame, pos: np.ndarray, finite: np.ndarray, rpix: np.ndarray,
-                     colors: np.ndarray) -> None:
+                     colors: list[Color]) -> None:
         pg, surf = self._pg, self._surface
         avoiding = frame.avoiding if frame.avoiding is not None else np.zeros(frame.n, dtype=bool)
         for i in range(frame.n):
             if not finite[i] or not self._visible(pos[i], rpix[i]):
                 continue
-            color = tuple(int(v) for v in colors[i])
+            color = colors[i]
             dark = _mix(color, (0, 0, 0), 0.55)
             c = np.rint(pos[i])
             r = int(rpix[i])
@@ -292,17 +288,11 @@ class Renderer:
             if avoiding[i]:
                 pg.draw.circle(surf, AVOID_COLOR, (int(c[0]), int(c[1])), r + 1, max(2, min(4, r // 5)))
 
-    def _draw_references(self, frame: Frame, tf: _Transform, rpix: np.ndarray, colors: np.ndarray) -> None:
-        if frame.references is None:
-            return
-        rp = tf.points(frame.references)
-        for i in range(frame.n):
-            if np.all(np.isfinite(rp[i])):
-                c = (int(round(rp[i, 0])), int(round(rp[i, 1])))
-                color = tuple(int(v) for v in colors[i])
-                s = max(3, int(round(0.15 * rpix[i])))
-                self._pg.draw.circle(self._surface, _mix(color, (0, 0, 0), 0.6), c, s + 1)
-                self._pg.draw.circle(self._surface, color, c, s)
+    def _draw_references(self, frame: Frame, tf: _Transform, rpix: np.ndarray, colors: list[Color]) -> None:
+        for i, c in _pixels(tf, frame.references):
+            s = max(3, int(round(0.15 * rpix[i])))
+            self._pg.draw.circle(self._surface, _mix(colors[i], (0, 0, 0), 0.6), c, s + 1)
+            self._pg.draw.circle(self._surface, colors[i], c, s)
 
     def draw(self, frame: Frame) -> Any:
         """Draw ``frame`` on the internal surface and return it (a ``pygame.Surface``)."""
@@ -311,7 +301,7 @@ class Renderer:
         self._surface.fill(BACKGROUND)
         bounds = frame.bounds()
         tf = _Transform(bounds, self.width, self.height)
-        colors = robot_colors(frame.n)
+        colors = [tuple(int(v) for v in c) for c in robot_colors(frame.n)]
         if self.grid:
             self._draw_grid(tf, bounds)
         for c, r in zip(tf.points(frame.obstacle_centers), frame.obstacle_radii):

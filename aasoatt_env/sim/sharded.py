@@ -119,16 +119,16 @@ class ShardedBatchedEnv(batched.TeamsAPI):
         self.autoreset = bool(autoreset)
         self.sizes = shard_sizes(k_all, int(num_workers))  # teams per worker
         self._starts = [0, *np.cumsum(self.sizes).tolist()]
+        self._shards = [slice(a, b) for a, b in zip(self._starts[:-1], self._starts[1:])]  # each worker's teams
         self._pending: list[deque[str]] = [deque() for _ in self.sizes]  # commands sent, replies not yet read
         self._broken: str | None = None  # why the pipes cannot be trusted any more
         self._closed = False
         try:
-            for w in range(len(self.sizes)):
-                a, b = self._starts[w], self._starts[w + 1]
+            for w, shard in enumerate(self._shards):
                 parent, child = ctx.Pipe()
                 proc = ctx.Process(target=_worker, name=f"aasoatt-shard-{w}", daemon=True,
-                                   args=(child, cloudpickle.dumps(list(env_fns[a:b])), self.autoreset,
-                                         bool(group_filter), int(a)))
+                                   args=(child, cloudpickle.dumps(list(env_fns[shard])), self.autoreset,
+                                         bool(group_filter), int(shard.start)))
                 proc.start()
                 child.close()
                 self._conns.append(parent)
@@ -183,8 +183,7 @@ class ShardedBatchedEnv(batched.TeamsAPI):
             raise UsageError(f"{self._teams(w)}: its reply could not be read ({type(exc).__name__}: {exc})") from None
         if msg[0] == "ok":
             if cmd in ("step", "reset"):  # `live` follows every step and reset, read now or drained later
-                a, b = self._starts[w], self._starts[w + 1]
-                self._live[a:b] = msg[1][-1]
+                self._live[self._shards[w]] = msg[1][-1]
             return msg[1]
         exc, tb = msg[1], msg[2]
         if hasattr(exc, "add_note") and tb:  # Python >= 3.11
@@ -194,8 +193,7 @@ class ShardedBatchedEnv(batched.TeamsAPI):
     def _drain(self, w: int) -> None:
         """Read and drop the replies of interrupted calls (their ``live`` still booked)."""
         while self._pending[w]:
-            if self._broken:
-                raise UsageError(self._broken_message())
+            self._check_open()
             try:
                 self._receive(w)
             except _LinkDown:
@@ -220,12 +218,12 @@ class ShardedBatchedEnv(batched.TeamsAPI):
             self._broken = f"a call was interrupted while sending to {self._teams(w)}"
             raise
 
-    def _all(self, cmd: str, args: Sequence[Any]) -> list[Any]:
-        """Send ``(cmd, args[w])`` to every worker, then collect the answers (raising the first error)."""
+    def _all(self, cmd: str, args: Sequence[Any] | None = None) -> list[Any]:
+        """Send ``(cmd, args[w])`` (or ``None``) to every worker, then collect the answers (raising the first error)."""
         self._check_open()
         try:
             for w in range(len(self._conns)):
-                self._post(w, (cmd, args[w]))
+                self._post(w, (cmd, None if args is None else args[w]))
         except _LinkDown:
             raise
         except BaseException:  # interrupted between the sends: some shards may have the command, others not
@@ -249,17 +247,12 @@ class ShardedBatchedEnv(batched.TeamsAPI):
         self._post(w, ("team", (k - self._starts[w], what, args)))
         return self._receive(w)
 
-    def _broken_message(self) -> str:
-        return f"ShardedBatchedEnv: {self._broken}, so its pipes cannot be trusted; close it and make a new one"
-
     def _check_open(self) -> None:
         if self._closed:
             raise UsageError("ShardedBatchedEnv: closed; make a new one")
         if self._broken:
-            raise UsageError(self._broken_message())
-
-    def _every(self, cmd: str) -> list[Any]:
-        return self._all(cmd, [None] * len(self._conns))
+            raise UsageError(f"ShardedBatchedEnv: {self._broken}, so its pipes cannot be trusted; close it and make a "
+                             "new one")
 
     @property
     def envs(self) -> list[Any]:
@@ -277,18 +270,18 @@ class ShardedBatchedEnv(batched.TeamsAPI):
     @property
     def max_steps(self) -> np.ndarray:
         """Each team's episode horizon in env steps ``(K,)``."""
-        return np.concatenate([s[0] for s in self._every("state")])
+        return np.concatenate([s[0] for s in self._all("state")])
 
     @property
     def elapsed_steps(self) -> np.ndarray:
         """Env steps taken in each team's episode ``(K,)``."""
-        return np.concatenate([s[1] for s in self._every("state")])
+        return np.concatenate([s[1] for s in self._all("state")])
 
     def reset(self, seed: int | Sequence[int | None] | None = None,
               options: dict | Sequence[dict | None] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         """Reset every team (as :meth:`BatchedAASOATTEnv.reset`: team ``k`` gets ``seed + k``)."""
         seeds, opts = batched.per_team_reset_args(seed, options, self.num_envs)
-        out = self._all("reset", [(seeds[a:b], opts[a:b]) for a, b in zip(self._starts[:-1], self._starts[1:])])
+        out = self._all("reset", [(seeds[shard], opts[shard]) for shard in self._shards])
         self._started = True  # (`live` was taken from the replies)
         return np.concatenate([o[0] for o in out]), {}
 
@@ -303,24 +296,23 @@ class ShardedBatchedEnv(batched.TeamsAPI):
                 raise batched.finished_error(finished)
         act = batched.parse_actions(actions, self._live, self.nominal_actions, self.shared_settings["clip_actions"])
         act = act.reshape(self.num_envs, self.num_agents, 2)
-        out = self._all("step", [act[a:b] for a, b in zip(self._starts[:-1], self._starts[1:])])
+        out = self._all("step", [act[shard] for shard in self._shards])
         obs, rew, term, trunc = (np.concatenate([o[i] for o in out]) for i in range(4))
         infos: dict[str, Any] = {key: np.concatenate([o[4][key] for o in out]) for key in out[0][4]
                                  if key not in ("final_obs", "_final_obs")}
         if any("_final_obs" in o[4] for o in out):  # a shard without a reset: its obs are its final ones
             parts = [(o[4]["final_obs"], o[4]["_final_obs"]) if "_final_obs" in o[4]
                      else (o[0], np.zeros(o[0].shape[0], dtype=bool)) for o in out]
-            infos["final_obs"] = np.concatenate([p[0] for p in parts])
-            infos["_final_obs"] = np.concatenate([p[1] for p in parts])
+            infos["final_obs"], infos["_final_obs"] = (np.concatenate(part) for part in zip(*parts))
         return obs, rew, term, trunc, infos
 
     def sync(self) -> None:
         """Write each shard's state into its teams' own envs (in the workers)."""
-        self._every("sync")
+        self._all("sync")
 
     def render(self) -> tuple[Any, ...]:
         """One frame per team, in team order."""
-        return tuple(f for frames in self._every("render") for f in frames)
+        return tuple(f for frames in self._all("render") for f in frames)
 
     def close(self, timeout: float = 5.0) -> None:
         """Close the teams' envs and stop the workers (idempotent; any still running after ``timeout`` s is killed)."""

@@ -27,14 +27,13 @@ class Window:
         self._pg, self.width, self.height = pg, width, height
         self._window: Any = None
         self._clock: Any = None
-        self._headless = self._warned = self._closed_by_user = False
+        self._headless = self._closed_by_user = False
 
     def _warn_headless(self, reason: str) -> None:
+        """Warn once: after this, :meth:`show` returns at once (``_headless``) and never warns again."""
         self._headless = True
-        if not self._warned:
-            self._warned = True
-            warnings.warn(f"Renderer.show: no display available ({reason}); render_mode='human' does nothing. "
-                          "Use render_mode='rgb_array' to get images.", RuntimeWarning, stacklevel=4)
+        warnings.warn(f"Renderer.show: no display available ({reason}); render_mode='human' does nothing. "
+                      "Use render_mode='rgb_array' to get images.", RuntimeWarning, stacklevel=4)
 
     def _open(self) -> bool:
         """Open the window; False (and a warning, once) where there is no display."""

@@ -26,7 +26,7 @@ CSV_METRICS = ("intervention_time", "rmse", "mae", "std", "max_tracking_error", 
                "final_error_mean", "final_error_max", "reach_rate", "n_deadlocked", "triggered_fraction",
                "relaxed_fraction", "unsafe_fraction", "failed_fraction", "slack_max", "solve_time_median", "wall_time")
 
-_SHORT = {"intervention_time": "IT [s]", "rmse": "RMSE", "mae": "MAE", "std": "std"}
+SHORT_NAMES = {"intervention_time": "IT [s]", "rmse": "RMSE", "mae": "MAE", "std": "std"}
 
 
 @dataclass(frozen=True)
@@ -69,7 +69,7 @@ def col(header: str, key: str | Callable[[dict[str, Any]], Any], digits: int = 4
 
 def compared(metrics: Sequence[str]) -> list[Column]:
     """The paper | ours | relative-difference columns of ``metrics``."""
-    return [c for k in metrics for c in (col(f"{_SHORT[k]} paper", f"paper_{k}"), col(f"{_SHORT[k]} ours", k),
+    return [c for k in metrics for c in (col(f"{SHORT_NAMES[k]} paper", f"paper_{k}"), col(f"{SHORT_NAMES[k]} ours", k),
                                          ("rel.", lambda row, k=k: fmt_rel(row[f"rel_{k}"])))]
 
 

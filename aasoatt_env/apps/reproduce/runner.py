@@ -71,9 +71,7 @@ def run_spec(spec: RunSpec) -> RunResult:
                    min_robot_gap_full=sep.overall_min_robot_gap if team else None,
                    safety_distance=float(2 * rollout.radii.min()) if team else None, wall_time=wall)
     stride = max(1, int(np.ceil(rollout.n_steps / MAX_SAMPLES)))
-    idx = np.arange(0, rollout.n_steps, stride)
-    if idx[-1] != rollout.n_steps - 1:
-        idx = np.append(idx, rollout.n_steps - 1)
+    idx = np.unique(np.append(np.arange(0, rollout.n_steps, stride), rollout.n_steps - 1))  # the last step too
     traces = {
         "times": rollout.times[idx], "positions": rollout.positions[idx], "references": rollout.references[idx],
         "speeds": np.linalg.norm(rollout.velocities[idx], axis=-1),

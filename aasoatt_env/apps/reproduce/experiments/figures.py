@@ -9,7 +9,7 @@ import numpy as np
 from aasoatt_env.analysis.plotting import new_figure, plot_snapshots, team_colors
 from aasoatt_env.apps.reproduce import paper
 from aasoatt_env.apps.reproduce.experiments import common
-from aasoatt_env.apps.reproduce.report import Column, Experiment, Results, Settings, col
+from aasoatt_env.apps.reproduce.report import SHORT_NAMES, Column, Experiment, Results, Settings, col
 from aasoatt_env.apps.reproduce.runner import RunResult, RunSpec
 from aasoatt_env.model.params import PRESETS
 
@@ -17,10 +17,7 @@ __all__ = ["DeadlockTriggers", "Obstacles", "Swarm100"]
 
 FIGURE_ONLY = "## Results (the paper gives only the figure)"
 TRIGGERS = ("multiplier", "low_speed", "stalled", "heading")
-
-
-def _tracking(it: str = "IT [s]") -> list[Column]:
-    return [col(it, "intervention_time"), col("RMSE", "rmse"), col("MAE", "mae"), col("std", "std")]
+TRACKING: list[Column] = [col(SHORT_NAMES[k], k) for k in paper.METRICS]  # our IT, RMSE, MAE and std
 
 
 class DeadlockTriggers(Experiment):
@@ -28,7 +25,7 @@ class DeadlockTriggers(Experiment):
 
     name, title, heading = "deadlock-triggers", "Fig. 3a - deadlock triggers (velocity profiles)", FIGURE_ONLY
     sizes = common.CA_SIZES
-    columns = [col("trigger", "trigger"), *_tracking(), col("min mean speed (20-80% of T)", "min_mean_speed_mid"),
+    columns = [col("trigger", "trigger"), *TRACKING, col("min mean speed (20-80% of T)", "min_mean_speed_mid"),
                col("slow fraction (20-80%)", "slow_fraction_mid"), col("triggered fraction", "triggered_fraction"),
                col("final goal error", "final_error_mean"), col("min gap", "min_robot_gap_full")]
 
@@ -84,7 +81,7 @@ class Swarm100(Experiment):
 
     def _columns(self, s: Settings) -> list[Column]:
         _, _, t, settle = self.size(s)
-        return [col("strategy", "method"), *_tracking(), col(f"goal err @ {t:g} s", "final_error_mean"),
+        return [col("strategy", "method"), *TRACKING, col(f"goal err @ {t:g} s", "final_error_mean"),
                 col(f"reached @ {t:g} s", "reach_rate"), col(f"goal err @ {t + settle:g} s", "final_error_mean_end"),
                 col(f"reached @ {t + settle:g} s", "reach_rate_end"), col("deadlocked", "n_deadlocked_end"),
                 col("min gap", "min_robot_gap_full"), col("relaxed steps", "relaxed_fraction", 3),
@@ -124,7 +121,7 @@ class Obstacles(Experiment):
 
     def _columns(self, s: Settings) -> list[Column]:
         _, duration, settle = self.size(s)
-        return [*_tracking(), col("min robot gap", "min_robot_gap_full"), col("min obstacle gap", "min_obstacle_gap"),
+        return [*TRACKING, col("min robot gap", "min_robot_gap_full"), col("min obstacle gap", "min_obstacle_gap"),
                 col("collisions (pairs / obstacle)",
                     lambda r: f"{r['n_collision_pairs']} / {r['n_obstacle_collisions']}"),
                 col(f"reached @ {duration + settle:g} s", "reach_rate_end")]
