@@ -29,8 +29,10 @@ DENSE_MAX_ROWS: int = 500  #: working sets up to this size use a dense Cholesky 
 SPARSE_DENSE_SCHUR_ROWS: int = 200  #: sparse rows: working sets up to this size factor the Schur complement densely
 WARM_REL: float = 1e-6  #: rows whose warm multiplier exceeds this fraction of the largest start in the working set
 TOL: float = 1e-10  #: feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)
-ONE_CHANGE_ITER: int = 20  #: one-change iterations after the primal-dual ones (generous: the fallback is slower)
-PDAS_ITER: int = 30  #: iterations of the primal-dual rule from the warm start
+# the warm start's budgets: a part it does not verify spends them all before the route's exact solver, which answers
+# sooner than more iterations would (the step-time tails of ``benchmarks/bench_deadline.py``)
+ONE_CHANGE_ITER: int = 8  #: one-change iterations after the primal-dual ones
+PDAS_ITER: int = 12  #: iterations of the primal-dual rule from the warm start
 BOUND_TIGHT: float = 1e-9  #: a warm start within this of a bound (scaled) starts with the bound in the working set
 WARM_FLOOR: float = 1e-300  #: floor of the largest warm multiplier in the working-set cut (no cut of zero)
 VERIFIED_MESSAGE: str = "active set (warm, KKT verified)"
