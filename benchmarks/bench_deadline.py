@@ -9,6 +9,11 @@ mistake or another action scale produces them), plus the forward/swerve pattern 
 a hard swerve for 30, alternating sides).  After :func:`~aasoatt_env.safety.warm_up`, each ``SafetyFilter`` call
 is timed; the table gives the median, p99 and slowest step over all of them, the p99 ratio to magnitude 1, and
 the most solver iterations of a step.
+
+The closed loops differ by more than the nominal: at magnitudes beyond the box the robots drive at full
+acceleration, so their traffic (and how often a step's rows are infeasible) is another.  The second table
+isolates the nominal: the inputs of the magnitude-1 loops replayed to a fresh filter with every nominal
+multiplied by the magnitude (same states, same warm-start history up to the filter's own answers).
 Every solver call's work is bounded by an iteration count (:data:`~aasoatt_env.safety.solvers.backends.ITER_LIMIT`,
 the warm active set's budgets), so the slowest step is a property of the problem size.
 
@@ -58,19 +63,28 @@ def _agent(name: str) -> object:
         return cls()
 
 
-def episode(n: int, mode: str, magnitude: float, adversary: str, steps: int) -> tuple[list[float], int]:
-    """Each filter call's wall time [s] and the most iterations of a step, over one episode."""
+def episode(n: int, mode: str, magnitude: float, adversary: str, steps: int,
+            record: list | None = None) -> tuple[list[float], int]:
+    """Each filter call's wall time [s] and the most iterations of a step, over one episode.
+
+    ``record``: gets the filter, then a copy of each call's ``(input, nominal)``.
+    """
     env = make_env("random_goals", num_robots=n, filter={"mode": mode}, max_steps=10**9)
     obs, _ = env.reset(seed=5158)
     filt, times, iters = env.unwrapped.control_filter, [], [0]
     call = type(filt).__call__
 
     def timed(inp, nominal):
+        if record is not None:
+            record.append((_copied(inp), nominal.copy()))
         t = time.perf_counter()
         res = call(filt, inp, nominal)
         times.append(time.perf_counter() - t)
         iters[0] = max(iters[0], res.iterations)
         return res
+
+    if record is not None:
+        record.append(filt)
 
     env.unwrapped.set_control_filter(None)
     env.unwrapped.set_control_filter(timed_filter(filt, timed))
@@ -81,6 +95,29 @@ def episode(n: int, mode: str, magnitude: float, adversary: str, steps: int) -> 
         act = agent.act(obs, env)
         obs, *_ = env.step({a: v * np.float32(magnitude) for a, v in act.items()})
     return times[1:], iters[0]  # (the first call loads the compiled kernels)
+
+
+def replay(record: list, magnitude: float) -> list[float]:
+    """Each call's wall time [s] of a fresh filter (the recorded one's configuration) on the recorded inputs, every
+    nominal multiplied by ``magnitude``."""
+    filt, calls = record[0], record[1:]
+    fresh = type(filt)(filt.team, config=filt.config)
+    times = []
+    for inp, nominal in calls:
+        t = time.perf_counter()
+        fresh(inp, nominal * magnitude)
+        times.append(time.perf_counter() - t)
+    return times[1:]
+
+
+def _copied(x: object) -> object:
+    """A copy of an input's arrays (named tuples of arrays, nested)."""
+    if isinstance(x, np.ndarray):
+        return x.copy()
+    if isinstance(x, tuple):
+        items = [_copied(v) for v in x]
+        return type(x)(*items) if hasattr(x, "_fields") else tuple(items)
+    return x
 
 
 def timed_filter(filt: object, call: object) -> object:
@@ -108,24 +145,37 @@ def main() -> None:
     lines = [f"{'N':>4} {'mode':>14} {'magnitude':>9} {'median':>8} {'p99':>8} {'slowest':>8} {'p99/p99(1)':>10} "
              f"{'iterations':>10}   (ms per filter step, {args.steps} steps x each adversary)"]
     print(lines[0], flush=True)
+    same = [f"{'N':>4} {'mode':>14} {'magnitude':>9} {'median':>8} {'p99':>8} {'slowest':>8} {'p99/p99(1)':>10}"
+            "   (ms per filter step: the magnitude-1 loops' inputs, nominals x magnitude)"]
     warm_up()  # (as a control loop would before its first step: the kernels compiled or loaded from the cache)
     for n in (int(v) for v in args.sizes.split(",")):
         for mode in ("centralized", "decentralized"):
-            base = None
+            base, records = None, []
             for mag in MAGNITUDES:
                 ts, its = [], 0
                 for adv in args.adversaries.split(","):
-                    t, i = episode(n, mode, mag, adv, args.steps)
+                    records.append([] if mag == 1.0 else None)
+                    t, i = episode(n, mode, mag, adv, args.steps, records[-1])
                     ts += t
                     its = max(its, i)
-                ms = np.array(ts) * 1e3
-                p99 = float(np.percentile(ms, 99))
-                base = p99 if base is None else base
-                lines.append(f"{n:>4} {mode:>14} {mag:>9.0e} {np.median(ms):8.2f} {p99:8.2f} {ms.max():8.1f} "
-                             f"{p99 / base:10.2f} {its:>10d}")
-                print(lines[-1], flush=True)
-    write_page(args, "Filter step times under adversarial nominals", "```\n" + "\n".join(lines) + "\n```\n\n"
-               + __doc__.split("Usage")[0])
+                base = _row(lines, f"{n:>4} {mode:>14} {mag:>9.0e}", ts, base, f" {its:>10d}")
+            base, records = None, [r for r in records if r is not None]
+            for mag in MAGNITUDES:
+                base = _row(same, f"{n:>4} {mode:>14} {mag:>9.0e}", [t for r in records for t in replay(r, mag)],
+                            base)
+    print("\n".join(same))
+    write_page(args, "Filter step times under adversarial nominals", "```\n" + "\n".join(lines) + "\n```\n\n```\n"
+               + "\n".join(same) + "\n```\n\n" + __doc__.split("Usage")[0])
+
+
+def _row(lines: list[str], head: str, times: list[float], base: float | None, tail: str = "") -> float:
+    """Append (and print) a row of the times' median, p99, slowest and p99 ratio; returns the base p99."""
+    ms = np.array(times) * 1e3
+    p99 = float(np.percentile(ms, 99))
+    base = p99 if base is None else base
+    lines.append(f"{head} {np.median(ms):8.2f} {p99:8.2f} {ms.max():8.1f} {p99 / base:10.2f}{tail}")
+    print(lines[-1], flush=True)
+    return base
 
 
 if __name__ == "__main__":
