@@ -102,8 +102,8 @@ def test_the_loosened_problem_gets_one_exact_attempt_then_the_phase_one_point(mo
     first = "daqp" if HAS_DAQP else "ldp"
     real = backends.SOLVERS[first]
 
-    def fails_when_loosened(prob, x0, z0, opts):  # (the loosened call alone is warm-started from x1 without z)
-        if x0 is not None and z0 is None:
+    def fails_when_loosened(prob, x0, z0, opts):  # (the loosened call alone asks for the step's warm working set)
+        if opts.get("warm_start"):
             return backends.RawAnswer(None, None, False, 3, f"{first}: failed")
         return real.solve(prob, x0, z0, opts)
 
@@ -121,6 +121,28 @@ def test_the_loosened_problem_gets_one_exact_attempt_then_the_phase_one_point(mo
     asked.clear()
     pol.solve_qp(_contradiction(3), "proxsuite")
     assert asked.count("proxsuite") == 2  # (the QP and the loosened QP: proxsuite is the whole route)
+
+
+@pytest.mark.skipif(not HAS_DAQP, reason="needs daqp")
+def test_daqp_warm_started_from_the_working_set_answers_as_cold(monkeypatch):
+    """With ``warm_start`` DAQP starts from the warm working set (bounds first: the upper ones +1, the lower ones -1,
+    then the rows whose multiplier was positive) and reaches the cold start's optimum; without it, no start."""
+    import daqp
+
+    prob = _contradiction(3, upper=2.0)
+    starts = []
+    real = daqp.solve
+    monkeypatch.setattr(daqp, "solve", lambda *a, **k: starts.append(k.get("dual_start")) or real(*a, **k))
+    x0 = np.array([3.0, 0.0, -3.0, 0.0, 0.5, 0.25])  # robot 0 at its upper bound in x, robot 1 at its lower one
+    z0 = np.array([0.0, 2.0, 1e-12, 0.0, 0.0, 0.5])  # (1e-12: a solver's rest on a slack row, below the cut)
+    opts = dict(backends.SOLVERS["daqp"].route_options)
+    cold = backends.SOLVERS["daqp"](prob, x0, z0, opts)
+    warm = backends.SOLVERS["daqp"](prob, x0, z0, {**opts, "warm_start": True})
+    assert starts[0] is None
+    np.testing.assert_array_equal(starts[1], [1, 0, -1, 0, 0, 0, 0, 1, 0, 0, 0, 1])
+    assert cold.ok and warm.ok
+    np.testing.assert_allclose(warm.x, cold.x, atol=1e-12)
+    np.testing.assert_allclose(warm.x.reshape(3, 2), np.tile([1.0, 0.25], (3, 1)), atol=1e-12)
 
 
 @pytest.mark.skipif(not HAS_DAQP, reason="needs daqp")

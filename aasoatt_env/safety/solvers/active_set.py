@@ -195,12 +195,7 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     if labels is None:
         return None
     (LinvT, gt, M, b), (K, rg, groups) = rows, labels
-    # the warm working set: rows whose multiplier was positive at the previous step (relative to the largest:
-    # solvers leave ~1e-10 on slack rows) and the bounds the point is at
-    W0 = np.zeros(m + 2 * n, dtype=bool)
-    W0[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), WARM_FLOOR) if m else False
-    W0[m:m + n] = x0 >= prob.ub - BOUND_TIGHT
-    W0[m + n:] = x0 <= prob.lb + BOUND_TIGHT
+    W0 = warm_working_set(prob, x0, z0)
     if compiled:
         out = _solve_compiled(prob, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, rg)
         if out is not None:
@@ -244,6 +239,20 @@ def _row_groups(prob, groups: np.ndarray | None) -> tuple[int, np.ndarray, np.nd
     if not np.array_equal(vg[C.indices], np.repeat(rg[:m], np.diff(C.indptr))):
         return None  # a row joins two groups
     return int(groups.max(initial=-1)) + 1, rg, groups
+
+
+def warm_working_set(prob, x0: np.ndarray, z0: np.ndarray) -> np.ndarray:
+    """The warm working set ``(m + 2n,)`` bool: the rows, upper bounds, lower bounds held at the warm start.
+
+    Rows whose multiplier was positive at the previous step (relative to the largest: solvers leave ~1e-10 on slack
+    rows) and the bounds the point is at.
+    """
+    n, m = prob.n, prob.m
+    W0 = np.zeros(m + 2 * n, dtype=bool)
+    W0[:m] = z0 > WARM_REL * max(float(z0.max(initial=0.0)), WARM_FLOOR) if m else False
+    W0[m:m + n] = x0 >= prob.ub - BOUND_TIGHT
+    W0[m + n:] = x0 <= prob.lb + BOUND_TIGHT
+    return W0
 
 
 def one_change_budget(value: int | None) -> int:

@@ -24,6 +24,7 @@ import scipy.sparse as sp
 
 from aasoatt_env.errors import SolverError
 from aasoatt_env.safety.problem import QPProblem
+from aasoatt_env.safety.solvers.active_set import warm_working_set
 from aasoatt_env.safety.solvers.ldp import FEAS_TOL as LDP_FEAS_TOL
 from aasoatt_env.safety.solvers.ldp import solve_ldp
 
@@ -102,9 +103,14 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
     n, m = prob.n, prob.m
     # simple_bounds: the box as DAQP's simple bounds (faster); else as rows
     A = prob.C.toarray() if opts.get("simple_bounds") else np.vstack((np.eye(n), prob.C.toarray()))
+    warm = {}
+    if opts.get("warm_start") and x0 is not None and z0 is not None and x0.shape == (n,) and z0.shape == (m,):
+        # its dual start: the warm working set (signs: upper bounds and rows +, lower bounds -; bounds first)
+        W = warm_working_set(prob, x0, z0)
+        warm["dual_start"] = np.concatenate((W[m:m + n].astype(float) - W[m + n:], W[:m].astype(float)))
     x, _, flag, info = daqp.solve(prob.H_dense(), prob.g, A, np.concatenate((prob.ub, prob.u)),
                                   np.concatenate((prob.lb, np.full(m, -1e30))), np.zeros(n + m, dtype=ctypes.c_int),
-                                  iter_limit=ITER_LIMIT["daqp"])
+                                  iter_limit=ITER_LIMIT["daqp"], **warm)
     lam = np.maximum(np.asarray(info.get("lam", np.zeros(n + m)))[n:], 0.0)  # (bounds first, then the rows)
     return RawAnswer(np.asarray(x), lam, flag >= 1, int(info.get("iter", 0)), f"daqp exitflag {flag}",
                      infeasible=flag == -1)

@@ -31,9 +31,10 @@ _FEAS_TOL = 1e-7
 EXACT_ROUTE: tuple[tuple[str, int], ...] = (("daqp", 500), ("ldp", LDP_MAX_VARS))
 """``(solver, most variables)`` asked in order before a back-end that may stall, where installed: DAQP
 (``pip install "aasoatt[fast]"``) and ``ldp`` finish exactly or prove the rows inconsistent."""
-PHASE1_ROUTE: tuple[tuple[str, int, int], ...] = (("daqp", 0, 400), ("clarabel", 121, 10**9), ("ldp", 0, 120))
+PHASE1_ROUTE: tuple[tuple[str, int, int], ...] = (("daqp", 0, 800), ("clarabel", 121, 10**9), ("ldp", 0, 120))
 """``(solver, fewest, most variables)`` of a phase-1 problem (variables plus one slack per row), asked in order
-before a back-end that may stall, where installed (its regulariser conditions ``ldp``'s NNLS badly on large ones)."""
+before a back-end that may stall, where installed (its regulariser conditions ``ldp``'s NNLS badly on large ones;
+DAQP's dense algebra answers exactly and sooner than clarabel's up to some 800 variables)."""
 
 
 @dataclass
@@ -113,15 +114,15 @@ class SolverPolicy:
                           f"{VERIFIED_MESSAGE} on {int(part.ok.sum())} of {part.ok.shape[0]} parts; the other "
                           f"{int((~part.ok).sum())}: {rest.message}")
 
-    def _ask(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, first: bool = False) -> RawAnswer:
+    def _ask(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, loosened: bool = False) -> RawAnswer:
         """The route's first verified answer, or the last answer (not ok) with every message.
 
         Another back-end's answer is taken verified only; the configured one's also unverified where deterministic.
-        ``first``: the route's first solver alone.
+        ``loosened``: the route's first solver alone, with the step's warm working set as its start where it takes one.
         """
         steps = route(self.solver, prob.n)
-        if first:
-            steps = steps[:1]
+        if loosened:
+            steps = [(name, {**opts, "warm_start": True}) for name, opts in steps[:1]]
         raw, iterations, notes = RawAnswer(None, None, False, 0, ""), 0, []
         for name, opts in steps:
             backend = get_solver(name)
@@ -152,10 +153,10 @@ class SolverPolicy:
         x1, viol = p1
         tstar = float(np.max(viol, initial=0.0))
         relaxed = tstar > _FEAS_TOL
-        # the loosened QP, feasible at the phase-1 point, which answers where the route's first solver does not (the
-        # others spent their whole budgets on these nearly degenerate problems without an answer: ldp's dense NNLS,
-        # proxsuite's iterations)
-        raw2 = self._ask(replace(prob, u=prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL), x1, None, first=True)
+        # the loosened QP (feasible at the phase-1 point) from the step's warm start, answered by the route's first
+        # solver, or the phase-1 point (the others spent their whole budgets on these nearly degenerate problems
+        # without an answer: ldp's dense NNLS, proxsuite's iterations)
+        raw2 = self._ask(replace(prob, u=prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL), x0, z0, loosened=True)
         msg = f"{raw.message}; phase 1: largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
         status = "relaxed" if relaxed else "solved"
         if raw2.ok:
