@@ -104,7 +104,8 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
     # simple_bounds: the box as DAQP's simple bounds (faster); else as rows
     A = prob.C.toarray() if opts.get("simple_bounds") else np.vstack((np.eye(n), prob.C.toarray()))
     warm = {}
-    if opts.get("warm_start") and x0 is not None and z0 is not None and x0.shape == (n,) and z0.shape == (m,):
+    if (opts.get("warm_start") and _daqp_warm() and x0 is not None and z0 is not None and x0.shape == (n,)
+            and z0.shape == (m,)):
         # its dual start: the warm working set (signs: upper bounds and rows +, lower bounds -; bounds first)
         W = warm_working_set(prob, x0, z0)
         warm["dual_start"] = np.concatenate((W[m:m + n].astype(float) - W[m + n:], W[:m].astype(float)))
@@ -232,6 +233,15 @@ SOLVERS: dict[str, Backend] = {
     "cvxopt": Backend(_cvxopt, "cvxopt"),
 }
 """Solver registry: name -> :class:`Backend`.  Adding a solver is one function and one line here."""
+
+
+@functools.cache
+def _daqp_warm() -> bool:
+    """Whether the installed DAQP takes a dual start (0.8.2 and later)."""
+    from importlib.metadata import version
+
+    parts = [int(p) for p in version("daqp").split(".")[:3] if p.isdigit()]
+    return tuple(parts) >= (0, 8, 2)
 
 
 @functools.cache
