@@ -1,0 +1,161 @@
+"""The ``yield`` deadlock strategy: eqn.13 plus right of way by priority, the yielder retracing its own trail.
+
+A local rule on the QP's target only (the barrier rows, hence safety, are untouched):
+
+1. **Stall.** A robot not done (``|p - p_d| > goal_tol`` or ``|v_d| >= low_speed``) that has stayed within
+   :data:`STALL_DISTANCE` of one point for :data:`STALL_TIME` is stalled.
+2. **Blocking.** Robot ``j`` blocks ``i`` when their surface gap is below :data:`PUSH_GAP` and ``j`` lies within
+   90 degrees of the direction ``i`` wants to go (toward ``p_d``; a yielder: toward its retreat point).
+3. **Right of way.** Priorities are strict: robot index, a robot done at its goal after every robot not done; a
+   yielder carries the priority it inherited.  A stalled or yielding robot ``i`` blocked by a robot ``j`` of lower
+   priority makes ``j`` yield and ``j`` inherits ``i``'s priority (priority inheritance, as in PIBT), so a yielder
+   that backs into its own group makes that robot yield too and a whole group backs out of a one-lane passage.
+   A yielder keeps yielding while its pusher stays within :data:`KEEP_GAP`, and :data:`HOLD_TIME` after that.
+4. **Retreat.** A yielder tracks, instead of its reference, the last point of its own trail (its positions every
+   :data:`TRAIL_STEP`, recorded while it is not yielding: ground it has covered, clear of static obstacles),
+   dropping each point it reaches; with its trail used up it steps sideways, to the right of its pusher's push.
+   Once it yields no more it goes forward along the same trail to where it began to yield (the reference's
+   straight line from where it retreated to may cross a wall), then tracks its reference again.
+   Tracking a point ``g`` instead of ``(p_d, v_d)`` shifts the tracking law's target (eqn.11) by
+   ``k3 k4 (g - p_d) - (k3 + k4) v_d``.
+5. **eqn.13** then acts on the triggered robots as the ``auxiliary_velocity`` strategy does, on the reference
+   in which each yielder's ``(p_d, v_d)`` is ``(g, 0)``.
+
+Every decision is a function of the step's state and this memory (no clock, no randomness); the rule reads the
+pairs within the sensing range only, so the decentralised filter runs it unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from aasoatt_env.safety.deadlock import TargetContext
+
+__all__ = ["HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "PUSH_GAP", "STALL_DISTANCE", "STALL_TIME", "TRAIL_STEP",
+           "YieldMemory", "yield_target"]
+
+STALL_TIME: float = 2.0  #: [s] without leaving a disc of :data:`STALL_DISTANCE`: stalled
+STALL_DISTANCE: float = 0.1  #: [m]
+PUSH_GAP: float = 0.3  #: [m] surface gap under which a robot ahead blocks
+KEEP_GAP: float = 1.5  #: [m] a yielder keeps yielding while its pusher is this close
+HOLD_TIME: float = 5.0  #: [s] a yielder keeps yielding after its last push
+TRAIL_STEP: float = 0.25  #: [m] spacing of the trail's points
+LOOKAHEAD: float = 0.6  #: [m] a yielder drops the trail points closer than this
+TRAIL_POINTS: int = 256  #: points kept per robot (the oldest are dropped)
+_COS_AHEAD = 0.0  # cos(90 deg)
+
+
+@dataclass
+class YieldMemory:
+    """What the ``yield`` rule remembers per robot between steps."""
+
+    anchor: np.ndarray  #: ``(N, 2)`` where the stall clock started
+    still: np.ndarray  #: ``(N,)`` steps spent within STALL_DISTANCE of ``anchor``
+    rank: np.ndarray  #: ``(N,)`` the inherited priority of a yielder (``inf``: not yielding)
+    hold: np.ndarray  #: ``(N,)`` steps of yielding left
+    away: np.ndarray  #: ``(N, 2)`` unit vector from the last pusher toward the yielder
+    trail: np.ndarray  #: ``(N, TRAIL_POINTS, 2)``
+    count: np.ndarray  #: ``(N,)`` trail points in use
+    cursor: np.ndarray  #: ``(N,)`` where on its trail a robot is (``count``: at its end, tracking its reference)
+
+    @classmethod
+    def empty(cls, p: np.ndarray) -> YieldMemory:
+        """No history: the stall clocks start now, no trail, nobody yielding."""
+        n = p.shape[0]
+        return cls(p.copy(), np.zeros(n, np.int64), np.full(n, np.inf), np.zeros(n, np.int64), np.zeros((n, 2)),
+                   np.zeros((n, TRAIL_POINTS, 2)), np.zeros(n, np.int64), np.zeros(n, np.int64))
+
+    def forget(self, rows: np.ndarray) -> None:
+        """Start robots ``rows`` afresh (their team starts an episode; the stall clock restarts at the next step)."""
+        self.anchor[rows], self.still[rows], self.rank[rows] = np.nan, 0, np.inf
+        self.hold[rows], self.count[rows], self.cursor[rows] = 0, 0, 0
+
+
+def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    norm = np.sqrt(x[:, 0] * x[:, 0] + x[:, 1] * x[:, 1])
+    return x / np.maximum(norm, 1e-12)[:, None], norm
+
+
+def _record(m: YieldMemory, p: np.ndarray, yielding: np.ndarray) -> None:
+    """Append ``p`` to the trail of robots on it (cursor at its end, not yielding) that moved TRAIL_STEP from it."""
+    rows = np.arange(p.shape[0])
+    last = m.trail[rows, np.maximum(m.count - 1, 0)]
+    rec = ~yielding & (m.cursor == m.count) & ((m.count == 0) | (_unit(p - last)[1] >= TRAIL_STEP))
+    full = rec & (m.count == TRAIL_POINTS)
+    if full.any():
+        m.trail[full] = np.roll(m.trail[full], -1, axis=1)
+        m.count[full] -= 1
+        m.cursor[full] -= 1
+    m.trail[rows[rec], m.count[rec]] = p[rec]
+    m.count[rec] += 1
+    m.cursor[rec] = m.count[rec]
+
+
+def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarray, prio: np.ndarray,
+          hold_steps: int) -> None:
+    """Rules 2 and 3: who is made to yield, with which priority, away from whom."""
+    yielding = m.hold > 0
+    eff = np.where(yielding, np.minimum(m.rank, prio), prio)
+    robots = c.pair_idx[c.pair_idx[:, 1] >= 0] if c.pair_idx.shape[0] else np.zeros((0, 2), np.intp)
+    pushed_rank = np.full(prio.shape[0], np.inf)
+    if robots.shape[0]:
+        i, j = np.concatenate((robots[:, 0], robots[:, 1])), np.concatenate((robots[:, 1], robots[:, 0]))
+        u, dist = _unit(c.p[j] - c.p[i])
+        gap = dist - c.radius[i] - c.radius[j]
+        ahead = np.einsum("ij,ij->i", u, want[i]) > _COS_AHEAD
+        stronger = eff[i] < eff[j]
+        new = (gap < PUSH_GAP) & ahead & (stalled[i] | yielding[i])
+        keep = (gap < KEEP_GAP) & ahead & yielding[j] & (eff[i] <= m.rank[j])
+        hit = stronger & (new | keep)
+        np.minimum.at(pushed_rank, j[hit], eff[i][hit])
+        strongest = hit & (eff[i] == pushed_rank[j])
+        m.away[j[strongest]] = u[strongest]
+    pushed = np.isfinite(pushed_rank)
+    m.rank = np.where(pushed, np.minimum(np.where(yielding, m.rank, np.inf), pushed_rank), m.rank)
+    m.hold = np.where(pushed, hold_steps, np.maximum(m.hold - 1, 0))
+    m.rank[m.hold == 0] = np.inf
+
+
+def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.ndarray) -> np.ndarray:
+    """Rule 4: the point each robot tracks: a yielder back along its trail, then forward again to where it began."""
+    rows = np.arange(p.shape[0])
+    for _ in range(2):  # (a point or two per step: the points are TRAIL_STEP apart)
+        back, fwd = np.maximum(m.cursor - 1, 0), np.minimum(m.cursor, TRAIL_POINTS - 1)
+        m.cursor -= yielding & (m.cursor > 0) & (_unit(p - m.trail[rows, back])[1] < LOOKAHEAD)
+        m.cursor += ~yielding & (m.cursor < m.count) & (_unit(p - m.trail[rows, fwd])[1] < LOOKAHEAD)
+    back, fwd = np.maximum(m.cursor - 1, 0), np.minimum(m.cursor, TRAIL_POINTS - 1)
+    side = p + LOOKAHEAD * np.stack((m.away[:, 1], -m.away[:, 0]), axis=1)
+    out = np.where((yielding & (m.cursor > 0))[:, None], m.trail[rows, back], side)
+    out = np.where((~yielding & (m.cursor < m.count))[:, None], m.trail[rows, fwd], out)
+    return np.where((~yielding & (m.cursor == m.count))[:, None], p_d, out)
+
+
+def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetContext) -> np.ndarray:
+    """The ``yield`` strategy's target (the module's rules 1 to 5); updates ``c.memory.liveness``."""
+    p_d, v_d = c.reference  # type: ignore[misc]
+    n = c.p.shape[0]
+    m = c.memory.liveness if c.memory is not None else None  # type: ignore[union-attr]
+    if m is None or m.anchor.shape[0] != n:
+        m = YieldMemory.empty(c.p)
+        if c.memory is not None:
+            c.memory.liveness = m
+    steps = lambda seconds: max(1, int(round(seconds / c.cfg.dt)))  # noqa: E731
+    left = ~(_unit(c.p - m.anchor)[1] <= STALL_DISTANCE)  # (NaN anchor: forgotten)
+    m.anchor[left], m.still = c.p[left], np.where(left, 0, m.still + 1)
+    done = (_unit(c.p - p_d)[1] <= c.cfg.goal_tol) & (_unit(v_d)[1] < c.cfg.low_speed)
+    stalled = (m.still >= steps(STALL_TIME)) & ~done
+    yielding = m.hold > 0
+    _record(m, c.p, yielding)
+    want = _unit(_trail_point(m, c.p, p_d, yielding) - c.p)[0]
+    _push(m, c, want, stalled, np.arange(n) + n * done, steps(HOLD_TIME))
+    yielding = m.hold > 0
+    g = _trail_point(m, c.p, p_d, yielding)
+    off = (m.hold > 0) | (m.cursor < m.count)
+    g_v = np.where(off[:, None], 0.0, v_d)
+    out = target + c.k3 * c.k4 * (g - p_d) + (c.k3 + c.k4) * (g_v - v_d)
+    e = c.v - g_v + c.k3 * (c.p - g)
+    return out - zeta[:, None] * (e @ Q.T)
