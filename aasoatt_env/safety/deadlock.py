@@ -122,10 +122,12 @@ class TargetContext(NamedTuple):
     reference: tuple[np.ndarray, np.ndarray] | None
     k3: float
     k4: float
-    memory: DeadlockState | None = None  #: a stateful strategy's memory
-    pair_idx: np.ndarray = np.zeros((0, 2), np.intp)  #: as :class:`TriggerContext`'s (a stateful strategy's)
-    radius: np.ndarray = np.zeros(0)  #: ``(N,)`` robot radii (a stateful strategy's)
-    cfg: FilterConfig | None = None  #: the filter's configuration (a stateful strategy's)
+    memory: DeadlockState | None = None  #: a stateful strategy's memory (the rest: a stateful strategy's too)
+    robot_pairs: np.ndarray = np.zeros((0, 2), np.intp)  #: ``(P, 2)`` robot pairs in the sensing range
+    obstacle_pairs: np.ndarray = np.zeros((0, 2), np.intp)  #: ``(Q, 2)`` ``(robot, obstacle)`` in the range
+    obstacles: tuple[np.ndarray, np.ndarray] | None = None  #: ``(centres (M, 2), radii (M,))``
+    radius: np.ndarray = np.zeros(0)  #: ``(N,)`` robot radii
+    cfg: FilterConfig | None = None  #: the filter's configuration
 
 
 def _rotate_nominal(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetContext) -> np.ndarray:

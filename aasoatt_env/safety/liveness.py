@@ -35,18 +35,21 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.deadlock import TargetContext
 
-__all__ = ["HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "PUSH_GAP", "STALL_DISTANCE", "STALL_TIME", "TRAIL_STEP",
-           "YieldMemory", "yield_target"]
+__all__ = ["ESCAPE_TIME", "HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "PUSH_GAP", "RIGHT_GAP", "RIGHT_STEP", "STALL_DISTANCE",
+           "STALL_TIME", "TRAIL_STEP", "YieldMemory", "yield_target"]
 
 STALL_TIME: float = 2.0  #: [s] without leaving a disc of :data:`STALL_DISTANCE`: stalled
 STALL_DISTANCE: float = 0.1  #: [m]
 PUSH_GAP: float = 0.3  #: [m] surface gap under which a robot ahead blocks
-KEEP_GAP: float = 1.5  #: [m] a yielder keeps yielding while its pusher is this close
+KEEP_GAP: float = 2.0  #: [m] a yielder keeps yielding while its pusher is this close
 HOLD_TIME: float = 5.0  #: [s] a yielder keeps yielding after its last push
+ESCAPE_TIME: float = 3.0  #: [s] a robot stalled at an obstacle slides along it this long
 TRAIL_STEP: float = 0.25  #: [m] spacing of the trail's points
 LOOKAHEAD: float = 0.6  #: [m] a yielder drops the trail points closer than this
 TRAIL_POINTS: int = 256  #: points kept per robot (the oldest are dropped)
-_COS_AHEAD = 0.0  # cos(90 deg)
+RIGHT_GAP: float = 2.0  #: [m] an oncoming robot this close (surface gap) makes a robot keep right
+RIGHT_STEP: float = 0.5  #: [m] how far ahead and to the right the point it then tracks lies
+_COS_AHEAD = 0.5  # cos(60 deg)
 
 
 @dataclass
@@ -61,18 +64,21 @@ class YieldMemory:
     trail: np.ndarray  #: ``(N, TRAIL_POINTS, 2)``
     count: np.ndarray  #: ``(N,)`` trail points in use
     cursor: np.ndarray  #: ``(N,)`` where on its trail a robot is (``count``: at its end, tracking its reference)
+    escape: np.ndarray  #: ``(N,)`` steps of sliding along an obstacle left
+    slide: np.ndarray  #: ``(N, 2)`` the direction of that slide
 
     @classmethod
     def empty(cls, p: np.ndarray) -> YieldMemory:
         """No history: the stall clocks start now, no trail, nobody yielding."""
         n = p.shape[0]
         return cls(p.copy(), np.zeros(n, np.int64), np.full(n, np.inf), np.zeros(n, np.int64), np.zeros((n, 2)),
-                   np.zeros((n, TRAIL_POINTS, 2)), np.zeros(n, np.int64), np.zeros(n, np.int64))
+                   np.zeros((n, TRAIL_POINTS, 2)), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64),
+                   np.zeros((n, 2)))
 
     def forget(self, rows: np.ndarray) -> None:
         """Start robots ``rows`` afresh (their team starts an episode; the stall clock restarts at the next step)."""
         self.anchor[rows], self.still[rows], self.rank[rows] = np.nan, 0, np.inf
-        self.hold[rows], self.count[rows], self.cursor[rows] = 0, 0, 0
+        self.hold[rows], self.count[rows], self.cursor[rows], self.escape[rows] = 0, 0, 0, 0
 
 
 def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -95,29 +101,40 @@ def _record(m: YieldMemory, p: np.ndarray, yielding: np.ndarray) -> None:
     m.cursor[rec] = m.count[rec]
 
 
-def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarray, prio: np.ndarray,
-          hold_steps: int) -> None:
-    """Rules 2 and 3: who is made to yield, with which priority, away from whom."""
+def _robot_pairs(c: TargetContext) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Robot pairs in both orders ``(i, j)``, the unit vectors from ``i`` to ``j`` and the surface gaps."""
+    robots = c.robot_pairs
+    i, j = np.concatenate((robots[:, 0], robots[:, 1])), np.concatenate((robots[:, 1], robots[:, 0]))
+    u, dist = _unit(c.p[j] - c.p[i])
+    return i, j, u, dist - c.radius[i] - c.radius[j]
+
+
+def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarray, done: np.ndarray,
+          hold_steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rules 2 and 3 (who is made to yield, with which priority, away from whom); rule 6's oncoming robots."""
+    n = want.shape[0]
+    prio = np.arange(n) + n * done
     yielding = m.hold > 0
     eff = np.where(yielding, np.minimum(m.rank, prio), prio)
-    robots = c.pair_idx[c.pair_idx[:, 1] >= 0] if c.pair_idx.shape[0] else np.zeros((0, 2), np.intp)
-    pushed_rank = np.full(prio.shape[0], np.inf)
-    if robots.shape[0]:
-        i, j = np.concatenate((robots[:, 0], robots[:, 1])), np.concatenate((robots[:, 1], robots[:, 0]))
-        u, dist = _unit(c.p[j] - c.p[i])
-        gap = dist - c.radius[i] - c.radius[j]
-        ahead = np.einsum("ij,ij->i", u, want[i]) > _COS_AHEAD
-        stronger = eff[i] < eff[j]
-        new = (gap < PUSH_GAP) & ahead & (stalled[i] | yielding[i])
-        keep = (gap < KEEP_GAP) & ahead & yielding[j] & (eff[i] <= m.rank[j])
-        hit = stronger & (new | keep)
-        np.minimum.at(pushed_rank, j[hit], eff[i][hit])
-        strongest = hit & (eff[i] == pushed_rank[j])
-        m.away[j[strongest]] = u[strongest]
+    i, j, u, gap = _robot_pairs(c)
+    pushed_rank = np.full(n, np.inf)
+    ahead = np.einsum("ij,ij->i", u, want[i])
+    facing = np.einsum("ij,ij->i", want[i], want[j])
+    new = (gap < PUSH_GAP) & (ahead > _COS_AHEAD) & (stalled[i] | yielding[i]) & ((facing < 0.0) | done[j])
+    keep = (gap < KEEP_GAP) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
+    hit = (eff[i] < eff[j]) & (new | keep)
+    np.minimum.at(pushed_rank, j[hit], eff[i][hit])
+    strongest = hit & (eff[i] == pushed_rank[j])
+    m.away[j[strongest]] = u[strongest]
     pushed = np.isfinite(pushed_rank)
     m.rank = np.where(pushed, np.minimum(np.where(yielding, m.rank, np.inf), pushed_rank), m.rank)
     m.hold = np.where(pushed, hold_steps, np.maximum(m.hold - 1, 0))
     m.rank[m.hold == 0] = np.inf
+    oncoming = np.zeros(n, dtype=bool)
+    oncoming[i[(gap < RIGHT_GAP) & (ahead > _COS_AHEAD) & (facing < -_COS_AHEAD) & ~done[i] & ~done[j]]] = True
+    pushing = np.zeros(n, dtype=bool)
+    pushing[i[hit]] = True
+    return oncoming, pushing
 
 
 def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.ndarray) -> np.ndarray:
@@ -132,6 +149,24 @@ def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.nd
     out = np.where((yielding & (m.cursor > 0))[:, None], m.trail[rows, back], side)
     out = np.where((~yielding & (m.cursor < m.count))[:, None], m.trail[rows, fwd], out)
     return np.where((~yielding & (m.cursor == m.count))[:, None], p_d, out)
+
+
+def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarray, steps: int) -> np.ndarray:
+    """Rule 7: a robot stalled with no robot to push slides along the tangent of its nearest obstacle ahead."""
+    n = want.shape[0]
+    if c.obstacles is not None and c.obstacle_pairs.shape[0] and stuck.any():
+        i, k = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
+        u, dist = _unit(c.obstacles[0][k] - c.p[i])
+        gap = dist - c.radius[i] - c.obstacles[1][k]
+        near = np.full(n, np.inf)
+        np.minimum.at(near, i, gap)
+        first = stuck[i] & (gap == near[i]) & (gap < PUSH_GAP) & (np.einsum("ij,ij->i", u, want[i]) > 0.0)
+        right = np.stack((u[:, 1], -u[:, 0]), axis=1)
+        side = np.where((np.einsum("ij,ij->i", right, want[i]) >= 0.0)[:, None], right, -right)
+        m.slide[i[first]] = side[first]
+        m.escape[i[first]] = steps
+    m.escape = np.maximum(m.escape - 1, 0)
+    return m.escape > 0
 
 
 def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetContext) -> np.ndarray:
@@ -151,10 +186,15 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     yielding = m.hold > 0
     _record(m, c.p, yielding)
     want = _unit(_trail_point(m, c.p, p_d, yielding) - c.p)[0]
-    _push(m, c, want, stalled, np.arange(n) + n * done, steps(HOLD_TIME))
+    oncoming, pushing = _push(m, c, want, stalled, done, steps(HOLD_TIME))
     yielding = m.hold > 0
     g = _trail_point(m, c.p, p_d, yielding)
-    off = (m.hold > 0) | (m.cursor < m.count)
+    free = ~yielding & (m.cursor == m.count)
+    keep_right = oncoming & free
+    g = np.where(keep_right[:, None], c.p + RIGHT_STEP * (want + np.stack((want[:, 1], -want[:, 0]), axis=1)), g)
+    sliding = _escape(m, c, want, stalled & ~yielding & ~keep_right & ~pushing, steps(ESCAPE_TIME)) & ~yielding
+    g = np.where(sliding[:, None], c.p + LOOKAHEAD * m.slide, g)
+    off = (m.hold > 0) | (m.cursor < m.count) | keep_right | sliding
     g_v = np.where(off[:, None], 0.0, v_d)
     out = target + c.k3 * c.k4 * (g - p_d) + (c.k3 + c.k4) * (g_v - v_d)
     e = c.v - g_v + c.k3 * (c.p - g)
