@@ -2,10 +2,12 @@
 
 A local rule on the QP's target only (the barrier rows, hence safety, are untouched):
 
-1. **Stall.** A robot not done (``|p - p_d| > goal_tol`` or ``|v_d| >= low_speed``) that has stayed within
-   :data:`STALL_DISTANCE` of one point for :data:`STALL_TIME` is stalled.
-2. **Blocking.** Robot ``j`` blocks ``i`` when their surface gap is below :data:`PUSH_GAP` and ``j`` lies within
-   90 degrees of the direction ``i`` wants to go (toward ``p_d``; a yielder: toward its retreat point).
+1. **Stall.** A robot farther than :data:`STALL_ERROR` from its reference point that has stayed within
+   :data:`STALL_DISTANCE` of one point for :data:`STALL_TIME` is stalled; a robot within ``goal_tol`` of its
+   reference point with ``|v_d| < low_speed`` is done.
+2. **Blocking.** Robot ``j`` blocks ``i`` when it is in ``i``'s sensing range, lies within 60 degrees of the
+   direction ``i`` wants to go (toward ``p_d``; a yielder: toward its retreat point) and wants to go the other way
+   (their directions more than 90 degrees apart), or is done at its goal and within :data:`CONTACT_GAP`.
 3. **Right of way.** Priorities are strict: robot index, a robot done at its goal after every robot not done; a
    yielder carries the priority it inherited.  A stalled or yielding robot ``i`` blocked by a robot ``j`` of lower
    priority makes ``j`` yield and ``j`` inherits ``i``'s priority (priority inheritance, as in PIBT), so a yielder
@@ -35,12 +37,14 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.deadlock import TargetContext
 
-__all__ = ["ESCAPE_TIME", "HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "PUSH_GAP", "RIGHT_GAP", "RIGHT_STEP", "STALL_DISTANCE",
+__all__ = ["ESCAPE_TIME", "HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "CONTACT_GAP", "RIGHT_GAP", "RIGHT_STEP",
+           "STALL_DISTANCE", "STALL_ERROR",
            "STALL_TIME", "TRAIL_STEP", "YieldMemory", "yield_target"]
 
 STALL_TIME: float = 2.0  #: [s] without leaving a disc of :data:`STALL_DISTANCE`: stalled
 STALL_DISTANCE: float = 0.1  #: [m]
-PUSH_GAP: float = 0.3  #: [m] surface gap under which a robot ahead blocks
+STALL_ERROR: float = 0.5  #: [m] a robot closer than this to its reference point is tracking, not stalled
+CONTACT_GAP: float = 0.3  #: [m] surface gap under which an obstacle, or a robot done at its goal, ahead blocks
 KEEP_GAP: float = 2.0  #: [m] a yielder keeps yielding while its pusher is this close
 HOLD_TIME: float = 5.0  #: [s] a yielder keeps yielding after its last push
 ESCAPE_TIME: float = 3.0  #: [s] a robot stalled at an obstacle slides along it this long
@@ -120,7 +124,7 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     pushed_rank = np.full(n, np.inf)
     ahead = np.einsum("ij,ij->i", u, want[i])
     facing = np.einsum("ij,ij->i", want[i], want[j])
-    new = (gap < PUSH_GAP) & (ahead > _COS_AHEAD) & (stalled[i] | yielding[i]) & ((facing < 0.0) | done[j])
+    new = (ahead > _COS_AHEAD) & (stalled[i] | yielding[i]) & ((facing < 0.0) | (done[j] & (gap < CONTACT_GAP)))
     keep = (gap < KEEP_GAP) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
     hit = (eff[i] < eff[j]) & (new | keep)
     np.minimum.at(pushed_rank, j[hit], eff[i][hit])
@@ -160,7 +164,7 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
         gap = dist - c.radius[i] - c.obstacles[1][k]
         near = np.full(n, np.inf)
         np.minimum.at(near, i, gap)
-        first = stuck[i] & (gap == near[i]) & (gap < PUSH_GAP) & (np.einsum("ij,ij->i", u, want[i]) > 0.0)
+        first = stuck[i] & (gap == near[i]) & (gap < CONTACT_GAP) & (np.einsum("ij,ij->i", u, want[i]) > 0.0)
         right = np.stack((u[:, 1], -u[:, 0]), axis=1)
         side = np.where((np.einsum("ij,ij->i", right, want[i]) >= 0.0)[:, None], right, -right)
         m.slide[i[first]] = side[first]
@@ -182,7 +186,7 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     left = ~(_unit(c.p - m.anchor)[1] <= STALL_DISTANCE)  # (NaN anchor: forgotten)
     m.anchor[left], m.still = c.p[left], np.where(left, 0, m.still + 1)
     done = (_unit(c.p - p_d)[1] <= c.cfg.goal_tol) & (_unit(v_d)[1] < c.cfg.low_speed)
-    stalled = (m.still >= steps(STALL_TIME)) & ~done
+    stalled = (m.still >= steps(STALL_TIME)) & (_unit(c.p - p_d)[1] > STALL_ERROR)
     yielding = m.hold > 0
     _record(m, c.p, yielding)
     want = _unit(_trail_point(m, c.p, p_d, yielding) - c.p)[0]
