@@ -297,7 +297,7 @@ class SafetyFilter:
             return triggered, target
         if self._strategy.stateful:
             ctx = TargetContext(s.v, s.p, s.reference, cfg.k3, cfg.k4, self._dl, pairs.robots, pairs.obstacles,
-                                None if s.obstacles is None else s.obstacles[:2], s.team.radius, cfg)
+                                None if s.obstacles is None else s.obstacles[:2], s.team.radius, s.adot, cfg)
             zeta = zeta if zeta is not None else np.zeros(s.p.shape[0])
         else:
             ctx = TargetContext(s.v, s.p, s.reference, cfg.k3, cfg.k4)

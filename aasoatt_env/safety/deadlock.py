@@ -127,6 +127,7 @@ class TargetContext(NamedTuple):
     obstacle_pairs: np.ndarray = np.zeros((0, 2), np.intp)  #: ``(Q, 2)`` ``(robot, obstacle)`` in the range
     obstacles: tuple[np.ndarray, np.ndarray] | None = None  #: ``(centres (M, 2), radii (M,))``
     radius: np.ndarray = np.zeros(0)  #: ``(N,)`` robot radii
+    adot: np.ndarray = np.zeros((0, 2))  #: ``(N, 2)`` drift accelerations ``A_dot u``
     cfg: FilterConfig | None = None  #: the filter's configuration
 
 

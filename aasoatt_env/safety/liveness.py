@@ -1,27 +1,30 @@
 """The ``yield`` deadlock strategy: eqn.13 plus right of way by priority, the yielder retracing its own trail.
 
-A local rule on the QP's target only (the barrier rows, hence safety, are untouched):
+A local rule on the QP's target only (the barrier rows, hence safety, stay the filter's):
 
 1. **Stall.** A robot farther than :data:`STALL_ERROR` from its reference point that has stayed within
-   :data:`STALL_DISTANCE` of one point for :data:`STALL_TIME` is stalled; a robot within ``goal_tol`` of its
+   :data:`STALL_DISTANCE` of one point for :data:`STALL_TIME` is stalled.  A robot within ``goal_tol`` of its
    reference point with ``|v_d| < low_speed`` is done.
-2. **Blocking.** Robot ``j`` blocks ``i`` when it is in ``i``'s sensing range, lies within 60 degrees of the
-   direction ``i`` wants to go (toward ``p_d``; a yielder: toward its retreat point) and wants to go the other way
-   (their directions more than 90 degrees apart), or is done at its goal and within :data:`CONTACT_GAP`.
-3. **Right of way.** Priorities are strict: robot index, a robot done at its goal after every robot not done; a
-   yielder carries the priority it inherited.  A stalled or yielding robot ``i`` blocked by a robot ``j`` of lower
-   priority makes ``j`` yield and ``j`` inherits ``i``'s priority (priority inheritance, as in PIBT), so a yielder
-   that backs into its own group makes that robot yield too and a whole group backs out of a one-lane passage.
-   A yielder keeps yielding while its pusher stays within :data:`KEEP_GAP`, and :data:`HOLD_TIME` after that.
-4. **Retreat.** A yielder tracks, instead of its reference, the last point of its own trail (its positions every
-   :data:`TRAIL_STEP`, recorded while it is not yielding: ground it has covered, clear of static obstacles),
-   dropping each point it reaches; with its trail used up it steps sideways, to the right of its pusher's push.
-   Once it yields no more it goes forward along the same trail to where it began to yield (the reference's
-   straight line from where it retreated to may cross a wall), then tracks its reference again.
-   Tracking a point ``g`` instead of ``(p_d, v_d)`` shifts the tracking law's target (eqn.11) by
-   ``k3 k4 (g - p_d) - (k3 + k4) v_d``.
-5. **eqn.13** then acts on the triggered robots as the ``auxiliary_velocity`` strategy does, on the reference
-   in which each yielder's ``(p_d, v_d)`` is ``(g, 0)``.
+2. **Blocking.** Robot ``j`` blocks ``i`` when it lies within 60 degrees of the direction ``i`` wants to go
+   (toward ``p_d``; see rule 4 for the others) and either wants to go the other way (directions more than
+   90 degrees apart) with a surface gap below :data:`PUSH_GAP`, or is done with a gap below :data:`CONTACT_GAP`.
+3. **Right of way.** Priorities are strict: robot index, every robot done after every robot not done; a yielder
+   carries the priority it inherited.  A stalled or yielding robot ``i`` blocked by ``j`` of lower priority makes
+   ``j`` yield, and ``j`` inherits ``i``'s priority (priority inheritance, as in PIBT): a yielder that backs into
+   its own group makes that robot yield too, so a whole group backs out of a one-lane passage.  A yielder keeps
+   yielding while a robot of its inherited priority or higher heads for it within :data:`KEEP_GAP`, and
+   :data:`HOLD_TIME` after that.
+4. **Retreat and return.** A yielder tracks the last point of its own trail (its positions every
+   :data:`TRAIL_STEP`, recorded while it tracks its reference: ground it has covered, clear of static
+   obstacles), dropping the points it reaches; with its trail used up it steps to the right of its push.  Once it
+   yields no more it goes forward along the same trail to where it began to yield (the straight line from where it
+   retreated to its reference point may cross a wall), then tracks its reference again.
+5. **Slide.** A stalled robot that pushes nobody, with an obstacle within :data:`CONTACT_GAP` ahead, slides
+   along that obstacle's tangent (the side nearer its way) for :data:`ESCAPE_TIME`.
+6. A robot under rules 4 or 5 tracks a point ``g`` (within :data:`LOOKAHEAD`) instead of its reference: its
+   target is the tracking law (eqn.11) toward ``g`` at rest there, ``-(k3 + k4) v - k3 k4 (p - g)`` less the
+   drift ``A_dot u``; every other robot keeps its nominal.  eqn.13 then acts on the triggered robots as in
+   ``auxiliary_velocity``, with ``(g, 0)`` for ``(p_d, v_d)`` where a robot tracks ``g``.
 
 Every decision is a function of the step's state and this memory (no clock, no randomness); the rule reads the
 pairs within the sensing range only, so the decentralised filter runs it unchanged.
@@ -37,13 +40,13 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.deadlock import TargetContext
 
-__all__ = ["ESCAPE_TIME", "HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "CONTACT_GAP", "RIGHT_GAP", "RIGHT_STEP",
-           "STALL_DISTANCE", "STALL_ERROR",
-           "STALL_TIME", "TRAIL_STEP", "YieldMemory", "yield_target"]
+__all__ = ["CONTACT_GAP", "ESCAPE_TIME", "HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "PUSH_GAP", "STALL_DISTANCE",
+           "STALL_ERROR", "STALL_TIME", "TRAIL_STEP", "YieldMemory", "yield_target"]
 
 STALL_TIME: float = 2.0  #: [s] without leaving a disc of :data:`STALL_DISTANCE`: stalled
 STALL_DISTANCE: float = 0.1  #: [m]
 STALL_ERROR: float = 0.5  #: [m] a robot closer than this to its reference point is tracking, not stalled
+PUSH_GAP: float = 2.0  #: [m] surface gap under which an oncoming robot ahead blocks
 CONTACT_GAP: float = 0.3  #: [m] surface gap under which an obstacle, or a robot done at its goal, ahead blocks
 KEEP_GAP: float = 2.0  #: [m] a yielder keeps yielding while its pusher is this close
 HOLD_TIME: float = 5.0  #: [s] a yielder keeps yielding after its last push
@@ -51,8 +54,6 @@ ESCAPE_TIME: float = 3.0  #: [s] a robot stalled at an obstacle slides along it 
 TRAIL_STEP: float = 0.25  #: [m] spacing of the trail's points
 LOOKAHEAD: float = 0.6  #: [m] a yielder drops the trail points closer than this
 TRAIL_POINTS: int = 256  #: points kept per robot (the oldest are dropped)
-RIGHT_GAP: float = 2.0  #: [m] an oncoming robot this close (surface gap) makes a robot keep right
-RIGHT_STEP: float = 0.5  #: [m] how far ahead and to the right the point it then tracks lies
 _COS_AHEAD = 0.5  # cos(60 deg)
 
 
@@ -114,8 +115,8 @@ def _robot_pairs(c: TargetContext) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
 
 
 def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarray, done: np.ndarray,
-          hold_steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """Rules 2 and 3 (who is made to yield, with which priority, away from whom); rule 6's oncoming robots."""
+          hold_steps: int) -> np.ndarray:
+    """Rules 2 and 3: who is made to yield, with which priority, away from whom; returns the robots pushing."""
     n = want.shape[0]
     prio = np.arange(n) + n * done
     yielding = m.hold > 0
@@ -124,7 +125,8 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     pushed_rank = np.full(n, np.inf)
     ahead = np.einsum("ij,ij->i", u, want[i])
     facing = np.einsum("ij,ij->i", want[i], want[j])
-    new = (ahead > _COS_AHEAD) & (stalled[i] | yielding[i]) & ((facing < 0.0) | (done[j] & (gap < CONTACT_GAP)))
+    blocks = ((facing < 0.0) & (gap < PUSH_GAP)) | (done[j] & (gap < CONTACT_GAP))
+    new = (ahead > _COS_AHEAD) & (stalled[i] | yielding[i]) & blocks
     keep = (gap < KEEP_GAP) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
     hit = (eff[i] < eff[j]) & (new | keep)
     np.minimum.at(pushed_rank, j[hit], eff[i][hit])
@@ -134,11 +136,9 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     m.rank = np.where(pushed, np.minimum(np.where(yielding, m.rank, np.inf), pushed_rank), m.rank)
     m.hold = np.where(pushed, hold_steps, np.maximum(m.hold - 1, 0))
     m.rank[m.hold == 0] = np.inf
-    oncoming = np.zeros(n, dtype=bool)
-    oncoming[i[(gap < RIGHT_GAP) & (ahead > _COS_AHEAD) & (facing < -_COS_AHEAD) & ~done[i] & ~done[j]]] = True
     pushing = np.zeros(n, dtype=bool)
     pushing[i[hit]] = True
-    return oncoming, pushing
+    return pushing
 
 
 def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.ndarray) -> np.ndarray:
@@ -190,16 +190,14 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     yielding = m.hold > 0
     _record(m, c.p, yielding)
     want = _unit(_trail_point(m, c.p, p_d, yielding) - c.p)[0]
-    oncoming, pushing = _push(m, c, want, stalled, done, steps(HOLD_TIME))
+    pushing = _push(m, c, want, stalled, done, steps(HOLD_TIME))
     yielding = m.hold > 0
     g = _trail_point(m, c.p, p_d, yielding)
-    free = ~yielding & (m.cursor == m.count)
-    keep_right = oncoming & free
-    g = np.where(keep_right[:, None], c.p + RIGHT_STEP * (want + np.stack((want[:, 1], -want[:, 0]), axis=1)), g)
-    sliding = _escape(m, c, want, stalled & ~yielding & ~keep_right & ~pushing, steps(ESCAPE_TIME)) & ~yielding
+    sliding = _escape(m, c, want, stalled & ~yielding & ~pushing, steps(ESCAPE_TIME)) & ~yielding
     g = np.where(sliding[:, None], c.p + LOOKAHEAD * m.slide, g)
-    off = (m.hold > 0) | (m.cursor < m.count) | keep_right | sliding
+    off = yielding | (m.cursor < m.count) | sliding
     g_v = np.where(off[:, None], 0.0, v_d)
-    out = target + c.k3 * c.k4 * (g - p_d) + (c.k3 + c.k4) * (g_v - v_d)
+    toward = -(c.k3 + c.k4) * c.v - c.k3 * c.k4 * (c.p - g) - c.adot  # the tracking law toward g at rest there
+    out = np.where(off[:, None], toward, target)
     e = c.v - g_v + c.k3 * (c.p - g)
     return out - zeta[:, None] * (e @ Q.T)
