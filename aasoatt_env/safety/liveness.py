@@ -40,9 +40,11 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.deadlock import TargetContext
 
-__all__ = ["CONTACT_GAP", "ESCAPE_TIME", "HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "PUSH_GAP", "STALL_DISTANCE",
-           "STALL_ERROR", "STALL_TIME", "TRAIL_STEP", "YieldMemory", "yield_target"]
+__all__ = ["CONTACT_GAP", "ESCAPE_TIME", "HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "PUSH_GAP", "REFERENCE_RADIUS",
+           "STALL_DISTANCE", "STALL_ERROR", "STALL_TIME", "TRAIL_STEP", "YieldMemory", "yield_target"]
 
+REFERENCE_RADIUS: float = 0.48
+"""[m] The lengths below are for a robot of this radius (the paper's); each robot's scale with its radius."""
 STALL_TIME: float = 2.0  #: [s] without leaving a disc of :data:`STALL_DISTANCE`: stalled
 STALL_DISTANCE: float = 0.1  #: [m]
 STALL_ERROR: float = 0.5  #: [m] a robot closer than this to its reference point is tracking, not stalled
@@ -91,11 +93,11 @@ def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return x / np.maximum(norm, 1e-12)[:, None], norm
 
 
-def _record(m: YieldMemory, p: np.ndarray, yielding: np.ndarray) -> None:
+def _record(m: YieldMemory, p: np.ndarray, yielding: np.ndarray, scale: np.ndarray) -> None:
     """Append ``p`` to the trail of robots on it (cursor at its end, not yielding) that moved TRAIL_STEP from it."""
     rows = np.arange(p.shape[0])
     last = m.trail[rows, np.maximum(m.count - 1, 0)]
-    rec = ~yielding & (m.cursor == m.count) & ((m.count == 0) | (_unit(p - last)[1] >= TRAIL_STEP))
+    rec = ~yielding & (m.cursor == m.count) & ((m.count == 0) | (_unit(p - last)[1] >= TRAIL_STEP * scale))
     full = rec & (m.count == TRAIL_POINTS)
     if full.any():
         m.trail[full] = np.roll(m.trail[full], -1, axis=1)
@@ -125,9 +127,10 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     pushed_rank = np.full(n, np.inf)
     ahead = np.einsum("ij,ij->i", u, want[i])
     facing = np.einsum("ij,ij->i", want[i], want[j])
-    blocks = ((facing < 0.0) & (gap < PUSH_GAP)) | (done[j] & (gap < CONTACT_GAP))
+    si = c.radius[i] / REFERENCE_RADIUS
+    blocks = ((facing < 0.0) & (gap < PUSH_GAP * si)) | (done[j] & (gap < CONTACT_GAP * si))
     new = (ahead > _COS_AHEAD) & (stalled[i] | yielding[i]) & blocks
-    keep = (gap < KEEP_GAP) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
+    keep = (gap < KEEP_GAP * si) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
     hit = (eff[i] < eff[j]) & (new | keep)
     np.minimum.at(pushed_rank, j[hit], eff[i][hit])
     strongest = hit & (eff[i] == pushed_rank[j])
@@ -141,15 +144,16 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     return pushing
 
 
-def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.ndarray) -> np.ndarray:
+def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.ndarray, scale: np.ndarray
+                 ) -> np.ndarray:
     """Rule 4: the point each robot tracks: a yielder back along its trail, then forward again to where it began."""
-    rows = np.arange(p.shape[0])
+    rows, ahead = np.arange(p.shape[0]), LOOKAHEAD * scale
     for _ in range(2):  # (a point or two per step: the points are TRAIL_STEP apart)
         back, fwd = np.maximum(m.cursor - 1, 0), np.minimum(m.cursor, TRAIL_POINTS - 1)
-        m.cursor -= yielding & (m.cursor > 0) & (_unit(p - m.trail[rows, back])[1] < LOOKAHEAD)
-        m.cursor += ~yielding & (m.cursor < m.count) & (_unit(p - m.trail[rows, fwd])[1] < LOOKAHEAD)
+        m.cursor -= yielding & (m.cursor > 0) & (_unit(p - m.trail[rows, back])[1] < ahead)
+        m.cursor += ~yielding & (m.cursor < m.count) & (_unit(p - m.trail[rows, fwd])[1] < ahead)
     back, fwd = np.maximum(m.cursor - 1, 0), np.minimum(m.cursor, TRAIL_POINTS - 1)
-    side = p + LOOKAHEAD * np.stack((m.away[:, 1], -m.away[:, 0]), axis=1)
+    side = p + ahead[:, None] * np.stack((m.away[:, 1], -m.away[:, 0]), axis=1)
     out = np.where((yielding & (m.cursor > 0))[:, None], m.trail[rows, back], side)
     out = np.where((~yielding & (m.cursor < m.count))[:, None], m.trail[rows, fwd], out)
     return np.where((~yielding & (m.cursor == m.count))[:, None], p_d, out)
@@ -164,7 +168,8 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
         gap = dist - c.radius[i] - c.obstacles[1][k]
         near = np.full(n, np.inf)
         np.minimum.at(near, i, gap)
-        first = stuck[i] & (gap == near[i]) & (gap < CONTACT_GAP) & (np.einsum("ij,ij->i", u, want[i]) > 0.0)
+        close = gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS
+        first = stuck[i] & (gap == near[i]) & close & (np.einsum("ij,ij->i", u, want[i]) > 0.0)
         right = np.stack((u[:, 1], -u[:, 0]), axis=1)
         side = np.where((np.einsum("ij,ij->i", right, want[i]) >= 0.0)[:, None], right, -right)
         m.slide[i[first]] = side[first]
@@ -183,18 +188,19 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
         if c.memory is not None:
             c.memory.liveness = m
     steps = lambda seconds: max(1, int(round(seconds / c.cfg.dt)))  # noqa: E731
-    left = ~(_unit(c.p - m.anchor)[1] <= STALL_DISTANCE)  # (NaN anchor: forgotten)
+    scale = c.radius / REFERENCE_RADIUS
+    left = ~(_unit(c.p - m.anchor)[1] <= STALL_DISTANCE * scale)  # (NaN anchor: forgotten)
     m.anchor[left], m.still = c.p[left], np.where(left, 0, m.still + 1)
     done = (_unit(c.p - p_d)[1] <= c.cfg.goal_tol) & (_unit(v_d)[1] < c.cfg.low_speed)
-    stalled = (m.still >= steps(STALL_TIME)) & (_unit(c.p - p_d)[1] > STALL_ERROR)
+    stalled = (m.still >= steps(STALL_TIME)) & (_unit(c.p - p_d)[1] > STALL_ERROR * scale)
     yielding = m.hold > 0
-    _record(m, c.p, yielding)
-    want = _unit(_trail_point(m, c.p, p_d, yielding) - c.p)[0]
+    _record(m, c.p, yielding, scale)
+    want = _unit(_trail_point(m, c.p, p_d, yielding, scale) - c.p)[0]
     pushing = _push(m, c, want, stalled, done, steps(HOLD_TIME))
     yielding = m.hold > 0
-    g = _trail_point(m, c.p, p_d, yielding)
+    g = _trail_point(m, c.p, p_d, yielding, scale)
     sliding = _escape(m, c, want, stalled & ~yielding & ~pushing, steps(ESCAPE_TIME)) & ~yielding
-    g = np.where(sliding[:, None], c.p + LOOKAHEAD * m.slide, g)
+    g = np.where(sliding[:, None], c.p + (LOOKAHEAD * scale)[:, None] * m.slide, g)
     off = yielding | (m.cursor < m.count) | sliding
     g_v = np.where(off[:, None], 0.0, v_d)
     toward = -(c.k3 + c.k4) * c.v - c.k3 * c.k4 * (c.p - g) - c.adot  # the tracking law toward g at rest there
