@@ -19,8 +19,10 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
    obstacles), dropping the points it reaches; with its trail used up it steps to the right of its push.  Once it
    yields no more it goes forward along the same trail to where it began to yield (the straight line from where it
    retreated to its reference point may cross a wall), then tracks its reference again.
-5. **Slide.** A stalled robot that pushes nobody, with an obstacle within :data:`CONTACT_GAP` ahead, slides
-   along that obstacle's tangent (the side nearer its way) for :data:`ESCAPE_TIME`.
+5. **Follow.** A stalled robot that pushes nobody, with an obstacle within :data:`CONTACT_GAP` ahead, follows
+   the boundary of the obstacles (the tangent of the nearest, hugging it) for :data:`ESCAPE_TIME`, first on the
+   side nearer its way; if it stalls again before it has tracked its reference closely, it follows the other
+   way round for twice as long, and so on (up to 8 times :data:`ESCAPE_TIME`), as in a bug algorithm.
 6. A robot under rules 4 or 5 tracks a point ``g`` (within :data:`LOOKAHEAD`) instead of its reference: its
    target is the tracking law (eqn.11) toward ``g`` at rest there, ``-(k3 + k4) v - k3 k4 (p - g)`` less the
    drift ``A_dot u``; every other robot keeps its nominal.  eqn.13 then acts on the triggered robots as in
@@ -71,8 +73,10 @@ class YieldMemory:
     trail: np.ndarray  #: ``(N, TRAIL_POINTS, 2)``
     count: np.ndarray  #: ``(N,)`` trail points in use
     cursor: np.ndarray  #: ``(N,)`` where on its trail a robot is (``count``: at its end, tracking its reference)
-    escape: np.ndarray  #: ``(N,)`` steps of sliding along an obstacle left
-    slide: np.ndarray  #: ``(N, 2)`` the direction of that slide
+    escape: np.ndarray  #: ``(N,)`` steps of following obstacles left
+    slide: np.ndarray  #: ``(N, 2)`` the direction it follows them in
+    hand: np.ndarray  #: ``(N,)`` +1: obstacles on its left, -1: on its right
+    tries: np.ndarray  #: ``(N,)`` follows since the robot last tracked its reference closely
 
     @classmethod
     def empty(cls, p: np.ndarray) -> YieldMemory:
@@ -80,12 +84,12 @@ class YieldMemory:
         n = p.shape[0]
         return cls(p.copy(), np.zeros(n, np.int64), np.full(n, np.inf), np.zeros(n, np.int64), np.zeros((n, 2)),
                    np.zeros((n, TRAIL_POINTS, 2)), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64),
-                   np.zeros((n, 2)))
+                   np.zeros((n, 2)), np.zeros(n), np.zeros(n, np.int64))
 
     def forget(self, rows: np.ndarray) -> None:
         """Start robots ``rows`` afresh (their team starts an episode; the stall clock restarts at the next step)."""
         self.anchor[rows], self.still[rows], self.rank[rows] = np.nan, 0, np.inf
-        self.hold[rows], self.count[rows], self.cursor[rows], self.escape[rows] = 0, 0, 0, 0
+        self.hold[rows], self.count[rows], self.cursor[rows], self.escape[rows], self.tries[rows] = 0, 0, 0, 0, 0
 
 
 def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -160,20 +164,22 @@ def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.nd
 
 
 def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarray, steps: int) -> np.ndarray:
-    """Rule 7: a robot stalled with no robot to push slides along the tangent of its nearest obstacle ahead."""
-    n = want.shape[0]
-    if c.obstacles is not None and c.obstacle_pairs.shape[0] and stuck.any():
+    """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the obstacles' boundary for a while."""
+    if c.obstacles is not None and c.obstacle_pairs.shape[0]:
         i, k = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
         u, dist = _unit(c.obstacles[0][k] - c.p[i])
         gap = dist - c.radius[i] - c.obstacles[1][k]
-        near = np.full(n, np.inf)
+        near = np.full(want.shape[0], np.inf)
         np.minimum.at(near, i, gap)
+        nearest, right = gap == near[i], np.stack((u[:, 1], -u[:, 0]), axis=1)
         close = gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS
-        first = stuck[i] & (gap == near[i]) & close & (np.einsum("ij,ij->i", u, want[i]) > 0.0)
-        right = np.stack((u[:, 1], -u[:, 0]), axis=1)
-        side = np.where((np.einsum("ij,ij->i", right, want[i]) >= 0.0)[:, None], right, -right)
-        m.slide[i[first]] = side[first]
-        m.escape[i[first]] = steps
+        first = stuck[i] & (m.escape[i] == 0) & nearest & close & (np.einsum("ij,ij->i", u, want[i]) > 0.0)
+        hand = np.where(np.einsum("ij,ij->i", right, want[i]) >= 0.0, 1.0, -1.0) * (1 - 2 * (m.tries[i] % 2))
+        m.hand[i[first]] = hand[first]
+        m.escape[i[first]] = steps << np.minimum(m.tries[i[first]], 3)
+        m.tries[i[first]] += 1
+        follow = (m.escape[i] > 0) & nearest
+        m.slide[i[follow]] = _unit(m.hand[i[follow], None] * right[follow] + 0.3 * u[follow])[0]
     m.escape = np.maximum(m.escape - 1, 0)
     return m.escape > 0
 
@@ -192,7 +198,9 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     left = ~(_unit(c.p - m.anchor)[1] <= STALL_DISTANCE * scale)  # (NaN anchor: forgotten)
     m.anchor[left], m.still = c.p[left], np.where(left, 0, m.still + 1)
     done = (_unit(c.p - p_d)[1] <= c.cfg.goal_tol) & (_unit(v_d)[1] < c.cfg.low_speed)
-    stalled = (m.still >= steps(STALL_TIME)) & (_unit(c.p - p_d)[1] > STALL_ERROR * scale)
+    tracking = _unit(c.p - p_d)[1] <= STALL_ERROR * scale
+    stalled = (m.still >= steps(STALL_TIME)) & ~tracking
+    m.tries[tracking] = 0
     yielding = m.hold > 0
     _record(m, c.p, yielding, scale)
     want = _unit(_trail_point(m, c.p, p_d, yielding, scale) - c.p)[0]
