@@ -172,8 +172,12 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
         near = np.full(want.shape[0], np.inf)
         np.minimum.at(near, i, gap)
         nearest, right = gap == near[i], np.stack((u[:, 1], -u[:, 0]), axis=1)
-        close = gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS
-        first = stuck[i] & (m.escape[i] == 0) & nearest & close & (np.einsum("ij,ij->i", u, want[i]) > 0.0)
+        ahead = np.einsum("ij,ij->i", u, want[i])
+        score = np.where(stuck[i] & (m.escape[i] == 0) & (gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS)
+                         & (ahead > 0.0), ahead, -np.inf)
+        best = np.full(want.shape[0], -np.inf)
+        np.maximum.at(best, i, score)
+        first = np.isfinite(score) & (score == best[i])  # the obstacle most in the way among those in contact
         hand = np.where(np.einsum("ij,ij->i", right, want[i]) >= 0.0, 1.0, -1.0) * (1 - 2 * (m.tries[i] % 2))
         m.hand[i[first]] = hand[first]
         m.escape[i[first]] = steps << np.minimum(m.tries[i[first]], 3)
