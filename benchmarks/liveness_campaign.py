@@ -180,7 +180,7 @@ def _row(scene: str, mode: str, dl: str, rs: list[dict]) -> str:
 
 
 def summary(args: argparse.Namespace) -> None:
-    recs = _records(Path(args.out))
+    recs = [r for path in args.out.split(",") for r in _records(Path(path))]
     if not recs:
         raise SystemExit(f"error: --out {args.out}: no results")
     last = {_key_id(r): r for r in recs}
@@ -215,7 +215,8 @@ def main() -> None:
     ap.add_argument("--first-seed", type=int, default=0)
     ap.add_argument("--tol", type=float, default=0.05, help="goal tolerance [m]")
     ap.add_argument("--jobs", type=int, default=1, help="episodes in parallel processes")
-    ap.add_argument("--out", default="results/liveness.jsonl", help="JSONL results (appended; resumable)")
+    ap.add_argument("--out", default="results/liveness.jsonl",
+                    help="JSONL results (appended; resumable); summary: several, comma-separated")
     add_page_options(ap)
     args = ap.parse_args()
     check_page(args)
