@@ -16,13 +16,15 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
    :data:`HOLD_TIME` after that.
 4. **Retreat and return.** A yielder tracks the last point of its own trail (its positions every
    :data:`TRAIL_STEP`, recorded while it tracks its reference: ground it has covered, clear of static
-   obstacles), dropping the points it reaches; with its trail used up it steps to the right of its push.  Once it
+   obstacles), dropping the points it reaches; with its trail used up, or leading back toward its pusher, it
+   steps to the right of its push.  Once it
    yields no more it goes forward along the same trail to where it began to yield (the straight line from where it
    retreated to its reference point may cross a wall), then tracks its reference again.
-5. **Follow.** A stalled robot that pushes nobody, with an obstacle within :data:`CONTACT_GAP` ahead, follows
-   the boundary of the obstacles (the tangent of the nearest, hugging it) for :data:`ESCAPE_TIME`, first on the
-   side nearer its way; if it stalls again before it has tracked its reference closely, it follows the other
-   way round for twice as long, and so on (up to 8 times :data:`ESCAPE_TIME`), as in a bug algorithm.
+5. **Follow.** A stalled robot that pushes nobody, with no robot ahead within twice :data:`CONTACT_GAP` and an
+   obstacle within :data:`CONTACT_GAP` ahead, follows the boundary of the obstacles (the tangent of the nearest,
+   hugging it) for :data:`ESCAPE_TIME`, first on the side nearer its way; if it stalls again before it has
+   tracked its reference closely, it follows the other way round for twice as long, and so on (up to 8 times
+   :data:`ESCAPE_TIME`), as in a bug algorithm.
 6. A robot under rules 4 or 5 tracks a point ``g`` (within :data:`LOOKAHEAD`) instead of its reference: its
    target is the tracking law (eqn.11) toward ``g`` at rest there, ``-(k3 + k4) v - k3 k4 (p - g)`` less the
    drift ``A_dot u``; every other robot keeps its nominal.  eqn.13 then acts on the triggered robots as in
@@ -122,7 +124,10 @@ def _robot_pairs(c: TargetContext) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
 
 def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarray, done: np.ndarray,
           hold_steps: int) -> np.ndarray:
-    """Rules 2 and 3: who is made to yield, with which priority, away from whom; returns the robots pushing."""
+    """Rules 2 and 3: who yields, with which priority, away from whom.
+
+    Returns the robots pushing, or with a robot ahead within twice CONTACT_GAP (rule 5 leaves them be).
+    """
     n = want.shape[0]
     prio = np.arange(n) + n * done
     yielding = m.hold > 0
@@ -143,9 +148,9 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     m.rank = np.where(pushed, np.minimum(np.where(yielding, m.rank, np.inf), pushed_rank), m.rank)
     m.hold = np.where(pushed, hold_steps, np.maximum(m.hold - 1, 0))
     m.rank[m.hold == 0] = np.inf
-    pushing = np.zeros(n, dtype=bool)
-    pushing[i[hit]] = True
-    return pushing
+    crowded = np.zeros(n, dtype=bool)  # pushing, or behind a robot in its way
+    crowded[i[hit | ((ahead > _COS_AHEAD) & (gap < 2.0 * CONTACT_GAP * si))]] = True
+    return crowded
 
 
 def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.ndarray, scale: np.ndarray
@@ -158,7 +163,9 @@ def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.nd
         m.cursor += ~yielding & (m.cursor < m.count) & (_unit(p - m.trail[rows, fwd])[1] < ahead)
     back, fwd = np.maximum(m.cursor - 1, 0), np.minimum(m.cursor, TRAIL_POINTS - 1)
     side = p + ahead[:, None] * np.stack((m.away[:, 1], -m.away[:, 0]), axis=1)
-    out = np.where((yielding & (m.cursor > 0))[:, None], m.trail[rows, back], side)
+    trail = m.trail[rows, back]
+    back_ok = yielding & (m.cursor > 0) & (np.einsum("ij,ij->i", trail - p, m.away) >= 0.0)  # (not toward the push)
+    out = np.where(back_ok[:, None], trail, side)
     out = np.where((~yielding & (m.cursor < m.count))[:, None], m.trail[rows, fwd], out)
     return np.where((~yielding & (m.cursor == m.count))[:, None], p_d, out)
 
@@ -208,10 +215,10 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     yielding = m.hold > 0
     _record(m, c.p, yielding, scale)
     want = _unit(_trail_point(m, c.p, p_d, yielding, scale) - c.p)[0]
-    pushing = _push(m, c, want, stalled, done, steps(HOLD_TIME))
+    crowded = _push(m, c, want, stalled, done, steps(HOLD_TIME))
     yielding = m.hold > 0
     g = _trail_point(m, c.p, p_d, yielding, scale)
-    sliding = _escape(m, c, want, stalled & ~yielding & ~pushing, steps(ESCAPE_TIME)) & ~yielding
+    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME)) & ~yielding
     g = np.where(sliding[:, None], c.p + (LOOKAHEAD * scale)[:, None] * m.slide, g)
     off = yielding | (m.cursor < m.count) | sliding
     g_v = np.where(off[:, None], 0.0, v_d)
