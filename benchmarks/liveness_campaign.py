@@ -8,7 +8,7 @@ The tracking controller (the paper's method) drives every robot behind the filte
   wide (one robot at a time) 3 against 3; ``tb3corridor22`` / ``tb3corridor16``: TurtleBot3 Burger teams in the
   same corridors scaled by their size (0.21 / 0.96);
 * ``doorway``: the ``doorway`` scenario, 2 against 2 through a 1.6 m door between 5 m rooms, seeded places,
-  15 s + 45 s settle;
+  15 s + 60 s settle;
 * ``field``: the ``obstacle_field`` scenario, 5 robots in a 9 m arena, density 0.1, radii 0.3-0.8 m, seeded,
   straight-line references at 0.8 m/s + 30 s settle;
 * ``circle6`` / ``circle10`` / ``random30``: the open scenes (radius 6, N = 20 and 39; radius 10, N = 60;
@@ -56,7 +56,7 @@ SCENES: dict[str, tuple[dict, int, bool]] = {
     "corridor16": (_corridor(1.6, 3), 1, True),
     "tb3corridor22": (_corridor(2.2, 4, TB3, "turtlebot3_burger"), 1, True),
     "tb3corridor16": (_corridor(1.6, 3, TB3, "turtlebot3_burger"), 1, True),
-    "doorway": (dict(scenario="doorway", left=2, right=2, door=1.6, room=5.0, duration=15.0, settle_time=45.0),
+    "doorway": (dict(scenario="doorway", left=2, right=2, door=1.6, room=5.0, duration=15.0, settle_time=60.0),
                 200, True),
     "field": (dict(scenario="obstacle_field", num_robots=5, density=0.1, arena_size=9.0, settle_time=30.0), 200,
               True),
