@@ -16,9 +16,10 @@ from aasoatt_env import validation as check
 from aasoatt_env.analysis.rollout import Rollout
 from aasoatt_env.errors import ConfigError
 
-__all__ = ["CollisionReport", "Separation", "collisions", "deadlocked_robots", "final_errors", "format_summary",
-           "format_value", "intervention_time", "intervention_times", "longest_stall", "pairwise_min_distance",
-           "reach_rate", "safe_rate", "solver_stats", "summarize", "tracking_errors", "tracking_stats"]
+__all__ = ["CollisionReport", "Separation", "arrival_times", "collisions", "deadlocked_robots", "final_errors",
+           "format_summary", "format_value", "intervention_time", "intervention_times", "liveness", "longest_stall",
+           "pairwise_min_distance", "reach_rate", "safe_rate", "solver_stats", "summarize", "tracking_errors",
+           "tracking_stats"]
 
 COLLISION_TOLERANCE = 1e-3  # default collision tolerance [m]
 _CHUNK_ELEMENTS = 1 << 21  # float64 elements per temporary pairwise array (about 16 MB)
@@ -239,6 +240,39 @@ def deadlocked_robots(rollout: Rollout, speed_threshold: float = 0.05, dwell_tim
     stall = longest_stall(rollout, speed_threshold, goal_tolerance)
     # Half a step of slack so that float rounding of k * dt never flips the verdict.
     return (stall >= 0) & (stall >= dwell - 0.5 * rollout.dt)
+
+
+def arrival_times(rollout: Rollout, goal_tolerance: float = 0.1) -> np.ndarray:
+    """Per robot ``(N,)``: the time [s] from which it stays within ``goal_tolerance`` of its goal (NaN: not home)."""
+    tol = _tolerance("goal_tolerance", goal_tolerance)
+    far = np.linalg.norm(rollout.positions - rollout.goals[None], axis=-1) > tol
+    last_far = far.shape[0] - 1 - np.argmax(far[::-1], axis=0)  # the last step away from the goal
+    k = np.where(far.any(axis=0), last_far + 1, 0)
+    return np.where(k < far.shape[0], rollout.times[np.minimum(k, far.shape[0] - 1)] - rollout.times[0], np.nan)
+
+
+def liveness(rollout: Rollout, goal_tolerance: float = 0.1, speed_threshold: float = 0.05) -> dict[str, Any]:
+    """Robots home, the makespan against the straight-line lower bound, and the time spent stalled.
+
+    ``makespan``: the time [s] to the last robot home for good (None unless every robot is); ``lower_bound``: the
+    longest start-to-goal straight line over its robot's mean reference speed (its reference's length over the time
+    the reference moves); ``stalled_time``: per robot the total time slower than ``speed_threshold`` away from its
+    goal (mean and max over robots).
+    """
+    arrive = arrival_times(rollout, goal_tolerance)
+    ref = rollout.references
+    step = np.linalg.norm(np.diff(ref, axis=0), axis=-1)
+    moving = (step > 0).sum(axis=0) * rollout.dt
+    speed_ref = np.where(moving > 0, step.sum(axis=0) / np.maximum(moving, 1e-12), np.inf)
+    bound = float(np.max(np.linalg.norm(rollout.goals - rollout.positions[0], axis=-1) / speed_ref))
+    far = np.linalg.norm(rollout.positions - rollout.goals[None], axis=-1) > goal_tolerance
+    slow = np.linalg.norm(rollout.velocities, axis=-1) < _tolerance("speed_threshold", speed_threshold)
+    stalled = (far & slow).sum(axis=0) * rollout.dt
+    home = bool(np.isfinite(arrive).all())
+    makespan = float(np.max(arrive)) if home else None
+    return {"home": int(np.isfinite(arrive).sum()), "n_robots": rollout.n_robots, "makespan": makespan,
+            "lower_bound": bound, "makespan_ratio": makespan / bound if home and bound > 0 else None,
+            "stalled_time_mean": float(stalled.mean()), "stalled_time_max": float(stalled.max())}
 
 
 def _classify_status(status: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

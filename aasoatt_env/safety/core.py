@@ -182,6 +182,8 @@ class SafetyFilter:
             self._dl.avoiding[rows] = False
         for h in self._dl.history:  # a position never seen: the stall trigger waits for a full dwell
             h[rows] = np.nan
+        if self._dl.liveness is not None:
+            self._dl.liveness.forget(rows)
         if self._x is not None:
             self._x = self._x.copy()
             self._x[rows] = 0.0
@@ -289,10 +291,15 @@ class SafetyFilter:
             target = np.einsum("nij,nj->ni", s.A, nominal)
             anyone = bool(triggered.any())
             zeta = np.where(triggered, cfg.zeta, 0.0) if anyone else None
-        if not anyone:  # (a strategy corrects the triggered robots only)
+        if not (anyone or self._strategy.stateful):  # (a strategy corrects the triggered robots only)
             return triggered, target
-        target = self._strategy.correct_target(target, zeta, self._Q,
-                                               TargetContext(s.v, s.p, s.reference, cfg.k3, cfg.k4))
+        if self._strategy.stateful:
+            ctx = TargetContext(s.v, s.p, s.reference, cfg.k3, cfg.k4, self._dl, pairs.robots, pairs.obstacles,
+                                None if s.obstacles is None else s.obstacles[:2], s.team.radius, s.adot, cfg)
+            zeta = zeta if zeta is not None else np.zeros(s.p.shape[0])
+        else:
+            ctx = TargetContext(s.v, s.p, s.reference, cfg.k3, cfg.k4)
+        target = self._strategy.correct_target(target, zeta, self._Q, ctx)
         if not (isinstance(target, np.ndarray) and target.shape == s.nominal.shape and target.dtype == np.float64
                 and np.isfinite(target).all()):
             raise ConfigError(f"deadlock strategy {cfg.deadlock!r}: its target has shape {np.shape(target)} "

@@ -2,7 +2,8 @@
 
 Strategies (:data:`STRATEGIES`, ``docs/technical_brief.md`` section 5) change the QP's target or the rows of triggered
 robots: ``none``, ``rotate_nominal`` (eqn.12a), ``rotate_reference_velocity`` (eqn.12b, for any nominal),
-``auxiliary_velocity`` (eqn.13, default), ``rotate_relative_position`` (eqn.12c; Zeno-prone, the filter warns).
+``auxiliary_velocity`` (eqn.13, default), ``rotate_relative_position`` (eqn.12c; Zeno-prone, the filter warns),
+``yield`` (eqn.13 plus right of way by priority, the yielder retracing its trail: :mod:`.liveness`).
 
 Triggers (:data:`TRIGGERS`): ``multiplier`` (Algorithm 1: a row active at the previous step), ``low_speed``
 (``|v_i| < low_speed``), ``stalled`` (moved less than ``stall_distance`` over ``stall_time``), ``heading`` (pointing
@@ -17,6 +18,8 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
+
+from aasoatt_env.safety.liveness import YieldMemory, yield_target
 
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.config import FilterConfig
@@ -37,6 +40,7 @@ class DeadlockState:
 
     avoiding: np.ndarray | None = None
     history: list[np.ndarray] = field(default_factory=list)
+    liveness: YieldMemory | None = None  #: the ``yield`` strategy's memory
 
 
 class TriggerContext(NamedTuple):
@@ -111,13 +115,20 @@ TRIGGERS_WITHOUT_PAIRS: frozenset[str] = frozenset({"multiplier", "low_speed", "
 
 
 class TargetContext(NamedTuple):
-    """What a target correction sees (``TriggerContext``'s fields and the tracking gains)."""
+    """What a target correction sees (``TriggerContext``'s fields and the tracking gains; a stateful one more)."""
 
     v: np.ndarray
     p: np.ndarray
     reference: tuple[np.ndarray, np.ndarray] | None
     k3: float
     k4: float
+    memory: DeadlockState | None = None  #: a stateful strategy's memory (the rest: a stateful strategy's too)
+    robot_pairs: np.ndarray = np.zeros((0, 2), np.intp)  #: ``(P, 2)`` robot pairs in the sensing range
+    obstacle_pairs: np.ndarray = np.zeros((0, 2), np.intp)  #: ``(Q, 2)`` ``(robot, obstacle)`` in the range
+    obstacles: tuple[np.ndarray, np.ndarray] | None = None  #: ``(centres (M, 2), radii (M,))``
+    radius: np.ndarray = np.zeros(0)  #: ``(N,)`` robot radii
+    adot: np.ndarray = np.zeros((0, 2))  #: ``(N, 2)`` drift accelerations ``A_dot u``
+    cfg: FilterConfig | None = None  #: the filter's configuration
 
 
 def _rotate_nominal(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetContext) -> np.ndarray:
@@ -143,6 +154,8 @@ class Strategy:
     target: Callable[[np.ndarray, np.ndarray, np.ndarray, TargetContext], np.ndarray] | None = None
     rotates_rows: bool = False  #: it rotates ``p_ij`` in the rows of triggered pairs (eqn.12c)
     needs_reference: bool = False  #: ``reference=(p_d, v_d)`` is required
+    #: it runs at every step, on every robot (``zeta`` 0 where untriggered), with memory, pairs and radii
+    stateful: bool = False
 
     @property
     def active(self) -> bool:
@@ -151,7 +164,7 @@ class Strategy:
 
     def correct_target(self, target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, ctx: TargetContext) -> np.ndarray:
         """The target control-point accelerations after the strategy (a new array)."""
-        if self.target is None or not (zeta > 0).any():
+        if self.target is None or not (self.stateful or (zeta > 0).any()):
             return target.copy()
         return self.target(target, zeta, Q, ctx)
 
@@ -168,5 +181,6 @@ STRATEGIES: dict[str, Strategy] = {
     "rotate_reference_velocity": Strategy("eqn.12b", _rotate_reference_velocity, needs_reference=True),
     "auxiliary_velocity": Strategy("eqn.13", _auxiliary_velocity, needs_reference=True),
     "rotate_relative_position": Strategy("eqn.12c", rotates_rows=True),
+    "yield": Strategy("eqn.13 + right of way", yield_target, needs_reference=True, stateful=True),
 }
 """Strategy registry: name -> :class:`Strategy`; adding one is a function and a line here."""

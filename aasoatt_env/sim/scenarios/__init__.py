@@ -9,17 +9,22 @@ from aasoatt_env.errors import ScenarioError, UnknownKeywordError
 from aasoatt_env.sim.scenarios.base import Layout, Scenario, max_robots_on_circle
 from aasoatt_env.sim.scenarios.circle_obstacles import FIG5_OBSTACLES, CircleSwapObstacles
 from aasoatt_env.sim.scenarios.circle_swap import CircleSwap
+from aasoatt_env.sim.scenarios.corridor import Corridor
 from aasoatt_env.sim.scenarios.custom import Custom
+from aasoatt_env.sim.scenarios.doorway import Doorway
+from aasoatt_env.sim.scenarios.obstacle_field import ObstacleField
 from aasoatt_env.sim.scenarios.position_swap import PositionSwap
 from aasoatt_env.sim.scenarios.random_goals import RandomGoals
 from aasoatt_env.sim.scenarios.tracking import Tracking
 from aasoatt_env.validation import reject_unknown
 
-__all__ = ["FIG5_OBSTACLES", "SCENARIOS", "CircleSwap", "CircleSwapObstacles", "Custom", "Layout", "PositionSwap",
-           "RandomGoals", "Scenario", "Tracking", "get_scenario", "max_robots_on_circle"]
+__all__ = ["FIG5_OBSTACLES", "SCENARIOS", "CircleSwap", "CircleSwapObstacles", "Corridor", "Custom", "Doorway",
+           "Layout", "ObstacleField", "PositionSwap", "RandomGoals", "Scenario", "Tracking", "get_scenario",
+           "max_robots_on_circle"]
 
 SCENARIOS: dict[str, type[Scenario]] = {
-    cls.name: cls for cls in (CircleSwap, CircleSwapObstacles, Tracking, PositionSwap, RandomGoals, Custom)
+    cls.name: cls for cls in (CircleSwap, CircleSwapObstacles, Tracking, PositionSwap, RandomGoals, Custom, Corridor,
+                              Doorway, ObstacleField)
 }
 """Scenario registry: name -> class."""
 

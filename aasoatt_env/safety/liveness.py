@@ -1,0 +1,228 @@
+"""The ``yield`` deadlock strategy: eqn.13 plus right of way by priority, the yielder retracing its own trail.
+
+A local rule on the QP's target only (the barrier rows, hence safety, stay the filter's):
+
+1. **Stall.** A robot farther than :data:`STALL_ERROR` from its reference point that has stayed within
+   :data:`STALL_DISTANCE` of one point for :data:`STALL_TIME` is stalled.  A robot within ``goal_tol`` of its
+   reference point with ``|v_d| < low_speed`` is done.
+2. **Blocking.** Robot ``j`` blocks ``i`` when it lies within 60 degrees of the direction ``i`` wants to go
+   (toward ``p_d``; see rule 4 for the others) and either wants to go the other way (directions more than
+   90 degrees apart) with a surface gap below :data:`PUSH_GAP`, or is done with a gap below :data:`CONTACT_GAP`.
+3. **Right of way.** Priorities are strict: robot index, every robot done after every robot not done; a yielder
+   carries the priority it inherited.  A stalled or yielding robot ``i`` blocked by ``j`` of lower priority makes
+   ``j`` yield, and ``j`` inherits ``i``'s priority (priority inheritance, as in PIBT): a yielder that backs into
+   its own group makes that robot yield too, so a whole group backs out of a one-lane passage.  A yielder keeps
+   yielding while a robot of its inherited priority or higher heads for it within :data:`KEEP_GAP`, and
+   :data:`HOLD_TIME` after that.
+4. **Retreat and return.** A yielder tracks the last point of its own trail (its positions every
+   :data:`TRAIL_STEP`, recorded while it tracks its reference: ground it has covered, clear of static
+   obstacles), dropping the points it reaches; with its trail used up, or leading back toward its pusher, it
+   steps to the right of its push.  Once it
+   yields no more it goes forward along the same trail to where it began to yield (the straight line from where it
+   retreated to its reference point may cross a wall), then tracks its reference again.
+5. **Follow.** A stalled robot that pushes nobody, with no robot ahead within twice :data:`CONTACT_GAP` and an
+   obstacle within :data:`CONTACT_GAP` ahead, follows the boundary of the obstacles (the tangent of the nearest,
+   hugging it) for :data:`ESCAPE_TIME`, first on the side nearer its way; if it stalls again before it has
+   tracked its reference closely, it follows the other way round for twice as long, and so on (up to 8 times
+   :data:`ESCAPE_TIME`), as in a bug algorithm.
+6. A robot under rules 4 or 5 tracks a point ``g`` (within :data:`LOOKAHEAD`) instead of its reference: its
+   target is the tracking law (eqn.11) toward ``g`` at rest there, ``-(k3 + k4) v - k3 k4 (p - g)`` less the
+   drift ``A_dot u``; every other robot keeps its nominal.  eqn.13 then acts on the triggered robots as in
+   ``auxiliary_velocity``, with ``(g, 0)`` for ``(p_d, v_d)`` where a robot tracks ``g``.
+
+Every decision is a function of the step's state and this memory (no clock, no randomness); the rule reads the
+pairs within the sensing range only, so the decentralised filter runs it unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from aasoatt_env.safety.deadlock import TargetContext
+
+__all__ = ["CONTACT_GAP", "ESCAPE_TIME", "HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "PUSH_GAP", "REFERENCE_RADIUS",
+           "STALL_DISTANCE", "STALL_ERROR", "STALL_TIME", "TRAIL_STEP", "YieldMemory", "yield_target"]
+
+REFERENCE_RADIUS: float = 0.48
+"""[m] The lengths below are for a robot of this radius (the paper's); each robot's scale with its radius."""
+STALL_TIME: float = 2.0  #: [s] without leaving a disc of :data:`STALL_DISTANCE`: stalled
+STALL_DISTANCE: float = 0.1  #: [m]
+STALL_ERROR: float = 0.5  #: [m] a robot closer than this to its reference point is tracking, not stalled
+PUSH_GAP: float = 2.0  #: [m] surface gap under which an oncoming robot ahead blocks
+CONTACT_GAP: float = 0.3  #: [m] surface gap under which an obstacle, or a robot done at its goal, ahead blocks
+KEEP_GAP: float = 2.0  #: [m] a yielder keeps yielding while its pusher is this close
+HOLD_TIME: float = 5.0  #: [s] a yielder keeps yielding after its last push
+ESCAPE_TIME: float = 6.0  #: [s] a robot stalled at an obstacle slides along it this long
+TRAIL_STEP: float = 0.25  #: [m] spacing of the trail's points
+LOOKAHEAD: float = 0.6  #: [m] a yielder drops the trail points closer than this
+TRAIL_POINTS: int = 256  #: points kept per robot (the oldest are dropped)
+_COS_AHEAD = 0.5  # cos(60 deg)
+
+
+@dataclass
+class YieldMemory:
+    """What the ``yield`` rule remembers per robot between steps."""
+
+    anchor: np.ndarray  #: ``(N, 2)`` where the stall clock started
+    still: np.ndarray  #: ``(N,)`` steps spent within STALL_DISTANCE of ``anchor``
+    rank: np.ndarray  #: ``(N,)`` the inherited priority of a yielder (``inf``: not yielding)
+    hold: np.ndarray  #: ``(N,)`` steps of yielding left
+    away: np.ndarray  #: ``(N, 2)`` unit vector from the last pusher toward the yielder
+    trail: np.ndarray  #: ``(N, TRAIL_POINTS, 2)``
+    count: np.ndarray  #: ``(N,)`` trail points in use
+    cursor: np.ndarray  #: ``(N,)`` where on its trail a robot is (``count``: at its end, tracking its reference)
+    escape: np.ndarray  #: ``(N,)`` steps of following obstacles left
+    slide: np.ndarray  #: ``(N, 2)`` the direction it follows them in
+    hand: np.ndarray  #: ``(N,)`` +1: obstacles on its left, -1: on its right
+    tries: np.ndarray  #: ``(N,)`` follows since the robot last tracked its reference closely
+
+    @classmethod
+    def empty(cls, p: np.ndarray) -> YieldMemory:
+        """No history: the stall clocks start now, no trail, nobody yielding."""
+        n = p.shape[0]
+        return cls(p.copy(), np.zeros(n, np.int64), np.full(n, np.inf), np.zeros(n, np.int64), np.zeros((n, 2)),
+                   np.zeros((n, TRAIL_POINTS, 2)), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64),
+                   np.zeros((n, 2)), np.zeros(n), np.zeros(n, np.int64))
+
+    def forget(self, rows: np.ndarray) -> None:
+        """Start robots ``rows`` afresh (their team starts an episode; the stall clock restarts at the next step)."""
+        self.anchor[rows], self.still[rows], self.rank[rows] = np.nan, 0, np.inf
+        self.hold[rows], self.count[rows], self.cursor[rows], self.escape[rows], self.tries[rows] = 0, 0, 0, 0, 0
+
+
+def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    norm = np.sqrt(x[:, 0] * x[:, 0] + x[:, 1] * x[:, 1])
+    return x / np.maximum(norm, 1e-12)[:, None], norm
+
+
+def _record(m: YieldMemory, p: np.ndarray, yielding: np.ndarray, scale: np.ndarray) -> None:
+    """Append ``p`` to the trail of robots on it (cursor at its end, not yielding) that moved TRAIL_STEP from it."""
+    rows = np.arange(p.shape[0])
+    last = m.trail[rows, np.maximum(m.count - 1, 0)]
+    rec = ~yielding & (m.cursor == m.count) & ((m.count == 0) | (_unit(p - last)[1] >= TRAIL_STEP * scale))
+    full = rec & (m.count == TRAIL_POINTS)
+    if full.any():
+        m.trail[full] = np.roll(m.trail[full], -1, axis=1)
+        m.count[full] -= 1
+        m.cursor[full] -= 1
+    m.trail[rows[rec], m.count[rec]] = p[rec]
+    m.count[rec] += 1
+    m.cursor[rec] = m.count[rec]
+
+
+def _robot_pairs(c: TargetContext) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Robot pairs in both orders ``(i, j)``, the unit vectors from ``i`` to ``j`` and the surface gaps."""
+    robots = c.robot_pairs
+    i, j = np.concatenate((robots[:, 0], robots[:, 1])), np.concatenate((robots[:, 1], robots[:, 0]))
+    u, dist = _unit(c.p[j] - c.p[i])
+    return i, j, u, dist - c.radius[i] - c.radius[j]
+
+
+def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarray, done: np.ndarray,
+          hold_steps: int) -> np.ndarray:
+    """Rules 2 and 3: who yields, with which priority, away from whom.
+
+    Returns the robots pushing, or with a robot ahead within twice CONTACT_GAP (rule 5 leaves them be).
+    """
+    n = want.shape[0]
+    prio = np.arange(n) + n * done
+    yielding = m.hold > 0
+    eff = np.where(yielding, np.minimum(m.rank, prio), prio)
+    i, j, u, gap = _robot_pairs(c)
+    pushed_rank = np.full(n, np.inf)
+    ahead = np.einsum("ij,ij->i", u, want[i])
+    facing = np.einsum("ij,ij->i", want[i], want[j])
+    si = c.radius[i] / REFERENCE_RADIUS
+    blocks = ((facing < 0.0) & (gap < PUSH_GAP * si)) | (done[j] & (gap < CONTACT_GAP * si))
+    new = (ahead > _COS_AHEAD) & (stalled[i] | yielding[i]) & blocks
+    keep = (gap < KEEP_GAP * si) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
+    hit = (eff[i] < eff[j]) & (new | keep)
+    np.minimum.at(pushed_rank, j[hit], eff[i][hit])
+    strongest = hit & (eff[i] == pushed_rank[j])
+    m.away[j[strongest]] = u[strongest]
+    pushed = np.isfinite(pushed_rank)
+    m.rank = np.where(pushed, np.minimum(np.where(yielding, m.rank, np.inf), pushed_rank), m.rank)
+    m.hold = np.where(pushed, hold_steps, np.maximum(m.hold - 1, 0))
+    m.rank[m.hold == 0] = np.inf
+    crowded = np.zeros(n, dtype=bool)  # pushing, or behind a robot in its way
+    crowded[i[hit | ((ahead > _COS_AHEAD) & (gap < 2.0 * CONTACT_GAP * si))]] = True
+    return crowded
+
+
+def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.ndarray, scale: np.ndarray
+                 ) -> np.ndarray:
+    """Rule 4: the point each robot tracks: a yielder back along its trail, then forward again to where it began."""
+    rows, ahead = np.arange(p.shape[0]), LOOKAHEAD * scale
+    for _ in range(2):  # (a point or two per step: the points are TRAIL_STEP apart)
+        back, fwd = np.maximum(m.cursor - 1, 0), np.minimum(m.cursor, TRAIL_POINTS - 1)
+        m.cursor -= yielding & (m.cursor > 0) & (_unit(p - m.trail[rows, back])[1] < ahead)
+        m.cursor += ~yielding & (m.cursor < m.count) & (_unit(p - m.trail[rows, fwd])[1] < ahead)
+    back, fwd = np.maximum(m.cursor - 1, 0), np.minimum(m.cursor, TRAIL_POINTS - 1)
+    side = p + ahead[:, None] * np.stack((m.away[:, 1], -m.away[:, 0]), axis=1)
+    trail = m.trail[rows, back]
+    back_ok = yielding & (m.cursor > 0) & (np.einsum("ij,ij->i", trail - p, m.away) >= 0.0)  # (not toward the push)
+    out = np.where(back_ok[:, None], trail, side)
+    out = np.where((~yielding & (m.cursor < m.count))[:, None], m.trail[rows, fwd], out)
+    return np.where((~yielding & (m.cursor == m.count))[:, None], p_d, out)
+
+
+def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarray, steps: int) -> np.ndarray:
+    """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the obstacles' boundary for a while."""
+    if c.obstacles is not None and c.obstacle_pairs.shape[0]:
+        i, k = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
+        u, dist = _unit(c.obstacles[0][k] - c.p[i])
+        gap = dist - c.radius[i] - c.obstacles[1][k]
+        near = np.full(want.shape[0], np.inf)
+        np.minimum.at(near, i, gap)
+        nearest, right = gap == near[i], np.stack((u[:, 1], -u[:, 0]), axis=1)
+        ahead = np.einsum("ij,ij->i", u, want[i])
+        score = np.where(stuck[i] & (m.escape[i] == 0) & (gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS)
+                         & (ahead > 0.0), ahead, -np.inf)
+        best = np.full(want.shape[0], -np.inf)
+        np.maximum.at(best, i, score)
+        first = np.isfinite(score) & (score == best[i])  # the obstacle most in the way among those in contact
+        hand = np.where(np.einsum("ij,ij->i", right, want[i]) >= 0.0, 1.0, -1.0) * (1 - 2 * (m.tries[i] % 2))
+        m.hand[i[first]] = hand[first]
+        m.escape[i[first]] = steps << np.minimum(m.tries[i[first]], 3)
+        m.tries[i[first]] += 1
+        follow = (m.escape[i] > 0) & nearest
+        m.slide[i[follow]] = _unit(m.hand[i[follow], None] * right[follow] + 0.3 * u[follow])[0]
+    m.escape = np.maximum(m.escape - 1, 0)
+    return m.escape > 0
+
+
+def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetContext) -> np.ndarray:
+    """The ``yield`` strategy's target (the module's rules 1 to 5); updates ``c.memory.liveness``."""
+    p_d, v_d = c.reference  # type: ignore[misc]
+    n = c.p.shape[0]
+    m = c.memory.liveness if c.memory is not None else None  # type: ignore[union-attr]
+    if m is None or m.anchor.shape[0] != n:
+        m = YieldMemory.empty(c.p)
+        if c.memory is not None:
+            c.memory.liveness = m
+    steps = lambda seconds: max(1, int(round(seconds / c.cfg.dt)))  # noqa: E731
+    scale = c.radius / REFERENCE_RADIUS
+    left = ~(_unit(c.p - m.anchor)[1] <= STALL_DISTANCE * scale)  # (NaN anchor: forgotten)
+    m.anchor[left], m.still = c.p[left], np.where(left, 0, m.still + 1)
+    done = (_unit(c.p - p_d)[1] <= c.cfg.goal_tol) & (_unit(v_d)[1] < c.cfg.low_speed)
+    tracking = _unit(c.p - p_d)[1] <= STALL_ERROR * scale
+    stalled = (m.still >= steps(STALL_TIME)) & ~tracking
+    m.tries[tracking] = 0
+    yielding = m.hold > 0
+    _record(m, c.p, yielding, scale)
+    want = _unit(_trail_point(m, c.p, p_d, yielding, scale) - c.p)[0]
+    crowded = _push(m, c, want, stalled, done, steps(HOLD_TIME))
+    yielding = m.hold > 0
+    g = _trail_point(m, c.p, p_d, yielding, scale)
+    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME)) & ~yielding
+    g = np.where(sliding[:, None], c.p + (LOOKAHEAD * scale)[:, None] * m.slide, g)
+    off = yielding | (m.cursor < m.count) | sliding
+    g_v = np.where(off[:, None], 0.0, v_d)
+    toward = -(c.k3 + c.k4) * c.v - c.k3 * c.k4 * (c.p - g) - c.adot  # the tracking law toward g at rest there
+    out = np.where(off[:, None], toward, target)
+    e = c.v - g_v + c.k3 * (c.p - g)
+    return out - zeta[:, None] * (e @ Q.T)

@@ -1,0 +1,165 @@
+"""The ``yield`` deadlock strategy's rules on hand-built states, the liveness scenarios and metrics, a closed loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from aasoatt_env import FilterConfig, make_env
+from aasoatt_env.analysis.metrics import arrival_times, liveness, pairwise_min_distance
+from aasoatt_env.analysis.recording import run_episode
+from aasoatt_env.errors import ConfigError, ScenarioError
+from aasoatt_env.safety import liveness as L
+from aasoatt_env.safety.deadlock import STRATEGIES, DeadlockState, TargetContext
+from aasoatt_env.sim.scenarios import SCENARIOS, get_scenario
+from tests.test_metrics import make_rollout
+
+CFG = FilterConfig(deadlock="yield")
+STALLED = int(round(L.STALL_TIME / CFG.dt))
+
+
+def _step(p, p_d, memory, *, v=None, obstacles=None, obstacle_pairs=None, radius=0.48):
+    """One call of the strategy on robots at rest: every robot pair in range, the tracking law's target, no trigger."""
+    p, p_d = np.asarray(p, float), np.asarray(p_d, float)
+    n = p.shape[0]
+    pairs = np.array([(i, j) for i in range(n) for j in range(i + 1, n)], dtype=np.intp).reshape(-1, 2)
+    ctx = TargetContext(np.zeros((n, 2)) if v is None else v, p, (p_d, np.zeros((n, 2))), CFG.k3, CFG.k4, memory,
+                        pairs, np.zeros((0, 2), np.intp) if obstacle_pairs is None else obstacle_pairs, obstacles,
+                        np.full(n, radius), np.zeros((n, 2)), CFG)
+    nominal = -CFG.k3 * CFG.k4 * (p - p_d)  # the tracking law at rest (eqn.11): what the target is corrected from
+    return STRATEGIES["yield"].correct_target(nominal, np.zeros(n), np.eye(2), ctx)
+
+
+def _stalled_memory(p):
+    state = DeadlockState()
+    state.liveness = L.YieldMemory.empty(np.asarray(p, float))
+    state.liveness.still[:] = STALLED
+    return state
+
+
+def test_registered_opt_in_and_the_default_unchanged():
+    assert FilterConfig().deadlock == "auxiliary_velocity"
+    s = STRATEGIES["yield"]
+    assert s.stateful and s.needs_reference and not s.rotates_rows
+
+
+def test_lower_priority_of_two_facing_stalled_robots_yields():
+    p = [[0.0, 0.0], [1.2, 0.0]]  # gap 0.24 m, facing: robot 0 wants +x, robot 1 wants -x
+    state = _stalled_memory(p)
+    _step(p, [[9.0, 0.0], [-9.0, 0.0]], state)
+    m = state.liveness
+    assert m.hold[0] == 0 and m.hold[1] > 0 and m.rank[1] == 0.0
+    np.testing.assert_allclose(m.away[1], [1.0, 0.0])
+
+
+def test_a_queue_in_one_direction_does_not_yield():
+    p = [[0.0, 0.0], [1.2, 0.0]]
+    state = _stalled_memory(p)
+    _step(p, [[9.0, 0.0], [9.0, 0.2]], state)
+    assert not (state.liveness.hold > 0).any()
+
+
+def test_priority_is_inherited_down_a_chain():
+    # robot 1 yields to robot 0 and retreats along its trail toward robot 2, which wants to go where 1 came from
+    p = [[0.0, 0.0], [1.2, 0.0], [2.4, 0.0]]
+    state = _stalled_memory(p)
+    m = state.liveness
+    m.trail[1, :3] = [[3.0, 0.0], [2.0, 0.0], [1.5, 0.0]]
+    m.count[1] = m.cursor[1] = 3
+    m.hold[1], m.rank[1] = 10, 0.0
+    m.still[2] = 0  # robot 2 moves: it is pushed by the yielder, not stalled
+    target = _step(p, [[9.0, 0.0], [-9.0, 0.0], [-9.0, 0.0]], state)
+    assert m.hold[2] > 0 and m.rank[2] == 0.0
+    assert target[1, 0] > 0.0  # the yielder accelerates back along its trail (+x)
+
+
+def test_a_done_robot_in_the_way_is_pushed_only_on_contact():
+    goal = [[9.0, 0.0], [1.2, 0.0]]
+    for x, pushed in ((1.2, True), (2.0, False)):  # gaps 0.24 m and 1.04 m
+        p = [[0.0, 0.0], [x, 0.0]]
+        state = _stalled_memory(p)
+        _step(p, [goal[0], [x, 0.0]], state)
+        assert (state.liveness.hold[1] > 0) == pushed
+
+
+def test_the_yielder_at_the_end_of_its_trail_steps_to_the_right_of_the_push():
+    p = [[0.0, 0.0], [1.2, 0.0]]
+    state = _stalled_memory(p)
+    target = _step(p, [[9.0, 0.0], [-9.0, 0.0]], state)  # robot 1: no trail
+    assert target[1, 1] < 0.0 and abs(target[1, 0]) < 1e-9  # pushed toward +x: its right is -y
+
+
+def test_a_robot_stalled_at_an_obstacle_slides_along_it_toward_its_goal():
+    p = [[0.0, 0.0]]
+    state = _stalled_memory(p)
+    obstacles = (np.array([[1.0, 0.1]]), np.array([0.3]))  # gap 0.225 m, centre slightly left of the way
+    target = _step(p, [[5.0, 0.0]], state, obstacles=obstacles, obstacle_pairs=np.array([[0, 0]]))
+    assert state.liveness.escape[0] > 0
+    assert target[0, 1] < 0.0  # around the obstacle on the side nearer the goal
+
+
+def test_lone_robot_on_its_reference_is_untouched():
+    state = DeadlockState()
+    target = _step([[0.0, 0.0]], [[0.5, 0.0]], state)
+    np.testing.assert_array_equal(target, [[CFG.k3 * CFG.k4 * 0.5, 0.0]])
+
+
+@pytest.mark.parametrize("name", ["corridor", "doorway", "obstacle_field"])
+def test_scenarios_registered_and_seeded(name):
+    assert name in SCENARIOS
+    sc = get_scenario(name)
+    a, b, c = (sc.build(np.random.default_rng(s)) for s in (1, 1, 2))
+    np.testing.assert_array_equal(a.starts, b.starts)
+    np.testing.assert_array_equal(a.obstacle_centers, b.obstacle_centers)
+    assert a.obstacle_radii.size > 0
+    if name != "corridor":  # (the corridor is the same for every seed)
+        assert not np.array_equal(a.starts, c.starts)
+
+
+def test_corridor_walls_leave_the_stated_width():
+    c, r = get_scenario("corridor", width=1.6, flange=0.0).obstacles()
+    inner = np.abs(c[:, 1]) - r
+    np.testing.assert_allclose(inner.min(), 0.8)
+
+
+@pytest.mark.parametrize("name, kwargs, match", [
+    ("corridor", dict(width=0.9), "width: got 0.9 m, but a robot is 0.96 m across"),
+    ("corridor", dict(left=0, right=0), "left, right: got 0 and 0 robots"),
+    ("corridor", dict(flange=-1.0), "flange"),
+    ("doorway", dict(door=0.5), "door: got 0.5 m"),
+    ("doorway", dict(left=40, room=3.0), "do not fit in a room"),
+    ("obstacle_field", dict(density=0.9), "density"),
+    ("obstacle_field", dict(radii=(0.8, 0.3)), "radii: got"),
+])
+def test_scenario_errors(name, kwargs, match):
+    with pytest.raises((ConfigError, ScenarioError), match=match):
+        get_scenario(name, **kwargs)
+
+
+def test_arrival_times_and_makespan():
+    x = np.array([0.0, 0.5, 1.0, 1.0, 0.9, 1.0, 1.0])  # robot 0 home at step 5 (it left once); robot 1 never
+    pos = np.stack([np.stack((x, np.zeros(7)), axis=1), np.zeros((7, 2))], axis=1)
+    ref = pos.copy()
+    ref[:, 0, 0] = np.minimum(np.arange(7) * 0.5, 1.0)
+    ro = make_rollout(pos, references=ref, goals=np.array([[1.0, 0.0], [3.0, 0.0]]))
+    np.testing.assert_allclose(arrival_times(ro, 0.05), [0.5, np.nan])
+    live = liveness(ro, goal_tolerance=0.05)
+    assert live["home"] == 1 and live["makespan"] is None and live["makespan_ratio"] is None
+    ro1 = make_rollout(pos[:, :1], references=ref[:, :1], goals=np.array([[1.0, 0.0]]))
+    live = liveness(ro1, goal_tolerance=0.05)
+    assert live["makespan"] == pytest.approx(0.5)
+    assert live["lower_bound"] == pytest.approx(0.2)  # 1 m at the reference's 5 m/s
+    assert live["makespan_ratio"] == pytest.approx(2.5)
+
+
+@pytest.mark.parametrize("mode", ["centralized", pytest.param("decentralized", marks=pytest.mark.slow)])
+def test_one_lane_corridor_closed_loop_all_home(mode):
+    from agents import TrackingController
+
+    env = make_env(filter=FilterConfig(mode=mode, deadlock="yield"), scenario="corridor", width=1.6, left=1,
+                   right=1, length=4.0, approach=2.0, flange=3.0, duration=15.0, settle_time=35.0)
+    ro, _ = run_episode(env, TrackingController(), seed=0)
+    live = liveness(ro, goal_tolerance=0.05)
+    assert live["home"] == 2 and live["makespan_ratio"] >= 1.0
+    sep = pairwise_min_distance(ro)
+    assert min(sep.overall_min_robot_gap, sep.overall_min_obstacle_gap) > -1e-3
