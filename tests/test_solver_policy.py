@@ -44,7 +44,7 @@ def test_the_route_is_a_table_of_sizes_and_back_ends():
     assert [k for k, _ in pol.route("ldp", 40)] == ["ldp"]
     if HAS_DAQP:
         assert pol.route("daqp", 40) == [("daqp", {})]  # as configured: the box as rows
-        assert pol.route("proxsuite", 40)[0] == ("daqp", {"simple_bounds": True})
+        assert pol.route("proxsuite", 40)[0] == ("daqp", {"simple_bounds": True, "warm_start": True})
 
 
 def test_a_stalling_back_end_is_not_asked_where_the_exact_route_answers(monkeypatch):
@@ -102,8 +102,11 @@ def test_the_loosened_problem_gets_one_exact_attempt_then_the_phase_one_point(mo
     first = "daqp" if HAS_DAQP else "ldp"
     real = backends.SOLVERS[first]
 
-    def fails_when_loosened(prob, x0, z0, opts):  # (the loosened call alone asks for the step's warm working set)
-        if opts.get("warm_start"):
+    qp_calls = []
+
+    def fails_when_loosened(prob, x0, z0, opts):  # (the QP's size, asked a second time: the loosened problem)
+        qp_calls.append(prob.n == 6)
+        if sum(qp_calls) == 2 and qp_calls[-1]:
             return backends.RawAnswer(None, None, False, 3, f"{first}: failed")
         return real.solve(prob, x0, z0, opts)
 
@@ -136,8 +139,9 @@ def test_daqp_warm_started_from_the_working_set_answers_as_cold(monkeypatch):
     x0 = np.array([3.0, 0.0, -3.0, 0.0, 0.5, 0.25])  # robot 0 at its upper bound in x, robot 1 at its lower one
     z0 = np.array([0.0, 2.0, 1e-12, 0.0, 0.0, 0.5])  # (1e-12: a solver's rest on a slack row, below the cut)
     opts = dict(backends.SOLVERS["daqp"].route_options)
-    cold = backends.SOLVERS["daqp"](prob, x0, z0, opts)
-    warm = backends.SOLVERS["daqp"](prob, x0, z0, {**opts, "warm_start": True})
+    assert opts["warm_start"]  # (the route asks for it)
+    cold = backends.SOLVERS["daqp"](prob, x0, z0, {**opts, "warm_start": False})
+    warm = backends.SOLVERS["daqp"](prob, x0, z0, opts)
     assert starts[0] is None
     np.testing.assert_array_equal(starts[1], [1, 0, -1, 0, 0, 0, 0, 1, 0, 0, 0, 1])
     assert cold.ok and warm.ok
@@ -217,3 +221,25 @@ def test_training_stacks_behind_the_filter_on_a_slow_machine(monkeypatch):
     ticks = iter(range(10**9))
     monkeypatch.setattr(time, "perf_counter", lambda: 60.0 * next(ticks))
     assert run().tobytes() == normal.tobytes()
+
+
+@pytest.mark.parametrize("upper", [None, 2.0])  # inconsistent rows; consistent ones
+def test_after_a_relaxed_step_phase_one_goes_first_with_the_same_answer(monkeypatch, upper):
+    """``relaxed=True`` (the previous step's rows were inconsistent): phase 1 before the route, which is asked only
+    where phase 1 finds the rows consistent; the answer is bit for bit the route-first one."""
+    prob = _contradiction(3) if upper is None else _contradiction(3, upper=upper)
+    policy = pol.SolverPolicy("proxsuite", active_set=False)
+    asked = _spy(monkeypatch)
+    first = policy.solve(prob, None, None)
+    route_first = list(asked)
+    asked.clear()
+    again = policy.solve(prob, None, None, relaxed=True)
+    assert (again.status, again.slack) == (first.status, first.slack)
+    np.testing.assert_array_equal(again.x, first.x)
+    np.testing.assert_array_equal(again.z, first.z)
+    if upper is None:
+        assert first.status == "relaxed" and len(asked) == len(route_first) - 1  # (no proof of infeasibility)
+        assert again.message.startswith("phase 1 first (the previous step was relaxed); phase 1: largest row")
+    else:
+        assert first.status == "solved" and len(asked) == len(route_first) + 1  # (phase 1, then the route)
+        assert again.message == first.message

@@ -64,7 +64,7 @@ def solve_rows(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.n
     prob = build_problem(A[sub], target[sub], lo[sub], hi[sub], scale[sub], remap[qri],
                          np.where(qrj >= 0, remap[np.maximum(qrj, 0)], -1), rows.Gi[sel], rows.Gj[sel], rows.rhs[sel])
     x0 = None if warm.x is None else warm.x[sub].ravel()
-    sol = policy.solve(prob, x0, None if warm.z is None else warm.z[sel], groups)
+    sol = policy.solve(prob, x0, None if warm.z is None else warm.z[sel], groups, warm.relaxed)
     xs = sol.x if sol.x is not None and np.all(np.isfinite(sol.x)) else np.zeros(prob.n)
     x = du / scale[:, None]
     du[sub] = np.clip((xs * prob.scale).reshape(-1, 2), lo[sub], hi[sub])

@@ -153,7 +153,7 @@ class SafetyFilter:
         elif not hasattr(self, "team"):
             self.team = None
         self._dl = DeadlockState()
-        self._fuse = True
+        self._fuse, self._relaxed = True, False
         self._x: np.ndarray | None = None
         self._keys = np.empty(0, dtype=np.int64)
         self._key_robots = np.empty((0, 2), dtype=np.intp)
@@ -316,7 +316,8 @@ class SafetyFilter:
             pos = np.minimum(np.searchsorted(self._keys, rows.keys), self._keys.shape[0] - 1)
             hit = self._keys[pos] == rows.keys
             z0[hit] = self._z[pos[hit]]
-        return Warm(self._x, z0, self._fuse and self._fused is None)  # (the fused step's QP is the compiled solve's)
+        # (the fused step's QP is the compiled solve's)
+        return Warm(self._x, z0, self._fuse and self._fused is None, self._relaxed)
 
     def _remember(self, rows: Rows, ans: Answer) -> None:
         """The next step's warm start (rows in increasing key order) and the deadlock memory."""
@@ -325,6 +326,7 @@ class SafetyFilter:
             order = np.argsort(keys, kind="stable")
             keys, z, robots = keys[order], z[order], robots[order]
         self._x, self._keys, self._z, self._key_robots = ans.x, keys, z, robots
+        self._relaxed = ans.status == "relaxed"
         self._dl.avoiding = ans.avoiding
 
     def _bound_team(self) -> Team:

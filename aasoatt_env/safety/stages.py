@@ -41,6 +41,7 @@ class Warm(NamedTuple):
     z: np.ndarray | None  #: ``(m,)`` scaled row multipliers (0 on rows new at this step)
     #: try the compiled solve first (not where it failed at this step already, nor after a step it did not answer)
     compiled: bool = True
+    relaxed: bool = False  #: the previous step's rows were inconsistent (its status ``"relaxed"``): phase 1 first
 
 
 class Answer(NamedTuple):

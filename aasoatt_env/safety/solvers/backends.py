@@ -111,9 +111,9 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
         warm["dual_start"] = np.concatenate((W[m:m + n].astype(float) - W[m + n:], W[:m].astype(float)))
     x, _, flag, info = daqp.solve(prob.H_dense(), prob.g, A, np.concatenate((prob.ub, prob.u)),
                                   np.concatenate((prob.lb, np.full(m, -1e30))), np.zeros(n + m, dtype=ctypes.c_int),
-                                  iter_limit=ITER_LIMIT["daqp"], **warm)
+                                  iter_limit=ITER_LIMIT["daqp"], pivot_tol=opts.get("pivot_tol", 1e-8), **warm)
     lam = np.maximum(np.asarray(info.get("lam", np.zeros(n + m)))[n:], 0.0)  # (bounds first, then the rows)
-    return RawAnswer(np.asarray(x), lam, flag >= 1, int(info.get("iter", 0)), f"daqp exitflag {flag}",
+    return RawAnswer(np.asarray(x), lam, flag >= 1, int(info.get("iterations", 0)), f"daqp exitflag {flag}",
                      infeasible=flag == -1)
 
 
@@ -229,7 +229,7 @@ SOLVERS: dict[str, Backend] = {
     "quadprog": Backend(_quadprog, "quadprog"),
     "clarabel": Backend(_clarabel, "clarabel"),
     "osqp": Backend(_osqp, "osqp"),
-    "daqp": Backend(_daqp, "daqp", route_options=(("simple_bounds", True),)),
+    "daqp": Backend(_daqp, "daqp", route_options=(("simple_bounds", True), ("warm_start", True))),
     "cvxopt": Backend(_cvxopt, "cvxopt"),
 }
 """Solver registry: name -> :class:`Backend`.  Adding a solver is one function and one line here."""

@@ -82,8 +82,11 @@ class SolverPolicy:
         return get_solver(self.solver).exact
 
     def solve(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None,
-              groups: np.ndarray | None = None) -> QPSolution:
-        """Solve ``prob`` warm-started from ``(x0, z0)``; ``groups`` ``(N,)``: independent parts (no row joins two)."""
+              groups: np.ndarray | None = None, relaxed: bool = False) -> QPSolution:
+        """Solve ``prob`` warm-started from ``(x0, z0)``; ``groups`` ``(N,)``: independent parts (no row joins two).
+
+        ``relaxed``: the previous step's rows were inconsistent, so phase 1 goes before the route (:meth:`_routed`).
+        """
         backend = get_solver(self.solver)
         if prob.m == 0 and prob.diagonal and backend.exact:
             return QPSolution(np.clip(_unconstrained(prob), prob.lb, prob.ub), np.zeros(0), "solved", 0.0, 0, "no rows")
@@ -91,23 +94,23 @@ class SolverPolicy:
             raw = backend(prob, x0, z0, {"iterations": self.iterations})
             return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message, exact=False)
         if not (self.active_set and x0 is not None and z0 is not None):
-            return self._routed(prob, x0, z0)
+            return self._routed(prob, x0, z0, relaxed)
         part = solve_active_set_parts(prob, x0, z0, groups, compiled=self.compiled,
                                       one_change_iter=self.one_change_iter)
         if part is None or not part.ok.any():
-            sol = self._routed(prob, x0, z0)
+            sol = self._routed(prob, x0, z0, relaxed)
             sol.iterations += 0 if part is None else part.iterations
             return sol
         if part.ok.all():
             return QPSolution(part.x, part.z, "solved", 0.0, part.iterations, VERIFIED_MESSAGE)
-        return self._rest(prob, x0, z0, groups, part)
+        return self._rest(prob, x0, z0, groups, part, relaxed)
 
     def _rest(self, prob: QPProblem, x0: np.ndarray, z0: np.ndarray, groups: np.ndarray,
-              part: ActiveSetParts) -> QPSolution:
+              part: ActiveSetParts, relaxed: bool) -> QPSolution:
         """The parts the active set verified, and the route's answer on the others as one problem."""
         robots, rows = ~part.ok[groups], ~part.ok[part.row_group]
         v = np.repeat(robots, 2)
-        rest = self._routed(prob.restrict(robots, rows), x0[v], z0[rows])
+        rest = self._routed(prob.restrict(robots, rows), x0[v], z0[rows], relaxed)
         x, z = part.x.copy(), part.z.copy()
         x[v], z[rows] = rest.x, rest.z
         return QPSolution(x, z, rest.status, rest.slack, part.iterations + rest.iterations,
@@ -118,11 +121,10 @@ class SolverPolicy:
         """The route's first verified answer, or the last answer (not ok) with every message.
 
         Another back-end's answer is taken verified only; the configured one's also unverified where deterministic.
-        ``loosened``: the route's first solver alone, with the step's warm working set as its start where it takes one.
+        ``loosened``: the route's first solver alone.  A solver that takes a warm start (DAQP) starts from the step's
+        warm working set: after the warm active set's polish, the same point as from a cold start, far sooner.
         """
-        steps = route(self.solver, prob.n)
-        if loosened:
-            steps = [(name, {**opts, "warm_start": True}) for name, opts in steps[:1]]
+        steps = route(self.solver, prob.n)[:1] if loosened else route(self.solver, prob.n)
         raw, iterations, notes = RawAnswer(None, None, False, 0, ""), 0, []
         for name, opts in steps:
             backend = get_solver(name)
@@ -141,12 +143,24 @@ class SolverPolicy:
         raw.iterations, raw.message = iterations, ", then ".join(notes)
         return raw
 
-    def _routed(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None) -> QPSolution:
-        """The route's answer; where it has none, phase 1 and the loosened problem (status ``"relaxed"``)."""
-        raw = self._ask(prob, x0, z0)
-        if raw.ok:
+    def _routed(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None,
+                phase1_first: bool = False) -> QPSolution:
+        """The route's answer; where it has none, phase 1 and the loosened problem (status ``"relaxed"``).
+
+        ``phase1_first``: phase 1 before the route, which is asked only where phase 1 finds the rows consistent (or
+        fails): the same answer, without the route's proof of infeasibility on a run of inconsistent steps.
+        """
+        raw = None if phase1_first else self._ask(prob, x0, z0)
+        if raw is not None and raw.ok:
             return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message)
         p1 = _phase1(prob, self.solver)
+        if raw is None:
+            if p1 is None or float(np.max(p1[1], initial=0.0)) <= _FEAS_TOL:
+                raw = self._ask(prob, x0, z0)
+                if raw.ok:
+                    return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message)
+            else:
+                raw = RawAnswer(None, None, False, 0, "phase 1 first (the previous step was relaxed)")
         if p1 is None:
             return QPSolution(np.clip(_unconstrained(prob), prob.lb, prob.ub), np.zeros(prob.m), "failed", 0.0,
                               raw.iterations, f"{raw.message}; phase 1 failed too")
@@ -190,7 +204,9 @@ def _phase1(prob: QPProblem, solver: str) -> tuple[np.ndarray, np.ndarray] | Non
     for name in _phase1_order(solver, p1.n):
         backend = get_solver(name)
         # (only the point's recomputed violations are used: an unpolished exact point is accepted looser)
-        raw = backend(p1, None, None, {"ldp_feas_tol": 1e-6, **({} if name == solver else dict(backend.route_options))})
+        # (DAQP's pivoting threshold below the regulariser's 1e-8: the same point, without a pivot per iteration)
+        opts = {"ldp_feas_tol": 1e-6, "pivot_tol": 1e-12}
+        raw = backend(p1, None, None, {**opts, **({} if name == solver else dict(backend.route_options))})
         if raw.ok and raw.x is not None and np.all(np.isfinite(raw.x)):
             x = np.clip(raw.x[:n], prob.lb, prob.ub)
             return x, np.maximum(prob.C @ x - prob.u, 0.0)
