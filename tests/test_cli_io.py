@@ -14,7 +14,9 @@ import pytest
 from aasoatt_env.analysis.rollout import Rollout
 from aasoatt_env.cli_support import PARTIAL, OutputPlan, atomic_write, progress, staged
 
-HEAVY = ("torch", "matplotlib", "numba", "stable_baselines3", "ray", "pygame", "imageio")
+# (scipy's modules below: a third of `aasoatt --help`'s time; asked by large teams and some solvers only)
+HEAVY = ("torch", "matplotlib", "numba", "stable_baselines3", "ray", "pygame", "imageio", "scipy.spatial",
+         "scipy.optimize", "scipy.sparse.linalg")
 
 
 def test_importing_the_command_line_loads_no_heavy_library():

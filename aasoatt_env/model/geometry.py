@@ -9,12 +9,12 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from aasoatt_env import compiled as _compiled
 
 __all__ = ["KDTREE_MIN_ROBOTS", "brute_candidates", "k_nearest", "min_gaps", "neighbourhood", "obstacle_gaps",
-           "obstacle_pairs", "pair_components", "pairwise_distances", "robot_pairs", "row_dot", "uses_brute_force"]
+           "kdtree", "obstacle_pairs", "pair_components", "pairwise_distances", "robot_pairs", "row_dot",
+           "uses_brute_force"]
 
 KDTREE_MIN_ROBOTS: int = 200
 """Team size from which a tree (or grid) answers instead of the full distance matrix."""
@@ -108,7 +108,7 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
         return np.stack((iu[keep], ju[keep]), axis=1)
     if method != "kdtree":
         raise ValueError(f"method: got {method!r}, expected 'auto', 'brute', 'kdtree' or 'cells'")
-    pairs = cKDTree(p).query_pairs(radius, output_type="ndarray").astype(np.intp)
+    pairs = kdtree(p).query_pairs(radius, output_type="ndarray").astype(np.intp)
     if groups is not None and pairs.shape[0]:
         pairs = pairs[groups[pairs[:, 0]] == groups[pairs[:, 1]]]
     if pairs.shape[0] == 0:
@@ -221,7 +221,7 @@ def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray
         d = _distances(p, 1)
         return (*_nearest(d, k), d[0])
     idx, dist = np.full((n, k), -1, dtype=np.intp), np.full((n, k), np.inf)
-    dd, ii = cKDTree(p).query(p, k=kk + 1)
+    dd, ii = kdtree(p).query(p, k=kk + 1)
     idx[:, :kk], dist[:, :kk] = ii[:, 1:], dd[:, 1:]
     return idx, dist, None
 
@@ -285,3 +285,10 @@ def pair_components(n: int, ri: np.ndarray, rj: np.ndarray, *, compiled: bool | 
         if np.array_equal(new, lab):
             return lab
         lab = new
+
+
+def kdtree(p: np.ndarray) -> object:
+    """The points' ``scipy.spatial.cKDTree`` (imported here: large teams only, not at import time)."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(p)

@@ -14,7 +14,6 @@ from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dpotrs as _potrs
 
@@ -313,6 +312,8 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
 
 def _splu(A, **options):
     """A solver of ``A l = v`` from scipy's sparse LU of ``A``, or None where it is singular."""
+    import scipy.sparse.linalg as spla  # (imported where asked: not by ``aasoatt --help``)
+
     try:
         return spla.splu(A, **options).solve
     except RuntimeError:

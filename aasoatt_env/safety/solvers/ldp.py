@@ -9,7 +9,6 @@ set, or returned unpolished where feasible to :data:`FEAS_TOL`.  Dense: up to :d
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import nnls
 
 from aasoatt_env.safety.solvers.active_set import dense_least_distance_form, solve_active_set
 
@@ -39,6 +38,8 @@ def solve_ldp(prob, feas_tol: float = FEAS_TOL) -> tuple[np.ndarray | None, np.n
     norms = np.where(norms > 0.0, norms, 1.0)
     f = np.zeros(n + 1)
     f[-1] = 1.0
+    from scipy.optimize import nnls  # (scipy.optimize imported where asked: not by ``aasoatt --help``)
+
     try:
         us, _ = nnls(E / norms, f, maxiter=10 * E.shape[1])
     except RuntimeError as exc:  # iteration limit

@@ -5,10 +5,10 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError, ScenarioError
+from aasoatt_env.model.geometry import kdtree
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.scenarios import base
@@ -91,9 +91,9 @@ class RandomGoals(Scenario):
             need = n - pts.shape[0]
             cand = rng.uniform(-half, half, size=(max(2 * need, 64), 2))
             if pts.shape[0]:
-                d, _ = cKDTree(pts).query(cand, k=1)
+                d, _ = kdtree(pts).query(cand, k=1)
                 cand = cand[d >= s]
-            clash = cKDTree(cand).query_pairs(s, output_type="ndarray")
+            clash = kdtree(cand).query_pairs(s, output_type="ndarray")
             if clash.shape[0]:
                 drop = np.zeros(cand.shape[0], dtype=bool)
                 for i, j in clash[np.argsort(clash.max(axis=1), kind="stable")]:  # keep the earlier of each pair
