@@ -243,3 +243,34 @@ def test_after_a_relaxed_step_phase_one_goes_first_with_the_same_answer(monkeypa
     else:
         assert first.status == "solved" and len(asked) == len(route_first) + 1  # (phase 1, then the route)
         assert again.message == first.message
+
+
+@pytest.mark.skipif(not HAS_DAQP, reason="needs daqp")
+def test_a_starved_solver_keeps_its_iteration_limit_and_the_team_stays_apart(monkeypatch):
+    """Every back-end call is bounded by its iteration count (``ITER_LIMIT``), never by the clock: DAQP starved to
+    5 iterations reports at most 5 on every call of a packed 12-robot team driven at nominals of 1e6 (infeasible
+    steps included), the route goes on to the next solver, and no two robots ever touch."""
+    import dataclasses
+
+    from aasoatt_env import make_env
+    from agents import ADVERSARIES
+
+    monkeypatch.setitem(backends.ITER_LIMIT, "daqp", 5)
+    calls = []
+    real = backends.SOLVERS["daqp"]
+    monkeypatch.setitem(backends.SOLVERS, "daqp", dataclasses.replace(
+        real, solve=lambda *a: (lambda r: calls.append(r.iterations) or r)(real.solve(*a))))
+    env = make_env("random_goals", num_robots=12, filter=True, max_steps=10**9)
+    obs, _ = env.reset(seed=5158)
+    agent = ADVERSARIES["spin_up"]()
+    agent.reset(env)
+    base, statuses, gap = env.unwrapped, set(), np.inf
+    radius = base.team.radius
+    for _ in range(200):
+        obs, *_ = env.step({a: v * np.float32(1e6) for a, v in agent.act(obs, env).items()})
+        statuses.add(base.filter_outputs[-1].status)
+        d = np.linalg.norm(base.positions[:, None] - base.positions[None], axis=2) - radius[:, None] - radius[None]
+        gap = min(gap, float(d[np.triu_indices(12, 1)].min()))
+    assert "relaxed" in statuses and len(calls) > 100
+    assert max(calls) == 5 and min(calls) >= 0  # (at its limit on many calls: the count is DAQP's own)
+    assert gap > 0.0
