@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from helpers import circle_layout, closed_loop
@@ -29,10 +31,13 @@ def _contradiction(n: int, upper: float = -1.0):
 def _spy(monkeypatch):
     """Record the name of every back-end the policy calls."""
     asked = []
+
+    def spied(real, k):
+        return None if real is None else lambda *a: asked.append(k) or real(*a)
+
     for name, backend in list(backends.SOLVERS.items()):
-        monkeypatch.setitem(backends.SOLVERS, name, backends.Backend(
-            (lambda real, k: lambda *a: asked.append(k) or real(*a))(backend.solve, name), backend.module,
-            backend.exact, backend.verified, backend.deterministic, backend.may_stall, backend.route_options))
+        monkeypatch.setitem(backends.SOLVERS, name, dataclasses.replace(
+            backend, solve=spied(backend.solve, name), least_violation=spied(backend.least_violation, name)))
     return asked
 
 
@@ -79,6 +84,28 @@ def test_phase_one_finds_every_rows_least_violation(monkeypatch, n):
     first_infeasible = asked.index("daqp" if HAS_DAQP else "ldp")
     assert asked[first_infeasible + 1] == expected  # the route proved it infeasible, then phase 1 asked this one
     assert "phase 1: largest row violation 1" in sol.message
+
+
+@pytest.mark.skipif(not HAS_DAQP, reason="needs daqp")
+def test_daqps_soft_rows_answer_phase_one_as_the_slack_variables_do(monkeypatch):
+    """DAQP's own phase 1 (soft rows, no slack variables) finds the same least violations and point as the
+    phase-1 problem with a slack per row, on rows of every kind: met, violated, hopeless."""
+    for n in (3, 12):
+        prob = _contradiction(n)
+        prob.u[0] += 3.5  # robot 0: du_x <= 2.5 and >= 1, met
+        prob.u[2] += 1.0  # robot 1: du_x <= 0 and >= 1, each row violated by 0.5 at least; the others by 1
+        soft = backends.SOLVERS["daqp"].least_violation(prob, pol.PHASE1_REG, {})
+        slacked = backends.SOLVERS["daqp"](pol._slacked(prob), None, None, {})
+        assert soft.ok and slacked.ok and soft.x.shape == (prob.n,)
+        np.testing.assert_allclose(soft.x, slacked.x[:prob.n], atol=1e-8)
+        viol = np.maximum(prob.C @ soft.x - prob.u, 0.0)
+        np.testing.assert_allclose(viol, [0.0, 0.0, 0.5, 0.5] + [1.0] * (2 * n - 4), atol=1e-7)
+    asked = _spy(monkeypatch)
+    monkeypatch.setitem(backends.SOLVERS, "daqp", dataclasses.replace(backends.SOLVERS["daqp"], solve=lambda *a: (
+        backends.RawAnswer(None, None, False, 0, "daqp: not asked for phase 1", infeasible=True))))
+    sol = pol.solve_qp(_contradiction(3), "proxsuite")
+    assert sol.status == "relaxed" and sol.slack == pytest.approx(1.0, abs=1e-6)
+    assert asked == ["daqp"]  # (its soft rows: neither its QP with slack variables nor ldp)
 
 
 @pytest.mark.skipif(not HAS_DAQP, reason="needs daqp")
@@ -250,8 +277,6 @@ def test_a_starved_solver_keeps_its_iteration_limit_and_the_team_stays_apart(mon
     """Every back-end call is bounded by its iteration count (``ITER_LIMIT``), never by the clock: DAQP starved to
     5 iterations reports at most 5 on every call of a packed 12-robot team driven at nominals of 1e6 (infeasible
     steps included), the route goes on to the next solver, and no two robots ever touch."""
-    import dataclasses
-
     from aasoatt_env import make_env
     from agents import ADVERSARIES
 

@@ -111,10 +111,27 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
         warm["dual_start"] = np.concatenate((W[m:m + n].astype(float) - W[m + n:], W[:m].astype(float)))
     x, _, flag, info = daqp.solve(prob.H_dense(), prob.g, A, np.concatenate((prob.ub, prob.u)),
                                   np.concatenate((prob.lb, np.full(m, -1e30))), np.zeros(n + m, dtype=ctypes.c_int),
-                                  iter_limit=ITER_LIMIT["daqp"], pivot_tol=opts.get("pivot_tol", 1e-8), **warm)
+                                  iter_limit=ITER_LIMIT["daqp"], **warm)
     lam = np.maximum(np.asarray(info.get("lam", np.zeros(n + m)))[n:], 0.0)  # (bounds first, then the rows)
     return RawAnswer(np.asarray(x), lam, flag >= 1, int(info.get("iterations", 0)), f"daqp exitflag {flag}",
                      infeasible=flag == -1)
+
+
+def _daqp_least_violation(prob: QPProblem, reg: float, opts: dict) -> RawAnswer:
+    """Phase 1 (:func:`~.policy.least_violation`) by DAQP's soft rows, without slack variables.
+
+    DAQP weighs a soft row's squared violation by ``1 / (rho a' H^-1 a)``: with ``H = reg I``, ``rho = reg`` and unit
+    rows, by 1, so this is ``min 0.5 reg |x|^2 + 0.5 |s|^2  s.t.  C x - s <= u, lb <= x <= ub``.
+    """
+    import daqp
+
+    n, m = prob.n, prob.m
+    sense = np.zeros(n + m, dtype=ctypes.c_int)
+    sense[n:] = 8  # DAQP's SOFT flag
+    x, _, flag, info = daqp.solve(np.eye(n) * reg, np.zeros(n), prob.C.toarray(), np.concatenate((prob.ub, prob.u)),
+                                  np.concatenate((prob.lb, np.full(m, -1e30))), sense, iter_limit=ITER_LIMIT["daqp"],
+                                  rho_soft=reg)
+    return RawAnswer(np.asarray(x), None, flag >= 1, int(info.get("iterations", 0)), f"daqp exitflag {flag}")
 
 
 def _clarabel(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
@@ -216,6 +233,8 @@ class Backend:
     deterministic: bool = True  #: its last bits are a function of the problem (proxsuite's: of its memory too)
     may_stall: bool = False  #: it can run out of iterations (an augmented Lagrangian): the exact solvers go first
     route_options: tuple[tuple[str, object], ...] = ()  #: options when the route asks it (not as the configured one)
+    #: its own phase-1 solve ``(problem, reg, options) -> RawAnswer`` (None: phase 1's problem with a slack per row)
+    least_violation: Callable[[QPProblem, float, dict], RawAnswer] | None = None
 
     def __call__(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
         """Run the back-end."""
@@ -229,7 +248,8 @@ SOLVERS: dict[str, Backend] = {
     "quadprog": Backend(_quadprog, "quadprog"),
     "clarabel": Backend(_clarabel, "clarabel"),
     "osqp": Backend(_osqp, "osqp"),
-    "daqp": Backend(_daqp, "daqp", route_options=(("simple_bounds", True), ("warm_start", True))),
+    "daqp": Backend(_daqp, "daqp", route_options=(("simple_bounds", True), ("warm_start", True)),
+                    least_violation=_daqp_least_violation),
     "cvxopt": Backend(_cvxopt, "cvxopt"),
 }
 """Solver registry: name -> :class:`Backend`.  Adding a solver is one function and one line here."""

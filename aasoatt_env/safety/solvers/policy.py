@@ -24,17 +24,19 @@ from aasoatt_env.safety.solvers.active_set import (
 from aasoatt_env.safety.solvers.backends import RawAnswer, available_solvers, get_solver
 from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
 
-__all__ = ["EXACT_ROUTE", "PHASE1_ROUTE", "QPSolution", "SolverPolicy", "route", "solve_qp"]
+__all__ = ["EXACT_ROUTE", "PHASE1_REG", "PHASE1_ROUTE", "QPSolution", "SolverPolicy", "route", "solve_qp"]
 
 _FEAS_TOL = 1e-7
+PHASE1_REG: float = 1e-8  #: phase 1's weight of ``0.5 |x|^2`` beside the violations' ``0.5 |s|^2`` (a unique point)
 
 EXACT_ROUTE: tuple[tuple[str, int], ...] = (("daqp", 500), ("ldp", LDP_MAX_VARS))
 """``(solver, most variables)`` asked in order before a back-end that may stall, where installed: DAQP
 (``pip install "aasoatt[fast]"``) and ``ldp`` finish exactly or prove the rows inconsistent."""
-PHASE1_ROUTE: tuple[tuple[str, int, int], ...] = (("daqp", 0, 800), ("clarabel", 121, 10**9), ("ldp", 0, 120))
+PHASE1_ROUTE: tuple[tuple[str, int, int], ...] = (("daqp", 0, 1600), ("clarabel", 121, 10**9), ("ldp", 0, 120))
 """``(solver, fewest, most variables)`` of a phase-1 problem (variables plus one slack per row), asked in order
 before a back-end that may stall, where installed (its regulariser conditions ``ldp``'s NNLS badly on large ones;
-DAQP's dense algebra answers exactly and sooner than clarabel's up to some 800 variables)."""
+DAQP's soft rows, without the slack variables, answer exactly and sooner than clarabel up to some 1,600 variables:
+``benchmarks/bench_deadline.py``'s packed teams)."""
 
 
 @dataclass
@@ -190,27 +192,38 @@ def solve_qp(prob: QPProblem, solver: str = "proxsuite", x0: np.ndarray | None =
 def _phase1(prob: QPProblem, solver: str) -> tuple[np.ndarray, np.ndarray] | None:
     """Least row violations ``s* >= 0`` (one slack per row, bounds hard) and its point; None if no solver answers.
 
-    ``min 0.5 |s|^2 (+ 1e-8 |x|_H^2)  s.t.  C x - s <= u, lb <= x <= ub``: one slack per row, so a
-    hopeless row (a pair already inside ``d_s``) is loosened alone.
+    ``min 0.5 |s|^2 + 0.5 reg |x|^2  s.t.  C x - s <= u, lb <= x <= ub`` (``reg`` = :data:`PHASE1_REG`): one slack
+    per row, so a hopeless row (a pair already inside ``d_s``) is loosened alone.  A back-end with its own phase-1
+    solve (DAQP's soft rows) answers it without the slack variables.
     """
     n, m = prob.n, prob.m
-    pad = m % 2  # keep 2x2 Hessian blocks: a padding variable fixed at 0 by its bounds
-    ns = m + pad
-    Hb = np.concatenate((prob.H_blocks * 1e-8, np.broadcast_to(np.eye(2), (ns // 2, 2, 2))))
-    C = sp.hstack([prob.C, -sp.identity(m, format="csr")] + ([sp.csr_matrix((m, 1))] if pad else []), format="csr")
-    ub = np.concatenate((prob.ub, np.full(m, 1e6), np.zeros(pad)))
-    p1 = QPProblem(Hb, np.zeros(n + ns), C, prob.u, np.concatenate((prob.lb, np.zeros(ns))), ub, np.ones(n + ns), 1.0,
-                   np.ones(m), prob.diagonal)
-    for name in _phase1_order(solver, p1.n):
+    slacked = None
+    for name in _phase1_order(solver, n + m + m % 2):
         backend = get_solver(name)
         # (only the point's recomputed violations are used: an unpolished exact point is accepted looser)
-        # (DAQP's pivoting threshold below the regulariser's 1e-8: the same point, without a pivot per iteration)
-        opts = {"ldp_feas_tol": 1e-6, "pivot_tol": 1e-12}
-        raw = backend(p1, None, None, {**opts, **({} if name == solver else dict(backend.route_options))})
-        if raw.ok and raw.x is not None and np.all(np.isfinite(raw.x)):
+        opts = {"ldp_feas_tol": 1e-6, **({} if name == solver else dict(backend.route_options))}
+        if backend.least_violation is not None:
+            raw = backend.least_violation(prob, PHASE1_REG, opts)
+        else:
+            slacked = _slacked(prob) if slacked is None else slacked
+            raw = backend(slacked, None, None, opts)
+        if raw.ok and raw.x is not None and np.all(np.isfinite(raw.x[:n])):
             x = np.clip(raw.x[:n], prob.lb, prob.ub)
             return x, np.maximum(prob.C @ x - prob.u, 0.0)
     return None
+
+
+def _slacked(prob: QPProblem) -> QPProblem:
+    """:func:`_phase1`'s problem with its slack variables (2x2 Hessian blocks: a padding variable fixed at 0)."""
+    n, m = prob.n, prob.m
+    pad = m % 2
+    ns = m + pad
+    Hb = np.concatenate((np.broadcast_to(np.eye(2) * PHASE1_REG, (n // 2, 2, 2)),
+                         np.broadcast_to(np.eye(2), (ns // 2, 2, 2))))
+    C = sp.hstack([prob.C, -sp.identity(m, format="csr")] + ([sp.csr_matrix((m, 1))] if pad else []), format="csr")
+    ub = np.concatenate((prob.ub, np.full(m, 1e6), np.zeros(pad)))
+    return QPProblem(Hb, np.zeros(n + ns), C, prob.u, np.concatenate((prob.lb, np.zeros(ns))), ub, np.ones(n + ns),
+                     1.0, np.ones(m), True)
 
 
 def _nonneg(z: np.ndarray | None, m: int) -> np.ndarray:
