@@ -1,0 +1,126 @@
+"""The torch filter and env (:mod:`aasoatt_env.tensor`) against the numpy ones, on CPU (and CUDA where present)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from aasoatt_env.model import dynamics  # noqa: E402
+from aasoatt_env.model.params import make_team  # noqa: E402
+from aasoatt_env.safety import FilterConfig, SafetyFilter  # noqa: E402
+from aasoatt_env.tensor.filter import GROUPED, RELAXED, SafetyLayer, filter_step  # noqa: E402
+from aasoatt_env.tensor.model import TensorTeam  # noqa: E402
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device on this machine (torch.cuda.is_available() is False)"))]
+
+
+def random_states(rng: np.random.Generator, count: int, n: int) -> list[dict]:
+    """Team states near contact: jittered grids 1.1-2.2 m apart, random headings, speeds, nominals, memory."""
+    team = make_team("paper", n)
+    side = int(np.ceil(np.sqrt(n)))
+    grid = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n].astype(float)
+    out = []
+    for _ in range(count):
+        p = grid * rng.uniform(1.1, 2.2) + rng.uniform(-0.05, 0.05, (n, 2))
+        th = rng.uniform(-np.pi, np.pi, n)
+        u = rng.normal(0.0, rng.choice([0.3, 1.0, 3.0]), (n, 2))
+        oc, orad = rng.uniform(-1.0, 5.0, (2, 2)), rng.uniform(0.2, 0.5, 2)
+        if (np.hypot(*(p[:, None] - oc[None]).transpose(2, 0, 1)) - orad - 0.7).min() < 0.0:
+            oc = oc + 50.0  # (no start inside an obstacle; the control point is 0.2 m ahead of the axle)
+        out.append(dict(pose=dynamics.pose_from_point(team, p, th), u=u, nom=rng.normal(0.0, 20.0, (n, 2)),
+                        pd=p + rng.normal(0.0, 0.5, (n, 2)), vd=rng.normal(0.0, 0.8, (n, 2)), oc=oc, orad=orad,
+                        avoiding=rng.random(n) < 0.3))
+    return out
+
+
+def numpy_answers(states: list[dict], cfg: FilterConfig, n: int):
+    team = make_team("paper", n)
+    f = SafetyFilter(team, cfg)
+    res = []
+    for s in states:
+        f.reset(team)
+        f._dl.avoiding = s["avoiding"].copy()  # the trigger's memory, as the previous step left it
+        f._x = np.zeros((n, 2))
+        kin = dynamics.kinematics(team, s["pose"], s["u"])
+        lo, hi = dynamics.input_bounds(team, s["u"], cfg.dt)
+        res.append(f.step(kin, s["u"], s["pose"][:, 2], s["nom"], lo, hi, reference=(s["pd"], s["vd"]),
+                          obstacles=(s["oc"], s["orad"]))[1])
+    return team, res
+
+
+def tensor_answers(team, states: list[dict], cfg: FilterConfig, device="cpu", dtype=torch.float64):
+    def stack(key):
+        return torch.as_tensor(np.stack([s[key] for s in states]), device=device)
+
+    return filter_step(TensorTeam.from_team(team, dtype, device), cfg, stack("pose").to(dtype), stack("u").to(dtype),
+                       stack("nom").to(dtype), stack("pd").to(dtype), stack("vd").to(dtype),
+                       (stack("oc").to(dtype), stack("orad").to(dtype)), stack("avoiding"))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_filter_equals_the_numpy_decentralised_filter_where_it_answers_by_the_robots_own_qps(device):
+    """1,000+ team states (12 robots, 2 obstacles) in one batched call: the numpy filter's ``du`` to 1e-9 wherever its
+    status is ``solved``, the same trigger memory and triggered robots; where it relaxed, the robots that differ are
+    flagged ``RELAXED``."""
+    rng = np.random.default_rng(0)
+    n = 12
+    states = random_states(rng, 1500, n)
+    cfg = FilterConfig(mode="decentralized", backup=False, negotiate=False, kernel="numpy")
+    team, ref = numpy_answers(states, cfg, n)
+    out = tensor_answers(team, states, cfg, device)
+    du, status = out.du.cpu().numpy(), out.status.cpu().numpy()
+    solved = np.array([r.status == "solved" for r in ref])
+    assert solved.sum() >= 1000
+    ref_du = np.stack([r.du for r in ref])
+    assert np.abs(du[solved] - ref_du[solved]).max() <= 1e-9
+    assert (status[solved] == 0).all()
+    assert np.array_equal(out.avoiding.cpu().numpy()[solved], np.stack([r.avoiding for r in ref])[solved])
+    assert np.array_equal(out.triggered.cpu().numpy(), np.stack([r.triggered for r in ref]))
+    assert np.stack([r.intervened for r in ref])[solved].mean() > 0.3  # the rows bind: not the nominal clipped
+    differs = (np.abs(du - ref_du).max(axis=2) > 1e-9) & ~solved[:, None]
+    assert differs.any() and (status[differs] & RELAXED).all()
+
+
+def test_negotiation_groups_are_flagged_not_silently_changed():
+    """With ``negotiate=True`` the numpy filter solves some robots jointly; every robot whose answer differs from the
+    tensor filter's is flagged ``GROUPED`` (or ``RELAXED``)."""
+    rng = np.random.default_rng(1)
+    n = 12
+    states = random_states(rng, 300, n)
+    cfg = FilterConfig(mode="decentralized", backup=False, negotiate=True, kernel="numpy")
+    team, ref = numpy_answers(states, cfg, n)
+    out = tensor_answers(team, states, cfg)
+    differs = np.abs(out.du.numpy() - np.stack([r.du for r in ref])).max(axis=2) > 1e-9
+    assert differs.any()
+    assert (out.status.numpy()[differs] & (GROUPED | RELAXED)).all()
+
+
+def test_gradients_match_finite_differences_away_from_active_set_boundaries():
+    """``torch.autograd.gradcheck`` (float64) of the filtered action w.r.t. nominal, pose and wheel speeds on states
+    where rows bind; a state within 1e-6 of an active-set boundary (a kink) is skipped."""
+    rng = np.random.default_rng(1)
+    n = 6
+    team = make_team("paper", n)
+    layer = SafetyLayer(team, backup=False, negotiate=False)
+    base = np.array([[0, 0], [1.1, 0.1], [2.3, 0], [0, 1.2], [1.2, 1.3], [2.5, 1.1]], dtype=float)
+    checked = 0
+    for _ in range(12):
+        p = base + rng.uniform(-0.05, 0.05, (n, 2))
+        pose = torch.tensor(dynamics.pose_from_point(team, p, rng.uniform(-np.pi, np.pi, n)))[None]
+        u = torch.tensor(rng.normal(0, 2, (n, 2)))[None]
+        nom = torch.tensor(rng.normal(0, 15, (n, 2)))[None]
+        pd, vd = torch.tensor(p)[None], torch.zeros(1, n, 2, dtype=torch.float64)
+        out = filter_step(layer.team, layer.config, pose, u, nom, pd, vd)
+        if not out.intervened.any() or (out.status != 0).any():
+            continue
+        step = 1e-6 * torch.randn_like(nom)
+        near = [filter_step(layer.team, layer.config, pose, u, nom + d * step, pd, vd).du for d in (1.0, -1.0)]
+        if (near[0] + near[1] - 2.0 * out.du).abs().max() > 1e-9:  # second difference: a kink within reach
+            continue
+        args = tuple(a.clone().requires_grad_() for a in (pose, u, nom))
+        assert torch.autograd.gradcheck(lambda a, b, c: layer(a, b, c, pd, vd), args, eps=1e-7, atol=1e-5, rtol=1e-4)
+        checked += 1
+    assert checked >= 5
