@@ -124,3 +124,45 @@ def test_gradients_match_finite_differences_away_from_active_set_boundaries():
         assert torch.autograd.gradcheck(lambda a, b, c: layer(a, b, c, pd, vd), args, eps=1e-7, atol=1e-5, rtol=1e-4)
         checked += 1
     assert checked >= 5
+
+
+def _tracking_actions(p, v, p_d, v_d, adot, A, solve, amax=60.0):
+    """Wheel actions of the paper's tracking law ``a = k3 (p_d - p) + k4 (v_d - v)`` (k3 = 1, k4 = 4)."""
+    return solve(A, (1.0 * (p_d - p) + 4.0 * (v_d - v) - adot)[..., None])[..., 0] / amax
+
+
+def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter():
+    """Two random_goals teams of 8 (seeds 5, 6) behind the filter for 500 steps, 200-step episodes (auto-reset twice):
+    positions within 1e-6 m, observations and rewards equal, in float64."""
+    from aasoatt_env.sim.env import AASOATTParallelEnv
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    n, seed, opts = 8, 5, dict(backup=False, negotiate=False)
+    tenv = make_tensor_env("random_goals", 2, n, dtype=torch.float64, max_steps=200, **opts)
+    obs_t, _ = tenv.reset(seed=seed)
+    envs = []
+    for b in range(2):
+        e = AASOATTParallelEnv("random_goals", num_robots=n, max_steps=200)
+        e.set_control_filter(SafetyFilter(mode="decentralized", kernel="numpy", **opts))
+        o, _ = e.reset(seed=seed + b)
+        assert np.array_equal(np.stack([o[a] for a in e.possible_agents]), obs_t[b].numpy())
+        envs.append(e)
+    worst, resets = 0.0, 0
+    for _ in range(500):
+        acts = [_tracking_actions(e.kinematics.p, e.kinematics.v, *e.reference[:2], e.kinematics.adot_u,
+                                  e.kinematics.A, np.linalg.solve) for e in envs]
+        k = tenv.kin
+        A = torch.stack((torch.stack((k.a00, k.a01), -1), torch.stack((k.a10, k.a11), -1)), -2)
+        obs_t, rew_t, _, trunc_t, info = tenv.step(_tracking_actions(k.p, k.v, *tenv.ref[:2], k.adot, A,
+                                                                     torch.linalg.solve))
+        assert (info["status"] == 0).all()
+        for b, e in enumerate(envs):
+            o, r, _, tr, _ = e.step({a: acts[b][i] for i, a in enumerate(e.possible_agents)})
+            assert np.abs(np.array(list(r.values())) - rew_t[b].numpy()).max() <= 1e-9
+            if tr[e.possible_agents[0]]:
+                o, _ = e.reset()
+                resets += 1
+                assert bool(trunc_t[b].all()) and bool(info["reset"][b])
+            worst = max(worst, float(np.abs(e.positions - tenv.kin.p[b].numpy()).max()))
+            assert np.abs(np.stack([o[a] for a in e.possible_agents]) - obs_t[b].numpy()).max() <= 1e-5
+    assert resets == 4 and worst <= 1e-6
