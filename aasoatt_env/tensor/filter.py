@@ -25,7 +25,7 @@ import torch
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
-from aasoatt_env.tensor.qp import solve_polygons
+from aasoatt_env.tensor.qp import FAR, solve_polygons
 
 __all__ = ["BACKUP", "GROUPED", "RELAXED", "FilterOut", "SafetyLayer", "check_config", "filter_step"]
 
@@ -227,10 +227,10 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h) 
     valid = torch.cat((torch.ones(B, N, 4, dtype=torch.bool, device=h.device), pr.valid), -1)
     nrm = torch.sqrt(ax * ax + ay * ay)
     valid = valid & (nrm > 0)
-    inv = 1.0 / torch.where(valid, nrm, torch.ones_like(nrm))
+    inv = torch.where(valid, 1.0 / torch.where(valid, nrm, torch.ones_like(nrm)), torch.zeros_like(nrm))
     C = ax.shape[-1]
     sol = solve_polygons(target.reshape(-1, 2), (ax * inv).reshape(-1, C), (ay * inv).reshape(-1, C),
-                         torch.where(valid, bb * inv, torch.zeros_like(bb)).reshape(-1, C), valid.reshape(-1, C))
+                         torch.where(valid, bb * inv, torch.full_like(bb, FAR)).reshape(-1, C))
     w = sol.w.reshape(B, N, 2)
     x = torch.stack((i00 * w[..., 0] + i01 * w[..., 1], i10 * w[..., 0] + i11 * w[..., 1]), -1)
     du = torch.minimum(torch.maximum(x, lo), hi)

@@ -32,32 +32,44 @@ def _rel_tol(dtype: torch.dtype) -> float:
     return 1e-10 if dtype == torch.float64 else 2e-5
 
 
-def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch.Tensor,
-                   valid: torch.Tensor) -> LocalAnswer:
-    """Project ``t`` ``(R, 2)`` onto the polygons ``nx w_x + ny w_y <= b`` ``(R, C)`` (unit normals where ``valid``).
+def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch.Tensor) -> LocalAnswer:
+    """Project ``t`` ``(R, 2)`` onto the polygons ``nx w_x + ny w_y <= b`` ``(R, C)`` (unit normals; a constraint
+    that is not there: ``n = 0``, ``b`` = :data:`FAR`).
 
-    An empty polygon's robot gets the candidate of least largest violation (``feasible`` False; not the numpy
-    filter's least-violation answer).
+    Stages: ``t`` itself; the projections onto its violated constraints (a feasible one is the optimum: the
+    polygon lies in that half-plane); the vertices.  An empty polygon's robot gets the candidate of least largest
+    violation (``feasible`` False; not the numpy filter's least-violation answer).
     """
     R, C = nx.shape
     tol = _rel_tol(t.dtype) * (1.0 + t.abs().amax(dim=1))
-    tx, ty = t[:, 0], t[:, 1]
-    viol0 = torch.where(valid, nx * tx[:, None] + ny * ty[:, None] - b, torch.zeros_like(b))
-    inside = (viol0 <= tol[:, None]).all(dim=1)
-    w = t.clone()
-    mu = torch.zeros_like(b)
+    viol0 = nx * t[:, 0:1] + ny * t[:, 1:2] - b
+    w, mu = t.clone(), torch.zeros_like(b)
     feasible = torch.ones(R, dtype=torch.bool, device=t.device)
-    todo = torch.nonzero(~inside).flatten()
+    todo = torch.nonzero(viol0.amax(dim=1) > tol).flatten()
     if todo.numel() == 0:
         return LocalAnswer(w, mu, feasible)
-    per = max(1, _CHUNK // max(1, (C + C * (C - 1) // 2) * C))
-    for start in range(0, todo.numel(), per):
-        sel = todo[start:start + per]
-        ws, ms, fs = _enumerate(t[sel], nx[sel], ny[sel], b[sel], valid[sel], viol0[sel], tol[sel])
-        w = w.index_copy(0, sel, ws)
-        mu = mu.index_copy(0, sel, ms)
-        feasible = feasible.index_copy(0, sel, fs)
-    return LocalAnswer(w, mu, feasible)
+    t1, nx1, ny1, b1, v1, tol1 = t[todo], nx[todo], ny[todo], b[todo], viol0[todo], tol[todo]
+    s = torch.clamp(v1, min=0.0)
+    px, py = t1[:, 0:1] - s * nx1, t1[:, 1:2] - s * ny1  # (R1, C)
+    worst = (px[:, :, None] * nx1[:, None, :] + py[:, :, None] * ny1[:, None, :] - b1[:, None, :]).amax(2)
+    ok = (v1 > 0) & (worst <= tol1[:, None])
+    q = torch.where(ok, s, torch.full_like(s, float("inf"))).detach().argmin(1)
+    one = ok.any(1)
+    r1 = torch.arange(todo.numel(), device=t.device)
+    w1 = torch.stack((px[r1, q], py[r1, q]), 1)
+    m1 = torch.zeros_like(s).index_put((r1, q), 2.0 * s[r1, q])
+    f1 = torch.ones_like(one)
+    rest = torch.nonzero(~one).flatten()
+    if rest.numel():
+        per = max(1, _CHUNK // max(1, (C * (C - 1) // 2) * C))
+        for start in range(0, rest.numel(), per):
+            sel = rest[start:start + per]
+            ws, ms, fs = _vertices(t1[sel], nx1[sel], ny1[sel], b1[sel], tol1[sel], px[sel], py[sel], v1[sel])
+            w1, m1, f1 = w1.index_copy(0, sel, ws), m1.index_copy(0, sel, ms), f1.index_copy(0, sel, fs)
+    return LocalAnswer(w.index_copy(0, todo, w1), mu.index_copy(0, todo, m1), feasible.index_copy(0, todo, f1))
+
+
+FAR = 1e30  #: right-hand side of a constraint slot that is not there (its normal is 0)
 
 
 def _pairs(C: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
@@ -65,48 +77,38 @@ def _pairs(C: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
     return ij[0], ij[1]
 
 
-def _enumerate(t, nx, ny, b, valid, viol0, tol):
-    """The candidates of the robots given (all infeasible at ``t``) and the closest feasible one."""
+def _vertices(t, nx, ny, b, tol, px, py, viol0):
+    """The vertices of every two constraints of the robots given (no feasible projection) and the closest feasible
+    one; none feasible: the projection or vertex of least largest violation."""
     R, C = nx.shape
-    dt_ = t.dtype
-    tx, ty = t[:, 0:1], t[:, 1:2]
-    # projections onto each violated constraint: w = t - s n
-    s = viol0
-    proj_ok = valid & (s > 0)
-    px, py = tx - s * nx, ty - s * ny
-    # vertices of every two constraints
     k, l = _pairs(C, t.device)
     n1x, n1y, b1, n2x, n2y, b2 = nx[:, k], ny[:, k], b[:, k], nx[:, l], ny[:, l], b[:, l]
     det = n1x * n2y - n1y * n2x
-    vert_ok = valid[:, k] & valid[:, l] & (det.abs() > 1e-9)
+    vert_ok = (det.abs() > 1e-9) & (b1 < FAR) & (b2 < FAR)
     dsafe = torch.where(vert_ok, det, torch.ones_like(det))
     vx = (b1 * n2y - b2 * n1y) / dsafe
     vy = (n1x * b2 - n2x * b1) / dsafe
-    cx, cy = torch.cat((px, vx), 1), torch.cat((py, vy), 1)  # (R, Q)
-    cand_ok = torch.cat((proj_ok, vert_ok), 1)
-    resid = cx[:, :, None] * nx[:, None, :] + cy[:, :, None] * ny[:, None, :] - b[:, None, :]  # (R, Q, C)
-    resid = torch.where(valid[:, None, :], resid, torch.full_like(resid, -1.0))
-    worst = resid.amax(dim=2)
-    ok = cand_ok & (worst <= tol[:, None])
-    dist = (cx - tx) ** 2 + (cy - ty) ** 2
+    worst = (vx[:, :, None] * nx[:, None, :] + vy[:, :, None] * ny[:, None, :] - b[:, None, :]).amax(2)
+    ok = vert_ok & (worst <= tol[:, None])
+    tx, ty = t[:, 0:1], t[:, 1:2]
+    dist = (vx - tx) ** 2 + (vy - ty) ** 2
     inf = torch.full_like(dist, float("inf"))
     feasible = ok.any(dim=1)
-    score = torch.where(feasible[:, None], torch.where(ok, dist, inf), torch.where(cand_ok, worst, inf))
-    q = score.detach().argmin(dim=1)
     rows = torch.arange(R, device=t.device)
-    w = torch.stack((cx[rows, q], cy[rows, q]), 1)
-    # multipliers of the chosen active set (1 or 2 constraints): 2 (t - w) = sum mu_c n_c
+    q = torch.where(ok, dist, inf).detach().argmin(dim=1)
+    w = torch.stack((vx[rows, q], vy[rows, q]), 1)
     dx, dy = 2.0 * (tx[:, 0] - w[:, 0]), 2.0 * (ty[:, 0] - w[:, 1])
-    is_proj = q < C
-    qc = torch.clamp(q, max=C - 1)
-    qv = torch.clamp(q - C, min=0)
-    kk, ll = k[qv], l[qv]
-    d_ = dsafe[rows, qv]
-    m1 = (dx * n2y[rows, qv] - dy * n2x[rows, qv]) / d_
-    m2 = (n1x[rows, qv] * dy - n1y[rows, qv] * dx) / d_
-    mu = torch.zeros((R, C), dtype=dt_, device=t.device)
-    zero = torch.zeros_like(m1)
-    mu = mu.index_put((rows, torch.where(is_proj, qc, kk)), torch.where(is_proj, 2.0 * s[rows, qc], m1))
-    mu = mu.index_put((rows, ll), torch.where(is_proj, zero, m2), accumulate=True)
-    mu = torch.where(feasible[:, None], mu, torch.zeros_like(mu))
+    d_ = dsafe[rows, q]
+    mu = torch.zeros((R, C), dtype=t.dtype, device=t.device)
+    mu = mu.index_put((rows, k[q]), (dx * n2y[rows, q] - dy * n2x[rows, q]) / d_)
+    mu = mu.index_put((rows, l[q]), (n1x[rows, q] * dy - n1y[rows, q] * dx) / d_, accumulate=True)
+    if not bool(feasible.all()):  # empty polygons: the candidate of least largest violation
+        pw = (px[:, :, None] * nx[:, None, :] + py[:, :, None] * ny[:, None, :] - b[:, None, :]).amax(2)
+        pw = torch.where(viol0 > 0, pw, inf[:, :C])
+        score = torch.cat((pw, torch.where(vert_ok, worst, inf)), 1).detach()
+        qq = score.argmin(1)
+        cx, cy = torch.cat((px, vx), 1), torch.cat((py, vy), 1)
+        wb = torch.stack((cx[rows, qq], cy[rows, qq]), 1)
+        w = torch.where(feasible[:, None], w, wb)
+        mu = torch.where(feasible[:, None], mu, torch.zeros_like(mu))
     return w, mu, feasible
