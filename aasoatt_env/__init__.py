@@ -28,7 +28,7 @@ register_all()
 
 
 def __getattr__(name: str):
-    """``make_tensor_env`` on first use: :mod:`aasoatt_env.tensor` imports torch, which ``import aasoatt_env`` must not."""
+    """``make_tensor_env`` on first use (:mod:`aasoatt_env.tensor` imports torch; ``import aasoatt_env`` does not)."""
     if name == "make_tensor_env":
         from aasoatt_env.tensor.env import make_tensor_env
 

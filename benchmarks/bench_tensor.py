@@ -18,13 +18,14 @@ import time
 
 import numpy as np
 import torch
+from page import add_page_options, check_page, printed_page
 
 from aasoatt_env.api.factory import make_batched_env
 from aasoatt_env.tensor.env import make_tensor_env
-from benchmarks.page import add_page_options, check_page, printed_page
 
 SIZES = [(1, 20), (64, 20), (1024, 20), (4096, 20), (16, 1000)]
 FILTER = dict(backup=False, negotiate=False)
+NUMPY_TEAMS = 1024
 
 
 def _torch_actions(env):
@@ -90,7 +91,7 @@ def main() -> None:
             bare = torch_rate(B, N, False, torch.float32, steps)
             f32 = torch_rate(B, N, True, torch.float32, steps)
             f64 = torch_rate(B, N, True, torch.float64, steps)
-            npr = numpy_rate(B, N, nsteps)
+            npr = numpy_rate(min(B, NUMPY_TEAMS), N, nsteps)
             g = f"{torch_rate(B, N, True, torch.float32, steps, 'cuda'):>13.0f}" if gpu else f"{'':>13}"
             print(f"{B:>5} {N:>5} {bare:>11.0f} {f32:>11.0f} {f64:>11.0f} {npr:>11.0f} {f64 / npr:>7.1f} {g}",
                   flush=True)

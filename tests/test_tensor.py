@@ -121,7 +121,8 @@ def test_gradients_match_finite_differences_away_from_active_set_boundaries():
         if (near[0] + near[1] - 2.0 * out.du).abs().max() > 1e-9:  # second difference: a kink within reach
             continue
         args = tuple(a.clone().requires_grad_() for a in (pose, u, nom))
-        assert torch.autograd.gradcheck(lambda a, b, c: layer(a, b, c, pd, vd), args, eps=1e-7, atol=1e-5, rtol=1e-4)
+        assert torch.autograd.gradcheck(lambda a, b, c, pd=pd, vd=vd: layer(a, b, c, pd, vd), args, eps=1e-7,
+                                        atol=1e-5, rtol=1e-4)
         checked += 1
     assert checked >= 5
 
@@ -200,3 +201,25 @@ def test_a_loss_through_the_filter_trains_a_policy_to_need_less_correction():
         (loss + 1e-3 * (nom ** 2).sum(-1).mean()).backward()
         opt.step()
     assert float(correction()[0].detach()) < 0.5 * first
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_braking_check_keeps_chasing_teams_apart(dtype):
+    """Six teams of 8 with 4 obstacles, every robot chasing another at full acceleration for 300 steps behind the
+    torch filter's defaults (``backup=True``): no pair closer than ``d_s - 1 mm``, and the check braked someone."""
+    from aasoatt_env.tensor.env import make_tensor_env
+    from agents.adversaries_torch import adversary_actions
+
+    env = make_tensor_env("random_goals", 6, 8, dtype=dtype, random_obstacles=4)
+    env.reset(seed=0)
+    gen = torch.Generator().manual_seed(0)
+    kind = torch.tensor([3, 4, 3, 4, 0, 1])  # chase_nearest, chase_target, spin_up, burst
+    state = {"target": (torch.arange(8)[None] + torch.randint(1, 8, (6, 8), generator=gen)) % 8}
+    low, braked = float("inf"), 0
+    with torch.no_grad():
+        for t in range(300):
+            _, _, _, _, info = env.step(adversary_actions(env, t, kind, gen, state))
+            low = min(low, float(info["clearance"].min()))
+            braked += int(info["backup"].sum())
+    assert low >= -1e-3 and braked > 0

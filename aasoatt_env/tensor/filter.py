@@ -12,7 +12,9 @@ group formed; every robot's QP feasible; ``backup=False`` or the backup layer ac
 agree to rounding.  What it flags instead of reproducing, per robot in ``status`` (bit flags): :data:`RELAXED` (its
 own QP is infeasible: the numpy filter's least-violation answer is not reproduced, the tensor answer is the candidate
 of least violation), :data:`GROUPED` (``negotiate=True`` would solve its rows jointly with its negotiation group; the
-tensor answer stays its own QP's), :data:`BACKUP` (the braking check of :mod:`.backup` braked the robot).
+tensor answer stays its own QP's), :data:`BACKUP` (with ``backup=True``: the braking check of :mod:`.backup`, not
+the numpy backup layer, braked the robot), :data:`UNSAFE` (that check found a pair failing although both brake).
+Equality with the numpy filter is claimed for ``backup=False`` only: the two backup checks differ.
 """
 
 from __future__ import annotations
@@ -24,12 +26,13 @@ import torch
 
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
+from aasoatt_env.tensor.backup import gate
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
 from aasoatt_env.tensor.qp import FAR, solve_polygons
 
-__all__ = ["BACKUP", "GROUPED", "RELAXED", "FilterOut", "SafetyLayer", "check_config", "filter_step"]
+__all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config", "filter_step"]
 
-RELAXED, GROUPED, BACKUP = 1, 2, 4  #: ``status`` bits (module docstring); 0: the robot's own QP, exactly
+RELAXED, GROUPED, BACKUP, UNSAFE = 1, 2, 4, 8  #: ``status`` bits (module docstring); 0: its own QP, exactly
 
 
 class FilterOut(NamedTuple):
@@ -210,10 +213,10 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     share = torch.where(pos, torch.where(low, a_own / safe_tot, 1.0 - a_oth / safe_tot), torch.full_like(tot, 0.5))
     need = torch.where(low, (base - rhs) + base_o, (base_o - rhs) + base)
     h = torch.where(robot, base - need * share, base - (base - rhs))
-    return _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h)
+    return _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, du0, pose, u, obstacles)
 
 
-def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h) -> FilterOut:
+def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, du0, pose, u, obstacles) -> FilterOut:
     """The QPs of the robots in ``w = A du`` (:mod:`.qp`), their multipliers' trigger, the answer and its report."""
     B, N, K = h.shape
     det = kin.a00 * kin.a11 - kin.a01 * kin.a10
@@ -230,7 +233,9 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h) 
     inv = torch.where(valid, 1.0 / torch.where(valid, nrm, torch.ones_like(nrm)), torch.zeros_like(nrm))
     C = ax.shape[-1]
     sol = solve_polygons(target.reshape(-1, 2), (ax * inv).reshape(-1, C), (ay * inv).reshape(-1, C),
-                         torch.where(valid, bb * inv, torch.full_like(bb, FAR)).reshape(-1, C))
+                         torch.where(valid, bb * inv, torch.full_like(bb, FAR)).reshape(-1, C),
+                         torch.stack((kin.a00 * du0[..., 0] + kin.a01 * du0[..., 1],
+                                      kin.a10 * du0[..., 0] + kin.a11 * du0[..., 1]), -1).reshape(-1, 2), C - 4)
     w = sol.w.reshape(B, N, 2)
     x = torch.stack((i00 * w[..., 0] + i01 * w[..., 1], i10 * w[..., 0] + i11 * w[..., 1]), -1)
     du = torch.minimum(torch.maximum(x, lo), hi)
@@ -245,6 +250,9 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h) 
     status = torch.where(sol.feasible.reshape(B, N), 0, RELAXED)
     if cfg.negotiate and bool(trig.any()):
         status = status | torch.where(_grouped(cfg, trig, pr), GROUPED, 0)
+    if cfg.backup:
+        du, braking, broken = gate(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
+        status = status | torch.where(braking, BACKUP, 0) | torch.where(broken, UNSAFE, 0)
     d = du - nominal
     corr = torch.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
     return FilterOut(du, status, avoiding, trig, corr, corr.detach() > 1e-9 * scale, pr.gap)

@@ -32,12 +32,16 @@ def _rel_tol(dtype: torch.dtype) -> float:
     return 1e-10 if dtype == torch.float64 else 2e-5
 
 
-def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch.Tensor) -> LocalAnswer:
-    """Project ``t`` ``(R, 2)`` onto the polygons ``nx w_x + ny w_y <= b`` ``(R, C)`` (unit normals; a constraint
-    that is not there: ``n = 0``, ``b`` = :data:`FAR`).
+def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch.Tensor,
+                   t_box: torch.Tensor | None = None, rows: int = 0) -> LocalAnswer:
+    """Project ``t`` ``(R, 2)`` onto the polygons ``nx w_x + ny w_y <= b`` ``(R, C)`` (unit normals).
 
-    Stages: ``t`` itself; the projections onto its violated constraints (a feasible one is the optimum: the
-    polygon lies in that half-plane); the vertices.  An empty polygon's robot gets the candidate of least largest
+    A constraint slot that is not there has ``n = 0``, ``b`` = :data:`FAR`.
+
+    Stages: ``t`` itself; ``t_box``, the projection onto the first ``C - rows`` constraints alone (where it meets the
+    last ``rows`` it is the optimum; their multipliers are 0, the first ones' are not computed); the projections
+    onto the violated constraints of ``t`` (a feasible one is the optimum: the polygon lies in that half-plane); the
+    vertices.  An empty polygon's robot gets the candidate of least largest
     violation (``feasible`` False; not the numpy filter's least-violation answer).
     """
     R, C = nx.shape
@@ -45,7 +49,13 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
     viol0 = nx * t[:, 0:1] + ny * t[:, 1:2] - b
     w, mu = t.clone(), torch.zeros_like(b)
     feasible = torch.ones(R, dtype=torch.bool, device=t.device)
-    todo = torch.nonzero(viol0.amax(dim=1) > tol).flatten()
+    out = viol0.amax(dim=1) > tol
+    if t_box is not None and rows < C:
+        vb = (nx[:, C - rows:] * t_box[:, 0:1] + ny[:, C - rows:] * t_box[:, 1:2] - b[:, C - rows:]).amax(dim=1)
+        box = out & (vb <= tol)
+        w = torch.where(box[:, None], t_box, w)
+        out = out & ~box
+    todo = torch.nonzero(out).flatten()
     if todo.numel() == 0:
         return LocalAnswer(w, mu, feasible)
     t1, nx1, ny1, b1, v1, tol1 = t[todo], nx[todo], ny[todo], b[todo], viol0[todo], tol[todo]
@@ -78,11 +88,13 @@ def _pairs(C: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _vertices(t, nx, ny, b, tol, px, py, viol0):
-    """The vertices of every two constraints of the robots given (no feasible projection) and the closest feasible
-    one; none feasible: the projection or vertex of least largest violation."""
+    """The closest feasible vertex of every two constraints of the robots given (no feasible projection).
+
+    None feasible: the projection or vertex of least largest violation.
+    """
     R, C = nx.shape
-    k, l = _pairs(C, t.device)
-    n1x, n1y, b1, n2x, n2y, b2 = nx[:, k], ny[:, k], b[:, k], nx[:, l], ny[:, l], b[:, l]
+    k, m = _pairs(C, t.device)
+    n1x, n1y, b1, n2x, n2y, b2 = nx[:, k], ny[:, k], b[:, k], nx[:, m], ny[:, m], b[:, m]
     det = n1x * n2y - n1y * n2x
     vert_ok = (det.abs() > 1e-9) & (b1 < FAR) & (b2 < FAR)
     dsafe = torch.where(vert_ok, det, torch.ones_like(det))
@@ -101,7 +113,7 @@ def _vertices(t, nx, ny, b, tol, px, py, viol0):
     d_ = dsafe[rows, q]
     mu = torch.zeros((R, C), dtype=t.dtype, device=t.device)
     mu = mu.index_put((rows, k[q]), (dx * n2y[rows, q] - dy * n2x[rows, q]) / d_)
-    mu = mu.index_put((rows, l[q]), (n1x[rows, q] * dy - n1y[rows, q] * dx) / d_, accumulate=True)
+    mu = mu.index_put((rows, m[q]), (n1x[rows, q] * dy - n1y[rows, q] * dx) / d_, accumulate=True)
     if not bool(feasible.all()):  # empty polygons: the candidate of least largest violation
         pw = (px[:, :, None] * nx[:, None, :] + py[:, :, None] * ny[:, None, :] - b[:, None, :]).amax(2)
         pw = torch.where(viol0 > 0, pw, inf[:, :C])
