@@ -3,7 +3,9 @@
 The backup: every wheel brakes at ``brake_fraction * max_wheel_accel`` toward zero speed.  A candidate ``du`` is
 applied where, from the state it leads to, braking everyone keeps every pair in range at least ``d_s`` apart (and
 the step itself does); robots of failing pairs brake instead, and the check repeats until the braking set stops
-growing (it only grows, so it ends; at worst everyone brakes, which keeps a brake-safe state brake-safe).
+growing (it only grows, so it ends; at worst everyone brakes, which keeps a brake-safe state brake-safe).  A robot
+also brakes where its path until it stops could exceed half of ``D - 2 max r`` (the range limit: a pair out of
+sensing range cannot meet before both stop).
 
 Not the numpy backup layer (no repair, no blend levels, its own sampling): the braking path is integrated with the
 exact-arc step at ``tau >= dt`` (at most :data:`SAMPLES` samples) and each sample-to-sample piece is checked as the
@@ -105,6 +107,14 @@ def _margins(team: TensorTeam, cfg: FilterConfig, pose0, u0, pose1, u1, du, othe
     return torch.minimum(out, torch.where(risky, path, torch.full_like(path, float("inf"))))
 
 
+def _reach(team: TensorTeam, cfg: FilterConfig, pose0, u0, pose1, u1) -> torch.Tensor:
+    """``(B, N)`` bound on the control point's path over the step and the braking after it [m]."""
+    p0, p1 = kinematics(team, pose0, u0).p, kinematics(team, pose1, u1).p
+    step = torch.sqrt(((p1 - p0) ** 2).sum(-1)) + cfg.dt * cfg.dt / 8.0 * _point_accel(team, u0, 1.0)
+    stop = u1.abs().amax(-1) / (cfg.brake_fraction * team.max_wheel_accel)
+    return step + _speed(team, u1) * stop
+
+
 def _speed(team: TensorTeam, u: torch.Tensor) -> torch.Tensor:
     k = team.half_k / team.half
     return team.half * torch.sqrt((u[..., 0] + u[..., 1]) ** 2 + (k * (u[..., 0] - u[..., 1])) ** 2)
@@ -119,6 +129,7 @@ def gate(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid,
     of its robots brake (the state was not brake-safe; ``tol`` absorbs the sampled paths' differences from one
     step to the next); those robots brake too.
     """
+    limit = 0.5 * (cfg.sensing_range - 2.0 * float(team.radius.max()))
     with torch.no_grad():
         brake = torch.minimum(torch.maximum(brake_du(team, u, cfg.dt, cfg.brake_fraction), lo), hi)
         braking = torch.zeros(u.shape[:2], dtype=torch.bool, device=u.device)
@@ -128,10 +139,11 @@ def gate(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid,
             cand = torch.where(braking[..., None], brake, du.detach())
             pose1, u1 = integrate(team, pose, u, cand, cfg.dt)
             m = _margins(team, cfg, pose, u, pose1, u1, cand, other, valid, ds, obstacles)
+            far = _reach(team, cfg, pose, u, pose1, u1) > limit
             fail = m < 0.0
             both = braking[..., None] & torch.where(robot, braking.gather(1, j.reshape(j.shape[0], -1))
                                                    .reshape(j.shape), torch.ones_like(fail))
-            new = braking | (fail & ~both).any(-1)
+            new = braking | (fail & ~both).any(-1) | far
             if bool((new == braking).all()):
                 broken = ((m < -tol) & both).any(-1)
                 break

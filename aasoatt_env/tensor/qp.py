@@ -69,12 +69,21 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
     w1 = torch.stack((px[r1, q], py[r1, q]), 1)
     m1 = torch.zeros_like(s).index_put((r1, q), 2.0 * s[r1, q])
     f1 = torch.ones_like(one)
-    rest = torch.nonzero(~one).flatten()
-    if rest.numel():
-        per = max(1, _CHUNK // max(1, (C * (C - 1) // 2) * C))
+    few = (v1 > 0).sum(1) <= _FEW
+    for group in (~one & few, ~one & ~few):
+        rest = torch.nonzero(group).flatten()
+        if rest.numel() == 0:
+            continue
+        # an optimal vertex has a constraint that t violates: with at most _FEW of them, put those first
+        lead = _FEW if bool(few[rest[0]]) else C
+        order = torch.sort(v1[rest].detach(), dim=1, descending=True, stable=True).indices
+        k, m = _pairs(C, lead, t.device)
+        per = max(1, _CHUNK // max(1, k.numel() * C))
         for start in range(0, rest.numel(), per):
-            sel = rest[start:start + per]
-            ws, ms, fs = _vertices(t1[sel], nx1[sel], ny1[sel], b1[sel], tol1[sel], px[sel], py[sel], v1[sel])
+            sel, o = rest[start:start + per], order[start:start + per]
+            ws, ms, fs = _vertices(t1[sel], *(x[sel].gather(1, o) for x in (nx1, ny1, b1)), tol1[sel],
+                                   *(x[sel].gather(1, o) for x in (px, py, v1)), k, m)
+            ms = torch.zeros_like(ms).scatter(1, o, ms)
             w1, m1, f1 = w1.index_copy(0, sel, ws), m1.index_copy(0, sel, ms), f1.index_copy(0, sel, fs)
     return LocalAnswer(w.index_copy(0, todo, w1), mu.index_copy(0, todo, m1), feasible.index_copy(0, todo, f1))
 
@@ -82,18 +91,22 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
 FAR = 1e30  #: right-hand side of a constraint slot that is not there (its normal is 0)
 
 
-def _pairs(C: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+_FEW = 2  # robots with at most this many constraints violated by t pair only those with the others
+
+
+def _pairs(C: int, lead: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Index pairs ``k < m`` of ``C`` constraints with ``k < lead``."""
     ij = torch.triu_indices(C, C, 1, device=device)
-    return ij[0], ij[1]
+    keep = ij[0] < lead
+    return ij[0][keep], ij[1][keep]
 
 
-def _vertices(t, nx, ny, b, tol, px, py, viol0):
-    """The closest feasible vertex of every two constraints of the robots given (no feasible projection).
+def _vertices(t, nx, ny, b, tol, px, py, viol0, k, m):
+    """The closest feasible vertex of the constraint pairs ``k, m`` of the robots given (no feasible projection).
 
     None feasible: the projection or vertex of least largest violation.
     """
     R, C = nx.shape
-    k, m = _pairs(C, t.device)
     n1x, n1y, b1, n2x, n2y, b2 = nx[:, k], ny[:, k], b[:, k], nx[:, m], ny[:, m], b[:, m]
     det = n1x * n2y - n1y * n2x
     vert_ok = (det.abs() > 1e-9) & (b1 < FAR) & (b2 < FAR)
