@@ -233,8 +233,7 @@ class TensorEnv:
             kk = min(k, N - 1)
             slots = torch.zeros(B, N, k, SLOT_DIM, dtype=p.dtype, device=p.device)
             if kk > 0:
-                order = torch.sort(self.dist, dim=-1, stable=True)
-                idx, dist = order.indices[..., :kk], order.values[..., :kk]
+                dist, idx = self.dist.topk(kk, dim=-1, largest=False)  # (exact ties may be ordered otherwise)
                 ok = dist <= self.sensing_range
                 flat = idx.reshape(B, N * kk, 1)
                 rel_p = p.gather(1, flat.expand(-1, -1, 2)).reshape(B, N, kk, 2) - p[:, :, None]

@@ -124,6 +124,10 @@ class _Pairs(NamedTuple):
     ga: torch.Tensor
     ds: torch.Tensor
     gap: torch.Tensor  #: ``(B, N)`` smallest surface gap
+    of: torch.Tensor  #: ``(B, N, K + M, F)`` the other robot's features (:data:`_F`; 0 for obstacles)
+
+
+_F = ("px", "py", "vx", "vy", "ax", "ay", "radius", "a00", "a01", "a10", "a11", "du0x", "du0y", "authority")
 
 
 def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -135,24 +139,26 @@ def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return x.gather(1, flat[..., None].expand(B, N * K, x.shape[-1])).reshape(B, N, K, x.shape[-1])
 
 
-def _pairs(cfg: FilterConfig, team: TensorTeam, kin: TensorKinematics, obstacles) -> _Pairs:
-    """The robot pairs within ``D`` (``|p_ij| <= D``) and obstacles whose rim is within ``D``, as row tables."""
-    p, v, ga0 = kin.p, kin.v, kin.adot
+def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
+    """The robot pairs within ``D`` (``|p_ij| <= D``) and obstacles whose rim is within ``D``, as row tables.
+
+    ``feat`` ``(B, N, F)``: every robot's features (:data:`_F`), gathered once for the other members.
+    """
+    p, v, ga0, rad = feat[..., 0:2], feat[..., 2:4], feat[..., 4:6], feat[..., 6]
     B, N, _ = p.shape
     D = cfg.sensing_range
-    rad = team.radius.expand(B, N)
     diff = p[:, :, None, :] - p[:, None, :, :]
     d2 = diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]
     eye = torch.eye(N, dtype=torch.bool, device=p.device)
     near = (d2 <= D * D) & ~eye
     K = int(near.sum(-1).max()) if N > 1 else 0
     key = torch.where(near, d2, torch.full_like(d2, float("inf"))).detach()
-    idx = key.topk(K, dim=-1, largest=False).indices if K < N else key.argsort(-1)[..., :K]
+    idx = key.topk(K, dim=-1, largest=False).indices
     valid = near.gather(2, idx)
-    gp = p[:, :, None, :] - _gather(p, idx)
-    gv = v[:, :, None, :] - _gather(v, idx)
-    ga = ga0[:, :, None, :] - _gather(ga0, idx)
-    ds = rad[..., None] + _gather(rad, idx)
+    of = _gather(feat, idx)
+    rel = feat[:, :, None, :7] - of[..., :7]
+    gp, gv, ga = rel[..., 0:2], rel[..., 2:4], rel[..., 4:6]
+    ds = rad[..., None] + of[..., 6]
     other = torch.where(valid, idx, -1)
     centre_gap = torch.sqrt(gp[..., 0] ** 2 + gp[..., 1] ** 2) - ds
     gap = torch.where(valid, centre_gap, torch.full_like(centre_gap, float("inf"))).amin(-1) if K else \
@@ -171,8 +177,9 @@ def _pairs(cfg: FilterConfig, team: TensorTeam, kin: TensorKinematics, obstacles
         ds = torch.cat((ds, ods), 2)
         valid = torch.cat((valid, ovalid), 2)
         other = torch.cat((other, torch.full((B, N, M), -1, dtype=other.dtype, device=p.device)), 2)
+        of = torch.cat((of, torch.zeros(B, N, M, of.shape[-1], dtype=of.dtype, device=of.device)), 2)
     gap = torch.where(torch.isinf(gap), torch.full_like(gap, D) - 2.0 * rad, gap)
-    return _Pairs(other, valid, gp, gv, ga, ds, gap)
+    return _Pairs(other, valid, gp, gv, ga, ds, gap, of)
 
 
 def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torch.Tensor, nominal: torch.Tensor,
@@ -190,22 +197,22 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     scale = torch.maximum(team.max_wheel_accel.expand(B, N), torch.maximum(lo.abs(), hi.abs()).amax(-1))
     nom = torch.minimum(torch.maximum(nominal, lo), hi)
     target, trig = _target(cfg, kin, nom, avoiding, p_d, v_d)
-    pr = _pairs(cfg, team, kin, obstacles)
-    rhs = _rhs(cfg, pr.gp, pr.gv, pr.ga, pr.ds)
     du0 = _box_ls(kin, target, lo, hi)
+    feat = torch.cat((kin.p, kin.v, kin.adot, torch.stack((team.radius.expand(B, N), kin.a00, kin.a01, kin.a10,
+                      kin.a11), -1), du0, team.max_point_accel.expand(B, N)[..., None]), -1)
+    pr = _pairs(cfg, feat, obstacles)
+    rhs = _rhs(cfg, pr.gp, pr.gv, pr.ga, pr.ds)
     # own half-row G = -A_own^T p_(own - other); the other's G' = A_other^T p_(own - other)
     gx = -(kin.a00[..., None] * pr.gp[..., 0] + kin.a10[..., None] * pr.gp[..., 1])
     gy = -(kin.a01[..., None] * pr.gp[..., 0] + kin.a11[..., None] * pr.gp[..., 1])
     base = gx * du0[..., None, 0] + gy * du0[..., None, 1]
     robot = pr.other >= 0
-    j = torch.clamp(pr.other, min=0)
-    oa = [_gather(x, j) for x in (kin.a00, kin.a01, kin.a10, kin.a11)]
-    du0j = _gather(du0, j)
-    ogx = oa[0] * pr.gp[..., 0] + oa[2] * pr.gp[..., 1]
-    ogy = oa[1] * pr.gp[..., 0] + oa[3] * pr.gp[..., 1]
-    base_o = torch.where(robot, ogx * du0j[..., 0] + ogy * du0j[..., 1], torch.zeros_like(base))
+    of = pr.of
+    ogx = of[..., 7] * pr.gp[..., 0] + of[..., 9] * pr.gp[..., 1]
+    ogy = of[..., 8] * pr.gp[..., 0] + of[..., 10] * pr.gp[..., 1]
+    base_o = torch.where(robot, ogx * of[..., 11] + ogy * of[..., 12], torch.zeros_like(base))
     a_own = team.max_point_accel.expand(B, N)[..., None]
-    a_oth = _gather(team.max_point_accel.expand(B, N), j)
+    a_oth = of[..., 13]
     tot = a_own + a_oth
     pos = tot > 0
     low = torch.arange(N, device=pose.device)[None, :, None] < pr.other  # own index is the pair's i
