@@ -223,3 +223,21 @@ def test_the_braking_check_keeps_chasing_teams_apart(dtype):
             low = min(low, float(info["clearance"].min()))
             braked += int(info["backup"].sum())
     assert low >= -1e-3 and braked > 0
+
+
+def test_torchrl_adapter_passes_check_env_specs_and_resets_finished_teams():
+    """``TorchRLTensorEnv``: TorchRL's spec check, and an 80-step rollout of 30-step episodes (two partial resets)."""
+    pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
+    from torchrl.envs.utils import check_env_specs
+
+    from aasoatt_env.tensor.torchrl_env import TorchRLTensorEnv
+
+    env = TorchRLTensorEnv("random_goals", num_envs=3, num_robots=4, max_steps=30)
+    check_env_specs(env)
+    env.set_seed(3)
+    td = env.rollout(80, break_when_any_done=False)
+    assert td["next", "observation"].shape == (3, 80, 4, env.env.obs_dim)
+    done_at = torch.nonzero(td["next", "done"].all(-1).all(-1).all(0)).flatten().tolist()
+    assert done_at == [29, 59]
+    # after a reset the team is at the start of its next layout: at rest
+    assert float(td["observation"][:, 30, :, 4:6].abs().max()) == 0.0

@@ -70,6 +70,7 @@ class TensorEnv:
         self.obs_dim = SELF_DIM + SLOT_DIM * (self.num_neighbors + self.num_obstacles)
         self._rngs: list[np.random.Generator] = []
         self.team: TensorTeam | None = None
+        self.autoreset = True  #: reset finished teams within ``step`` (False: :meth:`reset_done` does)
 
     # ------------------------------------------------------------------ episodes
     def _t(self, a: Any, dtype: torch.dtype | None = None) -> torch.Tensor:
@@ -107,6 +108,12 @@ class TensorEnv:
         self.time = torch.zeros(B, dtype=torch.float64, device=self.device)
         self.steps = torch.zeros(B, dtype=torch.long, device=self.device)
         self.avoiding = torch.zeros(B, N, dtype=torch.bool, device=self.device)
+        self._refresh()
+        return self._observations(), self._infos(None)
+
+    def reset_done(self, done: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Start a new episode of the teams ``done`` ``(B,)`` (each from its own generator); all observations."""
+        self._reset_teams(torch.as_tensor(done, device=self.device))
         self._refresh()
         return self._observations(), self._infos(None)
 
@@ -180,9 +187,9 @@ class TensorEnv:
         rew = self._rewards(act, corr)
         truncated = (self.steps >= self._st["max_steps"])
         infos = self._infos(out, corr)
-        infos["reset"] = truncated
-        self._reset_teams(truncated)
-        if bool(truncated.any()):
+        infos["reset"] = truncated if self.autoreset else torch.zeros_like(truncated)
+        if self.autoreset and bool(truncated.any()):
+            self._reset_teams(truncated)
             self._refresh()
         return (self._observations(), rew, torch.zeros(B, N, dtype=torch.bool, device=self.device),
                 truncated[:, None].expand(B, N), infos)
