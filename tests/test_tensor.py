@@ -63,8 +63,8 @@ def tensor_answers(team, states: list[dict], cfg: FilterConfig, device="cpu", dt
 @pytest.mark.parametrize("device", DEVICES)
 def test_the_filter_equals_the_numpy_decentralised_filter_where_it_answers_by_the_robots_own_qps(device):
     """1,000+ team states (12 robots, 2 obstacles) in one batched call: the numpy filter's ``du`` to 1e-9 wherever its
-    status is ``solved``, the same trigger memory and triggered robots; where it relaxed, the robots that differ are
-    flagged ``RELAXED``."""
+    status is ``solved``, the same trigger memory and triggered robots; where it relaxed, to 1e-6 (the least-violation
+    iteration's stopping tolerance), with those robots flagged ``RELAXED``."""
     rng = np.random.default_rng(0)
     n = 12
     states = random_states(rng, 1500, n)
@@ -82,6 +82,7 @@ def test_the_filter_equals_the_numpy_decentralised_filter_where_it_answers_by_th
     assert np.stack([r.intervened for r in ref])[solved].mean() > 0.3  # the rows bind: not the nominal clipped
     differs = (np.abs(du - ref_du).max(axis=2) > 1e-9) & ~solved[:, None]
     assert differs.any() and (status[differs] & RELAXED).all()
+    assert np.abs(du - ref_du).max() <= 1e-6
 
 
 def test_negotiation_groups_are_flagged_not_silently_changed():
@@ -133,12 +134,13 @@ def _tracking_actions(p, v, p_d, v_d, adot, A, solve, amax=60.0):
 
 
 def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter():
-    """Two random_goals teams of 8 (seeds 5, 6) behind the filter for 500 steps, 200-step episodes (auto-reset twice):
-    positions within 1e-6 m, observations and rewards equal, in float64."""
+    """Two random_goals teams of 8 (seeds 0, 1) behind the filter for 500 steps, 200-step episodes (auto-reset twice),
+    where some robots' QPs are infeasible (relaxed) at some steps: positions within 1e-6 m, observations and rewards
+    equal, in float64."""
     from aasoatt_env.sim.env import AASOATTParallelEnv
     from aasoatt_env.tensor.env import make_tensor_env
 
-    n, seed, opts = 8, 5, dict(backup=False, negotiate=False)
+    n, seed, opts = 8, 0, dict(backup=False, negotiate=False)
     tenv = make_tensor_env("random_goals", 2, n, dtype=torch.float64, max_steps=200, **opts)
     obs_t, _ = tenv.reset(seed=seed)
     envs = []
@@ -148,7 +150,7 @@ def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter
         o, _ = e.reset(seed=seed + b)
         assert np.array_equal(np.stack([o[a] for a in e.possible_agents]), obs_t[b].numpy())
         envs.append(e)
-    worst, resets = 0.0, 0
+    worst, resets, relaxed = 0.0, 0, 0
     for _ in range(500):
         acts = [_tracking_actions(e.kinematics.p, e.kinematics.v, *e.reference[:2], e.kinematics.adot_u,
                                   e.kinematics.A, np.linalg.solve) for e in envs]
@@ -156,7 +158,8 @@ def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter
         A = torch.stack((torch.stack((k.a00, k.a01), -1), torch.stack((k.a10, k.a11), -1)), -2)
         obs_t, rew_t, _, trunc_t, info = tenv.step(_tracking_actions(k.p, k.v, *tenv.ref[:2], k.adot, A,
                                                                      torch.linalg.solve))
-        assert (info["status"] == 0).all()
+        assert (info["status"] & ~RELAXED == 0).all()
+        relaxed += int((info["status"] & RELAXED).sum())
         for b, e in enumerate(envs):
             o, r, _, tr, _ = e.step({a: acts[b][i] for i, a in enumerate(e.possible_agents)})
             assert np.abs(np.array(list(r.values())) - rew_t[b].numpy()).max() <= 1e-9
@@ -166,7 +169,7 @@ def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter
                 assert bool(trunc_t[b].all()) and bool(info["reset"][b])
             worst = max(worst, float(np.abs(e.positions - tenv.kin.p[b].numpy()).max()))
             assert np.abs(np.stack([o[a] for a in e.possible_agents]) - obs_t[b].numpy()).max() <= 1e-5
-    assert resets == 4 and worst <= 1e-6
+    assert resets == 4 and worst <= 1e-6 and relaxed > 0
 
 
 def test_a_loss_through_the_filter_trains_a_policy_to_need_less_correction():

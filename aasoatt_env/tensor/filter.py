@@ -7,12 +7,11 @@ discrete-time margin of :class:`~aasoatt_env.safety.config.FilterConfig`) for ev
 pair in the sensing range; the rows shared reciprocally by authority around each robot's box least-squares answer;
 every robot's exact 2-variable QP (:mod:`.qp`).
 
-What it covers: where the numpy filter answers every robot by its own QP (``negotiate=False``, or no negotiation
-group formed; every robot's QP feasible; ``backup=False`` or the backup layer accepting the QP's answer) the answers
-agree to rounding.  What it flags instead of reproducing, per robot in ``status`` (bit flags): :data:`RELAXED` (its
-own QP is infeasible: the numpy filter's least-violation answer is not reproduced, the tensor answer is the candidate
-of least violation), :data:`GROUPED` (``negotiate=True`` would solve its rows jointly with its negotiation group; the
-tensor answer stays its own QP's), :data:`BACKUP` (with ``backup=True``: the braking check of :mod:`.backup`, not
+What it covers: where the numpy filter answers every robot by its own QP, feasible or relaxed (``negotiate=False``,
+or no negotiation group formed; ``backup=False``) the answers agree to rounding.  What it reports, per robot in
+``status`` (bit flags): :data:`RELAXED` (its own QP is infeasible: answered as the numpy filter does, its rows
+loosened by their least violation, :mod:`.relax`), :data:`GROUPED` (``negotiate=True`` would solve its rows jointly
+with its negotiation group; the tensor answer stays its own QP's), :data:`BACKUP` (with ``backup=True``: the braking check of :mod:`.backup`, not
 the numpy backup layer, braked the robot), :data:`UNSAFE` (that check found a pair failing although both brake).
 Equality with the numpy filter is claimed for ``backup=False`` only: the two backup checks differ.
 """
@@ -28,7 +27,9 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
 from aasoatt_env.tensor.backup import gate
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
-from aasoatt_env.tensor.qp import FAR, solve_polygons
+from aasoatt_env.safety.solvers.local import RELAX_TOL
+from aasoatt_env.tensor.qp import FAR, LocalAnswer, solve_polygons
+from aasoatt_env.tensor.relax import least_violation
 
 __all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config", "filter_step"]
 
@@ -239,10 +240,14 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, 
     valid = valid & (nrm > 0)
     inv = torch.where(valid, 1.0 / torch.where(valid, nrm, torch.ones_like(nrm)), torch.zeros_like(nrm))
     C = ax.shape[-1]
-    sol = solve_polygons(target.reshape(-1, 2), (ax * inv).reshape(-1, C), (ay * inv).reshape(-1, C),
-                         torch.where(valid, bb * inv, torch.full_like(bb, FAR)).reshape(-1, C),
-                         torch.stack((kin.a00 * du0[..., 0] + kin.a01 * du0[..., 1],
-                                      kin.a10 * du0[..., 0] + kin.a11 * du0[..., 1]), -1).reshape(-1, 2), C - 4)
+    nx, ny = (ax * inv).reshape(-1, C), (ay * inv).reshape(-1, C)
+    b = torch.where(valid, bb * inv, torch.full_like(bb, FAR)).reshape(-1, C)
+    t_box = torch.stack((kin.a00 * du0[..., 0] + kin.a01 * du0[..., 1],
+                         kin.a10 * du0[..., 0] + kin.a11 * du0[..., 1]), -1).reshape(-1, 2)
+    sol = solve_polygons(target.reshape(-1, 2), nx, ny, b, t_box, C - 4)
+    if not bool(sol.feasible.all()):
+        sol = _relaxed(sol, target.reshape(-1, 2), nx, ny, b, t_box, gx, gy, h, pr.valid, inv[..., 4:], lo, hi,
+                       du0, scale)
     w = sol.w.reshape(B, N, 2)
     x = torch.stack((i00 * w[..., 0] + i01 * w[..., 1], i10 * w[..., 0] + i11 * w[..., 1]), -1)
     du = torch.minimum(torch.maximum(x, lo), hi)
@@ -263,6 +268,25 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, 
     d = du - nominal
     corr = torch.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
     return FilterOut(du, status, avoiding, trig, corr, corr.detach() > 1e-9 * scale, pr.gap)
+
+
+def _relaxed(sol: LocalAnswer, t, nx, ny, b, t_box, gx, gy, h, valid, inv, lo, hi, du0, scale) -> LocalAnswer:
+    """The infeasible robots' answers: their rows loosened by the least violation, as the numpy local solver."""
+    bad = torch.nonzero(~sol.feasible).flatten()
+    K = gx.shape[-1]
+    G = torch.sqrt(gx * gx + gy * gy).reshape(-1, K)[bad]
+    ok = valid.reshape(-1, K)[bad] & (G > 0)
+    ig = torch.where(ok, 1.0 / torch.where(ok, G, torch.ones_like(G)), torch.zeros_like(G))
+    hb = h.reshape(-1, K)[bad]
+    viol = least_violation(gx.reshape(-1, K)[bad] * ig, gy.reshape(-1, K)[bad] * ig,
+                           torch.where(ok, hb * ig, torch.full_like(hb, FAR)), lo.reshape(-1, 2)[bad],
+                           hi.reshape(-1, 2)[bad], du0.reshape(-1, 2)[bad].detach())
+    loosen = (viol * (1.0 + 1e-6) + RELAX_TOL * scale.reshape(-1)[bad, None]) * ok
+    rows = torch.where(ok, (hb + loosen.detach() * G) * inv.reshape(-1, K)[bad], torch.full_like(hb, FAR))
+    b2 = torch.cat((b[bad, :4], rows), 1)
+    again = solve_polygons(t[bad], nx[bad], ny[bad], b2, t_box[bad], K)
+    return LocalAnswer(sol.w.index_copy(0, bad, again.w), sol.mu.index_copy(0, bad, again.mu),
+                       sol.feasible.index_copy(0, bad, torch.zeros_like(again.feasible)))
 
 
 def _grouped(cfg: FilterConfig, trig: torch.Tensor, pr: _Pairs) -> torch.Tensor:
