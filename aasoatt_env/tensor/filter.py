@@ -8,12 +8,13 @@ pair in the sensing range; the rows shared reciprocally by authority around each
 every robot's exact 2-variable QP (:mod:`.qp`).
 
 What it covers: where the numpy filter answers every robot by its own QP, feasible or relaxed (``negotiate=False``,
-or no negotiation group formed; ``backup=False``) the answers agree to rounding.  What it reports, per robot in
-``status`` (bit flags): :data:`RELAXED` (its own QP is infeasible: answered as the numpy filter does, its rows
-loosened by their least violation, :mod:`.relax`), :data:`GROUPED` (``negotiate=True`` would solve its rows jointly
-with its negotiation group; the tensor answer stays its own QP's), :data:`BACKUP` (with ``backup=True``: the braking check of :mod:`.backup`, not
-the numpy backup layer, braked the robot), :data:`UNSAFE` (that check found a pair failing although both brake).
-Equality with the numpy filter is claimed for ``backup=False`` only: the two backup checks differ.
+or no negotiation group formed; ``backup=False``) the answers agree (1e-9 feasible, 1e-6 relaxed: the least-violation
+iteration's stopping tolerance).  What it reports, per robot in ``status`` (bit flags): :data:`RELAXED` (its own QP
+is infeasible: answered as the numpy filter does, its rows loosened by their least violation, :mod:`.relax`),
+:data:`GROUPED` (``negotiate=True`` would solve its rows jointly with its negotiation group; the tensor answer stays
+its own QP's), :data:`BACKUP` (``backup=True``: the braking check of :mod:`.backup`, not the numpy backup layer,
+braked the robot), :data:`UNSAFE` (that check found a pair failing although both brake).  Equality with the numpy
+filter is claimed for ``backup=False`` only: the two backup checks differ.
 """
 
 from __future__ import annotations
@@ -25,9 +26,9 @@ import torch
 
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
+from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.tensor.backup import gate
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
-from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.tensor.qp import FAR, LocalAnswer, solve_polygons
 from aasoatt_env.tensor.relax import least_violation
 
