@@ -31,7 +31,7 @@ from aasoatt_env.tensor.model import TensorTeam, input_bounds, integrate, kinema
 __all__ = ["TensorEnv", "make_tensor_env"]
 
 _ENV_KEYS = ("dt", "decision_interval", "sensing_range", "num_neighbors", "num_obstacles", "reward",
-             "collision_tolerance", "max_steps")
+             "collision_tolerance", "max_steps", "differentiable")
 
 
 def make_tensor_env(scenario: str = "random_goals", num_envs: int = 1, num_robots: int = 6, device: str = "cpu",
@@ -40,8 +40,9 @@ def make_tensor_env(scenario: str = "random_goals", num_envs: int = 1, num_robot
     """``num_envs`` teams of ``num_robots`` robots of ``scenario`` on ``device`` (module docstring).
 
     ``options``: the env's settings (``dt``, ``decision_interval``, ``sensing_range``, ``num_neighbors``,
-    ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``), :class:`FilterConfig` fields, and the
-    scenario's parameters.
+    ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``differentiable``: ``step`` records the
+    autograd graph, so losses on its outputs reach the actions and the state through the filter and the dynamics;
+    default False: no graph), :class:`FilterConfig` fields, and the scenario's parameters.
     """
     names = {f.name for f in fields(FilterConfig)}
     env_kw = {k: options.pop(k) for k in list(options) if k in _ENV_KEYS}
@@ -56,7 +57,7 @@ class TensorEnv:
     def __init__(self, scenario, num_envs: int, device: str, dtype: torch.dtype, config: FilterConfig | None,
                  dt: float = DT, decision_interval: int = 1, sensing_range: float = 3.0, num_neighbors: int = 4,
                  num_obstacles: int = 2, reward: Any = None, collision_tolerance: float = 1e-3,
-                 max_steps: int | None = None) -> None:
+                 max_steps: int | None = None, differentiable: bool = False) -> None:
         if not (isinstance(num_envs, int) and num_envs >= 1):
             raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")
         if config is not None and abs(config.dt - dt) > 1e-12 * dt:
@@ -66,6 +67,7 @@ class TensorEnv:
         self.num_neighbors, self.num_obstacles = int(num_neighbors), int(num_obstacles)
         self.reward_config, self.collision_tolerance = RewardConfig.coerce(reward), float(collision_tolerance)
         self._max_steps_override = max_steps
+        self.differentiable = bool(differentiable)
         self.num_robots = scenario.num_robots
         self.obs_dim = SELF_DIM + SLOT_DIM * (self.num_neighbors + self.num_obstacles)
         self._rngs: list[np.random.Generator] = []
@@ -154,6 +156,11 @@ class TensorEnv:
                 torch.where(done, zero, dds * delta))
 
     def step(self, actions: torch.Tensor) -> tuple:
+        """Hold ``actions`` ``(B, N, 2)`` for ``decision_interval`` physics steps (:meth:`_step`)."""
+        with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
+            return self._step(actions)
+
+    def _step(self, actions: torch.Tensor) -> tuple:
         """Hold ``actions`` ``(B, N, 2)`` for ``decision_interval`` physics steps; auto-reset finished teams.
 
         Returns ``observations (B, N, obs_dim)``, ``rewards``, ``terminated``, ``truncated`` ``(B, N)`` and infos
