@@ -84,11 +84,11 @@ def _target(cfg: FilterConfig, kin: TensorKinematics, nom: torch.Tensor, avoidin
 
 def _rhs(cfg: FilterConfig, gp, gv, ga, ds) -> torch.Tensor:
     """eqn.8's right-hand side of each pair (``barriers._aasoatt``) with the discrete-time margin on ``d_s``."""
-    pp = gp[..., 0] * gp[..., 0] + gp[..., 1] * gp[..., 1]
+    pp = gp[0] * gp[0] + gp[1] * gp[1]
     r = torch.clamp(torch.sqrt(pp), min=1e-9)
-    pv = gp[..., 0] * gv[..., 0] + gp[..., 1] * gv[..., 1]
-    vv = gv[..., 0] * gv[..., 0] + gv[..., 1] * gv[..., 1]
-    pa = gp[..., 0] * ga[..., 0] + gp[..., 1] * ga[..., 1]
+    pv = gp[0] * gv[0] + gp[1] * gv[1]
+    vv = gv[0] * gv[0] + gv[1] * gv[1]
+    pa = gp[0] * ga[0] + gp[1] * ga[1]
     if cfg.safety_margin is None:
         margin = auto_margin(cfg.dt) * torch.clamp(torch.sqrt(vv) / MARGIN_FADE_SPEED, max=1.0)
     else:
@@ -111,8 +111,12 @@ def _box_ls(kin: TensorKinematics, t: torch.Tensor, lo: torch.Tensor, hi: torch.
     x0 = torch.cat((f0, torch.minimum(torch.maximum(-(g0 + h01 * f1) / h00, lo0), hi0)))
     x1 = torch.cat((torch.minimum(torch.maximum(-(g1 + h01 * f0) / h11, lo1), hi1), f1))
     f = 0.5 * (h00 * x0 * x0 + 2.0 * h01 * x0 * x1 + h11 * x1 * x1) + g0 * x0 + g1 * x1
-    best = f.detach().argmin(0, keepdim=True)
-    edge = torch.stack((x0.gather(0, best)[0], x1.gather(0, best)[0]), -1)
+    # the first of equal values, as numpy's argmin over the edges in this order
+    ex, ey, best = x0[0], x1[0], f[0]
+    for e in range(1, 4):
+        take = f[e] < best
+        ex, ey, best = torch.where(take, x0[e], ex), torch.where(take, x1[e], ey), torch.where(take, f[e], best)
+    edge = torch.stack((ex, ey), -1)
     return torch.where(out[..., None], edge, x)
 
 
@@ -121,12 +125,12 @@ class _Pairs(NamedTuple):
 
     other: torch.Tensor
     valid: torch.Tensor
-    gp: torch.Tensor  #: ``p_own - p_other`` ``(B, N, K + M, 2)``
+    gp: torch.Tensor  #: ``p_own - p_other`` ``(2, B, N, K + M)`` (components first: contiguous)
     gv: torch.Tensor
     ga: torch.Tensor
     ds: torch.Tensor
     gap: torch.Tensor  #: ``(B, N)`` smallest surface gap
-    of: torch.Tensor  #: ``(B, N, K + M, F)`` the other robot's features (:data:`_F`; 0 for obstacles)
+    of: torch.Tensor  #: ``(F, B, N, K + M)`` the other robot's features (:data:`_F`; 0 for obstacles)
 
 
 _F = ("px", "py", "vx", "vy", "ax", "ay", "radius", "a00", "a01", "a10", "a11", "du0x", "du0y", "authority")
@@ -146,40 +150,43 @@ def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
 
     ``feat`` ``(B, N, F)``: every robot's features (:data:`_F`), gathered once for the other members.
     """
-    p, v, ga0, rad = feat[..., 0:2], feat[..., 2:4], feat[..., 4:6], feat[..., 6]
-    B, N, _ = p.shape
+    B, N, F = feat.shape
+    featT = feat.permute(2, 0, 1).contiguous()  # (F, B, N): one contiguous tensor per feature
+    p, rad = feat[..., 0:2], featT[6]
     D = cfg.sensing_range
-    diff = p[:, :, None, :] - p[:, None, :, :]
-    d2 = diff[..., 0] * diff[..., 0] + diff[..., 1] * diff[..., 1]
+    dx = featT[0][:, :, None] - featT[0][:, None, :]
+    dy = featT[1][:, :, None] - featT[1][:, None, :]
+    d2 = dx * dx + dy * dy
     eye = torch.eye(N, dtype=torch.bool, device=p.device)
     near = (d2 <= D * D) & ~eye
     K = int(near.sum(-1).max()) if N > 1 else 0
     key = torch.where(near, d2, torch.full_like(d2, float("inf"))).detach()
     idx = key.topk(K, dim=-1, largest=False).indices
     valid = near.gather(2, idx)
-    of = _gather(feat, idx)
-    rel = feat[:, :, None, :7] - of[..., :7]
-    gp, gv, ga = rel[..., 0:2], rel[..., 2:4], rel[..., 4:6]
-    ds = rad[..., None] + of[..., 6]
+    of = featT.gather(2, idx.reshape(1, B, N * K).expand(F, B, N * K)).reshape(F, B, N, K)
+    own = featT[:7, :, :, None]
+    rel = own - of[:7]
+    gp, gv, ga = rel[0:2], rel[2:4], rel[4:6]
+    ds = rad[..., None] + of[6]
     other = torch.where(valid, idx, -1)
-    centre_gap = torch.sqrt(gp[..., 0] ** 2 + gp[..., 1] ** 2) - ds
+    centre_gap = torch.sqrt(gp[0] ** 2 + gp[1] ** 2) - ds
     gap = torch.where(valid, centre_gap, torch.full_like(centre_gap, float("inf"))).amin(-1) if K else \
         torch.full((B, N), float("inf"), dtype=p.dtype, device=p.device)
     if obstacles is not None and obstacles[1].shape[-1]:
         oc, orad = obstacles
         M = orad.shape[-1]
-        op = p[:, :, None, :] - oc[:, None, :, :]
-        odist = torch.sqrt(op[..., 0] ** 2 + op[..., 1] ** 2)
+        op = own[0:2] - oc.permute(2, 0, 1)[:, :, None, :]
+        odist = torch.sqrt(op[0] ** 2 + op[1] ** 2)
         ovalid = odist - orad[:, None, :] <= D
         ods = rad[..., None] + orad[:, None, :]
         gap = torch.minimum(gap, torch.where(ovalid, odist - ods, torch.full_like(odist, float("inf"))).amin(-1))
-        gp = torch.cat((gp, op), 2)
-        gv = torch.cat((gv, v[:, :, None, :].expand(B, N, M, 2)), 2)
-        ga = torch.cat((ga, ga0[:, :, None, :].expand(B, N, M, 2)), 2)
+        gp = torch.cat((gp, op), 3)
+        gv = torch.cat((gv, own[2:4].expand(2, B, N, M)), 3)
+        ga = torch.cat((ga, own[4:6].expand(2, B, N, M)), 3)
         ds = torch.cat((ds, ods), 2)
         valid = torch.cat((valid, ovalid), 2)
         other = torch.cat((other, torch.full((B, N, M), -1, dtype=other.dtype, device=p.device)), 2)
-        of = torch.cat((of, torch.zeros(B, N, M, of.shape[-1], dtype=of.dtype, device=of.device)), 2)
+        of = torch.cat((of, torch.zeros(F, B, N, M, dtype=of.dtype, device=of.device)), 3)
     gap = torch.where(torch.isinf(gap), torch.full_like(gap, D) - 2.0 * rad, gap)
     return _Pairs(other, valid, gp, gv, ga, ds, gap, of)
 
@@ -205,16 +212,16 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     pr = _pairs(cfg, feat, obstacles)
     rhs = _rhs(cfg, pr.gp, pr.gv, pr.ga, pr.ds)
     # own half-row G = -A_own^T p_(own - other); the other's G' = A_other^T p_(own - other)
-    gx = -(kin.a00[..., None] * pr.gp[..., 0] + kin.a10[..., None] * pr.gp[..., 1])
-    gy = -(kin.a01[..., None] * pr.gp[..., 0] + kin.a11[..., None] * pr.gp[..., 1])
+    gx = -(kin.a00[..., None] * pr.gp[0] + kin.a10[..., None] * pr.gp[1])
+    gy = -(kin.a01[..., None] * pr.gp[0] + kin.a11[..., None] * pr.gp[1])
     base = gx * du0[..., None, 0] + gy * du0[..., None, 1]
     robot = pr.other >= 0
     of = pr.of
-    ogx = of[..., 7] * pr.gp[..., 0] + of[..., 9] * pr.gp[..., 1]
-    ogy = of[..., 8] * pr.gp[..., 0] + of[..., 10] * pr.gp[..., 1]
-    base_o = torch.where(robot, ogx * of[..., 11] + ogy * of[..., 12], torch.zeros_like(base))
+    ogx = of[7] * pr.gp[0] + of[9] * pr.gp[1]
+    ogy = of[8] * pr.gp[0] + of[10] * pr.gp[1]
+    base_o = torch.where(robot, ogx * of[11] + ogy * of[12], torch.zeros_like(base))
     a_own = team.max_point_accel.expand(B, N)[..., None]
-    a_oth = of[..., 13]
+    a_oth = of[13]
     tot = a_own + a_oth
     pos = tot > 0
     low = torch.arange(N, device=pose.device)[None, :, None] < pr.other  # own index is the pair's i
@@ -295,7 +302,7 @@ def _grouped(cfg: FilterConfig, trig: torch.Tensor, pr: _Pairs) -> torch.Tensor:
     robot = pr.valid & (pr.other >= 0)
     j = torch.clamp(pr.other, min=0)
     trig_o = _gather(trig, j)
-    touch = robot & (torch.sqrt(pr.gp[..., 0] ** 2 + pr.gp[..., 1] ** 2).detach() - pr.ds < cfg.negotiate_gap)
+    touch = robot & (torch.sqrt(pr.gp[0] ** 2 + pr.gp[1] ** 2).detach() - pr.ds < cfg.negotiate_gap)
     member = trig | (touch & trig_o).any(-1)
     return (robot & member[..., None] & _gather(member, j)).any(-1)
 

@@ -41,8 +41,8 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
     Stages: ``t`` itself; ``t_box``, the projection onto the first ``C - rows`` constraints alone (where it meets the
     last ``rows`` it is the optimum; their multipliers are 0, the first ones' are not computed); the projections
     onto the violated constraints of ``t`` (a feasible one is the optimum: the polygon lies in that half-plane); the
-    vertices.  An empty polygon's robot gets the candidate of least largest
-    violation (``feasible`` False; not the numpy filter's least-violation answer).
+    vertices.  An empty polygon's robot gets the candidate of least largest violation (``feasible`` False; the
+    filter then loosens its rows, :mod:`.relax`).
     """
     R, C = nx.shape
     tol = _rel_tol(t.dtype) * (1.0 + t.abs().amax(dim=1))
@@ -59,33 +59,49 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
     if todo.numel() == 0:
         return LocalAnswer(w, mu, feasible)
     t1, nx1, ny1, b1, v1, tol1 = t[todo], nx[todo], ny[todo], b[todo], viol0[todo], tol[todo]
-    s = torch.clamp(v1, min=0.0)
-    px, py = t1[:, 0:1] - s * nx1, t1[:, 1:2] - s * ny1  # (R1, C)
-    worst = (px[:, :, None] * nx1[:, None, :] + py[:, :, None] * ny1[:, None, :] - b1[:, None, :]).amax(2)
-    ok = (v1 > 0) & (worst <= tol1[:, None])
-    q = torch.where(ok, s, torch.full_like(s, float("inf"))).detach().argmin(1)
-    one = ok.any(1)
-    r1 = torch.arange(todo.numel(), device=t.device)
-    w1 = torch.stack((px[r1, q], py[r1, q]), 1)
-    m1 = torch.zeros_like(s).index_put((r1, q), 2.0 * s[r1, q])
-    f1 = torch.ones_like(one)
+    w1, m1 = torch.zeros_like(t1), torch.zeros_like(b1)
+    f1 = torch.ones(todo.numel(), dtype=torch.bool, device=t.device)
     few = (v1 > 0).sum(1) <= _FEW
-    for group in (~one & few, ~one & ~few):
+    for group in (few, ~few):
         rest = torch.nonzero(group).flatten()
         if rest.numel() == 0:
             continue
-        # an optimal vertex has a constraint that t violates: with at most _FEW of them, put those first
-        lead = _FEW if bool(few[rest[0]]) else C
-        order = torch.sort(v1[rest].detach(), dim=1, descending=True, stable=True).indices
+        # the optimum lies on a constraint that t violates: with at most _FEW of them, those come first
+        lead = min(_FEW, C) if bool(few[rest[0]]) else C
+        o = torch.sort(v1[rest].detach(), dim=1, descending=True, stable=True).indices
+        ws, ms, fs = _stage(t1[rest], *(x[rest].gather(1, o) for x in (nx1, ny1, b1, v1)), tol1[rest], lead)
+        w1 = w1.index_copy(0, rest, ws)
+        m1 = m1.index_copy(0, rest, torch.zeros_like(ms).scatter(1, o, ms))
+        f1 = f1.index_copy(0, rest, fs)
+    return LocalAnswer(w.index_copy(0, todo, w1), mu.index_copy(0, todo, m1), feasible.index_copy(0, todo, f1))
+
+
+def _stage(t, nx, ny, b, v, tol, lead: int):
+    """Robots whose constraints are sorted by violation: the projections onto the first ``lead`` (a feasible one is
+    the optimum), else the vertices of the pairs with a constraint among them."""
+    R, C = nx.shape
+    s = torch.clamp(v[:, :lead], min=0.0)
+    px, py = t[:, 0:1] - s * nx[:, :lead], t[:, 1:2] - s * ny[:, :lead]  # (R, lead)
+    worst = (px[:, :, None] * nx[:, None, :] + py[:, :, None] * ny[:, None, :] - b[:, None, :]).amax(2)
+    ok = (v[:, :lead] > 0) & (worst <= tol[:, None])
+    q = torch.where(ok, s, torch.full_like(s, float("inf"))).detach().argmin(1)
+    one = ok.any(1)
+    r = torch.arange(R, device=t.device)
+    w = torch.stack((px[r, q], py[r, q]), 1)
+    mu = torch.zeros_like(b).index_put((r, q), 2.0 * s[r, q])
+    feasible = torch.ones_like(one)
+    rest = torch.nonzero(~one).flatten()
+    if rest.numel():
         k, m = _pairs(C, lead, t.device)
         per = max(1, _CHUNK // max(1, k.numel() * C))
+        pxa = torch.cat((px, torch.zeros(R, C - lead, dtype=t.dtype, device=t.device)), 1)
+        pya = torch.cat((py, torch.zeros(R, C - lead, dtype=t.dtype, device=t.device)), 1)
+        va = torch.cat((v[:, :lead], torch.full((R, C - lead), -1.0, dtype=t.dtype, device=t.device)), 1)
         for start in range(0, rest.numel(), per):
-            sel, o = rest[start:start + per], order[start:start + per]
-            ws, ms, fs = _vertices(t1[sel], *(x[sel].gather(1, o) for x in (nx1, ny1, b1)), tol1[sel],
-                                   *(x[sel].gather(1, o) for x in (px, py, v1)), k, m)
-            ms = torch.zeros_like(ms).scatter(1, o, ms)
-            w1, m1, f1 = w1.index_copy(0, sel, ws), m1.index_copy(0, sel, ms), f1.index_copy(0, sel, fs)
-    return LocalAnswer(w.index_copy(0, todo, w1), mu.index_copy(0, todo, m1), feasible.index_copy(0, todo, f1))
+            sel = rest[start:start + per]
+            ws, ms, fs = _vertices(t[sel], nx[sel], ny[sel], b[sel], tol[sel], pxa[sel], pya[sel], va[sel], k, m)
+            w, mu, feasible = w.index_copy(0, sel, ws), mu.index_copy(0, sel, ms), feasible.index_copy(0, sel, fs)
+    return w, mu, feasible
 
 
 FAR = 1e30  #: right-hand side of a constraint slot that is not there (its normal is 0)
