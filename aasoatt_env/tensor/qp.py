@@ -78,7 +78,8 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
 
 def _stage(t, nx, ny, b, v, tol, lead: int):
     """Robots whose constraints are sorted by violation: the projections onto the first ``lead`` (a feasible one is
-    the optimum), else the vertices of the pairs with a constraint among them."""
+    the optimum), else the vertices of the pairs with a constraint among them.
+    """
     R, C = nx.shape
     s = torch.clamp(v[:, :lead], min=0.0)
     px, py = t[:, 0:1] - s * nx[:, :lead], t[:, 1:2] - s * ny[:, :lead]  # (R, lead)
