@@ -77,8 +77,9 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
 
 
 def _stage(t, nx, ny, b, v, tol, lead: int):
-    """Robots whose constraints are sorted by violation: the projections onto the first ``lead`` (a feasible one is
-    the optimum), else the vertices of the pairs with a constraint among them.
+    """Robots with constraints sorted by violation: the closest feasible projection onto one of the first ``lead``.
+
+    A feasible one is the optimum; else the closest feasible vertex of a pair with a constraint among them.
     """
     R, C = nx.shape
     s = torch.clamp(v[:, :lead], min=0.0)
