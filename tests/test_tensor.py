@@ -261,3 +261,17 @@ def test_differentiable_env_passes_gradients_from_rewards_to_actions():
     plain = make_tensor_env("circle_swap", 2, 4, dtype=torch.float64, radius=2.0)
     plain.reset(seed=0)
     assert not plain.step(act)[1].requires_grad
+
+
+def test_bad_settings_are_refused_naming_the_argument():
+    from aasoatt_env.errors import ConfigError
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    for kwargs, name in ((dict(num_envs=0), "num_envs"), (dict(dtype=torch.int32), "dtype"),
+                         (dict(mode="centralized"), "mode"), (dict(barrier="braking"), "barrier")):
+        with pytest.raises(ConfigError, match=name):
+            make_tensor_env("random_goals", **{"num_robots": 4, **kwargs})
+    env = make_tensor_env("random_goals", 2, 4)
+    env.reset(seed=0)
+    with pytest.raises(ConfigError, match="actions"):
+        env.step(torch.zeros(2, 3, 2))

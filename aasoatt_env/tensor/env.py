@@ -58,8 +58,12 @@ class TensorEnv:
                  dt: float = DT, decision_interval: int = 1, sensing_range: float = 3.0, num_neighbors: int = 4,
                  num_obstacles: int = 2, reward: Any = None, collision_tolerance: float = 1e-3,
                  max_steps: int | None = None, differentiable: bool = False) -> None:
-        if not (isinstance(num_envs, int) and num_envs >= 1):
+        if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
             raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")
+        if dtype not in (torch.float32, torch.float64):
+            raise ConfigError(f"dtype: got {dtype!r}, expected torch.float32 or torch.float64")
+        if torch.device(device).type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(f"device: got {device!r}, but torch.cuda.is_available() is False on this machine")
         if config is not None and abs(config.dt - dt) > 1e-12 * dt:
             raise ConfigError(f"dt: the env steps {dt:g} s but the filter was configured for {config.dt:g} s")
         self.scenario, self.num_envs, self.device, self.dtype, self.config = scenario, num_envs, device, dtype, config
