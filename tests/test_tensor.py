@@ -133,7 +133,8 @@ def _tracking_actions(p, v, p_d, v_d, adot, A, solve, amax=60.0):
     return solve(A, (1.0 * (p_d - p) + 4.0 * (v_d - v) - adot)[..., None])[..., 0] / amax
 
 
-def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter():
+@pytest.mark.parametrize("device", DEVICES)
+def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter(device):
     """Two random_goals teams of 8 (seeds 0, 1) behind the filter for 500 steps, 200-step episodes (auto-reset twice),
     where some robots' QPs are infeasible (relaxed) at some steps: positions within 1e-6 m, observations and rewards
     equal, in float64."""
@@ -141,14 +142,14 @@ def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter
     from aasoatt_env.tensor.env import make_tensor_env
 
     n, seed, opts = 8, 0, dict(backup=False, negotiate=False)
-    tenv = make_tensor_env("random_goals", 2, n, dtype=torch.float64, max_steps=200, **opts)
+    tenv = make_tensor_env("random_goals", 2, n, device=device, dtype=torch.float64, max_steps=200, **opts)
     obs_t, _ = tenv.reset(seed=seed)
     envs = []
     for b in range(2):
         e = AASOATTParallelEnv("random_goals", num_robots=n, max_steps=200)
         e.set_control_filter(SafetyFilter(mode="decentralized", kernel="numpy", **opts))
         o, _ = e.reset(seed=seed + b)
-        assert np.array_equal(np.stack([o[a] for a in e.possible_agents]), obs_t[b].numpy())
+        assert np.array_equal(np.stack([o[a] for a in e.possible_agents]), obs_t[b].cpu().numpy())
         envs.append(e)
     worst, resets, relaxed = 0.0, 0, 0
     for _ in range(500):
@@ -162,13 +163,13 @@ def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter
         relaxed += int((info["status"] & RELAXED).sum())
         for b, e in enumerate(envs):
             o, r, _, tr, _ = e.step({a: acts[b][i] for i, a in enumerate(e.possible_agents)})
-            assert np.abs(np.array(list(r.values())) - rew_t[b].numpy()).max() <= 1e-9
+            assert np.abs(np.array(list(r.values())) - rew_t[b].cpu().numpy()).max() <= 1e-9
             if tr[e.possible_agents[0]]:
                 o, _ = e.reset()
                 resets += 1
                 assert bool(trunc_t[b].all()) and bool(info["reset"][b])
-            worst = max(worst, float(np.abs(e.positions - tenv.kin.p[b].numpy()).max()))
-            assert np.abs(np.stack([o[a] for a in e.possible_agents]) - obs_t[b].numpy()).max() <= 1e-5
+            worst = max(worst, float(np.abs(e.positions - tenv.kin.p[b].cpu().numpy()).max()))
+            assert np.abs(np.stack([o[a] for a in e.possible_agents]) - obs_t[b].cpu().numpy()).max() <= 1e-5
     assert resets == 4 and worst <= 1e-6 and relaxed > 0
 
 
