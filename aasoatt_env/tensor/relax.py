@@ -19,6 +19,8 @@ def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
     dx = -(hyy * gx - hxy * gy) / det
     dy = -(hxx * gy - hxy * gx) / det
     inside = (dx >= lox) & (dx <= hix) & (dy >= loy) & (dy <= hiy)
+    if bool(inside.all()):
+        return dx, dy
     best = torch.full_like(dx, float("inf"))
     bx, by = dx, dy
     for e, c in enumerate((lox, hix, loy, hiy)):
@@ -82,7 +84,10 @@ def least_violation(gx: torch.Tensor, gy: torch.Tensor, hh: torch.Tensor, lb: to
             rn = res + delta
             d1 = (torch.where(rn > 0, rn, torch.zeros_like(rn)) * delta).sum(1)
             full = d1 <= 0.0
-            t = torch.where(full, torch.ones_like(d1), _line_min(res, delta))
+            t = torch.ones_like(d1)
+            part = torch.nonzero(~full).flatten()
+            if part.numel():
+                t = t.index_copy(0, part, _line_min(res[part], delta[part]))
             new = torch.stack((torch.minimum(torch.maximum(x[:, 0] + t * dx, lb[:, 0]), ub[:, 0]),
                                torch.minimum(torch.maximum(x[:, 1] + t * dy, lb[:, 1]), ub[:, 1])), 1)
             x = torch.where(act[:, None], new, x)
