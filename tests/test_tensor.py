@@ -133,6 +133,7 @@ def _tracking_actions(p, v, p_d, v_d, adot, A, solve, amax=60.0):
     return solve(A, (1.0 * (p_d - p) + 4.0 * (v_d - v) - adot)[..., None])[..., 0] / amax
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("device", DEVICES)
 def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter(device):
     """Two random_goals teams of 8 (seeds 0, 1) behind the filter for 500 steps, 200-step episodes (auto-reset twice),
