@@ -277,3 +277,19 @@ def test_bad_settings_are_refused_naming_the_argument():
     env.reset(seed=0)
     with pytest.raises(ConfigError, match="actions"):
         env.step(torch.zeros(2, 3, 2))
+
+
+@pytest.mark.parametrize("scenario, kwargs", [("random_goals", dict(random_obstacles=3)), ("circle_swap", {})])
+def test_team_b_after_reset_seed_s_is_the_pettingzoo_layout_of_seed_s_plus_b(scenario, kwargs):
+    from aasoatt_env.sim.env import AASOATTParallelEnv
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    env = make_tensor_env(scenario, 3, 6, dtype=torch.float64, **kwargs)
+    obs, _ = env.reset(seed=10)
+    for b in range(3):
+        ref = AASOATTParallelEnv(scenario, num_robots=6, **kwargs)
+        o, _ = ref.reset(seed=10 + b)
+        assert np.array_equal(env.kin.p[b].numpy(), ref.positions)
+        assert np.array_equal(env._st["goals"][b].numpy(), ref.goals)
+        assert np.array_equal(env._st["oc"][b].numpy(), ref.obstacles[0])
+        assert np.array_equal(obs[b].numpy(), np.stack([o[a] for a in ref.possible_agents]))
