@@ -26,6 +26,15 @@ __version__ = "0.1.0"
 
 register_all()
 
+
+def __getattr__(name: str):
+    """``make_tensor_env`` on first use (:mod:`aasoatt_env.tensor` imports torch; ``import aasoatt_env`` does not)."""
+    if name == "make_tensor_env":
+        from aasoatt_env.tensor.env import make_tensor_env
+
+        return make_tensor_env
+    raise AttributeError(f"module 'aasoatt_env' has no attribute {name!r}")
+
 __all__ = [
     "ENV_IDS", "PRESETS", "SCENARIOS", "AASOATTError", "AASOATTFilter", "AASOATTGymEnv", "AASOATTParallelEnv",
     "ActionError", "BatchedAASOATTEnv", "ConfigError", "DataFileError", "FilterConfig", "FilterReport", "FilterResult",

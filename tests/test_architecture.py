@@ -18,7 +18,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("aasoatt_env.model",),
     ("aasoatt_env.sim",),
     ("aasoatt_env.safety",),
-    ("aasoatt_env.api",),
+    ("aasoatt_env.api", "aasoatt_env.tensor"),
     ("aasoatt_env.analysis",),
     ("agents",),
     ("train",),

@@ -52,6 +52,12 @@ def test_readme_batched_snippet():
     assert ns["rewards"].shape == (8, 6) and envs.live.shape == (8, 6)
 
 
+def test_readme_torch_snippet():
+    ns = _run(readme_block("torch"))
+    assert ns["obs"].shape == (256, 6, ns["envs"].obs_dim) and ns["rewards"].shape == (256, 6)
+    assert float(ns["infos"]["clearance"].min()) >= -1e-3
+
+
 @pytest.mark.slow
 def test_readme_minimal_example():
     code = readme_block("minimal")

@@ -1,0 +1,295 @@
+"""``TensorEnv``: ``B`` teams of ``N`` robots as torch tensors, stepped at once (:func:`make_tensor_env`).
+
+The PettingZoo env's dynamics, observations (``14 + 6 (K + K_obs)`` float32 entries), rewards and episode length,
+team by team: team ``b`` after ``reset(seed=s)`` is the scenario of ``reset(seed=s + b)``, built by the numpy
+scenario itself (only the layouts are numpy; the step never leaves torch).  A team whose episode ends is reset in
+the same step (its next layout from its own generator, as a PettingZoo env's ``reset()`` without a seed), and the
+observation returned is its new episode's first.  Behind the torch filter (:mod:`.filter`) the actions are nominal
+wheel accelerations in units of the bound, as behind the numpy filter.  Wheel actions only; no termination on
+collision (``terminated`` is all False); linear references (``random_goals``, ``circle_swap``, ...).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import fields
+from typing import Any
+
+import numpy as np
+import torch
+
+from aasoatt_env.errors import ConfigError
+from aasoatt_env.model.dynamics import DT
+from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
+from aasoatt_env.sim.references import LinearReference
+from aasoatt_env.sim.rewards import RewardConfig
+from aasoatt_env.sim.scenarios import get_scenario
+from aasoatt_env.tensor.filter import FilterOut, check_config, filter_step
+from aasoatt_env.tensor.model import TensorTeam, input_bounds, integrate, kinematics
+
+__all__ = ["TensorEnv", "make_tensor_env"]
+
+_ENV_KEYS = ("dt", "decision_interval", "sensing_range", "num_neighbors", "num_obstacles", "reward",
+             "collision_tolerance", "max_steps", "differentiable")
+
+
+def make_tensor_env(scenario: str = "random_goals", num_envs: int = 1, num_robots: int = 6, device: str = "cpu",
+                    dtype: torch.dtype = torch.float32, filter: bool = True, mode: str = "decentralized",
+                    **options: Any) -> TensorEnv:
+    """``num_envs`` teams of ``num_robots`` robots of ``scenario`` on ``device`` (module docstring).
+
+    ``options``: the env's settings (``dt``, ``decision_interval``, ``sensing_range``, ``num_neighbors``,
+    ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``differentiable``: ``step`` records the
+    autograd graph, so losses on its outputs reach the actions and the state through the filter and the dynamics;
+    default False: no graph), :class:`FilterConfig` fields, and the scenario's parameters.
+    """
+    names = {f.name for f in fields(FilterConfig)}
+    env_kw = {k: options.pop(k) for k in list(options) if k in _ENV_KEYS}
+    filt_kw = {k: options.pop(k) for k in list(options) if k in names}
+    cfg = check_config(FilterConfig.merged(None, mode=mode, **filt_kw)) if filter else None
+    return TensorEnv(get_scenario(scenario, num_robots=num_robots, **options), num_envs, device, dtype, cfg, **env_kw)
+
+
+class TensorEnv:
+    """Teams of one scenario as tensors (module docstring); ``step`` and ``reset`` as a vector env's."""
+
+    def __init__(self, scenario, num_envs: int, device: str, dtype: torch.dtype, config: FilterConfig | None,
+                 dt: float = DT, decision_interval: int = 1, sensing_range: float = 3.0, num_neighbors: int = 4,
+                 num_obstacles: int = 2, reward: Any = None, collision_tolerance: float = 1e-3,
+                 max_steps: int | None = None, differentiable: bool = False) -> None:
+        if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
+            raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")
+        if dtype not in (torch.float32, torch.float64):
+            raise ConfigError(f"dtype: got {dtype!r}, expected torch.float32 or torch.float64")
+        if torch.device(device).type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(f"device: got {device!r}, but torch.cuda.is_available() is False on this machine")
+        if config is not None and abs(config.dt - dt) > 1e-12 * dt:
+            raise ConfigError(f"dt: the env steps {dt:g} s but the filter was configured for {config.dt:g} s")
+        self.scenario, self.num_envs, self.device, self.dtype, self.config = scenario, num_envs, device, dtype, config
+        self.dt, self.decision_interval, self.sensing_range = float(dt), int(decision_interval), float(sensing_range)
+        self.num_neighbors, self.num_obstacles = int(num_neighbors), int(num_obstacles)
+        self.reward_config, self.collision_tolerance = RewardConfig.coerce(reward), float(collision_tolerance)
+        self._max_steps_override = max_steps
+        self.differentiable = bool(differentiable)
+        self.num_robots = scenario.num_robots
+        self.obs_dim = SELF_DIM + SLOT_DIM * (self.num_neighbors + self.num_obstacles)
+        self._rngs: list[np.random.Generator] = []
+        self.team: TensorTeam | None = None
+        self.autoreset = True  #: reset finished teams within ``step`` (False: :meth:`reset_done` does)
+
+    # ------------------------------------------------------------------ episodes
+    def _t(self, a: Any, dtype: torch.dtype | None = None) -> torch.Tensor:
+        return torch.as_tensor(np.asarray(a), device=self.device).to(dtype or self.dtype)
+
+    def _layouts(self, teams: list[int]) -> dict[str, torch.Tensor]:
+        """New layouts of ``teams`` from their generators, as tensors."""
+        lays = [self.scenario.build(self._rngs[b]) for b in teams]
+        for lay in lays:
+            if type(lay.reference) is not LinearReference:
+                raise ConfigError(f"scenario: {self.scenario.name!r} has a {type(lay.reference).__name__}, expected "
+                                  "a LinearReference (the torch env's references are straight lines)")
+        if self.team is None:
+            self.team = TensorTeam.from_team(lays[0].team, self.dtype, self.device)
+            self._profile = lays[0].reference.profile
+        steps = [self._max_steps_override or max(1, int(math.ceil(lay.horizon / (self.dt * self.decision_interval)
+                                                                  - 1e-9))) for lay in lays]
+        return dict(
+            pose=self._t(np.stack([_pose(lay) for lay in lays])),
+            starts=self._t(np.stack([lay.reference.starts for lay in lays])),
+            goals=self._t(np.stack([lay.reference.goals for lay in lays])),
+            durations=self._t(np.stack([lay.reference.durations for lay in lays]), torch.float64),
+            oc=self._t(np.stack([lay.obstacle_centers.reshape(-1, 2) for lay in lays])),
+            orad=self._t(np.stack([lay.obstacle_radii for lay in lays])),
+            max_steps=torch.tensor(steps, device=self.device))
+
+    def reset(self, seed: int | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Start every team's episode; team ``b``'s layout is that of ``seed + b`` (observations ``(B, N, obs)``)."""
+        self._rngs = [np.random.default_rng(None if seed is None else seed + b) for b in range(self.num_envs)]
+        self.team = None
+        st = self._layouts(list(range(self.num_envs)))
+        B, N = self.num_envs, self.num_robots
+        self._st = st
+        self.pose, self.u = st["pose"], torch.zeros(B, N, 2, dtype=self.dtype, device=self.device)
+        self.time = torch.zeros(B, dtype=torch.float64, device=self.device)
+        self.steps = torch.zeros(B, dtype=torch.long, device=self.device)
+        self.avoiding = torch.zeros(B, N, dtype=torch.bool, device=self.device)
+        self._refresh()
+        return self._observations(), self._infos(None)
+
+    def reset_done(self, done: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """Start a new episode of the teams ``done`` ``(B,)`` (each from its own generator); all observations."""
+        self._reset_teams(torch.as_tensor(done, device=self.device))
+        self._refresh()
+        return self._observations(), self._infos(None)
+
+    def _reset_teams(self, done: torch.Tensor) -> None:
+        """Reset the teams ``done`` ``(B,)`` (same-step autoreset)."""
+        teams = torch.nonzero(done).flatten().tolist()
+        if not teams:
+            return
+        new = self._layouts(teams)
+        idx = torch.tensor(teams, device=self.device)
+        for k, v in new.items():
+            self._st[k] = self._st[k].index_copy(0, idx, v)
+        self.pose = self.pose.index_copy(0, idx, new["pose"])
+        self.u = self.u.index_fill(0, idx, 0.0)
+        self.time = self.time.index_fill(0, idx, 0.0)
+        self.steps = self.steps.index_fill(0, idx, 0)
+        self.avoiding = self.avoiding.index_fill(0, idx, False)
+
+    # ------------------------------------------------------------------ step
+    def reference(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(p_d, v_d, a_d)`` ``(B, N, 2)`` of every team at its own time (``LinearReference``)."""
+        st = self._st
+        T = st["durations"]
+        t = self.time[:, None]
+        done = (t >= T)[..., None]
+        tau = (torch.clamp(t, min=0.0) / T)[..., None].to(self.dtype)
+        delta = st["goals"] - st["starts"]
+        Tt = T.to(self.dtype)[..., None]
+        if self._profile == "linear":
+            zero = torch.zeros_like(delta)
+            return (torch.where(done, st["goals"], st["starts"] + tau * delta), torch.where(done, zero, delta / Tt),
+                    zero)
+        s = tau ** 3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
+        ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / Tt
+        dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (Tt * Tt)
+        zero = torch.zeros_like(delta)
+        return (torch.where(done, st["goals"], st["starts"] + s * delta), torch.where(done, zero, ds * delta),
+                torch.where(done, zero, dds * delta))
+
+    def step(self, actions: torch.Tensor) -> tuple:
+        """Hold ``actions`` ``(B, N, 2)`` for ``decision_interval`` physics steps (:meth:`_step`)."""
+        with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
+            return self._step(actions)
+
+    def _step(self, actions: torch.Tensor) -> tuple:
+        """Hold ``actions`` ``(B, N, 2)`` for ``decision_interval`` physics steps; auto-reset finished teams.
+
+        Returns ``observations (B, N, obs_dim)``, ``rewards``, ``terminated``, ``truncated`` ``(B, N)`` and infos
+        (tensors: ``correction``, ``intervened``, ``backup``, ``status``, ``clearance``, ``tracking_error``, and
+        ``reset`` ``(B,)``: the team started a new episode in this step).
+        """
+        act = torch.as_tensor(actions, device=self.device).to(self.dtype)
+        B, N = self.num_envs, self.num_robots
+        if act.shape != (B, N, 2):
+            raise ConfigError(f"actions: got shape {tuple(act.shape)}, expected ({B}, {N}, 2)")
+        if not bool(torch.isfinite(act).all()):
+            raise ConfigError("actions: got non-finite values, expected finite numbers")
+        if self.config is None:
+            act = torch.clamp(act, -1.0, 1.0)
+        team, corr, out = self.team, None, None
+        for _ in range(self.decision_interval):
+            nominal = act * team.max_wheel_accel[:, None]
+            lo, hi = input_bounds(team, self.u, self.dt)
+            du = nominal
+            if self.config is not None:
+                p_d, v_d, _ = self.reference()
+                out = filter_step(team, self.config, self.pose, self.u, nominal, p_d, v_d,
+                                  (self._st["oc"], self._st["orad"]), self.avoiding)
+                self.avoiding, du = out.avoiding, out.du
+                corr = out.correction if corr is None else torch.maximum(corr, out.correction)
+            du = torch.minimum(torch.maximum(du, lo), hi)
+            self.pose, self.u = integrate(team, self.pose, self.u, du, self.dt)
+            self.time = self.time + self.dt
+        self.steps = self.steps + 1
+        self._refresh()
+        rew = self._rewards(act, corr)
+        truncated = (self.steps >= self._st["max_steps"])
+        infos = self._infos(out, corr)
+        infos["reset"] = truncated if self.autoreset else torch.zeros_like(truncated)
+        if self.autoreset and bool(truncated.any()):
+            self._reset_teams(truncated)
+            self._refresh()
+        return (self._observations(), rew, torch.zeros(B, N, dtype=torch.bool, device=self.device),
+                truncated[:, None].expand(B, N), infos)
+
+    # ------------------------------------------------------------------ what the agents see
+    def _refresh(self) -> None:
+        """Kinematics, reference, distances and clearance now."""
+        self.kin = kinematics(self.team, self.pose, self.u)
+        self.ref = self.reference()
+        p = self.kin.p
+        d = p[:, :, None, :] - p[:, None, :, :]
+        dist = torch.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+        N = p.shape[1]
+        self.dist = dist + torch.diag(torch.full((N,), float("inf"), dtype=dist.dtype, device=dist.device))
+        r = self.team.radius
+        clear = (self.dist - r[:, None] - r[None, :]).amin(-1) if N > 1 else torch.full_like(p[..., 0], float("inf"))
+        oc, orad = self._st["oc"], self._st["orad"]
+        self.ogap = torch.zeros(p.shape[0], N, 0, dtype=p.dtype, device=p.device)
+        if orad.shape[-1]:
+            od = p[:, :, None, :] - oc[:, None, :, :]
+            self.ogap = torch.sqrt(od[..., 0] ** 2 + od[..., 1] ** 2) - r[None, :, None] - orad[:, None, :]
+            clear = torch.minimum(clear, self.ogap.amin(-1))
+        self.clearance = clear
+        e = p - self.ref[0]
+        self.tracking_error = torch.sqrt(e[..., 0] ** 2 + e[..., 1] ** 2)
+
+    def _rewards(self, act: torch.Tensor, corr: torch.Tensor | None) -> torch.Tensor:
+        """:func:`aasoatt_env.sim.rewards.rewards`, per robot ``(B, N)``."""
+        c = self.reward_config
+        collided = (self.clearance < -self.collision_tolerance).to(self.dtype)
+        r = -c.tracking * self.tracking_error - c.collision * collided - c.effort * 0.5 * (act * act).sum(-1)
+        if c.goal_bonus:
+            g = self.kin.p - self._st["goals"]
+            r = r + c.goal_bonus * (torch.sqrt(g[..., 0] ** 2 + g[..., 1] ** 2) < c.goal_tolerance).to(self.dtype)
+        if c.correction and corr is not None:
+            r = r - c.correction * corr / self.team.max_wheel_accel
+        return r
+
+    def _observations(self) -> torch.Tensor:
+        """:func:`aasoatt_env.sim.observations.build_observations` for every team ``(B, N, obs_dim)`` float32."""
+        kin, (p_d, v_d, a_d), th = self.kin, self.ref, self.pose[..., 2]
+        p, v = kin.p, kin.v
+        B, N, _ = p.shape
+        parts = [p - p_d, self._st["goals"] - p, v, torch.stack((torch.cos(th), torch.sin(th)), -1), self.u, v_d, a_d]
+        r = self.team.radius.expand(B, N)
+        if self.num_neighbors:
+            k = self.num_neighbors
+            kk = min(k, N - 1)
+            slots = torch.zeros(B, N, k, SLOT_DIM, dtype=p.dtype, device=p.device)
+            if kk > 0:
+                dist, idx = self.dist.topk(kk, dim=-1, largest=False)  # (exact ties may be ordered otherwise)
+                ok = dist <= self.sensing_range
+                flat = idx.reshape(B, N * kk, 1)
+                rel_p = p.gather(1, flat.expand(-1, -1, 2)).reshape(B, N, kk, 2) - p[:, :, None]
+                rel_v = v.gather(1, flat.expand(-1, -1, 2)).reshape(B, N, kk, 2) - v[:, :, None]
+                gap = (-r.gather(1, idx.reshape(B, N * kk)).reshape(B, N, kk) - r[..., None]) + dist
+                part = torch.cat((rel_p, rel_v, gap[..., None], torch.ones_like(gap)[..., None]), -1)
+                slots[:, :, :kk] = torch.where(ok[..., None], part, torch.zeros_like(part))
+            parts.append(slots.reshape(B, N, -1))
+        if self.num_obstacles:
+            k, m = self.num_obstacles, self.ogap.shape[-1]
+            slots = torch.zeros(B, N, k, SLOT_DIM, dtype=p.dtype, device=p.device)
+            if m:
+                kk = min(k, m)
+                order = torch.sort(self.ogap, dim=-1, stable=True)
+                idx, g = order.indices[..., :kk], order.values[..., :kk]
+                orad = self._st["orad"].gather(1, idx.reshape(B, N * kk)).reshape(B, N, kk)
+                ok = g + r[..., None] + orad <= self.sensing_range
+                c = self._st["oc"].gather(1, idx.reshape(B, N * kk, 1).expand(-1, -1, 2)).reshape(B, N, kk, 2)
+                part = torch.cat((c - p[:, :, None], (-v)[:, :, None].expand(B, N, kk, 2), g[..., None],
+                                  torch.ones_like(g)[..., None]), -1)
+                slots[:, :, :kk] = torch.where(ok[..., None], part, torch.zeros_like(part))
+            parts.append(slots.reshape(B, N, -1))
+        return torch.clamp(torch.cat(parts, -1).to(torch.float32), -OBS_BOUND, OBS_BOUND)
+
+    def _infos(self, out: FilterOut | None, corr: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        B, N = self.num_envs, self.num_robots
+        zeros = torch.zeros(B, N, dtype=torch.bool, device=self.device)
+        info = {"clearance": self.clearance, "tracking_error": self.tracking_error,
+                "correction": corr if corr is not None else torch.zeros(B, N, dtype=self.dtype, device=self.device),
+                "intervened": zeros if out is None else out.intervened,
+                "status": torch.zeros(B, N, dtype=torch.long, device=self.device) if out is None else out.status}
+        info["backup"] = zeros if out is None else (out.status & 4) > 0
+        return info
+
+
+def _pose(lay) -> np.ndarray:
+    """Axle poses ``(N, 3)`` of a layout (``dynamics.pose_from_point``)."""
+    from aasoatt_env.model.dynamics import pose_from_point as np_pose
+
+    return np_pose(lay.team, lay.starts, lay.headings)
+

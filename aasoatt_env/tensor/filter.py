@@ -1,0 +1,324 @@
+"""The decentralised AA-SOATT filter in torch, batched over teams ``(B, N)``: :func:`filter_step`, :class:`SafetyLayer`.
+
+One step, as :class:`~aasoatt_env.safety.core.SafetyFilter` with ``mode="decentralized"`` runs it: each robot's
+nominal clipped to its bounds; the ``multiplier`` trigger (a half-row of the robot bound at the previous step, and
+not done) and eqn.13's target correction (``auxiliary_velocity``) or none; the paper's rows (eqn.7-8, the
+discrete-time margin of :class:`~aasoatt_env.safety.config.FilterConfig`) for every robot pair and robot-obstacle
+pair in the sensing range; the rows shared reciprocally by authority around each robot's box least-squares answer;
+every robot's exact 2-variable QP (:mod:`.qp`).
+
+What it covers: where the numpy filter answers every robot by its own QP, feasible or relaxed (``negotiate=False``,
+or no negotiation group formed; ``backup=False``) the answers agree (1e-9 feasible, 1e-6 relaxed: the least-violation
+iteration's stopping tolerance).  What it reports, per robot in ``status`` (bit flags): :data:`RELAXED` (its own QP
+is infeasible: answered as the numpy filter does, its rows loosened by their least violation, :mod:`.relax`),
+:data:`GROUPED` (``negotiate=True`` would solve its rows jointly with its negotiation group; the tensor answer stays
+its own QP's), :data:`BACKUP` (``backup=True``: the braking check of :mod:`.backup`, not the numpy backup layer,
+braked the robot), :data:`UNSAFE` (that check found a pair failing although both brake).  Equality with the numpy
+filter is claimed for ``backup=False`` only: the two backup checks differ.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+
+from aasoatt_env.errors import ConfigError
+from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
+from aasoatt_env.safety.solvers.local import RELAX_TOL
+from aasoatt_env.tensor.backup import gate
+from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
+from aasoatt_env.tensor.qp import FAR, LocalAnswer, solve_polygons
+from aasoatt_env.tensor.relax import least_violation
+
+__all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config", "filter_step"]
+
+RELAXED, GROUPED, BACKUP, UNSAFE = 1, 2, 4, 8  #: ``status`` bits (module docstring); 0: its own QP, exactly
+
+
+class FilterOut(NamedTuple):
+    """One step of :func:`filter_step`, per robot ``(B, N, ...)``."""
+
+    du: torch.Tensor  #: ``(B, N, 2)`` filtered wheel accelerations, within the bounds
+    status: torch.Tensor  #: ``(B, N)`` int: bit flags (module docstring)
+    avoiding: torch.Tensor  #: ``(B, N)`` bool: a half-row of the robot binds (the trigger's memory for the next step)
+    triggered: torch.Tensor  #: ``(B, N)`` bool: eqn.13 acted on the robot
+    correction: torch.Tensor  #: ``(B, N)`` ``|du - nominal|``
+    intervened: torch.Tensor  #: ``(B, N)`` bool: the nominal was changed
+    gap: torch.Tensor  #: ``(B, N)`` smallest surface gap to a robot or obstacle in range (``D - 2 r`` without)
+
+
+def check_config(cfg: FilterConfig) -> FilterConfig:
+    """``cfg`` if the torch filter implements it, else :class:`ConfigError` naming the setting."""
+    if cfg.mode != "decentralized":
+        raise ConfigError(f"mode: got {cfg.mode!r}, expected 'decentralized' (the torch filter solves each robot's QP)")
+    for name, allowed in (("barrier", ("aasoatt",)), ("deadlock", ("auxiliary_velocity", "none")),
+                          ("trigger", ("multiplier",))):
+        if getattr(cfg, name) not in allowed:
+            raise ConfigError(f"{name}: got {getattr(cfg, name)!r}, expected one of {list(allowed)} in the torch "
+                              "filter")
+    if cfg.max_wheel_speed is not None or cfg.speed_margin:
+        raise ConfigError("max_wheel_speed/speed_margin: expected None/0 in the torch filter")
+    return cfg
+
+
+def _target(cfg: FilterConfig, kin: TensorKinematics, nom: torch.Tensor, avoiding: torch.Tensor | None,
+            p_d: torch.Tensor, v_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``A du_nom``, corrected by eqn.13 on the triggered robots; ``(target, triggered)``."""
+    tx = kin.a00 * nom[..., 0] + kin.a01 * nom[..., 1]
+    ty = kin.a10 * nom[..., 0] + kin.a11 * nom[..., 1]
+    if avoiding is None or cfg.deadlock == "none":
+        return torch.stack((tx, ty), -1), torch.zeros(tx.shape, dtype=torch.bool, device=tx.device)
+    ell = kin.p - p_d
+    not_done = ((torch.sqrt(v_d[..., 0] ** 2 + v_d[..., 1] ** 2) >= cfg.low_speed)
+                | (torch.sqrt(ell[..., 0] ** 2 + ell[..., 1] ** 2) > cfg.goal_tol))
+    trig = avoiding & not_done
+    q = math.radians(cfg.rotation_deg)
+    cq, sq = math.cos(q), math.sin(q)
+    e = kin.v - v_d + cfg.k3 * ell
+    z = torch.where(trig, cfg.zeta, 0.0).to(tx.dtype)
+    return torch.stack((tx - z * (e[..., 0] * cq + e[..., 1] * (-sq)), ty - z * (e[..., 0] * sq + e[..., 1] * cq)),
+                       -1), trig
+
+
+def _rhs(cfg: FilterConfig, gp, gv, ga, ds) -> torch.Tensor:
+    """eqn.8's right-hand side of each pair (``barriers._aasoatt``) with the discrete-time margin on ``d_s``."""
+    pp = gp[0] * gp[0] + gp[1] * gp[1]
+    r = torch.clamp(torch.sqrt(pp), min=1e-9)
+    pv = gp[0] * gv[0] + gp[1] * gv[1]
+    vv = gv[0] * gv[0] + gv[1] * gv[1]
+    pa = gp[0] * ga[0] + gp[1] * ga[1]
+    if cfg.safety_margin is None:
+        margin = auto_margin(cfg.dt) * torch.clamp(torch.sqrt(vv) / MARGIN_FADE_SPEED, max=1.0)
+    else:
+        margin = float(cfg.safety_margin)
+    d = ds + margin
+    return vv - pv * pv / (r * r) + (cfg.k1 + cfg.k2) * pv + cfg.k1 * cfg.k2 * r * (r - d) + pa
+
+
+def _box_ls(kin: TensorKinematics, t: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
+    """:func:`~aasoatt_env.safety.problem.box_least_squares`: ``argmin |A du - t|`` in the box, closed form."""
+    a, b, c, d = kin.a00, kin.a01, kin.a10, kin.a11
+    t0, t1 = t[..., 0], t[..., 1]
+    det = a * d - b * c
+    x = torch.stack(((d * t0 - b * t1) / det, (a * t1 - c * t0) / det), -1)
+    out = ((x < lo) | (x > hi)).any(-1)
+    h00, h01, h11 = a * a + c * c, a * b + c * d, b * b + d * d
+    g0, g1 = -(a * t0 + c * t1), -(b * t0 + d * t1)
+    lo0, lo1, hi0, hi1 = lo[..., 0], lo[..., 1], hi[..., 0], hi[..., 1]
+    f0, f1 = torch.stack((lo0, hi0)), torch.stack((lo1, hi1))
+    x0 = torch.cat((f0, torch.minimum(torch.maximum(-(g0 + h01 * f1) / h00, lo0), hi0)))
+    x1 = torch.cat((torch.minimum(torch.maximum(-(g1 + h01 * f0) / h11, lo1), hi1), f1))
+    f = 0.5 * (h00 * x0 * x0 + 2.0 * h01 * x0 * x1 + h11 * x1 * x1) + g0 * x0 + g1 * x1
+    # the first of equal values, as numpy's argmin over the edges in this order
+    ex, ey, best = x0[0], x1[0], f[0]
+    for e in range(1, 4):
+        take = f[e] < best
+        ex, ey, best = torch.where(take, x0[e], ex), torch.where(take, x1[e], ey), torch.where(take, f[e], best)
+    edge = torch.stack((ex, ey), -1)
+    return torch.where(out[..., None], edge, x)
+
+
+class _Pairs(NamedTuple):
+    """Each robot's rows ``(B, N, K + M)``: the other member's index (``-1``: obstacle) and validity; geometry."""
+
+    other: torch.Tensor
+    valid: torch.Tensor
+    gp: torch.Tensor  #: ``p_own - p_other`` ``(2, B, N, K + M)`` (components first: contiguous)
+    gv: torch.Tensor
+    ga: torch.Tensor
+    ds: torch.Tensor
+    gap: torch.Tensor  #: ``(B, N)`` smallest surface gap
+    of: torch.Tensor  #: ``(F, B, N, K + M)`` the other robot's features (:data:`_F`; 0 for obstacles)
+
+
+_F = ("px", "py", "vx", "vy", "ax", "ay", "radius", "a00", "a01", "a10", "a11", "du0x", "du0y", "authority")
+
+
+def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``x[b, idx[b, n, k]]`` for ``x`` ``(B, N, ...)``, ``idx`` ``(B, N, K)``."""
+    B, N, K = idx.shape
+    flat = idx.reshape(B, N * K)
+    if x.dim() == 2:
+        return x.gather(1, flat).reshape(B, N, K)
+    return x.gather(1, flat[..., None].expand(B, N * K, x.shape[-1])).reshape(B, N, K, x.shape[-1])
+
+
+def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
+    """The robot pairs within ``D`` (``|p_ij| <= D``) and obstacles whose rim is within ``D``, as row tables.
+
+    ``feat`` ``(B, N, F)``: every robot's features (:data:`_F`), gathered once for the other members.
+    """
+    B, N, F = feat.shape
+    featT = feat.permute(2, 0, 1).contiguous()  # (F, B, N): one contiguous tensor per feature
+    p, rad = feat[..., 0:2], featT[6]
+    D = cfg.sensing_range
+    dx = featT[0][:, :, None] - featT[0][:, None, :]
+    dy = featT[1][:, :, None] - featT[1][:, None, :]
+    d2 = dx * dx + dy * dy
+    eye = torch.eye(N, dtype=torch.bool, device=p.device)
+    near = (d2 <= D * D) & ~eye
+    K = int(near.sum(-1).max()) if N > 1 else 0
+    key = torch.where(near, d2, torch.full_like(d2, float("inf"))).detach()
+    idx = key.topk(K, dim=-1, largest=False).indices
+    valid = near.gather(2, idx)
+    of = featT.gather(2, idx.reshape(1, B, N * K).expand(F, B, N * K)).reshape(F, B, N, K)
+    own = featT[:7, :, :, None]
+    rel = own - of[:7]
+    gp, gv, ga = rel[0:2], rel[2:4], rel[4:6]
+    ds = rad[..., None] + of[6]
+    other = torch.where(valid, idx, -1)
+    centre_gap = torch.sqrt(gp[0] ** 2 + gp[1] ** 2) - ds
+    gap = torch.where(valid, centre_gap, torch.full_like(centre_gap, float("inf"))).amin(-1) if K else \
+        torch.full((B, N), float("inf"), dtype=p.dtype, device=p.device)
+    if obstacles is not None and obstacles[1].shape[-1]:
+        oc, orad = obstacles
+        M = orad.shape[-1]
+        op = own[0:2] - oc.permute(2, 0, 1)[:, :, None, :]
+        odist = torch.sqrt(op[0] ** 2 + op[1] ** 2)
+        ovalid = odist - orad[:, None, :] <= D
+        ods = rad[..., None] + orad[:, None, :]
+        gap = torch.minimum(gap, torch.where(ovalid, odist - ods, torch.full_like(odist, float("inf"))).amin(-1))
+        gp = torch.cat((gp, op), 3)
+        gv = torch.cat((gv, own[2:4].expand(2, B, N, M)), 3)
+        ga = torch.cat((ga, own[4:6].expand(2, B, N, M)), 3)
+        ds = torch.cat((ds, ods), 2)
+        valid = torch.cat((valid, ovalid), 2)
+        other = torch.cat((other, torch.full((B, N, M), -1, dtype=other.dtype, device=p.device)), 2)
+        of = torch.cat((of, torch.zeros(F, B, N, M, dtype=of.dtype, device=of.device)), 3)
+    gap = torch.where(torch.isinf(gap), torch.full_like(gap, D) - 2.0 * rad, gap)
+    return _Pairs(other, valid, gp, gv, ga, ds, gap, of)
+
+
+def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torch.Tensor, nominal: torch.Tensor,
+                p_d: torch.Tensor, v_d: torch.Tensor, obstacles: tuple[torch.Tensor, torch.Tensor] | None = None,
+                avoiding: torch.Tensor | None = None) -> FilterOut:
+    """One decentralised filter step of ``B`` teams of ``N`` robots (module docstring).
+
+    ``pose`` ``(B, N, 3)``, wheel speeds ``u`` and ``nominal`` wheel accelerations ``(B, N, 2)``, the reference
+    ``p_d, v_d`` ``(B, N, 2)``, ``obstacles`` ``(centres (B, M, 2), radii (B, M))``, ``avoiding`` the previous step's
+    ``FilterOut.avoiding`` (None: a first step).  Differentiable in ``pose``, ``u`` and ``nominal`` (:mod:`.qp`).
+    """
+    kin = kinematics(team, pose, u)
+    lo, hi = input_bounds(team, u, cfg.dt)
+    B, N, _ = pose.shape
+    scale = torch.maximum(team.max_wheel_accel.expand(B, N), torch.maximum(lo.abs(), hi.abs()).amax(-1))
+    nom = torch.minimum(torch.maximum(nominal, lo), hi)
+    target, trig = _target(cfg, kin, nom, avoiding, p_d, v_d)
+    du0 = _box_ls(kin, target, lo, hi)
+    feat = torch.cat((kin.p, kin.v, kin.adot, torch.stack((team.radius.expand(B, N), kin.a00, kin.a01, kin.a10,
+                      kin.a11), -1), du0, team.max_point_accel.expand(B, N)[..., None]), -1)
+    pr = _pairs(cfg, feat, obstacles)
+    rhs = _rhs(cfg, pr.gp, pr.gv, pr.ga, pr.ds)
+    # own half-row G = -A_own^T p_(own - other); the other's G' = A_other^T p_(own - other)
+    gx = -(kin.a00[..., None] * pr.gp[0] + kin.a10[..., None] * pr.gp[1])
+    gy = -(kin.a01[..., None] * pr.gp[0] + kin.a11[..., None] * pr.gp[1])
+    base = gx * du0[..., None, 0] + gy * du0[..., None, 1]
+    robot = pr.other >= 0
+    of = pr.of
+    ogx = of[7] * pr.gp[0] + of[9] * pr.gp[1]
+    ogy = of[8] * pr.gp[0] + of[10] * pr.gp[1]
+    base_o = torch.where(robot, ogx * of[11] + ogy * of[12], torch.zeros_like(base))
+    a_own = team.max_point_accel.expand(B, N)[..., None]
+    a_oth = of[13]
+    tot = a_own + a_oth
+    pos = tot > 0
+    low = torch.arange(N, device=pose.device)[None, :, None] < pr.other  # own index is the pair's i
+    safe_tot = torch.where(pos, tot, torch.ones_like(tot))
+    share = torch.where(pos, torch.where(low, a_own / safe_tot, 1.0 - a_oth / safe_tot), torch.full_like(tot, 0.5))
+    need = torch.where(low, (base - rhs) + base_o, (base_o - rhs) + base)
+    h = torch.where(robot, base - need * share, base - (base - rhs))
+    return _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, du0, pose, u, obstacles)
+
+
+def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, du0, pose, u, obstacles) -> FilterOut:
+    """The QPs of the robots in ``w = A du`` (:mod:`.qp`), their multipliers' trigger, the answer and its report."""
+    B, N, K = h.shape
+    det = kin.a00 * kin.a11 - kin.a01 * kin.a10
+    i00, i01, i10, i11 = kin.a11 / det, -kin.a01 / det, -kin.a10 / det, kin.a00 / det  # A^-1
+    # half-planes in w: box rows of A^-1 (x <= hi, -x <= -lo), then the half-rows (A^-T G)' w <= h
+    ax = torch.stack((i00, i10, -i00, -i10), -1)
+    ay = torch.stack((i01, i11, -i01, -i11), -1)
+    bb = torch.cat((hi, -lo), -1)
+    rx, ry = i00[..., None] * gx + i10[..., None] * gy, i01[..., None] * gx + i11[..., None] * gy
+    ax, ay, bb = torch.cat((ax, rx), -1), torch.cat((ay, ry), -1), torch.cat((bb, h), -1)
+    valid = torch.cat((torch.ones(B, N, 4, dtype=torch.bool, device=h.device), pr.valid), -1)
+    nrm = torch.sqrt(ax * ax + ay * ay)
+    valid = valid & (nrm > 0)
+    inv = torch.where(valid, 1.0 / torch.where(valid, nrm, torch.ones_like(nrm)), torch.zeros_like(nrm))
+    C = ax.shape[-1]
+    nx, ny = (ax * inv).reshape(-1, C), (ay * inv).reshape(-1, C)
+    b = torch.where(valid, bb * inv, torch.full_like(bb, FAR)).reshape(-1, C)
+    t_box = torch.stack((kin.a00 * du0[..., 0] + kin.a01 * du0[..., 1],
+                         kin.a10 * du0[..., 0] + kin.a11 * du0[..., 1]), -1).reshape(-1, 2)
+    sol = solve_polygons(target.reshape(-1, 2), nx, ny, b, t_box, C - 4)
+    if not bool(sol.feasible.all()):
+        sol = _relaxed(sol, target.reshape(-1, 2), nx, ny, b, t_box, gx, gy, h, pr.valid, inv[..., 4:], lo, hi,
+                       du0, scale)
+    w = sol.w.reshape(B, N, 2)
+    x = torch.stack((i00 * w[..., 0] + i01 * w[..., 1], i10 * w[..., 0] + i11 * w[..., 1]), -1)
+    du = torch.minimum(torch.maximum(x, lo), hi)
+    # the trigger's memory: z = lam |G| / (s max|H|), lam = mu / |A^-T G|, H = 2 A'A (decentralized._half_multipliers)
+    lam = sol.mu.reshape(B, N, C)[..., 4:].detach() * inv[..., 4:].detach()
+    H00 = 2.0 * (kin.a00 ** 2 + kin.a10 ** 2)
+    H01 = 2.0 * (kin.a00 * kin.a01 + kin.a10 * kin.a11)
+    H11 = 2.0 * (kin.a01 ** 2 + kin.a11 ** 2)
+    hmax = torch.maximum(torch.maximum(H00.abs(), H11.abs()), H01.abs()).detach()
+    z = lam * torch.sqrt(gx * gx + gy * gy).detach() / (scale.detach() * hmax)[..., None]
+    avoiding = ((z > cfg.eta_tol) & pr.valid).any(-1)
+    status = torch.where(sol.feasible.reshape(B, N), 0, RELAXED)
+    if cfg.negotiate and bool(trig.any()):
+        status = status | torch.where(_grouped(cfg, trig, pr), GROUPED, 0)
+    if cfg.backup:
+        du, braking, broken = gate(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
+        status = status | torch.where(braking, BACKUP, 0) | torch.where(broken, UNSAFE, 0)
+    d = du - nominal
+    corr = torch.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+    return FilterOut(du, status, avoiding, trig, corr, corr.detach() > 1e-9 * scale, pr.gap)
+
+
+def _relaxed(sol: LocalAnswer, t, nx, ny, b, t_box, gx, gy, h, valid, inv, lo, hi, du0, scale) -> LocalAnswer:
+    """The infeasible robots' answers: their rows loosened by the least violation, as the numpy local solver."""
+    bad = torch.nonzero(~sol.feasible).flatten()
+    K = gx.shape[-1]
+    G = torch.sqrt(gx * gx + gy * gy).reshape(-1, K)[bad]
+    ok = valid.reshape(-1, K)[bad] & (G > 0)
+    ig = torch.where(ok, 1.0 / torch.where(ok, G, torch.ones_like(G)), torch.zeros_like(G))
+    hb = h.reshape(-1, K)[bad]
+    viol = least_violation(gx.reshape(-1, K)[bad] * ig, gy.reshape(-1, K)[bad] * ig,
+                           torch.where(ok, hb * ig, torch.full_like(hb, FAR)), lo.reshape(-1, 2)[bad],
+                           hi.reshape(-1, 2)[bad], du0.reshape(-1, 2)[bad].detach())
+    loosen = (viol * (1.0 + 1e-6) + RELAX_TOL * scale.reshape(-1)[bad, None]) * ok
+    rows = torch.where(ok, (hb + loosen.detach() * G) * inv.reshape(-1, K)[bad], torch.full_like(hb, FAR))
+    b2 = torch.cat((b[bad, :4], rows), 1)
+    again = solve_polygons(t[bad], nx[bad], ny[bad], b2, t_box[bad], K)
+    return LocalAnswer(sol.w.index_copy(0, bad, again.w), sol.mu.index_copy(0, bad, again.mu),
+                       sol.feasible.index_copy(0, bad, torch.zeros_like(again.feasible)))
+
+
+def _grouped(cfg: FilterConfig, trig: torch.Tensor, pr: _Pairs) -> torch.Tensor:
+    """``(B, N)``: robots in a row the numpy filter's negotiation groups would solve whole (``negotiation_rows``)."""
+    robot = pr.valid & (pr.other >= 0)
+    j = torch.clamp(pr.other, min=0)
+    trig_o = _gather(trig, j)
+    touch = robot & (torch.sqrt(pr.gp[0] ** 2 + pr.gp[1] ** 2).detach() - pr.ds < cfg.negotiate_gap)
+    member = trig | (touch & trig_o).any(-1)
+    return (robot & member[..., None] & _gather(member, j)).any(-1)
+
+
+class SafetyLayer(torch.nn.Module):
+    """:func:`filter_step` as a layer: ``forward(pose, u, nominal, p_d, v_d, obstacles=None, avoiding=None) -> du``.
+
+    Stateless (the trigger's memory is an argument); ``team``: a numpy :class:`~aasoatt_env.model.params.Team`.
+    """
+
+    def __init__(self, team, config: FilterConfig | None = None, dtype: torch.dtype = torch.float64,
+                 device: str | torch.device = "cpu", **options) -> None:
+        super().__init__()
+        self.config = check_config(FilterConfig.merged(config, mode="decentralized", **options))
+        self.team = TensorTeam.from_team(team, dtype, device)
+
+    def forward(self, pose, u, nominal, p_d, v_d, obstacles=None, avoiding=None) -> torch.Tensor:
+        """The filtered wheel accelerations ``(B, N, 2)``."""
+        return filter_step(self.team, self.config, pose, u, nominal, p_d, v_d, obstacles, avoiding).du

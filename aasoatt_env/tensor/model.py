@@ -1,0 +1,106 @@
+"""The robot model in torch: team parameters, kinematics, input bounds and the exact-arc step, batched ``(B, N)``.
+
+The same equations as :mod:`aasoatt_env.model.dynamics` (differential drive), in numpy's order of operations, so
+float64 results agree to rounding; every function is differentiable in the state.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from aasoatt_env.errors import ConfigError
+from aasoatt_env.model.dynamics import _SMALL_OMEGA
+from aasoatt_env.model.params import Team
+
+__all__ = ["TensorKinematics", "TensorTeam", "input_bounds", "integrate", "kinematics", "pose_from_point"]
+
+
+class TensorTeam(NamedTuple):
+    """A team's parameters as ``(N,)`` tensors (broadcast over teams); built by :meth:`from_team`."""
+
+    radius: torch.Tensor
+    offset: torch.Tensor
+    half: torch.Tensor  #: ``rho / 2``
+    half_k: torch.Tensor  #: ``rho / 2 * l / b`` (imaginary part of ``A``'s first column at heading 0)
+    turn_gain: torch.Tensor  #: ``rho / (2 b)``
+    max_wheel_accel: torch.Tensor
+    max_wheel_speed: torch.Tensor
+    max_point_accel: torch.Tensor
+    speed_limited: bool
+
+    @classmethod
+    def from_team(cls, team: Team, dtype: torch.dtype, device: torch.device | str) -> TensorTeam:
+        """The tensors of a numpy :class:`~aasoatt_env.model.params.Team` (differential drive only)."""
+        if not team.is_diff_drive:
+            raise ConfigError(f"robots: got model {team.model!r}, expected 'diff_drive' (the torch path models "
+                              "differential-drive robots only)")
+        cols = team.input_columns[:, 0]
+
+        def t(a: np.ndarray) -> torch.Tensor:
+            return torch.as_tensor(np.ascontiguousarray(a, dtype=np.float64), device=device).to(dtype)
+
+        return cls(t(team.radius), t(team.offset), t(cols.real), t(cols.imag), t(team.turn_gain),
+                   t(team.max_wheel_accel), t(team.max_wheel_speed), t(team.max_point_accel), team.speed_limited)
+
+
+class TensorKinematics(NamedTuple):
+    """Control points ``p``, velocities ``v``, drift ``adot = A_dot u`` ``(B, N, 2)``; ``A`` as four ``(B, N)``."""
+
+    p: torch.Tensor
+    v: torch.Tensor
+    adot: torch.Tensor
+    a00: torch.Tensor
+    a01: torch.Tensor
+    a10: torch.Tensor
+    a11: torch.Tensor
+
+
+def kinematics(team: TensorTeam, pose: torch.Tensor, u: torch.Tensor) -> TensorKinematics:
+    """:func:`aasoatt_env.model.dynamics.kinematics`: ``A = e^{i theta} (h (1 + i k), h (1 - i k))`` column-wise."""
+    c, s = torch.cos(pose[..., 2]), torch.sin(pose[..., 2])
+    h, hk = team.half, team.half_k
+    a00, a10 = c * h - s * hk, c * hk + s * h  # e * h(1 + ik)
+    a01, a11 = c * h + s * hk, s * h - c * hk  # e * h(1 - ik)
+    u0, u1 = u[..., 0], u[..., 1]
+    vx, vy = a00 * u0 + a01 * u1, a10 * u0 + a11 * u1
+    omega = team.turn_gain * (u0 - u1)
+    p = pose[..., :2] + torch.stack((team.offset * c, team.offset * s), dim=-1)
+    return TensorKinematics(p, torch.stack((vx, vy), -1), torch.stack((-omega * vy, omega * vx), -1),
+                            a00, a01, a10, a11)
+
+
+def input_bounds(team: TensorTeam, u: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bounds ``(B, N, 2)`` on ``du``: ``|du| <= max_wheel_accel`` and the wheel-speed box where limited."""
+    a = team.max_wheel_accel[..., None].expand(u.shape)
+    lo, hi = -a, a
+    if not team.speed_limited:
+        return lo, hi
+    ms = team.max_wheel_speed[..., None]
+    new_hi = torch.maximum(torch.minimum(hi, (ms - u) / dt), lo)
+    return torch.minimum(torch.maximum(lo, (-ms - u) / dt), new_hi), new_hi
+
+
+def integrate(team: TensorTeam, pose: torch.Tensor, u: torch.Tensor, du: torch.Tensor,
+              dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`aasoatt_env.model.dynamics.integrate`: hold ``du`` for ``dt`` along the exact arc."""
+    u_new = u + du * dt
+    um = 0.5 * (u + u_new)
+    fwd = team.half * um[..., 0] + team.half * um[..., 1]
+    half = (0.5 * dt) * (team.turn_gain * um[..., 0] + (-team.turn_gain) * um[..., 1])
+    small = half.abs() < _SMALL_OMEGA
+    safe = torch.where(small, torch.ones_like(half), half)
+    sinc = torch.where(small, 1.0 - half * half / 6.0, torch.sin(safe) / safe)
+    theta = pose[..., 2]
+    m = dt * fwd * sinc
+    ang = theta + half
+    new = torch.stack((pose[..., 0] + m * torch.cos(ang), pose[..., 1] + m * torch.sin(ang), theta + 2.0 * half), -1)
+    return new, u_new
+
+
+def pose_from_point(team: TensorTeam, p: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """Axle poses ``(B, N, 3)`` whose control points are ``p`` at headings ``theta``."""
+    return torch.stack((p[..., 0] - team.offset * torch.cos(theta), p[..., 1] - team.offset * torch.sin(theta),
+                        theta), -1)

@@ -1,0 +1,295 @@
+"""The torch filter and env (:mod:`aasoatt_env.tensor`) against the numpy ones, on CPU (and CUDA where present)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+
+from aasoatt_env.model import dynamics  # noqa: E402
+from aasoatt_env.model.params import make_team  # noqa: E402
+from aasoatt_env.safety import FilterConfig, SafetyFilter  # noqa: E402
+from aasoatt_env.tensor.filter import GROUPED, RELAXED, SafetyLayer, filter_step  # noqa: E402
+from aasoatt_env.tensor.model import TensorTeam  # noqa: E402
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="no CUDA device on this machine (torch.cuda.is_available() is False)"))]
+
+
+def random_states(rng: np.random.Generator, count: int, n: int) -> list[dict]:
+    """Team states near contact: jittered grids 1.1-2.2 m apart, random headings, speeds, nominals, memory."""
+    team = make_team("paper", n)
+    side = int(np.ceil(np.sqrt(n)))
+    grid = np.stack(np.meshgrid(np.arange(side), np.arange(side)), -1).reshape(-1, 2)[:n].astype(float)
+    out = []
+    for _ in range(count):
+        p = grid * rng.uniform(1.1, 2.2) + rng.uniform(-0.05, 0.05, (n, 2))
+        th = rng.uniform(-np.pi, np.pi, n)
+        u = rng.normal(0.0, rng.choice([0.3, 1.0, 3.0]), (n, 2))
+        oc, orad = rng.uniform(-1.0, 5.0, (2, 2)), rng.uniform(0.2, 0.5, 2)
+        if (np.hypot(*(p[:, None] - oc[None]).transpose(2, 0, 1)) - orad - 0.7).min() < 0.0:
+            oc = oc + 50.0  # (no start inside an obstacle; the control point is 0.2 m ahead of the axle)
+        out.append(dict(pose=dynamics.pose_from_point(team, p, th), u=u, nom=rng.normal(0.0, 20.0, (n, 2)),
+                        pd=p + rng.normal(0.0, 0.5, (n, 2)), vd=rng.normal(0.0, 0.8, (n, 2)), oc=oc, orad=orad,
+                        avoiding=rng.random(n) < 0.3))
+    return out
+
+
+def numpy_answers(states: list[dict], cfg: FilterConfig, n: int):
+    team = make_team("paper", n)
+    f = SafetyFilter(team, cfg)
+    res = []
+    for s in states:
+        f.reset(team)
+        f._dl.avoiding = s["avoiding"].copy()  # the trigger's memory, as the previous step left it
+        f._x = np.zeros((n, 2))
+        kin = dynamics.kinematics(team, s["pose"], s["u"])
+        lo, hi = dynamics.input_bounds(team, s["u"], cfg.dt)
+        res.append(f.step(kin, s["u"], s["pose"][:, 2], s["nom"], lo, hi, reference=(s["pd"], s["vd"]),
+                          obstacles=(s["oc"], s["orad"]))[1])
+    return team, res
+
+
+def tensor_answers(team, states: list[dict], cfg: FilterConfig, device="cpu", dtype=torch.float64):
+    def stack(key):
+        return torch.as_tensor(np.stack([s[key] for s in states]), device=device)
+
+    return filter_step(TensorTeam.from_team(team, dtype, device), cfg, stack("pose").to(dtype), stack("u").to(dtype),
+                       stack("nom").to(dtype), stack("pd").to(dtype), stack("vd").to(dtype),
+                       (stack("oc").to(dtype), stack("orad").to(dtype)), stack("avoiding"))
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_filter_equals_the_numpy_decentralised_filter_where_it_answers_by_the_robots_own_qps(device):
+    """1,000+ team states (12 robots, 2 obstacles) in one batched call: the numpy filter's ``du`` to 1e-9 wherever its
+    status is ``solved``, the same trigger memory and triggered robots; where it relaxed, to 1e-6 (the least-violation
+    iteration's stopping tolerance), with those robots flagged ``RELAXED``."""
+    rng = np.random.default_rng(0)
+    n = 12
+    states = random_states(rng, 1500, n)
+    cfg = FilterConfig(mode="decentralized", backup=False, negotiate=False, kernel="numpy")
+    team, ref = numpy_answers(states, cfg, n)
+    out = tensor_answers(team, states, cfg, device)
+    du, status = out.du.cpu().numpy(), out.status.cpu().numpy()
+    solved = np.array([r.status == "solved" for r in ref])
+    assert solved.sum() >= 1000
+    ref_du = np.stack([r.du for r in ref])
+    assert np.abs(du[solved] - ref_du[solved]).max() <= 1e-9
+    assert (status[solved] == 0).all()
+    assert np.array_equal(out.avoiding.cpu().numpy()[solved], np.stack([r.avoiding for r in ref])[solved])
+    assert np.array_equal(out.triggered.cpu().numpy(), np.stack([r.triggered for r in ref]))
+    assert np.stack([r.intervened for r in ref])[solved].mean() > 0.3  # the rows bind: not the nominal clipped
+    differs = (np.abs(du - ref_du).max(axis=2) > 1e-9) & ~solved[:, None]
+    assert differs.any() and (status[differs] & RELAXED).all()
+    assert np.abs(du - ref_du).max() <= 1e-6
+
+
+def test_negotiation_groups_are_flagged_not_silently_changed():
+    """With ``negotiate=True`` the numpy filter solves some robots jointly; every robot whose answer differs from the
+    tensor filter's is flagged ``GROUPED`` (or ``RELAXED``)."""
+    rng = np.random.default_rng(1)
+    n = 12
+    states = random_states(rng, 300, n)
+    cfg = FilterConfig(mode="decentralized", backup=False, negotiate=True, kernel="numpy")
+    team, ref = numpy_answers(states, cfg, n)
+    out = tensor_answers(team, states, cfg)
+    differs = np.abs(out.du.numpy() - np.stack([r.du for r in ref])).max(axis=2) > 1e-9
+    assert differs.any()
+    assert (out.status.numpy()[differs] & (GROUPED | RELAXED)).all()
+
+
+def test_gradients_match_finite_differences_away_from_active_set_boundaries():
+    """``torch.autograd.gradcheck`` (float64) of the filtered action w.r.t. nominal, pose and wheel speeds on states
+    where rows bind; a state within 1e-6 of an active-set boundary (a kink) is skipped."""
+    rng = np.random.default_rng(1)
+    n = 6
+    team = make_team("paper", n)
+    layer = SafetyLayer(team, backup=False, negotiate=False)
+    base = np.array([[0, 0], [1.1, 0.1], [2.3, 0], [0, 1.2], [1.2, 1.3], [2.5, 1.1]], dtype=float)
+    checked = 0
+    for _ in range(12):
+        p = base + rng.uniform(-0.05, 0.05, (n, 2))
+        pose = torch.tensor(dynamics.pose_from_point(team, p, rng.uniform(-np.pi, np.pi, n)))[None]
+        u = torch.tensor(rng.normal(0, 2, (n, 2)))[None]
+        nom = torch.tensor(rng.normal(0, 15, (n, 2)))[None]
+        pd, vd = torch.tensor(p)[None], torch.zeros(1, n, 2, dtype=torch.float64)
+        out = filter_step(layer.team, layer.config, pose, u, nom, pd, vd)
+        if not out.intervened.any() or (out.status != 0).any():
+            continue
+        step = 1e-6 * torch.randn_like(nom)
+        near = [filter_step(layer.team, layer.config, pose, u, nom + d * step, pd, vd).du for d in (1.0, -1.0)]
+        if (near[0] + near[1] - 2.0 * out.du).abs().max() > 1e-9:  # second difference: a kink within reach
+            continue
+        args = tuple(a.clone().requires_grad_() for a in (pose, u, nom))
+        assert torch.autograd.gradcheck(lambda a, b, c, pd=pd, vd=vd: layer(a, b, c, pd, vd), args, eps=1e-7,
+                                        atol=1e-5, rtol=1e-4)
+        checked += 1
+    assert checked >= 5
+
+
+def _tracking_actions(p, v, p_d, v_d, adot, A, solve, amax=60.0):
+    """Wheel actions of the paper's tracking law ``a = k3 (p_d - p) + k4 (v_d - v)`` (k3 = 1, k4 = 4)."""
+    return solve(A, (1.0 * (p_d - p) + 4.0 * (v_d - v) - adot)[..., None])[..., 0] / amax
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("device", DEVICES)
+def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter(device):
+    """Two random_goals teams of 8 (seeds 0, 1) behind the filter for 500 steps, 200-step episodes (auto-reset twice),
+    where some robots' QPs are infeasible (relaxed) at some steps: positions within 1e-6 m, observations and rewards
+    equal, in float64."""
+    from aasoatt_env.sim.env import AASOATTParallelEnv
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    n, seed, opts = 8, 0, dict(backup=False, negotiate=False)
+    tenv = make_tensor_env("random_goals", 2, n, device=device, dtype=torch.float64, max_steps=200, **opts)
+    obs_t, _ = tenv.reset(seed=seed)
+    envs = []
+    for b in range(2):
+        e = AASOATTParallelEnv("random_goals", num_robots=n, max_steps=200)
+        e.set_control_filter(SafetyFilter(mode="decentralized", kernel="numpy", **opts))
+        o, _ = e.reset(seed=seed + b)
+        assert np.array_equal(np.stack([o[a] for a in e.possible_agents]), obs_t[b].cpu().numpy())
+        envs.append(e)
+    worst, resets, relaxed = 0.0, 0, 0
+    for _ in range(500):
+        acts = [_tracking_actions(e.kinematics.p, e.kinematics.v, *e.reference[:2], e.kinematics.adot_u,
+                                  e.kinematics.A, np.linalg.solve) for e in envs]
+        k = tenv.kin
+        A = torch.stack((torch.stack((k.a00, k.a01), -1), torch.stack((k.a10, k.a11), -1)), -2)
+        obs_t, rew_t, _, trunc_t, info = tenv.step(_tracking_actions(k.p, k.v, *tenv.ref[:2], k.adot, A,
+                                                                     torch.linalg.solve))
+        assert (info["status"] & ~RELAXED == 0).all()
+        relaxed += int((info["status"] & RELAXED).sum())
+        for b, e in enumerate(envs):
+            o, r, _, tr, _ = e.step({a: acts[b][i] for i, a in enumerate(e.possible_agents)})
+            assert np.abs(np.array(list(r.values())) - rew_t[b].cpu().numpy()).max() <= 1e-9
+            if tr[e.possible_agents[0]]:
+                o, _ = e.reset()
+                resets += 1
+                assert bool(trunc_t[b].all()) and bool(info["reset"][b])
+            worst = max(worst, float(np.abs(e.positions - tenv.kin.p[b].cpu().numpy()).max()))
+            assert np.abs(np.stack([o[a] for a in e.possible_agents]) - obs_t[b].cpu().numpy()).max() <= 1e-5
+    assert resets == 4 and worst <= 1e-6 and relaxed > 0
+
+
+def test_a_loss_through_the_filter_trains_a_policy_to_need_less_correction():
+    """A linear policy (nominal from the relative goal direction) trained by Adam on ``|filter(nominal) - nominal|^2``
+    minus progress: the filter's mean correction falls to under half of the start's within 60 updates."""
+    torch.manual_seed(0)
+    rng = np.random.default_rng(3)
+    n = 6
+    team = make_team("paper", n)
+    layer = SafetyLayer(team, backup=False, negotiate=False)
+    states = random_states(rng, 32, n)
+    pose = torch.tensor(np.stack([s["pose"] for s in states]))
+    u = torch.zeros(32, n, 2, dtype=torch.float64)
+    p = pose[..., :2]
+    goal = torch.tensor(np.stack([s["pd"] for s in states]))
+    feats = torch.cat((goal - p, torch.ones(32, n, 1, dtype=torch.float64)), -1)
+    policy = torch.nn.Linear(3, 2, dtype=torch.float64)
+    with torch.no_grad():
+        policy.weight.fill_(40.0)
+        policy.bias.fill_(30.0)
+    opt = torch.optim.Adam(policy.parameters(), lr=2.0)
+
+    def correction():
+        nom = policy(feats)
+        du = layer(pose, u, nom, goal, torch.zeros_like(goal))
+        return ((du - nom) ** 2).sum(-1).mean(), nom
+
+    first = float(correction()[0].detach())
+    for _ in range(60):
+        loss, nom = correction()
+        opt.zero_grad()
+        (loss + 1e-3 * (nom ** 2).sum(-1).mean()).backward()
+        opt.step()
+    assert float(correction()[0].detach()) < 0.5 * first
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_braking_check_keeps_chasing_teams_apart(dtype):
+    """Six teams of 8 with 4 obstacles, every robot chasing another at full acceleration for 300 steps behind the
+    torch filter's defaults (``backup=True``): no pair closer than ``d_s - 1 mm``, and the check braked someone."""
+    from aasoatt_env.tensor.env import make_tensor_env
+    from agents.adversaries_torch import adversary_actions
+
+    env = make_tensor_env("random_goals", 6, 8, dtype=dtype, random_obstacles=4)
+    env.reset(seed=0)
+    gen = torch.Generator().manual_seed(0)
+    kind = torch.tensor([3, 4, 3, 4, 0, 1])  # chase_nearest, chase_target, spin_up, burst
+    state = {"target": (torch.arange(8)[None] + torch.randint(1, 8, (6, 8), generator=gen)) % 8}
+    low, braked = float("inf"), 0
+    with torch.no_grad():
+        for t in range(300):
+            _, _, _, _, info = env.step(adversary_actions(env, t, kind, gen, state))
+            low = min(low, float(info["clearance"].min()))
+            braked += int(info["backup"].sum())
+    assert low >= -1e-3 and braked > 0
+
+
+def test_torchrl_adapter_passes_check_env_specs_and_resets_finished_teams():
+    """``TorchRLTensorEnv``: TorchRL's spec check, and an 80-step rollout of 30-step episodes (two partial resets)."""
+    pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
+    from torchrl.envs.utils import check_env_specs
+
+    from aasoatt_env.tensor.torchrl_env import TorchRLTensorEnv
+
+    env = TorchRLTensorEnv("random_goals", num_envs=3, num_robots=4, max_steps=30)
+    check_env_specs(env)
+    env.set_seed(3)
+    td = env.rollout(80, break_when_any_done=False)
+    assert td["next", "observation"].shape == (3, 80, 4, env.env.obs_dim)
+    done_at = torch.nonzero(td["next", "done"].all(-1).all(-1).all(0)).flatten().tolist()
+    assert done_at == [29, 59]
+    # after a reset the team is at the start of its next layout: at rest
+    assert float(td["observation"][:, 30, :, 4:6].abs().max()) == 0.0
+
+
+def test_differentiable_env_passes_gradients_from_rewards_to_actions():
+    """``differentiable=True``: a reward two steps later has a finite, non-zero gradient w.r.t. the first actions;
+    by default ``step`` records no graph."""
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    env = make_tensor_env("circle_swap", 2, 4, dtype=torch.float64, differentiable=True, radius=2.0)
+    env.reset(seed=0)
+    act = torch.full((2, 4, 2), 0.5, dtype=torch.float64, requires_grad=True)
+    env.step(act)
+    _, rew, _, _, _ = env.step(torch.zeros(2, 4, 2, dtype=torch.float64))
+    (g,) = torch.autograd.grad(rew.sum(), act)
+    assert torch.isfinite(g).all() and g.abs().sum() > 0
+    plain = make_tensor_env("circle_swap", 2, 4, dtype=torch.float64, radius=2.0)
+    plain.reset(seed=0)
+    assert not plain.step(act)[1].requires_grad
+
+
+def test_bad_settings_are_refused_naming_the_argument():
+    from aasoatt_env.errors import ConfigError
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    for kwargs, name in ((dict(num_envs=0), "num_envs"), (dict(dtype=torch.int32), "dtype"),
+                         (dict(mode="centralized"), "mode"), (dict(barrier="braking"), "barrier")):
+        with pytest.raises(ConfigError, match=name):
+            make_tensor_env("random_goals", **{"num_robots": 4, **kwargs})
+    env = make_tensor_env("random_goals", 2, 4)
+    env.reset(seed=0)
+    with pytest.raises(ConfigError, match="actions"):
+        env.step(torch.zeros(2, 3, 2))
+
+
+@pytest.mark.parametrize("scenario, kwargs", [("random_goals", dict(random_obstacles=3)), ("circle_swap", {})])
+def test_team_b_after_reset_seed_s_is_the_pettingzoo_layout_of_seed_s_plus_b(scenario, kwargs):
+    from aasoatt_env.sim.env import AASOATTParallelEnv
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    env = make_tensor_env(scenario, 3, 6, dtype=torch.float64, **kwargs)
+    obs, _ = env.reset(seed=10)
+    for b in range(3):
+        ref = AASOATTParallelEnv(scenario, num_robots=6, **kwargs)
+        o, _ = ref.reset(seed=10 + b)
+        assert np.array_equal(env.kin.p[b].numpy(), ref.positions)
+        assert np.array_equal(env._st["goals"][b].numpy(), ref.goals)
+        assert np.array_equal(env._st["oc"][b].numpy(), ref.obstacles[0])
+        assert np.array_equal(obs[b].numpy(), np.stack([o[a] for a in ref.possible_agents]))
