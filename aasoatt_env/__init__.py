@@ -30,8 +30,12 @@ register_all()
 def __getattr__(name: str):
     """``make_tensor_env`` on first use (:mod:`aasoatt_env.tensor` imports torch; ``import aasoatt_env`` does not)."""
     if name == "make_tensor_env":
-        from aasoatt_env.tensor.env import make_tensor_env
-
+        try:
+            from aasoatt_env.tensor.env import make_tensor_env
+        except ModuleNotFoundError as exc:
+            if exc.name != "torch":
+                raise
+            raise ImportError("make_tensor_env needs torch: pip install torch (or the 'train' extra)") from exc
         return make_tensor_env
     raise AttributeError(f"module 'aasoatt_env' has no attribute {name!r}")
 

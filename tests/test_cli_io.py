@@ -134,3 +134,11 @@ def test_progress_without_tqdm_prints_rate_and_time_left(capsys, monkeypatch):
     quiet = progress(5, "x", enabled=False)
     quiet.update(5)
     assert capsys.readouterr().err == ""
+
+
+def test_make_tensor_env_without_torch_says_what_to_install():
+    code = ("import sys; sys.modules['torch'] = None\nimport aasoatt_env\ntry:\n    aasoatt_env.make_tensor_env\n"
+            "except ImportError as exc:\n    print(exc)")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.strip() == "make_tensor_env needs torch: pip install torch (or the 'train' extra)"
