@@ -79,6 +79,9 @@ class YieldMemory:
     slide: np.ndarray  #: ``(N, 2)`` the direction it follows them in
     hand: np.ndarray  #: ``(N,)`` +1: obstacles on its left, -1: on its right
     tries: np.ndarray  #: ``(N,)`` follows since the robot last tracked its reference closely
+    aside: np.ndarray  #: ``(N,)`` a yielder pushed while done at its goal: it steps aside instead of back
+    spot: np.ndarray  #: ``(N, 2)`` where such a yielder steps to (off its pusher's line of travel)
+    hit: np.ndarray  #: ``(N,)`` distance to its reference point where a robot began to follow obstacles
 
     @classmethod
     def empty(cls, p: np.ndarray) -> YieldMemory:
@@ -86,12 +89,14 @@ class YieldMemory:
         n = p.shape[0]
         return cls(p.copy(), np.zeros(n, np.int64), np.full(n, np.inf), np.zeros(n, np.int64), np.zeros((n, 2)),
                    np.zeros((n, TRAIL_POINTS, 2)), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64),
-                   np.zeros((n, 2)), np.zeros(n), np.zeros(n, np.int64))
+                   np.zeros((n, 2)), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, dtype=bool), np.zeros((n, 2)),
+                   np.zeros(n))
 
     def forget(self, rows: np.ndarray) -> None:
         """Start robots ``rows`` afresh (their team starts an episode; the stall clock restarts at the next step)."""
         self.anchor[rows], self.still[rows], self.rank[rows] = np.nan, 0, np.inf
         self.hold[rows], self.count[rows], self.cursor[rows], self.escape[rows], self.tries[rows] = 0, 0, 0, 0, 0
+        self.aside[rows] = False
 
 
 def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -123,7 +128,7 @@ def _robot_pairs(c: TargetContext) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
 
 
 def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarray, done: np.ndarray,
-          hold_steps: int) -> np.ndarray:
+          home: np.ndarray, hold_steps: int) -> np.ndarray:
     """Rules 2 and 3: who yields, with which priority, away from whom.
 
     Returns the robots pushing, or with a robot ahead within twice CONTACT_GAP (rule 5 leaves them be).
@@ -138,19 +143,39 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     facing = np.einsum("ij,ij->i", want[i], want[j])
     si = c.radius[i] / REFERENCE_RADIUS
     blocks = ((facing < 0.0) & (gap < PUSH_GAP * si)) | (done[j] & (gap < CONTACT_GAP * si))
-    new = (ahead > _COS_AHEAD) & (stalled[i] | yielding[i]) & blocks
+    new = (ahead > _COS_AHEAD) & ~m.aside[i] & (((stalled[i] | yielding[i]) & blocks) | (~home[i] & home[j] & (gap < CONTACT_GAP * si)))
     keep = (gap < KEEP_GAP * si) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
     hit = (eff[i] < eff[j]) & (new | keep)
     np.minimum.at(pushed_rank, j[hit], eff[i][hit])
     strongest = hit & (eff[i] == pushed_rank[j])
     m.away[j[strongest]] = u[strongest]
     pushed = np.isfinite(pushed_rank)
+    _aside(m, c, want, i[strongest], j[strongest], stalled | yielding, home, yielding)
     m.rank = np.where(pushed, np.minimum(np.where(yielding, m.rank, np.inf), pushed_rank), m.rank)
     m.hold = np.where(pushed, hold_steps, np.maximum(m.hold - 1, 0))
     m.rank[m.hold == 0] = np.inf
+    m.aside &= m.hold > 0
     crowded = np.zeros(n, dtype=bool)  # pushing, or behind a robot in its way
     crowded[i[hit | ((ahead > _COS_AHEAD) & (gap < 2.0 * CONTACT_GAP * si))]] = True
     return crowded
+
+
+def _aside(m: YieldMemory, c: TargetContext, want: np.ndarray, i: np.ndarray, j: np.ndarray, stuck: np.ndarray,
+           home: np.ndarray, yielding: np.ndarray) -> None:
+    """Rule 3b: robot ``j`` done at its goal (or already stepping aside), pushed by ``i``, steps off ``i``'s way.
+
+    Its spot: on the side of ``i``'s line of travel where ``j`` lies, a clearance (the two radii and
+    CONTACT_GAP) off that line.  Retreating along its trail would lead it into the pusher's way (its trail came
+    the way the pusher goes), and back again once it yields no more.
+    """
+    lane = want[i]
+    left = np.stack((-lane[:, 1], lane[:, 0]), axis=1)
+    off = np.einsum("ij,ij->i", c.p[j] - c.p[i], left)  # j's offset from i's line, + on its left
+    clear = c.radius[i] + c.radius[j] + CONTACT_GAP * c.radius[j] / REFERENCE_RADIUS
+    side = np.where(off > 0.0, 1.0, -1.0)  # (on the line: its right, as in rule 4)
+    keep = home[j] | (m.aside[j] & yielding[j])
+    m.spot[j[keep]] = (c.p[j] + ((side * clear - off)[:, None] * left))[keep]
+    m.aside[j] = keep
 
 
 def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.ndarray, scale: np.ndarray
@@ -170,8 +195,13 @@ def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.nd
     return np.where((~yielding & (m.cursor == m.count))[:, None], p_d, out)
 
 
-def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarray, steps: int) -> np.ndarray:
-    """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the obstacles' boundary for a while."""
+def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarray, steps: int,
+            far: np.ndarray) -> np.ndarray:
+    """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the obstacles' boundary for a while.
+
+    It leaves the boundary early (as in Bug2) once nearer its reference point (``far``: how far it is) than where it began, by
+    STALL_ERROR, with no obstacle within CONTACT_GAP ahead of its way.
+    """
     if c.obstacles is not None and c.obstacle_pairs.shape[0]:
         i, k = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
         u, dist = _unit(c.obstacles[0][k] - c.p[i])
@@ -185,12 +215,23 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
         best = np.full(want.shape[0], -np.inf)
         np.maximum.at(best, i, score)
         first = np.isfinite(score) & (score == best[i])  # the obstacle most in the way among those in contact
+        front = np.zeros(want.shape[0], dtype=bool)
+        front[i[(gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS) & (ahead > 0.0)]] = True
+        m.escape[~front & (far < m.hit - STALL_ERROR * c.radius / REFERENCE_RADIUS)] = 0
+        m.hit[i[first]] = far[i[first]]
         hand = np.where(np.einsum("ij,ij->i", right, want[i]) >= 0.0, 1.0, -1.0) * (1 - 2 * (m.tries[i] % 2))
         m.hand[i[first]] = hand[first]
         m.escape[i[first]] = steps << np.minimum(m.tries[i[first]], 3)
         m.tries[i[first]] += 1
         follow = (m.escape[i] > 0) & nearest
         m.slide[i[follow]] = _unit(m.hand[i[follow], None] * right[follow] + 0.3 * u[follow])[0]
+        # an inner corner: another obstacle within CONTACT_GAP across that tangent; follow that one instead
+        across = np.where((m.escape[i] > 0) & (gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS),
+                          np.einsum("ij,ij->i", u, m.slide[i]), -np.inf)
+        most = np.full(want.shape[0], -np.inf)
+        np.maximum.at(most, i, across)
+        turn = (across > 0.3) & (across == most[i])
+        m.slide[i[turn]] = _unit(m.hand[i[turn], None] * right[turn] + 0.3 * u[turn])[0]
     m.escape = np.maximum(m.escape - 1, 0)
     return m.escape > 0
 
@@ -210,15 +251,18 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     m.anchor[left], m.still = c.p[left], np.where(left, 0, m.still + 1)
     done = (_unit(c.p - p_d)[1] <= c.cfg.goal_tol) & (_unit(v_d)[1] < c.cfg.low_speed)
     tracking = _unit(c.p - p_d)[1] <= STALL_ERROR * scale
+    home = tracking & (_unit(v_d)[1] < c.cfg.low_speed)  # (near its goal, its reference at rest there)
     stalled = (m.still >= steps(STALL_TIME)) & ~tracking
     m.tries[tracking] = 0
     yielding = m.hold > 0
     _record(m, c.p, yielding, scale)
     want = _unit(_trail_point(m, c.p, p_d, yielding, scale) - c.p)[0]
-    crowded = _push(m, c, want, stalled, done, steps(HOLD_TIME))
+    crowded = _push(m, c, want, stalled, done, home, steps(HOLD_TIME))
     yielding = m.hold > 0
     g = _trail_point(m, c.p, p_d, yielding, scale)
-    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME)) & ~yielding
+    to_spot, gap = _unit(m.spot - c.p)
+    g = np.where((m.aside & yielding)[:, None], c.p + to_spot * np.minimum(gap, LOOKAHEAD * scale)[:, None], g)
+    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME), _unit(c.p - p_d)[1]) & ~yielding
     g = np.where(sliding[:, None], c.p + (LOOKAHEAD * scale)[:, None] * m.slide, g)
     off = yielding | (m.cursor < m.count) | sliding
     g_v = np.where(off[:, None], 0.0, v_d)
