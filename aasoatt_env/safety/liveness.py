@@ -4,7 +4,7 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
 
 1. **Stall.** A robot farther than :data:`STALL_ERROR` from its reference point that has stayed within
    :data:`STALL_DISTANCE` of one point for :data:`STALL_TIME` is stalled.  A robot within ``goal_tol`` of its
-   reference point with ``|v_d| < low_speed`` is done.
+   reference point with ``|v_d| < low_speed`` is done; within :data:`STALL_ERROR` of it, home.
 2. **Blocking.** Robot ``j`` blocks ``i`` when it lies within 60 degrees of the direction ``i`` wants to go
    (toward ``p_d``; see rule 4 for the others) and either wants to go the other way (directions more than
    90 degrees apart) with a surface gap below :data:`PUSH_GAP`, or is done with a gap below :data:`CONTACT_GAP`.
@@ -13,18 +13,27 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
    ``j`` yield, and ``j`` inherits ``i``'s priority (priority inheritance, as in PIBT): a yielder that backs into
    its own group makes that robot yield too, so a whole group backs out of a one-lane passage.  A yielder keeps
    yielding while a robot of its inherited priority or higher heads for it within :data:`KEEP_GAP`, and
-   :data:`HOLD_TIME` after that.
+   :data:`HOLD_TIME` after that.  A robot home is also made to yield by any robot not home that heads for it
+   (within 60 degrees) closer than :data:`CONTACT_GAP`, stalled or not: a robot that has reached its goal must
+   not hold up one passing through (in a doorway, a goal next to the door).
+3b. **Aside.** A robot pushed while home does not retreat along its trail (that leads into its pusher's way,
+   the way it came) but steps aside: to the point off its pusher's line of travel, on its own side, by the two
+   radii and :data:`CONTACT_GAP`; stepping aside, it pushes nobody.  When it yields no more it tracks its
+   reference again.
 4. **Retreat and return.** A yielder tracks the last point of its own trail (its positions every
    :data:`TRAIL_STEP`, recorded while it tracks its reference: ground it has covered, clear of static
    obstacles), dropping the points it reaches; with its trail used up, or leading back toward its pusher, it
-   steps to the right of its push.  Once it
-   yields no more it goes forward along the same trail to where it began to yield (the straight line from where it
-   retreated to its reference point may cross a wall), then tracks its reference again.
+   steps to the right of its push.  Once it yields no more it goes forward along the same trail to where it began
+   to yield (the straight line from where it retreated to its reference point may cross a wall), then tracks its
+   reference again.
 5. **Follow.** A stalled robot that pushes nobody, with no robot ahead within twice :data:`CONTACT_GAP` and an
    obstacle within :data:`CONTACT_GAP` ahead, follows the boundary of the obstacles (the tangent of the nearest,
    hugging it) for :data:`ESCAPE_TIME`, first on the side nearer its way; if it stalls again before it has
    tracked its reference closely, it follows the other way round for twice as long, and so on (up to 8 times
-   :data:`ESCAPE_TIME`), as in a bug algorithm.
+   :data:`ESCAPE_TIME`), as in a bug algorithm.  Where the tangent runs into another obstacle within
+   :data:`CONTACT_GAP` (an inner corner, two discs close together) it follows that one.  It leaves the boundary
+   early, as in Bug2, once nearer its reference point by :data:`STALL_ERROR` than where it began to follow, with no
+   obstacle within :data:`CONTACT_GAP` ahead of its way.
 6. A robot under rules 4 or 5 tracks a point ``g`` (within :data:`LOOKAHEAD`) instead of its reference: its
    target is the tracking law (eqn.11) toward ``g`` at rest there, ``-(k3 + k4) v - k3 k4 (p - g)`` less the
    drift ``A_dot u``; every other robot keeps its nominal.  eqn.13 then acts on the triggered robots as in
@@ -143,14 +152,15 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     facing = np.einsum("ij,ij->i", want[i], want[j])
     si = c.radius[i] / REFERENCE_RADIUS
     blocks = ((facing < 0.0) & (gap < PUSH_GAP * si)) | (done[j] & (gap < CONTACT_GAP * si))
-    new = (ahead > _COS_AHEAD) & ~m.aside[i] & (((stalled[i] | yielding[i]) & blocks) | (~home[i] & home[j] & (gap < CONTACT_GAP * si)))
+    contact = ~home[i] & home[j] & (gap < CONTACT_GAP * si)  # (a robot home in the way, whoever heads for it)
+    new = (ahead > _COS_AHEAD) & ~m.aside[i] & (((stalled[i] | yielding[i]) & blocks) | contact)
     keep = (gap < KEEP_GAP * si) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
     hit = (eff[i] < eff[j]) & (new | keep)
     np.minimum.at(pushed_rank, j[hit], eff[i][hit])
     strongest = hit & (eff[i] == pushed_rank[j])
     m.away[j[strongest]] = u[strongest]
     pushed = np.isfinite(pushed_rank)
-    _aside(m, c, want, i[strongest], j[strongest], stalled | yielding, home, yielding)
+    _aside(m, c, want, i[strongest], j[strongest], home, yielding)
     m.rank = np.where(pushed, np.minimum(np.where(yielding, m.rank, np.inf), pushed_rank), m.rank)
     m.hold = np.where(pushed, hold_steps, np.maximum(m.hold - 1, 0))
     m.rank[m.hold == 0] = np.inf
@@ -160,13 +170,11 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     return crowded
 
 
-def _aside(m: YieldMemory, c: TargetContext, want: np.ndarray, i: np.ndarray, j: np.ndarray, stuck: np.ndarray,
-           home: np.ndarray, yielding: np.ndarray) -> None:
-    """Rule 3b: robot ``j`` done at its goal (or already stepping aside), pushed by ``i``, steps off ``i``'s way.
+def _aside(m: YieldMemory, c: TargetContext, want: np.ndarray, i: np.ndarray, j: np.ndarray, home: np.ndarray,
+           yielding: np.ndarray) -> None:
+    """Rule 3b: robot ``j`` home (or already stepping aside), pushed by ``i``, steps off ``i``'s line of travel.
 
-    Its spot: on the side of ``i``'s line of travel where ``j`` lies, a clearance (the two radii and
-    CONTACT_GAP) off that line.  Retreating along its trail would lead it into the pusher's way (its trail came
-    the way the pusher goes), and back again once it yields no more.
+    Its spot: on the side of that line where ``j`` lies, the two radii and CONTACT_GAP off it.
     """
     lane = want[i]
     left = np.stack((-lane[:, 1], lane[:, 0]), axis=1)
@@ -199,8 +207,7 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
             far: np.ndarray) -> np.ndarray:
     """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the obstacles' boundary for a while.
 
-    It leaves the boundary early (as in Bug2) once nearer its reference point (``far``: how far it is) than where it began, by
-    STALL_ERROR, with no obstacle within CONTACT_GAP ahead of its way.
+    ``far``: each robot's distance to its reference point (the Bug2 leaving test).
     """
     if c.obstacles is not None and c.obstacle_pairs.shape[0]:
         i, k = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
@@ -262,7 +269,8 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     g = _trail_point(m, c.p, p_d, yielding, scale)
     to_spot, gap = _unit(m.spot - c.p)
     g = np.where((m.aside & yielding)[:, None], c.p + to_spot * np.minimum(gap, LOOKAHEAD * scale)[:, None], g)
-    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME), _unit(c.p - p_d)[1]) & ~yielding
+    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME), _unit(c.p - p_d)[1])
+    sliding &= ~yielding
     g = np.where(sliding[:, None], c.p + (LOOKAHEAD * scale)[:, None] * m.slide, g)
     off = yielding | (m.cursor < m.count) | sliding
     g_v = np.where(off[:, None], 0.0, v_d)
