@@ -140,7 +140,8 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
           home: np.ndarray, hold_steps: int) -> np.ndarray:
     """Rules 2 and 3: who yields, with which priority, away from whom.
 
-    Returns the robots pushing, or with a robot ahead within twice CONTACT_GAP (rule 5 leaves them be).
+    Returns the robots pushing, or with a robot ahead within twice CONTACT_GAP, one in the lane they sweep going
+    their way (rule 5 leaves them be).
     """
     n = want.shape[0]
     prio = np.arange(n) + n * done
@@ -152,7 +153,9 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     facing = np.einsum("ij,ij->i", want[i], want[j])
     si = c.radius[i] / REFERENCE_RADIUS
     blocks = ((facing < 0.0) & (gap < PUSH_GAP * si)) | (done[j] & (gap < CONTACT_GAP * si))
-    contact = ~home[i] & home[j] & (gap < CONTACT_GAP * si)  # (a robot home in the way, whoever heads for it)
+    across = np.abs(u[:, 0] * want[i][:, 1] - u[:, 1] * want[i][:, 0]) * (gap + c.radius[i] + c.radius[j])
+    in_way = across < c.radius[i] + c.radius[j]  # (j overlaps the lane i sweeps going its way)
+    contact = ~home[i] & home[j] & in_way & (gap < CONTACT_GAP * si)  # (a robot home in the way, whoever comes)
     new = (ahead > _COS_AHEAD) & ~m.aside[i] & (((stalled[i] | yielding[i]) & blocks) | contact)
     keep = (gap < KEEP_GAP * si) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
     hit = (eff[i] < eff[j]) & (new | keep)
@@ -165,8 +168,8 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     m.hold = np.where(pushed, hold_steps, np.maximum(m.hold - 1, 0))
     m.rank[m.hold == 0] = np.inf
     m.aside &= m.hold > 0
-    crowded = np.zeros(n, dtype=bool)  # pushing, or behind a robot in its way
-    crowded[i[hit | ((ahead > _COS_AHEAD) & (gap < 2.0 * CONTACT_GAP * si))]] = True
+    crowded = np.zeros(n, dtype=bool)  # pushing, or behind a robot, one in its lane
+    crowded[i[in_way & (hit | ((ahead > _COS_AHEAD) & (gap < 2.0 * CONTACT_GAP * si)))]] = True
     return crowded
 
 
@@ -174,15 +177,27 @@ def _aside(m: YieldMemory, c: TargetContext, want: np.ndarray, i: np.ndarray, j:
            yielding: np.ndarray) -> None:
     """Rule 3b: robot ``j`` home (or already stepping aside), pushed by ``i``, steps off ``i``'s line of travel.
 
-    Its spot: on the side of that line where ``j`` lies, the two radii and CONTACT_GAP off it.
+    Its spot: the two radii and CONTACT_GAP off that line, on the side where ``j`` lies, else (a static obstacle
+    there) on the other; with an obstacle on both, it retreats as any yielder (rule 4).
     """
     lane = want[i]
     left = np.stack((-lane[:, 1], lane[:, 0]), axis=1)
     off = np.einsum("ij,ij->i", c.p[j] - c.p[i], left)  # j's offset from i's line, + on its left
     clear = c.radius[i] + c.radius[j] + CONTACT_GAP * c.radius[j] / REFERENCE_RADIUS
     side = np.where(off > 0.0, 1.0, -1.0)  # (on the line: its right, as in rule 4)
-    keep = home[j] | (m.aside[j] & yielding[j])
-    m.spot[j[keep]] = (c.p[j] + ((side * clear - off)[:, None] * left))[keep]
+    n = want.shape[0]
+    spots = np.zeros((2, n, 2))
+    for k, s in enumerate((side, -side)):  # (two candidates, each vectorised over the pushed robots)
+        spots[k, j] = c.p[j] + (s * clear - off)[:, None] * left
+    bad = np.zeros((2, n), dtype=bool)
+    if c.obstacles is not None and c.obstacle_pairs.shape[0]:
+        r, o = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
+        reach = c.radius[r] + c.obstacles[1][o]
+        for k in range(2):
+            bad[k, r[_unit(spots[k, r] - c.obstacles[0][o])[1] < reach]] = True
+    free = ~bad[0, j] | ~bad[1, j]
+    keep = (home[j] & free) | (m.aside[j] & yielding[j])
+    m.spot[j[keep & free]] = np.where(bad[0, j][:, None], spots[1, j], spots[0, j])[keep & free]
     m.aside[j] = keep
 
 
