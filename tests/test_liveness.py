@@ -109,6 +109,24 @@ def test_a_robot_home_in_the_way_steps_aside_even_for_a_robot_that_is_not_stalle
     assert target[0, 0] > 0.0  # robot 0 keeps its way
 
 
+def test_a_robot_home_steps_aside_to_the_other_side_where_an_obstacle_takes_its_own():
+    p = [[0.0, 0.0], [1.2, 0.3]]
+    state = DeadlockState()
+    obstacles = (np.array([[1.2, 1.6]]), np.array([0.5])), np.array([[1, 0]])  # on robot 1's spot (y = 1.26)
+    _step(p, [[9.0, 0.0], [1.2, 0.5]], state, obstacles=obstacles[0], obstacle_pairs=obstacles[1])
+    m = state.liveness
+    assert m.aside[1]
+    np.testing.assert_allclose(m.spot[1], [1.2, -1.26])  # across robot 0's line instead
+
+
+def test_a_robot_home_beside_the_lane_is_not_pushed():
+    for angle, pushed in ((45.0, True), (55.0, False)):  # gap 0.24 m, 0.85 m and 0.98 m off robot 0's line
+        q = 1.2 * np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle))])
+        state = DeadlockState()
+        _step([[0.0, 0.0], q], [[9.0, 0.0], q], state)  # (the lane: 0.96 m either side of the line)
+        assert (state.liveness.hold[1] > 0) == pushed
+
+
 def test_a_robot_stepping_aside_makes_nobody_yield():
     p = [[0.0, 0.0], [1.2, 0.0]]  # robot 0 stepping aside (it was home), facing robot 1 of lower priority
     state = _stalled_memory(p)
@@ -116,6 +134,15 @@ def test_a_robot_stepping_aside_makes_nobody_yield():
     m.hold[0], m.rank[0], m.aside[0], m.spot[0] = 10, 0.0, True, [0.0, 1.3]
     _step(p, [[9.0, 0.0], [-9.0, 0.0]], state)
     assert m.hold[1] == 0
+
+
+def test_a_robot_beside_the_lane_does_not_keep_one_from_following_an_obstacle():
+    q = 1.2 * np.array([np.cos(np.radians(55.0)), np.sin(np.radians(55.0))])  # gap 0.24 m, 0.98 m off the line
+    p = [[0.0, 0.0], q]
+    state = _stalled_memory(p)
+    obstacles = (np.array([[1.0, -0.1]]), np.array([0.3]))  # in robot 0's way, in contact
+    _step(p, [[5.0, 0.0], q], state, obstacles=obstacles, obstacle_pairs=np.array([[0, 0]]))
+    assert state.liveness.escape[0] > 0
 
 
 def test_boundary_following_turns_at_an_inner_corner():

@@ -14,11 +14,13 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
    its own group makes that robot yield too, so a whole group backs out of a one-lane passage.  A yielder keeps
    yielding while a robot of its inherited priority or higher heads for it within :data:`KEEP_GAP`, and
    :data:`HOLD_TIME` after that.  A robot home is also made to yield by any robot not home that heads for it
-   (within 60 degrees) closer than :data:`CONTACT_GAP`, stalled or not: a robot that has reached its goal must
-   not hold up one passing through (in a doorway, a goal next to the door).
+   (within 60 degrees, and in the lane it sweeps: the two radii off its line of travel) closer than
+   :data:`CONTACT_GAP`, stalled or not: a robot that has reached its goal must not hold up one passing through
+   (in a doorway, a goal next to the door).
 3b. **Aside.** A robot pushed while home does not retreat along its trail (that leads into its pusher's way,
-   the way it came) but steps aside: to the point off its pusher's line of travel, on its own side, by the two
-   radii and :data:`CONTACT_GAP`; stepping aside, it pushes nobody.  When it yields no more it tracks its
+   the way it came) but steps aside: to the point off its pusher's line of travel by the two radii and
+   :data:`CONTACT_GAP`, on its own side, or on the other where a static obstacle takes that point (an obstacle on
+   both: it retreats, rule 4).  Stepping aside, it makes nobody yield.  When it yields no more it tracks its
    reference again.
 4. **Retreat and return.** A yielder tracks the last point of its own trail (its positions every
    :data:`TRAIL_STEP`, recorded while it tracks its reference: ground it has covered, clear of static
@@ -26,14 +28,14 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
    steps to the right of its push.  Once it yields no more it goes forward along the same trail to where it began
    to yield (the straight line from where it retreated to its reference point may cross a wall), then tracks its
    reference again.
-5. **Follow.** A stalled robot that pushes nobody, with no robot ahead within twice :data:`CONTACT_GAP` and an
-   obstacle within :data:`CONTACT_GAP` ahead, follows the boundary of the obstacles (the tangent of the nearest,
-   hugging it) for :data:`ESCAPE_TIME`, first on the side nearer its way; if it stalls again before it has
-   tracked its reference closely, it follows the other way round for twice as long, and so on (up to 8 times
-   :data:`ESCAPE_TIME`), as in a bug algorithm.  Where the tangent runs into another obstacle within
-   :data:`CONTACT_GAP` (an inner corner, two discs close together) it follows that one.  It leaves the boundary
-   early, as in Bug2, once nearer its reference point by :data:`STALL_ERROR` than where it began to follow, with no
-   obstacle within :data:`CONTACT_GAP` ahead of its way.
+5. **Follow.** A stalled robot that pushes nobody, with no robot ahead within twice :data:`CONTACT_GAP` in the
+   lane it sweeps and an obstacle within :data:`CONTACT_GAP` ahead, follows the boundary of the obstacles (the
+   tangent of the nearest, hugging it) for :data:`ESCAPE_TIME`, first on the side nearer its way; if it stalls
+   again before it has tracked its reference closely, it follows the other way round for twice as long, and so
+   on (up to 8 times :data:`ESCAPE_TIME`), as in a bug algorithm.  Where the tangent runs into another obstacle
+   within :data:`CONTACT_GAP` (an inner corner, two discs close together) it follows that one.  It leaves the
+   boundary early, as in Bug2, once nearer its reference point by :data:`STALL_ERROR` than where it began to
+   follow, with no obstacle within :data:`CONTACT_GAP` ahead of its way.
 6. A robot under rules 4 or 5 tracks a point ``g`` (within :data:`LOOKAHEAD`) instead of its reference: its
    target is the tracking law (eqn.11) toward ``g`` at rest there, ``-(k3 + k4) v - k3 k4 (p - g)`` less the
    drift ``A_dot u``; every other robot keeps its nominal.  eqn.13 then acts on the triggered robots as in
