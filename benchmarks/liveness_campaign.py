@@ -73,7 +73,8 @@ def _unreachable(ro, p_end: np.ndarray, k: int) -> bool:
     """Whether robot ``k``'s goal lies outside the free-space component of ``p_end`` (obstacles only).
 
     Free space: centres farther than the robot's radius + an obstacle's radius - 2 cm (a robot touching a wall is
-    in it) from every obstacle, on a 2 cm grid; each end snaps to the nearest free cell within 10 cm.
+    in it) from every obstacle, on a 2 cm grid; each end snaps to the nearest free cell within 10 cm (none:
+    the point is walled in, no path).
     """
     from scipy import ndimage
 
@@ -89,8 +90,14 @@ def _unreachable(ro, p_end: np.ndarray, k: int) -> bool:
 
     def label_at(q: np.ndarray) -> int:
         i, j = np.round((q - lo) / h).astype(int)
-        win = lab[max(i - 5, 0):i + 6, max(j - 5, 0):j + 6]
-        return int(win.max()) if win.size else 0  # (a free cell near the point; one component there in practice)
+        if lab[i, j]:
+            return int(lab[i, j])
+        win = lab[max(i - 5, 0):i + 6, max(j - 5, 0):j + 6]  # else the nearest free cell within 10 cm
+        if not win.any():
+            return 0
+        ci, cj = np.nonzero(win)
+        near = np.argmin((ci + max(i - 5, 0) - i) ** 2 + (cj + max(j - 5, 0) - j) ** 2)
+        return int(win[ci[near], cj[near]])
 
     a, b = label_at(p_end), label_at(ro.goals[k])
     return a == 0 or b == 0 or a != b

@@ -98,6 +98,80 @@ def test_a_robot_stalled_at_an_obstacle_slides_along_it_toward_its_goal():
     assert target[0, 1] < 0.0  # around the obstacle on the side nearer the goal
 
 
+def test_a_robot_home_in_the_way_steps_aside_even_for_a_robot_that_is_not_stalled():
+    p = [[0.0, 0.0], [1.2, 0.3]]  # robot 1 home 0.2 m from its goal, gap 0.28 m, a little left of robot 0's way
+    state = DeadlockState()  # (no stall: robot 0 just arrives)
+    target = _step(p, [[9.0, 0.0], [1.2, 0.5]], state)
+    m = state.liveness
+    assert m.hold[1] > 0 and m.rank[1] == 0.0 and m.aside[1]
+    np.testing.assert_allclose(m.spot[1], [1.2, 0.48 + 0.48 + 0.3])  # off robot 0's line (y = 0) on its own side
+    assert target[1, 1] > 0.0 and abs(target[1, 0]) < 1e-9  # sideways, not back along a trail toward robot 0
+    assert target[0, 0] > 0.0  # robot 0 keeps its way
+
+
+def test_a_robot_home_steps_aside_to_the_other_side_where_an_obstacle_takes_its_own():
+    p = [[0.0, 0.0], [1.2, 0.3]]
+    state = DeadlockState()
+    obstacles = (np.array([[1.2, 1.6]]), np.array([0.5])), np.array([[1, 0]])  # on robot 1's spot (y = 1.26)
+    _step(p, [[9.0, 0.0], [1.2, 0.5]], state, obstacles=obstacles[0], obstacle_pairs=obstacles[1])
+    m = state.liveness
+    assert m.aside[1]
+    np.testing.assert_allclose(m.spot[1], [1.2, -1.26])  # across robot 0's line instead
+
+
+def test_a_robot_home_beside_the_lane_is_not_pushed():
+    for angle, pushed in ((45.0, True), (55.0, False)):  # gap 0.24 m, 0.85 m and 0.98 m off robot 0's line
+        q = 1.2 * np.array([np.cos(np.radians(angle)), np.sin(np.radians(angle))])
+        state = DeadlockState()
+        _step([[0.0, 0.0], q], [[9.0, 0.0], q], state)  # (the lane: 0.96 m either side of the line)
+        assert (state.liveness.hold[1] > 0) == pushed
+
+
+def test_a_robot_stepping_aside_makes_nobody_yield():
+    p = [[0.0, 0.0], [1.2, 0.0]]  # robot 0 stepping aside (it was home), facing robot 1 of lower priority
+    state = _stalled_memory(p)
+    m = state.liveness
+    m.hold[0], m.rank[0], m.aside[0], m.spot[0] = 10, 0.0, True, [0.0, 1.3]
+    _step(p, [[9.0, 0.0], [-9.0, 0.0]], state)
+    assert m.hold[1] == 0
+
+
+def test_a_robot_beside_the_lane_does_not_keep_one_from_following_an_obstacle():
+    q = 1.2 * np.array([np.cos(np.radians(55.0)), np.sin(np.radians(55.0))])  # gap 0.24 m, 0.98 m off the line
+    p = [[0.0, 0.0], q]
+    state = _stalled_memory(p)
+    obstacles = (np.array([[1.0, -0.1]]), np.array([0.3]))  # in robot 0's way, in contact
+    _step(p, [[5.0, 0.0], q], state, obstacles=obstacles, obstacle_pairs=np.array([[0, 0]]))
+    assert state.liveness.escape[0] > 0
+
+
+def test_boundary_following_turns_at_an_inner_corner():
+    # two discs close together ahead and to the right: the tangent of the first runs into the second
+    p = [[0.0, 0.0]]
+    state = _stalled_memory(p)
+    obstacles = (np.array([[1.0, 0.1], [0.3, -0.95]]), np.array([0.3, 0.3]))  # gaps 0.225 m and 0.216 m
+    target = _step(p, [[5.0, 0.0]], state, obstacles=obstacles, obstacle_pairs=np.array([[0, 0], [0, 1]]))
+    m = state.liveness
+    u = np.array([0.3, -0.95]) / np.hypot(0.3, -0.95)  # toward the second disc: follow its tangent, same hand
+    np.testing.assert_allclose(m.slide[0], (np.array([u[1], -u[0]]) + 0.3 * u) / np.hypot(1.0, 0.3))
+    assert target[0, 0] < 0.0 and target[0, 1] < 0.0  # out of the corner, not into the second disc
+
+
+def test_boundary_following_ends_once_nearer_the_goal_with_the_way_clear():
+    p = [[0.0, 0.0]]
+    state = _stalled_memory(p)
+    m = state.liveness
+    m.escape[0], m.hit[0], m.slide[0], m.hand[0] = 500, 6.0, [0.0, -1.0], 1.0  # began 6 m from its goal
+    obstacles = (np.array([[-1.0, 0.5]]), np.array([0.3]))  # behind it, in contact: not in its way
+    _step(p, [[5.0, 0.0]], state, obstacles=obstacles, obstacle_pairs=np.array([[0, 0]]))
+    assert m.escape[0] == 0  # 5 m < 6 m - STALL_ERROR: it leaves the boundary
+    state = _stalled_memory(p)
+    m = state.liveness
+    m.escape[0], m.hit[0], m.slide[0], m.hand[0] = 500, 5.2, [0.0, -1.0], 1.0  # not nearer by STALL_ERROR
+    _step(p, [[5.0, 0.0]], state, obstacles=obstacles, obstacle_pairs=np.array([[0, 0]]))
+    assert m.escape[0] == 499
+
+
 def test_lone_robot_on_its_reference_is_untouched():
     state = DeadlockState()
     target = _step([[0.0, 0.0]], [[0.5, 0.0]], state)
@@ -161,5 +235,23 @@ def test_one_lane_corridor_closed_loop_all_home(mode):
     ro, _ = run_episode(env, TrackingController(), seed=0)
     live = liveness(ro, goal_tolerance=0.05)
     assert live["home"] == 2 and live["makespan_ratio"] >= 1.0
+    sep = pairwise_min_distance(ro)
+    assert min(sep.overall_min_robot_gap, sep.overall_min_obstacle_gap) > -1e-3
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("scene, seed", [
+    # a robot home by the door in the way of one coming through it (two robots stuck without rule 3b)
+    (dict(scenario="doorway", left=2, right=2, door=1.6, room=5.0, duration=15.0, settle_time=60.0), 12),
+    # a robot stalled between two discs close together (stuck without the inner-corner turn and the Bug2 exit)
+    (dict(scenario="obstacle_field", num_robots=5, density=0.1, arena_size=9.0, settle_time=30.0), 11),
+])
+def test_campaign_scenes_that_got_stuck_get_home(scene, seed):
+    from agents import TrackingController
+
+    env = make_env(filter=FilterConfig(deadlock="yield"), **scene)
+    ro, _ = run_episode(env, TrackingController(), seed=seed)
+    live = liveness(ro, goal_tolerance=0.05)
+    assert live["home"] == live["n_robots"]
     sep = pairwise_min_distance(ro)
     assert min(sep.overall_min_robot_gap, sep.overall_min_obstacle_gap) > -1e-3

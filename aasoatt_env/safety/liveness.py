@@ -4,7 +4,7 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
 
 1. **Stall.** A robot farther than :data:`STALL_ERROR` from its reference point that has stayed within
    :data:`STALL_DISTANCE` of one point for :data:`STALL_TIME` is stalled.  A robot within ``goal_tol`` of its
-   reference point with ``|v_d| < low_speed`` is done.
+   reference point with ``|v_d| < low_speed`` is done; within :data:`STALL_ERROR` of it, home.
 2. **Blocking.** Robot ``j`` blocks ``i`` when it lies within 60 degrees of the direction ``i`` wants to go
    (toward ``p_d``; see rule 4 for the others) and either wants to go the other way (directions more than
    90 degrees apart) with a surface gap below :data:`PUSH_GAP`, or is done with a gap below :data:`CONTACT_GAP`.
@@ -13,18 +13,29 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
    ``j`` yield, and ``j`` inherits ``i``'s priority (priority inheritance, as in PIBT): a yielder that backs into
    its own group makes that robot yield too, so a whole group backs out of a one-lane passage.  A yielder keeps
    yielding while a robot of its inherited priority or higher heads for it within :data:`KEEP_GAP`, and
-   :data:`HOLD_TIME` after that.
+   :data:`HOLD_TIME` after that.  A robot home is also made to yield by any robot not home that heads for it
+   (within 60 degrees, and in the lane it sweeps: the two radii off its line of travel) closer than
+   :data:`CONTACT_GAP`, stalled or not: a robot that has reached its goal must not hold up one passing through
+   (in a doorway, a goal next to the door).
+3b. **Aside.** A robot pushed while home does not retreat along its trail (that leads into its pusher's way,
+   the way it came) but steps aside: to the point off its pusher's line of travel by the two radii and
+   :data:`CONTACT_GAP`, on its own side, or on the other where a static obstacle takes that point (an obstacle on
+   both: it retreats, rule 4).  Stepping aside, it makes nobody yield.  When it yields no more it tracks its
+   reference again.
 4. **Retreat and return.** A yielder tracks the last point of its own trail (its positions every
    :data:`TRAIL_STEP`, recorded while it tracks its reference: ground it has covered, clear of static
    obstacles), dropping the points it reaches; with its trail used up, or leading back toward its pusher, it
-   steps to the right of its push.  Once it
-   yields no more it goes forward along the same trail to where it began to yield (the straight line from where it
-   retreated to its reference point may cross a wall), then tracks its reference again.
-5. **Follow.** A stalled robot that pushes nobody, with no robot ahead within twice :data:`CONTACT_GAP` and an
-   obstacle within :data:`CONTACT_GAP` ahead, follows the boundary of the obstacles (the tangent of the nearest,
-   hugging it) for :data:`ESCAPE_TIME`, first on the side nearer its way; if it stalls again before it has
-   tracked its reference closely, it follows the other way round for twice as long, and so on (up to 8 times
-   :data:`ESCAPE_TIME`), as in a bug algorithm.
+   steps to the right of its push.  Once it yields no more it goes forward along the same trail to where it began
+   to yield (the straight line from where it retreated to its reference point may cross a wall), then tracks its
+   reference again.
+5. **Follow.** A stalled robot that pushes nobody, with no robot ahead within twice :data:`CONTACT_GAP` in the
+   lane it sweeps and an obstacle within :data:`CONTACT_GAP` ahead, follows the boundary of the obstacles (the
+   tangent of the nearest, hugging it) for :data:`ESCAPE_TIME`, first on the side nearer its way; if it stalls
+   again before it has tracked its reference closely, it follows the other way round for twice as long, and so
+   on (up to 8 times :data:`ESCAPE_TIME`), as in a bug algorithm.  Where the tangent runs into another obstacle
+   within :data:`CONTACT_GAP` (an inner corner, two discs close together) it follows that one.  It leaves the
+   boundary early, as in Bug2, once nearer its reference point by :data:`STALL_ERROR` than where it began to
+   follow, with no obstacle within :data:`CONTACT_GAP` ahead of its way.
 6. A robot under rules 4 or 5 tracks a point ``g`` (within :data:`LOOKAHEAD`) instead of its reference: its
    target is the tracking law (eqn.11) toward ``g`` at rest there, ``-(k3 + k4) v - k3 k4 (p - g)`` less the
    drift ``A_dot u``; every other robot keeps its nominal.  eqn.13 then acts on the triggered robots as in
@@ -79,6 +90,9 @@ class YieldMemory:
     slide: np.ndarray  #: ``(N, 2)`` the direction it follows them in
     hand: np.ndarray  #: ``(N,)`` +1: obstacles on its left, -1: on its right
     tries: np.ndarray  #: ``(N,)`` follows since the robot last tracked its reference closely
+    aside: np.ndarray  #: ``(N,)`` a yielder pushed while done at its goal: it steps aside instead of back
+    spot: np.ndarray  #: ``(N, 2)`` where such a yielder steps to (off its pusher's line of travel)
+    hit: np.ndarray  #: ``(N,)`` distance to its reference point where a robot began to follow obstacles
 
     @classmethod
     def empty(cls, p: np.ndarray) -> YieldMemory:
@@ -86,12 +100,14 @@ class YieldMemory:
         n = p.shape[0]
         return cls(p.copy(), np.zeros(n, np.int64), np.full(n, np.inf), np.zeros(n, np.int64), np.zeros((n, 2)),
                    np.zeros((n, TRAIL_POINTS, 2)), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64),
-                   np.zeros((n, 2)), np.zeros(n), np.zeros(n, np.int64))
+                   np.zeros((n, 2)), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, dtype=bool), np.zeros((n, 2)),
+                   np.zeros(n))
 
     def forget(self, rows: np.ndarray) -> None:
         """Start robots ``rows`` afresh (their team starts an episode; the stall clock restarts at the next step)."""
         self.anchor[rows], self.still[rows], self.rank[rows] = np.nan, 0, np.inf
         self.hold[rows], self.count[rows], self.cursor[rows], self.escape[rows], self.tries[rows] = 0, 0, 0, 0, 0
+        self.aside[rows] = False
 
 
 def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -123,10 +139,11 @@ def _robot_pairs(c: TargetContext) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
 
 
 def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarray, done: np.ndarray,
-          hold_steps: int) -> np.ndarray:
+          home: np.ndarray, hold_steps: int) -> np.ndarray:
     """Rules 2 and 3: who yields, with which priority, away from whom.
 
-    Returns the robots pushing, or with a robot ahead within twice CONTACT_GAP (rule 5 leaves them be).
+    Returns the robots pushing, or with a robot ahead within twice CONTACT_GAP, one in the lane they sweep going
+    their way (rule 5 leaves them be).
     """
     n = want.shape[0]
     prio = np.arange(n) + n * done
@@ -138,19 +155,52 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     facing = np.einsum("ij,ij->i", want[i], want[j])
     si = c.radius[i] / REFERENCE_RADIUS
     blocks = ((facing < 0.0) & (gap < PUSH_GAP * si)) | (done[j] & (gap < CONTACT_GAP * si))
-    new = (ahead > _COS_AHEAD) & (stalled[i] | yielding[i]) & blocks
+    across = np.abs(u[:, 0] * want[i][:, 1] - u[:, 1] * want[i][:, 0]) * (gap + c.radius[i] + c.radius[j])
+    in_way = across < c.radius[i] + c.radius[j]  # (j overlaps the lane i sweeps going its way)
+    contact = ~home[i] & home[j] & in_way & (gap < CONTACT_GAP * si)  # (a robot home in the way, whoever comes)
+    new = (ahead > _COS_AHEAD) & ~m.aside[i] & (((stalled[i] | yielding[i]) & blocks) | contact)
     keep = (gap < KEEP_GAP * si) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
     hit = (eff[i] < eff[j]) & (new | keep)
     np.minimum.at(pushed_rank, j[hit], eff[i][hit])
     strongest = hit & (eff[i] == pushed_rank[j])
     m.away[j[strongest]] = u[strongest]
     pushed = np.isfinite(pushed_rank)
+    _aside(m, c, want, i[strongest], j[strongest], home, yielding)
     m.rank = np.where(pushed, np.minimum(np.where(yielding, m.rank, np.inf), pushed_rank), m.rank)
     m.hold = np.where(pushed, hold_steps, np.maximum(m.hold - 1, 0))
     m.rank[m.hold == 0] = np.inf
-    crowded = np.zeros(n, dtype=bool)  # pushing, or behind a robot in its way
-    crowded[i[hit | ((ahead > _COS_AHEAD) & (gap < 2.0 * CONTACT_GAP * si))]] = True
+    m.aside &= m.hold > 0
+    crowded = np.zeros(n, dtype=bool)  # pushing, or behind a robot, one in its lane
+    crowded[i[in_way & (hit | ((ahead > _COS_AHEAD) & (gap < 2.0 * CONTACT_GAP * si)))]] = True
     return crowded
+
+
+def _aside(m: YieldMemory, c: TargetContext, want: np.ndarray, i: np.ndarray, j: np.ndarray, home: np.ndarray,
+           yielding: np.ndarray) -> None:
+    """Rule 3b: robot ``j`` home (or already stepping aside), pushed by ``i``, steps off ``i``'s line of travel.
+
+    Its spot: the two radii and CONTACT_GAP off that line, on the side where ``j`` lies, else (a static obstacle
+    there) on the other; with an obstacle on both, it retreats as any yielder (rule 4).
+    """
+    lane = want[i]
+    left = np.stack((-lane[:, 1], lane[:, 0]), axis=1)
+    off = np.einsum("ij,ij->i", c.p[j] - c.p[i], left)  # j's offset from i's line, + on its left
+    clear = c.radius[i] + c.radius[j] + CONTACT_GAP * c.radius[j] / REFERENCE_RADIUS
+    side = np.where(off > 0.0, 1.0, -1.0)  # (on the line: its right, as in rule 4)
+    n = want.shape[0]
+    spots = np.zeros((2, n, 2))
+    for k, s in enumerate((side, -side)):  # (two candidates, each vectorised over the pushed robots)
+        spots[k, j] = c.p[j] + (s * clear - off)[:, None] * left
+    bad = np.zeros((2, n), dtype=bool)
+    if c.obstacles is not None and c.obstacle_pairs.shape[0]:
+        r, o = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
+        reach = c.radius[r] + c.obstacles[1][o]
+        for k in range(2):
+            bad[k, r[_unit(spots[k, r] - c.obstacles[0][o])[1] < reach]] = True
+    free = ~bad[0, j] | ~bad[1, j]
+    keep = (home[j] & free) | (m.aside[j] & yielding[j])
+    m.spot[j[keep & free]] = np.where(bad[0, j][:, None], spots[1, j], spots[0, j])[keep & free]
+    m.aside[j] = keep
 
 
 def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.ndarray, scale: np.ndarray
@@ -170,8 +220,12 @@ def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.nd
     return np.where((~yielding & (m.cursor == m.count))[:, None], p_d, out)
 
 
-def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarray, steps: int) -> np.ndarray:
-    """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the obstacles' boundary for a while."""
+def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarray, steps: int,
+            far: np.ndarray) -> np.ndarray:
+    """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the obstacles' boundary for a while.
+
+    ``far``: each robot's distance to its reference point (the Bug2 leaving test).
+    """
     if c.obstacles is not None and c.obstacle_pairs.shape[0]:
         i, k = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
         u, dist = _unit(c.obstacles[0][k] - c.p[i])
@@ -185,12 +239,23 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
         best = np.full(want.shape[0], -np.inf)
         np.maximum.at(best, i, score)
         first = np.isfinite(score) & (score == best[i])  # the obstacle most in the way among those in contact
+        front = np.zeros(want.shape[0], dtype=bool)
+        front[i[(gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS) & (ahead > 0.0)]] = True
+        m.escape[~front & (far < m.hit - STALL_ERROR * c.radius / REFERENCE_RADIUS)] = 0
+        m.hit[i[first]] = far[i[first]]
         hand = np.where(np.einsum("ij,ij->i", right, want[i]) >= 0.0, 1.0, -1.0) * (1 - 2 * (m.tries[i] % 2))
         m.hand[i[first]] = hand[first]
         m.escape[i[first]] = steps << np.minimum(m.tries[i[first]], 3)
         m.tries[i[first]] += 1
         follow = (m.escape[i] > 0) & nearest
         m.slide[i[follow]] = _unit(m.hand[i[follow], None] * right[follow] + 0.3 * u[follow])[0]
+        # an inner corner: another obstacle within CONTACT_GAP across that tangent; follow that one instead
+        across = np.where((m.escape[i] > 0) & (gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS),
+                          np.einsum("ij,ij->i", u, m.slide[i]), -np.inf)
+        most = np.full(want.shape[0], -np.inf)
+        np.maximum.at(most, i, across)
+        turn = (across > 0.3) & (across == most[i])
+        m.slide[i[turn]] = _unit(m.hand[i[turn], None] * right[turn] + 0.3 * u[turn])[0]
     m.escape = np.maximum(m.escape - 1, 0)
     return m.escape > 0
 
@@ -210,15 +275,19 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     m.anchor[left], m.still = c.p[left], np.where(left, 0, m.still + 1)
     done = (_unit(c.p - p_d)[1] <= c.cfg.goal_tol) & (_unit(v_d)[1] < c.cfg.low_speed)
     tracking = _unit(c.p - p_d)[1] <= STALL_ERROR * scale
+    home = tracking & (_unit(v_d)[1] < c.cfg.low_speed)  # (near its goal, its reference at rest there)
     stalled = (m.still >= steps(STALL_TIME)) & ~tracking
     m.tries[tracking] = 0
     yielding = m.hold > 0
     _record(m, c.p, yielding, scale)
     want = _unit(_trail_point(m, c.p, p_d, yielding, scale) - c.p)[0]
-    crowded = _push(m, c, want, stalled, done, steps(HOLD_TIME))
+    crowded = _push(m, c, want, stalled, done, home, steps(HOLD_TIME))
     yielding = m.hold > 0
     g = _trail_point(m, c.p, p_d, yielding, scale)
-    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME)) & ~yielding
+    to_spot, gap = _unit(m.spot - c.p)
+    g = np.where((m.aside & yielding)[:, None], c.p + to_spot * np.minimum(gap, LOOKAHEAD * scale)[:, None], g)
+    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME), _unit(c.p - p_d)[1])
+    sliding &= ~yielding
     g = np.where(sliding[:, None], c.p + (LOOKAHEAD * scale)[:, None] * m.slide, g)
     off = yielding | (m.cursor < m.count) | sliding
     g_v = np.where(off[:, None], 0.0, v_d)
