@@ -118,7 +118,7 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
 
 
 def _daqp_least_violation(prob: QPProblem, reg: float, opts: dict) -> RawAnswer:
-    """Phase 1 (:func:`~.policy.least_violation`) by DAQP's soft rows, without slack variables.
+    """Phase 1 (:func:`~.policy._phase1`) by DAQP's soft rows, without slack variables.
 
     DAQP weighs a soft row's squared violation by ``1 / (rho a' H^-1 a)``: with ``H = reg I``, ``rho = reg`` and unit
     rows, by 1, so this is ``min 0.5 reg |x|^2 + 0.5 |s|^2  s.t.  C x - s <= u, lb <= x <= ub``.

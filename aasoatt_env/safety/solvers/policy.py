@@ -152,17 +152,15 @@ class SolverPolicy:
         ``phase1_first``: phase 1 before the route, which is asked only where phase 1 finds the rows consistent (or
         fails): the same answer, without the route's proof of infeasibility on a run of inconsistent steps.
         """
-        raw = None if phase1_first else self._ask(prob, x0, z0)
-        if raw is not None and raw.ok:
+        p1 = _phase1(prob, self.solver) if phase1_first else None
+        if p1 is None or float(np.max(p1[1], initial=0.0)) <= _FEAS_TOL:  # (not asked, failed, or consistent rows)
+            raw = self._ask(prob, x0, z0)
+        else:
+            raw = RawAnswer(None, None, False, 0, "phase 1 first (the previous step was relaxed)")
+        if raw.ok:
             return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message)
-        p1 = _phase1(prob, self.solver)
-        if raw is None:
-            if p1 is None or float(np.max(p1[1], initial=0.0)) <= _FEAS_TOL:
-                raw = self._ask(prob, x0, z0)
-                if raw.ok:
-                    return QPSolution(raw.x, _nonneg(raw.z, prob.m), "solved", 0.0, raw.iterations, raw.message)
-            else:
-                raw = RawAnswer(None, None, False, 0, "phase 1 first (the previous step was relaxed)")
+        if not phase1_first:
+            p1 = _phase1(prob, self.solver)
         if p1 is None:
             return QPSolution(np.clip(_unconstrained(prob), prob.lb, prob.ub), np.zeros(prob.m), "failed", 0.0,
                               raw.iterations, f"{raw.message}; phase 1 failed too")
