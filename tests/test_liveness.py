@@ -10,6 +10,7 @@ from aasoatt_env.analysis.metrics import arrival_times, liveness, pairwise_min_d
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.errors import ConfigError, ScenarioError
 from aasoatt_env.safety import liveness as L
+from aasoatt_env.safety.detour import ROUTE_CLEARANCE, ROUTE_STEP, plan_route
 from aasoatt_env.safety.deadlock import STRATEGIES, DeadlockState, TargetContext
 from aasoatt_env.sim.scenarios import SCENARIOS, get_scenario
 from tests.test_metrics import make_rollout
@@ -170,6 +171,53 @@ def test_boundary_following_ends_once_nearer_the_goal_with_the_way_clear():
     m.escape[0], m.hit[0], m.slide[0], m.hand[0] = 500, 5.2, [0.0, -1.0], 1.0  # not nearer by STALL_ERROR
     _step(p, [[5.0, 0.0]], state, obstacles=obstacles, obstacle_pairs=np.array([[0, 0]]))
     assert m.escape[0] == 499
+
+
+PINCH = (np.array([[0.9, 0.55], [0.9, -0.55]]), np.array([0.4, 0.4]))  # a gap of 0.3 m ahead, 0.96 m robots
+
+
+def _clearance(pts, obstacles, radius=0.48):
+    d = np.linalg.norm(pts[:, None] - obstacles[0][None], axis=2) - obstacles[1][None] - radius
+    return d.min(axis=1)
+
+
+def test_detour_goes_round_a_gap_narrower_than_the_robot():
+    pts = plan_route(np.zeros(2), np.array([5.0, 0.0]), 0.48, *PINCH, 0, 1.0, np.array([1.0, 0.0]))
+    np.testing.assert_allclose(pts[-1], [5.0, 0.0])
+    assert np.linalg.norm(pts[0]) <= ROUTE_STEP + 1e-9
+    assert np.all(np.linalg.norm(np.diff(pts, axis=0), axis=1) <= ROUTE_STEP + 1e-9)
+    assert _clearance(pts, PINCH).min() >= ROUTE_CLEARANCE  # never through the gap: round a disc
+    assert np.abs(pts[:, 1]).max() > 0.55 + 0.4 + 0.48
+
+
+def test_detour_is_none_when_the_goal_is_walled_in():
+    a = np.linspace(0.0, 2.0 * np.pi, 12, endpoint=False)
+    ring = (np.stack((4.0 + 1.5 * np.cos(a), 1.5 * np.sin(a)), axis=1), np.full(12, 0.35))  # gaps 0.08 m
+    assert plan_route(np.zeros(2), np.array([4.0, 0.0]), 0.48, *ring, 0, 1.0, np.array([1.0, 0.0])) is None
+
+
+def test_a_robot_stalled_at_a_gap_narrower_than_itself_takes_a_detour_round_it():
+    p = [[0.0, 0.0]]  # gaps 0.175 m to both discs, both ahead: boundary following would slide into the gap
+    state = _stalled_memory(p)
+    target = _step(p, [[5.0, 0.0]], state, obstacles=PINCH, obstacle_pairs=np.array([[0, 0], [0, 1]]))
+    m = state.liveness
+    assert m.stop[0] > 0 and m.escape[0] == 0 and m.still[0] == 0  # a route, not the boundary; the clock restarts
+    route = m.route[0, :m.stop[0]]
+    np.testing.assert_allclose(route[-1], [5.0, 0.0])
+    assert _clearance(route[2:], PINCH).min() >= ROUTE_CLEARANCE
+    target = _step(p, [[5.0, 0.0]], state, obstacles=PINCH, obstacle_pairs=np.array([[0, 0], [0, 1]]))
+    assert abs(target[0, 1]) > abs(target[0, 0])  # sideways, out of the mouth of the gap, not on into it
+
+
+def test_a_robot_on_a_detour_leaves_it_while_it_yields():
+    p = [[0.0, 0.0]]
+    state = _stalled_memory(p)
+    _step(p, [[5.0, 0.0]], state, obstacles=PINCH, obstacle_pairs=np.array([[0, 0], [0, 1]]))
+    m = state.liveness
+    stop = m.stop[0]
+    m.hold[0], m.rank[0], m.away[0] = 10, 0.0, [1.0, 0.0]  # pushed toward +x, no trail: it steps to its right
+    target = _step(p, [[5.0, 0.0]], state, obstacles=PINCH, obstacle_pairs=np.array([[0, 0], [0, 1]]))
+    assert m.stop[0] == stop and target[0, 1] < 0.0 and abs(target[0, 0]) < 1e-9
 
 
 def test_lone_robot_on_its_reference_is_untouched():

@@ -36,7 +36,15 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
    within :data:`CONTACT_GAP` (an inner corner, two discs close together) it follows that one.  It leaves the
    boundary early, as in Bug2, once nearer its reference point by :data:`STALL_ERROR` than where it began to
    follow, with no obstacle within :data:`CONTACT_GAP` ahead of its way.
-6. A robot under rules 4 or 5 tracks a point ``g`` (within :data:`LOOKAHEAD`) instead of its reference: its
+5b. **Detour.** Before following, such a robot plans a route to its reference point round the obstacles it
+   senses and the robots home it senses (:mod:`.detour`: a grid of the free space, obstacles grown by its
+   radius); with one, it tracks the route's points to its end instead of following (dropping those within
+   :data:`LOOKAHEAD`, heading for the farthest in sight of the next :data:`ROUTE_SEEN`), its stall clock started
+   afresh.  Stalled at an obstacle again before it has tracked its reference closely, it plans again with more
+   clearance (the gap that held it up closes); stalled on its route with no robot in its way, it drops the
+   route; yielding, it leaves the route until it is back where it began to yield.  Planning runs for the robots
+   that begin to escape only (a loop over those few, on those steps).
+6. A robot under rules 4, 5 or 5b tracks a point ``g`` (near it, ahead on its way) instead of its reference: its
    target is the tracking law (eqn.11) toward ``g`` at rest there, ``-(k3 + k4) v - k3 k4 (p - g)`` less the
    drift ``A_dot u``; every other robot keeps its nominal.  eqn.13 then acts on the triggered robots as in
    ``auxiliary_velocity``, with ``(g, 0)`` for ``(p_d, v_d)`` where a robot tracks ``g``.
@@ -52,11 +60,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from aasoatt_env.safety.detour import ROUTE_POINTS, plan_route
+
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.deadlock import TargetContext
 
 __all__ = ["CONTACT_GAP", "ESCAPE_TIME", "HOLD_TIME", "KEEP_GAP", "LOOKAHEAD", "PUSH_GAP", "REFERENCE_RADIUS",
-           "STALL_DISTANCE", "STALL_ERROR", "STALL_TIME", "TRAIL_STEP", "YieldMemory", "yield_target"]
+           "ROUTE_SEEN", "STALL_DISTANCE", "STALL_ERROR", "STALL_TIME", "TRAIL_STEP", "YieldMemory", "yield_target"]
 
 REFERENCE_RADIUS: float = 0.48
 """[m] The lengths below are for a robot of this radius (the paper's); each robot's scale with its radius."""
@@ -70,6 +80,7 @@ HOLD_TIME: float = 5.0  #: [s] a yielder keeps yielding after its last push
 ESCAPE_TIME: float = 6.0  #: [s] a robot stalled at an obstacle slides along it this long
 TRAIL_STEP: float = 0.25  #: [m] spacing of the trail's points
 LOOKAHEAD: float = 0.6  #: [m] a yielder drops the trail points closer than this
+ROUTE_SEEN: int = 5  #: route points ahead (ROUTE_STEP apart) a robot on a detour looks for the farthest in sight
 TRAIL_POINTS: int = 256  #: points kept per robot (the oldest are dropped)
 _COS_AHEAD = 0.5  # cos(60 deg)
 
@@ -93,6 +104,9 @@ class YieldMemory:
     aside: np.ndarray  #: ``(N,)`` a yielder pushed while done at its goal: it steps aside instead of back
     spot: np.ndarray  #: ``(N, 2)`` where such a yielder steps to (off its pusher's line of travel)
     hit: np.ndarray  #: ``(N,)`` distance to its reference point where a robot began to follow obstacles
+    route: np.ndarray  #: ``(N, ROUTE_POINTS, 2)`` a detour's points (rule 5b)
+    stop: np.ndarray  #: ``(N,)`` route points in use
+    leg: np.ndarray  #: ``(N,)`` the route point tracked (``stop``: none, tracking its reference)
 
     @classmethod
     def empty(cls, p: np.ndarray) -> YieldMemory:
@@ -101,13 +115,13 @@ class YieldMemory:
         return cls(p.copy(), np.zeros(n, np.int64), np.full(n, np.inf), np.zeros(n, np.int64), np.zeros((n, 2)),
                    np.zeros((n, TRAIL_POINTS, 2)), np.zeros(n, np.int64), np.zeros(n, np.int64), np.zeros(n, np.int64),
                    np.zeros((n, 2)), np.zeros(n), np.zeros(n, np.int64), np.zeros(n, dtype=bool), np.zeros((n, 2)),
-                   np.zeros(n))
+                   np.zeros(n), np.zeros((n, ROUTE_POINTS, 2)), np.zeros(n, np.int64), np.zeros(n, np.int64))
 
     def forget(self, rows: np.ndarray) -> None:
         """Start robots ``rows`` afresh (their team starts an episode; the stall clock restarts at the next step)."""
         self.anchor[rows], self.still[rows], self.rank[rows] = np.nan, 0, np.inf
         self.hold[rows], self.count[rows], self.cursor[rows], self.escape[rows], self.tries[rows] = 0, 0, 0, 0, 0
-        self.aside[rows] = False
+        self.aside[rows], self.stop[rows], self.leg[rows] = False, 0, 0
 
 
 def _unit(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -221,7 +235,7 @@ def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.nd
 
 
 def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarray, steps: int,
-            far: np.ndarray) -> np.ndarray:
+            far: np.ndarray, home: np.ndarray) -> np.ndarray:
     """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the obstacles' boundary for a while.
 
     ``far``: each robot's distance to its reference point (the Bug2 leaving test).
@@ -246,6 +260,7 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
         hand = np.where(np.einsum("ij,ij->i", right, want[i]) >= 0.0, 1.0, -1.0) * (1 - 2 * (m.tries[i] % 2))
         m.hand[i[first]] = hand[first]
         m.escape[i[first]] = steps << np.minimum(m.tries[i[first]], 3)
+        _detour(m, c, np.unique(i[first]), want, home)
         m.tries[i[first]] += 1
         follow = (m.escape[i] > 0) & nearest
         m.slide[i[follow]] = _unit(m.hand[i[follow], None] * right[follow] + 0.3 * u[follow])[0]
@@ -258,6 +273,63 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
         m.slide[i[turn]] = _unit(m.hand[i[turn], None] * right[turn] + 0.3 * u[turn])[0]
     m.escape = np.maximum(m.escape - 1, 0)
     return m.escape > 0
+
+
+def _detour(m: YieldMemory, c: TargetContext, starters: np.ndarray, want: np.ndarray, home: np.ndarray) -> None:
+    """Rule 5b: robots ``starters`` (beginning to escape) plan a route round the obstacles they sense.
+
+    The robots home that they sense count as obstacles (they stay put).  A robot with a route follows it instead
+    of the boundary, its stall clock and its trail's return dropped.
+    """
+    p_d = c.reference[0]  # type: ignore[index]
+    i, j = _robot_pairs(c)[:2]
+    for k in starters:  # (the few robots that begin to escape at this step)
+        sensed = c.obstacle_pairs[c.obstacle_pairs[:, 0] == k, 1]
+        parked = j[(i == k) & home[j]]
+        pts = plan_route(c.p[k], p_d[k], float(c.radius[k]), np.vstack((c.obstacles[0][sensed], c.p[parked])),
+                         np.concatenate((c.obstacles[1][sensed], c.radius[parked])), int(m.tries[k]),
+                         float(c.radius[k] / REFERENCE_RADIUS), want[k])
+        if pts is None:
+            continue
+        m.route[k, :len(pts)], m.stop[k], m.leg[k] = pts, len(pts), 0
+        m.escape[k], m.cursor[k], m.anchor[k], m.still[k] = 0, m.count[k], c.p[k], 0
+
+
+def _route_point(m: YieldMemory, c: TargetContext, g: np.ndarray, scale: np.ndarray, yielding: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Rule 5b: the route point each robot on a detour tracks (``g`` for the others), and who is on one.
+
+    A yielder, or a robot going back along its trail to where it began to yield, leaves its route for then.
+
+    It drops the points within LOOKAHEAD, then tracks the farthest of the next ROUTE_SEEN in sight: the segments to
+    it and to those before it come nearer to no sensed obstacle or robot, within their radii and its own, than
+    the robot is (none in sight: the first; a robot in its way there is made to yield, rule 3).
+    """
+    n, seen = c.p.shape[0], np.arange(ROUTE_SEEN)
+    rows = np.arange(n)
+    for _ in range(2):  # (a point or two per step: the points are ROUTE_STEP apart)
+        m.leg += (m.leg < m.stop) & ~yielding & (m.cursor == m.count) & (
+            _unit(c.p - m.route[rows, np.minimum(m.leg, ROUTE_POINTS - 1)])[1] < LOOKAHEAD * scale)
+    on = (m.leg < m.stop) & ~yielding & (m.cursor == m.count)
+    pts = m.route[rows[:, None], np.clip(np.minimum(m.leg[:, None] + seen, m.stop[:, None] - 1), 0, None)]
+    hits = np.zeros((n, ROUTE_SEEN), np.int64)
+    if on.any():
+        i, j = _robot_pairs(c)[:2]
+        r, centre, size = i, c.p[j], c.radius[j]
+        if c.obstacles is not None and c.obstacle_pairs.shape[0]:
+            o = c.obstacle_pairs[:, 1]
+            r = np.concatenate((i, c.obstacle_pairs[:, 0]))
+            centre, size = np.vstack((centre, c.obstacles[0][o])), np.concatenate((size, c.obstacles[1][o]))
+        mine = on[r]
+        r, centre, size = r[mine], centre[mine], size[mine]
+        d, w = pts[r] - c.p[r][:, None], (centre - c.p[r])[:, None]  # (Q, S, 2), (Q, 1, 2)
+        t = np.clip(np.sum(w * d, axis=2) / np.maximum(np.sum(d * d, axis=2), 1e-12), 0.0, 1.0)
+        closest = np.sqrt(np.sum((w - t[:, :, None] * d) ** 2, axis=2))
+        now = np.sqrt(np.sum(w * w, axis=2))
+        np.add.at(hits, r, (closest < (size + c.radius[r])[:, None]) & (closest < now - 1e-9))
+    clear = np.cumprod(hits == 0, axis=1).astype(bool)
+    far = np.maximum(ROUTE_SEEN - 1 - np.argmax(clear[:, ::-1], axis=1), 0) * clear.any(axis=1)
+    return np.where(on[:, None], pts[rows, far], g), on
 
 
 def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetContext) -> np.ndarray:
@@ -280,16 +352,19 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     m.tries[tracking] = 0
     yielding = m.hold > 0
     _record(m, c.p, yielding, scale)
-    want = _unit(_trail_point(m, c.p, p_d, yielding, scale) - c.p)[0]
+    want = _unit(_route_point(m, c, _trail_point(m, c.p, p_d, yielding, scale), scale, yielding)[0] - c.p)[0]
     crowded = _push(m, c, want, stalled, done, home, steps(HOLD_TIME))
+    m.stop[stalled & ~crowded] = 0  # (stalled on a detour, pushing nobody: rule 5 may plan another)
     yielding = m.hold > 0
     g = _trail_point(m, c.p, p_d, yielding, scale)
     to_spot, gap = _unit(m.spot - c.p)
     g = np.where((m.aside & yielding)[:, None], c.p + to_spot * np.minimum(gap, LOOKAHEAD * scale)[:, None], g)
-    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME), _unit(c.p - p_d)[1])
+    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME), _unit(c.p - p_d)[1],
+                      home)
     sliding &= ~yielding
+    g, routed = _route_point(m, c, g, scale, yielding)
     g = np.where(sliding[:, None], c.p + (LOOKAHEAD * scale)[:, None] * m.slide, g)
-    off = yielding | (m.cursor < m.count) | sliding
+    off = yielding | (m.cursor < m.count) | sliding | routed
     g_v = np.where(off[:, None], 0.0, v_d)
     toward = -(c.k3 + c.k4) * c.v - c.k3 * c.k4 * (c.p - g) - c.adot  # the tracking law toward g at rest there
     out = np.where(off[:, None], toward, target)
