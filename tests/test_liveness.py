@@ -38,6 +38,12 @@ def _stalled_memory(p):
     return state
 
 
+@pytest.fixture
+def no_route(monkeypatch):
+    """Rule 5 (boundary following) where the detour's grid has no way (rule 5b falls back on it)."""
+    monkeypatch.setattr(L, "plan_route", lambda *args: None)
+
+
 def test_registered_opt_in_and_the_default_unchanged():
     assert FilterConfig().deadlock == "auxiliary_velocity"
     s = STRATEGIES["yield"]
@@ -90,7 +96,7 @@ def test_the_yielder_at_the_end_of_its_trail_steps_to_the_right_of_the_push():
     assert target[1, 1] < 0.0 and abs(target[1, 0]) < 1e-9  # pushed toward +x: its right is -y
 
 
-def test_a_robot_stalled_at_an_obstacle_slides_along_it_toward_its_goal():
+def test_a_robot_stalled_at_an_obstacle_slides_along_it_toward_its_goal(no_route):
     p = [[0.0, 0.0]]
     state = _stalled_memory(p)
     obstacles = (np.array([[1.0, 0.1]]), np.array([0.3]))  # gap 0.225 m, centre slightly left of the way
@@ -137,7 +143,7 @@ def test_a_robot_stepping_aside_makes_nobody_yield():
     assert m.hold[1] == 0
 
 
-def test_a_robot_beside_the_lane_does_not_keep_one_from_following_an_obstacle():
+def test_a_robot_beside_the_lane_does_not_keep_one_from_following_an_obstacle(no_route):
     q = 1.2 * np.array([np.cos(np.radians(55.0)), np.sin(np.radians(55.0))])  # gap 0.24 m, 0.98 m off the line
     p = [[0.0, 0.0], q]
     state = _stalled_memory(p)
@@ -146,7 +152,7 @@ def test_a_robot_beside_the_lane_does_not_keep_one_from_following_an_obstacle():
     assert state.liveness.escape[0] > 0
 
 
-def test_boundary_following_turns_at_an_inner_corner():
+def test_boundary_following_turns_at_an_inner_corner(no_route):
     # two discs close together ahead and to the right: the tangent of the first runs into the second
     p = [[0.0, 0.0]]
     state = _stalled_memory(p)
@@ -158,7 +164,7 @@ def test_boundary_following_turns_at_an_inner_corner():
     assert target[0, 0] < 0.0 and target[0, 1] < 0.0  # out of the corner, not into the second disc
 
 
-def test_boundary_following_ends_once_nearer_the_goal_with_the_way_clear():
+def test_boundary_following_ends_once_nearer_the_goal_with_the_way_clear(no_route):
     p = [[0.0, 0.0]]
     state = _stalled_memory(p)
     m = state.liveness
@@ -301,5 +307,18 @@ def test_campaign_scenes_that_got_stuck_get_home(scene, seed):
     ro, _ = run_episode(env, TrackingController(), seed=seed)
     live = liveness(ro, goal_tolerance=0.05)
     assert live["home"] == live["n_robots"]
+    sep = pairwise_min_distance(ro)
+    assert min(sep.overall_min_robot_gap, sep.overall_min_obstacle_gap) > -1e-3
+
+
+def test_field_robots_wedged_in_gaps_narrower_than_themselves_get_home():
+    # the campaign's obstacle_field seed 159: three robots stalled in gaps between discs narrower than they are,
+    # boundary following sliding each from one disc into the next (stuck without the detour, rule 5b)
+    from agents import TrackingController
+
+    env = make_env(filter=FilterConfig(deadlock="yield"), scenario="obstacle_field", num_robots=5, density=0.1,
+                   arena_size=9.0, settle_time=30.0)
+    ro, _ = run_episode(env, TrackingController(), seed=159)
+    assert liveness(ro, goal_tolerance=0.05)["home"] == 5
     sep = pairwise_min_distance(ro)
     assert min(sep.overall_min_robot_gap, sep.overall_min_obstacle_gap) > -1e-3
