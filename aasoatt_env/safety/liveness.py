@@ -14,10 +14,10 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
    its own group makes that robot yield too, so a whole group backs out of a one-lane passage.  A yielder keeps
    yielding while a robot of higher priority than the one it inherited heads for it within :data:`KEEP_GAP`, or
    its own pusher does where static obstacles take both spots it could step aside to (rule 3b's: it backs out of
-   a passage as long as the pusher comes on), and :data:`HOLD_TIME` after that.  A robot home is also made to yield by any robot not home that heads for it
-   (within 60 degrees, and in the lane it sweeps: the two radii off its line of travel) closer than
-   :data:`CONTACT_GAP`, stalled or not: a robot that has reached its goal must not hold up one passing through
-   (in a doorway, a goal next to the door).
+   a passage as long as the pusher comes on), and :data:`HOLD_TIME` after that.  A robot home is also made to
+   yield by any robot not home that heads for it (within 60 degrees, and in the lane it sweeps: the two radii off
+   its line of travel) closer than :data:`CONTACT_GAP`, stalled or not: a robot that has reached its goal must not
+   hold up one passing through (in a doorway, a goal next to the door).
 3b. **Aside.** A robot pushed while home does not retreat along its trail (that leads into its pusher's way,
    the way it came) but steps aside: to the point off its pusher's line of travel by the two radii and
    :data:`CONTACT_GAP`, on its own side, or on the other where a static obstacle takes that point (an obstacle on
