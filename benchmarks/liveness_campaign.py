@@ -6,7 +6,7 @@ The tracking controller (the paper's method) drives every robot behind the filte
 * ``fig5``: the paper's Fig. 5 (20 robots, three discs), 12 s + ``settle``;
 * ``corridor22`` / ``corridor16``: the ``corridor`` scenario, paper robots, 2.2 m wide 4 against 4 and 1.6 m
   wide (one robot at a time) 3 against 3; ``tb3corridor22`` / ``tb3corridor16``: TurtleBot3 Burger teams in the
-  same corridors scaled by their size (0.21 / 0.96);
+  same corridors scaled by their size (0.21 / 0.96); 40 s + 90 s settle;
 * ``doorway``: the ``doorway`` scenario, 2 against 2 through a 1.6 m door between 5 m rooms, seeded places,
   15 s + 60 s settle;
 * ``field``: the ``obstacle_field`` scenario, 5 robots in a 9 m arena, density 0.1, radii 0.3-0.8 m, seeded,
@@ -46,7 +46,7 @@ def _corridor(width: float, n: int, scale: float = 1.0, robots: str = "paper") -
     s = scale
     return dict(scenario="corridor", width=width * s, left=n, right=n, robots=robots, length=10.0 * s,
                 spacing=1.2 * s, approach=4.0 * s, wall_radius=0.3 * s, wall_pitch=0.5 * s, flange=6.0 * s,
-                duration=40.0, settle_time=60.0)
+                duration=40.0, settle_time=90.0)
 
 
 #: name -> (scenario keywords, seeds, stop early once all are home)

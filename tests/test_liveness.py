@@ -80,6 +80,27 @@ def test_priority_is_inherited_down_a_chain():
     assert target[1, 0] > 0.0  # the yielder accelerates back along its trail (+x)
 
 
+def test_in_a_passage_the_pusher_keeps_its_yielder_yielding_while_it_comes_on():
+    # robot 1 yields with robot 0's priority (inherited: equal to its pusher's own); robot 0, not yielding, comes on
+    # behind it within KEEP_GAP.  Between walls (no room to step aside) robot 1 keeps yielding, so a whole one-lane
+    # corridor backs out; in the open, or once robot 0 heads elsewhere, its hold runs down
+    p = [[0.0, 0.0], [1.2, 0.0]]
+    x = np.arange(-1.0, 3.01, 0.5)
+    walls = np.concatenate([np.stack((x, np.full_like(x, y)), axis=1) for y in (-1.1, 1.1)])
+    radii = np.full(walls.shape[0], 0.3)
+    pairs = np.array([(r, o) for r in range(2) for o in range(walls.shape[0])], dtype=np.intp)
+    full = int(round(L.HOLD_TIME / CFG.dt))
+    for goal0, obstacles, expected in (([9.0, 0.0], (walls, radii), full), ([9.0, 0.0], None, 2),
+                                       ([-9.0, 0.0], (walls, radii), 2)):
+        state = DeadlockState()
+        m = state.liveness = L.YieldMemory.empty(np.asarray(p, float))
+        m.hold[1], m.rank[1] = 3, 0.0
+        _step(p, [goal0, [-9.0, 0.0]], state, obstacles=obstacles,
+              obstacle_pairs=pairs if obstacles is not None else None)
+        assert m.hold[1] == expected
+        assert m.rank[1] == 0.0
+
+
 def test_a_done_robot_in_the_way_is_pushed_only_on_contact():
     goal = [[9.0, 0.0], [1.2, 0.0]]
     for x, pushed in ((1.2, True), (2.0, False)):  # gaps 0.24 m and 1.04 m

@@ -12,11 +12,12 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
    carries the priority it inherited.  A stalled or yielding robot ``i`` blocked by ``j`` of lower priority makes
    ``j`` yield, and ``j`` inherits ``i``'s priority (priority inheritance, as in PIBT): a yielder that backs into
    its own group makes that robot yield too, so a whole group backs out of a one-lane passage.  A yielder keeps
-   yielding while a robot of its inherited priority or higher heads for it within :data:`KEEP_GAP`, and
-   :data:`HOLD_TIME` after that.  A robot home is also made to yield by any robot not home that heads for it
-   (within 60 degrees, and in the lane it sweeps: the two radii off its line of travel) closer than
-   :data:`CONTACT_GAP`, stalled or not: a robot that has reached its goal must not hold up one passing through
-   (in a doorway, a goal next to the door).
+   yielding while a robot of higher priority than the one it inherited heads for it within :data:`KEEP_GAP`, or
+   its own pusher does where static obstacles take both spots it could step aside to (rule 3b's: it backs out of
+   a passage as long as the pusher comes on), and :data:`HOLD_TIME` after that.  A robot home is also made to
+   yield by any robot not home that heads for it (within 60 degrees, and in the lane it sweeps: the two radii off
+   its line of travel) closer than :data:`CONTACT_GAP`, stalled or not: a robot that has reached its goal must not
+   hold up one passing through (in a doorway, a goal next to the door).
 3b. **Aside.** A robot pushed while home does not retreat along its trail (that leads into its pusher's way,
    the way it came) but steps aside: to the point off its pusher's line of travel by the two radii and
    :data:`CONTACT_GAP`, on its own side, or on the other where a static obstacle takes that point (an obstacle on
@@ -174,7 +175,13 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     contact = ~home[i] & home[j] & in_way & (gap < CONTACT_GAP * si)  # (a robot home in the way, whoever comes)
     new = (ahead > _COS_AHEAD) & ~m.aside[i] & (((stalled[i] | yielding[i]) & blocks) | contact)
     keep = (gap < KEEP_GAP * si) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
-    hit = (eff[i] < eff[j]) & (new | keep)
+    # its own pusher (not yielding, of the priority it inherited) keeps a yielder yielding while obstacles leave
+    # it no room to step aside (a passage): it backs out of the passage as long as the pusher comes on
+    boxed = keep & ~yielding[i] & (eff[i] == m.rank[j])
+    if boxed.any():
+        q = np.flatnonzero(boxed)
+        boxed[q] = _side_spots(c, want[i[q]], i[q], j[q])[1].all(axis=0)
+    hit = ((eff[i] < eff[j]) & (new | keep)) | boxed
     np.minimum.at(pushed_rank, j[hit], eff[i][hit])
     strongest = hit & (eff[i] == pushed_rank[j])
     m.away[j[strongest]] = u[strongest]
@@ -189,31 +196,38 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     return crowded
 
 
+def _side_spots(c: TargetContext, lane: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where robot ``j[k]`` steps off the line of travel ``lane[k]`` of ``i[k]``, and which spots an obstacle takes.
+
+    ``(spots (2, P, 2), taken (2, P))``: the two radii and CONTACT_GAP off that line, on the side where ``j`` lies
+    first (on the line: its right, as in rule 4), then on the other.
+    """
+    left = np.stack((-lane[:, 1], lane[:, 0]), axis=1)
+    off = np.einsum("ij,ij->i", c.p[j] - c.p[i], left)  # j's offset from i's line, + on its left
+    clear = c.radius[i] + c.radius[j] + CONTACT_GAP * c.radius[j] / REFERENCE_RADIUS
+    side = np.where(off > 0.0, 1.0, -1.0)
+    spots = np.stack([c.p[j] + (s * clear - off)[:, None] * left for s in (side, -side)])
+    taken = np.zeros((2, j.shape[0]), dtype=bool)
+    if c.obstacles is not None and c.obstacle_pairs.shape[0]:
+        r, o = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
+        k, q = np.nonzero(j[:, None] == r[None, :])  # (the few pushed robots' obstacle pairs)
+        reach = c.radius[j[k]] + c.obstacles[1][o[q]]
+        for s in range(2):
+            taken[s, k[_unit(spots[s, k] - c.obstacles[0][o[q]])[1] < reach]] = True
+    return spots, taken
+
+
 def _aside(m: YieldMemory, c: TargetContext, want: np.ndarray, i: np.ndarray, j: np.ndarray, home: np.ndarray,
            yielding: np.ndarray) -> None:
     """Rule 3b: robot ``j`` home (or already stepping aside), pushed by ``i``, steps off ``i``'s line of travel.
 
-    Its spot: the two radii and CONTACT_GAP off that line, on the side where ``j`` lies, else (a static obstacle
-    there) on the other; with an obstacle on both, it retreats as any yielder (rule 4).
+    Its spot (:func:`_side_spots`): on the side where ``j`` lies, else (a static obstacle there) on the other; with
+    an obstacle on both, it retreats as any yielder (rule 4).
     """
-    lane = want[i]
-    left = np.stack((-lane[:, 1], lane[:, 0]), axis=1)
-    off = np.einsum("ij,ij->i", c.p[j] - c.p[i], left)  # j's offset from i's line, + on its left
-    clear = c.radius[i] + c.radius[j] + CONTACT_GAP * c.radius[j] / REFERENCE_RADIUS
-    side = np.where(off > 0.0, 1.0, -1.0)  # (on the line: its right, as in rule 4)
-    n = want.shape[0]
-    spots = np.zeros((2, n, 2))
-    for k, s in enumerate((side, -side)):  # (two candidates, each vectorised over the pushed robots)
-        spots[k, j] = c.p[j] + (s * clear - off)[:, None] * left
-    bad = np.zeros((2, n), dtype=bool)
-    if c.obstacles is not None and c.obstacle_pairs.shape[0]:
-        r, o = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
-        reach = c.radius[r] + c.obstacles[1][o]
-        for k in range(2):
-            bad[k, r[_unit(spots[k, r] - c.obstacles[0][o])[1] < reach]] = True
-    free = ~bad[0, j] | ~bad[1, j]
+    spots, taken = _side_spots(c, want[i], i, j)
+    free = ~taken[0] | ~taken[1]
     keep = (home[j] & free) | (m.aside[j] & yielding[j])
-    m.spot[j[keep & free]] = np.where(bad[0, j][:, None], spots[1, j], spots[0, j])[keep & free]
+    m.spot[j[keep & free]] = np.where(taken[0][:, None], spots[1], spots[0])[keep & free]
     m.aside[j] = keep
 
 
