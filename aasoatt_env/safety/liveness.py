@@ -37,9 +37,9 @@ A local rule on the QP's target only (the barrier rows, hence safety, stay the f
    within :data:`CONTACT_GAP` (an inner corner, two discs close together) it follows that one.  It leaves the
    boundary early, as in Bug2, once nearer its reference point by :data:`STALL_ERROR` than where it began to
    follow, with no obstacle within :data:`CONTACT_GAP` ahead of its way.
-5b. **Detour.** Before following, such a robot plans a route to its reference point round the obstacles it
-   senses and the robots home it senses (:mod:`.detour`: a grid of the free space, obstacles grown by its
-   radius); with one, it tracks the route's points to its end instead of following (dropping those within
+5b. **Detour.** Before following, such a robot plans a route to its reference point round the static obstacles
+   it senses (:mod:`.detour`: a grid of the free space, obstacles grown by its radius; robots, those home too,
+   are left to rule 3); with one, it tracks the route's points to its end instead of following (dropping those within
    :data:`LOOKAHEAD`, heading for the farthest in sight of the next :data:`ROUTE_SEEN`), its stall clock started
    afresh.  Stalled at an obstacle again before it has tracked its reference closely, it plans again with more
    clearance (the gap that held it up closes); stalled on its route with no robot in its way, it drops the
@@ -249,7 +249,7 @@ def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.nd
 
 
 def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarray, steps: int,
-            far: np.ndarray, home: np.ndarray) -> np.ndarray:
+            far: np.ndarray) -> np.ndarray:
     """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the obstacles' boundary for a while.
 
     ``far``: each robot's distance to its reference point (the Bug2 leaving test).
@@ -274,7 +274,7 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
         hand = np.where(np.einsum("ij,ij->i", right, want[i]) >= 0.0, 1.0, -1.0) * (1 - 2 * (m.tries[i] % 2))
         m.hand[i[first]] = hand[first]
         m.escape[i[first]] = steps << np.minimum(m.tries[i[first]], 3)
-        _detour(m, c, np.unique(i[first]), want, home)
+        _detour(m, c, np.unique(i[first]), want)
         m.tries[i[first]] += 1
         follow = (m.escape[i] > 0) & nearest
         m.slide[i[follow]] = _unit(m.hand[i[follow], None] * right[follow] + 0.3 * u[follow])[0]
@@ -289,20 +289,18 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
     return m.escape > 0
 
 
-def _detour(m: YieldMemory, c: TargetContext, starters: np.ndarray, want: np.ndarray, home: np.ndarray) -> None:
-    """Rule 5b: robots ``starters`` (beginning to escape) plan a route round the obstacles they sense.
+def _detour(m: YieldMemory, c: TargetContext, starters: np.ndarray, want: np.ndarray) -> None:
+    """Rule 5b: robots ``starters`` (beginning to escape) plan a route round the static obstacles they sense.
 
-    The robots home that they sense count as obstacles (they stay put).  A robot with a route follows it instead
-    of the boundary, its stall clock and its trail's return dropped.
+    Robots are left out, those home too: one in the way is made to yield or step aside (rule 3), where a route
+    round it could lead far off (round a wall whose far end it does not sense).  A robot with a route follows it
+    instead of the boundary, its stall clock and its trail's return dropped.
     """
     p_d = c.reference[0]  # type: ignore[index]
-    i, j = _robot_pairs(c)[:2]
     for k in starters:  # (the few robots that begin to escape at this step)
         sensed = c.obstacle_pairs[c.obstacle_pairs[:, 0] == k, 1]
-        parked = j[(i == k) & home[j]]
-        pts = plan_route(c.p[k], p_d[k], float(c.radius[k]), np.vstack((c.obstacles[0][sensed], c.p[parked])),
-                         np.concatenate((c.obstacles[1][sensed], c.radius[parked])), int(m.tries[k]),
-                         float(c.radius[k] / REFERENCE_RADIUS), want[k])
+        pts = plan_route(c.p[k], p_d[k], float(c.radius[k]), c.obstacles[0][sensed], c.obstacles[1][sensed],
+                         int(m.tries[k]), float(c.radius[k] / REFERENCE_RADIUS), want[k])
         if pts is None:
             continue
         m.route[k, :len(pts)], m.stop[k], m.leg[k] = pts, len(pts), 0
@@ -373,8 +371,7 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     g = _trail_point(m, c.p, p_d, yielding, scale)
     to_spot, gap = _unit(m.spot - c.p)
     g = np.where((m.aside & yielding)[:, None], c.p + to_spot * np.minimum(gap, LOOKAHEAD * scale)[:, None], g)
-    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME), _unit(c.p - p_d)[1],
-                      home)
+    sliding = _escape(m, c, want, stalled & ~yielding & ~crowded, steps(ESCAPE_TIME), _unit(c.p - p_d)[1])
     sliding &= ~yielding
     g, routed = _route_point(m, c, g, scale, yielding)
     g = np.where(sliding[:, None], c.p + (LOOKAHEAD * scale)[:, None] * m.slide, g)
