@@ -10,8 +10,8 @@ from aasoatt_env.analysis.metrics import arrival_times, liveness, pairwise_min_d
 from aasoatt_env.analysis.recording import run_episode
 from aasoatt_env.errors import ConfigError, ScenarioError
 from aasoatt_env.safety import liveness as L
-from aasoatt_env.safety.detour import ROUTE_CLEARANCE, ROUTE_STEP, plan_route
 from aasoatt_env.safety.deadlock import STRATEGIES, DeadlockState, TargetContext
+from aasoatt_env.safety.detour import ROUTE_CLEARANCE, ROUTE_STEP, plan_route
 from aasoatt_env.sim.scenarios import SCENARIOS, get_scenario
 from tests.test_metrics import make_rollout
 
