@@ -5,8 +5,8 @@ robot is wide make pockets it cannot leave (it turns into the next disc, and the
 cluster at once: the centre's free space (the sensed obstacles grown by the robot's radius) on a grid of
 :data:`ROUTE_CELL`, 8-connected, the shortest way (Dijkstra) from the robot to its reference point, each step's
 length weighed up where it passes within :data:`ROUTE_MARGIN` of an obstacle (keep off them where there is room).
-A cell is passable with a clearance of at least ``ROUTE_CLEARANCE * (1 + tries)`` (a gap that held the robot up
-before is closed the next time).  A robot pressed against discs is in their grown band: within
+A cell is passable with a clearance of at least ``ROUTE_CLEARANCE * (1 + tries)`` (tries up to 3: a gap that
+held the robot up before is closed the next time).  A robot pressed against discs is in their grown band: within
 :data:`ROUTE_BACK` of it, the cells not ahead of it (the way it was blocked) are passable with the clearance it
 has less a cell, so it can back out but not squeeze on through the gap that stopped it; the cells within two of
 its goal are passable whatever their clearance.  Robots are ignored (the right of way settles
