@@ -318,6 +318,8 @@ def test_one_lane_corridor_closed_loop_all_home(mode):
 @pytest.mark.parametrize("scene, seed", [
     # a robot home by the door in the way of one coming through it (two robots stuck without rule 3b)
     (dict(scenario="doorway", left=2, right=2, door=1.6, room=5.0, duration=15.0, settle_time=60.0), 12),
+    # a robot home by the door: a detour round it (as round an obstacle) led along the wall, far off
+    (dict(scenario="doorway", left=2, right=2, door=1.6, room=5.0, duration=15.0, settle_time=60.0), 48),
     # a robot stalled between two discs close together (stuck without the inner-corner turn and the Bug2 exit)
     (dict(scenario="obstacle_field", num_robots=5, density=0.1, arena_size=9.0, settle_time=30.0), 11),
 ])
