@@ -16,8 +16,6 @@ them).  It runs only for a robot that begins to escape (stalled at an obstacle),
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
 
 __all__ = ["ROUTE_BACK", "ROUTE_CELL", "ROUTE_CLEARANCE", "ROUTE_COST", "ROUTE_MARGIN", "ROUTE_PAD", "ROUTE_POINTS",
            "ROUTE_STEP", "plan_route"]
@@ -40,6 +38,9 @@ def plan_route(p: np.ndarray, goal: np.ndarray, radius: float, centres: np.ndarr
     None when the grid has no way (the caller follows the boundary instead).  ``scale``: the robot's radius over
     the reference radius; ``ahead``: the unit direction it was blocked in.
     """
+    from scipy.sparse import coo_matrix  # (here: importing the library does not load scipy.sparse)
+    from scipy.sparse.csgraph import dijkstra
+
     reach = (radii + radius)[:, None]
     lo = np.min(np.vstack((p, goal, centres - reach)), axis=0) - ROUTE_PAD * scale
     hi = np.max(np.vstack((p, goal, centres + reach)), axis=0) + ROUTE_PAD * scale
