@@ -311,11 +311,10 @@ def _route_point(m: YieldMemory, c: TargetContext, g: np.ndarray, scale: np.ndar
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Rule 5b: the route point each robot on a detour tracks (``g`` for the others), and who is on one.
 
-    A yielder, or a robot going back along its trail to where it began to yield, leaves its route for then.
-
     It drops the points within LOOKAHEAD, then tracks the farthest of the next ROUTE_SEEN in sight: the segments to
     it and to those before it come nearer to no sensed obstacle or robot, within their radii and its own, than
-    the robot is (none in sight: the first; a robot in its way there is made to yield, rule 3).
+    the robot is (none in sight: the first; a robot in its way there is made to yield, rule 3).  A yielder, or a
+    robot going back along its trail to where it began to yield, leaves its route for then.
     """
     n, seen = c.p.shape[0], np.arange(ROUTE_SEEN)
     rows = np.arange(n)
