@@ -47,9 +47,8 @@ def plan_route(p: np.ndarray, goal: np.ndarray, radius: float, centres: np.ndarr
     h = max(ROUTE_CELL * scale, float(np.sqrt(np.prod(hi - lo) / _MAX_CELLS)))
     nx, ny = (np.ceil((hi - lo) / h).astype(int) + 1).tolist()
     gx, gy = np.meshgrid(lo[0] + h * np.arange(nx), lo[1] + h * np.arange(ny), indexing="ij")
-    clear = np.full((nx, ny), np.inf)
-    for c, r in zip(centres, radii):  # (the few discs the robot senses)
-        clear = np.minimum(clear, np.sqrt((gx - c[0]) ** 2 + (gy - c[1]) ** 2) - r - radius)
+    clear = np.min(np.sqrt((gx[..., None] - centres[:, 0]) ** 2 + (gy[..., None] - centres[:, 1]) ** 2) - radii
+                   - radius, axis=2, initial=np.inf)  # (cells x the few discs the robot senses)
     start, end = (np.clip(np.round((q - lo) / h).astype(int), 0, [nx - 1, ny - 1]) for q in (p, goal))
     own = np.min(np.sqrt(np.sum((centres - p) ** 2, axis=1)) - radii - radius, initial=np.inf)
     dx, dy = gx - p[0], gy - p[1]
