@@ -1,57 +1,14 @@
 """The ``yield`` deadlock strategy: eqn.13 plus right of way by priority, the yielder retracing its own trail.
 
-A local rule on the QP's target only (the barrier rows, hence safety, stay the filter's):
-
-1. **Stall.** A robot farther than :data:`STALL_ERROR` from its reference point that has stayed within
-   :data:`STALL_DISTANCE` of one point for :data:`STALL_TIME` is stalled.  A robot within ``goal_tol`` of its
-   reference point with ``|v_d| < low_speed`` is done; within :data:`STALL_ERROR` of it, home.
-2. **Blocking.** Robot ``j`` blocks ``i`` when it lies within 60 degrees of the direction ``i`` wants to go
-   (toward ``p_d``; see rule 4 for the others) and either wants to go the other way (directions more than
-   90 degrees apart) with a surface gap below :data:`PUSH_GAP`, or is done with a gap below :data:`CONTACT_GAP`.
-3. **Right of way.** Priorities are strict: robot index, every robot done after every robot not done; a yielder
-   carries the priority it inherited.  A stalled or yielding robot ``i`` blocked by ``j`` of lower priority makes
-   ``j`` yield, and ``j`` inherits ``i``'s priority (priority inheritance, as in PIBT): a yielder that backs into
-   its own group makes that robot yield too, so a whole group backs out of a one-lane passage.  A yielder keeps
-   yielding while a robot of higher priority than the one it inherited heads for it within :data:`KEEP_GAP`, or
-   its own pusher does where static obstacles take both spots it could step aside to (rule 3b's: it backs out of
-   a passage as long as the pusher comes on), and :data:`HOLD_TIME` after that.  A robot home is also made to
-   yield by any robot not home that heads for it (within 60 degrees, and in the lane it sweeps: the two radii off
-   its line of travel) closer than :data:`CONTACT_GAP`, stalled or not: a robot that has reached its goal must not
-   hold up one passing through (in a doorway, a goal next to the door).
-3b. **Aside.** A robot pushed while home does not retreat along its trail (that leads into its pusher's way,
-   the way it came) but steps aside: to the point off its pusher's line of travel by the two radii and
-   :data:`CONTACT_GAP`, on its own side, or on the other where a static obstacle takes that point (an obstacle on
-   both: it retreats, rule 4).  Stepping aside, it makes nobody yield.  When it yields no more it tracks its
-   reference again.
-4. **Retreat and return.** A yielder tracks the last point of its own trail (its positions every
-   :data:`TRAIL_STEP`, recorded while it tracks its reference: ground it has covered, clear of static
-   obstacles), dropping the points it reaches; with its trail used up, or leading back toward its pusher, it
-   steps to the right of its push.  Once it yields no more it goes forward along the same trail to where it began
-   to yield (the straight line from where it retreated to its reference point may cross a wall), then tracks its
-   reference again.
-5. **Follow.** A stalled robot that pushes nobody, with no robot ahead within twice :data:`CONTACT_GAP` in the
-   lane it sweeps and an obstacle within :data:`CONTACT_GAP` ahead, follows the boundary of the obstacles (the
-   tangent of the nearest, hugging it) for :data:`ESCAPE_TIME`, first on the side nearer its way; if it stalls
-   again before it has tracked its reference closely, it follows the other way round for twice as long, and so
-   on (up to 8 times :data:`ESCAPE_TIME`), as in a bug algorithm.  Where the tangent runs into another obstacle
-   within :data:`CONTACT_GAP` (an inner corner, two discs close together) it follows that one.  It leaves the
-   boundary early, as in Bug2, once nearer its reference point by :data:`STALL_ERROR` than where it began to
-   follow, with no obstacle within :data:`CONTACT_GAP` ahead of its way.
-5b. **Detour.** Before following, such a robot plans a route to its reference point round the static obstacles
-   it senses (:mod:`.detour`: a grid of the free space, obstacles grown by its radius; robots, those home too,
-   are left to rule 3); with one, it tracks the route's points to its end instead of following (dropping those within
-   :data:`LOOKAHEAD`, heading for the farthest in sight of the next :data:`ROUTE_SEEN`), its stall clock started
-   afresh.  Stalled at an obstacle again before it has tracked its reference closely, it plans again with more
-   clearance (the gap that held it up closes); stalled on its route with no robot in its way, it drops the
-   route; yielding, it leaves the route until it is back where it began to yield.  Planning runs for the robots
-   that begin to escape only (a loop over those few, on those steps).
-6. A robot under rules 4, 5 or 5b tracks a point ``g`` (near it, ahead on its way) instead of its reference: its
-   target is the tracking law (eqn.11) toward ``g`` at rest there, ``-(k3 + k4) v - k3 k4 (p - g)`` less the
-   drift ``A_dot u``; every other robot keeps its nominal.  eqn.13 then acts on the triggered robots as in
-   ``auxiliary_velocity``, with ``(g, 0)`` for ``(p_d, v_d)`` where a robot tracks ``g``.
-
-Every decision is a function of the step's state and this memory (no clock, no randomness); the rule reads the
-pairs within the sensing range only, so the decentralised filter runs it unchanged.
+A local rule on the QP's target only (the barrier rows, hence safety, stay the filter's); the rules, their
+lengths and their reasons: ``docs/liveness.md``.  In short: a robot that stalls short of its reference point
+makes a lower-priority robot in its way yield (priority inheritance, as in PIBT; robots home come last and step
+aside); a yielder retraces its own trail and comes back when it yields no more; a stalled robot at an obstacle
+plans a detour round the static obstacles it senses (:mod:`.detour`) or follows their boundary (a bug
+algorithm).  Such a robot tracks a point ``g`` on its way at rest instead of its reference (eqn.11 toward
+``g``); eqn.13 then acts on the triggered robots as in ``auxiliary_velocity``.  Every decision is a function of
+the step's state and this memory (no clock, no randomness), read from the pairs within the sensing range only,
+so the decentralised filter runs it unchanged.
 """
 
 from __future__ import annotations
