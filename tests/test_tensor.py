@@ -231,7 +231,8 @@ def test_the_braking_check_keeps_chasing_teams_apart(dtype):
 
 
 def test_torchrl_adapter_passes_check_env_specs_and_resets_finished_teams():
-    """``TorchRLTensorEnv``: TorchRL's spec check, and an 80-step rollout of 30-step episodes (two partial resets)."""
+    """``TorchRLTensorEnv``: TorchRL's spec check, the ``agents`` group, and an 80-step rollout of 30-step
+    episodes (two partial resets)."""
     pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
     from torchrl.envs.utils import check_env_specs
 
@@ -241,11 +242,12 @@ def test_torchrl_adapter_passes_check_env_specs_and_resets_finished_teams():
     check_env_specs(env)
     env.set_seed(3)
     td = env.rollout(80, break_when_any_done=False)
-    assert td["next", "observation"].shape == (3, 80, 4, env.env.obs_dim)
-    done_at = torch.nonzero(td["next", "done"].all(-1).all(-1).all(0)).flatten().tolist()
+    assert td["next", "agents", "observation"].shape == (3, 80, 4, env.env.obs_dim)
+    assert td["next", "agents", "reward"].shape == (3, 80, 4, 1) and td["next", "done"].shape == (3, 80, 1)
+    done_at = torch.nonzero(td["next", "done"].all(-1).all(0)).flatten().tolist()
     assert done_at == [29, 59]
     # after a reset the team is at the start of its next layout: at rest
-    assert float(td["observation"][:, 30, :, 4:6].abs().max()) == 0.0
+    assert float(td["agents", "observation"][:, 30, :, 4:6].abs().max()) == 0.0
 
 
 def test_differentiable_env_passes_gradients_from_rewards_to_actions():
