@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -295,3 +297,22 @@ def test_team_b_after_reset_seed_s_is_the_pettingzoo_layout_of_seed_s_plus_b(sce
         assert np.array_equal(env._st["goals"][b].numpy(), ref.goals)
         assert np.array_equal(env._st["oc"][b].numpy(), ref.obstacles[0])
         assert np.array_equal(obs[b].numpy(), np.stack([o[a] for a in ref.possible_agents]))
+
+
+def test_torchrl_mappo_runs_one_iteration_and_reports_held_out_teams(tmp_path):
+    """``train.torchrl_mappo``: one PPO iteration on two 3-robot teams changes the policy and reports finite
+    rewards and held-out success/collisions; the command refuses to overwrite its report."""
+    pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
+    from train import torchrl_mappo
+
+    report = torchrl_mappo.train(100, 2, 3, 0, True, eval_every=1, eval_teams=2, log=lambda *_: None, max_steps=10)
+    assert report["policy_change"] > 0.0
+    assert [r["frames"] for r in report["iterations"]] == [100]
+    assert math.isfinite(report["iterations"][0]["mean_reward"])
+    last = report["evaluations"][-1]
+    assert 0.0 <= last["success"] <= 1.0 and last["robots_collided"] == 0 and last["teams"] == 2
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "report.json").write_text("{}")
+    with pytest.raises(SystemExit):
+        torchrl_mappo.main(["--frames", "100", "--out", str(out)])

@@ -1,0 +1,174 @@
+"""MAPPO (or IPPO) with TorchRL on the torch env behind the torch filter: many teams in one call, no PettingZoo.
+
+The robots of a team are one TorchRL agent group (:class:`~aasoatt_env.tensor.torchrl_env.TorchRLTensorEnv`);
+the policy is one shared MLP per robot (its own observation in, a tanh-Gaussian over its normalised wheel
+accelerations out), the critic a shared MLP over the whole team's observations (MAPPO; ``--ippo``: each robot's
+own).  Clipped PPO with GAE, as TorchRL's multi-agent PPO tutorial.  Every ``--eval-every`` iterations, and at the
+end, the deterministic policy is evaluated on held-out seeds (teams ``seed >= 2**32``, as ``aasoatt train``'s)
+for one episode per team: success (robots within ``goal_tolerance`` of their goal at the end), collisions
+(robot-steps with a surface gap below ``-collision_tolerance``), the filter's mean correction; the report is
+written as JSON (atomically) with the wall times.
+
+Usage: ``python -m train.torchrl_mappo [--frames 600000] [--teams 64] [--robots 6] [--out runs/torchrl_mappo]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import torch
+from tensordict.nn import NormalParamExtractor, TensorDictModule
+from torch import nn
+from torchrl.collectors import Collector
+from torchrl.data.replay_buffers import ReplayBuffer
+from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
+from torchrl.data.replay_buffers.storages import LazyTensorStorage
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+from torchrl.modules import MultiAgentMLP, ProbabilisticActor, TanhNormal
+from torchrl.objectives import ClipPPOLoss, ValueEstimators
+
+from aasoatt_env.cli_support import atomic_write
+from aasoatt_env.tensor.torchrl_env import TorchRLTensorEnv
+from train.config import HELDOUT_SEED, TRAIN_REWARD
+
+__all__ = ["build", "evaluate", "main", "train"]
+
+GROUP = "agents"
+
+
+def make_env(teams: int, robots: int, seed: int, **options: Any) -> TorchRLTensorEnv:
+    """``teams`` RandomGoals teams of ``robots`` behind the decentralised torch filter, 100 ms decisions."""
+    env = TorchRLTensorEnv("random_goals", num_envs=teams, num_robots=robots, decision_interval=20,
+                           reward=dict(TRAIN_REWARD), **options)
+    env.set_seed(seed)
+    return env
+
+
+def build(env: TorchRLTensorEnv, centralised: bool, width: int = 128) -> tuple[ProbabilisticActor, TensorDictModule]:
+    """The shared per-robot tanh-Gaussian policy and the (centralised) critic."""
+    n, obs = env.env.num_robots, env.env.obs_dim
+    net = nn.Sequential(MultiAgentMLP(obs, 4, n, centralised=False, share_params=True, depth=2, num_cells=width,
+                                      activation_class=nn.Tanh), NormalParamExtractor())
+    actor = ProbabilisticActor(
+        TensorDictModule(net, in_keys=[(GROUP, "observation")], out_keys=[(GROUP, "loc"), (GROUP, "scale")]),
+        spec=env.action_spec[GROUP, "action"], in_keys=[(GROUP, "loc"), (GROUP, "scale")],
+        out_keys=[(GROUP, "action")], distribution_class=TanhNormal,
+        distribution_kwargs={"low": -1.0, "high": 1.0}, return_log_prob=True, log_prob_key=(GROUP, "log_prob"))
+    critic = TensorDictModule(MultiAgentMLP(obs, 1, n, centralised=centralised, share_params=True, depth=2,
+                                            num_cells=width, activation_class=nn.Tanh),
+                              in_keys=[(GROUP, "observation")], out_keys=[(GROUP, "state_value")])
+    return actor, critic
+
+
+@torch.no_grad()
+def evaluate(actor: ProbabilisticActor, teams: int, robots: int, seed: int = HELDOUT_SEED,
+             **options: Any) -> dict[str, float]:
+    """One episode of ``teams`` held-out teams with the policy's mean action (module docstring)."""
+    env = make_env(teams, robots, seed, **options)
+    tol = env.env.reward_config.goal_tolerance
+    td = env.reset()
+    collided = torch.zeros(teams, robots, dtype=torch.bool)
+    corr, steps = 0.0, 0
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        while True:
+            td = env.step(actor(td))
+            nxt = td["next"]
+            collided |= nxt[GROUP, "clearance"] < -env.env.collision_tolerance
+            corr, steps = corr + float(nxt[GROUP, "correction"].mean()), steps + 1
+            if bool(nxt["done"].all()):
+                break
+            td = nxt
+    goal = env.env.kin.p - env.env._st["goals"]
+    home = torch.sqrt((goal ** 2).sum(-1)) < tol
+    return {"success": float(home.float().mean()), "robots_collided": int(collided.sum()),
+            "correction": corr / max(steps, 1), "teams": teams}
+
+
+def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, eval_every: int,
+          eval_teams: int = 64, log: Any = print, **options: Any) -> dict[str, Any]:
+    """Train from scratch; returns the report (per-iteration rewards and the evaluations).
+
+    ``options``: the env's (:func:`make_env`), e.g. ``max_steps`` for short episodes.
+    """
+    torch.manual_seed(seed)
+    env = make_env(teams, robots, seed, **options)
+    actor, critic = build(env, centralised)
+    start_params = [p.detach().clone() for p in actor.parameters()]
+    per_batch = teams * 50  # 50 decisions (5 s) per team per iteration
+    collector = Collector(env, actor, frames_per_batch=per_batch, total_frames=frames)
+    buffer = ReplayBuffer(storage=LazyTensorStorage(per_batch), sampler=SamplerWithoutReplacement(),
+                          batch_size=per_batch // 4)
+    loss = ClipPPOLoss(actor_network=actor, critic_network=critic, clip_epsilon=0.2, entropy_coeff=1e-3,
+                       normalize_advantage=False)
+    loss.set_keys(reward=(GROUP, "reward"), action=(GROUP, "action"), sample_log_prob=(GROUP, "log_prob"),
+                  value=(GROUP, "state_value"), done=(GROUP, "done"), terminated=(GROUP, "terminated"))
+    loss.make_value_estimator(ValueEstimators.GAE, gamma=0.99, lmbda=0.95)
+    optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
+    report: dict[str, Any] = {"frames": frames, "teams": teams, "robots": robots, "seed": seed,
+                              "critic": "centralised" if centralised else "independent", "iterations": [],
+                              "evaluations": [{"iteration": 0, **evaluate(actor, eval_teams, robots, **options)}]}
+    log(f"iteration 0: held-out {report['evaluations'][0]}")
+    start = time.perf_counter()
+    for it, data in enumerate(collector, 1):
+        shape = data.get_item_shape(("next", GROUP, "reward"))
+        for key in ("done", "terminated"):  # the team's end is each robot's
+            data.set(("next", GROUP, key), data.get(("next", key)).unsqueeze(-1).expand(shape))
+        with torch.no_grad():
+            loss.value_estimator(data, params=loss.critic_network_params,
+                                 target_params=loss.target_critic_network_params)
+        buffer.extend(data.reshape(-1))
+        for _ in range(4):  # epochs
+            for _ in range(4):  # minibatches
+                out = loss(buffer.sample())
+                total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+                optim.zero_grad()
+                total.backward()
+                nn.utils.clip_grad_norm_(loss.parameters(), 1.0)
+                optim.step()
+        collector.update_policy_weights_()
+        reward = float(data["next", GROUP, "reward"].mean())
+        report["iterations"].append({"iteration": it, "frames": it * per_batch, "mean_reward": reward,
+                                     "wall_s": time.perf_counter() - start})
+        if it % eval_every == 0:
+            report["evaluations"].append({"iteration": it, **evaluate(actor, eval_teams, robots, **options)})
+            log(f"iteration {it}: mean reward {reward:.3f}, held-out {report['evaluations'][-1]}")
+    collector.shutdown()
+    final = evaluate(actor, eval_teams, robots, **options)
+    report["evaluations"].append({"iteration": len(report["iterations"]), **final})
+    report["wall_s"] = time.perf_counter() - start
+    report["policy_change"] = float(sum(float(((p.detach() - q) ** 2).sum()) for p, q in
+                                        zip(actor.parameters(), start_params)) ** 0.5)  # (L2 over the weights)
+    log(f"final: held-out {report['evaluations'][-1]}, wall {report['wall_s']:.0f} s")
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    """The command line (module docstring)."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=600_000, help="team decisions in total (teams x steps)")
+    ap.add_argument("--teams", type=int, default=64)
+    ap.add_argument("--robots", type=int, default=6)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--ippo", action="store_true", help="independent critics (IPPO) instead of MAPPO's")
+    ap.add_argument("--eval-every", type=int, default=20)
+    ap.add_argument("--eval-teams", type=int, default=64)
+    ap.add_argument("--out", type=Path, default=Path("runs/torchrl_mappo"))
+    ap.add_argument("--overwrite", action="store_true")
+    a = ap.parse_args(argv)
+    path = a.out / "report.json"
+    if path.exists() and not a.overwrite:
+        ap.error(f"--out: {path} exists; pass --overwrite to replace it")
+    torch.set_num_threads(1)
+    report = train(a.frames, a.teams, a.robots, a.seed, not a.ippo, a.eval_every, a.eval_teams)
+    a.out.mkdir(parents=True, exist_ok=True)
+    atomic_write(path, lambda temp: temp.write_text(json.dumps(report, indent=1)))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
