@@ -12,6 +12,10 @@ import torch
 
 __all__ = ["least_violation"]
 
+_STOP = {torch.float64: 1e-11, torch.float32: 1e-6}
+"""A step shorter than this times the box's span ends a robot's iteration: numpy's in float64; in float32 the
+rounding of ``x`` (about ``1e-7`` relative) would keep the active set flickering to ``max_iter``."""
+
 
 def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
     """Per robot ``argmin 0.5 d'Hd + g'd  s.t.  lo <= d <= hi`` (strictly convex ``H``): inside, else the best edge."""
@@ -67,6 +71,7 @@ def least_violation(gx: torch.Tensor, gy: torch.Tensor, hh: torch.Tensor, lb: to
     with torch.no_grad():
         x = x.clone()
         span = torch.clamp((ub - lb).amax(1), min=1e-300)
+        stop = _STOP.get(x.dtype, _STOP[torch.float32])
         act = torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
         for _ in range(max_iter):
             if not bool(act.any()):
@@ -92,5 +97,5 @@ def least_violation(gx: torch.Tensor, gy: torch.Tensor, hh: torch.Tensor, lb: to
                                torch.minimum(torch.maximum(x[:, 1] + t * dy, lb[:, 1]), ub[:, 1])), 1)
             x = torch.where(act[:, None], new, x)
             same = full & ((rn > 0) == on).all(1)
-            act = act & ~same & (t * torch.maximum(dx.abs(), dy.abs()) > 1e-11 * span)
+            act = act & ~same & (t * torch.maximum(dx.abs(), dy.abs()) > stop * span)
         return torch.clamp(gx * x[:, 0:1] + gy * x[:, 1:2] - hh, min=0.0)
