@@ -274,7 +274,7 @@ def test_bad_settings_are_refused_naming_the_argument():
     from aasoatt_env.tensor.env import make_tensor_env
 
     for kwargs, name in ((dict(num_envs=0), "num_envs"), (dict(dtype=torch.int32), "dtype"),
-                         (dict(mode="centralized"), "mode"), (dict(barrier="braking"), "barrier")):
+                         (dict(mode="centralized"), "mode"), (dict(deadlock="yield"), "deadlock")):
         with pytest.raises(ConfigError, match=name):
             make_tensor_env("random_goals", **{"num_robots": 4, **kwargs})
     env = make_tensor_env("random_goals", 2, 4)
@@ -316,3 +316,21 @@ def test_torchrl_mappo_runs_one_iteration_and_reports_held_out_teams(tmp_path):
     (out / "report.json").write_text("{}")
     with pytest.raises(SystemExit):
         torchrl_mappo.main(["--frames", "100", "--out", str(out)])
+
+
+@pytest.mark.parametrize("barrier", ["braking", "distance", "gated_distance", "adaptive_distance"])
+def test_every_registered_barrier_equals_the_numpy_filter(barrier):
+    """The other registered barriers' rows (eqn.n4, nn5, n5/n6 with its gate, n7): the numpy decentralised filter's
+    ``du`` to 1e-9 where it answers by the robots' own QPs, to 1e-6 where it relaxed (flagged ``RELAXED``)."""
+    rng = np.random.default_rng(2)
+    n = 8
+    states = random_states(rng, 300, n)
+    cfg = FilterConfig(mode="decentralized", backup=False, negotiate=False, kernel="numpy", barrier=barrier)
+    team, ref = numpy_answers(states, cfg, n)
+    out = tensor_answers(team, states, cfg)
+    du, ref_du = out.du.numpy(), np.stack([r.du for r in ref])
+    solved = np.array([r.status == "solved" for r in ref])
+    assert solved.sum() >= 10 and np.stack([r.intervened for r in ref])[solved].mean() > 0.1
+    assert np.abs(du[solved] - ref_du[solved]).max() <= 1e-9
+    differs = (np.abs(du - ref_du).max(axis=2) > 1e-9) & ~solved[:, None]
+    assert (out.status.numpy()[differs] & RELAXED).all() and np.abs(du - ref_du).max() <= 1e-6

@@ -2,10 +2,11 @@
 
 One step, as :class:`~aasoatt_env.safety.core.SafetyFilter` with ``mode="decentralized"`` runs it: each robot's
 nominal clipped to its bounds; the ``multiplier`` trigger (a half-row of the robot bound at the previous step, and
-not done) and eqn.13's target correction (``auxiliary_velocity``) or none; the paper's rows (eqn.7-8, the
-discrete-time margin of :class:`~aasoatt_env.safety.config.FilterConfig`) for every robot pair and robot-obstacle
-pair in the sensing range; the rows shared reciprocally by authority around each robot's box least-squares answer;
-every robot's exact 2-variable QP (:mod:`.qp`).
+not done) and eqn.13's target correction (``auxiliary_velocity``) or none; the rows of any registered barrier
+(``cfg.barrier``: the paper's eqn.7-8 by default; the discrete-time margin of
+:class:`~aasoatt_env.safety.config.FilterConfig`) for every robot pair and robot-obstacle pair in the sensing
+range; the rows shared reciprocally by authority around each robot's box least-squares answer; every robot's exact
+2-variable QP (:mod:`.qp`).
 
 What it covers: where the numpy filter answers every robot by its own QP, feasible or relaxed (``negotiate=False``,
 or no negotiation group formed; ``backup=False``) the answers agree (1e-9 feasible, 1e-6 relaxed: the least-violation
@@ -25,6 +26,7 @@ from typing import NamedTuple
 import torch
 
 from aasoatt_env.errors import ConfigError
+from aasoatt_env.safety.barriers import BARRIERS
 from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
 from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.tensor.backup import gate
@@ -53,7 +55,7 @@ def check_config(cfg: FilterConfig) -> FilterConfig:
     """``cfg`` if the torch filter implements it, else :class:`ConfigError` naming the setting."""
     if cfg.mode != "decentralized":
         raise ConfigError(f"mode: got {cfg.mode!r}, expected 'decentralized' (the torch filter solves each robot's QP)")
-    for name, allowed in (("barrier", ("aasoatt",)), ("deadlock", ("auxiliary_velocity", "none")),
+    for name, allowed in (("barrier", tuple(BARRIERS)), ("deadlock", ("auxiliary_velocity", "none")),
                           ("trigger", ("multiplier",))):
         if getattr(cfg, name) not in allowed:
             raise ConfigError(f"{name}: got {getattr(cfg, name)!r}, expected one of {list(allowed)} in the torch "
@@ -82,8 +84,12 @@ def _target(cfg: FilterConfig, kin: TensorKinematics, nom: torch.Tensor, avoidin
                        -1), trig
 
 
-def _rhs(cfg: FilterConfig, gp, gv, ga, ds) -> torch.Tensor:
-    """eqn.8's right-hand side of each pair (``barriers._aasoatt``) with the discrete-time margin on ``d_s``."""
+def _rhs(cfg: FilterConfig, gp, gv, ga, ds, ap) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Each pair's right-hand side of ``cfg.barrier`` and the pairs it keeps (None: all; eqn.n5/n6's gate).
+
+    The formulas of :data:`~aasoatt_env.safety.barriers.BARRIERS`, with the discrete-time margin on ``d_s``;
+    ``ap``: the pair's maximum point accelerations ``a_i+ + a_j+`` (the braking barrier's).
+    """
     pp = gp[0] * gp[0] + gp[1] * gp[1]
     r = torch.clamp(torch.sqrt(pp), min=1e-9)
     pv = gp[0] * gv[0] + gp[1] * gv[1]
@@ -94,7 +100,20 @@ def _rhs(cfg: FilterConfig, gp, gv, ga, ds) -> torch.Tensor:
     else:
         margin = float(cfg.safety_margin)
     d = ds + margin
-    return vv - pv * pv / (r * r) + (cfg.k1 + cfg.k2) * pv + cfg.k1 * cfg.k2 * r * (r - d) + pa
+    if cfg.barrier == "aasoatt":  # eqn.7-8
+        return vv - pv * pv / (r * r) + (cfg.k1 + cfg.k2) * pv + cfg.k1 * cfg.k2 * r * (r - d) + pa, None
+    if cfg.barrier == "braking":  # eqn.n4
+        root = torch.sqrt(2.0 * ap * torch.clamp(r - d, min=1e-6))
+        h = root + pv / r
+        return cfg.gamma * h**3 * r + vv - pv * pv / (r * r) + ap * pv / root + pa, None
+    if cfg.barrier == "adaptive_distance":  # eqn.n7: a distance that grows with the closing speed
+        D = cfg.sensing_range
+        d = 0.5 * (D + ds) + (D - ds) / math.pi * torch.atan(-cfg.rho_v * pv + cfg.sigma) + margin
+    rhs = (cfg.varsigma * (r * r - d * d) + 2.0 * pv) / (2.0 * cfg.dt) + pa  # eqn.nn5 and its variants
+    if cfg.barrier == "gated_distance":  # eqn.n5/n6: only closing pairs within the gate
+        gate = cfg.sensing_range if cfg.gate_range is None else cfg.gate_range
+        return rhs, (pv < 0.0) & (r < gate)
+    return rhs, None
 
 
 def _box_ls(kin: TensorKinematics, t: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
@@ -210,7 +229,8 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     feat = torch.cat((kin.p, kin.v, kin.adot, torch.stack((team.radius.expand(B, N), kin.a00, kin.a01, kin.a10,
                       kin.a11), -1), du0, team.max_point_accel.expand(B, N)[..., None]), -1)
     pr = _pairs(cfg, feat, obstacles)
-    rhs = _rhs(cfg, pr.gp, pr.gv, pr.ga, pr.ds)
+    rhs, keep = _rhs(cfg, pr.gp, pr.gv, pr.ga, pr.ds, team.max_point_accel[:, None] + pr.of[13])
+    rows = pr.valid if keep is None else pr.valid & keep  # (the backup check sees every pair in range)
     # own half-row G = -A_own^T p_(own - other); the other's G' = A_other^T p_(own - other)
     gx = -(kin.a00[..., None] * pr.gp[0] + kin.a10[..., None] * pr.gp[1])
     gy = -(kin.a01[..., None] * pr.gp[0] + kin.a11[..., None] * pr.gp[1])
@@ -229,10 +249,11 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     share = torch.where(pos, torch.where(low, a_own / safe_tot, 1.0 - a_oth / safe_tot), torch.full_like(tot, 0.5))
     need = torch.where(low, (base - rhs) + base_o, (base_o - rhs) + base)
     h = torch.where(robot, base - need * share, base - (base - rhs))
-    return _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, du0, pose, u, obstacles)
+    return _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, rows, gx, gy, h, du0, pose, u, obstacles)
 
 
-def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, du0, pose, u, obstacles) -> FilterOut:
+def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, rows, gx, gy, h, du0, pose, u,
+           obstacles) -> FilterOut:
     """The QPs of the robots in ``w = A du`` (:mod:`.qp`), their multipliers' trigger, the answer and its report."""
     B, N, K = h.shape
     det = kin.a00 * kin.a11 - kin.a01 * kin.a10
@@ -243,7 +264,7 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, 
     bb = torch.cat((hi, -lo), -1)
     rx, ry = i00[..., None] * gx + i10[..., None] * gy, i01[..., None] * gx + i11[..., None] * gy
     ax, ay, bb = torch.cat((ax, rx), -1), torch.cat((ay, ry), -1), torch.cat((bb, h), -1)
-    valid = torch.cat((torch.ones(B, N, 4, dtype=torch.bool, device=h.device), pr.valid), -1)
+    valid = torch.cat((torch.ones(B, N, 4, dtype=torch.bool, device=h.device), rows), -1)
     nrm = torch.sqrt(ax * ax + ay * ay)
     valid = valid & (nrm > 0)
     inv = torch.where(valid, 1.0 / torch.where(valid, nrm, torch.ones_like(nrm)), torch.zeros_like(nrm))
@@ -254,7 +275,7 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, 
                          kin.a10 * du0[..., 0] + kin.a11 * du0[..., 1]), -1).reshape(-1, 2)
     sol = solve_polygons(target.reshape(-1, 2), nx, ny, b, t_box, C - 4)
     if not bool(sol.feasible.all()):
-        sol = _relaxed(sol, target.reshape(-1, 2), nx, ny, b, t_box, gx, gy, h, pr.valid, inv[..., 4:], lo, hi,
+        sol = _relaxed(sol, target.reshape(-1, 2), nx, ny, b, t_box, gx, gy, h, rows, inv[..., 4:], lo, hi,
                        du0, scale)
     w = sol.w.reshape(B, N, 2)
     x = torch.stack((i00 * w[..., 0] + i01 * w[..., 1], i10 * w[..., 0] + i11 * w[..., 1]), -1)
@@ -266,10 +287,10 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, gx, gy, h, 
     H11 = 2.0 * (kin.a01 ** 2 + kin.a11 ** 2)
     hmax = torch.maximum(torch.maximum(H00.abs(), H11.abs()), H01.abs()).detach()
     z = lam * torch.sqrt(gx * gx + gy * gy).detach() / (scale.detach() * hmax)[..., None]
-    avoiding = ((z > cfg.eta_tol) & pr.valid).any(-1)
+    avoiding = ((z > cfg.eta_tol) & rows).any(-1)
     status = torch.where(sol.feasible.reshape(B, N), 0, RELAXED)
     if cfg.negotiate and bool(trig.any()):
-        status = status | torch.where(_grouped(cfg, trig, pr), GROUPED, 0)
+        status = status | torch.where(_grouped(cfg, trig, pr, rows), GROUPED, 0)
     if cfg.backup:
         du, braking, broken = gate(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
         status = status | torch.where(braking, BACKUP, 0) | torch.where(broken, UNSAFE, 0)
@@ -297,9 +318,9 @@ def _relaxed(sol: LocalAnswer, t, nx, ny, b, t_box, gx, gy, h, valid, inv, lo, h
                        sol.feasible.index_copy(0, bad, torch.zeros_like(again.feasible)))
 
 
-def _grouped(cfg: FilterConfig, trig: torch.Tensor, pr: _Pairs) -> torch.Tensor:
+def _grouped(cfg: FilterConfig, trig: torch.Tensor, pr: _Pairs, rows: torch.Tensor) -> torch.Tensor:
     """``(B, N)``: robots in a row the numpy filter's negotiation groups would solve whole (``negotiation_rows``)."""
-    robot = pr.valid & (pr.other >= 0)
+    robot = rows & (pr.other >= 0)
     j = torch.clamp(pr.other, min=0)
     trig_o = _gather(trig, j)
     touch = robot & (torch.sqrt(pr.gp[0] ** 2 + pr.gp[1] ** 2).detach() - pr.ds < cfg.negotiate_gap)
