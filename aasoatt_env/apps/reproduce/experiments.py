@@ -10,18 +10,7 @@ import numpy as np
 from aasoatt_env.analysis.plotting import new_figure, plot_snapshots, team_colors
 from aasoatt_env.apps.reproduce import paper
 from aasoatt_env.apps.reproduce import report as common
-from aasoatt_env.apps.reproduce.report import (
-    SHORT_NAMES,
-    Column,
-    Experiment,
-    Results,
-    RunResult,
-    RunSpec,
-    Settings,
-    col,
-    compared,
-    fmt,
-)
+from aasoatt_env.apps.reproduce.report import Experiment, Results, RunSpec, Settings, col, compared
 from aasoatt_env.model.params import PRESETS, RobotParams
 from aasoatt_env.safety.config import auto_margin
 
@@ -188,7 +177,7 @@ class Table2(Experiment):
         ref = paper.TABLE2.get(method)
         return {k: ref[k][n] for k in self.metrics} if ref is not None and n in ref["rmse"] else None
 
-    def _extra(self, s: Settings, spec: RunSpec, result: RunResult) -> dict[str, Any]:
+    def _extra(self, s: Settings, spec: RunSpec, result: common.RunResult) -> dict[str, Any]:
         method, n = spec.meta["method"], spec.meta["N"]
         listed = self._paper(spec) is not None
         return {"violated": common.violated(result),
@@ -207,7 +196,7 @@ class Table2(Experiment):
 
     def _sections(self, s: Settings, res: Results) -> list[str]:
         ns = self.size(s)[0]
-        wide = [[name, *(fmt(res[f"{name}/N={n}"].metrics["min_center_distance_full"]) for n in ns)]
+        wide = [[name, *(common.fmt(res[f"{name}/N={n}"].metrics["min_center_distance_full"]) for n in ns)]
                 for name in self.variants(s)]
         return ["## Minimum centre distance per method and N (d_s = 0.96)\n\n"
                 + common.md_table(["method", *[f"N={n}" for n in ns]], wide)]
@@ -300,7 +289,7 @@ class Table3(Experiment):
 
 FIGURE_ONLY = "## Results (the paper gives only the figure)"
 TRIGGERS = ("multiplier", "low_speed", "stalled", "heading")
-TRACKING: list[Column] = [col(SHORT_NAMES[k], k) for k in paper.METRICS]  # our IT, RMSE, MAE and std
+TRACKING: list[common.Column] = [col(common.SHORT_NAMES[k], k) for k in paper.METRICS]  # our IT, RMSE, MAE and std
 
 
 class DeadlockTriggers(Experiment):
@@ -315,7 +304,7 @@ class DeadlockTriggers(Experiment):
     def _specs(self, s: Settings) -> list[RunSpec]:
         return [common.team_run(s, t, self.size(s), {"trigger": t, "N": self.size(s)[0]}, trigger=t) for t in TRIGGERS]
 
-    def _extra(self, s: Settings, spec: RunSpec, result: RunResult) -> dict[str, Any]:
+    def _extra(self, s: Settings, spec: RunSpec, result: common.RunResult) -> dict[str, Any]:
         duration, sp, t = self.size(s)[2], result.traces["speeds"], result.traces["times"]
         mid = (t > 0.2 * duration) & (t < 0.8 * duration)
         return {"min_mean_speed_mid": float(sp[mid].mean(axis=1).min()),
@@ -362,7 +351,7 @@ class Swarm100(Experiment):
                                 window=duration, scene={"robots": "paper_small"}, deadlock=v)
                 for k, v in common.DEADLOCK_METHODS.items()]
 
-    def _columns(self, s: Settings) -> list[Column]:
+    def _columns(self, s: Settings) -> list[common.Column]:
         _, _, t, settle = self.size(s)
         return [col("strategy", "method"), *TRACKING, col(f"goal err @ {t:g} s", "final_error_mean"),
                 col(f"reached @ {t:g} s", "reach_rate"), col(f"goal err @ {t + settle:g} s", "final_error_mean_end"),
@@ -402,7 +391,7 @@ class Obstacles(Experiment):
         return [common.team_run(s, "obstacles", (n, 6.0, duration), {"method": "ours + eqn.13", "N": n}, settle=settle,
                                 window=duration, scenario="circle_obstacles")]
 
-    def _columns(self, s: Settings) -> list[Column]:
+    def _columns(self, s: Settings) -> list[common.Column]:
         _, duration, settle = self.size(s)
         return [*TRACKING, col("min robot gap", "min_robot_gap_full"), col("min obstacle gap", "min_obstacle_gap"),
                 col("collisions (pairs / obstacle)",
