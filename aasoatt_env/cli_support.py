@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import sys
 import tempfile
@@ -16,7 +17,6 @@ from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from aasoatt_env import validation
 from aasoatt_env.errors import AASOATTError, ConfigError
 from aasoatt_env.validation import short_repr
 
@@ -62,30 +62,31 @@ def run_guarded(prog: str, argv: Sequence[str], body: Callable[[list[str]], int]
         return 2 if isinstance(exc, AASOATTError) else 1
 
 
-def _number_option(kind: type, check: Callable[..., Any], **bounds: Any) -> Callable[[str], Any]:
-    """An argparse ``type=``: ``kind(text)`` checked by :mod:`aasoatt_env.validation`'s ``check`` within ``bounds``."""
-
+def _number_option(kind: type, expected: str, ok: Callable[[Any], bool]) -> Callable[[str], Any]:
     def parse(text: str) -> Any:
         try:
             value = kind(text)
         except ValueError:
-            value = text  # refused by check, with the expected range
-        try:
-            return check("", value, **bounds)
-        except ConfigError as exc:
-            raise argparse.ArgumentTypeError(str(exc).removeprefix(": ").replace(" (str)", "")) from None
+            raise argparse.ArgumentTypeError(f"got {short_repr(text)}, expected {expected}") from None
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"got {short_repr(value, 40)}, expected {expected}")
+        return value
 
+    parse.__name__ = "integer" if kind is int else "number"  # argparse's word when it cannot say more
     return parse
 
 
 def int_option(lo: int, hi: int | None = None) -> Callable[[str], int]:
     """An argparse ``type=`` for integers in ``[lo, hi]`` (the message states the range)."""
-    return _number_option(int, validation.integer, lo=lo, hi=hi)
+    expected = f"an integer >= {lo}" if hi is None else f"an integer in [{lo}, {hi}]"
+    return _number_option(int, expected, lambda v: lo <= v and (hi is None or v <= hi))
 
 
 def real_option(lo: float, hi: float | None = None, lo_open: bool = False) -> Callable[[str], float]:
     """An argparse ``type=`` for finite numbers ``> lo`` (``lo_open``) or ``>= lo``, and ``<= hi``."""
-    return _number_option(float, validation.real, lo=lo, hi=hi, lo_open=lo_open)
+    expected = f"a finite number {'>' if lo_open else '>='} {lo:g}" + ("" if hi is None else f" and <= {hi:g}")
+    return _number_option(float, expected, lambda v: math.isfinite(v) and (v > lo if lo_open else v >= lo)
+                          and (hi is None or v <= hi))
 
 
 def path_option(text: str) -> str:
