@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 
 from aasoatt_env.apps.reproduce import EXPERIMENTS, main, paper
-from aasoatt_env.apps.reproduce.report import md_table, rel_diff
-from aasoatt_env.apps.reproduce.runner import RunSpec, run_spec
+from aasoatt_env.apps.reproduce.report import RunSpec, md_table, rel_diff, run_spec
 
 QUICK_FILES = {
     "table1": ["table1_errors.png"],

@@ -29,10 +29,6 @@ _FAILED_MARKERS = ("fail", "infeas", "error", "max_iter", "maxiter", "unsolved",
 _RELAXED_MARKERS = ("relax", "slack")
 
 
-def _chunk_steps(n_steps: int, per_step: int) -> int:
-    return max(1, min(n_steps, _CHUNK_ELEMENTS // max(per_step, 1)))
-
-
 def _tolerance(name: str, value: float) -> float:
     return check.real(name, value, lo=0.0)
 
@@ -125,7 +121,7 @@ def _scan(rollout: Rollout, obstacles: bool, tolerance: float | None) -> tuple[n
         thr2 = np.where(upper & (thr > 0), thr * np.abs(thr), -1.0)  # d2 < -1 never holds
     x, y = np.ascontiguousarray(p[..., 0]), np.ascontiguousarray(p[..., 1])
     qx, qy = (q[..., 0], q[..., 1]) if obstacles else (x, y)
-    chunk = _chunk_steps(T, 4 * N * M)
+    chunk = max(1, min(T, _CHUNK_ELEMENTS // max(4 * N * M, 1)))
     for s in range(0, T, chunk):
         xs, ys = x[s : s + chunk], y[s : s + chunk]
         qxs, qys = (qx, qy) if obstacles else (qx[s : s + chunk], qy[s : s + chunk])
@@ -212,25 +208,20 @@ def safe_rate(rollout: Rollout, tolerance: float = COLLISION_TOLERANCE) -> float
     return float(1.0 - np.mean(collisions(rollout, tolerance).colliding_robots))
 
 
-def _longest_runs(mask: np.ndarray) -> np.ndarray:
-    T, N = mask.shape
-    padded = np.zeros((N, T + 2), dtype=np.int8)
-    padded[:, 1:-1] = mask.T
-    d = np.diff(padded, axis=1)
-    sr, st = np.nonzero(d == 1)  # run starts, row-major: sorted by robot then time
-    _, et = np.nonzero(d == -1)  # run ends (exclusive), same order
-    out = np.zeros(N, dtype=np.int64)
-    np.maximum.at(out, sr, et - st)
-    return out
-
-
 def longest_stall(rollout: Rollout, speed_threshold: float = 0.05, goal_tolerance: float = 0.1) -> np.ndarray:
     """Longest time [s] each robot moves slower than ``speed_threshold`` away from its goal; ``-dt``: never."""
     v_thr = _tolerance("speed_threshold", speed_threshold)
     g_tol = _tolerance("goal_tolerance", goal_tolerance)
     speed = np.linalg.norm(rollout.velocities, axis=-1)
     far = np.linalg.norm(rollout.positions - rollout.goals[None], axis=-1) > g_tol
-    return (_longest_runs((speed < v_thr) & far) - 1) * rollout.dt
+    padded = np.zeros((rollout.n_robots, rollout.n_steps + 2), dtype=np.int8)  # per robot: 0, stalled?, 0
+    padded[:, 1:-1] = ((speed < v_thr) & far).T
+    d = np.diff(padded, axis=1)
+    sr, st = np.nonzero(d == 1)  # run starts, row-major: sorted by robot then time
+    _, et = np.nonzero(d == -1)  # run ends (exclusive), same order
+    longest = np.zeros(rollout.n_robots, dtype=np.int64)
+    np.maximum.at(longest, sr, et - st)
+    return (longest - 1) * rollout.dt
 
 
 def deadlocked_robots(rollout: Rollout, speed_threshold: float = 0.05, dwell_time: float = 1.0,
@@ -275,13 +266,6 @@ def liveness(rollout: Rollout, goal_tolerance: float = 0.1, speed_threshold: flo
             "stalled_time_mean": float(stalled.mean()), "stalled_time_max": float(stalled.max())}
 
 
-def _classify_status(status: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    low = np.char.lower(status.astype(np.str_))
-    failed = np.any([np.char.find(low, m) >= 0 for m in _FAILED_MARKERS], axis=0)
-    relaxed = np.any([np.char.find(low, m) >= 0 for m in _RELAXED_MARKERS], axis=0)
-    return relaxed & ~failed, failed
-
-
 def solver_stats(rollout: Rollout) -> dict[str, Any]:
     """Fractions of relaxed, failed, ``unsafe`` and braked steps, status counts, solve times, slack (None: no field).
 
@@ -292,10 +276,12 @@ def solver_stats(rollout: Rollout) -> dict[str, Any]:
          "status_counts", "solve_time_median", "solve_time_mean", "solve_time_max", "slack_max",
          "slack_positive_fraction"))
     if rollout.solver_status is not None:
-        relaxed, failed = _classify_status(rollout.solver_status)
+        low = np.char.lower(rollout.solver_status.astype(np.str_))
+        failed = np.any([np.char.find(low, m) >= 0 for m in _FAILED_MARKERS], axis=0)
+        relaxed = np.any([np.char.find(low, m) >= 0 for m in _RELAXED_MARKERS], axis=0) & ~failed
         names, counts = np.unique(rollout.solver_status, return_counts=True)
         out.update(relaxed_fraction=float(relaxed.mean()), failed_fraction=float(failed.mean()),
-                   unsafe_fraction=float(np.mean(np.char.lower(rollout.solver_status.astype(np.str_)) == "unsafe")),
+                   unsafe_fraction=float(np.mean(low == "unsafe")),
                    status_counts={str(n): int(c) for n, c in zip(names, counts)})
     if rollout.backup is not None:
         out.update(backup_fraction=float(rollout.backup.any(axis=1).mean()),

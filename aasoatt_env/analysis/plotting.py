@@ -55,14 +55,33 @@ def _save(fig: Any, path: PathLike | None, dpi: int) -> Any:
     return fig
 
 
-def _series(times: Any, values: Any, name: str, expected: str) -> tuple[np.ndarray, np.ndarray]:
-    """``times`` ``(T,)`` and ``values`` ``(T, k)`` (a ``(T,)`` series as one column)."""
-    t = np.asarray(times, dtype=np.float64).reshape(-1)
-    v = np.asarray(values, dtype=np.float64)
-    v = v[:, None] if v.ndim == 1 else v
-    if v.ndim != 2 or v.shape[0] != t.shape[0]:
-        raise ConfigError(f"{name}: got shape {v.shape}, expected {expected.format(T=t.shape[0])}")
-    return t, v
+_SHAPES: dict[str, tuple[str | int, ...]] = {"positions": ("T", "N", 2), "references": ("T", "N", 2), "goals": ("N", 2),
+                                              "radii": ("N",), "times": ("T",), "speeds": ("T", "N"),
+                                              "min_distance": ("T", "P")}
+
+
+def _checked(**arrays: Any) -> list[Any]:
+    """The input checks of every plot: ``arrays`` as float arrays of the shapes of ``_SHAPES``, sizes consistent.
+
+    None stays None; a series ``(T,)`` is one column; one radius is every robot's; ``times`` may hold its T stamps
+    in any shape; NaN in a path or series is a gap.
+    """
+    sizes: dict[str, int] = {}
+    out = []
+    for name, value in arrays.items():
+        value = 0.0 if value is None and name == "radii" else value
+        if value is not None:
+            if name == "times":
+                value = np.reshape(value, -1)
+            elif np.ndim(value) == 1 and name in ("speeds", "min_distance"):
+                value = np.reshape(value, (-1, 1))
+            elif np.ndim(value) == 0 and name == "radii":
+                value = np.full(sizes["N"], value)
+            value = checked_array(name, value, _SHAPES[name], sizes, finite=name in ("goals", "radii"))
+            if sizes.get("T") == 0:
+                raise ConfigError(f"{name}: got shape {value.shape}, expected at least one time step")
+        out.append(value)
+    return out
 
 
 def _obstacles(obstacles: Obstacles) -> tuple[np.ndarray, np.ndarray]:
@@ -75,20 +94,6 @@ def _obstacles(obstacles: Obstacles) -> tuple[np.ndarray, np.ndarray]:
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ConfigError(f"obstacles: got shape {arr.shape}, expected (centers (M, 2), radii (M,)) or an (M, 3) array")
     return arr[:, :2], arr[:, 2]
-
-
-def _team(positions: Any, references: Any, goals: Any, radii: Any) -> tuple[np.ndarray, ...]:
-    sizes: dict[str, int] = {}
-    pos = checked_array("positions", positions, ("T", "N", 2), sizes, finite=False)  # NaN: a gap in a path
-    if sizes["T"] == 0:
-        raise ConfigError(f"positions: got shape {pos.shape}, expected (T, N, 2) with T >= 1")
-    ref = None if references is None else checked_array("references", references, ("T", "N", 2), sizes, finite=False)
-    g = None if goals is None else checked_array("goals", goals, ("N", 2), sizes)
-    r = np.zeros(()) if radii is None else np.asarray(radii, dtype=np.float64)
-    try:
-        return pos, ref, g, np.broadcast_to(r, (sizes["N"],)).copy()
-    except ValueError:
-        raise ConfigError(f"radii: got shape {r.shape}, expected () or ({sizes['N']},)") from None
 
 
 def _scene(ax: Any, obstacles: Obstacles, points: list[np.ndarray], pad: float) -> None:
@@ -121,7 +126,7 @@ def plot_trajectories(positions: Any, radii: Any = None, references: Any = None,
                       obstacles: Obstacles = None, path: PathLike | None = None, title: str | None = None, *,
                       figsize: tuple[float, float] = (6.0, 6.0), dpi: int = 150, ax: Any = None) -> Any:
     """Plot a team's paths ``(T, N, 2)``, final discs of ``radii``, references dashed, goals (``ax``: a panel)."""
-    pos, ref, g, r = _team(positions, references, goals, radii)
+    pos, ref, g, r = _checked(positions=positions, references=references, goals=goals, radii=radii)
     n, colors = pos.shape[1], team_colors(pos.shape[1])
     if ax is None:
         _, ((ax,),) = new_figure(1, 1, figsize)
@@ -148,7 +153,7 @@ def plot_distance_profile(times: Any, min_distance: Any, safety_distance: float 
                           path: PathLike | None = None, *, labels: Sequence[str] | None = None,
                           title: str | None = None, figsize: tuple[float, float] = (6.5, 3.5), dpi: int = 150) -> Any:
     """Plot the minimum distance ``(T,)`` or one per pair ``(T, P)`` (and their minimum) against ``d_s``."""
-    t, d = _series(times, min_distance, "min_distance", "({T},) or ({T}, P)")
+    t, d = _checked(times=times, min_distance=min_distance)
     fig, ((ax,),) = new_figure(1, 1, figsize)
     if d.shape[1] == 1:
         ax.plot(t, d[:, 0], lw=1.5, color="C0", label=labels[0] if labels else "min distance")
@@ -169,7 +174,7 @@ def plot_velocity_profile(times: Any, speeds: Any, path: PathLike | None = None,
                           title: str | None = None, ylabel: str = "speed [m/s]",
                           figsize: tuple[float, float] = (6.5, 3.5), dpi: int = 150) -> Any:
     """Plot each robot's speed ``(T, N)`` (or any per-robot signal, with ``ylabel``) and ``max_speed`` dashed."""
-    t, v = _series(times, speeds, "speeds", "({T}, N)")
+    t, v = _checked(times=times, speeds=speeds)
     colors = team_colors(v.shape[1])
     fig, ((ax,),) = new_figure(1, 1, figsize)
     for i in range(v.shape[1]):
@@ -186,17 +191,11 @@ def plot_snapshots(positions: Any, times: Any, indices: Sequence[int], radii: An
                    path: PathLike | None = None, *, references: Any = None, goals: Any = None, trails: bool = True,
                    panel_size: float = 3.0, dpi: int = 150) -> Any:
     """Plot a row of panels of the team (discs to scale, trails) at the steps ``indices`` (paper Fig. 5 style)."""
-    pos, ref, g, r = _team(positions, references, goals, radii)
-    t_len, n = pos.shape[:2]
-    t = np.asarray(times, dtype=np.float64).reshape(-1)
-    if t.shape[0] != t_len:
-        raise ConfigError(f"times: got {t.shape[0]} time stamps, expected {t_len} (one per row of positions)")
-    idx = [int(k) for k in indices]
-    if not idx:
-        raise ConfigError("indices: got none, expected at least one time-step index")
-    for k in idx:
-        if not -t_len <= k < t_len:
-            raise ConfigError(f"indices: got {k}, expected an index in [-{t_len}, {t_len})")
+    pos, t, ref, g, r = _checked(positions=positions, times=times, references=references, goals=goals,
+                                 radii=radii)
+    (t_len, n), idx = pos.shape[:2], [int(k) for k in indices]
+    if not idx or not all(-t_len <= k < t_len for k in idx):
+        raise ConfigError(f"indices: got {idx}, expected one or more time-step indices in [-{t_len}, {t_len})")
     colors = team_colors(n)
     fig, (axes,) = new_figure(1, len(idx), (panel_size * len(idx), panel_size + 0.3), sharex=True, sharey=True)
     points = [pos.reshape(-1, 2)] + ([] if g is None else [g])

@@ -49,13 +49,10 @@ class RecordEpisode(BaseParallelWrapper):
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Step and record."""
-        base = self.env.unwrapped
-        act = np.zeros((len(base.possible_agents), 2))
-        idx = base.agent_index
-        for a, v in actions.items():
-            if a in idx:
-                act[idx[a]] = v
-        out = self.env.step(actions)
+        out = self.env.step(actions)  # (checks the actions)
+        base, act = self.env.unwrapped, np.zeros((len(self.env.unwrapped.possible_agents), 2))
+        known = [a for a in actions if a in base.agent_index]
+        act[[base.agent_index[a] for a in known]] = np.reshape([actions[a] for a in known], (-1, 2))
         self._record(act)
         return out
 

@@ -24,6 +24,7 @@ __all__ = ["Rollout", "RolloutBuilder", "checked_array"]
 
 FORMAT_VERSION = 1  # written into saved files
 Template = tuple[str | int, ...]  # a shape; its strings are sizes bound by the first array that has them
+_KINDS: dict[str, type] = {"f": np.float64, "b": np.bool_, "U": np.str_}  # the dtype kinds of the fields below
 
 # (name, shape, dtype kind: "f" float, "b" bool, "U" str); control points p_i, velocities dp_i, references p_d_i,
 # v_d_i, headings [rad]; optional: nominal and applied actions, flags (in collision avoidance, deadlock rule
@@ -45,28 +46,23 @@ def _fmt_shape(template: Template, sizes: dict[str, int] | None = None) -> str:
     return "(" + ", ".join(dims) + ("," if len(dims) == 1 else "") + ")"
 
 
-def _convert(name: str, value: Any, kind: str) -> np.ndarray:
-    """A fresh array of the dtype ``kind``: real numbers (no strings, no complex), bool (or 0/1), or str."""
+def checked_array(name: str, value: Any, template: Template, sizes: dict[str, int], kind: str = "f", *,
+                  finite: bool = True) -> np.ndarray:
+    """``value`` as a fresh array of dtype ``kind`` and shape ``template`` (bound into ``sizes``), finite floats.
+
+    ``kind``: ``"f"`` real numbers (no strings, no complex), ``"b"`` bool (or 0/1), ``"U"`` str.
+    """
     try:
-        if kind == "U":
-            return np.array(value, dtype=np.str_)
         raw = np.asarray(value)
         if kind == "f" and raw.dtype.kind in "cSUV":
             raise ConfigError(f"{name}: got dtype {raw.dtype}, expected real numbers")
         if kind == "b" and raw.dtype != np.bool_ and raw.size and not np.isin(raw, (0, 1)).all():
             raise ConfigError(f"{name}: got non-boolean values, expected bool (or 0/1) entries")
-        return np.array(raw, dtype=np.float64 if kind == "f" else np.bool_)
+        arr = np.array(value if kind == "U" else raw, dtype=_KINDS[kind])
     except (TypeError, ValueError) as exc:
         if isinstance(exc, ConfigError):
             raise
-        dtype = {"f": "float", "b": "bool"}[kind]
-        raise ConfigError(f"{name}: cannot be converted to a {dtype} array ({exc})") from None
-
-
-def checked_array(name: str, value: Any, template: Template, sizes: dict[str, int], kind: str = "f", *,
-                  finite: bool = True) -> np.ndarray:
-    """``value`` as a fresh array of dtype ``kind`` and shape ``template`` (bound into ``sizes``), finite floats."""
-    arr = _convert(name, value, kind)
+        raise ConfigError(f"{name}: cannot be converted to a {np.dtype(_KINDS[kind]).name} array ({exc})") from None
     ok = arr.ndim == len(template)
     for dim, sym in zip(arr.shape, template) if ok else ():
         ok = ok and dim == (sym if isinstance(sym, int) else sizes.setdefault(sym, dim))
@@ -180,7 +176,18 @@ class Rollout:
         if not os.path.isfile(path):
             raise DataFileError(f"{name}: no such rollout file")
         try:
-            kwargs = _read_fields(path, name)
+            with np.load(path, allow_pickle=False) as data:
+                files = set(data.files)
+                version = int(data["format_version"]) if "format_version" in files else FORMAT_VERSION
+                if version > FORMAT_VERSION:
+                    raise DataFileError(f"{name}: format_version {version}, expected <= {FORMAT_VERSION}")
+                optional = {*Rollout.OPTIONAL_FIELDS, "obstacle_centers", "obstacle_radii"}
+                missing = [f for f in ("dt", *Rollout.ARRAY_FIELDS) if f not in files and f not in optional]
+                if missing:
+                    raise DataFileError(f"{name}: missing field {missing[0]!r}; not a rollout file")
+                kwargs: dict[str, Any] = {f: data[f] for f in ("dt", *Rollout.ARRAY_FIELDS) if f in files}
+                kwargs["dt"] = kwargs["dt"][()]  # a 0-d array; Rollout checks it is a finite positive number
+                kwargs["metadata"] = json.loads(str(data["metadata"])) if "metadata" in files else {}
         except DataFileError:
             raise
         except MemoryError:  # a crafted header can claim any shape
@@ -198,28 +205,10 @@ class Rollout:
             raise DataFileError(f"{name}: invalid rollout ({exc})") from None
 
 
-def _read_fields(path: str | os.PathLike[str], name: str) -> dict[str, Any]:
-    """The constructor keywords stored in a rollout file (unchecked: :class:`Rollout` checks them)."""
-    with np.load(path, allow_pickle=False) as data:
-        files = set(data.files)
-        version = int(data["format_version"]) if "format_version" in files else FORMAT_VERSION
-        if version > FORMAT_VERSION:
-            raise DataFileError(f"{name}: format_version {version}, expected <= {FORMAT_VERSION}")
-        optional = {*Rollout.OPTIONAL_FIELDS, "obstacle_centers", "obstacle_radii"}
-        missing = [f for f in ("dt", *Rollout.ARRAY_FIELDS) if f not in files and f not in optional]
-        if missing:
-            raise DataFileError(f"{name}: missing field {missing[0]!r}; not a rollout file")
-        kwargs: dict[str, Any] = {f: data[f] for f in ("dt", *Rollout.ARRAY_FIELDS) if f in files}
-        kwargs["dt"] = kwargs["dt"][()]  # a 0-d array; Rollout checks it is a finite positive number
-        kwargs["metadata"] = json.loads(str(data["metadata"])) if "metadata" in files else {}
-    return kwargs
-
-
 class RolloutBuilder:
     """Accumulate an episode step by step (arrays copied; optional fields at every step or none), then build it."""
 
-    _DTYPES: ClassVar[dict[str, type]] = {"times": np.float64, **{
-        n: {"f": np.float64, "b": np.bool_, "U": np.str_}[k] for n, _, k in (*_PER_STEP, *_OPTIONAL)}}
+    _DTYPES: ClassVar[dict[str, type]] = {"times": np.float64, **{n: _KINDS[k] for n, _, k in (*_PER_STEP, *_OPTIONAL)}}
 
     def __init__(self, dt: float, *, goals: Any = None, radii: Any = None, obstacle_centers: Any = None,
                  obstacle_radii: Any = None, metadata: dict[str, Any] | None = None) -> None:

@@ -46,8 +46,7 @@ def make_batched_env(num_envs: int, scenario: str | Scenario = "circle_swap", *,
 
     ``num_workers > 1``: that many shards in worker processes (:class:`~aasoatt_env.sim.sharded.ShardedBatchedEnv`).
     """
-    if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
-        raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")
+    num_envs = check.integer("num_envs", num_envs, lo=1)
     fns = [lambda: make_env(scenario, filter=filter, **env_kwargs) for _ in range(num_envs)]
     if isinstance(num_workers, bool) or not isinstance(num_workers, (int, np.integer)) or not (
             1 <= num_workers <= num_envs):

@@ -23,9 +23,8 @@ ENV_IDS: dict[str, str] = {
 """Registered id -> scenario."""
 
 
-def parallel_env(scenario: str = "circle_swap", **kwargs: Any) -> Any:
-    """The PettingZoo parallel env of ``scenario`` (:func:`aasoatt_env.make_env`; ``filter=``: behind the filter)."""
-    return make_env(scenario, **kwargs)
+#: The PettingZoo parallel env of a scenario: PettingZoo's name for :func:`aasoatt_env.make_env`.
+parallel_env = make_env
 
 
 def env(scenario: str = "circle_swap", **kwargs: Any) -> Any:

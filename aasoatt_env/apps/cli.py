@@ -153,16 +153,6 @@ def _write_results(out: Path, summary: dict[str, Any], rollout: Rollout, title: 
     print(f"wrote {out}/{', '.join(RUN_OUTPUTS[: 3 if fig is not None else 2])}")
 
 
-def _write_animation(gif: Path, frames: list[Any], fps: int) -> None:
-    try:  # save_animation and atomic_write: a failed writer leaves no partial file at the --gif path
-        cli_support.atomic_write(gif, lambda tmp: save_animation(frames, tmp, fps=fps))
-    except AASOATTError:
-        raise
-    except (ValueError, RuntimeError, OSError) as exc:  # the writer failed: one line, status 1
-        raise OSError(f"--gif: could not write {gif} ({' '.join(str(exc).split())[:300]})") from exc
-    print(f"wrote {gif} ({len(frames)} frames)")
-
-
 def cmd_run(args: argparse.Namespace) -> int:
     """Run one episode and report its metrics (options, then output paths, then the env are checked first)."""
     if args.model is not None and args.controller != "learned":
@@ -191,8 +181,14 @@ def cmd_run(args: argparse.Namespace) -> int:
         print(format_summary(summary))
         if out is not None:
             _write_results(out, summary, rollout, f"{args.scenario}: {args.controller} / {args.filter}")
-        if gif is not None:
-            _write_animation(gif, frames, args.fps)
+        if gif is not None:  # save_animation and atomic_write: a failed writer leaves no partial file at --gif
+            try:
+                cli_support.atomic_write(gif, lambda tmp: save_animation(frames, tmp, fps=args.fps))
+            except AASOATTError:
+                raise
+            except (ValueError, RuntimeError, OSError) as exc:  # the writer failed: one line, status 1
+                raise OSError(f"--gif: could not write {gif} ({' '.join(str(exc).split())[:300]})") from exc
+            print(f"wrote {gif} ({len(frames)} frames)")
     env.close()
     return 1 if args.fail_on_collision and summary.get("n_collision_pairs") else 0
 

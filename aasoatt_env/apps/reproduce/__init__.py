@@ -62,23 +62,17 @@ def _parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command-line entry point (``aasoatt reproduce ...``); returns the exit status."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    return cli_support.run_guarded("aasoatt reproduce", argv, _main)
+    return cli_support.run_guarded("aasoatt reproduce", sys.argv[1:] if argv is None else argv, _main)
 
 
-def _solver(args: argparse.Namespace) -> str:
+def _main(argv: list[str]) -> int:
+    args = _parser().parse_args(argv)
     if args.solver is None and "daqp" not in available_solvers():
         print('note: DAQP is not installed (pip install "aasoatt[repro]"); using proxsuite (same results, '
               "about 5x slower)", file=sys.stderr)
     solver = args.solver or ("daqp" if "daqp" in available_solvers() else "proxsuite")
     if solver not in available_solvers():
         raise ConfigError(f"--solver: got {solver!r}, expected one of {available_solvers()}")
-    return solver
-
-
-def _main(argv: list[str]) -> int:
-    args = _parser().parse_args(argv)
-    solver = _solver(args)
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]
     cmd = "aasoatt reproduce {name}" + " --quick" * args.quick + f" --solver {solver}" * (solver != "daqp")
     cmd += f" --safety-margin {args.safety_margin:g}" * bool(args.safety_margin) + " --backup" * args.backup
