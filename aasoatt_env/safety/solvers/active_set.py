@@ -50,24 +50,22 @@ class LeastDistanceForm(NamedTuple):
         return np.einsum("nij,nj->ni", self.LinvT, y.reshape(-1, 2)).ravel()
 
 
-def least_distance_form(prob) -> LeastDistanceForm | None:
-    """:class:`LeastDistanceForm` of ``prob``, computed once per problem; ``None`` if a Hessian block is not PD."""
-    return _once(prob, "_least_distance_form", _least_distance_form)
+def _once(make):
+    """``make(prob)`` computed once per problem object (kept in its ``__dict__``)."""
+    key = f"_{make.__name__}"
+
+    @functools.wraps(make)
+    def once(prob):
+        if key not in prob.__dict__:
+            prob.__dict__[key] = make(prob)
+        return prob.__dict__[key]
+
+    return once
 
 
-def _once(prob, key: str, make):
-    """``make(prob)``, computed once per problem object (kept in its ``__dict__``)."""
-    if key not in prob.__dict__:
-        prob.__dict__[key] = make(prob)
-    return prob.__dict__[key]
-
-
+@_once
 def _factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(L^{-T} blocks (N, 2, 2), gt = L^{-1} g)`` of ``prob`` (once); ``None`` if a block is not PD."""
-    return _once(prob, "_ldf_factor", _block_factor)
-
-
-def _block_factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(L^{-T} blocks (N, 2, 2), gt = L^{-1} g)`` of ``prob``; ``None`` if a block is not PD."""
     nb = prob.n // 2
     # the Cholesky factor of every 2x2 block in closed form, L = [[a, 0], [c, d]], and its inverse
     H = prob.H_blocks
@@ -86,9 +84,6 @@ def _block_factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
 
 def dense_least_distance_form(prob) -> LeastDistanceForm | None:
     """:func:`least_distance_form` with its rows ``Mt`` dense, built without scipy.sparse (the same numbers)."""
-    if "_least_distance_form" in prob.__dict__:
-        form = prob.__dict__["_least_distance_form"]
-        return None if form is None else form._replace(Mt=form.Mt.toarray())
     factor = _factor(prob)
     if factor is None:
         return None
@@ -96,6 +91,7 @@ def dense_least_distance_form(prob) -> LeastDistanceForm | None:
 
 
 def _least_distance_form(prob) -> LeastDistanceForm | None:
+    """:class:`LeastDistanceForm` of ``prob``; ``None`` if a Hessian block is not PD."""
     n = prob.n
     nb = n // 2
     factor = _factor(prob)
@@ -108,6 +104,9 @@ def _least_distance_form(prob) -> LeastDistanceForm | None:
     Ct = (prob.C @ T).tocsr() if prob.m else sp.csr_matrix((0, n))
     Mt = sp.vstack((Ct, T, -T), format="csr")
     return LeastDistanceForm(LinvT, gt, Mt, np.concatenate((prob.u, prob.ub, -prob.lb)))
+
+
+least_distance_form = _once(_least_distance_form)  # (once per problem)
 
 
 def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:

@@ -21,6 +21,8 @@ __all__ = ["LocalSolution", "solve_local_qps"]
 TOL: float = 1e-10  #: the KKT check's feasibility / multiplier-sign tolerance (relative to ``1 + |y0|_inf``)
 MAX_ITER: int = 50  #: active-set iterations before the unfinished robots go to the enumeration
 RELAX_TOL: float = 1e-7  #: loosening on top of the least violation, in the normalised row's units (the policy's)
+LS_ITERS: int = 4  #: regula falsi steps of phase 1's line search before its exact piecewise minimiser
+LV_ITERS: int = 40  #: phase 1's iterations (it stops sooner once a step is negligible)
 
 
 class LocalSolution(NamedTuple):
@@ -314,7 +316,8 @@ def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
     return bx, by
 
 
-def _line_search(res: np.ndarray, delta: np.ndarray, d0: np.ndarray, d1: np.ndarray, iters: int = 4) -> np.ndarray:
+def _line_search(res: np.ndarray, delta: np.ndarray, d0: np.ndarray, d1: np.ndarray,
+                 iters: int = LS_ITERS) -> np.ndarray:
     """Per robot ``argmin_{t in [0, 1]} phi(t) = 0.5 sum_r (res_r + t delta_r)_+^2``, given ``phi'(0) < 0 < phi'(1)``.
 
     ``phi'`` is continuous, non-decreasing, piecewise linear: regula falsi (Illinois) lands on its root once the
@@ -375,7 +378,7 @@ def _line_min(res: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return np.clip(t, s0, s1)
 
 
-def _lv_core(gx, gy, hh, lb, ub, x, max_iter: int = 40):
+def _lv_core(gx, gy, hh, lb, ub, x, max_iter: int = LV_ITERS):
     """Phase 1 on unit rows ``(P, K)`` (padding: ``hh = PAD_B``) from ``x``: ``(x, violations (P, K))``.
 
     Per robot ``min 0.5 sum_r (g_r x - h_r)_+^2  s.t.  lb <= x <= ub``, convex and piecewise quadratic: each iteration
