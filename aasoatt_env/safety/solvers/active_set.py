@@ -112,35 +112,20 @@ least_distance_form = _once(_least_distance_form)  # (once per problem)
 def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
     """``LeastDistanceForm.Mt`` of ``prob`` as a dense array, built without scipy.sparse.
 
-    The numbers of ``least_distance_form(prob).Mt.toarray()``: an entry of ``C T`` is
-    ``C[r, 2b] T[2b, c] + C[r, 2b+1] T[2b+1, c]`` as the sparse product forms it, and every zero is ``+0.0``.
+    The numbers of ``least_distance_form(prob).Mt.toarray()``: an entry of ``C T`` sums at most two products (one
+    robot's block), so their order does not matter, and ``toarray()`` adds to zeros, so every zero is ``+0.0``.
     """
     n, m = prob.n, prob.m
     nb = n // 2
+    C = prob.C
+    if getattr(C, "format", None) != "csr" or not C.has_canonical_format:  # (repeated entries: summed in this form)
+        return _least_distance_form(prob).Mt.toarray()
+    fb = np.repeat(np.arange(m) * nb, np.diff(C.indptr)) + C.indices // 2  # the (row, robot) pairs with an entry
+    rb = fb[np.concatenate(([True], fb[1:] != fb[:-1]))] if fb.size else fb  # (sorted: canonical)
+    v, k = C.toarray().reshape(-1, 2)[rb], rb % nb
     Md = np.zeros((m + 2 * n, n))
-    if m:
-        C = prob.C
-        if getattr(C, "format", None) != "csr":
-            return _least_distance_form(prob).Mt.toarray()
-        flat = np.repeat(np.arange(m) * n, np.diff(C.indptr)) + C.indices
-        hit = np.zeros(m * n, dtype=bool)
-        hit[flat] = True
-        if np.count_nonzero(hit) != flat.shape[0]:  # duplicate entries: the sparse product adds their products
-            return _least_distance_form(prob).Mt.toarray()
-        Cd = np.zeros(m * n)
-        Cd[flat] = C.data
-        fb = flat // 2  # (row, block) pairs with an entry; the other blocks of C T are zero
-        if C.has_sorted_indices:  # flat ascending: the distinct ones without a sort
-            rb = fb[np.concatenate(([True], fb[1:] != fb[:-1]))] if fb.size else fb
-        else:
-            rb = np.unique(fb)
-        v = Cd.reshape(-1, 2)[rb]
-        b = rb % nb
-        Ct = v[:, 0, None] * LinvT[b, 0, :] + v[:, 1, None] * LinvT[b, 1, :]
-        Ct += 0.0  # -0.0 -> +0.0: the sparse product drops exact zeros
-        Md[:m].reshape(-1, 2)[rb] = Ct
+    Md[:m].reshape(-1, 2)[rb] = v[:, 0, None] * LinvT[k, 0, :] + v[:, 1, None] * LinvT[k, 1, :] + 0.0
     k = np.arange(nb)
-    # toarray() adds the stored entries to zeros, so its zeros are +0.0: the same here
     Md[m:m + n].reshape(nb, 2, nb, 2)[k, :, k, :] = LinvT + 0.0
     Md[m + n:].reshape(nb, 2, nb, 2)[k, :, k, :] = -LinvT + 0.0
     return Md
