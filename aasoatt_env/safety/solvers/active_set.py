@@ -82,12 +82,13 @@ def _factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
     return np.transpose(Linv, (0, 2, 1)), np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel()
 
 
-def dense_least_distance_form(prob) -> LeastDistanceForm | None:
-    """:func:`least_distance_form` with its rows ``Mt`` dense, built without scipy.sparse (the same numbers)."""
+def dense_least_distance_form(prob, rows: bool = True) -> LeastDistanceForm | None:
+    """:func:`least_distance_form` with its rows ``Mt`` dense (None without ``rows``), built without scipy.sparse."""
     factor = _factor(prob)
     if factor is None:
         return None
-    return LeastDistanceForm(*factor, _dense_rows(prob, factor[0]), np.concatenate((prob.u, prob.ub, -prob.lb)))
+    Mt = _dense_rows(prob, factor[0]) if rows else None
+    return LeastDistanceForm(*factor, Mt, np.concatenate((prob.u, prob.ub, -prob.lb)))
 
 
 def _least_distance_form(prob) -> LeastDistanceForm | None:
@@ -173,11 +174,11 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     one_change_iter = one_change_budget(one_change_iter)
     dense = n <= DENSE_MAX_VARS or n * (m + 2 * n) <= DENSE_MAX_CELLS
     compiled = compiled and dense and getattr(prob.C, "format", None) == "csr"
-    rows = _rows(prob, dense, compiled)
-    labels = None if rows is None else _row_groups(prob, groups)
+    form = dense_least_distance_form(prob, not compiled) if dense else least_distance_form(prob)
+    labels = None if form is None else _row_groups(prob, groups)
     if labels is None:
         return None
-    (LinvT, gt, M, b), (K, rg, groups) = rows, labels
+    (LinvT, gt, M, b), (K, rg, groups) = form, labels
     W0 = warm_working_set(prob, x0, z0)
     if compiled:
         out = _solve_compiled(prob, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, rg)
@@ -192,18 +193,6 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         if loop.done.all():
             break
     return _answer(LinvT, np.zeros(n) if loop.y is None else loop.y, loop.lam, loop.used, loop.done, rg, m)
-
-
-def _rows(prob, dense: bool, compiled: bool) -> tuple | None:
-    """``(L^-T blocks, gt, rows Mt (dense, or None for the kernel), b)``; None if a block is not positive definite."""
-    if dense:  # the dense rows straight from C (no sparse products for these small problems)
-        factor = _factor(prob)
-        if factor is None:
-            return None
-        LinvT, gt = factor
-        return LinvT, gt, None if compiled else _dense_rows(prob, LinvT), np.concatenate((prob.u, prob.ub, -prob.lb))
-    form = least_distance_form(prob)
-    return None if form is None else (form.LinvT, form.gt, form.Mt, form.b)
 
 
 def _row_groups(prob, groups: np.ndarray | None) -> tuple[int, np.ndarray, np.ndarray] | None:

@@ -231,13 +231,10 @@ def _verify(T: Table, S: State, y0, tol_k, idx) -> tuple[np.ndarray, np.ndarray]
 
 
 def _enumerate(T: Table, idx, y0, tol_k):
-    """Step 4 for robots ``idx``: ``(y, active slots (., 2), their count, multipliers (., 2), feasible)``."""
-    K = T.nx.shape[1]
-    out_y, out_mu = np.zeros((idx.shape[0], 2)), np.zeros((idx.shape[0], 2))
-    out_w, out_nw = np.zeros((idx.shape[0], 2), dtype=np.intp), np.zeros(idx.shape[0], dtype=np.intp)
-    out_ok = np.zeros(idx.shape[0], dtype=bool)
-    if idx.size == 0:
-        return out_y, out_w, out_nw, out_mu, out_ok
+    """Step 4 for robots ``idx`` (one or more): ``(y, active slots (., 2), count, multipliers (., 2), feasible)``."""
+    K, q = T.nx.shape[1], idx.shape[0]
+    out_y, out_mu, out_w = np.zeros((q, 2)), np.zeros((q, 2)), np.zeros((q, 2), dtype=np.intp)
+    out_nw, out_ok = np.zeros(q, dtype=np.intp), np.zeros(q, dtype=bool)
     valid = T.b[idx] < PAD_B
     kk = int((K - 1 - valid[:, ::-1].argmax(axis=1)).max()) + 1  # the last valid slot (the bounds always are)
     ia, ib = np.triu_indices(kk, k=1)
