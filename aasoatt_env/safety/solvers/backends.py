@@ -259,14 +259,11 @@ def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts:
                      int(sol["iterations"]), f"cvxopt {sol['status']}")
 
 
-BackendFn = Callable[[QPProblem, "np.ndarray | None", "np.ndarray | None", dict], RawAnswer]
-
-
 @dataclass(frozen=True)
 class Backend:
     """A registered QP back-end and what the solver policy needs to know about it."""
 
-    solve: BackendFn  #: ``solve(problem, x0, z0, options) -> RawAnswer``
+    solve: Callable[[QPProblem, np.ndarray | None, np.ndarray | None, dict], RawAnswer]  #: ``(problem, x0, z0, opts)``
     module: str = ""  #: the module it imports (empty: core dependencies only)
     exact: bool = True  #: answers the QP's optimum to its tolerance (False: ``neural``, passed on unverified)
     #: it checks its own answers (``ldp``); another exact back-end's answer is polished and verified by the warm
