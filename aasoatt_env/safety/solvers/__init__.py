@@ -1,7 +1,7 @@
 """QP solvers of the safety filter: the back-ends (:mod:`~.backends`) and which answers (:mod:`~.policy`).
 
-The exact solvers of the core dependencies are :mod:`~.active_set` and :mod:`~.ldp`; :mod:`~.local` solves every
-robot's 2-variable QP at once (the decentralised filter).
+The exact solvers of the core dependencies are :mod:`~.active_set` and the ``ldp`` back-end; :mod:`~.local` solves
+every robot's 2-variable QP at once (the decentralised filter).
 """
 
 from aasoatt_env.safety.solvers.backends import SOLVERS, Backend, RawAnswer, available_solvers, get_solver

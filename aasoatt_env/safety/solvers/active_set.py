@@ -50,24 +50,22 @@ class LeastDistanceForm(NamedTuple):
         return np.einsum("nij,nj->ni", self.LinvT, y.reshape(-1, 2)).ravel()
 
 
-def least_distance_form(prob) -> LeastDistanceForm | None:
-    """:class:`LeastDistanceForm` of ``prob``, computed once per problem; ``None`` if a Hessian block is not PD."""
-    return _once(prob, "_least_distance_form", _least_distance_form)
+def _once(make):
+    """``make(prob)`` computed once per problem object (kept in its ``__dict__``)."""
+    key = f"_{make.__name__}"
+
+    @functools.wraps(make)
+    def once(prob):
+        if key not in prob.__dict__:
+            prob.__dict__[key] = make(prob)
+        return prob.__dict__[key]
+
+    return once
 
 
-def _once(prob, key: str, make):
-    """``make(prob)``, computed once per problem object (kept in its ``__dict__``)."""
-    if key not in prob.__dict__:
-        prob.__dict__[key] = make(prob)
-    return prob.__dict__[key]
-
-
+@_once
 def _factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
-    """``(L^{-T} blocks (N, 2, 2), gt = L^{-1} g)`` of ``prob`` (once); ``None`` if a block is not PD."""
-    return _once(prob, "_ldf_factor", _block_factor)
-
-
-def _block_factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(L^{-T} blocks (N, 2, 2), gt = L^{-1} g)`` of ``prob``; ``None`` if a block is not PD."""
     nb = prob.n // 2
     # the Cholesky factor of every 2x2 block in closed form, L = [[a, 0], [c, d]], and its inverse
     H = prob.H_blocks
@@ -84,18 +82,17 @@ def _block_factor(prob) -> tuple[np.ndarray, np.ndarray] | None:
     return np.transpose(Linv, (0, 2, 1)), np.einsum("nij,nj->ni", Linv, prob.g.reshape(nb, 2)).ravel()
 
 
-def dense_least_distance_form(prob) -> LeastDistanceForm | None:
-    """:func:`least_distance_form` with its rows ``Mt`` dense, built without scipy.sparse (the same numbers)."""
-    if "_least_distance_form" in prob.__dict__:
-        form = prob.__dict__["_least_distance_form"]
-        return None if form is None else form._replace(Mt=form.Mt.toarray())
+def dense_least_distance_form(prob, rows: bool = True) -> LeastDistanceForm | None:
+    """:func:`least_distance_form` with its rows ``Mt`` dense (None without ``rows``), built without scipy.sparse."""
     factor = _factor(prob)
     if factor is None:
         return None
-    return LeastDistanceForm(*factor, _dense_rows(prob, factor[0]), np.concatenate((prob.u, prob.ub, -prob.lb)))
+    Mt = _dense_rows(prob, factor[0]) if rows else None
+    return LeastDistanceForm(*factor, Mt, np.concatenate((prob.u, prob.ub, -prob.lb)))
 
 
 def _least_distance_form(prob) -> LeastDistanceForm | None:
+    """:class:`LeastDistanceForm` of ``prob``; ``None`` if a Hessian block is not PD."""
     n = prob.n
     nb = n // 2
     factor = _factor(prob)
@@ -110,38 +107,26 @@ def _least_distance_form(prob) -> LeastDistanceForm | None:
     return LeastDistanceForm(LinvT, gt, Mt, np.concatenate((prob.u, prob.ub, -prob.lb)))
 
 
+least_distance_form = _once(_least_distance_form)  # (once per problem)
+
+
 def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
     """``LeastDistanceForm.Mt`` of ``prob`` as a dense array, built without scipy.sparse.
 
-    The numbers of ``least_distance_form(prob).Mt.toarray()``: an entry of ``C T`` is
-    ``C[r, 2b] T[2b, c] + C[r, 2b+1] T[2b+1, c]`` as the sparse product forms it, and every zero is ``+0.0``.
+    The numbers of ``least_distance_form(prob).Mt.toarray()``: an entry of ``C T`` sums at most two products (one
+    robot's block), so their order does not matter, and ``toarray()`` adds to zeros, so every zero is ``+0.0``.
     """
     n, m = prob.n, prob.m
     nb = n // 2
+    C = prob.C
+    if getattr(C, "format", None) != "csr" or not C.has_canonical_format:  # (repeated entries: summed in this form)
+        return _least_distance_form(prob).Mt.toarray()
+    fb = np.repeat(np.arange(m) * nb, np.diff(C.indptr)) + C.indices // 2  # the (row, robot) pairs with an entry
+    rb = fb[np.concatenate(([True], fb[1:] != fb[:-1]))] if fb.size else fb  # (sorted: canonical)
+    v, k = C.toarray().reshape(-1, 2)[rb], rb % nb
     Md = np.zeros((m + 2 * n, n))
-    if m:
-        C = prob.C
-        if getattr(C, "format", None) != "csr":
-            return _least_distance_form(prob).Mt.toarray()
-        flat = np.repeat(np.arange(m) * n, np.diff(C.indptr)) + C.indices
-        hit = np.zeros(m * n, dtype=bool)
-        hit[flat] = True
-        if np.count_nonzero(hit) != flat.shape[0]:  # duplicate entries: the sparse product adds their products
-            return _least_distance_form(prob).Mt.toarray()
-        Cd = np.zeros(m * n)
-        Cd[flat] = C.data
-        fb = flat // 2  # (row, block) pairs with an entry; the other blocks of C T are zero
-        if C.has_sorted_indices:  # flat ascending: the distinct ones without a sort
-            rb = fb[np.concatenate(([True], fb[1:] != fb[:-1]))] if fb.size else fb
-        else:
-            rb = np.unique(fb)
-        v = Cd.reshape(-1, 2)[rb]
-        b = rb % nb
-        Ct = v[:, 0, None] * LinvT[b, 0, :] + v[:, 1, None] * LinvT[b, 1, :]
-        Ct += 0.0  # -0.0 -> +0.0: the sparse product drops exact zeros
-        Md[:m].reshape(-1, 2)[rb] = Ct
+    Md[:m].reshape(-1, 2)[rb] = v[:, 0, None] * LinvT[k, 0, :] + v[:, 1, None] * LinvT[k, 1, :] + 0.0
     k = np.arange(nb)
-    # toarray() adds the stored entries to zeros, so its zeros are +0.0: the same here
     Md[m:m + n].reshape(nb, 2, nb, 2)[k, :, k, :] = LinvT + 0.0
     Md[m + n:].reshape(nb, 2, nb, 2)[k, :, k, :] = -LinvT + 0.0
     return Md
@@ -189,11 +174,11 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     one_change_iter = one_change_budget(one_change_iter)
     dense = n <= DENSE_MAX_VARS or n * (m + 2 * n) <= DENSE_MAX_CELLS
     compiled = compiled and dense and getattr(prob.C, "format", None) == "csr"
-    rows = _rows(prob, dense, compiled)
-    labels = None if rows is None else _row_groups(prob, groups)
+    form = dense_least_distance_form(prob, not compiled) if dense else least_distance_form(prob)
+    labels = None if form is None else _row_groups(prob, groups)
     if labels is None:
         return None
-    (LinvT, gt, M, b), (K, rg, groups) = rows, labels
+    (LinvT, gt, M, b), (K, rg, groups) = form, labels
     W0 = warm_working_set(prob, x0, z0)
     if compiled:
         out = _solve_compiled(prob, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, rg)
@@ -208,18 +193,6 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         if loop.done.all():
             break
     return _answer(LinvT, np.zeros(n) if loop.y is None else loop.y, loop.lam, loop.used, loop.done, rg, m)
-
-
-def _rows(prob, dense: bool, compiled: bool) -> tuple | None:
-    """``(L^-T blocks, gt, rows Mt (dense, or None for the kernel), b)``; None if a block is not positive definite."""
-    if dense:  # the dense rows straight from C (no sparse products for these small problems)
-        factor = _factor(prob)
-        if factor is None:
-            return None
-        LinvT, gt = factor
-        return LinvT, gt, None if compiled else _dense_rows(prob, LinvT), np.concatenate((prob.u, prob.ub, -prob.lb))
-    form = least_distance_form(prob)
-    return None if form is None else (form.LinvT, form.gt, form.Mt, form.b)
 
 
 def _row_groups(prob, groups: np.ndarray | None) -> tuple[int, np.ndarray, np.ndarray] | None:

@@ -24,13 +24,14 @@ import scipy.sparse as sp
 
 from aasoatt_env.errors import SolverError
 from aasoatt_env.safety.problem import QPProblem
-from aasoatt_env.safety.solvers.active_set import warm_working_set
-from aasoatt_env.safety.solvers.ldp import FEAS_TOL as LDP_FEAS_TOL
-from aasoatt_env.safety.solvers.ldp import solve_ldp
+from aasoatt_env.safety.solvers.active_set import dense_least_distance_form, solve_active_set, warm_working_set
 
-__all__ = ["DENSE_MAX_SIZE", "ITER_LIMIT", "SOLVERS", "Backend", "RawAnswer", "available_solvers", "get_solver"]
+__all__ = ["DENSE_MAX_SIZE", "ITER_LIMIT", "LDP_MAX_VARS", "SOLVERS", "Backend", "RawAnswer", "available_solvers",
+           "get_solver"]
 
 DENSE_MAX_SIZE: int = 600  #: largest ``n + m`` solved with proxsuite's dense class (faster on small problems)
+LDP_MAX_VARS: int = 500  #: ``ldp``'s largest problem (its NNLS matrix is dense, ``(n + 1) x (m + 2n)``)
+LDP_FEAS_TOL: float = 1e-9  #: ``ldp``'s largest violation of a normalised row or bound in an unpolished point
 #: iteration budgets of the iterative back-ends: the worst case of a call is a property of its size
 ITER_LIMIT: dict[str, int] = {"proxsuite": 200, "proxsuite_inner": 100, "daqp": 2000, "osqp": 20000, "clarabel": 200}
 _INF = 1e20
@@ -81,8 +82,50 @@ def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, op
 
 
 def _ldp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
-    x, z, message = solve_ldp(prob, float(opts.get("ldp_feas_tol", LDP_FEAS_TOL)))
-    return RawAnswer(x, z, x is not None, 0, message, infeasible="inconsistent" in message)
+    """Exact least-distance programming: one finitely terminating NNLS (Lawson and Hanson, ch. 23), no stall.
+
+    In ``w = y + L^{-1} g`` (:class:`~.active_set.LeastDistanceForm`) the QP is ``min 0.5 |w|^2  s.t.  Mt w <= hb``.
+    The point is polished by the warm active set, or returned unpolished where feasible to ``ldp_feas_tol``.
+    """
+    n, m = prob.n, prob.m
+    if n == 0 or n % 2:
+        return RawAnswer(None, None, False, 0, "ldp: needs 2x2 blocks")
+    if n > LDP_MAX_VARS:
+        return RawAnswer(None, None, False, 0, f"ldp: {n} variables > MAX_VARS = {LDP_MAX_VARS}")
+    form = dense_least_distance_form(prob)
+    if form is None:
+        return RawAnswer(None, None, False, 0, "ldp: Hessian block not positive definite")
+    gt, Mt, b = form.gt, form.Mt, form.b
+    finite = np.abs(b) < 1e19  # rows or bounds at +-inf are dropped
+    if not np.all(finite):
+        Mt, b = Mt[finite], b[finite]
+    hb = b + Mt @ gt
+    E = -np.vstack((Mt.T, hb[None, :]))
+    norms = np.linalg.norm(E, axis=0)
+    norms = np.where(norms > 0.0, norms, 1.0)
+    f = np.zeros(n + 1)
+    f[-1] = 1.0
+    from scipy.optimize import nnls  # (scipy.optimize imported where asked: not by ``aasoatt --help``)
+
+    try:
+        us, _ = nnls(E / norms, f, maxiter=10 * E.shape[1])
+    except RuntimeError as exc:  # iteration limit
+        return RawAnswer(None, None, False, 0, f"ldp: {exc}")
+    u = us / norms
+    r = E @ u - f
+    if not np.all(np.isfinite(r)) or -r[-1] <= 1e-14:
+        return RawAnswer(None, None, False, 0, "ldp: rows inconsistent (NNLS residual zero)", infeasible=True)
+    lam = np.zeros(finite.shape[0])
+    lam[finite] = u / (-r[-1])
+    x, z = form.to_x(-r[:n] / r[-1] - gt), lam[:m]
+    polished = solve_active_set(prob, x, z)
+    if polished is not None:
+        return RawAnswer(polished[0], polished[1], True, 0, "ldp (KKT verified)")
+    x = np.clip(x, prob.lb, prob.ub)
+    viol = float(np.max(prob.C @ x - prob.u, initial=0.0))
+    if viol > float(opts.get("ldp_feas_tol", LDP_FEAS_TOL)) or not np.all(np.isfinite(x)):
+        return RawAnswer(None, None, False, 0, f"ldp: point violates a row by {viol:.2g}")
+    return RawAnswer(x, np.maximum(z, 0.0), True, 0, "ldp (feasible, KKT polish did not converge)")
 
 
 def _neural(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
@@ -104,8 +147,7 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
     # simple_bounds: the box as DAQP's simple bounds (faster); else as rows
     A = prob.C.toarray() if opts.get("simple_bounds") else np.vstack((np.eye(n), prob.C.toarray()))
     warm = {}
-    if (opts.get("warm_start") and _daqp_warm() and x0 is not None and z0 is not None and x0.shape == (n,)
-            and z0.shape == (m,)):
+    if opts.get("warm_start") and x0 is not None and z0 is not None and x0.shape == (n,) and z0.shape == (m,):
         # its dual start: the warm working set (signs: upper bounds and rows +, lower bounds -; bounds first)
         W = warm_working_set(prob, x0, z0)
         warm["dual_start"] = np.concatenate((W[m:m + n].astype(float) - W[m + n:], W[:m].astype(float)))
@@ -217,14 +259,11 @@ def _cvxopt(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts:
                      int(sol["iterations"]), f"cvxopt {sol['status']}")
 
 
-BackendFn = Callable[[QPProblem, "np.ndarray | None", "np.ndarray | None", dict], RawAnswer]
-
-
 @dataclass(frozen=True)
 class Backend:
     """A registered QP back-end and what the solver policy needs to know about it."""
 
-    solve: BackendFn  #: ``solve(problem, x0, z0, options) -> RawAnswer``
+    solve: Callable[[QPProblem, np.ndarray | None, np.ndarray | None, dict], RawAnswer]  #: ``(problem, x0, z0, opts)``
     module: str = ""  #: the module it imports (empty: core dependencies only)
     exact: bool = True  #: answers the QP's optimum to its tolerance (False: ``neural``, passed on unverified)
     #: it checks its own answers (``ldp``); another exact back-end's answer is polished and verified by the warm
@@ -253,15 +292,6 @@ SOLVERS: dict[str, Backend] = {
     "cvxopt": Backend(_cvxopt, "cvxopt"),
 }
 """Solver registry: name -> :class:`Backend`.  Adding a solver is one function and one line here."""
-
-
-@functools.cache
-def _daqp_warm() -> bool:
-    """Whether the installed DAQP takes a dual start (0.8.2 and later)."""
-    from importlib.metadata import version
-
-    parts = [int(p) for p in version("daqp").split(".")[:3] if p.isdigit()]
-    return tuple(parts) >= (0, 8, 2)
 
 
 @functools.cache

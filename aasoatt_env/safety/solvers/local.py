@@ -21,6 +21,8 @@ __all__ = ["LocalSolution", "solve_local_qps"]
 TOL: float = 1e-10  #: the KKT check's feasibility / multiplier-sign tolerance (relative to ``1 + |y0|_inf``)
 MAX_ITER: int = 50  #: active-set iterations before the unfinished robots go to the enumeration
 RELAX_TOL: float = 1e-7  #: loosening on top of the least violation, in the normalised row's units (the policy's)
+LS_ITERS: int = 4  #: regula falsi steps of phase 1's line search before its exact piecewise minimiser
+LV_ITERS: int = 40  #: phase 1's iterations (it stops sooner once a step is negligible)
 
 
 class LocalSolution(NamedTuple):
@@ -57,8 +59,6 @@ def _slots(owner: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Rank of each row among its owner's rows ``(M,)`` and the row count per robot ``(N,)``."""
     m = owner.shape[0]
     counts = np.bincount(owner, minlength=n)
-    if m == 0:
-        return np.zeros(0, dtype=np.intp), counts
     starts = np.cumsum(counts) - counts
     if np.all(owner[1:] >= owner[:-1]):
         return np.arange(m) - starts[owner], counts
@@ -83,24 +83,20 @@ def _table(linv, lb, ub, owner, G, h, tol_k, infeasible, zero_bad) -> Table:
     ny[:, 1], b[:, 1] = 1.0, ub[:, 1] / i22
     nx[:, 2], ny[:, 2], b[:, 2] = -nx[:, 0], -ny[:, 0], -lb[:, 0] / s0
     ny[:, 3], b[:, 3] = -1.0, -lb[:, 1] / i22
-    if owner.shape[0]:
-        ax = i11[owner] * G[:, 0]
-        ay = i21[owner] * G[:, 0] + i22[owner] * G[:, 1]
-        nrm = np.sqrt(ax * ax + ay * ay)
-        zero = nrm <= 1e-300 + 1e-14 * np.minimum(s0, i22)[owner]  # a vanishing normal: the row reads 0 <= h
-        if np.any(zero):
-            zb = np.flatnonzero(zero & (h < -tol_k[owner]))
-            infeasible[owner[zb]] = True
-            zero_bad[zb] = True
-            ok = np.flatnonzero(~zero)
-            ax, ay, nrm, hh, fi = ax[ok], ay[ok], nrm[ok], h[ok], owner[ok] * K + 4 + slot[ok]
-        else:
-            ok, hh, fi = np.arange(owner.shape[0]), h, owner * K + 4 + slot
-        inv = 1.0 / nrm
-        nx.reshape(-1)[fi] = ax * inv
-        ny.reshape(-1)[fi] = ay * inv
-        b.reshape(-1)[fi] = hh * inv
-        row.reshape(-1)[fi] = ok
+    ax = i11[owner] * G[:, 0]
+    ay = i21[owner] * G[:, 0] + i22[owner] * G[:, 1]
+    nrm = np.sqrt(ax * ax + ay * ay)
+    zero = nrm <= 1e-300 + 1e-14 * np.minimum(s0, i22)[owner]  # a vanishing normal: the row reads 0 <= h
+    zb = np.flatnonzero(zero & (h < -tol_k[owner]))
+    infeasible[owner[zb]] = True
+    zero_bad[zb] = True
+    ok = np.flatnonzero(~zero)
+    ax, ay, nrm, hh, fi = ax[ok], ay[ok], nrm[ok], h[ok], owner[ok] * K + 4 + slot[ok]
+    inv = 1.0 / nrm
+    nx.reshape(-1)[fi] = ax * inv
+    ny.reshape(-1)[fi] = ay * inv
+    b.reshape(-1)[fi] = hh * inv
+    row.reshape(-1)[fi] = ok
     return Table(nx, ny, b, row)
 
 
@@ -215,7 +211,7 @@ def _solve_all(H, g, lb, ub, owner, G, h, relax: bool, rt, tol: float, max_iter:
 
 def _unconstrained(H, g, lb, ub, owner, G, h, tol: float, x: np.ndarray) -> _Sub | None:
     """Step 0: ``x`` the unconstrained minimisers; the robots that they leave (None: none)."""
-    n, m = g.shape[0], owner.shape[0]
+    n = g.shape[0]
     l11, l21, l22 = _cholesky(H)
     i11, i22 = 1.0 / l11, 1.0 / l22
     i21 = -l21 * i11 * i22
@@ -223,19 +219,15 @@ def _unconstrained(H, g, lb, ub, owner, G, h, tol: float, x: np.ndarray) -> _Sub
     x[:, 0] = i11 * y0[:, 0] + i21 * y0[:, 1]  # L^-T y0
     x[:, 1] = i22 * y0[:, 1]
     cons = (x[:, 0] < lb[:, 0]) | (x[:, 0] > ub[:, 0]) | (x[:, 1] < lb[:, 1]) | (x[:, 1] > ub[:, 1])
-    if m:
-        viol = G[:, 0] * x[owner, 0] + G[:, 1] * x[owner, 1] - h
-        cons |= np.bincount(owner[viol > 0.0], minlength=n) > 0
+    viol = G[:, 0] * x[owner, 0] + G[:, 1] * x[owner, 1] - h
+    cons |= np.bincount(owner[viol > 0.0], minlength=n) > 0
     sub = np.flatnonzero(cons)
     if sub.size == 0:
         return None
-    if sub.size < n:
-        remap = np.full(n, -1, dtype=np.intp)
-        remap[sub] = np.arange(sub.size)
-        rsel = np.flatnonzero(cons[owner]) if m else np.zeros(0, dtype=np.intp)
-        s_owner, Gs, hs = remap[owner[rsel]], G[rsel], h[rsel]
-    else:
-        rsel, s_owner, Gs, hs = np.arange(m), owner, G, h
+    remap = np.full(n, -1, dtype=np.intp)
+    remap[sub] = np.arange(sub.size)
+    rsel = np.flatnonzero(cons[owner])
+    s_owner, Gs, hs = remap[owner[rsel]], G[rsel], h[rsel]
     sy0 = y0[sub]
     tol_k = tol * (1.0 + np.maximum(np.abs(sy0[:, 0]), np.abs(sy0[:, 1])))
     return _Sub(sub, rsel, s_owner, Gs, hs, (i11[sub], i21[sub], i22[sub]), (l11[sub], l21[sub], l22[sub]), sy0,
@@ -314,7 +306,8 @@ def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
     return bx, by
 
 
-def _line_search(res: np.ndarray, delta: np.ndarray, d0: np.ndarray, d1: np.ndarray, iters: int = 4) -> np.ndarray:
+def _line_search(res: np.ndarray, delta: np.ndarray, d0: np.ndarray, d1: np.ndarray,
+                 iters: int = LS_ITERS) -> np.ndarray:
     """Per robot ``argmin_{t in [0, 1]} phi(t) = 0.5 sum_r (res_r + t delta_r)_+^2``, given ``phi'(0) < 0 < phi'(1)``.
 
     ``phi'`` is continuous, non-decreasing, piecewise linear: regula falsi (Illinois) lands on its root once the
@@ -375,7 +368,7 @@ def _line_min(res: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return np.clip(t, s0, s1)
 
 
-def _lv_core(gx, gy, hh, lb, ub, x, max_iter: int = 40):
+def _lv_core(gx, gy, hh, lb, ub, x, max_iter: int = LV_ITERS):
     """Phase 1 on unit rows ``(P, K)`` (padding: ``hh = PAD_B``) from ``x``: ``(x, violations (P, K))``.
 
     Per robot ``min 0.5 sum_r (g_r x - h_r)_+^2  s.t.  lb <= x <= ub``, convex and piecewise quadratic: each iteration

@@ -11,16 +11,15 @@ import math
 import numpy as np
 
 from aasoatt_env.numba_jit import jit, nclip, nmax, nmin
+from aasoatt_env.safety.solvers.local import LS_ITERS as _LS_ITERS
+from aasoatt_env.safety.solvers.local import LV_ITERS as _LV_ITERS
+from aasoatt_env.safety.solvers.polygon import _EPS_R, _EPS_Z, vertex
+from aasoatt_env.safety.solvers.polygon import PAD_B as _PAD_B
 
 __all__ = ["solve_all"]
 
-# the constants of the numpy reference (a test checks they agree)
-_EPS_Z = 1e-22
-_EPS_R = 1e-14
-_PAD_B = 1e300
 _INF = math.inf
-_LS_ITERS = 4
-_LV_ITERS = 40
+_vertex = jit(vertex)
 
 
 # --------------------------------------------------------------------------- dual active set, one robot
@@ -105,15 +104,6 @@ def _argmax(nx, ny, b, nk, px, py):
         if v > vmax:
             kmax, vmax = s, v
     return kmax, vmax
-
-
-@jit
-def _vertex(n1x, n1y, b1, n2x, n2y, b2, yx, yy):
-    """``polygon._vertex`` of scalars."""
-    det = n1x * n2y - n1y * n2x
-    vx, vy = (b1 * n2y - b2 * n1y) / det, (n1x * b2 - n2x * b1) / det
-    dx, dy = yx - vx, yy - vy
-    return vx, vy, det, (dx * n2y - dy * n2x) / det, (n1x * dy - n1y * dx) / det
 
 
 @jit

@@ -21,8 +21,7 @@ from aasoatt_env.safety.solvers.active_set import (
     solve_active_set,
     solve_active_set_parts,
 )
-from aasoatt_env.safety.solvers.backends import RawAnswer, available_solvers, get_solver
-from aasoatt_env.safety.solvers.ldp import MAX_VARS as LDP_MAX_VARS
+from aasoatt_env.safety.solvers.backends import LDP_MAX_VARS, RawAnswer, available_solvers, get_solver
 
 __all__ = ["EXACT_ROUTE", "PHASE1_REG", "PHASE1_ROUTE", "QPSolution", "SolverPolicy", "route", "solve_qp"]
 
@@ -34,9 +33,7 @@ EXACT_ROUTE: tuple[tuple[str, int], ...] = (("daqp", 500), ("ldp", LDP_MAX_VARS)
 (``pip install "aasoatt[fast]"``) and ``ldp`` finish exactly or prove the rows inconsistent."""
 PHASE1_ROUTE: tuple[tuple[str, int, int], ...] = (("daqp", 0, 1600), ("clarabel", 121, 10**9), ("ldp", 0, 120))
 """``(solver, fewest, most variables)`` of a phase-1 problem (variables plus one slack per row), asked in order
-before a back-end that may stall, where installed (its regulariser conditions ``ldp``'s NNLS badly on large ones;
-DAQP's soft rows, without the slack variables, answer exactly and sooner than clarabel up to some 1,600 variables:
-``benchmarks/bench_deadline.py``'s packed teams)."""
+before a back-end that may stall, where installed (its regulariser conditions ``ldp``'s NNLS badly on large ones)."""
 
 
 @dataclass
@@ -120,11 +117,9 @@ class SolverPolicy:
                           f"{int((~part.ok).sum())}: {rest.message}")
 
     def _ask(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, loosened: bool = False) -> RawAnswer:
-        """The route's first verified answer, or the last answer (not ok) with every message.
+        """The route's first verified answer (``loosened``: its first solver's), or the last answer, not ok.
 
         Another back-end's answer is taken verified only; the configured one's also unverified where deterministic.
-        ``loosened``: the route's first solver alone.  A solver that takes a warm start (DAQP) starts from the step's
-        warm working set: after the warm active set's polish, the same point as from a cold start, far sooner.
         """
         steps = route(self.solver, prob.n)[:1] if loosened else route(self.solver, prob.n)
         raw, iterations, notes = RawAnswer(None, None, False, 0, ""), 0, []
@@ -149,8 +144,7 @@ class SolverPolicy:
                 phase1_first: bool = False) -> QPSolution:
         """The route's answer; where it has none, phase 1 and the loosened problem (status ``"relaxed"``).
 
-        ``phase1_first``: phase 1 before the route, which is asked only where phase 1 finds the rows consistent (or
-        fails): the same answer, without the route's proof of infeasibility on a run of inconsistent steps.
+        ``phase1_first``: phase 1 first, the route asked only where it finds the rows consistent (or fails).
         """
         p1 = _phase1(prob, self.solver) if phase1_first else None
         if p1 is None or float(np.max(p1[1], initial=0.0)) <= _FEAS_TOL:  # (not asked, failed, or consistent rows)
@@ -167,9 +161,8 @@ class SolverPolicy:
         x1, viol = p1
         tstar = float(np.max(viol, initial=0.0))
         relaxed = tstar > _FEAS_TOL
-        # the loosened QP (feasible at the phase-1 point) from the step's warm start, answered by the route's first
-        # solver, or the phase-1 point (the others spent their whole budgets on these nearly degenerate problems
-        # without an answer: ldp's dense NNLS, proxsuite's iterations)
+        # the loosened QP (feasible at the phase-1 point) by the route's first solver, else the phase-1 point (the
+        # others spend their whole budgets on these nearly degenerate problems)
         raw2 = self._ask(replace(prob, u=prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL), x0, z0, loosened=True)
         msg = f"{raw.message}; phase 1: largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
         status = "relaxed" if relaxed else "solved"
@@ -188,11 +181,10 @@ def solve_qp(prob: QPProblem, solver: str = "proxsuite", x0: np.ndarray | None =
 
 
 def _phase1(prob: QPProblem, solver: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """Least row violations ``s* >= 0`` (one slack per row, bounds hard) and its point; None if no solver answers.
+    """Least row violations ``s* >= 0`` (bounds hard) and its point; None if no solver answers.
 
     ``min 0.5 |s|^2 + 0.5 reg |x|^2  s.t.  C x - s <= u, lb <= x <= ub`` (``reg`` = :data:`PHASE1_REG`): one slack
-    per row, so a hopeless row (a pair already inside ``d_s``) is loosened alone.  A back-end with its own phase-1
-    solve (DAQP's soft rows) answers it without the slack variables.
+    per row, so a hopeless row (a pair already inside ``d_s``) is loosened alone.
     """
     n, m = prob.n, prob.m
     slacked = None

@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["PAD_B", "State", "Table", "solve"]
+__all__ = ["PAD_B", "State", "Table", "solve", "vertex"]
 
 _EPS_Z = 1e-22  # a new normal with less squared component than this off the active ones depends on them
 _EPS_R = 1e-14  # coefficients of a dependent normal below this count as non-positive
@@ -33,13 +33,12 @@ class Table(NamedTuple):
         return self.nx.reshape(-1), self.ny.reshape(-1), self.b.reshape(-1), self.nx.shape[1]
 
 
-def _vertex(n1x, n1y, b1, n2x, n2y, b2, yx, yy):
-    """Vertex ``v`` of two lines ``n' y = b``, the determinant, the multipliers of ``y``'s projection onto ``v``."""
+def vertex(n1x, n1y, b1, n2x, n2y, b2, yx, yy):
+    """Vertex of lines ``n' y = b`` (inf/NaN if parallel), the determinant, multipliers of ``y``'s projection on it."""
     det = n1x * n2y - n1y * n2x
-    with np.errstate(divide="ignore", invalid="ignore"):  # NaN/inf where parallel
-        vx, vy = (b1 * n2y - b2 * n1y) / det, (n1x * b2 - n2x * b1) / det
-        dx, dy = yx - vx, yy - vy
-        return vx, vy, det, (dx * n2y - dy * n2x) / det, (n1x * dy - n1y * dx) / det
+    vx, vy = (b1 * n2y - b2 * n1y) / det, (n1x * b2 - n2x * b1) / det
+    dx, dy = yx - vx, yy - vy
+    return vx, vy, det, (dx * n2y - dy * n2x) / det, (n1x * dy - n1y * dx) / det
 
 
 class State:
@@ -206,7 +205,8 @@ def _verify(T: Table, S: State, y0, tol_k, idx) -> tuple[np.ndarray, np.ndarray]
         px, py = yx - m1 * n1x, yy - m1 * n1y
         two = S.nw[r] == 2
         if np.any(two):
-            vx, vy, _, v1, v2 = _vertex(n1x, n1y, b1, n2x, n2y, b2, yx, yy)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                vx, vy, _, v1, v2 = vertex(n1x, n1y, b1, n2x, n2y, b2, yx, yy)
             m1, m2 = np.where(two, v1, m1), np.where(two, v2, 0.0)
             px, py = np.where(two, vx, px), np.where(two, vy, py)
         V = T.nx[r] * px[:, None] + T.ny[r] * py[:, None] - T.b[r]
@@ -231,13 +231,10 @@ def _verify(T: Table, S: State, y0, tol_k, idx) -> tuple[np.ndarray, np.ndarray]
 
 
 def _enumerate(T: Table, idx, y0, tol_k):
-    """Step 4 for robots ``idx``: ``(y, active slots (., 2), their count, multipliers (., 2), feasible)``."""
-    K = T.nx.shape[1]
-    out_y, out_mu = np.zeros((idx.shape[0], 2)), np.zeros((idx.shape[0], 2))
-    out_w, out_nw = np.zeros((idx.shape[0], 2), dtype=np.intp), np.zeros(idx.shape[0], dtype=np.intp)
-    out_ok = np.zeros(idx.shape[0], dtype=bool)
-    if idx.size == 0:
-        return out_y, out_w, out_nw, out_mu, out_ok
+    """Step 4 for robots ``idx`` (one or more): ``(y, active slots (., 2), count, multipliers (., 2), feasible)``."""
+    K, q = T.nx.shape[1], idx.shape[0]
+    out_y, out_mu, out_w = np.zeros((q, 2)), np.zeros((q, 2)), np.zeros((q, 2), dtype=np.intp)
+    out_nw, out_ok = np.zeros(q, dtype=np.intp), np.zeros(q, dtype=bool)
     valid = T.b[idx] < PAD_B
     kk = int((K - 1 - valid[:, ::-1].argmax(axis=1)).max()) + 1  # the last valid slot (the bounds always are)
     ia, ib = np.triu_indices(kk, k=1)
@@ -249,7 +246,8 @@ def _enumerate(T: Table, idx, y0, tol_k):
         yx0, yy0 = y0[sub, 0:1], y0[sub, 1:2]
         mu_s = nx * yx0 + ny * yy0 - b  # projections onto single lines
         sx, sy = yx0 - mu_s * nx, yy0 - mu_s * ny
-        vx, vy, det, m1, m2 = _vertex(nx[:, ia], ny[:, ia], b[:, ia], nx[:, ib], ny[:, ib], b[:, ib], yx0, yy0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            vx, vy, det, m1, m2 = vertex(nx[:, ia], ny[:, ia], b[:, ia], nx[:, ib], ny[:, ib], b[:, ib], yx0, yy0)
         cx, cy = np.concatenate((yx0, sx, vx), axis=1), np.concatenate((yy0, sy, vy), axis=1)
         mua = np.concatenate((np.zeros((r, 1)), mu_s, m1), axis=1)
         mub = np.concatenate((np.zeros((r, 1 + kk)), m2), axis=1)
