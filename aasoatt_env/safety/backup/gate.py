@@ -126,7 +126,7 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
         near_pairs = validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c)
     if compiled:
         du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = kernels().gate_full(
-            c64(pose), c64(u), c64(du_c), float(dt), _levels_array(levels), bool(quick),
+            c64(pose), c64(u), c64(du_c), float(dt), levels, bool(quick),
             *kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs),
             team_block(team, brake_fraction, sensing_range)[1], float(tol), bool(hold_violations))
         return GateResult(du, braking, float(margin), not bool(broken.any()), broken, share, int(rounds), int(n_pairs),
@@ -149,11 +149,11 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
         np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
     margin = float(robot_margin.min(initial=float(limit.min(initial=0.5 * float(sensing_range)))))
     return GateResult(du_all[lev, np.arange(n)], lev > 0, margin, not bool(broken.any()), broken,
-                      np.asarray(levels)[lev], rounds, int(i.size + oi.size), robot_margin, reach[0] > limit)
+                      levels[lev], rounds, int(i.size + oi.size), robot_margin, reach[0] > limit)
 
 
 def _levels(team: Team, pose: np.ndarray, p0: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float,
-            brake_fraction: float, levels: tuple[float, ...], quick: bool, limit: np.ndarray) -> tuple:
+            brake_fraction: float, levels: np.ndarray, quick: bool, limit: np.ndarray) -> tuple:
     """``(levels, inputs (levels, N, 2), candidates per blend level, the backup from now, reaches (levels, N))``."""
     theta = pose[:, 2]
     T0 = paths.brake_time(team, u, brake_fraction)
@@ -163,7 +163,7 @@ def _levels(team: Team, pose: np.ndarray, p0: np.ndarray, u: np.ndarray, du_c: n
         dus.append(du_b + a * (du_c - du_b))
         firsts.append(paths.candidate(team, p0, theta, u, dus[-1], dt, brake_fraction))
         if k == 0 and quick and not bool((firsts[0].reach > limit).any()):
-            levels = (1.0, 0.0)  # no candidate leaves the range: the blends would change nothing
+            levels = levels[[0, -1]]  # no candidate leaves the range: the blends would change nothing
             break
     b0 = paths.brake(team, theta, u, dt, brake_fraction, T0)
     reach = np.stack([c.reach for c in firsts] + [b0.reach])
@@ -247,18 +247,12 @@ def _rounds(lp: _LevelPaths, lev: np.ndarray, broken: np.ndarray, reach: np.ndar
 
 
 @functools.lru_cache(maxsize=64)
-def _levels_array(levels: tuple[float, ...]) -> np.ndarray:
-    a = np.array(levels)
-    a.flags.writeable = False
-    return a
-
-
-@functools.lru_cache(maxsize=64)
-def levels_of(blend_levels: tuple) -> tuple[float, ...]:
-    """The check's levels, highest first: 1 (the candidate), the blend shares, 0 (the backup from now)."""
-    levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
+def levels_of(blend_levels: tuple) -> np.ndarray:
+    """The check's levels, highest first (read-only): 1 (the candidate), the blend shares, 0 (the backup from now)."""
+    levels = np.array(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True) + [0.0])
     if not all(0.0 < a <= 1.0 for a in levels[:-1]):  # also refuses NaN
         raise ValueError(f"blend_levels: got {blend_levels!r}, expected shares in (0, 1]")
+    levels.flags.writeable = False
     return levels
 
 

@@ -12,8 +12,8 @@ import numpy as np
 from aasoatt_env.numba_jit import jit, nclip, nmax
 from aasoatt_env.safety.backup.paths import _EPS, MAX_BRAKE_STEPS
 
-__all__ = ["E1", "brake1", "candidate1", "fill_brake", "fill_row", "near", "pair_margin", "pair_min",
-           "consts", "rows_of", "sample_at", "segment_margin", "starts"]
+__all__ = ["E1", "brake1", "candidate1", "consts", "fill_brake", "fill_row", "near", "pair_margin", "pair_min",
+           "sample_at", "segment_margin", "starts"]
 
 OFFSET, TURN_GAIN, MAX_ACCEL, DECEL, RADIUS = 0, 1, 2, 3, 4  # columns of the robots' constants
 D1, OMEGA, RATE, BULGE, REACH = 0, 1, 2, 3, 4  # columns of a level's floats F (its complex C: step end, velocity)
@@ -173,12 +173,12 @@ def fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulge
 
 
 @jit
-def fill_row(cur, curd, r, g, k, last, p0, C, F, has_bulge, dt, need, fast):
-    """Row ``r`` of ``cur``/``curd``: robot ``g``'s path on level ``k`` (``need`` samples; ``last``: braking now)."""
+def fill_row(cur, curd, g, k, last, p0, C, F, has_bulge, dt, need, fast):
+    """Row ``g`` of ``cur``/``curd``: robot ``g``'s path on level ``k`` (``need`` samples; ``last``: braking now)."""
     s = 0 if k == last else 1
     if s:
-        cur[r, 0], curd[r, 0] = p0[g], F[k, g, D1]
-    fill_brake(cur[r], curd[r], s, p0[g] if k == last else C[k, g, 0], C[k, g, 1], F[k, g, OMEGA], F[k, g, RATE],
+        cur[g, 0], curd[g, 0] = p0[g], F[k, g, D1]
+    fill_brake(cur[g], curd[g], s, p0[g] if k == last else C[k, g, 0], C[k, g, 1], F[k, g, OMEGA], F[k, g, RATE],
                F[k, g, BULGE], has_bulge, dt, need, fast)
 
 
@@ -219,11 +219,11 @@ def segment_margin(qa0, qa1, qc0, qc1, da, dc):
 
 
 @jit
-def step_margin(cur, curd, na, nc, a, c, static, oc, k):
-    """Step ``k``'s :func:`segment_margin` of rows ``a``, ``c`` (``static``: ``oc``); a row rests past its samples."""
+def step_margin(cur, curd, na, nc, a, c, oc, k):
+    """Step ``k``'s :func:`segment_margin` of rows ``a``, ``c`` (``c < 0``: point ``oc``), resting past their own."""
     ka0, ka1 = min(k, na - 1), min(k + 1, na - 1)
     da = curd[a, k] if k < na - 1 else 0.0
-    if static:
+    if c < 0:
         return segment_margin(cur[a, ka0], cur[a, ka1], oc, oc, da, 0.0)
     kc0, kc1 = min(k, nc - 1), min(k + 1, nc - 1)
     dc = curd[c, k] if k < nc - 1 else 0.0
@@ -231,27 +231,27 @@ def step_margin(cur, curd, na, nc, a, c, static, oc, k):
 
 
 @jit
-def pair_min(cur, curd, na, nc, a, c, static, oc, nseg, tie):
+def pair_min(cur, curd, na, nc, a, c, oc, nseg, tie):
     """Least margin (before ``- d_s``) over ``nseg`` steps and its step (a NaN first; ``tie >= 0``: ``closest``'s)."""
     best, kbest = np.inf, 0
     for k in range(nseg):
-        dist = step_margin(cur, curd, na, nc, a, c, static, oc, k)
+        dist = step_margin(cur, curd, na, nc, a, c, oc, k)
         if dist != dist:
             return dist, k
         if dist < best:
             best, kbest = dist, k
     for k in range(kbest if tie >= 0.0 else 0):
-        dist = step_margin(cur, curd, na, nc, a, c, static, oc, k)
+        dist = step_margin(cur, curd, na, nc, a, c, oc, k)
         if dist <= best + tie:
             return dist, k
     return best, kbest
 
 
 @jit
-def pair_margin(cur, curd, na, nc, a, c, ds, static, oc):
+def pair_margin(cur, curd, na, nc, a, c, ds, oc):
     """:func:`pair_min` over the pair's own horizon, minus ``ds``."""
-    L = na if static else max(na, nc)
-    return pair_min(cur, curd, na, nc, a, c, static, oc, max(L, 2) - 1, -1.0)[0] - ds
+    L = na if c < 0 else max(na, nc)
+    return pair_min(cur, curd, na, nc, a, c, oc, max(L, 2) - 1, -1.0)[0] - ds
 
 
 @jit
@@ -277,20 +277,3 @@ def near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, ha
                 a[P], c[P], ds[P], at[P] = g, -1, rob[g, RADIUS] + orad[o], oc[o]
                 P += 1
     return a[:P], c[:P], ds[:P], at[:P]
-
-
-@jit
-def rows_of(n, a, c):
-    """Buffer rows for the robots in pairs: ``loc`` ``(n,)`` (-1: none), the robots of the rows, their count."""
-    loc = np.full(n, -1, dtype=np.int64)
-    M = 0
-    for q in range(a.shape[0]):
-        for g in (a[q], c[q]):
-            if g >= 0 and loc[g] < 0:
-                loc[g] = M
-                M += 1
-    rob = np.empty(M, dtype=np.int64)
-    for g in range(n):
-        if loc[g] >= 0:
-            rob[loc[g]] = g
-    return loc, rob, M

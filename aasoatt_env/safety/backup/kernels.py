@@ -14,6 +14,13 @@ __all__ = ["gate_full", "repair_full"]
 
 
 @jit
+def _store(C, F, NEED, k, g, base, p1, dev, pdot, w, rate, steps, reach, bulge):
+    """Robot ``g``'s path on level ``k``: ``C`` (step end, velocity), ``F`` (``kp.D1 .. kp.REACH``), ``NEED``."""
+    C[k, g, 0], C[k, g, 1], NEED[k, g] = p1, pdot, steps + base
+    F[k, g, 0], F[k, g, 1], F[k, g, 2], F[k, g, 3], F[k, g, 4] = dev, w, rate, bulge, reach
+
+
+@jit
 def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limit):
     """Every level's inputs ``(nl, n, 2)`` and path parameters ``C, F, NEED`` (``gate._levels``)."""
     n, nl = pose.shape[0], levels.shape[0]
@@ -22,11 +29,8 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
     F, NEED = np.zeros((nl, n, 5)), np.empty((nl, n), dtype=np.int64)
     for g in range(n):  # the backup from now: level `last`
         rc = kp.consts(rob, cols, g)
-        T = kp.brake_time1(diff, rc, u[g, 0], u[g, 1])
-        pdot, w, rate, steps, reach, bulge = kp.brake1(diff, rc, hd[g], u[g, 0], u[g, 1], dt)
-        C[last, g, 1], NEED[last, g] = pdot, steps + 1
-        F[last, g, 0], F[last, g, 1], F[last, g, 2], F[last, g, 3], F[last, g, 4] = 0.0, w, rate, bulge, reach
-        den = nmax(T, dt)
+        den = nmax(kp.brake_time1(diff, rc, u[g, 0], u[g, 1]), dt)
+        _store(C, F, NEED, last, g, 1, 0j, 0.0, *kp.brake1(diff, rc, hd[g], u[g, 0], u[g, 1], dt))
         du_all[last, g, 0], du_all[last, g, 1] = -u[g, 0] / den, -u[g, 1] / den
     for k in range(nl - 1):  # one step blending the candidate and the backup, then the backup
         a = levels[k]
@@ -35,11 +39,9 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
             b0, b1 = du_all[last, g, 0], du_all[last, g, 1]
             da0, da1 = b0 + a * (du_c[g, 0] - b0), b1 + a * (du_c[g, 1] - b1)
             du_all[k, g, 0], du_all[k, g, 1] = da0, da1
-            p1, dev, pdot, w, rate, steps, reach, bulge = kp.candidate1(
-                diff, kp.consts(rob, cols, g), p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], da0, da1, dt)
-            C[k, g, 0], C[k, g, 1], NEED[k, g] = p1, pdot, steps + 2
-            F[k, g, 0], F[k, g, 1], F[k, g, 2], F[k, g, 3], F[k, g, 4] = dev, w, rate, bulge, reach
-            out = out or reach > limit[g]
+            _store(C, F, NEED, k, g, 2, *kp.candidate1(diff, kp.consts(rob, cols, g), p0[g], pose[g, 2], hd[g],
+                                                       u[g, 0], u[g, 1], da0, da1, dt))
+            out = out or F[k, g, kp.REACH] > limit[g]
         if k == 0 and quick and not out:  # no candidate leaves the range: levels (1, 0), rows 0 and last
             keep = np.array([0, last])
             return du_all[keep], C[keep], F[keep], NEED[keep]
@@ -47,51 +49,53 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
 
 
 @jit
-def _hold_floors(tol_p, cur, curd, loc, rob_rows, p0, C, F, NEED, has_bulge, dt, a, c, ds, at):
-    """``hold_violations``: each pair's tolerance the larger of ``tol`` and its margin when both members brake."""
-    last = NEED.shape[0] - 1
-    for r in range(rob_rows.shape[0]):
-        g = rob_rows[r]
-        kp.fill_row(cur, curd, r, g, last, last, p0, C, F, has_bulge, dt, NEED[last, g], True)
+def _in_pairs(n, a, c):
+    """``(n,)``: the robots of pairs ``a``, ``c`` (``c < 0``: an obstacle); row ``g`` of the paths is robot ``g``'s."""
+    used = np.zeros(n, dtype=np.bool_)
     for q in range(a.shape[0]):
-        st = c[q] < 0
-        m = kp.pair_margin(cur, curd, NEED[last, a[q]], 0 if st else NEED[last, c[q]], loc[a[q]],
-                        0 if st else loc[c[q]], ds[q], st, at[q])
-        fl = -m if -m > 0.0 else 0.0  # NaN: no floor (numpy's fmax)
-        tol_p[q] = max(tol_p[q], fl * (1.0 + 1e-9))
+        used[a[q]] = True
+        if c[q] >= 0:
+            used[c[q]] = True
+    return used
 
 
 @jit
 def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at, tol, hold):
     """The gatekeeper's rounds (``gate._rounds``): ``lev``, ``broken`` updated in place; ``(margins, rounds)``."""
     n, P, last = lev.shape[0], a.shape[0], NEED.shape[0] - 1
-    loc, rob_rows, M = kp.rows_of(n, a, c)
+    used = _in_pairs(n, a, c)
     L = 2
-    for r in range(M):
-        for k in range(last + 1):
-            L = max(L, NEED[k, rob_rows[r]])
-    cur, curd = np.empty((M, L), dtype=np.complex128), np.empty((M, L - 1))
+    for g in range(n):
+        for k in range(last + 1 if used[g] else 0):
+            L = max(L, NEED[k, g])
+    cur, curd = np.empty((n, L), dtype=np.complex128), np.empty((n, L - 1))
     tol_p = np.full(P, tol)
-    if hold:
-        _hold_floors(tol_p, cur, curd, loc, rob_rows, p0, C, F, NEED, has_bulge, dt, a, c, ds, at)
+    if hold:  # each pair's tolerance the larger of tol and its margin when both members brake now
+        for g in range(n):
+            if used[g]:
+                kp.fill_row(cur, curd, g, last, last, p0, C, F, has_bulge, dt, NEED[last, g], True)
+        for q in range(P):
+            m = kp.pair_margin(cur, curd, NEED[last, a[q]], 0 if c[q] < 0 else NEED[last, c[q]], a[q], c[q], ds[q],
+                               at[q])
+            fl = -m if -m > 0.0 else 0.0  # NaN: no floor (numpy's fmax)
+            tol_p[q] = max(tol_p[q], fl * (1.0 + 1e-9))
     marg, todo = np.full(P, np.inf), np.ones(P, dtype=np.bool_)
-    filled, demote = np.full(M, -1, dtype=np.int64), np.zeros(n, dtype=np.bool_)
+    filled, demote = np.full(n, -1, dtype=np.int64), np.zeros(n, dtype=np.bool_)
     rounds = 0
     while True:
         rounds += 1
-        for r in range(M):  # the paths of the robots' current levels: only changed rows are made again
-            g = rob_rows[r]
-            if lev[g] != filled[r]:
-                kp.fill_row(cur, curd, r, g, lev[g], last, p0, C, F, has_bulge, dt, NEED[lev[g], g], True)
-                filled[r] = lev[g]
+        for g in range(n):  # the paths of the robots' current levels: only changed rows are made again
+            if used[g] and lev[g] != filled[g]:
+                kp.fill_row(cur, curd, g, lev[g], last, p0, C, F, has_bulge, dt, NEED[lev[g], g], True)
+                filled[g] = lev[g]
         demote[:] = False
         any_demote = False
         for q in range(P):
             if not todo[q]:
                 continue
-            g, h, st = a[q], c[q], c[q] < 0
-            m = kp.pair_margin(cur, curd, NEED[lev[g], g], 0 if st else NEED[lev[h], h], loc[g], 0 if st else loc[h],
-                            ds[q], st, at[q])
+            g, h = a[q], c[q]
+            st = h < 0
+            m = kp.pair_margin(cur, curd, NEED[lev[g], g], 0 if st else NEED[lev[h], h], g, h, ds[q], at[q])
             marg[q] = -np.inf if m != m else m  # a margin that is not a number fails
             if marg[q] < -tol_p[q]:
                 if lev[g] == last and (st or lev[h] == last):  # not brake-safe before: nothing to demote
@@ -165,11 +169,7 @@ def _moved_step(diff, rob, cols, p0, hd, pose, u, du, g, d, eps, dt, k):
 @jit
 def _repair_rows(rowp, rowd, made, a, c, p0, C, F, NEED, has_bulge, dt):
     """Candidate paths (row ``g``: robot ``g``) of robots in pairs, each kept until ``made`` drops it: ``(p, d, L)``."""
-    used = np.zeros(p0.shape[0], dtype=np.bool_)
-    for q in range(a.shape[0]):
-        used[a[q]] = True
-        if c[q] >= 0:
-            used[c[q]] = True
+    used = _in_pairs(p0.shape[0], a, c)
     L = 2
     for g in range(p0.shape[0]):
         if used[g]:
@@ -179,7 +179,7 @@ def _repair_rows(rowp, rowd, made, a, c, p0, C, F, NEED, has_bulge, dt):
         made[:] = False
     for g in range(p0.shape[0]):
         if used[g] and not made[g]:
-            kp.fill_row(rowp, rowd, g, g, 0, 1, p0, C, F, has_bulge, dt, NEED[0, g], False)
+            kp.fill_row(rowp, rowd, g, 0, 1, p0, C, F, has_bulge, dt, NEED[0, g], False)
             made[g] = True
     return rowp, rowd, L
 
@@ -190,12 +190,11 @@ def _low_pairs(cur, curd, need, a, c, ds, at, target, L, tie):
     P = a.shape[0]
     low, m0, kk = np.zeros(P, dtype=np.bool_), np.empty(P), np.empty(P, dtype=np.int64)
     for q in range(P):
-        g, st = a[q], c[q] < 0
-        h = 0 if st else c[q]
-        nh = 0 if st else need[h]
-        if kp.pair_margin(cur, curd, need[g], nh, g, h, ds[q], st, at[q]) < target:
+        g, h = a[q], c[q]
+        nh = 0 if h < 0 else need[h]
+        if kp.pair_margin(cur, curd, need[g], nh, g, h, ds[q], at[q]) < target:
             low[q] = True
-            best, kk[q] = kp.pair_min(cur, curd, need[g], nh, g, h, st, at[q], L - 1, tie)
+            best, kk[q] = kp.pair_min(cur, curd, need[g], nh, g, h, at[q], L - 1, tie)
             m0[q] = best - ds[q]
     return low, m0, kk
 
@@ -248,11 +247,9 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, rob, cols, group, has_group, se
     rowp, rowd, made = np.empty((n, 2), dtype=np.complex128), np.empty((n, 1)), np.zeros(n, dtype=np.bool_)
     for _ in range(rounds):
         for g in range(n):  # reach first: only robots with a pair that could come close need paths
-            p1, dev, pdot, w, rate, steps, reach, bulge = kp.candidate1(
-                diff, kp.consts(rob, cols, g), p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], du[g, 0], du[g, 1], dt)
-            C[0, g, 0], C[0, g, 1], NEED[0, g] = p1, pdot, steps + 2
-            F[0, g, 0], F[0, g, 1], F[0, g, 2], F[0, g, 3], F[0, g, 4] = dev, w, rate, bulge, reach
-            R[g] = reach + eps * dt * dt
+            _store(C, F, NEED, 0, g, 2, *kp.candidate1(diff, kp.consts(rob, cols, g), p0[g], pose[g, 2], hd[g],
+                                                       u[g, 0], u[g, 1], du[g, 0], du[g, 1], dt))
+            R[g] = F[0, g, kp.REACH] + eps * dt * dt
         a, c, ds, at = kp.near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup,
                             2.0 * target)
         if a.shape[0] == 0:

@@ -145,9 +145,6 @@ class BackupAnswer(NamedTuple):
     safe: bool
 
 
-axle_pose = pose_from_point  #: axle poses ``(N, 3)`` from control points and headings
-
-
 @dataclass(frozen=True)
 class BackupLayer:
     """The backup stage: ``stage(step, du_qp, robot_pairs) -> BackupAnswer``."""
@@ -156,7 +153,7 @@ class BackupLayer:
 
     def __call__(self, s: StepInput, du_qp: np.ndarray, pairs: np.ndarray) -> BackupAnswer:
         """Check (and repair) the QP's answer; robots the check finds broken keep the QP's answer (best effort)."""
-        gate = gate_with_repair(s.team, axle_pose(s.team, s.p, s.theta), s.u, du_qp, s.lo, s.hi, self.cfg,
+        gate = gate_with_repair(s.team, pose_from_point(s.team, s.p, s.theta), s.u, du_qp, s.lo, s.hi, self.cfg,
                                 s.obstacles, pairs, checked=True)
         broken = gate.broken
         du = np.where(broken[:, None], du_qp, gate.du)
