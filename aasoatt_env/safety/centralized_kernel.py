@@ -24,53 +24,35 @@ NOT_HERE = -1  #: not answered here (a component not verified, beyond the dense 
 
 
 @jit
-def _box1(A, t, lo, hi, i, out):
-    """Robot ``i``'s ``argmin |A_i du - t_i|^2`` in its box into ``out[i]`` (``problem.box_least_squares``')."""
-    a, b, c, d = A[i, 0, 0], A[i, 0, 1], A[i, 1, 0], A[i, 1, 1]
-    t0, t1 = t[i, 0], t[i, 1]
-    det = a * d - b * c
-    x0, x1 = (d * t0 - b * t1) / det, (a * t1 - c * t0) / det
-    lo0, lo1, hi0, hi1 = lo[i, 0], lo[i, 1], hi[i, 0], hi[i, 1]
-    if not ((x0 < lo0) or (x0 > hi0) or (x1 < lo1) or (x1 > hi1)):
-        out[i, 0], out[i, 1] = x0, x1
-        return
-    h00, h01, h11 = a * a + c * c, a * b + c * d, b * b + d * d
-    g0, g1 = -(a * t0 + c * t1), -(b * t0 + d * t1)
-    best, fbest, e0, e1 = -1, 0.0, 0.0, 0.0
-    for k in range(4):  # the edges x0 = lo, x0 = hi, x1 = lo, x1 = hi; the first of equal values
-        if k < 2:
-            y0 = lo0 if k == 0 else hi0
-            y1 = nclip(-(g1 + h01 * y0) / h11, lo1, hi1)
-        else:
-            y1 = lo1 if k == 2 else hi1
-            y0 = nclip(-(g0 + h01 * y1) / h00, lo0, hi0)
-        f = 0.5 * (h00 * y0 * y0 + 2.0 * h01 * y0 * y1 + h11 * y1 * y1) + g0 * y0 + g1 * y1
-        if best < 0 or f < fbest or (f != f and fbest == fbest):  # numpy's argmin: the first NaN wins
-            best, fbest, e0, e1 = k, f, y0, y1
-            if f != f:
-                break
-    out[i, 0], out[i, 1] = e0, e1
-
-
-@jit
 def box_least_squares(A, target, lo, hi):
-    """:func:`aasoatt_env.safety.problem.box_least_squares` of every robot, ``(K, 2)``."""
+    """:func:`aasoatt_env.safety.problem.box_least_squares` of every robot: ``argmin |A_i du - t_i|^2`` in its box."""
     out = np.empty((A.shape[0], 2))
     for i in range(A.shape[0]):
-        _box1(A, target, lo, hi, i, out)
+        a, b, c, d = A[i, 0, 0], A[i, 0, 1], A[i, 1, 0], A[i, 1, 1]
+        t0, t1 = target[i, 0], target[i, 1]
+        det = a * d - b * c
+        x0, x1 = (d * t0 - b * t1) / det, (a * t1 - c * t0) / det
+        lo0, lo1, hi0, hi1 = lo[i, 0], lo[i, 1], hi[i, 0], hi[i, 1]
+        if not ((x0 < lo0) or (x0 > hi0) or (x1 < lo1) or (x1 > hi1)):
+            out[i, 0], out[i, 1] = x0, x1
+            continue
+        h00, h01, h11 = a * a + c * c, a * b + c * d, b * b + d * d
+        g0, g1 = -(a * t0 + c * t1), -(b * t0 + d * t1)
+        best, fbest, e0, e1 = -1, 0.0, 0.0, 0.0
+        for k in range(4):  # the edges x0 = lo, x0 = hi, x1 = lo, x1 = hi; the first of equal values
+            if k < 2:
+                y0 = lo0 if k == 0 else hi0
+                y1 = nclip(-(g1 + h01 * y0) / h11, lo1, hi1)
+            else:
+                y1 = lo1 if k == 2 else hi1
+                y0 = nclip(-(g0 + h01 * y1) / h00, lo0, hi0)
+            f = 0.5 * (h00 * y0 * y0 + 2.0 * h01 * y0 * y1 + h11 * y1 * y1) + g0 * y0 + g1 * y1
+            if best < 0 or f < fbest or (f != f and fbest == fbest):  # numpy's argmin: the first NaN wins
+                best, fbest, e0, e1 = k, f, y0, y1
+                if f != f:
+                    break
+        out[i, 0], out[i, 1] = e0, e1
     return out
-
-
-@jit
-def _violated(du, ri, rj, Gi, Gj, rhs):
-    """The rows the robots' own answers ``du`` violate ``(m,)``, and the number of robot-robot rows."""
-    bad, n_rr = np.zeros(rhs.shape[0], np.bool_), 0
-    for q in range(rhs.shape[0]):
-        i, j = ri[q], rj[q]
-        other = Gj[q, 0] * du[j, 0] + Gj[q, 1] * du[j, 1] if j >= 0 else 0.0
-        bad[q] = (Gi[q, 0] * du[i, 0] + Gi[q, 1] * du[i, 1]) + other - rhs[q] > 0.0
-        n_rr += 1 if j >= 0 else 0
-    return bad, n_rr
 
 
 @jit
@@ -186,7 +168,12 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
     """
     n, m = A.shape[0], rhs.shape[0]
     du, x_full, z, eta = box_least_squares(A, target, lo, hi), np.empty((n, 2)), np.zeros(m), np.zeros(m)
-    bad, n_rr = _violated(du, ri, rj, Gi, Gj, rhs)
+    bad, n_rr = np.zeros(m, np.bool_), 0
+    for q in range(m):  # the rows the robots' own answers violate, and the number of robot-robot rows
+        i, j = ri[q], rj[q]
+        other = Gj[q, 0] * du[j, 0] + Gj[q, 1] * du[j, 1] if j >= 0 else 0.0
+        bad[q] = (Gi[q, 0] * du[i, 0] + Gi[q, 1] * du[i, 1]) + other - rhs[q] > 0.0
+        n_rr += 1 if j >= 0 else 0
     for i in range(n):
         x_full[i, 0], x_full[i, 1] = du[i, 0] / scale[i], du[i, 1] / scale[i]
     if not bad.any():

@@ -1,9 +1,9 @@
 """The braking backup layer: keeps the team collision-free for any nominal, under the real input bounds.
 
 A gatekeeper in the sense of Agrawal and Panagou, a backup-set barrier in the sense of Gurriet et al.: :mod:`.paths`,
-the backup policy (proportional braking) and its paths in closed form; :mod:`.gate`, the gatekeeper; :mod:`.repair`,
-the least nudge of a candidate toward brake-safety; :mod:`.layer`, the filter's stage; :mod:`.kernels` and
-:mod:`.kernel_paths`, the compiled check and repair.
+the backup policy (proportional braking) and its paths in closed form; :mod:`.gate`, the gatekeeper and the repair
+(the least nudge of a candidate toward brake-safety); :mod:`.layer`, the filter's stage; :mod:`.kernels`,
+the compiled check and repair.
 """
 
 from aasoatt_env.safety.backup.gate import CLOSEST_TIE, GateResult, gatekeeper, pair_margins

@@ -1,10 +1,11 @@
-"""The gatekeeper: accepts a candidate input only where braking from the state it leads to keeps every pair apart.
+"""The gatekeeper (a candidate passes where braking from the state it leads to keeps every pair apart) and the repair.
 
 Pair check (:func:`pair_margins`): within a step a wheeled robot moves on an arc that deviates from the chord of its
 end points by at most its sagitta ``|p_dot| |omega| dt^2 / 8``, a point mass on a parabola ``|du| dt^2 / 8`` off it.
 The distance from the origin to the segment of *relative* positions minus both deviations bounds the pair's distance
 over the step from below; a pair is safe over a horizon when that bound is ``>= d_s = r_i + r_j`` at every step.
-Obstacles are robots that never move.
+Obstacles are robots that never move.  The repair nudges a QP answer toward brake-safety, so that the gatekeeper
+rarely has to brake.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import SUBSET_OF, Team
 from aasoatt_env.safety.backup import paths
 
-__all__ = ["BLEND_LEVELS", "CLOSEST_TIE", "GateResult", "gatekeeper", "pair_margins"]
+__all__ = ["BLEND_LEVELS", "CLOSEST_TIE", "GateResult", "gatekeeper", "pair_margins", "repair"]
 
 BLEND_LEVELS: tuple[float, ...] = (0.5,)  #: default blend shares of candidate and backup (``gatekeeper``'s)
 CLOSEST_TIE: float = 1e-12  #: steps within this [m] of a pair's smallest distance tie for its closest step
@@ -355,3 +356,86 @@ def _obstacle_arrays(team: Team, obstacles: tuple[np.ndarray, ...] | None) -> tu
     c, orad = np.asarray(obstacles[0], dtype=np.float64), np.asarray(obstacles[1], dtype=np.float64)
     grouped = team.group is not None and len(obstacles) > 2 and obstacles[2] is not None
     return c[:, 0] + 1j * c[:, 1], orad, np.asarray(obstacles[2]) if grouped else None
+
+
+def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float, lo: np.ndarray, hi: np.ndarray,
+           *, sensing_range: float, brake_fraction: float, obstacles: tuple[np.ndarray, ...] | None = None,
+           target: float = 2e-4, rounds: int = 3, eps: float = 1.0, near_pairs: np.ndarray | None = None,
+           compiled: bool = False, checked: bool = False) -> np.ndarray:
+    """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
+
+    For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below ``target`` [m], both
+    inputs move by the least-norm change that lifts the margin to ``2 target``, linearised by finite differences (step
+    ``eps``) at its closest step; the changes add up and are clipped to ``[lo, hi]``, ``rounds`` times.  Safety still
+    comes from the gatekeeper, whose ``near_pairs``, ``compiled``, ``checked`` these are.
+    """
+    if not checked:
+        near_pairs = validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c, lo=lo, hi=hi)
+    if compiled:
+        block = kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
+        pose, u, du_c, lo, hi = (c64(a) for a in (pose, u, du_c, lo, hi))
+        return kernels().repair_full(pose, u, du_c, lo, hi, float(dt), *block, float(target), int(rounds),
+                                     float(eps), CLOSEST_TIE)
+    du = np.minimum(np.maximum(du_c, lo), hi)
+    n = pose.shape[0]
+    p0 = paths.point(team, pose)
+    for _ in range(rounds):
+        # reach first (O(N)): only robots with a pair that could come close need sampled paths
+        R = paths.candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction).reach + eps * dt * dt
+        i, j, ds = pairs_near(team, p0, R, sensing_range, 2.0 * target, near_pairs)
+        oc, oi, ok, ods = obstacles_near(team, p0, R, obstacles, 2.0 * target)
+        if i.size + oi.size == 0:
+            break
+        S = np.unique(np.concatenate((i, j, oi)))  # rows of the paths: these robots, in this order
+        loc = np.full(n, -1, dtype=np.intp)
+        loc[S] = np.arange(S.size)
+        t = paths.candidate_paths(team.subset(S), pose[S], u[S], du[S], dt, brake_fraction)
+        P, D, need = t.p, t.delta, t.length
+        low = bucketed_margins(P, D, need, loc[i], loc[j], ds) < target
+        i, j, ds = i[low], j[low], ds[low]
+        if oi.size:
+            lowo = bucketed_margins(P, D, need, loc[oi], ok, ods, centers=oc) < target
+            oi, ok, ods = oi[lowo], ok[lowo], ods[lowo]
+        if i.size + oi.size == 0:
+            break
+        step = _lifts(team, pose, u, du, dt, brake_fraction, target, eps, (P, D), loc, (i, j, ds), (oc, oi, ok, ods))
+        if not step.any():
+            break
+        du = np.minimum(np.maximum(du + step, lo), hi)
+    return du
+
+
+def _lifts(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float, brake_fraction: float,
+           target: float, eps: float, base: tuple, loc: np.ndarray, pairs: tuple, obst: tuple) -> np.ndarray:
+    """The summed least-norm lifts ``(n, 2)`` of the low pairs, by finite differences at their closest steps."""
+    (P, D), (i, j, ds), (oc, oi, ok, ods) = base, pairs, obst
+    n = pose.shape[0]
+    step = np.zeros((n, 2))
+    U = np.unique(np.concatenate((i, j, oi)))  # every robot of a low pair with each input moved: rows 2 q + d
+    at = np.full(n, -1, dtype=np.intp)
+    at[U] = 2 * np.arange(U.size)
+    R2 = np.repeat(U, 2)
+    sub = (team.subset(R2), pose[R2], u[R2], du[R2] + eps * np.tile(np.eye(2), (U.size, 1)), dt, brake_fraction)
+    if i.size:
+        li, lj = loc[i], loc[j]
+        m0, k = pair_margins(P[li], P[lj], D[li], D[lj], ds, closest=True)
+        s4 = np.tile(k[:, None] + np.arange(2), (4, 1))
+        fix = np.concatenate((lj, lj, li, li))
+        pm, dm = paths.candidate_samples_at(*sub, s4, rows=np.concatenate((at[i], at[i] + 1, at[j], at[j] + 1)))
+        mg = pair_margins(pm, P[fix[:, None], s4], dm[:, :1], D[fix, s4[:, 0]][:, None], np.tile(ds, 4))
+        mg = mg.reshape(4, -1)
+        gi = ((mg[0:2] - m0) / eps).T
+        gj = ((mg[2:4] - m0) / eps).T
+        lift = (2.0 * target - m0) / np.maximum((gi * gi).sum(1) + (gj * gj).sum(1), 1e-12)
+        np.add.at(step, i, lift[:, None] * gi)
+        np.add.at(step, j, lift[:, None] * gj)
+    if oi.size:
+        lo_ = loc[oi]
+        m0, k = pair_margins(P[lo_], oc[ok][:, None], D[lo_], 0.0, ods, closest=True)
+        s2 = np.tile(k[:, None] + np.arange(2), (2, 1))
+        pm, dm = paths.candidate_samples_at(*sub, s2, rows=np.concatenate((at[oi], at[oi] + 1)))
+        mg = pair_margins(pm, oc[np.tile(ok, 2)][:, None], dm[:, :1], 0.0, np.tile(ods, 2)).reshape(2, -1)
+        go = ((mg - m0) / eps).T
+        lift = (2.0 * target - m0) / np.maximum((go * go).sum(1), 1e-12)
+        np.add.at(step, oi, lift[:, None] * go)
+    return step

@@ -10,9 +10,8 @@ import numpy as np
 from aasoatt_env.model.dynamics import pose_from_point
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import Team
-from aasoatt_env.safety.backup.gate import GateResult, gatekeeper, validate
+from aasoatt_env.safety.backup.gate import GateResult, gatekeeper, repair, validate
 from aasoatt_env.safety.backup.paths import point
-from aasoatt_env.safety.backup.repair import repair
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.stages import StepInput
 from aasoatt_env.sim.env import FILTERED_MIN_COLLISION_TOLERANCE
