@@ -19,6 +19,7 @@ from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import SUBSET_OF, Team
 from aasoatt_env.safety.backup import paths
+from aasoatt_env.validation import shapes
 
 __all__ = ["BLEND_LEVELS", "CLOSEST_TIE", "GateResult", "gatekeeper", "pair_margins", "repair"]
 
@@ -284,10 +285,7 @@ def validate(team: Team, pose: np.ndarray, obstacles: tuple[np.ndarray, ...] | N
              **per_robot: np.ndarray) -> np.ndarray | None:
     """Refuse (``ValueError``) any shape or pair index the kernels would misread; ``near_pairs`` as an array."""
     n = team.n
-    for name, a in (("pose", pose), *per_robot.items()):
-        if np.shape(a) != ((n, 3) if name == "pose" else (n, 2)):
-            raise ValueError(f"{name}: got shape {np.shape(a)}, expected ({n}, {3 if name == 'pose' else 2}) "
-                             f"for a team of {n} robots")
+    shapes([("pose", pose, (n, 3)), *((k, a, (n, 2)) for k, a in per_robot.items())], f" for a team of {n} robots")
     if obstacles is not None and np.asarray(obstacles[1]).size:
         c, orad = np.asarray(obstacles[0]), np.asarray(obstacles[1])
         grouped = team.group is not None and len(obstacles) > 2 and obstacles[2] is not None

@@ -116,22 +116,23 @@ class _Components:
         return q[(q >= 0).all(axis=1)]
 
 
+_PER_ROBOT = ("du", "braking", "broken", "share", "robot_margin", "out_of_range")  # a GateResult's (N,) fields
+
+
 def _rows_of(g: GateResult, at: np.ndarray) -> GateResult:
     """The per-robot entries ``at`` of a gate result (scalars kept)."""
-    return g._replace(du=g.du[at], braking=g.braking[at], broken=g.broken[at], share=g.share[at],
-                      robot_margin=g.robot_margin[at], out_of_range=g.out_of_range[at])
+    return g._replace(**{f: getattr(g, f)[at] for f in _PER_ROBOT})
 
 
 def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], unsafe: bool) -> GateResult:
     """``base`` with each part's robots replaced by its answers (later parts win; n_pairs, out_of_range kept)."""
-    du, braking, broken = base.du.copy(), base.braking.copy(), base.broken.copy()
-    share, robot_margin = base.share.copy(), base.robot_margin.copy()
+    new = {f: getattr(base, f).copy() for f in _PER_ROBOT[:-1]}
     for rows, g in parts:
-        du[rows], braking[rows], broken[rows], share[rows], robot_margin[rows] = (
-            g.du, g.braking, g.broken, g.share, g.robot_margin)
-    return GateResult(du, braking, float(robot_margin.min(initial=base.margin)), not (unsafe or broken.any()), broken,
-                      share, base.rounds + sum(g.rounds for _, g in parts), base.n_pairs, robot_margin,
-                      base.out_of_range)
+        for f, a in new.items():
+            a[rows] = getattr(g, f)
+    return base._replace(margin=float(new["robot_margin"].min(initial=base.margin)),
+                         safe=not (unsafe or new["broken"].any()), rounds=base.rounds + sum(g.rounds for _, g in parts),
+                         **new)
 
 
 class BackupAnswer(NamedTuple):
