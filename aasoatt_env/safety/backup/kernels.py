@@ -1,10 +1,9 @@
 """The backup layer's compiled check and repair (numba; imported only through :mod:`aasoatt_env.compiled`).
 
-:func:`gate_full` is one :func:`~.gate.gatekeeper` call and :func:`repair_full` one :func:`~.gate.repair` call, on the
-block of :func:`~.gate.kernel_args` (robots' constants: the columns of :func:`~.gate.team_block`'s), whose shapes the
-caller checked.  Each helper is its numpy reference in :mod:`.paths` or :mod:`.gate` (the name says which) for one
-robot, sample or pair, in its order of operations but for ``sqrt(x^2 + y^2)`` for ``hypot`` and :func:`fill_brake`'s
-recurrence: the results agree to rounding.
+:func:`gate_full` is one :func:`~.gate.gatekeeper` call and :func:`repair_full` one :func:`~.gate.repair` call on the
+block of :func:`~.gate.kernel_args`, whose shapes the caller checked.  Each helper is its numpy reference in
+:mod:`.paths` or :mod:`.gate` (the name says which) for one robot, sample or pair, in its order of operations but for
+``sqrt(x^2 + y^2)`` for ``hypot`` and :func:`fill_brake`'s recurrence: the results agree to rounding.
 """
 
 import math
@@ -16,7 +15,7 @@ from aasoatt_env.safety.backup.paths import _EPS, MAX_BRAKE_STEPS
 
 __all__ = ["fill_brake", "gate_full", "repair_full"]
 
-OFFSET, TURN_GAIN, MAX_ACCEL, DECEL, RADIUS = 0, 1, 2, 3, 4  # columns of the robots' constants
+OFFSET, TURN_GAIN, MAX_ACCEL, DECEL, RADIUS = 0, 1, 2, 3, 4  # columns of the robots' constants (gate.team_block)
 D1, OMEGA, RATE, BULGE, REACH = 0, 1, 2, 3, 4  # columns of a level's floats F (its complex C: step end, velocity)
 _PI = float(np.pi)
 _RESYNC = 16  # samples between the exact rotations of fill_brake's recurrence
@@ -123,9 +122,8 @@ def candidate1(diff, rc, p0, theta, heading, u0, u1, du0, du1, dt):
 def fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulge, dt, length, fast):
     """``paths.brake_samples`` into ``row_p[start:length]`` from ``p_start``, deviations into ``row_d``.
 
-    ``fast``: while the robot decelerates each step's rotation ``e^{i omega dtau / 2}`` is the previous one's times a
-    fixed factor; by recurrence, exact every :data:`_RESYNC` samples and at rest, the samples are within ~1e-13 of the
-    path's length of the exact ones.
+    ``fast``: while decelerating, each step's rotation ``e^{i omega dtau / 2}`` is the previous one's times a fixed
+    factor (exact every :data:`_RESYNC` samples and at rest): samples within ~1e-13 of the path's length of the exact.
     """
     c8, half_dt, apd, aw = dt * dt / 8.0, 0.5 * dt, cabs(pdot), abs(omega)
     tau, sig_prev = 0.0, 1.0
@@ -166,12 +164,12 @@ def fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulge
 
 
 @jit
-def fill_row(cur, curd, g, k, last, p0, C, F, has_bulge, dt, need, fast):
-    """Row ``g`` of ``cur``/``curd``: robot ``g``'s path on level ``k`` (``need`` samples; ``last``: braking now)."""
+def fill_row(cur, curd, r, g, k, last, p0, C, F, has_bulge, dt, need, fast):
+    """Row ``r`` of ``cur``/``curd``: robot ``g``'s path on level ``k`` (``need`` samples; ``last``: braking now)."""
     s = 0 if k == last else 1
     if s:
-        cur[g, 0], curd[g, 0] = p0[g], F[k, g, D1]
-    fill_brake(cur[g], curd[g], s, p0[g] if k == last else C[k, g, 0], C[k, g, 1], F[k, g, OMEGA], F[k, g, RATE],
+        cur[r, 0], curd[r, 0] = p0[g], F[k, g, D1]
+    fill_brake(cur[r], curd[r], s, p0[g] if k == last else C[k, g, 0], C[k, g, 1], F[k, g, OMEGA], F[k, g, RATE],
                F[k, g, BULGE], has_bulge, dt, need, fast)
 
 
@@ -201,8 +199,7 @@ def segment_margin(qa0, qa1, qc0, qc1, da, dc):
     dr = q1.real - q0.real
     dm = q1.imag - q0.imag
     dd = dr * dr + dm * dm
-    if not dd > 0.0:
-        dd = 1.0
+    dd = dd if dd > 0.0 else 1.0
     t = -(q0.real * dr + q0.imag * dm) / dd
     t = 0.0 if t < 0.0 else (1.0 if t > 1.0 else t)
     x = q0.real + t * dr
@@ -248,9 +245,9 @@ def pair_margin(cur, curd, na, nc, a, c, ds, oc):
 
 @jit
 def near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup, slack):
-    """``gate.pairs_near`` of ``cand``, then ``gate.obstacles_near`` (``c = -1``): ``(a, c, d_s, centre, in pairs)``."""
+    """``gate.pairs_near`` of ``cand``, then ``gate.obstacles_near`` (``c = -1``): ``(a, c, d_s, centre, loc, M)``."""
     n, m = p0.shape[0], oc.shape[0]
-    used = np.zeros(n, dtype=np.bool_)
+    loc, M = np.full(n, -1, dtype=np.int64), 0  # each robot's row among the M robots in a pair (-1: in none)
     a, c = np.empty(cand.shape[0] + n * m, np.int64), np.empty(cand.shape[0] + n * m, np.int64)
     ds, at = np.empty(a.shape[0]), np.zeros(a.shape[0], np.complex128)
     P = 0
@@ -261,7 +258,9 @@ def near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, ha
         dist = cabs(p0[g] - p0[h])
         if dist <= sensing_range and dist < rob[g, RADIUS] + rob[h, RADIUS] + R[g] + R[h] + slack:
             a[P], c[P], ds[P] = g, h, rob[g, RADIUS] + rob[h, RADIUS]
-            used[g] = used[h] = True
+            for x in (g, h):
+                if loc[x] < 0:
+                    loc[x], M = M, M + 1
             P += 1
     for g in range(n):
         for o in range(m):
@@ -269,9 +268,10 @@ def near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, ha
                 continue
             if cabs(p0[g] - oc[o]) < rob[g, RADIUS] + orad[o] + R[g] + slack:
                 a[P], c[P], ds[P], at[P] = g, -1, rob[g, RADIUS] + orad[o], oc[o]
-                used[g] = True
+                if loc[g] < 0:
+                    loc[g], M = M, M + 1
                 P += 1
-    return a[:P], c[:P], ds[:P], at[:P], used
+    return a[:P], c[:P], ds[:P], at[:P], loc, M
 
 
 @jit
@@ -291,7 +291,8 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
     for g in range(n):  # the backup from now: level `last`
         rc = consts(rob, cols, g)
         den = nmax(brake_time1(diff, rc, u[g, 0], u[g, 1]), dt)
-        _store(C, F, NEED, last, g, 1, 0j, 0.0, *brake1(diff, rc, hd[g], u[g, 0], u[g, 1], dt))
+        pdot, w, rate, steps, reach, bulge = brake1(diff, rc, hd[g], u[g, 0], u[g, 1], dt)
+        _store(C, F, NEED, last, g, 1, 0j, 0.0, pdot, w, rate, steps, reach, bulge)
         du_all[last, g, 0], du_all[last, g, 1] = -u[g, 0] / den, -u[g, 1] / den
     for k in range(nl - 1):  # one step blending the candidate and the backup, then the backup
         a = levels[k]
@@ -300,9 +301,10 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
             b0, b1 = du_all[last, g, 0], du_all[last, g, 1]
             da0, da1 = b0 + a * (du_c[g, 0] - b0), b1 + a * (du_c[g, 1] - b1)
             du_all[k, g, 0], du_all[k, g, 1] = da0, da1
-            _store(C, F, NEED, k, g, 2, *candidate1(diff, consts(rob, cols, g), p0[g], pose[g, 2], hd[g],
-                                                       u[g, 0], u[g, 1], da0, da1, dt))
-            out = out or F[k, g, REACH] > limit[g]
+            p1, dev, pdot, w, rate, steps, reach, bulge = candidate1(
+                diff, consts(rob, cols, g), p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], da0, da1, dt)
+            _store(C, F, NEED, k, g, 2, p1, dev, pdot, w, rate, steps, reach, bulge)
+            out = out or reach > limit[g]
         if k == 0 and quick and not out:  # no candidate leaves the range: levels (1, 0), rows 0 and last
             keep = np.array([0, last])
             return du_all[keep], C[keep], F[keep], NEED[keep]
@@ -310,22 +312,23 @@ def _gate_levels(pose, u, du_c, dt, levels, quick, diff, rob, cols, p0, hd, limi
 
 
 @jit
-def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at, used, tol, hold):
+def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at, loc, M, tol, hold):
     """The gatekeeper's rounds (``gate._rounds``): ``lev``, ``broken`` updated in place; ``(margins, rounds)``."""
     n, P, last = lev.shape[0], a.shape[0], NEED.shape[0] - 1
     L = 2
     for g in range(n):
-        for k in range(last + 1 if used[g] else 0):
+        for k in range(last + 1 if loc[g] >= 0 else 0):
             L = max(L, NEED[k, g])
-    cur, curd = np.empty((n, L), dtype=np.complex128), np.empty((n, L - 1))
+    cur, curd = np.empty((M, L), dtype=np.complex128), np.empty((M, L - 1))
     tol_p = np.full(P, tol)
     if hold:  # each pair's tolerance the larger of tol and its margin when both members brake now
         for g in range(n):
-            if used[g]:
-                fill_row(cur, curd, g, last, last, p0, C, F, has_bulge, dt, NEED[last, g], True)
+            if loc[g] >= 0:
+                fill_row(cur, curd, loc[g], g, last, last, p0, C, F, has_bulge, dt, NEED[last, g], True)
         for q in range(P):
-            m = pair_margin(cur, curd, NEED[last, a[q]], 0 if c[q] < 0 else NEED[last, c[q]], a[q], c[q], ds[q],
-                               at[q])
+            g, h = a[q], c[q]
+            m = pair_margin(cur, curd, NEED[last, g], 0 if h < 0 else NEED[last, h], loc[g], -1 if h < 0 else loc[h],
+                            ds[q], at[q])
             fl = -m if -m > 0.0 else 0.0  # NaN: no floor (numpy's fmax)
             tol_p[q] = max(tol_p[q], fl * (1.0 + 1e-9))
     marg, todo = np.full(P, np.inf), np.ones(P, dtype=np.bool_)
@@ -334,8 +337,8 @@ def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at
     while True:
         rounds += 1
         for g in range(n):  # the paths of the robots' current levels: only changed rows are made again
-            if used[g] and lev[g] != filled[g]:
-                fill_row(cur, curd, g, lev[g], last, p0, C, F, has_bulge, dt, NEED[lev[g], g], True)
+            if loc[g] >= 0 and lev[g] != filled[g]:
+                fill_row(cur, curd, loc[g], g, lev[g], last, p0, C, F, has_bulge, dt, NEED[lev[g], g], True)
                 filled[g] = lev[g]
         demote[:] = False
         any_demote = False
@@ -344,7 +347,8 @@ def _gate_rounds(lev, broken, limit, p0, C, F, NEED, has_bulge, dt, a, c, ds, at
                 continue
             g, h = a[q], c[q]
             st = h < 0
-            m = pair_margin(cur, curd, NEED[lev[g], g], 0 if st else NEED[lev[h], h], g, h, ds[q], at[q])
+            m = pair_margin(cur, curd, NEED[lev[g], g], 0 if st else NEED[lev[h], h], loc[g], -1 if st else loc[h],
+                            ds[q], at[q])
             marg[q] = -np.inf if m != m else m  # a margin that is not a number fails
             if marg[q] < -tol_p[q]:
                 if lev[g] == last and (st or lev[h] == last):  # not brake-safe before: nothing to demote
@@ -383,10 +387,11 @@ def gate_full(pose, u, du_c, dt, levels, quick, diff, rob, cols, group, has_grou
         while lev[g] < last and F[lev[g], g, REACH] > limit[g]:  # a level whose path leaves the range is skipped
             lev[g] += 1
         broken[g], out_of_range[g] = F[last, g, REACH] > limit[g], F[0, g, REACH] > limit[g]
-    a, c, ds, at, used = near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup, 1e-12)
+    a, c, ds, at, loc, M = near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup, 1e-12)
     robot_margin, rounds = limit.copy(), 0
     if a.shape[0]:
-        marg, rounds = _gate_rounds(lev, broken, limit, p0, C, F, NEED, not diff, dt, a, c, ds, at, used, tol, hold)
+        marg, rounds = _gate_rounds(lev, broken, limit, p0, C, F, NEED, not diff, dt, a, c, ds, at, loc, M, tol,
+                                    hold)
         for q in range(a.shape[0]):
             for x in (a[q], c[q]):
                 if x >= 0:
@@ -453,22 +458,23 @@ def repair_full(pose, u, du_c, lo, hi, dt, diff, rob, cols, group, has_group, se
     rowp, rowd, made = np.empty((n, 2), dtype=np.complex128), np.empty((n, 1)), np.zeros(n, dtype=np.bool_)
     for _ in range(rounds):
         for g in range(n):  # reach first: only robots with a pair that could come close need paths
-            _store(C, F, NEED, 0, g, 2, *candidate1(diff, consts(rob, cols, g), p0[g], pose[g, 2], hd[g],
-                                                       u[g, 0], u[g, 1], du[g, 0], du[g, 1], dt))
-            R[g] = F[0, g, REACH] + eps * dt * dt
-        a, c, ds, at, used = near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup,
+            p1, dev, pdot, w, rate, steps, reach, bulge = candidate1(
+                diff, consts(rob, cols, g), p0[g], pose[g, 2], hd[g], u[g, 0], u[g, 1], du[g, 0], du[g, 1], dt)
+            _store(C, F, NEED, 0, g, 2, p1, dev, pdot, w, rate, steps, reach, bulge)
+            R[g] = reach + eps * dt * dt
+        a, c, ds, at, loc, _ = near(cand, p0, R, rob, group, has_group, sensing_range, oc, orad, ogroup, has_ogroup,
                             2.0 * target)
         if a.shape[0] == 0:
             break
         L = 2
         for g in range(n):
-            L = max(L, NEED[0, g]) if used[g] else L
+            L = max(L, NEED[0, g]) if loc[g] >= 0 else L
         if L > rowp.shape[1]:
             rowp, rowd = np.empty((n, L), dtype=np.complex128), np.empty((n, L - 1))
             made[:] = False
         for g in range(n):  # the candidate paths of robots in pairs, each kept until its input changes
-            if used[g] and not made[g]:
-                fill_row(rowp, rowd, g, 0, 1, p0, C, F, not diff, dt, NEED[0, g], False)
+            if loc[g] >= 0 and not made[g]:
+                fill_row(rowp, rowd, g, g, 0, 1, p0, C, F, not diff, dt, NEED[0, g], False)
                 made[g] = True
         P = a.shape[0]
         low, m0, kk = np.zeros(P, dtype=np.bool_), np.empty(P), np.empty(P, dtype=np.int64)
