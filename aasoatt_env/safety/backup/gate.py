@@ -145,7 +145,7 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
     oc, oi, ok, ods = obstacles_near(team, p0, R, obstacles, 1e-12)
     rounds, robot_margin = 0, limit.copy()
     if i.size + oi.size:
-        lp = _LevelPaths(p0, firsts, b0, np.unique(np.concatenate((i, j, oi))), dt)
+        lp = (p0, firsts, b0, np.unique(np.concatenate((i, j, oi))), dt)
         rounds, marg, omarg = _rounds(lp, lev, broken, reach, limit, (i, j, ds), (oi, ok, ods, oc), tol,
                                       hold_violations)
         np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
@@ -180,43 +180,38 @@ def _in_range(lev: np.ndarray, reach: np.ndarray, limit: np.ndarray) -> np.ndarr
     return lev
 
 
-class _LevelPaths:
-    """The paths of robots ``M`` on every level, as rows of a common length."""
-
-    def __init__(self, p0: np.ndarray, firsts: list, b0, M: np.ndarray, dt: float) -> None:
-        self.p0, self.firsts, self.b0, self.M, self.dt = p0, firsts, b0, M, dt
-        self.need = np.stack([c.b1.steps[M] + 2 for c in firsts] + [b0.steps[M] + 1])  # samples per level and row
-        self.L = max(int(self.need.max(initial=0)), 2)
-
-    def rows(self, k: int, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Samples ``(r, L)`` and deviations ``(r, L-1)`` of level ``k`` for the rows ``r`` of ``M``."""
-        g = self.M[r]
-        if k == len(self.firsts):
-            return paths.brake_samples(self.p0[g], self.b0.take(g), self.dt, self.L)
-        c = self.firsts[k]
-        return paths.candidate_samples(self.p0[g], c._replace(p1=c.p1[g], d1=c.d1[g], b1=c.b1.take(g)), self.dt,
-                                       self.L)
+def _level_rows(p0: np.ndarray, firsts: list, b0, g: np.ndarray, k: int, dt: float, L: int) -> tuple:
+    """Samples ``(len(g), L)`` and deviations ``(len(g), L-1)`` of robots ``g``' paths on level ``k``."""
+    if k == len(firsts):
+        return paths.brake_samples(p0[g], b0.take(g), dt, L)
+    c = firsts[k]
+    return paths.candidate_samples(p0[g], c._replace(p1=c.p1[g], d1=c.d1[g], b1=c.b1.take(g)), dt, L)
 
 
-def _rounds(lp: _LevelPaths, lev: np.ndarray, broken: np.ndarray, reach: np.ndarray, limit: np.ndarray,
+def _rounds(lp: tuple, lev: np.ndarray, broken: np.ndarray, reach: np.ndarray, limit: np.ndarray,
             pairs: tuple, obst: tuple, tol: float, hold: bool) -> tuple[int, np.ndarray, np.ndarray]:
-    """The gatekeeper's rounds: ``lev`` and ``broken`` updated in place; ``(rounds, pair and obstacle margins)``."""
-    (i, j, ds), (oi, ok, ods, oc) = pairs, obst
-    n, last, M = lev.shape[0], reach.shape[0] - 1, lp.M
+    """The gatekeeper's rounds: ``lev`` and ``broken`` updated in place; ``(rounds, pair and obstacle margins)``.
+
+    ``lp``: ``(p0, firsts, b0, M, dt)``, the paths of robots ``M`` on every level (:func:`_level_rows`).
+    """
+    (i, j, ds), (oi, ok, ods, oc), (p0, firsts, b0, M, dt) = pairs, obst, lp
+    n, last = lev.shape[0], reach.shape[0] - 1
+    need = np.stack([c.b1.steps[M] + 2 for c in firsts] + [b0.steps[M] + 1])  # samples per level and row
+    L = max(int(need.max(initial=0)), 2)
     loc = np.full(n, -1, dtype=np.intp)
     loc[M] = np.arange(M.size)
     li, lj, lo_ = loc[i], loc[j], loc[oi]
     rows_m = np.arange(M.size)
     tol_p, tol_o = np.full(i.shape[0], float(tol)), np.full(oi.shape[0], float(tol))
     if hold:  # each pair's own floor, the larger of it and tol: its margin when both members brake now
-        Pb, Db = lp.rows(last, rows_m)
-        tol_p = np.fmax(tol_p, np.fmax(0.0, -bucketed_margins(Pb, Db, lp.need[last], li, lj, ds)) * (1.0 + 1e-9))
-        floor = np.fmax(0.0, -bucketed_margins(Pb, Db, lp.need[last], lo_, ok, ods, centers=oc))
+        Pb, Db = _level_rows(p0, firsts, b0, M, last, dt, L)
+        tol_p = np.fmax(tol_p, np.fmax(0.0, -bucketed_margins(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9))
+        floor = np.fmax(0.0, -bucketed_margins(Pb, Db, need[last], lo_, ok, ods, centers=oc))
         tol_o = np.fmax(tol_o, floor * (1.0 + 1e-9))
     marg, omarg = np.full(i.shape[0], np.inf), np.full(oi.shape[0], np.inf)
     todo, otodo = np.ones(i.shape[0], dtype=bool), np.ones(oi.shape[0], dtype=bool)
-    cur = np.empty((M.size, lp.L), dtype=np.complex128)
-    curd = np.empty((M.size, lp.L - 1))
+    cur = np.empty((M.size, L), dtype=np.complex128)
+    curd = np.empty((M.size, L - 1))
     filled = np.full(M.size, -1)  # the level whose paths are in a row of `cur`
     rounds = 0
     while True:
@@ -225,9 +220,9 @@ def _rounds(lp: _LevelPaths, lev: np.ndarray, broken: np.ndarray, reach: np.ndar
         stale = lm != filled  # only rows whose level changed are made again
         for k in np.unique(lm[stale]):
             r = np.flatnonzero(stale & (lm == k))
-            cur[r], curd[r] = lp.rows(int(k), r)
+            cur[r], curd[r] = _level_rows(p0, firsts, b0, M[r], int(k), dt, L)
         filled = lm
-        cneed = lp.need[lm, rows_m]
+        cneed = need[lm, rows_m]
         idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
         marg[idx] = bucketed_margins(cur, curd, cneed, li[idx], lj[idx], ds[idx])
         omarg[oidx] = bucketed_margins(cur, curd, cneed, lo_[oidx], ok[oidx], ods[oidx], centers=oc)
