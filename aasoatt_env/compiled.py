@@ -29,9 +29,9 @@ PARTS: dict[str, str] = {
     "geometry": "aasoatt_env.model.geometry_kernel",
     "rows": "aasoatt_env.safety.rows_kernel",
     "centralized": "aasoatt_env.safety.centralized_kernel",
-    "fused": "aasoatt_env.safety.fused_kernel",
-    "inputs": "aasoatt_env.safety.inputs_kernel",
-    "deadlock": "aasoatt_env.safety.deadlock_kernel",
+    "fused": "aasoatt_env.safety.centralized_kernel",
+    "inputs": "aasoatt_env.safety.rows_kernel",
+    "deadlock": "aasoatt_env.safety.rows_kernel",
 }
 """The compiled parts (each a stage's loop, the same numbers or the same decisions) and their modules."""
 

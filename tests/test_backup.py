@@ -559,27 +559,6 @@ def test_a_stack_of_teams_is_gated_as_each_team_alone(radii):
     assert braked > 20 and repaired_kept > 5  # the layer acted, in both of its ways, in some teams only
 
 
-def test_repair_path_cache_equals_the_paths_made_afresh():
-    """The repair keeps each robot's candidate path until its input changes: what it hands out is,
-    sample for sample, what candidate_paths gives for those robots and inputs."""
-    from aasoatt_env.safety.backup.repair import _PathCache
-
-    team = _teams()["mixed"]
-    rng = np.random.default_rng(12)
-    pose, u = _random_state(team, rng)
-    du = rng.uniform(-1, 1, (team.n, 2)) * team.max_wheel_accel[:, None]
-    cache = _PathCache(team, pose, u, DT, F)
-    for rows in (np.array([1, 3]), np.array([0, 1, 2, 3, 4]), np.array([2, 4])):
-        moved = rng.choice(team.n, 2, replace=False)
-        du[moved] = rng.uniform(-1, 1, (2, 2)) * team.max_wheel_accel[moved, None]
-        cache.forget(moved)
-        p, delta, length = cache.get(rows, du)
-        fresh = candidate_paths(team.subset(rows), pose[rows], u[rows], du[rows], DT, F)
-        np.testing.assert_array_equal(p, fresh.p)
-        np.testing.assert_array_equal(delta, fresh.delta)
-        np.testing.assert_array_equal(length, fresh.length)
-
-
 def test_a_group_checked_alone_keeps_the_whole_teams_range_limits():
     """A big robot far away must not change what a group of small robots may do, and what the group
     does alone must keep the whole team brake-safe: every robot's range limit is its own,

@@ -22,9 +22,8 @@ from aasoatt_env.model.dynamics import DT, input_bounds, integrate, kinematics
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import RobotParams, Team, make_team, stack_teams
 from aasoatt_env.safety import SafetyFilter, warm_up
-from aasoatt_env.safety.backup.gate import gatekeeper
+from aasoatt_env.safety.backup.gate import gatekeeper, repair
 from aasoatt_env.safety.backup.paths import point as _point
-from aasoatt_env.safety.backup.repair import repair
 from aasoatt_env.safety.problem import build_problem
 from aasoatt_env.safety.solvers import active_set, policy
 from aasoatt_env.safety.solvers.local import solve_local_qps
@@ -106,7 +105,7 @@ def test_the_gatekeepers_braking_samples_by_recurrence_match_the_sines_and_cosin
     Short and long brakes (1 to 5,000 steps, several resynchronisations), turns from none
     (omega 0 and 1e-12) to spinning, both row starts, point masses (bulge) too.
     """
-    from aasoatt_env.safety.backup import kernel_paths as k
+    from aasoatt_env.safety.backup import kernels as k
 
     rng = np.random.default_rng(11)
     worst = 0.0

@@ -18,7 +18,6 @@ from aasoatt_env.safety import centralized as centralized_module
 from aasoatt_env.safety import problem as problem_module
 from aasoatt_env.safety import rows as rows_module
 from aasoatt_env.safety.backup import gate as gatekeeper_module
-from aasoatt_env.safety.backup import repair as repair_module
 from aasoatt_env.safety.solvers import active_set as active_set_module
 from aasoatt_env.safety.solvers import local as local_module
 
@@ -376,7 +375,7 @@ def test_a_numpy_filter_runs_no_kernel(monkeypatch):
         raise AssertionError(f"the {part} kernels were asked for")
 
     monkeypatch.setattr(compiled_module, "kernels", refuse)
-    for mod in (gatekeeper_module, repair_module, local_module, active_set_module, rows_module, centralized_module,
+    for mod in (gatekeeper_module, local_module, active_set_module, rows_module, centralized_module,
                 problem_module):  # (their own names for it)
         monkeypatch.setattr(mod, "kernels", refuse)
     for mode in ("centralized", "decentralized"):

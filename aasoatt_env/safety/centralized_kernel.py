@@ -1,8 +1,9 @@
-"""The centralised QP stage in one compiled call (numba; loaded through :mod:`aasoatt_env.compiled`).
+"""The centralised QP stage in one compiled call, and the fused step (numba; loaded by :mod:`aasoatt_env.compiled`).
 
 :func:`solve_decomposed` is :func:`aasoatt_env.safety.centralized.solve_rows` on a warm-started step, as loops in the
 numpy stage's order of operations: it answers only where the warm active set verifies every component, then bit for bit
-as the numpy stage would; otherwise the numpy stage answers the step.
+as the numpy stage would; otherwise the numpy stage answers the step.  :func:`fused_step` (:mod:`.fused`): a warm
+step's rows, QP and backup check, calling the stages' own kernels in the pipeline's order, so with their numbers.
 """
 
 import math
@@ -11,9 +12,11 @@ import numpy as np
 
 from aasoatt_env.model.geometry_kernel import components
 from aasoatt_env.numba_jit import jit, nclip
+from aasoatt_env.safety.backup.kernels import gate_full
+from aasoatt_env.safety.rows_kernel import aasoatt_rows
 from aasoatt_env.safety.solvers.active_set_kernel import solve_parts
 
-__all__ = ["CLOSED_FORM", "NOT_HERE", "VERIFIED", "box_least_squares", "solve_decomposed"]
+__all__ = ["CLOSED_FORM", "NOT_HERE", "VERIFIED", "box_least_squares", "fused_step", "solve_decomposed"]
 
 CLOSED_FORM = 0  #: no row is violated by the robots' own answers: no QP
 VERIFIED = 1  #: every component's warm active set was verified
@@ -21,53 +24,35 @@ NOT_HERE = -1  #: not answered here (a component not verified, beyond the dense 
 
 
 @jit
-def _box1(A, t, lo, hi, i, out):
-    """Robot ``i``'s ``argmin |A_i du - t_i|^2`` in its box into ``out[i]`` (``problem.box_least_squares``')."""
-    a, b, c, d = A[i, 0, 0], A[i, 0, 1], A[i, 1, 0], A[i, 1, 1]
-    t0, t1 = t[i, 0], t[i, 1]
-    det = a * d - b * c
-    x0, x1 = (d * t0 - b * t1) / det, (a * t1 - c * t0) / det
-    lo0, lo1, hi0, hi1 = lo[i, 0], lo[i, 1], hi[i, 0], hi[i, 1]
-    if not ((x0 < lo0) or (x0 > hi0) or (x1 < lo1) or (x1 > hi1)):
-        out[i, 0], out[i, 1] = x0, x1
-        return
-    h00, h01, h11 = a * a + c * c, a * b + c * d, b * b + d * d
-    g0, g1 = -(a * t0 + c * t1), -(b * t0 + d * t1)
-    best, fbest, e0, e1 = -1, 0.0, 0.0, 0.0
-    for k in range(4):  # the edges x0 = lo, x0 = hi, x1 = lo, x1 = hi; the first of equal values
-        if k < 2:
-            y0 = lo0 if k == 0 else hi0
-            y1 = nclip(-(g1 + h01 * y0) / h11, lo1, hi1)
-        else:
-            y1 = lo1 if k == 2 else hi1
-            y0 = nclip(-(g0 + h01 * y1) / h00, lo0, hi0)
-        f = 0.5 * (h00 * y0 * y0 + 2.0 * h01 * y0 * y1 + h11 * y1 * y1) + g0 * y0 + g1 * y1
-        if best < 0 or f < fbest or (f != f and fbest == fbest):  # numpy's argmin: the first NaN wins
-            best, fbest, e0, e1 = k, f, y0, y1
-            if f != f:
-                break
-    out[i, 0], out[i, 1] = e0, e1
-
-
-@jit
 def box_least_squares(A, target, lo, hi):
-    """:func:`aasoatt_env.safety.problem.box_least_squares` of every robot, ``(K, 2)``."""
+    """:func:`aasoatt_env.safety.problem.box_least_squares` of every robot: ``argmin |A_i du - t_i|^2`` in its box."""
     out = np.empty((A.shape[0], 2))
     for i in range(A.shape[0]):
-        _box1(A, target, lo, hi, i, out)
+        a, b, c, d = A[i, 0, 0], A[i, 0, 1], A[i, 1, 0], A[i, 1, 1]
+        t0, t1 = target[i, 0], target[i, 1]
+        det = a * d - b * c
+        x0, x1 = (d * t0 - b * t1) / det, (a * t1 - c * t0) / det
+        lo0, lo1, hi0, hi1 = lo[i, 0], lo[i, 1], hi[i, 0], hi[i, 1]
+        if not ((x0 < lo0) or (x0 > hi0) or (x1 < lo1) or (x1 > hi1)):
+            out[i, 0], out[i, 1] = x0, x1
+            continue
+        h00, h01, h11 = a * a + c * c, a * b + c * d, b * b + d * d
+        g0, g1 = -(a * t0 + c * t1), -(b * t0 + d * t1)
+        best, fbest, e0, e1 = -1, 0.0, 0.0, 0.0
+        for k in range(4):  # the edges x0 = lo, x0 = hi, x1 = lo, x1 = hi; the first of equal values
+            if k < 2:
+                y0 = lo0 if k == 0 else hi0
+                y1 = nclip(-(g1 + h01 * y0) / h11, lo1, hi1)
+            else:
+                y1 = lo1 if k == 2 else hi1
+                y0 = nclip(-(g0 + h01 * y1) / h00, lo0, hi0)
+            f = 0.5 * (h00 * y0 * y0 + 2.0 * h01 * y0 * y1 + h11 * y1 * y1) + g0 * y0 + g1 * y1
+            if best < 0 or f < fbest or (f != f and fbest == fbest):  # numpy's argmin: the first NaN wins
+                best, fbest, e0, e1 = k, f, y0, y1
+                if f != f:
+                    break
+        out[i, 0], out[i, 1] = e0, e1
     return out
-
-
-@jit
-def _violated(du, ri, rj, Gi, Gj, rhs):
-    """The rows the robots' own answers ``du`` violate ``(m,)``, and the number of robot-robot rows."""
-    bad, n_rr = np.zeros(rhs.shape[0], np.bool_), 0
-    for q in range(rhs.shape[0]):
-        i, j = ri[q], rj[q]
-        other = Gj[q, 0] * du[j, 0] + Gj[q, 1] * du[j, 1] if j >= 0 else 0.0
-        bad[q] = (Gi[q, 0] * du[i, 0] + Gi[q, 1] * du[i, 1]) + other - rhs[q] > 0.0
-        n_rr += 1 if j >= 0 else 0
-    return bad, n_rr
 
 
 @jit
@@ -183,7 +168,12 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
     """
     n, m = A.shape[0], rhs.shape[0]
     du, x_full, z, eta = box_least_squares(A, target, lo, hi), np.empty((n, 2)), np.zeros(m), np.zeros(m)
-    bad, n_rr = _violated(du, ri, rj, Gi, Gj, rhs)
+    bad, n_rr = np.zeros(m, np.bool_), 0
+    for q in range(m):  # the rows the robots' own answers violate, and the number of robot-robot rows
+        i, j = ri[q], rj[q]
+        other = Gj[q, 0] * du[j, 0] + Gj[q, 1] * du[j, 1] if j >= 0 else 0.0
+        bad[q] = (Gi[q, 0] * du[i, 0] + Gi[q, 1] * du[i, 1]) + other - rhs[q] > 0.0
+        n_rr += 1 if j >= 0 else 0
     for i in range(n):
         x_full[i, 0], x_full[i, 1] = du[i, 0] / scale[i], du[i, 1] / scale[i]
     if not bad.any():
@@ -221,3 +211,59 @@ def solve_decomposed(A, target, lo, hi, scale, ri, rj, Gi, Gj, rhs, x_prev, z_wa
         z[rows[k]] = zk
         eta[rows[k]] = sigma * zk / nu[k]
     return VERIFIED, used, ms, du, x_full, z, eta
+
+
+@jit
+def warm_rows(prev_keys, prev_z, keys):
+    """The previous multipliers on these rows' keys (``prev_keys`` increasing; 0 for a new row)."""
+    out = np.zeros(keys.shape[0])
+    P = prev_keys.shape[0]
+    for r in range(keys.shape[0]):
+        k, a, b = keys[r], 0, P
+        while a < b:
+            mid = (a + b) // 2
+            if prev_keys[mid] < k:
+                a = mid + 1
+            else:
+                b = mid
+        if a < P and prev_keys[a] == k:
+            out[r] = prev_z[a]
+    return out
+
+
+@jit
+def fused_step(rows_in, qp_in, prev, settings, eta_tol, gate_in, gate_block):
+    """One warm step's rows, QP and quick backup check (:mod:`.fused`).
+
+    ``rows_in``: :func:`aasoatt_rows`' arguments; ``qp_in``: ``(target, lo, hi, scale)``; ``prev``: the previous
+    ``(x, keys, z)``; ``gate_in``: ``(pose, u, dt, levels, limit, tol)``; ``gate_block``: the gate's team, pair and
+    obstacle block.  Returns ``(solved, passed, rows, qp, avoiding, backup)``: ``rows`` the rows kernel's
+    tuple, ``qp = (iterations, n_qp, du, x, z, eta)``, ``avoiding`` the robots with a row of multiplier above
+    ``eta_tol``; ``passed``: the quick check finds nothing broken and brakes only robots whose candidate path leaves
+    their range limit, so that it is the backup stage's answer ``backup = (du, braking, nudged, margin)`` (as
+    :func:`~.backup.gate_with_repair` and :class:`~.backup.BackupLayer` give it: nothing to hold or repair).
+    """
+    rows = aasoatt_rows(*rows_in)
+    ri, rj, Gi, Gj, rhs, pairs, keys, h_min, gap_min = rows
+    target, lo, hi, scale = qp_in
+    code, used, n_qp, du, x, z, eta = solve_decomposed(rows_in[3], target, lo, hi, scale, ri, rj, Gi, Gj, rhs,
+                                                       prev[0], warm_rows(prev[1], prev[2], keys), settings)
+    n = du.shape[0]
+    avoiding = np.zeros(n, np.bool_)
+    for r in range(z.shape[0]):
+        if z[r] > eta_tol:
+            avoiding[ri[r]] = True
+            if rj[r] >= 0:
+                avoiding[rj[r]] = True
+    solved = code == CLOSED_FORM or code == VERIFIED
+    passed, gdu, braking, nudged, margin = False, du, np.zeros(n, np.bool_), np.zeros(n, np.bool_), 0.0
+    if solved:
+        pose, u, dt, levels, limit, tol = gate_in
+        gdu, braking, broken, _, _, out_of_range, _, _, margin = gate_full(pose, u, du, dt, levels, True,
+                                                                           *gate_block, limit, tol, False)
+        passed = True
+        for i in range(n):
+            passed = passed and not (broken[i] or (braking[i] and not out_of_range[i]))
+            nudged[i] = not braking[i] and (abs(gdu[i, 0] - du[i, 0]) > 1e-9 * scale[i]
+                                            or abs(gdu[i, 1] - du[i, 1]) > 1e-9 * scale[i])
+    return solved, passed, rows, (used, n_qp, du, x, z, eta), avoiding, (gdu, braking, nudged, margin)

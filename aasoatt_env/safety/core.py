@@ -66,7 +66,7 @@ __all__ = ["MIN_BRAKING_ROOM", "STATUSES", "FilterResult", "SafetyFilter", "Step
 
 _NO_PAIRS = np.empty((0, 2), dtype=np.intp)
 _MULTIPLIER = TRIGGERS["multiplier"]
-"""The registry's own ``multiplier`` trigger, whose compiled form the deadlock stage runs (``deadlock_kernel``)."""
+"""The registry's own ``multiplier`` trigger, whose compiled form the deadlock stage runs (``rows_kernel``)."""
 
 
 class SafetyFilter:

@@ -13,8 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from aasoatt_env.compiled import c64, kernels
-from aasoatt_env.model.params import Team
-from aasoatt_env.safety.backup import GATE_TOL, BackupAnswer, axle_pose
+from aasoatt_env.model.dynamics import pose_from_point
+from aasoatt_env.safety.backup import GATE_TOL, BackupAnswer
 from aasoatt_env.safety.backup.gate import BLEND_LEVELS, kernel_args, levels_of, team_block
 from aasoatt_env.safety.centralized import CLOSED_FORM_MESSAGE, kernel_settings
 from aasoatt_env.safety.config import FilterConfig
@@ -39,20 +39,17 @@ class FusedStep:
         self.cfg, self._rows = cfg, rows
         self._kernel = kernels("fused").fused_step
         self._settings = kernel_settings(policy)
-        self._levels = np.array(levels_of(BLEND_LEVELS))
-        self._team: Team | None = None
-        self._limit = np.empty(0)
+        self._levels = levels_of(BLEND_LEVELS)
 
     def __call__(self, s: StepInput, pairs: Pairs, target: np.ndarray, x: np.ndarray, keys: np.ndarray,
                  z: np.ndarray) -> tuple[Rows, Answer, BackupAnswer | None] | None:
         """The step's rows, QP answer and backup answer (None: the backup stage runs), or None (module docstring)."""
         cfg, team = self.cfg, s.team
-        if team is not self._team:
-            self._team, self._limit = team, team_block(team, cfg.brake_fraction, cfg.sensing_range)[1]
-        pose = axle_pose(team, s.p, s.theta)
+        limit = team_block(team, cfg.brake_fraction, cfg.sensing_range)[1]
+        pose = pose_from_point(team, s.p, s.theta)
         solved, passed, r, qp, avoiding, (gdu, braking, nudged, margin) = self._kernel(
             self._rows.args(cfg, s, pairs), (c64(target), s.lo, s.hi, s.scale), (c64(x), keys, z), self._settings,
-            cfg.eta_tol, (pose, s.u, cfg.dt, self._levels, self._limit, GATE_TOL),
+            cfg.eta_tol, (pose, s.u, cfg.dt, self._levels, limit, GATE_TOL),
             kernel_args(team, pose, cfg.brake_fraction, cfg.sensing_range, s.obstacles, pairs.robots))
         if not solved:
             return None

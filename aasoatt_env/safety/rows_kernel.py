@@ -1,9 +1,10 @@
-"""Compiled barrier rows (numba; loaded through :mod:`aasoatt_env.compiled`).
+"""Compiled barrier rows and the inputs' and deadlock stages' loops (numba; loaded through :mod:`aasoatt_env.compiled`).
 
 :func:`aasoatt_rows` is :func:`~aasoatt_env.safety.rows.numpy_rows` for the ``aasoatt`` barrier (eqn.7-8) as one
-loop over the pairs; :func:`pairs_within` is :func:`~aasoatt_env.model.geometry.robot_pairs`' brute force.  The
-operations are numpy's in numpy's order (no ``fastmath``; ``einsum``'s sums start from ``+0.0``), so the numbers
-are the reference's bit for bit (``tests/test_compiled.py``).
+loop over the pairs; :func:`pairs_within` is :func:`~aasoatt_env.model.geometry.robot_pairs`' brute force;
+:func:`numbers` the inputs stage's number checks; :func:`multiplier_target` the deadlock stage's ``multiplier``
+trigger and ``A du_nom``.  The operations are numpy's in numpy's order (no ``fastmath``; ``einsum``'s sums start
+from ``+0.0``), so the numbers are the reference's bit for bit (``tests/test_compiled.py``).
 """
 
 from __future__ import annotations
@@ -11,10 +12,11 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import literal_unroll
 
 from aasoatt_env.numba_jit import jit, nmax, nmin
 
-__all__ = ["aasoatt_rows", "pairs_within"]
+__all__ = ["aasoatt_rows", "multiplier_target", "numbers", "pairs_within"]
 
 
 @jit
@@ -84,3 +86,56 @@ def pairs_within(p, cand_i, cand_j, range2):
     for q in range(P):
         out[q, 0], out[q, 1] = cand_i[kept[q]], cand_j[kept[q]]
     return out
+
+
+@jit
+def numbers(arrays, bound, amax, reach):
+    """``(ok, scale, near)``: numbers within ``bound``, ``lo <= hi``; ``max(amax, |lo|, |hi|)``; no pull-in needed.
+
+    ``near``: :func:`~aasoatt_env.safety.inputs.bound_nominal`'s quick test with ``reach``; ``arrays``: a step's
+    arrays, ``nominal_du, lo, hi`` first (``(n, 2)`` each).  numpy's numbers.
+    """
+    nominal, lo, hi = arrays[0], arrays[1], arrays[2]
+    n = lo.shape[0]
+    ok, top = True, 0.0
+    for a in literal_unroll(arrays):
+        for x in a.ravel():
+            ok = ok and abs(x) <= bound  # (NaN fails too)
+    for x in nominal.ravel():
+        top = max(top, abs(x))
+    scale = np.empty(n)
+    smax, amin = 0.0, np.inf
+    for i in range(n):
+        s = amax[i]
+        for c in range(2):
+            ok = ok and lo[i, c] <= hi[i, c]
+            s = max(s, abs(lo[i, c]), abs(hi[i, c]))
+        scale[i] = s
+        smax, amin = max(smax, s), min(amin, amax[i])
+    return ok, scale, n > 0 and 1.5 * (top + smax) <= reach * amin
+
+
+@jit
+def multiplier_target(avoiding, p, v, p_d, v_d, has_reference, A, nominal, zeta, low_speed, goal_tol):
+    """``(triggered (n,), zeta_i (n,), A du_nom (n, 2), any triggered)``.
+
+    ``avoiding``: the memory (a row of the robot bound at the previous step); ``p_d, v_d`` are read with
+    ``has_reference`` only (without a reference a robot that was avoiding is not done).
+    """
+    n = p.shape[0]
+    triggered = np.empty(n, dtype=np.bool_)
+    zeta_i = np.empty(n)
+    target = np.empty((n, 2))
+    anyone = False
+    for i in range(n):
+        on = avoiding[i]
+        if on and has_reference:  # not done: still moving along the reference, or away from it
+            vx, vy = v_d[i, 0], v_d[i, 1]
+            ex, ey = p[i, 0] - p_d[i, 0], p[i, 1] - p_d[i, 1]
+            on = math.sqrt(vx * vx + vy * vy) >= low_speed or math.sqrt(ex * ex + ey * ey) > goal_tol
+        triggered[i] = on
+        anyone |= on
+        zeta_i[i] = zeta if on else 0.0
+        for r in range(2):
+            target[i, r] = 0.0 + A[i, r, 0] * nominal[i, 0] + A[i, r, 1] * nominal[i, 1]
+    return triggered, zeta_i, target, anyone

@@ -22,8 +22,7 @@ def _scenes() -> list[tuple[str, Callable[[], None]]]:
     from aasoatt_env.model.dynamics import DT, input_bounds
     from aasoatt_env.model.geometry import pair_components, robot_pairs
     from aasoatt_env.model.params import make_team
-    from aasoatt_env.safety.backup import gatekeeper
-    from aasoatt_env.safety.backup.repair import repair
+    from aasoatt_env.safety.backup.gate import gatekeeper, repair
     from aasoatt_env.safety.core import SafetyFilter  # (core imports this module)
     from aasoatt_env.safety.solvers.local import solve_local_qps
 

@@ -1,13 +1,13 @@
 """The braking backup layer: keeps the team collision-free for any nominal, under the real input bounds.
 
 A gatekeeper in the sense of Agrawal and Panagou, a backup-set barrier in the sense of Gurriet et al.: :mod:`.paths`,
-the backup policy (proportional braking) and its paths in closed form; :mod:`.gate`, the gatekeeper; :mod:`.repair`,
-the least nudge of a candidate toward brake-safety; :mod:`.layer`, the filter's stage; :mod:`.kernels` and
-:mod:`.kernel_paths`, the compiled check and repair.
+the backup policy (proportional braking) and its paths in closed form; :mod:`.gate`, the gatekeeper and the repair
+(the least nudge of a candidate toward brake-safety); :mod:`.layer`, the filter's stage; :mod:`.kernels`,
+the compiled check and repair.
 """
 
 from aasoatt_env.safety.backup.gate import CLOSEST_TIE, GateResult, gatekeeper, pair_margins
-from aasoatt_env.safety.backup.layer import GATE_TOL, BackupAnswer, BackupLayer, axle_pose, gate_with_repair
+from aasoatt_env.safety.backup.layer import GATE_TOL, BackupAnswer, BackupLayer, gate_with_repair
 from aasoatt_env.safety.backup.paths import (
     MAX_BRAKE_STEPS,
     Trajectories,
@@ -21,5 +21,5 @@ from aasoatt_env.safety.backup.paths import (
 )
 
 __all__ = ["CLOSEST_TIE", "GATE_TOL", "MAX_BRAKE_STEPS", "BackupAnswer", "BackupLayer", "GateResult", "Trajectories",
-           "axle_pose", "brake_decel", "brake_time", "braking_du", "braking_trajectory", "candidate_paths",
+           "brake_decel", "brake_time", "braking_du", "braking_trajectory", "candidate_paths",
            "candidate_samples_at", "gate_with_repair", "gatekeeper", "pair_margins", "reach_limit"]

@@ -1,10 +1,11 @@
-"""The gatekeeper: accepts a candidate input only where braking from the state it leads to keeps every pair apart.
+"""The gatekeeper (a candidate passes where braking from the state it leads to keeps every pair apart) and the repair.
 
 Pair check (:func:`pair_margins`): within a step a wheeled robot moves on an arc that deviates from the chord of its
 end points by at most its sagitta ``|p_dot| |omega| dt^2 / 8``, a point mass on a parabola ``|du| dt^2 / 8`` off it.
 The distance from the origin to the segment of *relative* positions minus both deviations bounds the pair's distance
 over the step from below; a pair is safe over a horizon when that bound is ``>= d_s = r_i + r_j`` at every step.
-Obstacles are robots that never move.
+Obstacles are robots that never move.  The repair nudges a QP answer toward brake-safety, so that the gatekeeper
+rarely has to brake.
 """
 
 from __future__ import annotations
@@ -18,8 +19,9 @@ from aasoatt_env.compiled import c64, kernels
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import SUBSET_OF, Team
 from aasoatt_env.safety.backup import paths
+from aasoatt_env.validation import shapes
 
-__all__ = ["BLEND_LEVELS", "CLOSEST_TIE", "GateResult", "gatekeeper", "pair_margins"]
+__all__ = ["BLEND_LEVELS", "CLOSEST_TIE", "GateResult", "gatekeeper", "pair_margins", "repair"]
 
 BLEND_LEVELS: tuple[float, ...] = (0.5,)  #: default blend shares of candidate and backup (``gatekeeper``'s)
 CLOSEST_TIE: float = 1e-12  #: steps within this [m] of a pair's smallest distance tie for its closest step
@@ -126,7 +128,7 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
         near_pairs = validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c)
     if compiled:
         du, braking, broken, share, robot_margin, out_of_range, rounds, n_pairs, margin = kernels().gate_full(
-            c64(pose), c64(u), c64(du_c), float(dt), _levels_array(levels), bool(quick),
+            c64(pose), c64(u), c64(du_c), float(dt), levels, bool(quick),
             *kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs),
             team_block(team, brake_fraction, sensing_range)[1], float(tol), bool(hold_violations))
         return GateResult(du, braking, float(margin), not bool(broken.any()), broken, share, int(rounds), int(n_pairs),
@@ -143,17 +145,17 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
     oc, oi, ok, ods = obstacles_near(team, p0, R, obstacles, 1e-12)
     rounds, robot_margin = 0, limit.copy()
     if i.size + oi.size:
-        lp = _LevelPaths(p0, firsts, b0, np.unique(np.concatenate((i, j, oi))), dt)
+        lp = (p0, firsts, b0, np.unique(np.concatenate((i, j, oi))), dt)
         rounds, marg, omarg = _rounds(lp, lev, broken, reach, limit, (i, j, ds), (oi, ok, ods, oc), tol,
                                       hold_violations)
         np.minimum.at(robot_margin, np.concatenate((i, j, oi)), np.concatenate((marg, marg, omarg)))
     margin = float(robot_margin.min(initial=float(limit.min(initial=0.5 * float(sensing_range)))))
     return GateResult(du_all[lev, np.arange(n)], lev > 0, margin, not bool(broken.any()), broken,
-                      np.asarray(levels)[lev], rounds, int(i.size + oi.size), robot_margin, reach[0] > limit)
+                      levels[lev], rounds, int(i.size + oi.size), robot_margin, reach[0] > limit)
 
 
 def _levels(team: Team, pose: np.ndarray, p0: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float,
-            brake_fraction: float, levels: tuple[float, ...], quick: bool, limit: np.ndarray) -> tuple:
+            brake_fraction: float, levels: np.ndarray, quick: bool, limit: np.ndarray) -> tuple:
     """``(levels, inputs (levels, N, 2), candidates per blend level, the backup from now, reaches (levels, N))``."""
     theta = pose[:, 2]
     T0 = paths.brake_time(team, u, brake_fraction)
@@ -163,7 +165,7 @@ def _levels(team: Team, pose: np.ndarray, p0: np.ndarray, u: np.ndarray, du_c: n
         dus.append(du_b + a * (du_c - du_b))
         firsts.append(paths.candidate(team, p0, theta, u, dus[-1], dt, brake_fraction))
         if k == 0 and quick and not bool((firsts[0].reach > limit).any()):
-            levels = (1.0, 0.0)  # no candidate leaves the range: the blends would change nothing
+            levels = levels[[0, -1]]  # no candidate leaves the range: the blends would change nothing
             break
     b0 = paths.brake(team, theta, u, dt, brake_fraction, T0)
     reach = np.stack([c.reach for c in firsts] + [b0.reach])
@@ -178,43 +180,38 @@ def _in_range(lev: np.ndarray, reach: np.ndarray, limit: np.ndarray) -> np.ndarr
     return lev
 
 
-class _LevelPaths:
-    """The paths of robots ``M`` on every level, as rows of a common length."""
-
-    def __init__(self, p0: np.ndarray, firsts: list, b0, M: np.ndarray, dt: float) -> None:
-        self.p0, self.firsts, self.b0, self.M, self.dt = p0, firsts, b0, M, dt
-        self.need = np.stack([c.b1.steps[M] + 2 for c in firsts] + [b0.steps[M] + 1])  # samples per level and row
-        self.L = max(int(self.need.max(initial=0)), 2)
-
-    def rows(self, k: int, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Samples ``(r, L)`` and deviations ``(r, L-1)`` of level ``k`` for the rows ``r`` of ``M``."""
-        g = self.M[r]
-        if k == len(self.firsts):
-            return paths.brake_samples(self.p0[g], self.b0.take(g), self.dt, self.L)
-        c = self.firsts[k]
-        return paths.candidate_samples(self.p0[g], c._replace(p1=c.p1[g], d1=c.d1[g], b1=c.b1.take(g)), self.dt,
-                                       self.L)
+def _level_rows(p0: np.ndarray, firsts: list, b0, g: np.ndarray, k: int, dt: float, L: int) -> tuple:
+    """Samples ``(len(g), L)`` and deviations ``(len(g), L-1)`` of robots ``g``' paths on level ``k``."""
+    if k == len(firsts):
+        return paths.brake_samples(p0[g], b0.take(g), dt, L)
+    c = firsts[k]
+    return paths.candidate_samples(p0[g], c._replace(p1=c.p1[g], d1=c.d1[g], b1=c.b1.take(g)), dt, L)
 
 
-def _rounds(lp: _LevelPaths, lev: np.ndarray, broken: np.ndarray, reach: np.ndarray, limit: np.ndarray,
+def _rounds(lp: tuple, lev: np.ndarray, broken: np.ndarray, reach: np.ndarray, limit: np.ndarray,
             pairs: tuple, obst: tuple, tol: float, hold: bool) -> tuple[int, np.ndarray, np.ndarray]:
-    """The gatekeeper's rounds: ``lev`` and ``broken`` updated in place; ``(rounds, pair and obstacle margins)``."""
-    (i, j, ds), (oi, ok, ods, oc) = pairs, obst
-    n, last, M = lev.shape[0], reach.shape[0] - 1, lp.M
+    """The gatekeeper's rounds: ``lev`` and ``broken`` updated in place; ``(rounds, pair and obstacle margins)``.
+
+    ``lp``: ``(p0, firsts, b0, M, dt)``, the paths of robots ``M`` on every level (:func:`_level_rows`).
+    """
+    (i, j, ds), (oi, ok, ods, oc), (p0, firsts, b0, M, dt) = pairs, obst, lp
+    n, last = lev.shape[0], reach.shape[0] - 1
+    need = np.stack([c.b1.steps[M] + 2 for c in firsts] + [b0.steps[M] + 1])  # samples per level and row
+    L = max(int(need.max(initial=0)), 2)
     loc = np.full(n, -1, dtype=np.intp)
     loc[M] = np.arange(M.size)
     li, lj, lo_ = loc[i], loc[j], loc[oi]
     rows_m = np.arange(M.size)
     tol_p, tol_o = np.full(i.shape[0], float(tol)), np.full(oi.shape[0], float(tol))
     if hold:  # each pair's own floor, the larger of it and tol: its margin when both members brake now
-        Pb, Db = lp.rows(last, rows_m)
-        tol_p = np.fmax(tol_p, np.fmax(0.0, -bucketed_margins(Pb, Db, lp.need[last], li, lj, ds)) * (1.0 + 1e-9))
-        floor = np.fmax(0.0, -bucketed_margins(Pb, Db, lp.need[last], lo_, ok, ods, centers=oc))
+        Pb, Db = _level_rows(p0, firsts, b0, M, last, dt, L)
+        tol_p = np.fmax(tol_p, np.fmax(0.0, -bucketed_margins(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9))
+        floor = np.fmax(0.0, -bucketed_margins(Pb, Db, need[last], lo_, ok, ods, centers=oc))
         tol_o = np.fmax(tol_o, floor * (1.0 + 1e-9))
     marg, omarg = np.full(i.shape[0], np.inf), np.full(oi.shape[0], np.inf)
     todo, otodo = np.ones(i.shape[0], dtype=bool), np.ones(oi.shape[0], dtype=bool)
-    cur = np.empty((M.size, lp.L), dtype=np.complex128)
-    curd = np.empty((M.size, lp.L - 1))
+    cur = np.empty((M.size, L), dtype=np.complex128)
+    curd = np.empty((M.size, L - 1))
     filled = np.full(M.size, -1)  # the level whose paths are in a row of `cur`
     rounds = 0
     while True:
@@ -223,9 +220,9 @@ def _rounds(lp: _LevelPaths, lev: np.ndarray, broken: np.ndarray, reach: np.ndar
         stale = lm != filled  # only rows whose level changed are made again
         for k in np.unique(lm[stale]):
             r = np.flatnonzero(stale & (lm == k))
-            cur[r], curd[r] = lp.rows(int(k), r)
+            cur[r], curd[r] = _level_rows(p0, firsts, b0, M[r], int(k), dt, L)
         filled = lm
-        cneed = lp.need[lm, rows_m]
+        cneed = need[lm, rows_m]
         idx, oidx = np.flatnonzero(todo), np.flatnonzero(otodo)
         marg[idx] = bucketed_margins(cur, curd, cneed, li[idx], lj[idx], ds[idx])
         omarg[oidx] = bucketed_margins(cur, curd, cneed, lo_[oidx], ok[oidx], ods[oidx], centers=oc)
@@ -247,18 +244,12 @@ def _rounds(lp: _LevelPaths, lev: np.ndarray, broken: np.ndarray, reach: np.ndar
 
 
 @functools.lru_cache(maxsize=64)
-def _levels_array(levels: tuple[float, ...]) -> np.ndarray:
-    a = np.array(levels)
-    a.flags.writeable = False
-    return a
-
-
-@functools.lru_cache(maxsize=64)
-def levels_of(blend_levels: tuple) -> tuple[float, ...]:
-    """The check's levels, highest first: 1 (the candidate), the blend shares, 0 (the backup from now)."""
-    levels = tuple(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True)) + (0.0,)
+def levels_of(blend_levels: tuple) -> np.ndarray:
+    """The check's levels, highest first (read-only): 1 (the candidate), the blend shares, 0 (the backup from now)."""
+    levels = np.array(sorted(set(float(x) for x in blend_levels) | {1.0}, reverse=True) + [0.0])
     if not all(0.0 < a <= 1.0 for a in levels[:-1]):  # also refuses NaN
         raise ValueError(f"blend_levels: got {blend_levels!r}, expected shares in (0, 1]")
+    levels.flags.writeable = False
     return levels
 
 
@@ -289,10 +280,7 @@ def validate(team: Team, pose: np.ndarray, obstacles: tuple[np.ndarray, ...] | N
              **per_robot: np.ndarray) -> np.ndarray | None:
     """Refuse (``ValueError``) any shape or pair index the kernels would misread; ``near_pairs`` as an array."""
     n = team.n
-    for name, a in (("pose", pose), *per_robot.items()):
-        if np.shape(a) != ((n, 3) if name == "pose" else (n, 2)):
-            raise ValueError(f"{name}: got shape {np.shape(a)}, expected ({n}, {3 if name == 'pose' else 2}) "
-                             f"for a team of {n} robots")
+    shapes([("pose", pose, (n, 3)), *((k, a, (n, 2)) for k, a in per_robot.items())], f" for a team of {n} robots")
     if obstacles is not None and np.asarray(obstacles[1]).size:
         c, orad = np.asarray(obstacles[0]), np.asarray(obstacles[1])
         grouped = team.group is not None and len(obstacles) > 2 and obstacles[2] is not None
@@ -361,3 +349,86 @@ def _obstacle_arrays(team: Team, obstacles: tuple[np.ndarray, ...] | None) -> tu
     c, orad = np.asarray(obstacles[0], dtype=np.float64), np.asarray(obstacles[1], dtype=np.float64)
     grouped = team.group is not None and len(obstacles) > 2 and obstacles[2] is not None
     return c[:, 0] + 1j * c[:, 1], orad, np.asarray(obstacles[2]) if grouped else None
+
+
+def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float, lo: np.ndarray, hi: np.ndarray,
+           *, sensing_range: float, brake_fraction: float, obstacles: tuple[np.ndarray, ...] | None = None,
+           target: float = 2e-4, rounds: int = 3, eps: float = 1.0, near_pairs: np.ndarray | None = None,
+           compiled: bool = False, checked: bool = False) -> np.ndarray:
+    """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
+
+    For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below ``target`` [m], both
+    inputs move by the least-norm change that lifts the margin to ``2 target``, linearised by finite differences (step
+    ``eps``) at its closest step; the changes add up and are clipped to ``[lo, hi]``, ``rounds`` times.  Safety still
+    comes from the gatekeeper, whose ``near_pairs``, ``compiled``, ``checked`` these are.
+    """
+    if not checked:
+        near_pairs = validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c, lo=lo, hi=hi)
+    if compiled:
+        block = kernel_args(team, pose, brake_fraction, sensing_range, obstacles, near_pairs)
+        pose, u, du_c, lo, hi = (c64(a) for a in (pose, u, du_c, lo, hi))
+        return kernels().repair_full(pose, u, du_c, lo, hi, float(dt), *block, float(target), int(rounds),
+                                     float(eps), CLOSEST_TIE)
+    du = np.minimum(np.maximum(du_c, lo), hi)
+    n = pose.shape[0]
+    p0 = paths.point(team, pose)
+    for _ in range(rounds):
+        # reach first (O(N)): only robots with a pair that could come close need sampled paths
+        R = paths.candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction).reach + eps * dt * dt
+        i, j, ds = pairs_near(team, p0, R, sensing_range, 2.0 * target, near_pairs)
+        oc, oi, ok, ods = obstacles_near(team, p0, R, obstacles, 2.0 * target)
+        if i.size + oi.size == 0:
+            break
+        S = np.unique(np.concatenate((i, j, oi)))  # rows of the paths: these robots, in this order
+        loc = np.full(n, -1, dtype=np.intp)
+        loc[S] = np.arange(S.size)
+        t = paths.candidate_paths(team.subset(S), pose[S], u[S], du[S], dt, brake_fraction)
+        P, D, need = t.p, t.delta, t.length
+        low = bucketed_margins(P, D, need, loc[i], loc[j], ds) < target
+        i, j, ds = i[low], j[low], ds[low]
+        if oi.size:
+            lowo = bucketed_margins(P, D, need, loc[oi], ok, ods, centers=oc) < target
+            oi, ok, ods = oi[lowo], ok[lowo], ods[lowo]
+        if i.size + oi.size == 0:
+            break
+        step = _lifts(team, pose, u, du, dt, brake_fraction, target, eps, (P, D), loc, (i, j, ds), (oc, oi, ok, ods))
+        if not step.any():
+            break
+        du = np.minimum(np.maximum(du + step, lo), hi)
+    return du
+
+
+def _lifts(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float, brake_fraction: float,
+           target: float, eps: float, base: tuple, loc: np.ndarray, pairs: tuple, obst: tuple) -> np.ndarray:
+    """The summed least-norm lifts ``(n, 2)`` of the low pairs, by finite differences at their closest steps."""
+    (P, D), (i, j, ds), (oc, oi, ok, ods) = base, pairs, obst
+    n = pose.shape[0]
+    step = np.zeros((n, 2))
+    U = np.unique(np.concatenate((i, j, oi)))  # every robot of a low pair with each input moved: rows 2 q + d
+    at = np.full(n, -1, dtype=np.intp)
+    at[U] = 2 * np.arange(U.size)
+    R2 = np.repeat(U, 2)
+    sub = (team.subset(R2), pose[R2], u[R2], du[R2] + eps * np.tile(np.eye(2), (U.size, 1)), dt, brake_fraction)
+    if i.size:
+        li, lj = loc[i], loc[j]
+        m0, k = pair_margins(P[li], P[lj], D[li], D[lj], ds, closest=True)
+        s4 = np.tile(k[:, None] + np.arange(2), (4, 1))
+        fix = np.concatenate((lj, lj, li, li))
+        pm, dm = paths.candidate_samples_at(*sub, s4, rows=np.concatenate((at[i], at[i] + 1, at[j], at[j] + 1)))
+        mg = pair_margins(pm, P[fix[:, None], s4], dm[:, :1], D[fix, s4[:, 0]][:, None], np.tile(ds, 4))
+        mg = mg.reshape(4, -1)
+        gi = ((mg[0:2] - m0) / eps).T
+        gj = ((mg[2:4] - m0) / eps).T
+        lift = (2.0 * target - m0) / np.maximum((gi * gi).sum(1) + (gj * gj).sum(1), 1e-12)
+        np.add.at(step, i, lift[:, None] * gi)
+        np.add.at(step, j, lift[:, None] * gj)
+    if oi.size:
+        lo_ = loc[oi]
+        m0, k = pair_margins(P[lo_], oc[ok][:, None], D[lo_], 0.0, ods, closest=True)
+        s2 = np.tile(k[:, None] + np.arange(2), (2, 1))
+        pm, dm = paths.candidate_samples_at(*sub, s2, rows=np.concatenate((at[oi], at[oi] + 1)))
+        mg = pair_margins(pm, oc[np.tile(ok, 2)][:, None], dm[:, :1], 0.0, np.tile(ods, 2)).reshape(2, -1)
+        go = ((mg - m0) / eps).T
+        lift = (2.0 * target - m0) / np.maximum((go * go).sum(1), 1e-12)
+        np.add.at(step, oi, lift[:, None] * go)
+    return step

@@ -10,9 +10,8 @@ import numpy as np
 from aasoatt_env.model.dynamics import pose_from_point
 from aasoatt_env.model.geometry import pair_components, robot_pairs
 from aasoatt_env.model.params import Team
-from aasoatt_env.safety.backup.gate import GateResult, gatekeeper, validate
+from aasoatt_env.safety.backup.gate import GateResult, gatekeeper, repair, validate
 from aasoatt_env.safety.backup.paths import point
-from aasoatt_env.safety.backup.repair import repair
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.stages import StepInput
 from aasoatt_env.sim.env import FILTERED_MIN_COLLISION_TOLERANCE
@@ -117,22 +116,23 @@ class _Components:
         return q[(q >= 0).all(axis=1)]
 
 
+_PER_ROBOT = ("du", "braking", "broken", "share", "robot_margin", "out_of_range")  # a GateResult's (N,) fields
+
+
 def _rows_of(g: GateResult, at: np.ndarray) -> GateResult:
     """The per-robot entries ``at`` of a gate result (scalars kept)."""
-    return g._replace(du=g.du[at], braking=g.braking[at], broken=g.broken[at], share=g.share[at],
-                      robot_margin=g.robot_margin[at], out_of_range=g.out_of_range[at])
+    return g._replace(**{f: getattr(g, f)[at] for f in _PER_ROBOT})
 
 
 def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], unsafe: bool) -> GateResult:
     """``base`` with each part's robots replaced by its answers (later parts win; n_pairs, out_of_range kept)."""
-    du, braking, broken = base.du.copy(), base.braking.copy(), base.broken.copy()
-    share, robot_margin = base.share.copy(), base.robot_margin.copy()
+    new = {f: getattr(base, f).copy() for f in _PER_ROBOT[:-1]}
     for rows, g in parts:
-        du[rows], braking[rows], broken[rows], share[rows], robot_margin[rows] = (
-            g.du, g.braking, g.broken, g.share, g.robot_margin)
-    return GateResult(du, braking, float(robot_margin.min(initial=base.margin)), not (unsafe or broken.any()), broken,
-                      share, base.rounds + sum(g.rounds for _, g in parts), base.n_pairs, robot_margin,
-                      base.out_of_range)
+        for f, a in new.items():
+            a[rows] = getattr(g, f)
+    return base._replace(margin=float(new["robot_margin"].min(initial=base.margin)),
+                         safe=not (unsafe or new["broken"].any()), rounds=base.rounds + sum(g.rounds for _, g in parts),
+                         **new)
 
 
 class BackupAnswer(NamedTuple):
@@ -145,9 +145,6 @@ class BackupAnswer(NamedTuple):
     safe: bool
 
 
-axle_pose = pose_from_point  #: axle poses ``(N, 3)`` from control points and headings
-
-
 @dataclass(frozen=True)
 class BackupLayer:
     """The backup stage: ``stage(step, du_qp, robot_pairs) -> BackupAnswer``."""
@@ -156,7 +153,7 @@ class BackupLayer:
 
     def __call__(self, s: StepInput, du_qp: np.ndarray, pairs: np.ndarray) -> BackupAnswer:
         """Check (and repair) the QP's answer; robots the check finds broken keep the QP's answer (best effort)."""
-        gate = gate_with_repair(s.team, axle_pose(s.team, s.p, s.theta), s.u, du_qp, s.lo, s.hi, self.cfg,
+        gate = gate_with_repair(s.team, pose_from_point(s.team, s.p, s.theta), s.u, du_qp, s.lo, s.hi, self.cfg,
                                 s.obstacles, pairs, checked=True)
         broken = gate.broken
         du = np.where(broken[:, None], du_qp, gate.du)
