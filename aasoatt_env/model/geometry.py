@@ -12,9 +12,8 @@ import numpy as np
 
 from aasoatt_env import compiled as _compiled
 
-__all__ = ["KDTREE_MIN_ROBOTS", "brute_candidates", "k_nearest", "min_gaps", "neighbourhood", "obstacle_gaps",
-           "kdtree", "obstacle_pairs", "pair_components", "pairwise_distances", "robot_pairs", "row_dot",
-           "uses_brute_force"]
+__all__ = ["KDTREE_MIN_ROBOTS", "brute_candidates", "k_nearest", "kdtree", "min_gaps", "neighbourhood", "obstacle_pairs",
+           "pair_components", "robot_pairs", "row_dot", "uses_brute_force"]
 
 KDTREE_MIN_ROBOTS: int = 200
 """Team size from which a tree (or grid) answers instead of the full distance matrix."""
@@ -65,12 +64,6 @@ def uses_brute_force(n: int, groups: np.ndarray | None = None) -> bool:
 def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot products ``(P,)`` of two ``(P, 2)`` arrays: ``a0 b0 + a1 b1`` (``einsum``'s, without its set-up)."""
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]
-
-
-def pairwise_distances(p: np.ndarray) -> np.ndarray:
-    """Centre distances ``(N, N)`` of points ``(N, 2)`` (one complex subtraction)."""
-    z = np.ascontiguousarray(p, dtype=np.float64).view(np.complex128)[:, 0]
-    return np.abs(z[:, None] - z[None, :])
 
 
 def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: np.ndarray | None = None,
@@ -131,17 +124,12 @@ def _obstacle_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstac
     return (np.sqrt(dx * dx + dy * dy) - r - obstacle_radii.reshape(teams, 1, m)).reshape(teams * n, m)
 
 
-def obstacle_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray) -> np.ndarray:
-    """Surface gaps robot-obstacle ``(N, M)``: ``|p_i - c_k| - r_i - R_k``."""
-    return _obstacle_gaps(p, radii, centers, obstacle_radii, 1)
-
-
 def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius: float, *,
                    groups: np.ndarray | None = None, obstacle_groups: np.ndarray | None = None) -> np.ndarray:
     """Sorted pairs ``(P, 2)`` of robot ``i`` and obstacle ``k`` (of one label) whose rim is within ``radius``."""
     if centers.shape[0] == 0 or p.shape[0] == 0:
         return np.empty((0, 2), dtype=np.intp)
-    near = obstacle_gaps(p, np.zeros(p.shape[0]), centers, radii) <= radius
+    near = _obstacle_gaps(p, np.zeros(p.shape[0]), centers, radii, 1) <= radius
     if groups is not None and obstacle_groups is not None:
         near &= np.asarray(groups)[:, None] == np.asarray(obstacle_groups)[None, :]
     i, k = np.nonzero(near)

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import colorsys
+import contextlib
 import importlib
 import importlib.util
 import math
 import os
+import sys
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +20,6 @@ import numpy as np
 
 from aasoatt_env.cli_support import staged
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.sim.window import Window
 
 __all__ = ["ANIMATION_SUFFIXES", "BACKGROUND", "Frame", "Renderer", "animation_writer_missing", "robot_colors",
            "save_animation"]
@@ -195,7 +197,9 @@ class Renderer:
         self._gfx = importlib.import_module("pygame.gfxdraw")  # (part of every pygame)
         self._surface = self._pg.Surface((self.width, self.height))
         self._font: Any = None  # False: no font available
-        self._window = Window(self._pg, self.width, self.height)
+        self._window: Any = None  # render_mode="human": opened at the first show
+        self._clock: Any = None
+        self._headless = self._closed_by_user = False
 
     def _get_font(self) -> Any:
         if self._font is None:
@@ -329,13 +333,62 @@ class Renderer:
         raw = self._pg.image.tobytes(self.draw(frame), "RGB")
         return np.frombuffer(raw, dtype=np.uint8).reshape(self.height, self.width, 3).copy()
 
+    def _warn_headless(self, reason: str) -> None:
+        """Warn once: after this, :meth:`show` returns at once (``_headless``) and never warns again."""
+        self._headless = True
+        warnings.warn(f"Renderer.show: no display available ({reason}); render_mode='human' does nothing. "
+                      "Use render_mode='rgb_array' to get images.", RuntimeWarning, stacklevel=4)
+
+    def _open(self) -> bool:
+        """Open the window; False (and a warning, once) where there is no display."""
+        pg = self._pg
+        if os.environ.get("SDL_VIDEODRIVER", "").lower() in ("dummy", "offscreen") or (
+                (sys.platform.startswith("linux") or "bsd" in sys.platform)
+                and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))):
+            self._warn_headless("no DISPLAY/WAYLAND_DISPLAY, or a dummy SDL video driver")
+            return False
+        try:
+            pg.display.init()
+            driver = pg.display.get_driver()
+            if driver in ("offscreen", "dummy"):  # SDL fell back to an invisible driver: no real display
+                pg.display.quit()
+                self._warn_headless(f"SDL video driver {driver!r}")
+                return False
+            self._window = pg.display.set_mode((self.width, self.height))
+            pg.display.set_caption("aasoatt")
+            self._clock = pg.time.Clock()
+        except Exception as exc:  # noqa: BLE001 - any failure means: no window
+            self._window = None
+            self._warn_headless(str(exc) or type(exc).__name__)
+            return False
+        return True
+
     def show(self, frame: Frame) -> None:
-        """Show ``frame`` in a window (``render_mode="human"``); without a display: a warning, once."""
-        self._window.show(self.draw(frame), self.fps)
+        """Show ``frame`` in a window (``render_mode="human"``, at most ``fps`` a second); headless: a warning, once."""
+        surface = self.draw(frame)
+        if self._headless or self._closed_by_user or (self._window is None and not self._open()):
+            return
+        pg = self._pg
+        try:
+            for event in pg.event.get():
+                if event.type == pg.QUIT:
+                    self._closed_by_user = True
+                    self.close()
+                    return
+            self._window.blit(surface, (0, 0))
+            pg.display.flip()
+            if self.fps and self._clock is not None:
+                self._clock.tick(self.fps)
+        except Exception as exc:  # noqa: BLE001
+            self.close()
+            self._warn_headless(str(exc) or type(exc).__name__)
 
     def close(self) -> None:
         """Close the window, if one is open.  Safe to call more than once."""
-        self._window.close()
+        if self._window is not None:
+            self._window = None
+            with contextlib.suppress(Exception):
+                self._pg.display.quit()
 
     def __enter__(self) -> Renderer:
         return self
