@@ -119,12 +119,9 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
                               "reset(team), __call__(FilterInput, nominal_du) and keeps_input_bounds "
                               "(aasoatt_env.sim.protocol.ControlFilter)")
         if self.terminate_on_collision and self.collision_tolerance < FILTERED_MIN_COLLISION_TOLERANCE:
-            # a terminated robot stops in place at once: an input the filter did not return
-            raise ConfigError(
+            raise ConfigError(  # a robot terminated for less stops in place: an input the filter cannot plan for
                 f"collision_tolerance: got {self.collision_tolerance:g} with terminate_on_collision=True, expected "
-                f">= {FILTERED_MIN_COLLISION_TOLERANCE:g} m behind a control filter (the safety filter's guarantee "
-                "allows that much rounding; a robot terminated for less would stop in place, an input the filter "
-                "cannot plan for)")
+                f">= {FILTERED_MIN_COLLISION_TOLERANCE:g} m behind a control filter (its guarantee's rounding)")
         if self._control_filter is not None and self._control_filter is not control_filter:
             raise UsageError(f"this env already has a control filter ({type(self._control_filter).__name__}); an env "
                              "takes one filter: wrap it once, or remove the first with set_control_filter(None)")

@@ -157,10 +157,6 @@ class _Transform:
         p = np.asarray(p, dtype=np.float64)
         return np.stack((self.ox + p[..., 0] * self.scale, self.oy - p[..., 1] * self.scale), axis=-1)
 
-    def ipoints(self, p: np.ndarray) -> np.ndarray:
-        """Rounded, clipped integer pixel coordinates of world points ``(..., 2)``."""
-        return np.clip(np.rint(self.points(p)), -self.limit, self.limit).astype(np.int64)
-
 
 def _mix(color: Sequence[int], other: Sequence[int], t: float) -> tuple[int, int, int]:
     """Blend ``t`` of ``other`` into ``color``."""
@@ -239,9 +235,8 @@ class Renderer:
         for gy in np.arange(math.ceil(ymin / step) * step, ymax + 1e-9, step):
             py = int(round(tf.oy - gy * tf.scale))
             pg.draw.line(surf, GRID_COLOR, (0, py), (self.width - 1, py))
-        c = tf.ipoints(np.array([[xmin, ymax], [xmax, ymin]]))
-        pg.draw.rect(surf, BOUNDS_COLOR, pg.Rect(int(c[0, 0]), int(c[0, 1]), int(c[1, 0] - c[0, 0]),
-                                                 int(c[1, 1] - c[0, 1])), 1)
+        (x0, y0), (x1, y1) = np.rint(tf.points(np.array([[xmin, ymax], [xmax, ymin]]))).astype(int).tolist()
+        pg.draw.rect(surf, BOUNDS_COLOR, pg.Rect(x0, y0, x1 - x0, y1 - y0), 1)  # (inside the image)
 
     def _draw_trails(self, tf: _Transform, trails: np.ndarray, colors: list[Color]) -> None:
         if trails.shape[0] < 2:
