@@ -39,15 +39,11 @@ _PALETTE: tuple[tuple[int, int, int], ...] = (
 
 def robot_colors(n: int) -> np.ndarray:
     """Distinct, deterministic RGB colours ``(n, 3)`` ``uint8``: a fixed palette, then golden-angle hues (no red)."""
-    out = np.empty((max(n, 0), 3), dtype=np.uint8)
-    for i in range(max(n, 0)):
-        if i < len(_PALETTE):
-            out[i] = _PALETTE[i]
-        else:
-            hue = 0.04 + 0.92 * ((0.1 + 0.618033988749895 * i) % 1.0)  # away from red hues (+-0.04 around 0)
-            r, g, b = colorsys.hsv_to_rgb(hue, 0.75, 0.85 if i % 2 else 0.65)
-            out[i] = (int(r * 255), int(g * 255), int(b * 255))
-    return out
+    hues = 0.04 + 0.92 * ((0.1 + 0.618033988749895 * np.arange(max(n, 0))) % 1.0)  # away from red (+-0.04 around 0)
+    out = [_PALETTE[i] if i < len(_PALETTE) else [int(c * 255) for c in
+                                                  colorsys.hsv_to_rgb(h, 0.75, 0.85 if i % 2 else 0.65)]
+           for i, h in enumerate(hues.tolist())]
+    return np.array(out, dtype=np.uint8).reshape(-1, 3)
 
 
 def _require(module: str, feature: str) -> ModuleType:

@@ -63,29 +63,24 @@ class RandomGoals(Scenario):
                                 f"(cover {cover:.2f}, expected <= 0.45)")
 
     def _sample(self, rng: np.random.Generator) -> np.ndarray:
+        """Points ``min_spacing`` apart: one by one (a whole new try where one finds no room in 10,000 draws)."""
         if self.num_robots_ > _SEQUENTIAL_MAX:
             return self._sample_batched(rng)
-        n = self.num_robots_
+        n, half = self.num_robots_, self.arena_size / 2.0 - self.min_spacing / 2.0
         for _ in range(_SEQUENTIAL_TRIES):
-            pts = self._place_once(rng)
-            if pts is not None:
+            pts = np.empty((n, 2))
+            for i in range(n):
+                for _ in range(10_000):
+                    cand = rng.uniform(-half, half, size=2)
+                    if i == 0 or np.min(np.hypot(*(pts[:i] - cand).T)) >= self.min_spacing:
+                        pts[i] = cand
+                        break
+                else:
+                    break  # no room: a new try
+            else:
                 return pts
         raise ScenarioError(f"random_goals: could not place {n} robots {self.min_spacing:g} m apart in an arena of "
                             f"size {self.arena_size:g} in {_SEQUENTIAL_TRIES} tries; enlarge arena_size")
-
-    def _place_once(self, rng: np.random.Generator) -> np.ndarray | None:
-        """One try of the one-by-one sampler: None where a point finds no room in 10,000 draws."""
-        n, half = self.num_robots_, self.arena_size / 2.0 - self.min_spacing / 2.0
-        pts = np.empty((n, 2))
-        for i in range(n):
-            for _ in range(10_000):
-                cand = rng.uniform(-half, half, size=2)
-                if i == 0 or np.min(np.hypot(*(pts[:i] - cand).T)) >= self.min_spacing:
-                    pts[i] = cand
-                    break
-            else:
-                return None
-        return pts
 
     def _sample_batched(self, rng: np.random.Generator) -> np.ndarray:
         """Dart throwing in vectorised batches (large teams): candidates clear of the points and earlier candidates."""

@@ -41,7 +41,6 @@ class Tracking(Scenario):
         self.robots = robots
         self._team = make_team(robots, 1)
         self._user_reference = reference
-        self.num_robots_ = 1
 
     def _reference(self) -> Reference:
         if self._user_reference is not None:
@@ -98,13 +97,10 @@ class Custom(Scenario):
         base.check_clear_of_obstacles("obstacles", st, self._team.radius, self._obstacles)
         base.check_clear_of_obstacles("obstacles", np.asarray(self._reference.goals, float), self._team.radius,
                                       self._obstacles)
-        if headings is not None:
-            h = check.real_array("headings", headings, lo=-1e6, hi=1e6, unit=" rad").reshape(-1)
-            if h.shape != (self.num_robots_,):
-                raise ConfigError(f"headings: got shape {h.shape}, expected ({self.num_robots_},)")
-            self._headings = h
-        else:
-            self._headings = None
+        self._headings = None if headings is None else check.real_array("headings", headings, lo=-1e6, hi=1e6,
+                                                                         unit=" rad").reshape(-1)
+        if self._headings is not None and self._headings.shape != (self.num_robots_,):
+            raise ConfigError(f"headings: got shape {self._headings.shape}, expected ({self.num_robots_},)")
         self.settle_time = base.check_settle_time(settle_time)
         base.check_no_overlap("starts", st, self._team.radius)
 
