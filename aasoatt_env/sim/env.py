@@ -158,18 +158,13 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         check_no_overlap(where, layout.starts, layout.team.radius, layout.team.group)
         check_clear_of_obstacles(where, layout.starts, layout.team.radius,
                                  (layout.obstacle_centers, layout.obstacle_radii))
-        n = layout.team.n
-        self.team = layout.team
-        self._layouts, self._teams = [layout], [layout.team]
+        self._init_stack(1, layout.team.n)  # a fresh state
+        self.team, self._layouts[0], self._teams[0] = layout.team, layout, layout.team
         self._pose = dynamics.pose_from_point(layout.team, layout.starts, layout.headings)
-        self._u, self._last_action = np.zeros((n, 2)), np.zeros((n, 2))
-        self._times, self._steps = np.zeros(1), np.zeros(1, dtype=np.int64)
-        self._max_steps = np.array([self._max_steps_override or max(
-            1, int(math.ceil(layout.horizon / (self.dt * self.decision_interval) - 1e-9)))])
-        self._active, self._saturated = np.ones(n, dtype=bool), np.zeros(n, dtype=bool)
-        self.agents = list(self.possible_agents)
-        self._live_idx = np.arange(n)
-        self._filter_outputs = ()
+        self._max_steps[0] = self._max_steps_override or max(
+            1, int(math.ceil(layout.horizon / (self.dt * self.decision_interval) - 1e-9)))
+        self._active[:] = True
+        self.agents, self._live_idx, self._filter_outputs = list(self.possible_agents), np.arange(self._n), ()
         try:
             self._restack()
             self._refresh()
