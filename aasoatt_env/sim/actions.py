@@ -35,8 +35,9 @@ def _bool_at(value: Any) -> tuple[int, ...] | None:
     return None
 
 
-def real_actions(value: Any, name: Callable[[tuple[int, ...]], str], expected: str) -> np.ndarray:
-    """``value`` as an array of real numbers (no booleans, even one among numbers), else :class:`ActionError`."""
+def real_actions(value: Any, name: Callable[[tuple[int, ...]], str], expected: str,
+                 shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """``value`` as an array of real numbers (no booleans, even one among numbers; of ``shape``), else an error."""
     try:
         arr = np.asarray(value)
     except (TypeError, ValueError):
@@ -46,6 +47,8 @@ def real_actions(value: Any, name: Callable[[tuple[int, ...]], str], expected: s
     at = None if isinstance(value, np.ndarray) else _bool_at(value)
     if at is not None:
         raise ActionError(f"{name(at)}: got booleans, expected {expected} {_REAL}")
+    if shape is not None and arr.shape != shape:
+        raise ActionError(f"{name(())}: got shape {arr.shape}, expected {shape}")
     return arr
 
 

@@ -211,7 +211,8 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         except (AttributeError, TypeError, ValueError):
             arr = None
         if arr is None or arr.shape != (len(live), 2):
-            arr = np.array([self._agent_action(a, v) for a, v in zip(live, values)], dtype=np.float64)
+            arr = np.array([real_actions(v, lambda _, a=a: f"actions[{a!r}]", "2 real numbers", (2,))
+                            for a, v in zip(live, values)], dtype=np.float64)
         if len(live) == len(self.possible_agents):
             act = arr.astype(np.float64)
         else:
@@ -219,13 +220,6 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
             act[self._live_idx] = arr
         return checked_actions(act, self._nominal_actions, self.clip_actions,
                                lambda row: f"actions[{self.possible_agents[row]!r}]")
-
-    @staticmethod
-    def _agent_action(agent: str, value: Any) -> np.ndarray:
-        arr = real_actions(value, lambda _: f"actions[{agent!r}]", "2 real numbers")
-        if arr.shape != (2,):
-            raise ActionError(f"actions[{agent!r}]: got shape {arr.shape}, expected (2,)")
-        return arr
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Apply the actions for ``decision_interval`` physics steps."""
