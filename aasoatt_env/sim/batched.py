@@ -9,8 +9,7 @@ import numpy as np
 from gymnasium import spaces
 
 from aasoatt_env.errors import ConfigError, ResetNeeded
-from aasoatt_env.sim.actions import parse_actions
-from aasoatt_env.sim.env import AASOATTParallelEnv
+from aasoatt_env.sim.env import AASOATTParallelEnv, parse_actions
 from aasoatt_env.sim.protocol import GroupedControlFilter
 from aasoatt_env.sim.stack import TeamStack
 
