@@ -7,10 +7,16 @@ from typing import Any
 
 from aasoatt_env.errors import ScenarioError, UnknownKeywordError
 from aasoatt_env.sim.scenarios.base import Layout, Scenario, max_robots_on_circle
+from aasoatt_env.sim.scenarios.fixed import (
+    FIG5_OBSTACLES,
+    CircleSwap,
+    CircleSwapObstacles,
+    Custom,
+    PositionSwap,
+    Tracking,
+)
 from aasoatt_env.sim.scenarios.passages import Corridor, Doorway
 from aasoatt_env.sim.scenarios.random_goals import ObstacleField, RandomGoals
-from aasoatt_env.sim.scenarios.swaps import FIG5_OBSTACLES, CircleSwap, CircleSwapObstacles, PositionSwap
-from aasoatt_env.sim.scenarios.tracking import Custom, Tracking
 from aasoatt_env.validation import reject_unknown
 
 __all__ = ["FIG5_OBSTACLES", "SCENARIOS", "CircleSwap", "CircleSwapObstacles", "Corridor", "Custom", "Doorway",
