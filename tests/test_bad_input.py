@@ -338,7 +338,7 @@ def test_robots_that_exactly_touch_at_the_start_are_accepted(n: int) -> None:
 
 def test_a_user_scenario_that_starts_overlapping_is_refused_at_reset() -> None:
     """The env checks every layout, so a user's own Scenario subclass cannot start the filter inside a collision."""
-    from aasoatt_env.sim.scenarios.position_swap import PositionSwap
+    from aasoatt_env.sim.scenarios import PositionSwap
 
     class Overlapping(PositionSwap):
         name = "overlapping"

@@ -12,7 +12,7 @@ from aasoatt_env import validation as check
 from aasoatt_env.api.factory import make_env
 from aasoatt_env.errors import ActionError, ConfigError
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.sim.actions import real_actions
+from aasoatt_env.sim.env import real_actions
 
 __all__ = ["AASOATTGymEnv"]
 

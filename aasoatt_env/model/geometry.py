@@ -7,14 +7,14 @@ imports, else a k-d tree (the same sorted pairs ``i < j``); :func:`neighbourhood
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import numpy as np
 
 from aasoatt_env import compiled as _compiled
 
-__all__ = ["KDTREE_MIN_ROBOTS", "brute_candidates", "k_nearest", "min_gaps", "neighbourhood", "obstacle_gaps",
-           "kdtree", "obstacle_pairs", "pair_components", "pairwise_distances", "robot_pairs", "row_dot",
-           "uses_brute_force"]
+__all__ = ["KDTREE_MIN_ROBOTS", "Proximity", "brute_candidates", "k_nearest", "kdtree", "min_gaps", "neighbourhood",
+           "obstacle_pairs", "pair_components", "robot_pairs", "row_dot", "uses_brute_force"]
 
 KDTREE_MIN_ROBOTS: int = 200
 """Team size from which a tree (or grid) answers instead of the full distance matrix."""
@@ -65,12 +65,6 @@ def uses_brute_force(n: int, groups: np.ndarray | None = None) -> bool:
 def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot products ``(P,)`` of two ``(P, 2)`` arrays: ``a0 b0 + a1 b1`` (``einsum``'s, without its set-up)."""
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]
-
-
-def pairwise_distances(p: np.ndarray) -> np.ndarray:
-    """Centre distances ``(N, N)`` of points ``(N, 2)`` (one complex subtraction)."""
-    z = np.ascontiguousarray(p, dtype=np.float64).view(np.complex128)[:, 0]
-    return np.abs(z[:, None] - z[None, :])
 
 
 def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: np.ndarray | None = None,
@@ -131,17 +125,12 @@ def _obstacle_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstac
     return (np.sqrt(dx * dx + dy * dy) - r - obstacle_radii.reshape(teams, 1, m)).reshape(teams * n, m)
 
 
-def obstacle_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray) -> np.ndarray:
-    """Surface gaps robot-obstacle ``(N, M)``: ``|p_i - c_k| - r_i - R_k``."""
-    return _obstacle_gaps(p, radii, centers, obstacle_radii, 1)
-
-
 def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius: float, *,
                    groups: np.ndarray | None = None, obstacle_groups: np.ndarray | None = None) -> np.ndarray:
     """Sorted pairs ``(P, 2)`` of robot ``i`` and obstacle ``k`` (of one label) whose rim is within ``radius``."""
     if centers.shape[0] == 0 or p.shape[0] == 0:
         return np.empty((0, 2), dtype=np.intp)
-    near = obstacle_gaps(p, np.zeros(p.shape[0]), centers, radii) <= radius
+    near = _obstacle_gaps(p, np.zeros(p.shape[0]), centers, radii, 1) <= radius
     if groups is not None and obstacle_groups is not None:
         near &= np.asarray(groups)[:, None] == np.asarray(obstacle_groups)[None, :]
     i, k = np.nonzero(near)
@@ -235,13 +224,24 @@ def min_gaps(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_rad
     return neighbourhood(p, radii, centers, obstacle_radii, 0, clear_k=k)[3]
 
 
-def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, k: int,
-                  teams: int = 1, equal_radii: np.ndarray | None = None, clear_k: int = 6
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Nearest robots, obstacle gaps and clearance of ``teams`` equal teams stacked in ``p (K N, 2)``.
+class Proximity(NamedTuple):
+    """Each robot's ``k`` nearest robots ``idx``/``dist (N, k)`` (-1/inf: none), nearest first, obstacle gaps.
 
-    Each robot's ``k`` nearest of its team (stack indices, centre distances ``(K N, k)``; -1/inf: none), its gaps
-    ``(K N, M)`` to its team's obstacles ``(K, M, 2)``, ``(K, M)``, its clearance ``(K N,)`` (as :func:`min_gaps`).
+    ``obstacle_gaps (N, M)``: surface gaps; ``clearance (N,)``: to the nearest of either (negative: overlap).
+    """
+
+    idx: np.ndarray
+    dist: np.ndarray
+    obstacle_gaps: np.ndarray
+    clearance: np.ndarray
+
+
+def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, k: int,
+                  teams: int = 1, equal_radii: np.ndarray | None = None, clear_k: int = 6) -> Proximity:
+    """The :class:`Proximity` of ``teams`` equal teams stacked in ``p (K N, 2)`` (stack indices).
+
+    Each robot's ``k`` nearest of its team, its gaps to its team's obstacles ``(K, M, 2)``, ``(K, M)`` and its
+    clearance (as :func:`min_gaps`).
     """
     if p.shape[0] // teams < KDTREE_MIN_ROBOTS:
         d = _distances(p, teams)
@@ -254,7 +254,7 @@ def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacl
     og = _obstacle_gaps(p, radii, centers, obstacle_radii, teams)
     if og.shape[1]:
         gap = np.minimum(gap, og.min(axis=1))
-    return idx, dist, og, gap
+    return Proximity(idx, dist, og, gap)
 
 
 def pair_components(n: int, ri: np.ndarray, rj: np.ndarray, *, compiled: bool | None = None) -> np.ndarray:

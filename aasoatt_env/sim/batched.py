@@ -9,8 +9,7 @@ import numpy as np
 from gymnasium import spaces
 
 from aasoatt_env.errors import ConfigError, ResetNeeded
-from aasoatt_env.sim.actions import parse_actions
-from aasoatt_env.sim.env import AASOATTParallelEnv
+from aasoatt_env.sim.env import AASOATTParallelEnv, parse_actions
 from aasoatt_env.sim.protocol import GroupedControlFilter
 from aasoatt_env.sim.stack import TeamStack
 
@@ -31,8 +30,12 @@ class TeamsAPI:
         for name in SHARED_SETTINGS[1:]:
             setattr(self, name, settings[name])
         self.agent_observation_space, self.agent_action_space = agent_obs, agent_act  # one robot's
-        (self.single_observation_space, self.single_action_space, self.observation_space,
-         self.action_space) = batch_spaces(agent_obs, n, self.num_envs)
+        leads = ((n,), (self.num_envs, n))  # a team's, the batch's
+        self.single_observation_space, self.observation_space = (
+            spaces.Box(np.broadcast_to(agent_obs.low, (*lead, *agent_obs.shape)),
+                       np.broadcast_to(agent_obs.high, (*lead, *agent_obs.shape)), dtype=agent_obs.dtype)
+            for lead in leads)
+        self.single_action_space, self.action_space = (spaces.Box(-1.0, 1.0, (*lead, 2), np.float32) for lead in leads)
 
     @property
     def filtered(self) -> bool:
@@ -193,15 +196,6 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
         """Close the teams' envs."""
         for env in self.envs:
             env.close()
-
-
-def batch_spaces(agent_obs: spaces.Box, n: int, k: int) -> tuple[spaces.Box, spaces.Box, spaces.Box, spaces.Box]:
-    """A team's ``(N, D)``, ``(N, 2)`` and the batch's ``(K, N, D)``, ``(K, N, 2)`` spaces from one robot's."""
-    team_obs, batch_obs = (spaces.Box(np.broadcast_to(agent_obs.low, (*lead, *agent_obs.shape)),
-                                      np.broadcast_to(agent_obs.high, (*lead, *agent_obs.shape)), dtype=agent_obs.dtype)
-                           for lead in ((n,), (k, n)))
-    return (team_obs, spaces.Box(-1.0, 1.0, (n, 2), np.float32), batch_obs,
-            spaces.Box(-1.0, 1.0, (k, n, 2), np.float32))
 
 
 SHARED_SETTINGS = ("possible_agents", "dt", "decision_interval", "action_mode", "num_neighbors", "num_obstacles",

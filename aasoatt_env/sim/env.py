@@ -17,7 +17,6 @@ from aasoatt_env import validation as check
 from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded, UsageError
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import DT
-from aasoatt_env.sim.actions import checked_actions, real_actions
 from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
 from aasoatt_env.sim.protocol import ControlFilter, FilterOutput
 from aasoatt_env.sim.rendering import Frame, Renderer
@@ -26,7 +25,8 @@ from aasoatt_env.sim.scenarios import Layout, Scenario, get_scenario
 from aasoatt_env.sim.scenarios.base import check_clear_of_obstacles, check_no_overlap
 from aasoatt_env.sim.stack import TeamStack
 
-__all__ = ["MAX_NEIGHBOR_SLOTS", "TRAIL_LENGTH", "AASOATTParallelEnv"]
+__all__ = ["MAX_NEIGHBOR_SLOTS", "TRAIL_LENGTH", "AASOATTParallelEnv", "checked_actions", "parse_actions",
+           "real_actions"]
 
 MAX_NEIGHBOR_SLOTS: int = 256
 """Largest ``num_neighbors`` / ``num_obstacles`` (observation slots) accepted."""
@@ -34,6 +34,87 @@ TRAIL_LENGTH: int = 400
 """Control-point positions kept for rendering trails."""
 FILTERED_MIN_COLLISION_TOLERANCE: float = 1e-9
 """Smallest ``collision_tolerance`` [m] with ``terminate_on_collision`` behind a filter (its guarantee's rounding)."""
+
+
+# the envs' one set of action checks; errors name the agent (env) or the `[team, robot]` entry (batches)
+_NOMINAL_MAX = 1e6  # largest nominal action behind a filter (in units of the bound): larger ones are a bug
+
+_FLOAT_MAX = float(np.finfo(np.float64).max)
+_REAL = "(a float or integer dtype)"
+
+
+def _bool_at(value: Any) -> tuple[int, ...] | None:
+    """Index of the first boolean inside nested lists/tuples (a bool, or a boolean array or tensor), or None."""
+    if isinstance(value, np.ndarray):
+        return () if value.dtype.kind == "b" else None
+    dtype = getattr(value, "dtype", None)
+    if dtype is not None:
+        return () if "bool" in str(dtype) else None
+    if isinstance(value, (bool, np.bool_)):
+        return ()
+    if isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            at = _bool_at(v)
+            if at is not None:
+                return (i, *at)
+    return None
+
+
+def real_actions(value: Any, name: Callable[[tuple[int, ...]], str], expected: str,
+                 shape: tuple[int, ...] | None = None) -> np.ndarray:
+    """``value`` as an array of real numbers (no booleans, even one among numbers; of ``shape``), else an error."""
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError):
+        raise ActionError(f"{name(())}: got {type(value).__name__}, expected {expected} {_REAL}") from None
+    if arr.dtype.kind not in "fiu":
+        raise ActionError(f"{name(())}: got shape {arr.shape} (dtype {arr.dtype}), expected {expected} {_REAL}")
+    at = None if isinstance(value, np.ndarray) else _bool_at(value)
+    if at is not None:
+        raise ActionError(f"{name(at)}: got booleans, expected {expected} {_REAL}")
+    if shape is not None and arr.shape != shape:
+        raise ActionError(f"{name(())}: got shape {arr.shape}, expected {shape}")
+    return arr
+
+
+def checked_actions(act: np.ndarray, nominal: bool, clip: bool, name: Callable[[int], str]) -> np.ndarray:
+    """Finite actions ``(R, 2)`` within their bound, clipped (in place) to ``[-1, 1]`` unless ``nominal``.
+
+    The bound is ``_NOMINAL_MAX`` for a ``nominal``, else ``1 + 1e-6`` (any finite value with ``clip``).
+    """
+    peak = float(np.abs(act).max(initial=0.0))
+    accept = _NOMINAL_MAX if nominal else (_FLOAT_MAX if clip else 1.0 + 1e-6)
+    if not peak <= accept:  # also NaN and inf
+        if not math.isfinite(peak):
+            bad = int(np.flatnonzero(~np.isfinite(act).all(axis=1))[0])
+            raise ActionError(f"{name(bad)}: got non-finite values {act[bad].tolist()}, expected finite numbers")
+        bad = int(np.flatnonzero(np.abs(act).max(axis=1) > accept)[0])
+        raise ActionError(f"{name(bad)}: got {act[bad].tolist()}, expected " + (
+            f"a nominal within [-{_NOMINAL_MAX:g}, {_NOMINAL_MAX:g}] (in units of the wheel-acceleration bound; "
+            "the filter keeps the bounds)" if nominal else "values in [-1, 1] (or clip_actions=True)"))
+    if not nominal and peak > 1.0:
+        np.minimum(np.maximum(act, -1.0, out=act), 1.0, out=act)
+    return act
+
+
+def parse_actions(actions: Any, live: np.ndarray, nominal: bool, clip: bool, offset: int = 0) -> np.ndarray:
+    """Checked actions ``(K N, 2)`` of teams ``(K, N) = live.shape`` (done agents' rows 0, first team ``offset``)."""
+    k, n = live.shape
+    expected = f"real numbers of shape ({k}, {n}, 2)"
+
+    def robot(at: tuple[int, ...]) -> str:  # an entry of nested (K, N, 2) or (K N, 2) sequences
+        if not at:
+            return "actions"
+        if np.ndim(actions) == 3:
+            return f"actions[{at[0] + offset}" + (f", {at[1]}]" if len(at) > 1 else "]")
+        return f"actions[{at[0] // n + offset}, {at[0] % n}]"
+
+    arr = real_actions(actions, robot, expected)
+    if arr.size != k * n * 2 or arr.shape not in ((k, n, 2), (k * n, 2)):
+        raise ActionError(f"actions: got shape {arr.shape} (dtype {arr.dtype}), expected {expected}")
+    act = arr.reshape(k * n, 2).astype(np.float64)
+    act[~live.ravel()] = 0.0  # the env ignores actions of agents that are done
+    return checked_actions(act, nominal, clip, lambda row: f"actions[{row // n + offset}, {row % n}]")
 
 
 def _after_reset(name: str, get: Callable[[AASOATTParallelEnv], Any], doc: str) -> property:
@@ -119,12 +200,9 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
                               "reset(team), __call__(FilterInput, nominal_du) and keeps_input_bounds "
                               "(aasoatt_env.sim.protocol.ControlFilter)")
         if self.terminate_on_collision and self.collision_tolerance < FILTERED_MIN_COLLISION_TOLERANCE:
-            # a terminated robot stops in place at once: an input the filter did not return
-            raise ConfigError(
+            raise ConfigError(  # a robot terminated for less stops in place: an input the filter cannot plan for
                 f"collision_tolerance: got {self.collision_tolerance:g} with terminate_on_collision=True, expected "
-                f">= {FILTERED_MIN_COLLISION_TOLERANCE:g} m behind a control filter (the safety filter's guarantee "
-                "allows that much rounding; a robot terminated for less would stop in place, an input the filter "
-                "cannot plan for)")
+                f">= {FILTERED_MIN_COLLISION_TOLERANCE:g} m behind a control filter (its guarantee's rounding)")
         if self._control_filter is not None and self._control_filter is not control_filter:
             raise UsageError(f"this env already has a control filter ({type(self._control_filter).__name__}); an env "
                              "takes one filter: wrap it once, or remove the first with set_control_filter(None)")
@@ -161,18 +239,13 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         check_no_overlap(where, layout.starts, layout.team.radius, layout.team.group)
         check_clear_of_obstacles(where, layout.starts, layout.team.radius,
                                  (layout.obstacle_centers, layout.obstacle_radii))
-        n = layout.team.n
-        self.team = layout.team
-        self._layouts, self._teams = [layout], [layout.team]
+        self._init_stack(1, layout.team.n)  # a fresh state
+        self.team, self._layouts[0], self._teams[0] = layout.team, layout, layout.team
         self._pose = dynamics.pose_from_point(layout.team, layout.starts, layout.headings)
-        self._u, self._last_action = np.zeros((n, 2)), np.zeros((n, 2))
-        self._times, self._steps = np.zeros(1), np.zeros(1, dtype=np.int64)
-        self._max_steps = np.array([self._max_steps_override or max(
-            1, int(math.ceil(layout.horizon / (self.dt * self.decision_interval) - 1e-9)))])
-        self._active, self._saturated = np.ones(n, dtype=bool), np.zeros(n, dtype=bool)
-        self.agents = list(self.possible_agents)
-        self._live_idx = np.arange(n)
-        self._filter_outputs = ()
+        self._max_steps[0] = self._max_steps_override or max(
+            1, int(math.ceil(layout.horizon / (self.dt * self.decision_interval) - 1e-9)))
+        self._active[:] = True
+        self.agents, self._live_idx, self._filter_outputs = list(self.possible_agents), np.arange(self._n), ()
         try:
             self._restack()
             self._refresh()
@@ -219,7 +292,8 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         except (AttributeError, TypeError, ValueError):
             arr = None
         if arr is None or arr.shape != (len(live), 2):
-            arr = np.array([self._agent_action(a, v) for a, v in zip(live, values)], dtype=np.float64)
+            arr = np.array([real_actions(v, lambda _, a=a: f"actions[{a!r}]", "2 real numbers", (2,))
+                            for a, v in zip(live, values)], dtype=np.float64)
         if len(live) == len(self.possible_agents):
             act = arr.astype(np.float64)
         else:
@@ -227,13 +301,6 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
             act[self._live_idx] = arr
         return checked_actions(act, self._nominal_actions, self.clip_actions,
                                lambda row: f"actions[{self.possible_agents[row]!r}]")
-
-    @staticmethod
-    def _agent_action(agent: str, value: Any) -> np.ndarray:
-        arr = real_actions(value, lambda _: f"actions[{agent!r}]", "2 real numbers")
-        if arr.shape != (2,):
-            raise ActionError(f"actions[{agent!r}]: got shape {arr.shape}, expected (2,)")
-        return arr
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
         """Apply the actions for ``decision_interval`` physics steps."""

@@ -1,37 +1,17 @@
-"""Per-agent observations (``14 + 6 (K + K_obs)`` entries; the table: ``docs/env.md``) and neighbour queries."""
+"""Per-agent observations: ``14 + 6 (K + K_obs)`` entries (the table: ``docs/env.md``)."""
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import numpy as np
 
-from aasoatt_env.model.geometry import neighbourhood
+from aasoatt_env.model.geometry import Proximity
 
-__all__ = ["OBS_BOUND", "SELF_DIM", "SLOT_DIM", "Proximity", "build_observations", "proximity"]
+__all__ = ["OBS_BOUND", "SELF_DIM", "SLOT_DIM", "build_observations"]
 
 OBS_BOUND = 100.0
 SELF_DIM = 14
 SLOT_DIM = 6
 _NEG_RADIUS = np.array([1.0, 1.0, 1.0, 1.0, -1.0])
-
-
-class Proximity(NamedTuple):
-    """Each robot's ``k`` nearest robots ``idx``/``dist (N, k)`` (-1/inf: none), nearest first, obstacle gaps.
-
-    ``obstacle_gaps (N, M)``: surface gaps; ``clearance (N,)``: to the nearest of either (negative: overlap).
-    """
-
-    idx: np.ndarray
-    dist: np.ndarray
-    obstacle_gaps: np.ndarray
-    clearance: np.ndarray
-
-
-def proximity(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, orad: np.ndarray, k: int = 6, teams: int = 1,
-              equal_radii: np.ndarray | None = None) -> Proximity:
-    """:func:`~aasoatt_env.model.geometry.neighbourhood` as a :class:`Proximity` (``teams`` stacked: stack indices)."""
-    return Proximity(*neighbourhood(p, radii, centers, orad, k, teams, equal_radii))
 
 
 def build_observations(*, p: np.ndarray, v: np.ndarray, theta: np.ndarray, u: np.ndarray, p_d: np.ndarray,
@@ -44,40 +24,34 @@ def build_observations(*, p: np.ndarray, v: np.ndarray, theta: np.ndarray, u: np
     ``obstacle_offset[i] + k`` of the stacked obstacle arrays.
     """
     n = p.shape[0]
+    obs = np.zeros((n, SELF_DIM + SLOT_DIM * (k_robots + k_obstacles)), dtype=np.float32)  # each entry cast once
     heading = np.exp(1j * theta).view(np.float64).reshape(n, 2)
-    parts = [p - p_d, goals - p, v, heading, u, v_d, a_d]
-    if k_robots:
-        slots = np.zeros((n, k_robots, SLOT_DIM))
-        if n > 1:
-            idx, dist = prox.idx[:, :k_robots], prox.dist[:, :k_robots]
-            ok = dist <= sensing_range
-            j = np.where(ok, idx, 0)
-            # gather (p, v, -r) of the neighbours, subtract (p, v, r) of the robot
-            mine = np.concatenate((p, v, radii[:, None]), axis=1)
-            theirs = mine * _NEG_RADIUS
-            rel = theirs[j] - mine[:, None, :]
-            rel[..., 4] += dist
-            slots[..., :5] = rel
-            slots[..., 5] = 1.0
-            slots[~ok] = 0.0
-        parts.append(slots.reshape(n, -1))
-    if k_obstacles:
-        gaps = prox.obstacle_gaps
-        m = gaps.shape[1]
-        slots = np.zeros((n, k_obstacles, SLOT_DIM))
-        if m:
-            kk = min(k_obstacles, m)
-            order = np.argsort(gaps, axis=1)[:, :kk]
-            g = gaps[np.arange(n)[:, None], order]
-            if obstacle_offset is not None:
-                order = order + obstacle_offset[:, None]
-            ok = g + radii[:, None] + obstacle_radii[order] <= sensing_range
-            part = slots[:, :kk]
-            part[..., 0:2] = obstacle_centers[order] - p[:, None, :]
-            part[..., 2:4] = -v[:, None, :]
-            part[..., 4] = g
-            part[..., 5] = 1.0
-            part[~ok] = 0.0
-        parts.append(slots.reshape(n, -1))
-    obs = np.concatenate(parts, axis=1, dtype=np.float32)
+    np.concatenate((p - p_d, goals - p, v, heading, u, v_d, a_d), axis=1, out=obs[:, :SELF_DIM])
+    slots = obs[:, SELF_DIM:].reshape(n, k_robots + k_obstacles, SLOT_DIM)  # a view
+    if k_robots and n > 1:
+        idx, dist = prox.idx[:, :k_robots], prox.dist[:, :k_robots]
+        ok = dist <= sensing_range
+        j = np.where(ok, idx, 0)
+        # gather (p, v, -r) of the neighbours, subtract (p, v, r) of the robot
+        mine = np.concatenate((p, v, radii[:, None]), axis=1)
+        rel = (mine * _NEG_RADIUS)[j] - mine[:, None, :]
+        rel[..., 4] += dist
+        rel[~ok] = 0.0
+        slots[:, :k_robots, :5] = rel
+        slots[:, :k_robots, 5] = ok
+    m = prox.obstacle_gaps.shape[1] if k_obstacles else 0
+    if m:
+        gaps, kk = prox.obstacle_gaps, min(k_obstacles, m)
+        order = np.argsort(gaps, axis=1)[:, :kk]
+        g = gaps[np.arange(n)[:, None], order]
+        if obstacle_offset is not None:
+            order = order + obstacle_offset[:, None]
+        ok = g + radii[:, None] + obstacle_radii[order] <= sensing_range
+        part = np.empty((n, kk, SLOT_DIM))
+        part[..., 0:2] = obstacle_centers[order] - p[:, None, :]
+        part[..., 2:4] = -v[:, None, :]
+        part[..., 4] = g
+        part[..., 5] = 1.0
+        part[~ok] = 0.0
+        slots[:, k_robots:k_robots + kk] = part
     return np.minimum(np.maximum(obs, -OBS_BOUND, out=obs), OBS_BOUND, out=obs)

@@ -111,16 +111,15 @@ class ReferenceStack:
         """Team ``k``'s reference at ``t`` as new float64 arrays, refused unless finite and ``(N, 2)``."""
         ref, n = self.refs[k], int(self._sizes[k])
         out = tuple(np.array(x, dtype=np.float64) for x in ref(t))
+        team = f" of team {k}" if len(self.refs) > 1 else ""
         for name, x in zip(("p_d", "v_d", "a_d"), out):
-            if x.shape != (n, 2) or not np.isfinite(x).all():
-                team = f" of team {k}" if len(self.refs) > 1 else ""
-                if x.shape != (n, 2):
-                    raise ScenarioError(f"reference ({type(ref).__name__}) {name} at t = {t:g} s{team}: got shape "
-                                        f"{x.shape}, expected ({n}, 2)")
+            what = f"reference ({type(ref).__name__}) {name} at t = {t:g} s"
+            if x.shape != (n, 2):
+                raise ScenarioError(f"{what}{team}: got shape {x.shape}, expected ({n}, 2)")
+            if not np.isfinite(x).all():
                 i = int(np.flatnonzero(~np.isfinite(x).all(axis=1))[0])
-                raise ScenarioError(f"reference ({type(ref).__name__}) {name} at t = {t:g} s: got a non-finite value "
-                                    f"{x[i].tolist()} for robot {i}{team}, expected finite values (a reference "
-                                    "must be defined at every time of the episode)")
+                raise ScenarioError(f"{what}: got a non-finite value {x[i].tolist()} for robot {i}{team}, expected "
+                                    "finite values (a reference must be defined at every time of the episode)")
         return out  # type: ignore[return-value]
 
 

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import colorsys
+import contextlib
 import importlib
 import importlib.util
 import math
 import os
+import sys
+import warnings
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,7 +20,6 @@ import numpy as np
 
 from aasoatt_env.cli_support import staged
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.sim.window import Window
 
 __all__ = ["ANIMATION_SUFFIXES", "BACKGROUND", "Frame", "Renderer", "animation_writer_missing", "robot_colors",
            "save_animation"]
@@ -37,15 +39,11 @@ _PALETTE: tuple[tuple[int, int, int], ...] = (
 
 def robot_colors(n: int) -> np.ndarray:
     """Distinct, deterministic RGB colours ``(n, 3)`` ``uint8``: a fixed palette, then golden-angle hues (no red)."""
-    out = np.empty((max(n, 0), 3), dtype=np.uint8)
-    for i in range(max(n, 0)):
-        if i < len(_PALETTE):
-            out[i] = _PALETTE[i]
-        else:
-            hue = 0.04 + 0.92 * ((0.1 + 0.618033988749895 * i) % 1.0)  # away from red hues (+-0.04 around 0)
-            r, g, b = colorsys.hsv_to_rgb(hue, 0.75, 0.85 if i % 2 else 0.65)
-            out[i] = (int(r * 255), int(g * 255), int(b * 255))
-    return out
+    hues = 0.04 + 0.92 * ((0.1 + 0.618033988749895 * np.arange(max(n, 0))) % 1.0)  # away from red (+-0.04 around 0)
+    out = [_PALETTE[i] if i < len(_PALETTE) else [int(c * 255) for c in
+                                                  colorsys.hsv_to_rgb(h, 0.75, 0.85 if i % 2 else 0.65)]
+           for i, h in enumerate(hues.tolist())]
+    return np.array(out, dtype=np.uint8).reshape(-1, 3)
 
 
 def _require(module: str, feature: str) -> ModuleType:
@@ -155,10 +153,6 @@ class _Transform:
         p = np.asarray(p, dtype=np.float64)
         return np.stack((self.ox + p[..., 0] * self.scale, self.oy - p[..., 1] * self.scale), axis=-1)
 
-    def ipoints(self, p: np.ndarray) -> np.ndarray:
-        """Rounded, clipped integer pixel coordinates of world points ``(..., 2)``."""
-        return np.clip(np.rint(self.points(p)), -self.limit, self.limit).astype(np.int64)
-
 
 def _mix(color: Sequence[int], other: Sequence[int], t: float) -> tuple[int, int, int]:
     """Blend ``t`` of ``other`` into ``color``."""
@@ -195,7 +189,9 @@ class Renderer:
         self._gfx = importlib.import_module("pygame.gfxdraw")  # (part of every pygame)
         self._surface = self._pg.Surface((self.width, self.height))
         self._font: Any = None  # False: no font available
-        self._window = Window(self._pg, self.width, self.height)
+        self._window: Any = None  # render_mode="human": opened at the first show
+        self._clock: Any = None
+        self._headless = self._closed_by_user = False
 
     def _get_font(self) -> Any:
         if self._font is None:
@@ -235,9 +231,8 @@ class Renderer:
         for gy in np.arange(math.ceil(ymin / step) * step, ymax + 1e-9, step):
             py = int(round(tf.oy - gy * tf.scale))
             pg.draw.line(surf, GRID_COLOR, (0, py), (self.width - 1, py))
-        c = tf.ipoints(np.array([[xmin, ymax], [xmax, ymin]]))
-        pg.draw.rect(surf, BOUNDS_COLOR, pg.Rect(int(c[0, 0]), int(c[0, 1]), int(c[1, 0] - c[0, 0]),
-                                                 int(c[1, 1] - c[0, 1])), 1)
+        (x0, y0), (x1, y1) = np.rint(tf.points(np.array([[xmin, ymax], [xmax, ymin]]))).astype(int).tolist()
+        pg.draw.rect(surf, BOUNDS_COLOR, pg.Rect(x0, y0, x1 - x0, y1 - y0), 1)  # (inside the image)
 
     def _draw_trails(self, tf: _Transform, trails: np.ndarray, colors: list[Color]) -> None:
         if trails.shape[0] < 2:
@@ -329,13 +324,62 @@ class Renderer:
         raw = self._pg.image.tobytes(self.draw(frame), "RGB")
         return np.frombuffer(raw, dtype=np.uint8).reshape(self.height, self.width, 3).copy()
 
+    def _warn_headless(self, reason: str) -> None:
+        """Warn once: after this, :meth:`show` returns at once (``_headless``) and never warns again."""
+        self._headless = True
+        warnings.warn(f"Renderer.show: no display available ({reason}); render_mode='human' does nothing. "
+                      "Use render_mode='rgb_array' to get images.", RuntimeWarning, stacklevel=4)
+
+    def _open(self) -> bool:
+        """Open the window; False (and a warning, once) where there is no display."""
+        pg = self._pg
+        if os.environ.get("SDL_VIDEODRIVER", "").lower() in ("dummy", "offscreen") or (
+                (sys.platform.startswith("linux") or "bsd" in sys.platform)
+                and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))):
+            self._warn_headless("no DISPLAY/WAYLAND_DISPLAY, or a dummy SDL video driver")
+            return False
+        try:
+            pg.display.init()
+            driver = pg.display.get_driver()
+            if driver in ("offscreen", "dummy"):  # SDL fell back to an invisible driver: no real display
+                pg.display.quit()
+                self._warn_headless(f"SDL video driver {driver!r}")
+                return False
+            self._window = pg.display.set_mode((self.width, self.height))
+            pg.display.set_caption("aasoatt")
+            self._clock = pg.time.Clock()
+        except Exception as exc:  # noqa: BLE001 - any failure means: no window
+            self._window = None
+            self._warn_headless(str(exc) or type(exc).__name__)
+            return False
+        return True
+
     def show(self, frame: Frame) -> None:
-        """Show ``frame`` in a window (``render_mode="human"``); without a display: a warning, once."""
-        self._window.show(self.draw(frame), self.fps)
+        """Show ``frame`` in a window (``render_mode="human"``, at most ``fps`` a second); headless: a warning, once."""
+        surface = self.draw(frame)
+        if self._headless or self._closed_by_user or (self._window is None and not self._open()):
+            return
+        pg = self._pg
+        try:
+            for event in pg.event.get():
+                if event.type == pg.QUIT:
+                    self._closed_by_user = True
+                    self.close()
+                    return
+            self._window.blit(surface, (0, 0))
+            pg.display.flip()
+            if self.fps and self._clock is not None:
+                self._clock.tick(self.fps)
+        except Exception as exc:  # noqa: BLE001
+            self.close()
+            self._warn_headless(str(exc) or type(exc).__name__)
 
     def close(self) -> None:
         """Close the window, if one is open.  Safe to call more than once."""
-        self._window.close()
+        if self._window is not None:
+            self._window = None
+            with contextlib.suppress(Exception):
+                self._pg.display.quit()
 
     def __enter__(self) -> Renderer:
         return self

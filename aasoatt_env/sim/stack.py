@@ -9,10 +9,10 @@ import numpy as np
 from aasoatt_env.errors import ActionError
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import Kinematics
-from aasoatt_env.model.geometry import KDTREE_MIN_ROBOTS
+from aasoatt_env.model.geometry import KDTREE_MIN_ROBOTS, Proximity, neighbourhood
 from aasoatt_env.model.params import Team, stack_teams
 from aasoatt_env.model.tracking import point_accel_to_du
-from aasoatt_env.sim.observations import Proximity, build_observations, proximity
+from aasoatt_env.sim.observations import build_observations
 from aasoatt_env.sim.protocol import FilterInput, FilterOutput
 from aasoatt_env.sim.references import ReferenceStack
 from aasoatt_env.sim.rewards import rewards
@@ -183,11 +183,11 @@ class TeamStack:
         return d
 
     def _neighbours(self, p: np.ndarray, k: int) -> Proximity:
-        """:func:`~aasoatt_env.sim.observations.proximity` of every team (indices into the stack)."""
+        """:func:`~aasoatt_env.model.geometry.neighbourhood` of every team (indices into the stack)."""
         if self._stackable:
-            return proximity(p, self._team.radius, self._ocenters, self._oradii, k, self._k, self._equal_radii)
+            return neighbourhood(p, self._team.radius, self._ocenters, self._oradii, k, self._k, self._equal_radii)
         n = self._n
-        parts = [proximity(p[j * n:(j + 1) * n], t.radius, lay.obstacle_centers, lay.obstacle_radii, k)
+        parts = [neighbourhood(p[j * n:(j + 1) * n], t.radius, lay.obstacle_centers, lay.obstacle_radii, k)
                  for j, (t, lay) in enumerate(zip(self._teams, self._layouts))]
         return Proximity(np.concatenate([np.where(q.idx >= 0, q.idx + j * n, -1) for j, q in enumerate(parts)]),
                          np.concatenate([q.dist for q in parts]),
@@ -214,7 +214,7 @@ class TeamStack:
         else:
             sl, lay, offset = slice(j * self._n, (j + 1) * self._n), self._layouts[j], None
             centers, radii = lay.obstacle_centers, lay.obstacle_radii
-            prox = proximity(kin.p[sl], self._teams[j].radius, centers, radii, max(self.num_neighbors, 1))
+            prox = neighbourhood(kin.p[sl], self._teams[j].radius, centers, radii, max(self.num_neighbors, 1))
         return build_observations(
             p=kin.p[sl], v=kin.v[sl], theta=self._pose[sl, 2], u=self._u[sl], p_d=p_d[sl], v_d=v_d[sl], a_d=a_d[sl],
             goals=self._goals[sl], radii=self._team.radius[sl], obstacle_centers=centers, obstacle_radii=radii,

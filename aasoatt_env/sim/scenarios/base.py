@@ -44,6 +44,7 @@ class Scenario:
     """Base class: subclasses set ``name``, validate in ``__init__`` and implement ``build``."""
 
     name: ClassVar[str] = ""
+    num_robots_: int = 1
 
     def build(self, rng: np.random.Generator) -> Layout:  # pragma: no cover - abstract
         """Return the layout of a new episode."""
@@ -52,7 +53,7 @@ class Scenario:
     @property
     def num_robots(self) -> int:
         """Number of robots."""
-        return int(getattr(self, "num_robots_", 1))
+        return int(self.num_robots_)
 
 
 def check_num_robots(value: Any) -> int:

@@ -1,8 +1,9 @@
-"""``random_goals``: seeded random starts and goals in a square arena, spacing guaranteed (for learning)."""
+"""``random_goals``: seeded random starts and goals, spacing guaranteed (learning); ``obstacle_field``: among discs."""
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -14,7 +15,7 @@ from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.scenarios import base
 from aasoatt_env.sim.scenarios.base import Layout, Scenario
 
-__all__ = ["MAX_OBSTACLES", "RandomGoals"]
+__all__ = ["MAX_OBSTACLES", "ObstacleField", "RandomGoals"]
 
 MAX_OBSTACLES: int = 1000
 """Largest ``random_obstacles``."""
@@ -32,6 +33,9 @@ class RandomGoals(Scenario):
     """
 
     name = "random_goals"
+    radii: tuple[float, float] = (0.3, 0.8)  # of the random discs [m]
+    _pad, _tries = 0, 100  # extra draws per batch of 4 random_obstacles; batches
+    _crowded = "random_obstacles: could not place {m} obstacles clear of the robots; enlarge arena_size"
 
     def __init__(self, num_robots: int = 6, arena_size: float | None = None, min_spacing: float | None = None,
                  speed: float = 0.8, settle_time: float = 3.0, robots: str | RobotParams | list = "paper",
@@ -59,29 +63,24 @@ class RandomGoals(Scenario):
                                 f"(cover {cover:.2f}, expected <= 0.45)")
 
     def _sample(self, rng: np.random.Generator) -> np.ndarray:
+        """Points ``min_spacing`` apart: one by one (a whole new try where one finds no room in 10,000 draws)."""
         if self.num_robots_ > _SEQUENTIAL_MAX:
             return self._sample_batched(rng)
-        n = self.num_robots_
+        n, half = self.num_robots_, self.arena_size / 2.0 - self.min_spacing / 2.0
         for _ in range(_SEQUENTIAL_TRIES):
-            pts = self._place_once(rng)
-            if pts is not None:
+            pts = np.empty((n, 2))
+            for i in range(n):
+                for _ in range(10_000):
+                    cand = rng.uniform(-half, half, size=2)
+                    if i == 0 or np.min(np.hypot(*(pts[:i] - cand).T)) >= self.min_spacing:
+                        pts[i] = cand
+                        break
+                else:
+                    break  # no room: a new try
+            else:
                 return pts
         raise ScenarioError(f"random_goals: could not place {n} robots {self.min_spacing:g} m apart in an arena of "
                             f"size {self.arena_size:g} in {_SEQUENTIAL_TRIES} tries; enlarge arena_size")
-
-    def _place_once(self, rng: np.random.Generator) -> np.ndarray | None:
-        """One try of the one-by-one sampler: None where a point finds no room in 10,000 draws."""
-        n, half = self.num_robots_, self.arena_size / 2.0 - self.min_spacing / 2.0
-        pts = np.empty((n, 2))
-        for i in range(n):
-            for _ in range(10_000):
-                cand = rng.uniform(-half, half, size=2)
-                if i == 0 or np.min(np.hypot(*(pts[:i] - cand).T)) >= self.min_spacing:
-                    pts[i] = cand
-                    break
-            else:
-                return None
-        return pts
 
     def _sample_batched(self, rng: np.random.Generator) -> np.ndarray:
         """Dart throwing in vectorised batches (large teams): candidates clear of the points and earlier candidates."""
@@ -119,19 +118,44 @@ class RandomGoals(Scenario):
                       obstacle_centers=centers, obstacle_radii=radii, bounds=(-b, b, -b, b))
 
     def _obstacles(self, rng: np.random.Generator, keep_clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``random_obstacles`` discs clear of the starts and goals (rejection sampling, vectorised per batch)."""
+        """``random_obstacles`` discs (radii uniform in ``radii``) clear of the starts and goals (rejection)."""
         m = self.random_obstacles
-        if m == 0:
-            return np.zeros((0, 2)), np.zeros(0)
-        clear = float(self._team.radius.max()) + 0.1
-        half = self.arena_size / 2.0
-        centers, radii = np.empty((0, 2)), np.empty(0)
-        for _ in range(100):
-            c = rng.uniform(-half, half, size=(4 * m, 2))
-            r = rng.uniform(0.3, 0.8, size=4 * m)
+        size, clear, half = 4 * m + self._pad, float(self._team.radius.max()) + 0.1, self.arena_size / 2.0
+        centers, radii = np.zeros((0, 2)), np.zeros(0)
+        for _ in range(self._tries if m else 0):
+            c = rng.uniform(-half, half, size=(size, 2))
+            r = rng.uniform(*self.radii, size=size)
             d = np.hypot(*(c[:, None, :] - keep_clear[None, :, :]).transpose(2, 0, 1)).min(axis=1)
             ok = d >= r + clear
             centers, radii = np.concatenate((centers, c[ok]))[:m], np.concatenate((radii, r[ok]))[:m]
             if radii.size == m:
-                return centers, radii
-        raise ScenarioError(f"random_obstacles: could not place {m} obstacles clear of the robots; enlarge arena_size")
+                break
+        if radii.size < m:
+            raise ScenarioError(self._crowded.format(m=m))
+        return centers, radii
+
+
+class ObstacleField(RandomGoals):
+    """Random starts and goals (as :class:`.RandomGoals`) among random discs covering ``density`` of the arena.
+
+    Disc radii are uniform in ``radii = (low, high)`` [m]; their count is ``density`` times the arena's area over
+    a disc's mean area; centres are uniform, each disc clear of every start and goal by the robots' radius + 0.1 m
+    (discs may overlap one another, so a goal can be walled off: a geometry with no solution).  Straight-line
+    references; ``settle_time`` [s] defaults to 30.
+    """
+
+    name = "obstacle_field"
+    _pad, _tries = 4, 200
+    _crowded = "density: could not place {m} obstacles clear of the robots; lower the density or enlarge arena_size"
+
+    def __init__(self, num_robots: int = 8, density: float = 0.1, radii: Any = (0.3, 0.8), settle_time: float = 30.0,
+                 **kwargs: Any) -> None:
+        self.density = check.real("density", density, lo=0.0, hi=0.5)
+        r = check.real_array("radii", radii, lo=1e-3, hi=1e3, unit=" m").reshape(-1)
+        if r.shape != (2,) or r[0] > r[1]:
+            raise ScenarioError(f"radii: got {check.short_repr(np.asarray(radii).tolist())}, expected (low, high) "
+                                "with 0 < low <= high")
+        self.radii = (float(r[0]), float(r[1]))
+        super().__init__(num_robots=num_robots, settle_time=settle_time, **kwargs)
+        mean_area = math.pi * (r[0] ** 2 + r[0] * r[1] + r[1] ** 2) / 3.0
+        self.random_obstacles = int(round(self.density * self.arena_size**2 / mean_area))
