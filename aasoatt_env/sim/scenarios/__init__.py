@@ -1,4 +1,4 @@
-"""Scenarios by family (``docs/env.md``); a new one: a :class:`Scenario` subclass, a line in :data:`SCENARIOS`."""
+"""Scenarios, one file each (``docs/env.md``); a new one: a :class:`Scenario` subclass, a line in :data:`SCENARIOS`."""
 
 from __future__ import annotations
 
@@ -7,16 +7,15 @@ from typing import Any
 
 from aasoatt_env.errors import ScenarioError, UnknownKeywordError
 from aasoatt_env.sim.scenarios.base import Layout, Scenario, max_robots_on_circle
-from aasoatt_env.sim.scenarios.fixed import (
-    FIG5_OBSTACLES,
-    CircleSwap,
-    CircleSwapObstacles,
-    Custom,
-    PositionSwap,
-    Tracking,
-)
-from aasoatt_env.sim.scenarios.passages import Corridor, Doorway
-from aasoatt_env.sim.scenarios.random_goals import ObstacleField, RandomGoals
+from aasoatt_env.sim.scenarios.circle_obstacles import FIG5_OBSTACLES, CircleSwapObstacles
+from aasoatt_env.sim.scenarios.circle_swap import CircleSwap
+from aasoatt_env.sim.scenarios.corridor import Corridor
+from aasoatt_env.sim.scenarios.custom import Custom
+from aasoatt_env.sim.scenarios.doorway import Doorway
+from aasoatt_env.sim.scenarios.obstacle_field import ObstacleField
+from aasoatt_env.sim.scenarios.position_swap import PositionSwap
+from aasoatt_env.sim.scenarios.random_goals import RandomGoals
+from aasoatt_env.sim.scenarios.tracking import Tracking
 from aasoatt_env.validation import reject_unknown
 
 __all__ = ["FIG5_OBSTACLES", "SCENARIOS", "CircleSwap", "CircleSwapObstacles", "Corridor", "Custom", "Doorway",
