@@ -634,8 +634,8 @@ def test_the_fused_step_gives_the_pipelines_steps_bit_for_bit(monkeypatch, scene
 @needs_numba
 @pytest.mark.parametrize("scene", ["stack", "crossing", "random"])
 def test_the_compiled_deadlock_stage_gives_the_numpy_stages_steps_bit_for_bit(monkeypatch, scene):
-    """The ``multiplier`` trigger and ``A du_nom`` compiled (deadlock_kernel) give the numpy stage's steps bit for
-    bit along closed loops where robots are triggered."""
+    """The ``multiplier`` trigger and ``A du_nom`` compiled (``rows_kernel.multiplier_target``) give the numpy
+    stage's steps bit for bit along closed loops where robots are triggered."""
     ref, _ = _filter_results(monkeypatch, scene, rows_kernel=True, deadlock_kernel=False)
     out, _ = _filter_results(monkeypatch, scene, rows_kernel=True)
     assert len(out) == len(ref) >= 400 and sum(res.triggered.sum() for _, res in out) > 100
