@@ -82,7 +82,7 @@ def evaluate(actor: ProbabilisticActor, teams: int, robots: int, seed: int = HEL
             if bool(nxt["done"].all()):
                 break
             td = nxt
-    goal = env.env.kin.p - env.env._st["goals"]
+    goal = env.env.kin.p - env.env.goals
     home = torch.sqrt((goal ** 2).sum(-1)) < tol
     return {"success": float(home.float().mean()), "robots_collided": int(collided.sum()),
             "correction": corr / max(steps, 1), "teams": teams}

@@ -139,6 +139,11 @@ class TensorEnv:
         self.avoiding = self.avoiding.index_fill(0, idx, False)
 
     # ------------------------------------------------------------------ step
+    @property
+    def goals(self) -> torch.Tensor:
+        """``(B, N, 2)`` every robot's goal in its team's current episode."""
+        return self._st["goals"]
+
     def reference(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """``(p_d, v_d, a_d)`` ``(B, N, 2)`` of every team at its own time (``LinearReference``)."""
         st = self._st
