@@ -269,7 +269,7 @@ def test_differentiable_env_passes_gradients_from_rewards_to_actions():
     assert not plain.step(act)[1].requires_grad
 
 
-def test_bad_settings_are_refused_naming_the_argument():
+def test_bad_settings_are_refused_naming_the_argument(monkeypatch):
     from aasoatt_env.errors import ConfigError
     from aasoatt_env.tensor.env import make_tensor_env
 
@@ -277,6 +277,11 @@ def test_bad_settings_are_refused_naming_the_argument():
                          (dict(mode="centralized"), "mode"), (dict(deadlock="yield"), "deadlock")):
         with pytest.raises(ConfigError, match=name):
             make_tensor_env("random_goals", **{"num_robots": 4, **kwargs})
+    from aasoatt_env.safety import barriers
+
+    monkeypatch.setitem(barriers.BARRIERS, "mine", barriers.BARRIERS["aasoatt"])  # registered, no torch form
+    with pytest.raises(ConfigError, match="barrier: got 'mine'"):
+        make_tensor_env("random_goals", num_robots=4, barrier="mine")
     env = make_tensor_env("random_goals", 2, 4)
     env.reset(seed=0)
     with pytest.raises(ConfigError, match="actions"):

@@ -26,7 +26,6 @@ from typing import NamedTuple
 import torch
 
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.safety.barriers import BARRIERS
 from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
 from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.tensor.backup import gate
@@ -34,8 +33,12 @@ from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds,
 from aasoatt_env.tensor.qp import FAR, LocalAnswer, solve_polygons
 from aasoatt_env.tensor.relax import least_violation
 
-__all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config", "filter_step"]
+__all__ = ["BACKUP", "BARRIERS_IN_TORCH", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config",
+           "filter_step"]
 
+#: the barriers :func:`_rhs` writes in torch (the built-ins of :data:`~aasoatt_env.safety.barriers.BARRIERS`); one
+#: registered later is refused by :func:`check_config`, not answered with another's formula
+BARRIERS_IN_TORCH = ("aasoatt", "braking", "distance", "gated_distance", "adaptive_distance")
 RELAXED, GROUPED, BACKUP, UNSAFE = 1, 2, 4, 8  #: ``status`` bits (module docstring); 0: its own QP, exactly
 
 
@@ -55,7 +58,7 @@ def check_config(cfg: FilterConfig) -> FilterConfig:
     """``cfg`` if the torch filter implements it, else :class:`ConfigError` naming the setting."""
     if cfg.mode != "decentralized":
         raise ConfigError(f"mode: got {cfg.mode!r}, expected 'decentralized' (the torch filter solves each robot's QP)")
-    for name, allowed in (("barrier", tuple(BARRIERS)), ("deadlock", ("auxiliary_velocity", "none")),
+    for name, allowed in (("barrier", BARRIERS_IN_TORCH), ("deadlock", ("auxiliary_velocity", "none")),
                           ("trigger", ("multiplier",))):
         if getattr(cfg, name) not in allowed:
             raise ConfigError(f"{name}: got {getattr(cfg, name)!r}, expected one of {list(allowed)} in the torch "
