@@ -87,6 +87,22 @@ def test_the_filter_equals_the_numpy_decentralised_filter_where_it_answers_by_th
     assert np.abs(du - ref_du).max() <= 1e-6
 
 
+def test_a_step_with_no_robot_or_obstacle_in_range_answers_each_robot_by_its_box():
+    """Teams whose robots are all out of each other's sensing range, no obstacles (so no barrier row at all): the
+    answer is each robot's nominal projected onto its box, as the numpy filter's."""
+    rng = np.random.default_rng(4)
+    n = 4
+    states = random_states(rng, 20, n)
+    for s in states:
+        s["pose"][:, :2] *= 10.0  # 11-22 m apart, D = 3 m
+        s["oc"], s["orad"] = np.zeros((0, 2)), np.zeros(0)
+    cfg = FilterConfig(mode="decentralized", backup=False, negotiate=False, kernel="numpy")
+    team, ref = numpy_answers(states, cfg, n)
+    out = tensor_answers(team, states, cfg)
+    assert np.abs(out.du.numpy() - np.stack([r.du for r in ref])).max() <= 1e-9
+    assert (out.status.numpy() == 0).all()
+
+
 def test_negotiation_groups_are_flagged_not_silently_changed():
     """With ``negotiate=True`` the numpy filter solves some robots jointly; every robot whose answer differs from the
     tensor filter's is flagged ``GROUPED`` (or ``RELAXED``)."""

@@ -51,8 +51,10 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
     feasible = torch.ones(R, dtype=torch.bool, device=t.device)
     out = viol0.amax(dim=1) > tol
     if t_box is not None and rows < C:
-        vb = (nx[:, C - rows:] * t_box[:, 0:1] + ny[:, C - rows:] * t_box[:, 1:2] - b[:, C - rows:]).amax(dim=1)
-        box = out & (vb <= tol)
+        box = out
+        if rows:  # (no rows: the box's projection is the optimum)
+            vb = (nx[:, C - rows:] * t_box[:, 0:1] + ny[:, C - rows:] * t_box[:, 1:2] - b[:, C - rows:]).amax(dim=1)
+            box = out & (vb <= tol)
         w = torch.where(box[:, None], t_box, w)
         out = out & ~box
     todo = torch.nonzero(out).flatten()
