@@ -192,6 +192,36 @@ def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter
     assert resets == 4 and worst <= 1e-6 and relaxed > 0
 
 
+def test_point_actions_follow_the_pettingzoo_env_in_point_mode():
+    """``action_mode="point"``: the tracking law as control-point accelerations (units of ``max_point_accel``) for two
+    random_goals teams of 6 behind the filter, 150 steps of 100 ms: positions within 1e-6 m of the PettingZoo env's."""
+    from aasoatt_env.sim.env import AASOATTParallelEnv
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    n, opts = 6, dict(backup=False, negotiate=False)
+    tenv = make_tensor_env("random_goals", 2, n, dtype=torch.float64, action_mode="point", decision_interval=20,
+                           max_steps=150, **opts)
+    tenv.reset(seed=5)
+    envs = []
+    for b in range(2):
+        e = AASOATTParallelEnv("random_goals", num_robots=n, action_mode="point", decision_interval=20,
+                               max_steps=150)
+        e.set_control_filter(SafetyFilter(mode="decentralized", kernel="numpy", **opts))
+        e.reset(seed=5 + b)
+        envs.append(e)
+    amax = float(tenv.team.max_point_accel[0])
+    worst = 0.0
+    for _ in range(149):  # (the 150th ends the episodes: auto-reset)
+        acts = torch.clamp((1.0 * (tenv.ref[0] - tenv.kin.p) + 4.0 * (tenv.ref[1] - tenv.kin.v)) / amax, -1.0, 1.0)
+        tenv.step(acts)
+        for b, e in enumerate(envs):
+            e.step({a: acts[b, i].numpy() for i, a in enumerate(e.possible_agents)})
+            worst = max(worst, float(np.abs(e.positions - tenv.kin.p[b].numpy()).max()))
+    assert worst <= 1e-6
+    home = torch.sqrt(((tenv.kin.p - tenv.goals) ** 2).sum(-1)) < 0.5
+    assert float(home.double().mean()) >= 0.75  # most robots tracked home: the actions drove them
+
+
 def test_a_loss_through_the_filter_trains_a_policy_to_need_less_correction():
     """A linear policy (nominal from the relative goal direction) trained by Adam on ``|filter(nominal) - nominal|^2``
     minus progress: the filter's mean correction falls to under half of the start's within 60 updates."""
@@ -290,7 +320,8 @@ def test_bad_settings_are_refused_naming_the_argument(monkeypatch):
     from aasoatt_env.tensor.env import make_tensor_env
 
     for kwargs, name in ((dict(num_envs=0), "num_envs"), (dict(dtype=torch.int32), "dtype"),
-                         (dict(mode="centralized"), "mode"), (dict(deadlock="yield"), "deadlock")):
+                         (dict(mode="centralized"), "mode"), (dict(deadlock="yield"), "deadlock"),
+                         (dict(action_mode="torque"), "action_mode: got 'torque'")):
         with pytest.raises(ConfigError, match=name):
             make_tensor_env("random_goals", **{"num_robots": 4, **kwargs})
     from aasoatt_env.safety import barriers

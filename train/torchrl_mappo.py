@@ -1,8 +1,9 @@
 """MAPPO (or IPPO) with TorchRL on the torch env behind the torch filter: many teams in one call, no PettingZoo.
 
 The robots of a team are one TorchRL agent group (:class:`~aasoatt_env.tensor.torchrl_env.TorchRLTensorEnv`);
-the policy is one shared MLP per robot (its own observation in, a tanh-Gaussian over its normalised wheel
-accelerations out), the critic a shared MLP over the whole team's observations (MAPPO; ``--ippo``: each robot's
+the policy is one shared MLP per robot (its own observation in, a tanh-Gaussian over its normalised control-point
+accelerations out: ``action_mode="point"``, as ``aasoatt train``'s recipe; ``--action-mode wheel`` for wheel
+accelerations; initial standard deviation 0.4), the critic a shared MLP over the whole team's observations (MAPPO; ``--ippo``: each robot's
 own).  Clipped PPO with GAE, as TorchRL's multi-agent PPO tutorial.  Every ``--eval-every`` iterations, and at the
 end, the deterministic policy is evaluated on held-out seeds (teams ``seed >= 2**32``, as ``aasoatt train``'s)
 for one episode per team: success (robots within ``goal_tolerance`` of their goal at the end), collisions
@@ -42,6 +43,7 @@ GROUP = "agents"
 
 def make_env(teams: int, robots: int, seed: int, **options: Any) -> TorchRLTensorEnv:
     """``teams`` RandomGoals teams of ``robots`` behind the decentralised torch filter, 100 ms decisions."""
+    options = {"action_mode": "point", **options}
     env = TorchRLTensorEnv("random_goals", num_envs=teams, num_robots=robots, decision_interval=20,
                            reward=dict(TRAIN_REWARD), **options)
     env.set_seed(seed)
@@ -52,7 +54,7 @@ def build(env: TorchRLTensorEnv, centralised: bool, width: int = 128) -> tuple[P
     """The shared per-robot tanh-Gaussian policy and the (centralised) critic."""
     n, obs = env.env.num_robots, env.env.obs_dim
     net = nn.Sequential(MultiAgentMLP(obs, 4, n, centralised=False, share_params=True, depth=2, num_cells=width,
-                                      activation_class=nn.Tanh), NormalParamExtractor())
+                                      activation_class=nn.Tanh), NormalParamExtractor("biased_softplus_0.4"))
     actor = ProbabilisticActor(
         TensorDictModule(net, in_keys=[(GROUP, "observation")], out_keys=[(GROUP, "loc"), (GROUP, "scale")]),
         spec=env.action_spec[GROUP, "action"], in_keys=[(GROUP, "loc"), (GROUP, "scale")],
@@ -89,7 +91,8 @@ def evaluate(actor: ProbabilisticActor, teams: int, robots: int, seed: int = HEL
 
 
 def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, eval_every: int,
-          eval_teams: int = 64, log: Any = print, **options: Any) -> dict[str, Any]:
+          eval_teams: int = 64, log: Any = print, epochs: int = 10, minibatches: int = 8,
+          **options: Any) -> dict[str, Any]:
     """Train from scratch; returns the report (per-iteration rewards and the evaluations).
 
     ``options``: the env's (:func:`make_env`), e.g. ``max_steps`` for short episodes.
@@ -101,7 +104,7 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
     per_batch = teams * 50  # 50 decisions (5 s) per team per iteration
     collector = Collector(env, actor, frames_per_batch=per_batch, total_frames=frames)
     buffer = ReplayBuffer(storage=LazyTensorStorage(per_batch), sampler=SamplerWithoutReplacement(),
-                          batch_size=per_batch // 4)
+                          batch_size=max(1, per_batch // minibatches))
     loss = ClipPPOLoss(actor_network=actor, critic_network=critic, clip_epsilon=0.2, entropy_coeff=1e-3,
                        normalize_advantage=False)
     loss.set_keys(reward=(GROUP, "reward"), action=(GROUP, "action"), sample_log_prob=(GROUP, "log_prob"),
@@ -109,7 +112,8 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
     loss.make_value_estimator(ValueEstimators.GAE, gamma=0.99, lmbda=0.95)
     optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
     report: dict[str, Any] = {"frames": frames, "teams": teams, "robots": robots, "seed": seed,
-                              "critic": "centralised" if centralised else "independent", "iterations": [],
+                              "critic": "centralised" if centralised else "independent", "epochs": epochs,
+                              "minibatches": minibatches, "options": options, "iterations": [],
                               "evaluations": [{"iteration": 0, **evaluate(actor, eval_teams, robots, **options)}]}
     log(f"iteration 0: held-out {report['evaluations'][0]}")
     start = time.perf_counter()
@@ -121,8 +125,8 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
             loss.value_estimator(data, params=loss.critic_network_params,
                                  target_params=loss.target_critic_network_params)
         buffer.extend(data.reshape(-1))
-        for _ in range(4):  # epochs
-            for _ in range(4):  # minibatches
+        for _ in range(epochs):
+            for _ in range(minibatches):
                 out = loss(buffer.sample())
                 total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
                 optim.zero_grad()
@@ -154,6 +158,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--robots", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--ippo", action="store_true", help="independent critics (IPPO) instead of MAPPO's")
+    ap.add_argument("--action-mode", choices=("point", "wheel"), default="point")
+    ap.add_argument("--epochs", type=int, default=10)
+    ap.add_argument("--minibatches", type=int, default=8)
     ap.add_argument("--eval-every", type=int, default=20)
     ap.add_argument("--eval-teams", type=int, default=64)
     ap.add_argument("--out", type=Path, default=Path("runs/torchrl_mappo"))
@@ -163,7 +170,8 @@ def main(argv: list[str] | None = None) -> int:
     if path.exists() and not a.overwrite:
         ap.error(f"--out: {path} exists; pass --overwrite to replace it")
     torch.set_num_threads(1)
-    report = train(a.frames, a.teams, a.robots, a.seed, not a.ippo, a.eval_every, a.eval_teams)
+    report = train(a.frames, a.teams, a.robots, a.seed, not a.ippo, a.eval_every, a.eval_teams, epochs=a.epochs,
+                   minibatches=a.minibatches, action_mode=a.action_mode)
     a.out.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda temp: temp.write_text(json.dumps(report, indent=1)))
     print(f"wrote {path}")

@@ -21,11 +21,12 @@ import math
 import torch
 
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.tensor.model import TensorTeam, integrate, kinematics
+from aasoatt_env.tensor.model import TensorTeam, integrate
 
 __all__ = ["GATE_TOL", "SAMPLES", "brake_du", "gate"]
 
 SAMPLES: int = 24  #: most samples of a braking path
+_CHUNK = 1 << 23  # most pair-sample elements of one chunk of braking paths
 GATE_TOL: float = 2.5e-4  #: overlap [m] the check forgives: a quarter of the 1 mm the campaign counts as a collision
 
 
@@ -35,89 +36,122 @@ def brake_du(team: TensorTeam, u: torch.Tensor, step: float, frac: float) -> tor
     return torch.maximum(torch.minimum(-u / step, a), -a)
 
 
+def _lin(team: TensorTeam, frac: float) -> torch.Tensor:
+    """``(N,)`` the wheels' part of :func:`_point_accel`: ``|A| a sqrt(2)`` (bounding ``sqrt(2)`` of it)."""
+    k = team.half_k / team.half
+    return team.half * torch.sqrt(1.0 + k * k) * (frac * team.max_wheel_accel) * math.sqrt(2.0) * math.sqrt(2.0)
+
+
+def _turn(team: TensorTeam, u: torch.Tensor) -> torch.Tensor:
+    """``(B, N)`` the turning part of :func:`_point_accel`: ``|omega| |p_dot|``."""
+    return team.turn_gain * (u[..., 0] - u[..., 1]).abs() * _speed(team, u)
+
+
 def _point_accel(team: TensorTeam, u: torch.Tensor, frac: float) -> torch.Tensor:
     """``(B, N)`` bound on ``|p_ddot|`` while braking from ``u``: ``|A| a sqrt(2) + |omega| |p_dot|``."""
-    a = frac * team.max_wheel_accel
+    return _lin(team, frac) + _turn(team, u)
+
+
+def _speed(team: TensorTeam, u: torch.Tensor) -> torch.Tensor:
+    """``(B, N)`` the control point's speed ``|p_dot|``."""
     k = team.half_k / team.half
-    lin = team.half * torch.sqrt(1.0 + k * k) * a * math.sqrt(2.0) * math.sqrt(2.0)
-    omega = team.turn_gain * (u[..., 0] - u[..., 1]).abs()
-    speed = team.half * torch.sqrt((u[..., 0] + u[..., 1]) ** 2 + (k * (u[..., 0] - u[..., 1])) ** 2)
-    return lin + omega * speed
+    return team.half * torch.sqrt((u[..., 0] + u[..., 1]) ** 2 + (k * (u[..., 0] - u[..., 1])) ** 2)
 
 
-def _seg(q0: torch.Tensor, q1: torch.Tensor) -> torch.Tensor:
-    """Distance from the origin to the segments ``q0 -> q1`` ``(..., 2)``."""
-    d = q1 - q0
-    dd = (d * d).sum(-1)
-    t = torch.clamp(-(q0 * d).sum(-1) / torch.where(dd > 0, dd, torch.ones_like(dd)), 0.0, 1.0)
-    c = q0 + t[..., None] * d
-    return torch.sqrt((c * c).sum(-1))
+def _xy(team: TensorTeam, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The control points' components ``(..., B, N)`` of axle poses (``kinematics(...).p``)."""
+    return pose[..., 0] + team.offset * torch.cos(pose[..., 2]), pose[..., 1] + team.offset * torch.sin(pose[..., 2])
 
 
-def _margins(team: TensorTeam, cfg: FilterConfig, pose0, u0, pose1, u1, du, other, valid, ds, obstacles):
-    """``(B, N, K + M)`` smallest ``distance - d_s`` of each pair row over the step and the braking path after it."""
-    B, N, KM = other.shape
+def _seg(q0x, q0y, q1x, q1y) -> torch.Tensor:
+    """Distance from the origin to the segments ``q0 -> q1`` (components)."""
+    dx, dy = q1x - q0x, q1y - q0y
+    dd = dx * dx + dy * dy
+    t = torch.clamp(-(q0x * dx + q0y * dy) / torch.where(dd > 0, dd, torch.ones_like(dd)), 0.0, 1.0)
+    cx, cy = q0x + t * dx, q0y + t * dy
+    return torch.sqrt(cx * cx + cy * cy)
+
+
+class _Rows:
+    """Each robot's pair rows ``(B, N, KM)``: the other member's values, and ``p_own - p_other`` per component."""
+
+    def __init__(self, other: torch.Tensor, obstacles, dtype: torch.dtype) -> None:
+        B, N, KM = other.shape
+        self.shape, self.robot = (B, N, KM), other >= 0
+        self.flat = torch.clamp(other, min=0).reshape(B, N * KM)
+        self.cx = self.cy = torch.zeros(B, N, KM, dtype=dtype, device=other.device)
+        if obstacles is not None and obstacles[1].shape[-1]:
+            oc = obstacles[0]
+            M = oc.shape[1]
+            pad = torch.zeros(B, N, KM - M, dtype=oc.dtype, device=oc.device)
+            self.cx = torch.cat((pad, oc[:, None, :, 0].expand(B, N, M)), 2)
+            self.cy = torch.cat((pad, oc[:, None, :, 1].expand(B, N, M)), 2)
+
+    def at(self, x: torch.Tensor) -> torch.Tensor:
+        """The other robot's ``(..., B, N, KM)`` of ``x`` ``(..., B, N)`` (0 for obstacles)."""
+        B, N, KM = self.shape
+        o = x.gather(-1, self.flat.expand(*x.shape[:-1], N * KM)).reshape(*x.shape, KM)
+        return torch.where(self.robot, o, torch.zeros_like(o))
+
+    def rel(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``p_own - p_other`` of control points ``(..., B, N)`` (an obstacle's centre for obstacle rows)."""
+        B, N, KM = self.shape
+        idx = self.flat.expand(*x.shape[:-1], N * KM)
+        ox, oy = (v.gather(-1, idx).reshape(*v.shape, KM) for v in (x, y))
+        return (x[..., None] - torch.where(self.robot, ox, self.cx),
+                y[..., None] - torch.where(self.robot, oy, self.cy))
+
+
+def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1, valid, ds) -> torch.Tensor:
+    """``(B, N, K + M)`` smallest ``distance - d_s`` of each pair row over the step and the braking path after it.
+
+    ``start``: the step's start, ``(x0, y0, acc0)`` (control points, :func:`_point_accel` at the full bound).
+    """
     dt, frac = cfg.dt, cfg.brake_fraction
-    p0, p1 = kinematics(team, pose0, u0).p, kinematics(team, pose1, u1).p
-    stop = (u1.abs().amax(-1) / (frac * team.max_wheel_accel))  # (B, N) [s]
-    speed = _speed(team, u1)
-    reach = speed * stop + 1e-9
-    acc_step = torch.maximum(_point_accel(team, u0, 1.0), _point_accel(team, u1, 1.0))
-    j = torch.clamp(other, min=0)
-    robot = other >= 0
-    flat = j.reshape(B, N * KM)
-
-    def at(x):  # the other member's (B, N, KM, ...)
-        if x.dim() == 2:
-            return x.gather(1, flat).reshape(B, N, KM)
-        return x.gather(1, flat[..., None].expand(B, N * KM, x.shape[-1])).reshape(B, N, KM, x.shape[-1])
-
-    if obstacles is not None and obstacles[1].shape[-1]:
-        oc = obstacles[0]
-        M = oc.shape[1]
-        cen = torch.cat((torch.zeros(B, N, KM - M, 2, dtype=p0.dtype, device=p0.device),
-                         oc[:, None].expand(B, N, M, 2)), 2)
-    else:
-        cen = torch.zeros(B, N, KM, 2, dtype=p0.dtype, device=p0.device)
-
-    def rel(p):
-        return p[:, :, None, :] - torch.where(robot[..., None], at(p), cen)
-
-    zero = torch.zeros_like(ds)
-    dev_step = dt * dt / 8.0 * (acc_step[..., None] + torch.where(robot, at(acc_step), zero))
-    out = _seg(rel(p0), rel(p1)) - dev_step - ds
-    q1 = rel(p1)
-    gap1 = torch.sqrt((q1 * q1).sum(-1)) - ds
-    risky = valid & (gap1 <= reach[..., None] + torch.where(robot, at(reach), zero) + 1e-6)
+    x0, y0, acc0 = start
+    x1, y1 = _xy(team, pose1)
+    stop = torch.maximum(u1[..., 0].abs(), u1[..., 1].abs()) / (frac * team.max_wheel_accel)  # (B, N) [s]
+    reach = _speed(team, u1) * stop + 1e-9
+    acc_step = torch.maximum(acc0, _point_accel(team, u1, 1.0))
+    dev_step = dt * dt / 8.0 * (acc_step[..., None] + rows.at(acc_step))
+    q0x, q0y = rows.rel(x0, y0)
+    q1x, q1y = rows.rel(x1, y1)
+    out = _seg(q0x, q0y, q1x, q1y) - dev_step - ds
+    gap1 = torch.sqrt(q1x * q1x + q1y * q1y) - ds
+    risky = valid & (gap1 <= reach[..., None] + rows.at(reach) + 1e-6)
     out = torch.where(valid, out, torch.full_like(out, float("inf")))
     if not bool(risky.any()):
         return out
     horizon = float(stop.amax())
     tau = max(dt, horizon / SAMPLES)
     steps = int(math.ceil(horizon / tau - 1e-9))
-    pose, u, path = pose1, u1, torch.full_like(out, float("inf"))
-    q_prev = q1
+    # every robot's braking path first (S samples of (B, N)), then every pair's segments, a chunk of samples at once
+    lin, pose, u, xs, ys, accs = _lin(team, frac), pose1, u1, [], [], []
     for _ in range(steps):
-        a_now = _point_accel(team, u, frac)
+        accs.append(lin + _turn(team, u))
         pose, u = integrate(team, pose, u, brake_du(team, u, tau, frac), tau)
-        q = rel(kinematics(team, pose, u).p)
-        dev = 2.0 * tau * tau / 8.0 * (a_now[..., None] + torch.where(robot, at(a_now), zero))
-        path = torch.minimum(path, _seg(q_prev, q) - dev - ds)
-        q_prev = q
+        x, y = _xy(team, pose)
+        xs.append(x)
+        ys.append(y)
+    path, px, py = torch.full_like(out, float("inf")), q1x, q1y
+    per = max(1, _CHUNK // max(1, out.numel()))
+    for first in range(0, steps, per):
+        qx, qy = rows.rel(torch.stack(xs[first:first + per]), torch.stack(ys[first:first + per]))
+        a = torch.stack(accs[first:first + per])
+        dev = 2.0 * tau * tau / 8.0 * (a[..., None] + rows.at(a))
+        seg = _seg(torch.cat((px[None], qx[:-1])), torch.cat((py[None], qy[:-1])), qx, qy)
+        path = torch.minimum(path, (seg - dev - ds).amin(0))
+        px, py = qx[-1], qy[-1]
     return torch.minimum(out, torch.where(risky, path, torch.full_like(path, float("inf"))))
 
 
-def _reach(team: TensorTeam, cfg: FilterConfig, pose0, u0, pose1, u1) -> torch.Tensor:
+def _reach(team: TensorTeam, cfg: FilterConfig, start, pose1, u1) -> torch.Tensor:
     """``(B, N)`` bound on the control point's path over the step and the braking after it [m]."""
-    p0, p1 = kinematics(team, pose0, u0).p, kinematics(team, pose1, u1).p
-    step = torch.sqrt(((p1 - p0) ** 2).sum(-1)) + cfg.dt * cfg.dt / 8.0 * _point_accel(team, u0, 1.0)
-    stop = u1.abs().amax(-1) / (cfg.brake_fraction * team.max_wheel_accel)
+    x0, y0, acc0 = start
+    x1, y1 = _xy(team, pose1)
+    step = torch.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + cfg.dt * cfg.dt / 8.0 * acc0
+    stop = torch.maximum(u1[..., 0].abs(), u1[..., 1].abs()) / (cfg.brake_fraction * team.max_wheel_accel)
     return step + _speed(team, u1) * stop
-
-
-def _speed(team: TensorTeam, u: torch.Tensor) -> torch.Tensor:
-    k = team.half_k / team.half
-    return team.half * torch.sqrt((u[..., 0] + u[..., 1]) ** 2 + (k * (u[..., 0] - u[..., 1])) ** 2)
 
 
 def gate(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid, ds, obstacles,
@@ -133,16 +167,15 @@ def gate(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid,
     with torch.no_grad():
         brake = torch.minimum(torch.maximum(brake_du(team, u, cfg.dt, cfg.brake_fraction), lo), hi)
         braking = torch.zeros(u.shape[:2], dtype=torch.bool, device=u.device)
-        robot = other >= 0
-        j = torch.clamp(other, min=0)
+        rows = _Rows(other, obstacles, u.dtype)
+        start = (*_xy(team, pose), _point_accel(team, u, 1.0))
         for _ in range(u.shape[1] + 1):
             cand = torch.where(braking[..., None], brake, du.detach())
             pose1, u1 = integrate(team, pose, u, cand, cfg.dt)
-            m = _margins(team, cfg, pose, u, pose1, u1, cand, other, valid, ds, obstacles)
-            far = _reach(team, cfg, pose, u, pose1, u1) > limit
+            m = _margins(team, cfg, rows, start, pose1, u1, valid, ds)
+            far = _reach(team, cfg, start, pose1, u1) > limit
             fail = m < 0.0
-            both = braking[..., None] & torch.where(robot, braking.gather(1, j.reshape(j.shape[0], -1))
-                                                   .reshape(j.shape), torch.ones_like(fail))
+            both = braking[..., None] & (rows.at(braking) | ~rows.robot)
             new = braking | (fail & ~both).any(-1) | far
             if bool((new == braking).all()):
                 broken = ((m < -tol) & both).any(-1)

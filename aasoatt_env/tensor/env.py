@@ -6,7 +6,10 @@ scenario itself (only the layouts are numpy; the step never leaves torch).  A te
 the same step (its next layout from its own generator, as a PettingZoo env's ``reset()`` without a seed), and the
 observation returned is its new episode's first.  Behind the torch filter (:mod:`.filter`) the actions are nominal
 wheel accelerations in units of the bound, as behind the numpy filter.  Wheel actions only; no termination on
-collision (``terminated`` is all False); linear references (``random_goals``, ``circle_swap``, ...).
+collision (``terminated`` is all False); linear references (``random_goals``, ``circle_swap``, ...).  Actions are
+wheel accelerations (``action_mode="wheel"``) or control-point accelerations (``"point"``, in units of the robot's
+``max_point_accel``, turned into wheel accelerations ``A^-1 (a - A_dot u)`` at every physics step), as the
+PettingZoo env's.
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ from aasoatt_env.tensor.model import TensorTeam, input_bounds, integrate, kinema
 
 __all__ = ["TensorEnv", "make_tensor_env"]
 
-_ENV_KEYS = ("dt", "decision_interval", "sensing_range", "num_neighbors", "num_obstacles", "reward",
+_ENV_KEYS = ("dt", "decision_interval", "action_mode", "sensing_range", "num_neighbors", "num_obstacles", "reward",
              "collision_tolerance", "max_steps", "differentiable")
 
 
@@ -39,8 +42,8 @@ def make_tensor_env(scenario: str = "random_goals", num_envs: int = 1, num_robot
                     **options: Any) -> TensorEnv:
     """``num_envs`` teams of ``num_robots`` robots of ``scenario`` on ``device`` (module docstring).
 
-    ``options``: the env's settings (``dt``, ``decision_interval``, ``sensing_range``, ``num_neighbors``,
-    ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``differentiable``: ``step`` records the
+    ``options``: the env's settings (``dt``, ``decision_interval``, ``action_mode``, ``sensing_range``,
+    ``num_neighbors``, ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``differentiable``: ``step`` records the
     autograd graph, so losses on its outputs reach the actions and the state through the filter and the dynamics;
     default False: no graph), :class:`FilterConfig` fields, and the scenario's parameters.
     """
@@ -55,7 +58,8 @@ class TensorEnv:
     """Teams of one scenario as tensors (module docstring); ``step`` and ``reset`` as a vector env's."""
 
     def __init__(self, scenario, num_envs: int, device: str, dtype: torch.dtype, config: FilterConfig | None,
-                 dt: float = DT, decision_interval: int = 1, sensing_range: float = 3.0, num_neighbors: int = 4,
+                 dt: float = DT, decision_interval: int = 1, action_mode: str = "wheel", sensing_range: float = 3.0,
+                 num_neighbors: int = 4,
                  num_obstacles: int = 2, reward: Any = None, collision_tolerance: float = 1e-3,
                  max_steps: int | None = None, differentiable: bool = False) -> None:
         if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
@@ -64,10 +68,13 @@ class TensorEnv:
             raise ConfigError(f"dtype: got {dtype!r}, expected torch.float32 or torch.float64")
         if torch.device(device).type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"device: got {device!r}, but torch.cuda.is_available() is False on this machine")
+        if action_mode not in ("wheel", "point"):
+            raise ConfigError(f"action_mode: got {action_mode!r}, expected 'wheel' or 'point'")
         if config is not None and abs(config.dt - dt) > 1e-12 * dt:
             raise ConfigError(f"dt: the env steps {dt:g} s but the filter was configured for {config.dt:g} s")
         self.scenario, self.num_envs, self.device, self.dtype, self.config = scenario, num_envs, device, dtype, config
         self.dt, self.decision_interval, self.sensing_range = float(dt), int(decision_interval), float(sensing_range)
+        self.action_mode = action_mode
         self.num_neighbors, self.num_obstacles = int(num_neighbors), int(num_obstacles)
         self.reward_config, self.collision_tolerance = RewardConfig.coerce(reward), float(collision_tolerance)
         self._max_steps_override = max_steps
@@ -186,7 +193,7 @@ class TensorEnv:
             act = torch.clamp(act, -1.0, 1.0)
         team, corr, out = self.team, None, None
         for _ in range(self.decision_interval):
-            nominal = act * team.max_wheel_accel[:, None]
+            nominal = self._nominal(act)
             lo, hi = input_bounds(team, self.u, self.dt)
             du = nominal
             if self.config is not None:
@@ -209,6 +216,17 @@ class TensorEnv:
             self._refresh()
         return (self._observations(), rew, torch.zeros(B, N, dtype=torch.bool, device=self.device),
                 truncated[:, None].expand(B, N), infos)
+
+    def _nominal(self, act: torch.Tensor) -> torch.Tensor:
+        """Nominal wheel accelerations ``(B, N, 2)`` of actions in units of the bound (module docstring)."""
+        team = self.team
+        if self.action_mode == "wheel":
+            return act * team.max_wheel_accel[:, None]
+        k = kinematics(team, self.pose, self.u)
+        a = act * team.max_point_accel[:, None] - k.adot
+        det = k.a00 * k.a11 - k.a01 * k.a10
+        return torch.stack(((k.a11 * a[..., 0] - k.a01 * a[..., 1]) / det,
+                            (k.a00 * a[..., 1] - k.a10 * a[..., 0]) / det), -1)
 
     # ------------------------------------------------------------------ what the agents see
     def _refresh(self) -> None:
