@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 from aasoatt_env.model import dynamics  # noqa: E402
 from aasoatt_env.model.params import make_team  # noqa: E402
 from aasoatt_env.safety import FilterConfig, SafetyFilter  # noqa: E402
-from aasoatt_env.tensor.filter import GROUPED, RELAXED, SafetyLayer, filter_step  # noqa: E402
+from aasoatt_env.tensor.filter import BACKUP, GROUPED, RELAXED, SafetyLayer, filter_step  # noqa: E402
 from aasoatt_env.tensor.model import TensorTeam  # noqa: E402
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
@@ -101,6 +101,24 @@ def test_a_step_with_no_robot_or_obstacle_in_range_answers_each_robot_by_its_box
     out = tensor_answers(team, states, cfg)
     assert np.abs(out.du.numpy() - np.stack([r.du for r in ref])).max() <= 1e-9
     assert (out.status.numpy() == 0).all()
+
+
+def test_a_team_gets_the_same_answer_alone_as_in_a_batch():
+    """The braking check's horizon is each team's own: 64 team states near contact, behind the defaults
+    (``backup=True``), filtered in one batch and one team at a time: the same ``du`` (to rounding) and status."""
+    rng = np.random.default_rng(7)
+    n = 8
+    states = random_states(rng, 64, n)
+    for i, s in enumerate(states):
+        s["u"] *= 1.0 + 3.0 * (i % 4)  # teams of very different speeds (so different braking horizons)
+    cfg = FilterConfig(mode="decentralized")
+    team = make_team("paper", n)
+    both = tensor_answers(team, states, cfg)
+    assert int((both.status & BACKUP).sum()) > 0
+    for i, s in enumerate(states):
+        alone = tensor_answers(team, [s], cfg)
+        assert torch.allclose(alone.du[0], both.du[i], rtol=0.0, atol=1e-12)
+        assert torch.equal(alone.status[0], both.status[i])
 
 
 def test_negotiation_groups_are_flagged_not_silently_changed():

@@ -21,7 +21,7 @@ import math
 import torch
 
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.tensor.model import TensorTeam, integrate
+from aasoatt_env.tensor.model import TensorTeam, arc, integrate
 
 __all__ = ["GATE_TOL", "SAMPLES", "brake_du", "gate"]
 
@@ -122,27 +122,48 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
     out = torch.where(valid, out, torch.full_like(out, float("inf")))
     if not bool(risky.any()):
         return out
-    horizon = float(stop.amax())
-    tau = max(dt, horizon / SAMPLES)
-    steps = int(math.ceil(horizon / tau - 1e-9))
-    # every robot's braking path first (S samples of (B, N)), then every pair's segments, a chunk of samples at once
-    lin, pose, u, xs, ys, accs = _lin(team, frac), pose1, u1, [], [], []
-    for _ in range(steps):
-        accs.append(lin + _turn(team, u))
-        pose, u = integrate(team, pose, u, brake_du(team, u, tau, frac), tau)
-        x, y = _xy(team, pose)
-        xs.append(x)
-        ys.append(y)
-    path, px, py = torch.full_like(out, float("inf")), q1x, q1y
-    per = max(1, _CHUNK // max(1, out.numel()))
-    for first in range(0, steps, per):
-        qx, qy = rows.rel(torch.stack(xs[first:first + per]), torch.stack(ys[first:first + per]))
-        a = torch.stack(accs[first:first + per])
-        dev = 2.0 * tau * tau / 8.0 * (a[..., None] + rows.at(a))
-        seg = _seg(torch.cat((px[None], qx[:-1])), torch.cat((py[None], qy[:-1])), qx, qy)
-        path = torch.minimum(path, (seg - dev - ds).amin(0))
-        px, py = qx[-1], qy[-1]
-    return torch.minimum(out, torch.where(risky, path, torch.full_like(path, float("inf"))))
+    # each team's braking horizon (its slowest robot's stop) in at most SAMPLES samples of tau >= dt: a team's check
+    # does not depend on the other teams of the batch
+    horizon = stop.amax(-1)
+    tau = torch.clamp(horizon / SAMPLES, min=dt)  # (B,)
+    steps = int(torch.ceil(horizon / tau - 1e-9).amax())
+    if steps <= 0:
+        return out
+    xs, ys, accs = _braking_path(team, frac, pose1, u1, tau[:, None], steps)
+    # the braking paths of the risky rows only, a chunk of rows at once: (S, rows)
+    bb, nn, rr = torch.nonzero(risky, as_tuple=True)
+    jj, robot = rows.flat.view(rows.shape)[bb, nn, rr], rows.robot[bb, nn, rr]
+    tau2 = 2.0 * tau * tau / 8.0
+    per = max(1, _CHUNK // steps)
+    for first in range(0, bb.numel(), per):
+        b, n, r, j, rob = (v[first:first + per] for v in (bb, nn, rr, jj, robot))
+        qx = xs[:, b, n] - torch.where(rob, xs[:, b, j], rows.cx[b, n, r])
+        qy = ys[:, b, n] - torch.where(rob, ys[:, b, j], rows.cy[b, n, r])
+        a = accs[:, b, j]
+        dev = tau2[b] * (accs[:, b, n] + torch.where(rob, a, torch.zeros_like(a)))
+        seg = _seg(torch.cat((q1x[b, n, r][None], qx[:-1])), torch.cat((q1y[b, n, r][None], qy[:-1])), qx, qy)
+        out = out.index_put((b, n, r), torch.minimum(out[b, n, r], (seg - dev - ds[b, n, r]).amin(0)))
+    return out
+
+
+def _braking_path(team: TensorTeam, frac: float, pose: torch.Tensor, u: torch.Tensor, tau: torch.Tensor,
+                  steps: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Every robot braking from ``(pose, u)``: control points ``x, y`` at samples ``1..S`` and the bound on its
+    point acceleration over each sample step ``(S, B, N)``; ``tau`` ``(B, 1)`` the team's sample step.
+
+    Each wheel decelerates at ``frac * max_wheel_accel`` until it stops (:func:`brake_du` held for ``tau``), so its
+    speeds at the samples are known at once; the exact-arc steps between them (:func:`~.model.arc`) are summed.
+    """
+    k = torch.arange(steps + 1, dtype=u.dtype, device=u.device)[:, None, None, None]
+    dec = k * (frac * team.max_wheel_accel * tau)[..., None]  # (S + 1, B, N, 1)
+    us = torch.sign(u) * torch.clamp(u.abs() - dec, min=0.0)  # (S + 1, B, N, 2)
+    half, m = arc(team, us[:-1], us[1:], tau)
+    turned = torch.cumsum(2.0 * half, 0)
+    theta = pose[..., 2] + turned  # heading at each sample
+    ang = pose[..., 2] + torch.cat((torch.zeros_like(turned[:1]), turned[:-1])) + half  # at each step's middle
+    x = pose[..., 0] + torch.cumsum(m * torch.cos(ang), 0)
+    y = pose[..., 1] + torch.cumsum(m * torch.sin(ang), 0)
+    return x + team.offset * torch.cos(theta), y + team.offset * torch.sin(theta), _lin(team, frac) + _turn(team, us[:-1])
 
 
 def _reach(team: TensorTeam, cfg: FilterConfig, start, pose1, u1) -> torch.Tensor:

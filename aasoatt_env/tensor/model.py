@@ -15,7 +15,7 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import _SMALL_OMEGA
 from aasoatt_env.model.params import Team
 
-__all__ = ["TensorKinematics", "TensorTeam", "input_bounds", "integrate", "kinematics", "pose_from_point"]
+__all__ = ["TensorKinematics", "TensorTeam", "arc", "input_bounds", "integrate", "kinematics", "pose_from_point"]
 
 
 class TensorTeam(NamedTuple):
@@ -83,18 +83,26 @@ def input_bounds(team: TensorTeam, u: torch.Tensor, dt: float) -> tuple[torch.Te
     return torch.minimum(torch.maximum(lo, (-ms - u) / dt), new_hi), new_hi
 
 
-def integrate(team: TensorTeam, pose: torch.Tensor, u: torch.Tensor, du: torch.Tensor,
-              dt: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`aasoatt_env.model.dynamics.integrate`: hold ``du`` for ``dt`` along the exact arc."""
-    u_new = u + du * dt
+def arc(team: TensorTeam, u: torch.Tensor, u_new: torch.Tensor, dt) -> tuple[torch.Tensor, torch.Tensor]:
+    """The exact arc of a step from wheel speeds ``u`` to ``u_new`` over ``dt``: half the heading change and the chord.
+
+    ``dt`` a float or a tensor broadcasting with ``u[..., 0]``.
+    """
     um = 0.5 * (u + u_new)
     fwd = team.half * um[..., 0] + team.half * um[..., 1]
     half = (0.5 * dt) * (team.turn_gain * um[..., 0] + (-team.turn_gain) * um[..., 1])
     small = half.abs() < _SMALL_OMEGA
     safe = torch.where(small, torch.ones_like(half), half)
     sinc = torch.where(small, 1.0 - half * half / 6.0, torch.sin(safe) / safe)
+    return half, dt * fwd * sinc
+
+
+def integrate(team: TensorTeam, pose: torch.Tensor, u: torch.Tensor, du: torch.Tensor,
+              dt: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`aasoatt_env.model.dynamics.integrate`: hold ``du`` for ``dt`` along the exact arc."""
+    u_new = u + du * dt
+    half, m = arc(team, u, u_new, dt)
     theta = pose[..., 2]
-    m = dt * fwd * sinc
     ang = theta + half
     new = torch.stack((pose[..., 0] + m * torch.cos(ang), pose[..., 1] + m * torch.sin(ang), theta + 2.0 * half), -1)
     return new, u_new
