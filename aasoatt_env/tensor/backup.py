@@ -8,8 +8,9 @@ also brakes where its path until it stops could exceed half of ``D - 2 max r`` (
 sensing range cannot meet before both stop).
 
 Not the numpy backup layer (no repair, no blend levels, its own sampling): the braking path is integrated with the
-exact-arc step at ``tau >= dt`` (at most :data:`SAMPLES` samples) and each sample-to-sample piece is checked as the
-segment of relative positions minus ``2 * tau^2 / 8`` of each robot's largest point acceleration while braking
+exact-arc step at ``tau >= dt``, at most :data:`SAMPLES` samples over the team's own horizon (its slowest robot's
+stop: a team's answer does not depend on the other teams of the batch), and each sample-to-sample piece is checked
+as the segment of relative positions minus ``2 * tau^2 / 8`` of each robot's largest point acceleration while braking
 (its chord deviation, and as much again for the coarse integration); pairs too far apart to meet before both stop
 are not integrated.  float32 rounds distances at 10 m by about 1 µm; the campaign states the dtype it shows.
 """
