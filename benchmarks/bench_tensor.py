@@ -3,7 +3,8 @@
 Each row steps ``B`` random_goals teams of ``N`` paper robots with the paper's tracking law (``k3 = 1``, ``k4 = 4``)
 as actions, from ``reset(seed=0)`` after a few warm-up steps: bare (no filter) and filtered (the decentralised
 filter, ``backup=False``, ``negotiate=False``: the configuration the torch filter reproduces) in float32 and
-float64, and the numpy :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` with the numpy decentralised filter of
+float64, and behind the filter's defaults (``+backup``: the braking check of :mod:`aasoatt_env.tensor.backup`) in
+float32, and the numpy :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` with the numpy decentralised filter of
 the same configuration (one grouped filter call for all teams) measured in the same run.  ``ratio``: torch float64
 filtered over numpy filtered.  The GPU column is measured only where ``torch.cuda.is_available()``; otherwise it
 is empty (never estimated).
@@ -35,9 +36,11 @@ def _torch_actions(env):
     return torch.linalg.solve(A, a[..., None])[..., 0] / env.team.max_wheel_accel[:, None]
 
 
-def torch_rate(B: int, N: int, filtered: bool, dtype: torch.dtype, steps: int, device: str = "cpu") -> float:
-    """Robot-steps/s of the torch env."""
-    env = make_tensor_env("random_goals", B, N, device=device, dtype=dtype, filter=filtered, **FILTER)
+def torch_rate(B: int, N: int, filtered: bool, dtype: torch.dtype, steps: int, device: str = "cpu",
+               defaults: bool = False) -> float:
+    """Robot-steps/s of the torch env (``defaults``: behind the filter's defaults, the braking check included)."""
+    env = make_tensor_env("random_goals", B, N, device=device, dtype=dtype, filter=filtered,
+                          **({} if defaults else FILTER))
     env.reset(seed=0)
     with torch.no_grad():
         for _ in range(3):
@@ -82,7 +85,8 @@ def main() -> None:
     gpu = torch.cuda.is_available()
     with printed_page(args, "Torch env throughput", notes=__doc__):
         print("```")
-        print(f"{'B':>5} {'N':>5} {'bare f32':>11} {'filt f32':>11} {'filt f64':>11} {'numpy filt':>11} "
+        print(f"{'B':>5} {'N':>5} {'bare f32':>11} {'filt f32':>11} {'+backup f32':>11} {'filt f64':>11} "
+              f"{'numpy filt':>11} "
               f"{'ratio':>7} {'GPU filt f32':>13}   (robot-steps/s, one CPU thread)")
         for B, N in args.sizes:
             robots = B * N
@@ -90,10 +94,11 @@ def main() -> None:
             nsteps = max(2, min(30, 20_000 // robots)) // (2 if args.quick else 1) or 2
             bare = torch_rate(B, N, False, torch.float32, steps)
             f32 = torch_rate(B, N, True, torch.float32, steps)
+            dflt = torch_rate(B, N, True, torch.float32, steps, defaults=True)
             f64 = torch_rate(B, N, True, torch.float64, steps)
             npr = numpy_rate(min(B, NUMPY_TEAMS), N, nsteps)
             g = f"{torch_rate(B, N, True, torch.float32, steps, 'cuda'):>13.0f}" if gpu else f"{'':>13}"
-            print(f"{B:>5} {N:>5} {bare:>11.0f} {f32:>11.0f} {f64:>11.0f} {npr:>11.0f} {f64 / npr:>7.1f} {g}",
+            print(f"{B:>5} {N:>5} {bare:>11.0f} {f32:>11.0f} {dflt:>11.0f} {f64:>11.0f} {npr:>11.0f} {f64 / npr:>7.1f} {g}",
                   flush=True)
         print("```")
         print("\nGPU: " + ("measured on " + torch.cuda.get_device_name() if gpu else
