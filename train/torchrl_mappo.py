@@ -3,8 +3,8 @@
 The robots of a team are one TorchRL agent group (:class:`~aasoatt_env.tensor.torchrl_env.TorchRLTensorEnv`);
 the policy is one shared MLP per robot (its own observation in, a tanh-Gaussian over its normalised control-point
 accelerations out: ``action_mode="point"``, as ``aasoatt train``'s recipe; ``--action-mode wheel`` for wheel
-accelerations; initial standard deviation 0.4), the critic a shared MLP over the whole team's observations (MAPPO; ``--ippo``: each robot's
-own).  Clipped PPO with GAE, as TorchRL's multi-agent PPO tutorial.  Every ``--eval-every`` iterations, and at the
+accelerations; initial standard deviation 0.4), the critic a shared MLP over the whole team's observations (MAPPO;
+``--ippo``: each robot's own).  Clipped PPO with GAE, as TorchRL's multi-agent PPO tutorial.  Every ``--eval-every`` iterations, and at the
 end, the deterministic policy is evaluated on held-out seeds (teams ``seed >= 2**32``, as ``aasoatt train``'s)
 for one episode per team: success (robots within ``goal_tolerance`` of their goal at the end), collisions
 (robot-steps with a surface gap below ``-collision_tolerance``), the filter's mean correction; the report is

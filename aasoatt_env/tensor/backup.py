@@ -164,7 +164,8 @@ def _braking_path(team: TensorTeam, frac: float, pose: torch.Tensor, u: torch.Te
     ang = pose[..., 2] + torch.cat((torch.zeros_like(turned[:1]), turned[:-1])) + half  # at each step's middle
     x = pose[..., 0] + torch.cumsum(m * torch.cos(ang), 0)
     y = pose[..., 1] + torch.cumsum(m * torch.sin(ang), 0)
-    return x + team.offset * torch.cos(theta), y + team.offset * torch.sin(theta), _lin(team, frac) + _turn(team, us[:-1])
+    acc = _lin(team, frac) + _turn(team, us[:-1])
+    return x + team.offset * torch.cos(theta), y + team.offset * torch.sin(theta), acc
 
 
 def _reach(team: TensorTeam, cfg: FilterConfig, start, pose1, u1) -> torch.Tensor:

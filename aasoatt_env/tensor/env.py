@@ -43,8 +43,8 @@ def make_tensor_env(scenario: str = "random_goals", num_envs: int = 1, num_robot
     """``num_envs`` teams of ``num_robots`` robots of ``scenario`` on ``device`` (module docstring).
 
     ``options``: the env's settings (``dt``, ``decision_interval``, ``action_mode``, ``sensing_range``,
-    ``num_neighbors``, ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``differentiable``: ``step`` records the
-    autograd graph, so losses on its outputs reach the actions and the state through the filter and the dynamics;
+    ``num_neighbors``, ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``differentiable``:
+    ``step`` records the autograd graph, so losses on its outputs reach the actions and the state through the filter and the dynamics;
     default False: no graph), :class:`FilterConfig` fields, and the scenario's parameters.
     """
     names = {f.name for f in fields(FilterConfig)}
