@@ -98,7 +98,8 @@ def main() -> None:
             f64 = torch_rate(B, N, True, torch.float64, steps)
             npr = numpy_rate(min(B, NUMPY_TEAMS), N, nsteps)
             g = f"{torch_rate(B, N, True, torch.float32, steps, 'cuda'):>13.0f}" if gpu else f"{'':>13}"
-            print(f"{B:>5} {N:>5} {bare:>11.0f} {f32:>11.0f} {dflt:>11.0f} {f64:>11.0f} {npr:>11.0f} {f64 / npr:>7.1f} {g}",
+            print(f"{B:>5} {N:>5} {bare:>11.0f} {f32:>11.0f} {dflt:>11.0f} {f64:>11.0f} {npr:>11.0f} "
+                  f"{f64 / npr:>7.1f} {g}",
                   flush=True)
         print("```")
         print("\nGPU: " + ("measured on " + torch.cuda.get_device_name() if gpu else

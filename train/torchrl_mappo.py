@@ -1,14 +1,14 @@
 """MAPPO (or IPPO) with TorchRL on the torch env behind the torch filter: many teams in one call, no PettingZoo.
 
-The robots of a team are one TorchRL agent group (:class:`~aasoatt_env.tensor.torchrl_env.TorchRLTensorEnv`);
-the policy is one shared MLP per robot (its own observation in, a tanh-Gaussian over its normalised control-point
+The robots of a team are one TorchRL agent group (:class:`~aasoatt_env.tensor.torchrl_env.TorchRLTensorEnv`); the
+policy is one shared MLP per robot (its own observation in, a tanh-Gaussian over its normalised control-point
 accelerations out: ``action_mode="point"``, as ``aasoatt train``'s recipe; ``--action-mode wheel`` for wheel
 accelerations; initial standard deviation 0.4), the critic a shared MLP over the whole team's observations (MAPPO;
-``--ippo``: each robot's own).  Clipped PPO with GAE, as TorchRL's multi-agent PPO tutorial.  Every ``--eval-every`` iterations, and at the
-end, the deterministic policy is evaluated on held-out seeds (teams ``seed >= 2**32``, as ``aasoatt train``'s)
-for one episode per team: success (robots within ``goal_tolerance`` of their goal at the end), collisions
-(robot-steps with a surface gap below ``-collision_tolerance``), the filter's mean correction; the report is
-written as JSON (atomically) with the wall times.
+``--ippo``: each robot's own). Clipped PPO with GAE, as TorchRL's multi-agent PPO tutorial. Every ``--eval-every``
+iterations, and at the end, the deterministic policy is evaluated on held-out seeds (teams ``seed >= 2**32``, as
+``aasoatt train``'s) for one episode per team: success (robots within ``goal_tolerance`` of their goal at the end),
+collisions (robot-steps with a surface gap below ``-collision_tolerance``), the filter's mean correction; the report
+is written as JSON (atomically) with the wall times.
 
 Usage: ``python -m train.torchrl_mappo [--frames 600000] [--teams 64] [--robots 6] [--out runs/torchrl_mappo]``
 """

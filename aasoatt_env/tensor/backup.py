@@ -149,9 +149,9 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
 
 def _braking_path(team: TensorTeam, frac: float, pose: torch.Tensor, u: torch.Tensor, tau: torch.Tensor,
                   steps: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Every robot braking from ``(pose, u)``: control points ``x, y`` at samples ``1..S`` and the bound on its
-    point acceleration over each sample step ``(S, B, N)``; ``tau`` ``(B, 1)`` the team's sample step.
+    """Every robot braking from ``(pose, u)``: control points and point-acceleration bounds at samples ``(S, B, N)``.
 
+    ``x, y`` at samples ``1..S``; the bound on ``|p_ddot|`` over each sample step; ``tau`` ``(B, 1)`` the team's step.
     Each wheel decelerates at ``frac * max_wheel_accel`` until it stops (:func:`brake_du` held for ``tau``), so its
     speeds at the samples are known at once; the exact-arc steps between them (:func:`~.model.arc`) are summed.
     """

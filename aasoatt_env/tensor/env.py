@@ -44,8 +44,8 @@ def make_tensor_env(scenario: str = "random_goals", num_envs: int = 1, num_robot
 
     ``options``: the env's settings (``dt``, ``decision_interval``, ``action_mode``, ``sensing_range``,
     ``num_neighbors``, ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``differentiable``:
-    ``step`` records the autograd graph, so losses on its outputs reach the actions and the state through the filter and the dynamics;
-    default False: no graph), :class:`FilterConfig` fields, and the scenario's parameters.
+    ``step`` records the autograd graph, so losses on its outputs reach the actions and the state through the filter
+    and the dynamics; default False: no graph), :class:`FilterConfig` fields, and the scenario's parameters.
     """
     names = {f.name for f in fields(FilterConfig)}
     env_kw = {k: options.pop(k) for k in list(options) if k in _ENV_KEYS}

@@ -1,10 +1,10 @@
-"""Every robot's 2-variable QP ``min |w - t|^2  s.t.  n_c' w <= b_c`` exactly, by enumerating its active sets.
+"""Every robot's 2-variable QP ``min |w - t|^2  s.t.  n_c' w <= b_c`` exactly, line by line.
 
 ``w = A du`` is the robot's control-point acceleration, so the box on ``du`` and the half-rows are half-planes in
-``w`` (unit normals).  The answer is ``t`` where feasible, else the closest feasible candidate among the projections
-onto the violated constraints and the vertices of every two constraints: the unique optimum of the strictly convex
-QP (the candidate whose active set is the optimum's).  Branch-free, vectorised over robots (only the robots whose
-``t`` is infeasible are enumerated), and differentiable: the answer is the closed form of its active set, so autograd
+``w`` (unit normals).  The answer is ``t`` where feasible; else the optimum lies on a line that ``t`` violates, at
+the point of that line's feasible segment closest to ``t``: the nearest of those points over the violated lines is
+the unique optimum of the strictly convex QP.  Branch-free, vectorised over robots (only the robots whose ``t`` is
+infeasible look at lines), and differentiable: the answer is the closed form of its active set, so autograd
 gives the derivative inside each piece; at a boundary between active sets (a multiplier or a slack crossing 0) the
 answer is continuous and the derivative one-sided.
 """
@@ -39,10 +39,9 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
     A constraint slot that is not there has ``n = 0``, ``b`` = :data:`FAR`.
 
     Stages: ``t`` itself; ``t_box``, the projection onto the first ``C - rows`` constraints alone (where it meets the
-    last ``rows`` it is the optimum; their multipliers are 0, the first ones' are not computed); the projections
-    onto the violated constraints of ``t`` (a feasible one is the optimum: the polygon lies in that half-plane); the
-    vertices.  An empty polygon's robot gets the candidate of least largest violation (``feasible`` False; the
-    filter then loosens its rows, :mod:`.relax`).
+    last ``rows`` it is the optimum; their multipliers are 0, the first ones' are not computed); the lines that ``t``
+    violates (:func:`_on_lines`).  An empty polygon's robot gets the projection of least largest violation
+    (``feasible`` False; the filter then loosens its rows, :mod:`.relax`).
     """
     R, C = nx.shape
     tol = _rel_tol(t.dtype) * (1.0 + t.abs().amax(dim=1))
@@ -63,13 +62,13 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
     t1, nx1, ny1, b1, v1, tol1 = t[todo], nx[todo], ny[todo], b[todo], viol0[todo], tol[todo]
     w1, m1 = torch.zeros_like(t1), torch.zeros_like(b1)
     f1 = torch.ones(todo.numel(), dtype=torch.bool, device=t.device)
-    few = (v1 > 0).sum(1) <= _FEW
-    for group in (few, ~few):
+    count = (v1 > 0).sum(1)
+    few = count <= _FEW
+    for group in (few, ~few):  # (most robots violate a few lines: their tables stay small)
         rest = torch.nonzero(group).flatten()
         if rest.numel() == 0:
             continue
-        # the optimum lies on a constraint that t violates: with at most _FEW of them, those come first
-        lead = min(_FEW, C) if bool(few[rest[0]]) else C
+        lead = int(count[rest].max())  # the violated lines come first
         o = torch.sort(v1[rest].detach(), dim=1, descending=True, stable=True).indices
         ws, ms, fs = _stage(t1[rest], *(x[rest].gather(1, o) for x in (nx1, ny1, b1, v1)), tol1[rest], lead)
         w1 = w1.index_copy(0, rest, ws)
@@ -79,81 +78,66 @@ def solve_polygons(t: torch.Tensor, nx: torch.Tensor, ny: torch.Tensor, b: torch
 
 
 def _stage(t, nx, ny, b, v, tol, lead: int):
-    """Robots with constraints sorted by violation: the closest feasible projection onto one of the first ``lead``.
-
-    A feasible one is the optimum; else the closest feasible vertex of a pair with a constraint among them.
-    """
+    """Robots with constraints sorted by violation: :func:`_on_lines` of their first ``lead``, a chunk at once."""
     R, C = nx.shape
-    s = torch.clamp(v[:, :lead], min=0.0)
-    px, py = t[:, 0:1] - s * nx[:, :lead], t[:, 1:2] - s * ny[:, :lead]  # (R, lead)
-    worst = (px[:, :, None] * nx[:, None, :] + py[:, :, None] * ny[:, None, :] - b[:, None, :]).amax(2)
-    ok = (v[:, :lead] > 0) & (worst <= tol[:, None])
-    q = torch.where(ok, s, torch.full_like(s, float("inf"))).detach().argmin(1)
-    one = ok.any(1)
-    r = torch.arange(R, device=t.device)
-    w = torch.stack((px[r, q], py[r, q]), 1)
-    mu = torch.zeros_like(b).index_put((r, q), 2.0 * s[r, q])
-    feasible = torch.ones_like(one)
-    rest = torch.nonzero(~one).flatten()
-    if rest.numel():
-        k, m = _pairs(C, lead, t.device)
-        per = max(1, _CHUNK // max(1, k.numel() * C))
-        pxa = torch.cat((px, torch.zeros(R, C - lead, dtype=t.dtype, device=t.device)), 1)
-        pya = torch.cat((py, torch.zeros(R, C - lead, dtype=t.dtype, device=t.device)), 1)
-        va = torch.cat((v[:, :lead], torch.full((R, C - lead), -1.0, dtype=t.dtype, device=t.device)), 1)
-        for start in range(0, rest.numel(), per):
-            sel = rest[start:start + per]
-            ws, ms, fs = _vertices(t[sel], nx[sel], ny[sel], b[sel], tol[sel], pxa[sel], pya[sel], va[sel], k, m)
-            w, mu, feasible = w.index_copy(0, sel, ws), mu.index_copy(0, sel, ms), feasible.index_copy(0, sel, fs)
-    return w, mu, feasible
+    per = max(1, _CHUNK // max(1, lead * C))
+    parts = [_on_lines(t[i:i + per], nx[i:i + per], ny[i:i + per], b[i:i + per], v[i:i + per], tol[i:i + per], lead)
+             for i in range(0, R, per)]
+    return tuple(torch.cat(x) for x in zip(*parts)) if len(parts) > 1 else parts[0]
 
 
 FAR = 1e30  #: right-hand side of a constraint slot that is not there (its normal is 0)
 
 
-_FEW = 2  # robots with at most this many constraints violated by t pair only those with the others
+_FEW = 2  # robots with at most this many constraints violated by t look only at those lines
 
 
-def _pairs(C: int, lead: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    """Index pairs ``k < m`` of ``C`` constraints with ``k < lead``."""
-    ij = torch.triu_indices(C, C, 1, device=device)
-    keep = ij[0] < lead
-    return ij[0][keep], ij[1][keep]
+def _on_lines(t, nx, ny, b, v, tol, lead: int):
+    """The closest point to ``t`` on each of the first ``lead`` lines that ``t`` violates, within the polygon.
 
-
-def _vertices(t, nx, ny, b, tol, px, py, viol0, k, m):
-    """The closest feasible vertex of the constraint pairs ``k, m`` of the robots given (no feasible projection).
-
-    None feasible: the projection or vertex of least largest violation.
+    Along line ``k`` (``p_k + sigma d_k``: ``p_k`` the projection of ``t``, ``d_k`` its unit direction) constraint
+    ``m`` reads ``sigma (n_m' d_k) <= b_m - n_m' p_k``, so the polygon leaves an interval ``[lo, hi]`` of ``sigma``
+    (empty if ``lo > hi``, or if a parallel constraint excludes the line); the closest point is ``sigma`` = 0 clamped
+    into it, at squared distance ``s_k^2 + sigma^2`` from ``t``.  The nearest over the lines is the optimum; none:
+    the polygon is empty, and the projection of least largest violation is returned (``feasible`` False).
+    Multipliers: ``2 s_k`` on line ``k`` alone, or the two-line system where ``sigma`` sits at an end.
     """
     R, C = nx.shape
-    n1x, n1y, b1, n2x, n2y, b2 = nx[:, k], ny[:, k], b[:, k], nx[:, m], ny[:, m], b[:, m]
-    det = n1x * n2y - n1y * n2x
-    vert_ok = (det.abs() > 1e-9) & (b1 < FAR) & (b2 < FAR)
-    dsafe = torch.where(vert_ok, det, torch.ones_like(det))
-    vx = (b1 * n2y - b2 * n1y) / dsafe
-    vy = (n1x * b2 - n2x * b1) / dsafe
-    worst = (vx[:, :, None] * nx[:, None, :] + vy[:, :, None] * ny[:, None, :] - b[:, None, :]).amax(2)
-    ok = vert_ok & (worst <= tol[:, None])
-    tx, ty = t[:, 0:1], t[:, 1:2]
-    dist = (vx - tx) ** 2 + (vy - ty) ** 2
-    inf = torch.full_like(dist, float("inf"))
-    feasible = ok.any(dim=1)
-    rows = torch.arange(R, device=t.device)
-    q = torch.where(ok, dist, inf).detach().argmin(dim=1)
-    w = torch.stack((vx[rows, q], vy[rows, q]), 1)
-    dx, dy = 2.0 * (tx[:, 0] - w[:, 0]), 2.0 * (ty[:, 0] - w[:, 1])
-    d_ = dsafe[rows, q]
-    mu = torch.zeros((R, C), dtype=t.dtype, device=t.device)
-    mu = mu.index_put((rows, k[q]), (dx * n2y[rows, q] - dy * n2x[rows, q]) / d_)
-    mu = mu.index_put((rows, m[q]), (n1x[rows, q] * dy - n1y[rows, q] * dx) / d_, accumulate=True)
-    if not bool(feasible.all()):  # empty polygons: the candidate of least largest violation
-        pw = (px[:, :, None] * nx[:, None, :] + py[:, :, None] * ny[:, None, :] - b[:, None, :]).amax(2)
-        pw = torch.where(viol0 > 0, pw, inf[:, :C])
-        score = torch.cat((pw, torch.where(vert_ok, worst, inf)), 1).detach()
-        qq = score.argmin(1)
-        cx, cy = torch.cat((px, vx), 1), torch.cat((py, vy), 1)
-        wb = torch.stack((cx[rows, qq], cy[rows, qq]), 1)
-        w = torch.where(feasible[:, None], w, wb)
+    s = torch.clamp(v[:, :lead], min=0.0)
+    kx, ky = nx[:, :lead], ny[:, :lead]
+    px, py = t[:, 0:1] - s * kx, t[:, 1:2] - s * ky  # (R, L)
+    nd = nx[:, None, :] * (-ky)[:, :, None] + ny[:, None, :] * kx[:, :, None]  # n_m' d_k (R, L, C), d_k = (-ny, nx)
+    room = b[:, None, :] - (nx[:, None, :] * px[:, :, None] + ny[:, None, :] * py[:, :, None])
+    ratio = room / torch.where(nd == 0, torch.ones_like(nd), nd)  # (not used where nd = 0: no 0/0 in the gradient)
+    hi, m_hi = torch.where(nd > 0, ratio, float("inf")).min(2)
+    lo, m_lo = torch.where(nd < 0, ratio, float("-inf")).max(2)
+    shut = ((nd == 0) & (room < -tol[:, None, None])).any(2)
+    ok = (v[:, :lead] > 0) & (lo <= hi + tol[:, None]) & ~shut
+    sig = torch.minimum(torch.clamp(lo, min=0.0), hi)
+    q = torch.where(ok, s * s + sig * sig, float("inf")).detach().argmin(1, keepdim=True)
+    feasible = ok.any(1)
+
+    def pick(x):  # each robot's value on its line q
+        return x.gather(1, q)[:, 0]
+
+    sq, kxq, kyq = pick(sig), pick(kx), pick(ky)
+    w = torch.stack((pick(px) - sq * kyq, pick(py) + sq * kxq), 1)
+    with torch.no_grad():
+        at_hi, at_lo = (sq >= pick(hi)) & (sq < 0), (sq <= pick(lo)) & (sq > 0)
+        m = torch.where(at_hi, pick(m_hi), pick(m_lo))[:, None]
+        n2x, n2y = nx.gather(1, m)[:, 0], ny.gather(1, m)[:, 0]
+        dx, dy = 2.0 * (t[:, 0] - w[:, 0]), 2.0 * (t[:, 1] - w[:, 1])
+        det = kxq * n2y - kyq * n2x
+        two = (at_hi | at_lo) & (det != 0)
+        d_ = torch.where(two, det, torch.ones_like(det))
+        mu1 = torch.where(two, (dx * n2y - dy * n2x) / d_, 2.0 * pick(s))
+        mu2 = torch.where(two, (kxq * dy - kyq * dx) / d_, torch.zeros_like(dx))
+        mu = torch.zeros((R, C), dtype=t.dtype, device=t.device).scatter(1, q, mu1[:, None])
+        mu = mu.scatter_add(1, m, mu2[:, None])
         mu = torch.where(feasible[:, None], mu, torch.zeros_like(mu))
+    if not bool(feasible.all()):  # empty polygons: the projection of least largest violation
+        bad = torch.nonzero(~feasible).flatten()
+        worst = torch.where(v[bad, :lead] > 0, (-room[bad]).amax(2), float("inf")).detach()
+        qq = worst.argmin(1, keepdim=True)
+        w = w.index_copy(0, bad, torch.stack((px[bad].gather(1, qq)[:, 0], py[bad].gather(1, qq)[:, 0]), 1))
     return w, mu, feasible
