@@ -4,11 +4,12 @@ The robots of a team are one TorchRL agent group (:class:`~aasoatt_env.tensor.to
 policy is one shared MLP per robot (its own observation in, a tanh-Gaussian over its normalised control-point
 accelerations out: ``action_mode="point"``, as ``aasoatt train``'s recipe; ``--action-mode wheel`` for wheel
 accelerations; initial standard deviation 0.4), the critic a shared MLP over the whole team's observations (MAPPO;
-``--ippo``: each robot's own). Clipped PPO with GAE, as TorchRL's multi-agent PPO tutorial. Every ``--eval-every``
-iterations, and at the end, the deterministic policy is evaluated on held-out seeds (teams ``seed >= 2**32``, as
-``aasoatt train``'s) for one episode per team: success (robots within ``goal_tolerance`` of their goal at the end),
-collisions (robot-steps with a surface gap below ``-collision_tolerance``), the filter's mean correction; the report
-is written as JSON (atomically) with the wall times.
+``--ippo``: each robot's own), both behind observations standardised by the statistics of a random-action rollout
+(:func:`observation_stats`). Clipped PPO with GAE and normalised advantages, as TorchRL's multi-agent PPO tutorial.
+Every ``--eval-every`` iterations, and at the end, the deterministic policy is evaluated on held-out seeds (teams
+``seed >= 2**32``, as ``aasoatt train``'s) for one episode per team: success (robots within ``goal_tolerance`` of
+their goal at the end), collisions (robot-steps with a surface gap below ``-collision_tolerance``), the filter's
+mean correction; the report is written as JSON (atomically) with the wall times.
 
 Usage: ``python -m train.torchrl_mappo [--frames 600000] [--teams 64] [--robots 6] [--out runs/torchrl_mappo]``
 """
@@ -36,7 +37,7 @@ from aasoatt_env.cli_support import atomic_write
 from aasoatt_env.tensor.torchrl_env import TorchRLTensorEnv
 from train.config import HELDOUT_SEED, TRAIN_REWARD
 
-__all__ = ["build", "evaluate", "main", "train"]
+__all__ = ["Normalise", "build", "evaluate", "main", "observation_stats", "train"]
 
 GROUP = "agents"
 
@@ -50,18 +51,47 @@ def make_env(teams: int, robots: int, seed: int, **options: Any) -> TorchRLTenso
     return env
 
 
-def build(env: TorchRLTensorEnv, centralised: bool, width: int = 128) -> tuple[ProbabilisticActor, TensorDictModule]:
-    """The shared per-robot tanh-Gaussian policy and the (centralised) critic."""
+class Normalise(nn.Module):
+    """Observations standardised by fixed statistics (``(x - loc) / scale``), the first layer of both networks."""
+
+    def __init__(self, loc: torch.Tensor, scale: torch.Tensor) -> None:
+        super().__init__()
+        self.register_buffer("loc", loc)
+        self.register_buffer("scale", scale)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``(x - loc) / scale``."""
+        return (x - self.loc) / self.scale
+
+
+@torch.no_grad()
+def observation_stats(env: TorchRLTensorEnv, steps: int = 20) -> Normalise:
+    """Per-entry mean and standard deviation (at least 0.01) of the observations of ``steps`` uniform random actions."""
+    td = env.reset()
+    seen = [td[GROUP, "observation"]]
+    for _ in range(steps):
+        td = env.rand_step(td)
+        seen.append(td["next", GROUP, "observation"])
+        td = td["next"]
+    obs = torch.stack(seen).reshape(-1, seen[0].shape[-1])
+    return Normalise(obs.mean(0), obs.std(0).clamp(min=0.01))
+
+
+def build(env: TorchRLTensorEnv, centralised: bool, width: int = 128,
+          norm: Normalise | None = None) -> tuple[ProbabilisticActor, TensorDictModule]:
+    """The shared per-robot tanh-Gaussian policy and the (centralised) critic, behind ``norm`` (default: none)."""
     n, obs = env.env.num_robots, env.env.obs_dim
-    net = nn.Sequential(MultiAgentMLP(obs, 4, n, centralised=False, share_params=True, depth=2, num_cells=width,
-                                      activation_class=nn.Tanh), NormalParamExtractor("biased_softplus_0.4"))
+    norm = norm if norm is not None else nn.Identity()
+    net = nn.Sequential(norm, MultiAgentMLP(obs, 4, n, centralised=False, share_params=True, depth=2,
+                                            num_cells=width, activation_class=nn.Tanh),
+                        NormalParamExtractor("biased_softplus_0.4"))
     actor = ProbabilisticActor(
         TensorDictModule(net, in_keys=[(GROUP, "observation")], out_keys=[(GROUP, "loc"), (GROUP, "scale")]),
         spec=env.action_spec[GROUP, "action"], in_keys=[(GROUP, "loc"), (GROUP, "scale")],
         out_keys=[(GROUP, "action")], distribution_class=TanhNormal,
         distribution_kwargs={"low": -1.0, "high": 1.0}, return_log_prob=True, log_prob_key=(GROUP, "log_prob"))
-    critic = TensorDictModule(MultiAgentMLP(obs, 1, n, centralised=centralised, share_params=True, depth=2,
-                                            num_cells=width, activation_class=nn.Tanh),
+    critic = TensorDictModule(nn.Sequential(norm, MultiAgentMLP(obs, 1, n, centralised=centralised, share_params=True,
+                                                                depth=2, num_cells=width, activation_class=nn.Tanh)),
                               in_keys=[(GROUP, "observation")], out_keys=[(GROUP, "state_value")])
     return actor, critic
 
@@ -99,14 +129,14 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
     """
     torch.manual_seed(seed)
     env = make_env(teams, robots, seed, **options)
-    actor, critic = build(env, centralised)
+    actor, critic = build(env, centralised, norm=observation_stats(env))
     start_params = [p.detach().clone() for p in actor.parameters()]
     per_batch = teams * 50  # 50 decisions (5 s) per team per iteration
     collector = Collector(env, actor, frames_per_batch=per_batch, total_frames=frames)
     buffer = ReplayBuffer(storage=LazyTensorStorage(per_batch), sampler=SamplerWithoutReplacement(),
                           batch_size=max(1, per_batch // minibatches))
     loss = ClipPPOLoss(actor_network=actor, critic_network=critic, clip_epsilon=0.2, entropy_coeff=1e-3,
-                       normalize_advantage=False)
+                       normalize_advantage=True)
     loss.set_keys(reward=(GROUP, "reward"), action=(GROUP, "action"), sample_log_prob=(GROUP, "log_prob"),
                   value=(GROUP, "state_value"), done=(GROUP, "done"), terminated=(GROUP, "terminated"))
     loss.make_value_estimator(ValueEstimators.GAE, gamma=0.99, lmbda=0.95)
