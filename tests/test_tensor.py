@@ -11,7 +11,7 @@ torch = pytest.importorskip("torch")
 
 from aasoatt_env.model import dynamics  # noqa: E402
 from aasoatt_env.model.params import make_team  # noqa: E402
-from aasoatt_env.safety import FilterConfig, SafetyFilter  # noqa: E402
+from aasoatt_env.safety import FilterConfig, SafetyFilter, barriers  # noqa: E402
 from aasoatt_env.tensor.filter import BACKUP, GROUPED, RELAXED, SafetyLayer, filter_step  # noqa: E402
 from aasoatt_env.tensor.model import TensorTeam  # noqa: E402
 
@@ -342,10 +342,9 @@ def test_bad_settings_are_refused_naming_the_argument(monkeypatch):
                          (dict(action_mode="torque"), "action_mode: got 'torque'")):
         with pytest.raises(ConfigError, match=name):
             make_tensor_env("random_goals", **{"num_robots": 4, **kwargs})
-    from aasoatt_env.safety import barriers
-
-    monkeypatch.setitem(barriers.BARRIERS, "mine", barriers.BARRIERS["aasoatt"])  # registered, no torch form
-    with pytest.raises(ConfigError, match="barrier: got 'mine'"):
+    paper = barriers.BARRIERS["aasoatt"]
+    monkeypatch.setitem(barriers.BARRIERS, "mine", barriers.Barrier(paper.rows, paper.value, "mine"))  # numpy only
+    with pytest.raises(ConfigError, match="barrier: got 'mine', registered without array_api=True"):
         make_tensor_env("random_goals", num_robots=4, barrier="mine")
     env = make_tensor_env("random_goals", 2, 4)
     env.reset(seed=0)
@@ -388,10 +387,22 @@ def test_torchrl_mappo_runs_one_iteration_and_reports_held_out_teams(tmp_path):
         torchrl_mappo.main(["--frames", "100", "--out", str(out)])
 
 
-@pytest.mark.parametrize("barrier", ["braking", "distance", "gated_distance", "adaptive_distance"])
-def test_every_registered_barrier_equals_the_numpy_filter(barrier):
-    """The other registered barriers' rows (eqn.n4, nn5, n5/n6 with its gate, n7): the numpy decentralised filter's
-    ``du`` to 1e-9 where it answers by the robots' own QPs, to 1e-6 where it relaxed (flagged ``RELAXED``)."""
+def _stiff_aasoatt(g, q):
+    """A user's barrier: eqn.7-8 with a margin on the right-hand side, written with the inputs' namespace."""
+    from aasoatt_env.model.geometry import namespace
+
+    rhs, keep = barriers.BARRIERS["aasoatt"].rows(g, q)
+    return rhs - 0.5 * namespace(rhs).abs(rhs), keep
+
+
+@pytest.mark.parametrize("barrier", ["braking", "distance", "gated_distance", "adaptive_distance", "user"])
+def test_every_registered_barrier_equals_the_numpy_filter(barrier, monkeypatch):
+    """The other registered barriers' rows (eqn.n4, nn5, n5/n6 with its gate, n7, and one a user registers with
+    ``array_api=True``), one source for both: the numpy decentralised filter's ``du`` to 1e-9 where it answers by
+    the robots' own QPs, to 1e-6 where it relaxed (flagged ``RELAXED``)."""
+    if barrier == "user":
+        monkeypatch.setitem(barriers.BARRIERS, "user", barriers.Barrier(
+            _stiff_aasoatt, barriers.BARRIERS["aasoatt"].value, "test", array_api=True))
     rng = np.random.default_rng(2)
     n = 8
     states = random_states(rng, 300, n)

@@ -7,14 +7,14 @@ imports, else a k-d tree (the same sorted pairs ``i < j``); :func:`neighbourhood
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from aasoatt_env import compiled as _compiled
 
 __all__ = ["KDTREE_MIN_ROBOTS", "Proximity", "brute_candidates", "k_nearest", "kdtree", "min_gaps", "neighbourhood",
-           "obstacle_pairs", "pair_components", "robot_pairs", "row_dot", "uses_brute_force"]
+           "namespace", "obstacle_pairs", "pair_components", "robot_pairs", "row_dot", "uses_brute_force"]
 
 KDTREE_MIN_ROBOTS: int = 200
 """Team size from which a tree (or grid) answers instead of the full distance matrix."""
@@ -63,8 +63,21 @@ def uses_brute_force(n: int, groups: np.ndarray | None = None) -> bool:
 
 
 def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise dot products ``(P,)`` of two ``(P, 2)`` arrays: ``a0 b0 + a1 b1`` (``einsum``'s, without its set-up)."""
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1]
+    """Row-wise dot products ``(...,)`` of two ``(..., 2)`` arrays: ``a0 b0 + a1 b1``."""
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
+
+
+def namespace(*arrays: Any) -> Any:
+    """The array namespace of ``arrays``: numpy for numpy arrays and Python scalars, else array-api-compat's.
+
+    Code written against it (``xp.sqrt``, ``xp.maximum``, ...) runs on numpy arrays unchanged and on torch tensors
+    (``array-api-compat``, installed with the ``train`` extra beside torch).
+    """
+    if all(isinstance(a, (np.ndarray, np.generic, float, int)) for a in arrays):
+        return np
+    from array_api_compat import array_namespace
+
+    return array_namespace(*(a for a in arrays if not isinstance(a, (float, int))))
 
 
 def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: np.ndarray | None = None,

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.model.geometry import row_dot
+from aasoatt_env.model.geometry import namespace, row_dot
 
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.config import FilterConfig
@@ -52,11 +52,15 @@ class Barrier:
     value: ValueFn
     equation: str
     kernel: str = ""  #: its compiled rows, a function of :mod:`~.rows_kernel` (empty: numpy only)
+    #: its functions use only the array namespace of their inputs (:func:`~aasoatt_env.model.geometry.namespace`),
+    #: so they also run on torch tensors (the torch filter refuses a barrier without it)
+    array_api: bool = False
 
 
 def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``|p|`` (at least 1e-9), ``p.v``, ``v.v``, ``p.adot``."""
-    return np.maximum(np.sqrt(row_dot(g.p, g.p)), 1e-9), row_dot(g.p, g.v), row_dot(g.v, g.v), row_dot(g.p, g.adot)
+    xp = namespace(g.p)
+    return xp.maximum(xp.sqrt(row_dot(g.p, g.p)), 1e-9), row_dot(g.p, g.v), row_dot(g.v, g.v), row_dot(g.p, g.adot)
 
 
 def _aasoatt_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
@@ -67,7 +71,8 @@ def _aasoatt_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
 def _braking_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
     r, pv, _, _ = _common(g)
     gap = r - g.d_s
-    return np.sign(gap) * np.sqrt(2.0 * g.a_plus * np.abs(gap)) + pv / r
+    xp = namespace(gap)
+    return xp.sign(gap) * xp.sqrt(2.0 * g.a_plus * xp.abs(gap)) + pv / r
 
 
 def _distance_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
@@ -82,7 +87,8 @@ def _aasoatt(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
 
 def _braking(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     r, pv, vv, pa = _common(g)
-    root = np.sqrt(2.0 * g.a_plus * np.maximum(r - g.d_s, 1e-6))
+    xp = namespace(r)
+    root = xp.sqrt(2.0 * g.a_plus * xp.maximum(r - g.d_s, 1e-6))
     h = root + pv / r
     return q.gamma * h**3 * r + vv - pv * pv / (r * r) + g.a_plus * pv / root + pa, None
 
@@ -105,18 +111,19 @@ def _gated_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, np.nd
 def _adaptive_distance(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     pv = row_dot(g.p, g.v)
     D, margin = q.sensing_range, g.d_s - g.r_sum
-    d = 0.5 * (D + g.r_sum) + (D - g.r_sum) / math.pi * np.arctan(-q.rho_v * pv + q.sigma) + margin
+    d = 0.5 * (D + g.r_sum) + (D - g.r_sum) / math.pi * namespace(pv).atan(-q.rho_v * pv + q.sigma) + margin
     return _velocity_rhs(g, q, d), None
 
 
 BARRIERS: dict[str, Barrier] = {
-    "aasoatt": Barrier(_aasoatt, _aasoatt_h, "eqn.7-8", kernel="aasoatt_rows"),
-    "braking": Barrier(_braking, _braking_h, "eqn.n4"),
-    "distance": Barrier(_distance, _distance_h, "eqn.nn5"),
-    "gated_distance": Barrier(_gated_distance, _distance_h, "eqn.n5/n6"),
-    "adaptive_distance": Barrier(_adaptive_distance, _distance_h, "eqn.n7"),
+    "aasoatt": Barrier(_aasoatt, _aasoatt_h, "eqn.7-8", kernel="aasoatt_rows", array_api=True),
+    "braking": Barrier(_braking, _braking_h, "eqn.n4", array_api=True),
+    "distance": Barrier(_distance, _distance_h, "eqn.nn5", array_api=True),
+    "gated_distance": Barrier(_gated_distance, _distance_h, "eqn.n5/n6", array_api=True),
+    "adaptive_distance": Barrier(_adaptive_distance, _distance_h, "eqn.n7", array_api=True),
 }
-"""Barrier registry: name -> :class:`Barrier` (adding one: its rows, its ``h`` and a line here).  The velocity
+"""Barrier registry: name -> :class:`Barrier` (adding one: its rows, its ``h`` and a line here; written with the
+namespace of its inputs, ``array_api=True``, the torch filter runs it too).  The velocity
 barriers share the value ``varsigma (r^2 - d_s^2) + 2 p^T v`` (eqn.nn5's set; eqn.n7's adaptive distance is
 larger, so its rows keep a subset of it)."""
 

@@ -19,7 +19,7 @@ from aasoatt_env import validation as check
 from aasoatt_env.compiled import KERNELS, available
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT
-from aasoatt_env.model.geometry import row_dot
+from aasoatt_env.model.geometry import namespace, row_dot
 from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4
 from aasoatt_env.safety.barriers import BARRIERS
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
@@ -145,11 +145,11 @@ class FilterConfig:
         return auto_margin(self.dt) if self.safety_margin is None else float(self.safety_margin)
 
     def pair_margin(self, v_rel: np.ndarray) -> np.ndarray | float:
-        """Margin of each pair ``(P,)`` from the relative velocities ``(P, 2)`` (module docstring)."""
+        """Margin of each pair ``(...,)`` from the relative velocities ``(..., 2)`` (module docstring)."""
         if self.safety_margin is not None:
             return float(self.safety_margin)
-        speed = np.sqrt(row_dot(v_rel, v_rel))
-        return auto_margin(self.dt) * np.minimum(1.0, speed / MARGIN_FADE_SPEED)
+        xp = namespace(v_rel)
+        return auto_margin(self.dt) * xp.minimum(xp.sqrt(row_dot(v_rel, v_rel)) / MARGIN_FADE_SPEED, 1.0)
 
     @functools.cached_property
     def compiled(self) -> bool:

@@ -2,8 +2,9 @@
 
 One step, as :class:`~aasoatt_env.safety.core.SafetyFilter` with ``mode="decentralized"`` runs it: each robot's
 nominal clipped to its bounds; the ``multiplier`` trigger (a half-row of the robot bound at the previous step, and
-not done) and eqn.13's target correction (``auxiliary_velocity``) or none; the rows of any registered barrier
-(``cfg.barrier``: the paper's eqn.7-8 by default; the discrete-time margin of
+not done) and eqn.13's target correction (``auxiliary_velocity``) or none; the rows of any registered barrier written
+with the namespace of its inputs (``cfg.barrier``, its own function run on tensors: the paper's eqn.7-8 by default;
+the discrete-time margin of
 :class:`~aasoatt_env.safety.config.FilterConfig`) for every robot pair and robot-obstacle pair in the sensing
 range; the rows shared reciprocally by authority around each robot's box least-squares answer; every robot's exact
 2-variable QP (:mod:`.qp`).
@@ -26,19 +27,17 @@ from typing import NamedTuple
 import torch
 
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.safety.config import MARGIN_FADE_SPEED, FilterConfig, auto_margin
+from aasoatt_env.safety.barriers import PairGeometry, get_barrier
+from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.tensor.backup import gate
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
 from aasoatt_env.tensor.qp import FAR, LocalAnswer, solve_polygons
 from aasoatt_env.tensor.relax import least_violation
 
-__all__ = ["BACKUP", "BARRIERS_IN_TORCH", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config",
+__all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config",
            "filter_step"]
 
-#: the barriers :func:`_rhs` writes in torch (the built-ins of :data:`~aasoatt_env.safety.barriers.BARRIERS`); one
-#: registered later is refused by :func:`check_config`, not answered with another's formula
-BARRIERS_IN_TORCH = ("aasoatt", "braking", "distance", "gated_distance", "adaptive_distance")
 RELAXED, GROUPED, BACKUP, UNSAFE = 1, 2, 4, 8  #: ``status`` bits (module docstring); 0: its own QP, exactly
 
 
@@ -58,8 +57,10 @@ def check_config(cfg: FilterConfig) -> FilterConfig:
     """``cfg`` if the torch filter implements it, else :class:`ConfigError` naming the setting."""
     if cfg.mode != "decentralized":
         raise ConfigError(f"mode: got {cfg.mode!r}, expected 'decentralized' (the torch filter solves each robot's QP)")
-    for name, allowed in (("barrier", BARRIERS_IN_TORCH), ("deadlock", ("auxiliary_velocity", "none")),
-                          ("trigger", ("multiplier",))):
+    if not get_barrier(cfg.barrier).array_api:
+        raise ConfigError(f"barrier: got {cfg.barrier!r}, registered without array_api=True (its rows are numpy "
+                          "only), expected a barrier written with the namespace of its inputs in the torch filter")
+    for name, allowed in (("deadlock", ("auxiliary_velocity", "none")), ("trigger", ("multiplier",))):
         if getattr(cfg, name) not in allowed:
             raise ConfigError(f"{name}: got {getattr(cfg, name)!r}, expected one of {list(allowed)} in the torch "
                               "filter")
@@ -90,33 +91,13 @@ def _target(cfg: FilterConfig, kin: TensorKinematics, nom: torch.Tensor, avoidin
 def _rhs(cfg: FilterConfig, gp, gv, ga, ds, ap) -> tuple[torch.Tensor, torch.Tensor | None]:
     """Each pair's right-hand side of ``cfg.barrier`` and the pairs it keeps (None: all; eqn.n5/n6's gate).
 
-    The formulas of :data:`~aasoatt_env.safety.barriers.BARRIERS`, with the discrete-time margin on ``d_s``;
+    The registered barrier's own rows (:data:`~aasoatt_env.safety.barriers.BARRIERS`, one source for numpy and torch)
+    on the pair vectors ``(2, B, N, K)`` viewed as ``(B, N, K, 2)``, with the discrete-time margin on ``d_s``;
     ``ap``: the pair's maximum point accelerations ``a_i+ + a_j+`` (the braking barrier's).
     """
-    pp = gp[0] * gp[0] + gp[1] * gp[1]
-    r = torch.clamp(torch.sqrt(pp), min=1e-9)
-    pv = gp[0] * gv[0] + gp[1] * gv[1]
-    vv = gv[0] * gv[0] + gv[1] * gv[1]
-    pa = gp[0] * ga[0] + gp[1] * ga[1]
-    if cfg.safety_margin is None:
-        margin = auto_margin(cfg.dt) * torch.clamp(torch.sqrt(vv) / MARGIN_FADE_SPEED, max=1.0)
-    else:
-        margin = float(cfg.safety_margin)
-    d = ds + margin
-    if cfg.barrier == "aasoatt":  # eqn.7-8
-        return vv - pv * pv / (r * r) + (cfg.k1 + cfg.k2) * pv + cfg.k1 * cfg.k2 * r * (r - d) + pa, None
-    if cfg.barrier == "braking":  # eqn.n4
-        root = torch.sqrt(2.0 * ap * torch.clamp(r - d, min=1e-6))
-        h = root + pv / r
-        return cfg.gamma * h**3 * r + vv - pv * pv / (r * r) + ap * pv / root + pa, None
-    if cfg.barrier == "adaptive_distance":  # eqn.n7: a distance that grows with the closing speed
-        D = cfg.sensing_range
-        d = 0.5 * (D + ds) + (D - ds) / math.pi * torch.atan(-cfg.rho_v * pv + cfg.sigma) + margin
-    rhs = (cfg.varsigma * (r * r - d * d) + 2.0 * pv) / (2.0 * cfg.dt) + pa  # eqn.nn5 and its variants
-    if cfg.barrier == "gated_distance":  # eqn.n5/n6: only closing pairs within the gate
-        gate = cfg.sensing_range if cfg.gate_range is None else cfg.gate_range
-        return rhs, (pv < 0.0) & (r < gate)
-    return rhs, None
+    p, v, a = (x.permute(1, 2, 3, 0) for x in (gp, gv, ga))
+    g = PairGeometry(None, None, p, v, a, ds + cfg.pair_margin(v), ds, ap)
+    return get_barrier(cfg.barrier).rows(g, cfg)
 
 
 def _box_ls(kin: TensorKinematics, t: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
