@@ -15,8 +15,9 @@ import scipy.sparse as sp
 
 from aasoatt_env import validation as check
 from aasoatt_env.compiled import c64, kernels
+from aasoatt_env.model.geometry import namespace
 
-__all__ = ["ROW_NORM_MIN", "QPProblem", "box_least_squares", "build_problem"]
+__all__ = ["ROW_NORM_MIN", "QPProblem", "box_least_squares", "box_ls", "build_problem"]
 
 ROW_NORM_MIN: float = 1e-12  #: a row whose scaled norm is at most this is left unnormalised (divisor 1)
 
@@ -124,23 +125,32 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
                  " (A: (K, 2, 2), the others (K, 2))")
     if compiled:
         return kernels("centralized").box_least_squares(c64(A), c64(target), c64(lo), c64(hi))
-    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
-    t0, t1 = target[:, 0], target[:, 1]
+    return box_ls(A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1], target, lo, hi)
+
+
+def box_ls(a, b, c, d, target, lo, hi):
+    """:func:`box_least_squares` on any array namespace (numpy, torch): ``A``'s entries ``(...)``, others ``(..., 2)``.
+
+    Written with the namespace of ``target`` (:func:`~aasoatt_env.model.geometry.namespace`): one source for the
+    numpy filter and the torch filter (where it is differentiable: the answer's closed form in each piece).
+    """
+    xp = namespace(target)
+    t0, t1 = target[..., 0], target[..., 1]
     det = a * d - b * c
-    x = np.stack(((d * t0 - b * t1) / det, (a * t1 - c * t0) / det), axis=1)
-    out = ((x < lo) | (x > hi)).any(axis=1)
-    if not out.any():
+    x = xp.stack(((d * t0 - b * t1) / det, (a * t1 - c * t0) / det), axis=-1)
+    out = xp.any((x < lo) | (x > hi), axis=-1)
+    if not bool(xp.any(out)):
         return x
     # the objective 0.5 du' H du + g' du (H = A'A, g = -A' target) along the four edges at once, rows
     # (x0 = lo, x0 = hi, x1 = lo, x1 = hi): the fixed coordinate at its bound, the free one at the
     # clipped minimiser of the parabola along the edge; every robot (cheaper than selecting)
     h00, h01, h11 = a * a + c * c, a * b + c * d, b * b + d * d
     g0, g1 = -(a * t0 + c * t1), -(b * t0 + d * t1)
-    lo0, lo1, hi0, hi1 = lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1]
-    f0, f1 = np.stack((lo0, hi0)), np.stack((lo1, hi1))
-    x0 = np.concatenate((f0, np.clip(-(g0 + h01 * f1) / h00, lo0, hi0)))
-    x1 = np.concatenate((np.clip(-(g1 + h01 * f0) / h11, lo1, hi1), f1))
+    lo0, lo1, hi0, hi1 = lo[..., 0], lo[..., 1], hi[..., 0], hi[..., 1]
+    f0, f1 = xp.stack((lo0, hi0)), xp.stack((lo1, hi1))
+    x0 = xp.concat((f0, xp.clip(-(g0 + h01 * f1) / h00, lo0, hi0)))
+    x1 = xp.concat((xp.clip(-(g1 + h01 * f0) / h11, lo1, hi1), f1))
     f = 0.5 * (h00 * x0 * x0 + 2.0 * h01 * x0 * x1 + h11 * x1 * x1) + g0 * x0 + g1 * x1
-    best = np.argmin(f, axis=0)[None]  # the first of equal values, as trying the edges in that order
-    edge = np.stack((np.take_along_axis(x0, best, 0)[0], np.take_along_axis(x1, best, 0)[0]), axis=1)
-    return np.where(out[:, None], edge, x)
+    best = xp.argmin(f, axis=0)[None]  # the first of equal values, as trying the edges in that order
+    edge = xp.stack((xp.take_along_axis(x0, best, axis=0)[0], xp.take_along_axis(x1, best, axis=0)[0]), axis=-1)
+    return xp.where(out[..., None], edge, x)

@@ -29,6 +29,7 @@ import torch
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.barriers import PairGeometry, get_barrier
 from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.problem import box_ls
 from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.tensor.backup import gate
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
@@ -98,29 +99,6 @@ def _rhs(cfg: FilterConfig, gp, gv, ga, ds, ap) -> tuple[torch.Tensor, torch.Ten
     p, v, a = (x.permute(1, 2, 3, 0) for x in (gp, gv, ga))
     g = PairGeometry(None, None, p, v, a, ds + cfg.pair_margin(v), ds, ap)
     return get_barrier(cfg.barrier).rows(g, cfg)
-
-
-def _box_ls(kin: TensorKinematics, t: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor) -> torch.Tensor:
-    """:func:`~aasoatt_env.safety.problem.box_least_squares`: ``argmin |A du - t|`` in the box, closed form."""
-    a, b, c, d = kin.a00, kin.a01, kin.a10, kin.a11
-    t0, t1 = t[..., 0], t[..., 1]
-    det = a * d - b * c
-    x = torch.stack(((d * t0 - b * t1) / det, (a * t1 - c * t0) / det), -1)
-    out = ((x < lo) | (x > hi)).any(-1)
-    h00, h01, h11 = a * a + c * c, a * b + c * d, b * b + d * d
-    g0, g1 = -(a * t0 + c * t1), -(b * t0 + d * t1)
-    lo0, lo1, hi0, hi1 = lo[..., 0], lo[..., 1], hi[..., 0], hi[..., 1]
-    f0, f1 = torch.stack((lo0, hi0)), torch.stack((lo1, hi1))
-    x0 = torch.cat((f0, torch.minimum(torch.maximum(-(g0 + h01 * f1) / h00, lo0), hi0)))
-    x1 = torch.cat((torch.minimum(torch.maximum(-(g1 + h01 * f0) / h11, lo1), hi1), f1))
-    f = 0.5 * (h00 * x0 * x0 + 2.0 * h01 * x0 * x1 + h11 * x1 * x1) + g0 * x0 + g1 * x1
-    # the first of equal values, as numpy's argmin over the edges in this order
-    ex, ey, best = x0[0], x1[0], f[0]
-    for e in range(1, 4):
-        take = f[e] < best
-        ex, ey, best = torch.where(take, x0[e], ex), torch.where(take, x1[e], ey), torch.where(take, f[e], best)
-    edge = torch.stack((ex, ey), -1)
-    return torch.where(out[..., None], edge, x)
 
 
 class _Pairs(NamedTuple):
@@ -209,7 +187,7 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     scale = torch.maximum(team.max_wheel_accel.expand(B, N), torch.maximum(lo.abs(), hi.abs()).amax(-1))
     nom = torch.minimum(torch.maximum(nominal, lo), hi)
     target, trig = _target(cfg, kin, nom, avoiding, p_d, v_d)
-    du0 = _box_ls(kin, target, lo, hi)
+    du0 = box_ls(kin.a00, kin.a01, kin.a10, kin.a11, target, lo, hi)
     feat = torch.cat((kin.p, kin.v, kin.adot, torch.stack((team.radius.expand(B, N), kin.a00, kin.a01, kin.a10,
                       kin.a11), -1), du0, team.max_point_accel.expand(B, N)[..., None]), -1)
     pr = _pairs(cfg, feat, obstacles)
