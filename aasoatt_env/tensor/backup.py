@@ -27,7 +27,7 @@ from aasoatt_env.tensor.model import TensorTeam, arc, integrate
 __all__ = ["GATE_TOL", "SAMPLES", "brake_du", "gate"]
 
 SAMPLES: int = 24  #: most samples of a braking path
-_CHUNK = 1 << 23  # most pair-sample elements of one chunk of braking paths
+_CHUNK = 1 << 22  # most pair-sample elements of one chunk of braking paths
 GATE_TOL: float = 2.5e-4  #: overlap [m] the check forgives: a quarter of the 1 mm the campaign counts as a collision
 
 
