@@ -5,11 +5,10 @@ team by team: team ``b`` after ``reset(seed=s)`` is the scenario of ``reset(seed
 scenario itself (only the layouts are numpy; the step never leaves torch).  A team whose episode ends is reset in
 the same step (its next layout from its own generator, as a PettingZoo env's ``reset()`` without a seed), and the
 observation returned is its new episode's first.  Behind the torch filter (:mod:`.filter`) the actions are nominal
-wheel accelerations in units of the bound, as behind the numpy filter.  Wheel actions only; no termination on
-collision (``terminated`` is all False); linear references (``random_goals``, ``circle_swap``, ...).  Actions are
-wheel accelerations (``action_mode="wheel"``) or control-point accelerations (``"point"``, in units of the robot's
-``max_point_accel``, turned into wheel accelerations ``A^-1 (a - A_dot u)`` at every physics step), as the
-PettingZoo env's.
+wheel accelerations in units of the bound, as behind the numpy filter; with ``action_mode="point"`` the actions are
+control-point accelerations in units of the robot's ``max_point_accel``, turned into wheel accelerations
+``A^-1 (a - A_dot u)`` at every physics step (as the PettingZoo env's).  No termination on collision
+(``terminated`` is all False); linear references (``random_goals``, ``circle_swap``, ...).
 """
 
 from __future__ import annotations
@@ -59,8 +58,7 @@ class TensorEnv:
 
     def __init__(self, scenario, num_envs: int, device: str, dtype: torch.dtype, config: FilterConfig | None,
                  dt: float = DT, decision_interval: int = 1, action_mode: str = "wheel", sensing_range: float = 3.0,
-                 num_neighbors: int = 4,
-                 num_obstacles: int = 2, reward: Any = None, collision_tolerance: float = 1e-3,
+                 num_neighbors: int = 4, num_obstacles: int = 2, reward: Any = None, collision_tolerance: float = 1e-3,
                  max_steps: int | None = None, differentiable: bool = False) -> None:
         if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
             raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")
