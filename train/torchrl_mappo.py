@@ -122,10 +122,11 @@ def evaluate(actor: ProbabilisticActor, teams: int, robots: int, seed: int = HEL
 
 def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, eval_every: int,
           eval_teams: int = 64, log: Any = print, epochs: int = 10, minibatches: int = 8,
-          **options: Any) -> dict[str, Any]:
-    """Train from scratch; returns the report (per-iteration rewards and the evaluations).
+          reward_scale: float = 0.1, **options: Any) -> dict[str, Any]:
+    """Train from scratch; returns the report (per-iteration rewards, in the env's units, and the evaluations).
 
-    ``options``: the env's (:func:`make_env`), e.g. ``max_steps`` for short episodes.
+    ``reward_scale``: the rewards the value function learns are the env's times this (returns of order 1-10, fitted
+    by a squared loss); ``options``: the env's (:func:`make_env`), e.g. ``max_steps`` for short episodes.
     """
     torch.manual_seed(seed)
     env = make_env(teams, robots, seed, **options)
@@ -136,14 +137,15 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
     buffer = ReplayBuffer(storage=LazyTensorStorage(per_batch), sampler=SamplerWithoutReplacement(),
                           batch_size=max(1, per_batch // minibatches))
     loss = ClipPPOLoss(actor_network=actor, critic_network=critic, clip_epsilon=0.2, entropy_coeff=1e-3,
-                       normalize_advantage=True)
+                       normalize_advantage=True, loss_critic_type="l2")
     loss.set_keys(reward=(GROUP, "reward"), action=(GROUP, "action"), sample_log_prob=(GROUP, "log_prob"),
                   value=(GROUP, "state_value"), done=(GROUP, "done"), terminated=(GROUP, "terminated"))
     loss.make_value_estimator(ValueEstimators.GAE, gamma=0.99, lmbda=0.95)
     optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
     report: dict[str, Any] = {"frames": frames, "teams": teams, "robots": robots, "seed": seed,
                               "critic": "centralised" if centralised else "independent", "epochs": epochs,
-                              "minibatches": minibatches, "options": options, "iterations": [],
+                              "minibatches": minibatches, "reward_scale": reward_scale, "options": options,
+                              "iterations": [],
                               "evaluations": [{"iteration": 0, **evaluate(actor, eval_teams, robots, **options)}]}
     log(f"iteration 0: held-out {report['evaluations'][0]}")
     start = time.perf_counter()
@@ -151,6 +153,8 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
         shape = data.get_item_shape(("next", GROUP, "reward"))
         for key in ("done", "terminated"):  # the team's end is each robot's
             data.set(("next", GROUP, key), data.get(("next", key)).unsqueeze(-1).expand(shape))
+        reward = float(data["next", GROUP, "reward"].mean())
+        data.set(("next", GROUP, "reward"), data.get(("next", GROUP, "reward")) * reward_scale)
         with torch.no_grad():
             loss.value_estimator(data, params=loss.critic_network_params,
                                  target_params=loss.target_critic_network_params)
@@ -164,7 +168,6 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
                 nn.utils.clip_grad_norm_(loss.parameters(), 1.0)
                 optim.step()
         collector.update_policy_weights_()
-        reward = float(data["next", GROUP, "reward"].mean())
         report["iterations"].append({"iteration": it, "frames": it * per_batch, "mean_reward": reward,
                                      "wall_s": time.perf_counter() - start})
         if it % eval_every == 0:
