@@ -151,6 +151,8 @@ def box_ls(a, b, c, d, target, lo, hi):
     x0 = xp.concat((f0, xp.clip(-(g0 + h01 * f1) / h00, lo0, hi0)))
     x1 = xp.concat((xp.clip(-(g1 + h01 * f0) / h11, lo1, hi1), f1))
     f = 0.5 * (h00 * x0 * x0 + 2.0 * h01 * x0 * x1 + h11 * x1 * x1) + g0 * x0 + g1 * x1
-    best = xp.argmin(f, axis=0)[None]  # the first of equal values, as trying the edges in that order
-    edge = xp.stack((xp.take_along_axis(x0, best, axis=0)[0], xp.take_along_axis(x1, best, axis=0)[0]), axis=-1)
-    return xp.where(out[..., None], edge, x)
+    ex, ey, best = x0[0], x1[0], f[0]  # the first of equal values, as trying the edges in that order
+    for e in range(1, 4):  # (not argmin over the 4 edges: a slow reduction in torch)
+        take = f[e] < best
+        ex, ey, best = xp.where(take, x0[e], ex), xp.where(take, x1[e], ey), xp.where(take, f[e], best)
+    return xp.where(out[..., None], xp.stack((ex, ey), axis=-1), x)
