@@ -11,7 +11,7 @@ Every ``--eval-every`` iterations, and at the end, the deterministic policy is e
 their goal at the end), collisions (robot-steps with a surface gap below ``-collision_tolerance``), the filter's
 mean correction; the report is written as JSON (atomically) with the wall times.
 
-Usage: ``python -m train.torchrl_mappo [--frames 600000] [--teams 64] [--robots 6] [--out runs/torchrl_mappo]``
+Usage: ``python -m train.torchrl_mappo [--frames 640000] [--teams 256] [--robots 6] [--out runs/torchrl_mappo]``
 """
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ def evaluate(actor: ProbabilisticActor, teams: int, robots: int, seed: int = HEL
 
 
 def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, eval_every: int,
-          eval_teams: int = 64, log: Any = print, epochs: int = 10, minibatches: int = 8,
+          eval_teams: int = 64, log: Any = print, epochs: int = 10, minibatches: int = 16,
           reward_scale: float = 0.1, **options: Any) -> dict[str, Any]:
     """Train from scratch; returns the report (per-iteration rewards, in the env's units, and the evaluations).
 
@@ -186,15 +186,15 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
 def main(argv: list[str] | None = None) -> int:
     """The command line (module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--frames", type=int, default=600_000, help="team decisions in total (teams x steps)")
-    ap.add_argument("--teams", type=int, default=64)
+    ap.add_argument("--frames", type=int, default=640_000, help="team decisions in total (teams x steps)")
+    ap.add_argument("--teams", type=int, default=256)
     ap.add_argument("--robots", type=int, default=6)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--ippo", action="store_true", help="independent critics (IPPO) instead of MAPPO's")
     ap.add_argument("--action-mode", choices=("point", "wheel"), default="point")
     ap.add_argument("--epochs", type=int, default=10)
-    ap.add_argument("--minibatches", type=int, default=8)
-    ap.add_argument("--eval-every", type=int, default=20)
+    ap.add_argument("--minibatches", type=int, default=16)
+    ap.add_argument("--eval-every", type=int, default=5)
     ap.add_argument("--eval-teams", type=int, default=64)
     ap.add_argument("--out", type=Path, default=Path("runs/torchrl_mappo"))
     ap.add_argument("--overwrite", action="store_true")
