@@ -17,7 +17,9 @@ import torch
 
 __all__ = ["LocalAnswer", "solve_polygons"]
 
-_CHUNK = 1 << 22  # largest candidate-by-constraint table (elements) of one enumeration chunk
+_CHUNK = 1 << 22  # largest line-by-constraint table (elements) of one chunk
+_FEW = 2  # robots with at most this many constraints violated by t look only at those lines
+FAR = 1e30  #: right-hand side of a constraint slot that is not there (its normal is 0)
 
 
 class LocalAnswer(NamedTuple):
@@ -84,12 +86,6 @@ def _stage(t, nx, ny, b, v, tol, lead: int):
     parts = [_on_lines(t[i:i + per], nx[i:i + per], ny[i:i + per], b[i:i + per], v[i:i + per], tol[i:i + per], lead)
              for i in range(0, R, per)]
     return tuple(torch.cat(x) for x in zip(*parts)) if len(parts) > 1 else parts[0]
-
-
-FAR = 1e30  #: right-hand side of a constraint slot that is not there (its normal is 0)
-
-
-_FEW = 2  # robots with at most this many constraints violated by t look only at those lines
 
 
 def _on_lines(t, nx, ny, b, v, tol, lead: int):
