@@ -22,7 +22,7 @@ import math
 import torch
 
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.tensor.model import TensorTeam, arc, integrate
+from aasoatt_env.tensor.model import TensorTeam, arc, integrate, points
 
 __all__ = ["GATE_TOL", "SAMPLES", "brake_du", "gate"]
 
@@ -57,11 +57,6 @@ def _speed(team: TensorTeam, u: torch.Tensor) -> torch.Tensor:
     """``(B, N)`` the control point's speed ``|p_dot|``."""
     k = team.half_k / team.half
     return team.half * torch.sqrt((u[..., 0] + u[..., 1]) ** 2 + (k * (u[..., 0] - u[..., 1])) ** 2)
-
-
-def _xy(team: TensorTeam, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The control points' components ``(..., B, N)`` of axle poses (``kinematics(...).p``)."""
-    return pose[..., 0] + team.offset * torch.cos(pose[..., 2]), pose[..., 1] + team.offset * torch.sin(pose[..., 2])
 
 
 def _seg(q0x, q0y, q1x, q1y) -> torch.Tensor:
@@ -103,16 +98,20 @@ class _Rows:
                 y[..., None] - torch.where(self.robot, oy, self.cy))
 
 
-def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1, valid, ds) -> torch.Tensor:
-    """``(B, N, K + M)`` smallest ``distance - d_s`` of each pair row over the step and the braking path after it.
+def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1, valid,
+             ds) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each pair row's smallest ``distance - d_s`` and each robot's path length, over the step and braking after it.
 
-    ``start``: the step's start, ``(x0, y0, acc0)`` (control points, :func:`_point_accel` at the full bound).
+    Returns ``(B, N, K + M)`` margins and ``(B, N)`` a bound on each control point's path [m]; ``start``: the
+    step's start, ``(x0, y0, acc0)`` (control points, :func:`_point_accel` at the full bound).
     """
     dt, frac = cfg.dt, cfg.brake_fraction
     x0, y0, acc0 = start
-    x1, y1 = _xy(team, pose1)
+    x1, y1 = points(team, pose1)
     stop = torch.maximum(u1[..., 0].abs(), u1[..., 1].abs()) / (frac * team.max_wheel_accel)  # (B, N) [s]
-    reach = _speed(team, u1) * stop + 1e-9
+    braking = _speed(team, u1) * stop
+    path_len = torch.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + dt * dt / 8.0 * acc0 + braking
+    reach = braking + 1e-9
     acc_step = torch.maximum(acc0, _point_accel(team, u1, 1.0))
     dev_step = dt * dt / 8.0 * (acc_step[..., None] + rows.at(acc_step))
     q0x, q0y = rows.rel(x0, y0)
@@ -122,14 +121,14 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
     risky = valid & (gap1 <= reach[..., None] + rows.at(reach) + 1e-6)
     out = torch.where(valid, out, torch.full_like(out, float("inf")))
     if not bool(risky.any()):
-        return out
+        return out, path_len
     # each team's braking horizon (its slowest robot's stop) in at most SAMPLES samples of tau >= dt: a team's check
     # does not depend on the other teams of the batch
     horizon = stop.amax(-1)
     tau = torch.clamp(horizon / SAMPLES, min=dt)  # (B,)
     steps = int(torch.ceil(horizon / tau - 1e-9).amax())
     if steps <= 0:
-        return out
+        return out, path_len
     xs, ys, accs = _braking_path(team, frac, pose1, u1, tau[:, None], steps)
     # the braking paths of the risky rows only, a chunk of rows at once: (S, rows)
     bb, nn, rr = torch.nonzero(risky, as_tuple=True)
@@ -144,7 +143,7 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
         dev = tau2[b] * (accs[:, b, n] + torch.where(rob, a, torch.zeros_like(a)))
         seg = _seg(torch.cat((q1x[b, n, r][None], qx[:-1])), torch.cat((q1y[b, n, r][None], qy[:-1])), qx, qy)
         out = out.index_put((b, n, r), torch.minimum(out[b, n, r], (seg - dev - ds[b, n, r]).amin(0)))
-    return out
+    return out, path_len
 
 
 def _braking_path(team: TensorTeam, frac: float, pose: torch.Tensor, u: torch.Tensor, tau: torch.Tensor,
@@ -168,15 +167,6 @@ def _braking_path(team: TensorTeam, frac: float, pose: torch.Tensor, u: torch.Te
     return x + team.offset * torch.cos(theta), y + team.offset * torch.sin(theta), acc
 
 
-def _reach(team: TensorTeam, cfg: FilterConfig, start, pose1, u1) -> torch.Tensor:
-    """``(B, N)`` bound on the control point's path over the step and the braking after it [m]."""
-    x0, y0, acc0 = start
-    x1, y1 = _xy(team, pose1)
-    step = torch.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + cfg.dt * cfg.dt / 8.0 * acc0
-    stop = torch.maximum(u1[..., 0].abs(), u1[..., 1].abs()) / (cfg.brake_fraction * team.max_wheel_accel)
-    return step + _speed(team, u1) * stop
-
-
 def gate(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid, ds, obstacles,
          tol: float = GATE_TOL) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(du applied, braking (B, N), broken (B, N))`` for the candidate ``du`` (module docstring).
@@ -191,12 +181,12 @@ def gate(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid,
         brake = torch.minimum(torch.maximum(brake_du(team, u, cfg.dt, cfg.brake_fraction), lo), hi)
         braking = torch.zeros(u.shape[:2], dtype=torch.bool, device=u.device)
         rows = _Rows(other, obstacles, u.dtype)
-        start = (*_xy(team, pose), _point_accel(team, u, 1.0))
+        start = (*points(team, pose), _point_accel(team, u, 1.0))
         for _ in range(u.shape[1] + 1):
             cand = torch.where(braking[..., None], brake, du.detach())
             pose1, u1 = integrate(team, pose, u, cand, cfg.dt)
-            m = _margins(team, cfg, rows, start, pose1, u1, valid, ds)
-            far = _reach(team, cfg, start, pose1, u1) > limit
+            m, path_len = _margins(team, cfg, rows, start, pose1, u1, valid, ds)
+            far = path_len > limit
             fail = m < 0.0
             both = braking[..., None] & (rows.at(braking) | ~rows.robot)
             new = braking | (fail & ~both).any(-1) | far

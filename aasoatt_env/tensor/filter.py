@@ -4,10 +4,9 @@ One step, as :class:`~aasoatt_env.safety.core.SafetyFilter` with ``mode="decentr
 nominal clipped to its bounds; the ``multiplier`` trigger (a half-row of the robot bound at the previous step, and
 not done) and eqn.13's target correction (``auxiliary_velocity``) or none; the rows of any registered barrier written
 with the namespace of its inputs (``cfg.barrier``, its own function run on tensors: the paper's eqn.7-8 by default;
-the discrete-time margin of
-:class:`~aasoatt_env.safety.config.FilterConfig`) for every robot pair and robot-obstacle pair in the sensing
-range; the rows shared reciprocally by authority around each robot's box least-squares answer; every robot's exact
-2-variable QP (:mod:`.qp`).
+the discrete-time margin of :class:`~aasoatt_env.safety.config.FilterConfig`) for every robot pair and
+robot-obstacle pair in the sensing range; the rows shared reciprocally by authority around each robot's box
+least-squares answer; every robot's exact 2-variable QP (:mod:`.qp`).
 
 What it covers: where the numpy filter answers every robot by its own QP, feasible or relaxed (``negotiate=False``,
 or no negotiation group formed; ``backup=False``) the answers agree (1e-9 feasible, 1e-6 relaxed: the least-violation
@@ -36,8 +35,7 @@ from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds,
 from aasoatt_env.tensor.qp import FAR, LocalAnswer, solve_polygons
 from aasoatt_env.tensor.relax import least_violation
 
-__all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config",
-           "filter_step"]
+__all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config", "filter_step"]
 
 RELAXED, GROUPED, BACKUP, UNSAFE = 1, 2, 4, 8  #: ``status`` bits (module docstring); 0: its own QP, exactly
 

@@ -15,7 +15,8 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import _SMALL_OMEGA
 from aasoatt_env.model.params import Team
 
-__all__ = ["TensorKinematics", "TensorTeam", "arc", "input_bounds", "integrate", "kinematics", "pose_from_point"]
+__all__ = ["TensorKinematics", "TensorTeam", "arc", "input_bounds", "integrate", "kinematics", "points",
+           "pose_from_point"]
 
 
 class TensorTeam(NamedTuple):
@@ -67,9 +68,14 @@ def kinematics(team: TensorTeam, pose: torch.Tensor, u: torch.Tensor) -> TensorK
     u0, u1 = u[..., 0], u[..., 1]
     vx, vy = a00 * u0 + a01 * u1, a10 * u0 + a11 * u1
     omega = team.turn_gain * (u0 - u1)
-    p = pose[..., :2] + torch.stack((team.offset * c, team.offset * s), dim=-1)
+    p = torch.stack(points(team, pose), dim=-1)
     return TensorKinematics(p, torch.stack((vx, vy), -1), torch.stack((-omega * vy, omega * vx), -1),
                             a00, a01, a10, a11)
+
+
+def points(team: TensorTeam, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The control points' components ``(...)`` of axle poses ``(..., 3)``: ``offset`` ahead of the axle."""
+    return pose[..., 0] + team.offset * torch.cos(pose[..., 2]), pose[..., 1] + team.offset * torch.sin(pose[..., 2])
 
 
 def input_bounds(team: TensorTeam, u: torch.Tensor, dt: float) -> tuple[torch.Tensor, torch.Tensor]:
