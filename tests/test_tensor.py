@@ -65,8 +65,9 @@ def tensor_answers(team, states: list[dict], cfg: FilterConfig, device="cpu", dt
 @pytest.mark.parametrize("device", DEVICES)
 def test_the_filter_equals_the_numpy_decentralised_filter_where_it_answers_by_the_robots_own_qps(device):
     """1,000+ team states (12 robots, 2 obstacles) in one batched call: the numpy filter's ``du`` to 1e-9 wherever its
-    status is ``solved``, the same trigger memory and triggered robots; where it relaxed, to 1e-6 (the least-violation
-    iteration's stopping tolerance), with those robots flagged ``RELAXED``."""
+    status is ``solved``, the same trigger memory and triggered robots; where it relaxed too (both run the same
+    least-violation code from the same start, :mod:`~aasoatt_env.safety.solvers.polygons`), those robots flagged
+    ``RELAXED``."""
     rng = np.random.default_rng(0)
     n = 12
     states = random_states(rng, 1500, n)
@@ -82,9 +83,8 @@ def test_the_filter_equals_the_numpy_decentralised_filter_where_it_answers_by_th
     assert np.array_equal(out.avoiding.cpu().numpy()[solved], np.stack([r.avoiding for r in ref])[solved])
     assert np.array_equal(out.triggered.cpu().numpy(), np.stack([r.triggered for r in ref]))
     assert np.stack([r.intervened for r in ref])[solved].mean() > 0.3  # the rows bind: not the nominal clipped
-    differs = (np.abs(du - ref_du).max(axis=2) > 1e-9) & ~solved[:, None]
-    assert differs.any() and (status[differs] & RELAXED).all()
-    assert np.abs(du - ref_du).max() <= 1e-6
+    assert ((status[~solved] & RELAXED) > 0).any()
+    assert np.abs(du - ref_du).max() <= 1e-9
 
 
 def test_a_step_with_no_robot_or_obstacle_in_range_answers_each_robot_by_its_box():

@@ -6,12 +6,13 @@ not done) and eqn.13's target correction (``auxiliary_velocity``) or none; the r
 with the namespace of its inputs (``cfg.barrier``, its own function run on tensors: the paper's eqn.7-8 by default;
 the discrete-time margin of :class:`~aasoatt_env.safety.config.FilterConfig`) for every robot pair and
 robot-obstacle pair in the sensing range; the rows shared reciprocally by authority around each robot's box
-least-squares answer; every robot's exact 2-variable QP (:mod:`.qp`).
+least-squares answer; every robot's exact 2-variable QP (:mod:`~aasoatt_env.safety.solvers.polygons`, the numpy
+local solver's code).
 
 What it covers: where the numpy filter answers every robot by its own QP, feasible or relaxed (``negotiate=False``,
 or no negotiation group formed; ``backup=False``) the answers agree (1e-9 feasible, 1e-6 relaxed: the least-violation
 iteration's stopping tolerance).  What it reports, per robot in ``status`` (bit flags): :data:`RELAXED` (its own QP
-is infeasible: answered as the numpy filter does, its rows loosened by their least violation, :mod:`.relax`),
+is infeasible: answered as the numpy filter does, its rows loosened by their least violation, ``least_violation``),
 :data:`GROUPED` (``negotiate=True`` would solve its rows jointly with its negotiation group; the tensor answer stays
 its own QP's), :data:`BACKUP` (``backup=True``: the braking check of :mod:`.backup`, not the numpy backup layer,
 braked the robot), :data:`UNSAFE` (that check found a pair failing although both brake).  Equality with the numpy
@@ -30,10 +31,9 @@ from aasoatt_env.safety.barriers import PairGeometry, get_barrier
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.problem import box_ls
 from aasoatt_env.safety.solvers.local import RELAX_TOL
+from aasoatt_env.safety.solvers.polygons import FAR, LocalAnswer, least_violation, solve_polygons
 from aasoatt_env.tensor.backup import gate
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
-from aasoatt_env.tensor.qp import FAR, LocalAnswer, solve_polygons
-from aasoatt_env.tensor.relax import least_violation
 
 __all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config", "filter_step"]
 
@@ -177,7 +177,7 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
 
     ``pose`` ``(B, N, 3)``, wheel speeds ``u`` and ``nominal`` wheel accelerations ``(B, N, 2)``, the reference
     ``p_d, v_d`` ``(B, N, 2)``, ``obstacles`` ``(centres (B, M, 2), radii (B, M))``, ``avoiding`` the previous step's
-    ``FilterOut.avoiding`` (None: a first step).  Differentiable in ``pose``, ``u`` and ``nominal`` (:mod:`.qp`).
+    ``FilterOut.avoiding`` (None: a first step).  Differentiable in ``pose``, ``u``, ``nominal`` (closed forms).
     """
     kin = kinematics(team, pose, u)
     lo, hi = input_bounds(team, u, cfg.dt)
@@ -214,7 +214,7 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
 
 def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, rows, gx, gy, h, du0, pose, u,
            obstacles) -> FilterOut:
-    """The QPs of the robots in ``w = A du`` (:mod:`.qp`), their multipliers' trigger, the answer and its report."""
+    """The robots' QPs in ``w = A du`` (``solve_polygons``), their multipliers' trigger, the answer, its report."""
     B, N, K = h.shape
     det = kin.a00 * kin.a11 - kin.a01 * kin.a10
     i00, i01, i10, i11 = kin.a11 / det, -kin.a01 / det, -kin.a10 / det, kin.a00 / det  # A^-1
@@ -267,9 +267,9 @@ def _relaxed(sol: LocalAnswer, t, nx, ny, b, t_box, gx, gy, h, valid, inv, lo, h
     ok = valid.reshape(-1, K)[bad] & (G > 0)
     ig = torch.where(ok, 1.0 / torch.where(ok, G, torch.ones_like(G)), torch.zeros_like(G))
     hb = h.reshape(-1, K)[bad]
-    viol = least_violation(gx.reshape(-1, K)[bad] * ig, gy.reshape(-1, K)[bad] * ig,
-                           torch.where(ok, hb * ig, torch.full_like(hb, FAR)), lo.reshape(-1, 2)[bad],
-                           hi.reshape(-1, 2)[bad], du0.reshape(-1, 2)[bad].detach())
+    _, viol = least_violation(gx.reshape(-1, K)[bad] * ig, gy.reshape(-1, K)[bad] * ig,
+                              torch.where(ok, hb * ig, torch.full_like(hb, FAR)), lo.reshape(-1, 2)[bad],
+                              hi.reshape(-1, 2)[bad], du0.reshape(-1, 2)[bad].detach())
     loosen = (viol * (1.0 + 1e-6) + RELAX_TOL * scale.reshape(-1)[bad, None]) * ok
     rows = torch.where(ok, (hb + loosen.detach() * G) * inv.reshape(-1, K)[bad], torch.full_like(hb, FAR))
     b2 = torch.cat((b[bad, :4], rows), 1)

@@ -1,9 +1,15 @@
 """The decentralised filter's local solver compiled (numba; imported only through :mod:`aasoatt_env.compiled`).
 
 :func:`solve_all` is :func:`aasoatt_env.safety.solvers.local.solve_local_qps` after its argument checks, one robot at a
-time (its rows in the order given) in the reference's order of operations: only the phase-1 sums run in another order,
-and zero or never-violated rows are left out of the table instead of padding it.  Per robot only plain loops are
-factored out: a helper that calls others pays its array arguments' reference counts on every robot.
+time (its rows in the order given), by its own exact method: per robot the table of unit half-planes of the reference
+(the same ``y`` space, tolerances, zero and never-binding rows left out), projected by Goldfarb-Idnani's dual active
+set in the plane (a dependent new constraint with no positive coefficient is a Farkas certificate of an empty
+polygon), a KKT check of the final active set and of each certificate, and, for a robot not verified, the enumeration
+of every candidate (``y0``, its projections, the vertices).  An empty polygon's rows are loosened by their least
+violation as the reference does (phase 1: the same iteration, its line search by regula falsi before the exact
+piecewise minimiser).  The answers are the reference's to rounding (:mod:`.polygons` projects line by line).  Per
+robot only plain loops are factored out: a helper that calls others pays its array arguments' reference counts on
+every robot.
 """
 
 import math
@@ -11,21 +17,35 @@ import math
 import numpy as np
 
 from aasoatt_env.numba_jit import jit, nclip, nmax, nmin
-from aasoatt_env.safety.solvers.local import LS_ITERS as _LS_ITERS
-from aasoatt_env.safety.solvers.local import LV_ITERS as _LV_ITERS
-from aasoatt_env.safety.solvers.polygon import _EPS_R, _EPS_Z, vertex
-from aasoatt_env.safety.solvers.polygon import PAD_B as _PAD_B
+from aasoatt_env.safety.solvers.local import PAD_B as _PAD_B
+from aasoatt_env.safety.solvers.polygons import LV_ITERS as _LV_ITERS
 
 __all__ = ["solve_all"]
 
 _INF = math.inf
-_vertex = jit(vertex)
+_EPS_Z = 1e-22  # a new normal with less squared component than this off the active ones depends on them
+_EPS_R = 1e-14  # coefficients of a dependent normal below this count as non-positive
+_LS_ITERS = 4  # regula falsi steps of phase 1's line search before its exact piecewise minimiser
+
+
+@jit
+def _vertex(n1x, n1y, b1, n2x, n2y, b2, yx, yy):
+    """Vertex of lines ``n' y = b`` (inf/NaN if parallel), the determinant, multipliers of ``y``'s projection on it."""
+    det = n1x * n2y - n1y * n2x
+    vx, vy = (b1 * n2y - b2 * n1y) / det, (n1x * b2 - n2x * b1) / det
+    dx, dy = yx - vx, yy - vy
+    return vx, vy, det, (dx * n2y - dy * n2x) / det, (n1x * dy - n1y * dx) / det
 
 
 # --------------------------------------------------------------------------- dual active set, one robot
 @jit
 def _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st):
-    """``polygon._active_set`` of one robot's table ``[0, nk)``, the state into ``st`` (:func:`_start`); iterations."""
+    """Dual active set on one robot's table ``[0, nk)``, one step per iteration; the state into ``st``; iterations.
+
+    The most violated constraint ``p`` is added: with no active one a full step onto it; with one (``n1``) a full step
+    to their vertex, or a partial one dropping ``n1``; with two (they span the plane) a partial step dropping one.
+    A step that cannot be taken leaves a certificate (status 2); ``st``: :func:`_start`'s fields.
+    """
     yx, yy = y0x, y0y
     nw, w0, w1, p = 0, 0, 0, -1
     l1 = l2 = lp = r1s = r2s = 0.0
@@ -108,7 +128,7 @@ def _argmax(nx, ny, b, nk, px, py):
 
 @jit
 def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
-    """``polygon._verify`` for one robot: ``out = (yx, yy, mu0, mu1)``; a failed check sets status 3."""
+    """The KKT check of one robot's active set or certificate: ``out = (yx, yy, mu0, mu1)``; a failed one: status 3."""
     status, nw = int(st[9]), int(st[2])
     out[0], out[1], out[2], out[3] = y0x, y0y, 0.0, 0.0
     if status == 1 and nw > 0:
@@ -124,7 +144,7 @@ def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
         out[0], out[1], out[2], out[3] = px, py, nmax(m1, 0.0), nmax(m2, 0.0)
         if not ok:
             st[9] = 3.0
-    elif status == 2:
+    elif status == 2:  # n_p = r1 n1 + r2 n2 with r <= 0: n_p'y <= b_p and -r_k n_k'y <= -r_k b_k add to 0 <= b_p - r'b
         p, w0, w1 = int(st[7]), int(st[3]), int(st[4])
         f1 = st[10] if nw >= 1 else 0.0 * st[10]
         f2 = st[11] if nw == 2 else 0.0 * st[11]
@@ -138,7 +158,10 @@ def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
 
 @jit
 def _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out):
-    """``polygon._enumerate`` for one robot: sets ``out``, status (1/2) and the active slots in ``st``."""
+    """The nearest feasible candidate of one robot (``y0``, its projections, the vertices).
+
+    Sets ``out``, the status (1/2) and the active slots in ``st``.
+    """
     best_d = _INF
     by, bx = y0y, y0x
     bnw, bw0, bw1 = 0, 0, 0
@@ -177,7 +200,7 @@ def _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out):
 
 @jit
 def _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out):
-    """``polygon.solve`` for one robot: active set, check, enumeration; returns ``(iterations, enumerated)``."""
+    """One robot's projection: active set, check, enumeration; returns ``(iterations, enumerated)``."""
     its = _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st)
     _verify(nx, ny, b, nk, y0x, y0y, tk, st, out)
     if int(st[9]) == 3:
@@ -189,7 +212,7 @@ def _solve(nx, ny, b, nk, y0x, y0y, tk, max_iter, st, out):
 # --------------------------------------------------------------------------- phase 1 (least violation), one robot
 @jit
 def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
-    """``local._box_qp`` of one robot."""
+    """One robot's ``argmin 0.5 d'Hd + g'd  s.t.  lo <= d <= hi`` (strictly convex ``H``): inside, else an edge."""
     det = hxx * hyy - hxy * hxy
     dx = -(hyy * gx - hxy * gy) / det
     dy = -(hxx * gy - hxy * gx) / det
@@ -211,7 +234,7 @@ def _box_qp(hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
 
 @jit
 def _line_min(res, delta, n, te, order):
-    """``local._line_min`` of one robot (exact minimiser on ``[0, 1]``)."""
+    """The exact minimiser on ``[0, 1]`` of one robot's ``0.5 sum_r (res_r + t delta_r)_+^2`` (as ``polygons``)."""
     a0 = b0 = 0.0
     for r in range(n):
         te[r] = 2.0
@@ -241,7 +264,7 @@ def _line_min(res, delta, n, te, order):
 
 @jit
 def _line_search(res, delta, n, d0, d1, te, order):
-    """``local._line_search`` of one robot: regula falsi (Illinois), then the exact piecewise minimiser."""
+    """Phase 1's line search given ``phi'(0) < 0 < phi'(1)``: regula falsi (Illinois), then :func:`_line_min`."""
     a, bb, fa, fb, side = 0.0, 1.0, d0, d1, 0.0
     tol = 1e-13 * (abs(d0) + abs(d1))
     for _ in range(_LS_ITERS):
@@ -264,7 +287,7 @@ def _line_search(res, delta, n, d0, d1, te, order):
 
 @jit
 def _least_violation(gx, gy, hh, n, lb0, lb1, ub0, ub1, x0, x1, res, delta, on, te, order):
-    """``local._lv_core`` of one robot over its ``n`` unit rows; returns the point (violations: caller)."""
+    """``polygons.least_violation`` of one robot over its ``n`` unit rows; returns the point (violations: caller)."""
     span = max(max(ub0 - lb0, ub1 - lb1), 1e-300)
     for _ in range(_LV_ITERS):
         grx = gry = hxx = hxy = hyy = 0.0
