@@ -213,7 +213,7 @@ def _solve_all(H, g, lb, ub, owner, G, h, relax: bool, rt, tol: float, out: Loca
     feasible[s.sub] = ok
     ys, mu, done = np.array(ans.w), ans.mu, ok.copy()
     bad = np.flatnonzero(~ok)
-    xb = _box_minimisers(s, bad)
+    xb = _box_minimisers(s, bad) if bad.size else None
     if bad.size and relax:
         done[bad] = _relax(T, s, bad, np.broadcast_to(rt, (x.shape[0],))[s.sub], xb, tol, ys, mu, loosened)
         zb = np.flatnonzero(zero_bad)

@@ -18,6 +18,8 @@ from __future__ import annotations
 
 from typing import Any, NamedTuple
 
+import numpy as np
+
 from aasoatt_env.model.geometry import namespace
 
 __all__ = ["FAR", "LV_ITERS", "LocalAnswer", "least_violation", "solve_polygons"]
@@ -25,7 +27,8 @@ __all__ = ["FAR", "LV_ITERS", "LocalAnswer", "least_violation", "solve_polygons"
 FAR = 1e30  #: right-hand side of a constraint slot that is not there (its normal is 0; finite in float32)
 LV_ITERS: int = 40  #: :func:`least_violation`'s iterations (it stops sooner once a step is negligible)
 _CHUNK = 1 << 22  # largest line-by-constraint table (elements) of one chunk
-_FEW = 2  # robots with at most this many constraints violated by t look only at those lines
+_FEW = 2  # robots with at most this many constraints violated by t look only at those lines, where
+_SPLIT = 1 << 16  # the line-by-constraint table of every robot left would have more elements than this
 
 
 class LocalAnswer(NamedTuple):
@@ -43,6 +46,10 @@ def _const(x):
 
 def _put(xp, base, idx, new):
     """``base`` with its rows ``idx`` replaced by ``new``: a new array (autograd sees nothing changed in place)."""
+    if isinstance(base, np.ndarray):  # (numpy: the short way)
+        out = base.copy()
+        out[idx] = new
+        return out
     n = base.shape[0]
     pos = xp.arange(n, device=idx.device)
     pos[idx] = xp.arange(n, n + idx.shape[0], device=idx.device)
@@ -81,68 +88,68 @@ def solve_polygons(t, nx, ny, b, t_box=None, rows: int = 0, tol: float | None = 
     todo = xp.nonzero(out)[0]
     if todo.shape[0] == 0:
         return LocalAnswer(w, mu, feasible)
-    t1, nx1, ny1, b1, v1, tol1 = (xp.take(x, todo, axis=0) for x in (t, nx, ny, b, viol0, tol))
+    every = todo.shape[0] == R
+    t1, nx1, ny1, b1, v1, tol1 = (x if every else xp.take(x, todo, axis=0) for x in (t, nx, ny, b, viol0, tol))
     count = xp.count_nonzero(v1 > 0, axis=1)
     few = count <= _FEW
+    if todo.shape[0] * C * int(xp.max(count)) <= _SPLIT:  # (a small table: one stage)
+        few = xp.ones_like(few)
     w1, f1 = xp.zeros_like(t1), xp.ones_like(few)
     for group in (few, ~few):  # (most robots violate a few lines: their tables stay small)
         rest = xp.nonzero(group)[0]
         if rest.shape[0] == 0:
             continue
-        lead = int(xp.max(xp.take(count, rest)))  # the violated lines come first
-        o = xp.argsort(-_const(xp.take(v1, rest, axis=0)), axis=1, stable=True)
-        ws, fs = _stage(xp, xp.take(t1, rest, axis=0),
-                        *(xp.take_along_axis(xp.take(x, rest, axis=0), o, axis=1) for x in (nx1, ny1, b1, v1)),
-                        xp.take(tol1, rest), lead)
-        w1, f1 = _put(xp, w1, rest, ws), _put(xp, f1, rest, fs)
+        whole = rest.shape[0] == todo.shape[0]
+        part = (t1, nx1, ny1, b1, v1, tol1, count)
+        tr, nxr, nyr, br, vr, tolr, cr = part if whole else (xp.take(x, rest, axis=0) for x in part)
+        o = xp.argsort(-_const(vr), axis=1, stable=True)[:, :int(xp.max(cr))]  # the violated lines
+        lines = (xp.take_along_axis(x, o, axis=1) for x in (nxr, nyr, vr))
+        ws, fs = _stage(xp, tr, *lines, nxr, nyr, br, tolr)
+        w1, f1 = (ws, fs) if whole else (_put(xp, w1, rest, ws), _put(xp, f1, rest, fs))
     m1 = _multipliers(xp, *(_const(x) for x in (t1, w1, nx1, ny1, b1)), tol1, f1)
+    if every:
+        return LocalAnswer(w1, m1, f1)
     return LocalAnswer(_put(xp, w, todo, w1), _put(xp, mu, todo, m1), _put(xp, feasible, todo, f1))
 
 
-def _stage(xp, t, nx, ny, b, v, tol, lead: int):
-    """Robots with constraints sorted by violation: :func:`_on_lines` of their first ``lead``, a chunk at once."""
+def _stage(xp, t, kx, ky, vk, nx, ny, b, tol):
+    """:func:`_on_lines` of robots' ``L`` lines ``(R, L)`` within their constraints ``(R, C)``, a chunk at once."""
     R, C = nx.shape
-    per = max(1, _CHUNK // max(1, lead * C))
-    parts = [_on_lines(xp, t[i:i + per], nx[i:i + per], ny[i:i + per], b[i:i + per], v[i:i + per], tol[i:i + per],
-                       lead) for i in range(0, R, per)]
+    per = max(1, _CHUNK // max(1, kx.shape[1] * C))
+    parts = [_on_lines(xp, *(x[i:i + per] for x in (t, kx, ky, vk, nx, ny, b, tol))) for i in range(0, R, per)]
     return tuple(xp.concat(x) for x in zip(*parts)) if len(parts) > 1 else parts[0]
 
 
-def _on_lines(xp, t, nx, ny, b, v, tol, lead: int):
-    """The closest point to ``t`` on each of the first ``lead`` lines that ``t`` violates, within the polygon.
+def _on_lines(xp, t, kx, ky, vk, nx, ny, b, tol):
+    """The closest point to ``t`` on each line ``k`` (``kx, ky``) that ``t`` violates (by ``vk``), in the polygon.
 
     Along line ``k`` (``p_k + sigma d_k``: ``p_k`` the projection of ``t``, ``d_k`` its unit direction) constraint
-    ``m`` reads ``sigma (n_m' d_k) <= b_m - n_m' p_k``, so the polygon leaves an interval ``[lo, hi]`` of ``sigma``
-    (empty if ``lo > hi``, or if a parallel constraint excludes the line: ``|n_m' d_k|`` below ``1e-11``, ``1e-6``
-    below float64, the rounding of duplicate lines' normals); the closest point is ``sigma`` = 0 clamped
-    into it, at squared distance ``s_k^2 + sigma^2`` from ``t``.  The nearest over the lines is the optimum; none:
-    the polygon is empty, and the projection of least largest violation is returned (``feasible`` False).
-    Returns ``(w, feasible)`` (the multipliers: :func:`_multipliers`).
+    ``m`` of the polygon (``nx, ny, b``) reads ``sigma (n_m' d_k) <= b_m - n_m' p_k``, so the polygon leaves an
+    interval ``[lo, hi]`` of ``sigma`` (empty if ``lo > hi``, or if a parallel constraint excludes the line:
+    ``|n_m' d_k|`` below ``1e-11``, ``1e-6`` below float64, the rounding of duplicate lines' normals); the closest
+    point is ``sigma`` = 0 clamped into it, at squared distance ``s_k^2 + sigma^2`` from ``t``.  The nearest over the
+    lines is the optimum; none: the polygon is empty, and the projection of least largest violation is returned
+    (``feasible`` False).  Returns ``(w, feasible)`` (the multipliers: :func:`_multipliers`).
     """
-    s = xp.clip(v[:, :lead], 0.0, None)
-    kx, ky = nx[:, :lead], ny[:, :lead]
+    s = xp.clip(vk, 0.0, None)
     px, py = t[:, 0:1] - s * kx, t[:, 1:2] - s * ky  # (R, L)
     nd = nx[:, None, :] * (-ky)[:, :, None] + ny[:, None, :] * kx[:, :, None]  # n_m' d_k (R, L, C), d_k = (-ny, nx)
     room = b[:, None, :] - (nx[:, None, :] * px[:, :, None] + ny[:, None, :] * py[:, :, None])
     par = xp.abs(nd) <= (1e-11 if t.dtype == xp.float64 else 1e-6)  # parallel to line k (rounding: duplicate lines)
     ratio = room / xp.where(par, 1.0, nd)  # (not used where parallel: no 0/0 in the gradient)
-    up, down = xp.where(~par & (nd > 0), ratio, float("inf")), xp.where(~par & (nd < 0), ratio, float("-inf"))
-    m_hi, m_lo = xp.argmin(_const(up), axis=2, keepdims=True), xp.argmax(_const(down), axis=2, keepdims=True)
-    hi, lo = xp.take_along_axis(up, m_hi, axis=2)[..., 0], xp.take_along_axis(down, m_lo, axis=2)[..., 0]
+    hi = xp.min(xp.where(~par & (nd > 0), ratio, float("inf")), axis=2)
+    lo = xp.max(xp.where(~par & (nd < 0), ratio, float("-inf")), axis=2)
     shut = xp.any(par & (room < -tol[:, None, None]), axis=2)
-    ok = (v[:, :lead] > 0) & (lo <= hi + tol[:, None]) & ~shut
+    ok = (vk > 0) & (lo <= hi + tol[:, None]) & ~shut
     sig = xp.minimum(xp.clip(lo, 0.0, None), hi)
     q = xp.argmin(_const(xp.where(ok, s * s + sig * sig, float("inf"))), axis=1, keepdims=True)
     feasible = xp.any(ok, axis=1)
 
-    def pick(x):  # each robot's value on its line q
-        return xp.take_along_axis(x, q, axis=1)[:, 0]
-
-    sq = pick(sig)
-    w = xp.stack((pick(px) - sq * pick(ky), pick(py) + sq * pick(kx)), axis=1)
+    wq = xp.take_along_axis(xp.stack((px - sig * ky, py + sig * kx)), q[None], axis=2)[..., 0]  # on its line q
+    w = xp.stack((wq[0], wq[1]), axis=1)
     if not bool(xp.all(feasible)):  # empty polygons: the projection of least largest violation
         bad = xp.nonzero(~feasible)[0]
-        worst = xp.where(xp.take(v[:, :lead], bad, axis=0) > 0, xp.max(-xp.take(room, bad, axis=0), axis=2),
+        worst = xp.where(xp.take(vk, bad, axis=0) > 0, xp.max(-xp.take(room, bad, axis=0), axis=2),
                          float("inf"))
         qq = xp.argmin(_const(worst), axis=1, keepdims=True)
         pxq = xp.take_along_axis(xp.take(px, bad, axis=0), qq, axis=1)[:, 0]
@@ -171,10 +178,8 @@ def _multipliers(xp, t, w, nx, ny, b, tol, feasible):
     one = ~(has_l & has_r) | xp.any(act & along & (dot > 0), axis=1)
     i = xp.where(one[:, None], xp.argmax(xp.where(act, dot, float("-inf")), axis=1, keepdims=True), i)
 
-    def at(x, k):
-        return xp.take_along_axis(x, k, axis=1)[:, 0]
-
-    n1x, n1y, n2x, n2y = at(nx, i), at(ny, i), at(nx, j), at(ny, j)
+    (n1x, n2x), (n1y, n2y) = xp.permute_dims(xp.take_along_axis(xp.stack((nx, ny)), xp.concat((i, j), axis=1)[None],
+                                                                axis=2), (0, 2, 1))
     dx, dy = 2.0 * rx[:, 0], 2.0 * ry[:, 0]
     det = n1x * n2y - n1y * n2x
     two = ~one & (det != 0)
@@ -218,9 +223,7 @@ def _line_min(xp, res, delta):
     ev = (delta != 0) & (te > 0) & (te < 1)
     te = xp.where(ev, te, 2.0)
     order = xp.argsort(te, axis=1, stable=True)
-    ts = xp.take_along_axis(te, order, axis=1)
-    dl = xp.take_along_axis(xp.where(ev, delta, 0.0), order, axis=1)
-    rs = xp.take_along_axis(res, order, axis=1)
+    ts, dl, rs = xp.take_along_axis(xp.stack((te, xp.where(ev, delta, 0.0), res)), order[None], axis=2)
     sg = xp.sign(dl)  # delta > 0: the row switches on; delta < 0: off
     on0 = (res > 0) | ((res == 0) & (delta > 0))
     a0 = xp.sum(xp.where(on0, res * delta, 0.0), axis=1, keepdims=True)
@@ -232,8 +235,7 @@ def _line_min(xp, res, delta):
     starts = xp.concat((zero, ends[:, :-1]), axis=1)
     up = A + ends * B >= 0
     k = xp.where(xp.any(up, axis=1), xp.argmax(xp.astype(up, xp.int8), axis=1), ends.shape[1] - 1)[:, None]
-    a, b = xp.take_along_axis(A, k, axis=1)[:, 0], xp.take_along_axis(B, k, axis=1)[:, 0]
-    s0, s1 = xp.take_along_axis(starts, k, axis=1)[:, 0], xp.take_along_axis(ends, k, axis=1)[:, 0]
+    a, b, s0, s1 = xp.take_along_axis(xp.stack((A, B, starts, ends)), k[None], axis=2)[..., 0]
     t = xp.where(b > 0, -a / xp.where(b > 0, b, 1.0), xp.where(a >= 0, s0, s1))
     return xp.minimum(xp.maximum(t, s0), s1)
 
