@@ -5,6 +5,8 @@ Every answer is checked against an independent dense solver (quadprog) on the ro
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 import pytest
 from helpers import needs_numba
@@ -293,7 +295,8 @@ def test_the_compiled_local_solver_makes_the_numpy_solvers_decisions(relax):
 def test_the_kernels_constants_are_the_reference_solvers():
     kern = pytest.importorskip("aasoatt_env.safety.solvers.local_kernel")
     assert kern._PAD_B == local.PAD_B
-    assert kern._LV_ITERS == polygons.LV_ITERS == polygons.least_violation.__defaults__[0]
+    default = inspect.signature(polygons.least_violation).parameters["max_iter"].default
+    assert kern._LV_ITERS == polygons.LV_ITERS == default
 
 
 # ----------------------------------------------------------------------------- the decentralised step

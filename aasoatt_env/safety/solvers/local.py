@@ -146,8 +146,7 @@ def solve_local_qps(H: np.ndarray, g: np.ndarray, lb: np.ndarray, ub: np.ndarray
         if np.any(bad):
             _bad_blocks(np.flatnonzero(bad))
         return out._replace(iterations=int(its), n_enumerated=int(n_enum))
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # (inf and 0/0 where unused are masked)
-        _solve_all(H, g, lb, ub, owner, G, h, relax, rt, tol, out)
+    _solve_all(H, g, lb, ub, owner, G, h, relax, rt, tol, out)
     return out
 
 

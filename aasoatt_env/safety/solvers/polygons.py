@@ -16,6 +16,7 @@ one-sided.  No array is changed in place that autograd needs.
 
 from __future__ import annotations
 
+import functools
 from typing import Any, NamedTuple
 
 import numpy as np
@@ -39,6 +40,17 @@ class LocalAnswer(NamedTuple):
     feasible: Any  #: ``(R,)`` bool
 
 
+def _quiet(f):
+    """``f`` without numpy's warnings: its infinities and divisions by 0 happen where a mask drops them."""
+
+    @functools.wraps(f)
+    def run(*args, **kwargs):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            return f(*args, **kwargs)
+
+    return run
+
+
 def _const(x):
     """``x`` outside autograd (a torch tensor detached; a numpy array as it is)."""
     return x.detach() if hasattr(x, "detach") else x
@@ -60,6 +72,7 @@ def _rel_tol(xp, dtype) -> float:
     return 1e-10 if dtype == xp.float64 else 2e-5
 
 
+@_quiet
 def solve_polygons(t, nx, ny, b, t_box=None, rows: int = 0, tol: float | None = None) -> LocalAnswer:
     """Project ``t`` ``(R, 2)`` onto the polygons ``nx w_x + ny w_y <= b`` ``(R, C)`` (unit normals).
 
@@ -240,6 +253,7 @@ def _line_min(xp, res, delta):
     return xp.minimum(xp.maximum(t, s0), s1)
 
 
+@_quiet
 def least_violation(gx, gy, hh, lb, ub, x, max_iter: int = LV_ITERS):
     """The least-violation point ``(P, 2)`` of each robot's rows over its box and their violations there ``(P, K)``.
 
