@@ -129,7 +129,8 @@ def solve_local_qps(H: np.ndarray, g: np.ndarray, lb: np.ndarray, ub: np.ndarray
 
     ``H`` ``(N, 2, 2)``, ``g``, ``lb <= ub`` ``(N, 2)``; rows ``G_r x <= h_r`` of robot ``owner[r]`` (``h = +inf``:
     never binds).  ``relax_tol``: one or ``(N,)``, in the row's units normalised in ``x``.  ``compiled``: by
-    :mod:`~aasoatt_env.safety.solvers.local_kernel` (the same decisions, numbers to rounding).  ``tol`` is relative to
+    :mod:`~aasoatt_env.safety.solvers.local_kernel` (the same decisions; answers to rounding, a relaxed robot's to
+    the least-violation iteration's stopping tolerance).  ``tol`` is relative to
     ``1 + |y0|_inf``, so the filter clips each nominal to its bounds before it forms ``g``.  ``max_iter``: the compiled
     kernel's active-set iterations (the numpy path projects line by line: none).
     """

@@ -28,8 +28,8 @@ __all__ = ["FAR", "LV_ITERS", "LocalAnswer", "least_violation", "solve_polygons"
 FAR = 1e30  #: right-hand side of a constraint slot that is not there (its normal is 0; finite in float32)
 LV_ITERS: int = 40  #: :func:`least_violation`'s iterations (it stops sooner once a step is negligible)
 _CHUNK = 1 << 22  # largest line-by-constraint table (elements) of one chunk
-_FEW = 2  # robots with at most this many constraints violated by t look only at those lines, where
-_SPLIT = 1 << 16  # the line-by-constraint table of every robot left would have more elements than this
+_FEW = 2  # robots with at most this many constraints violated by t are a stage apart (their tables stay small) ...
+_SPLIT = 1 << 16  # ... where one stage's line-by-constraint table would have more elements than this
 
 
 class LocalAnswer(NamedTuple):
