@@ -11,7 +11,7 @@ Every ``--eval-every`` iterations, and at the end, the deterministic policy is e
 their goal at the end), collisions (robot-steps with a surface gap below ``-collision_tolerance``), the filter's
 mean correction; the report is written as JSON (atomically) with the wall times.
 
-Usage: ``python -m train.torchrl_mappo [--frames 640000] [--teams 256] [--robots 6] [--out runs/torchrl_mappo]``
+Usage: ``python -m train.torchrl_mappo [--frames 640000] [--teams 256] [--steps 50] [--robots 6] [--out runs/torchrl_mappo]``
 """
 
 from __future__ import annotations
@@ -122,7 +122,7 @@ def evaluate(actor: ProbabilisticActor, teams: int, robots: int, seed: int = HEL
 
 def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, eval_every: int,
           eval_teams: int = 64, log: Any = print, epochs: int = 10, minibatches: int = 16,
-          reward_scale: float = 0.1, **options: Any) -> dict[str, Any]:
+          reward_scale: float = 0.1, steps: int = 50, **options: Any) -> dict[str, Any]:
     """Train from scratch; returns the report (per-iteration rewards, in the env's units, and the evaluations).
 
     ``reward_scale``: the rewards the value function learns are the env's times this (returns of order 1-10, fitted
@@ -132,7 +132,7 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
     env = make_env(teams, robots, seed, **options)
     actor, critic = build(env, centralised, norm=observation_stats(env))
     start_params = [p.detach().clone() for p in actor.parameters()]
-    per_batch = teams * 50  # 50 decisions (5 s) per team per iteration
+    per_batch = teams * steps  # decisions of 100 ms per team per iteration
     collector = Collector(env, actor, frames_per_batch=per_batch, total_frames=frames)
     buffer = ReplayBuffer(storage=LazyTensorStorage(per_batch), sampler=SamplerWithoutReplacement(),
                           batch_size=max(1, per_batch // minibatches))
@@ -144,7 +144,7 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
     optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
     report: dict[str, Any] = {"frames": frames, "teams": teams, "robots": robots, "seed": seed,
                               "critic": "centralised" if centralised else "independent", "epochs": epochs,
-                              "minibatches": minibatches, "reward_scale": reward_scale, "options": options,
+                              "minibatches": minibatches, "steps": steps, "reward_scale": reward_scale, "options": options,
                               "iterations": [],
                               "evaluations": [{"iteration": 0, **evaluate(actor, eval_teams, robots, **options)}]}
     log(f"iteration 0: held-out {report['evaluations'][0]}")
@@ -189,6 +189,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=640_000, help="team decisions in total (teams x steps)")
     ap.add_argument("--teams", type=int, default=256)
     ap.add_argument("--robots", type=int, default=6)
+    ap.add_argument("--steps", type=int, default=50, help="decisions per team per iteration")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--ippo", action="store_true", help="independent critics (IPPO) instead of MAPPO's")
     ap.add_argument("--action-mode", choices=("point", "wheel"), default="point")
@@ -204,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--out: {path} exists; pass --overwrite to replace it")
     torch.set_num_threads(1)
     report = train(a.frames, a.teams, a.robots, a.seed, not a.ippo, a.eval_every, a.eval_teams, epochs=a.epochs,
-                   minibatches=a.minibatches, action_mode=a.action_mode)
+                   minibatches=a.minibatches, steps=a.steps, action_mode=a.action_mode)
     a.out.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda temp: temp.write_text(json.dumps(report, indent=1)))
     print(f"wrote {path}")
