@@ -11,7 +11,8 @@ Every ``--eval-every`` iterations, and at the end, the deterministic policy is e
 their goal at the end), collisions (robot-steps with a surface gap below ``-collision_tolerance``), the filter's
 mean correction; the report is written as JSON (atomically) with the wall times.
 
-Usage: ``python -m train.torchrl_mappo [--frames 640000] [--teams 256] [--steps 50] [--robots 6] [--out runs/torchrl_mappo]``
+Usage: ``python -m train.torchrl_mappo [--frames 640000] [--teams 256] [--steps 50] [--robots 6]
+[--out runs/torchrl_mappo]``
 """
 
 from __future__ import annotations
@@ -144,7 +145,8 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
     optim = torch.optim.Adam(loss.parameters(), lr=3e-4)
     report: dict[str, Any] = {"frames": frames, "teams": teams, "robots": robots, "seed": seed,
                               "critic": "centralised" if centralised else "independent", "epochs": epochs,
-                              "minibatches": minibatches, "steps": steps, "reward_scale": reward_scale, "options": options,
+                              "minibatches": minibatches, "steps": steps, "reward_scale": reward_scale,
+                              "options": options,
                               "iterations": [],
                               "evaluations": [{"iteration": 0, **evaluate(actor, eval_teams, robots, **options)}]}
     log(f"iteration 0: held-out {report['evaluations'][0]}")
