@@ -7,28 +7,32 @@ growing (it only grows, so it ends; at worst everyone brakes, which keeps a brak
 also brakes where its path until it stops could exceed half of ``D - 2 max r`` (the range limit: a pair out of
 sensing range cannot meet before both stop).
 
-Not the numpy backup layer (no repair, no blend levels, its own sampling): the braking path is integrated with the
-exact-arc step at ``tau >= dt``, at most :data:`SAMPLES` samples over the team's own horizon (its slowest robot's
-stop: a team's answer does not depend on the other teams of the batch), and each sample-to-sample piece is checked
-as the segment of relative positions minus ``2 * tau^2 / 8`` of each robot's largest point acceleration while braking
-(its chord deviation, and as much again for the coarse integration); pairs too far apart to meet before both stop
-are not integrated.  float32 rounds distances at 10 m by about 1 µm; the campaign states the dtype it shows.
+Before the check, :func:`repair` nudges the candidate toward brake-safety (as the numpy layer's repair), so that the
+check rarely has to brake. Not the numpy backup layer (no blend levels, its own repair and sampling): the braking
+path is integrated with the exact-arc step at ``tau >= dt``, at most :data:`SAMPLES` samples over the team's own
+horizon (its slowest robot's stop: a team's answer does not depend on the other teams of the batch), and each
+sample-to-sample piece is checked as the segment of relative positions minus ``2 * tau^2 / 8`` of each robot's
+largest point acceleration while braking (its chord deviation, and as much again for the coarse integration); pairs
+too far apart to meet before both stop are not integrated. float32 rounds distances at 10 m by about 1 µm; the
+campaign states the dtype it shows.
 """
 
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import torch
 
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.tensor.model import TensorTeam, arc, integrate, points
 
-__all__ = ["GATE_TOL", "SAMPLES", "brake_du", "gate"]
+__all__ = ["GATE_TOL", "REPAIR_TARGET", "SAMPLES", "brake_du", "gate", "repair"]
 
 SAMPLES: int = 24  #: most samples of a braking path
 _CHUNK = 1 << 22  # most pair-sample elements of one chunk of braking paths
 GATE_TOL: float = 2.5e-4  #: overlap [m] the check forgives: a quarter of the 1 mm the campaign counts as a collision
+REPAIR_TARGET: float = 2e-4  #: margin [m] below which :func:`repair` lifts a pair row (to twice this)
 
 
 def brake_du(team: TensorTeam, u: torch.Tensor, step: float, frac: float) -> torch.Tensor:
@@ -89,47 +93,69 @@ class _Rows:
         o = x.gather(-1, self.flat.expand(*x.shape[:-1], N * KM)).reshape(*x.shape, KM)
         return torch.where(self.robot, o, torch.zeros_like(o))
 
-    def rel(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``p_own - p_other`` of control points ``(..., B, N)`` (an obstacle's centre for obstacle rows)."""
+    def rel(self, x: torch.Tensor, y: torch.Tensor, xo: torch.Tensor | None = None,
+            yo: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``p_own - p_other`` of control points ``(..., B, N)`` (an obstacle's centre for obstacle rows).
+
+        ``xo, yo``: the other members' points from these instead (default: ``x, y``).
+        """
         B, N, KM = self.shape
+        xo, yo = (x, y) if xo is None else (xo, yo)
         idx = self.flat.expand(*x.shape[:-1], N * KM)
-        ox, oy = (v.gather(-1, idx).reshape(*v.shape, KM) for v in (x, y))
+        ox, oy = (v.gather(-1, idx).reshape(*v.shape, KM) for v in (xo, yo))
         return (x[..., None] - torch.where(self.robot, ox, self.cx),
                 y[..., None] - torch.where(self.robot, oy, self.cy))
 
 
+class _End(NamedTuple):
+    """A robot's state after the step: control point, stop time, braking distance bound, step acceleration bound."""
+
+    x: torch.Tensor
+    y: torch.Tensor
+    stop: torch.Tensor
+    braking: torch.Tensor
+    acc: torch.Tensor
+    pose: torch.Tensor
+    u: torch.Tensor
+
+
+def _end(team: TensorTeam, cfg: FilterConfig, acc0: torch.Tensor, pose1, u1) -> _End:
+    x1, y1 = points(team, pose1)
+    stop = torch.maximum(u1[..., 0].abs(), u1[..., 1].abs()) / (cfg.brake_fraction * team.max_wheel_accel)  # [s]
+    return _End(x1, y1, stop, _speed(team, u1) * stop, torch.maximum(acc0, _point_accel(team, u1, 1.0)), pose1, u1)
+
+
 def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1, valid,
-             ds) -> tuple[torch.Tensor, torch.Tensor]:
+             ds, other: tuple | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Each pair row's smallest ``distance - d_s`` and each robot's path length, over the step and braking after it.
 
     Returns ``(B, N, K + M)`` margins and ``(B, N)`` a bound on each control point's path [m]; ``start``: the
-    step's start, ``(x0, y0, acc0)`` (control points, :func:`_point_accel` at the full bound).
+    step's start, ``(x0, y0, acc0)`` (control points, :func:`_point_accel` at the full bound); ``other``: the other
+    members' ``(pose1, u1)`` (default: the same as the robots').
     """
     dt, frac = cfg.dt, cfg.brake_fraction
     x0, y0, acc0 = start
-    x1, y1 = points(team, pose1)
-    stop = torch.maximum(u1[..., 0].abs(), u1[..., 1].abs()) / (frac * team.max_wheel_accel)  # (B, N) [s]
-    braking = _speed(team, u1) * stop
-    path_len = torch.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2) + dt * dt / 8.0 * acc0 + braking
-    reach = braking + 1e-9
-    acc_step = torch.maximum(acc0, _point_accel(team, u1, 1.0))
-    dev_step = dt * dt / 8.0 * (acc_step[..., None] + rows.at(acc_step))
+    own = _end(team, cfg, acc0, pose1, u1)
+    oth = own if other is None else _end(team, cfg, acc0, *other)
+    path_len = torch.sqrt((own.x - x0) ** 2 + (own.y - y0) ** 2) + dt * dt / 8.0 * acc0 + own.braking
+    dev_step = dt * dt / 8.0 * (own.acc[..., None] + rows.at(oth.acc))
     q0x, q0y = rows.rel(x0, y0)
-    q1x, q1y = rows.rel(x1, y1)
+    q1x, q1y = rows.rel(own.x, own.y, oth.x, oth.y)
     out = _seg(q0x, q0y, q1x, q1y) - dev_step - ds
     gap1 = torch.sqrt(q1x * q1x + q1y * q1y) - ds
-    risky = valid & (gap1 <= reach[..., None] + rows.at(reach) + 1e-6)
+    risky = valid & (gap1 <= (own.braking + 1e-9)[..., None] + rows.at(oth.braking + 1e-9) + 1e-6)
     out = torch.where(valid, out, torch.full_like(out, float("inf")))
     if not bool(risky.any()):
         return out, path_len
     # each team's braking horizon (its slowest robot's stop) in at most SAMPLES samples of tau >= dt: a team's check
     # does not depend on the other teams of the batch
-    horizon = stop.amax(-1)
+    horizon = own.stop.amax(-1) if other is None else torch.maximum(own.stop.amax(-1), oth.stop.amax(-1))
     tau = torch.clamp(horizon / SAMPLES, min=dt)  # (B,)
     steps = int(torch.ceil(horizon / tau - 1e-9).amax())
     if steps <= 0:
         return out, path_len
     xs, ys, accs = _braking_path(team, frac, pose1, u1, tau[:, None], steps)
+    xo, yo, acco = (xs, ys, accs) if other is None else _braking_path(team, frac, oth.pose, oth.u, tau[:, None], steps)
     # the braking paths of the risky rows only, a chunk of rows at once: (S, rows)
     bb, nn, rr = torch.nonzero(risky, as_tuple=True)
     jj, robot = rows.flat.view(rows.shape)[bb, nn, rr], rows.robot[bb, nn, rr]
@@ -137,9 +163,9 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
     per = max(1, _CHUNK // steps)
     for first in range(0, bb.numel(), per):
         b, n, r, j, rob = (v[first:first + per] for v in (bb, nn, rr, jj, robot))
-        qx = xs[:, b, n] - torch.where(rob, xs[:, b, j], rows.cx[b, n, r])
-        qy = ys[:, b, n] - torch.where(rob, ys[:, b, j], rows.cy[b, n, r])
-        a = accs[:, b, j]
+        qx = xs[:, b, n] - torch.where(rob, xo[:, b, j], rows.cx[b, n, r])
+        qy = ys[:, b, n] - torch.where(rob, yo[:, b, j], rows.cy[b, n, r])
+        a = acco[:, b, j]
         dev = tau2[b] * (accs[:, b, n] + torch.where(rob, a, torch.zeros_like(a)))
         seg = _seg(torch.cat((q1x[b, n, r][None], qx[:-1])), torch.cat((q1y[b, n, r][None], qy[:-1])), qx, qy)
         out = out.index_put((b, n, r), torch.minimum(out[b, n, r], (seg - dev - ds[b, n, r]).amin(0)))
@@ -165,6 +191,42 @@ def _braking_path(team: TensorTeam, frac: float, pose: torch.Tensor, u: torch.Te
     y = pose[..., 1] + torch.cumsum(m * torch.sin(ang), 0)
     acc = _lin(team, frac) + _turn(team, us[:-1])
     return x + team.offset * torch.cos(theta), y + team.offset * torch.sin(theta), acc
+
+
+def repair(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid, ds, obstacles,
+           target: float = REPAIR_TARGET, rounds: int = 3, eps: float = 1.0) -> torch.Tensor:
+    """Nudge the candidate ``du`` toward brake-safety before :func:`gate` checks it (the numpy layer's repair, in kind).
+
+    Every pair row whose margin (:func:`_margins`) is below ``target`` [m] asks the least change of its robot's input
+    that lifts the margin to ``2 target``, linearised by finite differences (step ``eps``, the other member's input
+    held): all of it for an obstacle row, half for a robot pair (the other member lifts the other half, by its own row).
+    The changes add up and are clipped to ``[lo, hi]``, ``rounds`` times.  Only liveness: the gate still checks the
+    answer.  The change is a constant to autograd (the derivative of the answer is the candidate's).
+    """
+    rows = _Rows(other, obstacles, u.dtype)
+    start = (*points(team, pose), _point_accel(team, u, 1.0))
+    half = torch.where(rows.robot, 0.5, 1.0).to(u.dtype)
+    with torch.no_grad():
+        cand = du.detach()
+        for _ in range(rounds):
+            base = integrate(team, pose, u, cand, cfg.dt)
+            m, _ = _margins(team, cfg, rows, start, *base, valid, ds)
+            low = valid & (m < target)
+            if not bool(low.any()):
+                break
+            grads = []
+            for d in range(2):
+                moved = cand + eps * torch.nn.functional.one_hot(torch.tensor(d), 2).to(cand)
+                mp, _ = _margins(team, cfg, rows, start, *integrate(team, pose, u, moved, cfg.dt), valid, ds,
+                                 other=base)
+                grads.append(torch.where(low, (mp - m) / eps, torch.zeros_like(m)))
+            g = torch.stack(grads, -1)  # (B, N, K + M, 2)
+            gg = (g * g).sum(-1)
+            lift = torch.where(low & (gg > 1e-12), half * (2.0 * target - m) / gg.clamp(min=1e-12),
+                               torch.zeros_like(m))
+            cand = torch.minimum(torch.maximum(cand + (lift[..., None] * g).sum(-2), lo), hi)
+        step = cand - du.detach()
+    return torch.minimum(torch.maximum(du + step, lo), hi)
 
 
 def gate(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid, ds, obstacles,

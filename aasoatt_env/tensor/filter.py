@@ -32,7 +32,7 @@ from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.problem import box_ls
 from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.safety.solvers.polygons import FAR, LocalAnswer, least_violation, solve_polygons
-from aasoatt_env.tensor.backup import gate
+from aasoatt_env.tensor.backup import gate, repair
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
 
 __all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config", "filter_step"]
@@ -252,6 +252,8 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, rows, gx, g
     if cfg.negotiate and bool(trig.any()):
         status = status | torch.where(_grouped(cfg, trig, pr, rows), GROUPED, 0)
     if cfg.backup:
+        if cfg.backup_repair:
+            du = repair(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
         du, braking, broken = gate(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
         status = status | torch.where(braking, BACKUP, 0) | torch.where(broken, UNSAFE, 0)
     d = du - nominal
