@@ -402,7 +402,8 @@ def test_torchrl_mappo_runs_one_iteration_and_reports_held_out_teams(tmp_path):
     pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
     from train import torchrl_mappo
 
-    report = torchrl_mappo.train(100, 2, 3, 0, True, eval_every=1, eval_teams=2, log=lambda *_: None, max_steps=10)
+    report = torchrl_mappo.train(100, 2, 3, 0, True, eval_every=1, eval_teams=2, log=lambda *_: None, steps=50,
+                                 max_steps=10)
     assert report["policy_change"] > 0.0
     assert [r["frames"] for r in report["iterations"]] == [100]
     assert math.isfinite(report["iterations"][0]["mean_reward"])

@@ -1,17 +1,19 @@
 """MAPPO (or IPPO) with TorchRL on the torch env behind the torch filter: many teams in one call, no PettingZoo.
 
 The robots of a team are one TorchRL agent group (:class:`~aasoatt_env.tensor.torchrl_env.TorchRLTensorEnv`); the
-policy is one shared MLP per robot (its own observation in, a tanh-Gaussian over its normalised control-point
-accelerations out: ``action_mode="point"``, as ``aasoatt train``'s recipe; ``--action-mode wheel`` for wheel
-accelerations; initial standard deviation 0.4), the critic a shared MLP over the whole team's observations (MAPPO;
-``--ippo``: each robot's own), both behind observations standardised by the statistics of a random-action rollout
-(:func:`observation_stats`). Clipped PPO with GAE and normalised advantages, as TorchRL's multi-agent PPO tutorial.
+policy is one shared MLP per robot (its own observation in, a Gaussian over its normalised control-point
+accelerations out, with a state-independent standard deviation starting at ``e^-1``; ``action_mode="point"``, as
+``aasoatt train``'s recipe; ``--action-mode wheel`` for wheel accelerations; the env gets each sample clipped to
+``[-1, 1]``, the loss the sample itself, as SB3's PPO), the critic a shared MLP over the whole team's observations
+(MAPPO; ``--ippo``: each robot's own), both behind observations standardised by the statistics of a random-action
+rollout (:func:`observation_stats`). Clipped PPO with GAE and normalised advantages, as TorchRL's multi-agent PPO
+tutorial; 32 teams x 64 decisions per iteration and 12 minibatches, as ``aasoatt train``'s rollouts.
 Every ``--eval-every`` iterations, and at the end, the deterministic policy is evaluated on held-out seeds (teams
 ``seed >= 2**32``, as ``aasoatt train``'s) for one episode per team: success (robots within ``goal_tolerance`` of
 their goal at the end), collisions (robot-steps with a surface gap below ``-collision_tolerance``), the filter's
 mean correction; the report is written as JSON (atomically) with the wall times.
 
-Usage: ``python -m train.torchrl_mappo [--frames 640000] [--teams 256] [--steps 50] [--robots 6]
+Usage: ``python -m train.torchrl_mappo [--frames 204800] [--teams 32] [--steps 64] [--robots 6] [--ippo]
 [--out runs/torchrl_mappo]``
 """
 
@@ -24,14 +26,16 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data.replay_buffers import ReplayBuffer
 from torchrl.data.replay_buffers.samplers import SamplerWithoutReplacement
 from torchrl.data.replay_buffers.storages import LazyTensorStorage
+from torchrl.envs import TransformedEnv
+from torchrl.envs.transforms import ClipTransform
 from torchrl.envs.utils import ExplorationType, set_exploration_type
-from torchrl.modules import MultiAgentMLP, ProbabilisticActor, TanhNormal
+from torchrl.modules import IndependentNormal, MultiAgentMLP, ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from aasoatt_env.cli_support import atomic_write
@@ -43,13 +47,14 @@ __all__ = ["Normalise", "build", "evaluate", "main", "observation_stats", "train
 GROUP = "agents"
 
 
-def make_env(teams: int, robots: int, seed: int, **options: Any) -> TorchRLTensorEnv:
+def make_env(teams: int, robots: int, seed: int, **options: Any) -> TransformedEnv:
     """``teams`` RandomGoals teams of ``robots`` behind the decentralised torch filter, 100 ms decisions."""
     options = {"action_mode": "point", **options}
     env = TorchRLTensorEnv("random_goals", num_envs=teams, num_robots=robots, decision_interval=20,
                            reward=dict(TRAIN_REWARD), **options)
     env.set_seed(seed)
-    return env
+    # the env gets the sampled action clipped to [-1, 1]; the loss, the sample itself (as SB3's PPO)
+    return TransformedEnv(env, ClipTransform(in_keys_inv=[(GROUP, "action")], low=-1.0, high=1.0))
 
 
 class Normalise(nn.Module):
@@ -66,7 +71,7 @@ class Normalise(nn.Module):
 
 
 @torch.no_grad()
-def observation_stats(env: TorchRLTensorEnv, steps: int = 20) -> Normalise:
+def observation_stats(env: TransformedEnv, steps: int = 20) -> Normalise:
     """Per-entry mean and standard deviation (at least 0.01) of the observations of ``steps`` uniform random actions."""
     td = env.reset()
     seen = [td[GROUP, "observation"]]
@@ -78,19 +83,19 @@ def observation_stats(env: TorchRLTensorEnv, steps: int = 20) -> Normalise:
     return Normalise(obs.mean(0), obs.std(0).clamp(min=0.01))
 
 
-def build(env: TorchRLTensorEnv, centralised: bool, width: int = 128,
-          norm: Normalise | None = None) -> tuple[ProbabilisticActor, TensorDictModule]:
-    """The shared per-robot tanh-Gaussian policy and the (centralised) critic, behind ``norm`` (default: none)."""
+def build(env: TransformedEnv, centralised: bool, width: int = 128, norm: Normalise | None = None,
+          log_std: float = -1.0) -> tuple[ProbabilisticActor, TensorDictModule]:
+    """The shared per-robot Gaussian policy (``log_std``: its initial log standard deviation) and the critic."""
     n, obs = env.env.num_robots, env.env.obs_dim
     norm = norm if norm is not None else nn.Identity()
-    net = nn.Sequential(norm, MultiAgentMLP(obs, 4, n, centralised=False, share_params=True, depth=2,
+    net = nn.Sequential(norm, MultiAgentMLP(obs, 2, n, centralised=False, share_params=True, depth=2,
                                             num_cells=width, activation_class=nn.Tanh),
-                        NormalParamExtractor("biased_softplus_0.4"))
+                        AddStateIndependentNormalScale(2, init_value=log_std))
     actor = ProbabilisticActor(
         TensorDictModule(net, in_keys=[(GROUP, "observation")], out_keys=[(GROUP, "loc"), (GROUP, "scale")]),
         spec=env.action_spec[GROUP, "action"], in_keys=[(GROUP, "loc"), (GROUP, "scale")],
-        out_keys=[(GROUP, "action")], distribution_class=TanhNormal,
-        distribution_kwargs={"low": -1.0, "high": 1.0}, return_log_prob=True, log_prob_key=(GROUP, "log_prob"))
+        out_keys=[(GROUP, "action")], distribution_class=IndependentNormal, return_log_prob=True,
+        log_prob_key=(GROUP, "log_prob"))
     critic = TensorDictModule(nn.Sequential(norm, MultiAgentMLP(obs, 1, n, centralised=centralised, share_params=True,
                                                                 depth=2, num_cells=width, activation_class=nn.Tanh)),
                               in_keys=[(GROUP, "observation")], out_keys=[(GROUP, "state_value")])
@@ -122,8 +127,8 @@ def evaluate(actor: ProbabilisticActor, teams: int, robots: int, seed: int = HEL
 
 
 def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, eval_every: int,
-          eval_teams: int = 64, log: Any = print, epochs: int = 10, minibatches: int = 16,
-          reward_scale: float = 0.1, steps: int = 50, **options: Any) -> dict[str, Any]:
+          eval_teams: int = 64, log: Any = print, epochs: int = 10, minibatches: int = 12,
+          reward_scale: float = 0.1, steps: int = 64, **options: Any) -> dict[str, Any]:
     """Train from scratch; returns the report (per-iteration rewards, in the env's units, and the evaluations).
 
     ``reward_scale``: the rewards the value function learns are the env's times this (returns of order 1-10, fitted
@@ -188,16 +193,16 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
 def main(argv: list[str] | None = None) -> int:
     """The command line (module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--frames", type=int, default=640_000, help="team decisions in total (teams x steps)")
-    ap.add_argument("--teams", type=int, default=256)
+    ap.add_argument("--frames", type=int, default=204_800, help="team decisions in total (teams x steps)")
+    ap.add_argument("--teams", type=int, default=32)
     ap.add_argument("--robots", type=int, default=6)
-    ap.add_argument("--steps", type=int, default=50, help="decisions per team per iteration")
+    ap.add_argument("--steps", type=int, default=64, help="decisions per team per iteration")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--ippo", action="store_true", help="independent critics (IPPO) instead of MAPPO's")
     ap.add_argument("--action-mode", choices=("point", "wheel"), default="point")
     ap.add_argument("--epochs", type=int, default=10)
-    ap.add_argument("--minibatches", type=int, default=16)
-    ap.add_argument("--eval-every", type=int, default=5)
+    ap.add_argument("--minibatches", type=int, default=12)
+    ap.add_argument("--eval-every", type=int, default=10)
     ap.add_argument("--eval-teams", type=int, default=64)
     ap.add_argument("--out", type=Path, default=Path("runs/torchrl_mappo"))
     ap.add_argument("--overwrite", action="store_true")
