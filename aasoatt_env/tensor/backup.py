@@ -216,7 +216,7 @@ def repair(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, vali
                 break
             grads = []
             for d in range(2):
-                moved = cand + eps * torch.nn.functional.one_hot(torch.tensor(d), 2).to(cand)
+                moved = cand + eps * torch.eye(2, dtype=cand.dtype, device=cand.device)[d]
                 mp, _ = _margins(team, cfg, rows, start, *integrate(team, pose, u, moved, cfg.dt), valid, ds,
                                  other=base)
                 grads.append(torch.where(low, (mp - m) / eps, torch.zeros_like(m)))
