@@ -141,18 +141,25 @@ def box_ls(a, b, c, d, target, lo, hi):
     out = xp.any((x < lo) | (x > hi), axis=-1)
     if not bool(xp.any(out)):
         return x
-    # the objective 0.5 du' H du + g' du (H = A'A, g = -A' target) along the four edges at once, rows
-    # (x0 = lo, x0 = hi, x1 = lo, x1 = hi): the fixed coordinate at its bound, the free one at the
-    # clipped minimiser of the parabola along the edge; every robot (cheaper than selecting)
+    # outside: the best edge of the objective 0.5 du' H du + g' du (H = A'A, g = -A' target)
     h00, h01, h11 = a * a + c * c, a * b + c * d, b * b + d * d
     g0, g1 = -(a * t0 + c * t1), -(b * t0 + d * t1)
-    lo0, lo1, hi0, hi1 = lo[..., 0], lo[..., 1], hi[..., 0], hi[..., 1]
+    ex, ey = best_edge(xp, h00, h01, h11, g0, g1, lo[..., 0], lo[..., 1], hi[..., 0], hi[..., 1])
+    return xp.where(out[..., None], xp.stack((ex, ey), axis=-1), x)
+
+
+def best_edge(xp, h00, h01, h11, g0, g1, lo0, lo1, hi0, hi1):
+    """The minimiser of ``0.5 x'Hx + g'x`` over the four edges of the box ``lo <= x <= hi`` (any namespace ``xp``).
+
+    Each edge in the order ``x0 = lo, hi``, ``x1 = lo, hi``: the fixed coordinate at its bound, the free one at the
+    clipped minimiser of the parabola along the edge; the first of equal values.  Every robot (cheaper than selecting).
+    """
     f0, f1 = xp.stack((lo0, hi0)), xp.stack((lo1, hi1))
     x0 = xp.concat((f0, xp.clip(-(g0 + h01 * f1) / h00, lo0, hi0)))
     x1 = xp.concat((xp.clip(-(g1 + h01 * f0) / h11, lo1, hi1), f1))
     f = 0.5 * (h00 * x0 * x0 + 2.0 * h01 * x0 * x1 + h11 * x1 * x1) + g0 * x0 + g1 * x1
-    ex, ey, best = x0[0], x1[0], f[0]  # the first of equal values, as trying the edges in that order
+    ex, ey, best = x0[0], x1[0], f[0]
     for e in range(1, 4):  # (not argmin over the 4 edges: a slow reduction in torch)
         take = f[e] < best
         ex, ey, best = xp.where(take, x0[e], ex), xp.where(take, x1[e], ey), xp.where(take, f[e], best)
-    return xp.where(out[..., None], xp.stack((ex, ey), axis=-1), x)
+    return ex, ey

@@ -22,6 +22,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from aasoatt_env.model.geometry import namespace
+from aasoatt_env.safety.problem import best_edge
 
 __all__ = ["FAR", "LV_ITERS", "LocalAnswer", "least_violation", "solve_polygons"]
 
@@ -215,15 +216,8 @@ def _box_qp(xp, hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
     inside = (dx >= lox) & (dx <= hix) & (dy >= loy) & (dy <= hiy)
     if bool(xp.all(inside)):
         return dx, dy
-    best = xp.full_like(dx, float("inf"))
-    bx, by = dx, dy
-    for e, c in enumerate((lox, hix, loy, hiy)):  # the edges d_x = lo, hi, then d_y = lo, hi
-        ex = c if e < 2 else xp.minimum(xp.maximum(-(gx + hxy * c) / hxx, lox), hix)
-        ey = xp.minimum(xp.maximum(-(gy + hxy * c) / hyy, loy), hiy) if e < 2 else c
-        f = 0.5 * (hxx * ex * ex + 2 * hxy * ex * ey + hyy * ey * ey) + gx * ex + gy * ey
-        take = ~inside & (f < best)
-        best, bx, by = xp.where(take, f, best), xp.where(take, ex, bx), xp.where(take, ey, by)
-    return bx, by
+    ex, ey = best_edge(xp, hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy)
+    return xp.where(inside, dx, ex), xp.where(inside, dy, ey)
 
 
 def _line_min(xp, res, delta):
