@@ -1,10 +1,9 @@
 """The warm active set: an exact structured solver for the safety QP, tried first from the previous step.
 
-With the 2x2 block-diagonal Hessian ``H = L L^T`` of :class:`~aasoatt_env.safety.problem.QPProblem`, in ``y = L^T x``
-the problem reads ``min 0.5 |y|^2 + gt'y  s.t.  Mt y <= b`` (rows on at most two robots); a working set is solved
-through its Schur complement.  From the previous working set the primal-dual rule (Hintermueller, Ito, Kunisch 2002)
-runs until inconsistent, then a rule with one change per iteration.  A point is returned only where the KKT conditions
-hold within :data:`TOL`, part by part for independent parts; otherwise the caller's general solver answers.
+In ``y = L^T x`` (``H = L L^T`` block diagonal) the QP reads ``min 0.5 |y|^2 + gt'y  s.t.  Mt y <= b``; a working set
+is solved through its Schur complement.  From the previous working set the primal-dual rule (Hintermueller, Ito,
+Kunisch 2002) runs until inconsistent, then a one-change rule.  A point is returned only where the KKT conditions hold
+within :data:`TOL`, part by part for independent parts; otherwise the caller's general solver answers.
 """
 
 from __future__ import annotations
@@ -28,8 +27,7 @@ DENSE_MAX_ROWS: int = 500  #: working sets up to this size use a dense Cholesky 
 SPARSE_DENSE_SCHUR_ROWS: int = 200  #: sparse rows: working sets up to this size factor the Schur complement densely
 WARM_REL: float = 1e-6  #: rows whose warm multiplier exceeds this fraction of the largest start in the working set
 TOL: float = 1e-10  #: feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)
-# the warm start's budgets: a part it does not verify spends them all before the route's exact solver, which answers
-# sooner than more iterations would (the step-time tails of ``benchmarks/bench_deadline.py``)
+# budgets: a part not verified spends them all before the route's exact solver, which answers sooner than more would
 ONE_CHANGE_ITER: int = 8  #: one-change iterations after the primal-dual ones
 PDAS_ITER: int = 12  #: iterations of the primal-dual rule from the warm start
 BOUND_TIGHT: float = 1e-9  #: a warm start within this of a bound (scaled) starts with the bound in the working set
@@ -111,11 +109,7 @@ least_distance_form = _once(_least_distance_form)  # (once per problem)
 
 
 def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
-    """``LeastDistanceForm.Mt`` of ``prob`` as a dense array, built without scipy.sparse.
-
-    The numbers of ``least_distance_form(prob).Mt.toarray()``: an entry of ``C T`` sums at most two products (one
-    robot's block), so their order does not matter, and ``toarray()`` adds to zeros, so every zero is ``+0.0``.
-    """
+    """``least_distance_form(prob).Mt.toarray()``, bit for bit, without scipy.sparse (an entry sums <= 2 products)."""
     n, m = prob.n, prob.m
     nb = n // 2
     C = prob.C
@@ -161,12 +155,11 @@ def solve_active_set(prob, x0, z0, max_iter: int = PDAS_ITER, compiled: bool = F
 
 def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: int = PDAS_ITER,
                            compiled: bool = False, one_change_iter: int | None = None) -> ActiveSetParts | None:
-    """The warm active set on a problem of independent groups, each verified on its own.
+    """The warm active set on a problem of independent groups, each verified (and then kept) on its own.
 
     ``x0``, ``z0``: the previous point and row multipliers; ``groups`` ``(N,)``: each robot's group ``0..K-1`` (None:
-    one); ``compiled``: the dense path by the numba kernel.  A group whose part of an iterate passes is kept from then
-    on.  ``None`` where the method does not apply (no warm start, a block not positive definite, an odd size, ``groups``
-    not one label per robot or joined by a row).
+    one); ``compiled``: the dense path by the numba kernel.  ``None`` where the method does not apply (no warm start,
+    a block not positive definite, an odd size, ``groups`` not one label per robot or joined by a row).
     """
     n, m = prob.n, prob.m
     if n == 0 or n % 2 or z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
@@ -214,10 +207,9 @@ def _row_groups(prob, groups: np.ndarray | None) -> tuple[int, np.ndarray, np.nd
 
 
 def warm_working_set(prob, x0: np.ndarray, z0: np.ndarray) -> np.ndarray:
-    """The warm working set ``(m + 2n,)`` bool: the rows, upper bounds, lower bounds held at the warm start.
+    """The warm working set ``(m + 2n,)`` bool: rows, upper bounds, lower bounds.
 
-    Rows whose multiplier was positive at the previous step (relative to the largest: solvers leave ~1e-10 on slack
-    rows) and the bounds the point is at.
+    Rows whose multiplier exceeds :data:`WARM_REL` of the largest (solvers leave ~1e-10 on slack rows); bounds it is at.
     """
     n, m = prob.n, prob.m
     W0 = np.zeros(m + 2 * n, dtype=bool)
@@ -317,9 +309,8 @@ def _one_change_rule(W: np.ndarray, lam: np.ndarray, r: np.ndarray, prev: np.nda
                      rg: np.ndarray, todo: np.ndarray) -> np.ndarray:
     """One change per group of ``todo``: add its most violated row while its multipliers are >= 0, else drop one.
 
-    The row dropped is the first whose multiplier crosses zero on the way from the previous working set's
-    multipliers ``prev`` to these (the ratio test of dual active-set methods, Goldfarb and Idnani 1983: a
-    nearly dependent set has large negative multipliers on rows that need not leave); else the most negative.
+    The row dropped is the first whose multiplier crosses zero from ``prev`` to these (Goldfarb-Idnani's ratio test),
+    else the most negative.
     """
     K = todo.shape[0]
     Wn = W.copy()
@@ -378,8 +369,7 @@ class _WorkingSetLoop:
             if point is None:  # singular working set: the groups verified so far stand
                 break
             y, lam, r = point
-            # KKT (stationarity holds by construction): feasibility, dual signs, the working rows met as
-            # equalities; written as what must hold, so a NaN anywhere fails its group
+            # KKT (stationarity by construction), written as what must hold: a NaN anywhere fails its group
             met = ~W | (np.abs(r) <= TOL)
             ok_row = (r <= TOL) & (lam >= -TOL) & met
             bad = np.zeros(K, dtype=bool)

@@ -1,11 +1,9 @@
 """QP back-ends of the safety filter and their registry (:data:`SOLVERS`).
 
-A back-end takes a :class:`~aasoatt_env.safety.problem.QPProblem`, an optional warm start and options, returns a
-:class:`RawAnswer` within an iteration budget (never a time limit) and never falls back by itself
-(:mod:`~aasoatt_env.safety.solvers.policy` decides).  ``proxsuite`` (default; dense up to :data:`DENSE_MAX_SIZE`
-variables + rows, sparse above; ``docs/technical_brief.md`` section 4), ``ldp`` (exact NNLS, core dependencies only),
-``neural`` (the paper's projection network, eqn.22, approximate); ``daqp``, ``clarabel``, ``osqp``, ``quadprog``,
-``cvxopt`` (Robotarium's) where installed.
+A back-end maps a :class:`~aasoatt_env.safety.problem.QPProblem`, a warm start and options to a :class:`RawAnswer`
+within an iteration budget (never a time limit), never falling back by itself (:mod:`.policy` decides).  ``proxsuite``
+(default), ``ldp`` (exact NNLS, core dependencies only), ``neural`` (eqn.22, approximate); ``daqp``, ``clarabel``,
+``osqp``, ``quadprog``, ``cvxopt`` where installed.
 """
 
 from __future__ import annotations
@@ -82,9 +80,8 @@ def _proxsuite(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, op
 
 
 def _ldp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: dict) -> RawAnswer:
-    """Exact least-distance programming: one finitely terminating NNLS (Lawson and Hanson, ch. 23), no stall.
+    """Exact least-distance programming in ``w = y + L^{-1} g``: one finitely terminating NNLS (Lawson and Hanson).
 
-    In ``w = y + L^{-1} g`` (:class:`~.active_set.LeastDistanceForm`) the QP is ``min 0.5 |w|^2  s.t.  Mt w <= hb``.
     The point is polished by the warm active set, or returned unpolished where feasible to ``ldp_feas_tol``.
     """
     n, m = prob.n, prob.m
@@ -160,11 +157,7 @@ def _daqp(prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, opts: d
 
 
 def _daqp_least_violation(prob: QPProblem, reg: float, opts: dict) -> RawAnswer:
-    """Phase 1 (:func:`~.policy._phase1`) by DAQP's soft rows, without slack variables.
-
-    DAQP weighs a soft row's squared violation by ``1 / (rho a' H^-1 a)``: with ``H = reg I``, ``rho = reg`` and unit
-    rows, by 1, so this is ``min 0.5 reg |x|^2 + 0.5 |s|^2  s.t.  C x - s <= u, lb <= x <= ub``.
-    """
+    """Phase 1 (:func:`~.policy._phase1`) by DAQP's soft rows (weight ``1 / (rho a' H^-1 a) = 1`` here), no slacks."""
     import daqp
 
     n, m = prob.n, prob.m
@@ -266,8 +259,7 @@ class Backend:
     solve: Callable[[QPProblem, np.ndarray | None, np.ndarray | None, dict], RawAnswer]  #: ``(problem, x0, z0, opts)``
     module: str = ""  #: the module it imports (empty: core dependencies only)
     exact: bool = True  #: answers the QP's optimum to its tolerance (False: ``neural``, passed on unverified)
-    #: it checks its own answers (``ldp``); another exact back-end's answer is polished and verified by the warm
-    #: active set started from it (which also makes its last bits a function of the problem)
+    #: it checks its own answers (``ldp``); others' are polished and verified by the warm active set
     verified: bool = False
     deterministic: bool = True  #: its last bits are a function of the problem (proxsuite's: of its memory too)
     may_stall: bool = False  #: it can run out of iterations (an augmented Lagrangian): the exact solvers go first
@@ -291,7 +283,7 @@ SOLVERS: dict[str, Backend] = {
                     least_violation=_daqp_least_violation),
     "cvxopt": Backend(_cvxopt, "cvxopt"),
 }
-"""Solver registry: name -> :class:`Backend`.  Adding a solver is one function and one line here."""
+"""Solver registry: name -> :class:`Backend` (adding one: a function and a line here)."""
 
 
 @functools.cache

@@ -1,13 +1,9 @@
 """Every robot's 2-variable QP at once, exactly: the decentralised filter's local solver.
 
-Robot ``k`` solves ``min 0.5 x' H_k x + g_k' x  s.t.  lb_k <= x <= ub_k, G_r x <= h_r``.  In ``y = L_k^T x`` (``H_k =
-L_k L_k^T``) each QP projects ``y0 = -L^-1 g`` onto a polygon of unit half-planes: a robot whose minimiser meets its
-constraints is answered by it, the others by :func:`~aasoatt_env.safety.solvers.polygons.solve_polygons` (the torch
-filter's code: one source).  With ``relax=True`` an empty polygon's robot gets its least-violation answer, as
-:func:`~aasoatt_env.safety.solvers.policy.solve_qp` gives the centralised one: each row is loosened by its least
-violation (bounds hard, :func:`~aasoatt_env.safety.solvers.polygons.least_violation`) times ``1 + 1e-6`` plus a
-tolerance.  ``compiled=True``: the numba kernel :mod:`~aasoatt_env.safety.solvers.local_kernel`, a dual active set per
-robot (the same answers to rounding).
+Robot ``k``: ``min 0.5 x' H_k x + g_k' x  s.t.  lb_k <= x <= ub_k, G_r x <= h_r``, in ``y = L_k^T x`` the projection
+of ``y0 = -L^-1 g`` onto a polygon of unit half-planes (:func:`~.polygons.solve_polygons`).  ``relax=True``: an empty
+polygon's rows are loosened by their least violation (bounds hard, :func:`~.polygons.least_violation`) times
+``1 + 1e-6`` plus a tolerance, as the centralised policy does.  ``compiled=True``: :mod:`~.local_kernel`.
 """
 
 from __future__ import annotations
@@ -73,10 +69,9 @@ def _slots(owner: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 class Table(NamedTuple):
-    """Half-planes ``n' y <= b`` of every robot, ``(N, K)``: slots 0-3 the bounds, then its rows.
+    """Half-planes ``n' y <= b`` of every robot ``(N, K)``: slots 0-3 ``x <= ub``, ``x >= lb``, then its rows.
 
-    The bounds: ``x <= ub``, then ``x >= lb``; ``row``: each slot's row, or -1 (a bound; padding: ``n = 0``,
-    ``b = FAR``).
+    ``row``: each slot's row, or -1 (a bound; padding: ``n = 0``, ``b = FAR``).
     """
 
     nx: np.ndarray
@@ -86,10 +81,7 @@ class Table(NamedTuple):
 
 
 def _table(linv, lb, ub, owner, G, h, tol_k, infeasible, zero_bad) -> Table:
-    """Build the :class:`Table`; a zero row with ``h < 0`` (left out) marks its robot infeasible and itself bad.
-
-    A row that never binds (``h / |L^-1 G|`` not below :data:`PAD_B`) is left out too: neither solved nor loosened.
-    """
+    """The :class:`Table` but zero rows (with ``h < 0``: marked bad, robot infeasible) and never-binding ones."""
     n = lb.shape[0]
     i11, i21, i22 = linv  # L^-1 = [[i11, 0], [i21, i22]]
     slot, counts = _slots(owner, n)
@@ -128,11 +120,10 @@ def solve_local_qps(H: np.ndarray, g: np.ndarray, lb: np.ndarray, ub: np.ndarray
     """Solve every robot's 2-variable QP exactly (module docstring).
 
     ``H`` ``(N, 2, 2)``, ``g``, ``lb <= ub`` ``(N, 2)``; rows ``G_r x <= h_r`` of robot ``owner[r]`` (``h = +inf``:
-    never binds).  ``relax_tol``: one or ``(N,)``, in the row's units normalised in ``x``.  ``compiled``: by
-    :mod:`~aasoatt_env.safety.solvers.local_kernel` (the same decisions; answers to rounding, a relaxed robot's to
-    the least-violation iteration's stopping tolerance).  ``tol`` is relative to
-    ``1 + |y0|_inf``, so the filter clips each nominal to its bounds before it forms ``g``.  ``max_iter``: the compiled
-    kernel's active-set iterations (the numpy path projects line by line: none).
+    never binds).  ``relax_tol``: one or ``(N,)``, in the row's units normalised in ``x``; ``tol``: relative to
+    ``1 + |y0|_inf`` (the filter clips each nominal to its bounds first); ``max_iter``: the compiled kernel's
+    active-set iterations.  ``compiled``: the same decisions, answers to rounding (a relaxed robot's to the
+    least-violation iteration's stopping tolerance).
     """
     H, g, lb, ub, owner, G, h, rt = _checked(H, g, lb, ub, owner, G, h, relax_tol, tol, max_iter)
     n, m = g.shape[0], owner.shape[0]
@@ -258,11 +249,7 @@ def _box_minimisers(s: _Sub, idx: np.ndarray) -> np.ndarray:
 
 
 def _multipliers(T: Table, s: _Sub, done: np.ndarray, mu: np.ndarray, lam, lam_box) -> None:
-    """The robots ``done``'s multipliers into ``lam`` and ``lam_box``, in the units of the rows as given.
-
-    ``mu`` (unit normals, of ``|y - y0|^2``) halved are those of ``0.5 |y - y0|^2``; a row's is that over
-    ``|L^-1 G_r|``, a bound's over ``|L^-1 e_i|``.
-    """
+    """The robots ``done``'s multipliers into ``lam``, ``lam_box``: ``mu / 2`` over ``|L^-1 G_r|`` (``|L^-1 e_i|``)."""
     if done.size == 0:
         return
     i11, i21, i22 = (v[done] for v in s.linv)
@@ -277,10 +264,7 @@ def _multipliers(T: Table, s: _Sub, done: np.ndarray, mu: np.ndarray, lam, lam_b
 
 
 def _relax(T: Table, s: _Sub, bad, rtol, x0, tol: float, ys, mu, loosened) -> np.ndarray:
-    """Least-violation answers of the infeasible robots ``bad`` (table indices), from ``x0``; which were answered.
-
-    Into ``ys``, ``mu``, ``loosened``; a failed relaxation keeps the least-violation point (no multipliers).
-    """
+    """Least-violation answers of robots ``bad`` from ``x0`` (into ``ys``, ``mu``, ``loosened``); which got one."""
     l11, l21, l22 = (v[bad] for v in s.lfac)
     nx, ny, b = T.nx[bad, 4:], T.ny[bad, 4:], T.b[bad, 4:]  # the rows (the bounds stay hard)
     real = T.row[bad, 4:] >= 0

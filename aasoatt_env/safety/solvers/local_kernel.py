@@ -1,15 +1,10 @@
 """The decentralised filter's local solver compiled (numba; imported only through :mod:`aasoatt_env.compiled`).
 
-:func:`solve_all` is :func:`aasoatt_env.safety.solvers.local.solve_local_qps` after its argument checks, one robot at a
-time (its rows in the order given), by its own exact method: per robot the table of unit half-planes of the reference
-(the same ``y`` space, tolerances, zero and never-binding rows left out), projected by Goldfarb-Idnani's dual active
-set in the plane (a dependent new constraint with no positive coefficient is a Farkas certificate of an empty
-polygon), a KKT check of the final active set and of each certificate, and, for a robot not verified, the enumeration
-of every candidate (``y0``, its projections, the vertices).  An empty polygon's rows are loosened by their least
-violation as the reference does (phase 1: the same iteration, its line search by regula falsi before the exact
-piecewise minimiser).  The answers are the reference's to rounding (:mod:`.polygons` projects line by line).  Per
-robot only plain loops are factored out: a helper that calls others pays its array arguments' reference counts on
-every robot.
+:func:`solve_all` is :func:`~.local.solve_local_qps` after its checks, robot by robot on the reference's table:
+Goldfarb-Idnani's dual active set in the plane (a dependent constraint with no positive coefficient certifies an empty
+polygon), a KKT check, and for a robot not verified the enumeration of every candidate; phase 1 as the reference's
+(line search by regula falsi first).  Answers: the reference's to rounding.  Only plain loops are factored out (a
+helper calling others pays its array arguments' reference counts on every robot).
 """
 
 import math
@@ -40,11 +35,10 @@ def _vertex(n1x, n1y, b1, n2x, n2y, b2, yx, yy):
 # --------------------------------------------------------------------------- dual active set, one robot
 @jit
 def _active_set(nx, ny, b, nk, y0x, y0y, tk, max_iter, st):
-    """Dual active set on one robot's table ``[0, nk)``, one step per iteration; the state into ``st``; iterations.
+    """Dual active set on one robot's table ``[0, nk)``; the state into ``st`` (:func:`_start`); iterations.
 
-    The most violated constraint ``p`` is added: with no active one a full step onto it; with one (``n1``) a full step
-    to their vertex, or a partial one dropping ``n1``; with two (they span the plane) a partial step dropping one.
-    A step that cannot be taken leaves a certificate (status 2); ``st``: :func:`_start`'s fields.
+    Adds the most violated constraint ``p``: a full step onto it (none active), to the vertex with ``n1`` or a partial
+    one dropping ``n1`` (one), a partial step dropping one (two); a step that cannot be taken: a certificate (status 2).
     """
     yx, yy = y0x, y0y
     nw, w0, w1, p = 0, 0, 0, -1
@@ -158,10 +152,7 @@ def _verify(nx, ny, b, nk, y0x, y0y, tk, st, out):
 
 @jit
 def _enumerate(nx, ny, b, nk, y0x, y0y, tk, st, out):
-    """The nearest feasible candidate of one robot (``y0``, its projections, the vertices).
-
-    Sets ``out``, the status (1/2) and the active slots in ``st``.
-    """
+    """The nearest feasible candidate (``y0``, its projections, the vertices) into ``out``; status, slots in ``st``."""
     best_d = _INF
     by, bx = y0y, y0x
     bnw, bw0, bw1 = 0, 0, 0

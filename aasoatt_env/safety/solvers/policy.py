@@ -1,10 +1,9 @@
 """Which solver answers a safety QP: a pure function of the problem's size and the configuration.
 
-:meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock, keeps no state.  In
-order: without rows the closed form; ``neural``'s point as it is; the warm active set on every part it verifies; on the
-rest the route (:func:`route`, exact solvers first), an answer taken only where verified; a proof of infeasibility ends
-it.  Infeasibility is never taken from an iterative solver's word: phase 1 (:data:`PHASE1_ROUTE`) finds each row's least
-violation with the bounds hard, the rows are loosened by it and the QP solved again (status ``"relaxed"``).
+:meth:`SolverPolicy.solve` never raises on numerical trouble, never returns NaN, reads no clock, keeps no state: without
+rows the closed form; ``neural``'s point as it is; the warm active set where it verifies; else the route (:func:`route`,
+exact solvers first, answers taken verified).  Infeasibility is never an iterative solver's word: phase 1 finds each
+row's least violation (bounds hard), the rows are loosened by it and the QP solved again (status ``"relaxed"``).
 """
 
 from __future__ import annotations
@@ -28,12 +27,10 @@ __all__ = ["EXACT_ROUTE", "PHASE1_REG", "PHASE1_ROUTE", "QPSolution", "SolverPol
 _FEAS_TOL = 1e-7
 PHASE1_REG: float = 1e-8  #: phase 1's weight of ``0.5 |x|^2`` beside the violations' ``0.5 |s|^2`` (a unique point)
 
+#: ``(solver, most variables)`` asked first, where installed, before a back-end that may stall (exact, or a proof)
 EXACT_ROUTE: tuple[tuple[str, int], ...] = (("daqp", 500), ("ldp", LDP_MAX_VARS))
-"""``(solver, most variables)`` asked in order before a back-end that may stall, where installed: DAQP
-(``pip install "aasoatt[fast]"``) and ``ldp`` finish exactly or prove the rows inconsistent."""
+#: ``(solver, fewest, most variables)`` of a phase-1 problem (``ldp``'s NNLS is badly conditioned on large ones)
 PHASE1_ROUTE: tuple[tuple[str, int, int], ...] = (("daqp", 0, 1600), ("clarabel", 121, 10**9), ("ldp", 0, 120))
-"""``(solver, fewest, most variables)`` of a phase-1 problem (variables plus one slack per row), asked in order
-before a back-end that may stall, where installed (its regulariser conditions ``ldp``'s NNLS badly on large ones)."""
 
 
 @dataclass
@@ -82,10 +79,7 @@ class SolverPolicy:
 
     def solve(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None,
               groups: np.ndarray | None = None, relaxed: bool = False) -> QPSolution:
-        """Solve ``prob`` warm-started from ``(x0, z0)``; ``groups`` ``(N,)``: independent parts (no row joins two).
-
-        ``relaxed``: the previous step's rows were inconsistent, so phase 1 goes before the route (:meth:`_routed`).
-        """
+        """Solve ``prob`` from ``(x0, z0)``; ``groups`` ``(N,)``: independent parts; ``relaxed``: phase 1 first."""
         backend = get_solver(self.solver)
         if prob.m == 0 and prob.diagonal and backend.exact:
             return QPSolution(np.clip(_unconstrained(prob), prob.lb, prob.ub), np.zeros(0), "solved", 0.0, 0, "no rows")
@@ -119,7 +113,7 @@ class SolverPolicy:
     def _ask(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, loosened: bool = False) -> RawAnswer:
         """The route's first verified answer (``loosened``: its first solver's), or the last answer, not ok.
 
-        Another back-end's answer is taken verified only; the configured one's also unverified where deterministic.
+        The configured back-end's answer is taken unverified where it is deterministic; another's only verified.
         """
         steps = route(self.solver, prob.n)[:1] if loosened else route(self.solver, prob.n)
         raw, iterations, notes = RawAnswer(None, None, False, 0, ""), 0, []
@@ -142,10 +136,7 @@ class SolverPolicy:
 
     def _routed(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None,
                 phase1_first: bool = False) -> QPSolution:
-        """The route's answer; where it has none, phase 1 and the loosened problem (status ``"relaxed"``).
-
-        ``phase1_first``: phase 1 first, the route asked only where it finds the rows consistent (or fails).
-        """
+        """The route's answer, else phase 1 and the loosened problem (``phase1_first``: phase 1 before the route)."""
         p1 = _phase1(prob, self.solver) if phase1_first else None
         if p1 is None or float(np.max(p1[1], initial=0.0)) <= _FEAS_TOL:  # (not asked, failed, or consistent rows)
             raw = self._ask(prob, x0, z0)
@@ -161,8 +152,7 @@ class SolverPolicy:
         x1, viol = p1
         tstar = float(np.max(viol, initial=0.0))
         relaxed = tstar > _FEAS_TOL
-        # the loosened QP (feasible at the phase-1 point) by the route's first solver, else the phase-1 point (the
-        # others spend their whole budgets on these nearly degenerate problems)
+        # the loosened QP by the route's first solver only (others spend their budgets on these degenerate problems)
         raw2 = self._ask(replace(prob, u=prob.u + viol * (1.0 + 1e-6) + _FEAS_TOL), x0, z0, loosened=True)
         msg = f"{raw.message}; phase 1: largest row violation {tstar:.3g} ({int(np.sum(viol > _FEAS_TOL))} rows)"
         status = "relaxed" if relaxed else "solved"
@@ -181,10 +171,9 @@ def solve_qp(prob: QPProblem, solver: str = "proxsuite", x0: np.ndarray | None =
 
 
 def _phase1(prob: QPProblem, solver: str) -> tuple[np.ndarray, np.ndarray] | None:
-    """Least row violations ``s* >= 0`` (bounds hard) and its point; None if no solver answers.
+    """The point and row violations ``s* >= 0`` of ``min 0.5 |s|^2 + 0.5 reg |x|^2  s.t.  C x - s <= u`` (bounds hard).
 
-    ``min 0.5 |s|^2 + 0.5 reg |x|^2  s.t.  C x - s <= u, lb <= x <= ub`` (``reg`` = :data:`PHASE1_REG`): one slack
-    per row, so a hopeless row (a pair already inside ``d_s``) is loosened alone.
+    One slack per row: a hopeless row (a pair inside ``d_s``) is loosened alone.  None if no solver answers.
     """
     n, m = prob.n, prob.m
     slacked = None

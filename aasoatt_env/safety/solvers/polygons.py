@@ -1,17 +1,10 @@
 """Every robot's 2-variable QP exactly, on numpy arrays or torch tensors: one source for both decentralised filters.
 
-:func:`solve_polygons`: per robot ``min |w - t|^2  s.t.  n_c' w <= b_c`` over unit half-planes, line by line.  The
-answer is ``t`` where feasible; else the optimum lies on a line that ``t`` violates, at the point of that line's
-feasible segment closest to ``t``: the nearest of those points over the violated lines is the unique optimum of the
-strictly convex QP.  :func:`least_violation`: where a polygon is empty, its rows' least violation over the bounds,
-by which the filters loosen them.
-
-Written with the namespace of the inputs (:func:`~aasoatt_env.model.geometry.namespace`): the numpy local solver
-(:mod:`.local`, in ``y = L' x``) and the torch filter (:mod:`aasoatt_env.tensor.filter`, in ``w = A du``) run this
-code.  Branch-free, vectorised over robots (only the robots whose ``t`` is infeasible look at lines), and on tensors
-differentiable: the answer is the closed form of its active set, so autograd gives the derivative inside each piece;
-at a boundary between active sets (a multiplier or a slack crossing 0) the answer is continuous and the derivative
-one-sided.  No array is changed in place that autograd needs.
+:func:`solve_polygons` projects ``t`` onto each robot's polygon of unit half-planes; :func:`least_violation` gives an
+empty polygon's least row violation over the bounds.  Written in the inputs' namespace (the numpy :mod:`.local` in
+``y = L' x``, :mod:`aasoatt_env.tensor.filter` in ``w = A du``), vectorised over robots, and on tensors differentiable:
+the answer is the closed form of its active set (one-sided derivative where the active set changes); nothing that
+autograd needs is changed in place.
 """
 
 from __future__ import annotations
@@ -77,13 +70,11 @@ def _rel_tol(xp, dtype) -> float:
 def solve_polygons(t, nx, ny, b, t_box=None, rows: int = 0, tol: float | None = None) -> LocalAnswer:
     """Project ``t`` ``(R, 2)`` onto the polygons ``nx w_x + ny w_y <= b`` ``(R, C)`` (unit normals).
 
-    A constraint slot that is not there has ``n = 0``, ``b`` = :data:`FAR`.  ``tol``: the feasibility tolerance
-    relative to ``1 + |t|_inf`` (None: ``1e-10`` in float64, ``2e-5`` else).
-
-    Stages: ``t`` itself; ``t_box``, the projection onto the first ``C - rows`` constraints alone (where it meets the
-    last ``rows`` it is the optimum; their multipliers are 0, the first ones' are not computed); the lines that ``t``
-    violates (:func:`_on_lines`).  An empty polygon's robot gets the projection of least largest violation
-    (``feasible`` False; the filters then loosen its rows, :func:`least_violation`).
+    An absent slot has ``n = 0``, ``b`` = :data:`FAR`; ``tol`` is relative to ``1 + |t|_inf`` (None: ``1e-10`` in
+    float64, ``2e-5`` else).  Stages: ``t``; ``t_box`` (the projection onto the first ``C - rows`` constraints: the
+    optimum where it meets the last ``rows``, whose multipliers are then 0, the others' not computed); the lines that
+    ``t`` violates (:func:`_on_lines`).  An empty polygon gets the projection of least largest violation (``feasible``
+    False; the filters loosen its rows, :func:`least_violation`).
     """
     xp = namespace(t)
     R, C = nx.shape
@@ -135,15 +126,11 @@ def _stage(xp, t, kx, ky, vk, nx, ny, b, tol):
 
 
 def _on_lines(xp, t, kx, ky, vk, nx, ny, b, tol):
-    """The closest point to ``t`` on each line ``k`` (``kx, ky``) that ``t`` violates (by ``vk``), in the polygon.
+    """The optimum ``(w, feasible)``: the nearest to ``t`` of the closest points on the violated lines ``k``.
 
-    Along line ``k`` (``p_k + sigma d_k``: ``p_k`` the projection of ``t``, ``d_k`` its unit direction) constraint
-    ``m`` of the polygon (``nx, ny, b``) reads ``sigma (n_m' d_k) <= b_m - n_m' p_k``, so the polygon leaves an
-    interval ``[lo, hi]`` of ``sigma`` (empty if ``lo > hi``, or if a parallel constraint excludes the line:
-    ``|n_m' d_k|`` below ``1e-11``, ``1e-6`` below float64, the rounding of duplicate lines' normals); the closest
-    point is ``sigma`` = 0 clamped into it, at squared distance ``s_k^2 + sigma^2`` from ``t``.  The nearest over the
-    lines is the optimum; none: the polygon is empty, and the projection of least largest violation is returned
-    (``feasible`` False).  Returns ``(w, feasible)`` (the multipliers: :func:`_multipliers`).
+    On line ``k`` (``p_k + sigma d_k``) the polygon leaves ``sigma`` in ``[lo, hi]`` (empty if ``lo > hi``, or a
+    parallel constraint, ``|n' d_k|`` below ``1e-11`` or ``1e-6`` below float64, excludes it); the closest point is
+    ``sigma = 0`` clamped into it.  None on any line: the polygon is empty, ``w`` its least largest violation.
     """
     s = xp.clip(vk, 0.0, None)
     px, py = t[:, 0:1] - s * kx, t[:, 1:2] - s * ky  # (R, L)
@@ -175,10 +162,8 @@ def _on_lines(xp, t, kx, ky, vk, nx, ny, b, tol):
 def _multipliers(xp, t, w, nx, ny, b, tol, feasible):
     """``(R, C)`` unit-normal multipliers at the optimum ``w``: ``2 (t - w) = sum_c mu_c n_c``, ``mu >= 0``.
 
-    ``t - w`` lies in the cone of the normals active at ``w``; of those on either side of it, the nearest in angle
-    to it span it (more than two where lines meet at a degenerate vertex: then the multipliers are not unique, and
-    these are valid).  An active normal along ``t - w`` (to ``1e-9`` rad: parallel lines) or one side empty: the
-    nearest normal alone.
+    The active normals nearest in angle to ``t - w`` on either side of it span it (valid, if not unique, at a
+    degenerate vertex); one along it (to ``1e-9`` rad) or one side empty: the nearest normal alone.
     """
     R, C = nx.shape
     rx, ry = t[:, 0:1] - w[:, 0:1], t[:, 1:2] - w[:, 1:2]
@@ -223,8 +208,8 @@ def _box_qp(xp, hxx, hxy, hyy, gx, gy, lox, loy, hix, hiy):
 def _line_min(xp, res, delta):
     """Per robot the exact minimiser on ``[0, 1]`` of ``0.5 sum_r (res_r + t delta_r)_+^2`` (``(P, K)``).
 
-    Its derivative is continuous, non-decreasing and piecewise linear: the points where a row switches, sorted,
-    bound the pieces; the minimiser lies in the first piece at whose end the derivative is non-negative.
+    The derivative is piecewise linear and non-decreasing: the minimiser lies in the first piece (between sorted
+    switching points) at whose end it is non-negative.
     """
     te = -res / xp.where(delta != 0, delta, 1.0)
     ev = (delta != 0) & (te > 0) & (te < 1)
@@ -251,13 +236,11 @@ def _line_min(xp, res, delta):
 def least_violation(gx, gy, hh, lb, ub, x, max_iter: int = LV_ITERS):
     """The least-violation point ``(P, 2)`` of each robot's rows over its box and their violations there ``(P, K)``.
 
-    Per robot ``min 0.5 sum_r (g_r x - h_r)_+^2  s.t.  lb <= x <= ub`` over unit rows ``gx, gy, hh`` (a slot that is
-    not there: ``0, 0,`` :data:`FAR`), bounds ``(P, 2)``, from ``x``: convex and piecewise quadratic; each iteration
-    minimises the violated rows' quadratic over the box (closed form, a ``1e-10`` relative proximal term on the step)
-    and moves to the exact minimiser on the segment to it (:func:`_line_min`), until a step is below ``1e-11`` of the
-    box (``1e-6`` below float64: the rounding of ``x`` would keep the active set flickering).  The violations at the
-    minimum are unique, so the loosened rows (``violation (1 + 1e-6) + tolerance``) are the same from any start.
-    Outside autograd.
+    Per robot ``min 0.5 sum_r (g_r x - h_r)_+^2  s.t.  lb <= x <= ub`` (unit rows ``gx, gy, hh``, absent slots ``0, 0,``
+    :data:`FAR`; bounds ``(P, 2)``) from ``x``: each iteration minimises the violated rows' quadratic over the box
+    (closed form, ``1e-10`` relative proximal term) and moves to the exact minimiser on the segment (:func:`_line_min`),
+    until a step is below ``1e-11`` of the box (``1e-6`` below float64).  The violations at the minimum are unique, so
+    the loosened rows are the same from any start.  Outside autograd.
     """
     xp = namespace(x)
     gx, gy, hh, lb, ub, x = (_const(a) for a in (gx, gy, hh, lb, ub, x))
