@@ -1,9 +1,7 @@
 """The braking backup layer: keeps the team collision-free for any nominal, under the real input bounds.
 
-A gatekeeper in the sense of Agrawal and Panagou, a backup-set barrier in the sense of Gurriet et al.: :mod:`.paths`,
-the backup policy (proportional braking) and its paths in closed form; :mod:`.gate`, the gatekeeper and the repair
-(the least nudge of a candidate toward brake-safety); :mod:`.layer`, the filter's stage; :mod:`.kernels`,
-the compiled check and repair.
+A gatekeeper (Agrawal and Panagou), a backup-set barrier (Gurriet et al.): :mod:`.paths`, the backup's paths in closed
+form; :mod:`.gate`, the gatekeeper and the repair; :mod:`.layer`, the filter's stage; :mod:`.kernels`, compiled.
 """
 
 from aasoatt_env.safety.backup.gate import CLOSEST_TIE, GateResult, gatekeeper, pair_margins

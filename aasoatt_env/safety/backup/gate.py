@@ -1,11 +1,9 @@
 """The gatekeeper (a candidate passes where braking from the state it leads to keeps every pair apart) and the repair.
 
-Pair check (:func:`pair_margins`): within a step a wheeled robot moves on an arc that deviates from the chord of its
-end points by at most its sagitta ``|p_dot| |omega| dt^2 / 8``, a point mass on a parabola ``|du| dt^2 / 8`` off it.
-The distance from the origin to the segment of *relative* positions minus both deviations bounds the pair's distance
-over the step from below; a pair is safe over a horizon when that bound is ``>= d_s = r_i + r_j`` at every step.
-Obstacles are robots that never move.  The repair nudges a QP answer toward brake-safety, so that the gatekeeper
-rarely has to brake.
+Pair check (:func:`pair_margins`): within a step a wheeled robot's arc leaves its chord by at most its sagitta
+``|p_dot| |omega| dt^2 / 8``, a point mass's parabola by ``|du| dt^2 / 8``; the distance from the origin to the segment
+of relative positions minus both bounds the pair's distance over the step from below (safe: ``>= d_s`` at every step).
+Obstacles are robots that never move.  The repair nudges a QP answer toward brake-safety.
 """
 
 from __future__ import annotations
@@ -32,9 +30,8 @@ def pair_margins(pi: np.ndarray, pj: np.ndarray, di: np.ndarray, dj: np.ndarray 
                  closest: bool = False) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Smallest ``distance - d_s`` of each pair along sampled paths, a lower bound between samples.
 
-    ``pi``, ``pj`` ``(P, L)``: complex positions of the members at the same steps (``pj`` ``(P, 1)``: a static point);
-    ``di``, ``dj`` ``(P, L-1)``: their deviation bounds (``dj`` may be 0).  With ``closest``, also each pair's closest
-    step: the first within :data:`CLOSEST_TIE` of its minimum.
+    ``pi``, ``pj`` ``(P, L)`` complex positions (``pj`` ``(P, 1)``: a static point); ``di``, ``dj`` ``(P, L-1)``
+    deviation bounds (``dj`` may be 0).  ``closest``: also the first step within :data:`CLOSEST_TIE` of the minimum.
     """
     q = pi - pj
     if q.shape[1] == 1:
@@ -109,19 +106,18 @@ def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt
                near_pairs: np.ndarray | None = None, compiled: bool = False, checked: bool = False) -> GateResult:
     """Accept the candidate ``du_c`` for every robot whose pairs stay brake-safe; put the others on the backup.
 
-    Each robot starts at the candidate (share 1), then the blends ``du_b + a (du_c - du_b)``, ``a`` in ``blend_levels``
-    (one step, then the backup), then the backup from now (share 0), skipping a level whose path leaves its
-    :func:`~aasoatt_env.safety.backup.reach_limit`; the members of failing pairs move one level down until none fails.
-    Invariance: the backup is time-consistent, so from a brake-safe state (the backup keeps every pair ``>= d_s`` and
-    every robot within its range limit) the next one is brake-safe too, and a team at rest without overlap never
-    collides, whatever the candidate, provided every robot checks the same state with the real bounds and ``dt``,
-    applies the inputs as returned, and ``tol`` [m] absorbs the rounding (:data:`~aasoatt_env.safety.backup.GATE_TOL`).
+    Levels: the candidate (share 1), the blends ``du_b + a (du_c - du_b)`` for ``a`` in ``blend_levels`` (one step,
+    then the backup), the backup from now (share 0); a level whose path leaves the robot's
+    :func:`~aasoatt_env.safety.backup.reach_limit` is skipped, and failing pairs' members move one level down until
+    none fails.  The backup is time-consistent, so a brake-safe state stays brake-safe and a team at rest without
+    overlap never collides, whatever the candidate, provided every robot checks the same state with the real bounds
+    and ``dt``, applies the inputs as returned, and ``tol`` [m] absorbs the rounding (:data:`~.layer.GATE_TOL`).
 
-    ``pose``: axle poses ``(N, 3)``; ``obstacles``: ``(centres (M, 2), radii (M,)[, groups (M,)])``; ``blend_levels``:
-    shares in ``(0, 1]`` (``()``: brake at once); ``tol < 0`` asks a clearance.  ``hold_violations``: outside the safe
-    set, hold a pair failing even when both brake to that margin instead of marking it broken.  ``quick``: only the
-    candidate's verdict is wanted.  ``near_pairs`` ``(P, 2)``: a superset of the pairs of one group within ``D`` (None:
-    searched here).  ``checked``: the caller vouches for every shape and index.
+    ``pose`` ``(N, 3)``; ``obstacles``: ``(centres (M, 2), radii (M,)[, groups (M,)])``; ``blend_levels`` in
+    ``(0, 1]`` (``()``: brake at once); ``tol < 0`` asks a clearance; ``hold_violations``: outside the safe set, hold
+    a pair failing even when both brake at that margin, not mark it broken; ``quick``: the candidate's verdict only;
+    ``near_pairs`` ``(P, 2)``: a superset of the same-group pairs within ``D`` (None: searched); ``checked``: the
+    caller vouches for every shape and index.
     """
     levels = levels_of(tuple(blend_levels))
     if not checked:
@@ -190,10 +186,7 @@ def _level_rows(p0: np.ndarray, firsts: list, b0, g: np.ndarray, k: int, dt: flo
 
 def _rounds(lp: tuple, lev: np.ndarray, broken: np.ndarray, reach: np.ndarray, limit: np.ndarray,
             pairs: tuple, obst: tuple, tol: float, hold: bool) -> tuple[int, np.ndarray, np.ndarray]:
-    """The gatekeeper's rounds: ``lev`` and ``broken`` updated in place; ``(rounds, pair and obstacle margins)``.
-
-    ``lp``: ``(p0, firsts, b0, M, dt)``, the paths of robots ``M`` on every level (:func:`_level_rows`).
-    """
+    """The rounds on robots ``lp[3]``' paths (:func:`_level_rows`): ``lev``, ``broken`` in place; margins."""
     (i, j, ds), (oi, ok, ods, oc), (p0, firsts, b0, M, dt) = pairs, obst, lp
     n, last = lev.shape[0], reach.shape[0] - 1
     need = np.stack([c.b1.steps[M] + 2 for c in firsts] + [b0.steps[M] + 1])  # samples per level and row
@@ -357,10 +350,10 @@ def repair(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: fl
            compiled: bool = False, checked: bool = False) -> np.ndarray:
     """Nudge a candidate toward brake-safety: the least change that lifts every low backup margin.
 
-    For every pair whose margin along :func:`~aasoatt_env.safety.backup.candidate_paths` is below ``target`` [m], both
-    inputs move by the least-norm change that lifts the margin to ``2 target``, linearised by finite differences (step
-    ``eps``) at its closest step; the changes add up and are clipped to ``[lo, hi]``, ``rounds`` times.  Safety still
-    comes from the gatekeeper, whose ``near_pairs``, ``compiled``, ``checked`` these are.
+    Each pair whose candidate-path margin is below ``target`` [m] moves both inputs by the least-norm change lifting
+    it to ``2 target`` (finite differences, step ``eps``, at its closest step); the changes add up, clipped to
+    ``[lo, hi]``, ``rounds`` times.  Safety still comes from the gatekeeper (``near_pairs``, ``compiled``, ``checked``
+    as there).
     """
     if not checked:
         near_pairs = validate(team, pose, obstacles, near_pairs, u=u, du_c=du_c, lo=lo, hi=hi)

@@ -1,9 +1,8 @@
 """The backup layer's compiled check and repair (numba; imported only through :mod:`aasoatt_env.compiled`).
 
-:func:`gate_full` is one :func:`~.gate.gatekeeper` call and :func:`repair_full` one :func:`~.gate.repair` call on the
-block of :func:`~.gate.kernel_args`, whose shapes the caller checked.  Each helper is its numpy reference in
-:mod:`.paths` or :mod:`.gate` (the name says which) for one robot, sample or pair, in its order of operations but for
-``sqrt(x^2 + y^2)`` for ``hypot`` and :func:`fill_brake`'s recurrence: the results agree to rounding.
+:func:`gate_full` is :func:`~.gate.gatekeeper`, :func:`repair_full` :func:`~.gate.repair`, on the caller-checked block
+of :func:`~.gate.kernel_args`.  Each helper is its named numpy reference in :mod:`.paths` or :mod:`.gate` for one robot,
+sample or pair, in its order of operations (but ``hypot`` and :func:`fill_brake`'s recurrence): equal to rounding.
 """
 
 import math
@@ -122,8 +121,8 @@ def candidate1(diff, rc, p0, theta, heading, u0, u1, du0, du1, dt):
 def fill_brake(row_p, row_d, start, p_start, pdot, omega, rate, bulge, has_bulge, dt, length, fast):
     """``paths.brake_samples`` into ``row_p[start:length]`` from ``p_start``, deviations into ``row_d``.
 
-    ``fast``: while decelerating, each step's rotation ``e^{i omega dtau / 2}`` is the previous one's times a fixed
-    factor (exact every :data:`_RESYNC` samples and at rest): samples within ~1e-13 of the path's length of the exact.
+    ``fast``: each decelerating step's rotation is the previous one's times a fixed factor (exact every
+    :data:`_RESYNC` samples and at rest): within ~1e-13 of the path's length of the exact samples.
     """
     c8, half_dt, apd, aw = dt * dt / 8.0, 0.5 * dt, cabs(pdot), abs(omega)
     tau, sig_prev = 0.0, 1.0

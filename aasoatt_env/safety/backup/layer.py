@@ -19,9 +19,8 @@ from aasoatt_env.sim.env import FILTERED_MIN_COLLISION_TOLERANCE
 __all__ = ["GATE_TOL", "BackupAnswer", "BackupLayer", "gate_with_repair"]
 
 GATE_TOL: float = 0.5 * FILTERED_MIN_COLLISION_TOLERANCE
-"""Overlap [m] the check forgives: half the env's collision tolerance behind a filter (the other half absorbs
-the rounding between closed-form paths and simulator steps), twice a scenario start's
-(:data:`~aasoatt_env.sim.scenarios.base.TOUCH_TOL`): a touching team at rest is brake-safe."""
+"""Overlap [m] the check forgives: half the env's collision tolerance behind a filter (the other half absorbs the
+rounding of closed-form paths), twice a scenario start's (``TOUCH_TOL``): a touching team at rest is brake-safe."""
 
 
 def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, lo: np.ndarray, hi: np.ndarray,
@@ -29,10 +28,9 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
                      pairs: np.ndarray | None = None, *, checked: bool = False) -> GateResult:
     """The backup layer's decision for the QP's answer ``du``: the gatekeeper, with the repair where it brakes.
 
-    The quick check (no blend levels) decides whether ``du`` passes.  Where it brakes someone, each component of robots
-    within ``D`` of each other is decided alone: a broken one gets ``hold_violations``' best effort (unsafe); one
-    braking for a pair is repaired and checked again, keeping whichever answer brakes fewer robots (the repaired on a
-    tie); the others get the full check.  ``pairs``, ``checked``: the gatekeeper's ``near_pairs``, ``checked``.
+    The quick check decides whether ``du`` passes.  Where it brakes, each component of robots within ``D`` is decided
+    alone: a broken one gets ``hold_violations``' best effort (unsafe), one braking for a pair is repaired and checked
+    again (the answer braking fewer robots kept, the repaired on a tie), the others get the full check.
     """
     if not checked:
         pairs = validate(team, pose, obstacles, pairs, u=u, du=du, lo=lo, hi=hi)

@@ -1,10 +1,9 @@
 """The backup policy, proportional braking, and the robots' braking and candidate paths in closed form.
 
-Backup: ``du = -u / T`` (``-u / dt`` in the last step), ``T = max(s / a, |p_dot| / a_b)``, ``s = max|u_k|``,
-``a_b = brake_fraction * rho * a``: both wheel speeds fall linearly to zero together, the control point keeps a fixed
-circle, and the policy is time-consistent (braking from a braked state continues the same path).  The closed forms
-equal stepping :func:`aasoatt_env.model.dynamics.integrate` with :func:`braking_du`.  A candidate path is one step
-holding a candidate input, then the backup.
+Backup: ``du = -u / T`` (``-u / dt`` in the last step), ``T = max(s / a, |p_dot| / a_b)``, ``s = max|u_k|``, ``a_b =
+brake_fraction * rho * a``: both wheel speeds fall linearly to zero, the control point keeps a fixed circle, and braking
+from a braked state continues the same path (time-consistent).  The closed forms equal stepping ``integrate`` with
+:func:`braking_du`.  A candidate path: one step holding a candidate input, then the backup.
 """
 
 from __future__ import annotations
@@ -205,10 +204,9 @@ def candidate_paths(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray,
 def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float,
                          brake_fraction: float, s: np.ndarray, rows: np.ndarray | None = None
                          ) -> tuple[np.ndarray, np.ndarray]:
-    """Samples ``s`` ``(R, S)`` of :func:`candidate_paths` in closed form, without the others: ``(p, delta)``.
+    """Samples ``s`` ``(R, S)`` of :func:`candidate_paths` alone, in closed form: ``(p, delta)``.
 
-    ``s``: 0 now, 1 after the step with ``du``, ``k + 1`` after ``k`` braking steps (arc parameter
-    ``dt (k - r k^2 / 2)`` while ``1 - k r > 0``, ``r = dt / T``); ``rows`` ``(R,)``: each row's robot (None: one each).
+    ``s``: 0 now, 1 after the step with ``du``, ``k + 1`` after ``k`` braking steps; ``rows`` ``(R,)``: rows' robots.
     """
     p0 = point(team, pose)
     c = candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction)
