@@ -1,11 +1,9 @@
-"""Pairwise barrier functions, each turned into rows linear in the wheel accelerations.
+"""Pairwise barrier functions, each turned into rows ``c^T (w_i - w_j) <= rhs``, ``w = A du``, ``c = -p_ij`` (eqn.8).
 
-Every barrier gives, for all pairs at once, rows ``c^T (w_i - w_j) <= rhs`` with ``w = A du``, ``c = -p_ij`` (eqn.8); an
-obstacle (``j = -1``) stands still and its robot carries the whole row.  :data:`BARRIERS` (``docs/technical_brief.md``
-section 3): ``aasoatt`` (eqn.7-8, default; eqn.7c's typo corrected: ``- A_dot_j u_j``), ``braking`` (eqn.n4; ``r - d_s``
-clamped at 1e-6), ``distance`` (eqn.nn5), ``gated_distance`` (eqn.nn5 while the pair approaches within ``gate_range``:
-eqn.n6's printed gate would act only after a collision), ``adaptive_distance`` (eqn.n7).  The velocity barriers apply
-to the next-step velocity ``v + (A du + A_dot u) dt``, divided by ``2 dt``.
+An obstacle (``j = -1``) stands still: its robot carries the whole row.  ``aasoatt``: eqn.7c's typo corrected
+(``- A_dot_j u_j``); ``braking``: ``r - d_s`` clamped at 1e-6; ``gated_distance``: eqn.nn5 while the pair approaches
+within ``gate_range`` (eqn.n6's printed gate acts only after a collision).  The velocity barriers apply to the next-step
+velocity ``v + (A du + A_dot u) dt``, divided by ``2 dt``.  See ``docs/technical_brief.md`` section 3.
 """
 
 from __future__ import annotations
@@ -122,10 +120,8 @@ BARRIERS: dict[str, Barrier] = {
     "gated_distance": Barrier(_gated_distance, _distance_h, "eqn.n5/n6", array_api=True),
     "adaptive_distance": Barrier(_adaptive_distance, _distance_h, "eqn.n7", array_api=True),
 }
-"""Barrier registry: name -> :class:`Barrier` (adding one: its rows, its ``h`` and a line here; written with the
-namespace of its inputs, ``array_api=True``, the torch filter runs it too).  The velocity
-barriers share the value ``varsigma (r^2 - d_s^2) + 2 p^T v`` (eqn.nn5's set; eqn.n7's adaptive distance is
-larger, so its rows keep a subset of it)."""
+"""Barrier registry: name -> :class:`Barrier` (adding one: its rows, its ``h`` and a line here).  The velocity
+barriers share ``h = varsigma (r^2 - d_s^2) + 2 p^T v`` (eqn.n7's larger distance keeps a subset of its set)."""
 
 
 def get_barrier(name: str) -> Barrier:
@@ -137,10 +133,7 @@ def get_barrier(name: str) -> Barrier:
 
 
 def barrier_rows(name: str, g: PairGeometry, params: FilterConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rows ``c^T (w_i - w_j) <= rhs`` of barrier ``name`` for the pairs of ``g`` (rotated where a strategy asks).
-
-    Returns ``c = -p_ij`` ``(P', 2)``, ``rhs`` ``(P',)`` and the kept pairs' indices into ``g`` (a gate drops some).
-    """
+    """Rows of barrier ``name`` for the pairs of ``g``: ``c = -p_ij`` ``(P', 2)``, ``rhs``, the kept pairs' indices."""
     rhs, keep = get_barrier(name).rows(g, params)
     if keep is None:
         return -g.p, rhs, np.arange(rhs.shape[0])

@@ -1,8 +1,7 @@
 """The centralised QP stage (the paper's filter): one QP for the team, solved exactly by independent parts.
 
-Without rows every robot's QP is a box least squares in closed form.  The rows split the team into contact
-components; one whose closed-form answers meet its rows keeps them (optimal and feasible), the others go to
-the solver (:class:`~aasoatt_env.safety.solvers.SolverPolicy`) as independent parts of one problem.
+Each robot's closed-form box least squares stands in every contact component whose rows it meets (optimal); the
+other components go to the solver (:class:`~aasoatt_env.safety.solvers.SolverPolicy`) as independent parts.
 """
 
 from __future__ import annotations
@@ -92,11 +91,7 @@ class TeamAnswer(NamedTuple):
 def solve_team(policy: SolverPolicy, A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray,
                scale: np.ndarray, rows: Rows, warm: Warm, *, decompose: bool, compiled: bool,
                settings: np.ndarray | None) -> TeamAnswer:
-    """The QP of the robots and rows given: the compiled call first, else :func:`solve_rows`.
-
-    With ``settings`` and a warm start, :func:`~.centralized_kernel.solve_decomposed` answers where it verifies every
-    component, with :func:`solve_rows`' numbers.
-    """
+    """The QP: the compiled call where it verifies (``settings``, warm start; same numbers), else :func:`solve_rows`."""
     if settings is not None and warm.x is not None and warm.z is not None and warm.compiled:
         k = kernels("centralized")
         code, used, n_qp, du, x, z, eta = k.solve_decomposed(A, c64(target), lo, hi, scale, rows.ri, rows.rj,

@@ -1,9 +1,8 @@
 """The centralised QP stage in one compiled call, and the fused step (numba; loaded by :mod:`aasoatt_env.compiled`).
 
-:func:`solve_decomposed` is :func:`aasoatt_env.safety.centralized.solve_rows` on a warm-started step, as loops in the
-numpy stage's order of operations: it answers only where the warm active set verifies every component, then bit for bit
-as the numpy stage would; otherwise the numpy stage answers the step.  :func:`fused_step` (:mod:`.fused`): a warm
-step's rows, QP and backup check, calling the stages' own kernels in the pipeline's order, so with their numbers.
+:func:`solve_decomposed` is :func:`~.centralized.solve_rows` on a warm step in the numpy order of operations,
+answering (bit for bit) only where the warm active set verifies every component.  :func:`fused_step` (:mod:`.fused`)
+calls the stages' kernels in the pipeline's order, so with their numbers.
 """
 
 import math
@@ -235,13 +234,11 @@ def warm_rows(prev_keys, prev_z, keys):
 def fused_step(rows_in, qp_in, prev, settings, eta_tol, gate_in, gate_block):
     """One warm step's rows, QP and quick backup check (:mod:`.fused`).
 
-    ``rows_in``: :func:`aasoatt_rows`' arguments; ``qp_in``: ``(target, lo, hi, scale)``; ``prev``: the previous
-    ``(x, keys, z)``; ``gate_in``: ``(pose, u, dt, levels, limit, tol)``; ``gate_block``: the gate's team, pair and
-    obstacle block.  Returns ``(solved, passed, rows, qp, avoiding, backup)``: ``rows`` the rows kernel's
-    tuple, ``qp = (iterations, n_qp, du, x, z, eta)``, ``avoiding`` the robots with a row of multiplier above
-    ``eta_tol``; ``passed``: the quick check finds nothing broken and brakes only robots whose candidate path leaves
-    their range limit, so that it is the backup stage's answer ``backup = (du, braking, nudged, margin)`` (as
-    :func:`~.backup.gate_with_repair` and :class:`~.backup.BackupLayer` give it: nothing to hold or repair).
+    ``rows_in``: :func:`aasoatt_rows`' arguments; ``qp_in``: ``(target, lo, hi, scale)``; ``prev``: ``(x, keys, z)``;
+    ``gate_in``: ``(pose, u, dt, levels, limit, tol)``; ``gate_block``: the gate's team, pair and obstacle block.
+    Returns ``(solved, passed, rows, (iterations, n_qp, du, x, z, eta), avoiding, backup)``; ``passed``: nothing
+    broken and only robots leaving their range limit braked, so ``backup = (du, braking, nudged, margin)`` is the
+    backup stage's answer (nothing to hold or repair).
     """
     rows = aasoatt_rows(*rows_in)
     ri, rj, Gi, Gj, rhs, pairs, keys, h_min, gap_min = rows

@@ -67,21 +67,18 @@ class FilterConfig:
     neural_iterations: int = 1  #: ``neural``'s projected primal-dual updates a step (<= NEURAL_ITERATIONS_MAX)
     active_set: bool = True  #: try the warm-started exact active set first (taken where the KKT conditions hold)
     mode: str = "centralized"  #: one QP for the team (the paper's), or each robot's own (:mod:`~.decentralized`)
-    #: decentralised: robots the trigger flags, and those touching them (gap below ``negotiate_gap`` [m]), solve
-    #: the rows among them jointly; without it alike robots can block each other for good
+    #: decentralised: flagged robots and those touching them (gap below ``negotiate_gap`` [m]) solve jointly
     negotiate: bool = True
     negotiate_gap: float = 0.1
     #: centralised: robots in no violated row are answered in closed form, the QP built over the others (same optimum)
     decompose: bool = True
-    #: the braking backup layer (:mod:`~.backup`): the QP's answer is applied only where braking from the state it
-    #: leads to keeps every pair apart, which makes the filter safe for any nominal under the real input bounds;
-    #: False: the paper's filter alone (as ``aasoatt reproduce`` runs it)
+    #: the braking backup layer (:mod:`~.backup`): safe for any nominal under the real input bounds; False: the
+    #: paper's filter alone (as ``aasoatt reproduce`` runs it)
     backup: bool = True
     brake_fraction: float = 2.0 / 3.0  #: the backup's deceleration, a fraction of the braking capability, in (0, 1]
     backup_repair: bool = True  #: where the layer would brake, first nudge the answer toward brake-safety
     speed_margin: float = 0.0  #: ``speed_margin * (|v_i|^2 + |v_j|^2)`` [s^2/m] added to a pair's safety distance
-    #: wheel-speed bound [rad/s]: the box on ``du`` is tightened so ``|u + du dt|`` stays within it (a policy that
-    #: spins robots up beyond what the wheels can cancel makes the rows infeasible)
+    #: wheel-speed bound [rad/s]: the box on ``du`` is tightened so ``|u + du dt|`` stays within it
     max_wheel_speed: float | None = None
     eta_tol: float = 1e-6  #: a normalised multiplier above this marks a row active (the ``multiplier`` trigger)
     low_speed: float = 0.05  #: the triggers' thresholds (:mod:`~.deadlock`) [m/s]
@@ -123,7 +120,7 @@ class FilterConfig:
     def merged(cls, config: FilterConfig | Mapping[str, Any] | None = None, /, **options: Any) -> FilterConfig:
         """``config`` (a FilterConfig, a mapping of its fields, None: defaults) with ``options`` replacing fields.
 
-        The one rule for combining a configuration with options; unknown names raise ``TypeError`` listing the fields.
+        Unknown names raise ``TypeError`` listing the fields.
         """
         known = [f.name for f in fields(cls)]
         if config is None:

@@ -1,13 +1,9 @@
 """Deadlock resolution: strategies (what changes) and triggers (when), both registries.
 
-Strategies (:data:`STRATEGIES`, ``docs/technical_brief.md`` section 5) change the QP's target or the rows of triggered
-robots: ``none``, ``rotate_nominal`` (eqn.12a), ``rotate_reference_velocity`` (eqn.12b, for any nominal),
-``auxiliary_velocity`` (eqn.13, default), ``rotate_relative_position`` (eqn.12c; Zeno-prone, the filter warns),
-``yield`` (eqn.13 plus right of way by priority, the yielder retracing its trail: :mod:`.liveness`).
-
-Triggers (:data:`TRIGGERS`): ``multiplier`` (Algorithm 1: a row active at the previous step), ``low_speed``
-(``|v_i| < low_speed``), ``stalled`` (moved less than ``stall_distance`` over ``stall_time``), ``heading`` (pointing
-within ``heading_deg`` at the nearest neighbour or obstacle); all but ``heading`` spare robots done at their goals.
+Strategies (``docs/technical_brief.md`` section 5) change the QP's target or the rows of triggered robots
+(``rotate_relative_position`` is Zeno-prone: the filter warns; ``yield``: :mod:`.liveness`).  Triggers: ``multiplier``
+(Algorithm 1: a row active at the previous step), ``low_speed``, ``stalled``, ``heading`` (pointing within
+``heading_deg`` at the nearest neighbour or obstacle); all but ``heading`` spare robots done at their goals.
 """
 
 from __future__ import annotations
@@ -108,7 +104,7 @@ def _heading(state: DeadlockState, c: TriggerContext) -> np.ndarray:
 
 TRIGGERS: dict[str, TriggerFn] = {"multiplier": _multiplier, "low_speed": _low_speed, "stalled": _stalled,
                                   "heading": _heading}
-"""Trigger registry: name -> ``trigger(memory, context)``; adding one is a function and a line here."""
+"""Trigger registry: name -> ``trigger(memory, context)`` (adding one: a function and a line here)."""
 
 #: triggers known to read no pairs (they get empty ``pair_idx``/``pair_vec``); any other, yours too, gets them
 TRIGGERS_WITHOUT_PAIRS: frozenset[str] = frozenset({"multiplier", "low_speed", "stalled"})

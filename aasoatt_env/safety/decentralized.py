@@ -1,10 +1,9 @@
 """The decentralised QP stage: every robot solves its own 2-variable QP over its share of each pair row.
 
-A pair row ``Gi du_i + Gj du_j <= rhs`` is shared by authority ``a`` (``Team.max_point_accel``), ``s_i = a_i / (a_i +
-a_j)``: ``"reciprocal"`` (default) splits the correction ``v = Gi du0_i + Gj du0_j - rhs`` of the closed-form answers
-``du0``, ``"authority"`` the bound ``s_i rhs``; an obstacle row is its robot's.  An infeasible robot gets its
-least-violation answer (``"relaxed"``).  Robots the deadlock trigger flags, and those they touch, solve the rows among
-them whole (negotiation groups); without a flagged robot the step is the per-robot one.  ``docs/design.md`` says why.
+A pair row is shared by authority ``a`` (``Team.max_point_accel``), ``s_i = a_i / (a_i + a_j)``: ``"reciprocal"``
+(default) splits the correction ``Gi du0_i + Gj du0_j - rhs`` of the closed-form answers ``du0``, ``"authority"`` the
+bound ``rhs``; an obstacle row is its robot's.  Robots the trigger flags, and those they touch, solve the rows among
+them whole (negotiation groups).  Why: ``docs/design.md``.
 """
 
 from __future__ import annotations
@@ -51,8 +50,8 @@ def split_rows(ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, r
                du_nominal: np.ndarray | None = None) -> SplitRows:
     """Split every pair row ``(M,)`` between its robots by ``authority`` ``(N,)`` (module docstring).
 
-    ``rj = -1``: an obstacle row (``Gj`` ignored); equal shares where both authorities are 0.  ``du_nominal``
-    ``(N, 2)``: split reciprocally around it; None: split ``rhs`` itself (``"authority"``).
+    ``rj = -1``: an obstacle row (``Gj`` ignored); equal shares where both authorities are 0; ``du_nominal`` ``(N, 2)``:
+    split reciprocally around it (None: ``"authority"``).
     """
     ri, rj = np.asarray(ri, np.intp), np.asarray(rj, np.intp)
     rr = np.flatnonzero(rj >= 0)
@@ -98,10 +97,7 @@ class DecentralizedResult(NamedTuple):
 
 def negotiation_rows(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, ri: np.ndarray, rj: np.ndarray,
                      gap: float) -> np.ndarray:
-    """``(M,)`` bool: the robot rows between two negotiating robots, solved whole (obstacle rows never are).
-
-    A robot negotiates when ``triggered`` or in a row with a triggered robot at a surface gap below ``gap`` [m].
-    """
+    """``(M,)`` bool: the robot rows between robots ``triggered`` or in a row with one at a gap below ``gap`` [m]."""
     whole = np.zeros(ri.shape[0], dtype=bool)
     if ri.shape[0] == 0 or not triggered.any():
         return whole
@@ -124,10 +120,9 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
                        try_compiled: bool = True) -> DecentralizedResult:
     """Every robot's own QP over its half-rows, exactly and all at once; negotiation groups jointly.
 
-    ``target`` ``(N, 2)``: each robot's ``A du_nom``, its nominal within its bounds (the bounds stay hard); ``scale``
-    ``(N,)`` of ``du`` for ``z`` and the loosening (None: the largest bound).  ``whole`` ``(M,)``: the rows the
-    negotiation groups solve whole (needs ``policy``), warm-started from the scaled ``x_warm`` ``(N, 2)`` and ``z_warm``
-    ``(M,)``; ``try_compiled``: the groups' compiled solve first (:class:`~.stages.Warm`).
+    ``target`` ``(N, 2)``: each robot's ``A du_nom``, its nominal within its (hard) bounds; ``scale`` ``(N,)`` of ``du``
+    (None: the largest bound); ``whole`` ``(M,)``: the rows the groups solve whole (needs ``policy``), from the scaled
+    ``x_warm`` ``(N, 2)`` and ``z_warm`` ``(M,)``; ``try_compiled``: the groups' compiled solve first.
     """
     if split not in SPLITS:
         raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")
@@ -213,11 +208,10 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
             ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray,
             sp: SplitRows, whole: np.ndarray, policy: SolverPolicy,
             compiled: bool) -> tuple[np.ndarray, np.ndarray, TeamAnswer, np.ndarray, int, int]:
-    """The negotiation groups' QP: the whole rows (robot rows only), and the grouped robots' halves of the others.
+    """The negotiation groups' QP over the whole rows and the grouped robots' halves of the others.
 
-    ``warm``: the scaled ``(N, 2)`` point, the rows' multipliers (or None) and whether the compiled solve goes first.
-    Returns the whole rows, the robots in them, the QP's answer (``du`` of those robots; multipliers of the whole
-    rows, then of the kept halves), the kept halves (indices into ``sp``), the number of groups, the largest's size.
+    Returns the whole rows, the robots in them, the QP's answer (multipliers of the whole rows, then of the kept
+    halves), the kept halves (indices into ``sp``), the number of groups, the largest's size.
     """
     n, m = A.shape[0], ri.shape[0]
     joint = np.flatnonzero(whole)

@@ -1,16 +1,8 @@
-"""The ``yield`` strategy's detour: a stalled robot's way round the static obstacles it senses, on a coarse grid.
+"""The ``yield`` strategy's detour (rule 5b): a stalled robot's way round the static obstacles it senses.
 
-Boundary following (rule 5 of :mod:`.liveness`) slides along one disc at a time; discs closer together than a
-robot is wide make pockets it cannot leave (it turns into the next disc, and the next).  A route sees the whole
-cluster at once: the centre's free space (the sensed obstacles grown by the robot's radius) on a grid of
-:data:`ROUTE_CELL`, 8-connected, the shortest way (Dijkstra) from the robot to its reference point, each step's
-length weighed up where it passes within :data:`ROUTE_MARGIN` of an obstacle (keep off them where there is room).
-A cell is passable with a clearance of at least ``ROUTE_CLEARANCE * (1 + tries)`` (tries up to 3: a gap that
-held the robot up before is closed the next time).  A robot pressed against discs is in their grown band: within
-:data:`ROUTE_BACK` of it, the cells not ahead of it (the way it was blocked) are passable with the clearance it
-has less a cell, so it can back out but not squeeze on through the gap that stopped it; the cells within two of
-its goal are passable whatever their clearance.  Robots are ignored (the right of way settles
-them).  It runs only for a robot that begins to escape (stalled at an obstacle), one robot at a time.
+Boundary following slides along one disc at a time and gets caught in pockets between close discs; a route sees the
+whole cluster: the shortest 8-connected way (Dijkstra) on a grid of the free space (the discs grown by the robot's
+radius), steps near obstacles weighed up.  Its rules and lengths: ``docs/liveness.md``.
 """
 
 from __future__ import annotations
@@ -51,10 +43,10 @@ def plan_route(p: np.ndarray, goal: np.ndarray, radius: float, centres: np.ndarr
                    - radius, axis=2, initial=np.inf)  # (cells x the few discs the robot senses)
     start, end = (np.clip(np.round((q - lo) / h).astype(int), 0, [nx - 1, ny - 1]) for q in (p, goal))
     own = np.min(np.sqrt(np.sum((centres - p) ** 2, axis=1)) - radii - radius, initial=np.inf)
-    dx, dy = gx - p[0], gy - p[1]
+    dx, dy = gx - p[0], gy - p[1]  # near the robot, not ahead: its own clearance less a cell (back out, not on)
     back = (dx * dx + dy * dy <= (ROUTE_BACK * scale) ** 2) & (dx * ahead[0] + dy * ahead[1] <= 0.5 * h) \
         & (clear >= own - h)
-    near = np.zeros((nx, ny), dtype=bool)
+    near = np.zeros((nx, ny), dtype=bool)  # its cell and those within two of its goal: passable regardless
     near[tuple(start)] = True
     near[max(end[0] - 2, 0):end[0] + 3, max(end[1] - 2, 0):end[1] + 3] = True
     free = (clear >= ROUTE_CLEARANCE * scale * (1 + min(tries, 3))) | back | near

@@ -1,14 +1,8 @@
 """The ``yield`` deadlock strategy: eqn.13 plus right of way by priority, the yielder retracing its own trail.
 
-A local rule on the QP's target only (the barrier rows, hence safety, stay the filter's); the rules, their
-lengths and their reasons: ``docs/liveness.md``.  In short: a robot that stalls short of its reference point
-makes a lower-priority robot in its way yield (priority inheritance, as in PIBT; robots home come last and step
-aside); a yielder retraces its own trail and comes back when it yields no more; a stalled robot at an obstacle
-plans a detour round the static obstacles it senses (:mod:`.detour`) or follows their boundary (a bug
-algorithm).  Such a robot tracks a point ``g`` on its way at rest instead of its reference (eqn.11 toward
-``g``); eqn.13 then acts on the triggered robots as in ``auxiliary_velocity``.  Every decision is a function of
-the step's state and this memory (no clock, no randomness), read from the pairs within the sensing range only,
-so the decentralised filter runs it unchanged.
+It changes the QP's target only (the barrier rows, hence safety, stay the filter's); its rules (numbered here as
+there), lengths and reasons: ``docs/liveness.md``.  Every decision is a function of the step's state, the pairs in
+sensing range and this memory (no clock, no randomness), so the decentralised filter runs it unchanged.
 """
 
 from __future__ import annotations
@@ -112,10 +106,9 @@ def _robot_pairs(c: TargetContext) -> tuple[np.ndarray, np.ndarray, np.ndarray, 
 
 def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarray, done: np.ndarray,
           home: np.ndarray, hold_steps: int) -> np.ndarray:
-    """Rules 2 and 3: who yields, with which priority, away from whom.
+    """Rules 2 and 3: who yields, with which priority, away from whom; the robots crowded (rule 5 leaves them be).
 
-    Returns the robots pushing, or with a robot ahead within twice CONTACT_GAP, one in the lane they sweep going
-    their way (rule 5 leaves them be).
+    Crowded: pushing, or with a robot ahead within twice CONTACT_GAP in the lane they sweep going their way.
     """
     n = want.shape[0]
     prio = np.arange(n) + n * done
@@ -132,8 +125,7 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
     contact = ~home[i] & home[j] & in_way & (gap < CONTACT_GAP * si)  # (a robot home in the way, whoever comes)
     new = (ahead > _COS_AHEAD) & ~m.aside[i] & (((stalled[i] | yielding[i]) & blocks) | contact)
     keep = (gap < KEEP_GAP * si) & (ahead > 0.0) & yielding[j] & (eff[i] <= m.rank[j])
-    # its own pusher (not yielding, of the priority it inherited) keeps a yielder yielding while obstacles leave
-    # it no room to step aside (a passage): it backs out of the passage as long as the pusher comes on
+    # its own pusher keeps a yielder yielding while obstacles leave it no room to step aside (a passage)
     boxed = keep & ~yielding[i] & (eff[i] == m.rank[j])
     if boxed.any():
         q = np.flatnonzero(boxed)
@@ -154,10 +146,10 @@ def _push(m: YieldMemory, c: TargetContext, want: np.ndarray, stalled: np.ndarra
 
 
 def _side_spots(c: TargetContext, lane: np.ndarray, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Where robot ``j[k]`` steps off the line of travel ``lane[k]`` of ``i[k]``, and which spots an obstacle takes.
+    """``(spots (2, P, 2), taken (2, P))``: where ``j[k]`` steps off ``i[k]``'s line of travel ``lane[k]``.
 
-    ``(spots (2, P, 2), taken (2, P))``: the two radii and CONTACT_GAP off that line, on the side where ``j`` lies
-    first (on the line: its right, as in rule 4), then on the other.
+    Two radii and CONTACT_GAP off that line, on ``j``'s side first (on the line: its right), then on the other;
+    ``taken``: an obstacle takes the spot.
     """
     left = np.stack((-lane[:, 1], lane[:, 0]), axis=1)
     off = np.einsum("ij,ij->i", c.p[j] - c.p[i], left)  # j's offset from i's line, + on its left
@@ -176,11 +168,7 @@ def _side_spots(c: TargetContext, lane: np.ndarray, i: np.ndarray, j: np.ndarray
 
 def _aside(m: YieldMemory, c: TargetContext, want: np.ndarray, i: np.ndarray, j: np.ndarray, home: np.ndarray,
            yielding: np.ndarray) -> None:
-    """Rule 3b: robot ``j`` home (or already stepping aside), pushed by ``i``, steps off ``i``'s line of travel.
-
-    Its spot (:func:`_side_spots`): on the side where ``j`` lies, else (a static obstacle there) on the other; with
-    an obstacle on both, it retreats as any yielder (rule 4).
-    """
+    """Rule 3b: robot ``j`` home (or stepping aside), pushed by ``i``, steps off ``i``'s line (:func:`_side_spots`)."""
     spots, taken = _side_spots(c, want[i], i, j)
     free = ~taken[0] | ~taken[1]
     keep = (home[j] & free) | (m.aside[j] & yielding[j])
@@ -207,10 +195,7 @@ def _trail_point(m: YieldMemory, p: np.ndarray, p_d: np.ndarray, yielding: np.nd
 
 def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarray, steps: int,
             far: np.ndarray) -> np.ndarray:
-    """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the obstacles' boundary for a while.
-
-    ``far``: each robot's distance to its reference point (the Bug2 leaving test).
-    """
+    """Rule 5: a robot stalled at an obstacle, pushing nobody, follows the boundary (``far``: Bug2's distance)."""
     if c.obstacles is not None and c.obstacle_pairs.shape[0]:
         i, k = c.obstacle_pairs[:, 0], c.obstacle_pairs[:, 1]
         u, dist = _unit(c.obstacles[0][k] - c.p[i])
@@ -219,13 +204,13 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
         np.minimum.at(near, i, gap)
         nearest, right = gap == near[i], np.stack((u[:, 1], -u[:, 0]), axis=1)
         ahead = np.einsum("ij,ij->i", u, want[i])
-        score = np.where(stuck[i] & (m.escape[i] == 0) & (gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS)
-                         & (ahead > 0.0), ahead, -np.inf)
+        touch = gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS
+        score = np.where(stuck[i] & (m.escape[i] == 0) & touch & (ahead > 0.0), ahead, -np.inf)
         best = np.full(want.shape[0], -np.inf)
         np.maximum.at(best, i, score)
         first = np.isfinite(score) & (score == best[i])  # the obstacle most in the way among those in contact
         front = np.zeros(want.shape[0], dtype=bool)
-        front[i[(gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS) & (ahead > 0.0)]] = True
+        front[i[touch & (ahead > 0.0)]] = True
         m.escape[~front & (far < m.hit - STALL_ERROR * c.radius / REFERENCE_RADIUS)] = 0
         m.hit[i[first]] = far[i[first]]
         hand = np.where(np.einsum("ij,ij->i", right, want[i]) >= 0.0, 1.0, -1.0) * (1 - 2 * (m.tries[i] % 2))
@@ -236,8 +221,7 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
         follow = (m.escape[i] > 0) & nearest
         m.slide[i[follow]] = _unit(m.hand[i[follow], None] * right[follow] + 0.3 * u[follow])[0]
         # an inner corner: another obstacle within CONTACT_GAP across that tangent; follow that one instead
-        across = np.where((m.escape[i] > 0) & (gap < CONTACT_GAP * c.radius[i] / REFERENCE_RADIUS),
-                          np.einsum("ij,ij->i", u, m.slide[i]), -np.inf)
+        across = np.where((m.escape[i] > 0) & touch, np.einsum("ij,ij->i", u, m.slide[i]), -np.inf)
         most = np.full(want.shape[0], -np.inf)
         np.maximum.at(most, i, across)
         turn = (across > 0.3) & (across == most[i])
@@ -247,11 +231,9 @@ def _escape(m: YieldMemory, c: TargetContext, want: np.ndarray, stuck: np.ndarra
 
 
 def _detour(m: YieldMemory, c: TargetContext, starters: np.ndarray, want: np.ndarray) -> None:
-    """Rule 5b: robots ``starters`` (beginning to escape) plan a route round the static obstacles they sense.
+    """Rule 5b: robots ``starters`` plan a route round the static obstacles they sense (robots: rule 3).
 
-    Robots are left out, those home too: one in the way is made to yield or step aside (rule 3), where a route
-    round it could lead far off (round a wall whose far end it does not sense).  A robot with a route follows it
-    instead of the boundary, its stall clock and its trail's return dropped.
+    A robot with a route follows it instead of the boundary, its stall clock and its trail's return dropped.
     """
     p_d = c.reference[0]  # type: ignore[index]
     for k in starters:  # (the few robots that begin to escape at this step)
@@ -268,10 +250,8 @@ def _route_point(m: YieldMemory, c: TargetContext, g: np.ndarray, scale: np.ndar
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Rule 5b: the route point each robot on a detour tracks (``g`` for the others), and who is on one.
 
-    It drops the points within LOOKAHEAD, then tracks the farthest of the next ROUTE_SEEN in sight: the segments to
-    it and to those before it come nearer to no sensed obstacle or robot, within their radii and its own, than
-    the robot is (none in sight: the first; a robot in its way there is made to yield, rule 3).  A yielder, or a
-    robot going back along its trail to where it began to yield, leaves its route for then.
+    Points within LOOKAHEAD are dropped; of the next ROUTE_SEEN the farthest in sight is tracked (no sensed obstacle
+    or robot nearer its segment than to the robot; none: the first).  Yielding or returning, a robot leaves its route.
     """
     n, seen = c.p.shape[0], np.arange(ROUTE_SEEN)
     rows = np.arange(n)
@@ -301,7 +281,7 @@ def _route_point(m: YieldMemory, c: TargetContext, g: np.ndarray, scale: np.ndar
 
 
 def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetContext) -> np.ndarray:
-    """The ``yield`` strategy's target (the module's rules 1 to 5); updates ``c.memory.liveness``."""
+    """The ``yield`` strategy's target (``docs/liveness.md``'s rules); updates ``c.memory.liveness``."""
     p_d, v_d = c.reference  # type: ignore[misc]
     n = c.p.shape[0]
     m = c.memory.liveness if c.memory is not None else None  # type: ignore[union-attr]

@@ -1,9 +1,8 @@
 """The safety QP in canonical scaled form, and the closed-form answer without rows.
 
-The problem (eqn.finalAA-SOATT) ``min sum_i |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, G du <= rhs`` is solved in
-``x = du / s`` (``s`` the per-robot bound, so the box is inside ``[-1, 1]``), the objective divided by its largest
-Hessian entry and every row of unit norm.  The Hessian is the constant block diagonal
-``A_i^T A_i = (rho/2)^2 [[1+k^2, 1-k^2], [1-k^2, 1+k^2]]`` (heading independent), diagonal when ``l = b``.
+``min sum_i |A_i du_i - target_i|^2  s.t.  lo <= du <= hi, G du <= rhs`` (eqn.finalAA-SOATT) is solved in ``x = du / s``
+(``s`` the per-robot bound: the box inside ``[-1, 1]``), the objective over its largest Hessian entry, rows of unit
+norm.  The Hessian ``A_i^T A_i = (rho/2)^2 [[1+k^2, 1-k^2], [1-k^2, 1+k^2]]`` is heading independent.
 """
 
 from __future__ import annotations
@@ -64,10 +63,7 @@ class QPProblem:
         return sp.csc_matrix((data, indices, np.arange(0, 2 * n + 1, 2)), shape=(n, n))
 
     def restrict(self, robots: np.ndarray, rows: np.ndarray) -> QPProblem:
-        """The problem of the robots ``robots`` ``(N,)`` bool and the rows ``rows`` ``(m,)`` bool alone.
-
-        For independent parts: the objective scale is kept, so the part's multipliers are the whole's.
-        """
+        """The part of robots ``robots`` ``(N,)`` and rows ``rows`` ``(m,)`` (bool), its multipliers the whole's."""
         v = np.repeat(robots, 2)
         return QPProblem(self.H_blocks[robots], self.g[v], self.C[rows][:, v].tocsr(), self.u[rows], self.lb[v],
                          self.ub[v], self.scale[v], self.obj_scale, self.row_norm[rows], self.diagonal)
@@ -98,8 +94,7 @@ def build_problem(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndar
     nu = np.where(nu > ROW_NORM_MIN, nu, 1.0)
     Gi_s /= nu[:, None]
     Gj_s /= nu[:, None]
-    # CSR directly: 4 entries per robot-robot row, 2 per obstacle row, the index arrays in the dtype scipy would
-    # convert them to (int32 while everything fits)
+    # CSR directly: 4 entries per robot-robot row, 2 per obstacle row, indices in the dtype scipy would choose
     keep = np.ones((m, 4), dtype=bool)
     keep[:, 2:] = ~obs[:, None]
     indptr = np.zeros(m + 1, dtype=np.int64)
@@ -117,8 +112,7 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
                       compiled: bool = False) -> np.ndarray:
     """Per robot ``argmin |A_i du_i - target_i|^2  s.t.  lo_i <= du_i <= hi_i`` ``(K, 2)``, in closed form.
 
-    The QP of a robot in no row: ``A_i^-1 target_i`` where it is inside the box, else the best of the four edges'
-    clipped parabola minima.  ``compiled``: the same operations in one compiled loop (the same numbers).
+    ``A_i^-1 target_i`` inside the box, else the best edge (:func:`best_edge`); ``compiled``: the same numbers.
     """
     k = np.shape(A)[0] if np.ndim(A) == 3 else -1
     check.shapes((("A", A, (k, 2, 2)), ("target", target, (k, 2)), ("lo", lo, (k, 2)), ("hi", hi, (k, 2))),
@@ -129,10 +123,9 @@ def box_least_squares(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.
 
 
 def box_ls(a, b, c, d, target, lo, hi):
-    """:func:`box_least_squares` on any array namespace (numpy, torch): ``A``'s entries ``(...)``, others ``(..., 2)``.
+    """:func:`box_least_squares` in ``target``'s namespace (numpy, torch: differentiable piecewise).
 
-    Written with the namespace of ``target`` (:func:`~aasoatt_env.model.geometry.namespace`): one source for the
-    numpy filter and the torch filter (where it is differentiable: the answer's closed form in each piece).
+    ``a, b, c, d``: ``A``'s entries ``(...)``; the others ``(..., 2)``.
     """
     xp = namespace(target)
     t0, t1 = target[..., 0], target[..., 1]
@@ -151,8 +144,7 @@ def box_ls(a, b, c, d, target, lo, hi):
 def best_edge(xp, h00, h01, h11, g0, g1, lo0, lo1, hi0, hi1):
     """The minimiser of ``0.5 x'Hx + g'x`` over the four edges of the box ``lo <= x <= hi`` (any namespace ``xp``).
 
-    Each edge in the order ``x0 = lo, hi``, ``x1 = lo, hi``: the fixed coordinate at its bound, the free one at the
-    clipped minimiser of the parabola along the edge; the first of equal values.  Every robot (cheaper than selecting).
+    Edges ``x0 = lo, hi``, ``x1 = lo, hi``, each at the clipped parabola minimum along it; the first of equal values.
     """
     f0, f1 = xp.stack((lo0, hi0)), xp.stack((lo1, hi1))
     x0 = xp.concat((f0, xp.clip(-(g0 + h01 * f1) / h00, lo0, hi0)))

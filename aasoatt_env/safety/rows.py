@@ -1,8 +1,7 @@
 """The filter's first stages: the pairs within the sensing range, and their barrier rows.
 
-:func:`numpy_rows` (the reference: any barrier, any deadlock strategy) and :class:`CompiledRows` (a barrier's
-compiled rows, :mod:`~aasoatt_env.safety.rows_kernel`) give the same numbers bit for bit: one row per pair,
-linear in the wheel accelerations, with the discrete-time and speed margins added to the safety distance.
+One row per pair, linear in the wheel accelerations, the margins added to the safety distance; :func:`numpy_rows`
+(any barrier and strategy) and :class:`CompiledRows` (:mod:`~.rows_kernel`) give the same numbers bit for bit.
 """
 
 from __future__ import annotations

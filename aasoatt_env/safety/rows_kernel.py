@@ -1,10 +1,8 @@
 """Compiled barrier rows and the inputs' and deadlock stages' loops (numba; loaded through :mod:`aasoatt_env.compiled`).
 
-:func:`aasoatt_rows` is :func:`~aasoatt_env.safety.rows.numpy_rows` for the ``aasoatt`` barrier (eqn.7-8) as one
-loop over the pairs; :func:`pairs_within` is :func:`~aasoatt_env.model.geometry.robot_pairs`' brute force;
-:func:`numbers` the inputs stage's number checks; :func:`multiplier_target` the deadlock stage's ``multiplier``
-trigger and ``A du_nom``.  The operations are numpy's in numpy's order (no ``fastmath``; ``einsum``'s sums start
-from ``+0.0``), so the numbers are the reference's bit for bit (``tests/test_compiled.py``).
+The numpy references' operations in their order (no ``fastmath``; ``einsum``'s sums start from ``+0.0``), so the
+numbers are theirs bit for bit: :func:`~.rows.numpy_rows` (``aasoatt`` barrier), ``robot_pairs``' brute force, the
+inputs stage's checks, the ``multiplier`` trigger and ``A du_nom``.
 """
 
 from __future__ import annotations
