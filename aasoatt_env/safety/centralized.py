@@ -1,7 +1,7 @@
 """The centralised QP stage (the paper's filter): one QP for the team, solved exactly by independent parts.
 
-Each robot's closed-form box least squares stands in every contact component whose rows it meets (optimal); the
-other components go to the solver (:class:`~aasoatt_env.safety.solvers.SolverPolicy`) as independent parts.
+Each robot's answer without rows is a box least squares in closed form; a contact component whose answers meet its
+rows keeps them (optimal), the others go to the solver (:class:`~.solvers.SolverPolicy`) as independent parts.
 """
 
 from __future__ import annotations

@@ -67,7 +67,8 @@ class FilterConfig:
     neural_iterations: int = 1  #: ``neural``'s projected primal-dual updates a step (<= NEURAL_ITERATIONS_MAX)
     active_set: bool = True  #: try the warm-started exact active set first (taken where the KKT conditions hold)
     mode: str = "centralized"  #: one QP for the team (the paper's), or each robot's own (:mod:`~.decentralized`)
-    #: decentralised: flagged robots and those touching them (gap below ``negotiate_gap`` [m]) solve jointly
+    #: decentralised: flagged robots and those touching them (gap below ``negotiate_gap`` [m]) solve jointly;
+    #: without it alike robots can block each other for good
     negotiate: bool = True
     negotiate_gap: float = 0.1
     #: centralised: robots in no violated row are answered in closed form, the QP built over the others (same optimum)
@@ -78,7 +79,7 @@ class FilterConfig:
     brake_fraction: float = 2.0 / 3.0  #: the backup's deceleration, a fraction of the braking capability, in (0, 1]
     backup_repair: bool = True  #: where the layer would brake, first nudge the answer toward brake-safety
     speed_margin: float = 0.0  #: ``speed_margin * (|v_i|^2 + |v_j|^2)`` [s^2/m] added to a pair's safety distance
-    #: wheel-speed bound [rad/s]: the box on ``du`` is tightened so ``|u + du dt|`` stays within it
+    #: wheel-speed bound [rad/s]: ``du``'s box keeps ``|u + du dt|`` within it (spun-up wheels make rows infeasible)
     max_wheel_speed: float | None = None
     eta_tol: float = 1e-6  #: a normalised multiplier above this marks a row active (the ``multiplier`` trigger)
     low_speed: float = 0.05  #: the triggers' thresholds (:mod:`~.deadlock`) [m/s]

@@ -2,8 +2,9 @@
 
 A pair row is shared by authority ``a`` (``Team.max_point_accel``), ``s_i = a_i / (a_i + a_j)``: ``"reciprocal"``
 (default) splits the correction ``Gi du0_i + Gj du0_j - rhs`` of the closed-form answers ``du0``, ``"authority"`` the
-bound ``rhs``; an obstacle row is its robot's.  Robots the trigger flags, and those they touch, solve the rows among
-them whole (negotiation groups).  Why: ``docs/design.md``.
+bound (``s_i rhs``); an obstacle row is its robot's.  An infeasible robot gets its least-violation answer
+(``"relaxed"``).  Robots the trigger flags, and those they touch, solve the rows among them whole (negotiation groups).
+Why: ``docs/design.md``.
 """
 
 from __future__ import annotations
@@ -121,8 +122,9 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
     """Every robot's own QP over its half-rows, exactly and all at once; negotiation groups jointly.
 
     ``target`` ``(N, 2)``: each robot's ``A du_nom``, its nominal within its (hard) bounds; ``scale`` ``(N,)`` of ``du``
-    (None: the largest bound); ``whole`` ``(M,)``: the rows the groups solve whole (needs ``policy``), from the scaled
-    ``x_warm`` ``(N, 2)`` and ``z_warm`` ``(M,)``; ``try_compiled``: the groups' compiled solve first.
+    for ``z`` and the loosening (None: the largest bound); ``whole`` ``(M,)``: the rows the groups solve whole (needs
+    ``policy``), from the scaled ``x_warm`` ``(N, 2)`` and ``z_warm`` ``(M,)``; ``try_compiled``: the groups' compiled
+    solve first.
     """
     if split not in SPLITS:
         raise ValueError(f"split: got {split!r}, expected one of {list(SPLITS)}")

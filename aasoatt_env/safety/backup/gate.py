@@ -199,8 +199,7 @@ def _rounds(lp: tuple, lev: np.ndarray, broken: np.ndarray, reach: np.ndarray, l
     if hold:  # each pair's own floor, the larger of it and tol: its margin when both members brake now
         Pb, Db = _level_rows(p0, firsts, b0, M, last, dt, L)
         tol_p = np.fmax(tol_p, np.fmax(0.0, -bucketed_margins(Pb, Db, need[last], li, lj, ds)) * (1.0 + 1e-9))
-        floor = np.fmax(0.0, -bucketed_margins(Pb, Db, need[last], lo_, ok, ods, centers=oc))
-        tol_o = np.fmax(tol_o, floor * (1.0 + 1e-9))
+        tol_o = np.fmax(tol_o, np.fmax(0.0, -bucketed_margins(Pb, Db, need[last], lo_, ok, ods, oc)) * (1.0 + 1e-9))
     marg, omarg = np.full(i.shape[0], np.inf), np.full(oi.shape[0], np.inf)
     todo, otodo = np.ones(i.shape[0], dtype=bool), np.ones(oi.shape[0], dtype=bool)
     cur = np.empty((M.size, L), dtype=np.complex128)

@@ -206,7 +206,8 @@ def candidate_samples_at(team: Team, pose: np.ndarray, u: np.ndarray, du: np.nda
                          ) -> tuple[np.ndarray, np.ndarray]:
     """Samples ``s`` ``(R, S)`` of :func:`candidate_paths` alone, in closed form: ``(p, delta)``.
 
-    ``s``: 0 now, 1 after the step with ``du``, ``k + 1`` after ``k`` braking steps; ``rows`` ``(R,)``: rows' robots.
+    ``s``: 0 now, 1 after the step with ``du``, ``k + 1`` after ``k`` braking steps; ``rows`` ``(R,)``: each row's
+    robot (None: one each).
     """
     p0 = point(team, pose)
     c = candidate(team, p0, pose[:, 2], u, du, dt, brake_fraction)

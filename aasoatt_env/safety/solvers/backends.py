@@ -259,7 +259,8 @@ class Backend:
     solve: Callable[[QPProblem, np.ndarray | None, np.ndarray | None, dict], RawAnswer]  #: ``(problem, x0, z0, opts)``
     module: str = ""  #: the module it imports (empty: core dependencies only)
     exact: bool = True  #: answers the QP's optimum to its tolerance (False: ``neural``, passed on unverified)
-    #: it checks its own answers (``ldp``); others' are polished and verified by the warm active set
+    #: it checks its own answers (``ldp``); others' are polished and verified by the warm active set (which also
+    #: makes their last bits a function of the problem)
     verified: bool = False
     deterministic: bool = True  #: its last bits are a function of the problem (proxsuite's: of its memory too)
     may_stall: bool = False  #: it can run out of iterations (an augmented Lagrangian): the exact solvers go first
