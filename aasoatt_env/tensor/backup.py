@@ -1,20 +1,13 @@
 """The braking backup check in torch (a gatekeeper, ``docs/technical_brief.md`` section 9), batched over teams.
 
-The backup: every wheel brakes at ``brake_fraction * max_wheel_accel`` toward zero speed.  A candidate ``du`` is
-applied where, from the state it leads to, braking everyone keeps every pair in range at least ``d_s`` apart (and
-the step itself does); robots of failing pairs brake instead, and the check repeats until the braking set stops
-growing (it only grows, so it ends; at worst everyone brakes, which keeps a brake-safe state brake-safe).  A robot
-also brakes where its path until it stops could exceed half of ``D - 2 max r`` (the range limit: a pair out of
-sensing range cannot meet before both stop).
-
-Before the check, :func:`repair` nudges the candidate toward brake-safety (as the numpy layer's repair), so that the
-check rarely has to brake. Not the numpy backup layer (no blend levels, its own repair and sampling): the braking
-path is integrated with the exact-arc step at ``tau >= dt``, at most :data:`SAMPLES` samples over the team's own
-horizon (its slowest robot's stop: a team's answer does not depend on the other teams of the batch), and each
-sample-to-sample piece is checked as the segment of relative positions minus ``2 * tau^2 / 8`` of each robot's
-largest point acceleration while braking (its chord deviation, and as much again for the coarse integration); pairs
-too far apart to meet before both stop are not integrated. float32 rounds distances at 10 m by about 1 µm; the
-campaign states the dtype it shows.
+The backup: every wheel brakes at ``brake_fraction * max_wheel_accel`` toward zero speed. :func:`gate` applies a
+candidate ``du`` where, from the state it leads to, braking everyone keeps every pair in range at least ``d_s`` apart
+(and the step itself does); robots of failing pairs brake instead, until the braking set stops growing (at worst
+everyone brakes, which keeps a brake-safe state brake-safe). A robot also brakes where its path until it stops could
+exceed half of ``D - 2 max r`` (pairs out of range cannot meet before both stop). :func:`repair` first nudges the
+candidate toward brake-safety. Not the numpy backup layer: braking paths are exact-arc steps of ``tau >= dt``, at
+most :data:`SAMPLES` over the team's own horizon (its slowest robot's stop), each piece checked as a segment less
+``2 tau^2 / 8`` of each robot's largest point acceleration (twice the chord deviation).
 """
 
 from __future__ import annotations
@@ -95,10 +88,7 @@ class _Rows:
 
     def rel(self, x: torch.Tensor, y: torch.Tensor, xo: torch.Tensor | None = None,
             yo: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """``p_own - p_other`` of control points ``(..., B, N)`` (an obstacle's centre for obstacle rows).
-
-        ``xo, yo``: the other members' points from these instead (default: ``x, y``).
-        """
+        """``p_own - p_other`` of control points ``(..., B, N)`` (obstacle rows: its centre); others from ``xo, yo``."""
         B, N, KM = self.shape
         xo, yo = (x, y) if xo is None else (xo, yo)
         idx = self.flat.expand(*x.shape[:-1], N * KM)
@@ -127,11 +117,10 @@ def _end(team: TensorTeam, cfg: FilterConfig, acc0: torch.Tensor, pose1, u1) -> 
 
 def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1, valid,
              ds, other: tuple | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Each pair row's smallest ``distance - d_s`` and each robot's path length, over the step and braking after it.
+    """Each pair row's smallest ``distance - d_s`` ``(B, N, K + M)`` and a bound on each robot's path [m] ``(B, N)``.
 
-    Returns ``(B, N, K + M)`` margins and ``(B, N)`` a bound on each control point's path [m]; ``start``: the
-    step's start, ``(x0, y0, acc0)`` (control points, :func:`_point_accel` at the full bound); ``other``: the other
-    members' ``(pose1, u1)`` (default: the same as the robots').
+    Over the step and braking after it; ``start``: ``(x0, y0, acc0)``, the step's control points and
+    :func:`_point_accel` at the full bound; ``other``: the other members' ``(pose1, u1)`` (default: the robots').
     """
     dt, frac = cfg.dt, cfg.brake_fraction
     x0, y0, acc0 = start
@@ -147,8 +136,7 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
     out = torch.where(valid, out, torch.full_like(out, float("inf")))
     if not bool(risky.any()):
         return out, path_len
-    # each team's braking horizon (its slowest robot's stop) in at most SAMPLES samples of tau >= dt: a team's check
-    # does not depend on the other teams of the batch
+    # each team's braking horizon (its slowest robot's stop) in at most SAMPLES samples of tau >= dt
     horizon = own.stop.amax(-1) if other is None else torch.maximum(own.stop.amax(-1), oth.stop.amax(-1))
     tau = torch.clamp(horizon / SAMPLES, min=dt)  # (B,)
     steps = int(torch.ceil(horizon / tau - 1e-9).amax())
@@ -198,10 +186,9 @@ def repair(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, vali
     """Nudge the candidate ``du`` toward brake-safety before :func:`gate` checks it (the numpy layer's repair, in kind).
 
     Every pair row whose margin (:func:`_margins`) is below ``target`` [m] asks the least change of its robot's input
-    that lifts the margin to ``2 target``, linearised by finite differences (step ``eps``, the other member's input
-    held): all of it for an obstacle row, half for a robot pair (the other member lifts the other half, by its own row).
-    The changes add up and are clipped to ``[lo, hi]``, ``rounds`` times.  Only liveness: the gate still checks the
-    answer.  The change is a constant to autograd (the derivative of the answer is the candidate's).
+    that lifts the margin to ``2 target`` (finite differences of step ``eps``): all of it for an obstacle row, half
+    for a robot pair. The changes add up, clipped to ``[lo, hi]``, ``rounds`` times; the gate still checks the answer.
+    The change is a constant to autograd (the derivative of the answer is the candidate's).
     """
     rows = _Rows(other, obstacles, u.dtype)
     start = (*points(team, pose), _point_accel(team, u, 1.0))
@@ -233,10 +220,9 @@ def gate(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid,
          tol: float = GATE_TOL) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """``(du applied, braking (B, N), broken (B, N))`` for the candidate ``du`` (module docstring).
 
-    ``other``, ``valid``, ``ds`` ``(B, N, K + M)``: each robot's pair rows (``-1``: an obstacle, last ``M``), as
-    the filter found them.  A candidate passes at a margin ``>= 0``; ``broken``: a pair below ``-tol`` although both
-    of its robots brake (the state was not brake-safe; ``tol`` absorbs the sampled paths' differences from one
-    step to the next); those robots brake too.
+    ``other``, ``valid``, ``ds`` ``(B, N, K + M)``: each robot's pair rows as the filter found them (``-1``: an
+    obstacle, last ``M``).  A candidate passes at a margin ``>= 0``; ``broken``: a pair below ``-tol`` although both
+    of its robots brake (the state was not brake-safe; ``tol`` absorbs the sampling's step-to-step differences).
     """
     limit = 0.5 * (cfg.sensing_range - 2.0 * float(team.radius.max()))
     with torch.no_grad():

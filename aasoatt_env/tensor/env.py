@@ -1,14 +1,11 @@
 """``TensorEnv``: ``B`` teams of ``N`` robots as torch tensors, stepped at once (:func:`make_tensor_env`).
 
-The PettingZoo env's dynamics, observations (``14 + 6 (K + K_obs)`` float32 entries), rewards and episode length,
-team by team: team ``b`` after ``reset(seed=s)`` is the scenario of ``reset(seed=s + b)``, built by the numpy
-scenario itself (only the layouts are numpy; the step never leaves torch).  A team whose episode ends is reset in
-the same step (its next layout from its own generator, as a PettingZoo env's ``reset()`` without a seed), and the
-observation returned is its new episode's first.  Behind the torch filter (:mod:`.filter`) the actions are nominal
-wheel accelerations in units of the bound, as behind the numpy filter; with ``action_mode="point"`` the actions are
-control-point accelerations in units of the robot's ``max_point_accel``, turned into wheel accelerations
-``A^-1 (a - A_dot u)`` at every physics step (as the PettingZoo env's).  No termination on collision
-(``terminated`` is all False); linear references (``random_goals``, ``circle_swap``, ...).
+The PettingZoo env's dynamics, observations, rewards and episode length: team ``b`` after ``reset(seed=s)`` is the
+layout of ``reset(seed=s + b)``, built by the numpy scenario (the step never leaves torch). A finished team is reset
+in the same step from its own generator, and the observation returned is its new episode's first. Actions are
+nominal wheel accelerations in units of the bound (behind the torch filter of :mod:`.filter` or not), or with
+``action_mode="point"`` control-point accelerations in units of ``max_point_accel``, turned into ``A^-1 (a - A_dot u)``
+at every physics step. No termination on collision; linear references only (``random_goals``, ``circle_swap``, ...).
 """
 
 from __future__ import annotations
@@ -20,14 +17,16 @@ from typing import Any
 import numpy as np
 import torch
 
+from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError
+from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import DT
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
 from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import get_scenario
-from aasoatt_env.tensor.filter import FilterOut, check_config, filter_step
+from aasoatt_env.tensor.filter import BACKUP, FilterOut, check_config, filter_step
 from aasoatt_env.tensor.model import TensorTeam, input_bounds, integrate, kinematics
 
 __all__ = ["TensorEnv", "make_tensor_env"]
@@ -60,14 +59,12 @@ class TensorEnv:
                  dt: float = DT, decision_interval: int = 1, action_mode: str = "wheel", sensing_range: float = 3.0,
                  num_neighbors: int = 4, num_obstacles: int = 2, reward: Any = None, collision_tolerance: float = 1e-3,
                  max_steps: int | None = None, differentiable: bool = False) -> None:
-        if isinstance(num_envs, bool) or not (isinstance(num_envs, int) and num_envs >= 1):
-            raise ConfigError(f"num_envs: got {num_envs!r}, expected an integer >= 1")
+        num_envs = check.integer("num_envs", num_envs, lo=1)
         if dtype not in (torch.float32, torch.float64):
             raise ConfigError(f"dtype: got {dtype!r}, expected torch.float32 or torch.float64")
         if torch.device(device).type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"device: got {device!r}, but torch.cuda.is_available() is False on this machine")
-        if action_mode not in ("wheel", "point"):
-            raise ConfigError(f"action_mode: got {action_mode!r}, expected 'wheel' or 'point'")
+        check.choice("action_mode", action_mode, ("wheel", "point"))
         if config is not None and abs(config.dt - dt) > 1e-12 * dt:
             raise ConfigError(f"dt: the env steps {dt:g} s but the filter was configured for {config.dt:g} s")
         self.scenario, self.num_envs, self.device, self.dtype, self.config = scenario, num_envs, device, dtype, config
@@ -100,7 +97,7 @@ class TensorEnv:
         steps = [self._max_steps_override or max(1, int(math.ceil(lay.horizon / (self.dt * self.decision_interval)
                                                                   - 1e-9))) for lay in lays]
         return dict(
-            pose=self._t(np.stack([_pose(lay) for lay in lays])),
+            pose=self._t(np.stack([dynamics.pose_from_point(lay.team, lay.starts, lay.headings) for lay in lays])),
             starts=self._t(np.stack([lay.reference.starts for lay in lays])),
             goals=self._t(np.stack([lay.reference.goals for lay in lays])),
             durations=self._t(np.stack([lay.reference.durations for lay in lays]), torch.float64),
@@ -112,10 +109,9 @@ class TensorEnv:
         """Start every team's episode; team ``b``'s layout is that of ``seed + b`` (observations ``(B, N, obs)``)."""
         self._rngs = [np.random.default_rng(None if seed is None else seed + b) for b in range(self.num_envs)]
         self.team = None
-        st = self._layouts(list(range(self.num_envs)))
+        self._st = self._layouts(list(range(self.num_envs)))
         B, N = self.num_envs, self.num_robots
-        self._st = st
-        self.pose, self.u = st["pose"], torch.zeros(B, N, 2, dtype=self.dtype, device=self.device)
+        self.pose, self.u = self._st["pose"], torch.zeros(B, N, 2, dtype=self.dtype, device=self.device)
         self.time = torch.zeros(B, dtype=torch.float64, device=self.device)
         self.steps = torch.zeros(B, dtype=torch.long, device=self.device)
         self.avoiding = torch.zeros(B, N, dtype=torch.bool, device=self.device)
@@ -158,29 +154,27 @@ class TensorEnv:
         tau = (torch.clamp(t, min=0.0) / T)[..., None].to(self.dtype)
         delta = st["goals"] - st["starts"]
         Tt = T.to(self.dtype)[..., None]
+        zero = torch.zeros_like(delta)
         if self._profile == "linear":
-            zero = torch.zeros_like(delta)
             return (torch.where(done, st["goals"], st["starts"] + tau * delta), torch.where(done, zero, delta / Tt),
                     zero)
         s = tau ** 3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
         ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / Tt
         dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (Tt * Tt)
-        zero = torch.zeros_like(delta)
         return (torch.where(done, st["goals"], st["starts"] + s * delta), torch.where(done, zero, ds * delta),
                 torch.where(done, zero, dds * delta))
 
     def step(self, actions: torch.Tensor) -> tuple:
-        """Hold ``actions`` ``(B, N, 2)`` for ``decision_interval`` physics steps (:meth:`_step`)."""
-        with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
-            return self._step(actions)
-
-    def _step(self, actions: torch.Tensor) -> tuple:
         """Hold ``actions`` ``(B, N, 2)`` for ``decision_interval`` physics steps; auto-reset finished teams.
 
         Returns ``observations (B, N, obs_dim)``, ``rewards``, ``terminated``, ``truncated`` ``(B, N)`` and infos
         (tensors: ``correction``, ``intervened``, ``backup``, ``status``, ``clearance``, ``tracking_error``, and
         ``reset`` ``(B,)``: the team started a new episode in this step).
         """
+        with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
+            return self._step(actions)
+
+    def _step(self, actions: torch.Tensor) -> tuple:
         act = torch.as_tensor(actions, device=self.device).to(self.dtype)
         B, N = self.num_envs, self.num_robots
         if act.shape != (B, N, 2):
@@ -300,17 +294,8 @@ class TensorEnv:
     def _infos(self, out: FilterOut | None, corr: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
         B, N = self.num_envs, self.num_robots
         zeros = torch.zeros(B, N, dtype=torch.bool, device=self.device)
-        info = {"clearance": self.clearance, "tracking_error": self.tracking_error,
+        return {"clearance": self.clearance, "tracking_error": self.tracking_error,
                 "correction": corr if corr is not None else torch.zeros(B, N, dtype=self.dtype, device=self.device),
                 "intervened": zeros if out is None else out.intervened,
-                "status": torch.zeros(B, N, dtype=torch.long, device=self.device) if out is None else out.status}
-        info["backup"] = zeros if out is None else (out.status & 4) > 0
-        return info
-
-
-def _pose(lay) -> np.ndarray:
-    """Axle poses ``(N, 3)`` of a layout (``dynamics.pose_from_point``)."""
-    from aasoatt_env.model.dynamics import pose_from_point as np_pose
-
-    return np_pose(lay.team, lay.starts, lay.headings)
-
+                "status": torch.zeros(B, N, dtype=torch.long, device=self.device) if out is None else out.status,
+                "backup": zeros if out is None else (out.status & BACKUP) > 0}

@@ -1,22 +1,14 @@
 """The decentralised AA-SOATT filter in torch, batched over teams ``(B, N)``: :func:`filter_step`, :class:`SafetyLayer`.
 
-One step, as :class:`~aasoatt_env.safety.core.SafetyFilter` with ``mode="decentralized"`` runs it: each robot's
-nominal clipped to its bounds; the ``multiplier`` trigger (a half-row of the robot bound at the previous step, and
-not done) and eqn.13's target correction (``auxiliary_velocity``) or none; the rows of any registered barrier written
-with the namespace of its inputs (``cfg.barrier``, its own function run on tensors: the paper's eqn.7-8 by default;
-the discrete-time margin of :class:`~aasoatt_env.safety.config.FilterConfig`) for every robot pair and
-robot-obstacle pair in the sensing range; the rows shared reciprocally by authority around each robot's box
-least-squares answer; every robot's exact 2-variable QP (:mod:`~aasoatt_env.safety.solvers.polygons`, the numpy
-local solver's code).
-
-What it covers: where the numpy filter answers every robot by its own QP, feasible or relaxed (``negotiate=False``,
-or no negotiation group formed; ``backup=False``) the answers agree (1e-9 feasible, 1e-6 relaxed: the least-violation
-iteration's stopping tolerance).  What it reports, per robot in ``status`` (bit flags): :data:`RELAXED` (its own QP
-is infeasible: answered as the numpy filter does, its rows loosened by their least violation, ``least_violation``),
-:data:`GROUPED` (``negotiate=True`` would solve its rows jointly with its negotiation group; the tensor answer stays
-its own QP's), :data:`BACKUP` (``backup=True``: the braking check of :mod:`.backup`, not the numpy backup layer,
-braked the robot), :data:`UNSAFE` (that check found a pair failing although both brake).  Equality with the numpy
-filter is claimed for ``backup=False`` only: the two backup checks differ.
+One step of :class:`~aasoatt_env.safety.core.SafetyFilter` with ``mode="decentralized"``: nominals clipped to the
+bounds; the ``multiplier`` trigger and eqn.13's target correction (``auxiliary_velocity``) or none; the rows of
+``cfg.barrier`` (registered with ``array_api=True``) for every robot and obstacle pair in sensing range, shared
+reciprocally by authority around each robot's box least-squares answer; each robot's exact 2-variable QP
+(:mod:`~aasoatt_env.safety.solvers.polygons`). With ``backup=False``, where the numpy filter answers every robot by
+its own QP, the answers agree (1e-9 feasible, 1e-6 relaxed). ``status`` bits per robot: :data:`RELAXED` (its QP is
+infeasible: rows loosened by their least violation, as numpy), :data:`GROUPED` (``negotiate=True`` would solve it
+with its negotiation group; the answer stays its own QP's), :data:`BACKUP` (braked by the check of :mod:`.backup`,
+not the numpy backup layer), :data:`UNSAFE` (that check found a pair failing although both brake).
 """
 
 from __future__ import annotations
@@ -87,18 +79,6 @@ def _target(cfg: FilterConfig, kin: TensorKinematics, nom: torch.Tensor, avoidin
                        -1), trig
 
 
-def _rhs(cfg: FilterConfig, gp, gv, ga, ds, ap) -> tuple[torch.Tensor, torch.Tensor | None]:
-    """Each pair's right-hand side of ``cfg.barrier`` and the pairs it keeps (None: all; eqn.n5/n6's gate).
-
-    The registered barrier's own rows (:data:`~aasoatt_env.safety.barriers.BARRIERS`, one source for numpy and torch)
-    on the pair vectors ``(2, B, N, K)`` viewed as ``(B, N, K, 2)``, with the discrete-time margin on ``d_s``;
-    ``ap``: the pair's maximum point accelerations ``a_i+ + a_j+`` (the braking barrier's).
-    """
-    p, v, a = (x.permute(1, 2, 3, 0) for x in (gp, gv, ga))
-    g = PairGeometry(None, None, p, v, a, ds + cfg.pair_margin(v), ds, ap)
-    return get_barrier(cfg.barrier).rows(g, cfg)
-
-
 class _Pairs(NamedTuple):
     """Each robot's rows ``(B, N, K + M)``: the other member's index (``-1``: obstacle) and validity; geometry."""
 
@@ -116,19 +96,13 @@ _F = ("px", "py", "vx", "vy", "ax", "ay", "radius", "a00", "a01", "a10", "a11", 
 
 
 def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """``x[b, idx[b, n, k]]`` for ``x`` ``(B, N, ...)``, ``idx`` ``(B, N, K)``."""
+    """``x[b, idx[b, n, k]]`` for ``x`` ``(B, N)``, ``idx`` ``(B, N, K)``."""
     B, N, K = idx.shape
-    flat = idx.reshape(B, N * K)
-    if x.dim() == 2:
-        return x.gather(1, flat).reshape(B, N, K)
-    return x.gather(1, flat[..., None].expand(B, N * K, x.shape[-1])).reshape(B, N, K, x.shape[-1])
+    return x.gather(1, idx.reshape(B, N * K)).reshape(B, N, K)
 
 
 def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
-    """The robot pairs within ``D`` (``|p_ij| <= D``) and obstacles whose rim is within ``D``, as row tables.
-
-    ``feat`` ``(B, N, F)``: every robot's features (:data:`_F`), gathered once for the other members.
-    """
+    """Rows of the robot pairs and obstacle rims within ``D``; ``feat (B, N, F)``: the robots' :data:`_F`."""
     B, N, F = feat.shape
     featT = feat.permute(2, 0, 1).contiguous()  # (F, B, N): one contiguous tensor per feature
     p, rad = feat[..., 0:2], featT[6]
@@ -186,10 +160,16 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     nom = torch.minimum(torch.maximum(nominal, lo), hi)
     target, trig = _target(cfg, kin, nom, avoiding, p_d, v_d)
     du0 = box_ls(kin.a00, kin.a01, kin.a10, kin.a11, target, lo, hi)
+    a_own = team.max_point_accel.expand(B, N)[..., None]
     feat = torch.cat((kin.p, kin.v, kin.adot, torch.stack((team.radius.expand(B, N), kin.a00, kin.a01, kin.a10,
-                      kin.a11), -1), du0, team.max_point_accel.expand(B, N)[..., None]), -1)
+                      kin.a11), -1), du0, a_own), -1)
     pr = _pairs(cfg, feat, obstacles)
-    rhs, keep = _rhs(cfg, pr.gp, pr.gv, pr.ga, pr.ds, team.max_point_accel[:, None] + pr.of[13])
+    a_oth = pr.of[13]
+    tot = a_own + a_oth  # the pair's a_i+ + a_j+
+    # the registered barrier's own rows on tensors: pair vectors as (B, N, K, 2), the discrete-time margin on d_s
+    p, v, a = (x.permute(1, 2, 3, 0) for x in (pr.gp, pr.gv, pr.ga))
+    geom = PairGeometry(None, None, p, v, a, pr.ds + cfg.pair_margin(v), pr.ds, tot)
+    rhs, keep = get_barrier(cfg.barrier).rows(geom, cfg)  # keep: the pairs it keeps (None: all)
     rows = pr.valid if keep is None else pr.valid & keep  # (the backup check sees every pair in range)
     # own half-row G = -A_own^T p_(own - other); the other's G' = A_other^T p_(own - other)
     gx = -(kin.a00[..., None] * pr.gp[0] + kin.a10[..., None] * pr.gp[1])
@@ -200,9 +180,6 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     ogx = of[7] * pr.gp[0] + of[9] * pr.gp[1]
     ogy = of[8] * pr.gp[0] + of[10] * pr.gp[1]
     base_o = torch.where(robot, ogx * of[11] + ogy * of[12], torch.zeros_like(base))
-    a_own = team.max_point_accel.expand(B, N)[..., None]
-    a_oth = of[13]
-    tot = a_own + a_oth
     pos = tot > 0
     low = torch.arange(N, device=pose.device)[None, :, None] < pr.other  # own index is the pair's i
     safe_tot = torch.where(pos, tot, torch.ones_like(tot))
