@@ -14,9 +14,9 @@ from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import Team
 from aasoatt_env.sim.references import Reference
 
-__all__ = ["MAX_ROBOTS", "Layout", "Scenario", "bounds_around", "check_clear_of_obstacles", "check_no_overlap",
-           "check_num_robots", "check_obstacles", "check_quantity", "check_settle_time", "heading_of",
-           "max_robots_on_circle"]
+__all__ = ["MAX_ROBOTS", "Layout", "Scenario", "bounds_around", "check_clear_of_obstacles", "check_groups",
+           "check_no_overlap", "check_num_robots", "check_obstacles", "check_quantity", "check_settle_time",
+           "heading_of", "max_robots_on_circle"]
 
 MAX_ROBOTS: int = 100_000
 """Largest team a scenario builds."""
@@ -64,6 +64,14 @@ def check_num_robots(value: Any) -> int:
 def check_quantity(name: str, value: Any) -> float:
     """A scenario length, duration or speed: a finite number in :data:`QUANTITY_RANGE`."""
     return check.real(name, value, lo=QUANTITY_RANGE[0], hi=QUANTITY_RANGE[1])
+
+
+def check_groups(left: Any, right: Any) -> tuple[int, int]:
+    """``left``, ``right``: the robot counts of two groups, integers in ``[0, MAX_ROBOTS]``, at least one in all."""
+    counts = tuple(check.integer(k, v, lo=0, hi=MAX_ROBOTS) for k, v in (("left", left), ("right", right)))
+    if sum(counts) < 1:
+        raise ScenarioError(f"left, right: got {left} and {right} robots, expected at least one in all")
+    return counts  # type: ignore[return-value]
 
 
 def check_settle_time(value: Any) -> float:

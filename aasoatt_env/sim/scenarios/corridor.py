@@ -46,13 +46,12 @@ def passage_layout(scenario: Scenario, starts: np.ndarray, goals: np.ndarray, ga
 class Corridor(Scenario):
     """Two groups swap ends through a corridor of clear ``width`` [m] and ``length`` [m] along the x axis.
 
-    ``left`` robots start in a line across the axis (``spacing`` [m] apart) ``approach`` [m] before the corridor's
-    left mouth and end at the mirror points beyond the right mouth; ``right`` robots do the reverse.  Each wall is
-    a row of discs of radius ``wall_radius`` every ``wall_pitch`` [m] or closer, their surfaces ``width`` apart;
-    at each mouth a cross wall reaches ``flange`` [m] beyond the corridor on both sides (0: none), so the
-    corridor is the passage between two open half-planes.
-    References: straight lines through the corridor's axis points ``0.5`` m outside each mouth, done at
-    ``duration`` [s]; the horizon adds ``settle_time`` [s].  The layout is the same for every seed.
+    ``left`` robots start in a line across the axis (``spacing`` [m] apart) ``approach`` [m] before the left mouth
+    and end at the mirror points beyond the right mouth; ``right`` robots do the reverse.  Each wall is a row of discs
+    of radius ``wall_radius`` every ``wall_pitch`` [m] or closer, their surfaces ``width`` apart; at each mouth a cross
+    wall reaches ``flange`` [m] beyond the corridor on both sides (0: none).  References: straight lines through the
+    axis points 0.5 m outside each mouth, done at ``duration`` [s]; the horizon adds ``settle_time`` [s].  The layout
+    is the same for every seed.
     """
 
     name = "corridor"
@@ -66,10 +65,7 @@ class Corridor(Scenario):
                                                    ("approach", approach), ("wall_radius", wall_radius),
                                                    ("wall_pitch", wall_pitch), ("duration", duration)))
         self.flange = check.real("flange", flange, lo=0.0, hi=base.QUANTITY_RANGE[1])
-        self.left, self.right = (check.integer(k, v, lo=0, hi=base.MAX_ROBOTS) for k, v in (("left", left),
-                                                                                            ("right", right)))
-        if self.left + self.right < 1:
-            raise ScenarioError(f"left, right: got {left} and {right} robots, expected at least one in all")
+        self.left, self.right = base.check_groups(left, right)
         self.num_robots_ = self.left + self.right
         self.settle_time = base.check_settle_time(settle_time)
         self._team = make_team(robots, self.num_robots_)

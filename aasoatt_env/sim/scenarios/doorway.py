@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from aasoatt_env import validation as check
 from aasoatt_env.errors import ScenarioError
 from aasoatt_env.model.params import RobotParams, make_team
 from aasoatt_env.sim.scenarios import base
@@ -41,10 +40,7 @@ class Doorway(Scenario):
         self.door, self.room, self.wall_radius, self.wall_pitch, self.duration = (
             base.check_quantity(k, v) for k, v in (("door", door), ("room", room), ("wall_radius", wall_radius),
                                                    ("wall_pitch", wall_pitch), ("duration", duration)))
-        self.left, self.right = (check.integer(k, v, lo=0, hi=base.MAX_ROBOTS) for k, v in (("left", left),
-                                                                                            ("right", right)))
-        if self.left + self.right < 1:
-            raise ScenarioError(f"left, right: got {left} and {right} robots, expected at least one in all")
+        self.left, self.right = base.check_groups(left, right)
         self.num_robots_ = self.left + self.right
         self.settle_time = base.check_settle_time(settle_time)
         self._team = make_team(robots, self.num_robots_)

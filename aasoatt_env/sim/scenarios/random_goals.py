@@ -109,10 +109,9 @@ class RandomGoals(Scenario):
         dist = np.hypot(*(goals - starts).T)
         durations = np.maximum(dist / self.speed, 1e-3)
         ref = LinearReference(starts, goals, durations)  # every robot at the same speed: its own duration
-        T = ref.duration
         b = self.arena_size / 2.0 + 0.5
         centers, radii = self._obstacles(rng, np.concatenate((starts, goals)))
-        return Layout(team=self._team, starts=starts, reference=ref, horizon=T + self.settle_time,
+        return Layout(team=self._team, starts=starts, reference=ref, horizon=ref.duration + self.settle_time,
                       headings=np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0]),
                       obstacle_centers=centers, obstacle_radii=radii, bounds=(-b, b, -b, b))
 
