@@ -196,9 +196,7 @@ def _robot_gaps(d: np.ndarray, radii: np.ndarray, equal: np.ndarray | None = Non
         return np.full(teams * n, np.inf)
     r = radii.reshape(teams, n)
     if equal is None:
-        equal = np.array([radii.min() == radii.max()]) if teams == 1 else r.min(axis=1) == r.max(axis=1)
-    if teams == 1 and equal[0]:
-        return np.minimum.reduce(d[0], axis=1) - 2.0 * radii
+        equal = r.min(axis=1) == r.max(axis=1)
     if equal.all():
         return (np.minimum.reduce(d, axis=2) - 2.0 * r).ravel()
     gap = (d - r[:, :, None] - r[:, None, :]).min(axis=2)
@@ -258,7 +256,7 @@ def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacl
     """
     if p.shape[0] // teams < KDTREE_MIN_ROBOTS:
         d = _distances(p, teams)
-        idx, dist = _nearest(d, k) if k else (np.empty((p.shape[0], 0), np.intp), np.empty((p.shape[0], 0)))
+        idx, dist = _nearest(d, k)
         gap = _robot_gaps(d, radii, equal_radii)
     else:
         idx, dist, _ = k_nearest(p, max(k, clear_k))

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from aasoatt_env import validation as check
 from aasoatt_env.cli_support import staged
 from aasoatt_env.errors import ConfigError
 
@@ -166,8 +167,8 @@ def _pixels(tf: _Transform, points: np.ndarray | None) -> Iterator[tuple[int, tu
             yield i, (int(round(c[0])), int(round(c[1])))
 
 
-def _nice_step(span: float, target_lines: int = 10) -> float:
-    raw = span / max(target_lines, 1)
+def _nice_step(span: float) -> float:
+    raw = span / 10  # about ten grid lines, at a step of 1, 2 or 5 times a power of ten
     mag = 10.0 ** math.floor(math.log10(raw))
     return next((m * mag for m in (1.0, 2.0, 5.0, 10.0) if raw <= m * mag), 10.0 * mag)
 
@@ -241,13 +242,9 @@ class Renderer:
         finite = np.all(np.isfinite(pix), axis=2)
         pix = np.clip(np.nan_to_num(pix), -tf.limit, tf.limit)
         for i in range(trails.shape[1]):
-            ok = finite[:, i]
-            if ok.all():
-                runs = [pix[:, i]]
-            else:
-                idx = np.flatnonzero(ok)
-                runs = [pix[seg, i] for seg in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1)]
-            for run in runs:
+            idx = np.flatnonzero(finite[:, i])  # the finite samples, drawn as runs of consecutive ones
+            for seg in np.split(idx, np.flatnonzero(np.diff(idx) > 1) + 1):
+                run = pix[seg, i]
                 if run.shape[0] >= 2:
                     self._pg.draw.aalines(self._surface, _mix(colors[i], BACKGROUND, 0.35), False, run.tolist())
 
@@ -409,9 +406,7 @@ def save_animation(frames: Sequence[np.ndarray], path: str | os.PathLike[str], f
     suffix = path.suffix.lower()
     if suffix not in ANIMATION_SUFFIXES:
         raise ConfigError(f"save_animation: got suffix {path.suffix!r}, expected one of {list(ANIMATION_SUFFIXES)}")
-    fps = float(fps)
-    if not math.isfinite(fps) or fps <= 0:
-        raise ConfigError(f"save_animation: got fps={fps}, expected a positive number")
+    fps = check.positive("save_animation: fps", fps)
     images = [_to_uint8(f, k) for k, f in enumerate(frames)]
     if not images:
         raise ConfigError("save_animation: got no frames, expected at least one")
