@@ -116,10 +116,8 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
     if method != "kdtree":
         raise ValueError(f"method: got {method!r}, expected 'auto', 'brute', 'kdtree' or 'cells'")
     pairs = kdtree(p).query_pairs(radius, output_type="ndarray").astype(np.intp)
-    if groups is not None and pairs.shape[0]:
+    if groups is not None:
         pairs = pairs[groups[pairs[:, 0]] == groups[pairs[:, 1]]]
-    if pairs.shape[0] == 0:
-        return np.empty((0, 2), dtype=np.intp)
     pairs.sort(axis=1)
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
@@ -150,13 +148,6 @@ def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius
     return np.stack((i, k), axis=1).astype(np.intp)
 
 
-@functools.lru_cache(maxsize=16)
-def _rows(n: int) -> np.ndarray:  # arange(n)[:, None], read-only
-    rows = np.arange(n)[:, None]
-    rows.flags.writeable = False
-    return rows
-
-
 def _distances(p: np.ndarray, teams: int) -> np.ndarray:
     """Centre distances within each of ``teams`` equal consecutive blocks of ``p``: ``(K, N, N)``, inf diagonal."""
     n = p.shape[0] // teams
@@ -173,13 +164,12 @@ def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     if kk <= 0:
         return np.full((teams * n, k), -1, dtype=np.intp), np.full((teams * n, k), np.inf)
     d2 = d.reshape(teams * n, n)
-    rows = _rows(teams * n)
     if n <= _FULL_SORT_MAX or kk >= n - 1:
         order = np.argsort(d2, axis=1)[:, :kk]
     else:
         part = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
-        order = part[rows, np.argsort(d2[rows, part], axis=1)]
-    dk = d2[rows, order]
+        order = np.take_along_axis(part, np.argsort(np.take_along_axis(d2, part, 1), axis=1), 1)
+    dk = np.take_along_axis(d2, order, 1)
     if teams > 1:
         order = order + np.repeat(np.arange(teams) * n, n)[:, None]
     if kk == k:

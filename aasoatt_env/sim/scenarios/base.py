@@ -96,10 +96,8 @@ def check_obstacles(obstacles: Any) -> tuple[np.ndarray, np.ndarray]:
     centers, radii = obstacles
     c = check.real_array("obstacles (centres)", centers, lo=-QUANTITY_RANGE[1], hi=QUANTITY_RANGE[1], unit=" m")
     r = check.real_array("obstacles (radii)", radii, lo=QUANTITY_RANGE[0], hi=QUANTITY_RANGE[1], unit=" m").reshape(-1)
-    if c.size == 0:
-        c = np.zeros((0, 2))
-    if c.ndim == 1 and c.shape[0] == 2:
-        c = c[None]
+    if c.size == 0 or c.shape == (2,):  # no obstacle, or one centre
+        c = c.reshape(-1, 2)
     if c.ndim != 2 or c.shape[1] != 2:
         raise ConfigError(f"obstacles: got centres of shape {np.shape(centers)}, expected (M, 2)")
     if r.shape[0] != c.shape[0]:

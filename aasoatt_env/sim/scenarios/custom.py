@@ -58,9 +58,8 @@ class Custom(Scenario):
         _, v0, _ = ref(0.0)
         toward = np.arctan2(*(ref.goals - self._starts).T[::-1])
         headings = self._headings if self._headings is not None else base.heading_of(v0, toward)
-        pts = np.concatenate([self._starts, ref.goals, *(ref(t)[0] for t in np.linspace(0, ref.duration, 16))])
-        if self._obstacles[0].shape[0]:
-            pts = np.concatenate([pts, self._obstacles[0]])
+        pts = np.concatenate([self._starts, ref.goals, *(ref(t)[0] for t in np.linspace(0, ref.duration, 16)),
+                              self._obstacles[0]])
         return Layout(team=self._team, starts=self._starts.copy(), headings=headings, reference=ref,
                       horizon=ref.duration + self.settle_time, obstacle_centers=self._obstacles[0],
                       obstacle_radii=self._obstacles[1], bounds=base.bounds_around(pts))
