@@ -1,11 +1,9 @@
 """TorchRL ``EnvBase`` over :class:`~aasoatt_env.tensor.env.TensorEnv` (needs ``torchrl``, the dev extra).
 
-Batch size ``(B,)``; the robots are one multi-agent group (TorchRL's MARL layout, as its VMAS wrapper): under
-``group`` (default ``"agents"``) ``observation`` ``(B, N, obs_dim)`` float32, ``action`` ``(B, N, 2)`` in
-``[-1, 1]`` (behind the filter a nominal; the spec says the task's range), ``reward`` ``(B, N, 1)``, and the
-filter's ``correction``, ``intervened``, ``status`` and the surface ``clearance`` ``(B, N)``; ``done``,
-``terminated``, ``truncated`` ``(B, 1)`` per team at the root (a team's episode ends for all its robots at once).
-Finished teams are reset by TorchRL's partial ``_reset`` (the wrapped env's same-step auto-reset is off).
+Batch size ``(B,)``; the robots are one agent group (TorchRL's MARL layout): under ``group`` (default ``"agents"``)
+``observation`` ``(B, N, obs_dim)`` float32, ``action`` ``(B, N, 2)`` in ``[-1, 1]``, ``reward`` ``(B, N, 1)``, the
+filter's ``correction``, ``intervened``, ``status`` and the surface ``clearance`` ``(B, N)``; ``done``, ``terminated``
+and ``truncated`` ``(B, 1)`` per team at the root. Finished teams are reset by TorchRL's partial ``_reset``.
 """
 
 from __future__ import annotations
@@ -30,7 +28,7 @@ class TorchRLTensorEnv(EnvBase):
 
     def __init__(self, *args: Any, group: str = "agents", **kwargs: Any) -> None:
         env: TensorEnv = make_tensor_env(*args, **kwargs)
-        env.autoreset = False
+        env.autoreset = False  # finished teams wait for TorchRL's partial _reset
         self.env, self.group = env, group
         B, N, dev, dt = env.num_envs, env.num_robots, env.device, env.dtype
         super().__init__(device=dev, batch_size=torch.Size([B]))
