@@ -80,21 +80,20 @@ class _Rows:
             self.cx = torch.cat((pad, oc[:, None, :, 0].expand(B, N, M)), 2)
             self.cy = torch.cat((pad, oc[:, None, :, 1].expand(B, N, M)), 2)
 
+    def _other(self, x: torch.Tensor) -> torch.Tensor:
+        """The other member's ``(..., B, N, KM)`` of ``x`` ``(..., B, N)`` (robot 0's on obstacle rows)."""
+        B, N, KM = self.shape
+        return x.gather(-1, self.flat.expand(*x.shape[:-1], N * KM)).reshape(*x.shape, KM)
+
     def at(self, x: torch.Tensor) -> torch.Tensor:
         """The other robot's ``(..., B, N, KM)`` of ``x`` ``(..., B, N)`` (0 for obstacles)."""
-        B, N, KM = self.shape
-        o = x.gather(-1, self.flat.expand(*x.shape[:-1], N * KM)).reshape(*x.shape, KM)
+        o = self._other(x)
         return torch.where(self.robot, o, torch.zeros_like(o))
 
-    def rel(self, x: torch.Tensor, y: torch.Tensor, xo: torch.Tensor | None = None,
-            yo: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-        """``p_own - p_other`` of control points ``(..., B, N)`` (obstacle rows: its centre); others from ``xo, yo``."""
-        B, N, KM = self.shape
-        xo, yo = (x, y) if xo is None else (xo, yo)
-        idx = self.flat.expand(*x.shape[:-1], N * KM)
-        ox, oy = (v.gather(-1, idx).reshape(*v.shape, KM) for v in (xo, yo))
-        return (x[..., None] - torch.where(self.robot, ox, self.cx),
-                y[..., None] - torch.where(self.robot, oy, self.cy))
+    def rel(self, x, y, xo, yo) -> tuple[torch.Tensor, torch.Tensor]:
+        """``p_own - p_other`` of own points ``x, y`` and the others' ``xo, yo`` ``(..., B, N)`` (obstacles: centre)."""
+        return (x[..., None] - torch.where(self.robot, self._other(xo), self.cx),
+                y[..., None] - torch.where(self.robot, self._other(yo), self.cy))
 
 
 class _End(NamedTuple):
@@ -128,7 +127,7 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
     oth = own if other is None else _end(team, cfg, acc0, *other)
     path_len = torch.sqrt((own.x - x0) ** 2 + (own.y - y0) ** 2) + dt * dt / 8.0 * acc0 + own.braking
     dev_step = dt * dt / 8.0 * (own.acc[..., None] + rows.at(oth.acc))
-    q0x, q0y = rows.rel(x0, y0)
+    q0x, q0y = rows.rel(x0, y0, x0, y0)
     q1x, q1y = rows.rel(own.x, own.y, oth.x, oth.y)
     out = _seg(q0x, q0y, q1x, q1y) - dev_step - ds
     gap1 = torch.sqrt(q1x * q1x + q1y * q1y) - ds
