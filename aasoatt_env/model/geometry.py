@@ -195,12 +195,6 @@ def _robot_gaps(d: np.ndarray, radii: np.ndarray, equal: np.ndarray | None = Non
     return gap.ravel()
 
 
-def _listed_gaps(idx: np.ndarray, dist: np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """Surface gap ``(N,)`` to the nearest of the neighbours ``idx`` (-1: none) at centre distances ``dist``."""
-    valid = idx >= 0
-    return np.where(valid, dist - radii[:, None] - radii[np.where(valid, idx, 0)], np.inf).min(axis=1)
-
-
 def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Indices, distances ``(N, k)`` of each point's ``k`` nearest (-1, inf: none), the matrix (brute force) or None."""
     n = p.shape[0]
@@ -250,7 +244,8 @@ def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacl
         gap = _robot_gaps(d, radii, equal_radii)
     else:
         idx, dist, _ = k_nearest(p, max(k, clear_k))
-        gap = _listed_gaps(idx, dist, radii)
+        valid = idx >= 0  # the surface gap to the nearest listed neighbour
+        gap = np.where(valid, dist - radii[:, None] - radii[np.where(valid, idx, 0)], np.inf).min(axis=1)
         idx, dist = idx[:, :k], dist[:, :k]
     og = _obstacle_gaps(p, radii, centers, obstacle_radii, teams)
     if og.shape[1]:
