@@ -30,12 +30,10 @@ def make_env(scenario: str | Scenario = "circle_swap", *, filter: FilterConfig |
     env = AASOATTParallelEnv(scenario, **env_kwargs)
     if filter is None or filter is False:
         return env
-    if filter is True:
-        return AASOATTFilter(env, infos=infos)
-    if not isinstance(filter, (FilterConfig, Mapping)):
+    if filter is not True and not isinstance(filter, (FilterConfig, Mapping)):
         raise ConfigError(f"filter: got {filter!r}, expected None, True/False, a FilterConfig or a mapping of "
                           "its fields")
-    return AASOATTFilter(env, filter, infos=infos)
+    return AASOATTFilter(env, None if filter is True else filter, infos=infos)
 
 
 def make_batched_env(num_envs: int, scenario: str | Scenario = "circle_swap", *,

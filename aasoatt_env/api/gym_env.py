@@ -45,11 +45,8 @@ class AASOATTGymEnv(gym.Env):
         self.action_space = spaces.Box(-1.0, 1.0, (2 * len(self._agents),), np.float32)
 
     def _flat(self, obs: dict[str, np.ndarray]) -> np.ndarray:
-        out = np.zeros((len(self._agents), self._obs_dim), dtype=np.float32)
-        for i, a in enumerate(self._agents):
-            if a in obs:
-                out[i] = obs[a]
-        return out.ravel()
+        missing = np.zeros(self._obs_dim, dtype=np.float32)  # an agent gone from the episode
+        return np.concatenate([np.asarray(obs.get(a, missing), dtype=np.float32) for a in self._agents])
 
     @staticmethod
     def _team_info(infos: dict[str, dict]) -> dict[str, Any]:
