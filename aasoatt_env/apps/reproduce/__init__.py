@@ -67,10 +67,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _main(argv: list[str]) -> int:
     args = _parser().parse_args(argv)
-    if args.solver is None and "daqp" not in available_solvers():
+    solver = args.solver or ("daqp" if "daqp" in available_solvers() else "proxsuite")
+    if args.solver is None and solver != "daqp":
         print('note: DAQP is not installed (pip install "aasoatt[repro]"); using proxsuite (same results, '
               "about 5x slower)", file=sys.stderr)
-    solver = args.solver or ("daqp" if "daqp" in available_solvers() else "proxsuite")
     if solver not in available_solvers():
         raise ConfigError(f"--solver: got {solver!r}, expected one of {available_solvers()}")
     names = list(EXPERIMENTS) if args.experiment == "all" else [args.experiment]

@@ -33,10 +33,10 @@ class Table1(Experiment):
 
     name, title, metrics = "table1", "Table I - single-robot trajectory tracking", ("rmse", "mae", "std")
     columns = [col("trajectory", "trajectory"), col("controller", "controller"), *compared(metrics)]
+    sizes = {False: 12.0, True: 6.0}  # duration [s]
 
     def _specs(self, s: Settings) -> list[RunSpec]:
-        duration = 6.0 if s.quick else 12.0
-        return [RunSpec(f"{traj}/{ctrl}", "tracking", dict(kw, duration=duration), kind, k3, k4,
+        return [RunSpec(f"{traj}/{ctrl}", "tracking", dict(kw, duration=self.size(s)), kind, k3, k4,
                         meta={"trajectory": traj, "controller": ctrl})
                 for traj, kw in TABLE1_TRAJECTORIES.items() for ctrl, (kind, k3, k4) in TABLE1_CONTROLLERS.items()]
 
@@ -48,7 +48,7 @@ class Table1(Experiment):
             "Bare environment (one robot: no barrier rows, so the filter would only keep the input bounds), "
             "actions saturated to |du| <= 60 rad/s^2 (never active here)",
             "Robot: wheel radius 0.1 m, half track 0.2 m, l = 0.2 m; start on the reference at rest with "
-            f"theta(0) = theta_d; dt = 0.005 s; {6.0 if s.quick else 12.0:g} s",
+            f"theta(0) = theta_d; dt = 0.005 s; {self.size(s):g} s",
             "References (the paper gives none; chosen so SBC's steady-state error matches Table I): straight at "
             "0.5 m/s; sine p_d = (t, sin t); circle of radius 2 m at 1 m/s",
             "SBC nominal a = -k3 (p - p_d) - k4 v (k4 = 4); ours a = a_d - (k3 + k4)(v - v_d) - k3 k4 (p - p_d)",

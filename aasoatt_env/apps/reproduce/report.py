@@ -316,18 +316,14 @@ DEADLOCK_METHODS: dict[str, str] = {"eqn.12a": "rotate_nominal", "eqn.12b": "rot
 CA_SIZES: dict[bool, tuple[int, float, float]] = {False: (10, 6.0, 12.0), True: (6, 4.0, 8.0)}
 
 
-def filter_config(s: Settings, **kw: Any) -> FilterConfig:
-    """The filter of a paper run: the experiment's solver, margin and backup, then ``kw``."""
-    return FilterConfig.merged({"solver": s.solver, "safety_margin": s.safety_margin, "backup": s.backup}, **kw)
-
-
 def team_run(s: Settings, key: str, size: tuple[int, float, float], meta: dict[str, Any], *, settle: float = 0.0,
              window: float | None = None, scenario: str = "circle_swap", scene: dict[str, Any] | None = None,
              **filter_kw: Any) -> RunSpec:
-    """A run of ``size = (N, radius, duration)`` robots on the circle behind the paper's filter (``filter_kw``)."""
+    """``size = (N, radius, duration)`` robots on the circle, filtered with the settings' solver, margin, backup."""
     n, radius, duration = size
     kwargs = dict(num_robots=n, radius=radius, duration=duration, settle_time=settle, **(scene or {}))
-    return RunSpec(key, scenario, kwargs, filter=filter_config(s, **filter_kw), window=window, meta=meta)
+    fc = FilterConfig.merged({"solver": s.solver, "safety_margin": s.safety_margin, "backup": s.backup}, **filter_kw)
+    return RunSpec(key, scenario, kwargs, filter=fc, window=window, meta=meta)
 
 
 def violated(res: RunResult) -> bool:
