@@ -41,9 +41,8 @@ class RecordEpisode(BaseParallelWrapper):
         base = self.env.unwrapped
         c, r = base.obstacles
         meta = {"scenario": base.scenario.name, "dt": base.dt, "decision_interval": base.decision_interval}
-        meta.update(self._meta)
         self._builder = RolloutBuilder(dt=base.dt * base.decision_interval, goals=base.goals, radii=base.radii,
-                                       obstacle_centers=c, obstacle_radii=r, metadata=meta)
+                                       obstacle_centers=c, obstacle_radii=r, metadata={**meta, **self._meta})
         self._record(None)
         return obs, infos
 
