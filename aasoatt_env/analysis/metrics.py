@@ -72,11 +72,7 @@ def intervention_time(rollout: Rollout) -> float:
 
 def _smallest(field: str, what: str) -> property:
     """A property: the smallest value of the array ``field`` (``what``) over the episode."""
-
-    def smallest(self: Any) -> float:
-        return float(np.min(getattr(self, field)))
-
-    return property(smallest, doc=f"Smallest {what} over the episode.")
+    return property(lambda self: float(np.min(getattr(self, field))), doc=f"Smallest {what} over the episode.")
 
 
 @dataclass(frozen=True)
@@ -251,8 +247,7 @@ def liveness(rollout: Rollout, goal_tolerance: float = 0.1, speed_threshold: flo
     goal (mean and max over robots).
     """
     arrive = arrival_times(rollout, goal_tolerance)
-    ref = rollout.references
-    step = np.linalg.norm(np.diff(ref, axis=0), axis=-1)
+    step = np.linalg.norm(np.diff(rollout.references, axis=0), axis=-1)
     moving = (step > 0).sum(axis=0) * rollout.dt
     speed_ref = np.where(moving > 0, step.sum(axis=0) / np.maximum(moving, 1e-12), np.inf)
     bound = float(np.max(np.linalg.norm(rollout.goals - rollout.positions[0], axis=-1) / speed_ref))

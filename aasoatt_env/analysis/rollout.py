@@ -63,10 +63,8 @@ def checked_array(name: str, value: Any, template: Template, sizes: dict[str, in
         if isinstance(exc, ConfigError):
             raise
         raise ConfigError(f"{name}: cannot be converted to a {np.dtype(_KINDS[kind]).name} array ({exc})") from None
-    ok = arr.ndim == len(template)
-    for dim, sym in zip(arr.shape, template) if ok else ():
-        ok = ok and dim == (sym if isinstance(sym, int) else sizes.setdefault(sym, dim))
-    if not ok:
+    if not (arr.ndim == len(template) and all(dim == (sym if isinstance(sym, int) else sizes.setdefault(sym, dim))
+                                              for dim, sym in zip(arr.shape, template))):
         extra = f" ({len(template)} dimensions)" if arr.ndim != len(template) else ""
         raise ConfigError(f"{name}: got shape {arr.shape}, expected {_fmt_shape(template)} = "
                           f"{_fmt_shape(template, sizes)}{extra}")
@@ -78,7 +76,7 @@ def checked_array(name: str, value: Any, template: Template, sizes: dict[str, in
 
 @dataclass
 class Rollout:
-    """One recorded episode (fields: see the module docstring), its arrays copied and checked on construction."""
+    """One recorded episode (fields: ``_PER_STEP``, ``_STATIC``, ``_OPTIONAL``), its arrays copied and checked."""
 
     dt: float
     times: np.ndarray
