@@ -128,9 +128,7 @@ def _env_and_agent(args: argparse.Namespace, kwargs: dict[str, Any], filter_conf
     if agent is not None:
         agent.reset(env)  # observation layout and action mode checked before the episode
         return env, agent
-    ctrl_kwargs: dict[str, Any] = {}
-    if args.controller in ("tracking", "pd"):
-        ctrl_kwargs["saturate"] = filter_config is None
+    ctrl_kwargs: dict[str, Any] = {"saturate": filter_config is None} if args.controller in ("tracking", "pd") else {}
     if agent_accepts(args.controller, "seed"):
         ctrl_kwargs["seed"] = args.seed
     return env, get_agent(args.controller, **ctrl_kwargs)
@@ -174,9 +172,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 
             warm_up(filter_config.kernel)
         rollout, frames = run_episode(env, agent, seed=args.seed, render_every=args.frame_every if gif else None,
-                                      progress=not args.quiet,
-                                      metadata={"controller": args.controller, "filter": args.filter,
-                                                "seed": args.seed})
+                                      progress=not args.quiet, metadata={"controller": args.controller,
+                                                                         "filter": args.filter, "seed": args.seed})
         summary = summarize(rollout, goal_tolerance=args.goal_tolerance)
         print(format_summary(summary))
         if out is not None:
