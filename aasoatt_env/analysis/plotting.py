@@ -191,8 +191,7 @@ def plot_snapshots(positions: Any, times: Any, indices: Sequence[int], radii: An
                    path: PathLike | None = None, *, references: Any = None, goals: Any = None, trails: bool = True,
                    panel_size: float = 3.0, dpi: int = 150) -> Any:
     """Plot a row of panels of the team (discs to scale, trails) at the steps ``indices`` (paper Fig. 5 style)."""
-    pos, t, ref, g, r = _checked(positions=positions, times=times, references=references, goals=goals,
-                                 radii=radii)
+    pos, t, ref, g, r = _checked(positions=positions, times=times, references=references, goals=goals, radii=radii)
     (t_len, n), idx = pos.shape[:2], [int(k) for k in indices]
     if not idx or not all(-t_len <= k < t_len for k in idx):
         raise ConfigError(f"indices: got {idx}, expected one or more time-step indices in [-{t_len}, {t_len})")
