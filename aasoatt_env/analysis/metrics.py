@@ -241,10 +241,9 @@ def arrival_times(rollout: Rollout, goal_tolerance: float = 0.1) -> np.ndarray:
 def liveness(rollout: Rollout, goal_tolerance: float = 0.1, speed_threshold: float = 0.05) -> dict[str, Any]:
     """Robots home, the makespan against the straight-line lower bound, and the time spent stalled.
 
-    ``makespan``: the time [s] to the last robot home for good (None unless every robot is); ``lower_bound``: the
-    longest start-to-goal straight line over its robot's mean reference speed (its reference's length over the time
-    the reference moves); ``stalled_time``: per robot the total time slower than ``speed_threshold`` away from its
-    goal (mean and max over robots).
+    ``makespan``: time [s] to the last robot home for good (None unless all are); ``lower_bound``: the longest
+    start-to-goal straight line over its robot's mean reference speed (reference length / time it moves);
+    ``stalled_time_*``: per robot, the total time slower than ``speed_threshold`` away from its goal (mean, max).
     """
     arrive = arrival_times(rollout, goal_tolerance)
     step = np.linalg.norm(np.diff(rollout.references, axis=0), axis=-1)
