@@ -10,7 +10,7 @@ from gymnasium import spaces
 
 from aasoatt_env import validation as check
 from aasoatt_env.api.factory import make_env
-from aasoatt_env.errors import ActionError, ConfigError
+from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.sim.env import real_actions
 
@@ -68,11 +68,8 @@ class AASOATTGymEnv(gym.Env):
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict]:
         """Apply the joint action."""
-        raw = real_actions(action, lambda at: "action" + (f"[{at[0]}]" if at else ""),
-                           f"{self.action_space.shape} real numbers")  # (no strings, imaginary parts, booleans)
-        a = raw.astype(np.float64)
-        if a.shape != self.action_space.shape:
-            raise ActionError(f"action: got shape {a.shape}, expected {self.action_space.shape}")
+        a = real_actions(action, lambda at: "action" + (f"[{at[0]}]" if at else ""),  # no strings, complex, bools
+                         f"{self.action_space.shape} real numbers", self.action_space.shape).astype(np.float64)
         idx = self.par.unwrapped.agent_index
         acts = {ag: a[2 * idx[ag] : 2 * idx[ag] + 2] for ag in self.par.agents}
         obs, rew, term, trunc, infos = self.par.step(acts)
