@@ -206,12 +206,10 @@ def safe_rate(rollout: Rollout, tolerance: float = COLLISION_TOLERANCE) -> float
 
 def longest_stall(rollout: Rollout, speed_threshold: float = 0.05, goal_tolerance: float = 0.1) -> np.ndarray:
     """Longest time [s] each robot moves slower than ``speed_threshold`` away from its goal; ``-dt``: never."""
-    v_thr = _tolerance("speed_threshold", speed_threshold)
-    g_tol = _tolerance("goal_tolerance", goal_tolerance)
-    speed = np.linalg.norm(rollout.velocities, axis=-1)
-    far = np.linalg.norm(rollout.positions - rollout.goals[None], axis=-1) > g_tol
+    slow = np.linalg.norm(rollout.velocities, axis=-1) < _tolerance("speed_threshold", speed_threshold)
+    far = np.linalg.norm(rollout.positions - rollout.goals, axis=-1) > _tolerance("goal_tolerance", goal_tolerance)
     padded = np.zeros((rollout.n_robots, rollout.n_steps + 2), dtype=np.int8)  # per robot: 0, stalled?, 0
-    padded[:, 1:-1] = ((speed < v_thr) & far).T
+    padded[:, 1:-1] = (slow & far).T
     d = np.diff(padded, axis=1)
     sr, st = np.nonzero(d == 1)  # run starts, row-major: sorted by robot then time
     _, et = np.nonzero(d == -1)  # run ends (exclusive), same order
@@ -231,8 +229,7 @@ def deadlocked_robots(rollout: Rollout, speed_threshold: float = 0.05, dwell_tim
 
 def arrival_times(rollout: Rollout, goal_tolerance: float = 0.1) -> np.ndarray:
     """Per robot ``(N,)``: the time [s] from which it stays within ``goal_tolerance`` of its goal (NaN: not home)."""
-    tol = _tolerance("goal_tolerance", goal_tolerance)
-    far = np.linalg.norm(rollout.positions - rollout.goals[None], axis=-1) > tol
+    far = np.linalg.norm(rollout.positions - rollout.goals, axis=-1) > _tolerance("goal_tolerance", goal_tolerance)
     last_far = far.shape[0] - 1 - np.argmax(far[::-1], axis=0)  # the last step away from the goal
     k = np.where(far.any(axis=0), last_far + 1, 0)
     return np.where(k < far.shape[0], rollout.times[np.minimum(k, far.shape[0] - 1)] - rollout.times[0], np.nan)
@@ -250,7 +247,7 @@ def liveness(rollout: Rollout, goal_tolerance: float = 0.1, speed_threshold: flo
     moving = (step > 0).sum(axis=0) * rollout.dt
     speed_ref = np.where(moving > 0, step.sum(axis=0) / np.maximum(moving, 1e-12), np.inf)
     bound = float(np.max(np.linalg.norm(rollout.goals - rollout.positions[0], axis=-1) / speed_ref))
-    far = np.linalg.norm(rollout.positions - rollout.goals[None], axis=-1) > goal_tolerance
+    far = np.linalg.norm(rollout.positions - rollout.goals, axis=-1) > goal_tolerance
     slow = np.linalg.norm(rollout.velocities, axis=-1) < _tolerance("speed_threshold", speed_threshold)
     stalled = (far & slow).sum(axis=0) * rollout.dt
     home = bool(np.isfinite(arrive).all())
