@@ -24,16 +24,14 @@ class RecordEpisode(BaseParallelWrapper):
         self._meta = dict(metadata or {})
         self._builder: RolloutBuilder | None = None
 
-    def _record(self, actions: np.ndarray | None) -> None:
+    def _record(self, actions: np.ndarray) -> None:
         base = self.env.unwrapped
         if self._builder is None:
             raise UsageError("RecordEpisode: call reset() first")
         p_d, v_d, _ = base.reference
-        n = len(base.possible_agents)
         self._builder.append(time=base.time, positions=base.positions, velocities=base.velocities,
                              headings=base.headings, references=p_d, reference_velocities=v_d,
-                             nominal_actions=actions if actions is not None else np.zeros((n, 2)),
-                             **_filter_fields(base, n))
+                             nominal_actions=actions, **_filter_fields(base, len(actions)))
 
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[dict, dict]:
         """Reset and start a new recording."""
@@ -43,7 +41,7 @@ class RecordEpisode(BaseParallelWrapper):
         meta = {"scenario": base.scenario.name, "dt": base.dt, "decision_interval": base.decision_interval}
         self._builder = RolloutBuilder(dt=base.dt * base.decision_interval, goals=base.goals, radii=base.radii,
                                        obstacle_centers=c, obstacle_radii=r, metadata={**meta, **self._meta})
-        self._record(None)
+        self._record(np.zeros((len(base.possible_agents), 2)))
         return obs, infos
 
     def step(self, actions: dict[str, Any]) -> tuple[dict, dict, dict, dict, dict]:
