@@ -116,8 +116,10 @@ def robot_pairs(p: np.ndarray, radius: float, *, method: str = "auto", groups: n
     if method != "kdtree":
         raise ValueError(f"method: got {method!r}, expected 'auto', 'brute', 'kdtree' or 'cells'")
     pairs = kdtree(p).query_pairs(radius, output_type="ndarray").astype(np.intp)
-    if groups is not None:
+    if groups is not None and pairs.shape[0]:
         pairs = pairs[groups[pairs[:, 0]] == groups[pairs[:, 1]]]
+    if pairs.shape[0] == 0:
+        return np.empty((0, 2), dtype=np.intp)
     pairs.sort(axis=1)
     return pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
 
@@ -148,6 +150,13 @@ def obstacle_pairs(p: np.ndarray, centers: np.ndarray, radii: np.ndarray, radius
     return np.stack((i, k), axis=1).astype(np.intp)
 
 
+@functools.lru_cache(maxsize=16)
+def _rows(n: int) -> np.ndarray:  # arange(n)[:, None], read-only
+    rows = np.arange(n)[:, None]
+    rows.flags.writeable = False
+    return rows
+
+
 def _distances(p: np.ndarray, teams: int) -> np.ndarray:
     """Centre distances within each of ``teams`` equal consecutive blocks of ``p``: ``(K, N, N)``, inf diagonal."""
     n = p.shape[0] // teams
@@ -164,12 +173,13 @@ def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     if kk <= 0:
         return np.full((teams * n, k), -1, dtype=np.intp), np.full((teams * n, k), np.inf)
     d2 = d.reshape(teams * n, n)
+    rows = _rows(teams * n)
     if n <= _FULL_SORT_MAX or kk >= n - 1:
         order = np.argsort(d2, axis=1)[:, :kk]
     else:
         part = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
-        order = np.take_along_axis(part, np.argsort(np.take_along_axis(d2, part, 1), axis=1), 1)
-    dk = np.take_along_axis(d2, order, 1)
+        order = part[rows, np.argsort(d2[rows, part], axis=1)]
+    dk = d2[rows, order]
     if teams > 1:
         order = order + np.repeat(np.arange(teams) * n, n)[:, None]
     if kk == k:
@@ -186,13 +196,21 @@ def _robot_gaps(d: np.ndarray, radii: np.ndarray, equal: np.ndarray | None = Non
         return np.full(teams * n, np.inf)
     r = radii.reshape(teams, n)
     if equal is None:
-        equal = r.min(axis=1) == r.max(axis=1)
+        equal = np.array([radii.min() == radii.max()]) if teams == 1 else r.min(axis=1) == r.max(axis=1)
+    if teams == 1 and equal[0]:
+        return np.minimum.reduce(d[0], axis=1) - 2.0 * radii
     if equal.all():
         return (np.minimum.reduce(d, axis=2) - 2.0 * r).ravel()
     gap = (d - r[:, :, None] - r[:, None, :]).min(axis=2)
     if equal.any():
         gap = np.where(equal[:, None], np.minimum.reduce(d, axis=2) - 2.0 * r, gap)
     return gap.ravel()
+
+
+def _listed_gaps(idx: np.ndarray, dist: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Surface gap ``(N,)`` to the nearest of the neighbours ``idx`` (-1: none) at centre distances ``dist``."""
+    valid = idx >= 0
+    return np.where(valid, dist - radii[:, None] - radii[np.where(valid, idx, 0)], np.inf).min(axis=1)
 
 
 def k_nearest(p: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
@@ -240,12 +258,11 @@ def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacl
     """
     if p.shape[0] // teams < KDTREE_MIN_ROBOTS:
         d = _distances(p, teams)
-        idx, dist = _nearest(d, k)
+        idx, dist = _nearest(d, k) if k else (np.empty((p.shape[0], 0), np.intp), np.empty((p.shape[0], 0)))
         gap = _robot_gaps(d, radii, equal_radii)
     else:
         idx, dist, _ = k_nearest(p, max(k, clear_k))
-        valid = idx >= 0  # the surface gap to the nearest listed neighbour
-        gap = np.where(valid, dist - radii[:, None] - radii[np.where(valid, idx, 0)], np.inf).min(axis=1)
+        gap = _listed_gaps(idx, dist, radii)
         idx, dist = idx[:, :k], dist[:, :k]
     og = _obstacle_gaps(p, radii, centers, obstacle_radii, teams)
     if og.shape[1]:
