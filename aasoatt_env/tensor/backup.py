@@ -192,6 +192,7 @@ def repair(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, vali
     rows = _Rows(other, obstacles, u.dtype)
     start = (*points(team, pose), _point_accel(team, u, 1.0))
     half = torch.where(rows.robot, 0.5, 1.0).to(u.dtype)
+    unit = eps * torch.eye(2, dtype=u.dtype, device=u.device)  # the two input directions' steps
     with torch.no_grad():
         cand = du.detach()
         for _ in range(rounds):
@@ -202,7 +203,7 @@ def repair(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, vali
                 break
             grads = []
             for d in range(2):
-                moved = cand + eps * torch.eye(2, dtype=cand.dtype, device=cand.device)[d]
+                moved = cand + unit[d]
                 mp, _ = _margins(team, cfg, rows, start, *integrate(team, pose, u, moved, cfg.dt), valid, ds,
                                  other=base)
                 grads.append(torch.where(low, (mp - m) / eps, torch.zeros_like(m)))
