@@ -29,6 +29,7 @@ import numpy as np
 
 from aasoatt_env import validation as check
 from aasoatt_env.model.geometry import k_nearest
+from aasoatt_env.model.portable import solve2
 from agents.base import register_agent
 
 __all__ = [
@@ -62,7 +63,7 @@ def _point_toward(env: Any, target: np.ndarray) -> dict[str, np.ndarray]:
     d = target - kin.p
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
     accel = team.max_point_accel[:, None] * d
-    du = np.linalg.solve(kin.A, (accel - kin.adot_u)[..., None])[..., 0]
+    du = solve2(kin.A, accel - kin.adot_u)
     return _actions(env, np.clip(du / team.max_wheel_accel[:, None], -1.0, 1.0))
 
 

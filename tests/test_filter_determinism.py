@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+import platform
 import subprocess
 import sys
 
@@ -33,3 +35,62 @@ def test_two_processes_step_the_same_positions(scenario, n, mode):
                            text=True, timeout=600, check=True).stdout.split() for _ in range(2)]
     assert runs[0] == runs[1]
     assert int(runs[0][1]) > (100 if n == 120 else 10)  # (the QP saw many rows: coupled robots, not closed forms)
+
+
+_ACROSS = """
+import collections, hashlib, sys
+from aasoatt_env import make_env
+from agents import TrackingController
+from agents.adversaries import ADVERSARIES
+digest, statuses = hashlib.sha256(), collections.Counter()
+for mode in ("centralized", "decentralized"):
+    for scenario, n, agent, obstacles, steps in (("random_goals", 20, None, 0, 800), ("circle_swap", 16, None, 0, 800),
+                                                 ("random_goals", 16, "spin_up", 4, 300),
+                                                 ("random_goals", 16, "chase_nearest", 4, 300)):
+        kw = {"random_obstacles": obstacles} if obstacles else {}
+        env = make_env(scenario, num_robots=n, filter={"mode": mode}, max_steps=10**9, **kw)
+        obs, _ = env.reset(seed=1)
+        ctrl = TrackingController() if agent is None else ADVERSARIES[agent]()
+        if agent is not None:
+            ctrl.reset(env)
+        for _ in range(steps):
+            obs, *_ = env.step(ctrl.act(obs, env))
+            digest.update(env.unwrapped.poses.tobytes())
+            statuses[env.unwrapped.filter_outputs[-1].status] += 1
+print(digest.hexdigest(), *sorted(statuses.items()))
+"""
+
+
+def _other_cpus() -> dict[str, dict[str, str]]:
+    """Environment variables under which this machine runs the kernels another x86-64 CPU would (AVX2 + FMA)."""
+    from numpy._core._multiarray_umath import __cpu_dispatch__, __cpu_features__
+
+    if platform.machine() not in ("x86_64", "AMD64") or not (__cpu_features__["AVX2"] and __cpu_features__["FMA3"]):
+        return {}
+    avx512 = [f for f in __cpu_dispatch__ if "512" in f or f == "X86_V4"]
+    others = {"AVX2 machine": {"NPY_DISABLE_CPU_FEATURES": " ".join(avx512), "OPENBLAS_CORETYPE": "Haswell",
+                               "NUMBA_CPU_NAME": "haswell"}}
+    if __cpu_features__.get("AVX512F"):
+        others["Intel AVX-512 BLAS"] = {"OPENBLAS_CORETYPE": "SkylakeX"}
+    return others
+
+
+@pytest.mark.slow
+def test_the_same_bits_on_other_x86_cpus():
+    """Rollouts behind the default filter (both modes; the tracking law, and adversaries among obstacles, where the
+    backup layer and relaxed QPs answer) give the same poses, bit for bit, when numpy, OpenBLAS and numba run the
+    kernels they would pick on another AVX2 + FMA CPU (numpy's AVX-512 loops off; OpenBLAS's Haswell or Intel
+    AVX-512 kernels; numba compiling for Haswell).  :mod:`aasoatt_env.model.portable` says what this needs."""
+    others = _other_cpus()
+    if not others:
+        pytest.skip("needs an x86-64 CPU with AVX2 and FMA")
+
+    def run(extra: dict[str, str]) -> list[str]:
+        env = {**os.environ, **extra}
+        return subprocess.run([sys.executable, "-c", _ACROSS], capture_output=True, text=True, timeout=900, check=True,
+                              env=env).stdout.split()
+
+    here = run({})
+    assert any(s.startswith("('backup'") for s in here) and any(s.startswith("('relaxed'") for s in here), here
+    for name, extra in others.items():
+        assert run(extra) == here, name

@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 
 from aasoatt_env.model.params import Team
+from aasoatt_env.model.portable import atan2
 
 __all__ = ["DT", "Kinematics", "control_point", "input_bounds", "integrate", "jacobian", "kinematics",
            "pose_from_point", "speed_box"]
@@ -106,10 +107,10 @@ def integrate(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: f
         pose_new[:, :2] += u * dt + 0.5 * du * dt * dt
         speed = np.hypot(u_new[:, 0], u_new[:, 1])
         moving = speed > 1e-9
-        pose_new[:, 2] = np.where(moving, np.arctan2(u_new[:, 1], u_new[:, 0]), pose[:, 2])
+        pose_new[:, 2] = np.where(moving, atan2(u_new[:, 1], u_new[:, 0]), pose[:, 2])
         return pose_new, u_new
     um = 0.5 * (u + u_new)  # mean wheel speeds over the step
-    vw = np.matmul(team.wheel_map, um[:, :, None])[:, :, 0]  # forward speed, yaw rate
+    vw = np.einsum("nij,nj->ni", team.wheel_map, um)  # forward speed, yaw rate
     half = (0.5 * dt) * vw[:, 1]  # half the heading change
     # chord of the arc = path length * sin(x)/x with x = half, stable for small x
     if np.abs(half).min(initial=np.inf) < _SMALL_OMEGA:

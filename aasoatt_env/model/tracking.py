@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from aasoatt_env.model.dynamics import Kinematics
+from aasoatt_env.model.portable import solve2
 
 __all__ = ["PAPER_K3", "PAPER_K4", "point_accel_to_du", "tracking_accel"]
 
@@ -26,4 +27,4 @@ def tracking_accel(p: np.ndarray, v: np.ndarray, p_d: np.ndarray, v_d: np.ndarra
 
 def point_accel_to_du(kin: Kinematics, accel: np.ndarray) -> np.ndarray:
     """Wheel accelerations ``du = A^{-1} (accel - A_dot u)`` realising point accelerations ``(N, 2)``."""
-    return np.linalg.solve(kin.A, (accel - kin.adot_u)[..., None])[..., 0]
+    return solve2(kin.A, accel - kin.adot_u)

@@ -88,7 +88,7 @@ def _braking(g: PairGeometry, q: FilterConfig) -> tuple[np.ndarray, None]:
     xp = namespace(r)
     root = xp.sqrt(2.0 * g.a_plus * xp.maximum(r - g.d_s, 1e-6))
     h = root + pv / r
-    return q.gamma * h**3 * r + vv - pv * pv / (r * r) + g.a_plus * pv / root + pa, None
+    return q.gamma * h * h * h * r + vv - pv * pv / (r * r) + g.a_plus * pv / root + pa, None
 
 
 def _velocity_rhs(g: PairGeometry, q: FilterConfig, d: np.ndarray) -> np.ndarray:

@@ -316,4 +316,4 @@ def yield_target(target: np.ndarray, zeta: np.ndarray, Q: np.ndarray, c: TargetC
     toward = -(c.k3 + c.k4) * c.v - c.k3 * c.k4 * (c.p - g) - c.adot  # the tracking law toward g at rest there
     out = np.where(off[:, None], toward, target)
     e = c.v - g_v + c.k3 * (c.p - g)
-    return out - zeta[:, None] * (e @ Q.T)
+    return out - zeta[:, None] * np.einsum("ij,nj->ni", Q, e)

@@ -75,7 +75,7 @@ def _linear(starts: np.ndarray, goals: np.ndarray, delta: np.ndarray, T: np.ndar
     if profile == "linear":
         v = np.where(done, 0.0, delta / T[:, None])
         return np.where(done, goals, starts + tau * delta), v, np.zeros_like(starts)
-    s = tau**3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
+    s = tau * tau * tau * (10.0 - 15.0 * tau + 6.0 * tau * tau)
     ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / T[:, None]
     dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (T * T)[:, None]
     return np.where(done, goals, starts + s * delta), np.where(done, 0.0, ds * delta), np.where(done, 0.0, dds * delta)

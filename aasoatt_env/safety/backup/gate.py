@@ -73,7 +73,7 @@ def bucketed_margins(P: np.ndarray, D: np.ndarray, need: np.ndarray, ii: np.ndar
     if ii.size * int(lens.max()) <= max(2 * int(lens.sum()), _ONE_BUCKET_CELLS):
         bucket = np.zeros(ii.shape[0], dtype=np.int64)  # small or even: one call (padding samples are at rest)
     else:
-        bucket = np.ceil(np.log2(lens)).astype(np.int64)
+        bucket = np.frexp(lens - 1)[1].astype(np.int64)  # ceil(log2(lens)), exactly
     for b in np.unique(bucket):
         sel = np.flatnonzero(bucket == b)
         Lb = int(lens[sel].max())

@@ -13,6 +13,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.sparse as sp
 
+from aasoatt_env.model.portable import solve2
 from aasoatt_env.safety.problem import QPProblem
 from aasoatt_env.safety.solvers.active_set import (
     VERIFIED_MESSAGE,
@@ -212,4 +213,4 @@ def _nonneg(z: np.ndarray | None, m: int) -> np.ndarray:
 
 
 def _unconstrained(prob: QPProblem) -> np.ndarray:
-    return -np.linalg.solve(prob.H_blocks, prob.g.reshape(-1, 2)[..., None])[..., 0].ravel()
+    return -solve2(prob.H_blocks, prob.g.reshape(-1, 2)).ravel()

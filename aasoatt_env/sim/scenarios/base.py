@@ -12,6 +12,7 @@ from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError, ScenarioError
 from aasoatt_env.model.geometry import robot_pairs
 from aasoatt_env.model.params import Team
+from aasoatt_env.model.portable import atan2
 from aasoatt_env.sim.references import Reference
 
 __all__ = ["MAX_ROBOTS", "Layout", "Scenario", "bounds_around", "check_clear_of_obstacles", "check_groups",
@@ -152,4 +153,4 @@ def bounds_around(points: np.ndarray, margin: float = 1.5) -> tuple[float, float
 def heading_of(v: np.ndarray, fallback: np.ndarray) -> np.ndarray:
     """Headings along ``v`` ``(N, 2)``; ``fallback`` where ``v`` is zero."""
     speed = np.hypot(v[:, 0], v[:, 1])
-    return np.where(speed > 1e-12, np.arctan2(v[:, 1], v[:, 0]), fallback)
+    return np.where(speed > 1e-12, atan2(v[:, 1], v[:, 0]), fallback)

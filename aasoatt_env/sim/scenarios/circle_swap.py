@@ -9,6 +9,7 @@ import numpy as np
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ScenarioError
 from aasoatt_env.model.params import RobotParams, make_team
+from aasoatt_env.model.portable import atan2
 from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.scenarios import base
 from aasoatt_env.sim.scenarios.base import Layout, Scenario
@@ -56,7 +57,7 @@ class CircleSwap(Scenario):
         """Return the (deterministic) circle-swap layout."""
         starts, goals = self._starts_goals()
         ref = LinearReference(starts, goals, self.duration, profile=self.profile)  # type: ignore[arg-type]
-        headings = np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0])
+        headings = atan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0])
         b = self.radius + 1.0
         return Layout(team=self._team, starts=starts, headings=headings, reference=ref,
                       horizon=self.duration + self.settle_time, obstacle_centers=self._obstacles[0],

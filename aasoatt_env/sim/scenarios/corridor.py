@@ -7,6 +7,7 @@ import numpy as np
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ScenarioError
 from aasoatt_env.model.params import RobotParams, make_team
+from aasoatt_env.model.portable import atan2
 from aasoatt_env.sim.references import WaypointReference
 from aasoatt_env.sim.scenarios import base
 from aasoatt_env.sim.scenarios.base import Layout, Scenario
@@ -38,7 +39,7 @@ def passage_layout(scenario: Scenario, starts: np.ndarray, goals: np.ndarray, ga
     base.check_clear_of_obstacles("obstacles", starts, team.radius, obstacles)
     base.check_clear_of_obstacles("obstacles", goals, team.radius, obstacles)
     pts = np.concatenate((starts, goals, obstacles[0]))
-    return Layout(team=team, starts=starts, headings=np.arctan2(*(enter - starts).T[::-1]), reference=ref,
+    return Layout(team=team, starts=starts, headings=atan2(*(enter - starts).T[::-1]), reference=ref,
                   horizon=duration + scenario.settle_time,  # type: ignore[attr-defined]
                   obstacle_centers=obstacles[0], obstacle_radii=obstacles[1], bounds=base.bounds_around(pts))
 

@@ -9,6 +9,7 @@ import numpy as np
 from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.params import RobotParams, make_team
+from aasoatt_env.model.portable import atan2
 from aasoatt_env.sim.references import COORD_MAX, as_reference
 from aasoatt_env.sim.scenarios import base
 from aasoatt_env.sim.scenarios.base import Layout, Scenario
@@ -56,7 +57,7 @@ class Custom(Scenario):
         """Return the user's layout."""
         ref = self._reference
         _, v0, _ = ref(0.0)
-        toward = np.arctan2(*(ref.goals - self._starts).T[::-1])
+        toward = atan2(*(ref.goals - self._starts).T[::-1])
         headings = self._headings if self._headings is not None else base.heading_of(v0, toward)
         pts = np.concatenate([self._starts, ref.goals, *(ref(t)[0] for t in np.linspace(0, ref.duration, 16)),
                               self._obstacles[0]])

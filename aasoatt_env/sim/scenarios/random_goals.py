@@ -10,6 +10,7 @@ from aasoatt_env import validation as check
 from aasoatt_env.errors import ConfigError, ScenarioError
 from aasoatt_env.model.geometry import kdtree
 from aasoatt_env.model.params import RobotParams, make_team
+from aasoatt_env.model.portable import atan2
 from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.scenarios import base
 from aasoatt_env.sim.scenarios.base import Layout, Scenario
@@ -112,7 +113,7 @@ class RandomGoals(Scenario):
         b = self.arena_size / 2.0 + 0.5
         centers, radii = self._obstacles(rng, np.concatenate((starts, goals)))
         return Layout(team=self._team, starts=starts, reference=ref, horizon=ref.duration + self.settle_time,
-                      headings=np.arctan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0]),
+                      headings=atan2(goals[:, 1] - starts[:, 1], goals[:, 0] - starts[:, 0]),
                       obstacle_centers=centers, obstacle_radii=radii, bounds=(-b, b, -b, b))
 
     def _obstacles(self, rng: np.random.Generator, keep_clear: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
