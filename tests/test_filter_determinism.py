@@ -57,6 +57,18 @@ for mode in ("centralized", "decentralized"):
             obs, *_ = env.step(ctrl.act(obs, env))
             digest.update(env.unwrapped.poses.tobytes())
             statuses[env.unwrapped.filter_outputs[-1].status] += 1
+try:  # the torch env (an extra), both dtypes
+    import torch
+    from aasoatt_env import make_tensor_env
+except ImportError:
+    torch = None
+for dtype in (torch.float64, torch.float32) if torch is not None else ():
+    torch.set_num_threads(1)
+    env, gen = make_tensor_env("random_goals", 8, 8, dtype=dtype, random_obstacles=2), torch.Generator().manual_seed(0)
+    env.reset(seed=1)
+    for _ in range(300):
+        obs = env.step(torch.rand(8, 8, 2, generator=gen, dtype=dtype) * 2 - 1)[0]
+        digest.update(obs.numpy().tobytes())
 print(digest.hexdigest(), *sorted(statuses.items()))
 """
 
@@ -69,7 +81,7 @@ def _other_cpus() -> dict[str, dict[str, str]]:
         return {}
     avx512 = [f for f in __cpu_dispatch__ if "512" in f or f == "X86_V4"]
     others = {"AVX2 machine": {"NPY_DISABLE_CPU_FEATURES": " ".join(avx512), "OPENBLAS_CORETYPE": "Haswell",
-                               "NUMBA_CPU_NAME": "haswell"}}
+                               "NUMBA_CPU_NAME": "haswell", "ATEN_CPU_CAPABILITY": "avx2"}}
     if __cpu_features__.get("AVX512F"):
         others["Intel AVX-512 BLAS"] = {"OPENBLAS_CORETYPE": "SkylakeX"}
     return others
@@ -78,9 +90,10 @@ def _other_cpus() -> dict[str, dict[str, str]]:
 @pytest.mark.slow
 def test_the_same_bits_on_other_x86_cpus():
     """Rollouts behind the default filter (both modes; the tracking law, and adversaries among obstacles, where the
-    backup layer and relaxed QPs answer) give the same poses, bit for bit, when numpy, OpenBLAS and numba run the
-    kernels they would pick on another AVX2 + FMA CPU (numpy's AVX-512 loops off; OpenBLAS's Haswell or Intel
-    AVX-512 kernels; numba compiling for Haswell).  :mod:`aasoatt_env.model.portable` says what this needs."""
+    backup layer and relaxed QPs answer) and of the torch env give the same bits when numpy, OpenBLAS, numba and
+    torch run the kernels they would pick on another AVX2 + FMA CPU (numpy's AVX-512 loops off; OpenBLAS's Haswell or
+    Intel AVX-512 kernels; numba compiling for Haswell; torch's AVX2 kernels).  :mod:`aasoatt_env.model.portable`
+    says what this needs."""
     others = _other_cpus()
     if not others:
         pytest.skip("needs an x86-64 CPU with AVX2 and FMA")
