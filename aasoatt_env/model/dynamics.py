@@ -112,16 +112,16 @@ def integrate(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: f
     um = 0.5 * (u + u_new)  # mean wheel speeds over the step
     vw = np.einsum("nij,nj->ni", team.wheel_map, um)  # forward speed, yaw rate
     half = (0.5 * dt) * vw[:, 1]  # half the heading change
-    # chord of the arc = path length * sin(x)/x with x = half, stable for small x
-    if np.abs(half).min(initial=np.inf) < _SMALL_OMEGA:
-        small = np.abs(half) < _SMALL_OMEGA
+    # chord of the arc = path length * sin(x)/x with x = half; below _SMALL_OMEGA, 1 - x^2/6 rounds to 1
+    small = np.abs(half) < _SMALL_OMEGA
+    if small.any():
         safe = np.where(small, 1.0, half)
-        sinc = np.where(small, 1.0 - half * half / 6.0, np.sin(safe) / safe)
+        sinc = np.where(small, 1.0, np.sin(safe) / safe)
     else:
         sinc = np.sin(half) / half
     theta = pose[:, 2]
     chord = (dt * vw[:, 0] * sinc) * np.exp(1j * (theta + half))
     pose_new = np.empty_like(pose)
-    pose_new[:, :2] = pose[:, :2] + chord.view(np.float64).reshape(-1, 2)
-    pose_new[:, 2] = theta + 2.0 * half
+    np.add(pose[:, :2], chord.view(np.float64).reshape(-1, 2), out=pose_new[:, :2])
+    np.add(theta, 2.0 * half, out=pose_new[:, 2])
     return pose_new, u_new

@@ -176,7 +176,7 @@ class TeamStack:
     def _checked(self, out: Any, k: int | None, rows: int) -> np.ndarray:
         """A filter output's ``du``: finite, ``(rows, 2)`` (``k``: the team of a per-team call)."""
         d = np.asarray(out.du, dtype=np.float64)
-        if d.shape != (rows, 2) or not np.all(np.isfinite(d)):
+        if d.shape != (rows, 2) or not np.isfinite(d).all():
             who = ("the grouped control filter" if k is None else "control filter" if self._k == 1
                    else f"control filter of team {k + self._offset}")
             raise ActionError(f"{who} returned shape {d.shape} or non-finite values, expected finite ({rows}, 2)")
