@@ -175,7 +175,7 @@ def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     d2 = d.reshape(teams * n, n)
     rows = _rows(teams * n)
     if n <= _FULL_SORT_MAX or kk >= n - 1:
-        order = np.argsort(d2, axis=1)[:, :kk]
+        order = d2.argsort(axis=1)[:, :kk]
     else:
         part = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
         order = part[rows, np.argsort(d2[rows, part], axis=1)]

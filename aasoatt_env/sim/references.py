@@ -74,7 +74,7 @@ def _linear(starts: np.ndarray, goals: np.ndarray, delta: np.ndarray, T: np.ndar
     tau = (np.maximum(t, 0.0) / T)[:, None]
     if profile == "linear":
         v = np.where(done, 0.0, delta / T[:, None])
-        return np.where(done, goals, starts + tau * delta), v, np.zeros_like(starts)
+        return np.where(done, goals, starts + tau * delta), v, np.zeros(starts.shape)
     s = tau * tau * tau * (10.0 - 15.0 * tau + 6.0 * tau * tau)
     ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / T[:, None]
     dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (T * T)[:, None]
