@@ -3,8 +3,8 @@
 numpy picks per-CPU SIMD kernels for ``arctan2``, ``exp``, ``log`` and ``power`` (AVX-512 ones differ from AVX2 ones in
 the last bit), and OpenBLAS picks per-CPU kernels for ``linalg.solve`` and ``dot``.  A closed-loop rollout amplifies a
 last-bit difference into another trajectory, so the simulation avoids those calls: it uses these instead, ``x * x * x``
-for cubes, and ``einsum`` (numpy's own loops) for products.  ``tests/test_determinism.py`` checks this by running the
-same rollouts with the AVX-512 kernels switched off.
+for cubes, and ``einsum`` (numpy's own loops) for products.  ``tests/test_filter_determinism.py`` checks this by
+running the same rollouts with the kernels of other CPUs.
 """
 
 from __future__ import annotations
