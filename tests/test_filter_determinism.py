@@ -25,14 +25,19 @@ print(digest.hexdigest(), qp_rows)
 """
 
 
+def _printed(script: str, *args: str, **env: str) -> list[str]:
+    """The words ``script`` prints in a fresh process (``env`` added to this one's environment)."""
+    return subprocess.run([sys.executable, "-c", script, *args], capture_output=True, text=True, timeout=900,
+                          check=True, env={**os.environ, **env}).stdout.split()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("mode", ["centralized", "decentralized"])
 @pytest.mark.parametrize(("scenario", "n"), [("circle_swap", 20), ("random_goals", 120)])
 def test_two_processes_step_the_same_positions(scenario, n, mode):
     """2,000 physics steps behind the default filter (the paper's tracking controller): every step's positions
     equal bit for bit in two fresh processes (numba's cache, the heap and the clock differ between them)."""
-    runs = [subprocess.run([sys.executable, "-c", _RUN, scenario, str(n), mode, "2000"], capture_output=True,
-                           text=True, timeout=600, check=True).stdout.split() for _ in range(2)]
+    runs = [_printed(_RUN, scenario, str(n), mode, "2000") for _ in range(2)]
     assert runs[0] == runs[1]
     assert int(runs[0][1]) > (100 if n == 120 else 10)  # (the QP saw many rows: coupled robots, not closed forms)
 
@@ -98,12 +103,7 @@ def test_the_same_bits_on_other_x86_cpus():
     if not others:
         pytest.skip("needs an x86-64 CPU with AVX2 and FMA")
 
-    def run(extra: dict[str, str]) -> list[str]:
-        env = {**os.environ, **extra}
-        return subprocess.run([sys.executable, "-c", _ACROSS], capture_output=True, text=True, timeout=900, check=True,
-                              env=env).stdout.split()
-
-    here = run({})
+    here = _printed(_ACROSS)
     assert any(s.startswith("('backup'") for s in here) and any(s.startswith("('relaxed'") for s in here), here
     for name, extra in others.items():
-        assert run(extra) == here, name
+        assert _printed(_ACROSS, **extra) == here, name
