@@ -23,7 +23,7 @@ from aasoatt_env.safety.solvers.local import RELAX_TOL, solve_local_qps
 from aasoatt_env.safety.stages import Answer, StepInput, Warm
 
 __all__ = ["GROUP_ONE_CHANGE_ITER", "SPLITS", "Decentralized", "DecentralizedResult", "SplitRows",
-           "decentralized_step", "negotiation_rows", "split_rows"]
+           "decentralized_step", "negotiation_rows", "solve_groups", "split_rows"]
 
 SPLITS: tuple[str, ...] = ("reciprocal", "authority")  #: ways of sharing a pair row (module docstring)
 #: the warm active set's one-change budget on the negotiation groups' QPs (their warm starts are often far off)
@@ -224,25 +224,40 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
     side_i = grouped[ri] & ~whole
     side_j = grouped[sp.owner[m:]] & ~whole[sp.rr]
     kept = np.concatenate((np.flatnonzero(side_i), m + np.flatnonzero(side_j)))
-    sub = np.flatnonzero(grouped)
-    remap = np.full(n, -1, dtype=np.intp)
-    remap[sub] = np.arange(sub.size)
-    k = kept.shape[0]
-    g_ri = np.concatenate((remap[ri[joint]], remap[sp.owner[kept]]))
-    g_rj = np.concatenate((remap[rj[joint]], np.full(k, -1, dtype=np.intp)))
-    g_Gi = np.concatenate((Gi[joint], sp.G[kept]))
-    g_Gj = np.concatenate((Gj[joint], np.zeros((k, 2))))
-    g_rhs = np.concatenate((rhs[joint], sp.h[kept]))
     # (a kept half starts at its row's multiplier)
     z0 = warm.z
-    g_z = np.zeros(g_rhs.shape[0]) if z0 is None else np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
-    g_rows = Rows(g_ri, g_rj, g_Gi, g_Gj, g_rhs, np.empty((0, 2), np.intp), np.empty(0, np.int64), np.inf, np.inf)
+    g_z = None if z0 is None else np.concatenate((z0[joint], z0[sp.row_side(kept)[0]]))
+    ans, n_groups, largest = solve_groups(A, target, lo, hi, scale, Warm(warm.x, g_z, warm.compiled), grouped,
+                                          (ri[joint], rj[joint], Gi[joint], Gj[joint], rhs[joint]),
+                                          (sp.owner[kept], sp.G[kept], sp.h[kept]), policy, compiled)
+    return joint, grouped, ans, kept, n_groups, largest
+
+
+def solve_groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, warm: Warm,
+                 grouped: np.ndarray, joint: tuple[np.ndarray, ...], kept: tuple[np.ndarray, ...],
+                 policy: SolverPolicy, compiled: bool) -> tuple[TeamAnswer, int, int]:
+    """The ``grouped`` robots' joint QP: the whole rows ``joint = (ri, rj, Gi, Gj, rhs)`` and their half-rows
+    ``kept = (owner, G, h)``, from ``warm`` (``x`` of the team, scaled; ``z`` of ``joint`` then ``kept``).
+
+    Returns the answer (the grouped robots', multipliers of ``joint`` then ``kept``), the groups, the largest's size.
+    """
+    sub = np.flatnonzero(grouped)
+    remap = np.full(A.shape[0], -1, dtype=np.intp)
+    remap[sub] = np.arange(sub.size)
+    jri, jrj, jGi, jGj, jrhs = joint
+    owner, G, h = kept
+    k = owner.shape[0]
+    g_ri = np.concatenate((remap[jri], remap[owner]))
+    g_rj = np.concatenate((remap[jrj], np.full(k, -1, dtype=np.intp)))
+    g_z = np.zeros(jri.shape[0] + k) if warm.z is None else warm.z
+    g_rows = Rows(g_ri, g_rj, np.concatenate((jGi, G)), np.concatenate((jGj, np.zeros((k, 2)))),
+                  np.concatenate((jrhs, h)), np.empty((0, 2), np.intp), np.empty(0, np.int64), np.inf, np.inf)
     ans = solve_team(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_rows,
                      Warm(np.ascontiguousarray(warm.x[sub]), g_z, warm.compiled), decompose=True, compiled=compiled,
                      settings=compiled_settings(policy, compiled))
-    label = pair_components(sub.size, g_ri[: joint.shape[0]], g_rj[: joint.shape[0]], compiled=compiled)
+    label = pair_components(sub.size, g_ri[: jri.shape[0]], g_rj[: jri.shape[0]], compiled=compiled)
     sizes = np.bincount(label, minlength=sub.size)
-    return joint, grouped, ans, kept, int(np.count_nonzero(sizes >= 2)), int(sizes.max(initial=0))
+    return ans, int(np.count_nonzero(sizes >= 2)), int(sizes.max(initial=0))
 
 
 @dataclass(frozen=True)

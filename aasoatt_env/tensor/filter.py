@@ -4,26 +4,32 @@ One step of :class:`~aasoatt_env.safety.core.SafetyFilter` with ``mode="decentra
 bounds; the ``multiplier`` trigger and eqn.13's target correction (``auxiliary_velocity``) or none; the rows of
 ``cfg.barrier`` (registered with ``array_api=True``) for every robot and obstacle pair in sensing range, shared
 reciprocally by authority around each robot's box least-squares answer; each robot's exact 2-variable QP
-(:mod:`~aasoatt_env.safety.solvers.polygons`). With ``backup=False``, where the numpy filter answers every robot by
-its own QP, the answers agree (1e-9 feasible, 1e-6 relaxed). ``status`` bits per robot: :data:`RELAXED` (its QP is
-infeasible: rows loosened by their least violation, as numpy), :data:`GROUPED` (``negotiate=True`` would solve it
-with its negotiation group; the answer stays its own QP's), :data:`BACKUP` (braked by the check of :mod:`.backup`,
-not the numpy backup layer), :data:`UNSAFE` (that check found a pair failing although both brake).
+(:mod:`~aasoatt_env.safety.solvers.polygons`); ``negotiate=True``: the negotiation groups jointly, by the numpy
+filter's own solver. With ``backup=False`` the answers agree with the numpy filter's (1e-9; relaxed robots 1e-6).
+``status`` bits per robot: :data:`RELAXED` (its QP, or its group's, is infeasible: rows loosened by their least
+violation), :data:`GROUPED` (answered by its negotiation group, on the CPU, without gradient), :data:`BACKUP`
+(braked by the check of :mod:`.backup`, not the numpy backup layer), :data:`UNSAFE` (that check found a pair failing
+although both brake).
 """
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.safety.barriers import PairGeometry, get_barrier
 from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.decentralized import GROUP_ONE_CHANGE_ITER, solve_groups
 from aasoatt_env.safety.problem import box_ls
 from aasoatt_env.safety.solvers.local import RELAX_TOL
+from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers.polygons import FAR, LocalAnswer, least_violation, solve_polygons
+from aasoatt_env.safety.stages import Warm
 from aasoatt_env.tensor.backup import gate, repair
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
 
@@ -186,12 +192,27 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     share = torch.where(pos, torch.where(low, a_own / safe_tot, 1.0 - a_oth / safe_tot), torch.full_like(tot, 0.5))
     need = torch.where(low, (base - rhs) + base_o, (base_o - rhs) + base)
     h = torch.where(robot, base - need * share, base - (base - rhs))
-    return _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, rows, gx, gy, h, du0, pose, u, obstacles)
+    hr = _HalfRows(rows, gx, gy, h, rhs, ogx, ogy)
+    return _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, pose, u, obstacles)
 
 
-def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, rows, gx, gy, h, du0, pose, u,
-           obstacles) -> FilterOut:
-    """The robots' QPs in ``w = A du`` (``solve_polygons``), their multipliers' trigger, the answer, its report."""
+class _HalfRows(NamedTuple):
+    """Each robot's rows ``(B, N, K + M)``: kept, its half ``(gx, gy) du_own <= h``, the whole row's ``rhs`` and the
+    other robot's part ``(ogx, ogy)`` (the row: ``(gx, gy) du_own + (ogx, ogy) du_other <= rhs``)."""
+
+    on: torch.Tensor
+    gx: torch.Tensor
+    gy: torch.Tensor
+    h: torch.Tensor
+    rhs: torch.Tensor
+    ogx: torch.Tensor
+    ogy: torch.Tensor
+
+
+def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, pose, u, obstacles) -> FilterOut:
+    """The robots' QPs in ``w = A du`` (``solve_polygons``), their multipliers' trigger, the negotiation groups, the
+    answer, its report."""
+    rows, gx, gy, h = hr.on, hr.gx, hr.gy, hr.h
     B, N, K = h.shape
     det = kin.a00 * kin.a11 - kin.a01 * kin.a10
     i00, i01, i10, i11 = kin.a11 / det, -kin.a01 / det, -kin.a10 / det, kin.a00 / det  # A^-1
@@ -227,7 +248,7 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, rows, gx, g
     avoiding = ((z > cfg.eta_tol) & rows).any(-1)
     status = torch.where(sol.feasible.reshape(B, N), 0, RELAXED)
     if cfg.negotiate and bool(trig.any()):
-        status = status | torch.where(_grouped(cfg, trig, pr, rows), GROUPED, 0)
+        du, avoiding, status = _negotiate(cfg, kin, lo, hi, scale, target, du0, trig, pr, hr, du, avoiding, status)
     if cfg.backup:
         if cfg.backup_repair:
             du = repair(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
@@ -257,14 +278,67 @@ def _relaxed(sol: LocalAnswer, t, nx, ny, b, t_box, gx, gy, h, valid, inv, lo, h
                        sol.feasible.index_copy(0, bad, torch.zeros_like(again.feasible)))
 
 
-def _grouped(cfg: FilterConfig, trig: torch.Tensor, pr: _Pairs, rows: torch.Tensor) -> torch.Tensor:
-    """``(B, N)``: robots in a row the numpy filter's negotiation groups would solve whole (``negotiation_rows``)."""
-    robot = rows & (pr.other >= 0)
+def _negotiate(cfg: FilterConfig, kin: TensorKinematics, lo, hi, scale, target, du0, trig, pr: _Pairs,
+               hr: _HalfRows, du, avoiding, status) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The numpy filter's negotiation groups (``negotiation_rows``), solved jointly by its solver on the CPU.
+
+    Their robots get the groups' answer (a constant: no gradient), the trigger memory of the groups' multipliers and
+    ``GROUPED``, with ``RELAXED`` where the answer violates one of their rows (an inconsistent group's least-violation
+    answer).  One numpy call for every group of every team (:func:`~aasoatt_env.safety.decentralized.solve_groups`).
+    """
+    robot = hr.on & (pr.other >= 0)
     j = torch.clamp(pr.other, min=0)
-    trig_o = _gather(trig, j)
     touch = robot & (torch.sqrt(pr.gp[0] ** 2 + pr.gp[1] ** 2).detach() - pr.ds < cfg.negotiate_gap)
-    member = trig | (touch & trig_o).any(-1)
-    return (robot & member[..., None] & _gather(member, j)).any(-1)
+    member = trig | (touch & _gather(trig, j)).any(-1)
+    whole = robot & member[..., None] & _gather(member, j)
+    grouped = whole.any(-1)
+    if not bool(grouped.any()):
+        return du, avoiding, status
+    B, N, K = whole.shape
+    dev = du.device
+    sub = torch.nonzero(grouped.flatten()).flatten()
+    local = torch.full((B * N,), -1, dtype=torch.long, device=dev)
+    local[sub] = torch.arange(sub.shape[0], device=dev)
+    flat = torch.arange(B * N, device=dev).reshape(B, N)
+    own, oth = local[flat][..., None].expand(B, N, K), local[_gather(flat, j)]
+    once = whole & (torch.arange(N, device=dev)[None, :, None] < pr.other)  # each whole row from its lower index
+    kept = hr.on & grouped[..., None] & ~whole  # a grouped robot's halves of the other rows, obstacle rows whole
+
+    def cpu(x: torch.Tensor) -> np.ndarray:
+        return x.detach().to("cpu", torch.float64 if x.is_floating_point() else x.dtype).numpy()
+
+    g, go = torch.stack((hr.gx, hr.gy), -1), torch.stack((hr.ogx, hr.ogy), -1)
+    A = torch.stack((kin.a00, kin.a01, kin.a10, kin.a11), -1).reshape(B * N, 2, 2)[sub]
+    lo_s, hi_s, sc = cpu(lo.reshape(-1, 2)[sub]), cpu(hi.reshape(-1, 2)[sub]), cpu(scale.reshape(-1)[sub])
+    ri, rj, owner = cpu(own[once]), cpu(oth[once]), cpu(own[kept])
+    Gi, Gj, rhs, G, h = cpu(g[once]), cpu(go[once]), cpu(hr.rhs[once]), cpu(g[kept]), cpu(hr.h[kept])
+    ans, _, _ = solve_groups(cpu(A), cpu(target.reshape(-1, 2)[sub]), lo_s, hi_s, sc,
+                             Warm(cpu(du0.reshape(-1, 2)[sub]) / sc[:, None], None), np.ones(sub.shape[0], bool),
+                             (ri, rj, Gi, Gj, rhs), (owner, G, h), _policy(cfg), cfg.compiled)
+    m, x = ri.shape[0], ans.du
+    binds = ans.z > cfg.eta_tol  # a whole row binds both of its robots, a kept half its owner
+    bound = np.zeros(sub.shape[0], dtype=bool)
+    bound[np.concatenate((ri, owner))[binds]] = True
+    bound[rj[binds[:m]]] = True
+    over = np.concatenate(((Gi * x[ri]).sum(1) + (Gj * x[rj]).sum(1) - rhs, (G * x[owner]).sum(1) - h))
+    tol = 1e-9 * np.concatenate((np.hypot(*Gi.T) * np.maximum(sc[ri], sc[rj]), np.hypot(*G.T) * sc[owner]))
+    loose = np.zeros(sub.shape[0], dtype=bool)
+    loose[np.concatenate((ri, owner))[over > tol]] = True
+    loose[rj[over[:m] > tol[:m]]] = True
+
+    def put(base: torch.Tensor, new: np.ndarray) -> torch.Tensor:
+        flat_base = base.reshape(B * N, *base.shape[2:])
+        return flat_base.index_copy(0, sub, torch.as_tensor(new, dtype=base.dtype, device=dev)).reshape(base.shape)
+
+    mark = np.where(loose, GROUPED | RELAXED, GROUPED)
+    return put(du, x), put(avoiding, bound), put(status, mark)
+
+
+@functools.cache
+def _policy(cfg: FilterConfig) -> SolverPolicy:
+    """The numpy decentralised filter's solver route for the negotiation groups."""
+    return SolverPolicy(cfg.solver, active_set=cfg.active_set, compiled=cfg.compiled,
+                        one_change_iter=GROUP_ONE_CHANGE_ITER, iterations=cfg.neural_iterations)
 
 
 class SafetyLayer(torch.nn.Module):
