@@ -236,10 +236,11 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
 def solve_groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, warm: Warm,
                  grouped: np.ndarray, joint: tuple[np.ndarray, ...], kept: tuple[np.ndarray, ...],
                  policy: SolverPolicy, compiled: bool) -> tuple[TeamAnswer, int, int]:
-    """The ``grouped`` robots' joint QP: the whole rows ``joint = (ri, rj, Gi, Gj, rhs)`` and their half-rows
-    ``kept = (owner, G, h)``, from ``warm`` (``x`` of the team, scaled; ``z`` of ``joint`` then ``kept``).
+    """The ``grouped`` robots' joint QP over the whole rows ``joint`` and their half-rows ``kept``.
 
-    Returns the answer (the grouped robots', multipliers of ``joint`` then ``kept``), the groups, the largest's size.
+    ``joint = (ri, rj, Gi, Gj, rhs)``, ``kept = (owner, G, h)``; ``warm``: ``x`` of the team (scaled), ``z`` of
+    ``joint`` then ``kept`` (None: 0).  Returns the answer (the grouped robots', multipliers of ``joint`` then
+    ``kept``), the number of groups and the largest's size.
     """
     sub = np.flatnonzero(grouped)
     remap = np.full(A.shape[0], -1, dtype=np.intp)

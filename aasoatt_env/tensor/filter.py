@@ -26,8 +26,8 @@ from aasoatt_env.safety.barriers import PairGeometry, get_barrier
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.decentralized import GROUP_ONE_CHANGE_ITER, solve_groups
 from aasoatt_env.safety.problem import box_ls
-from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.safety.solvers import SolverPolicy
+from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.safety.solvers.polygons import FAR, LocalAnswer, least_violation, solve_polygons
 from aasoatt_env.safety.stages import Warm
 from aasoatt_env.tensor.backup import gate, repair
@@ -197,8 +197,10 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
 
 
 class _HalfRows(NamedTuple):
-    """Each robot's rows ``(B, N, K + M)``: kept, its half ``(gx, gy) du_own <= h``, the whole row's ``rhs`` and the
-    other robot's part ``(ogx, ogy)`` (the row: ``(gx, gy) du_own + (ogx, ogy) du_other <= rhs``)."""
+    """Each robot's rows ``(B, N, K + M)``: kept, its half, the whole row's ``rhs``, the other robot's part.
+
+    The half-row is ``(gx, gy) du_own <= h``; the whole row ``(gx, gy) du_own + (ogx, ogy) du_other <= rhs``.
+    """
 
     on: torch.Tensor
     gx: torch.Tensor
@@ -210,8 +212,7 @@ class _HalfRows(NamedTuple):
 
 
 def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, pose, u, obstacles) -> FilterOut:
-    """The robots' QPs in ``w = A du`` (``solve_polygons``), their multipliers' trigger, the negotiation groups, the
-    answer, its report."""
+    """The robots' QPs in ``w = A du`` (``solve_polygons``), trigger memory, groups, the answer and its report."""
     rows, gx, gy, h = hr.on, hr.gx, hr.gy, hr.h
     B, N, K = h.shape
     det = kin.a00 * kin.a11 - kin.a01 * kin.a10
