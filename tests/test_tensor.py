@@ -104,8 +104,9 @@ def test_a_step_with_no_robot_or_obstacle_in_range_answers_each_robot_by_its_box
 
 
 def test_a_team_gets_the_same_answer_alone_as_in_a_batch():
-    """The braking check's horizon is each team's own: 64 team states near contact, behind the defaults
-    (``backup=True``), filtered in one batch and one team at a time: the same ``du`` (to rounding) and status."""
+    """The braking check's horizon and the negotiation groups are each team's own: 64 team states near contact, behind
+    the defaults (``backup=True``, ``negotiate=True``), filtered in one batch and one team at a time: the same status
+    and ``du`` to 1e-12 (1e-9 in an inconsistent group, whose least-violation QP the batch solves with the others)."""
     rng = np.random.default_rng(7)
     n = 8
     states = random_states(rng, 64, n)
@@ -115,10 +116,12 @@ def test_a_team_gets_the_same_answer_alone_as_in_a_batch():
     team = make_team("paper", n)
     both = tensor_answers(team, states, cfg)
     assert int((both.status & BACKUP).sum()) > 0
+    assert int((both.status & GROUPED).sum()) > 0
     for i, s in enumerate(states):
         alone = tensor_answers(team, [s], cfg)
-        assert torch.allclose(alone.du[0], both.du[i], rtol=0.0, atol=1e-12)
         assert torch.equal(alone.status[0], both.status[i])
+        tol = torch.where((both.status[i] & (GROUPED | RELAXED)) == (GROUPED | RELAXED), 1e-9, 1e-12)
+        assert ((alone.du[0] - both.du[i]).abs().amax(-1) <= tol).all()
 
 
 def test_negotiation_groups_equal_the_numpy_filters_and_inconsistent_ones_are_flagged():
