@@ -1,28 +1,12 @@
 """The safety filter: nominal wheel accelerations in, safe ones out, as a pipeline of named stages.
 
-One :meth:`SafetyFilter.step` runs, in order:
-
-========  ==================================================  =====================================
-stage     what                                                compiled form (chosen at build)
-========  ==================================================  =====================================
-inputs    shapes, finite numbers, bounds (:mod:`.inputs`)     the number checks
-pairs     pairs in sensing range (:func:`.rows.find_pairs`)   brute force; grid of cells >= 200
-deadlock  trigger and the QP's target (:mod:`.deadlock`)      ``multiplier`` trigger and ``A du_nom``
-rows      one barrier row per pair (:mod:`.rows`)             the barrier's kernel, if it has one
-solve     centralised (:mod:`.centralized`) or                warm active set; local QPs
-          decentralised (:mod:`.decentralized`) QP
-backup    brake-safety check and repair (:mod:`.backup`)      check and repair
-result    :class:`~aasoatt_env.safety.result.FilterResult`    -
-========  ==================================================  =====================================
-
-Each stage has one numpy reference and at most one compiled implementation, chosen when the
-filter is built (``FilterConfig.kernel``) and never changed during a step; :meth:`describe`
-says which runs.  Where rows, solve and backup all run compiled (the default centralised
-filter), :mod:`.fused` runs them in one call on a warm step; a stage it does not answer runs
-as above, from its start.  No decision reads the clock: the same inputs give the same answer.
-A filter is a function of the team's state and the nominal (as a Robotarium barrier
-certificate), plus its memory of the previous step (the warm start and the deadlock trigger's
-state).
+Each stage (inputs, pairs, deadlock, rows, solve, backup, result: the table of ``docs/design.md`` gives what it
+does, its module and its compiled form) has one numpy reference and at most one compiled implementation, chosen when
+the filter is built (``FilterConfig.kernel``) and never changed during a step; :meth:`describe` says which runs.
+Where rows, solve and backup all run compiled (the default centralised filter), :mod:`.fused` runs them in one call
+on a warm step; a stage it does not answer runs from its start.  No decision reads the clock: a filter is a function
+of the team's state and the nominal (as a Robotarium barrier certificate), plus its memory of the previous step (the
+warm start and the deadlock trigger's state).
 """
 
 from __future__ import annotations
