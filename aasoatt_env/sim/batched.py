@@ -22,6 +22,7 @@ class TeamsAPI:
     metadata = {"autoreset_mode": "same_step"}
     shared_settings: dict[str, Any]  # the teams' SHARED_SETTINGS and `filtered`
     num_envs: int
+    _started: bool  # reset() was called
 
     def _take_settings(self, settings: dict[str, Any], agent_obs: spaces.Box, agent_act: spaces.Box) -> None:
         self.shared_settings = settings
@@ -36,6 +37,14 @@ class TeamsAPI:
                        np.broadcast_to(agent_obs.high, (*lead, *agent_obs.shape)), dtype=agent_obs.dtype)
             for lead in leads)
         self.single_action_space, self.action_space = (spaces.Box(-1.0, 1.0, (*lead, 2), np.float32) for lead in leads)
+
+    def _check_step(self, finished: np.ndarray) -> None:
+        """Before a ``step``: :class:`ResetNeeded` until the first ``reset``, or naming the teams ``finished``."""
+        if not self._started:
+            raise ResetNeeded("step(): call reset() first")
+        if finished.size:  # (autoreset=False)
+            raise ResetNeeded(f"step(): team(s) {finished.tolist()} finished their episode (autoreset=False); "
+                              "call reset() first")
 
     @property
     def filtered(self) -> bool:
@@ -138,10 +147,7 @@ class BatchedAASOATTEnv(TeamsAPI, TeamStack):
 
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Hold each team's actions ``(K, N, 2)`` for ``decision_interval`` physics steps."""
-        if not self._started:
-            raise ResetNeeded("step(): call reset() first")
-        if self._done.any():
-            raise finished_error(np.flatnonzero(self._done) + self._offset)
+        self._check_step(np.flatnonzero(self._done) + self._offset)
         act = parse_actions(actions, self.live, self.nominal_actions, self.clip_actions, self._offset)
         live_before = self._active
         saturated, between, outputs = self._physics(act)
@@ -216,12 +222,6 @@ def check_shared(got: dict[str, Any], want: dict[str, Any], k: int) -> None:
         if got[name] != want[name]:
             raise ConfigError(f"env_fns[{k}]: {name} differs from env 0's ({got[name]!r} vs {want[name]!r}); a "
                               "batch shares one setting")
-
-
-def finished_error(teams: np.ndarray) -> ResetNeeded:
-    """The error of ``step`` on teams that finished their episode (``autoreset=False``)."""
-    return ResetNeeded(f"step(): team(s) {np.asarray(teams).tolist()} finished their episode (autoreset=False); "
-                       "call reset() first")
 
 
 def team_index(k: Any, num_envs: int) -> int:

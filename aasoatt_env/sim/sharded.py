@@ -14,7 +14,7 @@ from typing import Any
 import cloudpickle
 import numpy as np
 
-from aasoatt_env.errors import ConfigError, ResetNeeded, UsageError
+from aasoatt_env.errors import ConfigError, UsageError
 from aasoatt_env.sim import batched
 
 __all__ = ["ShardedBatchedEnv", "shard_sizes"]
@@ -288,12 +288,7 @@ class ShardedBatchedEnv(batched.TeamsAPI):
     def step(self, actions: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         """Step every shard with its teams' actions ``(K, N, 2)`` (checked here first: a bad one steps no team)."""
         self._settle()
-        if not self._started:
-            raise ResetNeeded("step(): call reset() first")
-        if not self.autoreset:
-            finished = np.flatnonzero(~self._live.any(axis=1))
-            if finished.size:
-                raise batched.finished_error(finished)
+        self._check_step(np.flatnonzero(~self._live.any(axis=1)) if not self.autoreset else np.empty(0, np.intp))
         act = batched.parse_actions(actions, self._live, self.nominal_actions, self.shared_settings["clip_actions"])
         act = act.reshape(self.num_envs, self.num_agents, 2)
         out = self._all("step", [act[shard] for shard in self._shards])
