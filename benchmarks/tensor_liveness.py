@@ -4,8 +4,9 @@ RandomGoals teams of ``--robots`` (held-out seeds ``2**32 + b``, as training's e
 point accelerations (clipped to the bound) from two nominal laws: ``track``, a PD law on the moving reference
 (``a_d + 4 (v_d - v) + (p_d - p)``), and ``goal``, a PD law on the goal (``3 (goal - p) - 3 v``, saturating: it drives
 at the bound and leaves the reference behind). Each team runs one episode behind the torch filter (float64, defaults:
-its repair and braking check; and with ``backup_repair=False``: the check alone) and behind the numpy decentralised
-filter (defaults: negotiation groups and the backup layer with its repair). Columns: robots within the goal tolerance
+negotiation groups; with the numpy backup layer, with the torch braking check and its repair, and with that check
+alone, ``backup_repair=False``) and behind the numpy decentralised filter (defaults: negotiation groups and the backup
+layer with its repair). Columns: robots within the goal tolerance
 (0.1 m) at the end, robot-decisions on the backup (braked by the torch check; braked by the numpy layer, its
 ``backup`` flag: a robot its repair nudged instead is not counted), robots that collided.
 
@@ -35,10 +36,10 @@ def law(kind: str, p, v, p_d, v_d, a_d, goal):
     return 3.0 * (goal - p) - 3.0 * v
 
 
-def torch_run(kind: str, teams: int, n: int, repair: bool = True) -> tuple[float, float, int]:
-    """Success, backup share and robots collided of ``teams`` teams behind the torch filter."""
+def torch_run(kind: str, teams: int, n: int, check: str, repair: bool = True) -> tuple[float, float, int]:
+    """Success, backup share and robots collided of ``teams`` teams behind the torch filter with ``check``."""
     env = make_tensor_env("random_goals", teams, n, decision_interval=20, action_mode="point", dtype=torch.float64,
-                          backup_repair=repair)
+                          backup_repair=repair, backup_check=check)
     env.autoreset = False
     env.reset(seed=SEED)
     amax = env.team.max_point_accel[:, None]
@@ -94,12 +95,14 @@ def main() -> None:
     torch.set_num_threads(1)
     with printed_page(args, "Torch filter liveness", notes=__doc__):
         print("```")
-        print(f"{'law':>6} {'filter':>22} {'robots home':>12} {'on the backup':>14} {'robots collided':>16}")
+        print(f"{'law':>6} {'filter':>24} {'robots home':>12} {'on the backup':>14} {'robots collided':>16}")
         for kind in LAWS:
-            for name, run in (("torch", torch_run), ("torch, no repair", lambda *a: torch_run(*a, repair=False)),
+            for name, run in (("torch, numpy check", lambda *a: torch_run(*a, "numpy")),
+                              ("torch, torch check", lambda *a: torch_run(*a, "torch")),
+                              ("torch check, no repair", lambda *a: torch_run(*a, "torch", repair=False)),
                               ("numpy decentralised", numpy_run)):
                 s, share, hit = run(kind, args.teams, args.robots)
-                print(f"{kind:>6} {name:>22} {s:>12.3f} {share:>14.3f} {hit:>16}", flush=True)
+                print(f"{kind:>6} {name:>24} {s:>12.3f} {share:>14.3f} {hit:>16}", flush=True)
         print("```")
 
 

@@ -5,12 +5,13 @@ its team), the same behaviours as :mod:`agents.adversaries` written in torch: ``
 full throttle), ``burst`` (rest 100 steps, then full throttle), ``bang_bang`` (random +-1 per wheel held 20 steps),
 ``chase_nearest`` and ``chase_target`` (full point acceleration toward the nearest / a random robot), and
 ``uniform_noise``.  Teams: RandomGoals N = 8 and 16 with 4 random obstacles, the radius-6 circle N = 39.  The torch
-env behind the torch filter with its defaults (``backup=True``: :mod:`aasoatt_env.tensor.backup`), ``--steps``
+env behind the torch filter with its defaults (``backup=True``, negotiation groups), once per backup check
+(``--checks``: ``numpy``, the numpy filter's backup layer; ``torch``, :mod:`aasoatt_env.tensor.backup`), ``--steps``
 physics steps; every step's smallest surface gap (robot-robot and robot-obstacle) is recorded.  A pair closer than
 ``d_s - 1 mm`` is a violation.
 
 Usage: ``python benchmarks/tensor_safety.py [--steps 400] [--episodes 8:512,16:384,39:128] [--batch 128]
-[--page docs/benchmarks/tensor_safety.md]``
+[--checks numpy,torch] [--page docs/benchmarks/tensor_safety.md]``
 """
 
 from __future__ import annotations
@@ -22,19 +23,20 @@ import torch
 from page import add_page_options, check_page, printed_page  # noqa: E402
 
 from aasoatt_env.tensor.env import make_tensor_env
+from aasoatt_env.tensor.filter import BACKUP_CHECKS
 from agents.adversaries_torch import ADVERSARIES, adversary_actions
 
 TOL = 1e-3
 
 
-def run(n: int, episodes: int, batch: int, steps: int, dtype: torch.dtype) -> dict:
+def run(n: int, episodes: int, batch: int, steps: int, dtype: torch.dtype, check: str) -> dict:
     """Worst gap and counts of ``episodes`` team-episodes of ``n`` robots, in batches of ``batch`` teams."""
     scen = dict(scenario="circle_swap", radius=6.0) if n == 39 else dict(scenario="random_goals", random_obstacles=4)
     worst, bad, braked, unsafe, done, t0 = float("inf"), 0, 0, 0, 0, time.perf_counter()
     per_adv = {a: float("inf") for a in ADVERSARIES}
     while done < episodes:
         B = min(batch, episodes - done)
-        env = make_tensor_env(num_envs=B, num_robots=n, dtype=dtype, max_steps=steps + 1, **scen)
+        env = make_tensor_env(num_envs=B, num_robots=n, dtype=dtype, max_steps=steps + 1, backup_check=check, **scen)
         env.reset(seed=done)
         gen = torch.Generator().manual_seed(done)
         kind = torch.arange(done, done + B) % len(ADVERSARIES)
@@ -61,6 +63,7 @@ def main() -> None:
     parser.add_argument("--episodes", default="8:512,16:384,39:128", help="N:team-episodes, comma-separated")
     parser.add_argument("--batch", type=int, default=128)
     parser.add_argument("--dtypes", default="float64,float32")
+    parser.add_argument("--checks", default=",".join(BACKUP_CHECKS), help="backup checks, comma-separated")
     add_page_options(parser)
     args = parser.parse_args()
     check_page(args)
@@ -68,14 +71,15 @@ def main() -> None:
     plan = [tuple(int(x) for x in s.split(":")) for s in args.episodes.split(",")]
     with printed_page(args, "Torch filter safety campaign", notes=__doc__):
         print("```")
-        print(f"{'dtype':>8} {'N':>4} {'episodes':>9} {'worst gap [m]':>14} {'< -1 mm':>8} {'team-steps braked':>18} "
-              f"{'unsafe':>7} {'time [s]':>9}   worst gap per adversary [m]")
-        for name in args.dtypes.split(","):
-            for n, episodes in plan:
-                r = run(n, episodes, args.batch, args.steps, getattr(torch, name))
-                adv = " ".join(f"{a}={v:.4f}" for a, v in r["per_adv"].items())
-                print(f"{name:>8} {n:>4} {episodes:>9} {r['worst']:>14.6f} {r['bad']:>8} {r['braked']:>18} "
-                      f"{r['unsafe']:>7} {r['time']:>9.0f}   {adv}", flush=True)
+        print(f"{'check':>6} {'dtype':>8} {'N':>4} {'episodes':>9} {'worst gap [m]':>14} {'< -1 mm':>8} "
+              f"{'team-steps braked':>18} {'unsafe':>7} {'time [s]':>9}   worst gap per adversary [m]")
+        for check in args.checks.split(","):
+            for name in args.dtypes.split(","):
+                for n, episodes in plan:
+                    r = run(n, episodes, args.batch, args.steps, getattr(torch, name), check)
+                    adv = " ".join(f"{a}={v:.4f}" for a, v in r["per_adv"].items())
+                    print(f"{check:>6} {name:>8} {n:>4} {episodes:>9} {r['worst']:>14.6f} {r['bad']:>8} "
+                          f"{r['braked']:>18} {r['unsafe']:>7} {r['time']:>9.0f}   {adv}", flush=True)
         print("```")
 
 

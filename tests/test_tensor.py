@@ -12,7 +12,15 @@ torch = pytest.importorskip("torch")
 from aasoatt_env.model import dynamics  # noqa: E402
 from aasoatt_env.model.params import make_team  # noqa: E402
 from aasoatt_env.safety import FilterConfig, SafetyFilter, barriers  # noqa: E402
-from aasoatt_env.tensor.filter import BACKUP, GROUPED, RELAXED, SafetyLayer, filter_step  # noqa: E402
+from aasoatt_env.tensor.filter import (  # noqa: E402
+    BACKUP,
+    BACKUP_CHECKS,
+    GROUPED,
+    RELAXED,
+    UNSAFE,
+    SafetyLayer,
+    filter_step,
+)
 from aasoatt_env.tensor.model import TensorTeam  # noqa: E402
 
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
@@ -53,13 +61,14 @@ def numpy_answers(states: list[dict], cfg: FilterConfig, n: int):
     return team, res
 
 
-def tensor_answers(team, states: list[dict], cfg: FilterConfig, device="cpu", dtype=torch.float64):
+def tensor_answers(team, states: list[dict], cfg: FilterConfig, device="cpu", dtype=torch.float64,
+                   backup_check: str | None = None):
     def stack(key):
         return torch.as_tensor(np.stack([s[key] for s in states]), device=device)
 
     return filter_step(TensorTeam.from_team(team, dtype, device), cfg, stack("pose").to(dtype), stack("u").to(dtype),
                        stack("nom").to(dtype), stack("pd").to(dtype), stack("vd").to(dtype),
-                       (stack("oc").to(dtype), stack("orad").to(dtype)), stack("avoiding"))
+                       (stack("oc").to(dtype), stack("orad").to(dtype)), stack("avoiding"), backup_check)
 
 
 @pytest.mark.parametrize("device", DEVICES)
@@ -103,10 +112,12 @@ def test_a_step_with_no_robot_or_obstacle_in_range_answers_each_robot_by_its_box
     assert (out.status.numpy() == 0).all()
 
 
-def test_a_team_gets_the_same_answer_alone_as_in_a_batch():
-    """The braking check's horizon and the negotiation groups are each team's own: 64 team states near contact, behind
-    the defaults (``backup=True``, ``negotiate=True``), filtered in one batch and one team at a time: the same status
-    and ``du`` to 1e-12 (1e-9 in an inconsistent group, whose least-violation QP the batch solves with the others)."""
+@pytest.mark.parametrize("check", BACKUP_CHECKS)
+def test_a_team_gets_the_same_answer_alone_as_in_a_batch(check):
+    """Either backup check, its horizon and the negotiation groups are each team's own: 64 team states near contact,
+    behind the defaults (``backup=True``, ``negotiate=True``), filtered in one batch and one team at a time: the same
+    status and ``du`` to 1e-12 (1e-9 in an inconsistent group, whose least-violation QP the batch solves with the
+    others)."""
     rng = np.random.default_rng(7)
     n = 8
     states = random_states(rng, 64, n)
@@ -114,11 +125,11 @@ def test_a_team_gets_the_same_answer_alone_as_in_a_batch():
         s["u"] *= 1.0 + 3.0 * (i % 4)  # teams of very different speeds (so different braking horizons)
     cfg = FilterConfig(mode="decentralized")
     team = make_team("paper", n)
-    both = tensor_answers(team, states, cfg)
+    both = tensor_answers(team, states, cfg, backup_check=check)
     assert int((both.status & BACKUP).sum()) > 0
     assert int((both.status & GROUPED).sum()) > 0
     for i, s in enumerate(states):
-        alone = tensor_answers(team, [s], cfg)
+        alone = tensor_answers(team, [s], cfg, backup_check=check)
         assert torch.equal(alone.status[0], both.status[i])
         tol = torch.where((both.status[i] & (GROUPED | RELAXED)) == (GROUPED | RELAXED), 1e-9, 1e-12)
         assert ((alone.du[0] - both.du[i]).abs().amax(-1) <= tol).all()
@@ -145,6 +156,61 @@ def test_negotiation_groups_equal_the_numpy_filters_and_inconsistent_ones_are_fl
     assert group_relaxed.sum() >= 20
     assert np.array_equal((grouped & (status & RELAXED > 0)).any(axis=1), group_relaxed)
     assert np.array_equal(out.avoiding.numpy(), np.stack([r.avoiding for r in ref]))
+
+
+def test_the_filter_with_the_numpy_backup_layer_equals_the_numpy_filter():
+    """``backup=True`` with ``backup_check="numpy"`` (a CPU's default): 1,200 team states at three speed scales, some
+    not brake-safe: every robot's ``du`` equals the numpy filter's to 1e-9 (its backup layer braked and repaired
+    some of them), ``BACKUP`` on exactly the robots it braked, ``UNSAFE`` in exactly the teams it calls unsafe."""
+    rng = np.random.default_rng(3)
+    n = 12
+    states = random_states(rng, 1200, n)
+    for i, s in enumerate(states):
+        s["u"] *= 1.0 + 2.0 * (i % 3)
+    cfg = FilterConfig(mode="decentralized", negotiate=False, kernel="numpy")
+    team, ref = numpy_answers(states, cfg, n)
+    out = tensor_answers(team, states, cfg, backup_check="numpy")
+    status = out.status.numpy()
+    assert np.abs(out.du.numpy() - np.stack([r.du for r in ref])).max() <= 1e-9
+    braked = np.stack([r.backup for r in ref])
+    assert braked.sum() >= 50 and np.array_equal(status & BACKUP > 0, braked)
+    unsafe = np.array([not r.safe for r in ref])
+    assert 0 < unsafe.sum() < 200 and np.array_equal((status & UNSAFE > 0).any(axis=1), unsafe)
+
+
+@pytest.mark.slow
+def test_closed_loop_behind_the_numpy_backup_layer_equals_the_pettingzoo_env():
+    """Two random_goals teams of 8 spun up and then driven at full throttle (the ``spin_up`` adversary, every 200
+    steps) for 600 steps behind the defaults with ``negotiate=False``: the backup layer brakes, some QPs relax, and the
+    positions stay within 1e-6 m of the PettingZoo env's behind the numpy filter, in float64. (With groups, an
+    inconsistent group's relaxed answer depends on the solver's path through the batch's problem: not compared.)"""
+    from aasoatt_env.sim.env import AASOATTParallelEnv
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    n, opts = 8, dict(negotiate=False)
+    tenv = make_tensor_env("random_goals", 2, n, dtype=torch.float64, max_steps=200, backup_check="numpy", **opts)
+    tenv.reset(seed=0)
+    envs = []
+    for b in range(2):
+        e = AASOATTParallelEnv("random_goals", num_robots=n, max_steps=200)
+        e.set_control_filter(SafetyFilter(mode="decentralized", **opts))
+        e.reset(seed=b)
+        envs.append(e)
+    rng = np.random.default_rng(0)
+    worst, braked, relaxed = 0.0, 0, 0
+    for t in range(600):
+        if t % 200 == 0:
+            sign = rng.choice([-1.0, 1.0], (2, n, 1))
+        act = np.concatenate((sign, -sign), -1) if t % 200 < 120 else np.ones((2, n, 2))
+        _, _, _, _, info = tenv.step(torch.as_tensor(act))
+        braked += int(info["backup"].sum())
+        relaxed += int((info["status"] & RELAXED > 0).sum())
+        for b, e in enumerate(envs):
+            _, _, _, trunc, _ = e.step({a: act[b, i].astype(np.float32) for i, a in enumerate(e.possible_agents)})
+            if trunc[e.possible_agents[0]]:
+                e.reset()
+            worst = max(worst, float(np.abs(e.positions - tenv.kin.p[b].numpy()).max()))
+    assert worst <= 1e-6 and braked > 20 and relaxed > 0
 
 
 def test_gradients_match_finite_differences_away_from_active_set_boundaries():
@@ -289,14 +355,16 @@ def test_a_loss_through_the_filter_trains_a_policy_to_need_less_correction():
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("check", BACKUP_CHECKS)
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_the_braking_check_keeps_chasing_teams_apart(dtype):
+def test_the_braking_check_keeps_chasing_teams_apart(dtype, check):
     """Six teams of 8 with 4 obstacles, every robot chasing another at full acceleration for 300 steps behind the
-    torch filter's defaults (``backup=True``): no pair closer than ``d_s - 1 mm``, and the check braked someone."""
+    torch filter's defaults (``backup=True``) with either check: no pair closer than ``d_s - 1 mm``, and the check
+    braked someone."""
     from aasoatt_env.tensor.env import make_tensor_env
     from agents.adversaries_torch import adversary_actions
 
-    env = make_tensor_env("random_goals", 6, 8, dtype=dtype, random_obstacles=4)
+    env = make_tensor_env("random_goals", 6, 8, dtype=dtype, random_obstacles=4, backup_check=check)
     env.reset(seed=0)
     gen = torch.Generator().manual_seed(0)
     kind = torch.tensor([3, 4, 3, 4, 0, 1])  # chase_nearest, chase_target, spin_up, burst
@@ -316,7 +384,7 @@ def _goal_seeking(repair: bool) -> tuple[float, float, float]:
     from aasoatt_env.tensor.env import make_tensor_env
 
     env = make_tensor_env("random_goals", 8, 6, dtype=torch.float64, decision_interval=20, action_mode="point",
-                          backup_repair=repair)
+                          backup_repair=repair, backup_check="torch")
     env.reset(seed=7)
     braked, low = 0, float("inf")
     with torch.no_grad():
@@ -330,8 +398,9 @@ def _goal_seeking(repair: bool) -> tuple[float, float, float]:
 
 
 def test_the_repair_nudges_where_the_check_would_brake():
-    """``backup_repair=True`` (default): less than half the robot-decisions braked and more robots near their goals
-    than the check alone, with no pair closer than ``d_s - 1 mm`` either way (the check still decides)."""
+    """The torch check with ``backup_repair=True`` (default): less than half the robot-decisions braked and more
+    robots near their goals than the check alone, with no pair closer than ``d_s - 1 mm`` either way (the check still
+    decides)."""
     alone, repaired = _goal_seeking(False), _goal_seeking(True)
     assert alone[0] > 0.05 and repaired[0] < alone[0] / 2
     assert repaired[1] > alone[1]

@@ -13,8 +13,11 @@ Every ``--eval-every`` iterations, and at the end, the deterministic policy is e
 their goal at the end), collisions (robot-steps with a surface gap below ``-collision_tolerance``), the filter's
 mean correction; the report is written as JSON (atomically) with the wall times.
 
+The filter is the torch env's defaults; ``--backup-check`` picks its backup stage (``numpy``: the numpy filter's
+layer, a CPU's default; ``torch``: the batched braking check) and ``--no-negotiate`` answers every robot by its own QP.
+
 Usage: ``python -m train.torchrl_mappo [--frames 204800] [--teams 32] [--steps 64] [--robots 6] [--ippo]
-[--out runs/torchrl_mappo]``
+[--backup-check numpy|torch] [--no-negotiate] [--out runs/torchrl_mappo]``
 """
 
 from __future__ import annotations
@@ -39,6 +42,7 @@ from torchrl.modules import IndependentNormal, MultiAgentMLP, ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
 from aasoatt_env.cli_support import atomic_write
+from aasoatt_env.tensor.filter import BACKUP_CHECKS
 from aasoatt_env.tensor.torchrl_env import TorchRLTensorEnv
 from train.config import HELDOUT_SEED, TRAIN_REWARD
 
@@ -204,6 +208,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--minibatches", type=int, default=12)
     ap.add_argument("--eval-every", type=int, default=10)
     ap.add_argument("--eval-teams", type=int, default=64)
+    ap.add_argument("--backup-check", choices=BACKUP_CHECKS, default=None,
+                    help="the filter's backup stage (default: numpy on a CPU, torch on a GPU)")
+    ap.add_argument("--no-negotiate", action="store_true", help="no negotiation groups: every robot's own QP")
     ap.add_argument("--out", type=Path, default=Path("runs/torchrl_mappo"))
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
@@ -212,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error(f"--out: {path} exists; pass --overwrite to replace it")
     torch.set_num_threads(1)
     report = train(a.frames, a.teams, a.robots, a.seed, not a.ippo, a.eval_every, a.eval_teams, epochs=a.epochs,
-                   minibatches=a.minibatches, steps=a.steps, action_mode=a.action_mode)
+                   minibatches=a.minibatches, steps=a.steps, action_mode=a.action_mode, backup_check=a.backup_check,
+                   negotiate=not a.no_negotiate)
     a.out.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda temp: temp.write_text(json.dumps(report, indent=1)))
     print(f"wrote {path}")

@@ -26,13 +26,13 @@ from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
 from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import get_scenario
-from aasoatt_env.tensor.filter import BACKUP, FilterOut, check_config, filter_step
+from aasoatt_env.tensor.filter import BACKUP, FilterOut, backup_check_of, check_config, filter_step
 from aasoatt_env.tensor.model import TensorTeam, input_bounds, integrate, kinematics
 
 __all__ = ["TensorEnv", "make_tensor_env"]
 
 _ENV_KEYS = ("dt", "decision_interval", "action_mode", "sensing_range", "num_neighbors", "num_obstacles", "reward",
-             "collision_tolerance", "max_steps", "differentiable")
+             "collision_tolerance", "max_steps", "differentiable", "backup_check")
 
 
 def make_tensor_env(scenario: str = "random_goals", num_envs: int = 1, num_robots: int = 6, device: str = "cpu",
@@ -43,7 +43,9 @@ def make_tensor_env(scenario: str = "random_goals", num_envs: int = 1, num_robot
     ``options``: the env's settings (``dt``, ``decision_interval``, ``action_mode``, ``sensing_range``,
     ``num_neighbors``, ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``differentiable``:
     ``step`` records the autograd graph, so losses on its outputs reach the actions and the state through the filter
-    and the dynamics; default False: no graph), :class:`FilterConfig` fields, and the scenario's parameters.
+    and the dynamics; default False: no graph), ``backup_check`` (:data:`~.filter.BACKUP_CHECKS`; None: the numpy
+    backup layer on a CPU, the torch check on other devices), :class:`FilterConfig` fields, and the scenario's
+    parameters.
     """
     names = {f.name for f in fields(FilterConfig)}
     env_kw = {k: options.pop(k) for k in list(options) if k in _ENV_KEYS}
@@ -58,7 +60,7 @@ class TensorEnv:
     def __init__(self, scenario, num_envs: int, device: str, dtype: torch.dtype, config: FilterConfig | None,
                  dt: float = DT, decision_interval: int = 1, action_mode: str = "wheel", sensing_range: float = 3.0,
                  num_neighbors: int = 4, num_obstacles: int = 2, reward: Any = None, collision_tolerance: float = 1e-3,
-                 max_steps: int | None = None, differentiable: bool = False) -> None:
+                 max_steps: int | None = None, differentiable: bool = False, backup_check: str | None = None) -> None:
         num_envs = check.integer("num_envs", num_envs, lo=1)
         if dtype not in (torch.float32, torch.float64):
             raise ConfigError(f"dtype: got {dtype!r}, expected torch.float32 or torch.float64")
@@ -74,6 +76,7 @@ class TensorEnv:
         self.reward_config, self.collision_tolerance = RewardConfig.coerce(reward), float(collision_tolerance)
         self._max_steps_override = max_steps
         self.differentiable = bool(differentiable)
+        self.backup_check = backup_check_of(backup_check, torch.device(device))  #: the backup stage's implementation
         self.num_robots = scenario.num_robots
         self.obs_dim = SELF_DIM + SLOT_DIM * (self.num_neighbors + self.num_obstacles)
         self._rngs: list[np.random.Generator] = []
@@ -191,7 +194,7 @@ class TensorEnv:
             if self.config is not None:
                 p_d, v_d, _ = self.reference()
                 out = filter_step(team, self.config, self.pose, self.u, nominal, p_d, v_d,
-                                  (self._st["oc"], self._st["orad"]), self.avoiding)
+                                  (self._st["oc"], self._st["orad"]), self.avoiding, self.backup_check)
                 self.avoiding, du = out.avoiding, out.du
                 corr = out.correction if corr is None else torch.maximum(corr, out.correction)
             du = torch.minimum(torch.maximum(du, lo), hi)

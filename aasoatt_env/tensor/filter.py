@@ -5,11 +5,12 @@ bounds; the ``multiplier`` trigger and eqn.13's target correction (``auxiliary_v
 ``cfg.barrier`` (registered with ``array_api=True``) for every robot and obstacle pair in sensing range, shared
 reciprocally by authority around each robot's box least-squares answer; each robot's exact 2-variable QP
 (:mod:`~aasoatt_env.safety.solvers.polygons`); ``negotiate=True``: the negotiation groups jointly, by the numpy
-filter's own solver. With ``backup=False`` the answers agree with the numpy filter's (1e-9; relaxed robots 1e-6).
+filter's own solver. With ``backup=False`` or ``backup_check="numpy"`` the answers agree with the numpy filter's
+(1e-9; relaxed robots 1e-6).
 ``status`` bits per robot: :data:`RELAXED` (its QP, or its group's, is infeasible: rows loosened by their least
 violation), :data:`GROUPED` (answered by its negotiation group, on the CPU, without gradient), :data:`BACKUP`
-(braked by the check of :mod:`.backup`, not the numpy backup layer), :data:`UNSAFE` (that check found a pair failing
-although both brake).
+(braked by the backup check: the numpy filter's layer or :mod:`.backup`'s, :data:`BACKUP_CHECKS`), :data:`UNSAFE`
+(the check found the robot outside the safe set: a pair failing although both brake).
 """
 
 from __future__ import annotations
@@ -22,6 +23,9 @@ import numpy as np
 import torch
 
 from aasoatt_env.errors import ConfigError
+from aasoatt_env.model.dynamics import pose_from_point
+from aasoatt_env.model.params import stack_teams
+from aasoatt_env.safety.backup import backup_answer
 from aasoatt_env.safety.barriers import PairGeometry, get_barrier
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.decentralized import GROUP_ONE_CHANGE_ITER, solve_groups
@@ -33,7 +37,8 @@ from aasoatt_env.safety.stages import Warm
 from aasoatt_env.tensor.backup import gate, repair
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
 
-__all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "check_config", "filter_step"]
+__all__ = ["BACKUP", "BACKUP_CHECKS", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "backup_check_of",
+           "check_config", "filter_step"]
 
 RELAXED, GROUPED, BACKUP, UNSAFE = 1, 2, 4, 8  #: ``status`` bits (module docstring); 0: its own QP, exactly
 
@@ -152,13 +157,15 @@ def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
 
 def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torch.Tensor, nominal: torch.Tensor,
                 p_d: torch.Tensor, v_d: torch.Tensor, obstacles: tuple[torch.Tensor, torch.Tensor] | None = None,
-                avoiding: torch.Tensor | None = None) -> FilterOut:
+                avoiding: torch.Tensor | None = None, backup_check: str | None = None) -> FilterOut:
     """One decentralised filter step of ``B`` teams of ``N`` robots (module docstring).
 
     ``pose`` ``(B, N, 3)``, wheel speeds ``u`` and ``nominal`` wheel accelerations ``(B, N, 2)``, the reference
     ``p_d, v_d`` ``(B, N, 2)``, ``obstacles`` ``(centres (B, M, 2), radii (B, M))``, ``avoiding`` the previous step's
     ``FilterOut.avoiding`` (None: a first step).  Differentiable in ``pose``, ``u``, ``nominal`` (closed forms).
+    ``backup_check`` (with ``cfg.backup``): :data:`BACKUP_CHECKS` (None: :func:`default_backup_check` of the device).
     """
+    check = backup_check_of(backup_check, pose.device)
     kin = kinematics(team, pose, u)
     lo, hi = input_bounds(team, u, cfg.dt)
     B, N, _ = pose.shape
@@ -193,7 +200,7 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     need = torch.where(low, (base - rhs) + base_o, (base_o - rhs) + base)
     h = torch.where(robot, base - need * share, base - (base - rhs))
     hr = _HalfRows(rows, gx, gy, h, rhs, ogx, ogy)
-    return _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, pose, u, obstacles)
+    return _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, pose, u, obstacles, check)
 
 
 class _HalfRows(NamedTuple):
@@ -211,7 +218,8 @@ class _HalfRows(NamedTuple):
     ogy: torch.Tensor
 
 
-def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, pose, u, obstacles) -> FilterOut:
+def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, pose, u, obstacles,
+           check) -> FilterOut:
     """The robots' QPs in ``w = A du`` (``solve_polygons``), trigger memory, groups, the answer and its report."""
     rows, gx, gy, h = hr.on, hr.gx, hr.gy, hr.h
     B, N, K = h.shape
@@ -250,7 +258,10 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, po
     status = torch.where(sol.feasible.reshape(B, N), 0, RELAXED)
     if cfg.negotiate and bool(trig.any()):
         du, avoiding, status = _negotiate(cfg, kin, lo, hi, scale, target, du0, trig, pr, hr, du, avoiding, status)
-    if cfg.backup:
+    if cfg.backup and check == "numpy":
+        du, braking, broken = _numpy_backup(team, cfg, kin, pose, u, du, lo, hi, scale, pr, obstacles)
+        status = status | torch.where(braking, BACKUP, 0) | torch.where(broken, UNSAFE, 0)
+    elif cfg.backup:
         if cfg.backup_repair:
             du = repair(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
         du, braking, broken = gate(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
@@ -305,16 +316,13 @@ def _negotiate(cfg: FilterConfig, kin: TensorKinematics, lo, hi, scale, target, 
     once = whole & (torch.arange(N, device=dev)[None, :, None] < pr.other)  # each whole row from its lower index
     kept = hr.on & grouped[..., None] & ~whole  # a grouped robot's halves of the other rows, obstacle rows whole
 
-    def cpu(x: torch.Tensor) -> np.ndarray:
-        return x.detach().to("cpu", torch.float64 if x.is_floating_point() else x.dtype).numpy()
-
     g, go = torch.stack((hr.gx, hr.gy), -1), torch.stack((hr.ogx, hr.ogy), -1)
     A = torch.stack((kin.a00, kin.a01, kin.a10, kin.a11), -1).reshape(B * N, 2, 2)[sub]
-    lo_s, hi_s, sc = cpu(lo.reshape(-1, 2)[sub]), cpu(hi.reshape(-1, 2)[sub]), cpu(scale.reshape(-1)[sub])
-    ri, rj, owner = cpu(own[once]), cpu(oth[once]), cpu(own[kept])
-    Gi, Gj, rhs, G, h = cpu(g[once]), cpu(go[once]), cpu(hr.rhs[once]), cpu(g[kept]), cpu(hr.h[kept])
-    ans, _, _ = solve_groups(cpu(A), cpu(target.reshape(-1, 2)[sub]), lo_s, hi_s, sc,
-                             Warm(cpu(du0.reshape(-1, 2)[sub]) / sc[:, None], None), np.ones(sub.shape[0], bool),
+    lo_s, hi_s, sc = _numpy(lo.reshape(-1, 2)[sub]), _numpy(hi.reshape(-1, 2)[sub]), _numpy(scale.reshape(-1)[sub])
+    ri, rj, owner = _numpy(own[once]), _numpy(oth[once]), _numpy(own[kept])
+    Gi, Gj, rhs, G, h = _numpy(g[once]), _numpy(go[once]), _numpy(hr.rhs[once]), _numpy(g[kept]), _numpy(hr.h[kept])
+    ans, _, _ = solve_groups(_numpy(A), _numpy(target.reshape(-1, 2)[sub]), lo_s, hi_s, sc,
+                             Warm(_numpy(du0.reshape(-1, 2)[sub]) / sc[:, None], None), np.ones(sub.shape[0], bool),
                              (ri, rj, Gi, Gj, rhs), (owner, G, h), _policy(cfg), cfg.compiled)
     m, x = ri.shape[0], ans.du
     binds = ans.z > cfg.eta_tol  # a whole row binds both of its robots, a kept half its owner
@@ -335,6 +343,66 @@ def _negotiate(cfg: FilterConfig, kin: TensorKinematics, lo, hi, scale, target, 
     return put(du, x), put(avoiding, bound), put(status, mark)
 
 
+BACKUP_CHECKS: tuple[str, ...] = ("numpy", "torch")
+"""The backup stage: ``"numpy"``, the numpy filter's backup layer on the CPU (one call for every team: the same
+answers, the same guarantee; no gradient through the robots it changes); ``"torch"``, :mod:`.backup`'s sampled braking
+check on the device (no transfer; its repair and braking are torch operations)."""
+
+
+def backup_check_of(value: str | None, device: torch.device) -> str:
+    """``value`` checked against :data:`BACKUP_CHECKS`; None: ``"numpy"`` on a CPU, ``"torch"`` on other devices."""
+    if value is None:
+        return "numpy" if torch.device(device).type == "cpu" else "torch"
+    if value not in BACKUP_CHECKS:
+        raise ConfigError(f"backup_check: got {value!r}, expected one of {list(BACKUP_CHECKS)} or None")
+    return value
+
+
+def _numpy_backup(team: TensorTeam, cfg: FilterConfig, kin: TensorKinematics, pose, u, du, lo, hi, scale,
+                  pr: _Pairs, obstacles) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The numpy backup stage's ``(du, braking, unsafe)`` ``(B, N, ...)`` for the teams stacked as one.
+
+    :func:`~aasoatt_env.safety.backup.backup_answer` with ``Team.group`` (no pair across teams) and the robot pairs of
+    the filter's table.
+    """
+    B, N, K = pr.other.shape
+    dev = du.device
+    stacked = team.source.derived.get(("stacked", B)) if team.source is not None else None
+    if stacked is None:
+        if team.source is None:
+            raise ConfigError("backup_check: 'numpy' needs a team built by TensorTeam.from_team (its numpy team)")
+        stacked = team.source.derived[("stacked", B)] = stack_teams([team.source] * B)
+
+    def cpu(x: torch.Tensor) -> np.ndarray:
+        return np.ascontiguousarray(_numpy(x).reshape(B * N, *x.shape[2:]))
+
+    own = torch.arange(N, device=dev)[None, :, None]
+    once = pr.valid & (own < pr.other)  # every robot pair in range once, from its lower index
+    flat = torch.arange(B, device=dev)[:, None, None] * N
+    pairs = torch.stack(((flat + own).expand(B, N, K)[once], (flat + pr.other)[once]), -1).cpu().numpy()
+    pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    obs = None
+    if obstacles is not None and obstacles[1].shape[-1]:
+        M = obstacles[1].shape[-1]
+        obs = (_numpy(obstacles[0]).reshape(B * M, 2), _numpy(obstacles[1]).reshape(B * M),
+               np.repeat(np.arange(B, dtype=np.int64), M))
+    p, theta = cpu(kin.p), cpu(pose[..., 2:3])[:, 0]
+    ans = backup_answer(stacked, pose_from_point(stacked, p, theta), cpu(u), cpu(du), cpu(lo), cpu(hi), cpu(scale),
+                        cfg, obs, pairs)
+
+    def back(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
+        return torch.as_tensor(a, device=dev).to(dtype).reshape(B, N, *a.shape[1:])
+
+    changed = back(ans.braking | ans.nudged, torch.bool)
+    return (torch.where(changed[..., None], back(ans.du, du.dtype), du), back(ans.braking, torch.bool),
+            back(ans.unsafe, torch.bool))
+
+
+def _numpy(x: torch.Tensor) -> np.ndarray:
+    """``x`` on the CPU as numpy, floats as float64 (the numpy filter's stages)."""
+    return x.detach().to("cpu", torch.float64 if x.is_floating_point() else x.dtype).numpy()
+
+
 @functools.cache
 def _policy(cfg: FilterConfig) -> SolverPolicy:
     """The numpy decentralised filter's solver route for the negotiation groups."""
@@ -345,15 +413,18 @@ def _policy(cfg: FilterConfig) -> SolverPolicy:
 class SafetyLayer(torch.nn.Module):
     """:func:`filter_step` as a layer: ``forward(pose, u, nominal, p_d, v_d, obstacles=None, avoiding=None) -> du``.
 
-    Stateless (the trigger's memory is an argument); ``team``: a numpy :class:`~aasoatt_env.model.params.Team`.
+    Stateless (the trigger's memory is an argument); ``team``: a numpy :class:`~aasoatt_env.model.params.Team`;
+    ``backup_check``: :data:`BACKUP_CHECKS` (None: the device's default, :func:`backup_check_of`).
     """
 
     def __init__(self, team, config: FilterConfig | None = None, dtype: torch.dtype = torch.float64,
-                 device: str | torch.device = "cpu", **options) -> None:
+                 device: str | torch.device = "cpu", backup_check: str | None = None, **options) -> None:
         super().__init__()
         self.config = check_config(FilterConfig.merged(config, mode="decentralized", **options))
         self.team = TensorTeam.from_team(team, dtype, device)
+        self.backup_check = backup_check_of(backup_check, torch.device(device))
 
     def forward(self, pose, u, nominal, p_d, v_d, obstacles=None, avoiding=None) -> torch.Tensor:
         """The filtered wheel accelerations ``(B, N, 2)``."""
-        return filter_step(self.team, self.config, pose, u, nominal, p_d, v_d, obstacles, avoiding).du
+        return filter_step(self.team, self.config, pose, u, nominal, p_d, v_d, obstacles, avoiding,
+                           self.backup_check).du

@@ -31,6 +31,7 @@ class TensorTeam(NamedTuple):
     max_wheel_speed: torch.Tensor
     max_point_accel: torch.Tensor
     speed_limited: bool
+    source: Team | None = None  #: the numpy team (the numpy backup check's)
 
     @classmethod
     def from_team(cls, team: Team, dtype: torch.dtype, device: torch.device | str) -> TensorTeam:
@@ -44,7 +45,7 @@ class TensorTeam(NamedTuple):
             return torch.as_tensor(np.ascontiguousarray(a, dtype=np.float64), device=device).to(dtype)
 
         return cls(t(team.radius), t(team.offset), t(cols.real), t(cols.imag), t(team.turn_gain),
-                   t(team.max_wheel_accel), t(team.max_wheel_speed), t(team.max_point_accel), team.speed_limited)
+                   t(team.max_wheel_accel), t(team.max_wheel_speed), t(team.max_point_accel), team.speed_limited, team)
 
 
 class TensorKinematics(NamedTuple):

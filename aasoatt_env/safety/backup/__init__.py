@@ -5,7 +5,7 @@ form; :mod:`.gate`, the gatekeeper and the repair; :mod:`.layer`, the filter's s
 """
 
 from aasoatt_env.safety.backup.gate import CLOSEST_TIE, GateResult, gatekeeper, pair_margins
-from aasoatt_env.safety.backup.layer import GATE_TOL, BackupAnswer, BackupLayer, gate_with_repair
+from aasoatt_env.safety.backup.layer import GATE_TOL, BackupAnswer, BackupLayer, backup_answer, gate_with_repair
 from aasoatt_env.safety.backup.paths import (
     MAX_BRAKE_STEPS,
     Trajectories,
@@ -19,5 +19,5 @@ from aasoatt_env.safety.backup.paths import (
 )
 
 __all__ = ["CLOSEST_TIE", "GATE_TOL", "MAX_BRAKE_STEPS", "BackupAnswer", "BackupLayer", "GateResult", "Trajectories",
-           "brake_decel", "brake_time", "braking_du", "braking_trajectory", "candidate_paths",
+           "backup_answer", "brake_decel", "brake_time", "braking_du", "braking_trajectory", "candidate_paths",
            "candidate_samples_at", "gate_with_repair", "gatekeeper", "pair_margins", "reach_limit"]

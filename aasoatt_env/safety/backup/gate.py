@@ -98,6 +98,7 @@ class GateResult(NamedTuple):
     n_pairs: int  #: robot and obstacle pairs checked
     robot_margin: np.ndarray  #: each robot's least pair margin, at most its range limit
     out_of_range: np.ndarray  #: the candidate path leaves the range limit
+    held: np.ndarray | None = None  #: :func:`~.layer.gate_with_repair`'s best effort outside the safe set (None: none)
 
 
 def gatekeeper(team: Team, pose: np.ndarray, u: np.ndarray, du_c: np.ndarray, dt: float, *, sensing_range: float,

@@ -16,7 +16,7 @@ from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.stages import StepInput
 from aasoatt_env.sim.env import FILTERED_MIN_COLLISION_TOLERANCE
 
-__all__ = ["GATE_TOL", "BackupAnswer", "BackupLayer", "gate_with_repair"]
+__all__ = ["GATE_TOL", "BackupAnswer", "BackupLayer", "backup_answer", "gate_with_repair"]
 
 GATE_TOL: float = 0.5 * FILTERED_MIN_COLLISION_TOLERANCE
 """Overlap [m] the check forgives: half the env's collision tolerance behind a filter (the other half absorbs the
@@ -41,7 +41,7 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
         return quick
     full_check = bool(quick.out_of_range.any())  # the quick check used the blend levels: it is the full one
     if full_check and not quick.broken.any() and not (quick.braking & ~quick.out_of_range).any():
-        return _merged(quick, [], unsafe=False)  # braking for the range limit alone: nothing held or repaired
+        return _merged(quick, [], None)  # braking for the range limit alone: nothing held or repaired
     if pairs is None:
         p0 = point(team, pose)
         pairs = robot_pairs(np.stack((p0.real, p0.imag), axis=1), cfg.sensing_range, groups=team.group,
@@ -82,7 +82,7 @@ def gate_with_repair(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray
             np.add.at(bad1, comp.label[rows_a], first.broken)
             take_first = ~((bad1 == 0) & (nb2 <= nb1))[comp.label[rows_a]]
             parts.append((rows_a[take_first], _rows_of(first, np.flatnonzero(take_first))))
-    return _merged(quick, parts, unsafe=bool(held.any()))
+    return _merged(quick, parts, held if held.any() else None)
 
 
 class _Components:
@@ -122,15 +122,15 @@ def _rows_of(g: GateResult, at: np.ndarray) -> GateResult:
     return g._replace(**{f: getattr(g, f)[at] for f in _PER_ROBOT})
 
 
-def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], unsafe: bool) -> GateResult:
+def _merged(base: GateResult, parts: list[tuple[np.ndarray, GateResult]], held: np.ndarray | None) -> GateResult:
     """``base`` with each part's robots replaced by its answers (later parts win; n_pairs, out_of_range kept)."""
     new = {f: getattr(base, f).copy() for f in _PER_ROBOT[:-1]}
     for rows, g in parts:
         for f, a in new.items():
             a[rows] = getattr(g, f)
     return base._replace(margin=float(new["robot_margin"].min(initial=base.margin)),
-                         safe=not (unsafe or new["broken"].any()), rounds=base.rounds + sum(g.rounds for _, g in parts),
-                         **new)
+                         safe=not (held is not None or new["broken"].any()), held=held,
+                         rounds=base.rounds + sum(g.rounds for _, g in parts), **new)
 
 
 class BackupAnswer(NamedTuple):
@@ -141,6 +141,7 @@ class BackupAnswer(NamedTuple):
     nudged: np.ndarray  #: robots the repair moved (not braking)
     margin: float
     safe: bool
+    unsafe: np.ndarray | None = None  #: robots outside the safe set: held (best effort) or broken (the QP's answer)
 
 
 @dataclass(frozen=True)
@@ -151,10 +152,18 @@ class BackupLayer:
 
     def __call__(self, s: StepInput, du_qp: np.ndarray, pairs: np.ndarray) -> BackupAnswer:
         """Check (and repair) the QP's answer; robots the check finds broken keep the QP's answer (best effort)."""
-        gate = gate_with_repair(s.team, pose_from_point(s.team, s.p, s.theta), s.u, du_qp, s.lo, s.hi, self.cfg,
-                                s.obstacles, pairs, checked=True)
-        broken = gate.broken
-        du = np.where(broken[:, None], du_qp, gate.du)
-        braking = gate.braking & ~broken
-        nudged = ~braking & ~broken & (np.abs(du - du_qp) > 1e-9 * s.scale[:, None]).any(axis=1)
-        return BackupAnswer(du, braking, nudged, gate.margin, gate.safe)
+        return backup_answer(s.team, pose_from_point(s.team, s.p, s.theta), s.u, du_qp, s.lo, s.hi, s.scale,
+                             self.cfg, s.obstacles, pairs, checked=True)
+
+
+def backup_answer(team: Team, pose: np.ndarray, u: np.ndarray, du_qp: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                  scale: np.ndarray, cfg: FilterConfig, obstacles: tuple[np.ndarray, ...] | None, pairs: np.ndarray,
+                  checked: bool = False) -> BackupAnswer:
+    """The backup stage's answer for the QP's ``du_qp`` (:func:`gate_with_repair`; ``scale`` ``(N,)``: ``nudged``'s)."""
+    gate = gate_with_repair(team, pose, u, du_qp, lo, hi, cfg, obstacles, pairs, checked=checked)
+    broken = gate.broken
+    du = np.where(broken[:, None], du_qp, gate.du)
+    braking = gate.braking & ~broken
+    nudged = ~braking & ~broken & (np.abs(du - du_qp) > 1e-9 * scale[:, None]).any(axis=1)
+    unsafe = broken if gate.held is None else broken | gate.held
+    return BackupAnswer(du, braking, nudged, gate.margin, gate.safe, unsafe)
