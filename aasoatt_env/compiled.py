@@ -32,6 +32,8 @@ PARTS: dict[str, str] = {
     "fused": "aasoatt_env.safety.centralized_kernel",
     "inputs": "aasoatt_env.safety.rows_kernel",
     "deadlock": "aasoatt_env.safety.rows_kernel",
+    "observations": "aasoatt_env.sim.observations_kernel",
+    "dynamics": "aasoatt_env.model.dynamics_kernel",
 }
 """The compiled parts (each a stage's loop, the same numbers or the same decisions) and their modules."""
 

@@ -6,8 +6,10 @@ import math
 import warnings
 
 import numba
+from numba import types
+from numba.extending import intrinsic
 
-__all__ = ["jit", "jit_reassoc", "nclip", "nmax", "nmin"]
+__all__ = ["cmul", "fma", "jit", "jit_reassoc", "nclip", "nmax", "nmin"]
 
 _WARNED = [False]
 
@@ -49,3 +51,20 @@ def nmax(a, b):
 def nclip(a, lo, hi):
     """``numpy.clip`` (``np.minimum(np.maximum(a, lo), hi)``) of one number."""
     return nmin(nmax(a, lo), hi)
+
+
+@intrinsic
+def fma(typingctx, a, b, c):
+    """``a * b + c`` rounded once (LLVM's ``fma``: the instruction on a CPU with FMA)."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+
+    return sig, codegen
+
+
+@jit
+def cmul(ar, ai, br, bi):
+    """``(ar + i ai)(br + i bi)`` as numpy's complex multiplication computes it on a CPU with FMA (``(re, im)``)."""
+    return fma(ar, br, -(ai * bi)), fma(ar, bi, ai * br)

@@ -2,10 +2,12 @@
 
 Each row steps ``B`` random_goals teams of ``N`` paper robots with the paper's tracking law (``k3 = 1``, ``k4 = 4``)
 as actions, from ``reset(seed=0)`` after a few warm-up steps: bare (no filter) and filtered (the decentralised
-filter, ``backup=False``, ``negotiate=False``: the configuration the torch filter reproduces) in float32 and
-float64, and behind the filter's defaults (``+backup``: the braking check of :mod:`aasoatt_env.tensor.backup`) in
-float32, and the numpy :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` with the numpy decentralised filter of
-the same configuration (one grouped filter call for all teams) measured in the same run.  ``ratio``: torch float64
+filter, ``backup=False``, ``negotiate=False``: the paper's filter, each robot's own QP) in float32 and float64,
+and behind the filter's defaults (negotiation groups and the backup stage) in float32 with either backup check
+(``+bk numpy``: the numpy filter's layer on the CPU, a CPU's default; ``+bk torch``: the braking check of
+:mod:`aasoatt_env.tensor.backup`), and the numpy :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv` with the numpy
+decentralised filter of the filtered columns' configuration (one grouped filter call for all teams) measured in the
+same run.  ``ratio``: torch float64
 filtered over numpy filtered.  The GPU column is measured only where ``torch.cuda.is_available()``; otherwise it
 is empty (never estimated).
 
@@ -37,10 +39,10 @@ def _torch_actions(env):
 
 
 def torch_rate(B: int, N: int, filtered: bool, dtype: torch.dtype, steps: int, device: str = "cpu",
-               defaults: bool = False) -> float:
-    """Robot-steps/s of the torch env (``defaults``: behind the filter's defaults, the braking check included)."""
+               check: str | None = None) -> float:
+    """Robot-steps/s of the torch env (``check``: behind the filter's defaults with that backup check)."""
     env = make_tensor_env("random_goals", B, N, device=device, dtype=dtype, filter=filtered,
-                          **({} if defaults else FILTER))
+                          **(FILTER if check is None else {"backup_check": check}))
     env.reset(seed=0)
     with torch.no_grad():
         for _ in range(3):
@@ -85,8 +87,8 @@ def main() -> None:
     gpu = torch.cuda.is_available()
     with printed_page(args, "Torch env throughput", notes=__doc__):
         print("```")
-        print(f"{'B':>5} {'N':>5} {'bare f32':>11} {'filt f32':>11} {'+backup f32':>11} {'filt f64':>11} "
-              f"{'numpy filt':>11} "
+        print(f"{'B':>5} {'N':>5} {'bare f32':>11} {'filt f32':>11} {'+bk numpy':>11} {'+bk torch':>11} "
+              f"{'filt f64':>11} {'numpy filt':>11} "
               f"{'ratio':>7} {'GPU filt f32':>13}   (robot-steps/s, one CPU thread)")
         for B, N in args.sizes:
             robots = B * N
@@ -94,11 +96,12 @@ def main() -> None:
             nsteps = max(2, min(30, 20_000 // robots)) // (2 if args.quick else 1) or 2
             bare = torch_rate(B, N, False, torch.float32, steps)
             f32 = torch_rate(B, N, True, torch.float32, steps)
-            dflt = torch_rate(B, N, True, torch.float32, steps, defaults=True)
+            bk_np = torch_rate(B, N, True, torch.float32, steps, check="numpy")
+            bk_t = torch_rate(B, N, True, torch.float32, steps, check="torch")
             f64 = torch_rate(B, N, True, torch.float64, steps)
             npr = numpy_rate(min(B, NUMPY_TEAMS), N, nsteps)
             g = f"{torch_rate(B, N, True, torch.float32, steps, 'cuda'):>13.0f}" if gpu else f"{'':>13}"
-            print(f"{B:>5} {N:>5} {bare:>11.0f} {f32:>11.0f} {dflt:>11.0f} {f64:>11.0f} {npr:>11.0f} "
+            print(f"{B:>5} {N:>5} {bare:>11.0f} {f32:>11.0f} {bk_np:>11.0f} {bk_t:>11.0f} {f64:>11.0f} {npr:>11.0f} "
                   f"{f64 / npr:>7.1f} {g}",
                   flush=True)
         print("```")

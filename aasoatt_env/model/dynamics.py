@@ -12,6 +12,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from aasoatt_env.compiled import kernels
 from aasoatt_env.model.params import Team
 from aasoatt_env.model.portable import atan2
 
@@ -66,11 +67,14 @@ def jacobian(team: Team, theta: np.ndarray) -> np.ndarray:
     return _as_matrix(np.exp(1j * theta)[:, None] * team.input_columns)
 
 
-def kinematics(team: Team, pose: np.ndarray, u: np.ndarray) -> Kinematics:
+def kinematics(team: Team, pose: np.ndarray, u: np.ndarray, compiled: bool = False) -> Kinematics:
     """Control point, velocity, ``A`` and ``A_dot u`` of the team, all from one complex rotation.
 
     ``A u = e^{i theta} (c_0 u_R + c_1 u_L)`` (:attr:`Team.input_columns`), ``A_dot u = i omega A u``.
+    ``compiled``: a differential-drive team's by :mod:`.dynamics_kernel` (the same numbers).
     """
+    if compiled and team.is_diff_drive:
+        return Kinematics(*kernels("dynamics").kinematics(team.input_columns, team.offset, team.turn_gain, pose, u))
     if not team.is_diff_drive:
         n = pose.shape[0]
         return Kinematics(pose[:, :2].copy(), u.copy(), jacobian(team, pose[:, 2]), np.zeros((n, 2)))
@@ -99,8 +103,14 @@ def speed_box(lo: np.ndarray, hi: np.ndarray, u: np.ndarray, max_speed: float | 
     return new_lo, new_hi
 
 
-def integrate(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """Advance poses and wheel speeds by ``dt`` holding ``du``; returns new arrays."""
+def integrate(team: Team, pose: np.ndarray, u: np.ndarray, du: np.ndarray, dt: float,
+              compiled: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Advance poses and wheel speeds by ``dt`` holding ``du``; returns new arrays.
+
+    ``compiled``: a differential-drive team's step by :mod:`.dynamics_kernel` (the same numbers).
+    """
+    if compiled and team.is_diff_drive:
+        return kernels("dynamics").integrate(team.wheel_map, pose, u, du, float(dt), _SMALL_OMEGA)
     u_new = u + du * dt
     if not team.is_diff_drive:
         pose_new = pose.copy()

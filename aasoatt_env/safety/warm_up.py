@@ -1,4 +1,4 @@
-"""Compile the filter's kernels before a control loop starts (``aasoatt warm-up``).
+"""Compile the filter's and the env's kernels before a control loop starts (``aasoatt warm-up``).
 
 numba compiles each kernel the first time it runs and caches it on disk, which from an empty cache takes tens
 of seconds; :func:`warm_up` runs every compiled part once on tiny problems with the filter's argument types.
@@ -51,12 +51,22 @@ def _scenes() -> list[tuple[str, Callable[[], None]]]:
                         np.array([0, 0, 1]), np.array([[1.0, 0.0], [-1.0, 0.0], [1.0, 1.0]]),
                         np.array([-2.0, -2.0, 0.5]), relax=True, relax_tol=np.full(2, 1e-7), compiled=True)
 
+    def env() -> None:  # the env's kinematics, step and observations, as one team and as stacked teams
+        from aasoatt_env.api.factory import make_batched_env, make_env
+
+        single = make_env("random_goals", num_robots=3, random_obstacles=1)
+        single.reset(seed=0)
+        single.step({a: np.ones(2, np.float32) for a in single.agents})
+        stacked = make_batched_env(2, "random_goals", num_robots=3, random_obstacles=1)
+        stacked.reset(seed=0)
+        stacked.step(np.ones((2, 3, 2), np.float32))
+
     def geometry() -> None:
         p = np.random.default_rng(0).uniform(0, 5, (8, 2))
         pairs = robot_pairs(p, 3.0, method="cells")
         pair_components(8, pairs[:, 0], pairs[:, 1], compiled=True)
 
-    return [("geometry", geometry), ("backup layer", backup_layer), ("local QPs", local_qps)] + [
+    return [("geometry", geometry), ("env", env), ("backup layer", backup_layer), ("local QPs", local_qps)] + [
         (f"{mode} filter{' + backup' if backup else ''}", lambda mode=mode, backup=backup: team_steps(mode, backup))
         for mode in ("centralized", "decentralized") for backup in (True, False)]
 

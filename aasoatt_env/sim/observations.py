@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from aasoatt_env.compiled import kernels
 from aasoatt_env.model.geometry import Proximity
 
 __all__ = ["OBS_BOUND", "SELF_DIM", "SLOT_DIM", "build_observations"]
@@ -17,13 +18,22 @@ _NEG_RADIUS = np.array([1.0, 1.0, 1.0, 1.0, -1.0])
 def build_observations(*, p: np.ndarray, v: np.ndarray, theta: np.ndarray, u: np.ndarray, p_d: np.ndarray,
                        v_d: np.ndarray, a_d: np.ndarray, goals: np.ndarray, radii: np.ndarray,
                        obstacle_centers: np.ndarray, obstacle_radii: np.ndarray, sensing_range: float, k_robots: int,
-                       k_obstacles: int, prox: Proximity, obstacle_offset: np.ndarray | None = None) -> np.ndarray:
+                       k_obstacles: int, prox: Proximity, obstacle_offset: np.ndarray | None = None,
+                       compiled: bool = False) -> np.ndarray:
     """Observations of all robots as one ``(N, 14 + 6 (K + K_obs))`` float32 array.
 
     Stacked teams: ``prox.idx`` holds stack indices, and robot ``i``'s obstacle ``k`` is entry
-    ``obstacle_offset[i] + k`` of the stacked obstacle arrays.
+    ``obstacle_offset[i] + k`` of the stacked obstacle arrays.  ``compiled``: the same numbers by
+    :mod:`.observations_kernel`.
     """
     n = p.shape[0]
+    if compiled:
+        gaps = prox.obstacle_gaps if k_obstacles and prox.obstacle_gaps is not None else np.empty((n, 0))
+        has_offset = obstacle_offset is not None
+        return kernels("observations").observations(
+            p, v, theta, u, p_d, v_d, a_d, goals, radii, obstacle_centers, obstacle_radii, float(sensing_range),
+            int(k_robots), int(k_obstacles), prox.idx, prox.dist, gaps,
+            obstacle_offset if has_offset else np.zeros(0, np.intp), has_offset, SELF_DIM, SLOT_DIM, OBS_BOUND)
     obs = np.zeros((n, SELF_DIM + SLOT_DIM * (k_robots + k_obstacles)), dtype=np.float32)  # each entry cast once
     heading = np.exp(1j * theta).view(np.float64).reshape(n, 2)
     np.concatenate((p - p_d, goals - p, v, heading, u, v_d, a_d), axis=1, out=obs[:, :SELF_DIM])

@@ -6,6 +6,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from aasoatt_env.compiled import available as compiled_available
 from aasoatt_env.errors import ActionError
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import Kinematics
@@ -52,6 +53,7 @@ class TeamStack:
         self._clearance = np.full(k * n, np.inf)
         self._kin: Kinematics | None = None
         self._filter_resets: list[int] = []
+        self._compiled = compiled_available()  # the compiled forms of the env's stages, where numba imports
 
     def _take_team(self, k: int, src: TeamStack, j: int) -> None:
         n = self._n
@@ -70,7 +72,7 @@ class TeamStack:
             self._team_ids = ids
             r = self._team.radius.reshape(self._k, self._n)
             self._equal_radii = r.min(axis=1) == r.max(axis=1)
-        self._kin = dynamics.kinematics(self._team, self._pose, self._u)
+        self._kin = dynamics.kinematics(self._team, self._pose, self._u, self._compiled)
         layouts = self._layouts
         self._goals = np.concatenate([np.asarray(lay.reference.goals, dtype=np.float64) for lay in layouts])
         self._ref_stack = ReferenceStack([lay.reference for lay in layouts])
@@ -130,12 +132,12 @@ class TeamStack:
                 clipped = np.minimum(np.maximum(du, lo), hi)
                 if (clipped != du).any():
                     saturated |= np.abs(clipped - du).max(axis=1) > 1e-9
-                new_pose, new_u = dynamics.integrate(team, pose, u, clipped, dt)
+                new_pose, new_u = dynamics.integrate(team, pose, u, clipped, dt, self._compiled)
                 if any_frozen:
                     new_pose[frozen], new_u[frozen] = pose[frozen], 0.0
                 pose, u = new_pose, new_u
                 self._times = self._times + dt
-                kin = dynamics.kinematics(team, pose, u)
+                kin = dynamics.kinematics(team, pose, u, self._compiled)
                 if sub < steps - 1:
                     gaps = self._neighbours(kin.p, 0).clearance
                     between = gaps if between is None else np.minimum(between, gaps)
@@ -219,7 +221,7 @@ class TeamStack:
             p=kin.p[sl], v=kin.v[sl], theta=self._pose[sl, 2], u=self._u[sl], p_d=p_d[sl], v_d=v_d[sl], a_d=a_d[sl],
             goals=self._goals[sl], radii=self._team.radius[sl], obstacle_centers=centers, obstacle_radii=radii,
             sensing_range=self.sensing_range, k_robots=self.num_neighbors, k_obstacles=self.num_obstacles,
-            prox=prox, obstacle_offset=offset)
+            prox=prox, obstacle_offset=offset, compiled=self._compiled)
 
     def _decide(self, act: np.ndarray, saturated: np.ndarray, between: np.ndarray | None,
                 outputs: list[list[FilterOutput]]) -> tuple:
