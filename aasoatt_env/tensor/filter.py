@@ -163,7 +163,7 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     ``pose`` ``(B, N, 3)``, wheel speeds ``u`` and ``nominal`` wheel accelerations ``(B, N, 2)``, the reference
     ``p_d, v_d`` ``(B, N, 2)``, ``obstacles`` ``(centres (B, M, 2), radii (B, M))``, ``avoiding`` the previous step's
     ``FilterOut.avoiding`` (None: a first step).  Differentiable in ``pose``, ``u``, ``nominal`` (closed forms).
-    ``backup_check`` (with ``cfg.backup``): :data:`BACKUP_CHECKS` (None: :func:`default_backup_check` of the device).
+    ``backup_check`` (with ``cfg.backup``): :data:`BACKUP_CHECKS` (None: the device's, :func:`backup_check_of`).
     """
     check = backup_check_of(backup_check, pose.device)
     kin = kinematics(team, pose, u)
