@@ -52,12 +52,16 @@ def _scenes() -> list[tuple[str, Callable[[], None]]]:
                         np.array([-2.0, -2.0, 0.5]), relax=True, relax_tol=np.full(2, 1e-7), compiled=True)
 
     def env() -> None:  # the env's kinematics, step and observations, as one team and as stacked teams
-        from aasoatt_env.api.factory import make_batched_env, make_env
+        from aasoatt_env.sim.batched import BatchedAASOATTEnv
+        from aasoatt_env.sim.env import AASOATTParallelEnv
 
-        single = make_env("random_goals", num_robots=3, random_obstacles=1)
+        def one() -> AASOATTParallelEnv:
+            return AASOATTParallelEnv("random_goals", num_robots=3, random_obstacles=1)
+
+        single = one()
         single.reset(seed=0)
         single.step({a: np.ones(2, np.float32) for a in single.agents})
-        stacked = make_batched_env(2, "random_goals", num_robots=3, random_obstacles=1)
+        stacked = BatchedAASOATTEnv([one, one])
         stacked.reset(seed=0)
         stacked.step(np.ones((2, 3, 2), np.float32))
 
