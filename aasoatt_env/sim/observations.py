@@ -52,7 +52,7 @@ def build_observations(*, p: np.ndarray, v: np.ndarray, theta: np.ndarray, u: np
     m = prox.obstacle_gaps.shape[1] if k_obstacles else 0
     if m:
         gaps, kk = prox.obstacle_gaps, min(k_obstacles, m)
-        order = gaps.argsort(axis=1)[:, :kk]
+        order = gaps.argsort(axis=1, kind="stable")[:, :kk]  # (ties: the first obstacle, as the kernel)
         g = gaps[np.arange(n)[:, None], order]
         if obstacle_offset is not None:
             order = order + obstacle_offset[:, None]
