@@ -235,12 +235,13 @@ def _groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, s
 
 def solve_groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarray, scale: np.ndarray, warm: Warm,
                  grouped: np.ndarray, joint: tuple[np.ndarray, ...], kept: tuple[np.ndarray, ...],
-                 policy: SolverPolicy, compiled: bool) -> tuple[TeamAnswer, int, int]:
+                 policy: SolverPolicy, compiled: bool, teams: np.ndarray | None = None) -> tuple[TeamAnswer, int, int]:
     """The ``grouped`` robots' joint QP over the whole rows ``joint`` and their half-rows ``kept``.
 
     ``joint = (ri, rj, Gi, Gj, rhs)``, ``kept = (owner, G, h)``; ``warm``: ``x`` of the team (scaled), ``z`` of
-    ``joint`` then ``kept`` (None: 0).  Returns the answer (the grouped robots', multipliers of ``joint`` then
-    ``kept``), the number of groups and the largest's size.
+    ``joint`` then ``kept`` (None: 0); ``teams`` ``(N,)``: independent teams, in consecutive blocks (their QPs are
+    solved in chunks of whole teams of about :data:`GROUP_CHUNK` grouped robots; None: one QP).  Returns the answer
+    (the grouped robots', multipliers of ``joint`` then ``kept``), the number of groups and the largest's size.
     """
     sub = np.flatnonzero(grouped)
     remap = np.full(A.shape[0], -1, dtype=np.intp)
@@ -253,12 +254,46 @@ def solve_groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarr
     g_z = np.zeros(jri.shape[0] + k) if warm.z is None else warm.z
     g_rows = Rows(g_ri, g_rj, np.concatenate((jGi, G)), np.concatenate((jGj, np.zeros((k, 2)))),
                   np.concatenate((jrhs, h)), np.empty((0, 2), np.intp), np.empty(0, np.int64), np.inf, np.inf)
-    ans = solve_team(policy, A[sub], target[sub], lo[sub], hi[sub], scale[sub], g_rows,
-                     Warm(np.ascontiguousarray(warm.x[sub]), g_z, warm.compiled), decompose=True, compiled=compiled,
-                     settings=compiled_settings(policy, compiled))
     label = pair_components(sub.size, g_ri[: jri.shape[0]], g_rj[: jri.shape[0]], compiled=compiled)
     sizes = np.bincount(label, minlength=sub.size)
-    return ans, int(np.count_nonzero(sizes >= 2)), int(sizes.max(initial=0))
+    # a stack's teams in chunks of whole teams: each chunk's QP stays about one team's size, on the solvers' dense path
+    split = teams is not None and sub.size > GROUP_CHUNK
+    if split:
+        first = np.unique(teams[sub], return_index=True)[1]
+        counts = np.diff(np.append(first, sub.size))
+        chunk = np.repeat(np.cumsum(counts) // GROUP_CHUNK, counts)
+    x_sub = np.ascontiguousarray(warm.x[sub])
+    parts = []
+    for c in range(int(chunk.max()) + 1 if split else 1):
+        robots = np.flatnonzero(chunk == c) if split else np.arange(sub.size)
+        rows = np.flatnonzero(chunk[g_ri] == c) if split else np.arange(g_ri.shape[0])
+        if robots.size == 0:
+            continue
+        loc = np.full(sub.size, -1, dtype=np.intp)
+        loc[robots] = np.arange(robots.size)
+        rj_c = g_rows.rj[rows]
+        rows_c = g_rows._replace(ri=loc[g_ri[rows]], rj=np.where(rj_c >= 0, loc[np.maximum(rj_c, 0)], -1),
+                                 Gi=g_rows.Gi[rows], Gj=g_rows.Gj[rows], rhs=g_rows.rhs[rows])
+        s = sub[robots]
+        parts.append((robots, rows, solve_team(policy, A[s], target[s], lo[s], hi[s], scale[s], rows_c,
+                                               Warm(x_sub[robots], g_z[rows], warm.compiled), decompose=True,
+                                               compiled=compiled, settings=compiled_settings(policy, compiled))))
+    return _joined(parts, sub.size, g_ri.shape[0]), int(np.count_nonzero(sizes >= 2)), int(sizes.max(initial=0))
+
+
+GROUP_CHUNK: int = 64  #: grouped robots of a stack's teams solved in one QP (whole teams: a larger one alone)
+
+
+def _joined(parts: list[tuple[np.ndarray, np.ndarray, TeamAnswer]], n: int, m: int) -> TeamAnswer:
+    """One :class:`TeamAnswer` of independent chunks ``(robots, rows, answer)`` (the worst status and its message)."""
+    if len(parts) == 1:
+        return parts[0][2]
+    du, x, z, eta = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(m), np.zeros(m)
+    for robots, rows, a in parts:
+        du[robots], x[robots], z[rows], eta[rows] = a.du, a.x, a.z, a.eta
+    worst = max((a for _, _, a in parts), key=lambda a: _SEVERITY.index(a.status))
+    return TeamAnswer(du, x, z, eta, worst.status, worst.message, max(a.iterations for _, _, a in parts),
+                      sum(a.n_qp for _, _, a in parts), all(a.exact for _, _, a in parts))
 
 
 @dataclass(frozen=True)

@@ -323,7 +323,8 @@ def _negotiate(cfg: FilterConfig, kin: TensorKinematics, lo, hi, scale, target, 
     Gi, Gj, rhs, G, h = _numpy(g[once]), _numpy(go[once]), _numpy(hr.rhs[once]), _numpy(g[kept]), _numpy(hr.h[kept])
     ans, _, _ = solve_groups(_numpy(A), _numpy(target.reshape(-1, 2)[sub]), lo_s, hi_s, sc,
                              Warm(_numpy(du0.reshape(-1, 2)[sub]) / sc[:, None], None), np.ones(sub.shape[0], bool),
-                             (ri, rj, Gi, Gj, rhs), (owner, G, h), _policy(cfg), cfg.compiled)
+                             (ri, rj, Gi, Gj, rhs), (owner, G, h), _policy(cfg), cfg.compiled,
+                             _numpy(sub) // N)  # (each robot's team)
     m, x = ri.shape[0], ans.du
     binds = ans.z > cfg.eta_tol  # a whole row binds both of its robots, a kept half its owner
     bound = np.zeros(sub.shape[0], dtype=bool)
