@@ -257,16 +257,15 @@ def solve_groups(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np.ndarr
     label = pair_components(sub.size, g_ri[: jri.shape[0]], g_rj[: jri.shape[0]], compiled=compiled)
     sizes = np.bincount(label, minlength=sub.size)
     # a stack's teams in chunks of whole teams: each chunk's QP stays about one team's size, on the solvers' dense path
-    split = teams is not None and sub.size > GROUP_CHUNK
-    if split:
+    chunk = np.zeros(sub.size, dtype=np.intp)
+    if teams is not None and sub.size > GROUP_CHUNK:
         first = np.unique(teams[sub], return_index=True)[1]
         counts = np.diff(np.append(first, sub.size))
         chunk = np.repeat(np.cumsum(counts) // GROUP_CHUNK, counts)
     x_sub = np.ascontiguousarray(warm.x[sub])
     parts = []
-    for c in range(int(chunk.max()) + 1 if split else 1):
-        robots = np.flatnonzero(chunk == c) if split else np.arange(sub.size)
-        rows = np.flatnonzero(chunk[g_ri] == c) if split else np.arange(g_ri.shape[0])
+    for c in range(int(chunk.max(initial=0)) + 1):
+        robots, rows = np.flatnonzero(chunk == c), np.flatnonzero(chunk[g_ri] == c)
         if robots.size == 0:
             continue
         loc = np.full(sub.size, -1, dtype=np.intp)
