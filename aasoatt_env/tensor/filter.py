@@ -35,7 +35,7 @@ from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.safety.solvers.polygons import FAR, LocalAnswer, least_violation, solve_polygons
 from aasoatt_env.safety.stages import Warm
 from aasoatt_env.tensor.backup import gate, repair
-from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics
+from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics, matvec, norm, pick
 
 __all__ = ["BACKUP", "BACKUP_CHECKS", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "backup_check_of",
            "check_config", "filter_step"]
@@ -74,20 +74,15 @@ def check_config(cfg: FilterConfig) -> FilterConfig:
 def _target(cfg: FilterConfig, kin: TensorKinematics, nom: torch.Tensor, avoiding: torch.Tensor | None,
             p_d: torch.Tensor, v_d: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """``A du_nom``, corrected by eqn.13 on the triggered robots; ``(target, triggered)``."""
-    tx = kin.a00 * nom[..., 0] + kin.a01 * nom[..., 1]
-    ty = kin.a10 * nom[..., 0] + kin.a11 * nom[..., 1]
+    t = matvec(kin.a00, kin.a01, kin.a10, kin.a11, nom)
     if avoiding is None or cfg.deadlock == "none":
-        return torch.stack((tx, ty), -1), torch.zeros(tx.shape, dtype=torch.bool, device=tx.device)
+        return t, torch.zeros(t.shape[:-1], dtype=torch.bool, device=t.device)
     ell = kin.p - p_d
-    not_done = ((torch.sqrt(v_d[..., 0] ** 2 + v_d[..., 1] ** 2) >= cfg.low_speed)
-                | (torch.sqrt(ell[..., 0] ** 2 + ell[..., 1] ** 2) > cfg.goal_tol))
-    trig = avoiding & not_done
+    trig = avoiding & ((norm(v_d) >= cfg.low_speed) | (norm(ell) > cfg.goal_tol))
     q = math.radians(cfg.rotation_deg)
     cq, sq = math.cos(q), math.sin(q)
-    e = kin.v - v_d + cfg.k3 * ell
-    z = torch.where(trig, cfg.zeta, 0.0).to(tx.dtype)
-    return torch.stack((tx - z * (e[..., 0] * cq + e[..., 1] * (-sq)), ty - z * (e[..., 0] * sq + e[..., 1] * cq)),
-                       -1), trig
+    z = torch.where(trig, cfg.zeta, 0.0).to(t.dtype)
+    return t - z[..., None] * matvec(cq, -sq, sq, cq, kin.v - v_d + cfg.k3 * ell), trig
 
 
 class _Pairs(NamedTuple):
@@ -99,17 +94,12 @@ class _Pairs(NamedTuple):
     gv: torch.Tensor
     ga: torch.Tensor
     ds: torch.Tensor
-    gap: torch.Tensor  #: ``(B, N)`` smallest surface gap
+    sep: torch.Tensor  #: ``|p_own - p_other| - ds``: the surface gap of each row
+    gap: torch.Tensor  #: ``(B, N)`` smallest surface gap of a valid row (``D - 2 r`` without)
     of: torch.Tensor  #: ``(F, B, N, K + M)`` the other robot's features (:data:`_F`; 0 for obstacles)
 
 
 _F = ("px", "py", "vx", "vy", "ax", "ay", "radius", "a00", "a01", "a10", "a11", "du0x", "du0y", "authority")
-
-
-def _gather(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
-    """``x[b, idx[b, n, k]]`` for ``x`` ``(B, N)``, ``idx`` ``(B, N, K)``."""
-    B, N, K = idx.shape
-    return x.gather(1, idx.reshape(B, N * K)).reshape(B, N, K)
 
 
 def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
@@ -133,26 +123,21 @@ def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
     gp, gv, ga = rel[0:2], rel[2:4], rel[4:6]
     ds = rad[..., None] + of[6]
     other = torch.where(valid, idx, -1)
-    centre_gap = torch.sqrt(gp[0] ** 2 + gp[1] ** 2) - ds
-    gap = torch.where(valid, centre_gap, torch.full_like(centre_gap, float("inf"))).amin(-1) if K else \
-        torch.full((B, N), float("inf"), dtype=p.dtype, device=p.device)
     if obstacles is not None and obstacles[1].shape[-1]:
         oc, orad = obstacles
         M = orad.shape[-1]
         op = own[0:2] - oc.permute(2, 0, 1)[:, :, None, :]
-        odist = torch.sqrt(op[0] ** 2 + op[1] ** 2)
-        ovalid = odist - orad[:, None, :] <= D
-        ods = rad[..., None] + orad[:, None, :]
-        gap = torch.minimum(gap, torch.where(ovalid, odist - ods, torch.full_like(odist, float("inf"))).amin(-1))
         gp = torch.cat((gp, op), 3)
         gv = torch.cat((gv, own[2:4].expand(2, B, N, M)), 3)
         ga = torch.cat((ga, own[4:6].expand(2, B, N, M)), 3)
-        ds = torch.cat((ds, ods), 2)
-        valid = torch.cat((valid, ovalid), 2)
+        ds = torch.cat((ds, rad[..., None] + orad[:, None, :]), 2)
+        valid = torch.cat((valid, torch.sqrt(op[0] ** 2 + op[1] ** 2) - orad[:, None, :] <= D), 2)
         other = torch.cat((other, torch.full((B, N, M), -1, dtype=other.dtype, device=p.device)), 2)
         of = torch.cat((of, torch.zeros(F, B, N, M, dtype=of.dtype, device=of.device)), 3)
-    gap = torch.where(torch.isinf(gap), torch.full_like(gap, D) - 2.0 * rad, gap)
-    return _Pairs(other, valid, gp, gv, ga, ds, gap, of)
+    sep = torch.sqrt(gp[0] ** 2 + gp[1] ** 2) - ds
+    gap = torch.where(valid, sep, math.inf).amin(-1) if valid.shape[-1] else torch.full_like(rad, math.inf)
+    gap = torch.where(torch.isinf(gap), D - 2.0 * rad, gap)
+    return _Pairs(other, valid, gp, gv, ga, ds, sep, gap, of)
 
 
 def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torch.Tensor, nominal: torch.Tensor,
@@ -192,11 +177,11 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     of = pr.of
     ogx = of[7] * pr.gp[0] + of[9] * pr.gp[1]
     ogy = of[8] * pr.gp[0] + of[10] * pr.gp[1]
-    base_o = torch.where(robot, ogx * of[11] + ogy * of[12], torch.zeros_like(base))
+    base_o = torch.where(robot, ogx * of[11] + ogy * of[12], 0.0)
     pos = tot > 0
     low = torch.arange(N, device=pose.device)[None, :, None] < pr.other  # own index is the pair's i
-    safe_tot = torch.where(pos, tot, torch.ones_like(tot))
-    share = torch.where(pos, torch.where(low, a_own / safe_tot, 1.0 - a_oth / safe_tot), torch.full_like(tot, 0.5))
+    safe_tot = torch.where(pos, tot, 1.0)
+    share = torch.where(pos, torch.where(low, a_own / safe_tot, 1.0 - a_oth / safe_tot), 0.5)
     need = torch.where(low, (base - rhs) + base_o, (base_o - rhs) + base)
     h = torch.where(robot, base - need * share, base - (base - rhs))
     hr = _HalfRows(rows, gx, gy, h, rhs, ogx, ogy)
@@ -234,19 +219,16 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, po
     valid = torch.cat((torch.ones(B, N, 4, dtype=torch.bool, device=h.device), rows), -1)
     nrm = torch.sqrt(ax * ax + ay * ay)
     valid = valid & (nrm > 0)
-    inv = torch.where(valid, 1.0 / torch.where(valid, nrm, torch.ones_like(nrm)), torch.zeros_like(nrm))
+    inv = torch.where(valid, 1.0 / torch.where(valid, nrm, 1.0), 0.0)
     C = ax.shape[-1]
     nx, ny = (ax * inv).reshape(-1, C), (ay * inv).reshape(-1, C)
-    b = torch.where(valid, bb * inv, torch.full_like(bb, FAR)).reshape(-1, C)
-    t_box = torch.stack((kin.a00 * du0[..., 0] + kin.a01 * du0[..., 1],
-                         kin.a10 * du0[..., 0] + kin.a11 * du0[..., 1]), -1).reshape(-1, 2)
+    b = torch.where(valid, bb * inv, FAR).reshape(-1, C)
+    t_box = matvec(kin.a00, kin.a01, kin.a10, kin.a11, du0).reshape(-1, 2)
     sol = solve_polygons(target.reshape(-1, 2), nx, ny, b, t_box, C - 4)
     if not bool(sol.feasible.all()):
         sol = _relaxed(sol, target.reshape(-1, 2), nx, ny, b, t_box, gx, gy, h, rows, inv[..., 4:], lo, hi,
                        du0, scale)
-    w = sol.w.reshape(B, N, 2)
-    x = torch.stack((i00 * w[..., 0] + i01 * w[..., 1], i10 * w[..., 0] + i11 * w[..., 1]), -1)
-    du = torch.minimum(torch.maximum(x, lo), hi)
+    du = torch.minimum(torch.maximum(matvec(i00, i01, i10, i11, sol.w.reshape(B, N, 2)), lo), hi)
     # the trigger's memory: z = lam |G| / (s max|H|), lam = mu / |A^-T G|, H = 2 A'A (decentralized._half_multipliers)
     lam = sol.mu.reshape(B, N, C)[..., 4:].detach() * inv[..., 4:].detach()
     H00 = 2.0 * (kin.a00 ** 2 + kin.a10 ** 2)
@@ -258,16 +240,15 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, po
     status = torch.where(sol.feasible.reshape(B, N), 0, RELAXED)
     if cfg.negotiate and bool(trig.any()):
         du, avoiding, status = _negotiate(cfg, kin, lo, hi, scale, target, du0, trig, pr, hr, du, avoiding, status)
-    if cfg.backup and check == "numpy":
-        du, braking, broken = _numpy_backup(team, cfg, kin, pose, u, du, lo, hi, scale, pr, obstacles)
+    if cfg.backup:
+        if check == "numpy":
+            du, braking, broken = _numpy_backup(team, cfg, kin, pose, u, du, lo, hi, scale, pr, obstacles)
+        else:
+            if cfg.backup_repair:
+                du = repair(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
+            du, braking, broken = gate(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
         status = status | torch.where(braking, BACKUP, 0) | torch.where(broken, UNSAFE, 0)
-    elif cfg.backup:
-        if cfg.backup_repair:
-            du = repair(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
-        du, braking, broken = gate(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
-        status = status | torch.where(braking, BACKUP, 0) | torch.where(broken, UNSAFE, 0)
-    d = du - nominal
-    corr = torch.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+    corr = norm(du - nominal)
     return FilterOut(du, status, avoiding, trig, corr, corr.detach() > 1e-9 * scale, pr.gap)
 
 
@@ -277,13 +258,12 @@ def _relaxed(sol: LocalAnswer, t, nx, ny, b, t_box, gx, gy, h, valid, inv, lo, h
     K = gx.shape[-1]
     G = torch.sqrt(gx * gx + gy * gy).reshape(-1, K)[bad]
     ok = valid.reshape(-1, K)[bad] & (G > 0)
-    ig = torch.where(ok, 1.0 / torch.where(ok, G, torch.ones_like(G)), torch.zeros_like(G))
+    ig = torch.where(ok, 1.0 / torch.where(ok, G, 1.0), 0.0)
     hb = h.reshape(-1, K)[bad]
-    _, viol = least_violation(gx.reshape(-1, K)[bad] * ig, gy.reshape(-1, K)[bad] * ig,
-                              torch.where(ok, hb * ig, torch.full_like(hb, FAR)), lo.reshape(-1, 2)[bad],
-                              hi.reshape(-1, 2)[bad], du0.reshape(-1, 2)[bad].detach())
+    _, viol = least_violation(gx.reshape(-1, K)[bad] * ig, gy.reshape(-1, K)[bad] * ig, torch.where(ok, hb * ig, FAR),
+                              lo.reshape(-1, 2)[bad], hi.reshape(-1, 2)[bad], du0.reshape(-1, 2)[bad].detach())
     loosen = (viol * (1.0 + 1e-6) + RELAX_TOL * scale.reshape(-1)[bad, None]) * ok
-    rows = torch.where(ok, (hb + loosen.detach() * G) * inv.reshape(-1, K)[bad], torch.full_like(hb, FAR))
+    rows = torch.where(ok, (hb + loosen.detach() * G) * inv.reshape(-1, K)[bad], FAR)
     b2 = torch.cat((b[bad, :4], rows), 1)
     again = solve_polygons(t[bad], nx[bad], ny[bad], b2, t_box[bad], K)
     return LocalAnswer(sol.w.index_copy(0, bad, again.w), sol.mu.index_copy(0, bad, again.mu),
@@ -300,9 +280,9 @@ def _negotiate(cfg: FilterConfig, kin: TensorKinematics, lo, hi, scale, target, 
     """
     robot = hr.on & (pr.other >= 0)
     j = torch.clamp(pr.other, min=0)
-    touch = robot & (torch.sqrt(pr.gp[0] ** 2 + pr.gp[1] ** 2).detach() - pr.ds < cfg.negotiate_gap)
-    member = trig | (touch & _gather(trig, j)).any(-1)
-    whole = robot & member[..., None] & _gather(member, j)
+    touch = robot & (pr.sep.detach() < cfg.negotiate_gap)
+    member = trig | (touch & pick(trig, j)).any(-1)
+    whole = robot & member[..., None] & pick(member, j)
     grouped = whole.any(-1)
     if not bool(grouped.any()):
         return du, avoiding, status
@@ -312,7 +292,7 @@ def _negotiate(cfg: FilterConfig, kin: TensorKinematics, lo, hi, scale, target, 
     local = torch.full((B * N,), -1, dtype=torch.long, device=dev)
     local[sub] = torch.arange(sub.shape[0], device=dev)
     flat = torch.arange(B * N, device=dev).reshape(B, N)
-    own, oth = local[flat][..., None].expand(B, N, K), local[_gather(flat, j)]
+    own, oth = local[flat][..., None].expand(B, N, K), local[pick(flat, j)]
     once = whole & (torch.arange(N, device=dev)[None, :, None] < pr.other)  # each whole row from its lower index
     kept = hr.on & grouped[..., None] & ~whole  # a grouped robot's halves of the other rows, obstacle rows whole
 
@@ -368,10 +348,10 @@ def _numpy_backup(team: TensorTeam, cfg: FilterConfig, kin: TensorKinematics, po
     """
     B, N, K = pr.other.shape
     dev = du.device
-    stacked = team.source.derived.get(("stacked", B)) if team.source is not None else None
+    if team.source is None:
+        raise ConfigError("backup_check: 'numpy' needs a team built by TensorTeam.from_team (its numpy team)")
+    stacked = team.source.derived.get(("stacked", B))
     if stacked is None:
-        if team.source is None:
-            raise ConfigError("backup_check: 'numpy' needs a team built by TensorTeam.from_team (its numpy team)")
         stacked = team.source.derived[("stacked", B)] = stack_teams([team.source] * B)
 
     def cpu(x: torch.Tensor) -> np.ndarray:
@@ -387,9 +367,8 @@ def _numpy_backup(team: TensorTeam, cfg: FilterConfig, kin: TensorKinematics, po
         M = obstacles[1].shape[-1]
         obs = (_numpy(obstacles[0]).reshape(B * M, 2), _numpy(obstacles[1]).reshape(B * M),
                np.repeat(np.arange(B, dtype=np.int64), M))
-    p, theta = cpu(kin.p), cpu(pose[..., 2:3])[:, 0]
-    ans = backup_answer(stacked, pose_from_point(stacked, p, theta), cpu(u), cpu(du), cpu(lo), cpu(hi), cpu(scale),
-                        cfg, obs, pairs)
+    ans = backup_answer(stacked, pose_from_point(stacked, cpu(kin.p), cpu(pose[..., 2])), cpu(u), cpu(du), cpu(lo),
+                        cpu(hi), cpu(scale), cfg, obs, pairs)
 
     def back(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
         return torch.as_tensor(a, device=dev).to(dtype).reshape(B, N, *a.shape[1:])

@@ -15,8 +15,8 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import _SMALL_OMEGA
 from aasoatt_env.model.params import Team
 
-__all__ = ["TensorKinematics", "TensorTeam", "arc", "input_bounds", "integrate", "kinematics", "points",
-           "pose_from_point"]
+__all__ = ["TensorKinematics", "TensorTeam", "arc", "input_bounds", "integrate", "kinematics", "matvec", "norm",
+           "pick", "points", "pose_from_point"]
 
 
 class TensorTeam(NamedTuple):
@@ -66,12 +66,25 @@ def kinematics(team: TensorTeam, pose: torch.Tensor, u: torch.Tensor) -> TensorK
     h, hk = team.half, team.half_k
     a00, a10 = c * h - s * hk, c * hk + s * h  # e * h(1 + ik)
     a01, a11 = c * h + s * hk, s * h - c * hk  # e * h(1 - ik)
-    u0, u1 = u[..., 0], u[..., 1]
-    vx, vy = a00 * u0 + a01 * u1, a10 * u0 + a11 * u1
-    omega = team.turn_gain * (u0 - u1)
-    p = torch.stack(points(team, pose), dim=-1)
-    return TensorKinematics(p, torch.stack((vx, vy), -1), torch.stack((-omega * vy, omega * vx), -1),
-                            a00, a01, a10, a11)
+    v = matvec(a00, a01, a10, a11, u)
+    omega = team.turn_gain * (u[..., 0] - u[..., 1])
+    adot = torch.stack((-omega * v[..., 1], omega * v[..., 0]), -1)
+    return TensorKinematics(torch.stack(points(team, pose), dim=-1), v, adot, a00, a01, a10, a11)
+
+
+def matvec(a00, a01, a10, a11, x: torch.Tensor) -> torch.Tensor:
+    """``M x`` ``(..., 2)`` for the 2x2 matrices ``M = [[a00, a01], [a10, a11]]`` (tensors ``(...)`` or floats)."""
+    return torch.stack((a00 * x[..., 0] + a01 * x[..., 1], a10 * x[..., 0] + a11 * x[..., 1]), -1)
+
+
+def pick(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """``x[b, idx[b, n, k]]`` ``(B, N, K, ...)`` of ``x`` ``(B, M, ...)`` and indices ``idx`` ``(B, N, K)``."""
+    return x[torch.arange(x.shape[0], device=x.device)[:, None, None], idx]
+
+
+def norm(x: torch.Tensor) -> torch.Tensor:
+    """``|x|`` ``(...)`` of vectors ``(..., 2)``, in numpy's order of operations."""
+    return torch.sqrt(x[..., 0] ** 2 + x[..., 1] ** 2)
 
 
 def points(team: TensorTeam, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
