@@ -18,7 +18,7 @@ from typing import NamedTuple
 import torch
 
 from aasoatt_env.safety.config import FilterConfig
-from aasoatt_env.tensor.model import TensorTeam, arc, integrate, points
+from aasoatt_env.tensor.model import TensorTeam, arc, integrate, pick, points
 
 __all__ = ["GATE_TOL", "REPAIR_TARGET", "SAMPLES", "brake_du", "gate", "repair"]
 
@@ -34,20 +34,14 @@ def brake_du(team: TensorTeam, u: torch.Tensor, step: float, frac: float) -> tor
     return torch.maximum(torch.minimum(-u / step, a), -a)
 
 
-def _lin(team: TensorTeam, frac: float) -> torch.Tensor:
-    """``(N,)`` the wheels' part of :func:`_point_accel`: ``|A| a sqrt(2)`` (bounding ``sqrt(2)`` of it)."""
-    k = team.half_k / team.half
-    return team.half * torch.sqrt(1.0 + k * k) * (frac * team.max_wheel_accel) * math.sqrt(2.0) * math.sqrt(2.0)
-
-
-def _turn(team: TensorTeam, u: torch.Tensor) -> torch.Tensor:
-    """``(B, N)`` the turning part of :func:`_point_accel`: ``|omega| |p_dot|``."""
-    return team.turn_gain * (u[..., 0] - u[..., 1]).abs() * _speed(team, u)
-
-
 def _point_accel(team: TensorTeam, u: torch.Tensor, frac: float) -> torch.Tensor:
-    """``(B, N)`` bound on ``|p_ddot|`` while braking from ``u``: ``|A| a sqrt(2) + |omega| |p_dot|``."""
-    return _lin(team, frac) + _turn(team, u)
+    """``(B, N)`` bound on ``|p_ddot|`` while braking from ``u``: ``|A| a sqrt(2) + |omega| |p_dot|``.
+
+    The wheels' part ``|A| a sqrt(2)`` is taken twice over (bounding ``sqrt(2)`` of it), ``a = frac max_wheel_accel``.
+    """
+    k = team.half_k / team.half
+    lin = team.half * torch.sqrt(1.0 + k * k) * (frac * team.max_wheel_accel) * math.sqrt(2.0) * math.sqrt(2.0)
+    return lin + team.turn_gain * (u[..., 0] - u[..., 1]).abs() * _speed(team, u)
 
 
 def _speed(team: TensorTeam, u: torch.Tensor) -> torch.Tensor:
@@ -70,30 +64,22 @@ class _Rows:
 
     def __init__(self, other: torch.Tensor, obstacles, dtype: torch.dtype) -> None:
         B, N, KM = other.shape
-        self.shape, self.robot = (B, N, KM), other >= 0
-        self.flat = torch.clamp(other, min=0).reshape(B, N * KM)
+        self.robot, self.idx = other >= 0, torch.clamp(other, min=0)
         self.cx = self.cy = torch.zeros(B, N, KM, dtype=dtype, device=other.device)
         if obstacles is not None and obstacles[1].shape[-1]:
             oc = obstacles[0]
-            M = oc.shape[1]
-            pad = torch.zeros(B, N, KM - M, dtype=oc.dtype, device=oc.device)
-            self.cx = torch.cat((pad, oc[:, None, :, 0].expand(B, N, M)), 2)
-            self.cy = torch.cat((pad, oc[:, None, :, 1].expand(B, N, M)), 2)
-
-    def _other(self, x: torch.Tensor) -> torch.Tensor:
-        """The other member's ``(..., B, N, KM)`` of ``x`` ``(..., B, N)`` (robot 0's on obstacle rows)."""
-        B, N, KM = self.shape
-        return x.gather(-1, self.flat.expand(*x.shape[:-1], N * KM)).reshape(*x.shape, KM)
+            pad = torch.zeros(B, N, KM - oc.shape[1], 2, dtype=oc.dtype, device=oc.device)
+            self.cx, self.cy = torch.cat((pad, oc[:, None].expand(B, N, *oc.shape[1:])), 2).unbind(-1)
 
     def at(self, x: torch.Tensor) -> torch.Tensor:
-        """The other robot's ``(..., B, N, KM)`` of ``x`` ``(..., B, N)`` (0 for obstacles)."""
-        o = self._other(x)
-        return torch.where(self.robot, o, torch.zeros_like(o))
+        """The other robot's ``(B, N, KM)`` of ``x`` ``(B, N)`` (0 for obstacles)."""
+        o = pick(x, self.idx)
+        return torch.where(self.robot, o, torch.zeros_like(o))  # (of x's dtype, bool included)
 
     def rel(self, x, y, xo, yo) -> tuple[torch.Tensor, torch.Tensor]:
-        """``p_own - p_other`` of own points ``x, y`` and the others' ``xo, yo`` ``(..., B, N)`` (obstacles: centre)."""
-        return (x[..., None] - torch.where(self.robot, self._other(xo), self.cx),
-                y[..., None] - torch.where(self.robot, self._other(yo), self.cy))
+        """``p_own - p_other`` of own points ``x, y`` and the others' ``xo, yo`` ``(B, N)`` (obstacles: centre)."""
+        return (x[..., None] - torch.where(self.robot, pick(xo, self.idx), self.cx),
+                y[..., None] - torch.where(self.robot, pick(yo, self.idx), self.cy))
 
 
 class _End(NamedTuple):
@@ -132,7 +118,7 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
     out = _seg(q0x, q0y, q1x, q1y) - dev_step - ds
     gap1 = torch.sqrt(q1x * q1x + q1y * q1y) - ds
     risky = valid & (gap1 <= (own.braking + 1e-9)[..., None] + rows.at(oth.braking + 1e-9) + 1e-6)
-    out = torch.where(valid, out, torch.full_like(out, float("inf")))
+    out = torch.where(valid, out, math.inf)
     if not bool(risky.any()):
         return out, path_len
     # each team's braking horizon (its slowest robot's stop) in at most SAMPLES samples of tau >= dt
@@ -145,7 +131,7 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
     xo, yo, acco = (xs, ys, accs) if other is None else _braking_path(team, frac, oth.pose, oth.u, tau[:, None], steps)
     # the braking paths of the risky rows only, a chunk of rows at once: (S, rows)
     bb, nn, rr = torch.nonzero(risky, as_tuple=True)
-    jj, robot = rows.flat.view(rows.shape)[bb, nn, rr], rows.robot[bb, nn, rr]
+    jj, robot = rows.idx[bb, nn, rr], rows.robot[bb, nn, rr]
     tau2 = 2.0 * tau * tau / 8.0
     per = max(1, _CHUNK // steps)
     for first in range(0, bb.numel(), per):
@@ -176,8 +162,7 @@ def _braking_path(team: TensorTeam, frac: float, pose: torch.Tensor, u: torch.Te
     ang = pose[..., 2] + torch.cat((torch.zeros_like(turned[:1]), turned[:-1])) + half  # at each step's middle
     x = pose[..., 0] + torch.cumsum(m * torch.cos(ang), 0)
     y = pose[..., 1] + torch.cumsum(m * torch.sin(ang), 0)
-    acc = _lin(team, frac) + _turn(team, us[:-1])
-    return x + team.offset * torch.cos(theta), y + team.offset * torch.sin(theta), acc
+    return x + team.offset * torch.cos(theta), y + team.offset * torch.sin(theta), _point_accel(team, us[:-1], frac)
 
 
 def repair(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid, ds, obstacles,
@@ -201,16 +186,11 @@ def repair(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, vali
             low = valid & (m < target)
             if not bool(low.any()):
                 break
-            grads = []
-            for d in range(2):
-                moved = cand + unit[d]
-                mp, _ = _margins(team, cfg, rows, start, *integrate(team, pose, u, moved, cfg.dt), valid, ds,
-                                 other=base)
-                grads.append(torch.where(low, (mp - m) / eps, torch.zeros_like(m)))
-            g = torch.stack(grads, -1)  # (B, N, K + M, 2)
+            moved = (_margins(team, cfg, rows, start, *integrate(team, pose, u, cand + unit[d], cfg.dt), valid, ds,
+                              other=base)[0] for d in range(2))
+            g = torch.stack([torch.where(low, (mp - m) / eps, 0.0) for mp in moved], -1)  # (B, N, K + M, 2)
             gg = (g * g).sum(-1)
-            lift = torch.where(low & (gg > 1e-12), half * (2.0 * target - m) / gg.clamp(min=1e-12),
-                               torch.zeros_like(m))
+            lift = torch.where(low & (gg > 1e-12), half * (2.0 * target - m) / gg.clamp(min=1e-12), 0.0)
             cand = torch.minimum(torch.maximum(cand + (lift[..., None] * g).sum(-2), lo), hi)
         step = cand - du.detach()
     return torch.minimum(torch.maximum(du + step, lo), hi)
