@@ -27,12 +27,20 @@ from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import get_scenario
 from aasoatt_env.tensor.filter import BACKUP, FilterOut, backup_check_of, check_config, filter_step
-from aasoatt_env.tensor.model import TensorTeam, input_bounds, integrate, kinematics
+from aasoatt_env.tensor.model import TensorTeam, input_bounds, integrate, kinematics, matvec, norm, pick
 
 __all__ = ["TensorEnv", "make_tensor_env"]
 
 _ENV_KEYS = ("dt", "decision_interval", "action_mode", "sensing_range", "num_neighbors", "num_obstacles", "reward",
              "collision_tolerance", "max_steps", "differentiable", "backup_check")
+
+
+def _slots(k: int, ok: torch.Tensor, rel_p: torch.Tensor, rel_v: torch.Tensor, gap: torch.Tensor) -> torch.Tensor:
+    """``k`` observation slots ``(B, N, k SLOT_DIM)``: ``(rel_p, rel_v, gap, 1)`` where ``ok (B, N, kk)``, else 0."""
+    B, N, kk = gap.shape
+    part = torch.cat((rel_p, rel_v, gap[..., None], torch.ones_like(gap)[..., None]), -1)
+    part = torch.where(ok[..., None], part, 0.0)
+    return torch.cat((part, part.new_zeros(B, N, k - kk, SLOT_DIM)), 2).reshape(B, N, -1)
 
 
 def make_tensor_env(scenario: str = "random_goals", num_envs: int = 1, num_robots: int = 6, device: str = "cpu",
@@ -218,10 +226,8 @@ class TensorEnv:
         if self.action_mode == "wheel":
             return act * team.max_wheel_accel[:, None]
         k = kinematics(team, self.pose, self.u)
-        a = act * team.max_point_accel[:, None] - k.adot
         det = k.a00 * k.a11 - k.a01 * k.a10
-        return torch.stack(((k.a11 * a[..., 0] - k.a01 * a[..., 1]) / det,
-                            (k.a00 * a[..., 1] - k.a10 * a[..., 0]) / det), -1)
+        return matvec(k.a11, -k.a01, -k.a10, k.a00, act * team.max_point_accel[:, None] - k.adot) / det[..., None]
 
     # ------------------------------------------------------------------ what the agents see
     def _refresh(self) -> None:
@@ -229,21 +235,15 @@ class TensorEnv:
         self.kin = kinematics(self.team, self.pose, self.u)
         self.ref = self.reference()
         p = self.kin.p
-        d = p[:, :, None, :] - p[:, None, :, :]
-        dist = torch.sqrt(d[..., 0] ** 2 + d[..., 1] ** 2)
+        dist = norm(p[:, :, None, :] - p[:, None, :, :])
         N = p.shape[1]
         self.dist = dist + torch.diag(torch.full((N,), float("inf"), dtype=dist.dtype, device=dist.device))
         r = self.team.radius
         clear = (self.dist - r[:, None] - r[None, :]).amin(-1) if N > 1 else torch.full_like(p[..., 0], float("inf"))
         oc, orad = self._st["oc"], self._st["orad"]
-        self.ogap = torch.zeros(p.shape[0], N, 0, dtype=p.dtype, device=p.device)
-        if orad.shape[-1]:
-            od = p[:, :, None, :] - oc[:, None, :, :]
-            self.ogap = torch.sqrt(od[..., 0] ** 2 + od[..., 1] ** 2) - r[None, :, None] - orad[:, None, :]
-            clear = torch.minimum(clear, self.ogap.amin(-1))
-        self.clearance = clear
-        e = p - self.ref[0]
-        self.tracking_error = torch.sqrt(e[..., 0] ** 2 + e[..., 1] ** 2)
+        self.ogap = norm(p[:, :, None, :] - oc[:, None, :, :]) - r[None, :, None] - orad[:, None, :]
+        self.clearance = torch.minimum(clear, self.ogap.amin(-1)) if orad.shape[-1] else clear
+        self.tracking_error = norm(p - self.ref[0])
 
     def _rewards(self, act: torch.Tensor, corr: torch.Tensor | None) -> torch.Tensor:
         """:func:`aasoatt_env.sim.rewards.rewards`, per robot ``(B, N)``."""
@@ -251,8 +251,7 @@ class TensorEnv:
         collided = (self.clearance < -self.collision_tolerance).to(self.dtype)
         r = -c.tracking * self.tracking_error - c.collision * collided - c.effort * 0.5 * (act * act).sum(-1)
         if c.goal_bonus:
-            g = self.kin.p - self._st["goals"]
-            r = r + c.goal_bonus * (torch.sqrt(g[..., 0] ** 2 + g[..., 1] ** 2) < c.goal_tolerance).to(self.dtype)
+            r = r + c.goal_bonus * (norm(self.kin.p - self._st["goals"]) < c.goal_tolerance).to(self.dtype)
         if c.correction and corr is not None:
             r = r - c.correction * corr / self.team.max_wheel_accel
         return r
@@ -264,41 +263,24 @@ class TensorEnv:
         B, N, _ = p.shape
         parts = [p - p_d, self._st["goals"] - p, v, torch.stack((torch.cos(th), torch.sin(th)), -1), self.u, v_d, a_d]
         r = self.team.radius.expand(B, N)
-        if self.num_neighbors:
-            k = self.num_neighbors
-            kk = min(k, N - 1)
-            slots = torch.zeros(B, N, k, SLOT_DIM, dtype=p.dtype, device=p.device)
-            if kk > 0:
-                dist, idx = self.dist.topk(kk, dim=-1, largest=False)  # (exact ties may be ordered otherwise)
-                ok = dist <= self.sensing_range
-                flat = idx.reshape(B, N * kk, 1)
-                rel_p = p.gather(1, flat.expand(-1, -1, 2)).reshape(B, N, kk, 2) - p[:, :, None]
-                rel_v = v.gather(1, flat.expand(-1, -1, 2)).reshape(B, N, kk, 2) - v[:, :, None]
-                gap = (-r.gather(1, idx.reshape(B, N * kk)).reshape(B, N, kk) - r[..., None]) + dist
-                part = torch.cat((rel_p, rel_v, gap[..., None], torch.ones_like(gap)[..., None]), -1)
-                slots[:, :, :kk] = torch.where(ok[..., None], part, torch.zeros_like(part))
-            parts.append(slots.reshape(B, N, -1))
+        if self.num_neighbors:  # (exact ties may be ordered otherwise)
+            dist, idx = self.dist.topk(min(self.num_neighbors, N - 1), dim=-1, largest=False)
+            gap = (-pick(r, idx) - r[..., None]) + dist
+            parts.append(_slots(self.num_neighbors, dist <= self.sensing_range, pick(p, idx) - p[:, :, None],
+                                pick(v, idx) - v[:, :, None], gap))
         if self.num_obstacles:
-            k, m = self.num_obstacles, self.ogap.shape[-1]
-            slots = torch.zeros(B, N, k, SLOT_DIM, dtype=p.dtype, device=p.device)
-            if m:
-                kk = min(k, m)
-                order = torch.sort(self.ogap, dim=-1, stable=True)
-                idx, g = order.indices[..., :kk], order.values[..., :kk]
-                orad = self._st["orad"].gather(1, idx.reshape(B, N * kk)).reshape(B, N, kk)
-                ok = g + r[..., None] + orad <= self.sensing_range
-                c = self._st["oc"].gather(1, idx.reshape(B, N * kk, 1).expand(-1, -1, 2)).reshape(B, N, kk, 2)
-                part = torch.cat((c - p[:, :, None], (-v)[:, :, None].expand(B, N, kk, 2), g[..., None],
-                                  torch.ones_like(g)[..., None]), -1)
-                slots[:, :, :kk] = torch.where(ok[..., None], part, torch.zeros_like(part))
-            parts.append(slots.reshape(B, N, -1))
+            order = torch.sort(self.ogap, dim=-1, stable=True)
+            kk = min(self.num_obstacles, self.ogap.shape[-1])
+            idx, g = order.indices[..., :kk], order.values[..., :kk]
+            ok = g + r[..., None] + pick(self._st["orad"], idx) <= self.sensing_range
+            parts.append(_slots(self.num_obstacles, ok, pick(self._st["oc"], idx) - p[:, :, None],
+                                (-v)[:, :, None].expand(B, N, kk, 2), g))
         return torch.clamp(torch.cat(parts, -1).to(torch.float32), -OBS_BOUND, OBS_BOUND)
 
     def _infos(self, out: FilterOut | None, corr: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-        B, N = self.num_envs, self.num_robots
-        zeros = torch.zeros(B, N, dtype=torch.bool, device=self.device)
+        none = torch.zeros(self.num_envs, self.num_robots, dtype=torch.long, device=self.device)  # (no filter step)
+        status = none if out is None else out.status
         return {"clearance": self.clearance, "tracking_error": self.tracking_error,
-                "correction": corr if corr is not None else torch.zeros(B, N, dtype=self.dtype, device=self.device),
-                "intervened": zeros if out is None else out.intervened,
-                "status": torch.zeros(B, N, dtype=torch.long, device=self.device) if out is None else out.status,
-                "backup": zeros if out is None else (out.status & BACKUP) > 0}
+                "correction": none.to(self.dtype) if corr is None else corr,
+                "intervened": none.bool() if out is None else out.intervened, "status": status,
+                "backup": (status & BACKUP) > 0}
