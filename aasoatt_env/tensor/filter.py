@@ -211,11 +211,9 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, po
     det = kin.a00 * kin.a11 - kin.a01 * kin.a10
     i00, i01, i10, i11 = kin.a11 / det, -kin.a01 / det, -kin.a10 / det, kin.a00 / det  # A^-1
     # half-planes in w: box rows of A^-1 (x <= hi, -x <= -lo), then the half-rows (A^-T G)' w <= h
-    ax = torch.stack((i00, i10, -i00, -i10), -1)
-    ay = torch.stack((i01, i11, -i01, -i11), -1)
-    bb = torch.cat((hi, -lo), -1)
-    rx, ry = i00[..., None] * gx + i10[..., None] * gy, i01[..., None] * gx + i11[..., None] * gy
-    ax, ay, bb = torch.cat((ax, rx), -1), torch.cat((ay, ry), -1), torch.cat((bb, h), -1)
+    ax = torch.cat((torch.stack((i00, i10, -i00, -i10), -1), i00[..., None] * gx + i10[..., None] * gy), -1)
+    ay = torch.cat((torch.stack((i01, i11, -i01, -i11), -1), i01[..., None] * gx + i11[..., None] * gy), -1)
+    bb = torch.cat((hi, -lo, h), -1)
     valid = torch.cat((torch.ones(B, N, 4, dtype=torch.bool, device=h.device), rows), -1)
     nrm = torch.sqrt(ax * ax + ay * ay)
     valid = valid & (nrm > 0)
@@ -255,17 +253,14 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, po
 def _relaxed(sol: LocalAnswer, t, nx, ny, b, t_box, gx, gy, h, valid, inv, lo, hi, du0, scale) -> LocalAnswer:
     """The infeasible robots' answers: their rows loosened by the least violation, as the numpy local solver."""
     bad = torch.nonzero(~sol.feasible).flatten()
-    K = gx.shape[-1]
-    G = torch.sqrt(gx * gx + gy * gy).reshape(-1, K)[bad]
-    ok = valid.reshape(-1, K)[bad] & (G > 0)
+    gx, gy, h, valid, inv, lo, hi, du0 = (x.reshape(-1, x.shape[-1])[bad] for x in (gx, gy, h, valid, inv, lo, hi, du0))
+    G = torch.sqrt(gx * gx + gy * gy)
+    ok = valid & (G > 0)
     ig = torch.where(ok, 1.0 / torch.where(ok, G, 1.0), 0.0)
-    hb = h.reshape(-1, K)[bad]
-    _, viol = least_violation(gx.reshape(-1, K)[bad] * ig, gy.reshape(-1, K)[bad] * ig, torch.where(ok, hb * ig, FAR),
-                              lo.reshape(-1, 2)[bad], hi.reshape(-1, 2)[bad], du0.reshape(-1, 2)[bad].detach())
+    _, viol = least_violation(gx * ig, gy * ig, torch.where(ok, h * ig, FAR), lo, hi, du0.detach())
     loosen = (viol * (1.0 + 1e-6) + RELAX_TOL * scale.reshape(-1)[bad, None]) * ok
-    rows = torch.where(ok, (hb + loosen.detach() * G) * inv.reshape(-1, K)[bad], FAR)
-    b2 = torch.cat((b[bad, :4], rows), 1)
-    again = solve_polygons(t[bad], nx[bad], ny[bad], b2, t_box[bad], K)
+    rows = torch.where(ok, (h + loosen.detach() * G) * inv, FAR)
+    again = solve_polygons(t[bad], nx[bad], ny[bad], torch.cat((b[bad, :4], rows), 1), t_box[bad], rows.shape[1])
     return LocalAnswer(sol.w.index_copy(0, bad, again.w), sol.mu.index_copy(0, bad, again.mu),
                        sol.feasible.index_copy(0, bad, torch.zeros_like(again.feasible)))
 
@@ -306,15 +301,16 @@ def _negotiate(cfg: FilterConfig, kin: TensorKinematics, lo, hi, scale, target, 
                              (ri, rj, Gi, Gj, rhs), (owner, G, h), _policy(cfg), cfg.compiled,
                              _numpy(sub) // N)  # (each robot's team)
     m, x = ri.shape[0], ans.du
-    binds = ans.z > cfg.eta_tol  # a whole row binds both of its robots, a kept half its owner
-    bound = np.zeros(sub.shape[0], dtype=bool)
-    bound[np.concatenate((ri, owner))[binds]] = True
-    bound[rj[binds[:m]]] = True
     over = np.concatenate(((Gi * x[ri]).sum(1) + (Gj * x[rj]).sum(1) - rhs, (G * x[owner]).sum(1) - h))
     tol = 1e-9 * np.concatenate((np.hypot(*Gi.T) * np.maximum(sc[ri], sc[rj]), np.hypot(*G.T) * sc[owner]))
-    loose = np.zeros(sub.shape[0], dtype=bool)
-    loose[np.concatenate((ri, owner))[over > tol]] = True
-    loose[rj[over[:m] > tol[:m]]] = True
+
+    def robots(flag: np.ndarray) -> np.ndarray:
+        """The grouped robots of the flagged rows: both of a whole row's, a kept half's owner."""
+        out = np.zeros(sub.shape[0], dtype=bool)
+        out[np.concatenate((ri, owner))[flag]] = out[rj[flag[:m]]] = True
+        return out
+
+    bound, loose = robots(ans.z > cfg.eta_tol), robots(over > tol)
 
     def put(base: torch.Tensor, new: np.ndarray) -> torch.Tensor:
         flat_base = base.reshape(B * N, *base.shape[2:])
