@@ -114,7 +114,7 @@ def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
     eye = torch.eye(N, dtype=torch.bool, device=p.device)
     near = (d2 <= D * D) & ~eye
     K = int(near.sum(-1).max()) if N > 1 else 0
-    key = torch.where(near, d2, torch.full_like(d2, float("inf"))).detach()
+    key = torch.where(near, d2, math.inf).detach()
     idx = key.topk(K, dim=-1, largest=False).indices
     valid = near.gather(2, idx)
     of = featT.gather(2, idx.reshape(1, B, N * K).expand(F, B, N * K)).reshape(F, B, N, K)
@@ -214,9 +214,8 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, po
     ax = torch.cat((torch.stack((i00, i10, -i00, -i10), -1), i00[..., None] * gx + i10[..., None] * gy), -1)
     ay = torch.cat((torch.stack((i01, i11, -i01, -i11), -1), i01[..., None] * gx + i11[..., None] * gy), -1)
     bb = torch.cat((hi, -lo, h), -1)
-    valid = torch.cat((torch.ones(B, N, 4, dtype=torch.bool, device=h.device), rows), -1)
     nrm = torch.sqrt(ax * ax + ay * ay)
-    valid = valid & (nrm > 0)
+    valid = torch.cat((torch.ones(B, N, 4, dtype=torch.bool, device=h.device), rows), -1) & (nrm > 0)
     inv = torch.where(valid, 1.0 / torch.where(valid, nrm, 1.0), 0.0)
     C = ax.shape[-1]
     nx, ny = (ax * inv).reshape(-1, C), (ay * inv).reshape(-1, C)
@@ -229,10 +228,8 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, po
     du = torch.minimum(torch.maximum(matvec(i00, i01, i10, i11, sol.w.reshape(B, N, 2)), lo), hi)
     # the trigger's memory: z = lam |G| / (s max|H|), lam = mu / |A^-T G|, H = 2 A'A (decentralized._half_multipliers)
     lam = sol.mu.reshape(B, N, C)[..., 4:].detach() * inv[..., 4:].detach()
-    H00 = 2.0 * (kin.a00 ** 2 + kin.a10 ** 2)
-    H01 = 2.0 * (kin.a00 * kin.a01 + kin.a10 * kin.a11)
-    H11 = 2.0 * (kin.a01 ** 2 + kin.a11 ** 2)
-    hmax = torch.maximum(torch.maximum(H00.abs(), H11.abs()), H01.abs()).detach()
+    hmax = 2.0 * torch.maximum(torch.maximum(kin.a00 ** 2 + kin.a10 ** 2, kin.a01 ** 2 + kin.a11 ** 2),
+                               (kin.a00 * kin.a01 + kin.a10 * kin.a11).abs()).detach()  # (H's diagonal is >= 0)
     z = lam * torch.sqrt(gx * gx + gy * gy).detach() / (scale.detach() * hmax)[..., None]
     avoiding = ((z > cfg.eta_tol) & rows).any(-1)
     status = torch.where(sol.feasible.reshape(B, N), 0, RELAXED)
