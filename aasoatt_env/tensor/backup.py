@@ -90,14 +90,12 @@ class _End(NamedTuple):
     stop: torch.Tensor
     braking: torch.Tensor
     acc: torch.Tensor
-    pose: torch.Tensor
-    u: torch.Tensor
 
 
 def _end(team: TensorTeam, cfg: FilterConfig, acc0: torch.Tensor, pose1, u1) -> _End:
     x1, y1 = points(team, pose1)
     stop = torch.maximum(u1[..., 0].abs(), u1[..., 1].abs()) / (cfg.brake_fraction * team.max_wheel_accel)  # [s]
-    return _End(x1, y1, stop, _speed(team, u1) * stop, torch.maximum(acc0, _point_accel(team, u1, 1.0)), pose1, u1)
+    return _End(x1, y1, stop, _speed(team, u1) * stop, torch.maximum(acc0, _point_accel(team, u1, 1.0)))
 
 
 def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1, valid,
@@ -128,7 +126,7 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
     if steps <= 0:
         return out, path_len
     xs, ys, accs = _braking_path(team, frac, pose1, u1, tau[:, None], steps)
-    xo, yo, acco = (xs, ys, accs) if other is None else _braking_path(team, frac, oth.pose, oth.u, tau[:, None], steps)
+    xo, yo, acco = (xs, ys, accs) if other is None else _braking_path(team, frac, *other, tau[:, None], steps)
     # the braking paths of the risky rows only, a chunk of rows at once: (S, rows)
     bb, nn, rr = torch.nonzero(risky, as_tuple=True)
     jj, robot = rows.idx[bb, nn, rr], rows.robot[bb, nn, rr]
@@ -138,8 +136,7 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
         b, n, r, j, rob = (v[first:first + per] for v in (bb, nn, rr, jj, robot))
         qx = xs[:, b, n] - torch.where(rob, xo[:, b, j], rows.cx[b, n, r])
         qy = ys[:, b, n] - torch.where(rob, yo[:, b, j], rows.cy[b, n, r])
-        a = acco[:, b, j]
-        dev = tau2[b] * (accs[:, b, n] + torch.where(rob, a, torch.zeros_like(a)))
+        dev = tau2[b] * (accs[:, b, n] + torch.where(rob, acco[:, b, j], 0.0))
         seg = _seg(torch.cat((q1x[b, n, r][None], qx[:-1])), torch.cat((q1y[b, n, r][None], qy[:-1])), qx, qy)
         out = out.index_put((b, n, r), torch.minimum(out[b, n, r], (seg - dev - ds[b, n, r]).amin(0)))
     return out, path_len
@@ -212,12 +209,9 @@ def gate(team: TensorTeam, cfg: FilterConfig, pose, u, du, lo, hi, other, valid,
         start = (*points(team, pose), _point_accel(team, u, 1.0))
         for _ in range(u.shape[1] + 1):
             cand = torch.where(braking[..., None], brake, du.detach())
-            pose1, u1 = integrate(team, pose, u, cand, cfg.dt)
-            m, path_len = _margins(team, cfg, rows, start, pose1, u1, valid, ds)
-            far = path_len > limit
-            fail = m < 0.0
+            m, path_len = _margins(team, cfg, rows, start, *integrate(team, pose, u, cand, cfg.dt), valid, ds)
             both = braking[..., None] & (rows.at(braking) | ~rows.robot)
-            new = braking | (fail & ~both).any(-1) | far
+            new = braking | ((m < 0.0) & ~both).any(-1) | (path_len > limit)
             if bool((new == braking).all()):
                 broken = ((m < -tol) & both).any(-1)
                 break
