@@ -167,13 +167,12 @@ class TensorEnv:
         Tt = T.to(self.dtype)[..., None]
         zero = torch.zeros_like(delta)
         if self._profile == "linear":
-            return (torch.where(done, st["goals"], st["starts"] + tau * delta), torch.where(done, zero, delta / Tt),
-                    zero)
-        s = tau ** 3 * (10.0 - 15.0 * tau + 6.0 * tau * tau)
-        ds = 30.0 * tau * tau * (1.0 - tau) ** 2 / Tt
-        dds = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (Tt * Tt)
-        return (torch.where(done, st["goals"], st["starts"] + s * delta), torch.where(done, zero, ds * delta),
-                torch.where(done, zero, dds * delta))
+            p, v, a = st["starts"] + tau * delta, delta / Tt, zero
+        else:  # the quintic s(tau) and its derivatives
+            p = st["starts"] + tau ** 3 * (10.0 - 15.0 * tau + 6.0 * tau * tau) * delta
+            v = 30.0 * tau * tau * (1.0 - tau) ** 2 / Tt * delta
+            a = 60.0 * tau * (1.0 - tau) * (1.0 - 2.0 * tau) / (Tt * Tt) * delta
+        return torch.where(done, st["goals"], p), torch.where(done, zero, v), torch.where(done, zero, a)
 
     def step(self, actions: torch.Tensor) -> tuple:
         """Hold ``actions`` ``(B, N, 2)`` for ``decision_interval`` physics steps; auto-reset finished teams.
@@ -234,12 +233,11 @@ class TensorEnv:
         """Kinematics, reference, distances and clearance now."""
         self.kin = kinematics(self.team, self.pose, self.u)
         self.ref = self.reference()
-        p = self.kin.p
-        dist = norm(p[:, :, None, :] - p[:, None, :, :])
-        N = p.shape[1]
-        self.dist = dist + torch.diag(torch.full((N,), float("inf"), dtype=dist.dtype, device=dist.device))
+        p, N = self.kin.p, self.num_robots
+        eye = torch.eye(N, dtype=torch.bool, device=p.device)
+        self.dist = norm(p[:, :, None, :] - p[:, None, :, :]).masked_fill(eye, math.inf)  # (inf to itself)
         r = self.team.radius
-        clear = (self.dist - r[:, None] - r[None, :]).amin(-1) if N > 1 else torch.full_like(p[..., 0], float("inf"))
+        clear = (self.dist - r[:, None] - r[None, :]).amin(-1) if N > 1 else torch.full_like(p[..., 0], math.inf)
         oc, orad = self._st["oc"], self._st["orad"]
         self.ogap = norm(p[:, :, None, :] - oc[:, None, :, :]) - r[None, :, None] - orad[:, None, :]
         self.clearance = torch.minimum(clear, self.ogap.amin(-1)) if orad.shape[-1] else clear

@@ -113,7 +113,7 @@ def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
     d2 = dx * dx + dy * dy
     eye = torch.eye(N, dtype=torch.bool, device=p.device)
     near = (d2 <= D * D) & ~eye
-    K = int(near.sum(-1).max()) if N > 1 else 0
+    K = int(near.sum(-1).max())
     key = torch.where(near, d2, math.inf).detach()
     idx = key.topk(K, dim=-1, largest=False).indices
     valid = near.gather(2, idx)
