@@ -28,6 +28,7 @@ from aasoatt_env.model.params import stack_teams
 from aasoatt_env.safety.backup import backup_answer
 from aasoatt_env.safety.barriers import PairGeometry, get_barrier
 from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.safety.deadlock import rotation
 from aasoatt_env.safety.decentralized import GROUP_ONE_CHANGE_ITER, solve_groups
 from aasoatt_env.safety.problem import box_ls
 from aasoatt_env.safety.solvers import SolverPolicy
@@ -79,10 +80,8 @@ def _target(cfg: FilterConfig, kin: TensorKinematics, nom: torch.Tensor, avoidin
         return t, torch.zeros(t.shape[:-1], dtype=torch.bool, device=t.device)
     ell = kin.p - p_d
     trig = avoiding & ((norm(v_d) >= cfg.low_speed) | (norm(ell) > cfg.goal_tol))
-    q = math.radians(cfg.rotation_deg)
-    cq, sq = math.cos(q), math.sin(q)
     z = torch.where(trig, cfg.zeta, 0.0).to(t.dtype)
-    return t - z[..., None] * matvec(cq, -sq, sq, cq, kin.v - v_d + cfg.k3 * ell), trig
+    return t - z[..., None] * matvec(*rotation(cfg.rotation_deg).ravel().tolist(), kin.v - v_d + cfg.k3 * ell), trig
 
 
 class _Pairs(NamedTuple):
@@ -289,12 +288,11 @@ def _negotiate(cfg: FilterConfig, kin: TensorKinematics, lo, hi, scale, target, 
     kept = hr.on & grouped[..., None] & ~whole  # a grouped robot's halves of the other rows, obstacle rows whole
 
     g, go = torch.stack((hr.gx, hr.gy), -1), torch.stack((hr.ogx, hr.ogy), -1)
-    A = torch.stack((kin.a00, kin.a01, kin.a10, kin.a11), -1).reshape(B * N, 2, 2)[sub]
-    lo_s, hi_s, sc = _numpy(lo.reshape(-1, 2)[sub]), _numpy(hi.reshape(-1, 2)[sub]), _numpy(scale.reshape(-1)[sub])
+    A = torch.stack((kin.a00, kin.a01, kin.a10, kin.a11), -1).reshape(B, N, 2, 2)
+    A, t, lo_s, hi_s, sc, d0 = (_numpy(x.reshape(B * N, *x.shape[2:])[sub]) for x in (A, target, lo, hi, scale, du0))
     ri, rj, owner = _numpy(own[once]), _numpy(oth[once]), _numpy(own[kept])
     Gi, Gj, rhs, G, h = _numpy(g[once]), _numpy(go[once]), _numpy(hr.rhs[once]), _numpy(g[kept]), _numpy(hr.h[kept])
-    ans, _, _ = solve_groups(_numpy(A), _numpy(target.reshape(-1, 2)[sub]), lo_s, hi_s, sc,
-                             Warm(_numpy(du0.reshape(-1, 2)[sub]) / sc[:, None], None), np.ones(sub.shape[0], bool),
+    ans, _, _ = solve_groups(A, t, lo_s, hi_s, sc, Warm(d0 / sc[:, None], None), np.ones(sub.shape[0], bool),
                              (ri, rj, Gi, Gj, rhs), (owner, G, h), _policy(cfg), cfg.compiled,
                              _numpy(sub) // N)  # (each robot's team)
     m, x = ri.shape[0], ans.du
@@ -339,7 +337,7 @@ def _numpy_backup(team: TensorTeam, cfg: FilterConfig, kin: TensorKinematics, po
     :func:`~aasoatt_env.safety.backup.backup_answer` with ``Team.group`` (no pair across teams) and the robot pairs of
     the filter's table.
     """
-    B, N, K = pr.other.shape
+    B, N, _ = pr.other.shape
     dev = du.device
     if team.source is None:
         raise ConfigError("backup_check: 'numpy' needs a team built by TensorTeam.from_team (its numpy team)")
@@ -350,10 +348,9 @@ def _numpy_backup(team: TensorTeam, cfg: FilterConfig, kin: TensorKinematics, po
     def cpu(x: torch.Tensor) -> np.ndarray:
         return np.ascontiguousarray(_numpy(x).reshape(B * N, *x.shape[2:]))
 
-    own = torch.arange(N, device=dev)[None, :, None]
-    once = pr.valid & (own < pr.other)  # every robot pair in range once, from its lower index
-    flat = torch.arange(B, device=dev)[:, None, None] * N
-    pairs = torch.stack(((flat + own).expand(B, N, K)[once], (flat + pr.other)[once]), -1).cpu().numpy()
+    once = pr.valid & (torch.arange(N, device=dev)[None, :, None] < pr.other)  # every robot pair in range once
+    b, n, k = torch.nonzero(once, as_tuple=True)
+    pairs = _numpy(torch.stack((b * N + n, b * N + pr.other[b, n, k]), -1))  # (indices in the stacked team)
     pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
     obs = None
     if obstacles is not None and obstacles[1].shape[-1]:
@@ -363,12 +360,11 @@ def _numpy_backup(team: TensorTeam, cfg: FilterConfig, kin: TensorKinematics, po
     ans = backup_answer(stacked, pose_from_point(stacked, cpu(kin.p), cpu(pose[..., 2])), cpu(u), cpu(du), cpu(lo),
                         cpu(hi), cpu(scale), cfg, obs, pairs)
 
-    def back(a: np.ndarray, dtype: torch.dtype) -> torch.Tensor:
-        return torch.as_tensor(a, device=dev).to(dtype).reshape(B, N, *a.shape[1:])
+    def back(a: np.ndarray) -> torch.Tensor:
+        return torch.as_tensor(a, device=dev).reshape(B, N, *a.shape[1:])
 
-    changed = back(ans.braking | ans.nudged, torch.bool)
-    return (torch.where(changed[..., None], back(ans.du, du.dtype), du), back(ans.braking, torch.bool),
-            back(ans.unsafe, torch.bool))
+    changed = back(ans.braking | ans.nudged)[..., None]  # (the masks are bool arrays)
+    return torch.where(changed, back(ans.du).to(du.dtype), du), back(ans.braking), back(ans.unsafe)
 
 
 def _numpy(x: torch.Tensor) -> np.ndarray:
