@@ -195,12 +195,11 @@ class TensorEnv:
             act = torch.clamp(act, -1.0, 1.0)
         team, corr, out = self.team, None, None
         for _ in range(self.decision_interval):
-            nominal = self._nominal(act)
+            du = self._nominal(act)  # (the filter's answer replaces it)
             lo, hi = input_bounds(team, self.u, self.dt)
-            du = nominal
             if self.config is not None:
                 p_d, v_d, _ = self.reference()
-                out = filter_step(team, self.config, self.pose, self.u, nominal, p_d, v_d,
+                out = filter_step(team, self.config, self.pose, self.u, du, p_d, v_d,
                                   (self._st["oc"], self._st["orad"]), self.avoiding, self.backup_check)
                 self.avoiding, du = out.avoiding, out.du
                 corr = out.correction if corr is None else torch.maximum(corr, out.correction)

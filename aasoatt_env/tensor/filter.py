@@ -105,12 +105,11 @@ def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
     """Rows of the robot pairs and obstacle rims within ``D``; ``feat (B, N, F)``: the robots' :data:`_F`."""
     B, N, F = feat.shape
     featT = feat.permute(2, 0, 1).contiguous()  # (F, B, N): one contiguous tensor per feature
-    p, rad = feat[..., 0:2], featT[6]
-    D = cfg.sensing_range
+    rad, D = featT[6], cfg.sensing_range
     dx = featT[0][:, :, None] - featT[0][:, None, :]
     dy = featT[1][:, :, None] - featT[1][:, None, :]
     d2 = dx * dx + dy * dy
-    eye = torch.eye(N, dtype=torch.bool, device=p.device)
+    eye = torch.eye(N, dtype=torch.bool, device=feat.device)
     near = (d2 <= D * D) & ~eye
     K = int(near.sum(-1).max())
     key = torch.where(near, d2, math.inf).detach()
@@ -131,7 +130,7 @@ def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
         ga = torch.cat((ga, own[4:6].expand(2, B, N, M)), 3)
         ds = torch.cat((ds, rad[..., None] + orad[:, None, :]), 2)
         valid = torch.cat((valid, torch.sqrt(op[0] ** 2 + op[1] ** 2) - orad[:, None, :] <= D), 2)
-        other = torch.cat((other, torch.full((B, N, M), -1, dtype=other.dtype, device=p.device)), 2)
+        other = torch.cat((other, torch.full((B, N, M), -1, dtype=other.dtype, device=feat.device)), 2)
         of = torch.cat((of, torch.zeros(F, B, N, M, dtype=of.dtype, device=of.device)), 3)
     sep = torch.sqrt(gp[0] ** 2 + gp[1] ** 2) - ds
     gap = torch.where(valid, sep, math.inf).amin(-1) if valid.shape[-1] else torch.full_like(rad, math.inf)
