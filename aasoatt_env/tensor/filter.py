@@ -288,7 +288,7 @@ def _negotiate(cfg: FilterConfig, kin: TensorKinematics, lo, hi, scale, target, 
 
     g, go = torch.stack((hr.gx, hr.gy), -1), torch.stack((hr.ogx, hr.ogy), -1)
     A = torch.stack((kin.a00, kin.a01, kin.a10, kin.a11), -1).reshape(B, N, 2, 2)
-    A, t, lo_s, hi_s, sc, d0 = (_numpy(x.reshape(B * N, *x.shape[2:])[sub]) for x in (A, target, lo, hi, scale, du0))
+    A, t, lo_s, hi_s, sc, d0 = (_numpy(x.flatten(0, 1)[sub]) for x in (A, target, lo, hi, scale, du0))
     ri, rj, owner = _numpy(own[once]), _numpy(oth[once]), _numpy(own[kept])
     Gi, Gj, rhs, G, h = _numpy(g[once]), _numpy(go[once]), _numpy(hr.rhs[once]), _numpy(g[kept]), _numpy(hr.h[kept])
     ans, _, _ = solve_groups(A, t, lo_s, hi_s, sc, Warm(d0 / sc[:, None], None), np.ones(sub.shape[0], bool),
@@ -307,8 +307,7 @@ def _negotiate(cfg: FilterConfig, kin: TensorKinematics, lo, hi, scale, target, 
     bound, loose = robots(ans.z > cfg.eta_tol), robots(over > tol)
 
     def put(base: torch.Tensor, new: np.ndarray) -> torch.Tensor:
-        flat_base = base.reshape(B * N, *base.shape[2:])
-        return flat_base.index_copy(0, sub, torch.as_tensor(new, dtype=base.dtype, device=dev)).reshape(base.shape)
+        return base.flatten(0, 1).index_copy(0, sub, torch.as_tensor(new, dtype=base.dtype, device=dev)).view_as(base)
 
     mark = np.where(loose, GROUPED | RELAXED, GROUPED)
     return put(du, x), put(avoiding, bound), put(status, mark)
@@ -345,7 +344,7 @@ def _numpy_backup(team: TensorTeam, cfg: FilterConfig, kin: TensorKinematics, po
         stacked = team.source.derived[("stacked", B)] = stack_teams([team.source] * B)
 
     def cpu(x: torch.Tensor) -> np.ndarray:
-        return np.ascontiguousarray(_numpy(x).reshape(B * N, *x.shape[2:]))
+        return np.ascontiguousarray(_numpy(x.flatten(0, 1)))
 
     once = pr.valid & (torch.arange(N, device=dev)[None, :, None] < pr.other)  # every robot pair in range once
     b, n, k = torch.nonzero(once, as_tuple=True)
