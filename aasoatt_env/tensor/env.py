@@ -74,12 +74,11 @@ class TensorEnv:
             raise ConfigError(f"dtype: got {dtype!r}, expected torch.float32 or torch.float64")
         if torch.device(device).type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"device: got {device!r}, but torch.cuda.is_available() is False on this machine")
-        check.choice("action_mode", action_mode, ("wheel", "point"))
+        self.action_mode = check.choice("action_mode", action_mode, ("wheel", "point"))
         if config is not None and abs(config.dt - dt) > 1e-12 * dt:
             raise ConfigError(f"dt: the env steps {dt:g} s but the filter was configured for {config.dt:g} s")
         self.scenario, self.num_envs, self.device, self.dtype, self.config = scenario, num_envs, device, dtype, config
         self.dt, self.decision_interval, self.sensing_range = float(dt), int(decision_interval), float(sensing_range)
-        self.action_mode = action_mode
         self.num_neighbors, self.num_obstacles = int(num_neighbors), int(num_obstacles)
         self.reward_config, self.collision_tolerance = RewardConfig.coerce(reward), float(collision_tolerance)
         self._max_steps_override = max_steps
