@@ -79,7 +79,10 @@ def matvec(a00, a01, a10, a11, x: torch.Tensor) -> torch.Tensor:
 
 def pick(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """``x[b, idx[b, n, k]]`` ``(B, N, K, ...)`` of ``x`` ``(B, M, ...)`` and indices ``idx`` ``(B, N, K)``."""
-    return x[torch.arange(x.shape[0], device=x.device)[:, None, None], idx]
+    B, N, K = idx.shape
+    tail = x.shape[2:]
+    flat = idx.reshape(B, N * K, *(1,) * len(tail)).expand(B, N * K, *tail)
+    return x.gather(1, flat).reshape(B, N, K, *tail)
 
 
 def norm(x: torch.Tensor) -> torch.Tensor:
