@@ -96,6 +96,21 @@ def test_the_filter_equals_the_numpy_decentralised_filter_where_it_answers_by_th
     assert np.abs(du - ref_du).max() <= 1e-9
 
 
+def test_a_rotation_gain_that_float32_cannot_hold_is_applied_in_float64():
+    """``zeta = 1.1`` (not a float32 number): the float64 filter's ``du`` equals the numpy filter's to 1e-9 on the
+    robots the trigger rotates, so the gain is not rounded through float32 on the way."""
+    rng = np.random.default_rng(1)
+    n = 12
+    states = random_states(rng, 300, n)
+    cfg = FilterConfig(mode="decentralized", backup=False, negotiate=False, kernel="numpy", zeta=1.1)
+    team, ref = numpy_answers(states, cfg, n)
+    out = tensor_answers(team, states, cfg)
+    solved = np.array([r.status == "solved" for r in ref])
+    triggered = np.stack([r.triggered for r in ref]) & solved[:, None]
+    assert triggered.sum() >= 100
+    assert np.abs(out.du.numpy()[triggered] - np.stack([r.du for r in ref])[triggered]).max() <= 1e-9
+
+
 def test_a_step_with_no_robot_or_obstacle_in_range_answers_each_robot_by_its_box():
     """Teams whose robots are all out of each other's sensing range, no obstacles (so no barrier row at all): the
     answer is each robot's nominal projected onto its box, as the numpy filter's."""
@@ -427,18 +442,25 @@ def test_torchrl_adapter_passes_check_env_specs_and_resets_finished_teams():
     assert float(td["agents", "observation"][:, 30, :, 4:6].abs().max()) == 0.0
 
 
-def test_differentiable_env_passes_gradients_from_rewards_to_actions():
-    """``differentiable=True``: a reward two steps later has a finite, non-zero gradient w.r.t. the first actions;
-    by default ``step`` records no graph."""
+@pytest.mark.parametrize("check", BACKUP_CHECKS)
+def test_differentiable_env_passes_gradients_from_rewards_to_actions(check):
+    """``differentiable=True``: a reward two steps later has a finite, non-zero gradient w.r.t. the first actions,
+    and so do the observations, the clearance and the correction (distances of 0, such as a robot's to itself or a
+    correction where the filter does not intervene, have gradient 0, not NaN); by default ``step`` records no
+    graph."""
     from aasoatt_env.tensor.env import make_tensor_env
 
-    env = make_tensor_env("circle_swap", 2, 4, dtype=torch.float64, differentiable=True, radius=2.0)
+    env = make_tensor_env("circle_swap", 2, 4, dtype=torch.float64, differentiable=True, radius=2.0,
+                          backup_check=check)
     env.reset(seed=0)
     act = torch.full((2, 4, 2), 0.5, dtype=torch.float64, requires_grad=True)
     env.step(act)
-    _, rew, _, _, _ = env.step(torch.zeros(2, 4, 2, dtype=torch.float64))
-    (g,) = torch.autograd.grad(rew.sum(), act)
-    assert torch.isfinite(g).all() and g.abs().sum() > 0
+    obs, rew, _, _, info = env.step(torch.zeros(2, 4, 2, dtype=torch.float64))
+    for name, out in (("reward", rew), ("observations", obs), ("clearance", info["clearance"]),
+                      ("correction", info["correction"])):
+        (g,) = torch.autograd.grad(out.sum(), act, retain_graph=True)
+        assert torch.isfinite(g).all(), name
+        assert g.abs().sum() > 0 or name == "correction", name
     plain = make_tensor_env("circle_swap", 2, 4, dtype=torch.float64, radius=2.0)
     plain.reset(seed=0)
     assert not plain.step(act)[1].requires_grad

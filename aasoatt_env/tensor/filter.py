@@ -80,7 +80,7 @@ def _target(cfg: FilterConfig, kin: TensorKinematics, nom: torch.Tensor, avoidin
         return t, torch.zeros(t.shape[:-1], dtype=torch.bool, device=t.device)
     ell = kin.p - p_d
     trig = avoiding & ((norm(v_d) >= cfg.low_speed) | (norm(ell) > cfg.goal_tol))
-    z = torch.where(trig, cfg.zeta, 0.0).to(t.dtype)
+    z = trig.to(t.dtype) * cfg.zeta  # (zeta in the state's dtype, not rounded through float32)
     return t - z[..., None] * matvec(*rotation(cfg.rotation_deg).ravel().tolist(), kin.v - v_d + cfg.k3 * ell), trig
 
 

@@ -86,8 +86,12 @@ def pick(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
 
 
 def norm(x: torch.Tensor) -> torch.Tensor:
-    """``|x|`` ``(...)`` of vectors ``(..., 2)``, in numpy's order of operations."""
-    return torch.sqrt(x[..., 0] ** 2 + x[..., 1] ** 2)
+    """``|x|`` ``(...)`` of vectors ``(..., 2)``, in numpy's order of operations; its gradient at 0 is 0 (not NaN)."""
+    s = x[..., 0] ** 2 + x[..., 1] ** 2
+    if not s.requires_grad:
+        return torch.sqrt(s)
+    pos = s > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, s, 1.0)), 0.0)
 
 
 def points(team: TensorTeam, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
