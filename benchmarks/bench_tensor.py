@@ -42,6 +42,7 @@ def torch_rate(B: int, N: int, filtered: bool, dtype: torch.dtype, steps: int, d
                check: str | None = None) -> float:
     """Robot-steps/s of the torch env (``check``: behind the filter's defaults with that backup check)."""
     env = make_tensor_env("random_goals", B, N, device=device, dtype=dtype, filter=filtered,
+                          clip_actions=not filtered,  # (the tracking law's nominal leaves [-1, 1] without a filter)
                           **(FILTER if check is None else {"backup_check": check}))
     env.reset(seed=0)
     with torch.no_grad():

@@ -467,7 +467,7 @@ def test_differentiable_env_passes_gradients_from_rewards_to_actions(check):
 
 
 def test_bad_settings_are_refused_naming_the_argument(monkeypatch):
-    from aasoatt_env.errors import ConfigError
+    from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded
     from aasoatt_env.tensor.env import make_tensor_env
 
     for kwargs, name in ((dict(num_envs=0), "num_envs"), (dict(dtype=torch.int32), "dtype"),
@@ -479,10 +479,71 @@ def test_bad_settings_are_refused_naming_the_argument(monkeypatch):
     monkeypatch.setitem(barriers.BARRIERS, "mine", barriers.Barrier(paper.rows, paper.value, "mine"))  # numpy only
     with pytest.raises(ConfigError, match="barrier: got 'mine', registered without array_api=True"):
         make_tensor_env("random_goals", num_robots=4, barrier="mine")
+    for kwargs, name in ((dict(decision_interval=0), "decision_interval: got 0"),
+                         (dict(max_steps=0), "max_steps: got 0"), (dict(num_neighbors=-1), "num_neighbors: got -1"),
+                         (dict(sensing_range=float("nan")), "sensing_range: got nan"),
+                         (dict(collision_tolerance=float("nan")), "collision_tolerance: got nan"),
+                         (dict(differentiable="no"), "differentiable: got 'no'"), (dict(filter="yes"), "filter: got"),
+                         (dict(filter={"dt": 0.01}), "dt: got 0.01 in filter")):
+        with pytest.raises(ConfigError, match=name):
+            make_tensor_env("random_goals", **{"num_robots": 4, **kwargs})
     env = make_tensor_env("random_goals", 2, 4)
+    with pytest.raises(ResetNeeded, match=r"step\(\): call reset\(\) first"):
+        env.step(torch.zeros(2, 4, 2))
+    with pytest.raises(ConfigError, match="seed: got -1"):
+        env.reset(seed=-1)
     env.reset(seed=0)
-    with pytest.raises(ConfigError, match="actions"):
-        env.step(torch.zeros(2, 3, 2))
+    for actions, match in ((torch.zeros(2, 3, 2), r"actions: got shape \(2, 3, 2\)"),
+                           (torch.zeros(2, 4, 2, dtype=torch.bool), "dtype torch.bool"),
+                           (torch.zeros(2, 4, 2, dtype=torch.complex64), "dtype torch.complex64"),
+                           (None, "actions: got None"), (torch.full((2, 4, 2), float("nan")), r"actions\[0, 0\]: got "
+                                                        "non-finite"),
+                           (torch.tensor([0.0, 3e38]).repeat(2, 4, 1), r"actions\[0, 0\]: got .* a nominal within")):
+        with pytest.raises(ActionError, match=match):
+            env.step(actions)
+    bare = make_tensor_env("random_goals", 2, 4, filter=False)
+    bare.reset(seed=0)
+    with pytest.raises(ActionError, match=r"actions\[1, 2\]: got \[1.5, 0.0\], expected values in \[-1, 1\]"):
+        bare.step(torch.zeros(2, 4, 2).index_put_((torch.tensor(1), torch.tensor(2), torch.tensor(0)),
+                                                 torch.tensor(1.5)))
+    with pytest.raises(ConfigError, match=r"done: got a torch.bool tensor of shape \(2, 4\), expected bool of shape"):
+        bare.reset_done(torch.ones(2, 4, dtype=torch.bool))
+
+
+def test_settings_the_env_shares_with_the_filter_reach_it():
+    """The env's ``dt`` is the filter's; the filter's own settings (its sensing range) come through ``filter``; a
+    clipping bare env clips; a scenario of fixed size builds with its own number of robots."""
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    env = make_tensor_env("random_goals", 1, 4, dt=0.01, sensing_range=1.0, filter={"sensing_range": 2.0})
+    assert env.dt == env.config.dt == 0.01 and env.sensing_range == 1.0 and env.config.sensing_range == 2.0
+    bare = make_tensor_env("random_goals", 1, 4, filter=False, clip_actions=True)
+    bare.reset(seed=0)
+    u0 = bare.u.clone()
+    bare.step(torch.full((1, 4, 2), 5.0))
+    wheel = bare.team.max_wheel_accel
+    assert torch.allclose(bare.u - u0, (wheel * bare.dt).expand(1, 4)[..., None].expand(1, 4, 2))
+    swap = make_tensor_env("position_swap", 1)
+    assert swap.reset(seed=0)[0].shape[:2] == (1, 4)
+
+
+def test_layouts_the_float32_guarantee_does_not_cover_are_refused():
+    """A layout 1e5 m from the origin: refused in float32 (positions 8 mm apart there), accepted in float64; starts
+    that overlap are refused as by the PettingZoo env."""
+    from aasoatt_env.errors import ConfigError, ScenarioError
+    from aasoatt_env.sim.references import LinearReference
+    from aasoatt_env.sim.scenarios import get_scenario
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    def custom(x: float, gap: float):
+        starts = np.array([[x, x], [x + gap, x]])
+        return get_scenario("custom", starts=starts, reference=LinearReference(starts, starts[::-1].copy(), 5.0))
+
+    with pytest.raises(ConfigError, match=r"dtype: got torch.float32 for a layout reaching 100003 m"):
+        make_tensor_env(custom(1e5, 3.0), 1).reset(seed=0)
+    assert make_tensor_env(custom(1e5, 3.0), 1, dtype=torch.float64).reset(seed=0)[0].isfinite().all()
+    with pytest.raises(ScenarioError, match="starts: robots 0 and 1 overlap"):
+        make_tensor_env(custom(0.0, 0.1), 1).reset(seed=0)
 
 
 @pytest.mark.parametrize("scenario, kwargs", [("random_goals", dict(random_obstacles=3)), ("circle_swap", {})])

@@ -22,11 +22,11 @@ from aasoatt_env.sim.protocol import ControlFilter, FilterOutput
 from aasoatt_env.sim.rendering import Frame, Renderer
 from aasoatt_env.sim.rewards import RewardConfig
 from aasoatt_env.sim.scenarios import Layout, Scenario, get_scenario
-from aasoatt_env.sim.scenarios.base import check_clear_of_obstacles, check_no_overlap
+from aasoatt_env.sim.scenarios.base import check_starts
 from aasoatt_env.sim.stack import TeamStack
 
-__all__ = ["MAX_NEIGHBOR_SLOTS", "TRAIL_LENGTH", "AASOATTParallelEnv", "checked_actions", "parse_actions",
-           "real_actions"]
+__all__ = ["MAX_NEIGHBOR_SLOTS", "TRAIL_LENGTH", "AASOATTParallelEnv", "action_bound", "checked_actions",
+           "env_settings", "parse_actions", "real_actions"]
 
 MAX_NEIGHBOR_SLOTS: int = 256
 """Largest ``num_neighbors`` / ``num_obstacles`` (observation slots) accepted."""
@@ -77,13 +77,18 @@ def real_actions(value: Any, name: Callable[[tuple[int, ...]], str], expected: s
     return arr
 
 
+def action_bound(nominal: bool, clip: bool) -> float:
+    """The largest action magnitude accepted: a ``nominal``'s, any finite one with ``clip``, else ``1 + 1e-6``."""
+    return _NOMINAL_MAX if nominal else (_FLOAT_MAX if clip else 1.0 + 1e-6)
+
+
 def checked_actions(act: np.ndarray, nominal: bool, clip: bool, name: Callable[[int], str]) -> np.ndarray:
     """Finite actions ``(R, 2)`` within their bound, clipped (in place) to ``[-1, 1]`` unless ``nominal``.
 
     The bound is ``_NOMINAL_MAX`` for a ``nominal``, else ``1 + 1e-6`` (any finite value with ``clip``).
     """
     peak = float(np.abs(act).max(initial=0.0))
-    accept = _NOMINAL_MAX if nominal else (_FLOAT_MAX if clip else 1.0 + 1e-6)
+    accept = action_bound(nominal, clip)
     if not peak <= accept:  # also NaN and inf
         if not math.isfinite(peak):
             bad = int(np.flatnonzero(~np.isfinite(act).all(axis=1))[0])
@@ -95,6 +100,23 @@ def checked_actions(act: np.ndarray, nominal: bool, clip: bool, name: Callable[[
     if not nominal and peak > 1.0:
         np.minimum(np.maximum(act, -1.0, out=act), 1.0, out=act)
     return act
+
+
+def env_settings(dt: Any, decision_interval: Any, action_mode: Any, sensing_range: Any, num_neighbors: Any,
+                 num_obstacles: Any, reward: Any, collision_tolerance: Any, max_steps: Any,
+                 clip_actions: Any) -> dict[str, Any]:
+    """The settings every env (numpy or torch) shares, checked, as the env's attributes."""
+    return dict(dt=check.real("dt", dt, lo=1e-6, hi=0.1),
+                decision_interval=check.integer("decision_interval", decision_interval, lo=1, hi=10_000),
+                action_mode=check.choice("action_mode", action_mode, ("wheel", "point")),
+                sensing_range=check.positive("sensing_range", sensing_range, hi=1e6),
+                num_neighbors=check.integer("num_neighbors", num_neighbors, lo=0, hi=MAX_NEIGHBOR_SLOTS),
+                num_obstacles=check.integer("num_obstacles", num_obstacles, lo=0, hi=MAX_NEIGHBOR_SLOTS),
+                reward_config=RewardConfig.coerce(reward),
+                collision_tolerance=check.real("collision_tolerance", collision_tolerance, lo=0.0, hi=1.0),
+                _max_steps_override=None if max_steps is None else check.integer("max_steps", max_steps, lo=1,
+                                                                                  hi=10**12),
+                clip_actions=check.boolean("clip_actions", clip_actions))
 
 
 def parse_actions(actions: Any, live: np.ndarray, nominal: bool, clip: bool, offset: int = 0) -> np.ndarray:
@@ -146,17 +168,9 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
                  **scenario_kwargs: Any) -> None:
         if render_mode is not None:
             check.choice("render_mode", render_mode, self.metadata["render_modes"])
-        self.dt = check.real("dt", dt, lo=1e-6, hi=0.1)
-        self.decision_interval = check.integer("decision_interval", decision_interval, lo=1, hi=10_000)
-        self.action_mode = check.choice("action_mode", action_mode, ("wheel", "point"))
-        self.sensing_range = check.positive("sensing_range", sensing_range, hi=1e6)
-        self.num_neighbors = check.integer("num_neighbors", num_neighbors, lo=0, hi=MAX_NEIGHBOR_SLOTS)
-        self.num_obstacles = check.integer("num_obstacles", num_obstacles, lo=0, hi=MAX_NEIGHBOR_SLOTS)
-        self.reward_config = RewardConfig.coerce(reward)
+        vars(self).update(env_settings(dt, decision_interval, action_mode, sensing_range, num_neighbors, num_obstacles,
+                                       reward, collision_tolerance, max_steps, clip_actions))
         self.terminate_on_collision = check.boolean("terminate_on_collision", terminate_on_collision)
-        self.collision_tolerance = check.real("collision_tolerance", collision_tolerance, lo=0.0, hi=1.0)
-        self._max_steps_override = None if max_steps is None else check.integer("max_steps", max_steps, lo=1, hi=10**12)
-        self.clip_actions = check.boolean("clip_actions", clip_actions)
         self.scenario = get_scenario(scenario, **scenario_kwargs)
         self.render_mode = render_mode
         n = self.scenario.num_robots
@@ -234,11 +248,7 @@ class AASOATTParallelEnv(ParallelEnv, TeamStack):
         if seed is not None:
             self._rng = np.random.default_rng(seed)
         layout = self.scenario.build(self._rng)
-        # every layout starts without overlap (the filter's guarantee starts there), a user's scenario too
-        where = f"scenario {self.scenario.name or type(self.scenario).__name__!r}: starts"
-        check_no_overlap(where, layout.starts, layout.team.radius, layout.team.group)
-        check_clear_of_obstacles(where, layout.starts, layout.team.radius,
-                                 (layout.obstacle_centers, layout.obstacle_radii))
+        check_starts(self.scenario, layout)
         self._init_stack(1, layout.team.n)  # a fresh state
         self.team, self._layouts[0], self._teams[0] = layout.team, layout, layout.team
         self._pose = dynamics.pose_from_point(layout.team, layout.starts, layout.headings)

@@ -11,6 +11,7 @@ at every physics step. No termination on collision; linear references only (``ra
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import fields
 from typing import Any
 
@@ -18,21 +19,25 @@ import numpy as np
 import torch
 
 from aasoatt_env import validation as check
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import DT
 from aasoatt_env.safety.config import FilterConfig
+from aasoatt_env.sim.env import action_bound, checked_actions, env_settings
 from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
 from aasoatt_env.sim.references import LinearReference
-from aasoatt_env.sim.rewards import RewardConfig
-from aasoatt_env.sim.scenarios import get_scenario
+from aasoatt_env.sim.scenarios import Scenario, get_scenario
+from aasoatt_env.sim.scenarios.base import check_starts
 from aasoatt_env.tensor.filter import BACKUP, FilterOut, backup_check_of, check_config, filter_step
 from aasoatt_env.tensor.model import TensorTeam, input_bounds, integrate, kinematics, matvec, norm, pick
 
 __all__ = ["TensorEnv", "make_tensor_env"]
 
 _ENV_KEYS = ("dt", "decision_interval", "action_mode", "sensing_range", "num_neighbors", "num_obstacles", "reward",
-             "collision_tolerance", "max_steps", "differentiable", "backup_check")
+             "collision_tolerance", "max_steps", "clip_actions", "differentiable", "backup_check")
+FLOAT32_REACH: float = 1e3
+"""Largest coordinate [m] of a layout in float32: float32 positions there are 0.06 mm apart, well inside the 1 mm
+that the float32 guarantee allows (at 1e5 m they are 8 mm apart); farther layouts need float64."""
 
 
 def _slots(k: int, ok: torch.Tensor, rel_p: torch.Tensor, rel_v: torch.Tensor, gap: torch.Tensor) -> torch.Tensor:
@@ -43,46 +48,58 @@ def _slots(k: int, ok: torch.Tensor, rel_p: torch.Tensor, rel_v: torch.Tensor, g
     return torch.cat((part, part.new_zeros(B, N, k - kk, SLOT_DIM)), 2).reshape(B, N, -1)
 
 
-def make_tensor_env(scenario: str = "random_goals", num_envs: int = 1, num_robots: int = 6, device: str = "cpu",
-                    dtype: torch.dtype = torch.float32, filter: bool = True, mode: str = "decentralized",
+def make_tensor_env(scenario: str | Scenario = "random_goals", num_envs: int = 1, num_robots: int | None = None,
+                    device: str = "cpu", dtype: torch.dtype = torch.float32,
+                    filter: FilterConfig | Mapping[str, Any] | bool = True, mode: str = "decentralized",
                     **options: Any) -> TensorEnv:
-    """``num_envs`` teams of ``num_robots`` robots of ``scenario`` on ``device`` (module docstring).
+    """``num_envs`` teams of ``num_robots`` robots (None: the scenario's number) of ``scenario`` on ``device``.
 
-    ``options``: the env's settings (``dt``, ``decision_interval``, ``action_mode``, ``sensing_range``,
-    ``num_neighbors``, ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``differentiable``:
+    ``filter``: True (the defaults), False (bare), a :class:`FilterConfig` or a mapping of its fields (as
+    :func:`~aasoatt_env.api.factory.make_env`'s), in ``mode`` and at the env's ``dt``.  ``options``: the env's settings
+    (``dt``, ``decision_interval``, ``action_mode``, ``sensing_range`` of the observations, ``num_neighbors``,
+    ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``clip_actions``, ``differentiable``:
     ``step`` records the autograd graph, so losses on its outputs reach the actions and the state through the filter
     and the dynamics; default False: no graph), ``backup_check`` (:data:`~.filter.BACKUP_CHECKS`; None: the numpy
-    backup layer on a CPU, the torch check on other devices), :class:`FilterConfig` fields, and the scenario's
-    parameters.
+    backup layer on a CPU, the torch check on other devices), other :class:`FilterConfig` fields (the filter's
+    ``sensing_range`` only through ``filter``), and the scenario's parameters.
     """
     names = {f.name for f in fields(FilterConfig)}
     env_kw = {k: options.pop(k) for k in list(options) if k in _ENV_KEYS}
     filt_kw = {k: options.pop(k) for k in list(options) if k in names}
-    cfg = check_config(FilterConfig.merged(None, mode=mode, **filt_kw)) if filter else None
-    return TensorEnv(get_scenario(scenario, num_robots=num_robots, **options), num_envs, device, dtype, cfg, **env_kw)
+    if filter is not True and filter is not False and not isinstance(filter, (FilterConfig, Mapping)):
+        raise ConfigError(f"filter: got {check.short_repr(filter)}, expected True/False, a FilterConfig or a mapping "
+                          "of its fields")
+    cfg = None
+    if filter is not False:
+        given = {} if filter is True or isinstance(filter, FilterConfig) else dict(filter)
+        if "dt" in given:
+            raise ConfigError(f"dt: got {given['dt']!r} in filter; the filter runs at the env's physics step (dt=)")
+        base = filter if isinstance(filter, FilterConfig) else FilterConfig.merged(None, **given)
+        cfg = check_config(FilterConfig.merged(base, mode=mode, dt=env_kw.get("dt", DT), **filt_kw))
+    if num_robots is not None:
+        options["num_robots"] = num_robots
+    return TensorEnv(get_scenario(scenario, **options), num_envs, device, dtype, cfg, **env_kw)
 
 
 class TensorEnv:
     """Teams of one scenario as tensors (module docstring); ``step`` and ``reset`` as a vector env's."""
 
-    def __init__(self, scenario, num_envs: int, device: str, dtype: torch.dtype, config: FilterConfig | None,
-                 dt: float = DT, decision_interval: int = 1, action_mode: str = "wheel", sensing_range: float = 3.0,
-                 num_neighbors: int = 4, num_obstacles: int = 2, reward: Any = None, collision_tolerance: float = 1e-3,
-                 max_steps: int | None = None, differentiable: bool = False, backup_check: str | None = None) -> None:
+    def __init__(self, scenario: Scenario, num_envs: int, device: str, dtype: torch.dtype,
+                 config: FilterConfig | None, dt: float = DT, decision_interval: int = 1, action_mode: str = "wheel",
+                 sensing_range: float = 3.0, num_neighbors: int = 4, num_obstacles: int = 2, reward: Any = None,
+                 collision_tolerance: float = 1e-3, max_steps: int | None = None, clip_actions: bool = False,
+                 differentiable: bool = False, backup_check: str | None = None) -> None:
         num_envs = check.integer("num_envs", num_envs, lo=1)
         if dtype not in (torch.float32, torch.float64):
             raise ConfigError(f"dtype: got {dtype!r}, expected torch.float32 or torch.float64")
         if torch.device(device).type == "cuda" and not torch.cuda.is_available():
             raise ConfigError(f"device: got {device!r}, but torch.cuda.is_available() is False on this machine")
-        self.action_mode = check.choice("action_mode", action_mode, ("wheel", "point"))
-        if config is not None and abs(config.dt - dt) > 1e-12 * dt:
-            raise ConfigError(f"dt: the env steps {dt:g} s but the filter was configured for {config.dt:g} s")
+        vars(self).update(env_settings(dt, decision_interval, action_mode, sensing_range, num_neighbors, num_obstacles,
+                                       reward, collision_tolerance, max_steps, clip_actions))
+        if config is not None and abs(config.dt - self.dt) > 1e-12 * self.dt:
+            raise ConfigError(f"dt: the env steps {self.dt:g} s but the filter was configured for {config.dt:g} s")
         self.scenario, self.num_envs, self.device, self.dtype, self.config = scenario, num_envs, device, dtype, config
-        self.dt, self.decision_interval, self.sensing_range = float(dt), int(decision_interval), float(sensing_range)
-        self.num_neighbors, self.num_obstacles = int(num_neighbors), int(num_obstacles)
-        self.reward_config, self.collision_tolerance = RewardConfig.coerce(reward), float(collision_tolerance)
-        self._max_steps_override = max_steps
-        self.differentiable = bool(differentiable)
+        self.differentiable = check.boolean("differentiable", differentiable)
         self.backup_check = backup_check_of(backup_check, torch.device(device))  #: the backup stage's implementation
         self.num_robots = scenario.num_robots
         self.obs_dim = SELF_DIM + SLOT_DIM * (self.num_neighbors + self.num_obstacles)
@@ -101,6 +118,12 @@ class TensorEnv:
             if type(lay.reference) is not LinearReference:
                 raise ConfigError(f"scenario: {self.scenario.name!r} has a {type(lay.reference).__name__}, expected "
                                   "a LinearReference (the torch env's references are straight lines)")
+            check_starts(self.scenario, lay)
+            reach = max(np.abs(a).max(initial=0.0) for a in (lay.starts, lay.reference.goals, lay.obstacle_centers))
+            if self.dtype == torch.float32 and reach > FLOAT32_REACH:
+                raise ConfigError(f"dtype: got torch.float32 for a layout reaching {reach:.6g} m from the origin, "
+                                  f"expected coordinates within {FLOAT32_REACH:g} m in float32 (its positions there "
+                                  "are too coarse for the safety margin): use torch.float64 or centre the layout")
         if self.team is None:
             self.team = TensorTeam.from_team(lays[0].team, self.dtype, self.device)
             self._profile = lays[0].reference.profile
@@ -117,6 +140,7 @@ class TensorEnv:
 
     def reset(self, seed: int | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Start every team's episode; team ``b``'s layout is that of ``seed + b`` (observations ``(B, N, obs)``)."""
+        seed = None if seed is None else check.integer("seed", seed, lo=0)
         self._rngs = [np.random.default_rng(None if seed is None else seed + b) for b in range(self.num_envs)]
         self.team = None
         self._st = self._layouts(list(range(self.num_envs)))
@@ -129,8 +153,13 @@ class TensorEnv:
         return self._observations(), self._infos(None)
 
     def reset_done(self, done: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """Start a new episode of the teams ``done`` ``(B,)`` (each from its own generator); all observations."""
-        self._reset_teams(torch.as_tensor(done, device=self.device))
+        """Start a new episode of the teams ``done`` ``(B,)`` bool (each from its own generator); all observations."""
+        self._require_reset("reset_done()")
+        mask = torch.as_tensor(done, device=self.device)
+        if mask.dtype != torch.bool or tuple(mask.shape) != (self.num_envs,):
+            raise ConfigError(f"done: got a {mask.dtype} tensor of shape {tuple(mask.shape)}, expected bool of shape "
+                              f"({self.num_envs},) (one flag per team; a (B, N) truncated: truncated[:, 0])")
+        self._reset_teams(mask)
         self._refresh()
         return self._observations(), self._infos(None)
 
@@ -183,15 +212,37 @@ class TensorEnv:
         with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
             return self._step(actions)
 
-    def _step(self, actions: torch.Tensor) -> tuple:
-        act = torch.as_tensor(actions, device=self.device).to(self.dtype)
+    def _require_reset(self, what: str) -> None:
+        if self.team is None:
+            raise ResetNeeded(f"{what}: call reset() first")
+
+    def _actions(self, actions: Any) -> torch.Tensor:
+        """``actions`` ``(B, N, 2)`` in the env's dtype, checked as the PettingZoo env checks them.
+
+        Behind the filter a nominal of at most ``1e6``, else within ``[-1, 1]`` (``clip_actions``: any finite value,
+        clipped).
+        """
         B, N = self.num_envs, self.num_robots
-        if act.shape != (B, N, 2):
-            raise ConfigError(f"actions: got shape {tuple(act.shape)}, expected ({B}, {N}, 2)")
-        if not bool(torch.isfinite(act).all()):
-            raise ConfigError("actions: got non-finite values, expected finite numbers")
-        if self.config is None:
-            act = torch.clamp(act, -1.0, 1.0)
+        try:
+            act = torch.as_tensor(actions, device=self.device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise ActionError(f"actions: got {check.short_repr(actions)}, expected real numbers of shape ({B}, {N}, 2)"
+                              ) from exc
+        if act.dtype == torch.bool or act.is_complex() or tuple(act.shape) != (B, N, 2):
+            raise ActionError(f"actions: got shape {tuple(act.shape)} (dtype {act.dtype}), expected real numbers of "
+                              f"shape ({B}, {N}, 2)")
+        nominal = self.config is not None and not self.clip_actions
+        peak = act.detach().abs().amax()
+        if not bool(peak <= action_bound(nominal, self.clip_actions)):  # (NaN too): the PettingZoo env's error
+            checked_actions(act.detach().cpu().double().numpy().reshape(B * N, 2), nominal, self.clip_actions,
+                            lambda row: f"actions[{row // N}, {row % N}]")
+        act = act.to(self.dtype)
+        return act if nominal else torch.clamp(act, -1.0, 1.0)
+
+    def _step(self, actions: torch.Tensor) -> tuple:
+        self._require_reset("step()")
+        act = self._actions(actions)
+        B, N = self.num_envs, self.num_robots
         team, corr, out = self.team, None, None
         for _ in range(self.decision_interval):
             du = self._nominal(act)  # (the filter's answer replaces it)

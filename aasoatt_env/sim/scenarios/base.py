@@ -17,7 +17,7 @@ from aasoatt_env.sim.references import Reference
 
 __all__ = ["MAX_ROBOTS", "Layout", "Scenario", "bounds_around", "check_clear_of_obstacles", "check_groups",
            "check_no_overlap", "check_num_robots", "check_obstacles", "check_quantity", "check_settle_time",
-           "heading_of", "max_robots_on_circle"]
+           "check_starts", "heading_of", "max_robots_on_circle"]
 
 MAX_ROBOTS: int = 100_000
 """Largest team a scenario builds."""
@@ -119,6 +119,17 @@ def check_clear_of_obstacles(name: str, points: np.ndarray, radii: np.ndarray, o
         i, k = np.argwhere(over)[0]
         raise ScenarioError(f"{name}: robot {i} at {points[i].round(3).tolist()} overlaps obstacle {k} "
                             f"(gap {gap[i, k]:.3f} m); move the obstacle or the robot")
+
+
+def check_starts(scenario: Scenario, layout: Layout) -> None:
+    """Raise :class:`ScenarioError` if the starts of ``layout`` overlap each other or an obstacle.
+
+    Every env checks every layout, a user's scenario's too: the filter's guarantee starts from a safe state.
+    """
+    where = f"scenario {scenario.name or type(scenario).__name__!r}: starts"
+    check_no_overlap(where, layout.starts, layout.team.radius, layout.team.group)
+    check_clear_of_obstacles(where, layout.starts, layout.team.radius, (layout.obstacle_centers,
+                                                                        layout.obstacle_radii))
 
 
 def _touching(contact: np.ndarray) -> np.ndarray:
