@@ -510,6 +510,30 @@ def test_bad_settings_are_refused_naming_the_argument(monkeypatch):
         bare.reset_done(torch.ones(2, 4, dtype=torch.bool))
 
 
+def test_the_filter_refuses_inputs_the_numpy_filter_refuses_naming_them():
+    """``filter_step``: a NaN, infinite or huge (beyond 1e9) number and a shape off the team's ``(B, N, .)`` get a
+    :class:`StateError` naming the input and the entry, as ``SafetyFilter.step`` does; nothing NaN comes out."""
+    from aasoatt_env.errors import StateError
+
+    rng = np.random.default_rng(2)
+    states = random_states(rng, 3, 4)
+    team = make_team("paper", 4)
+    cfg = FilterConfig(mode="decentralized")
+    out = tensor_answers(team, states, cfg)
+    assert torch.isfinite(out.du).all()
+    for key, k, value, match in (("nom", 2, np.nan, r"nominal: got \[nan, nan\] for team 1, robot 2"),
+                                 ("nom", 2, 1e30, r"nominal: got \[1e\+30, 1e\+30\] for team 1, robot 2"),
+                                 ("pose", 2, np.inf, r"pose: got \[inf, inf, inf\] for team 1, robot 2"),
+                                 ("orad", 1, np.nan, r"obstacles radii: got nan for team 1, obstacle 1")):
+        bad = [dict(s) for s in states]
+        bad[1][key] = bad[1][key].copy()
+        bad[1][key][k] = value
+        with pytest.raises(StateError, match=match):
+            tensor_answers(team, bad, cfg)
+    with pytest.raises(StateError, match=r"pose: got shape \(3, 4, 3\), expected \(3, 5, 3\)"):
+        tensor_answers(make_team("paper", 5), states, cfg)
+
+
 def test_settings_the_env_shares_with_the_filter_reach_it():
     """The env's ``dt`` is the filter's; the filter's own settings (its sensing range) come through ``filter``; a
     clipping bare env clips; a scenario of fixed size builds with its own number of robots."""

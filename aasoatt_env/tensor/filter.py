@@ -22,7 +22,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from aasoatt_env.errors import ConfigError
+from aasoatt_env.errors import ConfigError, StateError
 from aasoatt_env.model.dynamics import pose_from_point
 from aasoatt_env.model.params import stack_teams
 from aasoatt_env.safety.backup import backup_answer
@@ -37,6 +37,7 @@ from aasoatt_env.safety.solvers.polygons import FAR, LocalAnswer, least_violatio
 from aasoatt_env.safety.stages import Warm
 from aasoatt_env.tensor.backup import gate, repair
 from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics, matvec, norm, pick
+from aasoatt_env.validation import MAGNITUDE_MAX
 
 __all__ = ["BACKUP", "BACKUP_CHECKS", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "backup_check_of",
            "check_config", "filter_step"]
@@ -138,6 +139,36 @@ def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
     return _Pairs(other, valid, gp, gv, ga, ds, sep, gap, of)
 
 
+def _check_inputs(team: TensorTeam, arrays: dict[str, torch.Tensor], obstacles, avoiding) -> None:
+    """:class:`StateError` naming the input and the entry, as the numpy filter's ``check_step`` does.
+
+    Shapes ``(B, N, .)`` of the team's ``N``; every number finite within ``MAGNITUDE_MAX`` (one reduction if so).
+    """
+    pose = arrays["pose"]
+    B, N = (pose.shape[0] if pose.dim() == 3 else -1), team.radius.shape[-1]
+    shapes = {name: (B, N, 3 if name == "pose" else 2) for name in arrays}
+    if obstacles is not None:
+        arrays = {**arrays, "obstacles centres": obstacles[0], "obstacles radii": obstacles[1]}
+        M = obstacles[1].shape[-1]
+        shapes.update({"obstacles centres": (B, M, 2), "obstacles radii": (B, M)})
+    for name, a in arrays.items():
+        if tuple(a.shape) != shapes[name]:
+            raise StateError(f"{name}: got shape {tuple(a.shape)}, expected {shapes[name]} (teams, robots, ...)")
+    if avoiding is not None and (avoiding.dtype != torch.bool or tuple(avoiding.shape) != (B, N)):
+        raise StateError(f"avoiding: got {avoiding.dtype} of shape {tuple(avoiding.shape)}, expected bool ({B}, {N})")
+    peak = torch.stack([a.detach().abs().amax().double() if a.numel() else pose.new_zeros((), dtype=torch.float64)
+                        for a in arrays.values()]).max()
+    if bool(peak <= MAGNITUDE_MAX):  # (NaN is not)
+        return
+    for name, a in arrays.items():
+        bad = ~(a.detach().abs() <= MAGNITUDE_MAX)
+        if bad.any():
+            b, k = (int(i) for i in torch.nonzero(bad)[0][:2])
+            what = "obstacle" if name.startswith("obstacles") else "robot"
+            raise StateError(f"{name}: got {a[b, k].tolist()} for team {b}, {what} {k}, expected finite values within "
+                             f"+-{MAGNITUDE_MAX:g}")
+
+
 def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torch.Tensor, nominal: torch.Tensor,
                 p_d: torch.Tensor, v_d: torch.Tensor, obstacles: tuple[torch.Tensor, torch.Tensor] | None = None,
                 avoiding: torch.Tensor | None = None, backup_check: str | None = None) -> FilterOut:
@@ -149,6 +180,7 @@ def filter_step(team: TensorTeam, cfg: FilterConfig, pose: torch.Tensor, u: torc
     ``backup_check`` (with ``cfg.backup``): :data:`BACKUP_CHECKS` (None: the device's, :func:`backup_check_of`).
     """
     check = backup_check_of(backup_check, pose.device)
+    _check_inputs(team, dict(pose=pose, u=u, nominal=nominal, p_d=p_d, v_d=v_d), obstacles, avoiding)
     kin = kinematics(team, pose, u)
     lo, hi = input_bounds(team, u, cfg.dt)
     B, N, _ = pose.shape
