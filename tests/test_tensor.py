@@ -428,6 +428,7 @@ def test_torchrl_adapter_passes_check_env_specs_and_resets_finished_teams():
     pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
     from torchrl.envs.utils import check_env_specs
 
+    from aasoatt_env.errors import ConfigError
     from aasoatt_env.tensor.torchrl_env import TorchRLTensorEnv
 
     env = TorchRLTensorEnv("random_goals", num_envs=3, num_robots=4, max_steps=30)
@@ -440,22 +441,32 @@ def test_torchrl_adapter_passes_check_env_specs_and_resets_finished_teams():
     assert done_at == [29, 59]
     # after a reset the team is at the start of its next layout: at rest
     assert float(td["agents", "observation"][:, 30, :, 4:6].abs().max()) == 0.0
+    # a seed is used once: the next rollout goes on with each team's generator (new layouts, reproducibly)
+    again = env.rollout(2)["agents", "observation"][:, 0]
+    assert not torch.equal(again, td["agents", "observation"][:, 0])
+    twin = TorchRLTensorEnv("random_goals", num_envs=3, num_robots=4, max_steps=30)
+    twin.set_seed(3)
+    twin.rollout(80, break_when_any_done=False)
+    assert torch.equal(twin.rollout(2)["agents", "observation"][:, 0], again)
+    with pytest.raises(ConfigError, match="seed: got -1"):
+        env.set_seed(-1)
 
 
 @pytest.mark.parametrize("check", BACKUP_CHECKS)
 def test_differentiable_env_passes_gradients_from_rewards_to_actions(check):
     """``differentiable=True``: a reward two steps later has a finite, non-zero gradient w.r.t. the first actions,
-    and so do the observations, the clearance and the correction (distances of 0, such as a robot's to itself or a
-    correction where the filter does not intervene, have gradient 0, not NaN); by default ``step`` records no
-    graph."""
+    and so do the observations, the clearance and the correction (lengths of 0, such as a robot's distance to itself,
+    a relative speed of robots at rest or a correction where the filter does not intervene, have gradient 0, not
+    NaN); by default ``step`` records no graph."""
     from aasoatt_env.tensor.env import make_tensor_env
 
-    env = make_tensor_env("circle_swap", 2, 4, dtype=torch.float64, differentiable=True, radius=2.0,
-                          backup_check=check)
+    env = make_tensor_env("random_goals", 2, 4, dtype=torch.float64, differentiable=True, backup_check=check)
     env.reset(seed=0)
-    act = torch.full((2, 4, 2), 0.5, dtype=torch.float64, requires_grad=True)
+    act = torch.zeros(2, 4, 2, dtype=torch.float64)
+    act[:, 0] = 1.0  # (robots 1 to 3 stay at rest: rows of zero relative speed)
+    act.requires_grad_(True)
     env.step(act)
-    obs, rew, _, _, info = env.step(torch.zeros(2, 4, 2, dtype=torch.float64))
+    obs, rew, _, _, info = env.step(act.detach())
     for name, out in (("reward", rew), ("observations", obs), ("clearance", info["clearance"]),
                       ("correction", info["correction"])):
         (g,) = torch.autograd.grad(out.sum(), act, retain_graph=True)
@@ -511,9 +522,10 @@ def test_bad_settings_are_refused_naming_the_argument(monkeypatch):
 
 
 def test_the_filter_refuses_inputs_the_numpy_filter_refuses_naming_them():
-    """``filter_step``: a NaN, infinite or huge (beyond 1e9) number and a shape off the team's ``(B, N, .)`` get a
-    :class:`StateError` naming the input and the entry, as ``SafetyFilter.step`` does; nothing NaN comes out."""
-    from aasoatt_env.errors import StateError
+    """``filter_step``: a NaN, infinite or huge (beyond 1e9) number, a negative obstacle radius, a shape off the
+    team's ``(B, N, .)`` and an input that is not a real tensor get a :class:`StateError` naming the input and the
+    entry, as ``SafetyFilter.step`` does; a layer of another dtype or mode than it has is refused."""
+    from aasoatt_env.errors import ConfigError, StateError
 
     rng = np.random.default_rng(2)
     states = random_states(rng, 3, 4)
@@ -524,7 +536,9 @@ def test_the_filter_refuses_inputs_the_numpy_filter_refuses_naming_them():
     for key, k, value, match in (("nom", 2, np.nan, r"nominal: got \[nan, nan\] for team 1, robot 2"),
                                  ("nom", 2, 1e30, r"nominal: got \[1e\+30, 1e\+30\] for team 1, robot 2"),
                                  ("pose", 2, np.inf, r"pose: got \[inf, inf, inf\] for team 1, robot 2"),
-                                 ("orad", 1, np.nan, r"obstacles radii: got nan for team 1, obstacle 1")):
+                                 ("orad", 1, np.nan, r"obstacles radii: got nan for team 1, obstacle 1"),
+                                 ("orad", 1, -1.3, r"obstacles radii: got -1.3 for team 1, obstacle 1, expected a "
+                                                   "radius >= 0")):
         bad = [dict(s) for s in states]
         bad[1][key] = bad[1][key].copy()
         bad[1][key][k] = value
@@ -532,6 +546,19 @@ def test_the_filter_refuses_inputs_the_numpy_filter_refuses_naming_them():
             tensor_answers(team, bad, cfg)
     with pytest.raises(StateError, match=r"pose: got shape \(3, 4, 3\), expected \(3, 5, 3\)"):
         tensor_answers(make_team("paper", 5), states, cfg)
+    layer = SafetyLayer(team, cfg)
+    args = [torch.as_tensor(np.stack([s[k] for s in states])) for k in ("pose", "u", "nom", "pd", "vd")]
+    with pytest.raises(StateError, match="v_d: got array"):
+        layer(*args[:4], args[4].numpy())
+    with pytest.raises(StateError, match=r"avoiding: got a torch.float32 tensor of shape \(3, 4\), expected a "
+                       r"torch.bool tensor of shape \(3, 4\)"):
+        layer(*args, avoiding=torch.zeros(3, 4))
+    for kwargs, match in ((dict(dtype=torch.int64), "dtype: got torch.int64"), (dict(device="bogus"), "device: got"),
+                          (dict(config=FilterConfig(mode="centralized")), "mode: got 'centralized'"),
+                          (dict(config={"mode": "decentralized"}, mode="centralized"), "mode: got 'centralized', "
+                           "but the filter's configuration says 'decentralized'")):
+        with pytest.raises(ConfigError, match=match):
+            SafetyLayer(team, **kwargs)
 
 
 def test_settings_the_env_shares_with_the_filter_reach_it():

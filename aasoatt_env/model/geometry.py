@@ -14,7 +14,8 @@ import numpy as np
 from aasoatt_env import compiled as _compiled
 
 __all__ = ["KDTREE_MIN_ROBOTS", "Proximity", "brute_candidates", "k_nearest", "kdtree", "min_gaps", "neighbourhood",
-           "namespace", "obstacle_pairs", "pair_components", "robot_pairs", "row_dot", "uses_brute_force"]
+           "namespace", "obstacle_pairs", "pair_components", "robot_pairs", "row_dot", "row_norm", "safe_sqrt",
+           "uses_brute_force"]
 
 KDTREE_MIN_ROBOTS: int = 200
 """Team size from which a tree (or grid) answers instead of the full distance matrix."""
@@ -65,6 +66,20 @@ def uses_brute_force(n: int, groups: np.ndarray | None = None) -> bool:
 def row_dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Row-wise dot products ``(...,)`` of two ``(..., 2)`` arrays: ``a0 b0 + a1 b1``."""
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
+
+
+def row_norm(a: Any) -> Any:
+    """Row-wise lengths ``(...,)`` of ``(..., 2)`` arrays, ``sqrt(a0 a0 + a1 a1)`` (:func:`safe_sqrt`)."""
+    return safe_sqrt(row_dot(a, a))
+
+
+def safe_sqrt(s: Any) -> Any:
+    """``sqrt(s)`` of ``s >= 0``; on a tensor that records a graph, gradient 0 at 0 instead of NaN (same values)."""
+    xp = namespace(s)
+    if not getattr(s, "requires_grad", False):
+        return xp.sqrt(s)
+    pos = s > 0
+    return xp.where(pos, xp.sqrt(xp.where(pos, s, xp.ones_like(s))), xp.zeros_like(s))
 
 
 def namespace(*arrays: Any) -> Any:

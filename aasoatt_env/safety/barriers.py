@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import numpy as np
 
 from aasoatt_env.errors import ConfigError
-from aasoatt_env.model.geometry import namespace, row_dot
+from aasoatt_env.model.geometry import namespace, row_dot, row_norm, safe_sqrt
 
 if TYPE_CHECKING:  # pragma: no cover
     from aasoatt_env.safety.config import FilterConfig
@@ -58,7 +58,7 @@ class Barrier:
 def _common(g: PairGeometry) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``|p|`` (at least 1e-9), ``p.v``, ``v.v``, ``p.adot``."""
     xp = namespace(g.p)
-    return xp.maximum(xp.sqrt(row_dot(g.p, g.p)), 1e-9), row_dot(g.p, g.v), row_dot(g.v, g.v), row_dot(g.p, g.adot)
+    return xp.maximum(row_norm(g.p), 1e-9), row_dot(g.p, g.v), row_dot(g.v, g.v), row_dot(g.p, g.adot)
 
 
 def _aasoatt_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
@@ -70,7 +70,7 @@ def _braking_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:
     r, pv, _, _ = _common(g)
     gap = r - g.d_s
     xp = namespace(gap)
-    return xp.sign(gap) * xp.sqrt(2.0 * g.a_plus * xp.abs(gap)) + pv / r
+    return xp.sign(gap) * safe_sqrt(2.0 * g.a_plus * xp.abs(gap)) + pv / r
 
 
 def _distance_h(g: PairGeometry, q: FilterConfig) -> np.ndarray:

@@ -19,7 +19,7 @@ from aasoatt_env import validation as check
 from aasoatt_env.compiled import KERNELS, available
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import DT
-from aasoatt_env.model.geometry import namespace, row_dot
+from aasoatt_env.model.geometry import namespace, row_norm
 from aasoatt_env.model.tracking import PAPER_K3, PAPER_K4
 from aasoatt_env.safety.barriers import BARRIERS
 from aasoatt_env.safety.deadlock import STRATEGIES, TRIGGERS
@@ -147,7 +147,7 @@ class FilterConfig:
         if self.safety_margin is not None:
             return float(self.safety_margin)
         xp = namespace(v_rel)
-        return auto_margin(self.dt) * xp.minimum(xp.sqrt(row_dot(v_rel, v_rel)) / MARGIN_FADE_SPEED, 1.0)
+        return auto_margin(self.dt) * xp.minimum(row_norm(v_rel) / MARGIN_FADE_SPEED, 1.0)
 
     @functools.cached_property
     def compiled(self) -> bool:

@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 import torch
 
+from aasoatt_env.model.geometry import safe_sqrt
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.tensor.model import TensorTeam, arc, integrate, pick, points
 
@@ -47,7 +48,7 @@ def _point_accel(team: TensorTeam, u: torch.Tensor, frac: float) -> torch.Tensor
 def _speed(team: TensorTeam, u: torch.Tensor) -> torch.Tensor:
     """``(B, N)`` the control point's speed ``|p_dot|``."""
     k = team.half_k / team.half
-    return team.half * torch.sqrt((u[..., 0] + u[..., 1]) ** 2 + (k * (u[..., 0] - u[..., 1])) ** 2)
+    return team.half * safe_sqrt((u[..., 0] + u[..., 1]) ** 2 + (k * (u[..., 0] - u[..., 1])) ** 2)
 
 
 def _seg(q0x, q0y, q1x, q1y) -> torch.Tensor:
@@ -56,7 +57,7 @@ def _seg(q0x, q0y, q1x, q1y) -> torch.Tensor:
     dd = dx * dx + dy * dy
     t = torch.clamp(-(q0x * dx + q0y * dy) / torch.where(dd > 0, dd, torch.ones_like(dd)), 0.0, 1.0)
     cx, cy = q0x + t * dx, q0y + t * dy
-    return torch.sqrt(cx * cx + cy * cy)
+    return safe_sqrt(cx * cx + cy * cy)
 
 
 class _Rows:
@@ -109,12 +110,12 @@ def _margins(team: TensorTeam, cfg: FilterConfig, rows: _Rows, start, pose1, u1,
     x0, y0, acc0 = start
     own = _end(team, cfg, acc0, pose1, u1)
     oth = own if other is None else _end(team, cfg, acc0, *other)
-    path_len = torch.sqrt((own.x - x0) ** 2 + (own.y - y0) ** 2) + dt * dt / 8.0 * acc0 + own.braking
+    path_len = safe_sqrt((own.x - x0) ** 2 + (own.y - y0) ** 2) + dt * dt / 8.0 * acc0 + own.braking
     dev_step = dt * dt / 8.0 * (own.acc[..., None] + rows.at(oth.acc))
     q0x, q0y = rows.rel(x0, y0, x0, y0)
     q1x, q1y = rows.rel(own.x, own.y, oth.x, oth.y)
     out = _seg(q0x, q0y, q1x, q1y) - dev_step - ds
-    gap1 = torch.sqrt(q1x * q1x + q1y * q1y) - ds
+    gap1 = safe_sqrt(q1x * q1x + q1y * q1y) - ds
     risky = valid & (gap1 <= (own.braking + 1e-9)[..., None] + rows.at(oth.braking + 1e-9) + 1e-6)
     out = torch.where(valid, out, math.inf)
     if not bool(risky.any()):

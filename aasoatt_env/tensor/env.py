@@ -22,14 +22,15 @@ from aasoatt_env import validation as check
 from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import DT
+from aasoatt_env.model.geometry import row_norm
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.sim.env import action_bound, checked_actions, env_settings
 from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
 from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.scenarios import Scenario, get_scenario
 from aasoatt_env.sim.scenarios.base import check_starts
-from aasoatt_env.tensor.filter import BACKUP, FilterOut, backup_check_of, check_config, filter_step
-from aasoatt_env.tensor.model import TensorTeam, input_bounds, integrate, kinematics, matvec, norm, pick
+from aasoatt_env.tensor.filter import BACKUP, FilterOut, backup_check_of, filter_step, torch_config
+from aasoatt_env.tensor.model import TensorTeam, check_dtype_device, input_bounds, integrate, kinematics, matvec, pick
 
 __all__ = ["TensorEnv", "make_tensor_env"]
 
@@ -50,12 +51,13 @@ def _slots(k: int, ok: torch.Tensor, rel_p: torch.Tensor, rel_v: torch.Tensor, g
 
 def make_tensor_env(scenario: str | Scenario = "random_goals", num_envs: int = 1, num_robots: int | None = None,
                     device: str = "cpu", dtype: torch.dtype = torch.float32,
-                    filter: FilterConfig | Mapping[str, Any] | bool = True, mode: str = "decentralized",
+                    filter: FilterConfig | Mapping[str, Any] | bool = True, mode: str | None = None,
                     **options: Any) -> TensorEnv:
     """``num_envs`` teams of ``num_robots`` robots (None: the scenario's number) of ``scenario`` on ``device``.
 
     ``filter``: True (the defaults), False (bare), a :class:`FilterConfig` or a mapping of its fields (as
-    :func:`~aasoatt_env.api.factory.make_env`'s), in ``mode`` and at the env's ``dt``.  ``options``: the env's settings
+    :func:`~aasoatt_env.api.factory.make_env`'s) at the env's ``dt``, decentralised (``mode``:
+    :func:`.torch_config`).  ``options``: the env's settings
     (``dt``, ``decision_interval``, ``action_mode``, ``sensing_range`` of the observations, ``num_neighbors``,
     ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``clip_actions``, ``differentiable``:
     ``step`` records the autograd graph, so losses on its outputs reach the actions and the state through the filter
@@ -66,16 +68,11 @@ def make_tensor_env(scenario: str | Scenario = "random_goals", num_envs: int = 1
     names = {f.name for f in fields(FilterConfig)}
     env_kw = {k: options.pop(k) for k in list(options) if k in _ENV_KEYS}
     filt_kw = {k: options.pop(k) for k in list(options) if k in names}
-    if filter is not True and filter is not False and not isinstance(filter, (FilterConfig, Mapping)):
-        raise ConfigError(f"filter: got {check.short_repr(filter)}, expected True/False, a FilterConfig or a mapping "
-                          "of its fields")
     cfg = None
     if filter is not False:
-        given = {} if filter is True or isinstance(filter, FilterConfig) else dict(filter)
-        if "dt" in given:
-            raise ConfigError(f"dt: got {given['dt']!r} in filter; the filter runs at the env's physics step (dt=)")
-        base = filter if isinstance(filter, FilterConfig) else FilterConfig.merged(None, **given)
-        cfg = check_config(FilterConfig.merged(base, mode=mode, dt=env_kw.get("dt", DT), **filt_kw))
+        if isinstance(filter, Mapping) and "dt" in filter:
+            raise ConfigError(f"dt: got {filter['dt']!r} in filter; the filter runs at the env's physics step (dt=)")
+        cfg = torch_config(filter, mode, dt=env_kw.get("dt", DT), **filt_kw)
     if num_robots is not None:
         options["num_robots"] = num_robots
     return TensorEnv(get_scenario(scenario, **options), num_envs, device, dtype, cfg, **env_kw)
@@ -90,10 +87,7 @@ class TensorEnv:
                  collision_tolerance: float = 1e-3, max_steps: int | None = None, clip_actions: bool = False,
                  differentiable: bool = False, backup_check: str | None = None) -> None:
         num_envs = check.integer("num_envs", num_envs, lo=1)
-        if dtype not in (torch.float32, torch.float64):
-            raise ConfigError(f"dtype: got {dtype!r}, expected torch.float32 or torch.float64")
-        if torch.device(device).type == "cuda" and not torch.cuda.is_available():
-            raise ConfigError(f"device: got {device!r}, but torch.cuda.is_available() is False on this machine")
+        check_dtype_device(dtype, device)
         vars(self).update(env_settings(dt, decision_interval, action_mode, sensing_range, num_neighbors, num_obstacles,
                                        reward, collision_tolerance, max_steps, clip_actions))
         if config is not None and abs(config.dt - self.dt) > 1e-12 * self.dt:
@@ -139,9 +133,13 @@ class TensorEnv:
             max_steps=torch.tensor(steps, device=self.device))
 
     def reset(self, seed: int | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """Start every team's episode; team ``b``'s layout is that of ``seed + b`` (observations ``(B, N, obs)``)."""
+        """Start every team's episode; team ``b``'s layout is that of ``seed + b`` (observations ``(B, N, obs)``).
+
+        Without a seed each team's generator goes on (a first reset without one: fresh entropy).
+        """
         seed = None if seed is None else check.integer("seed", seed, lo=0)
-        self._rngs = [np.random.default_rng(None if seed is None else seed + b) for b in range(self.num_envs)]
+        if seed is not None or not self._rngs:  # (no seed: each team's generator goes on, as the PettingZoo env's)
+            self._rngs = [np.random.default_rng(None if seed is None else seed + b) for b in range(self.num_envs)]
         self.team = None
         self._st = self._layouts(list(range(self.num_envs)))
         B, N = self.num_envs, self.num_robots
@@ -155,7 +153,10 @@ class TensorEnv:
     def reset_done(self, done: torch.Tensor) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """Start a new episode of the teams ``done`` ``(B,)`` bool (each from its own generator); all observations."""
         self._require_reset("reset_done()")
-        mask = torch.as_tensor(done, device=self.device)
+        try:
+            mask = torch.as_tensor(done, device=self.device)
+        except (TypeError, ValueError, RuntimeError) as exc:
+            raise ConfigError(f"done: got {check.short_repr(done)}, expected bool of shape ({self.num_envs},)") from exc
         if mask.dtype != torch.bool or tuple(mask.shape) != (self.num_envs,):
             raise ConfigError(f"done: got a {mask.dtype} tensor of shape {tuple(mask.shape)}, expected bool of shape "
                               f"({self.num_envs},) (one flag per team; a (B, N) truncated: truncated[:, 0])")
@@ -284,13 +285,13 @@ class TensorEnv:
         self.ref = self.reference()
         p, N = self.kin.p, self.num_robots
         eye = torch.eye(N, dtype=torch.bool, device=p.device)
-        self.dist = norm(p[:, :, None, :] - p[:, None, :, :]).masked_fill(eye, math.inf)  # (inf to itself)
+        self.dist = row_norm(p[:, :, None, :] - p[:, None, :, :]).masked_fill(eye, math.inf)  # (inf to itself)
         r = self.team.radius
         clear = (self.dist - r[:, None] - r[None, :]).amin(-1) if N > 1 else torch.full_like(p[..., 0], math.inf)
         oc, orad = self._st["oc"], self._st["orad"]
-        self.ogap = norm(p[:, :, None, :] - oc[:, None, :, :]) - r[None, :, None] - orad[:, None, :]
+        self.ogap = row_norm(p[:, :, None, :] - oc[:, None, :, :]) - r[None, :, None] - orad[:, None, :]
         self.clearance = torch.minimum(clear, self.ogap.amin(-1)) if orad.shape[-1] else clear
-        self.tracking_error = norm(p - self.ref[0])
+        self.tracking_error = row_norm(p - self.ref[0])
 
     def _rewards(self, act: torch.Tensor, corr: torch.Tensor | None) -> torch.Tensor:
         """:func:`aasoatt_env.sim.rewards.rewards`, per robot ``(B, N)``."""
@@ -298,7 +299,7 @@ class TensorEnv:
         collided = (self.clearance < -self.collision_tolerance).to(self.dtype)
         r = -c.tracking * self.tracking_error - c.collision * collided - c.effort * 0.5 * (act * act).sum(-1)
         if c.goal_bonus:
-            r = r + c.goal_bonus * (norm(self.kin.p - self._st["goals"]) < c.goal_tolerance).to(self.dtype)
+            r = r + c.goal_bonus * (row_norm(self.kin.p - self._st["goals"]) < c.goal_tolerance).to(self.dtype)
         if c.correction and corr is not None:
             r = r - c.correction * corr / self.team.max_wheel_accel
         return r

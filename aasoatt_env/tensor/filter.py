@@ -17,13 +17,15 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import NamedTuple
+from collections.abc import Mapping
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from aasoatt_env.errors import ConfigError, StateError
 from aasoatt_env.model.dynamics import pose_from_point
+from aasoatt_env.model.geometry import row_norm, safe_sqrt
 from aasoatt_env.model.params import stack_teams
 from aasoatt_env.safety.backup import backup_answer
 from aasoatt_env.safety.barriers import PairGeometry, get_barrier
@@ -36,11 +38,19 @@ from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.safety.solvers.polygons import FAR, LocalAnswer, least_violation, solve_polygons
 from aasoatt_env.safety.stages import Warm
 from aasoatt_env.tensor.backup import gate, repair
-from aasoatt_env.tensor.model import TensorKinematics, TensorTeam, input_bounds, kinematics, matvec, norm, pick
-from aasoatt_env.validation import MAGNITUDE_MAX
+from aasoatt_env.tensor.model import (
+    TensorKinematics,
+    TensorTeam,
+    check_dtype_device,
+    input_bounds,
+    kinematics,
+    matvec,
+    pick,
+)
+from aasoatt_env.validation import MAGNITUDE_MAX, short_repr
 
 __all__ = ["BACKUP", "BACKUP_CHECKS", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "backup_check_of",
-           "check_config", "filter_step"]
+           "check_config", "filter_step", "torch_config"]
 
 RELAXED, GROUPED, BACKUP, UNSAFE = 1, 2, 4, 8  #: ``status`` bits (module docstring); 0: its own QP, exactly
 
@@ -55,6 +65,28 @@ class FilterOut(NamedTuple):
     correction: torch.Tensor  #: ``(B, N)`` ``|du - nominal|``
     intervened: torch.Tensor  #: ``(B, N)`` bool: the nominal was changed
     gap: torch.Tensor  #: ``(B, N)`` smallest surface gap to a robot or obstacle in range (``D - 2 r`` without)
+
+
+def torch_config(config: Any = None, mode: str | None = None, **options: Any) -> FilterConfig:
+    """The torch filter's :class:`FilterConfig`, checked (:func:`check_config`).
+
+    ``config``: None/True (the defaults), a ``FilterConfig``, or a mapping of its fields; ``options``: more fields.
+    ``mode`` (None: the configuration's, decentralised where it names none) must agree with the configuration's.
+    """
+    if config is None or config is True:
+        config = {}
+    if isinstance(config, Mapping):
+        if not all(isinstance(k, str) for k in config):
+            raise ConfigError(f"filter: got keys {sorted(map(repr, config))}, expected FilterConfig field names")
+        base, named = FilterConfig.merged(None, **{"mode": "decentralized", **config}), "mode" in config
+    elif isinstance(config, FilterConfig):
+        base, named = config, True
+    else:
+        raise ConfigError(f"filter: got {short_repr(config)}, expected True, a FilterConfig or a mapping of its "
+                          "fields")
+    if mode is not None and named and mode != base.mode:
+        raise ConfigError(f"mode: got {mode!r}, but the filter's configuration says {base.mode!r}")
+    return check_config(FilterConfig.merged(base, **({} if mode is None else {"mode": mode}), **options))
 
 
 def check_config(cfg: FilterConfig) -> FilterConfig:
@@ -80,7 +112,7 @@ def _target(cfg: FilterConfig, kin: TensorKinematics, nom: torch.Tensor, avoidin
     if avoiding is None or cfg.deadlock == "none":
         return t, torch.zeros(t.shape[:-1], dtype=torch.bool, device=t.device)
     ell = kin.p - p_d
-    trig = avoiding & ((norm(v_d) >= cfg.low_speed) | (norm(ell) > cfg.goal_tol))
+    trig = avoiding & ((row_norm(v_d) >= cfg.low_speed) | (row_norm(ell) > cfg.goal_tol))
     z = trig.to(t.dtype) * cfg.zeta  # (zeta in the state's dtype, not rounded through float32)
     return t - z[..., None] * matvec(*rotation(cfg.rotation_deg).ravel().tolist(), kin.v - v_d + cfg.k3 * ell), trig
 
@@ -144,21 +176,36 @@ def _check_inputs(team: TensorTeam, arrays: dict[str, torch.Tensor], obstacles, 
 
     Shapes ``(B, N, .)`` of the team's ``N``; every number finite within ``MAGNITUDE_MAX`` (one reduction if so).
     """
+    if obstacles is not None:
+        if not isinstance(obstacles, (tuple, list)) or len(obstacles) != 2:
+            raise StateError(f"obstacles: got {short_repr(obstacles)}, expected (centres (B, M, 2), radii (B, M))")
+        arrays = {**arrays, "obstacles centres": obstacles[0], "obstacles radii": obstacles[1]}
+    for name, a in arrays.items():
+        if not isinstance(a, torch.Tensor) or a.dtype == torch.bool or a.is_complex():
+            what = f"a {a.dtype} tensor" if isinstance(a, torch.Tensor) else short_repr(a)
+            raise StateError(f"{name}: got {what}, expected a real torch tensor")
     pose = arrays["pose"]
     B, N = (pose.shape[0] if pose.dim() == 3 else -1), team.radius.shape[-1]
     shapes = {name: (B, N, 3 if name == "pose" else 2) for name in arrays}
     if obstacles is not None:
-        arrays = {**arrays, "obstacles centres": obstacles[0], "obstacles radii": obstacles[1]}
-        M = obstacles[1].shape[-1]
+        M = obstacles[1].shape[-1] if obstacles[1].dim() else -1
         shapes.update({"obstacles centres": (B, M, 2), "obstacles radii": (B, M)})
     for name, a in arrays.items():
-        if tuple(a.shape) != shapes[name]:
-            raise StateError(f"{name}: got shape {tuple(a.shape)}, expected {shapes[name]} (teams, robots, ...)")
-    if avoiding is not None and (avoiding.dtype != torch.bool or tuple(avoiding.shape) != (B, N)):
-        raise StateError(f"avoiding: got {avoiding.dtype} of shape {tuple(avoiding.shape)}, expected bool ({B}, {N})")
+        if tuple(a.shape) != shapes[name] or B == 0:
+            raise StateError(f"{name}: got shape {tuple(a.shape)}, expected {shapes[name]} (teams, robots, ...) with "
+                             "at least one team")
+    if avoiding is not None and (not isinstance(avoiding, torch.Tensor) or avoiding.dtype != torch.bool
+                                 or tuple(avoiding.shape) != (B, N)):
+        got = (f"a {avoiding.dtype} tensor of shape {tuple(avoiding.shape)}" if isinstance(avoiding, torch.Tensor)
+               else short_repr(avoiding))
+        raise StateError(f"avoiding: got {got}, expected a torch.bool tensor of shape ({B}, {N})")
     peak = torch.stack([a.detach().abs().amax().double() if a.numel() else pose.new_zeros((), dtype=torch.float64)
                         for a in arrays.values()]).max()
     if bool(peak <= MAGNITUDE_MAX):  # (NaN is not)
+        if obstacles is not None and bool((obstacles[1] < 0).any()):
+            b, k = (int(i) for i in torch.nonzero(obstacles[1] < 0)[0])
+            raise StateError(f"obstacles radii: got {float(obstacles[1][b, k])!r} for team {b}, obstacle {k}, "
+                             "expected a radius >= 0")
         return
     for name, a in arrays.items():
         bad = ~(a.detach().abs() <= MAGNITUDE_MAX)
@@ -244,7 +291,7 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, po
     ax = torch.cat((torch.stack((i00, i10, -i00, -i10), -1), i00[..., None] * gx + i10[..., None] * gy), -1)
     ay = torch.cat((torch.stack((i01, i11, -i01, -i11), -1), i01[..., None] * gx + i11[..., None] * gy), -1)
     bb = torch.cat((hi, -lo, h), -1)
-    nrm = torch.sqrt(ax * ax + ay * ay)
+    nrm = safe_sqrt(ax * ax + ay * ay)
     valid = torch.cat((torch.ones(B, N, 4, dtype=torch.bool, device=h.device), rows), -1) & (nrm > 0)
     inv = torch.where(valid, 1.0 / torch.where(valid, nrm, 1.0), 0.0)
     C = ax.shape[-1]
@@ -273,7 +320,7 @@ def _solve(team, cfg, kin, lo, hi, scale, nominal, target, trig, pr, hr, du0, po
                 du = repair(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
             du, braking, broken = gate(team, cfg, pose, u, du, lo, hi, pr.other, pr.valid, pr.ds, obstacles)
         status = status | torch.where(braking, BACKUP, 0) | torch.where(broken, UNSAFE, 0)
-    corr = norm(du - nominal)
+    corr = row_norm(du - nominal)
     return FilterOut(du, status, avoiding, trig, corr, corr.detach() > 1e-9 * scale, pr.gap)
 
 
@@ -281,7 +328,7 @@ def _relaxed(sol: LocalAnswer, t, nx, ny, b, t_box, gx, gy, h, valid, inv, lo, h
     """The infeasible robots' answers: their rows loosened by the least violation, as the numpy local solver."""
     bad = torch.nonzero(~sol.feasible).flatten()
     gx, gy, h, valid, inv, lo, hi, du0 = (x.reshape(-1, x.shape[-1])[bad] for x in (gx, gy, h, valid, inv, lo, hi, du0))
-    G = torch.sqrt(gx * gx + gy * gy)
+    G = safe_sqrt(gx * gx + gy * gy)
     ok = valid & (G > 0)
     ig = torch.where(ok, 1.0 / torch.where(ok, G, 1.0), 0.0)
     _, viol = least_violation(gx * ig, gy * ig, torch.where(ok, h * ig, FAR), lo, hi, du0.detach())
@@ -416,10 +463,11 @@ class SafetyLayer(torch.nn.Module):
     ``backup_check``: :data:`BACKUP_CHECKS` (None: the device's default, :func:`backup_check_of`).
     """
 
-    def __init__(self, team, config: FilterConfig | None = None, dtype: torch.dtype = torch.float64,
+    def __init__(self, team, config: FilterConfig | Mapping[str, Any] | None = None, dtype: torch.dtype = torch.float64,
                  device: str | torch.device = "cpu", backup_check: str | None = None, **options) -> None:
         super().__init__()
-        self.config = check_config(FilterConfig.merged(config, mode="decentralized", **options))
+        check_dtype_device(dtype, device)
+        self.config = torch_config(config, **options)
         self.team = TensorTeam.from_team(team, dtype, device)
         self.backup_check = backup_check_of(backup_check, torch.device(device))
 

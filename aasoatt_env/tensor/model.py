@@ -6,7 +6,7 @@ float64 results agree to rounding; every function is differentiable in the state
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -15,8 +15,20 @@ from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import _SMALL_OMEGA
 from aasoatt_env.model.params import Team
 
-__all__ = ["TensorKinematics", "TensorTeam", "arc", "input_bounds", "integrate", "kinematics", "matvec", "norm",
-           "pick", "points", "pose_from_point"]
+__all__ = ["TensorKinematics", "TensorTeam", "arc", "check_dtype_device", "input_bounds", "integrate", "kinematics",
+           "matvec", "pick", "points", "pose_from_point"]
+
+
+def check_dtype_device(dtype: Any, device: Any) -> None:
+    """:class:`ConfigError` unless ``dtype`` is float32 or float64 and ``device`` a torch device this machine has."""
+    if dtype not in (torch.float32, torch.float64):
+        raise ConfigError(f"dtype: got {dtype!r}, expected torch.float32 or torch.float64")
+    try:
+        kind = torch.device(device).type
+    except (TypeError, RuntimeError) as exc:
+        raise ConfigError(f"device: got {device!r}, expected a torch device such as 'cpu' or 'cuda'") from exc
+    if kind == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device: got {device!r}, but torch.cuda.is_available() is False on this machine")
 
 
 class TensorTeam(NamedTuple):
@@ -83,15 +95,6 @@ def pick(x: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     tail = x.shape[2:]
     flat = idx.reshape(B, N * K, *(1,) * len(tail)).expand(B, N * K, *tail)
     return x.gather(1, flat).reshape(B, N, K, *tail)
-
-
-def norm(x: torch.Tensor) -> torch.Tensor:
-    """``|x|`` ``(...)`` of vectors ``(..., 2)``, in numpy's order of operations; its gradient at 0 is 0 (not NaN)."""
-    s = x[..., 0] ** 2 + x[..., 1] ** 2
-    if not s.requires_grad:
-        return torch.sqrt(s)
-    pos = s > 0
-    return torch.where(pos, torch.sqrt(torch.where(pos, s, 1.0)), 0.0)
 
 
 def points(team: TensorTeam, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

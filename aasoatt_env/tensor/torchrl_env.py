@@ -16,6 +16,7 @@ from torchrl.data import Bounded, Composite, Unbounded
 from torchrl.data import Categorical as Discrete
 from torchrl.envs import EnvBase
 
+from aasoatt_env import validation as check
 from aasoatt_env.tensor.env import TensorEnv, make_tensor_env
 
 __all__ = ["TorchRLTensorEnv"]
@@ -48,7 +49,8 @@ class TorchRLTensorEnv(EnvBase):
         self._started = False
 
     def _set_seed(self, seed: int | None) -> None:
-        self._seed = seed
+        """The next full reset's seed (used once, as TorchRL's envs do; later full resets continue the generators)."""
+        self._seed = None if seed is None else check.integer("seed", seed, lo=0)
 
     def _td(self, obs: torch.Tensor, info: dict, root: dict[str, torch.Tensor],
             reward: torch.Tensor | None = None) -> TensorDict:
@@ -64,7 +66,7 @@ class TorchRLTensorEnv(EnvBase):
         mask = None if tensordict is None else tensordict.get("_reset", None)
         if not self._started or mask is None:
             obs, info = env.reset(seed=self._seed)
-            self._started = True
+            self._started, self._seed = True, None
         else:
             obs, info = env.reset_done(mask.reshape(B, -1).any(-1))
         zeros = torch.zeros(B, 1, dtype=torch.bool, device=env.device)
