@@ -186,14 +186,15 @@ def _check_inputs(team: TensorTeam, arrays: dict[str, torch.Tensor], obstacles, 
             raise StateError(f"{name}: got {what}, expected a real torch tensor")
     pose = arrays["pose"]
     B, N = (pose.shape[0] if pose.dim() == 3 else -1), team.radius.shape[-1]
+    if B == 0:
+        raise StateError("pose: got 0 teams, expected at least one")
     shapes = {name: (B, N, 3 if name == "pose" else 2) for name in arrays}
     if obstacles is not None:
         M = obstacles[1].shape[-1] if obstacles[1].dim() else -1
         shapes.update({"obstacles centres": (B, M, 2), "obstacles radii": (B, M)})
     for name, a in arrays.items():
-        if tuple(a.shape) != shapes[name] or B == 0:
-            raise StateError(f"{name}: got shape {tuple(a.shape)}, expected {shapes[name]} (teams, robots, ...) with "
-                             "at least one team")
+        if tuple(a.shape) != shapes[name]:
+            raise StateError(f"{name}: got shape {tuple(a.shape)}, expected {shapes[name]} (teams, robots, ...)")
     if avoiding is not None and (not isinstance(avoiding, torch.Tensor) or avoiding.dtype != torch.bool
                                  or tuple(avoiding.shape) != (B, N)):
         got = (f"a {avoiding.dtype} tensor of shape {tuple(avoiding.shape)}" if isinstance(avoiding, torch.Tensor)
