@@ -57,6 +57,10 @@ def write_page(args: argparse.Namespace, title: str, body: str) -> None:
     if not args.page:
         return
     command = "python " + " ".join(shlex.quote(a) for a in sys.argv)
+    root = Path(__file__).resolve().parent.parent  # the repository
+    cwd = Path.cwd().resolve()
+    if cwd != root and cwd.is_relative_to(root):  # (run from a subfolder: the command's paths are relative to it)
+        command = f"cd {shlex.quote(str(cwd.relative_to(root)))} && {command}"
     text = f"# {title}\n\n```bash\n{command}\n```\n\nMeasured on {machine()}.\n\n{body.rstrip()}\n"
     Path(args.page).parent.mkdir(parents=True, exist_ok=True)
     atomic_write(args.page, lambda p: p.write_text(text))
