@@ -1,4 +1,4 @@
-"""Episode metrics of ``SPEC.md`` section 6 (the paper's Sec. V), computed from a :class:`Rollout`.
+"""Episode metrics of ``docs/technical_brief.md`` section 6 (the paper's Sec. V), computed from a :class:`Rollout`.
 
 RMSE, MAE and the population std of the tracking error pool all robots and steps; a collision is an overlap deeper
 than a tolerance (1 mm: the barrier's discretisation); a gap is a centre distance minus the radii.

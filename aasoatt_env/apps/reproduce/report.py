@@ -1,7 +1,8 @@
 """Experiment scaffolding: declare an :class:`Experiment` of :class:`RunSpec` runs; :func:`run` tabulates it.
 
 One run is :func:`run_spec`, many :func:`run_many` (the same numbers for any ``jobs``); the report puts ours beside
-the paper's numbers.  Last, the set-up the experiments share (SPEC section 7; our choices where the paper is silent).
+the paper's numbers.  Last, the set-up the experiments share (``docs/technical_brief.md`` section 7; our choices where
+the paper is silent).
 """
 
 from __future__ import annotations
@@ -338,8 +339,8 @@ def common_notes(s: Settings) -> list[str]:
         f"QP solver: `{s.solver}`; filter safety margin on d_s: {s.safety_margin:g} m "
         f"({'the paper exact barrier' if s.safety_margin == 0 else 'added to d_s'}); braking backup layer: "
         f"{'on' if s.backup else 'off (the paper method as published)'}",
-        "Robots (SPEC 7, our choice where the paper is silent): wheel radius 0.1 m, half track 0.2 m, "
-        "offset l = 0.2 m, |du| <= 60 rad/s^2, radius 0.48 m (d_s = 0.96), dt = 0.005 s",
+        "Robots (docs/technical_brief.md section 7, our choice where the paper is silent): wheel radius 0.1 m, "
+        "half track 0.2 m, offset l = 0.2 m, |du| <= 60 rad/s^2, radius 0.48 m (d_s = 0.96), dt = 0.005 s",
         "Gains: k1 = k2 = 2, k3 = 1, k4 = 4, zeta = 2, q = -60 deg, D = 3, braking gamma = 1; "
         "trigger: multiplier (eta > 0)",
         "References: straight lines to the antipode, linear in time, starting at rest; the episode "
