@@ -1,4 +1,4 @@
-"""The Stable-Baselines3 and TorchRL snippets of README "Use it from your RL library", run as written.
+"""The code snippets of README.md (minimal example, safety filter, RL libraries), run as written.
 
 Only the training budgets are shrunk (the replaced texts must be there exactly once).
 The RLlib commands are run by ``tests/test_rllib.py`` (in the virtual environment of the ``rllib`` extra).
@@ -50,6 +50,13 @@ def test_readme_batched_snippet():
     envs = ns["envs"]
     assert ns["obs"].shape == (8, 6, envs.agent_observation_space.shape[0])
     assert ns["rewards"].shape == (8, 6) and envs.live.shape == (8, 6)
+
+
+def test_readme_filter_snippet():
+    ns: dict = {"__name__": "readme_snippet"}  # (core dependencies only: no torch)
+    exec(compile(readme_block("filter"), "README.md", "exec"), ns)
+    assert ns["result"].status == "solved" and ns["result"].intervened.all()
+    assert (ns["du_safe"] < ns["du_nominal"]).all() and (ns["du_safe"] <= ns["hi"]).all()
 
 
 def test_readme_torch_snippet():
