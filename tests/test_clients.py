@@ -79,8 +79,8 @@ def test_pettingzoo_api_test_on_parallel_to_aec(env_id, mode):
 @pytest.mark.parametrize("infos", ["nested", "flat"])
 def test_filtered_env_is_deterministic_over_a_whole_episode(infos):
     # parallel_seed_test compares one step only (docs/technical_brief.md section 8). Exact equality over many
-    # steps needs an exact solver: proxsuite can differ in the last bit between identical runs (README,
-    # Bit-reproducibility).
+    # steps needs an exact solver: proxsuite can differ in the last bit between identical runs (docs/design.md,
+    # "Which solver answers").
     pytest.importorskip("daqp")
     from gymnasium.utils.env_checker import data_equivalence
 

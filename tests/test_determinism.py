@@ -1,14 +1,13 @@
-"""Bit-reproducibility of filtered rollouts (issue 15; README "Bit-reproducibility").
+"""Bit-reproducibility of filtered rollouts (docs/design.md, "Which solver answers: a table, not a clock").
 
 Two fresh runs with the same seed in the same process must give identical
 positions, bit for bit.  With the exact solvers that only use numpy/scipy
 (``ldp``) or a scalar C solver (``daqp``) they do.  With the default
-``proxsuite`` they do too at this size: problems of up to 100 variables take the
-exact path first (warm active set, then ``ldp``, see ``SolverPolicy``).  Larger
+``proxsuite`` they do too at this size: problems of up to 500 variables take the
+exact path first (warm active set, then ``EXACT_ROUTE``, see ``SolverPolicy``).  Larger
 coupled groups still reach proxsuite, whose AVX-512/AVX2 builds return last-bit
 different answers to the *same* QP depending on where its work buffers land on
-the heap; the closed loop amplifies those 1e-16 differences (README,
-Bit-reproducibility).
+the heap; the closed loop amplifies those 1e-16 differences.
 """
 
 from __future__ import annotations
