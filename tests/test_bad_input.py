@@ -1,4 +1,4 @@
-"""Every bad input gets a clear error (issue 15).
+"""Every bad input gets a clear error.
 
 Each case either works or raises the documented error type with the parameter's
 name in the message; no raw numpy / pickle / zip / JSON error escapes; a crafted

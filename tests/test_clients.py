@@ -1,4 +1,4 @@
-"""Every registered id through the checkers of the RL libraries users already have (issue 16).
+"""Every registered id through the checkers of the RL libraries users already have.
 
 For each id of :data:`aasoatt_env.ENV_IDS`, bare and behind :class:`AASOATTFilter`:
 

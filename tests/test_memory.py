@@ -1,4 +1,4 @@
-"""Bounded memory over long episodes (issue 15): 50,000 physics steps, memory flat within a few MB.
+"""Bounded memory over long episodes: 50,000 physics steps, memory flat within a few MB.
 
 Uses :func:`benchmarks.bench_memory.measure` (also a script: ``python benchmarks/bench_memory.py``).
 """
