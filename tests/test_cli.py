@@ -25,6 +25,8 @@ def test_list_shows_scenarios_controllers_and_filter_options(capsys):
         "neural",
     ):
         assert word in out
+    assert "(default: 20 robots, FIG5_OBSTACLES), as CircleSwap." in out  # docstrings as plain text
+    assert ":data:" not in out and "``" not in out
 
 
 SMALL_SWAP = ["run", "--scenario", "circle_swap", "--robots", "4", "-p", "radius=2.0", "-p", "duration=3.0", "-q"]

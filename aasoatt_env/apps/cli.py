@@ -10,6 +10,7 @@ import argparse
 import importlib
 import inspect
 import json
+import re
 import sys
 from collections.abc import Sequence
 from pathlib import Path
@@ -54,7 +55,8 @@ def cmd_list(args: argparse.Namespace) -> int:
     ids = {v: k for k, v in ENV_IDS.items()}
     print("Scenarios (--scenario NAME, parameters with -p KEY=VALUE):")
     for name, cls in SCENARIOS.items():
-        print(f"  {name:18s} id {ids.get(name, '-')}\n      {(cls.__doc__ or '').strip().splitlines()[0]}")
+        doc = re.sub(r":\w+:`[~.]*([^`]+)`", r"\1", (cls.__doc__ or "").strip().splitlines()[0])  # (no reST roles)
+        print(f"  {name:18s} id {ids.get(name, '-')}\n      {doc.replace('``', '')}")
         for pname, p in _parameters(name).items():
             print(f"      {pname}{'' if p.default is inspect.Parameter.empty else f' = {p.default!r}'}")
     for title, names in (("\nControllers (--controller NAME):", agent_names()), ("Barriers (--filter NAME):", BARRIERS),
