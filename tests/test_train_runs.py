@@ -250,6 +250,10 @@ def test_evaluate_reports_95_percent_intervals(tmp_path, capsys):
                  str(tmp_path / "t.md")]) == 0
     out = capsys.readouterr().out
     assert "success [95% CI]" in out and "episodes with a collision [95% CI]" in out
+    page = (tmp_path / "t.md").read_text()  # the table, headed by the command that made it
+    assert page.startswith("```bash\naasoatt evaluate --rows random tracking --episodes 3 -q --out ")
+    table = page.split("```\n\n", 1)[1].strip()
+    assert table.startswith("| agent |") and table in out  # the table printed
     rows = {r["name"]: r for r in json.loads((tmp_path / "t.json").read_text())}
     r = rows["tracking"]
     assert r["robot_episodes"] == 3 * 6  # 3 episodes of the default task's 6 robots

@@ -56,6 +56,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import shlex
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -451,7 +452,7 @@ def _main(argv: list[str]) -> int:
     table = to_markdown(rows)
     print(table)
     if out is not None and json_out is not None:
-        write_text(out, table + "\n")
+        write_text(out, f"```bash\n{shlex.join(['aasoatt', 'evaluate', *argv])}\n```\n\n{table}\n")  # (its command)
         write_json(json_out, [r.as_dict() for r in rows])
     return 0
 
