@@ -6,8 +6,9 @@ accelerations out, with a state-independent standard deviation starting at ``e^-
 ``aasoatt train``'s recipe; ``--action-mode wheel`` for wheel accelerations; the env gets each sample clipped to
 ``[-1, 1]``, the loss the sample itself, as SB3's PPO), the critic a shared MLP over the whole team's observations
 (MAPPO; ``--ippo``: each robot's own), both behind observations standardised by the statistics of a random-action
-rollout (:func:`observation_stats`). Clipped PPO with GAE and normalised advantages, as TorchRL's multi-agent PPO
-tutorial; 32 teams x 64 decisions per iteration and 12 minibatches, as ``aasoatt train``'s rollouts.
+rollout (:func:`observation_stats`). Clipped PPO with GAE; the advantages are standardised over each minibatch's
+robots together (as SB3 does over ``aasoatt train``'s agents; TorchRL's multi-agent PPO tutorial does not
+standardise them); 32 teams x 64 decisions per iteration and 12 minibatches, as ``aasoatt train``'s rollouts.
 Every ``--eval-every`` iterations, and at the end, the deterministic policy is evaluated on held-out seeds (teams
 ``seed >= 2**32``, as ``aasoatt train``'s) for one episode per team: success (robots within ``goal_tolerance`` of
 their goal at the end), collisions (robot-steps with a surface gap below ``-collision_tolerance``), the filter's
@@ -25,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -172,7 +174,9 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
         buffer.extend(data.reshape(-1))
         for _ in range(epochs):
             for _ in range(minibatches):
-                out = loss(buffer.sample())
+                with warnings.catch_warnings():  # (over the robots too, on purpose: module docstring)
+                    warnings.filterwarnings("ignore", "You requested advantage normalization", UserWarning)
+                    out = loss(buffer.sample())
                 total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
                 optim.zero_grad()
                 total.backward()
