@@ -37,7 +37,7 @@ from multiprocessing import Pool
 from pathlib import Path
 
 import numpy as np
-from page import add_page_options, check_page, write_page
+from page import add_page_options, check_page, command_line, write_page
 
 TB3 = 0.21 / 0.96  # TurtleBot3 Burger diameter over the paper robot's
 
@@ -165,7 +165,7 @@ def run(args: argparse.Namespace) -> None:
     print(f"{len(keys)} episodes to run ({len(done)} done)", flush=True)
     with path.open("a") as fh, Pool(args.jobs) as pool:
         for rec in pool.imap_unordered(_episode, keys):
-            fh.write(json.dumps(rec) + "\n")
+            fh.write(json.dumps(rec | {"command": command_line()}) + "\n")
             fh.flush()
             print(f"{_key_id(rec)}: home {rec['home']}/{rec['n_robots']} makespan {rec['makespan']} "
                   f"gap {rec['min_gap']} {rec['why']} {rec['wall_s']:.0f}s", flush=True)
@@ -207,7 +207,7 @@ def summary(args: argparse.Namespace) -> None:
                 for r in sorted(bad, key=_key_id)]
     text = "\n".join(out)
     print(text)
-    write_page(args, "Liveness campaign", text + "\n\n" + __doc__.split("Usage")[0])
+    write_page(args, "Liveness campaign", text + "\n\n" + __doc__.split("Usage")[0], recs)
 
 
 def main() -> None:

@@ -52,15 +52,25 @@ def machine() -> str:
             f"scipy {scipy.__version__}{fast}")
 
 
-def write_page(args: argparse.Namespace, title: str, body: str) -> None:
-    """Write ``body`` under ``title``, the command line and the machine to ``args.page`` (if given)."""
-    if not args.page:
-        return
+def command_line() -> str:
+    """This process's command line as a shell command (``cd DIR && ...`` where run from a subfolder)."""
     command = "python " + " ".join(shlex.quote(a) for a in sys.argv)
     root = Path(__file__).resolve().parent.parent  # the repository
     cwd = Path.cwd().resolve()
     if cwd != root and cwd.is_relative_to(root):  # (run from a subfolder: the command's paths are relative to it)
         command = f"cd {shlex.quote(str(cwd.relative_to(root)))} && {command}"
+    return command
+
+
+def write_page(args: argparse.Namespace, title: str, body: str, records: list[dict] | None = None) -> None:
+    """Write ``body`` under ``title``, the command line and the machine to ``args.page`` (if given).
+
+    ``records``: the results the page summarises; the commands that wrote them (their ``command``) head it too.
+    """
+    if not args.page:
+        return
+    made = list(dict.fromkeys(r["command"] for r in records or () if r.get("command")))
+    command = "\n".join([*made, command_line()])
     text = f"# {title}\n\n```bash\n{command}\n```\n\nMeasured on {machine()}.\n\n{body.rstrip()}\n"
     Path(args.page).parent.mkdir(parents=True, exist_ok=True)
     atomic_write(args.page, lambda p: p.write_text(text))

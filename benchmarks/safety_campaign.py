@@ -48,7 +48,7 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
-from page import add_page_options, check_page, write_page  # noqa: E402
+from page import add_page_options, check_page, command_line, write_page  # noqa: E402
 
 PRESETS = {"paper": "paper", "turtlebot3": "turtlebot3_burger", "mixed": None, "double_integrator": "double_integrator"}
 DEFAULT_PRESETS = ("paper", "turtlebot3", "mixed")
@@ -160,13 +160,13 @@ def adversarial(args: argparse.Namespace) -> None:
 
             with mp.get_context("spawn").Pool(args.jobs) as pool:
                 for rec in pool.imap_unordered(_episode, todo):
-                    fh.write(json.dumps(rec) + "\n")
+                    fh.write(json.dumps(rec | {"command": command_line()}) + "\n")
                     fh.flush()
                     _progress(rec)
         else:
             for k in todo:
                 rec = _episode(k)
-                fh.write(json.dumps(rec) + "\n")
+                fh.write(json.dumps(rec | {"command": command_line()}) + "\n")
                 fh.flush()
                 _progress(rec)
     print(f"wall {time.perf_counter() - t0:.0f} s this run", flush=True)
@@ -207,7 +207,8 @@ def summary(args: argparse.Namespace) -> None:
     _summary(args, out)
     print("\n".join(out))
     kind = "Safety campaign" if "episodes" in "\n".join(out) else "Liveness of the paper's scenes"
-    write_page(args, f"{kind} ({args.mode})", "\n".join(out) + "\n\n" + __doc__.split("Usage")[0])
+    write_page(args, f"{kind} ({args.mode})", "\n".join(out) + "\n\n" + __doc__.split("Usage")[0],
+               _records(Path(args.out)))
 
 
 def _summary(args: argparse.Namespace, out: list[str]) -> None:
@@ -282,7 +283,7 @@ def paper(args: argparse.Namespace) -> None:
                 rec = dict(scene=label, n=kw["num_robots"], layer=layer, mode=args.mode, min_gap=gap,
                            final_max=float(fe.max()),
                            home=int(np.sum(fe <= 0.05)), rmse=s["rmse"], backup_steps=int(ro.backup.any(axis=1).sum()),
-                           wall_s=wall)
+                           wall_s=wall, command=command_line())
                 fh.write(json.dumps(rec) + "\n")
                 fh.flush()
                 print(_paper_row(rec), flush=True)
