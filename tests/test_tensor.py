@@ -661,3 +661,37 @@ def test_every_registered_barrier_equals_the_numpy_filter(barrier, monkeypatch):
     assert np.abs(du[solved] - ref_du[solved]).max() <= 1e-9
     differs = (np.abs(du - ref_du).max(axis=2) > 1e-9) & ~solved[:, None]
     assert (out.status.numpy()[differs] & RELAXED).all() and np.abs(du - ref_du).max() <= 1e-6
+
+
+def test_a_decision_of_several_physics_steps_is_reported_over_all_of_them_as_by_the_pettingzoo_env():
+    """``decision_interval > 1``: the clearance (so the reward's collision term) is the least over the decision's
+    physics steps and ``intervened`` any of them, as the PettingZoo env's: four bare circle_swap robots driven
+    through each other within 1 s decisions (apart again at their ends); a filtered team's flags at 100 ms."""
+    from aasoatt_env.sim.env import AASOATTParallelEnv
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    def pair(filt, **kw):
+        tenv = make_tensor_env("circle_swap", 1, 4, dtype=torch.float64, radius=2.0, action_mode="point",
+                               filter=filt and dict(backup=False, negotiate=False), **kw)
+        tenv.reset(seed=0)
+        e = AASOATTParallelEnv("circle_swap", num_robots=4, radius=2.0, action_mode="point", **kw)
+        if filt:
+            e.set_control_filter(SafetyFilter(mode="decentralized", kernel="numpy", backup=False, negotiate=False))
+        e.reset(seed=0)
+        return tenv, e
+
+    for filt, kw in ((False, dict(decision_interval=200, max_steps=10)), (True, dict(decision_interval=20))):
+        tenv, e = pair(filt, **kw)
+        collided = hit = 0
+        for _ in range(8):
+            act = torch.clamp(2.0 * (tenv.ref[0] - tenv.kin.p) + 4.0 * (tenv.ref[1] - tenv.kin.v), -1.0, 1.0)
+            _, rew, _, _, info = tenv.step(act)
+            _, r, _, _, i = e.step({a: act[0, k].numpy() for k, a in enumerate(e.possible_agents)})
+            assert np.abs(np.array(list(r.values())) - rew[0].numpy()).max() <= 1e-9
+            assert np.abs(np.array([v["clearance"] for v in i.values()]) - info["clearance"][0].numpy()).max() <= 1e-9
+            collided += int((info["clearance"] < -1e-3).sum())
+            if filt:
+                flags = np.any([o.intervened for o in e.filter_outputs], axis=0)
+                assert np.array_equal(flags, info["intervened"][0].numpy())
+                hit += int((flags & ~e.filter_outputs[-1].intervened).sum())
+        assert collided > 0 if not filt else hit > 0

@@ -244,24 +244,28 @@ class TensorEnv:
         self._require_reset("step()")
         act = self._actions(actions)
         B, N = self.num_envs, self.num_robots
-        team, corr, out = self.team, None, None
-        for _ in range(self.decision_interval):
+        team, out, low = self.team, None, None
+        for _ in range(self.decision_interval):  # (clearance: the least; intervened, status: any, as numpy's)
             du = self._nominal(act)  # (the filter's answer replaces it)
             lo, hi = input_bounds(team, self.u, self.dt)
             if self.config is not None:
-                p_d, v_d, _ = self.reference()
-                out = filter_step(team, self.config, self.pose, self.u, du, p_d, v_d,
-                                  (self._st["oc"], self._st["orad"]), self.avoiding, self.backup_check)
+                p_d, v_d, _ = self.ref
+                last, out = out, filter_step(team, self.config, self.pose, self.u, du, p_d, v_d,
+                                             (self._st["oc"], self._st["orad"]), self.avoiding, self.backup_check)
                 self.avoiding, du = out.avoiding, out.du
-                corr = out.correction if corr is None else torch.maximum(corr, out.correction)
+                if last is not None:
+                    out = out._replace(correction=torch.maximum(last.correction, out.correction),
+                                       intervened=last.intervened | out.intervened, status=last.status | out.status)
             du = torch.minimum(torch.maximum(du, lo), hi)
             self.pose, self.u = integrate(team, self.pose, self.u, du, self.dt)
             self.time = self.time + self.dt
+            self._refresh()
+            low = self.clearance if low is None else torch.minimum(low, self.clearance)
         self.steps = self.steps + 1
-        self._refresh()
-        rew = self._rewards(act, corr)
+        self.clearance = low
+        rew = self._rewards(act, None if out is None else out.correction)
         truncated = (self.steps >= self._st["max_steps"])
-        infos = self._infos(out, corr)
+        infos = self._infos(out)
         infos["reset"] = truncated if self.autoreset else torch.zeros_like(truncated)
         if self.autoreset and bool(truncated.any()):
             self._reset_teams(truncated)
@@ -325,10 +329,10 @@ class TensorEnv:
                                 (-v)[:, :, None].expand(B, N, kk, 2), g))
         return torch.clamp(torch.cat(parts, -1).to(torch.float32), -OBS_BOUND, OBS_BOUND)
 
-    def _infos(self, out: FilterOut | None, corr: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+    def _infos(self, out: FilterOut | None) -> dict[str, torch.Tensor]:
         none = torch.zeros(self.num_envs, self.num_robots, dtype=torch.long, device=self.device)  # (no filter step)
         status = none if out is None else out.status
         return {"clearance": self.clearance, "tracking_error": self.tracking_error,
-                "correction": none.to(self.dtype) if corr is None else corr,
+                "correction": none.to(self.dtype) if out is None else out.correction,
                 "intervened": none.bool() if out is None else out.intervened, "status": status,
                 "backup": (status & BACKUP) > 0}
