@@ -695,3 +695,19 @@ def test_a_decision_of_several_physics_steps_is_reported_over_all_of_them_as_by_
                 assert np.array_equal(flags, info["intervened"][0].numpy())
                 hit += int((flags & ~e.filter_outputs[-1].intervened).sum())
         assert collided > 0 if not filt else hit > 0
+
+
+def test_the_surface_gap_has_a_finite_gradient_where_rows_are_padded_or_lengths_are_zero():
+    """``FilterOut.gap``: a robot with fewer robots in range than another (its table padded, here with itself), two
+    robots at one point and a robot on an obstacle's centre give finite gradients w.r.t. the poses, not NaN."""
+    team = make_team("paper", 3)
+    layer = SafetyLayer(team, backup=False, negotiate=False)
+    for p, obstacles in ((np.array([[10.0, 0.0], [0.0, 0.0], [1.0, 0.0]]), None),
+                         (np.array([[0.0, 0.0], [0.0, 0.0], [1.5, 0.0]]), None),
+                         (np.array([[0.0, 0.0], [5.0, 0.0], [9.0, 0.0]]),
+                          (torch.zeros(1, 1, 2, dtype=torch.float64), torch.zeros(1, 1, dtype=torch.float64)))):
+        pose = torch.tensor(dynamics.pose_from_point(team, p, np.zeros(3)))[None].requires_grad_()
+        zeros = torch.zeros(1, 3, 2, dtype=torch.float64)
+        out = filter_step(layer.team, layer.config, pose, zeros, zeros + 5.0, torch.tensor(p)[None], zeros, obstacles)
+        (g,) = torch.autograd.grad(out.gap.sum(), pose)
+        assert torch.isfinite(g).all() and torch.isfinite(out.gap).all()

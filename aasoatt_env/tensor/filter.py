@@ -165,7 +165,7 @@ def _pairs(cfg: FilterConfig, feat: torch.Tensor, obstacles) -> _Pairs:
         valid = torch.cat((valid, torch.sqrt(op[0] ** 2 + op[1] ** 2) - orad[:, None, :] <= D), 2)
         other = torch.cat((other, torch.full((B, N, M), -1, dtype=other.dtype, device=feat.device)), 2)
         of = torch.cat((of, torch.zeros(F, B, N, M, dtype=of.dtype, device=of.device)), 3)
-    sep = torch.sqrt(gp[0] ** 2 + gp[1] ** 2) - ds
+    sep = safe_sqrt(gp[0] ** 2 + gp[1] ** 2) - ds
     gap = torch.where(valid, sep, math.inf).amin(-1) if valid.shape[-1] else torch.full_like(rad, math.inf)
     gap = torch.where(torch.isinf(gap), D - 2.0 * rad, gap)
     return _Pairs(other, valid, gp, gv, ga, ds, sep, gap, of)
