@@ -711,3 +711,17 @@ def test_the_surface_gap_has_a_finite_gradient_where_rows_are_padded_or_lengths_
         out = filter_step(layer.team, layer.config, pose, zeros, zeros + 5.0, torch.tensor(p)[None], zeros, obstacles)
         (g,) = torch.autograd.grad(out.gap.sum(), pose)
         assert torch.isfinite(g).all() and torch.isfinite(out.gap).all()
+
+
+@pytest.mark.parametrize("flag, value", [("--frames", "-4"), ("--frames", "0"), ("--teams", "0"), ("--steps", "0"),
+                                         ("--minibatches", "0"), ("--eval-every", "0"), ("--epochs", "-1"),
+                                         ("--seed", "-1"), ("--robots", "0")])
+def test_torchrl_mappo_refuses_counts_below_one_naming_the_flag(flag, value, capsys, tmp_path):
+    """Before any work (a negative ``--frames`` trained forever, ``--steps 0`` and others raised ZeroDivisionError
+    after the first evaluation, ``--epochs -1`` trained nothing)."""
+    pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
+    from train import torchrl_mappo
+
+    with pytest.raises(SystemExit):
+        torchrl_mappo.main([flag, value, "--out", str(tmp_path)])
+    assert f"argument {flag}: got {value}, expected an integer >=" in capsys.readouterr().err

@@ -43,7 +43,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import IndependentNormal, MultiAgentMLP, ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from aasoatt_env.cli_support import atomic_write
+from aasoatt_env.cli_support import atomic_write, int_option
 from aasoatt_env.tensor.filter import BACKUP_CHECKS
 from aasoatt_env.tensor.torchrl_env import TorchRLTensorEnv
 from train.config import HELDOUT_SEED, TRAIN_REWARD
@@ -201,17 +201,17 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
 def main(argv: list[str] | None = None) -> int:
     """The command line (module docstring)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--frames", type=int, default=204_800, help="team decisions in total (teams x steps)")
-    ap.add_argument("--teams", type=int, default=32)
-    ap.add_argument("--robots", type=int, default=6)
-    ap.add_argument("--steps", type=int, default=64, help="decisions per team per iteration")
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--frames", type=int_option(1), default=204_800, help="team decisions in total (teams x steps)")
+    ap.add_argument("--teams", type=int_option(1), default=32)
+    ap.add_argument("--robots", type=int_option(1), default=6)
+    ap.add_argument("--steps", type=int_option(1), default=64, help="decisions per team per iteration")
+    ap.add_argument("--seed", type=int_option(0), default=0)
     ap.add_argument("--ippo", action="store_true", help="independent critics (IPPO) instead of MAPPO's")
     ap.add_argument("--action-mode", choices=("point", "wheel"), default="point")
-    ap.add_argument("--epochs", type=int, default=10)
-    ap.add_argument("--minibatches", type=int, default=12)
-    ap.add_argument("--eval-every", type=int, default=10)
-    ap.add_argument("--eval-teams", type=int, default=64)
+    ap.add_argument("--epochs", type=int_option(1), default=10)
+    ap.add_argument("--minibatches", type=int_option(1), default=12)
+    ap.add_argument("--eval-every", type=int_option(1), default=10)
+    ap.add_argument("--eval-teams", type=int_option(1), default=64)
     ap.add_argument("--backup-check", choices=BACKUP_CHECKS, default=None,
                     help="the filter's backup stage (default: numpy on a CPU, torch on a GPU)")
     ap.add_argument("--no-negotiate", action="store_true", help="no negotiation groups: every robot's own QP")
