@@ -523,8 +523,9 @@ def test_bad_settings_are_refused_naming_the_argument(monkeypatch):
 
 def test_the_filter_refuses_inputs_the_numpy_filter_refuses_naming_them():
     """``filter_step``: a NaN, infinite or huge (beyond 1e9) number, a negative obstacle radius, a shape off the
-    team's ``(B, N, .)`` and an input that is not a real tensor get a :class:`StateError` naming the input and the
-    entry, as ``SafetyFilter.step`` does; a layer of another dtype or mode than it has is refused."""
+    team's ``(B, N, .)``, an input that is not a real tensor or is on another device than the team's get a
+    :class:`StateError` naming the input and the entry, as ``SafetyFilter.step`` does; a layer of another dtype or
+    mode than it has, or on the data-less 'meta' device, is refused."""
     from aasoatt_env.errors import ConfigError, StateError
 
     rng = np.random.default_rng(2)
@@ -550,10 +551,13 @@ def test_the_filter_refuses_inputs_the_numpy_filter_refuses_naming_them():
     args = [torch.as_tensor(np.stack([s[k] for s in states])) for k in ("pose", "u", "nom", "pd", "vd")]
     with pytest.raises(StateError, match="v_d: got array"):
         layer(*args[:4], args[4].numpy())
+    with pytest.raises(StateError, match="nominal: got a tensor on meta, expected the team's device cpu"):
+        layer(*args[:2], args[2].to("meta"), *args[3:])
     with pytest.raises(StateError, match=r"avoiding: got a torch.float32 tensor of shape \(3, 4\), expected a "
                        r"torch.bool tensor of shape \(3, 4\)"):
         layer(*args, avoiding=torch.zeros(3, 4))
     for kwargs, match in ((dict(dtype=torch.int64), "dtype: got torch.int64"), (dict(device="bogus"), "device: got"),
+                          (dict(device="meta"), "device: got 'meta', expected a device whose tensors hold values"),
                           (dict(config=FilterConfig(mode="centralized")), "mode: got 'centralized'"),
                           (dict(config={"mode": "decentralized"}, mode="centralized"), "mode: got 'centralized', "
                            "but the filter's configuration says 'decentralized'")):

@@ -184,6 +184,8 @@ def _check_inputs(team: TensorTeam, arrays: dict[str, torch.Tensor], obstacles, 
         if not isinstance(a, torch.Tensor) or a.dtype == torch.bool or a.is_complex():
             what = f"a {a.dtype} tensor" if isinstance(a, torch.Tensor) else short_repr(a)
             raise StateError(f"{name}: got {what}, expected a real torch tensor")
+        if a.device != team.radius.device:
+            raise StateError(f"{name}: got a tensor on {a.device}, expected the team's device {team.radius.device}")
     pose = arrays["pose"]
     B, N = (pose.shape[0] if pose.dim() == 3 else -1), team.radius.shape[-1]
     if B == 0:

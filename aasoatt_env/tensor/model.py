@@ -27,6 +27,8 @@ def check_dtype_device(dtype: Any, device: Any) -> None:
         kind = torch.device(device).type
     except (TypeError, RuntimeError) as exc:
         raise ConfigError(f"device: got {device!r}, expected a torch device such as 'cpu' or 'cuda'") from exc
+    if kind == "meta":
+        raise ConfigError(f"device: got {device!r}, expected a device whose tensors hold values (the steps read them)")
     if kind == "cuda" and not torch.cuda.is_available():
         raise ConfigError(f"device: got {device!r}, but torch.cuda.is_available() is False on this machine")
 
