@@ -729,3 +729,27 @@ def test_torchrl_mappo_refuses_counts_below_one_naming_the_flag(flag, value, cap
     with pytest.raises(SystemExit):
         torchrl_mappo.main([flag, value, "--out", str(tmp_path)])
     assert f"argument {flag}: got {value}, expected an integer >=" in capsys.readouterr().err
+
+
+def test_a_finished_team_is_not_stepped_on_and_torchrl_mappo_measures_each_team_at_its_own_end():
+    """``autoreset=False``: stepping a team whose episode ended raises ``ResetNeeded`` naming it (as the numpy batched
+    env; it went on past its episode). ``torchrl_mappo.evaluate`` of held-out teams whose episodes end at different
+    decisions (15 and 18) measures each at its own end (it stepped the finished ones on until the last ended)."""
+    pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
+    from aasoatt_env.errors import ResetNeeded
+    from aasoatt_env.tensor.env import make_tensor_env
+    from train import torchrl_mappo
+
+    short = make_tensor_env("random_goals", 3, 2, filter=False, max_steps=2)
+    short.autoreset = False
+    short.reset(seed=0)
+    short.step(torch.zeros(3, 2, 2))
+    short.reset_done(torch.tensor([True, False, False]))
+    assert short.step(torch.zeros(3, 2, 2))[3].tolist() == [[False] * 2, [True] * 2, [True] * 2]
+    with pytest.raises(ResetNeeded, match=r"step\(\): team\(s\) \[1, 2\] finished their episode \(autoreset=False\)"):
+        short.step(torch.zeros(3, 2, 2))
+    torch.manual_seed(0)
+    quick = dict(speed=3.0, settle_time=0.2)
+    actor, _ = torchrl_mappo.build(torchrl_mappo.make_env(3, 2, 0, **quick), True)
+    report = torchrl_mappo.evaluate(actor, 3, 2, **quick)
+    assert report["teams"] == 3 and math.isfinite(report["correction"]) and report["robots_collided"] == 0

@@ -79,13 +79,9 @@ class Normalise(nn.Module):
 @torch.no_grad()
 def observation_stats(env: TransformedEnv, steps: int = 20) -> Normalise:
     """Per-entry mean and standard deviation (at least 0.01) of the observations of ``steps`` uniform random actions."""
-    td = env.reset()
-    seen = [td[GROUP, "observation"]]
-    for _ in range(steps):
-        td = env.rand_step(td)
-        seen.append(td["next", GROUP, "observation"])
-        td = td["next"]
-    obs = torch.stack(seen).reshape(-1, seen[0].shape[-1])
+    td = env.rollout(steps, break_when_any_done=False)  # (random actions; finished teams reset)
+    obs = torch.cat((td[GROUP, "observation"][:, :1], td["next", GROUP, "observation"]), 1).transpose(0, 1)
+    obs = obs.reshape(-1, obs.shape[-1])  # (time-major, as the statistics were first taken)
     return Normalise(obs.mean(0), obs.std(0).clamp(min=0.01))
 
 
@@ -115,19 +111,18 @@ def evaluate(actor: ProbabilisticActor, teams: int, robots: int, seed: int = HEL
     env = make_env(teams, robots, seed, **options)
     tol = env.env.reward_config.goal_tolerance
     td = env.reset()
-    collided = torch.zeros(teams, robots, dtype=torch.bool)
+    collided, home = (torch.zeros(teams, robots, dtype=torch.bool) for _ in range(2))
+    live = torch.ones(teams, 1, dtype=torch.bool)  # (each team's own episode: their lengths differ)
     corr, steps = 0.0, 0
     with set_exploration_type(ExplorationType.DETERMINISTIC):
-        while True:
-            td = env.step(actor(td))
-            nxt = td["next"]
-            collided |= nxt[GROUP, "clearance"] < -env.env.collision_tolerance
-            corr, steps = corr + float(nxt[GROUP, "correction"].mean()), steps + 1
-            if bool(nxt["done"].all()):
-                break
-            td = nxt
-    goal = env.env.kin.p - env.env.goals
-    home = torch.sqrt((goal ** 2).sum(-1)) < tol
+        while bool(live.any()):
+            nxt = env.step(actor(td))["next"]
+            collided |= (nxt[GROUP, "clearance"] < -env.env.collision_tolerance) & live
+            corr, steps = corr + float(nxt[GROUP, "correction"][live[:, 0]].sum()), steps + int(live.sum()) * robots
+            ends = live & nxt["done"]
+            home |= ends & (torch.sqrt(((env.env.kin.p - env.env.goals) ** 2).sum(-1)) < tol)
+            live &= ~ends
+            td = env.reset(nxt.set("_reset", nxt["done"].clone())) if bool(nxt["done"].any()) else nxt
     return {"success": float(home.float().mean()), "robots_collided": int(collided.sum()),
             "correction": corr / max(steps, 1), "teams": teams}
 

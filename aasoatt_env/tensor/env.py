@@ -242,6 +242,10 @@ class TensorEnv:
 
     def _step(self, actions: torch.Tensor) -> tuple:
         self._require_reset("step()")
+        done = torch.nonzero(self.steps >= self._st["max_steps"]).flatten() if not self.autoreset else ()
+        if len(done):  # (as the numpy batched env's)
+            raise ResetNeeded(f"step(): team(s) {done.tolist()} finished their episode (autoreset=False); call "
+                              "reset_done() or reset() first")
         act = self._actions(actions)
         B, N = self.num_envs, self.num_robots
         team, out, low = self.team, None, None
