@@ -635,6 +635,8 @@ def test_torchrl_mappo_runs_one_iteration_and_reports_held_out_teams(tmp_path):
     (out / "report.json").write_text("{}")
     with pytest.raises(SystemExit):
         torchrl_mappo.main(["--frames", "100", "--out", str(out)])
+    with pytest.raises(SystemExit):  # (a file: found before training, not by mkdir after it)
+        torchrl_mappo.main(["--frames", "100", "--out", str(out / "report.json")])
 
 
 def _stiff_aasoatt(g, q):

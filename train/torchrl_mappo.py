@@ -43,7 +43,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import IndependentNormal, MultiAgentMLP, ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from aasoatt_env.cli_support import atomic_write, int_option
+from aasoatt_env.cli_support import OutputPlan, atomic_write, int_option
+from aasoatt_env.errors import ConfigError
 from aasoatt_env.tensor.filter import BACKUP_CHECKS
 from aasoatt_env.tensor.torchrl_env import TorchRLTensorEnv
 from train.config import HELDOUT_SEED, TRAIN_REWARD
@@ -213,14 +214,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, default=Path("runs/torchrl_mappo"))
     ap.add_argument("--overwrite", action="store_true")
     a = ap.parse_args(argv)
-    path = a.out / "report.json"
-    if path.exists() and not a.overwrite:
-        ap.error(f"--out: {path} exists; pass --overwrite to replace it")
+    try:  # (before the work: a path that cannot be written was found after training)
+        path = OutputPlan(a.overwrite).file(a.out / "report.json", "--out")
+    except ConfigError as exc:
+        ap.error(str(exc))
     torch.set_num_threads(1)
     report = train(a.frames, a.teams, a.robots, a.seed, not a.ippo, a.eval_every, a.eval_teams, epochs=a.epochs,
                    minibatches=a.minibatches, steps=a.steps, action_mode=a.action_mode, backup_check=a.backup_check,
                    negotiate=not a.no_negotiate)
-    a.out.mkdir(parents=True, exist_ok=True)
     atomic_write(path, lambda temp: temp.write_text(json.dumps(report, indent=1)))
     print(f"wrote {path}")
     return 0
