@@ -553,9 +553,11 @@ def test_the_filter_refuses_inputs_the_numpy_filter_refuses_naming_them():
         layer(*args[:4], args[4].numpy())
     with pytest.raises(StateError, match="nominal: got a tensor on meta, expected the team's device cpu"):
         layer(*args[:2], args[2].to("meta"), *args[3:])
-    with pytest.raises(StateError, match=r"avoiding: got a torch.float32 tensor of shape \(3, 4\), expected a "
-                       r"torch.bool tensor of shape \(3, 4\)"):
+    with pytest.raises(StateError, match=r"avoiding: got a torch.float32 tensor of shape \(3, 4\) on cpu, expected a "
+                       r"torch.bool tensor of shape \(3, 4\) on cpu"):
         layer(*args, avoiding=torch.zeros(3, 4))
+    with pytest.raises(StateError, match=r"avoiding: got a torch.bool tensor of shape \(3, 4\) on meta"):
+        layer(*args, avoiding=torch.zeros(3, 4, dtype=torch.bool, device="meta"))
     for kwargs, match in ((dict(dtype=torch.int64), "dtype: got torch.int64"), (dict(device="bogus"), "device: got"),
                           (dict(device="meta"), "device: got 'meta', expected a device whose tensors hold values"),
                           (dict(config=FilterConfig(mode="centralized")), "mode: got 'centralized'"),

@@ -198,10 +198,10 @@ def _check_inputs(team: TensorTeam, arrays: dict[str, torch.Tensor], obstacles, 
         if tuple(a.shape) != shapes[name]:
             raise StateError(f"{name}: got shape {tuple(a.shape)}, expected {shapes[name]} (teams, robots, ...)")
     if avoiding is not None and (not isinstance(avoiding, torch.Tensor) or avoiding.dtype != torch.bool
-                                 or tuple(avoiding.shape) != (B, N)):
-        got = (f"a {avoiding.dtype} tensor of shape {tuple(avoiding.shape)}" if isinstance(avoiding, torch.Tensor)
-               else short_repr(avoiding))
-        raise StateError(f"avoiding: got {got}, expected a torch.bool tensor of shape ({B}, {N})")
+                                 or tuple(avoiding.shape) != (B, N) or avoiding.device != pose.device):
+        got = (f"a {avoiding.dtype} tensor of shape {tuple(avoiding.shape)} on {avoiding.device}"
+               if isinstance(avoiding, torch.Tensor) else short_repr(avoiding))
+        raise StateError(f"avoiding: got {got}, expected a torch.bool tensor of shape ({B}, {N}) on {pose.device}")
     peak = torch.stack([a.detach().abs().amax().double() if a.numel() else pose.new_zeros((), dtype=torch.float64)
                         for a in arrays.values()]).max()
     if bool(peak <= MAGNITUDE_MAX):  # (NaN is not)
