@@ -757,3 +757,14 @@ def test_a_finished_team_is_not_stepped_on_and_torchrl_mappo_measures_each_team_
     actor, _ = torchrl_mappo.build(torchrl_mappo.make_env(3, 2, 0, **quick), True)
     report = torchrl_mappo.evaluate(actor, 3, 2, **quick)
     assert report["teams"] == 3 and math.isfinite(report["correction"]) and report["robots_collided"] == 0
+
+
+def test_torchrl_mappo_reports_the_librarys_errors_in_one_line(capsys, tmp_path):
+    """A value the library refuses (a team too large) is one line and exit status 2, not a traceback."""
+    pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
+    from train import torchrl_mappo
+
+    assert torchrl_mappo.main(["--robots", "200000", "--frames", "64", "--out", str(tmp_path / "r")]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == ("python -m train.torchrl_mappo: error: num_robots: got 200000, expected an integer in "
+                           "[1, 100000]")

@@ -23,8 +23,8 @@ Usage: ``python -m train.torchrl_mappo [--frames 204800] [--teams 32] [--steps 6
 
 from __future__ import annotations
 
-import argparse
 import json
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -43,7 +43,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import IndependentNormal, MultiAgentMLP, ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from aasoatt_env.cli_support import OutputPlan, atomic_write, int_option
+from aasoatt_env.cli_support import OutputPlan, Parser, atomic_write, int_option, run_guarded
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.tensor.filter import BACKUP_CHECKS
 from aasoatt_env.tensor.torchrl_env import TorchRLTensorEnv
@@ -195,8 +195,13 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The command line (module docstring)."""
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    """The command line (module docstring): a user error is one line and exit status 2."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    return run_guarded("python -m train.torchrl_mappo", argv, _main)
+
+
+def _main(argv: list[str]) -> int:
+    ap = Parser(prog="python -m train.torchrl_mappo", description=__doc__.split("\n")[0])
     ap.add_argument("--frames", type=int_option(1), default=204_800, help="team decisions in total (teams x steps)")
     ap.add_argument("--teams", type=int_option(1), default=32)
     ap.add_argument("--robots", type=int_option(1), default=6)
