@@ -88,6 +88,18 @@ def test_shards_behind_the_filter_give_the_batch_answers():
             sharded.close()
 
 
+def test_shards_behind_the_default_filter_one_call_per_team_are_bit_identical():
+    """docs/env.md: without the grouped filter each team's filter is its own, so the default solver's shards give
+    one process's bits (the grouped filter solves a team with its shard-mates: to rounding only)."""
+    kw = dict(filter=True, decision_interval=20, action_mode="point")
+    sharded = ShardedBatchedEnv(_fns(4, **kw), 2, group_filter=False)
+    try:
+        one = BatchedAASOATTEnv(_fns(4, **kw), group_filter=False)
+        np.testing.assert_array_equal(sharded.reset(seed=0)[0], one.reset(seed=0)[0])
+        _same_steps(sharded, one, 40, np.random.default_rng(0))
+    finally:
+        sharded.close()
+
 def test_per_team_seeds_options_and_the_team_envs():
     sharded = ShardedBatchedEnv(_fns(3), 3)
     try:
