@@ -107,3 +107,23 @@ def test_the_same_bits_on_other_x86_cpus():
     assert any(s.startswith("('backup'") for s in here) and any(s.startswith("('relaxed'") for s in here), here
     for name, extra in others.items():
         assert _printed(_ACROSS, **extra) == here, name
+
+
+_EQUALITY = """
+import hashlib, numpy as np
+from aasoatt_env.safety.solvers.active_set import _equality_point
+rng = np.random.default_rng(0)
+M = rng.standard_normal((400, 300))
+W = np.zeros(400, dtype=bool)
+W[:250] = True  # a working set of 250 rows: OpenBLAS's syrk and potrf thread from 64
+y, lam, r = _equality_point(M, True, rng.standard_normal(300), rng.standard_normal(400), W)
+print(hashlib.sha256(y.tobytes() + lam.tobytes() + r.tobytes()).hexdigest())
+"""
+
+
+def test_the_active_sets_equality_point_does_not_follow_the_blas_thread_count():
+    """The numpy active set's Schur complement and its factor (the path of a QP beyond the compiled kernel's dense
+    size, e.g. 150 robots in a 19.5 m arena, and of kernel="numpy"): the same bits with 1, 2 and 4 OpenBLAS
+    threads (LAPACK's potrf and numpy's A @ A.T (syrk) split their sums by the thread count)."""
+    runs = {t: _printed(_EQUALITY, OPENBLAS_NUM_THREADS=t, OMP_NUM_THREADS=t) for t in ("1", "2", "4")}
+    assert runs["1"] == runs["2"] == runs["4"]

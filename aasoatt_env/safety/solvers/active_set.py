@@ -13,17 +13,14 @@ from typing import NamedTuple
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.linalg.lapack import dpotrf as _potrf
-from scipy.linalg.lapack import dpotrs as _potrs
 
 from aasoatt_env.compiled import c64, kernels
 
-__all__ = ["DENSE_MAX_ROWS", "TOL", "ActiveSetParts", "LeastDistanceForm", "dense_least_distance_form",
+__all__ = ["TOL", "ActiveSetParts", "LeastDistanceForm", "dense_least_distance_form",
            "least_distance_form", "one_change_budget", "solve_active_set", "solve_active_set_parts"]
 
 DENSE_MAX_VARS: int = 80  #: problems up to this many variables use dense algebra, whatever their rows
 DENSE_MAX_CELLS: int = 400_000  #: larger ones too up to this many entries of their dense rows ``(m + 2n) x n``
-DENSE_MAX_ROWS: int = 500  #: working sets up to this size use a dense Cholesky of the Schur complement
 SPARSE_DENSE_SCHUR_ROWS: int = 200  #: sparse rows: working sets up to this size factor the Schur complement densely
 WARM_REL: float = 1e-6  #: rows whose warm multiplier exceeds this fraction of the largest start in the working set
 TOL: float = 1e-10  #: feasibility / dual-sign tolerance of the KKT check (normalised rows, ``|x| <= 1``)
@@ -124,14 +121,6 @@ def _dense_rows(prob, LinvT: np.ndarray) -> np.ndarray:
     Md[m:m + n].reshape(nb, 2, nb, 2)[k, :, k, :] = LinvT + 0.0
     Md[m + n:].reshape(nb, 2, nb, 2)[k, :, k, :] = -LinvT + 0.0
     return Md
-
-
-def _cholesky(S: np.ndarray):
-    """A solver of ``S l = v`` from LAPACK's Cholesky factor of ``S`` (``potrf``, ``potrs``); None if not PD."""
-    cf, info = _potrf(S, lower=1, clean=0, overwrite_a=1)
-    if info != 0:
-        return None
-    return lambda v: _potrs(cf, v, lower=1)[0]
 
 
 class ActiveSetParts(NamedTuple):
@@ -254,15 +243,16 @@ def _equality_point(M, dense: bool, gt: np.ndarray, b: np.ndarray, W: np.ndarray
     if not k:
         return -gt, lam, (M @ -gt) - b
     Mw = M[idx]
-    S = Mw @ Mw.T if dense else (Mw @ Mw.T).tocsc()
+    # (einsum's own loops: OpenBLAS's syrk, gemm and potrf sum in an order set by its thread count)
+    S = np.einsum("ik,jk->ij", Mw, Mw) if dense else (Mw @ Mw.T).tocsc()
     rhs = -(Mw @ gt) - b[idx]
     delta = 1e-9 * max(float(S.diagonal().max()), 1e-300)
-    if not dense and k <= SPARSE_DENSE_SCHUR_ROWS:  # sparse rows, a small Schur complement: dense LAPACK
+    if not dense and k <= SPARSE_DENSE_SCHUR_ROWS:  # sparse rows, a small Schur complement: factored dense
         S = S.toarray()
     if isinstance(S, np.ndarray):
         Sr = S + 0.0  # S + delta * I without the identity: off the diagonal S + 0.0, on it S + delta
         Sr.flat[:: k + 1] += delta
-        solve = _cholesky(Sr) if k <= DENSE_MAX_ROWS else _splu(sp.csc_matrix(Sr))
+        solve = _splu(sp.csc_matrix(Sr))
     else:
         solve = _splu((S + delta * sp.identity(k, format="csc")).tocsc(), permc_spec="MMD_AT_PLUS_A")
     if solve is None:
