@@ -207,8 +207,9 @@ def summary(args: argparse.Namespace) -> None:
     _summary(args, out)
     print("\n".join(out))
     kind = "Safety campaign" if "episodes" in "\n".join(out) else "Liveness of the paper's scenes"
-    write_page(args, f"{kind} ({args.mode})", "\n".join(out) + "\n\n" + __doc__.split("Usage")[0],
-               _records(Path(args.out)))
+    shown = [r for r in _records(Path(args.out)) if r.get("mode", "centralized") == args.mode
+             and ("scene" in r or r.get("backup", True) != args.layer_off)]  # (the records the tables show)
+    write_page(args, f"{kind} ({args.mode})", "\n".join(out) + "\n\n" + __doc__.split("Usage")[0], shown)
 
 
 def _summary(args: argparse.Namespace, out: list[str]) -> None:

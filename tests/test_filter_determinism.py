@@ -110,14 +110,17 @@ def test_the_same_bits_on_other_x86_cpus():
 
 
 _EQUALITY = """
-import hashlib, numpy as np
+import hashlib, numpy as np, scipy.sparse as sp
 from aasoatt_env.safety.solvers.active_set import _equality_point
 rng = np.random.default_rng(0)
 M = rng.standard_normal((400, 300))
 W = np.zeros(400, dtype=bool)
 W[:250] = True  # a working set of 250 rows: OpenBLAS's syrk and potrf thread from 64
-y, lam, r = _equality_point(M, True, rng.standard_normal(300), rng.standard_normal(400), W)
-print(hashlib.sha256(y.tobytes() + lam.tobytes() + r.tobytes()).hexdigest())
+gt, b = rng.standard_normal(300), rng.standard_normal(400)
+Ms = sp.random(400, 300, density=0.05, random_state=1, format="csr")  # sparse rows, a Schur complement factored dense
+for rows, dense, w in ((M, True, W), (Ms, False, W & (np.arange(400) < 180))):
+    y, lam, r = _equality_point(rows, dense, gt, b, w)
+    print(hashlib.sha256(y.tobytes() + lam.tobytes() + r.tobytes()).hexdigest())
 """
 
 

@@ -100,6 +100,7 @@ def test_shards_behind_the_default_filter_one_call_per_team_are_bit_identical():
     finally:
         sharded.close()
 
+
 def test_per_team_seeds_options_and_the_team_envs():
     sharded = ShardedBatchedEnv(_fns(3), 3)
     try:

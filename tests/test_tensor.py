@@ -637,7 +637,7 @@ def test_torchrl_mappo_runs_one_iteration_and_reports_held_out_teams(tmp_path):
     (out / "report.json").write_text("{}")
     with pytest.raises(SystemExit):
         torchrl_mappo.main(["--frames", "100", "--out", str(out)])
-    with pytest.raises(SystemExit):  # (a file: found before training, not by mkdir after it)
+    with pytest.raises(SystemExit):  # (a file: refused before training)
         torchrl_mappo.main(["--frames", "100", "--out", str(out / "report.json")])
 
 
@@ -725,8 +725,7 @@ def test_the_surface_gap_has_a_finite_gradient_where_rows_are_padded_or_lengths_
                                          ("--minibatches", "0"), ("--eval-every", "0"), ("--epochs", "-1"),
                                          ("--seed", "-1"), ("--robots", "0")])
 def test_torchrl_mappo_refuses_counts_below_one_naming_the_flag(flag, value, capsys, tmp_path):
-    """Before any work (a negative ``--frames`` trained forever, ``--steps 0`` and others raised ZeroDivisionError
-    after the first evaluation, ``--epochs -1`` trained nothing)."""
+    """Refused by the parser, naming the flag, before any work."""
     pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
     from train import torchrl_mappo
 
@@ -737,12 +736,15 @@ def test_torchrl_mappo_refuses_counts_below_one_naming_the_flag(flag, value, cap
 
 def test_a_finished_team_is_not_stepped_on_and_torchrl_mappo_measures_each_team_at_its_own_end():
     """``autoreset=False``: stepping a team whose episode ended raises ``ResetNeeded`` naming it (as the numpy batched
-    env; it went on past its episode). ``torchrl_mappo.evaluate`` of held-out teams whose episodes end at different
-    decisions (15 and 18) measures each at its own end (it stepped the finished ones on until the last ended)."""
+    env). ``torchrl_mappo.evaluate`` of held-out teams whose episodes end at different decisions (19 and 22) measures
+    success and the mean correction of each team over its own episode, as counted here by hand."""
     pytest.importorskip("torchrl", reason="torchrl is not installed (it is in the dev extra)")
+    from tensordict.nn import TensorDictModule
+
     from aasoatt_env.errors import ResetNeeded
     from aasoatt_env.tensor.env import make_tensor_env
     from train import torchrl_mappo
+    from train.torchrl_mappo import GROUP, HELDOUT_SEED
 
     short = make_tensor_env("random_goals", 3, 2, filter=False, max_steps=2)
     short.autoreset = False
@@ -752,11 +754,31 @@ def test_a_finished_team_is_not_stepped_on_and_torchrl_mappo_measures_each_team_
     assert short.step(torch.zeros(3, 2, 2))[3].tolist() == [[False] * 2, [True] * 2, [True] * 2]
     with pytest.raises(ResetNeeded, match=r"step\(\): team\(s\) \[1, 2\] finished their episode \(autoreset=False\)"):
         short.step(torch.zeros(3, 2, 2))
-    torch.manual_seed(0)
-    quick = dict(speed=3.0, settle_time=0.2)
-    actor, _ = torchrl_mappo.build(torchrl_mappo.make_env(3, 2, 0, **quick), True)
+
+    quick = dict(speed=3.0, settle_time=0.6)
+    env = torchrl_mappo.make_env(3, 2, HELDOUT_SEED, **quick)
+    td = env.reset()
+    scale = env.env.team.max_point_accel[:, None]
+
+    class Track(torch.nn.Module):  # the paper's law (k3 = 1, k4 = 4) from the observation, in units of the bound
+        def forward(self, o):
+            return (o[..., 12:14] + 4.0 * (o[..., 10:12] - o[..., 4:6]) - o[..., 0:2]) / scale.to(o.dtype)
+
+    actor = TensorDictModule(Track(), in_keys=[(GROUP, "observation")], out_keys=[(GROUP, "action")])
+    ends = env.env._st["max_steps"].tolist()
+    assert ends == [22, 19, 22]
+    home, corr = [], []
+    for k in range(max(ends)):
+        td = env.step(actor(td))["next"]
+        corr += [float(c) for b in range(3) if k < ends[b] for c in td[GROUP, "correction"][b]]
+        home += [bool(d < env.env.reward_config.goal_tolerance) for b in range(3) if k + 1 == ends[b]
+                 for d in torch.linalg.norm(env.env.kin.p[b] - env.env.goals[b], dim=-1)]
+        if bool(td["done"].any()) and k + 1 < max(ends):
+            td = env.reset(td.set("_reset", td["done"].clone()))
     report = torchrl_mappo.evaluate(actor, 3, 2, **quick)
-    assert report["teams"] == 3 and math.isfinite(report["correction"]) and report["robots_collided"] == 0
+    assert report["teams"] == 3 and report["robots_collided"] == 0 and 0 < sum(home) < 6
+    assert report["success"] == pytest.approx(sum(home) / 6, abs=1e-7)
+    assert report["correction"] == pytest.approx(sum(corr) / len(corr), rel=1e-7)
 
 
 def test_torchrl_mappo_reports_the_librarys_errors_in_one_line(capsys, tmp_path):

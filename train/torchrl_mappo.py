@@ -43,7 +43,7 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 from torchrl.modules import IndependentNormal, MultiAgentMLP, ProbabilisticActor
 from torchrl.objectives import ClipPPOLoss, ValueEstimators
 
-from aasoatt_env.cli_support import OutputPlan, Parser, atomic_write, int_option, run_guarded
+from aasoatt_env.cli_support import OutputPlan, Parser, add_common_options, atomic_write, int_option, run_guarded
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.tensor.filter import BACKUP_CHECKS
 from aasoatt_env.tensor.torchrl_env import TorchRLTensorEnv
@@ -82,7 +82,7 @@ def observation_stats(env: TransformedEnv, steps: int = 20) -> Normalise:
     """Per-entry mean and standard deviation (at least 0.01) of the observations of ``steps`` uniform random actions."""
     td = env.rollout(steps, break_when_any_done=False)  # (random actions; finished teams reset)
     obs = torch.cat((td[GROUP, "observation"][:, :1], td["next", GROUP, "observation"]), 1).transpose(0, 1)
-    obs = obs.reshape(-1, obs.shape[-1])  # (time-major, as the statistics were first taken)
+    obs = obs.reshape(-1, obs.shape[-1])  # (time-major)
     return Normalise(obs.mean(0), obs.std(0).clamp(min=0.01))
 
 
@@ -217,9 +217,9 @@ def _main(argv: list[str]) -> int:
                     help="the filter's backup stage (default: numpy on a CPU, torch on a GPU)")
     ap.add_argument("--no-negotiate", action="store_true", help="no negotiation groups: every robot's own QP")
     ap.add_argument("--out", type=Path, default=Path("runs/torchrl_mappo"))
-    ap.add_argument("--overwrite", action="store_true")
+    add_common_options(ap)  # --debug, --overwrite
     a = ap.parse_args(argv)
-    try:  # (before the work: a path that cannot be written was found after training)
+    try:  # (before training)
         path = OutputPlan(a.overwrite).file(a.out / "report.json", "--out")
     except ConfigError as exc:
         ap.error(str(exc))

@@ -55,7 +55,7 @@ def cmd_list(args: argparse.Namespace) -> int:
     ids = {v: k for k, v in ENV_IDS.items()}
     print("Scenarios (--scenario NAME, parameters with -p KEY=VALUE):")
     for name, cls in SCENARIOS.items():
-        doc = re.sub(r":\w+:`[~.]*([^`]+)`", r"\1", (cls.__doc__ or "").strip().splitlines()[0])  # (no reST roles)
+        doc = re.sub(r":\w+:`(~[\w.]*\.|\.)?([^`]+)`", r"\2", (cls.__doc__ or "").strip().splitlines()[0])  # (no roles)
         print(f"  {name:18s} id {ids.get(name, '-')}\n      {doc.replace('``', '')}")
         for pname, p in _parameters(name).items():
             print(f"      {pname}{'' if p.default is inspect.Parameter.empty else f' = {p.default!r}'}")

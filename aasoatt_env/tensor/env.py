@@ -208,7 +208,8 @@ class TensorEnv:
 
         Returns ``observations (B, N, obs_dim)``, ``rewards``, ``terminated``, ``truncated`` ``(B, N)`` and infos
         (tensors: ``correction``, ``intervened``, ``backup``, ``status``, ``clearance``, ``tracking_error``, and
-        ``reset`` ``(B,)``: the team started a new episode in this step).
+        ``reset`` ``(B,)``: the team started a new episode in this step); over the decision's physics steps
+        ``clearance`` is the least, ``correction`` the largest, ``intervened`` and ``status`` any, as numpy's.
         """
         with torch.set_grad_enabled(self.differentiable and torch.is_grad_enabled()):
             return self._step(actions)
