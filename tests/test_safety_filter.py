@@ -540,3 +540,21 @@ def test_a_far_nominal_is_pulled_in_radially_and_filtered_as_its_projection():
         du_pulled, _ = SafetyFilter(team, deadlock="none", backup=backup).step(kin, u, pose[:, 2], pulled, lo, hi)
         np.testing.assert_array_equal(du_far, du_pulled)
         assert res.n_qp_rows > 0 and res.status in ("solved", "backup") and res.iterations <= 100
+
+
+def test_brute_force_candidates_of_labelled_points_are_each_labels_upper_triangle():
+    """``brute_candidates`` with labels: every pair ``i < j`` of one label, sorted, as the filter of the whole upper
+    triangle (200 random labellings, contiguous or not); a stack of 4,096 teams of 20 in memory of its pairs."""
+    from aasoatt_env.model.geometry import brute_candidates
+
+    rng = np.random.default_rng(0)
+    for trial in range(200):
+        n = int(rng.integers(1, 60))
+        groups = rng.integers(0, int(rng.integers(1, 8)), n)
+        groups = np.sort(groups) if trial % 3 == 0 else groups
+        iu, ju = np.triu_indices(n, k=1)
+        same = groups[iu] == groups[ju]
+        got = brute_candidates(n, groups)
+        assert np.array_equal(got[0], iu[same]) and np.array_equal(got[1], ju[same]), trial
+    iu, ju = brute_candidates(81920, np.repeat(np.arange(4096), 20))  # (the whole triangle: 3.4e9 pairs)
+    assert iu.shape == (4096 * 190,) and (ju // 20 == iu // 20).all() and (iu < ju).all()

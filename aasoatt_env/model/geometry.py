@@ -39,10 +39,19 @@ def _key(groups: np.ndarray) -> tuple[bytes, str]:
 
 @functools.lru_cache(maxsize=16)
 def _group_pairs(key: bytes, dtype: str) -> tuple[np.ndarray, np.ndarray]:
+    """Every pair ``i < j`` of one label, sorted: each group's upper triangle (memory of the pairs, not of ``n^2``)."""
     groups = np.frombuffer(key, dtype=dtype)
-    iu, ju = _upper_pairs(groups.shape[0])
-    same = groups[iu] == groups[ju]
-    iu, ju = iu[same], ju[same]
+    order = np.argsort(groups, kind="stable")  # (a group's robots in ascending order)
+    _, start, counts = np.unique(groups[order], return_index=True, return_counts=True)
+    iu, ju = [np.empty(0, np.intp)], [np.empty(0, np.intp)]
+    for size in np.unique(counts[counts > 1]):  # (groups of one size at once)
+        a, b = np.triu_indices(int(size), k=1)
+        first = start[counts == size][:, None]
+        iu.append(order[(first + a).ravel()])
+        ju.append(order[(first + b).ravel()])
+    iu, ju = np.concatenate(iu), np.concatenate(ju)
+    o = np.lexsort((ju, iu))
+    iu, ju = iu[o].astype(np.intp), ju[o].astype(np.intp)
     iu.flags.writeable = ju.flags.writeable = False
     return iu, ju
 
