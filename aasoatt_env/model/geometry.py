@@ -19,7 +19,6 @@ __all__ = ["KDTREE_MIN_ROBOTS", "Proximity", "brute_candidates", "k_nearest", "k
 
 KDTREE_MIN_ROBOTS: int = 200
 """Team size from which a tree (or grid) answers instead of the full distance matrix."""
-_FULL_SORT_MAX = 64  # up to this many points a full row sort beats argpartition + a partial sort
 
 
 @functools.lru_cache(maxsize=16)
@@ -182,28 +181,29 @@ def _rows(n: int) -> np.ndarray:  # arange(n)[:, None], read-only
 
 
 def _distances(p: np.ndarray, teams: int) -> np.ndarray:
-    """Centre distances within each of ``teams`` equal consecutive blocks of ``p``: ``(K, N, N)``, inf diagonal."""
+    """Centre distances within each of ``teams`` equal consecutive blocks of ``p``: ``(K, N, N)``, inf diagonal.
+
+    ``sqrt(dx dx + dy dy)``: correctly rounded operations, the same bits on every machine and in the kernel.
+    """
     n = p.shape[0] // teams
-    z = np.ascontiguousarray(p, dtype=np.float64).view(np.complex128)[:, 0].reshape(teams, n)
-    d = np.abs(z[:, :, None] - z[:, None, :])
+    q = np.asarray(p, dtype=np.float64).reshape(teams, n, 2)
+    dx = q[:, :, None, 0] - q[:, None, :, 0]
+    dy = q[:, :, None, 1] - q[:, None, :, 1]
+    d = np.sqrt(dx * dx + dy * dy)
     d.reshape(teams, -1)[:, :: n + 1] = np.inf
     return d
 
 
 def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's ``k`` nearest in ``d (K, N, N)``: stack indices, distances ``(K N, k)``, nearest first (-1, inf)."""
+    """Each row's ``k`` nearest in ``d (K, N, N)``: stack indices, distances ``(K N, k)``, nearest first and the lower
+    index on a tie (-1, inf: none)."""
     teams, n = d.shape[0], d.shape[1]
     kk = min(k, n - 1)
     if kk <= 0:
         return np.full((teams * n, k), -1, dtype=np.intp), np.full((teams * n, k), np.inf)
     d2 = d.reshape(teams * n, n)
-    rows = _rows(teams * n)
-    if n <= _FULL_SORT_MAX or kk >= n - 1:
-        order = d2.argsort(axis=1)[:, :kk]
-    else:
-        part = np.argpartition(d2, kk - 1, axis=1)[:, :kk]
-        order = part[rows, np.argsort(d2[rows, part], axis=1)]
-    dk = d2[rows, order]
+    order = d2.argsort(axis=1, kind="stable")[:, :kk]  # (stable: the same order on every machine)
+    dk = d2[_rows(teams * n), order]
     if teams > 1:
         order = order + np.repeat(np.arange(teams) * n, n)[:, None]
     if kk == k:
@@ -274,18 +274,30 @@ class Proximity(NamedTuple):
 
 
 def neighbourhood(p: np.ndarray, radii: np.ndarray, centers: np.ndarray, obstacle_radii: np.ndarray, k: int,
-                  teams: int = 1, equal_radii: np.ndarray | None = None, clear_k: int = 6) -> Proximity:
+                  teams: int = 1, equal_radii: np.ndarray | None = None, clear_k: int = 6,
+                  compiled: bool = False) -> Proximity:
     """The :class:`Proximity` of ``teams`` equal teams stacked in ``p (K N, 2)`` (stack indices).
 
     Each robot's ``k`` nearest of its team, its gaps to its team's obstacles ``(K, M, 2)``, ``(K, M)`` and its
-    clearance (as :func:`min_gaps`).
+    clearance (as :func:`min_gaps`).  ``compiled``: below :data:`KDTREE_MIN_ROBOTS` a team, the nearest and the
+    gaps by the compiled kernel (the same numbers).
     """
-    if p.shape[0] // teams < KDTREE_MIN_ROBOTS:
+    n = p.shape[0] // teams
+    if compiled and n < KDTREE_MIN_ROBOTS:
+        if equal_radii is None:
+            r = radii.reshape(teams, n)
+            equal_radii = r.min(axis=1) == r.max(axis=1)
+        idx, dist, gap = _compiled.kernels("geometry").nearest(_compiled.c64(p), _compiled.c64(radii), teams, k,
+                                                              np.asarray(equal_radii, dtype=bool))
+        idx = idx.astype(np.intp, copy=False)
+    elif n < KDTREE_MIN_ROBOTS:
         d = _distances(p, teams)
         idx, dist = _nearest(d, k) if k else (np.empty((p.shape[0], 0), np.intp), np.empty((p.shape[0], 0)))
         gap = _robot_gaps(d, radii, equal_radii)
-    else:
-        idx, dist, _ = k_nearest(p, max(k, clear_k))
+    else:  # (a tree per team: large teams)
+        near = [k_nearest(p[t * n:(t + 1) * n], max(k, clear_k))[:2] for t in range(teams)]
+        idx = np.concatenate([np.where(i >= 0, i + t * n, -1) for t, (i, _) in enumerate(near)])
+        dist = np.concatenate([d for _, d in near])
         gap = _listed_gaps(idx, dist, radii)
         idx, dist = idx[:, :k], dist[:, :k]
     og = _obstacle_gaps(p, radii, centers, obstacle_radii, teams)

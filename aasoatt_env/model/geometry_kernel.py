@@ -12,7 +12,7 @@ import numpy as np
 
 from aasoatt_env.numba_jit import jit
 
-__all__ = ["cell_pairs", "components"]
+__all__ = ["cell_pairs", "components", "nearest"]
 
 _WIDEN = 1e-6  # cells are radius * (1 + _WIDEN) wide: rounding never splits a pair two cells apart
 
@@ -127,3 +127,49 @@ def components(n, a, b):
     for i in range(n):
         lab[i] = _find(parent, i)
     return lab
+
+
+@jit
+def nearest(p, radii, teams, k, equal):
+    """``_nearest`` and ``_robot_gaps`` of ``teams`` equal teams stacked in ``p``, robot by robot.
+
+    Each robot's ``k`` nearest of its team ``(K N, k)`` (stack indices, centre distances; -1, inf: none), nearest
+    first and the lower index on a tie (a stable sort's order), and its surface gap to the nearest ``(K N,)`` (inf:
+    alone); ``equal (K,)``: the team's radii are equal (its gap is the nearest distance less ``2 r``).  Finite ``p``.
+    """
+    total = p.shape[0]
+    n = total // teams
+    idx = np.full((total, k), -1, np.int64)
+    dist = np.full((total, k), np.inf)
+    gap = np.full(total, np.inf)
+    x, y = p[:, 0].copy(), p[:, 1].copy()
+    row = np.empty(n)
+    for t in range(teams):
+        o = t * n
+        for a in range(n):
+            i = o + a
+            for b in range(n):  # (a loop of its own: it vectorises)
+                dx, dy = x[i] - x[o + b], y[i] - y[o + b]
+                row[b] = math.sqrt(dx * dx + dy * dy)
+            row[a] = np.inf
+            g = np.inf
+            if equal[t]:
+                for b in range(n):
+                    g = row[b] if row[b] < g else g
+                g -= 2.0 * radii[i]
+            else:
+                for b in range(n):
+                    e = (row[b] - radii[i]) - radii[o + b]
+                    g = e if e < g else g
+            gap[i] = g
+            for q in range(min(k, n - 1)):  # k passes of a branch-free argmin: the lower index on a tie
+                best, bi = np.inf, -1
+                for b in range(n):
+                    better = row[b] < best
+                    best = row[b] if better else best
+                    bi = b if better else bi
+                if bi < 0:
+                    break
+                dist[i, q], idx[i, q] = best, o + bi
+                row[bi] = np.inf
+    return idx, dist, gap

@@ -187,9 +187,11 @@ class TeamStack:
     def _neighbours(self, p: np.ndarray, k: int) -> Proximity:
         """:func:`~aasoatt_env.model.geometry.neighbourhood` of every team (indices into the stack)."""
         if self._stackable:
-            return neighbourhood(p, self._team.radius, self._ocenters, self._oradii, k, self._k, self._equal_radii)
+            return neighbourhood(p, self._team.radius, self._ocenters, self._oradii, k, self._k, self._equal_radii,
+                                 compiled=self._compiled)
         n = self._n
-        parts = [neighbourhood(p[j * n:(j + 1) * n], t.radius, lay.obstacle_centers, lay.obstacle_radii, k)
+        parts = [neighbourhood(p[j * n:(j + 1) * n], t.radius, lay.obstacle_centers, lay.obstacle_radii, k,
+                               compiled=self._compiled)
                  for j, (t, lay) in enumerate(zip(self._teams, self._layouts))]
         return Proximity(np.concatenate([np.where(q.idx >= 0, q.idx + j * n, -1) for j, q in enumerate(parts)]),
                          np.concatenate([q.dist for q in parts]),
@@ -216,7 +218,8 @@ class TeamStack:
         else:
             sl, lay, offset = slice(j * self._n, (j + 1) * self._n), self._layouts[j], None
             centers, radii = lay.obstacle_centers, lay.obstacle_radii
-            prox = neighbourhood(kin.p[sl], self._teams[j].radius, centers, radii, max(self.num_neighbors, 1))
+            prox = neighbourhood(kin.p[sl], self._teams[j].radius, centers, radii, max(self.num_neighbors, 1),
+                                 compiled=self._compiled)
         return build_observations(
             p=kin.p[sl], v=kin.v[sl], theta=self._pose[sl, 2], u=self._u[sl], p_d=p_d[sl], v_d=v_d[sl], a_d=a_d[sl],
             goals=self._goals[sl], radii=self._team.radius[sl], obstacle_centers=centers, obstacle_radii=radii,
