@@ -147,26 +147,33 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     """The warm active set on a problem of independent groups, each verified (and then kept) on its own.
 
     ``x0``, ``z0``: the previous point and row multipliers; ``groups`` ``(N,)``: each robot's group ``0..K-1`` (None:
-    one); ``compiled``: the dense path by the numba kernel.  ``None`` where the method does not apply (no warm start,
+    one); ``compiled``: the dense path group by group by the numba kernel, where every group is of a dense size
+    (a large problem of small groups too).  ``None`` where the method does not apply (no warm start,
     a block not positive definite, an odd size, ``groups`` not one label per robot or joined by a row).
     """
     n, m = prob.n, prob.m
     if n == 0 or n % 2 or z0 is None or x0 is None or z0.shape[0] != m or x0.shape[0] != n:
         return None
     one_change_iter = one_change_budget(one_change_iter)
-    dense = n <= DENSE_MAX_VARS or n * (m + 2 * n) <= DENSE_MAX_CELLS
-    compiled = compiled and dense and getattr(prob.C, "format", None) == "csr"
-    form = dense_least_distance_form(prob, not compiled) if dense else least_distance_form(prob)
-    labels = None if form is None else _row_groups(prob, groups)
+    labels = _row_groups(prob, groups)
     if labels is None:
         return None
-    (LinvT, gt, M, b), (K, rg, groups) = form, labels
-    W0 = warm_working_set(prob, x0, z0)
-    if compiled:
+    K, rg, groups = labels
+    dense = _dense(n, m)
+    if compiled and getattr(prob.C, "format", None) == "csr" and (dense or _parts_dense(rg, K, m)):
+        factor = dense_least_distance_form(prob, False)  # (the kernel's algebra is per part)
+        if factor is None:
+            return None
+        LinvT, gt, _, b = factor
+        W0 = warm_working_set(prob, x0, z0)
         out = _solve_compiled(prob, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, rg)
         if out is not None:
             return out
-        M = _dense_rows(prob, LinvT)  # a row with repeated entries: the reference's dense rows
+    form = dense_least_distance_form(prob) if dense else least_distance_form(prob)  # (the reference's rows)
+    if form is None:
+        return None
+    LinvT, gt, M, b = form
+    W0 = warm_working_set(prob, x0, z0)
     loop = _WorkingSetLoop(functools.partial(_equality_point, M, dense, gt, b), rg, K)
     W = W0
     for rule, budget in ((_pdas_rule, max_iter), (_one_change_rule, one_change_iter)):
@@ -175,6 +182,18 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
         if loop.done.all():
             break
     return _answer(LinvT, np.zeros(n) if loop.y is None else loop.y, loop.lam, loop.used, loop.done, rg, m)
+
+
+def _dense(n: int, m: int) -> bool:
+    """Whether a problem of ``n`` variables and ``m`` rows takes dense algebra."""
+    return n <= DENSE_MAX_VARS or n * (m + 2 * n) <= DENSE_MAX_CELLS
+
+
+def _parts_dense(rg: np.ndarray, K: int, m: int) -> bool:
+    """Whether every part (rows and bounds labelled ``rg``) is of a size that takes dense algebra."""
+    rows = np.bincount(rg[:m], minlength=K)
+    nv = np.bincount(rg[m:], minlength=K) // 2  # (each variable has two bounds)
+    return bool(((nv <= DENSE_MAX_VARS) | (nv * (rows + 2 * nv) <= DENSE_MAX_CELLS)).all())
 
 
 def _row_groups(prob, groups: np.ndarray | None) -> tuple[int, np.ndarray, np.ndarray] | None:
