@@ -94,6 +94,7 @@ class SafetyFilter:
         self._solve = (Decentralized(policy, cfg.negotiate, cfg.negotiate_gap, cfg.eta_tol, compiled) if decentral
                        else Centralized(policy, cfg.decompose, cfg.eta_tol, compiled))
         self._backup = BackupLayer(cfg) if cfg.backup else None
+        self._warm_rows = not decentral or cfg.negotiate  # the QP reads the previous step's multipliers
         self._fused = (FusedStep(cfg, policy, self._rows) if fusable(cfg, self._strategy.rotates_rows, policy.exact)
                        else None)
         self.reset(team)
@@ -295,6 +296,8 @@ class SafetyFilter:
         """The previous answer on this step's rows (a row new at this step starts at 0)."""
         if self._x is None:
             return Warm(None, None)
+        if not self._warm_rows:  # (each robot's own QP, exactly: no warm start)
+            return Warm(self._x, None)
         z0 = np.zeros(rows.m)
         if self._keys.shape[0] and rows.m:
             pos = np.minimum(np.searchsorted(self._keys, rows.keys), self._keys.shape[0] - 1)
