@@ -565,3 +565,28 @@ def test_brute_force_candidates_of_labelled_points_are_each_labels_upper_triangl
         assert np.array_equal(got[0], iu[same]) and np.array_equal(got[1], ju[same]), trial
     iu, ju = brute_candidates(81920, np.repeat(np.arange(4096), 20))  # (the whole triangle: 3.4e9 pairs)
     assert iu.shape == (4096 * 190,) and (ju // 20 == iu // 20).all() and (iu < ju).all()
+
+
+@pytest.mark.parametrize("mode", ["decentralized", "centralized"])
+def test_the_per_robot_flags_say_what_answered_each_robot(mode):
+    """``FilterResult.flags`` along 16 robots resting and then at full throttle among obstacles (the defaults): the
+    ``BACKUP`` bit is exactly ``backup``; ``RELAXED`` only at relaxed steps, ``GROUPED`` and ``RELAXED`` only in the
+    decentralised mode, where both occur; ``UNSAFE`` only at unsafe steps."""
+    from aasoatt_env.safety.result import BACKUP, GROUPED, RELAXED, UNSAFE
+    from agents import ADVERSARIES
+
+    env = make_env("random_goals", num_robots=16, random_obstacles=4, filter={"mode": mode}, max_steps=400)
+    obs, _ = env.reset(seed=2)
+    agent, seen = ADVERSARIES["burst"](), 0
+    for _ in range(400):
+        obs, *_ = env.step(agent.act(obs, env))
+        if not env.agents:
+            break
+        for res in env.unwrapped.filter_outputs:
+            f = res.flags
+            assert f.shape == (16,) and np.array_equal((f & BACKUP) > 0, res.backup)
+            assert not (f & UNSAFE).any() or res.status == "unsafe"
+            assert not (f & RELAXED).any() or res.status in ("relaxed", "backup", "failed", "unsafe")
+            seen |= int(np.bitwise_or.reduce(f))
+    assert seen & BACKUP
+    assert (seen & (RELAXED | GROUPED) == RELAXED | GROUPED) if mode == "decentralized" else not seen & (RELAXED | GROUPED)

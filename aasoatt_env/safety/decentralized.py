@@ -20,7 +20,7 @@ from aasoatt_env.safety.problem import box_least_squares
 from aasoatt_env.safety.rows import Rows
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers.local import RELAX_TOL, solve_local_qps
-from aasoatt_env.safety.stages import Answer, StepInput, Warm
+from aasoatt_env.safety.stages import GROUPED, RELAXED, Answer, StepInput, Warm
 
 __all__ = ["GROUP_ONE_CHANGE_ITER", "SPLITS", "Decentralized", "DecentralizedResult", "SplitRows",
            "decentralized_step", "negotiation_rows", "solve_groups", "split_rows"]
@@ -327,8 +327,11 @@ class Decentralized:
         avoiding = avoiding_robots(n, rows, binds[:, 0], binds[:, 1])
         checked = status != "solved" or (ans.grouped.any() and not self.policy.exact)
         slack = float(max(0.0, np.max(rows.values(ans.du) - rows.rhs, initial=0.0))) if checked else 0.0
+        flags = np.where(ans.infeasible, RELAXED, 0) | np.where(ans.grouped, GROUPED, 0)
+        if ans.group_status != "solved":  # (the groups' joint answer: relaxed, or failed)
+            flags |= np.where(ans.grouped, RELAXED, 0)
         return Answer(ans.du.copy(), ans.du / s.scale[:, None], ans.z, ans.eta, avoiding, status, message,
-                      ans.iterations, rows.m, slack, ans.group_warm)
+                      ans.iterations, rows.m, slack, ans.group_warm, flags)
 
 
 _SEVERITY = ("solved", "relaxed", "failed")

@@ -8,9 +8,9 @@ import numpy as np
 
 from aasoatt_env.safety.backup import BackupAnswer
 from aasoatt_env.safety.rows import Rows
-from aasoatt_env.safety.stages import Answer
+from aasoatt_env.safety.stages import BACKUP, GROUPED, RELAXED, UNSAFE, Answer
 
-__all__ = ["COLLISION_TOL", "STATUSES", "FilterResult", "result"]
+__all__ = ["BACKUP", "COLLISION_TOL", "GROUPED", "RELAXED", "STATUSES", "UNSAFE", "FilterResult", "result"]
 
 STATUSES: tuple[str, ...] = ("solved", "relaxed", "backup", "failed", "unsafe")  #: from best to worst
 #: overlap [m] beyond which a pair counts as colliding (the metrics' tolerance; without the backup layer: unsafe)
@@ -46,6 +46,9 @@ class FilterResult:
     solve_time: float  #: wall time of the step [s] (reported only: no decision reads it)
     n_rows: int
     n_qp_rows: int = 0  #: the rows the QP solver saw (0 where the closed form answered)
+    #: ``(N,)`` per-robot bits (:data:`RELAXED`, :data:`GROUPED`: the decentralised mode's; :data:`BACKUP`,
+    #: :data:`UNSAFE`: the backup layer's)
+    flags: np.ndarray | None = None
 
     @property
     def obstacle_rows(self) -> np.ndarray:
@@ -57,11 +60,16 @@ def result(nominal: np.ndarray, scale: np.ndarray, rows: Rows, ans: Answer, back
            triggered: np.ndarray, solve_time: float) -> FilterResult:
     """The step's :class:`FilterResult` from its stages' answers (``backup`` None: the layer is off)."""
     status, message = ans.status, ans.message
+    n = ans.du.shape[0]
+    flags = np.zeros(n, dtype=np.int8) if ans.flags is None else ans.flags.astype(np.int8)
     if backup is None:
-        du, braking, margin = ans.du, np.zeros(ans.du.shape[0], dtype=bool), rows.gap_min
+        du, braking, margin = ans.du, np.zeros(n, dtype=bool), rows.gap_min
         safe = not (rows.barrier_min < -_BARRIER_TOL or rows.gap_min < -COLLISION_TOL)
     else:
         du, braking, margin, safe = backup.du, backup.braking, backup.margin, backup.safe
+        flags |= np.where(braking, BACKUP, 0).astype(np.int8)
+        if backup.unsafe is not None:
+            flags |= np.where(backup.unsafe, UNSAFE, 0).astype(np.int8)
         n_braked, n_nudged = np.count_nonzero(braking), np.count_nonzero(backup.nudged)
         if n_braked:
             message = f"{message}; backup braked {n_braked} robot(s)"
@@ -75,4 +83,4 @@ def result(nominal: np.ndarray, scale: np.ndarray, rows: Rows, ans: Answer, back
     correction = np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1])
     return FilterResult(du, status, safe, braking, float(margin), rows.barrier_min, message, ans.eta, rows.pairs,
                         ans.avoiding | braking, triggered, ans.slack, correction, correction > 1e-9 * scale,
-                        ans.iterations, solve_time, rows.m, ans.n_qp)
+                        ans.iterations, solve_time, rows.m, ans.n_qp, flags)

@@ -12,7 +12,12 @@ import numpy as np
 
 from aasoatt_env.model.params import Team
 
-__all__ = ["Answer", "StepInput", "Warm"]
+__all__ = ["BACKUP", "GROUPED", "RELAXED", "UNSAFE", "Answer", "StepInput", "Warm"]
+
+#: per-robot ``flags`` bits (0: the robot's answer is its own QP's optimum): ``RELAXED`` its QP, or its negotiation
+#: group's, was infeasible (rows loosened); ``GROUPED`` answered by its negotiation group; ``BACKUP`` braked by the
+#: backup layer; ``UNSAFE`` the backup layer found it outside the safe set
+RELAXED, GROUPED, BACKUP, UNSAFE = 1, 2, 4, 8
 
 
 class StepInput(NamedTuple):
@@ -59,3 +64,4 @@ class Answer(NamedTuple):
     slack: float  #: largest violation of a row by ``du`` (0 where solved exactly)
     #: the closed form or the warm active set answered every part (the next step tries the compiled solve first)
     warm_verified: bool = False
+    flags: np.ndarray | None = None  #: ``(N,)`` :data:`RELAXED`/:data:`GROUPED` bits (decentralised mode)

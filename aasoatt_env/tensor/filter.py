@@ -36,7 +36,7 @@ from aasoatt_env.safety.problem import box_ls
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers.local import RELAX_TOL
 from aasoatt_env.safety.solvers.polygons import FAR, LocalAnswer, least_violation, solve_polygons
-from aasoatt_env.safety.stages import Warm
+from aasoatt_env.safety.stages import BACKUP, GROUPED, RELAXED, UNSAFE, Warm
 from aasoatt_env.tensor.backup import gate, repair
 from aasoatt_env.tensor.model import (
     TensorKinematics,
@@ -52,7 +52,6 @@ from aasoatt_env.validation import MAGNITUDE_MAX, short_repr
 __all__ = ["BACKUP", "BACKUP_CHECKS", "GROUPED", "RELAXED", "UNSAFE", "FilterOut", "SafetyLayer", "backup_check_of",
            "check_config", "filter_step", "torch_config"]
 
-RELAXED, GROUPED, BACKUP, UNSAFE = 1, 2, 4, 8  #: ``status`` bits (module docstring); 0: its own QP, exactly
 
 
 class FilterOut(NamedTuple):
