@@ -114,6 +114,7 @@ class BangBang(_Timed):
         self.seed = seed
         self.hold = check.integer("hold", hold, lo=1)
         self.t = 0
+        self.rng = np.random.default_rng(seed)  # (as after reset: act() may come first)
 
     def reset(self, env: Any) -> None:
         """Restart the random sequence."""
