@@ -37,9 +37,10 @@ def law(kind: str, p, v, p_d, v_d, a_d, goal):
 
 
 def torch_run(kind: str, teams: int, n: int, check: str, repair: bool = True) -> tuple[float, float, int]:
-    """Success, backup share and robots collided of ``teams`` teams behind the torch filter with ``check``."""
+    """Success, backup share and robots collided of ``teams`` teams behind the torch filter (the torch stages) with
+    ``check``."""
     env = make_tensor_env("random_goals", teams, n, decision_interval=20, action_mode="point", dtype=torch.float64,
-                          backup_repair=repair, backup_check=check)
+                          backup_repair=repair, backup_check=check, compiled=False)  # (the torch stages)
     env.autoreset = False
     env.reset(seed=SEED)
     amax = env.team.max_point_accel[:, None]

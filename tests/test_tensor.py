@@ -194,16 +194,19 @@ def test_the_filter_with_the_numpy_backup_layer_equals_the_numpy_filter():
 
 
 @pytest.mark.slow
-def test_closed_loop_behind_the_numpy_backup_layer_equals_the_pettingzoo_env():
+@pytest.mark.parametrize("compiled", [False, True])
+def test_closed_loop_behind_the_numpy_backup_layer_equals_the_pettingzoo_env(compiled):
     """Two random_goals teams of 8 spun up and then driven at full throttle (the ``spin_up`` adversary, every 200
-    steps) for 600 steps behind the defaults with ``negotiate=False``: the backup layer brakes, some QPs relax, and the
-    positions stay within 1e-6 m of the PettingZoo env's behind the numpy filter, in float64. (With groups, an
-    inconsistent group's relaxed answer depends on the solver's path through the batch's problem: not compared.)"""
+    steps) for 600 steps behind the defaults with ``negotiate=False``, by the torch or the compiled stages: the backup
+    layer brakes, some QPs relax, and the positions stay within 1e-6 m of the PettingZoo env's behind the numpy
+    filter, in float64. (With groups, an inconsistent group's relaxed answer depends on the solver's path through the
+    batch's problem: not compared.)"""
     from aasoatt_env.sim.env import AASOATTParallelEnv
     from aasoatt_env.tensor.env import make_tensor_env
 
     n, opts = 8, dict(negotiate=False)
-    tenv = make_tensor_env("random_goals", 2, n, dtype=torch.float64, max_steps=200, backup_check="numpy", **opts)
+    tenv = make_tensor_env("random_goals", 2, n, dtype=torch.float64, max_steps=200, backup_check="numpy",
+                           compiled=compiled, **opts)
     tenv.reset(seed=0)
     envs = []
     for b in range(2):
@@ -263,17 +266,22 @@ def _tracking_actions(p, v, p_d, v_d, adot, A, solve, amax=60.0):
 
 
 @pytest.mark.slow
+@pytest.mark.parametrize("compiled", [False, True])
 @pytest.mark.parametrize("negotiate", [False, True])
 @pytest.mark.parametrize("device", DEVICES)
-def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter(device, negotiate):
+def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter(device, negotiate, compiled):
     """Two random_goals teams of 8 (seeds 0, 1) behind the filter for 500 steps, 200-step episodes (auto-reset twice),
     where some robots' QPs are infeasible (relaxed) at some steps, and (``negotiate=True``) some robots are answered
-    by their negotiation groups: positions within 1e-6 m, observations and rewards equal, in float64."""
+    by their negotiation groups, by the torch or the compiled stages: positions within 1e-6 m, observations and
+    rewards equal, in float64."""
+    if compiled and device != "cpu":
+        pytest.skip("the compiled stages run on a CPU only")
     from aasoatt_env.sim.env import AASOATTParallelEnv
     from aasoatt_env.tensor.env import make_tensor_env
 
     n, seed, opts = 8, 0, dict(backup=False, negotiate=negotiate)
-    tenv = make_tensor_env("random_goals", 2, n, device=device, dtype=torch.float64, max_steps=200, **opts)
+    tenv = make_tensor_env("random_goals", 2, n, device=device, dtype=torch.float64, max_steps=200, compiled=compiled,
+                           **opts)
     obs_t, _ = tenv.reset(seed=seed)
     envs = []
     for b in range(2):
@@ -305,15 +313,17 @@ def test_closed_loop_500_steps_equals_the_pettingzoo_env_behind_the_numpy_filter
     assert resets == 4 and worst <= 1e-6 and relaxed > 0 and (grouped > 0) == negotiate
 
 
-def test_point_actions_follow_the_pettingzoo_env_in_point_mode():
+@pytest.mark.parametrize("compiled", [False, True])
+def test_point_actions_follow_the_pettingzoo_env_in_point_mode(compiled):
     """``action_mode="point"``: the tracking law as control-point accelerations (units of ``max_point_accel``) for two
-    random_goals teams of 6 behind the filter, 150 steps of 100 ms: positions within 1e-6 m of the PettingZoo env's."""
+    random_goals teams of 6 behind the filter, 150 steps of 100 ms, by the torch or the compiled stages: positions
+    within 1e-6 m of the PettingZoo env's."""
     from aasoatt_env.sim.env import AASOATTParallelEnv
     from aasoatt_env.tensor.env import make_tensor_env
 
     n, opts = 6, dict(backup=False, negotiate=False)
     tenv = make_tensor_env("random_goals", 2, n, dtype=torch.float64, action_mode="point", decision_interval=20,
-                           max_steps=150, **opts)
+                           max_steps=150, compiled=compiled, **opts)
     tenv.reset(seed=5)
     envs = []
     for b in range(2):
@@ -370,16 +380,17 @@ def test_a_loss_through_the_filter_trains_a_policy_to_need_less_correction():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("check", BACKUP_CHECKS)
+@pytest.mark.parametrize("check, compiled", [("torch", False), ("numpy", False), ("numpy", True)])
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_the_braking_check_keeps_chasing_teams_apart(dtype, check):
+def test_the_braking_check_keeps_chasing_teams_apart(dtype, check, compiled):
     """Six teams of 8 with 4 obstacles, every robot chasing another at full acceleration for 300 steps behind the
-    torch filter's defaults (``backup=True``) with either check: no pair closer than ``d_s - 1 mm``, and the check
-    braked someone."""
+    torch filter's defaults (``backup=True``) with either check, or by the compiled stages: no pair closer than
+    ``d_s - 1 mm``, and the check braked someone."""
     from aasoatt_env.tensor.env import make_tensor_env
     from agents.adversaries_torch import adversary_actions
 
-    env = make_tensor_env("random_goals", 6, 8, dtype=dtype, random_obstacles=4, backup_check=check)
+    env = make_tensor_env("random_goals", 6, 8, dtype=dtype, random_obstacles=4, backup_check=check,
+                          compiled=compiled)
     env.reset(seed=0)
     gen = torch.Generator().manual_seed(0)
     kind = torch.tensor([3, 4, 3, 4, 0, 1])  # chase_nearest, chase_target, spin_up, burst
@@ -495,10 +506,19 @@ def test_bad_settings_are_refused_naming_the_argument(monkeypatch):
                          (dict(sensing_range=float("nan")), "sensing_range: got nan"),
                          (dict(collision_tolerance=float("nan")), "collision_tolerance: got nan"),
                          (dict(differentiable="no"), "differentiable: got 'no'"), (dict(filter="yes"), "filter: got"),
+                         (dict(compiled="yes"), "compiled: got 'yes'"),
+                         (dict(compiled=True, differentiable=True), "compiled: got True, but differentiable=True"),
+                         (dict(compiled=True, backup_check="torch"), "compiled: got True, but backup_check='torch'"),
                          (dict(filter={"dt": 0.01}), "dt: got 0.01 in filter")):
         with pytest.raises(ConfigError, match=name):
             make_tensor_env("random_goals", **{"num_robots": 4, **kwargs})
+    monkeypatch.setattr("aasoatt_env.tensor.env.numba_available", lambda: False)
+    with pytest.raises(ConfigError, match="compiled: got True, but the compiled kernels .* need numba"):
+        make_tensor_env("random_goals", num_robots=4, compiled=True)
+    assert not make_tensor_env("random_goals", num_robots=4).compiled  # (None: the torch stages without numba)
+    monkeypatch.undo()
     env = make_tensor_env("random_goals", 2, 4)
+    assert env.compiled
     with pytest.raises(ResetNeeded, match=r"step\(\): call reset\(\) first"):
         env.step(torch.zeros(2, 4, 2))
     with pytest.raises(ConfigError, match="seed: got -1"):
@@ -671,16 +691,18 @@ def test_every_registered_barrier_equals_the_numpy_filter(barrier, monkeypatch):
     assert (out.status.numpy()[differs] & RELAXED).all() and np.abs(du - ref_du).max() <= 1e-6
 
 
-def test_a_decision_of_several_physics_steps_is_reported_over_all_of_them_as_by_the_pettingzoo_env():
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_decision_of_several_physics_steps_is_reported_over_all_of_them_as_by_the_pettingzoo_env(compiled):
     """``decision_interval > 1``: the clearance (so the reward's collision term) is the least over the decision's
-    physics steps and ``intervened`` any of them, as the PettingZoo env's: four bare circle_swap robots driven
-    through each other within 1 s decisions (apart again at their ends); a filtered team's flags at 100 ms."""
+    physics steps and ``intervened`` any of them, as the PettingZoo env's, by the torch or the compiled stages: four
+    bare circle_swap robots driven through each other within 1 s decisions (apart again at their ends); a filtered
+    team's flags at 100 ms."""
     from aasoatt_env.sim.env import AASOATTParallelEnv
     from aasoatt_env.tensor.env import make_tensor_env
 
     def pair(filt, **kw):
         tenv = make_tensor_env("circle_swap", 1, 4, dtype=torch.float64, radius=2.0, action_mode="point",
-                               filter=filt and dict(backup=False, negotiate=False), **kw)
+                               filter=filt and dict(backup=False, negotiate=False), compiled=compiled, **kw)
         tenv.reset(seed=0)
         e = AASOATTParallelEnv("circle_swap", num_robots=4, radius=2.0, action_mode="point", **kw)
         if filt:
@@ -790,3 +812,17 @@ def test_torchrl_mappo_reports_the_librarys_errors_in_one_line(capsys, tmp_path)
     err = capsys.readouterr().err
     assert err.strip() == ("python -m train.torchrl_mappo: error: num_robots: got 200000, expected an integer in "
                            "[1, 100000]")
+
+
+def test_the_compiled_stages_observe_large_teams_within_their_own_team():
+    """Two random_goals teams of 210 robots (past the brute-force neighbour search: a tree per team) by the compiled
+    and the torch stages, float64: the same observations and clearance after reset and 3 bare steps."""
+    from aasoatt_env.tensor.env import make_tensor_env
+
+    envs = [make_tensor_env("random_goals", 2, 210, dtype=torch.float64, filter=False, compiled=c) for c in (False, True)]
+    outs = [e.reset(seed=3)[0] for e in envs]
+    assert torch.allclose(outs[0], outs[1], atol=1e-5, rtol=0)
+    for _ in range(3):
+        got = [e.step(torch.full((2, 210, 2), 0.5, dtype=torch.float64)) for e in envs]
+        assert torch.allclose(got[0][0], got[1][0], atol=1e-5, rtol=0)
+        assert torch.allclose(got[0][4]["clearance"], got[1][4]["clearance"], atol=1e-9, rtol=0)

@@ -19,6 +19,8 @@ import numpy as np
 import torch
 
 from aasoatt_env import validation as check
+from aasoatt_env.compiled import NUMBA_MISSING
+from aasoatt_env.compiled import available as numba_available
 from aasoatt_env.errors import ActionError, ConfigError, ResetNeeded
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import DT
@@ -29,13 +31,14 @@ from aasoatt_env.sim.observations import OBS_BOUND, SELF_DIM, SLOT_DIM
 from aasoatt_env.sim.references import LinearReference
 from aasoatt_env.sim.scenarios import Scenario, get_scenario
 from aasoatt_env.sim.scenarios.base import check_starts
+from aasoatt_env.tensor.compiled import CompiledStages
 from aasoatt_env.tensor.filter import BACKUP, FilterOut, backup_check_of, filter_step, torch_config
 from aasoatt_env.tensor.model import TensorTeam, check_dtype_device, input_bounds, integrate, kinematics, matvec, pick
 
 __all__ = ["TensorEnv", "make_tensor_env"]
 
 _ENV_KEYS = ("dt", "decision_interval", "action_mode", "sensing_range", "num_neighbors", "num_obstacles", "reward",
-             "collision_tolerance", "max_steps", "clip_actions", "differentiable", "backup_check")
+             "collision_tolerance", "max_steps", "clip_actions", "differentiable", "backup_check", "compiled")
 FLOAT32_REACH: float = 1e3
 """Largest coordinate [m] of a layout in float32: float32 positions there are 0.06 mm apart, well inside the 1 mm
 that the float32 guarantee allows (at 1e5 m they are 8 mm apart); farther layouts need float64."""
@@ -47,6 +50,19 @@ def _slots(k: int, ok: torch.Tensor, rel_p: torch.Tensor, rel_v: torch.Tensor, g
     part = torch.cat((rel_p, rel_v, gap[..., None], torch.ones_like(gap)[..., None]), -1)
     part = torch.where(ok[..., None], part, 0.0)
     return torch.cat((part, part.new_zeros(B, N, k - kk, SLOT_DIM)), 2).reshape(B, N, -1)
+
+
+def _compiled(value: bool | None, device: str, differentiable: bool, backup_check: str) -> bool:
+    """Whether the env runs :mod:`.compiled`'s stages (``make_tensor_env``'s ``compiled``), or ConfigError why not."""
+    why = ("the device is not a CPU" if torch.device(device).type != "cpu" else
+           "differentiable=True needs the torch stages' gradient" if differentiable else
+           "backup_check='torch' is the torch stages' check" if backup_check == "torch" else
+           NUMBA_MISSING if not numba_available() else None)
+    if value is None:
+        return why is None
+    if check.boolean("compiled", value) and why is not None:
+        raise ConfigError(f"compiled: got True, but {why}")
+    return bool(value)
 
 
 def make_tensor_env(scenario: str | Scenario = "random_goals", num_envs: int = 1, num_robots: int | None = None,
@@ -62,7 +78,9 @@ def make_tensor_env(scenario: str | Scenario = "random_goals", num_envs: int = 1
     ``num_obstacles``, ``reward``, ``collision_tolerance``, ``max_steps``, ``clip_actions``, ``differentiable``:
     ``step`` records the autograd graph, so losses on its outputs reach the actions and the state through the filter
     and the dynamics; default False: no graph), ``backup_check`` (:data:`~.filter.BACKUP_CHECKS`; None: the numpy
-    backup layer on a CPU, the torch check on other devices), other :class:`FilterConfig` fields (the filter's
+    backup layer on a CPU, the torch check on other devices), ``compiled`` (the numpy env's compiled stages and the
+    numpy filter on the tensors' memory, :mod:`.compiled`; None: where the device is a CPU, ``differentiable`` is
+    False, the backup check is numpy's and numba imports), other :class:`FilterConfig` fields (the filter's
     ``sensing_range`` only through ``filter``), and the scenario's parameters.
     """
     names = {f.name for f in fields(FilterConfig)}
@@ -85,7 +103,7 @@ class TensorEnv:
                  config: FilterConfig | None, dt: float = DT, decision_interval: int = 1, action_mode: str = "wheel",
                  sensing_range: float = 3.0, num_neighbors: int = 4, num_obstacles: int = 2, reward: Any = None,
                  collision_tolerance: float = 1e-3, max_steps: int | None = None, clip_actions: bool = False,
-                 differentiable: bool = False, backup_check: str | None = None) -> None:
+                 differentiable: bool = False, backup_check: str | None = None, compiled: bool | None = None) -> None:
         num_envs = check.integer("num_envs", num_envs, lo=1)
         check_dtype_device(dtype, device)
         vars(self).update(env_settings(dt, decision_interval, action_mode, sensing_range, num_neighbors, num_obstacles,
@@ -95,9 +113,12 @@ class TensorEnv:
         self.scenario, self.num_envs, self.device, self.dtype, self.config = scenario, num_envs, device, dtype, config
         self.differentiable = check.boolean("differentiable", differentiable)
         self.backup_check = backup_check_of(backup_check, torch.device(device))  #: the backup stage's implementation
+        self.compiled = _compiled(compiled, device, self.differentiable, self.backup_check)  #: :mod:`.compiled` stages
+        self._cpu: CompiledStages | None = None
         self.num_robots = scenario.num_robots
         self.obs_dim = SELF_DIM + SLOT_DIM * (self.num_neighbors + self.num_obstacles)
         self._rngs: list[np.random.Generator] = []
+        self._dist: torch.Tensor | None = None
         self.team: TensorTeam | None = None
         self.autoreset = True  #: reset finished teams within ``step`` (False: :meth:`reset_done` does)
 
@@ -121,6 +142,8 @@ class TensorEnv:
         if self.team is None:
             self.team = TensorTeam.from_team(lays[0].team, self.dtype, self.device)
             self._profile = lays[0].reference.profile
+            if self.compiled:
+                self._cpu = CompiledStages(lays[0].team, self.num_envs, self.config, self.dtype)
         steps = [self._max_steps_override or max(1, int(math.ceil(lay.horizon / (self.dt * self.decision_interval)
                                                                   - 1e-9))) for lay in lays]
         return dict(
@@ -178,6 +201,8 @@ class TensorEnv:
         self.time = self.time.index_fill(0, idx, 0.0)
         self.steps = self.steps.index_fill(0, idx, 0)
         self.avoiding = self.avoiding.index_fill(0, idx, False)
+        if self._cpu is not None:
+            self._cpu.restart(np.asarray(teams))
 
     # ------------------------------------------------------------------ step
     @property
@@ -255,14 +280,17 @@ class TensorEnv:
             lo, hi = input_bounds(team, self.u, self.dt)
             if self.config is not None:
                 p_d, v_d, _ = self.ref
-                last, out = out, filter_step(team, self.config, self.pose, self.u, du, p_d, v_d,
-                                             (self._st["oc"], self._st["orad"]), self.avoiding, self.backup_check)
+                oc, orad = self._st["oc"], self._st["orad"]
+                last, out = out, (filter_step(team, self.config, self.pose, self.u, du, p_d, v_d, (oc, orad),
+                                              self.avoiding, self.backup_check) if self._cpu is None else
+                                  self._cpu.step_filter(du, lo, hi, p_d, v_d, oc, orad))
                 self.avoiding, du = out.avoiding, out.du
                 if last is not None:
                     out = out._replace(correction=torch.maximum(last.correction, out.correction),
                                        intervened=last.intervened | out.intervened, status=last.status | out.status)
             du = torch.minimum(torch.maximum(du, lo), hi)
-            self.pose, self.u = integrate(team, self.pose, self.u, du, self.dt)
+            self.pose, self.u = (integrate(team, self.pose, self.u, du, self.dt) if self._cpu is None else
+                                 self._cpu.integrate(du, self.dt))
             self.time = self.time + self.dt
             self._refresh()
             low = self.clearance if low is None else torch.minimum(low, self.clearance)
@@ -288,13 +316,25 @@ class TensorEnv:
         return matvec(k.a11, -k.a01, -k.a10, k.a00, act * team.max_point_accel[:, None] - k.adot) / det[..., None]
 
     # ------------------------------------------------------------------ what the agents see
+    @property
+    def dist(self) -> torch.Tensor:
+        """``(B, N, N)`` centre distances of each team's control points now (inf to itself)."""
+        if self._dist is None:
+            p = self.kin.p
+            eye = torch.eye(p.shape[1], dtype=torch.bool, device=p.device)
+            self._dist = row_norm(p[:, :, None, :] - p[:, None, :, :]).masked_fill(eye, math.inf)
+        return self._dist
+
     def _refresh(self) -> None:
         """Kinematics, reference, distances and clearance now."""
+        self.ref, self._dist = self.reference(), None
+        if self._cpu is not None:
+            self.kin = self._cpu.kinematics(self.pose, self.u)
+            self.clearance = self._cpu.clearance(self._st["oc"], self._st["orad"], max(self.num_neighbors, 1))
+            self.tracking_error = row_norm(self.kin.p - self.ref[0])
+            return
         self.kin = kinematics(self.team, self.pose, self.u)
-        self.ref = self.reference()
         p, N = self.kin.p, self.num_robots
-        eye = torch.eye(N, dtype=torch.bool, device=p.device)
-        self.dist = row_norm(p[:, :, None, :] - p[:, None, :, :]).masked_fill(eye, math.inf)  # (inf to itself)
         r = self.team.radius
         clear = (self.dist - r[:, None] - r[None, :]).amin(-1) if N > 1 else torch.full_like(p[..., 0], math.inf)
         oc, orad = self._st["oc"], self._st["orad"]
@@ -316,6 +356,9 @@ class TensorEnv:
     def _observations(self) -> torch.Tensor:
         """:func:`aasoatt_env.sim.observations.build_observations` for every team ``(B, N, obs_dim)`` float32."""
         kin, (p_d, v_d, a_d), th = self.kin, self.ref, self.pose[..., 2]
+        if self._cpu is not None:
+            return self._cpu.observations(self.ref, self._st["goals"], self._st["oc"], self._st["orad"],
+                                          self.sensing_range, self.num_neighbors, self.num_obstacles)
         p, v = kin.p, kin.v
         B, N, _ = p.shape
         parts = [p - p_d, self._st["goals"] - p, v, torch.stack((torch.cos(th), torch.sin(th)), -1), self.u, v_d, a_d]

@@ -63,7 +63,9 @@ class FilterOut(NamedTuple):
     triggered: torch.Tensor  #: ``(B, N)`` bool: eqn.13 acted on the robot
     correction: torch.Tensor  #: ``(B, N)`` ``|du - nominal|``
     intervened: torch.Tensor  #: ``(B, N)`` bool: the nominal was changed
-    gap: torch.Tensor  #: ``(B, N)`` smallest surface gap to a robot or obstacle in range (``D - 2 r`` without)
+    #: ``(B, N)`` smallest surface gap to a robot or obstacle in range (``D - 2 r`` without; None from the env's
+    #: compiled stages, :mod:`.compiled`)
+    gap: torch.Tensor | None
 
 
 def torch_config(config: Any = None, mode: str | None = None, **options: Any) -> FilterConfig:
