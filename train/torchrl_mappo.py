@@ -141,7 +141,8 @@ def train(frames: int, teams: int, robots: int, seed: int, centralised: bool, ev
     actor, critic = build(env, centralised, norm=observation_stats(env))
     start_params = [p.detach().clone() for p in actor.parameters()]
     per_batch = teams * steps  # decisions of 100 ms per team per iteration
-    collector = Collector(env, actor, frames_per_batch=per_batch, total_frames=frames)
+    collector = Collector(env, actor, frames_per_batch=per_batch, total_frames=frames,
+                          auto_register_policy_transforms=False)  # (a feed-forward policy: no InitTracker)
     buffer = ReplayBuffer(storage=LazyTensorStorage(per_batch), sampler=SamplerWithoutReplacement(),
                           batch_size=max(1, per_batch // minibatches))
     loss = ClipPPOLoss(actor_network=actor, critic_network=critic, clip_epsilon=0.2, entropy_coeff=1e-3,
