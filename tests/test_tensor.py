@@ -154,8 +154,8 @@ def test_negotiation_groups_equal_the_numpy_filters_and_inconsistent_ones_are_fl
     """``negotiate=True`` (the default): 1,200 team states where the trigger's memory flags robots near contact, so
     most teams form negotiation groups; the torch filter solves them by the numpy filter's solver. Wherever the numpy
     filter's status is ``solved`` every robot's ``du`` agrees to 1e-9, grouped ones included (flagged ``GROUPED``);
-    exactly the teams whose group is inconsistent (numpy: ``relaxed``) have ``GROUPED | RELAXED`` robots; the trigger
-    memory agrees everywhere."""
+    exactly the teams whose group is inconsistent (numpy: ``relaxed``) have ``GROUPED | RELAXED`` robots, and every
+    robot's status bits are the numpy filter's ``flags``; the trigger memory agrees everywhere."""
     rng = np.random.default_rng(1)
     n = 12
     states = random_states(rng, 1200, n)
@@ -170,6 +170,7 @@ def test_negotiation_groups_equal_the_numpy_filters_and_inconsistent_ones_are_fl
     group_relaxed = np.array([r.message.endswith(": relaxed") for r in ref])
     assert group_relaxed.sum() >= 20
     assert np.array_equal((grouped & (status & RELAXED > 0)).any(axis=1), group_relaxed)
+    assert np.array_equal(status, np.stack([r.flags for r in ref]))
     assert np.array_equal(out.avoiding.numpy(), np.stack([r.avoiding for r in ref]))
 
 
@@ -191,6 +192,7 @@ def test_the_filter_with_the_numpy_backup_layer_equals_the_numpy_filter():
     assert braked.sum() >= 50 and np.array_equal(status & BACKUP > 0, braked)
     unsafe = np.array([not r.safe for r in ref])
     assert 0 < unsafe.sum() < 200 and np.array_equal((status & UNSAFE > 0).any(axis=1), unsafe)
+    assert np.array_equal(status, np.stack([r.flags for r in ref]))
 
 
 @pytest.mark.slow

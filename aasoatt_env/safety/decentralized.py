@@ -94,6 +94,8 @@ class DecentralizedResult(NamedTuple):
     group_status: str  #: ``"solved"`` without groups
     #: the groups' QP was answered by the closed form or the warm active set (True without groups)
     group_warm: bool = True
+    #: ``(N,)`` grouped robots in a row their group's answer violates (an inconsistent group; None: no groups)
+    group_loose: np.ndarray | None = None
 
 
 def negotiation_rows(triggered: np.ndarray, p: np.ndarray, radius: np.ndarray, ri: np.ndarray, rj: np.ndarray,
@@ -140,6 +142,7 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
     slack = _half_slack(sp, sol.x, infeasible)
     du = np.minimum(np.maximum(sol.x, lo), hi)
     grouped, joint, group_ans, kept, n_groups, largest = np.zeros(A.shape[0], dtype=bool), None, None, None, 0, 0
+    loose = np.zeros_like(grouped)
     if whole is not None and (whole := whole & (rj >= 0)).any():  # (an obstacle row is never whole)
         if policy is None:
             raise ValueError("policy: the negotiation groups' solver is required with whole rows")
@@ -154,6 +157,7 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
             infeasible &= ~grouped
             slack = _half_slack(sp, sol.x, infeasible)
         du[grouped] = group_ans.du
+        loose = _loose(du, ri, rj, Gi, Gj, rhs, joint, sp, kept, scale)
     eta_half, z_half = _half_multipliers(sp, lam, H, scale, rhs.shape[0])
     status, iterations = "solved", sol.iterations
     if joint is not None:  # the groups' multipliers: a whole row's on both of its sides, a kept half's on its side
@@ -167,7 +171,24 @@ def decentralized_step(A: np.ndarray, target: np.ndarray, lo: np.ndarray, hi: np
     eta, z = np.maximum(eta_half[:, 0], eta_half[:, 1]), np.maximum(z_half[:, 0], z_half[:, 1])
     return DecentralizedResult(du, eta, eta_half, z, z_half, infeasible, int(infeasible.sum()), slack, iterations,
                                sol.n_enumerated, grouped, n_groups, largest, status,
-                               group_ans is None or group_ans.message in WARM_MESSAGES)
+                               group_ans is None or group_ans.message in WARM_MESSAGES, loose)
+
+
+def _loose(du: np.ndarray, ri: np.ndarray, rj: np.ndarray, Gi: np.ndarray, Gj: np.ndarray, rhs: np.ndarray,
+           joint: np.ndarray, sp: SplitRows, kept: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """``(N,)`` the grouped robots of a row their groups' answer ``du`` violates (an inconsistent group's).
+
+    Over ``1e-9`` of the row's scale, as the torch filter's ``_negotiate``: both robots of a whole row, a kept half's
+    owner.
+    """
+    a, b, o = ri[joint], rj[joint], sp.owner[kept]
+    whole = Gi[joint, 0] * du[a, 0] + Gi[joint, 1] * du[a, 1] + (Gj[joint, 0] * du[b, 0] + Gj[joint, 1] * du[b, 1])
+    half = sp.G[kept, 0] * du[o, 0] + sp.G[kept, 1] * du[o, 1] - sp.h[kept]
+    out = np.zeros(du.shape[0], dtype=bool)
+    over = whole - rhs[joint] > 1e-9 * np.hypot(Gi[joint, 0], Gi[joint, 1]) * np.maximum(scale[a], scale[b])
+    out[a[over]] = out[b[over]] = True
+    out[o[half > 1e-9 * np.hypot(sp.G[kept, 0], sp.G[kept, 1]) * scale[o]]] = True
+    return out
 
 
 def _objective(A: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -327,9 +348,7 @@ class Decentralized:
         avoiding = avoiding_robots(n, rows, binds[:, 0], binds[:, 1])
         checked = status != "solved" or (ans.grouped.any() and not self.policy.exact)
         slack = float(max(0.0, np.max(rows.values(ans.du) - rows.rhs, initial=0.0))) if checked else 0.0
-        flags = np.where(ans.infeasible, RELAXED, 0) | np.where(ans.grouped, GROUPED, 0)
-        if ans.group_status != "solved":  # (the groups' joint answer: relaxed, or failed)
-            flags |= np.where(ans.grouped, RELAXED, 0)
+        flags = np.where(ans.infeasible | ans.group_loose, RELAXED, 0) | np.where(ans.grouped, GROUPED, 0)
         return Answer(ans.du.copy(), ans.du / s.scale[:, None], ans.z, ans.eta, avoiding, status, message,
                       ans.iterations, rows.m, slack, ans.group_warm, flags)
 
