@@ -365,3 +365,39 @@ def test_ldp_dense_rows_are_the_sparse_forms(kind):
         np.testing.assert_array_equal(dense.Mt.view(np.int64), ref.Mt.toarray().view(np.int64))
         np.testing.assert_array_equal(dense.b, ref.b)
         np.testing.assert_array_equal(dense.gt, ref.gt)
+
+
+def test_the_parts_the_active_set_leaves_go_to_the_back_end_in_chunks_of_whole_parts(swap10, monkeypatch):
+    # eight independent parts in one QP, two of them infeasible, with no warm start the active set verifies: the
+    # route answers them in chunks of whole parts of at most REST_CHUNK variables (a larger part alone), each part
+    # its own exact optimum, as when they go as one problem
+    import dataclasses
+
+    import scipy.sparse as sp
+
+    import aasoatt_env.safety.solvers.policy as pol
+
+    _, recorded = swap10
+    parts = [recorded[k] for k in (10, 35, 60, 85, 110, 135, 160, 185)]
+    for k in (2, 5):
+        parts[k] = dataclasses.replace(parts[k], u=parts[k].u - 5.0)  # (no point meets these rows)
+    stack = dataclasses.replace(
+        parts[0], H_blocks=np.concatenate([p.H_blocks for p in parts]), g=np.concatenate([p.g for p in parts]),
+        C=sp.block_diag([p.C for p in parts], format="csr"), u=np.concatenate([p.u for p in parts]),
+        lb=np.concatenate([p.lb for p in parts]), ub=np.concatenate([p.ub for p in parts]),
+        scale=np.concatenate([p.scale for p in parts]), row_norm=np.concatenate([p.row_norm for p in parts]))
+    groups = np.repeat(np.arange(8), [p.n // 2 for p in parts])
+    x0, z0 = np.zeros(stack.n), np.zeros(stack.m)
+    sizes, routed = [], pol.SolverPolicy._routed
+    monkeypatch.setattr(pol.SolverPolicy, "_routed",
+                        lambda self, prob, *a: sizes.append(prob.n) or routed(self, prob, *a))
+    answers = {}
+    for most in (10**9, 2 * parts[0].n):
+        sizes.clear()
+        monkeypatch.setattr(pol, "REST_CHUNK", most)
+        answers[most] = pol.SolverPolicy("proxsuite", active_set=True, one_change_iter=0).solve(stack, x0, z0, groups)
+        assert answers[most].status == "relaxed" and max(sizes) <= max(most, max(p.n for p in parts))
+    one, chunked = answers[10**9], answers[2 * parts[0].n]
+    assert "chunks" not in one.message and len(sizes) >= 3 and "chunks" in chunked.message, chunked.message
+    np.testing.assert_allclose(chunked.x, one.x, atol=1e-6)
+    assert abs(chunked.slack - one.slack) <= 1e-6 * max(1.0, one.slack)

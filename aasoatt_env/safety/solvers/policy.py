@@ -23,9 +23,11 @@ from aasoatt_env.safety.solvers.active_set import (
 )
 from aasoatt_env.safety.solvers.backends import LDP_MAX_VARS, RawAnswer, available_solvers, get_solver
 
-__all__ = ["EXACT_ROUTE", "PHASE1_REG", "PHASE1_ROUTE", "QPSolution", "SolverPolicy", "route", "solve_qp"]
+__all__ = ["EXACT_ROUTE", "PHASE1_REG", "PHASE1_ROUTE", "REST_CHUNK", "QPSolution", "SolverPolicy", "route", "solve_qp"]
 
 _FEAS_TOL = 1e-7
+#: most variables of one problem of the parts the warm active set left (whole parts; their cost grows faster than size)
+REST_CHUNK: int = 128
 PHASE1_REG: float = 1e-8  #: phase 1's weight of ``0.5 |x|^2`` beside the violations' ``0.5 |s|^2`` (a unique point)
 
 #: ``(solver, most variables)`` asked first, where installed, before a back-end that may stall (exact, or a proof)
@@ -101,15 +103,30 @@ class SolverPolicy:
 
     def _rest(self, prob: QPProblem, x0: np.ndarray, z0: np.ndarray, groups: np.ndarray,
               part: ActiveSetParts, relaxed: bool) -> QPSolution:
-        """The parts the active set verified, and the route's answer on the others as one problem."""
-        robots, rows = ~part.ok[groups], ~part.ok[part.row_group]
-        v = np.repeat(robots, 2)
-        rest = self._routed(prob.restrict(robots, rows), x0[v], z0[rows], relaxed)
+        """The parts the active set verified, and the route's answers on the others.
+
+        In chunks of whole parts of at most :data:`REST_CHUNK` variables (a larger part alone): small problems for
+        the exact solvers and phase 1.
+        """
+        bad = np.flatnonzero(~part.ok)
+        size = 2 * np.bincount(groups, minlength=part.ok.shape[0])[bad]
+        chunk = np.zeros(part.ok.shape[0], dtype=np.intp)
+        chunk[bad] = _chunks(size, REST_CHUNK)
         x, z = part.x.copy(), part.z.copy()
-        x[v], z[rows] = rest.x, rest.z
-        return QPSolution(x, z, rest.status, rest.slack, part.iterations + rest.iterations,
+        answers = []
+        for c in range(int(chunk[bad].max()) + 1):
+            mine = ~part.ok & (chunk == c)
+            robots, rows = mine[groups], mine[part.row_group]
+            v = np.repeat(robots, 2)
+            rest = self._routed(prob.restrict(robots, rows), x0[v], z0[rows], relaxed)
+            x[v], z[rows] = rest.x, rest.z
+            answers.append(rest)
+        worst = max(answers, key=lambda a: _STATUSES.index(a.status))
+        return QPSolution(x, z, worst.status, max(a.slack for a in answers),
+                          part.iterations + sum(a.iterations for a in answers),
                           f"{VERIFIED_MESSAGE} on {int(part.ok.sum())} of {part.ok.shape[0]} parts; the other "
-                          f"{int((~part.ok).sum())}: {rest.message}")
+                          f"{bad.shape[0]}" + (f" in {len(answers)} chunks" if len(answers) > 1 else "")
+                          + f": {worst.message}")
 
     def _ask(self, prob: QPProblem, x0: np.ndarray | None, z0: np.ndarray | None, loosened: bool = False) -> RawAnswer:
         """The route's first verified answer (``loosened``: its first solver's), or the last answer, not ok.
@@ -162,6 +179,19 @@ class SolverPolicy:
                               raw.iterations + raw2.iterations, msg)
         return QPSolution(x1, np.zeros(prob.m), "relaxed", tstar, raw.iterations + raw2.iterations,
                           msg + "; the loosened problem failed, the phase-1 point returned")
+
+
+_STATUSES = ("solved", "relaxed", "failed")  # (from best to worst)
+
+
+def _chunks(size: np.ndarray, most: int) -> np.ndarray:
+    """Each part's chunk: consecutive parts of ``size`` variables, a chunk at most ``most`` (a larger part alone)."""
+    chunk, total, out = 0, 0, np.zeros(size.shape[0], dtype=np.intp)
+    for k, s in enumerate(size.tolist()):  # (the parts the active set left: few)
+        if total and total + s > most:
+            chunk, total = chunk + 1, 0
+        out[k], total = chunk, total + s
+    return out
 
 
 def solve_qp(prob: QPProblem, solver: str = "proxsuite", x0: np.ndarray | None = None, z0: np.ndarray | None = None,
