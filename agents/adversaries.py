@@ -147,6 +147,7 @@ class ChaseTarget:
 
     def __init__(self, seed: int | None = 0) -> None:
         self.seed = seed
+        self.target: np.ndarray | None = None  # (picked at reset, or at the first act)
 
     def reset(self, env: Any) -> None:
         """Pick the targets."""
@@ -156,6 +157,8 @@ class ChaseTarget:
 
     def act(self, observations: dict[str, np.ndarray], env: Any) -> dict[str, np.ndarray]:
         """Full point acceleration toward the target robot."""
+        if self.target is None or self.target.shape[0] != env.unwrapped.team.n:
+            self.reset(env)
         return _point_toward(env, env.unwrapped.positions[self.target])
 
 
@@ -164,6 +167,7 @@ class UniformNoise:
 
     def __init__(self, seed: int | None = 0) -> None:
         self.seed = seed
+        self.rng = np.random.default_rng(seed)  # (as after reset: act() may come first)
 
     def reset(self, env: Any) -> None:
         """Restart the random sequence."""

@@ -291,13 +291,14 @@ def test_custom_scenario_with_waypoints_callable_and_obstacles():
         AASOATTParallelEnv("custom", starts=starts, reference=circle)
 
 
-def test_a_seeded_adversary_acts_before_its_reset_as_after_it():
-    """``bang_bang`` called without ``reset``: the same signs as after ``reset`` (not an AttributeError)."""
+def test_every_adversary_acts_before_its_reset_as_after_it():
+    """Each of ``ADVERSARIES`` called without ``reset``: the same actions as after ``reset`` (not an AttributeError)."""
     from agents import ADVERSARIES
 
     env = aasoatt_env.make_env("random_goals", num_robots=4)
     obs, _ = env.reset(seed=0)
-    fresh, reset = ADVERSARIES["bang_bang"](seed=5), ADVERSARIES["bang_bang"](seed=5)
-    reset.reset(env)
-    a, b = fresh.act(obs, env), reset.act(obs, env)
-    assert all(np.array_equal(a[k], b[k]) for k in a)
+    for name, cls in ADVERSARIES.items():
+        fresh, reset = cls(), cls()
+        reset.reset(env)
+        a, b = fresh.act(obs, env), reset.act(obs, env)
+        assert all(np.array_equal(a[k], b[k]) for k in a), name

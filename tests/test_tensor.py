@@ -821,7 +821,8 @@ def test_the_compiled_stages_observe_large_teams_within_their_own_team():
     and the torch stages, float64: the same observations and clearance after reset and 3 bare steps."""
     from aasoatt_env.tensor.env import make_tensor_env
 
-    envs = [make_tensor_env("random_goals", 2, 210, dtype=torch.float64, filter=False, compiled=c) for c in (False, True)]
+    envs = [make_tensor_env("random_goals", 2, 210, dtype=torch.float64, filter=False, compiled=c)
+            for c in (False, True)]
     outs = [e.reset(seed=3)[0] for e in envs]
     assert torch.allclose(outs[0], outs[1], atol=1e-5, rtol=0)
     for _ in range(3):

@@ -195,8 +195,10 @@ def _distances(p: np.ndarray, teams: int) -> np.ndarray:
 
 
 def _nearest(d: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Each row's ``k`` nearest in ``d (K, N, N)``: stack indices, distances ``(K N, k)``, nearest first and the lower
-    index on a tie (-1, inf: none)."""
+    """Each row's ``k`` nearest in ``d (K, N, N)``: stack indices, distances ``(K N, k)`` (-1, inf: none).
+
+    Nearest first, the lower index on a tie.
+    """
     teams, n = d.shape[0], d.shape[1]
     kk = min(k, n - 1)
     if kk <= 0:

@@ -1,8 +1,8 @@
 """The torch env's compiled CPU stages: the numpy env's kernels and the numpy filter on the tensors' memory.
 
 :class:`CompiledStages` is chosen when a :class:`~aasoatt_env.tensor.env.TensorEnv` is built (``compiled``): on a
-CPU, without ``differentiable``, where numba imports.  Each stage is the numpy env's own: kinematics and the exact-arc
-step (:mod:`aasoatt_env.model.dynamics_kernel`), the neighbour table and clearance
+CPU, without ``differentiable``, with the numpy backup layer, where numba imports.  Each stage is the numpy env's
+own: kinematics and the exact-arc step (:mod:`aasoatt_env.model.dynamics_kernel`), the neighbour table and clearance
 (:func:`~aasoatt_env.model.geometry.neighbourhood`), observations (:mod:`aasoatt_env.sim.observations_kernel`), and
 one numpy :class:`~aasoatt_env.safety.core.SafetyFilter` for all teams (a stacked team, each team its own group, as
 :class:`~aasoatt_env.sim.batched.BatchedAASOATTEnv`'s grouped filter), which keeps its warm start and trigger memory
@@ -17,12 +17,12 @@ import torch
 
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.geometry import Proximity, neighbourhood
-from aasoatt_env.model.params import Team, stack_teams
+from aasoatt_env.model.params import Team
 from aasoatt_env.safety.config import FilterConfig
 from aasoatt_env.safety.core import SafetyFilter
 from aasoatt_env.sim.observations import build_observations
 from aasoatt_env.tensor.filter import FilterOut
-from aasoatt_env.tensor.model import TensorKinematics
+from aasoatt_env.tensor.model import TensorKinematics, stacked_team
 
 __all__ = ["CompiledStages", "as_numpy"]
 
@@ -37,7 +37,7 @@ class CompiledStages:
 
     def __init__(self, team: Team, num_envs: int, config: FilterConfig | None, dtype: torch.dtype) -> None:
         self.B, self.N, self.dtype = num_envs, team.n, dtype
-        self.team = stack_teams([team] * num_envs)
+        self.team = stacked_team(team, num_envs)
         self.filter = None if config is None else SafetyFilter(self.team, config)
         self.equal_radii = np.full(num_envs, team.radius.min() == team.radius.max())
         self.kin: dynamics.Kinematics | None = None
@@ -47,15 +47,10 @@ class CompiledStages:
     def _t(self, a: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(a).reshape(self.B, self.N, *a.shape[1:]).to(self.dtype)
 
-    def restart(self, teams: np.ndarray | None = None) -> None:
-        """Forget the filter's memory of ``teams`` (None: of all), whose episodes start."""
-        if self.filter is None:
-            return
-        if teams is None:
-            self.filter.reset(self.team)
-        else:
-            rows = (teams[:, None] * self.N + np.arange(self.N)).ravel()
-            self.filter.reset_rows(rows, self.team)
+    def restart(self, teams: np.ndarray) -> None:
+        """Forget the filter's memory of ``teams``, whose episodes start."""
+        if self.filter is not None:
+            self.filter.reset_rows((teams[:, None] * self.N + np.arange(self.N)).ravel(), self.team)
 
     def kinematics(self, pose: torch.Tensor, u: torch.Tensor) -> TensorKinematics:
         """:func:`~aasoatt_env.model.dynamics.kinematics` (kept, and the state, for the other stages)."""
@@ -85,8 +80,11 @@ class CompiledStages:
 
     def step_filter(self, nominal: torch.Tensor, lo: torch.Tensor, hi: torch.Tensor, p_d: torch.Tensor,
                     v_d: torch.Tensor, oc: torch.Tensor, orad: torch.Tensor) -> FilterOut:
-        """The numpy filter's step of every team at the last state (``FilterOut.gap`` None: the env reports
-        ``clearance``)."""
+        """The numpy filter's step of every team at the last state.
+
+        ``FilterOut.avoiding``: the numpy result's (a binding row, or braking); ``gap`` None (the env reports
+        ``clearance``).
+        """
         m = orad.shape[-1]
         obstacles = (as_numpy(oc, 2), as_numpy(orad, 1)[:, 0], np.repeat(np.arange(self.B), m)) if m else None
         du, res = self.filter.step(self.kin, self.u, self.pose[:, 2], as_numpy(nominal, 2),

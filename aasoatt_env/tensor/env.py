@@ -1,11 +1,13 @@
 """``TensorEnv``: ``B`` teams of ``N`` robots as torch tensors, stepped at once (:func:`make_tensor_env`).
 
 The PettingZoo env's dynamics, observations, rewards and episode length: team ``b`` after ``reset(seed=s)`` is the
-layout of ``reset(seed=s + b)``, built by the numpy scenario (the step never leaves torch). A finished team is reset
-in the same step from its own generator, and the observation returned is its new episode's first. Actions are
-nominal wheel accelerations in units of the bound (behind the torch filter of :mod:`.filter` or not), or with
-``action_mode="point"`` control-point accelerations in units of ``max_point_accel``, turned into ``A^-1 (a - A_dot u)``
-at every physics step. No termination on collision; linear references only (``random_goals``, ``circle_swap``, ...).
+layout of ``reset(seed=s + b)``, built by the numpy scenario. The step runs the torch stages (:mod:`.model`,
+:mod:`.filter`: any device, differentiable) or, chosen when the env is built, the compiled CPU stages
+(:mod:`.compiled`). A finished team is reset in the same step from its own generator, and the observation returned
+is its new episode's first. Actions are nominal wheel accelerations in units of the bound (behind the filter or
+not), or with ``action_mode="point"`` control-point accelerations in units of ``max_point_accel``, turned into
+``A^-1 (a - A_dot u)`` at every physics step. No termination on collision; linear references only (``random_goals``,
+``circle_swap``, ...).
 """
 
 from __future__ import annotations
@@ -169,7 +171,7 @@ class TensorEnv:
         self.pose, self.u = self._st["pose"], torch.zeros(B, N, 2, dtype=self.dtype, device=self.device)
         self.time = torch.zeros(B, dtype=torch.float64, device=self.device)
         self.steps = torch.zeros(B, dtype=torch.long, device=self.device)
-        self.avoiding = torch.zeros(B, N, dtype=torch.bool, device=self.device)
+        self._avoiding = torch.zeros(B, N, dtype=torch.bool, device=self.device)
         self._refresh()
         return self._observations(), self._infos(None)
 
@@ -200,7 +202,7 @@ class TensorEnv:
         self.u = self.u.index_fill(0, idx, 0.0)
         self.time = self.time.index_fill(0, idx, 0.0)
         self.steps = self.steps.index_fill(0, idx, 0)
-        self.avoiding = self.avoiding.index_fill(0, idx, False)
+        self._avoiding = self._avoiding.index_fill(0, idx, False)
         if self._cpu is not None:
             self._cpu.restart(np.asarray(teams))
 
@@ -282,9 +284,9 @@ class TensorEnv:
                 p_d, v_d, _ = self.ref
                 oc, orad = self._st["oc"], self._st["orad"]
                 last, out = out, (filter_step(team, self.config, self.pose, self.u, du, p_d, v_d, (oc, orad),
-                                              self.avoiding, self.backup_check) if self._cpu is None else
+                                              self._avoiding, self.backup_check) if self._cpu is None else
                                   self._cpu.step_filter(du, lo, hi, p_d, v_d, oc, orad))
-                self.avoiding, du = out.avoiding, out.du
+                self._avoiding, du = out.avoiding, out.du
                 if last is not None:
                     out = out._replace(correction=torch.maximum(last.correction, out.correction),
                                        intervened=last.intervened | out.intervened, status=last.status | out.status)
@@ -338,8 +340,8 @@ class TensorEnv:
         r = self.team.radius
         clear = (self.dist - r[:, None] - r[None, :]).amin(-1) if N > 1 else torch.full_like(p[..., 0], math.inf)
         oc, orad = self._st["oc"], self._st["orad"]
-        self.ogap = row_norm(p[:, :, None, :] - oc[:, None, :, :]) - r[None, :, None] - orad[:, None, :]
-        self.clearance = torch.minimum(clear, self.ogap.amin(-1)) if orad.shape[-1] else clear
+        self._ogap = row_norm(p[:, :, None, :] - oc[:, None, :, :]) - r[None, :, None] - orad[:, None, :]
+        self.clearance = torch.minimum(clear, self._ogap.amin(-1)) if orad.shape[-1] else clear
         self.tracking_error = row_norm(p - self.ref[0])
 
     def _rewards(self, act: torch.Tensor, corr: torch.Tensor | None) -> torch.Tensor:
@@ -369,8 +371,8 @@ class TensorEnv:
             parts.append(_slots(self.num_neighbors, dist <= self.sensing_range, pick(p, idx) - p[:, :, None],
                                 pick(v, idx) - v[:, :, None], gap))
         if self.num_obstacles:
-            order = torch.sort(self.ogap, dim=-1, stable=True)
-            kk = min(self.num_obstacles, self.ogap.shape[-1])
+            order = torch.sort(self._ogap, dim=-1, stable=True)
+            kk = min(self.num_obstacles, self._ogap.shape[-1])
             idx, g = order.indices[..., :kk], order.values[..., :kk]
             ok = g + r[..., None] + pick(self._st["orad"], idx) <= self.sensing_range
             parts.append(_slots(self.num_obstacles, ok, pick(self._st["oc"], idx) - p[:, :, None],

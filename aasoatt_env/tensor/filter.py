@@ -26,7 +26,6 @@ import torch
 from aasoatt_env.errors import ConfigError, StateError
 from aasoatt_env.model.dynamics import pose_from_point
 from aasoatt_env.model.geometry import row_norm, safe_sqrt
-from aasoatt_env.model.params import stack_teams
 from aasoatt_env.safety.backup import backup_answer
 from aasoatt_env.safety.barriers import PairGeometry, get_barrier
 from aasoatt_env.safety.config import FilterConfig
@@ -46,6 +45,7 @@ from aasoatt_env.tensor.model import (
     kinematics,
     matvec,
     pick,
+    stacked_team,
 )
 from aasoatt_env.validation import MAGNITUDE_MAX, short_repr
 
@@ -422,9 +422,7 @@ def _numpy_backup(team: TensorTeam, cfg: FilterConfig, kin: TensorKinematics, po
     dev = du.device
     if team.source is None:
         raise ConfigError("backup_check: 'numpy' needs a team built by TensorTeam.from_team (its numpy team)")
-    stacked = team.source.derived.get(("stacked", B))
-    if stacked is None:
-        stacked = team.source.derived[("stacked", B)] = stack_teams([team.source] * B)
+    stacked = stacked_team(team.source, B)
 
     def cpu(x: torch.Tensor) -> np.ndarray:
         return np.ascontiguousarray(_numpy(x.flatten(0, 1)))

@@ -13,10 +13,10 @@ import torch
 
 from aasoatt_env.errors import ConfigError
 from aasoatt_env.model.dynamics import _SMALL_OMEGA
-from aasoatt_env.model.params import Team
+from aasoatt_env.model.params import Team, stack_teams
 
 __all__ = ["TensorKinematics", "TensorTeam", "arc", "check_dtype_device", "input_bounds", "integrate", "kinematics",
-           "matvec", "pick", "points", "pose_from_point"]
+           "matvec", "pick", "points", "pose_from_point", "stacked_team"]
 
 
 def check_dtype_device(dtype: Any, device: Any) -> None:
@@ -144,3 +144,11 @@ def pose_from_point(team: TensorTeam, p: torch.Tensor, theta: torch.Tensor) -> t
     """Axle poses ``(B, N, 3)`` whose control points are ``p`` at headings ``theta``."""
     return torch.stack((p[..., 0] - team.offset * torch.cos(theta), p[..., 1] - team.offset * torch.sin(theta),
                         theta), -1)
+
+
+def stacked_team(team: Team, copies: int) -> Team:
+    """``copies`` of a numpy team stacked as one, each its own group (built once per team and count)."""
+    key = ("stacked", copies)
+    if key not in team.derived:
+        team.derived[key] = stack_teams([team] * copies)
+    return team.derived[key]
