@@ -199,13 +199,24 @@ def test_stacked_teams_take_the_dense_active_set_and_match_quadprog(swap10, monk
     assert dense_calls and min(dense_calls) > AS.DENSE_MAX_VARS
 
 
+def _stacked(parts: list) -> object:
+    """One QP of independent ``parts`` (a stack of teams): block-diagonal rows, the parts' variables in order."""
+    import dataclasses
+
+    import scipy.sparse as sp
+
+    return dataclasses.replace(
+        parts[0], H_blocks=np.concatenate([p.H_blocks for p in parts]), g=np.concatenate([p.g for p in parts]),
+        C=sp.block_diag([p.C for p in parts], format="csr"), u=np.concatenate([p.u for p in parts]),
+        lb=np.concatenate([p.lb for p in parts]), ub=np.concatenate([p.ub for p in parts]),
+        scale=np.concatenate([p.scale for p in parts]), row_norm=np.concatenate([p.row_norm for p in parts]))
+
+
 def test_a_stack_s_parts_are_verified_one_by_one_and_only_the_rest_goes_to_the_back_end(swap10):
     # four independent parts in one QP (a stack of teams), one of them infeasible: the warm
     # active set answers the three it verifies, only the infeasible one goes to the back-end and
     # phase 1, and every part's answer is its own exact optimum
     import dataclasses
-
-    import scipy.sparse as sp
 
     import aasoatt_env.safety.solvers.active_set as AS
     from aasoatt_env.safety.solvers.policy import SolverPolicy
@@ -213,11 +224,7 @@ def test_a_stack_s_parts_are_verified_one_by_one_and_only_the_rest_goes_to_the_b
     _, recorded = swap10
     parts = [recorded[k] for k in (10, 60, 110, 160)]
     parts[2] = dataclasses.replace(parts[2], u=parts[2].u - 5.0)  # unit rows, |x| <= 1: no point meets these
-    stack = dataclasses.replace(
-        parts[0], H_blocks=np.concatenate([p.H_blocks for p in parts]), g=np.concatenate([p.g for p in parts]),
-        C=sp.block_diag([p.C for p in parts], format="csr"), u=np.concatenate([p.u for p in parts]),
-        lb=np.concatenate([p.lb for p in parts]), ub=np.concatenate([p.ub for p in parts]),
-        scale=np.concatenate([p.scale for p in parts]), row_norm=np.concatenate([p.row_norm for p in parts]))
+    stack = _stacked(parts)
     groups = np.repeat(np.arange(4), [p.n // 2 for p in parts])
     warm = [solve_qp(recorded[k - 1], "quadprog") for k in (10, 60, 110, 160)]
     x0, z0 = np.concatenate([w.x for w in warm]), np.concatenate([w.z for w in warm])
@@ -373,19 +380,13 @@ def test_the_parts_the_active_set_leaves_go_to_the_back_end_in_chunks_of_whole_p
     # its own exact optimum, as when they go as one problem
     import dataclasses
 
-    import scipy.sparse as sp
-
     import aasoatt_env.safety.solvers.policy as pol
 
     _, recorded = swap10
     parts = [recorded[k] for k in (10, 35, 60, 85, 110, 135, 160, 185)]
     for k in (2, 5):
         parts[k] = dataclasses.replace(parts[k], u=parts[k].u - 5.0)  # (no point meets these rows)
-    stack = dataclasses.replace(
-        parts[0], H_blocks=np.concatenate([p.H_blocks for p in parts]), g=np.concatenate([p.g for p in parts]),
-        C=sp.block_diag([p.C for p in parts], format="csr"), u=np.concatenate([p.u for p in parts]),
-        lb=np.concatenate([p.lb for p in parts]), ub=np.concatenate([p.ub for p in parts]),
-        scale=np.concatenate([p.scale for p in parts]), row_norm=np.concatenate([p.row_norm for p in parts]))
+    stack = _stacked(parts)
     groups = np.repeat(np.arange(8), [p.n // 2 for p in parts])
     x0, z0 = np.zeros(stack.n), np.zeros(stack.m)
     sizes, routed = [], pol.SolverPolicy._routed
