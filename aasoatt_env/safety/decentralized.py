@@ -20,6 +20,7 @@ from aasoatt_env.safety.problem import box_least_squares
 from aasoatt_env.safety.rows import Rows
 from aasoatt_env.safety.solvers import SolverPolicy
 from aasoatt_env.safety.solvers.local import RELAX_TOL, solve_local_qps
+from aasoatt_env.safety.solvers.policy import SEVERITY
 from aasoatt_env.safety.stages import GROUPED, RELAXED, Answer, StepInput, Warm
 
 __all__ = ["GROUP_ONE_CHANGE_ITER", "SPLITS", "Decentralized", "DecentralizedResult", "SplitRows",
@@ -311,7 +312,7 @@ def _joined(parts: list[tuple[np.ndarray, np.ndarray, TeamAnswer]], n: int, m: i
     du, x, z, eta = np.zeros((n, 2)), np.zeros((n, 2)), np.zeros(m), np.zeros(m)
     for robots, rows, a in parts:
         du[robots], x[robots], z[rows], eta[rows] = a.du, a.x, a.z, a.eta
-    worst = max((a for _, _, a in parts), key=lambda a: _SEVERITY.index(a.status))
+    worst = max((a for _, _, a in parts), key=lambda a: SEVERITY.index(a.status))
     return TeamAnswer(du, x, z, eta, worst.status, worst.message, max(a.iterations for _, _, a in parts),
                       sum(a.n_qp for _, _, a in parts), all(a.exact for _, _, a in parts))
 
@@ -336,7 +337,7 @@ class Decentralized:
                                  s.team.max_point_accel, scale=s.scale, compiled=self.compiled, whole=whole,
                                  policy=self.policy, x_warm=warm.x if grouping else None,
                                  z_warm=warm.z if grouping else None, try_compiled=warm.compiled)
-        status = max("relaxed" if ans.n_relaxed else "solved", ans.group_status, key=_SEVERITY.index)
+        status = max("relaxed" if ans.n_relaxed else "solved", ans.group_status, key=SEVERITY.index)
         n_grouped = int(ans.grouped.sum())
         message = f"decentralized: {n - n_grouped} local QPs"
         if ans.n_relaxed:
@@ -352,5 +353,3 @@ class Decentralized:
         return Answer(ans.du.copy(), ans.du / s.scale[:, None], ans.z, ans.eta, avoiding, status, message,
                       ans.iterations, rows.m, slack, ans.group_warm, flags)
 
-
-_SEVERITY = ("solved", "relaxed", "failed")

@@ -10,7 +10,7 @@ from aasoatt_env.compiled import available as compiled_available
 from aasoatt_env.errors import ActionError
 from aasoatt_env.model import dynamics
 from aasoatt_env.model.dynamics import Kinematics
-from aasoatt_env.model.geometry import KDTREE_MIN_ROBOTS, Proximity, neighbourhood
+from aasoatt_env.model.geometry import Proximity, neighbourhood
 from aasoatt_env.model.params import Team, stack_teams
 from aasoatt_env.model.tracking import point_accel_to_du
 from aasoatt_env.sim.observations import build_observations
@@ -79,7 +79,7 @@ class TeamStack:
         uniform = len({lay.obstacle_radii.shape[0] for lay in layouts}) == 1
         self._ocenters = np.stack([lay.obstacle_centers for lay in layouts]) if uniform else None
         self._oradii = np.stack([lay.obstacle_radii for lay in layouts]) if uniform else None
-        self._stackable = uniform and (self._k == 1 or self._n < KDTREE_MIN_ROBOTS)  # one neighbour query for all
+        self._stackable = uniform  # one neighbour query for all (ragged obstacles: one per team)
         m = self._ocenters.shape[1] if uniform else 0
         self._obs_obstacles = (self._ocenters.reshape(-1, 2), self._oradii.ravel(),
                                np.repeat(np.arange(self._k) * m, self._n) if m and self._k > 1 else None

@@ -159,13 +159,12 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     if labels is None:
         return None
     K, rg, groups = labels
-    dense = _dense(n, m)
+    dense, W0 = _dense(n, m), warm_working_set(prob, x0, z0)
     if compiled and getattr(prob.C, "format", None) == "csr" and (dense or _parts_dense(rg, K, m)):
         factor = dense_least_distance_form(prob, False)  # (the kernel's algebra is per part)
         if factor is None:
             return None
         LinvT, gt, _, b = factor
-        W0 = warm_working_set(prob, x0, z0)
         out = _solve_compiled(prob, LinvT, gt, b, W0, groups, K, max_iter, one_change_iter, rg)
         if out is not None:
             return out
@@ -173,7 +172,6 @@ def solve_active_set_parts(prob, x0, z0, groups: np.ndarray | None, max_iter: in
     if form is None:
         return None
     LinvT, gt, M, b = form
-    W0 = warm_working_set(prob, x0, z0)
     loop = _WorkingSetLoop(functools.partial(_equality_point, M, dense, gt, b), rg, K)
     W = W0
     for rule, budget in ((_pdas_rule, max_iter), (_one_change_rule, one_change_iter)):

@@ -23,9 +23,11 @@ from aasoatt_env.safety.solvers.active_set import (
 )
 from aasoatt_env.safety.solvers.backends import LDP_MAX_VARS, RawAnswer, available_solvers, get_solver
 
-__all__ = ["EXACT_ROUTE", "PHASE1_REG", "PHASE1_ROUTE", "REST_CHUNK", "QPSolution", "SolverPolicy", "route", "solve_qp"]
+__all__ = ["EXACT_ROUTE", "PHASE1_REG", "PHASE1_ROUTE", "REST_CHUNK", "SEVERITY", "QPSolution", "SolverPolicy", "route",
+           "solve_qp"]
 
 _FEAS_TOL = 1e-7
+SEVERITY: tuple[str, ...] = ("solved", "relaxed", "failed")  #: :attr:`QPSolution.status`, from best to worst
 #: most variables of one problem of the parts the warm active set left (whole parts; their cost grows faster than size)
 REST_CHUNK: int = 128
 PHASE1_REG: float = 1e-8  #: phase 1's weight of ``0.5 |x|^2`` beside the violations' ``0.5 |s|^2`` (a unique point)
@@ -121,7 +123,7 @@ class SolverPolicy:
             rest = self._routed(prob.restrict(robots, rows), x0[v], z0[rows], relaxed)
             x[v], z[rows] = rest.x, rest.z
             answers.append(rest)
-        worst = max(answers, key=lambda a: _STATUSES.index(a.status))
+        worst = max(answers, key=lambda a: SEVERITY.index(a.status))
         return QPSolution(x, z, worst.status, max(a.slack for a in answers),
                           part.iterations + sum(a.iterations for a in answers),
                           f"{VERIFIED_MESSAGE} on {int(part.ok.sum())} of {part.ok.shape[0]} parts; the other "
@@ -179,9 +181,6 @@ class SolverPolicy:
                               raw.iterations + raw2.iterations, msg)
         return QPSolution(x1, np.zeros(prob.m), "relaxed", tstar, raw.iterations + raw2.iterations,
                           msg + "; the loosened problem failed, the phase-1 point returned")
-
-
-_STATUSES = ("solved", "relaxed", "failed")  # (from best to worst)
 
 
 def _chunks(size: np.ndarray, most: int) -> np.ndarray:
